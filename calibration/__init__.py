@@ -1,0 +1,1 @@
+"""streamdet.calibration"""

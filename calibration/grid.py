@@ -1,0 +1,185 @@
+"""BEV grid, quadrants and streaming sectors: the spatial conventions of streamdet, defined once.
+
+Frames and axes
+---------------
+Everything here is in the LiDAR frame of the sweep (nuScenes LIDAR_TOP: x right, y forward, z up).
+BEV maps are indexed ``[row, col] = [y_index, x_index]`` with row 0 at ``y_min`` and col 0 at ``x_min``;
+a cell ``(row, col)`` covers ``x in [x_min + col * voxel, x_min + (col + 1) * voxel)`` and the same for y.
+Image volumes are ``(C, Z, Y, X)`` with z index 0 at ``z_min``.
+
+Quadrants
+---------
+The BEV plane is split at the sensor origin into four quadrants, numbered counter-clockwise by azimuth::
+
+    q = 0: x >= 0, y >= 0   (azimuth [0, 90) deg)        q = 1: x < 0, y >= 0   ([90, 180))
+    q = 2: x < 0,  y < 0    ([180, 270))                  q = 3: x >= 0, y < 0   ([270, 360))
+
+Cropped maps of the touched quadrants are stacked along the batch dimension ``Q`` in increasing q.
+A quadrant map of shape ``(Yq, Xq)`` sits in the full map at ``quadrant_offset_cells(q)`` (row0, col0).
+
+Sectors (slices)
+----------------
+Azimuth is ``atan2(y, x)`` in degrees, wrapped to [0, 360). The LiDAR scans counter-clockwise from
+``start_deg``; slice k of n covers azimuths ``[start + k * 360 / n, start + (k + 1) * 360 / n)``.
+With ``start_deg`` a multiple of 90 and n >= 4 (n a multiple of 4), a slice lies in one quadrant;
+n = 2 touches two and n = 1 all four.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+NUM_QUADRANTS = 4
+
+
+@dataclass(frozen=True)
+class GridSpec:
+    """Metric extent and resolution of the BEV grid and of the image volume."""
+
+    x_range_m: tuple[float, float] = (-51.2, 51.2)  # must be symmetric: quadrants split at the sensor
+    y_range_m: tuple[float, float] = (-51.2, 51.2)
+    z_range_m: tuple[float, float] = (-3.0, 5.0)  # pillars span all of it; the image volume slices it
+    voxel_xy_m: float = 0.2  # pillar and image-voxel footprint
+    voxel_z_m: float = 0.5  # image-volume voxel height
+
+    def __post_init__(self) -> None:
+        for name in ("x_range_m", "y_range_m", "z_range_m"):
+            lo, hi = getattr(self, name)
+            if not (math.isfinite(lo) and math.isfinite(hi) and hi > lo):
+                raise ValueError(f"GridSpec.{name} must be a finite (min, max) with max > min, got {(lo, hi)}")
+        for name in ("x_range_m", "y_range_m"):
+            lo, hi = getattr(self, name)
+            if abs(lo + hi) > 1e-9:
+                raise ValueError(f"GridSpec.{name} must be symmetric about 0 (quadrants split at the sensor), got {(lo, hi)}")
+        if not self.voxel_xy_m > 0 or not self.voxel_z_m > 0:
+            raise ValueError(f"voxel sizes must be > 0, got xy={self.voxel_xy_m}, z={self.voxel_z_m}")
+        for name, extent, voxel in (
+            ("x_range_m", self.x_range_m[1] - self.x_range_m[0], self.voxel_xy_m),
+            ("y_range_m", self.y_range_m[1] - self.y_range_m[0], self.voxel_xy_m),
+            ("z_range_m", self.z_range_m[1] - self.z_range_m[0], self.voxel_z_m),
+        ):
+            cells = extent / voxel
+            if abs(cells - round(cells)) > 1e-6:
+                raise ValueError(f"GridSpec.{name} extent {extent} m is not a whole number of {voxel} m voxels")
+        if self.nx % 2 or self.ny % 2:
+            raise ValueError(f"grid {self.nx} x {self.ny} cells must be even in x and y to split into quadrants")
+
+    # ---- sizes in cells -------------------------------------------------------------------------
+    @property
+    def nx(self) -> int:
+        return round((self.x_range_m[1] - self.x_range_m[0]) / self.voxel_xy_m)
+
+    @property
+    def ny(self) -> int:
+        return round((self.y_range_m[1] - self.y_range_m[0]) / self.voxel_xy_m)
+
+    @property
+    def nz(self) -> int:
+        """Number of image-volume voxels along z."""
+        return round((self.z_range_m[1] - self.z_range_m[0]) / self.voxel_z_m)
+
+    @property
+    def quadrant_nx(self) -> int:
+        return self.nx // 2
+
+    @property
+    def quadrant_ny(self) -> int:
+        return self.ny // 2
+
+    # ---- quadrant placement ---------------------------------------------------------------------
+    def quadrant_offset_cells(self, q: int) -> tuple[int, int]:
+        """(row0, col0) of quadrant q's top-left cell in the full BEV map."""
+        _check_quadrant(q)
+        row0 = self.quadrant_ny if q in (0, 1) else 0
+        col0 = self.quadrant_nx if q in (0, 3) else 0
+        return row0, col0
+
+    def quadrant_origin_m(self, q: int) -> tuple[float, float]:
+        """(x, y) in metres of quadrant q's minimum corner (cell (0, 0) lower edges)."""
+        row0, col0 = self.quadrant_offset_cells(q)
+        return (self.x_range_m[0] + col0 * self.voxel_xy_m, self.y_range_m[0] + row0 * self.voxel_xy_m)
+
+    def quadrant_of_xy(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Quadrant index (int64) of each (x, y); points on an axis go to the non-negative side."""
+        x = np.asarray(x)
+        y = np.asarray(y)
+        q = np.where(y >= 0, np.where(x >= 0, 0, 1), np.where(x < 0, 2, 3))
+        return q.astype(np.int64)
+
+    def voxel_centers(self, q: int) -> np.ndarray:
+        """Centres of quadrant q's image-volume voxels, (Z, Yq, Xq, 3) float64 in metres."""
+        x0, y0 = self.quadrant_origin_m(q)
+        xs = x0 + (np.arange(self.quadrant_nx) + 0.5) * self.voxel_xy_m
+        ys = y0 + (np.arange(self.quadrant_ny) + 0.5) * self.voxel_xy_m
+        zs = self.z_range_m[0] + (np.arange(self.nz) + 0.5) * self.voxel_z_m
+        zz, yy, xx = np.meshgrid(zs, ys, xs, indexing="ij")  # (Z, Yq, Xq) each
+        return np.stack([xx, yy, zz], axis=-1)  # (Z, Yq, Xq, 3)
+
+    def to_dict(self) -> dict:
+        return {
+            "x_range_m": list(self.x_range_m),
+            "y_range_m": list(self.y_range_m),
+            "z_range_m": list(self.z_range_m),
+            "voxel_xy_m": self.voxel_xy_m,
+            "voxel_z_m": self.voxel_z_m,
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "GridSpec":
+        return cls(
+            x_range_m=tuple(d["x_range_m"]),
+            y_range_m=tuple(d["y_range_m"]),
+            z_range_m=tuple(d["z_range_m"]),
+            voxel_xy_m=float(d["voxel_xy_m"]),
+            voxel_z_m=float(d["voxel_z_m"]),
+        )
+
+
+def _check_quadrant(q: int) -> None:
+    if not (isinstance(q, (int, np.integer)) and 0 <= q < NUM_QUADRANTS):
+        raise ValueError(f"quadrant index must be 0..3, got {q!r}")
+
+
+def check_num_slices(n: int, start_deg: float = 0.0) -> None:
+    """n slices must align with the quadrant split: n in {1, 2} or a multiple of 4, start on an axis."""
+    if not isinstance(n, (int, np.integer)) or n < 1:
+        raise ValueError(f"number of slices must be a positive integer, got {n!r}")
+    if n not in (1, 2) and n % 4:
+        raise ValueError(f"number of slices must be 1, 2 or a multiple of 4 (sectors aligned to quadrants), got {n}")
+    if start_deg % 90.0:
+        raise ValueError(f"slice start angle must be a multiple of 90 deg, got {start_deg}")
+
+
+def azimuth_deg(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Azimuth atan2(y, x) in degrees, wrapped to [0, 360)."""
+    a = np.degrees(np.arctan2(y, x))
+    return np.mod(a, 360.0)
+
+
+def sector_bounds_deg(k: int, n: int, start_deg: float = 0.0) -> tuple[float, float]:
+    """Azimuth interval [lo, hi) of slice k of n, in degrees from the x axis (lo in [0, 360), hi = lo + 360/n)."""
+    check_num_slices(n, start_deg)
+    if not (isinstance(k, (int, np.integer)) and 0 <= k < n):
+        raise ValueError(f"slice index must be in [0, {n}), got {k!r}")
+    width = 360.0 / n
+    lo = (start_deg + k * width) % 360.0
+    return lo, lo + width
+
+
+def slice_index_of(x: np.ndarray, y: np.ndarray, n: int, start_deg: float = 0.0) -> np.ndarray:
+    """Slice index (int64, 0..n-1) of each point by azimuth, in scan order from start_deg."""
+    check_num_slices(n, start_deg)
+    rel = np.mod(azimuth_deg(x, y) - start_deg, 360.0)
+    k = np.floor(rel / (360.0 / n)).astype(np.int64)
+    return np.minimum(k, n - 1)  # rel can round up to exactly 360 in float
+
+
+def quadrants_of_sector(k: int, n: int, start_deg: float = 0.0) -> tuple[int, ...]:
+    """Quadrants (increasing) that slice k of n touches."""
+    lo, hi = sector_bounds_deg(k, n, start_deg)
+    first = int(lo // 90.0)
+    count = max(1, math.ceil((hi - lo) / 90.0 - 1e-9))
+    return tuple(sorted({(first + i) % NUM_QUADRANTS for i in range(count)}))

@@ -1,0 +1,1 @@
+"""streamdet.models"""
