@@ -30,3 +30,38 @@ CLASS_NAMES: tuple[str, ...] = (
 
 BOX_DIM = 9
 X, Y, Z, W, L, H, YAW, VX, VY = range(BOX_DIM)
+
+
+def _check_boxes(boxes: np.ndarray, name: str = "boxes") -> np.ndarray:
+    boxes = np.asarray(boxes)
+    if boxes.ndim != 2 or boxes.shape[1] != BOX_DIM:
+        raise ValueError(f"{name} must be (N, {BOX_DIM}) (x, y, z, w, l, h, yaw, vx, vy), got shape {boxes.shape}")
+    return boxes
+
+
+def box_corners_bev(boxes: np.ndarray) -> np.ndarray:
+    """BEV corners (M, 4, 2) of (M, 9) boxes, counter-clockwise from front-right: l along the heading, w across.
+
+    Front-right means (+l/2, -w/2) in the box frame; the order is front-right, front-left, rear-left, rear-right.
+    """
+    boxes = _check_boxes(boxes)
+    half_l = boxes[:, L] / 2
+    half_w = boxes[:, W] / 2
+    # Box-frame corners, counter-clockwise seen from above (+z).
+    local_x = np.stack([half_l, half_l, -half_l, -half_l], axis=1)  # (M, 4)
+    local_y = np.stack([-half_w, half_w, half_w, -half_w], axis=1)  # (M, 4)
+    cos = np.cos(boxes[:, YAW])[:, None]
+    sin = np.sin(boxes[:, YAW])[:, None]
+    x = boxes[:, X, None] + cos * local_x - sin * local_y
+    y = boxes[:, Y, None] + sin * local_x + cos * local_y
+    return np.stack([x, y], axis=-1)  # (M, 4, 2)
+
+
+def box_corners_3d(boxes: np.ndarray) -> np.ndarray:
+    """3D corners (M, 8, 3): the 4 bottom corners, then the 4 top ones, each in `box_corners_bev` order."""
+    boxes = _check_boxes(boxes)
+    bev = box_corners_bev(boxes)  # (M, 4, 2)
+    bottom = boxes[:, Z] - boxes[:, H] / 2
+    top = boxes[:, Z] + boxes[:, H] / 2
+    z = np.repeat(np.stack([bottom, top], axis=1), 4, axis=1)  # (M, 8): 4 bottom, then 4 top
+    return np.concatenate([np.tile(bev, (1, 2, 1)), z[..., None]], axis=-1)  # (M, 8, 3)
