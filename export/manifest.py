@@ -1,0 +1,366 @@
+"""The export manifest (``manifest.json``): everything the runtime needs to run an export, without the model code.
+
+This module is imported by the torch-free runtime (``streamdet.runtime_ort``) and by ``streamdet-calib``,
+so it must never import torch, onnx or any other export-side dependency: numpy and the standard library only.
+
+Schema (``MANIFEST_VERSION`` = 1), one JSON object::
+
+    version            int, MANIFEST_VERSION
+    preset_name        str, e.g. "small"
+    preset             dict, Preset.to_dict() of the exported model (opaque to the runtime except "grid")
+    grid               dict, GridSpec.to_dict()
+    class_names        [str], CLASS_NAMES of runtime_ort/boxes.py in label order
+    num_slices         int, slices per sweep the export (and its parity check) assumed
+    image              {width, height, feature_stride, feature_width, feature_height, camera_names}
+    normalisation      {input: "uint8 RGB (J, H, W, 3)", scale, mean_rgb, std_rgb}: applied inside image_encoder
+    post               dict, decode/NMS settings of the preset (top_k, score_threshold, ...), for the runtime
+    graphs             [GraphEntry]: name ("image_encoder" | "volumetric_lifter" | "slice_head"), precision
+                       ("fp32" | "fp16"), file, sha256, opset, inputs/outputs [{name, shape, dtype}], gmac
+    lut                {file, sha256, calibration_sha256, camera_names, image_width, image_height}
+    parity             [ParityRecord] (one per graph and precision) and a "pipeline" PipelineParity, as measured
+                       by the export itself
+    source             {checkpoint: path or null, checkpoint_sha256, seed, torch, onnx, onnxruntime versions}
+
+Shapes use ints for fixed dimensions and strings ("J", "P", "Q", "H", "W", "Hf", "Wf") for dynamic ones.
+The manifest is written last, after every file it names: an export directory without ``manifest.json``
+is incomplete.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import tempfile
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+MANIFEST_VERSION = 1
+MANIFEST_NAME = "manifest.json"
+LUT_NAME = "lut.npz"
+GRAPH_NAMES: tuple[str, ...] = ("image_encoder", "volumetric_lifter", "slice_head")
+PRECISIONS: tuple[str, ...] = ("fp32", "fp16")
+_DTYPES = ("uint8", "int32", "int64", "float16", "float32")
+
+
+class ManifestError(ValueError):
+    """A manifest that is missing, malformed or inconsistent with the files beside it."""
+
+
+def sha256_file(path: str | os.PathLike) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def graph_file_name(name: str, precision: str) -> str:
+    """``slice_head.onnx`` for fp32, ``slice_head.fp16.onnx`` for fp16."""
+    _check_choice("graph name", name, GRAPH_NAMES)
+    _check_choice("precision", precision, PRECISIONS)
+    return f"{name}.onnx" if precision == "fp32" else f"{name}.{precision}.onnx"
+
+
+@dataclass(frozen=True)
+class TensorSpec:
+    name: str
+    shape: tuple[int | str, ...]  # ints fixed, strings name a dynamic dimension
+    dtype: str  # numpy dtype name, one of _DTYPES
+
+    def __post_init__(self) -> None:
+        if not self.name:
+            raise ManifestError("TensorSpec.name must be a non-empty string")
+        _check_choice(f"dtype of tensor {self.name!r}", self.dtype, _DTYPES)
+        for d in self.shape:
+            if not (isinstance(d, str) and d) and not (isinstance(d, int) and d >= 0):
+                raise ManifestError(f"shape of tensor {self.name!r} has a bad dimension {d!r} (int >= 0 or a name)")
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "TensorSpec":
+        return cls(name=str(d["name"]), shape=tuple(d["shape"]), dtype=str(d["dtype"]))
+
+
+@dataclass(frozen=True)
+class GraphEntry:
+    name: str  # one of GRAPH_NAMES
+    precision: str  # "fp32" or "fp16" (fp16 graphs keep fp32 inputs and outputs)
+    file: str  # relative to the export directory
+    sha256: str
+    opset: int
+    inputs: tuple[TensorSpec, ...]
+    outputs: tuple[TensorSpec, ...]
+    gmac: float  # multiply-accumulates (1e9) at the exported resolution, per the shapes in `gmac_at`
+    gmac_at: dict = field(default_factory=dict)  # the dynamic sizes gmac was counted at, e.g. {"J": 1, "Q": 1}
+
+    def __post_init__(self) -> None:
+        _check_choice("GraphEntry.name", self.name, GRAPH_NAMES)
+        _check_choice(f"precision of graph {self.name!r}", self.precision, PRECISIONS)
+        _check_sha(f"sha256 of {self.file!r}", self.sha256)
+        if not isinstance(self.opset, int) or self.opset < 7:
+            raise ManifestError(f"opset of {self.file!r} must be an int >= 7, got {self.opset!r}")
+        if Path(self.file).name != self.file:
+            raise ManifestError(f"graph file must be a plain file name inside the export directory, got {self.file!r}")
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "GraphEntry":
+        return cls(
+            name=str(d["name"]),
+            precision=str(d["precision"]),
+            file=str(d["file"]),
+            sha256=str(d["sha256"]),
+            opset=d["opset"],
+            inputs=tuple(TensorSpec.from_dict(t) for t in d["inputs"]),
+            outputs=tuple(TensorSpec.from_dict(t) for t in d["outputs"]),
+            gmac=float(d["gmac"]),
+            gmac_at=dict(d.get("gmac_at", {})),
+        )
+
+
+@dataclass(frozen=True)
+class ImageSpec:
+    width: int  # pixels the export (and the LUT) assume
+    height: int
+    feature_stride: int  # 4: Hf = ceil(H / stride)
+    feature_width: int
+    feature_height: int
+    camera_names: tuple[str, ...]  # LUT camera order = order of the images fed to image_encoder
+
+    def __post_init__(self) -> None:
+        for name in ("width", "height", "feature_stride", "feature_width", "feature_height"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or v <= 0:
+                raise ManifestError(f"image.{name} must be a positive int, got {v!r}")
+        if not self.camera_names:
+            raise ManifestError("image.camera_names must name at least one camera")
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "ImageSpec":
+        return cls(
+            width=d["width"],
+            height=d["height"],
+            feature_stride=d["feature_stride"],
+            feature_width=d["feature_width"],
+            feature_height=d["feature_height"],
+            camera_names=tuple(d["camera_names"]),
+        )
+
+
+@dataclass(frozen=True)
+class Normalisation:
+    """Applied inside image_encoder.onnx: x = (rgb_uint8 * scale - mean) / std. Recorded for reference only."""
+
+    input: str = "uint8 RGB (J, H, W, 3)"
+    scale: float = 1.0 / 255.0
+    mean_rgb: tuple[float, float, float] = (0.485, 0.456, 0.406)  # ImageNet
+    std_rgb: tuple[float, float, float] = (0.229, 0.224, 0.225)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Normalisation":
+        return cls(input=str(d["input"]), scale=float(d["scale"]), mean_rgb=tuple(d["mean_rgb"]), std_rgb=tuple(d["std_rgb"]))
+
+
+@dataclass(frozen=True)
+class LutEntry:
+    file: str  # "lut.npz"
+    sha256: str
+    calibration_sha256: str  # of the calibration JSON the LUT was built from
+    calibration_source: str  # a path, or "bundled:nuscenes_sample/calibration.json"
+
+    def __post_init__(self) -> None:
+        _check_sha("lut.sha256", self.sha256)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "LutEntry":
+        return cls(
+            file=str(d["file"]),
+            sha256=str(d["sha256"]),
+            calibration_sha256=str(d["calibration_sha256"]),
+            calibration_source=str(d["calibration_source"]),
+        )
+
+
+@dataclass(frozen=True)
+class ParityRecord:
+    """One graph's ONNX output against its reference: max |a - b| <= tolerance_rel * range(reference)."""
+
+    graph: str
+    precision: str  # the graph checked
+    reference: str  # "torch" (for fp32 graphs) or "onnx-fp32" (for fp16 graphs)
+    output: str
+    max_abs_diff: float
+    output_range: float  # max - min of the reference output
+    tolerance_rel: float
+    passed: bool
+    note: str = ""
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "ParityRecord":
+        return cls(**{k: d[k] for k in cls.__dataclass_fields__ if k in d})
+
+
+@dataclass(frozen=True)
+class PipelineParity:
+    """Decoded boxes of the whole pipeline (real sample, one slice), fp16 graphs against fp32 graphs."""
+
+    slice_index: int
+    num_slices: int
+    num_points: int  # points in the slice
+    num_pillars: int
+    score_threshold: float
+    score_band: float  # boxes with |score - threshold| <= band in either run are excluded from the count check
+    count_fp32: int  # boxes with score >= threshold + band
+    count_fp16: int
+    excluded_in_band: int  # boxes (either run) inside the band, not compared
+    max_centre_diff_m: float  # over matched boxes (nan when there are none)
+    centre_tolerance_m: float
+    passed: bool
+    note: str = ""
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "PipelineParity":
+        return cls(**{k: d[k] for k in cls.__dataclass_fields__ if k in d})
+
+
+@dataclass(frozen=True)
+class Manifest:
+    preset_name: str
+    preset: dict
+    grid: dict
+    class_names: tuple[str, ...]
+    num_slices: int
+    image: ImageSpec
+    normalisation: Normalisation
+    post: dict
+    graphs: tuple[GraphEntry, ...]
+    lut: LutEntry
+    parity: tuple[ParityRecord, ...] = ()
+    pipeline_parity: PipelineParity | None = None
+    source: dict = field(default_factory=dict)
+    version: int = MANIFEST_VERSION
+
+    def __post_init__(self) -> None:
+        if self.version != MANIFEST_VERSION:
+            raise ManifestError(f"manifest version {self.version!r} is not supported (expected {MANIFEST_VERSION})")
+        if not self.class_names:
+            raise ManifestError("class_names must not be empty")
+        if not isinstance(self.num_slices, int) or self.num_slices < 1:
+            raise ManifestError(f"num_slices must be a positive int, got {self.num_slices!r}")
+        seen = set()
+        for g in self.graphs:
+            key = (g.name, g.precision)
+            if key in seen:
+                raise ManifestError(f"graph {g.name!r} ({g.precision}) is listed twice")
+            seen.add(key)
+        for name in GRAPH_NAMES:
+            if (name, "fp32") not in seen:
+                raise ManifestError(f"manifest lists no fp32 graph {name!r}")
+
+    def graph(self, name: str, precision: str = "fp32") -> GraphEntry:
+        for g in self.graphs:
+            if g.name == name and g.precision == precision:
+                return g
+        have = sorted({g.precision for g in self.graphs if g.name == name})
+        raise ManifestError(f"manifest has no {precision} graph {name!r} (precisions present: {have})")
+
+    @property
+    def precisions(self) -> tuple[str, ...]:
+        """Precisions for which all three graphs are present."""
+        return tuple(p for p in PRECISIONS if all(any(g.name == n and g.precision == p for g in self.graphs) for n in GRAPH_NAMES))
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["image"]["camera_names"] = list(self.image.camera_names)
+        return _jsonable(d)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Manifest":
+        if not isinstance(d, dict):
+            raise ManifestError(f"manifest must be a JSON object, got {type(d).__name__}")
+        try:
+            return cls(
+                version=d["version"],
+                preset_name=str(d["preset_name"]),
+                preset=dict(d["preset"]),
+                grid=dict(d["grid"]),
+                class_names=tuple(d["class_names"]),
+                num_slices=d["num_slices"],
+                image=ImageSpec.from_dict(d["image"]),
+                normalisation=Normalisation.from_dict(d["normalisation"]),
+                post=dict(d["post"]),
+                graphs=tuple(GraphEntry.from_dict(g) for g in d["graphs"]),
+                lut=LutEntry.from_dict(d["lut"]),
+                parity=tuple(ParityRecord.from_dict(p) for p in d.get("parity", ())),
+                pipeline_parity=PipelineParity.from_dict(d["pipeline_parity"]) if d.get("pipeline_parity") else None,
+                source=dict(d.get("source", {})),
+            )
+        except KeyError as e:
+            raise ManifestError(f"manifest is missing the field {e.args[0]!r}") from None
+        except (TypeError, AttributeError) as e:
+            raise ManifestError(f"manifest has a malformed field: {e}") from None
+
+
+def read_manifest(export_dir: str | os.PathLike, verify_files: bool = True) -> Manifest:
+    """Read and validate ``export_dir/manifest.json``; with verify_files, every named file must exist with its sha256."""
+    export_dir = Path(export_dir)
+    path = export_dir / MANIFEST_NAME
+    if not path.is_file():
+        raise ManifestError(f"{path} does not exist: not a (complete) streamdet export directory")
+    try:
+        d = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise ManifestError(f"{path} is not readable JSON: {e}") from None
+    m = Manifest.from_dict(d)
+    if verify_files:
+        for entry in (*m.graphs, m.lut):
+            f = export_dir / entry.file
+            if not f.is_file():
+                raise ManifestError(f"{f} is named in the manifest but missing")
+            got = sha256_file(f)
+            if got != entry.sha256:
+                raise ManifestError(f"{f} has sha256 {got[:12]}..., the manifest says {entry.sha256[:12]}...")
+    return m
+
+
+def write_manifest(manifest: Manifest, export_dir: str | os.PathLike) -> Path:
+    """Write ``manifest.json`` atomically (temp file + rename), so a reader never sees half a manifest."""
+    export_dir = Path(export_dir)
+    text = json.dumps(manifest.to_dict(), indent=1, allow_nan=True) + "\n"
+    fd, tmp = tempfile.mkstemp(prefix=".manifest.", suffix=".json", dir=export_dir)
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+        os.replace(tmp, export_dir / MANIFEST_NAME)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return export_dir / MANIFEST_NAME
+
+
+def replace_lut_entry(manifest: Manifest, lut: LutEntry) -> Manifest:
+    """The same manifest pointing at a rebuilt LUT (``streamdet-calib lut``)."""
+    from dataclasses import replace
+
+    return replace(manifest, lut=lut)
+
+
+def _check_choice(what: str, value: Any, choices: tuple[str, ...]) -> None:
+    if value not in choices:
+        raise ManifestError(f"{what} must be one of {list(choices)}, got {value!r}")
+
+
+def _check_sha(what: str, value: str) -> None:
+    if not (isinstance(value, str) and len(value) == 64 and all(c in "0123456789abcdef" for c in value)):
+        raise ManifestError(f"{what} must be 64 lowercase hex digits, got {value!r}")
+
+
+def _jsonable(x: Any) -> Any:
+    """Tuples to lists, numpy scalars to Python numbers (asdict keeps whatever the fields hold)."""
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if hasattr(x, "item") and callable(x.item) and getattr(x, "shape", None) == ():
+        return x.item()
+    return x
