@@ -65,3 +65,46 @@ def box_corners_3d(boxes: np.ndarray) -> np.ndarray:
     top = boxes[:, Z] + boxes[:, H] / 2
     z = np.repeat(np.stack([bottom, top], axis=1), 4, axis=1)  # (M, 8): 4 bottom, then 4 top
     return np.concatenate([np.tile(bev, (1, 2, 1)), z[..., None]], axis=-1)  # (M, 8, 3)
+
+
+def box_corners_bev(boxes: np.ndarray) -> np.ndarray:
+    """Rotated bird's-eye-view corners, ``(M, 4, 2)``, counter-clockwise from front-left.
+
+    Corner order in the box frame (x along the heading, y to its left):
+    ``(+l/2, +w/2), (-l/2, +w/2), (-l/2, -w/2), (+l/2, -w/2)``; corners 0 and 3 span the front face.
+    """
+    boxes = _check_boxes(boxes, "boxes")
+    half_l = 0.5 * boxes[:, L]
+    half_w = 0.5 * boxes[:, W]
+    local = np.stack(
+        [
+            np.stack([half_l, half_w], axis=-1),
+            np.stack([-half_l, half_w], axis=-1),
+            np.stack([-half_l, -half_w], axis=-1),
+            np.stack([half_l, -half_w], axis=-1),
+        ],
+        axis=1,
+    )  # (M, 4, 2)
+    cos, sin = np.cos(boxes[:, YAW]), np.sin(boxes[:, YAW])
+    rot = np.stack([np.stack([cos, -sin], axis=-1), np.stack([sin, cos], axis=-1)], axis=1)  # (M, 2, 2)
+    return np.einsum("mij,mkj->mki", rot, local) + boxes[:, None, X : Y + 1]
+
+
+def box_corners_3d(boxes: np.ndarray) -> np.ndarray:
+    """3D corners, ``(M, 8, 3)``: the bottom face (z - h/2) then the top face, each in ``box_corners_bev`` order.
+
+    Edges: ``(i, (i + 1) % 4)`` on each face and ``(i, i + 4)`` verticals; the front face is corners 0, 3, 7, 4.
+    """
+    boxes = _check_boxes(boxes, "boxes")
+    bev = box_corners_bev(boxes)  # (M, 4, 2)
+    bottom = (boxes[:, Z] - 0.5 * boxes[:, H])[:, None, None]
+    top = (boxes[:, Z] + 0.5 * boxes[:, H])[:, None, None]
+    z = np.concatenate([np.broadcast_to(bottom, bev.shape[:2] + (1,)), np.broadcast_to(top, bev.shape[:2] + (1,))], axis=1)
+    return np.concatenate([np.concatenate([bev, bev], axis=1), z], axis=-1)  # (M, 8, 3)
+
+
+def _check_boxes(boxes: np.ndarray, name: str) -> np.ndarray:
+    boxes = np.asarray(boxes)
+    if boxes.ndim != 2 or boxes.shape[1] < YAW + 1:
+        raise ValueError(f"{name} must be (M, {BOX_DIM}) (at least x, y, z, w, l, h, yaw), got shape {boxes.shape}")
+    return boxes
