@@ -109,6 +109,18 @@ class GridSpec:
         q = np.where(y >= 0, np.where(x >= 0, 0, 1), np.where(x < 0, 2, 3))
         return q.astype(np.int64)
 
+    def voxel_center_axes(self, q: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Quadrant q's voxel-centre coordinates per axis, (Xq,), (Yq,), (Z,) float64 in metres.
+
+        ``voxel_centers(q)[z, y, x] == (xs[x], ys[y], zs[z])``; the separable form lets callers avoid the
+        (Z, Yq, Xq, 3) array.
+        """
+        x0, y0 = self.quadrant_origin_m(q)
+        xs = x0 + (np.arange(self.quadrant_nx) + 0.5) * self.voxel_xy_m
+        ys = y0 + (np.arange(self.quadrant_ny) + 0.5) * self.voxel_xy_m
+        zs = self.z_range_m[0] + (np.arange(self.nz) + 0.5) * self.voxel_z_m
+        return xs, ys, zs
+
     def voxel_centers(self, q: int) -> np.ndarray:
         """Centres of quadrant q's image-volume voxels, (Z, Yq, Xq, 3) float64 in metres."""
         x0, y0 = self.quadrant_origin_m(q)

@@ -1,0 +1,470 @@
+"""Pinhole cameras and the camera rig, loaded from calibration.json or nuScenes records (numpy only).
+
+Conventions (the same as data/nuscenes_sample/README.md):
+
+- ``A2B`` maps coordinates from frame A to frame B: ``p_B = R p_A + t``, stored as ``[[R, t], [0, 0, 0, 1]]``.
+- Quaternions are ``(w, x, y, z)`` as nuScenes / pyquaternion write them.
+- Camera frame is OpenCV (x right, y down, z forward); ``u = (K p)_0 / p_z``, ``v = (K p)_1 / p_z`` with the
+  pixel origin at the top-left corner of the image; no distortion.
+- ``lidar2cam`` maps the LiDAR frame at the LiDAR timestamp into the camera at the camera timestamp, so it
+  already holds the ego motion between the two (the devkit's lidar -> ego -> global -> ego -> cam chain).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+from dataclasses import dataclass
+from typing import Any, Iterable, Mapping
+
+import numpy as np
+
+from streamdet.calibration.projection import project_points, visible_mask
+
+# A rotation read from a float32 source deviates from orthonormal by ~1e-7; a hand-edited or corrupted
+# one by far more. Anything between is refused rather than silently re-orthonormalised.
+ORTHONORMAL_TOL = 1e-5
+QUATERNION_NORM_TOL = 1e-5
+
+
+class CalibrationError(ValueError):
+    """A calibration input (file, record, matrix, LUT) is malformed; the message names the field."""
+
+
+# ---- validation helpers (shared by Camera, Rig and the loaders) -----------------------------------
+
+def _as_array(value: Any, shape: tuple[int, ...], field: str) -> np.ndarray:
+    """float64 copy of ``value`` with exactly ``shape`` and only finite entries, else CalibrationError."""
+    try:
+        arr = np.array(value, dtype=np.float64)
+    except (TypeError, ValueError) as e:
+        raise CalibrationError(f"{field}: expected a numeric array of shape {shape}, got {_short(value)} ({e})") from None
+    if arr.shape != shape:
+        raise CalibrationError(f"{field}: expected shape {shape}, got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise CalibrationError(f"{field}: contains NaN or infinite values: {_short(arr.tolist())}")
+    return arr
+
+
+def _check_rotation(R: np.ndarray, field: str) -> None:
+    err = float(np.abs(R @ R.T - np.eye(3)).max())
+    if err > ORTHONORMAL_TOL:
+        raise CalibrationError(f"{field}: rotation is not orthonormal (max |R R^T - I| = {err:.3g} > {ORTHONORMAL_TOL})")
+    det = float(np.linalg.det(R))
+    if det < 0:
+        raise CalibrationError(f"{field}: rotation is a reflection (det = {det:.6f})")
+
+
+def _as_transform(value: Any, field: str) -> np.ndarray:
+    """A rigid 4x4 transform: finite, bottom row (0, 0, 0, 1), orthonormal right-handed rotation."""
+    T = _as_array(value, (4, 4), field)
+    if np.abs(T[3] - np.array([0.0, 0.0, 0.0, 1.0])).max() > 1e-9:
+        raise CalibrationError(f"{field}: bottom row must be [0, 0, 0, 1], got {T[3].tolist()}")
+    _check_rotation(T[:3, :3], field)
+    return T
+
+
+def _as_intrinsics(value: Any, field: str) -> np.ndarray:
+    K = _as_array(value, (3, 3), field)
+    if np.abs(K[2] - np.array([0.0, 0.0, 1.0])).max() > 1e-9 or K[1, 0] != 0.0:
+        raise CalibrationError(f"{field}: expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got {K.tolist()}")
+    if not (K[0, 0] > 0 and K[1, 1] > 0):
+        raise CalibrationError(f"{field}: focal lengths must be > 0, got fx={K[0, 0]}, fy={K[1, 1]}")
+    return K
+
+
+def _as_size(value: Any, field: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value <= 0:
+        raise CalibrationError(f"{field}: expected a positive integer pixel count, got {value!r}")
+    return int(value)
+
+
+def _short(value: Any, limit: int = 80) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _readonly(a: np.ndarray) -> np.ndarray:
+    a = np.array(a, dtype=np.float64)  # own copy: the caller may keep mutating theirs
+    a.setflags(write=False)
+    return a
+
+
+# ---- rotations -------------------------------------------------------------------------------------
+
+def quaternion_to_matrix(wxyz: Any, field: str = "quaternion") -> np.ndarray:
+    """(3, 3) rotation of a unit quaternion (w, x, y, z); norms off by more than 1e-5 are refused."""
+    q = _as_array(wxyz, (4,), field)
+    norm = float(np.linalg.norm(q))
+    if abs(norm - 1.0) > QUATERNION_NORM_TOL:
+        raise CalibrationError(f"{field}: quaternion must have unit norm, got norm {norm:.6g} for {q.tolist()}")
+    w, x, y, z = q / norm
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def matrix_to_quaternion(R: Any) -> np.ndarray:
+    """Unit quaternion (w, x, y, z), w >= 0, of a (3, 3) rotation (Shepperd's method, stable for all angles)."""
+    R = _as_array(R, (3, 3), "R")
+    _check_rotation(R, "R")
+    trace = np.trace(R)
+    # Pick the largest of 4w^2, 4x^2, 4y^2, 4z^2 as the divisor so it never comes close to 0.
+    cands = np.array([trace, R[0, 0], R[1, 1], R[2, 2]])
+    i = int(np.argmax(cands))
+    if i == 0:
+        s = 2.0 * math.sqrt(1.0 + trace)
+        q = [0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s]
+    elif i == 1:
+        s = 2.0 * math.sqrt(max(1.0 + R[0, 0] - R[1, 1] - R[2, 2], 0.0))
+        q = [(R[2, 1] - R[1, 2]) / s, 0.25 * s, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s]
+    elif i == 2:
+        s = 2.0 * math.sqrt(max(1.0 + R[1, 1] - R[0, 0] - R[2, 2], 0.0))
+        q = [(R[0, 2] - R[2, 0]) / s, (R[0, 1] + R[1, 0]) / s, 0.25 * s, (R[1, 2] + R[2, 1]) / s]
+    else:
+        s = 2.0 * math.sqrt(max(1.0 + R[2, 2] - R[0, 0] - R[1, 1], 0.0))
+        q = [(R[1, 0] - R[0, 1]) / s, (R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s]
+    q = np.array(q)
+    q /= np.linalg.norm(q)
+    return -q if q[0] < 0 else q
+
+
+def make_transform(R: Any, t: Any) -> np.ndarray:
+    """(4, 4) ``[[R, t], [0, 0, 0, 1]]`` from a (3, 3) rotation and a (3,) translation."""
+    T = np.eye(4)
+    T[:3, :3] = _as_array(R, (3, 3), "R")
+    T[:3, 3] = _as_array(t, (3,), "t")
+    return T
+
+
+def invert_transform(T: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid (4, 4) transform, exact in the rotation (R^T) rather than a general inverse."""
+    R, t = T[:3, :3], T[:3, 3]
+    out = np.eye(4)
+    out[:3, :3] = R.T
+    out[:3, 3] = -R.T @ t
+    return out
+
+
+# ---- camera ---------------------------------------------------------------------------------------
+
+@dataclass(frozen=True, eq=False)
+class Camera:
+    """One pinhole camera: intrinsics, LiDAR-to-camera extrinsic and image size."""
+
+    name: str  # e.g. "CAM_FRONT"
+    K: np.ndarray  # (3, 3) float64 intrinsics, u = (K p)_0 / p_z (OpenCV camera frame)
+    lidar2cam: np.ndarray  # (4, 4) float64, p_cam = R p_lidar + t, ego motion lidar time -> camera time included
+    width: int  # image size in pixels
+    height: int
+    timestamp_us: int | None = None  # capture time; informative only, no geometry depends on it
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.name, str) or not self.name:
+            raise CalibrationError(f"Camera.name: expected a non-empty string, got {self.name!r}")
+        where = f"Camera {self.name!r}"
+        object.__setattr__(self, "K", _readonly(_as_intrinsics(self.K, f"{where}.K")))
+        object.__setattr__(self, "lidar2cam", _readonly(_as_transform(self.lidar2cam, f"{where}.lidar2cam")))
+        object.__setattr__(self, "width", _as_size(self.width, f"{where}.width"))
+        object.__setattr__(self, "height", _as_size(self.height, f"{where}.height"))
+        if self.timestamp_us is not None:
+            if isinstance(self.timestamp_us, bool) or not isinstance(self.timestamp_us, (int, np.integer)):
+                raise CalibrationError(f"{where}.timestamp_us: expected an integer or None, got {self.timestamp_us!r}")
+            object.__setattr__(self, "timestamp_us", int(self.timestamp_us))
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, Camera):
+            return NotImplemented
+        return (
+            self.name == other.name
+            and (self.width, self.height, self.timestamp_us) == (other.width, other.height, other.timestamp_us)
+            and np.array_equal(self.K, other.K)
+            and np.array_equal(self.lidar2cam, other.lidar2cam)
+        )
+
+    def __hash__(self) -> int:
+        return hash((self.name, self.width, self.height, self.K.tobytes(), self.lidar2cam.tobytes()))
+
+    @property
+    def projection_matrix(self) -> np.ndarray:
+        """(3, 4) ``K [R | t]``: homogeneous LiDAR point -> (u z, v z, z)."""
+        return self.K @ self.lidar2cam[:3]
+
+    @property
+    def center_lidar(self) -> np.ndarray:
+        """(3,) optical centre in the LiDAR frame."""
+        R, t = self.lidar2cam[:3, :3], self.lidar2cam[:3, 3]
+        return -R.T @ t
+
+    def project(self, points_lidar: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Pixel (N, 2) float64 and depth (N,) float64 of (N, 3+) LiDAR points; depth <= 0 means behind."""
+        return project_points(points_lidar, self.K, self.lidar2cam)
+
+    def visible(self, points_lidar: np.ndarray, min_depth_m: float = 0.0) -> np.ndarray:
+        """(N,) bool: depth > min_depth_m and 0 <= u < width and 0 <= v < height."""
+        uv, depth = self.project(points_lidar)
+        return visible_mask(uv, depth, self.width, self.height, min_depth_m)
+
+    def resized(self, width: int, height: int) -> "Camera":
+        """The same camera for the image resized to (width, height): pixel corners scale, so K rows scale."""
+        width = _as_size(width, "width")
+        height = _as_size(height, "height")
+        scale = np.diag([width / self.width, height / self.height, 1.0])
+        return Camera(self.name, scale @ self.K, self.lidar2cam, width, height, self.timestamp_us)
+
+    def border_rays_lidar(self, samples_per_edge: int = 33) -> np.ndarray:
+        """(4 * samples_per_edge, 3) unit directions, LiDAR frame, of rays through the image border."""
+        s = np.linspace(0.0, 1.0, samples_per_edge)
+        w, h = float(self.width), float(self.height)
+        u = np.concatenate([s * w, s * w, np.zeros_like(s), np.full_like(s, w)])
+        v = np.concatenate([np.zeros_like(s), np.full_like(s, h), s * h, s * h])
+        pix = np.stack([u, v, np.ones_like(u)], axis=0)  # (3, B)
+        rays_cam = np.linalg.solve(self.K, pix)  # (3, B)
+        rays = self.lidar2cam[:3, :3].T @ rays_cam  # (3, B) camera -> LiDAR axes
+        return (rays / np.linalg.norm(rays, axis=0)).T  # (B, 3)
+
+    @property
+    def fov_azimuth_deg(self) -> tuple[float, float]:
+        """Horizontal field of view as an azimuth interval (lo, hi) in degrees, LiDAR frame, of ray directions.
+
+        lo is in [0, 360) and hi > lo may exceed 360. Directions, not points: the ~1 m offset between the camera
+        and the LiDAR is ignored, which is exact far away (see ``sectors.py`` for the near-range test).
+        """
+        rays = self.border_rays_lidar()
+        axis = self.lidar2cam[:3, :3].T @ np.array([0.0, 0.0, 1.0])  # optical axis in the LiDAR frame
+        centre = math.degrees(math.atan2(axis[1], axis[0]))
+        rel = np.mod(np.degrees(np.arctan2(rays[:, 1], rays[:, 0])) - centre + 180.0, 360.0) - 180.0
+        lo = (centre + float(rel.min())) % 360.0
+        return lo, lo + float(rel.max() - rel.min())
+
+
+# ---- rig --------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True, eq=False)
+class Rig:
+    """The cameras of one sample in a fixed order (the J axis everywhere) plus the LiDAR's poses."""
+
+    cameras: tuple[Camera, ...]  # order = order of images / feature maps / LUT camera index j
+    lidar2ego: np.ndarray  # (4, 4) LiDAR -> ego frame
+    ego2global: np.ndarray  # (4, 4) ego pose at the LiDAR timestamp (identity if unknown)
+
+    def __post_init__(self) -> None:
+        cams = tuple(self.cameras)
+        if not cams:
+            raise CalibrationError("Rig.cameras: a rig needs at least one camera")
+        for i, cam in enumerate(cams):
+            if not isinstance(cam, Camera):
+                raise CalibrationError(f"Rig.cameras[{i}]: expected a Camera, got {type(cam).__name__}")
+        names = [c.name for c in cams]
+        dupes = sorted({n for n in names if names.count(n) > 1})
+        if dupes:
+            raise CalibrationError(f"Rig.cameras: duplicate camera names {dupes}")
+        object.__setattr__(self, "cameras", cams)
+        object.__setattr__(self, "lidar2ego", _readonly(_as_transform(self.lidar2ego, "Rig.lidar2ego")))
+        object.__setattr__(self, "ego2global", _readonly(_as_transform(self.ego2global, "Rig.ego2global")))
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, Rig):
+            return NotImplemented
+        return (
+            self.cameras == other.cameras
+            and np.array_equal(self.lidar2ego, other.lidar2ego)
+            and np.array_equal(self.ego2global, other.ego2global)
+        )
+
+    def __hash__(self) -> int:
+        return hash((self.cameras, self.lidar2ego.tobytes(), self.ego2global.tobytes()))
+
+    def __len__(self) -> int:
+        return len(self.cameras)
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(c.name for c in self.cameras)
+
+    def camera(self, name: str) -> Camera:
+        for cam in self.cameras:
+            if cam.name == name:
+                return cam
+        raise KeyError(f"no camera named {name!r}; the rig has {list(self.names)}")
+
+    def resized(self, width: int, height: int) -> "Rig":
+        return Rig(tuple(c.resized(width, height) for c in self.cameras), self.lidar2ego, self.ego2global)
+
+    def without(self, names: str | Iterable[str]) -> "Rig":
+        """The rig minus the named cameras (robustness studies); unknown names raise KeyError."""
+        drop = {names} if isinstance(names, str) else set(names)
+        unknown = sorted(drop - set(self.names))
+        if unknown:
+            raise KeyError(f"cannot drop unknown cameras {unknown}; the rig has {list(self.names)}")
+        kept = tuple(c for c in self.cameras if c.name not in drop)
+        if not kept:
+            raise CalibrationError(f"Rig.without({sorted(drop)}): would drop every camera")
+        return Rig(kept, self.lidar2ego, self.ego2global)
+
+    # ---- serialisation ----------------------------------------------------------------------------
+    def to_dict(self) -> dict:
+        """A calibration.json-compatible dict (the subset ``from_calibration_json`` reads)."""
+        return {
+            "lidar": {
+                "sensor2ego": {"matrix": self.lidar2ego.tolist()},
+                "ego2global": {"matrix": self.ego2global.tolist()},
+            },
+            "cameras": [
+                {
+                    "name": c.name,
+                    "width": c.width,
+                    "height": c.height,
+                    "timestamp_us": c.timestamp_us,
+                    "K": c.K.tolist(),
+                    "lidar2cam": {"matrix": c.lidar2cam.tolist()},
+                }
+                for c in self.cameras
+            ],
+        }
+
+    def sha256(self) -> str:
+        """Canonical hash of the projection geometry: camera names and order, sizes, K, lidar2cam, lidar2ego.
+
+        The ego pose and timestamps are left out on purpose: they change every frame without changing where a
+        voxel projects, and a LUT must stay valid across frames of a static rig.
+        """
+        h = hashlib.sha256()
+        h.update(b"streamdet-rig-v1")
+        for c in self.cameras:
+            h.update(json.dumps([c.name, c.width, c.height]).encode())
+            h.update(np.ascontiguousarray(c.K, dtype="<f8").tobytes())
+            h.update(np.ascontiguousarray(c.lidar2cam, dtype="<f8").tobytes())
+        h.update(np.ascontiguousarray(self.lidar2ego, dtype="<f8").tobytes())
+        return h.hexdigest()
+
+    # ---- loaders ----------------------------------------------------------------------------------
+    @classmethod
+    def from_calibration_json(cls, path_or_dict: str | os.PathLike | Mapping) -> "Rig":
+        """Rig from the calibration.json format of data/nuscenes_sample (or its parsed dict / ``to_dict()``).
+
+        Each camera's ``lidar2cam.matrix`` is used as stored (it already holds the ego motion).
+        """
+        if isinstance(path_or_dict, Mapping):
+            doc, src = path_or_dict, "calibration"
+        else:
+            src = os.path.basename(os.fspath(path_or_dict))
+            try:
+                with open(path_or_dict, encoding="utf-8") as f:
+                    doc = json.load(f)
+            except OSError as e:
+                raise CalibrationError(f"{src}: cannot read: {e.strerror}") from None
+            except json.JSONDecodeError as e:
+                raise CalibrationError(f"{src}: not valid JSON: {e}") from None
+        if not isinstance(doc, Mapping):
+            raise CalibrationError(f"{src}: expected a JSON object at the top level, got {type(doc).__name__}")
+
+        lidar = _field(doc, "lidar", src, "")
+        lidar2ego = _transform_entry(_field(lidar, "sensor2ego", src, "lidar."), src, "lidar.sensor2ego")
+        pose = lidar.get("ego2global") if isinstance(lidar, Mapping) else None
+        ego2global = np.eye(4) if pose is None else _transform_entry(pose, src, "lidar.ego2global")
+
+        cams_doc = _field(doc, "cameras", src, "")
+        if not isinstance(cams_doc, list) or not cams_doc:
+            raise CalibrationError(f"{src}: cameras: expected a non-empty list, got {_short(cams_doc)}")
+        cameras = []
+        for i, c in enumerate(cams_doc):
+            at = f"cameras[{i}]"
+            if not isinstance(c, Mapping):
+                raise CalibrationError(f"{src}: {at}: expected an object, got {_short(c)}")
+            name = _field(c, "name", src, f"{at}.")
+            if not isinstance(name, str) or not name:
+                raise CalibrationError(f"{src}: {at}.name: expected a non-empty string, got {name!r}")
+            K = _wrap(_as_intrinsics, _field(c, "K", src, f"{at}."), src, f"{at}.K")
+            lidar2cam = _transform_entry(_field(c, "lidar2cam", src, f"{at}."), src, f"{at}.lidar2cam")
+            width = _wrap(_as_size, _field(c, "width", src, f"{at}."), src, f"{at}.width")
+            height = _wrap(_as_size, _field(c, "height", src, f"{at}."), src, f"{at}.height")
+            ts = c.get("timestamp_us")
+            if ts is not None and (isinstance(ts, bool) or not isinstance(ts, int)):
+                raise CalibrationError(f"{src}: {at}.timestamp_us: expected an integer or null, got {ts!r}")
+            cameras.append(Camera(name, K, lidar2cam, width, height, ts))
+        try:
+            return cls(tuple(cameras), lidar2ego, ego2global)
+        except CalibrationError as e:
+            raise CalibrationError(f"{src}: {e}") from None
+
+    @classmethod
+    def from_nuscenes_records(
+        cls, lidar_sensor: Mapping, lidar_pose: Mapping, cameras: list[Mapping]
+    ) -> "Rig":
+        """Rig from nuScenes ``calibrated_sensor`` and ``ego_pose`` records, chained like the devkit.
+
+        lidar2cam = inv(cam2ego) @ inv(ego2global(t_cam)) @ ego2global(t_lidar) @ lidar2ego, i.e. the LiDAR
+        frame at the LiDAR time is carried through the global frame into the camera at its own time.
+        Each camera dict: {"name", "calibrated_sensor", "ego_pose", "width", "height", "timestamp_us"}.
+        """
+        src = "nuscenes records"
+        lidar2ego = _record_transform(lidar_sensor, src, "lidar_sensor")
+        ego2global = _record_transform(lidar_pose, src, "lidar_pose")
+        lidar2global = ego2global @ lidar2ego
+        if not isinstance(cameras, (list, tuple)) or not cameras:
+            raise CalibrationError(f"{src}: cameras: expected a non-empty list, got {_short(cameras)}")
+        out = []
+        for i, c in enumerate(cameras):
+            at = f"cameras[{i}]"
+            if not isinstance(c, Mapping):
+                raise CalibrationError(f"{src}: {at}: expected an object, got {_short(c)}")
+            name = _field(c, "name", src, f"{at}.")
+            sensor = _field(c, "calibrated_sensor", src, f"{at}.")
+            cam2ego = _record_transform(sensor, src, f"{at}.calibrated_sensor")
+            cam_pose = _record_transform(_field(c, "ego_pose", src, f"{at}."), src, f"{at}.ego_pose")
+            K = _wrap(_as_intrinsics, _field(sensor, "camera_intrinsic", src, f"{at}.calibrated_sensor."),
+                      src, f"{at}.calibrated_sensor.camera_intrinsic")
+            lidar2cam = invert_transform(cam2ego) @ invert_transform(cam_pose) @ lidar2global
+            width = _wrap(_as_size, _field(c, "width", src, f"{at}."), src, f"{at}.width")
+            height = _wrap(_as_size, _field(c, "height", src, f"{at}."), src, f"{at}.height")
+            try:
+                out.append(Camera(name, K, lidar2cam, width, height, c.get("timestamp_us")))
+            except CalibrationError as e:
+                raise CalibrationError(f"{src}: {at}: {e}") from None
+        try:
+            return cls(tuple(out), lidar2ego, ego2global)
+        except CalibrationError as e:
+            raise CalibrationError(f"{src}: {e}") from None
+
+
+def _field(obj: Any, key: str, src: str, at: str) -> Any:
+    if not isinstance(obj, Mapping):
+        raise CalibrationError(f"{src}: {at.rstrip('.') or 'top level'}: expected an object, got {_short(obj)}")
+    if key not in obj:
+        raise CalibrationError(f"{src}: {at}{key}: missing field")
+    return obj[key]
+
+
+def _wrap(check, value: Any, src: str, field: str):
+    """Run a ``_as_*`` check whose messages name ``field``, prefixed with the source."""
+    try:
+        return check(value, field)
+    except CalibrationError as e:
+        raise CalibrationError(f"{src}: {e}") from None
+
+
+def _transform_entry(entry: Any, src: str, at: str) -> np.ndarray:
+    """A calibration.json transform: {"matrix": 4x4} or {"rotation_wxyz", "translation"}."""
+    if not isinstance(entry, Mapping):
+        raise CalibrationError(f"{src}: {at}: expected an object with 'matrix', got {_short(entry)}")
+    if "matrix" in entry:
+        return _wrap(_as_transform, entry["matrix"], src, f"{at}.matrix")
+    if "rotation_wxyz" in entry and "translation" in entry:
+        R = _wrap(quaternion_to_matrix, entry["rotation_wxyz"], src, f"{at}.rotation_wxyz")
+        t = _wrap(lambda v, f: _as_array(v, (3,), f), entry["translation"], src, f"{at}.translation")
+        return make_transform(R, t)
+    raise CalibrationError(f"{src}: {at}.matrix: missing field (nor rotation_wxyz + translation)")
+
+
+def _record_transform(record: Any, src: str, at: str) -> np.ndarray:
+    """A nuScenes calibrated_sensor / ego_pose record {"rotation": [w, x, y, z], "translation": [3]}."""
+    R = _wrap(quaternion_to_matrix, _field(record, "rotation", src, f"{at}."), src, f"{at}.rotation")
+    t = _wrap(lambda v, f: _as_array(v, (3,), f), _field(record, "translation", src, f"{at}."), src, f"{at}.translation")
+    return make_transform(R, t)

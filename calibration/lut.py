@@ -1,0 +1,327 @@
+"""The projection look-up table: which feature-map cell of which camera each image-volume voxel reads.
+
+Format (docs/architecture.md, "Projection LUT"): for the four quadrant volumes (Z, Yq, Xq) and J cameras with
+stride-s feature maps (Hf, Wf) = (ceil(H / s), ceil(W / s)):
+
+- ``index`` (4, K, Z, Yq, Xq) int32: row ``j * Hf * Wf + v_f * Wf + u_f`` of the flattened feature table
+  ``(J * Hf * Wf + 1, C)``; the sentinel ``J * Hf * Wf`` names its all-zero last row.
+- ``weight`` (4, K, Z, Yq, Xq) float32: 1 / (number of cameras seeing the voxel) on valid slots, 0 on sentinels.
+
+A voxel centre p is seen by camera j if ``z_c > min_depth_m`` and ``0 <= u < W``, ``0 <= v < H`` with
+``(u z_c, v z_c, z_c) = K_j (R_j p + t_j)``; then ``u_f = floor(u / s)``, ``v_f = floor(v / s)``. Valid slots come
+first, in camera order. K is the largest number of cameras seeing one voxel (at least 1).
+
+The LUT is rebuilt in numpy whenever the calibration changes; the ONNX lifter takes it as an input, so a new
+calibration never needs a re-export.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import zipfile
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from streamdet.calibration.camera import CalibrationError, Rig
+from streamdet.calibration.grid import NUM_QUADRANTS, GridSpec
+
+LUT_FORMAT = "streamdet-lut"
+LUT_VERSION = 1
+_META_KEYS = (
+    "format", "version", "grid", "feature_stride", "image_width", "image_height", "feature_width",
+    "feature_height", "camera_names", "calibration_sha256", "sentinel", "num_slots", "min_depth_m",
+)
+
+
+@dataclass(frozen=True, eq=False)
+class Lut:
+    """A validated projection LUT and the metadata that says which rig, grid and image size it was built for."""
+
+    index: np.ndarray  # (4, K, Z, Yq, Xq) int32 rows of the flattened feature table; sentinel = J * Hf * Wf
+    weight: np.ndarray  # (4, K, Z, Yq, Xq) float32, 1 / count on valid slots, 0 on sentinel slots
+    grid: GridSpec
+    feature_stride: int  # image pixels per feature cell (4: ResNet stem + FPN P2)
+    image_width: int  # image size the cameras' K refer to
+    image_height: int
+    camera_names: tuple[str, ...]  # J axis order of the feature table
+    calibration_sha256: str  # Rig.sha256() of the rig the LUT was built from (before any resize)
+    min_depth_m: float = 0.0  # voxels at camera depth <= this were left out
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "camera_names", tuple(self.camera_names))
+        for name in ("feature_stride", "image_width", "image_height"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value <= 0:
+                raise CalibrationError(f"Lut.{name}: expected a positive integer, got {value!r}")
+            object.__setattr__(self, name, int(value))
+        if not self.camera_names or not all(isinstance(n, str) and n for n in self.camera_names):
+            raise CalibrationError(f"Lut.camera_names: expected non-empty camera names, got {self.camera_names!r}")
+        if not isinstance(self.grid, GridSpec):
+            raise CalibrationError(f"Lut.grid: expected a GridSpec, got {type(self.grid).__name__}")
+        _validate_tables(self.index, self.weight, self.grid, self.sentinel, "Lut")
+        for a in (self.index, self.weight):
+            a.setflags(write=False)  # shared with every lifter call; nobody may edit it in place
+
+    # ---- derived metadata ------------------------------------------------------------------------
+    @property
+    def feature_width(self) -> int:
+        return math.ceil(self.image_width / self.feature_stride)
+
+    @property
+    def feature_height(self) -> int:
+        return math.ceil(self.image_height / self.feature_stride)
+
+    @property
+    def num_cameras(self) -> int:
+        return len(self.camera_names)
+
+    @property
+    def num_slots(self) -> int:
+        """K: the largest number of cameras that see one voxel."""
+        return int(self.index.shape[1])
+
+    @property
+    def sentinel(self) -> int:
+        """Index of the all-zero row appended to the (J * Hf * Wf, C) feature table."""
+        return self.num_cameras * self.feature_height * self.feature_width
+
+    def meta(self) -> dict:
+        return {
+            "format": LUT_FORMAT,
+            "version": LUT_VERSION,
+            "grid": self.grid.to_dict(),
+            "feature_stride": self.feature_stride,
+            "image_width": self.image_width,
+            "image_height": self.image_height,
+            "feature_width": self.feature_width,
+            "feature_height": self.feature_height,
+            "camera_names": list(self.camera_names),
+            "calibration_sha256": self.calibration_sha256,
+            "sentinel": self.sentinel,
+            "num_slots": self.num_slots,
+            "min_depth_m": self.min_depth_m,
+        }
+
+    # ---- slicing ---------------------------------------------------------------------------------
+    def for_quadrants(self, quadrants: Sequence[int]) -> tuple[np.ndarray, np.ndarray]:
+        """(index, weight), each (Q, K, Z, Yq, Xq) contiguous, for the increasing quadrant list of one slice."""
+        qs = tuple(quadrants)
+        ok = (
+            len(qs) > 0
+            and all(isinstance(q, (int, np.integer)) and not isinstance(q, bool) and 0 <= q < NUM_QUADRANTS for q in qs)
+            and all(a < b for a, b in zip(qs, qs[1:]))
+        )
+        if not ok:
+            raise ValueError(f"quadrants must be a non-empty strictly increasing list of 0..3, got {list(qs)!r}")
+        sel = list(qs)
+        return np.ascontiguousarray(self.index[sel]), np.ascontiguousarray(self.weight[sel])
+
+    # ---- files -----------------------------------------------------------------------------------
+    def save(self, path: str | os.PathLike) -> None:
+        """Write an uncompressed .npz (index, weight, meta as a JSON string); atomic via rename."""
+        path = os.fspath(path)
+        tmp = path + ".tmp"
+        with open(tmp, "wb") as f:
+            np.savez(f, index=self.index, weight=self.weight, meta=np.array(json.dumps(self.meta(), sort_keys=True)))
+        os.replace(tmp, path)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> "Lut":
+        """Read and validate a LUT written by ``save``; any defect raises CalibrationError naming file and key."""
+        src = os.path.basename(os.fspath(path))
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                missing = [k for k in ("index", "weight", "meta") if k not in z.files]
+                if missing:
+                    raise CalibrationError(f"{src}: missing key(s) {missing}; found {sorted(z.files)}")
+                index, weight, meta_arr = z["index"], z["weight"], z["meta"]
+        except CalibrationError:
+            raise
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as e:
+            raise CalibrationError(f"{src}: not a readable LUT .npz: {e}") from None
+        if meta_arr.shape != () or meta_arr.dtype.kind != "U":
+            raise CalibrationError(f"{src}: meta: expected a JSON string, got dtype {meta_arr.dtype} shape {meta_arr.shape}")
+        try:
+            meta = json.loads(str(meta_arr))
+        except json.JSONDecodeError as e:
+            raise CalibrationError(f"{src}: meta: not valid JSON: {e}") from None
+        if not isinstance(meta, dict):
+            raise CalibrationError(f"{src}: meta: expected a JSON object, got {type(meta).__name__}")
+        missing = [k for k in _META_KEYS if k not in meta]
+        if missing:
+            raise CalibrationError(f"{src}: meta: missing field(s) {missing}")
+        if meta["format"] != LUT_FORMAT or meta["version"] != LUT_VERSION:
+            raise CalibrationError(
+                f"{src}: meta.format/version: expected {LUT_FORMAT!r} v{LUT_VERSION}, got {meta['format']!r} v{meta['version']!r}"
+            )
+        try:
+            grid = GridSpec.from_dict(meta["grid"])
+        except (KeyError, TypeError, ValueError) as e:
+            raise CalibrationError(f"{src}: meta.grid: {e}") from None
+        try:
+            lut = cls(
+                index=np.array(index),
+                weight=np.array(weight),
+                grid=grid,
+                feature_stride=meta["feature_stride"],
+                image_width=meta["image_width"],
+                image_height=meta["image_height"],
+                camera_names=tuple(meta["camera_names"]),
+                calibration_sha256=str(meta["calibration_sha256"]),
+                min_depth_m=float(meta["min_depth_m"]),
+            )
+        except CalibrationError as e:
+            raise CalibrationError(f"{src}: {e}") from None
+        # Derived numbers are stored for readers without this class; they must agree with the tables.
+        for key in ("feature_width", "feature_height", "sentinel", "num_slots"):
+            if meta[key] != getattr(lut, key):
+                raise CalibrationError(f"{src}: meta.{key}: stored {meta[key]!r}, but the tables imply {getattr(lut, key)!r}")
+        return lut
+
+
+def _validate_tables(index: np.ndarray, weight: np.ndarray, grid: GridSpec, sentinel: int, where: str) -> None:
+    if not isinstance(index, np.ndarray) or index.dtype != np.int32:
+        raise CalibrationError(f"{where}.index: expected an int32 array, got {getattr(index, 'dtype', type(index).__name__)}")
+    if not isinstance(weight, np.ndarray) or weight.dtype != np.float32:
+        raise CalibrationError(f"{where}.weight: expected a float32 array, got {getattr(weight, 'dtype', type(weight).__name__)}")
+    vol = (grid.nz, grid.quadrant_ny, grid.quadrant_nx)
+    if index.ndim != 5 or index.shape[0] != NUM_QUADRANTS or index.shape[1] < 1 or index.shape[2:] != vol:
+        raise CalibrationError(f"{where}.index: expected shape (4, K >= 1, {', '.join(map(str, vol))}) for the grid, got {index.shape}")
+    if weight.shape != index.shape:
+        raise CalibrationError(f"{where}.weight: shape {weight.shape} differs from index shape {index.shape}")
+    lo, hi = int(index.min()), int(index.max())
+    if lo < 0 or hi > sentinel:
+        raise CalibrationError(f"{where}.index: entries must lie in [0, sentinel={sentinel}], found [{lo}, {hi}]")
+    is_sentinel = index == sentinel
+    if not np.all(np.isfinite(weight)) or np.any(weight[is_sentinel] != 0) or np.any(weight[~is_sentinel] <= 0):
+        raise CalibrationError(f"{where}.weight: must be > 0 exactly on valid slots and 0 on sentinel slots")
+    # Valid slots first: once a slot is a sentinel, every later slot of that voxel is one too.
+    if index.shape[1] > 1 and np.any(is_sentinel[:, :-1] & ~is_sentinel[:, 1:]):
+        raise CalibrationError(f"{where}.index: a valid slot follows a sentinel slot (valid slots must come first)")
+    total = weight.sum(axis=1, dtype=np.float64)  # (4, Z, Yq, Xq)
+    if np.any((np.abs(total - 1.0) > 1e-5) & (total != 0)):
+        raise CalibrationError(f"{where}.weight: per-voxel weights must sum to 1 (seen) or 0 (unseen)")
+
+
+def build_lut(
+    rig: Rig,
+    grid: GridSpec = GridSpec(),
+    feature_stride: int = 4,
+    image_size: tuple[int, int] | None = None,
+    min_depth_m: float = 0.0,
+) -> Lut:
+    """Project every voxel centre of the four quadrant volumes into every camera of ``rig``.
+
+    ``image_size`` (W, H) is the size of the images fed to the encoder; the rig's K are rescaled to it. Without
+    it, every camera must share one size. Math is float32 and separable in x, y, z, camera by camera.
+    """
+    if isinstance(feature_stride, bool) or not isinstance(feature_stride, (int, np.integer)) or feature_stride <= 0:
+        raise ValueError(f"feature_stride must be a positive integer, got {feature_stride!r}")
+    if not (isinstance(min_depth_m, (int, float)) and math.isfinite(min_depth_m) and min_depth_m >= 0):
+        raise ValueError(f"min_depth_m must be a finite number >= 0, got {min_depth_m!r}")
+    if image_size is None:
+        sizes = {(c.width, c.height) for c in rig.cameras}
+        if len(sizes) != 1:
+            raise ValueError(f"cameras have different image sizes {sorted(sizes)}; pass image_size=(W, H)")
+        (width, height), cams_rig = sizes.pop(), rig
+    else:
+        if len(image_size) != 2:
+            raise ValueError(f"image_size must be (W, H), got {image_size!r}")
+        width, height = int(image_size[0]), int(image_size[1])
+        cams_rig = rig.resized(width, height)
+    feat_w = math.ceil(width / feature_stride)
+    feat_h = math.ceil(height / feature_stride)
+    cells = feat_w * feat_h
+    sentinel = len(rig.cameras) * cells
+
+    axes = [grid.voxel_center_axes(q) for q in range(NUM_QUADRANTS)]
+    xs = np.stack([a[0] for a in axes]).astype(np.float32)  # (4, Xq)
+    ys = np.stack([a[1] for a in axes]).astype(np.float32)  # (4, Yq)
+    zs = axes[0][2].astype(np.float32)  # (Z,) the same in every quadrant
+    per_quadrant = grid.nz * grid.quadrant_ny * grid.quadrant_nx  # M voxels in one quadrant volume
+    num_voxels = NUM_QUADRANTS * per_quadrant
+
+    seen_voxels: list[np.ndarray] = []  # per camera: flat voxel index into (4, Z, Yq, Xq)
+    seen_rows: list[np.ndarray] = []  # per camera: feature-table row of each of those voxels
+    counts = np.zeros(num_voxels, dtype=np.uint8)
+    for j, cam in enumerate(cams_rig.cameras):
+        voxels, rows = _project_camera(cam.K @ cam.lidar2cam[:3], xs, ys, zs, width, height, feature_stride,
+                                       feat_w, float(min_depth_m))
+        counts[voxels] += 1  # voxels are unique within one camera
+        seen_voxels.append(voxels)
+        seen_rows.append(rows + np.int32(j * cells))
+
+    num_slots = max(1, int(counts.max()))
+    index = np.full(NUM_QUADRANTS * num_slots * per_quadrant, sentinel, dtype=np.int32)  # flat (4, K, M)
+    slot = np.zeros(num_voxels, dtype=np.int64)
+    for voxels, rows in zip(seen_voxels, seen_rows):
+        # flat voxel v = q * M + r lands at (q, slot, r) of (4, K, M): v + (q * (K - 1) + slot) * M
+        q = voxels // per_quadrant
+        index[voxels + (q * (num_slots - 1) + slot[voxels]) * per_quadrant] = rows
+        slot[voxels] += 1
+    index = index.reshape(NUM_QUADRANTS, num_slots, grid.nz, grid.quadrant_ny, grid.quadrant_nx)  # (4, K, Z, Yq, Xq)
+
+    counts = counts.reshape(NUM_QUADRANTS, 1, grid.nz, grid.quadrant_ny, grid.quadrant_nx)  # (4, 1, Z, Yq, Xq)
+    with np.errstate(divide="ignore"):
+        inv = np.where(counts > 0, np.float32(1.0) / counts.astype(np.float32), np.float32(0.0))
+    slots = np.arange(num_slots, dtype=np.uint8).reshape(1, num_slots, 1, 1, 1)
+    weight = np.where(slots < counts, inv, np.float32(0.0)).astype(np.float32)  # (4, K, Z, Yq, Xq)
+
+    return Lut(
+        index=index,
+        weight=weight,
+        grid=grid,
+        feature_stride=int(feature_stride),
+        image_width=width,
+        image_height=height,
+        camera_names=rig.names,
+        calibration_sha256=rig.sha256(),
+        min_depth_m=float(min_depth_m),
+    )
+
+
+def _project_camera(
+    P: np.ndarray,
+    xs: np.ndarray,
+    ys: np.ndarray,
+    zs: np.ndarray,
+    width: int,
+    height: int,
+    stride: int,
+    feat_w: int,
+    min_depth_m: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Flat voxel indices (into (4, Z, Yq, Xq)) seen by one camera, and their in-camera feature rows (int32).
+
+    ``P`` (3, 4) = K [R | t]. Homogeneous pixels are separable: h = P_x x + P_y y + (P_z z + P_1), so the
+    (4, Z, Yq, Xq) volume is one broadcast add of a (4, 1, Yq, Xq) plane and a (Z,) column per component.
+    """
+    P = P.astype(np.float32)
+    zcol = (P[:, 2:3] * zs[None, :] + P[:, 3:4])  # (3, Z)
+
+    def component(c: int) -> np.ndarray:
+        plane = P[c, 0] * xs[:, None, :] + P[c, 1] * ys[:, :, None]  # (4, Yq, Xq)
+        return plane[:, None, :, :] + zcol[c][None, :, None, None]  # (4, Z, Yq, Xq)
+
+    depth = component(2)
+    hu = component(0)
+    # Cheap candidate test without division (depth > 0 there, so the inequalities keep their direction);
+    # the slack lets the exact float32 test below decide the borderline voxels.
+    cand = depth > np.float32(min_depth_m)
+    cand &= hu >= -1e-3 * depth
+    cand &= hu <= np.float32(width + 1e-3) * depth
+    idx = np.flatnonzero(cand)
+    del cand
+    hv = component(1).ravel()[idx]
+    d = depth.ravel()[idx]
+    u = hu.ravel()[idx] / d
+    v = hv / d
+    ok = (u >= 0) & (u < width) & (v >= 0) & (v < height)
+    idx, u, v = idx[ok], u[ok], v[ok]
+    uf = np.floor(u / np.float32(stride)).astype(np.int32)
+    vf = np.floor(v / np.float32(stride)).astype(np.int32)
+    return idx, vf * np.int32(feat_w) + uf
