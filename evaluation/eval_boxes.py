@@ -1,0 +1,202 @@
+"""Boxes under evaluation: the devkit's ``EvalBoxes`` of ``DetectionBox`` as one columnar record of arrays.
+
+All coordinates are in the nuScenes *global* frame, as in a results JSON file. Rows are grouped by sample in
+the order of ``sample_tokens``, and keep their order inside a sample: this is the order of the devkit's
+``EvalBoxes.all``, on which its score-sort tie-breaking and its matching tie-breaking depend.
+
+An entry of a results file (one box) reads::
+
+    {"sample_token": str, "translation": [x, y, z], "size": [w, l, h], "rotation": [w, x, y, z],
+     "velocity": [vx, vy], "detection_name": str, "detection_score": float, "attribute_name": str}
+
+Ground truth carries two more keys, as the devkit's DetectionBox does: ``ego_translation`` (box centre minus
+the ego position at the sample's LiDAR time, global axes, metres) and ``num_pts`` (LiDAR + radar points
+inside the box; -1 = unknown). ``velocity`` may be NaN (or null) where the annotation has none.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from streamdet.evaluation.config import DetectionConfig
+
+# The devkit's DETECTION_NAMES and ATTRIBUTE_NAMES (nuscenes/eval/detection/constants.py).
+DETECTION_NAMES: tuple[str, ...] = DetectionConfig().class_names
+ATTRIBUTE_NAMES: tuple[str, ...] = (
+    "pedestrian.moving",
+    "pedestrian.sitting_lying_down",
+    "pedestrian.standing",
+    "cycle.with_rider",
+    "cycle.without_rider",
+    "vehicle.moving",
+    "vehicle.parked",
+    "vehicle.stopped",
+)
+
+
+@dataclass(frozen=True)
+class EvalBoxes:
+    """N boxes over the samples ``sample_tokens`` (a sample may have none), global frame, float64."""
+
+    sample_tokens: tuple[str, ...]
+    sample_index: np.ndarray  # (N,) int64 into sample_tokens, non-decreasing
+    translation: np.ndarray  # (N, 3) box centre, m
+    size: np.ndarray  # (N, 3) w, l, h, m
+    rotation: np.ndarray  # (N, 4) quaternion w, x, y, z
+    velocity: np.ndarray  # (N, 2) vx, vy, m/s; NaN = unknown
+    ego_translation: np.ndarray  # (N, 3) centre minus ego position, m
+    num_pts: np.ndarray  # (N,) int64; -1 = unknown (predictions)
+    detection_name: np.ndarray  # (N,) str
+    detection_score: np.ndarray  # (N,) float64; -1 for ground truth
+    attribute_name: np.ndarray  # (N,) str; "" = none
+
+    def __post_init__(self) -> None:
+        n = len(self.sample_index)
+        shapes = {
+            "sample_index": (n,), "translation": (n, 3), "size": (n, 3), "rotation": (n, 4), "velocity": (n, 2),
+            "ego_translation": (n, 3), "num_pts": (n,), "detection_name": (n,), "detection_score": (n,),
+            "attribute_name": (n,),
+        }  # fmt: skip
+        for name, shape in shapes.items():
+            got = np.shape(getattr(self, name))
+            if got != shape:
+                raise ValueError(f"EvalBoxes.{name} must have shape {shape}, got {got}")
+        if n and (np.any(np.diff(self.sample_index) < 0) or self.sample_index[0] < 0
+                  or self.sample_index[-1] >= len(self.sample_tokens)):  # fmt: skip
+            raise ValueError("EvalBoxes.sample_index must be non-decreasing indices into sample_tokens")
+        if len(set(self.sample_tokens)) != len(self.sample_tokens):
+            raise ValueError("EvalBoxes.sample_tokens must be unique")
+
+    def __len__(self) -> int:
+        return len(self.sample_index)
+
+    @property
+    def ego_dist(self) -> np.ndarray:
+        """(N,) xy distance to the ego vehicle, m (the devkit's ``DetectionBox.ego_dist``)."""
+        e = self.ego_translation
+        return np.sqrt(e[:, 0] ** 2 + e[:, 1] ** 2)
+
+    def select(self, mask: np.ndarray) -> EvalBoxes:
+        """The boxes where ``mask`` (bool (N,) or increasing indices) holds, over the same samples."""
+        return EvalBoxes(
+            sample_tokens=self.sample_tokens,
+            **{name: getattr(self, name)[mask] for name in _ARRAY_FIELDS},
+        )
+
+    def with_ego_position(self, ego_xyz_by_sample: Mapping[str, Sequence[float]]) -> EvalBoxes:
+        """Recompute ``ego_translation`` = translation - ego position of the box's sample (devkit ``add_center_dist``)."""
+        missing = [t for t in self.sample_tokens if t not in ego_xyz_by_sample]
+        if missing:
+            raise ValueError(f"no ego position for sample {missing[0]!r} ({len(missing)} samples without one)")
+        ego = np.array([ego_xyz_by_sample[t] for t in self.sample_tokens], dtype=np.float64).reshape(-1, 3)  # (S, 3)
+        fields = {name: getattr(self, name) for name in _ARRAY_FIELDS}
+        fields["ego_translation"] = self.translation - ego[self.sample_index]
+        return EvalBoxes(sample_tokens=self.sample_tokens, **fields)
+
+    # ---- JSON entries ---------------------------------------------------------------------------
+    @classmethod
+    def from_results(cls, results: Mapping[str, Sequence[Mapping]], source: str = "results") -> EvalBoxes:
+        """Parse and validate ``{sample_token: [entry, ...]}``; ``source`` names the input in error messages."""
+        if not isinstance(results, Mapping):
+            raise ValueError(f"{source} must map sample tokens to lists of boxes, got {type(results).__name__}")
+        rows: list[tuple] = []
+        for s, (token, entries) in enumerate(results.items()):
+            if not isinstance(entries, (list, tuple)):
+                raise ValueError(f"{source}[{token!r}] must be a list of boxes, got {type(entries).__name__}")
+            for i, entry in enumerate(entries):
+                rows.append((s, *_parse_entry(entry, token, f"{source}[{token!r}][{i}]")))
+        n = len(rows)
+        cols = list(zip(*rows)) if rows else [()] * 11
+        return cls(
+            sample_tokens=tuple(str(t) for t in results),
+            sample_index=np.array(cols[0], dtype=np.int64).reshape(n),
+            translation=np.array(cols[1], dtype=np.float64).reshape(n, 3),
+            size=np.array(cols[2], dtype=np.float64).reshape(n, 3),
+            rotation=np.array(cols[3], dtype=np.float64).reshape(n, 4),
+            velocity=np.array(cols[4], dtype=np.float64).reshape(n, 2),
+            ego_translation=np.array(cols[5], dtype=np.float64).reshape(n, 3),
+            num_pts=np.array(cols[6], dtype=np.int64).reshape(n),
+            detection_name=np.array(cols[7], dtype=np.str_).reshape(n),
+            detection_score=np.array(cols[8], dtype=np.float64).reshape(n),
+            attribute_name=np.array(cols[9], dtype=np.str_).reshape(n),
+        )
+
+    def to_results(self, ground_truth: bool = False) -> dict[str, list[dict]]:
+        """``{sample_token: [entry, ...]}``; ground truth adds ``ego_translation`` and ``num_pts``."""
+        out: dict[str, list[dict]] = {t: [] for t in self.sample_tokens}
+        for i in range(len(self)):
+            token = self.sample_tokens[self.sample_index[i]]
+            entry = {
+                "sample_token": token,
+                "translation": self.translation[i].tolist(),
+                "size": self.size[i].tolist(),
+                "rotation": self.rotation[i].tolist(),
+                "velocity": [None if math.isnan(v) else v for v in self.velocity[i].tolist()],
+                "detection_name": str(self.detection_name[i]),
+                "detection_score": float(self.detection_score[i]),
+                "attribute_name": str(self.attribute_name[i]),
+            }
+            if ground_truth:
+                entry["ego_translation"] = self.ego_translation[i].tolist()
+                entry["num_pts"] = int(self.num_pts[i])
+            out[token].append(entry)
+        return out
+
+
+_ARRAY_FIELDS = (
+    "sample_index", "translation", "size", "rotation", "velocity", "ego_translation", "num_pts",
+    "detection_name", "detection_score", "attribute_name",
+)  # fmt: skip
+
+
+def _numbers(entry: Mapping, key: str, n: int, where: str, allow_nan: bool = False) -> list[float]:
+    value = entry[key]
+    ok = isinstance(value, (list, tuple)) and len(value) == n
+    if ok:
+        try:
+            out = [math.nan if (v is None and allow_nan) else float(v) for v in value]
+        except (TypeError, ValueError):
+            ok = False
+        else:
+            ok = all(math.isfinite(v) or (allow_nan and math.isnan(v)) for v in out) and not any(
+                isinstance(v, bool) for v in value
+            )
+    if not ok:
+        raise ValueError(f"{where}.{key} must be {n} finite numbers, got {value!r}")
+    return out
+
+
+def _parse_entry(entry: Mapping, token: str, where: str) -> tuple:
+    if not isinstance(entry, Mapping):
+        raise ValueError(f"{where} must be a JSON object, got {type(entry).__name__}")
+    for key in ("sample_token", "translation", "size", "rotation", "velocity", "detection_name"):
+        if key not in entry:
+            raise ValueError(f"{where} has no {key!r} field (keys: {sorted(entry)})")
+    if entry["sample_token"] != token:
+        raise ValueError(f"{where}.sample_token must be the sample it is listed under ({token!r}), got {entry['sample_token']!r}")
+    translation = _numbers(entry, "translation", 3, where)
+    size = _numbers(entry, "size", 3, where)
+    if min(size) <= 0:
+        raise ValueError(f"{where}.size must be > 0 in every dimension (w, l, h), got {entry['size']!r}")
+    rotation = _numbers(entry, "rotation", 4, where)
+    if sum(v * v for v in rotation) < 1e-12:
+        raise ValueError(f"{where}.rotation must be a non-zero quaternion (w, x, y, z), got {entry['rotation']!r}")
+    velocity = _numbers(entry, "velocity", 2, where, allow_nan=True)
+    ego = _numbers(entry, "ego_translation", 3, where) if "ego_translation" in entry else [0.0, 0.0, 0.0]
+    num_pts = entry.get("num_pts", -1)
+    if isinstance(num_pts, bool) or not isinstance(num_pts, int):
+        raise ValueError(f"{where}.num_pts must be an integer, got {num_pts!r}")
+    name = entry["detection_name"]
+    if name not in DETECTION_NAMES:
+        raise ValueError(f"{where}.detection_name must be one of {DETECTION_NAMES}, got {name!r}")
+    score = entry.get("detection_score", -1.0)
+    if isinstance(score, bool) or not isinstance(score, (int, float)) or not math.isfinite(score):
+        raise ValueError(f"{where}.detection_score must be a finite number, got {score!r}")
+    attribute = entry.get("attribute_name", "")
+    if attribute != "" and attribute not in ATTRIBUTE_NAMES:
+        raise ValueError(f"{where}.attribute_name must be '' or one of {ATTRIBUTE_NAMES}, got {attribute!r}")
+    return translation, size, rotation, velocity, ego, num_pts, name, float(score), attribute
