@@ -1,0 +1,91 @@
+"""In-graph decode of the head maps into top-K boxes per quadrant (the tail of ``slice_head.onnx``).
+
+Box centre convention (training targets must use the inverse, ``encode_center``)
+------------------------------------------------------------------------------
+A head-map cell (row, col) of one quadrant covers ``[col * s, (col + 1) * s)`` metres in x from the quadrant's
+minimum corner, and likewise for y with row, where ``s = grid.voxel_xy_m * head.out_stride`` is the cell edge.
+The ``reg`` map holds the centre's offset from the cell *centre*, in cells::
+
+    x_rel = (col + 0.5 + reg_x) * s        y_rel = (row + 0.5 + reg_y) * s
+
+so a centre anywhere in its cell has ``reg`` in [-0.5, 0.5). x_rel, y_rel are metres relative to
+``GridSpec.quadrant_origin_m(q)``; the runtime adds the origin ("uncrop"). The other columns:
+``z = height``, ``(w, l, h) = exp(dim)``, ``yaw = atan2(rot_sin, rot_cos)``, ``(vx, vy) = vel``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from streamdet.models.detector import SliceNet
+from streamdet.models.heads import HeadMaps
+from streamdet.models.presets import Preset
+
+
+def encode_center(x_rel: np.ndarray, y_rel: np.ndarray, cell_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Inverse of the decode formula: (row, col) int64 of the cell holding each centre and (reg_x, reg_y).
+
+    x_rel, y_rel in metres from the quadrant's minimum corner; cells outside the map are the caller's to drop.
+    """
+    u = np.asarray(x_rel, dtype=np.float64) / cell_m
+    v = np.asarray(y_rel, dtype=np.float64) / cell_m
+    col = np.floor(u).astype(np.int64)
+    row = np.floor(v).astype(np.int64)
+    return row, col, (u - col - 0.5).astype(np.float32), (v - row - 0.5).astype(np.float32)
+
+
+def decode_head_maps(maps: HeadMaps, cell_m: float, top_k: int) -> tuple[Tensor, Tensor, Tensor]:
+    """Head maps (each (Q, ch, Hh, Wh)) -> det_boxes (Q, K, 9), det_scores (Q, K), det_labels (Q, K) int64.
+
+    Sigmoid, 3x3 max-pool peak picking (a cell survives if it equals its neighbourhood max), top-K over
+    classes x cells per quadrant. ``top_k`` must not exceed classes x cells (``Preset.top_k`` clamps it).
+    """
+    heatmap, reg, height, dim, rot, vel = maps
+    q, num_classes, hh, wh = heatmap.shape
+    heat = heatmap.sigmoid()
+    hmax = F.max_pool2d(heat, kernel_size=3, stride=1, padding=1)
+    heat = heat * (hmax == heat).to(heat.dtype)  # (Q, C_cls, Hh, Wh), non-peaks zeroed
+    scores, flat = heat.reshape(q, -1).topk(top_k, dim=1)  # (Q, K)
+    cells_per_class = hh * wh
+    labels = torch.div(flat, cells_per_class, rounding_mode="floor")  # (Q, K)
+    cell = flat - labels * cells_per_class  # (Q, K) = row * Wh + col
+    row = torch.div(cell, wh, rounding_mode="floor")
+    col = cell - row * wh
+
+    def at_peaks(m: Tensor) -> Tensor:
+        ch = m.shape[1]
+        return m.reshape(q, ch, -1).gather(2, cell.unsqueeze(1).expand(-1, ch, -1))  # (Q, ch, K)
+
+    r = at_peaks(reg)
+    x = (col.to(r.dtype) + 0.5 + r[:, 0]) * cell_m  # (Q, K)
+    y = (row.to(r.dtype) + 0.5 + r[:, 1]) * cell_m
+    z = at_peaks(height)[:, 0]
+    size = at_peaks(dim).exp()  # (Q, 3, K): w, l, h
+    sc = at_peaks(rot)
+    yaw = torch.atan2(sc[:, 0], sc[:, 1])
+    v = at_peaks(vel)  # (Q, 2, K)
+    boxes = torch.cat([x[:, None], y[:, None], z[:, None], size, yaw[:, None], v], dim=1)  # (Q, 9, K)
+    return boxes.transpose(1, 2), scores, labels  # (Q, K, 9), (Q, K), (Q, K)
+
+
+class SliceDecoder(nn.Module):
+    """SliceNet plus decode: the module exported as ``slice_head.onnx``.
+
+    ``forward(pillar_features, pillar_mask, pillar_index, image_bev) -> det_boxes (Q, K, 9), det_scores (Q, K),
+    det_labels (Q, K) int64`` with K = ``preset.top_k`` (post.top_k clamped to classes x head cells).
+    """
+
+    def __init__(self, slice_net: SliceNet, preset: Preset) -> None:
+        super().__init__()
+        self.slice_net = slice_net
+        self.cell_m = preset.head_cell_m
+        self.top_k = preset.top_k  # static: the head map size is fixed by the preset, only Q and P are dynamic
+
+    def forward(
+        self, pillar_features: Tensor, pillar_mask: Tensor, pillar_index: Tensor, image_bev: Tensor
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        maps = self.slice_net(pillar_features, pillar_mask, pillar_index, image_bev)
+        return decode_head_maps(maps, self.cell_m, self.top_k)

@@ -1,0 +1,96 @@
+"""The detector as three modules, one per exported graph, and their training-time composition.
+
+    ImageEncoder      images (J, H, W, 3) uint8                        -> features (J, C, Hf, Wf)
+    VolumetricLifter  features, lut_index, lut_weight (Q, K, Z, Yq, Xq) -> image_bev (Q, C, Yq, Xq)
+    SliceNet          pillar tensors + image_bev                        -> head maps, each (Q, ch, Hh, Wh)
+
+``SliceDecoder`` (decode.py) wraps SliceNet with the in-graph decode for ``slice_head.onnx``.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from streamdet.models.bev_encoder import BevEncoder
+from streamdet.models.heads import CenterHead, HeadMaps
+from streamdet.models.image_encoder import ImageEncoder
+from streamdet.models.lifter import VolumetricLifter
+from streamdet.models.pillars import PillarFeatureNet, scatter_pillars
+from streamdet.models.presets import Preset
+
+
+class SliceNet(nn.Module):
+    """``forward(pillar_features (P, M, 11), pillar_mask (P, M), pillar_index (P,) int64, image_bev (Q, C, Yq, Xq))
+    -> (heatmap, reg, height, dim, rot, vel)``, raw maps (heatmap as logits), each (Q, ch, Hh, Wh).
+
+    Q, Yq and Xq come from image_bev's shape. With ``preset.use_image`` False (the LiDAR-only baseline) image_bev
+    is read for its shape only, so the exported graph keeps the same inputs.
+    """
+
+    def __init__(self, preset: Preset) -> None:
+        super().__init__()
+        c = preset.channels
+        self.use_image = preset.use_image
+        self.pillar_net = PillarFeatureNet(preset.pillars.num_point_features, c)
+        self.bev_encoder = BevEncoder(preset.bev, 2 * c if preset.use_image else c)
+        self.head = CenterHead(preset.head, self.bev_encoder.out_channels)
+
+    def fused_bev(self, pillar_features: Tensor, pillar_mask: Tensor, pillar_index: Tensor, image_bev: Tensor) -> Tensor:
+        """The BEV encoder's output (Q, C_enc, Hh, Wh), shared by both head variants."""
+        p_bev = scatter_pillars(self.pillar_net(pillar_features, pillar_mask), pillar_index, image_bev)  # (Q, C, Yq, Xq)
+        x = torch.cat([p_bev, image_bev], dim=1) if self.use_image else p_bev  # (Q, 2C or C, Yq, Xq)
+        return self.bev_encoder(x)
+
+    def forward(self, pillar_features: Tensor, pillar_mask: Tensor, pillar_index: Tensor, image_bev: Tensor) -> HeadMaps:
+        return self.head(self.fused_bev(pillar_features, pillar_mask, pillar_index, image_bev))
+
+
+class StreamDetector(nn.Module):
+    """The three parts together, for training.
+
+    One call covers one sample's slice: J images and the Q quadrants the slice touches. To batch several samples,
+    stack their images along J, their quadrants along Q (with ``lifter.batch_lut_index`` for the LUT indices) and
+    offset each pillar_index by the sample's first quadrant times Yq * Xq.
+    """
+
+    def __init__(self, preset: Preset) -> None:
+        super().__init__()
+        self.preset = preset
+        self.image_encoder = ImageEncoder(preset.image, preset.channels) if preset.use_image else None
+        self.lifter = VolumetricLifter(preset.lifter, preset.channels) if preset.use_image else None
+        self.slice_net = SliceNet(preset)
+
+    def image_bev(self, images: Tensor, lut_index: Tensor, lut_weight: Tensor) -> Tensor:
+        if self.image_encoder is None or self.lifter is None:
+            raise RuntimeError(f"preset {self.preset.name!r} has use_image=False: there is no image lane")
+        return self.lifter(self.image_encoder(images), lut_index, lut_weight)  # (Q, C, Yq, Xq)
+
+    def forward(
+        self,
+        images: Tensor | None,
+        lut_index: Tensor | None,
+        lut_weight: Tensor | None,
+        pillar_features: Tensor,
+        pillar_mask: Tensor,
+        pillar_index: Tensor,
+        *,
+        num_quadrants: int | None = None,
+    ) -> HeadMaps:
+        """Head maps of the slice. With use_image=False, images and the LUT may be None; Q is then
+        ``num_quadrants`` (or lut_index.shape[0] when a LUT is given)."""
+        if self.preset.use_image:
+            if images is None or lut_index is None or lut_weight is None:
+                raise ValueError("images, lut_index and lut_weight are required when preset.use_image is True")
+            image_bev = self.image_bev(images, lut_index, lut_weight)
+        else:
+            q = num_quadrants if num_quadrants is not None else (None if lut_index is None else lut_index.shape[0])
+            if q is None:
+                raise ValueError("LiDAR-only forward needs num_quadrants (or a lut_index to take Q from)")
+            g = self.preset.grid
+            image_bev = pillar_features.new_zeros(q, self.preset.channels, g.quadrant_ny, g.quadrant_nx)
+        return self.slice_net(pillar_features, pillar_mask, pillar_index, image_bev)
+
+
+def build_detector(preset: Preset) -> StreamDetector:
+    return StreamDetector(preset)

@@ -1,0 +1,82 @@
+"""The image lane's second graph: image features -> image BEV through a volume (``volumetric_lifter.onnx``).
+
+Paper Sec. III-B. Every voxel of the quadrant volumes takes the feature of the pixel its centre projects to,
+averaged over the cameras that see it; voxels no camera sees stay zero. The projection itself is precomputed
+into a LUT (``calibration/lut.py``), so the graph is a gather plus a weighted sum, and a calibration change
+needs a new LUT, not a new graph. Then: BN3d, 1x1x1 conv + ReLU (image feature space -> point feature space),
+a residual k3 Conv3d block, a k3 Conv3d with z-stride 2, AvgPool over z, max over z.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from torch import Tensor, nn
+
+from streamdet.models.presets import LifterConfig
+
+
+def gather_volume(features: Tensor, lut_index: Tensor, lut_weight: Tensor) -> Tensor:
+    """Fill the quadrant volumes from the feature maps.
+
+    features (J, C, Hf, Wf); lut_index, lut_weight (Q, K, Z, Yq, Xq): row ``j * Hf * Wf + v * Wf + u`` of the
+    flattened feature table, or the sentinel ``J * Hf * Wf`` (an appended all-zero row) for an empty slot.
+    Returns V (Q, C, Z, Yq, Xq) = sum_k weight * feature[index] (the weights hold 1 / number of cameras).
+    """
+    c = features.shape[1]
+    table = features.permute(0, 2, 3, 1).reshape(-1, c)  # (J*Hf*Wf, C)
+    table = torch.cat([table, table.new_zeros(1, c)], dim=0)  # (J*Hf*Wf + 1, C): the sentinel row
+    q, k, z, yq, xq = lut_index.shape
+    rows = table.index_select(0, lut_index.reshape(-1))  # (Q*K*Z*Yq*Xq, C)
+    rows = rows.reshape(q, k, z, yq, xq, c) * lut_weight.unsqueeze(-1)  # (Q, K, Z, Yq, Xq, C)
+    volume = rows.sum(dim=1)  # (Q, Z, Yq, Xq, C)
+    return volume.permute(0, 4, 1, 2, 3)  # (Q, C, Z, Yq, Xq)
+
+
+class VolumetricLifter(nn.Module):
+    """``forward(features (J, C, Hf, Wf), lut_index (Q, K, Z, Yq, Xq) int32, lut_weight (Q, K, Z, Yq, Xq) f32)
+    -> image_bev (Q, C, Yq, Xq)``."""
+
+    def __init__(self, cfg: LifterConfig, channels: int) -> None:
+        super().__init__()
+        c = channels
+        # BN first: the stacked quadrants of a batch share the FPN feature statistics (paper Sec. III-C).
+        self.input_norm = nn.BatchNorm3d(c)
+        self.project = nn.Conv3d(c, c, kernel_size=1)
+        self.residual = nn.Sequential(
+            nn.Conv3d(c, c, kernel_size=3, padding=1, bias=False), nn.BatchNorm3d(c), nn.ReLU(inplace=True)
+        )
+        stride = (cfg.z_conv_stride, 1, 1)
+        self.z_down = nn.Sequential(
+            nn.Conv3d(c, c, kernel_size=3, stride=stride, padding=1, bias=False), nn.BatchNorm3d(c), nn.ReLU(inplace=True)
+        )
+        self.z_pool = nn.AvgPool3d(kernel_size=(cfg.z_pool, 1, 1), stride=(cfg.z_pool, 1, 1))
+        self.relu = nn.ReLU(inplace=True)
+
+    def forward(self, features: Tensor, lut_index: Tensor, lut_weight: Tensor) -> Tensor:
+        v = gather_volume(features, lut_index, lut_weight)  # (Q, C, Z, Yq, Xq)
+        v = self.relu(self.project(self.input_norm(v)))
+        v = v + self.residual(v)
+        v = self.z_pool(self.z_down(v))  # (Q, C, Z / (z_conv_stride * z_pool), Yq, Xq)
+        return v.amax(dim=2)  # (Q, C, Yq, Xq)
+
+
+def batch_lut_index(lut_indices: Sequence[Tensor], images_per_sample: Sequence[int], rows_per_image: int) -> Tensor:
+    """Concatenate the LUT indices of several samples whose images are stacked into one features tensor.
+
+    Sample b's rows shift by the rows of the images before it, and every sentinel (its ``J_b * rows_per_image``)
+    moves to the one sentinel of the batch, ``sum(J) * rows_per_image``. ``rows_per_image = Hf * Wf``.
+    Returns (sum Q_b, K, Z, Yq, Xq) with the input dtype.
+    """
+    if len(lut_indices) != len(images_per_sample):
+        raise ValueError(f"got {len(lut_indices)} LUT indices but {len(images_per_sample)} image counts")
+    if not lut_indices:
+        raise ValueError("batch_lut_index needs at least one sample")
+    total = sum(images_per_sample) * rows_per_image
+    out, offset = [], 0
+    for idx, j in zip(lut_indices, images_per_sample):
+        sentinel = j * rows_per_image
+        out.append(torch.where(idx == sentinel, torch.full_like(idx, total), idx + offset))
+        offset += sentinel
+    return torch.cat(out, dim=0)

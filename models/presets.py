@@ -1,0 +1,320 @@
+"""Model presets: every architectural number of the detector, in frozen dataclasses.
+
+This module is torch-free on purpose: the export manifest stores ``Preset.to_dict()`` and the vehicle runtime
+reads it back with ``Preset.from_dict`` without PyTorch.
+
+Three presets:
+
+- ``paper``: the numbers of the paper and of DESIGN.md (0.2 m pillars over [-51.2, 51.2] m, 0.5 m image voxels,
+  c = 64, ResNet-50 + FPN at 1600 x 900, CenterPoint single head at output stride 4, top 500, 10 classes).
+- ``small``: ours, sized for CPU real time on a 2-core machine. 0.4 m pillars (quadrant 128 x 128), 1 m image
+  voxels (quadrant volume 8 x 128 x 128), c = 32, ResNet-18 at 800 x 450, a three-scale BEV encoder whose stages
+  all run at stride >= 2, and the head at 0.8 m cells (64 x 64 per quadrant). One quadrant of the slice graph is
+  about 0.43 GMAC (benchmarks/flops_report.py).
+- ``tiny``: for unit tests; every size minimal so a forward and backward pass take milliseconds.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+from streamdet.calibration.grid import GridSpec
+from streamdet.runtime_ort.boxes import CLASS_NAMES
+
+# The nuScenes CenterPoint task grouping of the multi-head variant (classes of similar size share a task).
+NUSCENES_TASKS: tuple[tuple[str, ...], ...] = (
+    ("car",),
+    ("truck", "construction_vehicle"),
+    ("bus", "trailer"),
+    ("barrier",),
+    ("motorcycle", "bicycle"),
+    ("pedestrian", "traffic_cone"),
+)
+
+
+@dataclass(frozen=True)
+class ImageConfig:
+    width_px: int = 1600  # network input size; the LUT is built for the same size
+    height_px: int = 900
+    backbone_depth: int = 50  # 18 (BasicBlock) or 50 (Bottleneck), torchvision layouts
+    width_divisor: int = 1  # base width 64 // divisor; > 1 only for the tiny test preset (breaks weight loading)
+    feature_stride: int = 4  # the FPN output level; the lifter LUT is built for this stride
+
+    def __post_init__(self) -> None:
+        _check_positive_int(self, "width_px", "height_px", "width_divisor")
+        if self.backbone_depth not in (18, 50):
+            raise ValueError(f"ImageConfig.backbone_depth must be 18 or 50, got {self.backbone_depth!r}")
+        if 64 % self.width_divisor:
+            raise ValueError(f"ImageConfig.width_divisor must divide 64, got {self.width_divisor!r}")
+        if self.feature_stride != 4:
+            raise ValueError(f"ImageConfig.feature_stride must be 4 (the FPN's output level), got {self.feature_stride!r}")
+
+    @property
+    def feature_height(self) -> int:
+        return math.ceil(self.height_px / self.feature_stride)
+
+    @property
+    def feature_width(self) -> int:
+        return math.ceil(self.width_px / self.feature_stride)
+
+
+@dataclass(frozen=True)
+class PillarConfig:
+    max_points_per_pillar: int = 20  # M; CenterPoint-pillar nuScenes setting
+    max_pillars: int = 30000  # P upper bound per slice
+    num_point_features: int = 11  # x, y, z, r, t, s, 3 offsets to the pillar mean, 2 to the cell centre
+
+    def __post_init__(self) -> None:
+        _check_positive_int(self, "max_points_per_pillar", "max_pillars")
+        if self.num_point_features != 11:
+            raise ValueError(
+                f"PillarConfig.num_point_features must be 11 (the pillar_features contract), got {self.num_point_features!r}"
+            )
+
+
+@dataclass(frozen=True)
+class LifterConfig:
+    z_conv_stride: int = 2  # the z-strided Conv3d: 0.5 m voxels -> 1 m
+    z_pool: int = 2  # AvgPool along z after it: 1 m -> 2 m, then max over what is left
+
+    def __post_init__(self) -> None:
+        _check_positive_int(self, "z_conv_stride", "z_pool")
+
+
+@dataclass(frozen=True)
+class BevEncoderConfig:
+    """CenterPoint RPN: stage i = one k3 conv with stride layer_strides[i] then layer_nums[i] k3 convs;
+    deblock i brings stage i to the head stride (upsample_strides[i] > 1: transposed conv, < 1: strided conv)."""
+
+    layer_nums: tuple[int, ...] = (3, 5, 5)  # extra convs after each stage's first conv
+    layer_strides: tuple[int, ...] = (1, 2, 2)  # relative to the previous stage; cumulative 1, 2, 4 pillar cells
+    num_filters: tuple[int, ...] = (64, 128, 256)
+    upsample_strides: tuple[float, ...] = (0.25, 0.5, 1.0)  # each scale to stride 4
+    num_upsample_filters: tuple[int, ...] = (128, 128, 128)  # concat = 384 channels into the head
+
+    def __post_init__(self) -> None:
+        n = len(self.layer_nums)
+        for name in ("layer_strides", "num_filters", "upsample_strides", "num_upsample_filters"):
+            if len(getattr(self, name)) != n:
+                raise ValueError(
+                    f"BevEncoderConfig.{name} must have {n} entries like layer_nums, got {getattr(self, name)!r}"
+                )
+        if n == 0:
+            raise ValueError("BevEncoderConfig.layer_nums must not be empty")
+        if any(v < 0 for v in self.layer_nums):
+            raise ValueError(f"BevEncoderConfig.layer_nums must be >= 0, got {self.layer_nums!r}")
+        for name in ("layer_strides", "num_filters", "num_upsample_filters"):
+            if any(int(v) != v or v < 1 for v in getattr(self, name)):
+                raise ValueError(f"BevEncoderConfig.{name} must be positive integers, got {getattr(self, name)!r}")
+        if any(not v > 0 for v in self.upsample_strides):
+            raise ValueError(f"BevEncoderConfig.upsample_strides must be > 0, got {self.upsample_strides!r}")
+
+    @property
+    def cumulative_strides(self) -> tuple[int, ...]:
+        return tuple(math.prod(self.layer_strides[: i + 1]) for i in range(len(self.layer_strides)))
+
+    @property
+    def out_channels(self) -> int:
+        return sum(self.num_upsample_filters)
+
+
+@dataclass(frozen=True)
+class HeadConfig:
+    head_channels: int = 64  # shared conv output and every branch's hidden conv
+    multi_head: bool = False  # False: one head for all classes (the paper); True: CenterPoint's task heads
+    tasks: tuple[tuple[str, ...], ...] = NUSCENES_TASKS  # used only when multi_head
+    out_stride: int = 4  # head map cell = out_stride pillar cells
+    final_kernel: int = 3  # kernel of each branch's output conv (CenterPoint: 3)
+    heatmap_bias_init: float = -2.19  # CenterPoint: sigmoid(-2.19) ~ 0.1 prior
+
+    def __post_init__(self) -> None:
+        _check_positive_int(self, "head_channels", "out_stride", "final_kernel")
+        if self.final_kernel % 2 == 0:
+            raise ValueError(f"HeadConfig.final_kernel must be odd (same-size padding), got {self.final_kernel!r}")
+        flat = [c for task in self.tasks for c in task]
+        if sorted(flat) != sorted(CLASS_NAMES):
+            raise ValueError(f"HeadConfig.tasks must cover each of {CLASS_NAMES} exactly once, got {self.tasks!r}")
+
+
+@dataclass(frozen=True)
+class PostConfig:
+    top_k: int = 500  # detections per quadrant out of the graph (the paper's top 500)
+    score_threshold: float = 0.1  # applied by the runtime after the graph
+    nms_iou_threshold: tuple[float, ...] = (0.2,) * len(CLASS_NAMES)  # BEV rotated IoU, per class in CLASS_NAMES order
+    max_detections: int = 500  # per slice after NMS
+
+    def __post_init__(self) -> None:
+        _check_positive_int(self, "top_k", "max_detections")
+        if not 0.0 <= self.score_threshold < 1.0:
+            raise ValueError(f"PostConfig.score_threshold must be in [0, 1), got {self.score_threshold!r}")
+        if len(self.nms_iou_threshold) != len(CLASS_NAMES) or any(not 0.0 < t <= 1.0 for t in self.nms_iou_threshold):
+            raise ValueError(
+                f"PostConfig.nms_iou_threshold must hold {len(CLASS_NAMES)} values in (0, 1], got {self.nms_iou_threshold!r}"
+            )
+
+
+@dataclass(frozen=True)
+class Preset:
+    name: str
+    grid: GridSpec = field(default_factory=GridSpec)
+    channels: int = 64  # c: pillar features, FPN output and image BEV alike
+    image: ImageConfig = field(default_factory=ImageConfig)
+    pillars: PillarConfig = field(default_factory=PillarConfig)
+    lifter: LifterConfig = field(default_factory=LifterConfig)
+    bev: BevEncoderConfig = field(default_factory=BevEncoderConfig)
+    head: HeadConfig = field(default_factory=HeadConfig)
+    post: PostConfig = field(default_factory=PostConfig)
+    use_image: bool = True  # False: the LiDAR-only streaming baseline (image_bev is then only read for its shape)
+
+    def __post_init__(self) -> None:
+        _check_positive_int(self, "channels")
+        g = self.grid
+        for i, s in enumerate(self.bev.cumulative_strides):
+            if g.quadrant_ny % s or g.quadrant_nx % s:
+                raise ValueError(
+                    f"Preset {self.name!r}: quadrant {g.quadrant_ny} x {g.quadrant_nx} cells is not divisible by "
+                    f"bev stage {i}'s stride {s} (bev.layer_strides={self.bev.layer_strides})"
+                )
+            if abs(s / self.bev.upsample_strides[i] - self.head.out_stride) > 1e-9:
+                raise ValueError(
+                    f"Preset {self.name!r}: bev.upsample_strides[{i}]={self.bev.upsample_strides[i]} brings stride {s} "
+                    f"to {s / self.bev.upsample_strides[i]}, not head.out_stride={self.head.out_stride}"
+                )
+            u = self.bev.upsample_strides[i]
+            factor = u if u >= 1 else 1.0 / u
+            if abs(factor - round(factor)) > 1e-9:
+                raise ValueError(f"Preset {self.name!r}: bev.upsample_strides[{i}]={u} is neither an integer nor 1/integer")
+        if g.quadrant_ny % self.head.out_stride or g.quadrant_nx % self.head.out_stride:
+            raise ValueError(
+                f"Preset {self.name!r}: quadrant {g.quadrant_ny} x {g.quadrant_nx} is not divisible by head.out_stride={self.head.out_stride}"
+            )
+        z_div = self.lifter.z_conv_stride * self.lifter.z_pool
+        if g.nz % z_div:
+            raise ValueError(
+                f"Preset {self.name!r}: grid.nz={g.nz} image voxels is not divisible by lifter z_conv_stride * z_pool = {z_div}"
+            )
+
+    # ---- derived sizes -----------------------------------------------------------------------------
+    @property
+    def num_classes(self) -> int:
+        return len(CLASS_NAMES)
+
+    @property
+    def head_cell_m(self) -> float:
+        """Edge of one head-map cell in metres."""
+        return self.grid.voxel_xy_m * self.head.out_stride
+
+    @property
+    def head_map_size(self) -> tuple[int, int]:
+        """(Hh, Wh) of one quadrant's head maps."""
+        return self.grid.quadrant_ny // self.head.out_stride, self.grid.quadrant_nx // self.head.out_stride
+
+    @property
+    def top_k(self) -> int:
+        """Detections per quadrant out of the graph: post.top_k clamped to classes x cells."""
+        hh, wh = self.head_map_size
+        return min(self.post.top_k, self.num_classes * hh * wh)
+
+    # ---- serialisation -----------------------------------------------------------------------------
+    def to_dict(self) -> dict[str, Any]:
+        d: dict[str, Any] = {"name": self.name, "grid": self.grid.to_dict(), "channels": self.channels}
+        for name in ("image", "pillars", "lifter", "bev", "head", "post"):
+            d[name] = _plain(dataclasses.asdict(getattr(self, name)))
+        d["use_image"] = self.use_image
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "Preset":
+        try:
+            return cls(
+                name=str(d["name"]),
+                grid=GridSpec.from_dict(d["grid"]),
+                channels=int(d["channels"]),
+                image=ImageConfig(**d["image"]),
+                pillars=PillarConfig(**d["pillars"]),
+                lifter=LifterConfig(**d["lifter"]),
+                bev=BevEncoderConfig(**{k: tuple(v) for k, v in d["bev"].items()}),
+                head=HeadConfig(**{**d["head"], "tasks": tuple(tuple(t) for t in d["head"]["tasks"])}),
+                post=PostConfig(**{**d["post"], "nms_iou_threshold": tuple(d["post"]["nms_iou_threshold"])}),
+                use_image=bool(d["use_image"]),
+            )
+        except KeyError as e:
+            raise ValueError(f"preset dict lacks the field {e.args[0]!r}") from None
+        except TypeError as e:  # unknown or missing dataclass field
+            raise ValueError(f"preset dict is malformed: {e}") from None
+
+
+def _plain(x: Any) -> Any:
+    """Tuples -> lists, recursively, so to_dict() is JSON-ready and compares equal after a JSON round trip."""
+    if isinstance(x, dict):
+        return {k: _plain(v) for k, v in x.items()}
+    if isinstance(x, (tuple, list)):
+        return [_plain(v) for v in x]
+    return x
+
+
+def _check_positive_int(obj: Any, *names: str) -> None:
+    for name in names:
+        v = getattr(obj, name)
+        if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+            raise ValueError(f"{type(obj).__name__}.{name} must be a positive integer, got {v!r}")
+
+
+def _paper() -> Preset:
+    return Preset(name="paper")  # every default above is the paper's number
+
+
+def _small() -> Preset:
+    return Preset(
+        name="small",
+        grid=GridSpec(voxel_xy_m=0.4, voxel_z_m=1.0),  # 256 x 256 pillars, quadrant 128 x 128; volume z 8
+        channels=32,
+        image=ImageConfig(width_px=800, height_px=450, backbone_depth=18),
+        pillars=PillarConfig(max_points_per_pillar=16, max_pillars=8000),
+        bev=BevEncoderConfig(
+            # every stage strided: the 128 x 128 full-resolution convs would cost more than the rest together
+            layer_nums=(1, 1, 1),
+            layer_strides=(2, 2, 2),  # cumulative 2, 4, 8 pillar cells = 0.8, 1.6, 3.2 m
+            num_filters=(32, 64, 128),
+            upsample_strides=(1.0, 2.0, 4.0),  # all to stride 2 (0.8 m head cells)
+            num_upsample_filters=(32, 32, 32),
+        ),
+        head=HeadConfig(head_channels=16, out_stride=2),
+    )
+
+
+def _tiny() -> Preset:
+    return Preset(
+        name="tiny",
+        grid=GridSpec(x_range_m=(-12.8, 12.8), y_range_m=(-12.8, 12.8), voxel_xy_m=0.4, voxel_z_m=2.0),  # 64 x 64 x 4
+        channels=8,
+        image=ImageConfig(width_px=128, height_px=72, backbone_depth=18, width_divisor=8),
+        pillars=PillarConfig(max_points_per_pillar=8, max_pillars=1024),
+        bev=BevEncoderConfig(
+            layer_nums=(1, 1),
+            layer_strides=(1, 2),
+            num_filters=(8, 16),
+            upsample_strides=(0.5, 1.0),
+            num_upsample_filters=(8, 8),
+        ),
+        head=HeadConfig(head_channels=8, out_stride=2),
+        post=PostConfig(top_k=50),
+    )
+
+
+_PRESETS = {"paper": _paper, "small": _small, "tiny": _tiny}
+
+
+def preset_names() -> tuple[str, ...]:
+    return tuple(_PRESETS)
+
+
+def get_preset(name: str) -> Preset:
+    """The named preset; ``dataclasses.replace`` derives variants (e.g. ``use_image=False``)."""
+    try:
+        return _PRESETS[name]()
+    except KeyError:
+        raise ValueError(f"unknown preset {name!r}; known presets: {', '.join(_PRESETS)}") from None
