@@ -88,13 +88,15 @@ class EvalBoxes:
         )
 
     def with_ego_position(self, ego_xyz_by_sample: Mapping[str, Sequence[float]]) -> EvalBoxes:
-        """Recompute ``ego_translation`` = translation - ego position of the box's sample (devkit ``add_center_dist``)."""
-        missing = [t for t in self.sample_tokens if t not in ego_xyz_by_sample]
-        if missing:
-            raise ValueError(f"no ego position for sample {missing[0]!r} ({len(missing)} samples without one)")
-        ego = np.array([ego_xyz_by_sample[t] for t in self.sample_tokens], dtype=np.float64).reshape(-1, 3)  # (S, 3)
+        """``ego_translation`` = translation - ego position of the box's sample (devkit ``add_center_dist``).
+
+        Boxes of samples missing from ``ego_xyz_by_sample`` keep their ``ego_translation``.
+        """
+        ego = np.array([ego_xyz_by_sample.get(t, (np.nan,) * 3) for t in self.sample_tokens], dtype=np.float64)
+        ego = ego.reshape(len(self.sample_tokens), 3)[self.sample_index]  # (N, 3)
+        known = ~np.isnan(ego[:, :1])
         fields = {name: getattr(self, name) for name in _ARRAY_FIELDS}
-        fields["ego_translation"] = self.translation - ego[self.sample_index]
+        fields["ego_translation"] = np.where(known, self.translation - ego, self.ego_translation)
         return EvalBoxes(sample_tokens=self.sample_tokens, **fields)
 
     # ---- JSON entries ---------------------------------------------------------------------------
