@@ -1,0 +1,161 @@
+"""Slice graph outputs -> detections in the LiDAR frame, and the aggregation of a sweep's slices (numpy only).
+
+`slice_head.onnx` returns, per touched quadrant, its top-K boxes with x, y relative to the quadrant's
+minimum corner (docs/architecture.md, "The three graphs"). Post-processing uncrops them (adds
+`GridSpec.quadrant_origin_m(q)`), drops low scores, optionally keeps only boxes centred in the slice's
+sector, and runs per-class NMS. The paper then aggregates the slices of a sweep with one more per-class NMS,
+which removes objects detected twice across a slice border.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from streamdet.calibration.grid import NUM_QUADRANTS, GridSpec, azimuth_deg
+from streamdet.runtime_ort.boxes import BOX_DIM, CLASS_NAMES, X, Y
+from streamdet.runtime_ort.nms import NmsConfig, nms
+
+
+@dataclass(frozen=True)
+class Detections:
+    """Boxes (N, 9) float32 in the LiDAR frame (layout of `runtime_ort/boxes.py`), scores (N,), labels (N,)."""
+
+    boxes: np.ndarray  # (N, 9) float32
+    scores: np.ndarray  # (N,) float32
+    labels: np.ndarray  # (N,) int64, indexes CLASS_NAMES
+
+    def __post_init__(self) -> None:
+        boxes = np.asarray(self.boxes, dtype=np.float32)
+        scores = np.asarray(self.scores, dtype=np.float32)
+        labels = np.asarray(self.labels)
+        if boxes.ndim != 2 or boxes.shape[1] != BOX_DIM:
+            raise ValueError(f"Detections.boxes must be (N, {BOX_DIM}), got shape {boxes.shape}")
+        n = boxes.shape[0]
+        if scores.shape != (n,):
+            raise ValueError(f"Detections.scores must be ({n},) to match boxes, got shape {scores.shape}")
+        if labels.shape != (n,):
+            raise ValueError(f"Detections.labels must be ({n},) to match boxes, got shape {labels.shape}")
+        if n and not np.issubdtype(labels.dtype, np.integer):
+            raise ValueError(f"Detections.labels must be integers, got dtype {labels.dtype}")
+        object.__setattr__(self, "boxes", boxes)
+        object.__setattr__(self, "scores", scores)
+        object.__setattr__(self, "labels", labels.astype(np.int64))
+
+    @classmethod
+    def empty(cls) -> "Detections":
+        return cls(np.zeros((0, BOX_DIM), np.float32), np.zeros(0, np.float32), np.zeros(0, np.int64))
+
+    @classmethod
+    def concatenate(cls, parts: Sequence["Detections"]) -> "Detections":
+        if not parts:
+            return cls.empty()
+        return cls(
+            np.concatenate([p.boxes for p in parts]),
+            np.concatenate([p.scores for p in parts]),
+            np.concatenate([p.labels for p in parts]),
+        )
+
+    def select(self, which: np.ndarray) -> "Detections":
+        """The detections picked by a boolean mask (N,) or an integer index array."""
+        which = np.asarray(which)
+        if which.dtype == bool and which.shape != (len(self),):
+            raise ValueError(f"a boolean selection must be ({len(self)},), got shape {which.shape}")
+        return Detections(self.boxes[which], self.scores[which], self.labels[which])
+
+    def __len__(self) -> int:
+        return self.boxes.shape[0]
+
+
+@dataclass(frozen=True)
+class PostprocessConfig:
+    score_threshold: float = 0.1  # keep boxes scoring >= this (CenterPoint's nuScenes test setting)
+    restrict_to_sector: bool = False  # keep only boxes whose BEV centre lies in the slice's own sector
+    nms: NmsConfig = field(default_factory=NmsConfig)  # per-class NMS inside the slice
+
+    def __post_init__(self) -> None:
+        if not math.isfinite(self.score_threshold):
+            raise ValueError(f"PostprocessConfig.score_threshold must be finite, got {self.score_threshold}")
+
+
+def _check_quadrants(quadrants: Sequence[int]) -> tuple[int, ...]:
+    qs = tuple(quadrants)
+    if (
+        not qs
+        or not all(isinstance(q, (int, np.integer)) and 0 <= q < NUM_QUADRANTS for q in qs)
+        or any(a >= b for a, b in zip(qs, qs[1:]))
+    ):
+        raise ValueError(f"quadrants must be a non-empty, strictly increasing tuple of 0..3, got {quadrants!r}")
+    return qs
+
+
+def uncrop_boxes(det_boxes: np.ndarray, quadrants: Sequence[int], grid: GridSpec) -> np.ndarray:
+    """(Q, K, 9) boxes relative to their quadrant's minimum corner -> (Q, K, 9) float32 in the LiDAR frame."""
+    qs = _check_quadrants(quadrants)
+    det_boxes = np.asarray(det_boxes)
+    if det_boxes.ndim != 3 or det_boxes.shape[0] != len(qs) or det_boxes.shape[2] != BOX_DIM:
+        raise ValueError(
+            f"det_boxes must be (Q={len(qs)}, K, {BOX_DIM}) for quadrants {qs}, got shape {det_boxes.shape}"
+        )
+    origin = np.array([grid.quadrant_origin_m(q) for q in qs], dtype=np.float64)  # (Q, 2)
+    boxes = det_boxes.astype(np.float64)  # float64 add, then one rounding to float32
+    boxes[..., [X, Y]] += origin[:, None, :]
+    return boxes.astype(np.float32)
+
+
+def in_sector(boxes: np.ndarray, sector_deg: tuple[float, float]) -> np.ndarray:
+    """Boolean (N,): the BEV centre's azimuth lies in [lo, hi) of the sector (wrapping past 360 deg)."""
+    lo, hi = float(sector_deg[0]), float(sector_deg[1])
+    if not (math.isfinite(lo) and math.isfinite(hi) and 0.0 < hi - lo <= 360.0):
+        raise ValueError(f"sector_deg must be (lo, hi) with 0 < hi - lo <= 360, got {sector_deg!r}")
+    rel = np.mod(azimuth_deg(boxes[:, X], boxes[:, Y]) - lo, 360.0)
+    return rel < hi - lo
+
+
+def postprocess_slice(
+    det_boxes: np.ndarray,
+    det_scores: np.ndarray,
+    det_labels: np.ndarray,
+    quadrants: Sequence[int],
+    grid: GridSpec,
+    config: PostprocessConfig = PostprocessConfig(),
+    sector_deg: tuple[float, float] | None = None,
+) -> Detections:
+    """Decoded slice graph outputs (Q, K, 9), (Q, K), (Q, K) -> the slice's detections in the LiDAR frame.
+
+    Steps: uncrop, drop rows with a non-finite value, score threshold, sector restriction (when
+    `config.restrict_to_sector`; needs `sector_deg`, e.g. `grid.sector_bounds_deg(k, n)`), per-class NMS.
+    """
+    det_scores = np.asarray(det_scores)
+    det_labels = np.asarray(det_labels)
+    boxes = uncrop_boxes(det_boxes, quadrants, grid)
+    if det_scores.shape != boxes.shape[:2]:
+        raise ValueError(f"det_scores must be {boxes.shape[:2]} to match det_boxes, got shape {det_scores.shape}")
+    if det_labels.shape != boxes.shape[:2]:
+        raise ValueError(f"det_labels must be {boxes.shape[:2]} to match det_boxes, got shape {det_labels.shape}")
+    if not np.issubdtype(det_labels.dtype, np.integer):
+        raise ValueError(f"det_labels must be integers, got dtype {det_labels.dtype}")
+    if config.restrict_to_sector and sector_deg is None:
+        raise ValueError("PostprocessConfig.restrict_to_sector is set but no sector_deg was given")
+
+    boxes = boxes.reshape(-1, BOX_DIM)  # (Q * K, 9)
+    scores = det_scores.reshape(-1).astype(np.float32)  # (Q * K,)
+    labels = det_labels.reshape(-1).astype(np.int64)
+    bad_label = (labels < 0) | (labels >= len(CLASS_NAMES))
+    if bad_label.any():
+        raise ValueError(f"det_labels must index CLASS_NAMES (0..{len(CLASS_NAMES) - 1}), got {labels[bad_label][0]}")
+
+    keep = np.isfinite(boxes).all(axis=1) & np.isfinite(scores) & (scores >= config.score_threshold)
+    if config.restrict_to_sector:
+        keep &= in_sector(boxes, sector_deg)
+    dets = Detections(boxes[keep], scores[keep], labels[keep])
+    return dets.select(nms(dets.boxes, dets.scores, dets.labels, config.nms))
+
+
+def aggregate_sweep(slice_detections: Sequence[Detections], nms_config: NmsConfig = NmsConfig()) -> Detections:
+    """The detections of a sweep's slices, concatenated and de-duplicated by one per-class NMS."""
+    merged = Detections.concatenate(list(slice_detections))
+    return merged.select(nms(merged.boxes, merged.scores, merged.labels, nms_config))
