@@ -1,0 +1,91 @@
+"""Latency statistics of named pipeline stages, safe to record from several threads at once.
+
+Each stage keeps its most recent `capacity` durations in a fixed ring buffer, so a process that runs for
+days holds a bounded amount of memory; `count` still reports every sample ever recorded.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+import numpy as np
+
+
+class _Ring:
+    def __init__(self, capacity: int) -> None:
+        self.values_ms = np.zeros(capacity, np.float64)
+        self.count = 0  # all samples ever recorded; the buffer holds the last min(count, capacity)
+
+    def add(self, ms: float) -> None:
+        self.values_ms[self.count % self.values_ms.size] = ms
+        self.count += 1
+
+    def window(self) -> np.ndarray:
+        return self.values_ms[: min(self.count, self.values_ms.size)].copy()
+
+
+class LatencyStats:
+    """Recorder of stage durations in milliseconds.
+
+    >>> stats = LatencyStats()
+    >>> with stats.time("pre"):
+    ...     pass
+    >>> stats.summary()["pre"]["count"]
+    1
+    """
+
+    def __init__(self, capacity: int = 1024) -> None:  # samples kept per stage for the percentiles
+        if not isinstance(capacity, int) or capacity < 1:
+            raise ValueError(f"LatencyStats capacity must be a positive integer, got {capacity!r}")
+        self.capacity = capacity
+        self._rings: dict[str, _Ring] = {}
+        self._lock = threading.Lock()
+
+    def record(self, stage: str, duration_ms: float) -> None:
+        """Add one duration of `stage`. Negative or non-finite durations are a caller bug and rejected."""
+        if not isinstance(stage, str) or not stage:
+            raise ValueError(f"stage must be a non-empty string, got {stage!r}")
+        duration_ms = float(duration_ms)
+        if not (duration_ms >= 0.0 and np.isfinite(duration_ms)):
+            raise ValueError(f"duration_ms of stage {stage!r} must be finite and >= 0, got {duration_ms}")
+        with self._lock:
+            ring = self._rings.get(stage)
+            if ring is None:
+                ring = self._rings[stage] = _Ring(self.capacity)
+            ring.add(duration_ms)
+
+    @contextmanager
+    def time(self, stage: str) -> Iterator[None]:
+        """Time the body with `time.perf_counter` and record it under `stage` (also when the body raises)."""
+        start = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.record(stage, (time.perf_counter() - start) * 1e3)
+
+    def summary(self) -> dict[str, dict[str, float]]:
+        """{stage: {count, p50_ms, p95_ms, mean_ms, min_ms, max_ms}} over the samples still in each buffer.
+
+        Percentiles use numpy's default linear interpolation; `count` is the number of samples ever recorded.
+        """
+        with self._lock:
+            windows = {stage: (ring.count, ring.window()) for stage, ring in self._rings.items()}
+        out = {}
+        for stage, (count, values) in windows.items():
+            p50, p95 = np.percentile(values, [50, 95])
+            out[stage] = {
+                "count": count,
+                "p50_ms": float(p50),
+                "p95_ms": float(p95),
+                "mean_ms": float(values.mean()),
+                "min_ms": float(values.min()),
+                "max_ms": float(values.max()),
+            }
+        return out
+
+    def reset(self) -> None:
+        with self._lock:
+            self._rings.clear()
