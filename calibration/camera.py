@@ -347,12 +347,20 @@ class Rig:
     # ---- loaders ----------------------------------------------------------------------------------
     @classmethod
     def from_calibration_json(cls, path_or_dict: str | os.PathLike | Mapping) -> "Rig":
-        """Rig from the calibration.json format of data/nuscenes_sample (or its parsed dict / ``to_dict()``).
+        """Rig from the calibration.json format of data/nuscenes_sample: a path, an importlib.resources file, or the
+        parsed dict (``to_dict()`` output included).
 
         Each camera's ``lidar2cam.matrix`` is used as stored (it already holds the ego motion).
         """
         if isinstance(path_or_dict, Mapping):
             doc, src = path_or_dict, "calibration"
+        elif not isinstance(path_or_dict, (str, os.PathLike)) and hasattr(path_or_dict, "read_text"):
+            # an importlib.resources Traversable (the bundled sample inside a zipped install)
+            src = getattr(path_or_dict, "name", "calibration.json")
+            try:
+                doc = json.loads(path_or_dict.read_text(encoding="utf-8"))
+            except json.JSONDecodeError as e:
+                raise CalibrationError(f"{src}: not valid JSON: {e}") from None
         else:
             src = os.path.basename(os.fspath(path_or_dict))
             try:

@@ -63,8 +63,10 @@ class Lut:
         if not isinstance(self.grid, GridSpec):
             raise CalibrationError(f"Lut.grid: expected a GridSpec, got {type(self.grid).__name__}")
         _validate_tables(self.index, self.weight, self.grid, self.sentinel, "Lut")
-        for a in (self.index, self.weight):
-            a.setflags(write=False)  # shared with every lifter call; nobody may edit it in place
+        for name in ("index", "weight"):
+            view = getattr(self, name).view()  # read-only view: the caller's own array keeps its flags
+            view.setflags(write=False)  # shared with every lifter call; nobody may edit it in place
+            object.__setattr__(self, name, view)
 
     # ---- derived metadata ------------------------------------------------------------------------
     @property

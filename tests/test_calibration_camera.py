@@ -386,3 +386,15 @@ def test_camera_direct_construction_errors() -> None:
         Camera("X", K, np.eye(4), True, 900)
     with pytest.raises(CalibrationError, match="at least one camera"):
         Rig((), np.eye(4), np.eye(4))
+
+
+def test_loads_from_a_traversable(rig: Rig) -> None:
+    """A resource that is not a filesystem path (zipped install) is read through read_text()."""
+
+    class Resource:
+        name = "calibration.json"
+
+        def read_text(self, encoding: str = "utf-8") -> str:
+            return CALIB.read_text(encoding=encoding)
+
+    assert Rig.from_calibration_json(Resource()) == rig

@@ -373,3 +373,10 @@ def test_load_rejects_unreadable_files(tiny_lut: Lut, tmp_path) -> None:
     (tmp_path / "pickle.npz").write_bytes(buf.getvalue())
     with pytest.raises(CalibrationError, match="pickle.npz"):
         Lut.load(tmp_path / "pickle.npz")
+
+
+def test_construction_leaves_caller_arrays_writable(tiny_lut: Lut) -> None:
+    index, weight = tiny_lut.index.copy(), tiny_lut.weight.copy()
+    lut = Lut(index, weight, TINY, 4, tiny_lut.image_width, tiny_lut.image_height, tiny_lut.camera_names,
+              tiny_lut.calibration_sha256)
+    assert index.flags.writeable and not lut.index.flags.writeable
