@@ -128,10 +128,11 @@ def filter_eval_boxes(
     """Drop boxes beyond their class range, boxes with no points (``num_pts == 0``) and, where ``bike_racks``
     ({sample_token: (R, 10) rack boxes, global frame, rows as in ``points_in_boxes``}) is given, bicycles and
     motorcycles standing in a rack."""
-    unknown = sorted(set(boxes.detection_name.tolist()) - set(class_range_m))
+    names, name_index = np.unique(boxes.detection_name, return_inverse=True)
+    unknown = [str(n) for n in names if n not in class_range_m]
     if unknown:
         raise ValueError(f"no class range for detection_name {unknown[0]!r} (class_range_m has {list(class_range_m)})")
-    max_dist = np.array([class_range_m[str(n)] for n in boxes.detection_name], dtype=np.float64).reshape(len(boxes))
+    max_dist = np.array([class_range_m[str(n)] for n in names], dtype=np.float64)[name_index.reshape(-1)]
     keep = (boxes.ego_dist < max_dist) & (boxes.num_pts != 0)
     if bike_racks:
         cycles = np.isin(boxes.detection_name, ("bicycle", "motorcycle"))
@@ -170,13 +171,16 @@ def _greedy_match(gt: EvalBoxes, pred: EvalBoxes, order: np.ndarray, dist_th_m: 
         dist = center_distance(gt.translation[None, g0:g1, :2], pred.translation[order[positions], None, :2])  # (p, g)
         # A prediction with no ground truth within the threshold is a false positive whatever was taken before.
         candidates = np.flatnonzero(np.any(dist < dist_th_m, axis=1))
-        taken = np.zeros(g1 - g0, dtype=bool)
-        for r in candidates.tolist():
-            row = np.where(taken, np.inf, dist[r])
-            j = int(np.argmin(row))  # first of equally near boxes, as the devkit's strict '<'
-            if row[j] < dist_th_m:
-                taken[j] = True
-                matched[positions[r]] = g0 + j
+        rows = dist[candidates].tolist()  # plain floats: the loop is sequential and its rows are short
+        taken = [False] * (g1 - g0)
+        for r, row in zip(candidates.tolist(), rows):
+            best, j_best = math.inf, -1
+            for j, d in enumerate(row):
+                if d < best and not taken[j]:  # strict '<': the first of equally near boxes wins, as in the devkit
+                    best, j_best = d, j
+            if best < dist_th_m:
+                taken[j_best] = True
+                matched[positions[r]] = g0 + j_best
     return matched
 
 
@@ -282,7 +286,10 @@ def evaluate(
         gt = filter_eval_boxes(gt, config.class_range_m, bike_racks)
         pred = filter_eval_boxes(pred, config.class_range_m, bike_racks)
 
-    metric_data = {(c, th): accumulate(gt, pred, c, th) for c in classes for th in config.dist_ths_m}
+    metric_data = {}
+    for c in classes:
+        gt_c, pred_c = gt.select(gt.detection_name == c), pred.select(pred.detection_name == c)  # split once per class
+        metric_data.update({(c, th): accumulate(gt_c, pred_c, c, th) for th in config.dist_ths_m})
     label_aps = {
         c: {th: calc_ap(metric_data[c, th], config.min_recall, config.min_precision) for th in config.dist_ths_m}
         for c in classes

@@ -335,3 +335,29 @@ def test_config_validation():
     with pytest.raises(ValueError, match="class_range_m"):
         DetectionConfig(class_range_m={"car": -1.0})
     assert DetectionConfig().class_names[:3] == ("car", "truck", "bus")
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_column_fast_path_equals_entry_by_entry_parse(seed, monkeypatch):
+    from streamdet.evaluation import eval_boxes
+
+    gt_by, pred_by = _random_case(seed)
+    pred_by["s0"] = pred_by["s0"] + [box("s0", (1, 2), "bus", score=np.float32(0.25)) | {"num_pts": np.int64(4)}]
+    fast = EvalBoxes.from_results(pred_by)
+
+    def refuse(*args):
+        raise ValueError("forced")
+
+    monkeypatch.setattr(eval_boxes, "_columns", refuse)
+    slow = EvalBoxes.from_results(pred_by)
+    assert fast.sample_tokens == slow.sample_tokens
+    for name in ("sample_index", "translation", "size", "rotation", "velocity", "ego_translation", "num_pts",
+                 "detection_name", "detection_score", "attribute_name"):  # fmt: skip
+        np.testing.assert_array_equal(getattr(fast, name), getattr(slow, name), err_msg=name)
+
+
+def test_bad_entry_deep_in_a_large_input_is_named():
+    entries = {f"t{s}": [box(f"t{s}", (i, 1.0), score=0.5) for i in range(50)] for s in range(20)}
+    entries["t13"][37] = entries["t13"][37] | {"velocity": [0.0]}
+    with pytest.raises(ValueError, match=r"results\['t13'\]\[37\]\.velocity"):
+        EvalBoxes.from_results(entries)
