@@ -135,13 +135,15 @@ def filter_eval_boxes(
     max_dist = np.array([class_range_m[str(n)] for n in names], dtype=np.float64)[name_index.reshape(-1)]
     keep = (boxes.ego_dist < max_dist) & (boxes.num_pts != 0)
     if bike_racks:
-        cycles = np.isin(boxes.detection_name, ("bicycle", "motorcycle"))
-        for s, token in enumerate(boxes.sample_tokens):
-            racks = np.asarray(bike_racks.get(token, np.zeros((0, 10))), dtype=np.float64)
+        for token, racks in bike_racks.items():
+            racks = np.asarray(racks, dtype=np.float64)
             if racks.ndim != 2 or racks.shape[1] != 10:
                 raise ValueError(f"bike_racks[{token!r}] must have shape (R, 10), got {racks.shape}")
-            rows = np.flatnonzero(cycles & (boxes.sample_index == s))
-            if len(rows) and len(racks):
+        cycles = np.flatnonzero(np.isin(boxes.detection_name, ("bicycle", "motorcycle")))
+        for s in np.unique(boxes.sample_index[cycles]).tolist():
+            racks = np.asarray(bike_racks.get(boxes.sample_tokens[s], np.zeros((0, 10))), dtype=np.float64)
+            rows = cycles[boxes.sample_index[cycles] == s]
+            if len(racks):
                 keep[rows] &= ~points_in_boxes(boxes.translation[rows], racks).any(axis=1)
     return boxes.select(keep)
 

@@ -38,7 +38,7 @@ ATTRIBUTE_NAMES: tuple[str, ...] = (
 )
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class EvalBoxes:
     """N boxes over the samples ``sample_tokens`` (a sample may have none), global frame, float64."""
 

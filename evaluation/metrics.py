@@ -16,7 +16,7 @@ from streamdet.evaluation.config import TP_METRICS, DetectionConfig
 NUM_RECALL_POINTS = 101  # recall 0, 0.01, ..., 1
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class DetectionMetricData:
     """Precision, confidence and TP errors resampled at the 101 recall points, each (101,) float64."""
 
@@ -58,7 +58,7 @@ class DetectionMetricData:
         )
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class DetectionMetrics:
     """Per-class AP and TP errors and their summaries over ``classes``."""
 
