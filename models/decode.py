@@ -44,11 +44,11 @@ def decode_head_maps(maps: HeadMaps, cell_m: float, top_k: int) -> tuple[Tensor,
     classes x cells per quadrant. ``top_k`` must not exceed classes x cells (``Preset.top_k`` clamps it).
     """
     heatmap, reg, height, dim, rot, vel = maps
-    q, num_classes, hh, wh = heatmap.shape
+    hh, wh = heatmap.shape[-2:]
     heat = heatmap.sigmoid()
     hmax = F.max_pool2d(heat, kernel_size=3, stride=1, padding=1)
     heat = heat * (hmax == heat).to(heat.dtype)  # (Q, C_cls, Hh, Wh), non-peaks zeroed
-    scores, flat = heat.reshape(q, -1).topk(top_k, dim=1)  # (Q, K)
+    scores, flat = heat.flatten(1).topk(top_k, dim=1)  # (Q, K)
     cells_per_class = hh * wh
     labels = torch.div(flat, cells_per_class, rounding_mode="floor")  # (Q, K)
     cell = flat - labels * cells_per_class  # (Q, K) = row * Wh + col
@@ -57,7 +57,7 @@ def decode_head_maps(maps: HeadMaps, cell_m: float, top_k: int) -> tuple[Tensor,
 
     def at_peaks(m: Tensor) -> Tensor:
         ch = m.shape[1]
-        return m.reshape(q, ch, -1).gather(2, cell.unsqueeze(1).expand(-1, ch, -1))  # (Q, ch, K)
+        return m.flatten(2).gather(2, cell.unsqueeze(1).expand(-1, ch, -1))  # (Q, ch, K)
 
     r = at_peaks(reg)
     x = (col.to(r.dtype) + 0.5 + r[:, 0]) * cell_m  # (Q, K)

@@ -1,0 +1,95 @@
+"""Pillar feature net and the scatter to stacked quadrant maps, against naive loops."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from streamdet.models.pillars import PillarFeatureNet, scatter_pillars
+
+M, C = 6, 5
+
+
+def naive_pfn(net: PillarFeatureNet, feats: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    w = net.linear.weight.detach().double().numpy()  # (C, 11)
+    bn = net.norm
+    mean, var = bn.running_mean.double().numpy(), bn.running_var.double().numpy()
+    gamma, beta = bn.weight.detach().double().numpy(), bn.bias.detach().double().numpy()
+    out = np.zeros((feats.shape[0], w.shape[0]))
+    for p in range(feats.shape[0]):
+        best = np.zeros(w.shape[0])  # a pillar without real points stays zero
+        for m in range(feats.shape[1]):
+            if mask[p, m] == 0:
+                continue
+            y = (w @ feats[p, m] - mean) / np.sqrt(var + bn.eps) * gamma + beta
+            best = np.maximum(best, np.maximum(y, 0))
+        out[p] = best
+    return out
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_pillar_net_matches_naive(seed, dtype):
+    torch.manual_seed(seed)
+    net = PillarFeatureNet(11, C).eval()
+    with torch.no_grad():
+        net.norm.running_mean.normal_()
+        net.norm.running_var.uniform_(0.5, 2.0)
+        net.norm.bias.normal_()
+    net = net.to(dtype)
+    rng = np.random.default_rng(seed)
+    p = 9
+    mask = (rng.random((p, M)) < 0.6).astype(np.float64)
+    mask[0] = 0  # an all-padding pillar
+    feats = rng.normal(size=(p, M, 11)) * mask[..., None]  # padding rows are zero, as pillarize writes them
+    with torch.no_grad():
+        out = net(torch.from_numpy(feats).to(dtype), torch.from_numpy(mask).to(dtype))
+    assert out.shape == (p, C) and out.dtype == dtype
+    tol = 1e-5 if dtype == torch.float32 else 1e-12
+    np.testing.assert_allclose(out.double().numpy(), naive_pfn(net, feats, mask), rtol=tol, atol=tol)
+
+
+def test_padding_content_is_ignored():
+    torch.manual_seed(0)
+    net = PillarFeatureNet(11, C).eval()
+    feats = torch.randn(4, M, 11)
+    mask = torch.ones(4, M)
+    mask[:, 3:] = 0
+    noisy = feats.clone()
+    noisy[:, 3:] = 100.0 * torch.randn(4, M - 3, 11)
+    with torch.no_grad():
+        torch.testing.assert_close(net(feats, mask), net(noisy, mask))
+
+
+def naive_scatter(pf: np.ndarray, index: np.ndarray, q: int, yq: int, xq: int) -> np.ndarray:
+    out = np.zeros((q, pf.shape[1], yq, xq), pf.dtype)
+    for p, flat in enumerate(index):
+        qi, rem = divmod(int(flat), yq * xq)
+        row, col = divmod(rem, xq)
+        out[qi, :, row, col] = pf[p]
+    return out
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("q", [1, 2, 4])
+def test_scatter_matches_naive(seed, q):
+    rng = np.random.default_rng(seed)
+    yq, xq = 6, 8
+    p = int(rng.integers(1, q * yq * xq))
+    index = rng.permutation(q * yq * xq)[:p].astype(np.int64)
+    pf = rng.normal(size=(p, C)).astype(np.float32)
+    like = torch.empty(q, 3, yq, xq)  # only the shape counts, channels may differ
+    out = scatter_pillars(torch.from_numpy(pf), torch.from_numpy(index), like)
+    assert out.shape == (q, C, yq, xq)
+    np.testing.assert_array_equal(out.numpy(), naive_scatter(pf, index, q, yq, xq))
+
+
+def test_scatter_empty_slice_gives_zero_maps():
+    out = scatter_pillars(torch.zeros(0, C), torch.zeros(0, dtype=torch.int64), torch.empty(2, C, 4, 4))
+    assert out.shape == (2, C, 4, 4) and torch.count_nonzero(out) == 0
+
+
+def test_scatter_out_of_range_index_raises():
+    with pytest.raises((IndexError, RuntimeError)):
+        scatter_pillars(torch.ones(1, C), torch.tensor([2 * 4 * 4]), torch.empty(2, C, 4, 4))
