@@ -26,45 +26,38 @@ def box(x, y, w, l, yaw, z=0.0, h=1.5):
     return [x, y, z, w, l, h, yaw, 0.0, 0.0]
 
 
-# ---- reference rotated IoU: vertices inside the other box + edge crossings, sorted by angle ---------------
-def _inside(p, poly):
-    """p inside or on the boundary of the counter-clockwise polygon."""
-    n = len(poly)
-    for k in range(n):
-        (ax, ay), (bx, by) = poly[k], poly[(k + 1) % n]
-        if (bx - ax) * (p[1] - ay) - (by - ay) * (p[0] - ax) < -1e-12:
-            return False
-    return True
+# ---- reference rotated IoU: plain Sutherland-Hodgman clipping, one pair at a time ------------------------
+def _clip(polygon, start, end):
+    """The part of `polygon` left of the directed line start -> end (inclusive)."""
 
+    def side(p):
+        return (end[0] - start[0]) * (p[1] - start[1]) - (end[1] - start[1]) * (p[0] - start[0])
 
-def _segment_crossing(p1, p2, q1, q2):
-    d = (p2[0] - p1[0]) * (q2[1] - q1[1]) - (p2[1] - p1[1]) * (q2[0] - q1[0])
-    if abs(d) < 1e-15:
-        return None
-    t = ((q1[0] - p1[0]) * (q2[1] - q1[1]) - (q1[1] - p1[1]) * (q2[0] - q1[0])) / d
-    u = ((q1[0] - p1[0]) * (p2[1] - p1[1]) - (q1[1] - p1[1]) * (p2[0] - p1[0])) / d
-    if 0 <= t <= 1 and 0 <= u <= 1:
-        return (p1[0] + t * (p2[0] - p1[0]), p1[1] + t * (p2[1] - p1[1]))
-    return None
+    out = []
+    for k in range(len(polygon)):
+        cur, nxt = polygon[k], polygon[(k + 1) % len(polygon)]
+        s_cur, s_nxt = side(cur), side(nxt)
+        if s_cur >= 0:
+            out.append(cur)
+        if (s_cur >= 0) != (s_nxt >= 0):
+            t = s_cur / (s_cur - s_nxt)
+            out.append((cur[0] + t * (nxt[0] - cur[0]), cur[1] + t * (nxt[1] - cur[1])))
+    return out
 
 
 def reference_iou(a, b):
     pa = [tuple(map(float, c)) for c in box_corners_bev(np.array([a], np.float64))[0]]
     pb = [tuple(map(float, c)) for c in box_corners_bev(np.array([b], np.float64))[0]]
-    pts = [p for p in pa if _inside(p, pb)] + [p for p in pb if _inside(p, pa)]
-    for i in range(4):
-        for j in range(4):
-            c = _segment_crossing(pa[i], pa[(i + 1) % 4], pb[j], pb[(j + 1) % 4])
-            if c is not None:
-                pts.append(c)
+    polygon = pa
+    for k in range(4):
+        if polygon:
+            polygon = _clip(polygon, pb[k], pb[(k + 1) % 4])
     inter = 0.0
-    if len(pts) >= 3:
-        cx = sum(p[0] for p in pts) / len(pts)
-        cy = sum(p[1] for p in pts) / len(pts)
-        pts.sort(key=lambda p: math.atan2(p[1] - cy, p[0] - cx))
-        inter = 0.5 * abs(sum(pts[k][0] * pts[(k + 1) % len(pts)][1] - pts[(k + 1) % len(pts)][0] * pts[k][1] for k in range(len(pts))))
-    union = a[3] * a[4] + b[3] * b[4] - inter
-    return inter / union
+    if len(polygon) >= 3:
+        n = len(polygon)
+        nxt = polygon[1:] + polygon[:1]
+        inter = 0.5 * abs(sum(p[0] * q[1] - q[0] * p[1] for p, q in zip(polygon, nxt)))
+    return inter / (a[3] * a[4] + b[3] * b[4] - inter)
 
 
 def random_boxes(rng, n, spread_m=6.0, num_classes=3):
@@ -104,6 +97,25 @@ def test_bev_iou_known_cases():
     assert iou[3, 4] == pytest.approx(1 / math.sqrt(2), abs=1e-12)
     assert iou[3, 5] == pytest.approx(1 / 3, abs=1e-12)
     assert iou[0, 6] == pytest.approx(0.25 / 8, abs=1e-12)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_bev_iou_collinear_edges(seed):
+    """Shifting a box along or across its heading makes edges collinear: the degenerate case of clipping."""
+    rng = np.random.default_rng(seed)
+    yaw = rng.uniform(-math.pi, math.pi, 20)
+    w, l, shift = rng.uniform(0.5, 3, 20), rng.uniform(1, 5, 20), rng.uniform(0, 0.9, 20)
+    centre = rng.uniform(-40, 40, (20, 2))
+    heading = np.stack([np.cos(yaw), np.sin(yaw)], axis=1)
+    across = np.stack([-np.sin(yaw), np.cos(yaw)], axis=1)
+    base = np.array([box(c[0], c[1], wi, li, y) for c, wi, li, y in zip(centre, w, l, yaw)])
+    along = base.copy()
+    along[:, :2] += (shift * l)[:, None] * heading
+    side = base.copy()
+    side[:, :2] += (shift * w)[:, None] * across
+    np.testing.assert_allclose(paired_bev_iou(base, base), 1.0, atol=1e-12)
+    np.testing.assert_allclose(paired_bev_iou(base, along), (1 - shift) / (1 + shift), atol=1e-9)
+    np.testing.assert_allclose(paired_bev_iou(side, base), (1 - shift) / (1 + shift), atol=1e-9)
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
@@ -208,7 +220,9 @@ def test_nms_matches_naive_loop(seed, config):
 
 
 def test_nms_is_per_class_and_uses_the_class_radius():
-    boxes = np.array([box(0, 0, 2, 4, 0), box(0.5, 0, 2, 4, 0), box(0.5, 0, 2, 4, 0), box(0.3, 0, 0.6, 0.6, 0)], np.float32)
+    boxes = np.array(
+        [box(0, 0, 2, 4, 0), box(0.5, 0, 2, 4, 0), box(0.5, 0, 2, 4, 0), box(0.3, 0, 0.6, 0.6, 0)], np.float32
+    )
     scores = np.array([0.9, 0.8, 0.7, 0.6], np.float32)
     car, truck, ped = CLASS_NAMES.index("car"), CLASS_NAMES.index("truck"), CLASS_NAMES.index("pedestrian")
     labels = np.array([car, car, truck, ped])
@@ -220,6 +234,17 @@ def test_nms_is_per_class_and_uses_the_class_radius():
     keep = nms(peds, np.array([0.9, 0.8, 0.7], np.float32), np.full(3, ped), NmsConfig())
     assert keep.tolist() == [0, 2]  # 0.36 m away: suppressed (0.13 <= 0.175); 0.5 m away: kept
     assert CENTERPOINT_CIRCLE_RADIUS_M[car] == pytest.approx(2.0)
+
+
+@pytest.mark.parametrize("kind", list(NmsKind))
+def test_nms_keeps_one_of_exact_float32_duplicates(kind):
+    rng = np.random.default_rng(3)
+    boxes, _, _ = random_boxes(rng, 30, spread_m=50.0)
+    boxes = np.repeat(boxes, 3, axis=0)  # each box three times, bit-identical, at up to 50 m from the sensor
+    scores = rng.uniform(0, 1, len(boxes)).astype(np.float32)
+    config = NmsConfig(kind=kind, iou_threshold=0.5, circle_radius_m=(0.0,) * len(CLASS_NAMES))
+    keep = nms(boxes, scores, np.zeros(len(boxes), np.int64), config)
+    assert sorted((keep // 3).tolist()) == list(range(30))
 
 
 def test_nms_empty_and_malformed():
@@ -338,7 +363,8 @@ def test_postprocess_slice_malformed_inputs():
         postprocess_slice(det, scores, labels, (0,), PAPER, PostprocessConfig(restrict_to_sector=True))
     with pytest.raises(ValueError, match="quadrants"):
         postprocess_slice(det, scores, labels, (5,), PAPER)
-    empty = postprocess_slice(np.zeros((1, 0, 9), np.float32), np.zeros((1, 0)), np.zeros((1, 0), np.int64), (0,), PAPER)
+    no_rows = np.zeros((1, 0, 9), np.float32)
+    empty = postprocess_slice(no_rows, np.zeros((1, 0)), np.zeros((1, 0), np.int64), (0,), PAPER)
     assert len(empty) == 0 and empty.boxes.shape == (0, 9)
 
 
@@ -356,7 +382,8 @@ def test_in_sector_wraps_and_is_half_open():
 def test_aggregate_sweep_removes_duplicates_across_slices():
     rng = np.random.default_rng(0)
     a = Detections(np.array([box(10, 0.1, 2, 4, 0)]), np.array([0.9]), np.array([0]))
-    b = Detections(np.array([box(10.3, -0.1, 2, 4, 0.05), box(-20, 5, 0.6, 0.6, 0)]), np.array([0.8, 0.5]), np.array([0, 7]))
+    b_boxes = np.array([box(10.3, -0.1, 2, 4, 0.05), box(-20, 5, 0.6, 0.6, 0)])
+    b = Detections(b_boxes, np.array([0.8, 0.5]), np.array([0, 7]))
     out = aggregate_sweep([a, b], NmsConfig())
     assert len(out) == 2 and out.scores.tolist() == pytest.approx([0.9, 0.5])
     assert len(aggregate_sweep([], NmsConfig())) == 0

@@ -62,7 +62,8 @@ def naive_pillarize(points, grid, quadrants, m_max, max_pillars):
             features[i, j, 9:11] = pt[0] - cx, pt[1] - cy
             mask[i, j] = 1
     in_grid = sum(len(v) for v in pillars.values())
-    return features, mask, np.array(chosen, np.int64), in_grid - kept_points, len(pillars) - len(chosen), nonfinite, outside
+    index = np.array(chosen, np.int64)
+    return features, mask, index, in_grid - kept_points, len(pillars) - len(chosen), nonfinite, outside
 
 
 def assert_matches_reference(out: Pillars, points, grid, quadrants, m_max, max_pillars):
@@ -222,7 +223,10 @@ def test_bad_quadrants_raise(quadrants):
         pillarize(np.zeros((1, 6), np.float32), PAPER, quadrants, 20, 100)
 
 
-@pytest.mark.parametrize("m_max, max_pillars, name", [(0, 10, "max_points_per_pillar"), (5, 0, "max_pillars"), (2.5, 10, "max_points_per_pillar")])
+@pytest.mark.parametrize(
+    "m_max, max_pillars, name",
+    [(0, 10, "max_points_per_pillar"), (5, 0, "max_pillars"), (2.5, 10, "max_points_per_pillar")],
+)
 def test_bad_caps_raise(m_max, max_pillars, name):
     with pytest.raises(ValueError, match=name):
         pillarize(np.zeros((1, 6), np.float32), PAPER, (0,), m_max, max_pillars)
