@@ -1,1 +1,7 @@
-"""streamdet.models"""
+"""streamdet.models: the detector in PyTorch (training and export side).
+
+One concept per module: ``presets`` (torch-free configs), ``resnet``, ``fpn``, ``image_encoder``, ``lifter``,
+``pillars``, ``bev_encoder``, ``heads``, ``detector`` (ImageEncoder / VolumetricLifter / SliceNet, StreamDetector,
+build_detector), ``decode`` (SliceDecoder), ``crop``, ``flops``. Nothing is imported here, so that
+``streamdet.models.presets`` stays importable without torch.
+"""
