@@ -148,10 +148,11 @@ def load_bundled_sample(root: str | Path | None = None) -> Sample:
         boxes[i, 0:3] = r["center_xyz"]
         boxes[i, 3:6] = r["size_wlh"]
         boxes[i, 6] = r["yaw"]
-        if r["velocity_xy"] is None:
+        v = r["velocity_xy"]  # null, or [null, null], where the source had NaN
+        if v is None or any(c is None for c in v) or not np.all(np.isfinite(np.asarray(v, dtype=np.float64))):
             valid_v[i] = False
         else:
-            boxes[i, 7:9] = r["velocity_xy"]
+            boxes[i, 7:9] = v
     labels = np.array([r["label"] for r in records], dtype=np.int64)
     names = tuple(CLASS_NAMES[lab] if lab >= 0 else "other" for lab in labels)
     return Sample(

@@ -42,9 +42,10 @@ def surface(
     axis, sign: the entered face (``ray_box_entry``); p: (P, 3) hit points in the box frame; half: (P, 3) or (3,)
     half extents along x, y, z; color, color2: (P, 3) or (3,) instance albedos; flag: (P,) or () instance flag.
     """
-    p = np.asarray(p, dtype=np.float64)
+    p = np.asarray(p)
+    p = p if p.dtype in (np.float32, np.float64) else p.astype(np.float64)
     n = len(p)
-    half = np.broadcast_to(np.asarray(half, dtype=np.float64), (n, 3))
+    half = np.broadcast_to(np.asarray(half, dtype=p.dtype), (n, 3))
     color = np.broadcast_to(np.asarray(color, dtype=np.float32), (n, 3))
     color2 = np.broadcast_to(np.asarray(color2, dtype=np.float32), (n, 3))
     flag = np.broadcast_to(np.asarray(flag, dtype=bool), (n,))

@@ -17,7 +17,7 @@ import numpy as np
 
 from streamdet.calibration.camera import invert_transform
 from streamdet.data.synth_materials import GROUND_PERIOD_M, ground, surface
-from streamdet.data.synth_raycast import local_normals, world_to_local
+from streamdet.data.synth_raycast import world_to_local
 from streamdet.data.synth_world import NUM_ANNOTATED_KINDS, Scene
 from streamdet.runtime_ort.boxes import box_corners_3d
 
@@ -71,6 +71,13 @@ class CameraModel:
             haze = (np.minimum(t[g] / HAZE_DISTANCE_M, 1.0) ** 1.5).astype(np.float32)[:, None]  # (G, 1)
             self._cache["background"] = (g, hit_xy, t[g].astype(np.float32), haze, sky)
         return self._cache["background"]
+
+    def _noise(self) -> np.ndarray:
+        """(H, W, 3) float32 sensor noise, drawn once per camera; frames use it rolled by a random offset."""
+        if "noise" not in self._cache:
+            rng = np.random.default_rng(0x5E7507)
+            self._cache["noise"] = rng.normal(0.0, 0.012, size=(self.height, self.width, 3)).astype(np.float32)
+        return self._cache["noise"]
 
     @classmethod
     def from_record(cls, name: str, sensor2ego: np.ndarray, K_native: np.ndarray, native_size: tuple[int, int],
@@ -126,41 +133,54 @@ def render_camera(scene: Scene, t_s: float, camera: CameraModel, rng: np.random.
     for k in order:
         half = objs.size_wlh[k, [1, 0, 2]] / 2  # along the box's x (l), y (w), z (h)
         o_local = world_to_local(origin, centers[k], yaws[k])
-        faces = _visible_faces(o_local, half, centers[k], yaws[k], ego2cam, camera)
-        if not faces:
+        c, s = float(np.cos(yaws[k])), float(np.sin(yaws[k]))
+        parts = []
+        for axis, sign, pix in _visible_faces(o_local, half, centers[k], yaws[k], ego2cam, camera):
+            # Exact ray-plane intersection with the candidate face, then the face's extent.
+            d = rays_flat[pix]  # (P, 3) float32, ego frame
+            d_axis = (c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2])  # box frame components
+            den = d_axis[axis]
+            t = (sign * half[axis] - o_local[axis]) / np.where(np.abs(den) < 1e-9, np.float32(1e-9), den)
+            b_ax, c_ax = (axis + 1) % 3, (axis + 2) % 3
+            pb = o_local[b_ax] + t * d_axis[b_ax]
+            pc = o_local[c_ax] + t * d_axis[c_ax]
+            ok = (np.abs(pb) <= half[b_ax] + 1e-6) & (np.abs(pc) <= half[c_ax] + 1e-6) & (t > 0)
+            if objs.kind[k] >= NUM_ANNOTATED_KINDS:
+                ok &= t < zflat[pix]  # clutter: only what is in front matters, no visibility bookkeeping
+            idx = np.flatnonzero(ok)
+            if not len(idx):
+                continue
+            p_local = np.empty((len(idx), 3), dtype=np.float32)
+            p_local[:, axis] = sign * half[axis]
+            p_local[:, b_ax] = pb[idx]
+            p_local[:, c_ax] = pc[idx]
+            normal = np.zeros(3)
+            normal[axis] = sign
+            normal = np.array([c * normal[0] - s * normal[1], s * normal[0] + c * normal[1], normal[2]])
+            lum = AMBIENT + SUN * max(float(normal @ sun_ego), 0.0) + 0.08 * normal[2]
+            parts.append((axis, sign, pix[idx], t[idx], p_local, lum))
+        if not parts:
             continue
-        pix = np.concatenate([f[2] for f in faces])  # (P,) flat pixel indices, faces do not overlap
-        axis = np.concatenate([np.full(len(f[2]), f[0]) for f in faces])
-        sign = np.concatenate([np.full(len(f[2]), f[1], dtype=np.float64) for f in faces])
-        d_local = world_to_local(rays_flat[pix], 0.0, yaws[k])  # (P, 3)
-        # Exact ray-plane intersection with the candidate face, then the face's extent.
-        a_idx = np.arange(len(pix))
-        t = (sign * half[axis] - o_local[axis]) / np.where(np.abs(d_local[a_idx, axis]) < 1e-12, 1e-12, d_local[a_idx, axis])
-        p_local = o_local + t[:, None] * d_local
-        inside = np.all(np.abs(p_local) <= half * (1 + 1e-9) + 1e-9, axis=1) & (t > 0)
-        annotated = objs.kind[k] < NUM_ANNOTATED_KINDS
-        keep = inside if annotated else inside & (t < zflat[pix])
-        sel = np.flatnonzero(keep)
-        if not len(sel):
-            continue
-        albedo, alpha, _ = surface(int(objs.kind[k]), axis[sel], sign[sel], p_local[sel], half, objs.color[k], objs.color2[k], objs.flag[k])
-        sel, albedo = sel[alpha], albedo[alpha]
-        if annotated:
-            own[k] = len(sel)
-        front = t[sel] < zflat[pix[sel]]
-        sel, albedo = sel[front], albedo[front]
-        if not len(sel):
-            continue
-        normals = local_normals(axis[sel], sign[sel], yaws[k])
-        lum = AMBIENT + SUN * np.clip(normals @ sun_ego, 0.0, None) + 0.08 * normals[:, 2]
-        target = pix[sel]
-        zflat[target] = t[sel]
-        cflat[target] = albedo * lum[:, None].astype(np.float32)
+        pix = np.concatenate([q[2] for q in parts])  # faces of a convex box never share a pixel
+        t = np.concatenate([q[3] for q in parts])
+        axis = np.concatenate([np.full(len(q[2]), q[0]) for q in parts])
+        sign = np.concatenate([np.full(len(q[2]), q[1], dtype=np.float32) for q in parts])
+        lum = np.concatenate([np.full(len(q[2]), q[5], dtype=np.float32) for q in parts])
+        p_local = np.concatenate([q[4] for q in parts])
+        albedo, alpha, _ = surface(int(objs.kind[k]), axis, sign, p_local, half, objs.color[k], objs.color2[k], objs.flag[k])
+        if objs.kind[k] < NUM_ANNOTATED_KINDS:
+            own[k] = int(alpha.sum())
+        front = np.flatnonzero(alpha & (t < zflat[pix]))
+        target = pix[front]
+        zflat[target] = t[front]
+        cflat[target] = albedo[front] * lum[front, None]
         idflat[target] = k
 
     if rng is not None:
-        color += rng.normal(0.0, 0.012, size=color.shape).astype(np.float32)
-    image = np.clip(color * 255.0 + 0.5, 0, 255).astype(np.uint8)
+        noise = camera._noise()
+        shift = rng.integers(0, noise.shape[0])
+        color += np.roll(noise, shift, axis=0)
+    image = cv2.convertScaleAbs(color, alpha=255.0)  # saturating float -> uint8 in one pass
     return Render(image=image, object_id=object_id, own_pixels=own)
 
 
