@@ -1,0 +1,457 @@
+"""The synthetic world: LiDAR on surfaces, rolling scan, renders under their boxes, the written dataset read back."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from streamdet.calibration.camera import quaternion_to_matrix
+from streamdet.calibration.grid import sector_bounds_deg
+from streamdet.data.nuscenes import NuScenesReader
+from streamdet.data.slicing import split_sweep
+from streamdet.data.synth_lidar import LidarConfig, simulate_sweep
+from streamdet.data.synth_materials import ground, surface
+from streamdet.data.synth_raycast import ray_box_entry, ray_ground, world_to_local
+from streamdet.data.synth_world import KIND_SPECS, NUM_ANNOTATED_KINDS, Kind, WorldConfig, make_scene
+from streamdet.data.synth_writer import SynthConfig, generate_dataset, real_rig_records, simulate_frame
+from streamdet.runtime_ort.boxes import CLASS_NAMES
+
+CONFIG = SynthConfig(num_scenes=1, seed=7, resolution=(192, 108), sweeps_per_sample=2, world=WorldConfig(samples_per_scene=3))
+SWEEP_S = CONFIG.world.sweep_duration_s
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    root = tmp_path_factory.mktemp("synth")
+    summary = generate_dataset(root, CONFIG)
+    return root, summary
+
+
+@pytest.fixture(scope="module")
+def frame():
+    scene = make_scene(CONFIG.seed, 0, CONFIG.world)
+    rig = real_rig_records(CONFIG.resolution)
+    return scene, rig, simulate_frame(scene, 1, rig, CONFIG)
+
+
+def _world_points(scene, sweep, lidar2ego):
+    l2g = scene.ego2global(sweep.t_end_s) @ lidar2ego
+    return sweep.points[:, :3].astype(np.float64) @ l2g[:3, :3].T + l2g[:3, 3]
+
+
+def _boxes_at_point_times(scene, times_abs):
+    """(N, K, 3) centres of every object at each point's time."""
+    objs = scene.objects
+    vel = np.concatenate([objs.velocity, np.zeros((len(objs), 1))], axis=1)
+    return objs.center0[None] + vel[None] * times_abs[:, None, None]
+
+
+# ---- ray casting against naive references ---------------------------------------------------------
+
+def _naive_slab(o, d, half):
+    t_near, t_far, axis = -math.inf, math.inf, -1
+    for a in range(3):
+        if abs(d[a]) < 1e-12:
+            if abs(o[a]) > half[a]:
+                return math.inf, -1
+            continue
+        t1, t2 = (-half[a] - o[a]) / d[a], (half[a] - o[a]) / d[a]
+        lo, hi = min(t1, t2), max(t1, t2)
+        if lo > t_near:
+            t_near, axis = lo, a
+        t_far = min(t_far, hi)
+    if t_near <= t_far and t_near > 0:
+        return t_near, axis
+    return math.inf, -1
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_ray_box_entry_matches_naive(seed):
+    rng = np.random.default_rng(seed)
+    n = 400
+    o = rng.uniform(-6, 6, size=(n, 3))
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    d[:20, 0] = 0.0  # rays parallel to a slab
+    half = rng.uniform(0.3, 3.0, size=(n, 3))
+    hit, t, axis, sign = ray_box_entry(o, d, half)
+    for i in range(n):
+        t_ref, a_ref = _naive_slab(o[i], d[i], half[i])
+        assert hit[i] == math.isfinite(t_ref), i
+        if hit[i]:
+            assert t[i] == pytest.approx(t_ref, rel=1e-9, abs=1e-9)
+            assert axis[i] == a_ref
+            p = o[i] + t[i] * d[i]
+            assert p[axis[i]] == pytest.approx(sign[i] * half[i, axis[i]], abs=1e-9)
+        else:
+            assert t[i] == math.inf
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_ray_ground_and_frames_match_naive(seed):
+    rng = np.random.default_rng(seed)
+    o = rng.uniform(-5, 5, size=(200, 3)) + [0, 0, 2]
+    d = rng.normal(size=(200, 3))
+    t = ray_ground(o, d)
+    for i in range(200):
+        ref = -o[i, 2] / d[i, 2] if d[i, 2] < 0 and -o[i, 2] / d[i, 2] > 0 else math.inf
+        assert t[i] == pytest.approx(ref) if math.isfinite(ref) else t[i] == math.inf
+    yaw = rng.uniform(-3, 3, size=200)
+    c = rng.normal(size=(200, 3))
+    local = world_to_local(o, c, yaw)
+    for i in range(5):
+        R = np.array([[math.cos(yaw[i]), -math.sin(yaw[i]), 0], [math.sin(yaw[i]), math.cos(yaw[i]), 0], [0, 0, 1]])
+        np.testing.assert_allclose(local[i], R.T @ (o[i] - c[i]))
+
+
+def test_materials_stay_in_range():
+    rng = np.random.default_rng(0)
+    n = 500
+    for kind in Kind:
+        half = np.array(KIND_SPECS[kind].size_wlh_m)[[1, 0, 2]] / 2
+        axis = rng.integers(0, 3, size=n)
+        sign = rng.choice([-1.0, 1.0], size=n)
+        p = rng.uniform(-1, 1, size=(n, 3)) * half
+        p[np.arange(n), axis] = sign * half[axis]
+        albedo, alpha, refl = surface(int(kind), axis, sign, p, half, [0.8, 0.1, 0.1], [0.1, 0.1, 0.3], rng.uniform(size=n) < 0.5)
+        assert albedo.shape == (n, 3) and albedo.dtype == np.float32 and alpha.dtype == bool
+        assert albedo.min() >= 0 and albedo.max() <= 1 and refl.min() >= 0 and refl.max() <= 1
+        assert alpha.any(), kind
+    albedo, refl = ground(rng.uniform(-100, 100, 1000), rng.uniform(-30, 30, 1000))
+    assert albedo.shape == (1000, 3) and 0 <= refl.min() and refl.max() <= 1
+
+
+# ---- the world ------------------------------------------------------------------------------------
+
+def test_world_is_plausible_and_deterministic():
+    scenes = [make_scene(3, i) for i in range(3)]
+    kinds = set()
+    for scene in scenes:
+        objs = scene.objects
+        kinds |= set(objs.kind[objs.annotated].tolist())
+        speed = np.linalg.norm(objs.velocity, axis=1)
+        for kind, top in ((Kind.CAR, 15.0), (Kind.PEDESTRIAN, 2.0), (Kind.BICYCLE, 7.0)):
+            m = objs.kind == kind
+            assert np.all(speed[m] <= top)
+            mean = np.asarray(KIND_SPECS[kind].size_wlh_m)
+            assert np.all(np.abs(objs.size_wlh[m] / mean - 1) < 0.3)
+        # moving road users head where they go
+        moving = objs.annotated & (speed > 0.1)
+        heading = np.stack([np.cos(objs.yaw), np.sin(objs.yaw)], axis=1)[moving]
+        np.testing.assert_allclose(np.sum(heading * objs.velocity[moving], axis=1), speed[moving], rtol=1e-6)
+        # annotated footprints never overlap at the key frames (exact rotated rectangles)
+        for t in scene.sample_times_s:
+            boxes = objs.boxes_at(t)[objs.annotated]
+            rects = [((b[0], b[1]), (b[4], b[3]), math.degrees(b[6])) for b in boxes]
+            for i in range(len(rects)):
+                for j in range(i + 1, len(rects)):
+                    if np.linalg.norm(boxes[i, :2] - boxes[j, :2]) > 20:
+                        continue
+                    kind_ij, pts = cv2.rotatedRectangleIntersection(rects[i], rects[j])
+                    area = cv2.contourArea(pts) if pts is not None and len(pts) > 2 else 0.0
+                    assert area < 1e-3, (t, i, j)
+    assert {Kind.CAR, Kind.PEDESTRIAN, Kind.BICYCLE} <= kinds
+    again = make_scene(3, 1)
+    np.testing.assert_array_equal(again.objects.center0, scenes[1].objects.center0)
+    assert make_scene(4, 1).objects.center0.shape != scenes[1].objects.center0.shape or not np.array_equal(
+        make_scene(4, 1).objects.center0, scenes[1].objects.center0
+    )
+
+
+def test_config_errors_name_the_field():
+    with pytest.raises(ValueError, match="resolution"):
+        SynthConfig(resolution=(8, 8))
+    with pytest.raises(ValueError, match="num_scenes"):
+        SynthConfig(num_scenes=0)
+    with pytest.raises(ValueError, match="sweeps_per_sample"):
+        SynthConfig(sweeps_per_sample=11)
+    with pytest.raises(ValueError, match="samples_per_scene"):
+        WorldConfig(samples_per_scene=0)
+    with pytest.raises(ValueError, match="pedestrians"):
+        WorldConfig(pedestrians=(5, 2))
+    with pytest.raises(ValueError, match="azimuth_steps"):
+        LidarConfig(azimuth_steps=2)
+
+
+# ---- LiDAR ----------------------------------------------------------------------------------------
+
+def test_lidar_points_fall_on_boxes_and_ground(frame):
+    scene, rig, f = frame
+    sweep = f.sweep
+    assert 25_000 < len(sweep.points) < 36_000
+    assert set(np.unique(sweep.points[:, 4]).astype(int)) == set(range(32))
+    assert sweep.points[:, 3].min() >= 0 and sweep.points[:, 3].max() <= 255
+    assert np.all(sweep.points[:, 3] == np.round(sweep.points[:, 3]))
+    world = _world_points(scene, sweep, rig.lidar2ego)
+    on_ground = np.abs(world[:, 2]) < 0.1
+    rest = np.flatnonzero(~on_ground)
+    t_abs = sweep.t_end_s - SWEEP_S + sweep.time_s[rest].astype(np.float64)
+    objs = scene.objects
+    centres = _boxes_at_point_times(scene, t_abs)  # (R, K, 3)
+    local = world_to_local(world[rest, None, :], centres, objs.yaw[None, :])  # (R, K, 3)
+    half = objs.size_wlh[:, [1, 0, 2]] / 2
+    margin = np.abs(local) - half[None]  # <= 0 inside, per axis
+    outside = margin.max(axis=2)  # (R, K) > 0: outside the box
+    best = outside.min(axis=1)
+    assert np.all(best < 0.1), f"{np.sum(best >= 0.1)} points neither on the ground nor on an object"
+    # and on a surface, not deep inside (a point inside a see-through tree crown lies on the trunk's surface)
+    assert np.all(np.abs(outside).min(axis=1) < 0.1)
+    assert 0.05 < len(rest) / len(world) < 0.9
+
+
+def test_moving_objects_are_displaced_within_the_sweep(frame):
+    """Points on the front / rear face of a moving object sit where the face was when the beam fired."""
+    scene, rig, f = frame
+    sweep = f.sweep
+    objs = scene.objects
+    world = _world_points(scene, sweep, rig.lidar2ego)
+    speed = np.linalg.norm(objs.velocity, axis=1)
+    found, largest = 0, 0.0
+    for k in np.flatnonzero((speed > 3.0) & objs.annotated):
+        mine = sweep.hit == k
+        at_end = world_to_local(world[mine], objs.boxes_at(sweep.t_end_s)[k, :3], objs.yaw[k])
+        lag = speed[k] * (sweep.t_end_s - (sweep.t_end_s - SWEEP_S + sweep.time_s[mine]))  # metres moved since
+        at_own_time = at_end[:, 0] + lag  # the object moves along its +x
+        half_l = objs.size_wlh[k, 1] / 2
+        assert np.all(np.abs(at_own_time) <= half_l + 0.1)
+        ends = np.abs(np.abs(at_own_time) - half_l) < 0.05  # on the front or rear face
+        if ends.sum() < 5:
+            continue
+        # against the annotated pose (the sweep's end) those faces are off by the distance travelled since
+        np.testing.assert_allclose(np.abs(at_end[ends, 0]) - half_l, -np.sign(at_own_time[ends]) * lag[ends], atol=0.05)
+        largest = max(largest, lag[ends].max())
+        found += 1
+    assert found, "no fast object shows its front or rear face in this sweep"
+    assert largest > 0.1  # well above the range noise
+
+
+def test_point_timestamps_rise_with_azimuth():
+    world = WorldConfig(samples_per_scene=1, ego_stopped_prob=1.0)
+    scene = make_scene(1, 0, world)
+    assert scene.ego_speed_mps == 0.0
+    rig = real_rig_records((64, 36))
+    sweep = simulate_sweep(scene, scene.sample_times_s[0], rig.lidar2ego, np.random.default_rng(0))
+    assert np.all(np.diff(sweep.time_s) >= 0)  # firing order
+    az = np.degrees(np.arctan2(sweep.points[:, 1], sweep.points[:, 0])) % 360.0
+    from_azimuth = az / 360.0 * SWEEP_S
+    column = SWEEP_S / LidarConfig().azimuth_steps
+    assert np.abs(from_azimuth - sweep.time_s).max() <= column / 2 + 1e-6
+    # the slices' relative time is the same clock
+    pts = np.concatenate(split_sweep(sweep.points, 8))
+    order = np.argsort(np.degrees(np.arctan2(pts[:, 1], pts[:, 0])) % 360.0, kind="stable")
+    assert np.all(np.diff(pts[order, 4]) >= -1e-7) and pts[:, 4].max() <= SWEEP_S
+    np.testing.assert_allclose(pts[:, 4], np.sort(sweep.time_s)[np.argsort(np.argsort(pts[:, 4]))], atol=column / 2 + 1e-6)
+
+
+def test_moving_ego_keeps_time_close_to_azimuth(frame):
+    scene, rig, f = frame
+    sweep = f.sweep
+    rng_m = np.linalg.norm(sweep.points[:, :2], axis=1)
+    far = rng_m > 5.0
+    az = np.degrees(np.arctan2(sweep.points[far, 1], sweep.points[far, 0])) % 360.0
+    err = np.abs(az / 360.0 * SWEEP_S - sweep.time_s[far])
+    err = np.minimum(err, SWEEP_S - err)
+    # ego motion compensation moves a point at range r by at most v * T: an angle of atan(v T / r)
+    bound = np.degrees(np.arctan2(scene.ego_speed_mps * SWEEP_S, rng_m[far])) / 360.0 * SWEEP_S + SWEEP_S / 1080
+    assert np.all(err <= bound + 1e-6)
+
+
+# ---- cameras --------------------------------------------------------------------------------------
+
+def test_projected_boxes_cover_rendered_object_pixels(dataset, frame):
+    """Every pixel of an annotated object lies inside its annotated 3D box projected through the written rig.
+
+    The box is taken as written (global pose, quaternion) and moved through the reader's LiDAR pose and
+    lidar2cam: the yaw-only LiDAR-frame box would be off by the LiDAR's 1.4 deg tilt, as on real nuScenes.
+    """
+    root, _ = dataset
+    scene, rig, f = frame
+    sample = NuScenesReader(root, CONFIG.version).get(1)
+    anns = {a["token"]: a for a in json.loads((root / CONFIG.version / "sample_annotation.json").read_text())}
+    world_corners = []
+    for token in sample.annotation_tokens:
+        a = anns[token]
+        w, l, h = a["size"]
+        local = np.array([[sx * l / 2, sy * w / 2, sz * h / 2] for sz in (-1, 1) for sx, sy in ((1, 1), (-1, 1), (-1, -1), (1, -1))])
+        world_corners.append(local @ quaternion_to_matrix(a["rotation"]).T + a["translation"])
+    world_corners = np.array(world_corners)  # (M, 8, 3)
+    g2l = np.linalg.inv(sample.lidar2global)
+    lidar_corners = world_corners @ g2l[:3, :3].T + g2l[:3, 3]
+    wb = scene.objects.boxes_at(f.t_s)
+    row_of = {int(k): int(np.linalg.norm(world_corners.mean(axis=1) - wb[k, :3], axis=1).argmin()) for k in f.annotated}
+    checked = 0
+    best_fill = 0.0
+    for name, render in f.renders.items():
+        cam = sample.rig.camera(name)
+        assert render.image.shape == (cam.height, cam.width, 3)
+        for obj, row in row_of.items():
+            rows, cols = np.nonzero(render.object_id == obj)
+            if not len(rows):
+                continue
+            uv, depth = cam.project(lidar_corners[row])
+            if depth.min() < 0.2:
+                continue
+            hull = cv2.convexHull(uv.astype(np.float32))
+            dist = np.array([cv2.pointPolygonTest(hull, (float(c) + 0.5, float(r) + 0.5), True) for r, c in zip(rows, cols)])
+            assert np.all(dist >= -0.05), (name, obj, dist.min())
+            checked += 1
+            if render.own_pixels[obj] == len(rows) and scene.objects.kind[obj] == Kind.CAR:
+                best_fill = max(best_fill, len(rows) / max(cv2.contourArea(hull), 1.0))
+    assert checked >= 5
+    assert best_fill > 0.6  # an unoccluded car fills its projected box
+
+
+def test_renders_hide_the_ground_and_each_other(frame):
+    scene, rig, f = frame
+    ids = np.concatenate([r.object_id.ravel() for r in f.renders.values()])
+    seen = np.bincount(ids[ids >= 0], minlength=len(scene.objects))
+    own = sum(r.own_pixels for r in f.renders.values())
+    ann = scene.objects.annotated
+    assert np.all(seen[ann] <= own[ann])
+    assert np.any((seen[ann] < 0.8 * own[ann]) & (own[ann] > 0)), "no annotated object is partly hidden"
+    assert np.mean(ids >= 0) > 0.1 and np.mean(ids < 0) > 0.2  # objects and ground / sky both show
+    front = f.renders["CAM_FRONT"].image.astype(np.float32)
+    assert front[: front.shape[0] // 4].mean(axis=(0, 1))[2] > front[-front.shape[0] // 4 :].mean(axis=(0, 1))[2]  # sky above road
+
+
+# ---- the written dataset --------------------------------------------------------------------------
+
+def test_reader_returns_what_the_generator_wrote(dataset, frame):
+    root, summary = dataset
+    scene, rig, f = frame
+    reader = NuScenesReader(root, CONFIG.version)
+    assert len(reader) == 3 and summary.num_samples == 3 and summary.num_sweeps == 6
+    s = reader.get(1, num_past_sweeps=1)
+    np.testing.assert_array_equal(s.points, f.sweep.points)
+    assert s.scene_name == scene.name and s.timestamp_us == f.timestamp_us
+    # the past sweep, moved into this key frame's LiDAR frame
+    assert len(s.sweeps) == 1 and s.sweeps[0].time_lag_s == pytest.approx(CONFIG.world.sample_interval_s / 2)
+    past = f.past_sweeps[0]
+    to_now = np.linalg.inv(scene.ego2global(f.t_s) @ rig.lidar2ego) @ scene.ego2global(past.t_end_s) @ rig.lidar2ego
+    np.testing.assert_allclose(s.sweeps[0].points[:, :3], past.points[:, :3] @ to_now[:3, :3].T + to_now[:3, 3], atol=1e-4)
+    # boxes: world poses at the key frame, through the LiDAR pose, in the annotated order of the objects
+    objs = scene.objects
+    l2g = scene.ego2global(f.t_s) @ rig.lidar2ego
+    wb = objs.boxes_at(f.t_s)[f.annotated]
+    assert len(s.gt_boxes) == len(wb)
+    order = np.linalg.norm(s.gt_boxes[None, :, :3] - ((wb[:, :3] - l2g[:3, 3]) @ l2g[:3, :3])[:, None], axis=2).argmin(axis=1)
+    assert len(set(order.tolist())) == len(order)
+    got = s.gt_boxes[order]
+    np.testing.assert_allclose(got[:, :3], (wb[:, :3] - l2g[:3, 3]) @ l2g[:3, :3], atol=1e-6)
+    np.testing.assert_allclose(got[:, 3:6], wb[:, 3:6])
+    heading = np.stack([np.cos(wb[:, 6]), np.sin(wb[:, 6]), np.zeros(len(wb))], axis=1) @ l2g[:3, :3]
+    yaw_err = np.mod(got[:, 6] - np.arctan2(heading[:, 1], heading[:, 0]) + math.pi, 2 * math.pi) - math.pi
+    assert np.abs(yaw_err).max() < 1e-6
+    v_lidar = np.concatenate([wb[:, 7:9], np.zeros((len(wb), 1))], axis=1) @ l2g[:3, :3]
+    valid = s.velocity_valid[order]
+    assert valid.mean() > 0.8
+    np.testing.assert_allclose(got[valid, 7:9], v_lidar[valid, :2], atol=1e-6)
+    np.testing.assert_array_equal(s.gt_labels[order], [CLASS_NAMES.index(KIND_SPECS[k].detection_class) for k in objs.kind[f.annotated]])
+    np.testing.assert_array_equal(s.num_lidar_pts[order], f.num_lidar_pts)
+    # rig: the real mounting, intrinsics scaled to the resolution, cameras at the key frame's pose
+    assert s.rig.names == tuple(m.name for m in rig.models)
+    np.testing.assert_allclose(s.rig.lidar2ego, rig.lidar2ego, atol=1e-12)
+    for m in rig.models:
+        cam = s.rig.camera(m.name)
+        np.testing.assert_allclose(cam.K, m.K)
+        np.testing.assert_allclose(cam.lidar2cam, np.linalg.inv(m.cam2ego) @ rig.lidar2ego, atol=1e-9)
+    images = s.load_images()
+    assert images.shape == (6, 108, 192, 3)
+    for j, name in enumerate(s.rig.names):
+        assert np.abs(images[j].astype(float) - f.renders[name].image).mean() < 6.0  # JPEG
+
+
+def test_tables_follow_the_nuscenes_schema(dataset):
+    root, _ = dataset
+    schema = {
+        "category": {"token", "name", "description"},
+        "attribute": {"token", "name", "description"},
+        "visibility": {"token", "level", "description"},
+        "instance": {"token", "category_token", "nbr_annotations", "first_annotation_token", "last_annotation_token"},
+        "sensor": {"token", "channel", "modality"},
+        "calibrated_sensor": {"token", "sensor_token", "translation", "rotation", "camera_intrinsic"},
+        "ego_pose": {"token", "timestamp", "rotation", "translation"},
+        "log": {"token", "logfile", "vehicle", "date_captured", "location"},
+        "scene": {"token", "log_token", "nbr_samples", "first_sample_token", "last_sample_token", "name", "description"},
+        "sample": {"token", "timestamp", "prev", "next", "scene_token"},
+        "sample_data": {"token", "sample_token", "ego_pose_token", "calibrated_sensor_token", "timestamp", "fileformat",
+                        "is_key_frame", "height", "width", "filename", "prev", "next"},
+        "sample_annotation": {"token", "sample_token", "instance_token", "visibility_token", "attribute_tokens", "translation",
+                              "size", "rotation", "prev", "next", "num_lidar_pts", "num_radar_pts"},
+        "map": {"category", "token", "filename", "log_tokens"},
+    }
+    tables = {name: json.loads((root / CONFIG.version / f"{name}.json").read_text()) for name in schema}
+    for name, fields in schema.items():
+        assert tables[name], name
+        for row in tables[name]:
+            assert set(row) == fields, (name, set(row) ^ fields)
+    tokens = {name: {r["token"] for r in rows} for name, rows in tables.items()}
+    for sd in tables["sample_data"]:
+        assert (root / sd["filename"]).is_file()
+        assert sd["ego_pose_token"] in tokens["ego_pose"] and sd["calibrated_sensor_token"] in tokens["calibrated_sensor"]
+    lidar = [sd for sd in tables["sample_data"] if "LIDAR_TOP" in sd["filename"]]
+    assert len(lidar) == 6 and sum(sd["is_key_frame"] for sd in lidar) == 3
+    by_token = {sd["token"]: sd for sd in lidar}
+    chain = [next(sd for sd in lidar if sd["prev"] == "")]
+    while chain[-1]["next"]:
+        chain.append(by_token[chain[-1]["next"]])
+    assert len(chain) == 6 and all(a["timestamp"] < b["timestamp"] for a, b in zip(chain, chain[1:]))
+    for inst in tables["instance"]:
+        anns = [a for a in tables["sample_annotation"] if a["instance_token"] == inst["token"]]
+        assert len(anns) == inst["nbr_annotations"] and inst["category_token"] in tokens["category"]
+    for ann in tables["sample_annotation"]:
+        assert ann["visibility_token"] in tokens["visibility"] and set(ann["attribute_tokens"]) <= tokens["attribute"]
+        assert abs(np.linalg.norm(ann["rotation"]) - 1) < 1e-9 and ann["num_lidar_pts"] >= 0
+    assert len({a["visibility_token"] for a in tables["sample_annotation"]}) >= 2
+    assert tables["scene"][0]["nbr_samples"] == 3
+    assert set(tables["map"][0]["log_tokens"]) == tokens["log"]
+    splits = json.loads((root / "splits.json").read_text())
+    assert splits == {"train": [tables["scene"][0]["name"]], "val": []}
+
+
+def test_slices_of_a_synthetic_sample_lie_in_their_sectors(dataset):
+    root, _ = dataset
+    s = NuScenesReader(root, CONFIG.version).get(0)
+    for k, pts in enumerate(split_sweep(s.points, 16)):
+        lo, hi = sector_bounds_deg(k, 16)
+        az = np.degrees(np.arctan2(pts[:, 1], pts[:, 0])) % 360.0
+        assert len(pts) and np.all((az >= lo - 1e-4) & (az < hi + 1e-4))
+
+
+def _tree_digest(root):
+    h = hashlib.sha256()
+    for path in sorted(p for p in root.rglob("*") if p.is_file()):
+        h.update(str(path.relative_to(root)).encode())
+        h.update(path.read_bytes())
+    return h.hexdigest()
+
+
+def test_deterministic_for_a_seed(tmp_path):
+    cfg = SynthConfig(num_scenes=1, seed=11, resolution=(64, 36), world=WorldConfig(samples_per_scene=1))
+    generate_dataset(tmp_path / "a", cfg)
+    generate_dataset(tmp_path / "b", cfg)
+    assert _tree_digest(tmp_path / "a") == _tree_digest(tmp_path / "b")
+    generate_dataset(tmp_path / "c", SynthConfig(num_scenes=1, seed=12, resolution=(64, 36), world=WorldConfig(samples_per_scene=1)))
+    assert _tree_digest(tmp_path / "a") != _tree_digest(tmp_path / "c")
+
+
+def test_official_devkit_loads_the_tables(dataset):
+    nuscenes = pytest.importorskip("nuscenes.nuscenes", reason="nuscenes-devkit not installed")
+    root, _ = dataset
+    nusc = nuscenes.NuScenes(version=CONFIG.version, dataroot=str(root), verbose=False)
+    assert len(nusc.sample) == 3
+    reader = NuScenesReader(root, CONFIG.version)
+    s = reader.get(1)
+    ann = nusc.get("sample_annotation", s.annotation_tokens[0])
+    v = nusc.box_velocity(ann["token"])
+    l2g = s.lidar2global
+    np.testing.assert_allclose((np.array([v[0], v[1], 0.0]) @ l2g[:3, :3])[:2], s.gt_boxes[0, 7:9], atol=1e-6)
+    _, boxes, _ = nusc.get_sample_data(nusc.get("sample", s.token)["data"]["LIDAR_TOP"])
+    by_token = {b.token: b for b in boxes}
+    for i, token in enumerate(s.annotation_tokens):
+        np.testing.assert_allclose(by_token[token].center, s.gt_boxes[i, :3], atol=1e-6)
