@@ -50,16 +50,20 @@ def test_pillar_net_matches_naive(seed, dtype):
     np.testing.assert_allclose(out.double().numpy(), naive_pfn(net, feats, mask), rtol=tol, atol=tol)
 
 
-def test_padding_content_is_ignored():
+def test_eval_fusion_equals_the_unfused_layers():
+    """Eval folds BN into the linear layer; it must compute BN(running stats) exactly as the layers would."""
     torch.manual_seed(0)
     net = PillarFeatureNet(11, C).eval()
-    feats = torch.randn(4, M, 11)
-    mask = torch.ones(4, M)
-    mask[:, 3:] = 0
-    noisy = feats.clone()
-    noisy[:, 3:] = 100.0 * torch.randn(4, M - 3, 11)
     with torch.no_grad():
-        torch.testing.assert_close(net(feats, mask), net(noisy, mask))
+        net.norm.running_mean.normal_()
+        net.norm.running_var.uniform_(0.5, 2.0)
+        net.norm.weight.uniform_(0.5, 1.5)
+        net.norm.bias.normal_()
+        mask = (torch.rand(50, M) < 0.5).float()
+        feats = torch.randn(50, M, 11) * mask[..., None]
+        y = net.norm(net.linear(feats).reshape(-1, C)).reshape(50, M, C)
+        ref = (torch.relu(y) * mask[..., None]).amax(dim=1)
+        torch.testing.assert_close(net(feats, mask), ref)
 
 
 def naive_scatter(pf: np.ndarray, index: np.ndarray, q: int, yq: int, xq: int) -> np.ndarray:
@@ -93,3 +97,19 @@ def test_scatter_empty_slice_gives_zero_maps():
 def test_scatter_out_of_range_index_raises():
     with pytest.raises((IndexError, RuntimeError)):
         scatter_pillars(torch.ones(1, C), torch.tensor([2 * 4 * 4]), torch.empty(2, C, 4, 4))
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_training_mode_uses_batch_statistics_over_all_slots(seed):
+    torch.manual_seed(seed)
+    net = PillarFeatureNet(11, C).train()
+    rng = np.random.default_rng(seed)
+    mask = (rng.random((7, M)) < 0.6).astype(np.float32)
+    feats = (rng.normal(size=(7, M, 11)) * mask[..., None]).astype(np.float32)
+    out = net(torch.from_numpy(feats), torch.from_numpy(mask))
+    y = feats.reshape(-1, 11).astype(np.float64) @ net.linear.weight.detach().double().numpy().T  # (P*M, C)
+    y = (y - y.mean(0)) / np.sqrt(y.var(0) + net.norm.eps)  # BN with gamma 1, beta 0 at init
+    ref = (np.maximum(y, 0).reshape(7, M, C) * mask[..., None]).max(axis=1)
+    np.testing.assert_allclose(out.detach().numpy(), ref, rtol=1e-4, atol=1e-5)
+    out.sum().backward()
+    assert net.linear.weight.grad is not None
