@@ -107,14 +107,18 @@ def assert_same_detections(got: list[np.ndarray], ref: tuple[torch.Tensor, ...])
             np.testing.assert_allclose(boxes[qi, j], rb[qi, i], rtol=1e-4, atol=1e-4)
 
 
-@pytest.mark.parametrize("use_image", [True, False])
-def test_slice_head_dynamic_pillars_and_quadrants(detector, tmp_path, use_image):
-    p = dataclasses.replace(TINY, use_image=use_image)
-    if use_image:
+@pytest.mark.parametrize("use_image, multi_head", [(True, False), (False, False), (True, True)])
+def test_slice_head_dynamic_pillars_and_quadrants(detector, tmp_path, use_image, multi_head):
+    p = dataclasses.replace(TINY, use_image=use_image, head=dataclasses.replace(TINY.head, multi_head=multi_head))
+    if use_image and not multi_head:
         net = detector.slice_net
     else:
         torch.manual_seed(1)
         net = build_detector(p).slice_net.eval()
+        with torch.no_grad():
+            for task in net.head.tasks:
+                task.branches["heatmap"][-1].weight.normal_(0.0, 0.5)
+                task.branches["heatmap"][-1].bias.zero_()
     dec = SliceDecoder(net, p).eval()
     names = ["pillar_features", "pillar_mask", "pillar_index", "image_bev"]
     outs = ["det_boxes", "det_scores", "det_labels"]
