@@ -99,6 +99,9 @@ def _write_tables(root: Path) -> dict:
                 "visibility_token": "4", "attribute_tokens": [], "translation": (centre + offset * v).tolist(),
                 "size": b["size_wlh"], "rotation": q, "prev": prev, "next": nxt,
                 "num_lidar_pts": b["num_lidar_pts"], "num_radar_pts": b["num_radar_pts"]})
+    rows["log"].append({"token": "log0", "logfile": "n015-2018-07-24-11-22-45+0800", "vehicle": "n015",
+                        "date_captured": "2018-07-24", "location": "singapore-onenorth"})
+    rows["map"].append({"category": "semantic_prior", "token": "map0", "filename": "", "log_tokens": ["log0"]})
     table_dir = root / "v1.0-mini"
     table_dir.mkdir(parents=True, exist_ok=True)
     for name, r in rows.items():
@@ -264,3 +267,21 @@ def test_load_image_and_points_errors(tmp_path):
     (copy / "boxes.json").unlink()
     with pytest.raises(FileNotFoundError, match="boxes.json"):
         load_bundled_sample(copy)
+
+
+def test_official_devkit_agrees_with_the_reader(tables):
+    nuscenes = pytest.importorskip("nuscenes.nuscenes", reason="nuscenes-devkit not installed")
+    root, info = tables
+    nusc = nuscenes.NuScenes(version="v1.0-mini", dataroot=str(root), verbose=False)
+    s = NuScenesReader(root, "v1.0-mini").get(info["calib"]["sample_token"])
+    _, boxes, _ = nusc.get_sample_data(nusc.get("sample", s.token)["data"]["LIDAR_TOP"])
+    by_token = {b.token: b for b in boxes}
+    for i, token in enumerate(s.annotation_tokens):
+        b = by_token[token]
+        np.testing.assert_allclose(b.center, s.gt_boxes[i, :3], atol=1e-9)
+        assert abs(np.mod(b.orientation.yaw_pitch_roll[0] - s.gt_boxes[i, 6] + math.pi, 2 * math.pi) - math.pi) < 1e-9
+        v = nusc.box_velocity(token)  # global; the devkit's boxes carry none
+        if s.velocity_valid[i]:
+            np.testing.assert_allclose((v @ s.lidar2global[:3, :3])[:2], s.gt_boxes[i, 7:9], atol=1e-9)
+        else:
+            assert np.all(np.isnan(v))
