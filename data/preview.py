@@ -105,7 +105,8 @@ def draw_bev(
     else:
         z = points[:, 2] if points.shape[1] > 2 else np.zeros(len(points))
         level = np.clip((z + 2.5) / 5.0 * 255, 0, 255).astype(np.uint8)
-        point_colors = cv2.applyColorMap(level[:, None], cv2.COLORMAP_TURBO)[:, 0]
+        turbo = cv2.applyColorMap(np.arange(256, dtype=np.uint8)[:, None], cv2.COLORMAP_TURBO)[:, 0]  # (256, 3)
+        point_colors = turbo[level]
     image[uv[inside, 1], uv[inside, 0]] = point_colors[inside]
 
     if det_boxes is not None and len(det_boxes):
