@@ -1,0 +1,309 @@
+"""The torch-free streaming detector: an export directory in, per-slice detections out.
+
+Two lanes share one cached image BEV:
+
+- the **image lane** (`update_images`) encodes the newest camera images and lifts them with the projection LUT
+  into the image BEV of all four quadrants, then swaps it into the cache;
+- the **slice lane** (`detect_slice`) pillarises one LiDAR slice, reads the cached image BEV of the slice's
+  quadrant(s), runs the slice graph and post-processes its decoded boxes.
+
+Both methods are thread-safe and may run at the same time from different threads: onnxruntime releases the
+GIL and each graph has its own session and thread pool, so a slice does not wait behind an image-encoder run.
+`streamdet.runtime_ort.lanes.StreamingRunner` adds the worker threads, bounded queues and back-pressure.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Mapping
+
+import numpy as np
+
+from streamdet.calibration.camera import Rig
+from streamdet.calibration.grid import GridSpec, check_num_slices, quadrants_of_sector, sector_bounds_deg
+from streamdet.calibration.lut import Lut, build_lut
+from streamdet.data.slicing import split_sweep
+from streamdet.export.manifest import Manifest, read_manifest
+from streamdet.runtime_ort.nms import NmsConfig
+from streamdet.runtime_ort.pillarize import POINT_DIM, pillarize
+from streamdet.runtime_ort.postprocess import Detections, PostprocessConfig, aggregate_sweep, postprocess_slice
+from streamdet.runtime_ort.sessions import GraphSession, SessionConfig
+from streamdet.runtime_ort.stats import LatencyStats
+
+log = logging.getLogger(__name__)
+
+PRECISIONS = ("fp32", "fp16", "int8")
+
+
+@dataclass(frozen=True)
+class DetectorConfig:
+    precision: str = "fp32"  # fp32 | fp16 | int8; the export must hold graphs of that precision
+    providers: tuple[str, ...] | None = None  # None: TensorRT > CUDA > CPU, whichever onnxruntime has
+    image_lane_threads: int = 1  # intra-op threads of the image encoder and lifter sessions
+    slice_lane_threads: int = 1  # intra-op threads of the slice session
+    num_slices: int | None = None  # slices per sweep; None: the number the export was made for
+    start_deg: float = 0.0  # azimuth where slice 0 starts (a multiple of 90)
+    score_threshold: float | None = None  # None: the export's post.score_threshold
+    nms: NmsConfig = field(default_factory=NmsConfig)  # per-class NMS inside a slice and across a sweep
+    restrict_to_sector: bool = False  # keep only boxes centred in the slice's own sector
+    verify_sha256: bool = True  # refuse graphs whose bytes differ from the manifest
+    enable_profiling: bool = False  # onnxruntime profiles of every session (written on close())
+
+    def __post_init__(self) -> None:
+        if self.precision not in PRECISIONS:
+            raise ValueError(f"DetectorConfig.precision must be one of {PRECISIONS}, got {self.precision!r}")
+
+
+@dataclass(frozen=True)
+class ImageUpdate:
+    """What one `update_images` call did."""
+
+    timestamp: float
+    cameras_used: tuple[str, ...]
+    cameras_missing: tuple[str, ...]  # their features were zeros in this update
+
+
+@dataclass(frozen=True)
+class SliceResult:
+    """The detections of one slice and where they came from."""
+
+    detections: Detections  # LiDAR frame, after uncrop, threshold and per-class NMS
+    slice_index: int
+    num_slices: int
+    timestamp: float
+    image_timestamp: float | None  # timestamp of the image BEV used; None: no images yet (zeros were used)
+    num_points: int
+    num_pillars: int
+    num_nonfinite_dropped: int  # NaN / inf points removed before pillarising
+
+
+@dataclass(frozen=True)
+class _ImageState:
+    bev: np.ndarray  # (4, C, Yq, Xq) float32, every quadrant
+    features: np.ndarray  # (J, C, Hf, Wf) float32, kept to re-lift when the calibration changes
+    timestamp: float
+    cameras_missing: tuple[str, ...]
+
+
+class StreamingDetector:
+    """Runs an export of streamdet with onnxruntime. Thread-safe."""
+
+    def __init__(self, export_dir: str | Path, config: DetectorConfig = DetectorConfig()) -> None:
+        self.export_dir = Path(export_dir)
+        self.config = config
+        self.manifest: Manifest = read_manifest(self.export_dir, verify_files=config.verify_sha256)
+        m = self.manifest
+        if config.precision not in m.precisions:
+            raise ValueError(
+                f"{self.export_dir} has no {config.precision} graphs (it has {list(m.precisions)}); "
+                f"re-export with --{config.precision}" if config.precision != "fp32" else f"{self.export_dir} lacks fp32 graphs"
+            )
+        self.grid = GridSpec.from_dict(m.grid)
+        self.camera_names: tuple[str, ...] = tuple(m.image.camera_names)
+        self.num_slices = config.num_slices or m.num_slices
+        check_num_slices(self.num_slices, config.start_deg)
+        pillars = m.preset["pillars"]
+        self._max_points_per_pillar = int(pillars["max_points_per_pillar"])
+        self._max_pillars = int(pillars["max_pillars"])
+        threshold = config.score_threshold if config.score_threshold is not None else float(m.post["score_threshold"])
+        self._post = PostprocessConfig(score_threshold=threshold, restrict_to_sector=config.restrict_to_sector, nms=config.nms)
+
+        def session(name: str, threads: int) -> GraphSession:
+            path = self.export_dir / m.graph(name, config.precision).file
+            cfg = SessionConfig(config.providers, threads, enable_profiling=config.enable_profiling)
+            return GraphSession(path, cfg)
+
+        self.image_encoder = session("image_encoder", config.image_lane_threads)
+        self.lifter = session("volumetric_lifter", config.image_lane_threads)
+        self.slice_head = session("slice_head", config.slice_lane_threads)
+        self.providers = self.slice_head.providers
+        self.stats = LatencyStats()
+
+        self._lock = threading.Lock()  # guards the swaps of _lut and _image; reads take a reference
+        self._lut = self._check_lut(Lut.load(self.export_dir / m.lut.file))
+        self._image: _ImageState | None = None
+        log.info("streamdet: %s (%s, %d slices) on %s", self.export_dir, config.precision, self.num_slices, list(self.providers))
+
+    # ---- calibration ---------------------------------------------------------------------------
+    @property
+    def lut(self) -> Lut:
+        return self._lut
+
+    def _check_lut(self, lut: Lut) -> Lut:
+        img = self.manifest.image
+        problems = []
+        if tuple(lut.camera_names) != self.camera_names:
+            problems.append(f"cameras {list(lut.camera_names)} != the export's {list(self.camera_names)}")
+        if (lut.image_width, lut.image_height) != (img.width, img.height):
+            problems.append(f"image size {lut.image_width}x{lut.image_height} != the export's {img.width}x{img.height}")
+        if (lut.feature_width, lut.feature_height, lut.feature_stride) != (img.feature_width, img.feature_height, img.feature_stride):
+            problems.append(
+                f"feature map {lut.feature_width}x{lut.feature_height}/s{lut.feature_stride} != the export's "
+                f"{img.feature_width}x{img.feature_height}/s{img.feature_stride}"
+            )
+        if lut.grid != self.grid:
+            problems.append(f"grid {lut.grid} != the export's {self.grid}")
+        if problems:
+            raise ValueError("the LUT does not fit the graphs: " + "; ".join(problems))
+        return lut
+
+    def set_calibration(self, calibration: Rig | Lut | str | Path) -> None:
+        """Swap the projection LUT (a Rig, a Lut, a calibration.json or a lut.npz) without recreating sessions.
+
+        The cached image BEV is lifted again from the last image features, so the next slice sees the new
+        calibration at once.
+        """
+        if isinstance(calibration, (str, Path)):
+            path = Path(calibration)
+            calibration = Lut.load(path) if path.suffix == ".npz" else Rig.from_calibration_json(path)
+        if isinstance(calibration, Rig):
+            img = self.manifest.image
+            rig = calibration
+            if tuple(rig.names) != self.camera_names:
+                raise ValueError(f"calibration cameras {list(rig.names)} != the export's {list(self.camera_names)}")
+            calibration = build_lut(rig, self.grid, img.feature_stride, image_size=(img.width, img.height))
+        lut = self._check_lut(calibration)
+        with self._lock:
+            self._lut = lut
+            state = self._image
+        if state is not None:
+            bev = self._lift(state.features, lut)
+            with self._lock:
+                self._image = _ImageState(bev, state.features, state.timestamp, state.cameras_missing)
+
+    # ---- image lane ----------------------------------------------------------------------------
+    def update_images(self, images: Mapping[str, np.ndarray], timestamp: float | None = None) -> ImageUpdate:
+        """Encode and lift the given camera images (uint8 RGB (H, W, 3) by camera name) into the cached BEV.
+
+        Cameras not given are allowed: their features are zeros. Unknown names, wrong sizes or dtypes raise.
+        """
+        timestamp = time.monotonic() if timestamp is None else float(timestamp)
+        img = self.manifest.image
+        unknown = [n for n in images if n not in self.camera_names]
+        if unknown:
+            raise ValueError(f"unknown camera names {unknown}; this export knows {list(self.camera_names)}")
+        used = tuple(n for n in self.camera_names if n in images)
+        missing = tuple(n for n in self.camera_names if n not in images)
+        if not used:
+            raise ValueError(f"update_images needs at least one camera image of {list(self.camera_names)}")
+        for name in used:
+            a = images[name]
+            if not isinstance(a, np.ndarray) or a.dtype != np.uint8 or a.shape != (img.height, img.width, 3):
+                got = f"{getattr(a, 'dtype', type(a).__name__)} {getattr(a, 'shape', '')}"
+                raise ValueError(
+                    f"image {name!r} must be uint8 RGB of shape ({img.height}, {img.width}, 3) for this export, got {got}"
+                )
+        if missing:
+            log.info("update_images: cameras %s missing, their features are zeros", list(missing))
+        t0 = time.perf_counter()
+        batch = np.stack([images[n] for n in used])  # (J_used, H, W, 3)
+        with self.stats.time("image_encoder"):
+            (enc,) = self.image_encoder.run({"images": batch})  # (J_used, C, Hf, Wf)
+        if missing:
+            features = np.zeros((len(self.camera_names), *enc.shape[1:]), dtype=np.float32)  # (J, C, Hf, Wf)
+            features[[self.camera_names.index(n) for n in used]] = enc
+        else:
+            features = np.ascontiguousarray(enc, dtype=np.float32)
+        with self._lock:
+            lut = self._lut
+        bev = self._lift(features, lut)
+        with self._lock:
+            self._image = _ImageState(bev, features, timestamp, missing)
+        self.stats.record("image_total", (time.perf_counter() - t0) * 1e3)
+        return ImageUpdate(timestamp, used, missing)
+
+    def _lift(self, features: np.ndarray, lut: Lut) -> np.ndarray:
+        with self.stats.time("volumetric_lifter"):
+            (bev,) = self.lifter.run({"features": features, "lut_index": lut.index, "lut_weight": lut.weight})
+        return bev  # (4, C, Yq, Xq)
+
+    @property
+    def image_timestamp(self) -> float | None:
+        state = self._image
+        return None if state is None else state.timestamp
+
+    # ---- slice lane ----------------------------------------------------------------------------
+    def detect_slice(self, points: np.ndarray, slice_index: int, timestamp: float | None = None) -> SliceResult:
+        """Detections of slice `slice_index` from its (N, 6) float32 points (x, y, z, r, t, s).
+
+        Uses the newest cached image BEV of the slice's quadrant(s) (zeros before the first image update).
+        NaN / inf points are dropped and counted; an empty slice gives no detections.
+        """
+        timestamp = time.monotonic() if timestamp is None else float(timestamp)
+        n = self.num_slices
+        if isinstance(slice_index, bool) or not isinstance(slice_index, (int, np.integer)) or not 0 <= slice_index < n:
+            raise ValueError(f"slice_index must be an int in [0, {n}), got {slice_index!r}")
+        if not isinstance(points, np.ndarray) or points.ndim != 2 or points.shape[1] != POINT_DIM:
+            raise ValueError(
+                f"points must be a (N, {POINT_DIM}) float32 array (x, y, z, r, t, s), got {getattr(points, 'shape', type(points).__name__)}"
+            )
+        if points.dtype != np.float32:
+            raise ValueError(f"points must be float32, got {points.dtype}")
+        k = int(slice_index)
+        quadrants = quadrants_of_sector(k, n, self.config.start_deg)
+        t0 = time.perf_counter()
+        with self.stats.time("pre"):
+            pillars = pillarize(points, self.grid, quadrants, self._max_points_per_pillar, self._max_pillars)
+        state = self._image
+        image_ts = None if state is None else state.timestamp
+        if pillars.num_pillars == 0:
+            dets = Detections.empty()
+        else:
+            bev = self._image_bev(state, quadrants)
+            feeds = pillars.as_feeds()
+            feeds["image_bev"] = bev
+            with self.stats.time("slice_head"):
+                boxes, scores, labels = self.slice_head.run(feeds)
+            with self.stats.time("post"):
+                dets = postprocess_slice(
+                    boxes, scores, labels, quadrants, self.grid, self._post, sector_bounds_deg(k, n, self.config.start_deg)
+                )
+        self.stats.record("slice_total", (time.perf_counter() - t0) * 1e3)
+        return SliceResult(
+            detections=dets,
+            slice_index=k,
+            num_slices=n,
+            timestamp=timestamp,
+            image_timestamp=image_ts,
+            num_points=int(points.shape[0]),
+            num_pillars=pillars.num_pillars,
+            num_nonfinite_dropped=pillars.num_nonfinite_dropped,
+        )
+
+    def _image_bev(self, state: _ImageState | None, quadrants: tuple[int, ...]) -> np.ndarray:
+        if state is None:
+            c = int(self.manifest.preset["channels"])
+            return np.zeros((len(quadrants), c, self.grid.quadrant_ny, self.grid.quadrant_nx), dtype=np.float32)
+        if len(quadrants) == 4:
+            return state.bev
+        return np.ascontiguousarray(state.bev[list(quadrants)])  # (Q, C, Yq, Xq)
+
+    def detect_sweep(self, sweep: np.ndarray, timestamp: float | None = None) -> Detections:
+        """Slice a full (N, 5) sweep (x, y, z, intensity 0..255, ring), detect every slice, merge with per-class NMS.
+
+        This is how the paper evaluates a streaming model on a sweep.
+        """
+        sweep = np.asarray(sweep)
+        if sweep.ndim != 2 or sweep.shape[1] != 5:
+            raise ValueError(f"sweep must be (N, 5) x, y, z, intensity, ring; got shape {sweep.shape}")
+        slices = split_sweep(sweep.astype(np.float32, copy=False), self.num_slices, self.config.start_deg)
+        results = [self.detect_slice(pts, k, timestamp) for k, pts in enumerate(slices)]
+        with self.stats.time("sweep_nms"):
+            return aggregate_sweep([r.detections for r in results], self.config.nms)
+
+    # ---- lifetime ------------------------------------------------------------------------------
+    def close(self) -> list[str]:
+        """End profiling (if enabled); returns the profile files written."""
+        if not self.config.enable_profiling:
+            return []
+        return [s.end_profiling() for s in (self.image_encoder, self.lifter, self.slice_head)]
+
+    def __enter__(self) -> "StreamingDetector":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
