@@ -168,7 +168,7 @@ def load_bundled_sample(root: str | Path | None = None) -> Sample:
         num_radar_pts=np.array([r["num_radar_pts"] for r in records], dtype=np.int64),
         velocity_valid=valid_v,
         scene_name=str(calib.get("scene", "")),
-        extras={"center_global": np.array([r["center_global"] for r in records], dtype=np.float64).reshape(-1, 3)},
+        extras={"center_global": np.array([r["center_global"] for r in records], dtype=np.float64).reshape(-1, 3)},  # (M, 3)
     )
 
 

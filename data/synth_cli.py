@@ -33,9 +33,11 @@ def _parse_resolution(ctx, param, value: str) -> tuple[int, int]:
               help="LiDAR sweeps per key-frame interval including the key frame (nuScenes has 10, at 20 Hz).")
 @click.option("--version", "version", default=DEFAULT_VERSION, show_default=True, help="Name of the table folder (the nuScenes 'version').")
 @click.option("--preview", is_flag=True, help="Also write pictures of the first key frame to OUT/preview/: the six cameras with the ground truth and a bird's-eye view coloured by slice (8 slices).")
+@click.option("--workers", default=1, show_default=True, type=click.IntRange(min=1),
+              help="Processes simulating scenes in parallel (the output does not depend on it).")
 @click.option("--overwrite", is_flag=True, help="Write into OUT even if it already holds a dataset of this version.")
 def main(out_dir: Path, scenes: int, seed: int, resolution: tuple[int, int], samples_per_scene: int,
-         sweeps_per_sample: int, version: str, preview: bool, overwrite: bool) -> None:
+         sweeps_per_sample: int, version: str, preview: bool, workers: int, overwrite: bool) -> None:
     """Generate a synthetic street dataset readable by streamdet's nuScenes reader and the nuScenes devkit."""
     table_dir = out_dir / version
     if table_dir.exists() and not overwrite:
@@ -50,7 +52,7 @@ def main(out_dir: Path, scenes: int, seed: int, resolution: tuple[int, int], sam
     total = scenes * samples_per_scene
     try:
         with click.progressbar(length=total, label=f"simulating {scenes} scene(s)", show_pos=True) as bar:
-            summary = generate_dataset(out_dir, config, progress=bar.update)
+            summary = generate_dataset(out_dir, config, progress=bar.update, workers=workers)
     except OSError as e:
         raise click.ClickException(f"cannot write the dataset under {out_dir}: {e}") from None
     click.echo(

@@ -164,7 +164,8 @@ def _candidate_columns(
     n_az = config.azimuth_steps
     t0, t1 = col_time[0], col_time[-1]
     boxes = np.concatenate([objs.boxes_at(t0), objs.boxes_at(t1)], axis=0)  # (2K, 9)
-    corners = box_corners_bev(boxes).reshape(2, len(objs), 4, 2).transpose(1, 0, 2, 3).reshape(len(objs), 8, 2)
+    corners = box_corners_bev(boxes).reshape(2, len(objs), 4, 2)  # (2 times, K, 4, 2)
+    corners = corners.transpose(1, 0, 2, 3).reshape(len(objs), 8, 2)  # (K, 8, 2): both times' corners
     sensor = 0.5 * (origins[0, :2] + origins[-1, :2])
     rel = corners - sensor  # (K, 8, 2)
     # Azimuth in the LiDAR frame (its small tilt is covered by the padding).

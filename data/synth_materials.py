@@ -9,6 +9,8 @@ surface looks the same from every camera and at every time.
 
 from __future__ import annotations
 
+from functools import cached_property
+
 import numpy as np
 
 from streamdet.data.synth_world import Kind
@@ -56,22 +58,49 @@ def surface(
 
 
 class _Face:
-    """Per-hit face coordinates shared by the painters."""
+    """Per-hit face coordinates shared by the painters, each computed on first use."""
 
     def __init__(self, axis: np.ndarray, sign: np.ndarray, p: np.ndarray, half: np.ndarray) -> None:
         self.axis, self.sign, self.p, self.half = axis, sign, p, half
         self.x, self.y, self.z = p[:, 0], p[:, 1], p[:, 2]
         self.hx, self.hy, self.hz = half[:, 0], half[:, 1], half[:, 2]
-        self.zb = self.z + self.hz  # metres above the box bottom
-        self.zr = self.zb / (2 * self.hz)  # 0 at the bottom, 1 at the top
-        self.side = axis == 1  # the long faces (left / right of the heading)
-        self.end = axis == 0  # front (sign +1) and back (sign -1)
-        self.top = (axis == 2) & (sign > 0)
-        self.bottom = (axis == 2) & (sign < 0)
-        # Horizontal coordinate along the face and its half width, for the vertical faces.
-        self.lat = np.where(self.side, self.x, self.y)
-        self.half_lat = np.where(self.side, self.hx, self.hy)
-        self.latr = np.abs(self.lat) / self.half_lat  # 0 at the face centre line, 1 at its edges
+
+    @cached_property
+    def zb(self) -> np.ndarray:
+        return self.z + self.hz  # metres above the box bottom
+
+    @cached_property
+    def zr(self) -> np.ndarray:
+        return self.zb / (2 * self.hz)  # 0 at the bottom, 1 at the top
+
+    @cached_property
+    def side(self) -> np.ndarray:
+        return self.axis == 1  # the long faces (left / right of the heading)
+
+    @cached_property
+    def end(self) -> np.ndarray:
+        return self.axis == 0  # front (sign +1) and back (sign -1)
+
+    @cached_property
+    def top(self) -> np.ndarray:
+        return (self.axis == 2) & (self.sign > 0)
+
+    @cached_property
+    def bottom(self) -> np.ndarray:
+        return (self.axis == 2) & (self.sign < 0)
+
+    @cached_property
+    def lat(self) -> np.ndarray:
+        """Horizontal coordinate along a vertical face."""
+        return np.where(self.side, self.x, self.y)
+
+    @cached_property
+    def half_lat(self) -> np.ndarray:
+        return np.where(self.side, self.hx, self.hy)
+
+    @cached_property
+    def latr(self) -> np.ndarray:
+        return np.abs(self.lat) / self.half_lat  # 0 at the face centre line, 1 at its edges
 
 
 def _fill(n: int, rgb) -> np.ndarray:
@@ -254,11 +283,13 @@ def _crown(f: _Face, color, color2, flag):
 
 def _building(f: _Face, color, color2, flag):
     n = len(f.x)
-    albedo, refl = color.copy(), np.full(n, 0.35)
-    window = ~f.top & ~f.bottom & (np.mod(f.lat, 3.0) > 0.7) & (np.mod(f.lat, 3.0) < 2.3)
-    window &= (np.mod(f.zb, 3.2) > 1.0) & (np.mod(f.zb, 3.2) < 2.4) & (f.zb > 3.2) & (f.zb < 2 * f.hz - 0.8)
+    albedo, refl = color.copy(), np.full(n, 0.35, dtype=np.float32)
+    vertical = ~(f.top | f.bottom)
+    col = np.mod(f.lat, 3.0)
+    floor = np.mod(f.zb, 3.2)
+    window = vertical & (col > 0.7) & (col < 2.3) & (floor > 1.0) & (floor < 2.4) & (f.zb > 3.2) & (f.zb < 2 * f.hz - 0.8)
     _put(albedo, refl, window, color2, 0.08)
-    shop = ~f.top & ~f.bottom & (f.zb < 3.0) & (f.zb > 0.3) & (np.mod(f.lat, 6.0) > 0.8)
+    shop = vertical & (f.zb < 3.0) & (f.zb > 0.3) & (np.mod(f.lat, 6.0) > 0.8)
     _put(albedo, refl, shop, color2 * 1.3, 0.1)
     _put(albedo, refl, f.top, [0.4, 0.4, 0.42], 0.3)
     return albedo, np.ones(n, dtype=bool), refl

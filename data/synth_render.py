@@ -54,14 +54,15 @@ class CameraModel:
             self._cache["rays"] = (rays / np.linalg.norm(rays, axis=-1, keepdims=True)).astype(np.float32)
         return self._cache["rays"]
 
-    def _background(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Ground pixels (flat indices), their ego-frame ground points, distances and haze, and the sky colours.
+    def _background(self) -> tuple[np.ndarray, ...]:
+        """Ground pixels (flat indices), their ego-frame ground points and distances, the haze blend
+        (1 - haze, haze * horizon colour) and the sky colours of all pixels.
 
         The ego stays level on the ground plane, so where a pixel meets the ground in the ego frame never
         changes; only the texture under it moves.
         """
         if "background" not in self._cache:
-            rays = self.rays_ego.reshape(-1, 3).astype(np.float64)
+            rays = self.rays_ego.reshape(-1, 3).astype(np.float64)  # (H * W, 3)
             down = rays[:, 2] < -1e-6
             t = np.where(down, -self.origin_ego[2] / np.where(down, rays[:, 2], -1.0), np.inf)
             g = np.flatnonzero(t < HAZE_DISTANCE_M * 4)
@@ -69,7 +70,7 @@ class CameraModel:
             sky = ((1 - up) * SKY_HORIZON + up * SKY_ZENITH).astype(np.float32)  # (H * W, 3)
             hit_xy = (self.origin_ego[:2] + t[g, None] * rays[g, :2]).astype(np.float32)  # (G, 2)
             haze = (np.minimum(t[g] / HAZE_DISTANCE_M, 1.0) ** 1.5).astype(np.float32)[:, None]  # (G, 1)
-            self._cache["background"] = (g, hit_xy, t[g].astype(np.float32), haze, sky)
+            self._cache["background"] = (g, hit_xy, t[g].astype(np.float32), 1 - haze, haze * SKY_HORIZON, sky)
         return self._cache["background"]
 
     def _noise(self) -> np.ndarray:
@@ -104,7 +105,7 @@ def render_camera(scene: Scene, t_s: float, camera: CameraModel, rng: np.random.
     sun_ego = ego2global[:3, :3].T @ scene.sun_dir_world
 
     # Ground and sky.
-    g, ground_xy, t_ground, haze, sky = camera._background()
+    g, ground_xy, t_ground, clear, haze_rgb, sky = camera._background()
     color = sky.copy()  # (H * W, 3)
     zbuf = np.full(h * w, np.inf, dtype=np.float32)
     zbuf[g] = t_ground
@@ -114,9 +115,9 @@ def render_camera(scene: Scene, t_s: float, camera: CameraModel, rng: np.random.
     (ux, uy), (nx, ny) = scene.road_u, scene.road_n
     albedo = ground_atlas(wx * ux + wy * uy, wx * nx + wy * ny)
     lum = np.float32(AMBIENT + SUN * max(sun_ego[2], 0.0))
-    color[g] = albedo * ((1 - haze) * lum) + haze * SKY_HORIZON
-    color = color.reshape(h, w, 3)
-    zbuf = zbuf.reshape(h, w)
+    color[g] = albedo * (clear * lum) + haze_rgb
+    color = color.reshape(h, w, 3)  # (H, W, 3)
+    zbuf = zbuf.reshape(h, w)  # (H, W)
     object_id = np.full((h, w), -1, dtype=np.int64)
 
     # Objects, nearest first so most hidden pixels fail the depth test before they are shaded.
@@ -126,8 +127,8 @@ def render_camera(scene: Scene, t_s: float, camera: CameraModel, rng: np.random.
     centers = np.concatenate([(boxes[:, :2] - ego2global[:2, 3]) @ rot2, boxes[:, 2:3]], axis=1)  # (K, 3) ego
     yaws = boxes[:, 6] - np.arctan2(rot2[1, 0], rot2[0, 0])
     ego2cam = invert_transform(camera.cam2ego)
-    rays_flat = rays.reshape(-1, 3)
-    zflat, cflat, idflat = zbuf.reshape(-1), color.reshape(-1, 3), object_id.reshape(-1)
+    rays_flat = rays.reshape(-1, 3)  # (H * W, 3)
+    zflat, cflat, idflat = zbuf.reshape(-1), color.reshape(-1, 3), object_id.reshape(-1)  # flat views: (H * W,), (H * W, 3)
     order = np.argsort(np.linalg.norm(centers - origin, axis=1))
     order = order[_in_view(centers[order], objs.size_wlh[order], yaws[order], ego2cam, camera)]
     for k in order:
@@ -269,7 +270,7 @@ def _clip_near(poly: np.ndarray) -> np.ndarray:
         if a_in != b_in:
             f = (NEAR_M - a[2]) / (b[2] - a[2])
             out.append(a + f * (b - a))
-    return np.array(out).reshape(-1, 3)
+    return np.array(out).reshape(-1, 3)  # (M, 3)
 
 
 _SHIFT = 8

@@ -76,7 +76,7 @@ ROAD_HALF_WIDTH_M = 8.5
 SIDEWALK_OUTER_M = 13.5
 BUILDING_LINE_M = 14.0
 
-# Attributes written per kind (nuScenes attribute names), chosen by motion / rider flag.
+# Instance albedos, drawn per object.
 CAR_COLORS = np.array(
     [[0.75, 0.08, 0.08], [0.08, 0.2, 0.7], [0.9, 0.9, 0.88], [0.06, 0.06, 0.07], [0.6, 0.62, 0.65],
      [0.95, 0.75, 0.1], [0.1, 0.45, 0.2], [0.45, 0.05, 0.35], [0.2, 0.55, 0.8]],
@@ -287,10 +287,10 @@ class _Placer:
         return np.asarray(spec.size_wlh_m) * jitter
 
     def _try_add(self, kind: Kind, s: float, d: float, yaw_road: float, speed: float, size: np.ndarray | None = None,
-                 z: float | None = None, check: bool = True, heading_motion: float | None = None) -> bool:
+                 z: float | None = None, check: bool = True) -> bool:
+        """Place an object at road position (s, d) moving along its heading; False if it would collide."""
         size = self._size(kind) if size is None else np.asarray(size, dtype=np.float64)
-        move = yaw_road if heading_motion is None else heading_motion
-        v = speed * np.array([math.cos(move), math.sin(move)])
+        v = speed * np.array([math.cos(yaw_road), math.sin(yaw_road)])
         track = np.array([s, d]) + self.times[:, None] * v  # (T, 2)
         radius = 0.5 * math.hypot(size[0], size[1])
         if check:
@@ -300,8 +300,7 @@ class _Placer:
                 return False
             self.tracks.append(track)
             self.radii.append(radius)
-        rng = self.rng
-        color, color2, flag = self._colors(kind)
+        color, color2 = self._colors(kind)
         self.rows.append(
             {
                 "kind": int(kind),
@@ -312,12 +311,19 @@ class _Placer:
                 "velocity_sd": v,
                 "color": color,
                 "color2": color2,
-                "flag": flag if kind not in (Kind.BICYCLE, Kind.MOTORCYCLE) else bool(speed > 0 or rng.uniform() < 0.2),
+                "flag": self._flag(kind, speed),
             }
         )
         return True
 
-    def _colors(self, kind: Kind) -> tuple[np.ndarray, np.ndarray, bool]:
+    def _flag(self, kind: Kind, speed: float) -> bool:
+        """The per-object switch: a cycle's rider (always when riding), a pedestrian's light skin, a truck's box body."""
+        if kind in (Kind.BICYCLE, Kind.MOTORCYCLE):
+            return bool(speed > 0 or self.rng.uniform() < 0.2)
+        return bool(self.rng.uniform() < 0.6)
+
+    def _colors(self, kind: Kind) -> tuple[np.ndarray, np.ndarray]:
+        """Main and second albedo of a new object (body and cab, shirt and trousers, facade and glass)."""
         rng = self.rng
         if kind in (Kind.CAR, Kind.TRUCK, Kind.BUS, Kind.MOTORCYCLE):
             c = CAR_COLORS[rng.integers(len(CAR_COLORS))] * rng.uniform(0.85, 1.05)
@@ -334,7 +340,7 @@ class _Placer:
         else:
             c = np.array([0.5, 0.5, 0.5])
             c2 = c
-        return np.clip(c, 0, 1).astype(np.float32), np.clip(c2, 0, 1).astype(np.float32), bool(rng.uniform() < 0.6)
+        return np.clip(c, 0, 1).astype(np.float32), np.clip(c2, 0, 1).astype(np.float32)
 
     def objects(self) -> dict:
         if not self.rows:

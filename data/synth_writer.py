@@ -17,6 +17,7 @@ import hashlib
 import json
 import math
 import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -194,53 +195,94 @@ class GenerationSummary:
 
 
 def generate_dataset(
-    out_dir: str | Path, config: SynthConfig = SynthConfig(), progress: Callable[[int], None] | None = None
+    out_dir: str | Path,
+    config: SynthConfig = SynthConfig(),
+    progress: Callable[[int], None] | None = None,
+    workers: int = 1,
 ) -> GenerationSummary:
-    """Write ``config.num_scenes`` scenes into ``out_dir``; ``progress(n)`` is called after each key frame."""
+    """Write ``config.num_scenes`` scenes into ``out_dir``.
+
+    ``progress(n)`` is told of every n finished key frames (per key frame with one worker, per scene with
+    several). ``workers`` > 1 simulates scenes in that many processes; the output is the same bytes.
+    """
+    if not (isinstance(workers, int) and workers >= 1):
+        raise ValueError(f"workers must be an integer >= 1, got {workers!r}")
     start = time.perf_counter()
     out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
     rig = real_rig_records(config.resolution)
-    tables = _Tables(config.seed)
-    tables.static(rig)
-    point_counts = []
-    images = 0
-    scene_names = []
-    for s in range(config.num_scenes):
-        scene = make_scene(config.seed, s, config.world)
-        scene_names.append(scene.name)
-        log_token, sensor_tokens = tables.scene_start(scene, rig)
-        lidar_chain: list[dict] = []
-        for k in range(scene.config.samples_per_scene):
-            frame = simulate_frame(scene, k, rig, config)
-            sample_token = tables.sample(scene, frame)
-            # Sweeps between the previous key frame and this one, oldest first, then the key frame.
-            for sweep in reversed(frame.past_sweeps):
-                lidar_chain.append(tables.lidar_data(out, scene, sample_token, sweep, sensor_tokens, key=False))
-                point_counts.append(len(sweep.points))
-            lidar_chain.append(tables.lidar_data(out, scene, sample_token, frame.sweep, sensor_tokens, key=True))
-            point_counts.append(len(frame.sweep.points))
-            for cam in rig.cameras:
-                tables.camera_data(out, scene, sample_token, frame, cam["name"], sensor_tokens, config)
-                images += 1
-            tables.annotations(scene, sample_token, frame)
-            if progress is not None:
-                progress(1)
-        _link(lidar_chain)
-        tables.scene_end(scene, log_token)
-    tables.write(out / config.version, out)
+    rows = _Tables(config.seed).static(rig)
+    results: list[_SceneResult] = []
+    if workers == 1 or config.num_scenes == 1:
+        for s in range(config.num_scenes):
+            results.append(_write_scene(out, config, s, progress))
+    else:
+        with ProcessPoolExecutor(max_workers=min(workers, config.num_scenes)) as pool:
+            futures = [pool.submit(_write_scene, out, config, s, None) for s in range(config.num_scenes)]
+            for future in as_completed(futures):
+                if progress is not None:
+                    progress(future.result().num_samples)
+            results = [f.result() for f in futures]  # scene order, whatever order they finished in
+    for result in results:
+        for name, scene_rows in result.rows.items():
+            rows[name].extend(scene_rows)
+    _write_tables(out / config.version, out, rows, config.seed)
+    names = [r.name for r in results]
     n_val = min(config.num_scenes - 1, max(1, round(config.val_fraction * config.num_scenes))) if config.num_scenes > 1 else 0
-    splits = {"train": scene_names[: len(scene_names) - n_val], "val": scene_names[len(scene_names) - n_val :]}
+    splits = {"train": names[: len(names) - n_val], "val": names[len(names) - n_val :]}
     (out / "splits.json").write_text(json.dumps(splits, indent=1))
+    point_counts = [c for r in results for c in r.point_counts]
     return GenerationSummary(
         out_dir=out,
         version=config.version,
-        scenes=tuple(scene_names),
-        num_samples=len(tables.rows["sample"]),
+        scenes=tuple(names),
+        num_samples=len(rows["sample"]),
         num_sweeps=len(point_counts),
-        num_images=images,
-        num_annotations=len(tables.rows["sample_annotation"]),
+        num_images=sum(1 for r in rows["sample_data"] if r["fileformat"] == "jpg"),
+        num_annotations=len(rows["sample_annotation"]),
         mean_points_per_sweep=float(np.mean(point_counts)),
         seconds=time.perf_counter() - start,
+    )
+
+
+@dataclass(frozen=True)
+class _SceneResult:
+    name: str
+    rows: dict[str, list[dict]]  # the scene's rows of the per-scene tables
+    point_counts: list[int]
+    num_samples: int
+
+
+def _write_scene(out: Path, config: SynthConfig, index: int, progress: Callable[[int], None] | None) -> _SceneResult:
+    """Simulate scene ``index``, write its files and return its table rows (runs in a worker process too)."""
+    rig = real_rig_records(config.resolution)
+    tables = _Tables(config.seed)
+    tables.static(rig)
+    scene = make_scene(config.seed, index, config.world)
+    log_token, sensor_tokens = tables.scene_start(scene, rig)
+    lidar_chain: list[dict] = []
+    point_counts = []
+    for k in range(scene.config.samples_per_scene):
+        frame = simulate_frame(scene, k, rig, config)
+        sample_token = tables.sample(scene, frame)
+        # Sweeps between the previous key frame and this one, oldest first, then the key frame.
+        for sweep in reversed(frame.past_sweeps):
+            lidar_chain.append(tables.lidar_data(out, scene, sample_token, sweep, sensor_tokens, key=False))
+            point_counts.append(len(sweep.points))
+        lidar_chain.append(tables.lidar_data(out, scene, sample_token, frame.sweep, sensor_tokens, key=True))
+        point_counts.append(len(frame.sweep.points))
+        for cam in rig.cameras:
+            tables.camera_data(out, scene, sample_token, frame, cam["name"], sensor_tokens, config)
+        tables.annotations(scene, sample_token, frame)
+        if progress is not None:
+            progress(1)
+    _link(lidar_chain)
+    tables.scene_end(scene, log_token)
+    return _SceneResult(
+        name=scene.name,
+        rows={name: tables.rows[name] for name in _Tables.SCENE_TABLES},
+        point_counts=point_counts,
+        num_samples=scene.config.samples_per_scene,
     )
 
 
@@ -260,12 +302,13 @@ def _link(records: list[dict]) -> None:
 
 
 class _Tables:
-    """Accumulates the rows of every table while the scenes are simulated."""
+    """Accumulates the table rows of one scene (and builds the tables all scenes share)."""
 
     NAMES = (
         "category", "attribute", "visibility", "instance", "sensor", "calibrated_sensor", "ego_pose",
         "log", "scene", "sample", "sample_data", "sample_annotation", "map",
     )
+    SCENE_TABLES = ("instance", "calibrated_sensor", "ego_pose", "log", "scene", "sample", "sample_data", "sample_annotation")
 
     def __init__(self, seed: int) -> None:
         self.seed = seed
@@ -278,7 +321,8 @@ class _Tables:
     def tok(self, *parts) -> str:
         return _token("streamdet-synth", self.seed, *parts)
 
-    def static(self, rig: RigRecords) -> None:
+    def static(self, rig: RigRecords) -> dict[str, list[dict]]:
+        """Fill the tables shared by all scenes (category, attribute, visibility, sensor); returns all rows."""
         for kind in range(NUM_ANNOTATED_KINDS):
             spec = KIND_SPECS[kind]
             token = self.tok("category", spec.category)
@@ -292,6 +336,7 @@ class _Tables:
             self.rows["visibility"].append({"description": f"visibility of whole object is between {level[1:]} %", "token": token, "level": level})
         for channel, modality in [(LIDAR_CHANNEL, "lidar")] + [(c["name"], "camera") for c in rig.cameras]:
             self.rows["sensor"].append({"token": self.tok("sensor", channel), "channel": channel, "modality": modality})
+        return self.rows
 
     def scene_start(self, scene: Scene, rig: RigRecords) -> tuple[str, dict[str, str]]:
         log_token = self.tok("log", scene.name)
@@ -434,18 +479,19 @@ class _Tables:
                 }
             )
 
-    def write(self, table_dir: Path, root: Path) -> None:
-        map_file = "maps/synthetic-street.png"
-        (root / "maps").mkdir(parents=True, exist_ok=True)
-        cv2.imwrite(str(root / map_file), np.zeros((8, 8), dtype=np.uint8))
-        # The devkit reads map[0]["log_tokens"] at load time, so one map record covers every log.
-        self.rows["map"] = [
-            {"category": "semantic_prior", "token": self.tok("map", "synthetic-street"), "filename": map_file,
-             "log_tokens": [r["token"] for r in self.rows["log"]]}
-        ]
-        table_dir.mkdir(parents=True, exist_ok=True)
-        for name in self.NAMES:
-            (table_dir / f"{name}.json").write_text(json.dumps(self.rows[name], indent=0))
+
+def _write_tables(table_dir: Path, root: Path, rows: dict[str, list[dict]], seed: int) -> None:
+    map_file = "maps/synthetic-street.png"
+    (root / "maps").mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(root / map_file), np.zeros((8, 8), dtype=np.uint8))
+    # The devkit reads map[0]["log_tokens"] at load time, so one map record covers every log.
+    rows["map"] = [
+        {"category": "semantic_prior", "token": _token("streamdet-synth", seed, "map", "synthetic-street"), "filename": map_file,
+         "log_tokens": [r["token"] for r in rows["log"]]}
+    ]
+    table_dir.mkdir(parents=True, exist_ok=True)
+    for name in _Tables.NAMES:
+        (table_dir / f"{name}.json").write_text(json.dumps(rows[name], indent=0))
 
 
 def _attribute(kind: int, speed: float, flag: bool, lateral_m: float) -> str:

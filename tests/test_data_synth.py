@@ -440,6 +440,18 @@ def test_deterministic_for_a_seed(tmp_path):
     assert _tree_digest(tmp_path / "a") != _tree_digest(tmp_path / "c")
 
 
+def test_parallel_workers_write_the_same_dataset(tmp_path):
+    cfg = SynthConfig(num_scenes=2, seed=5, resolution=(48, 27), world=WorldConfig(samples_per_scene=1))
+    done = []
+    generate_dataset(tmp_path / "serial", cfg, progress=done.append)
+    assert done == [1, 1]
+    summary = generate_dataset(tmp_path / "parallel", cfg, workers=2)
+    assert summary.num_samples == 2 and summary.scenes == ("synth-5-0000", "synth-5-0001")
+    assert _tree_digest(tmp_path / "serial") == _tree_digest(tmp_path / "parallel")
+    with pytest.raises(ValueError, match="workers"):
+        generate_dataset(tmp_path / "x", cfg, workers=0)
+
+
 def test_official_devkit_loads_the_tables(dataset):
     nuscenes = pytest.importorskip("nuscenes.nuscenes", reason="nuscenes-devkit not installed")
     root, _ = dataset
