@@ -77,10 +77,12 @@ def simulate_sweep(
         [np.cos(el)[None, :] * np.cos(az)[:, None], np.cos(el)[None, :] * np.sin(az)[:, None], np.broadcast_to(np.sin(el), (n_az, n_el))],
         axis=-1,
     )  # (A, E, 3)
-    # The ego only translates along the road, so the LiDAR's rotation is the same all sweep long.
-    lidar2global = [scene.ego2global(t) @ lidar2ego for t in (col_time[0], col_time[-1])]
-    rot = lidar2global[0][:3, :3]
-    origins = lidar2global[0][:3, 3] + (lidar2global[1][:3, 3] - lidar2global[0][:3, 3]) * ((col_time - col_time[0]) / max(col_time[-1] - col_time[0], 1e-12))[:, None]  # (A, 3)
+    # The ego only translates along the road, at constant speed: the LiDAR's rotation is the same all sweep
+    # long and its position is linear in time.
+    first, last = (scene.ego2global(t) @ lidar2ego for t in (col_time[0], col_time[-1]))
+    rot = first[:3, :3]
+    along = (col_time - col_time[0]) / max(col_time[-1] - col_time[0], 1e-12)  # (A,) 0 -> 1 over the sweep
+    origins = first[:3, 3] + along[:, None] * (last[:3, 3] - first[:3, 3])  # (A, 3)
     dirs = dirs_lidar @ rot.T  # (A, E, 3) world
 
     n_rays = n_az * n_el

@@ -2,9 +2,11 @@
 
 Each pixel's ray (through the pixel centre, OpenCV pinhole, no distortion) meets the ground plane, the sky or
 the nearest box whose surface is solid there (``synth_materials.surface`` alpha), so objects hide each other
-and the ground. A box is only tested on the pixels of the bounding rectangle of its projected corners, nearest
-box first, so the cost is close to one slab test per covered pixel. Shading is Lambertian under a sun plus
-ambient light. The cameras are global-shutter and expose at the sample timestamp (the end of the LiDAR sweep),
+and the ground. Each face of a box turned towards the camera is clipped to the near plane, projected and filled
+with OpenCV to find its candidate pixels; their rays are then intersected exactly with the face's plane and
+depth-tested, nearest box first, so the cost is about one ray-plane test per covered pixel. The ground pattern
+is looked up in a pre-sampled raster of ``synth_materials.ground``. Shading is Lambertian per face under a sun
+plus ambient light. The cameras are global-shutter and expose at the sample timestamp (the end of the LiDAR sweep),
 so the rendered objects sit exactly at their annotated poses.
 """
 
