@@ -9,6 +9,7 @@ by ``streamdet-synth``); ``DATAROOT/samples/...`` and ``DATAROOT/sweeps/...`` th
 - velocity is ``NuScenes.box_velocity`` (centred difference of the neighbouring annotations' global centres,
   one-sided at a track's ends, NaN for a lone annotation or a gap over 1.5 s, 3 s when centred), rotated into
   the LiDAR frame with its z set to 0 first as mmdetection3d does; NaN becomes 0 with ``velocity_valid`` False;
+- ``Sample.point_time_s`` comes from the optional ``<file>.time`` beside a LiDAR file (synthetic data), else None;
 - past sweeps follow the LiDAR ``sample_data.prev`` chain and are moved into the key frame's LiDAR frame via the
   global frame, with their time lag (key frame minus sweep timestamp), as nuScenes multi-sweep detectors do.
 """
@@ -21,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from streamdet.calibration.camera import Rig, invert_transform, make_transform, quaternion_to_matrix
-from streamdet.data.sample import Sample, Sweep, load_points
+from streamdet.data.sample import Sample, Sweep, load_point_times, load_points
 from streamdet.runtime_ort.boxes import BOX_DIM, CLASS_NAMES
 
 LIDAR_CHANNEL = "LIDAR_TOP"
@@ -141,10 +142,13 @@ class NuScenesReader:
         rig = Rig.from_nuscenes_records(lidar_cs, lidar_pose, cams)
         lidar2global = rig.ego2global @ rig.lidar2ego
         boxes = self._boxes(record["token"], rig)
+        lidar_path = self._file(lidar_sd)
+        points = load_points(lidar_path)
         return Sample(
             token=record["token"],
             timestamp_us=int(lidar_sd["timestamp"]),
-            points=load_points(self._file(lidar_sd)),
+            points=points,
+            point_time_s=load_point_times(lidar_path, len(points)),
             rig=rig,
             image_paths=image_paths,
             sweeps=self._past_sweeps(lidar_sd, lidar2global, int(num_past_sweeps)),

@@ -20,6 +20,7 @@ from streamdet.calibration.camera import Rig
 from streamdet.runtime_ort.boxes import BOX_DIM, CLASS_NAMES
 
 BUNDLED_SAMPLE_DIR = "nuscenes_sample"
+POINT_TIME_SUFFIX = ".time"  # optional float32 (N,) per-point times beside a .pcd.bin (synthetic data writes it)
 
 
 @dataclass(frozen=True, eq=False)
@@ -118,6 +119,18 @@ def load_points(path: str | Path) -> np.ndarray:
     if raw.size % 5:
         raise ValueError(f"LiDAR file {path}: {raw.size} floats is not a multiple of 5 (x, y, z, intensity, ring)")
     return raw.reshape(-1, 5)  # (N, 5)
+
+
+def load_point_times(points_path: str | Path, num_points: int) -> np.ndarray | None:
+    """(N,) float32 per-point times from the ``<file>.time`` beside a sweep, or None where there is none."""
+    path = Path(points_path)
+    path = path.with_name(path.name + POINT_TIME_SUFFIX)
+    if not path.is_file():
+        return None
+    times = np.fromfile(path, dtype="<f4")
+    if times.shape != (num_points,):
+        raise ValueError(f"point-time file {path} holds {times.size} values for {num_points} points")
+    return times
 
 
 def bundled_sample_dir() -> Path:

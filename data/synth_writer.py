@@ -3,7 +3,9 @@
 ``DIR/<version>/*.json`` holds the 13 nuScenes tables with the field names of v1.0-mini (so both
 ``streamdet.data.nuscenes.NuScenesReader`` and the devkit's ``NuScenes`` table loader read it), LiDAR sweeps go to
 ``DIR/samples/LIDAR_TOP/*.pcd.bin`` (key frames) and ``DIR/sweeps/LIDAR_TOP/`` (the sweeps between them), images to
-``DIR/samples/CAM_*/*.jpg``, and ``DIR/splits.json`` names the train / val scenes.
+``DIR/samples/CAM_*/*.jpg``, and ``DIR/splits.json`` names the train / val scenes. Beside each LiDAR file a
+``<file>.time`` (float32 per point, the firing time after the sweep start) is a streamdet extension that the
+devkit ignores and ``NuScenesReader`` returns as ``Sample.point_time_s``.
 
 The rig is the real one of the bundled nuScenes sample: LiDAR and camera mountings (calibrated_sensor) and
 intrinsics, scaled to the chosen resolution. Cameras expose at the key frame's timestamp, so every sample_data
@@ -26,7 +28,7 @@ import cv2
 import numpy as np
 
 from streamdet.calibration.camera import make_transform, matrix_to_quaternion, quaternion_to_matrix
-from streamdet.data.sample import bundled_sample_dir
+from streamdet.data.sample import POINT_TIME_SUFFIX, bundled_sample_dir
 from streamdet.data.synth_lidar import LidarConfig, SimSweep, simulate_sweep
 from streamdet.data.synth_render import CameraModel, Render, render_camera
 from streamdet.data.synth_world import (
@@ -380,6 +382,8 @@ class _Tables:
         path = out / filename
         path.parent.mkdir(parents=True, exist_ok=True)
         np.ascontiguousarray(sweep.points, dtype="<f4").tofile(path)
+        # streamdet extension beside the nuScenes file: each point's firing time after the sweep start.
+        np.ascontiguousarray(sweep.time_s, dtype="<f4").tofile(path.with_name(path.name + POINT_TIME_SUFFIX))
         row = {
             "token": self.tok("sample_data", scene.name, LIDAR_CHANNEL, ts),
             "sample_token": sample_token,

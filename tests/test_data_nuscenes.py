@@ -122,7 +122,7 @@ def test_reader_gives_back_the_bundled_boxes(tables):
     assert len(reader) == 3 and info["calib"]["sample_token"] in reader.sample_tokens
     s = reader.get(info["calib"]["sample_token"])
     ref = info["boxes"]
-    assert s.points.shape == (34688, 5) and s.points.dtype == np.float32
+    assert s.points.shape == (34688, 5) and s.points.dtype == np.float32 and s.point_time_s is None
     assert s.gt_boxes.shape == (len(ref), 9)
     # boxes.json's global centres came through float32 matrices: ~1e-4 m
     np.testing.assert_allclose(s.gt_boxes[:, :3], [b["center_xyz"] for b in ref], atol=2e-3)
@@ -206,6 +206,11 @@ def test_reader_errors_name_what_is_missing(tmp_path):
     with pytest.raises(ValueError, match="num_past_sweeps"):
         reader.get(1, num_past_sweeps=-1)
     lidar_file = next((root / "samples" / "LIDAR_TOP").iterdir())
+    times = lidar_file.with_name(lidar_file.name + ".time")
+    np.zeros(3, dtype=np.float32).tofile(times)
+    with pytest.raises(ValueError, match="point-time"):
+        reader.get(1)
+    times.unlink()
     lidar_file.unlink()
     with pytest.raises(FileNotFoundError, match=re.escape(lidar_file.name)):
         reader.get(1)

@@ -328,6 +328,7 @@ def test_reader_returns_what_the_generator_wrote(dataset, frame):
     assert len(reader) == 3 and summary.num_samples == 3 and summary.num_sweeps == 6
     s = reader.get(1, num_past_sweeps=1)
     np.testing.assert_array_equal(s.points, f.sweep.points)
+    np.testing.assert_array_equal(s.point_time_s, f.sweep.time_s)
     assert s.scene_name == scene.name and s.timestamp_us == f.timestamp_us
     # the past sweep, moved into this key frame's LiDAR frame
     assert len(s.sweeps) == 1 and s.sweeps[0].time_lag_s == pytest.approx(CONFIG.world.sample_interval_s / 2)
