@@ -13,7 +13,7 @@ from functools import cached_property
 
 import numpy as np
 
-from streamdet.data.synth_world import Kind
+from streamdet.data.synth_world import LANE_WIDTH_M, ROAD_HALF_WIDTH_M, SIDEWALK_OUTER_M, Kind
 
 GLASS = np.array([0.06, 0.08, 0.11], dtype=np.float32)
 TYRE = np.array([0.05, 0.05, 0.05], dtype=np.float32)
@@ -322,8 +322,9 @@ _PAINTERS = {
 def ground(s: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Albedo (P, 3) float32 and reflectance (P,) float32 of the ground at road coordinates (s along, d left).
 
-    Asphalt with lane markings (dashed lane lines at +-3.5 m, the centre line, edge lines at +-7 m), a
-    parking strip, tiled sidewalks to 13.5 m and grass beyond.
+    Asphalt with lane markings (the centre line, dashed lines between the two lanes of each direction, edge
+    lines between the lanes and the parking strips), tiled sidewalks and grass beyond: the layout of
+    ``synth_world``.
     """
     s = np.asarray(s, dtype=np.float64)
     d = np.asarray(d, dtype=np.float64)
@@ -331,16 +332,16 @@ def ground(s: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     # The noise repeats every GROUND_PERIOD_M along the road so the renderer can pre-sample one period.
     grain = hash_noise(np.mod(np.floor(s / 0.3), GROUND_PERIOD_M / 0.3), np.floor(d / 0.3), 1)
     patch = hash_noise(np.mod(np.floor(s / 4.0), GROUND_PERIOD_M / 4.0), np.floor(d / 4.0), 2)
-    road = ad < 8.5
-    sidewalk = (ad >= 8.5) & (ad < 13.5)
+    road = ad < ROAD_HALF_WIDTH_M
+    sidewalk = (ad >= ROAD_HALF_WIDTH_M) & (ad < SIDEWALK_OUTER_M)
     shade = (0.85 + 0.2 * grain + 0.1 * patch)[..., None]
     albedo = np.where(road[..., None], ASPHALT * shade, np.float32([0.33, 0.45, 0.22]) * (0.7 + 0.5 * grain)[..., None])
-    tile = (np.mod(s, 1.5) < 0.05) | (np.mod(ad - 8.5, 1.5) < 0.05)
+    tile = (np.mod(s, 1.5) < 0.05) | (np.mod(ad - ROAD_HALF_WIDTH_M, 1.5) < 0.05)
     side_rgb = np.where(tile[..., None], np.float32([0.45, 0.45, 0.44]), np.float32([0.66, 0.65, 0.62]) * (0.92 + 0.12 * grain)[..., None])
     albedo = np.where(sidewalk[..., None], side_rgb, albedo)
     refl = np.where(road, 0.08 + 0.03 * grain, np.where(sidewalk, 0.2, 0.15))
-    marking = (np.abs(ad - 3.5) < 0.07) & (np.mod(s, 9.0) < 3.0)
-    marking |= np.abs(ad - 7.0) < 0.09
+    marking = (np.abs(ad - LANE_WIDTH_M) < 0.07) & (np.mod(s, 9.0) < 3.0)  # 3 m dashes every 9 m
+    marking |= np.abs(ad - 2 * LANE_WIDTH_M) < 0.09
     centre = ad < 0.1
     albedo = np.where(marking[..., None], np.float32([0.92, 0.92, 0.9]), albedo)
     albedo = np.where(centre[..., None], np.float32([0.9, 0.75, 0.2]), albedo)

@@ -69,8 +69,9 @@ KIND_SPECS: tuple[KindSpec, ...] = (
 NUM_ANNOTATED_KINDS = 8
 
 # Road layout (lateral offsets in metres from the road centre line, + = left of the road direction).
-LANE_OFFSETS_M = (-5.25, -1.75, 1.75, 5.25)
-EGO_LANE_M = -1.75
+LANE_WIDTH_M = 3.5
+LANE_OFFSETS_M = (-1.5 * LANE_WIDTH_M, -0.5 * LANE_WIDTH_M, 0.5 * LANE_WIDTH_M, 1.5 * LANE_WIDTH_M)
+EGO_LANE_M = LANE_OFFSETS_M[1]  # the inner lane along +u
 PARKING_OFFSET_M = 7.6
 ROAD_HALF_WIDTH_M = 8.5
 SIDEWALK_OUTER_M = 13.5

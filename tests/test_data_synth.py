@@ -17,7 +17,7 @@ from streamdet.data.slicing import split_sweep
 from streamdet.data.synth_lidar import LidarConfig, simulate_sweep
 from streamdet.data.synth_materials import ground, surface
 from streamdet.data.synth_raycast import ray_box_entry, ray_ground, world_to_local
-from streamdet.data.synth_world import KIND_SPECS, NUM_ANNOTATED_KINDS, Kind, WorldConfig, make_scene
+from streamdet.data.synth_world import KIND_SPECS, Kind, WorldConfig, make_scene
 from streamdet.data.synth_writer import SynthConfig, generate_dataset, real_rig_records, simulate_frame
 from streamdet.runtime_ort.boxes import CLASS_NAMES
 
