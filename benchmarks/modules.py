@@ -1,0 +1,191 @@
+"""The modules behind the rows of the paper's Table 3, their benchmark inputs, and their ONNX exports.
+
+The rows are not the three deployment graphs: each row isolates one module the way the paper times it (one image,
+30,000 points, ``benchmarks/flops_report.py``):
+
+- slice rows: SliceNet + in-graph decode (``slice_head.onnx``'s module) with the multi head / single head on one
+  map the size of the whole grid (Q = 1, "uncropped"), and the single head on one quadrant ("cropped");
+- 3D-convolution rows: the lifter after its gather (BN, 1x1x1 conv, residual k3 conv, z-strided conv, pooling)
+  on the whole volume and on one quadrant volume;
+- image rows: the image encoder at each resolution (one export, dynamic H and W as the deployed graph).
+
+Weights are a seeded random init in eval mode: the time of a dense convolution does not depend on the values.
+Each graph is exported with the export library (``streamdet.export.onnx_export``) and given an fp16 sibling with
+``convert_model_to_fp16``, keeping in fp32 what the deployed fp16 slice graph keeps (decode and heatmap convs).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import onnx
+import torch
+from torch import Tensor, nn
+
+from streamdet.benchmarks.flops_report import BENCH_NUM_IMAGES, BENCH_NUM_POINTS, gmac_rows
+from streamdet.export.fp16 import convert_model_to_fp16
+from streamdet.export.onnx_export import (
+    IMAGE_ENCODER_IO,
+    SLICE_HEAD_IO,
+    GraphIO,
+    export_module,
+    export_slice_head,
+    heatmap_producers,
+    is_decode_node,
+    save_model,
+    slice_decoder,
+)
+from streamdet.models.detector import StreamDetector
+from streamdet.models.presets import Preset
+
+ROW_KINDS = ("slice", "conv3d", "image")
+
+# The lifter's convolutions alone: the volume in, the image BEV out. Q dynamic like the deployed lifter.
+LIFTER_CONVS_IO = GraphIO(
+    name="lifter_convs",
+    inputs=("volume",),
+    outputs=("image_bev",),
+    dynamic_axes={"volume": {0: "Q"}, "image_bev": {0: "Q"}},
+)
+
+
+class LifterConvs(nn.Module):
+    """``forward(volume (Q, C, Z, Y, X)) -> image_bev (Q, C, Y, X)``: VolumetricLifter.forward after the gather.
+
+    Shares the lifter's layers; ``tests/test_benchmarks_modules.py`` checks it against the whole lifter.
+    """
+
+    def __init__(self, lifter: VolumetricLifter) -> None:
+        super().__init__()
+        self.lifter = lifter
+
+    def forward(self, volume: Tensor) -> Tensor:
+        m = self.lifter
+        v = m.relu(m.project(m.input_norm(volume)))  # (Q, C, Z, Y, X)
+        v = v + m.residual(v)
+        v = m.z_pool(m.z_down(v))  # (Q, C, Z / (z_conv_stride * z_pool), Y, X)
+        return v.amax(dim=2)  # (Q, C, Y, X)
+
+
+@dataclass(frozen=True, eq=False)
+class Row:
+    """One Table 3 row: a torch module, its inputs, how to export it, and its MACs by the torch counter."""
+
+    module: str  # the row's label, as benchmarks/flops_report.py names it
+    key: str  # file stem of its graphs
+    kind: str  # slice | conv3d | image
+    net: nn.Module  # eval mode
+    inputs: tuple[Tensor, ...]
+    io: GraphIO
+    gmac: float  # models/flops.py's counter, through flops_report.gmac_rows
+    graph_key: str = ""  # rows that share one exported graph (the image rows) name it here; "" = own graph
+    detector: StreamDetector | None = None  # slice rows: the detector export_slice_head takes
+
+    @property
+    def graph_stem(self) -> str:
+        return self.graph_key or self.key
+
+    def feeds(self) -> dict[str, np.ndarray]:
+        return {name: t.numpy() for name, t in zip(self.io.inputs, self.inputs)}
+
+    def input_shapes(self) -> dict[str, tuple[int, ...]]:
+        return {name: tuple(t.shape) for name, t in zip(self.io.inputs, self.inputs)}
+
+
+def pillar_inputs(preset: Preset, map_ny: int, map_nx: int, seed: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The slice graph's inputs sized like flops_report's count: P = min(max_pillars, 30,000) pillars of M slots
+    on one (map_ny, map_nx) map; each pillar holds 1..M real points, padding rows zero as the contract says."""
+    gen = torch.Generator().manual_seed(seed)
+    cells = map_ny * map_nx
+    p = min(preset.pillars.max_pillars, BENCH_NUM_POINTS, cells)
+    m = preset.pillars.max_points_per_pillar
+    counts = torch.randint(1, m + 1, (p,), generator=gen)  # (P,) real points per pillar
+    mask = (torch.arange(m)[None, :] < counts[:, None]).float()  # (P, M)
+    features = torch.randn(p, m, preset.pillars.num_point_features, generator=gen) * mask[..., None]  # (P, M, 11)
+    index = torch.randperm(cells, generator=gen)[:p].sort().values  # (P,) increasing, as pillarize makes it
+    image_bev = torch.randn(1, preset.channels, map_ny, map_nx, generator=gen)  # (Q=1, C, Y, X)
+    return features, mask, index, image_bev
+
+
+def build_rows(preset: Preset, resolutions: list[tuple[int, int]], seed: int = 0) -> list[Row]:
+    """The Table 3 rows of ``preset``: five slice / 3D-conv rows, then one image row per (width, height)."""
+    g = preset.grid
+    gmacs = gmac_rows(preset, resolutions)
+    torch.manual_seed(seed)
+    head = lambda multi: dataclasses.replace(preset, head=dataclasses.replace(preset.head, multi_head=multi))  # noqa: E731
+    multi, single = head(True), head(False)
+    det_multi = StreamDetector(multi).eval()  # its image lane goes unused; building it costs a second
+    det = StreamDetector(single).eval()
+    if det.image_encoder is None or det.lifter is None:
+        raise ValueError(f"preset {preset.name!r} has use_image=False: it has no image rows to benchmark")
+    slice_multi, slice_single = slice_decoder(det_multi), slice_decoder(det)
+    convs = LifterConvs(det.lifter).eval()
+    encoder = det.image_encoder
+
+    def volume(ny: int, nx: int) -> Tensor:
+        gen = torch.Generator().manual_seed(seed)
+        return torch.randn(1, preset.channels, g.nz, ny, nx, generator=gen)  # (Q=1, C, Z, Y, X)
+
+    rows = [
+        Row(
+            gmacs[0].module, "slice_multi_head", "slice", slice_multi, pillar_inputs(multi, g.ny, g.nx, seed),
+            SLICE_HEAD_IO, gmacs[0].gmac, detector=det_multi,
+        ),
+        Row(
+            gmacs[1].module, "slice_single_head", "slice", slice_single, pillar_inputs(single, g.ny, g.nx, seed),
+            SLICE_HEAD_IO, gmacs[1].gmac, detector=det,
+        ),
+        Row(
+            gmacs[2].module, "slice_single_head_cropped", "slice", slice_single,
+            pillar_inputs(single, g.quadrant_ny, g.quadrant_nx, seed), SLICE_HEAD_IO, gmacs[2].gmac, detector=det,
+        ),
+        Row(gmacs[3].module, "conv3d", "conv3d", convs, (volume(g.ny, g.nx),), LIFTER_CONVS_IO, gmacs[3].gmac),
+        Row(
+            gmacs[4].module, "conv3d_cropped", "conv3d", convs, (volume(g.quadrant_ny, g.quadrant_nx),),
+            LIFTER_CONVS_IO, gmacs[4].gmac,
+        ),
+    ]
+    for (w, h), gm in zip(resolutions, gmacs[5:]):
+        gen = torch.Generator().manual_seed(seed)
+        images = torch.randint(0, 256, (BENCH_NUM_IMAGES, h, w, 3), dtype=torch.uint8, generator=gen)  # (J, H, W, 3)
+        rows.append(Row(gm.module, f"image_{w}x{h}", "image", encoder, (images,), IMAGE_ENCODER_IO, gm.gmac, graph_key="image_encoder"))
+    return rows
+
+
+def _slice_keep(model: onnx.ModelProto) -> Callable[[onnx.NodeProto], bool]:
+    """The deployed fp16 slice graph keeps the decode and the heatmap-logit convs in fp32 (export/fp16.py explains
+    the peak-picking ties fp16 would create); so does the row's."""
+    producers = set(heatmap_producers(model))
+    return lambda node: is_decode_node(node) or node.name in producers
+
+
+@dataclass(frozen=True)
+class RowGraphs:
+    fp32: Path
+    fp16: Path | None  # None when the fp16 conversion failed (the report says why)
+    fp16_error: str | None
+    model: onnx.ModelProto  # the fp32 graph, for the MAC cross-check
+
+
+def export_row(row: Row, out_dir: Path) -> RowGraphs:
+    """Export ``row.net`` to ``out_dir/<graph_stem>.onnx`` and its fp16 sibling ``<graph_stem>.fp16.onnx``."""
+    if row.kind == "slice":
+        model = export_slice_head(row.detector, row.inputs)
+        keep: Callable[[onnx.NodeProto], bool] | tuple[()] = _slice_keep(model)
+    else:
+        model = export_module(row.net, row.inputs, row.io)
+        keep = ()
+    fp32 = out_dir / f"{row.graph_stem}.onnx"
+    save_model(model, fp32)
+    fp16: Path | None = out_dir / f"{row.graph_stem}.fp16.onnx"
+    error = None
+    try:
+        converted, _ = convert_model_to_fp16(model, keep)
+        save_model(converted, fp16)
+    except Exception as e:  # noqa: BLE001 - a failed conversion is a result to report, not a crash of the run
+        fp16, error = None, f"{type(e).__name__}: {e}"
+    return RowGraphs(fp32, fp16, error, model)

@@ -1,0 +1,138 @@
+"""This machine's attainable fp32 throughput, measured in the run: one large MatMul in onnxruntime.
+
+A square n x n x n float32 matmul is the most efficient kernel onnxruntime (MLAS) has, so its best-of-several
+GFLOP/s with the benchmark's thread count is the "peak" the rows' achieved GFLOP/s are divided by. It is an
+attainable peak, not the data-sheet one (FMA width x clock x cores), which no library reaches on a shared VM.
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import tempfile
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+from onnx import TensorProto, helper
+
+from streamdet.runtime_ort.sessions import GraphSession, SessionConfig
+
+
+@dataclass(frozen=True)
+class ProbeConfig:
+    size: int = 2048  # n of the n x n x n matmul: 17.2 GFLOP, ~0.1 s at 200 GFLOP/s
+    runs: int = 8  # timed runs; the best one counts (the probe asks what the machine can do, not what it usually does)
+    warmup: int = 2
+
+    def __post_init__(self) -> None:
+        for name in ("size", "runs"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ValueError(f"ProbeConfig.{name} must be a positive integer, got {v!r}")
+        if isinstance(self.warmup, bool) or not isinstance(self.warmup, int) or self.warmup < 0:
+            raise ValueError(f"ProbeConfig.warmup must be an integer >= 0, got {self.warmup!r}")
+
+
+@dataclass(frozen=True)
+class ProbeResult:
+    gflops_per_s: float  # best run: 2 n^3 / seconds / 1e9
+    median_gflops_per_s: float
+    size: int
+    runs: int
+    threads: int
+
+    def to_dict(self) -> dict:
+        return {
+            "gflops_per_s": self.gflops_per_s,
+            "median_gflops_per_s": self.median_gflops_per_s,
+            "size": self.size,
+            "runs": self.runs,
+            "threads": self.threads,
+            "kernel": "onnxruntime MatMul fp32, n x n x n",
+        }
+
+
+def row_session_config(threads: int, profile: bool = False) -> SessionConfig:
+    """Sessions of the per-module rows and of the probe: CPU, ORT_ENABLE_ALL (GraphSession's level), ``threads``
+    intra-op threads, spinning on (onnxruntime's default; one graph runs alone, so no other lane needs the core)."""
+    return SessionConfig(("CPUExecutionProvider",), threads, allow_spinning=True, enable_profiling=profile)
+
+
+def matmul_model(n: int) -> onnx.ModelProto:
+    a = helper.make_tensor_value_info("a", TensorProto.FLOAT, [n, n])
+    b = helper.make_tensor_value_info("b", TensorProto.FLOAT, [n, n])
+    c = helper.make_tensor_value_info("c", TensorProto.FLOAT, [n, n])
+    graph = helper.make_graph([helper.make_node("MatMul", ["a", "b"], ["c"], name="probe")], "peak_probe", [a, b], [c])
+    return helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+
+
+def measure_peak(threads: int, config: ProbeConfig = ProbeConfig()) -> ProbeResult:
+    n = config.size
+    with tempfile.TemporaryDirectory(prefix="streamdet_probe_") as tmp:
+        path = os.path.join(tmp, "matmul.onnx")
+        onnx.save_model(matmul_model(n), path)
+        session = GraphSession(path, row_session_config(threads))
+    rng = np.random.default_rng(0)
+    feeds = {"a": rng.standard_normal((n, n), dtype=np.float32), "b": rng.standard_normal((n, n), dtype=np.float32)}
+    for _ in range(config.warmup):
+        session.run(feeds)
+    seconds = []
+    for _ in range(config.runs):
+        start = time.perf_counter()
+        session.run(feeds)
+        seconds.append(time.perf_counter() - start)
+    flop = 2.0 * n**3
+    return ProbeResult(
+        gflops_per_s=flop / min(seconds) / 1e9,
+        median_gflops_per_s=flop / float(np.median(seconds)) / 1e9,
+        size=n,
+        runs=config.runs,
+        threads=threads,
+    )
+
+
+def cpu_model() -> str:
+    """The CPU's model name from /proc/cpuinfo (platform.processor() elsewhere)."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown CPU"
+
+
+def cpu_flags() -> tuple[str, ...]:
+    """The SIMD flags that decide the kernels onnxruntime and PyTorch pick (avx2, fma, avx512f, ...)."""
+    wanted = ("avx", "avx2", "fma", "f16c", "avx512f", "avx512_bf16", "avx512_fp16", "avx512_vnni", "amx_tile")
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("flags"):
+                    have = set(line.split(":", 1)[1].split())
+                    return tuple(w for w in wanted if w in have)
+    except OSError:
+        pass
+    return ()
+
+
+def machine_info(threads: int) -> dict:
+    import torch  # the benchmark needs torch anyway; kept local so the probe itself stays torch-free
+
+    load = os.getloadavg() if hasattr(os, "getloadavg") else (float("nan"),) * 3
+    return {
+        "cpu_model": cpu_model(),
+        "cpu_flags": list(cpu_flags()),
+        "logical_cpus": os.cpu_count(),
+        "threads": threads,
+        "load_average_1_5_15": [round(v, 2) for v in load],
+        "onnxruntime": ort.__version__,
+        "torch": torch.__version__,
+        "onnx": onnx.__version__,
+        "numpy": np.__version__,
+        "python": platform.python_version(),
+    }

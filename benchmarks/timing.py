@@ -1,0 +1,110 @@
+"""Wall-clock timing of a callable: warm-up, repeats under a time budget, and robust statistics.
+
+Every figure the benchmark prints is a ``TimingStats``: the median and p95 over the repeats (numpy's default linear
+interpolation, as ``runtime_ort/stats.py`` uses), the min-max spread as the noise, and the repeat count it rests on.
+Slow rows (the paper preset's uncropped 3D convolutions take seconds) get fewer repeats automatically; ``reduced``
+says so, and the report prints it.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class TimingConfig:
+    repeat: int = 20  # timed runs per measurement, unless the budget below cuts them
+    warmup: int = 2  # untimed runs first (allocator, thread pools, caches)
+    budget_s: float = 20.0  # a measurement stops adding repeats once this much time is spent on timed runs
+    min_repeat: int = 3  # ... but never fewer than this many timed runs
+    slow_warmup_s: float = 2.0  # a warm-up run longer than this ends the warm-up after one run
+
+    def __post_init__(self) -> None:
+        for name in ("repeat", "min_repeat"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ValueError(f"TimingConfig.{name} must be a positive integer, got {v!r}")
+        if isinstance(self.warmup, bool) or not isinstance(self.warmup, int) or self.warmup < 0:
+            raise ValueError(f"TimingConfig.warmup must be an integer >= 0, got {self.warmup!r}")
+        for name in ("budget_s", "slow_warmup_s"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"TimingConfig.{name} must be a positive number of seconds, got {v!r}")
+
+
+@dataclass(frozen=True)
+class TimingStats:
+    """Statistics of ``count`` durations in milliseconds."""
+
+    count: int
+    median_ms: float
+    p95_ms: float
+    mean_ms: float
+    min_ms: float
+    max_ms: float
+    requested: int  # repeats asked for; count < requested when the time budget cut them
+
+    @property
+    def reduced(self) -> bool:
+        return self.count < self.requested
+
+    @property
+    def noise(self) -> float:
+        """(max - min) / median: the relative spread of the repeats."""
+        return (self.max_ms - self.min_ms) / self.median_ms if self.median_ms > 0 else 0.0
+
+    def to_dict(self) -> dict:
+        return {
+            "count": self.count,
+            "requested": self.requested,
+            "median_ms": self.median_ms,
+            "p95_ms": self.p95_ms,
+            "mean_ms": self.mean_ms,
+            "min_ms": self.min_ms,
+            "max_ms": self.max_ms,
+        }
+
+
+def summarize(samples_ms: Sequence[float] | np.ndarray, requested: int | None = None) -> TimingStats:
+    """Statistics of the durations ``samples_ms`` (finite, >= 0, at least one)."""
+    x = np.asarray(samples_ms, dtype=np.float64)
+    if x.ndim != 1 or x.size == 0:
+        raise ValueError(f"samples_ms must be a non-empty 1-D sequence of durations, got shape {x.shape}")
+    if not np.all(np.isfinite(x)) or np.any(x < 0):
+        bad = x[~np.isfinite(x) | (x < 0)][0]
+        raise ValueError(f"samples_ms must be finite durations >= 0, got {bad}")
+    p50, p95 = np.percentile(x, [50, 95])
+    return TimingStats(
+        count=int(x.size),
+        median_ms=float(p50),
+        p95_ms=float(p95),
+        mean_ms=float(x.mean()),
+        min_ms=float(x.min()),
+        max_ms=float(x.max()),
+        requested=int(x.size) if requested is None else int(requested),
+    )
+
+
+def time_callable(fn: Callable[[], object], config: TimingConfig = TimingConfig()) -> TimingStats:
+    """Run ``fn`` ``config.warmup`` times untimed, then time up to ``config.repeat`` runs within ``config.budget_s``."""
+    for _ in range(config.warmup):
+        start = time.perf_counter()
+        fn()
+        if time.perf_counter() - start > config.slow_warmup_s:
+            break  # one run of a multi-second graph warms it as well as several
+    samples: list[float] = []
+    spent = 0.0
+    while len(samples) < config.repeat:
+        start = time.perf_counter()
+        fn()
+        elapsed = time.perf_counter() - start
+        samples.append(elapsed * 1e3)
+        spent += elapsed
+        if spent >= config.budget_s and len(samples) >= config.min_repeat:
+            break
+    return summarize(samples, requested=config.repeat)
