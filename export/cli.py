@@ -1,0 +1,74 @@
+"""``streamdet-export``: a thin click wrapper over ``streamdet.export.exporter.run_export``."""
+
+from __future__ import annotations
+
+import sys
+
+import click
+
+from streamdet.export.exporter import STEM_STRIDE, ExportError, ExportOptions, run_export
+from streamdet.export.manifest import LUT_NAME, MANIFEST_NAME
+from streamdet.export.onnx_export import DEFAULT_OPSET
+from streamdet.models.presets import preset_names
+
+
+def _parse_resolution(ctx: click.Context, param: click.Parameter, value: str | None) -> tuple[int, int] | None:
+    if value is None:
+        return None
+    parts = value.lower().split("x")
+    try:
+        width, height = (int(p) for p in parts)
+    except ValueError:
+        raise click.BadParameter(f"expected WIDTHxHEIGHT in pixels such as 800x450, got {value!r}") from None
+    if width <= 0 or height <= 0 or width % STEM_STRIDE or height % STEM_STRIDE:
+        raise click.BadParameter(
+            f"{value!r}: width and height must be positive and even (the ResNet stem has stride {STEM_STRIDE}); "
+            "they need not be multiples of 4, 800x450 works"
+        )
+    return width, height
+
+
+@click.command(context_settings={"help_option_names": ["-h", "--help"]})
+@click.option("--preset", default="small", show_default=True, type=click.Choice(preset_names()),
+              help="Model preset to export.")
+@click.option("--checkpoint", type=click.Path(dir_okay=False), default=None,
+              help="Checkpoint of that preset (torch.load weights_only). Default: the bundled models/weights/<preset>.pt "
+                   "if present, else fixed-seed untrained weights.")
+@click.option("--calibration", type=click.Path(dir_okay=False), default=None,
+              help="calibration.json for lut.npz. Default: the bundled nuScenes sample's, intrinsics scaled to --resolution.")
+@click.option("--resolution", callback=_parse_resolution, default=None, metavar="WxH",
+              help="Camera image size in pixels, e.g. 800x450; width and height must be even. Default: the preset's.")
+@click.option("--slices", "num_slices", type=int, default=8, show_default=True,
+              help="Slices per sweep (1, 2 or a multiple of 4); picks the LiDAR slice used for the parity checks.")
+@click.option("--fp16", is_flag=True, help="Also write fp16 siblings (*.fp16.onnx; inputs and outputs stay fp32) and check them.")
+@click.option("--opset", type=click.IntRange(14, 20), default=DEFAULT_OPSET, show_default=True, help="ONNX opset.")
+@click.option("--out", "out_dir", type=click.Path(file_okay=False), default=None,
+              help="Output directory (replaced if it holds an older export). Default: ./exports/<preset>.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Torch seed of the untrained weights when no checkpoint is used.")
+def main(preset, checkpoint, calibration, resolution, num_slices, fp16, opset, out_dir, seed) -> None:
+    """Export the detector as three ONNX graphs plus lut.npz and manifest.json, checking each against PyTorch."""
+    opts = ExportOptions(
+        preset=preset, checkpoint=checkpoint, calibration=calibration, resolution=resolution, num_slices=num_slices,
+        fp16=fp16, opset=opset, out_dir=out_dir, seed=seed,
+    )
+    try:
+        result = run_export(opts, report=lambda msg: click.echo(msg, err=True))
+    except ExportError as e:
+        raise click.ClickException(str(e)) from None
+    m = result.manifest
+    click.echo(f"wrote {result.out_dir} in {result.seconds:.1f} s ({m.source.get('checkpoint') or 'untrained fixed-seed weights'}):")
+    for g in m.graphs:
+        size = (result.out_dir / g.file).stat().st_size / 1e6
+        click.echo(f"  {g.file:<28} {size:8.2f} MB  {g.gmac:8.2f} GMAC  {g.precision}")
+    click.echo(f"  {LUT_NAME:<28} {(result.out_dir / LUT_NAME).stat().st_size / 1e6:8.2f} MB  ({m.lut.calibration_source})")
+    click.echo(f"  {MANIFEST_NAME}")
+    if not result.parity_passed:
+        failed = [f"{p.graph} {p.precision} {p.output}" for p in m.parity if not p.passed]
+        if m.pipeline_parity is not None and not m.pipeline_parity.passed:
+            failed.append("fp16 pipeline")
+        click.echo(f"error: parity FAILED for {', '.join(failed)} (recorded in {MANIFEST_NAME})", err=True)
+        sys.exit(2)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,457 @@
+"""One export run: weights -> three ONNX graphs (+ fp16 siblings), lut.npz, parity checks, manifest.json.
+
+Everything is written into a temporary directory beside the target and renamed into place at the end, with the
+manifest written last, so a failed or interrupted export never leaves a directory that looks complete.
+
+The parity inputs are real: the bundled nuScenes sample's six images (resized to the export resolution) and its
+LiDAR sweep, cut into ``num_slices`` slices; the slice with the most points is pillarized with
+``runtime_ort/pillarize.py``. The fp32 pipeline (encoder -> lifter with the LUT -> slice graph) is onnxruntime's,
+and each graph's PyTorch reference sees the same inputs as its onnxruntime counterpart.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import importlib.resources
+import math
+import os
+import shutil
+import tempfile
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+import torch
+
+from streamdet.calibration.camera import CalibrationError, Rig
+from streamdet.calibration.grid import check_num_slices
+from streamdet.calibration.lut import Lut, build_lut
+from streamdet.data.sample import Sample, load_bundled_sample
+from streamdet.data.slicing import slice_sample
+from streamdet.export import onnx_export as ox
+from streamdet.export.fp16 import check_model, convert_model_to_fp16
+from streamdet.export.manifest import (
+    LUT_NAME,
+    MANIFEST_NAME,
+    GraphEntry,
+    ImageSpec,
+    LutEntry,
+    Manifest,
+    Normalisation,
+    ParityRecord,
+    PipelineParity,
+    TensorSpec,
+    graph_file_name,
+    sha256_file,
+    write_manifest,
+)
+from streamdet.export.parity import FP16_TOL_REL, TORCH_TOL_REL, compare_dense, compare_detections, ort_session, pipeline_parity
+from streamdet.export.weights import DEFAULT_SEED, bundled_checkpoint, load_detector
+from streamdet.models.detector import StreamDetector
+from streamdet.models.flops import count_gmac
+from streamdet.models.image_encoder import IMAGENET_MEAN, IMAGENET_STD
+from streamdet.models.presets import Preset, get_preset
+from streamdet.runtime_ort.boxes import CLASS_NAMES
+from streamdet.runtime_ort.pillarize import Pillars, pillarize
+
+BUNDLED_CALIBRATION = "bundled:nuscenes_sample/calibration.json"
+STEM_STRIDE = 2  # the ResNet stem's stride: image sizes must be even
+TORCH_REF_IMAGES = 2  # images the PyTorch encoder reference runs on (onnxruntime runs all J)
+
+
+class ExportError(Exception):
+    """A problem with the export's inputs or target, stated in one line."""
+
+
+@dataclass(frozen=True)
+class ExportOptions:
+    preset: str = "small"
+    checkpoint: str | None = None  # None: models/weights/<preset>.pt if bundled, else fixed-seed weights
+    calibration: str | None = None  # calibration.json path; None: the bundled nuScenes sample's
+    resolution: tuple[int, int] | None = None  # (W, H) px of the camera images; None: the preset's
+    num_slices: int = 8  # slices per sweep (the paper's headline model); picks the parity slice
+    fp16: bool = False  # also write *.fp16.onnx siblings
+    opset: int = ox.DEFAULT_OPSET
+    out_dir: str | None = None  # None: ./exports/<preset>
+    seed: int = DEFAULT_SEED  # torch seed of the initial weights when there is no checkpoint
+
+
+@dataclass(frozen=True)
+class ExportResult:
+    out_dir: Path
+    manifest: Manifest
+    seconds: float
+
+    @property
+    def parity_passed(self) -> bool:
+        pipeline_ok = self.manifest.pipeline_parity is None or self.manifest.pipeline_parity.passed
+        return pipeline_ok and all(p.passed for p in self.manifest.parity)
+
+
+Report = Callable[[str], None]
+
+
+def check_resolution(width: int, height: int) -> None:
+    for name, v in (("width", width), ("height", height)):
+        if isinstance(v, bool) or not isinstance(v, int) or v <= 0 or v % STEM_STRIDE:
+            raise ExportError(
+                f"resolution {width}x{height}: {name} {v!r} must be a positive even number of pixels "
+                f"(the ResNet stem has stride {STEM_STRIDE}; features are ceil(size / 4))"
+            )
+
+
+def load_rig(calibration: str | None) -> tuple[Rig, str]:
+    """The rig and a description of where it came from."""
+    if calibration is None:
+        res = importlib.resources.files("streamdet.data") / "nuscenes_sample" / "calibration.json"
+        return Rig.from_calibration_json(res), BUNDLED_CALIBRATION
+    path = Path(calibration)
+    if not path.is_file():
+        raise ExportError(f"calibration file {path} does not exist")
+    try:
+        return Rig.from_calibration_json(path), str(path)
+    except CalibrationError as e:
+        raise ExportError(f"calibration {path}: {e}") from None
+
+
+def run_export(opts: ExportOptions, report: Report | None = None) -> ExportResult:
+    """Run the whole export; raises ExportError (one line) for bad options or an unusable target directory."""
+    report = report or (lambda _msg: None)
+    t_start = time.perf_counter()
+    preset, width, height = _resolve_preset(opts)
+    try:
+        check_num_slices(opts.num_slices)
+    except ValueError as e:
+        raise ExportError(f"--slices: {e}") from None
+    out_dir = Path(opts.out_dir) if opts.out_dir is not None else Path("exports") / preset.name
+    tmp = _make_staging_dir(out_dir)
+    steps = _Steps(report, total=10 + (4 if opts.fp16 else 0))
+    try:
+        manifest = _export_into(tmp, preset, width, height, opts, steps)
+        with steps("moving the export into place"):
+            _commit(tmp, out_dir)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return ExportResult(out_dir.resolve(), manifest, time.perf_counter() - t_start)
+
+
+# ---- the steps ---------------------------------------------------------------------------------------
+
+
+def _export_into(tmp: Path, preset: Preset, width: int, height: int, opts: ExportOptions, steps: "_Steps") -> Manifest:
+    checkpoint = opts.checkpoint if opts.checkpoint is not None else bundled_checkpoint(preset.name)
+    with steps("loading weights"):
+        try:
+            det, source = load_detector(preset, checkpoint, opts.seed)
+        except ValueError as e:
+            raise ExportError(str(e)) from None
+        steps.note(source.describe())
+    with steps(f"building the LUT for {width}x{height}"):
+        rig, calib_source = load_rig(opts.calibration)
+        lut = build_lut(rig, preset.grid, preset.image.feature_stride, (width, height))
+        lut.save(tmp / LUT_NAME)
+        steps.note(f"{len(rig)} cameras, K = {lut.num_slots} slots, from {calib_source}")
+    with steps("preparing the parity inputs (bundled sample)"):
+        inputs = _parity_inputs(rig, lut, preset, width, height, opts.num_slices, opts.seed)
+        steps.note(inputs.describe())
+
+    graphs: dict[tuple[str, str], tuple[onnx.ModelProto, dict]] = {}
+    parity: list[ParityRecord] = []
+    fp32_runs: dict[str, dict[str, np.ndarray]] = {}
+    with torch.no_grad():
+        with steps("exporting image_encoder.onnx"):
+            images_t = torch.from_numpy(inputs.images)
+            model = ox.export_image_encoder(det, images_t[:1], opts.opset)  # one image traces fast; J is dynamic
+            _save_checked(model, tmp, "image_encoder", "fp32")
+        with steps("parity image_encoder (onnxruntime fp32 vs PyTorch)"):
+            enc = ort_session(str(tmp / graph_file_name("image_encoder", "fp32")))
+            (features,) = enc.run(None, {"images": inputs.images})
+            # PyTorch on the first TORCH_REF_IMAGES cameras only: the encoder treats images independently, and at
+            # the paper's 1600x900 each ResNet-50 forward costs 126 GMAC on a CPU shared with the rest of the export.
+            n_ref = min(TORCH_REF_IMAGES, len(inputs.images))
+            ref = det.image_encoder(images_t[:n_ref]).numpy()
+            parity.append(compare_dense("image_encoder", "fp32", "torch", "features", features[:n_ref], ref, TORCH_TOL_REL))
+            steps.note(_fmt(parity[-1]))
+            del ref
+        with steps("exporting volumetric_lifter.onnx and checking parity"):
+            lut_index, lut_weight = lut.for_quadrants(inputs.quadrants)
+            lift_args = (torch.from_numpy(features), torch.from_numpy(lut_index), torch.from_numpy(lut_weight))
+            model = ox.export_volumetric_lifter(det, *lift_args, opts.opset)
+            _save_checked(model, tmp, "volumetric_lifter", "fp32")
+            lifter_feeds = {"features": features, "lut_index": lut_index, "lut_weight": lut_weight}
+            (image_bev,) = ort_session(str(tmp / graph_file_name("volumetric_lifter", "fp32"))).run(None, lifter_feeds)
+            ref = det.lifter(*lift_args).numpy()
+            parity.append(compare_dense("volumetric_lifter", "fp32", "torch", "image_bev", image_bev, ref, TORCH_TOL_REL))
+            steps.note(_fmt(parity[-1]))
+        with steps("exporting slice_head.onnx and checking parity"):
+            pl = inputs.pillars
+            slice_feeds = {**pl.as_feeds(), "image_bev": image_bev}
+            slice_args = tuple(torch.from_numpy(slice_feeds[n]) for n in ox.SLICE_HEAD_IO.inputs)
+            model = ox.export_slice_head(det, slice_args, opts.opset)
+            _save_checked(model, tmp, "slice_head", "fp32")
+            dets = ort_session(str(tmp / graph_file_name("slice_head", "fp32"))).run(None, slice_feeds)
+            ref_dets = [t.numpy() for t in ox.slice_decoder(det)(*slice_args)]
+            parity.extend(compare_detections("slice_head", "fp32", "torch", dets, ref_dets, TORCH_TOL_REL))
+            steps.note(_fmt(parity[-3]))
+            fp32_runs["slice_head"] = dict(zip(ox.SLICE_HEAD_IO.outputs, dets))
+        with steps("counting GMAC"):
+            gmacs = _count_gmacs(det, inputs, lut_index, lut_weight)
+            steps.note(", ".join(f"{k} {v:.2f}" for k, (v, _) in gmacs.items()))
+
+    pipeline: PipelineParity | None = None
+    if opts.fp16:
+        sessions16 = {}
+        for name in ox.GRAPH_IO:
+            with steps(f"converting {name} to fp16"):
+                model32 = onnx.load(str(tmp / graph_file_name(name, "fp32")))
+                keep = _fp32_nodes(model32) if name == "slice_head" else set()
+                model16, kept = convert_model_to_fp16(model32, lambda n: n.name in keep)
+                _save_checked(model16, tmp, name, "fp16")
+                sessions16[name] = ort_session(str(tmp / graph_file_name(name, "fp16")))
+                if kept:
+                    steps.note(f"{len(kept)} nodes kept in fp32 (decode and heatmap logits)")
+        with steps("parity fp16 vs fp32, graph by graph and whole pipeline"):
+            (features16,) = sessions16["image_encoder"].run(None, {"images": inputs.images})
+            parity.append(compare_dense("image_encoder", "fp16", "onnx-fp32", "features", features16, features, FP16_TOL_REL))
+            (bev16_same,) = sessions16["volumetric_lifter"].run(None, lifter_feeds)
+            parity.append(compare_dense("volumetric_lifter", "fp16", "onnx-fp32", "image_bev", bev16_same, image_bev, FP16_TOL_REL))
+            dets16_same = sessions16["slice_head"].run(None, slice_feeds)
+            parity.extend(compare_detections("slice_head", "fp16", "onnx-fp32", dets16_same, dets, FP16_TOL_REL))
+            # the fp16 pipeline: each fp16 graph fed by the previous fp16 graph
+            (bev16,) = sessions16["volumetric_lifter"].run(None, {**lifter_feeds, "features": features16})
+            dets16 = sessions16["slice_head"].run(None, {**pl.as_feeds(), "image_bev": bev16})
+            pipeline = pipeline_parity(
+                fp32_runs["slice_head"],
+                dict(zip(ox.SLICE_HEAD_IO.outputs, dets16)),
+                slice_index=inputs.slice_index,
+                num_slices=opts.num_slices,
+                num_points=inputs.num_points,
+                num_pillars=pl.num_pillars,
+            )
+            for p in parity[-5:]:
+                steps.note(_fmt(p))
+            steps.note(
+                f"pipeline: {pipeline.count_fp32} vs {pipeline.count_fp16} boxes >= {pipeline.score_threshold}, "
+                f"{pipeline.excluded_in_band} in the +-{pipeline.score_band:.2g} band, {pipeline.excluded_at_top_k} "
+                f"at the top-K cut, max centre diff "
+                f"{pipeline.max_centre_diff_m:.3g} m: {'ok' if pipeline.passed else 'FAILED'}"
+            )
+
+    with steps("writing manifest.json"):
+        entries = []
+        for precision in ("fp32", "fp16") if opts.fp16 else ("fp32",):
+            for name in ox.GRAPH_IO:
+                entries.append(_graph_entry(tmp, name, precision, opts.opset, gmacs[name], preset, lut))
+        manifest = Manifest(
+            preset_name=preset.name,
+            preset=preset.to_dict(),
+            grid=preset.grid.to_dict(),
+            class_names=tuple(CLASS_NAMES),
+            num_slices=opts.num_slices,
+            image=ImageSpec(width, height, preset.image.feature_stride, lut.feature_width, lut.feature_height, tuple(rig.names)),
+            normalisation=Normalisation(mean_rgb=tuple(IMAGENET_MEAN), std_rgb=tuple(IMAGENET_STD)),
+            post={**preset.to_dict()["post"], "top_k_per_quadrant": preset.top_k, "head_cell_m": preset.head_cell_m},
+            graphs=tuple(entries),
+            lut=LutEntry(LUT_NAME, sha256_file(tmp / LUT_NAME), lut.calibration_sha256, calib_source),
+            parity=tuple(parity),
+            pipeline_parity=pipeline,
+            source={
+                "checkpoint": source.checkpoint,
+                "checkpoint_sha256": source.checkpoint_sha256,
+                "seed": source.seed,
+                "parity_input": inputs.describe(),
+                "torch": torch.__version__,
+                "onnx": onnx.__version__,
+                "onnxruntime": ort.__version__,
+            },
+        )
+        write_manifest(manifest, tmp)
+    return manifest
+
+
+# ---- helpers -------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class _ParityInputs:
+    images: np.ndarray  # (J, H, W, 3) uint8 in rig order
+    real_images: bool  # False where the rig names cameras the bundled sample lacks (seeded noise instead)
+    pillars: Pillars
+    quadrants: tuple[int, ...]
+    slice_index: int
+    num_points: int
+
+    def describe(self) -> str:
+        imgs = "bundled nuScenes images" if self.real_images else "seeded noise images (the rig's cameras are not the sample's)"
+        return (
+            f"{self.images.shape[0]} {imgs} at {self.images.shape[2]}x{self.images.shape[1]}, LiDAR slice "
+            f"{self.slice_index} ({self.num_points} points, {self.pillars.num_pillars} pillars, quadrants {list(self.quadrants)})"
+        )
+
+
+def _parity_inputs(rig: Rig, lut: Lut, preset: Preset, width: int, height: int, num_slices: int, seed: int) -> _ParityInputs:
+    sample: Sample = load_bundled_sample()
+    if set(rig.names) <= set(sample.image_paths):
+        from streamdet.data.sample import load_image
+
+        images = np.stack([load_image(sample.image_paths[n], (width, height)) for n in rig.names])  # (J, H, W, 3)
+        real = True
+    else:
+        images = np.random.default_rng(seed).integers(0, 256, (len(rig), height, width, 3), dtype=np.uint8)
+        real = False
+    slices = slice_sample(sample, num_slices)
+    k = int(np.argmax([len(s.points) for s in slices]))  # the busiest slice: most pillars, most boxes
+    sl = slices[k]
+    pl = pillarize(sl.points, preset.grid, sl.quadrants, preset.pillars.max_points_per_pillar, preset.pillars.max_pillars)
+    return _ParityInputs(images, real, pl, tuple(sl.quadrants), k, len(sl.points))
+
+
+def _resolve_preset(opts: ExportOptions) -> tuple[Preset, int, int]:
+    try:
+        preset = get_preset(opts.preset)
+    except ValueError as e:
+        raise ExportError(str(e)) from None
+    width, height = opts.resolution if opts.resolution is not None else (preset.image.width_px, preset.image.height_px)
+    check_resolution(width, height)
+    image = dataclasses.replace(preset.image, width_px=width, height_px=height)
+    return dataclasses.replace(preset, image=image), width, height
+
+
+def _make_staging_dir(out_dir: Path) -> Path:
+    """A fresh temp dir beside out_dir (same filesystem, so the final rename is atomic); checks writability early."""
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ExportError(f"--out {out_dir} exists and is not a directory")
+    if out_dir.is_dir() and any(out_dir.iterdir()) and not (out_dir / MANIFEST_NAME).is_file():
+        raise ExportError(f"--out {out_dir} is a non-empty directory that is not a streamdet export; refusing to overwrite it")
+    parent = out_dir.absolute().parent
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.partial-", dir=parent))
+    except OSError as e:
+        raise ExportError(f"--out {out_dir}: cannot write into {parent}: {e.strerror or e}") from None
+    tmp.chmod(0o755)  # mkdtemp makes it private; the export is an ordinary directory
+    return tmp
+
+
+def _commit(tmp: Path, out_dir: Path) -> None:
+    """Replace out_dir (absent, empty, or an older export) by tmp."""
+    out_dir = out_dir.absolute()
+    old = None
+    if out_dir.exists():
+        old = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.old-", dir=out_dir.parent))
+        os.replace(out_dir, old / "export")
+    try:
+        os.replace(tmp, out_dir)
+    except OSError:
+        if old is not None:
+            os.replace(old / "export", out_dir)  # put the previous export back
+        raise
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def _save_checked(model: onnx.ModelProto, tmp: Path, name: str, precision: str) -> None:
+    path = tmp / graph_file_name(name, precision)
+    onnx.save_model(model, str(path))
+    check_model(str(path))
+
+
+def _fp32_nodes(model: onnx.ModelProto) -> set[str]:
+    """Nodes of the slice graph kept in fp32: the decode and the convs that make the heatmap logits."""
+    return {n.name for n in model.graph.node if ox.is_decode_node(n)} | set(ox.heatmap_producers(model))
+
+
+def _count_gmacs(det: StreamDetector, inputs: _ParityInputs, lut_index: np.ndarray, lut_weight: np.ndarray) -> dict[str, tuple[float, dict]]:
+    """GMAC of each graph at the export resolution, on the meta device (shapes only, no arithmetic).
+
+    Encoder per image (J = 1); lifter and slice graph at the parity slice's Q quadrants and P pillars.
+    """
+    meta = torch.device("meta")
+    q, p = len(inputs.quadrants), inputs.pillars.num_pillars
+    j, h, w, _ = inputs.images.shape
+    enc = copy.deepcopy(det.image_encoder).to(meta)
+    lifter = copy.deepcopy(det.lifter).to(meta)
+    net = copy.deepcopy(det.slice_net).to(meta)
+    c, hf, wf = det.preset.channels, math.ceil(h / 4), math.ceil(w / 4)
+    g = det.preset.grid
+    on_meta = lambda a: torch.empty(a.shape, dtype=torch.from_numpy(a[:0]).dtype, device=meta)  # noqa: E731
+    pl = inputs.pillars
+    return {
+        "image_encoder": (count_gmac(enc, torch.empty(1, h, w, 3, dtype=torch.uint8, device=meta)), {"J": 1, "H": h, "W": w}),
+        "volumetric_lifter": (
+            count_gmac(lifter, torch.empty(j, c, hf, wf, device=meta), on_meta(lut_index), on_meta(lut_weight)),
+            {"J": j, "Q": q, "K": int(lut_index.shape[1])},
+        ),
+        "slice_head": (
+            count_gmac(net, on_meta(pl.features), on_meta(pl.mask), on_meta(pl.index),
+                       torch.empty(q, c, g.quadrant_ny, g.quadrant_nx, device=meta)),
+            {"Q": q, "P": p},
+        ),
+    }
+
+
+_DTYPE_NAMES = {
+    onnx.TensorProto.UINT8: "uint8",
+    onnx.TensorProto.INT32: "int32",
+    onnx.TensorProto.INT64: "int64",
+    onnx.TensorProto.FLOAT16: "float16",
+    onnx.TensorProto.FLOAT: "float32",
+}
+
+
+def _tensor_specs(values) -> tuple[TensorSpec, ...]:
+    specs = []
+    for v in values:
+        t = v.type.tensor_type
+        shape = tuple(d.dim_param if d.dim_param else int(d.dim_value) for d in t.shape.dim)
+        specs.append(TensorSpec(v.name, shape, _DTYPE_NAMES[t.elem_type]))
+    return tuple(specs)
+
+
+def _graph_entry(tmp: Path, name: str, precision: str, opset: int, gmac: tuple[float, dict], preset: Preset, lut: Lut) -> GraphEntry:
+    path = tmp / graph_file_name(name, precision)
+    model = onnx.load(str(path), load_external_data=False)
+    return GraphEntry(
+        name=name,
+        precision=precision,
+        file=path.name,
+        sha256=sha256_file(path),
+        opset=opset,
+        inputs=_tensor_specs(model.graph.input),
+        outputs=_tensor_specs(model.graph.output),
+        gmac=round(gmac[0], 4),
+        gmac_at=gmac[1],
+    )
+
+
+def _fmt(p: ParityRecord) -> str:
+    status = "ok" if p.passed else "FAILED"
+    return (
+        f"{p.graph} {p.precision} {p.output}: max |diff| {p.max_abs_diff:.3g} vs {p.tolerance_rel:g} x range "
+        f"{p.output_range:.3g} = {p.tolerance_rel * p.output_range:.3g}: {status}"
+    )
+
+
+class _Steps:
+    """Numbered progress lines with the time each step took."""
+
+    def __init__(self, report: Report, total: int) -> None:
+        self.report, self.total, self.i = report, total, 0
+
+    @contextmanager
+    def __call__(self, what: str) -> Iterator[None]:
+        self.i += 1
+        self.report(f"[{self.i}/{self.total}] {what} ...")
+        t = time.perf_counter()
+        yield
+        self.report(f"      done in {time.perf_counter() - t:.1f} s")
+
+    def note(self, text: str) -> None:
+        self.report(f"      {text}")

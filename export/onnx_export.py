@@ -1,0 +1,194 @@
+"""PyTorch -> ONNX for the three graphs of docs/architecture.md ("The three graphs"), fp32.
+
+Exporter choice: the TorchScript exporter (``torch.onnx.export(..., dynamo=False)``). It is several times faster to
+run than the dynamo exporter here (the paper preset must export in minutes on a 2-core CPU), and it names every
+node after the module scope it came from (``/slice_net/head/...``), which is what the fp16 conversion needs to keep
+the decode in float32 by node name. Dynamic dimensions are declared with ``dynamic_axes``.
+
+Node naming: in ``slice_head.onnx`` every node outside the ``/slice_net/`` scope belongs to the in-graph decode
+(``decode_head_maps`` runs in SliceDecoder's own scope, whose nodes the exporter names ``/Sigmoid``, ``/TopK``, ...).
+They are renamed to ``/decode/<op>...`` so they are recognisable in the file and in the fp16 block list.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import warnings
+from dataclasses import dataclass
+
+import onnx
+import torch
+from torch import nn
+
+from streamdet.models.decode import SliceDecoder
+from streamdet.models.detector import StreamDetector
+
+DEFAULT_OPSET = 17
+DECODE_SCOPE = "/decode/"
+
+
+@dataclass(frozen=True)
+class GraphIO:
+    """Names and dynamic axes of one graph's inputs and outputs (the contract of docs/architecture.md)."""
+
+    name: str
+    inputs: tuple[str, ...]
+    outputs: tuple[str, ...]
+    dynamic_axes: dict  # tensor name -> {axis: dimension name}
+
+
+IMAGE_ENCODER_IO = GraphIO(
+    name="image_encoder",
+    inputs=("images",),
+    outputs=("features",),
+    dynamic_axes={"images": {0: "J", 1: "H", 2: "W"}, "features": {0: "J", 2: "Hf", 3: "Wf"}},
+)
+# K (cameras per voxel) is dynamic: another rig may see a voxel from three cameras, and a new calibration
+# must never need a re-export. Hf and Wf are dynamic so the graph follows the encoder at any image size.
+VOLUMETRIC_LIFTER_IO = GraphIO(
+    name="volumetric_lifter",
+    inputs=("features", "lut_index", "lut_weight"),
+    outputs=("image_bev",),
+    dynamic_axes={
+        "features": {0: "J", 2: "Hf", 3: "Wf"},
+        "lut_index": {0: "Q", 1: "K"},
+        "lut_weight": {0: "Q", 1: "K"},
+        "image_bev": {0: "Q"},
+    },
+)
+SLICE_HEAD_IO = GraphIO(
+    name="slice_head",
+    inputs=("pillar_features", "pillar_mask", "pillar_index", "image_bev"),
+    outputs=("det_boxes", "det_scores", "det_labels"),
+    dynamic_axes={
+        "pillar_features": {0: "P"},
+        "pillar_mask": {0: "P"},
+        "pillar_index": {0: "P"},
+        "image_bev": {0: "Q"},
+        "det_boxes": {0: "Q"},
+        "det_scores": {0: "Q"},
+        "det_labels": {0: "Q"},
+    },
+)
+GRAPH_IO: dict[str, GraphIO] = {g.name: g for g in (IMAGE_ENCODER_IO, VOLUMETRIC_LIFTER_IO, SLICE_HEAD_IO)}
+
+
+def export_module(module: nn.Module, args: tuple[torch.Tensor, ...], io_spec: GraphIO, opset: int = DEFAULT_OPSET) -> onnx.ModelProto:
+    """Trace ``module(*args)`` into an ONNX model with the names and dynamic axes of ``io_spec``."""
+    if not isinstance(opset, int) or not 13 <= opset <= 20:
+        raise ValueError(f"opset must be an int in [13, 20] (the TorchScript exporter's range), got {opset!r}")
+    module = module.eval()
+    buf = io.BytesIO()
+    with torch.no_grad(), warnings.catch_warnings():
+        # The TorchScript exporter is deprecated in favour of dynamo (see the module doc for why we use it) and
+        # warns about traced shape arithmetic that is in fact dynamic (checked by the dynamic-size tests).
+        warnings.simplefilter("ignore")
+        torch.onnx.export(
+            module,
+            args,
+            buf,
+            dynamo=False,
+            opset_version=opset,
+            input_names=list(io_spec.inputs),
+            output_names=list(io_spec.outputs),
+            dynamic_axes=io_spec.dynamic_axes,
+            do_constant_folding=True,
+        )
+    model = onnx.load_from_string(buf.getvalue())
+    _name_unnamed_nodes(model)
+    return model
+
+
+def export_image_encoder(det: StreamDetector, images: torch.Tensor, opset: int = DEFAULT_OPSET) -> onnx.ModelProto:
+    """``images`` (J, H, W, 3) uint8 -> features (J, C, Hf, Wf); normalisation inside."""
+    if det.image_encoder is None:
+        raise ValueError(f"preset {det.preset.name!r} has use_image=False: there is no image encoder to export")
+    return export_module(det.image_encoder, (images,), IMAGE_ENCODER_IO, opset)
+
+
+def export_volumetric_lifter(
+    det: StreamDetector, features: torch.Tensor, lut_index: torch.Tensor, lut_weight: torch.Tensor, opset: int = DEFAULT_OPSET
+) -> onnx.ModelProto:
+    if det.lifter is None:
+        raise ValueError(f"preset {det.preset.name!r} has use_image=False: there is no lifter to export")
+    return export_module(det.lifter, (features, lut_index, lut_weight), VOLUMETRIC_LIFTER_IO, opset)
+
+
+def slice_decoder(det: StreamDetector) -> SliceDecoder:
+    return SliceDecoder(det.slice_net, det.preset).eval()
+
+
+def export_slice_head(det: StreamDetector, pillar_args: tuple[torch.Tensor, ...], opset: int = DEFAULT_OPSET) -> onnx.ModelProto:
+    """(pillar_features, pillar_mask, pillar_index, image_bev) -> det_boxes, det_scores, det_labels."""
+    model = export_module(slice_decoder(det), pillar_args, SLICE_HEAD_IO, opset)
+    decode = _decode_node_names(model)
+    for node in model.graph.node:
+        if node.name in decode:
+            node.name = DECODE_SCOPE + node.name.lstrip("/")
+    # The tracer loses the static K and 9 of det_boxes through the decode's concat/transpose; K is fixed by the preset.
+    static = {"det_boxes": (None, det.preset.top_k, 9), "det_scores": (None, det.preset.top_k), "det_labels": (None, det.preset.top_k)}
+    for out in model.graph.output:
+        for dim, size in zip(out.type.tensor_type.shape.dim, static[out.name]):
+            if size is not None:
+                dim.Clear()
+                dim.dim_value = size
+    return model
+
+
+def _decode_node_names(model: onnx.ModelProto) -> set[str]:
+    """Nodes outside ``/slice_net/`` that consume (transitively) a slice_net output: the decode.
+
+    The scope test alone is not enough: the exporter also puts the Identity nodes that share one initializer
+    between two layers in the root scope, and those belong to the layers, not to the decode.
+    """
+    from_net = {o for n in model.graph.node if n.name.startswith("/slice_net/") for o in n.output}
+    names: set[str] = set()
+    for node in model.graph.node:  # exporter output is topologically sorted
+        if not node.name.startswith("/slice_net/") and any(i in from_net for i in node.input):
+            names.add(node.name)
+            from_net.update(node.output)
+    return names
+
+
+def is_decode_node(node: onnx.NodeProto) -> bool:
+    return node.name.startswith(DECODE_SCOPE)
+
+
+def heatmap_producers(model: onnx.ModelProto) -> list[str]:
+    """Names of the nodes between the head's heatmap convs and the decode's Sigmoid, the convs included.
+
+    With those in float32 the heatmap logits are computed from float32 weights, so the decode's peak test does
+    not meet the flat ties a float16 logit map has (see fp16.py). Walks upstream from the Sigmoid's input through
+    non-Conv nodes (the multi-head merge's Concat/Gather) and stops at each Conv.
+    """
+    producer = {out: n for n in model.graph.node for out in n.output}
+    sigmoids = [n for n in model.graph.node if is_decode_node(n) and n.op_type == "Sigmoid"]
+    if len(sigmoids) != 1:
+        raise ValueError(f"expected one decode Sigmoid in the slice graph, found {len(sigmoids)}")
+    found: list[str] = []
+    stack = [sigmoids[0].input[0]]
+    while stack:
+        node = producer.get(stack.pop())
+        if node is None or node.name in found or is_decode_node(node):
+            continue
+        found.append(node.name)
+        if node.op_type != "Conv":
+            stack.extend(i for i in node.input if i in producer)
+    if not any(producer_op == "Conv" for producer_op in (n.op_type for n in model.graph.node if n.name in found)):
+        raise ValueError("found no Conv producing the heatmap logits in the slice graph")
+    return found
+
+
+def save_model(model: onnx.ModelProto, path: str | os.PathLike) -> None:
+    onnx.save_model(model, os.fspath(path))
+
+
+def _name_unnamed_nodes(model: onnx.ModelProto) -> None:
+    """The exporter leaves some nodes (constants it creates) unnamed or named like ``Constant_16``; fp16 casts are
+    named after their node, so every node needs a unique name."""
+    seen: set[str] = set()
+    for i, node in enumerate(model.graph.node):
+        if not node.name or node.name in seen:
+            node.name = f"{node.name or node.op_type}_n{i}"
+        seen.add(node.name)

@@ -1,0 +1,128 @@
+"""The weights an export starts from: a checkpoint, the bundled one for the preset, or fixed-seed initial weights.
+
+Checkpoint format (what ``torch.load(path, weights_only=True)`` must return), either
+
+- ``{"preset": Preset.to_dict(), "model": state_dict, ...}`` (``"state_dict"`` is accepted for ``"model"``), or
+- a bare state dict of ``StreamDetector``.
+
+A checkpoint that names its preset is checked against the export's preset by name and architecture; any
+checkpoint is loaded with ``strict=True``, so one from another preset fails on missing keys or shapes either way.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib.resources
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from streamdet.models.detector import StreamDetector, build_detector
+from streamdet.models.presets import Preset
+
+DEFAULT_SEED = 0
+
+
+class CheckpointError(ValueError):
+    """A checkpoint that cannot be read or does not fit the preset; the message is one line."""
+
+
+@dataclass(frozen=True)
+class WeightsSource:
+    checkpoint: str | None  # path actually loaded, None for fixed-seed weights
+    checkpoint_sha256: str | None
+    seed: int | None  # torch seed of the initial weights, None when a checkpoint was loaded
+
+    def describe(self) -> str:
+        if self.checkpoint is None:
+            return f"fixed-seed initial weights (torch seed {self.seed}; untrained, heatmap logits spread)"
+        return f"checkpoint {self.checkpoint}"
+
+
+def bundled_checkpoint(preset_name: str) -> Path | None:
+    """``models/weights/<preset>.pt`` shipped with the package, if it exists."""
+    path = Path(str(importlib.resources.files("streamdet.models"))) / "weights" / f"{preset_name}.pt"
+    return path if path.is_file() else None
+
+
+def load_detector(preset: Preset, checkpoint: str | os.PathLike | None, seed: int = DEFAULT_SEED) -> tuple[StreamDetector, WeightsSource]:
+    """The detector in eval mode with its weights, and where they came from."""
+    from streamdet.export.manifest import sha256_file
+
+    if checkpoint is None:
+        torch.manual_seed(seed)
+        det = build_detector(preset)
+        _spread_heatmap_logits(det)
+        return det.eval(), WeightsSource(None, None, seed)
+    path = Path(checkpoint)
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint {path} does not exist or is not a file")
+    try:
+        obj = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # torch raises many types (UnpicklingError, RuntimeError, EOFError) for a bad file
+        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise CheckpointError(f"checkpoint {path} cannot be read with weights_only=True: {first}") from None
+    state = _state_dict(obj, path)
+    if isinstance(obj, dict) and isinstance(obj.get("preset"), dict):
+        _check_preset(obj["preset"], preset, path)
+    det = build_detector(preset)
+    own = det.state_dict()
+    missing = sorted(set(own) - set(state))
+    unexpected = sorted(set(state) - set(own))
+    mismatched = sorted(k for k in set(own) & set(state) if tuple(own[k].shape) != tuple(state[k].shape))
+    if missing or unexpected or mismatched:
+        parts = []
+        if missing:
+            parts.append(f"{len(missing)} missing keys (e.g. {missing[0]})")
+        if unexpected:
+            parts.append(f"{len(unexpected)} unexpected keys (e.g. {unexpected[0]})")
+        if mismatched:
+            k = mismatched[0]
+            parts.append(f"{len(mismatched)} shape mismatches (e.g. {k}: {tuple(state[k].shape)} vs {tuple(own[k].shape)})")
+        raise CheckpointError(
+            f"checkpoint {path} does not fit preset {preset.name!r}: {'; '.join(parts)}; was it trained with another preset?"
+        )
+    det.load_state_dict(state, strict=True)
+    return det.eval(), WeightsSource(str(path), sha256_file(path), None)
+
+
+def _spread_heatmap_logits(det: StreamDetector) -> None:
+    """Redraw the heatmap output convs N(0, 0.5), keeping the prior bias.
+
+    At initialisation CenterPoint's heatmap is flat at the prior sigmoid(-2.19) ~ 0.1: every score of the top K
+    lies within ~1e-3 of it, so a tolerance "of the output's range" means nothing and the score threshold cuts
+    through a crowd of near-ties. With spread logits the untrained export's scores cover (0, 1) around the prior,
+    as a trained model's do, and the parity checks compare something. Trained checkpoints are loaded as they are.
+    """
+    with torch.no_grad():
+        for task in det.slice_net.head.tasks:
+            task.branches["heatmap"][-1].weight.normal_(0.0, 0.5)
+
+
+def _state_dict(obj: object, path: Path) -> dict[str, torch.Tensor]:
+    if isinstance(obj, dict) and any(k in obj for k in ("model", "state_dict")):
+        obj = obj.get("model", obj.get("state_dict"))
+    if not isinstance(obj, dict) or not obj or not all(isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in obj.items()):
+        raise CheckpointError(
+            f"checkpoint {path} holds no state dict (expected {{'model': state_dict, 'preset': ...}} or a bare state dict)"
+        )
+    return obj
+
+
+def _check_preset(saved: dict, preset: Preset, path: Path) -> None:
+    """The checkpoint's preset must be the export's, up to the image size and the post-processing settings,
+    which change neither the weights nor their shapes."""
+    name = saved.get("name")
+    if name != preset.name:
+        raise CheckpointError(f"checkpoint {path} was trained with preset {name!r}, not {preset.name!r}")
+    try:
+        saved_preset = Preset.from_dict(saved)
+    except ValueError as e:
+        raise CheckpointError(f"checkpoint {path} has an unreadable preset: {e}") from None
+    same = dataclasses.replace(saved_preset, image=dataclasses.replace(saved_preset.image, width_px=preset.image.width_px,
+                                                                        height_px=preset.image.height_px), post=preset.post)
+    if same != preset:
+        diff = [f.name for f in dataclasses.fields(Preset) if getattr(same, f.name) != getattr(preset, f.name)]
+        raise CheckpointError(f"checkpoint {path} has preset {name!r} with other settings than this one (fields: {', '.join(diff)})")
