@@ -1,0 +1,97 @@
+"""``streamdet-calib``: calibration tools that run without PyTorch.
+
+``streamdet-calib lut --calibration FILE --export-dir DIR`` rebuilds ``DIR/lut.npz`` for a new calibration of
+the same rig, the only file a calibration change touches (the lifter graph takes the LUT as an input). The grid,
+feature stride and image size come from ``DIR/manifest.json``; the calibration must name the export's cameras in
+the export's order (the encoder's J axis) and have their aspect ratio (its intrinsics are scaled to the export's
+image size, as the images are resized).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import click
+
+from streamdet.calibration.camera import CalibrationError, Rig
+from streamdet.calibration.grid import GridSpec
+from streamdet.calibration.lut import Lut, build_lut
+from streamdet.export.manifest import ManifestError, LutEntry, read_manifest, sha256_file, write_manifest
+
+ASPECT_TOLERANCE = 0.005  # relative; 1600x900 -> 800x450 is exact, 1920x1080 -> 800x450 too
+
+
+class LutMismatch(ValueError):
+    """A calibration that does not fit an export; the message says why in one line."""
+
+
+def rebuild_lut(calibration: str | Path, export_dir: str | Path) -> tuple[Lut, bool]:
+    """Rebuild ``export_dir/lut.npz`` from ``calibration`` and point the manifest at it.
+
+    Returns the new LUT and whether the file changed. Raises ManifestError, CalibrationError or LutMismatch.
+    """
+    export_dir = Path(export_dir)
+    manifest = read_manifest(export_dir, verify_files=False)
+    image = manifest.image
+    rig = Rig.from_calibration_json(calibration)
+    if rig.names != image.camera_names:
+        raise LutMismatch(
+            f"calibration cameras {list(rig.names)} do not match the export's {list(image.camera_names)} "
+            "(same names in the same order: it is the order of the images fed to image_encoder)"
+        )
+    want = image.width / image.height
+    for cam in rig.cameras:
+        have = cam.width / cam.height
+        if abs(have / want - 1.0) > ASPECT_TOLERANCE:
+            raise LutMismatch(
+                f"calibration camera {cam.name} is {cam.width}x{cam.height} (aspect {have:.4f}) but the export takes "
+                f"{image.width}x{image.height} images (aspect {want:.4f}): resizing would distort them"
+            )
+    try:
+        grid = GridSpec.from_dict(manifest.grid)
+    except (KeyError, TypeError, ValueError) as e:
+        raise ManifestError(f"{export_dir / 'manifest.json'}: grid: {e}") from None
+    lut = build_lut(rig, grid, image.feature_stride, (image.width, image.height))
+    if (lut.feature_width, lut.feature_height) != (image.feature_width, image.feature_height):
+        raise LutMismatch(
+            f"the LUT's feature map {lut.feature_width}x{lut.feature_height} differs from the manifest's "
+            f"{image.feature_width}x{image.feature_height}; the manifest is inconsistent"
+        )
+    path = export_dir / manifest.lut.file
+    old_sha = sha256_file(path) if path.is_file() else None
+    lut.save(path)
+    new_sha = sha256_file(path)
+    entry = LutEntry(manifest.lut.file, new_sha, lut.calibration_sha256, str(Path(calibration)))
+    write_manifest(dataclasses.replace(manifest, lut=entry), export_dir)
+    return lut, new_sha != old_sha
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+def main() -> None:
+    """Calibration tools for streamdet exports (no PyTorch needed)."""
+
+
+@main.command("lut")
+@click.option("--calibration", required=True, type=click.Path(dir_okay=False),
+              help="calibration.json of the rig (the bundled sample's format).")
+@click.option("--export-dir", required=True, type=click.Path(file_okay=False),
+              help="An existing export directory (with manifest.json); its lut.npz is replaced.")
+def lut_command(calibration: str, export_dir: str) -> None:
+    """Rebuild lut.npz of an export for a new calibration; no re-export needed."""
+    try:
+        lut, changed = rebuild_lut(calibration, export_dir)
+    except (ManifestError, CalibrationError, LutMismatch) as e:
+        raise click.ClickException(str(e)) from None
+    except OSError as e:
+        raise click.ClickException(f"cannot write into {export_dir}: {e.strerror or e}") from None
+    seen = float((lut.weight.sum(axis=1) > 0).mean())
+    state = "rebuilt" if changed else "rebuilt (unchanged)"
+    click.echo(
+        f"{state} {Path(export_dir) / 'lut.npz'} from {calibration}: {lut.num_cameras} cameras at "
+        f"{lut.image_width}x{lut.image_height}, K = {lut.num_slots} slots, {100 * seen:.1f} % of voxels seen"
+    )
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,129 @@
+"""Manifest schema (export/manifest.py): round trip, validation, file verification, no torch."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import subprocess
+import sys
+
+import pytest
+
+from streamdet.export.manifest import (
+    MANIFEST_VERSION,
+    GraphEntry,
+    ImageSpec,
+    LutEntry,
+    Manifest,
+    ManifestError,
+    Normalisation,
+    ParityRecord,
+    PipelineParity,
+    TensorSpec,
+    graph_file_name,
+    read_manifest,
+    sha256_file,
+    write_manifest,
+)
+
+NAMES = ("image_encoder", "volumetric_lifter", "slice_head")
+
+
+def _manifest(tmp_path, precisions=("fp32",)) -> Manifest:
+    graphs = []
+    for precision in precisions:
+        for name in NAMES:
+            f = tmp_path / graph_file_name(name, precision)
+            f.write_bytes(f"{name} {precision}".encode())
+            graphs.append(GraphEntry(name, precision, f.name, sha256_file(f), 17,
+                                     (TensorSpec("x", ("J", 3, 4), "uint8"),), (TensorSpec("y", ("J",), "float32"),), 1.5, {"J": 1}))
+    (tmp_path / "lut.npz").write_bytes(b"lut")
+    return Manifest(
+        preset_name="tiny", preset={"name": "tiny"}, grid={"voxel_xy_m": 0.4}, class_names=("car", "truck"), num_slices=8,
+        image=ImageSpec(128, 72, 4, 32, 18, ("CAM_A", "CAM_B")), normalisation=Normalisation(), post={"top_k": 50},
+        graphs=tuple(graphs), lut=LutEntry("lut.npz", sha256_file(tmp_path / "lut.npz"), "ab" * 32, "bundled"),
+        parity=(ParityRecord("image_encoder", "fp32", "torch", "features", 1e-6, 3.0, 1e-4, True),),
+        pipeline_parity=PipelineParity(0, 8, 100, 10, 0.1, 1e-3, 5, 5, 1, 0, 0.01, 0.1, True, "n"),
+        source={"seed": 0},
+    )
+
+
+def test_round_trip_and_lookup(tmp_path):
+    m = _manifest(tmp_path, ("fp32", "fp16"))
+    write_manifest(m, tmp_path)
+    back = read_manifest(tmp_path)
+    assert back == m
+    assert back.version == MANIFEST_VERSION
+    assert back.graph("slice_head", "fp16").file == "slice_head.fp16.onnx"
+    assert back.precisions == ("fp32", "fp16")
+    d = json.loads((tmp_path / "manifest.json").read_text())
+    assert d["graphs"][0]["inputs"][0] == {"name": "x", "shape": ["J", 3, 4], "dtype": "uint8"}
+    assert not list(tmp_path.glob(".manifest.*"))  # the atomic write leaves no temp file
+
+
+def test_missing_graph_and_precision(tmp_path):
+    m = _manifest(tmp_path)
+    with pytest.raises(ManifestError, match="no fp16 graph 'slice_head'"):
+        m.graph("slice_head", "fp16")
+    with pytest.raises(ManifestError, match="no fp32 graph 'volumetric_lifter'"):
+        dataclasses.replace(m, graphs=tuple(g for g in m.graphs if g.name != "volumetric_lifter"))
+    with pytest.raises(ManifestError, match="listed twice"):
+        dataclasses.replace(m, graphs=m.graphs + m.graphs[:1])
+
+
+def test_verify_files(tmp_path):
+    write_manifest(_manifest(tmp_path), tmp_path)
+    (tmp_path / "slice_head.onnx").write_bytes(b"tampered")
+    with pytest.raises(ManifestError, match="slice_head.onnx has sha256"):
+        read_manifest(tmp_path)
+    read_manifest(tmp_path, verify_files=False)
+    (tmp_path / "slice_head.onnx").write_bytes(b"slice_head fp32")
+    read_manifest(tmp_path)
+    (tmp_path / "lut.npz").unlink()
+    with pytest.raises(ManifestError, match="lut.npz is named in the manifest but missing"):
+        read_manifest(tmp_path)
+
+
+@pytest.mark.parametrize(
+    "edit,match",
+    [
+        (lambda d: d.pop("graphs"), "missing the field 'graphs'"),
+        (lambda d: d.update(version=99), "version 99"),
+        (lambda d: d["graphs"][0].update(precision="int8"), "precision"),
+        (lambda d: d["graphs"][0].update(sha256="xyz"), "64 lowercase hex"),
+        (lambda d: d["graphs"][0].update(file="../evil.onnx"), "plain file name"),
+        (lambda d: d["graphs"][0]["inputs"][0].update(dtype="float64"), "dtype of tensor 'x'"),
+        (lambda d: d["graphs"][0]["inputs"][0].update(shape=[-1]), "bad dimension -1"),
+        (lambda d: d["image"].update(width=0), "image.width"),
+        (lambda d: d.update(num_slices=0), "num_slices"),
+        (lambda d: d.update(class_names=[]), "class_names"),
+    ],
+)
+def test_malformed(tmp_path, edit, match):
+    d = _manifest(tmp_path).to_dict()
+    edit(d)
+    with pytest.raises(ManifestError, match=match):
+        Manifest.from_dict(d)
+
+
+def test_unreadable_and_absent(tmp_path):
+    with pytest.raises(ManifestError, match="does not exist"):
+        read_manifest(tmp_path)
+    (tmp_path / "manifest.json").write_text("{not json")
+    with pytest.raises(ManifestError, match="not readable JSON"):
+        read_manifest(tmp_path)
+    (tmp_path / "manifest.json").write_text("[1, 2]")
+    with pytest.raises(ManifestError, match="JSON object"):
+        read_manifest(tmp_path)
+
+
+def test_imports_without_torch():
+    script = (
+        "import sys; sys.modules['torch'] = None; sys.modules['onnxconverter_common'] = None\n"
+        "import streamdet.export.manifest, streamdet.calibration.cli\n"
+        "assert not any(m.split('.')[0] == 'torch' for m, v in sys.modules.items() if v is not None)\n"
+        "print('ok')"
+    )
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "ok"
