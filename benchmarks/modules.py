@@ -27,7 +27,7 @@ import torch
 from torch import Tensor, nn
 
 from streamdet.benchmarks.flops_report import BENCH_NUM_IMAGES, BENCH_NUM_POINTS, gmac_rows
-from streamdet.export.fp16 import convert_model_to_fp16
+from streamdet.export.fp16 import check_model, convert_model_to_fp16
 from streamdet.export.onnx_export import (
     IMAGE_ENCODER_IO,
     SLICE_HEAD_IO,
@@ -166,13 +166,13 @@ def _slice_keep(model: onnx.ModelProto) -> Callable[[onnx.NodeProto], bool]:
 @dataclass(frozen=True)
 class RowGraphs:
     fp32: Path
-    fp16: Path | None  # None when the fp16 conversion failed (the report says why)
+    fp16: Path | None  # None when not asked for or when the conversion failed (fp16_error says why)
     fp16_error: str | None
     model: onnx.ModelProto  # the fp32 graph, for the MAC cross-check
 
 
-def export_row(row: Row, out_dir: Path) -> RowGraphs:
-    """Export ``row.net`` to ``out_dir/<graph_stem>.onnx`` and its fp16 sibling ``<graph_stem>.fp16.onnx``."""
+def export_row(row: Row, out_dir: Path, fp16: bool = True) -> RowGraphs:
+    """Export ``row.net`` to ``out_dir/<graph_stem>.onnx`` and (``fp16``) its sibling ``<graph_stem>.fp16.onnx``."""
     if row.kind == "slice":
         model = export_slice_head(row.detector, row.inputs)
         keep: Callable[[onnx.NodeProto], bool] | tuple[()] = _slice_keep(model)
@@ -181,11 +181,14 @@ def export_row(row: Row, out_dir: Path) -> RowGraphs:
         keep = ()
     fp32 = out_dir / f"{row.graph_stem}.onnx"
     save_model(model, fp32)
-    fp16: Path | None = out_dir / f"{row.graph_stem}.fp16.onnx"
+    if not fp16:
+        return RowGraphs(fp32, None, None, model)
+    fp16_path: Path | None = out_dir / f"{row.graph_stem}.fp16.onnx"
     error = None
     try:
         converted, _ = convert_model_to_fp16(model, keep)
-        save_model(converted, fp16)
+        check_model(converted)  # the converter's output is no guarantee of a valid graph
+        save_model(converted, fp16_path)
     except Exception as e:  # noqa: BLE001 - a failed conversion is a result to report, not a crash of the run
-        fp16, error = None, f"{type(e).__name__}: {e}"
-    return RowGraphs(fp32, fp16, error, model)
+        fp16_path, error = None, f"{type(e).__name__}: {str(e).strip().splitlines()[0]}"
+    return RowGraphs(fp32, fp16_path, error, model)

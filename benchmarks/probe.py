@@ -38,16 +38,35 @@ class ProbeConfig:
 
 @dataclass(frozen=True)
 class ProbeResult:
-    gflops_per_s: float  # best run: 2 n^3 / seconds / 1e9
-    median_gflops_per_s: float
+    """GFLOP/s (2 n^3 / seconds / 1e9) of every timed probe run; the best one is the peak."""
+
+    run_gflops_per_s: tuple[float, ...]
     size: int
-    runs: int
     threads: int
+
+    @property
+    def gflops_per_s(self) -> float:
+        return max(self.run_gflops_per_s)
+
+    @property
+    def median_gflops_per_s(self) -> float:
+        return float(np.median(self.run_gflops_per_s))
+
+    @property
+    def runs(self) -> int:
+        return len(self.run_gflops_per_s)
+
+    def merged(self, other: "ProbeResult") -> "ProbeResult":
+        """Both probes' runs: on a shared machine the probe runs at the start and the end of the benchmark."""
+        if (other.size, other.threads) != (self.size, self.threads):
+            raise ValueError(f"cannot merge probes of n={self.size}/{self.threads} threads and n={other.size}/{other.threads} threads")
+        return ProbeResult(self.run_gflops_per_s + other.run_gflops_per_s, self.size, self.threads)
 
     def to_dict(self) -> dict:
         return {
             "gflops_per_s": self.gflops_per_s,
             "median_gflops_per_s": self.median_gflops_per_s,
+            "run_gflops_per_s": list(self.run_gflops_per_s),
             "size": self.size,
             "runs": self.runs,
             "threads": self.threads,
@@ -84,14 +103,7 @@ def measure_peak(threads: int, config: ProbeConfig = ProbeConfig()) -> ProbeResu
         start = time.perf_counter()
         session.run(feeds)
         seconds.append(time.perf_counter() - start)
-    flop = 2.0 * n**3
-    return ProbeResult(
-        gflops_per_s=flop / min(seconds) / 1e9,
-        median_gflops_per_s=flop / float(np.median(seconds)) / 1e9,
-        size=n,
-        runs=config.runs,
-        threads=threads,
-    )
+    return ProbeResult(tuple(2.0 * n**3 / s / 1e9 for s in seconds), n, threads)
 
 
 def cpu_model() -> str:

@@ -32,6 +32,7 @@ class TableConfig:
     timing: TimingConfig = field(default_factory=TimingConfig)
     torch_skip_ms: float | None = None  # skip PyTorch on rows whose fp32 median exceeds this (--quick); None: never
     profile_dir: Path | None = None  # write onnxruntime profiles of every row graph here
+    fp16: bool = True  # also convert, time (and profile) the fp16 sibling of every graph
 
     def __post_init__(self) -> None:
         if isinstance(self.threads, bool) or not isinstance(self.threads, int) or self.threads < 1:
@@ -78,14 +79,13 @@ def _time_torch(row: Row, cfg: TableConfig) -> TimingStats:
         return time_callable(lambda: row.net(*row.inputs), cfg.timing)
 
 
-def _profile_graph(path: Path, row: Row, precision: str, cfg: TableConfig) -> ProfileSummary:
-    assert cfg.profile_dir is not None
-    session = GraphSession(path, row_session_config(cfg.threads, profile=True))
+def _profile_graph(path: Path, row: Row, precision: str, threads: int, profile_dir: Path) -> ProfileSummary:
+    session = GraphSession(path, row_session_config(threads, profile=True))
     feeds = row.feeds()
     for _ in range(1 + PROFILE_RUNS):  # the first run (allocations, first-touch) is in the profile too; see runs
         session.run(feeds)
     written = Path(session.end_profiling())
-    target = cfg.profile_dir / f"{row.key}.{precision}.json"
+    target = profile_dir / f"{row.key}.{precision}.json"
     shutil.move(written, target)
     return summarize_profile(target)
 
@@ -99,8 +99,8 @@ def measure_rows(rows: list[Row], work_dir: Path, cfg: TableConfig, progress: Pr
     for i, row in enumerate(rows, 1):
         step = f"[row {i}/{len(rows)}] {row.module}"
         if row.graph_stem not in exported:
-            progress(f"{step}: exporting fp32 + fp16")
-            exported[row.graph_stem] = export_row(row, work_dir)
+            progress(f"{step}: exporting fp32" + (" + fp16" if cfg.fp16 else ""))
+            exported[row.graph_stem] = export_row(row, work_dir, cfg.fp16)
         graphs = exported[row.graph_stem]
         macs = count_graph_macs(graphs.model, row.input_shapes())
         notes: list[str] = []
@@ -113,7 +113,7 @@ def measure_rows(rows: list[Row], work_dir: Path, cfg: TableConfig, progress: Pr
         if graphs.fp16 is not None:
             progress(f"{step}: onnxruntime fp16")
             fp16 = _time_graph(graphs.fp16, row, cfg)
-        else:
+        elif graphs.fp16_error is not None:
             notes.append(f"fp16 conversion failed: {graphs.fp16_error}")
         torch_stats = None
         if cfg.torch_skip_ms is not None and fp32.median_ms > cfg.torch_skip_ms:
@@ -128,9 +128,9 @@ def measure_rows(rows: list[Row], work_dir: Path, cfg: TableConfig, progress: Pr
         profiles: dict[str, ProfileSummary] = {}
         if cfg.profile_dir is not None:
             progress(f"{step}: profiling")
-            profiles["fp32"] = _profile_graph(graphs.fp32, row, "fp32", cfg)
+            profiles["fp32"] = _profile_graph(graphs.fp32, row, "fp32", cfg.threads, cfg.profile_dir)
             if graphs.fp16 is not None:
-                profiles["fp16"] = _profile_graph(graphs.fp16, row, "fp16", cfg)
+                profiles["fp16"] = _profile_graph(graphs.fp16, row, "fp16", cfg.threads, cfg.profile_dir)
         results.append(
             RowResult(
                 module=row.module,

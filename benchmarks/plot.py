@@ -1,0 +1,43 @@
+"""PNG bar chart of the Table 3 rows: ms per row for onnxruntime fp32, fp16 and PyTorch eager (log scale)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from streamdet.benchmarks.table import RowResult
+
+
+def plot_rows(rows: Sequence[RowResult], path: str | Path, title: str) -> Path:
+    """Horizontal grouped bars, one group per row; missing measurements (skipped, failed) leave a gap."""
+    import matplotlib
+
+    matplotlib.use("Agg")  # no display on the benchmark machine
+    import matplotlib.pyplot as plt
+
+    if not rows:
+        raise ValueError("plot_rows needs at least one row")
+    path = Path(path)
+    series = (
+        ("onnxruntime fp32", [r.fp32.median_ms for r in rows]),
+        ("onnxruntime fp16", [np.nan if r.fp16 is None else r.fp16.median_ms for r in rows]),
+        ("PyTorch eager", [np.nan if r.torch is None else r.torch.median_ms for r in rows]),
+    )
+    y = np.arange(len(rows))
+    height = 0.27
+    fig, ax = plt.subplots(figsize=(10, 0.75 * len(rows) + 1.5))
+    for i, (label, values) in enumerate(series):
+        ax.barh(y + (i - 1) * height, values, height, label=label)
+    ax.set_yticks(y, [r.module for r in rows], fontsize=8)
+    ax.invert_yaxis()  # first row on top, as in the table
+    ax.set_xscale("log")  # rows span milliseconds to seconds
+    ax.set_xlabel("ms per run (median)")
+    ax.set_title(title, fontsize=9)
+    ax.legend(fontsize=8)
+    ax.grid(axis="x", which="both", alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

@@ -1,0 +1,296 @@
+"""The benchmark's output: the text table, the pass/fail lines of the issue's targets, and the JSON document.
+
+Units: GMAC = 1e9 multiply-accumulates (the paper's "GFLOPS" column); GFLOP/s counts 2 FLOPs per MAC; times are
+milliseconds of wall clock. Every time figure is a median unless labelled otherwise, with its repeat count.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+from streamdet.benchmarks.probe import ProbeResult
+from streamdet.benchmarks.streaming import LaneStats, StreamingResult
+from streamdet.benchmarks.table import RowResult
+from streamdet.benchmarks.timing import TimingStats
+
+# The issue's targets (a benchmark, not timed tests).
+TORCH_OVER_ORT_MIN = 1.3  # onnxruntime fp32 at least this much faster than PyTorch eager, every graph
+CROP_SPEEDUP_MIN = 3.5  # cropped rows this much faster than uncropped (their MAC ratio is 4)
+PEAK_FRACTION_MIN = 0.60  # conv-heavy graphs reach this fraction of the matmul probe
+BUSY_OVER_IDLE_P95_MAX = 1.5  # slice p95 with a busy image lane vs idle
+REAL_TIME_FACTOR_MAX = 1.0  # slice p50 over the per-slice budget of a 10 Hz LiDAR
+
+UNITS = "GMAC = 1e9 multiply-accumulates (FLOPs = 2 x MACs); times in ms of wall clock (median, p95 in brackets)"
+
+
+@dataclass(frozen=True)
+class Target:
+    name: str
+    met: bool | None  # None: could not be evaluated (say why in detail)
+    detail: str
+
+    def line(self) -> str:
+        verdict = {True: "MET   ", False: "MISSED", None: "n/a   "}[self.met]
+        return f"  [{verdict}] {self.name}: {self.detail}"
+
+
+def _by_key(rows: Sequence[RowResult]) -> dict[str, RowResult]:
+    return {r.key: r for r in rows}
+
+
+def evaluate_targets(rows: Sequence[RowResult], peak: ProbeResult, streaming: StreamingResult | None) -> list[Target]:
+    targets = []
+    ratios = [(r, r.torch_over_ort) for r in rows]
+    measured = [(r, x) for r, x in ratios if x is not None]
+    if measured:
+        misses = [f"{r.module} {x:.2f}x" for r, x in measured if x < TORCH_OVER_ORT_MIN]
+        worst = min(x for _, x in measured)
+        skipped = len(ratios) - len(measured)
+        targets.append(
+            Target(
+                f"onnxruntime fp32 >= {TORCH_OVER_ORT_MIN}x faster than PyTorch eager, each graph",
+                not misses,
+                (f"worst {worst:.2f}x" + (f"; below: {', '.join(misses)}" if misses else ""))
+                + (f" ({skipped} row(s) without PyTorch timing)" if skipped else ""),
+            )
+        )
+    else:
+        targets.append(Target(f"onnxruntime fp32 >= {TORCH_OVER_ORT_MIN}x faster than PyTorch eager", None, "no PyTorch timing"))
+
+    by_key = _by_key(rows)
+    for full, cropped, what in (("slice_single_head", "slice_single_head_cropped", "slice graph"), ("conv3d", "conv3d_cropped", "3D convolutions")):
+        a, b = by_key.get(full), by_key.get(cropped)
+        if a is None or b is None:
+            continue
+        speedups = {"fp32": a.fp32.median_ms / b.fp32.median_ms}
+        if a.fp16 is not None and b.fp16 is not None:
+            speedups["fp16"] = a.fp16.median_ms / b.fp16.median_ms
+        targets.append(
+            Target(
+                f"cropping speeds the {what} up >= {CROP_SPEEDUP_MIN}x",
+                speedups["fp32"] >= CROP_SPEEDUP_MIN,
+                ", ".join(f"{k} {v:.2f}x" for k, v in speedups.items()) + f" (MAC ratio {a.gmac / b.gmac:.2f})",
+            )
+        )
+
+    fractions = [(r, r.gflops_per_s / peak.gflops_per_s) for r in rows]
+    low = [f"{r.module} {f:.0%}" for r, f in fractions if f < PEAK_FRACTION_MIN]
+    targets.append(
+        Target(
+            f"conv-heavy graphs >= {PEAK_FRACTION_MIN:.0%} of the measured peak ({peak.gflops_per_s:.0f} GFLOP/s)",
+            not low,
+            f"range {min(f for _, f in fractions):.0%}..{max(f for _, f in fractions):.0%}" + (f"; below: {', '.join(low)}" if low else ""),
+        )
+    )
+
+    if streaming is None:
+        targets.append(Target("streaming targets", None, "streaming section skipped"))
+        return targets
+    s = streaming
+    targets.append(
+        Target(
+            f"slice p95 with a busy image lane <= {BUSY_OVER_IDLE_P95_MAX}x idle",
+            s.busy_over_idle_p95 <= BUSY_OVER_IDLE_P95_MAX,
+            f"{s.busy.latency.p95_ms:.2f} / {s.idle.latency.p95_ms:.2f} ms = {s.busy_over_idle_p95:.2f}x",
+        )
+    )
+    for label, lane in (("image lane idle", s.idle), ("image lane busy", s.busy)):
+        rtf = s.real_time_factor(lane)
+        targets.append(
+            Target(
+                f"slice lane keeps up with a 10 Hz LiDAR in {s.num_slices} slices ({label})",
+                rtf <= REAL_TIME_FACTOR_MAX,
+                f"p50 {lane.latency.median_ms:.2f} ms vs budget {s.slice_budget_ms:.2f} ms: real-time factor {rtf:.2f}",
+            )
+        )
+    return targets
+
+
+# ---- text ----------------------------------------------------------------------------------------------------
+def _ms(stats: TimingStats | None) -> str:
+    if stats is None:
+        return "-"
+    return f"{stats.median_ms:.1f} ({stats.p95_ms:.1f})" if stats.median_ms >= 10 else f"{stats.median_ms:.2f} ({stats.p95_ms:.2f})"
+
+
+def _noise(stats: TimingStats) -> str:
+    return f"{stats.min_ms:.3g}-{stats.max_ms:.3g}"
+
+
+def format_header(meta: dict, peak: ProbeResult) -> str:
+    m = meta["machine"]
+    flags = ", ".join(m["cpu_flags"]) or "no SIMD flags read"
+    lines = [
+        f"streamdet-bench  {meta['date']}  preset {meta['preset']}",
+        f"machine: {m['cpu_model']} ({flags}), {m['logical_cpus']} logical CPUs, {meta['threads']} threads; "
+        f"load average {'/'.join(str(v) for v in m['load_average_1_5_15'])} at start",
+        f"onnxruntime {m['onnxruntime']} (CPU, ORT_ENABLE_ALL), torch {m['torch']} (eager, inference_mode); "
+        f"repeats {meta['repeat']} after {meta['warmup']} warm-up run(s), {meta['budget_s']:.0f} s budget per measurement",
+        f"peak probe: {peak.size}^3 fp32 MatMul in onnxruntime, best of {peak.runs} runs (at the start and the end): "
+        f"{peak.gflops_per_s:.1f} GFLOP/s (median {peak.median_gflops_per_s:.1f})",
+        f"input as in the paper's Table 3: 1 image, 30,000 points; {UNITS}",
+    ]
+    return "\n".join(lines)
+
+
+def format_rows(rows: Sequence[RowResult], peak: ProbeResult) -> str:
+    header = ("module", "GMAC", "onnx/torch", "ms fp32 (p95)", "ms fp16 (p95)", "ms torch", "torch/ort", "GFLOP/s", "% peak", "fp32 min-max", "n")
+    table = []
+    for r in rows:
+        ratio = r.torch_over_ort
+        table.append(
+            (
+                r.module,
+                f"{r.gmac:.3f}",
+                "-" if r.graph_ratio is None else f"{r.graph_ratio:.3f}",
+                _ms(r.fp32),
+                _ms(r.fp16),
+                "-" if r.torch is None else (f"{r.torch.median_ms:.1f}" if r.torch.median_ms >= 10 else f"{r.torch.median_ms:.2f}"),
+                "-" if ratio is None else f"{ratio:.2f}",
+                f"{r.gflops_per_s:.1f}",
+                f"{r.gflops_per_s / peak.gflops_per_s:.0%}",
+                _noise(r.fp32),
+                f"{r.fp32.count}",
+            )
+        )
+    widths = [max(len(str(x)) for x in col) for col in zip(header, *table)]
+    fmt = lambda cells: "  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(cells, widths)))  # noqa: E731
+    lines = [fmt(header)] + [fmt(t) for t in table]
+    notes = [f"  {r.module}: {note}" for r in rows for note in r.notes]
+    if notes:
+        lines += ["notes:"] + notes
+    profiled = [r for r in rows if r.profiles]
+    if profiled:
+        lines.append("onnxruntime profile, top ops by kernel time (fp32):")
+        lines += [f"  {r.module}: {r.profiles['fp32'].format()}" for r in profiled if "fp32" in r.profiles]
+    return "\n".join(lines)
+
+
+def _lane_line(label: str, lane: LaneStats | TimingStats) -> str:
+    t = lane.latency if isinstance(lane, LaneStats) else lane
+    return f"  {label:<44} p50 {t.median_ms:8.2f} ms  p95 {t.p95_ms:8.2f} ms  min-max {_noise(t)} ms  n={t.count}"
+
+
+def _stage(lane: LaneStats, name: str) -> str:
+    s = lane.stages.get(name)
+    return "-" if s is None else f"{s['p50_ms']:.2f}"
+
+
+def format_streaming(s: StreamingResult) -> str:
+    pts = f"{min(s.num_points):,}..{max(s.num_points):,}"
+    lines = [
+        f"streaming ({s.preset} export, {s.precision}, 1 intra-op thread per session; bundled nuScenes sweep in "
+        f"{s.num_slices} slices of {pts} points; {s.num_cameras} cameras at {s.image_size[0]}x{s.image_size[1]})",
+        _lane_line("slice lane, image lane idle", s.idle),
+        _lane_line(f"slice lane, image lane busy ({s.image_busy_updates} updates done)", s.busy),
+        _lane_line("slice lane, one sequential queue", s.sequential_slice),
+        f"    (queue: {s.sequential_horizon_ms:.0f} ms of arrivals, slices every {s.slice_budget_ms:.2f} ms, images at "
+        f"{s.config.image_hz:g} Hz: {s.sequential_images_served} image updates served, {s.sequential_images_superseded} "
+        f"superseded; slice wait p50 {s.sequential_wait.median_ms:.1f} ms, p95 {s.sequential_wait.p95_ms:.1f} ms)",
+        f"  busy / idle slice p95: {s.busy_over_idle_p95:.2f}x",
+        _lane_line(f"image lane alone ({s.num_cameras} cameras)", s.image_alone),
+        f"    encoder p50 {_stage(s.image_alone, 'image_encoder')} ms, lifter p50 {_stage(s.image_alone, 'volumetric_lifter')} ms"
+        + (f"; with slices running: update p50 {_stage(s.busy, 'image_total')} ms" if "image_total" in s.busy.stages else ""),
+    ]
+    for label, lane in (("idle", s.idle), ("busy", s.busy)):
+        pre, post, graph = lane.share("pre"), lane.share("post"), lane.share("slice_head")
+        if pre is not None:
+            lines.append(
+                f"  slice time split ({label}): pre {pre:.0%} ({_stage(lane, 'pre')} ms p50), graph {graph:.0%} "
+                f"({_stage(lane, 'slice_head')} ms), post {post:.0%} ({_stage(lane, 'post')} ms); pre + post {pre + post:.0%}"
+            )
+    lines.append(
+        f"  real-time (10 Hz LiDAR, {s.num_slices} slices -> {s.slice_budget_ms:.2f} ms per slice): factor "
+        f"{s.real_time_factor(s.idle):.2f} idle, {s.real_time_factor(s.busy):.2f} busy (<= 1 keeps up)"
+    )
+    return "\n".join(lines)
+
+
+def format_report(doc_meta: dict, rows: Sequence[RowResult], peak: ProbeResult, streaming: StreamingResult | None, targets: Sequence[Target]) -> str:
+    parts = [format_header(doc_meta, peak), "", format_rows(rows, peak)]
+    if streaming is not None:
+        parts += ["", format_streaming(streaming)]
+    parts += ["", "targets:"] + [t.line() for t in targets]
+    return "\n".join(parts)
+
+
+# ---- JSON ----------------------------------------------------------------------------------------------------
+def _stats(stats: TimingStats | None) -> dict | None:
+    return None if stats is None else stats.to_dict()
+
+
+def row_to_dict(r: RowResult, peak: ProbeResult) -> dict:
+    return {
+        "module": r.module,
+        "key": r.key,
+        "gmac": r.gmac,
+        "graph_gmac": r.graph_gmac,
+        "graph_gmac_ratio": r.graph_ratio,
+        "ms_fp32": r.fp32.median_ms,
+        "ms_fp16": None if r.fp16 is None else r.fp16.median_ms,
+        "ms_torch": None if r.torch is None else r.torch.median_ms,
+        "torch_over_ort": r.torch_over_ort,
+        "gflops_per_s": r.gflops_per_s,
+        "peak_fraction": r.gflops_per_s / peak.gflops_per_s,
+        "fp32": _stats(r.fp32),
+        "fp16": _stats(r.fp16),
+        "torch": _stats(r.torch),
+        "fp16_error": r.fp16_error,
+        "notes": list(r.notes),
+        "profile": {k: v.to_dict(top=10) for k, v in r.profiles.items()},
+    }
+
+
+def _lane(lane: LaneStats) -> dict:
+    return {"latency": lane.latency.to_dict(), "stages": {k: dict(v) for k, v in lane.stages.items()}}
+
+
+def streaming_to_dict(s: StreamingResult) -> dict:
+    return {
+        "export_dir": s.export_dir,
+        "preset": s.preset,
+        "precision": s.precision,
+        "num_slices": s.num_slices,
+        "points_per_slice": list(s.num_points),
+        "image_size": list(s.image_size),
+        "num_cameras": s.num_cameras,
+        "threads_per_session": 1,
+        "slice_budget_ms": s.slice_budget_ms,
+        "slice_idle": _lane(s.idle),
+        "slice_busy": _lane(s.busy),
+        "image_updates_during_busy": s.image_busy_updates,
+        "busy_over_idle_p95": s.busy_over_idle_p95,
+        "sequential": {
+            "slice_latency": s.sequential_slice.to_dict(),
+            "slice_wait": s.sequential_wait.to_dict(),
+            "images_served": s.sequential_images_served,
+            "images_superseded": s.sequential_images_superseded,
+            "horizon_ms": s.sequential_horizon_ms,
+            "image_hz": s.config.image_hz,
+        },
+        "image_lane_alone": _lane(s.image_alone),
+        "pre_post_share_idle": _sum_share(s.idle),
+        "pre_post_share_busy": _sum_share(s.busy),
+        "real_time_factor_idle": s.real_time_factor(s.idle),
+        "real_time_factor_busy": s.real_time_factor(s.busy),
+        "keeps_up_idle": s.real_time_factor(s.idle) <= REAL_TIME_FACTOR_MAX,
+        "keeps_up_busy": s.real_time_factor(s.busy) <= REAL_TIME_FACTOR_MAX,
+        "config": dataclasses.asdict(s.config),
+    }
+
+
+def _sum_share(lane: LaneStats) -> float | None:
+    return lane.share("pre", "post")
+
+
+def build_document(meta: dict, rows: Sequence[RowResult], peak: ProbeResult, streaming: StreamingResult | None, targets: Sequence[Target]) -> dict:
+    return {
+        "meta": meta,
+        "units": UNITS,
+        "peak": peak.to_dict(),
+        "rows": [row_to_dict(r, peak) for r in rows],
+        "streaming": None if streaming is None else streaming_to_dict(streaming),
+        "targets": [{"name": t.name, "met": t.met, "detail": t.detail} for t in targets],
+    }

@@ -1,0 +1,291 @@
+"""The streaming section: slice-lane and image-lane latency of a real export on the bundled nuScenes sample.
+
+Three ways to serve the same stream with one ``StreamingDetector`` (one intra-op thread per session: on a small CPU
+the lanes are for latency isolation, not throughput):
+
+(a) idle:       only slices; each ``detect_slice`` timed end to end (pillarize + graph + post-processing).
+(b) busy:       a thread calls ``update_images`` in a loop (the image lane never rests) while the slices are timed.
+(c) sequential: one worker serves image updates and slices in arrival order (slices every 100 ms / N, images at
+                ``image_hz``); a slice's latency is its wait plus its processing. The worker runs the real jobs
+                back to back and keeps a virtual clock (start = max(arrival, previous finish)), so no time is
+                spent sleeping; like the image lane of ``runtime_ort.lanes``, a waiting image set is replaced
+                by a newer one.
+
+Real-time factor = slice p50 / (100 ms / N) for a 10 Hz LiDAR delivering N slices: <= 1 keeps up.
+"""
+
+from __future__ import annotations
+
+import collections
+import threading
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from streamdet.benchmarks.timing import TimingStats, summarize
+from streamdet.data.sample import load_bundled_sample
+from streamdet.data.slicing import split_sweep
+from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector
+
+Progress = Callable[[str], None]
+SLICE, IMAGES = "slice", "images"
+
+
+@dataclass(frozen=True)
+class StreamingConfig:
+    precision: str = "fp32"
+    num_slices: int | None = None  # None: the export's
+    lidar_hz: float = 10.0  # sweeps per second of the LiDAR the slice lane must keep up with
+    image_hz: float = 12.0  # camera rate of the sequential-queue schedule
+    sweeps: int = 5  # timed sweeps in (a) and (b): sweeps x N slice latencies each
+    image_updates: int = 3  # image updates timed with the slice lane idle
+    queue_sweeps: int = 4  # sweeps of arrivals in (c)
+    warmup_sweeps: int = 1
+
+    def __post_init__(self) -> None:
+        for name in ("sweeps", "image_updates", "queue_sweeps"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ValueError(f"StreamingConfig.{name} must be a positive integer, got {v!r}")
+        for name in ("lidar_hz", "image_hz"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"StreamingConfig.{name} must be > 0 Hz, got {getattr(self, name)!r}")
+
+
+# ---- the sequential queue ----------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Job:
+    kind: str  # SLICE | IMAGES
+    arrival_ms: float
+    index: int  # slice index k for slices, the image set's number for images
+
+
+@dataclass(frozen=True)
+class Served:
+    job: Job
+    start_ms: float
+    finish_ms: float
+
+    @property
+    def wait_ms(self) -> float:
+        return self.start_ms - self.job.arrival_ms
+
+    @property
+    def latency_ms(self) -> float:
+        return self.finish_ms - self.job.arrival_ms
+
+
+@dataclass(frozen=True)
+class QueueRun:
+    served: tuple[Served, ...]  # in service order
+    superseded: tuple[Job, ...]  # image sets replaced by a newer one before service
+
+    def latencies(self, kind: str) -> np.ndarray:
+        return np.array([s.latency_ms for s in self.served if s.job.kind == kind], dtype=np.float64)
+
+    def waits(self, kind: str) -> np.ndarray:
+        return np.array([s.wait_ms for s in self.served if s.job.kind == kind], dtype=np.float64)
+
+
+def arrival_schedule(num_slices: int, lidar_hz: float, image_hz: float, sweeps: int) -> list[Job]:
+    """Slices every 1000 / lidar_hz / N ms and image sets every 1000 / image_hz ms over ``sweeps`` LiDAR periods,
+    sorted by arrival (a slice before an image set arriving at the same instant)."""
+    if num_slices < 1 or sweeps < 1 or not lidar_hz > 0 or not image_hz > 0:
+        raise ValueError(
+            f"arrival_schedule needs num_slices, sweeps >= 1 and rates > 0, got {num_slices}, {sweeps}, {lidar_hz}, {image_hz}"
+        )
+    horizon_ms = sweeps * 1000.0 / lidar_hz
+    slice_ms = 1000.0 / lidar_hz / num_slices
+    jobs = [Job(SLICE, i * slice_ms, i % num_slices) for i in range(sweeps * num_slices)]
+    num_images = int(np.ceil(horizon_ms * image_hz / 1000.0 - 1e-9))
+    jobs += [Job(IMAGES, i * 1000.0 / image_hz, i) for i in range(num_images)]
+    return sorted(jobs, key=lambda j: (j.arrival_ms, j.kind != SLICE))
+
+
+def run_sequential_queue(jobs: Sequence[Job], process: Callable[[Job], float]) -> QueueRun:
+    """Serve ``jobs`` with one worker in arrival order on a virtual clock.
+
+    ``process(job)`` does the job and returns its duration in ms. A job starts at max(its arrival, the previous
+    finish). An image set still waiting when a newer one arrives is dropped (superseded).
+    """
+    pending = collections.deque(sorted(jobs, key=lambda j: j.arrival_ms))  # stable: the caller's order at ties
+    waiting: collections.deque[Job] = collections.deque()
+    served: list[Served] = []
+    superseded: list[Job] = []
+    now = 0.0
+
+    def admit(until_ms: float) -> None:
+        while pending and pending[0].arrival_ms <= until_ms:
+            job = pending.popleft()
+            if job.kind == IMAGES:
+                stale = [w for w in waiting if w.kind == IMAGES]
+                superseded.extend(stale)
+                for w in stale:
+                    waiting.remove(w)
+            waiting.append(job)
+
+    while pending or waiting:
+        admit(now)
+        if not waiting:
+            now = pending[0].arrival_ms
+            continue
+        job = waiting.popleft()
+        start = max(now, job.arrival_ms)
+        duration = float(process(job))
+        if not (np.isfinite(duration) and duration >= 0):
+            raise ValueError(f"process() must return a duration in ms >= 0, got {duration!r} for {job}")
+        now = start + duration
+        served.append(Served(job, start, now))
+    return QueueRun(tuple(served), tuple(superseded))
+
+
+# ---- measurement -------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class LaneStats:
+    latency: TimingStats  # end-to-end per slice (or per image update)
+    stages: dict[str, dict[str, float]]  # StreamingDetector.stats.summary() of the same phase
+
+    def share(self, *stages: str) -> float | None:
+        """Mean time of ``stages`` over the mean slice_total of the phase."""
+        total = self.stages.get("slice_total", {}).get("mean_ms")
+        if not total:
+            return None
+        return sum(self.stages.get(s, {}).get("mean_ms", 0.0) for s in stages) / total
+
+
+@dataclass(frozen=True)
+class StreamingResult:
+    export_dir: str
+    preset: str
+    precision: str
+    num_slices: int
+    num_points: tuple[int, ...]  # per slice of the bundled sweep
+    image_size: tuple[int, int]  # (width, height) of the export
+    num_cameras: int
+    slice_budget_ms: float  # 1000 / lidar_hz / N
+    idle: LaneStats
+    busy: LaneStats
+    image_alone: LaneStats  # update_images with the slice lane idle
+    image_busy_updates: int  # image updates completed while the busy slices were timed
+    sequential_slice: TimingStats
+    sequential_wait: TimingStats
+    sequential_images_served: int
+    sequential_images_superseded: int
+    sequential_horizon_ms: float
+    config: StreamingConfig
+
+    @property
+    def busy_over_idle_p95(self) -> float:
+        return self.busy.latency.p95_ms / self.idle.latency.p95_ms
+
+    def real_time_factor(self, lane: LaneStats) -> float:
+        return lane.latency.median_ms / self.slice_budget_ms
+
+
+def _images_at(sample_images: np.ndarray, names: Sequence[str]) -> dict[str, np.ndarray]:
+    return {n: np.ascontiguousarray(sample_images[i]) for i, n in enumerate(names)}
+
+
+def _time_slices(det: StreamingDetector, slices: Sequence[np.ndarray], sweeps: int) -> list[float]:
+    out = []
+    for _ in range(sweeps):
+        for k, points in enumerate(slices):
+            start = time.perf_counter()
+            det.detect_slice(points, k)
+            out.append((time.perf_counter() - start) * 1e3)
+    return out
+
+
+def measure_streaming(export_dir: str | Path, cfg: StreamingConfig = StreamingConfig(), progress: Progress = lambda msg: None) -> StreamingResult:
+    det = StreamingDetector(export_dir, DetectorConfig(precision=cfg.precision, image_lane_threads=1, slice_lane_threads=1, num_slices=cfg.num_slices))
+    n = det.num_slices
+    img = det.manifest.image
+    sample = load_bundled_sample()
+    if tuple(sample.rig.names) != det.camera_names:
+        raise ValueError(f"the bundled sample's cameras {list(sample.rig.names)} differ from the export's {list(det.camera_names)}")
+    images = _images_at(sample.load_images((img.width, img.height)), det.camera_names)  # name -> (H, W, 3) uint8
+    slices = split_sweep(sample.points, n, det.config.start_deg)
+    budget_ms = 1000.0 / cfg.lidar_hz / n
+
+    progress(f"[streaming] image lane alone: {cfg.image_updates} + 1 warm-up update(s) of {len(images)} cameras")
+    det.update_images(images)  # warm-up, and the image BEV every later slice reads
+    det.stats.reset()
+    image_ms = []
+    for _ in range(cfg.image_updates):
+        start = time.perf_counter()
+        det.update_images(images)
+        image_ms.append((time.perf_counter() - start) * 1e3)
+    image_alone = LaneStats(summarize(image_ms), det.stats.summary())
+
+    progress(f"[streaming] (a) slices, image lane idle: {cfg.sweeps} sweep(s) of {n}")
+    _time_slices(det, slices, cfg.warmup_sweeps)
+    det.stats.reset()
+    idle = LaneStats(summarize(_time_slices(det, slices, cfg.sweeps)), det.stats.summary())
+
+    progress(f"[streaming] (b) slices, image lane busy: {cfg.sweeps} sweep(s) of {n}")
+    stop = threading.Event()
+    started = threading.Event()
+    updates = [0]
+
+    def image_loop() -> None:
+        while not stop.is_set():
+            started.set()
+            det.update_images(images)
+            updates[0] += 1
+
+    det.stats.reset()
+    worker = threading.Thread(target=image_loop, name="bench-image-lane", daemon=True)
+    worker.start()
+    started.wait()
+    try:
+        busy_ms = _time_slices(det, slices, cfg.sweeps)
+        busy_updates = updates[0]
+    finally:
+        stop.set()
+        worker.join()
+    busy = LaneStats(summarize(busy_ms), det.stats.summary())
+
+    jobs = arrival_schedule(n, cfg.lidar_hz, cfg.image_hz, cfg.queue_sweeps)
+    progress(
+        f"[streaming] (c) one sequential queue: {sum(j.kind == SLICE for j in jobs)} slices, "
+        f"{sum(j.kind == IMAGES for j in jobs)} image sets arriving over {cfg.queue_sweeps * 1000 / cfg.lidar_hz:.0f} ms"
+    )
+
+    def process(job: Job) -> float:
+        start = time.perf_counter()
+        if job.kind == SLICE:
+            det.detect_slice(slices[job.index], job.index)
+        else:
+            det.update_images(images)
+        return (time.perf_counter() - start) * 1e3
+
+    run = run_sequential_queue(jobs, process)
+    det.close()
+    return StreamingResult(
+        export_dir=str(export_dir),
+        preset=det.manifest.preset_name,
+        precision=cfg.precision,
+        num_slices=n,
+        num_points=tuple(len(s) for s in slices),
+        image_size=(img.width, img.height),
+        num_cameras=len(images),
+        slice_budget_ms=budget_ms,
+        idle=idle,
+        busy=busy,
+        image_alone=image_alone,
+        image_busy_updates=busy_updates,
+        sequential_slice=summarize(run.latencies(SLICE)),
+        sequential_wait=summarize(run.waits(SLICE)),
+        sequential_images_served=int(sum(s.job.kind == IMAGES for s in run.served)),
+        sequential_images_superseded=len(run.superseded),
+        sequential_horizon_ms=cfg.queue_sweeps * 1000.0 / cfg.lidar_hz,
+        config=cfg,
+    )
+
+
+def stages_table(stages: Mapping[str, Mapping[str, float]]) -> dict[str, dict[str, float]]:
+    """JSON-ready copy of a stats summary."""
+    return {k: dict(v) for k, v in stages.items()}
