@@ -1,0 +1,144 @@
+"""streamdet-export: happy path and bad input (one-line error, non-zero exit, nothing left behind)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import pytest
+import torch
+from click.testing import CliRunner
+
+from streamdet.export.cli import main
+from streamdet.export.manifest import read_manifest
+from streamdet.models.detector import build_detector
+from streamdet.models.presets import get_preset
+
+
+def _invoke(args: list[str]):
+    return CliRunner().invoke(main, args)
+
+
+def _assert_one_line_error(result, *needles: str) -> None:
+    assert result.exit_code not in (0, None), result.output
+    assert "Traceback" not in result.output
+    errors = [line for line in result.output.splitlines() if line.startswith("Error")]
+    assert len(errors) == 1, result.output
+    for needle in needles:
+        assert needle in errors[0], errors[0]
+
+
+def _leftovers(parent) -> list[str]:
+    return sorted(p.name for p in parent.iterdir() if p.name.startswith("."))
+
+
+def test_tiny_export_prints_what_it_wrote(tmp_path):
+    out = tmp_path / "exp"
+    result = _invoke(["--preset", "tiny", "--resolution", "130x74", "--out", str(out), "--opset", "18"])
+    assert result.exit_code == 0, result.output
+    assert f"wrote {out.resolve()}" in result.output
+    for name in ("image_encoder.onnx", "volumetric_lifter.onnx", "slice_head.onnx", "lut.npz", "manifest.json"):
+        assert name in result.output
+    assert "[1/10] loading weights" in result.output  # progress (stderr, mixed in by CliRunner)
+    m = read_manifest(out)
+    # 130 x 74 is not a multiple of 4: the feature map is ceil(size / 4)
+    assert (m.image.width, m.image.height, m.image.feature_width, m.image.feature_height) == (130, 74, 33, 19)
+    assert m.graph("image_encoder").opset == 18 and m.precisions == ("fp32",)
+    assert _leftovers(tmp_path) == []
+    # exporting again replaces the old export
+    again = _invoke(["--preset", "tiny", "--resolution", "130x74", "--out", str(out), "--slices", "4"])
+    assert again.exit_code == 0, again.output
+    assert read_manifest(out).num_slices == 4 and _leftovers(tmp_path) == []
+
+
+@pytest.mark.parametrize(
+    "resolution,needle",
+    [("801x450", "even"), ("800x451", "even"), ("0x450", "positive"), ("800", "WIDTHxHEIGHT"), ("axb", "WIDTHxHEIGHT")],
+)
+def test_bad_resolution(tmp_path, resolution, needle):
+    result = _invoke(["--preset", "tiny", "--resolution", resolution, "--out", str(tmp_path / "exp")])
+    _assert_one_line_error(result, needle)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_checkpoint_from_another_preset(tmp_path):
+    torch.manual_seed(0)
+    tiny = get_preset("tiny")
+    ckpt = tmp_path / "tiny.pt"
+    torch.save({"preset": tiny.to_dict(), "model": build_detector(tiny).state_dict()}, ckpt)
+    result = _invoke(["--preset", "small", "--checkpoint", str(ckpt), "--out", str(tmp_path / "exp")])
+    _assert_one_line_error(result, "trained with preset 'tiny', not 'small'")
+    assert not (tmp_path / "exp").exists() and _leftovers(tmp_path) == []
+    # a bare state dict has no preset name: the shapes tell
+    bare = tmp_path / "bare.pt"
+    torch.save(build_detector(tiny).state_dict(), bare)
+    result = _invoke(["--preset", "small", "--checkpoint", str(bare), "--out", str(tmp_path / "exp")])
+    _assert_one_line_error(result, "does not fit preset 'small'", "shape mismatches")
+    assert not (tmp_path / "exp").exists() and _leftovers(tmp_path) == []
+
+
+def test_checkpoint_round_trip_and_bad_files(tmp_path):
+    tiny = get_preset("tiny")
+    torch.manual_seed(3)
+    det = build_detector(tiny)
+    ckpt = tmp_path / "ok.pt"
+    # other image size and post settings do not matter; the architecture does
+    saved = dataclasses.replace(tiny, image=dataclasses.replace(tiny.image, width_px=256, height_px=144))
+    torch.save({"preset": saved.to_dict(), "model": det.state_dict(), "epoch": 3}, ckpt)
+    result = _invoke(["--preset", "tiny", "--checkpoint", str(ckpt), "--out", str(tmp_path / "exp")])
+    assert result.exit_code == 0, result.output
+    m = read_manifest(tmp_path / "exp")
+    assert m.source["checkpoint"] == str(ckpt) and m.source["seed"] is None
+    (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
+    _assert_one_line_error(_invoke(["--preset", "tiny", "--checkpoint", str(tmp_path / "junk.pt"), "--out", str(tmp_path / "e2")]),
+                           "cannot be read")
+    _assert_one_line_error(_invoke(["--preset", "tiny", "--checkpoint", str(tmp_path / "nope.pt"), "--out", str(tmp_path / "e2")]),
+                           "does not exist")
+    assert not (tmp_path / "e2").exists()
+
+
+def test_unwritable_and_foreign_out_dirs(tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    _assert_one_line_error(_invoke(["--preset", "tiny", "--out", str(blocker / "exp")]), "cannot write into")
+    _assert_one_line_error(_invoke(["--preset", "tiny", "--out", str(blocker)]), "is a file")
+    foreign = tmp_path / "mine"
+    foreign.mkdir()
+    (foreign / "notes.txt").write_text("keep me")
+    _assert_one_line_error(_invoke(["--preset", "tiny", "--out", str(foreign)]), "not a streamdet export")
+    assert (foreign / "notes.txt").read_text() == "keep me"
+    assert _leftovers(tmp_path) == []
+
+
+@pytest.mark.parametrize(
+    "args,needle",
+    [
+        (["--preset", "huge"], "huge"),
+        (["--slices", "3"], "multiple of 4"),
+        (["--opset", "9"], "9"),
+        (["--calibration", "/nonexistent/calibration.json"], "does not exist"),
+    ],
+)
+def test_other_bad_options(tmp_path, args, needle):
+    result = _invoke(["--preset", "tiny", "--out", str(tmp_path / "exp"), *args])
+    _assert_one_line_error(result, needle)
+    assert not (tmp_path / "exp").exists() and _leftovers(tmp_path) == []
+
+
+def test_broken_calibration_file(tmp_path):
+    calib = tmp_path / "calib.json"
+    calib.write_text(json.dumps({"lidar": {}, "cameras": []}))
+    result = _invoke(["--preset", "tiny", "--calibration", str(calib), "--out", str(tmp_path / "exp")])
+    _assert_one_line_error(result, "calib.json")
+    assert not (tmp_path / "exp").exists() and _leftovers(tmp_path) == []
+
+
+@pytest.mark.slow
+def test_default_export_no_arguments(tmp_path, monkeypatch):
+    """No arguments at all: small preset, bundled (or fixed-seed) weights, bundled calibration, ./exports/small."""
+    monkeypatch.chdir(tmp_path)
+    result = _invoke([])
+    assert result.exit_code == 0, result.output
+    m = read_manifest(tmp_path / "exports" / "small")
+    assert m.preset_name == "small" and (m.image.width, m.image.height) == (800, 450)
+    assert m.lut.calibration_source.startswith("bundled:") and all(p.passed for p in m.parity)
