@@ -129,6 +129,13 @@ def main(
     for path, what in ((json_path, "--json"), (plot_path, "--plot")):
         if path is not None and not path.parent.is_dir():
             raise click.BadParameter(f"folder {str(path.parent)!r} does not exist", param_hint=what)
+    if export_dir is not None:
+        from streamdet.export.manifest import ManifestError, read_manifest
+
+        try:
+            read_manifest(export_dir)  # fail now, not after minutes of row timing
+        except (ManifestError, OSError) as e:
+            raise click.BadParameter(f"{export_dir} is not a usable export: {e}", param_hint="--export-dir") from None
     preset = preset or "small"
     p = get_preset(preset)
     given = resolution or (p.image.width_px, p.image.height_px)
@@ -163,7 +170,7 @@ def main(
     }
     with tempfile.TemporaryDirectory(prefix="streamdet_bench_") as tmp:
         work = Path(tmp)
-        probe_cfg = ProbeConfig(runs=4 if quick else 8)
+        probe_cfg = ProbeConfig(size=1024, runs=4, warmup=1) if quick else ProbeConfig()
         progress(f"peak probe ({threads} threads)")
         peak = measure_peak(threads, probe_cfg)
         progress(f"building the {preset} rows")

@@ -1,0 +1,87 @@
+"""streamdet-bench end to end on the tiny preset (no assertions on speed), and its one-line errors."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from click.testing import CliRunner
+
+from streamdet.benchmarks.cli import image_resolutions, main
+
+ROW_KEYS = {"module", "gmac", "ms_fp32", "ms_fp16", "ms_torch", "gflops_per_s", "peak_fraction"}
+
+
+@pytest.fixture(scope="module")
+def quick_run(tmp_path_factory):
+    d = tmp_path_factory.mktemp("bench")
+    args = ["--quick", "--preset", "tiny", "--repeat", "2", "--json", str(d / "b.json"), "--plot", str(d / "b.png"), "--profile", str(d / "prof")]
+    result = CliRunner().invoke(main, args)
+    return result, d
+
+
+def test_quick_tiny_run_writes_documented_json(quick_run):
+    result, d = quick_run
+    assert result.exit_code == 0, result.output
+    doc = json.loads((d / "b.json").read_text())
+    assert {"rows", "streaming", "meta", "peak", "targets", "units"} <= set(doc)
+    modules = [r["module"] for r in doc["rows"]]
+    assert len(modules) == 5 + 4  # tiny's own 128x72 plus the paper's three
+    assert modules[5] == "image encoding 128x72" and modules[6:] == ["image encoding 1600x900", "image encoding 1200x675", "image encoding 800x450"]
+    for r in doc["rows"]:
+        assert ROW_KEYS <= set(r)
+        assert r["ms_fp32"] > 0 and r["gflops_per_s"] > 0 and 0 < r["peak_fraction"]
+        assert r["graph_gmac_ratio"] == pytest.approx(1.0)
+        assert r["fp32"]["count"] >= 2  # quick: --repeat 2, and never fewer than the minimum of 3 under a budget
+        assert r["profile"]["fp32"]["ops"]
+    meta = doc["meta"]
+    assert meta["preset"] == "tiny" and meta["threads"] >= 1 and meta["repeat"] == 2 and meta["machine"]["cpu_model"]
+    s = doc["streaming"]
+    for key in ("slice_idle", "slice_busy", "sequential", "image_lane_alone", "busy_over_idle_p95", "real_time_factor_idle",
+                "real_time_factor_busy", "pre_post_share_idle", "keeps_up_busy", "slice_budget_ms"):
+        assert key in s
+    assert s["num_slices"] == 8 and s["slice_budget_ms"] == pytest.approx(12.5)
+    assert s["slice_idle"]["latency"]["count"] == 2 * 8
+    assert {"pre", "slice_head", "post", "slice_total"} <= set(s["slice_idle"]["stages"])
+    assert s["sequential"]["slice_latency"]["count"] == 8
+    assert all(t["met"] in (True, False, None) for t in doc["targets"])
+    assert (d / "b.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert len(list((d / "prof").glob("*.fp32.json"))) == 9
+
+
+def test_quick_tiny_run_prints_the_table(quick_run):
+    result, _ = quick_run
+    out = result.output
+    for text in ("ms fp32 (p95)", "torch/ort", "% peak", "peak probe", "slice lane, image lane busy", "one sequential queue",
+                 "real-time", "targets:", "machine:"):
+        assert text in out
+    assert "[row 1/9]" in out  # progress lines (stderr, mixed into the runner's output)
+
+
+def test_image_resolutions():
+    assert image_resolutions((800, 450)) == [(800, 450), (1600, 900), (1200, 675)]
+    assert image_resolutions((640, 360)) == [(640, 360), (1600, 900), (1200, 675), (800, 450)]
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--slices", "3"], "multiple of 4"),
+        (["--resolution", "800by450"], "expected WIDTHxHEIGHT"),
+        (["--repeat", "0"], "0 is not in the range"),
+        (["--json", "/nonexistent-dir/x.json"], "does not exist"),
+        (["--plot", "/nonexistent-dir/x.png"], "does not exist"),
+        (["--export-dir", "/nonexistent-dir"], "does not exist"),
+        (["--preset", "huge"], "'huge' is not one of"),
+    ],
+)
+def test_bad_input_is_one_line_error(args, message):
+    result = CliRunner().invoke(main, args)
+    assert result.exit_code != 0
+    assert message in result.output
+    assert "Traceback" not in result.output
+
+
+def test_export_dir_without_manifest(tmp_path):
+    result = CliRunner().invoke(main, ["--preset", "tiny", "--export-dir", str(tmp_path)])
+    assert result.exit_code != 0 and "is not a usable export" in result.output and "Traceback" not in result.output
