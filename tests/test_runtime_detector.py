@@ -243,7 +243,7 @@ def test_runner_lanes_and_back_pressure(export_dir, sample):
                 done += 1
             except SliceDropped:
                 dropped += 1
-        assert done >= 3 and done + dropped == 40
+        assert done >= 2 and done + dropped == 40  # the newest queue_size slices always survive
         assert runner.slices_dropped == dropped
         assert dropped > 0  # 40 slices at once into a queue of 2 cannot all wait
 
