@@ -1,1 +1,36 @@
-"""streamdet.runtime_ort"""
+"""streamdet.runtime_ort: the torch-free onnxruntime runtime a vehicle process embeds.
+
+    from streamdet.runtime_ort import StreamingDetector, DetectorConfig, StreamingRunner
+
+Names are imported lazily, so `streamdet.runtime_ort.boxes` (used by evaluation/ and data/) does not load
+onnxruntime.
+"""
+
+from __future__ import annotations
+
+import importlib
+
+_EXPORTS = {
+    "StreamingDetector": "streamdet.runtime_ort.detector",
+    "DetectorConfig": "streamdet.runtime_ort.detector",
+    "SliceResult": "streamdet.runtime_ort.detector",
+    "ImageUpdate": "streamdet.runtime_ort.detector",
+    "StreamingRunner": "streamdet.runtime_ort.lanes",
+    "LaneConfig": "streamdet.runtime_ort.lanes",
+    "SliceDropped": "streamdet.runtime_ort.lanes",
+    "ImagesSuperseded": "streamdet.runtime_ort.lanes",
+    "Detections": "streamdet.runtime_ort.postprocess",
+    "PostprocessConfig": "streamdet.runtime_ort.postprocess",
+    "NmsConfig": "streamdet.runtime_ort.nms",
+    "NmsKind": "streamdet.runtime_ort.nms",
+    "CLASS_NAMES": "streamdet.runtime_ort.boxes",
+    "pillarize": "streamdet.runtime_ort.pillarize",
+}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        return getattr(importlib.import_module(_EXPORTS[name]), name)
+    raise AttributeError(f"module 'streamdet.runtime_ort' has no attribute {name!r}")
