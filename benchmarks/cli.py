@@ -21,6 +21,9 @@ import click
 
 from streamdet.models.presets import get_preset, preset_names
 
+QUICK_TORCH_SKIP_MS = 200.0  # --quick: PyTorch eager is timed only on rows faster than this in onnxruntime fp32
+
+
 def parse_resolution(ctx: click.Context | None, param: click.Parameter | None, value: str | None) -> tuple[int, int] | None:
     """'800x450' -> (800, 450)."""
     if value is None:
@@ -93,7 +96,11 @@ def export_for_streaming(preset: str, resolution: tuple[int, int], slices: int, 
 @click.option("--fp16/--no-fp16", default=True, show_default=True, help="Also time the fp16 graphs (and export them).")
 @click.option("--repeat", type=click.IntRange(min=1), default=None, help="Timed runs per measurement [default: 20; 5 with --quick].")
 @click.option("--threads", type=click.IntRange(min=1), default=None, help="Threads for the Table 3 rows [default: all cores].")
-@click.option("--quick", is_flag=True, help="Fewer repeats, shorter streaming runs, no PyTorch timing of rows over 0.5 s.")
+@click.option(
+    "--quick",
+    is_flag=True,
+    help=f"Fewer repeats, shorter streaming runs, no PyTorch timing of rows whose fp32 run exceeds {QUICK_TORCH_SKIP_MS:.0f} ms.",
+)
 @click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), help='Write {"rows": [...], "streaming": {...}, ...} here.')
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False, path_type=Path), help="Write a PNG bar chart of the rows here.")
 @click.option(
@@ -153,7 +160,10 @@ def main(
     from streamdet.benchmarks.table import TableConfig, measure_rows
     from streamdet.benchmarks.timing import TimingConfig
 
-    timing = TimingConfig(repeat=repeat, warmup=1, budget_s=3.0) if quick else TimingConfig(repeat=repeat, warmup=2, budget_s=15.0)
+    if quick:
+        timing = TimingConfig(repeat=repeat, warmup=1, budget_s=2.0, min_repeat=2, slow_warmup_s=1.0)
+    else:
+        timing = TimingConfig(repeat=repeat, warmup=2, budget_s=15.0)
     meta = {
         "date": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
         "command": "streamdet-bench " + shlex.join(sys.argv[1:]),
@@ -175,7 +185,7 @@ def main(
         peak = measure_peak(threads, probe_cfg)
         progress(f"building the {preset} rows")
         rows = build_rows(p, image_resolutions(given))
-        table_cfg = TableConfig(threads=threads, timing=timing, torch_skip_ms=500.0 if quick else None, profile_dir=profile_dir, fp16=fp16)
+        table_cfg = TableConfig(threads=threads, timing=timing, torch_skip_ms=QUICK_TORCH_SKIP_MS if quick else None, profile_dir=profile_dir, fp16=fp16)
         results = measure_rows(rows, work, table_cfg, progress)
         del rows  # the paper preset's modules and inputs hold gigabytes
         progress("peak probe again (the best run of both counts: the machine is shared)")

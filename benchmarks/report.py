@@ -170,7 +170,8 @@ def format_rows(rows: Sequence[RowResult], peak: ProbeResult) -> str:
 
 def _lane_line(label: str, lane: LaneStats | TimingStats) -> str:
     t = lane.latency if isinstance(lane, LaneStats) else lane
-    return f"  {label:<44} p50 {t.median_ms:8.2f} ms  p95 {t.p95_ms:8.2f} ms  min-max {_noise(t)} ms  n={t.count}"
+    n = f"n={t.count}" + (f" of {t.requested} (time budget)" if t.reduced else "")
+    return f"  {label:<44} p50 {t.median_ms:8.2f} ms  p95 {t.p95_ms:8.2f} ms  min-max {_noise(t)} ms  {n}"
 
 
 def _stage(lane: LaneStats, name: str) -> str:
