@@ -155,7 +155,7 @@ def main(
 
     from streamdet.benchmarks import report
     from streamdet.benchmarks.modules import build_rows
-    from streamdet.benchmarks.probe import ProbeConfig, machine_info, measure_peak
+    from streamdet.benchmarks.probe import OtherCpuUse, ProbeConfig, machine_info, measure_peak
     from streamdet.benchmarks.streaming import StreamingConfig, measure_streaming
     from streamdet.benchmarks.table import TableConfig, measure_rows
     from streamdet.benchmarks.timing import TimingConfig
@@ -164,6 +164,7 @@ def main(
         timing = TimingConfig(repeat=repeat, warmup=1, budget_s=2.0, min_repeat=2, slow_warmup_s=1.0)
     else:
         timing = TimingConfig(repeat=repeat, warmup=2, budget_s=15.0)
+    other_cpu = OtherCpuUse()
     meta = {
         "date": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
         "command": "streamdet-bench " + shlex.join(sys.argv[1:]),
@@ -208,6 +209,7 @@ def main(
             raise click.ClickException(f"streaming section on {stream_dir}: {e}") from None
         meta["export_dir"] = str(export_dir) if export_dir is not None else "(temporary export)"
         meta["seconds"] = round(time.perf_counter() - started, 1)
+        meta["other_cpu_use"] = other_cpu.cores()
 
         targets = report.evaluate_targets(results, peak, streaming)
         click.echo(report.format_report(meta, results, peak, streaming, targets))

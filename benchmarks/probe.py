@@ -132,16 +132,51 @@ def cpu_flags() -> tuple[str, ...]:
     return ()
 
 
+class OtherCpuUse:
+    """CPU time other processes take while this one runs, from /proc/stat minus this process's own time.
+
+    ``cores()`` is the average number of CPUs busy with (or stolen by) anything but this process since the start:
+    0 on a quiet machine; 1 means another job took a whole core from the benchmark. None off Linux.
+    """
+
+    def __init__(self) -> None:
+        self._start = self._sample()
+
+    @staticmethod
+    def _sample() -> tuple[float, float, float] | None:
+        try:
+            with open("/proc/stat") as f:
+                fields = [float(v) for v in f.readline().split()[1:]]
+        except (OSError, ValueError):
+            return None
+        # user nice system idle iowait irq softirq steal [guest guest_nice, already inside user and nice]
+        busy = sum(fields[:3]) + sum(fields[5:8])
+        t = os.times()
+        return busy / os.sysconf("SC_CLK_TCK"), t.user + t.system, time.monotonic()
+
+    def cores(self) -> float | None:
+        end = self._sample()
+        if self._start is None or end is None or end[2] <= self._start[2]:
+            return None
+        others = (end[0] - self._start[0]) - (end[1] - self._start[1])
+        return max(0.0, others / (end[2] - self._start[2]))
+
+
+def load_average() -> list[float]:
+    """1, 5 and 15 minute load averages (runnable processes); NaN where the OS has none."""
+    load = os.getloadavg() if hasattr(os, "getloadavg") else (float("nan"),) * 3
+    return [round(v, 2) for v in load]
+
+
 def machine_info(threads: int) -> dict:
     import torch  # the benchmark needs torch anyway; kept local so the probe itself stays torch-free
 
-    load = os.getloadavg() if hasattr(os, "getloadavg") else (float("nan"),) * 3
     return {
         "cpu_model": cpu_model(),
         "cpu_flags": list(cpu_flags()),
         "logical_cpus": os.cpu_count(),
         "threads": threads,
-        "load_average_1_5_15": [round(v, 2) for v in load],
+        "load_average_1_5_15": load_average(),
         "onnxruntime": ort.__version__,
         "torch": torch.__version__,
         "onnx": onnx.__version__,

@@ -21,6 +21,7 @@ CROP_SPEEDUP_MIN = 3.5  # cropped rows this much faster than uncropped (their MA
 PEAK_FRACTION_MIN = 0.60  # conv-heavy graphs reach this fraction of the matmul probe
 BUSY_OVER_IDLE_P95_MAX = 1.5  # slice p95 with a busy image lane vs idle
 REAL_TIME_FACTOR_MAX = 1.0  # slice p50 over the per-slice budget of a 10 Hz LiDAR
+BUSY_OTHER_CPUS = 0.2  # other processes using more CPUs than this on average during the run flag a busy machine
 
 UNITS = "GMAC = 1e9 multiply-accumulates (FLOPs = 2 x MACs); times in ms of wall clock (median, p95 in brackets)"
 
@@ -125,13 +126,24 @@ def format_header(meta: dict, peak: ProbeResult) -> str:
     lines = [
         f"streamdet-bench  {meta['date']}  preset {meta['preset']}",
         f"machine: {m['cpu_model']} ({flags}), {m['logical_cpus']} logical CPUs, {meta['threads']} threads; "
-        f"load average {'/'.join(str(v) for v in m['load_average_1_5_15'])} at start",
+        f"load average (1/5/15 min) {'/'.join(str(v) for v in m['load_average_1_5_15'])} at start; "
+        + (
+            f"other processes used {others:.2f} CPUs on average during the run"
+            if (others := meta.get("other_cpu_use")) is not None
+            else "CPU use of other processes unknown"
+        ),
         f"onnxruntime {m['onnxruntime']} (CPU, ORT_ENABLE_ALL), torch {m['torch']} (eager, inference_mode); "
         f"repeats {meta['repeat']} after {meta['warmup']} warm-up run(s), {meta['budget_s']:.0f} s budget per measurement",
         f"peak probe: {peak.size}^3 fp32 MatMul in onnxruntime, best of {peak.runs} runs (at the start and the end): "
         f"{peak.gflops_per_s:.1f} GFLOP/s (median {peak.median_gflops_per_s:.1f})",
         f"input as in the paper's Table 3: 1 image, 30,000 points; {UNITS}",
     ]
+    others = meta.get("other_cpu_use")
+    if others is not None and others > BUSY_OTHER_CPUS:
+        lines.append(
+            f"WARNING: the machine was busy: other processes used {others:.2f} of {m['logical_cpus']} CPUs during the run, "
+            "so these times are pessimistic and noisy; re-run on a quiet machine"
+        )
     return "\n".join(lines)
 
 
@@ -185,12 +197,13 @@ def format_streaming(s: StreamingResult) -> str:
         f"streaming ({s.preset} export, {s.precision}, 1 intra-op thread per session; bundled nuScenes sweep in "
         f"{s.num_slices} slices of {pts} points; {s.num_cameras} cameras at {s.image_size[0]}x{s.image_size[1]})",
         _lane_line("slice lane, image lane idle", s.idle),
-        _lane_line(f"slice lane, image lane busy ({s.image_busy_updates} updates done)", s.busy),
+        _lane_line("slice lane, image lane busy", s.busy),
         _lane_line("slice lane, one sequential queue", s.sequential_slice),
         f"    (queue: {s.sequential_horizon_ms:.0f} ms of arrivals, slices every {s.slice_budget_ms:.2f} ms, images at "
         f"{s.config.image_hz:g} Hz: {s.sequential_images_served} image updates served, {s.sequential_images_superseded} "
         f"superseded; slice wait p50 {s.sequential_wait.median_ms:.1f} ms, p95 {s.sequential_wait.p95_ms:.1f} ms)",
-        f"  busy / idle slice p95: {s.busy_over_idle_p95:.2f}x",
+        f"  busy / idle slice p95: {s.busy_over_idle_p95:.2f}x ({s.image_busy_updates} image updates finished while the "
+        "busy slices ran; the image lane ran throughout)",
         _lane_line(f"image lane alone ({s.num_cameras} cameras)", s.image_alone),
         f"    encoder p50 {_stage(s.image_alone, 'image_encoder')} ms, lifter p50 {_stage(s.image_alone, 'volumetric_lifter')} ms"
         + (f"; with slices running: update p50 {_stage(s.busy, 'image_total')} ms" if "image_total" in s.busy.stages else ""),
