@@ -51,8 +51,19 @@ from streamdet.export.manifest import (
     sha256_file,
     write_manifest,
 )
-from streamdet.export.parity import FP16_TOL_REL, TORCH_TOL_REL, compare_dense, compare_detections, ort_session, pipeline_parity
+from streamdet.export.parity import (
+    FP16_TOL_REL,
+    TORCH_TOL_REL,
+    cell_centres,
+    compare_dense,
+    compare_detections,
+    detection_margins,
+    ort_session,
+    peak_margins,
+    pipeline_parity,
+)
 from streamdet.export.weights import DEFAULT_SEED, bundled_checkpoint, load_detector
+from streamdet.models.decode import decode_head_maps
 from streamdet.models.detector import StreamDetector
 from streamdet.models.flops import count_gmac
 from streamdet.models.image_encoder import IMAGENET_MEAN, IMAGENET_STD
@@ -162,8 +173,9 @@ def _export_into(tmp: Path, preset: Preset, width: int, height: int, opts: Expor
         inputs = _parity_inputs(rig, lut, preset, width, height, opts.num_slices, opts.seed)
         steps.note(inputs.describe())
 
-    graphs: dict[tuple[str, str], tuple[onnx.ModelProto, dict]] = {}
     parity: list[ParityRecord] = []
+    cams = list(inputs.cameras)
+    images_read = inputs.images[cams]  # (J', H, W, 3): the cameras the parity quadrants read
     fp32_runs: dict[str, dict[str, np.ndarray]] = {}
     with torch.no_grad():
         with steps("exporting image_encoder.onnx"):
@@ -172,12 +184,15 @@ def _export_into(tmp: Path, preset: Preset, width: int, height: int, opts: Expor
             _save_checked(model, tmp, "image_encoder", "fp32")
         with steps("parity image_encoder (onnxruntime fp32 vs PyTorch)"):
             enc = ort_session(str(tmp / graph_file_name("image_encoder", "fp32")))
-            (features,) = enc.run(None, {"images": inputs.images})
-            # PyTorch on the first TORCH_REF_IMAGES cameras only: the encoder treats images independently, and at
-            # the paper's 1600x900 each ResNet-50 forward costs 126 GMAC on a CPU shared with the rest of the export.
-            n_ref = min(TORCH_REF_IMAGES, len(inputs.images))
-            ref = det.image_encoder(images_t[:n_ref]).numpy()
-            parity.append(compare_dense("image_encoder", "fp32", "torch", "features", features[:n_ref], ref, TORCH_TOL_REL))
+            # Only the cameras the LUT reads for the parity quadrants are encoded; the others' rows are never
+            # gathered, so zeros there give the lifter the same output (and halve the encoder's share of the time).
+            (features_read,) = enc.run(None, {"images": images_read})
+            features = _scatter_cameras(features_read, cams, len(inputs.images))  # (J, C, Hf, Wf)
+            # PyTorch on at most TORCH_REF_IMAGES of them: the encoder treats images independently, and at the
+            # paper's 1600x900 each ResNet-50 forward costs 126 GMAC on a CPU shared with the rest of the export.
+            n_ref = min(TORCH_REF_IMAGES, len(cams))
+            ref = det.image_encoder(torch.from_numpy(images_read[:n_ref])).numpy()
+            parity.append(compare_dense("image_encoder", "fp32", "torch", "features", features_read[:n_ref], ref, TORCH_TOL_REL))
             steps.note(_fmt(parity[-1]))
             del ref
         with steps("exporting volumetric_lifter.onnx and checking parity"):
@@ -197,9 +212,14 @@ def _export_into(tmp: Path, preset: Preset, width: int, height: int, opts: Expor
             model = ox.export_slice_head(det, slice_args, opts.opset)
             _save_checked(model, tmp, "slice_head", "fp32")
             dets = ort_session(str(tmp / graph_file_name("slice_head", "fp32"))).run(None, slice_feeds)
-            ref_dets = [t.numpy() for t in ox.slice_decoder(det)(*slice_args)]
-            parity.extend(compare_detections("slice_head", "fp32", "torch", dets, ref_dets, TORCH_TOL_REL))
-            steps.note(_fmt(parity[-3]))
+            maps = det.slice_net(*slice_args)  # the reference head maps, for the decode and the near-tie test
+            ref_dets = [t.numpy() for t in decode_head_maps(maps, preset.head_cell_m, preset.top_k)]
+            margins = peak_margins(maps[0].numpy())  # (Q, C, Hh, Wh)
+            centres = cell_centres(maps[1].numpy(), preset.head_cell_m)  # (Q, 2, Hh, Wh)
+            margins_of = lambda d: detection_margins(d[0], d[2], margins, centres)  # noqa: E731
+            parity.extend(compare_detections("slice_head", "fp32", "torch", dets, ref_dets, TORCH_TOL_REL, margins_of(ref_dets)))
+            for p in parity[-3:]:
+                steps.note(_fmt(p))
             fp32_runs["slice_head"] = dict(zip(ox.SLICE_HEAD_IO.outputs, dets))
         with steps("counting GMAC"):
             gmacs = _count_gmacs(det, inputs, lut_index, lut_weight)
@@ -218,12 +238,13 @@ def _export_into(tmp: Path, preset: Preset, width: int, height: int, opts: Expor
                 if kept:
                     steps.note(f"{len(kept)} nodes kept in fp32 (decode and heatmap logits)")
         with steps("parity fp16 vs fp32, graph by graph and whole pipeline"):
-            (features16,) = sessions16["image_encoder"].run(None, {"images": inputs.images})
-            parity.append(compare_dense("image_encoder", "fp16", "onnx-fp32", "features", features16, features, FP16_TOL_REL))
+            (features16_read,) = sessions16["image_encoder"].run(None, {"images": images_read})
+            parity.append(compare_dense("image_encoder", "fp16", "onnx-fp32", "features", features16_read, features_read, FP16_TOL_REL))
+            features16 = _scatter_cameras(features16_read, cams, len(inputs.images))
             (bev16_same,) = sessions16["volumetric_lifter"].run(None, lifter_feeds)
             parity.append(compare_dense("volumetric_lifter", "fp16", "onnx-fp32", "image_bev", bev16_same, image_bev, FP16_TOL_REL))
             dets16_same = sessions16["slice_head"].run(None, slice_feeds)
-            parity.extend(compare_detections("slice_head", "fp16", "onnx-fp32", dets16_same, dets, FP16_TOL_REL))
+            parity.extend(compare_detections("slice_head", "fp16", "onnx-fp32", dets16_same, dets, FP16_TOL_REL, margins_of(dets)))
             # the fp16 pipeline: each fp16 graph fed by the previous fp16 graph
             (bev16,) = sessions16["volumetric_lifter"].run(None, {**lifter_feeds, "features": features16})
             dets16 = sessions16["slice_head"].run(None, {**pl.as_feeds(), "image_bev": bev16})
@@ -234,13 +255,16 @@ def _export_into(tmp: Path, preset: Preset, width: int, height: int, opts: Expor
                 num_slices=opts.num_slices,
                 num_points=inputs.num_points,
                 num_pillars=pl.num_pillars,
+                cell_m=preset.head_cell_m,
+                margins32=margins_of(dets),
+                margins16=margins_of(dets16),
             )
             for p in parity[-5:]:
                 steps.note(_fmt(p))
             steps.note(
                 f"pipeline: {pipeline.count_fp32} vs {pipeline.count_fp16} boxes >= {pipeline.score_threshold}, "
                 f"{pipeline.excluded_in_band} in the +-{pipeline.score_band:.2g} band, {pipeline.excluded_at_top_k} "
-                f"at the top-K cut, max centre diff "
+                f"at the top-K cut, {pipeline.excluded_near_ties} near-ties, max centre diff "
                 f"{pipeline.max_centre_diff_m:.3g} m: {'ok' if pipeline.passed else 'FAILED'}"
             )
 
@@ -283,6 +307,7 @@ def _export_into(tmp: Path, preset: Preset, width: int, height: int, opts: Expor
 class _ParityInputs:
     images: np.ndarray  # (J, H, W, 3) uint8 in rig order
     real_images: bool  # False where the rig names cameras the bundled sample lacks (seeded noise instead)
+    cameras: tuple[int, ...]  # rig indices of the cameras the LUT reads for `quadrants` (at least one)
     pillars: Pillars
     quadrants: tuple[int, ...]
     slice_index: int
@@ -291,7 +316,8 @@ class _ParityInputs:
     def describe(self) -> str:
         imgs = "bundled nuScenes images" if self.real_images else "seeded noise images (the rig's cameras are not the sample's)"
         return (
-            f"{self.images.shape[0]} {imgs} at {self.images.shape[2]}x{self.images.shape[1]}, LiDAR slice "
+            f"{self.images.shape[0]} {imgs} at {self.images.shape[2]}x{self.images.shape[1]} ({len(self.cameras)} read "
+            f"by the parity quadrants and encoded), LiDAR slice "
             f"{self.slice_index} ({self.num_points} points, {self.pillars.num_pillars} pillars, quadrants {list(self.quadrants)})"
         )
 
@@ -310,7 +336,17 @@ def _parity_inputs(rig: Rig, lut: Lut, preset: Preset, width: int, height: int, 
     k = int(np.argmax([len(s.points) for s in slices]))  # the busiest slice: most pillars, most boxes
     sl = slices[k]
     pl = pillarize(sl.points, preset.grid, sl.quadrants, preset.pillars.max_points_per_pillar, preset.pillars.max_pillars)
-    return _ParityInputs(images, real, pl, tuple(sl.quadrants), k, len(sl.points))
+    index, _ = lut.for_quadrants(sl.quadrants)
+    rows = np.unique(index[index != lut.sentinel])
+    cams = tuple(int(j) for j in np.unique(rows // (lut.feature_width * lut.feature_height))) or (0,)
+    return _ParityInputs(images, real, cams, pl, tuple(sl.quadrants), k, len(sl.points))
+
+
+def _scatter_cameras(features_read: np.ndarray, cams: list[int], num_cameras: int) -> np.ndarray:
+    """(J', C, Hf, Wf) features of cameras `cams` -> (J, C, Hf, Wf) with zeros for the cameras not read."""
+    full = np.zeros((num_cameras, *features_read.shape[1:]), dtype=features_read.dtype)
+    full[cams] = features_read
+    return full
 
 
 def _resolve_preset(opts: ExportOptions) -> tuple[Preset, int, int]:

@@ -214,6 +214,7 @@ class PipelineParity:
     count_fp16: int
     excluded_in_band: int  # boxes (either run) inside the band, not compared
     excluded_at_top_k: int  # unpaired boxes within the band of their run's K-th score, not compared
+    excluded_near_ties: int  # boxes whose peak is within the band of a neighbour's score (parity.py), not compared
     max_centre_diff_m: float  # over matched boxes (nan when there are none)
     centre_tolerance_m: float
     passed: bool

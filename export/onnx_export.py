@@ -12,6 +12,7 @@ They are renamed to ``/decode/<op>...`` so they are recognisable in the file and
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import os
 import warnings
@@ -26,6 +27,8 @@ from streamdet.models.detector import StreamDetector
 
 DEFAULT_OPSET = 17
 DECODE_SCOPE = "/decode/"
+TRACE_PIXELS = 64  # image crop the encoder is traced on (H, W dynamic)
+TRACE_CELLS = 16  # quadrant crop the lifter is traced on (declared static afterwards)
 
 
 @dataclass(frozen=True)
@@ -101,18 +104,44 @@ def export_module(module: nn.Module, args: tuple[torch.Tensor, ...], io_spec: Gr
 
 
 def export_image_encoder(det: StreamDetector, images: torch.Tensor, opset: int = DEFAULT_OPSET) -> onnx.ModelProto:
-    """``images`` (J, H, W, 3) uint8 -> features (J, C, Hf, Wf); normalisation inside."""
+    """``images`` (J, H, W, 3) uint8 -> features (J, C, Hf, Wf); normalisation inside.
+
+    Traced on one TRACE_PIXELS x TRACE_PIXELS crop of the first image: J, H and W are dynamic, and a trace at
+    1600 x 900 would run ResNet-50 (126 GMAC) once more for nothing. The export's parity check runs the graph at
+    the export resolution.
+    """
     if det.image_encoder is None:
         raise ValueError(f"preset {det.preset.name!r} has use_image=False: there is no image encoder to export")
-    return export_module(det.image_encoder, (images,), IMAGE_ENCODER_IO, opset)
+    crop = images[:1, :TRACE_PIXELS, :TRACE_PIXELS].contiguous()  # (1, <=64, <=64, 3)
+    return export_module(det.image_encoder, (crop,), IMAGE_ENCODER_IO, opset)
 
 
 def export_volumetric_lifter(
     det: StreamDetector, features: torch.Tensor, lut_index: torch.Tensor, lut_weight: torch.Tensor, opset: int = DEFAULT_OPSET
 ) -> onnx.ModelProto:
+    """features (J, C, Hf, Wf), lut_index / lut_weight (Q, K, Z, Yq, Xq) -> image_bev (Q, C, Yq, Xq).
+
+    Traced on a TRACE_CELLS x TRACE_CELLS crop of the LUT with Yq and Xq dynamic, which are then declared static
+    again (the preset's quadrant): a full-size trace would run the paper's 179-GMAC 3D convolutions once more for
+    nothing. Full shape inference on the result checks the declared sizes; the parity check runs at full size.
+    """
     if det.lifter is None:
         raise ValueError(f"preset {det.preset.name!r} has use_image=False: there is no lifter to export")
-    return export_module(det.lifter, (features, lut_index, lut_weight), VOLUMETRIC_LIFTER_IO, opset)
+    g = det.preset.grid
+    crop = (slice(None), slice(None), slice(None), slice(None, TRACE_CELLS), slice(None, TRACE_CELLS))
+    traced_axes = {
+        **VOLUMETRIC_LIFTER_IO.dynamic_axes,
+        "lut_index": {0: "Q", 1: "K", 3: "Yq", 4: "Xq"},
+        "lut_weight": {0: "Q", 1: "K", 3: "Yq", 4: "Xq"},
+        "image_bev": {0: "Q", 2: "Yq", 3: "Xq"},
+    }
+    spec = dataclasses.replace(VOLUMETRIC_LIFTER_IO, dynamic_axes=traced_axes)
+    args = (features, lut_index[crop].contiguous(), lut_weight[crop].contiguous())
+    model = export_module(det.lifter, args, spec, opset)
+    static = {"lut_index": (None, None, g.nz, g.quadrant_ny, g.quadrant_nx), "lut_weight": (None, None, g.nz, g.quadrant_ny, g.quadrant_nx),
+              "image_bev": (None, det.preset.channels, g.quadrant_ny, g.quadrant_nx)}
+    _declare_static_dims(model, static)
+    return model
 
 
 def slice_decoder(det: StreamDetector) -> SliceDecoder:
@@ -127,27 +156,50 @@ def export_slice_head(det: StreamDetector, pillar_args: tuple[torch.Tensor, ...]
         if node.name in decode:
             node.name = DECODE_SCOPE + node.name.lstrip("/")
     # The tracer loses the static K and 9 of det_boxes through the decode's concat/transpose; K is fixed by the preset.
-    static = {"det_boxes": (None, det.preset.top_k, 9), "det_scores": (None, det.preset.top_k), "det_labels": (None, det.preset.top_k)}
-    for out in model.graph.output:
-        for dim, size in zip(out.type.tensor_type.shape.dim, static[out.name]):
-            if size is not None:
-                dim.Clear()
-                dim.dim_value = size
+    k = det.preset.top_k
+    _declare_static_dims(model, {"det_boxes": (None, k, 9), "det_scores": (None, k), "det_labels": (None, k)})
     return model
 
 
+def _declare_static_dims(model: onnx.ModelProto, sizes: dict[str, tuple[int | None, ...]]) -> None:
+    """Set the named graph inputs' / outputs' dimensions to fixed sizes (None keeps a dimension as it is)."""
+    for value in (*model.graph.input, *model.graph.output):
+        for dim, size in zip(value.type.tensor_type.shape.dim, sizes.get(value.name, ())):
+            if size is not None:
+                dim.Clear()
+                dim.dim_value = size
+
+
 def _decode_node_names(model: onnx.ModelProto) -> set[str]:
-    """Nodes outside ``/slice_net/`` that consume (transitively) a slice_net output: the decode.
+    """The decode: nodes outside ``/slice_net/`` that consume (transitively) a slice_net output, plus the nodes
+    (constants) that feed only those.
 
     The scope test alone is not enough: the exporter also puts the Identity nodes that share one initializer
-    between two layers in the root scope, and those belong to the layers, not to the decode.
+    between two layers in the root scope, and those belong to the layers, not to the decode. The constants must
+    come along, or the fp16 converter rounds the decode's cell size and offsets to float16.
     """
-    from_net = {o for n in model.graph.node if n.name.startswith("/slice_net/") for o in n.output}
+    nodes = list(model.graph.node)
+    from_net = {o for n in nodes if n.name.startswith("/slice_net/") for o in n.output}
     names: set[str] = set()
-    for node in model.graph.node:  # exporter output is topologically sorted
+    for node in nodes:  # exporter output is topologically sorted
         if not node.name.startswith("/slice_net/") and any(i in from_net for i in node.input):
             names.add(node.name)
             from_net.update(node.output)
+    consumers: dict[str, list[str]] = {}
+    for node in nodes:
+        for i in node.input:
+            consumers.setdefault(i, []).append(node.name)
+    outputs = {o.name for o in model.graph.output}
+    changed = True
+    while changed:
+        changed = False
+        for node in nodes:
+            if node.name in names or node.name.startswith("/slice_net/"):
+                continue
+            users = [u for o in node.output for u in consumers.get(o, [])]
+            if users and all(u in names for u in users) and not any(o in outputs for o in node.output):
+                names.add(node.name)
+                changed = True
     return names
 
 

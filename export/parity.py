@@ -13,6 +13,14 @@ detection of the same label with the nearest centre in the other output; its box
 the tolerance, and a detection with no partner there is a failure. Detections at the top-K boundary are not
 compared, and how many were left out is recorded in the record's note.
 
+Near-ties: peak picking keeps a cell that equals the max of its 3x3 neighbourhood (same class). Where a cell and
+a neighbour differ by less than the other precision's error, the peak may move to the neighbour or vanish (the
+neighbour now beats it, but is itself beaten by another peak), or a non-peak may become one. Which cells are
+that close is read off the reference heatmap: ``peak_margins`` gives every cell's score minus the best of its
+eight neighbours. A detection whose cell's |margin| is within the score tolerance is a near-tie: left out of the
+comparison and counted. A trained model's confident peaks stand clear of their neighbours; an untrained model's
+flat heatmap is full of near-ties.
+
 The whole-pipeline check (fp16 graphs against fp32 graphs on the real sample) lives in ``pipeline_parity``.
 """
 
@@ -65,58 +73,135 @@ def compare_dense(
     return ParityRecord(graph, precision, reference, output, diff, rng, tol_rel, passed, note)
 
 
+# ---- near-ties -------------------------------------------------------------------------------------------
+
+
+def peak_margins(heatmap_logits: np.ndarray) -> np.ndarray:
+    """(Q, C, Hh, Wh) heatmap logits -> each cell's score (sigmoid) minus the largest of its 8 neighbours'.
+
+    > 0 on the decode's peaks, <= 0 elsewhere; the border counts as -inf (the max-pool pads that way).
+    """
+    heat = 1.0 / (1.0 + np.exp(-heatmap_logits.astype(np.float64)))
+    q, c, h, w = heat.shape
+    padded = np.full((q, c, h + 2, w + 2), -np.inf)
+    padded[:, :, 1:-1, 1:-1] = heat
+    best = np.full_like(heat, -np.inf)
+    for dy in (0, 1, 2):
+        for dx in (0, 1, 2):
+            if dy == 1 and dx == 1:
+                continue
+            best = np.maximum(best, padded[:, :, dy : dy + h, dx : dx + w])
+    return heat - best
+
+
+def cell_centres(reg: np.ndarray, cell_m: float) -> np.ndarray:
+    """(Q, 2, Hh, Wh) centre offsets (in cells) -> (Q, 2, Hh, Wh) decoded box centres x, y in metres (decode.py)."""
+    _, _, h, w = reg.shape
+    col = np.arange(w, dtype=np.float64)[None, None, :]
+    row = np.arange(h, dtype=np.float64)[None, :, None]
+    x = (col + 0.5 + reg[:, 0].astype(np.float64)) * cell_m  # (Q, Hh, Wh)
+    y = (row + 0.5 + reg[:, 1].astype(np.float64)) * cell_m
+    return np.stack([x, y], axis=1)
+
+
+def detection_margins(boxes: np.ndarray, labels: np.ndarray, margins: np.ndarray, centres: np.ndarray) -> np.ndarray:
+    """(Q, K) peak margin of each detection: that of the cell of its label whose decoded centre is nearest its box's.
+
+    boxes (Q, K, 9), labels (Q, K), margins (Q, C, Hh, Wh) from ``peak_margins``, centres (Q, 2, Hh, Wh).
+    """
+    q, k = labels.shape
+    out = np.zeros((q, k))
+    if k == 0:
+        return out
+    flat_centres = centres.reshape(q, 2, -1).transpose(0, 2, 1)  # (Q, Hh*Wh, 2)
+    flat_margins = margins.reshape(q, margins.shape[1], -1)  # (Q, C, Hh*Wh)
+    for qi in range(q):
+        d = np.abs(boxes[qi, :, None, :2].astype(np.float64) - flat_centres[qi, None]).max(axis=-1)  # (K, Hh*Wh)
+        cell = np.argmin(d, axis=1)  # (K,)
+        out[qi] = flat_margins[qi, labels[qi], cell]
+    return out
+
+
+# ---- detections as sets ----------------------------------------------------------------------------------
+
+
 def match_detections(
-    got: Sequence[np.ndarray], ref: Sequence[np.ndarray], score_tol: float, centre_tol: float
-) -> tuple[np.ndarray, np.ndarray, int, int]:
+    got: Sequence[np.ndarray],
+    ref: Sequence[np.ndarray],
+    score_tol: float,
+    centre_tol: float,
+    near_tie: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, int, int, int]:
     """Pair the reference's safely-in-top-K detections with the other output's (see the module doc).
 
-    got, ref: (det_boxes (Q, K, 9), det_scores (Q, K), det_labels (Q, K)). Returns (box_diff, score_diff) per
-    matched pair, each (N_matched,) max-abs, the number of reference detections left out at the top-K boundary,
-    and the number with no partner of the same label within ``centre_tol`` of its centre.
+    got, ref: (det_boxes (Q, K, 9), det_scores (Q, K), det_labels (Q, K)); near_tie (Q, K) bool flags reference
+    detections left out as near-ties. Returns (box_diff, score_diff) per matched pair, each (N_matched,) max-abs;
+    the number of reference detections left out at the top-K boundary; the number with no partner of the same
+    label within ``centre_tol`` of its centre (failures); and the number of near-ties left out.
     """
     gb, gs, gl = got
     rb, rs, rl = ref
     if gb.shape != rb.shape or gs.shape != rs.shape or gl.shape != rl.shape:
         raise ValueError(f"detection shapes differ: {gb.shape}/{gs.shape}/{gl.shape} vs {rb.shape}/{rs.shape}/{rl.shape}")
+    if near_tie is None:
+        near_tie = np.zeros(rs.shape, dtype=bool)
+    if near_tie.shape != rs.shape:
+        raise ValueError(f"near_tie has shape {near_tie.shape}, the detections {rs.shape}")
     box_diffs, score_diffs = [], []
-    boundary = unmatched = 0
+    boundary = unmatched = ties = 0
     for qi in range(rb.shape[0]):
         if rs.shape[1] == 0:
             continue
         kth = float(rs[qi].min())
         safe = rs[qi] > kth + score_tol  # (K,)
         boundary += int((~safe).sum())
-        idx = np.flatnonzero(safe)
+        ties += int((safe & near_tie[qi]).sum())
+        idx = np.flatnonzero(safe & ~near_tie[qi])
         if idx.size == 0:
             continue
-        # (n_safe, K) centre distance to every candidate of the same label
+        # (n, K) centre distance to every candidate of the same label
         dist = np.abs(gb[qi, None, :, :2] - rb[qi, idx, None, :2]).max(axis=-1).astype(np.float64)
         dist[gl[qi, None, :] != rl[qi, idx, None]] = np.inf
-        j = np.argmin(dist, axis=1)  # (n_safe,)
+        j = np.argmin(dist, axis=1)  # (n,)
         ok = dist[np.arange(idx.size), j] <= centre_tol
         unmatched += int((~ok).sum())
         box_diffs.append(np.abs(gb[qi, j[ok]] - rb[qi, idx[ok]]).max(axis=1))
         score_diffs.append(np.abs(gs[qi, j[ok]] - rs[qi, idx[ok]]))
     cat = lambda xs: np.concatenate(xs).astype(np.float64) if xs else np.zeros(0)  # noqa: E731
-    return cat(box_diffs), cat(score_diffs), boundary, unmatched
+    return cat(box_diffs), cat(score_diffs), boundary, unmatched, ties
 
 
 def compare_detections(
-    graph: str, precision: str, reference: str, got: Sequence[np.ndarray], ref: Sequence[np.ndarray], tol_rel: float
+    graph: str,
+    precision: str,
+    reference: str,
+    got: Sequence[np.ndarray],
+    ref: Sequence[np.ndarray],
+    tol_rel: float,
+    ref_margins: np.ndarray | None = None,
 ) -> list[ParityRecord]:
-    """Set-wise comparison of decoded top-K detections; one record per output (det_boxes, det_scores, det_labels)."""
+    """Set-wise comparison of decoded top-K detections; one record per output (det_boxes, det_scores, det_labels).
+
+    ``ref_margins`` (Q, K): the reference detections' peak margins (``detection_margins``); those within the score
+    tolerance are near-ties, left out and counted.
+    """
     rb, rs, rl = ref
     box_rng, score_rng = value_range(rb), value_range(rs)
-    box_diff, score_diff, boundary, unmatched = match_detections(got, ref, tol_rel * score_rng, tol_rel * box_rng)
+    score_tol = tol_rel * score_rng
+    near_tie = None if ref_margins is None else np.abs(ref_margins) <= score_tol
+    box_diff, score_diff, boundary, unmatched, ties = match_detections(got, ref, score_tol, tol_rel * box_rng, near_tie)
     matched = box_diff.size
-    note = f"{matched} detections matched as sets; {boundary} at the top-K boundary not compared; {unmatched} without a partner"
+    note = (
+        f"{matched} detections matched as sets; {boundary} at the top-K boundary and {ties} near-tie peaks (margin "
+        f"over a neighbour <= {score_tol:.3g}) not compared; {unmatched} without a partner"
+    )
     finite = all(bool(np.isfinite(x).all()) for x in got[:2])
     bd = float(box_diff.max()) if matched else 0.0
     sd = float(score_diff.max()) if matched else 0.0
     ok = finite and unmatched == 0
     return [
         ParityRecord(graph, precision, reference, "det_boxes", bd, box_rng, tol_rel, ok and bd <= tol_rel * box_rng, note),
-        ParityRecord(graph, precision, reference, "det_scores", sd, score_rng, tol_rel, ok and sd <= tol_rel * score_rng, note),
+        ParityRecord(graph, precision, reference, "det_scores", sd, score_rng, tol_rel, ok and sd <= score_tol, note),
         ParityRecord(graph, precision, reference, "det_labels", float(unmatched), float(rl.max() - rl.min()) if rl.size else 0.0,
                      tol_rel, ok, "labels must agree on every matched detection; max_abs_diff holds the unmatched count"),
     ]
@@ -130,29 +215,36 @@ def pipeline_parity(
     num_slices: int,
     num_points: int,
     num_pillars: int,
+    cell_m: float,
+    margins32: np.ndarray | None = None,
+    margins16: np.ndarray | None = None,
     score_threshold: float = PIPELINE_SCORE_THRESHOLD,
     centre_tol_m: float = PIPELINE_CENTRE_TOL_M,
-    pair_radius_m: float = 2.0,
 ) -> PipelineParity:
     """fp16 pipeline against fp32 pipeline: decoded boxes with score >= threshold.
 
     ``fp32`` / ``fp16``: det_boxes (Q, K, 9), det_scores (Q, K), det_labels (Q, K) of the slice graph, each fed by
-    its own precision's encoder and lifter. Boxes of the two runs are paired greedily by centre distance (same
-    quadrant and label, within ``pair_radius_m``). A pair, or an unpaired box, whose score lies within the band
-    ``FP16_TOL_REL * range(fp32 scores)`` of the threshold in either run may legitimately land on either side of
-    it: it is excluded from the count (``excluded_in_band``); so is an unpaired box within the band of its run's K-th
-    score, whose partner may have dropped out of the other run's top K (``excluded_at_top_k``). Every other box
-    above the threshold must be paired
-    with a box above the threshold in the other run, with centres within ``centre_tol_m``: then both runs count the
-    same boxes.
+    its own precision's encoder and lifter. ``margins32`` / ``margins16`` (Q, K): each box's peak margin in the
+    fp32 reference heatmap (``detection_margins``), None for no near-tie test.
+
+    Boxes of the two runs are paired greedily by centre distance (same quadrant and label, within two head cells,
+    ``2 * cell_m``). Left out of the count, and counted instead: a pair or unpaired box whose score lies within the
+    band ``FP16_TOL_REL * range(fp32 scores)`` of the threshold in either run (it may land on either side,
+    ``excluded_in_band``); an unpaired box within the band of its run's K-th score (its partner may have dropped
+    out of the other top K, ``excluded_at_top_k``); a pair or unpaired box whose peak margin is within the band
+    (a near-tie, see the module doc, ``excluded_near_ties``). Every other box above the threshold must be paired
+    with a box above the threshold in the other run, centres within ``centre_tol_m``: then both counts agree.
     """
     band = FP16_TOL_REL * value_range(fp32["det_scores"])
+    pair_radius_m = 2.0 * cell_m
     runs = []
-    for run in (fp32, fp16):
+    for run, margins in ((fp32, margins32), (fp16, margins16)):
         s = run["det_scores"]
         q = np.broadcast_to(np.arange(s.shape[0])[:, None], s.shape)
-        runs.append((run["det_boxes"].reshape(-1, 9).astype(np.float64), s.reshape(-1), run["det_labels"].reshape(-1), q.reshape(-1)))
-    (b32, s32, l32, q32), (b16, s16, l16, q16) = runs
+        tie = np.zeros(s.shape, dtype=bool) if margins is None else np.abs(margins) <= band
+        runs.append((run["det_boxes"].reshape(-1, 9).astype(np.float64), s.reshape(-1), run["det_labels"].reshape(-1),
+                     q.reshape(-1), tie.reshape(-1)))
+    (b32, s32, l32, q32, t32), (b16, s16, l16, q16, t16) = runs
     # Only boxes that may be above the threshold take part; a pair needs one of them.
     a32 = np.flatnonzero(s32 >= score_threshold - band)
     a16 = np.flatnonzero(s16 >= score_threshold - band)
@@ -167,36 +259,43 @@ def pipeline_parity(
         if pair16[i] < 0 and not taken[j]:
             pair16[i], taken[j] = j, True
 
-    def in_band(s: np.ndarray) -> np.ndarray:
-        return np.abs(s - score_threshold) <= band
+    def in_band(s: np.ndarray, around: np.ndarray | float) -> np.ndarray:
+        return np.abs(s - around) <= band
 
     paired = pair16 >= 0
-    ps32, ps16 = s32[a32[paired]], s16[a16[pair16[paired]]]
-    pair_band = in_band(ps32) | in_band(ps16)
-    pair_above = ~pair_band & (ps32 >= score_threshold) & (ps16 >= score_threshold)
-    pair_split = ~pair_band & ((ps32 >= score_threshold) != (ps16 >= score_threshold))  # one above, one clearly below
-    lone32, lone16 = s32[a32[~paired]], s16[a16[~taken]]
-    # A lone box just above its run's K-th score may have a partner that fell out of the other run's top K.
-    kth32 = fp32["det_scores"].min(axis=1)[q32[a32[~paired]]] if lone32.size else lone32
-    kth16 = fp16["det_scores"].min(axis=1)[q16[a16[~taken]]] if lone16.size else lone16
-    at_k32, at_k16 = (lone32 <= kth32 + band) & ~in_band(lone32), (lone16 <= kth16 + band) & ~in_band(lone16)
-    lone32_above = ~in_band(lone32) & ~at_k32 & (lone32 >= score_threshold)
-    lone16_above = ~in_band(lone16) & ~at_k16 & (lone16 >= score_threshold)
-    excluded = int(pair_band.sum() + in_band(lone32).sum() + in_band(lone16).sum())
-    excluded_top_k = int(at_k32.sum() + at_k16.sum())
-    count32 = int(pair_above.sum() + (pair_split & (ps32 >= score_threshold)).sum() + lone32_above.sum())
-    count16 = int(pair_above.sum() + (pair_split & (ps16 >= score_threshold)).sum() + lone16_above.sum())
-    # (lone boxes at the top-K boundary are left out of both counts, like those in the threshold band)
+    i32, i16 = a32[paired], a16[pair16[paired]]
+    ps32, ps16 = s32[i32], s16[i16]
+    pair_tie = t32[i32] | t16[i16]
+    pair_band = ~pair_tie & (in_band(ps32, score_threshold) | in_band(ps16, score_threshold))
+    counted = ~pair_tie & ~pair_band
+    pair_above = counted & (ps32 >= score_threshold) & (ps16 >= score_threshold)
+    pair_split = counted & ((ps32 >= score_threshold) != (ps16 >= score_threshold))  # one above, one clearly below
+
+    lone = []
+    for idx, s, t, run in ((a32[~paired], s32, t32, fp32), (a16[~taken], s16, t16, fp16)):
+        q = (q32 if run is fp32 else q16)[idx]
+        kth = run["det_scores"].min(axis=1)[q] if idx.size else np.zeros(0)
+        tie, band_thr = t[idx], in_band(s[idx], score_threshold)
+        at_k = ~tie & ~band_thr & in_band(s[idx], kth)
+        above = ~tie & ~band_thr & ~at_k & (s[idx] >= score_threshold)
+        lone.append((tie, band_thr & ~tie, at_k, above))
+    (lt32, lb32, lk32, la32), (lt16, lb16, lk16, la16) = lone
+
+    excluded_ties = int(pair_tie.sum() + lt32.sum() + lt16.sum())
+    excluded_band = int(pair_band.sum() + lb32.sum() + lb16.sum())
+    excluded_top_k = int(lk32.sum() + lk16.sum())
+    count32 = int(pair_above.sum() + (pair_split & (ps32 >= score_threshold)).sum() + la32.sum())
+    count16 = int(pair_above.sum() + (pair_split & (ps16 >= score_threshold)).sum() + la16.sum())
     centre = d[np.flatnonzero(paired)[pair_above], pair16[paired][pair_above]]
     max_d = float(centre.max()) if centre.size else math.nan
     passed = bool(
-        count32 == count16 and not pair_split.any() and not lone32_above.any() and not lone16_above.any()
+        count32 == count16 and not pair_split.any() and not la32.any() and not la16.any()
         and (centre.size == 0 or max_d <= centre_tol_m)
     )
     note = (
         f"band = {FP16_TOL_REL:g} x fp32 score range = {band:.3g}; {int(pair_above.sum())} boxes above in both runs; "
-        f"{int(pair_split.sum())} pairs split by the threshold, {int(lone32_above.sum())} fp32 and "
-        f"{int(lone16_above.sum())} fp16 boxes above it without a partner within {pair_radius_m:g} m"
+        f"{int(pair_split.sum())} pairs split by the threshold, {int(la32.sum())} fp32 and {int(la16.sum())} fp16 "
+        f"boxes above it without a partner within {pair_radius_m:g} m"
     )
     return PipelineParity(
         slice_index=slice_index,
@@ -207,8 +306,9 @@ def pipeline_parity(
         score_band=band,
         count_fp32=count32,
         count_fp16=count16,
-        excluded_in_band=excluded,
+        excluded_in_band=excluded_band,
         excluded_at_top_k=excluded_top_k,
+        excluded_near_ties=excluded_ties,
         max_centre_diff_m=max_d,
         centre_tolerance_m=centre_tol_m,
         passed=passed,

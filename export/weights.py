@@ -37,7 +37,7 @@ class WeightsSource:
 
     def describe(self) -> str:
         if self.checkpoint is None:
-            return f"fixed-seed initial weights (torch seed {self.seed}; untrained, heatmap logits spread)"
+            return f"fixed-seed initial weights (torch seed {self.seed}; untrained; heatmap logits spread, centre offsets zero)"
         return f"checkpoint {self.checkpoint}"
 
 
@@ -54,7 +54,7 @@ def load_detector(preset: Preset, checkpoint: str | os.PathLike | None, seed: in
     if checkpoint is None:
         torch.manual_seed(seed)
         det = build_detector(preset)
-        _spread_heatmap_logits(det)
+        _condition_untrained_head(det)
         return det.eval(), WeightsSource(None, None, seed)
     path = Path(checkpoint)
     if not path.is_file():
@@ -88,17 +88,21 @@ def load_detector(preset: Preset, checkpoint: str | os.PathLike | None, seed: in
     return det.eval(), WeightsSource(str(path), sha256_file(path), None)
 
 
-def _spread_heatmap_logits(det: StreamDetector) -> None:
-    """Redraw the heatmap output convs N(0, 0.5), keeping the prior bias.
+def _condition_untrained_head(det: StreamDetector) -> None:
+    """Condition the untrained head so the parity checks compare something (trained checkpoints load as they are).
 
-    At initialisation CenterPoint's heatmap is flat at the prior sigmoid(-2.19) ~ 0.1: every score of the top K
-    lies within ~1e-3 of it, so a tolerance "of the output's range" means nothing and the score threshold cuts
-    through a crowd of near-ties. With spread logits the untrained export's scores cover (0, 1) around the prior,
-    as a trained model's do, and the parity checks compare something. Trained checkpoints are loaded as they are.
+    - Heatmap output convs redrawn N(0, 0.5), prior bias kept. At initialisation CenterPoint's heatmap is flat at
+      the prior sigmoid(-2.19) ~ 0.1: every top-K score lies within ~1e-3 of it, so a tolerance "of the output's
+      range" means nothing. Spread logits cover more of (0, 1) around the prior, as a trained model's do.
+    - Centre-offset (reg) output convs zeroed: untrained offsets throw box centres cells away from their peak, so
+      a peak that moves to the neighbouring cell on a near-tie (see parity.py) could not be told from a wrong box.
+      With zero offsets every box sits at its cell's centre.
     """
     with torch.no_grad():
         for task in det.slice_net.head.tasks:
             task.branches["heatmap"][-1].weight.normal_(0.0, 0.5)
+            task.branches["reg"][-1].weight.zero_()
+            task.branches["reg"][-1].bias.zero_()
 
 
 def _state_dict(obj: object, path: Path) -> dict[str, torch.Tensor]:
