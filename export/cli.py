@@ -8,7 +8,7 @@ import click
 
 from streamdet.export.exporter import STEM_STRIDE, ExportError, ExportOptions, run_export
 from streamdet.export.manifest import LUT_NAME, MANIFEST_NAME
-from streamdet.export.onnx_export import DEFAULT_OPSET
+from streamdet.export.onnx_export import DEFAULT_OPSET, OPSET_RANGE
 from streamdet.models.presets import preset_names
 
 
@@ -41,7 +41,7 @@ def _parse_resolution(ctx: click.Context, param: click.Parameter, value: str | N
 @click.option("--slices", "num_slices", type=int, default=8, show_default=True,
               help="Slices per sweep (1, 2 or a multiple of 4); picks the LiDAR slice used for the parity checks.")
 @click.option("--fp16", is_flag=True, help="Also write fp16 siblings (*.fp16.onnx; inputs and outputs stay fp32) and check them.")
-@click.option("--opset", type=click.IntRange(14, 20), default=DEFAULT_OPSET, show_default=True, help="ONNX opset.")
+@click.option("--opset", type=click.IntRange(*OPSET_RANGE), default=DEFAULT_OPSET, show_default=True, help="ONNX opset.")
 @click.option("--out", "out_dir", type=click.Path(file_okay=False), default=None,
               help="Output directory (replaced if it holds an older export). Default: ./exports/<preset>.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Torch seed of the untrained weights when no checkpoint is used.")

@@ -140,6 +140,9 @@ def run_export(opts: ExportOptions, report: Report | None = None) -> ExportResul
         check_num_slices(opts.num_slices)
     except ValueError as e:
         raise ExportError(f"--slices: {e}") from None
+    lo, hi = ox.OPSET_RANGE
+    if isinstance(opts.opset, bool) or not isinstance(opts.opset, int) or not lo <= opts.opset <= hi:
+        raise ExportError(f"--opset must be an integer in [{lo}, {hi}], got {opts.opset!r}")
     out_dir = Path(opts.out_dir) if opts.out_dir is not None else Path("exports") / preset.name
     tmp = _make_staging_dir(out_dir)
     steps = _Steps(report, total=10 + (4 if opts.fp16 else 0))

@@ -26,6 +26,7 @@ from streamdet.models.decode import SliceDecoder
 from streamdet.models.detector import StreamDetector
 
 DEFAULT_OPSET = 17
+OPSET_RANGE = (14, 20)  # checked here end to end (14, 17, 18, 20); the TorchScript exporter stops at 20
 DECODE_SCOPE = "/decode/"
 TRACE_PIXELS = 64  # image crop the encoder is traced on (H, W dynamic)
 TRACE_CELLS = 16  # quadrant crop the lifter is traced on (declared static afterwards)
@@ -79,8 +80,9 @@ GRAPH_IO: dict[str, GraphIO] = {g.name: g for g in (IMAGE_ENCODER_IO, VOLUMETRIC
 
 def export_module(module: nn.Module, args: tuple[torch.Tensor, ...], io_spec: GraphIO, opset: int = DEFAULT_OPSET) -> onnx.ModelProto:
     """Trace ``module(*args)`` into an ONNX model with the names and dynamic axes of ``io_spec``."""
-    if not isinstance(opset, int) or not 13 <= opset <= 20:
-        raise ValueError(f"opset must be an int in [13, 20] (the TorchScript exporter's range), got {opset!r}")
+    lo, hi = OPSET_RANGE
+    if not isinstance(opset, int) or not lo <= opset <= hi:
+        raise ValueError(f"opset must be an int in [{lo}, {hi}], got {opset!r}")
     module = module.eval()
     buf = io.BytesIO()
     with torch.no_grad(), warnings.catch_warnings():

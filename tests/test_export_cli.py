@@ -133,6 +133,24 @@ def test_broken_calibration_file(tmp_path):
     assert not (tmp_path / "exp").exists() and _leftovers(tmp_path) == []
 
 
+def test_foreign_rig_exports_with_noise_images(tmp_path):
+    """A calibration of other cameras (not the bundled sample's): the LUT follows it and the parity inputs fall
+    back to seeded noise images, which the manifest says."""
+    from streamdet.data.sample import load_bundled_sample
+
+    doc = load_bundled_sample().rig.to_dict()
+    doc["cameras"] = doc["cameras"][:2]
+    for i, cam in enumerate(doc["cameras"]):
+        cam["name"] = f"CAM_{i}"
+    calib = tmp_path / "rig.json"
+    calib.write_text(json.dumps(doc))
+    result = _invoke(["--preset", "tiny", "--calibration", str(calib), "--out", str(tmp_path / "exp")])
+    assert result.exit_code == 0, result.output
+    m = read_manifest(tmp_path / "exp")
+    assert m.image.camera_names == ("CAM_0", "CAM_1") and m.lut.calibration_source == str(calib)
+    assert "seeded noise images" in m.source["parity_input"]
+
+
 @pytest.mark.slow
 def test_default_export_no_arguments(tmp_path, monkeypatch):
     """No arguments at all: small preset, bundled (or fixed-seed) weights, bundled calibration, ./exports/small."""
