@@ -1,0 +1,159 @@
+"""Stack several ``SampleItem``s into one training batch: the paper's crop-and-stack (Sec. III-C).
+
+Every slice contributes one map per quadrant it touches (one with n >= 4); the maps of all slices are stacked
+along Q, slice-major, quadrants increasing, exactly as the runtime stacks one slice's quadrants. So the BEV
+encoder and head see Q = (number of slice maps) and their batch norms share statistics across the batch.
+
+Image lane: the images of all samples are stacked along J and encoded in one call. The lifter runs on *lift
+entries*, each one quadrant volume of one sample; a slice map reads the image BEV of its entry (``map_source``).
+With camera mode "all" a sample's entry for quadrant q serves every slice in q (as the runtime's cached image
+BEV does); with "overlapping" each slice map gets its own entry whose LUT sends the non-overlapping cameras to
+the all-zero sentinel row, which is what zero features for those cameras would give.
+
+LUT rows of sample b shift by ``b * J * Hf * Wf`` and every sentinel moves to the batch's one sentinel row,
+``B * J * Hf * Wf`` (the feature table the lifter builds is ``(B * J * Hf * Wf + 1, C)``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from streamdet.calibration.lut import Lut, build_lut
+from streamdet.models.presets import Preset
+from streamdet.training.dataset import CAMERA_MODES, SampleItem
+
+
+@dataclass
+class Batch:
+    """One training batch; tensors only (plus counts), ready for ``.to(device)``."""
+
+    images: Tensor | None  # (B * J, H, W, 3) uint8
+    lut_index: Tensor | None  # (L, K, Z, Yq, Xq) int64 rows of the batch feature table
+    lut_weight: Tensor | None  # (L, K, Z, Yq, Xq) float32
+    map_source: Tensor | None  # (Qm,) int64 lift entry feeding each slice map
+    pillar_features: Tensor  # (P, M, 11) float32
+    pillar_mask: Tensor  # (P, M) float32
+    pillar_index: Tensor  # (P,) int64 into the stacked slice maps: map * Yq * Xq + row * Xq + col
+    heatmap: Tensor  # (Qm, num_classes, Hh, Wh) float32
+    index: Tensor  # (Qm, K_obj) int64
+    mask: Tensor  # (Qm, K_obj) bool
+    label: Tensor  # (Qm, K_obj) int64
+    box: Tensor  # (Qm, K_obj, 10) float32
+    num_samples: int
+    num_slices: int
+
+    @property
+    def num_maps(self) -> int:
+        return self.heatmap.shape[0]
+
+    def to(self, device: torch.device | str) -> "Batch":
+        moved = {}
+        for f in fields(self):
+            v = getattr(self, f.name)
+            moved[f.name] = v.to(device, non_blocking=True) if isinstance(v, Tensor) else v
+        return Batch(**moved)
+
+
+class Collator:
+    """``collate(items) -> Batch``; builds (and caches) one projection LUT per rig at the preset's image size."""
+
+    def __init__(self, preset: Preset, camera_mode: str = "all") -> None:
+        if camera_mode not in CAMERA_MODES:
+            raise ValueError(f"camera_mode must be one of {CAMERA_MODES}, got {camera_mode!r}")
+        self.preset = preset
+        self.camera_mode = camera_mode
+        self._luts: dict[str, Lut] = {}
+
+    def lut(self, rig) -> Lut:
+        key = rig.sha256()
+        if key not in self._luts:
+            img = self.preset.image
+            self._luts[key] = build_lut(rig, self.preset.grid, img.feature_stride, image_size=(img.width_px, img.height_px))
+        return self._luts[key]
+
+    def __call__(self, items: list[SampleItem]) -> Batch:
+        if not items:
+            raise ValueError("collate needs at least one sample")
+        p = self.preset
+        g = p.grid
+        cells = g.quadrant_ny * g.quadrant_nx
+        feats, masks, indices = [], [], []
+        heat, obj_index, obj_mask, obj_label, obj_box = [], [], [], [], []
+        map_source: list[int] = []
+        entries: list[tuple[int, int, tuple[str, ...] | None]] = []  # (sample b, quadrant, cameras or None = all)
+        entry_of: dict[tuple[int, int], int] = {}
+        num_maps = 0
+        for b, item in enumerate(items):
+            for sl in item.slices:
+                pil = sl.pillars
+                feats.append(pil.features)
+                masks.append(pil.mask)
+                # pillar_index is qi * cells + cell within the slice's own stack; shift to the batch stack.
+                indices.append(pil.index + num_maps * cells)
+                for q, t in zip(sl.quadrants, sl.targets):
+                    heat.append(t.heatmap)
+                    obj_index.append(t.index)
+                    obj_mask.append(t.mask)
+                    obj_label.append(t.label)
+                    obj_box.append(t.box)
+                    if p.use_image:
+                        if self.camera_mode == "all":
+                            key = (b, q)
+                            if key not in entry_of:
+                                entry_of[key] = len(entries)
+                                entries.append((b, q, None))
+                            map_source.append(entry_of[key])
+                        else:
+                            map_source.append(len(entries))
+                            entries.append((b, q, sl.camera_names))
+                    num_maps += 1
+
+        images = lut_index = lut_weight = source = None
+        if p.use_image:
+            images = torch.from_numpy(np.stack([it.images for it in items]))  # (B, J, H, W, 3)
+            num_cams = images.shape[1]
+            images = images.reshape(-1, *images.shape[2:])  # (B * J, H, W, 3)
+            idx, wgt = self._lift_entries(items, entries, num_cams)
+            lut_index, lut_weight = torch.from_numpy(idx), torch.from_numpy(wgt)
+            source = torch.tensor(map_source, dtype=torch.int64)
+
+        m = p.pillars.max_points_per_pillar
+        return Batch(
+            images=images,
+            lut_index=lut_index,
+            lut_weight=lut_weight,
+            map_source=source,
+            pillar_features=torch.from_numpy(np.concatenate(feats) if feats else np.zeros((0, m, 11), np.float32)),
+            pillar_mask=torch.from_numpy(np.concatenate(masks) if masks else np.zeros((0, m), np.float32)),
+            pillar_index=torch.from_numpy(np.concatenate(indices) if indices else np.zeros(0, np.int64)),
+            heatmap=torch.from_numpy(np.stack(heat)),
+            index=torch.from_numpy(np.stack(obj_index)),
+            mask=torch.from_numpy(np.stack(obj_mask)),
+            label=torch.from_numpy(np.stack(obj_label)),
+            box=torch.from_numpy(np.stack(obj_box)),
+            num_samples=len(items),
+            num_slices=sum(len(it.slices) for it in items),
+        )
+
+    def _lift_entries(self, items: list[SampleItem], entries, num_cams: int) -> tuple[np.ndarray, np.ndarray]:
+        rows_per_image = self.preset.image.feature_height * self.preset.image.feature_width
+        batch_sentinel = len(items) * num_cams * rows_per_image
+        out_idx, out_w = [], []
+        for b, q, cams in entries:
+            item = items[b]
+            lut = self.lut(item.rig)
+            if lut.num_cameras != num_cams:
+                raise ValueError(f"sample {item.sample_index}: its LUT has {lut.num_cameras} cameras but the batch images have {num_cams}")
+            idx = lut.index[q].astype(np.int64)  # (K, Z, Yq, Xq)
+            empty = idx == lut.sentinel
+            if cams is not None:
+                allowed = np.zeros(num_cams + 1, bool)  # the extra slot is the sentinel's "camera"
+                allowed[[item.rig.names.index(c) for c in cams]] = True
+                empty |= ~allowed[np.minimum(idx // rows_per_image, num_cams)]
+            out_idx.append(np.where(empty, batch_sentinel, idx + b * num_cams * rows_per_image))
+            out_w.append(lut.weight[q])
+        return np.stack(out_idx), np.stack(out_w).astype(np.float32)  # (L, K, Z, Yq, Xq) each

@@ -1,0 +1,100 @@
+"""Checkpoints as plain dicts of state dicts (``torch.load(path, weights_only=True)`` reads them).
+
+Training checkpoint (``save_training_state``)::
+
+    format      "streamdet-train-v1"
+    preset      Preset.to_dict() of the trained model (use_image tells the LiDAR-only baseline apart)
+    model       StreamDetector.state_dict()
+    optimizer   optimizer.state_dict()
+    scheduler   lr scheduler state_dict()
+    step        optimizer steps done; epoch, epoch_step: where the data order resumes
+    config      the TrainConfig as a dict (what the run was asked to do)
+
+Weights for shipping (``save_weights``): only ``format`` "streamdet-weights-v1", ``preset``, ``model`` (and an
+optional ``meta`` dict). Both have the ``{"preset", "model"}`` keys that ``streamdet.export.weights.load_detector``
+reads, so ``streamdet-export --checkpoint`` takes either. ``save_weights(..., half=True)`` stores float tensors as
+float16 to halve the file; ``load_weights`` casts them back to the model's dtypes.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from streamdet.models.detector import StreamDetector, build_detector
+from streamdet.models.presets import Preset
+
+TRAIN_FORMAT = "streamdet-train-v1"
+WEIGHTS_FORMAT = "streamdet-weights-v1"
+
+
+def _atomic_save(obj: dict, path: str | os.PathLike) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+def save_training_state(path: str | os.PathLike, *, preset: Preset, model: StreamDetector, optimizer, scheduler,
+                        step: int, epoch: int, epoch_step: int, config: dict[str, Any]) -> None:  # fmt: skip
+    _atomic_save(
+        {
+            "format": TRAIN_FORMAT,
+            "preset": preset.to_dict(),
+            "model": model.state_dict(),
+            "optimizer": optimizer.state_dict(),
+            "scheduler": scheduler.state_dict(),
+            "step": int(step),
+            "epoch": int(epoch),
+            "epoch_step": int(epoch_step),
+            "config": config,
+        },
+        path,
+    )
+
+
+def load_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
+    """The checkpoint dict; ValueError (one line) when it is missing, unreadable or lacks model / preset."""
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"checkpoint {path} does not exist or is not a file")
+    try:
+        obj = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # UnpicklingError, RuntimeError, EOFError, ... for a damaged file
+        first = (str(e).strip().splitlines() or [type(e).__name__])[0]
+        raise ValueError(f"checkpoint {path} cannot be read with weights_only=True: {first}") from None
+    if not isinstance(obj, dict) or not isinstance(obj.get("model"), dict) or not isinstance(obj.get("preset"), dict):
+        raise ValueError(f"checkpoint {path} is not a streamdet checkpoint (expected a dict with 'model' and 'preset')")
+    return obj
+
+
+def save_weights(path: str | os.PathLike, preset: Preset, model: StreamDetector, half: bool = False,
+                 meta: dict[str, Any] | None = None) -> None:  # fmt: skip
+    state = {k: (v.half() if half and v.is_floating_point() else v).clone() for k, v in model.state_dict().items()}
+    obj: dict[str, Any] = {"format": WEIGHTS_FORMAT, "preset": preset.to_dict(), "model": state}
+    if meta is not None:
+        obj["meta"] = meta
+    _atomic_save(obj, path)
+
+
+def load_weights(path: str | os.PathLike) -> tuple[StreamDetector, Preset]:
+    """A detector (eval mode) and its preset from a training checkpoint or shipped weights; float16 tensors are
+    cast back to the model's own dtypes."""
+    obj = load_checkpoint(path)
+    try:
+        preset = Preset.from_dict(obj["preset"])
+    except ValueError as e:
+        raise ValueError(f"checkpoint {path}: {e}") from None
+    model = build_detector(preset)
+    own = model.state_dict()
+    state = {k: v.to(own[k].dtype) if k in own else v for k, v in obj["model"].items()}
+    try:
+        model.load_state_dict(state, strict=True)
+    except RuntimeError as e:
+        first = str(e).strip().splitlines()[0]
+        raise ValueError(f"checkpoint {path} does not fit its own preset {preset.name!r}: {first}") from None
+    return model.eval(), preset

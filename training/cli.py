@@ -1,0 +1,93 @@
+"""``streamdet-train``: train a preset on a nuScenes-format dataset (e.g. one written by ``streamdet-synth``).
+
+Data parallel: ``torchrun --nproc_per_node 2 -m streamdet.training.cli --data DIR --out DIR ...`` (gloo on CPU).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+import torch.distributed as dist
+
+from streamdet.models.presets import preset_names
+from streamdet.training.dataset import CAMERA_MODES, DataConfig
+from streamdet.training.trainer import AMP_MODES, TrainConfig, train
+
+
+def _parse_slices(ctx, param, value: str) -> tuple[int, ...]:
+    try:
+        counts = tuple(int(v) for v in value.split(",") if v.strip())
+    except ValueError:
+        raise click.BadParameter(f"expected slice counts such as 8 or 8,32, got {value!r}") from None
+    if not counts:
+        raise click.BadParameter("give at least one slice count")
+    for n in counts:
+        if n < 1 or (n not in (1, 2) and n % 4):
+            raise click.BadParameter(f"slice count {n} must be 1, 2 or a multiple of 4 (sectors aligned to quadrants)")
+    return counts
+
+
+@click.command(context_settings={"help_option_names": ["-h", "--help"]})
+@click.option("--data", "data_dir", required=True, type=click.Path(file_okay=False, path_type=Path),
+              help="Dataset root (tables in DATA/<version>/, scenes split by DATA/splits.json); the 'train' split is used.")
+@click.option("--version", default="v1.0-synth", show_default=True, help="Name of the table folder (the nuScenes 'version').")
+@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path),
+              help="Output folder: last.pt (resumable), model.pt (weights for streamdet-export), metrics.jsonl, config.json.")
+@click.option("--preset", default="small", show_default=True, type=click.Choice(preset_names()), help="Model preset.")
+@click.option("--steps", type=click.IntRange(min=1), default=None, help="Optimizer steps (overrides --epochs).")
+@click.option("--epochs", type=click.IntRange(min=1), default=10, show_default=True, help="Passes over the training samples (when --steps is not given).")
+@click.option("--batch-size", type=click.IntRange(min=1), default=1, show_default=True,
+              help="Samples per process per step; each sample brings all its slices (8 quadrant maps at 8 slices).")
+@click.option("--lr", type=click.FloatRange(min=0, min_open=True), default=2e-3, show_default=True, help="Peak learning rate of the one-cycle schedule (AdamW).")
+@click.option("--num-slices", default="8", show_default=True, callback=_parse_slices,
+              help="Slice count per sweep, or several separated by commas (each sample draws one), e.g. 8,32.")
+@click.option("--max-slices-per-sample", type=click.IntRange(min=1), default=None,
+              help="Train on a random subset of this many slices of each sample (default: all of them).")
+@click.option("--no-image", is_flag=True, help="Train the LiDAR-only streaming baseline (no camera lane).")
+@click.option("--camera-mode", type=click.Choice(CAMERA_MODES), default="all", show_default=True,
+              help="all: a quadrant's image BEV comes from every camera, as at run time; overlapping: a slice sees only the cameras overlapping its sector.")
+@click.option("--resume", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Continue from a last.pt written by this command.")
+@click.option("--balanced", is_flag=True, help="Class-balanced (CBGS) resampling of the training samples.")
+@click.option("--workers", type=click.IntRange(min=0), default=0, show_default=True, help="DataLoader worker processes.")
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Seed of the weights and of the data order.")
+@click.option("--max-minutes", type=click.FloatRange(min=0, min_open=True), default=None,
+              help="Stop with a checkpoint once this much wall time has passed (the schedule still assumes --steps).")
+@click.option("--amp", type=click.Choice(AMP_MODES), default="auto", show_default=True,
+              help="Autocast: auto = fp16 on CUDA, off on CPU.")
+@click.option("--cache-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Keep decoded, resized images and sweeps here as .npy, reused by the next run (default: DATA/.streamdet_cache).")
+@click.option("--device", default=None, help="torch device (default: cuda if available, else cpu).")
+@click.option("--log-every", type=click.IntRange(min=1), default=10, show_default=True, help="Steps between progress lines.")
+@click.option("--checkpoint-every", type=click.IntRange(min=1), default=200, show_default=True, help="Steps between rewrites of last.pt.")
+def main(data_dir: Path, version: str, out_dir: Path, preset: str, steps: int | None, epochs: int, batch_size: int,
+         lr: float, num_slices: tuple[int, ...], max_slices_per_sample: int | None, no_image: bool, camera_mode: str,
+         resume: Path | None, balanced: bool, workers: int, seed: int, max_minutes: float | None, amp: str,
+         cache_dir: Path | None, device: str | None, log_every: int, checkpoint_every: int) -> None:  # fmt: skip
+    """Train the streaming camera + LiDAR detector (or its LiDAR-only baseline) with CenterPoint targets."""
+    if not (data_dir / version).is_dir():
+        raise click.ClickException(f"--data {data_dir}: no table folder {data_dir / version} (is --version right?)")
+    if resume is not None and not resume.is_file():
+        raise click.ClickException(f"--resume {resume} does not exist")
+    try:
+        config = TrainConfig(
+            preset=preset, use_image=not no_image, steps=steps, epochs=epochs, batch_size=batch_size, lr=lr, amp=amp,
+            balanced=balanced, workers=workers, seed=seed, max_minutes=max_minutes, log_every=log_every,
+            checkpoint_every=checkpoint_every,
+            data=DataConfig(num_slices=num_slices, max_slices_per_sample=max_slices_per_sample, camera_mode=camera_mode),
+        )  # fmt: skip
+    except ValueError as e:
+        raise click.ClickException(str(e)) from None
+    try:
+        train(config, data_dir, out_dir, version=version, resume=resume,
+              cache_dir=cache_dir if cache_dir is not None else data_dir / ".streamdet_cache", device=device,
+              echo=click.echo)  # fmt: skip
+    except (ValueError, FileNotFoundError) as e:
+        raise click.ClickException(str(e).splitlines()[0]) from None
+    finally:
+        if dist.is_available() and dist.is_initialized():
+            dist.destroy_process_group()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,36 @@
+"""The detector's training-time forward over a ``Batch`` (one module, so DistributedDataParallel can wrap it)."""
+
+from __future__ import annotations
+
+from torch import Tensor, nn
+
+from streamdet.models.detector import StreamDetector
+from streamdet.models.heads import HeadMaps
+from streamdet.training.batching import Batch
+
+
+class TrainingModel(nn.Module):
+    """``forward(batch) -> list of HeadMaps``, one per head task (``CenterHead.forward_tasks``), each map
+    (Qm, ch, Hh, Wh) over the batch's stacked slice maps. ``detector`` is the StreamDetector that is exported."""
+
+    def __init__(self, detector: StreamDetector) -> None:
+        super().__init__()
+        self.detector = detector
+
+    @property
+    def task_classes(self) -> tuple[tuple[int, ...], ...]:
+        return self.detector.slice_net.head.task_classes
+
+    def image_bev(self, batch: Batch) -> Tensor:
+        """(Qm, C, Yq, Xq): the lifted quadrant volumes, each slice map reading its lift entry."""
+        d = self.detector
+        if not d.preset.use_image:
+            g = d.preset.grid
+            return batch.pillar_features.new_zeros(batch.num_maps, d.preset.channels, g.quadrant_ny, g.quadrant_nx)
+        lifted = d.image_bev(batch.images, batch.lut_index, batch.lut_weight)  # (L, C, Yq, Xq)
+        return lifted.index_select(0, batch.map_source)  # (Qm, C, Yq, Xq)
+
+    def forward(self, batch: Batch) -> list[HeadMaps]:
+        net = self.detector.slice_net
+        bev = net.fused_bev(batch.pillar_features, batch.pillar_mask, batch.pillar_index, self.image_bev(batch))
+        return net.head.forward_tasks(bev)

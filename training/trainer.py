@@ -1,0 +1,313 @@
+"""The training loop: AdamW + one-cycle, gradient clipping, optional autocast, checkpoints, resume, metrics log.
+
+One step = one global batch of ``batch_size * world_size`` samples, each bringing its slices (see
+``dataset.py``). Under torchrun every process takes its shard from a ``DistributedSampler``; DDP averages the
+gradients, ``CrossProcessBatchNorm`` shares batch statistics, and the loss is normalised by the object count of
+the global batch and multiplied by the world size, so the update equals that of one process holding the whole
+global batch.
+
+Outputs in ``out_dir``: ``last.pt`` (training checkpoint, rewritten every ``checkpoint_every`` steps and at the
+end), ``model.pt`` (weights only, for ``streamdet-export --checkpoint``), ``metrics.jsonl`` (one JSON object per
+logged step: step, epoch, losses, lr, samples/s, slices/s, seconds) and ``config.json``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import time
+from collections.abc import Callable
+from contextlib import nullcontext
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch.nn.parallel import DistributedDataParallel
+from torch.utils.data import DataLoader, DistributedSampler, Subset
+
+from streamdet.models.detector import build_detector
+from streamdet.models.presets import Preset, get_preset
+from streamdet.training.batching import Batch, Collator
+from streamdet.training.checkpoint import load_checkpoint, save_training_state, save_weights
+from streamdet.training.dataset import DataConfig, SliceDataset, SampleStore, build_store, class_balanced_indices
+from streamdet.training.distributed import DistContext, all_reduce_sum, convert_batchnorm, init_distributed
+from streamdet.training.losses import CenterPointLoss, LossConfig, loss_terms
+from streamdet.training.model import TrainingModel
+
+AMP_MODES = ("auto", "off", "bf16", "fp16")
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    preset: str = "small"
+    use_image: bool = True  # False: the LiDAR-only streaming baseline (no image lane at all)
+    steps: int | None = None  # optimizer steps; None: epochs * steps per epoch
+    epochs: int = 10  # used when steps is None
+    batch_size: int = 1  # samples per process per step; each sample brings its slices (8 maps for n = 8)
+    lr: float = 2e-3  # one-cycle peak
+    weight_decay: float = 0.01  # AdamW
+    grad_clip: float = 35.0  # max global gradient norm (CenterPoint)
+    pct_start: float = 0.4  # one-cycle warm-up fraction (CenterPoint)
+    div_factor: float = 10.0  # start lr = lr / div_factor
+    final_div_factor: float = 1e4  # end lr = start lr / final_div_factor
+    amp: str = "auto"  # auto: fp16 autocast on CUDA, off on CPU (bf16 autocast was slower on an AVX2 CPU)
+    balanced: bool = False  # class-balanced (CBGS) resampling of the training samples
+    workers: int = 0  # DataLoader worker processes (0: load in the training process)
+    seed: int = 0
+    max_minutes: float | None = None  # stop (with a checkpoint) once this much wall time has passed
+    log_every: int = 10  # steps between progress lines / metrics records
+    checkpoint_every: int = 200  # steps between last.pt rewrites
+    data: DataConfig = field(default_factory=DataConfig)
+    loss: LossConfig = field(default_factory=LossConfig)
+
+    def __post_init__(self) -> None:
+        get_preset(self.preset)  # raises for an unknown name
+        if self.steps is not None and (isinstance(self.steps, bool) or not isinstance(self.steps, int) or self.steps < 1):
+            raise ValueError(f"TrainConfig.steps must be None or a positive integer, got {self.steps!r}")
+        for name in ("epochs", "batch_size", "log_every", "checkpoint_every"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ValueError(f"TrainConfig.{name} must be a positive integer, got {v!r}")
+        if isinstance(self.workers, bool) or not isinstance(self.workers, int) or self.workers < 0:
+            raise ValueError(f"TrainConfig.workers must be a non-negative integer, got {self.workers!r}")
+        for name in ("lr", "grad_clip", "div_factor", "final_div_factor"):
+            if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
+                raise ValueError(f"TrainConfig.{name} must be a positive number, got {getattr(self, name)!r}")
+        if not 0.0 < self.pct_start < 1.0:
+            raise ValueError(f"TrainConfig.pct_start must be in (0, 1), got {self.pct_start!r}")
+        if not self.weight_decay >= 0:
+            raise ValueError(f"TrainConfig.weight_decay must be >= 0, got {self.weight_decay!r}")
+        if self.amp not in AMP_MODES:
+            raise ValueError(f"TrainConfig.amp must be one of {AMP_MODES}, got {self.amp!r}")
+        if self.max_minutes is not None and not self.max_minutes > 0:
+            raise ValueError(f"TrainConfig.max_minutes must be > 0, got {self.max_minutes!r}")
+
+    def build_preset(self) -> Preset:
+        return dataclasses.replace(get_preset(self.preset), use_image=self.use_image)
+
+    def to_dict(self) -> dict[str, Any]:
+        return _jsonable(dataclasses.asdict(self))
+
+
+@dataclass(frozen=True)
+class TrainResult:
+    steps_done: int
+    seconds: float
+    stopped_early: bool  # max_minutes ran out before the planned steps
+    final_loss: float
+    checkpoint: Path | None  # last.pt (main process only)
+    weights: Path | None  # model.pt
+
+
+def _jsonable(x: Any) -> Any:
+    if isinstance(x, dict):
+        return {k: _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    return x
+
+
+def _amp_context(mode: str, device: torch.device):
+    if mode == "auto":
+        mode = "fp16" if device.type == "cuda" else "off"
+    if mode == "off":
+        return nullcontext(), False
+    dtype = torch.float16 if mode == "fp16" else torch.bfloat16
+    return torch.autocast(device_type=device.type, dtype=dtype), mode == "fp16" and device.type == "cuda"
+
+
+def make_loader(dataset: SliceDataset, config: TrainConfig, ctx: DistContext, collate: Collator) -> tuple[DataLoader, DistributedSampler]:
+    """Per-process loader over the (optionally class-balanced) sample list; drop_last keeps every step's global
+    batch full and the same on every process count."""
+    view = list(range(len(dataset)))
+    if config.balanced:
+        view = class_balanced_indices(dataset.class_sets(), config.seed).tolist()
+    source = Subset(dataset, view)
+    sampler = DistributedSampler(source, num_replicas=ctx.world_size, rank=ctx.rank, shuffle=True, seed=config.seed, drop_last=True)
+    if len(sampler) < config.batch_size:
+        raise ValueError(
+            f"{len(view)} training samples over {ctx.world_size} process(es) give {len(sampler)} per process, "
+            f"fewer than batch_size={config.batch_size}"
+        )
+    loader = DataLoader(source, batch_size=config.batch_size, sampler=sampler, collate_fn=collate, drop_last=True,
+                        num_workers=config.workers, persistent_workers=False)  # fmt: skip
+    return loader, sampler
+
+
+def train(
+    config: TrainConfig,
+    data_dir: str | Path,
+    out_dir: str | Path,
+    *,
+    version: str = "v1.0-synth",
+    resume: str | Path | None = None,
+    cache_dir: str | Path | None = None,
+    device: str | torch.device | None = None,
+    store: SampleStore | None = None,
+    echo: Callable[[str], None] = print,
+) -> TrainResult:
+    """Train on the ``train`` split of ``data_dir``; see the module docstring for what lands in ``out_dir``.
+
+    ``store`` skips reading the dataset (tests, or several runs over one store). ``resume`` continues a
+    ``last.pt``: model, optimizer, scheduler and data position, so the continuation is the uninterrupted run's.
+    """
+    t_start = time.perf_counter()
+    device = torch.device(device) if device is not None else torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    torch.set_flush_denormal(True)  # Adam's second moments of tiny gradients go denormal: 100x slower steps on CPU
+    ctx = init_distributed(device)
+    if device.type == "cuda":
+        device = torch.device("cuda", ctx.local_rank)
+    out_dir = Path(out_dir)
+    say = echo if ctx.is_main else (lambda _msg: None)
+    preset = config.build_preset()
+
+    if store is None:
+        size = (preset.image.width_px, preset.image.height_px) if preset.use_image else None
+        say(f"reading the train split of {data_dir} ({'images ' + f'{size[0]}x{size[1]}' if size else 'no images'})")
+        store = build_store(data_dir, "train", size, version=version, cache_dir=cache_dir)
+    dataset = SliceDataset(store, preset, config.data, seed=config.seed)
+    collate = Collator(preset, config.data.camera_mode)
+    loader, sampler = make_loader(dataset, config, ctx, collate)
+    steps_per_epoch = len(loader)
+    total_steps = config.steps if config.steps is not None else config.epochs * steps_per_epoch
+
+    torch.manual_seed(config.seed)
+    detector = build_detector(preset)
+    if ctx.initialised and ctx.world_size > 1:
+        convert_batchnorm(detector)
+    model = TrainingModel(detector).to(device).train()
+    wrapped = DistributedDataParallel(model) if ctx.initialised and ctx.world_size > 1 else model
+    optimizer = torch.optim.AdamW(model.parameters(), lr=config.lr / config.div_factor, weight_decay=config.weight_decay,
+                                  betas=(0.95, 0.999))  # fmt: skip
+    scheduler = torch.optim.lr_scheduler.OneCycleLR(
+        optimizer, max_lr=config.lr, total_steps=total_steps, pct_start=config.pct_start, div_factor=config.div_factor,
+        final_div_factor=config.final_div_factor, base_momentum=0.85, max_momentum=0.95, cycle_momentum=True,
+    )  # fmt: skip
+    criterion = CenterPointLoss(config.loss).to(device)
+    amp, use_scaler = _amp_context(config.amp, device)
+    scaler = torch.amp.GradScaler("cuda", enabled=use_scaler)
+
+    step, epoch, epoch_step = 0, 0, 0
+    if resume is not None:
+        state = load_checkpoint(resume)
+        for key in ("optimizer", "scheduler", "step", "epoch", "epoch_step"):
+            if key not in state:
+                raise ValueError(f"checkpoint {resume} lacks {key!r}: it holds weights only, it cannot resume a run")
+        if state["preset"] != preset.to_dict():
+            raise ValueError(f"checkpoint {resume} was trained with another preset than {preset.name!r} (use_image={preset.use_image})")
+        detector.load_state_dict(state["model"])
+        optimizer.load_state_dict(state["optimizer"])
+        scheduler.load_state_dict(state["scheduler"])
+        step, epoch, epoch_step = int(state["step"]), int(state["epoch"]), int(state["epoch_step"])
+        say(f"resumed {resume} at step {step} (epoch {epoch}, batch {epoch_step})")
+        if step >= total_steps:
+            raise ValueError(f"checkpoint {resume} is at step {step}, the run plans {total_steps}: nothing left to train")
+
+    if ctx.is_main:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        (out_dir / "config.json").write_text(json.dumps({"train": config.to_dict(), "preset": preset.to_dict(),
+                                                         "data_dir": str(data_dir), "world_size": ctx.world_size}, indent=1))  # fmt: skip
+    log_file = open(out_dir / "metrics.jsonl", "a") if ctx.is_main else None
+    n_params = sum(p.numel() for p in model.parameters())
+    say(
+        f"training {preset.name} ({'camera + LiDAR' if preset.use_image else 'LiDAR only'}, {n_params / 1e6:.2f} M parameters) "
+        f"on {len(store)} samples, slices {list(config.data.num_slices)}, {ctx.world_size} process(es) x batch {config.batch_size}, "
+        f"{steps_per_epoch} steps/epoch, {total_steps} steps, device {device}"
+    )
+
+    def checkpoint() -> Path | None:
+        if not ctx.is_main:
+            return None
+        path = out_dir / "last.pt"
+        save_training_state(path, preset=preset, model=detector, optimizer=optimizer, scheduler=scheduler, step=step,
+                            epoch=epoch, epoch_step=epoch_step, config=config.to_dict())  # fmt: skip
+        return path
+
+    stopped_early = False
+    last_loss = math.nan
+    window = {"t": time.perf_counter(), "samples": 0, "slices": 0, "loss": 0.0, "parts": {}, "n": 0}
+    while step < total_steps and not stopped_early:
+        sampler.set_epoch(epoch)
+        dataset.set_epoch(epoch)
+        batches = iter(loader)
+        for _ in range(epoch_step):  # resume: skip the batches this epoch already used (same order: same seed)
+            next(batches)
+        for batch in batches:
+            batch = batch.to(device)
+            with amp:
+                task_maps = wrapped(batch)
+            terms = loss_terms([tuple(m.float() for m in maps) for maps in task_maps], model.task_classes,
+                               batch.heatmap, batch.index, batch.mask, batch.label, batch.box)  # fmt: skip
+            counts = all_reduce_sum(terms.num_objects, ctx)
+            loss, parts = criterion(terms, counts, scale=float(ctx.world_size))
+            optimizer.zero_grad(set_to_none=True)
+            scaler.scale(loss).backward()
+            scaler.unscale_(optimizer)
+            torch.nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
+            scaler.step(optimizer)
+            scaler.update()
+            scheduler.step()
+            step += 1
+            epoch_step += 1
+
+            last_loss = float(loss.detach()) / ctx.world_size  # this process's share of the global loss
+            window["samples"] += batch.num_samples
+            window["slices"] += batch.num_slices
+            window["loss"] += last_loss
+            for k, v in parts.items():
+                window["parts"][k] = window["parts"].get(k, 0.0) + float(v) / ctx.world_size
+            window["n"] += 1
+            if step % config.log_every == 0 or step == total_steps:
+                _log(window, step, total_steps, epoch, scheduler, ctx, t_start, say, log_file)
+            if step % config.checkpoint_every == 0:
+                checkpoint()
+            if config.max_minutes is not None:
+                over = torch.tensor([float(time.perf_counter() - t_start > 60 * config.max_minutes)])
+                if float(all_reduce_sum(over, ctx)) > 0:  # every process stops at the same step
+                    stopped_early = step < total_steps
+                    break
+            if step >= total_steps:
+                break
+        else:
+            epoch += 1
+            epoch_step = 0
+    if window["n"]:
+        _log(window, step, total_steps, epoch, scheduler, ctx, t_start, say, log_file)
+    ckpt = checkpoint()
+    weights = None
+    if ctx.is_main:
+        weights = out_dir / "model.pt"
+        save_weights(weights, preset, detector, meta={"steps": step, "config": config.to_dict()})
+        log_file.close()
+    seconds = time.perf_counter() - t_start
+    say(f"{'stopped by --max-minutes' if stopped_early else 'done'} after {step} steps in {seconds / 60:.1f} min; wrote {out_dir}")
+    return TrainResult(step, seconds, stopped_early, last_loss, ckpt, weights)
+
+
+def _log(window: dict, step: int, total: int, epoch: int, scheduler, ctx: DistContext, t_start: float, say, log_file) -> None:
+    now = time.perf_counter()
+    dt = max(now - window["t"], 1e-9)
+    n = window["n"]
+    # the local share of the loss summed over processes is the global batch's loss
+    stats = all_reduce_sum(torch.tensor([window["loss"]] + list(window["parts"].values()), dtype=torch.float64), ctx)
+    loss = float(stats[0]) / n
+    parts = {k: float(v) / n for k, v in zip(window["parts"], stats[1:].tolist())}
+    samples_s = window["samples"] * ctx.world_size / dt
+    slices_s = window["slices"] * ctx.world_size / dt
+    elapsed = now - t_start
+    lr = scheduler.get_last_lr()[0]
+    eta = (total - step) * dt / n
+    say(
+        f"step {step:>6}/{total} ep {epoch:>3} loss {loss:7.4f} (hm {parts.get('heatmap', math.nan):.4f} "
+        f"reg {parts.get('reg', math.nan):.4f}) lr {lr:.2e} {samples_s:5.2f} samples/s {slices_s:6.1f} slices/s "
+        f"elapsed {elapsed / 60:5.1f} min eta {eta / 60:5.1f} min"
+    )
+    if log_file is not None:
+        record = {"step": step, "epoch": epoch, "loss": loss, **parts, "lr": lr, "samples_per_s": samples_s,
+                  "slices_per_s": slices_s, "elapsed_s": elapsed}  # fmt: skip
+        log_file.write(json.dumps(record) + "\n")
+        log_file.flush()
+    window.update(t=now, samples=0, slices=0, loss=0.0, parts={}, n=0)
