@@ -179,11 +179,9 @@ def _export_into(tmp: Path, preset: Preset, width: int, height: int, opts: Expor
     parity: list[ParityRecord] = []
     cams = list(inputs.cameras)
     images_read = inputs.images[cams]  # (J', H, W, 3): the cameras the parity quadrants read
-    fp32_runs: dict[str, dict[str, np.ndarray]] = {}
     with torch.no_grad():
         with steps("exporting image_encoder.onnx"):
-            images_t = torch.from_numpy(inputs.images)
-            model = ox.export_image_encoder(det, images_t[:1], opts.opset)  # one image traces fast; J is dynamic
+            model = ox.export_image_encoder(det, torch.from_numpy(images_read), opts.opset)
             _save_checked(model, tmp, "image_encoder", "fp32")
         with steps("parity image_encoder (onnxruntime fp32 vs PyTorch)"):
             enc = ort_session(str(tmp / graph_file_name("image_encoder", "fp32")))
@@ -223,7 +221,6 @@ def _export_into(tmp: Path, preset: Preset, width: int, height: int, opts: Expor
             parity.extend(compare_detections("slice_head", "fp32", "torch", dets, ref_dets, TORCH_TOL_REL, margins_of(ref_dets)))
             for p in parity[-3:]:
                 steps.note(_fmt(p))
-            fp32_runs["slice_head"] = dict(zip(ox.SLICE_HEAD_IO.outputs, dets))
         with steps("counting GMAC"):
             gmacs = _count_gmacs(det, inputs, lut_index, lut_weight)
             steps.note(", ".join(f"{k} {v:.2f}" for k, (v, _) in gmacs.items()))
@@ -252,7 +249,7 @@ def _export_into(tmp: Path, preset: Preset, width: int, height: int, opts: Expor
             (bev16,) = sessions16["volumetric_lifter"].run(None, {**lifter_feeds, "features": features16})
             dets16 = sessions16["slice_head"].run(None, {**pl.as_feeds(), "image_bev": bev16})
             pipeline = pipeline_parity(
-                fp32_runs["slice_head"],
+                dict(zip(ox.SLICE_HEAD_IO.outputs, dets)),
                 dict(zip(ox.SLICE_HEAD_IO.outputs, dets16)),
                 slice_index=inputs.slice_index,
                 num_slices=opts.num_slices,
@@ -275,7 +272,7 @@ def _export_into(tmp: Path, preset: Preset, width: int, height: int, opts: Expor
         entries = []
         for precision in ("fp32", "fp16") if opts.fp16 else ("fp32",):
             for name in ox.GRAPH_IO:
-                entries.append(_graph_entry(tmp, name, precision, opts.opset, gmacs[name], preset, lut))
+                entries.append(_graph_entry(tmp, name, precision, opts.opset, gmacs[name]))
         manifest = Manifest(
             preset_name=preset.name,
             preset=preset.to_dict(),
@@ -454,7 +451,7 @@ def _tensor_specs(values) -> tuple[TensorSpec, ...]:
     return tuple(specs)
 
 
-def _graph_entry(tmp: Path, name: str, precision: str, opset: int, gmac: tuple[float, dict], preset: Preset, lut: Lut) -> GraphEntry:
+def _graph_entry(tmp: Path, name: str, precision: str, opset: int, gmac: tuple[float, dict]) -> GraphEntry:
     path = tmp / graph_file_name(name, precision)
     model = onnx.load(str(path), load_external_data=False)
     return GraphEntry(
