@@ -117,7 +117,7 @@ def measure_rows(rows: list[Row], work_dir: Path, cfg: TableConfig, progress: Pr
             notes.append(f"fp16 conversion failed: {graphs.fp16_error}")
         torch_stats = None
         if cfg.torch_skip_ms is not None and fp32.median_ms > cfg.torch_skip_ms:
-            notes.append(f"PyTorch skipped (--quick, fp32 run {fp32.median_ms:.0f} ms > {cfg.torch_skip_ms:.0f} ms)")
+            notes.append(f"PyTorch skipped (fp32 run {fp32.median_ms:.0f} ms > {cfg.torch_skip_ms:.0f} ms, --quick)")
         else:
             progress(f"{step}: PyTorch eager")
             torch_stats = _time_torch(row, cfg)

@@ -7,7 +7,8 @@ import json
 import pytest
 from click.testing import CliRunner
 
-from streamdet.benchmarks.cli import image_resolutions, main
+from streamdet.benchmarks.cli import main
+from streamdet.benchmarks.run import image_resolutions
 
 ROW_KEYS = {"module", "gmac", "ms_fp32", "ms_fp16", "ms_torch", "gflops_per_s", "peak_fraction"}
 
@@ -73,6 +74,7 @@ def test_image_resolutions():
         (["--plot", "/nonexistent-dir/x.png"], "does not exist"),
         (["--export-dir", "/nonexistent-dir"], "does not exist"),
         (["--preset", "huge"], "'huge' is not one of"),
+        (["--resolution", "801x450"], "needs even sizes"),
     ],
 )
 def test_bad_input_is_one_line_error(args, message):

@@ -1,0 +1,165 @@
+"""One benchmark run, end to end: probe, Table 3 rows, probe again, export, streaming section, targets.
+
+``streamdet-bench`` is a thin wrapper over ``run_benchmark``; the result renders as the text report and the JSON
+document (benchmarks/report.py).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime
+import os
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+from streamdet.benchmarks import report
+from streamdet.benchmarks.flops_report import PAPER_RESOLUTIONS
+from streamdet.benchmarks.modules import build_rows
+from streamdet.benchmarks.probe import OtherCpuUse, ProbeConfig, ProbeResult, machine_info, measure_peak
+from streamdet.benchmarks.streaming import StreamingConfig, StreamingResult, measure_streaming
+from streamdet.benchmarks.table import RowResult, TableConfig, measure_rows
+from streamdet.benchmarks.timing import TimingConfig
+from streamdet.models.presets import get_preset
+
+Progress = Callable[[str], None]
+
+
+class BenchmarkError(Exception):
+    """A problem with the benchmark's inputs (the export, the export directory), stated in one line."""
+
+
+@dataclass(frozen=True)
+class BenchConfig:
+    preset: str = "small"
+    resolution: tuple[int, int] | None = None  # (W, H) of the given image row and the streaming export; None: preset's
+    slices: int = 8  # slices per sweep of the streaming section
+    fp16: bool = True  # also export and time fp16 graphs
+    repeat: int | None = None  # timed runs per measurement; None: 20, or 5 with quick
+    threads: int | None = None  # threads of the row measurements; None: every core
+    quick: bool = False  # fewer repeats, shorter streaming runs
+    torch_skip_ms: float | None = None  # no PyTorch timing of rows whose onnxruntime fp32 median exceeds this
+    export_dir: Path | None = None  # existing export for the streaming section; None: export to a temporary folder
+    profile_dir: Path | None = None  # onnxruntime profiles of every row graph
+    command: str = ""  # the command line, recorded in the metadata
+
+    @property
+    def given_resolution(self) -> tuple[int, int]:
+        if self.resolution is not None:
+            return self.resolution
+        image = get_preset(self.preset).image
+        return image.width_px, image.height_px
+
+    def timing(self) -> TimingConfig:
+        if self.quick:
+            return TimingConfig(repeat=self.repeat or 5, warmup=1, budget_s=2.0, min_repeat=2, slow_warmup_s=1.0)
+        return TimingConfig(repeat=self.repeat or 20, warmup=2, budget_s=15.0)
+
+    def probe(self) -> ProbeConfig:
+        return ProbeConfig(size=1024, runs=4, warmup=1) if self.quick else ProbeConfig()
+
+    def streaming(self) -> StreamingConfig:
+        cfg = StreamingConfig(num_slices=self.slices)
+        return dataclasses.replace(cfg, sweeps=2, image_updates=1, queue_sweeps=1) if self.quick else cfg
+
+
+@dataclass(frozen=True)
+class BenchResult:
+    meta: dict
+    peak: ProbeResult
+    rows: tuple[RowResult, ...]
+    streaming: StreamingResult
+    targets: tuple[report.Target, ...]
+
+    def text(self) -> str:
+        return report.format_report(self.meta, self.rows, self.peak, self.streaming, self.targets)
+
+    def document(self) -> dict:
+        return report.build_document(self.meta, self.rows, self.peak, self.streaming, self.targets)
+
+
+def image_resolutions(given: tuple[int, int]) -> list[tuple[int, int]]:
+    """The given resolution first, then the paper's others (all three of them when the given one is not the paper's)."""
+    return [given] + [r for r in PAPER_RESOLUTIONS if r != given]
+
+
+def _export(cfg: BenchConfig, out_dir: Path, progress: Progress) -> str | None:
+    """The export library's run (what streamdet-export does); a warning when its parity checks failed."""
+    from streamdet.export.exporter import ExportError, ExportOptions, run_export
+
+    opts = ExportOptions(preset=cfg.preset, resolution=cfg.given_resolution, num_slices=cfg.slices, fp16=cfg.fp16, out_dir=str(out_dir))
+    try:
+        result = run_export(opts, report=lambda msg: progress(f"  export: {msg}"))
+    except ExportError as e:
+        raise BenchmarkError(f"exporting {cfg.preset} for the streaming section: {e}") from None
+    if result.parity_passed:
+        return None
+    return "the export's parity checks failed (see its manifest.json); latencies are still valid"
+
+
+def run_benchmark(cfg: BenchConfig, progress: Progress = lambda msg: None) -> BenchResult:
+    preset = get_preset(cfg.preset)
+    threads = cfg.threads or os.cpu_count() or 1
+    timing = cfg.timing()
+    other_cpu = OtherCpuUse()
+    started = time.perf_counter()
+    meta = {
+        "date": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
+        "command": cfg.command,
+        "preset": cfg.preset,
+        "resolutions": [list(r) for r in image_resolutions(cfg.given_resolution)],
+        "slices": cfg.slices,
+        "threads": threads,
+        "repeat": timing.repeat,
+        "warmup": timing.warmup,
+        "budget_s": timing.budget_s,
+        "quick": cfg.quick,
+        "fp16": cfg.fp16,
+        "export_dir": str(cfg.export_dir) if cfg.export_dir is not None else "(temporary export)",
+        "machine": machine_info(threads),
+    }
+    with tempfile.TemporaryDirectory(prefix="streamdet_bench_") as tmp:
+        work = Path(tmp)
+        progress(f"peak probe ({threads} threads)")
+        peak = measure_peak(threads, cfg.probe())
+        progress(f"building the {cfg.preset} rows")
+        rows = build_rows(preset, image_resolutions(cfg.given_resolution))
+        table_cfg = TableConfig(
+            threads=threads,
+            timing=timing,
+            torch_skip_ms=cfg.torch_skip_ms,
+            profile_dir=cfg.profile_dir,
+            fp16=cfg.fp16,
+        )
+        results = measure_rows(rows, work, table_cfg, progress)
+        del rows  # the paper preset's modules and inputs hold gigabytes
+        progress("peak probe again (the best run of both counts: the machine is shared)")
+        peak = peak.merged(measure_peak(threads, cfg.probe()))
+
+        stream_dir = cfg.export_dir
+        if stream_dir is None:
+            stream_dir = work / "export"
+            w, h = cfg.given_resolution
+            progress(f"exporting {cfg.preset} at {w}x{h}, {cfg.slices} slices for the streaming section")
+            warning = _export(cfg, stream_dir, progress)
+            if warning:
+                progress(f"warning: {warning}")
+                meta["export_warning"] = warning
+        try:
+            streaming = measure_streaming(stream_dir, cfg.streaming(), progress)
+        except ValueError as e:  # a foreign or broken export directory
+            raise BenchmarkError(f"streaming section on {stream_dir}: {e}") from None
+    meta["seconds"] = round(time.perf_counter() - started, 1)
+    meta["other_cpu_use"] = other_cpu.cores()
+    targets = report.evaluate_targets(results, peak, streaming)
+    return BenchResult(meta, peak, tuple(results), streaming, tuple(targets))
+
+
+def write_plot(result: BenchResult, path: Path) -> Path:
+    from streamdet.benchmarks.plot import plot_rows
+
+    m = result.meta
+    return plot_rows(result.rows, path, f"streamdet {m['preset']}, {m['machine']['cpu_model']}, {m['threads']} threads")
+
