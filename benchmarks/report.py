@@ -215,6 +215,8 @@ def format_streaming(s: StreamingResult) -> str:
                 f"  slice time split ({label}): pre {pre:.0%} ({_stage(lane, 'pre')} ms p50), graph {graph:.0%} "
                 f"({_stage(lane, 'slice_head')} ms), post {post:.0%} ({_stage(lane, 'post')} ms); pre + post {pre + post:.0%}"
             )
+    for key, prof in sorted(s.profiles.items()):
+        lines.append(f"  profile {key}: {prof.run_ms:.2f} ms per run (median of {prof.runs}); {prof.format()}")
     lines.append(
         f"  real-time (10 Hz LiDAR, {s.num_slices} slices -> {s.slice_budget_ms:.2f} ms per slice): factor "
         f"{s.real_time_factor(s.idle):.2f} idle, {s.real_time_factor(s.busy):.2f} busy (<= 1 keeps up)"
@@ -292,6 +294,7 @@ def streaming_to_dict(s: StreamingResult) -> dict:
         "keeps_up_idle": s.real_time_factor(s.idle) <= REAL_TIME_FACTOR_MAX,
         "keeps_up_busy": s.real_time_factor(s.busy) <= REAL_TIME_FACTOR_MAX,
         "config": dataclasses.asdict(s.config),
+        "profiles": {k: v.to_dict(top=10) for k, v in s.profiles.items()},
     }
 
 

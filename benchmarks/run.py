@@ -19,7 +19,7 @@ from streamdet.benchmarks import report
 from streamdet.benchmarks.flops_report import PAPER_RESOLUTIONS
 from streamdet.benchmarks.modules import build_rows
 from streamdet.benchmarks.probe import OtherCpuUse, ProbeConfig, ProbeResult, machine_info, measure_peak
-from streamdet.benchmarks.streaming import StreamingConfig, StreamingResult, measure_streaming
+from streamdet.benchmarks.streaming import StreamingConfig, StreamingResult, measure_streaming, profile_streaming
 from streamdet.benchmarks.table import RowResult, TableConfig, measure_rows
 from streamdet.benchmarks.timing import TimingConfig
 from streamdet.models.presets import get_preset
@@ -149,6 +149,9 @@ def run_benchmark(cfg: BenchConfig, progress: Progress = lambda msg: None) -> Be
                 meta["export_warning"] = warning
         try:
             streaming = measure_streaming(stream_dir, cfg.streaming(), progress)
+            if cfg.profile_dir is not None:
+                profiles = profile_streaming(stream_dir, cfg.streaming(), cfg.profile_dir, progress)
+                streaming = dataclasses.replace(streaming, profiles=profiles)
         except ValueError as e:  # a foreign or broken export directory
             raise BenchmarkError(f"streaming section on {stream_dir}: {e}") from None
     meta["seconds"] = round(time.perf_counter() - started, 1)

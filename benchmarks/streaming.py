@@ -17,14 +17,19 @@ Real-time factor = slice p50 / (100 ms / N) for a 10 Hz LiDAR delivering N slice
 from __future__ import annotations
 
 import collections
+import contextlib
+import dataclasses
+import shutil
+import tempfile
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from streamdet.benchmarks.ort_profile import ProfileSummary, summarize_profile
 from streamdet.benchmarks.timing import TimingStats, summarize
 from streamdet.data.sample import load_bundled_sample
 from streamdet.data.slicing import split_sweep
@@ -179,6 +184,7 @@ class StreamingResult:
     sequential_images_superseded: int
     sequential_horizon_ms: float
     config: StreamingConfig
+    profiles: dict[str, ProfileSummary] = dataclasses.field(default_factory=dict)  # profile_streaming's, if run
 
     @property
     def busy_over_idle_p95(self) -> float:
@@ -188,8 +194,15 @@ class StreamingResult:
         return lane.latency.median_ms / self.slice_budget_ms
 
 
-def _images_at(sample_images: np.ndarray, names: Sequence[str]) -> dict[str, np.ndarray]:
-    return {n: np.ascontiguousarray(sample_images[i]) for i, n in enumerate(names)}
+def _bundled_inputs(det: StreamingDetector) -> tuple[dict[str, np.ndarray], list[np.ndarray]]:
+    """The bundled sample's camera images at the export's size (name -> (H, W, 3) uint8) and its sweep's slices."""
+    img = det.manifest.image
+    sample = load_bundled_sample()
+    if tuple(sample.rig.names) != det.camera_names:
+        raise ValueError(f"the bundled sample's cameras {list(sample.rig.names)} differ from the export's {list(det.camera_names)}")
+    stacked = sample.load_images((img.width, img.height))  # (J, H, W, 3) in rig order
+    images = {name: np.ascontiguousarray(stacked[i]) for i, name in enumerate(det.camera_names)}
+    return images, split_sweep(sample.points, det.num_slices, det.config.start_deg)
 
 
 def _time_slices(det: StreamingDetector, slices: Sequence[np.ndarray], sweeps: int) -> list[float]:
@@ -202,15 +215,77 @@ def _time_slices(det: StreamingDetector, slices: Sequence[np.ndarray], sweeps: i
     return out
 
 
+@contextlib.contextmanager
+def busy_image_lane(det: StreamingDetector, images: dict[str, np.ndarray]) -> Iterator[list[int]]:
+    """A thread calls ``update_images`` back to back until the block ends (then the running update finishes).
+
+    Yields a one-element list counting the updates finished so far. The block starts once the first update is
+    under way, so everything inside it runs against a busy image lane.
+    """
+    stop, started = threading.Event(), threading.Event()
+    finished = [0]
+
+    def loop() -> None:
+        while not stop.is_set():
+            started.set()
+            det.update_images(images)
+            finished[0] += 1
+
+    worker = threading.Thread(target=loop, name="bench-image-lane", daemon=True)
+    worker.start()
+    started.wait()
+    try:
+        yield finished
+    finally:
+        stop.set()
+        worker.join()
+
+
+def _detector(export_dir: Path, cfg: StreamingConfig, profiling: bool = False) -> StreamingDetector:
+    return StreamingDetector(
+        export_dir,
+        DetectorConfig(
+            precision=cfg.precision, image_lane_threads=1, slice_lane_threads=1, num_slices=cfg.num_slices, enable_profiling=profiling
+        ),
+    )
+
+
+def profile_streaming(export_dir: str | Path, cfg: StreamingConfig, profile_dir: Path, progress: Progress = lambda msg: None) -> dict[str, ProfileSummary]:
+    """onnxruntime profiles of the slice lane with the image lane idle and busy (fresh profiling sessions per phase).
+
+    Keys ``"<phase>/<graph>"``; the JSON files go to ``profile_dir/streaming_<phase>.<graph>.json``. The sessions read
+    the export through symbolic links in a temporary folder, where onnxruntime writes its profiles, so the export
+    directory itself is never written to.
+    """
+    profile_dir.mkdir(parents=True, exist_ok=True)
+    summaries: dict[str, ProfileSummary] = {}
+    with tempfile.TemporaryDirectory(prefix="streamdet_stream_profile_") as tmp:
+        view = Path(tmp)
+        for f in Path(export_dir).iterdir():
+            (view / f.name).symlink_to(f.resolve())
+        for phase in ("idle", "busy"):
+            progress(f"[streaming] profiling the slice lane, image lane {phase}: {cfg.sweeps} sweep(s)")
+            det = _detector(view, cfg, profiling=True)
+            images, slices = _bundled_inputs(det)
+            det.update_images(images)
+            if phase == "idle":
+                _time_slices(det, slices, cfg.sweeps)
+            else:
+                with busy_image_lane(det, images):
+                    _time_slices(det, slices, cfg.sweeps)
+            for written in det.close():
+                graph = Path(written).name.split(".profile")[0]
+                target = profile_dir / f"streaming_{phase}.{graph}.json"
+                shutil.move(written, target)
+                summaries[f"{phase}/{graph}"] = summarize_profile(target)
+    return summaries
+
+
 def measure_streaming(export_dir: str | Path, cfg: StreamingConfig = StreamingConfig(), progress: Progress = lambda msg: None) -> StreamingResult:
-    det = StreamingDetector(export_dir, DetectorConfig(precision=cfg.precision, image_lane_threads=1, slice_lane_threads=1, num_slices=cfg.num_slices))
+    det = _detector(Path(export_dir), cfg)
     n = det.num_slices
     img = det.manifest.image
-    sample = load_bundled_sample()
-    if tuple(sample.rig.names) != det.camera_names:
-        raise ValueError(f"the bundled sample's cameras {list(sample.rig.names)} differ from the export's {list(det.camera_names)}")
-    images = _images_at(sample.load_images((img.width, img.height)), det.camera_names)  # name -> (H, W, 3) uint8
-    slices = split_sweep(sample.points, n, det.config.start_deg)
+    images, slices = _bundled_inputs(det)
     budget_ms = 1000.0 / cfg.lidar_hz / n
 
     progress(f"[streaming] image lane alone: {cfg.image_updates} + 1 warm-up update(s) of {len(images)} cameras")
@@ -234,26 +309,10 @@ def measure_streaming(export_dir: str | Path, cfg: StreamingConfig = StreamingCo
     idle = LaneStats(summarize(_time_slices(det, slices, cfg.sweeps)), det.stats.summary())
 
     progress(f"[streaming] (b) slices, image lane busy: {cfg.sweeps} sweep(s) of {n}")
-    stop = threading.Event()
-    started = threading.Event()
-    updates = [0]
-
-    def image_loop() -> None:
-        while not stop.is_set():
-            started.set()
-            det.update_images(images)
-            updates[0] += 1
-
     det.stats.reset()
-    worker = threading.Thread(target=image_loop, name="bench-image-lane", daemon=True)
-    worker.start()
-    started.wait()
-    try:
+    with busy_image_lane(det, images) as finished:
         busy_ms = _time_slices(det, slices, cfg.sweeps)
-        busy_updates = updates[0]
-    finally:
-        stop.set()
-        worker.join()
+        busy_updates = finished[0]
     busy = LaneStats(summarize(busy_ms), det.stats.summary())
 
     jobs = arrival_schedule(n, cfg.lidar_hz, cfg.image_hz, cfg.queue_sweeps)

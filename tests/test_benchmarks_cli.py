@@ -48,6 +48,8 @@ def test_quick_tiny_run_writes_documented_json(quick_run):
     assert all(t["met"] in (True, False, None) for t in doc["targets"])
     assert (d / "b.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert len(list((d / "prof").glob("*.fp32.json"))) == 9
+    assert {"idle/slice_head", "busy/slice_head", "busy/image_encoder"} <= set(s["profiles"])
+    assert (d / "prof" / "streaming_busy.slice_head.json").is_file()
 
 
 def test_quick_tiny_run_prints_the_table(quick_run):
