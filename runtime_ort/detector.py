@@ -14,7 +14,9 @@ GIL and each graph has its own session and thread pool, so a slice does not wait
 
 from __future__ import annotations
 
+import importlib.resources
 import logging
+import math
 import threading
 import time
 from dataclasses import dataclass, field
@@ -27,7 +29,7 @@ from streamdet.calibration.camera import Rig
 from streamdet.calibration.grid import GridSpec, check_num_slices, quadrants_of_sector, sector_bounds_deg
 from streamdet.calibration.lut import Lut, build_lut
 from streamdet.data.slicing import split_sweep
-from streamdet.export.manifest import Manifest, read_manifest
+from streamdet.export.manifest import ImageSpec, Manifest, read_manifest
 from streamdet.runtime_ort.nms import NmsConfig
 from streamdet.runtime_ort.pillarize import POINT_DIM, pillarize
 from streamdet.runtime_ort.postprocess import Detections, PostprocessConfig, aggregate_sweep, postprocess_slice
@@ -37,6 +39,7 @@ from streamdet.runtime_ort.stats import LatencyStats
 log = logging.getLogger(__name__)
 
 PRECISIONS = ("fp32", "fp16", "int8")
+BUNDLED_PREFIX = "bundled:"  # calibration_source of an export built from a file shipped in streamdet.data
 
 
 @dataclass(frozen=True)
@@ -46,6 +49,9 @@ class DetectorConfig:
     image_lane_threads: int = 1  # intra-op threads of the image encoder and lifter sessions
     slice_lane_threads: int = 1  # intra-op threads of the slice session
     num_slices: int | None = None  # slices per sweep; None: the number the export was made for
+    # (W, H) px of the images fed to the encoder; None: the export's. The graphs are dynamic in H and W, so another
+    # size only needs a LUT built for it: from the export's calibration source at start, then set_calibration.
+    image_size: tuple[int, int] | None = None
     start_deg: float = 0.0  # azimuth where slice 0 starts (a multiple of 90)
     score_threshold: float | None = None  # None: the export's post.score_threshold
     nms: NmsConfig = field(default_factory=NmsConfig)  # per-class NMS inside a slice and across a sweep
@@ -56,6 +62,11 @@ class DetectorConfig:
     def __post_init__(self) -> None:
         if self.precision not in PRECISIONS:
             raise ValueError(f"DetectorConfig.precision must be one of {PRECISIONS}, got {self.precision!r}")
+        if self.image_size is not None:
+            size = tuple(self.image_size)
+            if len(size) != 2 or not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v > 0 for v in size):
+                raise ValueError(f"DetectorConfig.image_size must be (width, height) in positive pixels, got {self.image_size!r}")
+            object.__setattr__(self, "image_size", (int(size[0]), int(size[1])))
 
 
 @dataclass(frozen=True)
@@ -104,6 +115,7 @@ class StreamingDetector:
             )
         self.grid = GridSpec.from_dict(m.grid)
         self.camera_names: tuple[str, ...] = tuple(m.image.camera_names)
+        self.image: ImageSpec = _image_spec(m.image, config.image_size)  # what update_images takes
         self.num_slices = config.num_slices or m.num_slices
         check_num_slices(self.num_slices, config.start_deg)
         pillars = m.preset["pillars"]
@@ -124,7 +136,10 @@ class StreamingDetector:
         self.stats = LatencyStats()
 
         self._lock = threading.Lock()  # guards the swaps of _lut and _image; reads take a reference
-        self._lut = self._check_lut(Lut.load(self.export_dir / m.lut.file))
+        if (self.image.width, self.image.height) == (m.image.width, m.image.height):
+            self._lut = self._check_lut(Lut.load(self.export_dir / m.lut.file))
+        else:
+            self._lut = self._check_lut(self._build_lut(_export_rig(m, self.export_dir)))
         self._image: _ImageState | None = None
         log.info("streamdet: %s (%s, %d slices) on %s", self.export_dir, config.precision, self.num_slices, list(self.providers))
 
@@ -134,12 +149,12 @@ class StreamingDetector:
         return self._lut
 
     def _check_lut(self, lut: Lut) -> Lut:
-        img = self.manifest.image
+        img = self.image
         problems = []
         if tuple(lut.camera_names) != self.camera_names:
             problems.append(f"cameras {list(lut.camera_names)} != the export's {list(self.camera_names)}")
         if (lut.image_width, lut.image_height) != (img.width, img.height):
-            problems.append(f"image size {lut.image_width}x{lut.image_height} != the export's {img.width}x{img.height}")
+            problems.append(f"image size {lut.image_width}x{lut.image_height} != the detector's {img.width}x{img.height}")
         if (lut.feature_width, lut.feature_height, lut.feature_stride) != (img.feature_width, img.feature_height, img.feature_stride):
             problems.append(
                 f"feature map {lut.feature_width}x{lut.feature_height}/s{lut.feature_stride} != the export's "
@@ -161,11 +176,7 @@ class StreamingDetector:
             path = Path(calibration)
             calibration = Lut.load(path) if path.suffix == ".npz" else Rig.from_calibration_json(path)
         if isinstance(calibration, Rig):
-            img = self.manifest.image
-            rig = calibration
-            if tuple(rig.names) != self.camera_names:
-                raise ValueError(f"calibration cameras {list(rig.names)} != the export's {list(self.camera_names)}")
-            calibration = build_lut(rig, self.grid, img.feature_stride, image_size=(img.width, img.height))
+            calibration = self._build_lut(calibration)
         lut = self._check_lut(calibration)
         with self._lock:
             self._lut = lut
@@ -175,6 +186,12 @@ class StreamingDetector:
             with self._lock:
                 self._image = _ImageState(bev, state.features, state.timestamp, state.cameras_missing)
 
+    def _build_lut(self, rig: Rig) -> Lut:
+        if tuple(rig.names) != self.camera_names:
+            raise ValueError(f"calibration cameras {list(rig.names)} != the export's {list(self.camera_names)}")
+        img = self.image
+        return build_lut(rig, self.grid, img.feature_stride, image_size=(img.width, img.height))
+
     # ---- image lane ----------------------------------------------------------------------------
     def update_images(self, images: Mapping[str, np.ndarray], timestamp: float | None = None) -> ImageUpdate:
         """Encode and lift the given camera images (uint8 RGB (H, W, 3) by camera name) into the cached BEV.
@@ -182,7 +199,7 @@ class StreamingDetector:
         Cameras not given are allowed: their features are zeros. Unknown names, wrong sizes or dtypes raise.
         """
         timestamp = time.monotonic() if timestamp is None else float(timestamp)
-        img = self.manifest.image
+        img = self.image
         unknown = [n for n in images if n not in self.camera_names]
         if unknown:
             raise ValueError(f"unknown camera names {unknown}; this export knows {list(self.camera_names)}")
@@ -195,7 +212,7 @@ class StreamingDetector:
             if not isinstance(a, np.ndarray) or a.dtype != np.uint8 or a.shape != (img.height, img.width, 3):
                 got = f"{getattr(a, 'dtype', type(a).__name__)} {getattr(a, 'shape', '')}"
                 raise ValueError(
-                    f"image {name!r} must be uint8 RGB of shape ({img.height}, {img.width}, 3) for this export, got {got}"
+                    f"image {name!r} must be uint8 RGB of shape ({img.height}, {img.width}, 3) for this detector, got {got}"
                 )
         if missing:
             log.info("update_images: cameras %s missing, their features are zeros", list(missing))
@@ -203,6 +220,12 @@ class StreamingDetector:
         batch = np.stack([images[n] for n in used])  # (J_used, H, W, 3)
         with self.stats.time("image_encoder"):
             (enc,) = self.image_encoder.run({"images": batch})  # (J_used, C, Hf, Wf)
+        if enc.shape[2:] != (img.feature_height, img.feature_width):
+            # the LUT's rows address (Hf, Wf) maps: another size would gather the wrong cells without an error
+            raise ValueError(
+                f"image_encoder made {enc.shape[3]}x{enc.shape[2]} feature maps from {img.width}x{img.height} images, "
+                f"the LUT expects {img.feature_width}x{img.feature_height}"
+            )
         if missing:
             features = np.zeros((len(self.camera_names), *enc.shape[1:]), dtype=np.float32)  # (J, C, Hf, Wf)
             features[[self.camera_names.index(n) for n in used]] = enc
@@ -227,14 +250,17 @@ class StreamingDetector:
         return None if state is None else state.timestamp
 
     # ---- slice lane ----------------------------------------------------------------------------
-    def detect_slice(self, points: np.ndarray, slice_index: int, timestamp: float | None = None) -> SliceResult:
-        """Detections of slice `slice_index` from its (N, 6) float32 points (x, y, z, r, t, s).
+    def detect_slice(
+        self, points: np.ndarray, slice_index: int, timestamp: float | None = None, num_slices: int | None = None
+    ) -> SliceResult:
+        """Detections of slice `slice_index` of `num_slices` (None: the detector's) from its (N, 6) float32 points
+        (x, y, z, r, t, s).
 
         Uses the newest cached image BEV of the slice's quadrant(s) (zeros before the first image update).
         NaN / inf points are dropped and counted; an empty slice gives no detections.
         """
         timestamp = time.monotonic() if timestamp is None else float(timestamp)
-        n = self.num_slices
+        n = self._slices(num_slices)
         if isinstance(slice_index, bool) or not isinstance(slice_index, (int, np.integer)) or not 0 <= slice_index < n:
             raise ValueError(f"slice_index must be an int in [0, {n}), got {slice_index!r}")
         if not isinstance(points, np.ndarray) or points.ndim != 2 or points.shape[1] != POINT_DIM:
@@ -282,18 +308,30 @@ class StreamingDetector:
             return state.bev
         return np.ascontiguousarray(state.bev[list(quadrants)])  # (Q, C, Yq, Xq)
 
-    def detect_sweep(self, sweep: np.ndarray, timestamp: float | None = None) -> Detections:
-        """Slice a full (N, 5) sweep (x, y, z, intensity 0..255, ring), detect every slice, merge with per-class NMS.
+    def detect_sweep(self, sweep: np.ndarray, timestamp: float | None = None, num_slices: int | None = None) -> Detections:
+        """Slice a full (N, 5) sweep (x, y, z, intensity 0..255, ring) into `num_slices` (None: the detector's),
+        detect every slice, merge with per-class NMS.
 
-        This is how the paper evaluates a streaming model on a sweep.
+        This is how the paper evaluates a streaming model on a sweep; one detector (one cached image BEV) can
+        score several slice counts.
         """
+        n = self._slices(num_slices)
         sweep = np.asarray(sweep)
         if sweep.ndim != 2 or sweep.shape[1] != 5:
             raise ValueError(f"sweep must be (N, 5) x, y, z, intensity, ring; got shape {sweep.shape}")
-        slices = split_sweep(sweep.astype(np.float32, copy=False), self.num_slices, self.config.start_deg)
-        results = [self.detect_slice(pts, k, timestamp) for k, pts in enumerate(slices)]
+        slices = split_sweep(sweep.astype(np.float32, copy=False), n, self.config.start_deg)
+        results = [self.detect_slice(pts, k, timestamp, n) for k, pts in enumerate(slices)]
         with self.stats.time("sweep_nms"):
             return aggregate_sweep([r.detections for r in results], self.config.nms)
+
+    def _slices(self, num_slices: int | None) -> int:
+        if num_slices is None:
+            return self.num_slices
+        try:
+            check_num_slices(num_slices, self.config.start_deg)
+        except ValueError as e:
+            raise ValueError(f"num_slices: {e}") from None
+        return int(num_slices)
 
     # ---- lifetime ------------------------------------------------------------------------------
     def close(self) -> list[str]:
@@ -307,3 +345,27 @@ class StreamingDetector:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def _image_spec(exported: ImageSpec, size: tuple[int, int] | None) -> ImageSpec:
+    """The export's image spec, or the same cameras and stride at another (W, H)."""
+    if size is None or size == (exported.width, exported.height):
+        return exported
+    w, h = size
+    s = exported.feature_stride
+    return ImageSpec(w, h, s, math.ceil(w / s), math.ceil(h / s), exported.camera_names)  # the encoder's feature size
+
+
+def _export_rig(manifest: Manifest, export_dir: Path) -> Rig:
+    """The rig the export's LUT was built from (manifest.lut.calibration_source): bundled, or a file that still exists."""
+    source = manifest.lut.calibration_source
+    if source.startswith(BUNDLED_PREFIX):
+        path = Path(str(importlib.resources.files("streamdet.data"))) / source[len(BUNDLED_PREFIX):]
+    else:
+        path = Path(source)
+    if not path.is_file():
+        raise ValueError(
+            f"{export_dir}: DetectorConfig.image_size needs the export's calibration to rebuild the LUT, but "
+            f"{source!r} is not readable; re-export at that size or keep image_size=None"
+        )
+    return Rig.from_calibration_json(path)
