@@ -1,0 +1,347 @@
+"""``streamdet-study``: the robustness studies of ``streamdet.evaluation.studies`` from the command line.
+
+``streamdet-study slices|drop-camera|calib-noise|resolution [--export-dir DIR | --checkpoint FILE] --data DIR
+[--json PATH] [--plot PATH]`` prints the study's table, and writes every figure as JSON and a PNG plot
+(matplotlib, Agg backend) where asked. Only ``--checkpoint`` / ``--baseline-checkpoint`` need PyTorch.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import tempfile
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import click
+
+from streamdet.evaluation import studies as st
+from streamdet.runtime_ort.detector import PRECISIONS
+
+DEFAULT_EXPORT_DIR = Path("exports") / "small"
+ALL_SPLIT = "all"  # --split value that scores every sample of the dataset
+
+
+# ---- option parsing ----------------------------------------------------------------------------------------
+
+
+def _parse_ints(ctx, param, value: str) -> tuple[int, ...]:
+    try:
+        counts = tuple(int(v) for v in value.split(",") if v.strip())
+    except ValueError:
+        raise click.BadParameter(f"expected comma-separated integers such as 1,4,8,16,32, got {value!r}") from None
+    if not counts:
+        raise click.BadParameter("no slice count given")
+    return counts
+
+
+def _parse_resolution(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise click.BadParameter(f"expected WIDTHxHEIGHT in pixels such as 800x450, got {text!r}") from None
+    if not (16 <= w <= 4096 and 16 <= h <= 4096):
+        raise click.BadParameter(f"width and height must be 16..4096 pixels, got {text!r}")
+    return w, h
+
+
+def _parse_resolutions(ctx, param, values: tuple[str, ...]) -> tuple[tuple[int, int], ...]:
+    return tuple(_parse_resolution(v) for v in values) if values else st.DEFAULT_RESOLUTIONS
+
+
+def _parse_levels(ctx, param, values: tuple[str, ...]) -> tuple[tuple[float, float], ...]:
+    if not values:
+        return st.DEFAULT_NOISE_LEVELS
+    levels = []
+    for text in values:
+        try:
+            deg, cm = (float(v) for v in text.split(","))
+        except ValueError:
+            raise click.BadParameter(f"expected DEG,CM such as 1,10, got {text!r}") from None
+        if not (math.isfinite(deg) and math.isfinite(cm) and 0 <= deg < 180 and cm >= 0):
+            raise click.BadParameter(f"angle must be in [0, 180) deg and translation >= 0 cm, got {text!r}")
+        levels.append((deg, cm / 100.0))
+    return tuple(levels)
+
+
+def _common(f: Callable) -> Callable:
+    """Options every study takes: which model, which data, where the figures go."""
+    options = [
+        click.option("--export-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+                     help=f"Export directory made by streamdet-export (default {DEFAULT_EXPORT_DIR})."),
+        click.option("--checkpoint", type=click.Path(dir_okay=False, path_type=Path), default=None,
+                     help="Camera + LiDAR checkpoint to export into a temporary directory first (needs PyTorch); "
+                          "instead of --export-dir."),
+        click.option("--data", "data_dir", required=True, type=click.Path(exists=True, file_okay=False, path_type=Path),
+                     help="Dataset root in the nuScenes layout (e.g. written by streamdet-synth)."),
+        click.option("--version", default="v1.0-synth", show_default=True, help="Table folder of the dataset."),
+        click.option("--split", default="val", show_default=True,
+                     help=f"Split of DATA/splits.json to score, or '{ALL_SPLIT}' for every sample."),
+        click.option("--max-samples", type=click.IntRange(min=1), default=None,
+                     help="Score only the first N samples of the split (bounds the run time)."),
+        click.option("--precision", type=click.Choice(PRECISIONS), default="fp32", show_default=True,
+                     help="Graphs to run; the export must hold them."),
+        click.option("--threads", type=click.IntRange(min=1), default=1, show_default=True,
+                     help="Intra-op threads of each onnxruntime session."),
+        click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
+                     help="Write every figure of the study here as JSON."),
+        click.option("--plot", "plot_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
+                     help="Write a PNG plot of the study here."),
+    ]  # fmt: skip
+    for option in reversed(options):
+        f = option(f)
+    return f
+
+
+def _slices_option(f: Callable) -> Callable:
+    return click.option("--slices", "num_slices", type=click.IntRange(min=1), default=None,
+                        help="Slices per sweep (1, 2 or a multiple of 4); default the export's.")(f)  # fmt: skip
+
+
+# ---- running -----------------------------------------------------------------------------------------------
+
+
+class _Bar:
+    """A click progress bar over samples, opened on the first report (the sample count is known only then)."""
+
+    def __init__(self, label: str) -> None:
+        self.label = label
+        self.bar = None
+
+    def __call__(self, done: int, total: int) -> None:
+        if self.bar is None:
+            self.bar = click.progressbar(length=total, label=self.label, show_pos=True, file=click.get_text_stream("stderr"))
+            self.bar.__enter__()
+        self.bar.update(1)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.__exit__(None, None, None)
+
+
+@contextlib.contextmanager
+def _running(label: str) -> Iterator[_Bar]:
+    bar = _Bar(label)
+    try:
+        yield bar
+    except st.StudyError as e:
+        raise click.ClickException(str(e)) from None
+    except (OSError, ValueError) as e:  # unreadable data: missing tables or files, a bad split
+        raise click.ClickException(str(e).splitlines()[0] if str(e) else type(e).__name__) from None
+    finally:
+        bar.close()
+
+
+@contextlib.contextmanager
+def _export(export_dir: Path | None, checkpoint: Path | None, precision: str) -> Iterator[Path]:
+    """The export directory to run: the given one, the default, or a temporary export of --checkpoint."""
+    if export_dir is not None and checkpoint is not None:
+        raise click.UsageError("give --export-dir or --checkpoint, not both")
+    if checkpoint is None:
+        path = export_dir if export_dir is not None else DEFAULT_EXPORT_DIR
+        if not (path / "manifest.json").is_file():
+            hint = " (make it with streamdet-export or pass --checkpoint)" if export_dir is None else ""
+            raise click.BadParameter(f"{path} holds no manifest.json: not an export directory{hint}", param_hint="--export-dir")
+        yield path
+        return
+    if not checkpoint.is_file():
+        raise click.BadParameter(f"{checkpoint} does not exist", param_hint="--checkpoint")
+    with tempfile.TemporaryDirectory(prefix="streamdet-study-") as tmp:
+        click.echo(f"exporting {checkpoint} ({precision}) into a temporary directory ...", err=True)
+        try:
+            yield st.export_checkpoint(checkpoint, Path(tmp) / "export", precision)
+        except st.StudyError as e:
+            raise click.ClickException(str(e)) from None
+
+
+def _data(data_dir: Path, version: str, split: str, max_samples: int | None) -> st.StudyData:
+    return st.StudyData(data_dir, version, None if split == ALL_SPLIT else split, max_samples)
+
+
+def _report(result, json_path: Path | None, plot_path: Path | None, plot: Callable) -> None:
+    click.echo(result.format_table())
+    if json_path is not None:
+        try:
+            json_path.write_text(json.dumps(result.to_dict(), indent=1, allow_nan=False) + "\n")
+        except OSError as e:
+            raise click.ClickException(f"cannot write --json {json_path}: {e.strerror or e}") from None
+        click.echo(f"wrote {json_path}")
+    if plot_path is not None:
+        try:
+            plot(result, plot_path)
+        except OSError as e:
+            raise click.ClickException(f"cannot write --plot {plot_path}: {e.strerror or e}") from None
+        click.echo(f"wrote {plot_path}")
+
+
+# ---- plots -------------------------------------------------------------------------------------------------
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def plot_slices(result: st.SlicesResult, path: Path) -> None:
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(6, 4))
+    x = list(range(len(result.slice_counts)))
+    ax.plot(x, [100 * s.mean_ap for s in result.fused], "o-", label="fused (camera + LiDAR)")
+    if result.baseline is not None:
+        ax.plot(x, [100 * s.mean_ap for s in result.baseline], "s--", label="LiDAR-only baseline")
+    ax.set_xticks(x, [str(n) for n in result.slice_counts])
+    ax.set_xlabel("slices per sweep")
+    ax.set_ylabel("mAP (%)")
+    ax.set_ylim(bottom=0)
+    ax.set_title(f"mAP vs slices ({result.num_samples} samples)")
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def plot_drop_camera(result: st.DropCameraResult, path: Path) -> None:
+    plt = _pyplot()
+    labels = ["mAP", *(st.SHORT_CLASS.get(c, c) for c in result.classes)]
+    rows = [("all cameras", result.all_cameras), *((f"without {c}", s) for c, s in zip(result.cameras, result.without))]
+    fig, ax = plt.subplots(figsize=(max(6.0, 0.8 * len(labels) * len(rows)), 4))
+    width = 0.8 / len(rows)
+    for k, (name, score) in enumerate(rows):
+        values = [100 * score.mean_ap, *(100 * score.class_aps[c] for c in result.classes)]
+        ax.bar([i + (k - (len(rows) - 1) / 2) * width for i in range(len(labels))], values, width, label=name)
+    ax.set_xticks(range(len(labels)), labels)
+    ax.set_ylabel("AP (%)")
+    ax.set_title(f"A camera missing at inference ({result.num_slices} slices, {result.num_samples} samples)")
+    ax.grid(axis="y", alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def plot_calib_noise(result: st.CalibNoiseResult, path: Path) -> None:
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(6, 4))
+    x = list(range(len(result.levels)))
+    ax.errorbar(x, [100 * lv.mean_ap for lv in result.levels], yerr=[100 * lv.std_ap for lv in result.levels],
+                fmt="o-", capsize=4, label=f"noisy calibration (mean +- std, {len(result.seeds)} seeds)")  # fmt: skip
+    ax.axhline(100 * result.reference.mean_ap, color="gray", ls="--", label="true calibration")
+    ax.set_xticks(x, [f"{lv.max_angle_deg:g} deg\n{100 * lv.max_translation_m:g} cm" for lv in result.levels])
+    ax.set_xlabel("uniform extrinsic noise bound")
+    ax.set_ylabel("mAP (%)")
+    ax.set_ylim(bottom=0)
+    ax.set_title(f"mAP vs calibration noise ({result.num_slices} slices, {result.num_samples} samples)")
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def plot_resolution(result: st.ResolutionResult, path: Path) -> None:
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(6, 4))
+    x = list(range(len(result.rows)))
+    labels = [f"{r.width}x{r.height}" + ("*" if r.upsampled else "") for r in result.rows]
+    ax.bar(x, [100 * r.score.mean_ap for r in result.rows], 0.5, color="tab:blue", label="mAP")
+    ax.set_xticks(x, labels)
+    ax.set_ylabel("mAP (%)", color="tab:blue")
+    ax.set_xlabel("image size" + (" (* upsampled)" if any(r.upsampled for r in result.rows) else ""))
+    twin = ax.twinx()
+    twin.plot(x, [r.image_lane_p50_ms for r in result.rows], "o-", color="tab:red", label="image lane")
+    twin.set_ylabel(f"image lane median ms ({result.num_cameras} cameras)", color="tab:red")
+    twin.set_ylim(bottom=0)
+    ax.set_title(f"mAP and image-lane latency vs resolution ({result.num_samples} samples)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+# ---- commands ----------------------------------------------------------------------------------------------
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+def main() -> None:
+    """Robustness studies of a streaming export on a dataset (the paper's slices, missing camera, calibration
+    noise and resolution studies), run through the onnxruntime runtime."""
+
+
+@main.command()
+@_common
+@click.option("--counts", "slice_counts", default="1,4,8,16,32", show_default=True, callback=_parse_ints,
+              help="Slice counts to score, comma-separated (each 1, 2 or a multiple of 4).")  # fmt: skip
+@click.option("--baseline-export-dir", type=click.Path(exists=True, file_okay=False, path_type=Path), default=None,
+              help="Export of the LiDAR-only baseline, scored beside the fused model.")  # fmt: skip
+@click.option("--baseline-checkpoint", type=click.Path(exists=True, dir_okay=False, path_type=Path), default=None,
+              help="Checkpoint of the LiDAR-only baseline, evaluated with PyTorch (the exporter makes no LiDAR-only "
+                   "graphs); needs PyTorch.")  # fmt: skip
+def slices(export_dir, checkpoint, data_dir, version, split, max_samples, precision, threads, json_path, plot_path,
+           slice_counts, baseline_export_dir, baseline_checkpoint) -> None:  # fmt: skip
+    """mAP at 1, 4, 8, 16, 32 slices: the fused model beside the LiDAR-only baseline (the paper's Table 2)."""
+    if baseline_export_dir is not None and baseline_checkpoint is not None:
+        raise click.UsageError("give --baseline-export-dir or --baseline-checkpoint, not both")
+    runtime = st.RuntimeOptions(precision, threads)
+    with _export(export_dir, checkpoint, precision) as exp, _running("slices") as bar:
+        fused = st.OnnxSlicedDetector(exp, runtime)
+        baseline = None
+        if baseline_export_dir is not None:
+            baseline = st.OnnxSlicedDetector(baseline_export_dir, runtime)
+        elif baseline_checkpoint is not None:
+            baseline = st.torch_sliced_detector(baseline_checkpoint)
+        result = st.slices_study(fused, _data(data_dir, version, split, max_samples), slice_counts, baseline, bar)
+    _report(result, json_path, plot_path, plot_slices)
+
+
+@main.command("drop-camera")
+@_common
+@_slices_option
+@click.option("--camera", "cameras", multiple=True, default=(st.DEFAULT_DROPPED_CAMERA,), show_default=True,
+              help="Camera to remove at inference (repeat to study several, each on its own).")  # fmt: skip
+def drop_camera(export_dir, checkpoint, data_dir, version, split, max_samples, precision, threads, json_path,
+                plot_path, num_slices, cameras) -> None:  # fmt: skip
+    """mAP and per-class AP with a named camera missing at inference (the back camera by default)."""
+    runtime = st.RuntimeOptions(precision, threads)
+    with _export(export_dir, checkpoint, precision) as exp, _running("drop-camera") as bar:
+        result = st.drop_camera_study(exp, _data(data_dir, version, split, max_samples), cameras, runtime, num_slices, bar)
+    _report(result, json_path, plot_path, plot_drop_camera)
+
+
+@main.command("calib-noise")
+@_common
+@_slices_option
+@click.option("--level", "levels", multiple=True, callback=_parse_levels, metavar="DEG,CM",
+              help="Noise bound: every Euler angle uniform in +-DEG and every translation axis in +-CM, per camera "
+                   "(repeat; default 0.5,5 1,10 2,20 3,30 5,50).")  # fmt: skip
+@click.option("--seeds", type=click.IntRange(min=1), default=3, show_default=True,
+              help="Seeded draws per level (seeds 0..N-1); mean and std are reported.")  # fmt: skip
+def calib_noise(export_dir, checkpoint, data_dir, version, split, max_samples, precision, threads, json_path,
+                plot_path, num_slices, levels, seeds) -> None:  # fmt: skip
+    """mAP under uniform camera-extrinsic noise, the LUT rebuilt for each noisy calibration, the graphs untouched."""
+    runtime = st.RuntimeOptions(precision, threads)
+    with _export(export_dir, checkpoint, precision) as exp, _running("calib-noise") as bar:
+        result = st.calib_noise_study(exp, _data(data_dir, version, split, max_samples), levels, seeds, runtime, num_slices, bar)
+    _report(result, json_path, plot_path, plot_calib_noise)
+
+
+@main.command()
+@_common
+@_slices_option
+@click.option("--resolution", "resolutions", multiple=True, callback=_parse_resolutions, metavar="WxH",
+              help="Image size to feed the encoder (repeat; default 1600x900 1200x675 800x450).")  # fmt: skip
+def resolution(export_dir, checkpoint, data_dir, version, split, max_samples, precision, threads, json_path,
+               plot_path, num_slices, resolutions) -> None:  # fmt: skip
+    """mAP and image-lane latency with the camera images resized to each size (same graphs, LUT per size)."""
+    runtime = st.RuntimeOptions(precision, threads)
+    with _export(export_dir, checkpoint, precision) as exp, _running("resolution") as bar:
+        result = st.resolution_study(exp, _data(data_dir, version, split, max_samples), resolutions, runtime, num_slices, bar)
+    _report(result, json_path, plot_path, plot_resolution)
+
+
+if __name__ == "__main__":
+    main()
