@@ -165,5 +165,5 @@ def test_default_export_no_arguments(tmp_path, monkeypatch):
     result = _invoke([])
     assert result.exit_code == 0, result.output
     m = read_manifest(tmp_path / "exports" / "small")
-    assert m.preset_name == "small" and (m.image.width, m.image.height) == (800, 450)
+    assert m.preset_name == "small" and (m.image.width, m.image.height) == (384, 216)  # the small preset's native size
     assert m.lut.calibration_source.startswith("bundled:") and all(p.passed for p in m.parity)

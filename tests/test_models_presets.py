@@ -54,9 +54,9 @@ def test_paper_numbers():
 
 def test_small_and_tiny_sizes():
     s = get_preset("small")
-    assert (s.grid.quadrant_nx, s.grid.quadrant_ny, s.grid.nz) == (128, 128, 8)
+    assert (s.grid.quadrant_nx, s.grid.quadrant_ny, s.grid.nz) == (128, 128, 4)
     assert s.head_cell_m == pytest.approx(0.8) and s.image.backbone_depth == 18
-    assert (s.image.width_px, s.image.height_px) == (800, 450)
+    assert (s.image.width_px, s.image.height_px) == (384, 216) and s.image.width_divisor == 2
     t = get_preset("tiny")
     assert (t.grid.nx, t.grid.nz, t.channels) == (64, 4, 8)
     assert t.top_k == 50
