@@ -168,7 +168,8 @@ def _class_row(score: Score, classes: Sequence[str], width: int = 8) -> str:
 
 
 def _classes_line(classes: Sequence[str], num_samples: int) -> str:
-    return f"mAP and AP in %, nuScenes centre-distance AP; mAP averages {len(classes)} classes: {', '.join(classes)} ({num_samples} samples)"
+    return (f"mAP and AP in %, nuScenes centre-distance AP; mAP averages {len(classes)} classes: {', '.join(classes)} "
+            f"({num_samples} samples)")
 
 
 # ---- slices ------------------------------------------------------------------------------------------------
@@ -482,7 +483,8 @@ class CalibNoiseResult:
 
     def format_table(self) -> str:
         head = f"{'noise (deg, cm)':<18}{'mAP':>8}{'std':>7}{'change':>8}{'LUT moved':>11}" + _class_header(self.classes)
-        lines = [f"mAP under uniform extrinsic noise, {len(self.seeds)} seed(s) each ({self.num_slices} slices)", head, "-" * len(head)]
+        title = f"mAP under uniform extrinsic noise, {len(self.seeds)} seed(s) each ({self.num_slices} slices)"
+        lines = [title, head, "-" * len(head)]
         ref = self.reference
         lines.append(f"{'none (true)':<18}{100 * ref.mean_ap:>8.1f}{'':>7}{'':>8}{'':>11}" + _class_row(ref, self.classes))
         for lv in self.levels:
@@ -495,7 +497,8 @@ class CalibNoiseResult:
         lines += [
             "", _classes_line(self.classes, self.num_samples),
             "mean and sample std over seeds; per sample and seed a fresh draw per camera; the LUT is rebuilt for every "
-            "noisy rig, the graphs are untouched" + (" (sha256 checked after the run)" if self.graphs_untouched else " (SHA256 CHANGED!)"),
+            "noisy rig, the graphs are untouched"
+            + (" (sha256 checked after the run)" if self.graphs_untouched else " (GRAPH SHA256 CHANGED)"),
             "LUT moved: voxels whose first camera slot reads another feature cell than with the true calibration",
             f"model: {self.source}",
         ]  # fmt: skip
