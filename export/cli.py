@@ -7,6 +7,7 @@ import sys
 import click
 
 from streamdet.export.exporter import STEM_STRIDE, ExportError, ExportOptions, run_export
+from streamdet.export.int8 import DEFAULT_CALIBRATION_SAMPLES
 from streamdet.export.manifest import LUT_NAME, MANIFEST_NAME
 from streamdet.export.onnx_export import DEFAULT_OPSET, OPSET_RANGE
 from streamdet.models.presets import preset_names
@@ -41,15 +42,25 @@ def _parse_resolution(ctx: click.Context, param: click.Parameter, value: str | N
 @click.option("--slices", "num_slices", type=int, default=8, show_default=True,
               help="Slices per sweep (1, 2 or a multiple of 4); picks the LiDAR slice used for the parity checks.")
 @click.option("--fp16", is_flag=True, help="Also write fp16 siblings (*.fp16.onnx; inputs and outputs stay fp32) and check them.")
+@click.option("--int8", is_flag=True,
+              help="Also write int8 siblings (*.int8.onnx: static QDQ, int8 weights, uint8 activations; inputs and "
+                   "outputs stay fp32), calibrated on real samples, with their parity against fp32 in the manifest.")
+@click.option("--calibration-data", type=click.Path(), default=None, metavar="DIR",
+              help="nuScenes-format dataset (e.g. streamdet-synth output) whose train split calibrates the int8 graphs. "
+                   "Default: the bundled nuScenes sample.")
+@click.option("--calibration-samples", type=click.IntRange(min=1), default=DEFAULT_CALIBRATION_SAMPLES, show_default=True,
+              help="Samples drawn evenly from --calibration-data (each gives all its camera images and slices).")
 @click.option("--opset", type=click.IntRange(*OPSET_RANGE), default=DEFAULT_OPSET, show_default=True, help="ONNX opset.")
 @click.option("--out", "out_dir", type=click.Path(file_okay=False), default=None,
               help="Output directory (replaced if it holds an older export). Default: ./exports/<preset>.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Torch seed of the untrained weights when no checkpoint is used.")
-def main(preset, checkpoint, calibration, resolution, num_slices, fp16, opset, out_dir, seed) -> None:
+def main(preset, checkpoint, calibration, resolution, num_slices, fp16, int8, calibration_data, calibration_samples,
+         opset, out_dir, seed) -> None:
     """Export the detector as three ONNX graphs plus lut.npz and manifest.json, checking each against PyTorch."""
     opts = ExportOptions(
         preset=preset, checkpoint=checkpoint, calibration=calibration, resolution=resolution, num_slices=num_slices,
-        fp16=fp16, opset=opset, out_dir=out_dir, seed=seed,
+        fp16=fp16, int8=int8, calibration_data=calibration_data, calibration_samples=calibration_samples, opset=opset,
+        out_dir=out_dir, seed=seed,
     )
     try:
         result = run_export(opts, report=lambda msg: click.echo(msg, err=True))
@@ -62,6 +73,17 @@ def main(preset, checkpoint, calibration, resolution, num_slices, fp16, opset, o
         click.echo(f"  {g.file:<28} {size:8.2f} MB  {g.gmac:8.2f} GMAC  {g.precision}")
     click.echo(f"  {LUT_NAME:<28} {(result.out_dir / LUT_NAME).stat().st_size / 1e6:8.2f} MB  ({m.lut.calibration_source})")
     click.echo(f"  {MANIFEST_NAME}")
+    if m.int8 is not None:
+        # int8 is an approximation: its differences are measured and recorded, never a failure of the export
+        c = m.int8.calibration
+        click.echo(f"int8 calibrated on {c.num_images} images, {c.num_volumes} volumes, {c.num_slices} slices of {c.source}; "
+                   f"against fp32{' (held-out sample)' if c.parity_held_out else ''}:")
+        for p in m.int8.parity:
+            click.echo(f"  {p.graph:<18} {p.output:<10} {p.inputs:<8} relative L2 error {p.rel_l2_error:.4f}")
+        if m.int8.boxes is not None:
+            b = m.int8.boxes
+            click.echo(f"  boxes >= {b.score_threshold}: {b.count_fp32} fp32, {b.count_int8} int8, {b.matched} matched, "
+                       f"max centre diff {b.max_centre_diff_m:.3g} m")
     if not result.parity_passed:
         failed = [f"{p.graph} {p.precision} {p.output}" for p in m.parity if not p.passed]
         if m.pipeline_parity is not None and not m.pipeline_parity.passed:

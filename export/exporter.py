@@ -3,6 +3,9 @@
 Everything is written into a temporary directory beside the target and renamed into place at the end, with the
 manifest written last, so a failed or interrupted export never leaves a directory that looks complete.
 
+With ``int8``, ``export/int8.py`` quantizes the three fp32 graphs into ``*.int8.onnx``, calibrated on real samples
+(a ``--calibration-data`` dataset, else the bundled sample), and records their calibration and parity against fp32.
+
 The parity inputs are real: the bundled nuScenes sample's six images (resized to the export resolution) and its
 LiDAR sweep, cut into ``num_slices`` slices; the slice with the most points is pillarized with
 ``runtime_ort/pillarize.py``. The fp32 pipeline (encoder -> lifter with the LUT -> slice graph) is onnxruntime's,
@@ -35,12 +38,16 @@ from streamdet.calibration.lut import Lut, build_lut
 from streamdet.data.sample import Sample, load_bundled_sample
 from streamdet.data.slicing import slice_sample
 from streamdet.export import onnx_export as ox
+from streamdet.export import int8 as q8
 from streamdet.export.fp16 import check_model, convert_model_to_fp16
 from streamdet.export.manifest import (
     LUT_NAME,
     MANIFEST_NAME,
     GraphEntry,
     ImageSpec,
+    Int8Calibration,
+    Int8GraphRecord,
+    Int8Record,
     LutEntry,
     Manifest,
     Normalisation,
@@ -88,6 +95,9 @@ class ExportOptions:
     resolution: tuple[int, int] | None = None  # (W, H) px of the camera images; None: the preset's
     num_slices: int = 8  # slices per sweep (the paper's headline model); picks the parity slice
     fp16: bool = False  # also write *.fp16.onnx siblings
+    int8: bool = False  # also write *.int8.onnx siblings (static QDQ, calibrated on real samples)
+    calibration_data: str | None = None  # nuScenes-format dataset for the int8 calibration; None: the bundled sample
+    calibration_samples: int = q8.DEFAULT_CALIBRATION_SAMPLES  # samples drawn from calibration_data (its train split)
     opset: int = ox.DEFAULT_OPSET
     out_dir: str | None = None  # None: ./exports/<preset>
     seed: int = DEFAULT_SEED  # torch seed of the initial weights when there is no checkpoint
@@ -143,9 +153,10 @@ def run_export(opts: ExportOptions, report: Report | None = None) -> ExportResul
     lo, hi = ox.OPSET_RANGE
     if isinstance(opts.opset, bool) or not isinstance(opts.opset, int) or not lo <= opts.opset <= hi:
         raise ExportError(f"--opset must be an integer in [{lo}, {hi}], got {opts.opset!r}")
+    _check_int8_options(opts)
     out_dir = Path(opts.out_dir) if opts.out_dir is not None else Path("exports") / preset.name
     tmp = _make_staging_dir(out_dir)
-    steps = _Steps(report, total=10 + (4 if opts.fp16 else 0))
+    steps = _Steps(report, total=10 + (4 if opts.fp16 else 0) + (5 if opts.int8 else 0))
     try:
         manifest = _export_into(tmp, preset, width, height, opts, steps)
         with steps("moving the export into place"):
@@ -268,9 +279,12 @@ def _export_into(tmp: Path, preset: Preset, width: int, height: int, opts: Expor
                 f"{pipeline.max_centre_diff_m:.3g} m: {'ok' if pipeline.passed else 'FAILED'}"
             )
 
+    int8_record = _export_int8(tmp, preset, width, height, rig, lut, opts, steps) if opts.int8 else None
+
     with steps("writing manifest.json"):
         entries = []
-        for precision in ("fp32", "fp16") if opts.fp16 else ("fp32",):
+        precisions = ("fp32",) + (("fp16",) if opts.fp16 else ()) + (("int8",) if opts.int8 else ())
+        for precision in precisions:
             for name in ox.GRAPH_IO:
                 entries.append(_graph_entry(tmp, name, precision, opts.opset, gmacs[name]))
         manifest = Manifest(
@@ -286,6 +300,7 @@ def _export_into(tmp: Path, preset: Preset, width: int, height: int, opts: Expor
             lut=LutEntry(LUT_NAME, sha256_file(tmp / LUT_NAME), lut.calibration_sha256, calib_source),
             parity=tuple(parity),
             pipeline_parity=pipeline,
+            int8=int8_record,
             source={
                 "checkpoint": source.checkpoint,
                 "checkpoint_sha256": source.checkpoint_sha256,
@@ -298,6 +313,81 @@ def _export_into(tmp: Path, preset: Preset, width: int, height: int, opts: Expor
         )
         write_manifest(manifest, tmp)
     return manifest
+
+
+def _check_int8_options(opts: ExportOptions) -> None:
+    """Fail before any work on int8 options that cannot be used."""
+    if opts.calibration_data is not None and not opts.int8:
+        raise ExportError("--calibration-data is the int8 calibration set: it needs --int8")
+    n = opts.calibration_samples
+    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+        raise ExportError(f"--calibration-samples must be a positive integer, got {n!r}")
+    if opts.int8 and opts.calibration_data is not None:
+        try:
+            q8.dataset_version(opts.calibration_data)
+        except q8.CalibrationError as e:
+            raise ExportError(f"--calibration-data: {e}") from None
+
+
+def _export_int8(
+    tmp: Path, preset: Preset, width: int, height: int, rig: Rig, lut: Lut, opts: ExportOptions, steps: "_Steps"
+) -> Int8Record:
+    """Quantize the three fp32 graphs in ``tmp`` into ``*.int8.onnx``; calibration, parity, the manifest record."""
+    cfg = q8.Int8Config()
+    size = (width, height)
+    sessions32 = {name: ort_session(tmp / graph_file_name(name, "fp32")) for name in ox.GRAPH_IO}
+    with steps("int8: calibration inputs (the fp32 encoder and lifter on real samples)"):
+        t0 = time.perf_counter()
+        try:
+            cal = q8.load_calibration_samples(opts.calibration_data, opts.calibration_samples, rig.names)
+            inputs = q8.graph_inputs(cal.samples, sessions32, rig.names, size, preset, opts.num_slices)
+        except q8.CalibrationError as e:
+            raise ExportError(str(e)) from None
+        steps.note(
+            f"{len(cal.samples)} samples of {cal.source} ({cal.version}, split {cal.split}): {sum(len(f['images']) for f in inputs.image_encoder)} "
+            f"images, {len(inputs.volumetric_lifter)} volumes, {len(inputs.slice_head)} slices"
+        )
+    records = []
+    for name in ox.GRAPH_IO:
+        with steps(f"int8: quantizing {name}"):
+            graph = q8.quantize_graph(name, tmp / graph_file_name(name, "fp32"), tmp / graph_file_name(name, "int8"), inputs.for_graph(name), cfg)
+            check_model(graph.path)
+            records.append(Int8GraphRecord(name, graph.quantized_ops, graph.float_nodes))
+            steps.note(f"int8 inputs: {graph.quantized_ops}; kept float: {sum(graph.float_nodes.values())} nodes")
+    calibration = Int8Calibration(
+        source=cal.source,
+        version=cal.version,
+        split=cal.split,
+        sample_tokens=tuple(s.token for s in cal.samples),
+        num_images=sum(len(f["images"]) for f in inputs.image_encoder),
+        num_volumes=len(inputs.volumetric_lifter),
+        num_slices=len(inputs.slice_head),
+        method=cfg.calibrate_method.name,
+        reduce_range=cfg.reduce_range,
+        parity_held_out=False,
+        seconds=round(time.perf_counter() - t0, 1),
+    )
+    with steps("int8: parity against fp32 (relative L2 of every output, decoded boxes of all slices)"):
+        sample = load_bundled_sample()
+        if set(rig.names) <= set(sample.image_paths):
+            held_out = cal.source != q8.BUNDLED_SOURCE
+            if held_out:
+                inputs = q8.graph_inputs([sample], sessions32, rig.names, size, preset, opts.num_slices, luts=[lut])
+            steps.note("on the bundled nuScenes sample" + (", held out" if held_out else ", the calibration sample itself"))
+        else:
+            held_out = False  # a foreign rig: the bundled images do not fit, the calibration samples are all there is
+            steps.note("on the calibration samples (the bundled sample lacks this rig's cameras)")
+        sessions8 = {name: ort_session(tmp / graph_file_name(name, "int8")) for name in ox.GRAPH_IO}
+        parity = q8.int8_parity(sessions32, sessions8, inputs, preset.head_cell_m)
+        for p in parity.outputs:
+            steps.note(f"{p.graph} {p.output} ({p.inputs} inputs): relative L2 error {p.rel_l2_error:.4f}, max |diff| {p.max_abs_diff:.3g}")
+        b = parity.boxes
+        steps.note(
+            f"boxes >= {b.score_threshold}: {b.count_fp32} fp32, {b.count_int8} int8, {b.matched} matched, centre diff "
+            f"mean {b.mean_centre_diff_m:.3g} m, max {b.max_centre_diff_m:.3g} m"
+        )
+    calibration = dataclasses.replace(calibration, parity_held_out=held_out)
+    return Int8Record(calibration, tuple(records), parity.outputs, parity.boxes)
 
 
 # ---- helpers -------------------------------------------------------------------------------------------

@@ -15,11 +15,16 @@ Schema (``MANIFEST_VERSION`` = 1), one JSON object::
     normalisation      {input: "uint8 RGB (J, H, W, 3)", scale, mean_rgb, std_rgb}: applied inside image_encoder
     post               dict, decode/NMS settings of the preset (top_k, score_threshold, ...), for the runtime
     graphs             [GraphEntry]: name ("image_encoder" | "volumetric_lifter" | "slice_head"), precision
-                       ("fp32" | "fp16"), file, sha256, opset, inputs/outputs [{name, shape, dtype}], gmac
+                       ("fp32" | "fp16" | "int8"), file, sha256, opset, inputs/outputs [{name, shape, dtype}], gmac
     lut                {file, sha256, calibration_sha256, camera_names, image_width, image_height}
     parity             [ParityRecord] (one per graph and precision) and a "pipeline" PipelineParity, as measured
                        by the export itself
     source             {checkpoint: path or null, checkpoint_sha256, seed, torch, onnx, onnxruntime versions}
+    int8               null, or Int8Record when the export wrote int8 graphs (optional; absent in older manifests):
+                       {calibration: Int8Calibration (the data the ranges came from), graphs: [Int8GraphRecord]
+                       (what was quantized and what was kept float, and why), parity: [Int8OutputParity] (relative L2
+                       error of every output against fp32), boxes: BoxAgreement (decoded boxes of the int8 pipeline
+                       against the fp32 pipeline)}. Measured and recorded, never pass/fail: int8 is an approximation.
 
 Shapes use ints for fixed dimensions and strings ("J", "P", "Q", "H", "W", "Hf", "Wf") for dynamic ones.
 The manifest is written last, after every file it names: an export directory without ``manifest.json``
@@ -40,7 +45,7 @@ MANIFEST_VERSION = 1
 MANIFEST_NAME = "manifest.json"
 LUT_NAME = "lut.npz"
 GRAPH_NAMES: tuple[str, ...] = ("image_encoder", "volumetric_lifter", "slice_head")
-PRECISIONS: tuple[str, ...] = ("fp32", "fp16")
+PRECISIONS: tuple[str, ...] = ("fp32", "fp16", "int8")
 _DTYPES = ("uint8", "int32", "int64", "float16", "float32")
 
 
@@ -57,7 +62,7 @@ def sha256_file(path: str | os.PathLike) -> str:
 
 
 def graph_file_name(name: str, precision: str) -> str:
-    """``slice_head.onnx`` for fp32, ``slice_head.fp16.onnx`` for fp16."""
+    """``slice_head.onnx`` for fp32, ``slice_head.fp16.onnx`` for fp16, ``slice_head.int8.onnx`` for int8."""
     _check_choice("graph name", name, GRAPH_NAMES)
     _check_choice("precision", precision, PRECISIONS)
     return f"{name}.onnx" if precision == "fp32" else f"{name}.{precision}.onnx"
@@ -85,7 +90,7 @@ class TensorSpec:
 @dataclass(frozen=True)
 class GraphEntry:
     name: str  # one of GRAPH_NAMES
-    precision: str  # "fp32" or "fp16" (fp16 graphs keep fp32 inputs and outputs)
+    precision: str  # "fp32", "fp16" or "int8" (fp16 and int8 graphs keep fp32 inputs and outputs)
     file: str  # relative to the export directory
     sha256: str
     opset: int
@@ -226,6 +231,97 @@ class PipelineParity:
 
 
 @dataclass(frozen=True)
+class Int8Calibration:
+    """Where the int8 graphs' activation ranges came from."""
+
+    source: str  # "bundled:nuscenes_sample" or the dataset directory given to --calibration-data
+    version: str  # nuScenes table folder, e.g. "v1.0-synth"
+    split: str  # scenes the samples came from ("train" from splits.json, or "all")
+    sample_tokens: tuple[str, ...]
+    num_images: int  # encoder calibration images
+    num_volumes: int  # lifter calibration inputs (all four quadrants each)
+    num_slices: int  # slice-graph calibration inputs (non-empty slices)
+    method: str  # onnxruntime CalibrationMethod name, e.g. "MinMax"
+    reduce_range: bool  # 7-bit weights
+    parity_held_out: bool  # True when the parity sample is not among the calibration samples
+    seconds: float
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Int8Calibration":
+        return cls(**{**{k: d[k] for k in cls.__dataclass_fields__}, "sample_tokens": tuple(d["sample_tokens"])})
+
+
+@dataclass(frozen=True)
+class Int8GraphRecord:
+    """One int8 graph: the ops that run on int8 inputs and the nodes kept float on purpose."""
+
+    graph: str
+    quantized_ops: dict  # op type -> nodes between DequantizeLinear and QuantizeLinear (int8 in onnxruntime)
+    float_nodes: dict  # reason -> number of nodes kept float for it
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Int8GraphRecord":
+        return cls(graph=str(d["graph"]), quantized_ops=dict(d["quantized_ops"]), float_nodes=dict(d["float_nodes"]))
+
+
+@dataclass(frozen=True)
+class Int8OutputParity:
+    """One output of an int8 graph against the fp32 graph: ||int8 - fp32|| / ||fp32|| over the parity inputs."""
+
+    graph: str
+    output: str
+    inputs: str  # "same": both graphs fed the same fp32 inputs; "pipeline": each fed by its own precision's graphs
+    rel_l2_error: float
+    max_abs_diff: float
+    num_inputs: int
+    note: str = ""
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Int8OutputParity":
+        return cls(**{k: d[k] for k in cls.__dataclass_fields__ if k in d})
+
+
+@dataclass(frozen=True)
+class BoxAgreement:
+    """Decoded boxes (score >= threshold) of the int8 pipeline against the fp32 pipeline, all slices of a sample.
+
+    Boxes pair greedily by centre distance within ``pair_radius_m``, same slice, quadrant and label.
+    """
+
+    num_slices: int
+    score_threshold: float
+    pair_radius_m: float
+    count_fp32: int
+    count_int8: int
+    matched: int
+    max_centre_diff_m: float  # over matched pairs (nan when none)
+    mean_centre_diff_m: float
+    max_score_diff: float
+    note: str = ""
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "BoxAgreement":
+        return cls(**{k: d[k] for k in cls.__dataclass_fields__ if k in d})
+
+
+@dataclass(frozen=True)
+class Int8Record:
+    calibration: Int8Calibration
+    graphs: tuple[Int8GraphRecord, ...]
+    parity: tuple[Int8OutputParity, ...]
+    boxes: BoxAgreement | None
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Int8Record":
+        return cls(
+            calibration=Int8Calibration.from_dict(d["calibration"]),
+            graphs=tuple(Int8GraphRecord.from_dict(g) for g in d["graphs"]),
+            parity=tuple(Int8OutputParity.from_dict(p) for p in d["parity"]),
+            boxes=BoxAgreement.from_dict(d["boxes"]) if d.get("boxes") else None,
+        )
+
+
+@dataclass(frozen=True)
 class Manifest:
     preset_name: str
     preset: dict
@@ -240,6 +336,7 @@ class Manifest:
     parity: tuple[ParityRecord, ...] = ()
     pipeline_parity: PipelineParity | None = None
     source: dict = field(default_factory=dict)
+    int8: Int8Record | None = None  # calibration and parity of the int8 graphs, when there are any
     version: int = MANIFEST_VERSION
 
     def __post_init__(self) -> None:
@@ -255,6 +352,8 @@ class Manifest:
             if key in seen:
                 raise ManifestError(f"graph {g.name!r} ({g.precision}) is listed twice")
             seen.add(key)
+        if any(g.precision == "int8" for g in self.graphs) and self.int8 is None:
+            raise ManifestError("graphs of precision int8 are listed without the int8 record (calibration data, parity)")
         for name in GRAPH_NAMES:
             if (name, "fp32") not in seen:
                 raise ManifestError(f"manifest lists no fp32 graph {name!r}")
@@ -296,6 +395,7 @@ class Manifest:
                 parity=tuple(ParityRecord.from_dict(p) for p in d.get("parity", ())),
                 pipeline_parity=PipelineParity.from_dict(d["pipeline_parity"]) if d.get("pipeline_parity") else None,
                 source=dict(d.get("source", {})),
+                int8=Int8Record.from_dict(d["int8"]) if d.get("int8") else None,
             )
         except KeyError as e:
             raise ManifestError(f"manifest is missing the field {e.args[0]!r}") from None
