@@ -23,7 +23,8 @@ What stays float, and why (``float_nodes``; timings with onnxruntime 1.32, one t
   neighbourhood. A uint8 heatmap has 256 levels over the logit range, so neighbouring cells of one object round
   to the same level, each of them is a "peak", and one object yields several boxes. The heatmap logits are
   computed in float (their last conv excluded) and the sigmoid / max-pool / equality / top-k / box arithmetic run
-  in float on them.
+  in float on them. The other head outputs (centre offset, z, log size, yaw, velocity) come from float convs too:
+  the decode turns them into box values directly, and these 1-layer convs are a few percent of the graph.
 - slice graph, the pillar net and scatter: ``pillar_features`` holds x and y (up to +-51 m) beside offsets of a
   few centimetres and reflectance in 0..1; one uint8 scale per tensor (0.4 m steps) would erase all but x and y.
   The PointNet is a single 11-input linear layer, which int8 would not speed up.
@@ -79,6 +80,7 @@ DEFAULT_CALIBRATION_SAMPLES = 8  # samples of a --calibration-data dataset (6 im
 BOX_SCORE_THRESHOLD = 0.1  # boxes compared by box_agreement (the pipeline parity's threshold)
 INPUT_NORM_NOTE = "input normalisation: QLinearMul / QLinearAdd on the full image cost 9x the float ops"
 LIFTER_POOL_NOTE = "z pooling: QLinearAveragePool costs 4x the float AveragePool with its DequantizeLinear"
+HEAD_OUTPUT_NOTE = "head outputs: the decode reads them as box values; uint8 steps would show in the boxes"
 PILLAR_NOTE = "pillar net and scatter: metres and centimetre offsets in one tensor do not share a uint8 scale"
 
 Feeds = dict[str, np.ndarray]
@@ -117,6 +119,21 @@ def _first(model: onnx.ModelProto, op_type: str) -> onnx.NodeProto:
     return nodes[0]  # graphs are topologically sorted
 
 
+def _head_outputs(model: onnx.ModelProto) -> set[str]:
+    """The last layers of the head: nodes from the decode's inputs upstream to (and including) the first Conv."""
+    producer = {o: n for n in model.graph.node for o in n.output}
+    found: set[str] = set()
+    stack = [i for n in model.graph.node if is_decode_node(n) for i in n.input]
+    while stack:
+        node = producer.get(stack.pop())
+        if node is None or node.name in found or is_decode_node(node):
+            continue
+        found.add(node.name)
+        if node.op_type != "Conv":
+            stack.extend(node.input)
+    return found
+
+
 def float_nodes(graph: str, model: onnx.ModelProto, cfg: Int8Config = Int8Config()) -> dict[str, str]:
     """Node name -> why it stays float, for one of the three graphs (pre-processed, see the module doc)."""
     keep: dict[str, str] = {}
@@ -136,6 +153,8 @@ def float_nodes(graph: str, model: onnx.ModelProto, cfg: Int8Config = Int8Config
                 keep[n.name] = "decode: peak picking on a uint8 heatmap multiplies the peaks"
         for name in heatmap_producers(model):
             keep.setdefault(name, "heatmap logits: computed in float for the peak picking")
+        for name in _head_outputs(model):
+            keep.setdefault(name, HEAD_OUTPUT_NOTE)
         for name in _ancestors(model, _first(model, "ScatterND").output[0]):
             keep.setdefault(name, PILLAR_NOTE)
     else:
@@ -191,10 +210,23 @@ def quantize_graph(
                 calibrate_method=cfg.calibrate_method,
                 calibration_providers=["CPUExecutionProvider"],
             )
+    _restore_io(Path(dst), onnx.load(str(src), load_external_data=False))
     reasons: dict[str, int] = {}
     for why in keep.values():
         reasons[why] = reasons.get(why, 0) + 1
     return QuantizedGraph(Path(dst), len(feeds), quantized_ops(onnx.load(str(dst))), reasons, time.perf_counter() - t0)
+
+
+def _restore_io(path: Path, original: onnx.ModelProto) -> None:
+    """Give the quantized graph the original's input and output declarations: symbolic shape inference renames
+    the dynamic dimensions ("Hf" becomes "floor(floor(H/2 - 1/2)/2) + 1"), and the manifest names them."""
+    model = onnx.load(str(path))
+    by_name = {v.name: v for v in (*original.graph.input, *original.graph.output)}
+    for v in (*model.graph.input, *model.graph.output):
+        if v.name not in by_name:
+            raise ValueError(f"the quantized graph has an input or output {v.name!r} the original lacks")
+        v.type.CopyFrom(by_name[v.name].type)
+    onnx.save_model(model, str(path))
 
 
 def quantized_ops(model: onnx.ModelProto) -> dict[str, int]:
