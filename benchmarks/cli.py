@@ -78,14 +78,21 @@ def _flops_only(preset: str, resolution: tuple[int, int] | None, json_path: Path
     is_flag=True,
     help=f"Fewer repeats, shorter streaming runs, no PyTorch timing of rows whose fp32 run exceeds {QUICK_TORCH_SKIP_MS:.0f} ms.",
 )
-@click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), help='Write {"rows": [...], "streaming": {...}, ...} here.')
+@click.option(
+    "--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), help='Write {"rows": [...], "streaming": {...}, ...} here.'
+)
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False, path_type=Path), help="Write a PNG bar chart of the rows here.")
 @click.option(
     "--export-dir",
     type=click.Path(file_okay=False, exists=True, path_type=Path),
     help="Export (streamdet-export --out) for the streaming section; default: export the preset to a temporary directory.",
 )
-@click.option("--profile", "profile_dir", type=click.Path(file_okay=False, path_type=Path), help="Write onnxruntime profiles of every row graph here and print the top ops.")
+@click.option(
+    "--profile",
+    "profile_dir",
+    type=click.Path(file_okay=False, path_type=Path),
+    help="Write onnxruntime profiles of every row graph and of the slice lane (image lane idle / busy) here; print the top ops.",
+)
 def main(
     flops_only: bool,
     preset: str | None,
@@ -121,7 +128,9 @@ def main(
         except (ManifestError, OSError) as e:
             raise click.BadParameter(f"{export_dir} is not a usable export: {e}", param_hint="--export-dir") from None
     elif resolution is not None and (resolution[0] % 2 or resolution[1] % 2):
-        raise click.BadParameter(f"{resolution[0]}x{resolution[1]}: the export needs even sizes (ResNet stem stride 2)", param_hint="--resolution")
+        raise click.BadParameter(
+            f"{resolution[0]}x{resolution[1]}: the export needs even sizes (ResNet stem stride 2)", param_hint="--resolution"
+        )
 
     from streamdet.benchmarks.run import BenchConfig, BenchmarkError, run_benchmark, write_plot
 

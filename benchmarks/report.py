@@ -61,7 +61,8 @@ def evaluate_targets(rows: Sequence[RowResult], peak: ProbeResult, streaming: St
         targets.append(Target(f"onnxruntime fp32 >= {TORCH_OVER_ORT_MIN}x faster than PyTorch eager", None, "no PyTorch timing"))
 
     by_key = _by_key(rows)
-    for full, cropped, what in (("slice_single_head", "slice_single_head_cropped", "slice graph"), ("conv3d", "conv3d_cropped", "3D convolutions")):
+    pairs = (("slice_single_head", "slice_single_head_cropped", "slice graph"), ("conv3d", "conv3d_cropped", "3D convolutions"))
+    for full, cropped, what in pairs:
         a, b = by_key.get(full), by_key.get(cropped)
         if a is None or b is None:
             continue
@@ -148,7 +149,9 @@ def format_header(meta: dict, peak: ProbeResult) -> str:
 
 
 def format_rows(rows: Sequence[RowResult], peak: ProbeResult) -> str:
-    header = ("module", "GMAC", "onnx/torch", "ms fp32 (p95)", "ms fp16 (p95)", "ms torch", "torch/ort", "GFLOP/s", "% peak", "fp32 min-max", "n")
+    header = (
+        "module", "GMAC", "onnx/torch", "ms fp32 (p95)", "ms fp16 (p95)", "ms torch", "torch/ort", "GFLOP/s", "% peak", "fp32 min-max", "n"
+    )
     table = []
     for r in rows:
         ratio = r.torch_over_ort
@@ -224,7 +227,9 @@ def format_streaming(s: StreamingResult) -> str:
     return "\n".join(lines)
 
 
-def format_report(doc_meta: dict, rows: Sequence[RowResult], peak: ProbeResult, streaming: StreamingResult | None, targets: Sequence[Target]) -> str:
+def format_report(
+    doc_meta: dict, rows: Sequence[RowResult], peak: ProbeResult, streaming: StreamingResult | None, targets: Sequence[Target]
+) -> str:
     parts = [format_header(doc_meta, peak), "", format_rows(rows, peak)]
     if streaming is not None:
         parts += ["", format_streaming(streaming)]
@@ -302,7 +307,9 @@ def _sum_share(lane: LaneStats) -> float | None:
     return lane.share("pre", "post")
 
 
-def build_document(meta: dict, rows: Sequence[RowResult], peak: ProbeResult, streaming: StreamingResult | None, targets: Sequence[Target]) -> dict:
+def build_document(
+    meta: dict, rows: Sequence[RowResult], peak: ProbeResult, streaming: StreamingResult | None, targets: Sequence[Target]
+) -> dict:
     return {
         "meta": meta,
         "units": UNITS,

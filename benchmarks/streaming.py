@@ -250,7 +250,9 @@ def _detector(export_dir: Path, cfg: StreamingConfig, profiling: bool = False) -
     )
 
 
-def profile_streaming(export_dir: str | Path, cfg: StreamingConfig, profile_dir: Path, progress: Progress = lambda msg: None) -> dict[str, ProfileSummary]:
+def profile_streaming(
+    export_dir: str | Path, cfg: StreamingConfig, profile_dir: Path, progress: Progress = lambda msg: None
+) -> dict[str, ProfileSummary]:
     """onnxruntime profiles of the slice lane with the image lane idle and busy (fresh profiling sessions per phase).
 
     Keys ``"<phase>/<graph>"``; the JSON files go to ``profile_dir/streaming_<phase>.<graph>.json``. The sessions read
@@ -281,7 +283,9 @@ def profile_streaming(export_dir: str | Path, cfg: StreamingConfig, profile_dir:
     return summaries
 
 
-def measure_streaming(export_dir: str | Path, cfg: StreamingConfig = StreamingConfig(), progress: Progress = lambda msg: None) -> StreamingResult:
+def measure_streaming(
+    export_dir: str | Path, cfg: StreamingConfig = StreamingConfig(), progress: Progress = lambda msg: None
+) -> StreamingResult:
     det = _detector(Path(export_dir), cfg)
     n = det.num_slices
     img = det.manifest.image

@@ -121,9 +121,10 @@ def measure_rows(rows: list[Row], work_dir: Path, cfg: TableConfig, progress: Pr
         else:
             progress(f"{step}: PyTorch eager")
             torch_stats = _time_torch(row, cfg)
-        for name, stats in (("fp32", fp32), ("fp16", fp16), ("torch", torch_stats)):
-            if stats is not None and stats.reduced:
-                notes.append(f"{name}: {stats.count} of {stats.requested} repeats (time budget {cfg.timing.budget_s:.0f} s)")
+        measured = (("fp32", fp32), ("fp16", fp16), ("torch", torch_stats))
+        cut = [f"{name} {st.count}/{st.requested}" for name, st in measured if st is not None and st.reduced]
+        if cut:
+            notes.append(f"repeats cut by the {cfg.timing.budget_s:g} s budget per measurement: {', '.join(cut)}")
 
         profiles: dict[str, ProfileSummary] = {}
         if cfg.profile_dir is not None:

@@ -29,7 +29,8 @@ def random_module(kind: str, rng: np.random.Generator) -> tuple[nn.Module, torch
     groups = r(1, 3)
     cin, cout = groups * r(1, 4), groups * r(1, 4)
     if kind == "conv2d":
-        return nn.Conv2d(cin, cout, r(1, 3) * 2 - 1, stride=r(1, 2), padding=r(0, 2), groups=groups), torch.randn(r(1, 2), cin, r(5, 12), r(5, 12))
+        conv = nn.Conv2d(cin, cout, r(1, 3) * 2 - 1, stride=r(1, 2), padding=r(0, 2), groups=groups)
+        return conv, torch.randn(r(1, 2), cin, r(5, 12), r(5, 12))
     if kind == "conv_transpose2d":
         k = r(1, 4)
         return nn.ConvTranspose2d(cin, cout, k, stride=k, groups=groups), torch.randn(r(1, 2), cin, r(3, 8), r(3, 8))
@@ -42,7 +43,8 @@ def random_module(kind: str, rng: np.random.Generator) -> tuple[nn.Module, torch
     if kind == "batched_matmul":
         return BatchedMatmul(r(2, 9), r(2, 9)), None
     if kind == "mixed":
-        return nn.Sequential(nn.Conv2d(cin, cout, 3, padding=1), nn.ReLU(), nn.ConvTranspose2d(cout, cin, 2, stride=2)), torch.randn(1, cin, r(4, 9), r(4, 9))
+        net = nn.Sequential(nn.Conv2d(cin, cout, 3, padding=1), nn.ReLU(), nn.ConvTranspose2d(cout, cin, 2, stride=2))
+        return net, torch.randn(1, cin, r(4, 9), r(4, 9))
     raise AssertionError(kind)
 
 
