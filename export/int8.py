@@ -3,18 +3,18 @@
 Format. ``onnxruntime.quantization.quantize_static`` in QDQ form: weights int8, symmetric, one scale per output
 channel; activations **uint8**, asymmetric, one scale per tensor. onnxruntime's x86 CPU provider fuses
 ``DequantizeLinear -> Conv -> QuantizeLinear`` into its int8 convolution (QLinearConv, u8s8 GEMM) only with uint8
-activations. The fusion needs the session at ORT_ENABLE_ALL (what the runtime uses; ENABLE_EXTENDED measured
-1.7x slower). ``quantize_dynamic`` is not a path: it makes ConvInteger, slower than fp32.
+activations. The fusion needs the session at ORT_ENABLE_ALL (what the runtime uses): the int8 NHWC kernels come
+with it, and the small int8 encoder measured 1.4x slower at ENABLE_EXTENDED. ``quantize_dynamic`` is not a path: it makes ConvInteger, slower than fp32.
 
 Weights are 7-bit (``reduce_range``) by default. x86 CPUs without VNNI (AVX2 only, like the AMD EPYC this was
 measured on) multiply u8 x s8 with ``vpmaddubsw``, which adds two products into a saturating int16: 255 * 127 * 2
-overflows it, 255 * 63 * 2 does not. Measured on the small image encoder (real images): relative L2 error of the
-features 0.071 with 8-bit weights, 0.051 with 7-bit. With 7-bit weights the graph computes the same thing on every
+overflows it, 255 * 63 * 2 does not. Measured on the small image encoder (bundled images, untrained weights):
+relative L2 error of the features 0.354 with 8-bit weights, 0.070 with 7-bit. With 7-bit weights the graph computes the same thing on every
 x86 CPU, VNNI or not.
 
 Pre-processing. The TorchScript exporter shares equal initializers (e.g. zero biases) through ``Identity`` nodes,
-and the quantizer leaves every Conv whose bias is not an initializer in float (measured: 16 of the 25 convolutions
-of the small image encoder). ``quant_pre_process`` (shape inference and onnxruntime's basic optimisations, which
+and the quantizer does not make a QDQ unit of a Conv whose bias is not an initializer (measured: 16 of the 25
+convolutions of the small image encoder stay float). ``quant_pre_process`` (shape inference and onnxruntime's basic optimisations, which
 fold those Identities) runs first.
 
 What stays float, and why (``float_nodes``; timings with onnxruntime 1.32, one thread, small preset):
@@ -28,15 +28,22 @@ What stays float, and why (``float_nodes``; timings with onnxruntime 1.32, one t
 - slice graph, the pillar net and scatter: ``pillar_features`` holds x and y (up to +-51 m) beside offsets of a
   few centimetres and reflectance in 0..1; one uint8 scale per tensor (0.4 m steps) would erase all but x and y.
   The PointNet is a single 11-input linear layer, which int8 would not speed up.
-- image encoder, the input normalisation (cast, scale, shift of the full image): as QLinearMul / QLinearAdd it
-  measured 45 ms per 800x450 image against 5 ms in float.
-- lifter, z pooling and the max over z: QLinearAveragePool measured 112 ms where the float AveragePool and the
-  DequantizeLinear before it take 30.
-- lifter, the LUT gather *is* quantized (``Int8Config.quantize_lifter_gather``): the feature table is quantized
-  once (J x Hf x Wf x C values), gathered and weighted as uint8, and the gathered (Q, K, Z, Yq, Xq, C) rows,
-  K = 2 times the volume, are dequantized before the sum. Measured at the runtime's Q = 4: the uint8 gather and
-  QLinearMul save more than that DequantizeLinear costs (whole lifter 1.6x faster than fp32 against 1.4x with the
-  gather in float).
+- image encoder, the input normalisation (cast, scale, shift of the full image), rewritten as one float
+  BatchNormalization (``normalisation_as_batchnorm``, bit-identical in fp32). onnxruntime runs the int8 convolutions
+  in NHWC and moves the graph's NHWC -> NCHW transpose of the image past the Mul and Add, which then broadcast
+  their per-channel constants over the innermost axis of size 3. Measured at 384x216: that float Mul + Add 6.6 ms,
+  quantized (QLinearMul + QLinearAdd) 11.5 ms, the BatchNormalization (which the transpose is not moved past)
+  0.2 ms, the whole int8 encoder 33 ms in float Mul + Add, 26 ms with the BatchNormalization.
+- lifter, z pooling and the max over z: QLinearAveragePool measured 23 ms where the float AveragePool takes 6 and
+  the DequantizeLinear before it 5 (small preset, Q = 4).
+- lifter, the LUT gather and weighted sum (``Int8Config.quantize_lifter_gather``, off): quantized, the feature
+  table is quantized once, gathered and weighted as uint8 (QLinearMul), and the gathered (Q, K, Z, Yq, Xq, C)
+  rows, K = 2 times the volume, are dequantized before the sum. Measured at the runtime's Q = 4 (small preset, one
+  thread, per-op profiles): gather + weighting + that DequantizeLinear + sum + BN took 150-160 ms against 145-150 ms
+  for the float gather, weighting and sum followed by one QuantizeLinear of the volume; the whole int8 lifter ran
+  1.51x and 1.52x faster than fp32. It saves nothing, and quantizing the features before the camera average adds
+  error (relative L2 of the image BEV 0.0187 against 0.0178), so the gather stays float and the volume is
+  quantized once, before the first 3D convolution.
 - ConvTranspose (the BEV encoder's upsampling): onnxruntime has no QDQ ConvTranspose; it runs in float between a
   DequantizeLinear and a QuantizeLinear.
 
@@ -63,6 +70,7 @@ from typing import Any
 
 import numpy as np
 import onnx
+from onnx import numpy_helper
 from onnxruntime.quantization import CalibrationDataReader, CalibrationMethod, QuantFormat, QuantType, quantize_static
 from onnxruntime.quantization.shape_inference import quant_pre_process
 
@@ -78,8 +86,9 @@ WEIGHT_TYPE = QuantType.QInt8
 BUNDLED_SOURCE = "bundled:nuscenes_sample"
 DEFAULT_CALIBRATION_SAMPLES = 8  # samples of a --calibration-data dataset (6 images and n slices each)
 BOX_SCORE_THRESHOLD = 0.1  # boxes compared by box_agreement (the pipeline parity's threshold)
-INPUT_NORM_NOTE = "input normalisation: QLinearMul / QLinearAdd on the full image cost 9x the float ops"
-LIFTER_POOL_NOTE = "z pooling: QLinearAveragePool costs 4x the float AveragePool with its DequantizeLinear"
+INPUT_NORM_NOTE = "input normalisation: quantized it costs 50x a float BatchNormalization on the NCHW image"
+LIFTER_POOL_NOTE = "z pooling: QLinearAveragePool costs 2x the float AveragePool with its DequantizeLinear"
+LIFTER_GATHER_NOTE = "LUT gather and weighted sum: dequantizing K x the volume costs what the uint8 gather saves"
 HEAD_OUTPUT_NOTE = "head outputs: the decode reads them as box values; uint8 steps would show in the boxes"
 PILLAR_NOTE = "pillar net and scatter: metres and centimetre offsets in one tensor do not share a uint8 scale"
 
@@ -92,7 +101,7 @@ class Int8Config:
     calibrate_method: CalibrationMethod = CalibrationMethod.MinMax  # Percentile / Entropy hold histograms in memory
     reduce_range: bool = True  # 7-bit weights: no int16 saturation on x86 without VNNI (module doc)
     per_channel: bool = True  # one weight scale per output channel
-    quantize_lifter_gather: bool = True  # measured faster than a float gather (module doc)
+    quantize_lifter_gather: bool = False  # measured no faster than the float gather, and less accurate (module doc)
 
 
 # ---- what stays float ---------------------------------------------------------------------------------------
@@ -134,6 +143,50 @@ def _head_outputs(model: onnx.ModelProto) -> set[str]:
     return found
 
 
+def _constant(model: onnx.ModelProto, name: str) -> np.ndarray | None:
+    for t in model.graph.initializer:
+        if t.name == name:
+            return numpy_helper.to_array(t)
+    for n in model.graph.node:
+        if n.op_type == "Constant" and n.output[0] == name:
+            return numpy_helper.to_array(n.attribute[0].t)
+    return None
+
+
+def normalisation_as_batchnorm(model: onnx.ModelProto) -> bool:
+    """Rewrite the encoder's input normalisation ``Add(Mul(x, scale), shift)`` with (1, C, 1, 1) constants before
+    the first Conv into one BatchNormalization (mean 0, variance 1, epsilon 0: the same arithmetic). In place;
+    False when there is no such pair. See the module doc for why."""
+    first = _first(model, "Conv")
+    producer = {o: n for n in model.graph.node for o in n.output}
+    add = producer.get(first.input[0])
+    mul = producer.get(add.input[0]) if add is not None and add.op_type == "Add" else None
+    if mul is None or mul.op_type != "Mul":
+        return False
+    scale, shift = _constant(model, mul.input[1]), _constant(model, add.input[1])
+    per_channel = lambda a: a is not None and a.ndim == 4 and a.shape[0] == a.shape[2] == a.shape[3] == 1  # noqa: E731
+    if not (per_channel(scale) and per_channel(shift) and scale.shape == shift.shape):
+        return False
+    users = [n for n in model.graph.node if mul.output[0] in n.input]
+    if users != [add]:
+        return False
+    c = scale.shape[1]  # (1, C, 1, 1)
+    names = [f"{first.name}/input_norm_{k}" for k in ("scale", "shift", "mean", "var")]
+    values = [scale.reshape(c), shift.reshape(c), np.zeros(c), np.ones(c)]
+    model.graph.initializer.extend(numpy_helper.from_array(v.astype(np.float32), n) for n, v in zip(names, values))
+    bn = onnx.helper.make_node("BatchNormalization", [mul.input[0], *names], [add.output[0]], epsilon=0.0,
+                               name=f"{first.name}/input_norm")  # fmt: skip
+    nodes = [bn if n is mul else n for n in model.graph.node if n is not add]
+    used = {i for n in nodes for i in n.input}
+    nodes = [n for n in nodes if not (n.op_type == "Constant" and n.output[0] not in used)]
+    del model.graph.node[:]
+    model.graph.node.extend(nodes)
+    inits = [t for t in model.graph.initializer if t.name in used]
+    del model.graph.initializer[:]
+    model.graph.initializer.extend(inits)
+    return True
+
+
 def float_nodes(graph: str, model: onnx.ModelProto, cfg: Int8Config = Int8Config()) -> dict[str, str]:
     """Node name -> why it stays float, for one of the three graphs (pre-processed, see the module doc)."""
     keep: dict[str, str] = {}
@@ -143,7 +196,7 @@ def float_nodes(graph: str, model: onnx.ModelProto, cfg: Int8Config = Int8Config
     elif graph == "volumetric_lifter":
         if not cfg.quantize_lifter_gather:
             for name in _ancestors(model, _first(model, "Conv").input[0]):
-                keep[name] = "LUT gather and weighted sum (Int8Config.quantize_lifter_gather off)"
+                keep[name] = LIFTER_GATHER_NOTE
         for n in model.graph.node:
             if n.op_type in ("AveragePool", "ReduceMax"):
                 keep[n.name] = LIFTER_POOL_NOTE
@@ -196,6 +249,8 @@ def quantize_graph(
         with _quiet_quantizer():
             quant_pre_process(str(src), str(pre))
             model = onnx.load(str(pre))
+            if graph == "image_encoder" and normalisation_as_batchnorm(model):
+                onnx.save_model(model, str(pre))
             keep = float_nodes(graph, model, cfg)
             quantize_static(
                 str(pre),

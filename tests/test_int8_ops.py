@@ -183,9 +183,10 @@ def _lifter_like() -> onnx.ModelProto:
 
 def test_float_nodes_lifter_pooling_and_optional_gather():
     keep = q8.float_nodes("volumetric_lifter", _lifter_like())
-    assert set(keep) == {"/z_pool/AveragePool", "/ReduceMax"}
-    keep = q8.float_nodes("volumetric_lifter", _lifter_like(), q8.Int8Config(quantize_lifter_gather=False))
     assert set(keep) == {"/Gather", "/Mul", "/z_pool/AveragePool", "/ReduceMax"}
+    assert keep["/Gather"] == q8.LIFTER_GATHER_NOTE and keep["/ReduceMax"] == q8.LIFTER_POOL_NOTE
+    keep = q8.float_nodes("volumetric_lifter", _lifter_like(), q8.Int8Config(quantize_lifter_gather=True))
+    assert set(keep) == {"/z_pool/AveragePool", "/ReduceMax"}
 
 
 def _slice_like(with_scatter: bool = True) -> onnx.ModelProto:
@@ -277,3 +278,53 @@ def test_bundled_calibration_samples():
     for bad in (0, -1, 2.5, True):
         with pytest.raises(q8.CalibrationError, match="positive integer"):
             q8.load_calibration_samples(None, bad, ("CAM_FRONT",))
+
+
+# ---- the encoder's input normalisation as a BatchNormalization --------------------------------------------------
+
+
+def _normalising(scale: np.ndarray, shift: np.ndarray) -> onnx.ModelProto:
+    f = TensorProto.FLOAT
+    nodes = [
+        helper.make_node("Cast", ["images"], ["x0"], to=f, name="/Cast"),
+        helper.make_node("Mul", ["x0", "scale"], ["x1"], name="/Mul"),
+        helper.make_node("Add", ["x1", "shift"], ["x2"], name="/Add"),
+        helper.make_node("Conv", ["x2", "w"], ["features"], pads=[1, 1, 1, 1], name="/backbone/conv1/Conv"),
+    ]
+    inits = [onnx.numpy_helper.from_array(scale.astype(np.float32), "scale"), onnx.numpy_helper.from_array(shift.astype(np.float32), "shift"),
+             onnx.numpy_helper.from_array(np.linspace(-1, 1, 2 * 3 * 9, dtype=np.float32).reshape(2, 3, 3, 3), "w")]  # fmt: skip
+    return _model(nodes, [helper.make_tensor_value_info("images", TensorProto.UINT8, [2, 3, 5, 6])],
+                  [helper.make_tensor_value_info("features", f, [2, 2, 5, 6])], inits)  # fmt: skip
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_normalisation_as_batchnorm_is_exact(seed):
+    import onnxruntime as ort
+
+    rng = np.random.default_rng(seed)
+    scale, shift = rng.uniform(0.01, 0.02, (1, 3, 1, 1)), rng.uniform(-2.2, -1.8, (1, 3, 1, 1))
+    model = _normalising(scale, shift)
+    rewritten = _normalising(scale, shift)
+    assert q8.normalisation_as_batchnorm(rewritten)
+    onnx.checker.check_model(rewritten, full_check=True)
+    assert [n.op_type for n in rewritten.graph.node] == ["Cast", "BatchNormalization", "Conv"]
+    assert {t.name for t in rewritten.graph.initializer} >= {"w"} and "scale" not in {t.name for t in rewritten.graph.initializer}
+    images = rng.integers(0, 256, (2, 3, 5, 6), dtype=np.uint8)
+    run = lambda m: ort.InferenceSession(m.SerializeToString(), providers=["CPUExecutionProvider"]).run(None, {"images": images})[0]  # noqa: E731
+    np.testing.assert_array_equal(run(rewritten), run(model))
+    # the naive reference of the normalised image, through a graph that stops before the conv
+    naive = images.astype(np.float32) * scale.astype(np.float32) + shift.astype(np.float32)
+    cut = _normalising(scale, shift)
+    assert q8.normalisation_as_batchnorm(cut)
+    cut.graph.node.pop()  # drop the conv: the BatchNormalization's output is the graph's
+    cut.graph.output[0].name = "x2"
+    got = ort.InferenceSession(cut.SerializeToString(), providers=["CPUExecutionProvider"]).run(None, {"images": images})[0]
+    np.testing.assert_allclose(got, naive, rtol=1e-6, atol=1e-6)
+
+
+def test_normalisation_as_batchnorm_leaves_other_graphs():
+    per_tensor = _normalising(np.full((1, 1, 1, 1), 0.5), np.full((1, 1, 1, 1), 0.1))
+    per_tensor.graph.initializer[0].CopyFrom(onnx.numpy_helper.from_array(np.float32([0.5]), "scale"))
+    before = per_tensor.SerializeToString()
+    assert not q8.normalisation_as_batchnorm(per_tensor) and per_tensor.SerializeToString() == before
+    assert not q8.normalisation_as_batchnorm(_lifter_like())  # no Mul -> Add before its first conv
