@@ -200,6 +200,11 @@ def format_streaming(s: StreamingResult) -> str:
         f"streaming ({s.preset} export, {s.precision}, 1 intra-op thread per session; bundled nuScenes sweep in "
         f"{s.num_slices} slices of {pts} points; {s.num_cameras} cameras at {s.image_size[0]}x{s.image_size[1]})",
         _lane_line("slice lane, image lane idle", s.idle),
+        *(
+            [_lane_line(f"slice lane, image lane idle, {s.all_cores} threads", s.idle_all_cores)]
+            if s.idle_all_cores is not None
+            else []
+        ),
         _lane_line("slice lane, image lane busy", s.busy),
         _lane_line("slice lane, one sequential queue", s.sequential_slice),
         f"    (queue: {s.sequential_horizon_ms:.0f} ms of arrivals, slices every {s.slice_budget_ms:.2f} ms, images at "
@@ -223,6 +228,11 @@ def format_streaming(s: StreamingResult) -> str:
     lines.append(
         f"  real-time (10 Hz LiDAR, {s.num_slices} slices -> {s.slice_budget_ms:.2f} ms per slice): factor "
         f"{s.real_time_factor(s.idle):.2f} idle, {s.real_time_factor(s.busy):.2f} busy (<= 1 keeps up)"
+        + (
+            f"; {s.real_time_factor(s.idle_all_cores):.2f} idle with {s.all_cores} slice threads"
+            if s.idle_all_cores is not None
+            else ""
+        )
     )
     return "\n".join(lines)
 
@@ -281,6 +291,8 @@ def streaming_to_dict(s: StreamingResult) -> dict:
         "slice_budget_ms": s.slice_budget_ms,
         "slice_idle": _lane(s.idle),
         "slice_busy": _lane(s.busy),
+        "slice_idle_all_cores": None if s.idle_all_cores is None else _lane(s.idle_all_cores),
+        "all_cores": s.all_cores,
         "image_updates_during_busy": s.image_busy_updates,
         "busy_over_idle_p95": s.busy_over_idle_p95,
         "sequential": {

@@ -44,6 +44,8 @@ def test_quick_tiny_run_writes_documented_json(quick_run):
         assert key in s
     assert s["num_slices"] == 8 and s["slice_budget_ms"] == pytest.approx(12.5)
     assert s["slice_idle"]["latency"]["count"] == 2 * 8
+    if s["all_cores"] > 1:
+        assert s["slice_idle_all_cores"]["latency"]["count"] == 2 * 8
     assert {"pre", "slice_head", "post", "slice_total"} <= set(s["slice_idle"]["stages"])
     assert s["sequential"]["slice_latency"]["count"] == 8
     assert all(t["met"] in (True, False, None) for t in doc["targets"])
