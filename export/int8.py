@@ -79,6 +79,7 @@ from streamdet.data.sample import Sample, load_bundled_sample, load_image
 from streamdet.data.slicing import slice_sample
 from streamdet.export.manifest import BoxAgreement, Int8Calibration, Int8OutputParity
 from streamdet.export.onnx_export import heatmap_producers, is_decode_node
+from streamdet.runtime_ort.boxes import YAW
 from streamdet.runtime_ort.pillarize import pillarize
 
 ACTIVATION_TYPE = QuantType.QUInt8  # the only activation type x86 onnxruntime runs as fused int8 convolutions
@@ -564,11 +565,18 @@ def _slice_parity(
         for q in range(sc32.shape[0]):
             k32, k8 = sc32[q] >= BOX_SCORE_THRESHOLD, sc8[q] >= BOX_SCORE_THRESHOLD
             ia, ib, _ = pair_boxes(b32[q][k32], l32[q][k32], b8[q][k8], l8[q][k8], 2.0 * cell_m)
-            ref.append(b32[q][k32][ia])
-            got.append(b8[q][k8][ib])
+            r, g = b32[q][k32][ia].astype(np.float64), b8[q][k8][ib].astype(np.float64)
+            g[:, YAW] = r[:, YAW] + _wrap(g[:, YAW] - r[:, YAW])  # yaw pi and -pi are one heading
+            ref.append(r)
+            got.append(g)
     boxes = dense_parity("slice_head", "det_boxes", inputs, got, ref,
-                         f"boxes with score >= {BOX_SCORE_THRESHOLD} paired by label and centre (all 9 columns)")  # fmt: skip
+                         f"boxes with score >= {BOX_SCORE_THRESHOLD} paired by label and centre (all 9 columns, yaw "
+                         "difference wrapped to [-pi, pi))")  # fmt: skip
     return [scores, boxes]
+
+
+def _wrap(angle: np.ndarray) -> np.ndarray:
+    return (angle + np.pi) % (2 * np.pi) - np.pi
 
 
 @dataclass(frozen=True)

@@ -328,3 +328,14 @@ def test_normalisation_as_batchnorm_leaves_other_graphs():
     before = per_tensor.SerializeToString()
     assert not q8.normalisation_as_batchnorm(per_tensor) and per_tensor.SerializeToString() == before
     assert not q8.normalisation_as_batchnorm(_lifter_like())  # no Mul -> Add before its first conv
+
+
+def test_slice_parity_wraps_yaw():
+    rng = np.random.default_rng(0)
+    b, s, l = _dets(rng, q=1, k=4)
+    s[:] = [0.9, 0.8, 0.7, 0.6]
+    b[0, :, 6] = np.float32(np.pi - 1e-3)
+    b8 = b.copy()
+    b8[0, :, 6] = np.float32(-np.pi + 1e-3)  # the same heading, 2e-3 rad apart
+    scores, boxes = q8._slice_parity("same", [(b8, s, l)], [(b, s, l)], cell_m=0.8)  # noqa: SLF001
+    assert boxes.max_abs_diff == pytest.approx(2e-3, abs=1e-5) and scores.rel_l2_error == 0.0
