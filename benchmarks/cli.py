@@ -71,6 +71,8 @@ def _flops_only(preset: str, resolution: tuple[int, int] | None, json_path: Path
 )
 @click.option("--slices", type=click.IntRange(min=1), default=8, show_default=True, help="Slices per sweep of the streaming section.")
 @click.option("--fp16/--no-fp16", default=True, show_default=True, help="Also time the fp16 graphs (and export them).")
+@click.option("--int8/--no-int8", default=True, show_default=True,
+              help="Also time int8 graphs of the rows (static QDQ, as streamdet-export --int8 writes them).")
 @click.option("--repeat", type=click.IntRange(min=1), default=None, help="Timed runs per measurement [default: 20; 5 with --quick].")
 @click.option("--threads", type=click.IntRange(min=1), default=None, help="Threads for the Table 3 rows [default: all cores].")
 @click.option(
@@ -99,6 +101,7 @@ def main(
     resolution: tuple[int, int] | None,
     slices: int,
     fp16: bool,
+    int8: bool,
     repeat: int | None,
     threads: int | None,
     quick: bool,
@@ -139,6 +142,7 @@ def main(
         resolution=resolution,
         slices=slices,
         fp16=fp16,
+        int8=int8,
         repeat=repeat,
         threads=threads,
         quick=quick,

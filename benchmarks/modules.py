@@ -11,7 +11,11 @@ The rows are not the three deployment graphs: each row isolates one module the w
 
 Weights are a seeded random init in eval mode: the time of a dense convolution does not depend on the values.
 Each graph is exported with the export library (``streamdet.export.onnx_export``) and given an fp16 sibling with
-``convert_model_to_fp16``, keeping in fp32 what the deployed fp16 slice graph keeps (decode and heatmap convs).
+``convert_model_to_fp16``, keeping in fp32 what the deployed fp16 slice graph keeps (decode and heatmap convs), and
+an int8 sibling with ``streamdet.export.int8.quantize_graph`` (what ``streamdet-export --int8`` writes, with the same
+nodes kept float). The int8 rows are calibrated on the row's own benchmark input: their weights are random too, and
+the time of the int8 kernels does not depend on the values; int8 accuracy is the export's parity record and
+``streamdet-eval --precision int8``.
 """
 
 from __future__ import annotations
@@ -28,6 +32,7 @@ from torch import Tensor, nn
 
 from streamdet.benchmarks.flops_report import BENCH_NUM_IMAGES, BENCH_NUM_POINTS, gmac_rows
 from streamdet.export.fp16 import check_model, convert_model_to_fp16
+from streamdet.export.int8 import quantize_graph
 from streamdet.export.onnx_export import (
     IMAGE_ENCODER_IO,
     SLICE_HEAD_IO,
@@ -43,6 +48,8 @@ from streamdet.models.detector import StreamDetector
 from streamdet.models.presets import Preset
 
 ROW_KINDS = ("slice", "conv3d", "image")
+# The deployed graph each kind of row is cut from: its int8 sibling keeps the same nodes float.
+INT8_GRAPH_OF_KIND = {"slice": "slice_head", "conv3d": "volumetric_lifter", "image": "image_encoder"}
 
 # The lifter's convolutions alone: the volume in, the image BEV out. Q dynamic like the deployed lifter.
 LIFTER_CONVS_IO = GraphIO(
@@ -169,10 +176,23 @@ class RowGraphs:
     fp16: Path | None  # None when not asked for or when the conversion failed (fp16_error says why)
     fp16_error: str | None
     model: onnx.ModelProto  # the fp32 graph, for the MAC cross-check
+    int8: Path | None = None  # None when not asked for or when the quantization failed (int8_error says why)
+    int8_error: str | None = None
 
 
-def export_row(row: Row, out_dir: Path, fp16: bool = True) -> RowGraphs:
-    """Export ``row.net`` to ``out_dir/<graph_stem>.onnx`` and (``fp16``) its sibling ``<graph_stem>.fp16.onnx``."""
+def _int8_row(row: Row, fp32: Path, out_dir: Path) -> tuple[Path | None, str | None]:
+    path = out_dir / f"{row.graph_stem}.int8.onnx"
+    try:
+        quantize_graph(INT8_GRAPH_OF_KIND[row.kind], fp32, path, [row.feeds()])
+        check_model(path)
+    except Exception as e:  # noqa: BLE001 - a failed quantization is a result to report, not a crash of the run
+        return None, f"{type(e).__name__}: {str(e).strip().splitlines()[0]}"
+    return path, None
+
+
+def export_row(row: Row, out_dir: Path, fp16: bool = True, int8: bool = False) -> RowGraphs:
+    """Export ``row.net`` to ``out_dir/<graph_stem>.onnx`` and its siblings ``<graph_stem>.fp16.onnx`` (``fp16``)
+    and ``<graph_stem>.int8.onnx`` (``int8``)."""
     if row.kind == "slice":
         model = export_slice_head(row.detector, row.inputs)
         keep: Callable[[onnx.NodeProto], bool] | tuple[()] = _slice_keep(model)
@@ -181,8 +201,9 @@ def export_row(row: Row, out_dir: Path, fp16: bool = True) -> RowGraphs:
         keep = ()
     fp32 = out_dir / f"{row.graph_stem}.onnx"
     save_model(model, fp32)
+    int8_path, int8_error = _int8_row(row, fp32, out_dir) if int8 else (None, None)
     if not fp16:
-        return RowGraphs(fp32, None, None, model)
+        return RowGraphs(fp32, None, None, model, int8_path, int8_error)
     fp16_path: Path | None = out_dir / f"{row.graph_stem}.fp16.onnx"
     error = None
     try:
@@ -191,4 +212,4 @@ def export_row(row: Row, out_dir: Path, fp16: bool = True) -> RowGraphs:
         save_model(converted, fp16_path)
     except Exception as e:  # noqa: BLE001 - a failed conversion is a result to report, not a crash of the run
         fp16_path, error = None, f"{type(e).__name__}: {str(e).strip().splitlines()[0]}"
-    return RowGraphs(fp32, fp16_path, error, model)
+    return RowGraphs(fp32, fp16_path, error, model, int8_path, int8_error)

@@ -1,4 +1,4 @@
-"""PNG bar chart of the Table 3 rows: ms per row for onnxruntime fp32, fp16 and PyTorch eager (log scale)."""
+"""PNG bar chart of the Table 3 rows: ms per row for onnxruntime fp32, fp16, int8 and PyTorch eager (log scale)."""
 
 from __future__ import annotations
 
@@ -23,13 +23,14 @@ def plot_rows(rows: Sequence[RowResult], path: str | Path, title: str) -> Path:
     series = (
         ("onnxruntime fp32", [r.fp32.median_ms for r in rows]),
         ("onnxruntime fp16", [np.nan if r.fp16 is None else r.fp16.median_ms for r in rows]),
+        ("onnxruntime int8", [np.nan if r.int8 is None else r.int8.median_ms for r in rows]),
         ("PyTorch eager", [np.nan if r.torch is None else r.torch.median_ms for r in rows]),
     )
     y = np.arange(len(rows))
-    height = 0.27
+    height = 0.8 / len(series)
     fig, ax = plt.subplots(figsize=(10, 0.75 * len(rows) + 1.5))
     for i, (label, values) in enumerate(series):
-        ax.barh(y + (i - 1) * height, values, height, label=label)
+        ax.barh(y + (i - (len(series) - 1) / 2) * height, values, height, label=label)
     ax.set_yticks(y, [r.module for r in rows], fontsize=8)
     ax.invert_yaxis()  # first row on top, as in the table
     ax.set_xscale("log")  # rows span milliseconds to seconds

@@ -22,6 +22,7 @@ PEAK_FRACTION_MIN = 0.60  # conv-heavy graphs reach this fraction of the matmul 
 BUSY_OVER_IDLE_P95_MAX = 1.5  # slice p95 with a busy image lane vs idle
 REAL_TIME_FACTOR_MAX = 1.0  # slice p50 over the per-slice budget of a 10 Hz LiDAR
 BUSY_OTHER_CPUS = 0.2  # other processes using more CPUs than this on average during the run flag a busy machine
+INT8_SPEEDUP_MIN = {"image": 2.5, "conv3d": 2.5, "slice": 1.0}  # int8 over fp32, by row kind (int8 issue)
 
 UNITS = "GMAC = 1e9 multiply-accumulates (FLOPs = 2 x MACs); times in ms of wall clock (median, p95 in brackets)"
 
@@ -77,6 +78,7 @@ def evaluate_targets(rows: Sequence[RowResult], peak: ProbeResult, streaming: St
             )
         )
 
+    targets.extend(_int8_targets(rows))
     fractions = [(r, r.gflops_per_s / peak.gflops_per_s) for r in rows]
     low = [f"{r.module} {f:.0%}" for r, f in fractions if f < PEAK_FRACTION_MIN]
     targets.append(
@@ -106,6 +108,29 @@ def evaluate_targets(rows: Sequence[RowResult], peak: ProbeResult, streaming: St
                 rtf <= REAL_TIME_FACTOR_MAX,
                 f"p50 {lane.latency.median_ms:.2f} ms vs budget {s.slice_budget_ms:.2f} ms: real-time factor {rtf:.2f}",
             )
+        )
+    return targets
+
+
+def _int8_targets(rows: Sequence[RowResult]) -> list[Target]:
+    """int8 >= 2.5x fp32 for the image encoder and the 3D convolutions, faster than fp32 for the slice graph (no
+    lines when nothing was timed in int8, --no-int8)."""
+    targets: list[Target] = []
+    if all(r.int8 is None for r in rows):
+        return targets
+    for kind, what in (("image", "image encoder"), ("conv3d", "3D convolutions"), ("slice", "slice graph")):
+        least = INT8_SPEEDUP_MIN[kind]
+        kind_rows = [r for r in rows if r.kind == kind]
+        timed = [(r, r.int8_speedup) for r in kind_rows if r.int8_speedup is not None]
+        if not kind_rows:
+            continue
+        name = f"int8 {'faster than' if least == 1.0 else f'>= {least}x'} fp32, {what}"
+        if not timed:
+            targets.append(Target(name, None, "no int8 timing"))
+            continue
+        targets.append(
+            Target(name, all(x > least if least == 1.0 else x >= least for _, x in timed),
+                   ", ".join(f"{r.module} {x:.2f}x" for r, x in timed))  # fmt: skip
         )
     return targets
 
@@ -150,8 +175,9 @@ def format_header(meta: dict, peak: ProbeResult) -> str:
 
 def format_rows(rows: Sequence[RowResult], peak: ProbeResult) -> str:
     header = (
-        "module", "GMAC", "onnx/torch", "ms fp32 (p95)", "ms fp16 (p95)", "ms torch", "torch/ort", "GFLOP/s", "% peak", "fp32 min-max", "n"
-    )
+        "module", "GMAC", "onnx/torch", "ms fp32 (p95)", "ms fp16 (p95)", "ms int8 (p95)", "fp32/int8", "ms torch", "torch/ort",
+        "GFLOP/s", "% peak", "fp32 min-max", "n",
+    )  # fmt: skip
     table = []
     for r in rows:
         ratio = r.torch_over_ort
@@ -162,6 +188,8 @@ def format_rows(rows: Sequence[RowResult], peak: ProbeResult) -> str:
                 "-" if r.graph_ratio is None else f"{r.graph_ratio:.3f}",
                 _ms(r.fp32),
                 _ms(r.fp16),
+                _ms(r.int8),
+                "-" if r.int8_speedup is None else f"{r.int8_speedup:.2f}",
                 "-" if r.torch is None else (f"{r.torch.median_ms:.1f}" if r.torch.median_ms >= 10 else f"{r.torch.median_ms:.2f}"),
                 "-" if ratio is None else f"{ratio:.2f}",
                 f"{r.gflops_per_s:.1f}",
@@ -261,14 +289,18 @@ def row_to_dict(r: RowResult, peak: ProbeResult) -> dict:
         "graph_gmac_ratio": r.graph_ratio,
         "ms_fp32": r.fp32.median_ms,
         "ms_fp16": None if r.fp16 is None else r.fp16.median_ms,
+        "ms_int8": None if r.int8 is None else r.int8.median_ms,
+        "int8_speedup": r.int8_speedup,
         "ms_torch": None if r.torch is None else r.torch.median_ms,
         "torch_over_ort": r.torch_over_ort,
         "gflops_per_s": r.gflops_per_s,
         "peak_fraction": r.gflops_per_s / peak.gflops_per_s,
         "fp32": _stats(r.fp32),
         "fp16": _stats(r.fp16),
+        "int8": _stats(r.int8),
         "torch": _stats(r.torch),
         "fp16_error": r.fp16_error,
+        "int8_error": r.int8_error,
         "notes": list(r.notes),
         "profile": {k: v.to_dict(top=10) for k, v in r.profiles.items()},
     }

@@ -37,6 +37,7 @@ class BenchConfig:
     resolution: tuple[int, int] | None = None  # (W, H) of the given image row and the streaming export; None: preset's
     slices: int = 8  # slices per sweep of the streaming section
     fp16: bool = True  # also export and time fp16 graphs
+    int8: bool = True  # also quantize and time int8 graphs (the rows; the streaming export stays fp32)
     repeat: int | None = None  # timed runs per measurement; None: 20, or 5 with quick
     threads: int | None = None  # threads of the row measurements; None: every core
     quick: bool = False  # fewer repeats, shorter streaming runs
@@ -117,6 +118,7 @@ def run_benchmark(cfg: BenchConfig, progress: Progress = lambda msg: None) -> Be
         "budget_s": timing.budget_s,
         "quick": cfg.quick,
         "fp16": cfg.fp16,
+        "int8": cfg.int8,
         "export_dir": str(cfg.export_dir) if cfg.export_dir is not None else "(temporary export)",
         "machine": machine_info(threads),
     }
@@ -132,6 +134,7 @@ def run_benchmark(cfg: BenchConfig, progress: Progress = lambda msg: None) -> Be
             torch_skip_ms=cfg.torch_skip_ms,
             profile_dir=cfg.profile_dir,
             fp16=cfg.fp16,
+            int8=cfg.int8,
         )
         results = measure_rows(rows, work, table_cfg, progress)
         del rows  # the paper preset's modules and inputs hold gigabytes

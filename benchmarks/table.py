@@ -1,7 +1,7 @@
-"""Measure the Table 3 rows: onnxruntime fp32 and fp16, PyTorch eager, the graph's MACs, optional profiles.
+"""Measure the Table 3 rows: onnxruntime fp32, fp16 and int8, PyTorch eager, the graph's MACs, optional profiles.
 
 For every row: export (``modules.export_row``), count the graph's MACs and compare with the torch counter, then
-time the fp32 graph, the fp16 graph and the same module in PyTorch eager (``torch.inference_mode``, the same
+time the fp32 graph, the fp16 graph, the int8 graph and the same module in PyTorch eager (``torch.inference_mode``, the same
 thread count) with ``timing.time_callable``. A row's throughput is its MACs over the fp32 median; its peak
 fraction divides that by the matmul probe of the same run.
 """
@@ -33,6 +33,7 @@ class TableConfig:
     torch_skip_ms: float | None = None  # skip PyTorch on rows whose fp32 median exceeds this (--quick); None: never
     profile_dir: Path | None = None  # write onnxruntime profiles of every row graph here
     fp16: bool = True  # also convert, time (and profile) the fp16 sibling of every graph
+    int8: bool = True  # also quantize, time (and profile) the int8 sibling of every graph
 
     def __post_init__(self) -> None:
         if isinstance(self.threads, bool) or not isinstance(self.threads, int) or self.threads < 1:
@@ -52,6 +53,13 @@ class RowResult:
     fp16_error: str | None = None
     notes: tuple[str, ...] = ()
     profiles: dict[str, ProfileSummary] = field(default_factory=dict)  # precision -> summary
+    int8: TimingStats | None = None  # None: not asked for, or the quantization failed (int8_error)
+    int8_error: str | None = None
+
+    @property
+    def int8_speedup(self) -> float | None:
+        """fp32 median over int8 median."""
+        return None if self.int8 is None else self.fp32.median_ms / self.int8.median_ms
 
     @property
     def gflops_per_s(self) -> float:
@@ -99,8 +107,8 @@ def measure_rows(rows: list[Row], work_dir: Path, cfg: TableConfig, progress: Pr
     for i, row in enumerate(rows, 1):
         step = f"[row {i}/{len(rows)}] {row.module}"
         if row.graph_stem not in exported:
-            progress(f"{step}: exporting fp32" + (" + fp16" if cfg.fp16 else ""))
-            exported[row.graph_stem] = export_row(row, work_dir, cfg.fp16)
+            progress(f"{step}: exporting fp32" + (" + fp16" if cfg.fp16 else "") + (" + int8" if cfg.int8 else ""))
+            exported[row.graph_stem] = export_row(row, work_dir, cfg.fp16, cfg.int8)
         graphs = exported[row.graph_stem]
         macs = count_graph_macs(graphs.model, row.input_shapes())
         notes: list[str] = []
@@ -115,13 +123,19 @@ def measure_rows(rows: list[Row], work_dir: Path, cfg: TableConfig, progress: Pr
             fp16 = _time_graph(graphs.fp16, row, cfg)
         elif graphs.fp16_error is not None:
             notes.append(f"fp16 conversion failed: {graphs.fp16_error}")
+        int8 = None
+        if graphs.int8 is not None:
+            progress(f"{step}: onnxruntime int8")
+            int8 = _time_graph(graphs.int8, row, cfg)
+        elif graphs.int8_error is not None:
+            notes.append(f"int8 quantization failed: {graphs.int8_error}")
         torch_stats = None
         if cfg.torch_skip_ms is not None and fp32.median_ms > cfg.torch_skip_ms:
             notes.append(f"PyTorch skipped (fp32 run {fp32.median_ms:.0f} ms > {cfg.torch_skip_ms:.0f} ms, --quick)")
         else:
             progress(f"{step}: PyTorch eager")
             torch_stats = _time_torch(row, cfg)
-        measured = (("fp32", fp32), ("fp16", fp16), ("torch", torch_stats))
+        measured = (("fp32", fp32), ("fp16", fp16), ("int8", int8), ("torch", torch_stats))
         cut = [f"{name} {st.count}/{st.requested}" for name, st in measured if st is not None and st.reduced]
         if cut:
             notes.append(f"repeats cut by the {cfg.timing.budget_s:g} s budget per measurement: {', '.join(cut)}")
@@ -132,6 +146,8 @@ def measure_rows(rows: list[Row], work_dir: Path, cfg: TableConfig, progress: Pr
             profiles["fp32"] = _profile_graph(graphs.fp32, row, "fp32", cfg.threads, cfg.profile_dir)
             if graphs.fp16 is not None:
                 profiles["fp16"] = _profile_graph(graphs.fp16, row, "fp16", cfg.threads, cfg.profile_dir)
+            if graphs.int8 is not None:
+                profiles["int8"] = _profile_graph(graphs.int8, row, "int8", cfg.threads, cfg.profile_dir)
         results.append(
             RowResult(
                 module=row.module,
@@ -145,6 +161,8 @@ def measure_rows(rows: list[Row], work_dir: Path, cfg: TableConfig, progress: Pr
                 fp16_error=graphs.fp16_error,
                 notes=tuple(notes),
                 profiles=profiles,
+                int8=int8,
+                int8_error=graphs.int8_error,
             )
         )
     return results
