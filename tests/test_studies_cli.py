@@ -76,6 +76,22 @@ def test_slices_with_a_pytorch_lidar_only_baseline(export_dir, data_dir, lidar_o
     assert "LiDAR-only baseline" in res.output and "mAP averages" in res.output
 
 
+def test_checkpoint_is_exported_first(data_dir, tmp_path):
+    import torch
+
+    from streamdet.models.detector import build_detector
+    from streamdet.models.presets import get_preset
+    from streamdet.training.checkpoint import save_weights
+
+    torch.manual_seed(1)
+    ckpt = tmp_path / "fused.pt"
+    save_weights(ckpt, get_preset("tiny"), build_detector(get_preset("tiny")).eval())
+    res = _run(["drop-camera", "--checkpoint", str(ckpt), "--data", str(data_dir), "--split", "all", "--max-samples", "1",
+                "--json", str(tmp_path / "d.json")])  # fmt: skip
+    assert res.exit_code == 0, res.output
+    assert "streamdet-study-" in json.loads((tmp_path / "d.json").read_text())["source"]  # the temporary export
+
+
 def test_slices_without_baseline_says_so(export_dir, data_dir, tmp_path):
     res = _run(["slices", *_base(export_dir, data_dir, tmp_path, "s"), "--counts", "8", "--max-samples", "1"])
     assert res.exit_code == 0, res.output
