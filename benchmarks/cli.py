@@ -73,6 +73,8 @@ def _flops_only(preset: str, resolution: tuple[int, int] | None, json_path: Path
 @click.option("--fp16/--no-fp16", default=True, show_default=True, help="Also time the fp16 graphs (and export them).")
 @click.option("--int8/--no-int8", default=True, show_default=True,
               help="Also time int8 graphs of the rows (static QDQ, as streamdet-export --int8 writes them).")
+@click.option("--stream-precision", type=click.Choice(("fp32", "fp16", "int8")), default="fp32", show_default=True,
+              help="Graphs the streaming section runs; --export-dir must hold them (streamdet-export --fp16 / --int8).")
 @click.option("--repeat", type=click.IntRange(min=1), default=None, help="Timed runs per measurement [default: 20; 5 with --quick].")
 @click.option("--threads", type=click.IntRange(min=1), default=None, help="Threads for the Table 3 rows [default: all cores].")
 @click.option(
@@ -102,6 +104,7 @@ def main(
     slices: int,
     fp16: bool,
     int8: bool,
+    stream_precision: str,
     repeat: int | None,
     threads: int | None,
     quick: bool,
@@ -127,9 +130,14 @@ def main(
         from streamdet.export.manifest import ManifestError, read_manifest
 
         try:
-            read_manifest(export_dir)  # fail now, not after minutes of row timing
+            manifest = read_manifest(export_dir)  # fail now, not after minutes of row timing
         except (ManifestError, OSError) as e:
             raise click.BadParameter(f"{export_dir} is not a usable export: {e}", param_hint="--export-dir") from None
+        if stream_precision not in manifest.precisions:
+            raise click.BadParameter(
+                f"{export_dir} has no {stream_precision} graphs (it has {', '.join(manifest.precisions)}); re-export with "
+                f"--{stream_precision}", param_hint="--stream-precision",
+            )  # fmt: skip
     elif resolution is not None and (resolution[0] % 2 or resolution[1] % 2):
         raise click.BadParameter(
             f"{resolution[0]}x{resolution[1]}: the export needs even sizes (ResNet stem stride 2)", param_hint="--resolution"
@@ -143,6 +151,7 @@ def main(
         slices=slices,
         fp16=fp16,
         int8=int8,
+        stream_precision=stream_precision,
         repeat=repeat,
         threads=threads,
         quick=quick,

@@ -37,7 +37,8 @@ class BenchConfig:
     resolution: tuple[int, int] | None = None  # (W, H) of the given image row and the streaming export; None: preset's
     slices: int = 8  # slices per sweep of the streaming section
     fp16: bool = True  # also export and time fp16 graphs
-    int8: bool = True  # also quantize and time int8 graphs (the rows; the streaming export stays fp32)
+    int8: bool = True  # also quantize and time int8 graphs of the rows
+    stream_precision: str = "fp32"  # graphs of the streaming section (the export made here includes them)
     repeat: int | None = None  # timed runs per measurement; None: 20, or 5 with quick
     threads: int | None = None  # threads of the row measurements; None: every core
     quick: bool = False  # fewer repeats, shorter streaming runs
@@ -62,7 +63,7 @@ class BenchConfig:
         return ProbeConfig(size=1024, runs=4, warmup=1) if self.quick else ProbeConfig()
 
     def streaming(self) -> StreamingConfig:
-        cfg = StreamingConfig(num_slices=self.slices)
+        cfg = StreamingConfig(num_slices=self.slices, precision=self.stream_precision)
         return dataclasses.replace(cfg, sweeps=2, image_updates=1, queue_sweeps=1) if self.quick else cfg
 
 
@@ -90,7 +91,10 @@ def _export(cfg: BenchConfig, out_dir: Path, progress: Progress) -> str | None:
     """The export library's run (what streamdet-export does); a warning when its parity checks failed."""
     from streamdet.export.exporter import ExportError, ExportOptions, run_export
 
-    opts = ExportOptions(preset=cfg.preset, resolution=cfg.given_resolution, num_slices=cfg.slices, fp16=cfg.fp16, out_dir=str(out_dir))
+    opts = ExportOptions(
+        preset=cfg.preset, resolution=cfg.given_resolution, num_slices=cfg.slices, out_dir=str(out_dir),
+        fp16=cfg.fp16 or cfg.stream_precision == "fp16", int8=cfg.stream_precision == "int8",
+    )
     try:
         result = run_export(opts, report=lambda msg: progress(f"  export: {msg}"))
     except ExportError as e:
@@ -119,6 +123,7 @@ def run_benchmark(cfg: BenchConfig, progress: Progress = lambda msg: None) -> Be
         "quick": cfg.quick,
         "fp16": cfg.fp16,
         "int8": cfg.int8,
+        "stream_precision": cfg.stream_precision,
         "export_dir": str(cfg.export_dir) if cfg.export_dir is not None else "(temporary export)",
         "machine": machine_info(threads),
     }

@@ -73,3 +73,16 @@ def test_int8_column_in_table_json_and_plot(tmp_path):
     assert row_to_dict(rows[1], peak)["ms_int8"] is None and row_to_dict(rows[1], peak)["int8_speedup"] is None
     png = plot_rows(rows, tmp_path / "rows.png", "int8")
     assert png.stat().st_size > 0 and np.frombuffer(png.read_bytes()[:8], np.uint8)[1:4].tobytes() == b"PNG"
+
+
+def test_stream_precision_needs_its_graphs(tmp_path):
+    from click.testing import CliRunner
+
+    from streamdet.benchmarks.cli import main as bench
+    from streamdet.export.cli import main as export
+
+    out = tmp_path / "exp"
+    assert CliRunner().invoke(export, ["--preset", "tiny", "--out", str(out)]).exit_code == 0
+    result = CliRunner().invoke(bench, ["--preset", "tiny", "--export-dir", str(out), "--stream-precision", "int8"])
+    assert result.exit_code == 2 and "Traceback" not in result.output
+    assert "has no int8 graphs" in result.output and "--int8" in result.output
