@@ -62,7 +62,7 @@ import logging
 import math
 import tempfile
 import time
-from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -94,7 +94,6 @@ HEAD_OUTPUT_NOTE = "head outputs: the decode reads them as box values; uint8 ste
 PILLAR_NOTE = "pillar net and scatter: metres and centimetre offsets in one tensor do not share a uint8 scale"
 
 Feeds = dict[str, np.ndarray]
-Report = Callable[[str], None]
 
 
 @dataclass(frozen=True)
