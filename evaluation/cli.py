@@ -1,9 +1,9 @@
 """``streamdet-eval``: nuScenes detection metrics of a results file against a ground-truth file.
 
-The command has two stages, so that other input modes can share the second: *inputs* (today only
-``--gt`` / ``--results`` files, through ``load_gt_and_predictions``) produce ground truth and predictions
-as ``EvalBoxes`` in the global frame; ``_evaluate_and_report`` evaluates and prints / writes them. A
-``--data DIR`` mode (running the ONNX runtime over a dataset) plugs in as another producer of the pair.
+The command has two stages, so that input modes share the second: *inputs* (``--gt`` / ``--results`` files,
+through ``load_gt_and_predictions``, or ``--data DIR``, which runs an export over a dataset split with the ONNX
+runtime, ``dataset_eval.evaluate_dataset``) produce ground truth and predictions; the metrics are then printed
+as one table and optionally written as JSON.
 """
 
 from __future__ import annotations
@@ -71,32 +71,94 @@ def _evaluate_and_report(gt: EvalBoxes, pred: EvalBoxes, classes: tuple[str, ...
         click.echo(f"wrote {json_path}")
 
 
+def _data_inputs(data_dir: Path, version: str, split: str | None, export_dir: Path, slices: int | None,
+                 precision: str, max_samples: int | None, classes: tuple[str, ...] | None, json_path: Path | None) -> None:  # fmt: skip
+    """``--data`` mode: run the ONNX runtime over the split, then the same report as the files mode."""
+    from streamdet.evaluation.dataset_eval import OnnxSweepDetector, evaluate_dataset  # onnxruntime, not torch
+
+    try:
+        detector = OnnxSweepDetector(export_dir, precision=precision, num_slices=slices)
+    except (ValueError, OSError) as e:  # ManifestError is a ValueError
+        raise click.ClickException(f"--export-dir {export_dir}: {str(e).splitlines()[0]}") from None
+    n = detector.detector.num_slices
+    try:
+        with click.progressbar(length=1, label=f"detecting ({precision}, {n} slices)", show_pos=True) as bar:
+            def progress(done: int, total: int) -> None:
+                bar.length = total
+                bar.update(1)
+
+            result = evaluate_dataset(detector, data_dir, version=version, split=split, classes=classes,
+                                      max_samples=max_samples, progress=progress)  # fmt: skip
+    except (ValueError, FileNotFoundError, KeyError) as e:
+        raise click.ClickException(str(e).strip().splitlines()[0]) from None
+    click.echo(f"{result.num_samples} samples of {data_dir} ({split or 'all'} split), export {export_dir} ({precision}), "
+               f"{n} slices per sweep, {result.seconds:.1f} s")  # fmt: skip
+    click.echo(format_table(result.metrics))
+    if json_path is not None:
+        doc = {**result.metrics.to_dict(), "num_samples": result.num_samples, "num_slices": n, "precision": precision,
+               "export_dir": str(export_dir), "data_dir": str(data_dir), "split": split}  # fmt: skip
+        try:
+            json_path.write_text(json.dumps(doc, indent=1, allow_nan=False) + "\n")
+        except OSError as e:
+            raise click.ClickException(f"cannot write --json {json_path}: {e.strerror or e}") from None
+        click.echo(f"wrote {json_path}")
+
+
 @click.command(context_settings={"help_option_names": ["-h", "--help"]})
 @click.option(
-    "--gt", "gt_path", required=True, type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    "--gt", "gt_path", type=click.Path(exists=True, dir_okay=False, path_type=Path), default=None,
     help="Ground-truth JSON: {'results': {sample_token: [box, ...]}} in the nuScenes global frame, each box with "
-    "'ego_translation' and 'num_pts' (see streamdet.evaluation.results).",
+    "'ego_translation' and 'num_pts' (see streamdet.evaluation.results). Files mode, with --results.",
 )  # fmt: skip
 @click.option(
-    "--results", "results_path", required=True, type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    "--results", "results_path", type=click.Path(exists=True, dir_okay=False, path_type=Path), default=None,
     help="Predictions in the official nuScenes submission format {'meta': ..., 'results': ...}, covering every "
-    "ground-truth sample.",
+    "ground-truth sample. Files mode, with --gt.",
 )  # fmt: skip
+@click.option(
+    "--data", "data_dir", type=click.Path(exists=True, file_okay=False, path_type=Path), default=None,
+    help="Dataset mode: a nuScenes-format dataset root (e.g. from streamdet-synth); the export is run over it with "
+    "onnxruntime (all cameras, every slice, per-sweep NMS) and scored against its ground truth.",
+)  # fmt: skip
+@click.option("--version", default="v1.0-synth", show_default=True, help="Dataset mode: the table folder under --data.")
+@click.option("--split", default="val", show_default=True,
+              help="Dataset mode: scenes of this split in DATA/splits.json; 'all' for every sample.")  # fmt: skip
+@click.option("--export-dir", type=click.Path(file_okay=False, path_type=Path), default=Path("exports/small"),
+              show_default=True, help="Dataset mode: export directory written by streamdet-export.")  # fmt: skip
+@click.option("--slices", type=click.IntRange(min=1), default=None,
+              help="Dataset mode: slices per sweep (1, 2 or a multiple of 4); default: the export's.")  # fmt: skip
+@click.option("--precision", type=click.Choice(["fp32", "fp16", "int8"]), default="fp32", show_default=True,
+              help="Dataset mode: which graphs of the export to run.")  # fmt: skip
+@click.option("--max-samples", type=click.IntRange(min=1), default=None, help="Dataset mode: score only the first N samples of the split.")
 @click.option(
     "--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
     help="Also write the figures here as JSON: mAP, NDS, classes, tp_errors, per_class.",
 )  # fmt: skip
 @click.option(
     "--classes", default=None, metavar="NAME[,NAME...]",
-    help="Evaluate and average only these classes (e.g. car,pedestrian,bicycle); default all 10, as the devkit.",
+    help="Evaluate and average only these classes (e.g. car,pedestrian,bicycle); default: files mode all 10, as the "
+    "devkit; dataset mode the classes present in the ground truth.",
 )  # fmt: skip
-def main(gt_path: Path, results_path: Path, json_path: Path | None, classes: str | None) -> None:
+def main(gt_path: Path | None, results_path: Path | None, data_dir: Path | None, version: str, split: str,
+         export_dir: Path, slices: int | None, precision: str, max_samples: int | None, json_path: Path | None,
+         classes: str | None) -> None:  # fmt: skip
     """nuScenes detection mAP, TP errors and NDS, computed as nuscenes-devkit 1.2.0 (detection_cvpr_2019).
 
+    Two modes: --gt with --results (two JSON files), or --data (run an export over a dataset split).
     The devkit's bike-rack filter needs the bicycle-rack annotations, which these files do not hold: it is
     skipped. Without GT attributes, every attribute error is 1.
     """
     class_list = _parse_classes(classes)
+    if data_dir is not None:
+        if gt_path is not None or results_path is not None:
+            raise click.UsageError("--data runs the detector itself; do not combine it with --gt / --results")
+        if slices is not None and slices not in (1, 2) and slices % 4:
+            raise click.BadParameter(f"{slices} must be 1, 2 or a multiple of 4", param_hint="--slices")
+        _data_inputs(data_dir, version, None if split == "all" else split, export_dir, slices, precision, max_samples,
+                     class_list, json_path)  # fmt: skip
+        return
+    if gt_path is None or results_path is None:
+        raise click.UsageError("give --gt and --results (files mode), or --data (dataset mode)")
     try:
         gt, pred = load_gt_and_predictions(gt_path, results_path)
     except ValueError as e:

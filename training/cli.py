@@ -35,8 +35,9 @@ def _parse_slices(ctx, param, value: str) -> tuple[int, ...]:
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path),
               help="Output folder: last.pt (resumable), model.pt (weights for streamdet-export), metrics.jsonl, config.json.")
 @click.option("--preset", default="small", show_default=True, type=click.Choice(preset_names()), help="Model preset.")
-@click.option("--steps", type=click.IntRange(min=1), default=None, help="Optimizer steps (overrides --epochs).")
-@click.option("--epochs", type=click.IntRange(min=1), default=10, show_default=True, help="Passes over the training samples (when --steps is not given).")
+@click.option("--steps", type=click.IntRange(min=1), default=None, help="Optimizer steps of the one-cycle schedule (overrides --epochs).")
+@click.option("--epochs", type=click.IntRange(min=1), default=None,
+              help="Passes over the training samples (when --steps is not given). Without both: --max-minutes, else 10.")
 @click.option("--batch-size", type=click.IntRange(min=1), default=1, show_default=True,
               help="Samples per process per step; each sample brings all its slices (8 quadrant maps at 8 slices).")
 @click.option("--lr", type=click.FloatRange(min=0, min_open=True), default=2e-3, show_default=True, help="Peak learning rate of the one-cycle schedule (AdamW).")
@@ -47,12 +48,15 @@ def _parse_slices(ctx, param, value: str) -> tuple[int, ...]:
 @click.option("--no-image", is_flag=True, help="Train the LiDAR-only streaming baseline (no camera lane).")
 @click.option("--camera-mode", type=click.Choice(CAMERA_MODES), default="all", show_default=True,
               help="all: a quadrant's image BEV comes from every camera, as at run time; overlapping: a slice sees only the cameras overlapping its sector.")
+@click.option("--image-warmup", type=click.FloatRange(0, 1, max_open=True), default=0.0, show_default=True,
+              help="Fraction of the schedule trained with the image lane off (zero image BEV); the cheap LiDAR lane learns first.")
 @click.option("--resume", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Continue from a last.pt written by this command.")
 @click.option("--balanced", is_flag=True, help="Class-balanced (CBGS) resampling of the training samples.")
 @click.option("--workers", type=click.IntRange(min=0), default=0, show_default=True, help="DataLoader worker processes.")
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Seed of the weights and of the data order.")
 @click.option("--max-minutes", type=click.FloatRange(min=0, min_open=True), default=None,
-              help="Stop with a checkpoint once this much wall time has passed (the schedule still assumes --steps).")
+              help="With --steps/--epochs: stop with a checkpoint after this much wall time. Alone: the one-cycle "
+                   "schedule runs over this much wall time (for a fixed budget on a shared machine; not step-reproducible).")
 @click.option("--amp", type=click.Choice(AMP_MODES), default="auto", show_default=True,
               help="Autocast: auto = fp16 on CUDA, off on CPU.")
 @click.option("--cache-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
@@ -62,17 +66,19 @@ def _parse_slices(ctx, param, value: str) -> tuple[int, ...]:
 @click.option("--checkpoint-every", type=click.IntRange(min=1), default=200, show_default=True, help="Steps between rewrites of last.pt.")
 def main(data_dir: Path, version: str, out_dir: Path, preset: str, steps: int | None, epochs: int, batch_size: int,
          lr: float, num_slices: tuple[int, ...], max_slices_per_sample: int | None, no_image: bool, camera_mode: str,
-         resume: Path | None, balanced: bool, workers: int, seed: int, max_minutes: float | None, amp: str,
+         image_warmup: float, resume: Path | None, balanced: bool, workers: int, seed: int, max_minutes: float | None, amp: str,
          cache_dir: Path | None, device: str | None, log_every: int, checkpoint_every: int) -> None:  # fmt: skip
     """Train the streaming camera + LiDAR detector (or its LiDAR-only baseline) with CenterPoint targets."""
     if not (data_dir / version).is_dir():
         raise click.ClickException(f"--data {data_dir}: no table folder {data_dir / version} (is --version right?)")
     if resume is not None and not resume.is_file():
         raise click.ClickException(f"--resume {resume} does not exist")
+    if steps is None and epochs is None and max_minutes is None:
+        epochs = 10
     try:
         config = TrainConfig(
             preset=preset, use_image=not no_image, steps=steps, epochs=epochs, batch_size=batch_size, lr=lr, amp=amp,
-            balanced=balanced, workers=workers, seed=seed, max_minutes=max_minutes, log_every=log_every,
+            image_warmup=image_warmup, balanced=balanced, workers=workers, seed=seed, max_minutes=max_minutes, log_every=log_every,
             checkpoint_every=checkpoint_every,
             data=DataConfig(num_slices=num_slices, max_slices_per_sample=max_slices_per_sample, camera_mode=camera_mode),
         )  # fmt: skip

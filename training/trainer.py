@@ -36,16 +36,18 @@ from streamdet.training.dataset import DataConfig, SliceDataset, SampleStore, bu
 from streamdet.training.distributed import DistContext, all_reduce_sum, convert_batchnorm, init_distributed
 from streamdet.training.losses import CenterPointLoss, LossConfig, loss_terms
 from streamdet.training.model import TrainingModel
+from streamdet.training.schedule import OneCycle
 
 AMP_MODES = ("auto", "off", "bf16", "fp16")
+HEAD_OUTPUT_INIT_STD = 0.01
 
 
 @dataclass(frozen=True)
 class TrainConfig:
     preset: str = "small"
     use_image: bool = True  # False: the LiDAR-only streaming baseline (no image lane at all)
-    steps: int | None = None  # optimizer steps; None: epochs * steps per epoch
-    epochs: int = 10  # used when steps is None
+    steps: int | None = None  # optimizer steps of the one-cycle schedule
+    epochs: int | None = None  # when steps is None: epochs * steps per epoch; both None: a schedule over max_minutes
     batch_size: int = 1  # samples per process per step; each sample brings its slices (8 maps for n = 8)
     lr: float = 2e-3  # one-cycle peak
     weight_decay: float = 0.01  # AdamW
@@ -54,10 +56,16 @@ class TrainConfig:
     div_factor: float = 10.0  # start lr = lr / div_factor
     final_div_factor: float = 1e4  # end lr = start lr / final_div_factor
     amp: str = "auto"  # auto: fp16 autocast on CUDA, off on CPU (bf16 autocast was slower on an AVX2 CPU)
+    # Fraction of the schedule trained with the image lane off (a zero image BEV, what the runtime feeds before its
+    # first image update): the LiDAR lane and the BEV encoder learn first at a fraction of the step cost, the image
+    # lane joins for the rest. 0: images from the first step.
+    image_warmup: float = 0.0
     balanced: bool = False  # class-balanced (CBGS) resampling of the training samples
     workers: int = 0  # DataLoader worker processes (0: load in the training process)
     seed: int = 0
-    max_minutes: float | None = None  # stop (with a checkpoint) once this much wall time has passed
+    # With steps or epochs: stop (with a checkpoint) once this much wall time has passed. Alone: the one-cycle
+    # schedule runs on wall time and training ends when it is spent (not step-reproducible, see schedule.py).
+    max_minutes: float | None = None
     log_every: int = 10  # steps between progress lines / metrics records
     checkpoint_every: int = 200  # steps between last.pt rewrites
     data: DataConfig = field(default_factory=DataConfig)
@@ -67,7 +75,11 @@ class TrainConfig:
         get_preset(self.preset)  # raises for an unknown name
         if self.steps is not None and (isinstance(self.steps, bool) or not isinstance(self.steps, int) or self.steps < 1):
             raise ValueError(f"TrainConfig.steps must be None or a positive integer, got {self.steps!r}")
-        for name in ("epochs", "batch_size", "log_every", "checkpoint_every"):
+        if self.epochs is not None and (isinstance(self.epochs, bool) or not isinstance(self.epochs, int) or self.epochs < 1):
+            raise ValueError(f"TrainConfig.epochs must be None or a positive integer, got {self.epochs!r}")
+        if self.steps is None and self.epochs is None and self.max_minutes is None:
+            raise ValueError("TrainConfig needs steps, epochs or max_minutes to know how long to train")
+        for name in ("batch_size", "log_every", "checkpoint_every"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ValueError(f"TrainConfig.{name} must be a positive integer, got {v!r}")
@@ -76,6 +88,8 @@ class TrainConfig:
         for name in ("lr", "grad_clip", "div_factor", "final_div_factor"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
                 raise ValueError(f"TrainConfig.{name} must be a positive number, got {getattr(self, name)!r}")
+        if not 0.0 <= self.image_warmup < 1.0:
+            raise ValueError(f"TrainConfig.image_warmup must be in [0, 1), got {self.image_warmup!r}")
         if not 0.0 < self.pct_start < 1.0:
             raise ValueError(f"TrainConfig.pct_start must be in (0, 1), got {self.pct_start!r}")
         if not self.weight_decay >= 0:
@@ -117,6 +131,19 @@ def _amp_context(mode: str, device: torch.device):
         return nullcontext(), False
     dtype = torch.float16 if mode == "fp16" else torch.bfloat16
     return torch.autocast(device_type=device.type, dtype=dtype), mode == "fp16" and device.type == "cuda"
+
+
+def init_head_outputs(detector, std: float = HEAD_OUTPUT_INIT_STD) -> None:
+    """Draw every head branch's output conv from N(0, std), keeping its bias (the heatmap's is the prior).
+
+    The focal-loss paper's rule (RetinaNet, Lin et al. 2017). With the head's kaiming init, the few occupied
+    cells of a sparse slice map come out of batch norm as 10-20 sigma outliers, so the first heatmap holds
+    logits near +20 and the first hundred steps only undo that (loss ~1000, gradients clipped from ~1e4).
+    """
+    with torch.no_grad():
+        for task in detector.slice_net.head.tasks:
+            for branch in task.branches.values():
+                torch.nn.init.normal_(branch[-1].weight, 0.0, std)
 
 
 def make_loader(dataset: SliceDataset, config: TrainConfig, ctx: DistContext, collate: Collator) -> tuple[DataLoader, DistributedSampler]:
@@ -172,25 +199,29 @@ def train(
     collate = Collator(preset, config.data.camera_mode)
     loader, sampler = make_loader(dataset, config, ctx, collate)
     steps_per_epoch = len(loader)
-    total_steps = config.steps if config.steps is not None else config.epochs * steps_per_epoch
 
     torch.manual_seed(config.seed)
     detector = build_detector(preset)
+    init_head_outputs(detector)  # a resumed run overwrites it with the checkpoint
     if ctx.initialised and ctx.world_size > 1:
         convert_batchnorm(detector)
     model = TrainingModel(detector).to(device).train()
-    wrapped = DistributedDataParallel(model) if ctx.initialised and ctx.world_size > 1 else model
-    optimizer = torch.optim.AdamW(model.parameters(), lr=config.lr / config.div_factor, weight_decay=config.weight_decay,
-                                  betas=(0.95, 0.999))  # fmt: skip
-    scheduler = torch.optim.lr_scheduler.OneCycleLR(
-        optimizer, max_lr=config.lr, total_steps=total_steps, pct_start=config.pct_start, div_factor=config.div_factor,
-        final_div_factor=config.final_div_factor, base_momentum=0.85, max_momentum=0.95, cycle_momentum=True,
-    )  # fmt: skip
+    warmup = preset.use_image and config.image_warmup > 0
+    # During the warm-up the image lane gets no gradient; DDP must then look for unused parameters.
+    wrapped = DistributedDataParallel(model, find_unused_parameters=warmup) if ctx.initialised and ctx.world_size > 1 else model
+    optimizer = torch.optim.AdamW(model.parameters(), lr=config.lr / config.div_factor, weight_decay=config.weight_decay)
+    if config.steps is not None or config.epochs is not None:
+        total_steps = config.steps if config.steps is not None else config.epochs * steps_per_epoch
+        schedule = OneCycle(config.lr, config.pct_start, config.div_factor, config.final_div_factor, total_steps=total_steps)
+        plan = f"{total_steps} steps"
+    else:
+        schedule = OneCycle(config.lr, config.pct_start, config.div_factor, config.final_div_factor, budget_s=60 * config.max_minutes)
+        plan = f"one-cycle over {config.max_minutes:g} min of wall time"
     criterion = CenterPointLoss(config.loss).to(device)
     amp, use_scaler = _amp_context(config.amp, device)
     scaler = torch.amp.GradScaler("cuda", enabled=use_scaler)
 
-    step, epoch, epoch_step = 0, 0, 0
+    epoch, epoch_step, elapsed_before = 0, 0, 0.0
     if resume is not None:
         state = load_checkpoint(resume)
         for key in ("optimizer", "scheduler", "step", "epoch", "epoch_step"):
@@ -200,36 +231,45 @@ def train(
             raise ValueError(f"checkpoint {resume} was trained with another preset than {preset.name!r} (use_image={preset.use_image})")
         detector.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
-        scheduler.load_state_dict(state["scheduler"])
-        step, epoch, epoch_step = int(state["step"]), int(state["epoch"]), int(state["epoch_step"])
-        say(f"resumed {resume} at step {step} (epoch {epoch}, batch {epoch_step})")
-        if step >= total_steps:
-            raise ValueError(f"checkpoint {resume} is at step {step}, the run plans {total_steps}: nothing left to train")
+        schedule.load_state_dict(state["scheduler"])
+        epoch, epoch_step, elapsed_before = int(state["epoch"]), int(state["epoch_step"]), schedule.elapsed_s
+        say(f"resumed {resume} at step {schedule.step} (epoch {epoch}, batch {epoch_step})")
+        if schedule.done:
+            raise ValueError(f"checkpoint {resume} finished its schedule ({plan}): nothing left to train")
 
     if ctx.is_main:
         out_dir.mkdir(parents=True, exist_ok=True)
         (out_dir / "config.json").write_text(json.dumps({"train": config.to_dict(), "preset": preset.to_dict(),
                                                          "data_dir": str(data_dir), "world_size": ctx.world_size}, indent=1))  # fmt: skip
-    log_file = open(out_dir / "metrics.jsonl", "a") if ctx.is_main else None
+    log_file = open(out_dir / "metrics.jsonl", "a" if resume is not None else "w") if ctx.is_main else None
     n_params = sum(p.numel() for p in model.parameters())
     say(
         f"training {preset.name} ({'camera + LiDAR' if preset.use_image else 'LiDAR only'}, {n_params / 1e6:.2f} M parameters) "
         f"on {len(store)} samples, slices {list(config.data.num_slices)}, {ctx.world_size} process(es) x batch {config.batch_size}, "
-        f"{steps_per_epoch} steps/epoch, {total_steps} steps, device {device}"
+        f"{steps_per_epoch} steps/epoch, {plan}, device {device}"
     )
 
     def checkpoint() -> Path | None:
         if not ctx.is_main:
             return None
         path = out_dir / "last.pt"
-        save_training_state(path, preset=preset, model=detector, optimizer=optimizer, scheduler=scheduler, step=step,
+        save_training_state(path, preset=preset, model=detector, optimizer=optimizer, scheduler=schedule, step=schedule.step,
                             epoch=epoch, epoch_step=epoch_step, config=config.to_dict())  # fmt: skip
         return path
+
+    def elapsed() -> float:
+        """Training time so far, the same on every process (the slowest one's)."""
+        local = torch.tensor([elapsed_before + time.perf_counter() - t_start], dtype=torch.float64)
+        if ctx.initialised and ctx.world_size > 1:
+            torch.distributed.all_reduce(local, op=torch.distributed.ReduceOp.MAX)
+        return float(local)
 
     stopped_early = False
     last_loss = math.nan
     window = {"t": time.perf_counter(), "samples": 0, "slices": 0, "loss": 0.0, "parts": {}, "n": 0}
-    while step < total_steps and not stopped_early:
+    timed = schedule.by_time or config.max_minutes is not None
+    images_on = schedule.progress >= config.image_warmup
+    while not schedule.done and not stopped_early:
         sampler.set_epoch(epoch)
         dataset.set_epoch(epoch)
         batches = iter(loader)
@@ -237,8 +277,13 @@ def train(
             next(batches)
         for batch in batches:
             batch = batch.to(device)
+            lr = schedule.apply(optimizer)
+            use_image = preset.use_image and schedule.progress >= config.image_warmup
+            if warmup and use_image and not images_on:
+                say(f"step {schedule.step}: warm-up over ({config.image_warmup:.0%} of the schedule), the image lane joins")
+                images_on = True
             with amp:
-                task_maps = wrapped(batch)
+                task_maps = wrapped(batch, use_image=use_image)
             terms = loss_terms([tuple(m.float() for m in maps) for maps in task_maps], model.task_classes,
                                batch.heatmap, batch.index, batch.mask, batch.label, batch.box)  # fmt: skip
             counts = all_reduce_sum(terms.num_objects, ctx)
@@ -249,8 +294,7 @@ def train(
             torch.nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
             scaler.step(optimizer)
             scaler.update()
-            scheduler.step()
-            step += 1
+            schedule.advance(elapsed() if timed else elapsed_before + time.perf_counter() - t_start)
             epoch_step += 1
 
             last_loss = float(loss.detach()) / ctx.world_size  # this process's share of the global loss
@@ -260,23 +304,22 @@ def train(
             for k, v in parts.items():
                 window["parts"][k] = window["parts"].get(k, 0.0) + float(v) / ctx.world_size
             window["n"] += 1
-            if step % config.log_every == 0 or step == total_steps:
-                _log(window, step, total_steps, epoch, scheduler, ctx, t_start, say, log_file)
-            if step % config.checkpoint_every == 0:
+            if schedule.step % config.log_every == 0:
+                _log(window, schedule, lr, epoch, ctx, say, log_file)
+            if schedule.step % config.checkpoint_every == 0:
                 checkpoint()
-            if config.max_minutes is not None:
-                over = torch.tensor([float(time.perf_counter() - t_start > 60 * config.max_minutes)])
-                if float(all_reduce_sum(over, ctx)) > 0:  # every process stops at the same step
-                    stopped_early = step < total_steps
-                    break
-            if step >= total_steps:
+            if not schedule.by_time and config.max_minutes is not None and schedule.elapsed_s > 60 * config.max_minutes:
+                stopped_early = not schedule.done  # every process sees the same (reduced) elapsed time
+                break
+            if schedule.done:
                 break
         else:
             epoch += 1
             epoch_step = 0
     if window["n"]:
-        _log(window, step, total_steps, epoch, scheduler, ctx, t_start, say, log_file)
+        _log(window, schedule, lr, epoch, ctx, say, log_file)
     ckpt = checkpoint()
+    step = schedule.step
     weights = None
     if ctx.is_main:
         weights = out_dir / "model.pt"
@@ -287,27 +330,28 @@ def train(
     return TrainResult(step, seconds, stopped_early, last_loss, ckpt, weights)
 
 
-def _log(window: dict, step: int, total: int, epoch: int, scheduler, ctx: DistContext, t_start: float, say, log_file) -> None:
+def _log(window: dict, schedule: OneCycle, lr: float, epoch: int, ctx: DistContext, say, log_file) -> None:
     now = time.perf_counter()
     dt = max(now - window["t"], 1e-9)
     n = window["n"]
-    # the local share of the loss summed over processes is the global batch's loss
+    # the local shares of the loss summed over processes make the global batch's loss
     stats = all_reduce_sum(torch.tensor([window["loss"]] + list(window["parts"].values()), dtype=torch.float64), ctx)
     loss = float(stats[0]) / n
     parts = {k: float(v) / n for k, v in zip(window["parts"], stats[1:].tolist())}
     samples_s = window["samples"] * ctx.world_size / dt
     slices_s = window["slices"] * ctx.world_size / dt
-    elapsed = now - t_start
-    lr = scheduler.get_last_lr()[0]
-    eta = (total - step) * dt / n
+    if schedule.by_time:
+        total, eta = "time", schedule.budget_s - schedule.elapsed_s
+    else:
+        total, eta = str(schedule.total_steps), (schedule.total_steps - schedule.step) * dt / n
     say(
-        f"step {step:>6}/{total} ep {epoch:>3} loss {loss:7.4f} (hm {parts.get('heatmap', math.nan):.4f} "
+        f"step {schedule.step:>6}/{total} ep {epoch:>3} loss {loss:7.4f} (hm {parts.get('heatmap', math.nan):.4f} "
         f"reg {parts.get('reg', math.nan):.4f}) lr {lr:.2e} {samples_s:5.2f} samples/s {slices_s:6.1f} slices/s "
-        f"elapsed {elapsed / 60:5.1f} min eta {eta / 60:5.1f} min"
+        f"elapsed {schedule.elapsed_s / 60:5.1f} min eta {max(eta, 0.0) / 60:5.1f} min"
     )
     if log_file is not None:
-        record = {"step": step, "epoch": epoch, "loss": loss, **parts, "lr": lr, "samples_per_s": samples_s,
-                  "slices_per_s": slices_s, "elapsed_s": elapsed}  # fmt: skip
+        record = {"step": schedule.step, "epoch": epoch, "loss": loss, **parts, "lr": lr, "samples_per_s": samples_s,
+                  "slices_per_s": slices_s, "elapsed_s": schedule.elapsed_s}  # fmt: skip
         log_file.write(json.dumps(record) + "\n")
         log_file.flush()
     window.update(t=now, samples=0, slices=0, loss=0.0, parts={}, n=0)

@@ -1,0 +1,119 @@
+"""Data parallel on CPU: ``torchrun --nproc_per_node 2`` (gloo) reaches the weights of one process that holds the
+same global batch, and the cross-process batch norm equals a batch norm over the concatenated batch."""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from click.testing import CliRunner
+
+from streamdet.data.synth_world import WorldConfig
+from streamdet.data.synth_writer import SynthConfig, generate_dataset
+from streamdet.models.presets import get_preset
+from streamdet.training.checkpoint import load_checkpoint
+from streamdet.training.cli import main as train_main
+
+TINY = get_preset("tiny")
+STEPS = 3
+
+
+@pytest.fixture(scope="module")
+def data_dir(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("synth")
+    size = (TINY.image.width_px, TINY.image.height_px)
+    generate_dataset(root, SynthConfig(num_scenes=3, seed=5, resolution=size, world=WorldConfig(samples_per_scene=2)))
+    return root  # 4 training samples
+
+
+def _args(data_dir: Path, out: Path, cache: Path, batch: int) -> list[str]:
+    return ["--data", str(data_dir), "--out", str(out), "--preset", "tiny", "--steps", str(STEPS), "--batch-size", str(batch),
+            "--lr", "1e-3", "--log-every", "1", "--cache-dir", str(cache), "--seed", "3"]  # fmt: skip
+
+
+@pytest.mark.slow
+def test_two_processes_match_one_process(data_dir, tmp_path):
+    cache = tmp_path / "cache"
+    one = CliRunner().invoke(train_main, _args(data_dir, tmp_path / "one", cache, batch=2))
+    assert one.exit_code == 0, one.output
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
+           "-m", "streamdet.training.cli", *_args(data_dir, tmp_path / "two", cache, batch=1)]  # fmt: skip
+    two = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=env)
+    assert two.returncode == 0, two.stdout[-2000:] + two.stderr[-4000:]
+    assert "2 process(es) x batch 1" in two.stdout
+    a = load_checkpoint(tmp_path / "one" / "last.pt")
+    b = load_checkpoint(tmp_path / "two" / "last.pt")
+    assert a["step"] == b["step"] == STEPS
+    for k, va in a["model"].items():
+        vb = b["model"][k]
+        assert va.shape == vb.shape, k
+        if va.is_floating_point():
+            # Same global batch, global batch-norm statistics and object-count normalisation: equal up to the
+            # order of floating-point sums (all-reduce vs one process).
+            torch.testing.assert_close(vb, va, rtol=1e-4, atol=2e-5, msg=lambda m, k=k: f"{k}: {m}")
+        else:
+            assert torch.equal(va, vb), k  # num_batches_tracked
+    # the two runs logged the same global losses, step by step
+    la = [json.loads(line) for line in (tmp_path / "one" / "metrics.jsonl").read_text().splitlines()]
+    lb = [json.loads(line) for line in (tmp_path / "two" / "metrics.jsonl").read_text().splitlines()]
+    assert len(la) == len(lb) == STEPS
+    for ra, rb in zip(la, lb):
+        assert ra["loss"] == pytest.approx(rb["loss"], rel=1e-4)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _bn_worker(rank: int, port: int, out: str) -> None:
+    import torch.distributed as dist
+
+    from streamdet.training.distributed import CrossProcessBatchNorm
+
+    dist.init_process_group("gloo", init_method=f"tcp://127.0.0.1:{port}", rank=rank, world_size=2)
+    torch.manual_seed(0)
+    x = torch.randn(6, 4, 5, 3, dtype=torch.float64) * 3 + 1  # the same full batch on both ranks
+    bn = CrossProcessBatchNorm(4).double()
+    with torch.no_grad():
+        bn.weight.uniform_(0.5, 2)
+        bn.bias.uniform_(-1, 1)
+    part = x[rank * 2 : rank * 2 + 2 + rank].clone().requires_grad_(True)  # uneven shards: 2 and 3 rows
+    y = bn(part)
+    (y * torch.arange(y.numel(), dtype=y.dtype).reshape(y.shape).sin()).sum().backward()
+    torch.save({"y": y.detach(), "grad": part.grad, "rm": bn.running_mean, "rv": bn.running_var,
+                "gw": bn.weight.grad, "gb": bn.bias.grad}, f"{out}/bn{rank}.pt")  # fmt: skip
+    dist.destroy_process_group()
+
+
+@pytest.mark.slow
+def test_cross_process_batchnorm_equals_one_batchnorm(tmp_path):
+    import torch.multiprocessing as mp
+
+    mp.spawn(_bn_worker, args=(_free_port(), str(tmp_path)), nprocs=2, join=True)
+    torch.manual_seed(0)
+    x = torch.randn(6, 4, 5, 3, dtype=torch.float64) * 3 + 1
+    bn = torch.nn.BatchNorm2d(4).double()
+    with torch.no_grad():
+        bn.weight.uniform_(0.5, 2)
+        bn.bias.uniform_(-1, 1)
+    x = x[:5].clone().requires_grad_(True)  # the shards above: rows 0-1 and 2-4
+    y = bn(x)
+    (y * torch.cat([torch.arange(2 * 60), torch.arange(3 * 60)]).to(y.dtype).reshape(y.shape).sin()).sum().backward()
+    r = [torch.load(tmp_path / f"bn{i}.pt") for i in range(2)]
+    torch.testing.assert_close(torch.cat([r[0]["y"], r[1]["y"]]), y.detach())
+    torch.testing.assert_close(torch.cat([r[0]["grad"], r[1]["grad"]]), x.grad)
+    for i in range(2):
+        torch.testing.assert_close(r[i]["rm"], bn.running_mean)
+        torch.testing.assert_close(r[i]["rv"], bn.running_var)
+    # parameter gradients are per-process sums; DDP's average times the loss scale (world size) gives the total
+    torch.testing.assert_close(r[0]["gw"] + r[1]["gw"], bn.weight.grad)
+    torch.testing.assert_close(r[0]["gb"] + r[1]["gb"], bn.bias.grad)

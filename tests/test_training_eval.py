@@ -1,0 +1,97 @@
+"""Scoring a model over a dataset: the ONNX runtime route (evaluation/dataset_eval.py, streamdet-eval --data) and
+the PyTorch route (training/torch_eval.py) agree, and the CLI reports classes, JSON and one-line errors."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from streamdet.data.nuscenes import NuScenesReader
+from streamdet.data.synth_world import WorldConfig
+from streamdet.data.synth_writer import SynthConfig, generate_dataset
+from streamdet.evaluation.cli import main as eval_main
+from streamdet.evaluation.dataset_eval import OnnxSweepDetector, evaluate_dataset
+from streamdet.export.exporter import ExportOptions, run_export
+from streamdet.export.weights import load_detector
+from streamdet.models.presets import get_preset
+from streamdet.training.torch_eval import TorchSweepDetector
+
+TINY = get_preset("tiny")
+
+
+@pytest.fixture(scope="module")
+def data_dir(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("synth")
+    size = (TINY.image.width_px, TINY.image.height_px)
+    generate_dataset(root, SynthConfig(num_scenes=2, seed=11, resolution=size, world=WorldConfig(samples_per_scene=2)))
+    return root  # scene 1 (2 samples) is val
+
+
+@pytest.fixture(scope="module")
+def export_dir(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("export") / "tiny"
+    run_export(ExportOptions(preset="tiny", out_dir=str(out), num_slices=8))  # fixed-seed weights, spread logits
+    return out
+
+
+def test_torch_and_onnx_routes_agree(data_dir, export_dir):
+    model, _ = load_detector(TINY, None)  # the same fixed-seed weights the export holds
+    sample = NuScenesReader(data_dir, "v1.0-synth").get(3)
+    onnx = OnnxSweepDetector(export_dir)(sample)
+    torch_dets = TorchSweepDetector(model, num_slices=8)(sample)
+    assert len(onnx) > 0
+    top = min(len(onnx), len(torch_dets), 10)
+    # The same boxes lead both lists (ties aside, the order is the score order).
+    np.testing.assert_allclose(onnx.scores[:top], torch_dets.scores[:top], rtol=1e-3, atol=1e-4)
+    np.testing.assert_allclose(onnx.boxes[:top, :3], torch_dets.boxes[:top, :3], atol=2e-3)
+
+
+def test_evaluate_dataset_names_the_classes(data_dir, export_dir):
+    res = evaluate_dataset(OnnxSweepDetector(export_dir, num_slices=4), data_dir, split="val")
+    assert res.num_samples == 2 and res.classes and set(res.classes) <= set(TINY_CLASSES)
+    assert 0.0 <= res.metrics.mean_ap <= 1.0
+    d = res.to_dict()
+    assert d["classes"] == list(res.classes) and d["num_samples"] == 2
+    only = evaluate_dataset(OnnxSweepDetector(export_dir), data_dir, split="val", classes=("car",), max_samples=1)
+    assert only.classes == ("car",) and only.num_samples == 1
+
+
+TINY_CLASSES = ("car", "truck", "bus", "bicycle", "motorcycle", "pedestrian", "barrier", "traffic_cone")
+
+
+def test_eval_cli_data_mode(data_dir, export_dir, tmp_path):
+    out = tmp_path / "m.json"
+    res = CliRunner().invoke(eval_main, ["--data", str(data_dir), "--export-dir", str(export_dir), "--slices", "8",
+                                         "--json", str(out)])  # fmt: skip
+    assert res.exit_code == 0, res.output
+    assert "mAP" in res.output and "mAP / NDS average" in res.output and "8 slices per sweep" in res.output
+    doc = json.loads(out.read_text())
+    assert doc["num_slices"] == 8 and doc["num_samples"] == 2 and 0.0 <= doc["mAP"] <= 1.0 and doc["classes"]
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--slices", "6"], "multiple of 4"),
+        (["--export-dir", "/nonexistent/export"], "--export-dir"),
+        (["--split", "test"], "split 'test'"),
+        (["--precision", "fp16"], "fp16"),
+        (["--gt", __file__], "do not combine"),
+    ],
+)
+def test_eval_cli_data_mode_bad_input(data_dir, export_dir, args, message):
+    base = ["--data", str(data_dir), "--export-dir", str(export_dir)]
+    if args[0] == "--export-dir":
+        base = ["--data", str(data_dir)]
+    res = CliRunner().invoke(eval_main, [*base, *args])
+    assert res.exit_code != 0
+    assert message in res.output and "Traceback" not in res.output
+
+
+def test_eval_cli_needs_a_mode():
+    res = CliRunner().invoke(eval_main, [])
+    assert res.exit_code != 0 and "--data" in res.output

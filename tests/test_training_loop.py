@@ -1,0 +1,246 @@
+"""Dataset, collate and trainer on a tiny synthetic dataset with the tiny preset: batching vs per-sample
+references, the loss going down, resume == uninterrupted run, the LiDAR-only switch, the CLI's bad input."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from click.testing import CliRunner
+
+from streamdet.data.synth_world import WorldConfig
+from streamdet.data.synth_writer import SynthConfig, generate_dataset
+from streamdet.models.detector import build_detector
+from streamdet.models.presets import get_preset
+from streamdet.runtime_ort.pillarize import pillarize
+from streamdet.training.batching import Collator
+from streamdet.training.checkpoint import load_checkpoint, load_weights, save_weights
+from streamdet.training.cli import main as train_main
+from streamdet.training.dataset import DataConfig, SliceDataset, build_store, class_balanced_indices
+from streamdet.training.losses import CenterPointLoss, loss_terms
+from streamdet.training.model import TrainingModel
+from streamdet.training.trainer import TrainConfig, train
+
+TINY = get_preset("tiny")
+SIZE = (TINY.image.width_px, TINY.image.height_px)
+
+
+@pytest.fixture(scope="module")
+def data_dir(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("synth")
+    generate_dataset(root, SynthConfig(num_scenes=3, seed=3, resolution=SIZE, world=WorldConfig(samples_per_scene=2)))
+    return root  # scenes 0, 1 train (4 samples), scene 2 val
+
+
+@pytest.fixture(scope="module")
+def store(data_dir, tmp_path_factory):
+    return build_store(data_dir, "train", SIZE, cache_dir=tmp_path_factory.mktemp("cache"))
+
+
+def test_store_cache_round_trip(data_dir, store, tmp_path):
+    again = build_store(data_dir, "train", SIZE, cache_dir=tmp_path)  # writes a cache
+    cached = build_store(data_dir, "train", SIZE, cache_dir=tmp_path)  # reads it back (memory-mapped)
+    assert isinstance(cached.points, np.memmap) and not isinstance(again.points, np.memmap)
+    assert len(store) == 4 and cached.tokens == store.tokens
+    for name in ("points", "boxes", "labels", "num_lidar_pts", "images", "point_offsets"):
+        assert np.array_equal(np.asarray(getattr(cached, name)), getattr(store, name)), name
+    assert [r.sha256() for r in cached.rigs] == [r.sha256() for r in store.rigs]
+    assert build_store(data_dir, "train", None).images is None
+    with pytest.raises(ValueError, match="split 'test'"):
+        build_store(data_dir, "test", None)
+
+
+@pytest.mark.parametrize("seed", range(2))
+def test_item_slices_pillars_and_targets(store, seed):
+    ds = SliceDataset(store, TINY, DataConfig(num_slices=(8, 4), max_slices_per_sample=3), seed=seed)
+    for i in range(len(ds)):
+        item = ds[i]
+        assert len(item.slices) == 3 and item.images.shape == (6, SIZE[1], SIZE[0], 3)
+        n = item.slices[0].num_slices
+        assert n in (8, 4) and [s.index for s in item.slices] == sorted(s.index for s in item.slices)
+        for sl in item.slices:
+            assert len(sl.quadrants) == 1 and len(sl.targets) == 1 and sl.camera_names
+            pts = sl.pillars
+            if pts.num_pillars:  # slice index feature is the slice's own k
+                assert np.all(pts.features[..., 5][pts.mask > 0] == sl.index)
+        again = ds[i]  # same (seed, epoch, index): same item
+        assert [s.index for s in again.slices] == [s.index for s in item.slices]
+    ds.set_epoch(1)
+    picks = {tuple(s.index for s in ds[i].slices) for i in range(len(ds))}
+    assert picks  # another epoch draws again (no assertion on which: it is random)
+
+
+def test_collate_matches_per_sample_forward(store):
+    """The batched image lane (stacked images, shifted LUT rows, one sentinel) and pillar offsets give each slice
+    map exactly what a per-slice StreamDetector call gives (eval mode: no batch statistics)."""
+    torch.manual_seed(0)
+    det = build_detector(TINY).eval()
+    model = TrainingModel(det).eval()
+    ds = SliceDataset(store, TINY, DataConfig(num_slices=(8,)))
+    items = [ds[0], ds[2]]
+    collate = Collator(TINY, "all")
+    batch = collate(items)
+    assert batch.num_maps == 16 and batch.lut_index.shape[0] == 8  # 4 quadrant lifts per sample
+    with torch.no_grad():
+        maps = model(batch)[0]
+    row = 0
+    for item in items:
+        lut = collate.lut(item.rig)
+        for sl in item.slices:
+            idx, w = lut.for_quadrants(sl.quadrants)
+            pil = sl.pillars
+            with torch.no_grad():
+                ref = det(torch.from_numpy(item.images), torch.from_numpy(idx.astype(np.int64)), torch.from_numpy(w),
+                          torch.from_numpy(pil.features), torch.from_numpy(pil.mask), torch.from_numpy(pil.index))  # fmt: skip
+            for got, want in zip(maps, ref):
+                torch.testing.assert_close(got[row : row + 1], want, rtol=1e-4, atol=1e-4)
+            row += 1
+
+
+def test_overlapping_cameras_equal_zero_features(store):
+    torch.manual_seed(0)
+    det = build_detector(TINY).eval()
+    ds = SliceDataset(store, TINY, DataConfig(num_slices=(8,), max_slices_per_sample=2), seed=1)
+    item = ds[1]
+    collate = Collator(TINY, "overlapping")
+    batch = collate([item])
+    assert batch.lut_index.shape[0] == 2  # one lift per slice map
+    lut = collate.lut(item.rig)
+    with torch.no_grad():
+        bev = TrainingModel(det).image_bev(batch)
+        feats = det.image_encoder(torch.from_numpy(item.images))
+        for i, sl in enumerate(item.slices):
+            zeroed = feats.clone()
+            off = [j for j, name in enumerate(item.rig.names) if name not in sl.camera_names]
+            zeroed[off] = 0
+            idx, w = lut.for_quadrants(sl.quadrants)
+            ref = det.lifter(zeroed, torch.from_numpy(idx.astype(np.int64)), torch.from_numpy(w))
+            torch.testing.assert_close(bev[i : i + 1], ref, rtol=1e-5, atol=1e-5)
+
+
+def test_pillar_index_offsets(store):
+    ds = SliceDataset(store, dataclasses.replace(TINY, use_image=False), DataConfig(num_slices=(4,)))
+    items = [ds[0], ds[1]]
+    batch = Collator(dataclasses.replace(TINY, use_image=False))(items)
+    cells = TINY.grid.quadrant_nx * TINY.grid.quadrant_ny
+    expect = np.concatenate([sl.pillars.index + m * cells for m, sl in enumerate(s for it in items for s in it.slices)])
+    assert np.array_equal(batch.pillar_index.numpy(), expect)
+    assert batch.images is None and batch.map_source is None and batch.num_maps == 8
+
+
+def test_class_balanced_indices():
+    sets = [np.array([0]), np.array([0]), np.array([0]), np.array([0, 7]), np.array([], np.int64)]
+    idx = class_balanced_indices(sets, seed=0)
+    counts = np.bincount(idx, minlength=5)
+    assert counts[4] == 0 and counts[3] > counts[:3].max()  # the only pedestrian sample is drawn most
+    with pytest.raises(ValueError, match="at least one sample"):
+        class_balanced_indices([np.array([], np.int64)], 0)
+
+
+def test_training_steps_reduce_loss_on_a_fixed_batch(store):
+    torch.manual_seed(0)
+    model = TrainingModel(build_detector(TINY)).train()
+    batch = Collator(TINY)([SliceDataset(store, TINY)[0]])
+    opt = torch.optim.AdamW(model.parameters(), lr=3e-3)
+    crit = CenterPointLoss()
+    losses = []
+    for _ in range(12):
+        terms = loss_terms(model(batch), model.task_classes, batch.heatmap, batch.index, batch.mask, batch.label, batch.box)
+        loss, _ = crit(terms)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(float(loss))
+    assert losses[-1] < 0.5 * losses[0], losses
+
+
+def _config(**kw) -> TrainConfig:
+    base = dict(preset="tiny", steps=4, batch_size=1, lr=1e-3, log_every=1, checkpoint_every=100, seed=0)
+    return TrainConfig(**{**base, **kw})
+
+
+def test_resume_continues_exactly(store, tmp_path):
+    full = train(_config(), "unused", tmp_path / "full", store=store, echo=lambda m: None)
+    assert full.steps_done == 4 and not full.stopped_early
+    # The same plan cut short: the time limit stops it after its first step (schedule unchanged), then resume.
+    part = train(_config(max_minutes=1e-9), "unused", tmp_path / "part", store=store, echo=lambda m: None)
+    assert part.stopped_early and part.steps_done == 1
+    resumed = train(_config(), "unused", tmp_path / "resumed", resume=tmp_path / "part" / "last.pt", store=store,
+                    echo=lambda m: None)  # fmt: skip
+    assert resumed.steps_done == 4
+    a = load_checkpoint(tmp_path / "full" / "last.pt")
+    b = load_checkpoint(tmp_path / "resumed" / "last.pt")
+    for k in a["model"]:
+        assert torch.equal(a["model"][k], b["model"][k]), k
+    assert a["scheduler"]["step"] == b["scheduler"]["step"] == 4 and a["step"] == 4
+    lines = (tmp_path / "full" / "metrics.jsonl").read_text().splitlines()
+    assert len(lines) == 4 and '"samples_per_s"' in lines[0]
+
+
+def test_weights_file_loads_in_export_and_half_precision(store, tmp_path):
+    from streamdet.export.weights import load_detector
+
+    train(_config(steps=1), "unused", tmp_path / "run", store=store, echo=lambda m: None)
+    det, source = load_detector(TINY, tmp_path / "run" / "model.pt")  # the export engineer's loader
+    own, preset = load_weights(tmp_path / "run" / "model.pt")
+    assert preset == TINY and source.checkpoint is not None
+    for k, v in own.state_dict().items():
+        assert torch.equal(v, det.state_dict()[k])
+    save_weights(tmp_path / "half.pt", TINY, own, half=True)
+    back, _ = load_weights(tmp_path / "half.pt")
+    assert (tmp_path / "half.pt").stat().st_size < 0.6 * (tmp_path / "run" / "model.pt").stat().st_size
+    w = back.state_dict()["slice_net.pillar_net.linear.weight"]
+    assert w.dtype == torch.float32
+    torch.testing.assert_close(w, own.state_dict()["slice_net.pillar_net.linear.weight"], rtol=1e-3, atol=1e-3)
+
+
+def test_cli_lidar_only_switch(data_dir, tmp_path):
+    out = tmp_path / "lidar"
+    res = CliRunner().invoke(train_main, ["--data", str(data_dir), "--out", str(out), "--preset", "tiny", "--steps", "2",
+                                          "--no-image", "--num-slices", "8,4", "--cache-dir", str(tmp_path / "c")])  # fmt: skip
+    assert res.exit_code == 0, res.output
+    assert "LiDAR only" in res.output and "samples/s" in res.output
+    ckpt = load_checkpoint(out / "last.pt")
+    assert ckpt["preset"]["use_image"] is False and ckpt["step"] == 2
+    assert not any(k.startswith(("image_encoder", "lifter")) for k in ckpt["model"])
+    det, preset = load_weights(out / "model.pt")
+    assert det.image_encoder is None and not preset.use_image
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--num-slices", "6"], "multiple of 4"),
+        (["--num-slices", "x"], "slice counts"),
+        (["--steps", "0"], "--steps"),
+        (["--resume", "/nonexistent/last.pt"], "does not exist"),
+        (["--preset", "huge"], "huge"),
+        (["--version", "v9"], "no table folder"),
+    ],
+)
+def test_cli_bad_input(data_dir, tmp_path, args, message):
+    res = CliRunner().invoke(train_main, ["--data", str(data_dir), "--out", str(tmp_path / "o"), "--preset", "tiny", *args])
+    assert res.exit_code != 0
+    assert message in res.output and "Traceback" not in res.output
+
+
+def test_cli_resume_of_weights_only_file(data_dir, tmp_path, store):
+    train(_config(steps=1), "unused", tmp_path / "run", store=store, echo=lambda m: None)
+    res = CliRunner().invoke(train_main, ["--data", str(data_dir), "--out", str(tmp_path / "o"), "--preset", "tiny",
+                                          "--steps", "2", "--resume", str(tmp_path / "run" / "model.pt"),
+                                          "--cache-dir", str(tmp_path / "c")])  # fmt: skip
+    assert res.exit_code != 0 and "weights only" in res.output
+
+
+def test_train_config_validation():
+    for kwargs, field in [({"steps": 0}, "steps"), ({"lr": -1.0}, "lr"), ({"amp": "int8"}, "amp"), ({"pct_start": 1.0}, "pct_start"),
+                          ({"workers": -1}, "workers"), ({"max_minutes": 0.0}, "max_minutes")]:  # fmt: skip
+        with pytest.raises(ValueError, match=field):
+            _config(**kwargs)
+    with pytest.raises(ValueError, match="camera_mode"):
+        DataConfig(camera_mode="some")
+    with pytest.raises(ValueError, match="multiple of 4"):
+        DataConfig(num_slices=(6,))
