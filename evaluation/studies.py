@@ -18,7 +18,7 @@ points in the split's ground truth (``DatasetEvaluation``'s rule), named in ever
 
 from __future__ import annotations
 
-import dataclasses
+import importlib
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -280,14 +280,20 @@ def slices_study(
     )
 
 
-def torch_sliced_detector(checkpoint: str | Path, device: str = "cpu") -> SlicedDetector:
+def torch_sliced_detector(checkpoint: str | Path, threads: int = 1, device: str = "cpu") -> SlicedDetector:
     """A checkpoint evaluated with PyTorch (``training.torch_eval``): the route of the LiDAR-only baseline, which
-    the exporter cannot turn into graphs (it has no image lane). Scored exactly as the ONNX models; needs torch."""
+    the exporter cannot turn into graphs (it has no image lane). Scored exactly as the ONNX models; needs torch.
+
+    ``threads`` sets torch's intra-op threads for the whole process: on a shared 2-core machine the default (all
+    cores) made the 32-slice sweep 20x slower than one thread.
+    """
     try:
-        from streamdet.training.checkpoint import load_weights  # imports torch
+        torch = importlib.import_module("torch")  # lazily: everything else in this module stays torch-free
+        from streamdet.training.checkpoint import load_weights
         from streamdet.training.torch_eval import TorchSweepDetector
     except ImportError as e:
         raise StudyError(f"--baseline-checkpoint needs PyTorch (pip install '.[export]'): {e}") from None
+    torch.set_num_threads(threads)
     try:
         model, preset = load_weights(checkpoint)
     except ValueError as e:

@@ -294,7 +294,7 @@ def slices(export_dir, checkpoint, data_dir, version, split, max_samples, precis
         if baseline_export_dir is not None:
             baseline = st.OnnxSlicedDetector(baseline_export_dir, runtime)
         elif baseline_checkpoint is not None:
-            baseline = st.torch_sliced_detector(baseline_checkpoint)
+            baseline = st.torch_sliced_detector(baseline_checkpoint, threads)
         result = st.slices_study(fused, _data(data_dir, version, split, max_samples), slice_counts, baseline, bar)
     _report(result, json_path, plot_path, plot_slices)
 
