@@ -22,7 +22,7 @@ from streamdet.training.cli import main as train_main
 from streamdet.training.dataset import DataConfig, SliceDataset, build_store, class_balanced_indices
 from streamdet.training.losses import CenterPointLoss, loss_terms
 from streamdet.training.model import TrainingModel
-from streamdet.training.trainer import TrainConfig, train
+from streamdet.training.trainer import TrainConfig, init_head_outputs, train
 
 TINY = get_preset("tiny")
 SIZE = (TINY.image.width_px, TINY.image.height_px)
@@ -144,40 +144,41 @@ def test_training_steps_reduce_loss_on_a_fixed_batch(store):
     torch.manual_seed(0)
     model = TrainingModel(build_detector(TINY)).train()
     batch = Collator(TINY)([SliceDataset(store, TINY)[0]])
+    init_head_outputs(model.detector)
     opt = torch.optim.AdamW(model.parameters(), lr=3e-3)
     crit = CenterPointLoss()
     losses = []
-    for _ in range(12):
+    for _ in range(8):
         terms = loss_terms(model(batch), model.task_classes, batch.heatmap, batch.index, batch.mask, batch.label, batch.box)
         loss, _ = crit(terms)
         opt.zero_grad()
         loss.backward()
         opt.step()
-        losses.append(float(loss))
-    assert losses[-1] < 0.5 * losses[0], losses
+        losses.append(float(loss.detach()))
+    assert losses[-1] < 0.7 * losses[0], losses
 
 
 def _config(**kw) -> TrainConfig:
-    base = dict(preset="tiny", steps=4, batch_size=1, lr=1e-3, log_every=1, checkpoint_every=100, seed=0)
+    base = dict(preset="tiny", steps=3, batch_size=1, lr=1e-3, log_every=1, checkpoint_every=100, seed=0)
     return TrainConfig(**{**base, **kw})
 
 
 def test_resume_continues_exactly(store, tmp_path):
     full = train(_config(), "unused", tmp_path / "full", store=store, echo=lambda m: None)
-    assert full.steps_done == 4 and not full.stopped_early
+    assert full.steps_done == 3 and not full.stopped_early
     # The same plan cut short: the time limit stops it after its first step (schedule unchanged), then resume.
     part = train(_config(max_minutes=1e-9), "unused", tmp_path / "part", store=store, echo=lambda m: None)
     assert part.stopped_early and part.steps_done == 1
     resumed = train(_config(), "unused", tmp_path / "resumed", resume=tmp_path / "part" / "last.pt", store=store,
                     echo=lambda m: None)  # fmt: skip
-    assert resumed.steps_done == 4
+    assert resumed.steps_done == 3
     a = load_checkpoint(tmp_path / "full" / "last.pt")
     b = load_checkpoint(tmp_path / "resumed" / "last.pt")
     for k in a["model"]:
         assert torch.equal(a["model"][k], b["model"][k]), k
-    assert a["scheduler"]["step"] == b["scheduler"]["step"] == 4 and a["step"] == 4
+    assert a["scheduler"]["step"] == b["scheduler"]["step"] == 3 and a["step"] == 3
     lines = (tmp_path / "full" / "metrics.jsonl").read_text().splitlines()
-    assert len(lines) == 4 and '"samples_per_s"' in lines[0]
+    assert len(lines) == 3 and '"samples_per_s"' in lines[0]
 
 
 def test_weights_file_loads_in_export_and_half_precision(store, tmp_path):
