@@ -162,6 +162,29 @@ class OtherCpuUse:
         return max(0.0, others / (end[2] - self._start[2]))
 
 
+def cpu_mhz() -> float | None:
+    """The clock /proc/cpuinfo reports (a VM shows the nominal one; boost clocks may be higher)."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("cpu MHz"):
+                    return float(line.split(":", 1)[1])
+    except (OSError, ValueError):
+        pass
+    return None
+
+
+def nominal_peak_gflops(threads: int, flags: tuple[str, ...], mhz: float | None) -> float | None:
+    """Data-sheet fp32 peak: FMA lanes x 2 FLOP x 2 FMA pipes x clock x threads (one thread per core assumed).
+
+    AVX-512: 16 lanes, AVX2 + FMA: 8 lanes (Zen 3 and recent Intel cores have two FMA pipes); None without FMA.
+    """
+    if mhz is None or "fma" not in flags:
+        return None
+    lanes = 16 if "avx512f" in flags else 8
+    return lanes * 2 * 2 * mhz / 1e3 * threads
+
+
 def load_average() -> list[float]:
     """1, 5 and 15 minute load averages (runnable processes); NaN where the OS has none."""
     load = os.getloadavg() if hasattr(os, "getloadavg") else (float("nan"),) * 3
@@ -174,6 +197,8 @@ def machine_info(threads: int) -> dict:
     return {
         "cpu_model": cpu_model(),
         "cpu_flags": list(cpu_flags()),
+        "cpu_mhz": cpu_mhz(),
+        "nominal_peak_gflops_per_s": nominal_peak_gflops(threads, cpu_flags(), cpu_mhz()),
         "logical_cpus": os.cpu_count(),
         "threads": threads,
         "load_average_1_5_15": load_average(),
