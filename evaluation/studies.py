@@ -362,6 +362,7 @@ class DropCameraResult:
     num_slices: int
     source: str
     num_samples: int
+    no_cameras: Score | None = None  # every camera missing (image BEV zeros); None: not asked for
 
     @property
     def classes(self) -> tuple[str, ...]:
@@ -373,13 +374,17 @@ class DropCameraResult:
             "num_samples": self.num_samples, "num_slices": self.num_slices, "source": self.source,
             "all_cameras": self.all_cameras.to_dict(),
             "without": {c: s.to_dict() for c, s in zip(self.cameras, self.without)},
+            "no_cameras": None if self.no_cameras is None else self.no_cameras.to_dict(),
         }  # fmt: skip
 
     def format_table(self) -> str:
         head = f"{'cameras':<22}{'mAP':>8}" + _class_header(self.classes)
         lines = [f"mAP with a camera missing at inference ({self.num_slices} slices; its features are zeros)", head, "-" * len(head)]
         lines.append(f"{'all':<22}{100 * self.all_cameras.mean_ap:>8.1f}" + _class_row(self.all_cameras, self.classes))
-        for cam, s in zip(self.cameras, self.without):
+        rows = list(zip(self.cameras, self.without))
+        if self.no_cameras is not None:
+            rows.append(("every camera", self.no_cameras))
+        for cam, s in rows:
             lines.append(f"{'without ' + cam:<22}{100 * s.mean_ap:>8.1f}" + _class_row(s, self.classes))
             delta = {c: s.class_aps[c] - self.all_cameras.class_aps[c] for c in self.classes}
             lines.append(f"{'  change':<22}{100 * (s.mean_ap - self.all_cameras.mean_ap):>+8.1f}"
@@ -395,11 +400,17 @@ def drop_camera_study(
     runtime: RuntimeOptions = RuntimeOptions(),
     num_slices: int | None = None,
     progress: Progress | None = None,
+    no_cameras: bool = False,
 ) -> DropCameraResult:
-    """mAP with all cameras, and with each named camera removed from the image lane (same model, same LUT)."""
+    """mAP with all cameras, and with each named camera removed from the image lane (same model, same LUT).
+
+    ``no_cameras`` also scores the model with every camera missing: a detector that never gets an image update
+    reads a zero image BEV, so the gap to "all" says how much the model leans on its cameras at all.
+    """
     det = open_detector(export_dir, runtime)
     names = check_cameras(det, cameras)
     n = _num_slices(det, num_slices)
+    blind = open_detector(export_dir, runtime) if no_cameras else None
 
     def detect(_i: int, sample: Sample) -> dict[str, Detections]:
         images = _load_images(det, sample)
@@ -408,11 +419,16 @@ def drop_camera_study(
         for drop in (None, *names):
             det.update_images({c: a for c, a in images.items() if c != drop}, timestamp=ts)
             out["all" if drop is None else drop] = det.detect_sweep(_sweep(sample), timestamp=ts, num_slices=n)
+        if blind is not None:
+            out[_NO_CAMERAS] = blind.detect_sweep(_sweep(sample), timestamp=ts, num_slices=n)
         return out
 
     scores, num = score_variants(data, detect, progress)
     return DropCameraResult(names, scores["all"], tuple(scores[c] for c in names), n,
-                            _describe(export_dir, runtime), num)  # fmt: skip
+                            _describe(export_dir, runtime), num, scores.get(_NO_CAMERAS))  # fmt: skip
+
+
+_NO_CAMERAS = "<no cameras>"  # variant key; cannot clash with a camera name, which check_cameras vets
 
 
 def _num_slices(det: StreamingDetector, num_slices: int | None) -> int:

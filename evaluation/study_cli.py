@@ -211,6 +211,8 @@ def plot_drop_camera(result: st.DropCameraResult, path: Path) -> None:
     plt = _pyplot()
     labels = ["mAP", *(st.SHORT_CLASS.get(c, c) for c in result.classes)]
     rows = [("all cameras", result.all_cameras), *((f"without {c}", s) for c, s in zip(result.cameras, result.without))]
+    if result.no_cameras is not None:
+        rows.append(("no camera at all", result.no_cameras))
     fig, ax = plt.subplots(figsize=(max(6.0, 0.8 * len(labels) * len(rows)), 4))
     width = 0.8 / len(rows)
     for k, (name, score) in enumerate(rows):
@@ -304,12 +306,15 @@ def slices(export_dir, checkpoint, data_dir, version, split, max_samples, precis
 @_slices_option
 @click.option("--camera", "cameras", multiple=True, default=(st.DEFAULT_DROPPED_CAMERA,), show_default=True,
               help="Camera to remove at inference (repeat to study several, each on its own).")  # fmt: skip
+@click.option("--no-cameras", is_flag=True,
+              help="Also score with every camera missing (zero image BEV): how much the model uses its cameras at all.")
 def drop_camera(export_dir, checkpoint, data_dir, version, split, max_samples, precision, threads, json_path,
-                plot_path, num_slices, cameras) -> None:  # fmt: skip
+                plot_path, num_slices, cameras, no_cameras) -> None:  # fmt: skip
     """mAP and per-class AP with a named camera missing at inference (the back camera by default)."""
     runtime = st.RuntimeOptions(precision, threads)
     with _export(export_dir, checkpoint, precision) as exp, _running("drop-camera") as bar:
-        result = st.drop_camera_study(exp, _data(data_dir, version, split, max_samples), cameras, runtime, num_slices, bar)
+        result = st.drop_camera_study(exp, _data(data_dir, version, split, max_samples), cameras, runtime, num_slices, bar,
+                                      no_cameras)  # fmt: skip
     _report(result, json_path, plot_path, plot_drop_camera)
 
 

@@ -100,10 +100,11 @@ def test_slices_without_baseline_says_so(export_dir, data_dir, tmp_path):
 
 
 def test_drop_camera_reports_the_camera(export_dir, data_dir, tmp_path):
-    res = _run(["drop-camera", *_base(export_dir, data_dir, tmp_path, "d"), "--camera", "CAM_BACK_LEFT"])
+    res = _run(["drop-camera", *_base(export_dir, data_dir, tmp_path, "d"), "--camera", "CAM_BACK_LEFT", "--no-cameras"])
     assert res.exit_code == 0, res.output
     d = _outputs(tmp_path, "d")
     assert d["dropped_cameras"] == ["CAM_BACK_LEFT"] and set(d["without"]) == {"CAM_BACK_LEFT"}
+    assert set(d["no_cameras"]) == {"mAP", "NDS", "AP"} and "without every camera" in res.output
     assert "without CAM_BACK_LEFT" in res.output and d["num_slices"] == 8
 
 

@@ -144,6 +144,16 @@ def test_drop_camera_equals_withholding_its_images(export_dir, data):
     assert "without CAM_BACK" in result.format_table()
 
 
+def test_no_cameras_equals_a_detector_without_image_updates(export_dir, data):
+    result = st.drop_camera_study(export_dir, data, ["CAM_BACK"], no_cameras=True)
+    blind = StreamingDetector(export_dir)  # the naive reference: never an image, so the image BEV stays zeros
+    ref = evaluate_dataset(lambda sample: blind.detect_sweep(sample.points), data.root, split=None).metrics.mean_ap
+    assert result.no_cameras.mean_ap == pytest.approx(ref, abs=1e-12)
+    assert result.to_dict()["no_cameras"]["mAP"] == result.no_cameras.mean_ap
+    assert "without every camera" in result.format_table()
+    assert st.drop_camera_study(export_dir, data, ["CAM_BACK"]).to_dict()["no_cameras"] is None
+
+
 @pytest.mark.parametrize("bad", [["CAM_NOPE"], [], ["CAM_BACK", "CAM_BACK"]])
 def test_drop_camera_refuses_bad_names(export_dir, data, bad):
     with pytest.raises(st.StudyError, match="camera"):
