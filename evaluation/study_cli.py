@@ -235,13 +235,14 @@ def plot_calib_noise(result: st.CalibNoiseResult, path: Path) -> None:
     ax.errorbar(x, [100 * lv.mean_ap for lv in result.levels], yerr=[100 * lv.std_ap for lv in result.levels],
                 fmt="o-", capsize=4, label=f"noisy calibration (mean +- std, {len(result.seeds)} seeds)")  # fmt: skip
     ax.axhline(100 * result.reference.mean_ap, color="gray", ls="--", label="true calibration")
+    top = max([result.reference.mean_ap, *(lv.mean_ap + lv.std_ap for lv in result.levels)])
+    ax.set_ylim(0, max(1.0, 130 * top))  # headroom for the legend above the curve
     ax.set_xticks(x, [f"{lv.max_angle_deg:g} deg\n{100 * lv.max_translation_m:g} cm" for lv in result.levels])
     ax.set_xlabel("uniform extrinsic noise bound")
     ax.set_ylabel("mAP (%)")
-    ax.set_ylim(bottom=0)
     ax.set_title(f"mAP vs calibration noise ({result.num_slices} slices, {result.num_samples} samples)")
     ax.grid(alpha=0.3)
-    ax.legend()
+    ax.legend(loc="lower left")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
