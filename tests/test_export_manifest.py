@@ -89,7 +89,7 @@ def test_verify_files(tmp_path):
     [
         (lambda d: d.pop("graphs"), "missing the field 'graphs'"),
         (lambda d: d.update(version=99), "version 99"),
-        (lambda d: d["graphs"][0].update(precision="int8"), "precision"),
+        (lambda d: d["graphs"][0].update(precision="int4"), "precision"),
         (lambda d: d["graphs"][0].update(sha256="xyz"), "64 lowercase hex"),
         (lambda d: d["graphs"][0].update(file="../evil.onnx"), "plain file name"),
         (lambda d: d["graphs"][0]["inputs"][0].update(dtype="float64"), "dtype of tensor 'x'"),

@@ -87,7 +87,7 @@ def test_cli_paper_figures_for_paper_resolution(tmp_path):
 @pytest.mark.parametrize(
     "args, message",
     [
-        ([], "timing is not available yet"),
+        (["--resolution", "800x450x3"], "expected WIDTHxHEIGHT"),
         (["--flops-only", "--resolution", "800by450"], "expected WIDTHxHEIGHT"),
         (["--flops-only", "--resolution", "0x450"], "must be positive"),
         (["--flops-only", "--preset", "huge"], "'huge' is not one of"),
