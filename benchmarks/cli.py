@@ -15,22 +15,10 @@ from pathlib import Path
 
 import click
 
+from streamdet.cli_utils import resolution_callback
 from streamdet.models.presets import get_preset, preset_names
 
 QUICK_TORCH_SKIP_MS = 200.0  # --quick: PyTorch eager is timed only on rows faster than this in onnxruntime fp32
-
-
-def parse_resolution(ctx: click.Context | None, param: click.Parameter | None, value: str | None) -> tuple[int, int] | None:
-    """'800x450' -> (800, 450)."""
-    if value is None:
-        return None
-    parts = value.lower().split("x")
-    if len(parts) != 2 or not all(p.strip().isdigit() for p in parts):
-        raise click.BadParameter(f"expected WIDTHxHEIGHT in pixels like 800x450, got {value!r}", ctx=ctx, param=param)
-    w, h = (int(p) for p in parts)
-    if w < 1 or h < 1:
-        raise click.BadParameter(f"width and height must be positive, got {value!r}", ctx=ctx, param=param)
-    return w, h
 
 
 def _write(path: Path, what: str, write) -> None:
@@ -64,7 +52,7 @@ def _flops_only(preset: str, resolution: tuple[int, int] | None, json_path: Path
 )
 @click.option(
     "--resolution",
-    callback=parse_resolution,
+    callback=resolution_callback(),
     metavar="WxH",
     help="Image size of the given image row and of the streaming export, e.g. 800x450 (default: the preset's); the "
     "other image rows are the rest of 1600x900 / 1200x675 / 800x450. With --flops-only: the only image row.",

@@ -6,18 +6,9 @@ from pathlib import Path
 
 import click
 
+from streamdet.cli_utils import resolution_callback
 from streamdet.data.synth_world import WorldConfig
 from streamdet.data.synth_writer import DEFAULT_VERSION, SynthConfig, generate_dataset
-
-
-def _parse_resolution(ctx, param, value: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in value.lower().split("x"))
-    except ValueError:
-        raise click.BadParameter(f"expected WIDTHxHEIGHT in pixels such as 800x450, got {value!r}") from None
-    if not (16 <= w <= 4096 and 16 <= h <= 4096):
-        raise click.BadParameter(f"width and height must be 16..4096 pixels, got {value!r}")
-    return w, h
 
 
 @click.command(context_settings={"help_option_names": ["-h", "--help"]})
@@ -25,7 +16,7 @@ def _parse_resolution(ctx, param, value: str) -> tuple[int, int]:
               help="Dataset root to write: tables go to OUT/<version>/, files to OUT/samples/ and OUT/sweeps/.")
 @click.option("--scenes", default=2, show_default=True, type=click.IntRange(min=1), help="Number of scenes.")
 @click.option("--seed", default=0, show_default=True, type=click.IntRange(min=0), help="Random seed; the same seed writes the same dataset.")
-@click.option("--resolution", default="800x450", show_default=True, callback=_parse_resolution,
+@click.option("--resolution", default="800x450", show_default=True, callback=resolution_callback(min_px=16, max_px=4096),
               help="Camera image size WIDTHxHEIGHT (intrinsics of the real rig scaled to it).")
 @click.option("--samples-per-scene", default=10, show_default=True, type=click.IntRange(min=1),
               help="Key frames per scene, 0.5 s apart (2 Hz, as nuScenes).")

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import click
 
+from streamdet.cli_utils import resolution_callback
 from streamdet.evaluation import studies as st
 from streamdet.runtime_ort.detector import PRECISIONS
 
@@ -37,18 +38,11 @@ def _parse_ints(ctx, param, value: str) -> tuple[int, ...]:
     return counts
 
 
-def _parse_resolution(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise click.BadParameter(f"expected WIDTHxHEIGHT in pixels such as 800x450, got {text!r}") from None
-    if not (16 <= w <= 4096 and 16 <= h <= 4096):
-        raise click.BadParameter(f"width and height must be 16..4096 pixels, got {text!r}")
-    return w, h
+_RESOLUTIONS = resolution_callback(min_px=16, max_px=4096)
 
 
 def _parse_resolutions(ctx, param, values: tuple[str, ...]) -> tuple[tuple[int, int], ...]:
-    return tuple(_parse_resolution(v) for v in values) if values else st.DEFAULT_RESOLUTIONS
+    return _RESOLUTIONS(ctx, param, values) if values else st.DEFAULT_RESOLUTIONS
 
 
 def _parse_levels(ctx, param, values: tuple[str, ...]) -> tuple[tuple[float, float], ...]:

@@ -6,27 +6,12 @@ import sys
 
 import click
 
+from streamdet.cli_utils import resolution_callback
 from streamdet.export.exporter import STEM_STRIDE, ExportError, ExportOptions, run_export
 from streamdet.export.int8 import DEFAULT_CALIBRATION_SAMPLES
 from streamdet.export.manifest import LUT_NAME, MANIFEST_NAME
 from streamdet.export.onnx_export import DEFAULT_OPSET, OPSET_RANGE
 from streamdet.models.presets import preset_names
-
-
-def _parse_resolution(ctx: click.Context, param: click.Parameter, value: str | None) -> tuple[int, int] | None:
-    if value is None:
-        return None
-    parts = value.lower().split("x")
-    try:
-        width, height = (int(p) for p in parts)
-    except ValueError:
-        raise click.BadParameter(f"expected WIDTHxHEIGHT in pixels such as 800x450, got {value!r}") from None
-    if width <= 0 or height <= 0 or width % STEM_STRIDE or height % STEM_STRIDE:
-        raise click.BadParameter(
-            f"{value!r}: width and height must be positive and even (the ResNet stem has stride {STEM_STRIDE}); "
-            "they need not be multiples of 4, 800x450 works"
-        )
-    return width, height
 
 
 @click.command(context_settings={"help_option_names": ["-h", "--help"]})
@@ -37,7 +22,7 @@ def _parse_resolution(ctx: click.Context, param: click.Parameter, value: str | N
                    "if present, else fixed-seed untrained weights.")
 @click.option("--calibration", type=click.Path(dir_okay=False), default=None,
               help="calibration.json for lut.npz. Default: the bundled nuScenes sample's, intrinsics scaled to --resolution.")
-@click.option("--resolution", callback=_parse_resolution, default=None, metavar="WxH",
+@click.option("--resolution", callback=resolution_callback(multiple_of=STEM_STRIDE), default=None, metavar="WxH",
               help="Camera image size in pixels, e.g. 800x450; width and height must be even. Default: the preset's.")
 @click.option("--slices", "num_slices", type=int, default=8, show_default=True,
               help="Slices per sweep (1, 2 or a multiple of 4); picks the LiDAR slice used for the parity checks.")
