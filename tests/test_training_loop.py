@@ -245,3 +245,31 @@ def test_train_config_validation():
         DataConfig(camera_mode="some")
     with pytest.raises(ValueError, match="multiple of 4"):
         DataConfig(num_slices=(6,))
+
+
+def test_init_starts_from_weights_with_a_fresh_schedule(store, tmp_path):
+    first = train(_config(steps=1), "unused", tmp_path / "first", store=store, echo=lambda m: None)
+    start = load_checkpoint(first.weights)["model"]
+    # another seed draws other initial weights: with init, the run must start from first's instead
+    other = dataclasses.replace(_config(steps=1), seed=1)
+    second = train(other, "unused", tmp_path / "second", init=first.weights, store=store, echo=lambda m: None)
+    fresh = train(other, "unused", tmp_path / "fresh", store=store, echo=lambda m: None)
+    after = load_checkpoint(second.weights)
+    assert after["meta"]["init"] == str(first.weights)
+    assert load_checkpoint(tmp_path / "second" / "last.pt")["scheduler"]["step"] == 1  # a fresh schedule
+    key = "slice_net.pillar_net.linear.weight"
+    near = (after["model"][key] - start[key]).abs().max()
+    far = (load_checkpoint(fresh.weights)["model"][key] - start[key]).abs().max()
+    assert near < 0.1 * far
+
+
+def test_init_refuses_other_preset_and_resume_together(store, tmp_path):
+    first = train(_config(steps=1), "unused", tmp_path / "first", store=store, echo=lambda m: None)
+    with pytest.raises(ValueError, match="not both"):
+        train(_config(steps=1), "unused", tmp_path / "x", init=first.weights, resume=tmp_path / "first" / "last.pt",
+              store=store, echo=lambda m: None)  # fmt: skip
+    obj = load_checkpoint(first.weights)
+    obj["preset"] = dict(obj["preset"], name="other")
+    torch.save(obj, tmp_path / "other.pt")
+    with pytest.raises(ValueError, match="another preset"):
+        train(_config(steps=1), "unused", tmp_path / "y", init=tmp_path / "other.pt", store=store, echo=lambda m: None)

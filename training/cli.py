@@ -51,6 +51,8 @@ def _parse_slices(ctx, param, value: str) -> tuple[int, ...]:
 @click.option("--image-warmup", type=click.FloatRange(0, 1, max_open=True), default=0.0, show_default=True,
               help="Fraction of the schedule trained with the image lane off (zero image BEV); the cheap LiDAR lane learns first.")
 @click.option("--resume", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Continue from a last.pt written by this command.")
+@click.option("--init", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Start from the weights of this checkpoint (same preset) with a fresh optimizer and schedule (fine-tuning).")
 @click.option("--balanced", is_flag=True, help="Class-balanced (CBGS) resampling of the training samples.")
 @click.option("--workers", type=click.IntRange(min=0), default=0, show_default=True, help="DataLoader worker processes.")
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Seed of the weights and of the data order.")
@@ -66,13 +68,17 @@ def _parse_slices(ctx, param, value: str) -> tuple[int, ...]:
 @click.option("--checkpoint-every", type=click.IntRange(min=1), default=200, show_default=True, help="Steps between rewrites of last.pt.")
 def main(data_dir: Path, version: str, out_dir: Path, preset: str, steps: int | None, epochs: int, batch_size: int,
          lr: float, num_slices: tuple[int, ...], max_slices_per_sample: int | None, no_image: bool, camera_mode: str,
-         image_warmup: float, resume: Path | None, balanced: bool, workers: int, seed: int, max_minutes: float | None, amp: str,
+         image_warmup: float, resume: Path | None, init: Path | None, balanced: bool, workers: int, seed: int, max_minutes: float | None, amp: str,
          cache_dir: Path | None, device: str | None, log_every: int, checkpoint_every: int) -> None:  # fmt: skip
     """Train the streaming camera + LiDAR detector (or its LiDAR-only baseline) with CenterPoint targets."""
     if not (data_dir / version).is_dir():
         raise click.ClickException(f"--data {data_dir}: no table folder {data_dir / version} (is --version right?)")
     if resume is not None and not resume.is_file():
         raise click.ClickException(f"--resume {resume} does not exist")
+    if init is not None and not init.is_file():
+        raise click.ClickException(f"--init {init} does not exist")
+    if init is not None and resume is not None:
+        raise click.ClickException("--init and --resume exclude each other: --resume continues a run, --init starts one from weights")
     if steps is None and epochs is None and max_minutes is None:
         epochs = 10
     try:
@@ -85,7 +91,7 @@ def main(data_dir: Path, version: str, out_dir: Path, preset: str, steps: int | 
     except ValueError as e:
         raise click.ClickException(str(e)) from None
     try:
-        train(config, data_dir, out_dir, version=version, resume=resume,
+        train(config, data_dir, out_dir, version=version, resume=resume, init=init,
               cache_dir=cache_dir if cache_dir is not None else data_dir / ".streamdet_cache", device=device,
               echo=click.echo)  # fmt: skip
     except (ValueError, FileNotFoundError) as e:

@@ -171,6 +171,7 @@ def train(
     *,
     version: str = "v1.0-synth",
     resume: str | Path | None = None,
+    init: str | Path | None = None,
     cache_dir: str | Path | None = None,
     device: str | torch.device | None = None,
     store: SampleStore | None = None,
@@ -180,6 +181,8 @@ def train(
 
     ``store`` skips reading the dataset (tests, or several runs over one store). ``resume`` continues a
     ``last.pt``: model, optimizer, scheduler and data position, so the continuation is the uninterrupted run's.
+    ``init`` starts from the weights of a checkpoint of the same preset (``model.pt``, ``last.pt`` or shipped weights)
+    with a fresh optimizer and schedule: fine-tuning, or a second budget on top of a first.
     """
     t_start = time.perf_counter()
     device = torch.device(device) if device is not None else torch.device("cuda" if torch.cuda.is_available() else "cpu")
@@ -203,6 +206,16 @@ def train(
     torch.manual_seed(config.seed)
     detector = build_detector(preset)
     init_head_outputs(detector)  # a resumed run overwrites it with the checkpoint
+    if resume is not None and init is not None:
+        raise ValueError("give either resume (continue a run) or init (start a new run from weights), not both")
+    if init is not None:
+        state = load_checkpoint(init)
+        if state["preset"] != preset.to_dict():
+            raise ValueError(f"init checkpoint {init} holds another preset than {preset.name!r} (use_image={preset.use_image})")
+        own = detector.state_dict()
+        # shipped weights may be stored in float16: back to the model's own dtypes
+        detector.load_state_dict({k: v.to(own[k].dtype) if k in own else v for k, v in state["model"].items()})
+        say(f"initialised from the weights of {init}")
     if ctx.initialised and ctx.world_size > 1:
         convert_batchnorm(detector)
     model = TrainingModel(detector).to(device).train()
@@ -240,7 +253,8 @@ def train(
     if ctx.is_main:
         out_dir.mkdir(parents=True, exist_ok=True)
         (out_dir / "config.json").write_text(json.dumps({"train": config.to_dict(), "preset": preset.to_dict(),
-                                                         "data_dir": str(data_dir), "world_size": ctx.world_size}, indent=1))  # fmt: skip
+                                                         "data_dir": str(data_dir), "world_size": ctx.world_size,
+                                                         "init": str(init) if init is not None else None}, indent=1))  # fmt: skip
     log_file = open(out_dir / "metrics.jsonl", "a" if resume is not None else "w") if ctx.is_main else None
     n_params = sum(p.numel() for p in model.parameters())
     say(
@@ -323,7 +337,7 @@ def train(
     weights = None
     if ctx.is_main:
         weights = out_dir / "model.pt"
-        save_weights(weights, preset, detector, meta={"steps": step, "config": config.to_dict()})
+        save_weights(weights, preset, detector, meta={"steps": step, "config": config.to_dict(), "init": str(init) if init is not None else None})
         log_file.close()
     seconds = time.perf_counter() - t_start
     say(f"{'stopped by --max-minutes' if stopped_early else 'done'} after {step} steps in {seconds / 60:.1f} min; wrote {out_dir}")
