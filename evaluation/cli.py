@@ -72,7 +72,8 @@ def _evaluate_and_report(gt: EvalBoxes, pred: EvalBoxes, classes: tuple[str, ...
 
 
 def _data_inputs(data_dir: Path, version: str, split: str | None, export_dir: Path, slices: int | None,
-                 precision: str, max_samples: int | None, classes: tuple[str, ...] | None, json_path: Path | None) -> None:  # fmt: skip
+                 precision: str, max_samples: int | None, classes: tuple[str, ...] | None, json_path: Path | None,
+                 save_dir: Path | None = None) -> None:  # fmt: skip
     """``--data`` mode: run the ONNX runtime over the split, then the same report as the files mode."""
     from streamdet.evaluation.dataset_eval import OnnxSweepDetector, evaluate_dataset  # onnxruntime, not torch
 
@@ -102,6 +103,17 @@ def _data_inputs(data_dir: Path, version: str, split: str | None, export_dir: Pa
         except OSError as e:
             raise click.ClickException(f"cannot write --json {json_path}: {e.strerror or e}") from None
         click.echo(f"wrote {json_path}")
+    if save_dir is not None:
+        from streamdet.evaluation.results import write_results_json
+
+        try:
+            save_dir.mkdir(parents=True, exist_ok=True)
+            write_results_json(save_dir / "results.json", result.predictions, {"use_camera": True, "use_lidar": True})
+            write_results_json(save_dir / "gt.json", result.ground_truth, {"use_camera": False, "use_lidar": False},
+                               ego_positions=result.ego_positions)  # fmt: skip
+        except OSError as e:
+            raise click.ClickException(f"cannot write --save-results {save_dir}: {e.strerror or e}") from None
+        click.echo(f"wrote {save_dir / 'results.json'} and {save_dir / 'gt.json'}")
 
 
 @click.command(context_settings={"help_option_names": ["-h", "--help"]})
@@ -135,13 +147,18 @@ def _data_inputs(data_dir: Path, version: str, split: str | None, export_dir: Pa
     help="Also write the figures here as JSON: mAP, NDS, classes, tp_errors, per_class.",
 )  # fmt: skip
 @click.option(
+    "--save-results", "save_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+    help="Dataset mode: also write what was scored to this folder: results.json (the detections, nuScenes "
+    "submission format) and gt.json (the ground truth), which the files mode scores again with --gt / --results.",
+)  # fmt: skip
+@click.option(
     "--classes", default=None, metavar="NAME[,NAME...]",
     help="Evaluate and average only these classes (e.g. car,pedestrian,bicycle); default: files mode all 10, as the "
     "devkit; dataset mode the classes present in the ground truth.",
 )  # fmt: skip
 def main(gt_path: Path | None, results_path: Path | None, data_dir: Path | None, version: str, split: str,
          export_dir: Path, slices: int | None, precision: str, max_samples: int | None, json_path: Path | None,
-         classes: str | None) -> None:  # fmt: skip
+         classes: str | None, save_dir: Path | None) -> None:  # fmt: skip
     """nuScenes detection mAP, TP errors and NDS, computed as nuscenes-devkit 1.2.0 (detection_cvpr_2019).
 
     Two modes: --gt with --results (two JSON files), or --data (run an export over a dataset split).
@@ -155,8 +172,10 @@ def main(gt_path: Path | None, results_path: Path | None, data_dir: Path | None,
         if slices is not None and slices not in (1, 2) and slices % 4:
             raise click.BadParameter(f"{slices} must be 1, 2 or a multiple of 4", param_hint="--slices")
         _data_inputs(data_dir, version, None if split == "all" else split, export_dir, slices, precision, max_samples,
-                     class_list, json_path)  # fmt: skip
+                     class_list, json_path, save_dir)  # fmt: skip
         return
+    if save_dir is not None:
+        raise click.UsageError("--save-results is for the dataset mode (--data): the files mode already has its files")
     if gt_path is None or results_path is None:
         raise click.UsageError("give --gt and --results (files mode), or --data (dataset mode)")
     try:

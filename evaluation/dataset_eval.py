@@ -16,7 +16,7 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -39,6 +39,10 @@ class DatasetEvaluation:
     classes: tuple[str, ...]  # the classes the mAP averages
     num_samples: int
     seconds: float  # detection time over the split (reading the data included)
+    # what was scored, in the nuScenes results format (global frame), for write_results_json / files mode
+    predictions: dict[str, list[dict]] = field(default_factory=dict, repr=False)
+    ground_truth: dict[str, list[dict]] = field(default_factory=dict, repr=False)
+    ego_positions: dict[str, list[float]] = field(default_factory=dict, repr=False)
 
     def to_dict(self) -> dict:
         return {**self.metrics.to_dict(), "classes": list(self.classes), "num_samples": self.num_samples,
@@ -112,7 +116,8 @@ def evaluate_dataset(
         if not classes:
             raise ValueError(f"the ground truth of {len(tokens)} samples holds no box with points: nothing to score")
     metrics = evaluate(gt, pred, config=config, classes=classes)
-    return DatasetEvaluation(metrics=metrics, classes=tuple(metrics.classes), num_samples=len(tokens), seconds=seconds)
+    return DatasetEvaluation(metrics=metrics, classes=tuple(metrics.classes), num_samples=len(tokens), seconds=seconds,
+                             predictions=pred_results, ground_truth=gt_results, ego_positions=ego)  # fmt: skip
 
 
 class OnnxSweepDetector:

@@ -73,6 +73,24 @@ def test_eval_cli_data_mode(data_dir, export_dir, tmp_path):
     assert doc["num_slices"] == 8 and doc["num_samples"] == 2 and 0.0 <= doc["mAP"] <= 1.0 and doc["classes"]
 
 
+def test_eval_cli_saved_results_score_the_same_in_files_mode(data_dir, export_dir, tmp_path):
+    saved, first, again = tmp_path / "saved", tmp_path / "a.json", tmp_path / "b.json"
+    res = CliRunner().invoke(eval_main, ["--data", str(data_dir), "--export-dir", str(export_dir), "--slices", "8",
+                                         "--json", str(first), "--save-results", str(saved)])  # fmt: skip
+    assert res.exit_code == 0, res.output
+    a = json.loads(first.read_text())
+    res = CliRunner().invoke(eval_main, ["--gt", str(saved / "gt.json"), "--results", str(saved / "results.json"),
+                                         "--classes", ",".join(a["classes"]), "--json", str(again)])  # fmt: skip
+    assert res.exit_code == 0, res.output
+    b = json.loads(again.read_text())
+    assert b["mAP"] == a["mAP"] and b["NDS"] == a["NDS"]
+
+
+def test_save_results_needs_the_dataset_mode(tmp_path):
+    res = CliRunner().invoke(eval_main, ["--gt", __file__, "--results", __file__, "--save-results", str(tmp_path)])
+    assert res.exit_code != 0 and "--save-results" in res.output
+
+
 @pytest.mark.parametrize(
     "args, message",
     [
