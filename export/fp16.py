@@ -15,6 +15,10 @@ Wraps onnxconverter-common's ``convert_float_to_float16`` and works around its t
 - Each blocked node gets its own casts: a float16 cast after it and a float32 cast before the next blocked node,
   so a chain of blocked nodes (the whole decode) would round its intermediates to float16 between every op.
   ``_drop_cast_round_trips`` rewires float32 -> float16 -> float32 cast pairs to the float32 value.
+- The exporter shares identical initializers through ``Identity`` nodes (e.g. every head's heatmap bias starts at the
+  same prior, and untrained heads have equal weights). When the sharing nodes straddle the fp32 / fp16 border, the
+  converter keeps the initializer float32 but retypes the ``Identity`` output float16, and the graph fails type
+  checking. ``_materialize_shared_initializers`` gives each such output its own copy of the initializer first.
 - Peak picking on an fp16 heatmap creates ties: neighbouring cells that round to the same half-precision value are
   all "local maxima" of a 3x3 max-pool, so one object yields several peaks. The caller passes the decode nodes
   (sigmoid, max-pool, equality, top-k and the head layer that makes the heatmap logits) in ``keep_fp32`` and they
@@ -46,6 +50,7 @@ def convert_model_to_fp16(
     ``keep_fp32`` is either a predicate on nodes or an iterable of node names.
     """
     model = onnx.shape_inference.infer_shapes(model, check_type=True, strict_mode=True, data_prop=True)
+    model = _materialize_shared_initializers(model)
     if callable(keep_fp32):
         kept = [n.name for n in model.graph.node if keep_fp32(n)]
     else:
@@ -107,6 +112,23 @@ def _restore_float_outputs(model: onnx.ModelProto, original: dict[str, int]) -> 
                 onnx.helper.make_node("Cast", [inner], [out.name], to=onnx.TensorProto.FLOAT, name=f"{out.name}_to_fp32")
             )
         out.type.tensor_type.elem_type = onnx.TensorProto.FLOAT
+
+
+def _materialize_shared_initializers(model: onnx.ModelProto) -> onnx.ModelProto:
+    """A copy of ``model`` where every ``Identity`` of an initializer is replaced by its own initializer."""
+    model_copy = onnx.ModelProto()
+    model_copy.CopyFrom(model)
+    g = model_copy.graph
+    inits = {t.name: t for t in g.initializer}
+    graph_outputs = {o.name for o in g.output}
+    shared = [n for n in g.node if n.op_type == "Identity" and n.input[0] in inits and n.output[0] not in graph_outputs]
+    for node in shared:
+        copy = onnx.TensorProto()
+        copy.CopyFrom(inits[node.input[0]])
+        copy.name = node.output[0]
+        g.initializer.append(copy)
+        g.node.remove(node)
+    return model_copy
 
 
 def _drop_cast_round_trips(model: onnx.ModelProto) -> None:

@@ -94,3 +94,24 @@ def test_names_list_equals_predicate():
     a, _ = convert_model_to_fp16(model, ["decode_sigmoid", "decode_square", "decode_topk"])
     b, _ = convert_model_to_fp16(model, lambda n: n.name.startswith("decode_"))
     assert a.SerializeToString() == b.SerializeToString()
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_identity_shared_initializer_across_the_fp32_border(seed):
+    """The exporter shares equal initializers through Identity; one user kept fp32, the other converted
+    (the multi-head slice graph's heatmap biases): the converted graph must still type-check and match."""
+    b = helper.make_tensor("b", TensorProto.FLOAT, [4], [0.1, -2.19, 0.3, 1.0])
+    nodes = [
+        helper.make_node("Identity", ["b"], ["b_shared"], name="share_b"),
+        helper.make_node("Add", ["x", "b"], ["kept"], name="decode_add"),  # kept fp32: b stays float32
+        helper.make_node("Add", ["x", "b_shared"], ["half"], name="head_add"),  # converted: b_shared float16
+        helper.make_node("Add", ["kept", "half"], ["y"], name="sum"),
+    ]
+    graph = helper.make_graph(nodes, "shared", [helper.make_tensor_value_info("x", TensorProto.FLOAT, ["N", 4])],
+                              [helper.make_tensor_value_info("y", TensorProto.FLOAT, ["N", 4])], [b])  # fmt: skip
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    fp16, _ = convert_model_to_fp16(model, ["decode_add"])
+    check_model(fp16)
+    assert not [n for n in fp16.graph.node if n.op_type == "Identity" and n.input[0] == "b"]
+    x = np.random.default_rng(seed).normal(size=(3, 4)).astype(np.float32)
+    np.testing.assert_allclose(_run(fp16, {"x": x})[0], _run(model, {"x": x})[0], atol=1e-2)
