@@ -61,7 +61,7 @@ LIFTER_CONVS_IO = GraphIO(
 
 
 class LifterConvs(nn.Module):
-    """``forward(volume (Q, C, Z, Y, X)) -> image_bev (Q, C, Y, X)``: VolumetricLifter.forward after the gather.
+    """``forward(volume (Q, C, Z, Y, X)) -> image_bev (Q, C, Y, X)``: ``VolumetricLifter.convs``, as a module to export.
 
     Shares the lifter's layers; ``tests/test_benchmarks_modules.py`` checks it against the whole lifter.
     """
@@ -71,11 +71,7 @@ class LifterConvs(nn.Module):
         self.lifter = lifter
 
     def forward(self, volume: Tensor) -> Tensor:
-        m = self.lifter
-        v = m.relu(m.project(m.input_norm(volume)))  # (Q, C, Z, Y, X)
-        v = v + m.residual(v)
-        v = m.z_pool(m.z_down(v))  # (Q, C, Z / (z_conv_stride * z_pool), Y, X)
-        return v.amax(dim=2)  # (Q, C, Y, X)
+        return self.lifter.convs(volume)  # (Q, C, Y, X)
 
 
 @dataclass(frozen=True, eq=False)
