@@ -121,7 +121,8 @@ def evaluate_dataset(
 
 
 class OnnxSweepDetector:
-    """``sample -> Detections`` through an export directory with onnxruntime (all cameras, then every slice)."""
+    """``sample -> Detections`` through an export directory with onnxruntime (all cameras, then every slice; a
+    LiDAR-only export: every slice, no image read)."""
 
     def __init__(self, export_dir: str | Path, precision: str = "fp32", num_slices: int | None = None, threads: int = 1) -> None:
         from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector
@@ -131,10 +132,16 @@ class OnnxSweepDetector:
 
     def __call__(self, sample: Sample) -> Detections:
         det = self.detector
+        if det.uses_images:
+            self._feed_images(sample)
+        # else: a LiDAR-only export (the streaming baseline) has no image lane; the sweep alone is detected
+        return det.detect_sweep(np.asarray(sample.points, np.float32), timestamp=sample.timestamp_us * 1e-6)
+
+    def _feed_images(self, sample: Sample) -> None:
+        det = self.detector
         if sample.rig.sha256() != det.lut.calibration_sha256:
             det.set_calibration(sample.rig)  # another rig than the export's LUT: rebuild the LUT, same graphs
         img = det.manifest.image
         images = sample.load_images((img.width, img.height))  # (J, H, W, 3) in rig order
         by_name = {name: images[j] for j, name in enumerate(sample.rig.names) if name in det.camera_names}
         det.update_images(by_name, timestamp=sample.timestamp_us * 1e-6)
-        return det.detect_sweep(np.asarray(sample.points, np.float32), timestamp=sample.timestamp_us * 1e-6)

@@ -150,6 +150,18 @@ def open_detector(export_dir: str | Path, runtime: RuntimeOptions, image_size: t
         raise StudyError(f"export {export_dir}: {e}") from None
 
 
+def open_image_detector(export_dir: str | Path, runtime: RuntimeOptions, study: str,
+                        image_size: tuple[int, int] | None = None) -> StreamingDetector:  # fmt: skip
+    """``open_detector`` for a study that varies the image lane: a LiDAR-only export raises StudyError (one line)."""
+    try:
+        use_image = read_manifest(export_dir, verify_files=False).use_image
+    except (OSError, ValueError) as e:  # ManifestError is a ValueError
+        raise StudyError(f"export {export_dir}: {e}") from None
+    if not use_image:
+        raise StudyError(f"export {export_dir} is LiDAR-only (preset use_image=false): the {study} study needs an image lane")
+    return open_detector(export_dir, runtime, image_size)
+
+
 def _sweep(sample: Sample) -> np.ndarray:
     return np.asarray(sample.points, np.float32)  # (N, 5)
 
@@ -188,8 +200,8 @@ class OnnxSlicedDetector:
 
     def __init__(self, export_dir: str | Path, runtime: RuntimeOptions = RuntimeOptions(), label: str | None = None) -> None:
         self.detector = open_detector(export_dir, runtime)
-        # The LiDAR-only baseline's graph reads image_bev only for its shape: no image lane at all.
-        self.uses_images = bool(self.detector.manifest.preset.get("use_image", True))
+        # The LiDAR-only baseline's export has the slice graph alone: no image lane at all.
+        self.uses_images = self.detector.uses_images
         kind = "camera + LiDAR" if self.uses_images else "LiDAR only"
         self.description = label or f"ONNX export {export_dir} ({kind}, {runtime.precision}, onnxruntime)"
 
@@ -281,8 +293,9 @@ def slices_study(
 
 
 def torch_sliced_detector(checkpoint: str | Path, threads: int = 1, device: str = "cpu") -> SlicedDetector:
-    """A checkpoint evaluated with PyTorch (``training.torch_eval``): the route of the LiDAR-only baseline, which
-    the exporter cannot turn into graphs (it has no image lane). Scored exactly as the ONNX models; needs torch.
+    """A checkpoint evaluated with PyTorch (``training.torch_eval``), for a LiDAR-only baseline that has not been
+    exported (``streamdet-export --checkpoint`` turns one into its slice graph, for ``--baseline-export-dir``).
+    Scored exactly as the ONNX models; needs torch.
 
     ``threads`` sets torch's intra-op threads for the whole process: on a shared 2-core machine the default (all
     cores) made the 32-slice sweep 20x slower than one thread.
@@ -301,7 +314,7 @@ def torch_sliced_detector(checkpoint: str | Path, threads: int = 1, device: str 
     kind = "camera + LiDAR" if preset.use_image else "LiDAR only"
 
     class _Torch:
-        description = f"checkpoint {checkpoint} ({preset.name}, {kind}, PyTorch fp32 on {device}: no ONNX export of it)"
+        description = f"checkpoint {checkpoint} ({preset.name}, {kind}, PyTorch fp32 on {device})"
 
         def __call__(self, sample: Sample, slice_counts: Sequence[int]) -> dict[int, Detections]:
             return {n: TorchSweepDetector(model, num_slices=n, device=device)(sample) for n in slice_counts}
@@ -407,7 +420,7 @@ def drop_camera_study(
     ``no_cameras`` also scores the model with every camera missing: a detector that never gets an image update
     reads a zero image BEV, so the gap to "all" says how much the model leans on its cameras at all.
     """
-    det = open_detector(export_dir, runtime)
+    det = open_image_detector(export_dir, runtime, "drop-camera")
     names = check_cameras(det, cameras)
     n = _num_slices(det, num_slices)
     blind = open_detector(export_dir, runtime) if no_cameras else None
@@ -548,7 +561,7 @@ def calib_noise_study(
     for a, t in level_list:
         if not (0 <= a < 180 and 0 <= t < math.inf):
             raise StudyError(f"noise level ({a} deg, {t} m): angle must be in [0, 180), translation >= 0 and finite")
-    det = open_detector(export_dir, runtime)
+    det = open_image_detector(export_dir, runtime, "calib-noise")
     n = _num_slices(det, num_slices)
     changed = np.zeros(len(level_list))
 
@@ -654,7 +667,7 @@ def resolution_study(
         raise StudyError(f"resolutions must be (width, height) pairs of at least 16 px each, got {list(resolutions)!r}")
     if len(set(sizes)) != len(sizes):
         raise StudyError(f"resolutions repeat: {list(sizes)}")
-    dets = [open_detector(export_dir, runtime, image_size=s) for s in sizes]
+    dets = [open_image_detector(export_dir, runtime, "resolution", image_size=s) for s in sizes]
     n = _num_slices(dets[0], num_slices)
     native: set[tuple[int, int]] = set()
 

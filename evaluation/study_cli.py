@@ -277,8 +277,8 @@ def main() -> None:
 @click.option("--baseline-export-dir", type=click.Path(exists=True, file_okay=False, path_type=Path), default=None,
               help="Export of the LiDAR-only baseline, scored beside the fused model.")  # fmt: skip
 @click.option("--baseline-checkpoint", type=click.Path(exists=True, dir_okay=False, path_type=Path), default=None,
-              help="Checkpoint of the LiDAR-only baseline, evaluated with PyTorch (the exporter makes no LiDAR-only "
-                   "graphs); needs PyTorch.")  # fmt: skip
+              help="Checkpoint of the LiDAR-only baseline, evaluated with PyTorch (needs PyTorch); or export it with "
+                   "streamdet-export --checkpoint and pass --baseline-export-dir.")  # fmt: skip
 def slices(export_dir, checkpoint, data_dir, version, split, max_samples, precision, threads, json_path, plot_path,
            slice_counts, baseline_export_dir, baseline_checkpoint) -> None:  # fmt: skip
     """mAP at 1, 4, 8, 16, 32 slices: the fused model beside the LiDAR-only baseline (the paper's Table 2)."""
@@ -287,6 +287,8 @@ def slices(export_dir, checkpoint, data_dir, version, split, max_samples, precis
     runtime = st.RuntimeOptions(precision, threads)
     with _export(export_dir, checkpoint, precision) as exp, _running("slices") as bar:
         fused = st.OnnxSlicedDetector(exp, runtime)
+        if not fused.uses_images:  # it would be tabled as "fused (ours), PC+RGB"
+            raise st.StudyError(f"export {exp} is LiDAR-only (preset use_image=false): pass it as --baseline-export-dir")
         baseline = None
         if baseline_export_dir is not None:
             baseline = st.OnnxSlicedDetector(baseline_export_dir, runtime)

@@ -41,7 +41,9 @@ from streamdet.models.presets import preset_names
 @click.option("--seed", type=int, default=0, show_default=True, help="Torch seed of the untrained weights when no checkpoint is used.")
 def main(preset, checkpoint, calibration, resolution, num_slices, fp16, int8, calibration_data, calibration_samples,
          opset, out_dir, seed) -> None:
-    """Export the detector as three ONNX graphs plus lut.npz and manifest.json, checking each against PyTorch."""
+    """Export the detector as three ONNX graphs plus lut.npz and manifest.json, checking each against PyTorch.
+
+    A LiDAR-only checkpoint (trained with use_image=False) exports its slice graph only, with no image_bev input."""
     opts = ExportOptions(
         preset=preset, checkpoint=checkpoint, calibration=calibration, resolution=resolution, num_slices=num_slices,
         fp16=fp16, int8=int8, calibration_data=calibration_data, calibration_samples=calibration_samples, opset=opset,
@@ -56,7 +58,8 @@ def main(preset, checkpoint, calibration, resolution, num_slices, fp16, int8, ca
     for g in m.graphs:
         size = (result.out_dir / g.file).stat().st_size / 1e6
         click.echo(f"  {g.file:<28} {size:8.2f} MB  {g.gmac:8.2f} GMAC  {g.precision}")
-    click.echo(f"  {LUT_NAME:<28} {(result.out_dir / LUT_NAME).stat().st_size / 1e6:8.2f} MB  ({m.lut.calibration_source})")
+    if m.lut is not None:  # a LiDAR-only export has no image lane, hence no LUT
+        click.echo(f"  {LUT_NAME:<28} {(result.out_dir / LUT_NAME).stat().st_size / 1e6:8.2f} MB  ({m.lut.calibration_source})")
     click.echo(f"  {MANIFEST_NAME}")
     if m.int8 is not None:
         # int8 is an approximation: its differences are measured and recorded, never a failure of the export

@@ -6,6 +6,10 @@ manifest written last, so a failed or interrupted export never leaves a director
 With ``int8``, ``export/int8.py`` quantizes the three fp32 graphs into ``*.int8.onnx``, calibrated on real samples
 (a ``--calibration-data`` dataset, else the bundled sample), and records their calibration and parity against fp32.
 
+A LiDAR-only checkpoint (preset use_image=False, the paper's streaming baseline; recognised from the checkpoint's
+preset) exports the slice graph alone (``onnx_export.LIDAR_SLICE_HEAD_IO``: no image_bev input) with its fp16 /
+int8 siblings and parity checks, and a manifest without image spec, normalisation or LUT: no rig, no images.
+
 The parity inputs are real: the bundled nuScenes sample's six images (resized to the export resolution) and its
 LiDAR sweep, cut into ``num_slices`` slices; the slice with the most points is pillarized with
 ``runtime_ort/pillarize.py``. The fp32 pipeline (encoder -> lifter with the LUT -> slice graph) is onnxruntime's,
@@ -69,7 +73,7 @@ from streamdet.export.parity import (
     peak_margins,
     pipeline_parity,
 )
-from streamdet.export.weights import DEFAULT_SEED, bundled_checkpoint, load_detector
+from streamdet.export.weights import DEFAULT_SEED, bundled_checkpoint, checkpoint_use_image, load_detector
 from streamdet.models.decode import decode_head_maps
 from streamdet.models.detector import StreamDetector
 from streamdet.models.flops import count_gmac
@@ -156,9 +160,13 @@ def run_export(opts: ExportOptions, report: Report | None = None) -> ExportResul
     _check_int8_options(opts)
     out_dir = Path(opts.out_dir) if opts.out_dir is not None else Path("exports") / preset.name
     tmp = _make_staging_dir(out_dir)
-    steps = _Steps(report, total=10 + (4 if opts.fp16 else 0) + (5 if opts.int8 else 0))
+    if preset.use_image:
+        steps = _Steps(report, total=10 + (4 if opts.fp16 else 0) + (5 if opts.int8 else 0))
+    else:
+        steps = _Steps(report, total=6 + (2 if opts.fp16 else 0) + (3 if opts.int8 else 0))
+    export_into = _export_into if preset.use_image else _export_lidar_only_into
     try:
-        manifest = _export_into(tmp, preset, width, height, opts, steps)
+        manifest = export_into(tmp, preset, width, height, opts, steps)
         with steps("moving the export into place"):
             _commit(tmp, out_dir)
     except BaseException:
@@ -315,6 +323,112 @@ def _export_into(tmp: Path, preset: Preset, width: int, height: int, opts: Expor
     return manifest
 
 
+def _export_lidar_only_into(tmp: Path, preset: Preset, width: int, height: int, opts: ExportOptions, steps: "_Steps") -> Manifest:
+    """The LiDAR-only export: slice_head.onnx (+ fp16 / int8 siblings), its parity checks, manifest.json.
+
+    The PyTorch reference is the slice net on a zero image BEV, exactly as ``training/torch_eval.py`` runs the
+    baseline; the graph gets the quadrant ids instead (``onnx_export.LidarSliceDecoder``), so the check also covers
+    that substitution. ``width`` and ``height`` are unused: there are no images.
+    """
+    checkpoint = opts.checkpoint if opts.checkpoint is not None else bundled_checkpoint(preset.name)
+    with steps("loading weights (LiDAR-only model: slice graph only)"):
+        try:
+            det, source = load_detector(preset, checkpoint, opts.seed)
+        except ValueError as e:
+            raise ExportError(str(e)) from None
+        steps.note(source.describe())
+    with steps("preparing the parity inputs (bundled sample, LiDAR only)"):
+        pl, quadrants, slice_index, num_points = _busiest_slice(load_bundled_sample(), preset, opts.num_slices)
+        parity_input = (f"LiDAR slice {slice_index} ({num_points} points, {pl.num_pillars} pillars, quadrants "
+                        f"{list(quadrants)}) of the bundled nuScenes sample; no images (LiDAR-only model)")  # fmt: skip
+        steps.note(parity_input)
+
+    parity: list[ParityRecord] = []
+    slice_feeds = pl.as_feeds(quadrants)  # the pillar tensors and the quadrant ids
+    g = preset.grid
+    with torch.no_grad():
+        with steps("exporting slice_head.onnx and checking parity"):
+            slice_args = tuple(torch.from_numpy(slice_feeds[n]) for n in ox.LIDAR_SLICE_HEAD_IO.inputs)
+            model = ox.export_lidar_slice_head(det, slice_args, opts.opset)
+            _save_checked(model, tmp, "slice_head", "fp32")
+            dets = ort_session(str(tmp / graph_file_name("slice_head", "fp32"))).run(None, slice_feeds)
+            zero_bev = torch.zeros(len(quadrants), preset.channels, g.quadrant_ny, g.quadrant_nx)
+            maps = det.slice_net(*slice_args[:3], zero_bev)  # the reference head maps, for the decode and near-ties
+            ref_dets = [t.numpy() for t in decode_head_maps(maps, preset.head_cell_m, preset.top_k)]
+            margins = peak_margins(maps[0].numpy())  # (Q, C, Hh, Wh)
+            centres = cell_centres(maps[1].numpy(), preset.head_cell_m)  # (Q, 2, Hh, Wh)
+            margins_of = lambda d: detection_margins(d[0], d[2], margins, centres)  # noqa: E731
+            parity.extend(compare_detections("slice_head", "fp32", "torch", dets, ref_dets, TORCH_TOL_REL, margins_of(ref_dets)))
+            for p in parity[-3:]:
+                steps.note(_fmt(p))
+        with steps("counting GMAC"):
+            meta = torch.device("meta")
+            on_meta = lambda a: torch.empty(a.shape, dtype=torch.from_numpy(a[:0]).dtype, device=meta)  # noqa: E731
+            net = copy.deepcopy(det.slice_net).to(meta)
+            gmac = count_gmac(net, on_meta(pl.features), on_meta(pl.mask), on_meta(pl.index), zero_bev.to(meta))
+            gmacs = {"slice_head": (gmac, {"Q": len(quadrants), "P": pl.num_pillars})}
+            steps.note(f"slice_head {gmac:.2f}")
+
+    pipeline: PipelineParity | None = None
+    if opts.fp16:
+        with steps("converting slice_head to fp16"):
+            model32 = onnx.load(str(tmp / graph_file_name("slice_head", "fp32")))
+            keep = _fp32_nodes(model32)
+            model16, kept = convert_model_to_fp16(model32, lambda n: n.name in keep)
+            _save_checked(model16, tmp, "slice_head", "fp16")
+            steps.note(f"{len(kept)} nodes kept in fp32 (decode and heatmap logits)")
+        with steps("parity fp16 vs fp32 (the slice graph is the whole pipeline)"):
+            dets16 = ort_session(str(tmp / graph_file_name("slice_head", "fp16"))).run(None, slice_feeds)
+            parity.extend(compare_detections("slice_head", "fp16", "onnx-fp32", dets16, dets, FP16_TOL_REL, margins_of(dets)))
+            pipeline = pipeline_parity(
+                dict(zip(ox.LIDAR_SLICE_HEAD_IO.outputs, dets)),
+                dict(zip(ox.LIDAR_SLICE_HEAD_IO.outputs, dets16)),
+                slice_index=slice_index,
+                num_slices=opts.num_slices,
+                num_points=num_points,
+                num_pillars=pl.num_pillars,
+                cell_m=preset.head_cell_m,
+                margins32=margins_of(dets),
+                margins16=margins_of(dets16),
+            )
+            for p in parity[-3:]:
+                steps.note(_fmt(p))
+            steps.note(f"pipeline: {pipeline.count_fp32} vs {pipeline.count_fp16} boxes >= {pipeline.score_threshold}: "
+                       f"{'ok' if pipeline.passed else 'FAILED'}")  # fmt: skip
+
+    int8_record = _export_int8(tmp, preset, width, height, None, None, opts, steps) if opts.int8 else None
+
+    with steps("writing manifest.json"):
+        precisions = ("fp32",) + (("fp16",) if opts.fp16 else ()) + (("int8",) if opts.int8 else ())
+        entries = [_graph_entry(tmp, "slice_head", precision, opts.opset, gmacs["slice_head"]) for precision in precisions]
+        manifest = Manifest(
+            preset_name=preset.name,
+            preset=preset.to_dict(),
+            grid=preset.grid.to_dict(),
+            class_names=tuple(CLASS_NAMES),
+            num_slices=opts.num_slices,
+            image=None,
+            normalisation=None,
+            post={**preset.to_dict()["post"], "top_k_per_quadrant": preset.top_k, "head_cell_m": preset.head_cell_m},
+            graphs=tuple(entries),
+            lut=None,
+            parity=tuple(parity),
+            pipeline_parity=pipeline,
+            int8=int8_record,
+            source={
+                "checkpoint": source.checkpoint,
+                "checkpoint_sha256": source.checkpoint_sha256,
+                "seed": source.seed,
+                "parity_input": parity_input,
+                "torch": torch.__version__,
+                "onnx": onnx.__version__,
+                "onnxruntime": ort.__version__,
+            },
+        )
+        write_manifest(manifest, tmp)
+    return manifest
+
+
 def _check_int8_options(opts: ExportOptions) -> None:
     """Fail before any work on int8 options that cannot be used."""
     if opts.calibration_data is not None and not opts.int8:
@@ -330,9 +444,14 @@ def _check_int8_options(opts: ExportOptions) -> None:
 
 
 def _export_int8(
-    tmp: Path, preset: Preset, width: int, height: int, rig: Rig, lut: Lut, opts: ExportOptions, steps: "_Steps"
+    tmp: Path, preset: Preset, width: int, height: int, rig: Rig | None, lut: Lut | None, opts: ExportOptions, steps: "_Steps"
 ) -> Int8Record:
-    """Quantize the three fp32 graphs in ``tmp`` into ``*.int8.onnx``; calibration, parity, the manifest record."""
+    """Quantize the fp32 graphs in ``tmp`` into ``*.int8.onnx``; calibration, parity, the manifest record.
+
+    A LiDAR-only preset (no rig, no LUT) has the slice graph only, calibrated on pillarised slices without images.
+    """
+    if not preset.use_image:
+        return _export_lidar_int8(tmp, preset, opts, steps)
     cfg = q8.Int8Config()
     size = (width, height)
     sessions32 = {name: ort_session(tmp / graph_file_name(name, "fp32")) for name in ox.GRAPH_IO}
@@ -390,6 +509,49 @@ def _export_int8(
     return Int8Record(calibration, tuple(records), parity.outputs, parity.boxes)
 
 
+def _export_lidar_int8(tmp: Path, preset: Preset, opts: ExportOptions, steps: "_Steps") -> Int8Record:
+    """int8 of a LiDAR-only export: the slice graph, calibrated on every non-empty slice of the samples (no images,
+    so any rig's data will do), its parity against fp32 on the bundled sample (held out when it was not used)."""
+    cfg = q8.Int8Config()
+    src, dst = tmp / graph_file_name("slice_head", "fp32"), tmp / graph_file_name("slice_head", "int8")
+    with steps("int8: calibration inputs (pillarised slices of real samples)"):
+        t0 = time.perf_counter()
+        try:
+            cal = q8.load_calibration_samples(opts.calibration_data, opts.calibration_samples, ())
+        except q8.CalibrationError as e:
+            raise ExportError(str(e)) from None
+        inputs = q8.graph_inputs(cal.samples, {}, (), (0, 0), preset, opts.num_slices)
+        if not inputs.slice_head:
+            raise ExportError(f"int8 calibration: the {len(cal.samples)} samples of {cal.source} hold no LiDAR point inside the grid")
+        steps.note(f"{len(cal.samples)} samples of {cal.source} ({cal.version}, split {cal.split}): {len(inputs.slice_head)} slices")
+    with steps("int8: quantizing slice_head"):
+        graph = q8.quantize_graph("slice_head", src, dst, inputs.slice_head, cfg)
+        check_model(graph.path)
+        steps.note(f"int8 inputs: {graph.quantized_ops}; kept float: {sum(graph.float_nodes.values())} nodes")
+    held_out = cal.source != q8.BUNDLED_SOURCE
+    with steps("int8: parity against fp32 (slice graph on every slice of the bundled sample)"):
+        if held_out:
+            inputs = q8.graph_inputs([load_bundled_sample()], {}, (), (0, 0), preset, opts.num_slices)
+        parity = q8.int8_parity({"slice_head": ort_session(src)}, {"slice_head": ort_session(dst)}, inputs, preset.head_cell_m)
+        for p in parity.outputs:
+            steps.note(f"{p.graph} {p.output}: relative L2 error {p.rel_l2_error:.4f}, max |diff| {p.max_abs_diff:.3g}")
+    calibration = Int8Calibration(
+        source=cal.source,
+        version=cal.version,
+        split=cal.split,
+        sample_tokens=tuple(s.token for s in cal.samples),
+        num_images=0,
+        num_volumes=0,
+        num_slices=graph.num_inputs,
+        method=cfg.calibrate_method.name,
+        reduce_range=cfg.reduce_range,
+        parity_held_out=held_out,
+        seconds=round(time.perf_counter() - t0, 1),
+    )
+    record = Int8GraphRecord("slice_head", graph.quantized_ops, graph.float_nodes)
+    return Int8Record(calibration, (record,), parity.outputs, parity.boxes)
+
+
 # ---- helpers -------------------------------------------------------------------------------------------
 
 
@@ -422,14 +584,21 @@ def _parity_inputs(rig: Rig, lut: Lut, preset: Preset, width: int, height: int, 
     else:
         images = np.random.default_rng(seed).integers(0, 256, (len(rig), height, width, 3), dtype=np.uint8)
         real = False
-    slices = slice_sample(sample, num_slices)
-    k = int(np.argmax([len(s.points) for s in slices]))  # the busiest slice: most pillars, most boxes
-    sl = slices[k]
-    pl = pillarize(sl.points, preset.grid, sl.quadrants, preset.pillars.max_points_per_pillar, preset.pillars.max_pillars)
-    index, _ = lut.for_quadrants(sl.quadrants)
+    pl, quadrants, k, num_points = _busiest_slice(sample, preset, num_slices)
+    index, _ = lut.for_quadrants(quadrants)
     rows = np.unique(index[index != lut.sentinel])
     cams = tuple(int(j) for j in np.unique(rows // (lut.feature_width * lut.feature_height))) or (0,)
-    return _ParityInputs(images, real, cams, pl, tuple(sl.quadrants), k, len(sl.points))
+    return _ParityInputs(images, real, cams, pl, quadrants, k, num_points)
+
+
+def _busiest_slice(sample: Sample, preset: Preset, num_slices: int) -> tuple[Pillars, tuple[int, ...], int, int]:
+    """The pillars, quadrants, index and point count of the sample's slice with the most points (most pillars, most
+    boxes): the parity slice."""
+    slices = slice_sample(sample, num_slices)
+    k = int(np.argmax([len(s.points) for s in slices]))
+    sl = slices[k]
+    pl = pillarize(sl.points, preset.grid, sl.quadrants, preset.pillars.max_points_per_pillar, preset.pillars.max_pillars)
+    return pl, tuple(sl.quadrants), k, len(sl.points)
 
 
 def _scatter_cameras(features_read: np.ndarray, cams: list[int], num_cameras: int) -> np.ndarray:
@@ -447,7 +616,10 @@ def _resolve_preset(opts: ExportOptions) -> tuple[Preset, int, int]:
     width, height = opts.resolution if opts.resolution is not None else (preset.image.width_px, preset.image.height_px)
     check_resolution(width, height)
     image = dataclasses.replace(preset.image, width_px=width, height_px=height)
-    return dataclasses.replace(preset, image=image), width, height
+    # A LiDAR-only checkpoint of this preset has no image lane: export it as such (its weights would not load into
+    # the fused model anyway). The image size stays in the preset dict but names no graph input.
+    use_image = preset.use_image and checkpoint_use_image(opts.checkpoint) is not False
+    return dataclasses.replace(preset, image=image, use_image=use_image), width, height
 
 
 def _make_staging_dir(out_dir: Path) -> Path:

@@ -49,7 +49,7 @@ What stays float, and why (``float_nodes``; timings with onnxruntime 1.32, one t
 
 Calibration. Ranges come from real graph inputs (``graph_inputs``): camera images for the encoder, the fp32
 encoder's features of those images with each sample's own LUT for the lifter, and pillarised LiDAR slices with the
-fp32 lifter's image BEV for the slice graph. Never random tensors: a ReLU network's activation ranges on noise have
+fp32 lifter's image BEV for the slice graph (a LiDAR-only export: the pillarised slices alone, no image is read). Never random tensors: a ReLU network's activation ranges on noise have
 nothing to do with its ranges on images. MinMax calibration: Percentile and Entropy keep a histogram of every
 activation of every input in memory. ``CalibMaxIntermediateOutputs`` is not used: onnxruntime 1.32 clears the data
 it collected without merging it and then fails with "No data is collected".
@@ -439,7 +439,13 @@ def graph_inputs(
     ``sessions32``: onnxruntime sessions of the fp32 graphs by name; ``size`` (W, H) of the export's images;
     ``preset`` the exported ``Preset`` (grid, feature stride, pillar limits); ``luts`` one per sample, default
     each sample's own (``sample_lut``). Slices without a pillar are left out (the runtime does not run them).
+
+    A LiDAR-only preset (``use_image`` False) has only the slice graph: its feeds are the pillar tensors and the
+    slice's quadrant ids, no image is read (``camera_names`` may be empty, ``sessions32`` need only hold slice_head),
+    and the encoder and lifter lists stay empty.
     """
+    if not preset.use_image:
+        return _lidar_graph_inputs(samples, preset, num_slices)
     enc, lift, sl = [], [], []
     sources = []
     pil = preset.pillars
@@ -458,6 +464,19 @@ def graph_inputs(
             sl.append({**pl.as_feeds(), "image_bev": np.ascontiguousarray(bev[list(s.quadrants)])})  # (Q, C, Yq, Xq)
             sources.append((i, tuple(s.quadrants)))
     return GraphInputs(enc, lift, sl, sources)
+
+
+def _lidar_graph_inputs(samples: Sequence[Sample], preset: Any, num_slices: int) -> GraphInputs:
+    """The LiDAR-only slice graph's real inputs: every non-empty slice of every sample, pillarised."""
+    sl, sources = [], []
+    pil = preset.pillars
+    for i, sample in enumerate(samples):
+        for s in slice_sample(sample, num_slices):
+            pl = pillarize(s.points, preset.grid, s.quadrants, pil.max_points_per_pillar, pil.max_pillars)
+            if pl.num_pillars:
+                sl.append(pl.as_feeds(tuple(s.quadrants)))
+                sources.append((i, tuple(s.quadrants)))
+    return GraphInputs([], [], sl, sources)
 
 
 # ---- parity ---------------------------------------------------------------------------------------------------
@@ -588,9 +607,16 @@ def int8_parity(
     sessions32: Mapping[str, Any], sessions8: Mapping[str, Any], inputs: GraphInputs, cell_m: float
 ) -> Int8Parity:
     """int8 graphs against fp32 graphs on ``inputs`` (fp32 upstream): each graph alone on the same inputs, then the
-    whole int8 pipeline (int8 encoder -> int8 lifter -> int8 slice graph) against the fp32 pipeline."""
+    whole int8 pipeline (int8 encoder -> int8 lifter -> int8 slice graph) against the fp32 pipeline.
+
+    Inputs without encoder feeds are a LiDAR-only export's: the slice graph is the whole pipeline, compared once."""
     out: list[Int8OutputParity] = []
     run = lambda s, feeds: s.run(None, feeds)  # noqa: E731
+    if not inputs.image_encoder:
+        dets32 = [run(sessions32["slice_head"], f) for f in inputs.slice_head]
+        dets8 = [run(sessions8["slice_head"], f) for f in inputs.slice_head]
+        out.extend(_slice_parity("same", dets8, dets32, cell_m))
+        return Int8Parity(tuple(out), box_agreement(dets32, dets8, cell_m))
     f32 = [run(sessions32["image_encoder"], f)[0] for f in inputs.image_encoder]
     f8 = [run(sessions8["image_encoder"], f)[0] for f in inputs.image_encoder]
     out.append(dense_parity("image_encoder", "features", "same", f8, f32))

@@ -11,12 +11,15 @@ Schema (``MANIFEST_VERSION`` = 1), one JSON object::
     grid               dict, GridSpec.to_dict()
     class_names        [str], CLASS_NAMES of runtime_ort/boxes.py in label order
     num_slices         int, slices per sweep the export (and its parity check) assumed
-    image              {width, height, feature_stride, feature_width, feature_height, camera_names}
-    normalisation      {input: "uint8 RGB (J, H, W, 3)", scale, mean_rgb, std_rgb}: applied inside image_encoder
+    image              {width, height, feature_stride, feature_width, feature_height, camera_names}; null in a
+                       LiDAR-only export (preset use_image false)
+    normalisation      {input: "uint8 RGB (J, H, W, 3)", scale, mean_rgb, std_rgb}: applied inside image_encoder;
+                       null in a LiDAR-only export
     post               dict, decode/NMS settings of the preset (top_k, score_threshold, ...), for the runtime
     graphs             [GraphEntry]: name ("image_encoder" | "volumetric_lifter" | "slice_head"), precision
                        ("fp32" | "fp16" | "int8"), file, sha256, opset, inputs/outputs [{name, shape, dtype}], gmac
-    lut                {file, sha256, calibration_sha256, camera_names, image_width, image_height}
+    lut                {file, sha256, calibration_sha256, camera_names, image_width, image_height}; null in a
+                       LiDAR-only export
     parity             [ParityRecord] (one per graph and precision) and a "pipeline" PipelineParity, as measured
                        by the export itself
     source             {checkpoint: path or null, checkpoint_sha256, seed, torch, onnx, onnxruntime versions}
@@ -25,6 +28,13 @@ Schema (``MANIFEST_VERSION`` = 1), one JSON object::
                        (what was quantized and what was kept float, and why), parity: [Int8OutputParity] (relative L2
                        error of every output against fp32), boxes: BoxAgreement (decoded boxes of the int8 pipeline
                        against the fp32 pipeline)}. Measured and recorded, never pass/fail: int8 is an approximation.
+
+Which graphs a manifest must list follows from ``preset["use_image"]`` (absent means true, as in manifests written
+before LiDAR-only exports existed): a camera + LiDAR export lists all three graphs in fp32 with ``image``,
+``normalisation`` and ``lut``; a LiDAR-only export (the paper's streaming baseline) lists ``slice_head`` only, whose
+inputs are the pillar tensors and ``quadrants`` (the slice's quadrant ids, read for their count Q), and no image
+spec, normalisation or LUT. Anything in between is refused, so a fused export that lost its image graphs is never
+taken for a LiDAR-only one.
 
 Shapes use ints for fixed dimensions and strings ("J", "P", "Q", "H", "W", "Hf", "Wf") for dynamic ones.
 The manifest is written last, after every file it names: an export directory without ``manifest.json``
@@ -45,6 +55,7 @@ MANIFEST_VERSION = 1
 MANIFEST_NAME = "manifest.json"
 LUT_NAME = "lut.npz"
 GRAPH_NAMES: tuple[str, ...] = ("image_encoder", "volumetric_lifter", "slice_head")
+IMAGE_GRAPH_NAMES: tuple[str, ...] = ("image_encoder", "volumetric_lifter")  # the image lane; absent when LiDAR-only
 PRECISIONS: tuple[str, ...] = ("fp32", "fp16", "int8")
 _DTYPES = ("uint8", "int32", "int64", "float16", "float32")
 
@@ -328,11 +339,11 @@ class Manifest:
     grid: dict
     class_names: tuple[str, ...]
     num_slices: int
-    image: ImageSpec
-    normalisation: Normalisation
+    image: ImageSpec | None  # None exactly when the preset has use_image false (LiDAR-only)
+    normalisation: Normalisation | None  # likewise
     post: dict
     graphs: tuple[GraphEntry, ...]
-    lut: LutEntry
+    lut: LutEntry | None  # likewise
     parity: tuple[ParityRecord, ...] = ()
     pipeline_parity: PipelineParity | None = None
     source: dict = field(default_factory=dict)
@@ -354,9 +365,39 @@ class Manifest:
             seen.add(key)
         if any(g.precision == "int8" for g in self.graphs) and self.int8 is None:
             raise ManifestError("graphs of precision int8 are listed without the int8 record (calibration data, parity)")
-        for name in GRAPH_NAMES:
+        self._check_modality(seen)
+
+    def _check_modality(self, seen: set[tuple[str, str]]) -> None:
+        """The graphs and image fields the preset's use_image calls for, and no others (see the module doc)."""
+        use_image = self.preset.get("use_image", True)
+        if not isinstance(use_image, bool):
+            raise ManifestError(f"preset.use_image must be true or false, got {use_image!r}")
+        for name in self.required_graphs:
             if (name, "fp32") not in seen:
-                raise ManifestError(f"manifest lists no fp32 graph {name!r}")
+                why = " (the preset reads images: use_image is true)" if name in IMAGE_GRAPH_NAMES else ""
+                raise ManifestError(f"manifest lists no fp32 graph {name!r}{why}")
+        image_fields = {"image": self.image, "normalisation": self.normalisation, "lut": self.lut}
+        if use_image:
+            absent = [k for k, v in image_fields.items() if v is None]
+            if absent:
+                raise ManifestError(f"manifest of a camera + LiDAR preset (use_image true) has no {', '.join(absent)}")
+            return
+        extra = sorted({f"{n} ({p})" for n, p in seen if n in IMAGE_GRAPH_NAMES})
+        if extra:
+            raise ManifestError(f"manifest of a LiDAR-only preset (use_image false) lists image graphs: {', '.join(extra)}")
+        present = [k for k, v in image_fields.items() if v is not None]
+        if present:
+            raise ManifestError(f"manifest of a LiDAR-only preset (use_image false) has {', '.join(present)}; expected null")
+
+    @property
+    def use_image(self) -> bool:
+        """False for a LiDAR-only export: no image lane, no LUT, the slice graph alone."""
+        return bool(self.preset.get("use_image", True))
+
+    @property
+    def required_graphs(self) -> tuple[str, ...]:
+        """The graphs every precision of this export consists of."""
+        return GRAPH_NAMES if self.use_image else ("slice_head",)
 
     def graph(self, name: str, precision: str = "fp32") -> GraphEntry:
         for g in self.graphs:
@@ -367,13 +408,12 @@ class Manifest:
 
     @property
     def precisions(self) -> tuple[str, ...]:
-        """Precisions for which all three graphs are present."""
-        return tuple(p for p in PRECISIONS if all(any(g.name == n and g.precision == p for g in self.graphs) for n in GRAPH_NAMES))
+        """Precisions for which all required graphs (three, or the slice graph of a LiDAR-only export) are present."""
+        have = {(g.name, g.precision) for g in self.graphs}
+        return tuple(p for p in PRECISIONS if all((n, p) in have for n in self.required_graphs))
 
     def to_dict(self) -> dict:
-        d = asdict(self)
-        d["image"]["camera_names"] = list(self.image.camera_names)
-        return _jsonable(d)
+        return _jsonable(asdict(self))
 
     @classmethod
     def from_dict(cls, d: dict) -> "Manifest":
@@ -387,11 +427,11 @@ class Manifest:
                 grid=dict(d["grid"]),
                 class_names=tuple(d["class_names"]),
                 num_slices=d["num_slices"],
-                image=ImageSpec.from_dict(d["image"]),
-                normalisation=Normalisation.from_dict(d["normalisation"]),
+                image=_optional(ImageSpec.from_dict, d["image"]),
+                normalisation=_optional(Normalisation.from_dict, d["normalisation"]),
                 post=dict(d["post"]),
                 graphs=tuple(GraphEntry.from_dict(g) for g in d["graphs"]),
-                lut=LutEntry.from_dict(d["lut"]),
+                lut=_optional(LutEntry.from_dict, d["lut"]),
                 parity=tuple(ParityRecord.from_dict(p) for p in d.get("parity", ())),
                 pipeline_parity=PipelineParity.from_dict(d["pipeline_parity"]) if d.get("pipeline_parity") else None,
                 source=dict(d.get("source", {})),
@@ -415,7 +455,7 @@ def read_manifest(export_dir: str | os.PathLike, verify_files: bool = True) -> M
         raise ManifestError(f"{path} is not readable JSON: {e}") from None
     m = Manifest.from_dict(d)
     if verify_files:
-        for entry in (*m.graphs, m.lut):
+        for entry in (*m.graphs, *((m.lut,) if m.lut is not None else ())):
             f = export_dir / entry.file
             if not f.is_file():
                 raise ManifestError(f"{f} is named in the manifest but missing")
@@ -445,6 +485,11 @@ def replace_lut_entry(manifest: Manifest, lut: LutEntry) -> Manifest:
     from dataclasses import replace
 
     return replace(manifest, lut=lut)
+
+
+def _optional(parse: Any, value: Any) -> Any:
+    """``parse(value)``, or None for a JSON null (the image fields of a LiDAR-only manifest)."""
+    return None if value is None else parse(value)
 
 
 def _check_choice(what: str, value: Any, choices: tuple[str, ...]) -> None:

@@ -1,4 +1,5 @@
-"""PyTorch -> ONNX for the three graphs of docs/architecture.md ("The three graphs"), fp32.
+"""PyTorch -> ONNX for the three graphs of docs/architecture.md ("The three graphs"), fp32; for a LiDAR-only preset
+(use_image=False) the slice graph alone, without the image_bev input (``LIDAR_SLICE_HEAD_IO``).
 
 Exporter choice: the TorchScript exporter (``torch.onnx.export(..., dynamo=False)``). It is several times faster to
 run than the dynamo exporter here (the paper preset must export in minutes on a 2-core CPU), and it names every
@@ -23,7 +24,8 @@ import torch
 from torch import nn
 
 from streamdet.models.decode import SliceDecoder
-from streamdet.models.detector import StreamDetector
+from streamdet.models.detector import SliceNet, StreamDetector
+from streamdet.models.presets import Preset
 
 DEFAULT_OPSET = 17
 OPSET_RANGE = (14, 20)  # checked here end to end (14, 17, 18, 20); the TorchScript exporter stops at 20
@@ -76,6 +78,21 @@ SLICE_HEAD_IO = GraphIO(
     },
 )
 GRAPH_IO: dict[str, GraphIO] = {g.name: g for g in (IMAGE_ENCODER_IO, VOLUMETRIC_LIFTER_IO, SLICE_HEAD_IO)}
+# The LiDAR-only baseline (preset use_image=False) exports this slice graph alone. Its net reads image_bev for the
+# shape (Q, Yq, Xq) only, so instead of a (Q, C, Yq, Xq) tensor of zeros per slice the graph takes the slice's
+# quadrant ids (Q,) int64 and reads their count: the pillar tensors cannot tell Q (a slice whose last quadrant has
+# no pillar still gets that quadrant's head output, as in PyTorch).
+LIDAR_SLICE_HEAD_IO = GraphIO(
+    name="slice_head",
+    inputs=("pillar_features", "pillar_mask", "pillar_index", "quadrants"),
+    outputs=SLICE_HEAD_IO.outputs,
+    dynamic_axes={**{k: v for k, v in SLICE_HEAD_IO.dynamic_axes.items() if k != "image_bev"}, "quadrants": {0: "Q"}},
+)
+
+
+def graph_ios(use_image: bool) -> dict[str, GraphIO]:
+    """The graphs an export of a preset with this ``use_image`` consists of, by name, in pipeline order."""
+    return GRAPH_IO if use_image else {"slice_head": LIDAR_SLICE_HEAD_IO}
 
 
 def export_module(module: nn.Module, args: tuple[torch.Tensor, ...], io_spec: GraphIO, opset: int = DEFAULT_OPSET) -> onnx.ModelProto:
@@ -152,7 +169,39 @@ def slice_decoder(det: StreamDetector) -> SliceDecoder:
 
 def export_slice_head(det: StreamDetector, pillar_args: tuple[torch.Tensor, ...], opset: int = DEFAULT_OPSET) -> onnx.ModelProto:
     """(pillar_features, pillar_mask, pillar_index, image_bev) -> det_boxes, det_scores, det_labels."""
-    model = export_module(slice_decoder(det), pillar_args, SLICE_HEAD_IO, opset)
+    return _finish_slice_head(export_module(slice_decoder(det), pillar_args, SLICE_HEAD_IO, opset), det)
+
+
+class LidarSliceDecoder(SliceDecoder):
+    """``forward(pillar_features, pillar_mask, pillar_index, quadrants (Q,) int64) -> det_boxes, det_scores,
+    det_labels``: SliceDecoder of a LiDAR-only net, with Q read off ``quadrants``.
+
+    A subclass rather than a wrapper so that the exported node scopes stay ``/slice_net/...`` and the decode's are
+    the root's (``_decode_node_names`` and the fp16 / int8 block lists rely on them).
+    """
+
+    def __init__(self, slice_net: SliceNet, preset: Preset) -> None:
+        if slice_net.use_image:
+            raise ValueError(f"preset {preset.name!r} has use_image=True: its slice graph needs image_bev")
+        super().__init__(slice_net, preset)
+        self.quadrant_ny, self.quadrant_nx = preset.grid.quadrant_ny, preset.grid.quadrant_nx
+
+    def forward(self, pillar_features: torch.Tensor, pillar_mask: torch.Tensor, pillar_index: torch.Tensor,
+                quadrants: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:  # fmt: skip
+        # Zero channels: the net reads this tensor's shape only, so the graph never allocates a BEV of zeros.
+        shape_only = pillar_features.new_zeros(quadrants.shape[0], 0, self.quadrant_ny, self.quadrant_nx)
+        return super().forward(pillar_features, pillar_mask, pillar_index, shape_only)
+
+
+def export_lidar_slice_head(det: StreamDetector, pillar_args: tuple[torch.Tensor, ...], opset: int = DEFAULT_OPSET) -> onnx.ModelProto:
+    """The LiDAR-only slice graph: (pillar_features, pillar_mask, pillar_index, quadrants) -> det_boxes, det_scores,
+    det_labels. ``det`` must have use_image=False."""
+    module = LidarSliceDecoder(det.slice_net, det.preset).eval()
+    return _finish_slice_head(export_module(module, pillar_args, LIDAR_SLICE_HEAD_IO, opset), det)
+
+
+def _finish_slice_head(model: onnx.ModelProto, det: StreamDetector) -> onnx.ModelProto:
+    """Rename the decode's nodes into DECODE_SCOPE and restore the static top-K dimensions."""
     decode = _decode_node_names(model)
     for node in model.graph.node:
         if node.name in decode:

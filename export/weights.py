@@ -47,6 +47,23 @@ def bundled_checkpoint(preset_name: str) -> Path | None:
     return path if path.is_file() else None
 
 
+def checkpoint_use_image(checkpoint: str | os.PathLike | None) -> bool | None:
+    """The ``use_image`` of the preset a checkpoint names; None without a checkpoint, without a preset in it, or
+    when it cannot be read (``load_detector`` then says why)."""
+    if checkpoint is None or not Path(checkpoint).is_file():
+        return None
+    obj = None
+    for mmap in (True, False):  # mmap reads no tensor data, but only the zip format (torch >= 1.6) allows it
+        try:
+            obj = torch.load(Path(checkpoint), map_location="cpu", weights_only=True, mmap=mmap)
+            break
+        except Exception:  # any unreadable file: reported by load_detector with its reason
+            continue
+    saved = obj.get("preset") if isinstance(obj, dict) else None
+    use_image = saved.get("use_image") if isinstance(saved, dict) else None
+    return use_image if isinstance(use_image, bool) else None
+
+
 def load_detector(preset: Preset, checkpoint: str | os.PathLike | None, seed: int = DEFAULT_SEED) -> tuple[StreamDetector, WeightsSource]:
     """The detector in eval mode with its weights, and where they came from."""
     from streamdet.export.manifest import sha256_file

@@ -15,6 +15,7 @@ _EXPORTS = {
     "DetectorConfig": "streamdet.runtime_ort.detector",
     "SliceResult": "streamdet.runtime_ort.detector",
     "ImageUpdate": "streamdet.runtime_ort.detector",
+    "NoImageLaneError": "streamdet.runtime_ort.detector",
     "StreamingRunner": "streamdet.runtime_ort.lanes",
     "LaneConfig": "streamdet.runtime_ort.lanes",
     "SliceDropped": "streamdet.runtime_ort.lanes",

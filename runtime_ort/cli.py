@@ -26,13 +26,8 @@ def run_sample(export_dir: Path, sample_dir: Path | None, num_slices: int | None
 
     sample = load_bundled_sample(sample_dir)
     det = StreamingDetector(export_dir, DetectorConfig(precision=precision, num_slices=num_slices))
-    img = det.manifest.image
-    # The sample's own calibration, at the export's image size: a new LUT, the same graphs.
-    rig = sample.rig.resized(img.width, img.height)
-    if rig.sha256() != det.lut.calibration_sha256 and sample.rig.sha256() != det.lut.calibration_sha256:
-        det.set_calibration(rig)
-    images = sample.load_images((img.width, img.height))  # (J, H, W, 3)
-    update = det.update_images(dict(zip(sample.rig.names, images)), timestamp=0.0)
+    # A LiDAR-only export (the streaming baseline) has no image lane: the sample's images are not read.
+    missing = _feed_images(det, sample) if det.uses_images else ()
     n = det.num_slices
     slices = split_sweep(sample.points, n)
     results = []
@@ -43,7 +38,7 @@ def run_sample(export_dir: Path, sample_dir: Path | None, num_slices: int | None
     out_dir.mkdir(parents=True, exist_ok=True)
     entries = boxes_to_results(sample.token, merged.boxes, merged.scores, merged.labels, sample.lidar2ego, sample.ego2global)
     results_path = out_dir / "results_nusc.json"
-    write_results_json(results_path, {sample.token: entries}, {"use_camera": True, "use_lidar": True})
+    write_results_json(results_path, {sample.token: entries}, {"use_camera": det.uses_images, "use_lidar": True})
     slice_of_point = np.concatenate([np.full(len(p), k) for k, p in enumerate(slices)])
     pts = np.concatenate(slices)
     picture = draw_bev(
@@ -63,7 +58,8 @@ def run_sample(export_dir: Path, sample_dir: Path | None, num_slices: int | None
         "num_slices": n,
         "precision": precision,
         "providers": list(det.providers),
-        "cameras_missing": list(update.cameras_missing),
+        "uses_images": det.uses_images,
+        "cameras_missing": list(missing),
         "detections": len(merged),
         "per_class": counts,
         "per_slice": [len(r.detections) for r in results],
@@ -71,6 +67,17 @@ def run_sample(export_dir: Path, sample_dir: Path | None, num_slices: int | None
         "results_json": str(results_path),
         "bev_png": str(png_path),
     }
+
+
+def _feed_images(det, sample) -> tuple[str, ...]:
+    """The sample's images through the image lane, with its own calibration; the cameras it lacks."""
+    img = det.manifest.image
+    # The sample's own calibration, at the export's image size: a new LUT, the same graphs.
+    rig = sample.rig.resized(img.width, img.height)
+    if rig.sha256() != det.lut.calibration_sha256 and sample.rig.sha256() != det.lut.calibration_sha256:
+        det.set_calibration(rig)
+    images = sample.load_images((img.width, img.height))  # (J, H, W, 3)
+    return det.update_images(dict(zip(sample.rig.names, images)), timestamp=0.0).cameras_missing
 
 
 def format_latency(summary: dict) -> str:
@@ -107,7 +114,7 @@ def main(export_dir: Path, sample_dir: Path | None, num_slices: int | None, prec
         raise click.ClickException(str(e)) from None
     click.echo(
         f"sample {summary['sample']}: {summary['detections']} detections over {summary['num_slices']} slices "
-        f"({summary['precision']}, {', '.join(summary['providers'])})"
+        f"({summary['precision']}, {', '.join(summary['providers'])}{'' if summary['uses_images'] else ', LiDAR only: no images used'})"
     )
     if summary["cameras_missing"]:
         click.echo(f"cameras missing (zero features): {summary['cameras_missing']}")

@@ -10,6 +10,10 @@ Two lanes share one cached image BEV:
 Both methods are thread-safe and may run at the same time from different threads: onnxruntime releases the
 GIL and each graph has its own session and thread pool, so a slice does not wait behind an image-encoder run.
 `streamdet.runtime_ort.lanes.StreamingRunner` adds the worker threads, bounded queues and back-pressure.
+
+A LiDAR-only export (manifest preset use_image false, the paper's streaming baseline) has the slice lane alone:
+its slice graph takes the quadrant ids instead of an image BEV, and `update_images` / `set_calibration` raise
+`NoImageLaneError` (`uses_images` tells the two kinds apart).
 """
 
 from __future__ import annotations
@@ -40,6 +44,10 @@ log = logging.getLogger(__name__)
 
 PRECISIONS = ("fp32", "fp16", "int8")
 BUNDLED_PREFIX = "bundled:"  # calibration_source of an export built from a file shipped in streamdet.data
+
+
+class NoImageLaneError(ValueError):
+    """An image-lane call (images, calibration, image size) on a LiDAR-only export, which has no image lane."""
 
 
 @dataclass(frozen=True)
@@ -114,8 +122,12 @@ class StreamingDetector:
                 f"re-export with --{config.precision}" if config.precision != "fp32" else f"{self.export_dir} lacks fp32 graphs"
             )
         self.grid = GridSpec.from_dict(m.grid)
-        self.camera_names: tuple[str, ...] = tuple(m.image.camera_names)
-        self.image: ImageSpec = _image_spec(m.image, config.image_size)  # what update_images takes
+        self.uses_images: bool = m.use_image  # False: LiDAR-only export, slice lane only
+        if not self.uses_images and config.image_size is not None:
+            raise NoImageLaneError(self._no_image_lane(f"DetectorConfig.image_size {config.image_size!r} cannot apply"))
+        self.camera_names: tuple[str, ...] = tuple(m.image.camera_names) if m.image is not None else ()
+        # what update_images takes; None for a LiDAR-only export
+        self.image: ImageSpec | None = _image_spec(m.image, config.image_size) if m.image is not None else None
         self.num_slices = config.num_slices or m.num_slices
         check_num_slices(self.num_slices, config.start_deg)
         pillars = m.preset["pillars"]
@@ -129,16 +141,18 @@ class StreamingDetector:
             cfg = SessionConfig(config.providers, threads, enable_profiling=config.enable_profiling)
             return GraphSession(path, cfg)
 
-        self.image_encoder = session("image_encoder", config.image_lane_threads)
-        self.lifter = session("volumetric_lifter", config.image_lane_threads)
+        # None for a LiDAR-only export: it has no image lane
+        self.image_encoder = session("image_encoder", config.image_lane_threads) if self.uses_images else None
+        self.lifter = session("volumetric_lifter", config.image_lane_threads) if self.uses_images else None
         self.slice_head = session("slice_head", config.slice_lane_threads)
         self.providers = self.slice_head.providers
         self.stats = LatencyStats()
 
         self._lock = threading.Lock()  # guards the swaps of _lut and _image; reads take a reference
-        if (self.image.width, self.image.height) == (m.image.width, m.image.height):
+        self._lut: Lut | None = None  # stays None for a LiDAR-only export
+        if self.uses_images and (self.image.width, self.image.height) == (m.image.width, m.image.height):
             self._lut = self._check_lut(Lut.load(self.export_dir / m.lut.file))
-        else:
+        elif self.uses_images:
             self._lut = self._check_lut(self._build_lut(_export_rig(m, self.export_dir)))
         self._image: _ImageState | None = None
         log.info("streamdet: %s (%s, %d slices) on %s", self.export_dir, config.precision, self.num_slices, list(self.providers))
@@ -146,7 +160,14 @@ class StreamingDetector:
     # ---- calibration ---------------------------------------------------------------------------
     @property
     def lut(self) -> Lut:
+        """The projection LUT in use; a LiDAR-only export has none (NoImageLaneError)."""
+        if self._lut is None:
+            raise NoImageLaneError(self._no_image_lane("it has no projection LUT"))
         return self._lut
+
+    def _no_image_lane(self, what: str) -> str:
+        return (f"{self.export_dir} is a LiDAR-only export (manifest preset use_image=false) with no image lane: {what}; "
+                "feed its slices to detect_slice / detect_sweep only")  # fmt: skip
 
     def _check_lut(self, lut: Lut) -> Lut:
         img = self.image
@@ -170,8 +191,11 @@ class StreamingDetector:
         """Swap the projection LUT (a Rig, a Lut, a calibration.json or a lut.npz) without recreating sessions.
 
         The cached image BEV is lifted again from the last image features, so the next slice sees the new
-        calibration at once.
+        calibration at once. A LiDAR-only export has no calibration to set: NoImageLaneError.
         """
+        if not self.uses_images:
+            # Refused rather than ignored: a caller that believes it recalibrated a camera model should learn it did not.
+            raise NoImageLaneError(self._no_image_lane("set_calibration has nothing to calibrate"))
         if isinstance(calibration, (str, Path)):
             path = Path(calibration)
             calibration = Lut.load(path) if path.suffix == ".npz" else Rig.from_calibration_json(path)
@@ -196,8 +220,11 @@ class StreamingDetector:
     def update_images(self, images: Mapping[str, np.ndarray], timestamp: float | None = None) -> ImageUpdate:
         """Encode and lift the given camera images (uint8 RGB (H, W, 3) by camera name) into the cached BEV.
 
-        Cameras not given are allowed: their features are zeros. Unknown names, wrong sizes or dtypes raise.
+        Cameras not given are allowed: their features are zeros. Unknown names, wrong sizes or dtypes raise, and so
+        does any call on a LiDAR-only export (NoImageLaneError).
         """
+        if not self.uses_images:
+            raise NoImageLaneError(self._no_image_lane(f"update_images got cameras {sorted(images)} it cannot use"))
         timestamp = time.monotonic() if timestamp is None else float(timestamp)
         img = self.image
         unknown = [n for n in images if n not in self.camera_names]
@@ -256,8 +283,9 @@ class StreamingDetector:
         """Detections of slice `slice_index` of `num_slices` (None: the detector's) from its (N, 6) float32 points
         (x, y, z, r, t, s).
 
-        Uses the newest cached image BEV of the slice's quadrant(s) (zeros before the first image update).
-        NaN / inf points are dropped and counted; an empty slice gives no detections.
+        Uses the newest cached image BEV of the slice's quadrant(s) (zeros before the first image update); a
+        LiDAR-only export's slice graph takes the quadrant ids instead. NaN / inf points are dropped and counted;
+        an empty slice gives no detections.
         """
         timestamp = time.monotonic() if timestamp is None else float(timestamp)
         n = self._slices(num_slices)
@@ -279,9 +307,10 @@ class StreamingDetector:
         if pillars.num_pillars == 0:
             dets = Detections.empty()
         else:
-            bev = self._image_bev(state, quadrants)
-            feeds = pillars.as_feeds()
-            feeds["image_bev"] = bev
+            if self.uses_images:
+                feeds = {**pillars.as_feeds(), "image_bev": self._image_bev(state, quadrants)}
+            else:
+                feeds = pillars.as_feeds(quadrants)
             with self.stats.time("slice_head"):
                 boxes, scores, labels = self.slice_head.run(feeds)
             with self.stats.time("post"):
@@ -338,7 +367,7 @@ class StreamingDetector:
         """End profiling (if enabled); returns the profile files written."""
         if not self.config.enable_profiling:
             return []
-        return [s.end_profiling() for s in (self.image_encoder, self.lifter, self.slice_head)]
+        return [s.end_profiling() for s in (self.image_encoder, self.lifter, self.slice_head) if s is not None]
 
     def __enter__(self) -> "StreamingDetector":
         return self

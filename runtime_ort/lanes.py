@@ -104,6 +104,10 @@ class StreamingRunner:
         self._images = _Lane("image-lane", 1, 1, lambda: ImagesSuperseded("image set superseded by a newer one"))
 
     def submit_images(self, images: Mapping[str, np.ndarray], timestamp: float | None = None) -> "Future[ImageUpdate]":
+        """Queue an image update. A LiDAR-only detector has no image lane: NoImageLaneError at once, in the
+        caller's thread, rather than in a future nobody may read."""
+        if not self.detector.uses_images:
+            self.detector.update_images(images, timestamp)  # raises NoImageLaneError naming the export
         return self._images.submit(lambda: self.detector.update_images(images, timestamp))
 
     def submit_slice(self, points: np.ndarray, slice_index: int, timestamp: float | None = None) -> "Future[SliceResult]":

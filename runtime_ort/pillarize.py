@@ -44,9 +44,13 @@ class Pillars:
     def num_pillars(self) -> int:
         return self.features.shape[0]
 
-    def as_feeds(self) -> dict[str, np.ndarray]:
-        """The three inputs of `slice_head.onnx`, by graph input name."""
-        return {"pillar_features": self.features, "pillar_mask": self.mask, "pillar_index": self.index}
+    def as_feeds(self, quadrants: tuple[int, ...] | None = None) -> dict[str, np.ndarray]:
+        """The pillar inputs of `slice_head.onnx`, by graph input name; with `quadrants` (the slice's, as given to
+        `pillarize`) also the `quadrants` (Q,) int64 input of a LiDAR-only slice graph, which has no image_bev."""
+        feeds = {"pillar_features": self.features, "pillar_mask": self.mask, "pillar_index": self.index}
+        if quadrants is not None:
+            feeds["quadrants"] = np.asarray(quadrants, dtype=np.int64)
+        return feeds
 
 
 def _check_inputs(
