@@ -10,6 +10,7 @@ import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+from streamdet.benchmarks.prepost import format_prepost, prepost_to_dict
 from streamdet.benchmarks.probe import ProbeResult
 from streamdet.benchmarks.streaming import LaneStats, StreamingResult
 from streamdet.benchmarks.table import RowResult
@@ -109,6 +110,16 @@ def evaluate_targets(rows: Sequence[RowResult], peak: ProbeResult, streaming: St
                 f"p50 {lane.latency.median_ms:.2f} ms vs budget {s.slice_budget_ms:.2f} ms: real-time factor {rtf:.2f}",
             )
         )
+    for stage, what in (("pre", "pillarize 30,000 points"), ("post", "post-process 500 candidates")):
+        cases = [c for c in s.prepost if c.stage == stage]
+        if cases:
+            targets.append(
+                Target(
+                    f"{what} <= {cases[0].budget_ms:g} ms (p50, every case)",
+                    all(c.met for c in cases),
+                    "; ".join(f"{c.name.split(', ', 1)[1]} {c.stats.median_ms:.2f} ms" for c in cases),
+                )
+            )
     return targets
 
 
@@ -272,6 +283,8 @@ def format_streaming(s: StreamingResult) -> str:
             else ""
         )
     )
+    if s.prepost:
+        lines.append(format_prepost(s.prepost))
     return "\n".join(lines)
 
 
@@ -354,6 +367,7 @@ def streaming_to_dict(s: StreamingResult) -> dict:
         "keeps_up_busy": s.real_time_factor(s.busy) <= REAL_TIME_FACTOR_MAX,
         "config": dataclasses.asdict(s.config),
         "profiles": {k: v.to_dict(top=10) for k, v in s.profiles.items()},
+        "prepost": prepost_to_dict(s.prepost),
     }
 
 

@@ -32,10 +32,12 @@ from pathlib import Path
 import numpy as np
 
 from streamdet.benchmarks.ort_profile import ProfileSummary, summarize_profile
-from streamdet.benchmarks.timing import TimingStats, summarize
+from streamdet.benchmarks.prepost import PrePostCase, measure_prepost
+from streamdet.benchmarks.timing import TimingConfig, TimingStats, summarize
 from streamdet.data.sample import load_bundled_sample
 from streamdet.data.slicing import split_sweep
 from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector
+from streamdet.runtime_ort.postprocess import PostprocessConfig
 
 Progress = Callable[[str], None]
 SLICE, IMAGES = "slice", "images"
@@ -189,6 +191,7 @@ class StreamingResult:
     sequential_horizon_ms: float
     config: StreamingConfig
     profiles: dict[str, ProfileSummary] = dataclasses.field(default_factory=dict)  # profile_streaming's, if run
+    prepost: tuple[PrePostCase, ...] = ()  # the runtime's numpy stages timed alone (benchmarks/prepost.py)
 
     @property
     def busy_over_idle_p95(self) -> float:
@@ -295,6 +298,9 @@ def measure_streaming(
     export_dir: str | Path, cfg: StreamingConfig = StreamingConfig(), progress: Progress = lambda msg: None
 ) -> StreamingResult:
     det = _detector(Path(export_dir), cfg)
+    if not det.uses_images:
+        # the section measures the two lanes against each other; a LiDAR-only export has one
+        raise ValueError(f"{export_dir} is a LiDAR-only export: the streaming section needs a camera + LiDAR export")
     n = det.num_slices
     img = det.manifest.image
     images, slices = _bundled_inputs(det)
@@ -352,6 +358,11 @@ def measure_streaming(
 
     run = run_sequential_queue(jobs, process)
     det.close()
+    progress("[streaming] pillarize and post-processing alone")
+    pillars = det.manifest.preset["pillars"]
+    prepost = measure_prepost(det.grid, int(pillars["max_points_per_pillar"]), int(pillars["max_pillars"]),
+                              PostprocessConfig(score_threshold=float(det.manifest.post["score_threshold"]), nms=det.config.nms),
+                              TimingConfig(repeat=10 if cfg.sweeps <= 2 else 50, budget_s=5.0))  # fmt: skip
     return StreamingResult(
         export_dir=str(export_dir),
         preset=det.manifest.preset_name,
@@ -373,4 +384,5 @@ def measure_streaming(
         sequential_images_superseded=len(run.superseded),
         sequential_horizon_ms=cfg.queue_sweeps * 1000.0 / cfg.lidar_hz,
         config=cfg,
+        prepost=prepost,
     )

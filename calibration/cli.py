@@ -34,6 +34,8 @@ def rebuild_lut(calibration: str | Path, export_dir: str | Path) -> tuple[Lut, b
     export_dir = Path(export_dir)
     manifest = read_manifest(export_dir, verify_files=False)
     image = manifest.image
+    if image is None:
+        raise LutMismatch(f"{export_dir} is a LiDAR-only export: it has no image lane, so no LUT to rebuild")
     rig = Rig.from_calibration_json(calibration)
     if rig.names != image.camera_names:
         raise LutMismatch(

@@ -108,7 +108,8 @@ def _data_inputs(data_dir: Path, version: str, split: str | None, export_dir: Pa
 
         try:
             save_dir.mkdir(parents=True, exist_ok=True)
-            write_results_json(save_dir / "results.json", result.predictions, {"use_camera": True, "use_lidar": True})
+            write_results_json(save_dir / "results.json", result.predictions,
+                               {"use_camera": detector.detector.uses_images, "use_lidar": True})  # fmt: skip
             write_results_json(save_dir / "gt.json", result.ground_truth, {"use_camera": False, "use_lidar": False},
                                ego_positions=result.ego_positions)  # fmt: skip
         except OSError as e:

@@ -36,6 +36,8 @@ def test_quick_tiny_run_writes_documented_json(quick_run):
         assert r["graph_gmac_ratio"] == pytest.approx(1.0)
         assert r["fp32"]["count"] >= 2  # quick: --repeat 2, and never fewer than the minimum of 3 under a budget
         assert r["profile"]["fp32"]["ops"]
+    assert len(doc["streaming"]["prepost"]) == 6 and "pillarize 30,000 points" in result.output
+    assert any(t["name"].startswith("post-process 500 candidates") for t in doc["targets"])
     meta = doc["meta"]
     assert meta["preset"] == "tiny" and meta["threads"] >= 1 and meta["repeat"] == 2 and meta["machine"]["cpu_model"]
     s = doc["streaming"]

@@ -238,3 +238,25 @@ def test_image_studies_refuse_a_lidar_only_export(export_dir, data_dir, args, me
 
     res = CliRunner().invoke(study_main, [*args, "--export-dir", str(export_dir), "--data", str(data_dir), "--split", "all"])
     assert res.exit_code == 1 and message in res.output and "Traceback" not in res.output, res.output
+
+
+def test_calib_lut_and_bench_streaming_refuse_a_lidar_only_export(export_dir, tmp_path):
+    from streamdet.benchmarks.streaming import measure_streaming
+    from streamdet.calibration.cli import main as calib_main
+    from streamdet.data.sample import bundled_sample_dir
+
+    res = CliRunner().invoke(calib_main, ["lut", "--calibration", str(bundled_sample_dir() / "calibration.json"),
+                                          "--export-dir", str(export_dir)])  # fmt: skip
+    assert res.exit_code != 0 and "LiDAR-only export" in res.output and "Traceback" not in res.output
+    with pytest.raises(ValueError, match="LiDAR-only export"):
+        measure_streaming(export_dir)
+
+
+def test_saved_results_say_no_camera(export_dir, data_dir, tmp_path):
+    from streamdet.evaluation.cli import main as eval_main
+
+    res = CliRunner().invoke(eval_main, ["--data", str(data_dir), "--export-dir", str(export_dir), "--split", "all",
+                                         "--save-results", str(tmp_path / "s")])  # fmt: skip
+    assert res.exit_code == 0, res.output
+    meta = json.loads((tmp_path / "s" / "results.json").read_text())["meta"]
+    assert meta["use_camera"] is False and meta["use_lidar"] is True
