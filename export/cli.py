@@ -15,8 +15,8 @@ from streamdet.models.presets import preset_names
 
 
 @click.command(context_settings={"help_option_names": ["-h", "--help"]})
-@click.option("--preset", default="small", show_default=True, type=click.Choice(preset_names()),
-              help="Model preset to export.")
+@click.option("--preset", default=None, type=click.Choice(preset_names()),
+              help="Model preset to export. Default: the preset --checkpoint names, else small.")
 @click.option("--checkpoint", type=click.Path(dir_okay=False), default=None,
               help="Checkpoint of that preset (torch.load weights_only). Default: the bundled models/weights/<preset>.pt "
                    "if present, else fixed-seed untrained weights.")

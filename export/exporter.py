@@ -73,16 +73,17 @@ from streamdet.export.parity import (
     peak_margins,
     pipeline_parity,
 )
-from streamdet.export.weights import DEFAULT_SEED, bundled_checkpoint, checkpoint_use_image, load_detector
+from streamdet.export.weights import DEFAULT_SEED, bundled_checkpoint, checkpoint_preset, checkpoint_use_image, load_detector
 from streamdet.models.decode import decode_head_maps
 from streamdet.models.detector import StreamDetector
 from streamdet.models.flops import count_gmac
 from streamdet.models.image_encoder import IMAGENET_MEAN, IMAGENET_STD
-from streamdet.models.presets import Preset, get_preset
+from streamdet.models.presets import Preset, get_preset, preset_names
 from streamdet.runtime_ort.boxes import CLASS_NAMES
 from streamdet.runtime_ort.pillarize import Pillars, pillarize
 
 BUNDLED_CALIBRATION = "bundled:nuscenes_sample/calibration.json"
+DEFAULT_PRESET = "small"  # the shipped model's preset: what streamdet-export exports without arguments
 STEM_STRIDE = 2  # the ResNet stem's stride: image sizes must be even
 TORCH_REF_IMAGES = 2  # images the PyTorch encoder reference runs on (onnxruntime runs all J)
 
@@ -93,7 +94,7 @@ class ExportError(Exception):
 
 @dataclass(frozen=True)
 class ExportOptions:
-    preset: str = "small"
+    preset: str | None = None  # None: the preset the checkpoint names, else DEFAULT_PRESET
     checkpoint: str | None = None  # None: models/weights/<preset>.pt if bundled, else fixed-seed weights
     calibration: str | None = None  # calibration.json path; None: the bundled nuScenes sample's
     resolution: tuple[int, int] | None = None  # (W, H) px of the camera images; None: the preset's
@@ -609,8 +610,12 @@ def _scatter_cameras(features_read: np.ndarray, cams: list[int], num_cameras: in
 
 
 def _resolve_preset(opts: ExportOptions) -> tuple[Preset, int, int]:
+    name = opts.preset
+    if name is None:
+        saved = checkpoint_preset(opts.checkpoint)
+        name = saved.get("name") if saved is not None and saved.get("name") in preset_names() else DEFAULT_PRESET
     try:
-        preset = get_preset(opts.preset)
+        preset = get_preset(name)
     except ValueError as e:
         raise ExportError(str(e)) from None
     width, height = opts.resolution if opts.resolution is not None else (preset.image.width_px, preset.image.height_px)

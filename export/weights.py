@@ -47,9 +47,9 @@ def bundled_checkpoint(preset_name: str) -> Path | None:
     return path if path.is_file() else None
 
 
-def checkpoint_use_image(checkpoint: str | os.PathLike | None) -> bool | None:
-    """The ``use_image`` of the preset a checkpoint names; None without a checkpoint, without a preset in it, or
-    when it cannot be read (``load_detector`` then says why)."""
+def checkpoint_preset(checkpoint: str | os.PathLike | None) -> dict | None:
+    """The preset dict a checkpoint saved; None without a checkpoint, without a preset in it, or when it cannot be
+    read (``load_detector`` then says why)."""
     if checkpoint is None or not Path(checkpoint).is_file():
         return None
     obj = None
@@ -60,7 +60,13 @@ def checkpoint_use_image(checkpoint: str | os.PathLike | None) -> bool | None:
         except Exception:  # any unreadable file: reported by load_detector with its reason
             continue
     saved = obj.get("preset") if isinstance(obj, dict) else None
-    use_image = saved.get("use_image") if isinstance(saved, dict) else None
+    return saved if isinstance(saved, dict) else None
+
+
+def checkpoint_use_image(checkpoint: str | os.PathLike | None) -> bool | None:
+    """The ``use_image`` of the preset a checkpoint names; None when ``checkpoint_preset`` has none."""
+    saved = checkpoint_preset(checkpoint)
+    use_image = saved.get("use_image") if saved is not None else None
     return use_image if isinstance(use_image, bool) else None
 
 

@@ -96,6 +96,10 @@ def test_checkpoint_round_trip_and_bad_files(tmp_path):
     result = _invoke(["--preset", "tiny", "--checkpoint", str(half), "--out", str(tmp_path / "exp_half")])
     assert result.exit_code == 0, result.output
     assert all(p.passed for p in read_manifest(tmp_path / "exp_half").parity)
+    # without --preset the checkpoint's own preset is exported
+    result = _invoke(["--checkpoint", str(half), "--out", str(tmp_path / "exp_named")])
+    assert result.exit_code == 0, result.output
+    assert read_manifest(tmp_path / "exp_named").preset_name == "tiny"
     (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
     _assert_one_line_error(_invoke(["--preset", "tiny", "--checkpoint", str(tmp_path / "junk.pt"), "--out", str(tmp_path / "e2")]),
                            "cannot be read")
