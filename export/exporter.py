@@ -73,7 +73,14 @@ from streamdet.export.parity import (
     peak_margins,
     pipeline_parity,
 )
-from streamdet.export.weights import DEFAULT_SEED, bundled_checkpoint, checkpoint_preset, checkpoint_use_image, load_detector
+from streamdet.export.weights import (
+    DEFAULT_SEED,
+    WeightsSource,
+    bundled_checkpoint,
+    checkpoint_preset,
+    checkpoint_use_image,
+    load_detector,
+)
 from streamdet.models.decode import decode_head_maps
 from streamdet.models.detector import StreamDetector
 from streamdet.models.flops import count_gmac
@@ -180,13 +187,7 @@ def run_export(opts: ExportOptions, report: Report | None = None) -> ExportResul
 
 
 def _export_into(tmp: Path, preset: Preset, width: int, height: int, opts: ExportOptions, steps: "_Steps") -> Manifest:
-    checkpoint = opts.checkpoint if opts.checkpoint is not None else bundled_checkpoint(preset.name)
-    with steps("loading weights"):
-        try:
-            det, source = load_detector(preset, checkpoint, opts.seed)
-        except ValueError as e:
-            raise ExportError(str(e)) from None
-        steps.note(source.describe())
+    det, source = _load_weights(preset, opts, steps, "loading weights")
     with steps(f"building the LUT for {width}x{height}"):
         rig, calib_source = load_rig(opts.calibration)
         lut = build_lut(rig, preset.grid, preset.image.feature_stride, (width, height))
@@ -234,10 +235,7 @@ def _export_into(tmp: Path, preset: Preset, width: int, height: int, opts: Expor
             _save_checked(model, tmp, "slice_head", "fp32")
             dets = ort_session(str(tmp / graph_file_name("slice_head", "fp32"))).run(None, slice_feeds)
             maps = det.slice_net(*slice_args)  # the reference head maps, for the decode and the near-tie test
-            ref_dets = [t.numpy() for t in decode_head_maps(maps, preset.head_cell_m, preset.top_k)]
-            margins = peak_margins(maps[0].numpy())  # (Q, C, Hh, Wh)
-            centres = cell_centres(maps[1].numpy(), preset.head_cell_m)  # (Q, 2, Hh, Wh)
-            margins_of = lambda d: detection_margins(d[0], d[2], margins, centres)  # noqa: E731
+            ref_dets, margins_of = _reference_decode(maps, preset)
             parity.extend(compare_detections("slice_head", "fp32", "torch", dets, ref_dets, TORCH_TOL_REL, margins_of(ref_dets)))
             for p in parity[-3:]:
                 steps.note(_fmt(p))
@@ -331,13 +329,7 @@ def _export_lidar_only_into(tmp: Path, preset: Preset, width: int, height: int, 
     baseline; the graph gets the quadrant ids instead (``onnx_export.LidarSliceDecoder``), so the check also covers
     that substitution. ``width`` and ``height`` are unused: there are no images.
     """
-    checkpoint = opts.checkpoint if opts.checkpoint is not None else bundled_checkpoint(preset.name)
-    with steps("loading weights (LiDAR-only model: slice graph only)"):
-        try:
-            det, source = load_detector(preset, checkpoint, opts.seed)
-        except ValueError as e:
-            raise ExportError(str(e)) from None
-        steps.note(source.describe())
+    det, source = _load_weights(preset, opts, steps, "loading weights (LiDAR-only model: slice graph only)")
     with steps("preparing the parity inputs (bundled sample, LiDAR only)"):
         pl, quadrants, slice_index, num_points = _busiest_slice(load_bundled_sample(), preset, opts.num_slices)
         parity_input = (f"LiDAR slice {slice_index} ({num_points} points, {pl.num_pillars} pillars, quadrants "
@@ -355,10 +347,7 @@ def _export_lidar_only_into(tmp: Path, preset: Preset, width: int, height: int, 
             dets = ort_session(str(tmp / graph_file_name("slice_head", "fp32"))).run(None, slice_feeds)
             zero_bev = torch.zeros(len(quadrants), preset.channels, g.quadrant_ny, g.quadrant_nx)
             maps = det.slice_net(*slice_args[:3], zero_bev)  # the reference head maps, for the decode and near-ties
-            ref_dets = [t.numpy() for t in decode_head_maps(maps, preset.head_cell_m, preset.top_k)]
-            margins = peak_margins(maps[0].numpy())  # (Q, C, Hh, Wh)
-            centres = cell_centres(maps[1].numpy(), preset.head_cell_m)  # (Q, 2, Hh, Wh)
-            margins_of = lambda d: detection_margins(d[0], d[2], margins, centres)  # noqa: E731
+            ref_dets, margins_of = _reference_decode(maps, preset)
             parity.extend(compare_detections("slice_head", "fp32", "torch", dets, ref_dets, TORCH_TOL_REL, margins_of(ref_dets)))
             for p in parity[-3:]:
                 steps.note(_fmt(p))
@@ -554,6 +543,25 @@ def _export_lidar_int8(tmp: Path, preset: Preset, opts: ExportOptions, steps: "_
 
 
 # ---- helpers -------------------------------------------------------------------------------------------
+
+
+def _load_weights(preset: Preset, opts: ExportOptions, steps: "_Steps", label: str) -> tuple[StreamDetector, WeightsSource]:
+    checkpoint = opts.checkpoint if opts.checkpoint is not None else bundled_checkpoint(preset.name)
+    with steps(label):
+        try:
+            det, source = load_detector(preset, checkpoint, opts.seed)
+        except ValueError as e:
+            raise ExportError(str(e)) from None
+        steps.note(source.describe())
+    return det, source
+
+
+def _reference_decode(maps, preset: Preset):
+    """PyTorch's decoded detections of the head maps, and the peak-margin lookup the near-tie exclusions use."""
+    ref_dets = [t.numpy() for t in decode_head_maps(maps, preset.head_cell_m, preset.top_k)]
+    margins = peak_margins(maps[0].numpy())  # (Q, C, Hh, Wh)
+    centres = cell_centres(maps[1].numpy(), preset.head_cell_m)  # (Q, 2, Hh, Wh)
+    return ref_dets, lambda d: detection_margins(d[0], d[2], margins, centres)
 
 
 @dataclass(frozen=True, eq=False)
