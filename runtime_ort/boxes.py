@@ -79,7 +79,9 @@ def _to_frame(corners: np.ndarray, boxes: np.ndarray) -> tuple[np.ndarray, np.nd
     return cos * dx + sin * dy, -sin * dx + cos * dy  # (P, V) each
 
 
-def _intersection_area(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def _intersection_area(
+    a: np.ndarray, b: np.ndarray, corners_a: np.ndarray | None = None, corners_b: np.ndarray | None = None
+) -> np.ndarray:
     """BEV intersection area (P,) of paired boxes (P, 9) with positive sizes, computed exactly in a's frame.
 
     The intersection is convex; its vertices are among the corners of each box inside the other and the
@@ -90,7 +92,9 @@ def _intersection_area(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """
     num_pairs = a.shape[0]
     half_l, half_w = a[:, L, None] / 2, a[:, W, None] / 2  # (P, 1)
-    corners_a, corners_b = box_corners_bev(a), box_corners_bev(b)  # (P, 4, 2)
+    # callers pairing rows of one box set pass its corners, gathered, instead of recomputing them per pair
+    corners_a = box_corners_bev(a) if corners_a is None else corners_a  # (P, 4, 2)
+    corners_b = box_corners_bev(b) if corners_b is None else corners_b
     ax = np.concatenate([half_l, half_l, -half_l, -half_l], axis=1)  # (P, 4), box_corners_bev order
     ay = np.concatenate([-half_w, half_w, half_w, -half_w], axis=1)
     bx, by = _to_frame(corners_b, a)  # (P, 4)
@@ -154,6 +158,15 @@ def paired_bev_iou(boxes_a: np.ndarray, boxes_b: np.ndarray) -> np.ndarray:
     union = a[:, W] * a[:, L] + b[:, W] * b[:, L] - inter
     iou[proper] = np.clip(inter / union, 0.0, 1.0)
     return iou
+
+
+def indexed_bev_iou(boxes: np.ndarray, corners: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+    """Rotated BEV IoU of pairs (boxes[i], boxes[j]) of one float64 (N, 9) box set with positive sizes, whose
+    ``box_corners_bev`` the caller computed once: the hot loop of crowded rotated NMS. (P,) float64."""
+    a, b = boxes[i], boxes[j]
+    inter = _intersection_area(a, b, corners[i], corners[j])
+    union = a[:, W] * a[:, L] + b[:, W] * b[:, L] - inter
+    return np.clip(inter / union, 0.0, 1.0)
 
 
 def bev_iou(boxes_a: np.ndarray, boxes_b: np.ndarray) -> np.ndarray:

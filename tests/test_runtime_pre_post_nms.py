@@ -412,3 +412,17 @@ def test_detections_container():
         Detections(np.ones((3, 9)), np.ones(2), np.ones(3, np.int64))
     with pytest.raises(ValueError, match="Detections.labels"):
         Detections(np.ones((3, 9)), np.ones(3), np.ones(3))
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+@pytest.mark.parametrize("block", [1, 7, 64])
+def test_blocked_rotated_nms_matches_naive_loop(seed, block, monkeypatch):
+    """The blocked greedy that crowded input takes (nms.BLOCKED_MIN_PAIRS) keeps exactly what the loop keeps."""
+    import streamdet.runtime_ort.nms as nms_module
+
+    monkeypatch.setattr(nms_module, "BLOCKED_MIN_PAIRS", 0)
+    monkeypatch.setattr(nms_module, "BLOCK_BOXES", block)
+    rng = np.random.default_rng(seed)
+    boxes, scores, labels = random_boxes(rng, 120, spread_m=4.0)
+    config = NmsConfig(kind=NmsKind.ROTATED, iou_threshold=0.2)
+    assert nms(boxes, scores, labels, config).tolist() == naive_nms(boxes, scores, labels, config)
