@@ -266,25 +266,10 @@ def _export_into(tmp: Path, preset: Preset, width: int, height: int, opts: Expor
             # the fp16 pipeline: each fp16 graph fed by the previous fp16 graph
             (bev16,) = sessions16["volumetric_lifter"].run(None, {**lifter_feeds, "features": features16})
             dets16 = sessions16["slice_head"].run(None, {**pl.as_feeds(), "image_bev": bev16})
-            pipeline = pipeline_parity(
-                dict(zip(ox.SLICE_HEAD_IO.outputs, dets)),
-                dict(zip(ox.SLICE_HEAD_IO.outputs, dets16)),
-                slice_index=inputs.slice_index,
-                num_slices=opts.num_slices,
-                num_points=inputs.num_points,
-                num_pillars=pl.num_pillars,
-                cell_m=preset.head_cell_m,
-                margins32=margins_of(dets),
-                margins16=margins_of(dets16),
-            )
             for p in parity[-5:]:
                 steps.note(_fmt(p))
-            steps.note(
-                f"pipeline: {pipeline.count_fp32} vs {pipeline.count_fp16} boxes >= {pipeline.score_threshold}, "
-                f"{pipeline.excluded_in_band} in the +-{pipeline.score_band:.2g} band, {pipeline.excluded_at_top_k} "
-                f"at the top-K cut, {pipeline.excluded_near_ties} near-ties, max centre diff "
-                f"{pipeline.max_centre_diff_m:.3g} m: {'ok' if pipeline.passed else 'FAILED'}"
-            )
+            pipeline = _pipeline_check(ox.SLICE_HEAD_IO.outputs, dets, dets16, margins_of, inputs.slice_index,
+                                       inputs.num_points, pl.num_pillars, preset, opts, steps)  # fmt: skip
 
     int8_record = _export_int8(tmp, preset, width, height, rig, lut, opts, steps) if opts.int8 else None
 
@@ -370,21 +355,10 @@ def _export_lidar_only_into(tmp: Path, preset: Preset, width: int, height: int, 
         with steps("parity fp16 vs fp32 (the slice graph is the whole pipeline)"):
             dets16 = ort_session(str(tmp / graph_file_name("slice_head", "fp16"))).run(None, slice_feeds)
             parity.extend(compare_detections("slice_head", "fp16", "onnx-fp32", dets16, dets, FP16_TOL_REL, margins_of(dets)))
-            pipeline = pipeline_parity(
-                dict(zip(ox.LIDAR_SLICE_HEAD_IO.outputs, dets)),
-                dict(zip(ox.LIDAR_SLICE_HEAD_IO.outputs, dets16)),
-                slice_index=slice_index,
-                num_slices=opts.num_slices,
-                num_points=num_points,
-                num_pillars=pl.num_pillars,
-                cell_m=preset.head_cell_m,
-                margins32=margins_of(dets),
-                margins16=margins_of(dets16),
-            )
             for p in parity[-3:]:
                 steps.note(_fmt(p))
-            steps.note(f"pipeline: {pipeline.count_fp32} vs {pipeline.count_fp16} boxes >= {pipeline.score_threshold}: "
-                       f"{'ok' if pipeline.passed else 'FAILED'}")  # fmt: skip
+            pipeline = _pipeline_check(ox.LIDAR_SLICE_HEAD_IO.outputs, dets, dets16, margins_of, slice_index,
+                                       num_points, pl.num_pillars, preset, opts, steps)  # fmt: skip
 
     int8_record = _export_int8(tmp, preset, width, height, None, None, opts, steps) if opts.int8 else None
 
@@ -554,6 +528,29 @@ def _load_weights(preset: Preset, opts: ExportOptions, steps: "_Steps", label: s
             raise ExportError(str(e)) from None
         steps.note(source.describe())
     return det, source
+
+
+def _pipeline_check(outputs, dets, dets16, margins_of, slice_index: int, num_points: int, num_pillars: int,
+                    preset: Preset, opts: ExportOptions, steps: "_Steps") -> PipelineParity:  # fmt: skip
+    """The decoded boxes of the fp32 and fp16 pipelines compared (``pipeline_parity``), reported in one line."""
+    pipeline = pipeline_parity(
+        dict(zip(outputs, dets)),
+        dict(zip(outputs, dets16)),
+        slice_index=slice_index,
+        num_slices=opts.num_slices,
+        num_points=num_points,
+        num_pillars=num_pillars,
+        cell_m=preset.head_cell_m,
+        margins32=margins_of(dets),
+        margins16=margins_of(dets16),
+    )
+    steps.note(
+        f"pipeline: {pipeline.count_fp32} vs {pipeline.count_fp16} boxes >= {pipeline.score_threshold}, "
+        f"{pipeline.excluded_in_band} in the +-{pipeline.score_band:.2g} band, {pipeline.excluded_at_top_k} "
+        f"at the top-K cut, {pipeline.excluded_near_ties} near-ties, max centre diff "
+        f"{pipeline.max_centre_diff_m:.3g} m: {'ok' if pipeline.passed else 'FAILED'}"
+    )
+    return pipeline
 
 
 def _reference_decode(maps, preset: Preset):

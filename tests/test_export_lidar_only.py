@@ -179,13 +179,8 @@ def test_streamdet_run_uses_no_images(export_dir, tmp_path):
 
 
 @pytest.fixture(scope="module")
-def data_dir(tmp_path_factory) -> Path:
-    from streamdet.data.synth_world import WorldConfig
-    from streamdet.data.synth_writer import SynthConfig, generate_dataset
-
-    out = tmp_path_factory.mktemp("data")
-    generate_dataset(out, SynthConfig(num_scenes=1, seed=2, resolution=(160, 90), world=WorldConfig(samples_per_scene=2)))
-    return out
+def data_dir(tiny_synth_data) -> Path:
+    return tiny_synth_data
 
 
 @pytest.fixture(scope="module")

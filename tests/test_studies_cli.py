@@ -12,8 +12,6 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner
 
-from streamdet.data.synth_world import WorldConfig
-from streamdet.data.synth_writer import SynthConfig, generate_dataset
 from streamdet.evaluation.study_cli import main
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -29,10 +27,8 @@ def export_dir(tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="module")
-def data_dir(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("data")
-    generate_dataset(out, SynthConfig(num_scenes=1, seed=2, resolution=(160, 90), world=WorldConfig(samples_per_scene=2)))
-    return out
+def data_dir(tiny_synth_data) -> Path:
+    return tiny_synth_data
 
 
 @pytest.fixture(scope="module")

@@ -1,0 +1,16 @@
+"""Fixtures several test files share."""
+
+from pathlib import Path
+
+import pytest
+
+
+@pytest.fixture(scope="session")
+def tiny_synth_data(tmp_path_factory) -> Path:
+    """One synthetic scene of two samples at 160x90: the smallest dataset the evaluation and studies can score."""
+    from streamdet.data.synth_world import WorldConfig
+    from streamdet.data.synth_writer import SynthConfig, generate_dataset
+
+    out = tmp_path_factory.mktemp("tiny_synth_data")
+    generate_dataset(out, SynthConfig(num_scenes=1, seed=2, resolution=(160, 90), world=WorldConfig(samples_per_scene=2)))
+    return out
