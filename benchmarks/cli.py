@@ -115,7 +115,7 @@ def main(
         if path is not None and not path.parent.is_dir():
             raise click.BadParameter(f"folder {str(path.parent)!r} does not exist", param_hint=what)
     if export_dir is not None:
-        from streamdet.export.manifest import ManifestError, read_manifest
+        from streamdet.runtime_ort.manifest import ManifestError, read_manifest
 
         try:
             manifest = read_manifest(export_dir)  # fail now, not after minutes of row timing

@@ -17,7 +17,7 @@ import click
 from streamdet.calibration.camera import CalibrationError, Rig
 from streamdet.calibration.grid import GridSpec
 from streamdet.calibration.lut import Lut, build_lut
-from streamdet.export.manifest import ManifestError, LutEntry, read_manifest, sha256_file, write_manifest
+from streamdet.runtime_ort.manifest import ManifestError, LutEntry, read_manifest, sha256_file, write_manifest
 
 ASPECT_TOLERANCE = 0.005  # relative; 1600x900 -> 800x450 is exact, 1920x1080 -> 800x450 too
 

@@ -36,7 +36,7 @@ from streamdet.evaluation.dataset_eval import ground_truth_entries, prediction_e
 from streamdet.evaluation.detection_eval import evaluate
 from streamdet.evaluation.eval_boxes import EvalBoxes
 from streamdet.evaluation.metrics import DetectionMetrics
-from streamdet.export.manifest import read_manifest, sha256_file
+from streamdet.runtime_ort.manifest import read_manifest, sha256_file
 from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector
 from streamdet.runtime_ort.postprocess import Detections
 

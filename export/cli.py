@@ -9,7 +9,7 @@ import click
 from streamdet.cli_utils import resolution_callback
 from streamdet.export.exporter import STEM_STRIDE, ExportError, ExportOptions, run_export
 from streamdet.export.int8 import DEFAULT_CALIBRATION_SAMPLES
-from streamdet.export.manifest import LUT_NAME, MANIFEST_NAME
+from streamdet.runtime_ort.manifest import LUT_NAME, MANIFEST_NAME
 from streamdet.export.onnx_export import DEFAULT_OPSET, OPSET_RANGE
 from streamdet.models.presets import preset_names
 

@@ -44,7 +44,7 @@ from streamdet.data.slicing import slice_sample
 from streamdet.export import onnx_export as ox
 from streamdet.export import int8 as q8
 from streamdet.export.fp16 import check_model, convert_model_to_fp16
-from streamdet.export.manifest import (
+from streamdet.runtime_ort.manifest import (
     LUT_NAME,
     MANIFEST_NAME,
     GraphEntry,

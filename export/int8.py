@@ -77,7 +77,7 @@ from onnxruntime.quantization.shape_inference import quant_pre_process
 from streamdet.calibration.lut import Lut, build_lut
 from streamdet.data.sample import Sample, load_bundled_sample, load_image
 from streamdet.data.slicing import slice_sample
-from streamdet.export.manifest import BoxAgreement, Int8Calibration, Int8OutputParity
+from streamdet.runtime_ort.manifest import BoxAgreement, Int8Calibration, Int8OutputParity
 from streamdet.export.onnx_export import heatmap_producers, is_decode_node
 from streamdet.runtime_ort.boxes import YAW
 from streamdet.runtime_ort.pillarize import pillarize

@@ -33,7 +33,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 import onnxruntime as ort
 
-from streamdet.export.manifest import ParityRecord, PipelineParity
+from streamdet.runtime_ort.manifest import ParityRecord, PipelineParity
 
 TORCH_TOL_REL = 1e-4  # onnxruntime fp32 vs PyTorch
 FP16_TOL_REL = 1e-2  # onnxruntime fp16 vs onnxruntime fp32

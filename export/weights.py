@@ -72,7 +72,7 @@ def checkpoint_use_image(checkpoint: str | os.PathLike | None) -> bool | None:
 
 def load_detector(preset: Preset, checkpoint: str | os.PathLike | None, seed: int = DEFAULT_SEED) -> tuple[StreamDetector, WeightsSource]:
     """The detector in eval mode with its weights, and where they came from."""
-    from streamdet.export.manifest import sha256_file
+    from streamdet.runtime_ort.manifest import sha256_file
 
     if checkpoint is None:
         torch.manual_seed(seed)

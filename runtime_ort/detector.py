@@ -33,7 +33,7 @@ from streamdet.calibration.camera import Rig
 from streamdet.calibration.grid import GridSpec, check_num_slices, quadrants_of_sector, sector_bounds_deg
 from streamdet.calibration.lut import Lut, build_lut
 from streamdet.data.slicing import split_sweep
-from streamdet.export.manifest import ImageSpec, Manifest, read_manifest
+from streamdet.runtime_ort.manifest import ImageSpec, Manifest, read_manifest
 from streamdet.runtime_ort.nms import NmsConfig
 from streamdet.runtime_ort.pillarize import POINT_DIM, pillarize
 from streamdet.runtime_ort.postprocess import Detections, PostprocessConfig, aggregate_sweep, postprocess_slice

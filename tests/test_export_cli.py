@@ -10,7 +10,7 @@ import torch
 from click.testing import CliRunner
 
 from streamdet.export.cli import main
-from streamdet.export.manifest import read_manifest
+from streamdet.runtime_ort.manifest import read_manifest
 from streamdet.models.detector import build_detector
 from streamdet.models.presets import get_preset
 

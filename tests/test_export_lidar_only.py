@@ -15,7 +15,7 @@ from click.testing import CliRunner
 from streamdet.data.sample import load_bundled_sample
 from streamdet.data.slicing import slice_sample
 from streamdet.export.cli import main as export_main
-from streamdet.export.manifest import MANIFEST_NAME, ManifestError, read_manifest
+from streamdet.runtime_ort.manifest import MANIFEST_NAME, ManifestError, read_manifest
 from streamdet.models.decode import decode_head_maps
 from streamdet.models.detector import build_detector
 from streamdet.models.presets import get_preset

@@ -19,7 +19,7 @@ from streamdet.data.synth_world import WorldConfig
 from streamdet.data.synth_writer import SynthConfig, generate_dataset
 from streamdet.export import int8 as q8
 from streamdet.export.cli import main
-from streamdet.export.manifest import GRAPH_NAMES, read_manifest
+from streamdet.runtime_ort.manifest import GRAPH_NAMES, read_manifest
 from streamdet.models.presets import Preset, get_preset
 from streamdet.runtime_ort.pillarize import pillarize
 

@@ -13,7 +13,7 @@ from click.testing import CliRunner
 from streamdet.data.sample import load_bundled_sample
 from streamdet.export.cli import main
 from streamdet.export.int8 import BUNDLED_SOURCE, INPUT_NORM_NOTE, LIFTER_POOL_NOTE, relative_l2
-from streamdet.export.manifest import GRAPH_NAMES, graph_file_name, read_manifest
+from streamdet.runtime_ort.manifest import GRAPH_NAMES, graph_file_name, read_manifest
 from streamdet.export.onnx_export import heatmap_producers, is_decode_node
 from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector
 

@@ -11,7 +11,7 @@ import pytest
 from onnx import TensorProto, helper
 
 from streamdet.export import int8 as q8
-from streamdet.export.manifest import BoxAgreement
+from streamdet.runtime_ort.manifest import BoxAgreement
 from streamdet.runtime_ort.boxes import CLASS_NAMES
 
 SEEDS = (0, 1, 2)

@@ -20,7 +20,7 @@ from streamdet.calibration.lut import build_lut
 from streamdet.calibration.perturb import perturb_rig
 from streamdet.data.sample import load_bundled_sample
 from streamdet.data.slicing import split_sweep
-from streamdet.export.manifest import ManifestError
+from streamdet.runtime_ort.manifest import ManifestError
 from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector
 from streamdet.runtime_ort.lanes import LaneConfig, SliceDropped, StreamingRunner
 

@@ -1,7 +1,7 @@
 """The export manifest (``manifest.json``): everything the runtime needs to run an export, without the model code.
 
-This module is imported by the torch-free runtime (``streamdet.runtime_ort``) and by ``streamdet-calib``,
-so it must never import torch, onnx or any other export-side dependency: numpy and the standard library only.
+The runtime that reads it owns it; the exporter (``streamdet.export``) and ``streamdet-calib`` write it. Like all
+of runtime_ort it never imports torch, onnx or any other export-side dependency: numpy and the standard library only.
 
 Schema (``MANIFEST_VERSION`` = 1), one JSON object::
 

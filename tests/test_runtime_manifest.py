@@ -1,4 +1,4 @@
-"""Manifest schema (export/manifest.py): round trip, validation, file verification, no torch."""
+"""Manifest schema (runtime_ort/manifest.py): round trip, validation, file verification, no torch."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import sys
 
 import pytest
 
-from streamdet.export.manifest import (
+from streamdet.runtime_ort.manifest import (
     MANIFEST_VERSION,
     GraphEntry,
     ImageSpec,
@@ -120,7 +120,7 @@ def test_unreadable_and_absent(tmp_path):
 def test_imports_without_torch():
     script = (
         "import sys; sys.modules['torch'] = None; sys.modules['onnxconverter_common'] = None\n"
-        "import streamdet.export.manifest, streamdet.calibration.cli\n"
+        "import streamdet.runtime_ort.manifest, streamdet.calibration.cli\n"
         "assert not any(m.split('.')[0] == 'torch' for m, v in sys.modules.items() if v is not None)\n"
         "print('ok')"
     )
