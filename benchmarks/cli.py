@@ -15,7 +15,7 @@ from pathlib import Path
 
 import click
 
-from streamdet.cli_utils import resolution_callback
+from streamdet.cli_utils import PRECISION_CHOICES, image_precision_option, resolution_callback
 from streamdet.models.presets import get_preset, preset_names
 
 QUICK_TORCH_SKIP_MS = 200.0  # --quick: PyTorch eager is timed only on rows faster than this in onnxruntime fp32
@@ -61,8 +61,9 @@ def _flops_only(preset: str, resolution: tuple[int, int] | None, json_path: Path
 @click.option("--fp16/--no-fp16", default=True, show_default=True, help="Also time the fp16 graphs (and export them).")
 @click.option("--int8/--no-int8", default=True, show_default=True,
               help="Also time int8 graphs of the rows (static QDQ, as streamdet-export --int8 writes them).")
-@click.option("--stream-precision", type=click.Choice(("fp32", "fp16", "int8")), default="fp32", show_default=True,
+@click.option("--stream-precision", type=click.Choice(PRECISION_CHOICES), default="fp32", show_default=True,
               help="Graphs the streaming section runs; --export-dir must hold them (streamdet-export --fp16 / --int8).")
+@image_precision_option("--stream-image-precision", "stream_image_precision")
 @click.option("--repeat", type=click.IntRange(min=1), default=None, help="Timed runs per measurement [default: 20; 5 with --quick].")
 @click.option("--threads", type=click.IntRange(min=1), default=None, help="Threads for the Table 3 rows [default: all cores].")
 @click.option(
@@ -93,6 +94,7 @@ def main(
     fp16: bool,
     int8: bool,
     stream_precision: str,
+    stream_image_precision: str | None,
     repeat: int | None,
     threads: int | None,
     quick: bool,
@@ -121,11 +123,12 @@ def main(
             manifest = read_manifest(export_dir)  # fail now, not after minutes of row timing
         except (ManifestError, OSError) as e:
             raise click.BadParameter(f"{export_dir} is not a usable export: {e}", param_hint="--export-dir") from None
-        if stream_precision not in manifest.precisions:
-            raise click.BadParameter(
-                f"{export_dir} has no {stream_precision} graphs (it has {', '.join(manifest.precisions)}); re-export with "
-                f"--{stream_precision}", param_hint="--stream-precision",
-            )  # fmt: skip
+        for precision, flag in ((stream_precision, "--stream-precision"), (stream_image_precision, "--stream-image-precision")):
+            if precision is not None and precision not in manifest.precisions:
+                raise click.BadParameter(
+                    f"{export_dir} has no {precision} graphs (it has {', '.join(manifest.precisions)}); re-export with "
+                    f"--{precision}", param_hint=flag,
+                )  # fmt: skip
     elif resolution is not None and (resolution[0] % 2 or resolution[1] % 2):
         raise click.BadParameter(
             f"{resolution[0]}x{resolution[1]}: the export needs even sizes (ResNet stem stride 2)", param_hint="--resolution"
@@ -140,6 +143,7 @@ def main(
         fp16=fp16,
         int8=int8,
         stream_precision=stream_precision,
+        stream_image_precision=stream_image_precision,
         repeat=repeat,
         threads=threads,
         quick=quick,

@@ -246,7 +246,7 @@ def _stage(lane: LaneStats, name: str) -> str:
 def format_streaming(s: StreamingResult) -> str:
     pts = f"{min(s.num_points):,}..{max(s.num_points):,}"
     lines = [
-        f"streaming ({s.preset} export, {s.precision}, 1 intra-op thread per session; bundled nuScenes sweep in "
+        f"streaming ({s.preset} export, {s.precision_label}, 1 intra-op thread per session; bundled nuScenes sweep in "
         f"{s.num_slices} slices of {pts} points; {s.num_cameras} cameras at {s.image_size[0]}x{s.image_size[1]})",
         _lane_line("slice lane, image lane idle", s.idle),
         *(
@@ -338,6 +338,7 @@ def streaming_to_dict(s: StreamingResult) -> dict:
         "export_dir": s.export_dir,
         "preset": s.preset,
         "precision": s.precision,
+        "image_precision": s.image_precision or s.precision,
         "num_slices": s.num_slices,
         "points_per_slice": list(s.num_points),
         "image_size": list(s.image_size),

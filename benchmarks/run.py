@@ -39,6 +39,7 @@ class BenchConfig:
     fp16: bool = True  # also export and time fp16 graphs
     int8: bool = True  # also quantize and time int8 graphs of the rows
     stream_precision: str = "fp32"  # graphs of the streaming section (the export made here includes them)
+    stream_image_precision: str | None = None  # its image lane's graphs; None: stream_precision
     repeat: int | None = None  # timed runs per measurement; None: 20, or 5 with quick
     threads: int | None = None  # threads of the row measurements; None: every core
     quick: bool = False  # fewer repeats, shorter streaming runs
@@ -63,7 +64,7 @@ class BenchConfig:
         return ProbeConfig(size=1024, runs=4, warmup=1) if self.quick else ProbeConfig()
 
     def streaming(self) -> StreamingConfig:
-        cfg = StreamingConfig(num_slices=self.slices, precision=self.stream_precision)
+        cfg = StreamingConfig(num_slices=self.slices, precision=self.stream_precision, image_precision=self.stream_image_precision)
         return dataclasses.replace(cfg, sweeps=2, image_updates=1, queue_sweeps=1) if self.quick else cfg
 
 
@@ -91,9 +92,11 @@ def _export(cfg: BenchConfig, out_dir: Path, progress: Progress) -> str | None:
     """The export library's run (what streamdet-export does); a warning when its parity checks failed."""
     from streamdet.export.exporter import ExportError, ExportOptions, run_export
 
+    streamed = (cfg.stream_precision, cfg.stream_image_precision)
+
     opts = ExportOptions(
         preset=cfg.preset, resolution=cfg.given_resolution, num_slices=cfg.slices, out_dir=str(out_dir),
-        fp16=cfg.fp16 or cfg.stream_precision == "fp16", int8=cfg.stream_precision == "int8",
+        fp16=cfg.fp16 or "fp16" in streamed, int8="int8" in streamed,
     )
     try:
         result = run_export(opts, report=lambda msg: progress(f"  export: {msg}"))
@@ -124,6 +127,7 @@ def run_benchmark(cfg: BenchConfig, progress: Progress = lambda msg: None) -> Be
         "fp16": cfg.fp16,
         "int8": cfg.int8,
         "stream_precision": cfg.stream_precision,
+        "stream_image_precision": cfg.stream_image_precision or cfg.stream_precision,
         "export_dir": str(cfg.export_dir) if cfg.export_dir is not None else "(temporary export)",
         "machine": machine_info(threads),
     }

@@ -46,6 +46,7 @@ SLICE, IMAGES = "slice", "images"
 @dataclass(frozen=True)
 class StreamingConfig:
     precision: str = "fp32"
+    image_precision: str | None = None  # the image lane's graphs; None: precision
     num_slices: int | None = None  # None: the export's
     lidar_hz: float = 10.0  # sweeps per second of the LiDAR the slice lane must keep up with
     image_hz: float = 12.0  # camera rate of the sequential-queue schedule
@@ -172,7 +173,7 @@ class LaneStats:
 class StreamingResult:
     export_dir: str
     preset: str
-    precision: str
+    precision: str  # the slice graph's
     num_slices: int
     num_points: tuple[int, ...]  # per slice of the bundled sweep
     image_size: tuple[int, int]  # (width, height) of the export
@@ -192,6 +193,14 @@ class StreamingResult:
     config: StreamingConfig
     profiles: dict[str, ProfileSummary] = dataclasses.field(default_factory=dict)  # profile_streaming's, if run
     prepost: tuple[PrePostCase, ...] = ()  # the runtime's numpy stages timed alone (benchmarks/prepost.py)
+    image_precision: str = ""  # the image lane's graphs; "" (older results): precision
+
+    @property
+    def precision_label(self) -> str:
+        """``"fp32"``, or ``"int8 image lane + fp32 slices"`` when the lanes differ."""
+        if not self.image_precision or self.image_precision == self.precision:
+            return self.precision
+        return f"{self.image_precision} image lane + {self.precision} slices"
 
     @property
     def busy_over_idle_p95(self) -> float:
@@ -253,6 +262,7 @@ def _detector(export_dir: Path, cfg: StreamingConfig, profiling: bool = False, s
         export_dir,
         DetectorConfig(
             precision=cfg.precision,
+            image_lane_precision=cfg.image_precision,
             image_lane_threads=1,
             slice_lane_threads=slice_threads,
             num_slices=cfg.num_slices,
@@ -367,6 +377,7 @@ def measure_streaming(
         export_dir=str(export_dir),
         preset=det.manifest.preset_name,
         precision=cfg.precision,
+        image_precision=det.config.image_precision,
         num_slices=n,
         num_points=tuple(len(s) for s in slices),
         image_size=(img.width, img.height),

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import click
 
+from streamdet.cli_utils import PRECISION_CHOICES, image_precision_option
 from streamdet.evaluation.config import TP_METRICS, DetectionConfig
 from streamdet.evaluation.detection_eval import evaluate
 from streamdet.evaluation.eval_boxes import EvalBoxes
@@ -73,15 +74,16 @@ def _evaluate_and_report(gt: EvalBoxes, pred: EvalBoxes, classes: tuple[str, ...
 
 def _data_inputs(data_dir: Path, version: str, split: str | None, export_dir: Path, slices: int | None,
                  precision: str, max_samples: int | None, classes: tuple[str, ...] | None, json_path: Path | None,
-                 save_dir: Path | None = None) -> None:  # fmt: skip
+                 save_dir: Path | None = None, image_precision: str | None = None) -> None:  # fmt: skip
     """``--data`` mode: run the ONNX runtime over the split, then the same report as the files mode."""
     from streamdet.evaluation.dataset_eval import OnnxSweepDetector, evaluate_dataset  # onnxruntime, not torch
 
     try:
-        detector = OnnxSweepDetector(export_dir, precision=precision, num_slices=slices)
+        detector = OnnxSweepDetector(export_dir, precision=precision, num_slices=slices, image_precision=image_precision)
     except (ValueError, OSError) as e:  # ManifestError is a ValueError
         raise click.ClickException(f"--export-dir {export_dir}: {str(e).splitlines()[0]}") from None
     n = detector.detector.num_slices
+    precision = detector.detector.precision_label  # "int8 image lane + fp32 slices" when the lanes differ
     try:
         with click.progressbar(length=1, label=f"detecting ({precision}, {n} slices)", show_pos=True) as bar:
             def progress(done: int, total: int) -> None:
@@ -96,7 +98,9 @@ def _data_inputs(data_dir: Path, version: str, split: str | None, export_dir: Pa
                f"{n} slices per sweep, {result.seconds:.1f} s")  # fmt: skip
     click.echo(format_table(result.metrics))
     if json_path is not None:
-        doc = {**result.metrics.to_dict(), "num_samples": result.num_samples, "num_slices": n, "precision": precision,
+        lanes = {"image_precision": detector.detector.config.image_precision} if detector.detector.uses_images else {}
+        doc = {**result.metrics.to_dict(), "num_samples": result.num_samples, "num_slices": n,
+               "precision": detector.detector.config.precision, **lanes,
                "export_dir": str(export_dir), "data_dir": str(data_dir), "split": split}  # fmt: skip
         try:
             json_path.write_text(json.dumps(doc, indent=1, allow_nan=False) + "\n")
@@ -140,8 +144,9 @@ def _data_inputs(data_dir: Path, version: str, split: str | None, export_dir: Pa
               show_default=True, help="Dataset mode: export directory written by streamdet-export.")  # fmt: skip
 @click.option("--slices", type=click.IntRange(min=1), default=None,
               help="Dataset mode: slices per sweep (1, 2 or a multiple of 4); default: the export's.")  # fmt: skip
-@click.option("--precision", type=click.Choice(["fp32", "fp16", "int8"]), default="fp32", show_default=True,
+@click.option("--precision", type=click.Choice(PRECISION_CHOICES), default="fp32", show_default=True,
               help="Dataset mode: which graphs of the export to run.")  # fmt: skip
+@image_precision_option()
 @click.option("--max-samples", type=click.IntRange(min=1), default=None, help="Dataset mode: score only the first N samples of the split.")
 @click.option(
     "--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
@@ -158,8 +163,8 @@ def _data_inputs(data_dir: Path, version: str, split: str | None, export_dir: Pa
     "devkit; dataset mode the classes present in the ground truth.",
 )  # fmt: skip
 def main(gt_path: Path | None, results_path: Path | None, data_dir: Path | None, version: str, split: str,
-         export_dir: Path, slices: int | None, precision: str, max_samples: int | None, json_path: Path | None,
-         classes: str | None, save_dir: Path | None) -> None:  # fmt: skip
+         export_dir: Path, slices: int | None, precision: str, image_precision: str | None, max_samples: int | None,
+         json_path: Path | None, classes: str | None, save_dir: Path | None) -> None:  # fmt: skip
     """nuScenes detection mAP, TP errors and NDS, computed as nuscenes-devkit 1.2.0 (detection_cvpr_2019).
 
     Two modes: --gt with --results (two JSON files), or --data (run an export over a dataset split).
@@ -173,8 +178,10 @@ def main(gt_path: Path | None, results_path: Path | None, data_dir: Path | None,
         if slices is not None and slices not in (1, 2) and slices % 4:
             raise click.BadParameter(f"{slices} must be 1, 2 or a multiple of 4", param_hint="--slices")
         _data_inputs(data_dir, version, None if split == "all" else split, export_dir, slices, precision, max_samples,
-                     class_list, json_path, save_dir)  # fmt: skip
+                     class_list, json_path, save_dir, image_precision)  # fmt: skip
         return
+    if image_precision is not None:
+        raise click.UsageError("--image-precision is for the dataset mode (--data), which runs the detector")
     if save_dir is not None:
         raise click.UsageError("--save-results is for the dataset mode (--data): the files mode already has its files")
     if gt_path is None or results_path is None:

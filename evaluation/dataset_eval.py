@@ -124,10 +124,14 @@ class OnnxSweepDetector:
     """``sample -> Detections`` through an export directory with onnxruntime (all cameras, then every slice; a
     LiDAR-only export: every slice, no image read)."""
 
-    def __init__(self, export_dir: str | Path, precision: str = "fp32", num_slices: int | None = None, threads: int = 1) -> None:
+    def __init__(
+        self, export_dir: str | Path, precision: str = "fp32", num_slices: int | None = None, threads: int = 1,
+        image_precision: str | None = None,
+    ) -> None:
         from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector
 
-        cfg = DetectorConfig(precision=precision, num_slices=num_slices, image_lane_threads=threads, slice_lane_threads=threads)
+        cfg = DetectorConfig(precision=precision, image_lane_precision=image_precision, num_slices=num_slices,
+                             image_lane_threads=threads, slice_lane_threads=threads)  # fmt: skip
         self.detector = StreamingDetector(export_dir, cfg)
 
     def __call__(self, sample: Sample) -> Detections:

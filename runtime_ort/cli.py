@@ -9,10 +9,15 @@ from pathlib import Path
 import click
 import numpy as np
 
+from streamdet.cli_utils import PRECISION_CHOICES, image_precision_option
+
 DEFAULT_EXPORT_DIR = Path("exports") / "small"
 
 
-def run_sample(export_dir: Path, sample_dir: Path | None, num_slices: int | None, out_dir: Path, precision: str) -> dict:
+def run_sample(
+    export_dir: Path, sample_dir: Path | None, num_slices: int | None, out_dir: Path, precision: str,
+    image_precision: str | None = None,
+) -> dict:
     """Detect every slice of one sample through the runtime; write results JSON and a BEV picture. Returns a summary."""
     import cv2
 
@@ -25,7 +30,8 @@ def run_sample(export_dir: Path, sample_dir: Path | None, num_slices: int | None
     from streamdet.runtime_ort.postprocess import aggregate_sweep
 
     sample = load_bundled_sample(sample_dir)
-    det = StreamingDetector(export_dir, DetectorConfig(precision=precision, num_slices=num_slices))
+    config = DetectorConfig(precision=precision, image_lane_precision=image_precision, num_slices=num_slices)
+    det = StreamingDetector(export_dir, config)
     # A LiDAR-only export (the streaming baseline) has no image lane: the sample's images are not read.
     missing = _feed_images(det, sample) if det.uses_images else ()
     n = det.num_slices
@@ -56,7 +62,7 @@ def run_sample(export_dir: Path, sample_dir: Path | None, num_slices: int | None
     return {
         "sample": sample.token,
         "num_slices": n,
-        "precision": precision,
+        "precision": det.precision_label,
         "providers": list(det.providers),
         "uses_images": det.uses_images,
         "cameras_missing": list(missing),
@@ -98,18 +104,22 @@ def format_latency(summary: dict) -> str:
                    "Default: the bundled real nuScenes sample.")
 @click.option("--slices", "num_slices", type=int, default=None,
               help="Slices per sweep (1, 2 or a multiple of 4). Default: the number the export was made for.")
-@click.option("--precision", type=click.Choice(["fp32", "fp16", "int8"]), default="fp32", show_default=True,
+@click.option("--precision", type=click.Choice(PRECISION_CHOICES), default="fp32", show_default=True,
               help="Which graphs of the export to run.")
+@image_precision_option()
 @click.option("--out", "out_dir", type=click.Path(path_type=Path, file_okay=False), default=Path("out") / "run",
               show_default=True, help="Where to write results_nusc.json and bev.png.")
 @click.option("-v", "--verbose", is_flag=True, help="Log providers and sessions.")
-def main(export_dir: Path, sample_dir: Path | None, num_slices: int | None, precision: str, out_dir: Path, verbose: bool) -> None:
+def main(
+    export_dir: Path, sample_dir: Path | None, num_slices: int | None, precision: str, image_precision: str | None,
+    out_dir: Path, verbose: bool,
+) -> None:
     """Run the streaming detector (onnxruntime, no PyTorch) on one sample: every slice, then the sweep merged."""
     logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(message)s")
     if not (export_dir / "manifest.json").is_file():
         raise click.ClickException(f"{export_dir} holds no manifest.json: run `streamdet-export --out {export_dir}` first")
     try:
-        summary = run_sample(export_dir, sample_dir, num_slices, out_dir, precision)
+        summary = run_sample(export_dir, sample_dir, num_slices, out_dir, precision, image_precision)
     except (ValueError, KeyError, FileNotFoundError, OSError) as e:
         raise click.ClickException(str(e)) from None
     click.echo(

@@ -18,6 +18,7 @@ def quick_run(tmp_path_factory):
     d = tmp_path_factory.mktemp("bench")
     args = ["--quick", "--preset", "tiny", "--repeat", "2", "--json", str(d / "b.json"), "--plot", str(d / "b.png")]
     args += ["--profile", str(d / "prof")]
+    args += ["--stream-image-precision", "int8"]  # the streaming section: int8 image lane, fp32 slices
     result = CliRunner().invoke(main, args)
     return result, d
 
@@ -45,6 +46,8 @@ def test_quick_tiny_run_writes_documented_json(quick_run):
                 "real_time_factor_busy", "pre_post_share_idle", "keeps_up_busy", "slice_budget_ms"):
         assert key in s
     assert s["num_slices"] == 8 and s["slice_budget_ms"] == pytest.approx(12.5)
+    assert (s["precision"], s["image_precision"]) == ("fp32", "int8") and meta["stream_image_precision"] == "int8"
+    assert "int8 image lane + fp32 slices" in result.output
     assert s["slice_idle"]["latency"]["count"] == 2 * 8
     if s["all_cores"] > 1:
         assert s["slice_idle_all_cores"]["latency"]["count"] == 2 * 8
@@ -53,7 +56,7 @@ def test_quick_tiny_run_writes_documented_json(quick_run):
     assert all(t["met"] in (True, False, None) for t in doc["targets"])
     assert (d / "b.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert len(list((d / "prof").glob("*.fp32.json"))) == 9
-    assert {"idle/slice_head", "busy/slice_head", "busy/image_encoder"} <= set(s["profiles"])
+    assert {"idle/slice_head", "busy/slice_head", "busy/image_encoder.int8"} <= set(s["profiles"])  # named by graph file
     assert (d / "prof" / "streaming_busy.slice_head.json").is_file()
 
 

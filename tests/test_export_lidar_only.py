@@ -128,6 +128,8 @@ def test_runtime_has_no_image_lane(detector, sample, export_dir):
         detector.lut  # noqa: B018
     with pytest.raises(NoImageLaneError, match=r"image_size \(320, 180\) cannot apply"):
         StreamingDetector(export_dir, DetectorConfig(image_size=(320, 180)))
+    with pytest.raises(NoImageLaneError, match=r"image_lane_precision 'int8' cannot apply"):
+        StreamingDetector(export_dir, DetectorConfig(image_lane_precision="int8"))
     with StreamingRunner(detector) as runner:
         with pytest.raises(NoImageLaneError):
             runner.submit_images(images)
