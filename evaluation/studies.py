@@ -78,6 +78,14 @@ class RuntimeOptions:
 
     precision: str = "fp32"  # fp32 | fp16 | int8; the export must hold graphs of that precision
     threads: int = 1  # intra-op threads of each lane's sessions (the studies' machines are shared)
+    image_precision: str | None = None  # the image lane's graphs of a camera + LiDAR export; None: precision
+
+    @property
+    def label(self) -> str:
+        """``"fp32"``, or ``"int8 image lane + fp32 slices"`` when the lanes differ."""
+        if self.image_precision is None or self.image_precision == self.precision:
+            return self.precision
+        return f"{self.image_precision} image lane + {self.precision} slices"
 
 
 @dataclass(frozen=True, eq=False)
@@ -142,9 +150,12 @@ def score_variants(
 
 def open_detector(export_dir: str | Path, runtime: RuntimeOptions, image_size: tuple[int, int] | None = None) -> StreamingDetector:
     """A StreamingDetector of the export; a bad export or precision raises StudyError (one line)."""
-    cfg = DetectorConfig(precision=runtime.precision, image_lane_threads=runtime.threads,
-                         slice_lane_threads=runtime.threads, image_size=image_size)  # fmt: skip
     try:
+        # A LiDAR-only export (the baseline) has no image lane for runtime.image_precision to apply to.
+        use_image = runtime.image_precision is not None and read_manifest(export_dir, verify_files=False).use_image
+        cfg = DetectorConfig(precision=runtime.precision, image_lane_precision=runtime.image_precision if use_image else None,
+                             image_lane_threads=runtime.threads, slice_lane_threads=runtime.threads,
+                             image_size=image_size)  # fmt: skip
         return StreamingDetector(export_dir, cfg)
     except (OSError, ValueError) as e:  # ManifestError and CalibrationError are ValueErrors
         raise StudyError(f"export {export_dir}: {e}") from None
@@ -203,7 +214,8 @@ class OnnxSlicedDetector:
         # The LiDAR-only baseline's export has the slice graph alone: no image lane at all.
         self.uses_images = self.detector.uses_images
         kind = "camera + LiDAR" if self.uses_images else "LiDAR only"
-        self.description = label or f"ONNX export {export_dir} ({kind}, {runtime.precision}, onnxruntime)"
+        precision = runtime.label if self.uses_images else runtime.precision
+        self.description = label or f"ONNX export {export_dir} ({kind}, {precision}, onnxruntime)"
 
     def __call__(self, sample: Sample, slice_counts: Sequence[int]) -> dict[int, Detections]:
         det = self.detector
@@ -322,9 +334,11 @@ def torch_sliced_detector(checkpoint: str | Path, threads: int = 1, device: str 
     return _Torch()
 
 
-def export_checkpoint(checkpoint: str | Path, out_dir: str | Path, precision: str = "fp32") -> Path:
+def export_checkpoint(
+    checkpoint: str | Path, out_dir: str | Path, precision: str = "fp32", image_precision: str | None = None
+) -> Path:
     """Export a camera + LiDAR checkpoint into ``out_dir`` with ``streamdet.export`` (needs torch); the export dir."""
-    if precision == "int8":
+    if "int8" in (precision, image_precision):
         raise StudyError("--checkpoint exports fp32 / fp16 only; make the int8 export first and pass --export-dir")
     try:
         from streamdet.export.exporter import ExportError, ExportOptions, run_export  # imports torch
@@ -337,7 +351,8 @@ def export_checkpoint(checkpoint: str | Path, out_dir: str | Path, precision: st
         raise StudyError(str(e)) from None
     if not preset.get("use_image", True):
         raise StudyError(f"checkpoint {checkpoint} is a LiDAR-only model: pass it as --baseline-checkpoint")
-    opts = ExportOptions(preset=str(preset["name"]), checkpoint=str(checkpoint), fp16=precision == "fp16", out_dir=str(out_dir))
+    fp16 = "fp16" in (precision, image_precision)
+    opts = ExportOptions(preset=str(preset["name"]), checkpoint=str(checkpoint), fp16=fp16, out_dir=str(out_dir))
     try:
         return run_export(opts).out_dir
     except (ExportError, ValueError) as e:
@@ -454,7 +469,7 @@ def _num_slices(det: StreamingDetector, num_slices: int | None) -> int:
 
 
 def _describe(export_dir: str | Path, runtime: RuntimeOptions) -> str:
-    return f"ONNX export {export_dir} ({runtime.precision}, onnxruntime)"
+    return f"ONNX export {export_dir} ({runtime.label}, onnxruntime)"
 
 
 # ---- calibration noise -------------------------------------------------------------------------------------

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import click
 
-from streamdet.cli_utils import resolution_callback
+from streamdet.cli_utils import image_precision_option, resolution_callback
 from streamdet.evaluation import studies as st
 from streamdet.runtime_ort.detector import PRECISIONS
 
@@ -77,6 +77,7 @@ def _common(f: Callable) -> Callable:
                      help="Score only the first N samples of the split (bounds the run time)."),
         click.option("--precision", type=click.Choice(PRECISIONS), default="fp32", show_default=True,
                      help="Graphs to run; the export must hold them."),
+        image_precision_option(),
         click.option("--threads", type=click.IntRange(min=1), default=1, show_default=True,
                      help="Intra-op threads of each onnxruntime session."),
         click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
@@ -129,7 +130,7 @@ def _running(label: str) -> Iterator[_Bar]:
 
 
 @contextlib.contextmanager
-def _export(export_dir: Path | None, checkpoint: Path | None, precision: str) -> Iterator[Path]:
+def _export(export_dir: Path | None, checkpoint: Path | None, runtime: st.RuntimeOptions) -> Iterator[Path]:
     """The export directory to run: the given one, the default, or a temporary export of --checkpoint."""
     if export_dir is not None and checkpoint is not None:
         raise click.UsageError("give --export-dir or --checkpoint, not both")
@@ -143,9 +144,9 @@ def _export(export_dir: Path | None, checkpoint: Path | None, precision: str) ->
     if not checkpoint.is_file():
         raise click.BadParameter(f"{checkpoint} does not exist", param_hint="--checkpoint")
     with tempfile.TemporaryDirectory(prefix="streamdet-study-") as tmp:
-        click.echo(f"exporting {checkpoint} ({precision}) into a temporary directory ...", err=True)
+        click.echo(f"exporting {checkpoint} ({runtime.label}) into a temporary directory ...", err=True)
         try:
-            yield st.export_checkpoint(checkpoint, Path(tmp) / "export", precision)
+            yield st.export_checkpoint(checkpoint, Path(tmp) / "export", runtime.precision, runtime.image_precision)
         except st.StudyError as e:
             raise click.ClickException(str(e)) from None
 
@@ -279,13 +280,13 @@ def main() -> None:
 @click.option("--baseline-checkpoint", type=click.Path(exists=True, dir_okay=False, path_type=Path), default=None,
               help="Checkpoint of the LiDAR-only baseline, evaluated with PyTorch (needs PyTorch); or export it with "
                    "streamdet-export --checkpoint and pass --baseline-export-dir.")  # fmt: skip
-def slices(export_dir, checkpoint, data_dir, version, split, max_samples, precision, threads, json_path, plot_path,
-           slice_counts, baseline_export_dir, baseline_checkpoint) -> None:  # fmt: skip
+def slices(export_dir, checkpoint, data_dir, version, split, max_samples, precision, image_precision, threads,
+           json_path, plot_path, slice_counts, baseline_export_dir, baseline_checkpoint) -> None:  # fmt: skip
     """mAP at 1, 4, 8, 16, 32 slices: the fused model beside the LiDAR-only baseline (the paper's Table 2)."""
     if baseline_export_dir is not None and baseline_checkpoint is not None:
         raise click.UsageError("give --baseline-export-dir or --baseline-checkpoint, not both")
-    runtime = st.RuntimeOptions(precision, threads)
-    with _export(export_dir, checkpoint, precision) as exp, _running("slices") as bar:
+    runtime = st.RuntimeOptions(precision, threads, image_precision)
+    with _export(export_dir, checkpoint, runtime) as exp, _running("slices") as bar:
         fused = st.OnnxSlicedDetector(exp, runtime)
         if not fused.uses_images:  # it would be tabled as "fused (ours), PC+RGB"
             raise st.StudyError(f"export {exp} is LiDAR-only (preset use_image=false): pass it as --baseline-export-dir")
@@ -305,11 +306,11 @@ def slices(export_dir, checkpoint, data_dir, version, split, max_samples, precis
               help="Camera to remove at inference (repeat to study several, each on its own).")  # fmt: skip
 @click.option("--no-cameras", is_flag=True,
               help="Also score with every camera missing (zero image BEV): how much the model uses its cameras at all.")
-def drop_camera(export_dir, checkpoint, data_dir, version, split, max_samples, precision, threads, json_path,
-                plot_path, num_slices, cameras, no_cameras) -> None:  # fmt: skip
+def drop_camera(export_dir, checkpoint, data_dir, version, split, max_samples, precision, image_precision, threads,
+                json_path, plot_path, num_slices, cameras, no_cameras) -> None:  # fmt: skip
     """mAP and per-class AP with a named camera missing at inference (the back camera by default)."""
-    runtime = st.RuntimeOptions(precision, threads)
-    with _export(export_dir, checkpoint, precision) as exp, _running("drop-camera") as bar:
+    runtime = st.RuntimeOptions(precision, threads, image_precision)
+    with _export(export_dir, checkpoint, runtime) as exp, _running("drop-camera") as bar:
         result = st.drop_camera_study(exp, _data(data_dir, version, split, max_samples), cameras, runtime, num_slices, bar,
                                       no_cameras)  # fmt: skip
     _report(result, json_path, plot_path, plot_drop_camera)
@@ -323,11 +324,11 @@ def drop_camera(export_dir, checkpoint, data_dir, version, split, max_samples, p
                    "(repeat; default 0.5,5 1,10 2,20 3,30 5,50).")  # fmt: skip
 @click.option("--seeds", type=click.IntRange(min=1), default=3, show_default=True,
               help="Seeded draws per level (seeds 0..N-1); mean and std are reported.")  # fmt: skip
-def calib_noise(export_dir, checkpoint, data_dir, version, split, max_samples, precision, threads, json_path,
-                plot_path, num_slices, levels, seeds) -> None:  # fmt: skip
+def calib_noise(export_dir, checkpoint, data_dir, version, split, max_samples, precision, image_precision, threads,
+                json_path, plot_path, num_slices, levels, seeds) -> None:  # fmt: skip
     """mAP under uniform camera-extrinsic noise, the LUT rebuilt for each noisy calibration, the graphs untouched."""
-    runtime = st.RuntimeOptions(precision, threads)
-    with _export(export_dir, checkpoint, precision) as exp, _running("calib-noise") as bar:
+    runtime = st.RuntimeOptions(precision, threads, image_precision)
+    with _export(export_dir, checkpoint, runtime) as exp, _running("calib-noise") as bar:
         result = st.calib_noise_study(exp, _data(data_dir, version, split, max_samples), levels, seeds, runtime, num_slices, bar)
     _report(result, json_path, plot_path, plot_calib_noise)
 
@@ -337,11 +338,11 @@ def calib_noise(export_dir, checkpoint, data_dir, version, split, max_samples, p
 @_slices_option
 @click.option("--resolution", "resolutions", multiple=True, callback=_parse_resolutions, metavar="WxH",
               help="Image size to feed the encoder (repeat; default 1600x900 1200x675 800x450).")  # fmt: skip
-def resolution(export_dir, checkpoint, data_dir, version, split, max_samples, precision, threads, json_path,
-               plot_path, num_slices, resolutions) -> None:  # fmt: skip
+def resolution(export_dir, checkpoint, data_dir, version, split, max_samples, precision, image_precision, threads,
+               json_path, plot_path, num_slices, resolutions) -> None:  # fmt: skip
     """mAP and image-lane latency with the camera images resized to each size (same graphs, LUT per size)."""
-    runtime = st.RuntimeOptions(precision, threads)
-    with _export(export_dir, checkpoint, precision) as exp, _running("resolution") as bar:
+    runtime = st.RuntimeOptions(precision, threads, image_precision)
+    with _export(export_dir, checkpoint, runtime) as exp, _running("resolution") as bar:
         result = st.resolution_study(exp, _data(data_dir, version, split, max_samples), resolutions, runtime, num_slices, bar)
     _report(result, json_path, plot_path, plot_resolution)
 

@@ -109,3 +109,16 @@ def test_eval_dataset_mode_records_both_lanes(export_dir, tiny_synth_data, tmp_p
 
     doc = json.loads(out.read_text())
     assert (doc["precision"], doc["image_precision"]) == ("fp32", "int8")
+
+
+def test_study_runs_the_lanes_in_their_precisions(export_dir, tiny_synth_data, tmp_path):
+    from streamdet.evaluation.studies import RuntimeOptions
+    from streamdet.evaluation.study_cli import main as study_main
+
+    assert RuntimeOptions("fp32", 1, "int8").label == "int8 image lane + fp32 slices"
+    assert RuntimeOptions("int8", 1, "int8").label == RuntimeOptions("int8").label == "int8"
+    args = ["drop-camera", "--export-dir", str(export_dir), "--data", str(tiny_synth_data), "--split", "all",
+            "--max-samples", "1", "--image-precision", "int8", "--json", str(tmp_path / "d.json")]  # fmt: skip
+    result = CliRunner().invoke(study_main, args)
+    assert result.exit_code == 0, result.output
+    assert "int8 image lane + fp32 slices" in result.output

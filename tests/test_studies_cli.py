@@ -143,6 +143,7 @@ def test_resolution_rows(export_dir, data_dir, tmp_path):
         (["slices", "--split", "nope"], "no list of scenes for split 'nope'"),
         (["slices", "--split", "val"], "holds no samples"),
         (["drop-camera", "--precision", "fp16"], "no fp16 graphs"),
+        (["drop-camera", "--image-precision", "int8"], "no int8 graphs"),
     ],
 )
 def test_bad_input_is_a_one_line_error(export_dir, data_dir, args, message):
