@@ -94,7 +94,7 @@ def _free_port() -> int:
 def _bn_worker(rank: int, port: int, out: str) -> None:
     import torch.distributed as dist
 
-    from streamdet.training.distributed import CrossProcessBatchNorm
+    from streamdet.training.distributed import CrossProcessBatchNorm, shutdown_distributed
 
     dist.init_process_group("gloo", init_method=f"tcp://127.0.0.1:{port}", rank=rank, world_size=2)
     torch.manual_seed(0)
@@ -108,7 +108,7 @@ def _bn_worker(rank: int, port: int, out: str) -> None:
     (y * torch.arange(y.numel(), dtype=y.dtype).reshape(y.shape).sin()).sum().backward()
     torch.save({"y": y.detach(), "grad": part.grad, "rm": bn.running_mean, "rv": bn.running_var,
                 "gw": bn.weight.grad, "gb": bn.bias.grad}, f"{out}/bn{rank}.pt")  # fmt: skip
-    dist.destroy_process_group()
+    shutdown_distributed()  # barrier first: a rank that left while the other still communicated aborted at exit
 
 
 @pytest.mark.slow

@@ -8,10 +8,10 @@ from __future__ import annotations
 from pathlib import Path
 
 import click
-import torch.distributed as dist
 
 from streamdet.models.presets import preset_names
 from streamdet.training.dataset import CAMERA_MODES, DataConfig
+from streamdet.training.distributed import shutdown_distributed
 from streamdet.training.trainer import AMP_MODES, TrainConfig, train
 
 
@@ -97,8 +97,7 @@ def main(data_dir: Path, version: str, out_dir: Path, preset: str, steps: int | 
     except (ValueError, FileNotFoundError) as e:
         raise click.ClickException(str(e).splitlines()[0]) from None
     finally:
-        if dist.is_available() and dist.is_initialized():
-            dist.destroy_process_group()
+        shutdown_distributed()
 
 
 if __name__ == "__main__":

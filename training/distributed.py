@@ -11,6 +11,7 @@ Two passes (sum, then the sum of squared deviations) keep the variance as accura
 
 from __future__ import annotations
 
+import gc
 import os
 from dataclasses import dataclass
 
@@ -46,8 +47,16 @@ def init_distributed(device: torch.device) -> DistContext:
     return DistContext(dist.get_rank(), dist.get_world_size(), int(os.environ.get("LOCAL_RANK", 0)), True)
 
 
-def shutdown_distributed(ctx: DistContext) -> None:
-    if ctx.initialised and dist.is_initialized():
+def shutdown_distributed() -> None:
+    """Leave the process group, if this process joined one. Every process waits for the others first: a process
+    that tore gloo down while another still ran (rank 0 writing the checkpoint) aborted at exit about every other
+    run ("terminate called without an active exception", SIGABRT)."""
+    if not (dist.is_available() and dist.is_initialized()):
+        return
+    try:
+        dist.barrier()
+    finally:
+        gc.collect()  # drop what still refers to the group (DDP's reducer, autograd's collectives) before it goes
         dist.destroy_process_group()
 
 
