@@ -36,7 +36,7 @@ from streamdet.benchmarks.prepost import PrePostCase, measure_prepost
 from streamdet.benchmarks.timing import TimingConfig, TimingStats, summarize
 from streamdet.data.sample import load_bundled_sample
 from streamdet.data.slicing import split_sweep
-from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector
+from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector, lane_precision_label
 from streamdet.runtime_ort.postprocess import PostprocessConfig
 
 Progress = Callable[[str], None]
@@ -198,9 +198,7 @@ class StreamingResult:
     @property
     def precision_label(self) -> str:
         """``"fp32"``, or ``"int8 image lane + fp32 slices"`` when the lanes differ."""
-        if not self.image_precision or self.image_precision == self.precision:
-            return self.precision
-        return f"{self.image_precision} image lane + {self.precision} slices"
+        return lane_precision_label(self.precision, self.image_precision or None)
 
     @property
     def busy_over_idle_p95(self) -> float:

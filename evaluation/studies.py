@@ -37,7 +37,7 @@ from streamdet.evaluation.detection_eval import evaluate
 from streamdet.evaluation.eval_boxes import EvalBoxes
 from streamdet.evaluation.metrics import DetectionMetrics
 from streamdet.runtime_ort.manifest import read_manifest, sha256_file
-from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector
+from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector, lane_precision_label
 from streamdet.runtime_ort.postprocess import Detections
 
 DEFAULT_SLICE_COUNTS = (1, 4, 8, 16, 32)
@@ -83,9 +83,7 @@ class RuntimeOptions:
     @property
     def label(self) -> str:
         """``"fp32"``, or ``"int8 image lane + fp32 slices"`` when the lanes differ."""
-        if self.image_precision is None or self.image_precision == self.precision:
-            return self.precision
-        return f"{self.image_precision} image lane + {self.precision} slices"
+        return lane_precision_label(self.precision, self.image_precision)
 
 
 @dataclass(frozen=True, eq=False)

@@ -46,6 +46,13 @@ PRECISIONS = ("fp32", "fp16", "int8")
 BUNDLED_PREFIX = "bundled:"  # calibration_source of an export built from a file shipped in streamdet.data
 
 
+def lane_precision_label(precision: str, image_precision: str | None) -> str:
+    """``"fp32"``, or ``"int8 image lane + fp32 slices"`` when the image lane runs another precision than the slices."""
+    if image_precision is None or image_precision == precision:
+        return precision
+    return f"{image_precision} image lane + {precision} slices"
+
+
 class NoImageLaneError(ValueError):
     """An image-lane call (images, calibration, image size) on a LiDAR-only export, which has no image lane."""
 
@@ -180,9 +187,7 @@ class StreamingDetector:
     def precision_label(self) -> str:
         """``"fp32"``, or ``"int8 image lane + fp32 slices"`` when the lanes differ."""
         c = self.config
-        if not self.uses_images or c.image_precision == c.precision:
-            return c.precision
-        return f"{c.image_precision} image lane + {c.precision} slices"
+        return lane_precision_label(c.precision, c.image_precision if self.uses_images else None)
 
     # ---- calibration ---------------------------------------------------------------------------
     @property
