@@ -274,37 +274,13 @@ def _export_into(tmp: Path, preset: Preset, width: int, height: int, opts: Expor
     int8_record = _export_int8(tmp, preset, width, height, rig, lut, opts, steps) if opts.int8 else None
 
     with steps("writing manifest.json"):
-        entries = []
-        precisions = ("fp32",) + (("fp16",) if opts.fp16 else ()) + (("int8",) if opts.int8 else ())
-        for precision in precisions:
-            for name in ox.GRAPH_IO:
-                entries.append(_graph_entry(tmp, name, precision, opts.opset, gmacs[name]))
-        manifest = Manifest(
-            preset_name=preset.name,
-            preset=preset.to_dict(),
-            grid=preset.grid.to_dict(),
-            class_names=tuple(CLASS_NAMES),
-            num_slices=opts.num_slices,
-            image=ImageSpec(width, height, preset.image.feature_stride, lut.feature_width, lut.feature_height, tuple(rig.names)),
+        image = ImageSpec(width, height, preset.image.feature_stride, lut.feature_width, lut.feature_height, tuple(rig.names))
+        return _write_manifest(
+            tmp, preset, opts, tuple(ox.GRAPH_IO), gmacs, parity, pipeline, int8_record, source, inputs.describe(),
+            image=image,
             normalisation=Normalisation(mean_rgb=tuple(IMAGENET_MEAN), std_rgb=tuple(IMAGENET_STD)),
-            post={**preset.to_dict()["post"], "top_k_per_quadrant": preset.top_k, "head_cell_m": preset.head_cell_m},
-            graphs=tuple(entries),
             lut=LutEntry(LUT_NAME, sha256_file(tmp / LUT_NAME), lut.calibration_sha256, calib_source),
-            parity=tuple(parity),
-            pipeline_parity=pipeline,
-            int8=int8_record,
-            source={
-                "checkpoint": source.checkpoint,
-                "checkpoint_sha256": source.checkpoint_sha256,
-                "seed": source.seed,
-                "parity_input": inputs.describe(),
-                "torch": torch.__version__,
-                "onnx": onnx.__version__,
-                "onnxruntime": ort.__version__,
-            },
         )
-        write_manifest(manifest, tmp)
-    return manifest
 
 
 def _export_lidar_only_into(tmp: Path, preset: Preset, width: int, height: int, opts: ExportOptions, steps: "_Steps") -> Manifest:
@@ -363,33 +339,44 @@ def _export_lidar_only_into(tmp: Path, preset: Preset, width: int, height: int, 
     int8_record = _export_int8(tmp, preset, width, height, None, None, opts, steps) if opts.int8 else None
 
     with steps("writing manifest.json"):
-        precisions = ("fp32",) + (("fp16",) if opts.fp16 else ()) + (("int8",) if opts.int8 else ())
-        entries = [_graph_entry(tmp, "slice_head", precision, opts.opset, gmacs["slice_head"]) for precision in precisions]
-        manifest = Manifest(
-            preset_name=preset.name,
-            preset=preset.to_dict(),
-            grid=preset.grid.to_dict(),
-            class_names=tuple(CLASS_NAMES),
-            num_slices=opts.num_slices,
-            image=None,
-            normalisation=None,
-            post={**preset.to_dict()["post"], "top_k_per_quadrant": preset.top_k, "head_cell_m": preset.head_cell_m},
-            graphs=tuple(entries),
-            lut=None,
-            parity=tuple(parity),
-            pipeline_parity=pipeline,
-            int8=int8_record,
-            source={
-                "checkpoint": source.checkpoint,
-                "checkpoint_sha256": source.checkpoint_sha256,
-                "seed": source.seed,
-                "parity_input": parity_input,
-                "torch": torch.__version__,
-                "onnx": onnx.__version__,
-                "onnxruntime": ort.__version__,
-            },
-        )
-        write_manifest(manifest, tmp)
+        return _write_manifest(tmp, preset, opts, ("slice_head",), gmacs, parity, pipeline, int8_record, source, parity_input)
+
+
+def _write_manifest(
+    tmp: Path, preset: Preset, opts: ExportOptions, graph_names: tuple[str, ...], gmacs: dict[str, tuple[float, dict]],
+    parity: list[ParityRecord], pipeline: PipelineParity | None, int8_record: Int8Record | None, source: WeightsSource,
+    parity_input: str, *, image: ImageSpec | None = None, normalisation: Normalisation | None = None,
+    lut: LutEntry | None = None,
+) -> Manifest:
+    """manifest.json of an export in ``tmp``: every graph of ``graph_names`` in every precision written; image,
+    normalisation and lut stay None for a LiDAR-only export."""
+    precisions = ("fp32",) + (("fp16",) if opts.fp16 else ()) + (("int8",) if opts.int8 else ())
+    entries = [_graph_entry(tmp, name, precision, opts.opset, gmacs[name]) for precision in precisions for name in graph_names]
+    manifest = Manifest(
+        preset_name=preset.name,
+        preset=preset.to_dict(),
+        grid=preset.grid.to_dict(),
+        class_names=tuple(CLASS_NAMES),
+        num_slices=opts.num_slices,
+        image=image,
+        normalisation=normalisation,
+        post={**preset.to_dict()["post"], "top_k_per_quadrant": preset.top_k, "head_cell_m": preset.head_cell_m},
+        graphs=tuple(entries),
+        lut=lut,
+        parity=tuple(parity),
+        pipeline_parity=pipeline,
+        int8=int8_record,
+        source={
+            "checkpoint": source.checkpoint,
+            "checkpoint_sha256": source.checkpoint_sha256,
+            "seed": source.seed,
+            "parity_input": parity_input,
+            "torch": torch.__version__,
+            "onnx": onnx.__version__,
+            "onnxruntime": ort.__version__,
+        },
+    )
+    write_manifest(manifest, tmp)
     return manifest
 
 
