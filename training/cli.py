@@ -90,14 +90,16 @@ def main(data_dir: Path, version: str, out_dir: Path, preset: str, steps: int | 
         )  # fmt: skip
     except ValueError as e:
         raise click.ClickException(str(e)) from None
+    finished = False
     try:
         train(config, data_dir, out_dir, version=version, resume=resume, init=init,
               cache_dir=cache_dir if cache_dir is not None else data_dir / ".streamdet_cache", device=device,
               echo=click.echo)  # fmt: skip
+        finished = True
     except (ValueError, FileNotFoundError) as e:
         raise click.ClickException(str(e).splitlines()[0]) from None
     finally:
-        shutdown_distributed()
+        shutdown_distributed(wait=finished)
 
 
 if __name__ == "__main__":

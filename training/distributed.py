@@ -47,14 +47,16 @@ def init_distributed(device: torch.device) -> DistContext:
     return DistContext(dist.get_rank(), dist.get_world_size(), int(os.environ.get("LOCAL_RANK", 0)), True)
 
 
-def shutdown_distributed() -> None:
-    """Leave the process group, if this process joined one. Every process waits for the others first: a process
-    that tore gloo down while another still ran (rank 0 writing the checkpoint) aborted at exit about every other
-    run ("terminate called without an active exception", SIGABRT)."""
+def shutdown_distributed(wait: bool = True) -> None:
+    """Leave the process group, if this process joined one. With ``wait`` (a normal end) every process waits for
+    the others first: a process that tore gloo down while another still ran (rank 0 writing the checkpoint) aborted
+    at exit about every other run ("terminate called without an active exception", SIGABRT). After an error, do not
+    wait: the other processes may be blocked in a collective this one will never join."""
     if not (dist.is_available() and dist.is_initialized()):
         return
     try:
-        dist.barrier()
+        if wait:
+            dist.barrier()
     finally:
         gc.collect()  # drop what still refers to the group (DDP's reducer, autograd's collectives) before it goes
         dist.destroy_process_group()
