@@ -83,9 +83,9 @@ def _data_inputs(data_dir: Path, version: str, split: str | None, export_dir: Pa
     except (ValueError, OSError) as e:  # ManifestError is a ValueError
         raise click.ClickException(f"--export-dir {export_dir}: {str(e).splitlines()[0]}") from None
     n = detector.detector.num_slices
-    precision = detector.detector.precision_label  # "int8 image lane + fp32 slices" when the lanes differ
+    label = detector.detector.precision_label  # "int8 image lane + fp32 slices" when the lanes differ
     try:
-        with click.progressbar(length=1, label=f"detecting ({precision}, {n} slices)", show_pos=True) as bar:
+        with click.progressbar(length=1, label=f"detecting ({label}, {n} slices)", show_pos=True) as bar:
             def progress(done: int, total: int) -> None:
                 bar.length = total
                 bar.update(1)
@@ -94,7 +94,7 @@ def _data_inputs(data_dir: Path, version: str, split: str | None, export_dir: Pa
                                       max_samples=max_samples, progress=progress)  # fmt: skip
     except (ValueError, FileNotFoundError, KeyError) as e:
         raise click.ClickException(str(e).strip().splitlines()[0]) from None
-    click.echo(f"{result.num_samples} samples of {data_dir} ({split or 'all'} split), export {export_dir} ({precision}), "
+    click.echo(f"{result.num_samples} samples of {data_dir} ({split or 'all'} split), export {export_dir} ({label}), "
                f"{n} slices per sweep, {result.seconds:.1f} s")  # fmt: skip
     click.echo(format_table(result.metrics))
     if json_path is not None:
