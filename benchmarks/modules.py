@@ -6,7 +6,8 @@ The rows are not the three deployment graphs: each row isolates one module the w
 - slice rows: SliceNet + in-graph decode (``slice_head.onnx``'s module) with the multi head / single head on one
   map the size of the whole grid (Q = 1, "uncropped"), and the single head on one quadrant ("cropped");
 - 3D-convolution rows: the lifter after its gather (BN, 1x1x1 conv, residual k3 conv, z-strided conv, pooling)
-  on the whole volume and on one quadrant volume;
+  on the whole volume and on one quadrant volume, as the export writes it (z folded into channels where that pays,
+  ``models/lifter_fold.py``; the GMAC stays the 3D convolutions' own);
 - image rows: the image encoder at each resolution (one export, dynamic H and W as the deployed graph).
 
 Weights are a seeded random init in eval mode: the time of a dense convolution does not depend on the values.
@@ -45,6 +46,7 @@ from streamdet.export.onnx_export import (
     slice_decoder,
 )
 from streamdet.models.detector import StreamDetector
+from streamdet.models.lifter_fold import FoldedLifterConvs, export_lifter_convs, folded_mac_ratio
 from streamdet.models.presets import Preset
 
 ROW_KINDS = ("slice", "conv3d", "image")
@@ -60,20 +62,6 @@ LIFTER_CONVS_IO = GraphIO(
 )
 
 
-class LifterConvs(nn.Module):
-    """``forward(volume (Q, C, Z, Y, X)) -> image_bev (Q, C, Y, X)``: ``VolumetricLifter.convs``, as a module to export.
-
-    Shares the lifter's layers; ``tests/test_benchmarks_modules.py`` checks it against the whole lifter.
-    """
-
-    def __init__(self, lifter: VolumetricLifter) -> None:
-        super().__init__()
-        self.lifter = lifter
-
-    def forward(self, volume: Tensor) -> Tensor:
-        return self.lifter.convs(volume)  # (Q, C, Y, X)
-
-
 @dataclass(frozen=True, eq=False)
 class Row:
     """One Table 3 row: a torch module, its inputs, how to export it, and its MACs by the torch counter."""
@@ -87,6 +75,7 @@ class Row:
     gmac: float  # models/flops.py's counter, through flops_report.gmac_rows
     graph_key: str = ""  # rows that share one exported graph (the image rows) name it here; "" = own graph
     detector: StreamDetector | None = None  # slice rows: the detector export_slice_head takes
+    notes: tuple[str, ...] = ()  # printed under the table with the row's measurement notes
 
     @property
     def graph_stem(self) -> str:
@@ -126,7 +115,16 @@ def build_rows(preset: Preset, resolutions: list[tuple[int, int]], seed: int = 0
     if det.image_encoder is None or det.lifter is None:
         raise ValueError(f"preset {preset.name!r} has use_image=False: it has no image rows to benchmark")
     slice_multi, slice_single = slice_decoder(det_multi), slice_decoder(det)
-    convs = LifterConvs(det.lifter).eval()
+    # the convolutions as the export writes them (z folded into channels where that pays, models/lifter_fold.py);
+    # PyTorch is timed on the same module
+    convs = export_lifter_convs(det.lifter, preset.lifter, g.nz).eval()
+    conv_notes: tuple[str, ...] = ()
+    if isinstance(convs, FoldedLifterConvs):
+        conv_notes = (
+            f"exported as 2D convolutions over z folded into channels (models/lifter_fold.py): the graph computes "
+            f"{folded_mac_ratio(preset.lifter, g.nz):.2f}x the 3D convolutions' MACs in banded zero taps and runs "
+            "faster; GMAC, GFLOP/s and % peak count the 3D convolutions' own MACs",
+        )
     encoder = det.image_encoder
 
     def volume(ny: int, nx: int) -> Tensor:
@@ -146,10 +144,10 @@ def build_rows(preset: Preset, resolutions: list[tuple[int, int]], seed: int = 0
             gmacs[2].module, "slice_single_head_cropped", "slice", slice_single,
             pillar_inputs(single, g.quadrant_ny, g.quadrant_nx, seed), SLICE_HEAD_IO, gmacs[2].gmac, detector=det,
         ),
-        Row(gmacs[3].module, "conv3d", "conv3d", convs, (volume(g.ny, g.nx),), LIFTER_CONVS_IO, gmacs[3].gmac),
+        Row(gmacs[3].module, "conv3d", "conv3d", convs, (volume(g.ny, g.nx),), LIFTER_CONVS_IO, gmacs[3].gmac, notes=conv_notes),
         Row(
             gmacs[4].module, "conv3d_cropped", "conv3d", convs, (volume(g.quadrant_ny, g.quadrant_nx),),
-            LIFTER_CONVS_IO, gmacs[4].gmac,
+            LIFTER_CONVS_IO, gmacs[4].gmac, notes=conv_notes,
         ),
     ]
     for (w, h), gm in zip(resolutions, gmacs[5:]):

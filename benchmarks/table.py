@@ -111,7 +111,7 @@ def measure_rows(rows: list[Row], work_dir: Path, cfg: TableConfig, progress: Pr
             exported[row.graph_stem] = export_row(row, work_dir, cfg.fp16, cfg.int8)
         graphs = exported[row.graph_stem]
         macs = count_graph_macs(graphs.model, row.input_shapes())
-        notes: list[str] = []
+        notes: list[str] = list(row.notes)
         if not macs.complete:
             notes.append(f"graph MACs unresolved at {len(macs.unresolved)} node(s)")
 

@@ -9,13 +9,14 @@ import onnx
 import pytest
 import torch
 
-from streamdet.benchmarks.modules import LifterConvs, build_rows, export_row, pillar_inputs
+from streamdet.benchmarks.modules import build_rows, export_row, pillar_inputs
 from streamdet.benchmarks.ort_profile import summarize_events, summarize_profile
 from streamdet.benchmarks.probe import ProbeConfig, ProbeResult, matmul_model, measure_peak, row_session_config
 from streamdet.benchmarks.report import evaluate_targets
 from streamdet.benchmarks.table import RowResult
 from streamdet.benchmarks.timing import summarize
 from streamdet.models.lifter import VolumetricLifter, gather_volume
+from streamdet.models.lifter_fold import LifterConvs
 from streamdet.models.presets import get_preset
 from streamdet.runtime_ort.sessions import GraphSession
 
