@@ -1,9 +1,9 @@
 """The MAC rows of the paper's Table 3, counted on the actual modules (no timing).
 
-Benchmark input as in the paper: one image and 30,000 points. The pillar tensor is sized for the worst case of
-those points, every point in its own pillar: P = min(max_pillars, 30,000) pillars of M = max_points_per_pillar
-slots. The "uncropped" rows run the modules on one map the size of the whole grid (Q = 1, 512 x 512 for the paper);
-the "cropped" rows on one quadrant. Everything runs on the meta device, so only shapes are computed.
+Benchmark input as in the paper: one image and 30,000 points. The points are the bundled nuScenes sweep's, pillarized
+by the runtime (``benchmarks/sweep_pillars.py``): the "uncropped" rows run the modules on one map the size of the
+whole grid (Q = 1, 512 x 512 for the paper) with every pillar of those points, the "cropped" rows on one quadrant
+with the pillars of the busiest quadrant. Everything runs on the meta device, so only shapes are computed.
 
 All figures are GMAC (1e9 multiply-accumulates; FLOPs = 2 x MACs), the unit of the paper's "GFLOPS" column.
 """
@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import torch
 
+from streamdet.benchmarks.sweep_pillars import SweepPillars, busiest_quadrant_pillars, whole_grid_pillars
 from streamdet.models.detector import SliceNet
 from streamdet.models.flops import count_gmac
 from streamdet.models.image_encoder import ImageEncoder
@@ -46,9 +47,10 @@ class GmacRow:
         return {"module": self.module, "gmac": self.gmac, "paper_gmac": self.paper_gmac}
 
 
-def _slice_gmac(preset: Preset, map_ny: int, map_nx: int) -> float:
-    p = min(preset.pillars.max_pillars, BENCH_NUM_POINTS)
-    m = preset.pillars.max_points_per_pillar
+def _slice_gmac(preset: Preset, cropped: bool) -> float:
+    pillars = slice_row_pillars(preset, cropped)
+    p, m = pillars.mask.shape
+    map_ny, map_nx = pillars.map_ny, pillars.map_nx
     with torch.device("meta"):
         net = SliceNet(preset).eval()
         args = (
@@ -58,6 +60,12 @@ def _slice_gmac(preset: Preset, map_ny: int, map_nx: int) -> float:
             torch.empty(1, preset.channels, map_ny, map_nx),  # (Q=1, C, Y, X)
         )
     return count_gmac(net, *args)
+
+
+def slice_row_pillars(preset: Preset, cropped: bool) -> SweepPillars:
+    """The pillars a slice row runs on: every pillar of the 30,000 points, or the busiest quadrant's."""
+    make = busiest_quadrant_pillars if cropped else whole_grid_pillars
+    return make(preset.grid, preset.pillars.max_points_per_pillar, preset.pillars.max_pillars, BENCH_NUM_POINTS)
 
 
 def _lifter_gmac(preset: Preset, map_ny: int, map_nx: int) -> float:
@@ -95,11 +103,11 @@ def gmac_rows(preset: Preset, resolutions: Sequence[tuple[int, int]] = PAPER_RES
     multi = dataclasses.replace(preset, head=dataclasses.replace(preset.head, multi_head=True))
     single = dataclasses.replace(preset, head=dataclasses.replace(preset.head, multi_head=False))
     rows = [
-        GmacRow("points + BEV enc + multi-head", _slice_gmac(multi, g.ny, g.nx), paper(PAPER_SLICE_MULTI_HEAD)),
-        GmacRow("points + BEV enc + single head", _slice_gmac(single, g.ny, g.nx), paper(PAPER_SLICE_SINGLE_HEAD)),
+        GmacRow("points + BEV enc + multi-head", _slice_gmac(multi, cropped=False), paper(PAPER_SLICE_MULTI_HEAD)),
+        GmacRow("points + BEV enc + single head", _slice_gmac(single, cropped=False), paper(PAPER_SLICE_SINGLE_HEAD)),
         GmacRow(
             "points + BEV enc + single head, cropped (1 quadrant)",
-            _slice_gmac(single, g.quadrant_ny, g.quadrant_nx),
+            _slice_gmac(single, cropped=True),
             paper(PAPER_SLICE_CROPPED),
         ),
         GmacRow(f"3D convolutions ({g.nx}x{g.ny}x{g.nz} volume)", _lifter_gmac(preset, g.ny, g.nx), paper(PAPER_CONV3D)),
@@ -119,7 +127,8 @@ def format_rows(preset_name: str, rows: Sequence[GmacRow]) -> str:
     """A plain-text table: module, GMAC, the paper's GMAC and our / paper."""
     width = max(len(r.module) for r in rows)
     lines = [
-        f"preset {preset_name}: {BENCH_NUM_IMAGES} image, {BENCH_NUM_POINTS} points; GMAC = 1e9 multiply-accumulates (FLOPs = 2 x MACs)",
+        f"preset {preset_name}: {BENCH_NUM_IMAGES} image, {BENCH_NUM_POINTS:,} points of the bundled nuScenes sweep "
+        "(cropped: its busiest quadrant's); GMAC = 1e9 multiply-accumulates (FLOPs = 2 x MACs)",
         f"{'module':<{width}}  {'GMAC':>9}  {'paper GMAC':>10}  {'ratio':>6}",
     ]
     for r in rows:

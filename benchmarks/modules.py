@@ -31,7 +31,7 @@ import onnx
 import torch
 from torch import Tensor, nn
 
-from streamdet.benchmarks.flops_report import BENCH_NUM_IMAGES, BENCH_NUM_POINTS, gmac_rows
+from streamdet.benchmarks.flops_report import BENCH_NUM_IMAGES, gmac_rows, slice_row_pillars
 from streamdet.export.fp16 import check_model, convert_model_to_fp16
 from streamdet.export.int8 import quantize_graph
 from streamdet.export.onnx_export import (
@@ -88,19 +88,18 @@ class Row:
         return {name: tuple(t.shape) for name, t in zip(self.io.inputs, self.inputs)}
 
 
-def pillar_inputs(preset: Preset, map_ny: int, map_nx: int, seed: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """The slice graph's inputs sized like flops_report's count: P = min(max_pillars, 30,000) pillars of M slots
-    on one (map_ny, map_nx) map; each pillar holds 1..M real points, padding rows zero as the contract says."""
+def pillar_inputs(preset: Preset, cropped: bool, seed: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The slice graph's inputs: the pillars ``flops_report`` counts (30,000 points of the bundled sweep, on the whole
+    grid or in the busiest quadrant, ``benchmarks/sweep_pillars.py``) and a seeded random image BEV on that map."""
+    pillars = slice_row_pillars(preset, cropped)
     gen = torch.Generator().manual_seed(seed)
-    cells = map_ny * map_nx
-    p = min(preset.pillars.max_pillars, BENCH_NUM_POINTS, cells)
-    m = preset.pillars.max_points_per_pillar
-    counts = torch.randint(1, m + 1, (p,), generator=gen)  # (P,) real points per pillar
-    mask = (torch.arange(m)[None, :] < counts[:, None]).float()  # (P, M)
-    features = torch.randn(p, m, preset.pillars.num_point_features, generator=gen) * mask[..., None]  # (P, M, 11)
-    index = torch.randperm(cells, generator=gen)[:p].sort().values  # (P,) increasing, as pillarize makes it
-    image_bev = torch.randn(1, preset.channels, map_ny, map_nx, generator=gen)  # (Q=1, C, Y, X)
-    return features, mask, index, image_bev
+    image_bev = torch.randn(1, preset.channels, pillars.map_ny, pillars.map_nx, generator=gen)  # (Q=1, C, Y, X)
+    return (
+        torch.from_numpy(pillars.features),  # (P, M, 11)
+        torch.from_numpy(pillars.mask),  # (P, M)
+        torch.from_numpy(pillars.index),  # (P,) increasing
+        image_bev,
+    )
 
 
 def build_rows(preset: Preset, resolutions: list[tuple[int, int]], seed: int = 0) -> list[Row]:
@@ -133,16 +132,16 @@ def build_rows(preset: Preset, resolutions: list[tuple[int, int]], seed: int = 0
 
     rows = [
         Row(
-            gmacs[0].module, "slice_multi_head", "slice", slice_multi, pillar_inputs(multi, g.ny, g.nx, seed),
+            gmacs[0].module, "slice_multi_head", "slice", slice_multi, pillar_inputs(multi, False, seed),
             SLICE_HEAD_IO, gmacs[0].gmac, detector=det_multi,
         ),
         Row(
-            gmacs[1].module, "slice_single_head", "slice", slice_single, pillar_inputs(single, g.ny, g.nx, seed),
+            gmacs[1].module, "slice_single_head", "slice", slice_single, pillar_inputs(single, False, seed),
             SLICE_HEAD_IO, gmacs[1].gmac, detector=det,
         ),
         Row(
             gmacs[2].module, "slice_single_head_cropped", "slice", slice_single,
-            pillar_inputs(single, g.quadrant_ny, g.quadrant_nx, seed), SLICE_HEAD_IO, gmacs[2].gmac, detector=det,
+            pillar_inputs(single, True, seed), SLICE_HEAD_IO, gmacs[2].gmac, detector=det,
         ),
         Row(gmacs[3].module, "conv3d", "conv3d", convs, (volume(g.ny, g.nx),), LIFTER_CONVS_IO, gmacs[3].gmac, notes=conv_notes),
         Row(

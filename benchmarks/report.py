@@ -157,6 +157,15 @@ def _noise(stats: TimingStats) -> str:
     return f"{stats.min_ms:.3g}-{stats.max_ms:.3g}"
 
 
+def _pillar_words(pillars: dict | None) -> str:
+    if not pillars:
+        return ""
+    return (
+        f" of the bundled nuScenes sweep ({pillars['uncropped']:,} pillars on the whole grid; the cropped row: "
+        f"{pillars['cropped']:,} in quadrant {pillars['cropped_quadrant']}, the busiest)"
+    )
+
+
 def format_header(meta: dict, peak: ProbeResult) -> str:
     m = meta["machine"]
     flags = ", ".join(m["cpu_flags"]) or "no SIMD flags read"
@@ -178,7 +187,7 @@ def format_header(meta: dict, peak: ProbeResult) -> str:
             if (nominal := m.get("nominal_peak_gflops_per_s"))
             else ""
         ),
-        f"input as in the paper's Table 3: 1 image, 30,000 points; {UNITS}",
+        f"input as in the paper's Table 3: 1 image, 30,000 points{_pillar_words(meta.get('slice_pillars'))}; {UNITS}",
     ]
     others = meta.get("other_cpu_use")
     if others is not None and others > BUSY_OTHER_CPUS:

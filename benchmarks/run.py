@@ -16,13 +16,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from streamdet.benchmarks import report
-from streamdet.benchmarks.flops_report import PAPER_RESOLUTIONS
+from streamdet.benchmarks.flops_report import PAPER_RESOLUTIONS, slice_row_pillars
 from streamdet.benchmarks.modules import build_rows
 from streamdet.benchmarks.probe import OtherCpuUse, ProbeConfig, ProbeResult, machine_info, measure_peak
 from streamdet.benchmarks.streaming import StreamingConfig, StreamingResult, measure_streaming, profile_streaming
 from streamdet.benchmarks.table import RowResult, TableConfig, measure_rows
 from streamdet.benchmarks.timing import TimingConfig
-from streamdet.models.presets import get_preset
+from streamdet.models.presets import Preset, get_preset
 
 Progress = Callable[[str], None]
 
@@ -107,6 +107,12 @@ def _export(cfg: BenchConfig, out_dir: Path, progress: Progress) -> str | None:
     return "the export's parity checks failed (see its manifest.json); latencies are still valid"
 
 
+def _slice_pillars(preset: Preset) -> dict:
+    """What the slice rows' 30,000 points became (benchmarks/sweep_pillars.py)."""
+    full, crop = slice_row_pillars(preset, cropped=False), slice_row_pillars(preset, cropped=True)
+    return {"uncropped": full.num_pillars, "cropped": crop.num_pillars, "cropped_quadrant": crop.quadrant}
+
+
 def run_benchmark(cfg: BenchConfig, progress: Progress = lambda msg: None) -> BenchResult:
     preset = get_preset(cfg.preset)
     threads = cfg.threads or os.cpu_count() or 1
@@ -130,6 +136,7 @@ def run_benchmark(cfg: BenchConfig, progress: Progress = lambda msg: None) -> Be
         "stream_image_precision": cfg.stream_image_precision or cfg.stream_precision,
         "export_dir": str(cfg.export_dir) if cfg.export_dir is not None else "(temporary export)",
         "machine": machine_info(threads),
+        "slice_pillars": _slice_pillars(preset),
     }
     with tempfile.TemporaryDirectory(prefix="streamdet_bench_") as tmp:
         work = Path(tmp)

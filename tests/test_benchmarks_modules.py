@@ -10,6 +10,8 @@ import pytest
 import torch
 
 from streamdet.benchmarks.modules import build_rows, export_row, pillar_inputs
+from streamdet.benchmarks.prepost import real_sweep_points
+from streamdet.benchmarks.sweep_pillars import busiest_quadrant_pillars, whole_grid_pillars
 from streamdet.benchmarks.ort_profile import summarize_events, summarize_profile
 from streamdet.benchmarks.probe import ProbeConfig, ProbeResult, matmul_model, measure_peak, row_session_config
 from streamdet.benchmarks.report import evaluate_targets
@@ -18,9 +20,11 @@ from streamdet.benchmarks.timing import summarize
 from streamdet.models.lifter import VolumetricLifter, gather_volume
 from streamdet.models.lifter_fold import LifterConvs
 from streamdet.models.presets import get_preset
+from streamdet.runtime_ort.pillarize import pillarize
 from streamdet.runtime_ort.sessions import GraphSession
 
 TINY = get_preset("tiny")
+SMALL = get_preset("small")
 
 
 @pytest.mark.parametrize("seed", range(3))
@@ -45,15 +49,37 @@ def test_lifter_convs_equal_lifter_after_gather(seed):
     torch.testing.assert_close(got, ref)
 
 
-@pytest.mark.parametrize("seed", range(3))
-def test_pillar_inputs_follow_the_contract(seed):
-    feats, mask, index, bev = pillar_inputs(TINY, 32, 32, seed)
+@pytest.mark.parametrize("cropped", [False, True])
+def test_pillar_inputs_follow_the_contract(cropped):
+    feats, mask, index, bev = pillar_inputs(TINY, cropped, seed=0)
+    g = TINY.grid
+    ny, nx = (g.quadrant_ny, g.quadrant_nx) if cropped else (g.ny, g.nx)
     p, m = mask.shape
-    assert p == min(TINY.pillars.max_pillars, 30_000, 32 * 32) and m == TINY.pillars.max_points_per_pillar
+    assert 0 < p <= TINY.pillars.max_pillars and m == TINY.pillars.max_points_per_pillar
+    assert feats.shape == (p, m, TINY.pillars.num_point_features)
     assert torch.all(mask.sum(1) >= 1)
     assert torch.all(feats[mask == 0] == 0)  # zero padding rows, as the eval pillar net requires
-    assert torch.all(index[1:] > index[:-1]) and index.min() >= 0 and index.max() < 32 * 32
-    assert bev.shape == (1, TINY.channels, 32, 32)
+    assert torch.all(index[1:] > index[:-1]) and index.min() >= 0 and index.max() < ny * nx
+    assert bev.shape == (1, TINY.channels, ny, nx)
+
+
+def test_sweep_pillars_on_the_whole_grid_are_the_quadrants_pillars():
+    """The whole-grid map holds each quadrant's pillars at that quadrant's place, with the same points."""
+    g, pc = SMALL.grid, SMALL.pillars
+    full = whole_grid_pillars(g, pc.max_points_per_pillar, pc.max_pillars)
+    busiest = busiest_quadrant_pillars(g, pc.max_points_per_pillar, pc.max_pillars)
+    counts = []
+    for q in range(4):
+        quad = pillarize(real_sweep_points(), g, (q,), pc.max_points_per_pillar, pc.max_pillars)
+        counts.append(quad.num_pillars)
+        row0, col0 = g.quadrant_offset_cells(q)
+        row, col = np.divmod(quad.index, g.quadrant_nx)
+        where = np.searchsorted(full.index, (row0 + row) * g.nx + col0 + col)
+        np.testing.assert_array_equal(full.index[where], (row0 + row) * g.nx + col0 + col)
+        np.testing.assert_array_equal(full.features[where], quad.features)
+    assert full.num_pillars == sum(counts) and full.quadrant is None
+    assert busiest.num_pillars == max(counts) and busiest.quadrant == int(np.argmax(counts))
+    assert (full.map_ny, full.map_nx, busiest.map_ny, busiest.map_nx) == (g.ny, g.nx, g.quadrant_ny, g.quadrant_nx)
 
 
 def test_rows_layout_and_export(tmp_path):
