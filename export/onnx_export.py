@@ -26,6 +26,7 @@ from torch import nn
 from streamdet.models.decode import SliceDecoder
 from streamdet.models.detector import SliceNet, StreamDetector
 from streamdet.models.lifter_fold import export_lifter
+from streamdet.models.slice_split import export_slice_net
 from streamdet.models.presets import Preset
 
 DEFAULT_OPSET = 17
@@ -167,7 +168,8 @@ def export_volumetric_lifter(
 
 
 def slice_decoder(det: StreamDetector) -> SliceDecoder:
-    return SliceDecoder(det.slice_net, det.preset).eval()
+    # the first BEV conv split over point and image BEV (models/slice_split.py): the same function, no concat
+    return SliceDecoder(export_slice_net(det.slice_net), det.preset).eval()
 
 
 def export_slice_head(det: StreamDetector, pillar_args: tuple[torch.Tensor, ...], opset: int = DEFAULT_OPSET) -> onnx.ModelProto:

@@ -51,8 +51,12 @@ class BevEncoder(nn.Module):
         self.out_channels = cfg.out_channels
 
     def forward(self, x: Tensor) -> Tensor:
-        ups = []
-        for block, deblock in zip(self.blocks, self.deblocks):
+        return self.from_first_stage(self.blocks[0](x))
+
+    def from_first_stage(self, x: Tensor) -> Tensor:
+        """The rest of the encoder after stage 0, whose output ``x`` is; the export's split first conv enters here."""
+        ups = [self.deblocks[0](x)]
+        for block, deblock in zip(self.blocks[1:], self.deblocks[1:]):
             x = block(x)
             ups.append(deblock(x))
         return torch.cat(ups, dim=1)  # (Q, sum(num_upsample_filters), Hh, Wh)

@@ -78,7 +78,7 @@ class SliceDecoder(nn.Module):
     det_labels (Q, K) int64`` with K = ``preset.top_k`` (post.top_k clamped to classes x head cells).
     """
 
-    def __init__(self, slice_net: SliceNet, preset: Preset) -> None:
+    def __init__(self, slice_net: SliceNet | nn.Module, preset: Preset) -> None:  # nn.Module: SliceNet's export form
         super().__init__()
         self.slice_net = slice_net
         self.cell_m = preset.head_cell_m
