@@ -46,7 +46,8 @@ from streamdet.export.onnx_export import (
     slice_decoder,
 )
 from streamdet.models.detector import StreamDetector
-from streamdet.models.lifter_fold import FoldedLifterConvs, export_lifter_convs, folded_mac_ratio
+from streamdet.models.decode import SliceDecoder
+from streamdet.models.lifter_fold import FoldedLifterConvs, LifterConvs, export_lifter_convs, folded_mac_ratio
 from streamdet.models.presets import Preset
 
 ROW_KINDS = ("slice", "conv3d", "image")
@@ -76,6 +77,12 @@ class Row:
     graph_key: str = ""  # rows that share one exported graph (the image rows) name it here; "" = own graph
     detector: StreamDetector | None = None  # slice rows: the detector export_slice_head takes
     notes: tuple[str, ...] = ()  # printed under the table with the row's measurement notes
+    # what the graph is exported from when the export rewrites ``net`` (same function; PyTorch is timed on both)
+    export_net: nn.Module | None = None
+
+    @property
+    def graph_net(self) -> nn.Module:
+        return self.net if self.export_net is None else self.export_net
 
     @property
     def graph_stem(self) -> str:
@@ -113,12 +120,14 @@ def build_rows(preset: Preset, resolutions: list[tuple[int, int]], seed: int = 0
     det = StreamDetector(single).eval()
     if det.image_encoder is None or det.lifter is None:
         raise ValueError(f"preset {preset.name!r} has use_image=False: it has no image rows to benchmark")
-    slice_multi, slice_single = slice_decoder(det_multi), slice_decoder(det)
-    # the convolutions as the export writes them (z folded into channels where that pays, models/lifter_fold.py);
-    # PyTorch is timed on the same module
-    convs = export_lifter_convs(det.lifter, preset.lifter, g.nz).eval()
+    # PyTorch runs each module as trained (``net``); the graphs come from the export's rewrites of some of them
+    # (``export_net``: models/slice_split.py, models/lifter_fold.py), which PyTorch is timed on as well
+    slice_multi, slice_single = SliceDecoder(det_multi.slice_net, multi).eval(), SliceDecoder(det.slice_net, single).eval()
+    split_multi, split_single = slice_decoder(det_multi), slice_decoder(det)
+    convs = LifterConvs(det.lifter).eval()
+    folded = export_lifter_convs(det.lifter, preset.lifter, g.nz).eval()
     conv_notes: tuple[str, ...] = ()
-    if isinstance(convs, FoldedLifterConvs):
+    if isinstance(folded, FoldedLifterConvs):
         conv_notes = (
             f"exported as 2D convolutions over z folded into channels (models/lifter_fold.py): the graph computes "
             f"{folded_mac_ratio(preset.lifter, g.nz):.2f}x the 3D convolutions' MACs in banded zero taps and runs "
@@ -133,20 +142,23 @@ def build_rows(preset: Preset, resolutions: list[tuple[int, int]], seed: int = 0
     rows = [
         Row(
             gmacs[0].module, "slice_multi_head", "slice", slice_multi, pillar_inputs(multi, False, seed),
-            SLICE_HEAD_IO, gmacs[0].gmac, detector=det_multi,
+            SLICE_HEAD_IO, gmacs[0].gmac, detector=det_multi, export_net=split_multi,
         ),
         Row(
             gmacs[1].module, "slice_single_head", "slice", slice_single, pillar_inputs(single, False, seed),
-            SLICE_HEAD_IO, gmacs[1].gmac, detector=det,
+            SLICE_HEAD_IO, gmacs[1].gmac, detector=det, export_net=split_single,
         ),
         Row(
             gmacs[2].module, "slice_single_head_cropped", "slice", slice_single,
-            pillar_inputs(single, True, seed), SLICE_HEAD_IO, gmacs[2].gmac, detector=det,
+            pillar_inputs(single, True, seed), SLICE_HEAD_IO, gmacs[2].gmac, detector=det, export_net=split_single,
         ),
-        Row(gmacs[3].module, "conv3d", "conv3d", convs, (volume(g.ny, g.nx),), LIFTER_CONVS_IO, gmacs[3].gmac, notes=conv_notes),
+        Row(
+            gmacs[3].module, "conv3d", "conv3d", convs, (volume(g.ny, g.nx),), LIFTER_CONVS_IO, gmacs[3].gmac,
+            notes=conv_notes, export_net=folded,
+        ),
         Row(
             gmacs[4].module, "conv3d_cropped", "conv3d", convs, (volume(g.quadrant_ny, g.quadrant_nx),),
-            LIFTER_CONVS_IO, gmacs[4].gmac, notes=conv_notes,
+            LIFTER_CONVS_IO, gmacs[4].gmac, notes=conv_notes, export_net=folded,
         ),
     ]
     for (w, h), gm in zip(resolutions, gmacs[5:]):
@@ -184,13 +196,14 @@ def _int8_row(row: Row, fp32: Path, out_dir: Path) -> tuple[Path | None, str | N
 
 
 def export_row(row: Row, out_dir: Path, fp16: bool = True, int8: bool = False) -> RowGraphs:
-    """Export ``row.net`` to ``out_dir/<graph_stem>.onnx`` and its siblings ``<graph_stem>.fp16.onnx`` (``fp16``)
+    """Export ``row.graph_net`` (slice rows: the detector's slice graph) to ``out_dir/<graph_stem>.onnx`` and its
+    siblings ``<graph_stem>.fp16.onnx`` (``fp16``)
     and ``<graph_stem>.int8.onnx`` (``int8``)."""
     if row.kind == "slice":
         model = export_slice_head(row.detector, row.inputs)
         keep: Callable[[onnx.NodeProto], bool] | tuple[()] = _slice_keep(model)
     else:
-        model = export_module(row.net, row.inputs, row.io)
+        model = export_module(row.graph_net, row.inputs, row.io)
         keep = ()
     fp32 = out_dir / f"{row.graph_stem}.onnx"
     save_model(model, fp32)

@@ -51,12 +51,14 @@ def evaluate_targets(rows: Sequence[RowResult], peak: ProbeResult, streaming: St
         misses = [f"{r.module} {x:.2f}x" for r, x in measured if x < TORCH_OVER_ORT_MIN]
         worst = min(x for _, x in measured)
         skipped = len(ratios) - len(measured)
+        rewritten = [r.torch_export.median_ms / r.fp32.median_ms for r, _ in measured if r.torch_export is not None]
         targets.append(
             Target(
-                f"onnxruntime fp32 >= {TORCH_OVER_ORT_MIN}x faster than PyTorch eager, each graph",
+                f"onnxruntime fp32 >= {TORCH_OVER_ORT_MIN}x faster than PyTorch eager (the module as trained), each graph",
                 not misses,
                 (f"worst {worst:.2f}x" + (f"; below: {', '.join(misses)}" if misses else ""))
-                + (f" ({skipped} row(s) without PyTorch timing)" if skipped else ""),
+                + (f" ({skipped} row(s) without PyTorch timing)" if skipped else "")
+                + (f"; against PyTorch on the export's rewrites: worst {min(rewritten):.2f}x" if rewritten else ""),
             )
         )
     else:
@@ -331,6 +333,8 @@ def row_to_dict(r: RowResult, peak: ProbeResult) -> dict:
         "fp16": _stats(r.fp16),
         "int8": _stats(r.int8),
         "torch": _stats(r.torch),
+        "ms_torch_export_form": None if r.torch_export is None else r.torch_export.median_ms,
+        "torch_export_form": _stats(r.torch_export),
         "fp16_error": r.fp16_error,
         "int8_error": r.int8_error,
         "notes": list(r.notes),

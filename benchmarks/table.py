@@ -55,6 +55,7 @@ class RowResult:
     profiles: dict[str, ProfileSummary] = field(default_factory=dict)  # precision -> summary
     int8: TimingStats | None = None  # None: not asked for, or the quantization failed (int8_error)
     int8_error: str | None = None
+    torch_export: TimingStats | None = None  # PyTorch on the export's rewrite of the module (Row.export_net), if any
 
     @property
     def int8_speedup(self) -> float | None:
@@ -81,10 +82,10 @@ def _time_graph(path: Path, row: Row, cfg: TableConfig) -> TimingStats:
     return time_callable(lambda: session.run(feeds), cfg.timing)
 
 
-def _time_torch(row: Row, cfg: TableConfig) -> TimingStats:
+def _time_torch(net: torch.nn.Module, row: Row, cfg: TableConfig) -> TimingStats:
     torch.set_num_threads(cfg.threads)
     with torch.inference_mode():
-        return time_callable(lambda: row.net(*row.inputs), cfg.timing)
+        return time_callable(lambda: net(*row.inputs), cfg.timing)
 
 
 def _profile_graph(path: Path, row: Row, precision: str, threads: int, profile_dir: Path) -> ProfileSummary:
@@ -129,13 +130,20 @@ def measure_rows(rows: list[Row], work_dir: Path, cfg: TableConfig, progress: Pr
             int8 = _time_graph(graphs.int8, row, cfg)
         elif graphs.int8_error is not None:
             notes.append(f"int8 quantization failed: {graphs.int8_error}")
-        torch_stats = None
+        torch_stats = torch_export = None
         if cfg.torch_skip_ms is not None and fp32.median_ms > cfg.torch_skip_ms:
             notes.append(f"PyTorch skipped (fp32 run {fp32.median_ms:.0f} ms > {cfg.torch_skip_ms:.0f} ms, --quick)")
         else:
             progress(f"{step}: PyTorch eager")
-            torch_stats = _time_torch(row, cfg)
-        measured = (("fp32", fp32), ("fp16", fp16), ("int8", int8), ("torch", torch_stats))
+            torch_stats = _time_torch(row.net, row, cfg)
+            if row.export_net is not None:
+                progress(f"{step}: PyTorch eager, the export's form")
+                torch_export = _time_torch(row.export_net, row, cfg)
+                notes.append(
+                    f"PyTorch times the module as trained; on the export's rewrite of it (same function) PyTorch takes "
+                    f"{torch_export.median_ms:.3g} ms, onnxruntime fp32 is {torch_export.median_ms / fp32.median_ms:.2f}x faster"
+                )
+        measured = (("fp32", fp32), ("fp16", fp16), ("int8", int8), ("torch", torch_stats), ("torch export form", torch_export))
         cut = [f"{name} {st.count}/{st.requested}" for name, st in measured if st is not None and st.reduced]
         if cut:
             notes.append(f"repeats cut by the {cfg.timing.budget_s:g} s budget per measurement: {', '.join(cut)}")
@@ -163,6 +171,7 @@ def measure_rows(rows: list[Row], work_dir: Path, cfg: TableConfig, progress: Pr
                 profiles=profiles,
                 int8=int8,
                 int8_error=graphs.int8_error,
+                torch_export=torch_export,
             )
         )
     return results

@@ -87,11 +87,11 @@ def test_conv_transpose_formula():
 def test_tiny_rows_graph_macs_match(tmp_path):
     p = get_preset("tiny")
     for row in build_rows(p, [(128, 72)]):
-        model = export_module(row.net, row.inputs, row.io)
+        model = export_module(row.graph_net, row.inputs, row.io)
         got = count_graph_macs(model, row.input_shapes())
         assert got.complete
         if row.kind == "conv3d":  # exported over folded z: the graph counts what the folded module computes
-            assert got.gmac == pytest.approx(count_gmac(row.net, *row.inputs), rel=1e-9), row.module
+            assert got.gmac == pytest.approx(count_gmac(row.graph_net, *row.inputs), rel=1e-9), row.module
             assert got.gmac == pytest.approx(row.gmac * folded_mac_ratio(p.lifter, p.grid.nz), rel=1e-9), row.module
         else:
             assert got.gmac == pytest.approx(row.gmac, rel=1e-9), row.module
