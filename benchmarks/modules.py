@@ -125,9 +125,11 @@ def build_rows(preset: Preset, resolutions: list[tuple[int, int]], seed: int = 0
     slice_multi, slice_single = SliceDecoder(det_multi.slice_net, multi).eval(), SliceDecoder(det.slice_net, single).eval()
     split_multi, split_single = slice_decoder(det_multi), slice_decoder(det)
     convs = LifterConvs(det.lifter).eval()
-    folded = export_lifter_convs(det.lifter, preset.lifter, g.nz).eval()
+    folded: nn.Module | None = export_lifter_convs(det.lifter, preset.lifter, g.nz).eval()
     conv_notes: tuple[str, ...] = ()
-    if isinstance(folded, FoldedLifterConvs):
+    if not isinstance(folded, FoldedLifterConvs):
+        folded = None  # exported as it is: nothing else to time
+    else:
         conv_notes = (
             f"exported as 2D convolutions over z folded into channels (models/lifter_fold.py): the graph computes "
             f"{folded_mac_ratio(preset.lifter, g.nz):.2f}x the 3D convolutions' MACs in banded zero taps and runs "
