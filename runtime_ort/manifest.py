@@ -79,6 +79,11 @@ def graph_file_name(name: str, precision: str) -> str:
     return f"{name}.onnx" if precision == "fp32" else f"{name}.{precision}.onnx"
 
 
+def _known_fields(cls: type, d: dict) -> dict:
+    """The entries of ``d`` that name fields of the dataclass ``cls`` (the keys a record of it was written with)."""
+    return {k: d[k] for k in cls.__dataclass_fields__ if k in d}
+
+
 @dataclass(frozen=True)
 class TensorSpec:
     name: str
@@ -213,7 +218,7 @@ class ParityRecord:
 
     @classmethod
     def from_dict(cls, d: dict) -> "ParityRecord":
-        return cls(**{k: d[k] for k in cls.__dataclass_fields__ if k in d})
+        return cls(**_known_fields(cls, d))
 
 
 @dataclass(frozen=True)
@@ -238,7 +243,7 @@ class PipelineParity:
 
     @classmethod
     def from_dict(cls, d: dict) -> "PipelineParity":
-        return cls(**{k: d[k] for k in cls.__dataclass_fields__ if k in d})
+        return cls(**_known_fields(cls, d))
 
 
 @dataclass(frozen=True)
@@ -289,7 +294,7 @@ class Int8OutputParity:
 
     @classmethod
     def from_dict(cls, d: dict) -> "Int8OutputParity":
-        return cls(**{k: d[k] for k in cls.__dataclass_fields__ if k in d})
+        return cls(**_known_fields(cls, d))
 
 
 @dataclass(frozen=True)
@@ -312,7 +317,7 @@ class BoxAgreement:
 
     @classmethod
     def from_dict(cls, d: dict) -> "BoxAgreement":
-        return cls(**{k: d[k] for k in cls.__dataclass_fields__ if k in d})
+        return cls(**_known_fields(cls, d))
 
 
 @dataclass(frozen=True)
