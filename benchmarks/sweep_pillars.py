@@ -19,10 +19,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from streamdet.benchmarks.prepost import NUM_POINTS, real_sweep_points
-from streamdet.calibration.grid import GridSpec
+from streamdet.calibration.grid import NUM_QUADRANTS, GridSpec
 from streamdet.runtime_ort.pillarize import Pillars, pillarize
 
-QUADRANTS = (0, 1, 2, 3)
+QUADRANTS = tuple(range(NUM_QUADRANTS))
 
 
 @dataclass(frozen=True)
@@ -38,9 +38,6 @@ class SweepPillars:
     def num_pillars(self) -> int:
         return len(self.index)
 
-    def describe(self) -> str:
-        where = "the whole grid" if self.quadrant is None else f"quadrant {self.quadrant}, the busiest"
-        return f"{self.num_pillars:,} pillars ({where})"
 
 
 def whole_grid_pillars(grid: GridSpec, max_points_per_pillar: int, max_pillars: int, num_points: int = NUM_POINTS) -> SweepPillars:

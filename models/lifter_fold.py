@@ -21,6 +21,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
+from streamdet.models.bn_fold import bn_scale_shift
 from streamdet.models.lifter import VolumetricLifter, gather_volume
 from streamdet.models.presets import LifterConfig
 
@@ -72,12 +73,6 @@ def fold_pays(cfg: LifterConfig, nz: int) -> bool:
     return folded_mac_ratio(cfg, nz) <= FOLD_MAX_MAC_RATIO
 
 
-def _bn_scale_shift(bn: nn.BatchNorm3d) -> tuple[Tensor, Tensor]:
-    """Eval BatchNorm as y = scale * x + shift, per channel."""
-    scale = bn.weight / torch.sqrt(bn.running_var + bn.eps)
-    return scale, bn.bias - bn.running_mean * scale
-
-
 class FoldedLifterConvs(nn.Module):
     """``forward(volume (Q, C, Z, Y, X)) -> image_bev (Q, C, Y, X)``: ``VolumetricLifter.convs`` over folded z.
 
@@ -114,7 +109,7 @@ class FoldedLifterConvs(nn.Module):
         if lifter.z_down[0].stride[0] != self._z_stride:
             raise ValueError(f"lifter z-stride {lifter.z_down[0].stride[0]} != {self._z_stride}")
         # project(BN(v)) = W (s * v + t) + b = (W s) v + (W t + b), the same (C, C) block on every plane
-        scale, shift = _bn_scale_shift(lifter.input_norm)
+        scale, shift = bn_scale_shift(lifter.input_norm)
         w = lifter.project.weight[:, :, 0, 0, 0]  # (C, C)
         block = torch.einsum("oc,zy->ozcy", w * scale[None, :], torch.eye(nz, dtype=w.dtype))  # (C, Z, C, Z)
         self.project.weight.copy_(block.reshape(c * nz, c * nz, 1, 1))
@@ -123,7 +118,7 @@ class FoldedLifterConvs(nn.Module):
             conv3d, bn = seq[0], seq[1]
             if conv3d.kernel_size != (3, 3, 3) or conv3d.padding != (1, 1, 1) or conv3d.stride[1:] != (1, 1):
                 raise ValueError(f"only k3 / pad 1 / y-x stride 1 convolutions fold, got {conv3d}")
-            scale, shift = _bn_scale_shift(bn)
+            scale, shift = bn_scale_shift(bn)
             band = banded_weight(conv3d.weight, nz, conv3d.stride[0], conv3d.padding[0])  # (C * Zo, C * Z, 3, 3)
             conv2d.weight.copy_(band * scale.repeat_interleave(planes)[:, None, None, None])
             conv2d.bias.copy_(shift.repeat_interleave(planes))

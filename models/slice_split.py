@@ -17,6 +17,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
+from streamdet.models.bn_fold import bn_scale_shift
 from streamdet.models.detector import SliceNet
 from streamdet.models.heads import HeadMaps
 from streamdet.models.pillars import scatter_pillars
@@ -48,11 +49,11 @@ class SplitInputSliceNet(nn.Module):
         self.relu = nn.ReLU(inplace=True)
         self.stage0_rest = nn.Sequential(*stage0[3:])  # the same modules: stage 0 after its first conv
         with torch.no_grad():
-            scale = bn.weight / torch.sqrt(bn.running_var + bn.eps)  # (Co,)
+            scale, shift = bn_scale_shift(bn)  # (Co,)
             weight = conv.weight * scale[:, None, None, None]  # (Co, 2C, k, k)
             self.point_conv.weight.copy_(weight[:, :c])
             self.image_conv.weight.copy_(weight[:, c:])
-            self.image_conv.bias.copy_(bn.bias - bn.running_mean * scale)
+            self.image_conv.bias.copy_(shift)
 
     def forward(self, pillar_features: Tensor, pillar_mask: Tensor, pillar_index: Tensor, image_bev: Tensor) -> HeadMaps:
         p_bev = scatter_pillars(self.pillar_net(pillar_features, pillar_mask), pillar_index, image_bev)  # (Q, C, Yq, Xq)
