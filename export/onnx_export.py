@@ -121,7 +121,19 @@ def export_module(module: nn.Module, args: tuple[torch.Tensor, ...], io_spec: Gr
         )
     model = onnx.load_from_string(buf.getvalue())
     _name_unnamed_nodes(model)
-    return model
+    return with_inferred_shapes(model)
+
+
+def with_inferred_shapes(model: onnx.ModelProto) -> onnx.ModelProto:
+    """``model`` with every intermediate shape ONNX can infer stored in the file, symbolic dimensions included.
+
+    The exporter writes none. With data propagation, ONNX follows shape arithmetic (Shape -> Gather -> Concat ->
+    Reshape) and finds, e.g., that the scattered point BEV has the image BEV's (Q, C, Yq, Xq). onnxruntime's
+    blocked-layout (NCHWc) optimizer fuses an Add into the convolution that feeds it only where it can prove
+    both inputs equal in shape: with the shapes stored it fuses the split convolutions' sums
+    (models/slice_split.py); without them it adds through reshapes and runs the ReLU on its own.
+    """
+    return onnx.shape_inference.infer_shapes(model, data_prop=True)
 
 
 def export_image_encoder(det: StreamDetector, images: torch.Tensor, opset: int = DEFAULT_OPSET) -> onnx.ModelProto:
@@ -168,7 +180,7 @@ def export_volumetric_lifter(
 
 
 def slice_decoder(det: StreamDetector) -> SliceDecoder:
-    # the first BEV conv split over point and image BEV (models/slice_split.py): the same function, no concat
+    # the concatenations split into sums of convs (models/slice_split.py): the same function, no concatenated maps
     return SliceDecoder(export_slice_net(det.slice_net), det.preset).eval()
 
 

@@ -55,8 +55,12 @@ class BevEncoder(nn.Module):
 
     def from_first_stage(self, x: Tensor) -> Tensor:
         """The rest of the encoder after stage 0, whose output ``x`` is; the export's split first conv enters here."""
-        ups = [self.deblocks[0](x)]
-        for block, deblock in zip(self.blocks[1:], self.deblocks[1:]):
-            x = block(x)
-            ups.append(deblock(x))
+        ups = [deblock(s) for deblock, s in zip(self.deblocks, self.stage_outputs(x))]
         return torch.cat(ups, dim=1)  # (Q, sum(num_upsample_filters), Hh, Wh)
+
+    def stage_outputs(self, x: Tensor) -> list[Tensor]:
+        """Every stage's output, the deblocks' inputs, given stage 0's output ``x``."""
+        outs = [x]
+        for block in self.blocks[1:]:
+            outs.append(block(outs[-1]))
+        return outs

@@ -84,7 +84,11 @@ class CenterHead(nn.Module):
         return [task(x) for task in self.tasks]
 
     def forward(self, x: Tensor) -> HeadMaps:
-        per_task = self.forward_tasks(x)
+        return self.from_shared(self.shared(x))
+
+    def from_shared(self, x: Tensor) -> HeadMaps:
+        """The head after its shared conv, whose output ``x`` is; the export's split shared conv enters here."""
+        per_task = [task(x) for task in self.tasks]
         if len(per_task) == 1:  # static: the single head already has the merged layout
             return per_task[0]
         heat = torch.cat([t[0] for t in per_task], dim=1).index_select(1, self.merge_index)  # (Q, C_cls, Hh, Wh)

@@ -1,15 +1,22 @@
-"""The slice net's first BEV convolution split over its two inputs, for export.
+"""The slice net rewritten for export: its concatenations split into sums of convolutions, BatchNorms folded.
 
-SliceNet concatenates the point BEV (scattered pillars, built channels-last) and the image BEV (the lifter's
-output) and runs a k3 convolution on the 2C channels. A convolution of a concatenation is the sum of one
-convolution per part, so the export computes ``relu(conv_p(point_bev) + conv_i(image_bev))`` with stage 0's
-BatchNorm folded into both. onnxruntime then never materialises the concatenated (Q, 2C, Yq, Xq) map: the point
-BEV's channels-last -> NCHW transpose folds into the reorder of its convolution, and the sum into that
-convolution. Measured in the benchmark's slice rows (small preset, Zen 4, 2 threads): see benchmarks/RESULTS.md.
+SliceNet concatenates twice, and a convolution of a concatenation is the sum of one convolution per part:
+
+- the point BEV (scattered pillars, built channels-last) with the image BEV (the lifter's output) before stage 0's
+  first k3 convolution: the export computes ``relu(conv_p(point_bev) + conv_i(image_bev))``;
+- the deblocks' outputs (the multi-scale fusion) before the head's shared k3 convolution: the export computes
+  ``relu(sum_i conv_i(up_i))``.
+
+onnxruntime then never materialises a concatenated map: each sum folds into a convolution of its blocked (NCHWc)
+layout as that convolution's ``Sum`` input, the point BEV's channels-last -> NCHW transpose into the reorder of its
+convolution. A deblock that is a 1x1 stride-1 transposed convolution (the stage already at the head's stride) is
+exported as the 1x1 convolution it equals (weight transposed), which onnxruntime runs in the blocked layout too
+instead of leaving it for its NCHW ConvTranspose. Measured in the benchmark's slice rows (small preset, Zen 4,
+2 threads): see benchmarks/RESULTS.md.
 
 Same function as SliceNet (tests/test_models_slice_split.py; the export's parity check compares the graph with
-the PyTorch SliceNet). Training never sees this module. The LiDAR-only net has no concatenation and is exported
-as it is.
+the PyTorch SliceNet). Training never sees this module. The LiDAR-only net has no image concatenation and is
+exported as it is.
 """
 
 from __future__ import annotations
@@ -23,11 +30,68 @@ from streamdet.models.heads import HeadMaps
 from streamdet.models.pillars import scatter_pillars
 
 
-class SplitInputSliceNet(nn.Module):
-    """``SliceNet.forward`` with the first convolution split into a point part and an image part.
+def _conv_bn_relu(stage: nn.Module) -> tuple[nn.Conv2d, nn.BatchNorm2d]:
+    """The (conv, bn) of a Sequential that starts Conv2d, BatchNorm2d, ReLU, or a clear error."""
+    parts = list(stage)[:3]
+    if not (
+        len(parts) == 3
+        and isinstance(parts[0], nn.Conv2d)
+        and isinstance(parts[1], nn.BatchNorm2d)
+        and isinstance(parts[2], nn.ReLU)
+    ):
+        raise ValueError(f"expected Conv2d, BatchNorm2d, ReLU, got {parts}")
+    return parts[0], parts[1]
 
-    Shares the trained net's pillar net, encoder and head (so the exported node scopes stay ``/slice_net/...``);
-    only the first convolution's weights are derived (BN folded, eval statistics).
+
+def split_conv_bn(conv: nn.Conv2d, bn: nn.BatchNorm2d, in_splits: list[int], bias_part: int = 0) -> nn.ModuleList:
+    """One convolution per input part, ``sum_i part_i(x_i) == bn(conv(cat(x, dim=1)))`` (eval statistics).
+
+    The BatchNorm's shift becomes the bias of part ``bias_part`` (the conv itself must have none).
+    """
+    if conv.groups != 1 or conv.bias is not None:
+        raise ValueError(f"can only split a dense convolution without bias, got groups={conv.groups}, bias={conv.bias is not None}")
+    if sum(in_splits) != conv.in_channels:
+        raise ValueError(f"input parts {in_splits} do not add up to the conv's {conv.in_channels} input channels")
+    kw = dict(kernel_size=conv.kernel_size, stride=conv.stride, padding=conv.padding, dilation=conv.dilation,
+              dtype=conv.weight.dtype)  # the derived weights keep the source's precision
+    parts = nn.ModuleList(nn.Conv2d(c, conv.out_channels, bias=i == bias_part, **kw) for i, c in enumerate(in_splits))
+    with torch.no_grad():
+        scale, shift = bn_scale_shift(bn)  # (Co,)
+        weight = conv.weight * scale[:, None, None, None]  # (Co, Ci, k, k)
+        for part, w in zip(parts, weight.split(in_splits, dim=1)):
+            part.weight.copy_(w)
+        parts[bias_part].bias.copy_(shift)
+    return parts
+
+
+def export_deblock(deblock: nn.Sequential) -> nn.Module:
+    """``deblock`` as it is, or, for ConvTranspose2d(k=1, s=1) + BN + ReLU, the equal Conv2d(k=1) + ReLU."""
+    first = deblock[0]
+    if not (
+        isinstance(first, nn.ConvTranspose2d)
+        and first.kernel_size == (1, 1)
+        and first.stride == (1, 1)
+        and first.padding == (0, 0)
+        and first.output_padding == (0, 0)
+        and first.groups == 1
+        and isinstance(deblock[1], nn.BatchNorm2d)
+    ):
+        return deblock
+    conv = nn.Conv2d(first.in_channels, first.out_channels, 1, bias=True, dtype=first.weight.dtype)
+    with torch.no_grad():
+        scale, shift = bn_scale_shift(deblock[1])  # (Co,)
+        weight = first.weight.transpose(0, 1)  # ConvTranspose2d keeps (Ci, Co, 1, 1); Conv2d wants (Co, Ci, 1, 1)
+        conv.weight.copy_(weight * scale[:, None, None, None])
+        bias = shift if first.bias is None else shift + scale * first.bias
+        conv.bias.copy_(bias)
+    return nn.Sequential(conv, *deblock[2:])
+
+
+class SplitInputSliceNet(nn.Module):
+    """``SliceNet.forward`` with both concatenations split into sums of convolutions (module docstring).
+
+    Shares the trained net's pillar net, encoder stages and head branches (so the exported node scopes stay
+    ``/slice_net/...``); only the split convolutions and the 1x1 deblocks are derived (BN folded, eval statistics).
     """
 
     def __init__(self, net: SliceNet) -> None:
@@ -38,28 +102,35 @@ class SplitInputSliceNet(nn.Module):
         self.bev_encoder = net.bev_encoder
         self.head = net.head
         stage0 = list(net.bev_encoder.blocks[0])
-        conv, bn, relu = stage0[0], stage0[1], stage0[2]
-        if not (isinstance(conv, nn.Conv2d) and isinstance(bn, nn.BatchNorm2d) and isinstance(relu, nn.ReLU)):
-            raise ValueError(f"stage 0 must start with Conv2d, BatchNorm2d, ReLU, got {stage0[:3]}")
+        conv, bn = _conv_bn_relu(stage0)
         c = conv.in_channels // 2  # point BEV channels first, then image BEV (SliceNet.fused_bev)
         self.point_channels = c
-        kw = dict(kernel_size=conv.kernel_size, stride=conv.stride, padding=conv.padding)
-        self.point_conv = nn.Conv2d(c, conv.out_channels, bias=False, **kw)
-        self.image_conv = nn.Conv2d(conv.in_channels - c, conv.out_channels, bias=True, **kw)
+        self.point_conv, self.image_conv = split_conv_bn(conv, bn, [c, conv.in_channels - c], bias_part=1)
         self.relu = nn.ReLU(inplace=True)
         self.stage0_rest = nn.Sequential(*stage0[3:])  # the same modules: stage 0 after its first conv
-        with torch.no_grad():
-            scale, shift = bn_scale_shift(bn)  # (Co,)
-            weight = conv.weight * scale[:, None, None, None]  # (Co, 2C, k, k)
-            self.point_conv.weight.copy_(weight[:, :c])
-            self.image_conv.weight.copy_(weight[:, c:])
-            self.image_conv.bias.copy_(shift)
+        self.deblocks = nn.ModuleList(export_deblock(d) for d in net.bev_encoder.deblocks)
+        shared_conv, shared_bn = _conv_bn_relu(net.head.shared)
+        splits = [_out_channels(d) for d in net.bev_encoder.deblocks]
+        self.shared_parts = split_conv_bn(shared_conv, shared_bn, splits)
+        self.shared_rest = nn.Sequential(*list(net.head.shared)[2:])  # its ReLU
 
     def forward(self, pillar_features: Tensor, pillar_mask: Tensor, pillar_index: Tensor, image_bev: Tensor) -> HeadMaps:
         p_bev = scatter_pillars(self.pillar_net(pillar_features, pillar_mask), pillar_index, image_bev)  # (Q, C, Yq, Xq)
         x = self.relu(self.point_conv(p_bev) + self.image_conv(image_bev))  # (Q, C0, Yq / s, Xq / s)
         x = self.stage0_rest(x)
-        return self.head(self.bev_encoder.from_first_stage(x))
+        stages = self.bev_encoder.stage_outputs(x)
+        ups = [deblock(s) for deblock, s in zip(self.deblocks, stages)]  # each (Q, Cu_i, Hh, Wh)
+        shared = self.shared_parts[0](ups[0])
+        for part, up in zip(self.shared_parts[1:], ups[1:]):
+            shared = shared + part(up)
+        return self.head.from_shared(self.shared_rest(shared))  # (Q, Ch, Hh, Wh) into the branches
+
+
+def _out_channels(deblock: nn.Sequential) -> int:
+    first = deblock[0]
+    if not isinstance(first, (nn.Conv2d, nn.ConvTranspose2d)):
+        raise ValueError(f"a deblock must start with a convolution, got {type(first).__name__}")
+    return first.out_channels
 
 
 def export_slice_net(net: SliceNet) -> nn.Module:

@@ -1,4 +1,5 @@
-"""The slice net's first BEV convolution split over point and image BEV: the same function as SliceNet."""
+"""The slice net's export form (concatenations split into sums of convolutions, 1x1 deblocks as convolutions): the
+same function as SliceNet."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ from streamdet.export.onnx_export import SLICE_HEAD_IO, export_slice_head, slice
 from streamdet.models.decode import SliceDecoder
 from streamdet.models.detector import SliceNet, StreamDetector
 from streamdet.models.presets import get_preset
-from streamdet.models.slice_split import SplitInputSliceNet, export_slice_net
+from streamdet.models.slice_split import SplitInputSliceNet, export_deblock, export_slice_net, split_conv_bn
 
 TINY = get_preset("tiny")
 
@@ -64,6 +65,9 @@ def test_split_shares_the_trained_modules():
     assert split.pillar_net is net.pillar_net and split.head is net.head and split.bev_encoder is net.bev_encoder
     assert split.stage0_rest[0] is net.bev_encoder.blocks[0][3]
     assert split.point_conv.in_channels == TINY.channels and split.image_conv.in_channels == TINY.channels
+    assert split.point_conv.bias is None and split.image_conv.bias is not None
+    assert [p.in_channels for p in split.shared_parts] == list(TINY.bev.num_upsample_filters)
+    assert split.head.tasks is net.head.tasks
 
 
 def test_lidar_only_net_is_exported_as_it_is():
@@ -94,3 +98,76 @@ def test_exported_slice_graph_has_no_bev_concat_and_matches_torch():
         ref = SliceDecoder(det.slice_net, TINY).eval()(*args)
     np.testing.assert_allclose(got[1], ref[1].numpy(), rtol=1e-4, atol=1e-5)  # scores
     np.testing.assert_allclose(got[0], ref[0].numpy(), rtol=1e-4, atol=1e-4)  # boxes
+
+
+def _bn(channels: int, seed: int, dtype) -> torch.nn.BatchNorm2d:
+    bn = torch.nn.BatchNorm2d(channels).eval()
+    _random_bn(bn, seed)
+    return bn.to(dtype)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("splits,bias_part", [([8, 8], 0), ([8, 8], 1), ([4, 16, 12], 2), ([32], 0)])
+def test_split_conv_bn_equals_bn_of_conv_of_concat(splits, bias_part, seed, dtype):
+    torch.manual_seed(seed)
+    conv = torch.nn.Conv2d(sum(splits), 6, 3, stride=1 + seed % 2, padding=1, bias=False).to(dtype)
+    bn = _bn(6, seed, dtype)
+    parts = split_conv_bn(conv, bn, splits, bias_part)
+    xs = [torch.randn(2, c, 9, 11, dtype=dtype) for c in splits]
+    got = sum(part(x) for part, x in zip(parts, xs))
+    with torch.no_grad():
+        ref = bn(conv(torch.cat(xs, dim=1)))
+        torch.testing.assert_close(got.detach(), ref)
+    assert [p.bias is not None for p in parts] == [i == bias_part for i in range(len(splits))]
+    assert all(p.weight.dtype == dtype for p in parts)
+
+
+def test_split_conv_bn_refuses_what_it_cannot_split():
+    bn = torch.nn.BatchNorm2d(4).eval()
+    with pytest.raises(ValueError, match=r"\[3, 3\] do not add up to the conv's 8"):
+        split_conv_bn(torch.nn.Conv2d(8, 4, 3, bias=False), bn, [3, 3])
+    with pytest.raises(ValueError, match="groups=2"):
+        split_conv_bn(torch.nn.Conv2d(8, 4, 3, groups=2, bias=False), bn, [4, 4])
+    with pytest.raises(ValueError, match="bias=True"):
+        split_conv_bn(torch.nn.Conv2d(8, 4, 3, bias=True), bn, [4, 4])
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("seed", [0, 1])
+@pytest.mark.parametrize("bias", [False, True])
+def test_export_deblock_turns_a_1x1_transposed_conv_into_a_conv(bias, seed, dtype):
+    torch.manual_seed(seed)
+    deblock = torch.nn.Sequential(torch.nn.ConvTranspose2d(12, 8, 1, stride=1, bias=bias), _bn(8, seed, torch.float32), torch.nn.ReLU())
+    deblock = deblock.eval().to(dtype)
+    rewritten = export_deblock(deblock)
+    assert isinstance(rewritten[0], torch.nn.Conv2d) and rewritten[0].kernel_size == (1, 1)
+    x = torch.randn(2, 12, 7, 5, dtype=dtype)
+    with torch.no_grad():
+        torch.testing.assert_close(rewritten(x), deblock(x))
+
+
+@pytest.mark.parametrize(
+    "first",
+    [torch.nn.ConvTranspose2d(8, 4, 2, stride=2, bias=False), torch.nn.Conv2d(8, 4, 2, stride=2, bias=False)],
+)
+def test_export_deblock_leaves_other_deblocks(first):
+    deblock = torch.nn.Sequential(first, torch.nn.BatchNorm2d(4), torch.nn.ReLU()).eval()
+    assert export_deblock(deblock) is deblock
+
+
+def test_exported_slice_graph_stores_the_point_bev_shape():
+    """onnxruntime fuses the split convolutions' sums only where it can prove equal shapes (export/onnx_export.py:
+    with_inferred_shapes): the scattered point BEV must carry the image BEV's symbolic (Q, C, Yq, Xq)."""
+    torch.manual_seed(0)
+    det = StreamDetector(TINY).eval()
+    model = export_slice_head(det, _inputs(TINY, 2, 60, 4))
+    image_bev = next(i for i in model.graph.input if i.name == "image_bev")
+    want = [d.dim_param or d.dim_value for d in image_bev.type.tensor_type.shape.dim]
+    assert want[0] == "Q"
+    point_conv = next(n for n in model.graph.node if n.op_type == "Conv" and n.name.startswith("/slice_net/point_conv/"))
+    shapes = {vi.name: [d.dim_param or d.dim_value for d in vi.type.tensor_type.shape.dim] for vi in model.graph.value_info}
+    assert shapes[point_conv.input[0]] == want
+    assert not [n for n in model.graph.node if n.op_type == "Concat" and n.name.startswith("/slice_net/") and len(n.input) == 3
+                and all(i in shapes and len(shapes[i]) == 4 for i in n.input)]  # no deblock concatenation
+    assert not [n for n in model.graph.node if n.op_type == "ConvTranspose" and "deblocks.0" in n.name]
