@@ -197,7 +197,7 @@ class LidarSliceDecoder(SliceDecoder):
     the root's (``_decode_node_names`` and the fp16 / int8 block lists rely on them).
     """
 
-    def __init__(self, slice_net: SliceNet, preset: Preset) -> None:
+    def __init__(self, slice_net: SliceNet | nn.Module, preset: Preset) -> None:  # nn.Module: its export form
         if slice_net.use_image:
             raise ValueError(f"preset {preset.name!r} has use_image=True: its slice graph needs image_bev")
         super().__init__(slice_net, preset)
@@ -213,7 +213,7 @@ class LidarSliceDecoder(SliceDecoder):
 def export_lidar_slice_head(det: StreamDetector, pillar_args: tuple[torch.Tensor, ...], opset: int = DEFAULT_OPSET) -> onnx.ModelProto:
     """The LiDAR-only slice graph: (pillar_features, pillar_mask, pillar_index, quadrants) -> det_boxes, det_scores,
     det_labels. ``det`` must have use_image=False."""
-    module = LidarSliceDecoder(det.slice_net, det.preset).eval()
+    module = LidarSliceDecoder(export_slice_net(det.slice_net), det.preset).eval()
     return _finish_slice_head(export_module(module, pillar_args, LIDAR_SLICE_HEAD_IO, opset), det)
 
 

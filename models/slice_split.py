@@ -15,8 +15,8 @@ instead of leaving it for its NCHW ConvTranspose. Measured in the benchmark's sl
 2 threads): see benchmarks/RESULTS.md.
 
 Same function as SliceNet (tests/test_models_slice_split.py; the export's parity check compares the graph with
-the PyTorch SliceNet). Training never sees this module. The LiDAR-only net has no image concatenation and is
-exported as it is.
+the PyTorch SliceNet). Training never sees this module. The LiDAR-only net has no image concatenation; the rest
+is rewritten alike.
 """
 
 from __future__ import annotations
@@ -87,27 +87,28 @@ def export_deblock(deblock: nn.Sequential) -> nn.Module:
     return nn.Sequential(conv, *deblock[2:])
 
 
-class SplitInputSliceNet(nn.Module):
-    """``SliceNet.forward`` with both concatenations split into sums of convolutions (module docstring).
+class ExportSliceNet(nn.Module):
+    """``SliceNet.forward`` with its concatenations split into sums of convolutions (module docstring).
 
     Shares the trained net's pillar net, encoder stages and head branches (so the exported node scopes stay
     ``/slice_net/...``); only the split convolutions and the 1x1 deblocks are derived (BN folded, eval statistics).
+    A LiDAR-only net has no image BEV: its stage 0 is kept whole, the rest is rewritten alike.
     """
 
     def __init__(self, net: SliceNet) -> None:
         super().__init__()
-        if not net.use_image:
-            raise ValueError("a LiDAR-only SliceNet has no image BEV to split off; export it as it is")
+        self.use_image = net.use_image
         self.pillar_net = net.pillar_net
         self.bev_encoder = net.bev_encoder
         self.head = net.head
         stage0 = list(net.bev_encoder.blocks[0])
         conv, bn = _conv_bn_relu(stage0)
-        c = conv.in_channels // 2  # point BEV channels first, then image BEV (SliceNet.fused_bev)
-        self.point_channels = c
-        self.point_conv, self.image_conv = split_conv_bn(conv, bn, [c, conv.in_channels - c], bias_part=1)
-        self.relu = nn.ReLU(inplace=True)
-        self.stage0_rest = nn.Sequential(*stage0[3:])  # the same modules: stage 0 after its first conv
+        if self.use_image:
+            c = conv.in_channels // 2  # point BEV channels first, then image BEV (SliceNet.fused_bev)
+            # the image part carries the BN shift: the point BEV is the mostly-empty one
+            self.point_conv, self.image_conv = split_conv_bn(conv, bn, [c, conv.in_channels - c], bias_part=1)
+            self.relu = nn.ReLU(inplace=True)
+            self.stage0_rest = nn.Sequential(*stage0[3:])  # the same modules: stage 0 after its first conv
         self.deblocks = nn.ModuleList(export_deblock(d) for d in net.bev_encoder.deblocks)
         shared_conv, shared_bn = _conv_bn_relu(net.head.shared)
         splits = [_out_channels(d) for d in net.bev_encoder.deblocks]
@@ -116,8 +117,11 @@ class SplitInputSliceNet(nn.Module):
 
     def forward(self, pillar_features: Tensor, pillar_mask: Tensor, pillar_index: Tensor, image_bev: Tensor) -> HeadMaps:
         p_bev = scatter_pillars(self.pillar_net(pillar_features, pillar_mask), pillar_index, image_bev)  # (Q, C, Yq, Xq)
-        x = self.relu(self.point_conv(p_bev) + self.image_conv(image_bev))  # (Q, C0, Yq / s, Xq / s)
-        x = self.stage0_rest(x)
+        if self.use_image:
+            x = self.relu(self.point_conv(p_bev) + self.image_conv(image_bev))  # (Q, C0, Yq / s, Xq / s)
+            x = self.stage0_rest(x)
+        else:
+            x = self.bev_encoder.blocks[0](p_bev)  # (Q, C0, Yq / s, Xq / s)
         stages = self.bev_encoder.stage_outputs(x)
         ups = [deblock(s) for deblock, s in zip(self.deblocks, stages)]  # each (Q, Cu_i, Hh, Wh)
         shared = self.shared_parts[0](ups[0])
@@ -133,6 +137,6 @@ def _out_channels(deblock: nn.Sequential) -> int:
     return first.out_channels
 
 
-def export_slice_net(net: SliceNet) -> nn.Module:
-    """What the exporter traces for the slice net: the split form when there is an image BEV, else the net."""
-    return SplitInputSliceNet(net).eval() if net.use_image else net
+def export_slice_net(net: SliceNet) -> ExportSliceNet:
+    """What the exporter traces for the slice net."""
+    return ExportSliceNet(net).eval()

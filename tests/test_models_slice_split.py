@@ -14,7 +14,7 @@ from streamdet.export.onnx_export import SLICE_HEAD_IO, export_slice_head, slice
 from streamdet.models.decode import SliceDecoder
 from streamdet.models.detector import SliceNet, StreamDetector
 from streamdet.models.presets import get_preset
-from streamdet.models.slice_split import SplitInputSliceNet, export_deblock, export_slice_net, split_conv_bn
+from streamdet.models.slice_split import ExportSliceNet, export_deblock, export_slice_net, split_conv_bn
 
 TINY = get_preset("tiny")
 
@@ -52,7 +52,7 @@ def test_split_net_equals_slice_net(q, num_pillars, seed, multi_head, dtype):
     net = SliceNet(preset).eval()
     _random_bn(net, seed)
     net = net.to(dtype)
-    split = SplitInputSliceNet(net).to(dtype)
+    split = ExportSliceNet(net).to(dtype)
     args = _inputs(preset, q, num_pillars, seed, dtype)
     with torch.no_grad():
         for got, ref in zip(split(*args), net(*args)):
@@ -61,7 +61,7 @@ def test_split_net_equals_slice_net(q, num_pillars, seed, multi_head, dtype):
 
 def test_split_shares_the_trained_modules():
     net = SliceNet(TINY).eval()
-    split = SplitInputSliceNet(net)
+    split = ExportSliceNet(net)
     assert split.pillar_net is net.pillar_net and split.head is net.head and split.bev_encoder is net.bev_encoder
     assert split.stage0_rest[0] is net.bev_encoder.blocks[0][3]
     assert split.point_conv.in_channels == TINY.channels and split.image_conv.in_channels == TINY.channels
@@ -70,18 +70,28 @@ def test_split_shares_the_trained_modules():
     assert split.head.tasks is net.head.tasks
 
 
-def test_lidar_only_net_is_exported_as_it_is():
-    net = SliceNet(dataclasses.replace(TINY, use_image=False)).eval()
-    assert export_slice_net(net) is net
-    with pytest.raises(ValueError, match="LiDAR-only"):
-        SplitInputSliceNet(net)
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("q,num_pillars,seed", [(1, 40, 0), (4, 7, 2), (3, 0, 3)])
+def test_lidar_only_export_form_equals_the_net(q, num_pillars, seed, dtype):
+    preset = dataclasses.replace(TINY, use_image=False)
+    torch.manual_seed(seed)
+    net = SliceNet(preset).eval()
+    _random_bn(net, seed)
+    net = net.to(dtype)
+    rewritten = export_slice_net(net)
+    assert not hasattr(rewritten, "point_conv")  # nothing to split off at stage 0
+    feats, mask, index, _ = _inputs(preset, q, num_pillars, seed, dtype)
+    shape_only = feats.new_zeros(q, 0, preset.grid.quadrant_ny, preset.grid.quadrant_nx)
+    with torch.no_grad():
+        for got, ref in zip(rewritten(feats, mask, index, shape_only), net(feats, mask, index, shape_only)):
+            torch.testing.assert_close(got, ref)
 
 
 def test_unexpected_stage_layout_is_refused():
     net = SliceNet(TINY).eval()
     net.bev_encoder.blocks[0][1] = torch.nn.Identity()
     with pytest.raises(ValueError, match="Conv2d, BatchNorm2d, ReLU"):
-        SplitInputSliceNet(net)
+        ExportSliceNet(net)
 
 
 def test_exported_slice_graph_has_no_bev_concat_and_matches_torch():
@@ -90,7 +100,7 @@ def test_exported_slice_graph_has_no_bev_concat_and_matches_torch():
     _random_bn(det.slice_net, 5)
     args = _inputs(TINY, 2, 60, 4)
     model = export_slice_head(det, args)
-    assert isinstance(slice_decoder(det).slice_net, SplitInputSliceNet)
+    assert isinstance(slice_decoder(det).slice_net, ExportSliceNet)
     assert not [n for n in model.graph.node if n.op_type == "Concat" and "image_bev" in n.input]
     sess = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
     got = sess.run(None, {name: t.numpy() for name, t in zip(SLICE_HEAD_IO.inputs, args)})
