@@ -44,30 +44,31 @@ def decode_head_maps(maps: HeadMaps, cell_m: float, top_k: int) -> tuple[Tensor,
     classes x cells per quadrant. ``top_k`` must not exceed classes x cells (``Preset.top_k`` clamps it).
     """
     heatmap, reg, height, dim, rot, vel = maps
-    hh, wh = heatmap.shape[-2:]
+    # Python ints: the head map size is static in the slice graph, so the index arithmetic below exports with
+    # constants instead of shape computations
+    hh, wh = int(heatmap.shape[-2]), int(heatmap.shape[-1])
     heat = heatmap.sigmoid()
     hmax = F.max_pool2d(heat, kernel_size=3, stride=1, padding=1)
     heat = heat * (hmax == heat).to(heat.dtype)  # (Q, C_cls, Hh, Wh), non-peaks zeroed
     scores, flat = heat.flatten(1).topk(top_k, dim=1)  # (Q, K)
     cells_per_class = hh * wh
-    labels = torch.div(flat, cells_per_class, rounding_mode="floor")  # (Q, K)
+    # top-k indices are non-negative, so truncating division is floor division (and one ONNX Div, where floor
+    # division exports as a dozen nodes that fix up negative operands)
+    labels = torch.div(flat, cells_per_class, rounding_mode="trunc")  # (Q, K)
     cell = flat - labels * cells_per_class  # (Q, K) = row * Wh + col
-    row = torch.div(cell, wh, rounding_mode="floor")
+    row = torch.div(cell, wh, rounding_mode="trunc")
     col = cell - row * wh
 
-    def at_peaks(m: Tensor) -> Tensor:
-        ch = m.shape[1]
-        return m.flatten(2).gather(2, cell.unsqueeze(1).expand(-1, ch, -1))  # (Q, ch, K)
-
-    r = at_peaks(reg)
+    # one gather for every regression map at the peaks
+    regression = (reg, height, dim, rot, vel)
+    stacked = torch.cat(regression, dim=1)  # (Q, 10, Hh, Wh)
+    at_peaks = stacked.flatten(2).gather(2, cell.unsqueeze(1).expand(-1, stacked.shape[1], -1))  # (Q, 10, K)
+    r, z, log_size, sc, v = at_peaks.split([int(m.shape[1]) for m in regression], dim=1)
     x = (col.to(r.dtype) + 0.5 + r[:, 0]) * cell_m  # (Q, K)
     y = (row.to(r.dtype) + 0.5 + r[:, 1]) * cell_m
-    z = at_peaks(height)[:, 0]
-    size = at_peaks(dim).exp()  # (Q, 3, K): w, l, h
-    sc = at_peaks(rot)
+    size = log_size.exp()  # (Q, 3, K): w, l, h
     yaw = torch.atan2(sc[:, 0], sc[:, 1])
-    v = at_peaks(vel)  # (Q, 2, K)
-    boxes = torch.cat([x[:, None], y[:, None], z[:, None], size, yaw[:, None], v], dim=1)  # (Q, 9, K)
+    boxes = torch.cat([x[:, None], y[:, None], z, size, yaw[:, None], v], dim=1)  # (Q, 9, K)
     return boxes.transpose(1, 2), scores, labels  # (Q, K, 9), (Q, K), (Q, K)
 
 

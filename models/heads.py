@@ -91,11 +91,20 @@ class CenterHead(nn.Module):
         per_task = [task(x) for task in self.tasks]
         if len(per_task) == 1:  # static: the single head already has the merged layout
             return per_task[0]
-        heat = torch.cat([t[0] for t in per_task], dim=1).index_select(1, self.merge_index)  # (Q, C_cls, Hh, Wh)
+        heat = torch.cat([t[0] for t in per_task], dim=1)  # (Q, sum of task classes, Hh, Wh)
+        regression = [torch.stack([t[i] for t in per_task], dim=1) for i in range(1, len(HEAD_OUTPUTS))]
+        return self.merge(heat, regression)
+
+    def merge(self, heat_by_task: Tensor, regression_by_task: list[Tensor]) -> HeadMaps:
+        """The multi-head's maps in the single-head layout.
+
+        heat_by_task (Q, sum of task classes, Hh, Wh): the tasks' heatmaps concatenated in task order;
+        regression_by_task[i] (Q, T, ch, Hh, Wh): regression output i + 1 of ``HEAD_OUTPUTS`` of every task.
+        """
+        heat = heat_by_task.index_select(1, self.merge_index)  # (Q, C_cls, Hh, Wh)
         task = self.class_task[heat.argmax(dim=1)]  # (Q, Hh, Wh): task of each cell's best class
         merged = [heat]
-        for i in range(1, len(HEAD_OUTPUTS)):
-            stack = torch.stack([t[i] for t in per_task], dim=1)  # (Q, T, ch, Hh, Wh)
+        for stack in regression_by_task:
             pick = task[:, None, None].expand(-1, 1, stack.shape[2], -1, -1)  # (Q, 1, ch, Hh, Wh)
             merged.append(stack.gather(1, pick).squeeze(1))  # (Q, ch, Hh, Wh)
         return tuple(merged)  # type: ignore[return-value]

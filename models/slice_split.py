@@ -26,7 +26,7 @@ from torch import Tensor, nn
 
 from streamdet.models.bn_fold import bn_scale_shift
 from streamdet.models.detector import SliceNet
-from streamdet.models.heads import HeadMaps
+from streamdet.models.heads import HEAD_OUTPUTS, CenterHead, HeadMaps
 from streamdet.models.pillars import scatter_pillars
 
 
@@ -87,6 +87,82 @@ def export_deblock(deblock: nn.Sequential) -> nn.Module:
     return nn.Sequential(conv, *deblock[2:])
 
 
+class GroupedTaskHead(nn.Module):
+    """``CenterHead.from_shared`` of a multi-head with each output's branches grouped across the T tasks.
+
+    CenterPoint's multi-head runs T x 6 thin branches (conv k3 Ch -> Ch, BN, ReLU, conv -> a few channels), all
+    reading the shared conv's output. Per output (heatmap, reg, ...) this computes the T branches as two convs:
+    the hidden convs stacked (Ch -> T * Ch, BNs folded) and the output convs as one block-diagonal conv
+    (T * Ch -> sum of the T outputs). onnxruntime runs 12 convs instead of 6 T, no per-branch reorder, and the
+    stacked outputs are already the (Q, T, ch, Hh, Wh) layout the merge reads. The zero blocks cost MACs
+    (``grouped_head_macs``): fewer, wider convolutions still run faster (benchmarks/RESULTS.md).
+    """
+
+    def __init__(self, head: CenterHead) -> None:
+        super().__init__()
+        self.head = head  # the merge's buffers; its branches are only read here
+        self.num_tasks = len(head.tasks)
+        self.hidden = nn.ModuleDict()
+        self.output = nn.ModuleDict()
+        self.relu = nn.ReLU(inplace=True)
+        for name in HEAD_OUTPUTS:
+            branches = [list(task.branches[name]) for task in head.tasks]
+            self.hidden[name] = _stacked_conv_bn([b[0] for b in branches], [b[1] for b in branches])
+            self.output[name] = _block_diagonal_conv([b[3] for b in branches])
+
+    def forward(self, x: Tensor) -> HeadMaps:
+        maps = [self.output[name](self.relu(self.hidden[name](x))) for name in HEAD_OUTPUTS]  # each (Q, T * ch, Hh, Wh)
+        regression = [m.unflatten(1, (self.num_tasks, -1)) for m in maps[1:]]  # each (Q, T, ch, Hh, Wh)
+        return self.head.merge(maps[0], regression)
+
+
+def _stacked_conv_bn(convs: list[nn.Conv2d], bns: list[nn.BatchNorm2d]) -> nn.Conv2d:
+    """One conv whose output channels are ``bn_t(conv_t(x))`` for t in order (same input, same geometry)."""
+    first = convs[0]
+    out = nn.Conv2d(first.in_channels, sum(c.out_channels for c in convs), first.kernel_size, stride=first.stride,
+                    padding=first.padding, bias=True, dtype=first.weight.dtype)  # fmt: skip
+    with torch.no_grad():
+        weights, biases = [], []
+        for conv, bn in zip(convs, bns):
+            scale, shift = bn_scale_shift(bn)  # (Co,)
+            weights.append(conv.weight * scale[:, None, None, None])
+            biases.append(shift if conv.bias is None else shift + scale * conv.bias)
+        out.weight.copy_(torch.cat(weights))
+        out.bias.copy_(torch.cat(biases))
+    return out
+
+
+def _block_diagonal_conv(convs: list[nn.Conv2d]) -> nn.Conv2d:
+    """One conv on the concatenation of the convs' inputs whose outputs are the convs' outputs, concatenated."""
+    first = convs[0]
+    cin = sum(c.in_channels for c in convs)
+    out = nn.Conv2d(cin, sum(c.out_channels for c in convs), first.kernel_size, stride=first.stride,
+                    padding=first.padding, bias=True, dtype=first.weight.dtype)  # fmt: skip
+    with torch.no_grad():
+        out.weight.zero_()
+        out.bias.zero_()
+        o = i = 0
+        for conv in convs:
+            out.weight[o : o + conv.out_channels, i : i + conv.in_channels] = conv.weight
+            if conv.bias is not None:
+                out.bias[o : o + conv.out_channels] = conv.bias
+            o, i = o + conv.out_channels, i + conv.in_channels
+    return out
+
+
+def grouped_head_mac_ratio(head: CenterHead) -> float:
+    """MACs of ``GroupedTaskHead``'s convs per MAC of the head's branch convs (per head-map cell)."""
+    own = grouped = 0
+    for name in HEAD_OUTPUTS:
+        for task in head.tasks:
+            hidden, out = task.branches[name][0], task.branches[name][3]
+            h = hidden.in_channels * hidden.out_channels * hidden.kernel_size[0] * hidden.kernel_size[1]
+            o = out.in_channels * out.out_channels * out.kernel_size[0] * out.kernel_size[1]
+            own += h + o
+            grouped += h + o * len(head.tasks)  # each output conv reads every task's hidden channels
+    return grouped / own
+
+
 class ExportSliceNet(nn.Module):
     """``SliceNet.forward`` with its concatenations split into sums of convolutions (module docstring).
 
@@ -114,6 +190,7 @@ class ExportSliceNet(nn.Module):
         splits = [_out_channels(d) for d in net.bev_encoder.deblocks]
         self.shared_parts = split_conv_bn(shared_conv, shared_bn, splits)
         self.shared_rest = nn.Sequential(*list(net.head.shared)[2:])  # its ReLU
+        self.grouped_head = GroupedTaskHead(net.head) if len(net.head.tasks) > 1 else None
 
     def forward(self, pillar_features: Tensor, pillar_mask: Tensor, pillar_index: Tensor, image_bev: Tensor) -> HeadMaps:
         p_bev = scatter_pillars(self.pillar_net(pillar_features, pillar_mask), pillar_index, image_bev)  # (Q, C, Yq, Xq)
@@ -127,7 +204,8 @@ class ExportSliceNet(nn.Module):
         shared = self.shared_parts[0](ups[0])
         for part, up in zip(self.shared_parts[1:], ups[1:]):
             shared = shared + part(up)
-        return self.head.from_shared(self.shared_rest(shared))  # (Q, Ch, Hh, Wh) into the branches
+        x = self.shared_rest(shared)  # (Q, Ch, Hh, Wh) into the branches
+        return self.head.from_shared(x) if self.grouped_head is None else self.grouped_head(x)
 
 
 def _out_channels(deblock: nn.Sequential) -> int:

@@ -14,7 +14,15 @@ from streamdet.export.onnx_export import SLICE_HEAD_IO, export_slice_head, slice
 from streamdet.models.decode import SliceDecoder
 from streamdet.models.detector import SliceNet, StreamDetector
 from streamdet.models.presets import get_preset
-from streamdet.models.slice_split import ExportSliceNet, export_deblock, export_slice_net, split_conv_bn
+from streamdet.models.heads import CenterHead
+from streamdet.models.slice_split import (
+    ExportSliceNet,
+    GroupedTaskHead,
+    export_deblock,
+    export_slice_net,
+    grouped_head_mac_ratio,
+    split_conv_bn,
+)
 
 TINY = get_preset("tiny")
 
@@ -181,3 +189,44 @@ def test_exported_slice_graph_stores_the_point_bev_shape():
     assert not [n for n in model.graph.node if n.op_type == "Concat" and n.name.startswith("/slice_net/") and len(n.input) == 3
                 and all(i in shapes and len(shapes[i]) == 4 for i in n.input)]  # no deblock concatenation
     assert not [n for n in model.graph.node if n.op_type == "ConvTranspose" and "deblocks.0" in n.name]
+
+
+def _multi(preset):
+    return dataclasses.replace(preset, head=dataclasses.replace(preset.head, multi_head=True))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("preset_name", ["tiny", "small"])
+def test_grouped_task_head_equals_the_multi_head(preset_name, seed, dtype):
+    preset = _multi(get_preset(preset_name))
+    torch.manual_seed(seed)
+    head = CenterHead(preset.head, 24).eval()
+    _random_bn(head, seed)
+    for m in head.modules():  # non-zero output biases, so a misplaced bias shows
+        if isinstance(m, torch.nn.Conv2d) and m.bias is not None:
+            torch.nn.init.normal_(m.bias)
+    head = head.to(dtype)
+    grouped = GroupedTaskHead(head).eval()
+    x = torch.randn(2, preset.head.head_channels, 12, 10, dtype=dtype)
+    with torch.no_grad():
+        for got, ref in zip(grouped(x), head.from_shared(x)):
+            torch.testing.assert_close(got, ref)
+    assert len(list(grouped.hidden.values())) == len(list(grouped.output.values())) == 6
+
+
+def test_export_form_groups_only_a_multi_head():
+    assert ExportSliceNet(SliceNet(TINY).eval()).grouped_head is None
+    assert isinstance(ExportSliceNet(SliceNet(_multi(TINY)).eval()).grouped_head, GroupedTaskHead)
+
+
+@pytest.mark.parametrize("preset_name", ["tiny", "small", "paper"])
+def test_grouped_head_mac_ratio_counts_the_zero_blocks(preset_name):
+    """Against the MACs of the grouped convs themselves (per output cell), over those of the head's branches."""
+    head = CenterHead(_multi(get_preset(preset_name)).head, 16).eval()
+    macs = lambda conv: conv.weight.numel()  # noqa: E731 - per output cell, groups 1
+    own = sum(macs(task.branches[name][i]) for task in head.tasks for name in task.branches for i in (0, 3))
+    grouped = GroupedTaskHead(head)
+    got = sum(macs(c) for c in list(grouped.hidden.values()) + list(grouped.output.values()))
+    assert grouped_head_mac_ratio(head) == pytest.approx(got / own)
+    assert grouped_head_mac_ratio(head) > 1
