@@ -112,7 +112,10 @@ class GroupedTaskHead(nn.Module):
 
     def forward(self, x: Tensor) -> HeadMaps:
         maps = [self.output[name](self.relu(self.hidden[name](x))) for name in HEAD_OUTPUTS]  # each (Q, T * ch, Hh, Wh)
-        regression = [m.unflatten(1, (self.num_tasks, -1)) for m in maps[1:]]  # each (Q, T, ch, Hh, Wh)
+        q, _, hh, wh = maps[0].shape
+        # reshape, not unflatten: unflatten exports shape arithmetic that onnxruntime's symbolic shape inference
+        # (run by the int8 quantizer) cannot follow
+        regression = [m.reshape(q, self.num_tasks, -1, hh, wh) for m in maps[1:]]  # each (Q, T, ch, Hh, Wh)
         return self.head.merge(maps[0], regression)
 
 
