@@ -87,36 +87,68 @@ def export_deblock(deblock: nn.Sequential) -> nn.Module:
     return nn.Sequential(conv, *deblock[2:])
 
 
+OUTPUT_BLOCK = 16  # output channels onnxruntime computes per block with AVX-512 (its NCHWc block)
+
+
 class GroupedTaskHead(nn.Module):
     """``CenterHead.from_shared`` of a multi-head with each output's branches grouped across the T tasks.
 
     CenterPoint's multi-head runs T x 6 thin branches (conv k3 Ch -> Ch, BN, ReLU, conv -> a few channels), all
-    reading the shared conv's output. Per output (heatmap, reg, ...) this computes the T branches as two convs:
-    the hidden convs stacked (Ch -> T * Ch, BNs folded) and the output convs as one block-diagonal conv
-    (T * Ch -> sum of the T outputs). onnxruntime runs 12 convs instead of 6 T, no per-branch reorder, and the
-    stacked outputs are already the (Q, T, ch, Hh, Wh) layout the merge reads. The zero blocks cost MACs
-    (``grouped_head_macs``): fewer, wider convolutions still run faster (benchmarks/RESULTS.md).
+    reading the shared conv's output. Per output (heatmap, reg, ...) this computes the branches of consecutive
+    tasks as two convs: the hidden convs stacked (Ch -> n * Ch, BNs folded) and the output convs as one
+    block-diagonal conv (n * Ch -> sum of the n outputs), with as many tasks per group as fit one output block of
+    ``OUTPUT_BLOCK`` channels (onnxruntime pads the outputs of a convolution to whole blocks: the small preset's six
+    3-channel dim branches take two groups, not one 18-channel conv costing two blocks over 6 * Ch inputs).
+    onnxruntime runs 14 convs instead of 6 T, no per-branch reorder, and the stacked outputs are already the
+    (Q, T, ch, Hh, Wh) layout the merge reads. The zero blocks cost MACs (``grouped_head_mac_ratio``): fewer, wider
+    convolutions still run faster (benchmarks/RESULTS.md).
     """
 
     def __init__(self, head: CenterHead) -> None:
         super().__init__()
         self.head = head  # the merge's buffers; its branches are only read here
-        self.num_tasks = len(head.tasks)
         self.hidden = nn.ModuleDict()
         self.output = nn.ModuleDict()
         self.relu = nn.ReLU(inplace=True)
+        self.group_sizes: dict[str, list[int]] = {}
         for name in HEAD_OUTPUTS:
             branches = [list(task.branches[name]) for task in head.tasks]
-            self.hidden[name] = _stacked_conv_bn([b[0] for b in branches], [b[1] for b in branches])
-            self.output[name] = _block_diagonal_conv([b[3] for b in branches])
+            groups = task_groups([b[3].out_channels for b in branches])
+            self.group_sizes[name] = [len(g) for g in groups]
+            self.hidden[name] = nn.ModuleList(_stacked_conv_bn([branches[t][0] for t in g], [branches[t][1] for t in g]) for g in groups)
+            self.output[name] = nn.ModuleList(_block_diagonal_conv([branches[t][3] for t in g]) for g in groups)
 
     def forward(self, x: Tensor) -> HeadMaps:
-        maps = [self.output[name](self.relu(self.hidden[name](x))) for name in HEAD_OUTPUTS]  # each (Q, T * ch, Hh, Wh)
-        q, _, hh, wh = maps[0].shape
-        # reshape, not unflatten: unflatten exports shape arithmetic that onnxruntime's symbolic shape inference
-        # (run by the int8 quantizer) cannot follow
-        regression = [m.reshape(q, self.num_tasks, -1, hh, wh) for m in maps[1:]]  # each (Q, T, ch, Hh, Wh)
-        return self.head.merge(maps[0], regression)
+        per_output = []
+        for name in HEAD_OUTPUTS:
+            parts = [out(self.relu(hidden(x))) for hidden, out in zip(self.hidden[name], self.output[name])]
+            per_output.append(parts)  # each (Q, n * ch, Hh, Wh), n tasks of the group
+        heat = _cat(per_output[0])  # (Q, sum of task classes, Hh, Wh)
+        q, _, hh, wh = heat.shape
+        regression = []
+        for name, parts in zip(HEAD_OUTPUTS[1:], per_output[1:]):
+            # reshape, not unflatten: unflatten exports shape arithmetic that onnxruntime's symbolic shape
+            # inference (run by the int8 quantizer) cannot follow
+            stacks = [p.reshape(q, n, -1, hh, wh) for p, n in zip(parts, self.group_sizes[name])]  # (Q, n, ch, Hh, Wh)
+            regression.append(_cat(stacks))  # (Q, T, ch, Hh, Wh)
+        return self.head.merge(heat, regression)
+
+
+def task_groups(out_channels: list[int], block: int = OUTPUT_BLOCK) -> list[range]:
+    """Consecutive tasks grouped so that each group's output channels fit ``block`` (a wider task alone)."""
+    groups: list[range] = []
+    start, total = 0, 0
+    for t, c in enumerate(out_channels):
+        if t > start and total + c > block:
+            groups.append(range(start, t))
+            start, total = t, 0
+        total += c
+    groups.append(range(start, len(out_channels)))
+    return groups
+
+
+def _cat(parts: list[Tensor]) -> Tensor:
+    return parts[0] if len(parts) == 1 else torch.cat(parts, dim=1)
 
 
 def _stacked_conv_bn(convs: list[nn.Conv2d], bns: list[nn.BatchNorm2d]) -> nn.Conv2d:
@@ -157,12 +189,13 @@ def grouped_head_mac_ratio(head: CenterHead) -> float:
     """MACs of ``GroupedTaskHead``'s convs per MAC of the head's branch convs (per head-map cell)."""
     own = grouped = 0
     for name in HEAD_OUTPUTS:
-        for task in head.tasks:
-            hidden, out = task.branches[name][0], task.branches[name][3]
-            h = hidden.in_channels * hidden.out_channels * hidden.kernel_size[0] * hidden.kernel_size[1]
-            o = out.in_channels * out.out_channels * out.kernel_size[0] * out.kernel_size[1]
-            own += h + o
-            grouped += h + o * len(head.tasks)  # each output conv reads every task's hidden channels
+        outs = [task.branches[name][3] for task in head.tasks]
+        for g in task_groups([o.out_channels for o in outs]):
+            for t in g:
+                hidden, out = head.tasks[t].branches[name][0], outs[t]
+                h = hidden.weight.numel()  # per output cell: Co * Ci * k * k
+                own += h + out.weight.numel()
+                grouped += h + out.weight.numel() * len(g)  # each output conv reads its group's hidden channels
     return grouped / own
 
 

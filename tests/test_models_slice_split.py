@@ -18,6 +18,7 @@ from streamdet.models.heads import CenterHead
 from streamdet.models.slice_split import (
     ExportSliceNet,
     GroupedTaskHead,
+    task_groups,
     export_deblock,
     export_slice_net,
     grouped_head_mac_ratio,
@@ -212,7 +213,9 @@ def test_grouped_task_head_equals_the_multi_head(preset_name, seed, dtype):
     with torch.no_grad():
         for got, ref in zip(grouped(x), head.from_shared(x)):
             torch.testing.assert_close(got, ref)
-    assert len(list(grouped.hidden.values())) == len(list(grouped.output.values())) == 6
+    convs = [c for group in grouped.output.values() for c in group]
+    assert len(convs) == sum(len(v) for v in grouped.hidden.values()) < 6 * len(head.tasks)
+    assert all(c.out_channels <= 16 for c in convs)  # every output conv fits one AVX-512 block
 
 
 def test_export_form_groups_only_a_multi_head():
@@ -227,6 +230,21 @@ def test_grouped_head_mac_ratio_counts_the_zero_blocks(preset_name):
     macs = lambda conv: conv.weight.numel()  # noqa: E731 - per output cell, groups 1
     own = sum(macs(task.branches[name][i]) for task in head.tasks for name in task.branches for i in (0, 3))
     grouped = GroupedTaskHead(head)
-    got = sum(macs(c) for c in list(grouped.hidden.values()) + list(grouped.output.values()))
+    got = sum(macs(c) for group in list(grouped.hidden.values()) + list(grouped.output.values()) for c in group)
     assert grouped_head_mac_ratio(head) == pytest.approx(got / own)
     assert grouped_head_mac_ratio(head) > 1
+
+
+@pytest.mark.parametrize(
+    "channels,block,want",
+    [
+        ([3, 3, 3, 3, 3, 3], 16, [[0, 1, 2, 3, 4], [5]]),
+        ([2, 2, 2, 2, 2, 2], 16, [[0, 1, 2, 3, 4, 5]]),
+        ([1, 2, 2, 1, 2, 2], 16, [[0, 1, 2, 3, 4, 5]]),
+        ([20, 1, 30], 16, [[0], [1], [2]]),  # a task wider than a block stands alone
+        ([8, 8, 8], 16, [[0, 1], [2]]),
+        ([5], 4, [[0]]),
+    ],
+)
+def test_task_groups_fill_blocks_in_task_order(channels, block, want):
+    assert [list(g) for g in task_groups(channels, block)] == want
