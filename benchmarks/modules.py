@@ -137,10 +137,11 @@ def build_rows(preset: Preset, resolutions: list[tuple[int, int]], seed: int = 0
             "faster; GMAC, GFLOP/s and % peak count the 3D convolutions' own MACs",
         )
     encoder = det.image_encoder
+    multi_head = det_multi.slice_net.head
     multi_notes = (
-        f"exported with each output's branches grouped across the {len(det_multi.slice_net.head.tasks)} tasks "
-        f"(models/slice_split.py, GroupedTaskHead): the graph computes {grouped_head_mac_ratio(det_multi.slice_net.head):.2f}x "
-        "the head branches' MACs in zero blocks and runs faster; GMAC, GFLOP/s and % peak count the model's own MACs",
+        f"exported with each output's branches grouped across the {len(multi_head.tasks)} tasks (models/slice_split.py, "
+        f"GroupedTaskHead): the graph computes {grouped_head_mac_ratio(multi_head):.2f}x the head branches' MACs in zero "
+        "blocks and runs faster; GMAC, GFLOP/s and % peak count the model's own MACs",
     )
 
     def volume(ny: int, nx: int) -> Tensor:

@@ -11,8 +11,9 @@ onnxruntime then never materialises a concatenated map: each sum folds into a co
 layout as that convolution's ``Sum`` input, the point BEV's channels-last -> NCHW transpose into the reorder of its
 convolution. A deblock that is a 1x1 stride-1 transposed convolution (the stage already at the head's stride) is
 exported as the 1x1 convolution it equals (weight transposed), which onnxruntime runs in the blocked layout too
-instead of leaving it for its NCHW ConvTranspose. Measured in the benchmark's slice rows (small preset, Zen 4,
-2 threads): see benchmarks/RESULTS.md.
+instead of leaving it for its NCHW ConvTranspose. A multi-head's branches are grouped across its tasks
+(``GroupedTaskHead``). Measured in the benchmark's slice rows (small preset, Zen 4, 2 threads): see
+benchmarks/RESULTS.md.
 
 Same function as SliceNet (tests/test_models_slice_split.py; the export's parity check compares the graph with
 the PyTorch SliceNet). Training never sees this module. The LiDAR-only net has no image concatenation; the rest
@@ -49,7 +50,9 @@ def split_conv_bn(conv: nn.Conv2d, bn: nn.BatchNorm2d, in_splits: list[int], bia
     The BatchNorm's shift becomes the bias of part ``bias_part`` (the conv itself must have none).
     """
     if conv.groups != 1 or conv.bias is not None:
-        raise ValueError(f"can only split a dense convolution without bias, got groups={conv.groups}, bias={conv.bias is not None}")
+        raise ValueError(
+            f"can only split a dense convolution without bias, got groups={conv.groups}, bias={conv.bias is not None}"
+        )
     if sum(in_splits) != conv.in_channels:
         raise ValueError(f"input parts {in_splits} do not add up to the conv's {conv.in_channels} input channels")
     kw = dict(kernel_size=conv.kernel_size, stride=conv.stride, padding=conv.padding, dilation=conv.dilation,
@@ -99,9 +102,9 @@ class GroupedTaskHead(nn.Module):
     block-diagonal conv (n * Ch -> sum of the n outputs), with as many tasks per group as fit one output block of
     ``OUTPUT_BLOCK`` channels (onnxruntime pads the outputs of a convolution to whole blocks: the small preset's six
     3-channel dim branches take two groups, not one 18-channel conv costing two blocks over 6 * Ch inputs).
-    onnxruntime runs 14 convs instead of 6 T, no per-branch reorder, and the stacked outputs are already the
-    (Q, T, ch, Hh, Wh) layout the merge reads. The zero blocks cost MACs (``grouped_head_mac_ratio``): fewer, wider
-    convolutions still run faster (benchmarks/RESULTS.md).
+    onnxruntime runs 14 convs for T = 6 instead of 12 T = 72, no per-branch reorder, and the stacked outputs are
+    already the (Q, T, ch, Hh, Wh) layout the merge reads. The zero blocks cost MACs (``grouped_head_mac_ratio``):
+    fewer, wider convolutions still run faster (benchmarks/RESULTS.md).
     """
 
     def __init__(self, head: CenterHead) -> None:
@@ -115,7 +118,8 @@ class GroupedTaskHead(nn.Module):
             branches = [list(task.branches[name]) for task in head.tasks]
             groups = task_groups([b[3].out_channels for b in branches])
             self.group_sizes[name] = [len(g) for g in groups]
-            self.hidden[name] = nn.ModuleList(_stacked_conv_bn([branches[t][0] for t in g], [branches[t][1] for t in g]) for g in groups)
+            hidden = [_stacked_conv_bn([branches[t][0] for t in g], [branches[t][1] for t in g]) for g in groups]
+            self.hidden[name] = nn.ModuleList(hidden)
             self.output[name] = nn.ModuleList(_block_diagonal_conv([branches[t][3] for t in g]) for g in groups)
 
     def forward(self, x: Tensor) -> HeadMaps:
