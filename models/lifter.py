@@ -24,14 +24,22 @@ def gather_volume(features: Tensor, lut_index: Tensor, lut_weight: Tensor) -> Te
     flattened feature table, or the sentinel ``J * Hf * Wf`` (an appended all-zero row) for an empty slot.
     Returns V (Q, C, Z, Yq, Xq) = sum_k weight * feature[index] (the weights hold 1 / number of cameras).
     """
+    volume = gather_rows(feature_table(features), lut_index, lut_weight)  # (Q, Z, Yq, Xq, C)
+    return volume.permute(0, 4, 1, 2, 3)  # (Q, C, Z, Yq, Xq)
+
+
+def feature_table(features: Tensor) -> Tensor:
+    """(J, C, Hf, Wf) -> (J * Hf * Wf + 1, C): one row per pixel, then the all-zero sentinel row."""
     c = features.shape[1]
     table = features.permute(0, 2, 3, 1).reshape(-1, c)  # (J*Hf*Wf, C)
-    table = torch.cat([table, table.new_zeros(1, c)], dim=0)  # (J*Hf*Wf + 1, C): the sentinel row
-    q, k, z, yq, xq = lut_index.shape
-    rows = table.index_select(0, lut_index.reshape(-1))  # (Q*K*Z*Yq*Xq, C)
-    rows = rows.reshape(q, k, z, yq, xq, c) * lut_weight.unsqueeze(-1)  # (Q, K, Z, Yq, Xq, C)
-    volume = rows.sum(dim=1)  # (Q, Z, Yq, Xq, C)
-    return volume.permute(0, 4, 1, 2, 3)  # (Q, C, Z, Yq, Xq)
+    return torch.cat([table, table.new_zeros(1, c)], dim=0)
+
+
+def gather_rows(table: Tensor, index: Tensor, weight: Tensor) -> Tensor:
+    """sum_k weight * table[index] over dim 1 (the K slots): index, weight (Q, K, ...) -> (Q, ..., C)."""
+    rows = table.index_select(0, index.reshape(-1))  # (Q*K*..., C)
+    rows = rows.reshape(*index.shape, table.shape[1]) * weight.unsqueeze(-1)  # (Q, K, ..., C)
+    return rows.sum(dim=1)  # (Q, ..., C)
 
 
 class VolumetricLifter(nn.Module):

@@ -167,3 +167,50 @@ def test_exported_lifter_has_no_3d_convolution_and_matches_torch():
         ref = det.lifter(features, index, weight).numpy()
     np.testing.assert_allclose(got, ref, rtol=1e-4, atol=1e-5)
     onnx.checker.check_model(model)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("seed", range(3))
+@pytest.mark.parametrize("preset_name", ["tiny", "small"])
+def test_z_major_convs_are_the_same_function(preset_name, seed, dtype):
+    """Channels renumbered z * C + c: the weights follow, the function does not change."""
+    preset = get_preset(preset_name)
+    gen = torch.Generator().manual_seed(seed)
+    lifter = VolumetricLifter(preset.lifter, preset.channels).eval()
+    _random_bn(lifter, gen)
+    folded = FoldedLifterConvs.from_lifter(lifter, preset.lifter, preset.grid.nz)
+    z_major = folded.to_z_major()
+    assert z_major.z_major and not folded.z_major and z_major.to_z_major() is z_major
+    folded, z_major = folded.to(dtype), z_major.to(dtype)  # the same (float32-folded) weights in dtype
+    v = torch.randn(2, preset.channels, preset.grid.nz, 5, 6, generator=gen, dtype=dtype)  # (Q, C, Z, Y, X)
+    with torch.no_grad():
+        torch.testing.assert_close(z_major(v), folded(v))
+        torch.testing.assert_close(z_major(v).float(), lifter.convs(v.float()), rtol=1e-4, atol=1e-5)
+        # the folded entry point takes z-major channels as they come out of the gather
+        q, c, z, y, x = v.shape
+        torch.testing.assert_close(z_major.folded(v.permute(0, 2, 1, 3, 4).reshape(q, z * c, y, x)), folded(v))
+
+
+def test_folded_lifter_gathers_z_major_and_exports(tmp_path):
+    """The whole lifter in its export form against the PyTorch lifter, also through onnxruntime, empty slots included."""
+    gen = torch.Generator().manual_seed(3)
+    g, c = TINY.grid, TINY.channels
+    lifter = VolumetricLifter(TINY.lifter, c).eval()
+    _random_bn(lifter, gen)
+    j, hf, wf = 3, 4, 6
+    shape = (3, 2, g.nz, g.quadrant_ny, g.quadrant_nx)  # (Q, K, Z, Yq, Xq): static in the exported graph
+    features = torch.randn(j, c, hf, wf, generator=gen)
+    index = torch.randint(0, j * hf * wf + 1, shape, dtype=torch.int32, generator=gen)
+    index[0] = j * hf * wf  # a quadrant no camera sees: every slot the sentinel
+    weight = torch.rand(shape, generator=gen)
+    whole = export_lifter(lifter, TINY.lifter, g.nz)
+    assert whole.convs.z_major
+    with torch.no_grad():
+        ref = lifter(features, index, weight)
+        torch.testing.assert_close(whole(features, index, weight), ref)
+    det = StreamDetector(TINY).eval()
+    det.lifter.load_state_dict(lifter.state_dict())
+    model = export_volumetric_lifter(det, features, index, weight)
+    sess = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
+    got = sess.run(None, {"features": features.numpy(), "lut_index": index.numpy(), "lut_weight": weight.numpy()})[0]
+    np.testing.assert_allclose(got, ref.numpy(), rtol=1e-4, atol=1e-4)
