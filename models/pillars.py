@@ -50,3 +50,22 @@ def scatter_pillars(pillar_feats: Tensor, pillar_index: Tensor, like: Tensor) ->
     canvas = pillar_feats.new_zeros(q * yq * xq, c)  # (Q*Yq*Xq, C)
     canvas = canvas.index_put((pillar_index,), pillar_feats)
     return canvas.reshape(q, yq, xq, c).permute(0, 3, 1, 2)  # (Q, C, Yq, Xq)
+
+
+def gather_pillars(pillar_feats: Tensor, pillar_index: Tensor, like: Tensor) -> Tensor:
+    """``scatter_pillars`` computed as a gather, for export: the same (Q, C, Yq, Xq) map.
+
+    Each cell looks up its pillar (1 + its position in pillar_index, 0 for an empty cell) in a (Q*Yq*Xq,) int64
+    slot map, then gathers its row from the pillar features with a zero row in front. onnxruntime then writes the
+    float map once, where ScatterND fills a zero map and copies it before scattering: three passes over
+    Q * Yq * Xq * C floats instead of one, which costs most when another process shares the last-level cache
+    (benchmarks/RESULTS.md). Indices must be unique, as for scatter_pillars.
+    """
+    q, _, yq, xq = like.shape
+    p, c = pillar_feats.shape
+    slot = torch.zeros(q * yq * xq, dtype=torch.int64, device=pillar_index.device)  # (Q*Yq*Xq,): 0 = empty
+    slot = slot.index_put((pillar_index,), torch.arange(1, p + 1, device=pillar_index.device))
+    table = torch.cat([pillar_feats.new_zeros(1, c), pillar_feats], dim=0)  # (1 + P, C): row 0 for empty cells
+    canvas = table.index_select(0, slot)  # (Q*Yq*Xq, C)
+    return canvas.reshape(q, yq, xq, c).permute(0, 3, 1, 2)  # (Q, C, Yq, Xq)
+

@@ -9,7 +9,7 @@ SliceNet concatenates twice, and a convolution of a concatenation is the sum of 
 
 onnxruntime then never materialises a concatenated map: each sum folds into a convolution of its blocked (NCHWc)
 layout as that convolution's ``Sum`` input, the point BEV's channels-last -> NCHW transpose into the reorder of its
-convolution. A deblock that is a 1x1 stride-1 transposed convolution (the stage already at the head's stride) is
+convolution. The point BEV itself is built by a gather (``pillars.gather_pillars``, the same map). A deblock that is a 1x1 stride-1 transposed convolution (the stage already at the head's stride) is
 exported as the 1x1 convolution it equals (weight transposed), which onnxruntime runs in the blocked layout too
 instead of leaving it for its NCHW ConvTranspose. A multi-head's branches are grouped across its tasks
 (``GroupedTaskHead``). Measured in the benchmark's slice rows (small preset, Zen 4, 2 threads): see
@@ -28,7 +28,7 @@ from torch import Tensor, nn
 from streamdet.models.bn_fold import bn_scale_shift
 from streamdet.models.detector import SliceNet
 from streamdet.models.heads import HEAD_OUTPUTS, CenterHead, HeadMaps
-from streamdet.models.pillars import scatter_pillars
+from streamdet.models.pillars import gather_pillars
 
 
 def _conv_bn_relu(stage: nn.Module) -> tuple[nn.Conv2d, nn.BatchNorm2d]:
@@ -233,7 +233,8 @@ class ExportSliceNet(nn.Module):
         self.grouped_head = GroupedTaskHead(net.head) if len(net.head.tasks) > 1 else None
 
     def forward(self, pillar_features: Tensor, pillar_mask: Tensor, pillar_index: Tensor, image_bev: Tensor) -> HeadMaps:
-        p_bev = scatter_pillars(self.pillar_net(pillar_features, pillar_mask), pillar_index, image_bev)  # (Q, C, Yq, Xq)
+        # the same map as scatter_pillars, built by a gather (pillars.py: one pass over the map instead of three)
+        p_bev = gather_pillars(self.pillar_net(pillar_features, pillar_mask), pillar_index, image_bev)  # (Q, C, Yq, Xq)
         if self.use_image:
             x = self.relu(self.point_conv(p_bev) + self.image_conv(image_bev))  # (Q, C0, Yq / s, Xq / s)
             x = self.stage0_rest(x)

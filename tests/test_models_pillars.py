@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from streamdet.models.pillars import PillarFeatureNet, scatter_pillars
+from streamdet.models.pillars import PillarFeatureNet, gather_pillars, scatter_pillars
 
 M, C = 6, 5
 
@@ -113,3 +113,26 @@ def test_training_mode_uses_batch_statistics_over_all_slots(seed):
     np.testing.assert_allclose(out.detach().numpy(), ref, rtol=1e-4, atol=1e-5)
     out.sum().backward()
     assert net.linear.weight.grad is not None
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("seed", range(3))
+@pytest.mark.parametrize("q", [1, 3])
+def test_gather_pillars_equals_scatter(seed, q, dtype):
+    gen = torch.Generator().manual_seed(seed)
+    yq, xq = 6, 8
+    p = int(torch.randint(0, q * yq * xq + 1, (1,), generator=gen))  # 0 to every cell
+    index = torch.randperm(q * yq * xq, generator=gen)[:p].sort().values
+    feats = torch.randn(p, C, generator=gen, dtype=dtype)
+    like = torch.empty(q, C, yq, xq, dtype=dtype)
+    got = gather_pillars(feats, index, like)
+    assert got.shape == (q, C, yq, xq) and got.dtype == dtype
+    torch.testing.assert_close(got, scatter_pillars(feats, index, like), rtol=0, atol=0)
+
+
+def test_gather_pillars_empty_slice_and_bad_index():
+    out = gather_pillars(torch.zeros(0, C), torch.zeros(0, dtype=torch.int64), torch.empty(2, C, 4, 4))
+    assert out.shape == (2, C, 4, 4) and torch.count_nonzero(out) == 0
+    with pytest.raises((IndexError, RuntimeError)):
+        gather_pillars(torch.ones(1, C), torch.tensor([2 * 4 * 4]), torch.empty(2, C, 4, 4))
+
