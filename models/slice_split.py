@@ -140,6 +140,8 @@ class GroupedTaskHead(nn.Module):
 
 def task_groups(out_channels: list[int], block: int = OUTPUT_BLOCK) -> list[range]:
     """Consecutive tasks grouped so that each group's output channels fit ``block`` (a wider task alone)."""
+    if not out_channels or min(out_channels) < 1:
+        raise ValueError(f"task_groups needs one positive channel count per task, got {out_channels!r}")
     groups: list[range] = []
     start, total = 0, 0
     for t, c in enumerate(out_channels):

@@ -253,3 +253,10 @@ def test_grouped_head_mac_ratio_counts_the_zero_blocks(preset_name):
 )
 def test_task_groups_fill_blocks_in_task_order(channels, block, want):
     assert [list(g) for g in task_groups(channels, block)] == want
+
+
+@pytest.mark.parametrize("bad", [[], [3, 0, 2]])
+def test_task_groups_refuses_no_tasks_or_empty_ones(bad):
+    with pytest.raises(ValueError, match="one positive channel count per task"):
+        task_groups(bad)
+
