@@ -39,7 +39,6 @@ class SweepPillars:
         return len(self.index)
 
 
-
 def whole_grid_pillars(grid: GridSpec, max_points_per_pillar: int, max_pillars: int, num_points: int = NUM_POINTS) -> SweepPillars:
     """Every pillar of ``num_points`` sweep points, indexed on one (ny, nx) map of the whole grid."""
     made = pillarize(real_sweep_points(num_points), grid, QUADRANTS, max_points_per_pillar, max_pillars)

@@ -9,9 +9,10 @@ SliceNet concatenates twice, and a convolution of a concatenation is the sum of 
 
 onnxruntime then never materialises a concatenated map: each sum folds into a convolution of its blocked (NCHWc)
 layout as that convolution's ``Sum`` input, the point BEV's channels-last -> NCHW transpose into the reorder of its
-convolution. The point BEV itself is built by a gather (``pillars.gather_pillars``, the same map). A deblock that is a 1x1 stride-1 transposed convolution (the stage already at the head's stride) is
-exported as the 1x1 convolution it equals (weight transposed), which onnxruntime runs in the blocked layout too
-instead of leaving it for its NCHW ConvTranspose. A multi-head's branches are grouped across its tasks
+convolution. The point BEV itself is built by a gather (``pillars.gather_pillars``, the same map). A deblock that
+is a 1x1 stride-1 transposed convolution (the stage already at the head's stride) is exported as the 1x1
+convolution it equals (weight transposed), which onnxruntime runs in the blocked layout too instead of leaving it
+for its NCHW ConvTranspose. A multi-head's branches are grouped across its tasks
 (``GroupedTaskHead``). Measured in the benchmark's slice rows (small preset, Zen 4, 2 threads): see
 benchmarks/RESULTS.md.
 
