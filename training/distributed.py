@@ -4,7 +4,7 @@
 LOCAL_RANK / MASTER_ADDR / MASTER_PORT; ``init_distributed`` joins them (gloo on CPU, nccl on CUDA).
 
 Batch norm: PyTorch's ``SyncBatchNorm`` refuses CPU tensors, so ``CrossProcessBatchNorm`` does the same job with
-``torch.distributed.nn.functional.all_reduce`` (differentiable): the mean and the variance are taken over the
+a differentiable all-reduce (``_SumOverProcesses``): the mean and the variance are taken over the
 global batch, so N processes holding one shard each compute what one process holding the whole batch computes.
 Two passes (sum, then the sum of squared deviations) keep the variance as accurate as a local batch norm's.
 """
@@ -70,10 +70,27 @@ def all_reduce_sum(x: Tensor, ctx: DistContext) -> Tensor:
     return x
 
 
-def _differentiable_sum(x: Tensor) -> Tensor:
-    from torch.distributed.nn.functional import all_reduce
+class _SumOverProcesses(torch.autograd.Function):
+    """y = sum over processes of x, differentiable: every process's x feeds every process's y, so each x's
+    gradient is the sum over processes of y's gradients (another all-reduce). This is what
+    ``torch.distributed.nn.functional.all_reduce`` computes; that function is deprecated in favour of a private
+    module, so the few lines live here."""
 
-    return all_reduce(x, op=dist.ReduceOp.SUM)
+    @staticmethod
+    def forward(ctx, x: Tensor) -> Tensor:
+        y = x.clone()
+        dist.all_reduce(y, op=dist.ReduceOp.SUM)
+        return y
+
+    @staticmethod
+    def backward(ctx, grad: Tensor) -> Tensor:
+        g = grad.contiguous().clone()
+        dist.all_reduce(g, op=dist.ReduceOp.SUM)
+        return g
+
+
+def _differentiable_sum(x: Tensor) -> Tensor:
+    return _SumOverProcesses.apply(x)
 
 
 class CrossProcessBatchNorm(_BatchNorm):
