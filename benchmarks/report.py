@@ -181,7 +181,13 @@ def format_header(meta: dict, peak: ProbeResult) -> str:
             else "CPU use of other processes unknown"
         ),
         f"onnxruntime {m['onnxruntime']} (CPU, ORT_ENABLE_ALL), torch {m['torch']} (eager, inference_mode); "
-        f"repeats {meta['repeat']} after {meta['warmup']} warm-up run(s), {meta['budget_s']:.0f} s budget per measurement",
+        f"repeats {meta['repeat']} after {meta['warmup']} warm-up run(s), {meta['budget_s']:.0f} s budget per measurement"
+        + (
+            f"; a row's measurements take turns in {rounds} rounds, each turn after {meta['settle_s'] * 1e3:.0f} ms of "
+            "untimed runs"
+            if (rounds := meta.get("rounds"))
+            else ""
+        ),
         f"peak probe: {peak.size}^3 fp32 MatMul in onnxruntime, best of {peak.runs} runs (at the start and the end): "
         f"{peak.gflops_per_s:.1f} GFLOP/s (median {peak.median_gflops_per_s:.1f})"
         + (

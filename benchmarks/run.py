@@ -20,7 +20,7 @@ from streamdet.benchmarks.flops_report import PAPER_RESOLUTIONS, slice_row_pilla
 from streamdet.benchmarks.modules import build_rows
 from streamdet.benchmarks.probe import OtherCpuUse, ProbeConfig, ProbeResult, machine_info, measure_peak
 from streamdet.benchmarks.streaming import StreamingConfig, StreamingResult, measure_streaming, profile_streaming
-from streamdet.benchmarks.table import RowResult, TableConfig, measure_rows
+from streamdet.benchmarks.table import ROUNDS, RowResult, TableConfig, measure_rows
 from streamdet.benchmarks.timing import TimingConfig
 from streamdet.models.presets import Preset, get_preset
 
@@ -129,6 +129,8 @@ def run_benchmark(cfg: BenchConfig, progress: Progress = lambda msg: None) -> Be
         "repeat": timing.repeat,
         "warmup": timing.warmup,
         "budget_s": timing.budget_s,
+        "rounds": ROUNDS,
+        "settle_s": timing.settle_s,
         "quick": cfg.quick,
         "fp16": cfg.fp16,
         "int8": cfg.int8,

@@ -2,13 +2,16 @@
 
 For every row: export (``modules.export_row``), count the graph's MACs and compare with the torch counter, then
 time the fp32 graph, the fp16 graph, the int8 graph and the same module in PyTorch eager (``torch.inference_mode``, the same
-thread count) with ``timing.time_callable``. A row's throughput is its MACs over the fp32 median; its peak
-fraction divides that by the matmul probe of the same run.
+thread count) taking turns (``timing.time_interleaved``), so that the ratios between them (onnxruntime against
+PyTorch, int8 against fp32) compare runs made under the same machine conditions. A row's throughput is its MACs
+over the fp32 median; its peak fraction divides that by the matmul probe of the same run.
 """
 
 from __future__ import annotations
 
 import shutil
+import time
+from functools import partial
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -19,18 +22,20 @@ from streamdet.benchmarks.graph_macs import count_graph_macs
 from streamdet.benchmarks.modules import Row, RowGraphs, export_row
 from streamdet.benchmarks.ort_profile import ProfileSummary, summarize_profile
 from streamdet.benchmarks.probe import row_session_config
-from streamdet.benchmarks.timing import TimingConfig, TimingStats, time_callable
+from streamdet.benchmarks.timing import TimingConfig, TimingStats, time_callable, time_interleaved
 from streamdet.runtime_ort.sessions import GraphSession
 
 Progress = Callable[[str], None]
 PROFILE_RUNS = 3  # profiled runs per graph after one warm-up: enough for a per-op split, cheap for slow rows
+ROUNDS = 4  # the measurements of a row take turns in this many rounds
+TORCH, TORCH_EXPORT = "PyTorch", "PyTorch on the export form"  # their names in progress lines and notes
 
 
 @dataclass(frozen=True)
 class TableConfig:
     threads: int = 2  # intra-op threads of onnxruntime and torch.set_num_threads
     timing: TimingConfig = field(default_factory=TimingConfig)
-    torch_skip_ms: float | None = None  # skip PyTorch on rows whose fp32 median exceeds this (--quick); None: never
+    torch_skip_ms: float | None = None  # skip PyTorch on rows whose first fp32 run exceeds this (--quick); None: never
     profile_dir: Path | None = None  # write onnxruntime profiles of every row graph here
     fp16: bool = True  # also convert, time (and profile) the fp16 sibling of every graph
     int8: bool = True  # also quantize, time (and profile) the int8 sibling of every graph
@@ -76,16 +81,24 @@ class RowResult:
         return None if self.graph_gmac is None or self.gmac == 0 else self.graph_gmac / self.gmac
 
 
-def _time_graph(path: Path, row: Row, cfg: TableConfig) -> TimingStats:
-    session = GraphSession(path, row_session_config(cfg.threads))
+def _graph_runner(path: Path, row: Row, threads: int) -> Callable[[], object]:
+    session = GraphSession(path, row_session_config(threads))
     feeds = row.feeds()
-    return time_callable(lambda: session.run(feeds), cfg.timing)
+    return lambda: session.run(feeds)
 
 
-def _time_torch(net: torch.nn.Module, row: Row, cfg: TableConfig) -> TimingStats:
-    torch.set_num_threads(cfg.threads)
-    with torch.inference_mode():
-        return time_callable(lambda: net(*row.inputs), cfg.timing)
+def _torch_runner(net: torch.nn.Module, row: Row) -> Callable[[], object]:
+    def run() -> object:
+        with torch.inference_mode():
+            return net(*row.inputs)
+
+    return run
+
+
+def _first_run_ms(fn: Callable[[], object]) -> float:
+    start = time.perf_counter()
+    fn()
+    return (time.perf_counter() - start) * 1e3
 
 
 def _profile_graph(path: Path, row: Row, precision: str, threads: int, profile_dir: Path) -> ProfileSummary:
@@ -97,6 +110,34 @@ def _profile_graph(path: Path, row: Row, precision: str, threads: int, profile_d
     target = profile_dir / f"{row.key}.{precision}.json"
     shutil.move(written, target)
     return summarize_profile(target)
+
+
+def _time_row(row: Row, graphs: RowGraphs, cfg: TableConfig, notes: list[str], progress: Progress) -> dict[str, TimingStats]:
+    """The row's graphs and PyTorch modules timed taking turns (``time_interleaved``), or one after the other when
+    a run takes seconds: then turns gain little over the few repeats, and the row's sessions held together would
+    cost gigabytes (the paper preset's benchmark: 19.6 instead of 16.2 GB resident)."""
+    makers = {name: partial(_graph_runner, path, row, cfg.threads) for name, path in
+              (("fp32", graphs.fp32), ("fp16", graphs.fp16), ("int8", graphs.int8)) if path is not None}  # fmt: skip
+    fp32 = makers.pop("fp32")()
+    first_ms = _first_run_ms(fp32)
+    if cfg.torch_skip_ms is not None and first_ms > cfg.torch_skip_ms:
+        notes.append(f"PyTorch skipped (fp32 run {first_ms:.0f} ms > {cfg.torch_skip_ms:.0f} ms, --quick)")
+    else:
+        torch.set_num_threads(cfg.threads)
+        makers[TORCH] = partial(_torch_runner, row.net, row)
+        if row.export_net is not None:
+            makers[TORCH_EXPORT] = partial(_torch_runner, row.export_net, row)
+    names = ", ".join(["fp32", *makers])
+    if first_ms > cfg.timing.slow_warmup_s * 1e3:
+        progress(f"{names} one after the other (a run takes {first_ms / 1e3:.1f} s)")
+        notes.append(f"measured one after the other, not taking turns (a run takes {first_ms / 1e3:.1f} s)")
+        stats = {"fp32": time_callable(fp32, cfg.timing)}
+        del fp32  # one session at a time
+        for name, make in makers.items():
+            stats[name] = time_callable(make(), cfg.timing)
+        return stats
+    progress(f"{names} taking turns in {ROUNDS} rounds")
+    return time_interleaved({"fp32": fp32, **{name: make() for name, make in makers.items()}}, cfg.timing, ROUNDS)
 
 
 def measure_rows(rows: list[Row], work_dir: Path, cfg: TableConfig, progress: Progress = lambda msg: None) -> list[RowResult]:
@@ -116,35 +157,19 @@ def measure_rows(rows: list[Row], work_dir: Path, cfg: TableConfig, progress: Pr
         if not macs.complete:
             notes.append(f"graph MACs unresolved at {len(macs.unresolved)} node(s)")
 
-        progress(f"{step}: onnxruntime fp32")
-        fp32 = _time_graph(graphs.fp32, row, cfg)
-        fp16 = None
-        if graphs.fp16 is not None:
-            progress(f"{step}: onnxruntime fp16")
-            fp16 = _time_graph(graphs.fp16, row, cfg)
-        elif graphs.fp16_error is not None:
+        if graphs.fp16 is None and graphs.fp16_error is not None:
             notes.append(f"fp16 conversion failed: {graphs.fp16_error}")
-        int8 = None
-        if graphs.int8 is not None:
-            progress(f"{step}: onnxruntime int8")
-            int8 = _time_graph(graphs.int8, row, cfg)
-        elif graphs.int8_error is not None:
+        if graphs.int8 is None and graphs.int8_error is not None:
             notes.append(f"int8 quantization failed: {graphs.int8_error}")
-        torch_stats = torch_export = None
-        if cfg.torch_skip_ms is not None and fp32.median_ms > cfg.torch_skip_ms:
-            notes.append(f"PyTorch skipped (fp32 run {fp32.median_ms:.0f} ms > {cfg.torch_skip_ms:.0f} ms, --quick)")
-        else:
-            progress(f"{step}: PyTorch eager")
-            torch_stats = _time_torch(row.net, row, cfg)
-            if row.export_net is not None:
-                progress(f"{step}: PyTorch eager, the export's form")
-                torch_export = _time_torch(row.export_net, row, cfg)
-                notes.append(
-                    f"PyTorch times the module as trained; on the export's rewrite of it (same function) PyTorch takes "
-                    f"{torch_export.median_ms:.3g} ms, onnxruntime fp32 is {torch_export.median_ms / fp32.median_ms:.2f}x faster"
-                )
-        measured = (("fp32", fp32), ("fp16", fp16), ("int8", int8), ("torch", torch_stats), ("torch export form", torch_export))
-        cut = [f"{name} {st.count}/{st.requested}" for name, st in measured if st is not None and st.reduced]
+        stats = _time_row(row, graphs, cfg, notes, lambda msg: progress(f"{step}: {msg}"))
+        fp32, fp16, int8 = stats["fp32"], stats.get("fp16"), stats.get("int8")
+        torch_stats, torch_export = stats.get(TORCH), stats.get(TORCH_EXPORT)
+        if torch_export is not None:
+            notes.append(
+                f"PyTorch times the module as trained; on the export's rewrite of it (same function) PyTorch takes "
+                f"{torch_export.median_ms:.3g} ms, onnxruntime fp32 is {torch_export.median_ms / fp32.median_ms:.2f}x faster"
+            )
+        cut = [f"{name} {st.count}/{st.requested}" for name, st in stats.items() if st.reduced]
         if cut:
             notes.append(f"repeats cut by the {cfg.timing.budget_s:g} s budget per measurement: {', '.join(cut)}")
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,6 +23,7 @@ class TimingConfig:
     budget_s: float = 20.0  # a measurement stops adding repeats once this much time is spent on timed runs
     min_repeat: int = 3  # ... but never fewer than this many timed runs
     slow_warmup_s: float = 2.0  # a warm-up run longer than this ends the warm-up after one run
+    settle_s: float = 0.1  # time_interleaved: untimed runs at each turn for this long (other thread pools stop spinning)
 
     def __post_init__(self) -> None:
         for name in ("repeat", "min_repeat"):
@@ -31,7 +32,7 @@ class TimingConfig:
                 raise ValueError(f"TimingConfig.{name} must be a positive integer, got {v!r}")
         if isinstance(self.warmup, bool) or not isinstance(self.warmup, int) or self.warmup < 0:
             raise ValueError(f"TimingConfig.warmup must be an integer >= 0, got {self.warmup!r}")
-        for name in ("budget_s", "slow_warmup_s"):
+        for name in ("budget_s", "slow_warmup_s", "settle_s"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"TimingConfig.{name} must be a positive number of seconds, got {v!r}")
@@ -92,19 +93,66 @@ def summarize(samples_ms: Sequence[float] | np.ndarray, requested: int | None = 
 
 def time_callable(fn: Callable[[], object], config: TimingConfig = TimingConfig()) -> TimingStats:
     """Run ``fn`` ``config.warmup`` times untimed, then time up to ``config.repeat`` runs within ``config.budget_s``."""
+    return time_interleaved({"fn": fn}, config, rounds=1)["fn"]
+
+
+def time_interleaved(
+    fns: Mapping[str, Callable[[], object]], config: TimingConfig = TimingConfig(), rounds: int = 4
+) -> dict[str, TimingStats]:
+    """Time several callables taking turns, in ``rounds`` rounds, so that a change of the machine's speed during
+    the measurement (a neighbour on a shared cache, a clock change) falls on all of them alike and the ratios
+    between them stay fair: two medians measured a minute apart can differ by the 10-20 % such a change costs
+    on this guest (benchmarks/RESULTS.md).
+
+    Each callable is warmed up first (``config.warmup`` runs; one when a run takes longer than ``slow_warmup_s``).
+    At each of its turns it then runs untimed for ``settle_s`` before its timed runs: the thread pool of the
+    callable before it (onnxruntime's, PyTorch's OpenMP) keeps spinning for 20-50 ms after its last run and
+    slowed a 3.5 ms graph to 7.8 ms here when it was timed at once. Callables that slow skip the settling. The
+    timed runs are spread evenly over the rounds; ``repeat``, ``budget_s`` and ``min_repeat`` apply to each
+    callable on its own.
+    """
+    if not fns:
+        raise ValueError("time_interleaved needs at least one callable, got none")
+    if isinstance(rounds, bool) or not isinstance(rounds, int) or rounds < 1:
+        raise ValueError(f"rounds must be a positive integer, got {rounds!r}")
+    slow = {name: _warm_up(fn, config) for name, fn in fns.items()}
+    samples: dict[str, list[float]] = {name: [] for name in fns}
+    spent = dict.fromkeys(fns, 0.0)
+    per_round = -(-config.repeat // rounds)
+    last = next(reversed(fns))  # the last one warmed up
+    for r in range(rounds):
+        target = min(config.repeat, (r + 1) * per_round)
+        for name, fn in fns.items():
+            done = samples[name]
+            if len(done) >= target or (spent[name] >= config.budget_s and len(done) >= config.min_repeat):
+                continue
+            if name != last and not slow[name]:
+                _settle(fn, config.settle_s)
+            last = name
+            while len(done) < target:
+                start = time.perf_counter()
+                fn()
+                elapsed = time.perf_counter() - start
+                done.append(elapsed * 1e3)
+                spent[name] += elapsed
+                if spent[name] >= config.budget_s and len(done) >= config.min_repeat:
+                    break
+    return {name: summarize(done, requested=config.repeat) for name, done in samples.items()}
+
+
+def _settle(fn: Callable[[], object], seconds: float) -> None:
+    """Untimed runs of ``fn`` until ``seconds`` have passed (at least one)."""
+    start = time.perf_counter()
+    fn()
+    while time.perf_counter() - start < seconds:
+        fn()
+
+
+def _warm_up(fn: Callable[[], object], config: TimingConfig) -> bool:
+    """``config.warmup`` untimed runs; True when one took longer than ``slow_warmup_s`` (and ended the warm-up)."""
     for _ in range(config.warmup):
         start = time.perf_counter()
         fn()
         if time.perf_counter() - start > config.slow_warmup_s:
-            break  # one run of a multi-second graph warms it as well as several
-    samples: list[float] = []
-    spent = 0.0
-    while len(samples) < config.repeat:
-        start = time.perf_counter()
-        fn()
-        elapsed = time.perf_counter() - start
-        samples.append(elapsed * 1e3)
-        spent += elapsed
-        if spent >= config.budget_s and len(samples) >= config.min_repeat:
-            break
-    return summarize(samples, requested=config.repeat)
+            return True  # one run of a multi-second graph warms it as well as several
+    return False

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from streamdet.benchmarks import timing
-from streamdet.benchmarks.timing import TimingConfig, summarize, time_callable
+from streamdet.benchmarks.timing import TimingConfig, summarize, time_callable, time_interleaved
 
 
 @pytest.mark.parametrize("seed", range(5))
@@ -95,8 +95,90 @@ def test_time_callable_slow_warmup_stops_early(clock):
 @pytest.mark.parametrize(
     "kwargs, field",
     [({"repeat": 0}, "repeat"), ({"warmup": -1}, "warmup"), ({"budget_s": 0.0}, "budget_s"), ({"min_repeat": True}, "min_repeat"),
-     ({"slow_warmup_s": float("nan")}, "slow_warmup_s")],
+     ({"slow_warmup_s": float("nan")}, "slow_warmup_s"), ({"settle_s": -0.1}, "settle_s")],
 )
 def test_timing_config_rejects_bad_values(kwargs, field):
     with pytest.raises(ValueError, match=f"TimingConfig.{field}"):
         TimingConfig(**kwargs)
+
+
+class Machine:
+    """A fake machine whose speed changes at ``slow_after_s``: each callable costs its base seconds, ``slowdown``
+    times more from then on. Records the order of the calls."""
+
+    def __init__(self, base_s: dict[str, float], slow_after_s: float = float("inf"), slowdown: float = 1.0):
+        self.now = 0.0
+        self.base_s, self.slow_after_s, self.slowdown = base_s, slow_after_s, slowdown
+        self.calls: list[str] = []
+
+    def perf_counter(self):
+        return self.now
+
+    def fn(self, name):
+        def run():
+            factor = self.slowdown if self.now >= self.slow_after_s else 1.0
+            self.now += self.base_s[name] * factor
+            self.calls.append(name)
+
+        return run
+
+
+@pytest.fixture
+def machine(monkeypatch):
+    def make(*args, **kwargs):
+        m = Machine(*args, **kwargs)
+        monkeypatch.setattr(timing.time, "perf_counter", m.perf_counter)
+        return m
+
+    return make
+
+
+def test_time_interleaved_takes_turns_and_settles(machine):
+    m = machine({"a": 0.001, "b": 0.002})
+    cfg = TimingConfig(repeat=8, warmup=2, budget_s=100.0, settle_s=0.0035)
+    s = time_interleaved({"a": m.fn("a"), "b": m.fn("b")}, cfg, rounds=4)
+    assert s["a"].count == s["b"].count == 8 and not s["a"].reduced
+    assert s["a"].median_ms == pytest.approx(1.0) and s["b"].median_ms == pytest.approx(2.0)
+    # warm-ups, then at each turn untimed runs for 4 ms (4 of a, 2 of b) before its 2 timed runs
+    expected = ["a", "a", "b", "b"] + (["a"] * (4 + 2) + ["b"] * (2 + 2)) * 4
+    assert m.calls == expected
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_time_interleaved_keeps_the_ratio_when_the_machine_slows(machine, seed):
+    # the machine slows 1.5x part-way through: taking turns, both see it alike and the ratio stays 2
+    rng = np.random.default_rng(seed)
+    slow_after = float(rng.uniform(0.05, 0.25))
+    m = machine({"a": 0.004, "b": 0.008}, slow_after_s=slow_after, slowdown=1.5)
+    cfg = TimingConfig(repeat=20, warmup=1, budget_s=100.0)
+    s = time_interleaved({"a": m.fn("a"), "b": m.fn("b")}, cfg, rounds=20)
+    assert s["b"].mean_ms / s["a"].mean_ms == pytest.approx(2.0, rel=0.05)
+    # one after the other, the same slowdown distorts the ratio
+    m = machine({"a": 0.004, "b": 0.008}, slow_after_s=0.1, slowdown=1.5)
+    a = time_callable(m.fn("a"), cfg)
+    b = time_callable(m.fn("b"), cfg)
+    assert b.mean_ms / a.mean_ms > 2.4
+
+
+def test_time_interleaved_budget_and_slow_callables_apart(machine):
+    m = machine({"fast": 0.001, "slow": 3.0})
+    cfg = TimingConfig(repeat=8, warmup=2, budget_s=7.0, min_repeat=2, slow_warmup_s=2.0, settle_s=0.0015)
+    s = time_interleaved({"fast": m.fn("fast"), "slow": m.fn("slow")}, cfg, rounds=4)
+    assert s["fast"].count == 8 and not s["fast"].reduced
+    assert s["slow"].count == 3 and s["slow"].reduced  # 3 + 3 + 3 s >= 7 s; its budget does not stop the fast one
+    assert m.calls.count("slow") == 1 + 3  # one slow warm-up, no settling runs
+    # warm-up, 2 settling runs at the turns that follow the slow one (the last round follows itself), timed
+    assert m.calls.count("fast") == 2 + 3 * 2 + 8
+
+
+def test_time_interleaved_one_callable_settles_never(machine):
+    m = machine({"a": 0.001})
+    s = time_interleaved({"a": m.fn("a")}, TimingConfig(repeat=6, warmup=1, settle_s=1.0), rounds=3)
+    assert s["a"].count == 6 and m.calls == ["a"] * 7  # its turns follow each other: nothing else ran
+
+
+@pytest.mark.parametrize("fns, rounds, message", [({}, 4, "at least one callable"), ({"a": lambda: None}, 0, "rounds"),
+                                                  ({"a": lambda: None}, True, "rounds")])  # fmt: skip
+def test_time_interleaved_rejects_malformed(fns, rounds, message):
+    with pytest.raises(ValueError, match=message):
+        time_interleaved(fns, TimingConfig(repeat=2, warmup=0), rounds=rounds)
