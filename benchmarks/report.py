@@ -13,7 +13,7 @@ from dataclasses import dataclass
 from streamdet.benchmarks.prepost import format_prepost, prepost_to_dict
 from streamdet.benchmarks.probe import ProbeResult
 from streamdet.benchmarks.streaming import LaneStats, StreamingResult
-from streamdet.benchmarks.table import RowResult
+from streamdet.benchmarks.table import CROP_PAIRS, RowResult
 from streamdet.benchmarks.timing import TimingStats
 
 # The targets (a benchmark, not timed tests).
@@ -65,8 +65,7 @@ def evaluate_targets(rows: Sequence[RowResult], peak: ProbeResult, streaming: St
         targets.append(Target(f"onnxruntime fp32 >= {TORCH_OVER_ORT_MIN}x faster than PyTorch eager", None, "no PyTorch timing"))
 
     by_key = _by_key(rows)
-    pairs = (("slice_single_head", "slice_single_head_cropped", "slice graph"), ("conv3d", "conv3d_cropped", "3D convolutions"))
-    for full, cropped, what in pairs:
+    for full, cropped, what in CROP_PAIRS:
         a, b = by_key.get(full), by_key.get(cropped)
         if a is None or b is None:
             continue

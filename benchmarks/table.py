@@ -11,14 +11,14 @@ from __future__ import annotations
 
 import shutil
 import time
-from functools import partial
 from collections.abc import Callable
+from functools import partial
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
 
-from streamdet.benchmarks.graph_macs import count_graph_macs
+from streamdet.benchmarks.graph_macs import GraphMacs, count_graph_macs
 from streamdet.benchmarks.modules import Row, RowGraphs, export_row
 from streamdet.benchmarks.ort_profile import ProfileSummary, summarize_profile
 from streamdet.benchmarks.probe import row_session_config
@@ -28,6 +28,11 @@ from streamdet.runtime_ort.sessions import GraphSession
 Progress = Callable[[str], None]
 PROFILE_RUNS = 3  # profiled runs per graph after one warm-up: enough for a per-op split, cheap for slow rows
 ROUNDS = 4  # the measurements of a row take turns in this many rounds
+# (uncropped row key, cropped row key, what): the cropping targets' ratios; each pair is timed taking turns too
+CROP_PAIRS = (
+    ("slice_single_head", "slice_single_head_cropped", "slice graph"),
+    ("conv3d", "conv3d_cropped", "3D convolutions"),
+)
 TORCH, TORCH_EXPORT = "PyTorch", "PyTorch on the export form"  # their names in progress lines and notes
 
 
@@ -112,91 +117,127 @@ def _profile_graph(path: Path, row: Row, precision: str, threads: int, profile_d
     return summarize_profile(target)
 
 
-def _time_row(row: Row, graphs: RowGraphs, cfg: TableConfig, notes: list[str], progress: Progress) -> dict[str, TimingStats]:
-    """The row's graphs and PyTorch modules timed taking turns (``time_interleaved``), or one after the other when
-    a run takes seconds: then turns gain little over the few repeats, and the row's sessions held together would
+def _timing_groups(rows: list[Row]) -> list[list[int]]:
+    """Indices of the rows timed together: a cropping pair (its speed-up is a ratio of two rows), else one row."""
+    index = {row.key: i for i, row in enumerate(rows)}
+    partner = {}
+    for full, cropped, _ in CROP_PAIRS:
+        if full in index and cropped in index:
+            partner[index[full]], partner[index[cropped]] = index[cropped], index[full]
+    groups, seen = [], set()
+    for i in range(len(rows)):
+        if i not in seen:
+            group = sorted({i, partner.get(i, i)})
+            seen.update(group)
+            groups.append(group)
+    return groups
+
+
+def _time_rows(rows: list[Row], graphs: list[RowGraphs], notes: list[list[str]], cfg: TableConfig,
+               progress: Progress) -> list[dict[str, TimingStats]]:  # fmt: skip
+    """Every graph and PyTorch module of the rows timed taking turns (``time_interleaved``), or one after the other
+    when a run takes seconds: then turns gain little over the few repeats, and the sessions held together would
     cost gigabytes (the paper preset's benchmark: 19.6 instead of 16.2 GB resident)."""
-    makers = {name: partial(_graph_runner, path, row, cfg.threads) for name, path in
-              (("fp32", graphs.fp32), ("fp16", graphs.fp16), ("int8", graphs.int8)) if path is not None}  # fmt: skip
-    fp32 = makers.pop("fp32")()
-    first_ms = _first_run_ms(fp32)
-    if cfg.torch_skip_ms is not None and first_ms > cfg.torch_skip_ms:
-        notes.append(f"PyTorch skipped (fp32 run {first_ms:.0f} ms > {cfg.torch_skip_ms:.0f} ms, --quick)")
-    else:
-        torch.set_num_threads(cfg.threads)
-        makers[TORCH] = partial(_torch_runner, row.net, row)
+    makers: dict[str, Callable[[], Callable[[], object]]] = {}
+    slowest_ms = 0.0
+    for i, (row, g) in enumerate(zip(rows, graphs)):
+        for name, path in (("fp32", g.fp32), ("fp16", g.fp16), ("int8", g.int8)):
+            if path is not None:
+                makers[f"{i}:{name}"] = partial(_graph_runner, path, row, cfg.threads)
+        first_ms = _first_run_ms(makers[f"{i}:fp32"]())  # its own session, dropped again
+        slowest_ms = max(slowest_ms, first_ms)
+        if cfg.torch_skip_ms is not None and first_ms > cfg.torch_skip_ms:
+            notes[i].append(f"PyTorch skipped (fp32 run {first_ms:.0f} ms > {cfg.torch_skip_ms:.0f} ms, --quick)")
+            continue
+        makers[f"{i}:{TORCH}"] = partial(_torch_runner, row.net, row)
         if row.export_net is not None:
-            makers[TORCH_EXPORT] = partial(_torch_runner, row.export_net, row)
-    names = ", ".join(["fp32", *makers])
-    if first_ms > cfg.timing.slow_warmup_s * 1e3:
-        progress(f"{names} one after the other (a run takes {first_ms / 1e3:.1f} s)")
-        notes.append(f"measured one after the other, not taking turns (a run takes {first_ms / 1e3:.1f} s)")
-        stats = {"fp32": time_callable(fp32, cfg.timing)}
-        del fp32  # one session at a time
-        for name, make in makers.items():
-            stats[name] = time_callable(make(), cfg.timing)
-        return stats
-    progress(f"{names} taking turns in {ROUNDS} rounds")
-    return time_interleaved({"fp32": fp32, **{name: make() for name, make in makers.items()}}, cfg.timing, ROUNDS)
+            makers[f"{i}:{TORCH_EXPORT}"] = partial(_torch_runner, row.export_net, row)
+    torch.set_num_threads(cfg.threads)
+    what = ", ".join(key.split(":", 1)[1] for key in makers if key.startswith("0:"))
+    if len(rows) > 1:
+        what += f" of {len(rows)} rows (a cropping pair)"
+    if slowest_ms > cfg.timing.slow_warmup_s * 1e3:
+        progress(f"{what} one after the other (a run takes up to {slowest_ms / 1e3:.1f} s)")
+        for n in notes:
+            n.append(f"measured one after the other, not taking turns (a run takes up to {slowest_ms / 1e3:.1f} s)")
+        stats = {key: time_callable(make(), cfg.timing) for key, make in makers.items()}  # one session at a time
+    else:
+        progress(f"{what} taking turns in {ROUNDS} rounds")
+        stats = time_interleaved({key: make() for key, make in makers.items()}, cfg.timing, ROUNDS)
+    per_row: list[dict[str, TimingStats]] = [{} for _ in rows]
+    for key, st in stats.items():
+        i, name = key.split(":", 1)
+        per_row[int(i)][name] = st
+    return per_row
 
 
 def measure_rows(rows: list[Row], work_dir: Path, cfg: TableConfig, progress: Progress = lambda msg: None) -> list[RowResult]:
-    """Export, count and time every row; graphs go to ``work_dir``."""
+    """Export, count and time every row; graphs go to ``work_dir``. A cropping pair is timed together."""
     if cfg.profile_dir is not None:
         cfg.profile_dir.mkdir(parents=True, exist_ok=True)
     exported: dict[str, RowGraphs] = {}
-    results = []
-    for i, row in enumerate(rows, 1):
-        step = f"[row {i}/{len(rows)}] {row.module}"
-        if row.graph_stem not in exported:
-            progress(f"{step}: exporting fp32" + (" + fp16" if cfg.fp16 else "") + (" + int8" if cfg.int8 else ""))
-            exported[row.graph_stem] = export_row(row, work_dir, cfg.fp16, cfg.int8)
-        graphs = exported[row.graph_stem]
-        macs = count_graph_macs(graphs.model, row.input_shapes())
-        notes: list[str] = list(row.notes)
-        if not macs.complete:
-            notes.append(f"graph MACs unresolved at {len(macs.unresolved)} node(s)")
+    results: list[RowResult | None] = [None] * len(rows)
+    for group in _timing_groups(rows):
+        group_rows = [rows[i] for i in group]
+        steps = [f"[row {i + 1}/{len(rows)}] {rows[i].module}" for i in group]
+        graphs, macs, notes = [], [], []
+        for row, step in zip(group_rows, steps):
+            if row.graph_stem not in exported:
+                progress(f"{step}: exporting fp32" + (" + fp16" if cfg.fp16 else "") + (" + int8" if cfg.int8 else ""))
+                exported[row.graph_stem] = export_row(row, work_dir, cfg.fp16, cfg.int8)
+            g = exported[row.graph_stem]
+            m = count_graph_macs(g.model, row.input_shapes())
+            n: list[str] = list(row.notes)
+            if not m.complete:
+                n.append(f"graph MACs unresolved at {len(m.unresolved)} node(s)")
+            if g.fp16 is None and g.fp16_error is not None:
+                n.append(f"fp16 conversion failed: {g.fp16_error}")
+            if g.int8 is None and g.int8_error is not None:
+                n.append(f"int8 quantization failed: {g.int8_error}")
+            graphs.append(g)
+            macs.append(m)
+            notes.append(n)
+        label = steps[0] if len(group) == 1 else f"{steps[0]} + row {group[1] + 1}"
+        timed = _time_rows(group_rows, graphs, notes, cfg, lambda msg: progress(f"{label}: {msg}"))
+        for i, row, step, g, m, n, stats in zip(group, group_rows, steps, graphs, macs, notes, timed):
+            results[i] = _row_result(row, step, g, m, n, stats, cfg, progress)
+    return [r for r in results if r is not None]
 
-        if graphs.fp16 is None and graphs.fp16_error is not None:
-            notes.append(f"fp16 conversion failed: {graphs.fp16_error}")
-        if graphs.int8 is None and graphs.int8_error is not None:
-            notes.append(f"int8 quantization failed: {graphs.int8_error}")
-        stats = _time_row(row, graphs, cfg, notes, lambda msg: progress(f"{step}: {msg}"))
-        fp32, fp16, int8 = stats["fp32"], stats.get("fp16"), stats.get("int8")
-        torch_stats, torch_export = stats.get(TORCH), stats.get(TORCH_EXPORT)
-        if torch_export is not None:
-            notes.append(
-                f"PyTorch times the module as trained; on the export's rewrite of it (same function) PyTorch takes "
-                f"{torch_export.median_ms:.3g} ms, onnxruntime fp32 is {torch_export.median_ms / fp32.median_ms:.2f}x faster"
-            )
-        cut = [f"{name} {st.count}/{st.requested}" for name, st in stats.items() if st.reduced]
-        if cut:
-            notes.append(f"repeats cut by the {cfg.timing.budget_s:g} s budget per measurement: {', '.join(cut)}")
 
-        profiles: dict[str, ProfileSummary] = {}
-        if cfg.profile_dir is not None:
-            progress(f"{step}: profiling")
-            profiles["fp32"] = _profile_graph(graphs.fp32, row, "fp32", cfg.threads, cfg.profile_dir)
-            if graphs.fp16 is not None:
-                profiles["fp16"] = _profile_graph(graphs.fp16, row, "fp16", cfg.threads, cfg.profile_dir)
-            if graphs.int8 is not None:
-                profiles["int8"] = _profile_graph(graphs.int8, row, "int8", cfg.threads, cfg.profile_dir)
-        results.append(
-            RowResult(
-                module=row.module,
-                key=row.key,
-                kind=row.kind,
-                gmac=row.gmac,
-                graph_gmac=macs.gmac if macs.complete else None,
-                fp32=fp32,
-                fp16=fp16,
-                torch=torch_stats,
-                fp16_error=graphs.fp16_error,
-                notes=tuple(notes),
-                profiles=profiles,
-                int8=int8,
-                int8_error=graphs.int8_error,
-                torch_export=torch_export,
-            )
+def _row_result(row: Row, step: str, graphs: RowGraphs, macs: GraphMacs, notes: list[str],
+                stats: dict[str, TimingStats], cfg: TableConfig, progress: Progress) -> RowResult:  # fmt: skip
+    fp32, fp16, int8 = stats["fp32"], stats.get("fp16"), stats.get("int8")
+    torch_stats, torch_export = stats.get(TORCH), stats.get(TORCH_EXPORT)
+    if torch_export is not None:
+        notes.append(
+            f"PyTorch times the module as trained; on the export's rewrite of it (same function) PyTorch takes "
+            f"{torch_export.median_ms:.3g} ms, onnxruntime fp32 is {torch_export.median_ms / fp32.median_ms:.2f}x faster"
         )
-    return results
+    cut = [f"{name} {st.count}/{st.requested}" for name, st in stats.items() if st.reduced]
+    if cut:
+        notes.append(f"repeats cut by the {cfg.timing.budget_s:g} s budget per measurement: {', '.join(cut)}")
+
+    profiles: dict[str, ProfileSummary] = {}
+    if cfg.profile_dir is not None:
+        progress(f"{step}: profiling")
+        profiles["fp32"] = _profile_graph(graphs.fp32, row, "fp32", cfg.threads, cfg.profile_dir)
+        if graphs.fp16 is not None:
+            profiles["fp16"] = _profile_graph(graphs.fp16, row, "fp16", cfg.threads, cfg.profile_dir)
+        if graphs.int8 is not None:
+            profiles["int8"] = _profile_graph(graphs.int8, row, "int8", cfg.threads, cfg.profile_dir)
+    return RowResult(
+        module=row.module,
+        key=row.key,
+        kind=row.kind,
+        gmac=row.gmac,
+        graph_gmac=macs.gmac if macs.complete else None,
+        fp32=fp32,
+        fp16=fp16,
+        torch=torch_stats,
+        fp16_error=graphs.fp16_error,
+        notes=tuple(notes),
+        profiles=profiles,
+        int8=int8,
+        int8_error=graphs.int8_error,
+        torch_export=torch_export,
+    )

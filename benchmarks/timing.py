@@ -23,7 +23,7 @@ class TimingConfig:
     budget_s: float = 20.0  # a measurement stops adding repeats once this much time is spent on timed runs
     min_repeat: int = 3  # ... but never fewer than this many timed runs
     slow_warmup_s: float = 2.0  # a warm-up run longer than this ends the warm-up after one run
-    settle_s: float = 0.1  # time_interleaved: untimed runs at each turn for this long (other thread pools stop spinning)
+    settle_s: float = 0.1  # time_interleaved: untimed runs at each turn this long (other thread pools stop spinning)
 
     def __post_init__(self) -> None:
         for name in ("repeat", "min_repeat"):

@@ -4,11 +4,12 @@ PyTorch skip (no assertions on speed)."""
 from __future__ import annotations
 
 import dataclasses
+from types import SimpleNamespace
 
 import pytest
 
 from streamdet.benchmarks.modules import build_rows
-from streamdet.benchmarks.table import TableConfig, measure_rows
+from streamdet.benchmarks.table import TableConfig, _timing_groups, measure_rows
 from streamdet.benchmarks.timing import TimingConfig
 from streamdet.models.presets import get_preset
 
@@ -47,3 +48,21 @@ def test_quick_skips_pytorch_on_a_slow_row(encoder_row, tmp_path):
     assert result.torch is None and result.torch_over_ort is None
     assert any(n.startswith("PyTorch skipped (fp32 run") for n in result.notes)
     assert result.fp32.count == result.fp16.count == 2
+
+
+def test_timing_groups_pair_the_cropped_rows():
+    keys = ["slice_multi_head", "slice_single_head", "slice_single_head_cropped", "conv3d", "image_a", "conv3d_cropped"]
+    rows = [SimpleNamespace(key=k) for k in keys]
+    assert _timing_groups(rows) == [[0], [1, 2], [3, 5], [4]]
+    assert _timing_groups(rows[:2]) == [[0], [1]]  # a row without its partner stands alone
+    assert _timing_groups([]) == []
+
+
+def test_a_cropping_pair_takes_turns_together(tmp_path):
+    rows = [r for r in build_rows(get_preset("tiny"), [(128, 72)]) if r.key in ("slice_single_head", "slice_single_head_cropped")]
+    messages: list[str] = []
+    results = measure_rows(rows, tmp_path, TableConfig(threads=1, int8=False, timing=FAST), messages.append)
+    assert [r.key for r in results] == ["slice_single_head", "slice_single_head_cropped"]
+    assert any("of 2 rows (a cropping pair) taking turns in 4 rounds" in m for m in messages)
+    for r in results:
+        assert r.fp32.count == r.fp16.count == r.torch.count == r.torch_export.count == 2
