@@ -185,5 +185,6 @@ def write_plot(result: BenchResult, path: Path) -> Path:
     from streamdet.benchmarks.plot import plot_rows
 
     m = result.meta
-    return plot_rows(result.rows, path, f"streamdet {m['preset']}, {m['machine']['cpu_model']}, {m['threads']} threads")
+    title = f"streamdet {m['preset']}, {m['machine']['cpu_model']}, {m['threads']} threads"
+    return plot_rows(result.rows, path, title, result.peak.gflops_per_s)
 

@@ -73,6 +73,11 @@ def test_int8_column_in_table_json_and_plot(tmp_path):
     assert row_to_dict(rows[1], peak)["ms_int8"] is None and row_to_dict(rows[1], peak)["int8_speedup"] is None
     png = plot_rows(rows, tmp_path / "rows.png", "int8")
     assert png.stat().st_size > 0 and np.frombuffer(png.read_bytes()[:8], np.uint8)[1:4].tobytes() == b"PNG"
+    wide = plot_rows(rows, tmp_path / "rows_peak.png", "int8", peak_gflops_per_s=peak.gflops_per_s)  # % of peak panel
+    assert wide.read_bytes()[1:4] == b"PNG" and wide.stat().st_size > png.stat().st_size
+    for bad in (0.0, -1.0, float("nan")):
+        with pytest.raises(ValueError, match="peak_gflops_per_s must be a positive number"):
+            plot_rows(rows, tmp_path / "bad.png", "int8", peak_gflops_per_s=bad)
 
 
 def test_stream_precision_needs_its_graphs(tmp_path):
