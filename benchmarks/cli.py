@@ -74,7 +74,12 @@ def _flops_only(preset: str, resolution: tuple[int, int] | None, json_path: Path
 @click.option(
     "--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), help='Write {"rows": [...], "streaming": {...}, ...} here.'
 )
-@click.option("--plot", "plot_path", type=click.Path(dir_okay=False, path_type=Path), help="Write a PNG bar chart of the rows here.")
+@click.option(
+    "--plot",
+    "plot_path",
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="Write a PNG of the rows here: ms per run of each precision and PyTorch, and fp32 % of the measured peak.",
+)
 @click.option(
     "--export-dir",
     type=click.Path(file_okay=False, exists=True, path_type=Path),
