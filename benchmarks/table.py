@@ -3,8 +3,10 @@
 For every row: export (``modules.export_row``), count the graph's MACs and compare with the torch counter, then
 time the fp32 graph, the fp16 graph, the int8 graph and the same module in PyTorch eager (``torch.inference_mode``, the same
 thread count) taking turns (``timing.time_interleaved``), so that the ratios between them (onnxruntime against
-PyTorch, int8 against fp32) compare runs made under the same machine conditions. A row's throughput is its MACs
-over the fp32 median; its peak fraction divides that by the matmul probe of the same run.
+PyTorch, int8 against fp32) compare runs made under the same machine conditions; the two rows of a cropping pair
+(``CROP_PAIRS``) take turns together, for the same reason. Rows whose runs take seconds are timed one after the
+other instead, one session at a time (memory). A row's throughput is its MACs over the fp32 median; its peak
+fraction divides that by the matmul probe of the same run.
 """
 
 from __future__ import annotations
