@@ -155,7 +155,7 @@ def _time_rows(rows: list[Row], graphs: list[RowGraphs], notes: list[list[str]],
         if row.export_net is not None:
             makers[f"{i}:{TORCH_EXPORT}"] = partial(_torch_runner, row.export_net, row)
     torch.set_num_threads(cfg.threads)
-    what = ", ".join(key.split(":", 1)[1] for key in makers if key.startswith("0:"))
+    what = ", ".join(dict.fromkeys(key.split(":", 1)[1] for key in makers))  # each name once, in order
     if len(rows) > 1:
         what += f" of {len(rows)} rows (a cropping pair)"
     if slowest_ms > cfg.timing.slow_warmup_s * 1e3:
