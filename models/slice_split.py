@@ -26,7 +26,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from streamdet.models.bn_fold import bn_scale_shift
+from streamdet.models.bn_fold import fold_bn
 from streamdet.models.detector import SliceNet
 from streamdet.models.heads import HEAD_OUTPUTS, CenterHead, HeadMaps
 from streamdet.models.pillars import gather_pillars
@@ -60,11 +60,10 @@ def split_conv_bn(conv: nn.Conv2d, bn: nn.BatchNorm2d, in_splits: list[int], bia
               dtype=conv.weight.dtype)  # the derived weights keep the source's precision
     parts = nn.ModuleList(nn.Conv2d(c, conv.out_channels, bias=i == bias_part, **kw) for i, c in enumerate(in_splits))
     with torch.no_grad():
-        scale, shift = bn_scale_shift(bn)  # (Co,)
-        weight = conv.weight * scale[:, None, None, None]  # (Co, Ci, k, k)
+        weight, bias = fold_bn(conv.weight, None, bn)  # (Co, Ci, k, k), (Co,)
         for part, w in zip(parts, weight.split(in_splits, dim=1)):
             part.weight.copy_(w)
-        parts[bias_part].bias.copy_(shift)
+        parts[bias_part].bias.copy_(bias)
     return parts
 
 
@@ -83,10 +82,9 @@ def export_deblock(deblock: nn.Sequential) -> nn.Module:
         return deblock
     conv = nn.Conv2d(first.in_channels, first.out_channels, 1, bias=True, dtype=first.weight.dtype)
     with torch.no_grad():
-        scale, shift = bn_scale_shift(deblock[1])  # (Co,)
-        weight = first.weight.transpose(0, 1)  # ConvTranspose2d keeps (Ci, Co, 1, 1); Conv2d wants (Co, Ci, 1, 1)
-        conv.weight.copy_(weight * scale[:, None, None, None])
-        bias = shift if first.bias is None else shift + scale * first.bias
+        # ConvTranspose2d keeps (Ci, Co, 1, 1); Conv2d wants (Co, Ci, 1, 1)
+        weight, bias = fold_bn(first.weight.transpose(0, 1), first.bias, deblock[1])
+        conv.weight.copy_(weight)
         conv.bias.copy_(bias)
     return nn.Sequential(conv, *deblock[2:])
 
@@ -166,9 +164,9 @@ def _stacked_conv_bn(convs: list[nn.Conv2d], bns: list[nn.BatchNorm2d]) -> nn.Co
     with torch.no_grad():
         weights, biases = [], []
         for conv, bn in zip(convs, bns):
-            scale, shift = bn_scale_shift(bn)  # (Co,)
-            weights.append(conv.weight * scale[:, None, None, None])
-            biases.append(shift if conv.bias is None else shift + scale * conv.bias)
+            weight, bias = fold_bn(conv.weight, conv.bias, bn)
+            weights.append(weight)
+            biases.append(bias)
         out.weight.copy_(torch.cat(weights))
         out.bias.copy_(torch.cat(biases))
     return out
