@@ -1,17 +1,40 @@
-"""``streamdet-synth``: write a synthetic camera + LiDAR dataset in the nuScenes format (and preview pictures)."""
+"""``streamdet-synth``: write a synthetic camera + LiDAR dataset in the nuScenes format (and preview pictures),
+and ``streamdet-synth stats DIR`` to measure a dataset against the real nuScenes sample.
+
+``streamdet-synth --out DIR ...`` (no subcommand) is the generator, as it always was: the group runs the
+``generate`` command whenever the first argument is not a subcommand's name.
+"""
 
 from __future__ import annotations
 
+import json
+import sys
 from pathlib import Path
 
 import click
 
 from streamdet.cli_utils import resolution_callback
+from streamdet.data.synth_stats import open_samples
 from streamdet.data.synth_world import WorldConfig
 from streamdet.data.synth_writer import DEFAULT_VERSION, SynthConfig, generate_dataset
 
 
-@click.command(context_settings={"help_option_names": ["-h", "--help"]})
+class _DefaultGroup(click.Group):
+    """A group that runs ``generate`` when the first argument names no subcommand (the old invocation)."""
+
+    def parse_args(self, ctx: click.Context, args: list[str]) -> list[str]:
+        if args and args[0] not in self.commands and args[0] not in ("-h", "--help"):
+            args = ["generate"] + list(args)
+        return super().parse_args(ctx, args)
+
+
+@click.group(cls=_DefaultGroup, context_settings={"help_option_names": ["-h", "--help"]})
+def main() -> None:
+    """Synthetic street data in the nuScenes format: `streamdet-synth --out DIR ...` (the generate command) writes
+    a dataset; `streamdet-synth stats DIR` measures one against the real nuScenes sample."""
+
+
+@main.command("generate", context_settings={"help_option_names": ["-h", "--help"]})
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path),
               help="Dataset root to write: tables go to OUT/<version>/, files to OUT/samples/ and OUT/sweeps/.")
 @click.option("--scenes", default=2, show_default=True, type=click.IntRange(min=1), help="Number of scenes.")
@@ -27,7 +50,7 @@ from streamdet.data.synth_writer import DEFAULT_VERSION, SynthConfig, generate_d
 @click.option("--workers", default=1, show_default=True, type=click.IntRange(min=1),
               help="Processes simulating scenes in parallel (the output does not depend on it).")
 @click.option("--overwrite", is_flag=True, help="Write into OUT even if it already holds a dataset of this version.")
-def main(out_dir: Path, scenes: int, seed: int, resolution: tuple[int, int], samples_per_scene: int,
+def generate(out_dir: Path, scenes: int, seed: int, resolution: tuple[int, int], samples_per_scene: int,
          sweeps_per_sample: int, version: str, preview: bool, workers: int, overwrite: bool) -> None:
     """Generate a synthetic street dataset readable by streamdet's nuScenes reader and the nuScenes devkit."""
     table_dir = out_dir / version
@@ -59,6 +82,45 @@ def main(out_dir: Path, scenes: int, seed: int, resolution: tuple[int, int], sam
         reader = NuScenesReader(out_dir, version)
         for path in write_previews(reader.get(0), out_dir / "preview", n_slices=8):
             click.echo(f"  preview: {path}")
+
+
+@main.command("stats", context_settings={"help_option_names": ["-h", "--help"]})
+@click.argument("data_dir", type=click.Path(path_type=Path))
+@click.option("--reference", "reference_dir", type=click.Path(path_type=Path), default=None,
+              help="Dataset to compare with (nuScenes tables or a bundled-sample folder); default: the bundled real nuScenes sample.")
+@click.option("--no-reference", is_flag=True, help="Measure DATA_DIR alone.")
+@click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Also write both measurements as JSON to this file.")
+@click.option("--plot", "plot_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Also draw them as a PNG to this file (needs matplotlib).")
+@click.option("--max-samples", type=click.IntRange(min=1), default=None, help="Measure only the first N key frames.")
+def stats(data_dir: Path, reference_dir: Path | None, no_reference: bool, json_path: Path | None, plot_path: Path | None,
+          max_samples: int | None) -> None:
+    """Measure DATA_DIR's LiDAR cues (points on box faces, in-box intensity, points per box by range, vehicle
+    headings, distractors, class shares, points per sweep) per class and 10 m bin, beside a reference."""
+    from streamdet.data.synth_stats import dataset_stats, format_table, plot_stats, reference_dir as default_reference
+
+    results = []
+    targets = [data_dir] + ([] if no_reference else [reference_dir or default_reference()])
+    for path in targets:
+        try:
+            _, count, _, _ = open_samples(path)
+            count = min(count, max_samples) if max_samples else count
+            with click.progressbar(length=count, label=f"measuring {path}", show_pos=True, file=sys.stderr) as bar:
+                results.append(dataset_stats(path, max_samples=max_samples, progress=bar.update))
+        except (FileNotFoundError, ValueError, KeyError) as e:
+            raise click.ClickException(f"cannot measure {path}: {e}") from None
+    click.echo(format_table(results[0], results[1] if len(results) > 1 else None))
+    if json_path is not None:
+        json_path.parent.mkdir(parents=True, exist_ok=True)
+        doc = {"data": results[0], "reference": results[1] if len(results) > 1 else None}
+        json_path.write_text(json.dumps(doc, indent=1))
+        click.echo(f"  json: {json_path}")
+    if plot_path is not None:
+        try:
+            click.echo(f"  plot: {plot_stats(plot_path, results)}")
+        except ImportError:
+            raise click.ClickException("--plot needs matplotlib (pip install matplotlib)") from None
 
 
 if __name__ == "__main__":

@@ -23,6 +23,10 @@ from enum import IntEnum
 
 import numpy as np
 
+# The world's version, written into every dataset (world.json) so results can be labelled with the world they were
+# measured on. 1: boxes with painted faces on one straight street; 2: see the module docstring.
+WORLD_VERSION = 1
+WORLD_FILE = "world.json"  # beside a dataset's tables: the world version, roads and distractors per scene
 
 
 class Kind(IntEnum):
@@ -67,6 +71,7 @@ KIND_SPECS: tuple[KindSpec, ...] = (
     KindSpec(None, None, (0.3, 12.0, 1.4), 0.0),  # low wall / fence, sized per instance
 )
 NUM_ANNOTATED_KINDS = 8
+DISTRACTOR_KINDS: tuple[Kind, ...] = ()  # unannotated look-alikes of small road users (counted by the stats)
 
 # Road layout (lateral offsets in metres from the road centre line, + = left of the road direction).
 LANE_WIDTH_M = 3.5
@@ -161,6 +166,15 @@ class Objects:
         )
 
 
+@dataclass(frozen=True)
+class Road:
+    """A straight road strip: its centre line through ``origin_xy`` along ``yaw``, ``half_width_m`` to each side."""
+
+    origin_xy: tuple[float, float]
+    yaw: float
+    half_width_m: float
+
+
 @dataclass(frozen=True, eq=False)
 class Scene:
     """One synthetic scene: the street, its objects, the ego's motion and the key-frame times."""
@@ -209,6 +223,11 @@ class Scene:
         T[:2, :2] = [[c, -s], [s, c]]
         T[:2, 3] = self.ego_xy(t_s)
         return T
+
+    @property
+    def roads(self) -> tuple[Road, ...]:
+        """The road strips of the scene (headings of vehicles are measured against these)."""
+        return (Road((float(self.road_origin_xy[0]), float(self.road_origin_xy[1])), float(self.road_yaw), ROAD_HALF_WIDTH_M),)
 
     def to_road(self, xy_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Road coordinates (s along the road, d to its left) of world (..., 2) positions."""

@@ -32,7 +32,10 @@ from streamdet.data.sample import POINT_TIME_SUFFIX, bundled_sample_dir
 from streamdet.data.synth_lidar import LidarConfig, SimSweep, simulate_sweep
 from streamdet.data.synth_render import CameraModel, Render, render_camera
 from streamdet.data.synth_world import (
+    DISTRACTOR_KINDS,
     KIND_SPECS,
+    WORLD_FILE,
+    WORLD_VERSION,
     NUM_ANNOTATED_KINDS,
     PARKING_OFFSET_M,
     Kind,
@@ -233,6 +236,7 @@ def generate_dataset(
     n_val = min(config.num_scenes - 1, max(1, round(config.val_fraction * config.num_scenes))) if config.num_scenes > 1 else 0
     splits = {"train": names[: len(names) - n_val], "val": names[len(names) - n_val :]}
     (out / "splits.json").write_text(json.dumps(splits, indent=1))
+    write_world_sidecar(out, config)
     point_counts = [c for r in results for c in r.point_counts]
     return GenerationSummary(
         out_dir=out,
@@ -482,6 +486,30 @@ class _Tables:
                     "last_annotation_token": anns[-1]["token"],
                 }
             )
+
+
+def world_sidecar(config: SynthConfig) -> dict:
+    """What ``world.json`` holds: the world version, and per scene its start time, roads and distractors."""
+    scenes = {}
+    for i in range(config.num_scenes):
+        scene = make_scene(config.seed, i, config.world)
+        objs = scene.objects
+        distractor = np.isin(objs.kind, [int(k) for k in DISTRACTOR_KINDS])
+        scenes[scene.name] = {
+            "start_us": scene.start_us,
+            "roads": [{"origin_xy": list(map(float, r.origin_xy)), "yaw": float(r.yaw), "half_width_m": float(r.half_width_m)}
+                      for r in scene.roads],
+            "distractors_xy": objs.center0[distractor, :2].round(3).tolist(),
+            "distractor_kinds": [Kind(int(k)).name.lower() for k in objs.kind[distractor]],
+        }
+    return {"world_version": WORLD_VERSION, "scenes": scenes}
+
+
+def write_world_sidecar(out: Path, config: SynthConfig) -> Path:
+    """Write ``world.json`` beside the tables (a streamdet extension the devkit ignores)."""
+    path = Path(out) / WORLD_FILE
+    path.write_text(json.dumps(world_sidecar(config), indent=0))
+    return path
 
 
 def _write_tables(table_dir: Path, root: Path, rows: dict[str, list[dict]], seed: int) -> None:
