@@ -112,7 +112,7 @@ def main(
     if flops_only:
         _flops_only(preset or "paper", resolution, json_path)
         return
-    from streamdet.calibration.grid import check_num_slices
+    from streamdet.core.sectors import check_num_slices
 
     try:
         check_num_slices(slices)

@@ -21,9 +21,10 @@ import numpy as np
 
 from streamdet.benchmarks.timing import TimingConfig, TimingStats, time_callable
 from streamdet.calibration.grid import GridSpec
+from streamdet.core.boxes import BOX_DIM
+from streamdet.core.classes import CLASS_NAMES
+from streamdet.core.slicing import split_sweep
 from streamdet.data.sample import load_bundled_sample
-from streamdet.data.slicing import split_sweep
-from streamdet.runtime_ort.boxes import BOX_DIM, CLASS_NAMES
 from streamdet.runtime_ort.nms import NmsKind
 from streamdet.runtime_ort.pillarize import pillarize
 from streamdet.runtime_ort.postprocess import PostprocessConfig, postprocess_slice

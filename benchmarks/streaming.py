@@ -34,8 +34,8 @@ import numpy as np
 from streamdet.benchmarks.ort_profile import ProfileSummary, summarize_profile
 from streamdet.benchmarks.prepost import PrePostCase, measure_prepost
 from streamdet.benchmarks.timing import TimingConfig, TimingStats, summarize
+from streamdet.core.slicing import split_sweep
 from streamdet.data.sample import load_bundled_sample
-from streamdet.data.slicing import split_sweep
 from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector, lane_precision_label
 from streamdet.runtime_ort.postprocess import PostprocessConfig
 

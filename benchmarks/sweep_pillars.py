@@ -19,7 +19,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from streamdet.benchmarks.prepost import NUM_POINTS, real_sweep_points
-from streamdet.calibration.grid import NUM_QUADRANTS, GridSpec
+from streamdet.calibration.grid import GridSpec
+from streamdet.core.sectors import NUM_QUADRANTS
 from streamdet.runtime_ort.pillarize import Pillars, pillarize
 
 QUADRANTS = tuple(range(NUM_QUADRANTS))

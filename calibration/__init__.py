@@ -12,15 +12,7 @@ from streamdet.calibration.camera import (
     matrix_to_quaternion,
     quaternion_to_matrix,
 )
-from streamdet.calibration.grid import (
-    NUM_QUADRANTS,
-    GridSpec,
-    azimuth_deg,
-    check_num_slices,
-    quadrants_of_sector,
-    sector_bounds_deg,
-    slice_index_of,
-)
+from streamdet.calibration.grid import GridSpec
 from streamdet.calibration.lut import Lut, build_lut
 from streamdet.calibration.perturb import euler_to_matrix, matrix_to_euler, perturb_rig
 from streamdet.calibration.projection import project_points, visible_mask
@@ -29,6 +21,14 @@ from streamdet.calibration.sectors import (
     cameras_overlapping_sector,
     intervals_overlap_deg,
     sector_camera_table,
+)
+from streamdet.core.sectors import (
+    NUM_QUADRANTS,
+    azimuth_deg,
+    check_num_slices,
+    quadrants_of_sector,
+    sector_bounds_deg,
+    slice_index_of,
 )
 
 __all__ = [

@@ -1,4 +1,4 @@
-"""BEV grid, quadrants and streaming sectors: the spatial conventions of streamdet, defined once.
+"""BEV grid and quadrants: the metric conventions of streamdet, defined once (sectors: ``streamdet.core.sectors``).
 
 Frames and axes
 ---------------
@@ -19,10 +19,8 @@ A quadrant map of shape ``(Yq, Xq)`` sits in the full map at ``quadrant_offset_c
 
 Sectors (slices)
 ----------------
-Azimuth is ``atan2(y, x)`` in degrees, wrapped to [0, 360). The LiDAR scans counter-clockwise from
-``start_deg``; slice k of n covers azimuths ``[start + k * 360 / n, start + (k + 1) * 360 / n)``.
-With ``start_deg`` a multiple of 90 and n >= 4 (n a multiple of 4), a slice lies in one quadrant;
-n = 2 touches two and n = 1 all four.
+Azimuth, the quadrant numbering by azimuth and the streaming sectors are defined in ``streamdet.core.sectors``
+(the functions are importable from here as before).
 """
 
 from __future__ import annotations
@@ -32,7 +30,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-NUM_QUADRANTS = 4
+from streamdet.core.sectors import (  # noqa: F401 (public here too)
+    NUM_QUADRANTS,
+    azimuth_deg,
+    check_num_slices,
+    quadrants_of_sector,
+    sector_bounds_deg,
+    slice_index_of,
+)
 
 
 @dataclass(frozen=True)
@@ -153,45 +158,3 @@ class GridSpec:
 def _check_quadrant(q: int) -> None:
     if not (isinstance(q, (int, np.integer)) and 0 <= q < NUM_QUADRANTS):
         raise ValueError(f"quadrant index must be 0..3, got {q!r}")
-
-
-def check_num_slices(n: int, start_deg: float = 0.0) -> None:
-    """n slices must align with the quadrant split: n in {1, 2} or a multiple of 4, start on an axis."""
-    if not isinstance(n, (int, np.integer)) or n < 1:
-        raise ValueError(f"number of slices must be a positive integer, got {n!r}")
-    if n not in (1, 2) and n % 4:
-        raise ValueError(f"number of slices must be 1, 2 or a multiple of 4 (sectors aligned to quadrants), got {n}")
-    if start_deg % 90.0:
-        raise ValueError(f"slice start angle must be a multiple of 90 deg, got {start_deg}")
-
-
-def azimuth_deg(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Azimuth atan2(y, x) in degrees, wrapped to [0, 360)."""
-    a = np.degrees(np.arctan2(y, x))
-    return np.mod(a, 360.0)
-
-
-def sector_bounds_deg(k: int, n: int, start_deg: float = 0.0) -> tuple[float, float]:
-    """Azimuth interval [lo, hi) of slice k of n, in degrees from the x axis (lo in [0, 360), hi = lo + 360/n)."""
-    check_num_slices(n, start_deg)
-    if not (isinstance(k, (int, np.integer)) and 0 <= k < n):
-        raise ValueError(f"slice index must be in [0, {n}), got {k!r}")
-    width = 360.0 / n
-    lo = (start_deg + k * width) % 360.0
-    return lo, lo + width
-
-
-def slice_index_of(x: np.ndarray, y: np.ndarray, n: int, start_deg: float = 0.0) -> np.ndarray:
-    """Slice index (int64, 0..n-1) of each point by azimuth, in scan order from start_deg."""
-    check_num_slices(n, start_deg)
-    rel = np.mod(azimuth_deg(x, y) - start_deg, 360.0)
-    k = np.floor(rel / (360.0 / n)).astype(np.int64)
-    return np.minimum(k, n - 1)  # rel can round up to exactly 360 in float
-
-
-def quadrants_of_sector(k: int, n: int, start_deg: float = 0.0) -> tuple[int, ...]:
-    """Quadrants (increasing) that slice k of n touches."""
-    lo, hi = sector_bounds_deg(k, n, start_deg)
-    first = int(lo // 90.0)
-    count = max(1, math.ceil((hi - lo) / 90.0 - 1e-9))
-    return tuple(sorted({(first + i) % NUM_QUADRANTS for i in range(count)}))

@@ -27,7 +27,8 @@ from typing import Sequence
 import numpy as np
 
 from streamdet.calibration.camera import CalibrationError, Rig
-from streamdet.calibration.grid import NUM_QUADRANTS, GridSpec
+from streamdet.calibration.grid import GridSpec
+from streamdet.core.sectors import NUM_QUADRANTS
 
 LUT_FORMAT = "streamdet-lut"
 LUT_VERSION = 1

@@ -11,7 +11,7 @@ import math
 import numpy as np
 
 from streamdet.calibration.camera import Camera, Rig
-from streamdet.calibration.grid import sector_bounds_deg
+from streamdet.core.sectors import sector_bounds_deg
 
 # Sampling of a sector for the finite-range test: fine enough that a sliver narrower than this is ignored.
 _AZIMUTH_STEP_DEG = 0.1

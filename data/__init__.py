@@ -8,9 +8,10 @@
 - ``preview``: ``draw_bev``, ``draw_camera_boxes``, ``write_previews``
 """
 
+from streamdet.core.slicing import boxes_in_sector, split_sweep
 from streamdet.data.nuscenes import NuScenesReader
 from streamdet.data.sample import Sample, Sweep, load_bundled_sample, load_image, load_points
-from streamdet.data.slicing import Slice, boxes_in_sector, slice_sample, split_sweep
+from streamdet.data.slicing import Slice, slice_sample
 
 __all__ = [
     "NuScenesReader",

@@ -22,8 +22,9 @@ from pathlib import Path
 import numpy as np
 
 from streamdet.calibration.camera import Rig, invert_transform, make_transform, quaternion_to_matrix
+from streamdet.core.boxes import BOX_DIM
+from streamdet.core.classes import CLASS_NAMES
 from streamdet.data.sample import Sample, Sweep, load_point_times, load_points
-from streamdet.runtime_ort.boxes import BOX_DIM, CLASS_NAMES
 
 LIDAR_CHANNEL = "LIDAR_TOP"
 # mmdetection3d / the devkit's camera order; the J axis of every image tensor.

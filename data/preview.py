@@ -12,10 +12,11 @@ import cv2
 import numpy as np
 
 from streamdet.calibration.camera import Camera
-from streamdet.calibration.grid import check_num_slices, sector_bounds_deg, slice_index_of
+from streamdet.core.boxes import BOX_DIM, box_corners_3d, box_corners_bev
+from streamdet.core.classes import CLASS_NAMES
+from streamdet.core.sectors import check_num_slices, sector_bounds_deg, slice_index_of
+from streamdet.core.slicing import split_sweep
 from streamdet.data.sample import Sample, load_image
-from streamdet.data.slicing import split_sweep
-from streamdet.runtime_ort.boxes import BOX_DIM, CLASS_NAMES, box_corners_3d, box_corners_bev
 
 # One BGR colour per detection class (CLASS_NAMES order); grey for label -1.
 CLASS_COLORS_BGR: tuple[tuple[int, int, int], ...] = (

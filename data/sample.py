@@ -3,7 +3,7 @@
 Every reader (nuScenes tables, the bundled real sample, the synthetic world) returns a ``Sample``; what crosses
 into the model is the sweep ``points`` (N, 5) float32 ``x, y, z, intensity (0..255), ring`` in the LiDAR frame of
 the sample, the images named by ``image_paths`` in rig order, and boxes ``(M, 9)`` in the layout of
-``streamdet.runtime_ort.boxes`` (LiDAR frame).
+``streamdet.core.boxes`` (LiDAR frame).
 """
 
 from __future__ import annotations
@@ -17,9 +17,11 @@ import cv2
 import numpy as np
 
 from streamdet.calibration.camera import Rig
-from streamdet.runtime_ort.boxes import BOX_DIM, CLASS_NAMES
+from streamdet.core.boxes import BOX_DIM
+from streamdet.core.classes import CLASS_NAMES
+from streamdet.core.constants import BUNDLED_SAMPLE_DIR
+from streamdet.core.points import check_sweep
 
-BUNDLED_SAMPLE_DIR = "nuscenes_sample"
 POINT_TIME_SUFFIX = ".time"  # optional float32 (N,) per-point times beside a .pcd.bin (synthetic data writes it)
 
 
@@ -57,9 +59,7 @@ class Sample:
     extras: dict = field(default_factory=dict)  # reader-specific facts (e.g. the bundled sample's global centres)
 
     def __post_init__(self) -> None:
-        pts = np.asarray(self.points)
-        if pts.ndim != 2 or pts.shape[1] != 5:
-            raise ValueError(f"Sample.points must be (N, 5) x, y, z, intensity, ring; got shape {pts.shape}")
+        pts = check_sweep(self.points, "Sample.points")
         boxes = np.asarray(self.gt_boxes)
         if boxes.ndim != 2 or boxes.shape[1] != BOX_DIM:
             raise ValueError(f"Sample.gt_boxes must be (M, {BOX_DIM}), got shape {boxes.shape}")

@@ -1,7 +1,8 @@
-"""Streaming slices: a full LiDAR sweep cut into n azimuth sectors, as a rotating sensor would deliver it.
+"""Streaming slices of a sample: its sweep, past sweeps, cameras and ground truth cut into n azimuth sectors.
 
-The sensor scans counter-clockwise from ``start_deg``; slice k of n covers the azimuths
-``[start + k * 360 / n, start + (k + 1) * 360 / n)`` (``streamdet.calibration.grid``). A slice's points are
+Cutting one sweep (``split_sweep``, ``boxes_in_sector``) lives in ``streamdet.core.slicing`` and is importable
+from here as before. The sensor scans counter-clockwise from ``start_deg``; slice k of n covers the azimuths
+``[start + k * 360 / n, start + (k + 1) * 360 / n)`` (``streamdet.core.sectors``). A slice's points are
 ``(N, 6)`` float32 ``x, y, z, reflectance, relative time, slice index`` (docs/architecture.md "Points"), where
 the relative time of a point is its azimuth offset from the scan start as a fraction of the sweep duration,
 plus the time lag of its sweep for points of past sweeps. A ground-truth box belongs to every slice whose sector
@@ -15,14 +16,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from streamdet.calibration.grid import azimuth_deg, check_num_slices, quadrants_of_sector, sector_bounds_deg, slice_index_of
 from streamdet.calibration.sectors import cameras_overlapping_sector
+from streamdet.core.points import SWEEP_DURATION_S  # noqa: F401 (public here too)
+from streamdet.core.sectors import check_num_slices, quadrants_of_sector, sector_bounds_deg
+from streamdet.core.slicing import boxes_in_sector, relative_time_s, split_sweep  # noqa: F401 (public here too)
 from streamdet.data.sample import Sample
-from streamdet.runtime_ort.boxes import BOX_DIM, box_corners_bev
-
-SWEEP_DURATION_S = 0.05  # nuScenes LIDAR_TOP spins at 20 Hz
-SWEEP_COLUMNS = 5  # x, y, z, intensity (0..255), ring
-SLICE_COLUMNS = 6  # x, y, z, reflectance (0..1), relative time (s), slice index
 
 
 @dataclass(frozen=True, eq=False)
@@ -43,57 +41,6 @@ class Slice:
     def sector_deg(self) -> tuple[float, float]:
         """Azimuth interval [lo, hi) of the sector in degrees (lo in [0, 360), hi may exceed 360)."""
         return sector_bounds_deg(self.index, self.num_slices, self.start_deg)
-
-
-def relative_time_s(points: np.ndarray, start_deg: float = 0.0, sweep_duration_s: float = SWEEP_DURATION_S) -> np.ndarray:
-    """(N,) float64 time of each point after the scan start, from its azimuth (counter-clockwise scan)."""
-    points = np.asarray(points)
-    offset_deg = np.mod(azimuth_deg(points[:, 0], points[:, 1]) - start_deg, 360.0)
-    return offset_deg / 360.0 * sweep_duration_s
-
-
-def split_sweep(
-    points: np.ndarray,
-    n: int,
-    start_deg: float = 0.0,
-    sweep_duration_s: float = SWEEP_DURATION_S,
-    time_lag_s: float | np.ndarray = 0.0,
-) -> list[np.ndarray]:
-    """Cut a sweep ``(N, 5)`` (x, y, z, intensity, ring) into n slices ``(N_k, 6)`` float32, in scan order.
-
-    ``time_lag_s`` (scalar or (N,)) is added to each point's relative time: the age of the point's sweep for
-    points of past sweeps (nuScenes multi-sweep input), 0 for the current sweep. Within a slice the points keep
-    their input order.
-    """
-    check_num_slices(n, start_deg)
-    points = _check_points(points, "points")
-    if not (np.isfinite(sweep_duration_s) and sweep_duration_s > 0):
-        raise ValueError(f"sweep_duration_s must be a positive number of seconds, got {sweep_duration_s!r}")
-    lag = np.asarray(time_lag_s, dtype=np.float64)
-    if lag.ndim and lag.shape != (len(points),):
-        raise ValueError(f"time_lag_s must be a scalar or ({len(points)},), got shape {lag.shape}")
-    out = np.empty((len(points), SLICE_COLUMNS), dtype=np.float32)
-    out[:, :3] = points[:, :3]
-    out[:, 3] = points[:, 3] / 255.0
-    out[:, 4] = relative_time_s(points, start_deg, sweep_duration_s) + lag
-    k = slice_index_of(points[:, 0], points[:, 1], n, start_deg)
-    out[:, 5] = k
-    # A stable sort by slice keeps the input order inside each slice and costs one pass.
-    order = np.argsort(k, kind="stable")
-    bounds = np.searchsorted(k[order], np.arange(n + 1))
-    return [out[order[bounds[i] : bounds[i + 1]]] for i in range(n)]
-
-
-def boxes_in_sector(boxes: np.ndarray, k: int, n: int, start_deg: float = 0.0) -> np.ndarray:
-    """(M,) bool: the box's BEV centre or any of its four BEV corners lies in slice k of n."""
-    sector_bounds_deg(k, n, start_deg)  # validates k, n and start_deg before any work
-    boxes = np.asarray(boxes, dtype=np.float64)
-    if boxes.ndim != 2 or boxes.shape[1] != BOX_DIM:
-        raise ValueError(f"boxes must be (M, {BOX_DIM}), got shape {boxes.shape}")
-    if len(boxes) == 0:
-        return np.zeros(0, dtype=bool)
-    xy = np.concatenate([box_corners_bev(boxes), boxes[:, None, :2]], axis=1)  # (M, 5, 2): 4 corners + centre
-    return np.any(slice_index_of(xy[..., 0], xy[..., 1], n, start_deg) == k, axis=1)
 
 
 def slice_sample(
@@ -128,12 +75,3 @@ def slice_sample(
             )
         )
     return slices
-
-
-def _check_points(points: np.ndarray, name: str) -> np.ndarray:
-    points = np.asarray(points)
-    if points.ndim != 2 or points.shape[1] < SWEEP_COLUMNS:
-        raise ValueError(f"{name} must be (N, {SWEEP_COLUMNS}) x, y, z, intensity, ring; got shape {points.shape}")
-    if not np.issubdtype(points.dtype, np.floating):
-        raise ValueError(f"{name} must be a float array, got dtype {points.dtype}")
-    return points

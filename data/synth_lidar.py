@@ -16,10 +16,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from streamdet.calibration.camera import invert_transform
+from streamdet.core.boxes import box_corners_bev
 from streamdet.data.synth_materials import ground, surface
 from streamdet.data.synth_raycast import local_normals, ray_box_entry, ray_ground, world_to_local
 from streamdet.data.synth_world import Scene
-from streamdet.runtime_ort.boxes import box_corners_bev
 
 # Velodyne HDL-32E (nuScenes LIDAR_TOP): 32 beams evenly spaced from -30.67 to +10.67 deg.
 HDL32E_ELEVATIONS_DEG: tuple[float, ...] = tuple(float(v) for v in np.linspace(-30.67, 10.67, 32))

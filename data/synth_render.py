@@ -18,10 +18,10 @@ import cv2
 import numpy as np
 
 from streamdet.calibration.camera import invert_transform
+from streamdet.core.boxes import box_corners_3d
 from streamdet.data.synth_materials import GROUND_PERIOD_M, ground, surface
 from streamdet.data.synth_raycast import world_to_local
 from streamdet.data.synth_world import NUM_ANNOTATED_KINDS, Scene
-from streamdet.runtime_ort.boxes import box_corners_3d
 
 NEAR_M = 0.05
 SKY_HORIZON = np.array([0.80, 0.85, 0.90], dtype=np.float32)

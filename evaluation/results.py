@@ -30,8 +30,9 @@ from pathlib import Path
 
 import numpy as np
 
+from streamdet.core.boxes import BOX_DIM, VX, VY, YAW
+from streamdet.core.classes import CLASS_NAMES
 from streamdet.evaluation.eval_boxes import EvalBoxes
-from streamdet.runtime_ort.boxes import BOX_DIM, CLASS_NAMES, VX, VY, YAW
 
 META_KEYS = ("use_camera", "use_lidar", "use_radar", "use_map", "use_external")
 

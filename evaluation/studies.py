@@ -27,8 +27,8 @@ from typing import Protocol
 
 import numpy as np
 
-from streamdet.calibration.grid import check_num_slices
 from streamdet.calibration.perturb import perturb_rig
+from streamdet.core.sectors import check_num_slices
 from streamdet.data.nuscenes import NuScenesReader
 from streamdet.data.sample import Sample
 from streamdet.evaluation.config import DetectionConfig
@@ -36,8 +36,8 @@ from streamdet.evaluation.dataset_eval import ground_truth_entries, prediction_e
 from streamdet.evaluation.detection_eval import evaluate
 from streamdet.evaluation.eval_boxes import EvalBoxes
 from streamdet.evaluation.metrics import DetectionMetrics
-from streamdet.runtime_ort.manifest import read_manifest, sha256_file
 from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector, lane_precision_label
+from streamdet.runtime_ort.manifest import read_manifest, sha256_file
 from streamdet.runtime_ort.postprocess import Detections
 
 DEFAULT_SLICE_COUNTS = (1, 4, 8, 16, 32)

@@ -37,31 +37,15 @@ import onnxruntime as ort
 import torch
 
 from streamdet.calibration.camera import CalibrationError, Rig
-from streamdet.calibration.grid import check_num_slices
 from streamdet.calibration.lut import Lut, build_lut
+from streamdet.core.classes import CLASS_NAMES
+from streamdet.core.constants import BUNDLED_CALIBRATION_SOURCE
+from streamdet.core.sectors import check_num_slices
 from streamdet.data.sample import Sample, load_bundled_sample
 from streamdet.data.slicing import slice_sample
 from streamdet.export import onnx_export as ox
 from streamdet.export import int8 as q8
 from streamdet.export.fp16 import check_model, convert_model_to_fp16
-from streamdet.runtime_ort.manifest import (
-    LUT_NAME,
-    MANIFEST_NAME,
-    GraphEntry,
-    ImageSpec,
-    Int8Calibration,
-    Int8GraphRecord,
-    Int8Record,
-    LutEntry,
-    Manifest,
-    Normalisation,
-    ParityRecord,
-    PipelineParity,
-    TensorSpec,
-    graph_file_name,
-    sha256_file,
-    write_manifest,
-)
 from streamdet.export.parity import (
     FP16_TOL_REL,
     TORCH_TOL_REL,
@@ -86,10 +70,27 @@ from streamdet.models.detector import StreamDetector
 from streamdet.models.flops import count_gmac
 from streamdet.models.image_encoder import IMAGENET_MEAN, IMAGENET_STD
 from streamdet.models.presets import Preset, get_preset, preset_names
-from streamdet.runtime_ort.boxes import CLASS_NAMES
+from streamdet.runtime_ort.manifest import (
+    LUT_NAME,
+    MANIFEST_NAME,
+    GraphEntry,
+    ImageSpec,
+    Int8Calibration,
+    Int8GraphRecord,
+    Int8Record,
+    LutEntry,
+    Manifest,
+    Normalisation,
+    ParityRecord,
+    PipelineParity,
+    TensorSpec,
+    graph_file_name,
+    sha256_file,
+    write_manifest,
+)
 from streamdet.runtime_ort.pillarize import Pillars, pillarize
 
-BUNDLED_CALIBRATION = "bundled:nuscenes_sample/calibration.json"
+BUNDLED_CALIBRATION = BUNDLED_CALIBRATION_SOURCE
 DEFAULT_PRESET = "small"  # the shipped model's preset: what streamdet-export exports without arguments
 STEM_STRIDE = 2  # the ResNet stem's stride: image sizes must be even
 TORCH_REF_IMAGES = 2  # images the PyTorch encoder reference runs on (onnxruntime runs all J)

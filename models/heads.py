@@ -19,8 +19,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
+from streamdet.core.classes import CLASS_NAMES
 from streamdet.models.presets import HeadConfig
-from streamdet.runtime_ort.boxes import CLASS_NAMES
 
 # (name, channels) of the regression branches; the heatmap branch comes first with one channel per class.
 REGRESSION_OUTPUTS: tuple[tuple[str, int], ...] = (("reg", 2), ("height", 1), ("dim", 3), ("rot", 2), ("vel", 2))

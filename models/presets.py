@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from streamdet.calibration.grid import GridSpec
-from streamdet.runtime_ort.boxes import CLASS_NAMES
+from streamdet.core.classes import CLASS_NAMES
 
 # The nuScenes CenterPoint task grouping of the multi-head variant (classes of similar size share a task).
 NUSCENES_TASKS: tuple[tuple[str, ...], ...] = (

@@ -2,8 +2,8 @@
 
     from streamdet.runtime_ort import StreamingDetector, DetectorConfig, StreamingRunner
 
-Names are imported lazily, so `streamdet.runtime_ort.boxes` (used by evaluation/ and data/) does not load
-onnxruntime.
+Names are imported lazily, so importing one module of the package (``streamdet.runtime_ort.manifest``) does not
+load onnxruntime.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ _EXPORTS = {
     "PostprocessConfig": "streamdet.runtime_ort.postprocess",
     "NmsConfig": "streamdet.runtime_ort.nms",
     "NmsKind": "streamdet.runtime_ort.nms",
-    "CLASS_NAMES": "streamdet.runtime_ort.boxes",
+    "CLASS_NAMES": "streamdet.core.classes",
     "pillarize": "streamdet.runtime_ort.pillarize",
 }
 

@@ -21,11 +21,11 @@ def run_sample(
     """Detect every slice of one sample through the runtime; write results JSON and a BEV picture. Returns a summary."""
     import cv2
 
+    from streamdet.core.classes import CLASS_NAMES
+    from streamdet.core.slicing import split_sweep
     from streamdet.data.preview import draw_bev
     from streamdet.data.sample import load_bundled_sample
-    from streamdet.data.slicing import split_sweep
     from streamdet.evaluation.results import boxes_to_results, write_results_json
-    from streamdet.runtime_ort.boxes import CLASS_NAMES
     from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector
     from streamdet.runtime_ort.postprocess import aggregate_sweep
 

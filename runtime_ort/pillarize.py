@@ -18,9 +18,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from streamdet.calibration.grid import NUM_QUADRANTS, GridSpec
+from streamdet.calibration.grid import GridSpec
+from streamdet.core.points import SLICE_COLUMNS
+from streamdet.core.sectors import NUM_QUADRANTS
 
-POINT_DIM = 6  # x, y, z, reflectance, relative time, slice index
+POINT_DIM = SLICE_COLUMNS  # x, y, z, reflectance, relative time, slice index (streamdet.core.points)
 PILLAR_FEATURE_DIM = 11  # the 6 point columns, 3 offsets from the pillar mean, 2 offsets from the cell centre
 
 

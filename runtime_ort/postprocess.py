@@ -15,8 +15,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from streamdet.calibration.grid import NUM_QUADRANTS, GridSpec, azimuth_deg
-from streamdet.runtime_ort.boxes import BOX_DIM, CLASS_NAMES, X, Y
+from streamdet.calibration.grid import GridSpec
+from streamdet.core.boxes import BOX_DIM, X, Y
+from streamdet.core.classes import CLASS_NAMES
+from streamdet.core.sectors import NUM_QUADRANTS, azimuth_deg
 from streamdet.runtime_ort.nms import NmsConfig, nms
 
 

@@ -1,8 +1,10 @@
-"""Option parsing shared by the command-line tools (click only: no torch, no numpy)."""
+"""Option parsing shared by the command-line tools (click and streamdet.core only: no torch)."""
 
 from __future__ import annotations
 
 import click
+
+from streamdet.core.constants import PRECISIONS
 
 # Every tool that takes an image size spells it the same way.
 RESOLUTION_HELP = "WIDTHxHEIGHT in pixels, such as 800x450"
@@ -43,8 +45,8 @@ def resolution_callback(*, min_px: int = 1, max_px: int | None = None, multiple_
     return callback
 
 
-# The graph precisions an export can hold (runtime_ort.detector.PRECISIONS; a test keeps the two equal).
-PRECISION_CHOICES = ("fp32", "fp16", "int8")
+# The graph precisions an export can hold.
+PRECISION_CHOICES = PRECISIONS
 
 
 def image_precision_option(flag: str = "--image-precision", dest: str = "image_precision"):

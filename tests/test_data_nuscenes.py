@@ -18,9 +18,9 @@ import numpy as np
 import pytest
 
 from streamdet.calibration.camera import make_transform, matrix_to_quaternion, quaternion_to_matrix
+from streamdet.core.classes import CLASS_NAMES
 from streamdet.data.nuscenes import NuScenesReader
 from streamdet.data.sample import bundled_sample_dir, load_bundled_sample, load_image, load_points
-from streamdet.runtime_ort.boxes import CLASS_NAMES
 
 SAMPLE_DIR = bundled_sample_dir()
 CATEGORY = {

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
+from streamdet.core.slicing import split_sweep
 from streamdet.data.preview import (
     CLASS_COLORS_BGR,
     camera_mosaic,
@@ -15,7 +16,6 @@ from streamdet.data.preview import (
     write_previews,
 )
 from streamdet.data.sample import load_bundled_sample, load_image
-from streamdet.data.slicing import split_sweep
 from streamdet.data.synth_cli import main
 
 

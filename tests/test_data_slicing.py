@@ -7,9 +7,11 @@ import math
 import numpy as np
 import pytest
 
-from streamdet.calibration.grid import sector_bounds_deg
+from streamdet.core.points import SWEEP_DURATION_S
+from streamdet.core.sectors import sector_bounds_deg
+from streamdet.core.slicing import boxes_in_sector, relative_time_s, split_sweep
 from streamdet.data.sample import load_bundled_sample
-from streamdet.data.slicing import SWEEP_DURATION_S, boxes_in_sector, relative_time_s, slice_sample, split_sweep
+from streamdet.data.slicing import slice_sample
 
 
 def _random_sweep(seed: int, n: int = 3000) -> np.ndarray:

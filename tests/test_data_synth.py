@@ -11,15 +11,15 @@ import numpy as np
 import pytest
 
 from streamdet.calibration.camera import quaternion_to_matrix
-from streamdet.calibration.grid import sector_bounds_deg
+from streamdet.core.classes import CLASS_NAMES
+from streamdet.core.sectors import sector_bounds_deg
+from streamdet.core.slicing import split_sweep
 from streamdet.data.nuscenes import NuScenesReader
-from streamdet.data.slicing import split_sweep
 from streamdet.data.synth_lidar import LidarConfig, simulate_sweep
 from streamdet.data.synth_materials import ground, surface
 from streamdet.data.synth_raycast import ray_box_entry, ray_ground, world_to_local
 from streamdet.data.synth_world import KIND_SPECS, Kind, WorldConfig, make_scene
 from streamdet.data.synth_writer import SynthConfig, generate_dataset, real_rig_records, simulate_frame
-from streamdet.runtime_ort.boxes import CLASS_NAMES
 
 CONFIG = SynthConfig(num_scenes=1, seed=7, resolution=(192, 108), sweeps_per_sample=2, world=WorldConfig(samples_per_scene=3))
 SWEEP_S = CONFIG.world.sweep_duration_s

@@ -13,8 +13,8 @@ import json
 import numpy as np
 import pytest
 
+from streamdet.core.classes import CLASS_NAMES
 from streamdet.evaluation import DetectionConfig, EvalBoxes, accumulate, boxes_to_gt, calc_ap, evaluate, filter_eval_boxes
-from streamdet.runtime_ort.boxes import CLASS_NAMES
 
 SAMPLE = importlib.resources.files("streamdet.data") / "nuscenes_sample"
 ORACLE = json.loads((SAMPLE / "oracle_detection_eval.json").read_text())

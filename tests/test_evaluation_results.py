@@ -8,6 +8,8 @@ import json
 import numpy as np
 import pytest
 
+from streamdet.core.boxes import YAW
+from streamdet.core.classes import CLASS_NAMES
 from streamdet.evaluation import (
     EvalBoxes,
     boxes_to_gt,
@@ -20,7 +22,6 @@ from streamdet.evaluation import (
     write_results_json,
 )
 from streamdet.evaluation.results import default_attribute, quaternion_to_rotation, rotation_to_quaternion
-from streamdet.runtime_ort.boxes import CLASS_NAMES, YAW
 
 SAMPLE = importlib.resources.files("streamdet.data") / "nuscenes_sample"
 CALIB = json.loads((SAMPLE / "calibration.json").read_text())

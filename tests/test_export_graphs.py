@@ -21,11 +21,11 @@ from streamdet.data.sample import load_bundled_sample
 from streamdet.data.slicing import slice_sample
 from streamdet.export.exporter import ExportOptions, run_export
 from streamdet.export.fp16 import check_model
-from streamdet.runtime_ort.manifest import read_manifest, sha256_file
 from streamdet.export.onnx_export import SLICE_HEAD_IO, slice_decoder
 from streamdet.export.parity import ort_session
 from streamdet.export.weights import load_detector
 from streamdet.models.presets import get_preset
+from streamdet.runtime_ort.manifest import read_manifest, sha256_file
 from streamdet.runtime_ort.pillarize import pillarize
 
 TINY = get_preset("tiny")

@@ -15,12 +15,12 @@ from click.testing import CliRunner
 from streamdet.data.sample import load_bundled_sample
 from streamdet.data.slicing import slice_sample
 from streamdet.export.cli import main as export_main
-from streamdet.runtime_ort.manifest import MANIFEST_NAME, ManifestError, read_manifest
 from streamdet.models.decode import decode_head_maps
 from streamdet.models.detector import build_detector
 from streamdet.models.presets import get_preset
 from streamdet.runtime_ort.detector import DetectorConfig, NoImageLaneError, StreamingDetector
 from streamdet.runtime_ort.lanes import StreamingRunner
+from streamdet.runtime_ort.manifest import MANIFEST_NAME, ManifestError, read_manifest
 from streamdet.runtime_ort.pillarize import pillarize
 from streamdet.training.checkpoint import save_weights
 from streamdet.training.torch_eval import TorchSweepDetector

@@ -7,14 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from streamdet.calibration.grid import (
-    GridSpec,
-    azimuth_deg,
-    check_num_slices,
-    quadrants_of_sector,
-    sector_bounds_deg,
-    slice_index_of,
-)
+from streamdet.calibration.grid import GridSpec
+from streamdet.core.sectors import azimuth_deg, check_num_slices, quadrants_of_sector, sector_bounds_deg, slice_index_of
 
 
 def test_paper_grid_sizes():

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import torch
 
+from streamdet.core.classes import CLASS_NAMES
 from streamdet.models.bev_encoder import BevEncoder
 from streamdet.models.heads import HEAD_OUTPUTS, CenterHead
 from streamdet.models.presets import NUSCENES_TASKS, HeadConfig, get_preset
-from streamdet.runtime_ort.boxes import CLASS_NAMES
 
 CHANNELS = {"heatmap": 10, "reg": 2, "height": 1, "dim": 3, "rot": 2, "vel": 2}
 

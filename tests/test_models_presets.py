@@ -10,6 +10,7 @@ import sys
 import pytest
 
 from streamdet.calibration.grid import GridSpec
+from streamdet.core.classes import CLASS_NAMES
 from streamdet.models.presets import (
     BevEncoderConfig,
     HeadConfig,
@@ -21,7 +22,6 @@ from streamdet.models.presets import (
     get_preset,
     preset_names,
 )
-from streamdet.runtime_ort.boxes import CLASS_NAMES
 
 
 def test_preset_names():

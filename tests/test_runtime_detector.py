@@ -18,11 +18,11 @@ from click.testing import CliRunner
 from streamdet.calibration.camera import Rig
 from streamdet.calibration.lut import build_lut
 from streamdet.calibration.perturb import perturb_rig
+from streamdet.core.slicing import split_sweep
 from streamdet.data.sample import load_bundled_sample
-from streamdet.data.slicing import split_sweep
-from streamdet.runtime_ort.manifest import ManifestError
 from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector
 from streamdet.runtime_ort.lanes import LaneConfig, SliceDropped, StreamingRunner
+from streamdet.runtime_ort.manifest import ManifestError
 
 N_SLICES = 8
 

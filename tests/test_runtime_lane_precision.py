@@ -10,8 +10,8 @@ import pytest
 from click.testing import CliRunner
 
 from streamdet.cli_utils import PRECISION_CHOICES
+from streamdet.core.slicing import split_sweep
 from streamdet.data.sample import load_bundled_sample
-from streamdet.data.slicing import split_sweep
 from streamdet.evaluation.cli import main as eval_main
 from streamdet.export.cli import main as export_main
 from streamdet.runtime_ort.cli import main as run_main

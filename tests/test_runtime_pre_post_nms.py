@@ -7,8 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from streamdet.calibration.grid import GridSpec, quadrants_of_sector, sector_bounds_deg
-from streamdet.runtime_ort.boxes import CLASS_NAMES, bev_iou, box_corners_bev, paired_bev_iou
+from streamdet.calibration.grid import GridSpec
+from streamdet.core.boxes import bev_iou, box_corners_bev, paired_bev_iou
+from streamdet.core.classes import CLASS_NAMES
+from streamdet.core.sectors import quadrants_of_sector, sector_bounds_deg
 from streamdet.runtime_ort.nms import CENTERPOINT_CIRCLE_RADIUS_M, NmsConfig, NmsKind, nms, overlapping_pairs
 from streamdet.runtime_ort.postprocess import (
     Detections,

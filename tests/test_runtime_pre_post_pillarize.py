@@ -9,7 +9,8 @@ from fractions import Fraction
 import numpy as np
 import pytest
 
-from streamdet.calibration.grid import GridSpec, quadrants_of_sector, slice_index_of
+from streamdet.calibration.grid import GridSpec
+from streamdet.core.sectors import quadrants_of_sector, slice_index_of
 from streamdet.runtime_ort.pillarize import PILLAR_FEATURE_DIM, Pillars, pillarize
 
 PAPER = GridSpec()

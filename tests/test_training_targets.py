@@ -9,8 +9,8 @@ import pytest
 import torch
 
 from streamdet.calibration.grid import GridSpec
+from streamdet.core.classes import CLASS_NAMES
 from streamdet.models.decode import decode_head_maps
-from streamdet.runtime_ort.boxes import CLASS_NAMES
 from streamdet.training.targets import TargetConfig, build_targets, draw_gaussians, gaussian_radius
 
 GRID = GridSpec(x_range_m=(-25.6, 25.6), y_range_m=(-25.6, 25.6), voxel_xy_m=0.4, voxel_z_m=2.0)  # quadrant 64 x 64

@@ -24,12 +24,13 @@ from pathlib import Path
 import numpy as np
 
 from streamdet.calibration.camera import Rig
-from streamdet.calibration.grid import check_num_slices, quadrants_of_sector
 from streamdet.calibration.sectors import cameras_overlapping_sector
+from streamdet.core.boxes import BOX_DIM
+from streamdet.core.classes import CLASS_NAMES
+from streamdet.core.sectors import check_num_slices, quadrants_of_sector
+from streamdet.core.slicing import boxes_in_sector, split_sweep
 from streamdet.data.nuscenes import NuScenesReader
-from streamdet.data.slicing import boxes_in_sector, split_sweep
 from streamdet.models.presets import Preset
-from streamdet.runtime_ort.boxes import BOX_DIM, CLASS_NAMES
 from streamdet.runtime_ort.pillarize import Pillars, pillarize
 from streamdet.training.targets import MapTargets, TargetConfig, build_targets
 

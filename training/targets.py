@@ -19,8 +19,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from streamdet.calibration.grid import GridSpec
+from streamdet.core.boxes import BOX_DIM, H, L, VX, VY, W, X, Y, YAW, Z
+from streamdet.core.classes import CLASS_NAMES
 from streamdet.models.decode import encode_center
-from streamdet.runtime_ort.boxes import BOX_DIM, CLASS_NAMES, H, L, VX, VY, W, X, Y, YAW, Z
 
 BOX_CODE_SIZE = 10  # reg_x, reg_y, z, log w, log l, log h, sin, cos, vx, vy (head outputs reg, height, dim, rot, vel)
 

@@ -1,0 +1,31 @@
+"""streamdet.core: the vocabulary every other package shares (numpy only; imports nothing else of streamdet).
+
+- ``classes``: ``CLASS_NAMES`` (a label is an index into it)
+- ``boxes``: the ``(N, 9)`` box layout and the box geometry (corners, rotated BEV IoU)
+- ``points``: the sweep ``(N, 5)`` and slice ``(N, 6)`` point layouts
+- ``sectors``: azimuth, quadrants and streaming sectors
+- ``slicing``: ``split_sweep``, ``boxes_in_sector``, ``relative_time_s``
+- ``constants``: the graph precisions and the ``bundled:`` sources
+"""
+
+from streamdet.core.boxes import BOX_DIM
+from streamdet.core.classes import CLASS_NAMES, NUM_CLASSES
+from streamdet.core.constants import BUNDLED_PREFIX, PRECISIONS
+from streamdet.core.points import SLICE_COLUMNS, SWEEP_COLUMNS, SWEEP_DURATION_S
+from streamdet.core.sectors import NUM_QUADRANTS, check_num_slices
+from streamdet.core.slicing import boxes_in_sector, split_sweep
+
+__all__ = [
+    "BOX_DIM",
+    "BUNDLED_PREFIX",
+    "CLASS_NAMES",
+    "NUM_CLASSES",
+    "NUM_QUADRANTS",
+    "PRECISIONS",
+    "SLICE_COLUMNS",
+    "SWEEP_COLUMNS",
+    "SWEEP_DURATION_S",
+    "boxes_in_sector",
+    "check_num_slices",
+    "split_sweep",
+]

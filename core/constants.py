@@ -1,0 +1,13 @@
+"""Names shared by the exporter, the manifest and the runtime: graph precisions and bundled-file sources."""
+
+from __future__ import annotations
+
+# The graph precisions an export can hold, in the order the manifest lists them.
+PRECISIONS: tuple[str, ...] = ("fp32", "fp16", "int8")
+
+# A source recorded in a manifest as "bundled:<path>" names a file shipped inside streamdet.data, not a path on
+# the exporting machine.
+BUNDLED_PREFIX = "bundled:"
+BUNDLED_SAMPLE_DIR = "nuscenes_sample"  # the bundled real nuScenes sample, under streamdet.data
+BUNDLED_SAMPLE_SOURCE = BUNDLED_PREFIX + BUNDLED_SAMPLE_DIR
+BUNDLED_CALIBRATION_SOURCE = BUNDLED_SAMPLE_SOURCE + "/calibration.json"

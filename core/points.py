@@ -1,0 +1,40 @@
+"""The two point layouts, defined once.
+
+A **sweep** is ``(N, 5)`` float32, as nuScenes stores it::
+
+    x, y, z      metres, LiDAR frame of the sweep
+    intensity    0..255
+    ring         laser index
+
+A **slice** (what the slice graph's pillarisation reads) is ``(N, 6)`` float32, the paper's (x, y, z, r, m, s)::
+
+    x, y, z      metres, LiDAR frame
+    reflectance  intensity / 255, 0..1
+    time         seconds after the sweep start (>= 0), plus the age of the point's sweep for past sweeps
+    slice        slice index 0..n-1
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+SWEEP_COLUMNS = 5
+SWEEP_X, SWEEP_Y, SWEEP_Z, SWEEP_INTENSITY, SWEEP_RING = range(SWEEP_COLUMNS)
+
+SLICE_COLUMNS = 6
+SLICE_X, SLICE_Y, SLICE_Z, SLICE_REFLECTANCE, SLICE_TIME, SLICE_INDEX = range(SLICE_COLUMNS)
+
+INTENSITY_SCALE = 255.0  # reflectance = intensity / INTENSITY_SCALE
+SWEEP_DURATION_S = 0.05  # nuScenes LIDAR_TOP spins at 20 Hz
+
+
+def check_sweep(points: np.ndarray, name: str = "sweep", *, exact: bool = True) -> np.ndarray:
+    """``points`` as an array, or a ValueError naming ``name`` and the bad shape.
+
+    ``exact`` False admits extra trailing columns (a reader that keeps more than the five).
+    """
+    points = np.asarray(points)
+    width_ok = points.ndim == 2 and (points.shape[1] == SWEEP_COLUMNS if exact else points.shape[1] >= SWEEP_COLUMNS)
+    if not width_ok:
+        raise ValueError(f"{name} must be (N, {SWEEP_COLUMNS}) x, y, z, intensity, ring; got shape {points.shape}")
+    return points
