@@ -31,6 +31,7 @@ from streamdet.calibration.camera import make_transform, matrix_to_quaternion, q
 from streamdet.data.sample import POINT_TIME_SUFFIX, bundled_sample_dir
 from streamdet.data.synth_lidar import LidarConfig, SimSweep, simulate_sweep
 from streamdet.data.synth_render import CameraModel, Render, render_camera
+from streamdet.data.synth_trajectories import write_trajectories
 from streamdet.data.synth_world import (
     DISTRACTOR_KINDS,
     KIND_SPECS,
@@ -237,6 +238,7 @@ def generate_dataset(
     splits = {"train": names[: len(names) - n_val], "val": names[len(names) - n_val :]}
     (out / "splits.json").write_text(json.dumps(splits, indent=1))
     write_world_sidecar(out, config)
+    write_trajectories(out, config)  # trajectories.npz: every object's pose at any time (streamdet-replay)
     point_counts = [c for r in results for c in r.point_counts]
     return GenerationSummary(
         out_dir=out,

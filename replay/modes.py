@@ -1,0 +1,157 @@
+"""The three ways to serve the same drive, each behind the same two calls (``submit_slice``, ``submit_images``).
+
+- ``streaming`` (the paper): `StreamingRunner` as a vehicle embeds it; slices as they arrive in the slice lane
+  (bounded queue, the oldest waiting slice dropped when it is full), camera images in the image lane (a waiting set
+  superseded by a newer one), both lanes at once.
+- ``full-sweep``: the same runner, but the player waits for the whole rotation and hands over the sweep as one
+  slice of a one-slice detector (the whole grid in one slice-graph run): what most deployed detectors do.
+- ``sequential``: one FIFO served by one worker, slices and image sets in arrival order, no slice ever dropped
+  (a waiting image set is still superseded by a newer one, as in the bench's sequential queue): each slice waits
+  for everything before it, the bottleneck of memory-based streaming methods. When the work arriving per second
+  exceeds a second, its latency grows without bound.
+
+The detector only needs ``uses_images``, ``detect_slice(points, k, timestamp, num_slices)`` and
+``update_images(images, timestamp)``: a `StreamingDetector`, or a fake one in tests. `Instrumented` wraps it to
+tell the player when each job starts and ends and how much CPU its thread spent.
+"""
+
+from __future__ import annotations
+
+import collections
+import threading
+import time
+from collections.abc import Callable, Mapping
+from concurrent.futures import Future
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from streamdet.runtime_ort.lanes import ImagesSuperseded, LaneConfig, StreamingRunner
+
+MODES: tuple[str, ...] = ("streaming", "full-sweep", "sequential")
+SLICE_LANE, IMAGE_LANE, ONE_QUEUE = "slice_lane", "image_lane", "one_queue"
+
+
+class Detector(Protocol):
+    uses_images: bool
+
+    def detect_slice(self, points: np.ndarray, slice_index: int, timestamp: float | None = None,
+                     num_slices: int | None = None): ...  # fmt: skip
+
+    def update_images(self, images: Mapping[str, np.ndarray], timestamp: float | None = None): ...
+
+
+class JobHooks(Protocol):
+    """What the player learns from inside a job (called on the worker's thread)."""
+
+    def job_started(self, key: int) -> None: ...
+
+    def job_ended(self, key: int, cpu_s: float) -> None: ...
+
+
+class Instrumented:
+    """A detector whose every call reports its start, end and thread CPU time; slices run as ``num_slices``."""
+
+    def __init__(self, detector: Detector, num_slices: int, hooks: JobHooks) -> None:
+        self.detector = detector
+        self.uses_images = detector.uses_images
+        self.num_slices = num_slices
+        self.hooks = hooks
+
+    def detect_slice(self, points: np.ndarray, slice_index: int, timestamp: float | None = None):
+        return self._run(id(points), lambda: self.detector.detect_slice(points, slice_index, timestamp, self.num_slices))
+
+    def update_images(self, images: Mapping[str, np.ndarray], timestamp: float | None = None):
+        return self._run(id(images), lambda: self.detector.update_images(images, timestamp))
+
+    def _run(self, key: int, job: Callable[[], object]):
+        self.hooks.job_started(key)
+        cpu0 = time.thread_time()
+        try:
+            return job()
+        finally:
+            self.hooks.job_ended(key, time.thread_time() - cpu0)
+
+
+class SequentialRunner:
+    """One FIFO, one worker: slices and image sets in arrival order; a waiting image set is superseded by a newer one."""
+
+    def __init__(self, detector: Instrumented) -> None:
+        self.detector = detector
+        self._jobs: collections.deque = collections.deque()  # (kind, fn, future)
+        self._cond = threading.Condition()
+        self._closed = False
+        self.images_superseded = 0
+        self.slices_dropped = 0  # never: the queue is unbounded
+        self._worker = threading.Thread(target=self._serve, name="sequential-queue", daemon=True)
+        self._worker.start()
+
+    def submit_slice(self, points: np.ndarray, slice_index: int, timestamp: float | None = None) -> Future:
+        return self._submit("slice", lambda: self.detector.detect_slice(points, slice_index, timestamp))
+
+    def submit_images(self, images: Mapping[str, np.ndarray], timestamp: float | None = None) -> Future:
+        return self._submit("images", lambda: self.detector.update_images(images, timestamp))
+
+    def _submit(self, kind: str, fn: Callable[[], object]) -> Future:
+        fut: Future = Future()
+        with self._cond:
+            if self._closed:
+                raise RuntimeError("the sequential queue is closed")
+            if kind == "images":
+                stale = [job for job in self._jobs if job[0] == "images"]
+                for job in stale:
+                    self._jobs.remove(job)
+                    self.images_superseded += 1
+                    job[2].set_exception(ImagesSuperseded("image set superseded by a newer one"))
+            self._jobs.append((kind, fn, fut))
+            self._cond.notify()
+        return fut
+
+    def _serve(self) -> None:
+        while True:
+            with self._cond:
+                while not self._jobs and not self._closed:
+                    self._cond.wait()
+                if not self._jobs:
+                    return
+                _, fn, fut = self._jobs.popleft()
+            if not fut.set_running_or_notify_cancel():
+                continue
+            try:
+                fut.set_result(fn())
+            except BaseException as e:  # handed to the player through the future
+                fut.set_exception(e)
+
+    def close(self) -> None:
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+        self._worker.join()
+
+
+@dataclass
+class ModeRunner:
+    """A mode opened on a detector: where the player submits, and how the work is laid out on threads."""
+
+    name: str
+    num_slices: int  # slices per sweep the player cuts and releases (1: full sweep)
+    runner: StreamingRunner | SequentialRunner
+    lane_of: dict[str, str]  # "slice" | "images" -> lane name
+    workers: dict[str, int]  # lane name -> worker threads
+
+    def close(self) -> None:
+        self.runner.close()
+
+
+def open_mode(name: str, detector: Detector, num_slices: int, hooks: JobHooks, lanes: LaneConfig = LaneConfig()) -> ModeRunner:
+    """The mode ``name`` (one of MODES) around ``detector``; ``num_slices`` is the streaming slice count."""
+    if name not in MODES:
+        raise ValueError(f"mode must be one of {MODES}, got {name!r}")
+    if name == "sequential":
+        runner = SequentialRunner(Instrumented(detector, num_slices, hooks))
+        return ModeRunner(name, num_slices, runner, {"slice": ONE_QUEUE, "images": ONE_QUEUE}, {ONE_QUEUE: 1})
+    n = 1 if name == "full-sweep" else num_slices
+    runner = StreamingRunner(Instrumented(detector, n, hooks), lanes)  # type: ignore[arg-type]  # the detector's interface
+    return ModeRunner(name, n, runner, {"slice": SLICE_LANE, "images": IMAGE_LANE},
+                      {SLICE_LANE: lanes.max_in_flight, IMAGE_LANE: 1})  # fmt: skip

@@ -1,0 +1,174 @@
+"""A `Drive` from one scene of a nuScenes-format dataset (the synthetic world or real nuScenes tables).
+
+LiDAR: every ``LIDAR_TOP`` sample_data of the scene (key frames and the sweeps between them), in time order, with
+its ego pose and the per-point times of the ``<file>.time`` sidecar where the synthetic world wrote one. When the
+data has sweeps faster than ``lidar_hz`` some are skipped so that rotations do not overlap; when slower, the drive
+has gaps between rotations (the report says which rate the data had).
+
+Cameras: the player's cameras trigger at ``camera_hz`` from drive time 0; each trigger delivers, per camera, the
+newest recorded image at or before the trigger (the first one before any). Real nuScenes records cameras at 12 Hz,
+so the images are close to their trigger; the synthetic world renders images at key frames only (2 Hz), so there
+the images are *held* between key frames: the image lane does the work of a 12 Hz rig, on older pictures. Both are
+written to ``Drive.notes``.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from streamdet.calibration.camera import make_transform, quaternion_to_matrix
+from streamdet.data.nuscenes import CAMERA_CHANNELS, LIDAR_CHANNEL, NuScenesReader
+from streamdet.data.sample import load_image, load_point_times, load_points
+from streamdet.replay.source import Drive, ImageSet, LidarSweep
+
+TABLES = ("scene", "sample", "sample_data", "calibrated_sensor", "sensor", "ego_pose")
+
+
+class DatasetTables:
+    """The tables of a nuScenes-format dataset the player needs, by token."""
+
+    def __init__(self, root: str | Path, version: str) -> None:
+        self.root = Path(root)
+        self.version = version
+        folder = self.root / version
+        if not folder.is_dir():
+            raise FileNotFoundError(f"nuScenes table folder not found: {folder}")
+        self.rows: dict[str, list[dict]] = {}
+        for name in TABLES:
+            path = folder / f"{name}.json"
+            if not path.is_file():
+                raise FileNotFoundError(f"nuScenes table {name!r} not found: {path}")
+            try:
+                self.rows[name] = json.loads(path.read_text())
+            except json.JSONDecodeError as e:
+                raise ValueError(f"nuScenes table {path} is not valid JSON: {e}") from None
+        self.by_token = {name: {r["token"]: r for r in rows} for name, rows in self.rows.items()}
+        sensor_channel = {r["token"]: r["channel"] for r in self.rows["sensor"]}
+        self.channel_of_cs = {r["token"]: sensor_channel[r["sensor_token"]] for r in self.rows["calibrated_sensor"]}
+
+    def scene_names(self) -> list[str]:
+        return [s["name"] for s in self.rows["scene"]]
+
+    def scene(self, name: str) -> dict:
+        for s in self.rows["scene"]:
+            if s["name"] == name:
+                return s
+        raise ValueError(f"scene {name!r} is not in {self.root / self.version} (it has {self.scene_names()[:5]}...)")
+
+    def sample_tokens(self, scene: dict) -> list[str]:
+        return [r["token"] for r in sorted(self.rows["sample"], key=lambda r: r["timestamp"]) if r["scene_token"] == scene["token"]]
+
+    def channel_data(self, scene: dict, channel: str) -> list[dict]:
+        """sample_data of ``channel`` in the scene (key frames and sweeps), by timestamp."""
+        samples = set(self.sample_tokens(scene))
+        rows = [r for r in self.rows["sample_data"]
+                if r["sample_token"] in samples and self.channel_of_cs[r["calibrated_sensor_token"]] == channel]  # fmt: skip
+        return sorted(rows, key=lambda r: r["timestamp"])
+
+    def pose(self, sample_data: dict) -> tuple[np.ndarray, np.ndarray]:
+        """(sensor2ego, ego2global) 4x4 of a sample_data."""
+        cs = self.by_token["calibrated_sensor"][sample_data["calibrated_sensor_token"]]
+        ego = self.by_token["ego_pose"][sample_data["ego_pose_token"]]
+        return _matrix(cs), _matrix(ego)
+
+
+def load_drive(
+    tables: DatasetTables,
+    scene_name: str,
+    image_size: tuple[int, int] | None,
+    lidar_hz: float = 20.0,
+    camera_hz: float = 12.0,
+    max_seconds: float | None = None,
+    progress: Callable[[str], None] = lambda msg: None,
+) -> Drive:
+    """The scene as a `Drive`; images resized to ``image_size`` (W, H), None: no images (a LiDAR-only detector)."""
+    if not lidar_hz > 0 or not camera_hz > 0:
+        raise ValueError(f"lidar_hz and camera_hz must be > 0, got {lidar_hz}, {camera_hz}")
+    scene = tables.scene(scene_name)
+    period_s = 1.0 / lidar_hz
+    lidar = _keep_every_rotation(tables.channel_data(scene, LIDAR_CHANNEL), period_s)
+    if not lidar:
+        raise ValueError(f"scene {scene_name!r} has no {LIDAR_CHANNEL} sample_data")
+    t0_us = int(lidar[0]["timestamp"]) - int(round(period_s * 1e6))
+    if max_seconds is not None:
+        lidar = [r for r in lidar if (int(r["timestamp"]) - t0_us) * 1e-6 <= max_seconds + 1e-9] or lidar[:1]
+    progress(f"[{scene_name}] reading {len(lidar)} LiDAR sweeps")
+    sweeps = []
+    timed = 0
+    for i, sd in enumerate(lidar):
+        path = tables.root / sd["filename"]
+        points = load_points(path)
+        times = load_point_times(path, len(points))
+        if times is not None:
+            timed += 1
+            times = np.clip(times.astype(np.float64), 0.0, period_s)  # a sweep recorded at another rate keeps its order
+        lidar2ego, ego2global = tables.pose(sd)
+        sweeps.append(LidarSweep(i, (int(sd["timestamp"]) - t0_us) * 1e-6, period_s, points, times, lidar2ego, ego2global, sd["token"]))
+    end_s = sweeps[-1].end_s
+    notes = [_lidar_note(lidar, lidar_hz, timed)]
+    image_sets: list[ImageSet] = []
+    rig = None
+    if image_size is not None:
+        image_sets, note = _image_sets(tables, scene, t0_us, end_s, camera_hz, image_size, progress)
+        notes.append(note)
+        reader = NuScenesReader(tables.root, tables.version)
+        rig = reader.get(tables.sample_tokens(scene)[0]).rig
+    return Drive(scene_name, tuple(sweeps), tuple(image_sets), t0_us, rig, tuple(notes))
+
+
+def _keep_every_rotation(rows: list[dict], period_s: float) -> list[dict]:
+    """Skip sweeps that would start before the previous kept one ended (data faster than the LiDAR rate asked)."""
+    kept: list[dict] = []
+    for r in rows:
+        if not kept or (int(r["timestamp"]) - int(kept[-1]["timestamp"])) * 1e-6 >= period_s - 1e-4:
+            kept.append(r)
+    return kept
+
+
+def _lidar_note(rows: list[dict], lidar_hz: float, timed: int) -> str:
+    gaps = np.diff([int(r["timestamp"]) for r in rows]) * 1e-6
+    rate = f"{1.0 / np.median(gaps):.1f} Hz" if len(gaps) else "one sweep"
+    times = "per-point times from the data" if timed == len(rows) else (
+        "point times from the azimuth" if timed == 0 else f"per-point times for {timed} of {len(rows)} sweeps, else azimuth")
+    return f"LiDAR: {len(rows)} rotations of {1000.0 / lidar_hz:.1f} ms, data at {rate}; {times}"
+
+
+def _image_sets(
+    tables: DatasetTables, scene: dict, t0_us: int, end_s: float, camera_hz: float, size: tuple[int, int],
+    progress: Callable[[str], None],
+) -> tuple[list[ImageSet], str]:
+    channels = [c for c in CAMERA_CHANNELS if tables.channel_data(scene, c)]
+    if not channels:
+        raise ValueError(f"scene {scene['name']!r} has no camera sample_data")
+    recorded = {c: tables.channel_data(scene, c) for c in channels}
+    stamps = {c: (np.array([int(r["timestamp"]) for r in rows]) - t0_us) * 1e-6 for c, rows in recorded.items()}
+    cache: dict[str, np.ndarray] = {}
+    triggers = np.arange(0.0, end_s + 1e-9, 1.0 / camera_hz)
+    progress(f"[{scene['name']}] reading images of {len(channels)} cameras for {len(triggers)} triggers")
+    sets = []
+    lags = []
+    for i, t in enumerate(triggers):
+        images, times = {}, []
+        for c in channels:
+            j = max(int(np.searchsorted(stamps[c], t + 1e-9)) - 1, 0)  # newest at or before t, else the first
+            row = recorded[c][j]
+            if row["token"] not in cache:
+                cache[row["token"]] = load_image(tables.root / row["filename"], size)
+            images[c] = cache[row["token"]]
+            times.append(stamps[c][j])
+        recorded_s = float(min(times))
+        lags.append(t - recorded_s)
+        sets.append(ImageSet(i, float(t), images, recorded_s))
+    rate = np.median(np.diff(stamps[channels[0]])) if len(stamps[channels[0]]) > 1 else float("inf")
+    note = (f"cameras: {len(channels)} triggered at {camera_hz:g} Hz; data records them at "
+            f"{1.0 / rate:.1f} Hz, so each trigger delivers the newest recorded images (median {1e3 * np.median(lags):.0f} ms "
+            f"older than the trigger){'; images are held between key frames' if 1.0 / rate < camera_hz / 2 else ''}")  # fmt: skip
+    return sets, note
+
+
+def _matrix(record: dict) -> np.ndarray:
+    return make_transform(quaternion_to_matrix(record["rotation"]), record["translation"])

@@ -1,0 +1,195 @@
+"""The real-time player: a drive's slices and image sets handed to a mode at their release times.
+
+The player runs its own thread, as a vehicle's sensor driver would: it sleeps until the next release, submits it
+and moves on. Submitting never blocks on the detector (the lanes queue, drop or supersede instead), so a slow
+detector cannot slow the sensors down; the record shows what it costs instead. Every time in the record is drive
+time (`DriveClock`: wall seconds over the time scale).
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import functools
+import math
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from streamdet.replay.clock import PLAYER, Clock, DriveClock
+from streamdet.replay.modes import MODES, Detector, ModeRunner, open_mode
+from streamdet.replay.record import ImageRecord, Recording, SliceRecord, percentiles
+from streamdet.replay.schedule import SLICE, Release, release_schedule
+from streamdet.replay.source import Drive
+from streamdet.runtime_ort.lanes import ImagesSuperseded, LaneConfig, SliceDropped
+
+Progress = Callable[[str], None]
+
+
+@dataclass(frozen=True)
+class PlayerConfig:
+    mode: str = "streaming"  # one of MODES
+    num_slices: int = 8  # slices per rotation in streaming and sequential modes
+    start_deg: float = 0.0  # azimuth where slice 0 starts (the detector's)
+    time_scale: float = 1.0  # wall seconds per drive second: 2 plays twice as slowly (a 2x faster computer)
+    lanes: LaneConfig = field(default_factory=LaneConfig)  # the runner's slice-lane workers and queue
+    progress_every_s: float = 0.5  # wall seconds between progress lines
+
+    def __post_init__(self) -> None:
+        if self.mode not in MODES:
+            raise ValueError(f"PlayerConfig.mode must be one of {MODES}, got {self.mode!r}")
+        if not (isinstance(self.num_slices, int) and self.num_slices >= 1):
+            raise ValueError(f"PlayerConfig.num_slices must be an integer >= 1, got {self.num_slices!r}")
+        if not self.time_scale > 0:
+            raise ValueError(f"PlayerConfig.time_scale must be > 0, got {self.time_scale!r}")
+
+
+class _Book:
+    """The player's bookkeeping, shared by the player thread and the workers' callbacks."""
+
+    def __init__(self, clock: DriveClock, mode: ModeRunner) -> None:
+        self.clock = clock
+        self.mode = mode
+        self.lock = threading.Lock()
+        self.by_key: dict[int, tuple[SliceRecord | ImageRecord, str]] = {}
+        self.waiting = {lane: 0 for lane in mode.workers}  # released, not started, not dropped
+        self.outstanding = {lane: 0 for lane in mode.workers}  # released, future not done
+        self.player_active = True
+        self.errors: list[BaseException] = []
+
+    def sleepers_expected(self) -> int:
+        """Threads that must be asleep in a FakeClock before it may advance (read without the lock, see FakeClock)."""
+        busy = sum(min(self.outstanding[lane], n) for lane, n in self.mode.workers.items())
+        return int(self.player_active) + busy
+
+    def job_started(self, key: int) -> None:
+        with self.lock:
+            rec, lane = self.by_key[key]
+            rec.start_s = self.clock.now()
+            self.waiting[lane] -= 1
+
+    def job_ended(self, key: int, cpu_s: float) -> None:
+        with self.lock:
+            rec, _ = self.by_key[key]
+            rec.end_s = self.clock.now()
+            rec.cpu_s = cpu_s
+
+    def done(self, rec: SliceRecord | ImageRecord, lane: str, fut: concurrent.futures.Future) -> None:
+        exc = fut.exception()
+        with self.lock:
+            if isinstance(exc, SliceDropped):
+                rec.dropped = True  # type: ignore[union-attr]
+                self.waiting[lane] -= 1
+            elif isinstance(exc, ImagesSuperseded):
+                rec.superseded = True  # type: ignore[union-attr]
+                self.waiting[lane] -= 1
+            elif exc is not None:
+                self.errors.append(exc)
+            else:
+                rec.emit_s = self.clock.now()
+                if isinstance(rec, SliceRecord):
+                    result = fut.result()
+                    rec.detections = result.detections
+                    rec.num_detections = len(result.detections)
+                    ts = result.image_timestamp
+                    rec.image_capture_s = float(ts) if ts is not None and math.isfinite(ts) else math.nan
+            self.outstanding[lane] -= 1
+        poke = getattr(self.clock.base, "poke", None)
+        if poke is not None:
+            poke()
+
+
+def play(
+    drive: Drive, detector: Detector, clock: Clock, config: PlayerConfig = PlayerConfig(), progress: Progress | None = None
+) -> Recording:
+    """Play ``drive`` through ``detector`` in ``config.mode`` on ``clock``; returns the record of every release."""
+    dclock = DriveClock(clock, config.time_scale)
+    book: _Book
+    mode = open_mode(config.mode, detector, config.num_slices, _Hooks(lambda: book), config.lanes)
+    book = _Book(dclock, mode)
+    schedule = release_schedule(drive, mode.num_slices, config.start_deg, images=detector.uses_images)
+    records = [_record(r) for r in schedule]
+    if hasattr(clock, "set_participants"):
+        clock.set_participants(book.sleepers_expected)
+    futures: list[concurrent.futures.Future] = []
+    cpu = {"player": 0.0}
+    process0 = time.process_time()
+
+    def drive_sensors() -> None:
+        cpu0 = time.thread_time()
+        try:
+            for release, rec in zip(schedule, records):
+                dclock.sleep_until(release.time_s, PLAYER)
+                futures.append(_submit(mode, book, release, rec))
+        finally:
+            cpu["player"] = time.thread_time() - cpu0
+            book.player_active = False
+            poke = getattr(clock, "poke", None)
+            if poke is not None:
+                poke()
+
+    dclock.start(0.0)
+    thread = threading.Thread(target=drive_sensors, name="replay-player", daemon=True)
+    thread.start()
+    while thread.is_alive():
+        thread.join(timeout=config.progress_every_s if progress else None)
+        if progress and thread.is_alive():
+            progress(_progress_line(config.mode, drive, dclock.now(), records))
+    concurrent.futures.wait(futures)
+    mode.close()
+    if book.errors:
+        raise RuntimeError(f"{config.mode} replay of {drive.name}: a job failed: {book.errors[0]!r}") from book.errors[0]
+    slices = tuple(r for r in records if isinstance(r, SliceRecord))
+    images = tuple(r for r in records if isinstance(r, ImageRecord))
+    times = [r.release_s for r in records] + [r.emit_s for r in records if math.isfinite(r.emit_s)]
+    wall_s = (max(times) - min(times)) * config.time_scale if records else 0.0
+    return Recording(config.mode, drive.name, config.time_scale, slices, images, wall_s, cpu["player"],
+                     time.process_time() - process0)  # fmt: skip
+
+
+class _Hooks:
+    """Forwards the Instrumented detector's calls to the book, which exists only once the mode is open."""
+
+    def __init__(self, book: Callable[[], _Book]) -> None:
+        self._book = book
+
+    def job_started(self, key: int) -> None:
+        self._book().job_started(key)
+
+    def job_ended(self, key: int, cpu_s: float) -> None:
+        self._book().job_ended(key, cpu_s)
+
+
+def _record(release: Release) -> SliceRecord | ImageRecord:
+    if release.kind == SLICE:
+        s = release.item
+        return SliceRecord(s.sweep, s.slice_index, s.num_slices, s.scan_end_s, len(s.points))
+    return ImageRecord(release.item.index, release.item.capture_s)
+
+
+def _submit(mode: ModeRunner, book: _Book, release: Release, rec: SliceRecord | ImageRecord) -> concurrent.futures.Future:
+    lane = mode.lane_of[release.kind]
+    item = release.item
+    key = id(item.points) if release.kind == SLICE else id(item.images)
+    with book.lock:
+        rec.release_s = book.clock.now()
+        rec.queue_depth = book.waiting[lane]
+        book.waiting[lane] += 1
+        book.outstanding[lane] += 1
+        book.by_key[key] = (rec, lane)
+    if release.kind == SLICE:
+        fut = mode.runner.submit_slice(item.points, item.slice_index, item.scan_end_s)
+    else:
+        fut = mode.runner.submit_images(item.images, item.capture_s)
+    fut.add_done_callback(functools.partial(book.done, rec, lane))
+    return fut
+
+
+def _progress_line(mode: str, drive: Drive, now_s: float, records: list) -> str:
+    slices = [r for r in records if isinstance(r, SliceRecord) and r.release_s == r.release_s]
+    done = [r.latency_ms for r in slices if r.emitted]
+    p = percentiles(done[-200:], (50, 95))
+    lat = f"latency p50 {p['p50']:.1f} / p95 {p['p95']:.1f} ms" if done else "no slice emitted yet"
+    dropped = sum(r.dropped for r in slices)
+    return (f"[{mode}] {drive.name}: {now_s:5.2f} / {drive.duration_s:.2f} s of drive, {len(done)}/{len(slices)} slices "
+            f"emitted, {dropped} dropped, {lat}")  # fmt: skip

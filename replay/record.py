@@ -1,0 +1,126 @@
+"""The record of a replay: what happened to every slice and every image set, in drive time.
+
+A slice's **latency** runs from its last point scanned (``scan_end_s``) to its detections being available
+(``emit_s``, when its future completed). Its **image age** is how old the camera picture behind the image BEV it
+was fused with was when the slice lane read it: ``start_s`` minus the capture time of that image set. A slice
+dropped by the lane's back-pressure has no start, end or emission; an image set superseded by a newer one before
+the image lane reached it likewise. ``queue_depth`` counts the jobs of the same lane released and not yet started
+when this one was released. ``cpu_s`` is the CPU time of the worker thread during the job (onnxruntime with one
+intra-op thread computes on that thread).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from streamdet.runtime_ort.postprocess import Detections
+
+
+@dataclass(slots=True)
+class SliceRecord:
+    sweep: int
+    slice_index: int
+    num_slices: int
+    scan_end_s: float
+    num_points: int
+    release_s: float = float("nan")
+    queue_depth: int = 0
+    start_s: float = float("nan")
+    end_s: float = float("nan")
+    emit_s: float = float("nan")
+    dropped: bool = False
+    image_capture_s: float = float("nan")  # capture time of the image set behind the BEV it was fused with
+    cpu_s: float = 0.0
+    num_detections: int = 0
+    detections: Detections | None = field(default=None, repr=False)
+
+    @property
+    def emitted(self) -> bool:
+        return bool(np.isfinite(self.emit_s))
+
+    @property
+    def latency_ms(self) -> float:
+        return (self.emit_s - self.scan_end_s) * 1e3
+
+    @property
+    def image_age_ms(self) -> float:
+        return (self.start_s - self.image_capture_s) * 1e3
+
+    def to_dict(self) -> dict:
+        d = {k: getattr(self, k) for k in self.__slots__ if k != "detections"}
+        return {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in d.items()}
+
+
+@dataclass(slots=True)
+class ImageRecord:
+    index: int
+    capture_s: float
+    release_s: float = float("nan")
+    queue_depth: int = 0
+    start_s: float = float("nan")
+    end_s: float = float("nan")
+    emit_s: float = float("nan")
+    superseded: bool = False
+    cpu_s: float = 0.0
+
+    def to_dict(self) -> dict:
+        d = {k: getattr(self, k) for k in self.__slots__}
+        return {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in d.items()}
+
+
+@dataclass(frozen=True)
+class Recording:
+    """One mode played over one drive."""
+
+    mode: str
+    drive: str
+    time_scale: float
+    slices: tuple[SliceRecord, ...]
+    images: tuple[ImageRecord, ...]
+    wall_s: float  # wall seconds from the first release to the last emission
+    player_cpu_s: float  # CPU seconds of the player's thread (releases and bookkeeping)
+    process_cpu_s: float  # CPU seconds of the whole process over the replay
+
+    @property
+    def drive_s(self) -> float:
+        return self.wall_s / self.time_scale
+
+    def latencies_ms(self) -> np.ndarray:
+        return np.array([s.latency_ms for s in self.slices if s.emitted], dtype=np.float64)
+
+    def image_ages_ms(self) -> np.ndarray:
+        ages = [s.image_age_ms for s in self.slices if s.emitted and np.isfinite(s.image_capture_s)]
+        return np.array(ages, dtype=np.float64)
+
+    @property
+    def slices_dropped(self) -> int:
+        return sum(s.dropped for s in self.slices)
+
+    @property
+    def images_superseded(self) -> int:
+        return sum(i.superseded for i in self.images)
+
+    def lane_cpu_share(self) -> dict[str, float]:
+        """CPU seconds of each lane's work over the replay's wall seconds (1.0 = one core busy all along)."""
+        wall = max(self.wall_s, 1e-9)
+        return {
+            "slice_lane": sum(s.cpu_s for s in self.slices) / wall,
+            "image_lane": sum(i.cpu_s for i in self.images) / wall,
+            "player": self.player_cpu_s / wall,
+        }
+
+    def to_dict(self) -> dict:
+        out = {k: getattr(self, k) for k in ("mode", "drive", "time_scale", "wall_s", "player_cpu_s", "process_cpu_s")}
+        out["slices"] = [s.to_dict() for s in self.slices]
+        out["images"] = [i.to_dict() for i in self.images]
+        return out
+
+
+def percentiles(values: np.ndarray, qs: tuple[float, ...] = (50, 95, 99)) -> dict[str, float | None]:
+    """{"p50": ..., "p95": ..., "p99": ..., "max": ...}; None when there are no values."""
+    values = np.asarray(values, dtype=np.float64)
+    if values.size == 0:
+        return {**{f"p{q:g}": None for q in qs}, "max": None}
+    return {**{f"p{q:g}": float(np.percentile(values, q)) for q in qs}, "max": float(values.max())}

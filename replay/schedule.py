@@ -1,0 +1,64 @@
+"""When the player hands each piece of data to the detector: the release schedule of a drive.
+
+A slice is released the moment its last point has been scanned: the rotation start plus the latest firing time
+of its points (the data's per-point times; without them the azimuth's fraction of the rotation, the sensor turning
+counter-clockwise from ``start_deg`` as ``streamdet.data.slicing`` assumes). An empty slice is released when the
+sensor leaves its sector. A full sweep (``num_slices`` 1) is released when the rotation ends. Image sets are
+released at their capture time (transfer and decoding are not modelled).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from streamdet.calibration.grid import slice_index_of
+from streamdet.data.slicing import relative_time_s, split_sweep
+from streamdet.replay.source import Drive, ImageSet, LidarSweep
+
+SLICE, IMAGES = "slice", "images"
+
+
+@dataclass(frozen=True, eq=False)
+class TimedSlice:
+    sweep: int  # LidarSweep.index
+    slice_index: int
+    num_slices: int
+    scan_end_s: float  # drive time its last point was scanned = its release
+    points: np.ndarray  # (N, 6) float32 slice layout (x, y, z, r, t, s)
+
+
+@dataclass(frozen=True, eq=False)
+class Release:
+    """One thing the player hands over at ``time_s``: a slice or an image set."""
+
+    time_s: float
+    kind: str  # SLICE | IMAGES
+    item: TimedSlice | ImageSet
+
+
+def slice_sweep(sweep: LidarSweep, num_slices: int, start_deg: float = 0.0) -> list[TimedSlice]:
+    """The sweep's slices in scan order with their release times."""
+    period = sweep.duration_s
+    slices = split_sweep(sweep.points, num_slices, start_deg, sweep_duration_s=period)
+    if sweep.point_time_s is not None:
+        times = np.asarray(sweep.point_time_s, dtype=np.float64)
+    else:
+        times = relative_time_s(sweep.points, start_deg, period)
+    k_of_point = slice_index_of(sweep.points[:, 0], sweep.points[:, 1], num_slices, start_deg)
+    latest = np.full(num_slices, -np.inf)
+    np.maximum.at(latest, k_of_point, times)
+    sector_end = period * (np.arange(num_slices) + 1) / num_slices  # where the sensor leaves each sector
+    if num_slices == 1:
+        latest[:] = period  # the whole rotation, whatever the points say
+    release = np.where(np.isfinite(latest), np.minimum(latest, period), sector_end)
+    return [TimedSlice(sweep.index, k, num_slices, sweep.start_s + float(release[k]), slices[k]) for k in range(num_slices)]
+
+
+def release_schedule(drive: Drive, num_slices: int, start_deg: float = 0.0, images: bool = True) -> list[Release]:
+    """Every release of the drive in time order; at equal times slices go before image sets."""
+    out = [Release(s.scan_end_s, SLICE, s) for sweep in drive.sweeps for s in slice_sweep(sweep, num_slices, start_deg)]
+    if images:
+        out += [Release(s.capture_s, IMAGES, s) for s in drive.image_sets]
+    return sorted(out, key=lambda r: (r.time_s, r.kind != SLICE))
