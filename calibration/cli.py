@@ -5,6 +5,10 @@ the same rig, the only file a calibration change touches (the lifter graph takes
 feature stride and image size come from ``DIR/manifest.json``; the calibration must name the export's cameras in
 the export's order (the encoder's J axis) and have their aspect ratio (its intrinsics are scaled to the export's
 image size, as the images are resized).
+
+It writes exactly two files, both in that directory and both atomically (a hidden temp file, then a rename):
+``lut.npz`` and ``manifest.json``. Whatever the manifest says, no other path is written: a ``lut.file`` naming a
+path, or a ``lut.npz`` / ``manifest.json`` symlinked out of the directory, is refused before anything is written.
 """
 
 from __future__ import annotations
@@ -16,10 +20,11 @@ import click
 
 from streamdet.calibration.camera import CalibrationError, Rig
 from streamdet.calibration.grid import GridSpec
-from streamdet.calibration.lut import Lut, build_lut
-from streamdet.runtime_ort.manifest import ManifestError, LutEntry, read_manifest, sha256_file, write_manifest
-
-ASPECT_TOLERANCE = 0.005  # relative; 1600x900 -> 800x450 is exact, 1920x1080 -> 800x450 too
+from streamdet.calibration.lut import ASPECT_TOLERANCE, BlindCameraWarning, Lut, blind_cameras, build_lut, check_rig_fits  # noqa: F401
+from streamdet.runtime_ort.manifest import (
+    LUT_NAME, MANIFEST_NAME, LutEntry, ManifestError, atomic_write, export_file, read_manifest, sha256_file,
+    write_manifest,
+)
 
 
 class LutMismatch(ValueError):
@@ -36,20 +41,14 @@ def rebuild_lut(calibration: str | Path, export_dir: str | Path) -> tuple[Lut, b
     image = manifest.image
     if image is None:
         raise LutMismatch(f"{export_dir} is a LiDAR-only export: it has no image lane, so no LUT to rebuild")
+    # the only two paths this writes, confined (symlinks resolved) before anything is computed or written
+    lut_path = export_file(export_dir, LUT_NAME, "the LUT")
+    export_file(export_dir, MANIFEST_NAME, "the manifest")
     rig = Rig.from_calibration_json(calibration)
-    if rig.names != image.camera_names:
-        raise LutMismatch(
-            f"calibration cameras {list(rig.names)} do not match the export's {list(image.camera_names)} "
-            "(same names in the same order: it is the order of the images fed to image_encoder)"
-        )
-    want = image.width / image.height
-    for cam in rig.cameras:
-        have = cam.width / cam.height
-        if abs(have / want - 1.0) > ASPECT_TOLERANCE:
-            raise LutMismatch(
-                f"calibration camera {cam.name} is {cam.width}x{cam.height} (aspect {have:.4f}) but the export takes "
-                f"{image.width}x{image.height} images (aspect {want:.4f}): resizing would distort them"
-            )
+    try:
+        check_rig_fits(rig, image.camera_names, image.width, image.height)
+    except CalibrationError as e:
+        raise LutMismatch(str(e)) from None
     try:
         grid = GridSpec.from_dict(manifest.grid)
     except (KeyError, TypeError, ValueError) as e:
@@ -60,11 +59,10 @@ def rebuild_lut(calibration: str | Path, export_dir: str | Path) -> tuple[Lut, b
             f"the LUT's feature map {lut.feature_width}x{lut.feature_height} differs from the manifest's "
             f"{image.feature_width}x{image.feature_height}; the manifest is inconsistent"
         )
-    path = export_dir / manifest.lut.file
-    old_sha = sha256_file(path) if path.is_file() else None
-    lut.save(path)
-    new_sha = sha256_file(path)
-    entry = LutEntry(manifest.lut.file, new_sha, lut.calibration_sha256, str(Path(calibration)))
+    old_sha = sha256_file(lut_path) if lut_path.is_file() else None
+    atomic_write(export_dir, LUT_NAME, lambda f: lut.write_npz(f))
+    new_sha = sha256_file(lut_path)
+    entry = LutEntry(LUT_NAME, new_sha, lut.calibration_sha256, str(Path(calibration)))
     write_manifest(dataclasses.replace(manifest, lut=entry), export_dir)
     return lut, new_sha != old_sha
 
@@ -87,6 +85,8 @@ def lut_command(calibration: str, export_dir: str) -> None:
         raise click.ClickException(str(e)) from None
     except OSError as e:
         raise click.ClickException(f"cannot write into {export_dir}: {e.strerror or e}") from None
+    for name, slots in blind_cameras(lut):
+        click.echo(f"warning: camera {name} sees no voxel of the grid ({slots} LUT slots): check its calibration", err=True)
     seen = float((lut.weight.sum(axis=1) > 0).mean())
     state = "rebuilt" if changed else "rebuilt (unchanged)"
     click.echo(

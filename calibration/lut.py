@@ -20,9 +20,10 @@ from __future__ import annotations
 import json
 import math
 import os
+import tempfile
 import zipfile
 from dataclasses import dataclass
-from typing import Sequence
+from typing import BinaryIO, Sequence
 
 import numpy as np
 
@@ -30,12 +31,45 @@ from streamdet.calibration.camera import CalibrationError, Rig
 from streamdet.calibration.grid import GridSpec
 from streamdet.core.sectors import NUM_QUADRANTS
 
+ASPECT_TOLERANCE = 0.005  # relative; 1600x900 -> 800x450 is exact, 1920x1080 -> 800x450 too
 LUT_FORMAT = "streamdet-lut"
 LUT_VERSION = 1
 _META_KEYS = (
     "format", "version", "grid", "feature_stride", "image_width", "image_height", "feature_width",
     "feature_height", "camera_names", "calibration_sha256", "sentinel", "num_slots", "min_depth_m",
 )
+
+
+class BlindCameraWarning(UserWarning):
+    """A camera of the rig sees no voxel of the grid (placed far away, or facing away from it): its images are
+    encoded but never reach the BEV. Usually a wrong calibration; accepted, since a rig may carry such a camera."""
+
+
+def check_rig_fits(rig: Rig, camera_names: Sequence[str], width: int, height: int) -> None:
+    """CalibrationError unless ``rig`` names ``camera_names`` in that order and every camera has the aspect ratio of
+    ``width`` x ``height`` images (its intrinsics are scaled to that size, as the images are resized: another
+    aspect would distort them)."""
+    if not isinstance(rig, Rig):
+        raise CalibrationError(f"expected a Rig, got {type(rig).__name__}")
+    if tuple(rig.names) != tuple(camera_names):
+        raise CalibrationError(
+            f"calibration cameras {list(rig.names)} do not match the export's {list(camera_names)} "
+            "(same names in the same order: it is the order of the images fed to image_encoder)"
+        )
+    want = width / height
+    for cam in rig.cameras:
+        have = cam.width / cam.height
+        if abs(have / want - 1.0) > ASPECT_TOLERANCE:
+            raise CalibrationError(
+                f"calibration camera {cam.name} is {cam.width}x{cam.height} (aspect {have:.4f}) but the export takes "
+                f"{width}x{height} images (aspect {want:.4f}): resizing would distort them"
+            )
+
+
+def blind_cameras(lut: "Lut") -> list[tuple[str, int]]:
+    """(name, number of LUT slots that read it) of every camera no voxel reads: each is 0 (BlindCameraWarning)."""
+    slots = lut.slots_per_camera()
+    return [(name, n) for name, n in slots.items() if n == 0]
 
 
 @dataclass(frozen=True, eq=False)
@@ -92,6 +126,13 @@ class Lut:
         """Index of the all-zero row appended to the (J * Hf * Wf, C) feature table."""
         return self.num_cameras * self.feature_height * self.feature_width
 
+    def slots_per_camera(self) -> dict[str, int]:
+        """Valid LUT slots reading each camera (over all quadrants, voxels and slots), by camera name."""
+        cells = self.feature_height * self.feature_width
+        rows = self.index[self.index != self.sentinel]
+        counts = np.bincount(rows // cells, minlength=self.num_cameras)
+        return {name: int(counts[j]) for j, name in enumerate(self.camera_names)}
+
     def meta(self) -> dict:
         return {
             "format": LUT_FORMAT,
@@ -125,12 +166,26 @@ class Lut:
 
     # ---- files -----------------------------------------------------------------------------------
     def save(self, path: str | os.PathLike) -> None:
-        """Write an uncompressed .npz (index, weight, meta as a JSON string); atomic via rename."""
+        """Write an uncompressed .npz (index, weight, meta as a JSON string) atomically: a hidden temp file beside
+        ``path``, then a rename (which replaces a symlink at ``path`` rather than writing through it). The file gets
+        the permissions of a plain ``open()`` (0666 minus the umask); a failure leaves no temp file."""
         path = os.fspath(path)
-        tmp = path + ".tmp"
-        with open(tmp, "wb") as f:
-            np.savez(f, index=self.index, weight=self.weight, meta=np.array(json.dumps(self.meta(), sort_keys=True)))
-        os.replace(tmp, path)
+        fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(path)}.", suffix=".tmp", dir=os.path.dirname(path) or ".")
+        try:
+            umask = os.umask(0o022)  # read the process umask (there is no getter) and restore it at once
+            os.umask(umask)
+            os.fchmod(fd, 0o666 & ~umask)
+            with os.fdopen(fd, "wb") as f:
+                self.write_npz(f)
+            os.replace(tmp, path)
+        except BaseException:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+            raise
+
+    def write_npz(self, f: BinaryIO) -> None:
+        """The .npz bytes of ``save`` into an open binary file (for writers that make the file themselves)."""
+        np.savez(f, index=self.index, weight=self.weight, meta=np.array(json.dumps(self.meta(), sort_keys=True)))
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "Lut":

@@ -14,36 +14,54 @@ GIL and each graph has its own session and thread pool, so a slice does not wait
 A LiDAR-only export (manifest preset use_image false, the paper's streaming baseline) has the slice lane alone:
 its slice graph takes the quadrant ids instead of an image BEV, and `update_images` / `set_calibration` raise
 `NoImageLaneError` (`uses_images` tells the two kinds apart).
+
+Contracts (README, "Trust and failure model"; docs/trust.md):
+
+- **Start-up** verifies everything before the first slice: the manifest against ``manifest.schema.json``, every
+  file it names confined to the export directory and matching its sha256, each graph's real signature against
+  the manifest and against what the runtime feeds (``signature.py``). Any defect is a ManifestError.
+- **Timestamps** are labels in seconds: a finite real number (NaN, inf, a bool or a string raise ValueError) or
+  None, which means ``time.monotonic()`` when the call starts. They may go backwards (a driver clock that steps);
+  they never order anything: the newest image set is the one whose `update_images` call started last.
+- **Image cache**: a newer image set is never replaced by an older one that finishes later, and a calibration
+  swap re-lifts the newest set; an image set finished under the old calibration is lifted again under the new.
+- **Refusals change nothing**: a bad slice, image set or calibration raises before any cached state is touched.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.resources
 import logging
 import math
+import numbers
+import os
 import threading
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Mapping
 
 import numpy as np
 
-from streamdet.calibration.camera import Rig
-from streamdet.calibration.grid import GridSpec, check_num_slices, quadrants_of_sector, sector_bounds_deg
-from streamdet.calibration.lut import Lut, build_lut
-from streamdet.data.slicing import split_sweep
-from streamdet.runtime_ort.manifest import ImageSpec, Manifest, read_manifest
+from streamdet.calibration.camera import CalibrationError, Rig
+from streamdet.calibration.grid import GridSpec
+from streamdet.calibration.lut import BlindCameraWarning, Lut, blind_cameras, build_lut, check_rig_fits
+from streamdet.core.constants import BUNDLED_PREFIX, PRECISIONS  # noqa: F401 (PRECISIONS: public here too)
+from streamdet.core.points import check_sweep
+from streamdet.core.sectors import check_num_slices, quadrants_of_sector, sector_bounds_deg
+from streamdet.core.slicing import split_sweep
+from streamdet.runtime_ort.manifest import ImageSpec, Manifest, ManifestError, export_file, read_manifest
 from streamdet.runtime_ort.nms import NmsConfig
 from streamdet.runtime_ort.pillarize import POINT_DIM, pillarize
 from streamdet.runtime_ort.postprocess import Detections, PostprocessConfig, aggregate_sweep, postprocess_slice
 from streamdet.runtime_ort.sessions import GraphSession, SessionConfig
+from streamdet.runtime_ort.signature import check_graph, check_runtime_fields
 from streamdet.runtime_ort.stats import LatencyStats
 
 log = logging.getLogger(__name__)
 
-PRECISIONS = ("fp32", "fp16", "int8")
-BUNDLED_PREFIX = "bundled:"  # calibration_source of an export built from a file shipped in streamdet.data
 
 
 def lane_precision_label(precision: str, image_precision: str | None) -> str:
@@ -67,13 +85,16 @@ class DetectorConfig:
     providers: tuple[str, ...] | None = None  # None: TensorRT > CUDA > CPU, whichever onnxruntime has
     image_lane_threads: int = 1  # intra-op threads of the image encoder and lifter sessions
     slice_lane_threads: int = 1  # intra-op threads of the slice session
-    num_slices: int | None = None  # slices per sweep; None: the number the export was made for
+    num_slices: int | None = None  # slices per sweep (1, 2 or a multiple of 4); None: the number the export was made for
     # (W, H) px of the images fed to the encoder; None: the export's. The graphs are dynamic in H and W, so another
     # size only needs a LUT built for it: from the export's calibration source at start, then set_calibration.
     image_size: tuple[int, int] | None = None
     start_deg: float = 0.0  # azimuth where slice 0 starts (a multiple of 90)
     score_threshold: float | None = None  # None: the export's post.score_threshold
-    nms: NmsConfig = field(default_factory=NmsConfig)  # per-class NMS inside a slice and across a sweep
+    # Per-class NMS inside a slice and across a sweep. None: the export's post settings, i.e. circle NMS with
+    # max_out = post.max_detections and, for NmsKind.ROTATED, post.nms_iou_threshold per class (the detector's
+    # `config.nms` then holds the resolved NmsConfig).
+    nms: NmsConfig | None = None
     restrict_to_sector: bool = False  # keep only boxes centred in the slice's own sector
     verify_sha256: bool = True  # refuse graphs whose bytes differ from the manifest
     enable_profiling: bool = False  # onnxruntime profiles of every session (written on close())
@@ -86,6 +107,33 @@ class DetectorConfig:
     def __post_init__(self) -> None:
         if self.precision not in PRECISIONS:
             raise ValueError(f"DetectorConfig.precision must be one of {PRECISIONS}, got {self.precision!r}")
+        for name in ("image_lane_threads", "slice_lane_threads"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 0:
+                raise ValueError(f"DetectorConfig.{name} must be an int >= 0 (0: every core), got {v!r}")
+        if self.num_slices is not None:
+            if isinstance(self.num_slices, bool) or not isinstance(self.num_slices, (int, np.integer)):
+                raise ValueError(f"DetectorConfig.num_slices must be None or an int (1, 2 or a multiple of 4), got {self.num_slices!r}")
+            try:
+                check_num_slices(int(self.num_slices))
+            except ValueError as e:
+                raise ValueError(f"DetectorConfig.num_slices: {e}") from None
+        if isinstance(self.start_deg, bool) or not isinstance(self.start_deg, numbers.Real) or not math.isfinite(self.start_deg) or self.start_deg % 90.0:
+            raise ValueError(f"DetectorConfig.start_deg must be a finite multiple of 90 degrees, got {self.start_deg!r}")
+        if self.score_threshold is not None and (
+            isinstance(self.score_threshold, bool) or not isinstance(self.score_threshold, numbers.Real)
+            or not 0.0 <= self.score_threshold <= 1.0
+        ):
+            raise ValueError(f"DetectorConfig.score_threshold must be None or a number in [0, 1], got {self.score_threshold!r}")
+        if self.nms is not None and not isinstance(self.nms, NmsConfig):
+            raise ValueError(f"DetectorConfig.nms must be None or an NmsConfig, got {type(self.nms).__name__}")
+        for name in ("restrict_to_sector", "verify_sha256", "enable_profiling"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"DetectorConfig.{name} must be True or False, got {getattr(self, name)!r}")
+        if self.providers is not None and (
+            isinstance(self.providers, str) or not all(isinstance(p, str) for p in self.providers)
+        ):
+            raise ValueError(f"DetectorConfig.providers must be None or a tuple of provider names, got {self.providers!r}")
         if self.image_lane_precision is not None and self.image_lane_precision not in PRECISIONS:
             raise ValueError(
                 f"DetectorConfig.image_lane_precision must be None or one of {PRECISIONS}, got {self.image_lane_precision!r}"
@@ -104,6 +152,9 @@ class ImageUpdate:
     timestamp: float
     cameras_used: tuple[str, ...]
     cameras_missing: tuple[str, ...]  # their features were zeros in this update
+    # True when a newer image set (an update_images call that started later) was installed first: this one was
+    # encoded but never replaced it (an older set never overwrites a newer one)
+    superseded: bool = False
 
 
 @dataclass(frozen=True)
@@ -118,6 +169,10 @@ class SliceResult:
     num_points: int
     num_pillars: int
     num_nonfinite_dropped: int  # NaN / inf points removed before pillarising
+    # finite points outside the grid range or outside the slice's quadrant(s) (e.g. another slice's points). Points
+    # in the slice's quadrants but outside its sector are kept: the slice graph sees its quadrants whole.
+    num_outside_dropped: int = 0
+    num_points_dropped: int = 0  # points lost to the pillar caps (max_points_per_pillar, max_pillars)
 
 
 @dataclass(frozen=True)
@@ -126,6 +181,8 @@ class _ImageState:
     features: np.ndarray  # (J, C, Hf, Wf) float32, kept to re-lift when the calibration changes
     timestamp: float
     cameras_missing: tuple[str, ...]
+    seq: int = 0  # the update_images call that made it (call order: a larger seq is a newer image set)
+    lut: Lut | None = None  # the LUT the bev was lifted with
 
 
 class StreamingDetector:
@@ -136,7 +193,11 @@ class StreamingDetector:
         self.config = config
         self.manifest: Manifest = read_manifest(self.export_dir, verify_files=config.verify_sha256)
         m = self.manifest
-        self.grid = GridSpec.from_dict(m.grid)
+        check_runtime_fields(m)
+        try:
+            self.grid = GridSpec.from_dict(m.grid)
+        except (ValueError, TypeError) as e:
+            raise ManifestError(f"{self.export_dir / 'manifest.json'}: grid: {e}") from None
         self.uses_images: bool = m.use_image  # False: LiDAR-only export, slice lane only
         if not self.uses_images and config.image_lane_precision is not None:
             raise NoImageLaneError(
@@ -153,18 +214,26 @@ class StreamingDetector:
         self.camera_names: tuple[str, ...] = tuple(m.image.camera_names) if m.image is not None else ()
         # what update_images takes; None for a LiDAR-only export
         self.image: ImageSpec | None = _image_spec(m.image, config.image_size) if m.image is not None else None
-        self.num_slices = config.num_slices or m.num_slices
-        check_num_slices(self.num_slices, config.start_deg)
+        self.num_slices = int(config.num_slices) if config.num_slices is not None else m.num_slices
+        try:
+            check_num_slices(self.num_slices, config.start_deg)
+        except ValueError as e:
+            raise ManifestError(f"{self.export_dir / 'manifest.json'}: num_slices: {e}") from None
         pillars = m.preset["pillars"]
         self._max_points_per_pillar = int(pillars["max_points_per_pillar"])
         self._max_pillars = int(pillars["max_pillars"])
+        if config.nms is None:
+            self.config = config = dataclasses.replace(config, nms=_export_nms(m))
         threshold = config.score_threshold if config.score_threshold is not None else float(m.post["score_threshold"])
         self._post = PostprocessConfig(score_threshold=threshold, restrict_to_sector=config.restrict_to_sector, nms=config.nms)
 
         def session(name: str, threads: int, precision: str) -> GraphSession:
-            path = self.export_dir / m.graph(name, precision).file
+            entry = m.graph(name, precision)
+            path = export_file(self.export_dir, entry.file, f"graph file of {name} ({precision})")
             cfg = SessionConfig(config.providers, threads, enable_profiling=config.enable_profiling)
-            return GraphSession(path, cfg)
+            graph = GraphSession(path, cfg)
+            check_graph(entry, graph.inputs, graph.outputs, m, self.grid)  # the graph is what the manifest says
+            return graph
 
         # None for a LiDAR-only export: it has no image lane
         image_lane = (config.image_lane_threads, config.image_precision)
@@ -175,9 +244,11 @@ class StreamingDetector:
         self.stats = LatencyStats()
 
         self._lock = threading.Lock()  # guards the swaps of _lut and _image; reads take a reference
+        self._calibration_lock = threading.Lock()  # one calibration swap (and its re-lift) at a time
+        self._image_seq = 0  # update_images calls started (under _lock)
         self._lut: Lut | None = None  # stays None for a LiDAR-only export
         if self.uses_images and (self.image.width, self.image.height) == (m.image.width, m.image.height):
-            self._lut = self._check_lut(Lut.load(self.export_dir / m.lut.file))
+            self._lut = self._check_lut(Lut.load(export_file(self.export_dir, m.lut.file, "lut.file")))
         elif self.uses_images:
             self._lut = self._check_lut(self._build_lut(_export_rig(m, self.export_dir)))
         self._image: _ImageState | None = None
@@ -216,36 +287,55 @@ class StreamingDetector:
         if lut.grid != self.grid:
             problems.append(f"grid {lut.grid} != the export's {self.grid}")
         if problems:
-            raise ValueError("the LUT does not fit the graphs: " + "; ".join(problems))
+            raise CalibrationError("the LUT does not fit the graphs: " + "; ".join(problems))
+        for name, slots in blind_cameras(lut):
+            msg = f"camera {name} sees no voxel of the grid ({slots} LUT slots): its images will not reach the BEV"
+            log.warning("%s: %s", self.export_dir, msg)
+            warnings.warn(msg, BlindCameraWarning, stacklevel=3)
         return lut
 
-    def set_calibration(self, calibration: Rig | Lut | str | Path) -> None:
-        """Swap the projection LUT (a Rig, a Lut, a calibration.json or a lut.npz) without recreating sessions.
+    def set_calibration(self, calibration: Rig | Lut | Mapping | str | os.PathLike) -> None:
+        """Swap the projection LUT without recreating sessions: a Rig, a Lut, a parsed calibration.json (a dict),
+        or the path of a calibration.json or a lut.npz.
 
-        The cached image BEV is lifted again from the last image features, so the next slice sees the new
+        The calibration must name the export's cameras in its order with the aspect ratio of its images
+        (CalibrationError otherwise, and the LUT in use stays). A camera that sees no voxel is accepted with a
+        BlindCameraWarning naming it. The newest cached image set is lifted again, so the next slice sees the new
         calibration at once. A LiDAR-only export has no calibration to set: NoImageLaneError.
         """
         if not self.uses_images:
             # Refused rather than ignored: a caller that believes it recalibrated a camera model should learn it did not.
             raise NoImageLaneError(self._no_image_lane("set_calibration has nothing to calibrate"))
-        if isinstance(calibration, (str, Path)):
+        if isinstance(calibration, (str, os.PathLike)):
             path = Path(calibration)
             calibration = Lut.load(path) if path.suffix == ".npz" else Rig.from_calibration_json(path)
+        elif isinstance(calibration, Mapping):
+            calibration = Rig.from_calibration_json(calibration)
         if isinstance(calibration, Rig):
             calibration = self._build_lut(calibration)
+        if not isinstance(calibration, Lut):
+            raise CalibrationError(
+                "set_calibration takes a Rig, a Lut, a parsed calibration.json or a path to a calibration.json / "
+                f"lut.npz, got {type(calibration).__name__}"
+            )
         lut = self._check_lut(calibration)
-        with self._lock:
-            self._lut = lut
-            state = self._image
-        if state is not None:
-            bev = self._lift(state.features, lut)
+        with self._calibration_lock:
             with self._lock:
-                self._image = _ImageState(bev, state.features, state.timestamp, state.cameras_missing)
+                self._lut = lut
+                state = self._image
+            # Re-lift the newest image set; an update that finishes meanwhile under the old LUT lifts itself again
+            # (_install), so the loop ends once the installed state was lifted with this LUT.
+            while state is not None and state.lut is not lut:
+                bev = self._lift(state.features, lut)
+                with self._lock:
+                    if self._image is state:
+                        self._image = dataclasses.replace(state, bev=bev, lut=lut)
+                        return
+                    state = self._image
 
     def _build_lut(self, rig: Rig) -> Lut:
-        if tuple(rig.names) != self.camera_names:
-            raise ValueError(f"calibration cameras {list(rig.names)} != the export's {list(self.camera_names)}")
         img = self.image
+        check_rig_fits(rig, self.camera_names, img.width, img.height)
         return build_lut(rig, self.grid, img.feature_stride, image_size=(img.width, img.height))
 
     # ---- image lane ----------------------------------------------------------------------------
@@ -255,9 +345,11 @@ class StreamingDetector:
         Cameras not given are allowed: their features are zeros. Unknown names, wrong sizes or dtypes raise, and so
         does any call on a LiDAR-only export (NoImageLaneError).
         """
+        if not isinstance(images, Mapping):
+            raise ValueError(f"update_images takes a dict of camera name -> uint8 RGB (H, W, 3) image, got {type(images).__name__}")
         if not self.uses_images:
-            raise NoImageLaneError(self._no_image_lane(f"update_images got cameras {sorted(images)} it cannot use"))
-        timestamp = time.monotonic() if timestamp is None else float(timestamp)
+            raise NoImageLaneError(self._no_image_lane(f"update_images got cameras {sorted(map(str, images))} it cannot use"))
+        timestamp = _timestamp(timestamp)
         img = self.image
         unknown = [n for n in images if n not in self.camera_names]
         if unknown:
@@ -275,6 +367,9 @@ class StreamingDetector:
                 )
         if missing:
             log.info("update_images: cameras %s missing, their features are zeros", list(missing))
+        with self._lock:
+            self._image_seq += 1
+            seq = self._image_seq
         t0 = time.perf_counter()
         batch = np.stack([images[n] for n in used])  # (J_used, H, W, 3)
         with self.stats.time("image_encoder"):
@@ -290,13 +385,28 @@ class StreamingDetector:
             features[[self.camera_names.index(n) for n in used]] = enc
         else:
             features = np.ascontiguousarray(enc, dtype=np.float32)
-        with self._lock:
-            lut = self._lut
-        bev = self._lift(features, lut)
-        with self._lock:
-            self._image = _ImageState(bev, features, timestamp, missing)
+        installed = self._install(features, seq, timestamp, missing)
         self.stats.record("image_total", (time.perf_counter() - t0) * 1e3)
-        return ImageUpdate(timestamp, used, missing)
+        return ImageUpdate(timestamp, used, missing, superseded=not installed)
+
+    def _install(self, features: np.ndarray, seq: int, timestamp: float, missing: tuple[str, ...]) -> bool:
+        """Lift ``features`` and cache them unless a newer image set is cached already; False if it was.
+
+        A calibration swap during the lift makes it lift again with the new LUT: the cache never holds a BEV of
+        an old calibration once set_calibration has returned."""
+        while True:
+            with self._lock:
+                lut, current = self._lut, self._image
+            if current is not None and current.seq > seq:
+                return False
+            bev = self._lift(features, lut)
+            with self._lock:
+                current = self._image
+                if current is not None and current.seq > seq:
+                    return False
+                if self._lut is lut:
+                    self._image = _ImageState(bev, features, timestamp, missing, seq, lut)
+                    return True
 
     def _lift(self, features: np.ndarray, lut: Lut) -> np.ndarray:
         with self.stats.time("volumetric_lifter"):
@@ -316,10 +426,13 @@ class StreamingDetector:
         (x, y, z, r, t, s).
 
         Uses the newest cached image BEV of the slice's quadrant(s) (zeros before the first image update); a
-        LiDAR-only export's slice graph takes the quadrant ids instead. NaN / inf points are dropped and counted;
-        an empty slice gives no detections.
+        LiDAR-only export's slice graph takes the quadrant ids instead. NaN / inf points are dropped and counted
+        (``num_nonfinite_dropped``), so are points outside the grid or the slice's quadrant(s)
+        (``num_outside_dropped``); an empty slice gives no detections. Only float32 is accepted: this is the hot
+        path, and a silent conversion would copy every slice (``detect_sweep`` converts, once per sweep).
+        ``points`` is only read, during the call.
         """
-        timestamp = time.monotonic() if timestamp is None else float(timestamp)
+        timestamp = _timestamp(timestamp)
         n = self._slices(num_slices)
         if isinstance(slice_index, bool) or not isinstance(slice_index, (int, np.integer)) or not 0 <= slice_index < n:
             raise ValueError(f"slice_index must be an int in [0, {n}), got {slice_index!r}")
@@ -359,6 +472,8 @@ class StreamingDetector:
             num_points=int(points.shape[0]),
             num_pillars=pillars.num_pillars,
             num_nonfinite_dropped=pillars.num_nonfinite_dropped,
+            num_outside_dropped=pillars.num_outside_dropped,
+            num_points_dropped=pillars.num_points_dropped,
         )
 
     def _image_bev(self, state: _ImageState | None, quadrants: tuple[int, ...]) -> np.ndarray:
@@ -374,12 +489,13 @@ class StreamingDetector:
         detect every slice, merge with per-class NMS.
 
         This is how the paper evaluates a streaming model on a sweep; one detector (one cached image BEV) can
-        score several slice counts.
+        score several slice counts. Any real numeric dtype (float, int, uint) is converted to float32, as a file
+        reader hands it over; bool, complex, object or string arrays raise ValueError.
         """
         n = self._slices(num_slices)
-        sweep = np.asarray(sweep)
-        if sweep.ndim != 2 or sweep.shape[1] != 5:
-            raise ValueError(f"sweep must be (N, 5) x, y, z, intensity, ring; got shape {sweep.shape}")
+        sweep = check_sweep(sweep)
+        if sweep.dtype.kind not in "fiu":
+            raise ValueError(f"sweep must hold real numbers (float or int), got dtype {sweep.dtype}")
         slices = split_sweep(sweep.astype(np.float32, copy=False), n, self.config.start_deg)
         results = [self.detect_slice(pts, k, timestamp, n) for k, pts in enumerate(slices)]
         with self.stats.time("sweep_nms"):
@@ -388,6 +504,8 @@ class StreamingDetector:
     def _slices(self, num_slices: int | None) -> int:
         if num_slices is None:
             return self.num_slices
+        if isinstance(num_slices, bool):
+            raise ValueError(f"num_slices must be None or an int (1, 2 or a multiple of 4), got {num_slices!r}")
         try:
             check_num_slices(num_slices, self.config.start_deg)
         except ValueError as e:
@@ -406,6 +524,27 @@ class StreamingDetector:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def _timestamp(value: float | None) -> float:
+    """A call's timestamp: None is now (time.monotonic()); anything else must be a finite real number of seconds."""
+    if value is None:
+        return time.monotonic()
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
+        raise ValueError(f"timestamp must be None or a finite number of seconds, got {value!r}")
+    return float(value)
+
+
+def _export_nms(manifest: Manifest) -> NmsConfig:
+    """The NMS the export asks for in its post settings: max_detections kept, the per-class rotated IoU thresholds."""
+    post = manifest.post
+    ious = tuple(float(v) for v in post.get("nms_iou_threshold", ()))
+    default = NmsConfig()
+    return NmsConfig(
+        iou_threshold=ious[0] if ious and len(set(ious)) == 1 else default.iou_threshold,
+        iou_threshold_per_class=ious if len(set(ious)) > 1 else None,
+        max_out=int(post.get("max_detections", default.max_out)),
+    )
 
 
 def _image_spec(exported: ImageSpec, size: tuple[int, int] | None) -> ImageSpec:

@@ -11,13 +11,25 @@ Back-pressure policy (what happens when work arrives faster than it is done):
 
 Both lanes run at the same time; each graph has its own onnxruntime session and thread pool, and onnxruntime
 releases the GIL, so on a small CPU a slice does not wait behind a long image-encoder run.
+
+Contracts:
+
+- A submit never raises for another job's state: a future the caller cancelled is skipped (it neither runs nor
+  counts as dropped) and never makes `submit_slice` fail. A submit raises only for its own arguments or a closed
+  runner (`RunnerClosed`).
+- A slice an idle worker is about to take counts as in flight, not waiting: a burst of submits to idle workers
+  drops the oldest slice that would really wait, never one a free worker picks up.
+- The points and images are copied at submit: the caller may reuse its buffers at once.
+- ``timestamp=None`` means the submit time (``time.monotonic()`` when `submit_*` is called), not the run time.
+- `close(timeout)` finishes the queued work; past the timeout it cancels what has not started and returns False.
 """
 
 from __future__ import annotations
 
 import collections
+import time
 import threading
-from concurrent.futures import Future
+from concurrent.futures import Future, InvalidStateError
 from dataclasses import dataclass
 from typing import Callable, Mapping
 
@@ -34,25 +46,34 @@ class ImagesSuperseded(RuntimeError):
     """The image set was replaced by a newer one before the image lane got to it."""
 
 
+class RunnerClosed(RuntimeError):
+    """A submit after `StreamingRunner.close()`."""
+
+
 @dataclass(frozen=True)
 class LaneConfig:
     max_in_flight: int = 2  # slices processed at once (worker threads of the slice lane)
     queue_size: int = 8  # slices waiting beyond those in flight; when full the oldest waiting one is dropped
 
     def __post_init__(self) -> None:
-        if self.max_in_flight < 1 or self.queue_size < 1:
-            raise ValueError(f"LaneConfig needs max_in_flight >= 1 and queue_size >= 1, got {self}")
+        for name in ("max_in_flight", "queue_size"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 1 <= v <= 1024:
+                raise ValueError(f"LaneConfig.{name} must be an int in 1..1024, got {v!r}")
 
 
 class _Lane:
     """A bounded FIFO served by worker threads; when full, the oldest waiting job is failed with `overflow`."""
 
     def __init__(self, name: str, workers: int, capacity: int, overflow: Callable[[], Exception]) -> None:
+        self._name = name
         self._jobs: collections.deque = collections.deque()
         self._cond = threading.Condition()
         self._capacity = capacity
         self._overflow = overflow
         self._closed = False
+        self._workers = workers
+        self._busy = 0  # workers running a job (under _cond)
         self.dropped = 0
         self._threads = [threading.Thread(target=self._serve, name=f"{name}-{i}", daemon=True) for i in range(workers)]
         for t in self._threads:
@@ -62,11 +83,18 @@ class _Lane:
         fut: Future = Future()
         with self._cond:
             if self._closed:
-                raise RuntimeError("the lane is closed")
-            while len(self._jobs) >= max(self._capacity, 1) and self._jobs:
-                _, old = self._jobs.popleft()
-                self.dropped += 1
-                old.set_exception(self._overflow())
+                raise RunnerClosed(f"{self._name}: submit after close()")
+            # jobs the caller cancelled hold no place in the queue
+            self._jobs = collections.deque(job for job in self._jobs if not job[1].cancelled())
+            idle = self._workers - self._busy  # the first `idle` jobs are about to start: in flight, not waiting
+            while len(self._jobs) - idle >= self._capacity:
+                _, old = self._jobs[idle]
+                del self._jobs[idle]
+                try:
+                    old.set_exception(self._overflow())
+                    self.dropped += 1
+                except InvalidStateError:  # cancelled by its owner meanwhile: nothing to tell anyone
+                    pass
             self._jobs.append((fn, fut))
             self._cond.notify()
         return fut
@@ -79,25 +107,39 @@ class _Lane:
                 if not self._jobs:
                     return
                 fn, fut = self._jobs.popleft()
-            if not fut.set_running_or_notify_cancel():
-                continue
+                self._busy += 1
             try:
-                fut.set_result(fn())
-            except BaseException as e:  # handed to the caller through the future, never swallowed
-                fut.set_exception(e)
+                if fut.set_running_or_notify_cancel():
+                    try:
+                        fut.set_result(fn())
+                    except BaseException as e:  # handed to the caller through the future, never swallowed
+                        fut.set_exception(e)
+            finally:
+                with self._cond:
+                    self._busy -= 1
 
-    def close(self) -> None:
+    def close(self, deadline: float | None = None) -> bool:
+        """Stop taking jobs, finish the queued ones by ``deadline`` (time.monotonic(); None: no limit). Past it, the
+        jobs not started are cancelled; True when every worker has ended."""
         with self._cond:
             self._closed = True
             self._cond.notify_all()
         for t in self._threads:
-            t.join()
+            t.join(None if deadline is None else max(0.0, deadline - time.monotonic()))
+        if all(not t.is_alive() for t in self._threads):
+            return True
+        with self._cond:
+            while self._jobs:
+                self._jobs.popleft()[1].cancel()
+        return False
 
 
 class StreamingRunner:
     """Asynchronous front of a StreamingDetector: `submit_images` and `submit_slice` return futures."""
 
     def __init__(self, detector: StreamingDetector, config: LaneConfig = LaneConfig()) -> None:
+        if not isinstance(config, LaneConfig):
+            raise ValueError(f"StreamingRunner takes a LaneConfig, got {type(config).__name__}")
         self.detector = detector
         self.config = config
         self._slices = _Lane("slice-lane", config.max_in_flight, config.queue_size, lambda: SliceDropped("slice dropped: queue full"))
@@ -108,10 +150,18 @@ class StreamingRunner:
         caller's thread, rather than in a future nobody may read."""
         if not self.detector.uses_images:
             self.detector.update_images(images, timestamp)  # raises NoImageLaneError naming the export
-        return self._images.submit(lambda: self.detector.update_images(images, timestamp))
+        if not isinstance(images, Mapping):
+            self.detector.update_images(images, timestamp)  # raises ValueError naming the type, in the caller's thread
+        stamp = time.monotonic() if timestamp is None else timestamp
+        # copies: the driver may refill its buffers as soon as this returns
+        own = {name: np.array(a, copy=True) if isinstance(a, np.ndarray) else a for name, a in images.items()}
+        return self._images.submit(lambda: self.detector.update_images(own, stamp))
 
     def submit_slice(self, points: np.ndarray, slice_index: int, timestamp: float | None = None) -> "Future[SliceResult]":
-        return self._slices.submit(lambda: self.detector.detect_slice(points, slice_index, timestamp))
+        """Queue one slice; its future holds the SliceResult, or the error (bad points, SliceDropped)."""
+        stamp = time.monotonic() if timestamp is None else timestamp
+        own = np.array(points, copy=True) if isinstance(points, np.ndarray) else points  # the driver may reuse its buffer
+        return self._slices.submit(lambda: self.detector.detect_slice(own, slice_index, stamp))
 
     @property
     def slices_dropped(self) -> int:
@@ -121,10 +171,19 @@ class StreamingRunner:
     def images_superseded(self) -> int:
         return self._images.dropped
 
-    def close(self) -> None:
-        """Finish the queued work, then stop the workers."""
-        self._slices.close()
-        self._images.close()
+    def close(self, timeout: float | None = None) -> bool:
+        """Finish the queued work, then stop the workers; later submits raise RunnerClosed.
+
+        With ``timeout`` (seconds, for both lanes together), work not started by then is cancelled (its futures
+        report cancelled) and this returns False while a job still runs (its worker ends after it); True when
+        everything finished.
+        """
+        if timeout is not None and (isinstance(timeout, bool) or not isinstance(timeout, (int, float)) or not timeout >= 0):
+            raise ValueError(f"close(timeout=...) takes None or seconds >= 0, got {timeout!r}")
+        deadline = None if timeout is None else time.monotonic() + timeout
+        slices_done = self._slices.close(deadline)
+        images_done = self._images.close(deadline)
+        return slices_done and images_done
 
     def __enter__(self) -> "StreamingRunner":
         return self

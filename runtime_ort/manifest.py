@@ -49,7 +49,9 @@ import os
 import tempfile
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO, Callable
+
+from streamdet.runtime_ort.schema import SchemaViolation, validate
 
 MANIFEST_VERSION = 1
 MANIFEST_NAME = "manifest.json"
@@ -58,10 +60,28 @@ GRAPH_NAMES: tuple[str, ...] = ("image_encoder", "volumetric_lifter", "slice_hea
 IMAGE_GRAPH_NAMES: tuple[str, ...] = ("image_encoder", "volumetric_lifter")  # the image lane; absent when LiDAR-only
 PRECISIONS: tuple[str, ...] = ("fp32", "fp16", "int8")
 _DTYPES = ("uint8", "int32", "int64", "float16", "float32")
+MAX_MANIFEST_BYTES = 16 << 20  # a real manifest is tens of kB; a larger file is refused before it is parsed
+MAX_MANIFEST_DEPTH = 32  # JSON nesting; a real manifest nests 5 deep
 
 
 class ManifestError(ValueError):
     """A manifest that is missing, malformed or inconsistent with the files beside it."""
+
+
+def export_file(export_dir: str | os.PathLike, name: str, what: str = "file") -> Path:
+    """``export_dir / name`` for a file the manifest names, confined to the export directory.
+
+    ``name`` must be a plain file name (no directory part, not hidden, not ``..``); the path is resolved (symlinks
+    followed) and must still lie directly inside the resolved export directory, so neither a name nor a symlink can
+    make the runtime or ``streamdet-calib`` read or write a file elsewhere. The file need not exist (a writer's
+    target); readers check ``is_file`` themselves.
+    """
+    _check_plain_name(what, name)
+    root = Path(export_dir).resolve()
+    path = (root / name).resolve()
+    if path.parent != root:
+        raise ManifestError(f"{what} {name!r} in {root} resolves to {path}, outside the export directory (a symlink?)")
+    return path
 
 
 def sha256_file(path: str | os.PathLike) -> str:
@@ -100,7 +120,7 @@ class TensorSpec:
 
     @classmethod
     def from_dict(cls, d: dict) -> "TensorSpec":
-        return cls(name=str(d["name"]), shape=tuple(d["shape"]), dtype=str(d["dtype"]))
+        return cls(name=str(d["name"]), shape=tuple(_as_int(v) for v in d["shape"]), dtype=str(d["dtype"]))
 
 
 @dataclass(frozen=True)
@@ -121,8 +141,7 @@ class GraphEntry:
         _check_sha(f"sha256 of {self.file!r}", self.sha256)
         if not isinstance(self.opset, int) or self.opset < 7:
             raise ManifestError(f"opset of {self.file!r} must be an int >= 7, got {self.opset!r}")
-        if Path(self.file).name != self.file:
-            raise ManifestError(f"graph file must be a plain file name inside the export directory, got {self.file!r}")
+        _check_plain_name("graph file", self.file)
 
     @classmethod
     def from_dict(cls, d: dict) -> "GraphEntry":
@@ -131,7 +150,7 @@ class GraphEntry:
             precision=str(d["precision"]),
             file=str(d["file"]),
             sha256=str(d["sha256"]),
-            opset=d["opset"],
+            opset=_as_int(d["opset"]),
             inputs=tuple(TensorSpec.from_dict(t) for t in d["inputs"]),
             outputs=tuple(TensorSpec.from_dict(t) for t in d["outputs"]),
             gmac=float(d["gmac"]),
@@ -159,11 +178,11 @@ class ImageSpec:
     @classmethod
     def from_dict(cls, d: dict) -> "ImageSpec":
         return cls(
-            width=d["width"],
-            height=d["height"],
-            feature_stride=d["feature_stride"],
-            feature_width=d["feature_width"],
-            feature_height=d["feature_height"],
+            width=_as_int(d["width"]),
+            height=_as_int(d["height"]),
+            feature_stride=_as_int(d["feature_stride"]),
+            feature_width=_as_int(d["feature_width"]),
+            feature_height=_as_int(d["feature_height"]),
             camera_names=tuple(d["camera_names"]),
         )
 
@@ -191,6 +210,7 @@ class LutEntry:
 
     def __post_init__(self) -> None:
         _check_sha("lut.sha256", self.sha256)
+        _check_plain_name("lut.file", self.file)  # as graph files: never a path out of the export directory
 
     @classmethod
     def from_dict(cls, d: dict) -> "LutEntry":
@@ -417,6 +437,11 @@ class Manifest:
         have = {(g.name, g.precision) for g in self.graphs}
         return tuple(p for p in PRECISIONS if all((n, p) in have for n in self.required_graphs))
 
+    def files(self) -> tuple[tuple[GraphEntry | LutEntry, str], ...]:
+        """Every file the manifest names, with what it is (for messages): the graphs, then the LUT."""
+        graphs = tuple((g, f"graph file of {g.name} ({g.precision})") for g in self.graphs)
+        return graphs + (((self.lut, "lut.file"),) if self.lut is not None else ())
+
     def to_dict(self) -> dict:
         return _jsonable(asdict(self))
 
@@ -425,13 +450,17 @@ class Manifest:
         if not isinstance(d, dict):
             raise ManifestError(f"manifest must be a JSON object, got {type(d).__name__}")
         try:
+            validate(d)  # manifest.schema.json: every type, range and size, before any record is built
+        except SchemaViolation as e:
+            raise ManifestError(str(e)) from None
+        try:
             return cls(
-                version=d["version"],
+                version=_as_int(d["version"]),
                 preset_name=str(d["preset_name"]),
                 preset=dict(d["preset"]),
                 grid=dict(d["grid"]),
                 class_names=tuple(d["class_names"]),
-                num_slices=d["num_slices"],
+                num_slices=_as_int(d["num_slices"]),
                 image=_optional(ImageSpec.from_dict, d["image"]),
                 normalisation=_optional(Normalisation.from_dict, d["normalisation"]),
                 post=dict(d["post"]),
@@ -449,40 +478,72 @@ class Manifest:
 
 
 def read_manifest(export_dir: str | os.PathLike, verify_files: bool = True) -> Manifest:
-    """Read and validate ``export_dir/manifest.json``; with verify_files, every named file must exist with its sha256."""
+    """Read and validate ``export_dir/manifest.json`` against ``manifest.schema.json``.
+
+    The file is capped at MAX_MANIFEST_BYTES and MAX_MANIFEST_DEPTH levels of nesting. Every file the manifest
+    names must resolve (symlinks followed) inside the export directory, always; with verify_files each must also
+    exist with its sha256. Any defect raises ManifestError naming the file.
+    """
     export_dir = Path(export_dir)
     path = export_dir / MANIFEST_NAME
     if not path.is_file():
         raise ManifestError(f"{path} does not exist: not a (complete) streamdet export directory")
+    too_deep = ManifestError(f"{path} nests deeper than {MAX_MANIFEST_DEPTH} levels: not a streamdet manifest")
     try:
-        d = json.loads(path.read_text())
+        with open(path, "rb") as f:
+            raw = f.read(MAX_MANIFEST_BYTES + 1)
+        if len(raw) > MAX_MANIFEST_BYTES:
+            raise ManifestError(f"{path} is larger than {MAX_MANIFEST_BYTES >> 20} MiB: not a streamdet manifest")
+        d = json.loads(raw.decode("utf-8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
         raise ManifestError(f"{path} is not readable JSON: {e}") from None
-    m = Manifest.from_dict(d)
-    if verify_files:
-        for entry in (*m.graphs, *((m.lut,) if m.lut is not None else ())):
-            f = export_dir / entry.file
+    except RecursionError:  # deeper than the parser's stack
+        raise too_deep from None
+    if _depth(d) > MAX_MANIFEST_DEPTH:
+        raise too_deep
+    try:
+        m = Manifest.from_dict(d)
+    except ManifestError as e:
+        raise ManifestError(f"{path}: {e}") from None
+    for entry, what in m.files():
+        f = export_file(export_dir, entry.file, what)
+        if verify_files:
             if not f.is_file():
-                raise ManifestError(f"{f} is named in the manifest but missing")
+                raise ManifestError(f"{export_dir / entry.file} is named in the manifest but missing")
             got = sha256_file(f)
             if got != entry.sha256:
-                raise ManifestError(f"{f} has sha256 {got[:12]}..., the manifest says {entry.sha256[:12]}...")
+                raise ManifestError(f"{export_dir / entry.file} has sha256 {got[:12]}..., the manifest says {entry.sha256[:12]}...")
     return m
 
 
 def write_manifest(manifest: Manifest, export_dir: str | os.PathLike) -> Path:
     """Write ``manifest.json`` atomically (temp file + rename), so a reader never sees half a manifest."""
-    export_dir = Path(export_dir)
     text = json.dumps(manifest.to_dict(), indent=1, allow_nan=True) + "\n"
-    fd, tmp = tempfile.mkstemp(prefix=".manifest.", suffix=".json", dir=export_dir)
+    return atomic_write(export_dir, MANIFEST_NAME, lambda f: f.write(text.encode("utf-8")))
+
+
+def atomic_write(export_dir: str | os.PathLike, name: str, write: Callable[[BinaryIO], Any]) -> Path:
+    """Write the file ``name`` of ``export_dir`` atomically: ``write(f)`` into a hidden temp file beside it, then a rename.
+
+    ``name`` is confined as every manifest-named file is (``export_file``), and the rename replaces a symlink at
+    the target instead of writing through it. The file gets the permissions of a plain ``open()`` (0666 minus the
+    umask), like the graphs beside it, not mkstemp's 0600. A failure removes the temp file.
+    """
+    target = export_file(export_dir, name)
+    fd, tmp = tempfile.mkstemp(prefix=f".{name}.", suffix=".tmp", dir=target.parent)
     try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        os.replace(tmp, export_dir / MANIFEST_NAME)
+        umask = os.umask(0o022)  # read the process umask (there is no getter) and restore it at once
+        os.umask(umask)
+        os.fchmod(fd, 0o666 & ~umask)
+        with os.fdopen(fd, "wb") as f:
+            write(f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, target)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
-    return export_dir / MANIFEST_NAME
+    return target
 
 
 def replace_lut_entry(manifest: Manifest, lut: LutEntry) -> Manifest:
@@ -505,6 +566,29 @@ def _check_choice(what: str, value: Any, choices: tuple[str, ...]) -> None:
 def _check_sha(what: str, value: str) -> None:
     if not (isinstance(value, str) and len(value) == 64 and all(c in "0123456789abcdef" for c in value)):
         raise ManifestError(f"{what} must be 64 lowercase hex digits, got {value!r}")
+
+
+def _as_int(value: Any) -> Any:
+    """An integral float (JSON ``8.0``, an integer to JSON Schema) as an int; anything else unchanged (checked later)."""
+    return int(value) if isinstance(value, float) and value.is_integer() else value
+
+
+def _check_plain_name(what: str, name: str) -> None:
+    if not isinstance(name, str) or not name or Path(name).name != name or name.startswith(".") or "\\" in name:
+        raise ManifestError(f"{what} must be a plain file name inside the export directory, got {name!r}")
+
+
+def _depth(doc: Any) -> int:
+    """Nesting depth of parsed JSON, without recursion (a hostile document may nest deeper than the stack)."""
+    deepest, stack = 0, [(doc, 1)]
+    while stack:
+        node, level = stack.pop()
+        if isinstance(node, (dict, list)):
+            deepest = max(deepest, level)
+            if level > MAX_MANIFEST_DEPTH:
+                return level
+            stack.extend((v, level + 1) for v in (node.values() if isinstance(node, dict) else node))
+    return deepest
 
 
 def _jsonable(x: Any) -> Any:

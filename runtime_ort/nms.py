@@ -14,7 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from streamdet.runtime_ort.boxes import BOX_DIM, CLASS_NAMES, L, W, bev_extent, box_corners_bev, indexed_bev_iou, paired_bev_iou
+from streamdet.core.boxes import BOX_DIM, L, W, bev_extent, box_corners_bev, indexed_bev_iou, paired_bev_iou
+from streamdet.core.classes import CLASS_NAMES
 
 # CenterPoint's nuScenes circle-NMS settings (`min_radius`, one per head group: car 4, truck and
 # construction_vehicle 12, bus and trailer 10, barrier 1, motorcycle and bicycle 0.85, pedestrian and
@@ -44,6 +45,7 @@ class NmsKind(enum.Enum):
 class NmsConfig:
     kind: NmsKind = NmsKind.CIRCLE  # CenterPoint's circle-NMS nuScenes variant; cheaper than rotated
     iou_threshold: float = 0.2  # rotated: suppress a box whose BEV IoU with a kept one is > this (CenterPoint 0.2)
+    iou_threshold_per_class: tuple[float, ...] | None = None  # rotated, per class in CLASS_NAMES order; None: iou_threshold
     circle_radius_m: tuple[float, ...] = CENTERPOINT_CIRCLE_RADIUS_M  # circle: per class, in CLASS_NAMES order
     max_out: int = 500  # boxes kept after NMS, all classes together, highest scores first
 
@@ -54,6 +56,14 @@ class NmsConfig:
             raise ValueError(f"NmsConfig.kind must be one of {[k.value for k in NmsKind]}, got {self.kind!r}") from None
         if not 0.0 <= self.iou_threshold <= 1.0:
             raise ValueError(f"NmsConfig.iou_threshold must be in [0, 1], got {self.iou_threshold}")
+        if self.iou_threshold_per_class is not None:
+            ious = tuple(float(v) for v in self.iou_threshold_per_class)
+            if len(ious) != len(CLASS_NAMES) or not all(0.0 <= v <= 1.0 for v in ious):
+                raise ValueError(
+                    f"NmsConfig.iou_threshold_per_class must hold {len(CLASS_NAMES)} values in [0, 1] (one per class), "
+                    f"got {self.iou_threshold_per_class!r}"
+                )
+            object.__setattr__(self, "iou_threshold_per_class", ious)
         radii = tuple(float(r) for r in self.circle_radius_m)
         if len(radii) != len(CLASS_NAMES) or not all(math.isfinite(r) and r >= 0 for r in radii):
             raise ValueError(
@@ -160,6 +170,10 @@ def nms(boxes: np.ndarray, scores: np.ndarray, labels: np.ndarray, config: NmsCo
         x, y = ranked[:, 0].copy(), ranked[:, 1].copy()  # 1-D planes gather fastest
         linked = (x[i] - x[j]) ** 2 + (y[i] - y[j]) ** 2 <= radius[i] ** 2
     else:
+        if config.iou_threshold_per_class is None:
+            threshold = np.full(n, config.iou_threshold)  # (N,) of each ranked box: pairs share a class
+        else:
+            threshold = np.asarray(config.iou_threshold_per_class)[ranked_labels]
         lo, hi = bev_extent(ranked)
         i, j = _same_class_pairs(lo, hi, ranked_labels)
         # Cheap upper bound first: the intersection fits in both the smaller box and the extents' overlap.
@@ -170,9 +184,9 @@ def nms(boxes: np.ndarray, scores: np.ndarray, labels: np.ndarray, config: NmsCo
         )
         inter_max = np.minimum(overlap, np.minimum(area[i], area[j]))
         with np.errstate(divide="ignore", invalid="ignore"):
-            possible = inter_max / (area[i] + area[j] - inter_max) > config.iou_threshold
+            possible = inter_max / (area[i] + area[j] - inter_max) > threshold[i]
         i, j = i[possible], j[possible]
-        keep = _greedy_rotated(n, ranked, i, j, config.iou_threshold)
+        keep = _greedy_rotated(n, ranked, i, j, threshold)
         return rank[keep][: config.max_out].astype(np.int64)
 
     keep = _greedy(n, i[linked], j[linked])
@@ -188,10 +202,11 @@ BLOCKED_MIN_PAIRS = 2048
 BLOCK_BOXES = 32  # the first block; each next one doubles
 
 
-def _greedy_rotated(n: int, ranked: np.ndarray, i: np.ndarray, j: np.ndarray, iou_threshold: float) -> np.ndarray:
-    """Greedy NMS of ``ranked`` (N, 9) boxes (best first) over candidate pairs (i < j) by exact rotated BEV IoU."""
+def _greedy_rotated(n: int, ranked: np.ndarray, i: np.ndarray, j: np.ndarray, iou_threshold: np.ndarray) -> np.ndarray:
+    """Greedy NMS of ``ranked`` (N, 9) boxes (best first) over candidate pairs (i < j) by exact rotated BEV IoU;
+    ``iou_threshold`` (N,) is each box's class threshold (the two boxes of a pair share their class)."""
     if i.size < BLOCKED_MIN_PAIRS:
-        linked = paired_bev_iou(ranked[i], ranked[j]) > iou_threshold
+        linked = paired_bev_iou(ranked[i], ranked[j]) > iou_threshold[i]
         return _greedy(n, i[linked], j[linked])
     proper = (ranked[:, W] > 0) & (ranked[:, L] > 0)  # boxes without area overlap nothing (paired_bev_iou's rule)
     keep_pair = proper[i] & proper[j]
@@ -209,6 +224,6 @@ def _greedy_rotated(n: int, ranked: np.ndarray, i: np.ndarray, j: np.ndarray, io
         alive = keep[bi] & keep[bj]
         bi, bj = bi[alive], bj[alive]
         if bi.size:
-            linked = indexed_bev_iou(ranked, corners, bi, bj) > iou_threshold
+            linked = indexed_bev_iou(ranked, corners, bi, bj) > iou_threshold[bi]
             _greedy(n, bi[linked], bj[linked], keep)
     return keep

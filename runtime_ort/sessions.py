@@ -14,8 +14,28 @@ from pathlib import Path
 
 import numpy as np
 import onnxruntime as ort
+from onnxruntime.capi import onnxruntime_pybind11_state as _ort_state
+
+from streamdet.runtime_ort.manifest import ManifestError
+from streamdet.runtime_ort.signature import TensorSignature
 
 log = logging.getLogger(__name__)
+
+# onnxruntime's own exception classes (InvalidProtobuf, InvalidArgument, Fail, ...) derive from Exception only;
+# they are turned into the runtime's named errors here, with the graph file in a one-line message.
+ORT_ERRORS: tuple[type[BaseException], ...] = tuple(
+    c for c in vars(_ort_state).values() if isinstance(c, type) and issubclass(c, Exception)
+)
+
+
+class GraphRunError(RuntimeError):
+    """onnxruntime failed while running a graph that loaded and whose inputs were checked (resources, a provider)."""
+
+
+def ort_message(e: BaseException) -> str:
+    """onnxruntime's message on one line, without its ``[ONNXRuntimeError] : 2 : INVALID_ARGUMENT :`` prefix."""
+    text = " ".join(str(e).split())
+    return text.rsplit(" : ", 1)[-1] if text.startswith("[ONNXRuntimeError]") else text
 
 # Preference order when the caller does not name providers: the first ones this onnxruntime build has win.
 PREFERRED_PROVIDERS: tuple[str, ...] = ("TensorrtExecutionProvider", "CUDAExecutionProvider", "CPUExecutionProvider")
@@ -73,13 +93,18 @@ class GraphSession:
             opts.enable_profiling = True
             opts.profile_file_prefix = str(self.path.with_suffix("")) + ".profile"
         providers = resolve_providers(config.providers)
-        self.session = ort.InferenceSession(str(self.path), sess_options=opts, providers=providers)
+        try:
+            self.session = ort.InferenceSession(str(self.path), sess_options=opts, providers=providers)
+        except ORT_ERRORS as e:  # a truncated, empty or foreign file that passed (or skipped) the sha256 check
+            raise ManifestError(f"{self.path}: onnxruntime cannot load this graph: {ort_message(e)}") from None
         self.providers = tuple(self.session.get_providers())
         log.info("%s: providers %s, %d intra-op thread(s)", self.path.name, list(self.providers), config.intra_op_threads)
         self.input_names = tuple(i.name for i in self.session.get_inputs())
         self.output_names = tuple(o.name for o in self.session.get_outputs())
         self.input_dtypes = {i.name: _ORT_TO_NUMPY.get(i.type) for i in self.session.get_inputs()}
         self.input_ranks = {i.name: len(i.shape) for i in self.session.get_inputs()}
+        self.inputs = tuple(_signature(i) for i in self.session.get_inputs())  # what the graph really declares
+        self.outputs = tuple(_signature(o) for o in self.session.get_outputs())
 
     def run(self, feeds: dict[str, np.ndarray]) -> list[np.ndarray]:
         """Run with the feeds by input name; a missing, extra or mistyped input raises ValueError naming it."""
@@ -93,7 +118,17 @@ class GraphSession:
                 raise ValueError(f"{self.path.name}: input {name!r} must be {np.dtype(want)}, got {value.dtype}")
             if value.ndim != self.input_ranks[name]:
                 raise ValueError(f"{self.path.name}: input {name!r} must have rank {self.input_ranks[name]}, got shape {value.shape}")
-        return self.session.run(list(self.output_names), feeds)
+        try:
+            return self.session.run(list(self.output_names), feeds)
+        except ORT_ERRORS as e:
+            raise GraphRunError(f"{self.path.name}: onnxruntime failed: {ort_message(e)}") from None
 
     def end_profiling(self) -> str:
         return self.session.end_profiling()
+
+
+def _signature(arg) -> TensorSignature:
+    """A session input or output (onnxruntime NodeArg) as a TensorSignature: named or unknown dimensions are None."""
+    dtype = _ORT_TO_NUMPY.get(arg.type)
+    shape = tuple(d if isinstance(d, int) else None for d in arg.shape)
+    return TensorSignature(arg.name, np.dtype(dtype).name if dtype is not None else arg.type, shape)

@@ -27,6 +27,9 @@ from streamdet.runtime_ort.manifest import (
 )
 
 NAMES = ("image_encoder", "volumetric_lifter", "slice_head")
+# the fields of preset and grid the runtime reads (manifest.schema.json requires them)
+PRESET = {"name": "tiny", "channels": 8, "pillars": {"max_points_per_pillar": 8, "max_pillars": 1024}}
+GRID = {"x_range_m": [-12.8, 12.8], "y_range_m": [-12.8, 12.8], "z_range_m": [-3.0, 5.0], "voxel_xy_m": 0.4, "voxel_z_m": 2.0}
 
 
 def _manifest(tmp_path, precisions=("fp32",)) -> Manifest:
@@ -39,11 +42,11 @@ def _manifest(tmp_path, precisions=("fp32",)) -> Manifest:
                                      (TensorSpec("x", ("J", 3, 4), "uint8"),), (TensorSpec("y", ("J",), "float32"),), 1.5, {"J": 1}))
     (tmp_path / "lut.npz").write_bytes(b"lut")
     return Manifest(
-        preset_name="tiny", preset={"name": "tiny"}, grid={"voxel_xy_m": 0.4}, class_names=("car", "truck"), num_slices=8,
-        image=ImageSpec(128, 72, 4, 32, 18, ("CAM_A", "CAM_B")), normalisation=Normalisation(), post={"top_k": 50},
+        preset_name="tiny", preset=PRESET, grid=GRID, class_names=("car", "truck"), num_slices=8,
+        image=ImageSpec(128, 72, 4, 32, 18, ("CAM_A", "CAM_B")), normalisation=Normalisation(), post={"top_k": 50, "score_threshold": 0.1},
         graphs=tuple(graphs), lut=LutEntry("lut.npz", sha256_file(tmp_path / "lut.npz"), "ab" * 32, "bundled"),
         parity=(ParityRecord("image_encoder", "fp32", "torch", "features", 1e-6, 3.0, 1e-4, True),),
-        pipeline_parity=PipelineParity(0, 8, 100, 10, 0.1, 1e-3, 5, 5, 1, 0, 0.01, 0.1, True, "n"),
+        pipeline_parity=PipelineParity(0, 8, 100, 10, 0.1, 1e-3, 5, 5, 1, 0, 0, 0.01, 0.1, True, "n"),
         source={"seed": 0},
     )
 
@@ -88,12 +91,12 @@ def test_verify_files(tmp_path):
     "edit,match",
     [
         (lambda d: d.pop("graphs"), "missing the field 'graphs'"),
-        (lambda d: d.update(version=99), "version 99"),
+        (lambda d: d.update(version=99), "version: 99 is not supported"),
         (lambda d: d["graphs"][0].update(precision="int4"), "precision"),
         (lambda d: d["graphs"][0].update(sha256="xyz"), "64 lowercase hex"),
         (lambda d: d["graphs"][0].update(file="../evil.onnx"), "plain file name"),
-        (lambda d: d["graphs"][0]["inputs"][0].update(dtype="float64"), "dtype of tensor 'x'"),
-        (lambda d: d["graphs"][0]["inputs"][0].update(shape=[-1]), "bad dimension -1"),
+        (lambda d: d["graphs"][0]["inputs"][0].update(dtype="float64"), r"inputs\[0\].dtype: 'float64' is not one of"),
+        (lambda d: d["graphs"][0]["inputs"][0].update(shape=[-1]), r"shape\[0\]: -1 is not allowed \(expected a dimension"),
         (lambda d: d["image"].update(width=0), "image.width"),
         (lambda d: d.update(num_slices=0), "num_slices"),
         (lambda d: d.update(class_names=[]), "class_names"),

@@ -1,0 +1,125 @@
+"""The manifest checked against the graphs themselves, before any slice runs.
+
+A manifest can be well-formed (``manifest.schema.json``) and still describe other graphs than the files beside
+it, or graphs the runtime cannot feed: a lifter graph copied over ``slice_head.onnx`` with its sha256 updated,
+``max_points_per_pillar`` edited after export, class names reordered. Each of these used to load and fail at the
+first slice (or silently mislabel boxes). Here every graph's real signature, read from its onnxruntime session
+(names, dtypes, ranks and fixed dimensions; no ``onnx`` import), must equal both the manifest's record of it and
+what the runtime feeds and reads, which follows from the preset and grid. Any difference is a ManifestError that
+names the graph file, the tensor and both values.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from streamdet.calibration.grid import GridSpec
+from streamdet.runtime_ort.boxes import BOX_DIM, CLASS_NAMES
+from streamdet.runtime_ort.manifest import GraphEntry, Manifest, ManifestError, TensorSpec
+from streamdet.runtime_ort.pillarize import PILLAR_FEATURE_DIM
+
+
+@dataclass(frozen=True)
+class TensorSignature:
+    """One input or output as a graph declares it: None for a dynamic dimension."""
+
+    name: str
+    dtype: str  # numpy dtype name ("float32"), or the onnxruntime type string when it has none
+    shape: tuple[int | None, ...]
+
+
+def check_runtime_fields(manifest: Manifest) -> None:
+    """The manifest fields the runtime relies on beyond the schema: its label table and the per-class NMS list."""
+    if tuple(manifest.class_names) != CLASS_NAMES:
+        raise ManifestError(
+            f"manifest class_names {list(manifest.class_names)} differ from the runtime's label table {list(CLASS_NAMES)} "
+            "(the slice graph's labels index it; reordered or truncated names would mislabel every box)"
+        )
+    ious = manifest.post.get("nms_iou_threshold")
+    if ious is not None and len(ious) != len(manifest.class_names):
+        raise ManifestError(
+            f"manifest post.nms_iou_threshold holds {len(ious)} values, expected one per class ({len(manifest.class_names)})"
+        )
+
+
+def expected_io(manifest: Manifest, grid: GridSpec, name: str) -> tuple[tuple[TensorSignature, ...], tuple[TensorSignature, ...]]:
+    """(inputs, outputs) the runtime feeds to and reads from graph ``name``, with the dimensions it fixes."""
+    c = int(manifest.preset["channels"])
+    m = int(manifest.preset["pillars"]["max_points_per_pillar"])
+    yq, xq, z = grid.quadrant_ny, grid.quadrant_nx, grid.nz
+    if name == "image_encoder":
+        return (
+            (TensorSignature("images", "uint8", (None, None, None, 3)),),
+            (TensorSignature("features", "float32", (None, c, None, None)),),
+        )
+    if name == "volumetric_lifter":
+        return (
+            (
+                TensorSignature("features", "float32", (None, c, None, None)),
+                TensorSignature("lut_index", "int32", (None, None, z, yq, xq)),
+                TensorSignature("lut_weight", "float32", (None, None, z, yq, xq)),
+            ),
+            (TensorSignature("image_bev", "float32", (None, c, yq, xq)),),
+        )
+    pillars = (
+        TensorSignature("pillar_features", "float32", (None, m, PILLAR_FEATURE_DIM)),
+        TensorSignature("pillar_mask", "float32", (None, m)),
+        TensorSignature("pillar_index", "int64", (None,)),
+    )
+    context = (
+        TensorSignature("image_bev", "float32", (None, c, yq, xq))
+        if manifest.use_image
+        else TensorSignature("quadrants", "int64", (None,))
+    )
+    outputs = (
+        TensorSignature("det_boxes", "float32", (None, None, BOX_DIM)),
+        TensorSignature("det_scores", "float32", (None, None)),
+        TensorSignature("det_labels", "int64", (None, None)),
+    )
+    return (*pillars, context), outputs
+
+
+def check_graph(
+    entry: GraphEntry,
+    inputs: tuple[TensorSignature, ...],
+    outputs: tuple[TensorSignature, ...],
+    manifest: Manifest,
+    grid: GridSpec,
+) -> None:
+    """Raise ManifestError unless the graph's real ``inputs``/``outputs`` match its manifest entry and the runtime."""
+    want_in, want_out = expected_io(manifest, grid, entry.name)
+    for kind, real, recorded, wanted in (
+        ("input", inputs, entry.inputs, want_in),
+        ("output", outputs, entry.outputs, want_out),
+    ):
+        where = f"{entry.file} ({entry.name}, {entry.precision})"
+        real_names = [t.name for t in real]
+        if real_names != [t.name for t in recorded]:
+            raise ManifestError(
+                f"{where}: the graph's {kind}s are {real_names}, the manifest records {[t.name for t in recorded]}"
+            )
+        if real_names != [t.name for t in wanted]:
+            raise ManifestError(
+                f"{where}: the graph's {kind}s are {real_names}; a {entry.name} graph has {[t.name for t in wanted]}"
+            )
+        for got, rec, want in zip(real, recorded, wanted):
+            _compare(where, got, _from_spec(rec), "the manifest records")
+            _compare(where, got, want, "the runtime feeds/reads")
+
+
+def _from_spec(spec: TensorSpec) -> TensorSignature:
+    return TensorSignature(spec.name, spec.dtype, tuple(d if isinstance(d, int) else None for d in spec.shape))
+
+
+def _compare(where: str, got: TensorSignature, want: TensorSignature, whose: str) -> None:
+    if got.dtype != want.dtype:
+        raise ManifestError(f"{where}: tensor {got.name!r} is {got.dtype} in the graph, {whose} {want.dtype}")
+    if len(got.shape) != len(want.shape):
+        raise ManifestError(f"{where}: tensor {got.name!r} has rank {len(got.shape)} in the graph, {whose} rank {len(want.shape)}")
+    for axis, (g, w) in enumerate(zip(got.shape, want.shape)):
+        if w is not None and g != w:
+            shown = "dynamic" if g is None else g
+            raise ManifestError(
+                f"{where}: tensor {got.name!r} has dimension {axis} = {shown} in the graph, {whose} {w} "
+                "(a manifest field edited after export, or another model's graph)"
+            )
