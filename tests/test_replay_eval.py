@@ -1,0 +1,132 @@
+"""Emission-time matching against hand-made trajectories, and the key-frame interpolation fallback."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from streamdet.data.synth_trajectories import Trajectories
+from streamdet.replay.latency_eval import prediction_entries, query_truth, score
+from streamdet.replay.record import Recording, SliceRecord
+from streamdet.replay.source import Drive, LidarSweep
+from streamdet.replay.truth import INTERPOLATED, TRAJECTORIES, GroundTruth, _interpolate
+from streamdet.runtime_ort.nms import NmsConfig
+from streamdet.runtime_ort.postprocess import Detections
+
+PERIOD_S = 0.05
+T0_US = 1_000_000_000
+SPEED = 10.0  # m/s along +x
+CAR_SIZE = (1.9, 4.6, 1.7)
+
+
+def car_boxes(t_s: float) -> np.ndarray:
+    """(2, 9) world boxes at drive time t: a car moving along x and a parked car."""
+    moving = [5.0 + SPEED * t_s, 10.0, 1.0, *CAR_SIZE, 0.0, SPEED, 0.0]
+    parked = [-8.0, -12.0, 1.0, *CAR_SIZE, 0.0, 0.0, 0.0]
+    return np.array([moving, parked])
+
+
+def make_drive(sweeps: int = 12) -> Drive:
+    out = []
+    for i in range(sweeps):
+        end = (i + 1) * PERIOD_S
+        boxes = car_boxes(end)
+        pts = np.concatenate([b[:3] + np.random.default_rng(i).uniform(-0.5, 0.5, (40, 3)) for b in boxes])  # points on both cars
+        points = np.zeros((len(pts), 5), np.float32)
+        points[:, :3] = pts
+        out.append(LidarSweep(i, end, PERIOD_S, points, None, np.eye(4), np.eye(4)))
+    return Drive("hand", tuple(out), (), T0_US)
+
+
+def trajectories(span_s: float = 1.0) -> Trajectories:
+    times = np.arange(0.0, span_s, 0.01)
+    return Trajectories(
+        times_us=(T0_US + times * 1e6).astype(np.int64),
+        boxes=np.stack([car_boxes(t) for t in times]),
+        names=np.array(["car", "car"]),
+        ego2global=np.broadcast_to(np.eye(4), (len(times), 4, 4)).copy(),
+    )
+
+
+def recording(drive: Drive, latency_s: float) -> Recording:
+    """A full-sweep mode that detects both cars exactly where they were scanned and emits latency_s later."""
+    slices = []
+    for sweep in drive.sweeps:
+        boxes = car_boxes(sweep.end_s).astype(np.float32)
+        dets = Detections(boxes, np.array([0.9, 0.8], np.float32), np.array([0, 0], np.int64))
+        slices.append(SliceRecord(sweep.index, 0, 1, sweep.end_s, len(sweep.points), emit_s=sweep.end_s + latency_s,
+                                  detections=dets, num_detections=2))  # fmt: skip
+    return Recording("full-sweep", drive.name, 1.0, tuple(slices), (), 1.0, 0.0, 0.0)
+
+
+def scores_at(latency_s: float, first_sweep: int = 1):
+    drive = make_drive()
+    q = query_truth(drive, GroundTruth(trajectories(), None), first_sweep=first_sweep)
+    streaming, offline = prediction_entries(drive, recording(drive, latency_s), q, NmsConfig(), 500)
+    return score([q], [streaming]), score([q], [offline])
+
+
+def test_detections_emitted_at_scan_time_are_perfect():
+    streaming, offline = scores_at(0.0)
+    assert streaming.map == pytest.approx(1.0) and offline.map == pytest.approx(1.0)
+
+
+def test_a_late_detection_is_scored_where_the_object_is_when_it_arrives():
+    # 0.12 s late: at a query (a rotation's end) the newest emitted sweep was scanned 0.15 s before, so the moving
+    # car has gone 1.5 m (matched at the 2 and 4 m thresholds only) and the parked one is where it was. Queries
+    # from sweep 3 on, so that every query has an emitted sweep.
+    streaming, offline = scores_at(0.12, first_sweep=3)
+    assert offline.map == pytest.approx(1.0)
+    assert streaming.map_static == pytest.approx(1.0)
+    assert streaming.map_moving == pytest.approx(0.5, abs=0.02)
+    assert streaming.map < offline.map
+
+
+def test_queries_before_any_emission_have_no_predictions():
+    drive = make_drive()
+    q = query_truth(drive, GroundTruth(trajectories(), None))
+    streaming, offline = prediction_entries(drive, recording(drive, 0.12), q, NmsConfig(), 500)
+    first = q.tokens[0]  # the end of sweep 1: sweep 0 is emitted at 0.17 s
+    assert streaming[first] == [] and len(offline[first]) == 2
+
+
+def test_ground_truth_counts_points_and_knows_its_source():
+    drive = make_drive()
+    q = query_truth(drive, GroundTruth(trajectories(), None))
+    assert q.source == TRAJECTORIES
+    for token in q.tokens:
+        assert [e["num_pts"] for e in q.entries[token]] == [40, 40]
+        assert q.moving[token].tolist() == [True, False]
+
+
+def test_key_frame_interpolation_is_linear_with_the_interval_velocity():
+    a = np.array([0.0, 0, 0, *CAR_SIZE, 0.1, 0, 0])
+    b = np.array([5.0, 1, 0, *CAR_SIZE, 0.3, 0, 0])
+    track = [(0, a, "car"), (500_000, b, "car")]
+    mid = _interpolate(track, 250_000)
+    np.testing.assert_allclose(mid[:3], [2.5, 0.5, 0])
+    assert mid[6] == pytest.approx(0.2)
+    np.testing.assert_allclose(mid[7:9], [10.0, 2.0])
+    assert _interpolate(track, 600_000) is None and _interpolate(track, -1) is None
+
+
+def test_interpolation_takes_the_shorter_arc_of_yaw():
+    a = np.array([0.0, 0, 0, *CAR_SIZE, np.pi - 0.1, 0, 0])
+    b = np.array([0.0, 0, 0, *CAR_SIZE, -np.pi + 0.1, 0, 0])
+    mid = _interpolate([(0, a, "car"), (100, b, "car")], 50)
+    assert abs(np.mod(mid[6], 2 * np.pi) - np.pi) < 1e-9
+
+
+def test_interpolated_ground_truth_matches_the_trajectories_of_a_straight_track():
+    key = [0.0, 0.5, 1.0]
+    tracks = {"moving": [(int(T0_US + t * 1e6), car_boxes(t)[0] * [1, 1, 1, 1, 1, 1, 1, 0, 0], "car") for t in key],
+              "parked": [(int(T0_US + t * 1e6), car_boxes(t)[1], "car") for t in key]}  # fmt: skip
+    truth = GroundTruth(None, tracks)
+    assert truth.source == INTERPOLATED
+    got = truth.at(T0_US + 0.3e6)
+    np.testing.assert_allclose(got.boxes, car_boxes(0.3), atol=1e-9)
+
+
+def test_ground_truth_needs_one_source():
+    with pytest.raises(ValueError, match="exactly one"):
+        GroundTruth(None, None)
