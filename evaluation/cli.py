@@ -190,6 +190,8 @@ def main(gt_path: Path | None, results_path: Path | None, data_dir: Path | None,
         gt, pred = load_gt_and_predictions(gt_path, results_path)
     except ValueError as e:
         raise click.ClickException(str(e)) from None
+    if len(gt) == 0:  # every AP would be 0 by definition: a score of nothing, not a result
+        raise click.ClickException(f"{gt_path}: the ground truth holds no box, so there is nothing to evaluate")
     _evaluate_and_report(gt, pred, class_list, json_path)
 
 

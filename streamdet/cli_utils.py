@@ -60,3 +60,95 @@ def image_precision_option(flag: str = "--image-precision", dest: str = "image_p
         "them. On x86 CPUs int8 here with fp32 slices halves the image lane's time (fresher camera features) "
         "and keeps the slice graph exact. Default: the same precision as the slices.",
     )
+
+
+# ---- the edge of every command-line tool ---------------------------------------------------------------------
+# The console scripts call these light functions (pyproject [project.scripts]); each imports its command inside
+# `run_edge`, so a missing optional dependency, a Ctrl-C while torch loads, or a bad input deep in a library all
+# end the same way: one line on stderr naming the tool and what is wrong, and a non-zero exit (130 for Ctrl-C).
+# Errors outside these classes are bugs and keep their traceback.
+
+EXIT_ERROR = 1
+EXIT_INTERRUPTED = 130  # 128 + SIGINT, as a shell reports a process ended by Ctrl-C
+
+
+def run_edge(module: str, prog: str, *, extra: str | None = None, args: list[str] | None = None) -> int:
+    """Run the click command ``module.main`` as ``prog``; returns the exit code (``main`` style entries exit with it).
+
+    ``extra`` names the pyproject extra that provides the command's optional dependencies (torch for export).
+    """
+    import importlib
+    import sys
+
+    try:
+        try:
+            command = importlib.import_module(module).main
+        except ModuleNotFoundError as e:
+            if e.name is None or e.name.split(".")[0] == "streamdet":
+                raise
+            hint = f": pip install 'streamdet[{extra}]' (install torch first: pip install torch==2.13.0)" if extra else ""
+            return _fail(prog, f"needs the Python package {e.name!r}, which is not installed{hint}")
+        result = command.main(args=args, prog_name=prog, standalone_mode=False)
+        return result if isinstance(result, int) and not isinstance(result, bool) else 0
+    except (KeyboardInterrupt, click.exceptions.Abort):
+        click.echo(f"{prog}: interrupted", err=True)
+        return EXIT_INTERRUPTED
+    except click.exceptions.Exit as e:
+        return e.exit_code
+    except click.ClickException as e:  # a usage error, or a command's own one-line error
+        e.show()
+        return e.exit_code
+    except BrokenPipeError:  # `streamdet-x | head`: the reader left; nothing to report
+        sys.stderr.close()
+        return EXIT_ERROR
+    except Exception as e:
+        if not is_input_error(e):
+            raise  # a bug: its traceback is what a report needs
+        return _fail(prog, describe_error(e))
+
+
+def describe_error(e: BaseException) -> str:
+    """One line: what went wrong, naming the file where the error knows it."""
+    if isinstance(e, UnicodeDecodeError):
+        text = f"cannot decode the input as {e.encoding} text at byte {e.start} (a binary or corrupted file?)"
+    elif isinstance(e, OSError) and e.filename is not None:
+        text = f"{e.filename}: {e.strerror or e}"
+    elif isinstance(e, RecursionError):
+        text = "the input nests too deeply to read"
+    elif type(e).__module__.startswith("onnxruntime"):
+        text = f"onnxruntime: {str(e).rsplit(' : ', 1)[-1]}"
+    else:
+        text = str(e) or type(e).__name__
+    return " ".join(text.split())
+
+
+def is_input_error(e: BaseException) -> bool:
+    """Whether a tool reports ``e`` in one line: bad input (ValueError, and the project's named errors: any class
+    defined in a streamdet module), OS and decode errors, onnxruntime's errors. Anything else is a bug."""
+    if isinstance(e, (ValueError, OSError, RecursionError)):
+        return True
+    return any(k.__module__.startswith(("streamdet.", "onnxruntime.")) for k in type(e).__mro__)
+
+
+def _fail(prog: str, message: str) -> int:
+    click.echo(f"{prog}: error: {message}", err=True)
+    return EXIT_ERROR
+
+
+def _entry(module: str, prog: str, extra: str | None = None):
+    def main() -> None:
+        raise SystemExit(run_edge(module, prog, extra=extra))
+
+    main.__name__ = prog.replace("-", "_")
+    main.__doc__ = f"Console script {prog}: {module}.main behind run_edge."
+    return main
+
+
+export_main = _entry("streamdet.export.cli", "streamdet-export", "export")
+bench_main = _entry("streamdet.benchmarks.cli", "streamdet-bench", "export")
+run_main = _entry("streamdet.runtime_ort.cli", "streamdet-run")
+calib_main = _entry("streamdet.calibration.cli", "streamdet-calib")
+synth_main = _entry("streamdet.data.synth_cli", "streamdet-synth")
+train_main = _entry("streamdet.training.cli", "streamdet-train", "export")
+eval_main = _entry("streamdet.evaluation.cli", "streamdet-eval")
+study_main = _entry("streamdet.evaluation.study_cli", "streamdet-study")
