@@ -1,0 +1,154 @@
+"""``Detections`` -> ``vision_msgs/Detection3DArray`` (for the stack) and ``visualization_msgs/MarkerArray`` (for
+viewers: Foxglove, RViz).
+
+Boxes stay in the LiDAR frame they were detected in (the header's ``frame_id``, the cloud's). A box
+``x, y, z, w, l, h, yaw`` becomes a pose at its geometric centre with the yaw as a quaternion about +z, and a size
+``(l, w, h)`` along the box's own x (the heading), y and z, which is how BoundingBox3D and a CUBE marker read it.
+vision_msgs has no velocity field: the velocity is not carried (the results JSON keeps it).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import numpy as np
+
+from streamdet.core.boxes import BOX_DIM, H, L, W, X, Y, YAW, Z
+from streamdet.core.classes import CLASS_NAMES
+from streamdet.runtime_ort.ros.header import duration_msg, header_msg
+
+# One RGB colour per detection class (CLASS_NAMES order), 0..1; grey for labels outside the classes.
+CLASS_COLORS_RGB: tuple[tuple[float, float, float], ...] = (
+    (1.00, 0.62, 0.00),  # car
+    (1.00, 0.39, 0.28),  # truck
+    (0.55, 0.27, 0.07),  # trailer
+    (1.00, 0.84, 0.00),  # bus
+    (0.60, 0.40, 0.80),  # construction_vehicle
+    (0.86, 0.08, 0.24),  # bicycle
+    (1.00, 0.24, 0.59),  # motorcycle
+    (0.00, 0.45, 1.00),  # pedestrian
+    (0.18, 0.80, 0.44),  # traffic_cone
+    (0.44, 0.50, 0.56),  # barrier
+)
+OTHER_COLOR_RGB = (0.7, 0.7, 0.7)
+CUBE, TEXT_VIEW_FACING = 1, 9  # visualization_msgs/Marker types
+ADD, DELETE, DELETEALL = 0, 2, 3  # visualization_msgs/Marker actions
+TEXT_HEIGHT_M = 0.8
+
+
+def yaw_quaternion(yaw: float) -> dict:
+    """A ``geometry_msgs/Quaternion`` dict of a rotation by ``yaw`` radians about +z."""
+    half = 0.5 * float(yaw)
+    return {"x": 0.0, "y": 0.0, "z": math.sin(half), "w": math.cos(half)}
+
+
+def box_pose(box: np.ndarray) -> dict:
+    """A ``geometry_msgs/Pose`` dict at the box's geometric centre, heading along its x."""
+    return {"position": {"x": float(box[X]), "y": float(box[Y]), "z": float(box[Z])}, "orientation": yaw_quaternion(box[YAW])}
+
+
+def box_size(box: np.ndarray) -> dict:
+    """A ``geometry_msgs/Vector3`` dict of the box's extent along its own x (length), y (width) and z (height)."""
+    return {"x": float(box[L]), "y": float(box[W]), "z": float(box[H])}
+
+
+def detection3d_array_message(
+    boxes: np.ndarray, scores: np.ndarray, labels: np.ndarray, stamp_ns: int, frame_id: str,
+    class_names: Sequence[str] = CLASS_NAMES,
+) -> dict:  # fmt: skip
+    """A ``vision_msgs/Detection3DArray`` dict: one Detection3D per box, one hypothesis (class name, score) each.
+
+    ``boxes`` (N, 9) in ``frame_id``; ``labels`` index ``class_names``. Detection ids are the box's row, as text.
+    """
+    boxes, scores, labels = _check(boxes, scores, labels, class_names)
+    header = header_msg(stamp_ns, frame_id)
+    detections = []
+    for i in range(len(boxes)):
+        pose = box_pose(boxes[i])
+        detections.append({
+            "header": header,
+            "results": [{
+                "hypothesis": {"class_id": class_names[int(labels[i])], "score": float(scores[i])},
+                "pose": {"pose": pose, "covariance": [0.0] * 36},
+            }],
+            "bbox": {"center": pose, "size": box_size(boxes[i])},
+            "id": str(i),
+        })  # fmt: skip
+    return {"header": header, "detections": detections}
+
+
+def marker_array_message(
+    boxes: np.ndarray, labels: np.ndarray, stamp_ns: int, frame_id: str, scores: np.ndarray | None = None,
+    names: Sequence[str] | None = None, ns: str = "streamdet", lifetime_s: float = 0.0, replace: bool = False,
+    alpha: float = 0.5, stale_ids: Sequence[int] = (), class_names: Sequence[str] = CLASS_NAMES,
+) -> dict:  # fmt: skip
+    """A ``visualization_msgs/MarkerArray`` dict: a translucent CUBE per box coloured by class and a text label
+    above it (the class name, and the score when ``scores`` is given; ``names`` overrides the text's name).
+
+    Markers of namespace ``ns`` and ``ns + "/labels"`` have ids 0..N-1. ``lifetime_s`` 0 keeps them until replaced;
+    ``replace`` starts the array with a DELETEALL so the boxes of the previous array disappear; ``stale_ids``
+    deletes those ids of both namespaces (the previous array's boxes beyond this one's count).
+    """
+    shown_scores = scores if scores is not None else np.zeros(len(np.asarray(boxes).reshape(-1, BOX_DIM)))
+    boxes, shown_scores, labels = _check(boxes, shown_scores, labels, class_names, allow_other=True)
+    if names is not None and len(names) != len(boxes):
+        raise ValueError(f"names must have {len(boxes)} entries, got {len(names)}")
+    header = header_msg(stamp_ns, frame_id)
+    lifetime = duration_msg(lifetime_s)
+    markers = [_marker(header, ns, 0, DELETEALL, lifetime)] if replace else []
+    for i in range(len(boxes)):
+        label = int(labels[i])
+        r, g, b = CLASS_COLORS_RGB[label] if 0 <= label < len(class_names) else OTHER_COLOR_RGB
+        name = names[i] if names is not None else (class_names[label] if 0 <= label < len(class_names) else "other")
+        cube = _marker(header, ns, i, ADD, lifetime)
+        cube.update(type=CUBE, pose=box_pose(boxes[i]), scale=box_size(boxes[i]), color={"r": r, "g": g, "b": b, "a": float(alpha)})
+        text = _marker(header, f"{ns}/labels", i, ADD, lifetime)
+        above = box_pose(boxes[i])
+        above["position"]["z"] += float(boxes[i, H]) / 2 + TEXT_HEIGHT_M / 2
+        text.update(type=TEXT_VIEW_FACING, pose=above, scale={"x": 0.0, "y": 0.0, "z": TEXT_HEIGHT_M},
+                    color={"r": r, "g": g, "b": b, "a": 1.0},
+                    text=name if scores is None else f"{name} {float(shown_scores[i]):.2f}")  # fmt: skip
+        markers += [cube, text]
+    for i in stale_ids:
+        markers += [_marker(header, ns, i, DELETE, lifetime), _marker(header, f"{ns}/labels", i, DELETE, lifetime)]
+    return {"markers": markers}
+
+
+def _marker(header: dict, ns: str, marker_id: int, action: int, lifetime: dict) -> dict:
+    return {
+        "header": header,
+        "ns": ns,
+        "id": int(marker_id),
+        "type": CUBE,
+        "action": action,
+        "pose": {"position": {"x": 0.0, "y": 0.0, "z": 0.0}, "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}},
+        "scale": {"x": 1.0, "y": 1.0, "z": 1.0},
+        "color": {"r": 0.0, "g": 0.0, "b": 0.0, "a": 0.0},
+        "lifetime": lifetime,
+        "frame_locked": False,
+        "points": [],
+        "colors": [],
+        "text": "",
+        "mesh_resource": "",
+        "mesh_use_embedded_materials": False,
+    }
+
+
+def _check(boxes, scores, labels, class_names, allow_other: bool = False):
+    boxes = np.asarray(boxes, dtype=np.float64)
+    if boxes.ndim != 2 or boxes.shape[1] != BOX_DIM:
+        raise ValueError(f"boxes must be (N, {BOX_DIM}) x, y, z, w, l, h, yaw, vx, vy; got shape {boxes.shape}")
+    n = len(boxes)
+    scores = np.asarray(scores, dtype=np.float64)
+    labels = np.asarray(labels)
+    if scores.shape != (n,) or labels.shape != (n,):
+        raise ValueError(f"scores and labels must be ({n},) to match boxes, got {scores.shape} and {labels.shape}")
+    if n and not np.issubdtype(labels.dtype, np.integer):
+        raise ValueError(f"labels must be integers, got dtype {labels.dtype}")
+    bad = (labels >= len(class_names)) | (labels < (-1 if allow_other else 0))
+    if np.any(bad):
+        raise ValueError(f"labels {sorted(set(labels[bad].tolist()))} are outside 0..{len(class_names) - 1}")
+    if not np.all(np.isfinite(boxes[:, :7])):
+        raise ValueError("boxes hold NaN or infinite centre, size or yaw values")
+    return boxes, scores, labels

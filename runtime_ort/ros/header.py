@@ -1,0 +1,42 @@
+"""``builtin_interfaces/Time`` and ``std_msgs/Header``: stamps as integer nanoseconds, headers as dicts."""
+
+from __future__ import annotations
+
+from typing import Any
+
+NS_PER_S = 1_000_000_000
+
+
+def stamp_ns(stamp: Any) -> int:
+    """Integer nanoseconds of a ``builtin_interfaces/Time`` (``sec``, ``nanosec``)."""
+    try:
+        sec, nanosec = int(stamp.sec), int(stamp.nanosec)
+    except AttributeError:
+        raise ValueError(f"expected a builtin_interfaces/Time with sec and nanosec, got {type(stamp).__name__}") from None
+    if not 0 <= nanosec < NS_PER_S:
+        raise ValueError(f"builtin_interfaces/Time.nanosec must be in [0, 1e9), got {nanosec}")
+    return sec * NS_PER_S + nanosec
+
+
+def header_stamp_ns(msg: Any) -> int:
+    """Integer nanoseconds of ``msg.header.stamp``."""
+    return stamp_ns(msg.header.stamp)
+
+
+def time_msg(ns: int) -> dict:
+    """A ``builtin_interfaces/Time`` dict of integer nanoseconds (negative times round toward minus infinity)."""
+    sec, nanosec = divmod(int(ns), NS_PER_S)
+    return {"sec": sec, "nanosec": nanosec}
+
+
+def duration_msg(seconds: float) -> dict:
+    """A ``builtin_interfaces/Duration`` dict of a non-negative number of seconds."""
+    if not seconds >= 0:
+        raise ValueError(f"a duration must be >= 0 s, got {seconds!r}")
+    sec, nanosec = divmod(round(seconds * NS_PER_S), NS_PER_S)
+    return {"sec": int(sec), "nanosec": int(nanosec)}
+
+
+def header_msg(ns: int, frame_id: str) -> dict:
+    """A ``std_msgs/Header`` dict."""
+    return {"stamp": time_msg(ns), "frame_id": str(frame_id)}

@@ -1,0 +1,78 @@
+"""``sensor_msgs/Image`` and ``sensor_msgs/CompressedImage`` -> (H, W, 3) uint8 RGB, the image lane's input.
+
+The detector was trained on colour images, so only colour encodings are taken: ``rgb8`` and ``bgr8`` raw images,
+JPEG and PNG compressed ones. A mono, Bayer, 16-bit or depth image is refused with the encoding named rather than
+silently replicated into three channels.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import cv2
+import numpy as np
+
+from streamdet.runtime_ort.ros.header import header_msg
+from streamdet.runtime_ort.ros.pointcloud2 import _byte_view
+
+RAW_ENCODINGS = ("rgb8", "bgr8")
+COMPRESSED_FORMATS = ("jpeg", "jpg", "png")
+_NOT_COLOUR = ("mono", "bayer", "16u", "16s", "32f", "compresseddepth", "8uc1", "16uc1", "32fc1")
+
+
+def image_to_rgb(msg: Any) -> np.ndarray:
+    """(H, W, 3) uint8 RGB of a raw ``sensor_msgs/Image`` in ``rgb8`` or ``bgr8`` (row padding allowed)."""
+    encoding = str(msg.encoding)
+    if encoding.lower() not in RAW_ENCODINGS:
+        raise ValueError(
+            f"sensor_msgs/Image encoding {encoding!r} is not supported: streamdet takes colour images in "
+            f"{' or '.join(RAW_ENCODINGS)} (debayer or convert mono / 16-bit images before the detector)"
+        )
+    height, width, step = int(msg.height), int(msg.width), int(msg.step)
+    if step < 3 * width:
+        raise ValueError(f"sensor_msgs/Image step {step} < 3 x width {width} for {encoding}")
+    data = _byte_view(msg.data)
+    if data.size < step * height:
+        raise ValueError(f"sensor_msgs/Image data holds {data.size} bytes; {height} rows of step {step} need {step * height}")
+    rows = data[: step * height].reshape(height, step)  # (H, step)
+    image = rows[:, : 3 * width].reshape(height, width, 3)  # (H, W, 3)
+    if encoding.lower() == "bgr8":
+        return np.ascontiguousarray(image[:, :, ::-1])
+    return np.ascontiguousarray(image)
+
+
+def compressed_image_to_rgb(msg: Any) -> np.ndarray:
+    """(H, W, 3) uint8 RGB of a ``sensor_msgs/CompressedImage`` holding a colour JPEG or PNG."""
+    fmt = str(msg.format)
+    lowered = fmt.lower()
+    if not any(f in lowered for f in COMPRESSED_FORMATS) or any(f in lowered for f in _NOT_COLOUR):
+        raise ValueError(
+            f"sensor_msgs/CompressedImage format {fmt!r} is not supported: streamdet takes colour "
+            f"{' or '.join(('jpeg', 'png'))} images"
+        )
+    data = _byte_view(msg.data)
+    if data.size == 0:
+        raise ValueError(f"sensor_msgs/CompressedImage ({fmt}) holds no data")
+    bgr = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    if bgr is None:
+        raise ValueError(f"sensor_msgs/CompressedImage ({fmt}, {data.size} bytes) could not be decoded")
+    if bgr.ndim != 3 or bgr.shape[2] not in (3, 4) or bgr.dtype != np.uint8:
+        what = "single-channel" if bgr.ndim == 2 else f"{bgr.shape[2]}-channel {bgr.dtype}"
+        raise ValueError(f"sensor_msgs/CompressedImage ({fmt}) decodes to a {what} image; streamdet takes 8-bit colour")
+    return cv2.cvtColor(bgr, cv2.COLOR_BGRA2RGB if bgr.shape[2] == 4 else cv2.COLOR_BGR2RGB)
+
+
+def compressed_image_message(data: bytes, stamp_ns: int, frame_id: str, fmt: str = "jpeg") -> dict:
+    """A ``sensor_msgs/CompressedImage`` dict of already encoded bytes (a camera's JPEG, kept bit for bit)."""
+    return {"header": header_msg(stamp_ns, frame_id), "format": fmt, "data": bytes(data)}
+
+
+def rgb_to_compressed_image_message(rgb: np.ndarray, stamp_ns: int, frame_id: str, quality: int = 92) -> dict:
+    """A JPEG ``sensor_msgs/CompressedImage`` dict of an (H, W, 3) uint8 RGB image."""
+    rgb = np.asarray(rgb)
+    if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
+        raise ValueError(f"expected an (H, W, 3) uint8 RGB image, got {rgb.dtype} {rgb.shape}")
+    ok, buf = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+    if not ok:
+        raise ValueError("JPEG encoding failed")
+    return compressed_image_message(buf.tobytes(), stamp_ns, frame_id)

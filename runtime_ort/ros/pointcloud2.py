@@ -1,0 +1,280 @@
+"""``sensor_msgs/PointCloud2`` <-> the runtime's sweep (N, 5) and slices (N, 6), vectorised with numpy.
+
+Reading builds one structured dtype from the message's ``fields`` (names, offsets, byte order) with the point
+step as its item size, views the payload through it without copying, and copies only the columns the runtime
+needs. So any field order, padding between fields or at the end of a point, row padding (``row_step`` greater
+than ``width * point_step``), float32 / float64 / integer fields and either byte order cost the same.
+
+Columns: ``x y z`` (metres, the cloud's frame), the intensity field (scaled into the 0..255 range nuScenes uses),
+and the ring (``ring``, ``channel`` or ``line``; zeros when absent: the model does not read it). Points with a
+non-finite coordinate (a non-dense cloud's NaN returns) are dropped whatever ``is_dense`` says.
+
+Per-point time, under the names drivers use (``TIME_FIELD_NAMES``), in seconds after the header stamp (negative:
+before it). ``time_unit="auto"`` takes integer fields as nanoseconds (Ouster ``t``) and float fields as seconds
+(Velodyne ``time``), or nanoseconds when their magnitude exceeds 1e12 (an absolute nanosecond clock, Livox
+``timestamp``); a time that is still above 1e6 s (~11 days) is absolute (Hesai ``timestamp``) and is made relative
+to the header stamp.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+import numpy as np
+
+from streamdet.core.points import INTENSITY_SCALE, SWEEP_COLUMNS
+from streamdet.core.sectors import check_num_slices, slice_index_of
+from streamdet.core.slicing import relative_time_s, split_sweep
+from streamdet.runtime_ort.ros.header import NS_PER_S, header_msg, header_stamp_ns
+
+# sensor_msgs/PointField datatypes -> numpy type codes (without byte order)
+POINT_FIELD_TYPES: dict[int, str] = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
+FLOAT32 = 7
+TIME_FIELD_NAMES: tuple[str, ...] = ("t", "time", "timestamp", "time_stamp")  # Ouster, Velodyne, Hesai/Livox, others
+RING_FIELD_NAMES: tuple[str, ...] = ("ring", "channel", "line")
+TIME_UNITS_S: dict[str, float] = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}
+ABSOLUTE_TIME_S = 1e6  # a per-point time above this many seconds is a clock reading, not an offset
+NANOSECOND_CLOCK = 1e12  # a float time above this is nanoseconds
+
+
+@dataclass(frozen=True)
+class CloudFields:
+    """Which fields of a driver's cloud to read and how."""
+
+    intensity: str = "intensity"  # the reflectance field
+    intensity_scale: float = 1.0  # multiplies intensity into the 0..255 range of nuScenes (e.g. 255 for 0..1)
+    time: str | None = "auto"  # per-point time field; "auto": the first of TIME_FIELD_NAMES; None: do not read one
+    require_time: bool = True  # "auto" finding no time field is an error (False: the cloud is read without time)
+    time_unit: str = "auto"  # "auto" | "s" | "ms" | "us" | "ns"
+    ring: str | None = "auto"  # "auto": the first of RING_FIELD_NAMES, zeros if none; None: zeros
+
+    def __post_init__(self) -> None:
+        if self.time_unit != "auto" and self.time_unit not in TIME_UNITS_S:
+            raise ValueError(f"CloudFields.time_unit must be 'auto' or one of {list(TIME_UNITS_S)}, got {self.time_unit!r}")
+        if not (np.isfinite(self.intensity_scale) and self.intensity_scale > 0):
+            raise ValueError(f"CloudFields.intensity_scale must be a positive number, got {self.intensity_scale!r}")
+
+
+@dataclass(frozen=True, eq=False)
+class Cloud:
+    """One decoded cloud: the runtime's sweep layout plus per-point time."""
+
+    stamp_ns: int  # header stamp
+    frame_id: str
+    points: np.ndarray  # (N, 5) float32 x, y, z, intensity (0..255), ring
+    time_s: np.ndarray | None  # (N,) float64 seconds after the header stamp; None: the cloud has no time field
+    num_dropped: int  # points removed for a non-finite coordinate
+
+
+@dataclass(frozen=True, eq=False)
+class TimedSlice:
+    """One slice for ``StreamingDetector.detect_slice``, with the time the sensor finished scanning it."""
+
+    points: np.ndarray  # (N, 6) float32 x, y, z, reflectance (0..1), relative time (s), slice index
+    index: int  # k of n, in scan order
+    num_slices: int
+    scan_time_ns: int  # cloud stamp + the latest point time of the slice (the stamp when times are unknown)
+    cloud_stamp_ns: int
+    frame_id: str
+
+
+def decode_pointcloud2(msg: Any, fields: CloudFields = CloudFields()) -> Cloud:
+    """A ``sensor_msgs/PointCloud2`` as the runtime's (N, 5) float32 sweep plus per-point time."""
+    height, width = int(msg.height), int(msg.width)
+    point_step, row_step = int(msg.point_step), int(msg.row_step)
+    present = {f.name: f for f in msg.fields}
+    names = {"x": "x", "y": "y", "z": "z", "intensity": fields.intensity}
+    for role, name in names.items():
+        if name not in present:
+            raise ValueError(f"PointCloud2 has no {name!r} field ({role}); it has {list(present)}")
+    time_name = _resolve(fields.time, TIME_FIELD_NAMES, present, "per-point time" if fields.require_time else None)
+    ring_name = _resolve(fields.ring, RING_FIELD_NAMES, present, None)
+    used = [("x", "x"), ("y", "y"), ("z", "z"), ("intensity", fields.intensity)]
+    used += [("time", time_name)] if time_name else []
+    used += [("ring", ring_name)] if ring_name else []
+    order = ">" if msg.is_bigendian else "<"
+    dtype = _point_dtype(present, used, order, point_step)
+    payload = _byte_view(msg.data)
+    num = height * width
+    if num == 0:
+        return _empty_cloud(msg, time_name is not None)
+    if row_step < width * point_step:
+        raise ValueError(f"PointCloud2 row_step {row_step} < width {width} x point_step {point_step}")
+    need = (height - 1) * row_step + width * point_step
+    if payload.size < need:
+        raise ValueError(f"PointCloud2 data holds {payload.size} bytes; {height} rows of {width} points need {need}")
+    # A strided view: rows row_step apart, points point_step apart; no copy until the columns below.
+    grid = np.ndarray((height, width), dtype=dtype, buffer=payload, strides=(row_step, point_step))  # (H, W)
+
+    def column(role: str) -> np.ndarray:
+        return grid[role].reshape(num)  # (N,), a view when the rows are unpadded
+
+    points = np.empty((num, SWEEP_COLUMNS), dtype=np.float32)
+    points[:, 0] = column("x")
+    points[:, 1] = column("y")
+    points[:, 2] = column("z")
+    points[:, 3] = column("intensity")
+    if fields.intensity_scale != 1.0:
+        points[:, 3] *= np.float32(fields.intensity_scale)
+    if ring_name:
+        points[:, 4] = column("ring")
+    else:
+        points[:, 4] = 0.0
+    time_s = _times_s(column("time"), fields.time_unit, header_stamp_ns(msg), time_name) if time_name else None
+    finite = np.isfinite(points[:, :3]).all(axis=1)
+    dropped = num - int(np.count_nonzero(finite))
+    if dropped:
+        points = points[finite]
+        time_s = time_s[finite] if time_s is not None else None
+    return Cloud(header_stamp_ns(msg), str(msg.header.frame_id), points, time_s, dropped)
+
+
+def split_cloud(cloud: Cloud, num_slices: int, start_deg: float = 0.0) -> list[TimedSlice]:
+    """A full-sweep cloud cut into the runtime's ``num_slices`` slices by azimuth (``split_sweep``), each stamped
+    with its scan time from the per-point times."""
+    check_num_slices(num_slices, start_deg)
+    parts = split_sweep(cloud.points, num_slices, start_deg)
+    if cloud.time_s is None:
+        return [TimedSlice(p, k, num_slices, cloud.stamp_ns, cloud.stamp_ns, cloud.frame_id) for k, p in enumerate(parts)]
+    k_of_point = slice_index_of(cloud.points[:, 0], cloud.points[:, 1], num_slices, start_deg)
+    latest = np.full(num_slices, -np.inf)
+    np.maximum.at(latest, k_of_point, cloud.time_s)
+    return [
+        TimedSlice(p, k, num_slices, _scan_time_ns(cloud.stamp_ns, latest[k]), cloud.stamp_ns, cloud.frame_id)
+        for k, p in enumerate(parts)
+    ]
+
+
+def slice_from_message(
+    cloud: Cloud, num_slices: int, start_deg: float = 0.0, index: int | None = None, sweep_duration_s: float = 0.05
+) -> TimedSlice:
+    """One message that already holds one slice (a driver publishing partial scans) as a runtime slice.
+
+    ``index`` None: the sector holding most of the points. Every point of the message is kept, also those a few
+    columns over the sector border: the slice graph crops to the sector's quadrants itself.
+    """
+    check_num_slices(num_slices, start_deg)
+    pts = cloud.points
+    k_of_point = slice_index_of(pts[:, 0], pts[:, 1], num_slices, start_deg)
+    if index is None:
+        if len(pts) == 0:
+            raise ValueError("slice_from_message: an empty cloud names no sector; pass index")
+        index = int(np.bincount(k_of_point, minlength=num_slices).argmax())
+    elif not (isinstance(index, (int, np.integer)) and 0 <= index < num_slices):
+        raise ValueError(f"slice index must be in 0..{num_slices - 1}, got {index!r}")
+    out = np.empty((len(pts), SWEEP_COLUMNS + 1), dtype=np.float32)  # (N, 6)
+    out[:, :3] = pts[:, :3]
+    out[:, 3] = pts[:, 3] / INTENSITY_SCALE
+    out[:, 4] = relative_time_s(pts, start_deg, sweep_duration_s)
+    out[:, 5] = index
+    latest = float(cloud.time_s.max()) if cloud.time_s is not None and len(pts) else -np.inf
+    return TimedSlice(out, int(index), num_slices, _scan_time_ns(cloud.stamp_ns, latest), cloud.stamp_ns, cloud.frame_id)
+
+
+def pointcloud2_message(
+    points: np.ndarray, stamp_ns: int, frame_id: str, time_s: np.ndarray | None = None
+) -> dict:
+    """A little-endian dense ``sensor_msgs/PointCloud2`` dict of a (N, 5) sweep (x, y, z, intensity, ring), with
+    a float32 ``time`` field (seconds after the stamp, Velodyne's convention) when ``time_s`` is given."""
+    points = np.asarray(points)
+    if points.ndim != 2 or points.shape[1] != SWEEP_COLUMNS:
+        raise ValueError(f"points must be (N, {SWEEP_COLUMNS}) x, y, z, intensity, ring; got shape {points.shape}")
+    names = ["x", "y", "z", "intensity", "ring"] + (["time"] if time_s is not None else [])
+    rec = np.empty(len(points), dtype=np.dtype({"names": names, "formats": ["<f4"] * len(names)}))
+    for j, name in enumerate(names[:SWEEP_COLUMNS]):
+        rec[name] = points[:, j]
+    if time_s is not None:
+        time_s = np.asarray(time_s)
+        if time_s.shape != (len(points),):
+            raise ValueError(f"time_s must be ({len(points)},), got shape {time_s.shape}")
+        rec["time"] = time_s
+    step = rec.dtype.itemsize
+    return {
+        "header": header_msg(stamp_ns, frame_id),
+        "height": 1,
+        "width": len(points),
+        "fields": [{"name": n, "offset": 4 * j, "datatype": FLOAT32, "count": 1} for j, n in enumerate(names)],
+        "is_bigendian": False,
+        "point_step": step,
+        "row_step": step * len(points),
+        "data": rec.tobytes(),
+        "is_dense": bool(np.isfinite(points[:, :3]).all()),
+    }
+
+
+# ---- internals ---------------------------------------------------------------------------------------------
+
+
+def _resolve(wanted: str | None, candidates: Sequence[str], present: dict, required_as: str | None) -> str | None:
+    """The field name to read: ``wanted``, or the first candidate present when ``wanted`` is "auto"."""
+    if wanted is None:
+        return None
+    if wanted != "auto":
+        if wanted not in present:
+            raise ValueError(f"PointCloud2 has no {wanted!r} field; it has {list(present)}")
+        return wanted
+    for name in candidates:
+        if name in present:
+            return name
+    if required_as is not None:
+        raise ValueError(
+            f"PointCloud2 has no {required_as} field (looked for {list(candidates)}); it has {list(present)}; "
+            "name it with CloudFields(time=...) or read the cloud without time (CloudFields(require_time=False))"
+        )
+    return None
+
+
+def _point_dtype(present: dict, used: list[tuple[str, str]], order: str, point_step: int) -> np.dtype:
+    names, formats, offsets = [], [], []
+    for role, name in used:
+        field = present[name]
+        datatype, count, offset = int(field.datatype), int(field.count), int(field.offset)
+        if datatype not in POINT_FIELD_TYPES:
+            raise ValueError(f"PointCloud2 field {name!r} has unknown datatype {datatype} (sensor_msgs/PointField 1..8)")
+        if count != 1:
+            raise ValueError(f"PointCloud2 field {name!r} has count {count}; streamdet reads scalar fields (count 1)")
+        code = np.dtype(order + POINT_FIELD_TYPES[datatype])
+        if offset < 0 or offset + code.itemsize > point_step:
+            raise ValueError(f"PointCloud2 field {name!r} at offset {offset} ({code}) does not fit point_step {point_step}")
+        names.append(role)
+        formats.append(code)
+        offsets.append(offset)
+    return np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": point_step})
+
+
+def _byte_view(data: Any) -> np.ndarray:
+    """A uint8 view of a ``uint8[]`` payload: bytes, bytearray, array.array, memoryview or a numpy array."""
+    if isinstance(data, np.ndarray):
+        return np.ascontiguousarray(data).view(np.uint8).reshape(-1)
+    try:
+        return np.frombuffer(data, dtype=np.uint8)
+    except TypeError:
+        return np.asarray(data, dtype=np.uint8)  # a list of ints (slow path)
+
+
+def _times_s(raw: np.ndarray, unit: str, stamp: int, name: str) -> np.ndarray:
+    if unit == "auto":
+        if np.issubdtype(raw.dtype, np.integer):
+            unit = "ns"
+        else:
+            finite = raw[np.isfinite(raw)]
+            unit = "ns" if finite.size and float(np.abs(finite).max()) > NANOSECOND_CLOCK else "s"
+    if unit == "ns" and np.issubdtype(raw.dtype, np.integer) and raw.size and int(raw.max()) > ABSOLUTE_TIME_S * NS_PER_S:
+        # an absolute integer nanosecond clock: subtract in integers, exact
+        return (raw.astype(np.int64) - np.int64(stamp)).astype(np.float64) * 1e-9
+    seconds = raw.astype(np.float64) * TIME_UNITS_S[unit]
+    finite = seconds[np.isfinite(seconds)]
+    if finite.size and float(np.abs(finite).max()) > ABSOLUTE_TIME_S:
+        seconds = seconds - stamp / NS_PER_S
+    return seconds
+
+
+def _scan_time_ns(stamp_ns: int, latest_s: float) -> int:
+    return int(stamp_ns) if not np.isfinite(latest_s) else int(stamp_ns) + int(round(latest_s * NS_PER_S))
+
+
+def _empty_cloud(msg: Any, has_time: bool) -> Cloud:
+    stamp = header_stamp_ns(msg)
+    return Cloud(stamp, str(msg.header.frame_id), np.zeros((0, SWEEP_COLUMNS), np.float32),
+                 np.zeros(0) if has_time else None, 0)  # fmt: skip

@@ -1,0 +1,151 @@
+"""A numpy TF buffer over ``tf2_msgs/TFMessage`` (``/tf`` and ``/tf_static``): the poses the rig is built from.
+
+An edge ``parent -> child`` stores the child frame's pose in the parent frame (``transform`` of a
+``geometry_msgs/TransformStamped`` whose ``header.frame_id`` is the parent), i.e. the map from child coordinates
+to parent coordinates: ``sensor2ego`` for ``base_link -> LIDAR_TOP``, ``ego2global`` for ``map -> base_link``.
+Lookups return nuScenes-style records ``{"rotation": [w, x, y, z], "translation": [x, y, z]}`` so the rig comes
+out of the same ``Rig.from_nuscenes_records`` arithmetic as the nuScenes tables. A direct edge at an exact stamp
+returns the message's own numbers, untouched; a stamp between two messages is interpolated (linear translation,
+spherical rotation); a chain of edges is composed.
+"""
+
+from __future__ import annotations
+
+import bisect
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from streamdet.calibration.camera import invert_transform, make_transform, matrix_to_quaternion, quaternion_to_matrix
+from streamdet.runtime_ort.ros.header import header_msg, stamp_ns
+
+Record = dict  # {"rotation": [w, x, y, z], "translation": [x, y, z]}
+
+
+@dataclass
+class _Edge:
+    stamps: list[int] = field(default_factory=list)  # sorted ns; empty for a static edge
+    records: list[Record] = field(default_factory=list)
+    static: Record | None = None
+
+
+class TfBuffer:
+    """Static and time-stamped transforms between named frames; not thread-safe (one reader feeds it)."""
+
+    def __init__(self, max_extrapolation_ns: int = 0) -> None:
+        self.max_extrapolation_ns = int(max_extrapolation_ns)  # how far past the first / last stamp a lookup may reach
+        self._edges: dict[tuple[str, str], _Edge] = {}
+        self._parent: dict[str, str] = {}
+
+    def add(self, msg: Any, static: bool = False) -> None:
+        """Every ``TransformStamped`` of a ``tf2_msgs/TFMessage``; ``static`` for ``/tf_static``."""
+        for ts in msg.transforms:
+            self.add_transform(ts, static)
+
+    def add_transform(self, ts: Any, static: bool = False) -> None:
+        parent, child = _frame(ts.header.frame_id), _frame(ts.child_frame_id)
+        if not parent or not child or parent == child:
+            raise ValueError(f"TransformStamped needs two different frame ids, got {parent!r} -> {child!r}")
+        known = self._parent.get(child)
+        if known is not None and known != parent:
+            raise ValueError(f"frame {child!r} has two parents, {known!r} and {parent!r}: TF is a tree")
+        self._parent[child] = parent
+        r, t = ts.transform.rotation, ts.transform.translation
+        record = {"rotation": [float(r.w), float(r.x), float(r.y), float(r.z)], "translation": [float(t.x), float(t.y), float(t.z)]}
+        edge = self._edges.setdefault((parent, child), _Edge())
+        if static:
+            edge.static = record
+            return
+        stamp = stamp_ns(ts.header.stamp)
+        i = bisect.bisect_left(edge.stamps, stamp)
+        if i < len(edge.stamps) and edge.stamps[i] == stamp:
+            edge.records[i] = record
+        else:
+            edge.stamps.insert(i, stamp)
+            edge.records.insert(i, record)
+
+    @property
+    def frames(self) -> set[str]:
+        return set(self._parent) | set(self._parent.values())
+
+    def lookup(self, parent: str, child: str, stamp: int) -> Record:
+        """The pose of ``child`` in ``parent`` at ``stamp`` (ns) as a record; KeyError / ValueError say why not."""
+        parent, child = _frame(parent), _frame(child)
+        if (parent, child) in self._edges:
+            return self._edge_record(parent, child, stamp)
+        up_child = self._chain(child)
+        up_parent = self._chain(parent)
+        common = next((f for f in up_child if f in up_parent), None)
+        if common is None:
+            raise KeyError(f"no TF path from {parent!r} to {child!r}; known frames {sorted(self.frames)}")
+        child2common = self._compose(up_child[: up_child.index(common) + 1], stamp)
+        parent2common = self._compose(up_parent[: up_parent.index(common) + 1], stamp)
+        child2parent = invert_transform(parent2common) @ child2common
+        return {"rotation": matrix_to_quaternion(child2parent[:3, :3]).tolist(), "translation": child2parent[:3, 3].tolist()}
+
+    # ---- internals ------------------------------------------------------------------------------------
+    def _chain(self, frame: str) -> list[str]:
+        chain = [frame]
+        while chain[-1] in self._parent:
+            chain.append(self._parent[chain[-1]])
+            if len(chain) > 1000:
+                raise ValueError(f"TF loop above frame {frame!r}")
+        return chain
+
+    def _compose(self, chain: list[str], stamp: int) -> np.ndarray:
+        """(4, 4) map from the first frame of ``chain`` to its last, through each parent."""
+        out = np.eye(4)
+        for child, parent in zip(chain, chain[1:]):
+            rec = self._edge_record(parent, child, stamp)
+            out = make_transform(quaternion_to_matrix(rec["rotation"]), rec["translation"]) @ out
+        return out
+
+    def _edge_record(self, parent: str, child: str, stamp: int) -> Record:
+        edge = self._edges[(parent, child)]
+        if edge.static is not None:
+            return edge.static
+        stamps = edge.stamps
+        i = bisect.bisect_left(stamps, stamp)
+        if i < len(stamps) and stamps[i] == stamp:
+            return edge.records[i]
+        if i == 0 or i == len(stamps):
+            end = stamps[0] if i == 0 else stamps[-1]
+            if abs(stamp - end) <= self.max_extrapolation_ns:
+                return edge.records[0 if i == 0 else -1]
+            raise ValueError(
+                f"TF {parent!r} -> {child!r} at {stamp} ns is outside its {len(stamps)} stamps "
+                f"[{stamps[0]}, {stamps[-1]}] (max_extrapolation_ns {self.max_extrapolation_ns})"
+            )
+        a, b = edge.records[i - 1], edge.records[i]
+        w = (stamp - stamps[i - 1]) / (stamps[i] - stamps[i - 1])
+        t = (1 - w) * np.asarray(a["translation"]) + w * np.asarray(b["translation"])
+        return {"rotation": _slerp(np.asarray(a["rotation"]), np.asarray(b["rotation"]), w).tolist(), "translation": t.tolist()}
+
+
+def transform_stamped_msg(parent: str, child: str, record: Record, stamp: int) -> dict:
+    """A ``geometry_msgs/TransformStamped`` dict of a record (child pose in parent)."""
+    w, x, y, z = (float(v) for v in record["rotation"])
+    tx, ty, tz = (float(v) for v in record["translation"])
+    return {
+        "header": header_msg(stamp, parent),
+        "child_frame_id": child,
+        "transform": {"translation": {"x": tx, "y": ty, "z": tz}, "rotation": {"x": x, "y": y, "z": z, "w": w}},
+    }
+
+
+def _frame(name: Any) -> str:
+    return str(name).lstrip("/")  # tf2 frame ids carry no leading slash; ROS 1 bags often do
+
+
+def _slerp(q0: np.ndarray, q1: np.ndarray, w: float) -> np.ndarray:
+    q0 = q0 / np.linalg.norm(q0)
+    q1 = q1 / np.linalg.norm(q1)
+    dot = float(q0 @ q1)
+    if dot < 0:  # the shorter arc
+        q1, dot = -q1, -dot
+    if dot > 0.9995:
+        q = q0 + w * (q1 - q0)
+        return q / np.linalg.norm(q)
+    theta = np.arccos(dot)
+    return (np.sin((1 - w) * theta) * q0 + np.sin(w * theta) * q1) / np.sin(theta)
