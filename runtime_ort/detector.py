@@ -175,6 +175,15 @@ class SliceResult:
     num_points_dropped: int = 0  # points lost to the pillar caps (max_points_per_pillar, max_pillars)
 
 
+@dataclass(frozen=True, eq=False)
+class SweepResult:
+    """What ``detect_sweep_slices`` did with one sweep."""
+
+    detections: Detections  # every slice's detections merged with per-class NMS (what detect_sweep returns)
+    slices: tuple[SliceResult, ...]  # in scan order
+    points: tuple[np.ndarray, ...]  # (N_k, 6) float32 points of each slice
+
+
 @dataclass(frozen=True)
 class _ImageState:
     bev: np.ndarray  # (4, C, Yq, Xq) float32, every quadrant
@@ -242,6 +251,9 @@ class StreamingDetector:
         self.slice_head = session("slice_head", config.slice_lane_threads, config.precision)
         self.providers = self.slice_head.providers
         self.stats = LatencyStats()
+        # The manifest's MAC counts of the graphs in use; _executed_gmac scales them to each run's sizes for the stats.
+        lanes = {"image_encoder": config.image_precision, "volumetric_lifter": config.image_precision, "slice_head": config.precision}
+        self._graph_entries = {name: m.graph(name, lanes[name]) for name in m.required_graphs}
 
         self._lock = threading.Lock()  # guards the swaps of _lut and _image; reads take a reference
         self._calibration_lock = threading.Lock()  # one calibration swap (and its re-lift) at a time
@@ -253,6 +265,18 @@ class StreamingDetector:
             self._lut = self._check_lut(self._build_lut(_export_rig(m, self.export_dir)))
         self._image: _ImageState | None = None
         log.info("streamdet: %s (%s, %d slices) on %s", self.export_dir, self.precision_label, self.num_slices, list(self.providers))
+
+    def _executed_gmac(self, graph: str, **sizes: int) -> float:
+        """GMAC of one run of ``graph``: the manifest's count scaled linearly from the sizes it was counted at
+        (``gmac_at``) to these (cameras J, image H and W, quadrants Q); sizes it was not counted at stay as counted
+        (the slice graph's pillar net at the export's pillar count P, a small share of it)."""
+        entry = self._graph_entries[graph]
+        gmac = entry.gmac
+        for name, size in sizes.items():
+            at = entry.gmac_at.get(name)
+            if at:
+                gmac *= size / at
+        return gmac
 
     @property
     def precision_label(self) -> str:
@@ -372,7 +396,7 @@ class StreamingDetector:
             seq = self._image_seq
         t0 = time.perf_counter()
         batch = np.stack([images[n] for n in used])  # (J_used, H, W, 3)
-        with self.stats.time("image_encoder"):
+        with self.stats.time("image_encoder", self._executed_gmac("image_encoder", J=len(used), H=img.height, W=img.width)):
             (enc,) = self.image_encoder.run({"images": batch})  # (J_used, C, Hf, Wf)
         if enc.shape[2:] != (img.feature_height, img.feature_width):
             # the LUT's rows address (Hf, Wf) maps: another size would gather the wrong cells without an error
@@ -409,7 +433,7 @@ class StreamingDetector:
                     return True
 
     def _lift(self, features: np.ndarray, lut: Lut) -> np.ndarray:
-        with self.stats.time("volumetric_lifter"):
+        with self.stats.time("volumetric_lifter", self._executed_gmac("volumetric_lifter", Q=int(lut.index.shape[0]))):
             (bev,) = self.lifter.run({"features": features, "lut_index": lut.index, "lut_weight": lut.weight})
         return bev  # (4, C, Yq, Xq)
 
@@ -456,7 +480,7 @@ class StreamingDetector:
                 feeds = {**pillars.as_feeds(), "image_bev": self._image_bev(state, quadrants)}
             else:
                 feeds = pillars.as_feeds(quadrants)
-            with self.stats.time("slice_head"):
+            with self.stats.time("slice_head", self._executed_gmac("slice_head", Q=len(quadrants))):
                 boxes, scores, labels = self.slice_head.run(feeds)
             with self.stats.time("post"):
                 dets = postprocess_slice(
@@ -492,6 +516,10 @@ class StreamingDetector:
         score several slice counts. Any real numeric dtype (float, int, uint) is converted to float32, as a file
         reader hands it over; bool, complex, object or string arrays raise ValueError.
         """
+        return self.detect_sweep_slices(sweep, timestamp, num_slices).detections
+
+    def detect_sweep_slices(self, sweep: np.ndarray, timestamp: float | None = None, num_slices: int | None = None) -> SweepResult:
+        """``detect_sweep`` keeping what each slice saw and found (its points and ``SliceResult``)."""
         n = self._slices(num_slices)
         sweep = check_sweep(sweep)
         if sweep.dtype.kind not in "fiu":
@@ -499,7 +527,8 @@ class StreamingDetector:
         slices = split_sweep(sweep.astype(np.float32, copy=False), n, self.config.start_deg)
         results = [self.detect_slice(pts, k, timestamp, n) for k, pts in enumerate(slices)]
         with self.stats.time("sweep_nms"):
-            return aggregate_sweep([r.detections for r in results], self.config.nms)
+            merged = aggregate_sweep([r.detections for r in results], self.config.nms)
+        return SweepResult(merged, tuple(results), tuple(slices))
 
     def _slices(self, num_slices: int | None) -> int:
         if num_slices is None:
