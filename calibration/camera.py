@@ -361,6 +361,10 @@ class Rig:
                 doc = json.loads(path_or_dict.read_text(encoding="utf-8"))
             except json.JSONDecodeError as e:
                 raise CalibrationError(f"{src}: not valid JSON: {e}") from None
+            except UnicodeDecodeError as e:
+                raise CalibrationError(f"{src}: not UTF-8 text (a binary file?): {e.reason} at byte {e.start}") from None
+            except RecursionError:
+                raise CalibrationError(f"{src}: nests too deeply to be a calibration file") from None
         else:
             src = os.path.basename(os.fspath(path_or_dict))
             try:
@@ -370,6 +374,10 @@ class Rig:
                 raise CalibrationError(f"{src}: cannot read: {e.strerror}") from None
             except json.JSONDecodeError as e:
                 raise CalibrationError(f"{src}: not valid JSON: {e}") from None
+            except UnicodeDecodeError as e:
+                raise CalibrationError(f"{src}: not UTF-8 text (a binary file?): {e.reason} at byte {e.start}") from None
+            except RecursionError:
+                raise CalibrationError(f"{src}: nests too deeply to be a calibration file") from None
         if not isinstance(doc, Mapping):
             raise CalibrationError(f"{src}: expected a JSON object at the top level, got {type(doc).__name__}")
 

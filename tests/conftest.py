@@ -14,3 +14,16 @@ def tiny_synth_data(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("tiny_synth_data")
     generate_dataset(out, SynthConfig(num_scenes=1, seed=2, resolution=(160, 90), world=WorldConfig(samples_per_scene=2)))
     return out
+
+
+@pytest.fixture(scope="session")
+def tiny_export(tmp_path_factory) -> Path:
+    """A tiny camera + LiDAR export (fp32 + fp16, 8 slices), shared read-only: tests that change it copy it first."""
+    from click.testing import CliRunner
+
+    from streamdet.export.cli import main as export_main
+
+    out = tmp_path_factory.mktemp("tiny_export") / "tiny"
+    result = CliRunner().invoke(export_main, ["--preset", "tiny", "--fp16", "--slices", "8", "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    return out
