@@ -12,7 +12,9 @@
 
 The detector only needs ``uses_images``, ``detect_slice(points, k, timestamp, num_slices)`` and
 ``update_images(images, timestamp)``: a `StreamingDetector`, or a fake one in tests. `Instrumented` wraps it to
-tell the player when each job starts and ends and how much CPU its thread spent.
+tell the player when each job starts and ends and how much CPU its thread spent; a job is known by its kind,
+timestamp and slice index, so the player must give every slice of a drive its own (timestamp, slice index) and
+every image set its own timestamp.
 """
 
 from __future__ import annotations
@@ -31,6 +33,8 @@ from streamdet.runtime_ort.lanes import ImagesSuperseded, LaneConfig, StreamingR
 
 MODES: tuple[str, ...] = ("streaming", "full-sweep", "sequential")
 SLICE_LANE, IMAGE_LANE, ONE_QUEUE = "slice_lane", "image_lane", "one_queue"
+# A job is known by what reaches the detector unchanged (the runner copies the data itself): kind, timestamp, slice.
+JobKey = tuple[str, float, int]
 
 
 class Detector(Protocol):
@@ -45,9 +49,9 @@ class Detector(Protocol):
 class JobHooks(Protocol):
     """What the player learns from inside a job (called on the worker's thread)."""
 
-    def job_started(self, key: int) -> None: ...
+    def job_started(self, key: JobKey) -> None: ...
 
-    def job_ended(self, key: int, cpu_s: float) -> None: ...
+    def job_ended(self, key: JobKey, cpu_s: float) -> None: ...
 
 
 class Instrumented:
@@ -60,12 +64,13 @@ class Instrumented:
         self.hooks = hooks
 
     def detect_slice(self, points: np.ndarray, slice_index: int, timestamp: float | None = None):
-        return self._run(id(points), lambda: self.detector.detect_slice(points, slice_index, timestamp, self.num_slices))
+        return self._run(("slice", timestamp, int(slice_index)),
+                         lambda: self.detector.detect_slice(points, slice_index, timestamp, self.num_slices))
 
     def update_images(self, images: Mapping[str, np.ndarray], timestamp: float | None = None):
-        return self._run(id(images), lambda: self.detector.update_images(images, timestamp))
+        return self._run(("images", timestamp, 0), lambda: self.detector.update_images(images, timestamp))
 
-    def _run(self, key: int, job: Callable[[], object]):
+    def _run(self, key: JobKey, job: Callable[[], object]):
         self.hooks.job_started(key)
         cpu0 = time.thread_time()
         try:

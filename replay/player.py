@@ -17,13 +17,16 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from streamdet.replay.clock import PLAYER, Clock, DriveClock
-from streamdet.replay.modes import MODES, Detector, ModeRunner, open_mode
+from streamdet.replay.modes import MODES, Detector, JobKey, ModeRunner, open_mode
 from streamdet.replay.record import ImageRecord, Recording, SliceRecord, percentiles
 from streamdet.replay.schedule import SLICE, Release, release_schedule
 from streamdet.replay.source import Drive
 from streamdet.runtime_ort.lanes import ImagesSuperseded, LaneConfig, SliceDropped
 
 Progress = Callable[[str], None]
+# An image timestamp earlier than this is a warm-up (run.WARM_UP_TIMESTAMP_S), not a picture of the drive: a slice fused
+# with it counts as fused with no image, and has no image age.
+WARM_UP_BEFORE_S = -1e6
 
 
 @dataclass(frozen=True)
@@ -51,7 +54,7 @@ class _Book:
         self.clock = clock
         self.mode = mode
         self.lock = threading.Lock()
-        self.by_key: dict[int, tuple[SliceRecord | ImageRecord, str]] = {}
+        self.by_key: dict[JobKey, tuple[SliceRecord | ImageRecord, str]] = {}
         self.waiting = {lane: 0 for lane in mode.workers}  # released, not started, not dropped
         self.outstanding = {lane: 0 for lane in mode.workers}  # released, future not done
         self.player_active = True
@@ -62,13 +65,13 @@ class _Book:
         busy = sum(min(self.outstanding[lane], n) for lane, n in self.mode.workers.items())
         return int(self.player_active) + busy
 
-    def job_started(self, key: int) -> None:
+    def job_started(self, key: JobKey) -> None:
         with self.lock:
             rec, lane = self.by_key[key]
             rec.start_s = self.clock.now()
             self.waiting[lane] -= 1
 
-    def job_ended(self, key: int, cpu_s: float) -> None:
+    def job_ended(self, key: JobKey, cpu_s: float) -> None:
         with self.lock:
             rec, _ = self.by_key[key]
             rec.end_s = self.clock.now()
@@ -92,7 +95,7 @@ class _Book:
                     rec.detections = result.detections
                     rec.num_detections = len(result.detections)
                     ts = result.image_timestamp
-                    rec.image_capture_s = float(ts) if ts is not None and math.isfinite(ts) else math.nan
+                    rec.image_capture_s = float(ts) if ts is not None and ts > WARM_UP_BEFORE_S else math.nan
             self.outstanding[lane] -= 1
         poke = getattr(self.clock.base, "poke", None)
         if poke is not None:
@@ -153,10 +156,10 @@ class _Hooks:
     def __init__(self, book: Callable[[], _Book]) -> None:
         self._book = book
 
-    def job_started(self, key: int) -> None:
+    def job_started(self, key: JobKey) -> None:
         self._book().job_started(key)
 
-    def job_ended(self, key: int, cpu_s: float) -> None:
+    def job_ended(self, key: JobKey, cpu_s: float) -> None:
         self._book().job_ended(key, cpu_s)
 
 
@@ -170,7 +173,7 @@ def _record(release: Release) -> SliceRecord | ImageRecord:
 def _submit(mode: ModeRunner, book: _Book, release: Release, rec: SliceRecord | ImageRecord) -> concurrent.futures.Future:
     lane = mode.lane_of[release.kind]
     item = release.item
-    key = id(item.points) if release.kind == SLICE else id(item.images)
+    key = ("slice", item.scan_end_s, item.slice_index) if release.kind == SLICE else ("images", item.capture_s, 0)
     with book.lock:
         rec.release_s = book.clock.now()
         rec.queue_depth = book.waiting[lane]

@@ -1,0 +1,111 @@
+"""`streamdet-replay`: play a dataset's scenes at sensor rates through the runtime and score what arrives when."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import click
+
+from streamdet.cli_utils import PRECISION_CHOICES, image_precision_option
+from streamdet.replay.modes import MODES
+
+
+def _progress(message: str) -> None:
+    # One line rewritten in place on a terminal; plain lines in a log.
+    if sys.stderr.isatty():
+        sys.stderr.write("\r\033[K" + message)
+        sys.stderr.flush()
+    else:
+        sys.stderr.write(message + "\n")
+
+
+@click.command(context_settings={"help_option_names": ["-h", "--help"]})
+@click.option("--data", type=click.Path(path_type=Path, file_okay=False), required=True,
+              help="nuScenes-format dataset root (streamdet-synth output or real nuScenes tables).")
+@click.option("--version", "table_version", default="v1.0-synth", show_default=True, help="Table folder under --data.")
+@click.option("--split", default="val", show_default=True, help="Scenes of this split (splits.json); 'all' for every scene.")
+@click.option("--scenes", type=click.IntRange(min=1), default=None, help="Play only the first N scenes of the split.")
+@click.option("--export-dir", type=click.Path(path_type=Path, file_okay=False), required=True,
+              help="Export directory written by streamdet-export (holds manifest.json).")
+@click.option("--precision", type=click.Choice(PRECISION_CHOICES), default="fp32", show_default=True,
+              help="Precision of the slice graph.")
+@image_precision_option()
+@click.option("--lidar-hz", type=click.FloatRange(min=0, min_open=True), default=20.0, show_default=True,
+              help="LiDAR rotations per second (the rotation period the slices are released over).")
+@click.option("--slices", "num_slices", type=click.IntRange(min=1), default=None,
+              help="Slices per rotation in streaming and sequential modes. Default: the export's.")
+@click.option("--camera-hz", type=click.FloatRange(min=0, min_open=True), default=12.0, show_default=True,
+              help="Camera trigger rate; each trigger delivers the newest recorded image of every camera.")
+@click.option("--mode", type=click.Choice([*MODES, "all"]), default="all", show_default=True,
+              help="streaming (two lanes), full-sweep (wait for the rotation), sequential (one queue), or all three.")
+@click.option("--time-scale", type=click.FloatRange(min=0, min_open=True), default=1.0, show_default=True,
+              help="Wall seconds per drive second: 2 plays twice as slowly, what a 2x faster computer would see. "
+                   "Latencies are reported in drive time.")
+@click.option("--max-seconds", type=click.FloatRange(min=0, min_open=True), default=None,
+              help="Play only the first seconds of each scene.")
+@click.option("--threads", type=click.IntRange(min=1), default=1, show_default=True,
+              help="Intra-op threads of each onnxruntime session.")
+@click.option("--slice-workers", type=click.IntRange(min=1), default=None,
+              help="Slices processed at once in the slice lane. Default: the runtime's LaneConfig.")
+@click.option("--queue-size", type=click.IntRange(min=1), default=None,
+              help="Slices waiting in the slice lane before the oldest is dropped. Default: the runtime's LaneConfig.")
+@click.option("--json", "json_path", type=click.Path(path_type=Path, dir_okay=False), default=None,
+              help="Write the per-mode summary (the issue's keys) to this JSON file.")
+@click.option("--plot", "plot_path", type=click.Path(path_type=Path, dir_okay=False), default=None,
+              help="Write a PNG: a timeline of a few hundred ms of the first scene per mode, and latency CDFs.")
+@click.option("--out", "out_dir", type=click.Path(path_type=Path, file_okay=False), default=None,
+              help="Write replay.json (every slice's record, per-class scores, lane CPU, stage GMAC) and report.md here.")
+def main(
+    data: Path, table_version: str, split: str, scenes: int | None, export_dir: Path, precision: str,
+    image_precision: str | None, lidar_hz: float, num_slices: int | None, camera_hz: float, mode: str, time_scale: float,
+    max_seconds: float | None, threads: int, slice_workers: int | None, queue_size: int | None, json_path: Path | None,
+    plot_path: Path | None, out_dir: Path | None,
+) -> None:
+    """Play scenes at sensor rates (LiDAR slices released when scanned, cameras at their rate) through the runtime's
+    StreamingRunner in each mode, and score every detection against the world at the moment it is emitted
+    (streaming mAP) beside the same detections at their scan time (offline mAP)."""
+    from streamdet.replay.report import cpu_info, details_report, format_report, json_report
+    from streamdet.replay.run import ReplayConfig, run_replay
+    from streamdet.runtime_ort.lanes import LaneConfig
+
+    if not (export_dir / "manifest.json").is_file():
+        raise click.ClickException(f"{export_dir} holds no manifest.json: run `streamdet-export --out {export_dir}` first")
+    if not (data / table_version).is_dir():
+        raise click.ClickException(f"{data / table_version} does not exist: --data must be a nuScenes-format dataset root")
+    if plot_path is not None:
+        try:
+            import matplotlib  # noqa: F401
+        except ImportError:
+            raise click.ClickException("--plot needs matplotlib (pip install 'streamdet[dev]')") from None
+    defaults = LaneConfig()
+    lanes = LaneConfig(max_in_flight=slice_workers or defaults.max_in_flight, queue_size=queue_size or defaults.queue_size)
+    try:
+        config = ReplayConfig(
+            data=data, export_dir=export_dir, version=table_version, split=None if split == "all" else split, scenes=scenes,
+            precision=precision, image_precision=image_precision, lidar_hz=lidar_hz, num_slices=num_slices,
+            camera_hz=camera_hz, modes=MODES if mode == "all" else (mode,), time_scale=time_scale,
+            max_seconds=max_seconds, threads=threads, lanes=lanes,
+        )  # fmt: skip
+        result = run_replay(config, _progress)
+    except (ValueError, KeyError, FileNotFoundError, OSError) as e:
+        raise click.ClickException(str(e)) from None
+    if sys.stderr.isatty():
+        sys.stderr.write("\n")
+    info = cpu_info()
+    report = format_report(result, info)
+    click.echo(report)
+    if json_path is not None:
+        json_path.write_text(json.dumps(json_report(result, info), indent=1))
+        click.echo(f"wrote {json_path}")
+    if out_dir is not None:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        (out_dir / "replay.json").write_text(json.dumps(details_report(result, info)))
+        (out_dir / "report.md").write_text(report + "\n")
+        click.echo(f"wrote {out_dir / 'replay.json'} and {out_dir / 'report.md'}")
+    if plot_path is not None:
+        from streamdet.replay.plot import plot_replay
+
+        plot_replay(result, plot_path)
+        click.echo(f"wrote {plot_path}")

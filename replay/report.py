@@ -1,0 +1,186 @@
+"""What a replay prints and writes: the CPU it ran on, one row per mode, per-class scores, stage work, JSON.
+
+The JSON (``--json``) has exactly the keys of issue 20: ``{"config": {...}, "modes": {"streaming" | "full_sweep" |
+"sequential": {map_streaming, map_offline, nds_streaming, latency_ms {p50, p95, p99, max}, slices_dropped,
+slices_total, image_age_ms {p50, p95}}}}``; everything else (per class, moving / static, lane CPU, stage GMAC, every
+slice's record) goes to ``--out DIR`` (``replay.json``).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import platform
+from pathlib import Path
+
+import numpy as np
+
+from streamdet.replay.record import percentiles
+from streamdet.replay.run import ModeResult, ReplayResult
+
+CPU_FLAGS = ("avx2", "fma", "avx512f", "avx512_vnni", "avx_vnni", "avx512_bf16", "amx_tile")
+
+
+def cpu_info(cpuinfo: str | Path = "/proc/cpuinfo") -> dict:
+    """{model, flags (those of CPU_FLAGS present), threads (usable by this process), logical_cpus}."""
+    model, flags = platform.processor() or platform.machine(), set()
+    try:
+        text = Path(cpuinfo).read_text()
+    except OSError:
+        text = ""
+    for line in text.splitlines():
+        key, _, value = line.partition(":")
+        if key.strip() == "model name" and value.strip():
+            model = value.strip()
+        elif key.strip() == "flags":
+            flags = set(value.split())
+    threads = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return {"model": model, "flags": [f for f in CPU_FLAGS if f in flags], "threads": threads, "logical_cpus": os.cpu_count()}
+
+
+def cpu_line(info: dict) -> str:
+    flags = ", ".join(info["flags"]) or "none of " + "/".join(CPU_FLAGS)
+    return f"{info['model']}, {info['threads']} threads usable ({flags})"
+
+
+def mode_key(mode: str) -> str:
+    """The JSON key of a mode: ``full-sweep`` -> ``full_sweep``."""
+    return mode.replace("-", "_")
+
+
+def mode_summary(result: ModeResult) -> dict:
+    """The issue's per-mode JSON object."""
+    recs = result.recordings
+    lat = np.concatenate([r.latencies_ms() for r in recs]) if recs else np.zeros(0)
+    ages = np.concatenate([r.image_ages_ms() for r in recs]) if recs else np.zeros(0)
+    s = result.scores
+    return {
+        "map_streaming": _num(s.streaming.map),
+        "map_offline": _num(s.offline.map),
+        "nds_streaming": _num(s.streaming.nds),
+        "latency_ms": percentiles(lat, (50, 95, 99)),
+        "slices_dropped": sum(r.slices_dropped for r in recs),
+        "slices_total": sum(len(r.slices) for r in recs),
+        "image_age_ms": {k: v for k, v in percentiles(ages, (50, 95)).items() if k != "max"},
+    }
+
+
+def json_report(result: ReplayResult, info: dict) -> dict:
+    config = {**result.config.to_dict(), "num_slices": result.num_slices, "precision_label": result.precision_label,
+              "scenes": list(result.scenes), "cpu": info, "ground_truth": result.truth_source,
+              "notes": list(result.notes)}  # fmt: skip
+    return {"config": config, "modes": {mode_key(m): mode_summary(r) for m, r in result.modes.items()}}
+
+
+def details_report(result: ReplayResult, info: dict) -> dict:
+    """Everything: the JSON report plus per-class / moving / static scores, lane CPU, stages and every record."""
+    out = json_report(result, info)
+    for mode, r in result.modes.items():
+        out["modes"][mode_key(mode)].update(
+            streaming=r.scores.streaming.to_dict(), offline=r.scores.offline.to_dict(),
+            per_scene_map_streaming=r.scores.per_scene_streaming_map, images_superseded=sum(x.images_superseded for x in r.recordings),
+            cpu_share=_cpu_share(r), stages=r.stages, recordings=[x.to_dict() for x in r.recordings],
+        )  # fmt: skip
+    return out
+
+
+def _cpu_share(r: ModeResult) -> dict[str, float]:
+    wall = sum(x.wall_s for x in r.recordings) or 1e-9
+    return {
+        "slice_lane": sum(s.cpu_s for x in r.recordings for s in x.slices) / wall,
+        "image_lane": sum(i.cpu_s for x in r.recordings for i in x.images) / wall,
+        "player": sum(x.player_cpu_s for x in r.recordings) / wall,
+        "process": sum(x.process_cpu_s for x in r.recordings) / wall,
+    }
+
+
+def format_report(result: ReplayResult, info: dict) -> str:
+    c = result.config
+    period_ms = 1000.0 / c.lidar_hz / result.num_slices
+    lines = [
+        f"streamdet-replay: {len(result.scenes)} scene(s) of {c.data} ({c.split or 'all'}), {result.precision_label}, "
+        f"LiDAR {c.lidar_hz:g} Hz x {result.num_slices} slices ({period_ms:.2f} ms per slice), cameras {c.camera_hz:g} Hz",
+        f"time scale {c.time_scale:g} (latencies in drive time = wall / {c.time_scale:g}); CPU: {cpu_line(info)}; "
+        f"{c.threads} thread(s) per session, {c.lanes.max_in_flight} slice worker(s), queue {c.lanes.queue_size}",
+        f"ground truth at emission time: {result.truth_source}",
+        *[f"  {note}" for note in result.notes],
+        "",
+        "| mode | streaming mAP | offline mAP | NDS | latency p50 / p95 / p99 / max ms | slices dropped | images superseded "
+        "| image age p50 / p95 ms | CPU slice / image lane |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for mode, r in result.modes.items():
+        m = mode_summary(r)
+        lat, age, cpu = m["latency_ms"], m["image_age_ms"], _cpu_share(r)
+        superseded = sum(x.images_superseded for x in r.recordings)
+        lines.append(
+            f"| {mode} | {_pct(m['map_streaming'])} | {_pct(m['map_offline'])} | {_pct(m['nds_streaming'])} "
+            f"| {_ms(lat['p50'])} / {_ms(lat['p95'])} / {_ms(lat['p99'])} / {_ms(lat['max'])} "
+            f"| {m['slices_dropped']} of {m['slices_total']} | {superseded} of {sum(len(x.images) for x in r.recordings)} "
+            f"| {_ms(age['p50'])} / {_ms(age['p95'])} | {100 * cpu['slice_lane']:.0f} % / {100 * cpu['image_lane']:.0f} % |"
+        )
+    lines += ["", _per_class_table(result), "", _stage_table(result), "", *_targets(result, period_ms)]
+    return "\n".join(lines)
+
+
+def _per_class_table(result: ReplayResult) -> str:
+    classes = [c for c in next(iter(result.modes.values())).scores.offline.classes]
+    head = "| AP streaming / offline | " + " | ".join(classes) + " | moving | static |"
+    rows = [head, "|---" * (len(classes) + 3) + "|"]
+    for mode, r in result.modes.items():
+        s, o = r.scores.streaming, r.scores.offline
+        cells = [f"{_pct(s.per_class_ap.get(c))} / {_pct(o.per_class_ap.get(c))}" for c in classes]
+        cells += [f"{_pct(s.map_moving)} / {_pct(o.map_moving)}", f"{_pct(s.map_static)} / {_pct(o.map_static)}"]
+        rows.append(f"| {mode} | " + " | ".join(cells) + " |")
+    return "\n".join(rows)
+
+
+def _stage_table(result: ReplayResult) -> str:
+    rows = ["| stage (mode) | runs | mean ms | GMAC / run | GFLOP/s |", "|---|---|---|---|---|"]
+    for mode, r in result.modes.items():
+        for stage in ("slice_head", "image_encoder", "volumetric_lifter"):
+            st = r.stages.get(stage)
+            if st and "gflop_per_s" in st:
+                rows.append(f"| {stage} ({mode}) | {st['runs']} | {st['mean_ms']:.2f} | {st['gmac_per_run']:.3f} | {st['gflop_per_s']:.1f} |")
+    return "\n".join(rows)
+
+
+def _targets(result: ReplayResult, period_ms: float) -> list[str]:
+    out = ["targets (issue 20):"]
+    if "streaming" in result.modes:
+        m = mode_summary(result.modes["streaming"])
+        p99, age = m["latency_ms"]["p99"], m["image_age_ms"]["p95"]
+        out.append(f"  streaming: slices dropped {m['slices_dropped']} (target 0) "
+                   f"{'met' if m['slices_dropped'] == 0 else 'MISSED'}; latency p99 {_ms(p99)} ms "
+                   f"(target {2 * period_ms:.1f} ms, two slice periods) {_met(p99, 2 * period_ms)}; image age p95 {_ms(age)} ms "
+                   f"(target 150 ms) {_met(age, 150.0)}")  # fmt: skip
+    if "streaming" in result.modes and "full-sweep" in result.modes:
+        s, f = result.modes["streaming"].scores, result.modes["full-sweep"].scores
+        diff = 100 * (s.streaming.map - f.streaming.map)
+        per = [s.per_scene_streaming_map[k] - f.per_scene_streaming_map[k] for k in s.per_scene_streaming_map]
+        spread = f" (per scene {100 * np.mean(per):+.1f} +- {100 * np.std(per):.1f}, min {100 * min(per):+.1f}, n={len(per)})" if per else ""
+        out.append(f"  streaming mAP at emission time, streaming - full-sweep: {diff:+.1f}{spread} "
+                   f"{'met' if diff > 0 else 'MISSED'}")  # fmt: skip
+    if "sequential" in result.modes:
+        lat = [r.latencies_ms() for r in result.modes["sequential"].recordings]
+        growth = [np.polyfit(np.arange(len(x)), x, 1)[0] for x in lat if len(x) > 2]
+        if growth:
+            out.append(f"  sequential: latency grows {np.mean(growth) * result.num_slices * result.config.lidar_hz:+.0f} ms "
+                       f"per second of drive (first {lat[0][0]:.1f} ms, last {lat[0][-1]:.1f} ms in {result.scenes[0]})")  # fmt: skip
+    return out
+
+
+def _met(value: float | None, target: float) -> str:
+    return "n/a" if value is None else ("met" if value <= target else "MISSED")
+
+
+def _num(x: float | None) -> float | None:
+    return None if x is None or (isinstance(x, float) and math.isnan(x)) else float(x)
+
+
+def _pct(x: float | None) -> str:
+    return "-" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{100 * x:.1f}"
+
+
+def _ms(x: float | None) -> str:
+    return "-" if x is None else f"{x:.1f}"

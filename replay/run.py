@@ -1,0 +1,172 @@
+"""A whole replay: scenes of a dataset split played in each mode through a real export, then scored.
+
+For every (scene, mode) a fresh `StreamingDetector` is opened, warmed up (its first image set and first sweep
+run once, untimed, at WARM_UP_TIMESTAMP_S, so that no slice counts that warm-up picture's age) and played
+on the wall clock; its stage statistics (with the GMAC executed) are kept. The scores pool all scenes of a mode;
+the streaming mAP of each scene alone gives the spread of the modes' difference over scenes.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from streamdet.evaluation.config import DetectionConfig
+from streamdet.replay.clock import WallClock
+from streamdet.replay.latency_eval import ModeScores, QueryTruth, query_truth, score_mode
+from streamdet.replay.modes import MODES
+from streamdet.replay.nuscenes_source import DatasetTables, load_drive
+from streamdet.replay.player import PlayerConfig, play
+from streamdet.replay.record import Recording
+from streamdet.replay.schedule import slice_sweep
+from streamdet.replay.source import Drive
+from streamdet.replay.truth import load_ground_truth
+from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector
+from streamdet.runtime_ort.lanes import LaneConfig
+
+Progress = Callable[[str], None]
+WARM_UP_TIMESTAMP_S = -1e9  # earlier than player.WARM_UP_BEFORE_S: the player knows it for a warm-up
+
+
+@dataclass(frozen=True)
+class ReplayConfig:
+    data: Path  # nuScenes-format dataset root
+    export_dir: Path
+    version: str = "v1.0-synth"
+    split: str | None = "val"  # scenes of splits.json; None: every scene
+    scenes: int | None = None  # the first N scenes of the split; None: all
+    precision: str = "fp32"  # the slice graph's
+    image_precision: str | None = None  # the image lane's; None: precision
+    lidar_hz: float = 20.0
+    num_slices: int | None = None  # None: the export's
+    camera_hz: float = 12.0
+    modes: tuple[str, ...] = MODES
+    time_scale: float = 1.0  # wall seconds per drive second
+    max_seconds: float | None = None  # play only the first seconds of each scene
+    threads: int = 1  # intra-op threads of each onnxruntime session
+    lanes: LaneConfig = field(default_factory=LaneConfig)
+
+    def __post_init__(self) -> None:
+        unknown = [m for m in self.modes if m not in MODES]
+        if unknown or not self.modes:
+            raise ValueError(f"modes must be a non-empty subset of {MODES}, got {list(self.modes)}")
+        for name in ("lidar_hz", "camera_hz", "time_scale"):
+            if not (isinstance(getattr(self, name), (int, float)) and getattr(self, name) > 0):
+                raise ValueError(f"ReplayConfig.{name} must be > 0, got {getattr(self, name)!r}")
+        if self.max_seconds is not None and not self.max_seconds > 0:
+            raise ValueError(f"ReplayConfig.max_seconds must be > 0 s, got {self.max_seconds!r}")
+
+    def to_dict(self) -> dict:
+        d = {k: getattr(self, k) for k in self.__dataclass_fields__ if k != "lanes"}
+        d.update(data=str(self.data), export_dir=str(self.export_dir), modes=list(self.modes),
+                 slice_workers=self.lanes.max_in_flight, slice_queue=self.lanes.queue_size)  # fmt: skip
+        return d
+
+
+@dataclass(frozen=True)
+class ModeResult:
+    recordings: tuple[Recording, ...]  # one per scene
+    scores: ModeScores
+    stages: dict[str, dict[str, float]]  # stage -> {runs, mean_ms, gmac_per_run, gflop_per_s}, all scenes
+
+
+@dataclass(frozen=True)
+class ReplayResult:
+    config: ReplayConfig
+    num_slices: int
+    precision_label: str
+    scenes: tuple[str, ...]
+    drives: tuple[Drive, ...]
+    truths: tuple[QueryTruth, ...]
+    modes: dict[str, ModeResult]
+    notes: tuple[str, ...]  # the sources' notes (rates, held images)
+    truth_source: str
+
+
+def split_scenes(tables: DatasetTables, split: str | None, count: int | None) -> list[str]:
+    """Scene names of ``split`` (``splits.json`` beside the tables), the first ``count`` of them."""
+    names = tables.scene_names()
+    if split is not None:
+        path = tables.root / "splits.json"
+        if not path.is_file():
+            raise ValueError(f"{path} not found; it must name the scenes of split {split!r} (or pass --split all)")
+        splits = json.loads(path.read_text())
+        if not isinstance(splits.get(split), list):
+            raise ValueError(f"{path} has no list of scenes for split {split!r}; it has {sorted(splits)}")
+        names = [n for n in names if n in set(splits[split])]
+    if not names:
+        raise ValueError(f"split {split!r} of {tables.root} holds no scene")
+    return names[:count] if count else names
+
+
+def open_detector(config: ReplayConfig, num_slices: int | None = None) -> StreamingDetector:
+    return StreamingDetector(config.export_dir, DetectorConfig(
+        precision=config.precision, image_lane_precision=config.image_precision, num_slices=num_slices or config.num_slices,
+        image_lane_threads=config.threads, slice_lane_threads=config.threads))  # fmt: skip
+
+
+def warm_up(det: StreamingDetector, drive: Drive, num_slices: int) -> None:
+    """One untimed image update (at WARM_UP_TIMESTAMP_S: its picture has no age) and the first sweep, then fresh stats."""
+    if drive.rig is not None and det.uses_images and drive.rig.sha256() != det.lut.calibration_sha256:
+        det.set_calibration(drive.rig)  # the dataset's own rig: a new LUT for the same graphs
+    if det.uses_images and drive.image_sets:
+        det.update_images(drive.image_sets[0].images, timestamp=WARM_UP_TIMESTAMP_S)
+    for n in {num_slices, 1}:
+        for s in slice_sweep(drive.sweeps[0], n):
+            det.detect_slice(s.points, s.slice_index, WARM_UP_TIMESTAMP_S, n)
+    det.stats.reset()
+
+
+def run_replay(config: ReplayConfig, progress: Progress = lambda msg: None) -> ReplayResult:
+    tables = DatasetTables(config.data, config.version)
+    scenes = split_scenes(tables, config.split, config.scenes)
+    probe = open_detector(config)
+    n = probe.num_slices
+    image_size = (probe.image.width, probe.image.height) if probe.uses_images else None
+    label = probe.precision_label
+    drives, truths = [], []
+    recordings: dict[str, list[Recording]] = {m: [] for m in config.modes}
+    stages: dict[str, list[dict]] = {m: [] for m in config.modes}
+    sources = set()
+    for i, scene in enumerate(scenes):
+        progress(f"scene {i + 1}/{len(scenes)} {scene}: loading")
+        drive = load_drive(tables, scene, image_size, config.lidar_hz, config.camera_hz, config.max_seconds, progress)
+        truth = load_ground_truth(config.data, config.version, scene)
+        sources.add(truth.source)
+        drives.append(drive)
+        truths.append(query_truth(drive, truth))
+        for mode in config.modes:
+            det = open_detector(config)
+            warm_up(det, drive, n)
+            player = PlayerConfig(mode, n, det.config.start_deg, config.time_scale, config.lanes)
+            recordings[mode].append(play(drive, det, WallClock(), player, progress))
+            stages[mode].append(det.stats.summary())
+            det.close()
+    nms = probe.config.nms
+    results = {}
+    for mode in config.modes:
+        progress(f"scoring {mode}")
+        scores = score_mode(drives, recordings[mode], truths, nms, DetectionConfig())
+        results[mode] = ModeResult(tuple(recordings[mode]), scores, merge_stages(stages[mode]))
+    notes = tuple(dict.fromkeys(note for d in drives for note in d.notes))
+    return ReplayResult(config, n, label, tuple(scenes), tuple(drives), tuple(truths), results, notes,
+                        " + ".join(sorted(sources)))  # fmt: skip
+
+
+def merge_stages(summaries: list[dict[str, dict[str, float]]]) -> dict[str, dict[str, float]]:
+    """Stage statistics of several runs pooled: runs, mean ms and, where known, GMAC per run and GFLOP/s."""
+    out: dict[str, dict[str, float]] = {}
+    for stage in sorted({s for summary in summaries for s in summary}):
+        parts = [summary[stage] for summary in summaries if stage in summary]
+        runs = sum(p["count"] for p in parts)
+        total_ms = sum(p["mean_ms"] * p["count"] for p in parts)
+        entry = {"runs": runs, "mean_ms": total_ms / runs if runs else math.nan}
+        if all("gmac_total" in p for p in parts):
+            gmac = sum(p["gmac_total"] for p in parts)
+            entry["gmac_per_run"] = gmac / runs
+            entry["gflop_per_s"] = 2.0 * gmac / (total_ms * 1e-3) if total_ms > 0 else math.nan
+        out[stage] = entry
+    return out
