@@ -24,10 +24,8 @@ import torch
 from torch import nn
 
 from streamdet.models.decode import SliceDecoder
-from streamdet.models.detector import SliceNet, StreamDetector
-from streamdet.models.lifter_fold import export_lifter
-from streamdet.models.slice_split import export_slice_net
-from streamdet.models.presets import Preset
+from streamdet.models.detector import StreamDetector
+from streamdet.models.export_form import LidarSliceDecoder, to_export_form  # noqa: F401 (LidarSliceDecoder: its old home)
 
 DEFAULT_OPSET = 17
 OPSET_RANGE = (14, 20)  # checked here end to end (14, 17, 18, 20); the TorchScript exporter stops at 20
@@ -80,10 +78,8 @@ SLICE_HEAD_IO = GraphIO(
     },
 )
 GRAPH_IO: dict[str, GraphIO] = {g.name: g for g in (IMAGE_ENCODER_IO, VOLUMETRIC_LIFTER_IO, SLICE_HEAD_IO)}
-# The LiDAR-only baseline (preset use_image=False) exports this slice graph alone. Its net reads image_bev for the
-# shape (Q, Yq, Xq) only, so instead of a (Q, C, Yq, Xq) tensor of zeros per slice the graph takes the slice's
-# quadrant ids (Q,) int64 and reads their count: the pillar tensors cannot tell Q (a slice whose last quadrant has
-# no pillar still gets that quadrant's head output, as in PyTorch).
+# The LiDAR-only baseline (preset use_image=False) exports this slice graph alone. It has no image BEV: the graph
+# takes the slice's quadrant ids (Q,) int64 and reads their count (models/export_form.py: LidarSliceDecoder).
 LIDAR_SLICE_HEAD_IO = GraphIO(
     name="slice_head",
     inputs=("pillar_features", "pillar_mask", "pillar_index", "quadrants"),
@@ -170,9 +166,7 @@ def export_volumetric_lifter(
     }
     spec = dataclasses.replace(VOLUMETRIC_LIFTER_IO, dynamic_axes=traced_axes)
     args = (features, lut_index[crop].contiguous(), lut_weight[crop].contiguous())
-    # z folded into channels where that pays (models/lifter_fold.py): the same function, faster on onnxruntime
-    lifter = export_lifter(det.lifter, det.preset.lifter, g.nz)
-    model = export_module(lifter, args, spec, opset)
+    model = export_module(to_export_form(det).volumetric_lifter, args, spec, opset)
     static = {"lut_index": (None, None, g.nz, g.quadrant_ny, g.quadrant_nx), "lut_weight": (None, None, g.nz, g.quadrant_ny, g.quadrant_nx),
               "image_bev": (None, det.preset.channels, g.quadrant_ny, g.quadrant_nx)}
     _declare_static_dims(model, static)
@@ -180,41 +174,22 @@ def export_volumetric_lifter(
 
 
 def slice_decoder(det: StreamDetector) -> SliceDecoder:
-    # the concatenations split into sums of convs (models/slice_split.py): the same function, no concatenated maps
-    return SliceDecoder(export_slice_net(det.slice_net), det.preset).eval()
+    """The module traced into slice_head.onnx (``to_export_form``)."""
+    return to_export_form(det).slice_head
 
 
 def export_slice_head(det: StreamDetector, pillar_args: tuple[torch.Tensor, ...], opset: int = DEFAULT_OPSET) -> onnx.ModelProto:
-    """(pillar_features, pillar_mask, pillar_index, image_bev) -> det_boxes, det_scores, det_labels."""
-    return _finish_slice_head(export_module(slice_decoder(det), pillar_args, SLICE_HEAD_IO, opset), det)
-
-
-class LidarSliceDecoder(SliceDecoder):
-    """``forward(pillar_features, pillar_mask, pillar_index, quadrants (Q,) int64) -> det_boxes, det_scores,
-    det_labels``: SliceDecoder of a LiDAR-only net, with Q read off ``quadrants``.
-
-    A subclass rather than a wrapper so that the exported node scopes stay ``/slice_net/...`` and the decode's are
-    the root's (``_decode_node_names`` and the fp16 / int8 block lists rely on them).
-    """
-
-    def __init__(self, slice_net: SliceNet | nn.Module, preset: Preset) -> None:  # nn.Module: its export form
-        if slice_net.use_image:
-            raise ValueError(f"preset {preset.name!r} has use_image=True: its slice graph needs image_bev")
-        super().__init__(slice_net, preset)
-        self.quadrant_ny, self.quadrant_nx = preset.grid.quadrant_ny, preset.grid.quadrant_nx
-
-    def forward(self, pillar_features: torch.Tensor, pillar_mask: torch.Tensor, pillar_index: torch.Tensor,
-                quadrants: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:  # fmt: skip
-        # Zero channels: the net reads this tensor's shape only, so the graph never allocates a BEV of zeros.
-        shape_only = pillar_features.new_zeros(quadrants.shape[0], 0, self.quadrant_ny, self.quadrant_nx)
-        return super().forward(pillar_features, pillar_mask, pillar_index, shape_only)
+    """(pillar_features, pillar_mask, pillar_index, image_bev) -> det_boxes, det_scores, det_labels; for a LiDAR-only
+    ``det`` (use_image=False) the inputs are (pillar_features, pillar_mask, pillar_index, quadrants)."""
+    io_spec = graph_ios(det.preset.use_image)["slice_head"]
+    return _finish_slice_head(export_module(slice_decoder(det), pillar_args, io_spec, opset), det)
 
 
 def export_lidar_slice_head(det: StreamDetector, pillar_args: tuple[torch.Tensor, ...], opset: int = DEFAULT_OPSET) -> onnx.ModelProto:
-    """The LiDAR-only slice graph: (pillar_features, pillar_mask, pillar_index, quadrants) -> det_boxes, det_scores,
-    det_labels. ``det`` must have use_image=False."""
-    module = LidarSliceDecoder(export_slice_net(det.slice_net), det.preset).eval()
-    return _finish_slice_head(export_module(module, pillar_args, LIDAR_SLICE_HEAD_IO, opset), det)
+    """The LiDAR-only slice graph (``export_slice_head`` of a ``det`` with use_image=False, which it requires)."""
+    if det.preset.use_image:
+        raise ValueError(f"preset {det.preset.name!r} has use_image=True: its slice graph needs image_bev")
+    return export_slice_head(det, pillar_args, opset)
 
 
 def _finish_slice_head(model: onnx.ModelProto, det: StreamDetector) -> onnx.ModelProto:

@@ -16,34 +16,53 @@ from streamdet.models.bev_encoder import BevEncoder
 from streamdet.models.heads import CenterHead, HeadMaps
 from streamdet.models.image_encoder import ImageEncoder
 from streamdet.models.lifter import VolumetricLifter
-from streamdet.models.pillars import PillarFeatureNet, scatter_pillars
+from streamdet.models.pillars import MapShape, PillarFeatureNet, scatter_pillars
 from streamdet.models.presets import Preset
 
 
-class SliceNet(nn.Module):
-    """``forward(pillar_features (P, M, 11), pillar_mask (P, M), pillar_index (P,) int64, image_bev (Q, C, Yq, Xq))
-    -> (heatmap, reg, height, dim, rot, vel)``, raw maps (heatmap as logits), each (Q, ch, Hh, Wh).
+def slice_map_shape(image_bev: Tensor | None, num_quadrants: int | None, quadrant_cells: tuple[int, int]) -> MapShape:
+    """What a slice's point BEV takes its (Q, Yq, Xq) from: the image BEV, else Q quadrants of (Yq, Xq) cells."""
+    if image_bev is not None:
+        return image_bev
+    if num_quadrants is None:
+        raise ValueError("a slice without an image BEV needs num_quadrants")
+    return (num_quadrants, *quadrant_cells)
 
-    Q, Yq and Xq come from image_bev's shape. With ``preset.use_image`` False (the LiDAR-only baseline) image_bev
-    is read for its shape only, so the exported graph keeps the same inputs.
+
+class SliceNet(nn.Module):
+    """``forward(pillar_features (P, M, 11), pillar_mask (P, M), pillar_index (P,) int64, image_bev (Q, C, Yq, Xq)
+    or None, *, num_quadrants) -> (heatmap, reg, height, dim, rot, vel)``, raw maps (heatmap as logits), each
+    (Q, ch, Hh, Wh).
+
+    Q comes from image_bev's shape, or from ``num_quadrants`` without one. Without an image BEV (``None``) a fused
+    net sees zeros, what the runtime feeds before its first image update, and the LiDAR-only baseline
+    (``preset.use_image`` False) needs none: its signature is the pillar tensors and Q (an image BEV given to it
+    is read for its shape only).
     """
 
     def __init__(self, preset: Preset) -> None:
         super().__init__()
         c = preset.channels
         self.use_image = preset.use_image
+        self.quadrant_cells = (preset.grid.quadrant_ny, preset.grid.quadrant_nx)  # (Yq, Xq)
         self.pillar_net = PillarFeatureNet(preset.pillars.num_point_features, c)
         self.bev_encoder = BevEncoder(preset.bev, 2 * c if preset.use_image else c)
         self.head = CenterHead(preset.head, self.bev_encoder.out_channels)
 
-    def fused_bev(self, pillar_features: Tensor, pillar_mask: Tensor, pillar_index: Tensor, image_bev: Tensor) -> Tensor:
+    def fused_bev(self, pillar_features: Tensor, pillar_mask: Tensor, pillar_index: Tensor,
+                  image_bev: Tensor | None = None, *, num_quadrants: int | None = None) -> Tensor:  # fmt: skip
         """The BEV encoder's output (Q, C_enc, Hh, Wh), shared by both head variants."""
-        p_bev = scatter_pillars(self.pillar_net(pillar_features, pillar_mask), pillar_index, image_bev)  # (Q, C, Yq, Xq)
-        x = torch.cat([p_bev, image_bev], dim=1) if self.use_image else p_bev  # (Q, 2C or C, Yq, Xq)
-        return self.bev_encoder(x)
+        shape = slice_map_shape(image_bev, num_quadrants, self.quadrant_cells)
+        p_bev = scatter_pillars(self.pillar_net(pillar_features, pillar_mask), pillar_index, shape)  # (Q, C, Yq, Xq)
+        if not self.use_image:
+            return self.bev_encoder(p_bev)
+        if image_bev is None:  # no image lifted yet: zeros, what the runtime feeds before its first image update
+            image_bev = torch.zeros_like(p_bev)
+        return self.bev_encoder(torch.cat([p_bev, image_bev], dim=1))  # (Q, 2C, Yq, Xq)
 
-    def forward(self, pillar_features: Tensor, pillar_mask: Tensor, pillar_index: Tensor, image_bev: Tensor) -> HeadMaps:
-        return self.head(self.fused_bev(pillar_features, pillar_mask, pillar_index, image_bev))
+    def forward(self, pillar_features: Tensor, pillar_mask: Tensor, pillar_index: Tensor,
+                image_bev: Tensor | None = None, *, num_quadrants: int | None = None) -> HeadMaps:  # fmt: skip
+        return self.head(self.fused_bev(pillar_features, pillar_mask, pillar_index, image_bev, num_quadrants=num_quadrants))
 
 
 class StreamDetector(nn.Module):
@@ -87,8 +106,7 @@ class StreamDetector(nn.Module):
             q = num_quadrants if num_quadrants is not None else (None if lut_index is None else lut_index.shape[0])
             if q is None:
                 raise ValueError("LiDAR-only forward needs num_quadrants (or a lut_index to take Q from)")
-            g = self.preset.grid
-            image_bev = pillar_features.new_zeros(q, self.preset.channels, g.quadrant_ny, g.quadrant_nx)
+            return self.slice_net(pillar_features, pillar_mask, pillar_index, num_quadrants=q)
         return self.slice_net(pillar_features, pillar_mask, pillar_index, image_bev)
 
 

@@ -23,7 +23,7 @@ import copy
 import torch
 from torch import Tensor, nn
 
-from streamdet.models.bn_fold import bn_scale_shift
+from streamdet.models.bn_fold import fold_bn
 from streamdet.models.lifter import VolumetricLifter, feature_table, gather_rows
 from streamdet.models.presets import LifterConfig
 
@@ -112,19 +112,19 @@ class FoldedLifterConvs(nn.Module):
         if lifter.z_down[0].stride[0] != self._z_stride:
             raise ValueError(f"lifter z-stride {lifter.z_down[0].stride[0]} != {self._z_stride}")
         # project(BN(v)) = W (s * v + t) + b = (W s) v + (W t + b), the same (C, C) block on every plane
-        scale, shift = bn_scale_shift(lifter.input_norm)
-        w = lifter.project.weight[:, :, 0, 0, 0]  # (C, C)
-        block = torch.einsum("oc,zy->ozcy", w * scale[None, :], torch.eye(nz, dtype=w.dtype))  # (C, Z, C, Z)
+        w, b = fold_bn(lifter.project.weight[:, :, 0, 0, 0], lifter.project.bias, lifter.input_norm, bn_first=True)
+        block = torch.einsum("oc,zy->ozcy", w, torch.eye(nz, dtype=w.dtype))  # (C, Z, C, Z)
         self.project.weight.copy_(block.reshape(c * nz, c * nz, 1, 1))
-        self.project.bias.copy_((lifter.project.bias + w @ shift).repeat_interleave(nz))  # channel c * Z + z
+        self.project.bias.copy_(b.repeat_interleave(nz))  # channel c * Z + z
         for conv2d, seq, planes in ((self.residual, lifter.residual, nz), (self.z_down, lifter.z_down, zd)):
             conv3d, bn = seq[0], seq[1]
             if conv3d.kernel_size != (3, 3, 3) or conv3d.padding != (1, 1, 1) or conv3d.stride[1:] != (1, 1):
                 raise ValueError(f"only k3 / pad 1 / y-x stride 1 convolutions fold, got {conv3d}")
-            scale, shift = bn_scale_shift(bn)
             band = banded_weight(conv3d.weight, nz, conv3d.stride[0], conv3d.padding[0])  # (C * Zo, C * Z, 3, 3)
-            conv2d.weight.copy_(band * scale.repeat_interleave(planes)[:, None, None, None])
-            conv2d.bias.copy_(shift.repeat_interleave(planes))
+            bias = None if conv3d.bias is None else conv3d.bias.repeat_interleave(planes)
+            weight, bias = fold_bn(band, bias, bn, planes=planes)  # output channel o * Zo + zo
+            conv2d.weight.copy_(weight)
+            conv2d.bias.copy_(bias)
 
     def forward(self, volume: Tensor) -> Tensor:
         q, c, z, y, x = volume.shape

@@ -5,6 +5,11 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
+from streamdet.models.bn_fold import fold_bn
+
+# The (Q, Yq, Xq) of the stacked quadrant maps: a (Q, C, Yq, Xq) map to take them from, or the three sizes.
+MapShape = Tensor | tuple[int, int, int]
+
 
 class PillarFeatureNet(nn.Module):
     """One PointNet layer per pillar: ``(P, M, 11) -> (P, C)``; Linear + BN + ReLU per point, max over points.
@@ -31,28 +36,35 @@ class PillarFeatureNet(nn.Module):
         # padding row maps to exactly 0. ReLU is monotone and >= 0, so max-then-ReLU equals ReLU-then-max over
         # the real points. The (P, M, C) tensor then sees only the matmul and the max; unfused, this small net
         # took half of the small preset's slice graph time in onnxruntime.
-        scale = self.norm.weight * torch.rsqrt(self.norm.running_var + self.norm.eps)  # (C,)
-        weight = self.linear.weight * scale[:, None]  # (C, F)
-        bias = self.norm.bias - self.norm.running_mean * scale  # (C,)
+        weight, bias = fold_bn(self.linear.weight, None, self.norm)  # (C, F), (C,)
         x = torch.cat([pillar_features, mask], dim=-1)  # (P, M, F + 1)
         y = x @ torch.cat([weight, bias[:, None]], dim=1).t()  # (P, M, C)
         return self.relu(y.amax(dim=1))  # (P, C)
 
 
-def scatter_pillars(pillar_feats: Tensor, pillar_index: Tensor, like: Tensor) -> Tensor:
-    """Place pillar features (P, C) into zero maps (Q, C, Yq, Xq) whose Q, Yq, Xq come from ``like``.
+def map_shape(like: MapShape) -> tuple[int, int, int]:
+    """(Q, Yq, Xq) of a (Q, C, Yq, Xq) map (C may be 0: only the shape is read), or the triple itself."""
+    if isinstance(like, Tensor):
+        q, _, yq, xq = like.shape
+        return q, yq, xq
+    q, yq, xq = like
+    return q, yq, xq
+
+
+def scatter_pillars(pillar_feats: Tensor, pillar_index: Tensor, like: MapShape) -> Tensor:
+    """Place pillar features (P, C) into zero maps (Q, C, Yq, Xq); ``like`` gives Q, Yq, Xq (``map_shape``).
 
     pillar_index (P,) int64 is flat ``qi * Yq * Xq + row * Xq + col``. Indices must be unique (pillarize makes
     them so); with duplicates which pillar wins is unspecified.
     """
-    q, _, yq, xq = like.shape
+    q, yq, xq = map_shape(like)
     c = pillar_feats.shape[1]
     canvas = pillar_feats.new_zeros(q * yq * xq, c)  # (Q*Yq*Xq, C)
     canvas = canvas.index_put((pillar_index,), pillar_feats)
     return canvas.reshape(q, yq, xq, c).permute(0, 3, 1, 2)  # (Q, C, Yq, Xq)
 
 
-def gather_pillars(pillar_feats: Tensor, pillar_index: Tensor, like: Tensor) -> Tensor:
+def gather_pillars(pillar_feats: Tensor, pillar_index: Tensor, like: MapShape) -> Tensor:
     """``scatter_pillars`` computed as a gather, for export: the same (Q, C, Yq, Xq) map.
 
     Each cell looks up its pillar (1 + its position in pillar_index, 0 for an empty cell) in a (Q*Yq*Xq,) int64
@@ -61,7 +73,7 @@ def gather_pillars(pillar_feats: Tensor, pillar_index: Tensor, like: Tensor) -> 
     Q * Yq * Xq * C floats instead of one, which costs most when another process shares the last-level cache
     (benchmarks/RESULTS.md). Indices must be unique, as for scatter_pillars.
     """
-    q, _, yq, xq = like.shape
+    q, yq, xq = map_shape(like)
     p, c = pillar_feats.shape
     slot = torch.zeros(q * yq * xq, dtype=torch.int64, device=pillar_index.device)  # (Q*Yq*Xq,): 0 = empty
     slot = slot.index_put((pillar_index,), torch.arange(1, p + 1, device=pillar_index.device))

@@ -27,7 +27,7 @@ import torch
 from torch import Tensor, nn
 
 from streamdet.models.bn_fold import fold_bn
-from streamdet.models.detector import SliceNet
+from streamdet.models.detector import SliceNet, slice_map_shape
 from streamdet.models.heads import HEAD_OUTPUTS, CenterHead, HeadMaps
 from streamdet.models.pillars import gather_pillars
 
@@ -215,6 +215,7 @@ class ExportSliceNet(nn.Module):
     def __init__(self, net: SliceNet) -> None:
         super().__init__()
         self.use_image = net.use_image
+        self.quadrant_cells = net.quadrant_cells  # (Yq, Xq)
         self.pillar_net = net.pillar_net
         self.bev_encoder = net.bev_encoder
         self.head = net.head
@@ -233,10 +234,15 @@ class ExportSliceNet(nn.Module):
         self.shared_rest = nn.Sequential(*list(net.head.shared)[2:])  # its ReLU
         self.grouped_head = GroupedTaskHead(net.head) if len(net.head.tasks) > 1 else None
 
-    def forward(self, pillar_features: Tensor, pillar_mask: Tensor, pillar_index: Tensor, image_bev: Tensor) -> HeadMaps:
+    def forward(self, pillar_features: Tensor, pillar_mask: Tensor, pillar_index: Tensor,
+                image_bev: Tensor | None = None, *, num_quadrants: int | None = None) -> HeadMaps:  # fmt: skip
+        """SliceNet's signature: the image BEV, or None with ``num_quadrants`` (LiDAR-only; zeros for a fused net)."""
+        shape = slice_map_shape(image_bev, num_quadrants, self.quadrant_cells)
         # the same map as scatter_pillars, built by a gather (pillars.py: one pass over the map instead of three)
-        p_bev = gather_pillars(self.pillar_net(pillar_features, pillar_mask), pillar_index, image_bev)  # (Q, C, Yq, Xq)
+        p_bev = gather_pillars(self.pillar_net(pillar_features, pillar_mask), pillar_index, shape)  # (Q, C, Yq, Xq)
         if self.use_image:
+            if image_bev is None:  # no image lifted yet (SliceNet.fused_bev)
+                image_bev = torch.zeros_like(p_bev)
             x = self.relu(self.point_conv(p_bev) + self.image_conv(image_bev))  # (Q, C0, Yq / s, Xq / s)
             x = self.stage0_rest(x)
         else:

@@ -21,17 +21,18 @@ class TrainingModel(nn.Module):
     def task_classes(self) -> tuple[tuple[int, ...], ...]:
         return self.detector.slice_net.head.task_classes
 
-    def image_bev(self, batch: Batch, use_image: bool = True) -> Tensor:
-        """(Qm, C, Yq, Xq): the lifted quadrant volumes, each slice map reading its lift entry; zeros (what the
-        runtime feeds before its first image update) for the LiDAR-only preset or with ``use_image`` False."""
+    def image_bev(self, batch: Batch, use_image: bool = True) -> Tensor | None:
+        """(Qm, C, Yq, Xq): the lifted quadrant volumes, each slice map reading its lift entry; None for the
+        LiDAR-only preset or with ``use_image`` False (the slice net then sees zeros, what the runtime feeds before
+        its first image update, or no image BEV at all: ``SliceNet.fused_bev``)."""
         d = self.detector
         if not (d.preset.use_image and use_image):
-            g = d.preset.grid
-            return batch.pillar_features.new_zeros(batch.num_maps, d.preset.channels, g.quadrant_ny, g.quadrant_nx)
+            return None
         lifted = d.image_bev(batch.images, batch.lut_index, batch.lut_weight)  # (L, C, Yq, Xq)
         return lifted.index_select(0, batch.map_source)  # (Qm, C, Yq, Xq)
 
     def forward(self, batch: Batch, use_image: bool = True) -> list[HeadMaps]:
         net = self.detector.slice_net
-        bev = net.fused_bev(batch.pillar_features, batch.pillar_mask, batch.pillar_index, self.image_bev(batch, use_image))
+        image_bev = self.image_bev(batch, use_image)
+        bev = net.fused_bev(batch.pillar_features, batch.pillar_mask, batch.pillar_index, image_bev, num_quadrants=batch.num_maps)
         return net.head.forward_tasks(bev)

@@ -11,10 +11,10 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from streamdet.calibration.grid import quadrants_of_sector
 from streamdet.calibration.lut import Lut, build_lut
+from streamdet.core.sectors import quadrants_of_sector
+from streamdet.core.slicing import split_sweep
 from streamdet.data.sample import Sample
-from streamdet.data.slicing import split_sweep
 from streamdet.models.decode import decode_head_maps
 from streamdet.models.detector import StreamDetector
 from streamdet.runtime_ort.nms import NmsConfig
@@ -52,7 +52,7 @@ class TorchSweepDetector:
             weight = torch.from_numpy(np.array(lut.weight)).to(self.device)
             bev = self.model.image_bev(images, index, weight)  # (4, C, Yq, Xq)
         else:
-            bev = torch.zeros(4, p.channels, g.quadrant_ny, g.quadrant_nx, device=self.device)
+            bev = None  # the LiDAR-only net reads the slice's quadrant count only
         results = []
         for k, points in enumerate(split_sweep(np.asarray(sample.points, np.float32), self.num_slices)):
             quadrants = quadrants_of_sector(k, self.num_slices)
@@ -61,7 +61,8 @@ class TorchSweepDetector:
                 continue
             maps = self.model.slice_net(
                 torch.from_numpy(pil.features).to(self.device), torch.from_numpy(pil.mask).to(self.device),
-                torch.from_numpy(pil.index).to(self.device), bev[list(quadrants)],
+                torch.from_numpy(pil.index).to(self.device), None if bev is None else bev[list(quadrants)],
+                num_quadrants=len(quadrants),
             )  # fmt: skip
             boxes, scores, labels = decode_head_maps(maps, p.head_cell_m, p.top_k)
             results.append(postprocess_slice(boxes.cpu().numpy(), scores.cpu().numpy(), labels.cpu().numpy(), quadrants, g, self.post))

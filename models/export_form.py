@@ -1,0 +1,74 @@
+"""The detector's export form: every export-time rewrite of a trained ``StreamDetector``, applied in one place.
+
+``to_export_form(det)`` returns the modules the graphs are traced from (export/onnx_export.py), each the same
+function as the trained module it replaces (the export's parity checks compare them with the PyTorch modules):
+
+    graph               trained module                 export form
+    image_encoder       ImageEncoder                   the same module (normalisation inside)
+    volumetric_lifter   VolumetricLifter               FoldedLifter where the z-fold pays (lifter_fold.py),
+                                                       else the same module
+    slice_head          SliceNet + decode              SliceDecoder(ExportSliceNet) (slice_split.py): the
+                                                       concatenations split into sums of convolutions, 1x1
+                                                       deblocks as convolutions, a multi-head's branches grouped
+                                                       (GroupedTaskHead), the point BEV by gather_pillars;
+                                                       LidarSliceDecoder for the LiDAR-only baseline
+
+Every BatchNorm is folded by ``bn_fold.fold_bn`` (eval statistics). Training never sees these modules; what is
+measured of them is in benchmarks/RESULTS.md.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from torch import Tensor, nn
+
+from streamdet.models.decode import SliceDecoder, decode_head_maps
+from streamdet.models.detector import SliceNet, StreamDetector
+from streamdet.models.lifter_fold import export_lifter
+from streamdet.models.presets import Preset
+from streamdet.models.slice_split import ExportSliceNet
+
+
+class LidarSliceDecoder(SliceDecoder):
+    """``forward(pillar_features, pillar_mask, pillar_index, quadrants (Q,) int64) -> det_boxes, det_scores,
+    det_labels``: SliceDecoder of a LiDAR-only net, with Q read off ``quadrants`` (no image BEV exists).
+
+    The pillar tensors cannot tell Q: a slice whose last quadrant has no pillar still gets that quadrant's head
+    output, as in PyTorch. A subclass rather than a wrapper so that the exported node scopes stay
+    ``/slice_net/...`` and the decode's are the root's (the fp16 / int8 block lists rely on them).
+    """
+
+    def __init__(self, slice_net: SliceNet | nn.Module, preset: Preset) -> None:  # nn.Module: its export form
+        if slice_net.use_image:
+            raise ValueError(f"preset {preset.name!r} has use_image=True: its slice graph needs image_bev")
+        super().__init__(slice_net, preset)
+
+    def forward(self, pillar_features: Tensor, pillar_mask: Tensor, pillar_index: Tensor,
+                quadrants: Tensor) -> tuple[Tensor, Tensor, Tensor]:  # fmt: skip
+        maps = self.slice_net(pillar_features, pillar_mask, pillar_index, num_quadrants=quadrants.shape[0])
+        return decode_head_maps(maps, self.cell_m, self.top_k)
+
+
+@dataclass(frozen=True, eq=False)
+class ExportForm:
+    """The modules traced into the graphs, by graph name; None for the graphs a LiDAR-only model lacks."""
+
+    image_encoder: nn.Module | None
+    volumetric_lifter: nn.Module | None
+    slice_head: SliceDecoder
+
+    def graphs(self) -> dict[str, nn.Module]:
+        """The graphs this model exports, in pipeline order."""
+        parts = {"image_encoder": self.image_encoder, "volumetric_lifter": self.volumetric_lifter, "slice_head": self.slice_head}
+        return {name: module for name, module in parts.items() if module is not None}
+
+
+def to_export_form(det: StreamDetector) -> ExportForm:
+    """The export form of a trained detector (eval mode; it shares the detector's unrewritten modules)."""
+    preset = det.preset
+    slice_net = ExportSliceNet(det.slice_net.eval()).eval()
+    if not preset.use_image:
+        return ExportForm(None, None, LidarSliceDecoder(slice_net, preset).eval())
+    lifter = export_lifter(det.lifter.eval(), preset.lifter, preset.grid.nz)
+    return ExportForm(det.image_encoder.eval(), lifter, SliceDecoder(slice_net, preset).eval())
