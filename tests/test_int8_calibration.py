@@ -19,8 +19,8 @@ from streamdet.data.synth_world import WorldConfig
 from streamdet.data.synth_writer import SynthConfig, generate_dataset
 from streamdet.export import int8 as q8
 from streamdet.export.cli import main
-from streamdet.runtime_ort.manifest import GRAPH_NAMES, read_manifest
 from streamdet.models.presets import Preset, get_preset
+from streamdet.runtime_ort.manifest import GRAPH_NAMES, read_manifest
 from streamdet.runtime_ort.pillarize import pillarize
 
 SYNTH = SynthConfig(num_scenes=2, seed=3, resolution=(160, 90), world=WorldConfig(samples_per_scene=3))
@@ -110,7 +110,7 @@ def test_graph_inputs_against_a_naive_rebuild(dataset, export_dir):
 def test_sample_lut_refuses_another_camera_order(dataset):
     sample = q8.load_calibration_samples(dataset, 1, ("CAM_FRONT",)).samples[0]
     names = tuple(reversed(sample.rig.names))
-    with pytest.raises(q8.CalibrationError, match="orders them"):
+    with pytest.raises(q8.Int8CalibrationDataError, match="orders them"):
         q8.sample_lut(sample, names, get_preset("tiny").grid, 4, (128, 72))
 
 

@@ -10,9 +10,9 @@ import onnx
 import pytest
 from onnx import TensorProto, helper
 
+from streamdet.core.classes import CLASS_NAMES
 from streamdet.export import int8 as q8
 from streamdet.runtime_ort.manifest import BoxAgreement
-from streamdet.runtime_ort.boxes import CLASS_NAMES
 
 SEEDS = (0, 1, 2)
 
@@ -256,13 +256,13 @@ def test_quantize_graph_refuses_no_inputs(tmp_path):
 
 
 def test_dataset_version(tmp_path):
-    with pytest.raises(q8.CalibrationError, match="not a directory"):
+    with pytest.raises(q8.Int8CalibrationDataError, match="not a directory"):
         q8.dataset_version(tmp_path / "missing")
-    with pytest.raises(q8.CalibrationError, match="no nuScenes table folder"):
+    with pytest.raises(q8.Int8CalibrationDataError, match="no nuScenes table folder"):
         q8.dataset_version(tmp_path)
     (tmp_path / "v1.0-test").mkdir()
     (tmp_path / "v1.0-test" / "sample.json").write_text("[]")
-    with pytest.raises(q8.CalibrationError, match="only the test split"):
+    with pytest.raises(q8.Int8CalibrationDataError, match="only the test split"):
         q8.dataset_version(tmp_path)
     for v in ("v1.0-trainval", "v1.0-mini"):
         (tmp_path / v).mkdir()
@@ -273,10 +273,10 @@ def test_dataset_version(tmp_path):
 def test_bundled_calibration_samples():
     cal = q8.load_calibration_samples(None, 8, ("CAM_FRONT", "CAM_BACK"))
     assert cal.source == q8.BUNDLED_SOURCE and len(cal.samples) == 1 and cal.split == "all"
-    with pytest.raises(q8.CalibrationError, match=r"cameras \['CAM_X'\]"):
+    with pytest.raises(q8.Int8CalibrationDataError, match=r"cameras \['CAM_X'\]"):
         q8.load_calibration_samples(None, 8, ("CAM_FRONT", "CAM_X"))
     for bad in (0, -1, 2.5, True):
-        with pytest.raises(q8.CalibrationError, match="positive integer"):
+        with pytest.raises(q8.Int8CalibrationDataError, match="positive integer"):
             q8.load_calibration_samples(None, bad, ("CAM_FRONT",))
 
 

@@ -1,0 +1,55 @@
+"""The state one export run carries from step to step (export/steps.py lists the steps)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from streamdet.calibration.camera import Rig
+from streamdet.calibration.lut import Lut
+from streamdet.export import onnx_export as ox
+from streamdet.export.options import ExportOptions
+from streamdet.export.parity_inputs import ParityInputs
+from streamdet.export.record import Gmacs
+from streamdet.export.weights import WeightsSource
+from streamdet.models.detector import StreamDetector
+from streamdet.models.presets import Preset
+from streamdet.runtime_ort.manifest import Int8Record, Manifest, ParityRecord, PipelineParity
+
+Feeds = dict[str, np.ndarray]
+
+
+@dataclass(eq=False)
+class ExportRun:
+    """Inputs of the run (first block), then what the steps produce, in step order."""
+
+    tmp: Path  # the staging directory (export/staging.py)
+    out_dir: Path
+    preset: Preset  # with the export's image size and use_image
+    size: tuple[int, int]  # (W, H) px of the camera images
+    opts: ExportOptions
+    note: Callable[[str], None]  # a line under the current step
+    det: StreamDetector | None = None
+    source: WeightsSource | None = None
+    rig: Rig | None = None  # None: LiDAR-only
+    lut: Lut | None = None
+    calibration_source: str | None = None
+    inputs: ParityInputs | None = None
+    feeds32: dict[str, Feeds] = field(default_factory=dict)  # each graph's parity feeds (fp32 upstream)
+    outputs32: dict[str, list[np.ndarray]] = field(default_factory=dict)  # each graph's fp32 outputs on them
+    margins_of: Callable[[list[np.ndarray]], Any] | None = None  # near-tie margins of decoded detections
+    parity: list[ParityRecord] = field(default_factory=list)
+    gmacs: Gmacs = field(default_factory=dict)
+    pipeline: PipelineParity | None = None
+    int8_work: Any = None  # export/int8_steps.py: Int8Work between its steps
+    int8_record: Int8Record | None = None
+    manifest: Manifest | None = None
+
+    @property
+    def graphs(self) -> tuple[str, ...]:
+        """The graphs this export writes, in pipeline order."""
+        return tuple(ox.graph_ios(self.preset.use_image))

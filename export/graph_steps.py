@@ -1,0 +1,253 @@
+"""The export's steps up to the manifest: weights, LUT, parity inputs, each fp32 graph with its parity against
+PyTorch, GMAC, the fp16 siblings with their parity against fp32 (export/steps.py puts them in order).
+
+Each graph's PyTorch reference sees the same inputs as its onnxruntime counterpart, and the fp32 pipeline (encoder
+-> lifter with the LUT -> slice graph) is onnxruntime's: each graph is fed by the fp32 graph before it.
+"""
+
+from __future__ import annotations
+
+import importlib.resources
+from pathlib import Path
+
+import numpy as np
+import onnx
+import torch
+
+from streamdet.calibration.camera import CalibrationError, Rig
+from streamdet.calibration.lut import build_lut
+from streamdet.core.constants import BUNDLED_CALIBRATION_SOURCE
+from streamdet.export import onnx_export as ox
+from streamdet.export.export_run import ExportRun, Feeds
+from streamdet.export.fp16 import convert_model_to_fp16
+from streamdet.export.gmac import graph_gmacs
+from streamdet.export.options import ExportError
+from streamdet.export.parity import (
+    FP16_TOL_REL,
+    TORCH_TOL_REL,
+    cell_centres,
+    compare_dense,
+    compare_detections,
+    detection_margins,
+    ort_session,
+    peak_margins,
+    pipeline_parity,
+)
+from streamdet.export.parity_inputs import parity_inputs, scatter_cameras
+from streamdet.export.record import format_parity, write_export_manifest
+from streamdet.export.staging import save_checked
+from streamdet.export.weights import bundled_checkpoint, load_detector
+from streamdet.models.decode import decode_head_maps
+from streamdet.models.image_encoder import IMAGENET_MEAN, IMAGENET_STD
+from streamdet.models.presets import Preset
+from streamdet.runtime_ort.manifest import LUT_NAME, ImageSpec, LutEntry, Normalisation, ParityRecord, graph_file_name, sha256_file
+
+TORCH_REF_IMAGES = 2  # images the PyTorch encoder reference runs on (onnxruntime runs all J)
+DENSE_OUTPUTS = {"image_encoder": "features", "volumetric_lifter": "image_bev"}  # the slice graph's are detections
+
+
+def load_rig(calibration: str | None) -> tuple[Rig, str]:
+    """The rig and a description of where it came from."""
+    if calibration is None:
+        res = importlib.resources.files("streamdet.data") / "nuscenes_sample" / "calibration.json"
+        return Rig.from_calibration_json(res), BUNDLED_CALIBRATION_SOURCE
+    path = Path(calibration)
+    if not path.is_file():
+        raise ExportError(f"calibration file {path} does not exist")
+    try:
+        return Rig.from_calibration_json(path), str(path)
+    except CalibrationError as e:
+        raise ExportError(f"calibration {path}: {e}") from None
+
+
+# ---- set-up ---------------------------------------------------------------------------------------------------
+
+
+def load_weights(run: ExportRun) -> None:
+    opts = run.opts
+    checkpoint = opts.checkpoint if opts.checkpoint is not None else bundled_checkpoint(run.preset.name)
+    try:
+        run.det, run.source = load_detector(run.preset, checkpoint, opts.seed)
+    except ValueError as e:
+        raise ExportError(str(e)) from None
+    run.note(run.source.describe())
+
+
+def build_lut_file(run: ExportRun) -> None:
+    run.rig, run.calibration_source = load_rig(run.opts.calibration)
+    run.lut = build_lut(run.rig, run.preset.grid, run.preset.image.feature_stride, run.size)
+    run.lut.save(run.tmp / LUT_NAME)
+    run.note(f"{len(run.rig)} cameras, K = {run.lut.num_slots} slots, from {run.calibration_source}")
+
+
+def prepare_parity_inputs(run: ExportRun) -> None:
+    run.inputs = parity_inputs(run.rig, run.lut, run.preset, run.size, run.opts.num_slices, run.opts.seed)
+    run.note(run.inputs.describe())
+
+
+# ---- fp32: each graph exported and checked against PyTorch ----------------------------------------------------
+
+
+def chained_feeds(run: ExportRun, name: str, upstream: np.ndarray | None) -> Feeds:
+    """Graph ``name``'s parity feeds with ``upstream``, the first output of the graph before it, in place."""
+    inputs = run.inputs
+    if name == "image_encoder":
+        return {"images": inputs.images_read}  # (J', H, W, 3)
+    if name == "volumetric_lifter":
+        lut_index, lut_weight = run.lut.for_quadrants(inputs.quadrants)
+        features = scatter_cameras(upstream, inputs.cameras, len(inputs.images))  # (J, C, Hf, Wf)
+        return {"features": features, "lut_index": lut_index, "lut_weight": lut_weight}
+    if run.preset.use_image:
+        return {**inputs.pillars.as_feeds(), "image_bev": upstream}
+    return inputs.pillars.as_feeds(inputs.quadrants)  # the pillar tensors and the quadrant ids
+
+
+def _session(run: ExportRun, name: str, precision: str):
+    return ort_session(str(run.tmp / graph_file_name(name, precision)))
+
+
+def _run_fp32(run: ExportRun, name: str) -> tuple[Feeds, list[np.ndarray]]:
+    """Feed graph ``name`` (fp32, written) by the fp32 graph before it; remember feeds and outputs."""
+    upstream = run.outputs32[run.graphs[run.graphs.index(name) - 1]][0] if name != run.graphs[0] else None
+    feeds = chained_feeds(run, name, upstream)
+    run.feeds32[name] = feeds
+    run.outputs32[name] = _session(run, name, "fp32").run(None, feeds)
+    return feeds, run.outputs32[name]
+
+
+def _note_parity(run: ExportRun, records: list[ParityRecord]) -> None:
+    run.parity.extend(records)
+    for p in records:
+        run.note(format_parity(p))
+
+
+@torch.no_grad()
+def export_image_encoder(run: ExportRun) -> None:
+    model = ox.export_image_encoder(run.det, torch.from_numpy(run.inputs.images_read), run.opts.opset)
+    save_checked(model, run.tmp, "image_encoder", "fp32")
+
+
+@torch.no_grad()
+def parity_image_encoder(run: ExportRun) -> None:
+    # Only the cameras the LUT reads for the parity quadrants are encoded; the others' rows are never gathered,
+    # so zeros there give the lifter the same output (and halve the encoder's share of the time).
+    feeds, (features_read,) = _run_fp32(run, "image_encoder")
+    # PyTorch on at most TORCH_REF_IMAGES of them: the encoder treats images independently, and the paper preset's
+    # ResNet-50 at full resolution is costly on a CPU shared with the rest of the export.
+    n_ref = min(TORCH_REF_IMAGES, len(run.inputs.cameras))
+    ref = run.det.image_encoder(torch.from_numpy(feeds["images"][:n_ref])).numpy()
+    _note_parity(run, [compare_dense("image_encoder", "fp32", "torch", "features", features_read[:n_ref], ref, TORCH_TOL_REL)])
+
+
+@torch.no_grad()
+def export_volumetric_lifter(run: ExportRun) -> None:
+    feeds = chained_feeds(run, "volumetric_lifter", run.outputs32["image_encoder"][0])
+    args = tuple(torch.from_numpy(feeds[n]) for n in ox.VOLUMETRIC_LIFTER_IO.inputs)
+    save_checked(ox.export_volumetric_lifter(run.det, *args, run.opts.opset), run.tmp, "volumetric_lifter", "fp32")
+    _, (image_bev,) = _run_fp32(run, "volumetric_lifter")
+    ref = run.det.lifter(*args).numpy()
+    _note_parity(run, [compare_dense("volumetric_lifter", "fp32", "torch", "image_bev", image_bev, ref, TORCH_TOL_REL)])
+
+
+@torch.no_grad()
+def export_slice_head(run: ExportRun) -> None:
+    upstream = run.outputs32["volumetric_lifter"][0] if run.preset.use_image else None
+    feeds = chained_feeds(run, "slice_head", upstream)
+    args = tuple(torch.from_numpy(feeds[n]) for n in ox.graph_ios(run.preset.use_image)["slice_head"].inputs)
+    save_checked(ox.export_slice_head(run.det, args, run.opts.opset), run.tmp, "slice_head", "fp32")
+    _, dets = _run_fp32(run, "slice_head")
+    image_bev = args[3] if run.preset.use_image else None  # a LiDAR-only net reads the quadrant count only
+    maps = run.det.slice_net(*args[:3], image_bev, num_quadrants=len(run.inputs.quadrants))
+    ref_dets, run.margins_of = reference_decode(maps, run.preset)
+    _note_parity(run, compare_detections("slice_head", "fp32", "torch", dets, ref_dets, TORCH_TOL_REL, run.margins_of(ref_dets)))
+
+
+def reference_decode(maps, preset: Preset):
+    """PyTorch's decoded detections of the head maps, and the peak-margin lookup the near-tie exclusions use."""
+    ref_dets = [t.numpy() for t in decode_head_maps(maps, preset.head_cell_m, preset.top_k)]
+    margins = peak_margins(maps[0].numpy())  # (Q, C, Hh, Wh)
+    centres = cell_centres(maps[1].numpy(), preset.head_cell_m)  # (Q, 2, Hh, Wh)
+    return ref_dets, lambda d: detection_margins(d[0], d[2], margins, centres)
+
+
+def count_gmacs(run: ExportRun) -> None:
+    lifter = run.feeds32.get("volumetric_lifter", {})
+    run.gmacs = graph_gmacs(run.det, run.inputs, lifter.get("lut_index"), lifter.get("lut_weight"))
+    run.note(", ".join(f"{k} {v:.2f}" for k, (v, _) in run.gmacs.items()))
+
+
+# ---- fp16 -----------------------------------------------------------------------------------------------------
+
+
+def convert_fp16(run: ExportRun, name: str) -> None:
+    model32 = onnx.load(str(run.tmp / graph_file_name(name, "fp32")))
+    keep = fp32_nodes(model32) if name == "slice_head" else set()
+    model16, kept = convert_model_to_fp16(model32, lambda n: n.name in keep)
+    save_checked(model16, run.tmp, name, "fp16")
+    if kept:
+        run.note(f"{len(kept)} nodes kept in fp32 (decode and heatmap logits)")
+
+
+def fp32_nodes(model: onnx.ModelProto) -> set[str]:
+    """Nodes of the slice graph kept in fp32: the decode and the convs that make the heatmap logits."""
+    return {n.name for n in model.graph.node if ox.is_decode_node(n)} | set(ox.heatmap_producers(model))
+
+
+def parity_fp16(run: ExportRun) -> None:
+    """Each fp16 graph against its fp32 graph on the same inputs, then the fp16 pipeline (each fp16 graph fed by the
+    fp16 graph before it) against the fp32 pipeline; for a LiDAR-only export the slice graph is the pipeline."""
+    sessions16 = {name: _session(run, name, "fp16") for name in run.graphs}
+    for name in run.graphs:
+        got = sessions16[name].run(None, run.feeds32[name])
+        ref = run.outputs32[name]
+        if name in DENSE_OUTPUTS:
+            _note_parity(run, [compare_dense(name, "fp16", "onnx-fp32", DENSE_OUTPUTS[name], got[0], ref[0], FP16_TOL_REL)])
+        else:
+            _note_parity(run, compare_detections(name, "fp16", "onnx-fp32", got, ref, FP16_TOL_REL, run.margins_of(ref)))
+    upstream = None
+    for name in run.graphs:
+        outputs16 = sessions16[name].run(None, chained_feeds(run, name, upstream))
+        upstream = outputs16[0]
+    run.pipeline = _pipeline_check(run, run.outputs32["slice_head"], outputs16)
+
+
+def _pipeline_check(run: ExportRun, dets: list[np.ndarray], dets16: list[np.ndarray]):
+    """The decoded boxes of the fp32 and fp16 pipelines compared (``pipeline_parity``), reported in one line."""
+    outputs = ox.SLICE_HEAD_IO.outputs
+    inputs = run.inputs
+    pipeline = pipeline_parity(
+        dict(zip(outputs, dets)),
+        dict(zip(outputs, dets16)),
+        slice_index=inputs.slice_index,
+        num_slices=run.opts.num_slices,
+        num_points=inputs.num_points,
+        num_pillars=inputs.pillars.num_pillars,
+        cell_m=run.preset.head_cell_m,
+        margins32=run.margins_of(dets),
+        margins16=run.margins_of(dets16),
+    )
+    run.note(
+        f"pipeline: {pipeline.count_fp32} vs {pipeline.count_fp16} boxes >= {pipeline.score_threshold}, "
+        f"{pipeline.excluded_in_band} in the +-{pipeline.score_band:.2g} band, {pipeline.excluded_at_top_k} "
+        f"at the top-K cut, {pipeline.excluded_near_ties} near-ties, max centre diff "
+        f"{pipeline.max_centre_diff_m:.3g} m: {'ok' if pipeline.passed else 'FAILED'}"
+    )
+    return pipeline
+
+
+# ---- the manifest ---------------------------------------------------------------------------------------------
+
+
+def write_manifest(run: ExportRun) -> None:
+    image = normalisation = lut = None
+    if run.preset.use_image:
+        w, h = run.size
+        image = ImageSpec(w, h, run.preset.image.feature_stride, run.lut.feature_width, run.lut.feature_height, tuple(run.rig.names))
+        normalisation = Normalisation(mean_rgb=tuple(IMAGENET_MEAN), std_rgb=tuple(IMAGENET_STD))
+        lut = LutEntry(LUT_NAME, sha256_file(run.tmp / LUT_NAME), run.lut.calibration_sha256, run.calibration_source)
+    opts = run.opts
+    run.manifest = write_export_manifest(
+        run.tmp, run.preset, opts.num_slices, opts.opset, opts.precisions, run.graphs, run.gmacs, run.parity,
+        run.pipeline, run.int8_record, run.source, run.inputs.describe(), image=image, normalisation=normalisation,
+        lut=lut,
+    )  # fmt: skip

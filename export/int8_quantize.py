@@ -1,0 +1,302 @@
+"""int8 quantization of one exported graph: static QDQ, calibrated on real inputs (numpy + onnxruntime).
+
+Format. ``onnxruntime.quantization.quantize_static`` in QDQ form: weights int8, symmetric, one scale per output
+channel; activations **uint8**, asymmetric, one scale per tensor. onnxruntime's x86 CPU provider fuses
+``DequantizeLinear -> Conv -> QuantizeLinear`` into its int8 convolution (QLinearConv, u8s8 GEMM) only with uint8
+activations. The fusion needs the session at ORT_ENABLE_ALL (what the runtime uses): the int8 NHWC kernels come
+with it, and the small int8 encoder measured 1.4x slower at ENABLE_EXTENDED. ``quantize_dynamic`` is not a path: it makes ConvInteger, slower than fp32.
+
+Weights are 7-bit (``reduce_range``) by default. x86 CPUs without VNNI (AVX2 only, like the AMD EPYC this was
+measured on) multiply u8 x s8 with ``vpmaddubsw``, which adds two products into a saturating int16: 255 * 127 * 2
+overflows it, 255 * 63 * 2 does not. Measured on the small image encoder (bundled images, untrained weights):
+relative L2 error of the features 0.354 with 8-bit weights, 0.070 with 7-bit. With 7-bit weights the graph computes the same thing on every
+x86 CPU, VNNI or not.
+
+Pre-processing. The TorchScript exporter shares equal initializers (e.g. zero biases) through ``Identity`` nodes,
+and the quantizer does not make a QDQ unit of a Conv whose bias is not an initializer (measured: 16 of the 25
+convolutions of the small image encoder stay float). ``quant_pre_process`` (shape inference and onnxruntime's basic optimisations, which
+fold those Identities) runs first.
+
+What stays float, and why (``float_nodes``; timings with onnxruntime 1.32, one thread, small preset):
+
+- slice graph, the decode and the heatmap convolution: peak picking keeps a cell that equals the max of its 3x3
+  neighbourhood. A uint8 heatmap has 256 levels over the logit range, so neighbouring cells of one object round
+  to the same level, each of them is a "peak", and one object yields several boxes. The heatmap logits are
+  computed in float (their last conv excluded) and the sigmoid / max-pool / equality / top-k / box arithmetic run
+  in float on them. The other head outputs (centre offset, z, log size, yaw, velocity) come from float convs too:
+  the decode turns them into box values directly, and these 1-layer convs are a few percent of the graph.
+- slice graph, the pillar net and scatter: ``pillar_features`` holds x and y (up to +-51 m) beside offsets of a
+  few centimetres and reflectance in 0..1; one uint8 scale per tensor (0.4 m steps) would erase all but x and y.
+  The PointNet is a single 11-input linear layer, which int8 would not speed up.
+- image encoder, the input normalisation (cast, scale, shift of the full image), rewritten as one float
+  BatchNormalization (``normalisation_as_batchnorm``, bit-identical in fp32). onnxruntime runs the int8 convolutions
+  in NHWC and moves the graph's NHWC -> NCHW transpose of the image past the Mul and Add, which then broadcast
+  their per-channel constants over the innermost axis of size 3. Measured at 384x216: that float Mul + Add 6.6 ms,
+  quantized (QLinearMul + QLinearAdd) 11.5 ms, the BatchNormalization (which the transpose is not moved past)
+  0.2 ms, the whole int8 encoder 33 ms in float Mul + Add, 26 ms with the BatchNormalization.
+- lifter, z pooling and the max over z: QLinearAveragePool measured 23 ms where the float AveragePool takes 6 and
+  the DequantizeLinear before it 5 (small preset, Q = 4).
+- lifter, the LUT gather and weighted sum (``Int8Config.quantize_lifter_gather``, off): quantized, the feature
+  table is quantized once, gathered and weighted as uint8 (QLinearMul), and the gathered (Q, K, Z, Yq, Xq, C)
+  rows, K = 2 times the volume, are dequantized before the sum. Measured at the runtime's Q = 4 (small preset, one
+  thread, per-op profiles): gather + weighting + that DequantizeLinear + sum + BN took 150-160 ms against 145-150 ms
+  for the float gather, weighting and sum followed by one QuantizeLinear of the volume; the whole int8 lifter ran
+  1.51x and 1.52x faster than fp32. It saves nothing, and quantizing the features before the camera average adds
+  error (relative L2 of the image BEV 0.0187 against 0.0178), so the gather stays float and the volume is
+  quantized once, before the first 3D convolution.
+- ConvTranspose (the BEV encoder's upsampling): onnxruntime has no QDQ ConvTranspose; it runs in float between a
+  DequantizeLinear and a QuantizeLinear.
+"""
+
+from __future__ import annotations
+
+import logging
+import tempfile
+import time
+from collections.abc import Iterable, Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import onnx
+from onnx import numpy_helper
+from onnxruntime.quantization import CalibrationDataReader, CalibrationMethod, QuantFormat, QuantType, quantize_static
+from onnxruntime.quantization.shape_inference import quant_pre_process
+
+from streamdet.export.onnx_export import heatmap_producers, is_decode_node
+
+ACTIVATION_TYPE = QuantType.QUInt8  # the only activation type x86 onnxruntime runs as fused int8 convolutions
+WEIGHT_TYPE = QuantType.QInt8
+INPUT_NORM_NOTE = "input normalisation: quantized it costs 50x a float BatchNormalization on the NCHW image"
+LIFTER_POOL_NOTE = "z pooling: QLinearAveragePool costs 2x the float AveragePool with its DequantizeLinear"
+LIFTER_GATHER_NOTE = "LUT gather and weighted sum: dequantizing K x the volume costs what the uint8 gather saves"
+HEAD_OUTPUT_NOTE = "head outputs: the decode reads them as box values; uint8 steps would show in the boxes"
+PILLAR_NOTE = "pillar net and scatter: metres and centimetre offsets in one tensor do not share a uint8 scale"
+
+Feeds = dict[str, np.ndarray]
+
+
+@dataclass(frozen=True)
+class Int8Config:
+    calibrate_method: CalibrationMethod = CalibrationMethod.MinMax  # Percentile / Entropy hold histograms in memory
+    reduce_range: bool = True  # 7-bit weights: no int16 saturation on x86 without VNNI (module doc)
+    per_channel: bool = True  # one weight scale per output channel
+    quantize_lifter_gather: bool = False  # measured no faster than the float gather, and less accurate (module doc)
+
+
+# ---- what stays float ---------------------------------------------------------------------------------------
+
+
+def _ancestors(model: onnx.ModelProto, tensor: str) -> set[str]:
+    """Names of the nodes the tensor depends on (transitively)."""
+    producer = {o: n for n in model.graph.node for o in n.output}
+    found: set[str] = set()
+    stack = [tensor]
+    while stack:
+        node = producer.get(stack.pop())
+        if node is None or node.name in found:
+            continue
+        found.add(node.name)
+        stack.extend(node.input)
+    return found
+
+
+def _first(model: onnx.ModelProto, op_type: str) -> onnx.NodeProto:
+    nodes = [n for n in model.graph.node if n.op_type == op_type]
+    if not nodes:
+        raise ValueError(f"the graph has no {op_type} node")
+    return nodes[0]  # graphs are topologically sorted
+
+
+def _head_outputs(model: onnx.ModelProto) -> set[str]:
+    """The last layers of the head: nodes from the decode's inputs upstream to (and including) the first Conv."""
+    producer = {o: n for n in model.graph.node for o in n.output}
+    found: set[str] = set()
+    stack = [i for n in model.graph.node if is_decode_node(n) for i in n.input]
+    while stack:
+        node = producer.get(stack.pop())
+        if node is None or node.name in found or is_decode_node(node):
+            continue
+        found.add(node.name)
+        if node.op_type != "Conv":
+            stack.extend(node.input)
+    return found
+
+
+def _constant(model: onnx.ModelProto, name: str) -> np.ndarray | None:
+    for t in model.graph.initializer:
+        if t.name == name:
+            return numpy_helper.to_array(t)
+    for n in model.graph.node:
+        if n.op_type == "Constant" and n.output[0] == name:
+            return numpy_helper.to_array(n.attribute[0].t)
+    return None
+
+
+def normalisation_as_batchnorm(model: onnx.ModelProto) -> bool:
+    """Rewrite the encoder's input normalisation ``Add(Mul(x, scale), shift)`` with (1, C, 1, 1) constants before
+    the first Conv into one BatchNormalization (mean 0, variance 1, epsilon 0: the same arithmetic). In place;
+    False when there is no such pair. See the module doc for why."""
+    first = _first(model, "Conv")
+    producer = {o: n for n in model.graph.node for o in n.output}
+    add = producer.get(first.input[0])
+    mul = producer.get(add.input[0]) if add is not None and add.op_type == "Add" else None
+    if mul is None or mul.op_type != "Mul":
+        return False
+    scale, shift = _constant(model, mul.input[1]), _constant(model, add.input[1])
+    per_channel = lambda a: a is not None and a.ndim == 4 and a.shape[0] == a.shape[2] == a.shape[3] == 1  # noqa: E731
+    if not (per_channel(scale) and per_channel(shift) and scale.shape == shift.shape):
+        return False
+    users = [n for n in model.graph.node if mul.output[0] in n.input]
+    if users != [add]:
+        return False
+    c = scale.shape[1]  # (1, C, 1, 1)
+    names = [f"{first.name}/input_norm_{k}" for k in ("scale", "shift", "mean", "var")]
+    values = [scale.reshape(c), shift.reshape(c), np.zeros(c), np.ones(c)]
+    model.graph.initializer.extend(numpy_helper.from_array(v.astype(np.float32), n) for n, v in zip(names, values))
+    bn = onnx.helper.make_node("BatchNormalization", [mul.input[0], *names], [add.output[0]], epsilon=0.0,
+                               name=f"{first.name}/input_norm")  # fmt: skip
+    nodes = [bn if n is mul else n for n in model.graph.node if n is not add]
+    used = {i for n in nodes for i in n.input}
+    nodes = [n for n in nodes if not (n.op_type == "Constant" and n.output[0] not in used)]
+    del model.graph.node[:]
+    model.graph.node.extend(nodes)
+    inits = [t for t in model.graph.initializer if t.name in used]
+    del model.graph.initializer[:]
+    model.graph.initializer.extend(inits)
+    return True
+
+
+def float_nodes(graph: str, model: onnx.ModelProto, cfg: Int8Config = Int8Config()) -> dict[str, str]:
+    """Node name -> why it stays float, for one of the three graphs (pre-processed, see the module doc)."""
+    keep: dict[str, str] = {}
+    if graph == "image_encoder":
+        for name in _ancestors(model, _first(model, "Conv").input[0]):
+            keep[name] = INPUT_NORM_NOTE
+    elif graph == "volumetric_lifter":
+        if not cfg.quantize_lifter_gather:
+            for name in _ancestors(model, _first(model, "Conv").input[0]):
+                keep[name] = LIFTER_GATHER_NOTE
+        for n in model.graph.node:
+            if n.op_type in ("AveragePool", "ReduceMax"):
+                keep[n.name] = LIFTER_POOL_NOTE
+    elif graph == "slice_head":
+        for n in model.graph.node:
+            if is_decode_node(n):
+                keep[n.name] = "decode: peak picking on a uint8 heatmap multiplies the peaks"
+        for name in heatmap_producers(model):
+            keep.setdefault(name, "heatmap logits: computed in float for the peak picking")
+        for name in _head_outputs(model):
+            keep.setdefault(name, HEAD_OUTPUT_NOTE)
+        for name in _ancestors(model, _first(model, "ScatterND").output[0]):
+            keep.setdefault(name, PILLAR_NOTE)
+    else:
+        raise ValueError(f"unknown graph {graph!r}; expected image_encoder, volumetric_lifter or slice_head")
+    return keep
+
+
+# ---- quantizing one graph -----------------------------------------------------------------------------------
+
+
+class _FeedReader(CalibrationDataReader):
+    """onnxruntime's calibration reader over a sequence of feed dicts."""
+
+    def __init__(self, feeds: Iterable[Feeds]) -> None:
+        self._it: Iterator[Feeds] = iter(feeds)
+
+    def get_next(self) -> Feeds | None:
+        return next(self._it, None)
+
+
+@dataclass(frozen=True)
+class QuantizedGraph:
+    path: Path
+    num_inputs: int  # calibration feeds
+    quantized_ops: dict[str, int]  # op type -> nodes onnxruntime can run in int8 (``quantized_ops``)
+    float_nodes: dict[str, int]  # reason -> nodes kept float for it
+    seconds: float
+
+
+def quantize_graph(
+    graph: str, src: str | Path, dst: str | Path, feeds: Sequence[Feeds], cfg: Int8Config = Int8Config()
+) -> QuantizedGraph:
+    """Write the int8 QDQ version of the fp32 graph ``src`` (one of the three) to ``dst``, calibrated on ``feeds``."""
+    if not feeds:
+        raise ValueError(f"{graph}: no calibration inputs")
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="streamdet_int8_") as tmp:
+        pre = Path(tmp) / "pre.onnx"
+        with _quiet_quantizer():
+            quant_pre_process(str(src), str(pre))
+            model = onnx.load(str(pre))
+            if graph == "image_encoder" and normalisation_as_batchnorm(model):
+                onnx.save_model(model, str(pre))
+            keep = float_nodes(graph, model, cfg)
+            quantize_static(
+                str(pre),
+                str(dst),
+                _FeedReader(feeds),
+                quant_format=QuantFormat.QDQ,
+                per_channel=cfg.per_channel,
+                reduce_range=cfg.reduce_range,
+                activation_type=ACTIVATION_TYPE,
+                weight_type=WEIGHT_TYPE,
+                nodes_to_exclude=sorted(keep),
+                calibrate_method=cfg.calibrate_method,
+                calibration_providers=["CPUExecutionProvider"],
+            )
+    _restore_io(Path(dst), onnx.load(str(src), load_external_data=False))
+    reasons: dict[str, int] = {}
+    for why in keep.values():
+        reasons[why] = reasons.get(why, 0) + 1
+    return QuantizedGraph(Path(dst), len(feeds), quantized_ops(onnx.load(str(dst))), reasons, time.perf_counter() - t0)
+
+
+def _restore_io(path: Path, original: onnx.ModelProto) -> None:
+    """Give the quantized graph the original's input and output declarations: symbolic shape inference renames
+    the dynamic dimensions ("Hf" becomes "floor(floor(H/2 - 1/2)/2) + 1"), and the manifest names them."""
+    model = onnx.load(str(path))
+    by_name = {v.name: v for v in (*original.graph.input, *original.graph.output)}
+    for v in (*model.graph.input, *model.graph.output):
+        if v.name not in by_name:
+            raise ValueError(f"the quantized graph has an input or output {v.name!r} the original lacks")
+        v.type.CopyFrom(by_name[v.name].type)
+    onnx.save_model(model, str(path))
+
+
+def quantized_ops(model: onnx.ModelProto) -> dict[str, int]:
+    """Op type -> number of nodes that onnxruntime can run in int8: every input a DequantizeLinear output (or a
+    constant) and every output read only by QuantizeLinear nodes (the QDQ node units it fuses)."""
+    producer = {o: n for n in model.graph.node for o in n.output}
+    consumers: dict[str, list[onnx.NodeProto]] = {}
+    for n in model.graph.node:
+        for i in n.input:
+            consumers.setdefault(i, []).append(n)
+    graph_outputs = {o.name for o in model.graph.output}
+    counts: dict[str, int] = {}
+    for n in model.graph.node:
+        if n.op_type in ("QuantizeLinear", "DequantizeLinear"):
+            continue
+        ins = [producer.get(i) for i in n.input if i]
+        if not any(p is not None and p.op_type == "DequantizeLinear" for p in ins):
+            continue
+        if any(p is not None and p.op_type not in ("DequantizeLinear", "Constant") for p in ins):
+            continue
+        users = [u for o in n.output for u in consumers.get(o, [])]
+        if not users or any(o in graph_outputs for o in n.output) or any(u.op_type != "QuantizeLinear" for u in users):
+            continue
+        counts[n.op_type] = counts.get(n.op_type, 0) + 1
+    return dict(sorted(counts.items()))
+
+
+@contextmanager
+def _quiet_quantizer() -> Iterator[None]:
+    """The quantizer logs a warning per bias it cannot type and advises pre-processing (done): keep errors only."""
+    root = logging.getLogger()
+    level = root.level
+    root.setLevel(max(level, logging.ERROR))
+    try:
+        yield
+    finally:
+        root.setLevel(level)

@@ -1,0 +1,46 @@
+"""What an export run is asked to do (``ExportOptions``), its one-line error, and the checks made before any work."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from streamdet.export import onnx_export as ox
+from streamdet.export.int8_data import DEFAULT_CALIBRATION_SAMPLES
+from streamdet.export.weights import DEFAULT_SEED
+
+DEFAULT_PRESET = "small"  # the shipped model's preset: what streamdet-export exports without arguments
+STEM_STRIDE = 2  # the ResNet stem's stride: image sizes must be even
+
+
+class ExportError(Exception):
+    """A problem with the export's inputs or target, stated in one line."""
+
+
+@dataclass(frozen=True)
+class ExportOptions:
+    preset: str | None = None  # None: the preset the checkpoint names, else DEFAULT_PRESET
+    checkpoint: str | None = None  # None: models/weights/<preset>.pt if bundled, else fixed-seed weights
+    calibration: str | None = None  # calibration.json path; None: the bundled nuScenes sample's
+    resolution: tuple[int, int] | None = None  # (W, H) px of the camera images; None: the preset's
+    num_slices: int = 8  # slices per sweep (the paper's headline model); picks the parity slice
+    fp16: bool = False  # also write *.fp16.onnx siblings
+    int8: bool = False  # also write *.int8.onnx siblings (static QDQ, calibrated on real samples)
+    calibration_data: str | None = None  # nuScenes-format dataset for the int8 calibration; None: the bundled sample
+    calibration_samples: int = DEFAULT_CALIBRATION_SAMPLES  # samples drawn from calibration_data (its train split)
+    opset: int = ox.DEFAULT_OPSET
+    out_dir: str | None = None  # None: ./exports/<preset>
+    seed: int = DEFAULT_SEED  # torch seed of the initial weights when there is no checkpoint
+
+    @property
+    def precisions(self) -> tuple[str, ...]:
+        """The precisions written, fp32 first."""
+        return ("fp32",) + (("fp16",) if self.fp16 else ()) + (("int8",) if self.int8 else ())
+
+
+def check_resolution(width: int, height: int) -> None:
+    for name, v in (("width", width), ("height", height)):
+        if isinstance(v, bool) or not isinstance(v, int) or v <= 0 or v % STEM_STRIDE:
+            raise ExportError(
+                f"resolution {width}x{height}: {name} {v!r} must be a positive even number of pixels "
+                f"(the ResNet stem has stride {STEM_STRIDE}; features are ceil(size / 4))"
+            )
