@@ -88,8 +88,10 @@ def run_edge(module: str, prog: str, *, extra: str | None = None, args: list[str
                 raise
             hint = f": pip install 'streamdet[{extra}]' (install torch first: pip install torch==2.13.0)" if extra else ""
             return _fail(prog, f"needs the Python package {e.name!r}, which is not installed{hint}")
-        result = command.main(args=args, prog_name=prog, standalone_mode=False)
-        return result if isinstance(result, int) and not isinstance(result, bool) else 0
+        # click's own main() would print a bare newline on Ctrl-C and turn it into Abort: parse and invoke directly
+        with command.make_context(prog, list(sys.argv[1:] if args is None else args)) as ctx:
+            command.invoke(ctx)
+        return 0
     except (KeyboardInterrupt, click.exceptions.Abort):
         click.echo(f"{prog}: interrupted", err=True)
         return EXIT_INTERRUPTED
@@ -146,9 +148,9 @@ def _entry(module: str, prog: str, extra: str | None = None):
 
 export_main = _entry("streamdet.export.cli", "streamdet-export", "export")
 bench_main = _entry("streamdet.benchmarks.cli", "streamdet-bench", "export")
-run_main = _entry("streamdet.runtime_ort.cli", "streamdet-run")
-calib_main = _entry("streamdet.calibration.cli", "streamdet-calib")
+run_main = _entry("streamdet.evaluation.run_cli", "streamdet-run")
+calib_main = _entry("streamdet.runtime_ort.calib_cli", "streamdet-calib")
 synth_main = _entry("streamdet.data.synth_cli", "streamdet-synth")
 train_main = _entry("streamdet.training.cli", "streamdet-train", "export")
 eval_main = _entry("streamdet.evaluation.cli", "streamdet-eval")
-study_main = _entry("streamdet.evaluation.study_cli", "streamdet-study")
+study_main = _entry("streamdet.studies.cli", "streamdet-study")

@@ -20,7 +20,7 @@ import pytest
 from click.testing import CliRunner
 
 from streamdet.calibration.camera import CalibrationError
-from streamdet.calibration.cli import main as calib_main
+from streamdet.runtime_ort.calib_cli import main as calib_main
 from streamdet.data.sample import load_bundled_sample
 from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector
 from streamdet.runtime_ort.lanes import LaneConfig, SliceDropped, StreamingRunner
@@ -278,7 +278,7 @@ def test_num_slices_zero_or_bool_is_refused(bad):
 
 
 def test_slices_zero_on_the_command_line_is_an_error(tiny_export, tmp_path):
-    from streamdet.runtime_ort.cli import main as run_main
+    from streamdet.evaluation.run_cli import main as run_main
 
     result = CliRunner().invoke(run_main, ["--export-dir", str(tiny_export), "--slices", "0", "--out", str(tmp_path / "o")])
     assert result.exit_code != 0 and "num_slices" in result.output and "Traceback" not in result.output
