@@ -1,0 +1,123 @@
+"""``streamdet-bag``: nuScenes scenes as ROS 2 MCAP bags (``export``) and detections on a bag (``run``)."""
+
+from __future__ import annotations
+
+import logging
+import sys
+from pathlib import Path
+
+import click
+
+from streamdet.bag.deps import MissingExtraError, require
+from streamdet.cli_utils import PRECISION_CHOICES, image_precision_option
+
+LIBRARY_ERRORS = (ValueError, KeyError, FileNotFoundError, OSError, MissingExtraError)
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+def main() -> None:
+    """ROS 2 bags in and out, viewable in Foxglove, without a ROS installation (needs `pip install 'streamdet[ros]'`)."""
+
+
+@main.command("export")
+@click.option("--data", "data_dir", type=click.Path(path_type=Path, file_okay=False), default=None,
+              help="A nuScenes-format dataset folder (tables under VERSION/, e.g. streamdet-synth output), or a folder in "
+                   "the bundled sample's layout (calibration.json). Default: the bundled real nuScenes sample.")
+@click.option("--scene", default=None, help="Scene name (e.g. synth-0-0000). Default: the only scene of the dataset.")
+@click.option("--version", default="v1.0-synth", show_default=True, help="Table folder of the dataset under --data.")
+@click.option("--out", type=click.Path(path_type=Path, dir_okay=False), required=True, help="The .mcap bag to write.")
+def export_cmd(data_dir: Path | None, scene: str | None, version: str, out: Path) -> None:
+    """Write one scene as the ROS 2 MCAP bag a car records: /LIDAR_TOP, /CAM_*/image_rect_compressed,
+    /CAM_*/camera_info, /tf, /tf_static and the ground truth on /markers/annotations."""
+    from streamdet.bag.export import export_recording
+    from streamdet.bag.recording import read_recording
+
+    try:
+        _require_extra()
+        recording = read_recording(data_dir, scene, version)
+        with click.progressbar(length=1, label=f"writing {out}", file=sys.stderr) as bar:
+            summary = export_recording(recording, out, progress=lambda done, total: _advance(bar, done, total))
+    except LIBRARY_ERRORS as e:
+        raise click.ClickException(_one_line(e)) from None
+    click.echo(
+        f"scene {summary.scene}: {summary.num_sweeps} sweeps ({summary.num_key_frames} key frames), "
+        f"{summary.num_images} images, {summary.num_messages} messages over {summary.duration_s:.2f} s"
+    )
+    click.echo(f"wrote {summary.path}")
+
+
+@main.command("run")
+@click.option("--bag", "bag_path", type=click.Path(path_type=Path, exists=True), required=True,
+              help="The input bag: a .mcap file, or a rosbag2 folder holding one.")
+@click.option("--export-dir", type=click.Path(path_type=Path, file_okay=False), required=True,
+              help="Export directory written by streamdet-export (holds manifest.json).")
+@click.option("--out", type=click.Path(path_type=Path, dir_okay=False), required=True,
+              help="The .mcap bag to write: the input topics plus /streamdet/detections and /streamdet/markers.")
+@click.option("--results", "results_json", type=click.Path(path_type=Path, dir_okay=False), default=None,
+              help="Where to write the nuScenes results JSON. Default: results_nusc.json beside --out.")
+@click.option("--topics", default=None,
+              help="Topic names of a bag recorded elsewhere, KEY=/topic comma-separated: lidar, tf, tf_static, a camera "
+                   "name (its image topic) or CAMERA.info (its CameraInfo topic; default: camera_info beside the image "
+                   "topic). E.g. lidar=/points_raw,CAM_FRONT=/camera/front/image/compressed")
+@click.option("--slice-per-message", is_flag=True,
+              help="The LiDAR driver publishes slices: each message is one slice (its sector found from its points).")
+@click.option("--ego-frame", default="base_link", show_default=True, help="TF frame of the vehicle.")
+@click.option("--global-frame", default="map", show_default=True,
+              help="TF frame of the ego poses; 'none' for a stack without localisation (ego motion between the LiDAR "
+                   "and camera times is then ignored).")
+@click.option("--slices", "num_slices", type=int, default=None,
+              help="Slices per sweep (1, 2 or a multiple of 4). Default: the number the export was made for.")
+@click.option("--precision", type=click.Choice(PRECISION_CHOICES), default="fp32", show_default=True,
+              help="Which graphs of the export to run.")
+@image_precision_option()
+@click.option("-v", "--verbose", is_flag=True, help="Log providers and sessions.")
+def run_cmd(bag_path: Path, export_dir: Path, out: Path, results_json: Path | None, topics: str | None,
+            slice_per_message: bool, ego_frame: str, global_frame: str, num_slices: int | None, precision: str,
+            image_precision: str | None, verbose: bool) -> None:  # fmt: skip
+    """Detect every LiDAR message of a bag in recorded order (images first when new ones arrived) and write the
+    detections per slice as ROS 2 topics, stamped with the slice's scan time, plus the nuScenes results JSON."""
+    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(message)s")
+    if not (export_dir / "manifest.json").is_file():
+        raise click.ClickException(f"{export_dir} holds no manifest.json: run `streamdet-export --out {export_dir}` first")
+    from streamdet.bag.run import RunConfig, run_bag
+    from streamdet.bag.topics import TopicMap
+    from streamdet.runtime_ort.cli import format_latency
+    from streamdet.runtime_ort.detector import DetectorConfig
+
+    try:
+        _require_extra()
+        config = RunConfig(
+            topics=TopicMap.parse(topics),
+            detector=DetectorConfig(precision=precision, image_lane_precision=image_precision, num_slices=num_slices),
+            slice_per_message=slice_per_message,
+            ego_frame=ego_frame,
+            global_frame=None if global_frame.lower() == "none" else global_frame,
+        )
+        summary = run_bag(bag_path, export_dir, out, results_json, config,
+                          progress=lambda n: click.echo(f"\rsweeps: {n}", nl=False, err=True))  # fmt: skip
+    except LIBRARY_ERRORS as e:
+        raise click.ClickException(_one_line(e)) from None
+    click.echo("", err=True)
+    click.echo(
+        f"{summary.num_sweeps} sweeps, {summary.num_slices} slices, {summary.num_image_sets} image sets "
+        f"({summary.precision}, cameras {list(summary.cameras) or 'none'}): {summary.num_detections} detections"
+    )
+    click.echo(format_latency(summary.latency_ms))
+    click.echo(f"wrote {summary.bag_out}")
+    click.echo(f"wrote {summary.results_json}")
+
+
+def _require_extra() -> None:
+    """Fail before any work when the ``ros`` extra is missing."""
+    for module in ("mcap.reader", "mcap_ros2.writer", "mcap_ros2.decoder"):
+        require(module)
+
+
+def _advance(bar, done: int, total: int) -> None:
+    bar.length = total
+    bar.update(done - bar.pos)
+
+
+def _one_line(e: BaseException) -> str:
+    text = str(e.args[0]) if isinstance(e, KeyError) and e.args else str(e)
+    return " ".join(text.split())

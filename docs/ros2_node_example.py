@@ -1,0 +1,81 @@
+"""A ROS 2 node that runs streamdet: subscribe to the LiDAR and cameras, detect each slice, publish the boxes.
+
+Drop it into a ROS 2 (Humble or newer) Python package with ``pip install streamdet`` beside it, and run it with
+``ros2 run <your_package> streamdet_node --ros-args -p export_dir:=/path/to/export``. It needs rclpy,
+sensor_msgs, vision_msgs, visualization_msgs and rosidl_runtime_py, none of which is installed where streamdet is
+developed, so the node itself has never run there; the functions above ``main`` are streamdet's tested adapters
+and are imported and run by tests/test_bag_run.py. docs/ros2.md explains each step.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector
+from streamdet.runtime_ort.ros.detections import detection3d_array_message, marker_array_message
+from streamdet.runtime_ort.ros.images import compressed_image_to_rgb
+from streamdet.runtime_ort.ros.pointcloud2 import CloudFields, decode_pointcloud2, split_cloud
+
+
+def detect_cloud(detector: StreamingDetector, cloud_msg) -> list[tuple[dict, dict]]:
+    """(Detection3DArray, MarkerArray) message dicts of every slice of one PointCloud2, in scan order."""
+    cloud = decode_pointcloud2(cloud_msg, CloudFields(require_time=False))
+    out = []
+    for s in split_cloud(cloud, detector.num_slices, detector.config.start_deg):
+        d = detector.detect_slice(s.points, s.index, timestamp=s.scan_time_ns * 1e-9).detections
+        out.append((detection3d_array_message(d.boxes, d.scores, d.labels, s.scan_time_ns, s.frame_id),
+                    marker_array_message(d.boxes, d.labels, s.scan_time_ns, s.frame_id, d.scores, ns=f"slice_{s.index}")))  # fmt: skip
+    return out
+
+
+def camera_image(detector: StreamingDetector, image_msg) -> np.ndarray:
+    """A CompressedImage as the RGB image the detector's image lane takes (resized to the export's size)."""
+    rgb = compressed_image_to_rgb(image_msg)
+    size = (detector.image.width, detector.image.height)
+    return rgb if rgb.shape[1::-1] == size else cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)
+
+
+def main() -> None:  # the ROS boilerplate
+    import rclpy
+    from rclpy.node import Node
+    from rosidl_runtime_py.set_message_fields import set_message_fields
+    from sensor_msgs.msg import CompressedImage, PointCloud2
+    from vision_msgs.msg import Detection3DArray
+    from visualization_msgs.msg import MarkerArray
+
+    def filled(cls, values: dict):
+        msg = cls()
+        set_message_fields(msg, values)
+        return msg
+
+    class StreamdetNode(Node):
+        def __init__(self) -> None:
+            super().__init__("streamdet")
+            export_dir = self.declare_parameter("export_dir", "exports/small").value
+            self.detector = StreamingDetector(export_dir, DetectorConfig())
+            self.images: dict[str, np.ndarray] = {}  # newest image per camera since the last cloud
+            self.boxes = self.create_publisher(Detection3DArray, "/streamdet/detections", 10)
+            self.markers = self.create_publisher(MarkerArray, "/streamdet/markers", 10)
+            self.create_subscription(PointCloud2, "/LIDAR_TOP", self.on_cloud, 1)
+            for cam in self.detector.camera_names:
+                self.create_subscription(CompressedImage, f"/{cam}/image_rect_compressed",
+                                         lambda msg, cam=cam: self.on_image(cam, msg), 1)  # fmt: skip
+
+        def on_image(self, cam: str, msg) -> None:
+            self.images[cam] = camera_image(self.detector, msg)
+
+        def on_cloud(self, msg) -> None:
+            if self.images:  # the image lane first, so the slices see the newest cameras
+                self.detector.update_images(self.images)
+                self.images = {}
+            for detections, markers in detect_cloud(self.detector, msg):
+                self.boxes.publish(filled(Detection3DArray, detections))
+                self.markers.publish(filled(MarkerArray, markers))
+
+    rclpy.init()
+    rclpy.spin(StreamdetNode())
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,192 @@
+"""`streamdet-bag run` on an exported bag gives the detections of the dataset evaluation on the same scene, writes
+them as ROS 2 topics per slice (read back with rosbags), and works on a bag with a car's own topic names."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from streamdet.bag.cli import main as bag_main
+from streamdet.bag.run import RunConfig, run_bag
+from streamdet.bag.source import BagSource, SourceConfig
+from streamdet.bag.topics import TopicMap
+from streamdet.bag.writer import BagWriter
+from streamdet.core.classes import CLASS_NAMES
+from streamdet.data.nuscenes import NuScenesReader
+from streamdet.evaluation.dataset_eval import OnnxSweepDetector
+from streamdet.evaluation.results import results_to_boxes
+from streamdet.runtime_ort.detector import StreamingDetector
+from streamdet.runtime_ort.ros.pointcloud2 import decode_pointcloud2, split_cloud
+
+rosbags_highlevel = pytest.importorskip("rosbags.highlevel")
+rosbags_typesys = pytest.importorskip("rosbags.typesys")
+
+ROOT = Path(__file__).resolve().parents[1]
+N_SLICES = 8
+RENAMED = {
+    "/LIDAR_TOP": "/sensing/lidar/top/pointcloud_raw",
+    "/CAM_FRONT/image_rect_compressed": "/camera/front/image/compressed",
+    "/CAM_FRONT/camera_info": "/camera/front/camera_info",
+    "/tf": "/tf_car",
+}
+
+
+@pytest.fixture(scope="module")
+def export_dir(tiny_export: Path) -> Path:
+    return tiny_export  # 8 slices, shared read-only
+
+
+@pytest.fixture(scope="module")
+def bag(tiny_synth_data: Path, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("bag") / "drive.mcap"
+    result = CliRunner().invoke(bag_main, ["export", "--data", str(tiny_synth_data), "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    return out
+
+
+@pytest.fixture(scope="module")
+def ran(bag: Path, export_dir: Path, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("run") / "detections.mcap"
+    result = CliRunner().invoke(bag_main, ["run", "--bag", str(bag), "--export-dir", str(export_dir), "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    assert "2 sweeps, 16 slices, 2 image sets" in result.output
+    return out
+
+
+@pytest.fixture(scope="module")
+def reference(tiny_synth_data: Path, export_dir: Path) -> dict:
+    """Each sample's detections by the dataset evaluation's detector, from the nuScenes tables."""
+    reader = NuScenesReader(tiny_synth_data, "v1.0-synth")
+    detect = OnnxSweepDetector(export_dir)
+    return {t: (reader.get(t), detect(reader.get(t))) for t in reader.sample_tokens}
+
+
+def read_with_rosbags(path: Path):
+    typestore = rosbags_typesys.get_typestore(rosbags_typesys.Stores.ROS2_HUMBLE)
+    with rosbags_highlevel.AnyReader([path], default_typestore=typestore) as reader:
+        return [(c.topic, c.msgtype, t, reader.deserialize(raw, c.msgtype)) for c, t, raw in reader.messages()]
+
+
+def _sorted(boxes: np.ndarray, scores: np.ndarray, labels: np.ndarray):
+    order = np.lexsort((boxes[:, 1], boxes[:, 0], labels, -scores))
+    return boxes[order], scores[order], labels[order]
+
+
+def assert_same_detections(results_path: Path, reference: dict) -> float:
+    results = json.loads(results_path.read_text())["results"]
+    assert set(results) == set(reference)
+    worst = 0.0
+    for token, (sample, dets) in reference.items():
+        assert len(dets) > 0  # the comparison means something
+        boxes, scores, labels = results_to_boxes(results[token], sample.lidar2ego, sample.ego2global)
+        ours = _sorted(boxes, scores, labels)
+        theirs = _sorted(dets.boxes.astype(np.float64), dets.scores, dets.labels)
+        assert len(ours[0]) == len(theirs[0])
+        np.testing.assert_array_equal(ours[2], theirs[2])
+        np.testing.assert_allclose(ours[1], theirs[1], rtol=0, atol=1e-6)
+        worst = max(worst, float(np.abs(ours[0][:, :7] - theirs[0][:, :7]).max()))
+    assert worst < 1e-4  # metres (and radians for yaw)
+    return worst
+
+
+def test_same_detections_as_the_dataset_evaluation(ran: Path, reference: dict):
+    assert_same_detections(ran.with_name("results_nusc.json"), reference)
+
+
+def test_output_bag_holds_the_inputs_and_the_detections_per_slice(bag: Path, ran: Path, reference: dict):
+    inputs = read_with_rosbags(bag)
+    outputs = read_with_rosbags(ran)
+    count = lambda msgs, topic: sum(1 for m in msgs if m[0] == topic)  # noqa: E731
+    for topic in {m[0] for m in inputs}:
+        assert count(outputs, topic) == count(inputs, topic), topic
+    detections = [(t, m) for topic, msgtype, t, m in outputs if topic == "/streamdet/detections"]
+    markers = [m for topic, _, _, m in outputs if topic == "/streamdet/markers"]
+    assert len(detections) == len(markers) == 2 * N_SLICES
+    assert {msgtype for topic, msgtype, _, _ in outputs if topic == "/streamdet/detections"} == {"vision_msgs/msg/Detection3DArray"}
+    clouds = [m for topic, _, _, m in inputs if topic == "/LIDAR_TOP"]
+    expected_stamps = [s.scan_time_ns for c in clouds for s in split_cloud(decode_pointcloud2(c), N_SLICES)]
+    stamps = [m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for _, m in detections]
+    assert stamps == expected_stamps  # each slice stamped with its scan time
+    assert all(m.header.frame_id == "LIDAR_TOP" for _, m in detections)
+    names = {r.hypothesis.class_id for _, m in detections for d in m.detections for r in d.results}
+    assert names and names <= set(CLASS_NAMES)
+    per_sweep = [sum(len(m.detections) for _, m in detections[k * N_SLICES : (k + 1) * N_SLICES]) for k in range(2)]
+    merged = [len(d) for _, d in reference.values()]
+    assert all(p >= m for p, m in zip(per_sweep, merged))  # the sweep NMS only removes boxes
+
+
+def _renamed_copy(bag: Path, out: Path) -> Path:
+    """The bag with a car's own topic names (and the frames left as they are)."""
+    source = BagSource(bag, SourceConfig())
+    with BagWriter(out) as writer:
+        for name, data in source.metadata().items():
+            writer.metadata(name, data)
+        for msg in source.messages():
+            writer.schema(msg.datatype, msg.schema_text)
+            writer.write(RENAMED.get(msg.topic, msg.topic), msg.datatype, msg.message, msg.log_time_ns)
+    return out
+
+
+def test_a_bag_with_other_topic_names_through_topics(bag: Path, export_dir: Path, reference: dict, tmp_path):
+    renamed = _renamed_copy(bag, tmp_path / "car.mcap")
+    result = CliRunner().invoke(bag_main, ["run", "--bag", str(renamed), "--export-dir", str(export_dir), "--out", str(tmp_path / "a.mcap")])
+    assert result.exit_code != 0
+    assert "has no message on the LiDAR topic '/LIDAR_TOP'" in result.output and "Traceback" not in result.output
+    topics = "lidar=/sensing/lidar/top/pointcloud_raw,CAM_FRONT=/camera/front/image/compressed,tf=/tf_car"
+    result = CliRunner().invoke(bag_main, ["run", "--bag", str(renamed), "--export-dir", str(export_dir), "--out", str(tmp_path / "b.mcap"),
+                                           "--topics", topics])  # fmt: skip
+    assert result.exit_code == 0, result.output
+    assert_same_detections(tmp_path / "results_nusc.json", reference)
+
+
+def test_run_errors_are_one_line(bag: Path, export_dir: Path, tmp_path):
+    def run(*args: str) -> str:
+        result = CliRunner().invoke(bag_main, ["run", "--bag", str(bag), *args])
+        assert result.exit_code != 0 and "Traceback" not in result.output
+        return result.output
+
+    assert "holds no manifest.json" in run("--export-dir", str(tmp_path), "--out", str(tmp_path / "x.mcap"))
+    assert "must be KEY=/topic" in run("--export-dir", str(export_dir), "--out", str(tmp_path / "x.mcap"), "--topics", "lidar:/points")
+    assert "is the input bag" in run("--export-dir", str(export_dir), "--out", str(bag))
+    out = run("--export-dir", str(export_dir), "--out", str(tmp_path / "x.mcap"), "--global-frame", "odom")
+    assert "no TF path from 'odom' to 'base_link'" in out
+
+
+def test_a_bag_without_sample_tokens_keys_results_by_stamp(bag: Path, export_dir: Path, tmp_path):
+    plain = tmp_path / "plain.mcap"
+    source = BagSource(bag, SourceConfig())
+    with BagWriter(plain) as writer:  # no streamdet metadata: a bag recorded on a car
+        for msg in source.messages():
+            writer.schema(msg.datatype, msg.schema_text)
+            writer.write(msg.topic, msg.datatype, msg.message, msg.log_time_ns)
+    summary = run_bag(plain, export_dir, tmp_path / "out.mcap", config=RunConfig(topics=TopicMap()))
+    keys = list(json.loads(summary.results_json.read_text())["results"])
+    assert len(keys) == 2 and all(k.startswith("LIDAR_TOP@") for k in keys)
+
+
+def test_node_recipe_helpers(bag: Path, export_dir: Path):
+    """The non-rclpy part of docs/ros2_node_example.py, on the bag's messages (rclpy itself is not installed)."""
+    path = ROOT / "docs" / "ros2_node_example.py"
+    compile(path.read_text(), str(path), "exec")
+    spec = importlib.util.spec_from_file_location("ros2_node_example", path)
+    example = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(example)
+    detector = StreamingDetector(export_dir)
+    messages = read_with_rosbags(bag)
+    images = {t.split("/")[1]: m for t, _, _, m in messages if t.endswith("image_rect_compressed")}
+    detector.update_images({cam: example.camera_image(detector, m) for cam, m in images.items()})
+    cloud = next(m for t, _, _, m in messages if t == "/LIDAR_TOP")
+    slices = example.detect_cloud(detector, cloud)
+    assert len(slices) == N_SLICES
+    with BagWriter(bag.with_name("node.mcap")) as writer:  # the dicts are valid messages of their types
+        for detections, markers in slices:
+            writer.write("/d", "vision_msgs/msg/Detection3DArray", detections, 1)
+            writer.write("/m", "visualization_msgs/msg/MarkerArray", markers, 1)
+    assert sum(len(d["detections"]) for d, _ in slices) > 0
+    with pytest.raises(ImportError):
+        example.main()  # no rclpy here
