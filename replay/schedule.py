@@ -13,8 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from streamdet.calibration.grid import slice_index_of
-from streamdet.data.slicing import relative_time_s, split_sweep
+from streamdet.core.sectors import slice_index_of
+from streamdet.core.slicing import relative_time_s, split_sweep
 from streamdet.replay.source import Drive, ImageSet, LidarSweep
 
 SLICE, IMAGES = "slice", "images"
