@@ -27,3 +27,22 @@ def tiny_export(tmp_path_factory) -> Path:
     result = CliRunner().invoke(export_main, ["--preset", "tiny", "--fp16", "--slices", "8", "--out", str(out)])
     assert result.exit_code == 0, result.output
     return out
+
+
+# Property tests (tests/test_property_*.py): a bounded, derandomized profile in CI; HYPOTHESIS_PROFILE=long by hand.
+try:
+    import os as _os
+
+    from hypothesis import HealthCheck, settings
+
+    settings.register_profile(
+        "ci", max_examples=40, deadline=None, derandomize=True, print_blob=True,
+        suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture],
+    )  # fmt: skip
+    settings.register_profile(
+        "long", max_examples=3000, deadline=None, print_blob=True,
+        suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture],
+    )  # fmt: skip
+    settings.load_profile(_os.environ.get("HYPOTHESIS_PROFILE", "ci"))
+except ImportError:  # hypothesis is in the dev extra; without it the property tests skip themselves
+    pass
