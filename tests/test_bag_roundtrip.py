@@ -208,3 +208,28 @@ def test_message_definitions_match_the_ros2_humble_ones():
     assert text.count("MSG: ") == 3 and "MSG: sensor_msgs/PointField" in text and "MSG: builtin_interfaces/Time" in text
     with pytest.raises(KeyError, match="no message definition for 'nav_msgs/Odometry'"):
         msgdefs.schema_text("nav_msgs/msg/Odometry")
+
+
+def test_adapters_and_bag_import_without_torch():
+    """The vehicle side: runtime_ort.ros and streamdet.bag load and convert with PyTorch unimportable."""
+    import subprocess
+    import sys
+
+    script = (
+        "import sys\n"
+        "class Block:\n"
+        "    def find_spec(self, name, path=None, target=None):\n"
+        "        if name.split('.')[0] in ('torch', 'torchvision'):\n"
+        "            raise ImportError(name)\n"
+        "sys.meta_path.insert(0, Block())\n"
+        "import streamdet.runtime_ort.ros.pointcloud2, streamdet.runtime_ort.ros.images, streamdet.runtime_ort.ros.tf\n"
+        "import streamdet.runtime_ort.ros.camera_info, streamdet.runtime_ort.ros.detections\n"
+        "import streamdet.bag.cli, streamdet.bag.export, streamdet.bag.run, streamdet.bag.source, streamdet.bag.recording\n"
+        "assert not [m for m in sys.modules if m.split('.')[0] in ('torch', 'torchvision')]\n"
+        "assert not [m for m in sys.modules if m.split('.')[:2] in (['streamdet', 'models'], ['streamdet', 'export'], "
+        "['streamdet', 'training'], ['streamdet', 'benchmarks'])]\n"
+        "print('ok')\n"
+    )
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip() == "ok"

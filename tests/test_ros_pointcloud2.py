@@ -280,3 +280,12 @@ def test_message_round_trip_is_bit_identical():
         pointcloud2_message(points[:, :4], STAMP_NS, "l")
     with pytest.raises(ValueError, match=r"time_s must be \(300,\)"):
         pointcloud2_message(points, STAMP_NS, "l", times[:5])
+
+
+def test_integer_clock_in_whole_units_is_made_relative_exactly():
+    dt = {"x": FLOAT32, "y": FLOAT32, "z": FLOAT32, "intensity": FLOAT32, "time": UINT32}
+    cols = random_columns(np.random.default_rng(6), 3, dt, None)
+    cols["time"] = np.array([STAMP_NS // 10**9 - 1, STAMP_NS // 10**9, STAMP_NS // 10**9 + 2])  # absolute seconds
+    cloud = decode_pointcloud2(make_cloud(cols, dt, list(dt)), CloudFields(time_unit="s"))
+    frac = (STAMP_NS % 10**9) * 1e-9  # the header stamp's fraction of a second
+    np.testing.assert_allclose(cloud.time_s, np.array([-1.0, 0.0, 2.0]) - frac, rtol=0, atol=1e-9)

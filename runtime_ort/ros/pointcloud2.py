@@ -254,20 +254,29 @@ def _byte_view(data: Any) -> np.ndarray:
 
 
 def _times_s(raw: np.ndarray, unit: str, stamp: int, name: str) -> np.ndarray:
+    integer = np.issubdtype(raw.dtype, np.integer)
+    magnitude = _magnitude(raw)  # one pass over the raw column decides the unit and whether it is a clock
     if unit == "auto":
-        if np.issubdtype(raw.dtype, np.integer):
-            unit = "ns"
-        else:
-            finite = raw[np.isfinite(raw)]
-            unit = "ns" if finite.size and float(np.abs(finite).max()) > NANOSECOND_CLOCK else "s"
-    if unit == "ns" and np.issubdtype(raw.dtype, np.integer) and raw.size and int(raw.max()) > ABSOLUTE_TIME_S * NS_PER_S:
-        # an absolute integer nanosecond clock: subtract in integers, exact
-        return (raw.astype(np.int64) - np.int64(stamp)).astype(np.float64) * 1e-9
+        unit = "ns" if integer or magnitude > NANOSECOND_CLOCK else "s"
+    if integer and magnitude * TIME_UNITS_S[unit] > ABSOLUTE_TIME_S:
+        # an absolute integer clock: subtract in integer nanoseconds, exact
+        ns_per_unit = round(TIME_UNITS_S[unit] * NS_PER_S)
+        return (raw.astype(np.int64) * np.int64(ns_per_unit) - np.int64(stamp)).astype(np.float64) * 1e-9
     seconds = raw.astype(np.float64) * TIME_UNITS_S[unit]
-    finite = seconds[np.isfinite(seconds)]
-    if finite.size and float(np.abs(finite).max()) > ABSOLUTE_TIME_S:
-        seconds = seconds - stamp / NS_PER_S
+    if magnitude * TIME_UNITS_S[unit] > ABSOLUTE_TIME_S:
+        seconds -= stamp / NS_PER_S
     return seconds
+
+
+def _magnitude(column: np.ndarray) -> float:
+    """Largest |value| of a column, NaNs ignored; 0 for an empty or all-NaN one."""
+    if column.size == 0:
+        return 0.0
+    if np.issubdtype(column.dtype, np.integer):
+        return float(max(abs(int(column.min())), abs(int(column.max()))))
+    with np.errstate(invalid="ignore"):
+        m = np.nanmax(np.abs(column)) if np.isnan(column.max()) else np.abs(column).max()
+    return 0.0 if not np.isfinite(m) else float(m)
 
 
 def _scan_time_ns(stamp_ns: int, latest_s: float) -> int:
