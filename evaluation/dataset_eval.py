@@ -1,19 +1,18 @@
 """Run a detector over a nuScenes-format dataset split and score it (numpy + onnxruntime, no torch).
 
 A *sweep detector* is any callable ``sample -> Detections`` (boxes in the sample's LiDAR frame). The ONNX one,
-``OnnxSweepDetector``, feeds the runtime (``runtime_ort.detector.StreamingDetector``) the way a vehicle would:
+``OnnxSweepDetector``, feeds the runtime through ``runtime_ort.pipeline.detect_sample`` the way a vehicle would:
 all camera images of the sample through the image lane, then every slice of the sweep through the slice lane,
-merged by ``detect_sweep`` (the paper's per-sweep aggregation with per-class NMS). The training side plugs a
+merged with per-class NMS (the paper's per-sweep aggregation). The training side plugs a
 PyTorch sweep detector into the same ``evaluate_dataset``, so both are scored identically.
 
-Ground truth: the boxes of the 10 detection classes, with LiDAR + radar point counts (boxes without points are
+The split's samples come from ``root/splits.json`` (``data.splits``). Ground truth: the boxes of the 10 detection classes, with LiDAR + radar point counts (boxes without points are
 ignored by the evaluation, as the devkit does). The mAP averages the classes present in the ground truth unless
 ``classes`` is given; the result names them.
 """
 
 from __future__ import annotations
 
-import json
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -23,11 +22,13 @@ import numpy as np
 
 from streamdet.data.nuscenes import NuScenesReader
 from streamdet.data.sample import Sample
+from streamdet.data.splits import split_sample_tokens
 from streamdet.evaluation.config import DetectionConfig
 from streamdet.evaluation.detection_eval import evaluate
 from streamdet.evaluation.eval_boxes import EvalBoxes
 from streamdet.evaluation.metrics import DetectionMetrics
 from streamdet.evaluation.results import boxes_to_gt, boxes_to_results
+from streamdet.runtime_ort.pipeline import detect_sample
 from streamdet.runtime_ort.postprocess import Detections
 
 SweepDetector = Callable[[Sample], Detections]
@@ -47,24 +48,6 @@ class DatasetEvaluation:
     def to_dict(self) -> dict:
         return {**self.metrics.to_dict(), "classes": list(self.classes), "num_samples": self.num_samples,
                 "seconds": self.seconds}  # fmt: skip
-
-
-def split_tokens(reader: NuScenesReader, root: str | Path, split: str | None) -> list[str]:
-    """Sample tokens of the split's scenes (``root/splits.json``), or every sample when ``split`` is None."""
-    tokens = reader.sample_tokens
-    if split is None:
-        return tokens
-    path = Path(root) / "splits.json"
-    if not path.is_file():
-        raise ValueError(f"{path} not found; it must name the scenes of split {split!r}")
-    splits = json.loads(path.read_text())
-    if not isinstance(splits.get(split), list):
-        raise ValueError(f"{path} has no list of scenes for split {split!r}; it has {sorted(splits)}")
-    scenes = set(splits[split])
-    chosen = [t for t in tokens if reader.scene_name(t) in scenes]
-    if not chosen:
-        raise ValueError(f"split {split!r} of {root} holds no samples")
-    return chosen
 
 
 def ground_truth_entries(sample: Sample) -> list[dict]:
@@ -93,7 +76,7 @@ def evaluate_dataset(
 ) -> DatasetEvaluation:
     """Detect every sample of the split and compute nuScenes detection metrics in the global frame."""
     reader = NuScenesReader(root, version)
-    tokens = split_tokens(reader, root, split)
+    tokens = split_sample_tokens(reader, root, split)
     if max_samples is not None:
         tokens = tokens[:max_samples]
     gt_results: dict[str, list[dict]] = {}
@@ -135,17 +118,5 @@ class OnnxSweepDetector:
         self.detector = StreamingDetector(export_dir, cfg)
 
     def __call__(self, sample: Sample) -> Detections:
-        det = self.detector
-        if det.uses_images:
-            self._feed_images(sample)
-        # else: a LiDAR-only export (the streaming baseline) has no image lane; the sweep alone is detected
-        return det.detect_sweep(np.asarray(sample.points, np.float32), timestamp=sample.timestamp_us * 1e-6)
-
-    def _feed_images(self, sample: Sample) -> None:
-        det = self.detector
-        if sample.rig.sha256() != det.lut.calibration_sha256:
-            det.set_calibration(sample.rig)  # another rig than the export's LUT: rebuild the LUT, same graphs
-        img = det.manifest.image
-        images = sample.load_images((img.width, img.height))  # (J, H, W, 3) in rig order
-        by_name = {name: images[j] for j, name in enumerate(sample.rig.names) if name in det.camera_names}
-        det.update_images(by_name, timestamp=sample.timestamp_us * 1e-6)
+        # a LiDAR-only export (the streaming baseline) has no image lane; detect_sample then reads the sweep alone
+        return detect_sample(self.detector, sample).detections

@@ -11,7 +11,6 @@ it collected without merging it and then fails with "No data is collected".
 
 from __future__ import annotations
 
-import json
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -23,6 +22,7 @@ from streamdet.calibration.lut import Lut, build_lut
 from streamdet.core.constants import BUNDLED_SAMPLE_SOURCE
 from streamdet.data.sample import Sample, load_bundled_sample, load_image
 from streamdet.data.slicing import slice_sample
+from streamdet.data.splits import has_split, split_sample_tokens
 from streamdet.runtime_ort.pillarize import pillarize
 
 BUNDLED_SOURCE = BUNDLED_SAMPLE_SOURCE
@@ -72,13 +72,12 @@ def load_calibration_samples(data_dir: str | Path | None, num_samples: int, came
         source, version, split = BUNDLED_SOURCE, "v1.0-mini", "all"
     else:
         from streamdet.data.nuscenes import NuScenesReader
-        from streamdet.evaluation.dataset_eval import split_tokens
 
         version = dataset_version(data_dir)
         try:
             reader = NuScenesReader(data_dir, version)
-            has_train = _has_split(Path(data_dir), "train")
-            tokens = split_tokens(reader, data_dir, "train" if has_train else None)
+            has_train = has_split(data_dir, "train")
+            tokens = split_sample_tokens(reader, data_dir, "train" if has_train else None)
         except (OSError, KeyError, ValueError) as e:
             raise Int8CalibrationDataError(f"calibration data {str(data_dir)!r}: {e}") from None
         if not tokens:
@@ -97,16 +96,6 @@ def load_calibration_samples(data_dir: str | Path | None, num_samples: int, came
                 f"{list(camera_names)}); calibrate on data from this rig with --calibration-data"
             )
     return CalibrationSamples(samples, source, version, split)
-
-
-def _has_split(root: Path, split: str) -> bool:
-    path = root / "splits.json"
-    if not path.is_file():
-        return False
-    try:
-        return isinstance(json.loads(path.read_text()).get(split), list)
-    except (OSError, ValueError, AttributeError):
-        return False
 
 
 @dataclass(frozen=True)

@@ -110,3 +110,16 @@ class LatencyStats:
     def reset(self) -> None:
         with self._lock:
             self._rings.clear()
+
+
+def format_latency(summary: dict) -> str:
+    """``LatencyStats.summary()`` as a table, one stage per line, the runtime's stages first."""
+    order = ["pre", "slice_head", "post", "slice_total", "image_encoder", "volumetric_lifter", "image_total", "sweep_nms"]
+    # GMAC per run and GFLOP/s: the work each graph executed at this run's sizes (cameras, quadrants), and its speed
+    lines = [f"{'stage':<20}{'count':>7}{'p50 ms':>10}{'p95 ms':>10}{'max ms':>10}{'GMAC/run':>10}{'GFLOP/s':>10}"]
+    for stage in order + sorted(set(summary) - set(order)):
+        if stage in summary:
+            s = summary[stage]
+            work = f"{s['gmac_per_run']:>10.3f}{s['gflop_per_s']:>10.1f}" if "gflop_per_s" in s else ""
+            lines.append(f"{stage:<20}{s['count']:>7}{s['p50_ms']:>10.2f}{s['p95_ms']:>10.2f}{s['max_ms']:>10.2f}{work}")
+    return "\n".join(lines)

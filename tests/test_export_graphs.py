@@ -14,7 +14,7 @@ import torch
 from click.testing import CliRunner
 
 from streamdet.calibration.camera import Rig
-from streamdet.calibration.cli import main as calib_main
+from streamdet.runtime_ort.calib_cli import main as calib_main
 from streamdet.calibration.lut import Lut
 from streamdet.calibration.perturb import perturb_rig
 from streamdet.data.sample import load_bundled_sample

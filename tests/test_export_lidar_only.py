@@ -168,7 +168,7 @@ def test_lidar_only_manifest_with_an_image_graph_is_refused(export_dir, tmp_path
 
 
 def test_streamdet_run_uses_no_images(export_dir, tmp_path):
-    from streamdet.runtime_ort.cli import main as run_main
+    from streamdet.evaluation.run_cli import main as run_main
 
     res = CliRunner().invoke(run_main, ["--export-dir", str(export_dir), "--out", str(tmp_path / "run")])
     assert res.exit_code == 0, res.output
@@ -206,7 +206,7 @@ def test_streamdet_eval_data_mode(export_dir, data_dir, tmp_path):
 
 
 def test_slices_study_baseline_export_scores_as_the_checkpoint(fused_export_dir, export_dir, checkpoint, data_dir, tmp_path):
-    from streamdet.evaluation.study_cli import main as study_main
+    from streamdet.studies.cli import main as study_main
 
     def run(*baseline: str) -> dict:
         out = tmp_path / f"{baseline[0].strip('-')}.json"
@@ -231,7 +231,7 @@ def test_slices_study_baseline_export_scores_as_the_checkpoint(fused_export_dir,
     (["resolution"], "the resolution study needs an image lane"),
 ])  # fmt: skip
 def test_image_studies_refuse_a_lidar_only_export(export_dir, data_dir, args, message):
-    from streamdet.evaluation.study_cli import main as study_main
+    from streamdet.studies.cli import main as study_main
 
     res = CliRunner().invoke(study_main, [*args, "--export-dir", str(export_dir), "--data", str(data_dir), "--split", "all"])
     assert res.exit_code == 1 and message in res.output and "Traceback" not in res.output, res.output
@@ -239,7 +239,7 @@ def test_image_studies_refuse_a_lidar_only_export(export_dir, data_dir, args, me
 
 def test_calib_lut_and_bench_streaming_refuse_a_lidar_only_export(export_dir, tmp_path):
     from streamdet.benchmarks.streaming import measure_streaming
-    from streamdet.calibration.cli import main as calib_main
+    from streamdet.runtime_ort.calib_cli import main as calib_main
     from streamdet.data.sample import bundled_sample_dir
 
     res = CliRunner().invoke(calib_main, ["lut", "--calibration", str(bundled_sample_dir() / "calibration.json"),

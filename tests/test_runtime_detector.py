@@ -298,7 +298,7 @@ def test_detection_without_torch(export_dir):
 
 
 def test_run_cli_writes_results_and_picture(export_dir, tmp_path):
-    from streamdet.runtime_ort.cli import main
+    from streamdet.evaluation.run_cli import main
 
     result = CliRunner().invoke(main, ["--export-dir", str(export_dir), "--out", str(tmp_path)])
     assert result.exit_code == 0, result.output
@@ -309,7 +309,7 @@ def test_run_cli_writes_results_and_picture(export_dir, tmp_path):
 
 
 def test_run_cli_without_export_is_a_clear_error(tmp_path):
-    from streamdet.runtime_ort.cli import main
+    from streamdet.evaluation.run_cli import main
 
     result = CliRunner().invoke(main, ["--export-dir", str(tmp_path / "nothing")])
     assert result.exit_code != 0 and "streamdet-export" in result.output

@@ -14,7 +14,7 @@ from streamdet.core.slicing import split_sweep
 from streamdet.data.sample import load_bundled_sample
 from streamdet.evaluation.cli import main as eval_main
 from streamdet.export.cli import main as export_main
-from streamdet.runtime_ort.cli import main as run_main
+from streamdet.evaluation.run_cli import main as run_main
 from streamdet.runtime_ort.detector import PRECISIONS, DetectorConfig, StreamingDetector
 
 
@@ -112,8 +112,8 @@ def test_eval_dataset_mode_records_both_lanes(export_dir, tiny_synth_data, tmp_p
 
 
 def test_study_runs_the_lanes_in_their_precisions(export_dir, tiny_synth_data, tmp_path):
-    from streamdet.evaluation.studies import RuntimeOptions
-    from streamdet.evaluation.study_cli import main as study_main
+    from streamdet.studies import RuntimeOptions
+    from streamdet.studies.cli import main as study_main
 
     assert RuntimeOptions("fp32", 1, "int8").label == "int8 image lane + fp32 slices"
     assert RuntimeOptions("int8", 1, "int8").label == RuntimeOptions("int8").label == "int8"

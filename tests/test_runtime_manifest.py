@@ -123,7 +123,7 @@ def test_unreadable_and_absent(tmp_path):
 def test_imports_without_torch():
     script = (
         "import sys; sys.modules['torch'] = None; sys.modules['onnxconverter_common'] = None\n"
-        "import streamdet.runtime_ort.manifest, streamdet.calibration.cli\n"
+        "import streamdet.runtime_ort.manifest, streamdet.runtime_ort.calib_cli\n"
         "assert not any(m.split('.')[0] == 'torch' for m, v in sys.modules.items() if v is not None)\n"
         "print('ok')"
     )

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner
 
-from streamdet.evaluation.study_cli import main
+from streamdet.studies.cli import main
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
@@ -172,7 +172,7 @@ def test_runs_without_torch(export_dir, data_dir):
         import sys
         sys.modules["torch"] = None  # any import of torch now fails
         from click.testing import CliRunner
-        from streamdet.evaluation.study_cli import main
+        from streamdet.studies.cli import main
         res = CliRunner().invoke(main, ["calib-noise", "--export-dir", {str(export_dir)!r}, "--data", {str(data_dir)!r},
                                         "--split", "all", "--max-samples", "1", "--level", "1,10", "--seeds", "1"])
         assert res.exit_code == 0, res.output

@@ -14,7 +14,7 @@ from streamdet.calibration.perturb import perturb_rig
 from streamdet.data.nuscenes import NuScenesReader
 from streamdet.data.synth_world import WorldConfig
 from streamdet.data.synth_writer import SynthConfig, generate_dataset
-from streamdet.evaluation import studies as st
+from streamdet import studies as st
 from streamdet.evaluation.dataset_eval import OnnxSweepDetector, evaluate_dataset
 from streamdet.runtime_ort.manifest import read_manifest
 from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector

@@ -30,6 +30,7 @@ from streamdet.core.classes import CLASS_NAMES
 from streamdet.core.sectors import check_num_slices, quadrants_of_sector
 from streamdet.core.slicing import boxes_in_sector, split_sweep
 from streamdet.data.nuscenes import NuScenesReader
+from streamdet.data.splits import split_scenes
 from streamdet.models.presets import Preset
 from streamdet.runtime_ort.pillarize import Pillars, pillarize
 from streamdet.training.targets import MapTargets, TargetConfig, build_targets
@@ -108,17 +109,6 @@ class SampleStore:
         return out
 
 
-def read_split(root: str | Path, split: str) -> tuple[str, ...]:
-    """Scene names of ``split`` from ``root/splits.json`` (written by ``streamdet-synth``)."""
-    path = Path(root) / "splits.json"
-    if not path.is_file():
-        raise FileNotFoundError(f"{path} not found: the dataset names its train / val scenes there")
-    splits = json.loads(path.read_text())
-    if split not in splits or not isinstance(splits[split], list):
-        raise ValueError(f"{path} has no list of scenes for split {split!r}; it has {sorted(splits)}")
-    return tuple(str(s) for s in splits[split])
-
-
 def build_store(
     root: str | Path,
     split: str,
@@ -131,7 +121,7 @@ def build_store(
     None skips them. With ``cache_dir``, a finished cache of the same dataset, split and size is memory-mapped
     instead, and a new one is written after reading."""
     reader = NuScenesReader(root, version)
-    scenes = set(read_split(root, split))
+    scenes = set(split_scenes(root, split))
     tokens = tuple(t for t in reader.sample_tokens if reader.scene_name(t) in scenes)
     if not tokens:
         raise ValueError(f"split {split!r} of {root} holds no samples (scenes {sorted(scenes)})")

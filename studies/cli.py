@@ -1,4 +1,4 @@
-"""``streamdet-study``: the robustness studies of ``streamdet.evaluation.studies`` from the command line.
+"""``streamdet-study``: the robustness studies of ``streamdet.studies`` from the command line.
 
 ``streamdet-study slices|drop-camera|calib-noise|resolution [--export-dir DIR | --checkpoint FILE] --data DIR
 [--json PATH] [--plot PATH]`` prints the study's table, and writes every figure as JSON and a PNG plot
@@ -17,9 +17,10 @@ from pathlib import Path
 
 import click
 
+from streamdet import studies as st
 from streamdet.cli_utils import image_precision_option, resolution_callback
-from streamdet.evaluation import studies as st
-from streamdet.runtime_ort.detector import PRECISIONS
+from streamdet.core.constants import PRECISIONS
+from streamdet.studies.plots import plot_calib_noise, plot_drop_camera, plot_resolution, plot_slices
 
 DEFAULT_EXPORT_DIR = Path("exports") / "small"
 ALL_SPLIT = "all"  # --split value that scores every sample of the dataset
@@ -169,97 +170,6 @@ def _report(result, json_path: Path | None, plot_path: Path | None, plot: Callab
         except OSError as e:
             raise click.ClickException(f"cannot write --plot {plot_path}: {e.strerror or e}") from None
         click.echo(f"wrote {plot_path}")
-
-
-# ---- plots -------------------------------------------------------------------------------------------------
-
-
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def plot_slices(result: st.SlicesResult, path: Path) -> None:
-    plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(6, 4))
-    x = list(range(len(result.slice_counts)))
-    ax.plot(x, [100 * s.mean_ap for s in result.fused], "o-", label="fused (camera + LiDAR)")
-    if result.baseline is not None:
-        ax.plot(x, [100 * s.mean_ap for s in result.baseline], "s--", label="LiDAR-only baseline")
-    ax.set_xticks(x, [str(n) for n in result.slice_counts])
-    ax.set_xlabel("slices per sweep")
-    ax.set_ylabel("mAP (%)")
-    ax.set_ylim(bottom=0)
-    ax.set_title(f"mAP vs slices ({result.num_samples} samples)")
-    ax.grid(alpha=0.3)
-    ax.legend()
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-
-
-def plot_drop_camera(result: st.DropCameraResult, path: Path) -> None:
-    plt = _pyplot()
-    labels = ["mAP", *(st.SHORT_CLASS.get(c, c) for c in result.classes)]
-    rows = [("all cameras", result.all_cameras), *((f"without {c}", s) for c, s in zip(result.cameras, result.without))]
-    if result.no_cameras is not None:
-        rows.append(("no camera at all", result.no_cameras))
-    fig, ax = plt.subplots(figsize=(max(6.0, 0.8 * len(labels) * len(rows)), 4))
-    width = 0.8 / len(rows)
-    for k, (name, score) in enumerate(rows):
-        values = [100 * score.mean_ap, *(100 * score.class_aps[c] for c in result.classes)]
-        ax.bar([i + (k - (len(rows) - 1) / 2) * width for i in range(len(labels))], values, width, label=name)
-    ax.set_xticks(range(len(labels)), labels)
-    ax.set_ylabel("AP (%)")
-    ax.set_title(f"A camera missing at inference ({result.num_slices} slices, {result.num_samples} samples)")
-    ax.grid(axis="y", alpha=0.3)
-    ax.legend()
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-
-
-def plot_calib_noise(result: st.CalibNoiseResult, path: Path) -> None:
-    plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(6, 4))
-    x = list(range(len(result.levels)))
-    ax.errorbar(x, [100 * lv.mean_ap for lv in result.levels], yerr=[100 * lv.std_ap for lv in result.levels],
-                fmt="o-", capsize=4, label=f"noisy calibration (mean +- std, {len(result.seeds)} seeds)")  # fmt: skip
-    ax.axhline(100 * result.reference.mean_ap, color="gray", ls="--", label="true calibration")
-    top = max([result.reference.mean_ap, *(lv.mean_ap + lv.std_ap for lv in result.levels)])
-    ax.set_ylim(0, max(1.0, 130 * top))  # headroom for the legend above the curve
-    ax.set_xticks(x, [f"{lv.max_angle_deg:g} deg\n{100 * lv.max_translation_m:g} cm" for lv in result.levels])
-    ax.set_xlabel("uniform extrinsic noise bound")
-    ax.set_ylabel("mAP (%)")
-    ax.set_title(f"mAP vs calibration noise ({result.num_slices} slices, {result.num_samples} samples)")
-    ax.grid(alpha=0.3)
-    ax.legend(loc="lower left")
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-
-
-def plot_resolution(result: st.ResolutionResult, path: Path) -> None:
-    plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(6, 4))
-    x = list(range(len(result.rows)))
-    labels = [f"{r.width}x{r.height}" + ("*" if r.upsampled else "") for r in result.rows]
-    ax.bar(x, [100 * r.score.mean_ap for r in result.rows], 0.5, color="tab:blue", label="mAP")
-    ax.set_xticks(x, labels)
-    ax.set_ylabel("mAP (%)", color="tab:blue")
-    ax.set_xlabel("image size" + (" (* upsampled)" if any(r.upsampled for r in result.rows) else ""))
-    twin = ax.twinx()
-    twin.plot(x, [r.image_lane_p50_ms for r in result.rows], "o-", color="tab:red", label="image lane")
-    twin.set_ylabel(f"image lane median ms ({result.num_cameras} cameras)", color="tab:red")
-    twin.set_ylim(bottom=0)
-    ax.set_title(f"mAP and image-lane latency vs resolution ({result.num_samples} samples)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
 
 
 # ---- commands ----------------------------------------------------------------------------------------------

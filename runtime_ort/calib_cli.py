@@ -9,6 +9,9 @@ image size, as the images are resized).
 It writes exactly two files, both in that directory and both atomically (a hidden temp file, then a rename):
 ``lut.npz`` and ``manifest.json``. Whatever the manifest says, no other path is written: a ``lut.file`` naming a
 path, or a ``lut.npz`` / ``manifest.json`` symlinked out of the directory, is refused before anything is written.
+
+It lives in runtime_ort/ (it was calibration/cli.py) because it edits an export's manifest, which the runtime owns:
+calibration/ stays below the runtime and imports none of it.
 """
 
 from __future__ import annotations

@@ -1,0 +1,52 @@
+"""``splits.json``: which scenes of a nuScenes-format dataset form each split, read in one place.
+
+The file sits at the dataset root (``streamdet-synth`` writes it) and maps a split name to a list of scene names::
+
+    {"train": ["scene-0000", ...], "val": ["scene-0007", ...]}
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from streamdet.data.nuscenes import NuScenesReader
+
+SPLITS_FILE = "splits.json"
+
+
+class SplitsFileMissing(FileNotFoundError, ValueError):
+    """The dataset has no splits.json (a FileNotFoundError for file readers, a ValueError for input checks)."""
+
+
+def split_scenes(root: str | Path, split: str) -> tuple[str, ...]:
+    """Scene names of ``split`` from ``root/splits.json``; a missing file or split raises naming the file."""
+    path = Path(root) / SPLITS_FILE
+    if not path.is_file():
+        raise SplitsFileMissing(f"{path} not found; it must name the scenes of split {split!r}")
+    splits = json.loads(path.read_text())
+    if not isinstance(splits, dict) or not isinstance(splits.get(split), list):
+        have = sorted(splits) if isinstance(splits, dict) else type(splits).__name__
+        raise ValueError(f"{path} has no list of scenes for split {split!r}; it has {have}")
+    return tuple(str(s) for s in splits[split])
+
+
+def has_split(root: str | Path, split: str) -> bool:
+    """Whether ``root/splits.json`` exists, parses and lists scenes for ``split``."""
+    try:
+        split_scenes(root, split)
+    except (OSError, ValueError):  # json.JSONDecodeError is a ValueError
+        return False
+    return True
+
+
+def split_sample_tokens(reader: NuScenesReader, root: str | Path, split: str | None) -> list[str]:
+    """Sample tokens (table order) of the split's scenes, or every sample when ``split`` is None."""
+    tokens = reader.sample_tokens
+    if split is None:
+        return tokens
+    scenes = set(split_scenes(root, split))
+    chosen = [t for t in tokens if reader.scene_name(t) in scenes]
+    if not chosen:
+        raise ValueError(f"split {split!r} of {root} holds no samples")
+    return chosen

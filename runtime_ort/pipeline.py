@@ -1,0 +1,67 @@
+"""One sample through the streaming detector: its camera images with its own calibration, then its sweep slice by
+slice. Every tool that runs an export on recorded samples goes through here (``streamdet-run``, ``streamdet-eval``,
+the studies), so they all feed the detector the same way a vehicle would.
+
+- ``sample_images``: the sample's images at the detector's image size, by camera name, after swapping the
+  detector's LUT to the sample's rig when the rig differs (same graphs, a new LUT).
+- ``feed_images``: those images through the image lane at the sample's time.
+- ``detect_sample``: ``feed_images`` (when the export has an image lane), then the sweep through
+  ``StreamingDetector.detect_sweep_slices``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from streamdet.data.sample import Sample
+
+if TYPE_CHECKING:
+    from streamdet.runtime_ort.detector import ImageUpdate, StreamingDetector, SweepResult
+    from streamdet.runtime_ort.postprocess import Detections
+
+
+@dataclass(frozen=True, eq=False)
+class SampleResult:
+    """What ``detect_sample`` did with one sample."""
+
+    sweep: SweepResult  # every slice's points and result, and the sweep merged
+    images: ImageUpdate | None  # the image update; None: no image was fed (LiDAR-only export, or images=False)
+
+    @property
+    def detections(self) -> Detections:
+        return self.sweep.detections
+
+
+def sample_time_s(sample: Sample) -> float:
+    """The sample's LiDAR timestamp in seconds: the time its images and slices are fed at."""
+    return sample.timestamp_us * 1e-6
+
+
+def sample_images(detector: StreamingDetector, sample: Sample) -> dict[str, np.ndarray]:
+    """The sample's camera images (H, W, 3) uint8 at the detector's image size, by name, for the cameras the
+    export reads; the detector's LUT is rebuilt from the sample's rig first if it was built from another rig."""
+    if sample.rig.sha256() != detector.lut.calibration_sha256:
+        detector.set_calibration(sample.rig)  # another rig than the current LUT's: rebuild the LUT, same graphs
+    size = (detector.image.width, detector.image.height)
+    images = sample.load_images(size)  # (J, H, W, 3) in rig order
+    return {name: images[j] for j, name in enumerate(sample.rig.names) if name in detector.camera_names}
+
+
+def feed_images(detector: StreamingDetector, sample: Sample, timestamp: float | None = None) -> ImageUpdate:
+    """The sample's images through the image lane (``sample_images``) at ``timestamp`` (None: the sample's)."""
+    ts = sample_time_s(sample) if timestamp is None else timestamp
+    return detector.update_images(sample_images(detector, sample), timestamp=ts)
+
+
+def detect_sample(
+    detector: StreamingDetector, sample: Sample, num_slices: int | None = None, images: bool = True
+) -> SampleResult:
+    """Detect one sample: its images first (skipped for a LiDAR-only export, or with ``images`` False: the
+    detector keeps the image BEV it has), then its sweep in ``num_slices`` slices (None: the detector's)."""
+    ts = sample_time_s(sample)
+    update = feed_images(detector, sample, ts) if images and detector.uses_images else None
+    sweep = detector.detect_sweep_slices(np.asarray(sample.points, np.float32), timestamp=ts, num_slices=num_slices)
+    return SampleResult(sweep, update)
