@@ -14,9 +14,10 @@ interpreted.
 from __future__ import annotations
 
 import json
+import logging
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator, Sequence
+from typing import Any, Iterator
 
 import numpy as np
 
@@ -28,6 +29,8 @@ from streamdet.runtime_ort.ros.header import header_stamp_ns
 from streamdet.runtime_ort.ros.images import compressed_image_to_rgb, image_to_rgb
 from streamdet.runtime_ort.ros.pointcloud2 import Cloud, CloudFields, TimedSlice, decode_pointcloud2, slice_from_message, split_cloud
 from streamdet.runtime_ort.ros.tf import TfBuffer
+
+log = logging.getLogger(__name__)
 
 DEFAULT_TF_TOLERANCE_NS = 50_000_000  # a pose lookup may take the nearest pose this far past the last one
 
@@ -89,6 +92,7 @@ class BagSource:
         self.config = config
         self._reader_mod = require("mcap.reader")
         self._decoder_mod = require("mcap_ros2.decoder")
+        self._warned_no_info = False
 
     def metadata(self) -> dict[str, dict[str, str]]:
         """The bag's MCAP metadata records by name."""
@@ -175,7 +179,14 @@ class BagSource:
         images = {c: _rgb(latest[c], c) for c in names}
         stamps = {c: header_stamp_ns(latest[c]) for c in names}
         rig = None
-        if all(c in infos for c in cfg.camera_names):
+        missing = [c for c in cfg.camera_names if c not in infos]
+        if missing and len(missing) < len(cfg.camera_names):
+            topics = [cfg.topics.camera_info_topic(c) for c in missing]
+            raise ValueError(f"{self.path}: no CameraInfo yet for cameras {missing} (topics {topics}); name them with --topics CAM.info=/topic")
+        if missing and not self._warned_no_info:
+            log.warning("%s: no CameraInfo on %s: the export's own calibration is used", self.path, [cfg.topics.camera_info_topic(c) for c in missing])
+            self._warned_no_info = True
+        if not missing:
             try:
                 rig = rig_from_ros(infos, tf, str(lidar_message.header.frame_id), header_stamp_ns(lidar_message), stamps,
                                    cfg.ego_frame, cfg.global_frame, order=cfg.camera_names)  # fmt: skip
@@ -204,8 +215,3 @@ def _mcap_file(path: Path) -> Path:
     if not path.is_file():
         raise FileNotFoundError(f"bag not found: {path}")
     return path
-
-
-def camera_names_in(topics: dict[str, str], topic_map: T.TopicMap, candidates: Sequence[str]) -> tuple[str, ...]:
-    """The candidate cameras whose image topic the bag holds."""
-    return tuple(c for c in candidates if topic_map.image_topic(c) in topics)
