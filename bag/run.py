@@ -97,7 +97,7 @@ def run_bag(
             pending = []
             counts["sweeps"] += 1
             counts["detections"] += len(merged)
-            token = event.sample_token or f"{T.LIDAR_FRAME}@{event.cloud.stamp_ns}"
+            token = event.sample_token or f"{event.cloud.frame_id}@{event.cloud.stamp_ns}"
             # a bag written by `streamdet-bag export` keys its key frames by sample token; any other, every sweep
             if event.sample_token is not None or not keyed_by_tokens:
                 results[token] = boxes_to_results(token, merged.boxes.astype(np.float64), merged.scores, merged.labels,
