@@ -1,0 +1,71 @@
+"""An export killed with SIGKILL leaves hidden staging folders; the next export into the same place removes them,
+and puts back a previous export that the killed one had moved aside."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+from streamdet.export.staging import clean_stale_staging, make_staging_dir
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _killed_writer(out_dir: Path, also_move_aside: bool) -> int:
+    """A process that stages an export (and optionally moves the old one aside), then is killed with SIGKILL."""
+    code = textwrap.dedent(
+        f"""
+        import os, sys, tempfile, time
+        from pathlib import Path
+        from streamdet.export.staging import make_staging_dir
+        out = Path({str(out_dir)!r})
+        tmp = make_staging_dir(out)
+        (tmp / "slice_head.onnx").write_bytes(b"half")
+        if {also_move_aside!r}:
+            old = Path(tempfile.mkdtemp(prefix=f".{{out.name}}.old-{{os.getpid()}}-", dir=out.parent))
+            os.replace(out, old / "export")  # the first rename of commit_staging_dir; killed before the second
+        print("staged", flush=True)
+        time.sleep(60)
+        """
+    )
+    proc = subprocess.Popen([sys.executable, "-c", code], cwd=ROOT, stdout=subprocess.PIPE, text=True)
+    assert proc.stdout.readline().strip() == "staged"
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(30)
+    return proc.pid
+
+
+def _hidden(parent: Path) -> list[str]:
+    return sorted(p.name for p in parent.iterdir() if p.name.startswith("."))
+
+
+def test_a_killed_exports_partial_folder_is_cleaned_by_the_next(tmp_path):
+    out = tmp_path / "exp"
+    _killed_writer(out, also_move_aside=False)
+    assert len(_hidden(tmp_path)) == 1  # the hidden partial folder the kill left
+    tmp = make_staging_dir(out)
+    assert _hidden(tmp_path) == [tmp.name] and f"partial-{os.getpid()}-" in tmp.name
+
+
+def test_an_export_moved_aside_by_a_killed_commit_is_put_back(tmp_path):
+    out = tmp_path / "exp"
+    out.mkdir()
+    (out / "manifest.json").write_text("{}")
+    _killed_writer(out, also_move_aside=True)
+    assert not out.exists()
+    clean_stale_staging(out)
+    assert (out / "manifest.json").read_text() == "{}" and _hidden(tmp_path) == []
+
+
+def test_folders_of_a_running_export_are_kept(tmp_path):
+    out = tmp_path / "exp"
+    mine = tmp_path / f".exp.partial-{os.getpid()}-abc"
+    mine.mkdir()
+    legacy = tmp_path / ".exp.partial-xyz"  # written before pids were in the name: owner unknown, kept
+    legacy.mkdir()
+    clean_stale_staging(out)
+    assert mine.is_dir() and legacy.is_dir()
