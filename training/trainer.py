@@ -164,6 +164,51 @@ def make_loader(dataset: SliceDataset, config: TrainConfig, ctx: DistContext, co
     return loader, sampler
 
 
+@dataclass(eq=False)
+class _TrainRun:
+    """What the set-up builds and the loop advances (one process's view of one training run)."""
+
+    config: TrainConfig
+    preset: Preset
+    out_dir: Path
+    device: torch.device
+    ctx: DistContext
+    say: Callable[[str], None]
+    dataset: SliceDataset
+    loader: DataLoader
+    sampler: DistributedSampler
+    detector: Any  # StreamDetector
+    model: TrainingModel
+    wrapped: torch.nn.Module  # the model, DDP-wrapped under torchrun
+    optimizer: torch.optim.Optimizer
+    schedule: OneCycle
+    plan: str  # the schedule in words
+    criterion: CenterPointLoss
+    amp: Any  # autocast context (or a null one)
+    scaler: torch.amp.GradScaler
+    warmup: bool  # the image lane trains only after config.image_warmup of the schedule
+    t_start: float
+    epoch: int = 0
+    epoch_step: int = 0  # batches of `epoch` done
+    elapsed_before: float = 0.0  # training seconds of the run this one resumes
+
+    def checkpoint(self) -> Path | None:
+        if not self.ctx.is_main:
+            return None
+        path = self.out_dir / "last.pt"
+        save_training_state(path, preset=self.preset, model=self.detector, optimizer=self.optimizer,
+                            scheduler=self.schedule, step=self.schedule.step, epoch=self.epoch,
+                            epoch_step=self.epoch_step, config=self.config.to_dict())  # fmt: skip
+        return path
+
+    def elapsed(self) -> float:
+        """Training time so far, the same on every process (the slowest one's)."""
+        local = torch.tensor([self.elapsed_before + time.perf_counter() - self.t_start], dtype=torch.float64)
+        if self.ctx.initialised and self.ctx.world_size > 1:
+            torch.distributed.all_reduce(local, op=torch.distributed.ReduceOp.MAX)
+        return float(local)
+
+
 def train(
     config: TrainConfig,
     data_dir: str | Path,
@@ -184,13 +229,43 @@ def train(
     ``init`` starts from the weights of a checkpoint of the same preset (``model.pt``, ``last.pt`` or shipped weights)
     with a fresh optimizer and schedule: fine-tuning, or a second budget on top of a first.
     """
+    if resume is not None and init is not None:
+        raise ValueError("give either resume (continue a run) or init (start a new run from weights), not both")
+    run = _set_up(config, data_dir, out_dir, version, init, cache_dir, device, store, echo)
+    if resume is not None:
+        _restore(run, resume)
+    _write_config(run, data_dir, init)
+    log_file = open(run.out_dir / "metrics.jsonl", "a" if resume is not None else "w") if run.ctx.is_main else None
+    n_params = sum(p.numel() for p in run.model.parameters())
+    run.say(
+        f"training {run.preset.name} ({'camera + LiDAR' if run.preset.use_image else 'LiDAR only'}, {n_params / 1e6:.2f} M parameters) "
+        f"on {len(run.dataset.store)} samples, slices {list(config.data.num_slices)}, {run.ctx.world_size} process(es) x batch "
+        f"{config.batch_size}, {len(run.loader)} steps/epoch, {run.plan}, device {run.device}"
+    )
+    stopped_early, last_loss = _loop(run, log_file)
+    ckpt = run.checkpoint()
+    step = run.schedule.step
+    weights = None
+    if run.ctx.is_main:
+        weights = run.out_dir / "model.pt"
+        save_weights(weights, run.preset, run.detector,
+                     meta={"steps": step, "config": config.to_dict(), "init": str(init) if init is not None else None})  # fmt: skip
+        log_file.close()
+    seconds = time.perf_counter() - run.t_start
+    run.say(f"{'stopped by --max-minutes' if stopped_early else 'done'} after {step} steps in {seconds / 60:.1f} min; wrote {run.out_dir}")
+    return TrainResult(step, seconds, stopped_early, last_loss, ckpt, weights)
+
+
+def _set_up(config: TrainConfig, data_dir: str | Path, out_dir: str | Path, version: str, init: str | Path | None,
+            cache_dir: str | Path | None, device: str | torch.device | None, store: SampleStore | None,
+            echo: Callable[[str], None]) -> _TrainRun:  # fmt: skip
+    """Device and processes, data, model (from ``init``'s weights if given), optimizer, schedule, loss."""
     t_start = time.perf_counter()
     device = torch.device(device) if device is not None else torch.device("cuda" if torch.cuda.is_available() else "cpu")
     torch.set_flush_denormal(True)  # Adam's second moments of tiny gradients go denormal: 100x slower steps on CPU
     ctx = init_distributed(device)
     if device.type == "cuda":
         device = torch.device("cuda", ctx.local_rank)
-    out_dir = Path(out_dir)
     say = echo if ctx.is_main else (lambda _msg: None)
     preset = config.build_preset()
 
@@ -201,21 +276,12 @@ def train(
     dataset = SliceDataset(store, preset, config.data, seed=config.seed)
     collate = Collator(preset, config.data.camera_mode)
     loader, sampler = make_loader(dataset, config, ctx, collate)
-    steps_per_epoch = len(loader)
 
     torch.manual_seed(config.seed)
     detector = build_detector(preset)
     init_head_outputs(detector)  # a resumed run overwrites it with the checkpoint
-    if resume is not None and init is not None:
-        raise ValueError("give either resume (continue a run) or init (start a new run from weights), not both")
     if init is not None:
-        state = load_checkpoint(init)
-        if state["preset"] != preset.to_dict():
-            raise ValueError(f"init checkpoint {init} holds another preset than {preset.name!r} (use_image={preset.use_image})")
-        own = detector.state_dict()
-        # shipped weights may be stored in float16: back to the model's own dtypes
-        detector.load_state_dict({k: v.to(own[k].dtype) if k in own else v for k, v in state["model"].items()})
-        say(f"initialised from the weights of {init}")
+        _load_init_weights(detector, preset, init, say)
     if ctx.initialised and ctx.world_size > 1:
         convert_batchnorm(detector)
     model = TrainingModel(detector).to(device).train()
@@ -223,93 +289,87 @@ def train(
     # During the warm-up the image lane gets no gradient; DDP must then look for unused parameters.
     wrapped = DistributedDataParallel(model, find_unused_parameters=warmup) if ctx.initialised and ctx.world_size > 1 else model
     optimizer = torch.optim.AdamW(model.parameters(), lr=config.lr / config.div_factor, weight_decay=config.weight_decay)
+    schedule, plan = _schedule(config, len(loader))
+    amp, use_scaler = _amp_context(config.amp, device)
+    return _TrainRun(
+        config=config, preset=preset, out_dir=Path(out_dir), device=device, ctx=ctx, say=say, dataset=dataset,
+        loader=loader, sampler=sampler, detector=detector, model=model, wrapped=wrapped, optimizer=optimizer,
+        schedule=schedule, plan=plan, criterion=CenterPointLoss(config.loss).to(device), amp=amp,
+        scaler=torch.amp.GradScaler("cuda", enabled=use_scaler), warmup=warmup, t_start=t_start,
+    )  # fmt: skip
+
+
+def _load_init_weights(detector, preset: Preset, init: str | Path, say: Callable[[str], None]) -> None:
+    state = load_checkpoint(init)
+    if state["preset"] != preset.to_dict():
+        raise ValueError(f"init checkpoint {init} holds another preset than {preset.name!r} (use_image={preset.use_image})")
+    own = detector.state_dict()
+    # shipped weights may be stored in float16: back to the model's own dtypes
+    detector.load_state_dict({k: v.to(own[k].dtype) if k in own else v for k, v in state["model"].items()})
+    say(f"initialised from the weights of {init}")
+
+
+def _schedule(config: TrainConfig, steps_per_epoch: int) -> tuple[OneCycle, str]:
+    """The one-cycle schedule over the configured steps, epochs or minutes, and that plan in words."""
     if config.steps is not None or config.epochs is not None:
         total_steps = config.steps if config.steps is not None else config.epochs * steps_per_epoch
         schedule = OneCycle(config.lr, config.pct_start, config.div_factor, config.final_div_factor, total_steps=total_steps)
-        plan = f"{total_steps} steps"
-    else:
-        schedule = OneCycle(config.lr, config.pct_start, config.div_factor, config.final_div_factor, budget_s=60 * config.max_minutes)
-        plan = f"one-cycle over {config.max_minutes:g} min of wall time"
-    criterion = CenterPointLoss(config.loss).to(device)
-    amp, use_scaler = _amp_context(config.amp, device)
-    scaler = torch.amp.GradScaler("cuda", enabled=use_scaler)
+        return schedule, f"{total_steps} steps"
+    schedule = OneCycle(config.lr, config.pct_start, config.div_factor, config.final_div_factor, budget_s=60 * config.max_minutes)
+    return schedule, f"one-cycle over {config.max_minutes:g} min of wall time"
 
-    epoch, epoch_step, elapsed_before = 0, 0, 0.0
-    if resume is not None:
-        state = load_checkpoint(resume)
-        for key in ("optimizer", "scheduler", "step", "epoch", "epoch_step"):
-            if key not in state:
-                raise ValueError(f"checkpoint {resume} lacks {key!r}: it holds weights only, it cannot resume a run")
-        if state["preset"] != preset.to_dict():
-            raise ValueError(f"checkpoint {resume} was trained with another preset than {preset.name!r} (use_image={preset.use_image})")
-        detector.load_state_dict(state["model"])
-        optimizer.load_state_dict(state["optimizer"])
-        schedule.load_state_dict(state["scheduler"])
-        epoch, epoch_step, elapsed_before = int(state["epoch"]), int(state["epoch_step"]), schedule.elapsed_s
-        say(f"resumed {resume} at step {schedule.step} (epoch {epoch}, batch {epoch_step})")
-        if schedule.done:
-            raise ValueError(f"checkpoint {resume} finished its schedule ({plan}): nothing left to train")
 
-    if ctx.is_main:
-        out_dir.mkdir(parents=True, exist_ok=True)
-        (out_dir / "config.json").write_text(json.dumps({"train": config.to_dict(), "preset": preset.to_dict(),
-                                                         "data_dir": str(data_dir), "world_size": ctx.world_size,
-                                                         "init": str(init) if init is not None else None}, indent=1))  # fmt: skip
-    log_file = open(out_dir / "metrics.jsonl", "a" if resume is not None else "w") if ctx.is_main else None
-    n_params = sum(p.numel() for p in model.parameters())
-    say(
-        f"training {preset.name} ({'camera + LiDAR' if preset.use_image else 'LiDAR only'}, {n_params / 1e6:.2f} M parameters) "
-        f"on {len(store)} samples, slices {list(config.data.num_slices)}, {ctx.world_size} process(es) x batch {config.batch_size}, "
-        f"{steps_per_epoch} steps/epoch, {plan}, device {device}"
-    )
+def _restore(run: _TrainRun, resume: str | Path) -> None:
+    """Continue the run a ``last.pt`` holds: model, optimizer, schedule and data position."""
+    state = load_checkpoint(resume)
+    for key in ("optimizer", "scheduler", "step", "epoch", "epoch_step"):
+        if key not in state:
+            raise ValueError(f"checkpoint {resume} lacks {key!r}: it holds weights only, it cannot resume a run")
+    preset = run.preset
+    if state["preset"] != preset.to_dict():
+        raise ValueError(f"checkpoint {resume} was trained with another preset than {preset.name!r} (use_image={preset.use_image})")
+    run.detector.load_state_dict(state["model"])
+    run.optimizer.load_state_dict(state["optimizer"])
+    run.schedule.load_state_dict(state["scheduler"])
+    run.epoch, run.epoch_step, run.elapsed_before = int(state["epoch"]), int(state["epoch_step"]), run.schedule.elapsed_s
+    run.say(f"resumed {resume} at step {run.schedule.step} (epoch {run.epoch}, batch {run.epoch_step})")
+    if run.schedule.done:
+        raise ValueError(f"checkpoint {resume} finished its schedule ({run.plan}): nothing left to train")
 
-    def checkpoint() -> Path | None:
-        if not ctx.is_main:
-            return None
-        path = out_dir / "last.pt"
-        save_training_state(path, preset=preset, model=detector, optimizer=optimizer, scheduler=schedule, step=schedule.step,
-                            epoch=epoch, epoch_step=epoch_step, config=config.to_dict())  # fmt: skip
-        return path
 
-    def elapsed() -> float:
-        """Training time so far, the same on every process (the slowest one's)."""
-        local = torch.tensor([elapsed_before + time.perf_counter() - t_start], dtype=torch.float64)
-        if ctx.initialised and ctx.world_size > 1:
-            torch.distributed.all_reduce(local, op=torch.distributed.ReduceOp.MAX)
-        return float(local)
+def _write_config(run: _TrainRun, data_dir: str | Path, init: str | Path | None) -> None:
+    if run.ctx.is_main:
+        run.out_dir.mkdir(parents=True, exist_ok=True)
+        (run.out_dir / "config.json").write_text(json.dumps({"train": run.config.to_dict(), "preset": run.preset.to_dict(),
+                                                             "data_dir": str(data_dir), "world_size": run.ctx.world_size,
+                                                             "init": str(init) if init is not None else None}, indent=1))  # fmt: skip
 
+
+def _loop(run: _TrainRun, log_file) -> tuple[bool, float]:
+    """Train until the schedule is done (or --max-minutes runs out); (stopped early, the last step's loss)."""
+    config, schedule, preset, ctx = run.config, run.schedule, run.preset, run.ctx
     stopped_early = False
     last_loss = math.nan
+    lr = math.nan
     window = {"t": time.perf_counter(), "samples": 0, "slices": 0, "loss": 0.0, "parts": {}, "n": 0}
     timed = schedule.by_time or config.max_minutes is not None
     images_on = schedule.progress >= config.image_warmup
     while not schedule.done and not stopped_early:
-        sampler.set_epoch(epoch)
-        dataset.set_epoch(epoch)
-        batches = iter(loader)
-        for _ in range(epoch_step):  # resume: skip the batches this epoch already used (same order: same seed)
+        run.sampler.set_epoch(run.epoch)
+        run.dataset.set_epoch(run.epoch)
+        batches = iter(run.loader)
+        for _ in range(run.epoch_step):  # resume: skip the batches this epoch already used (same order: same seed)
             next(batches)
         for batch in batches:
-            batch = batch.to(device)
-            lr = schedule.apply(optimizer)
+            batch = batch.to(run.device)
+            lr = schedule.apply(run.optimizer)
             use_image = preset.use_image and schedule.progress >= config.image_warmup
-            if warmup and use_image and not images_on:
-                say(f"step {schedule.step}: warm-up over ({config.image_warmup:.0%} of the schedule), the image lane joins")
+            if run.warmup and use_image and not images_on:
+                run.say(f"step {schedule.step}: warm-up over ({config.image_warmup:.0%} of the schedule), the image lane joins")
                 images_on = True
-            with amp:
-                task_maps = wrapped(batch, use_image=use_image)
-            terms = loss_terms([tuple(m.float() for m in maps) for maps in task_maps], model.task_classes,
-                               batch.heatmap, batch.index, batch.mask, batch.label, batch.box)  # fmt: skip
-            counts = all_reduce_sum(terms.num_objects, ctx)
-            loss, parts = criterion(terms, counts, scale=float(ctx.world_size))
-            optimizer.zero_grad(set_to_none=True)
-            scaler.scale(loss).backward()
-            scaler.unscale_(optimizer)
-            torch.nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
-            scaler.step(optimizer)
-            scaler.update()
-            schedule.advance(elapsed() if timed else elapsed_before + time.perf_counter() - t_start)
-            epoch_step += 1
+            loss, parts = _step(run, batch, use_image)
+            schedule.advance(run.elapsed() if timed else run.elapsed_before + time.perf_counter() - run.t_start)
+            run.epoch_step += 1
 
             last_loss = float(loss.detach()) / ctx.world_size  # this process's share of the global loss
             window["samples"] += batch.num_samples
@@ -319,29 +379,37 @@ def train(
                 window["parts"][k] = window["parts"].get(k, 0.0) + float(v) / ctx.world_size
             window["n"] += 1
             if schedule.step % config.log_every == 0:
-                _log(window, schedule, lr, epoch, ctx, say, log_file)
+                _log(window, schedule, lr, run.epoch, ctx, run.say, log_file)
             if schedule.step % config.checkpoint_every == 0:
-                checkpoint()
+                run.checkpoint()
             if not schedule.by_time and config.max_minutes is not None and schedule.elapsed_s > 60 * config.max_minutes:
                 stopped_early = not schedule.done  # every process sees the same (reduced) elapsed time
                 break
             if schedule.done:
                 break
         else:
-            epoch += 1
-            epoch_step = 0
+            run.epoch += 1
+            run.epoch_step = 0
     if window["n"]:
-        _log(window, schedule, lr, epoch, ctx, say, log_file)
-    ckpt = checkpoint()
-    step = schedule.step
-    weights = None
-    if ctx.is_main:
-        weights = out_dir / "model.pt"
-        save_weights(weights, preset, detector, meta={"steps": step, "config": config.to_dict(), "init": str(init) if init is not None else None})
-        log_file.close()
-    seconds = time.perf_counter() - t_start
-    say(f"{'stopped by --max-minutes' if stopped_early else 'done'} after {step} steps in {seconds / 60:.1f} min; wrote {out_dir}")
-    return TrainResult(step, seconds, stopped_early, last_loss, ckpt, weights)
+        _log(window, schedule, lr, run.epoch, ctx, run.say, log_file)
+    return stopped_early, last_loss
+
+
+def _step(run: _TrainRun, batch: Batch, use_image: bool) -> tuple[torch.Tensor, dict]:
+    """One optimizer step on one batch: forward, loss over the global batch, backward, clipped update."""
+    with run.amp:
+        task_maps = run.wrapped(batch, use_image=use_image)
+    terms = loss_terms([tuple(m.float() for m in maps) for maps in task_maps], run.model.task_classes,
+                       batch.heatmap, batch.index, batch.mask, batch.label, batch.box)  # fmt: skip
+    counts = all_reduce_sum(terms.num_objects, run.ctx)
+    loss, parts = run.criterion(terms, counts, scale=float(run.ctx.world_size))
+    run.optimizer.zero_grad(set_to_none=True)
+    run.scaler.scale(loss).backward()
+    run.scaler.unscale_(run.optimizer)
+    torch.nn.utils.clip_grad_norm_(run.model.parameters(), run.config.grad_clip)
+    run.scaler.step(run.optimizer)
+    run.scaler.update()
+    return loss, parts
 
 
 def _log(window: dict, schedule: OneCycle, lr: float, epoch: int, ctx: DistContext, say, log_file) -> None:
