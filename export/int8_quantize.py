@@ -64,7 +64,7 @@ from onnx import numpy_helper
 from onnxruntime.quantization import CalibrationDataReader, CalibrationMethod, QuantFormat, QuantType, quantize_static
 from onnxruntime.quantization.shape_inference import quant_pre_process
 
-from streamdet.export.onnx_export import heatmap_producers, is_decode_node
+from streamdet.export.onnx_export import heatmap_producers, is_decode_node, upstream_to_convs
 
 ACTIVATION_TYPE = QuantType.QUInt8  # the only activation type x86 onnxruntime runs as fused int8 convolutions
 WEIGHT_TYPE = QuantType.QInt8
@@ -111,17 +111,7 @@ def _first(model: onnx.ModelProto, op_type: str) -> onnx.NodeProto:
 
 def _head_outputs(model: onnx.ModelProto) -> set[str]:
     """The last layers of the head: nodes from the decode's inputs upstream to (and including) the first Conv."""
-    producer = {o: n for n in model.graph.node for o in n.output}
-    found: set[str] = set()
-    stack = [i for n in model.graph.node if is_decode_node(n) for i in n.input]
-    while stack:
-        node = producer.get(stack.pop())
-        if node is None or node.name in found or is_decode_node(node):
-            continue
-        found.add(node.name)
-        if node.op_type != "Conv":
-            stack.extend(node.input)
-    return found
+    return set(upstream_to_convs(model, [i for n in model.graph.node if is_decode_node(n) for i in n.input]))
 
 
 def _constant(model: onnx.ModelProto, name: str) -> np.ndarray | None:

@@ -257,12 +257,20 @@ def heatmap_producers(model: onnx.ModelProto) -> list[str]:
     not meet the flat ties a float16 logit map has (see fp16.py). Walks upstream from the Sigmoid's input through
     non-Conv nodes (the multi-head merge's Concat/Gather) and stops at each Conv.
     """
-    producer = {out: n for n in model.graph.node for out in n.output}
     sigmoids = [n for n in model.graph.node if is_decode_node(n) and n.op_type == "Sigmoid"]
     if len(sigmoids) != 1:
         raise ValueError(f"expected one decode Sigmoid in the slice graph, found {len(sigmoids)}")
+    found = upstream_to_convs(model, [sigmoids[0].input[0]])
+    if not any(producer_op == "Conv" for producer_op in (n.op_type for n in model.graph.node if n.name in found)):
+        raise ValueError("found no Conv producing the heatmap logits in the slice graph")
+    return found
+
+
+def upstream_to_convs(model: onnx.ModelProto, tensors: list[str]) -> list[str]:
+    """Names of the non-decode nodes from ``tensors`` upstream to (and including) the first Conv on each path."""
+    producer = {out: n for n in model.graph.node for out in n.output}
     found: list[str] = []
-    stack = [sigmoids[0].input[0]]
+    stack = list(tensors)
     while stack:
         node = producer.get(stack.pop())
         if node is None or node.name in found or is_decode_node(node):
@@ -270,8 +278,6 @@ def heatmap_producers(model: onnx.ModelProto) -> list[str]:
         found.append(node.name)
         if node.op_type != "Conv":
             stack.extend(i for i in node.input if i in producer)
-    if not any(producer_op == "Conv" for producer_op in (n.op_type for n in model.graph.node if n.name in found)):
-        raise ValueError("found no Conv producing the heatmap logits in the slice graph")
     return found
 
 
