@@ -53,7 +53,9 @@ class ExportSummary:
     duration_s: float
 
 
-def export_recording(recording: Recording, out: str | Path, progress: Callable[[int, int], None] | None = None) -> ExportSummary:
+def export_recording(
+    recording: Recording, out: str | Path, progress: Callable[[int, int], None] | None = None
+) -> ExportSummary:
     """Write ``recording`` to the MCAP file ``out``; ``progress(done, total)`` per sensor message."""
     events: list[tuple[int, int, str, str, Callable[[], dict]]] = []  # (stamp ns, order, topic, type, message)
     poses: dict[int, dict] = {}
@@ -70,8 +72,7 @@ def export_recording(recording: Recording, out: str | Path, progress: Callable[[
                        _info(image, stamp)))  # fmt: skip
         events.append((stamp, _IMAGE, T.image_topic(image.name), T.COMPRESSED_IMAGE, _image(image, stamp)))
     for stamp, pose in poses.items():
-        events.append((stamp, _TF, T.TF_TOPIC, T.TF_MESSAGE,
-                       lambda s=stamp, p=pose: {"transforms": [transform_stamped_msg(T.GLOBAL_FRAME, T.EGO_FRAME, p, s)]}))  # fmt: skip
+        events.append((stamp, _TF, T.TF_TOPIC, T.TF_MESSAGE, _ego_pose(pose, stamp)))
     events.sort(key=lambda e: (e[0], e[1]))
     if not events:
         raise ValueError(f"scene {recording.scene!r} holds no sensor data")
@@ -99,7 +100,9 @@ def export_recording(recording: Recording, out: str | Path, progress: Callable[[
     )
 
 
-def cloud_time_s(points: np.ndarray, time_s: np.ndarray | None, sweep_duration_s: float = SWEEP_DURATION_S) -> np.ndarray:
+def cloud_time_s(
+    points: np.ndarray, time_s: np.ndarray | None, sweep_duration_s: float = SWEEP_DURATION_S
+) -> np.ndarray:
     """(N,) float32 per-point time relative to the sweep's stamp (its end): the recorded time after the sweep
     start minus the sweep duration, or, without recorded times, the azimuth-derived one."""
     if time_s is None:
@@ -109,6 +112,10 @@ def cloud_time_s(points: np.ndarray, time_s: np.ndarray | None, sweep_duration_s
 
 def _cloud(sweep, stamp: int) -> Callable[[], dict]:
     return lambda: pointcloud2_message(sweep.points, stamp, T.LIDAR_FRAME, cloud_time_s(sweep.points, sweep.time_s))
+
+
+def _ego_pose(pose: dict, stamp: int) -> Callable[[], dict]:
+    return lambda: {"transforms": [transform_stamped_msg(T.GLOBAL_FRAME, T.EGO_FRAME, pose, stamp)]}
 
 
 def _image(image, stamp: int) -> Callable[[], dict]:

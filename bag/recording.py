@@ -73,7 +73,8 @@ def _tables(root: Path, scene: str | None, version: str) -> Recording:
     scene_token = scenes[scene]["token"]
     samples = {s["token"] for s in rows["sample"] if s["scene_token"] == scene_token}
     by_token = {name: {r["token"]: r for r in rows[name]} for name in ("calibrated_sensor", "ego_pose", "sensor")}
-    channel_of_cs = {t: by_token["sensor"][cs["sensor_token"]]["channel"] for t, cs in by_token["calibrated_sensor"].items()}
+    sensors = by_token["sensor"]
+    channel_of_cs = {t: sensors[cs["sensor_token"]]["channel"] for t, cs in by_token["calibrated_sensor"].items()}
     mounts: dict[str, Record] = {}
     sweeps, images = [], []
     for sd in sorted((r for r in rows["sample_data"] if r["sample_token"] in samples), key=lambda r: r["timestamp"]):
@@ -87,8 +88,9 @@ def _tables(root: Path, scene: str | None, version: str) -> Recording:
         if channel == LIDAR_CHANNEL:
             points = load_points(path)
             key = bool(sd["is_key_frame"])
-            sweeps.append(LidarSweep(int(sd["timestamp"]), points, load_point_times(path, len(points)), pose,
-                                     sd["sample_token"] if key else None, reader.get(sd["sample_token"]) if key else None))  # fmt: skip
+            token = sd["sample_token"] if key else None
+            times = load_point_times(path, len(points))
+            sweeps.append(LidarSweep(int(sd["timestamp"]), points, times, pose, token, reader.get(token) if key else None))
         elif channel.startswith("CAM_"):
             if not path.is_file():
                 raise FileNotFoundError(f"image of sample_data {sd['token']} not found: {path}")
@@ -108,8 +110,8 @@ def _bundled(root: str | Path | None, scene: str | None) -> Recording:
         raise ValueError(f"the sample in {folder} is of scene {sample.scene_name!r}, not {scene!r}")
     lidar = calib["lidar"]
     images = tuple(
-        CameraImage(c["name"], int(c["timestamp_us"]), folder / c["file"], np.asarray(c["K"], np.float64), int(c["width"]),
-                    int(c["height"]), _calib_record(c["ego2global"]))  # fmt: skip
+        CameraImage(c["name"], int(c["timestamp_us"]), folder / c["file"], np.asarray(c["K"], np.float64),
+                    int(c["width"]), int(c["height"]), _calib_record(c["ego2global"]))  # fmt: skip
         for c in sorted(calib["cameras"], key=lambda c: c["timestamp_us"])
     )
     sweep = LidarSweep(sample.timestamp_us, sample.points, None, _calib_record(lidar["ego2global"]), sample.token, sample)
@@ -122,4 +124,4 @@ def _record(row: dict) -> Record:
 
 
 def _calib_record(entry: dict) -> Record:
-    return {"rotation": [float(v) for v in entry["rotation_wxyz"]], "translation": [float(v) for v in entry["translation"]]}
+    return _record({"rotation": entry["rotation_wxyz"], "translation": entry["translation"]})

@@ -127,11 +127,13 @@ def _resized(rgb: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     return cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)
 
 
-def _publish(writer: BagWriter, dets: Detections, s: TimedSlice, log_time_ns: int, shown_before: int, config: RunConfig) -> None:
+def _publish(
+    writer: BagWriter, dets: Detections, s: TimedSlice, log_time_ns: int, shown_before: int, config: RunConfig
+) -> None:
     """One slice's Detection3DArray and MarkerArray; the slice's markers of the previous sweep beyond today's
     count are deleted (each slice has its own marker namespace, so slices never delete each other's boxes)."""
-    writer.write(T.DETECTIONS_TOPIC, T.DETECTION3D_ARRAY,
-                 detection3d_array_message(dets.boxes, dets.scores, dets.labels, s.scan_time_ns, s.frame_id), log_time_ns)  # fmt: skip
+    boxes = detection3d_array_message(dets.boxes, dets.scores, dets.labels, s.scan_time_ns, s.frame_id)
+    writer.write(T.DETECTIONS_TOPIC, T.DETECTION3D_ARRAY, boxes, log_time_ns)
     markers = marker_array_message(dets.boxes, dets.labels, s.scan_time_ns, s.frame_id, scores=dets.scores,
                                    ns=f"streamdet/slice_{s.index}", lifetime_s=config.marker_lifetime_s,
                                    stale_ids=range(len(dets), shown_before))  # fmt: skip

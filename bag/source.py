@@ -27,7 +27,14 @@ from streamdet.calibration.camera import Rig, make_transform, quaternion_to_matr
 from streamdet.runtime_ort.ros.camera_info import IDENTITY_RECORD, rig_from_ros
 from streamdet.runtime_ort.ros.header import header_stamp_ns
 from streamdet.runtime_ort.ros.images import compressed_image_to_rgb, image_to_rgb
-from streamdet.runtime_ort.ros.pointcloud2 import Cloud, CloudFields, TimedSlice, decode_pointcloud2, slice_from_message, split_cloud
+from streamdet.runtime_ort.ros.pointcloud2 import (
+    Cloud,
+    CloudFields,
+    TimedSlice,
+    decode_pointcloud2,
+    slice_from_message,
+    split_cloud,
+)
 from streamdet.runtime_ort.ros.tf import TfBuffer
 
 log = logging.getLogger(__name__)
@@ -182,9 +189,11 @@ class BagSource:
         missing = [c for c in cfg.camera_names if c not in infos]
         if missing and len(missing) < len(cfg.camera_names):
             topics = [cfg.topics.camera_info_topic(c) for c in missing]
-            raise ValueError(f"{self.path}: no CameraInfo yet for cameras {missing} (topics {topics}); name them with --topics CAM.info=/topic")
+            raise ValueError(f"{self.path}: no CameraInfo yet for cameras {missing} (topics {topics}); "
+                             "name them with --topics CAM.info=/topic")  # fmt: skip
         if missing and not self._warned_no_info:
-            log.warning("%s: no CameraInfo on %s: the export's own calibration is used", self.path, [cfg.topics.camera_info_topic(c) for c in missing])
+            topics = [cfg.topics.camera_info_topic(c) for c in missing]
+            log.warning("%s: no CameraInfo on %s: the export's own calibration is used", self.path, topics)
             self._warned_no_info = True
         if not missing:
             try:

@@ -72,7 +72,9 @@ class TopicMap:
             key, sep, topic = item.strip().partition("=")
             key, topic = key.strip(), topic.strip()
             if not sep or not key or not topic.startswith("/"):
-                raise ValueError(f"--topics entry {item!r} must be KEY=/topic (KEY: lidar, tf, tf_static, a camera name or CAMERA.info)")
+                raise ValueError(
+                    f"--topics entry {item!r} must be KEY=/topic (KEY: lidar, tf, tf_static, a camera name or CAMERA.info)"
+                )
             if key == "lidar":
                 lidar = topic
             elif key == "tf":

@@ -29,7 +29,8 @@ class BagWriter:
         return self._schemas[name]
 
     def write(self, topic: str, datatype: str, message: Any, log_time_ns: int) -> None:
-        self._writer.write_message(topic, self.schema(datatype), message, log_time=int(log_time_ns), publish_time=int(log_time_ns))
+        stamp = int(log_time_ns)
+        self._writer.write_message(topic, self.schema(datatype), message, log_time=stamp, publish_time=stamp)
         self.count += 1
 
     def metadata(self, name: str, data: dict[str, str]) -> None:

@@ -41,7 +41,8 @@ def camera_info_intrinsics(msg: Any, intrinsics: str = "k") -> dict:
         raise ValueError(f"{where} has binning {binning}; streamdet takes full-resolution images (binning 0 or 1)")
     roi = msg.roi
     if int(roi.width) or int(roi.height) or int(roi.x_offset) or int(roi.y_offset):
-        raise ValueError(f"{where} has a region of interest ({int(roi.width)}x{int(roi.height)}); streamdet takes full images")
+        size = f"{int(roi.width)}x{int(roi.height)}"
+        raise ValueError(f"{where} has a region of interest ({size}); streamdet takes full images")
     if intrinsics == "k":
         K = np.asarray(msg.k, dtype=np.float64).reshape(-1)
         if K.size != 9:
@@ -88,7 +89,8 @@ def rig_from_ros(
     for name in names:
         info = camera_infos[name]
         stamp = int(stamps.get(name, header_stamp_ns(info)))
-        sensor = {**tf.lookup(ego_frame, str(info.header.frame_id), stamp), **_without_size(camera_info_intrinsics(info, intrinsics))}
+        mount = tf.lookup(ego_frame, str(info.header.frame_id), stamp)
+        sensor = {**mount, "camera_intrinsic": camera_info_intrinsics(info, intrinsics)["camera_intrinsic"]}
         cameras.append({
             "name": name,
             "calibrated_sensor": sensor,
@@ -121,6 +123,3 @@ def camera_info_message(K: np.ndarray, width: int, height: int, stamp_ns: int, f
         "roi": {"x_offset": 0, "y_offset": 0, "height": 0, "width": 0, "do_rectify": False},
     }
 
-
-def _without_size(record: dict) -> dict:
-    return {"camera_intrinsic": record["camera_intrinsic"]}

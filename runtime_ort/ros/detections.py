@@ -45,7 +45,8 @@ def yaw_quaternion(yaw: float) -> dict:
 
 def box_pose(box: np.ndarray) -> dict:
     """A ``geometry_msgs/Pose`` dict at the box's geometric centre, heading along its x."""
-    return {"position": {"x": float(box[X]), "y": float(box[Y]), "z": float(box[Z])}, "orientation": yaw_quaternion(box[YAW])}
+    position = {"x": float(box[X]), "y": float(box[Y]), "z": float(box[Z])}
+    return {"position": position, "orientation": yaw_quaternion(box[YAW])}
 
 
 def box_size(box: np.ndarray) -> dict:
@@ -102,7 +103,8 @@ def marker_array_message(
         r, g, b = CLASS_COLORS_RGB[label] if 0 <= label < len(class_names) else OTHER_COLOR_RGB
         name = names[i] if names is not None else (class_names[label] if 0 <= label < len(class_names) else "other")
         cube = _marker(header, ns, i, ADD, lifetime)
-        cube.update(type=CUBE, pose=box_pose(boxes[i]), scale=box_size(boxes[i]), color={"r": r, "g": g, "b": b, "a": float(alpha)})
+        colour = {"r": r, "g": g, "b": b, "a": float(alpha)}
+        cube.update(type=CUBE, pose=box_pose(boxes[i]), scale=box_size(boxes[i]), color=colour)
         text = _marker(header, f"{ns}/labels", i, ADD, lifetime)
         above = box_pose(boxes[i])
         above["position"]["z"] += float(boxes[i, H]) / 2 + TEXT_HEIGHT_M / 2

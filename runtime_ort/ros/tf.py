@@ -52,7 +52,8 @@ class TfBuffer:
             raise ValueError(f"frame {child!r} has two parents, {known!r} and {parent!r}: TF is a tree")
         self._parent[child] = parent
         r, t = ts.transform.rotation, ts.transform.translation
-        record = {"rotation": [float(r.w), float(r.x), float(r.y), float(r.z)], "translation": [float(t.x), float(t.y), float(t.z)]}
+        record = {"rotation": [float(r.w), float(r.x), float(r.y), float(r.z)],
+                  "translation": [float(t.x), float(t.y), float(t.z)]}  # fmt: skip
         edge = self._edges.setdefault((parent, child), _Edge())
         if static:
             edge.static = record
@@ -82,7 +83,8 @@ class TfBuffer:
         child2common = self._compose(up_child[: up_child.index(common) + 1], stamp)
         parent2common = self._compose(up_parent[: up_parent.index(common) + 1], stamp)
         child2parent = invert_transform(parent2common) @ child2common
-        return {"rotation": matrix_to_quaternion(child2parent[:3, :3]).tolist(), "translation": child2parent[:3, 3].tolist()}
+        rotation = matrix_to_quaternion(child2parent[:3, :3])
+        return {"rotation": rotation.tolist(), "translation": child2parent[:3, 3].tolist()}
 
     # ---- internals ------------------------------------------------------------------------------------
     def _chain(self, frame: str) -> list[str]:
@@ -120,7 +122,8 @@ class TfBuffer:
         a, b = edge.records[i - 1], edge.records[i]
         w = (stamp - stamps[i - 1]) / (stamps[i] - stamps[i - 1])
         t = (1 - w) * np.asarray(a["translation"]) + w * np.asarray(b["translation"])
-        return {"rotation": _slerp(np.asarray(a["rotation"]), np.asarray(b["rotation"]), w).tolist(), "translation": t.tolist()}
+        q = _slerp(np.asarray(a["rotation"]), np.asarray(b["rotation"]), w)
+        return {"rotation": q.tolist(), "translation": t.tolist()}
 
 
 def transform_stamped_msg(parent: str, child: str, record: Record, stamp: int) -> dict:
