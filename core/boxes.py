@@ -184,3 +184,41 @@ def bev_extent(boxes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     half_w = np.abs(boxes[:, W]) / 2
     half = np.stack([cos * half_l + sin * half_w, sin * half_l + cos * half_w], axis=1)  # (N, 2)
     return boxes[:, :2] - half, boxes[:, :2] + half
+
+
+def pair_boxes(
+    boxes_a: np.ndarray, keys_a: np.ndarray, boxes_b: np.ndarray, keys_b: np.ndarray, radius_m: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Greedy nearest-centre pairing of two box sets: boxes with equal keys, BEV centres within ``radius_m``.
+
+    ``keys_a`` (Na,) or (Na, k) and ``keys_b`` (Nb,) or (Nb, k): what must agree for a pair (the label, or the
+    label and the quadrant). The nearest pair is taken first, then the nearest among the boxes left, and so on.
+    Returns (index into a, index into b, centre distance in metres) of each pair, nearest pairs first.
+    """
+    boxes_a = _check_boxes(boxes_a, "boxes_a")
+    boxes_b = _check_boxes(boxes_b, "boxes_b")
+    ka = _key_columns(keys_a, len(boxes_a), "keys_a")  # (Na, k)
+    kb = _key_columns(keys_b, len(boxes_b), "keys_b")  # (Nb, k)
+    d = np.linalg.norm(boxes_a[:, None, :2].astype(np.float64) - boxes_b[None, :, :2], axis=-1)  # (Na, Nb)
+    d[np.any(ka[:, None, :] != kb[None, :, :], axis=-1)] = np.inf
+    used_a = np.zeros(len(boxes_a), dtype=bool)
+    used_b = np.zeros(len(boxes_b), dtype=bool)
+    ia, ib, dist = [], [], []
+    for flat in np.argsort(d, axis=None, kind="stable"):
+        i, j = divmod(int(flat), len(boxes_b))
+        if not d[i, j] <= radius_m:
+            break
+        if not used_a[i] and not used_b[j]:
+            used_a[i] = used_b[j] = True
+            ia.append(i)
+            ib.append(j)
+            dist.append(d[i, j])
+    return np.asarray(ia, dtype=np.int64), np.asarray(ib, dtype=np.int64), np.asarray(dist, dtype=np.float64)
+
+
+def _key_columns(keys: np.ndarray, n: int, name: str) -> np.ndarray:
+    keys = np.asarray(keys)
+    keys = keys[:, None] if keys.ndim == 1 else keys
+    if keys.ndim != 2 or keys.shape[0] != n:
+        raise ValueError(f"{name} must be ({n},) or ({n}, k), one row per box, got shape {keys.shape}")
+    return keys

@@ -29,7 +29,6 @@ from streamdet.export.parity import (
     compare_dense,
     compare_detections,
     detection_margins,
-    ort_session,
     peak_margins,
     pipeline_parity,
 )
@@ -41,6 +40,7 @@ from streamdet.models.decode import decode_head_maps
 from streamdet.models.image_encoder import IMAGENET_MEAN, IMAGENET_STD
 from streamdet.models.presets import Preset
 from streamdet.runtime_ort.manifest import LUT_NAME, ImageSpec, LutEntry, Normalisation, ParityRecord, graph_file_name, sha256_file
+from streamdet.runtime_ort.sessions import ort_session
 
 TORCH_REF_IMAGES = 2  # images the PyTorch encoder reference runs on (onnxruntime runs all J)
 DENSE_OUTPUTS = {"image_encoder": "features", "volumetric_lifter": "image_bev"}  # the slice graph's are detections

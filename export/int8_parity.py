@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from streamdet.core.boxes import YAW
+from streamdet.core.boxes import YAW, pair_boxes
 from streamdet.export.int8_data import GraphInputs
 from streamdet.runtime_ort.manifest import BoxAgreement, Int8OutputParity
 
@@ -35,30 +35,6 @@ def dense_parity(graph: str, output: str, inputs: str, got: Sequence[np.ndarray]
     r = np.concatenate([np.ravel(a) for a in ref]) if ref else np.zeros(0)
     max_abs = float(np.abs(g.astype(np.float64) - r).max()) if r.size else 0.0
     return Int8OutputParity(graph, output, inputs, relative_l2(g, r), max_abs, len(ref), note)
-
-
-def pair_boxes(
-    boxes_a: np.ndarray, labels_a: np.ndarray, boxes_b: np.ndarray, labels_b: np.ndarray, radius_m: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Greedy nearest-centre pairing of two box sets (same label, centres within ``radius_m``).
-
-    Returns (index into a, index into b, centre distance) of each pair, nearest pairs first.
-    """
-    d = np.linalg.norm(boxes_a[:, None, :2].astype(np.float64) - boxes_b[None, :, :2], axis=-1)  # (Na, Nb)
-    d[labels_a[:, None] != labels_b[None, :]] = np.inf
-    used_a = np.zeros(len(boxes_a), dtype=bool)
-    used_b = np.zeros(len(boxes_b), dtype=bool)
-    ia, ib, dist = [], [], []
-    for flat in np.argsort(d, axis=None, kind="stable"):
-        i, j = divmod(int(flat), len(boxes_b))
-        if not d[i, j] <= radius_m:
-            break
-        if not used_a[i] and not used_b[j]:
-            used_a[i] = used_b[j] = True
-            ia.append(i)
-            ib.append(j)
-            dist.append(d[i, j])
-    return np.asarray(ia, dtype=np.int64), np.asarray(ib, dtype=np.int64), np.asarray(dist, dtype=np.float64)
 
 
 def box_agreement(

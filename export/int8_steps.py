@@ -20,8 +20,8 @@ from streamdet.export import int8 as q8
 from streamdet.export.export_run import ExportRun
 from streamdet.export.fp16 import check_model
 from streamdet.export.options import ExportError
-from streamdet.export.parity import ort_session
 from streamdet.runtime_ort.manifest import Int8Calibration, Int8GraphRecord, Int8Record, graph_file_name
+from streamdet.runtime_ort.sessions import ort_session
 
 
 @dataclass(eq=False)

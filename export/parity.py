@@ -27,27 +27,18 @@ The whole-pipeline check (fp16 graphs against fp32 graphs on the real sample) li
 from __future__ import annotations
 
 import math
-import os
 from collections.abc import Mapping, Sequence
 
 import numpy as np
-import onnxruntime as ort
 
+from streamdet.core.boxes import pair_boxes
 from streamdet.runtime_ort.manifest import ParityRecord, PipelineParity
+from streamdet.runtime_ort.sessions import ort_session  # noqa: F401 (the parity run's sessions; imported from here too)
 
 TORCH_TOL_REL = 1e-4  # onnxruntime fp32 vs PyTorch
 FP16_TOL_REL = 1e-2  # onnxruntime fp16 vs onnxruntime fp32
 PIPELINE_SCORE_THRESHOLD = 0.1
 PIPELINE_CENTRE_TOL_M = 0.1
-
-
-def ort_session(model: str | os.PathLike | bytes) -> ort.InferenceSession:
-    """A CPU session with every graph optimisation on (what the runtime uses)."""
-    opts = ort.SessionOptions()
-    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-    opts.log_severity_level = 3  # fp16 graphs on CPU log a warning per wrapped op; errors still raise
-    src = model if isinstance(model, bytes) else os.fspath(model)
-    return ort.InferenceSession(src, opts, providers=["CPUExecutionProvider"])
 
 
 def value_range(x: np.ndarray) -> float:
@@ -227,8 +218,8 @@ def pipeline_parity(
     its own precision's encoder and lifter. ``margins32`` / ``margins16`` (Q, K): each box's peak margin in the
     fp32 reference heatmap (``detection_margins``), None for no near-tie test.
 
-    Boxes of the two runs are paired greedily by centre distance (same quadrant and label, within two head cells,
-    ``2 * cell_m``). Left out of the count, and counted instead: a pair or unpaired box whose score lies within the
+    Boxes of the two runs are paired greedily by centre distance (``core.boxes.pair_boxes``: same quadrant and label,
+    within two head cells, ``2 * cell_m``). Left out of the count, and counted instead: a pair or unpaired box whose score lies within the
     band ``FP16_TOL_REL * range(fp32 scores)`` of the threshold in either run (it may land on either side,
     ``excluded_in_band``); an unpaired box within the band of its run's K-th score (its partner may have dropped
     out of the other top K, ``excluded_at_top_k``); a pair or unpaired box whose peak margin is within the band
@@ -248,16 +239,15 @@ def pipeline_parity(
     # Only boxes that may be above the threshold take part; a pair needs one of them.
     a32 = np.flatnonzero(s32 >= score_threshold - band)
     a16 = np.flatnonzero(s16 >= score_threshold - band)
-    d = np.linalg.norm(b32[a32, None, :2] - b16[None, a16, :2], axis=-1)  # (n32, n16)
-    d[(l32[a32, None] != l16[None, a16]) | (q32[a32, None] != q16[None, a16])] = np.inf
+    keys32 = np.stack([l32[a32], q32[a32]], axis=1)  # (n32, 2): a pair shares its label and its quadrant
+    keys16 = np.stack([l16[a16], q16[a16]], axis=1)
+    ia, ib, dist = pair_boxes(b32[a32], keys32, b16[a16], keys16, pair_radius_m)
     pair16 = np.full(a32.size, -1)  # position in a16 of each fp32 box's partner
+    pair16[ia] = ib
     taken = np.zeros(a16.size, dtype=bool)
-    for flat in np.argsort(d, axis=None, kind="stable"):  # greedy, nearest pairs first
-        i, j = divmod(int(flat), a16.size)
-        if not d[i, j] <= pair_radius_m:
-            break
-        if pair16[i] < 0 and not taken[j]:
-            pair16[i], taken[j] = j, True
+    taken[ib] = True
+    pair_dist = np.full(a32.size, np.nan)  # centre distance to the partner
+    pair_dist[ia] = dist
 
     def in_band(s: np.ndarray, around: np.ndarray | float) -> np.ndarray:
         return np.abs(s - around) <= band
@@ -286,7 +276,7 @@ def pipeline_parity(
     excluded_top_k = int(lk32.sum() + lk16.sum())
     count32 = int(pair_above.sum() + (pair_split & (ps32 >= score_threshold)).sum() + la32.sum())
     count16 = int(pair_above.sum() + (pair_split & (ps16 >= score_threshold)).sum() + la16.sum())
-    centre = d[np.flatnonzero(paired)[pair_above], pair16[paired][pair_above]]
+    centre = pair_dist[paired][pair_above]
     max_d = float(centre.max()) if centre.size else math.nan
     passed = bool(
         count32 == count16 and not pair_split.any() and not la32.any() and not la16.any()

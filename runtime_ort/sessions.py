@@ -9,6 +9,7 @@ while the image lane runs).
 from __future__ import annotations
 
 import logging
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -77,21 +78,41 @@ def resolve_providers(requested: tuple[str, ...] | None) -> list[str]:
     return chosen
 
 
+def session_options(config: SessionConfig = SessionConfig(), profile_prefix: str | None = None) -> ort.SessionOptions:
+    """The onnxruntime options of every session streamdet opens: all graph optimisations (the int8 graphs' fused
+    kernels need them), sequential execution, ``config``'s threads and spinning; errors only in the log (fp16
+    graphs on CPU log a warning per wrapped op). ``profile_prefix`` is where a profiling session writes."""
+    opts = ort.SessionOptions()
+    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    opts.intra_op_num_threads = config.intra_op_threads
+    opts.inter_op_num_threads = 1
+    opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    opts.add_session_config_entry("session.intra_op.allow_spinning", "1" if config.allow_spinning else "0")
+    opts.log_severity_level = 3
+    if config.enable_profiling:
+        opts.enable_profiling = True
+        if profile_prefix is not None:
+            opts.profile_file_prefix = profile_prefix
+    return opts
+
+
+# The exporter's sessions (parity, int8 calibration): the CPU, every core (nothing runs beside an export).
+EXPORT_SESSION = SessionConfig(providers=("CPUExecutionProvider",), intra_op_threads=0)
+
+
+def ort_session(model: str | os.PathLike | bytes, config: SessionConfig = EXPORT_SESSION) -> ort.InferenceSession:
+    """A plain onnxruntime session of a graph file or serialized model, with ``session_options``: for tools that
+    feed a graph its raw inputs (the exporter's parity and int8 calibration) rather than run an export."""
+    src = model if isinstance(model, bytes) else os.fspath(model)
+    return ort.InferenceSession(src, sess_options=session_options(config), providers=resolve_providers(config.providers))
+
+
 class GraphSession:
     """One ONNX graph in one onnxruntime session, with its I/O metadata read once."""
 
     def __init__(self, path: str | Path, config: SessionConfig = SessionConfig()) -> None:
         self.path = Path(path)
-        opts = ort.SessionOptions()
-        opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-        opts.intra_op_num_threads = config.intra_op_threads
-        opts.inter_op_num_threads = 1
-        opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-        opts.add_session_config_entry("session.intra_op.allow_spinning", "1" if config.allow_spinning else "0")
-        opts.log_severity_level = 3
-        if config.enable_profiling:
-            opts.enable_profiling = True
-            opts.profile_file_prefix = str(self.path.with_suffix("")) + ".profile"
+        opts = session_options(config, profile_prefix=str(self.path.with_suffix("")) + ".profile")
         providers = resolve_providers(config.providers)
         try:
             self.session = ort.InferenceSession(str(self.path), sess_options=opts, providers=providers)
