@@ -201,10 +201,14 @@ class Lut:
             raise
         except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as e:
             raise CalibrationError(f"{src}: not a readable LUT .npz: {e}") from None
+        except (AttributeError, TypeError):  # np.load gave a plain array (an .npy file), not an archive
+            raise CalibrationError(f"{src}: not a readable LUT .npz: a single array, not an archive") from None
         if meta_arr.shape != () or meta_arr.dtype.kind != "U":
             raise CalibrationError(f"{src}: meta: expected a JSON string, got dtype {meta_arr.dtype} shape {meta_arr.shape}")
         try:
             meta = json.loads(str(meta_arr))
+        except RecursionError:
+            raise CalibrationError(f"{src}: meta: nests too deeply") from None
         except json.JSONDecodeError as e:
             raise CalibrationError(f"{src}: meta: not valid JSON: {e}") from None
         if not isinstance(meta, dict):
@@ -234,6 +238,8 @@ class Lut:
             )
         except CalibrationError as e:
             raise CalibrationError(f"{src}: {e}") from None
+        except (TypeError, ValueError) as e:  # a meta field of the wrong type (camera_names 3, min_depth_m "x")
+            raise CalibrationError(f"{src}: meta: a field has the wrong type: {e}") from None
         # Derived numbers are stored for readers without this class; they must agree with the tables.
         for key in ("feature_width", "feature_height", "sentinel", "num_slots"):
             if meta[key] != getattr(lut, key):

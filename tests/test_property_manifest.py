@@ -29,6 +29,11 @@ from streamdet.runtime_ort.manifest import Manifest, ManifestError, read_manifes
 from streamdet.runtime_ort.schema import SchemaViolation, manifest_schema, validate  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
+
+
+def _costly(ci_examples: int) -> int:
+    """Examples for a property whose inputs cost a graph run or a file tree: a few in CI, 1/20 of the profile's beyond."""
+    return max(ci_examples, settings().max_examples // 20)
 CALIBRATION = ROOT / "data" / "nuscenes_sample" / "calibration.json"
 NAMED = (ManifestError, CalibrationError, NoImageLaneError, LutMismatch)
 
@@ -140,7 +145,7 @@ def test_random_json_documents_are_named_errors(data):
         Manifest.from_dict(doc)
 
 
-@settings(max_examples=min(settings().max_examples, 15))
+@settings(max_examples=_costly(15))
 @given(data=st.data())
 def test_generated_manifests_load_or_are_named_errors_and_calib_writes_only_its_two_files(tiny_export, base, data):
     doc = data.draw(edited(base, runtime_fields_only=True))
@@ -201,7 +206,7 @@ def test_generated_calibrations_are_rigs_or_calibration_errors(calibration_doc, 
     assert isinstance(rig, Rig)
 
 
-@settings(max_examples=min(settings().max_examples, 20))
+@settings(max_examples=_costly(20))
 @given(data=st.data())
 def test_set_calibration_swaps_or_refuses_without_changing_the_lut(detector, calibration_doc, data):
     doc = data.draw(edited(calibration_doc))
@@ -232,3 +237,43 @@ def test_random_bytes_as_a_calibration_file_are_calibration_errors(raw):
             Rig.from_calibration_json(f.name)
     finally:
         os.unlink(f.name)
+
+
+# ---- LUT files -----------------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def lut_parts(tiny_export) -> tuple:
+    import numpy as np
+
+    with np.load(tiny_export / "lut.npz") as z:
+        return z["index"], z["weight"], json.loads(str(z["meta"]))
+
+
+@settings(max_examples=_costly(25))
+@given(data=st.data())
+def test_generated_lut_files_load_or_are_calibration_errors(lut_parts, data):
+    import numpy as np
+
+    from streamdet.calibration.lut import Lut
+
+    index, weight, meta = lut_parts
+    kind = data.draw(st.sampled_from(["meta", "meta", "tables", "npy", "bytes"]))
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "lut.npz"
+        if kind == "meta":
+            doc = data.draw(edited(meta))
+            np.savez(path, index=index, weight=weight, meta=np.array(json.dumps(doc, allow_nan=True)))
+        elif kind == "tables":
+            bad = index.copy()
+            flat = bad.reshape(-1)
+            flat[data.draw(st.integers(0, flat.size - 1))] = data.draw(st.integers(-(2**31), 2**31 - 1))
+            np.savez(path, index=bad, weight=weight, meta=np.array(json.dumps(meta)))
+        elif kind == "npy":
+            np.save(path, index)
+            os.replace(str(path) + ".npy", path) if os.path.exists(str(path) + ".npy") else None
+        else:
+            path.write_bytes(data.draw(st.binary(max_size=256)))
+        try:
+            lut = Lut.load(path)
+        except CalibrationError:
+            return
+        assert lut.index.shape == index.shape or kind == "meta"

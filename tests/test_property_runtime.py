@@ -29,6 +29,11 @@ from streamdet.runtime_ort.detector import ImageUpdate, SliceResult, StreamingDe
 from streamdet.runtime_ort.lanes import ImagesSuperseded, LaneConfig, SliceDropped, StreamingRunner  # noqa: E402
 
 
+def _costly(ci_examples: int) -> int:
+    """Examples for a property whose inputs cost a graph run or a file tree: a few in CI, 1/20 of the profile's beyond."""
+    return max(ci_examples, settings().max_examples // 20)
+
+
 @pytest.fixture(scope="module")
 def sample():
     return load_bundled_sample()
@@ -119,7 +124,7 @@ def image_dicts(draw, names: tuple[str, ...], size: tuple[int, int]):
     return out
 
 
-@settings(max_examples=min(settings().max_examples, 25))
+@settings(max_examples=_costly(25))
 @given(data=st.data())
 def test_update_images_results_or_value_errors(det, data):
     images = data.draw(image_dicts(det.camera_names, (det.image.width, det.image.height)))
@@ -145,7 +150,7 @@ OPS = st.lists(
 )
 
 
-@settings(max_examples=min(settings().max_examples, 20))
+@settings(max_examples=_costly(20))
 @given(ops=OPS, threads=st.integers(1, 3))
 def test_interleaved_calls_keep_the_newest_images_under_the_current_calibration(det, slices, rigs, ops, threads):
     image_sets = {seed: _image_set(det, seed) for seed in range(4)}
@@ -177,7 +182,7 @@ def test_interleaved_calls_keep_the_newest_images_under_the_current_calibration(
         assert np.array_equal(state.bev, det._lift(state.features, det.lut))
 
 
-@settings(max_examples=min(settings().max_examples, 15))
+@settings(max_examples=_costly(15))
 @given(
     ops=st.lists(st.one_of(st.tuples(st.just("slice"), st.integers(0, 7)), st.tuples(st.just("images"), st.integers(0, 3)),
                            st.tuples(st.just("cancel"), st.integers(0, 30))), min_size=1, max_size=14),
