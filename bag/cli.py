@@ -93,11 +93,11 @@ def run_cmd(bag_path: Path, export_dir: Path, out: Path, results_json: Path | No
             ego_frame=ego_frame,
             global_frame=None if global_frame.lower() == "none" else global_frame,
         )
-        summary = run_bag(bag_path, export_dir, out, results_json, config,
-                          progress=lambda n: click.echo(f"\rsweeps: {n}", nl=False, err=True))  # fmt: skip
+        summary = run_bag(bag_path, export_dir, out, results_json, config, progress=_sweep_progress)
     except LIBRARY_ERRORS as e:
         raise click.ClickException(_one_line(e)) from None
-    click.echo("", err=True)
+    if sys.stderr.isatty():
+        click.echo("", err=True)
     click.echo(
         f"{summary.num_sweeps} sweeps, {summary.num_slices} slices, {summary.num_image_sets} image sets "
         f"({summary.precision}, cameras {list(summary.cameras) or 'none'}): {summary.num_detections} detections"
@@ -105,6 +105,12 @@ def run_cmd(bag_path: Path, export_dir: Path, out: Path, results_json: Path | No
     click.echo(format_latency(summary.latency_ms))
     click.echo(f"wrote {summary.bag_out}")
     click.echo(f"wrote {summary.results_json}")
+
+
+def _sweep_progress(done: int) -> None:
+    """A count of the sweeps done, rewritten in place on a terminal (nothing in a log)."""
+    if sys.stderr.isatty():
+        click.echo(f"\rsweeps detected: {done}", nl=False, err=True)
 
 
 def _require_extra() -> None:
