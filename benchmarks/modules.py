@@ -51,7 +51,6 @@ from streamdet.models.lifter_fold import FoldedLifterConvs, LifterConvs, export_
 from streamdet.models.presets import Preset
 from streamdet.models.slice_split import grouped_head_mac_ratio
 
-ROW_KINDS = ("slice", "conv3d", "image")
 # The deployed graph each kind of row is cut from: its int8 sibling keeps the same nodes float.
 INT8_GRAPH_OF_KIND = {"slice": "slice_head", "conv3d": "volumetric_lifter", "image": "image_encoder"}
 

@@ -141,27 +141,6 @@ class EvalBoxes:
             attribute_name=np.array(cols[8], dtype=np.str_).reshape(n),
         )
 
-    def to_results(self, ground_truth: bool = False) -> dict[str, list[dict]]:
-        """``{sample_token: [entry, ...]}``; ground truth adds ``ego_translation`` and ``num_pts``."""
-        out: dict[str, list[dict]] = {t: [] for t in self.sample_tokens}
-        for i in range(len(self)):
-            token = self.sample_tokens[self.sample_index[i]]
-            entry = {
-                "sample_token": token,
-                "translation": self.translation[i].tolist(),
-                "size": self.size[i].tolist(),
-                "rotation": self.rotation[i].tolist(),
-                "velocity": [None if math.isnan(v) else v for v in self.velocity[i].tolist()],
-                "detection_name": str(self.detection_name[i]),
-                "detection_score": float(self.detection_score[i]),
-                "attribute_name": str(self.attribute_name[i]),
-            }
-            if ground_truth:
-                entry["ego_translation"] = self.ego_translation[i].tolist()
-                entry["num_pts"] = int(self.num_pts[i])
-            out[token].append(entry)
-        return out
-
 
 _ARRAY_FIELDS = (
     "sample_index", "translation", "size", "rotation", "velocity", "ego_translation", "num_pts",

@@ -546,13 +546,6 @@ def atomic_write(export_dir: str | os.PathLike, name: str, write: Callable[[Bina
     return target
 
 
-def replace_lut_entry(manifest: Manifest, lut: LutEntry) -> Manifest:
-    """The same manifest pointing at a rebuilt LUT (``streamdet-calib lut``)."""
-    from dataclasses import replace
-
-    return replace(manifest, lut=lut)
-
-
 def _optional(parse: Any, value: Any) -> Any:
     """``parse(value)``, or None for a JSON null (the image fields of a LiDAR-only manifest)."""
     return None if value is None else parse(value)
