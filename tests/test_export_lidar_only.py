@@ -93,8 +93,8 @@ def test_onnx_matches_the_pytorch_decode(detector, sample):
         pl = pillarize(s.points, g, s.quadrants, pil.max_points_per_pillar, pil.max_pillars)
         got = detector.slice_head.run(pl.as_feeds(s.quadrants))
         with torch.no_grad():
-            zero_bev = torch.zeros(len(s.quadrants), LIDAR_ONLY.channels, g.quadrant_ny, g.quadrant_nx)
-            maps = model.slice_net(torch.from_numpy(pl.features), torch.from_numpy(pl.mask), torch.from_numpy(pl.index), zero_bev)
+            maps = model.slice_net(torch.from_numpy(pl.features), torch.from_numpy(pl.mask), torch.from_numpy(pl.index),
+                                   num_quadrants=len(s.quadrants))  # fmt: skip
             ref = [t.numpy() for t in decode_head_maps(maps, LIDAR_ONLY.head_cell_m, LIDAR_ONLY.top_k)]
         assert got[0].shape == ref[0].shape == (len(s.quadrants), LIDAR_ONLY.top_k, 9)
         np.testing.assert_allclose(got[1], ref[1], rtol=1e-5, atol=1e-6)

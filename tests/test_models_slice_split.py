@@ -94,6 +94,9 @@ def test_lidar_only_export_form_equals_the_net(q, num_pillars, seed, dtype):
     with torch.no_grad():
         for got, ref in zip(rewritten(feats, mask, index, shape_only), net(feats, mask, index, shape_only)):
             torch.testing.assert_close(got, ref)
+        # the LiDAR-only signature: Q without any image BEV tensor
+        for got, ref in zip(rewritten(feats, mask, index, num_quadrants=q), net(feats, mask, index, shape_only)):
+            torch.testing.assert_close(got, ref)
 
 
 def test_unexpected_stage_layout_is_refused():
