@@ -185,13 +185,6 @@ def export_slice_head(det: StreamDetector, pillar_args: tuple[torch.Tensor, ...]
     return _finish_slice_head(export_module(slice_decoder(det), pillar_args, io_spec, opset), det)
 
 
-def export_lidar_slice_head(det: StreamDetector, pillar_args: tuple[torch.Tensor, ...], opset: int = DEFAULT_OPSET) -> onnx.ModelProto:
-    """The LiDAR-only slice graph (``export_slice_head`` of a ``det`` with use_image=False, which it requires)."""
-    if det.preset.use_image:
-        raise ValueError(f"preset {det.preset.name!r} has use_image=True: its slice graph needs image_bev")
-    return export_slice_head(det, pillar_args, opset)
-
-
 def _finish_slice_head(model: onnx.ModelProto, det: StreamDetector) -> onnx.ModelProto:
     """Rename the decode's nodes into DECODE_SCOPE and restore the static top-K dimensions."""
     decode = _decode_node_names(model)
