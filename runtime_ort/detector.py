@@ -586,15 +586,24 @@ def _image_spec(exported: ImageSpec, size: tuple[int, int] | None) -> ImageSpec:
 
 
 def _export_rig(manifest: Manifest, export_dir: Path) -> Rig:
-    """The rig the export's LUT was built from (manifest.lut.calibration_source): bundled, or a file that still exists."""
+    """The rig the export's LUT was built from (manifest.lut.calibration_source), read only from where the runtime
+    may read: a file bundled with streamdet.data, or a file inside the export directory (copy it there when the
+    export was made from a calibration elsewhere). Its hash must still be the LUT's calibration_sha256."""
     source = manifest.lut.calibration_source
     if source.startswith(BUNDLED_PREFIX):
-        path = Path(str(importlib.resources.files("streamdet.data"))) / source[len(BUNDLED_PREFIX):]
+        root = Path(str(importlib.resources.files("streamdet.data"))).resolve()
+        path = (root / source[len(BUNDLED_PREFIX):]).resolve()
+        allowed = root in path.parents
     else:
-        path = Path(source)
-    if not path.is_file():
+        path = (export_dir / source).resolve()  # an absolute source stays absolute
+        allowed = path.parent == export_dir.resolve()
+    if not (allowed and path.is_file()):
         raise ValueError(
             f"{export_dir}: DetectorConfig.image_size needs the export's calibration to rebuild the LUT, but "
-            f"{source!r} is not readable; re-export at that size or keep image_size=None"
+            f"{source!r} is not a bundled file or a file inside the export directory; copy it into the export, "
+            "re-export at that size, or keep image_size=None"
         )
-    return Rig.from_calibration_json(path)
+    rig = Rig.from_calibration_json(path)
+    if rig.sha256() != manifest.lut.calibration_sha256:
+        raise CalibrationError(f"{path}: this calibration changed since the export (its hash is not the LUT's calibration_sha256)")
+    return rig

@@ -139,6 +139,25 @@ def test_the_runtime_never_hashes_a_file_outside_the_export(export_copy, tmp_pat
     assert not any("passwd" in str(p) for p in hashed)
 
 
+@pytest.mark.parametrize("source", ["/etc/passwd", "../../victim.json", "bundled:../../../../etc/passwd"])
+def test_the_calibration_source_is_read_only_from_the_package_or_the_export(export_copy, tmp_path, source):
+    shutil.copy(CALIBRATION, tmp_path / "victim.json")
+    _edit_manifest(export_copy, lambda d: d["lut"].update(calibration_source=source))
+    with pytest.raises(ValueError, match="not a bundled file or a file inside the export directory"):
+        StreamingDetector(export_copy, DetectorConfig(image_size=(256, 144)))
+
+
+def test_a_calibration_source_inside_the_export_is_used_when_unchanged(export_copy):
+    shutil.copy(CALIBRATION, export_copy / "calibration.json")
+    _edit_manifest(export_copy, lambda d: d["lut"].update(calibration_source="calibration.json"))
+    assert StreamingDetector(export_copy, DetectorConfig(image_size=(256, 144))).lut.image_width == 256
+    doc = json.loads(CALIBRATION.read_text())
+    doc["cameras"][0]["lidar2cam"]["matrix"][0][3] += 0.5
+    (export_copy / "calibration.json").write_text(json.dumps(doc))
+    with pytest.raises(CalibrationError, match="changed since the export"):
+        StreamingDetector(export_copy, DetectorConfig(image_size=(256, 144)))
+
+
 # ---- 2. the newest images survive a calibration swap --------------------------------------------------------------
 class _GatedLift:
     """Wraps detector._lift: the lift of the features `gate_on` (by identity) waits until `release` is set."""
