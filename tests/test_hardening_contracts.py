@@ -284,3 +284,19 @@ def test_run_edge_on_a_real_tool_with_a_broken_export(tiny_export, tmp_path, cap
     rc = run_edge("streamdet.evaluation.run_cli", "streamdet-run", args=["--export-dir", str(broken), "--out", str(tmp_path / "o")])
     err = capsys.readouterr().err
     assert rc == 1 and err.count("\n") == 1 and "slice_head.onnx" in err and "sha256" in err
+
+
+def test_every_console_script_of_the_eight_tools_runs_behind_the_edge():
+    import importlib.util
+    import tomllib
+
+    import streamdet.cli_utils as cli_utils
+
+    scripts = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]
+    tools = ["export", "bench", "run", "calib", "synth", "train", "eval", "study"]
+    for tool in tools:
+        target = scripts[f"streamdet-{tool}"]
+        assert target == f"streamdet.cli_utils:{tool}_main"
+        entry = getattr(cli_utils, f"{tool}_main")
+        module = entry.__doc__.split(": ", 1)[1].split(".main", 1)[0]
+        assert importlib.util.find_spec(module) is not None, module
