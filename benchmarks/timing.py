@@ -101,13 +101,13 @@ def time_interleaved(
 ) -> dict[str, TimingStats]:
     """Time several callables taking turns, in ``rounds`` rounds, so that a change of the machine's speed during
     the measurement (a neighbour on a shared cache, a clock change) falls on all of them alike and the ratios
-    between them stay fair: two medians measured a minute apart can differ by the 10-20 % such a change costs
-    on this guest (benchmarks/RESULTS.md).
+    between them stay fair: two medians measured a minute apart can differ by what such a change costs on this
+    guest (benchmarks/RESULTS.md, "Measurements behind design choices").
 
     Each callable is warmed up first (``config.warmup`` runs; one when a run takes longer than ``slow_warmup_s``).
     At each of its turns it then runs untimed for ``settle_s`` before its timed runs: the thread pool of the
-    callable before it (onnxruntime's, PyTorch's OpenMP) keeps spinning for 20-50 ms after its last run and
-    slowed a 3.5 ms graph to 7.8 ms here when it was timed at once. Callables that slow skip the settling. The
+    callable before it (onnxruntime's, PyTorch's OpenMP) keeps spinning for a while after its last run and slowed
+    a small graph timed at once about twofold (measured there). Callables that slow skip the settling. The
     timed runs are spread evenly over the rounds; ``repeat``, ``budget_s`` and ``min_repeat`` apply to each
     callable on its own.
     """

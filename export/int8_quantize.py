@@ -4,20 +4,20 @@ Format. ``onnxruntime.quantization.quantize_static`` in QDQ form: weights int8, 
 channel; activations **uint8**, asymmetric, one scale per tensor. onnxruntime's x86 CPU provider fuses
 ``DequantizeLinear -> Conv -> QuantizeLinear`` into its int8 convolution (QLinearConv, u8s8 GEMM) only with uint8
 activations. The fusion needs the session at ORT_ENABLE_ALL (what the runtime uses): the int8 NHWC kernels come
-with it, and the small int8 encoder measured 1.4x slower at ENABLE_EXTENDED. ``quantize_dynamic`` is not a path: it makes ConvInteger, slower than fp32.
+with it (ENABLE_EXTENDED measured slower). ``quantize_dynamic`` is not a path: it makes ConvInteger, slower than
+fp32. The measurements behind this docstring's choices: benchmarks/RESULTS.md, "Measurements behind design choices".
 
 Weights are 7-bit (``reduce_range``) by default. x86 CPUs without VNNI (AVX2 only, like the AMD EPYC this was
 measured on) multiply u8 x s8 with ``vpmaddubsw``, which adds two products into a saturating int16: 255 * 127 * 2
-overflows it, 255 * 63 * 2 does not. Measured on the small image encoder (bundled images, untrained weights):
-relative L2 error of the features 0.354 with 8-bit weights, 0.070 with 7-bit. With 7-bit weights the graph computes the same thing on every
-x86 CPU, VNNI or not.
+overflows it, 255 * 63 * 2 does not: measured on the small image encoder, 8-bit weights gave several times the
+error of 7-bit ones. With 7-bit weights the graph computes the same thing on every x86 CPU, VNNI or not.
 
 Pre-processing. The TorchScript exporter shares equal initializers (e.g. zero biases) through ``Identity`` nodes,
-and the quantizer does not make a QDQ unit of a Conv whose bias is not an initializer (measured: 16 of the 25
-convolutions of the small image encoder stay float). ``quant_pre_process`` (shape inference and onnxruntime's basic optimisations, which
-fold those Identities) runs first.
+and the quantizer does not make a QDQ unit of a Conv whose bias is not an initializer (most convolutions of the
+small image encoder would stay float). ``quant_pre_process`` (shape inference and onnxruntime's basic
+optimisations, which fold those Identities) runs first.
 
-What stays float, and why (``float_nodes``; timings with onnxruntime 1.32, one thread, small preset):
+What stays float, and why (``float_nodes``):
 
 - slice graph, the decode and the heatmap convolution: peak picking keeps a cell that equals the max of its 3x3
   neighbourhood. A uint8 heatmap has 256 levels over the logit range, so neighbouring cells of one object round
@@ -31,19 +31,15 @@ What stays float, and why (``float_nodes``; timings with onnxruntime 1.32, one t
 - image encoder, the input normalisation (cast, scale, shift of the full image), rewritten as one float
   BatchNormalization (``normalisation_as_batchnorm``, bit-identical in fp32). onnxruntime runs the int8 convolutions
   in NHWC and moves the graph's NHWC -> NCHW transpose of the image past the Mul and Add, which then broadcast
-  their per-channel constants over the innermost axis of size 3. Measured at 384x216: that float Mul + Add 6.6 ms,
-  quantized (QLinearMul + QLinearAdd) 11.5 ms, the BatchNormalization (which the transpose is not moved past)
-  0.2 ms, the whole int8 encoder 33 ms in float Mul + Add, 26 ms with the BatchNormalization.
-- lifter, z pooling and the max over z: QLinearAveragePool measured 23 ms where the float AveragePool takes 6 and
-  the DequantizeLinear before it 5 (small preset, Q = 4).
+  their per-channel constants over the innermost axis of size 3: slow in float, slower quantized, while the
+  BatchNormalization (which the transpose is not moved past) costs next to nothing.
+- lifter, z pooling and the max over z: QLinearAveragePool measured slower than the float AveragePool with the
+  DequantizeLinear before it.
 - lifter, the LUT gather and weighted sum (``Int8Config.quantize_lifter_gather``, off): quantized, the feature
   table is quantized once, gathered and weighted as uint8 (QLinearMul), and the gathered (Q, K, Z, Yq, Xq, C)
-  rows, K = 2 times the volume, are dequantized before the sum. Measured at the runtime's Q = 4 (small preset, one
-  thread, per-op profiles): gather + weighting + that DequantizeLinear + sum + BN took 150-160 ms against 145-150 ms
-  for the float gather, weighting and sum followed by one QuantizeLinear of the volume; the whole int8 lifter ran
-  1.51x and 1.52x faster than fp32. It saves nothing, and quantizing the features before the camera average adds
-  error (relative L2 of the image BEV 0.0187 against 0.0178), so the gather stays float and the volume is
-  quantized once, before the first 3D convolution.
+  rows, K = 2 times the volume, are dequantized before the sum. Measured, that costs what the float gather,
+  weighting and sum with one QuantizeLinear of the volume cost, and quantizing the features before the camera
+  average adds error, so the gather stays float and the volume is quantized once, before the first 3D convolution.
 - ConvTranspose (the BEV encoder's upsampling): onnxruntime has no QDQ ConvTranspose; it runs in float between a
   DequantizeLinear and a QuantizeLinear.
 """

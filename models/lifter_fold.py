@@ -6,9 +6,9 @@ banded: output plane zo reads input plane zo * s - pad + t through kernel tap t,
 the same function (tests/test_models_lifter_fold.py checks it against Conv3d); it multiplies zeros on purpose.
 
 Why: onnxruntime's CPU Conv3d runs im2col + GEMM with only C = 32 output rows, while Conv2d runs its blocked
-(NCHWc) kernels. On the small preset's Z = 4 volume (Zen 4, 2 threads) the rewrite computes 1.40x the MACs and
-still runs 1.29x faster: 86 -> 67 ms on the 256 x 256 volume (57 -> 73 % of the MatMul probe counted on the 3D
-convolutions' own MACs), 19.7 -> 15.5 ms on one quadrant. The zero taps grow with Z (a dense band reads all Z
+(NCHWc) kernels. On the small preset's Z = 4 volume the rewrite computes more MACs (``folded_mac_ratio``) and still
+runs faster, in fp32 and more so in int8 (measured: benchmarks/RESULTS.md, "Measurements behind design choices").
+The zero taps grow with Z (a dense band reads all Z
 planes where the kernel reads k of them), so ``fold_pays`` allows the rewrite only while the dense 2D convolutions
 cost at most FOLD_MAX_MAC_RATIO times the 3D ones: Z = 4 (small, tiny presets) folds, the paper's Z = 16 does not.
 
@@ -27,8 +27,8 @@ from streamdet.models.bn_fold import fold_bn
 from streamdet.models.lifter import VolumetricLifter, feature_table, gather_rows
 from streamdet.models.presets import LifterConfig
 
-# Largest (dense 2D MACs) / (3D MACs) the rewrite may cost. Measured: 1.40 (Z = 4) runs 1.29x faster; the paper
-# preset's Z = 16 would compute 4.2x the MACs.
+# Largest (dense 2D MACs) / (3D MACs) the rewrite may cost: Z = 4 (ratio 1.40) measured faster (benchmarks/RESULTS.md);
+# the paper preset's Z = 16 would compute 4.2x the MACs.
 FOLD_MAX_MAC_RATIO = 1.5
 
 
@@ -171,8 +171,8 @@ class FoldedLifter(nn.Module):
     The gather runs over the LUT permuted to (Q, K, Yq, Xq, Z) (int32 index and weight: 1 / C of the volume's size)
     and yields the folded map channels-last, (Q, Yq, Xq, Z * C); the convolutions take it in z-major order
     (``FoldedLifterConvs.to_z_major``). The c-major order would transpose the whole gathered volume, and the int8
-    graph would transpose it back for its NHWC convolutions. Measured on the deployed lifter (Q = 4, 6 cameras,
-    small preset, one thread): int8 51.0 -> 44.9 ms, fp32 142.1 -> 140.8 ms (benchmarks/RESULTS.md).
+    graph would transpose it back for its NHWC convolutions; the z-major gather measured faster on the deployed
+    lifter, int8 most (benchmarks/RESULTS.md).
     """
 
     def __init__(self, convs: FoldedLifterConvs) -> None:

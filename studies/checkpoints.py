@@ -20,7 +20,7 @@ def torch_sliced_detector(checkpoint: str | Path, threads: int = 1, device: str 
     Scored exactly as the ONNX models; needs torch.
 
     ``threads`` sets torch's intra-op threads for the whole process: on a shared 2-core machine the default (all
-    cores) made the 32-slice sweep 20x slower than one thread.
+    cores) made the 32-slice sweep many times slower than one thread (benchmarks/RESULTS.md).
     """
     try:
         torch = importlib.import_module("torch")  # lazily: everything else in this module stays torch-free

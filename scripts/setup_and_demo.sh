@@ -1,0 +1,14 @@
+#!/usr/bin/env bash
+# Set-up command 1 of the README: create .venv, install everything (torch pinned first: an unpinned torch pulls a
+# multi-GB CUDA build), export the shipped model with its fp16 siblings, and benchmark it at 800x450.
+# Command 2 (the tests) is the one .ci/run runs: .venv/bin/python -m pytest -q
+set -euo pipefail
+cd "$(dirname "$0")/.."
+export PIP_DISABLE_PIP_VERSION_CHECK=1
+if [ ! -x .venv/bin/python ]; then
+    python3 -m venv .venv
+fi
+.venv/bin/pip install -q torch==2.13.0
+.venv/bin/pip install -q -e ".[export,dev]"
+.venv/bin/streamdet-export --fp16
+.venv/bin/streamdet-bench --resolution 800x450 --export-dir exports/small
