@@ -9,5 +9,8 @@ torch-free (numpy, onnxruntime through streamdet.runtime_ort). One concept per m
 - ``modes``: streaming (two lanes), full-sweep, sequential (one queue);
 - ``player``: plays a drive through a mode from its own thread and records every release (``record``);
 - ``truth`` / ``latency_eval``: ground truth at any time and nuScenes mAP at emission time vs scan time;
-- ``report`` / ``plot`` / ``cli``: the table, JSON, timeline picture and ``streamdet-replay``.
+- ``run``: a whole replay (scenes x modes through a real export); ``report`` / ``plot`` / ``cli``: the table, JSON,
+  timeline picture and ``streamdet-replay``; ``cost``: the player's own CPU with a no-op detector.
+
+docs/replay.md describes the whole; README "Streaming in real time" has the figures.
 """

@@ -102,15 +102,6 @@ class Recording:
     def images_superseded(self) -> int:
         return sum(i.superseded for i in self.images)
 
-    def lane_cpu_share(self) -> dict[str, float]:
-        """CPU seconds of each lane's work over the replay's wall seconds (1.0 = one core busy all along)."""
-        wall = max(self.wall_s, 1e-9)
-        return {
-            "slice_lane": sum(s.cpu_s for s in self.slices) / wall,
-            "image_lane": sum(i.cpu_s for i in self.images) / wall,
-            "player": self.player_cpu_s / wall,
-        }
-
     def to_dict(self) -> dict:
         out = {k: getattr(self, k) for k in ("mode", "drive", "time_scale", "wall_s", "player_cpu_s", "process_cpu_s")}
         out["slices"] = [s.to_dict() for s in self.slices]
