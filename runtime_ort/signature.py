@@ -11,6 +11,7 @@ names the graph file, the tensor and both values.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from streamdet.calibration.grid import GridSpec
@@ -35,6 +36,14 @@ def check_runtime_fields(manifest: Manifest) -> None:
             f"manifest class_names {list(manifest.class_names)} differ from the runtime's label table {list(CLASS_NAMES)} "
             "(the slice graph's labels index it; reordered or truncated names would mislabel every box)"
         )
+    img = manifest.image
+    if img is not None:
+        want = (math.ceil(img.width / img.feature_stride), math.ceil(img.height / img.feature_stride))
+        if (img.feature_width, img.feature_height) != want:
+            raise ManifestError(
+                f"manifest image.feature_width/height {img.feature_width}x{img.feature_height} do not follow from "
+                f"{img.width}x{img.height} at stride {img.feature_stride} (expected {want[0]}x{want[1]})"
+            )
     ious = manifest.post.get("nms_iou_threshold")
     if ious is not None and len(ious) != len(manifest.class_names):
         raise ManifestError(

@@ -99,6 +99,12 @@ def test_class_names_must_be_the_runtimes_label_table(export_copy, names):
         StreamingDetector(export_copy)
 
 
+def test_a_feature_size_that_does_not_follow_from_the_image_size_is_a_manifest_error(export_copy):
+    _edit(export_copy, lambda d: d["image"].update(feature_width=33))
+    with pytest.raises(ManifestError, match=r"image.feature_width/height 33x18 do not follow from 128x72 at stride 4"):
+        StreamingDetector(export_copy)
+
+
 def _swap_graph(export_dir: Path, name: str, source: str) -> None:
     shutil.copy(export_dir / source, export_dir / name)
     _edit(export_dir, lambda d: [g.update(sha256=sha256_file(export_dir / name)) for g in d["graphs"] if g["file"] == name])
