@@ -1,5 +1,6 @@
 """Fixtures several test files share."""
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
@@ -16,17 +17,45 @@ def tiny_synth_data(tmp_path_factory) -> Path:
     return out
 
 
-@pytest.fixture(scope="session")
-def tiny_export(tmp_path_factory) -> Path:
-    """A tiny camera + LiDAR export (fp32 + fp16, 8 slices), shared read-only: tests that change it copy it first."""
+# ---- shared exports ----------------------------------------------------------------------------------------
+# Each is made once per test session with streamdet-export and shared read-only: a test that changes an export
+# copies it first. Tests of the exporter itself make their own.
+
+
+@dataclass(frozen=True)
+class CliExport:
+    path: Path  # the export directory
+    output: str  # what streamdet-export printed
+
+
+def _cli_export(tmp_path_factory, name: str, args: list[str]) -> CliExport:
     from click.testing import CliRunner
 
     from streamdet.export.cli import main as export_main
 
-    out = tmp_path_factory.mktemp("tiny_export") / "tiny"
-    result = CliRunner().invoke(export_main, ["--preset", "tiny", "--fp16", "--slices", "8", "--out", str(out)])
+    out = tmp_path_factory.mktemp(name) / "tiny"
+    result = CliRunner().invoke(export_main, ["--preset", "tiny", *args, "--out", str(out)])
     assert result.exit_code == 0, result.output
-    return out
+    return CliExport(out, result.output)
+
+
+@pytest.fixture(scope="session")
+def tiny_export(tmp_path_factory) -> Path:
+    """A tiny camera + LiDAR export (fp32 + fp16, 8 slices), shared read-only: tests that change it copy it first."""
+    return _cli_export(tmp_path_factory, "tiny_export", ["--fp16", "--slices", "8"]).path
+
+
+@pytest.fixture(scope="session")
+def tiny_export_fp32(tmp_path_factory) -> Path:
+    """A tiny camera + LiDAR export with the fp32 graphs alone (8 slices): for the "no fp16 graphs" refusals."""
+    return _cli_export(tmp_path_factory, "tiny_export_fp32", ["--slices", "8"]).path
+
+
+@pytest.fixture(scope="session")
+def tiny_int8_export(tmp_path_factory) -> CliExport:
+    """A tiny camera + LiDAR export with fp32 and int8 graphs (calibrated on the bundled sample), and what the
+    exporter printed."""
+    return _cli_export(tmp_path_factory, "tiny_int8_export", ["--int8"])
 
 
 # Property tests (tests/test_property_*.py): a bounded, derandomized profile in CI; HYPOTHESIS_PROFILE=long by hand.

@@ -32,12 +32,10 @@ def _assert_one_line_error(result, *needles: str) -> None:
 
 
 @pytest.fixture(scope="module")
-def export_dir(tmp_path_factory):
-    out = tmp_path_factory.mktemp("int8") / "exp"
-    result = _invoke(["--preset", "tiny", "--int8", "--out", str(out)])
-    assert result.exit_code == 0, result.output
-    assert "int8 calibrated on 6 images" in result.output and "relative L2 error" in result.output
-    return out
+def export_dir(tiny_int8_export):
+    # fp32 + int8 (conftest), calibrated on the bundled sample's six images
+    assert "int8 calibrated on 6 images" in tiny_int8_export.output and "relative L2 error" in tiny_int8_export.output
+    return tiny_int8_export.path
 
 
 def _load(export_dir, name: str) -> onnx.ModelProto:

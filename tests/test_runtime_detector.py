@@ -18,23 +18,19 @@ from click.testing import CliRunner
 from streamdet.calibration.camera import Rig
 from streamdet.calibration.lut import build_lut
 from streamdet.calibration.perturb import perturb_rig
+from streamdet.core.classes import CLASS_NAMES
 from streamdet.core.slicing import split_sweep
 from streamdet.data.sample import load_bundled_sample
 from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector
 from streamdet.runtime_ort.lanes import LaneConfig, SliceDropped, StreamingRunner
-from streamdet.runtime_ort.manifest import ManifestError
+from streamdet.runtime_ort.manifest import ManifestError, graph_file_name
 
 N_SLICES = 8
 
 
 @pytest.fixture(scope="module")
-def export_dir(tmp_path_factory) -> Path:
-    from streamdet.export.cli import main as export_main
-
-    out = tmp_path_factory.mktemp("export") / "tiny"
-    result = CliRunner().invoke(export_main, ["--preset", "tiny", "--fp16", "--slices", str(N_SLICES), "--out", str(out)])
-    assert result.exit_code == 0, result.output
-    return out
+def export_dir(tiny_export) -> Path:
+    return tiny_export  # fp32 + fp16, N_SLICES slices (conftest)
 
 
 @pytest.fixture(scope="module")
@@ -109,8 +105,15 @@ def test_before_any_image_the_slice_uses_zeros(export_dir, sample):
 @pytest.mark.parametrize("precision", ["fp32", "fp16"])
 def test_precisions_run(export_dir, sample, precision):
     det = StreamingDetector(export_dir, DetectorConfig(precision=precision))
-    det.update_images(_images(det, sample))
-    det.detect_slice(_slices(sample)[2], 2)
+    assert det.precision_label == precision
+    assert det.slice_head.path.name == graph_file_name("slice_head", precision)  # the precision's graphs are loaded
+    assert det.image_encoder.path.name == graph_file_name("image_encoder", precision)
+    det.update_images(_images(det, sample), timestamp=1.0)
+    res = det.detect_slice(_slices(sample)[2], 2)
+    assert res.image_timestamp == 1.0 and res.slice_index == 2 and res.num_pillars > 0
+    d = res.detections
+    assert d.boxes.shape == (len(d.scores), 9) and np.isfinite(d.boxes).all()
+    assert ((d.labels >= 0) & (d.labels < len(CLASS_NAMES))).all() and ((d.scores > 0) & (d.scores <= 1)).all()
 
 
 def test_nan_points_are_dropped_and_counted(detector, sample):

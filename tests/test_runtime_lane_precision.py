@@ -13,17 +13,13 @@ from streamdet.cli_utils import PRECISION_CHOICES
 from streamdet.core.slicing import split_sweep
 from streamdet.data.sample import load_bundled_sample
 from streamdet.evaluation.cli import main as eval_main
-from streamdet.export.cli import main as export_main
 from streamdet.evaluation.run_cli import main as run_main
 from streamdet.runtime_ort.detector import PRECISIONS, DetectorConfig, StreamingDetector
 
 
 @pytest.fixture(scope="module")
-def export_dir(tmp_path_factory):
-    out = tmp_path_factory.mktemp("lanes") / "exp"
-    result = CliRunner().invoke(export_main, ["--preset", "tiny", "--int8", "--out", str(out)])
-    assert result.exit_code == 0, result.output
-    return out
+def export_dir(tiny_int8_export):
+    return tiny_int8_export.path  # fp32 + int8 (conftest)
 
 
 @pytest.fixture(scope="module")

@@ -18,12 +18,8 @@ PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 
 @pytest.fixture(scope="module")
-def export_dir(tmp_path_factory) -> Path:
-    from streamdet.export.exporter import ExportOptions, run_export
-
-    out = tmp_path_factory.mktemp("export") / "tiny"
-    run_export(ExportOptions(preset="tiny", num_slices=8, out_dir=str(out)))
-    return out
+def export_dir(tiny_export_fp32) -> Path:
+    return tiny_export_fp32  # fp32 graphs alone, 8 slices (conftest)
 
 
 @pytest.fixture(scope="module")

@@ -23,12 +23,8 @@ N_SAMPLES = 2
 
 
 @pytest.fixture(scope="module")
-def export_dir(tmp_path_factory) -> Path:
-    from streamdet.export.exporter import ExportOptions, run_export
-
-    out = tmp_path_factory.mktemp("export") / "tiny"
-    run_export(ExportOptions(preset="tiny", num_slices=8, out_dir=str(out)))
-    return out
+def export_dir(tiny_export_fp32) -> Path:
+    return tiny_export_fp32  # fp32 graphs alone, 8 slices (conftest)
 
 
 @pytest.fixture(scope="module")
@@ -92,8 +88,12 @@ def test_image_size_override_builds_the_lut_for_that_size(export_dir, samples, s
         exported = sample.load_images((m.image.width, m.image.height))
         det.update_images(dict(zip(sample.rig.names, exported)))
     imgs = sample.load_images(size)
-    det.update_images(dict(zip(sample.rig.names, imgs)))
-    assert len(det.detect_sweep(sample.points).scores) >= 0
+    update = det.update_images(dict(zip(sample.rig.names, imgs)), timestamp=5.0)
+    assert update.cameras_missing == () and set(update.cameras_used) == set(det.camera_names)
+    sweep = det.detect_sweep_slices(sample.points)
+    assert all(r.image_timestamp == 5.0 for r in sweep.slices)  # every slice read the BEV of these images
+    d = sweep.detections
+    assert d.boxes.shape == (len(d.scores), 9) and np.isfinite(d.boxes).all()
 
 
 def test_image_size_of_the_export_keeps_its_lut(export_dir):

@@ -15,7 +15,6 @@ from streamdet.data.synth_world import WorldConfig
 from streamdet.data.synth_writer import SynthConfig, generate_dataset
 from streamdet.evaluation.cli import main as eval_main
 from streamdet.evaluation.dataset_eval import OnnxSweepDetector, evaluate_dataset
-from streamdet.export.exporter import ExportOptions, run_export
 from streamdet.export.weights import load_detector
 from streamdet.models.presets import get_preset
 from streamdet.training.torch_eval import TorchSweepDetector
@@ -32,10 +31,8 @@ def data_dir(tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="module")
-def export_dir(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("export") / "tiny"
-    run_export(ExportOptions(preset="tiny", out_dir=str(out), num_slices=8))  # fixed-seed weights, spread logits
-    return out
+def export_dir(tiny_export_fp32) -> Path:
+    return tiny_export_fp32  # fixed-seed weights, spread logits; fp32 graphs alone, 8 slices (conftest)
 
 
 def test_torch_and_onnx_routes_agree(data_dir, export_dir):

@@ -1,0 +1,54 @@
+"""data/splits.py: the one reader of splits.json, on the synthetic dataset and on broken files."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import pytest
+
+from streamdet.data.nuscenes import NuScenesReader
+from streamdet.data.splits import SplitsFileMissing, has_split, split_sample_tokens, split_scenes
+
+
+def test_split_tokens_follow_the_scenes(tiny_synth_data):
+    reader = NuScenesReader(tiny_synth_data, "v1.0-synth")
+    splits = json.loads((tiny_synth_data / "splits.json").read_text())
+    for name, scenes in splits.items():
+        assert split_scenes(tiny_synth_data, name) == tuple(scenes) and has_split(tiny_synth_data, name)
+        if scenes:
+            want = [t for t in reader.sample_tokens if reader.scene_name(t) in set(scenes)]  # naive: filter by scene
+            assert split_sample_tokens(reader, tiny_synth_data, name) == want
+    assert split_sample_tokens(reader, tiny_synth_data, None) == reader.sample_tokens
+
+
+@pytest.mark.parametrize(
+    "content, match",
+    [
+        (None, "splits.json not found; it must name the scenes of split 'val'"),
+        ("{not json", "Expecting property name"),
+        ('["val"]', "has no list of scenes for split 'val'; it has list"),
+        ('{"val": "scene-0"}', r"has no list of scenes for split 'val'; it has \['val'\]"),
+        ('{"train": []}', r"has no list of scenes for split 'val'; it has \['train'\]"),
+    ],
+)
+def test_broken_splits_file(tmp_path, content, match):
+    if content is not None:
+        (tmp_path / "splits.json").write_text(content)
+    with pytest.raises(ValueError, match=match):
+        split_scenes(tmp_path, "val")
+    assert not has_split(tmp_path, "val")
+
+
+def test_missing_file_is_both_a_file_error_and_a_value_error(tmp_path):
+    with pytest.raises(SplitsFileMissing) as info:
+        split_scenes(tmp_path, "train")
+    assert isinstance(info.value, FileNotFoundError) and isinstance(info.value, ValueError)
+
+
+def test_a_split_without_samples_is_refused(tiny_synth_data, tmp_path):
+    root = tmp_path / "copy"
+    shutil.copytree(tiny_synth_data, root)
+    (root / "splits.json").write_text(json.dumps({"val": ["no-such-scene"]}))
+    with pytest.raises(ValueError, match="split 'val' of .* holds no samples"):
+        split_sample_tokens(NuScenesReader(root, "v1.0-synth"), root, "val")
