@@ -81,7 +81,7 @@ def run_cmd(bag_path: Path, export_dir: Path, out: Path, results_json: Path | No
         raise click.ClickException(f"{export_dir} holds no manifest.json: run `streamdet-export --out {export_dir}` first")
     from streamdet.bag.run import RunConfig, run_bag
     from streamdet.bag.topics import TopicMap
-    from streamdet.runtime_ort.cli import format_latency
+    from streamdet.runtime_ort.stats import format_latency
     from streamdet.runtime_ort.detector import DetectorConfig
 
     try:

@@ -1,6 +1,6 @@
 """streamdet boxes <-> nuScenes results JSON: frame conversion, submission files, ground-truth files.
 
-streamdet boxes are ``(N, 9)`` rows of ``streamdet.runtime_ort.boxes`` in the LiDAR frame of a sweep with
+streamdet boxes are ``(N, 9)`` rows of ``streamdet.core.boxes`` in the LiDAR frame of a sweep with
 labels indexing ``CLASS_NAMES``; a results entry is a box in the nuScenes global frame (see
 ``eval_boxes``). ``lidar2ego`` and ``ego2global`` are 4x4 ``[[R, t], [0, 1]]`` matrices mapping points from
 the first frame to the second (``data/nuscenes_sample/calibration.json``: ``lidar.sensor2ego.matrix`` and

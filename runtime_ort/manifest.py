@@ -9,7 +9,7 @@ Schema (``MANIFEST_VERSION`` = 1), one JSON object::
     preset_name        str, e.g. "small"
     preset             dict, Preset.to_dict() of the exported model (opaque to the runtime except "grid")
     grid               dict, GridSpec.to_dict()
-    class_names        [str], CLASS_NAMES of runtime_ort/boxes.py in label order
+    class_names        [str], CLASS_NAMES of core/classes.py in label order
     num_slices         int, slices per sweep the export (and its parity check) assumed
     image              {width, height, feature_stride, feature_width, feature_height, camera_names}; null in a
                        LiDAR-only export (preset use_image false)
@@ -51,6 +51,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, BinaryIO, Callable
 
+from streamdet.core.constants import PRECISIONS
 from streamdet.runtime_ort.schema import SchemaViolation, validate
 
 MANIFEST_VERSION = 1
@@ -58,7 +59,6 @@ MANIFEST_NAME = "manifest.json"
 LUT_NAME = "lut.npz"
 GRAPH_NAMES: tuple[str, ...] = ("image_encoder", "volumetric_lifter", "slice_head")
 IMAGE_GRAPH_NAMES: tuple[str, ...] = ("image_encoder", "volumetric_lifter")  # the image lane; absent when LiDAR-only
-PRECISIONS: tuple[str, ...] = ("fp32", "fp16", "int8")
 _DTYPES = ("uint8", "int32", "int64", "float16", "float32")
 MAX_MANIFEST_BYTES = 16 << 20  # a real manifest is tens of kB; a larger file is refused before it is parsed
 MAX_MANIFEST_DEPTH = 32  # JSON nesting; a real manifest nests 5 deep

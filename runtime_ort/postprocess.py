@@ -24,7 +24,7 @@ from streamdet.runtime_ort.nms import NmsConfig, nms
 
 @dataclass(frozen=True)
 class Detections:
-    """Boxes (N, 9) float32 in the LiDAR frame (layout of `runtime_ort/boxes.py`), scores (N,), labels (N,)."""
+    """Boxes (N, 9) float32 in the LiDAR frame (layout of `core/boxes.py`), scores (N,), labels (N,)."""
 
     boxes: np.ndarray  # (N, 9) float32
     scores: np.ndarray  # (N,) float32

@@ -15,7 +15,8 @@ import math
 from dataclasses import dataclass
 
 from streamdet.calibration.grid import GridSpec
-from streamdet.runtime_ort.boxes import BOX_DIM, CLASS_NAMES
+from streamdet.core.boxes import BOX_DIM
+from streamdet.core.classes import CLASS_NAMES
 from streamdet.runtime_ort.manifest import GraphEntry, Manifest, ManifestError, TensorSpec
 from streamdet.runtime_ort.pillarize import PILLAR_FEATURE_DIM
 

@@ -12,7 +12,7 @@ import jsonschema
 import numpy as np
 import pytest
 
-from streamdet.runtime_ort.boxes import CLASS_NAMES
+from streamdet.core.classes import CLASS_NAMES
 from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector
 from streamdet.runtime_ort.manifest import ManifestError, read_manifest, sha256_file
 from streamdet.runtime_ort.nms import NmsConfig, NmsKind, nms

@@ -24,7 +24,7 @@ from hypothesis.extra import numpy as hnp  # noqa: E402
 from streamdet.calibration.perturb import perturb_rig  # noqa: E402
 from streamdet.core.slicing import split_sweep  # noqa: E402
 from streamdet.data.sample import load_bundled_sample  # noqa: E402
-from streamdet.runtime_ort.boxes import CLASS_NAMES  # noqa: E402
+from streamdet.core.classes import CLASS_NAMES  # noqa: E402
 from streamdet.runtime_ort.detector import ImageUpdate, SliceResult, StreamingDetector  # noqa: E402
 from streamdet.runtime_ort.lanes import ImagesSuperseded, LaneConfig, SliceDropped, StreamingRunner  # noqa: E402
 

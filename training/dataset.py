@@ -3,7 +3,7 @@
 ``SampleStore`` holds what training reads from a nuScenes-format dataset (sweeps, boxes, resized images, rigs)
 in memory, and mirrors it to a ``.npy`` cache folder so the next run (or the next model) skips the JPEG
 decoding. ``SliceDataset`` turns store sample i into a ``SampleItem``: the sample's images and its n streaming
-slices (``data/slicing.py``), each pillarised with the runtime's own ``runtime_ort/pillarize.py`` and given
+slices (``core/slicing.py``), each pillarised with the runtime's own ``runtime_ort/pillarize.py`` and given
 CenterPoint targets on every quadrant it touches. ``collate`` (``training/batching.py``) stacks items into one
 batch whose quadrant maps share the batch-norm statistics.
 
