@@ -77,12 +77,39 @@ def test_key_frames_interpolated_agree_with_the_trajectories(tiny_synth_data):
     interpolated = load_ground_truth(tiny_synth_data, "v1.0-synth", scene, prefer_trajectories=False)
     assert exact.source == TRAJECTORIES and interpolated.source == INTERPOLATED
     samples = [tables.by_token["sample"][t]["timestamp"] for t in tables.sample_tokens(tables.scene(scene))]
-    t_us = 0.5 * (samples[0] + samples[1])  # between the two key frames: straight tracks interpolate exactly
+    t_us = 0.5 * (samples[0] + samples[1])  # between the two key frames
     a, b = exact.at(t_us), interpolated.at(t_us)
-    assert len(b.boxes) > 0
+    # straight tracks (same velocity at both key frames) interpolate exactly; a turning one only approximately
+    va, vb = exact.at(samples[0]).boxes[:, 7:9], exact.at(samples[1]).boxes[:, 7:9]
+    straight = np.all(np.abs(va - vb) < 1e-9, axis=1)
+    checked = 0
     for box, name in zip(b.boxes, b.names):
         d = np.linalg.norm(a.boxes[:, :2] - box[:2], axis=1)
         j = int(np.argmin(d))
-        assert d[j] < 1e-6 and a.names[j] == name
-        np.testing.assert_allclose(a.boxes[j, 7:9], box[7:9], atol=1e-6)
+        if straight[j]:
+            assert d[j] < 1e-6 and a.names[j] == name
+            np.testing.assert_allclose(a.boxes[j, 7:9], box[7:9], atol=1e-6)
+            checked += 1
+    assert checked > 0
     assert load_trajectories(tiny_synth_data, "no-such-scene") is None
+
+
+@pytest.mark.parametrize("lidar_hz, sweeps", [(20.0, 10), (10.0, 5)])
+def test_drive_from_tables_keeps_one_sweep_per_rotation(drive_data, lidar_hz, sweeps):
+    from streamdet.replay.nuscenes_source import DatasetTables, load_drive
+
+    tables = DatasetTables(drive_data, "v1.0-synth")
+    drive = load_drive(tables, tables.scene_names()[0], (64, 36), lidar_hz=lidar_hz, camera_hz=12.0)
+    assert len(drive.sweeps) == sweeps
+    assert drive.sweeps[0].start_s == pytest.approx(0.0) and all(s.point_time_s is not None for s in drive.sweeps)
+    np.testing.assert_allclose(np.diff([s.end_s for s in drive.sweeps]), 1.0 / lidar_hz, atol=1e-6)
+    assert len(drive.image_sets) == int(drive.sweeps[-1].end_s * 12.0 + 1e-9) + 1  # triggers from drive time 0
+    assert all(im.shape == (36, 64, 3) for s in drive.image_sets for im in s.images.values())
+    assert any("held between key frames" in note for note in drive.notes)
+
+
+def test_drive_of_an_unknown_scene_is_refused(drive_data):
+    from streamdet.replay.nuscenes_source import DatasetTables, load_drive
+
+    with pytest.raises(ValueError, match="no-such-scene"):
+        load_drive(DatasetTables(drive_data, "v1.0-synth"), "no-such-scene", None)
