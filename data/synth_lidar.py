@@ -7,6 +7,12 @@ sees every object where it is at that instant: a car at 15 m/s moves 0.75 m duri
 are smeared along its motion exactly as on a real rolling scan. Points are then expressed in the LiDAR frame at
 ``t_end`` (the ego motion within the sweep compensated, as nuScenes does), so static surfaces stay sharp while
 moving objects keep their rolling-shutter displacement relative to their annotated pose at ``t_end``.
+
+Each beam meets the nearest part of an object (``synth_shapes``) or the undulating ground. Glass lets most beams
+through to whatever is behind. Whether the pulse then comes back is the return model (``detection_probability``):
+more likely for bright surfaces, near ones and those hit head-on (steeply so for glossy paint and metal), so dark
+cars, far pedestrians and grazing surfaces lose points as they do on a real HDL-32E. A point's intensity follows
+its surface's reflectance and the incidence, not its class.
 """
 
 from __future__ import annotations
@@ -17,9 +23,12 @@ import numpy as np
 
 from streamdet.calibration.camera import invert_transform
 from streamdet.core.boxes import box_corners_bev
-from streamdet.data.synth_materials import ground, surface
-from streamdet.data.synth_raycast import local_normals, ray_box_entry, ray_ground, world_to_local
+from streamdet.data.synth_materials import ground, shade
+from streamdet.data.synth_raycast import ray_box_entry, ray_shape_entry, world_to_local
+from streamdet.data.synth_road import ray_ground_height
 from streamdet.data.synth_world import Scene
+
+GROUND_GLOSS = 0.3  # asphalt and paving return diffusely, even at grazing incidence
 
 # Velodyne HDL-32E (nuScenes LIDAR_TOP): 32 beams evenly spaced from -30.67 to +10.67 deg.
 HDL32E_ELEVATIONS_DEG: tuple[float, ...] = tuple(float(v) for v in np.linspace(-30.67, 10.67, 32))
@@ -35,7 +44,10 @@ class LidarConfig:
     min_range_m: float = 1.0  # returns nearer than this are dropped (the car's own body)
     max_range_m: float = 100.0
     range_noise_m: float = 0.015  # standard deviation along the ray
-    dropout: float = 0.03  # fraction of returns lost at random
+    dropout: float = 0.005  # fraction of returns lost at random, on top of the return model
+    detect_reflectance: float = 0.02  # the return model's reference reflectance (see detection_probability)
+    detect_range_m: float = 28.0  # ... and reference range
+    intensity_gain: float = 1.1  # intensity = gain * 255 * reflectance * (0.3 + 0.7 cos(incidence)), clipped to 255
     intensity_noise: float = 2.0  # standard deviation, in 0..255 units
 
     def __post_init__(self) -> None:
@@ -86,52 +98,22 @@ def simulate_sweep(
     dirs = dirs_lidar @ rot.T  # (A, E, 3) world
 
     n_rays = n_az * n_el
-    t_best = ray_ground(np.broadcast_to(origins[:, None, :], dirs.shape), dirs).reshape(n_rays)  # (A * E,)
+    t_best = ray_ground_height(np.broadcast_to(origins[:, None, :], dirs.shape), dirs, scene.ground_phase).reshape(n_rays)  # (A * E,)
     best_obj = np.full(n_rays, -1, dtype=np.int64)
     best_refl = np.zeros(n_rays)
-    best_cos = np.abs(dirs[..., 2]).reshape(n_rays)  # the ground normal is +z
+    best_cos = np.abs(dirs[..., 2]).reshape(n_rays)  # the ground's normal is nearly +z
+    best_gloss = np.full(n_rays, GROUND_GLOSS)
 
-    ai, ki = _candidate_columns(scene, col_time, origins, rot, config)
+    ai, ki, beam_ok = _candidate_columns(scene, col_time, origins, rot, config)
     if len(ai):
-        a = np.repeat(ai, n_el)  # (P,) one pair per beam of each candidate column
-        k = np.repeat(ki, n_el)
-        e = np.tile(np.arange(n_el), len(ai))
-        ray = a * n_el + e
-        objs = scene.objects
-        t_pair = col_time[a]
-        centers = objs.center0[k] + np.concatenate([objs.velocity[k] * t_pair[:, None], np.zeros((len(k), 1))], axis=1)
-        yaws = objs.yaw[k]
-        half = objs.size_wlh[k][:, [1, 0, 2]] / 2  # (P, 3) along x (l), y (w), z (h)
-        o_local = world_to_local(origins[a], centers, yaws)
-        d_world = dirs[a, e]
-        d_local = world_to_local(d_world, 0.0, yaws)
-        hit, t_hit, axis, sign = ray_box_entry(o_local, d_local, half)
-        keep = np.flatnonzero(hit & (t_hit < t_best[ray]))
-        refl = np.zeros(len(keep))
-        alpha = np.zeros(len(keep), dtype=bool)
-        kinds = objs.kind[k[keep]]
-        p_local = o_local[keep] + t_hit[keep, None] * d_local[keep]
-        for kind in np.unique(kinds):
-            m = kinds == kind
-            sel = keep[m]
-            kk = k[sel]
-            _, alpha[m], refl[m] = surface(
-                int(kind), axis[sel], sign[sel], p_local[m], half[sel], objs.color[kk], objs.color2[kk], objs.flag[kk]
-            )
-        keep, refl = keep[alpha], refl[alpha]
-        # Nearest surface per ray: sort the surviving pairs by (ray, t) and take each ray's first.
-        order = np.lexsort((t_hit[keep], ray[keep]))
-        keep, refl = keep[order], refl[order]
-        first = np.r_[True, ray[keep][1:] != ray[keep][:-1]]
-        keep, refl = keep[first], refl[first]
-        closer = t_hit[keep] < t_best[ray[keep]]
-        keep, refl = keep[closer], refl[closer]
-        r = ray[keep]
-        t_best[r] = t_hit[keep]
-        best_obj[r] = k[keep]
-        best_refl[r] = refl
-        normals = local_normals(axis[keep], sign[keep], yaws[keep])
-        best_cos[r] = np.abs(np.sum(normals * d_world[keep], axis=1))
+        hits = _object_hits(scene, ai, ki, beam_ok, col_time, origins, dirs, t_best, rng)
+        if hits is not None:
+            r, t_hit, obj, refl, cos, gloss = hits
+            t_best[r] = t_hit
+            best_obj[r] = obj
+            best_refl[r] = refl
+            best_cos[r] = cos
+            best_gloss[r] = gloss
 
     valid = (t_best >= config.min_range_m) & (t_best <= config.max_range_m)
     valid &= rng.uniform(size=n_rays) >= config.dropout
@@ -141,14 +123,16 @@ def simulate_sweep(
     world = origins[a_idx] + t[:, None] * dirs[a_idx, e_idx]  # (N, 3)
     obj = best_obj[idx]
     on_ground = obj < 0
+    refl_all = best_refl[idx].copy()
     if np.any(on_ground):
         s_road, d_road = scene.to_road(world[on_ground, :2])
-        _, best_refl_ground = ground(s_road, d_road)
-        refl_all = best_refl[idx].copy()
-        refl_all[on_ground] = best_refl_ground
-    else:
-        refl_all = best_refl[idx]
-    intensity = 255.0 * refl_all * (0.3 + 0.7 * best_cos[idx]) + rng.normal(0.0, config.intensity_noise, size=len(idx))
+        _, refl_all[on_ground] = ground(s_road, d_road, scene.cross_s_m)
+    cos = best_cos[idx]
+    # The return model: whether a pulse comes back falls with range and incidence and rises with reflectance.
+    p_return = detection_probability(refl_all, cos, t_best[idx], best_gloss[idx], config)
+    returned = rng.uniform(size=len(idx)) < p_return
+    idx, t, a_idx, e_idx, world, obj, refl_all, cos = (v[returned] for v in (idx, t, a_idx, e_idx, world, obj, refl_all, cos))
+    intensity = config.intensity_gain * 255.0 * refl_all * (0.3 + 0.7 * cos) + rng.normal(0.0, config.intensity_noise, size=len(idx))
     to_lidar = invert_transform(scene.ego2global(t_end_s) @ lidar2ego)
     xyz = world @ to_lidar[:3, :3].T + to_lidar[:3, 3]
     points = np.empty((len(idx), 5), dtype=np.float32)
@@ -158,10 +142,71 @@ def simulate_sweep(
     return SimSweep(t_end_s=float(t_end_s), points=points, time_s=(frac[a_idx] * sweep_s).astype(np.float32), hit=obj)
 
 
+def detection_probability(reflectance: np.ndarray, cos_incidence: np.ndarray, range_m: np.ndarray,
+                          gloss: np.ndarray | float = 0.5, config: LidarConfig = LidarConfig()) -> np.ndarray:
+    """(N,) chance that a pulse returns: ``1 - exp(-signal)``, the signal proportional to the reflectance and to
+    ``0.1 + 0.9 cos(incidence) ** gloss`` (glossy paint and metal send the pulse away unless hit head-on) and
+    falling with the square of the range."""
+    lobe = 0.1 + 0.9 * np.abs(np.asarray(cos_incidence)) ** np.asarray(gloss)
+    signal = (np.asarray(reflectance) / config.detect_reflectance) * lobe
+    signal = signal * (config.detect_range_m / np.maximum(np.asarray(range_m), 1e-3)) ** 2
+    return 1.0 - np.exp(-signal)
+
+
+def _object_hits(scene: Scene, ai: np.ndarray, ki: np.ndarray, beam_ok: np.ndarray, col_time: np.ndarray, origins: np.ndarray,
+                 dirs: np.ndarray, t_best: np.ndarray, rng: np.random.Generator):
+    """Nearest part surface per ray over the candidate (column, object) pairs, nearer than the ground.
+
+    Returns (rays, distance, object, reflectance, cos incidence) or None. Each pair's rays are first tested
+    against the object's box; only rays entering it are tested against its parts. A glass part lets a beam
+    through (to whatever is behind) with the chance its material gives.
+    """
+    n_el = dirs.shape[1]
+    objs = scene.objects
+    pair_centres, pair_yaws, _ = objs.poses_at(col_time[ai], ki)  # (C, 3), (C,) per (column, object) pair
+    o_pair = world_to_local(origins[ai], pair_centres, pair_yaws)  # (C, 3)
+    pair, e = np.nonzero(beam_ok[ki])  # (Q,) one (pair, beam) per beam that may meet the pair's object
+    a, k = ai[pair], ki[pair]
+    ray = a * n_el + e
+    yaws = pair_yaws[pair]
+    half = objs.size_wlh[k][:, [1, 0, 2]] / 2  # (Q, 3) along x (l), y (w), z (h)
+    o_local = o_pair[pair]
+    d_local = world_to_local(dirs[a, e], 0.0, yaws)
+    hit, t_box, _, _ = ray_box_entry(o_local, d_local, half)
+    keep = np.flatnonzero(hit & (t_box < t_best[ray]))
+    if not len(keep):
+        return None
+    parts = objs.parts
+    pair, part = parts.expand(k[keep])
+    q = keep[pair]  # (R,) the (ray, object) pair of each (ray, part) test
+    rot_t = np.transpose(parts.rot[part], (0, 2, 1))  # (R, 3, 3) box -> part
+    o_part = np.einsum("rij,rj->ri", rot_t, o_local[q] - parts.center[part])
+    d_part = np.einsum("rij,rj->ri", rot_t, d_local[q])
+    t_part, n_part = ray_shape_entry(o_part, d_part, parts.half[part], parts.shape[part])
+    ok = np.flatnonzero(np.isfinite(t_part) & (t_part < t_best[ray[q]]))
+    if not len(ok):
+        return None
+    part, q, t_part, n_part = part[ok], q[ok], t_part[ok], n_part[ok]
+    p_part = o_part[ok] + t_part[:, None] * d_part[ok]
+    _, alpha, refl, scale, gloss = shade(parts.mat[part], parts.albedo[part], parts.refl[part], p_part, parts.half[part], n_part)
+    alpha &= rng.uniform(size=len(part)) < scale  # glass: most beams pass through
+    part, q, t_part, n_part, refl, gloss = part[alpha], q[alpha], t_part[alpha], n_part[alpha], refl[alpha], gloss[alpha]
+    r = ray[q]
+    order = np.lexsort((t_part, r))  # nearest surface per ray
+    order = order[np.r_[True, r[order][1:] != r[order][:-1]]] if len(order) else order
+    part, q, t_part, n_part, refl, gloss, r = (v[order] for v in (part, q, t_part, n_part, refl, gloss, r))
+    n_box = np.einsum("rij,rj->ri", parts.rot[part], n_part)  # (R, 3) normal in the box frame
+    c, s = np.cos(yaws[q]), np.sin(yaws[q])
+    n_world = np.stack([c * n_box[:, 0] - s * n_box[:, 1], s * n_box[:, 0] + c * n_box[:, 1], n_box[:, 2]], axis=1)
+    cos = np.abs(np.sum(n_world * dirs[a[q], e[q]], axis=1))
+    return r, t_part, k[q], refl, cos, gloss
+
+
 def _candidate_columns(
     scene: Scene, col_time: np.ndarray, origins: np.ndarray, rot: np.ndarray, config: LidarConfig
-) -> tuple[np.ndarray, np.ndarray]:
-    """(column, object) pairs whose azimuth could meet: each object's azimuth span over the sweep, padded."""
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(column, object) pairs whose azimuth could meet (each object's azimuth span over the sweep, padded) and
+    (K, E) bool: the beams whose elevation could meet each object."""
     objs = scene.objects
     n_az = config.azimuth_steps
     t0, t1 = col_time[0], col_time[-1]
@@ -192,5 +237,20 @@ def _candidate_columns(
     mask = (np.mod(cols - c_lo[None, :], n_az) <= width[None, :]) | everywhere[None, :]  # (A, K)
     mask &= ~far[None, :]
     ai, ki = np.nonzero(mask)
-    return ai.astype(np.int64), ki.astype(np.int64)
+    # Beams whose elevation could meet each object: from its box's bottom and top at its nearest and farthest
+    # BEV distance, padded by a beam spacing and the sensor's tilt.
+    rel_c = boxes[: len(objs), :2] - sensor
+    reach = 0.5 * np.hypot(objs.size_wlh[:, 0], objs.size_wlh[:, 1]) + slack
+    d_near = np.maximum(np.linalg.norm(rel_c, axis=1) - reach, 0.05)
+    d_far = np.linalg.norm(rel_c, axis=1) + reach
+    z_bottom = boxes[: len(objs), 2] - objs.size_wlh[:, 2] / 2 - origins[:, 2].mean()
+    z_top = z_bottom + objs.size_wlh[:, 2]
+    el_lo = np.degrees(np.arctan2(z_bottom, np.where(z_bottom < 0, d_near, d_far)))
+    el_hi = np.degrees(np.arctan2(z_top, np.where(z_top > 0, d_near, d_far)))
+    elev = np.asarray(config.elevations_deg)
+    tilt = np.degrees(np.arccos(np.clip(rot[2, 2], -1.0, 1.0)))
+    pad_el = float(np.max(np.abs(np.diff(np.sort(elev))), initial=1.0)) + tilt + 0.1
+    beam_ok = (elev[None, :] >= el_lo[:, None] - pad_el) & (elev[None, :] <= el_hi[:, None] + pad_el)  # (K, E)
+    beam_ok |= inside[:, None]
+    return ai.astype(np.int64), ki.astype(np.int64), beam_ok
 

@@ -1,6 +1,7 @@
-"""Vectorised ray casting against the ground plane and oriented boxes (the geometry of the synthetic sensors).
+"""Vectorised ray casting against the ground plane, boxes, ellipsoids and cylinders (the synthetic sensors' geometry).
 
-Both the LiDAR and the cameras use these two functions, so a point and a pixel see the same surface.
+Both the LiDAR and the cameras use these functions on the same object parts, so a point and a pixel see the same
+surface.
 Rays are ``origin + t * direction`` with unit directions, so ``t`` is a distance in metres.
 """
 
@@ -60,3 +61,66 @@ def local_normals(axis: np.ndarray, sign: np.ndarray, yaws: np.ndarray) -> np.nd
     np.put_along_axis(n_local, axis[..., None], sign[..., None], axis=-1)
     c, s = np.cos(yaws), np.sin(yaws)
     return np.stack([c * n_local[..., 0] - s * n_local[..., 1], s * n_local[..., 0] + c * n_local[..., 1], n_local[..., 2]], axis=-1)
+
+
+# Part shapes (``synth_shapes``): every shape lives in its own frame, centred, with half extents (a, b, c).
+SHAPE_BOX = 0
+SHAPE_ELLIPSOID = 1  # the ellipsoid inscribed in the box
+SHAPE_CYLINDER = 2  # elliptic cylinder along the part's z axis, capped at z = +-c
+
+
+def ray_shape_entry(
+    origins: np.ndarray, dirs: np.ndarray, half: np.ndarray, shape: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Entry distance (Q,) (inf where missed) and outward unit normal (Q, 3) of rays against centred shapes.
+
+    origins, dirs: (Q, 3) in each shape's frame (dirs unit length, so t is in metres); half: (Q, 3) half extents;
+    shape: (Q,) SHAPE_*. A ray starting inside a shape does not hit it.
+    """
+    o = np.asarray(origins, dtype=np.float64)
+    d = np.asarray(dirs, dtype=np.float64)
+    half = np.asarray(half, dtype=np.float64)
+    shape = np.asarray(shape)
+    t = np.full(len(o), np.inf)
+    normal = np.zeros((len(o), 3))
+    box = np.flatnonzero(shape == SHAPE_BOX)
+    if len(box):
+        hit, tb, axis, sign = ray_box_entry(o[box], d[box], half[box])
+        t[box] = tb
+        normal[box, axis] = sign
+    ell = np.flatnonzero(shape == SHAPE_ELLIPSOID)
+    if len(ell):
+        os_, ds = o[ell] / half[ell], d[ell] / half[ell]  # the unit sphere, same parameter t
+        te = _quadratic_entry(np.sum(ds * ds, axis=1), 2 * np.sum(os_ * ds, axis=1), np.sum(os_ * os_, axis=1) - 1.0)
+        t[ell] = te
+        p = o[ell] + np.where(np.isfinite(te), te, 0.0)[:, None] * d[ell]
+        normal[ell] = p / half[ell] ** 2
+    cyl = np.flatnonzero(shape == SHAPE_CYLINDER)
+    if len(cyl):
+        oc, dc, hc = o[cyl], d[cyl], half[cyl]
+        os_, ds = oc[:, :2] / hc[:, :2], dc[:, :2] / hc[:, :2]
+        ts = _quadratic_entry(np.sum(ds * ds, axis=1), 2 * np.sum(os_ * ds, axis=1), np.sum(os_ * os_, axis=1) - 1.0)
+        zs = oc[:, 2] + np.where(np.isfinite(ts), ts, 0.0) * dc[:, 2]
+        ts = np.where(np.abs(zs) <= hc[:, 2], ts, np.inf)
+        dz = np.where(np.abs(dc[:, 2]) < _EPS, _EPS, dc[:, 2])
+        cap_sign = -np.sign(dz)  # the cap facing the ray
+        tc = (cap_sign * hc[:, 2] - oc[:, 2]) / dz
+        pc = oc[:, :2] + tc[:, None] * dc[:, :2]
+        inside_cap = np.sum((pc / hc[:, :2]) ** 2, axis=1) <= 1.0
+        tc = np.where(inside_cap & (tc > 0) & (np.abs(oc[:, 2]) > hc[:, 2]), tc, np.inf)
+        side = ts <= tc
+        t[cyl] = np.minimum(ts, tc)
+        p = oc + np.where(np.isfinite(t[cyl]), t[cyl], 0.0)[:, None] * dc
+        n = np.zeros_like(p)
+        n[:, :2] = p[:, :2] / hc[:, :2] ** 2
+        n = np.where(side[:, None], n, np.stack([np.zeros(len(p)), np.zeros(len(p)), cap_sign], axis=1))
+        normal[cyl] = n
+    norm = np.linalg.norm(normal, axis=1, keepdims=True)
+    return t, normal / np.maximum(norm, _EPS)
+
+
+def _quadratic_entry(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Smaller positive root of a t^2 + b t + c = 0 for rays starting outside (c > 0); inf where none."""
+    disc = b * b - 4 * a * c
+    root = (-b - np.sqrt(np.maximum(disc, 0.0))) / (2 * np.maximum(a, _EPS))
+    return np.where((disc >= 0) & (c > 0) & (root > 0), root, np.inf)

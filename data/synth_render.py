@@ -1,13 +1,13 @@
 """Camera images of the synthetic world: per-pixel ray casting with a depth test, shading and texture.
 
 Each pixel's ray (through the pixel centre, OpenCV pinhole, no distortion) meets the ground plane, the sky or
-the nearest box whose surface is solid there (``synth_materials.surface`` alpha), so objects hide each other
-and the ground. Each face of a box turned towards the camera is clipped to the near plane, projected and filled
-with OpenCV to find its candidate pixels; their rays are then intersected exactly with the face's plane and
-depth-tested, nearest box first, so the cost is about one ray-plane test per covered pixel. The ground pattern
-is looked up in a pre-sampled raster of ``synth_materials.ground``. Shading is Lambertian per face under a sun
-plus ambient light. The cameras are global-shutter and expose at the sample timestamp (the end of the LiDAR sweep),
-so the rendered objects sit exactly at their annotated poses.
+the nearest solid part (``synth_shapes``; leaves have gaps) of an object, so objects hide each other and the
+ground. The candidate pixels of a part are the projected hull of its bounding box; their rays are then intersected
+exactly with the part. The ground pattern is looked up in a pre-sampled raster of ``synth_materials.ground``.
+Shading is Lambertian per pixel under a sun plus ambient light; objects cast shadows on the ground
+(``shadow_raster``); each camera has its own exposure gain and white balance per frame (``Exposure``). The cameras
+are global-shutter and expose at the sample timestamp (the end of the LiDAR sweep), so the rendered objects sit
+exactly at their annotated poses. ``Render.object_id`` is the per-pixel object the writer turns into masks.
 """
 
 from __future__ import annotations
@@ -19,9 +19,10 @@ import numpy as np
 
 from streamdet.calibration.camera import invert_transform
 from streamdet.core.boxes import box_corners_3d
-from streamdet.data.synth_materials import GROUND_PERIOD_M, ground, surface
-from streamdet.data.synth_raycast import world_to_local
-from streamdet.data.synth_world import NUM_ANNOTATED_KINDS, Scene
+from streamdet.data.synth_kinds import NUM_ANNOTATED_KINDS, Kind
+from streamdet.data.synth_materials import ASPHALT, GROUND_PERIOD_M, cross_street, ground, shade
+from streamdet.data.synth_raycast import ray_shape_entry, world_to_local
+from streamdet.data.synth_world import Scene
 
 NEAR_M = 0.05
 SKY_HORIZON = np.array([0.80, 0.85, 0.90], dtype=np.float32)
@@ -97,8 +98,74 @@ class Render:
     own_pixels: np.ndarray  # (K,) int64 pixels each object would cover with nothing in front of it
 
 
-def render_camera(scene: Scene, t_s: float, camera: CameraModel, rng: np.random.Generator | None = None) -> Render:
-    """Render one camera at scene time ``t_s`` (the ego pose and the objects at that instant)."""
+@dataclass(frozen=True)
+class Exposure:
+    """A camera's exposure gain and white balance (per-channel gains) for one frame."""
+
+    gain: float = 1.0
+    white_balance: tuple[float, float, float] = (1.0, 1.0, 1.0)
+
+    @classmethod
+    def draw(cls, rng: np.random.Generator, gain_sigma: float = 0.18, wb_sigma: float = 0.05) -> "Exposure":
+        """Log-normal gain and white balance: auto-exposure and auto-white-balance that differ per camera and frame."""
+        return cls(float(np.exp(rng.normal(0.0, gain_sigma))), tuple(float(v) for v in np.exp(rng.normal(0.0, wb_sigma, 3))))
+
+
+SHADOW_TEXEL_M = 0.1
+SHADOW_HALF_M = 60.0  # shadows are drawn on the ground within this distance of the ego (BEV square)
+
+
+def shadow_raster(scene: Scene, t_s: float) -> np.ndarray:
+    """(S, S) uint8 ego-frame BEV raster of the ground in the shade of objects at time t (1: shaded).
+
+    Every part's bounding box is projected along the sun onto the ground plane and filled; the cameras of one
+    frame share it. Objects and the ground's undulation are not shaded by other objects (ground shadows only).
+    """
+    n = int(round(2 * SHADOW_HALF_M / SHADOW_TEXEL_M))
+    raster = np.zeros((n, n), dtype=np.uint8)
+    ego2global = scene.ego2global(t_s)
+    rot2 = ego2global[:2, :2]
+    sun = ego2global[:3, :3].T @ scene.sun_dir_world  # (3,) ego frame
+    if sun[2] <= 0.05:
+        return raster
+    objs = scene.objects
+    centres, yaws, _ = objs.poses_at(t_s)
+    ego_c = np.concatenate([(centres[:, :2] - ego2global[:2, 3]) @ rot2, centres[:, 2:3]], axis=1)  # (K, 3) ego
+    ego_yaw = yaws - np.arctan2(rot2[1, 0], rot2[0, 0])
+    reach = np.linalg.norm(ego_c[:, :2], axis=1) - 0.5 * np.hypot(objs.size_wlh[:, 0], objs.size_wlh[:, 1])
+    near = np.flatnonzero((reach < SHADOW_HALF_M) & (objs.kind != Kind.CURB))
+    if not len(near):
+        return raster
+    parts = objs.parts
+    pair, part = parts.expand(near)
+    k = near[pair]
+    corners = _CORNERS[None] * parts.half[part][:, None, :]  # (R, 8, 3) part frame
+    box = np.einsum("rij,rcj->rci", parts.rot[part], corners) + parts.center[part][:, None, :]  # (R, 8, 3) box frame
+    c, s_ = np.cos(ego_yaw[k])[:, None], np.sin(ego_yaw[k])[:, None]
+    x = c * box[..., 0] - s_ * box[..., 1] + ego_c[k, 0:1]
+    y = s_ * box[..., 0] + c * box[..., 1] + ego_c[k, 1:2]
+    z = box[..., 2] + ego_c[k, 2:3]
+    gx = x - z * sun[0] / sun[2]
+    gy = y - z * sun[1] / sun[2]
+    pix = np.stack([(gx + SHADOW_HALF_M) / SHADOW_TEXEL_M, (gy + SHADOW_HALF_M) / SHADOW_TEXEL_M], axis=-1)  # (R, 8, 2)
+    pix = np.round(pix * _SUBPIXEL).astype(np.int64)
+    pix = np.clip(pix, -(1 << 28), 1 << 28).astype(np.int32)
+    for poly in pix:
+        hull = cv2.convexHull(poly)
+        cv2.fillConvexPoly(raster, hull, 1, lineType=cv2.LINE_8, shift=_SHIFT)
+    return raster  # indexed [x, y]
+
+
+_CORNERS = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)  # (8, 3)
+
+
+def render_camera(scene: Scene, t_s: float, camera: CameraModel, rng: np.random.Generator | None = None,
+                  shadows: np.ndarray | None = None, exposure: Exposure | None = None) -> Render:
+    """Render one camera at scene time ``t_s`` (the ego pose and the objects at that instant).
+
+    ``shadows``: the frame's ``shadow_raster`` (none drawn without it); ``exposure``: gain and white balance
+    (drawn from ``rng`` when omitted and ``rng`` is given).
+    """
     h, w = camera.height, camera.width
     rays = camera.rays_ego  # (H, W, 3)
     origin = camera.origin_ego
@@ -115,76 +182,144 @@ def render_camera(scene: Scene, t_s: float, camera: CameraModel, rng: np.random.
     wx = rot2[0, 0] * ground_xy[:, 0] + rot2[0, 1] * ground_xy[:, 1] + (ego2global[0, 3] - scene.road_origin_xy[0])
     wy = rot2[1, 0] * ground_xy[:, 0] + rot2[1, 1] * ground_xy[:, 1] + (ego2global[1, 3] - scene.road_origin_xy[1])
     (ux, uy), (nx, ny) = scene.road_u, scene.road_n
-    albedo = ground_atlas(wx * ux + wy * uy, wx * nx + wy * ny)
-    lum = np.float32(AMBIENT + SUN * max(sun_ego[2], 0.0))
-    color[g] = albedo * (clear * lum) + haze_rgb
+    s_road, d_road = wx * ux + wy * uy, wx * nx + wy * ny
+    albedo = ground_atlas(s_road, d_road)
+    if scene.cross_s_m is not None:
+        cross = cross_street(s_road, d_road, scene.cross_s_m)
+        albedo[cross] = ASPHALT * 0.95
+    sun_lum = np.float32(SUN * max(sun_ego[2], 0.0))
+    lum = np.full(len(g), np.float32(AMBIENT) + sun_lum, dtype=np.float32)
+    if shadows is not None:
+        n_s = shadows.shape[0]
+        ix = np.floor((ground_xy[:, 0] + SHADOW_HALF_M) / SHADOW_TEXEL_M).astype(np.int64)
+        iy = np.floor((ground_xy[:, 1] + SHADOW_HALF_M) / SHADOW_TEXEL_M).astype(np.int64)
+        inside = (ix >= 0) & (ix < n_s) & (iy >= 0) & (iy < n_s)
+        shaded = np.zeros(len(g), dtype=bool)
+        shaded[inside] = shadows[ix[inside], iy[inside]] > 0
+        lum[shaded] = AMBIENT
+    color[g] = albedo * (clear * lum[:, None]) + haze_rgb
     color = color.reshape(h, w, 3)  # (H, W, 3)
     zbuf = zbuf.reshape(h, w)  # (H, W)
     object_id = np.full((h, w), -1, dtype=np.int64)
 
-    # Objects, nearest first so most hidden pixels fail the depth test before they are shaded.
+    # Objects: every candidate (pixel, part) pair of the objects in view is intersected at once; each pixel keeps
+    # its nearest solid part if that is nearer than the ground.
     objs = scene.objects
+    parts = objs.parts
     own = np.zeros(len(objs), dtype=np.int64)
-    boxes = objs.boxes_at(t_s)  # (K, 9) world
-    centers = np.concatenate([(boxes[:, :2] - ego2global[:2, 3]) @ rot2, boxes[:, 2:3]], axis=1)  # (K, 3) ego
-    yaws = boxes[:, 6] - np.arctan2(rot2[1, 0], rot2[0, 0])
+    centres, yaws_w, _ = objs.poses_at(t_s)
+    centers = np.concatenate([(centres[:, :2] - ego2global[:2, 3]) @ rot2, centres[:, 2:3]], axis=1)  # (K, 3) ego
+    yaws = yaws_w - np.arctan2(rot2[1, 0], rot2[0, 0])
     ego2cam = invert_transform(camera.cam2ego)
     rays_flat = rays.reshape(-1, 3)  # (H * W, 3)
     zflat, cflat, idflat = zbuf.reshape(-1), color.reshape(-1, 3), object_id.reshape(-1)  # flat views: (H * W,), (H * W, 3)
-    order = np.argsort(np.linalg.norm(centers - origin, axis=1))
-    order = order[_in_view(centers[order], objs.size_wlh[order], yaws[order], ego2cam, camera)]
-    for k in order:
-        half = objs.size_wlh[k, [1, 0, 2]] / 2  # along the box's x (l), y (w), z (h)
-        o_local = world_to_local(origin, centers[k], yaws[k])
-        c, s = float(np.cos(yaws[k])), float(np.sin(yaws[k]))
-        parts = []
-        for axis, sign, pix in _visible_faces(o_local, half, centers[k], yaws[k], ego2cam, camera):
-            # Exact ray-plane intersection with the candidate face, then the face's extent.
-            d = rays_flat[pix]  # (P, 3) float32, ego frame
-            d_axis = (c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2])  # box frame components
-            den = d_axis[axis]
-            t = (sign * half[axis] - o_local[axis]) / np.where(np.abs(den) < 1e-9, np.float32(1e-9), den)
-            b_ax, c_ax = (axis + 1) % 3, (axis + 2) % 3
-            pb = o_local[b_ax] + t * d_axis[b_ax]
-            pc = o_local[c_ax] + t * d_axis[c_ax]
-            ok = (np.abs(pb) <= half[b_ax] + 1e-6) & (np.abs(pc) <= half[c_ax] + 1e-6) & (t > 0)
-            if objs.kind[k] >= NUM_ANNOTATED_KINDS:
-                ok &= t < zflat[pix]  # clutter: only what is in front matters, no visibility bookkeeping
-            idx = np.flatnonzero(ok)
-            if not len(idx):
-                continue
-            p_local = np.empty((len(idx), 3), dtype=np.float32)
-            p_local[:, axis] = sign * half[axis]
-            p_local[:, b_ax] = pb[idx]
-            p_local[:, c_ax] = pc[idx]
-            normal = np.zeros(3)
-            normal[axis] = sign
-            normal = np.array([c * normal[0] - s * normal[1], s * normal[0] + c * normal[1], normal[2]])
-            lum = AMBIENT + SUN * max(float(normal @ sun_ego), 0.0) + 0.08 * normal[2]
-            parts.append((axis, sign, pix[idx], t[idx], p_local, lum))
-        if not parts:
-            continue
-        pix = np.concatenate([q[2] for q in parts])  # faces of a convex box never share a pixel
-        t = np.concatenate([q[3] for q in parts])
-        axis = np.concatenate([np.full(len(q[2]), q[0]) for q in parts])
-        sign = np.concatenate([np.full(len(q[2]), q[1], dtype=np.float32) for q in parts])
-        lum = np.concatenate([np.full(len(q[2]), q[5], dtype=np.float32) for q in parts])
-        p_local = np.concatenate([q[4] for q in parts])
-        albedo, alpha, _ = surface(int(objs.kind[k]), axis, sign, p_local, half, objs.color[k], objs.color2[k], objs.flag[k])
-        if objs.kind[k] < NUM_ANNOTATED_KINDS:
-            own[k] = int(alpha.sum())
-        front = np.flatnonzero(alpha & (t < zflat[pix]))
-        target = pix[front]
-        zflat[target] = t[front]
-        cflat[target] = albedo[front] * lum[front, None]
-        idflat[target] = k
+    visible = np.flatnonzero(_in_view(centers, objs.size_wlh, yaws, ego2cam, camera))
+    part, pix = _part_pixels(visible, centers, yaws, parts, ego2cam, camera)  # (R,), (R,)
+    if len(part):
+        k = parts.owner[part]
+        # Ego -> part frame per part: x_part = M (x_ego - c_box) - R_p^T c_p with M = R_p^T R_box^T.
+        c, s = np.cos(yaws), np.sin(yaws)
+        box_t = np.zeros((len(objs), 3, 3))
+        box_t[:, 0, 0], box_t[:, 0, 1], box_t[:, 1, 0], box_t[:, 1, 1], box_t[:, 2, 2] = c, s, -s, c, 1.0
+        uniq, inv = np.unique(part, return_inverse=True)
+        m = np.einsum("pji,pjk->pik", parts.rot[uniq], box_t[parts.owner[uniq]])  # (U, 3, 3)
+        o_u = np.einsum("pij,pj->pi", m, origin - centers[parts.owner[uniq]]) - np.einsum(
+            "pji,pj->pi", parts.rot[uniq], parts.center[uniq])  # (U, 3) the camera in each part's frame
+        d_part = np.einsum("rij,rj->ri", m[inv], rays_flat[pix].astype(np.float64))  # (R, 3)
+        o_part = o_u[inv]
+        t, n_part = ray_shape_entry(o_part, d_part, parts.half[part], parts.shape[part])
+        ok = np.flatnonzero(np.isfinite(t) & (t < zflat[pix]))
+        part, pix, t, n_part, k, inv = part[ok], pix[ok], t[ok], n_part[ok], k[ok], inv[ok]
+        p_part = o_part[ok] + t[:, None] * d_part[ok]
+        albedo, alpha, _, _, _ = shade(parts.mat[part], parts.albedo[part], parts.refl[part], p_part, parts.half[part], n_part)
+        keep = np.flatnonzero(alpha)
+        part, pix, t, n_part, k, inv, albedo = part[keep], pix[keep], t[keep], n_part[keep], k[keep], inv[keep], albedo[keep]
+        # Pixels each annotated object covers by itself (its own parts may hide each other, nothing else).
+        ann = objs.kind[k] < NUM_ANNOTATED_KINDS
+        if np.any(ann):
+            key = np.unique(k[ann] * (h * w) + pix[ann])
+            own += np.bincount(key // (h * w), minlength=len(objs))
+        # Nearest part per pixel.
+        srt = np.lexsort((t, pix))
+        first = srt[np.r_[True, pix[srt][1:] != pix[srt][:-1]]] if len(srt) else srt
+        part, pix, t, n_part, k, inv, albedo = part[first], pix[first], t[first], n_part[first], k[first], inv[first], albedo[first]
+        # Shade with the part normal in the ego frame: n_ego = M^T n_part.
+        n_ego = np.einsum("rji,rj->ri", m[inv], n_part)
+        lum = AMBIENT + SUN * np.maximum(n_ego @ sun_ego, 0.0) + 0.08 * n_ego[:, 2]
+        zflat[pix] = t
+        cflat[pix] = albedo * lum[:, None].astype(np.float32)
+        idflat[pix] = k
 
+    if exposure is None and rng is not None:
+        exposure = Exposure.draw(rng)
+    if exposure is not None:
+        color *= np.float32(exposure.gain) * np.asarray(exposure.white_balance, dtype=np.float32)
     if rng is not None:
         noise = camera._noise()
         shift = rng.integers(0, noise.shape[0])
         color += np.roll(noise, shift, axis=0)
     image = cv2.convertScaleAbs(color, alpha=255.0)  # saturating float -> uint8 in one pass
     return Render(image=image, object_id=object_id, own_pixels=own)
+
+
+def _part_pixels(order: np.ndarray, centers: np.ndarray, yaws: np.ndarray, parts, ego2cam: np.ndarray,
+                 camera: CameraModel) -> tuple[np.ndarray, np.ndarray]:
+    """(part, flat pixel) candidate pairs of every part of the objects ``order``: the projected hull of the
+    part's bounding box (plus a pixel).
+
+    The corners of all parts are projected at once; a part whose box reaches behind the near plane is clipped
+    face by face. The caller intersects each candidate pixel's ray with the part exactly.
+    """
+    if not len(order):
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    pair, part = parts.expand(order)
+    k = order[pair]
+    corners = _CORNERS[None] * parts.half[part][:, None, :]  # (R, 8, 3) part frame
+    box = np.einsum("rij,rcj->rci", parts.rot[part], corners) + parts.center[part][:, None, :]  # (R, 8, 3) box frame
+    c, s = np.cos(yaws[k])[:, None], np.sin(yaws[k])[:, None]
+    ego = np.stack([c * box[..., 0] - s * box[..., 1], s * box[..., 0] + c * box[..., 1], box[..., 2]], axis=-1) + centers[k][:, None, :]
+    cam = ego @ ego2cam[:3, :3].T + ego2cam[:3, 3]  # (R, 8, 3)
+    z = cam[..., 2]
+    behind = z.min(axis=1) < NEAR_M
+    gone = z.max(axis=1) < NEAR_M
+    uv = (cam @ camera.K.T)[..., :2] / np.maximum(z, NEAR_M)[..., None] - 0.5  # (R, 8, 2) pixel-centre coordinates
+    out_part: list[np.ndarray] = []
+    out_pix: list[np.ndarray] = []
+    width, height = camera.width, camera.height
+    for r in range(len(part)):
+        if gone[r]:
+            continue
+        if behind[r]:
+            polys = [_clip_near(cam[r][list(face)]) for face in _FACES]
+            pts = np.concatenate([p for p in polys if len(p)]) if any(len(p) for p in polys) else np.zeros((0, 3))
+            if len(pts) < 3:
+                continue
+            q = (pts @ camera.K.T)[:, :2] / pts[:, 2:3] - 0.5
+        else:
+            q = uv[r]
+        u0 = max(int(np.floor(q[:, 0].min())) - 1, 0)
+        u1 = min(int(np.ceil(q[:, 0].max())) + 2, width)
+        v0 = max(int(np.floor(q[:, 1].min())) - 1, 0)
+        v1 = min(int(np.ceil(q[:, 1].max())) + 2, height)
+        if u0 >= u1 or v0 >= v1:
+            continue
+        mask = np.zeros((v1 - v0, u1 - u0), dtype=np.uint8)
+        pts2 = np.round((q - [u0, v0]) * _SUBPIXEL).astype(np.int64)
+        pts2 = np.clip(pts2, -(1 << 20), 1 << 20).astype(np.int32)  # keep OpenCV's fixed point in range for grazing parts
+        hull = cv2.convexHull(pts2)
+        cv2.fillConvexPoly(mask, hull, 1, lineType=cv2.LINE_8, shift=_SHIFT)
+        cv2.polylines(mask, [hull], True, 1, thickness=2, lineType=cv2.LINE_8, shift=_SHIFT)
+        rows, cols = np.nonzero(mask)
+        if len(rows):
+            out_part.append(np.full(len(rows), part[r], dtype=np.int64))
+            out_pix.append((rows + v0) * width + cols + u0)
+    if not out_part:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    return np.concatenate(out_part), np.concatenate(out_pix)
+
+
+# The six faces of a box as corner indices of _CORNERS (x-, x+, y-, y+, z-, z+), each a closed loop.
+_FACES = ((0, 1, 3, 2), (4, 5, 7, 6), (0, 1, 5, 4), (2, 3, 7, 6), (0, 2, 6, 4), (1, 3, 7, 5))
 
 
 _ATLAS: dict = {}
@@ -217,47 +352,6 @@ def _in_view(centers: np.ndarray, size_wlh: np.ndarray, yaws: np.ndarray, ego2ca
     outside = (uv[..., 0].max(axis=1) < -1) | (uv[..., 0].min(axis=1) > camera.width + 1)
     outside |= (uv[..., 1].max(axis=1) < -1) | (uv[..., 1].min(axis=1) > camera.height + 1)
     return (z.max(axis=1) > NEAR_M) & ~(in_front & outside)
-
-
-def _visible_faces(o_local, half, center, yaw, ego2cam, camera: CameraModel) -> list[tuple[int, int, np.ndarray]]:
-    """(axis, sign, flat pixel indices) of the box faces turned towards the camera, as candidate pixels.
-
-    Each face is clipped to the near plane, projected and filled with OpenCV (plus a one-pixel border so no
-    pixel whose centre ray meets the face is missed); the caller intersects the rays exactly.
-    """
-    c, s = np.cos(yaw), np.sin(yaw)
-    rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-    to_cam = ego2cam[:3, :3] @ rot
-    offset = ego2cam[:3, :3] @ center + ego2cam[:3, 3]
-    out = []
-    for axis in range(3):
-        for sign in (1, -1):
-            if sign * o_local[axis] <= half[axis]:
-                continue  # back face
-            b, c2 = (axis + 1) % 3, (axis + 2) % 3
-            quad = np.zeros((4, 3))
-            quad[:, axis] = sign * half[axis]
-            quad[:, b] = np.array([1, -1, -1, 1]) * half[b]
-            quad[:, c2] = np.array([1, 1, -1, -1]) * half[c2]
-            poly = _clip_near(quad @ to_cam.T + offset)
-            if len(poly) < 3:
-                continue
-            uv = (poly @ camera.K.T)[:, :2] / poly[:, 2:3] - 0.5  # pixel-centre coordinates
-            u0 = max(int(np.floor(uv[:, 0].min())) - 1, 0)
-            u1 = min(int(np.ceil(uv[:, 0].max())) + 2, camera.width)
-            v0 = max(int(np.floor(uv[:, 1].min())) - 1, 0)
-            v1 = min(int(np.ceil(uv[:, 1].max())) + 2, camera.height)
-            if u0 >= u1 or v0 >= v1:
-                continue
-            mask = np.zeros((v1 - v0, u1 - u0), dtype=np.uint8)
-            pts = np.round((uv - [u0, v0]) * _SUBPIXEL).astype(np.int32)
-            pts = np.clip(pts, -(1 << 20), 1 << 20)  # keep OpenCV's fixed point in range for grazing faces
-            cv2.fillConvexPoly(mask, pts, 1, lineType=cv2.LINE_8, shift=_SHIFT)
-            cv2.polylines(mask, [pts], True, 1, thickness=2, lineType=cv2.LINE_8, shift=_SHIFT)
-            rows, cols = np.nonzero(mask)
-            if len(rows):
-                out.append((axis, sign, (rows + v0) * camera.width + cols + u0))
-    return out
 
 
 def _clip_near(poly: np.ndarray) -> np.ndarray:

@@ -29,7 +29,7 @@ import numpy as np
 
 from streamdet.data.sample import Sample, bundled_sample_dir, load_bundled_sample
 from streamdet.data.synth_world import WORLD_FILE
-from streamdet.runtime_ort.boxes import CLASS_NAMES
+from streamdet.core.classes import CLASS_NAMES
 
 FACE_M = 0.05  # a point this close to a box face counts as "on the face"
 RANGE_BIN_M = 10.0
@@ -149,15 +149,21 @@ def dataset_stats(root: str | Path, max_samples: int | None = None, progress: Ca
 
 
 def _road_axes_at(scene: dict, xy: np.ndarray) -> list[float]:
-    """Yaws of the roads whose strip contains ``xy`` (all roads where none does)."""
-    roads = scene.get("roads", [])
-    on = []
+    """Yaws of the roads whose strip contains ``xy`` (the nearest road's where none does)."""
+    return road_axes_at(scene.get("roads", []), xy)
+
+
+def road_axes_at(roads: list[dict], xy: np.ndarray) -> list[float]:
+    """Yaws of the road strips ({origin_xy, yaw, half_width_m}) containing ``xy``; else the nearest road's yaw."""
+    on, nearest, best = [], [], math.inf
     for r in roads:
-        rel = xy - np.asarray(r["origin_xy"], dtype=np.float64)
-        n = np.array([-math.sin(r["yaw"]), math.cos(r["yaw"])])
-        if abs(float(rel @ n)) <= float(r["half_width_m"]):
+        rel = np.asarray(xy, dtype=np.float64) - np.asarray(r["origin_xy"], dtype=np.float64)
+        lateral = abs(float(rel @ np.array([-math.sin(r["yaw"]), math.cos(r["yaw"])])))
+        if lateral <= float(r["half_width_m"]):
             on.append(float(r["yaw"]))
-    return on or [float(r["yaw"]) for r in roads]
+        if lateral - float(r["half_width_m"]) < best:
+            best, nearest = lateral - float(r["half_width_m"]), [float(r["yaw"])]
+    return on or nearest
 
 
 def _median(values) -> float | None:

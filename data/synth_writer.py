@@ -7,6 +7,19 @@
 ``<file>.time`` (float32 per point, the firing time after the sweep start) is a streamdet extension that the
 devkit ignores and ``NuScenesReader`` returns as ``Sample.point_time_s``.
 
+Beside each image ``<file>.jpg`` a ``<file>.jpg.mask.npz`` (numpy ``savez_compressed``; the devkit ignores it) holds
+the per-pixel object masks the renderer knows, at the image's resolution:
+
+    class_id      (H, W) uint8   index into CLASS_NAMES of the annotated object seen there, 255 where none
+                                 (ground, sky, buildings and the unannotated look-alikes)
+    instance      (H, W) uint16  1 + the object's number in its scene, 0 where none; one object keeps its number
+                                 in every camera and key frame of the scene
+    ids           (M,) uint16    the instance numbers present in this image
+    tokens        (M,) str       their nuScenes instance tokens (the ``instance`` table), in the order of ``ids``
+
+``DIR/world.json`` names the world version (``synth_world.WORLD_VERSION``) and, per scene, its start time, roads
+and look-alike distractors (read by ``streamdet-synth stats``).
+
 The rig is the real one of the bundled nuScenes sample: LiDAR and camera mountings (calibrated_sensor) and
 intrinsics, scaled to the chosen resolution. Cameras expose at the key frame's timestamp, so every sample_data
 of a key frame shares one ego pose. Every scene, sample and sweep draws its randomness from its own
@@ -28,9 +41,10 @@ import cv2
 import numpy as np
 
 from streamdet.calibration.camera import make_transform, matrix_to_quaternion, quaternion_to_matrix
+from streamdet.core.classes import CLASS_NAMES
 from streamdet.data.sample import POINT_TIME_SUFFIX, bundled_sample_dir
 from streamdet.data.synth_lidar import LidarConfig, SimSweep, simulate_sweep
-from streamdet.data.synth_render import CameraModel, Render, render_camera
+from streamdet.data.synth_render import CameraModel, Render, render_camera, shadow_raster
 from streamdet.data.synth_trajectories import write_trajectories
 from streamdet.data.synth_world import (
     DISTRACTOR_KINDS,
@@ -46,7 +60,10 @@ from streamdet.data.synth_world import (
 )
 
 DEFAULT_VERSION = "v1.0-synth"
+MASK_SUFFIX = ".mask.npz"  # beside each image: per-pixel class and instance of the annotated objects
 LIDAR_CHANNEL = "LIDAR_TOP"
+# Kind -> index into CLASS_NAMES for the annotated kinds (255 for the others).
+CLASS_OF_KIND = np.array([CLASS_NAMES.index(s.detection_class) if s.detection_class else 255 for s in KIND_SPECS], dtype=np.uint8)
 VISIBILITY_LEVELS = (("1", "v0-40", 0.4), ("2", "v40-60", 0.6), ("3", "v60-80", 0.8), ("4", "v80-100", 1.01))
 ATTRIBUTES = (
     "vehicle.moving",
@@ -161,9 +178,10 @@ def simulate_frame(scene: Scene, index: int, rig: RigRecords, config: SynthConfi
         rng = np.random.default_rng([config.seed, scene.index, index, j, 1])
         sweeps.append(simulate_sweep(scene, t_s - j * step, lidar2ego, rng, config.lidar))
     renders = {}
+    shadows = shadow_raster(scene, t_s)
     for c, model in enumerate(rig.models):
         rng = np.random.default_rng([config.seed, scene.index, index, c, 2])
-        renders[model.name] = render_camera(scene, t_s, model, rng)
+        renders[model.name] = render_camera(scene, t_s, model, rng, shadows=shadows)
     objs = scene.objects
     ego_xy = scene.ego_xy(t_s)
     dist = np.linalg.norm(objs.boxes_at(t_s)[:, :2] - ego_xy, axis=1)
@@ -418,6 +436,7 @@ class _Tables:
         if not ok:
             raise RuntimeError(f"JPEG encoding failed for {filename}")
         path.write_bytes(buf.tobytes())
+        self.write_mask(path, scene, frame.renders[channel].object_id)
         prev = next((r for r in reversed(self.rows["sample_data"]) if r["filename"].startswith(f"samples/{channel}/{scene.name}__")), None)
         row = {
             "token": self.tok("sample_data", scene.name, channel, ts),
@@ -436,6 +455,20 @@ class _Tables:
         if prev:
             prev["next"] = row["token"]
         self.rows["sample_data"].append(row)
+
+    def write_mask(self, image_path: Path, scene: Scene, object_id: np.ndarray) -> Path:
+        """``<image>.mask.npz`` beside the image: class and instance of the annotated object at every pixel."""
+        kinds = scene.objects.kind
+        annotated = (object_id >= 0) & (kinds[np.maximum(object_id, 0)] < NUM_ANNOTATED_KINDS)
+        class_id = np.full(object_id.shape, 255, dtype=np.uint8)
+        class_id[annotated] = CLASS_OF_KIND[kinds[object_id[annotated]]]
+        instance = np.where(annotated, object_id + 1, 0).astype(np.uint16)
+        ids = np.unique(instance[instance > 0])
+        tokens = np.array([self.tok("instance", scene.name, int(i) - 1) for i in ids], dtype=np.str_)
+        path = image_path.with_name(image_path.name + MASK_SUFFIX)
+        with open(path, "wb") as f:
+            np.savez_compressed(f, class_id=class_id, instance=instance, ids=ids.astype(np.uint16), tokens=tokens)
+        return path
 
     def annotations(self, scene: Scene, sample_token: str, frame: SimFrame) -> None:
         objs = scene.objects
