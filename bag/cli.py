@@ -1,4 +1,5 @@
-"""``streamdet-bag``: nuScenes scenes as ROS 2 MCAP bags (``export``) and detections on a bag (``run``)."""
+"""``streamdet-bag``: nuScenes scenes as ROS 2 MCAP bags (``export``), detections on a bag (``run``), a bag's camera
+rig as calibration.json (``calibration``)."""
 
 from __future__ import annotations
 
@@ -102,9 +103,42 @@ def run_cmd(bag_path: Path, export_dir: Path, out: Path, results_json: Path | No
         f"{summary.num_sweeps} sweeps, {summary.num_slices} slices, {summary.num_image_sets} image sets "
         f"({summary.precision}, cameras {list(summary.cameras) or 'none'}): {summary.num_detections} detections"
     )
+    if summary.cameras_without_info:
+        click.echo(f"no CameraInfo for {list(summary.cameras_without_info)} at some image sets: the calibration in use "
+                   "stayed (the export's until the bag's was complete); name their topics with --topics CAM.info=/topic")  # fmt: skip
     click.echo(format_latency(summary.latency_ms))
     click.echo(f"wrote {summary.bag_out}")
     click.echo(f"wrote {summary.results_json}")
+
+
+@main.command("calibration")
+@click.option("--bag", "bag_path", type=click.Path(path_type=Path, exists=True), required=True,
+              help="The bag: a .mcap file, or a rosbag2 folder holding one.")
+@click.option("--out", type=click.Path(path_type=Path, dir_okay=False), required=True,
+              help="The calibration.json to write (for streamdet-calib lut, or StreamingDetector.set_calibration).")
+@click.option("--topics", default=None, help="Topic names of a bag recorded elsewhere, as for `run`.")
+@click.option("--cameras", default=None,
+              help="Comma-separated camera names in the export's order. Default: the nuScenes cameras whose image "
+                   "topic the bag holds (in nuScenes order), then any other camera --topics names.")
+@click.option("--ego-frame", default="base_link", show_default=True, help="TF frame of the vehicle.")
+@click.option("--global-frame", default="map", show_default=True,
+              help="TF frame of the ego poses; 'none' for a stack without localisation.")
+def calibration_cmd(bag_path: Path, out: Path, topics: str | None, cameras: str | None, ego_frame: str,
+                    global_frame: str) -> None:  # fmt: skip
+    """Write the bag's camera rig (CameraInfo + TF at its first complete image set) as calibration.json."""
+    from streamdet.bag.calibration import rig_from_bag, write_calibration_json
+    from streamdet.bag.topics import TopicMap
+
+    try:
+        _require_extra()
+        names = [c.strip() for c in cameras.split(",") if c.strip()] if cameras else None
+        rig, stamp = rig_from_bag(bag_path, TopicMap.parse(topics), names, ego_frame,
+                                  None if global_frame.lower() == "none" else global_frame)  # fmt: skip
+        write_calibration_json(rig, out, note=f"{bag_path.name} at LiDAR stamp {stamp} ns")
+    except LIBRARY_ERRORS as e:
+        raise click.ClickException(_one_line(e)) from None
+    click.echo(f"rig of {len(rig)} cameras {list(rig.names)} at LiDAR stamp {stamp} ns")
+    click.echo(f"wrote {out}")
 
 
 def _sweep_progress(done: int) -> None:

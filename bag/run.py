@@ -50,6 +50,7 @@ class RunSummary:
     num_image_sets: int
     num_detections: int  # over all sweeps, after the sweep NMS
     cameras: tuple[str, ...]
+    cameras_without_info: tuple[str, ...]  # their CameraInfo was missing for some image set (calibration kept)
     precision: str
     latency_ms: dict
 
@@ -106,8 +107,9 @@ def run_bag(
                 progress(counts["sweeps"])
     results_path.parent.mkdir(parents=True, exist_ok=True)
     write_results_json(results_path, results, {"use_camera": det.uses_images, "use_lidar": True})
+    without = tuple(c for c in det.camera_names if c in source.cameras_without_info)
     return RunSummary(out, results_path, counts["sweeps"], counts["slices"], counts["image_sets"], counts["detections"],
-                      det.camera_names, det.precision_label, det.stats.summary())  # fmt: skip
+                      det.camera_names, without, det.precision_label, det.stats.summary())  # fmt: skip
 
 
 def _feed_images(det: StreamingDetector, event: SweepEvent) -> None:

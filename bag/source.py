@@ -99,7 +99,8 @@ class BagSource:
         self.config = config
         self._reader_mod = require("mcap.reader")
         self._decoder_mod = require("mcap_ros2.decoder")
-        self._warned_no_info = False
+        self._warned_missing: tuple[str, ...] = ()
+        self.cameras_without_info: set[str] = set()  # cameras whose CameraInfo was missing when an image set was made
 
     def metadata(self) -> dict[str, dict[str, str]]:
         """The bag's MCAP metadata records by name."""
@@ -186,15 +187,14 @@ class BagSource:
         images = {c: _rgb(latest[c], c) for c in names}
         stamps = {c: header_stamp_ns(latest[c]) for c in names}
         rig = None
-        missing = [c for c in cfg.camera_names if c not in infos]
-        if missing and len(missing) < len(cfg.camera_names):
+        missing = tuple(c for c in cfg.camera_names if c not in infos)
+        if missing and missing != self._warned_missing:
+            # a recording may start between a camera's images and its first CameraInfo, and a stack without
+            # CameraInfo runs on the export's calibration: neither is an error, both are worth a line
             topics = [cfg.topics.camera_info_topic(c) for c in missing]
-            raise ValueError(f"{self.path}: no CameraInfo yet for cameras {missing} (topics {topics}); "
-                             "name them with --topics CAM.info=/topic")  # fmt: skip
-        if missing and not self._warned_no_info:
-            topics = [cfg.topics.camera_info_topic(c) for c in missing]
-            log.warning("%s: no CameraInfo on %s: the export's own calibration is used", self.path, topics)
-            self._warned_no_info = True
+            log.warning("%s: no CameraInfo yet on %s: the calibration in use stays (the export's, at first)", self.path, topics)
+            self._warned_missing = missing
+        self.cameras_without_info.update(missing)
         if not missing:
             try:
                 rig = rig_from_ros(infos, tf, str(lidar_message.header.frame_id), header_stamp_ns(lidar_message), stamps,

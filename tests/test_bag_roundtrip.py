@@ -233,3 +233,18 @@ def test_adapters_and_bag_import_without_torch():
     result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr
     assert result.stdout.strip() == "ok"
+
+
+def test_calibration_json_of_the_bag_is_the_first_samples_rig(exported: Path, samples, tmp_path):
+    from streamdet.calibration.camera import Rig
+
+    out = tmp_path / "calibration.json"
+    result = CliRunner().invoke(bag_main, ["calibration", "--bag", str(exported), "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    assert f"at LiDAR stamp {samples[0].timestamp_us * 1000} ns" in result.output
+    assert Rig.from_calibration_json(out) == samples[0].rig  # the first complete image set: the first key frame
+    result = CliRunner().invoke(bag_main, ["calibration", "--bag", str(exported), "--out", str(out), "--cameras", "CAM_BACK,CAM_FRONT"])
+    assert result.exit_code == 0, result.output
+    assert Rig.from_calibration_json(out).names == ("CAM_BACK", "CAM_FRONT")
+    result = CliRunner().invoke(bag_main, ["calibration", "--bag", str(exported), "--out", str(out), "--cameras", "CAM_LEFT"])
+    assert result.exit_code != 0 and "no LiDAR message comes after an image and a CameraInfo of every camera ['CAM_LEFT']" in result.output
