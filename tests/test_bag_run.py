@@ -223,3 +223,15 @@ def test_a_driver_publishing_slices(bag: Path, export_dir: Path, reference: dict
     assert result.exit_code == 0, result.output
     assert "2 sweeps, 16 slices" in result.output
     assert_same_detections(tmp_path / "results_nusc.json", reference)
+
+
+def test_every_option_has_help():
+    import click
+
+    for name, command in bag_main.commands.items():
+        for param in command.params:
+            if isinstance(param, click.Option):
+                assert param.help, f"streamdet-bag {name} {param.opts[0]} has no help text"
+        result = CliRunner().invoke(bag_main, [name, "--help"])
+        assert result.exit_code == 0 and "Usage:" in result.output
+    assert set(bag_main.commands) == {"export", "run", "calibration"}
