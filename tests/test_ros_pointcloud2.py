@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import array
 import struct
 from types import SimpleNamespace
 
@@ -60,7 +61,8 @@ def make_cloud(
             value = int(value) if code not in "fd" else float(value)
             struct.pack_into(e + code, buf, r * row_step + c * point_step + offsets[name], value)
     fields = [ns(name=nm, offset=offsets[nm], datatype=datatypes[nm], count=1) for nm in order]
-    data = {"bytes": bytes(buf), "numpy": np.frombuffer(bytes(buf), np.uint8).copy(), "list": list(buf)}[data_kind]
+    data = {"bytes": bytes(buf), "numpy": np.frombuffer(bytes(buf), np.uint8).copy(), "list": list(buf),
+            "array": array.array("B", bytes(buf))}[data_kind]  # fmt: skip
     return ns(header=ns(stamp=ns(sec=STAMP_NS // 10**9, nanosec=STAMP_NS % 10**9), frame_id="lidar"), height=height, width=width,
               fields=fields, is_bigendian=bigendian, point_step=point_step, row_step=row_step, data=data, is_dense=dense)  # fmt: skip
 
@@ -135,9 +137,9 @@ def test_decode_matches_the_naive_decoder(layout: int, seed: int, dense: bool):
     assert cloud.stamp_ns == STAMP_NS and cloud.frame_id == "lidar"
 
 
-@pytest.mark.parametrize("data_kind", ["bytes", "numpy", "list"])
+@pytest.mark.parametrize("data_kind", ["bytes", "numpy", "array", "list"])
 def test_payload_types_of_the_three_libraries(data_kind: str):
-    """bytes (mcap-ros2-support), numpy uint8 (rosbags), a plain list; rclpy's array.array reads like bytes."""
+    """bytes (mcap-ros2-support), numpy uint8 (rosbags), array.array (rclpy), a plain list."""
     dt = {"x": FLOAT32, "y": FLOAT32, "z": FLOAT32, "intensity": FLOAT32, "t": UINT32}
     cols = random_columns(np.random.default_rng(3), 10, dt, "t")
     ref = decode_pointcloud2(make_cloud(cols, dt, list(dt)))

@@ -1,8 +1,11 @@
-"""``builtin_interfaces/Time`` and ``std_msgs/Header``: stamps as integer nanoseconds, headers as dicts."""
+"""What every message adapter shares: ``builtin_interfaces/Time`` and ``std_msgs/Header`` (stamps as integer
+nanoseconds, headers as dicts) and ``uint8[]`` payloads as numpy views."""
 
 from __future__ import annotations
 
 from typing import Any
+
+import numpy as np
 
 NS_PER_S = 1_000_000_000
 
@@ -40,3 +43,13 @@ def duration_msg(seconds: float) -> dict:
 def header_msg(ns: int, frame_id: str) -> dict:
     """A ``std_msgs/Header`` dict."""
     return {"stamp": time_msg(ns), "frame_id": str(frame_id)}
+
+
+def byte_view(data: Any) -> np.ndarray:
+    """A uint8 view of a ``uint8[]`` payload: bytes, bytearray, array.array, memoryview or a numpy array."""
+    if isinstance(data, np.ndarray):
+        return np.ascontiguousarray(data).view(np.uint8).reshape(-1)
+    try:
+        return np.frombuffer(data, dtype=np.uint8)
+    except TypeError:
+        return np.asarray(data, dtype=np.uint8)  # a list of ints (slow path)

@@ -12,8 +12,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from streamdet.runtime_ort.ros.header import header_msg
-from streamdet.runtime_ort.ros.pointcloud2 import _byte_view
+from streamdet.runtime_ort.ros.header import byte_view, header_msg
 
 RAW_ENCODINGS = ("rgb8", "bgr8")
 COMPRESSED_FORMATS = ("jpeg", "jpg", "png")
@@ -31,7 +30,7 @@ def image_to_rgb(msg: Any) -> np.ndarray:
     height, width, step = int(msg.height), int(msg.width), int(msg.step)
     if step < 3 * width:
         raise ValueError(f"sensor_msgs/Image step {step} < 3 x width {width} for {encoding}")
-    data = _byte_view(msg.data)
+    data = byte_view(msg.data)
     if data.size < step * height:
         raise ValueError(f"sensor_msgs/Image data holds {data.size} bytes; {height} rows of step {step} need {step * height}")
     rows = data[: step * height].reshape(height, step)  # (H, step)
@@ -50,7 +49,7 @@ def compressed_image_to_rgb(msg: Any) -> np.ndarray:
             f"sensor_msgs/CompressedImage format {fmt!r} is not supported: streamdet takes colour "
             f"{' or '.join(('jpeg', 'png'))} images"
         )
-    data = _byte_view(msg.data)
+    data = byte_view(msg.data)
     if data.size == 0:
         raise ValueError(f"sensor_msgs/CompressedImage ({fmt}) holds no data")
     bgr = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)

@@ -26,7 +26,7 @@ import numpy as np
 from streamdet.core.points import INTENSITY_SCALE, SWEEP_COLUMNS
 from streamdet.core.sectors import check_num_slices, slice_index_of
 from streamdet.core.slicing import relative_time_s, split_sweep
-from streamdet.runtime_ort.ros.header import NS_PER_S, header_msg, header_stamp_ns
+from streamdet.runtime_ort.ros.header import NS_PER_S, byte_view, header_msg, header_stamp_ns
 
 # sensor_msgs/PointField datatypes -> numpy type codes (without byte order)
 POINT_FIELD_TYPES: dict[int, str] = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
@@ -95,7 +95,7 @@ def decode_pointcloud2(msg: Any, fields: CloudFields = CloudFields()) -> Cloud:
     used += [("ring", ring_name)] if ring_name else []
     order = ">" if msg.is_bigendian else "<"
     dtype = _point_dtype(present, used, order, point_step)
-    payload = _byte_view(msg.data)
+    payload = byte_view(msg.data)
     num = height * width
     if num == 0:
         return _empty_cloud(msg, time_name is not None)
@@ -241,16 +241,6 @@ def _point_dtype(present: dict, used: list[tuple[str, str]], order: str, point_s
         formats.append(code)
         offsets.append(offset)
     return np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": point_step})
-
-
-def _byte_view(data: Any) -> np.ndarray:
-    """A uint8 view of a ``uint8[]`` payload: bytes, bytearray, array.array, memoryview or a numpy array."""
-    if isinstance(data, np.ndarray):
-        return np.ascontiguousarray(data).view(np.uint8).reshape(-1)
-    try:
-        return np.frombuffer(data, dtype=np.uint8)
-    except TypeError:
-        return np.asarray(data, dtype=np.uint8)  # a list of ints (slow path)
 
 
 def _times_s(raw: np.ndarray, unit: str, stamp: int, name: str) -> np.ndarray:
