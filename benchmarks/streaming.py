@@ -275,15 +275,19 @@ def profile_streaming(
     """onnxruntime profiles of the slice lane with the image lane idle and busy (fresh profiling sessions per phase).
 
     Keys ``"<phase>/<graph>"``; the JSON files go to ``profile_dir/streaming_<phase>.<graph>.json``. The sessions read
-    the export through symbolic links in a temporary folder, where onnxruntime writes its profiles, so the export
-    directory itself is never written to.
+    the export through hard links (copies across file systems) in a temporary folder, where onnxruntime writes its
+    profiles, so the export directory itself is never written to. Not symbolic links: the runtime refuses a file that
+    resolves outside its export directory.
     """
     profile_dir.mkdir(parents=True, exist_ok=True)
     summaries: dict[str, ProfileSummary] = {}
     with tempfile.TemporaryDirectory(prefix="streamdet_stream_profile_") as tmp:
         view = Path(tmp)
         for f in Path(export_dir).iterdir():
-            (view / f.name).symlink_to(f.resolve())
+            try:
+                os.link(f.resolve(), view / f.name)
+            except OSError:  # another file system, or links not allowed
+                shutil.copy2(f.resolve(), view / f.name)
         for phase in ("idle", "busy"):
             progress(f"[streaming] profiling the slice lane, image lane {phase}: {cfg.sweeps} sweep(s)")
             det = _detector(view, cfg, profiling=True)
