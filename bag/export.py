@@ -111,7 +111,11 @@ def cloud_time_s(
 
 
 def _cloud(sweep, stamp: int) -> Callable[[], dict]:
-    return lambda: pointcloud2_message(sweep.points, stamp, T.LIDAR_FRAME, cloud_time_s(sweep.points, sweep.time_s))
+    def make() -> dict:
+        points, time_s = sweep.load()
+        return pointcloud2_message(points, stamp, T.LIDAR_FRAME, cloud_time_s(points, time_s))
+
+    return make
 
 
 def _ego_pose(pose: dict, stamp: int) -> Callable[[], dict]:
@@ -126,6 +130,6 @@ def _info(image, stamp: int) -> Callable[[], dict]:
     return lambda: camera_info_message(image.K, image.width, image.height, stamp, image.name)
 
 
-def _gt_markers(sample, stamp: int) -> Callable[[], dict]:
-    return lambda: marker_array_message(sample.gt_boxes, sample.gt_labels, stamp, T.LIDAR_FRAME, names=list(sample.gt_names),
-                                        ns="ground_truth", replace=True)  # fmt: skip
+def _gt_markers(gt, stamp: int) -> Callable[[], dict]:
+    return lambda: marker_array_message(gt.boxes, gt.labels, stamp, T.LIDAR_FRAME, names=list(gt.names), ns="ground_truth",
+                                        replace=True)  # fmt: skip

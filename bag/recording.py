@@ -21,13 +21,34 @@ Record = dict  # {"rotation": [w, x, y, z], "translation": [x, y, z]}
 
 
 @dataclass(frozen=True, eq=False)
+class GroundTruth:
+    """A key frame's annotated boxes in its LiDAR frame."""
+
+    boxes: np.ndarray  # (M, 9) x, y, z, w, l, h, yaw, vx, vy
+    labels: np.ndarray  # (M,) int64 index into CLASS_NAMES, -1 outside the detection classes
+    names: tuple[str, ...]  # (M,) class name, or the raw category for label -1
+
+    @classmethod
+    def of(cls, sample: Sample) -> "GroundTruth":
+        return cls(sample.gt_boxes, sample.gt_labels, tuple(sample.gt_names))
+
+
+@dataclass(frozen=True, eq=False)
 class LidarSweep:
     timestamp_us: int  # nuScenes: the end of the sweep
-    points: np.ndarray  # (N, 5) float32 x, y, z, intensity, ring
-    time_s: np.ndarray | None  # (N,) float32 firing time after the sweep start; None: the data has none
     ego_pose: Record  # ego -> global at timestamp_us
     sample_token: str | None  # the key frame's sample token; None for a sweep between key frames
-    gt: Sample | None  # the key frame's sample (ground truth in the LiDAR frame); None between key frames
+    gt: GroundTruth | None  # the key frame's ground truth; None between key frames
+    path: Path | None = None  # the .pcd.bin, read when the sweep is written: a scene never sits in memory
+    points_in_memory: np.ndarray | None = None  # (N, 5) when there is no file to read (the bundled sample)
+
+    def load(self) -> tuple[np.ndarray, np.ndarray | None]:
+        """(points (N, 5) float32 x, y, z, intensity, ring; per-point firing time after the sweep start (N,)
+        float32, or None where the data has none)."""
+        if self.path is None:
+            return self.points_in_memory, None
+        points = load_points(self.path)
+        return points, load_point_times(self.path, len(points))
 
 
 @dataclass(frozen=True, eq=False)
@@ -86,11 +107,12 @@ def _tables(root: Path, scene: str | None, version: str) -> Recording:
             raise ValueError(f"{channel} changes its calibrated_sensor within scene {scene!r}; a bag holds one mounting")
         path = root / sd["filename"]
         if channel == LIDAR_CHANNEL:
-            points = load_points(path)
+            if not path.is_file():
+                raise FileNotFoundError(f"LiDAR file of sample_data {sd['token']} not found: {path}")
             key = bool(sd["is_key_frame"])
             token = sd["sample_token"] if key else None
-            times = load_point_times(path, len(points))
-            sweeps.append(LidarSweep(int(sd["timestamp"]), points, times, pose, token, reader.get(token) if key else None))
+            gt = GroundTruth.of(reader.get(token)) if key else None
+            sweeps.append(LidarSweep(int(sd["timestamp"]), pose, token, gt, path=path))
         elif channel.startswith("CAM_"):
             if not path.is_file():
                 raise FileNotFoundError(f"image of sample_data {sd['token']} not found: {path}")
@@ -114,7 +136,8 @@ def _bundled(root: str | Path | None, scene: str | None) -> Recording:
                     int(c["width"]), int(c["height"]), _calib_record(c["ego2global"]))  # fmt: skip
         for c in sorted(calib["cameras"], key=lambda c: c["timestamp_us"])
     )
-    sweep = LidarSweep(sample.timestamp_us, sample.points, None, _calib_record(lidar["ego2global"]), sample.token, sample)
+    sweep = LidarSweep(sample.timestamp_us, _calib_record(lidar["ego2global"]), sample.token, GroundTruth.of(sample),
+                       points_in_memory=sample.points)  # fmt: skip
     cameras = {c["name"]: _calib_record(c["sensor2ego"]) for c in calib["cameras"]}
     return Recording(sample.scene_name, _calib_record(lidar["sensor2ego"]), cameras, (sweep,), images)
 
