@@ -116,12 +116,21 @@ class BagSource:
         return {ch.topic: summary.schemas[ch.schema_id].name for ch in summary.channels.values()}
 
     def messages(self) -> Iterator[BagMessage]:
-        """Every message, decoded, in log-time order."""
+        """Every ROS 2 (CDR) message, decoded, in log-time order; channels in other encodings (a Foxglove protobuf
+        or JSON topic) are skipped with a warning."""
         factory = self._decoder_mod.DecoderFactory()
+        skipped: set[str] = set()
         with open(self.path, "rb") as f:
-            reader = self._reader_mod.make_reader(f, decoder_factories=[factory])
-            for schema, channel, record, decoded in reader.iter_decoded_messages(log_time_order=True):
-                yield BagMessage(channel.topic, schema.name, schema.data.decode(), int(record.log_time), decoded)
+            reader = self._reader_mod.make_reader(f)
+            for schema, channel, record in reader.iter_messages(log_time_order=True):
+                decode = factory.decoder_for(channel.message_encoding, schema)
+                if decode is None:
+                    if channel.topic not in skipped:
+                        log.warning("%s: topic %s is %s, not ROS 2 CDR: skipped", self.path, channel.topic,
+                                    channel.message_encoding)  # fmt: skip
+                        skipped.add(channel.topic)
+                    continue
+                yield BagMessage(channel.topic, schema.name, schema.data.decode(), int(record.log_time), decode(record.data))
 
     def events(self) -> Iterator[tuple[BagMessage, SweepEvent | None]]:
         """Every message with, for each LiDAR message, the sweep event it makes."""

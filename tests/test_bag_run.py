@@ -235,3 +235,29 @@ def test_every_option_has_help():
         result = CliRunner().invoke(bag_main, [name, "--help"])
         assert result.exit_code == 0 and "Usage:" in result.output
     assert set(bag_main.commands) == {"export", "run", "calibration"}
+
+
+def test_channels_in_other_encodings_are_skipped(bag: Path, tmp_path, caplog):
+    """A Foxglove JSON (or protobuf) topic beside the ROS 2 ones: skipped with a warning, the rest read."""
+    from mcap.reader import make_reader
+    from mcap.writer import Writer
+
+    mixed = tmp_path / "mixed.mcap"
+    with open(bag, "rb") as src, open(mixed, "wb") as dst:
+        writer = Writer(dst)
+        writer.start(profile="ros2", library="test")
+        schemas: dict[int, int] = {}
+        channels: dict[int, int] = {}
+        for schema, channel, message in make_reader(src).iter_messages(log_time_order=True):  # a raw copy
+            if schema.id not in schemas:
+                schemas[schema.id] = writer.register_schema(schema.name, schema.encoding, schema.data)
+            if channel.id not in channels:
+                channels[channel.id] = writer.register_channel(channel.topic, channel.message_encoding, schemas[schema.id])
+            writer.add_message(channels[channel.id], message.log_time, message.data, message.publish_time)
+        events = writer.register_channel("/events", "json", writer.register_schema("Event", "jsonschema", b"{}"))
+        writer.add_message(events, 0, json.dumps({"sample": "x"}).encode(), 0)
+        writer.finish()
+    with caplog.at_level("WARNING", logger="streamdet.bag.source"):
+        topics = [m.topic for m in BagSource(mixed, SourceConfig()).messages()]
+    assert "/events" not in topics and topics == [m.topic for m in BagSource(bag, SourceConfig()).messages()]
+    assert "topic /events is json, not ROS 2 CDR: skipped" in caplog.text
