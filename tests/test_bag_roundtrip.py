@@ -248,3 +248,19 @@ def test_calibration_json_of_the_bag_is_the_first_samples_rig(exported: Path, sa
     assert Rig.from_calibration_json(out).names == ("CAM_BACK", "CAM_FRONT")
     result = CliRunner().invoke(bag_main, ["calibration", "--bag", str(exported), "--out", str(out), "--cameras", "CAM_LEFT"])
     assert result.exit_code != 0 and "no LiDAR message comes after an image and a CameraInfo of every camera ['CAM_LEFT']" in result.output
+
+
+def test_a_rosbag2_folder_holding_one_mcap(exported: Path, tmp_path):
+    import shutil
+
+    from streamdet.bag.source import BagSource, SourceConfig
+
+    folder = tmp_path / "rosbag2_drive"
+    folder.mkdir()
+    shutil.copy(exported, folder / "drive_0.mcap")
+    assert BagSource(folder, SourceConfig()).path == folder / "drive_0.mcap"
+    shutil.copy(exported, folder / "drive_1.mcap")
+    with pytest.raises(ValueError, match="is a folder holding 2 .mcap files; name the bag file"):
+        BagSource(folder, SourceConfig())
+    with pytest.raises(FileNotFoundError, match="bag not found"):
+        BagSource(tmp_path / "nope.mcap", SourceConfig())
