@@ -171,7 +171,8 @@ def score(
 
 
 def _evaluate(gt: EvalBoxes, pred: EvalBoxes, config: DetectionConfig):
-    present = set(gt.detection_name[(gt.num_pts > 0) & (gt.ego_dist < 50.0)].tolist())
+    in_range = gt.ego_dist < np.array([config.class_range_m[str(n)] for n in gt.detection_name], dtype=np.float64)
+    present = set(gt.detection_name[(gt.num_pts > 0) & in_range].tolist())  # the classes the devkit would score
     classes = tuple(c for c in config.class_names if c in present)
     if not classes:
         return None

@@ -66,7 +66,8 @@ class GroundTruth:
             if box is not None:
                 rows.append(box)
                 names.append(track[0][2])
-        return TruthBoxes(np.array(rows, dtype=np.float64).reshape(-1, 9), np.array(names, dtype=np.str_))
+        boxes = np.array(rows, dtype=np.float64).reshape(-1, 9)  # (M, 9), also when no object exists at t_us
+        return TruthBoxes(boxes, np.array(names, dtype=np.str_))
 
 
 def load_ground_truth(root: str | Path, version: str, scene_name: str, prefer_trajectories: bool = True) -> GroundTruth:
