@@ -5,9 +5,12 @@
 #   3. streamdet-replay of the val scenes in all three modes (int8 image lane + fp32 slices) at time scales 1, 2, 4,
 #   4. the player's own CPU with a no-op detector.
 # Run it from the repository root on a quiet machine (timings on a shared machine vary 2-8x):
-#   benchmarks/replay_readme.sh [OUT_DIR]        (default out/replay_readme; about 10 minutes on 2 cores)
+#   benchmarks/replay_readme.sh [OUT_DIR [DOCS_DIR]]   (default out/replay_readme; about 10 minutes on 2 cores)
+# With DOCS_DIR (e.g. docs/replay) the picture, the three reports and the player cost are also copied there
+# (replay_timeline.png, replay_scale{1,2,4}.txt, player_cost.txt) for the README and docs/replay.md to quote.
 set -euo pipefail
 OUT=${1:-out/replay_readme}
+DOCS=${2:-}
 BIN=${BIN:-.venv/bin}
 mkdir -p "$OUT"
 DATA="$OUT/synth20"
@@ -28,4 +31,9 @@ for SCALE in 1 2 4; do
 done
 "$BIN/python" -m streamdet.replay.cost --seconds 10 | tee "$OUT/player_cost.txt"
 uptime > "$OUT/uptime_after.txt"
+if [ -n "$DOCS" ]; then
+  mkdir -p "$DOCS"
+  cp "$OUT/replay_timeline.png" "$OUT/player_cost.txt" "$DOCS/"
+  for SCALE in 1 2 4; do cp "$OUT/replay_scale$SCALE.txt" "$DOCS/"; done
+fi
 echo "wrote $OUT (tables: replay_scale*.txt, picture: replay_timeline.png, player cost: player_cost.txt)"
