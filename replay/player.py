@@ -124,6 +124,8 @@ def play(
             for release, rec in zip(schedule, records):
                 dclock.sleep_until(release.time_s, PLAYER)
                 futures.append(_submit(mode, book, release, rec))
+        except BaseException as e:  # reported by play() after the workers finish, never lost in a thread
+            book.errors.append(e)
         finally:
             cpu["player"] = time.thread_time() - cpu0
             book.player_active = False
@@ -141,7 +143,7 @@ def play(
     concurrent.futures.wait(futures)
     mode.close()
     if book.errors:
-        raise RuntimeError(f"{config.mode} replay of {drive.name}: a job failed: {book.errors[0]!r}") from book.errors[0]
+        raise RuntimeError(f"{config.mode} replay of {drive.name} failed: {book.errors[0]!r}") from book.errors[0]
     slices = tuple(r for r in records if isinstance(r, SliceRecord))
     images = tuple(r for r in records if isinstance(r, ImageRecord))
     times = [r.release_s for r in records] + [r.emit_s for r in records if math.isfinite(r.emit_s)]

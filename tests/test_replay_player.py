@@ -187,3 +187,13 @@ def test_bad_config_is_refused():
         PlayerConfig("fastest")
     with pytest.raises(ValueError, match="time_scale"):
         PlayerConfig(time_scale=0)
+
+
+def test_a_failing_detector_fails_the_replay_with_its_error():
+    class Broken(FakeDetector):
+        def detect_slice(self, points, slice_index, timestamp=None, num_slices=None):
+            raise ValueError("broken slice graph")
+
+    clock = FakeClock()
+    with pytest.raises(RuntimeError, match="broken slice graph"):
+        play(make_drive(sweeps=1), Broken(clock, 1.0, 1.0), clock, PlayerConfig("streaming", 4))
