@@ -16,14 +16,15 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _killed_writer(out_dir: Path, also_move_aside: bool) -> int:
-    """A process that stages an export (and optionally moves the old one aside), then is killed with SIGKILL."""
+    """A process that stages an export as export/staging.py names it (the folder carries the pid; asserted by
+    test_a_killed_exports_partial_folder_is_cleaned_by_the_next), optionally moves the old export aside, and is
+    then killed with SIGKILL. Plain Python, so the test does not wait for onnx to import in a second process."""
     code = textwrap.dedent(
         f"""
         import os, sys, tempfile, time
         from pathlib import Path
-        from streamdet.export.staging import make_staging_dir
         out = Path({str(out_dir)!r})
-        tmp = make_staging_dir(out)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{{out.name}}.partial-{{os.getpid()}}-", dir=out.parent))
         (tmp / "slice_head.onnx").write_bytes(b"half")
         if {also_move_aside!r}:
             old = Path(tempfile.mkdtemp(prefix=f".{{out.name}}.old-{{os.getpid()}}-", dir=out.parent))
