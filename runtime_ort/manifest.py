@@ -3,7 +3,8 @@
 The runtime that reads it owns it; the exporter (``streamdet.export``) and ``streamdet-calib`` write it. Like all
 of runtime_ort it never imports torch, onnx or any other export-side dependency: numpy and the standard library only.
 
-Schema (``MANIFEST_VERSION`` = 1), one JSON object::
+Schema (``MANIFEST_VERSION`` = 1), one JSON object; ``manifest.schema.json`` beside this module is the normative
+definition (types, ranges, sizes), validated by ``Manifest.from_dict`` before any record is built::
 
     version            int, MANIFEST_VERSION
     preset_name        str, e.g. "small"
