@@ -70,31 +70,41 @@ SHAPE_CYLINDER = 2  # elliptic cylinder along the part's z axis, capped at z = +
 
 
 def ray_shape_entry(
-    origins: np.ndarray, dirs: np.ndarray, half: np.ndarray, shape: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
+    origins: np.ndarray, dirs: np.ndarray, half: np.ndarray, shape: np.ndarray, with_normal: bool = True
+) -> tuple[np.ndarray, np.ndarray | None]:
     """Entry distance (Q,) (inf where missed) and outward unit normal (Q, 3) of rays against centred shapes.
 
     origins, dirs: (Q, 3) in each shape's frame (dirs unit length, so t is in metres); half: (Q, 3) half extents;
-    shape: (Q,) SHAPE_*. A ray starting inside a shape does not hit it.
+    shape: (Q,) SHAPE_*. A ray starting inside a shape does not hit it. Float32 inputs are computed in float32
+    (the cameras); ``with_normal=False`` skips the normals (returned as None).
     """
-    o = np.asarray(origins, dtype=np.float64)
-    d = np.asarray(dirs, dtype=np.float64)
-    half = np.asarray(half, dtype=np.float64)
+    dtype = np.float32 if np.asarray(origins).dtype == np.float32 and np.asarray(dirs).dtype == np.float32 else np.float64
+    o = np.asarray(origins, dtype=dtype)
+    d = np.asarray(dirs, dtype=dtype)
+    half = np.asarray(half, dtype=dtype)
     shape = np.asarray(shape)
-    t = np.full(len(o), np.inf)
-    normal = np.zeros((len(o), 3))
-    box = np.flatnonzero(shape == SHAPE_BOX)
+    t = np.full(len(o), np.inf, dtype=dtype)
+    normal = np.zeros((len(o), 3), dtype=dtype) if with_normal else None
+    box_mask = shape == SHAPE_BOX
+    if box_mask.all():  # (the common case: skip the gathers)
+        hit, tb, axis, sign = ray_box_entry(o, d, half)
+        if with_normal:
+            normal[np.arange(len(o)), axis] = sign
+        return tb.astype(dtype, copy=False), (None if normal is None else normal)
+    box = np.flatnonzero(box_mask)
     if len(box):
         hit, tb, axis, sign = ray_box_entry(o[box], d[box], half[box])
         t[box] = tb
-        normal[box, axis] = sign
+        if with_normal:
+            normal[box, axis] = sign
     ell = np.flatnonzero(shape == SHAPE_ELLIPSOID)
     if len(ell):
         os_, ds = o[ell] / half[ell], d[ell] / half[ell]  # the unit sphere, same parameter t
         te = _quadratic_entry(np.sum(ds * ds, axis=1), 2 * np.sum(os_ * ds, axis=1), np.sum(os_ * os_, axis=1) - 1.0)
         t[ell] = te
-        p = o[ell] + np.where(np.isfinite(te), te, 0.0)[:, None] * d[ell]
-        normal[ell] = p / half[ell] ** 2
+        if with_normal:
+            p = o[ell] + np.where(np.isfinite(te), te, 0.0)[:, None] * d[ell]
+            normal[ell] = p / half[ell] ** 2
     cyl = np.flatnonzero(shape == SHAPE_CYLINDER)
     if len(cyl):
         oc, dc, hc = o[cyl], d[cyl], half[cyl]
@@ -110,11 +120,14 @@ def ray_shape_entry(
         tc = np.where(inside_cap & (tc > 0) & (np.abs(oc[:, 2]) > hc[:, 2]), tc, np.inf)
         side = ts <= tc
         t[cyl] = np.minimum(ts, tc)
-        p = oc + np.where(np.isfinite(t[cyl]), t[cyl], 0.0)[:, None] * dc
-        n = np.zeros_like(p)
-        n[:, :2] = p[:, :2] / hc[:, :2] ** 2
-        n = np.where(side[:, None], n, np.stack([np.zeros(len(p)), np.zeros(len(p)), cap_sign], axis=1))
-        normal[cyl] = n
+        if with_normal:
+            p = oc + np.where(np.isfinite(t[cyl]), t[cyl], 0.0)[:, None] * dc
+            n = np.zeros_like(p)
+            n[:, :2] = p[:, :2] / hc[:, :2] ** 2
+            n = np.where(side[:, None], n, np.stack([np.zeros(len(p)), np.zeros(len(p)), cap_sign], axis=1))
+            normal[cyl] = n
+    if not with_normal:
+        return t, None
     norm = np.linalg.norm(normal, axis=1, keepdims=True)
     return t, normal / np.maximum(norm, _EPS)
 

@@ -20,8 +20,8 @@ import numpy as np
 from streamdet.calibration.camera import invert_transform
 from streamdet.core.boxes import box_corners_3d
 from streamdet.data.synth_kinds import NUM_ANNOTATED_KINDS, Kind
-from streamdet.data.synth_materials import ASPHALT, GROUND_PERIOD_M, cross_street, ground, shade
-from streamdet.data.synth_raycast import ray_shape_entry, world_to_local
+from streamdet.data.synth_materials import ASPHALT, GROUND_PERIOD_M, Mat, cross_street, ground, shade
+from streamdet.data.synth_raycast import ray_box_entry, ray_shape_entry, world_to_local
 from streamdet.data.synth_world import Scene
 
 NEAR_M = 0.05
@@ -206,7 +206,7 @@ def render_camera(scene: Scene, t_s: float, camera: CameraModel, rng: np.random.
     # its nearest solid part if that is nearer than the ground.
     objs = scene.objects
     parts = objs.parts
-    own = np.zeros(len(objs), dtype=np.int64)
+    own = np.zeros(len(objs), dtype=np.int64)  # (K,) pixels each annotated object covers by itself
     centres, yaws_w, _ = objs.poses_at(t_s)
     centers = np.concatenate([(centres[:, :2] - ego2global[:2, 3]) @ rot2, centres[:, 2:3]], axis=1)  # (K, 3) ego
     yaws = yaws_w - np.arctan2(rot2[1, 0], rot2[0, 0])
@@ -214,41 +214,31 @@ def render_camera(scene: Scene, t_s: float, camera: CameraModel, rng: np.random.
     rays_flat = rays.reshape(-1, 3)  # (H * W, 3)
     zflat, cflat, idflat = zbuf.reshape(-1), color.reshape(-1, 3), object_id.reshape(-1)  # flat views: (H * W,), (H * W, 3)
     visible = np.flatnonzero(_in_view(centers, objs.size_wlh, yaws, ego2cam, camera))
-    part, pix = _part_pixels(visible, centers, yaws, parts, ego2cam, camera)  # (R,), (R,)
-    if len(part):
-        k = parts.owner[part]
+    if len(visible):
         # Ego -> part frame per part: x_part = M (x_ego - c_box) - R_p^T c_p with M = R_p^T R_box^T.
         c, s = np.cos(yaws), np.sin(yaws)
         box_t = np.zeros((len(objs), 3, 3))
         box_t[:, 0, 0], box_t[:, 0, 1], box_t[:, 1, 0], box_t[:, 1, 1], box_t[:, 2, 2] = c, s, -s, c, 1.0
-        uniq, inv = np.unique(part, return_inverse=True)
-        m = np.einsum("pji,pjk->pik", parts.rot[uniq], box_t[parts.owner[uniq]])  # (U, 3, 3)
-        o_u = np.einsum("pij,pj->pi", m, origin - centers[parts.owner[uniq]]) - np.einsum(
-            "pji,pj->pi", parts.rot[uniq], parts.center[uniq])  # (U, 3) the camera in each part's frame
-        d_part = np.einsum("rij,rj->ri", m[inv], rays_flat[pix].astype(np.float64))  # (R, 3)
-        o_part = o_u[inv]
-        t, n_part = ray_shape_entry(o_part, d_part, parts.half[part], parts.shape[part])
-        ok = np.flatnonzero(np.isfinite(t) & (t < zflat[pix]))
-        part, pix, t, n_part, k, inv = part[ok], pix[ok], t[ok], n_part[ok], k[ok], inv[ok]
-        p_part = o_part[ok] + t[:, None] * d_part[ok]
-        albedo, alpha, _, _, _ = shade(parts.mat[part], parts.albedo[part], parts.refl[part], p_part, parts.half[part], n_part)
-        keep = np.flatnonzero(alpha)
-        part, pix, t, n_part, k, inv, albedo = part[keep], pix[keep], t[keep], n_part[keep], k[keep], inv[keep], albedo[keep]
-        # Pixels each annotated object covers by itself (its own parts may hide each other, nothing else).
-        ann = objs.kind[k] < NUM_ANNOTATED_KINDS
-        if np.any(ann):
-            key = np.unique(k[ann] * (h * w) + pix[ann])
-            own += np.bincount(key // (h * w), minlength=len(objs))
-        # Nearest part per pixel.
-        srt = np.lexsort((t, pix))
-        first = srt[np.r_[True, pix[srt][1:] != pix[srt][:-1]]] if len(srt) else srt
-        part, pix, t, n_part, k, inv, albedo = part[first], pix[first], t[first], n_part[first], k[first], inv[first], albedo[first]
-        # Shade with the part normal in the ego frame: n_ego = M^T n_part.
-        n_ego = np.einsum("rji,rj->ri", m[inv], n_part)
-        lum = AMBIENT + SUN * np.maximum(n_ego @ sun_ego, 0.0) + 0.08 * n_ego[:, 2]
-        zflat[pix] = t
-        cflat[pix] = albedo * lum[:, None].astype(np.float32)
-        idflat[pix] = k
+        _, all_parts = parts.expand(visible)
+        m = np.zeros((len(parts.mat), 3, 3))
+        o_cam = np.zeros((len(parts.mat), 3))
+        m[all_parts] = np.einsum("pji,pjk->pik", parts.rot[all_parts], box_t[parts.owner[all_parts]])
+        o_cam[all_parts] = np.einsum("pij,pj->pi", m[all_parts], origin - centers[parts.owner[all_parts]]) - np.einsum(
+            "pji,pj->pi", parts.rot[all_parts], parts.center[all_parts])  # the camera in each part's frame
+        # The nearest a part can be: the distance to its bounding box (exact for boxes, a lower bound otherwise).
+        near_t = np.linalg.norm(np.maximum(np.abs(o_cam) - parts.half, 0.0), axis=1)
+        m, o_cam = m.astype(np.float32), o_cam.astype(np.float32)
+        # Nearest objects first, in a few groups: clutter behind what is already drawn is skipped unintersected.
+        reach = np.linalg.norm(centers[visible] - origin, axis=1) - 0.5 * np.linalg.norm(objs.size_wlh[visible], axis=1)
+        ordered = visible[np.argsort(reach)]
+        # Large single-box scenery (buildings, walls, curbs) is drawn box by box afterwards, without sorting.
+        scenery = np.isin(objs.kind[ordered], _SCENERY)
+        small = ordered[~scenery]
+        for group in np.array_split(small, min(3, len(small))) if len(small) else []:
+            _draw_parts(group, objs, parts, m, o_cam, near_t, rays_flat, zflat, cflat, idflat, own, sun_ego, h * w,
+                        ego2cam, camera, centers, yaws)
+        _draw_scenery(ordered[scenery], objs, parts, m, o_cam, near_t, rays_flat, zflat, cflat, idflat, sun_ego, ego2cam,
+                      camera, centers, yaws)
 
     if exposure is None and rng is not None:
         exposure = Exposure.draw(rng)
@@ -260,6 +250,84 @@ def render_camera(scene: Scene, t_s: float, camera: CameraModel, rng: np.random.
         color += np.roll(noise, shift, axis=0)
     image = cv2.convertScaleAbs(color, alpha=255.0)  # saturating float -> uint8 in one pass
     return Render(image=image, object_id=object_id, own_pixels=own)
+
+
+_SCENERY = np.array([Kind.BUILDING, Kind.WALL, Kind.CURB])  # unannotated, one box part each
+
+
+def _draw_scenery(objects, objs, parts, m, o_cam, near_t, rays_flat, zflat, cflat, idflat, sun_ego, ego2cam, camera,
+                  centers, yaws) -> None:
+    """Draw single-box scenery nearest first: each box's candidate pixels are tested once, in front or not."""
+    part, pix = _part_pixels(objects, centers, yaws, parts, ego2cam, camera)  # grouped by part, in order
+    if not len(part):
+        return
+    bounds = np.flatnonzero(np.r_[True, part[1:] != part[:-1], True])  # run starts, then the end
+    for a, b in zip(bounds[:-1], bounds[1:]):
+        p = int(part[a])
+        px = pix[a:b]
+        px = px[near_t[p] < zflat[px]]
+        if not len(px):
+            continue
+        d = rays_flat[px] @ m[p].T  # (R, 3) part frame
+        hit, t, axis, sign = ray_box_entry(np.broadcast_to(o_cam[p], d.shape), d, parts.half[p].astype(np.float32))
+        front = np.flatnonzero(t < zflat[px])
+        if not len(front):
+            continue
+        px, t, axis, sign = px[front], t[front], axis[front], sign[front]
+        n_part = np.zeros((len(px), 3))
+        n_part[np.arange(len(px)), axis] = sign
+        p_part = o_cam[p] + t[:, None] * d[front]
+        albedo, _, _, _, _ = shade(np.full(len(px), parts.mat[p]), np.broadcast_to(parts.albedo[p], (len(px), 3)),
+                                   np.full(len(px), parts.refl[p]), p_part, np.broadcast_to(parts.half[p], (len(px), 3)), n_part)
+        n_ego = n_part @ m[p].astype(np.float64)  # M^T n for row vectors
+        lum = AMBIENT + SUN * np.maximum(n_ego @ sun_ego, 0.0) + 0.08 * n_ego[:, 2]
+        zflat[px] = t
+        cflat[px] = albedo * lum[:, None].astype(np.float32)
+        idflat[px] = parts.owner[p]
+
+
+def _draw_parts(group, objs, parts, m, o_cam, near_t, rays_flat, zflat, cflat, idflat, own, sun_ego, n_pix,
+                ego2cam, camera, centers, yaws) -> None:
+    """Intersect the candidate pixels of the parts of objects ``group`` and draw each pixel's nearest solid part
+    where it is nearer than what is drawn (updates the flat depth, colour, id buffers and ``own`` in place)."""
+    part, pix = _part_pixels(group, centers, yaws, parts, ego2cam, camera)  # (R,), (R,)
+    if not len(part):
+        return
+    k = parts.owner[part]
+    # Unannotated objects need no visibility bookkeeping: skip pairs already hidden by what is drawn.
+    ann = objs.kind[k] < NUM_ANNOTATED_KINDS
+    keep = np.flatnonzero(ann | (near_t[part] < zflat[pix]))
+    part, pix, k, ann = part[keep], pix[keep], k[keep], ann[keep]
+    d_part = np.einsum("rij,rj->ri", m[part], rays_flat[pix])  # (R, 3) float32
+    o_part = o_cam[part]
+    t, _ = ray_shape_entry(o_part, d_part, parts.half[part].astype(np.float32), parts.shape[part], with_normal=False)
+    ok = np.isfinite(t)
+    foliage = ok & (parts.mat[part] == Mat.FOLIAGE)
+    if np.any(foliage):  # leaves have gaps: only foliage needs its alpha before the depth test
+        idx = np.flatnonzero(foliage)
+        p = o_part[idx] + t[idx, None] * d_part[idx]
+        _, alpha, _, _, _ = shade(parts.mat[part[idx]], parts.albedo[part[idx]], parts.refl[part[idx]], p, parts.half[part[idx]],
+                                  np.zeros_like(p))  # (a leaf's gaps do not depend on the normal)
+        ok[idx[~alpha]] = False
+    ok = np.flatnonzero(ok)
+    part, pix, t, k, ann, o_part, d_part = (v[ok] for v in (part, pix, t, k, ann, o_part, d_part))
+    if np.any(ann):  # pixels each annotated object covers by itself (its own parts may hide each other)
+        key = np.unique(k[ann] * n_pix + pix[ann])
+        own += np.bincount(key // n_pix, minlength=len(own))
+    # Nearest part per pixel, if nearer than what is drawn.
+    srt = np.lexsort((t, pix))
+    first = srt[np.r_[True, pix[srt][1:] != pix[srt][:-1]]] if len(srt) else srt
+    first = first[t[first] < zflat[pix[first]]]
+    part, pix, t, k, o_part, d_part = (v[first] for v in (part, pix, t, k, o_part, d_part))
+    _, n_part = ray_shape_entry(o_part.astype(np.float64), d_part.astype(np.float64), parts.half[part], parts.shape[part])
+    p_part = o_part + t[:, None] * d_part
+    albedo, _, _, _, _ = shade(parts.mat[part], parts.albedo[part], parts.refl[part], p_part, parts.half[part], n_part)
+    # Shade with the part normal in the ego frame: n_ego = M^T n_part.
+    n_ego = np.einsum("rji,rj->ri", m[part].astype(np.float64), n_part)
+    lum = AMBIENT + SUN * np.maximum(n_ego @ sun_ego, 0.0) + 0.08 * n_ego[:, 2]
+    zflat[pix] = t
+    cflat[pix] = albedo * lum[:, None].astype(np.float32)
+    idflat[pix] = k
 
 
 def _part_pixels(order: np.ndarray, centers: np.ndarray, yaws: np.ndarray, parts, ego2cam: np.ndarray,
@@ -286,7 +354,9 @@ def _part_pixels(order: np.ndarray, centers: np.ndarray, yaws: np.ndarray, parts
     out_part: list[np.ndarray] = []
     out_pix: list[np.ndarray] = []
     width, height = camera.width, camera.height
-    for r in range(len(part)):
+    box_lo = np.floor(uv.min(axis=1)).astype(np.int64) - 1  # (R, 2) pixel bounds where the part is all in front
+    box_hi = np.ceil(uv.max(axis=1)).astype(np.int64) + 2
+    for r in np.flatnonzero(~gone & ~((box_hi[:, 0] <= 0) | (box_lo[:, 0] >= width) | (box_hi[:, 1] <= 0) | (box_lo[:, 1] >= height)) | behind):
         if gone[r]:
             continue
         if behind[r]:
@@ -295,12 +365,14 @@ def _part_pixels(order: np.ndarray, centers: np.ndarray, yaws: np.ndarray, parts
             if len(pts) < 3:
                 continue
             q = (pts @ camera.K.T)[:, :2] / pts[:, 2:3] - 0.5
+            u0 = max(int(np.floor(q[:, 0].min())) - 1, 0)
+            u1 = min(int(np.ceil(q[:, 0].max())) + 2, width)
+            v0 = max(int(np.floor(q[:, 1].min())) - 1, 0)
+            v1 = min(int(np.ceil(q[:, 1].max())) + 2, height)
         else:
             q = uv[r]
-        u0 = max(int(np.floor(q[:, 0].min())) - 1, 0)
-        u1 = min(int(np.ceil(q[:, 0].max())) + 2, width)
-        v0 = max(int(np.floor(q[:, 1].min())) - 1, 0)
-        v1 = min(int(np.ceil(q[:, 1].max())) + 2, height)
+            u0, v0 = max(int(box_lo[r, 0]), 0), max(int(box_lo[r, 1]), 0)
+            u1, v1 = min(int(box_hi[r, 0]), width), min(int(box_hi[r, 1]), height)
         if u0 >= u1 or v0 >= v1:
             continue
         mask = np.zeros((v1 - v0, u1 - u0), dtype=np.uint8)
@@ -308,7 +380,7 @@ def _part_pixels(order: np.ndarray, centers: np.ndarray, yaws: np.ndarray, parts
         pts2 = np.clip(pts2, -(1 << 20), 1 << 20).astype(np.int32)  # keep OpenCV's fixed point in range for grazing parts
         hull = cv2.convexHull(pts2)
         cv2.fillConvexPoly(mask, hull, 1, lineType=cv2.LINE_8, shift=_SHIFT)
-        cv2.polylines(mask, [hull], True, 1, thickness=2, lineType=cv2.LINE_8, shift=_SHIFT)
+        cv2.polylines(mask, [hull], True, 1, thickness=1, lineType=cv2.LINE_8, shift=_SHIFT)
         rows, cols = np.nonzero(mask)
         if len(rows):
             out_part.append(np.full(len(rows), part[r], dtype=np.int64))
