@@ -13,13 +13,9 @@ PyTorch (a LiDAR-only baseline evaluated with PyTorch, a checkpoint exported fir
 is ``streamdet-study``. This package sits above evaluation/ and runtime_ort/, which never import it.
 """
 
-from streamdet.studies.calib_noise import CalibNoiseResult, NoiseLevel, calib_noise_study, noise_seed
+from streamdet.studies.calib_noise import DEFAULT_NOISE_LEVELS, CalibNoiseResult, NoiseLevel, calib_noise_study, noise_seed
 from streamdet.studies.checkpoints import export_checkpoint, torch_sliced_detector
 from streamdet.studies.common import (
-    DEFAULT_DROPPED_CAMERA,
-    DEFAULT_NOISE_LEVELS,
-    DEFAULT_RESOLUTIONS,
-    DEFAULT_SLICE_COUNTS,
     SHORT_CLASS,
     Progress,
     RuntimeOptions,
@@ -30,9 +26,9 @@ from streamdet.studies.common import (
     open_image_detector,
     score_variants,
 )
-from streamdet.studies.drop_camera import DropCameraResult, check_cameras, drop_camera_study
-from streamdet.studies.resolution import ResolutionResult, ResolutionRow, resolution_study
-from streamdet.studies.slices import OnnxSlicedDetector, SlicedDetector, SlicesResult, slices_study
+from streamdet.studies.drop_camera import DEFAULT_DROPPED_CAMERA, DropCameraResult, check_cameras, drop_camera_study
+from streamdet.studies.resolution import DEFAULT_RESOLUTIONS, ResolutionResult, ResolutionRow, resolution_study
+from streamdet.studies.slices import DEFAULT_SLICE_COUNTS, OnnxSlicedDetector, SlicedDetector, SlicesResult, slices_study
 
 __all__ = [
     "DEFAULT_DROPPED_CAMERA",

@@ -16,7 +16,6 @@ from streamdet.runtime_ort.manifest import sha256_file
 from streamdet.runtime_ort.pipeline import feed_images
 from streamdet.runtime_ort.postprocess import Detections
 from streamdet.studies.common import (
-    DEFAULT_NOISE_LEVELS,
     Progress,
     RuntimeOptions,
     Score,
@@ -32,6 +31,8 @@ from streamdet.studies.common import (
     score_variants,
     sweep_points,
 )
+
+DEFAULT_NOISE_LEVELS = ((0.5, 0.05), (1.0, 0.10), (2.0, 0.20), (3.0, 0.30), (5.0, 0.50))  # (max deg, max m)
 
 
 def noise_seed(seed: int, sample_index: int) -> int:

@@ -25,10 +25,6 @@ from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector, la
 from streamdet.runtime_ort.manifest import read_manifest
 from streamdet.runtime_ort.postprocess import Detections
 
-DEFAULT_SLICE_COUNTS = (1, 4, 8, 16, 32)
-DEFAULT_NOISE_LEVELS = ((0.5, 0.05), (1.0, 0.10), (2.0, 0.20), (3.0, 0.30), (5.0, 0.50))  # (max deg, max m)
-DEFAULT_RESOLUTIONS = ((1600, 900), (1200, 675), (800, 450))  # (W, H) px
-DEFAULT_DROPPED_CAMERA = "CAM_BACK"  # the paper's "without the back camera" row
 SHORT_CLASS = {
     "car": "car", "truck": "truck", "trailer": "trailer", "bus": "bus", "construction_vehicle": "c.veh",
     "bicycle": "bicycle", "motorcycle": "motor", "pedestrian": "ped", "traffic_cone": "cone", "barrier": "barrier",

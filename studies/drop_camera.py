@@ -12,7 +12,6 @@ from streamdet.runtime_ort.detector import StreamingDetector
 from streamdet.runtime_ort.pipeline import sample_images
 from streamdet.runtime_ort.postprocess import Detections
 from streamdet.studies.common import (
-    DEFAULT_DROPPED_CAMERA,
     Progress,
     RuntimeOptions,
     Score,
@@ -29,6 +28,8 @@ from streamdet.studies.common import (
     score_variants,
     sweep_points,
 )
+
+DEFAULT_DROPPED_CAMERA = "CAM_BACK"  # the paper's "without the back camera" row
 
 
 def check_cameras(det: StreamingDetector, cameras: Sequence[str]) -> tuple[str, ...]:

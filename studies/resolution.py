@@ -11,7 +11,6 @@ from streamdet.data.sample import Sample
 from streamdet.runtime_ort.pipeline import sample_images
 from streamdet.runtime_ort.postprocess import Detections
 from streamdet.studies.common import (
-    DEFAULT_RESOLUTIONS,
     Progress,
     RuntimeOptions,
     Score,
@@ -27,6 +26,8 @@ from streamdet.studies.common import (
     score_variants,
     sweep_points,
 )
+
+DEFAULT_RESOLUTIONS = ((1600, 900), (1200, 675), (800, 450))  # (W, H) px
 
 
 @dataclass(frozen=True, eq=False)

@@ -13,7 +13,6 @@ from streamdet.data.sample import Sample
 from streamdet.runtime_ort.pipeline import feed_images
 from streamdet.runtime_ort.postprocess import Detections
 from streamdet.studies.common import (
-    DEFAULT_SLICE_COUNTS,
     Progress,
     RuntimeOptions,
     Score,
@@ -27,6 +26,8 @@ from streamdet.studies.common import (
     score_variants,
     sweep_points,
 )
+
+DEFAULT_SLICE_COUNTS = (1, 4, 8, 16, 32)
 
 
 class SlicedDetector(Protocol):
