@@ -108,6 +108,7 @@ def _data_inputs(data_dir: Path, version: str, split: str | None, export_dir: Pa
             raise click.ClickException(f"cannot write --json {json_path}: {e.strerror or e}") from None
         click.echo(f"wrote {json_path}")
     if save_dir is not None:
+        from streamdet.evaluation.compare import SAMPLES_FILE, write_sample_info
         from streamdet.evaluation.results import write_results_json
 
         try:
@@ -116,9 +117,32 @@ def _data_inputs(data_dir: Path, version: str, split: str | None, export_dir: Pa
                                {"use_camera": detector.detector.uses_images, "use_lidar": True})  # fmt: skip
             write_results_json(save_dir / "gt.json", result.ground_truth, {"use_camera": False, "use_lidar": False},
                                ego_positions=result.ego_positions)  # fmt: skip
+            write_sample_info(save_dir / SAMPLES_FILE, result.scenes, result.poses, n)
         except OSError as e:
             raise click.ClickException(f"cannot write --save-results {save_dir}: {e.strerror or e}") from None
-        click.echo(f"wrote {save_dir / 'results.json'} and {save_dir / 'gt.json'}")
+        click.echo(f"wrote {save_dir / 'results.json'}, {save_dir / 'gt.json'} and {save_dir / 'samples.json'}")
+
+
+def _compare(run_a: Path, run_b: Path, gt_path: Path | None, classes: tuple[str, ...] | None, draws: int, seed: int,
+             json_path: Path | None) -> None:  # fmt: skip
+    """``--compare`` mode: B - A with a paired bootstrap interval over scenes (``evaluation.compare``)."""
+    from streamdet.evaluation.compare import compare_runs, format_comparison, load_run
+
+    try:
+        a, b = load_run(run_a, gt_path), load_run(run_b, gt_path)
+        with click.progressbar(length=1, label=f"bootstrap ({draws} draws)") as bar:
+            comparison = compare_runs(a, b, classes=classes, num_draws=draws, seed=seed)
+            bar.update(1)
+    except ValueError as e:
+        raise click.ClickException(str(e).splitlines()[0]) from None
+    click.echo(format_comparison(comparison, str(run_a), str(run_b)))
+    if json_path is not None:
+        doc = {"A": str(run_a), "B": str(run_b), "seed": seed, **comparison.to_dict()}
+        try:
+            json_path.write_text(json.dumps(doc, indent=1, allow_nan=False) + "\n")
+        except (OSError, ValueError) as e:
+            raise click.ClickException(f"cannot write --json {json_path}: {e}") from None
+        click.echo(f"wrote {json_path}")
 
 
 @click.command(context_settings={"help_option_names": ["-h", "--help"]})
@@ -162,16 +186,34 @@ def _data_inputs(data_dir: Path, version: str, split: str | None, export_dir: Pa
     help="Evaluate and average only these classes (e.g. car,pedestrian,bicycle); default: files mode all 10, as the "
     "devkit; dataset mode the classes present in the ground truth.",
 )  # fmt: skip
+@click.option(
+    "--compare", "compare_runs", nargs=2, type=click.Path(exists=True, path_type=Path), default=None,
+    metavar="RUN_A RUN_B",
+    help="Compare two runs on the same ground truth: B - A for mAP, NDS and per-class AP with a paired bootstrap "
+    "95 % interval over scenes, also per slice, for boxes cut by a slice border and for boxes with at most 5 points. "
+    "A run is a folder written by --save-results, or a results file (then give --gt).",
+)  # fmt: skip
+@click.option("--bootstrap", "draws", type=click.IntRange(min=1), default=1000, show_default=True,
+              help="Compare mode: bootstrap draws.")  # fmt: skip
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True,
+              help="Compare mode: seed of the bootstrap draws.")  # fmt: skip
 def main(gt_path: Path | None, results_path: Path | None, data_dir: Path | None, version: str, split: str,
          export_dir: Path, slices: int | None, precision: str, image_precision: str | None, max_samples: int | None,
-         json_path: Path | None, classes: str | None, save_dir: Path | None) -> None:  # fmt: skip
+         json_path: Path | None, classes: str | None, save_dir: Path | None,
+         compare_runs: tuple[Path, Path] | None = None, draws: int = 1000, seed: int = 0) -> None:  # fmt: skip
     """nuScenes detection mAP, TP errors and NDS, computed as nuscenes-devkit 1.2.0 (detection_cvpr_2019).
 
-    Two modes: --gt with --results (two JSON files), or --data (run an export over a dataset split).
+    Three modes: --gt with --results (two JSON files), --data (run an export over a dataset split), or
+    --compare RUN_A RUN_B (two saved runs, paired bootstrap over scenes).
     The devkit's bike-rack filter needs the bicycle-rack annotations, which these files do not hold: it is
     skipped. Without GT attributes, every attribute error is 1.
     """
     class_list = _parse_classes(classes)
+    if compare_runs:
+        if data_dir is not None or results_path is not None or save_dir is not None:
+            raise click.UsageError("--compare reads two saved runs; do not combine it with --data / --results / --save-results")
+        _compare(compare_runs[0], compare_runs[1], gt_path, class_list, draws, seed, json_path)
+        return
     if data_dir is not None:
         if gt_path is not None or results_path is not None:
             raise click.UsageError("--data runs the detector itself; do not combine it with --gt / --results")

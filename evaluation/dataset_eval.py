@@ -44,6 +44,9 @@ class DatasetEvaluation:
     predictions: dict[str, list[dict]] = field(default_factory=dict, repr=False)
     ground_truth: dict[str, list[dict]] = field(default_factory=dict, repr=False)
     ego_positions: dict[str, list[float]] = field(default_factory=dict, repr=False)
+    # per sample: its scene and (lidar2ego, ego2global), for the scene bootstrap and slice subsets of --compare
+    scenes: dict[str, str] = field(default_factory=dict, repr=False)
+    poses: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict, repr=False)
 
     def to_dict(self) -> dict:
         return {**self.metrics.to_dict(), "classes": list(self.classes), "num_samples": self.num_samples,
@@ -82,12 +85,16 @@ def evaluate_dataset(
     gt_results: dict[str, list[dict]] = {}
     pred_results: dict[str, list[dict]] = {}
     ego: dict[str, list[float]] = {}
+    scenes: dict[str, str] = {}
+    poses: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     t0 = time.perf_counter()
     for i, token in enumerate(tokens):
         sample = reader.get(token)
         gt_results[token] = ground_truth_entries(sample)
         pred_results[token] = prediction_entries(sample, detect(sample), config.max_boxes_per_sample)
         ego[token] = sample.ego2global[:3, 3].tolist()
+        scenes[token] = reader.scene_name(token)
+        poses[token] = (sample.lidar2ego, sample.ego2global)
         if progress is not None:
             progress(i + 1, len(tokens))
     seconds = time.perf_counter() - t0
@@ -100,7 +107,8 @@ def evaluate_dataset(
             raise ValueError(f"the ground truth of {len(tokens)} samples holds no box with points: nothing to score")
     metrics = evaluate(gt, pred, config=config, classes=classes)
     return DatasetEvaluation(metrics=metrics, classes=tuple(metrics.classes), num_samples=len(tokens), seconds=seconds,
-                             predictions=pred_results, ground_truth=gt_results, ego_positions=ego)  # fmt: skip
+                             predictions=pred_results, ground_truth=gt_results, ego_positions=ego,
+                             scenes=scenes, poses=poses)  # fmt: skip
 
 
 class OnnxSweepDetector:

@@ -1,0 +1,232 @@
+"""Paired bootstrap over scenes of the nuScenes detection metrics: how sure is a difference between two runs?
+
+Matching is per sample (a prediction only ever matches ground truth of its own sample) and the devkit's greedy
+order inside a sample is the global score order restricted to it, so whether a prediction is a true positive,
+and its TP errors, do not depend on which other samples are scored. ``match_tables`` therefore matches once;
+``weighted_metrics`` then scores any multiset of samples (a bootstrap draw: integer weights per sample) by
+repeating each prediction as many times as its sample is drawn. That equals scoring a dataset in which every
+drawn scene is copied, exactly, as long as no two *different* predictions share a score (copies of one
+prediction share its score and its outcome, so their tie order cannot matter); the test pairs it with that
+naive duplication.
+
+Subsets (``GtSubset``) follow the Waymo convention: the ground truth outside the subset is not counted, a
+prediction matched to it is ignored (neither TP nor FP), and an unmatched prediction counts as a false positive
+where ``pred_keep`` holds (default: everywhere).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from streamdet.evaluation.config import TP_METRICS, UNDEFINED_TP_METRICS, DetectionConfig
+from streamdet.evaluation.detection_eval import (
+    _greedy_match,
+    _ordered_classes,
+    calc_ap,
+    calc_tp,
+    center_distance,
+    cummean,
+    filter_eval_boxes,
+    scale_iou,
+    velocity_l2,
+    yaw_diff,
+    attr_acc,
+)
+from streamdet.evaluation.eval_boxes import EvalBoxes
+from streamdet.evaluation.metrics import NUM_RECALL_POINTS, DetectionMetricData, DetectionMetrics
+
+
+@dataclass(frozen=True)
+class GtSubset:
+    """Which boxes a subset scores: ground-truth rows kept, and where an unmatched prediction counts as FP."""
+
+    gt_keep: np.ndarray  # (G,) bool over the *filtered* ground truth of match_tables' input
+    pred_keep: np.ndarray | None = None  # (P,) bool over the filtered predictions; None = every prediction
+
+
+@dataclass(frozen=True, eq=False)
+class MatchTable:
+    """The predictions of one class at one threshold, in the devkit's score order, with their outcome."""
+
+    score: np.ndarray  # (P,) descending
+    is_tp: np.ndarray  # (P,) bool
+    sample: np.ndarray  # (P,) int64 index into the sample list
+    errors: dict[str, np.ndarray]  # TP metric -> (P,) error of each TP (NaN elsewhere)
+    npos: np.ndarray  # (S,) int64 ground-truth boxes of the class per sample
+
+
+def match_tables(
+    gt: EvalBoxes,
+    pred: EvalBoxes,
+    classes: Sequence[str],
+    config: DetectionConfig = DetectionConfig(),
+    subset: GtSubset | None = None,
+    filtered: bool = False,
+) -> tuple[tuple[str, ...], dict[tuple[str, float], MatchTable]]:
+    """Match once: (the samples, in gt's order; a table per (class, threshold)). Inputs as ``evaluate`` takes them.
+
+    ``filtered``: the boxes already went through ``filter_eval_boxes`` (a subset's masks refer to those rows).
+    """
+    if set(gt.sample_tokens) != set(pred.sample_tokens):
+        raise ValueError("predictions must cover exactly the ground-truth samples")
+    if not filtered:
+        gt = filter_eval_boxes(gt, config.class_range_m)
+        pred = filter_eval_boxes(pred, config.class_range_m)
+    if subset is not None:
+        _check_subset(subset, len(gt), len(pred))
+    samples = gt.sample_tokens
+    rank = {t: i for i, t in enumerate(samples)}
+    pred_sample = np.array([rank[t] for t in pred.sample_tokens], dtype=np.int64)[pred.sample_index]  # (P,)
+    tables = {}
+    for c in _ordered_classes(classes, config):
+        gmask, pmask = gt.detection_name == c, pred.detection_name == c
+        gt_c, pred_c = gt.select(gmask), pred.select(pmask)
+        gt_keep = np.ones(len(gt_c), bool) if subset is None else subset.gt_keep[gmask]
+        pred_keep = np.ones(len(pred_c), bool) if subset is None or subset.pred_keep is None else subset.pred_keep[pmask]
+        npos = np.bincount(gt_c.sample_index[gt_keep], minlength=len(samples)).astype(np.int64)
+        order = np.lexsort((np.arange(len(pred_c)), pred_c.detection_score))[::-1]
+        for th in config.dist_ths_m:
+            matched = _greedy_match(gt_c, pred_c, order, th)
+            # Waymo-style: a match to ground truth outside the subset is ignored; an unmatched box counts where kept.
+            counted = np.where(matched >= 0, gt_keep[np.maximum(matched, 0)], pred_keep[order])
+            o, m = order[counted], matched[counted]
+            tables[c, th] = MatchTable(
+                score=pred_c.detection_score[o], is_tp=m >= 0, sample=pred_sample[pmask][o],
+                errors=_tp_errors(gt_c, pred_c, o, m, c), npos=npos,
+            )  # fmt: skip
+    return samples, tables
+
+
+def _check_subset(subset: GtSubset, n_gt: int, n_pred: int) -> None:
+    if np.shape(subset.gt_keep) != (n_gt,):
+        raise ValueError(f"GtSubset.gt_keep must be ({n_gt},) over the filtered ground truth, got {np.shape(subset.gt_keep)}")
+    if subset.pred_keep is not None and np.shape(subset.pred_keep) != (n_pred,):
+        raise ValueError(f"GtSubset.pred_keep must be ({n_pred},) over the filtered predictions, got {np.shape(subset.pred_keep)}")
+
+
+def _tp_errors(gt: EvalBoxes, pred: EvalBoxes, order: np.ndarray, matched: np.ndarray, c: str) -> dict[str, np.ndarray]:
+    tp = matched >= 0
+    p, g = order[tp], matched[tp]
+    period = np.pi if c == "barrier" else 2 * np.pi
+    values = {
+        "trans_err": center_distance(gt.translation[g, :2], pred.translation[p, :2]),
+        "vel_err": velocity_l2(gt.velocity[g], pred.velocity[p]),
+        "scale_err": 1 - scale_iou(gt.size[g], pred.size[p]),
+        "orient_err": yaw_diff(gt.rotation[g], pred.rotation[p], period=period),
+        "attr_err": 1 - attr_acc(gt.attribute_name[g], pred.attribute_name[p]),
+    }
+    out = {}
+    for key, v in values.items():
+        full = np.full(len(order), np.nan)
+        full[tp] = v
+        out[key] = full
+    return out
+
+
+def metric_data(table: MatchTable, weights: np.ndarray) -> DetectionMetricData:
+    """``accumulate``'s curves for the multiset of samples drawn ``weights`` (S,) times each."""
+    npos = float(np.dot(weights, table.npos))
+    reps = weights[table.sample]  # (P,)
+    if npos == 0 or not np.any(table.is_tp & (reps > 0)):
+        return DetectionMetricData.no_predictions()
+    idx = np.repeat(np.arange(len(table.score)), reps)  # copies stay adjacent: one score, one outcome
+    is_tp = table.is_tp[idx]
+    tp = np.cumsum(is_tp).astype(float)
+    fp = np.cumsum(~is_tp).astype(float)
+    conf = table.score[idx]
+    rec_interp = np.linspace(0, 1, NUM_RECALL_POINTS)
+    prec = np.interp(rec_interp, tp / npos, tp / (fp + tp), right=0)
+    conf_interp = np.interp(rec_interp, tp / npos, conf, right=0)
+    match_conf = conf[is_tp]
+    resampled = {
+        key: np.interp(conf_interp[::-1], match_conf[::-1], cummean(table.errors[key][idx][is_tp])[::-1])[::-1]
+        for key in TP_METRICS
+    }
+    return DetectionMetricData(recall=rec_interp, precision=prec, confidence=conf_interp, **resampled)
+
+
+def weighted_metrics(
+    tables: Mapping[tuple[str, float], MatchTable], classes: Sequence[str], weights: np.ndarray,
+    config: DetectionConfig = DetectionConfig(),
+) -> DetectionMetrics:  # fmt: skip
+    """``evaluate``'s result on the samples drawn ``weights`` times each (all ones: the data as it is)."""
+    data = {(c, th): metric_data(tables[c, th], weights) for c in classes for th in config.dist_ths_m}
+    label_aps = {c: {th: calc_ap(data[c, th], config.min_recall, config.min_precision) for th in config.dist_ths_m}
+                 for c in classes}  # fmt: skip
+    label_tp = {
+        c: {m: math.nan if m in UNDEFINED_TP_METRICS.get(c, ()) else calc_tp(data[c, config.dist_th_tp_m], config.min_recall, m)
+            for m in TP_METRICS}
+        for c in classes
+    }  # fmt: skip
+    return DetectionMetrics(config=config, classes=tuple(classes), label_aps=label_aps, label_tp_errors=label_tp,
+                            metric_data=data)  # fmt: skip
+
+
+def summary(metrics: DetectionMetrics) -> dict[str, float]:
+    """The figures a comparison reports: mAP, NDS and each class's AP (keys ``AP/<class>``)."""
+    return {"mAP": metrics.mean_ap, "NDS": metrics.nd_score, **{f"AP/{c}": ap for c, ap in metrics.mean_dist_aps.items()}}
+
+
+@dataclass(frozen=True)
+class Difference:
+    """B minus A for one figure: on the data as it is, and the bootstrap's percentile interval."""
+
+    a: float
+    b: float
+    diff: float
+    lo: float  # lower end of the interval of the difference
+    hi: float
+    p_not_positive: float  # share of bootstrap draws in which B - A <= 0
+
+    def to_dict(self) -> dict[str, float]:
+        return {"A": self.a, "B": self.b, "B_minus_A": self.diff, "ci_lo": self.lo, "ci_hi": self.hi,
+                "p_not_positive": self.p_not_positive}  # fmt: skip
+
+
+def paired_bootstrap(
+    tables_a: Mapping[tuple[str, float], MatchTable],
+    tables_b: Mapping[tuple[str, float], MatchTable],
+    classes: Sequence[str],
+    cluster_of_sample: np.ndarray,
+    num_draws: int = 1000,
+    seed: int = 0,
+    confidence: float = 0.95,
+    config: DetectionConfig = DetectionConfig(),
+) -> dict[str, Difference]:
+    """Resample clusters (scenes) with replacement, the same draw for both runs; B - A per figure of ``summary``.
+
+    ``cluster_of_sample`` (S,) int gives each sample's scene; samples of a scene are correlated (one street, one
+    traffic), so resampling samples instead would give intervals that are too narrow.
+    """
+    cluster_of_sample = np.asarray(cluster_of_sample)
+    if cluster_of_sample.ndim != 1 or not np.issubdtype(cluster_of_sample.dtype, np.integer):
+        raise ValueError(f"cluster_of_sample must be (S,) integers, got shape {cluster_of_sample.shape} dtype {cluster_of_sample.dtype}")
+    if len(cluster_of_sample) == 0:
+        raise ValueError("no sample to bootstrap over")
+    if num_draws < 1 or not 0 < confidence < 1:
+        raise ValueError(f"need num_draws >= 1 and 0 < confidence < 1, got {num_draws}, {confidence}")
+    _, cluster = np.unique(cluster_of_sample, return_inverse=True)
+    n_clusters = int(cluster.max()) + 1
+    ones = np.ones(len(cluster), dtype=np.int64)
+    full_a = summary(weighted_metrics(tables_a, classes, ones, config))
+    full_b = summary(weighted_metrics(tables_b, classes, ones, config))
+    rng = np.random.default_rng(seed)
+    draws: dict[str, list[float]] = {k: [] for k in full_a}
+    for _ in range(num_draws):
+        counts = np.bincount(rng.integers(0, n_clusters, n_clusters), minlength=n_clusters)  # (C,) times drawn
+        w = counts[cluster]  # (S,) a sample counts as often as its scene was drawn
+        sa = summary(weighted_metrics(tables_a, classes, w, config))
+        sb = summary(weighted_metrics(tables_b, classes, w, config))
+        for k in draws:
+            draws[k].append(sb[k] - sa[k])
+    tail = 100 * (1 - confidence) / 2
+    out = {}
+    for k, values in draws.items():
+        v = np.asarray(values)
+        out[k] = Difference(a=full_a[k], b=full_b[k], diff=full_b[k] - full_a[k], lo=float(np.percentile(v, tail)),
+                            hi=float(np.percentile(v, 100 - tail)), p_not_positive=float(np.mean(v <= 0)))  # fmt: skip
+    return out

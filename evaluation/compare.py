@@ -1,0 +1,223 @@
+"""Compare two runs on the same ground truth: B - A per figure, with a paired bootstrap interval over scenes.
+
+A *run* is a folder written by ``streamdet-eval --data ... --save-results DIR`` (``results.json``, ``gt.json`` and,
+from this version on, ``samples.json``) or a results JSON file (then the ground truth comes from ``gt_path``).
+``samples.json`` holds, per sample, its scene and its LiDAR pose, and the export's slice count::
+
+    {"num_slices": n, "start_deg": 0.0,
+     "samples": {sample_token: {"scene": name, "lidar2ego": 4x4, "ego2global": 4x4}}}
+
+With it the bootstrap resamples scenes, and the comparison adds subsets: per slice (boxes whose BEV centre lies in
+slice k, predictions too), boxes cut by a slice border (centre or a BEV corner in two slices, predictions too),
+and ground truth with at most ``few_points`` LiDAR + radar points (predictions are not located by point count:
+unmatched ones count everywhere, see ``bootstrap``). Without it, samples are resampled on their own (a warning
+says the interval is then too narrow) and only the few-points subset is available.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from streamdet.core.boxes import BOX_DIM
+from streamdet.core.sectors import check_num_slices, slice_index_of
+from streamdet.core.slicing import boxes_in_sector
+from streamdet.evaluation.bootstrap import Difference, GtSubset, match_tables, paired_bootstrap
+from streamdet.evaluation.config import DetectionConfig
+from streamdet.evaluation.detection_eval import filter_eval_boxes
+from streamdet.evaluation.eval_boxes import EvalBoxes
+from streamdet.evaluation.results import global_to_lidar, load_gt_and_predictions
+
+SAMPLES_FILE = "samples.json"
+FEW_POINTS = 5  # the issue's subset: objects with at most this many points
+
+
+@dataclass(frozen=True)
+class SampleInfo:
+    """What ``samples.json`` says: scene and LiDAR pose per sample, the slicing of the run."""
+
+    scenes: dict[str, str]
+    lidar2ego: dict[str, np.ndarray]
+    ego2global: dict[str, np.ndarray]
+    num_slices: int
+    start_deg: float = 0.0
+
+
+@dataclass(frozen=True)
+class Run:
+    gt: EvalBoxes
+    pred: EvalBoxes
+    info: SampleInfo | None
+    where: str
+
+
+@dataclass(frozen=True)
+class Comparison:
+    subsets: dict[str, dict[str, Difference]]  # subset name -> figure -> difference
+    num_samples: int
+    num_clusters: int
+    clustered_by: str  # "scene" or "sample"
+    num_draws: int
+    notes: list[str] = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        return {"num_samples": self.num_samples, "num_clusters": self.num_clusters, "clustered_by": self.clustered_by,
+                "num_draws": self.num_draws, "notes": self.notes,
+                "subsets": {s: {k: d.to_dict() for k, d in figs.items()} for s, figs in self.subsets.items()}}  # fmt: skip
+
+
+def write_sample_info(path: Path, scenes: dict[str, str], poses: dict[str, tuple[np.ndarray, np.ndarray]],
+                      num_slices: int, start_deg: float = 0.0) -> None:  # fmt: skip
+    """``samples.json`` beside a saved run (see the module doc)."""
+    doc = {"num_slices": int(num_slices), "start_deg": float(start_deg), "samples": {
+        t: {"scene": scenes[t], "lidar2ego": np.asarray(poses[t][0]).tolist(), "ego2global": np.asarray(poses[t][1]).tolist()}
+        for t in scenes}}  # fmt: skip
+    path.write_text(json.dumps(doc) + "\n")
+
+
+def read_sample_info(path: Path) -> SampleInfo:
+    try:
+        doc = json.loads(path.read_text())
+        n = int(doc["num_slices"])
+        start = float(doc.get("start_deg", 0.0))
+        check_num_slices(n, start)
+        samples = doc["samples"]
+        scenes = {t: str(s["scene"]) for t, s in samples.items()}
+        l2e = {t: _matrix(s["lidar2ego"]) for t, s in samples.items()}
+        e2g = {t: _matrix(s["ego2global"]) for t, s in samples.items()}
+    except (OSError, json.JSONDecodeError) as e:
+        raise ValueError(f"cannot read {path}: {e}") from None
+    except (KeyError, TypeError, ValueError, AttributeError) as e:
+        raise ValueError(f"{path} is not a samples file (num_slices, samples: scene, lidar2ego, ego2global): {e}") from None
+    return SampleInfo(scenes=scenes, lidar2ego=l2e, ego2global=e2g, num_slices=n, start_deg=start)
+
+
+def _matrix(value: object) -> np.ndarray:
+    m = np.asarray(value, dtype=np.float64)
+    if m.shape != (4, 4) or not np.all(np.isfinite(m)):
+        raise ValueError(f"a pose must be a finite 4x4 matrix, got shape {m.shape}")
+    return m
+
+
+def load_run(run: Path, gt_path: Path | None = None) -> Run:
+    """A saved folder (results.json, gt.json, optional samples.json) or a results file scored against ``gt_path``."""
+    run = Path(run)
+    if run.is_dir():
+        results, gt_file = run / "results.json", gt_path or run / "gt.json"
+        for f in (results, gt_file):
+            if not f.is_file():
+                raise ValueError(f"{run} is not a run saved by streamdet-eval --save-results: {f.name} is missing")
+        info_path = run / SAMPLES_FILE
+        info = read_sample_info(info_path) if info_path.is_file() else None
+    elif run.is_file():
+        if gt_path is None:
+            raise ValueError(f"{run} is a results file: give the ground truth with --gt")
+        results, gt_file, info = run, gt_path, None
+    else:
+        raise ValueError(f"{run} does not exist")
+    gt, pred = load_gt_and_predictions(gt_file, results)
+    return Run(gt=gt, pred=pred, info=info, where=str(run))
+
+
+def _same_ground_truth(a: EvalBoxes, b: EvalBoxes, where_a: str, where_b: str) -> None:
+    if set(a.sample_tokens) != set(b.sample_tokens) or len(a) != len(b):
+        raise ValueError(f"{where_a} and {where_b} are not scored on the same ground truth "
+                         f"({len(a.sample_tokens)} vs {len(b.sample_tokens)} samples, {len(a)} vs {len(b)} boxes)")  # fmt: skip
+
+
+def _lidar_boxes(boxes: EvalBoxes, info: SampleInfo) -> np.ndarray:
+    """(N, 9) the boxes in their sample's LiDAR frame."""
+    out = np.zeros((len(boxes), BOX_DIM))
+    for s, token in enumerate(boxes.sample_tokens):
+        rows = np.flatnonzero(boxes.sample_index == s)
+        if len(rows) == 0:
+            continue
+        if token not in info.scenes:
+            raise ValueError(f"samples.json has no entry for sample {token!r}")
+        out[rows] = global_to_lidar(boxes.translation[rows], boxes.size[rows], boxes.rotation[rows],
+                                    np.nan_to_num(boxes.velocity[rows]), info.lidar2ego[token], info.ego2global[token])  # fmt: skip
+    return out
+
+
+def slice_masks(boxes: EvalBoxes, info: SampleInfo) -> tuple[np.ndarray, np.ndarray]:
+    """(slice of the BEV centre (N,) int64, cut by a slice border (N,) bool) of each box."""
+    lidar = _lidar_boxes(boxes, info)
+    n = info.num_slices
+    centre = slice_index_of(lidar[:, 0], lidar[:, 1], n, info.start_deg) if len(lidar) else np.zeros(0, np.int64)
+    touched = np.stack([boxes_in_sector(lidar, k, n, info.start_deg) for k in range(n)], axis=1) if len(lidar) else np.zeros((0, n), bool)
+    return centre, touched.sum(axis=1) > 1 if n > 1 else np.zeros(len(lidar), bool)
+
+
+def compare_runs(
+    run_a: Run, run_b: Run, classes: Sequence[str] | None = None, num_draws: int = 1000, seed: int = 0,
+    config: DetectionConfig = DetectionConfig(), few_points: int = FEW_POINTS, subsets: bool = True,
+) -> Comparison:  # fmt: skip
+    """B - A for mAP, NDS and per-class AP, on all boxes and (``subsets``) per slice / cut / few-points subset."""
+    _same_ground_truth(run_a.gt, run_b.gt, run_a.where, run_b.where)
+    gt = filter_eval_boxes(run_a.gt, config.class_range_m)
+    pred_a = filter_eval_boxes(run_a.pred, config.class_range_m)
+    pred_b = filter_eval_boxes(run_b.pred, config.class_range_m)
+    if len(gt) == 0:
+        raise ValueError(f"{run_a.where}: the ground truth holds no box with points within its class range: nothing to compare")
+    present = set(gt.detection_name.tolist())
+    classes = tuple(c for c in config.class_names if c in present) if classes is None else tuple(classes)
+    info = run_a.info or run_b.info
+    notes = []
+    if info is None:
+        clusters = np.arange(len(gt.sample_tokens))
+        clustered_by = "sample"
+        notes.append("no samples.json: samples resampled one by one; samples of one scene are correlated, so the "
+                     "interval is too narrow")  # fmt: skip
+    else:
+        missing = [t for t in gt.sample_tokens if t not in info.scenes]
+        if missing:
+            raise ValueError(f"samples.json names no scene for sample {missing[0]!r}")
+        names = [info.scenes[t] for t in gt.sample_tokens]
+        clusters = np.unique(names, return_inverse=True)[1].astype(np.int64)
+        clustered_by = "scene"
+
+    subset_defs: dict[str, GtSubset | None] = {"all": None}
+    if subsets:
+        subset_defs[f"gt<={few_points}pts"] = GtSubset(gt_keep=(gt.num_pts >= 1) & (gt.num_pts <= few_points))
+        if info is not None:
+            gt_slice, gt_cut = slice_masks(gt, info)
+            a_slice, a_cut = slice_masks(pred_a, info)
+            b_slice, b_cut = slice_masks(pred_b, info)
+            subset_defs["cut_by_slice_border"] = (GtSubset(gt_cut, a_cut), GtSubset(gt_cut, b_cut))
+            for k in range(info.num_slices):
+                subset_defs[f"slice{k}"] = (GtSubset(gt_slice == k, a_slice == k), GtSubset(gt_slice == k, b_slice == k))
+        else:
+            notes.append("no samples.json: no per-slice or cut-by-border subsets")
+    out = {}
+    for name, sub in subset_defs.items():
+        sub_a, sub_b = sub if isinstance(sub, tuple) else (sub, sub)
+        keep = np.ones(len(gt), bool) if sub_a is None else sub_a.gt_keep
+        sub_classes = tuple(c for c in classes if np.any(gt.detection_name[keep] == c))
+        if not sub_classes:
+            notes.append(f"{name}: no ground truth of the compared classes, skipped")
+            continue
+        _, ta = match_tables(gt, pred_a, sub_classes, config, sub_a, filtered=True)
+        _, tb = match_tables(gt, pred_b, sub_classes, config, sub_b, filtered=True)
+        out[name] = paired_bootstrap(ta, tb, sub_classes, clusters, num_draws, seed, config=config)
+    return Comparison(subsets=out, num_samples=len(gt.sample_tokens), num_clusters=int(clusters.max()) + 1,
+                      clustered_by=clustered_by, num_draws=num_draws, notes=notes)  # fmt: skip
+
+
+def format_comparison(c: Comparison, name_a: str, name_b: str) -> str:
+    """A table: per subset and figure, A, B, B - A and its interval; '*' where the interval excludes 0."""
+    lines = [f"A = {name_a}", f"B = {name_b}",
+             f"paired bootstrap over {c.num_clusters} {c.clustered_by}s ({c.num_samples} samples), {c.num_draws} draws, 95 % interval",
+             f"{'subset':<22}{'figure':<26}{'A':>8}{'B':>8}{'B-A':>8}{'interval':>20}"]  # fmt: skip
+    lines.append("-" * len(lines[-1]))
+    for subset, figs in c.subsets.items():
+        for fig, d in figs.items():
+            if subset != "all" and fig != "mAP":
+                continue  # subsets: mAP in the table, everything in the JSON
+            star = " *" if d.lo > 0 or d.hi < 0 else ""
+            lines.append(f"{subset:<22}{fig:<26}{d.a:>8.4f}{d.b:>8.4f}{d.diff:>+8.4f}   [{d.lo:+.4f}, {d.hi:+.4f}]{star}")
+    lines.extend(f"note: {n}" for n in c.notes)
+    return "\n".join(lines)

@@ -1,0 +1,208 @@
+"""Paired bootstrap of ``streamdet-eval --compare`` against a naive reference: scenes copied, then ``evaluate``."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from streamdet.evaluation import DetectionConfig, EvalBoxes, evaluate, filter_eval_boxes
+from streamdet.evaluation.bootstrap import GtSubset, match_tables, paired_bootstrap, summary, weighted_metrics
+from streamdet.evaluation.cli import main
+from streamdet.evaluation.compare import compare_runs, load_run, read_sample_info, write_sample_info
+
+CFG = DetectionConfig()
+CLASSES = ("car", "pedestrian", "traffic_cone")
+META = {"use_camera": False, "use_lidar": True}
+
+
+def _entry(token: str, xy, name: str, score: float | None, num_pts: int, yaw: float = 0.0) -> dict:
+    e = {"sample_token": token, "translation": [float(xy[0]), float(xy[1]), 1.0], "size": [1.0, 2.0, 1.5],
+         "rotation": [math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)], "velocity": [0.0, 0.0],
+         "detection_name": name, "attribute_name": ""}  # fmt: skip
+    if score is None:
+        e |= {"ego_translation": e["translation"], "num_pts": num_pts, "detection_score": -1.0}
+    else:
+        e |= {"detection_score": score}
+    return e
+
+
+def _world(seed: int, num_samples: int = 8, quality: float = 0.5):
+    """GT and two prediction sets (a weak and a better run) over ``num_samples`` samples; continuous scores."""
+    rng = np.random.default_rng(seed)
+    gt, runs = {}, ({}, {})
+    for s in range(num_samples):
+        t = f"s{s}"
+        gt[t], runs[0][t], runs[1][t] = [], [], []
+        for _ in range(rng.integers(0, 7)):
+            name = CLASSES[rng.integers(len(CLASSES))]
+            xy = rng.uniform(-25, 25, 2)
+            gt[t].append(_entry(t, xy, name, None, int(rng.integers(0, 12))))
+            for r, q in enumerate((quality, quality + 0.3)):
+                if rng.random() < q:
+                    runs[r][t].append(_entry(t, xy + rng.normal(0, 0.7, 2), name, float(rng.random()), -1))
+        for r in range(2):
+            for _ in range(rng.integers(0, 3)):
+                runs[r][t].append(_entry(t, rng.uniform(-25, 25, 2), CLASSES[rng.integers(3)], float(rng.random()), -1))
+    return gt, runs
+
+
+def _boxes(results: dict) -> EvalBoxes:
+    return EvalBoxes.from_results(results).with_ego_position({t: [0.0, 0.0, 0.0] for t in results})
+
+
+def _duplicated(results: dict, weights: dict[str, int]) -> dict:
+    """The naive multiset: every sample copied as often as it was drawn, under fresh tokens."""
+    out = {}
+    for t, entries in results.items():
+        for copy in range(weights[t]):
+            token = f"{t}#{copy}"
+            out[token] = [dict(e, sample_token=token) for e in entries]
+    return out
+
+
+def _figures(gt: dict, pred: dict, classes=CLASSES) -> dict[str, float]:
+    return summary(evaluate(_boxes(gt), _boxes(pred), classes=classes))
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_weighted_metrics_equal_evaluate_on_copied_samples(seed):
+    gt, (pred, _) = _world(seed)
+    _, tables = match_tables(_boxes(gt), _boxes(pred), CLASSES)
+    rng = np.random.default_rng(100 + seed)
+    for weights in (np.ones(len(gt), np.int64), rng.integers(0, 4, len(gt))):
+        if weights.sum() == 0:
+            continue
+        fast = summary(weighted_metrics(tables, CLASSES, weights))
+        naive = _figures(_duplicated(gt, dict(zip(gt, weights.tolist()))), _duplicated(pred, dict(zip(gt, weights.tolist()))))
+        assert fast == pytest.approx(naive, abs=1e-12)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_paired_bootstrap_matches_naive_loop(seed):
+    gt, (pa, pb) = _world(seed, num_samples=6)
+    scenes = np.array([0, 0, 1, 1, 2, 2])
+    _, ta = match_tables(_boxes(gt), _boxes(pa), CLASSES)
+    _, tb = match_tables(_boxes(gt), _boxes(pb), CLASSES)
+    draws = 5
+    got = paired_bootstrap(ta, tb, CLASSES, scenes, num_draws=draws, seed=seed)
+    rng = np.random.default_rng(seed)
+    diffs = []
+    for _ in range(draws):
+        counts = np.bincount(rng.integers(0, 3, 3), minlength=3)
+        w = dict(zip(gt, counts[scenes].tolist()))
+        a, b = _figures(_duplicated(gt, w), _duplicated(pa, w)), _figures(_duplicated(gt, w), _duplicated(pb, w))
+        diffs.append(b["mAP"] - a["mAP"])
+    assert got["mAP"].lo == pytest.approx(np.percentile(diffs, 2.5), abs=1e-12)
+    assert got["mAP"].hi == pytest.approx(np.percentile(diffs, 97.5), abs=1e-12)
+    full = _figures(gt, pb)["mAP"] - _figures(gt, pa)["mAP"]
+    assert got["mAP"].diff == pytest.approx(full, abs=1e-12)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_subset_of_whole_samples_equals_evaluating_those_samples(seed):
+    gt, (pred, _) = _world(seed)
+    g, p = filter_eval_boxes(_boxes(gt), CFG.class_range_m), filter_eval_boxes(_boxes(pred), CFG.class_range_m)
+    chosen = {"s0", "s2", "s5"}
+    in_g = np.isin(np.array(g.sample_tokens)[g.sample_index], list(chosen))
+    in_p = np.isin(np.array(p.sample_tokens)[p.sample_index], list(chosen))
+    present = tuple(c for c in CLASSES if np.any(g.detection_name[in_g] == c))
+    if not present:
+        pytest.skip("no ground truth in the chosen samples")
+    _, tables = match_tables(g, p, present, subset=GtSubset(in_g, in_p), filtered=True)
+    got = summary(weighted_metrics(tables, present, np.ones(len(g.sample_tokens), np.int64)))
+    ref = _figures({t: gt[t] for t in sorted(chosen)}, {t: pred[t] for t in sorted(chosen)}, present)
+    assert got == pytest.approx(ref, abs=1e-12)
+
+
+def test_identical_runs_differ_by_exactly_zero():
+    gt, (pred, _) = _world(0)
+    _, t = match_tables(_boxes(gt), _boxes(pred), CLASSES)
+    out = paired_bootstrap(t, t, CLASSES, np.arange(len(gt)), num_draws=20)
+    assert all(d.diff == 0 and d.lo == 0 and d.hi == 0 for d in out.values())
+
+
+def test_bootstrap_rejects_empty_and_malformed_clusters():
+    gt, (pred, _) = _world(1)
+    _, t = match_tables(_boxes(gt), _boxes(pred), CLASSES)
+    with pytest.raises(ValueError, match="no sample"):
+        paired_bootstrap(t, t, CLASSES, np.zeros(0, np.int64))
+    with pytest.raises(ValueError, match="integers"):
+        paired_bootstrap(t, t, CLASSES, np.zeros(len(gt)))
+    with pytest.raises(ValueError, match="num_draws"):
+        paired_bootstrap(t, t, CLASSES, np.arange(len(gt)), num_draws=0)
+    with pytest.raises(ValueError, match="gt_keep"):
+        match_tables(_boxes(gt), _boxes(pred), CLASSES, subset=GtSubset(np.ones(1, bool)))
+
+
+def _save(folder, gt, pred, scenes=None, num_slices=4):
+    from streamdet.evaluation.results import write_results_json
+
+    folder.mkdir()
+    write_results_json(folder / "results.json", pred, META)
+    write_results_json(folder / "gt.json", gt, META, ego_positions={t: [0.0, 0.0, 0.0] for t in gt})
+    if scenes is not None:
+        eye = np.eye(4)
+        write_sample_info(folder / "samples.json", scenes, {t: (eye, eye) for t in gt}, num_slices)
+    return folder
+
+
+def test_cli_compare_saved_runs_with_subsets(tmp_path):
+    gt, (pa, pb) = _world(3, num_samples=8)
+    scenes = {t: f"scene{i // 2}" for i, t in enumerate(gt)}
+    a = _save(tmp_path / "a", gt, pa, scenes, num_slices=32)  # narrow sectors: some boxes are cut
+    b = _save(tmp_path / "b", gt, pb, scenes, num_slices=32)
+    out = tmp_path / "cmp.json"
+    res = CliRunner().invoke(main, ["--compare", str(a), str(b), "--bootstrap", "30", "--json", str(out)])
+    assert res.exit_code == 0, res.output
+    doc = json.loads(out.read_text())
+    assert doc["clustered_by"] == "scene" and doc["num_clusters"] == 4
+    assert {"all", "gt<=5pts", "cut_by_slice_border", "slice0"} <= set(doc["subsets"])
+    assert doc["subsets"]["all"]["mAP"]["ci_lo"] <= doc["subsets"]["all"]["mAP"]["ci_hi"]
+    assert "AP/car" in doc["subsets"]["all"]
+
+
+def test_cli_compare_without_sample_info_warns_and_results_file_needs_gt(tmp_path):
+    gt, (pa, pb) = _world(4)
+    a, b = _save(tmp_path / "a", gt, pa), _save(tmp_path / "b", gt, pb)
+    res = CliRunner().invoke(main, ["--compare", str(a), str(b), "--bootstrap", "5"])
+    assert res.exit_code == 0, res.output
+    assert "too narrow" in res.output
+    res = CliRunner().invoke(main, ["--compare", str(a / "results.json"), str(b / "results.json"), "--bootstrap", "5"])
+    assert res.exit_code != 0 and "--gt" in res.output and "Traceback" not in res.output
+    res = CliRunner().invoke(main, ["--compare", str(a / "results.json"), str(b / "results.json"), "--gt",
+                                    str(a / "gt.json"), "--bootstrap", "5"])  # fmt: skip
+    assert res.exit_code == 0, res.output
+
+
+def test_cli_compare_errors_are_one_line(tmp_path):
+    gt, (pa, pb) = _world(5)
+    a = _save(tmp_path / "a", gt, pa)
+    other = _save(tmp_path / "o", {t: v for t, v in list(gt.items())[:3]}, {t: v for t, v in list(pb.items())[:3]})
+    res = CliRunner().invoke(main, ["--compare", str(a), str(other)])
+    assert res.exit_code != 0 and "same ground truth" in res.output
+    empty = tmp_path / "e"
+    empty.mkdir()
+    res = CliRunner().invoke(main, ["--compare", str(a), str(empty)])
+    assert res.exit_code != 0 and "results.json is missing" in res.output
+    (a / "samples.json").write_text("{not json")
+    res = CliRunner().invoke(main, ["--compare", str(a), str(a)])
+    assert res.exit_code != 0 and "samples.json" in res.output and "Traceback" not in res.output
+    nothing = _save(tmp_path / "n", {"s0": []}, {"s0": []})
+    res = CliRunner().invoke(main, ["--compare", str(nothing), str(nothing)])
+    assert res.exit_code != 0 and "nothing to compare" in res.output
+
+
+def test_sample_info_round_trip_and_malformed(tmp_path):
+    p = tmp_path / "samples.json"
+    write_sample_info(p, {"t": "scene-1"}, {"t": (np.eye(4), np.eye(4))}, 8)
+    info = read_sample_info(p)
+    assert info.num_slices == 8 and info.scenes == {"t": "scene-1"}
+    p.write_text(json.dumps({"num_slices": 3, "samples": {}}))
+    with pytest.raises(ValueError, match="not a samples file"):
+        read_sample_info(p)
+    with pytest.raises(ValueError, match="does not exist"):
+        load_run(tmp_path / "missing")
