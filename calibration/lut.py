@@ -72,6 +72,27 @@ def blind_cameras(lut: "Lut") -> list[tuple[str, int]]:
     return [(name, n) for name, n in slots.items() if n == 0]
 
 
+MOVED_CAMERA_IOU = 0.5  # a camera whose seen voxels overlap its previous ones less than this has moved a lot
+
+
+def moved_cameras(old: "Lut", new: "Lut", min_iou: float = MOVED_CAMERA_IOU) -> list[tuple[str, float]]:
+    """(name, IoU) of the cameras whose seen voxels in ``new`` overlap those in ``old`` by less than ``min_iou``.
+
+    A recalibration moves a camera by centimetres and a fraction of a degree; a camera that now sees another part
+    of the grid (turned around, swapped with another, a sign error in the extrinsics) is almost always a wrong
+    calibration. Empty when the two LUTs do not describe the same cameras on the same grid (nothing to compare).
+    """
+    if old.camera_names != new.camera_names or old.grid != new.grid:
+        return []
+    moved = []
+    for name, was, now in zip(new.camera_names, old.camera_coverage(), new.camera_coverage()):
+        union = int(np.count_nonzero(was | now))
+        iou = 1.0 if union == 0 else int(np.count_nonzero(was & now)) / union
+        if iou < min_iou:
+            moved.append((name, iou))
+    return moved
+
+
 @dataclass(frozen=True, eq=False)
 class Lut:
     """A validated projection LUT and the metadata that says which rig, grid and image size it was built for."""
@@ -125,6 +146,12 @@ class Lut:
     def sentinel(self) -> int:
         """Index of the all-zero row appended to the (J * Hf * Wf, C) feature table."""
         return self.num_cameras * self.feature_height * self.feature_width
+
+    def camera_coverage(self) -> np.ndarray:
+        """(J, 4, Z, Yq, Xq) bool: which voxels each camera is seen from."""
+        cells = self.feature_height * self.feature_width
+        camera = np.where(self.index == self.sentinel, -1, self.index // cells)  # (4, K, Z, Yq, Xq)
+        return np.stack([(camera == j).any(axis=1) for j in range(self.num_cameras)])
 
     def slots_per_camera(self) -> dict[str, int]:
         """Valid LUT slots reading each camera (over all quadrants, voxels and slots), by camera name."""

@@ -23,7 +23,9 @@ import click
 
 from streamdet.calibration.camera import CalibrationError, Rig
 from streamdet.calibration.grid import GridSpec
-from streamdet.calibration.lut import ASPECT_TOLERANCE, BlindCameraWarning, Lut, blind_cameras, build_lut, check_rig_fits  # noqa: F401
+from streamdet.calibration.lut import (  # noqa: F401 (ASPECT_TOLERANCE, BlindCameraWarning: public here too)
+    ASPECT_TOLERANCE, BlindCameraWarning, Lut, blind_cameras, build_lut, check_rig_fits, moved_cameras,
+)
 from streamdet.runtime_ort.manifest import (
     LUT_NAME, MANIFEST_NAME, LutEntry, ManifestError, atomic_write, export_file, read_manifest, sha256_file,
     write_manifest,
@@ -83,6 +85,10 @@ def main() -> None:
 def lut_command(calibration: str, export_dir: str) -> None:
     """Rebuild lut.npz of an export for a new calibration; no re-export needed."""
     try:
+        previous = Lut.load(export_file(export_dir, LUT_NAME, "the LUT"))
+    except (ManifestError, CalibrationError):  # absent or unreadable: nothing to compare the new one with
+        previous = None
+    try:
         lut, changed = rebuild_lut(calibration, export_dir)
     except (ManifestError, CalibrationError, LutMismatch) as e:
         raise click.ClickException(str(e)) from None
@@ -90,6 +96,11 @@ def lut_command(calibration: str, export_dir: str) -> None:
         raise click.ClickException(f"cannot write into {export_dir}: {e.strerror or e}") from None
     for name, slots in blind_cameras(lut):
         click.echo(f"warning: camera {name} sees no voxel of the grid ({slots} LUT slots): check its calibration", err=True)
+    for name, iou in moved_cameras(previous, lut) if previous is not None else ():
+        click.echo(
+            f"warning: camera {name} now sees other voxels than with the previous LUT (overlap {iou:.2f}): "
+            "turned around or swapped? check its calibration", err=True,
+        )  # fmt: skip
     seen = float((lut.weight.sum(axis=1) > 0).mean())
     state = "rebuilt" if changed else "rebuilt (unchanged)"
     click.echo(

@@ -300,3 +300,23 @@ def test_every_console_script_of_the_eight_tools_runs_behind_the_edge():
         entry = getattr(cli_utils, f"{tool}_main")
         module = entry.__doc__.split(": ", 1)[1].split(".main", 1)[0]
         assert importlib.util.find_spec(module) is not None, module
+
+
+def test_streamdet_calib_warns_about_a_camera_turned_around(tiny_export, tmp_path):
+    import shutil
+
+    from streamdet.runtime_ort.calib_cli import main as calib_main
+
+    exp = tmp_path / "exp"
+    shutil.copytree(tiny_export, exp)
+    doc = json.loads((ROOT / "data" / "nuscenes_sample" / "calibration.json").read_text())
+    turn = np.diag([-1.0, -1.0, 1.0, 1.0])  # 180 deg about the LiDAR's vertical axis
+    cam = doc["cameras"][0]
+    cam["lidar2cam"]["matrix"] = (np.array(cam["lidar2cam"]["matrix"]) @ turn).tolist()
+    (tmp_path / "turned.json").write_text(json.dumps(doc))
+    result = CliRunner().invoke(calib_main, ["lut", "--calibration", str(tmp_path / "turned.json"), "--export-dir", str(exp)])
+    assert result.exit_code == 0, result.output
+    assert f"warning: camera {cam['name']} now sees other voxels than with the previous LUT" in result.output
+    assert result.output.count("now sees other voxels") == 1
+    again = CliRunner().invoke(calib_main, ["lut", "--calibration", str(tmp_path / "turned.json"), "--export-dir", str(exp)])
+    assert again.exit_code == 0 and "now sees other voxels" not in again.output  # same calibration: no warning
