@@ -21,7 +21,7 @@ from typing import Any
 SCHEMA_FILE = "manifest.schema.json"
 KEYWORDS = frozenset({
     "$schema", "$id", "$ref", "$defs", "title", "description", "type", "properties", "required", "items", "enum",
-    "const", "anyOf", "minimum", "maximum", "exclusiveMinimum", "minItems", "maxItems", "uniqueItems", "minLength",
+    "const", "anyOf", "additionalProperties", "minimum", "maximum", "exclusiveMinimum", "minItems", "maxItems", "uniqueItems", "minLength",
     "maxLength", "pattern",
 })
 _ANNOTATIONS = frozenset({"$schema", "$id", "title", "description", "$defs"})
@@ -137,9 +137,18 @@ def _validate(value: Any, schema: dict, root: dict, path: str, what: str) -> Non
             if key not in value:
                 at = f" {path}" if path else ""
                 raise SchemaViolation(path, f"{what}{at} is missing the field {key!r}")
-        for key, sub in schema.get("properties", {}).items():
+        properties = schema.get("properties", {})
+        for key, sub in properties.items():
             if key in value:
                 _validate(value[key], sub, root, f"{path}.{key}" if path else key, what)
+        extra = schema.get("additionalProperties", True)
+        if extra is not True:
+            for key in value:
+                if key not in properties:
+                    where = f"{path}.{key}" if path else str(key)
+                    if extra is False:
+                        raise SchemaViolation(where, f"{_where(path, what)}: field {key!r} is not allowed")
+                    _validate(value[key], extra, root, where, what)
 
 
 def _check_number(value: float, schema: dict, path: str, what: str) -> None:

@@ -79,6 +79,7 @@ def test_every_export_validates_against_the_schema(tiny_export):
         (lambda d: d["post"].pop("score_threshold"), "post is missing the field 'score_threshold'"),
         (lambda d: d["preset"]["pillars"].update(max_pillars=0), r"preset.pillars.max_pillars: 0 is below the minimum 1"),
         (lambda d: d["graphs"][0].update(gmac="lots"), r"graphs\[0\].gmac: expected number, got str"),
+        (lambda d: d["graphs"][0]["gmac_at"].update(J="x"), r"graphs\[0\].gmac_at.J: expected number, got str"),
         (lambda d: d["lut"].update(calibration_source=7), r"lut.calibration_source: expected string, got int"),
         (lambda d: d["image"].update(camera_names=["A", "A"]), r"image.camera_names: item 'A' is repeated"),
         (lambda d: d["post"].update(score_threshold=float("inf")), r"post.score_threshold: inf is above the maximum 1"),
