@@ -14,6 +14,7 @@ from torch import Tensor, nn
 
 from streamdet.models.bev_encoder import BevEncoder
 from streamdet.models.heads import CenterHead, HeadMaps
+from streamdet.models.image_bev_norm import ImageBevNorm
 from streamdet.models.image_encoder import ImageEncoder
 from streamdet.models.lifter import VolumetricLifter
 from streamdet.models.pillars import MapShape, PillarFeatureNet, scatter_pillars
@@ -48,6 +49,8 @@ class SliceNet(nn.Module):
         self.pillar_net = PillarFeatureNet(preset.pillars.num_point_features, c)
         self.bev_encoder = BevEncoder(preset.bev, 2 * c if preset.use_image else c)
         self.head = CenterHead(preset.head, self.bev_encoder.out_channels)
+        # the image BEV brought to the point BEV's scale (models/image_bev_norm.py); absent by default
+        self.image_bev_norm = ImageBevNorm(c) if preset.use_image and preset.image_bev_norm else None
 
     def fused_bev(self, pillar_features: Tensor, pillar_mask: Tensor, pillar_index: Tensor,
                   image_bev: Tensor | None = None, *, num_quadrants: int | None = None) -> Tensor:  # fmt: skip
@@ -58,6 +61,8 @@ class SliceNet(nn.Module):
             return self.bev_encoder(p_bev)
         if image_bev is None:  # no image lifted yet: zeros, what the runtime feeds before its first image update
             image_bev = torch.zeros_like(p_bev)
+        elif self.image_bev_norm is not None:
+            image_bev = self.image_bev_norm(image_bev)  # (Q, C, Yq, Xq)
         return self.bev_encoder(torch.cat([p_bev, image_bev], dim=1))  # (Q, 2C, Yq, Xq)
 
     def forward(self, pillar_features: Tensor, pillar_mask: Tensor, pillar_index: Tensor,

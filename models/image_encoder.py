@@ -22,7 +22,7 @@ class ImageEncoder(nn.Module):
 
     def __init__(self, cfg: ImageConfig, out_channels: int) -> None:
         super().__init__()
-        self.backbone = ResNet(cfg.backbone_depth, cfg.width_divisor)
+        self.backbone = ResNet(cfg.backbone_depth, cfg.width_divisor, cfg.norm)
         self.neck = FPN(self.backbone.out_channels, out_channels)
         # (1, 3, 1, 1) folded scale and shift: (x / 255 - mean) / std = x * scale + shift
         std = torch.tensor(IMAGENET_STD)

@@ -47,6 +47,9 @@ class ImageConfig:
     backbone_depth: int = 50  # 18 (BasicBlock) or 50 (Bottleneck), torchvision layouts
     width_divisor: int = 1  # base width 64 // divisor; > 1 (small, tiny) rules out torchvision's ImageNet weights
     feature_stride: int = 4  # the FPN output level; the lifter LUT is built for this stride
+    # the backbone's normalisation (models/norms.py): "batch", "frozen_batch" (running statistics only, e.g. after
+    # image pretraining) or "group"; the latter two do not depend on the batch of six correlated cameras
+    norm: str = "batch"
 
     def __post_init__(self) -> None:
         _check_positive_int(self, "width_px", "height_px", "width_divisor")
@@ -54,6 +57,8 @@ class ImageConfig:
             raise ValueError(f"ImageConfig.backbone_depth must be 18 or 50, got {self.backbone_depth!r}")
         if 64 % self.width_divisor:
             raise ValueError(f"ImageConfig.width_divisor must divide 64, got {self.width_divisor!r}")
+        if self.norm not in ("batch", "frozen_batch", "group"):
+            raise ValueError(f"ImageConfig.norm must be 'batch', 'frozen_batch' or 'group', got {self.norm!r}")
         if self.feature_stride != 4:
             raise ValueError(f"ImageConfig.feature_stride must be 4 (the FPN's output level), got {self.feature_stride!r}")
 
@@ -173,6 +178,8 @@ class Preset:
     head: HeadConfig = field(default_factory=HeadConfig)
     post: PostConfig = field(default_factory=PostConfig)
     use_image: bool = True  # False: the LiDAR-only streaming baseline (image_bev is then only read for its shape)
+    # True: the image BEV is scaled per channel to a learnt RMS before fusion (models/image_bev_norm.py)
+    image_bev_norm: bool = False
 
     def __post_init__(self) -> None:
         _check_positive_int(self, "channels")
@@ -229,6 +236,12 @@ class Preset:
         for name in ("image", "pillars", "lifter", "bev", "head", "post"):
             d[name] = _plain(dataclasses.asdict(getattr(self, name)))
         d["use_image"] = self.use_image
+        # options added after manifests were shipped are written only when set: a preset without them keeps the
+        # exact dict (and manifest) it had
+        if d["image"]["norm"] == "batch":
+            del d["image"]["norm"]
+        if self.image_bev_norm:
+            d["image_bev_norm"] = True
         return d
 
     @classmethod
@@ -245,6 +258,7 @@ class Preset:
                 head=HeadConfig(**{**d["head"], "tasks": tuple(tuple(t) for t in d["head"]["tasks"])}),
                 post=PostConfig(**{**d["post"], "nms_iou_threshold": tuple(d["post"]["nms_iou_threshold"])}),
                 use_image=bool(d["use_image"]),
+                image_bev_norm=bool(d.get("image_bev_norm", False)),
             )
         except KeyError as e:
             raise ValueError(f"preset dict lacks the field {e.args[0]!r}") from None

@@ -14,6 +14,8 @@ from pathlib import Path
 import torch
 from torch import Tensor, nn
 
+from streamdet.models.norms import norm2d
+
 
 def conv3x3(in_ch: int, out_ch: int, stride: int = 1) -> nn.Conv2d:
     return nn.Conv2d(in_ch, out_ch, kernel_size=3, stride=stride, padding=1, bias=False)
@@ -26,13 +28,14 @@ def conv1x1(in_ch: int, out_ch: int, stride: int = 1) -> nn.Conv2d:
 class BasicBlock(nn.Module):
     expansion = 1
 
-    def __init__(self, in_ch: int, width: int, stride: int = 1, downsample: nn.Module | None = None) -> None:
+    def __init__(self, in_ch: int, width: int, stride: int = 1, downsample: nn.Module | None = None,
+                 norm: str = "batch") -> None:  # fmt: skip
         super().__init__()
         self.conv1 = conv3x3(in_ch, width, stride)
-        self.bn1 = nn.BatchNorm2d(width)
+        self.bn1 = norm2d(norm, width)
         self.relu = nn.ReLU(inplace=True)
         self.conv2 = conv3x3(width, width)
-        self.bn2 = nn.BatchNorm2d(width)
+        self.bn2 = norm2d(norm, width)
         self.downsample = downsample
 
     def forward(self, x: Tensor) -> Tensor:
@@ -47,14 +50,15 @@ class Bottleneck(nn.Module):
 
     expansion = 4
 
-    def __init__(self, in_ch: int, width: int, stride: int = 1, downsample: nn.Module | None = None) -> None:
+    def __init__(self, in_ch: int, width: int, stride: int = 1, downsample: nn.Module | None = None,
+                 norm: str = "batch") -> None:  # fmt: skip
         super().__init__()
         self.conv1 = conv1x1(in_ch, width)
-        self.bn1 = nn.BatchNorm2d(width)
+        self.bn1 = norm2d(norm, width)
         self.conv2 = conv3x3(width, width, stride)
-        self.bn2 = nn.BatchNorm2d(width)
+        self.bn2 = norm2d(norm, width)
         self.conv3 = conv1x1(width, width * self.expansion)
-        self.bn3 = nn.BatchNorm2d(width * self.expansion)
+        self.bn3 = norm2d(norm, width * self.expansion)
         self.relu = nn.ReLU(inplace=True)
         self.downsample = downsample
 
@@ -76,10 +80,11 @@ class ResNet(nn.Module):
     """ResNet trunk. ``forward(x (B, 3, H, W)) -> [C2, C3, C4, C5]`` at strides 4, 8, 16, 32.
 
     ``width_divisor`` > 1 narrows every layer (base width 64 // divisor) for fast tests; such a model no longer
-    matches pretrained checkpoints in shape, though its key names still do.
+    matches pretrained checkpoints in shape, though its key names still do. ``norm`` is the normalisation of
+    every ``bn*`` (``models.norms``: "batch", or "frozen_batch" / "group", which work at batch 1); the names stay.
     """
 
-    def __init__(self, depth: int = 50, width_divisor: int = 1) -> None:
+    def __init__(self, depth: int = 50, width_divisor: int = 1, norm: str = "batch") -> None:
         super().__init__()
         if depth not in _LAYOUTS:
             raise ValueError(f"ResNet depth must be one of {sorted(_LAYOUTS)}, got {depth!r}")
@@ -88,9 +93,10 @@ class ResNet(nn.Module):
         block, counts = _LAYOUTS[depth]
         base = 64 // width_divisor
         self.depth = depth
+        self.norm = norm
         self.inplanes = base
         self.conv1 = nn.Conv2d(3, base, kernel_size=7, stride=2, padding=3, bias=False)
-        self.bn1 = nn.BatchNorm2d(base)
+        self.bn1 = norm2d(norm, base)
         self.relu = nn.ReLU(inplace=True)
         self.maxpool = nn.MaxPool2d(kernel_size=3, stride=2, padding=1)
         self.layer1 = self._make_layer(block, base, counts[0], stride=1)
@@ -101,7 +107,7 @@ class ResNet(nn.Module):
         for m in self.modules():
             if isinstance(m, nn.Conv2d):
                 nn.init.kaiming_normal_(m.weight, mode="fan_out", nonlinearity="relu")
-            elif isinstance(m, nn.BatchNorm2d):
+            elif isinstance(m, (nn.BatchNorm2d, nn.GroupNorm)):
                 nn.init.ones_(m.weight)
                 nn.init.zeros_(m.bias)
 
@@ -111,11 +117,11 @@ class ResNet(nn.Module):
         downsample = None
         if stride != 1 or self.inplanes != width * block.expansion:
             downsample = nn.Sequential(
-                conv1x1(self.inplanes, width * block.expansion, stride), nn.BatchNorm2d(width * block.expansion)
+                conv1x1(self.inplanes, width * block.expansion, stride), norm2d(self.norm, width * block.expansion)
             )
-        layers = [block(self.inplanes, width, stride, downsample)]
+        layers = [block(self.inplanes, width, stride, downsample, self.norm)]
         self.inplanes = width * block.expansion
-        layers += [block(self.inplanes, width) for _ in range(1, blocks)]
+        layers += [block(self.inplanes, width, norm=self.norm) for _ in range(1, blocks)]
         return nn.Sequential(*layers)
 
     def forward(self, x: Tensor) -> list[Tensor]:

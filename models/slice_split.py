@@ -225,6 +225,9 @@ class ExportSliceNet(nn.Module):
             c = conv.in_channels // 2  # point BEV channels first, then image BEV (SliceNet.fused_bev)
             # the image part carries the BN shift: the point BEV is the mostly-empty one
             self.point_conv, self.image_conv = split_conv_bn(conv, bn, [c, conv.in_channels - c], bias_part=1)
+            if net.image_bev_norm is not None:  # a per-channel scale without shift folds exactly into the inputs
+                with torch.no_grad():
+                    self.image_conv.weight.mul_(net.image_bev_norm.scale().view(1, -1, 1, 1))
             self.relu = nn.ReLU(inplace=True)
             self.stage0_rest = nn.Sequential(*stage0[3:])  # the same modules: stage 0 after its first conv
         self.deblocks = nn.ModuleList(export_deblock(d) for d in net.bev_encoder.deblocks)

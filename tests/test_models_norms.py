@@ -1,0 +1,148 @@
+"""Batch-1 normalisation of the image backbone and the image BEV's scale at fusion (issue 19, item 2)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import onnxruntime as ort
+import pytest
+import torch
+
+from streamdet.export.onnx_export import SLICE_HEAD_IO, export_slice_head
+from streamdet.models.decode import SliceDecoder
+from streamdet.models.detector import SliceNet, StreamDetector
+from streamdet.models.image_bev_norm import ImageBevNorm
+from streamdet.models.image_encoder import ImageEncoder
+from streamdet.models.norms import FrozenBatchNorm2d, norm2d
+from streamdet.models.presets import Preset, get_preset, preset_names
+from streamdet.models.resnet import ResNet
+from streamdet.models.slice_split import ExportSliceNet
+
+TINY = get_preset("tiny")
+
+
+@pytest.mark.parametrize("seed", range(3))
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_frozen_bn_is_the_running_statistics_in_both_modes(seed, dtype):
+    gen = torch.Generator().manual_seed(seed)
+    bn = FrozenBatchNorm2d(5).to(dtype)
+    with torch.no_grad():
+        bn.running_mean.copy_(torch.randn(5, generator=gen))
+        bn.running_var.copy_(torch.rand(5, generator=gen) + 0.5)
+        bn.weight.copy_(torch.randn(5, generator=gen))
+        bn.bias.copy_(torch.randn(5, generator=gen))
+    x = torch.randn(1, 5, 4, 6, generator=gen, dtype=dtype)
+    before = bn.running_mean.clone()
+    ref = (x - bn.running_mean.view(1, -1, 1, 1)) / torch.sqrt(bn.running_var.view(1, -1, 1, 1) + bn.eps)
+    ref = ref * bn.weight.view(1, -1, 1, 1) + bn.bias.view(1, -1, 1, 1)
+    torch.testing.assert_close(bn.train()(x), ref)
+    torch.testing.assert_close(bn.eval()(x), ref)
+    assert torch.equal(bn.running_mean, before)
+
+
+@pytest.mark.parametrize("norm", ["frozen_batch", "group"])
+def test_backbone_keeps_torchvision_names_and_one_image_is_its_own_batch(norm):
+    ref_keys = {k for k in ResNet(18, 8).state_dict() if "running" not in k and "num_batches" not in k}
+    net = ResNet(18, 8, norm=norm)
+    assert ref_keys <= set(net.state_dict())
+    torch.manual_seed(0)
+    x = torch.randn(3, 3, 32, 48)
+    net.train()
+    with torch.no_grad():
+        alone = net(x[:1])
+        together = net(x)
+        evaluated = net.eval()(x[:1])
+    for a, t, e in zip(alone, together, evaluated):
+        torch.testing.assert_close(a, t[:1], rtol=1e-4, atol=1e-5)  # the other cameras do not change an image's features
+        torch.testing.assert_close(a, e, rtol=1e-4, atol=1e-5)  # train mode == eval mode
+
+
+def test_norm_kinds_and_bad_kind():
+    assert isinstance(norm2d("batch", 8), torch.nn.BatchNorm2d)
+    assert norm2d("group", 48).num_groups == 16 and norm2d("group", 4).num_groups == 4
+    with pytest.raises(ValueError, match="'layer'"):
+        norm2d("layer", 8)
+    with pytest.raises(ValueError, match="'layer'"):
+        dataclasses.replace(TINY.image, norm="layer")
+
+
+@pytest.mark.parametrize("name", preset_names())
+def test_shipped_presets_serialise_as_before(name):
+    d = get_preset(name).to_dict()
+    assert "norm" not in d["image"] and "image_bev_norm" not in d  # existing manifests stay byte-identical
+    assert Preset.from_dict(json.loads(json.dumps(d))) == get_preset(name)
+
+
+def test_new_options_round_trip_and_reach_the_modules():
+    p = dataclasses.replace(TINY, image=dataclasses.replace(TINY.image, norm="group"), image_bev_norm=True)
+    d = json.loads(json.dumps(p.to_dict()))
+    assert d["image"]["norm"] == "group" and d["image_bev_norm"] is True
+    assert Preset.from_dict(d) == p
+    det = StreamDetector(p)
+    assert isinstance(det.image_encoder.backbone.bn1, torch.nn.GroupNorm)
+    assert isinstance(det.slice_net.image_bev_norm, ImageBevNorm)
+    assert StreamDetector(dataclasses.replace(p, use_image=False)).slice_net.image_bev_norm is None
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_image_bev_norm_train_eval_and_zeros(seed):
+    gen = torch.Generator().manual_seed(seed)
+    norm = ImageBevNorm(4, momentum=1.0)
+    x = torch.randn(2, 4, 5, 5, generator=gen) * torch.tensor([0.05, 0.5, 1.0, 10.0]).view(1, -1, 1, 1)
+    y = norm.train()(x)
+    rms = y.square().mean(dim=(0, 2, 3)).sqrt()
+    ms = x.square().mean(dim=(0, 2, 3))
+    torch.testing.assert_close(rms, torch.sqrt(ms / (ms + norm.eps)), rtol=1e-4, atol=1e-5)  # 1 up to eps
+    torch.testing.assert_close(norm.eval()(x), y, rtol=1e-4, atol=1e-6)  # momentum 1: the running value is this batch's
+    assert torch.count_nonzero(norm(torch.zeros(1, 4, 3, 3))) == 0  # no image yet stays no image
+
+
+def _inputs(preset, q, num_pillars, seed):
+    g, pc = preset.grid, preset.pillars
+    gen = torch.Generator().manual_seed(seed)
+    counts = torch.randint(1, pc.max_points_per_pillar + 1, (num_pillars,), generator=gen)
+    mask = (torch.arange(pc.max_points_per_pillar)[None] < counts[:, None]).float()
+    feats = torch.randn(num_pillars, pc.max_points_per_pillar, 11, generator=gen) * mask[..., None]
+    index = torch.randperm(q * g.quadrant_ny * g.quadrant_nx, generator=gen)[:num_pillars].sort().values
+    bev = torch.randn(q, preset.channels, g.quadrant_ny, g.quadrant_nx, generator=gen) * 0.05
+    return feats, mask, index, bev
+
+
+@pytest.mark.parametrize("seed", range(2))
+def test_export_form_folds_the_image_bev_norm(seed):
+    preset = dataclasses.replace(TINY, image_bev_norm=True)
+    torch.manual_seed(seed)
+    net = SliceNet(preset)
+    with torch.no_grad():
+        net.image_bev_norm.running_ms.uniform_(0.001, 0.01)
+        net.image_bev_norm.weight.uniform_(0.5, 2.0)
+    net.eval()
+    args = _inputs(preset, 2, 30, seed)
+    with torch.no_grad():
+        for got, ref in zip(ExportSliceNet(net)(*args), net(*args)):
+            torch.testing.assert_close(got, ref, rtol=1e-4, atol=1e-5)
+
+
+def test_exported_graph_with_image_bev_norm_matches_torch():
+    preset = dataclasses.replace(TINY, image_bev_norm=True)
+    torch.manual_seed(3)
+    det = StreamDetector(preset).eval()
+    with torch.no_grad():
+        det.slice_net.image_bev_norm.running_ms.fill_(0.004)
+    args = _inputs(preset, 2, 60, 4)
+    model = export_slice_head(det, args)
+    sess = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
+    got = sess.run(None, {name: t.numpy() for name, t in zip(SLICE_HEAD_IO.inputs, args)})
+    with torch.no_grad():
+        ref = SliceDecoder(det.slice_net, preset).eval()(*args)
+    np.testing.assert_allclose(got[1], ref[1].numpy(), rtol=1e-4, atol=1e-5)
+
+
+def test_image_encoder_with_group_norm_is_batch_independent():
+    cfg = dataclasses.replace(TINY.image, norm="group")
+    enc = ImageEncoder(cfg, TINY.channels).train()
+    images = torch.randint(0, 255, (3, 24, 40, 3), dtype=torch.uint8)
+    with torch.no_grad():
+        torch.testing.assert_close(enc(images[1:2]), enc(images)[1:2], rtol=1e-4, atol=1e-5)
