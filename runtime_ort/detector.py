@@ -3,7 +3,9 @@
 Two lanes share one cached image BEV:
 
 - the **image lane** (`update_images`) encodes the newest camera images and lifts them with the projection LUT
-  into the image BEV of all four quadrants, then swaps it into the cache;
+  into the image BEV of all four quadrants (the full update), or of the quadrants asked for from the cameras that
+  see them (a per-quadrant update, what `lanes.StreamingRunner`'s phase-locked schedule runs), then swaps them into
+  the cache, which holds each quadrant with its own timestamp;
 - the **slice lane** (`detect_slice`) pillarises one LiDAR slice, reads the cached image BEV of the slice's
   quadrant(s), runs the slice graph and post-processes its decoded boxes.
 
@@ -41,16 +43,17 @@ import time
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Mapping
+from typing import Mapping, Sequence
 
 import numpy as np
 
 from streamdet.calibration.camera import CalibrationError, Rig
 from streamdet.calibration.grid import GridSpec
 from streamdet.calibration.lut import BlindCameraWarning, Lut, blind_cameras, build_lut, check_rig_fits
+from streamdet.calibration.quadrant_lut import QuadrantLut, quadrant_luts
 from streamdet.core.constants import BUNDLED_PREFIX, PRECISIONS  # noqa: F401 (PRECISIONS: public here too)
 from streamdet.core.points import check_sweep
-from streamdet.core.sectors import check_num_slices, quadrants_of_sector, sector_bounds_deg
+from streamdet.core.sectors import NUM_QUADRANTS, check_num_slices, quadrants_of_sector, sector_bounds_deg
 from streamdet.core.slicing import split_sweep
 from streamdet.runtime_ort.manifest import ImageSpec, Manifest, ManifestError, export_file, read_manifest
 from streamdet.runtime_ort.nms import NmsConfig
@@ -61,7 +64,7 @@ from streamdet.runtime_ort.signature import check_graph, check_runtime_fields
 from streamdet.runtime_ort.stats import LatencyStats
 
 log = logging.getLogger(__name__)
-
+ALL_QUADRANTS: tuple[int, ...] = tuple(range(NUM_QUADRANTS))
 
 
 def lane_precision_label(precision: str, image_precision: str | None) -> str:
@@ -152,9 +155,10 @@ class ImageUpdate:
     timestamp: float
     cameras_used: tuple[str, ...]
     cameras_missing: tuple[str, ...]  # their features were zeros in this update
-    # True when a newer image set (an update_images call that started later) was installed first: this one was
-    # encoded but never replaced it (an older set never overwrites a newer one)
+    # True when a newer image set (an update_images call that started later) was installed first in every quadrant
+    # this one lifted: it was encoded but replaced nothing (an older set never overwrites a newer one)
     superseded: bool = False
+    quadrants: tuple[int, ...] = (0, 1, 2, 3)  # the quadrants of the image BEV this update lifted
 
 
 @dataclass(frozen=True)
@@ -173,6 +177,9 @@ class SliceResult:
     # in the slice's quadrants but outside its sector are kept: the slice graph sees its quadrants whole.
     num_outside_dropped: int = 0
     num_points_dropped: int = 0  # points lost to the pillar caps (max_points_per_pillar, max_pillars)
+    # timestamp - image_timestamp: how old the images behind the quadrant(s) it read were at the slice's own
+    # timestamp (both labels of the caller's clock); None without images. The oldest quadrant read counts.
+    image_age_s: float | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -185,13 +192,56 @@ class SweepResult:
 
 
 @dataclass(frozen=True)
-class _ImageState:
-    bev: np.ndarray  # (4, C, Yq, Xq) float32, every quadrant
-    features: np.ndarray  # (J, C, Hf, Wf) float32, kept to re-lift when the calibration changes
+class _QuadrantState:
+    """The cached image BEV of one quadrant and what it was lifted from."""
+
+    bev: np.ndarray  # (1, C, Yq, Xq) float32
+    # (J', C, Hf, Wf) float32 feature maps of ``feature_cameras`` (zeros for a camera not given), kept to re-lift
+    # when the calibration changes; a full update's quadrants share one array of every camera
+    features: np.ndarray
+    feature_cameras: tuple[str, ...]
     timestamp: float
     cameras_missing: tuple[str, ...]
     seq: int = 0  # the update_images call that made it (call order: a larger seq is a newer image set)
     lut: Lut | None = None  # the LUT the bev was lifted with
+
+
+@dataclass(frozen=True, eq=False)
+class _ImageCache:
+    """The cached image BEV: one state per quadrant (None: no image there yet). Never changed in place: every
+    install or re-lift swaps in a new cache, so ``cache is before`` tells whether anything changed."""
+
+    quadrants: tuple[_QuadrantState | None, ...]  # quadrants 0..3
+
+    @property
+    def bev(self) -> np.ndarray:
+        """(4, C, Yq, Xq) float32 of every quadrant (a copy; a quadrant without images is zeros)."""
+        some = next(s for s in self.quadrants if s is not None)
+        return np.concatenate([np.zeros_like(some.bev) if s is None else s.bev for s in self.quadrants])
+
+    @property
+    def newest(self) -> _QuadrantState:
+        """The quadrant state of the newest image set cached."""
+        return max((s for s in self.quadrants if s is not None), key=lambda s: s.seq)
+
+    @property
+    def features(self) -> np.ndarray:
+        return self.newest.features  # a full update's quadrants share it
+
+    @property
+    def seq(self) -> int:
+        return self.newest.seq
+
+    @property
+    def timestamp(self) -> float:
+        """The oldest quadrant's timestamp."""
+        return min(s.timestamp for s in self.quadrants if s is not None)
+
+    @property
+    def lut(self) -> Lut | None:
+        """The LUT every cached quadrant was lifted with; None while they differ."""
+        luts = {id(s.lut): s.lut for s in self.quadrants if s is not None}
+        return next(iter(luts.values())) if len(luts) == 1 else None
 
 
 class StreamingDetector:
@@ -263,7 +313,8 @@ class StreamingDetector:
             self._lut = self._check_lut(Lut.load(export_file(self.export_dir, m.lut.file, "lut.file")))
         elif self.uses_images:
             self._lut = self._check_lut(self._build_lut(_export_rig(m, self.export_dir)))
-        self._image: _ImageState | None = None
+        self._image: _ImageCache | None = None  # None before the first image update; replaced whole under _lock
+        self._quadrant_luts: dict[Lut, tuple[QuadrantLut, ...]] = {}  # per LUT in use (the newest two kept)
         log.info("streamdet: %s (%s, %d slices) on %s", self.export_dir, self.precision_label, self.num_slices, list(self.providers))
 
     def _executed_gmac(self, graph: str, **sizes: int) -> float:
@@ -346,16 +397,29 @@ class StreamingDetector:
         with self._calibration_lock:
             with self._lock:
                 self._lut = lut
-                state = self._image
-            # Re-lift the newest image set; an update that finishes meanwhile under the old LUT lifts itself again
-            # (_install), so the loop ends once the installed state was lifted with this LUT.
-            while state is not None and state.lut is not lut:
-                bev = self._lift(state.features, lut)
+                states = _quadrant_states(self._image)
+            # Re-lift the newest image set of every quadrant; an update that finishes meanwhile under the old LUT
+            # lifts itself again (_install), so the loop ends once every cached quadrant was lifted with this LUT.
+            while True:
+                stale = [(q, s) for q, s in enumerate(states) if s is not None and s.lut is not lut]
+                if not stale:
+                    return
+                groups: dict[int, list[tuple[int, _QuadrantState]]] = {}  # quadrants lifted from one features array
+                for q, s in stale:
+                    groups.setdefault(id(s.features), []).append((q, s))
+                lifted = {}
+                for members in groups.values():
+                    first = members[0][1]
+                    quadrants = tuple(q for q, _ in members)
+                    bevs = self._lift_quadrants(first.features, first.feature_cameras, quadrants, lut)
+                    lifted.update({q: dataclasses.replace(s, bev=bev, lut=lut) for (q, s), bev in zip(members, bevs)})
                 with self._lock:
-                    if self._image is state:
-                        self._image = dataclasses.replace(state, bev=bev, lut=lut)
-                        return
-                    state = self._image
+                    current = list(_quadrant_states(self._image))
+                    for q, s in stale:
+                        if current[q] is s:  # not replaced by a newer update meanwhile
+                            current[q] = lifted[q]
+                    self._image = _ImageCache(tuple(current))
+                    states = self._image.quadrants
 
     def _build_lut(self, rig: Rig) -> Lut:
         img = self.image
@@ -363,8 +427,15 @@ class StreamingDetector:
         return build_lut(rig, self.grid, img.feature_stride, image_size=(img.width, img.height))
 
     # ---- image lane ----------------------------------------------------------------------------
-    def update_images(self, images: Mapping[str, np.ndarray], timestamp: float | None = None) -> ImageUpdate:
+    def update_images(
+        self, images: Mapping[str, np.ndarray], timestamp: float | None = None, quadrants: Sequence[int] | None = None
+    ) -> ImageUpdate:
         """Encode and lift the given camera images (uint8 RGB (H, W, 3) by camera name) into the cached BEV.
+
+        ``quadrants`` None (the full update): every camera given is encoded and all four quadrants are lifted. A
+        strictly increasing list of quadrants (0..3) updates only those: only the cameras that see them (the LUT
+        says which, ``quadrant_cameras``) are encoded, only their quadrants are lifted and get this timestamp;
+        the other quadrants keep their older BEV. Both give the same BEV for the same images.
 
         Cameras not given are allowed: their features are zeros. Unknown names, wrong sizes or dtypes raise, and so
         does any call on a LiDAR-only export (NoImageLaneError).
@@ -374,27 +445,52 @@ class StreamingDetector:
         if not self.uses_images:
             raise NoImageLaneError(self._no_image_lane(f"update_images got cameras {sorted(map(str, images))} it cannot use"))
         timestamp = _timestamp(timestamp)
-        img = self.image
-        unknown = [n for n in images if n not in self.camera_names]
-        if unknown:
-            raise ValueError(f"unknown camera names {unknown}; this export knows {list(self.camera_names)}")
-        used = tuple(n for n in self.camera_names if n in images)
-        missing = tuple(n for n in self.camera_names if n not in images)
-        if not used:
-            raise ValueError(f"update_images needs at least one camera image of {list(self.camera_names)}")
-        for name in used:
-            a = images[name]
-            if not isinstance(a, np.ndarray) or a.dtype != np.uint8 or a.shape != (img.height, img.width, 3):
-                got = f"{getattr(a, 'dtype', type(a).__name__)} {getattr(a, 'shape', '')}"
-                raise ValueError(
-                    f"image {name!r} must be uint8 RGB of shape ({img.height}, {img.width}, 3) for this detector, got {got}"
-                )
+        wanted = _check_quadrants(quadrants)
+        self._check_images(images)
+        needed = self.camera_names if wanted == ALL_QUADRANTS else self.quadrant_cameras(wanted)
+        used = tuple(n for n in needed if n in images)
+        missing = tuple(n for n in needed if n not in images)
         if missing:
             log.info("update_images: cameras %s missing, their features are zeros", list(missing))
         with self._lock:
             self._image_seq += 1
             seq = self._image_seq
         t0 = time.perf_counter()
+        features = self._encode(images, used, needed)  # (J', C, Hf, Wf)
+        installed = self._install(features, needed, wanted, seq, timestamp, missing)
+        self.stats.record("image_total", (time.perf_counter() - t0) * 1e3)
+        return ImageUpdate(timestamp, used, missing, superseded=not installed, quadrants=wanted)
+
+    def quadrant_cameras(self, quadrants: Sequence[int]) -> tuple[str, ...]:
+        """The cameras whose feature maps the LUT in use reads in these quadrants, in the export's camera order."""
+        wanted = _check_quadrants(quadrants)
+        qluts = self._luts_of(self.lut)
+        seen = {name for q in wanted for name in qluts[q].camera_names}
+        return tuple(n for n in self.camera_names if n in seen)
+
+    def _check_images(self, images: Mapping[str, np.ndarray]) -> None:
+        img = self.image
+        unknown = [n for n in images if n not in self.camera_names]
+        if unknown:
+            raise ValueError(f"unknown camera names {unknown}; this export knows {list(self.camera_names)}")
+        if not images:
+            raise ValueError(f"update_images needs at least one camera image of {list(self.camera_names)}")
+        for name in self.camera_names:
+            if name not in images:
+                continue
+            a = images[name]
+            if not isinstance(a, np.ndarray) or a.dtype != np.uint8 or a.shape != (img.height, img.width, 3):
+                got = f"{getattr(a, 'dtype', type(a).__name__)} {getattr(a, 'shape', '')}"
+                raise ValueError(
+                    f"image {name!r} must be uint8 RGB of shape ({img.height}, {img.width}, 3) for this detector, got {got}"
+                )
+
+    def _encode(self, images: Mapping[str, np.ndarray], used: tuple[str, ...], cameras: tuple[str, ...]) -> np.ndarray:
+        """(J', C, Hf, Wf) float32 feature maps of ``cameras``: the encoder's for those ``used``, zeros for the rest."""
+        img = self.image
+        c = int(self.manifest.preset["channels"])
+        if not used:
+            return np.zeros((max(1, len(cameras)), c, img.feature_height, img.feature_width), dtype=np.float32)
         batch = np.stack([images[n] for n in used])  # (J_used, H, W, 3)
         with self.stats.time("image_encoder", self._executed_gmac("image_encoder", J=len(used), H=img.height, W=img.width)):
             (enc,) = self.image_encoder.run({"images": batch})  # (J_used, C, Hf, Wf)
@@ -404,43 +500,87 @@ class StreamingDetector:
                 f"image_encoder made {enc.shape[3]}x{enc.shape[2]} feature maps from {img.width}x{img.height} images, "
                 f"the LUT expects {img.feature_width}x{img.feature_height}"
             )
-        if missing:
-            features = np.zeros((len(self.camera_names), *enc.shape[1:]), dtype=np.float32)  # (J, C, Hf, Wf)
-            features[[self.camera_names.index(n) for n in used]] = enc
-        else:
-            features = np.ascontiguousarray(enc, dtype=np.float32)
-        installed = self._install(features, seq, timestamp, missing)
-        self.stats.record("image_total", (time.perf_counter() - t0) * 1e3)
-        return ImageUpdate(timestamp, used, missing, superseded=not installed)
+        if len(used) == len(cameras):
+            return np.ascontiguousarray(enc, dtype=np.float32)
+        features = np.zeros((len(cameras), *enc.shape[1:]), dtype=np.float32)  # (J', C, Hf, Wf)
+        features[[cameras.index(n) for n in used]] = enc
+        return features
 
-    def _install(self, features: np.ndarray, seq: int, timestamp: float, missing: tuple[str, ...]) -> bool:
-        """Lift ``features`` and cache them unless a newer image set is cached already; False if it was.
+    def _install(
+        self, features: np.ndarray, cameras: tuple[str, ...], quadrants: tuple[int, ...], seq: int, timestamp: float,
+        missing: tuple[str, ...],
+    ) -> bool:  # fmt: skip
+        """Lift ``features`` into ``quadrants`` and cache each quadrant unless a newer image set is cached there
+        already; False if that was so in every one.
 
         A calibration swap during the lift makes it lift again with the new LUT: the cache never holds a BEV of
         an old calibration once set_calibration has returned."""
         while True:
             with self._lock:
-                lut, current = self._lut, self._image
-            if current is not None and current.seq > seq:
+                lut, current = self._lut, _quadrant_states(self._image)
+            todo = tuple(q for q in quadrants if current[q] is None or current[q].seq < seq)
+            if not todo:
                 return False
-            bev = self._lift(features, lut)
+            bevs = self._lift_quadrants(features, cameras, todo, lut)
             with self._lock:
-                current = self._image
-                if current is not None and current.seq > seq:
-                    return False
-                if self._lut is lut:
-                    self._image = _ImageState(bev, features, timestamp, missing, seq, lut)
-                    return True
+                if self._lut is not lut:
+                    continue
+                states = list(_quadrant_states(self._image))
+                installed = False
+                for q, bev in zip(todo, bevs):
+                    if states[q] is None or states[q].seq < seq:
+                        states[q] = _QuadrantState(bev, features, cameras, timestamp, missing, seq, lut)
+                        installed = True
+                if installed:
+                    self._image = _ImageCache(tuple(states))
+                return installed
 
     def _lift(self, features: np.ndarray, lut: Lut) -> np.ndarray:
-        with self.stats.time("volumetric_lifter", self._executed_gmac("volumetric_lifter", Q=int(lut.index.shape[0]))):
+        """The full lift: (4, C, Yq, Xq) from the (J, C, Hf, Wf) feature maps of every camera and the whole LUT."""
+        with self.stats.time("volumetric_lifter", self._executed_gmac("volumetric_lifter", Q=NUM_QUADRANTS)):
             (bev,) = self.lifter.run({"features": features, "lut_index": lut.index, "lut_weight": lut.weight})
         return bev  # (4, C, Yq, Xq)
 
+    def _lift_quadrants(self, features: np.ndarray, cameras: tuple[str, ...], quadrants: tuple[int, ...], lut: Lut) -> list[np.ndarray]:
+        """(1, C, Yq, Xq) image BEV of each of ``quadrants`` from the (J', C, Hf, Wf) feature maps of ``cameras``.
+
+        All four quadrants from every camera: one lifter run with the whole LUT. Otherwise one run per quadrant with
+        its own rows of the LUT (quadrant_lut.py), fed the feature maps of the cameras that see it (zeros for one
+        this features array does not hold, e.g. after a calibration swap widened the quadrant's view)."""
+        if quadrants == ALL_QUADRANTS and cameras == self.camera_names:
+            bev = self._lift(features, lut)  # (4, C, Yq, Xq)
+            return [bev[q : q + 1] for q in range(NUM_QUADRANTS)]  # (1, C, Yq, Xq) views, no copy
+        qluts = self._luts_of(lut)
+        out = []
+        for q in quadrants:
+            qlut = qluts[q]
+            feeds = {"features": _select_maps(features, cameras, qlut.camera_names), "lut_index": qlut.index, "lut_weight": qlut.weight}
+            with self.stats.time("volumetric_lifter", self._executed_gmac("volumetric_lifter", Q=1)):
+                (bev,) = self.lifter.run(feeds)  # (1, C, Yq, Xq)
+            out.append(bev)
+        return out
+
+    def _luts_of(self, lut: Lut) -> tuple[QuadrantLut, ...]:
+        """The per-quadrant LUTs of ``lut``, made once per LUT (the two newest LUTs are kept)."""
+        with self._lock:
+            qluts = self._quadrant_luts.get(lut)
+        if qluts is None:
+            qluts = quadrant_luts(lut)
+            with self._lock:
+                keep = [k for k in self._quadrant_luts if k is self._lut and k is not lut]
+                self._quadrant_luts = {**{k: self._quadrant_luts[k] for k in keep}, lut: qluts}
+        return qluts
+
     @property
     def image_timestamp(self) -> float | None:
-        state = self._image
-        return None if state is None else state.timestamp
+        """Timestamp of the oldest quadrant of the cached image BEV; None before any image update."""
+        cache = self._image
+        return None if cache is None else cache.timestamp
+
+    @property
+    def image_timestamps(self) -> tuple[float | None, ...]:
+        """Timestamp of each quadrant's cached image BEV (None: no image yet), quadrants 0..3."""
+        return tuple(None if s is None else s.timestamp for s in _quadrant_states(self._image))
 
     # ---- slice lane ----------------------------------------------------------------------------
     def detect_slice(
@@ -471,13 +611,15 @@ class StreamingDetector:
         t0 = time.perf_counter()
         with self.stats.time("pre"):
             pillars = pillarize(points, self.grid, quadrants, self._max_points_per_pillar, self._max_pillars)
-        state = self._image
-        image_ts = None if state is None else state.timestamp
+        cache = _quadrant_states(self._image)  # one read: a consistent view of the cache
+        states = tuple(cache[q] for q in quadrants)
+        stamps = [s.timestamp for s in states if s is not None]
+        image_ts = min(stamps) if stamps else None
         if pillars.num_pillars == 0:
             dets = Detections.empty()
         else:
             if self.uses_images:
-                feeds = {**pillars.as_feeds(), "image_bev": self._image_bev(state, quadrants)}
+                feeds = {**pillars.as_feeds(), "image_bev": self._image_bev(states)}
             else:
                 feeds = pillars.as_feeds(quadrants)
             with self.stats.time("slice_head", self._executed_gmac("slice_head", Q=len(quadrants))):
@@ -493,6 +635,7 @@ class StreamingDetector:
             num_slices=n,
             timestamp=timestamp,
             image_timestamp=image_ts,
+            image_age_s=None if image_ts is None else timestamp - image_ts,
             num_points=int(points.shape[0]),
             num_pillars=pillars.num_pillars,
             num_nonfinite_dropped=pillars.num_nonfinite_dropped,
@@ -500,13 +643,13 @@ class StreamingDetector:
             num_points_dropped=pillars.num_points_dropped,
         )
 
-    def _image_bev(self, state: _ImageState | None, quadrants: tuple[int, ...]) -> np.ndarray:
-        if state is None:
-            c = int(self.manifest.preset["channels"])
-            return np.zeros((len(quadrants), c, self.grid.quadrant_ny, self.grid.quadrant_nx), dtype=np.float32)
-        if len(quadrants) == 4:
-            return state.bev
-        return np.ascontiguousarray(state.bev[list(quadrants)])  # (Q, C, Yq, Xq)
+    def _image_bev(self, states: tuple[_QuadrantState | None, ...]) -> np.ndarray:
+        """(Q, C, Yq, Xq) image BEV of the slice's quadrants; zeros for a quadrant without images yet."""
+        if len(states) == 1 and states[0] is not None:
+            return states[0].bev  # (1, C, Yq, Xq), no copy
+        c = int(self.manifest.preset["channels"])
+        zeros = np.zeros((1, c, self.grid.quadrant_ny, self.grid.quadrant_nx), dtype=np.float32)
+        return np.concatenate([zeros if s is None else s.bev for s in states])  # (Q, C, Yq, Xq)
 
     def detect_sweep(self, sweep: np.ndarray, timestamp: float | None = None, num_slices: int | None = None) -> Detections:
         """Slice a full (N, 5) sweep (x, y, z, intensity 0..255, ring) into `num_slices` (None: the detector's),
@@ -562,6 +705,36 @@ def _timestamp(value: float | None) -> float:
     if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
         raise ValueError(f"timestamp must be None or a finite number of seconds, got {value!r}")
     return float(value)
+
+
+def _quadrant_states(cache: _ImageCache | None) -> tuple[_QuadrantState | None, ...]:
+    return (None,) * NUM_QUADRANTS if cache is None else cache.quadrants
+
+
+def _check_quadrants(quadrants: Sequence[int] | None) -> tuple[int, ...]:
+    """The quadrants of an image update: None is all four; else a non-empty strictly increasing list of 0..3."""
+    if quadrants is None:
+        return ALL_QUADRANTS
+    qs = tuple(quadrants) if isinstance(quadrants, (tuple, list)) else None
+    ok = (
+        qs is not None and len(qs) > 0
+        and all(isinstance(q, (int, np.integer)) and not isinstance(q, bool) and 0 <= q < NUM_QUADRANTS for q in qs)
+        and all(a < b for a, b in zip(qs, qs[1:]))
+    )  # fmt: skip
+    if not ok:
+        raise ValueError(f"quadrants must be None or a non-empty strictly increasing list of 0..3, got {quadrants!r}")
+    return tuple(int(q) for q in qs)
+
+
+def _select_maps(features: np.ndarray, cameras: tuple[str, ...], wanted: tuple[str, ...]) -> np.ndarray:
+    """The (max(1, len(wanted)), C, Hf, Wf) maps of ``wanted`` out of ``features`` of ``cameras``; zeros for the absent."""
+    if cameras == wanted:
+        return features
+    out = np.zeros((max(1, len(wanted)), *features.shape[1:]), dtype=np.float32)
+    for i, name in enumerate(wanted):
+        if name in cameras:
+            out[i] = features[cameras.index(name)]
+    return out
 
 
 def _export_nms(manifest: Manifest) -> NmsConfig:
