@@ -67,8 +67,15 @@ class Instrumented:
         return self._run(("slice", timestamp, int(slice_index)),
                          lambda: self.detector.detect_slice(points, slice_index, timestamp, self.num_slices))
 
-    def update_images(self, images: Mapping[str, np.ndarray], timestamp: float | None = None):
-        return self._run(("images", timestamp, 0), lambda: self.detector.update_images(images, timestamp))
+    def update_images(self, images: Mapping[str, np.ndarray], timestamp: float | None = None, **options):
+        # options (e.g. the quadrants of a partial update) pass through; one image set may then be several jobs
+        return self._run(("images", timestamp, 0), lambda: self.detector.update_images(images, timestamp, **options))
+
+    def __getattr__(self, name: str):
+        # anything else the runner asks of its detector (camera names, LUT queries) is the wrapped detector's
+        if name == "detector":  # not set yet: no recursion
+            raise AttributeError(name)
+        return getattr(self.detector, name)
 
     def _run(self, key: JobKey, job: Callable[[], object]):
         self.hooks.job_started(key)

@@ -68,14 +68,15 @@ class _Book:
     def job_started(self, key: JobKey) -> None:
         with self.lock:
             rec, lane = self.by_key[key]
-            rec.start_s = self.clock.now()
-            self.waiting[lane] -= 1
+            if math.isnan(rec.start_s):  # a release the runner splits into several jobs starts once
+                rec.start_s = self.clock.now()
+                self.waiting[lane] -= 1
 
     def job_ended(self, key: JobKey, cpu_s: float) -> None:
         with self.lock:
             rec, _ = self.by_key[key]
             rec.end_s = self.clock.now()
-            rec.cpu_s = cpu_s
+            rec.cpu_s += cpu_s
 
     def done(self, rec: SliceRecord | ImageRecord, lane: str, fut: concurrent.futures.Future) -> None:
         exc = fut.exception()
