@@ -11,6 +11,13 @@ A voxel centre p is seen by camera j if ``z_c > min_depth_m`` and ``0 <= u < W``
 ``(u z_c, v z_c, z_c) = K_j (R_j p + t_j)``; then ``u_f = floor(u / s)``, ``v_f = floor(v / s)``. Valid slots come
 first, in camera order. K is the largest number of cameras seeing one voxel (at least 1).
 
+``heights_per_voxel`` H > 1 samples each voxel at H heights, ``z_lo + (i + 1/2) dz / H``, instead of its centre
+alone: a tall voxel (the small preset's are 2 m) then also reads the pixels of an object shorter than its centre
+height. Every (height, camera) hit is one vote; a voxel's slots are its distinct feature rows (in row order,
+which is camera order), each weighted by its share of the voxel's votes, so the lifter averages the heights. K is
+then the largest number of distinct rows of one voxel. H is stored in the file's meta (absent = 1, the files
+written before it) so whoever rebuilds the LUT for a new calibration builds the same kind.
+
 The LUT is rebuilt in numpy whenever the calibration changes; the ONNX lifter takes it as an input, so a new
 calibration never needs a re-export.
 """
@@ -38,6 +45,7 @@ _META_KEYS = (
     "format", "version", "grid", "feature_stride", "image_width", "image_height", "feature_width",
     "feature_height", "camera_names", "calibration_sha256", "sentinel", "num_slots", "min_depth_m",
 )
+MAX_HEIGHTS_PER_VOXEL = 64
 
 
 class BlindCameraWarning(UserWarning):
@@ -106,9 +114,12 @@ class Lut:
     camera_names: tuple[str, ...]  # J axis order of the feature table
     calibration_sha256: str  # Rig.sha256() of the rig the LUT was built from (before any resize)
     min_depth_m: float = 0.0  # voxels at camera depth <= this were left out
+    heights_per_voxel: int = 1  # H heights sampled per voxel (module doc); 1 = the voxel centre
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "camera_names", tuple(self.camera_names))
+        _check_heights(self.heights_per_voxel)
+        object.__setattr__(self, "heights_per_voxel", int(self.heights_per_voxel))
         for name in ("feature_stride", "image_width", "image_height"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value <= 0:
@@ -175,6 +186,8 @@ class Lut:
             "sentinel": self.sentinel,
             "num_slots": self.num_slots,
             "min_depth_m": self.min_depth_m,
+            # written only when not the default: a centre-sampled LUT keeps the exact bytes it always had
+            **({"heights_per_voxel": self.heights_per_voxel} if self.heights_per_voxel != 1 else {}),
         }
 
     # ---- slicing ---------------------------------------------------------------------------------
@@ -262,6 +275,7 @@ class Lut:
                 camera_names=tuple(meta["camera_names"]),
                 calibration_sha256=str(meta["calibration_sha256"]),
                 min_depth_m=float(meta["min_depth_m"]),
+                heights_per_voxel=meta.get("heights_per_voxel", 1),
             )
         except CalibrationError as e:
             raise CalibrationError(f"{src}: {e}") from None
@@ -272,6 +286,11 @@ class Lut:
             if meta[key] != getattr(lut, key):
                 raise CalibrationError(f"{src}: meta.{key}: stored {meta[key]!r}, but the tables imply {getattr(lut, key)!r}")
         return lut
+
+
+def _check_heights(h: object) -> None:
+    if isinstance(h, bool) or not isinstance(h, (int, np.integer)) or not 1 <= h <= MAX_HEIGHTS_PER_VOXEL:
+        raise CalibrationError(f"heights_per_voxel must be an integer in 1..{MAX_HEIGHTS_PER_VOXEL}, got {h!r}")
 
 
 def _validate_tables(index: np.ndarray, weight: np.ndarray, grid: GridSpec, sentinel: int, where: str) -> None:
@@ -304,12 +323,20 @@ def build_lut(
     feature_stride: int = 4,
     image_size: tuple[int, int] | None = None,
     min_depth_m: float = 0.0,
+    heights_per_voxel: int = 1,
 ) -> Lut:
     """Project every voxel centre of the four quadrant volumes into every camera of ``rig``.
 
     ``image_size`` (W, H) is the size of the images fed to the encoder; the rig's K are rescaled to it. Without
     it, every camera must share one size. Math is float32 and separable in x, y, z, camera by camera.
+    ``heights_per_voxel`` > 1 samples each voxel at that many heights (module doc).
     """
+    try:
+        _check_heights(heights_per_voxel)
+    except CalibrationError as e:
+        raise ValueError(str(e)) from None
+    if heights_per_voxel > 1:
+        return _build_lut_heights(rig, grid, feature_stride, image_size, min_depth_m, int(heights_per_voxel))
     if isinstance(feature_stride, bool) or not isinstance(feature_stride, (int, np.integer)) or feature_stride <= 0:
         raise ValueError(f"feature_stride must be a positive integer, got {feature_stride!r}")
     if not (isinstance(min_depth_m, (int, float)) and math.isfinite(min_depth_m) and min_depth_m >= 0):
@@ -373,6 +400,44 @@ def build_lut(
         calibration_sha256=rig.sha256(),
         min_depth_m=float(min_depth_m),
     )
+
+
+def _build_lut_heights(rig: Rig, grid: GridSpec, feature_stride: int, image_size: tuple[int, int] | None,
+                       min_depth_m: float, heights: int) -> Lut:  # fmt: skip
+    """``build_lut`` with ``heights`` samples per voxel: every (height, camera) hit votes for its feature row."""
+    centre = build_lut(rig, grid, feature_stride, image_size, min_depth_m)  # validates; gives sizes and names
+    width, height = centre.image_width, centre.image_height
+    cams_rig = rig if image_size is None else rig.resized(width, height)
+    feat_w, cells, sentinel = centre.feature_width, centre.feature_width * centre.feature_height, centre.sentinel
+    axes = [grid.voxel_center_axes(q) for q in range(NUM_QUADRANTS)]
+    xs = np.stack([a[0] for a in axes]).astype(np.float32)  # (4, Xq)
+    ys = np.stack([a[1] for a in axes]).astype(np.float32)  # (4, Yq)
+    offsets = ((np.arange(heights) + 0.5) / heights - 0.5) * grid.voxel_z_m  # (H,) from the voxel centre, m
+    per_quadrant = grid.nz * grid.quadrant_ny * grid.quadrant_nx
+    keys = []  # per (height, camera): voxel * (sentinel + 1) + row, one vote each
+    for dz in offsets:
+        zs = (axes[0][2] + dz).astype(np.float32)  # (Z,)
+        for j, cam in enumerate(cams_rig.cameras):
+            voxels, rows = _project_camera(cam.K @ cam.lidar2cam[:3], xs, ys, zs, width, height, feature_stride,
+                                           feat_w, float(min_depth_m))  # fmt: skip
+            keys.append(voxels.astype(np.int64) * (sentinel + 1) + rows + j * cells)
+    key, votes = np.unique(np.concatenate(keys), return_counts=True)  # sorted: by voxel, then row (camera order)
+    voxel, row = key // (sentinel + 1), (key % (sentinel + 1)).astype(np.int32)
+    num_voxels = NUM_QUADRANTS * per_quadrant
+    total = np.bincount(voxel, weights=votes, minlength=num_voxels)  # (V,) votes per voxel
+    first = np.searchsorted(voxel, voxel, side="left")
+    slot = np.arange(len(voxel)) - first  # rank of the row within its voxel
+    num_slots = max(1, int(slot.max()) + 1) if len(slot) else 1
+    q, r = voxel // per_quadrant, voxel % per_quadrant
+    flat = (q * num_slots + slot) * per_quadrant + r  # into (4, K, M)
+    index = np.full(NUM_QUADRANTS * num_slots * per_quadrant, sentinel, dtype=np.int32)
+    weight = np.zeros(NUM_QUADRANTS * num_slots * per_quadrant, dtype=np.float32)
+    index[flat] = row
+    weight[flat] = (votes / total[voxel]).astype(np.float32)
+    shape = (NUM_QUADRANTS, num_slots, grid.nz, grid.quadrant_ny, grid.quadrant_nx)  # (4, K, Z, Yq, Xq)
+    return Lut(index=index.reshape(shape), weight=weight.reshape(shape), grid=grid, feature_stride=int(feature_stride),
+               image_width=width, image_height=height, camera_names=rig.names, calibration_sha256=rig.sha256(),
+               min_depth_m=float(min_depth_m), heights_per_voxel=heights)  # fmt: skip
 
 
 def _project_camera(
