@@ -75,7 +75,8 @@ def load_weights(run: ExportRun) -> None:
 
 def build_lut_file(run: ExportRun) -> None:
     run.rig, run.calibration_source = load_rig(run.opts.calibration)
-    run.lut = build_lut(run.rig, run.preset.grid, run.preset.image.feature_stride, run.size)
+    run.lut = build_lut(run.rig, run.preset.grid, run.preset.image.feature_stride, run.size,
+                        heights_per_voxel=run.preset.lifter.lut_heights_per_voxel)  # fmt: skip
     run.lut.save(run.tmp / LUT_NAME)
     run.note(f"{len(run.rig)} cameras, K = {run.lut.num_slots} slots, from {run.calibration_source}")
 

@@ -112,14 +112,15 @@ class GraphInputs:
         return getattr(self, name)
 
 
-def sample_lut(sample: Sample, camera_names: Sequence[str], grid, feature_stride: int, size: tuple[int, int]) -> Lut:
+def sample_lut(sample: Sample, camera_names: Sequence[str], grid, feature_stride: int, size: tuple[int, int],
+               heights_per_voxel: int = 1) -> Lut:  # fmt: skip
     """The sample's own projection LUT (its rig, resized to the export's images), cameras in export order."""
     if tuple(sample.rig.names) != tuple(camera_names):
         raise Int8CalibrationDataError(
             f"sample {sample.token} has cameras {list(sample.rig.names)}; the export's rig orders them "
             f"{list(camera_names)}: the LUT rows would not match the encoded images"
         )
-    return build_lut(sample.rig, grid, feature_stride, size)
+    return build_lut(sample.rig, grid, feature_stride, size, heights_per_voxel=heights_per_voxel)
 
 
 def graph_inputs(
@@ -148,7 +149,8 @@ def graph_inputs(
     pil = preset.pillars
     for i, sample in enumerate(samples):
         images = np.stack([load_image(sample.image_paths[n], size) for n in camera_names])  # (J, H, W, 3)
-        lut = luts[i] if luts is not None else sample_lut(sample, camera_names, preset.grid, preset.image.feature_stride, size)
+        lut = luts[i] if luts is not None else sample_lut(sample, camera_names, preset.grid, preset.image.feature_stride,
+                                                          size, preset.lifter.lut_heights_per_voxel)  # fmt: skip
         (features,) = sessions32["image_encoder"].run(None, {"images": images})  # (J, C, Hf, Wf)
         lifter_feeds = {"features": features, "lut_index": lut.index, "lut_weight": lut.weight}
         (bev,) = sessions32["volumetric_lifter"].run(None, lifter_feeds)  # (4, C, Yq, Xq)

@@ -89,9 +89,12 @@ class PillarConfig:
 class LifterConfig:
     z_conv_stride: int = 2  # the z-strided Conv3d: 0.5 m voxels -> 1 m
     z_pool: int = 2  # AvgPool along z after it: 1 m -> 2 m, then max over what is left
+    # heights sampled per image voxel by the projection LUT (calibration/lut.py heights_per_voxel); 1 = the centre.
+    # A property of the trained model: training, export and every LUT rebuild must use the same value.
+    lut_heights_per_voxel: int = 1
 
     def __post_init__(self) -> None:
-        _check_positive_int(self, "z_conv_stride", "z_pool")
+        _check_positive_int(self, "z_conv_stride", "z_pool", "lut_heights_per_voxel")
 
 
 @dataclass(frozen=True)
@@ -240,6 +243,8 @@ class Preset:
         # exact dict (and manifest) it had
         if d["image"]["norm"] == "batch":
             del d["image"]["norm"]
+        if d["lifter"]["lut_heights_per_voxel"] == 1:
+            del d["lifter"]["lut_heights_per_voxel"]
         if self.image_bev_norm:
             d["image_bev_norm"] = True
         return d

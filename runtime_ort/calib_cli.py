@@ -58,7 +58,9 @@ def rebuild_lut(calibration: str | Path, export_dir: str | Path) -> tuple[Lut, b
         grid = GridSpec.from_dict(manifest.grid)
     except (KeyError, TypeError, ValueError) as e:
         raise ManifestError(f"{export_dir / 'manifest.json'}: grid: {e}") from None
-    lut = build_lut(rig, grid, image.feature_stride, (image.width, image.height))
+    # the model's heights per voxel (models/presets.py LifterConfig; absent = 1, manifests written before it)
+    heights = manifest.preset.get("lifter", {}).get("lut_heights_per_voxel", 1)
+    lut = build_lut(rig, grid, image.feature_stride, (image.width, image.height), heights_per_voxel=heights)
     if (lut.feature_width, lut.feature_height) != (image.feature_width, image.feature_height):
         raise LutMismatch(
             f"the LUT's feature map {lut.feature_width}x{lut.feature_height} differs from the manifest's "

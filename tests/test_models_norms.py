@@ -72,13 +72,15 @@ def test_norm_kinds_and_bad_kind():
 def test_shipped_presets_serialise_as_before(name):
     d = get_preset(name).to_dict()
     assert "norm" not in d["image"] and "image_bev_norm" not in d  # existing manifests stay byte-identical
+    assert "lut_heights_per_voxel" not in d["lifter"]
     assert Preset.from_dict(json.loads(json.dumps(d))) == get_preset(name)
 
 
 def test_new_options_round_trip_and_reach_the_modules():
-    p = dataclasses.replace(TINY, image=dataclasses.replace(TINY.image, norm="group"), image_bev_norm=True)
+    p = dataclasses.replace(TINY, image=dataclasses.replace(TINY.image, norm="group"), image_bev_norm=True,
+                            lifter=dataclasses.replace(TINY.lifter, lut_heights_per_voxel=4))  # fmt: skip
     d = json.loads(json.dumps(p.to_dict()))
-    assert d["image"]["norm"] == "group" and d["image_bev_norm"] is True
+    assert d["image"]["norm"] == "group" and d["image_bev_norm"] is True and d["lifter"]["lut_heights_per_voxel"] == 4
     assert Preset.from_dict(d) == p
     det = StreamDetector(p)
     assert isinstance(det.image_encoder.backbone.bn1, torch.nn.GroupNorm)

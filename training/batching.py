@@ -72,7 +72,8 @@ class Collator:
         key = rig.sha256()
         if key not in self._luts:
             img = self.preset.image
-            self._luts[key] = build_lut(rig, self.preset.grid, img.feature_stride, image_size=(img.width_px, img.height_px))
+            self._luts[key] = build_lut(rig, self.preset.grid, img.feature_stride, image_size=(img.width_px, img.height_px),
+                                        heights_per_voxel=self.preset.lifter.lut_heights_per_voxel)  # fmt: skip
         return self._luts[key]
 
     def __call__(self, items: list[SampleItem]) -> Batch:

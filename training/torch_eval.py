@@ -39,7 +39,8 @@ class TorchSweepDetector:
         key = sample.rig.sha256()
         if key not in self._luts:
             img = self.preset.image
-            self._luts[key] = build_lut(sample.rig, self.preset.grid, img.feature_stride, (img.width_px, img.height_px))
+            self._luts[key] = build_lut(sample.rig, self.preset.grid, img.feature_stride, (img.width_px, img.height_px),
+                                        heights_per_voxel=self.preset.lifter.lut_heights_per_voxel)  # fmt: skip
         return self._luts[key]
 
     @torch.no_grad()
