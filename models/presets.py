@@ -17,6 +17,8 @@ Three presets:
   graphs take any image size, so ``streamdet-bench --resolution 800x450`` still runs it. One quadrant of the slice
   graph is about 0.43 GMAC (benchmarks/flops_report.py).
 - ``tiny``: for unit tests; every size minimal so a forward and backward pass take milliseconds.
+- ``small_v2``: ``small`` with the camera-lane options of issue 19 on (frozen backbone BatchNorm after image
+  pretraining, image BEV normalised at fusion, two LUT heights per voxel); the others keep them off.
 """
 
 from __future__ import annotations
@@ -329,7 +331,21 @@ def _tiny() -> Preset:
     )
 
 
-_PRESETS = {"paper": _paper, "small": _small, "tiny": _tiny}
+def _small_v2() -> Preset:
+    # small with the camera lane's fixes of issue 19: a backbone BatchNorm frozen after image pretraining
+    # (streamdet-train-image, then streamdet-train --init), the image BEV brought to the point BEV's scale at
+    # fusion, two heights per 2 m voxel in the LUT (coverage of short objects: docs/training/issue19_plan.md)
+    small = _small()
+    return dataclasses.replace(
+        small,
+        name="small_v2",
+        image=dataclasses.replace(small.image, norm="frozen_batch"),
+        lifter=dataclasses.replace(small.lifter, lut_heights_per_voxel=2),
+        image_bev_norm=True,
+    )
+
+
+_PRESETS = {"paper": _paper, "small": _small, "tiny": _tiny, "small_v2": _small_v2}
 
 
 def preset_names() -> tuple[str, ...]:

@@ -1,0 +1,290 @@
+"""Image pretraining on the synthetic world's per-pixel masks: the detector's image encoder + a segmentation head.
+
+The analogue of the paper's pretrained backbone (issue 19). Every camera image of the train split, with its
+``<image>.mask.npz`` (``data/synth_writer.py``: ``class_id`` per pixel, 255 = no annotated object), is a training
+example; labels are 0 = background and 1 + class index. A batch mixes images of different samples, so the
+backbone's BatchNorm (if the preset's is "batch" or "frozen_batch") sees varied statistics here and can be
+frozen afterwards.
+
+Outputs in ``out_dir``: ``last.pt`` (resumable: model, optimizer, step), ``encoder.pt`` (the image encoder's state
+dict), ``detector_init.pt`` (a whole detector of the preset, freshly initialised with the seed, image encoder
+from here: ``streamdet-train --init`` takes it), ``metrics.jsonl`` (loss and val mIoU), ``config.json``.
+
+Evaluation (``evaluate_miou``): per object class, IoU = TP / (TP + FP + FN) over the val images' pixels, counting
+only objects whose box centre lies within ``range_m`` of the LiDAR (pixels of farther objects are ignored, neither
+right nor wrong); mIoU averages the classes present in those labels.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from streamdet.core.classes import CLASS_NAMES, NUM_CLASSES
+from streamdet.data.nuscenes import NuScenesReader
+from streamdet.data.sample import load_image
+from streamdet.data.splits import split_sample_tokens
+from streamdet.data.synth_writer import MASK_SUFFIX
+from streamdet.models.detector import build_detector
+from streamdet.models.image_encoder import ImageEncoder
+from streamdet.models.presets import Preset, get_preset
+from streamdet.models.seg_head import ImageSegmenter
+from streamdet.training.checkpoint import _atomic_save, save_weights
+from streamdet.training.trainer import init_head_outputs
+
+NUM_LABELS = NUM_CLASSES + 1  # 0 = background
+IGNORE = 255
+
+
+@dataclass(frozen=True)
+class PretrainConfig:
+    preset: str = "small"
+    steps: int = 2000  # optimizer steps of the cosine schedule
+    batch_size: int = 8  # images per step, drawn from all cameras of all train samples
+    lr: float = 2e-3  # peak AdamW learning rate
+    weight_decay: float = 1e-4
+    warmup_steps: int = 50  # linear warm-up before the cosine decay
+    max_background_weight: float = 1.0  # CE weight of background; objects get their inverse sqrt frequency
+    max_class_weight: float = 20.0  # cap on an object class's CE weight
+    range_m: float = 30.0  # evaluation: objects within this distance (m) of the LiDAR
+    eval_every: int = 250  # steps between val mIoU evaluations
+    checkpoint_every: int = 100  # steps between rewrites of last.pt
+    seed: int = 0
+    max_minutes: float | None = None  # stop with a checkpoint after this much wall time (resume continues)
+
+    def __post_init__(self) -> None:
+        get_preset(self.preset)
+        for name in ("steps", "batch_size", "eval_every", "checkpoint_every"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"PretrainConfig.{name} must be >= 1, got {getattr(self, name)}")
+        if not self.lr > 0 or not self.range_m > 0:
+            raise ValueError(f"PretrainConfig: lr and range_m must be > 0, got {self.lr}, {self.range_m}")
+
+
+def pretrain_preset(preset: Preset) -> Preset:
+    """The encoder's config while pretraining: a frozen BatchNorm learns its statistics here (as plain BatchNorm)."""
+    if preset.image.norm != "frozen_batch":
+        return preset
+    return dataclasses.replace(preset, image=dataclasses.replace(preset.image, norm="batch"))
+
+
+@dataclass(frozen=True, eq=False)
+class MaskedImages:
+    """Images (N, H, W, 3) uint8, training labels (N, H, W) uint8 (0 background, 1 + class), and evaluation labels
+    (the same, IGNORE on objects beyond the range)."""
+
+    images: np.ndarray
+    labels: np.ndarray
+    eval_labels: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.images)
+
+
+def load_masked_images(root: str | Path, split: str | None, size: tuple[int, int], range_m: float,
+                       version: str = "v1.0-synth", max_samples: int | None = None,
+                       progress: Callable[[int, int], None] | None = None) -> MaskedImages:  # fmt: skip
+    """Every camera image of the split's samples at ``size`` (W, H), with its labels; a missing mask is an error."""
+    reader = NuScenesReader(root, version)
+    tokens = split_sample_tokens(reader, root, split)[:max_samples]
+    if not tokens:
+        raise ValueError(f"{root}: the {split or 'whole'} split holds no sample")
+    images, labels, eval_labels = [], [], []
+    for i, token in enumerate(tokens):
+        sample = reader.get(token)
+        dist = {t: float(np.hypot(*b[:2])) for t, b in zip(sample.instance_tokens, sample.gt_boxes)}
+        for name in sample.rig.names:
+            path = Path(sample.image_paths[name])
+            mask_path = path.with_name(path.name + MASK_SUFFIX)
+            if not mask_path.is_file():
+                raise FileNotFoundError(f"{mask_path} is missing: image pretraining needs the world's masks (world version 2)")
+            with np.load(mask_path, allow_pickle=False) as z:
+                class_id, instance, ids, inst_tokens = z["class_id"], z["instance"], z["ids"], z["tokens"]
+            label = np.where(class_id == 255, 0, class_id.astype(np.int64) + 1).astype(np.uint8)
+            far_ids = [int(k) for k, t in zip(ids, inst_tokens) if dist.get(str(t), math.inf) >= range_m]
+            far = np.isin(instance, far_ids)
+            label = cv2.resize(label, size, interpolation=cv2.INTER_NEAREST)
+            far = cv2.resize(far.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST).astype(bool)
+            images.append(load_image(path, size))
+            labels.append(label)
+            eval_labels.append(np.where(far, IGNORE, label).astype(np.uint8))
+        if progress is not None:
+            progress(i + 1, len(tokens))
+    return MaskedImages(np.stack(images), np.stack(labels), np.stack(eval_labels))
+
+
+def class_weights(labels: np.ndarray, config: PretrainConfig) -> torch.Tensor:
+    """(NUM_LABELS,) CE weights: background ``max_background_weight``, objects 1 / sqrt(their share of the most
+    frequent object class), capped; an absent class gets the cap (it cannot matter)."""
+    counts = np.bincount(labels.ravel(), minlength=NUM_LABELS).astype(np.float64)
+    objects = counts[1:]
+    top = objects.max() if objects.max() > 0 else 1.0
+    w = np.where(objects > 0, np.sqrt(top / np.maximum(objects, 1.0)), config.max_class_weight)
+    return torch.tensor(np.r_[config.max_background_weight, np.minimum(w, config.max_class_weight)], dtype=torch.float32)
+
+
+def confusion(pred: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    """(NUM_LABELS, NUM_LABELS) int64 counts [true, predicted] over the pixels whose label is not IGNORE."""
+    keep = labels != IGNORE
+    idx = labels[keep].astype(np.int64) * NUM_LABELS + pred[keep].astype(np.int64)
+    return np.bincount(idx, minlength=NUM_LABELS * NUM_LABELS).reshape(NUM_LABELS, NUM_LABELS)
+
+
+def miou_from_confusion(conf: np.ndarray) -> dict:
+    """Per object class IoU (classes with labelled pixels) and their mean ``mIoU`` (NaN when no class has any)."""
+    tp = np.diag(conf).astype(np.float64)
+    fp = conf.sum(axis=0) - tp
+    fn = conf.sum(axis=1) - tp
+    per_class = {}
+    for c in range(1, NUM_LABELS):
+        if conf[c].sum() > 0:
+            per_class[CLASS_NAMES[c - 1]] = float(tp[c] / (tp[c] + fp[c] + fn[c]))
+    miou = float(np.mean(list(per_class.values()))) if per_class else math.nan
+    return {"mIoU": miou, "per_class": per_class, "pixels": {CLASS_NAMES[c - 1]: int(conf[c].sum()) for c in range(1, NUM_LABELS)}}
+
+
+@torch.no_grad()
+def evaluate_miou(model: ImageSegmenter, data: MaskedImages, batch_size: int = 8, device: str = "cpu") -> dict:
+    """Val mIoU of the object classes within range (module doc)."""
+    model.eval()
+    conf = np.zeros((NUM_LABELS, NUM_LABELS), dtype=np.int64)
+    for i in range(0, len(data), batch_size):
+        images = torch.from_numpy(data.images[i : i + batch_size]).to(device)
+        pred = model(images).argmax(dim=1).cpu().numpy()  # (B, H, W)
+        conf += confusion(pred, data.eval_labels[i : i + batch_size])
+    return miou_from_confusion(conf)
+
+
+def build_segmenter(preset: Preset) -> ImageSegmenter:
+    if not preset.use_image:
+        raise ValueError(f"preset {preset.name!r} has use_image=False: there is no image encoder to pretrain")
+    cfg = pretrain_preset(preset)
+    return ImageSegmenter(ImageEncoder(cfg.image, cfg.channels), NUM_LABELS, cfg.channels)
+
+
+def lr_at(step: int, config: PretrainConfig) -> float:
+    """Linear warm-up, then cosine decay to 1 % of the peak at ``config.steps``."""
+    if step < config.warmup_steps:
+        return config.lr * (step + 1) / config.warmup_steps
+    t = min(1.0, (step - config.warmup_steps) / max(1, config.steps - config.warmup_steps))
+    return config.lr * (0.01 + 0.99 * 0.5 * (1 + math.cos(math.pi * t)))
+
+
+def batch_indices(step: int, n: int, config: PretrainConfig) -> np.ndarray:
+    """The images of ``step``: a pure function of (seed, step), so a resumed run draws what the first would have."""
+    return np.random.default_rng([config.seed, step]).choice(n, size=min(config.batch_size, n), replace=False)
+
+
+def write_detector_init(path: Path, preset: Preset, segmenter: ImageSegmenter, seed: int) -> None:
+    """A detector of ``preset`` initialised as streamdet-train does (seed, head prior), encoder from ``segmenter``."""
+    torch.manual_seed(seed)
+    detector = build_detector(preset)
+    init_head_outputs(detector)
+    detector.image_encoder.load_state_dict(segmenter.encoder.state_dict(), strict=True)
+    save_weights(path, preset, detector, meta={"image_pretrain": str(path.parent)})
+
+
+def load_encoder_weights(detector, path: str | Path) -> None:
+    """Copy an ``encoder.pt`` written here into ``detector.image_encoder`` (ValueError naming the file if it does not fit)."""
+    state = torch.load(path, map_location="cpu", weights_only=True)
+    try:
+        detector.image_encoder.load_state_dict(state, strict=True)
+    except (RuntimeError, AttributeError) as e:
+        raise ValueError(f"{path}: does not fit the detector's image encoder: {str(e).splitlines()[0]}") from None
+
+
+def pretrain(config: PretrainConfig, data_dir: str | Path, out_dir: str | Path, version: str = "v1.0-synth",
+             resume: str | Path | None = None, device: str = "cpu", echo: Callable[[str], None] = print,
+             max_samples: int | None = None, splits: tuple[str | None, str | None] = ("train", "val")) -> dict:  # fmt: skip
+    """Train the segmenter; returns the last evaluation. Resumable from ``out_dir/last.pt`` with ``resume``.
+
+    ``splits``: the (train, val) splits of ``data_dir/splits.json``; None = every sample.
+    """
+    t0 = time.monotonic()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    preset = get_preset(config.preset)
+    size = (preset.image.width_px, preset.image.height_px)
+    echo(f"loading {data_dir} train / val images at {size[0]}x{size[1]} with their masks")
+    train_data = load_masked_images(data_dir, splits[0], size, config.range_m, version, max_samples)
+    val_data = load_masked_images(data_dir, splits[1], size, config.range_m, version, max_samples)
+    echo(f"{len(train_data)} train images, {len(val_data)} val images")
+    torch.manual_seed(config.seed)
+    model = build_segmenter(preset).to(device)
+    optimizer = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+    weights = class_weights(train_data.labels, config).to(device)
+    step = 0
+    if resume is not None:
+        state = torch.load(resume, map_location=device, weights_only=False)
+        if state.get("config", {}).get("preset") != config.preset:
+            raise ValueError(f"--resume {resume} was pretrained for preset {state.get('config', {}).get('preset')!r}, not {config.preset!r}")
+        model.load_state_dict(state["model"])
+        optimizer.load_state_dict(state["optimizer"])
+        step = int(state["step"])
+        echo(f"resumed {resume} at step {step}")
+    (out / "config.json").write_text(json.dumps({"pretrain": dataclasses.asdict(config), "data": str(data_dir),
+                                                 "preset": preset.to_dict()}, indent=1) + "\n")  # fmt: skip
+    metrics = open(out / "metrics.jsonl", "a")
+    last_eval: dict = {}
+
+    def checkpoint() -> None:
+        _atomic_save({"model": model.state_dict(), "optimizer": optimizer.state_dict(), "step": step,
+                      "config": dataclasses.asdict(config)}, out / "last.pt")  # fmt: skip
+        torch.save(model.encoder.state_dict(), out / "encoder.pt")
+        write_detector_init(out / "detector_init.pt", preset, model, config.seed)
+
+    def evaluate() -> dict:
+        result = {**evaluate_miou(model, val_data, config.batch_size, device), "step": step}
+        metrics.write(json.dumps({"step": step, "val_mIoU": result["mIoU"], "val_IoU": result["per_class"],
+                                  "minutes": (time.monotonic() - t0) / 60}) + "\n")  # fmt: skip
+        metrics.flush()
+        echo(f"step {step}: val mIoU {result['mIoU']:.3f} " + " ".join(f"{c} {v:.2f}" for c, v in result["per_class"].items()))
+        model.train()
+        return result
+
+    model.train()
+    stopped_early = False
+    while step < config.steps:
+        if config.max_minutes is not None and time.monotonic() - t0 > 60 * config.max_minutes:
+            stopped_early = True
+            break
+        idx = np.sort(batch_indices(step, len(train_data), config))
+        images = torch.from_numpy(train_data.images[idx]).to(device)  # (B, H, W, 3)
+        labels = torch.from_numpy(train_data.labels[idx]).long().to(device)  # (B, H, W)
+        if np.random.default_rng([config.seed, step, 1]).random() < 0.5:  # horizontal flip: the world has no handedness
+            images, labels = images.flip(2), labels.flip(2)
+        for group in optimizer.param_groups:
+            group["lr"] = lr_at(step, config)
+        loss = F.cross_entropy(model(images), labels, weight=weights)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
+        optimizer.step()
+        step += 1
+        if step % 10 == 0 or step == 1:
+            metrics.write(json.dumps({"step": step, "loss": float(loss.detach()), "lr": lr_at(step - 1, config)}) + "\n")
+            metrics.flush()
+            echo(f"step {step}/{config.steps} loss {float(loss.detach()):.4f} ({(time.monotonic() - t0) / 60:.1f} min)")
+        if step % config.checkpoint_every == 0:
+            checkpoint()
+        if step % config.eval_every == 0:
+            last_eval = evaluate()
+    checkpoint()
+    if not last_eval or last_eval.get("step") != step:
+        last_eval = evaluate()
+    last_eval = {**last_eval, "step": step, "finished": not stopped_early}
+    (out / "result.json").write_text(json.dumps(last_eval, indent=1) + "\n")
+    metrics.close()
+    echo(f"{'stopped at --max-minutes' if stopped_early else 'finished'} at step {step}: val mIoU {last_eval['mIoU']:.3f}; "
+         f"wrote {out / 'encoder.pt'} and {out / 'detector_init.pt'}")  # fmt: skip
+    return last_eval

@@ -1,0 +1,55 @@
+"""``streamdet-train-image``: pretrain the image encoder on the synthetic world's masks (``training/image_pretrain``).
+
+Then ``streamdet-train --preset P --init OUT/detector_init.pt`` trains the detector from the pretrained encoder.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from streamdet.models.presets import preset_names
+from streamdet.training.image_pretrain import PretrainConfig, pretrain
+
+
+@click.command(context_settings={"help_option_names": ["-h", "--help"]})
+@click.option("--data", "data_dir", required=True, type=click.Path(file_okay=False, path_type=Path),
+              help="Dataset root written by streamdet-synth (world version 2: images with .mask.npz beside them).")
+@click.option("--version", default="v1.0-synth", show_default=True, help="Name of the table folder.")
+@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path),
+              help="Output folder: last.pt, encoder.pt, detector_init.pt, metrics.jsonl, result.json, config.json.")
+@click.option("--preset", default="small", show_default=True, type=click.Choice(preset_names()),
+              help="The detector preset whose image encoder is pretrained (its image size is used).")
+@click.option("--steps", type=click.IntRange(min=1), default=2000, show_default=True, help="Optimizer steps of the schedule.")
+@click.option("--batch-size", type=click.IntRange(min=1), default=8, show_default=True, help="Images per step.")
+@click.option("--lr", type=click.FloatRange(min=0, min_open=True), default=2e-3, show_default=True, help="Peak AdamW learning rate.")
+@click.option("--range", "range_m", type=click.FloatRange(min=0, min_open=True), default=30.0, show_default=True,
+              help="Evaluation: objects within this distance (m) count toward the mIoU.")
+@click.option("--eval-every", type=click.IntRange(min=1), default=250, show_default=True, help="Steps between val mIoU evaluations.")
+@click.option("--checkpoint-every", type=click.IntRange(min=1), default=100, show_default=True, help="Steps between checkpoints.")
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Seed of the weights and the batches.")
+@click.option("--max-minutes", type=click.FloatRange(min=0, min_open=True), default=None,
+              help="Stop with a checkpoint after this much wall time; --resume continues the same schedule.")
+@click.option("--resume", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Continue from a last.pt written by this command.")
+@click.option("--max-samples", type=click.IntRange(min=1), default=None, help="Use only the first N samples of each split (tests).")
+@click.option("--device", default="cpu", show_default=True, help="torch device.")
+def main(data_dir: Path, version: str, out_dir: Path, preset: str, steps: int, batch_size: int, lr: float,
+         range_m: float, eval_every: int, checkpoint_every: int, seed: int, max_minutes: float | None,
+         resume: Path | None, max_samples: int | None, device: str) -> None:  # fmt: skip
+    """Pretrain the detector's image encoder with a segmentation head on per-pixel class masks; report val mIoU."""
+    if not (data_dir / version).is_dir():
+        raise click.ClickException(f"--data {data_dir}: no table folder {data_dir / version} (is --version right?)")
+    if resume is not None and not resume.is_file():
+        raise click.ClickException(f"--resume {resume} does not exist")
+    try:
+        config = PretrainConfig(preset=preset, steps=steps, batch_size=batch_size, lr=lr, range_m=range_m,
+                                eval_every=eval_every, checkpoint_every=checkpoint_every, seed=seed, max_minutes=max_minutes)  # fmt: skip
+        pretrain(config, data_dir, out_dir, version=version, resume=resume, device=device, echo=click.echo,
+                 max_samples=max_samples)  # fmt: skip
+    except (ValueError, FileNotFoundError, KeyError) as e:
+        raise click.ClickException(str(e).splitlines()[0]) from None
+
+
+if __name__ == "__main__":
+    main()
