@@ -428,14 +428,18 @@ class StreamingDetector:
 
     # ---- image lane ----------------------------------------------------------------------------
     def update_images(
-        self, images: Mapping[str, np.ndarray], timestamp: float | None = None, quadrants: Sequence[int] | None = None
-    ) -> ImageUpdate:
+        self, images: Mapping[str, np.ndarray], timestamp: float | None = None, quadrants: Sequence[int] | None = None,
+        encoded: Mapping[str, np.ndarray] | None = None,
+    ) -> ImageUpdate:  # fmt: skip
         """Encode and lift the given camera images (uint8 RGB (H, W, 3) by camera name) into the cached BEV.
 
         ``quadrants`` None (the full update): every camera given is encoded and all four quadrants are lifted. A
         strictly increasing list of quadrants (0..3) updates only those: only the cameras that see them (the LUT
         says which, ``quadrant_cameras``) are encoded, only their quadrants are lifted and get this timestamp;
         the other quadrants keep their older BEV. Both give the same BEV for the same images.
+
+        ``encoded``: feature maps ``encode_images`` made of some of these same images, by camera name; those
+        cameras are not encoded again (a scheduler lifting quadrants one by one encodes each image once).
 
         Cameras not given are allowed: their features are zeros. Unknown names, wrong sizes or dtypes raise, and so
         does any call on a LiDAR-only export (NoImageLaneError).
@@ -446,7 +450,7 @@ class StreamingDetector:
             raise NoImageLaneError(self._no_image_lane(f"update_images got cameras {sorted(map(str, images))} it cannot use"))
         timestamp = _timestamp(timestamp)
         wanted = _check_quadrants(quadrants)
-        self._check_images(images)
+        self.check_images(images)
         needed = self.camera_names if wanted == ALL_QUADRANTS else self.quadrant_cameras(wanted)
         used = tuple(n for n in needed if n in images)
         missing = tuple(n for n in needed if n not in images)
@@ -455,11 +459,42 @@ class StreamingDetector:
         with self._lock:
             self._image_seq += 1
             seq = self._image_seq
+        known = self._check_encoded(encoded, images)
         t0 = time.perf_counter()
-        features = self._encode(images, used, needed)  # (J', C, Hf, Wf)
+        features = self._encode(images, tuple(n for n in used if n not in known), needed)  # (J', C, Hf, Wf)
+        for name in used:
+            if name in known:
+                features[needed.index(name)] = known[name]
         installed = self._install(features, needed, wanted, seq, timestamp, missing)
         self.stats.record("image_total", (time.perf_counter() - t0) * 1e3)
         return ImageUpdate(timestamp, used, missing, superseded=not installed, quadrants=wanted)
+
+    def encode_images(self, images: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """The (C, Hf, Wf) float32 feature maps of the given camera images, by camera name (one encoder run), for
+        ``update_images(..., encoded=...)``. Caches nothing."""
+        if not isinstance(images, Mapping):
+            raise ValueError(f"encode_images takes a dict of camera name -> uint8 RGB (H, W, 3) image, got {type(images).__name__}")
+        if not self.uses_images:
+            raise NoImageLaneError(self._no_image_lane(f"encode_images got cameras {sorted(map(str, images))} it cannot use"))
+        self.check_images(images)
+        used = tuple(n for n in self.camera_names if n in images)
+        features = self._encode(images, used, used)  # (J_used, C, Hf, Wf)
+        return {name: features[j] for j, name in enumerate(used)}
+
+    def _check_encoded(self, encoded: Mapping[str, np.ndarray] | None, images: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+        if encoded is None:
+            return {}
+        img = self.image
+        shape = (int(self.manifest.preset["channels"]), img.feature_height, img.feature_width)
+        if not isinstance(encoded, Mapping):
+            raise ValueError(f"encoded must be None or a dict of camera name -> {shape} float32 feature map, got {type(encoded).__name__}")
+        for name, f in encoded.items():
+            if name not in images:
+                raise ValueError(f"encoded names camera {name!r}, whose image this update was not given")
+            if not isinstance(f, np.ndarray) or f.dtype != np.float32 or f.shape != shape:
+                got = f"{getattr(f, 'dtype', type(f).__name__)} {getattr(f, 'shape', '')}"
+                raise ValueError(f"encoded[{name!r}] must be a float32 feature map of shape {shape} (encode_images), got {got}")
+        return dict(encoded)
 
     def quadrant_cameras(self, quadrants: Sequence[int]) -> tuple[str, ...]:
         """The cameras whose feature maps the LUT in use reads in these quadrants, in the export's camera order."""
@@ -468,7 +503,9 @@ class StreamingDetector:
         seen = {name for q in wanted for name in qluts[q].camera_names}
         return tuple(n for n in self.camera_names if n in seen)
 
-    def _check_images(self, images: Mapping[str, np.ndarray]) -> None:
+    def check_images(self, images: Mapping[str, np.ndarray]) -> None:
+        """ValueError unless ``images`` is a non-empty dict of known camera names to uint8 RGB (H, W, 3) images of
+        this detector's size (what update_images and encode_images refuse)."""
         img = self.image
         unknown = [n for n in images if n not in self.camera_names]
         if unknown:

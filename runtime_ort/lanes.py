@@ -7,7 +7,9 @@ Back-pressure policy (what happens when work arrives faster than it is done):
   than a fresh one to a vehicle, and the caller (the LiDAR driver) must never block.
 - **Image lane**: one update runs at a time and at most one waits. A newer image set **replaces** the waiting
   one (its future fails with `ImagesSuperseded`): only the newest images matter, and the slice lane always reads
-  the newest finished image BEV.
+  the newest finished image BEV. That is the ``full`` schedule; under ``LaneConfig.schedule = "phase-locked"`` the
+  lane keeps the newest frame of each camera and lifts one quadrant at a time just before the LiDAR reaches it
+  (`phase_locked_lane.py` says how, and how it degrades).
 
 Both lanes run at the same time; each graph has its own onnxruntime session and thread pool, and onnxruntime
 releases the GIL, so on a small CPU a slice does not wait behind a long image-encoder run.
@@ -27,6 +29,8 @@ Contracts:
 from __future__ import annotations
 
 import collections
+import math
+import numbers
 import time
 import threading
 from concurrent.futures import Future, InvalidStateError
@@ -36,6 +40,7 @@ from typing import Callable, Mapping
 import numpy as np
 
 from streamdet.runtime_ort.detector import ImageUpdate, SliceResult, StreamingDetector
+from streamdet.runtime_ort.phase_locked_lane import PhaseLockedImageLane, PhaseLockStats
 
 
 class SliceDropped(RuntimeError):
@@ -50,16 +55,37 @@ class RunnerClosed(RuntimeError):
     """A submit after `StreamingRunner.close()`."""
 
 
+SCHEDULES: tuple[str, ...] = ("full", "phase-locked")
+
+
 @dataclass(frozen=True)
 class LaneConfig:
     max_in_flight: int = 2  # slices processed at once (worker threads of the slice lane)
     queue_size: int = 8  # slices waiting beyond those in flight; when full the oldest waiting one is dropped
+    # When the image lane works (docs/architecture.md, "Image-lane schedules"):
+    # "full": every image set is encoded (all cameras) and lifted into all four quadrants as it arrives;
+    # "phase-locked": the newest frame of each camera is kept and one quadrant at a time is lifted from the cameras
+    # that see it, timed to finish just before the LiDAR's first slice of that quadrant arrives
+    # (runtime_ort/phase_locked_lane.py, which states how it degrades when it cannot keep up).
+    schedule: str = "full"
+    # phase-locked only: LiDAR rotations per second on the runner's clock; None: measured from the slices' arrivals
+    # (what to use when the clock is scaled, e.g. a replay at --time-scale 2)
+    lidar_hz: float | None = None
+    lift_margin_ms: float = 2.0  # phase-locked only: a lift is timed to end this long before its first slice arrives
 
     def __post_init__(self) -> None:
         for name in ("max_in_flight", "queue_size"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 1 <= v <= 1024:
                 raise ValueError(f"LaneConfig.{name} must be an int in 1..1024, got {v!r}")
+        if self.schedule not in SCHEDULES:
+            raise ValueError(f"LaneConfig.schedule must be one of {SCHEDULES}, got {self.schedule!r}")
+        v = self.lidar_hz
+        if v is not None and (isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v) or v <= 0):
+            raise ValueError(f"LaneConfig.lidar_hz must be None or a finite rate > 0 Hz, got {v!r}")
+        v = self.lift_margin_ms
+        if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v) or not 0 <= v <= 1000:
+            raise ValueError(f"LaneConfig.lift_margin_ms must be a number of ms in [0, 1000], got {v!r}")
 
 
 class _Lane:
@@ -75,6 +101,7 @@ class _Lane:
         self._workers = workers
         self._busy = 0  # workers running a job (under _cond)
         self.dropped = 0
+        self.cpu_s = 0.0  # CPU seconds of the jobs run (thread time of their worker threads)
         self._threads = [threading.Thread(target=self._serve, name=f"{name}-{i}", daemon=True) for i in range(workers)]
         for t in self._threads:
             t.start()
@@ -108,6 +135,7 @@ class _Lane:
                     return
                 fn, fut = self._jobs.popleft()
                 self._busy += 1
+            cpu0 = time.thread_time()
             try:
                 if fut.set_running_or_notify_cancel():
                     try:
@@ -117,6 +145,7 @@ class _Lane:
             finally:
                 with self._cond:
                     self._busy -= 1
+                    self.cpu_s += time.thread_time() - cpu0
 
     def close(self, deadline: float | None = None) -> bool:
         """Stop taking jobs, finish the queued ones by ``deadline`` (time.monotonic(); None: no limit). Past it, the
@@ -143,7 +172,16 @@ class StreamingRunner:
         self.detector = detector
         self.config = config
         self._slices = _Lane("slice-lane", config.max_in_flight, config.queue_size, lambda: SliceDropped("slice dropped: queue full"))
-        self._images = _Lane("image-lane", 1, 1, lambda: ImagesSuperseded("image set superseded by a newer one"))
+        superseded = lambda: ImagesSuperseded("image set superseded by a newer one")  # noqa: E731
+        self._phase_locked: PhaseLockedImageLane | None = None
+        self._images: _Lane | None = None
+        if config.schedule == "phase-locked" and detector.uses_images:
+            self._phase_locked = PhaseLockedImageLane(
+                detector, detector.num_slices, detector.config.start_deg, config.lidar_hz, config.lift_margin_ms * 1e-3,
+                superseded=superseded, closed=lambda: RunnerClosed("image-lane: submit after close()"),
+            )  # fmt: skip
+        else:
+            self._images = _Lane("image-lane", 1, 1, superseded)
 
     def submit_images(self, images: Mapping[str, np.ndarray], timestamp: float | None = None) -> "Future[ImageUpdate]":
         """Queue an image update. A LiDAR-only detector has no image lane: NoImageLaneError at once, in the
@@ -155,13 +193,21 @@ class StreamingRunner:
         stamp = time.monotonic() if timestamp is None else timestamp
         # copies: the driver may refill its buffers as soon as this returns
         own = {name: np.array(a, copy=True) if isinstance(a, np.ndarray) else a for name, a in images.items()}
+        if self._phase_locked is not None:
+            self.detector.check_images(own)  # a bad image fails here, in the caller's thread, not in a later lift
+            if isinstance(stamp, bool) or not isinstance(stamp, numbers.Real) or not math.isfinite(stamp):
+                raise ValueError(f"timestamp must be None or a finite number of seconds, got {timestamp!r}")
+            return self._phase_locked.submit_images(own, stamp)
         return self._images.submit(lambda: self.detector.update_images(own, stamp))
 
     def submit_slice(self, points: np.ndarray, slice_index: int, timestamp: float | None = None) -> "Future[SliceResult]":
         """Queue one slice; its future holds the SliceResult, or the error (bad points, SliceDropped)."""
         stamp = time.monotonic() if timestamp is None else timestamp
         own = np.array(points, copy=True) if isinstance(points, np.ndarray) else points  # the driver may reuse its buffer
-        return self._slices.submit(lambda: self.detector.detect_slice(own, slice_index, stamp))
+        future = self._slices.submit(lambda: self.detector.detect_slice(own, slice_index, stamp))
+        if self._phase_locked is not None and isinstance(slice_index, (int, np.integer)) and not isinstance(slice_index, bool):
+            self._phase_locked.observe_slice(int(slice_index) % self.detector.num_slices, time.monotonic())
+        return future
 
     @property
     def slices_dropped(self) -> int:
@@ -169,7 +215,22 @@ class StreamingRunner:
 
     @property
     def images_superseded(self) -> int:
-        return self._images.dropped
+        return self._images.dropped if self._images is not None else self._phase_locked.images_superseded
+
+    @property
+    def image_lane_cpu_s(self) -> float:
+        """CPU seconds the image lane's updates have used so far (its worker's thread time)."""
+        return self._images.cpu_s if self._images is not None else self._phase_locked.cpu_s
+
+    @property
+    def slice_lane_cpu_s(self) -> float:
+        """CPU seconds the slice lane's jobs have used so far (its workers' thread time)."""
+        return self._slices.cpu_s
+
+    @property
+    def phase_lock(self) -> PhaseLockStats | None:
+        """What the phase-locked image lane did (lifts, skips, full updates before the lock); None under "full"."""
+        return None if self._phase_locked is None else self._phase_locked.stats
 
     def close(self, timeout: float | None = None) -> bool:
         """Finish the queued work, then stop the workers; later submits raise RunnerClosed.
@@ -182,7 +243,7 @@ class StreamingRunner:
             raise ValueError(f"close(timeout=...) takes None or seconds >= 0, got {timeout!r}")
         deadline = None if timeout is None else time.monotonic() + timeout
         slices_done = self._slices.close(deadline)
-        images_done = self._images.close(deadline)
+        images_done = (self._images if self._images is not None else self._phase_locked).close(deadline)
         return slices_done and images_done
 
     def __enter__(self) -> "StreamingRunner":

@@ -1,0 +1,123 @@
+"""The rotation as the image lane sees it: when will the LiDAR's next slice of each quadrant arrive?
+
+The phase-locked schedule (``LaneConfig.schedule = "phase-locked"``, ``phase_locked_lane.py``) lifts one quadrant
+of the image BEV at a time, with the newest images, timed to finish just before the first slice that reads it
+arrives. This module is the pure arithmetic behind it, on the runner's clock (seconds, any origin):
+
+- ``RotationPhase`` learns the rotation from the slices' arrival times: the newest arrival anchors the phase, and the
+  period is ``1 / lidar_hz`` when the rate is given, else the median of the periods the arrivals imply (a slice
+  index step of d between two arrivals is d / num_slices of a rotation, modulo a whole one).
+- ``plan_lift`` picks the next lift among the upcoming **passes**: a pass is one slice of one rotation and one
+  quadrant that slice reads, its deadline the slice's predicted arrival. The lane lifts a quadrant for the first
+  slice that reads it, and again for a later slice of the same rotation only when newer frames came meanwhile (it
+  skips passes with nothing new, ``phase_locked_lane.py``). A pass starts at ``deadline - duration - margin`` (as late
+  as possible, so its images are the newest), or at once when that moment has passed but the lift can still end
+  by the deadline; a pass that can no longer finish in time is **skipped** (its quadrant keeps its older BEV, slices read
+  that and report its age). Nothing here ever waits for a slice or holds one back.
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+from collections import deque
+from dataclasses import dataclass
+from typing import Callable, Iterable, Iterator
+
+from streamdet.core.sectors import NUM_QUADRANTS, check_num_slices, quadrants_of_sector
+
+PERIOD_SAMPLES = 16  # arrivals whose implied periods the median is taken over
+
+
+def slice_quadrants(num_slices: int, start_deg: float = 0.0) -> tuple[tuple[int, int], ...]:
+    """(slice index, quadrant) of every quadrant every slice of a rotation reads, in scan order."""
+    check_num_slices(num_slices, start_deg)
+    return tuple((k, q) for k in range(num_slices) for q in quadrants_of_sector(k, num_slices, start_deg))
+
+
+class RotationPhase:
+    """Arrival times of the slices -> predicted arrival times of the coming ones. Not thread-safe (the lane locks)."""
+
+    def __init__(self, num_slices: int, start_deg: float = 0.0, lidar_hz: float | None = None) -> None:
+        if lidar_hz is not None and not (isinstance(lidar_hz, (int, float)) and math.isfinite(lidar_hz) and lidar_hz > 0):
+            raise ValueError(f"lidar_hz must be None or a finite rate > 0 Hz, got {lidar_hz!r}")
+        self.num_slices = num_slices
+        self.slice_quadrants = slice_quadrants(num_slices, start_deg)
+        self._fixed_period_s = None if lidar_hz is None else 1.0 / float(lidar_hz)
+        self._periods: deque[float] = deque(maxlen=PERIOD_SAMPLES)
+        self._anchor: tuple[int, float] | None = None  # (slice index, arrival s) of the newest arrival
+
+    def observe(self, slice_index: int, arrival_s: float) -> None:
+        """A slice ``slice_index`` arrived at ``arrival_s``. Arrivals earlier than the anchor are ignored."""
+        if self._anchor is not None:
+            k0, t0 = self._anchor
+            if arrival_s < t0:
+                return
+            steps = (slice_index - k0) % self.num_slices or self.num_slices  # the same index again: a whole rotation
+            if arrival_s > t0:
+                period = (arrival_s - t0) * self.num_slices / steps
+                if not self.locked or period < 2 * self.period_s:  # a pause (or lost slices) is no period
+                    self._periods.append(period)
+        self._anchor = (int(slice_index), float(arrival_s))
+
+    @property
+    def period_s(self) -> float:
+        """Seconds per rotation (nan until known)."""
+        if self._fixed_period_s is not None:
+            return self._fixed_period_s
+        return statistics.median(self._periods) if self._periods else math.nan
+
+    @property
+    def locked(self) -> bool:
+        """True once a slice has arrived and the period is known."""
+        return self._anchor is not None and math.isfinite(self.period_s)
+
+    def deadline_s(self, slice_index: int, rotation: int) -> float:
+        """Predicted arrival of slice ``slice_index`` in ``rotation`` (0: its first arrival after the anchor's;
+        1: the one after; -1: the one before)."""
+        k0, t0 = self._anchor  # type: ignore[misc]
+        n = self.num_slices
+        steps = (slice_index - k0) % n or n
+        return t0 + (steps / n + rotation) * self.period_s
+
+    def passes(self, after_s: float) -> Iterator[tuple[float, int, int]]:
+        """(deadline s, slice index, quadrant) of every pass with deadline > ``after_s``, in deadline order, without end."""
+        rotation = -1
+        while True:
+            here = [(self.deadline_s(k, rotation), k, q) for k, q in self.slice_quadrants]
+            yield from sorted(p for p in here if p[0] > after_s)
+            rotation += 1
+
+
+@dataclass(frozen=True)
+class LiftPlan:
+    quadrant: int
+    slice_index: int  # the slice whose arrival is the deadline
+    deadline_s: float  # predicted arrival of that slice
+    start_s: float  # when to start the lift (<= now: at once)
+    skipped: tuple[tuple[float, int, int], ...] = ()  # (deadline, slice, quadrant) passes too late to finish
+
+
+def plan_lift(
+    phase: RotationPhase, now_s: float, duration_s: Callable[[int], float], margin_s: float,
+    done: Iterable[tuple[float, int, int]] = (), wanted: Callable[[int], bool] = lambda q: True,
+) -> LiftPlan | None:  # fmt: skip
+    """The next lift after ``now_s``: the pass with the earliest deadline, not ``done``, that can still finish
+    (``now + duration <= deadline``); it starts at ``deadline - duration - margin`` or at once. The passes
+    before it that cannot finish any more are returned as ``skipped``. ``done`` holds (deadline, slice, quadrant)
+    of passes already lifted or given up (a pass of the same slice and quadrant within half a rotation of one is
+    the same: the predicted phase moves a little with every arrival). ``duration_s(q)``: expected seconds to lift
+    quadrant q; ``wanted(q)``: False for a quadrant with nothing new to lift (its passes are passed over, neither
+    planned nor skipped); None when no quadrant is wanted."""
+    if not any(wanted(q) for q in range(NUM_QUADRANTS)):
+        return None
+    done = tuple(done)
+    half = phase.period_s / 2
+    skipped = []
+    for deadline, k, q in phase.passes(now_s):
+        if any(dk == k and dq == q and abs(dd - deadline) < half for dd, dk, dq in done) or not wanted(q):
+            continue
+        start = deadline - duration_s(q) - margin_s
+        if now_s + duration_s(q) <= deadline:  # the margin is the aim, the deadline the limit
+            return LiftPlan(q, k, deadline, max(start, now_s), tuple(skipped))
+        skipped.append((deadline, k, q))

@@ -1,0 +1,277 @@
+"""The image lane of `StreamingRunner` under ``LaneConfig.schedule = "phase-locked"``.
+
+Instead of encoding every camera and lifting all four quadrants whenever an image set arrives (the ``full``
+schedule), this lane keeps the newest frame of every camera and lifts **one quadrant at a time**, the one the LiDAR
+enters next, from the cameras that see it (``StreamingDetector.update_images(quadrants=...)``), timed by
+``phase_lock.plan_lift`` to finish ``lift_margin_ms`` before the first slice of that quadrant arrives. A quadrant
+whose cameras have no frame newer than the ones it was last lifted from is not lifted again; one whose cameras sent
+newer frames after its lift is lifted again for its next slice (so a slice reads the newest frames that could be
+lifted in time, and each quadrant is lifted at most once per new frame). Each camera frame is encoded once, however
+many quadrants use it (``encode_images``).
+
+Degraded behaviour, in this order (each counted in ``PhaseLockStats``):
+
+- **not locked yet** (no slice seen, or the rotation period not known yet): full updates of the newest frames, as
+  the ``full`` schedule does (``full_updates``);
+- **a quadrant that cannot be lifted in time** (the expected lift, measured from the last lifts of that quadrant,
+  would end after its first slice arrives) is skipped for that pass: it keeps its older BEV, which its slices read
+  and whose age they report (``quadrants_skipped``; only passes with newer frames to lift count);
+- **the slice lane is never blocked**: it runs on its own threads and reads whatever each quadrant holds; this lane
+  never waits for a slice, only for time to pass or for frames and slices to arrive;
+- **image sets**: an image set each of whose frames was replaced by a newer one before any lift used it fails
+  its future with ``ImagesSuperseded``; otherwise its future holds the `ImageUpdate` of the first lift that used it.
+
+``step(now)`` does what is due at ``now`` (at most one update, on the calling thread) and says when to call it
+again: the worker thread calls it on the runner's clock, tests call it with a fake clock and a fake detector.
+"""
+
+from __future__ import annotations
+
+import collections
+import threading
+import time
+from concurrent.futures import Future, InvalidStateError
+from dataclasses import dataclass, field
+from typing import Callable, Mapping
+
+import numpy as np
+
+from streamdet.core.sectors import NUM_QUADRANTS
+from streamdet.runtime_ort.phase_lock import RotationPhase, plan_lift
+
+DURATION_SAMPLES = 5  # lifts per quadrant whose second longest is the expected duration (robust to a noisy machine)
+
+
+@dataclass
+class PhaseLockStats:
+    quadrant_lifts: int = 0  # per-quadrant updates run
+    full_updates: int = 0  # full updates run before the rotation was locked
+    quadrants_skipped: int = 0  # passes with newer frames that could not be lifted in time (older BEV kept)
+    cameras_encoded: int = 0  # camera frames encoded (each once)
+    late_lifts: int = 0  # lifts that ended after their deadline (the duration estimate was short)
+
+
+@dataclass(eq=False)
+class _ImageSet:
+    future: Future
+    frames_left: int  # frames of this set still the newest of their camera
+    used: bool = False
+
+
+@dataclass(eq=False)
+class _Frame:
+    seq: int  # frame number, increasing over all cameras
+    image: np.ndarray
+    timestamp: float
+    owner: _ImageSet
+    features: np.ndarray | None = field(default=None, repr=False)  # (C, Hf, Wf) once encoded
+
+
+class PhaseLockedImageLane:
+    """Holds the newest frame of each camera and lifts quadrants phase-locked to the LiDAR's rotation."""
+
+    def __init__(
+        self, detector, num_slices: int, start_deg: float = 0.0, lidar_hz: float | None = None, margin_s: float = 0.002,
+        clock: Callable[[], float] = time.monotonic, thread: bool = True,
+        superseded: Callable[[], Exception] = lambda: RuntimeError("image set superseded by a newer one"),
+        closed: Callable[[], Exception] = lambda: RuntimeError("image-lane: submit after close()"),
+    ) -> None:  # fmt: skip
+        """``detector``: a StreamingDetector (or one with its ``quadrant_cameras``, ``encode_images`` and
+        ``update_images(images, timestamp, quadrants=, encoded=)``); ``clock``: the runner's seconds; ``thread``
+        False: no worker, the caller drives ``step`` (tests); ``superseded`` / ``closed``: the errors of a superseded
+        image set's future and of a submit after close (the runner's ImagesSuperseded and RunnerClosed)."""
+        self.detector = detector
+        self._superseded = superseded
+        self._closed_error = closed
+        self.margin_s = float(margin_s)
+        self.clock = clock
+        self.stats = PhaseLockStats()
+        self.cpu_s = 0.0  # CPU seconds spent by this lane's updates (thread time of the thread running them)
+        self.images_superseded = 0
+        self._phase = RotationPhase(num_slices, start_deg, lidar_hz)
+        self._cond = threading.Condition()
+        self._frames: dict[str, _Frame] = {}
+        self._seq = 0
+        self._lifted: list[dict[str, int]] = [{} for _ in range(NUM_QUADRANTS)]  # camera -> frame seq, per quadrant
+        self._full_lifted: dict[str, int] = {}
+        # seconds of the last lifts of each quadrant (update_images alone), and of encoding one camera frame
+        self._durations = [collections.deque(maxlen=DURATION_SAMPLES) for _ in range(NUM_QUADRANTS)]
+        self._encode_s: collections.deque = collections.deque(maxlen=DURATION_SAMPLES)
+        # (deadline, slice, quadrant) of the passes lifted or given up, at most four rotations' worth
+        self._done: collections.deque = collections.deque(maxlen=4 * len(self._phase.slice_quadrants))
+        self._dirty = False
+        self._closed = False
+        self._busy = False
+        self._thread = threading.Thread(target=self._serve, name="image-lane-phase-locked", daemon=True) if thread else None
+        if self._thread is not None:
+            self._thread.start()
+
+    # ---- events ---------------------------------------------------------------------------------
+    def submit_images(self, images: Mapping[str, np.ndarray], timestamp: float) -> Future:
+        fut: Future = Future()
+        with self._cond:
+            if self._closed:
+                raise self._closed_error()
+            owner = _ImageSet(fut, len(images))
+            for name, image in images.items():
+                self._seq += 1
+                old = self._frames.get(name)
+                self._frames[name] = _Frame(self._seq, image, float(timestamp), owner)
+                if old is not None:
+                    self._release(old.owner)
+            self._dirty = True
+            self._cond.notify_all()
+        return fut
+
+    def _release(self, owner: _ImageSet) -> None:
+        """One frame of ``owner`` is no longer the newest of its camera; once none is and none was used: superseded."""
+        owner.frames_left -= 1
+        if owner.frames_left == 0 and not owner.used:
+            try:
+                owner.future.set_exception(self._superseded())
+                self.images_superseded += 1
+            except InvalidStateError:  # cancelled by its owner
+                pass
+
+    def observe_slice(self, slice_index: int, arrival_s: float) -> None:
+        with self._cond:
+            self._phase.observe(slice_index, arrival_s)
+            self._dirty = True
+            self._cond.notify_all()
+
+    # ---- the schedule ---------------------------------------------------------------------------
+    def _expected_s(self, quadrant: int) -> float:
+        """Expected seconds to update ``quadrant``: its lift plus encoding the frames of its cameras not encoded yet.
+        Each is the second longest of the last measured (one outlier on a busy machine does not push every later
+        lift early); a lift never measured yet counts a quarter of the full update's, or 0 (it starts at once)."""
+        fresh = sum(1 for n in self.detector.quadrant_cameras([quadrant]) if n in self._frames and self._frames[n].features is None)
+        return _robust_max(self._durations[quadrant]) + fresh * _robust_max(self._encode_s)
+
+    def step(self, now_s: float) -> float | None:
+        """Run what is due at ``now_s`` (at most one update); the time to call again (None: at the next event)."""
+        with self._cond:
+            if not self._frames:
+                return None
+            if not self._phase.locked:
+                frames = dict(self._frames)
+                if all(self._full_lifted.get(n) == f.seq for n, f in frames.items()):
+                    return None
+                quadrants, deadline = None, None
+            else:
+                plan = plan_lift(self._phase, now_s, self._expected_s, self.margin_s, self._done, self._has_new)
+                if plan is None:  # no quadrant has newer frames than it was lifted from
+                    return None
+                if plan.start_s > now_s:
+                    return plan.start_s
+                self._done.extend(plan.skipped)
+                self.stats.quadrants_skipped += len(plan.skipped)
+                self._done.append((plan.deadline_s, plan.slice_index, plan.quadrant))
+                cams = set(self.detector.quadrant_cameras([plan.quadrant]))
+                frames = {n: f for n, f in self._frames.items() if n in cams}
+                quadrants, deadline = (plan.quadrant,), plan.deadline_s
+            self._busy = True
+        try:
+            self._update(frames, quadrants, deadline)
+        finally:
+            with self._cond:
+                self._busy = False
+                self._cond.notify_all()
+        return now_s
+
+    def _has_new(self, quadrant: int) -> bool:
+        cams = self.detector.quadrant_cameras([quadrant])
+        lifted = self._lifted[quadrant]
+        return any(n in self._frames and self._frames[n].seq != lifted.get(n) for n in cams)
+
+    def _update(self, frames: dict[str, _Frame], quadrants: tuple[int, ...] | None, deadline_s: float | None) -> None:
+        """Encode the frames not encoded yet, then lift ``quadrants`` (None: all four) with them. Off the lock."""
+        cpu0 = time.thread_time()
+        t0 = self.clock()
+        fresh = {n: f.image for n, f in frames.items() if f.features is None}
+        if fresh:
+            for name, feats in self.detector.encode_images(fresh).items():
+                frames[name].features = feats
+            self.stats.cameras_encoded += len(fresh)
+        t1 = self.clock()
+        images = {n: f.image for n, f in frames.items()}
+        encoded = {n: f.features for n, f in frames.items()}
+        timestamp = min(f.timestamp for f in frames.values()) if frames else None
+        if frames:
+            update = self.detector.update_images(images, timestamp, quadrants=quadrants, encoded=encoded)
+        else:  # none of the quadrant's cameras has sent a frame: nothing to lift
+            update = None
+        t2 = self.clock()
+        with self._cond:
+            if fresh:
+                self._encode_s.append((t1 - t0) / len(fresh))
+            self.cpu_s += time.thread_time() - cpu0
+            if quadrants is None:
+                self.stats.full_updates += 1
+                self._full_lifted = {n: f.seq for n, f in frames.items()}
+                for lifted, durations in zip(self._lifted, self._durations):
+                    lifted.update(self._full_lifted)
+                    if not durations:
+                        durations.append((t2 - t1) / NUM_QUADRANTS)
+            else:
+                self.stats.quadrant_lifts += 1
+                self._durations[quadrants[0]].append(t2 - t1)
+                self._lifted[quadrants[0]].update({n: f.seq for n, f in frames.items()})
+                if deadline_s is not None and t2 > deadline_s:
+                    self.stats.late_lifts += 1
+            for f in frames.values():
+                if update is not None and not f.owner.used:
+                    f.owner.used = True
+                    if f.owner.future.set_running_or_notify_cancel():
+                        f.owner.future.set_result(update)
+
+    # ---- the worker -----------------------------------------------------------------------------
+    def _serve(self) -> None:
+        while True:
+            with self._cond:
+                if self._closed:
+                    return
+                self._dirty = False
+            try:
+                wake = self.step(self.clock())
+            except BaseException as e:  # a failing update fails the futures of the frames it held, never the thread
+                self._fail_waiting(e)
+                wake = None
+            with self._cond:
+                if self._closed:
+                    return
+                if self._dirty:
+                    continue
+                timeout = None if wake is None else wake - self.clock()
+                if timeout is None or timeout > 0:
+                    self._cond.wait(timeout)
+
+    def _fail_waiting(self, error: BaseException) -> None:
+        with self._cond:
+            for f in self._frames.values():
+                if not f.owner.used:
+                    f.owner.used = True
+                    try:
+                        if f.owner.future.set_running_or_notify_cancel():
+                            f.owner.future.set_exception(error)
+                    except InvalidStateError:
+                        pass
+
+    def close(self, deadline: float | None = None) -> bool:
+        """Stop the worker (a running update finishes); waiting image sets that were never used are cancelled.
+        True when the worker has ended."""
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+        if self._thread is not None:
+            self._thread.join(None if deadline is None else max(0.0, deadline - time.monotonic()))
+        with self._cond:
+            for f in self._frames.values():
+                if not f.owner.used:
+                    f.owner.future.cancel()
+        return self._thread is None or not self._thread.is_alive()
+
+
+def _robust_max(seconds) -> float:
+    """The second longest of a few durations (the longest when there is one, 0 when none)."""
+    ordered = sorted(seconds)
+    return ordered[-2] if len(ordered) >= 2 else (ordered[-1] if ordered else 0.0)

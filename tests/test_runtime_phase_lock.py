@@ -1,0 +1,313 @@
+"""The phase-locked image lane: the rotation learnt from slice arrivals, the order and timing of quadrant lifts on a
+fake clock with a fake detector, how it degrades when lifts are slow, and that the slice lane never waits for it."""
+
+from __future__ import annotations
+
+import threading
+import time
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from streamdet.core.sectors import quadrants_of_sector
+from streamdet.runtime_ort.detector import ImageUpdate
+from streamdet.runtime_ort.lanes import ImagesSuperseded, LaneConfig, StreamingRunner
+from streamdet.runtime_ort.phase_lock import RotationPhase, plan_lift, slice_quadrants
+from streamdet.runtime_ort.phase_locked_lane import PhaseLockedImageLane
+
+WAIT_S = 30.0
+CAMERAS = ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_FRONT_LEFT", "CAM_BACK", "CAM_BACK_LEFT", "CAM_BACK_RIGHT")
+# which cameras the bundled rig's LUT reads in each quadrant (test_runtime_quadrant_updates checks the real one)
+SEES = {0: {"CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_RIGHT"}, 1: {"CAM_FRONT", "CAM_FRONT_LEFT", "CAM_BACK_LEFT"},
+        2: {"CAM_BACK", "CAM_BACK_LEFT"}, 3: {"CAM_BACK", "CAM_BACK_RIGHT"}}  # fmt: skip
+
+
+class FakeClock:
+    def __init__(self) -> None:
+        self.t = 0.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+class FakeDetector:
+    """Takes ``encode_s`` per camera encoded and ``lift_s`` per quadrant lifted, on the fake clock; records lifts."""
+
+    uses_images = True
+    camera_names = CAMERAS
+
+    def __init__(self, clock: FakeClock, encode_s: float, lift_s: float, num_slices: int = 8) -> None:
+        self.clock = clock
+        self.encode_s = encode_s
+        self.lift_s = lift_s
+        self.num_slices = num_slices
+        self.config = SimpleNamespace(start_deg=0.0)
+        self.encoded: list[str] = []
+        self.lifts: list[tuple[tuple[int, ...], float, float, float]] = []  # (quadrants, image ts, start, end)
+
+    def quadrant_cameras(self, quadrants):
+        return tuple(n for n in CAMERAS if any(n in SEES[q] for q in quadrants))
+
+    def check_images(self, images) -> None:
+        pass
+
+    def encode_images(self, images):
+        self.clock.t += self.encode_s * len(images)
+        self.encoded += list(images)
+        return {n: np.zeros((1, 1, 1), np.float32) for n in images}
+
+    def update_images(self, images, timestamp=None, quadrants=None, encoded=None):
+        assert encoded is not None and set(encoded) == set(images)  # every frame reaches the lift encoded, once
+        start = self.clock.t
+        self.clock.t += self.lift_s * (len(quadrants) if quadrants else 4)
+        self.lifts.append((tuple(quadrants) if quadrants else (0, 1, 2, 3), timestamp, start, self.clock.t))
+        return ImageUpdate(timestamp, tuple(images), (), quadrants=tuple(quadrants) if quadrants else (0, 1, 2, 3))
+
+
+def simulate(lift_s: float, seconds: float = 1.0, lidar_hz: float = 20.0, camera_hz: float = 12.0, n: int = 8,
+             encode_s: float = 0.001, margin_s: float = 0.002, known_rate: bool = False):  # fmt: skip
+    """A drive on the fake clock: slice k of rotation r arrives at (r * n + k + 1) / (n * lidar_hz), image sets at
+    i / camera_hz + 0.003; the lane's step runs whenever it asked to and after every event. Returns the lane, the
+    detector, the slices (arrival, k, quadrants) and the image set times."""
+    clock = FakeClock()
+    det = FakeDetector(clock, encode_s, lift_s, n)
+    lane = PhaseLockedImageLane(det, n, 0.0, lidar_hz if known_rate else None, margin_s, clock=clock, thread=False,
+                                superseded=lambda: ImagesSuperseded("superseded"))  # fmt: skip
+    slices = [((i + 1) / (n * lidar_hz), i % n) for i in range(int(seconds * lidar_hz * n))]
+    images = [i / camera_hz + 0.003 for i in range(int(seconds * camera_hz))]
+    events = sorted([(t, 0, k) for t, k in slices] + [(t, 1, None) for t in images])
+    futures = []
+    wake = None
+    for t, kind, k in events:
+        while wake is not None and wake <= t:
+            clock.t = max(clock.t, wake)
+            wake = lane.step(clock.t)
+        clock.t = max(clock.t, t)
+        if kind == 0:
+            lane.observe_slice(k, t)
+        else:
+            futures.append(lane.submit_images({c: np.zeros((2, 2, 3), np.uint8) for c in CAMERAS}, t))
+        wake = lane.step(clock.t)
+    return lane, det, [(t, k, quadrants_of_sector(k, n)) for t, k in slices], images, futures
+
+
+def image_read(det: FakeDetector, quadrant: int, at_s: float) -> float | None:
+    """Timestamp of the image BEV quadrant ``quadrant`` holds at ``at_s`` (the newest lift that ended by then)."""
+    ts = [(end, ts) for qs, ts, start, end in det.lifts if quadrant in qs and end <= at_s]
+    return max(ts)[1] if ts else None
+
+
+# ---- the rotation ----------------------------------------------------------------------------------------------
+def test_slice_quadrants_follow_the_sectors():
+    assert slice_quadrants(8) == tuple((k, k // 2) for k in range(8))
+    assert slice_quadrants(1) == ((0, 0), (0, 1), (0, 2), (0, 3))
+    assert [q for _, q in slice_quadrants(4, 90.0)] == [1, 2, 3, 0]
+
+
+@pytest.mark.parametrize("known_rate", [True, False])
+def test_the_phase_predicts_the_next_arrivals(known_rate):
+    phase = RotationPhase(8, 0.0, 20.0 if known_rate else None)
+    assert not phase.locked
+    for i in range(9):
+        phase.observe(i % 8, 1.0 + i * 0.00625)
+    assert phase.locked and phase.period_s == pytest.approx(0.05)
+    # the anchor is slice 0 at 1.05: slice 1 next at 1.05625, slice 0 again a rotation later
+    assert phase.deadline_s(1, 0) == pytest.approx(1.05625) and phase.deadline_s(0, 0) == pytest.approx(1.1)
+    assert [p[1:] for p in _take(phase.passes(1.05), 3)] == [(1, 0), (2, 1), (3, 1)]
+
+
+def _take(it, n):
+    return [next(it) for _ in range(n)]
+
+
+def test_a_pause_and_late_arrivals_do_not_move_the_period():
+    phase = RotationPhase(8, 0.0, None)
+    for i in range(16):
+        phase.observe(i % 8, i * 0.00625)
+    phase.observe(0, 5.0)  # the sensor paused for seconds: no period of 40 s
+    phase.observe(1, 4.0)  # an arrival older than the anchor is ignored
+    assert phase.period_s == pytest.approx(0.05)
+
+
+@pytest.mark.parametrize("bad", [0, -1.0, float("nan"), float("inf"), "20"])
+def test_a_bad_lidar_rate_is_refused(bad):
+    with pytest.raises(ValueError, match="lidar_hz must be None or a finite rate > 0 Hz"):
+        RotationPhase(8, 0.0, bad)
+
+
+def test_the_plan_starts_as_late_as_possible_and_skips_what_cannot_finish():
+    phase = RotationPhase(8, 0.0, 20.0)
+    phase.observe(7, 0.0)  # slice 0 next at 6.25 ms
+    plan = plan_lift(phase, 0.0, lambda q: 0.003, 0.001)
+    assert (plan.slice_index, plan.quadrant) == (0, 0) and plan.start_s == pytest.approx(0.00625 - 0.004)
+    slow = plan_lift(phase, 0.0, lambda q: 0.010, 0.001)  # slice 0 comes too soon for a 10 ms lift, slice 1 not
+    assert (slow.slice_index, slow.quadrant) == (1, 0) and slow.start_s == pytest.approx(0.0125 - 0.011)
+    assert [(k, q) for _, k, q in slow.skipped] == [(0, 0)]
+    slower = plan_lift(phase, 0.0, lambda q: 0.013, 0.001)
+    assert (slower.slice_index, slower.quadrant) == (2, 1) and slower.start_s == pytest.approx(0.01875 - 0.014)
+    assert [(k, q) for _, k, q in slower.skipped] == [(0, 0), (1, 0)]
+    done = [(plan.deadline_s, 0, 0)]
+    after = plan_lift(phase, 0.0, lambda q: 0.003, 0.001, done, wanted=lambda q: q != 1)
+    assert (after.slice_index, after.quadrant) == (1, 0)  # the same quadrant's next slice; quadrant 1 not wanted
+    assert plan_lift(phase, 0.0, lambda q: 0.003, 0.001, wanted=lambda q: False) is None
+
+
+# ---- the lane on a fake clock ----------------------------------------------------------------------------------
+@pytest.mark.parametrize("known_rate", [True, False])
+def test_fast_lifts_follow_the_lidar_and_add_no_staleness(known_rate):
+    lane, det, slices, images, futures = simulate(lift_s=0.002, known_rate=known_rate)
+    # a pass whose frames arrive less than a lift before its slice is skipped (the slice's scan had started: it
+    # adds no staleness, checked below); no lift ends late
+    assert lane.stats.full_updates >= 1 and lane.stats.late_lifts == 0
+    quadrant_lifts = [(qs[0], end) for qs, ts, start, end in det.lifts if len(qs) == 1]
+    assert len(quadrant_lifts) == lane.stats.quadrant_lifts > 0
+    # in LiDAR order: the slices each lift is for (the first of its quadrant after it) come in scan order, and a
+    # lift is for the slice right after it, not one a rotation later
+    served = [min(t for t, k, qs in slices if q in qs and t >= end) for q, end in quadrant_lifts]
+    assert served == sorted(served)
+    assert all(s - end < 0.05 / 4 for s, (q, end) in zip(served, quadrant_lifts))
+    # once locked (from the third rotation on), every slice reads at least the newest images that had arrived by its
+    # scan start: the phase-locked schedule adds no staleness when lifts are fast
+    period = 0.05
+    for t, k, (q,) in slices:
+        if t < 3 * period:
+            continue
+        scan_start = t - period / 8
+        newest = max(i for i in images if i <= scan_start)
+        assert image_read(det, q, t) >= newest, (t, k, q)  # newer still when frames came during the scan
+    # every camera frame encoded once; every image set used (none superseded: each lift takes the newest)
+    assert len(det.encoded) == len(images) * len(CAMERAS)
+    assert all(f.done() and not f.exception() for f in futures[:-1])
+
+
+def test_each_quadrant_is_lifted_at_most_once_per_new_frame():
+    lane, det, slices, images, _ = simulate(lift_s=0.002, seconds=2.0)
+    for q in range(4):
+        stamps = [ts for qs, ts, *_ in det.lifts if qs == (q,)]
+        assert len(stamps) == len(set(stamps))  # never the same frames twice
+    # the phase-locked lane lifts no more quadrants than the full schedule would (4 per image set)
+    assert sum(len(qs) for qs, *_ in det.lifts) <= 4 * len(images)
+
+
+def test_slow_lifts_skip_quadrants_in_time_order_and_never_finish_late():
+    lift_s = 0.030  # longer than a quadrant's 12.5 ms: not every quadrant can be lifted every rotation
+    lane, det, slices, images, futures = simulate(lift_s=lift_s, seconds=2.0, known_rate=True, encode_s=0.0)
+    assert lane.stats.quadrants_skipped > 0
+    assert lane.stats.late_lifts == 0  # the fake lifts take exactly what was measured: every planned one fits
+    ends = [end for *_, end in det.lifts]
+    starts = [start for *_, start, _ in det.lifts]
+    assert all(s >= e - 1e-12 for s, e in zip(starts[1:], ends))  # one at a time
+    # every quadrant still gets lifted, none starves
+    assert {qs[0] for qs, *_ in det.lifts if len(qs) == 1} == {0, 1, 2, 3}
+
+
+def test_before_the_rotation_is_known_every_image_set_is_a_full_update():
+    clock = FakeClock()
+    det = FakeDetector(clock, 0.0, 0.001)
+    lane = PhaseLockedImageLane(det, 8, clock=clock, thread=False)
+    images = {c: np.zeros((2, 2, 3), np.uint8) for c in CAMERAS}
+    f1 = lane.submit_images(images, 1.0)
+    assert lane.step(0.0) == 0.0 and det.lifts[-1][0] == (0, 1, 2, 3) and f1.result(0).quadrants == (0, 1, 2, 3)
+    assert lane.step(0.0) is None  # nothing new
+    lane.observe_slice(0, 0.01)
+    assert lane.step(0.01) is None  # one arrival is no period yet, and nothing new to lift anyway
+    assert lane.stats.full_updates == 1
+
+
+def test_an_image_set_replaced_before_any_lift_is_superseded():
+    clock = FakeClock()
+    det = FakeDetector(clock, 0.0, 0.001)
+    lane = PhaseLockedImageLane(det, 8, lidar_hz=20.0, clock=clock, thread=False,
+                                superseded=lambda: ImagesSuperseded("superseded"))  # fmt: skip
+    lane.observe_slice(7, 0.0)
+    images = {c: np.zeros((2, 2, 3), np.uint8) for c in CAMERAS}
+    old = lane.submit_images(images, 1.0)
+    new = lane.submit_images(images, 2.0)
+    with pytest.raises(ImagesSuperseded):
+        old.result(0)
+    assert lane.images_superseded == 1 and not new.done()
+    wake = lane.step(0.0)
+    assert wake > 0.0  # too early: the first pass (slice 0 at 6.25 ms) starts later
+    clock.t = wake
+    lane.step(wake)
+    assert new.result(0).quadrants == (0,) and det.lifts[-1][1] == 2.0
+
+
+# ---- the runner ------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize(
+    "field, bad, match",
+    [("schedule", "phase", "schedule must be one of"), ("lidar_hz", 0.0, "lidar_hz must be None or a finite rate"),
+     ("lidar_hz", True, "lidar_hz"), ("lift_margin_ms", -1.0, "lift_margin_ms must be"),
+     ("lift_margin_ms", float("nan"), "lift_margin_ms")],
+)  # fmt: skip
+def test_lane_config_refuses_bad_schedule_fields(field, bad, match):
+    with pytest.raises(ValueError, match=match):
+        LaneConfig(**{field: bad})
+    assert LaneConfig().schedule == "full"
+
+
+class GatedImageDetector(FakeDetector):
+    """Its image lane blocks until the gate opens; slices are instant."""
+
+    def __init__(self) -> None:
+        super().__init__(FakeClock(), 0.0, 0.0)
+        self.gate = threading.Event()
+        self.entered = threading.Event()
+
+    def encode_images(self, images):
+        self.entered.set()
+        assert self.gate.wait(WAIT_S)
+        return super().encode_images(images)
+
+    def detect_slice(self, points, slice_index, timestamp=None):
+        return SimpleNamespace(slice_index=slice_index, timestamp=timestamp)
+
+
+def test_the_slice_lane_never_waits_for_a_stuck_phase_locked_image_lane():
+    det = GatedImageDetector()
+    runner = StreamingRunner(det, LaneConfig(queue_size=32, schedule="phase-locked", lidar_hz=20.0))  # type: ignore[arg-type]
+    try:
+        runner.submit_images({c: np.zeros((2, 2, 3), np.uint8) for c in CAMERAS}, 0.0)
+        assert det.entered.wait(WAIT_S)  # the image lane is stuck in an update
+        futures = [runner.submit_slice(np.zeros((0, 6), np.float32), k % 8, float(k)) for k in range(16)]
+        assert [f.result(WAIT_S).slice_index for f in futures] == [k % 8 for k in range(16)]
+        assert runner.slices_dropped == 0
+    finally:
+        det.gate.set()
+        runner.close(WAIT_S)
+
+
+def test_a_phase_locked_runner_ends_with_the_full_update_bev(tiny_export):
+    """A real export, a slow rotation (5 Hz) and one image set: every quadrant gets lifted (however long the first
+    runs take on a busy machine), the cached BEV is then the full update's, and slices report the age of what they
+    read."""
+    from streamdet.core.slicing import split_sweep
+    from streamdet.data.sample import load_bundled_sample
+    from streamdet.runtime_ort.detector import StreamingDetector
+
+    det = StreamingDetector(tiny_export)
+    full = StreamingDetector(tiny_export)
+    rng = np.random.default_rng(0)
+    images = {n: rng.integers(0, 256, (det.image.height, det.image.width, 3), dtype=np.uint8) for n in det.camera_names}
+    full.update_images(images, timestamp=0.5)
+    points = split_sweep(load_bundled_sample().points, det.num_slices)
+    runner = StreamingRunner(det, LaneConfig(schedule="phase-locked", lidar_hz=5.0))
+    try:
+        t0 = time.monotonic()
+        runner.submit_slice(points[7], 7, t0)  # anchors the phase: slice 0 next
+        fut = runner.submit_images(images, 0.5)
+        i = 0
+        while det.image_timestamps != (0.5,) * 4 and time.monotonic() < t0 + WAIT_S:  # rotations of 200 ms
+            time.sleep(max(0.0, t0 + (i + 1) * 0.025 - time.monotonic()))
+            runner.submit_slice(points[i % 8], i % 8, 1.0 + i).result(WAIT_S)
+            i += 1
+        assert fut.result(WAIT_S).timestamp == 0.5
+        late = [runner.submit_slice(points[k], k, 100.0 + k).result(WAIT_S) for k in range(8)]
+    finally:
+        runner.close(WAIT_S)
+    assert det.image_timestamps == (0.5, 0.5, 0.5, 0.5)
+    np.testing.assert_allclose(det._image.bev, full._image.bev, rtol=0, atol=1e-6)  # noqa: SLF001
+    assert all(r.image_timestamp == 0.5 and r.image_age_s == pytest.approx(r.timestamp - 0.5) for r in late)
+    assert runner.phase_lock.quadrant_lifts + runner.phase_lock.full_updates >= 1
+    assert runner.image_lane_cpu_s > 0.0
