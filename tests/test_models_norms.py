@@ -155,3 +155,11 @@ def test_small_v2_is_small_with_the_options_on():
     assert v2.image.norm == "frozen_batch" and v2.image_bev_norm and v2.lifter.lut_heights_per_voxel == 2
     assert dataclasses.replace(v2, name="small", image=small.image, lifter=small.lifter, image_bev_norm=False) == small
     assert Preset.from_dict(json.loads(json.dumps(v2.to_dict()))) == v2
+
+
+def test_cross_process_conversion_keeps_frozen_batch_norm():
+    from streamdet.training.distributed import CrossProcessBatchNorm, convert_batchnorm
+
+    net = torch.nn.Sequential(FrozenBatchNorm2d(4), torch.nn.BatchNorm2d(4))
+    convert_batchnorm(net)
+    assert type(net[0]) is FrozenBatchNorm2d and isinstance(net[1], CrossProcessBatchNorm)

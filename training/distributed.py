@@ -20,6 +20,8 @@ import torch.distributed as dist
 from torch import Tensor, nn
 from torch.nn.modules.batchnorm import _BatchNorm
 
+from streamdet.models.norms import FrozenBatchNorm2d
+
 
 @dataclass(frozen=True)
 class DistContext:
@@ -127,8 +129,12 @@ class CrossProcessBatchNorm(_BatchNorm):
 
 
 def convert_batchnorm(module: nn.Module) -> nn.Module:
-    """Replace every BatchNorm1d/2d/3d in ``module`` by a CrossProcessBatchNorm carrying its parameters and stats."""
-    if isinstance(module, _BatchNorm) and not isinstance(module, CrossProcessBatchNorm):
+    """Replace every BatchNorm1d/2d/3d in ``module`` by a CrossProcessBatchNorm carrying its parameters and stats.
+
+    A ``FrozenBatchNorm2d`` (models/norms.py) stays: it uses no batch statistics, so it has none to share.
+    """
+    frozen = isinstance(module, FrozenBatchNorm2d)
+    if isinstance(module, _BatchNorm) and not isinstance(module, CrossProcessBatchNorm) and not frozen:
         new = CrossProcessBatchNorm(module.num_features, module.eps, module.momentum, module.affine, module.track_running_stats)
         new.load_state_dict(module.state_dict())
         new.train(module.training)
