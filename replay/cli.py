@@ -51,6 +51,9 @@ def _progress(message: str) -> None:
               help="Slices processed at once in the slice lane. Default: the runtime's LaneConfig.")
 @click.option("--queue-size", type=click.IntRange(min=1), default=None,
               help="Slices waiting in the slice lane before the oldest is dropped. Default: the runtime's LaneConfig.")
+@click.option("--schedule", type=click.Choice(["full", "phase-locked"]), default="full", show_default=True,
+              help="When the image lane works: 'full' (every image set, all cameras, all quadrants) or 'phase-locked' "
+                   "(one quadrant at a time from its cameras, just before the LiDAR reaches it); LaneConfig.schedule.")
 @click.option("--json", "json_path", type=click.Path(path_type=Path, dir_okay=False), default=None,
               help="Write the per-mode summary (the issue's keys) to this JSON file.")
 @click.option("--plot", "plot_path", type=click.Path(path_type=Path, dir_okay=False), default=None,
@@ -60,7 +63,8 @@ def _progress(message: str) -> None:
 def main(
     data: Path, table_version: str, split: str, scenes: int | None, export_dir: Path, precision: str,
     image_precision: str | None, lidar_hz: float, num_slices: int | None, camera_hz: float, mode: str, time_scale: float,
-    max_seconds: float | None, threads: int, slice_workers: int | None, queue_size: int | None, json_path: Path | None,
+    max_seconds: float | None, threads: int, slice_workers: int | None, queue_size: int | None, schedule: str,
+    json_path: Path | None,
     plot_path: Path | None, out_dir: Path | None,
 ) -> None:
     """Play scenes at sensor rates (LiDAR slices released when scanned, cameras at their rate) through the runtime's
@@ -80,7 +84,8 @@ def main(
         except ImportError:
             raise click.ClickException("--plot needs matplotlib (pip install 'streamdet[dev]')") from None
     defaults = LaneConfig()
-    lanes = LaneConfig(max_in_flight=slice_workers or defaults.max_in_flight, queue_size=queue_size or defaults.queue_size)
+    lanes = LaneConfig(max_in_flight=slice_workers or defaults.max_in_flight, queue_size=queue_size or defaults.queue_size,
+                       schedule=schedule)  # fmt: skip
     try:
         config = ReplayConfig(
             data=data, export_dir=export_dir, version=table_version, split=None if split == "all" else split, scenes=scenes,

@@ -16,6 +16,8 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from streamdet.replay.clock import PLAYER, Clock, DriveClock
 from streamdet.replay.modes import MODES, Detector, JobKey, ModeRunner, open_mode
 from streamdet.replay.record import ImageRecord, Recording, SliceRecord, percentiles
@@ -143,6 +145,8 @@ def play(
             progress(_progress_line(config.mode, drive, dclock.now(), records))
     concurrent.futures.wait(futures)
     mode.close()
+    image_lane_cpu_s = getattr(mode.runner, "image_lane_cpu_s", float("nan"))  # the sequential queue has no image lane
+    _newest_images_by_scan_start(drive, records)
     if book.errors:
         raise RuntimeError(f"{config.mode} replay of {drive.name} failed: {book.errors[0]!r}") from book.errors[0]
     slices = tuple(r for r in records if isinstance(r, SliceRecord))
@@ -150,7 +154,20 @@ def play(
     times = [r.release_s for r in records] + [r.emit_s for r in records if math.isfinite(r.emit_s)]
     wall_s = (max(times) - min(times)) * config.time_scale if records else 0.0
     return Recording(config.mode, drive.name, config.time_scale, slices, images, wall_s, cpu["player"],
-                     time.process_time() - process0)  # fmt: skip
+                     time.process_time() - process0, image_lane_cpu_s, len(drive.sweeps))  # fmt: skip
+
+
+def _newest_images_by_scan_start(drive: Drive, records: list) -> None:
+    """Each slice record's ``newest_capture_s``: the capture time of the newest image set released by the time the
+    sensor started scanning the slice's sector (the start of its sector in the rotation)."""
+    captures = np.array([s.capture_s for s in drive.image_sets], dtype=np.float64)  # increasing (Drive checks)
+    sweeps = {s.index: s for s in drive.sweeps}
+    for rec in records:
+        if isinstance(rec, SliceRecord) and captures.size:
+            sweep = sweeps[rec.sweep]
+            scan_start = sweep.start_s + sweep.duration_s * rec.slice_index / rec.num_slices
+            i = int(np.searchsorted(captures, scan_start, side="right")) - 1
+            rec.newest_capture_s = float(captures[i]) if i >= 0 else math.nan
 
 
 class _Hooks:

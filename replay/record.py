@@ -32,6 +32,7 @@ class SliceRecord:
     emit_s: float = float("nan")
     dropped: bool = False
     image_capture_s: float = float("nan")  # capture time of the image set behind the BEV it was fused with
+    newest_capture_s: float = float("nan")  # capture time of the newest image set released by its scan start
     cpu_s: float = 0.0
     num_detections: int = 0
     detections: Detections | None = field(default=None, repr=False)
@@ -47,6 +48,13 @@ class SliceRecord:
     @property
     def image_age_ms(self) -> float:
         return (self.start_s - self.image_capture_s) * 1e3
+
+    @property
+    def staleness_ms(self) -> float:
+        """Staleness added by processing: how much older the images it was fused with were than the newest ones that
+        had arrived by its scan start (the age of the image BEV at fusion minus the age of those newest images;
+        negative when images that came during the scan made it in)."""
+        return (self.newest_capture_s - self.image_capture_s) * 1e3
 
     def to_dict(self) -> dict:
         d = {k: getattr(self, k) for k in self.__slots__ if k != "detections"}
@@ -82,6 +90,8 @@ class Recording:
     wall_s: float  # wall seconds from the first release to the last emission
     player_cpu_s: float  # CPU seconds of the player's thread (releases and bookkeeping)
     process_cpu_s: float  # CPU seconds of the whole process over the replay
+    image_lane_cpu_s: float = float("nan")  # CPU seconds of the runner's image lane (its own count; nan: none)
+    rotations: int = 0  # LiDAR rotations played
 
     @property
     def drive_s(self) -> float:
@@ -94,6 +104,11 @@ class Recording:
         ages = [s.image_age_ms for s in self.slices if s.emitted and np.isfinite(s.image_capture_s)]
         return np.array(ages, dtype=np.float64)
 
+    def staleness_ms(self) -> np.ndarray:
+        """``SliceRecord.staleness_ms`` of every emitted slice fused with images of the drive."""
+        values = [s.staleness_ms for s in self.slices if s.emitted and np.isfinite(s.image_capture_s + s.newest_capture_s)]
+        return np.array(values, dtype=np.float64)
+
     @property
     def slices_dropped(self) -> int:
         return sum(s.dropped for s in self.slices)
@@ -103,7 +118,9 @@ class Recording:
         return sum(i.superseded for i in self.images)
 
     def to_dict(self) -> dict:
-        out = {k: getattr(self, k) for k in ("mode", "drive", "time_scale", "wall_s", "player_cpu_s", "process_cpu_s")}
+        out = {k: getattr(self, k) for k in ("mode", "drive", "time_scale", "wall_s", "player_cpu_s", "process_cpu_s",
+                                             "image_lane_cpu_s", "rotations")}  # fmt: skip
+        out = {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in out.items()}
         out["slices"] = [s.to_dict() for s in self.slices]
         out["images"] = [i.to_dict() for i in self.images]
         return out

@@ -65,6 +65,17 @@ def mode_summary(result: ModeResult) -> dict:
     }
 
 
+def image_lane_summary(result: ModeResult) -> dict:
+    """Issue 22's figures of a mode: staleness added by processing (``SliceRecord.staleness_ms``) p50 / p95 / p99 /
+    max, and the image lane's CPU milliseconds per LiDAR rotation (the runner's own count; None without one)."""
+    recs = result.recordings
+    stale = np.concatenate([r.staleness_ms() for r in recs]) if recs else np.zeros(0)
+    cpu = [r.image_lane_cpu_s for r in recs if math.isfinite(r.image_lane_cpu_s)]
+    rotations = sum(r.rotations for r in recs if math.isfinite(r.image_lane_cpu_s))
+    return {"staleness_ms": percentiles(stale, (50, 95, 99)),
+            "image_lane_cpu_ms_per_rotation": 1e3 * sum(cpu) / rotations if cpu and rotations else None}  # fmt: skip
+
+
 def json_report(result: ReplayResult, info: dict) -> dict:
     config = {**result.config.to_dict(), "num_slices": result.num_slices, "precision_label": result.precision_label,
               "scenes": list(result.scenes), "cpu": info, "ground_truth": result.truth_source,
@@ -80,6 +91,7 @@ def details_report(result: ReplayResult, info: dict) -> dict:
             streaming=r.scores.streaming.to_dict(), offline=r.scores.offline.to_dict(),
             per_scene_map_streaming=r.scores.per_scene_streaming_map, images_superseded=sum(x.images_superseded for x in r.recordings),
             cpu_share=_cpu_share(r), stages=r.stages, recordings=[x.to_dict() for x in r.recordings],
+            **image_lane_summary(r),
         )  # fmt: skip
     return out
 
@@ -119,8 +131,21 @@ def format_report(result: ReplayResult, info: dict) -> str:
             f"| {m['slices_dropped']} of {m['slices_total']} | {superseded} of {sum(len(x.images) for x in r.recordings)} "
             f"| {_ms(age['p50'])} / {_ms(age['p95'])} | {100 * cpu['slice_lane']:.0f} % / {100 * cpu['image_lane']:.0f} % |"
         )
-    lines += ["", _per_class_table(result), "", _stage_table(result), "", *_targets(result, period_ms)]
+    lines += ["", _image_lane_table(result), "", _per_class_table(result), "", _stage_table(result), "",
+              *_targets(result, period_ms)]  # fmt: skip
     return "\n".join(lines)
+
+
+def _image_lane_table(result: ReplayResult) -> str:
+    rows = [f"image lane, schedule {result.config.lanes.schedule!r}:",
+            "| mode | staleness added p50 / p95 / p99 / max ms | image age p50 / p95 ms | image-lane CPU ms per rotation |",
+            "|---|---|---|---|"]  # fmt: skip
+    for mode, r in result.modes.items():
+        m, lane = mode_summary(r), image_lane_summary(r)
+        st, age, cpu = lane["staleness_ms"], m["image_age_ms"], lane["image_lane_cpu_ms_per_rotation"]
+        rows.append(f"| {mode} | {_ms(st['p50'])} / {_ms(st['p95'])} / {_ms(st['p99'])} / {_ms(st['max'])} "
+                    f"| {_ms(age['p50'])} / {_ms(age['p95'])} | {_ms(cpu)} |")  # fmt: skip
+    return "\n".join(rows)
 
 
 def _per_class_table(result: ReplayResult) -> str:

@@ -62,7 +62,8 @@ class ReplayConfig:
     def to_dict(self) -> dict:
         d = {k: getattr(self, k) for k in self.__dataclass_fields__ if k != "lanes"}
         d.update(data=str(self.data), export_dir=str(self.export_dir), modes=list(self.modes),
-                 slice_workers=self.lanes.max_in_flight, slice_queue=self.lanes.queue_size)  # fmt: skip
+                 slice_workers=self.lanes.max_in_flight, slice_queue=self.lanes.queue_size,
+                 schedule=self.lanes.schedule)  # fmt: skip
         return d
 
 
@@ -108,12 +109,16 @@ def open_detector(config: ReplayConfig, num_slices: int | None = None) -> Stream
         image_lane_threads=config.threads, slice_lane_threads=config.threads))  # fmt: skip
 
 
-def warm_up(det: StreamingDetector, drive: Drive, num_slices: int) -> None:
-    """One untimed image update (at WARM_UP_TIMESTAMP_S: its picture has no age) and the first sweep, then fresh stats."""
+def warm_up(det: StreamingDetector, drive: Drive, num_slices: int, per_quadrant: bool = False) -> None:
+    """One untimed image update (at WARM_UP_TIMESTAMP_S: its picture has no age) and the first sweep, then fresh stats.
+    ``per_quadrant``: also one update of each quadrant alone (the phase-locked image lane's sizes: onnxruntime's
+    first run of a new input shape is slow)."""
     if drive.rig is not None and det.uses_images and drive.rig.sha256() != det.lut.calibration_sha256:
         det.set_calibration(drive.rig)  # the dataset's own rig: a new LUT for the same graphs
     if det.uses_images and drive.image_sets:
         det.update_images(drive.image_sets[0].images, timestamp=WARM_UP_TIMESTAMP_S)
+        for q in range(4) if per_quadrant else ():
+            det.update_images(drive.image_sets[0].images, timestamp=WARM_UP_TIMESTAMP_S, quadrants=[q])
     for n in {num_slices, 1}:
         for s in slice_sweep(drive.sweeps[0], n):
             det.detect_slice(s.points, s.slice_index, WARM_UP_TIMESTAMP_S, n)
@@ -140,7 +145,7 @@ def run_replay(config: ReplayConfig, progress: Progress = lambda msg: None) -> R
         truths.append(query_truth(drive, truth))
         for mode in config.modes:
             det = open_detector(config)
-            warm_up(det, drive, n)
+            warm_up(det, drive, n, per_quadrant=config.lanes.schedule == "phase-locked")
             player = PlayerConfig(mode, n, det.config.start_deg, config.time_scale, config.lanes)
             recordings[mode].append(play(drive, det, WallClock(), player, progress))
             stages[mode].append(det.stats.summary())

@@ -193,3 +193,31 @@ def test_a_quadrant_whose_cameras_are_not_given_lifts_zeros(tiny_export):
     ref = StreamingDetector(tiny_export)
     ref.update_images(_images(ref, 0, others), timestamp=1.0)  # the full update with the same cameras missing
     np.testing.assert_allclose(det._image.quadrants[0].bev, ref._image.bev[:1], rtol=0, atol=1e-6)  # noqa: SLF001
+
+
+def test_encoded_feature_maps_are_used_instead_of_encoding_again(tiny_export):
+    det = StreamingDetector(tiny_export)
+    images = _images(det, 5)
+    encoded = det.encode_images(images)
+    assert set(encoded) == set(det.camera_names) and all(f.dtype == np.float32 and f.ndim == 3 for f in encoded.values())
+    ref = StreamingDetector(tiny_export)
+    ref.update_images(images, timestamp=1.0)
+    det.stats.reset()
+    for q in range(4):
+        cams = det.quadrant_cameras([q])
+        det.update_images({n: images[n] for n in cams}, 1.0, quadrants=[q], encoded={n: encoded[n] for n in cams})
+    assert "image_encoder" not in det.stats.summary()  # nothing encoded twice
+    np.testing.assert_allclose(det._image.bev, ref._image.bev, rtol=0, atol=1e-6)  # noqa: SLF001
+
+
+@pytest.mark.parametrize("bad, match", [
+    ({"CAM_FRONT": np.zeros((1, 2, 3), np.float32)}, "must be a float32 feature map of shape"),
+    ({"CAM_FRONT": "x"}, "must be a float32 feature map"),
+    ({"NOPE": np.zeros((1,), np.float32)}, "whose image this update was not given"),
+    ([1], "encoded must be None or a dict"),
+])  # fmt: skip
+def test_malformed_encoded_maps_are_refused(detector, bad, match):
+    before = detector._image  # noqa: SLF001
+    with pytest.raises(ValueError, match=match):
+        detector.update_images(_images(detector, 0), timestamp=1.0, quadrants=[0], encoded=bad)
+    assert detector._image is before  # noqa: SLF001

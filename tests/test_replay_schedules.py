@@ -1,0 +1,57 @@
+"""The replay with either image-lane schedule (LaneConfig.schedule): the staleness added by processing and the
+image lane's CPU per rotation are recorded and reported, and the schedule is named."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from streamdet.replay.record import Recording, SliceRecord
+
+
+@pytest.fixture(scope="module")
+def drive_data(tmp_path_factory):
+    """One key frame with ten 20 Hz sweeps before it (0.5 s of drive) at 160x90."""
+    from streamdet.data.synth_world import WorldConfig
+    from streamdet.data.synth_writer import SynthConfig, generate_dataset
+
+    out = tmp_path_factory.mktemp("replay_schedules")
+    generate_dataset(out, SynthConfig(num_scenes=1, seed=5, resolution=(160, 90), sweeps_per_sample=10,
+                                      val_fraction=0.0, world=WorldConfig(samples_per_scene=1)))  # fmt: skip
+    return out
+
+
+def _slice(image_capture_s: float, newest_capture_s: float, emitted: bool = True) -> SliceRecord:
+    rec = SliceRecord(0, 0, 8, 0.1, 10, image_capture_s=image_capture_s, newest_capture_s=newest_capture_s)
+    rec.emit_s = 0.2 if emitted else math.nan
+    return rec
+
+
+def test_staleness_is_the_newest_capture_by_scan_start_minus_the_fused_one():
+    slices = (_slice(0.10, 0.15), _slice(0.15, 0.15), _slice(0.20, 0.15), _slice(math.nan, 0.15), _slice(0.1, 0.2, False))
+    rec = Recording("streaming", "s", 1.0, slices, (), 1.0, 0.0, 0.0)
+    np.testing.assert_allclose(rec.staleness_ms(), [50.0, 0.0, -50.0])  # no image, or not emitted: not counted
+    assert math.isnan(rec.image_lane_cpu_s) and rec.to_dict()["image_lane_cpu_s"] is None
+
+
+@pytest.mark.parametrize("schedule", ["full", "phase-locked"])
+def test_a_replay_reports_staleness_and_image_lane_cpu_for_each_schedule(drive_data, tiny_export, tmp_path, schedule):
+    from streamdet.replay.cli import main
+
+    args = ["--data", str(drive_data), "--split", "all", "--export-dir", str(tiny_export), "--max-seconds", "0.3",
+            "--mode", "streaming", "--schedule", schedule, "--json", str(tmp_path / "r.json"), "--out", str(tmp_path / "out")]  # fmt: skip
+    result = CliRunner().invoke(main, args)
+    assert result.exit_code == 0, result.output
+    assert f"image lane, schedule '{schedule}'" in result.output and "staleness added" in result.output
+    doc = json.loads((tmp_path / "r.json").read_text())
+    assert doc["config"]["schedule"] == schedule
+    details = json.loads((tmp_path / "out" / "replay.json").read_text())["modes"]["streaming"]
+    assert details["image_lane_cpu_ms_per_rotation"] > 0
+    assert set(details["staleness_ms"]) == {"p50", "p95", "p99", "max"}
+    (rec,) = details["recordings"]
+    fused = [s for s in rec["slices"] if s["image_capture_s"] is not None]
+    assert fused and all(s["newest_capture_s"] is not None for s in fused)
