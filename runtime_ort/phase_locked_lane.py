@@ -101,7 +101,6 @@ class PhaseLockedImageLane:
         self._done: collections.deque = collections.deque(maxlen=4 * len(self._phase.slice_quadrants))
         self._dirty = False
         self._closed = False
-        self._busy = False
         self._thread = threading.Thread(target=self._serve, name="image-lane-phase-locked", daemon=True) if thread else None
         if self._thread is not None:
             self._thread.start()
@@ -169,13 +168,16 @@ class PhaseLockedImageLane:
                 cams = set(self.detector.quadrant_cameras([plan.quadrant]))
                 frames = {n: f for n, f in self._frames.items() if n in cams}
                 quadrants, deadline = (plan.quadrant,), plan.deadline_s
-            self._busy = True
+            # the image sets this update is the first to use: from here on none of them can be superseded
+            owners = list({id(f.owner): f.owner for f in frames.values() if not f.owner.used}.values())
+            for owner in owners:
+                owner.used = True
         try:
-            self._update(frames, quadrants, deadline)
-        finally:
-            with self._cond:
-                self._busy = False
-                self._cond.notify_all()
+            update = self._update(frames, quadrants, deadline)
+        except BaseException as e:
+            _settle(owners, error=e)
+            raise
+        _settle(owners, result=update)
         return now_s
 
     def _has_new(self, quadrant: int) -> bool:
@@ -183,7 +185,7 @@ class PhaseLockedImageLane:
         lifted = self._lifted[quadrant]
         return any(n in self._frames and self._frames[n].seq != lifted.get(n) for n in cams)
 
-    def _update(self, frames: dict[str, _Frame], quadrants: tuple[int, ...] | None, deadline_s: float | None) -> None:
+    def _update(self, frames: dict[str, _Frame], quadrants: tuple[int, ...] | None, deadline_s: float | None):
         """Encode the frames not encoded yet, then lift ``quadrants`` (None: all four) with them. Off the lock."""
         cpu0 = time.thread_time()
         t0 = self.clock()
@@ -218,11 +220,7 @@ class PhaseLockedImageLane:
                 self._lifted[quadrants[0]].update({n: f.seq for n, f in frames.items()})
                 if deadline_s is not None and t2 > deadline_s:
                     self.stats.late_lifts += 1
-            for f in frames.values():
-                if update is not None and not f.owner.used:
-                    f.owner.used = True
-                    if f.owner.future.set_running_or_notify_cancel():
-                        f.owner.future.set_result(update)
+        return update
 
     # ---- the worker -----------------------------------------------------------------------------
     def _serve(self) -> None:
@@ -233,8 +231,7 @@ class PhaseLockedImageLane:
                 self._dirty = False
             try:
                 wake = self.step(self.clock())
-            except BaseException as e:  # a failing update fails the futures of the frames it held, never the thread
-                self._fail_waiting(e)
+            except BaseException:  # the futures of the image sets it used hold the error; the lane goes on
                 wake = None
             with self._cond:
                 if self._closed:
@@ -244,17 +241,6 @@ class PhaseLockedImageLane:
                 timeout = None if wake is None else wake - self.clock()
                 if timeout is None or timeout > 0:
                     self._cond.wait(timeout)
-
-    def _fail_waiting(self, error: BaseException) -> None:
-        with self._cond:
-            for f in self._frames.values():
-                if not f.owner.used:
-                    f.owner.used = True
-                    try:
-                        if f.owner.future.set_running_or_notify_cancel():
-                            f.owner.future.set_exception(error)
-                    except InvalidStateError:
-                        pass
 
     def close(self, deadline: float | None = None) -> bool:
         """Stop the worker (a running update finishes); waiting image sets that were never used are cancelled.
@@ -275,3 +261,16 @@ def _robust_max(seconds) -> float:
     """The second longest of a few durations (the longest when there is one, 0 when none)."""
     ordered = sorted(seconds)
     return ordered[-2] if len(ordered) >= 2 else (ordered[-1] if ordered else 0.0)
+
+
+def _settle(owners: list[_ImageSet], result=None, error: BaseException | None = None) -> None:
+    """Complete the futures of the image sets an update was the first to use (a cancelled one stays cancelled)."""
+    for owner in owners:
+        try:
+            if owner.future.set_running_or_notify_cancel():
+                if error is not None:
+                    owner.future.set_exception(error)
+                else:
+                    owner.future.set_result(result)
+        except (InvalidStateError, RuntimeError):  # cancelled or completed by its owner meanwhile
+            pass

@@ -311,3 +311,23 @@ def test_a_phase_locked_runner_ends_with_the_full_update_bev(tiny_export):
     assert all(r.image_timestamp == 0.5 and r.image_age_s == pytest.approx(r.timestamp - 0.5) for r in late)
     assert runner.phase_lock.quadrant_lifts + runner.phase_lock.full_updates >= 1
     assert runner.image_lane_cpu_s > 0.0
+
+
+def test_an_image_set_replaced_while_a_lift_uses_it_still_gets_that_lift():
+    """The frames of set A are replaced by set B during A's lift (the driver's thread): A's future holds the lift's
+    ImageUpdate, not ImagesSuperseded, and nothing fails."""
+    clock = FakeClock()
+    images = {c: np.zeros((2, 2, 3), np.uint8) for c in CAMERAS}
+
+    class Replacing(FakeDetector):
+        def update_images(self, imgs, timestamp=None, quadrants=None, encoded=None):
+            if timestamp == 1.0:
+                self.later = lane.submit_images(images, 2.0)  # arrives mid-lift
+            return super().update_images(imgs, timestamp, quadrants, encoded)
+
+    det = Replacing(clock, 0.0, 0.001)
+    lane = PhaseLockedImageLane(det, 8, lidar_hz=20.0, clock=clock, thread=False,
+                                superseded=lambda: ImagesSuperseded("superseded"))  # fmt: skip
+    first = lane.submit_images(images, 1.0)
+    assert lane.step(0.0) == 0.0  # not locked: a full update of set A
+    assert first.result(0).timestamp == 1.0 and lane.images_superseded == 0 and not det.later.done()

@@ -1,0 +1,33 @@
+#!/usr/bin/env bash
+# Issue 22's figures: the image lane's two schedules (LaneConfig.schedule "full" and "phase-locked") on the same
+# drives, streaming mode, int8 image lane + fp32 slices, nuScenes rates (20 Hz LiDAR x 8 slices, 12 Hz cameras).
+# Reuses the dataset and export of benchmarks/replay_readme.sh (made here the same way when missing):
+#   benchmarks/replay_schedules.sh [OUT_DIR [SCALES]]   (default out/replay_readme, scales "1 4")
+# Per schedule and time scale it writes replay_<schedule>_scale<S>.{txt,json} and the details under
+# <schedule>_scale<S>/replay.json; the report's "image lane" table holds the staleness added by processing
+# (p50 / p95 / p99 / max), the image age and the image lane's CPU ms per LiDAR rotation. Run it on a quiet machine
+# (timings on a shared machine vary 2-8x); uptime before and after is kept beside the reports.
+set -euo pipefail
+OUT=${1:-out/replay_readme}
+SCALES=${2:-"1 4"}
+BIN=${BIN:-.venv/bin}
+mkdir -p "$OUT"
+DATA="$OUT/synth20"
+EXPORT="$OUT/export_small"
+if [ ! -f "$DATA/trajectories.npz" ]; then
+  "$BIN/streamdet-synth" --out "$DATA" --scenes 8 --seed 11 --resolution 480x270 --sweeps-per-sample 10 --overwrite
+fi
+if [ ! -f "$EXPORT/manifest.json" ]; then
+  "$BIN/streamdet-export" --int8 --calibration-data "$DATA" --out "$EXPORT"
+fi
+uptime > "$OUT/schedules_uptime_before.txt"
+for SCALE in $SCALES; do
+  for SCHEDULE in full phase-locked; do
+    "$BIN/streamdet-replay" --data "$DATA" --split val --export-dir "$EXPORT" --precision fp32 --image-precision int8 \
+      --lidar-hz 20 --slices 8 --camera-hz 12 --mode streaming --schedule "$SCHEDULE" --time-scale "$SCALE" \
+      --json "$OUT/replay_${SCHEDULE}_scale$SCALE.json" --out "$OUT/${SCHEDULE}_scale$SCALE" \
+      | tee "$OUT/replay_${SCHEDULE}_scale$SCALE.txt"
+  done
+done
+uptime > "$OUT/schedules_uptime_after.txt"
+echo "wrote $OUT/replay_{full,phase-locked}_scale*.txt"
