@@ -80,6 +80,11 @@ def blind_cameras(lut: "Lut") -> list[tuple[str, int]]:
     return [(name, n) for name, n in slots.items() if n == 0]
 
 
+class CameraMovedWarning(UserWarning):
+    """A recalibrated camera sees another part of the grid than before (turned around, swapped with another, a
+    sign error in its extrinsics): accepted, since a camera can be remounted, but almost always a wrong calibration."""
+
+
 MOVED_CAMERA_IOU = 0.5  # a camera whose seen voxels overlap its previous ones less than this has moved a lot
 
 

@@ -49,7 +49,9 @@ import numpy as np
 
 from streamdet.calibration.camera import CalibrationError, Rig
 from streamdet.calibration.grid import GridSpec
-from streamdet.calibration.lut import BlindCameraWarning, Lut, blind_cameras, build_lut, check_rig_fits
+from streamdet.calibration.lut import (
+    BlindCameraWarning, CameraMovedWarning, Lut, blind_cameras, build_lut, check_rig_fits, moved_cameras,
+)
 from streamdet.calibration.quadrant_lut import QuadrantLut, quadrant_luts
 from streamdet.core.constants import BUNDLED_PREFIX, PRECISIONS  # noqa: F401 (PRECISIONS: public here too)
 from streamdet.core.points import check_sweep
@@ -375,7 +377,8 @@ class StreamingDetector:
 
         The calibration must name the export's cameras in its order with the aspect ratio of its images
         (CalibrationError otherwise, and the LUT in use stays). A camera that sees no voxel is accepted with a
-        BlindCameraWarning naming it. The newest cached image set is lifted again, so the next slice sees the new
+        BlindCameraWarning naming it, one that now sees another part of the grid than with the previous calibration
+        (turned around, swapped) with a CameraMovedWarning. The newest cached image set is lifted again, so the next slice sees the new
         calibration at once. A LiDAR-only export has no calibration to set: NoImageLaneError.
         """
         if not self.uses_images:
@@ -394,6 +397,10 @@ class StreamingDetector:
                 f"lut.npz, got {type(calibration).__name__}"
             )
         lut = self._check_lut(calibration)
+        for name, iou in moved_cameras(self._lut, lut):
+            msg = f"camera {name} now sees other voxels than with the previous calibration (overlap {iou:.2f})"
+            log.warning("%s: %s", self.export_dir, msg)
+            warnings.warn(msg, CameraMovedWarning, stacklevel=2)
         with self._calibration_lock:
             with self._lock:
                 self._lut = lut

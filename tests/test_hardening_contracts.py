@@ -19,6 +19,7 @@ from click.testing import CliRunner
 
 from streamdet.calibration.camera import CalibrationError, Rig
 from streamdet.calibration.lut import BlindCameraWarning
+from streamdet.calibration.perturb import perturb_rig
 from streamdet.cli_utils import EXIT_INTERRUPTED, run_edge
 from streamdet.core.slicing import split_sweep
 from streamdet.data.sample import load_bundled_sample
@@ -320,3 +321,21 @@ def test_streamdet_calib_warns_about_a_camera_turned_around(tiny_export, tmp_pat
     assert result.output.count("now sees other voxels") == 1
     again = CliRunner().invoke(calib_main, ["lut", "--calibration", str(tmp_path / "turned.json"), "--export-dir", str(exp)])
     assert again.exit_code == 0 and "now sees other voxels" not in again.output  # same calibration: no warning
+
+
+def test_set_calibration_warns_about_a_camera_turned_around(tiny_export, sample):
+    from streamdet.calibration.lut import CameraMovedWarning
+
+    det = StreamingDetector(tiny_export)
+    cams = list(sample.rig.cameras)
+    cams[1] = dataclasses.replace(cams[1], lidar2cam=cams[1].lidar2cam @ np.diag([-1.0, -1.0, 1.0, 1.0]))  # 180 deg
+    def moved_warnings(rig) -> list[str]:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            det.set_calibration(rig)
+        return [str(w.message) for w in caught if issubclass(w.category, CameraMovedWarning)]
+
+    assert moved_warnings(perturb_rig(sample.rig, 0.2, 0.02, seed=0)) == []  # an ordinary recalibration
+    turned = moved_warnings(Rig(tuple(cams), sample.rig.lidar2ego, sample.rig.ego2global))
+    assert len(turned) == 1 and turned[0].startswith(f"camera {cams[1].name} now sees other voxels")
+    assert len(moved_warnings(sample.rig)) == 1  # and back
