@@ -135,6 +135,7 @@ class _Placer:
         # The ego car's footprint (centre ~1.4 m ahead of the rear axle) blocks its lane over time.
         self.tracks = [np.stack([1.4 + ego_speed * self.times, np.full_like(self.times, EGO_LANE_M)], axis=1)]  # (T, 2)
         self.radii = [2.7]
+        self.track_boxes = [np.r_[self.tracks[0].min(axis=0), self.tracks[0].max(axis=0)]]  # (4,) per track
         self.rows: list[dict] = []
 
     # ---- bookkeeping --------------------------------------------------------------------------------
@@ -151,11 +152,6 @@ class _Placer:
                  color=None) -> bool:
         """Place an object at road position (s, d) moving along its heading; False if it would collide."""
         size = self._size(kind) if size is None else np.asarray(size, dtype=np.float64)
-        c1, c2 = self._colors(kind)
-        if color is not None:
-            c1 = np.asarray(color, dtype=np.float32)
-        flag = self._flag(kind, speed) if flag is None else flag
-        shape = build_shape(kind, size, self.rng, c1, c2, flag)
         if yaw_rate == 0.0:
             v = speed * np.array([math.cos(yaw_road), math.sin(yaw_road)])
             track = np.array([s, d]) + self.times[:, None] * v  # (T, 2)
@@ -163,14 +159,30 @@ class _Placer:
             h = yaw_road + yaw_rate * self.times
             track = np.stack([s + speed / yaw_rate * (np.sin(h) - math.sin(yaw_road)),
                               d + speed / yaw_rate * (math.cos(yaw_road) - np.cos(h))], axis=1)
-        radius = 0.5 * math.hypot(shape.size_wlh[0], shape.size_wlh[1])  # the annotated box's bounding circle
+        # A bound on the bounding circle of the box the shape will get (its parts may reach past the nominal
+        # size: a stride, a rider, the annotator's margin), so shapes are only built for accepted tracks.
+        radius = 0.5 * math.hypot(size[0], size[1]) * 1.25 + 0.15
         if check:
-            others = np.stack(self.tracks, axis=1)  # (T, K, 2)
-            gap = np.linalg.norm(others - track[:, None, :], axis=-1) - np.asarray(self.radii) - radius  # (T, K)
-            if np.any(gap < self.config.collision_margin_m):
-                return False
+            # Only tracks whose padded bounding rectangles meet can collide; test those over the time grid.
+            lo, hi = track.min(axis=0), track.max(axis=0)
+            pad = np.asarray(self.radii) + radius + self.config.collision_margin_m  # (K,)
+            boxes = np.asarray(self.track_boxes)  # (K, 4) s_lo, d_lo, s_hi, d_hi
+            near = np.flatnonzero((boxes[:, 0] - pad <= hi[0]) & (boxes[:, 2] + pad >= lo[0])
+                                  & (boxes[:, 1] - pad <= hi[1]) & (boxes[:, 3] + pad >= lo[1]))
+            if len(near):
+                others = np.stack([self.tracks[i] for i in near], axis=1)  # (T, N, 2)
+                gap = np.linalg.norm(others - track[:, None, :], axis=-1) - np.asarray(self.radii)[near] - radius  # (T, N)
+                if np.any(gap < self.config.collision_margin_m):
+                    return False
+        c1, c2 = self._colors(kind)
+        if color is not None:
+            c1 = np.asarray(color, dtype=np.float32)
+        flag = self._flag(kind, speed) if flag is None else flag
+        shape = build_shape(kind, size, self.rng, c1, c2, flag)
+        if check:
             self.tracks.append(track)
-            self.radii.append(radius)
+            self.track_boxes.append(np.r_[lo, hi])
+            self.radii.append(max(radius, 0.5 * math.hypot(shape.size_wlh[0], shape.size_wlh[1])))
         self.rows.append(
             {
                 "kind": int(kind),

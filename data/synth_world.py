@@ -18,6 +18,7 @@ world in every dataset written from it.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -258,11 +259,16 @@ class Scene:
         return ground_height(xy[..., 0], xy[..., 1], self.ground_phase)
 
 
+@functools.lru_cache(maxsize=128)
 def make_scene(seed: int, index: int, config: WorldConfig = WorldConfig()) -> Scene:
-    """The deterministic scene number ``index`` of a dataset generated with ``seed``."""
+    """The deterministic scene number ``index`` of a dataset generated with ``seed``.
+
+    Cached: the writer, the world sidecar and the trajectories sidecar ask for the same scenes (treat the
+    returned arrays as read-only).
+    """
     from streamdet.data.synth_layout import layout_scene  # the layout builds on the types above
 
-    return layout_scene(seed, index, config)
+    return layout_scene(int(seed), int(index), config)
 
 
 def wrap_angle(a: np.ndarray) -> np.ndarray:
