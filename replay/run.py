@@ -8,6 +8,7 @@ the streaming mAP of each scene alone gives the spread of the modes' difference 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from collections.abc import Callable
@@ -146,7 +147,7 @@ def run_replay(config: ReplayConfig, progress: Progress = lambda msg: None) -> R
         for mode in config.modes:
             det = open_detector(config)
             warm_up(det, drive, n, per_quadrant=config.lanes.schedule == "phase-locked")
-            player = PlayerConfig(mode, n, det.config.start_deg, config.time_scale, config.lanes)
+            player = PlayerConfig(mode, n, det.config.start_deg, config.time_scale, _lanes(config))
             recordings[mode].append(play(drive, det, WallClock(), player, progress))
             stages[mode].append(det.stats.summary())
             det.close()
@@ -159,6 +160,15 @@ def run_replay(config: ReplayConfig, progress: Progress = lambda msg: None) -> R
     notes = tuple(dict.fromkeys(note for d in drives for note in d.notes))
     return ReplayResult(config, n, label, tuple(scenes), tuple(drives), tuple(truths), results, notes,
                         " + ".join(sorted(sources)))  # fmt: skip
+
+
+def _lanes(config: ReplayConfig) -> LaneConfig:
+    """The runner's lanes; a phase-locked image lane is told the LiDAR rate on the wall clock (the rate over the
+    time scale), as a vehicle's driver knows its sensor's, unless the lanes name one."""
+    lanes = config.lanes
+    if lanes.schedule == "phase-locked" and lanes.lidar_hz is None:
+        lanes = dataclasses.replace(lanes, lidar_hz=config.lidar_hz / config.time_scale)
+    return lanes
 
 
 def merge_stages(summaries: list[dict[str, dict[str, float]]]) -> dict[str, dict[str, float]]:

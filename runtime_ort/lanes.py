@@ -205,8 +205,9 @@ class StreamingRunner:
         stamp = time.monotonic() if timestamp is None else timestamp
         own = np.array(points, copy=True) if isinstance(points, np.ndarray) else points  # the driver may reuse its buffer
         future = self._slices.submit(lambda: self.detector.detect_slice(own, slice_index, stamp))
-        if self._phase_locked is not None and isinstance(slice_index, (int, np.integer)) and not isinstance(slice_index, bool):
-            self._phase_locked.observe_slice(int(slice_index) % self.detector.num_slices, time.monotonic())
+        valid = isinstance(slice_index, (int, np.integer)) and not isinstance(slice_index, bool)
+        if self._phase_locked is not None and valid and 0 <= slice_index < self.detector.num_slices:
+            self._phase_locked.observe_slice(int(slice_index), time.monotonic())  # its arrival on the runner's clock
         return future
 
     @property

@@ -5,8 +5,8 @@ of the image BEV at a time, with the newest images, timed to finish just before 
 arrives. This module is the pure arithmetic behind it, on the runner's clock (seconds, any origin):
 
 - ``RotationPhase`` learns the rotation from the slices' arrival times: the newest arrival anchors the phase, and the
-  period is ``1 / lidar_hz`` when the rate is given, else the median of the periods the arrivals imply (a slice
-  index step of d between two arrivals is d / num_slices of a rotation, modulo a whole one).
+  period is ``1 / lidar_hz`` when the rate is given, else the median of the periods the arrivals imply over up to
+  two rotations (a slice index step of d is d / num_slices of a rotation, modulo a whole one).
 - ``plan_lift`` picks the next lift among the upcoming **passes**: a pass is one slice of one rotation and one
   quadrant that slice reads, its deadline the slice's predicted arrival. The lane lifts a quadrant for the first
   slice that reads it, and again for a later slice of the same rotation only when newer frames came meanwhile (it
@@ -26,7 +26,8 @@ from typing import Callable, Iterable, Iterator
 
 from streamdet.core.sectors import NUM_QUADRANTS, check_num_slices, quadrants_of_sector
 
-PERIOD_SAMPLES = 16  # arrivals whose implied periods the median is taken over
+PERIOD_SAMPLES = 16  # period measurements the median is taken over
+HISTORY_ROTATIONS = 2  # rotations of arrivals one period measurement spans (at most)
 
 
 def slice_quadrants(num_slices: int, start_deg: float = 0.0) -> tuple[tuple[int, int], ...]:
@@ -43,21 +44,38 @@ class RotationPhase:
             raise ValueError(f"lidar_hz must be None or a finite rate > 0 Hz, got {lidar_hz!r}")
         self.num_slices = num_slices
         self.slice_quadrants = slice_quadrants(num_slices, start_deg)
+        self.quadrant_order = tuple(dict.fromkeys(q for _, q in self.slice_quadrants))  # the order the LiDAR enters them
         self._fixed_period_s = None if lidar_hz is None else 1.0 / float(lidar_hz)
         self._periods: deque[float] = deque(maxlen=PERIOD_SAMPLES)
+        self._provisional_s = math.nan  # the period over less than a rotation of arrivals
         self._anchor: tuple[int, float] | None = None  # (slice index, arrival s) of the newest arrival
+        # (position, arrival s) of the last arrivals of an unbroken run, position = slices since its first one
+        self._history: deque[tuple[int, float]] = deque(maxlen=HISTORY_ROTATIONS * num_slices + 1)
 
     def observe(self, slice_index: int, arrival_s: float) -> None:
-        """A slice ``slice_index`` arrived at ``arrival_s``. Arrivals earlier than the anchor are ignored."""
+        """A slice ``slice_index`` arrived at ``arrival_s``. Arrivals earlier than the anchor are ignored.
+
+        The period is measured over the whole history (up to HISTORY_ROTATIONS rotations), never between two
+        neighbouring arrivals: a driver that hands over slices in bursts (a busy machine) would make those tiny. A
+        gap of more than two periods (a pause) starts the history again."""
         if self._anchor is not None:
             k0, t0 = self._anchor
             if arrival_s < t0:
                 return
             steps = (slice_index - k0) % self.num_slices or self.num_slices  # the same index again: a whole rotation
-            if arrival_s > t0:
-                period = (arrival_s - t0) * self.num_slices / steps
-                if not self.locked or period < 2 * self.period_s:  # a pause (or lost slices) is no period
+            if self.locked and arrival_s - t0 > 2 * self.period_s * steps / self.num_slices:
+                self._history.clear()
+            pos = self._history[-1][0] + steps if self._history else 0
+            self._history.append((pos, float(arrival_s)))
+            first_pos, first_t = self._history[0]
+            if pos > first_pos and arrival_s > first_t:
+                period = (arrival_s - first_t) * self.num_slices / (pos - first_pos)
+                if pos - first_pos >= self.num_slices:  # a whole rotation or more: a measurement
                     self._periods.append(period)
+                else:  # less: only until the first measurement
+                    self._provisional_s = period
+        else:
+            self._history.append((0, float(arrival_s)))
         self._anchor = (int(slice_index), float(arrival_s))
 
     @property
@@ -65,7 +83,7 @@ class RotationPhase:
         """Seconds per rotation (nan until known)."""
         if self._fixed_period_s is not None:
             return self._fixed_period_s
-        return statistics.median(self._periods) if self._periods else math.nan
+        return statistics.median(self._periods) if self._periods else self._provisional_s
 
     @property
     def locked(self) -> bool:
@@ -101,23 +119,34 @@ class LiftPlan:
 def plan_lift(
     phase: RotationPhase, now_s: float, duration_s: Callable[[int], float], margin_s: float,
     done: Iterable[tuple[float, int, int]] = (), wanted: Callable[[int], bool] = lambda q: True,
+    target: int | None = None,
 ) -> LiftPlan | None:  # fmt: skip
-    """The next lift after ``now_s``: the pass with the earliest deadline, not ``done``, that can still finish
-    (``now + duration <= deadline``); it starts at ``deadline - duration - margin`` or at once. The passes
-    before it that cannot finish any more are returned as ``skipped``. ``done`` holds (deadline, slice, quadrant)
-    of passes already lifted or given up (a pass of the same slice and quadrant within half a rotation of one is
-    the same: the predicted phase moves a little with every arrival). ``duration_s(q)``: expected seconds to lift
-    quadrant q; ``wanted(q)``: False for a quadrant with nothing new to lift (its passes are passed over, neither
-    planned nor skipped); None when no quadrant is wanted."""
-    if not any(wanted(q) for q in range(NUM_QUADRANTS)):
+    """The next lift after ``now_s``, or None when no quadrant is ``wanted``.
+
+    The pass with the earliest deadline, of a wanted quadrant, not ``done``, that can still finish
+    (``now + duration <= deadline``); it starts at ``deadline - duration - margin`` (as late as possible: the
+    newest frames) or at once. With ``target`` (the lane names a quadrant that has waited more than a rotation: it
+    cannot keep up) only that quadrant's passes count and the lift starts at once: a quadrant whose lifts take
+    longer is never starved by those whose lifts are shorter, and a saturated lane never idles. The passes before
+    it that cannot finish any more are returned as ``skipped``.
+
+    ``done`` holds (deadline, slice, quadrant) of passes already lifted or given up (a pass of the same slice and
+    quadrant within half a rotation of one is the same: the predicted phase moves a little with every arrival).
+    ``duration_s(q)``: expected seconds to lift quadrant q; ``wanted(q)``: False for a quadrant with nothing new to
+    lift (its passes are passed over, neither planned nor skipped)."""
+    wanted_now = {q for q in range(NUM_QUADRANTS) if wanted(q)}
+    if target is not None:
+        wanted_now &= {target}
+    if not wanted_now:
         return None
     done = tuple(done)
     half = phase.period_s / 2
     skipped = []
     for deadline, k, q in phase.passes(now_s):
-        if any(dk == k and dq == q and abs(dd - deadline) < half for dd, dk, dq in done) or not wanted(q):
+        if q not in wanted_now or any(dk == k and dq == q and abs(dd - deadline) < half for dd, dk, dq in done):
             continue
-        start = deadline - duration_s(q) - margin_s
         if now_s + duration_s(q) <= deadline:  # the margin is the aim, the deadline the limit
-            return LiftPlan(q, k, deadline, max(start, now_s), tuple(skipped))
+            start = now_s if target is not None else max(deadline - duration_s(q) - margin_s, now_s)
+            return LiftPlan(q, k, deadline, start, tuple(skipped))
         skipped.append((deadline, k, q))
+    raise AssertionError("unreachable: passes() never ends")

@@ -16,6 +16,9 @@ Degraded behaviour, in this order (each counted in ``PhaseLockStats``):
 - **a quadrant that cannot be lifted in time** (the expected lift, measured from the last lifts of that quadrant,
   would end after its first slice arrives) is skipped for that pass: it keeps its older BEV, which its slices read
   and whose age they report (``quadrants_skipped``; only passes with newer frames to lift count);
+- **a quadrant that waited more than a rotation** for its newer frames (the lane cannot keep up) is lifted next,
+  at once, for its earliest pass it can still make: round robin without idling, so that quadrants with fewer
+  cameras (shorter lifts) never starve the others;
 - **the slice lane is never blocked**: it runs on its own threads and reads whatever each quadrant holds; this lane
   never waits for a slice, only for time to pass or for frames and slices to arrive;
 - **image sets**: an image set each of whose frames was replaced by a newer one before any lift used it fails
@@ -99,6 +102,8 @@ class PhaseLockedImageLane:
         self._encode_s: collections.deque = collections.deque(maxlen=DURATION_SAMPLES)
         # (deadline, slice, quadrant) of the passes lifted or given up, at most four rotations' worth
         self._done: collections.deque = collections.deque(maxlen=4 * len(self._phase.slice_quadrants))
+        # per quadrant: when a frame newer than its last lift first arrived (None: nothing new since)
+        self._wanted_since: list[float | None] = [None] * NUM_QUADRANTS
         self._dirty = False
         self._closed = False
         self._thread = threading.Thread(target=self._serve, name="image-lane-phase-locked", daemon=True) if thread else None
@@ -112,6 +117,10 @@ class PhaseLockedImageLane:
             if self._closed:
                 raise self._closed_error()
             owner = _ImageSet(fut, len(images))
+            now = self.clock()
+            for q in range(NUM_QUADRANTS):
+                if self._wanted_since[q] is None and any(n in images for n in self.detector.quadrant_cameras([q])):
+                    self._wanted_since[q] = now
             for name, image in images.items():
                 self._seq += 1
                 old = self._frames.get(name)
@@ -156,8 +165,10 @@ class PhaseLockedImageLane:
                 if all(self._full_lifted.get(n) == f.seq for n, f in frames.items()):
                     return None
                 quadrants, deadline = None, None
+                self._wanted_since = [None] * NUM_QUADRANTS
             else:
-                plan = plan_lift(self._phase, now_s, self._expected_s, self.margin_s, self._done, self._has_new)
+                plan = plan_lift(self._phase, now_s, self._expected_s, self.margin_s, self._done, self._has_new,
+                                 self._overdue(now_s))  # fmt: skip
                 if plan is None:  # no quadrant has newer frames than it was lifted from
                     return None
                 if plan.start_s > now_s:
@@ -165,6 +176,7 @@ class PhaseLockedImageLane:
                 self._done.extend(plan.skipped)
                 self.stats.quadrants_skipped += len(plan.skipped)
                 self._done.append((plan.deadline_s, plan.slice_index, plan.quadrant))
+                self._wanted_since[plan.quadrant] = None  # frames that arrive during the lift set it again
                 cams = set(self.detector.quadrant_cameras([plan.quadrant]))
                 frames = {n: f for n, f in self._frames.items() if n in cams}
                 quadrants, deadline = (plan.quadrant,), plan.deadline_s
@@ -179,6 +191,12 @@ class PhaseLockedImageLane:
             raise
         _settle(owners, result=update)
         return now_s
+
+    def _overdue(self, now_s: float) -> int | None:
+        """The quadrant that has waited longest for its newer frames, if that is more than a rotation (the lane is
+        saturated: it is lifted next, round robin in effect); else None (earliest deadline first)."""
+        waiting = [(t, q) for q, t in enumerate(self._wanted_since) if t is not None and now_s - t > self._phase.period_s]
+        return min(waiting)[1] if waiting else None
 
     def _has_new(self, quadrant: int) -> bool:
         cams = self.detector.quadrant_cameras([quadrant])
