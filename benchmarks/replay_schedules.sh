@@ -30,4 +30,7 @@ for SCALE in $SCALES; do
   done
 done
 uptime > "$OUT/schedules_uptime_after.txt"
+# offline: four per-quadrant updates give the full update's BEV and detections on the val scenes (no clock involved)
+"$BIN/python" -m streamdet.benchmarks.quadrant_parity --data "$DATA" --export-dir "$EXPORT" --image-precision int8 \
+  | tee "$OUT/quadrant_parity.txt"
 echo "wrote $OUT/replay_{full,phase-locked}_scale*.txt"
