@@ -56,13 +56,13 @@ class WorldConfig:
     lane_vehicles: tuple[int, int] = (5, 11)  # inclusive ranges of counts per scene
     cross_vehicles: tuple[int, int] = (2, 5)  # on the cross street, some turning
     parked_vehicles: tuple[int, int] = (8, 18)
-    buses: tuple[int, int] = (4, 6)
+    buses: tuple[int, int] = (5, 7)
     pedestrians: tuple[int, int] = (10, 24)  # singles; groups come on top
     pedestrian_groups: tuple[int, int] = (1, 3)
     bicycles: tuple[int, int] = (3, 6)
     motorcycles: tuple[int, int] = (3, 6)
     construction_zones: tuple[int, int] = (1, 4)  # rows of barriers with cones
-    distractor_spacing_m: tuple[float, float] = (2.0, 5.5)  # gap between look-alikes along each sidewalk
+    distractor_spacing_m: tuple[float, float] = (1.5, 4.0)  # gap between look-alikes along each sidewalk
     intersection_prob: float = 0.85  # chance a scene has a cross street
     margin_m: float = 70.0  # objects are placed this far before and beyond the ego's path
     annotation_range_m: float = 80.0  # objects farther than this (BEV, from the ego) are not annotated
