@@ -431,7 +431,9 @@ class StreamingDetector:
     def _build_lut(self, rig: Rig) -> Lut:
         img = self.image
         check_rig_fits(rig, self.camera_names, img.width, img.height)
-        return build_lut(rig, self.grid, img.feature_stride, image_size=(img.width, img.height))
+        # the model's heights per voxel (models/presets.py LifterConfig; absent = 1, manifests written before it)
+        heights = self.manifest.preset.get("lifter", {}).get("lut_heights_per_voxel", 1)
+        return build_lut(rig, self.grid, img.feature_stride, image_size=(img.width, img.height), heights_per_voxel=heights)
 
     # ---- image lane ----------------------------------------------------------------------------
     def update_images(
