@@ -105,7 +105,8 @@ class Recording:
         return np.array(ages, dtype=np.float64)
 
     def staleness_ms(self) -> np.ndarray:
-        """``SliceRecord.staleness_ms`` of every emitted slice fused with images of the drive."""
+        """``SliceRecord.staleness_ms`` of every emitted slice fused with images of the drive (a slice whose scan
+        started before the first image set has none)."""
         values = [s.staleness_ms for s in self.slices if s.emitted and np.isfinite(s.image_capture_s + s.newest_capture_s)]
         return np.array(values, dtype=np.float64)
 
