@@ -9,6 +9,7 @@ time (`DriveClock`: wall seconds over the time scale).
 from __future__ import annotations
 
 import concurrent.futures
+import dataclasses
 import functools
 import math
 import threading
@@ -146,6 +147,7 @@ def play(
     concurrent.futures.wait(futures)
     mode.close()
     image_lane_cpu_s = getattr(mode.runner, "image_lane_cpu_s", float("nan"))  # the sequential queue has no image lane
+    phase_lock = getattr(mode.runner, "phase_lock", None)  # what a phase-locked image lane did
     _newest_images_by_scan_start(drive, records)
     if book.errors:
         raise RuntimeError(f"{config.mode} replay of {drive.name} failed: {book.errors[0]!r}") from book.errors[0]
@@ -154,7 +156,8 @@ def play(
     times = [r.release_s for r in records] + [r.emit_s for r in records if math.isfinite(r.emit_s)]
     wall_s = (max(times) - min(times)) * config.time_scale if records else 0.0
     return Recording(config.mode, drive.name, config.time_scale, slices, images, wall_s, cpu["player"],
-                     time.process_time() - process0, image_lane_cpu_s, len(drive.sweeps))  # fmt: skip
+                     time.process_time() - process0, image_lane_cpu_s, len(drive.sweeps),
+                     None if phase_lock is None else dataclasses.asdict(phase_lock))  # fmt: skip
 
 
 def _newest_images_by_scan_start(drive: Drive, records: list) -> None:

@@ -92,6 +92,7 @@ class Recording:
     process_cpu_s: float  # CPU seconds of the whole process over the replay
     image_lane_cpu_s: float = float("nan")  # CPU seconds of the runner's image lane (its own count; nan: none)
     rotations: int = 0  # LiDAR rotations played
+    phase_lock: dict | None = None  # a phase-locked image lane's PhaseLockStats (lifts, skips, ...); None otherwise
 
     @property
     def drive_s(self) -> float:
@@ -120,7 +121,7 @@ class Recording:
 
     def to_dict(self) -> dict:
         out = {k: getattr(self, k) for k in ("mode", "drive", "time_scale", "wall_s", "player_cpu_s", "process_cpu_s",
-                                             "image_lane_cpu_s", "rotations")}  # fmt: skip
+                                             "image_lane_cpu_s", "rotations", "phase_lock")}  # fmt: skip
         out = {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in out.items()}
         out["slices"] = [s.to_dict() for s in self.slices]
         out["images"] = [i.to_dict() for i in self.images]

@@ -145,6 +145,13 @@ def _image_lane_table(result: ReplayResult) -> str:
         st, age, cpu = lane["staleness_ms"], m["image_age_ms"], lane["image_lane_cpu_ms_per_rotation"]
         rows.append(f"| {mode} | {_ms(st['p50'])} / {_ms(st['p95'])} / {_ms(st['p99'])} / {_ms(st['max'])} "
                     f"| {_ms(age['p50'])} / {_ms(age['p95'])} | {_ms(cpu)} |")  # fmt: skip
+    for mode, r in result.modes.items():
+        stats = [x.phase_lock for x in r.recordings if x.phase_lock is not None]
+        if stats:
+            total = {k: sum(s[k] for s in stats) for k in stats[0]}
+            rows.append(f"{mode}, phase-locked lane: {total['quadrant_lifts']} quadrant lifts, {total['full_updates']} full "
+                        f"updates before the lock, {total['quadrants_skipped']} passes skipped (too late), "
+                        f"{total['late_lifts']} lifts ended after their slice arrived")  # fmt: skip
     return "\n".join(rows)
 
 

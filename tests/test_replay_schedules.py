@@ -53,6 +53,9 @@ def test_a_replay_reports_staleness_and_image_lane_cpu_for_each_schedule(drive_d
     assert details["image_lane_cpu_ms_per_rotation"] > 0
     assert set(details["staleness_ms"]) == {"p50", "p95", "p99", "max"}
     (rec,) = details["recordings"]
+    assert (rec["phase_lock"] is None) == (schedule == "full")
+    if schedule == "phase-locked":
+        assert rec["phase_lock"]["quadrant_lifts"] + rec["phase_lock"]["full_updates"] > 0
     fused = [s for s in rec["slices"] if s["image_capture_s"] is not None and s["newest_capture_s"] is not None]
     assert fused  # (a slice scanned before the first image set has no newest capture: no staleness counted)
     for s in fused:  # the newest set released by the scan start, at or after the first set
