@@ -24,6 +24,7 @@ Contracts:
 - The points and images are copied at submit: the caller may reuse its buffers at once.
 - ``timestamp=None`` means the submit time (``time.monotonic()`` when `submit_*` is called), not the run time.
 - `close(timeout)` finishes the queued work; past the timeout it cancels what has not started and returns False.
+  The phase-locked image lane has no queue: its image sets that no lift has used yet are cancelled at close.
 """
 
 from __future__ import annotations
