@@ -345,3 +345,15 @@ def test_slices_handed_over_in_bursts_still_give_the_rotation_period():
         burst_end = (i // 4 + 1) * 4 * 0.00625  # four slices at a time, at the last one's release
         phase.observe(i % 8, max(release, burst_end) + rng.uniform(0, 1e-4))
     assert phase.period_s == pytest.approx(0.05, rel=0.1)
+
+
+def test_close_cancels_image_sets_no_lift_used_and_refuses_later_submits():
+    from streamdet.runtime_ort.lanes import RunnerClosed
+
+    clock = FakeClock()
+    lane = PhaseLockedImageLane(FakeDetector(clock, 0.0, 0.001), 8, lidar_hz=20.0, clock=clock, thread=False,
+                                closed=lambda: RunnerClosed("closed"))  # fmt: skip
+    waiting = lane.submit_images({c: np.zeros((2, 2, 3), np.uint8) for c in CAMERAS}, 1.0)
+    assert lane.close() and waiting.cancelled()
+    with pytest.raises(RunnerClosed):
+        lane.submit_images({"CAM_FRONT": np.zeros((2, 2, 3), np.uint8)}, 2.0)
