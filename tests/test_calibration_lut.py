@@ -5,7 +5,6 @@ from __future__ import annotations
 import io
 import json
 import math
-import time
 from importlib.resources import files
 
 import numpy as np
@@ -124,13 +123,12 @@ def test_real_rig_overlap_is_front_and_front_right(rig: Rig, coarse_lut: Lut) ->
 
 
 def test_real_rig_default_grid_on_random_voxels(rig: Rig) -> None:
-    """The paper grid (4 x 16 x 256 x 256, stride 4, 1600 x 900): timing and a pure-Python check of 3,000 voxels."""
+    """The paper grid (4 x 16 x 256 x 256, stride 4, 1600 x 900) against a pure-Python check of 3,000 voxels.
+
+    How long the build takes is a benchmark's question, not a test's (timings on a shared machine vary 2-8x)."""
     grid = GridSpec()
-    start = time.perf_counter()
     lut = build_lut(rig, grid)
-    elapsed = time.perf_counter() - start
     assert lut.index.shape == (4, 2, 16, 256, 256)  # nuScenes: at most two cameras see one voxel
-    assert elapsed < 6.0  # < 2 s on an idle 2-core machine; slack for a shared one
     rng = np.random.default_rng(0)
     fw, fh = lut.feature_width, lut.feature_height
     checked = 0
