@@ -86,6 +86,10 @@ def _short(value: Any, limit: int = 80) -> str:
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
+# A rig of six cameras is a few kB of JSON; far more than that is not a calibration file (and is not read whole).
+MAX_CALIBRATION_BYTES = 4 * 1024 * 1024
+
+
 def _readonly(a: np.ndarray) -> np.ndarray:
     a = np.array(a, dtype=np.float64)  # own copy: the caller may keep mutating theirs
     a.setflags(write=False)
@@ -368,8 +372,13 @@ class Rig:
         else:
             src = os.path.basename(os.fspath(path_or_dict))
             try:
-                with open(path_or_dict, encoding="utf-8") as f:
-                    doc = json.load(f)
+                with open(path_or_dict, "rb") as f:
+                    raw = f.read(MAX_CALIBRATION_BYTES + 1)  # bounded: a device or a huge file is refused, not read
+                if len(raw) > MAX_CALIBRATION_BYTES:
+                    raise CalibrationError(
+                        f"{src}: larger than {MAX_CALIBRATION_BYTES} bytes, too large to be a calibration file"
+                    )
+                doc = json.loads(raw.decode("utf-8"))
             except OSError as e:
                 raise CalibrationError(f"{src}: cannot read: {e.strerror}") from None
             except json.JSONDecodeError as e:

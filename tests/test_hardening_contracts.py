@@ -341,3 +341,16 @@ def test_set_calibration_warns_about_a_camera_turned_around(tiny_export, sample)
     turned = moved_warnings(Rig(tuple(cams), sample.rig.lidar2ego, sample.rig.ego2global))
     assert len(turned) == 1 and turned[0].startswith(f"camera {cams[1].name} now sees other voxels")
     assert len(moved_warnings(sample.rig)) == 1  # and back
+
+
+def test_an_oversized_calibration_file_is_refused_without_reading_it_whole(tmp_path):
+    from streamdet.calibration.camera import MAX_CALIBRATION_BYTES
+
+    big = tmp_path / "calibration.json"
+    big.write_bytes(b" " * (MAX_CALIBRATION_BYTES + 1))
+    with pytest.raises(CalibrationError, match="too large to be a calibration file"):
+        Rig.from_calibration_json(big)
+    ok = tmp_path / "ok.json"  # at the limit, padding with whitespace still parses
+    doc = json.dumps(load_bundled_sample().rig.to_dict())
+    ok.write_text(doc + " " * (MAX_CALIBRATION_BYTES - len(doc.encode())))
+    assert Rig.from_calibration_json(ok) == Rig.from_calibration_json(json.loads(doc))
