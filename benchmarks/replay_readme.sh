@@ -12,15 +12,7 @@ set -euo pipefail
 OUT=${1:-out/replay_readme}
 DOCS=${2:-}
 BIN=${BIN:-.venv/bin}
-mkdir -p "$OUT"
-DATA="$OUT/synth20"
-EXPORT="$OUT/export_small"
-if [ ! -f "$DATA/trajectories.npz" ]; then
-  "$BIN/streamdet-synth" --out "$DATA" --scenes 8 --seed 11 --resolution 480x270 --sweeps-per-sample 10 --overwrite
-fi
-if [ ! -f "$EXPORT/manifest.json" ]; then
-  "$BIN/streamdet-export" --int8 --calibration-data "$DATA" --out "$EXPORT"
-fi
+source "$(dirname "$0")/replay_prep.sh"  # DATA, EXPORT
 nproc > "$OUT/nproc.txt"; uptime > "$OUT/uptime_before.txt"
 for SCALE in 1 2 4; do
   PLOT=()

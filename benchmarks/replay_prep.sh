@@ -1,0 +1,11 @@
+# Sourced by replay_readme.sh and replay_schedules.sh: the held-out dataset and the int8 export both replay from.
+# Needs OUT and BIN; sets DATA and EXPORT, making each only when missing (seed 11 is never used in training).
+mkdir -p "$OUT"
+DATA="$OUT/synth20"
+EXPORT="$OUT/export_small"
+if [ ! -f "$DATA/trajectories.npz" ]; then
+  "$BIN/streamdet-synth" --out "$DATA" --scenes 8 --seed 11 --resolution 480x270 --sweeps-per-sample 10 --overwrite
+fi
+if [ ! -f "$EXPORT/manifest.json" ]; then
+  "$BIN/streamdet-export" --int8 --calibration-data "$DATA" --out "$EXPORT"
+fi
