@@ -10,6 +10,7 @@ import click
 
 from streamdet.cli_utils import PRECISION_CHOICES, image_precision_option
 from streamdet.replay.modes import MODES
+from streamdet.replay.triggers import DEFAULT_TRIGGER, TRIGGER_MODELS
 
 
 def _progress(message: str) -> None:
@@ -38,6 +39,9 @@ def _progress(message: str) -> None:
               help="Slices per rotation in streaming and sequential modes. Default: the export's.")
 @click.option("--camera-hz", type=click.FloatRange(min=0, min_open=True), default=12.0, show_default=True,
               help="Camera trigger rate; each trigger delivers the newest recorded image of every camera.")
+@click.option("--camera-trigger", type=click.Choice(TRIGGER_MODELS), default=DEFAULT_TRIGGER, show_default=True,
+              help="How the cameras fire: 'lidar-synced' (nuScenes: each camera as the LiDAR crosses its optical axis, "
+                   "at --camera-hz on average) or 'simultaneous' (all cameras at once at --camera-hz).")
 @click.option("--mode", type=click.Choice([*MODES, "all"]), default="all", show_default=True,
               help="streaming (two lanes), full-sweep (wait for the rotation), sequential (one queue), or all three.")
 @click.option("--time-scale", type=click.FloatRange(min=0, min_open=True), default=1.0, show_default=True,
@@ -62,7 +66,8 @@ def _progress(message: str) -> None:
               help="Write replay.json (every slice's record, per-class scores, lane CPU, stage GMAC) and report.md here.")
 def main(
     data: Path, table_version: str, split: str, scenes: int | None, export_dir: Path, precision: str,
-    image_precision: str | None, lidar_hz: float, num_slices: int | None, camera_hz: float, mode: str, time_scale: float,
+    image_precision: str | None, lidar_hz: float, num_slices: int | None, camera_hz: float, camera_trigger: str, mode: str,
+    time_scale: float,
     max_seconds: float | None, threads: int, slice_workers: int | None, queue_size: int | None, schedule: str,
     json_path: Path | None,
     plot_path: Path | None, out_dir: Path | None,
@@ -90,7 +95,7 @@ def main(
         config = ReplayConfig(
             data=data, export_dir=export_dir, version=table_version, split=None if split == "all" else split, scenes=scenes,
             precision=precision, image_precision=image_precision, lidar_hz=lidar_hz, num_slices=num_slices,
-            camera_hz=camera_hz, modes=MODES if mode == "all" else (mode,), time_scale=time_scale,
+            camera_hz=camera_hz, camera_trigger=camera_trigger, modes=MODES if mode == "all" else (mode,), time_scale=time_scale,
             max_seconds=max_seconds, threads=threads, lanes=lanes,
         )  # fmt: skip
         result = run_replay(config, _progress)

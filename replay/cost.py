@@ -19,10 +19,13 @@ from streamdet.replay.modes import MODES
 from streamdet.replay.player import PlayerConfig, play
 from streamdet.replay.schedule import release_schedule
 from streamdet.replay.source import Drive, ImageSet, LidarSweep
+from streamdet.replay.triggers import DEFAULT_TRIGGER, check_trigger, lidar_synced_triggers, simultaneous_triggers
 from streamdet.runtime_ort.detector import ImageUpdate, SliceResult
 from streamdet.runtime_ort.postprocess import Detections
 
 CAMERAS = ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_FRONT_LEFT", "CAM_BACK", "CAM_BACK_LEFT", "CAM_BACK_RIGHT")
+# optical axes' azimuths (deg, LiDAR frame) of the bundled real nuScenes sample's cameras (data/nuscenes_sample)
+AXES_DEG = dict(zip(CAMERAS, (90.2, 33.5, 145.0, 269.7, 198.4, 339.1)))
 
 
 class NoOpDetector:
@@ -36,14 +39,16 @@ class NoOpDetector:
     def detect_slice(self, points, slice_index, timestamp=None, num_slices=None):
         return SliceResult(Detections.empty(), slice_index, num_slices or 8, timestamp, self._image_ts, len(points), 0, 0)
 
-    def update_images(self, images, timestamp=None):
+    def update_images(self, images, timestamp=None, **options):
         self._image_ts = timestamp
         return ImageUpdate(timestamp, tuple(images), ())
 
 
 def synthetic_drive(seconds: float, lidar_hz: float = 20.0, camera_hz: float = 12.0, points: int = 34_000,
-                    image_size: tuple[int, int] = (384, 216)) -> Drive:  # fmt: skip
-    """A made-up drive of ``seconds``: rotations of ``points`` points fired counter-clockwise, six cameras."""
+                    image_size: tuple[int, int] = (384, 216), camera_trigger: str = DEFAULT_TRIGGER) -> Drive:  # fmt: skip
+    """A made-up drive of ``seconds``: rotations of ``points`` points fired counter-clockwise, six cameras
+    triggered by ``camera_trigger`` (``triggers.py``; lidar-synced at the nuScenes sample's axes)."""
+    check_trigger(camera_trigger)
     rng = np.random.default_rng(0)
     period = 1.0 / lidar_hz
     az = np.sort(rng.uniform(0, 2 * np.pi, points))
@@ -53,8 +58,15 @@ def synthetic_drive(seconds: float, lidar_hz: float = 20.0, camera_hz: float = 1
     sweeps = tuple(LidarSweep(i, (i + 1) * period, period, pts, times, np.eye(4), np.eye(4)) for i in range(int(seconds * lidar_hz)))
     w, h = image_size
     image = rng.integers(0, 255, (h, w, 3), dtype=np.uint8)
-    triggers = np.arange(0.0, seconds, 1.0 / camera_hz)
-    sets = tuple(ImageSet(i, float(t), {c: image for c in CAMERAS}, float(t)) for i, t in enumerate(triggers))
+    if camera_trigger == "lidar-synced":
+        triggers = lidar_synced_triggers(sweeps, AXES_DEG, camera_hz)
+    else:
+        triggers = simultaneous_triggers(seconds - 1e-9, camera_hz, CAMERAS)
+    moments: dict[float, list[str]] = {}
+    for c in CAMERAS:
+        for t in triggers[c]:
+            moments.setdefault(float(t), []).append(c)
+    sets = tuple(ImageSet(i, t, {c: image for c in moments[t]}, t) for i, t in enumerate(sorted(moments)))
     return Drive("no-op", sweeps, sets, 0)
 
 

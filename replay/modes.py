@@ -43,7 +43,7 @@ class Detector(Protocol):
     def detect_slice(self, points: np.ndarray, slice_index: int, timestamp: float | None = None,
                      num_slices: int | None = None): ...  # fmt: skip
 
-    def update_images(self, images: Mapping[str, np.ndarray], timestamp: float | None = None): ...
+    def update_images(self, images: Mapping[str, np.ndarray], timestamp: float | None = None, **options): ...
 
 
 class JobHooks(Protocol):
@@ -102,8 +102,9 @@ class SequentialRunner:
     def submit_slice(self, points: np.ndarray, slice_index: int, timestamp: float | None = None) -> Future:
         return self._submit("slice", lambda: self.detector.detect_slice(points, slice_index, timestamp))
 
-    def submit_images(self, images: Mapping[str, np.ndarray], timestamp: float | None = None) -> Future:
-        return self._submit("images", lambda: self.detector.update_images(images, timestamp))
+    def submit_images(self, images: Mapping[str, np.ndarray], timestamp: float | None = None, **options) -> Future:
+        # options (camera_timestamps of a set whose cameras fired at different moments) pass through
+        return self._submit("images", lambda: self.detector.update_images(images, timestamp, **options))
 
     def _submit(self, kind: str, fn: Callable[[], object]) -> Future:
         fut: Future = Future()

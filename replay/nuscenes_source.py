@@ -5,8 +5,10 @@ its ego pose and the per-point times of the ``<file>.time`` sidecar where the sy
 data has sweeps faster than ``lidar_hz`` some are skipped so that rotations do not overlap; when slower, the drive
 has gaps between rotations (the report says which rate the data had).
 
-Cameras: the player's cameras trigger at ``camera_hz`` from drive time 0; each trigger delivers, per camera, the
-newest recorded image at or before the trigger (the first one before any). Real nuScenes records cameras at 12 Hz,
+Cameras: each camera triggers at ``camera_hz`` by the trigger model (``triggers.py``: ``simultaneous``, all at once
+from drive time 0, or ``lidar-synced``, each as the LiDAR crosses its optical axis, as nuScenes does); a trigger
+delivers the newest recorded image of that camera at or before it (the first one before any), and the cameras
+triggered at the same moment form one `ImageSet`. Real nuScenes records cameras at 12 Hz,
 so the images are close to their trigger; the synthetic world renders images at key frames only (2 Hz), so there
 the images are *held* between key frames: the image lane does the work of a 12 Hz rig, on older pictures. Both are
 written to ``Drive.notes``.
@@ -24,6 +26,8 @@ from streamdet.calibration.camera import make_transform, quaternion_to_matrix
 from streamdet.data.nuscenes import CAMERA_CHANNELS, LIDAR_CHANNEL, NuScenesReader
 from streamdet.data.sample import load_image, load_point_times, load_points
 from streamdet.replay.source import Drive, ImageSet, LidarSweep
+from streamdet.replay.triggers import (
+    DEFAULT_TRIGGER, camera_axis_azimuths_deg, check_trigger, lidar_synced_triggers, simultaneous_triggers)
 
 TABLES = ("scene", "sample", "sample_data", "calibrated_sensor", "sensor", "ego_pose")
 
@@ -84,8 +88,13 @@ def load_drive(
     camera_hz: float = 12.0,
     max_seconds: float | None = None,
     progress: Callable[[str], None] = lambda msg: None,
+    camera_trigger: str = DEFAULT_TRIGGER,
+    start_deg: float = 0.0,
 ) -> Drive:
-    """The scene as a `Drive`; images resized to ``image_size`` (W, H), None: no images (a LiDAR-only detector)."""
+    """The scene as a `Drive`; images resized to ``image_size`` (W, H), None: no images (a LiDAR-only detector).
+    ``camera_trigger``: a model of ``triggers.TRIGGER_MODELS``; ``start_deg``: where the release schedule's rotation
+    starts (used to time lidar-synced triggers when the sweeps have no per-point times)."""
+    check_trigger(camera_trigger)
     if not lidar_hz > 0 or not camera_hz > 0:
         raise ValueError(f"lidar_hz and camera_hz must be > 0, got {lidar_hz}, {camera_hz}")
     scene = tables.scene(scene_name)
@@ -113,10 +122,16 @@ def load_drive(
     image_sets: list[ImageSet] = []
     rig = None
     if image_size is not None:
-        image_sets, note = _image_sets(tables, scene, t0_us, end_s, camera_hz, image_size, progress)
-        notes.append(note)
         reader = NuScenesReader(tables.root, tables.version)
         rig = reader.get(tables.sample_tokens(scene)[0]).rig
+        channels = [c for c in CAMERA_CHANNELS if tables.channel_data(scene, c)]
+        if camera_trigger == "lidar-synced":
+            axes = camera_axis_azimuths_deg(rig)
+            triggers = lidar_synced_triggers(sweeps, {c: axes[c] for c in channels if c in axes}, camera_hz, start_deg)
+        else:
+            triggers = simultaneous_triggers(end_s, camera_hz, channels)
+        image_sets, note = _image_sets(tables, scene, t0_us, triggers, camera_hz, camera_trigger, image_size, progress)
+        notes.append(note)
     return Drive(scene_name, tuple(sweeps), tuple(image_sets), t0_us, rig, tuple(notes))
 
 
@@ -138,22 +153,25 @@ def _lidar_note(rows: list[dict], lidar_hz: float, timed: int) -> str:
 
 
 def _image_sets(
-    tables: DatasetTables, scene: dict, t0_us: int, end_s: float, camera_hz: float, size: tuple[int, int],
-    progress: Callable[[str], None],
+    tables: DatasetTables, scene: dict, t0_us: int, triggers: dict[str, np.ndarray], camera_hz: float, model: str,
+    size: tuple[int, int], progress: Callable[[str], None],
 ) -> tuple[list[ImageSet], str]:
-    channels = [c for c in CAMERA_CHANNELS if tables.channel_data(scene, c)]
+    channels = [c for c in CAMERA_CHANNELS if c in triggers]
     if not channels:
         raise ValueError(f"scene {scene['name']!r} has no camera sample_data")
     recorded = {c: tables.channel_data(scene, c) for c in channels}
     stamps = {c: (np.array([int(r["timestamp"]) for r in rows]) - t0_us) * 1e-6 for c, rows in recorded.items()}
     cache: dict[str, np.ndarray] = {}
-    triggers = np.arange(0.0, end_s + 1e-9, 1.0 / camera_hz)
-    progress(f"[{scene['name']}] reading images of {len(channels)} cameras for {len(triggers)} triggers")
+    moments: dict[float, list[str]] = {}  # trigger time -> the cameras firing then, in rig order
+    for c in channels:
+        for t in triggers[c]:
+            moments.setdefault(float(t), []).append(c)
+    progress(f"[{scene['name']}] reading images of {len(channels)} cameras for {len(moments)} trigger moments")
     sets = []
     lags = []
-    for i, t in enumerate(triggers):
+    for i, t in enumerate(sorted(moments)):
         images, times = {}, []
-        for c in channels:
+        for c in moments[t]:
             j = max(int(np.searchsorted(stamps[c], t + 1e-9)) - 1, 0)  # newest at or before t, else the first
             row = recorded[c][j]
             if row["token"] not in cache:
@@ -164,7 +182,7 @@ def _image_sets(
         lags.append(t - recorded_s)
         sets.append(ImageSet(i, float(t), images, recorded_s))
     rate = np.median(np.diff(stamps[channels[0]])) if len(stamps[channels[0]]) > 1 else float("inf")
-    note = (f"cameras: {len(channels)} triggered at {camera_hz:g} Hz; data records them at "
+    note = (f"cameras: {len(channels)} triggered at {camera_hz:g} Hz ({model}); data records them at "
             f"{1.0 / rate:.1f} Hz, so each trigger delivers the newest recorded images (median {1e3 * np.median(lags):.0f} ms "
             f"older than the trigger){'; images are held between key frames' if 1.0 / rate < camera_hz / 2 else ''}")  # fmt: skip
     return sets, note

@@ -19,6 +19,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from streamdet.core.sectors import quadrants_of_sector
+from streamdet.replay.assemble import SetAssembler
 from streamdet.replay.clock import PLAYER, Clock, DriveClock
 from streamdet.replay.modes import MODES, Detector, JobKey, ModeRunner, open_mode
 from streamdet.replay.record import ImageRecord, Recording, SliceRecord, percentiles
@@ -62,6 +64,7 @@ class _Book:
         self.outstanding = {lane: 0 for lane in mode.workers}  # released, future not done
         self.player_active = True
         self.errors: list[BaseException] = []
+        self.held: list[ImageRecord] = []  # image releases collected by the SetAssembler, not handed over yet
 
     def sleepers_expected(self) -> int:
         """Threads that must be asleep in a FakeClock before it may advance (read without the lock, see FakeClock)."""
@@ -94,6 +97,8 @@ class _Book:
                 self.errors.append(exc)
             else:
                 rec.emit_s = self.clock.now()
+                if isinstance(rec, ImageRecord) and math.isnan(rec.start_s):
+                    self.waiting[lane] -= 1  # used by an update another release started (batched, or a later lift)
                 if isinstance(rec, SliceRecord):
                     result = fut.result()
                     rec.detections = result.detections
@@ -116,6 +121,10 @@ def play(
     book = _Book(dclock, mode)
     schedule = release_schedule(drive, mode.num_slices, config.start_deg, images=detector.uses_images)
     records = [_record(r) for r in schedule]
+    # an image lane that updates from every camera at once gets whole sets (assemble.py); a phase-locked one each frame
+    phase_locked = getattr(mode.runner, "phase_lock", None) is not None
+    cameras = tuple(dict.fromkeys(n for s in drive.image_sets for n in s.images))
+    assembler = SetAssembler(cameras) if cameras and not phase_locked else None
     if hasattr(clock, "set_participants"):
         clock.set_participants(book.sleepers_expected)
     futures: list[concurrent.futures.Future] = []
@@ -127,7 +136,9 @@ def play(
         try:
             for release, rec in zip(schedule, records):
                 dclock.sleep_until(release.time_s, PLAYER)
-                futures.append(_submit(mode, book, release, rec))
+                fut = _submit(mode, book, release, rec, assembler)
+                if fut is not None:
+                    futures.append(fut)
         except BaseException as e:  # reported by play() after the workers finish, never lost in a thread
             book.errors.append(e)
         finally:
@@ -146,9 +157,11 @@ def play(
             progress(_progress_line(config.mode, drive, dclock.now(), records))
     concurrent.futures.wait(futures)
     mode.close()
+    for rec in book.held:  # frames at the drive's end whose set never completed: never used
+        rec.superseded = True
     image_lane_cpu_s = getattr(mode.runner, "image_lane_cpu_s", float("nan"))  # the sequential queue has no image lane
     phase_lock = getattr(mode.runner, "phase_lock", None)  # what a phase-locked image lane did
-    _newest_images_by_scan_start(drive, records)
+    _newest_images_by_scan_start(drive, records, getattr(detector, "quadrant_cameras", None), config.start_deg)
     if book.errors:
         raise RuntimeError(f"{config.mode} replay of {drive.name} failed: {book.errors[0]!r}") from book.errors[0]
     slices = tuple(r for r in records if isinstance(r, SliceRecord))
@@ -160,17 +173,35 @@ def play(
                      None if phase_lock is None else dataclasses.asdict(phase_lock))  # fmt: skip
 
 
-def _newest_images_by_scan_start(drive: Drive, records: list) -> None:
-    """Each slice record's ``newest_capture_s``: the capture time of the newest image set released by the time the
-    sensor started scanning the slice's sector (the start of its sector in the rotation)."""
-    captures = np.array([s.capture_s for s in drive.image_sets], dtype=np.float64)  # increasing (Drive checks)
+def _newest_images_by_scan_start(
+    drive: Drive, records: list, quadrant_cameras: Callable[[tuple[int, ...]], tuple[str, ...]] | None, start_deg: float
+) -> None:
+    """Each slice record's ``newest_capture_s``: how old the newest images of its quadrants could be when the sensor
+    started scanning the slice's sector: per camera that sees its quadrant(s) (``quadrant_cameras``; None: every
+    camera), the newest frame released by then; the oldest of those (a quadrant is as old as its oldest camera's
+    frame, as the runtime stamps it). With simultaneous triggers: the newest image set released by then."""
+    captures: dict[str, list[float]] = {}
+    for s in drive.image_sets:  # in time order (Drive checks)
+        for name in s.images:
+            captures.setdefault(name, []).append(s.capture_s)
+    times = {n: np.array(t, dtype=np.float64) for n, t in captures.items()}
     sweeps = {s.index: s for s in drive.sweeps}
+    seen: dict[tuple[int, int], tuple[str, ...]] = {}
     for rec in records:
-        if isinstance(rec, SliceRecord) and captures.size:
+        if isinstance(rec, SliceRecord) and times:
+            key = (rec.slice_index, rec.num_slices)
+            if key not in seen:
+                cams = tuple(times) if quadrant_cameras is None else tuple(
+                    quadrant_cameras(quadrants_of_sector(rec.slice_index, rec.num_slices, start_deg)))  # fmt: skip
+                seen[key] = tuple(n for n in cams if n in times) or tuple(times)
             sweep = sweeps[rec.sweep]
             scan_start = sweep.start_s + sweep.duration_s * rec.slice_index / rec.num_slices
-            i = int(np.searchsorted(captures, scan_start, side="right")) - 1
-            rec.newest_capture_s = float(captures[i]) if i >= 0 else math.nan
+            newest = []
+            for name in seen[key]:
+                i = int(np.searchsorted(times[name], scan_start, side="right")) - 1
+                if i >= 0:
+                    newest.append(float(times[name][i]))
+            rec.newest_capture_s = min(newest) if newest else math.nan
 
 
 class _Hooks:
@@ -193,7 +224,10 @@ def _record(release: Release) -> SliceRecord | ImageRecord:
     return ImageRecord(release.item.index, release.item.capture_s)
 
 
-def _submit(mode: ModeRunner, book: _Book, release: Release, rec: SliceRecord | ImageRecord) -> concurrent.futures.Future:
+def _submit(
+    mode: ModeRunner, book: _Book, release: Release, rec: SliceRecord | ImageRecord, assembler: SetAssembler | None = None
+) -> concurrent.futures.Future | None:  # fmt: skip
+    """Hand one release to the mode; None when the assembler holds an image release for a later whole set."""
     lane = mode.lane_of[release.kind]
     item = release.item
     key = ("slice", item.scan_end_s, item.slice_index) if release.kind == SLICE else ("images", item.capture_s, 0)
@@ -201,13 +235,29 @@ def _submit(mode: ModeRunner, book: _Book, release: Release, rec: SliceRecord | 
         rec.release_s = book.clock.now()
         rec.queue_depth = book.waiting[lane]
         book.waiting[lane] += 1
-        book.outstanding[lane] += 1
         book.by_key[key] = (rec, lane)
     if release.kind == SLICE:
+        recs = [rec]
+        with book.lock:
+            book.outstanding[lane] += 1
         fut = mode.runner.submit_slice(item.points, item.slice_index, item.scan_end_s)
-    else:
+    elif assembler is None:
+        recs = [rec]
+        with book.lock:
+            book.outstanding[lane] += 1
         fut = mode.runner.submit_images(item.images, item.capture_s)
-    fut.add_done_callback(functools.partial(book.done, rec, lane))
+    else:
+        whole = assembler.offer(item.images, item.capture_s)
+        book.held.append(rec)
+        if whole is None:
+            return None
+        recs, book.held = book.held, []
+        with book.lock:
+            book.outstanding[lane] += len(recs)
+        options = {} if whole.camera_timestamps is None else {"camera_timestamps": whole.camera_timestamps}
+        fut = mode.runner.submit_images(whole.images, whole.timestamp, **options)
+    for r in recs:
+        fut.add_done_callback(functools.partial(book.done, r, lane))
     return fut
 
 

@@ -24,6 +24,7 @@ from streamdet.replay.player import PlayerConfig, play
 from streamdet.replay.record import Recording
 from streamdet.replay.schedule import slice_sweep
 from streamdet.replay.source import Drive
+from streamdet.replay.triggers import DEFAULT_TRIGGER, check_trigger
 from streamdet.replay.truth import load_ground_truth
 from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector
 from streamdet.runtime_ort.lanes import LaneConfig
@@ -44,6 +45,9 @@ class ReplayConfig:
     lidar_hz: float = 20.0
     num_slices: int | None = None  # None: the export's
     camera_hz: float = 12.0
+    # how the cameras fire (triggers.py): "lidar-synced" (nuScenes: each as the LiDAR crosses its optical axis) or
+    # "simultaneous" (all at once)
+    camera_trigger: str = DEFAULT_TRIGGER
     modes: tuple[str, ...] = MODES
     time_scale: float = 1.0  # wall seconds per drive second
     max_seconds: float | None = None  # play only the first seconds of each scene
@@ -57,6 +61,7 @@ class ReplayConfig:
         for name in ("lidar_hz", "camera_hz", "time_scale"):
             if not (isinstance(getattr(self, name), (int, float)) and getattr(self, name) > 0):
                 raise ValueError(f"ReplayConfig.{name} must be > 0, got {getattr(self, name)!r}")
+        check_trigger(self.camera_trigger)
         if self.max_seconds is not None and not self.max_seconds > 0:
             raise ValueError(f"ReplayConfig.max_seconds must be > 0 s, got {self.max_seconds!r}")
 
@@ -139,7 +144,8 @@ def run_replay(config: ReplayConfig, progress: Progress = lambda msg: None) -> R
     sources = set()
     for i, scene in enumerate(scenes):
         progress(f"scene {i + 1}/{len(scenes)} {scene}: loading")
-        drive = load_drive(tables, scene, image_size, config.lidar_hz, config.camera_hz, config.max_seconds, progress)
+        drive = load_drive(tables, scene, image_size, config.lidar_hz, config.camera_hz, config.max_seconds, progress,
+                           config.camera_trigger, probe.config.start_deg)  # fmt: skip
         truth = load_ground_truth(config.data, config.version, scene)
         sources.add(truth.source)
         drives.append(drive)

@@ -438,7 +438,7 @@ class StreamingDetector:
     # ---- image lane ----------------------------------------------------------------------------
     def update_images(
         self, images: Mapping[str, np.ndarray], timestamp: float | None = None, quadrants: Sequence[int] | None = None,
-        encoded: Mapping[str, np.ndarray] | None = None,
+        encoded: Mapping[str, np.ndarray] | None = None, camera_timestamps: Mapping[str, float] | None = None,
     ) -> ImageUpdate:  # fmt: skip
         """Encode and lift the given camera images (uint8 RGB (H, W, 3) by camera name) into the cached BEV.
 
@@ -450,6 +450,10 @@ class StreamingDetector:
         ``encoded``: feature maps ``encode_images`` made of some of these same images, by camera name; those
         cameras are not encoded again (a scheduler lifting quadrants one by one encodes each image once).
 
+        ``camera_timestamps``: the capture time of each given camera's image where the cameras fired at different
+        moments (a LiDAR-synchronised rig); each lifted quadrant then gets the oldest of the times of the cameras
+        that see it (given ones), rather than ``timestamp``, which still labels the update.
+
         Cameras not given are allowed: their features are zeros. Unknown names, wrong sizes or dtypes raise, and so
         does any call on a LiDAR-only export (NoImageLaneError).
         """
@@ -460,6 +464,7 @@ class StreamingDetector:
         timestamp = _timestamp(timestamp)
         wanted = _check_quadrants(quadrants)
         self.check_images(images)
+        camera_ts = check_camera_timestamps(camera_timestamps, images)
         needed = self.camera_names if wanted == ALL_QUADRANTS else self.quadrant_cameras(wanted)
         used = tuple(n for n in needed if n in images)
         missing = tuple(n for n in needed if n not in images)
@@ -474,7 +479,7 @@ class StreamingDetector:
         for name in used:
             if name in known:
                 features[needed.index(name)] = known[name]
-        installed = self._install(features, needed, wanted, seq, timestamp, missing)
+        installed = self._install(features, needed, wanted, seq, timestamp, missing, camera_ts)
         self.stats.record("image_total", (time.perf_counter() - t0) * 1e3)
         return ImageUpdate(timestamp, used, missing, superseded=not installed, quadrants=wanted)
 
@@ -554,10 +559,11 @@ class StreamingDetector:
 
     def _install(
         self, features: np.ndarray, cameras: tuple[str, ...], quadrants: tuple[int, ...], seq: int, timestamp: float,
-        missing: tuple[str, ...],
+        missing: tuple[str, ...], camera_timestamps: Mapping[str, float] | None = None,
     ) -> bool:  # fmt: skip
         """Lift ``features`` into ``quadrants`` and cache each quadrant unless a newer image set is cached there
-        already; False if that was so in every one.
+        already; False if that was so in every one. With ``camera_timestamps`` a quadrant's timestamp is the oldest
+        of its cameras' (the LUT's cameras of that quadrant among those given), else ``timestamp``.
 
         A calibration swap during the lift makes it lift again with the new LUT: the cache never holds a BEV of
         an old calibration once set_calibration has returned."""
@@ -568,6 +574,7 @@ class StreamingDetector:
             if not todo:
                 return False
             bevs = self._lift_quadrants(features, cameras, todo, lut)
+            qluts = self._luts_of(lut) if camera_timestamps else ()
             with self._lock:
                 if self._lut is not lut:
                     continue
@@ -575,7 +582,9 @@ class StreamingDetector:
                 installed = False
                 for q, bev in zip(todo, bevs):
                     if states[q] is None or states[q].seq < seq:
-                        states[q] = _QuadrantState(bev, features, cameras, timestamp, missing, seq, lut)
+                        seen = [camera_timestamps[n] for n in qluts[q].camera_names if n in camera_timestamps] if qluts else []
+                        stamp = min(seen) if seen else timestamp
+                        states[q] = _QuadrantState(bev, features, cameras, stamp, missing, seq, lut)
                         installed = True
                 if installed:
                     self._image = _ImageCache(tuple(states))
@@ -751,6 +760,22 @@ def _timestamp(value: float | None) -> float:
     if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
         raise ValueError(f"timestamp must be None or a finite number of seconds, got {value!r}")
     return float(value)
+
+
+def check_camera_timestamps(stamps: Mapping[str, float] | None, images: Mapping[str, np.ndarray]) -> dict[str, float]:
+    """{camera: finite seconds} for cameras among ``images``; ValueError naming the bad entry."""
+    if stamps is None:
+        return {}
+    if not isinstance(stamps, Mapping):
+        raise ValueError(f"camera_timestamps must be None or a dict of camera name -> seconds, got {type(stamps).__name__}")
+    out = {}
+    for name, value in stamps.items():
+        if name not in images:
+            raise ValueError(f"camera_timestamps names camera {name!r}, whose image this update was not given")
+        if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
+            raise ValueError(f"camera_timestamps[{name!r}] must be a finite number of seconds, got {value!r}")
+        out[name] = float(value)
+    return out
 
 
 def _quadrant_states(cache: _ImageCache | None) -> tuple[_QuadrantState | None, ...]:

@@ -40,7 +40,7 @@ from typing import Callable, Mapping
 
 import numpy as np
 
-from streamdet.runtime_ort.detector import ImageUpdate, SliceResult, StreamingDetector
+from streamdet.runtime_ort.detector import ImageUpdate, SliceResult, StreamingDetector, check_camera_timestamps
 from streamdet.runtime_ort.phase_locked_lane import PhaseLockedImageLane, PhaseLockStats
 
 
@@ -184,9 +184,12 @@ class StreamingRunner:
         else:
             self._images = _Lane("image-lane", 1, 1, superseded)
 
-    def submit_images(self, images: Mapping[str, np.ndarray], timestamp: float | None = None) -> "Future[ImageUpdate]":
+    def submit_images(
+        self, images: Mapping[str, np.ndarray], timestamp: float | None = None, camera_timestamps: Mapping[str, float] | None = None,
+    ) -> "Future[ImageUpdate]":  # fmt: skip
         """Queue an image update. A LiDAR-only detector has no image lane: NoImageLaneError at once, in the
-        caller's thread, rather than in a future nobody may read."""
+        caller's thread, rather than in a future nobody may read. ``camera_timestamps``: each camera's capture time
+        where the cameras fired at different moments (``StreamingDetector.update_images``)."""
         if not self.detector.uses_images:
             self.detector.update_images(images, timestamp)  # raises NoImageLaneError naming the export
         if not isinstance(images, Mapping):
@@ -198,8 +201,9 @@ class StreamingRunner:
             self.detector.check_images(own)  # a bad image fails here, in the caller's thread, not in a later lift
             if isinstance(stamp, bool) or not isinstance(stamp, numbers.Real) or not math.isfinite(stamp):
                 raise ValueError(f"timestamp must be None or a finite number of seconds, got {timestamp!r}")
-            return self._phase_locked.submit_images(own, stamp)
-        return self._images.submit(lambda: self.detector.update_images(own, stamp))
+            return self._phase_locked.submit_images(own, stamp, check_camera_timestamps(camera_timestamps, own))
+        options = {} if camera_timestamps is None else {"camera_timestamps": dict(camera_timestamps)}
+        return self._images.submit(lambda: self.detector.update_images(own, stamp, **options))
 
     def submit_slice(self, points: np.ndarray, slice_index: int, timestamp: float | None = None) -> "Future[SliceResult]":
         """Queue one slice; its future holds the SliceResult, or the error (bad points, SliceDropped)."""

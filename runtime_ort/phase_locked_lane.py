@@ -111,7 +111,11 @@ class PhaseLockedImageLane:
             self._thread.start()
 
     # ---- events ---------------------------------------------------------------------------------
-    def submit_images(self, images: Mapping[str, np.ndarray], timestamp: float) -> Future:
+    def submit_images(self, images: Mapping[str, np.ndarray], timestamp: float,
+                      camera_timestamps: Mapping[str, float] | None = None) -> Future:  # fmt: skip
+        """Keep each camera's frame as the newest of its camera, stamped ``camera_timestamps[name]`` where given
+        (cameras that fired at different moments), else ``timestamp``."""
+        stamps = dict(camera_timestamps or {})
         fut: Future = Future()
         with self._cond:
             if self._closed:
@@ -124,7 +128,7 @@ class PhaseLockedImageLane:
             for name, image in images.items():
                 self._seq += 1
                 old = self._frames.get(name)
-                self._frames[name] = _Frame(self._seq, image, float(timestamp), owner)
+                self._frames[name] = _Frame(self._seq, image, float(stamps.get(name, timestamp)), owner)
                 if old is not None:
                     self._release(old.owner)
             self._dirty = True
@@ -216,8 +220,11 @@ class PhaseLockedImageLane:
         images = {n: f.image for n, f in frames.items()}
         encoded = {n: f.features for n, f in frames.items()}
         timestamp = min(f.timestamp for f in frames.values()) if frames else None
+        stamps = {n: f.timestamp for n, f in frames.items()}
+        # each quadrant is as old as the oldest frame of its cameras: say so where the frames' times differ
+        options = {"camera_timestamps": stamps} if len(set(stamps.values())) > 1 else {}
         if frames:
-            update = self.detector.update_images(images, timestamp, quadrants=quadrants, encoded=encoded)
+            update = self.detector.update_images(images, timestamp, quadrants=quadrants, encoded=encoded, **options)
         else:  # none of the quadrant's cameras has sent a frame: nothing to lift
             update = None
         t2 = self.clock()

@@ -99,7 +99,7 @@ def test_drive_from_tables_keeps_one_sweep_per_rotation(drive_data, lidar_hz, sw
     from streamdet.replay.nuscenes_source import DatasetTables, load_drive
 
     tables = DatasetTables(drive_data, "v1.0-synth")
-    drive = load_drive(tables, tables.scene_names()[0], (64, 36), lidar_hz=lidar_hz, camera_hz=12.0)
+    drive = load_drive(tables, tables.scene_names()[0], (64, 36), lidar_hz=lidar_hz, camera_hz=12.0, camera_trigger="simultaneous")
     assert len(drive.sweeps) == sweeps
     assert drive.sweeps[0].start_s == pytest.approx(0.0) and all(s.point_time_s is not None for s in drive.sweeps)
     np.testing.assert_allclose(np.diff([s.end_s for s in drive.sweeps]), 1.0 / lidar_hz, atol=1e-6)
