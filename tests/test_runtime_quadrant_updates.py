@@ -221,3 +221,29 @@ def test_malformed_encoded_maps_are_refused(detector, bad, match):
     with pytest.raises(ValueError, match=match):
         detector.update_images(_images(detector, 0), timestamp=1.0, quadrants=[0], encoded=bad)
     assert detector._image is before  # noqa: SLF001
+
+
+@pytest.mark.parametrize("quadrants", [None, [1], [0, 2]])
+def test_camera_timestamps_make_each_quadrant_as_old_as_its_oldest_camera(tiny_export, quadrants):
+    det = StreamingDetector(tiny_export)
+    stamps = {n: 10.0 + 0.01 * j for j, n in enumerate(det.camera_names)}  # cameras fired one after the other
+    before = det.image_timestamps
+    det.update_images(_images(det, 0), timestamp=9.0, quadrants=quadrants, camera_timestamps=stamps)
+    for q, got in enumerate(det.image_timestamps):
+        if quadrants is not None and q not in quadrants:
+            assert got == before[q]
+            continue
+        seen = [stamps[n] for n in det.quadrant_cameras([q])]
+        assert got == (min(seen) if seen else 9.0)  # a quadrant no camera sees keeps the update's timestamp
+    plain = StreamingDetector(tiny_export)
+    plain.update_images(_images(plain, 0), timestamp=9.0, quadrants=quadrants)
+    np.testing.assert_array_equal(det._image.bev, plain._image.bev)  # the times change nothing else
+
+
+@pytest.mark.parametrize("bad, match", [
+    ({"NO_SUCH_CAM": 1.0}, "not given"), ({"CAM_FRONT": float("nan")}, "finite"), ({"CAM_FRONT": True}, "finite"),
+    ([1.0], "dict"),
+])  # fmt: skip
+def test_malformed_camera_timestamps_are_refused(detector, bad, match):
+    with pytest.raises(ValueError, match=match):
+        detector.update_images(_images(detector, 0), timestamp=1.0, camera_timestamps=bad)
