@@ -8,7 +8,8 @@ directory that looks complete) and runs the steps of ``steps.export_steps`` in o
   (export/parity_inputs.py), with lut.npz for the rig;
 - a LiDAR-only checkpoint (preset use_image=False, the paper's streaming baseline; recognised from the
   checkpoint's preset) exports the slice graph alone (``onnx_export.LIDAR_SLICE_HEAD_IO``: no image_bev input)
-  and a manifest without image spec, normalisation or LUT: no rig, no images;
+  and a manifest without image spec, normalisation or LUT: no rig, no images; one trained without the quadrant
+  crop (preset slice_crop=False) takes the pillar tensors alone (``LIDAR_FULL_MAP_SLICE_HEAD_IO``);
 - with ``fp16`` each graph gets an fp16 sibling checked against fp32; with ``int8`` an int8 sibling calibrated on
   real samples (a ``--calibration-data`` dataset, else the bundled sample) with its parity against fp32
   (export/int8_steps.py).
@@ -32,7 +33,7 @@ from streamdet.export.graph_steps import TORCH_REF_IMAGES, load_rig  # noqa: F40
 from streamdet.export.options import DEFAULT_PRESET, STEM_STRIDE, ExportError, ExportOptions, check_resolution  # noqa: F401
 from streamdet.export.staging import discard_staging_dir, make_staging_dir
 from streamdet.export.steps import Progress, Report, export_steps
-from streamdet.export.weights import checkpoint_preset, checkpoint_use_image
+from streamdet.export.weights import checkpoint_preset, checkpoint_slice_crop, checkpoint_use_image
 from streamdet.models.presets import Preset, get_preset, preset_names
 from streamdet.runtime_ort.manifest import Manifest
 
@@ -109,4 +110,10 @@ def _resolve_preset(opts: ExportOptions) -> tuple[Preset, int, int]:
     # A LiDAR-only checkpoint of this preset has no image lane: export it as such (its weights would not load into
     # the fused model anyway). The image size stays in the preset dict but names no graph input.
     use_image = preset.use_image and checkpoint_use_image(opts.checkpoint) is not False
-    return dataclasses.replace(preset, image=image, use_image=use_image), width, height
+    # likewise a LiDAR-only checkpoint trained without the quadrant crop (one whole-grid map per slice)
+    slice_crop = checkpoint_slice_crop(opts.checkpoint)
+    try:
+        preset = dataclasses.replace(preset, image=image, use_image=use_image, slice_crop=slice_crop)
+    except ValueError as e:
+        raise ExportError(f"checkpoint {opts.checkpoint}: {e}") from None
+    return preset, width, height

@@ -20,7 +20,7 @@ def graph_gmacs(det: StreamDetector, inputs: ParityInputs, lut_index: np.ndarray
     quadrants and P pillars. A LiDAR-only detector (no images, no LUT) has the slice graph only."""
     meta = torch.device("meta")
     on_meta = lambda a: torch.empty(a.shape, dtype=torch.from_numpy(a[:0]).dtype, device=meta)  # noqa: E731
-    q, pl = len(inputs.quadrants), inputs.pillars
+    q, pl = inputs.num_maps, inputs.pillars  # Q: one map per quadrant, or 1 whole-grid map without the crop
     c, g = det.preset.channels, det.preset.grid
     gmacs: Gmacs = {}
     image_bev = None

@@ -100,6 +100,8 @@ def chained_feeds(run: ExportRun, name: str, upstream: np.ndarray | None) -> Fee
         return {"features": features, "lut_index": lut_index, "lut_weight": lut_weight}
     if run.preset.use_image:
         return {**inputs.pillars.as_feeds(), "image_bev": upstream}
+    if not run.preset.slice_crop:
+        return inputs.pillars.as_feeds()  # the pillar tensors alone: one map of the whole grid
     return inputs.pillars.as_feeds(inputs.quadrants)  # the pillar tensors and the quadrant ids
 
 
@@ -154,11 +156,11 @@ def export_volumetric_lifter(run: ExportRun) -> None:
 def export_slice_head(run: ExportRun) -> None:
     upstream = run.outputs32["volumetric_lifter"][0] if run.preset.use_image else None
     feeds = chained_feeds(run, "slice_head", upstream)
-    args = tuple(torch.from_numpy(feeds[n]) for n in ox.graph_ios(run.preset.use_image)["slice_head"].inputs)
+    args = tuple(torch.from_numpy(feeds[n]) for n in run.graph_io("slice_head").inputs)
     save_checked(ox.export_slice_head(run.det, args, run.opts.opset), run.tmp, "slice_head", "fp32")
     _, dets = _run_fp32(run, "slice_head")
-    image_bev = args[3] if run.preset.use_image else None  # a LiDAR-only net reads the quadrant count only
-    maps = run.det.slice_net(*args[:3], image_bev, num_quadrants=len(run.inputs.quadrants))
+    image_bev = args[3] if run.preset.use_image else None  # a LiDAR-only net reads the map count only
+    maps = run.det.slice_net(*args[:3], image_bev, num_quadrants=run.inputs.num_maps)
     ref_dets, run.margins_of = reference_decode(maps, run.preset)
     _note_parity(run, compare_detections("slice_head", "fp32", "torch", dets, ref_dets, TORCH_TOL_REL, run.margins_of(ref_dets)))
 

@@ -171,8 +171,8 @@ def _lidar_graph_inputs(samples: Sequence[Sample], preset: Any, num_slices: int)
     pil = preset.pillars
     for i, sample in enumerate(samples):
         for s in slice_sample(sample, num_slices):
-            pl = pillarize(s.points, preset.grid, s.quadrants, pil.max_points_per_pillar, pil.max_pillars)
-            if pl.num_pillars:
-                sl.append(pl.as_feeds(tuple(s.quadrants)))
+            pl = pillarize(s.points, preset.grid, s.quadrants, pil.max_points_per_pillar, pil.max_pillars, crop=preset.slice_crop)
+            if pl.num_pillars:  # without the crop the graph takes no quadrant ids (one whole-grid map)
+                sl.append(pl.as_feeds(tuple(s.quadrants) if preset.slice_crop else None))
                 sources.append((i, tuple(s.quadrants)))
     return GraphInputs([], [], sl, sources)

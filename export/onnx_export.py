@@ -87,10 +87,22 @@ LIDAR_SLICE_HEAD_IO = GraphIO(
     dynamic_axes={**{k: v for k, v in SLICE_HEAD_IO.dynamic_axes.items() if k != "image_bev"}, "quadrants": {0: "Q"}},
 )
 
+# The LiDAR-only baseline without the quadrant crop (preset slice_crop=False): every slice is one map of the whole
+# grid, Q = 1, so the graph takes the pillar tensors alone (models/export_form.py: FullMapSliceDecoder).
+LIDAR_FULL_MAP_SLICE_HEAD_IO = GraphIO(
+    name="slice_head",
+    inputs=("pillar_features", "pillar_mask", "pillar_index"),
+    outputs=SLICE_HEAD_IO.outputs,
+    dynamic_axes={k: v for k, v in SLICE_HEAD_IO.dynamic_axes.items() if k.startswith("pillar_")},
+)
 
-def graph_ios(use_image: bool) -> dict[str, GraphIO]:
-    """The graphs an export of a preset with this ``use_image`` consists of, by name, in pipeline order."""
-    return GRAPH_IO if use_image else {"slice_head": LIDAR_SLICE_HEAD_IO}
+
+def graph_ios(use_image: bool, slice_crop: bool = True) -> dict[str, GraphIO]:
+    """The graphs an export of a preset with this ``use_image`` (and ``slice_crop``) consists of, by name, in
+    pipeline order."""
+    if use_image:
+        return GRAPH_IO
+    return {"slice_head": LIDAR_SLICE_HEAD_IO if slice_crop else LIDAR_FULL_MAP_SLICE_HEAD_IO}
 
 
 def export_module(module: nn.Module, args: tuple[torch.Tensor, ...], io_spec: GraphIO, opset: int = DEFAULT_OPSET) -> onnx.ModelProto:
@@ -180,8 +192,9 @@ def slice_decoder(det: StreamDetector) -> SliceDecoder:
 
 def export_slice_head(det: StreamDetector, pillar_args: tuple[torch.Tensor, ...], opset: int = DEFAULT_OPSET) -> onnx.ModelProto:
     """(pillar_features, pillar_mask, pillar_index, image_bev) -> det_boxes, det_scores, det_labels; for a LiDAR-only
-    ``det`` (use_image=False) the inputs are (pillar_features, pillar_mask, pillar_index, quadrants)."""
-    io_spec = graph_ios(det.preset.use_image)["slice_head"]
+    ``det`` (use_image=False) the inputs are (pillar_features, pillar_mask, pillar_index, quadrants), without the crop
+    (slice_crop=False) the pillar tensors alone."""
+    io_spec = graph_ios(det.preset.use_image, det.preset.slice_crop)["slice_head"]
     return _finish_slice_head(export_module(slice_decoder(det), pillar_args, io_spec, opset), det)
 
 

@@ -14,6 +14,7 @@ import numpy as np
 
 from streamdet.calibration.camera import Rig
 from streamdet.calibration.lut import Lut
+from streamdet.calibration.slice_maps import slice_maps
 from streamdet.data.sample import Sample, load_bundled_sample, load_image
 from streamdet.data.slicing import slice_sample
 from streamdet.models.presets import Preset
@@ -29,6 +30,8 @@ class ParityInputs:
     quadrants: tuple[int, ...]
     slice_index: int
     num_points: int
+    num_maps: int  # Q of the slice graph: one map per quadrant, or 1 without the crop (calibration/slice_maps.py)
+    slice_crop: bool = True  # False: the slice graph runs one whole-grid map (Preset.slice_crop)
 
     @property
     def images_read(self) -> np.ndarray:
@@ -36,8 +39,9 @@ class ParityInputs:
         return self.images[list(self.cameras)]
 
     def describe(self) -> str:
+        maps = "" if self.slice_crop else ", one whole-grid map"
         lidar = (f"LiDAR slice {self.slice_index} ({self.num_points} points, {self.pillars.num_pillars} pillars, "
-                 f"quadrants {list(self.quadrants)})")  # fmt: skip
+                 f"quadrants {list(self.quadrants)}{maps})")  # fmt: skip
         if self.images is None:
             return f"{lidar} of the bundled nuScenes sample; no images (LiDAR-only model)"
         imgs = "bundled nuScenes images" if self.real_images else "seeded noise images (the rig's cameras are not the sample's)"
@@ -52,8 +56,9 @@ def parity_inputs(rig: Rig | None, lut: Lut | None, preset: Preset, size: tuple[
     """The parity inputs of an export; ``rig`` and ``lut`` None for a LiDAR-only one (no images)."""
     sample: Sample = load_bundled_sample()
     pl, quadrants, k, num_points = busiest_slice(sample, preset, num_slices)
+    num_maps = slice_maps(preset.grid, quadrants, preset.slice_crop).count
     if rig is None or lut is None:
-        return ParityInputs(None, False, (), pl, quadrants, k, num_points)
+        return ParityInputs(None, False, (), pl, quadrants, k, num_points, num_maps, preset.slice_crop)
     width, height = size
     if set(rig.names) <= set(sample.image_paths):
         images = np.stack([load_image(sample.image_paths[n], size) for n in rig.names])  # (J, H, W, 3)
@@ -64,7 +69,7 @@ def parity_inputs(rig: Rig | None, lut: Lut | None, preset: Preset, size: tuple[
     index, _ = lut.for_quadrants(quadrants)
     rows = np.unique(index[index != lut.sentinel])
     cams = tuple(int(j) for j in np.unique(rows // (lut.feature_width * lut.feature_height))) or (0,)
-    return ParityInputs(images, real, cams, pl, quadrants, k, num_points)
+    return ParityInputs(images, real, cams, pl, quadrants, k, num_points, num_maps, preset.slice_crop)
 
 
 def busiest_slice(sample: Sample, preset: Preset, num_slices: int) -> tuple[Pillars, tuple[int, ...], int, int]:
@@ -72,7 +77,8 @@ def busiest_slice(sample: Sample, preset: Preset, num_slices: int) -> tuple[Pill
     slices = slice_sample(sample, num_slices)
     k = int(np.argmax([len(s.points) for s in slices]))
     sl = slices[k]
-    pl = pillarize(sl.points, preset.grid, sl.quadrants, preset.pillars.max_points_per_pillar, preset.pillars.max_pillars)
+    pl = pillarize(sl.points, preset.grid, sl.quadrants, preset.pillars.max_points_per_pillar, preset.pillars.max_pillars,
+                   crop=preset.slice_crop)  # fmt: skip
     return pl, tuple(sl.quadrants), k, len(sl.points)
 
 

@@ -43,9 +43,10 @@ FP32_STEPS: dict[str, tuple[Step, ...]] = {
 
 def export_steps(preset: Preset, opts: ExportOptions, size: tuple[int, int]) -> list[Step]:
     """Every step of an export of ``preset`` (with its use_image) at ``size`` (W, H) with these options."""
-    graphs = tuple(ox.graph_ios(preset.use_image))
+    graphs = tuple(ox.graph_ios(preset.use_image, preset.slice_crop))
     fused = preset.use_image
-    steps = [Step("loading weights" if fused else "loading weights (LiDAR-only model: slice graph only)", gs.load_weights)]
+    lidar = "LiDAR-only model: slice graph only" + ("" if preset.slice_crop else ", whole-grid maps (no quadrant crop)")
+    steps = [Step("loading weights" if fused else f"loading weights ({lidar})", gs.load_weights)]
     if fused:
         steps.append(Step(f"building the LUT for {size[0]}x{size[1]}", gs.build_lut_file))
     steps.append(Step(f"preparing the parity inputs (bundled sample{'' if fused else ', LiDAR only'})", gs.prepare_parity_inputs))

@@ -70,6 +70,12 @@ def checkpoint_use_image(checkpoint: str | os.PathLike | None) -> bool | None:
     return use_image if isinstance(use_image, bool) else None
 
 
+def checkpoint_slice_crop(checkpoint: str | os.PathLike | None) -> bool:
+    """The ``slice_crop`` of the preset a checkpoint names (absent: True, the quadrant crop every preset has)."""
+    saved = checkpoint_preset(checkpoint)
+    return saved.get("slice_crop", True) is not False if saved is not None else True
+
+
 def load_detector(preset: Preset, checkpoint: str | os.PathLike | None, seed: int = DEFAULT_SEED) -> tuple[StreamDetector, WeightsSource]:
     """The detector in eval mode with its weights, and where they came from."""
     from streamdet.runtime_ort.manifest import sha256_file

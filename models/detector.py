@@ -21,13 +21,14 @@ from streamdet.models.pillars import MapShape, PillarFeatureNet, scatter_pillars
 from streamdet.models.presets import Preset
 
 
-def slice_map_shape(image_bev: Tensor | None, num_quadrants: int | None, quadrant_cells: tuple[int, int]) -> MapShape:
-    """What a slice's point BEV takes its (Q, Yq, Xq) from: the image BEV, else Q quadrants of (Yq, Xq) cells."""
+def slice_map_shape(image_bev: Tensor | None, num_quadrants: int | None, map_cells: tuple[int, int]) -> MapShape:
+    """What a slice's point BEV takes its (Q, Yq, Xq) from: the image BEV, else Q maps of ``map_cells`` (a quadrant's
+    (Yq, Xq), or the whole grid's (ny, nx) without the crop: ``Preset.map_cells``)."""
     if image_bev is not None:
         return image_bev
     if num_quadrants is None:
         raise ValueError("a slice without an image BEV needs num_quadrants")
-    return (num_quadrants, *quadrant_cells)
+    return (num_quadrants, *map_cells)
 
 
 class SliceNet(nn.Module):
@@ -38,14 +39,15 @@ class SliceNet(nn.Module):
     Q comes from image_bev's shape, or from ``num_quadrants`` without one. Without an image BEV (``None``) a fused
     net sees zeros, what the runtime feeds before its first image update, and the LiDAR-only baseline
     (``preset.use_image`` False) needs none: its signature is the pillar tensors and Q (an image BEV given to it
-    is read for its shape only).
+    is read for its shape only). Without the quadrant crop (``preset.slice_crop`` False, LiDAR-only) each of the Q
+    maps is the whole grid, (ny, nx) cells; one slice is then one map (``num_quadrants=1``).
     """
 
     def __init__(self, preset: Preset) -> None:
         super().__init__()
         c = preset.channels
         self.use_image = preset.use_image
-        self.quadrant_cells = (preset.grid.quadrant_ny, preset.grid.quadrant_nx)  # (Yq, Xq)
+        self.map_cells = preset.map_cells  # (Yq, Xq), or (ny, nx) without the crop
         self.pillar_net = PillarFeatureNet(preset.pillars.num_point_features, c)
         self.bev_encoder = BevEncoder(preset.bev, 2 * c if preset.use_image else c)
         self.head = CenterHead(preset.head, self.bev_encoder.out_channels)
@@ -55,7 +57,7 @@ class SliceNet(nn.Module):
     def fused_bev(self, pillar_features: Tensor, pillar_mask: Tensor, pillar_index: Tensor,
                   image_bev: Tensor | None = None, *, num_quadrants: int | None = None) -> Tensor:  # fmt: skip
         """The BEV encoder's output (Q, C_enc, Hh, Wh), shared by both head variants."""
-        shape = slice_map_shape(image_bev, num_quadrants, self.quadrant_cells)
+        shape = slice_map_shape(image_bev, num_quadrants, self.map_cells)
         p_bev = scatter_pillars(self.pillar_net(pillar_features, pillar_mask), pillar_index, shape)  # (Q, C, Yq, Xq)
         if not self.use_image:
             return self.bev_encoder(p_bev)

@@ -11,7 +11,8 @@ function as the trained module it replaces (the export's parity checks compare t
                                                        concatenations split into sums of convolutions, 1x1
                                                        deblocks as convolutions, a multi-head's branches grouped
                                                        (GroupedTaskHead), the point BEV by gather_pillars;
-                                                       LidarSliceDecoder for the LiDAR-only baseline
+                                                       LidarSliceDecoder for the LiDAR-only baseline,
+                                                       FullMapSliceDecoder for it without the crop
 
 Every BatchNorm is folded by ``bn_fold.fold_bn`` (eval statistics). Training never sees these modules; what is
 measured of them is in benchmarks/RESULTS.md.
@@ -50,6 +51,22 @@ class LidarSliceDecoder(SliceDecoder):
         return decode_head_maps(maps, self.cell_m, self.top_k)
 
 
+class FullMapSliceDecoder(SliceDecoder):
+    """``forward(pillar_features, pillar_mask, pillar_index) -> det_boxes, det_scores, det_labels``: SliceDecoder of a
+    LiDAR-only net without the quadrant crop (``preset.slice_crop`` False), whose every slice is one map of the
+    whole grid, so Q is 1 and the graph needs no quadrant ids. Boxes are relative to the grid's minimum corner.
+    """
+
+    def __init__(self, slice_net: SliceNet | nn.Module, preset: Preset) -> None:  # nn.Module: its export form
+        if slice_net.use_image or preset.slice_crop:
+            raise ValueError(f"preset {preset.name!r} is not a LiDAR-only preset without the crop (slice_crop=False)")
+        super().__init__(slice_net, preset)
+
+    def forward(self, pillar_features: Tensor, pillar_mask: Tensor, pillar_index: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        maps = self.slice_net(pillar_features, pillar_mask, pillar_index, num_quadrants=1)  # each (1, ch, Hh, Wh)
+        return decode_head_maps(maps, self.cell_m, self.top_k)
+
+
 @dataclass(frozen=True, eq=False)
 class ExportForm:
     """The modules traced into the graphs, by graph name; None for the graphs a LiDAR-only model lacks."""
@@ -69,6 +86,7 @@ def to_export_form(det: StreamDetector) -> ExportForm:
     preset = det.preset
     slice_net = ExportSliceNet(det.slice_net.eval()).eval()
     if not preset.use_image:
-        return ExportForm(None, None, LidarSliceDecoder(slice_net, preset).eval())
+        decoder = LidarSliceDecoder if preset.slice_crop else FullMapSliceDecoder
+        return ExportForm(None, None, decoder(slice_net, preset).eval())
     lifter = export_lifter(det.lifter.eval(), preset.lifter, preset.grid.nz)
     return ExportForm(det.image_encoder.eval(), lifter, SliceDecoder(slice_net, preset).eval())

@@ -19,6 +19,9 @@ Three presets:
 - ``tiny``: for unit tests; every size minimal so a forward and backward pass take milliseconds.
 - ``small_v2``: ``small`` with the camera-lane options of issue 19 on (frozen backbone BatchNorm after image
   pretraining, image BEV normalised at fusion, two LUT heights per voxel); the others keep them off.
+
+Any LiDAR-only variant (``use_image=False``) may drop the quadrant crop (``slice_crop=False``: one whole-grid map
+per slice, the paper's baseline set-up; ``streamdet-train --no-image --no-crop``).
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from streamdet.calibration.grid import GridSpec
+from streamdet.calibration.slice_maps import map_cells
 from streamdet.core.classes import CLASS_NAMES
 
 # The nuScenes CenterPoint task grouping of the multi-head variant (classes of similar size share a task).
@@ -185,9 +189,19 @@ class Preset:
     use_image: bool = True  # False: the LiDAR-only streaming baseline (image_bev is then only read for its shape)
     # True: the image BEV is scaled per channel to a learnt RMS before fusion (models/image_bev_norm.py)
     image_bev_norm: bool = False
+    # True: a slice's net runs on the quadrants it touches (the paper's crop, Sec. III-C); False: on one map of the
+    # whole grid per slice, as the paper's LiDAR-only baselines (calibration/slice_maps.py). LiDAR-only nets only.
+    slice_crop: bool = True
 
     def __post_init__(self) -> None:
         _check_positive_int(self, "channels")
+        if not isinstance(self.slice_crop, bool):
+            raise ValueError(f"Preset.slice_crop must be True or False, got {self.slice_crop!r}")
+        if self.use_image and not self.slice_crop:
+            raise ValueError(
+                f"Preset {self.name!r}: slice_crop=False (one whole-grid map per slice) is supported for the LiDAR-only "
+                "net only (use_image=False): the image lane's LUT, lifter and cache are built on quadrant maps"
+            )
         g = self.grid
         for i, s in enumerate(self.bev.cumulative_strides):
             if g.quadrant_ny % s or g.quadrant_nx % s:
@@ -225,9 +239,15 @@ class Preset:
         return self.grid.voxel_xy_m * self.head.out_stride
 
     @property
+    def map_cells(self) -> tuple[int, int]:
+        """(rows, cols) of one slice map in pillar cells: a quadrant, or the whole grid without the crop."""
+        return map_cells(self.grid, self.slice_crop)
+
+    @property
     def head_map_size(self) -> tuple[int, int]:
-        """(Hh, Wh) of one quadrant's head maps."""
-        return self.grid.quadrant_ny // self.head.out_stride, self.grid.quadrant_nx // self.head.out_stride
+        """(Hh, Wh) of one slice map's head maps (a quadrant's, or the whole grid's without the crop)."""
+        rows, cols = self.map_cells
+        return rows // self.head.out_stride, cols // self.head.out_stride
 
     @property
     def top_k(self) -> int:
@@ -249,6 +269,8 @@ class Preset:
             del d["lifter"]["lut_heights_per_voxel"]
         if self.image_bev_norm:
             d["image_bev_norm"] = True
+        if not self.slice_crop:
+            d["slice_crop"] = False
         return d
 
     @classmethod
@@ -266,6 +288,7 @@ class Preset:
                 post=PostConfig(**{**d["post"], "nms_iou_threshold": tuple(d["post"]["nms_iou_threshold"])}),
                 use_image=bool(d["use_image"]),
                 image_bev_norm=bool(d.get("image_bev_norm", False)),
+                slice_crop=d.get("slice_crop", True),
             )
         except KeyError as e:
             raise ValueError(f"preset dict lacks the field {e.args[0]!r}") from None

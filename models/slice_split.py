@@ -215,7 +215,7 @@ class ExportSliceNet(nn.Module):
     def __init__(self, net: SliceNet) -> None:
         super().__init__()
         self.use_image = net.use_image
-        self.quadrant_cells = net.quadrant_cells  # (Yq, Xq)
+        self.map_cells = net.map_cells  # (Yq, Xq), or (ny, nx) without the crop
         self.pillar_net = net.pillar_net
         self.bev_encoder = net.bev_encoder
         self.head = net.head
@@ -240,7 +240,7 @@ class ExportSliceNet(nn.Module):
     def forward(self, pillar_features: Tensor, pillar_mask: Tensor, pillar_index: Tensor,
                 image_bev: Tensor | None = None, *, num_quadrants: int | None = None) -> HeadMaps:  # fmt: skip
         """SliceNet's signature: the image BEV, or None with ``num_quadrants`` (LiDAR-only; zeros for a fused net)."""
-        shape = slice_map_shape(image_bev, num_quadrants, self.quadrant_cells)
+        shape = slice_map_shape(image_bev, num_quadrants, self.map_cells)
         # the same map as scatter_pillars, built by a gather (pillars.py: one pass over the map instead of three)
         p_bev = gather_pillars(self.pillar_net(pillar_features, pillar_mask), pillar_index, shape)  # (Q, C, Yq, Xq)
         if self.use_image:

@@ -15,7 +15,8 @@ GIL and each graph has its own session and thread pool, so a slice does not wait
 
 A LiDAR-only export (manifest preset use_image false, the paper's streaming baseline) has the slice lane alone:
 its slice graph takes the quadrant ids instead of an image BEV, and `update_images` / `set_calibration` raise
-`NoImageLaneError` (`uses_images` tells the two kinds apart).
+`NoImageLaneError` (`uses_images` tells the two kinds apart). One trained without the quadrant crop (preset
+slice_crop false, `slice_crop` here) runs one map of the whole grid per slice and takes the pillar tensors alone.
 
 Contracts (README, "Trust and failure model"; docs/trust.md):
 
@@ -260,6 +261,8 @@ class StreamingDetector:
         except (ValueError, TypeError) as e:
             raise ManifestError(f"{self.export_dir / 'manifest.json'}: grid: {e}") from None
         self.uses_images: bool = m.use_image  # False: LiDAR-only export, slice lane only
+        # False: a LiDAR-only net without the quadrant crop, one whole-grid map per slice (calibration/slice_maps.py)
+        self.slice_crop: bool = m.slice_crop
         if not self.uses_images and config.image_lane_precision is not None:
             raise NoImageLaneError(
                 self._no_image_lane(f"DetectorConfig.image_lane_precision {config.image_lane_precision!r} cannot apply")
@@ -665,7 +668,7 @@ class StreamingDetector:
         quadrants = quadrants_of_sector(k, n, self.config.start_deg)
         t0 = time.perf_counter()
         with self.stats.time("pre"):
-            pillars = pillarize(points, self.grid, quadrants, self._max_points_per_pillar, self._max_pillars)
+            pillars = pillarize(points, self.grid, quadrants, self._max_points_per_pillar, self._max_pillars, crop=self.slice_crop)
         cache = _quadrant_states(self._image)  # one read: a consistent view of the cache
         states = tuple(cache[q] for q in quadrants)
         stamps = [s.timestamp for s in states if s is not None]
@@ -675,14 +678,16 @@ class StreamingDetector:
         else:
             if self.uses_images:
                 feeds = {**pillars.as_feeds(), "image_bev": self._image_bev(states)}
-            else:
-                feeds = pillars.as_feeds(quadrants)
-            with self.stats.time("slice_head", self._executed_gmac("slice_head", Q=len(quadrants))):
+            else:  # the quadrant ids tell a LiDAR-only graph Q; without the crop Q is 1 and it takes none
+                feeds = pillars.as_feeds(quadrants if self.slice_crop else None)
+            num_maps = len(quadrants) if self.slice_crop else 1
+            with self.stats.time("slice_head", self._executed_gmac("slice_head", Q=num_maps)):
                 boxes, scores, labels = self.slice_head.run(feeds)
             with self.stats.time("post"):
                 dets = postprocess_slice(
-                    boxes, scores, labels, quadrants, self.grid, self._post, sector_bounds_deg(k, n, self.config.start_deg)
-                )
+                    boxes, scores, labels, quadrants, self.grid, self._post, sector_bounds_deg(k, n, self.config.start_deg),
+                    crop=self.slice_crop,
+                )  # fmt: skip
         self.stats.record("slice_total", (time.perf_counter() - t0) * 1e3)
         return SliceResult(
             detections=dets,

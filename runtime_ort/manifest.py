@@ -35,7 +35,9 @@ before LiDAR-only exports existed): a camera + LiDAR export lists all three grap
 ``normalisation`` and ``lut``; a LiDAR-only export (the paper's streaming baseline) lists ``slice_head`` only, whose
 inputs are the pillar tensors and ``quadrants`` (the slice's quadrant ids, read for their count Q), and no image
 spec, normalisation or LUT. Anything in between is refused, so a fused export that lost its image graphs is never
-taken for a LiDAR-only one.
+taken for a LiDAR-only one. ``preset["slice_crop"]`` false (absent means true) marks a LiDAR-only export without the
+quadrant crop: its slice graph runs one map of the whole grid per slice and takes the pillar tensors alone; a fused
+preset with it is refused.
 
 Shapes use ints for fixed dimensions and strings ("J", "P", "Q", "H", "W", "Hf", "Wf") for dynamic ones.
 The manifest is written last, after every file it names: an export directory without ``manifest.json``
@@ -398,6 +400,12 @@ class Manifest:
         use_image = self.preset.get("use_image", True)
         if not isinstance(use_image, bool):
             raise ManifestError(f"preset.use_image must be true or false, got {use_image!r}")
+        crop = self.preset.get("slice_crop", True)
+        if not isinstance(crop, bool):
+            raise ManifestError(f"preset.slice_crop must be true or false, got {crop!r}")
+        if use_image and not crop:
+            raise ManifestError("preset.slice_crop false (whole-grid slice maps) is for a LiDAR-only preset only, "
+                                "this one has use_image true")  # fmt: skip
         for name in self.required_graphs:
             if (name, "fp32") not in seen:
                 why = " (the preset reads images: use_image is true)" if name in IMAGE_GRAPH_NAMES else ""
@@ -419,6 +427,12 @@ class Manifest:
     def use_image(self) -> bool:
         """False for a LiDAR-only export: no image lane, no LUT, the slice graph alone."""
         return bool(self.preset.get("use_image", True))
+
+    @property
+    def slice_crop(self) -> bool:
+        """False for a LiDAR-only export without the quadrant crop: one whole-grid map per slice, no quadrant ids
+        fed (calibration/slice_maps.py); absent (every export before it) means True."""
+        return bool(self.preset.get("slice_crop", True))
 
     @property
     def required_graphs(self) -> tuple[str, ...]:

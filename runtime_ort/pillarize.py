@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from streamdet.calibration.grid import GridSpec
+from streamdet.calibration.slice_maps import slice_maps
 from streamdet.core.points import SLICE_COLUMNS
 from streamdet.core.sectors import NUM_QUADRANTS
 
@@ -36,7 +37,7 @@ class Pillars:
 
     features: np.ndarray  # (P, M, 11) float32, padding rows 0
     mask: np.ndarray  # (P, M) float32, 1 for a real point
-    index: np.ndarray  # (P,) int64, qi * Yq * Xq + row * Xq + col, increasing
+    index: np.ndarray  # (P,) int64, qi * Yq * Xq + row * Xq + col, increasing (row * nx + col without the crop)
     num_points_dropped: int  # points inside the quadrants' grid lost to the M or max_pillars caps
     num_pillars_dropped: int  # occupied pillars beyond max_pillars
     num_nonfinite_dropped: int  # points with a NaN or inf in any column
@@ -48,7 +49,8 @@ class Pillars:
 
     def as_feeds(self, quadrants: tuple[int, ...] | None = None) -> dict[str, np.ndarray]:
         """The pillar inputs of `slice_head.onnx`, by graph input name; with `quadrants` (the slice's, as given to
-        `pillarize`) also the `quadrants` (Q,) int64 input of a LiDAR-only slice graph, which has no image_bev."""
+        `pillarize`) also the `quadrants` (Q,) int64 input of a LiDAR-only slice graph, which has no image_bev (a
+        LiDAR-only graph without the crop takes the pillar tensors alone: give None)."""
         feeds = {"pillar_features": self.features, "pillar_mask": self.mask, "pillar_index": self.index}
         if quadrants is not None:
             feeds["quadrants"] = np.asarray(quadrants, dtype=np.int64)
@@ -86,6 +88,7 @@ def pillarize(
     quadrants: tuple[int, ...],
     max_points_per_pillar: int,
     max_pillars: int,
+    crop: bool = True,
 ) -> Pillars:
     """Group the (N, 6) float32 points of a slice into at most `max_pillars` pillars of `max_points_per_pillar`.
 
@@ -93,10 +96,13 @@ def pillarize(
     counted. Inside a pillar the first M points in input order are kept; when more than `max_pillars` pillars
     are occupied, those with the most points win (ties: lower flat index). Pillars come out in increasing
     flat index. Pillar means are over the kept (first M) points, the ones the PointNet sees.
+
+    `crop` False (a net without the quadrant crop, `calibration/slice_maps.py`): the same points, indexed into one
+    (ny, nx) map of the whole grid, ``row * nx + col``.
     """
     _check_inputs(points, quadrants, max_points_per_pillar, max_pillars)
+    maps = slice_maps(grid, tuple(quadrants), crop)
     m_max = int(max_points_per_pillar)
-    num_q = len(quadrants)
     xq, yq = grid.quadrant_nx, grid.quadrant_ny
 
     # Whole-array check first: the per-row reduction costs more than everything else when nothing is bad.
@@ -116,7 +122,7 @@ def pillarize(
     # Quadrant from the cell (the numbering of GridSpec), then its position in `quadrants` (-1: not ours).
     quadrant_of_code = np.array([2, 3, 1, 0])  # code = 2 * (y >= 0) + (x >= 0)
     slot = np.full(NUM_QUADRANTS, -1, dtype=np.int64)
-    slot[list(quadrants)] = np.arange(num_q)
+    slot[list(quadrants)] = np.arange(len(quadrants)) if crop else 0  # without the crop every quadrant is map 0
     qi = slot[quadrant_of_code][2 * (row >= yq) + (col >= xq)]
     inside &= qi >= 0
 
@@ -133,11 +139,13 @@ def pillarize(
             num_nonfinite_dropped=num_nonfinite,
             num_outside_dropped=num_outside,
         )
-    # Row and column inside the quadrant: quadrant maps start at 0 or at the half-size.
-    flat = qi[kept_rows] * (yq * xq) + (row[kept_rows] % yq) * xq + col[kept_rows] % xq  # (n,)
+    if crop:  # row and column inside the quadrant: quadrant maps start at 0 or at the half-size
+        flat = qi[kept_rows] * (yq * xq) + (row[kept_rows] % yq) * xq + col[kept_rows] % xq  # (n,)
+    else:  # the whole grid is the one map
+        flat = row[kept_rows] * grid.nx + col[kept_rows]  # (n,)
 
     # Sorting the unique key (flat, position) equals a stable argsort of flat, at a third of the cost.
-    if num_q * yq * xq < np.iinfo(np.int64).max // max(n, 1):
+    if maps.count * maps.cells < np.iinfo(np.int64).max // max(n, 1):
         key = np.sort(flat * n + np.arange(n))
         order, sorted_flat = key % n, key // n
     else:
@@ -171,10 +179,10 @@ def pillarize(
     ]
 
     pillar_flat = sorted_flat[starts[winners]]  # (P,)
-    origin = np.array([grid.quadrant_origin_m(int(q)) for q in quadrants])  # (Q, 2) minimum corners
-    q_slot, local = np.divmod(pillar_flat, yq * xq)
-    centre_x = origin[q_slot, 0] + (local % xq + 0.5) * grid.voxel_xy_m  # (P,)
-    centre_y = origin[q_slot, 1] + (local // xq + 0.5) * grid.voxel_xy_m
+    origin = np.array(maps.origins_m)  # (Q, 2) minimum corners of the maps
+    q_slot, local = np.divmod(pillar_flat, maps.cells)
+    centre_x = origin[q_slot, 0] + (local % maps.cols + 0.5) * grid.voxel_xy_m  # (P,)
+    centre_y = origin[q_slot, 1] + (local // maps.cols + 0.5) * grid.voxel_xy_m
 
     point_features = np.empty((kept.shape[0], PILLAR_FEATURE_DIM), np.float32)  # (k, 11)
     point_features[:, :POINT_DIM] = kept

@@ -1,8 +1,9 @@
 """Slice graph outputs -> detections in the LiDAR frame, and the aggregation of a sweep's slices (numpy only).
 
 `slice_head.onnx` returns, per touched quadrant, its top-K boxes with x, y relative to the quadrant's
-minimum corner (docs/architecture.md, "The three graphs"). Post-processing uncrops them (adds
-`GridSpec.quadrant_origin_m(q)`), drops low scores, optionally keeps only boxes centred in the slice's
+minimum corner (docs/architecture.md, "The three graphs"); a LiDAR-only graph without the crop returns one map of
+the whole grid, relative to the grid's minimum corner (`calibration/slice_maps.py`). Post-processing uncrops them
+(adds `GridSpec.quadrant_origin_m(q)`, or the grid's corner), drops low scores, optionally keeps only boxes centred in the slice's
 sector, and runs per-class NMS. The paper then aggregates the slices of a sweep with one more per-class NMS,
 which removes objects detected twice across a slice border.
 """
@@ -16,6 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from streamdet.calibration.grid import GridSpec
+from streamdet.calibration.slice_maps import slice_maps
 from streamdet.core.boxes import BOX_DIM, X, Y
 from streamdet.core.classes import CLASS_NAMES
 from streamdet.core.sectors import NUM_QUADRANTS, azimuth_deg
@@ -94,15 +96,17 @@ def _check_quadrants(quadrants: Sequence[int]) -> tuple[int, ...]:
     return qs
 
 
-def uncrop_boxes(det_boxes: np.ndarray, quadrants: Sequence[int], grid: GridSpec) -> np.ndarray:
-    """(Q, K, 9) boxes relative to their quadrant's minimum corner -> (Q, K, 9) float32 in the LiDAR frame."""
+def uncrop_boxes(det_boxes: np.ndarray, quadrants: Sequence[int], grid: GridSpec, crop: bool = True) -> np.ndarray:
+    """(Q, K, 9) boxes relative to their map's minimum corner -> (Q, K, 9) float32 in the LiDAR frame.
+
+    With the crop the maps are the slice's quadrants; without it (``crop`` False) one map of the whole grid (Q = 1)."""
     qs = _check_quadrants(quadrants)
+    maps = slice_maps(grid, qs, crop)
     det_boxes = np.asarray(det_boxes)
-    if det_boxes.ndim != 3 or det_boxes.shape[0] != len(qs) or det_boxes.shape[2] != BOX_DIM:
-        raise ValueError(
-            f"det_boxes must be (Q={len(qs)}, K, {BOX_DIM}) for quadrants {qs}, got shape {det_boxes.shape}"
-        )
-    origin = np.array([grid.quadrant_origin_m(q) for q in qs], dtype=np.float64)  # (Q, 2)
+    if det_boxes.ndim != 3 or det_boxes.shape[0] != maps.count or det_boxes.shape[2] != BOX_DIM:
+        what = f"quadrants {qs}" if crop else "the whole-grid map (no crop)"
+        raise ValueError(f"det_boxes must be (Q={maps.count}, K, {BOX_DIM}) for {what}, got shape {det_boxes.shape}")
+    origin = np.array(maps.origins_m, dtype=np.float64)  # (Q, 2)
     boxes = det_boxes.astype(np.float64)  # float64 add, then one rounding to float32
     boxes[..., [X, Y]] += origin[:, None, :]
     return boxes.astype(np.float32)
@@ -125,15 +129,17 @@ def postprocess_slice(
     grid: GridSpec,
     config: PostprocessConfig = PostprocessConfig(),
     sector_deg: tuple[float, float] | None = None,
+    crop: bool = True,
 ) -> Detections:
     """Decoded slice graph outputs (Q, K, 9), (Q, K), (Q, K) -> the slice's detections in the LiDAR frame.
 
     Steps: uncrop, drop rows with a non-finite value, score threshold, sector restriction (when
     `config.restrict_to_sector`; needs `sector_deg`, e.g. `grid.sector_bounds_deg(k, n)`), per-class NMS.
+    `crop` False: the outputs are one map of the whole grid (a LiDAR-only net without the quadrant crop).
     """
     det_scores = np.asarray(det_scores)
     det_labels = np.asarray(det_labels)
-    boxes = uncrop_boxes(det_boxes, quadrants, grid)
+    boxes = uncrop_boxes(det_boxes, quadrants, grid, crop)
     if det_scores.shape != boxes.shape[:2]:
         raise ValueError(f"det_scores must be {boxes.shape[:2]} to match det_boxes, got shape {det_scores.shape}")
     if det_labels.shape != boxes.shape[:2]:

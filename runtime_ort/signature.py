@@ -76,15 +76,17 @@ def expected_io(manifest: Manifest, grid: GridSpec, name: str) -> tuple[tuple[Te
         TensorSignature("pillar_mask", "float32", (None, m)),
         TensorSignature("pillar_index", "int64", (None,)),
     )
-    context = (
-        TensorSignature("image_bev", "float32", (None, c, yq, xq))
-        if manifest.use_image
-        else TensorSignature("quadrants", "int64", (None,))
-    )
     outputs = (
         TensorSignature("det_boxes", "float32", (None, None, BOX_DIM)),
         TensorSignature("det_scores", "float32", (None, None)),
         TensorSignature("det_labels", "int64", (None, None)),
+    )
+    if not manifest.slice_crop:  # LiDAR-only on one whole-grid map per slice: the pillar tensors alone
+        return pillars, outputs
+    context = (
+        TensorSignature("image_bev", "float32", (None, c, yq, xq))
+        if manifest.use_image
+        else TensorSignature("quadrants", "int64", (None,))
     )
     return (*pillars, context), outputs
 

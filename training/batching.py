@@ -37,7 +37,8 @@ class Batch:
     map_source: Tensor | None  # (Qm,) int64 lift entry feeding each slice map
     pillar_features: Tensor  # (P, M, 11) float32
     pillar_mask: Tensor  # (P, M) float32
-    pillar_index: Tensor  # (P,) int64 into the stacked slice maps: map * Yq * Xq + row * Xq + col
+    pillar_index: Tensor  # (P,) int64 into the stacked slice maps: map * Yq * Xq + row * Xq + col ((ny, nx) maps
+    # without the crop)
     heatmap: Tensor  # (Qm, num_classes, Hh, Wh) float32
     index: Tensor  # (Qm, K_obj) int64
     mask: Tensor  # (Qm, K_obj) bool
@@ -80,8 +81,8 @@ class Collator:
         if not items:
             raise ValueError("collate needs at least one sample")
         p = self.preset
-        g = p.grid
-        cells = g.quadrant_ny * g.quadrant_nx
+        rows, cols = p.map_cells  # a quadrant, or the whole grid without the crop (calibration/slice_maps.py)
+        cells = rows * cols
         feats, masks, indices = [], [], []
         heat, obj_index, obj_mask, obj_label, obj_box = [], [], [], [], []
         map_source: list[int] = []
@@ -95,7 +96,9 @@ class Collator:
                 masks.append(pil.mask)
                 # pillar_index is qi * cells + cell within the slice's own stack; shift to the batch stack.
                 indices.append(pil.index + num_maps * cells)
-                for q, t in zip(sl.quadrants, sl.targets):
+                # one map per quadrant with the crop (a fused net's maps read their quadrant's image BEV); one map of
+                # the whole grid without it (LiDAR-only: the quadrant is not read)
+                for q, t in zip(sl.quadrants if p.slice_crop else (None,), sl.targets):
                     heat.append(t.heatmap)
                     obj_index.append(t.index)
                     obj_mask.append(t.mask)

@@ -46,6 +46,8 @@ def _parse_slices(ctx, param, value: str) -> tuple[int, ...]:
 @click.option("--max-slices-per-sample", type=click.IntRange(min=1), default=None,
               help="Train on a random subset of this many slices of each sample (default: all of them).")
 @click.option("--no-image", is_flag=True, help="Train the LiDAR-only streaming baseline (no camera lane).")
+@click.option("--no-crop", is_flag=True,
+              help="With --no-image: no quadrant crop, each slice runs on one map of the whole grid (the paper's LiDAR-only baselines' set-up).")
 @click.option("--camera-mode", type=click.Choice(CAMERA_MODES), default="all", show_default=True,
               help="all: a quadrant's image BEV comes from every camera, as at run time; overlapping: a slice sees only the cameras overlapping its sector.")
 @click.option("--image-warmup", type=click.FloatRange(0, 1, max_open=True), default=0.0, show_default=True,
@@ -67,7 +69,7 @@ def _parse_slices(ctx, param, value: str) -> tuple[int, ...]:
 @click.option("--log-every", type=click.IntRange(min=1), default=10, show_default=True, help="Steps between progress lines.")
 @click.option("--checkpoint-every", type=click.IntRange(min=1), default=200, show_default=True, help="Steps between rewrites of last.pt.")
 def main(data_dir: Path, version: str, out_dir: Path, preset: str, steps: int | None, epochs: int, batch_size: int,
-         lr: float, num_slices: tuple[int, ...], max_slices_per_sample: int | None, no_image: bool, camera_mode: str,
+         lr: float, num_slices: tuple[int, ...], max_slices_per_sample: int | None, no_image: bool, no_crop: bool, camera_mode: str,
          image_warmup: float, resume: Path | None, init: Path | None, balanced: bool, workers: int, seed: int, max_minutes: float | None, amp: str,
          cache_dir: Path | None, device: str | None, log_every: int, checkpoint_every: int) -> None:  # fmt: skip
     """Train the streaming camera + LiDAR detector (or its LiDAR-only baseline) with CenterPoint targets."""
@@ -83,7 +85,7 @@ def main(data_dir: Path, version: str, out_dir: Path, preset: str, steps: int | 
         epochs = 10
     try:
         config = TrainConfig(
-            preset=preset, use_image=not no_image, steps=steps, epochs=epochs, batch_size=batch_size, lr=lr, amp=amp,
+            preset=preset, use_image=not no_image, slice_crop=not no_crop, steps=steps, epochs=epochs, batch_size=batch_size, lr=lr, amp=amp,
             image_warmup=image_warmup, balanced=balanced, workers=workers, seed=seed, max_minutes=max_minutes, log_every=log_every,
             checkpoint_every=checkpoint_every,
             data=DataConfig(num_slices=num_slices, max_slices_per_sample=max_slices_per_sample, camera_mode=camera_mode),

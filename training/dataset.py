@@ -202,7 +202,7 @@ class SliceItem:
     quadrants: tuple[int, ...]  # increasing
     camera_names: tuple[str, ...]  # cameras overlapping the sector, rig order
     pillars: Pillars
-    targets: tuple[MapTargets, ...]  # one per quadrant, in `quadrants` order
+    targets: tuple[MapTargets, ...]  # one per slice map: per quadrant in `quadrants` order, or one without the crop
 
 
 @dataclass(frozen=True, eq=False)
@@ -258,10 +258,11 @@ class SliceDataset:
         for k in ks.tolist():
             quadrants = quadrants_of_sector(k, n)
             in_slice = boxes_in_sector(boxes, k, n)
-            pillars = pillarize(parts[k], p.grid, quadrants, p.pillars.max_points_per_pillar, p.pillars.max_pillars)
+            pillars = pillarize(parts[k], p.grid, quadrants, p.pillars.max_points_per_pillar, p.pillars.max_pillars,
+                                crop=p.slice_crop)  # fmt: skip
             targets = tuple(
                 build_targets(boxes[in_slice], labels[in_slice], q, p.grid, p.head.out_stride, cfg.targets, len(CLASS_NAMES))
-                for q in quadrants
+                for q in (quadrants if p.slice_crop else (None,))  # without the crop: one map of the whole grid
             )
             cams = cameras_overlapping_sector(rig, k, n) if p.use_image else ()
             slices.append(SliceItem(k, n, quadrants, cams, pillars, targets))

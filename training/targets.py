@@ -10,6 +10,8 @@ For every ground-truth box whose centre falls inside the quadrant, the head map 
 
 Coordinates are quadrant-local: x, y minus ``GridSpec.quadrant_origin_m(q)``, the frame of the head maps.
 A box cut by a quadrant border is a target only in the quadrant holding its centre, as in the runtime's uncrop.
+A net without the quadrant crop (``Preset.slice_crop`` False, ``calibration/slice_maps.py``) has one map of the
+whole grid per slice: ``quadrant=None``, coordinates relative to the grid's minimum corner.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from streamdet.calibration.grid import GridSpec
+from streamdet.calibration.slice_maps import map_cells, slice_maps
 from streamdet.core.boxes import BOX_DIM, H, L, VX, VY, W, X, Y, YAW, Z
 from streamdet.core.classes import CLASS_NAMES
 from streamdet.models.decode import encode_center
@@ -109,16 +112,18 @@ def draw_gaussians(heatmap: np.ndarray, channel: np.ndarray, row: np.ndarray, co
 def build_targets(
     boxes: np.ndarray,
     labels: np.ndarray,
-    quadrant: int,
+    quadrant: int | None,
     grid: GridSpec,
     head_stride: int,
     config: TargetConfig = TargetConfig(),
     num_classes: int = len(CLASS_NAMES),
 ) -> MapTargets:
-    """Targets of quadrant ``quadrant``'s head map from boxes (M, 9) in the LiDAR frame and labels (M,).
+    """Targets of quadrant ``quadrant``'s head map from boxes (M, 9) in the LiDAR frame and labels (M,);
+    ``quadrant`` None: the head map of the whole grid (a net without the crop).
 
-    Boxes with a label outside [0, num_classes) or a centre outside the quadrant are not targets. The head map
-    has (Yq / head_stride, Xq / head_stride) cells of ``grid.voxel_xy_m * head_stride`` metres.
+    Boxes with a label outside [0, num_classes) or a centre outside the map are not targets. The head map
+    has (Yq / head_stride, Xq / head_stride) cells of ``grid.voxel_xy_m * head_stride`` metres ((ny, nx) / head_stride
+    for the whole grid).
     """
     boxes = np.asarray(boxes, dtype=np.float64)
     labels = np.asarray(labels)
@@ -134,9 +139,12 @@ def build_targets(
         raise ValueError(f"box sizes w, l, h must be > 0; row {bad} has {boxes[bad, [W, L, H]].tolist()}")
     if isinstance(head_stride, bool) or not isinstance(head_stride, int) or head_stride < 1 or grid.quadrant_ny % head_stride or grid.quadrant_nx % head_stride:
         raise ValueError(f"head_stride must be a positive integer dividing the {grid.quadrant_ny} x {grid.quadrant_nx} quadrant, got {head_stride!r}")
-    hh, wh = grid.quadrant_ny // head_stride, grid.quadrant_nx // head_stride
+    crop = quadrant is not None
+    # the map's minimum corner: the quadrant's (validates quadrant), or the whole grid's (calibration/slice_maps.py)
+    x0, y0 = grid.quadrant_origin_m(quadrant) if crop else slice_maps(grid, (0,), crop=False).origins_m[0]
+    rows, cols = map_cells(grid, crop)
+    hh, wh = rows // head_stride, cols // head_stride
     cell_m = grid.voxel_xy_m * head_stride
-    x0, y0 = grid.quadrant_origin_m(quadrant)  # validates quadrant
 
     row, col, reg_x, reg_y = encode_center(boxes[:, X] - x0, boxes[:, Y] - y0, cell_m)  # the decode's inverse
     ok = (labels >= 0) & (labels < num_classes) & (row >= 0) & (row < hh) & (col >= 0) & (col < wh)

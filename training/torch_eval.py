@@ -2,7 +2,8 @@
 
 Image lane: every camera through the encoder, the lifter over all four quadrants with the rig's LUT at the
 preset's image size. Slice lane: ``split_sweep``, ``pillarize`` (the runtime's), the slice net, the in-graph
-decode (``models/decode.py``), then the runtime's own ``postprocess_slice`` and ``aggregate_sweep``. Only the
+decode (``models/decode.py``), then the runtime's own ``postprocess_slice`` and ``aggregate_sweep``; a LiDAR-only
+net without the quadrant crop (``preset.slice_crop`` False) on one whole-grid map per slice, as its export runs. Only the
 arithmetic differs from onnxruntime, so this scores what the exported graphs would if they matched PyTorch.
 """
 
@@ -12,6 +13,7 @@ import numpy as np
 import torch
 
 from streamdet.calibration.lut import Lut, build_lut
+from streamdet.calibration.slice_maps import slice_maps
 from streamdet.core.sectors import quadrants_of_sector
 from streamdet.core.slicing import split_sweep
 from streamdet.data.sample import Sample
@@ -57,14 +59,15 @@ class TorchSweepDetector:
         results = []
         for k, points in enumerate(split_sweep(np.asarray(sample.points, np.float32), self.num_slices)):
             quadrants = quadrants_of_sector(k, self.num_slices)
-            pil = pillarize(points, g, quadrants, p.pillars.max_points_per_pillar, p.pillars.max_pillars)
+            pil = pillarize(points, g, quadrants, p.pillars.max_points_per_pillar, p.pillars.max_pillars, crop=p.slice_crop)
             if pil.num_pillars == 0:
                 continue
             maps = self.model.slice_net(
                 torch.from_numpy(pil.features).to(self.device), torch.from_numpy(pil.mask).to(self.device),
                 torch.from_numpy(pil.index).to(self.device), None if bev is None else bev[list(quadrants)],
-                num_quadrants=len(quadrants),
+                num_quadrants=slice_maps(g, quadrants, p.slice_crop).count,  # quadrants, or 1 whole-grid map
             )  # fmt: skip
             boxes, scores, labels = decode_head_maps(maps, p.head_cell_m, p.top_k)
-            results.append(postprocess_slice(boxes.cpu().numpy(), scores.cpu().numpy(), labels.cpu().numpy(), quadrants, g, self.post))
+            results.append(postprocess_slice(boxes.cpu().numpy(), scores.cpu().numpy(), labels.cpu().numpy(), quadrants, g,
+                                             self.post, crop=p.slice_crop))  # fmt: skip
         return aggregate_sweep(results, self.post.nms)

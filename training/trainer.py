@@ -45,6 +45,8 @@ HEAD_OUTPUT_INIT_STD = 0.01
 class TrainConfig:
     preset: str = "small"
     use_image: bool = True  # False: the LiDAR-only streaming baseline (no image lane at all)
+    # False: that baseline without the quadrant crop, one map of the whole grid per slice (Preset.slice_crop)
+    slice_crop: bool = True
     steps: int | None = None  # optimizer steps of the one-cycle schedule
     epochs: int | None = None  # when steps is None: epochs * steps per epoch; both None: a schedule over max_minutes
     batch_size: int = 1  # samples per process per step; each sample brings its slices (8 maps for n = 8)
@@ -72,6 +74,11 @@ class TrainConfig:
 
     def __post_init__(self) -> None:
         get_preset(self.preset)  # raises for an unknown name
+        if not isinstance(self.slice_crop, bool):
+            raise ValueError(f"TrainConfig.slice_crop must be True or False, got {self.slice_crop!r}")
+        if self.use_image and not self.slice_crop:
+            raise ValueError("training without the quadrant crop (slice_crop=False, --no-crop) is supported for the "
+                             "LiDAR-only baseline only: add --no-image")  # fmt: skip
         if self.steps is not None and (isinstance(self.steps, bool) or not isinstance(self.steps, int) or self.steps < 1):
             raise ValueError(f"TrainConfig.steps must be None or a positive integer, got {self.steps!r}")
         if self.epochs is not None and (isinstance(self.epochs, bool) or not isinstance(self.epochs, int) or self.epochs < 1):
@@ -99,10 +106,13 @@ class TrainConfig:
             raise ValueError(f"TrainConfig.max_minutes must be > 0, got {self.max_minutes!r}")
 
     def build_preset(self) -> Preset:
-        return dataclasses.replace(get_preset(self.preset), use_image=self.use_image)
+        return dataclasses.replace(get_preset(self.preset), use_image=self.use_image, slice_crop=self.slice_crop)
 
     def to_dict(self) -> dict[str, Any]:
-        return _jsonable(dataclasses.asdict(self))
+        d = _jsonable(dataclasses.asdict(self))
+        if self.slice_crop:  # written only when off: the config of every run before it stays as it was
+            del d["slice_crop"]
+        return d
 
 
 @dataclass(frozen=True)
@@ -237,7 +247,8 @@ def train(
     log_file = open(run.out_dir / "metrics.jsonl", "a" if resume is not None else "w") if run.ctx.is_main else None
     n_params = sum(p.numel() for p in run.model.parameters())
     run.say(
-        f"training {run.preset.name} ({'camera + LiDAR' if run.preset.use_image else 'LiDAR only'}, {n_params / 1e6:.2f} M parameters) "
+        f"training {run.preset.name} ({'camera + LiDAR' if run.preset.use_image else 'LiDAR only'}"
+        f"{'' if run.preset.slice_crop else ', no quadrant crop'}, {n_params / 1e6:.2f} M parameters) "
         f"on {len(run.dataset.store)} samples, slices {list(config.data.num_slices)}, {run.ctx.world_size} process(es) x batch "
         f"{config.batch_size}, {len(run.loader)} steps/epoch, {run.plan}, device {run.device}"
     )
@@ -301,7 +312,8 @@ def _set_up(config: TrainConfig, data_dir: str | Path, out_dir: str | Path, vers
 def _load_init_weights(detector, preset: Preset, init: str | Path, say: Callable[[str], None]) -> None:
     state = load_checkpoint(init)
     if state["preset"] != preset.to_dict():
-        raise ValueError(f"init checkpoint {init} holds another preset than {preset.name!r} (use_image={preset.use_image})")
+        raise ValueError(f"init checkpoint {init} holds another preset than {preset.name!r} (use_image={preset.use_image}, "
+                         f"slice_crop={preset.slice_crop})")  # fmt: skip
     own = detector.state_dict()
     # shipped weights may be stored in float16: back to the model's own dtypes
     detector.load_state_dict({k: v.to(own[k].dtype) if k in own else v for k, v in state["model"].items()})
@@ -326,7 +338,8 @@ def _restore(run: _TrainRun, resume: str | Path) -> None:
             raise ValueError(f"checkpoint {resume} lacks {key!r}: it holds weights only, it cannot resume a run")
     preset = run.preset
     if state["preset"] != preset.to_dict():
-        raise ValueError(f"checkpoint {resume} was trained with another preset than {preset.name!r} (use_image={preset.use_image})")
+        raise ValueError(f"checkpoint {resume} was trained with another preset than {preset.name!r} (use_image={preset.use_image}, "
+                         f"slice_crop={preset.slice_crop})")  # fmt: skip
     run.detector.load_state_dict(state["model"])
     run.optimizer.load_state_dict(state["optimizer"])
     run.schedule.load_state_dict(state["scheduler"])
