@@ -2,12 +2,14 @@
 PyTorch, GMAC, the fp16 siblings with their parity against fp32 (export/steps.py puts them in order).
 
 Each graph's PyTorch reference sees the same inputs as its onnxruntime counterpart, and the fp32 pipeline (encoder
--> lifter with the LUT -> slice graph) is onnxruntime's: each graph is fed by the fp32 graph before it.
+-> lifter with the LUT -> slice graph) is onnxruntime's: each graph is fed by the fp32 graph before it. The fp16
+pipeline check runs the runtime itself on the staged graphs at both precisions (export/staged_detector.py).
 """
 
 from __future__ import annotations
 
 import importlib.resources
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +19,8 @@ import torch
 from streamdet.calibration.camera import CalibrationError, Rig
 from streamdet.calibration.lut import build_lut
 from streamdet.core.constants import BUNDLED_CALIBRATION_SOURCE
+from streamdet.core.slicing import split_sweep
+from streamdet.data.sample import load_bundled_sample
 from streamdet.export import onnx_export as ox
 from streamdet.export.export_run import ExportRun, Feeds
 from streamdet.export.fp16 import convert_model_to_fp16
@@ -33,13 +37,15 @@ from streamdet.export.parity import (
     pipeline_parity,
 )
 from streamdet.export.parity_inputs import parity_inputs, scatter_cameras
-from streamdet.export.record import format_parity, write_export_manifest
+from streamdet.export.record import format_parity
+from streamdet.export.staged_detector import run_manifest, staged_detector
 from streamdet.export.staging import save_checked
 from streamdet.export.weights import bundled_checkpoint, load_detector
 from streamdet.models.decode import decode_head_maps
-from streamdet.models.image_encoder import IMAGENET_MEAN, IMAGENET_STD
 from streamdet.models.presets import Preset
-from streamdet.runtime_ort.manifest import LUT_NAME, ImageSpec, LutEntry, Normalisation, ParityRecord, graph_file_name, sha256_file
+from streamdet.runtime_ort.detector import SliceResult, StreamingDetector
+from streamdet.runtime_ort.manifest import LUT_NAME, ParityRecord, graph_file_name
+from streamdet.runtime_ort.manifest import write_manifest as write_manifest_file
 from streamdet.runtime_ort.sessions import ort_session
 
 TORCH_REF_IMAGES = 2  # images the PyTorch encoder reference runs on (onnxruntime runs all J)
@@ -197,8 +203,9 @@ def fp32_nodes(model: onnx.ModelProto) -> set[str]:
 
 
 def parity_fp16(run: ExportRun) -> None:
-    """Each fp16 graph against its fp32 graph on the same inputs, then the fp16 pipeline (each fp16 graph fed by the
-    fp16 graph before it) against the fp32 pipeline; for a LiDAR-only export the slice graph is the pipeline."""
+    """Each fp16 graph against its fp32 graph on the same inputs, then the fp16 pipeline against the fp32 pipeline:
+    the parity slice through the runtime at each precision (``driver_slice``); for a LiDAR-only export the slice
+    graph is the pipeline."""
     sessions16 = {name: _session(run, name, "fp16") for name in run.graphs}
     for name in run.graphs:
         got = sessions16[name].run(None, run.feeds32[name])
@@ -207,24 +214,39 @@ def parity_fp16(run: ExportRun) -> None:
             _note_parity(run, [compare_dense(name, "fp16", "onnx-fp32", DENSE_OUTPUTS[name], got[0], ref[0], FP16_TOL_REL)])
         else:
             _note_parity(run, compare_detections(name, "fp16", "onnx-fp32", got, ref, FP16_TOL_REL, run.margins_of(ref)))
-    upstream = None
-    for name in run.graphs:
-        outputs16 = sessions16[name].run(None, chained_feeds(run, name, upstream))
-        upstream = outputs16[0]
-    run.pipeline = _pipeline_check(run, run.outputs32["slice_head"], outputs16)
+    result, dets = driver_slice(staged_detector(run, "fp32"), run)
+    _, dets16 = driver_slice(staged_detector(run, "fp16"), run)
+    run.pipeline = _pipeline_check(run, result, dets, dets16)
 
 
-def _pipeline_check(run: ExportRun, dets: list[np.ndarray], dets16: list[np.ndarray]):
+def driver_slice(detector: StreamingDetector, run: ExportRun) -> tuple[SliceResult, tuple[np.ndarray, ...]]:
+    """The parity slice through the runtime as a vehicle feeds it: the parity images (those of the cameras that see
+    the slice's quadrants are encoded and lifted), then the slice's points of the bundled sweep; the detector's
+    result and its slice graph's outputs (det_boxes, det_scores, det_labels)."""
+    inputs = run.inputs
+    sweep = np.asarray(load_bundled_sample().points, np.float32)
+    points = split_sweep(sweep, run.opts.num_slices, detector.config.start_deg)[inputs.slice_index]  # (N, 6)
+    with detector.recording() as recording:
+        if detector.uses_images:
+            images = dict(zip(detector.camera_names, inputs.images))
+            detector.update_images(images, timestamp=0.0, quadrants=sorted(inputs.quadrants))
+        result = detector.detect_slice(points, inputs.slice_index, timestamp=0.0, num_slices=run.opts.num_slices)
+    runs = recording.outputs("slice_head")
+    if not runs:
+        raise ExportError(f"the parity slice {inputs.slice_index} holds no pillar: no pipeline to compare")
+    return result, runs[0]
+
+
+def _pipeline_check(run: ExportRun, result: SliceResult, dets: Sequence[np.ndarray], dets16: Sequence[np.ndarray]):
     """The decoded boxes of the fp32 and fp16 pipelines compared (``pipeline_parity``), reported in one line."""
     outputs = ox.SLICE_HEAD_IO.outputs
-    inputs = run.inputs
     pipeline = pipeline_parity(
         dict(zip(outputs, dets)),
         dict(zip(outputs, dets16)),
-        slice_index=inputs.slice_index,
-        num_slices=run.opts.num_slices,
-        num_points=inputs.num_points,
-        num_pillars=inputs.pillars.num_pillars,
+        slice_index=result.slice_index,
+        num_slices=result.num_slices,
+        num_points=result.num_points,
+        num_pillars=result.num_pillars,
         cell_m=run.preset.head_cell_m,
         margins32=run.margins_of(dets),
         margins16=run.margins_of(dets16),
@@ -242,15 +264,5 @@ def _pipeline_check(run: ExportRun, dets: list[np.ndarray], dets16: list[np.ndar
 
 
 def write_manifest(run: ExportRun) -> None:
-    image = normalisation = lut = None
-    if run.preset.use_image:
-        w, h = run.size
-        image = ImageSpec(w, h, run.preset.image.feature_stride, run.lut.feature_width, run.lut.feature_height, tuple(run.rig.names))
-        normalisation = Normalisation(mean_rgb=tuple(IMAGENET_MEAN), std_rgb=tuple(IMAGENET_STD))
-        lut = LutEntry(LUT_NAME, sha256_file(run.tmp / LUT_NAME), run.lut.calibration_sha256, run.calibration_source)
-    opts = run.opts
-    run.manifest = write_export_manifest(
-        run.tmp, run.preset, opts.num_slices, opts.opset, opts.precisions, run.graphs, run.gmacs, run.parity,
-        run.pipeline, run.int8_record, run.source, run.inputs.describe(), image=image, normalisation=normalisation,
-        lut=lut,
-    )  # fmt: skip
+    run.manifest = run_manifest(run, run.opts.precisions, run.int8_record)
+    write_manifest_file(run.manifest, run.tmp)

@@ -1,8 +1,10 @@
 """int8 siblings of exported graphs, by concept (this module re-exports them all, as ``q8`` in the exporter):
 
 - ``int8_quantize``: static QDQ quantization of one graph (format, what stays float and why, ``quantize_graph``);
-- ``int8_data``: the real calibration inputs (samples of a dataset or the bundled sample, each graph's feeds);
-- ``int8_parity``: int8 against fp32 (relative L2 of every output, boxes paired by label and centre).
+- ``int8_data``: the real calibration inputs (samples of a dataset or the bundled sample, each graph's feeds as
+  the fp32 export's runtime records them);
+- ``int8_parity``: int8 against fp32 (relative L2 of every output, boxes paired by label and centre), from the
+  runs the fp32 and int8 detectors recorded.
 
 The export's int8 steps that use them are export/int8_steps.py.
 """
@@ -16,12 +18,10 @@ from streamdet.export.int8_data import (
     DEFAULT_CALIBRATION_SAMPLES,
     CalibrationSamples,
     Feeds,
-    GraphInputs,
     Int8CalibrationDataError,
     dataset_version,
-    graph_inputs,
     load_calibration_samples,
-    sample_lut,
+    record_graph_inputs,
 )
 from streamdet.export.int8_parity import (
     BOX_SCORE_THRESHOLD,
@@ -52,10 +52,10 @@ from streamdet.export.int8_quantize import (
 __all__ = [
     "ACTIVATION_TYPE", "BOX_SCORE_THRESHOLD", "BUNDLED_SOURCE", "DEFAULT_CALIBRATION_SAMPLES", "HEAD_OUTPUT_NOTE",
     "INPUT_NORM_NOTE", "LIFTER_GATHER_NOTE", "LIFTER_POOL_NOTE", "PILLAR_NOTE", "WEIGHT_TYPE", "CalibrationSamples",
-    "Feeds", "GraphInputs", "Int8CalibrationDataError", "Int8Config", "Int8Parity", "QuantizedGraph", "_slice_parity",
-    "box_agreement", "dataset_version", "dense_parity", "float_nodes", "graph_inputs", "int8_parity",
-    "load_calibration_samples", "normalisation_as_batchnorm", "pair_boxes", "quantize_graph", "quantized_ops",
-    "relative_l2", "sample_lut",
+    "Feeds", "Int8CalibrationDataError", "Int8Config", "Int8Parity", "QuantizedGraph", "_slice_parity",
+    "box_agreement", "dataset_version", "dense_parity", "float_nodes", "int8_parity", "load_calibration_samples",
+    "normalisation_as_batchnorm", "pair_boxes", "quantize_graph", "quantized_ops", "record_graph_inputs",
+    "relative_l2",
 ]  # fmt: skip
 
 

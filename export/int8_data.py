@@ -1,34 +1,33 @@
 """Real calibration inputs of the int8 graphs: samples drawn from a nuScenes-format dataset (or the bundled sample)
-and each graph's feeds computed from them by the fp32 graphs upstream.
+and each graph's feeds recorded while the fp32 export's runtime detects them.
 
-Calibration. Ranges come from real graph inputs (``graph_inputs``): camera images for the encoder, the fp32
-encoder's features of those images with each sample's own LUT for the lifter, and pillarised LiDAR slices with the
-fp32 lifter's image BEV for the slice graph (a LiDAR-only export: the pillarised slices alone, no image is read). Never random tensors: a ReLU network's activation ranges on noise have
-nothing to do with its ranges on images. MinMax calibration: Percentile and Entropy keep a histogram of every
-activation of every input in memory. ``CalibMaxIntermediateOutputs`` is not used: onnxruntime 1.32 clears the data
-it collected without merging it and then fails with "No data is collected".
+Calibration. Ranges come from real graph inputs (``record_graph_inputs``): the feeds the fp32 ``StreamingDetector``
+of the staged export hands its sessions while it detects each sample as every tool runs it
+(``runtime_ort.pipeline.detect_sample``): camera images for the encoder, the fp32 encoder's features of those
+images with the sample's own LUT for the lifter, and pillarised LiDAR slices with the fp32 lifter's image BEV for
+the slice graph (a LiDAR-only export: the pillarised slices alone, no image is read). Never random tensors: a ReLU
+network's activation ranges on noise have nothing to do with its ranges on images. MinMax calibration: Percentile
+and Entropy keep a histogram of every activation of every input in memory. ``CalibMaxIntermediateOutputs`` is not
+used: onnxruntime 1.32 clears the data it collected without merging it and then fails with "No data is collected".
 """
-
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
-from streamdet.calibration.lut import Lut, build_lut
+from streamdet.calibration.camera import CalibrationError
 from streamdet.core.constants import BUNDLED_SAMPLE_SOURCE
-from streamdet.data.sample import Sample, load_bundled_sample, load_image
-from streamdet.data.slicing import slice_sample
+from streamdet.data.sample import Sample, load_bundled_sample
 from streamdet.data.splits import has_split, split_sample_tokens
-from streamdet.runtime_ort.pillarize import pillarize
+from streamdet.runtime_ort.detector import StreamingDetector
+from streamdet.runtime_ort.pipeline import detect_sample, use_sample_calibration
+from streamdet.runtime_ort.recording import Feeds, GraphRecording  # noqa: F401 (Feeds: public here too)
 
 BUNDLED_SOURCE = BUNDLED_SAMPLE_SOURCE
 DEFAULT_CALIBRATION_SAMPLES = 8  # samples of a --calibration-data dataset (6 images and n slices each)
-
-Feeds = dict[str, np.ndarray]
 
 
 class Int8CalibrationDataError(ValueError):
@@ -98,81 +97,21 @@ def load_calibration_samples(data_dir: str | Path | None, num_samples: int, came
     return CalibrationSamples(samples, source, version, split)
 
 
-@dataclass(frozen=True)
-class GraphInputs:
-    """Real inputs of the three graphs (fp32 graphs upstream), one list of feed dicts per graph."""
+def record_graph_inputs(detector: StreamingDetector, samples: Sequence[Sample]) -> GraphRecording:
+    """Every graph run of the (fp32) ``detector`` over ``samples``, recorded: each graph's real inputs.
 
-    image_encoder: list[Feeds]
-    volumetric_lifter: list[Feeds]
-    slice_head: list[Feeds]
-    slice_sources: list[tuple[int, tuple[int, ...]]] = field(default_factory=list)  # per slice feed: (position of its
-    # sample in the volumetric_lifter feeds, the quadrants its image_bev was cut from)
-
-    def for_graph(self, name: str) -> list[Feeds]:
-        return getattr(self, name)
-
-
-def sample_lut(sample: Sample, camera_names: Sequence[str], grid, feature_stride: int, size: tuple[int, int],
-               heights_per_voxel: int = 1) -> Lut:  # fmt: skip
-    """The sample's own projection LUT (its rig, resized to the export's images), cameras in export order."""
-    if tuple(sample.rig.names) != tuple(camera_names):
-        raise Int8CalibrationDataError(
-            f"sample {sample.token} has cameras {list(sample.rig.names)}; the export's rig orders them "
-            f"{list(camera_names)}: the LUT rows would not match the encoded images"
-        )
-    return build_lut(sample.rig, grid, feature_stride, size, heights_per_voxel=heights_per_voxel)
-
-
-def graph_inputs(
-    samples: Sequence[Sample],
-    sessions32: Mapping[str, Any],
-    camera_names: Sequence[str],
-    size: tuple[int, int],
-    preset: Any,
-    num_slices: int,
-    luts: Sequence[Lut] | None = None,
-) -> GraphInputs:
-    """Run the fp32 encoder and lifter over the samples to get each graph's real inputs.
-
-    ``sessions32``: onnxruntime sessions of the fp32 graphs by name; ``size`` (W, H) of the export's images;
-    ``preset`` the exported ``Preset`` (grid, feature stride, pillar limits); ``luts`` one per sample, default
-    each sample's own (``sample_lut``). Slices without a pillar are left out (the runtime does not run them).
-
-    A LiDAR-only preset (``use_image`` False) has only the slice graph: its feeds are the pillar tensors and the
-    slice's quadrant ids, no image is read (``camera_names`` may be empty, ``sessions32`` need only hold slice_head),
-    and the encoder and lifter lists stay empty.
+    Each sample goes through the runtime as every tool feeds it (``runtime_ort.pipeline.detect_sample``): its images
+    with a LUT of its own rig (the swap happens before the recording starts: the re-lift of the previous sample's
+    images it makes is no calibration input), then its sweep slice by slice. Slices without a pillar run no graph.
+    A LiDAR-only export records its slice graph alone: no image is read.
     """
-    if not preset.use_image:
-        return _lidar_graph_inputs(samples, preset, num_slices)
-    enc, lift, sl = [], [], []
-    sources = []
-    pil = preset.pillars
-    for i, sample in enumerate(samples):
-        images = np.stack([load_image(sample.image_paths[n], size) for n in camera_names])  # (J, H, W, 3)
-        lut = luts[i] if luts is not None else sample_lut(sample, camera_names, preset.grid, preset.image.feature_stride,
-                                                          size, preset.lifter.lut_heights_per_voxel)  # fmt: skip
-        (features,) = sessions32["image_encoder"].run(None, {"images": images})  # (J, C, Hf, Wf)
-        lifter_feeds = {"features": features, "lut_index": lut.index, "lut_weight": lut.weight}
-        (bev,) = sessions32["volumetric_lifter"].run(None, lifter_feeds)  # (4, C, Yq, Xq)
-        enc.append({"images": images})
-        lift.append(lifter_feeds)
-        for s in slice_sample(sample, num_slices):
-            pl = pillarize(s.points, preset.grid, s.quadrants, pil.max_points_per_pillar, pil.max_pillars)
-            if pl.num_pillars == 0:
-                continue
-            sl.append({**pl.as_feeds(), "image_bev": np.ascontiguousarray(bev[list(s.quadrants)])})  # (Q, C, Yq, Xq)
-            sources.append((i, tuple(s.quadrants)))
-    return GraphInputs(enc, lift, sl, sources)
-
-
-def _lidar_graph_inputs(samples: Sequence[Sample], preset: Any, num_slices: int) -> GraphInputs:
-    """The LiDAR-only slice graph's real inputs: every non-empty slice of every sample, pillarised."""
-    sl, sources = [], []
-    pil = preset.pillars
-    for i, sample in enumerate(samples):
-        for s in slice_sample(sample, num_slices):
-            pl = pillarize(s.points, preset.grid, s.quadrants, pil.max_points_per_pillar, pil.max_pillars, crop=preset.slice_crop)
-            if pl.num_pillars:  # without the crop the graph takes no quadrant ids (one whole-grid map)
-                sl.append(pl.as_feeds(tuple(s.quadrants) if preset.slice_crop else None))
-                sources.append((i, tuple(s.quadrants)))
-    return GraphInputs([], [], sl, sources)
+    recording = GraphRecording()
+    for sample in samples:
+        try:
+            if detector.uses_images:
+                use_sample_calibration(detector, sample)
+            with detector.recording(recording):
+                detect_sample(detector, sample)
+        except (CalibrationError, OSError) as e:
+            raise Int8CalibrationDataError(f"calibration sample {sample.token}: {e}") from None
+    return recording

@@ -10,8 +10,8 @@ from typing import Any
 import numpy as np
 
 from streamdet.core.boxes import YAW, pair_boxes
-from streamdet.export.int8_data import GraphInputs
 from streamdet.runtime_ort.manifest import BoxAgreement, Int8OutputParity
+from streamdet.runtime_ort.recording import GraphRecording
 
 BOX_SCORE_THRESHOLD = 0.1  # boxes compared by box_agreement (the pipeline parity's threshold)
 
@@ -113,35 +113,33 @@ class Int8Parity:
     boxes: BoxAgreement
 
 
-def int8_parity(
-    sessions32: Mapping[str, Any], sessions8: Mapping[str, Any], inputs: GraphInputs, cell_m: float
-) -> Int8Parity:
-    """int8 graphs against fp32 graphs on ``inputs`` (fp32 upstream): each graph alone on the same inputs, then the
-    whole int8 pipeline (int8 encoder -> int8 lifter -> int8 slice graph) against the fp32 pipeline.
+def int8_parity(run32: GraphRecording, run8: GraphRecording, sessions8: Mapping[str, Any], cell_m: float) -> Int8Parity:
+    """int8 graphs against fp32 graphs, from the graph runs the fp32 and the int8 detector recorded over the same
+    samples (``StreamingDetector.recording``): each int8 graph alone on the fp32 graph's recorded feeds
+    (``sessions8``: the int8 detector's sessions by graph name), then the int8 pipeline (the int8 detector's own
+    runs: int8 encoder -> int8 lifter -> int8 slice graph) against the fp32 pipeline.
 
-    Inputs without encoder feeds are a LiDAR-only export's: the slice graph is the whole pipeline, compared once."""
+    A LiDAR-only export (no encoder runs) has the slice graph as its whole pipeline: the int8 detector ran it on the
+    fp32 detector's feeds, compared once."""
     out: list[Int8OutputParity] = []
-    run = lambda s, feeds: s.run(None, feeds)  # noqa: E731
-    if not inputs.image_encoder:
-        dets32 = [run(sessions32["slice_head"], f) for f in inputs.slice_head]
-        dets8 = [run(sessions8["slice_head"], f) for f in inputs.slice_head]
+    dets32 = run32.outputs("slice_head")
+    if not run32.of("image_encoder"):
+        dets8 = run8.outputs("slice_head")
         out.extend(_slice_parity("same", dets8, dets32, cell_m))
         return Int8Parity(tuple(out), box_agreement(dets32, dets8, cell_m))
-    f32 = [run(sessions32["image_encoder"], f)[0] for f in inputs.image_encoder]
-    f8 = [run(sessions8["image_encoder"], f)[0] for f in inputs.image_encoder]
-    out.append(dense_parity("image_encoder", "features", "same", f8, f32))
-    bev32 = [run(sessions32["volumetric_lifter"], f)[0] for f in inputs.volumetric_lifter]
-    bev8 = [run(sessions8["volumetric_lifter"], f)[0] for f in inputs.volumetric_lifter]
-    out.append(dense_parity("volumetric_lifter", "image_bev", "same", bev8, bev32))
-    dets32 = [run(sessions32["slice_head"], f) for f in inputs.slice_head]
-    dets8 = [run(sessions8["slice_head"], f) for f in inputs.slice_head]
-    out.extend(_slice_parity("same", dets8, dets32, cell_m))
-    # the int8 pipeline: each int8 graph fed by the int8 graph before it
-    bev8p = [run(sessions8["volumetric_lifter"], {**lf, "features": f})[0] for lf, f in zip(inputs.volumetric_lifter, f8)]
-    out.append(dense_parity("volumetric_lifter", "image_bev", "pipeline", bev8p, bev32))
-    dets8p = []
-    for feeds, (i, quadrants) in zip(inputs.slice_head, inputs.slice_sources):
-        bev = np.ascontiguousarray(bev8p[i][list(quadrants)])  # (Q, C, Yq, Xq)
-        dets8p.append(run(sessions8["slice_head"], {**feeds, "image_bev": bev}))
-    out.extend(_slice_parity("pipeline", dets8p, dets32, cell_m))
-    return Int8Parity(tuple(out), box_agreement(dets32, dets8p, cell_m))
+
+    def alone(name: str) -> list[list[np.ndarray]]:
+        return [sessions8[name].run(feeds) for feeds in run32.feeds(name)]
+
+    def first(outputs: Sequence[Sequence[np.ndarray]]) -> list[np.ndarray]:
+        return [o[0] for o in outputs]
+
+    out.append(dense_parity("image_encoder", "features", "same", first(alone("image_encoder")), first(run32.outputs("image_encoder"))))
+    bev32 = first(run32.outputs("volumetric_lifter"))
+    out.append(dense_parity("volumetric_lifter", "image_bev", "same", first(alone("volumetric_lifter")), bev32))
+    out.extend(_slice_parity("same", alone("slice_head"), dets32, cell_m))
+    # the int8 pipeline: each int8 graph fed by the int8 graph before it, as the int8 detector runs them
+    out.append(dense_parity("volumetric_lifter", "image_bev", "pipeline", first(run8.outputs("volumetric_lifter")), bev32))
+    dets8 = run8.outputs("slice_head")
+    out.extend(_slice_parity("pipeline", dets8, dets32, cell_m))
+    return Int8Parity(tuple(out), box_agreement(dets32, dets8, cell_m))

@@ -4,6 +4,7 @@ one-line form of a parity record the progress shows."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import onnx
 import onnxruntime as ort
@@ -38,14 +39,22 @@ _DTYPE_NAMES = {
 }
 
 
-def write_export_manifest(
+def write_export_manifest(tmp: Path, *args: Any, **kwargs: Any) -> Manifest:
+    """``export_manifest`` of the export in ``tmp``, written there as manifest.json."""
+    manifest = export_manifest(tmp, *args, **kwargs)
+    write_manifest(manifest, tmp)
+    return manifest
+
+
+def export_manifest(
     tmp: Path, preset: Preset, num_slices: int, opset: int, precisions: tuple[str, ...], graph_names: tuple[str, ...],
     gmacs: Gmacs, parity: list[ParityRecord], pipeline: PipelineParity | None, int8_record: Int8Record | None,
     source: WeightsSource, parity_input: str, *, image: ImageSpec | None = None,
     normalisation: Normalisation | None = None, lut: LutEntry | None = None,
 ) -> Manifest:  # fmt: skip
-    """manifest.json of an export in ``tmp``: every graph of ``graph_names`` in every precision written; image,
-    normalisation and lut stay None for a LiDAR-only export."""
+    """The manifest of an export in ``tmp``: every graph of ``graph_names`` in every precision written; image,
+    normalisation and lut stay None for a LiDAR-only export. Also the staged export's draft, for the runtime the
+    exporter runs on it before manifest.json is written (export/staged_detector.py)."""
     entries = [graph_entry(tmp, name, precision, opset, gmacs[name]) for precision in precisions for name in graph_names]
     manifest = Manifest(
         preset_name=preset.name,
@@ -71,7 +80,6 @@ def write_export_manifest(
             "onnxruntime": ort.__version__,
         },
     )
-    write_manifest(manifest, tmp)
     return manifest
 
 

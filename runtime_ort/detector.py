@@ -42,6 +42,8 @@ import os
 import threading
 import time
 import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Mapping, Sequence
@@ -62,6 +64,7 @@ from streamdet.runtime_ort.manifest import ImageSpec, Manifest, ManifestError, e
 from streamdet.runtime_ort.nms import NmsConfig
 from streamdet.runtime_ort.pillarize import POINT_DIM, pillarize
 from streamdet.runtime_ort.postprocess import Detections, PostprocessConfig, aggregate_sweep, postprocess_slice
+from streamdet.runtime_ort.recording import Feeds, GraphRecording
 from streamdet.runtime_ort.sessions import GraphSession, SessionConfig
 from streamdet.runtime_ort.signature import check_graph, check_runtime_fields
 from streamdet.runtime_ort.stats import LatencyStats
@@ -248,12 +251,20 @@ class _ImageCache:
 
 
 class StreamingDetector:
-    """Runs an export of streamdet with onnxruntime. Thread-safe."""
+    """Runs an export of streamdet with onnxruntime. Thread-safe.
 
-    def __init__(self, export_dir: str | Path, config: DetectorConfig = DetectorConfig()) -> None:
+    ``manifest``: None reads and verifies ``export_dir/manifest.json`` (what every user does). The exporter passes
+    the manifest of the export it is still staging (its files in ``export_dir``, manifest.json not written yet), so
+    that its int8 calibration and pipeline parity run this detector (export/staged_detector.py); the graphs are
+    still checked against it.
+    """
+
+    def __init__(self, export_dir: str | Path, config: DetectorConfig = DetectorConfig(), manifest: Manifest | None = None) -> None:
         self.export_dir = Path(export_dir)
         self.config = config
-        self.manifest: Manifest = read_manifest(self.export_dir, verify_files=config.verify_sha256)
+        if manifest is not None and not isinstance(manifest, Manifest):
+            raise ValueError(f"manifest must be None or a Manifest, got {type(manifest).__name__}")
+        self.manifest: Manifest = manifest if manifest is not None else read_manifest(self.export_dir, verify_files=config.verify_sha256)
         m = self.manifest
         check_runtime_fields(m)
         try:
@@ -306,6 +317,9 @@ class StreamingDetector:
         self.slice_head = session("slice_head", config.slice_lane_threads, config.precision)
         self.providers = self.slice_head.providers
         self.stats = LatencyStats()
+        graphs = {"image_encoder": self.image_encoder, "volumetric_lifter": self.lifter, "slice_head": self.slice_head}
+        self._sessions = {name: g for name, g in graphs.items() if g is not None}
+        self._recordings: tuple[GraphRecording, ...] = ()  # open recording() blocks (swapped whole under _lock)
         # The manifest's MAC counts of the graphs in use; _executed_gmac scales them to each run's sizes for the stats.
         lanes = {"image_encoder": config.image_precision, "volumetric_lifter": config.image_precision, "slice_head": config.precision}
         self._graph_entries = {name: m.graph(name, lanes[name]) for name in m.required_graphs}
@@ -547,7 +561,7 @@ class StreamingDetector:
             return np.zeros((max(1, len(cameras)), c, img.feature_height, img.feature_width), dtype=np.float32)
         batch = np.stack([images[n] for n in used])  # (J_used, H, W, 3)
         with self.stats.time("image_encoder", self._executed_gmac("image_encoder", J=len(used), H=img.height, W=img.width)):
-            (enc,) = self.image_encoder.run({"images": batch})  # (J_used, C, Hf, Wf)
+            (enc,) = self._run_graph("image_encoder", {"images": batch})  # (J_used, C, Hf, Wf)
         if enc.shape[2:] != (img.feature_height, img.feature_width):
             # the LUT's rows address (Hf, Wf) maps: another size would gather the wrong cells without an error
             raise ValueError(
@@ -596,7 +610,7 @@ class StreamingDetector:
     def _lift(self, features: np.ndarray, lut: Lut) -> np.ndarray:
         """The full lift: (4, C, Yq, Xq) from the (J, C, Hf, Wf) feature maps of every camera and the whole LUT."""
         with self.stats.time("volumetric_lifter", self._executed_gmac("volumetric_lifter", Q=NUM_QUADRANTS)):
-            (bev,) = self.lifter.run({"features": features, "lut_index": lut.index, "lut_weight": lut.weight})
+            (bev,) = self._run_graph("volumetric_lifter", {"features": features, "lut_index": lut.index, "lut_weight": lut.weight})
         return bev  # (4, C, Yq, Xq)
 
     def _lift_quadrants(self, features: np.ndarray, cameras: tuple[str, ...], quadrants: tuple[int, ...], lut: Lut) -> list[np.ndarray]:
@@ -614,7 +628,7 @@ class StreamingDetector:
             qlut = qluts[q]
             feeds = {"features": _select_maps(features, cameras, qlut.camera_names), "lut_index": qlut.index, "lut_weight": qlut.weight}
             with self.stats.time("volumetric_lifter", self._executed_gmac("volumetric_lifter", Q=1)):
-                (bev,) = self.lifter.run(feeds)  # (1, C, Yq, Xq)
+                (bev,) = self._run_graph("volumetric_lifter", feeds)  # (1, C, Yq, Xq)
             out.append(bev)
         return out
 
@@ -682,7 +696,7 @@ class StreamingDetector:
                 feeds = pillars.as_feeds(quadrants if self.slice_crop else None)
             num_maps = len(quadrants) if self.slice_crop else 1
             with self.stats.time("slice_head", self._executed_gmac("slice_head", Q=num_maps)):
-                boxes, scores, labels = self.slice_head.run(feeds)
+                boxes, scores, labels = self._run_graph("slice_head", feeds)
             with self.stats.time("post"):
                 dets = postprocess_slice(
                     boxes, scores, labels, quadrants, self.grid, self._post, sector_bounds_deg(k, n, self.config.start_deg),
@@ -743,6 +757,37 @@ class StreamingDetector:
         except ValueError as e:
             raise ValueError(f"num_slices: {e}") from None
         return int(num_slices)
+
+    # ---- graph runs ----------------------------------------------------------------------------
+    @property
+    def sessions(self) -> dict[str, GraphSession]:
+        """The sessions in use by graph name (the image graphs' only with an image lane)."""
+        return dict(self._sessions)
+
+    def _run_graph(self, name: str, feeds: Feeds) -> list[np.ndarray]:
+        outputs = self._sessions[name].run(feeds)
+        for recording in self._recordings:
+            recording.add(name, feeds, outputs)
+        return outputs
+
+    @contextmanager
+    def recording(self, recording: GraphRecording | None = None) -> Iterator[GraphRecording]:
+        """Record every graph run of this detector (any lane, any thread) while the block runs: its graph, the exact
+        feeds it was given and its outputs (runtime_ort/recording.py), appended to ``recording`` (None: a new
+        one). Blocks may nest or overlap; each records what ran while it was open.
+
+            with detector.recording() as rec:
+                detect_sample(detector, sample)
+            rec.feeds("slice_head")  # the pillar tensors and image BEV of every non-empty slice
+        """
+        recording = GraphRecording() if recording is None else recording
+        with self._lock:
+            self._recordings = (*self._recordings, recording)
+        try:
+            yield recording
+        finally:
+            with self._lock:
+                self._recordings = tuple(r for r in self._recordings if r is not recording)
 
     # ---- lifetime ------------------------------------------------------------------------------
     def close(self) -> list[str]:

@@ -2,8 +2,10 @@
 slice. Every tool that runs an export on recorded samples goes through here (``streamdet-run``, ``streamdet-eval``,
 the studies), so they all feed the detector the same way a vehicle would.
 
-- ``sample_images``: the sample's images at the detector's image size, by camera name, after swapping the
-  detector's LUT to the sample's rig when the rig differs (same graphs, a new LUT).
+- ``use_sample_calibration``: the detector's LUT swapped to the sample's rig when the rig differs (same graphs,
+  a new LUT; the cached image BEV is lifted again under it).
+- ``sample_images``: the sample's images at the detector's image size, by camera name, after
+  ``use_sample_calibration``.
 - ``feed_images``: those images through the image lane at the sample's time.
 - ``detect_sample``: ``feed_images`` (when the export has an image lane), then the sweep through
   ``StreamingDetector.detect_sweep_slices``.
@@ -40,11 +42,16 @@ def sample_time_s(sample: Sample) -> float:
     return sample.timestamp_us * 1e-6
 
 
+def use_sample_calibration(detector: StreamingDetector, sample: Sample) -> None:
+    """Swap the detector's LUT to one built from the sample's rig, unless the LUT in use was built from it."""
+    if sample.rig.sha256() != detector.lut.calibration_sha256:
+        detector.set_calibration(sample.rig)  # another rig than the current LUT's: rebuild the LUT, same graphs
+
+
 def sample_images(detector: StreamingDetector, sample: Sample) -> dict[str, np.ndarray]:
     """The sample's camera images (H, W, 3) uint8 at the detector's image size, by name, for the cameras the
     export reads; the detector's LUT is rebuilt from the sample's rig first if it was built from another rig."""
-    if sample.rig.sha256() != detector.lut.calibration_sha256:
-        detector.set_calibration(sample.rig)  # another rig than the current LUT's: rebuild the LUT, same graphs
+    use_sample_calibration(detector, sample)
     size = (detector.image.width, detector.image.height)
     images = sample.load_images(size)  # (J, H, W, 3) in rig order
     return {name: images[j] for j, name in enumerate(sample.rig.names) if name in detector.camera_names}

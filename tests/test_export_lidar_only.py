@@ -12,6 +12,8 @@ import pytest
 import torch
 from click.testing import CliRunner
 
+from streamdet.core.sectors import quadrants_of_sector
+from streamdet.core.slicing import split_sweep
 from streamdet.data.sample import load_bundled_sample
 from streamdet.data.slicing import slice_sample
 from streamdet.export.cli import main as export_main
@@ -113,6 +115,33 @@ def test_sweep_through_onnx_equals_pytorch(detector, sample, num_slices):
     np.testing.assert_allclose(onnx.scores, ref.scores, rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(onnx.boxes, ref.boxes, rtol=1e-4, atol=1e-4)
     assert np.array_equal(onnx.labels, ref.labels)
+
+
+@pytest.mark.parametrize("empty_slices", [False, True])
+def test_recorded_feeds_are_the_pillars_and_quadrant_ids(detector, sample, empty_slices):
+    """What the runtime records (and the int8 calibration quantizes on): each non-empty slice's pillar tensors with
+    its quadrant ids, no image graph; a slice without a pillar runs nothing."""
+    from streamdet.export.int8 import record_graph_inputs
+
+    points = sample.points[sample.points[:, 1] >= 0.5] if empty_slices else sample.points  # y < 0: no point
+    pil, g = LIDAR_ONLY.pillars, LIDAR_ONLY.grid
+    with detector.recording() as rec:
+        detector.detect_sweep_slices(points, timestamp=0.0)
+    want = []
+    for k, pts in enumerate(split_sweep(points, N_SLICES)):
+        quadrants = quadrants_of_sector(k, N_SLICES)
+        pl = pillarize(pts, g, quadrants, pil.max_points_per_pillar, pil.max_pillars)
+        if pl.num_pillars:
+            want.append(pl.as_feeds(quadrants))
+    assert (len(want) < N_SLICES) == empty_slices and [r.graph for r in rec.runs] == ["slice_head"] * len(want)
+    for run, feeds in zip(rec.runs, want, strict=True):
+        assert sorted(run.feeds) == sorted(feeds) == ["pillar_features", "pillar_index", "pillar_mask", "quadrants"]
+        assert all(np.array_equal(run.feeds[n], feeds[n]) and run.feeds[n].dtype == feeds[n].dtype for n in feeds)
+    calibration = record_graph_inputs(detector, [sample])  # the whole bundled sweep: no image read
+    assert {r.graph for r in calibration.runs} == {"slice_head"}
+    if not empty_slices:
+        assert len(calibration) == len(rec)
+        assert all(np.array_equal(a.feeds["pillar_features"], b.feeds["pillar_features"]) for a, b in zip(calibration.runs, rec.runs))
 
 
 def test_runtime_has_no_image_lane(detector, sample, export_dir):

@@ -1,8 +1,10 @@
-"""int8 calibration on a dataset (a tiny synthetic one): train-split samples, the graphs' real inputs against a
-naive rebuild, and an export with --calibration-data whose parity is on the held-out bundled sample."""
+"""int8 calibration on a dataset (a tiny synthetic one): train-split samples, the graphs' real inputs (recorded by the
+fp32 runtime) against a naive rebuild, and an export with --calibration-data whose parity is on the held-out
+bundled sample."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 
@@ -20,6 +22,7 @@ from streamdet.data.synth_writer import SynthConfig, generate_dataset
 from streamdet.export import int8 as q8
 from streamdet.export.cli import main
 from streamdet.models.presets import Preset, get_preset
+from streamdet.runtime_ort.detector import StreamingDetector
 from streamdet.runtime_ort.manifest import GRAPH_NAMES, read_manifest
 from streamdet.runtime_ort.pillarize import pillarize
 
@@ -70,48 +73,52 @@ def test_without_splits_every_sample_is_used(dataset, tmp_path):
 
 
 def _tiny(width: int, height: int) -> Preset:
-    import dataclasses
-
     p = get_preset("tiny")
     return dataclasses.replace(p, image=dataclasses.replace(p.image, width_px=width, height_px=height))
 
 
-def test_graph_inputs_against_a_naive_rebuild(dataset, export_dir):
+def test_recorded_inputs_against_a_naive_rebuild(dataset, export_dir):
+    """The calibration feeds the fp32 runtime records (record_graph_inputs) against each graph's inputs built by hand:
+    each sample's images, a LUT of its own rig, its slices pillarised with the fp32 lifter's image BEV."""
     m = read_manifest(export_dir)
     size = (m.image.width, m.image.height)
     preset = _tiny(*size)
     names = m.image.camera_names
     sessions = {n: ort.InferenceSession(str(export_dir / m.graph(n).file), providers=["CPUExecutionProvider"]) for n in GRAPH_NAMES}
     cal = q8.load_calibration_samples(dataset, 2, names)
-    got = q8.graph_inputs(cal.samples, sessions, names, size, preset, num_slices=8)
-    assert len(got.image_encoder) == len(got.volumetric_lifter) == 2
-    expect_slices = 0
+    got = q8.record_graph_inputs(StreamingDetector(export_dir), cal.samples)
+    enc, lift, slices = (got.feeds(n) for n in GRAPH_NAMES)
+    assert len(enc) == len(lift) == 2
+    expect_slices, order = 0, []
     for i, sample in enumerate(cal.samples):
+        order += ["image_encoder", "volumetric_lifter"]
         images = np.stack([load_image(sample.image_paths[n], size) for n in names])
-        assert np.array_equal(got.image_encoder[i]["images"], images)
+        assert np.array_equal(enc[i]["images"], images)
         lut = build_lut(sample.rig, preset.grid, preset.image.feature_stride, size)
-        assert np.array_equal(got.volumetric_lifter[i]["lut_index"], lut.index)
-        assert np.array_equal(got.volumetric_lifter[i]["lut_weight"], lut.weight)
+        assert np.array_equal(lift[i]["lut_index"], lut.index)
+        assert np.array_equal(lift[i]["lut_weight"], lut.weight)
         (features,) = sessions["image_encoder"].run(None, {"images": images})
-        np.testing.assert_allclose(got.volumetric_lifter[i]["features"], features, rtol=1e-5, atol=1e-5)
-        (bev,) = sessions["volumetric_lifter"].run(None, got.volumetric_lifter[i])
+        np.testing.assert_allclose(lift[i]["features"], features, rtol=1e-5, atol=1e-5)
+        (bev,) = sessions["volumetric_lifter"].run(None, lift[i])
         for s in slice_sample(sample, 8):
             pl = pillarize(s.points, preset.grid, s.quadrants, preset.pillars.max_points_per_pillar, preset.pillars.max_pillars)
             if pl.num_pillars == 0:
                 continue
-            feeds = got.slice_head[expect_slices]
-            assert got.slice_sources[expect_slices] == (i, tuple(s.quadrants))
+            feeds = slices[expect_slices]
             assert np.array_equal(feeds["pillar_index"], pl.index) and np.array_equal(feeds["pillar_features"], pl.features)
             np.testing.assert_allclose(feeds["image_bev"], bev[list(s.quadrants)], rtol=1e-5, atol=1e-5)
             expect_slices += 1
-    assert len(got.slice_head) == expect_slices > 0
+            order.append("slice_head")
+    assert len(slices) == expect_slices > 0
+    assert [r.graph for r in got.runs] == order  # sample by sample: its images, then its slices
 
 
-def test_sample_lut_refuses_another_camera_order(dataset):
+def test_a_sample_of_another_camera_order_is_refused(dataset, export_dir):
     sample = q8.load_calibration_samples(dataset, 1, ("CAM_FRONT",)).samples[0]
-    names = tuple(reversed(sample.rig.names))
-    with pytest.raises(q8.Int8CalibrationDataError, match="orders them"):
-        q8.sample_lut(sample, names, get_preset("tiny").grid, 4, (128, 72))
+    cameras = sample.rig.cameras[::-1]
+    reordered = dataclasses.replace(sample, rig=dataclasses.replace(sample.rig, cameras=cameras))
+    with pytest.raises(q8.Int8CalibrationDataError, match=f"calibration sample {sample.token}: .*do not match the export's"):
+        q8.record_graph_inputs(StreamingDetector(export_dir), [reordered])
 
 
 def test_manifest_names_the_dataset(dataset, export_dir, train_tokens):
