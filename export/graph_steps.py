@@ -19,8 +19,6 @@ import torch
 from streamdet.calibration.camera import CalibrationError, Rig
 from streamdet.calibration.lut import build_lut
 from streamdet.core.constants import BUNDLED_CALIBRATION_SOURCE
-from streamdet.core.slicing import split_sweep
-from streamdet.data.sample import load_bundled_sample
 from streamdet.export import onnx_export as ox
 from streamdet.export.export_run import ExportRun, Feeds
 from streamdet.export.fp16 import convert_model_to_fp16
@@ -221,16 +219,14 @@ def parity_fp16(run: ExportRun) -> None:
 
 def driver_slice(detector: StreamingDetector, run: ExportRun) -> tuple[SliceResult, tuple[np.ndarray, ...]]:
     """The parity slice through the runtime as a vehicle feeds it: the parity images (those of the cameras that see
-    the slice's quadrants are encoded and lifted), then the slice's points of the bundled sweep; the detector's
-    result and its slice graph's outputs (det_boxes, det_scores, det_labels)."""
+    the slice's quadrants are encoded and lifted), then the slice's points; the detector's result and its slice
+    graph's outputs (det_boxes, det_scores, det_labels)."""
     inputs = run.inputs
-    sweep = np.asarray(load_bundled_sample().points, np.float32)
-    points = split_sweep(sweep, run.opts.num_slices, detector.config.start_deg)[inputs.slice_index]  # (N, 6)
     with detector.recording() as recording:
         if detector.uses_images:
             images = dict(zip(detector.camera_names, inputs.images))
             detector.update_images(images, timestamp=0.0, quadrants=sorted(inputs.quadrants))
-        result = detector.detect_slice(points, inputs.slice_index, timestamp=0.0, num_slices=run.opts.num_slices)
+        result = detector.detect_slice(inputs.points, inputs.slice_index, timestamp=0.0, num_slices=run.opts.num_slices)
     runs = recording.outputs("slice_head")
     if not runs:
         raise ExportError(f"the parity slice {inputs.slice_index} holds no pillar: no pipeline to compare")

@@ -29,9 +29,13 @@ class ParityInputs:
     pillars: Pillars
     quadrants: tuple[int, ...]
     slice_index: int
-    num_points: int
+    points: np.ndarray  # (N, 6) float32 the slice's points: ``pillars`` pillarised, what the runtime parity feeds
     num_maps: int  # Q of the slice graph: one map per quadrant, or 1 without the crop (calibration/slice_maps.py)
     slice_crop: bool = True  # False: the slice graph runs one whole-grid map (Preset.slice_crop)
+
+    @property
+    def num_points(self) -> int:
+        return len(self.points)
 
     @property
     def images_read(self) -> np.ndarray:
@@ -55,10 +59,10 @@ def parity_inputs(rig: Rig | None, lut: Lut | None, preset: Preset, size: tuple[
                   seed: int) -> ParityInputs:  # fmt: skip
     """The parity inputs of an export; ``rig`` and ``lut`` None for a LiDAR-only one (no images)."""
     sample: Sample = load_bundled_sample()
-    pl, quadrants, k, num_points = busiest_slice(sample, preset, num_slices)
+    pl, quadrants, k, points = busiest_slice(sample, preset, num_slices)
     num_maps = slice_maps(preset.grid, quadrants, preset.slice_crop).count
     if rig is None or lut is None:
-        return ParityInputs(None, False, (), pl, quadrants, k, num_points, num_maps, preset.slice_crop)
+        return ParityInputs(None, False, (), pl, quadrants, k, points, num_maps, preset.slice_crop)
     width, height = size
     if set(rig.names) <= set(sample.image_paths):
         images = np.stack([load_image(sample.image_paths[n], size) for n in rig.names])  # (J, H, W, 3)
@@ -69,17 +73,17 @@ def parity_inputs(rig: Rig | None, lut: Lut | None, preset: Preset, size: tuple[
     index, _ = lut.for_quadrants(quadrants)
     rows = np.unique(index[index != lut.sentinel])
     cams = tuple(int(j) for j in np.unique(rows // (lut.feature_width * lut.feature_height))) or (0,)
-    return ParityInputs(images, real, cams, pl, quadrants, k, num_points, num_maps, preset.slice_crop)
+    return ParityInputs(images, real, cams, pl, quadrants, k, points, num_maps, preset.slice_crop)
 
 
-def busiest_slice(sample: Sample, preset: Preset, num_slices: int) -> tuple[Pillars, tuple[int, ...], int, int]:
-    """The pillars, quadrants, index and point count of the sample's slice with the most points: the parity slice."""
+def busiest_slice(sample: Sample, preset: Preset, num_slices: int) -> tuple[Pillars, tuple[int, ...], int, np.ndarray]:
+    """The pillars, quadrants, index and (N, 6) points of the sample's slice with the most points: the parity slice."""
     slices = slice_sample(sample, num_slices)
     k = int(np.argmax([len(s.points) for s in slices]))
     sl = slices[k]
     pl = pillarize(sl.points, preset.grid, sl.quadrants, preset.pillars.max_points_per_pillar, preset.pillars.max_pillars,
                    crop=preset.slice_crop)  # fmt: skip
-    return pl, tuple(sl.quadrants), k, len(sl.points)
+    return pl, tuple(sl.quadrants), k, sl.points
 
 
 def scatter_cameras(features_read: np.ndarray, cams: tuple[int, ...], num_cameras: int) -> np.ndarray:
