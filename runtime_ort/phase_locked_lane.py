@@ -7,7 +7,10 @@ enters next, from the cameras that see it (``StreamingDetector.update_images(qua
 whose cameras have no frame newer than the ones it was last lifted from is not lifted again; one whose cameras sent
 newer frames after its lift is lifted again for its next slice (so a slice reads the newest frames that could be
 lifted in time, and each quadrant is lifted at most once per new frame). Each camera frame is encoded once, however
-many quadrants use it (``encode_images``).
+many quadrants use it (``encode_images``), and ahead of its lifts: while the next lift is not due yet, the lane
+encodes the frames that arrived (oldest first, when the encoding ends before that lift must start), so that a lift
+is only a lift and can start later, with newer frames (cameras that fire one after the other, as the LiDAR
+crosses their axes, deliver a frame every few milliseconds).
 
 Degraded behaviour, in this order (each counted in ``PhaseLockStats``):
 
@@ -51,6 +54,7 @@ class PhaseLockStats:
     full_updates: int = 0  # full updates run before the rotation was locked
     quadrants_skipped: int = 0  # passes with newer frames that could not be lifted in time (older BEV kept)
     cameras_encoded: int = 0  # camera frames encoded (each once)
+    encoded_ahead: int = 0  # of those, encoded on arrival, before the lift that used them was due
     late_lifts: int = 0  # lifts that ended after their deadline (the duration estimate was short)
 
 
@@ -160,7 +164,8 @@ class PhaseLockedImageLane:
         return _robust_max(self._durations[quadrant]) + fresh * _robust_max(self._encode_s)
 
     def step(self, now_s: float) -> float | None:
-        """Run what is due at ``now_s`` (at most one update); the time to call again (None: at the next event)."""
+        """Run what is due at ``now_s`` (at most one update, or one frame encoded ahead); the time to call again
+        (None: at the next event)."""
         with self._cond:
             if not self._frames:
                 return None
@@ -176,18 +181,29 @@ class PhaseLockedImageLane:
                 if plan is None:  # no quadrant has newer frames than it was lifted from
                     return None
                 if plan.start_s > now_s:
-                    return plan.start_s
-                self._done.extend(plan.skipped)
-                self.stats.quadrants_skipped += len(plan.skipped)
-                self._done.append((plan.deadline_s, plan.slice_index, plan.quadrant))
-                self._wanted_since[plan.quadrant] = None  # frames that arrive during the lift set it again
-                cams = set(self.detector.quadrant_cameras([plan.quadrant]))
-                frames = {n: f for n, f in self._frames.items() if n in cams}
-                quadrants, deadline = (plan.quadrant,), plan.deadline_s
+                    ahead = self._encode_ahead(now_s, plan.start_s)
+                    if ahead is None:
+                        return plan.start_s
+                    encode = ahead
+                else:
+                    encode = None
+                    self._done.extend(plan.skipped)
+                    self.stats.quadrants_skipped += len(plan.skipped)
+                    self._done.append((plan.deadline_s, plan.slice_index, plan.quadrant))
+                    self._wanted_since[plan.quadrant] = None  # frames that arrive during the lift set it again
+                    cams = set(self.detector.quadrant_cameras([plan.quadrant]))
+                    frames = {n: f for n, f in self._frames.items() if n in cams}
+                    quadrants, deadline = (plan.quadrant,), plan.deadline_s
+                if encode is not None:  # nothing due yet: encode a frame that arrived, off the lock
+                    frames = {encode[0]: encode[1]}
+                    quadrants, deadline = (), None
             # the image sets this update is the first to use: from here on none of them can be superseded
-            owners = list({id(f.owner): f.owner for f in frames.values() if not f.owner.used}.values())
+            owners = [] if quadrants == () else list({id(f.owner): f.owner for f in frames.values() if not f.owner.used}.values())
             for owner in owners:
                 owner.used = True
+        if quadrants == ():
+            self._encode_only(frames)
+            return now_s
         try:
             update = self._update(frames, quadrants, deadline)
         except BaseException as e:
@@ -195,6 +211,29 @@ class PhaseLockedImageLane:
             raise
         _settle(owners, result=update)
         return now_s
+
+    def _encode_ahead(self, now_s: float, start_s: float) -> tuple[str, _Frame] | None:
+        """(camera, frame) of the oldest frame not encoded yet, if encoding it ends before ``start_s`` (the next
+        lift's start); else None."""
+        pending = [(f.seq, n, f) for n, f in self._frames.items() if f.features is None]
+        if not pending or now_s + _robust_max(self._encode_s) > start_s:
+            return None
+        _, name, frame = min(pending, key=lambda p: p[0])
+        return name, frame
+
+    def _encode_only(self, frames: dict[str, _Frame]) -> None:
+        """Encode frames ahead of their lifts. Off the lock; a frame replaced meanwhile was encoded for nothing."""
+        cpu0 = time.thread_time()
+        t0 = self.clock()
+        encoded = self.detector.encode_images({n: f.image for n, f in frames.items()})
+        t1 = self.clock()
+        with self._cond:
+            for name, feats in encoded.items():
+                frames[name].features = feats
+            self.stats.cameras_encoded += len(encoded)
+            self.stats.encoded_ahead += len(encoded)
+            self._encode_s.append((t1 - t0) / max(1, len(encoded)))
+            self.cpu_s += time.thread_time() - cpu0
 
     def _overdue(self, now_s: float) -> int | None:
         """The quadrant that has waited longest for its newer frames, if that is more than a rotation (the lane is

@@ -231,10 +231,19 @@ def test_an_image_set_replaced_before_any_lift_is_superseded():
         old.result(0)
     assert lane.images_superseded == 1 and not new.done()
     wake = lane.step(0.0)
-    assert wake > 0.0  # too early: the first pass (slice 0 at 6.25 ms) starts later
+    while wake == clock.t:  # the frames are encoded ahead of their lift, one per step
+        wake = lane.step(clock.t)
+    assert wake > 0.0 and not det.lifts  # too early: the first pass (slice 0 at 6.25 ms) starts later
+    assert lane.stats.encoded_ahead == len(CAMERAS) and not new.done()  # encoding ahead uses no image set
     clock.t = wake
     lane.step(wake)
     assert new.result(0).quadrants == (0,) and det.lifts[-1][1] == 2.0
+
+
+def test_frames_are_encoded_ahead_of_their_lifts_each_once():
+    lane, det, *_ = simulate(lift_s=0.005, encode_s=0.002, known_rate=True)
+    assert 0 < lane.stats.encoded_ahead <= lane.stats.cameras_encoded == len(det.encoded)
+    assert lane.stats.quadrant_lifts > 0  # and every lift got its frames encoded (FakeDetector.update_images asserts)
 
 
 # ---- the runner ------------------------------------------------------------------------------------------------
