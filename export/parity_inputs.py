@@ -14,6 +14,7 @@ import numpy as np
 
 from streamdet.calibration.camera import Rig
 from streamdet.calibration.lut import Lut
+from streamdet.calibration.quadrant_lut import quadrant_lut
 from streamdet.calibration.slice_maps import slice_maps
 from streamdet.data.sample import Sample, load_bundled_sample, load_image
 from streamdet.data.slicing import slice_sample
@@ -70,9 +71,8 @@ def parity_inputs(rig: Rig | None, lut: Lut | None, preset: Preset, size: tuple[
     else:
         images = np.random.default_rng(seed).integers(0, 256, (len(rig), height, width, 3), dtype=np.uint8)
         real = False
-    index, _ = lut.for_quadrants(quadrants)
-    rows = np.unique(index[index != lut.sentinel])
-    cams = tuple(int(j) for j in np.unique(rows // (lut.feature_width * lut.feature_height))) or (0,)
+    # the cameras the runtime encodes for these quadrants (its per-quadrant LUTs say which)
+    cams = tuple(sorted({j for q in quadrants for j in quadrant_lut(lut, q).camera_indices})) or (0,)
     return ParityInputs(images, real, cams, pl, quadrants, k, points, num_maps, preset.slice_crop)
 
 
