@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from streamdet.benchmarks.prepost import format_prepost, prepost_to_dict
 from streamdet.benchmarks.probe import ProbeResult
 from streamdet.benchmarks.streaming import LaneStats, StreamingResult
+from streamdet.benchmarks.streaming_schedules import format_schedules
 from streamdet.benchmarks.table import CROP_PAIRS, RowResult
 from streamdet.benchmarks.timing import TimingStats
 
@@ -299,6 +300,7 @@ def format_streaming(s: StreamingResult) -> str:
             else ""
         )
     )
+    lines += format_schedules(s.schedules)
     if s.prepost:
         lines.append(format_prepost(s.prepost))
     return "\n".join(lines)
@@ -387,6 +389,7 @@ def streaming_to_dict(s: StreamingResult) -> dict:
         "config": dataclasses.asdict(s.config),
         "profiles": {k: v.to_dict(top=10) for k, v in s.profiles.items()},
         "prepost": prepost_to_dict(s.prepost),
+        "image_lane_schedules": s.schedules,
     }
 
 

@@ -65,7 +65,7 @@ class BenchConfig:
 
     def streaming(self) -> StreamingConfig:
         cfg = StreamingConfig(num_slices=self.slices, precision=self.stream_precision, image_precision=self.stream_image_precision)
-        return dataclasses.replace(cfg, sweeps=2, image_updates=1, queue_sweeps=1) if self.quick else cfg
+        return dataclasses.replace(cfg, sweeps=2, image_updates=1, queue_sweeps=1, schedule_seconds=1.0) if self.quick else cfg
 
 
 @dataclass(frozen=True)

@@ -11,6 +11,8 @@ the lanes are for latency isolation, not throughput):
                 back to back and keeps a virtual clock (start = max(arrival, previous finish)), so no time is
                 spent sleeping; like the image lane of ``runtime_ort.lanes``, a waiting image set is replaced
                 by a newer one.
+(d) schedules:  the image lane's ``full`` and ``phase-locked`` schedules on the wall clock at nuScenes rates
+                (``streaming_schedules.py``): staleness added, image age, slice p99, drops, image-lane CPU.
 
 Real-time factor = slice p50 / (100 ms / N) for a 10 Hz LiDAR delivering N slices: <= 1 keeps up.
 """
@@ -33,6 +35,7 @@ import numpy as np
 
 from streamdet.benchmarks.ort_profile import ProfileSummary, summarize_profile
 from streamdet.benchmarks.prepost import PrePostCase, measure_prepost
+from streamdet.benchmarks.streaming_schedules import measure_schedules
 from streamdet.benchmarks.timing import TimingConfig, TimingStats, summarize
 from streamdet.core.slicing import split_sweep
 from streamdet.data.sample import load_bundled_sample
@@ -55,6 +58,9 @@ class StreamingConfig:
     image_budget_s: float = 20.0  # ... unless they would take longer than this (the paper preset: a minute each)
     queue_sweeps: int = 4  # sweeps of arrivals in (c)
     warmup_sweeps: int = 1
+    # (d) seconds of the bundled sweep played at nuScenes rates through each image-lane schedule
+    # (streaming_schedules.py); 0: skip
+    schedule_seconds: float = 3.0
 
     def __post_init__(self) -> None:
         for name in ("sweeps", "image_updates", "queue_sweeps"):
@@ -66,6 +72,8 @@ class StreamingConfig:
                 raise ValueError(f"StreamingConfig.{name} must be > 0 Hz, got {getattr(self, name)!r}")
         if not self.image_budget_s > 0:
             raise ValueError(f"StreamingConfig.image_budget_s must be > 0 s, got {self.image_budget_s!r}")
+        if not self.schedule_seconds >= 0:
+            raise ValueError(f"StreamingConfig.schedule_seconds must be >= 0 s, got {self.schedule_seconds!r}")
 
 
 # ---- the sequential queue ----------------------------------------------------------------------------------
@@ -194,6 +202,8 @@ class StreamingResult:
     profiles: dict[str, ProfileSummary] = dataclasses.field(default_factory=dict)  # profile_streaming's, if run
     prepost: tuple[PrePostCase, ...] = ()  # the runtime's numpy stages timed alone (benchmarks/prepost.py)
     image_precision: str = ""  # the image lane's graphs; "" (older results): precision
+    # (d) per image-lane schedule: staleness, image age, slice p99, drops, CPU per rotation (streaming_schedules.py)
+    schedules: dict[str, dict] = dataclasses.field(default_factory=dict)
 
     @property
     def precision_label(self) -> str:
@@ -370,6 +380,10 @@ def measure_streaming(
 
     run = run_sequential_queue(jobs, process)
     det.close()
+    schedules = {}
+    if cfg.schedule_seconds > 0:
+        progress(f"[streaming] (d) image-lane schedules: {cfg.schedule_seconds:g} s at 20 Hz x {n} slices, 12 Hz cameras, each")
+        schedules = measure_schedules(export_dir, cfg.precision, cfg.image_precision, cfg.schedule_seconds)
     progress("[streaming] pillarize and post-processing alone")
     pillars = det.manifest.preset["pillars"]
     prepost = measure_prepost(det.grid, int(pillars["max_points_per_pillar"]), int(pillars["max_pillars"]),
@@ -398,4 +412,5 @@ def measure_streaming(
         sequential_horizon_ms=cfg.queue_sweeps * 1000.0 / cfg.lidar_hz,
         config=cfg,
         prepost=prepost,
+        schedules=schedules,
     )

@@ -1,0 +1,133 @@
+"""The image-lane schedules on a modelled computer: what staleness each schedule and trigger model can reach when
+the stages take given times, whatever else the machine runs.
+
+``python -m streamdet.benchmarks.schedule_model [--seconds 10] [--encode-ms 4.5] [--lift-ms 16] [--slice-ms 6.3]``
+plays a made-up drive at nuScenes rates (``replay.cost.synthetic_drive``: 20 Hz x 8 slices, six 12 Hz cameras
+at the nuScenes sample's axes) on the wall clock through the real `StreamingRunner` (its slice lane, its ``full`` or
+``phase-locked`` image lane) around a detector that *sleeps* for the stage times instead of computing: encoding
+``encode_ms`` per camera frame, lifting ``lift_ms`` per quadrant (a full update lifts four), ``slice_ms`` per slice.
+Each quadrant is stamped as the runtime stamps it (the oldest frame of the cameras that see it), so the staleness
+added by processing, the image age and the slices dropped are the replay's own measures. Sleeping takes no CPU, so
+the lanes do not compete for cores here: this isolates what the *schedule* costs from what the CPU costs (the
+replay on the real export measures both). The defaults are the quiet-machine stage times of the int8 image lane on
+the README's AMD EPYC Zen 4 (docs/replay.md). Results: docs/replay.md, "Trigger models".
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import click
+import numpy as np
+
+from streamdet.core.sectors import NUM_QUADRANTS
+from streamdet.replay.clock import WallClock
+from streamdet.replay.cost import AXES_DEG, CAMERAS, synthetic_drive
+from streamdet.replay.player import PlayerConfig, play
+from streamdet.replay.record import percentiles
+from streamdet.replay.triggers import TRIGGER_MODELS
+from streamdet.runtime_ort.detector import ImageUpdate, SliceResult
+from streamdet.runtime_ort.lanes import SCHEDULES, LaneConfig
+from streamdet.runtime_ort.postprocess import Detections
+
+HALF_FOV_DEG = 35.0  # the nuScenes cameras' half field of view (about 70 deg wide; CAM_BACK's 110 is wider)
+
+
+class _Config:
+    start_deg = 0.0
+
+
+class SleepingDetector:
+    """A StreamingDetector's interface whose stages sleep for modelled times; quadrants stamped like the runtime's."""
+
+    uses_images = True
+    camera_names = CAMERAS
+
+    def __init__(self, encode_ms: float, lift_ms: float, slice_ms: float, num_slices: int = 8) -> None:
+        self.encode_s, self.lift_s, self.slice_s = encode_ms / 1e3, lift_ms / 1e3, slice_ms / 1e3
+        self.num_slices = num_slices
+        self.config = _Config()
+        self._stamps: list[float | None] = [None] * NUM_QUADRANTS
+        self._lock = threading.Lock()
+        self.busy_s = 0.0  # modelled image-lane seconds (what its CPU would be)
+
+    def quadrant_cameras(self, quadrants) -> tuple[str, ...]:
+        """Cameras whose field of view overlaps the quadrants (by azimuth)."""
+        out = []
+        for name in CAMERAS:
+            lo, hi = AXES_DEG[name] - HALF_FOV_DEG, AXES_DEG[name] + HALF_FOV_DEG
+            if any(_overlaps(lo, hi, 90.0 * q, 90.0 * (q + 1)) for q in quadrants):
+                out.append(name)
+        return tuple(out)
+
+    def check_images(self, images) -> None:
+        pass
+
+    def encode_images(self, images) -> dict[str, np.ndarray]:
+        self._sleep(self.encode_s * len(images))
+        return {n: np.zeros(1, np.float32) for n in images}
+
+    def update_images(self, images, timestamp=None, quadrants=None, encoded=None, camera_timestamps=None):
+        wanted = tuple(range(NUM_QUADRANTS)) if quadrants is None else tuple(quadrants)
+        fresh = [n for n in images if not encoded or n not in encoded]
+        self._sleep(self.encode_s * len(fresh) + self.lift_s * len(wanted))
+        stamps = camera_timestamps or {}
+        with self._lock:
+            for q in wanted:
+                seen = [stamps.get(n, timestamp) for n in self.quadrant_cameras([q]) if n in images]
+                self._stamps[q] = min(seen) if seen else timestamp
+        return ImageUpdate(timestamp, tuple(images), (), quadrants=wanted)
+
+    def detect_slice(self, points, slice_index, timestamp=None, num_slices=None):
+        n = num_slices or self.num_slices
+        q = slice_index * NUM_QUADRANTS // n if n >= NUM_QUADRANTS else None
+        with self._lock:
+            stamps = [s for s in (self._stamps if q is None else [self._stamps[q]]) if s is not None]
+        time.sleep(self.slice_s)
+        ts = min(stamps) if stamps else None
+        return SliceResult(Detections.empty(), slice_index, n, timestamp, ts, len(points), 0, 0)
+
+    def _sleep(self, seconds: float) -> None:
+        self.busy_s += seconds
+        time.sleep(seconds)
+
+
+def _overlaps(lo: float, hi: float, a: float, b: float) -> bool:
+    return any(lo + s < b and hi + s > a for s in (-360.0, 0.0, 360.0))
+
+
+def measure(schedule: str, trigger: str, seconds: float, encode_ms: float, lift_ms: float, slice_ms: float) -> dict:
+    drive = synthetic_drive(seconds, camera_trigger=trigger, points=3_600, image_size=(8, 8))
+    det = SleepingDetector(encode_ms, lift_ms, slice_ms)
+    lanes = LaneConfig(schedule=schedule, lidar_hz=20.0)
+    rec = play(drive, det, WallClock(), PlayerConfig("streaming", 8, lanes=lanes))
+    st = percentiles(rec.staleness_ms(), (50, 95))
+    age = percentiles(rec.image_ages_ms(), (50, 95))
+    lat = percentiles(rec.latencies_ms(), (99,))
+    return {"schedule": schedule, "trigger": trigger, "staleness_p50": st["p50"], "staleness_p95": st["p95"],
+            "age_p95": age["p95"], "latency_p99": lat["p99"], "dropped": rec.slices_dropped,
+            "busy_ms_per_rotation": 1e3 * det.busy_s / rec.rotations, "phase_lock": rec.phase_lock}  # fmt: skip
+
+
+@click.command(context_settings={"help_option_names": ["-h", "--help"]})
+@click.option("--seconds", type=click.FloatRange(min=1.0), default=10.0, show_default=True, help="Drive seconds per run.")
+@click.option("--encode-ms", type=click.FloatRange(min=0), default=4.5, show_default=True, help="Encoder ms per camera frame.")
+@click.option("--lift-ms", type=click.FloatRange(min=0), default=16.0, show_default=True, help="Lifter ms per quadrant.")
+@click.option("--slice-ms", type=click.FloatRange(min=0), default=6.3, show_default=True, help="Slice graph ms per slice.")
+def main(seconds: float, encode_ms: float, lift_ms: float, slice_ms: float) -> None:
+    """Staleness, image age and image-lane time per rotation of each schedule under each trigger model."""
+    click.echo(f"modelled stages: encode {encode_ms} ms / frame, lift {lift_ms} ms / quadrant, slice {slice_ms} ms; "
+               f"{seconds:g} s of drive per run (sleeping, not computing)")  # fmt: skip
+    click.echo("| trigger | schedule | staleness added p50 / p95 ms | image age p95 ms | latency p99 ms | dropped | "
+               "image lane ms / rotation |")  # fmt: skip
+    click.echo("|---|---|---|---|---|---|---|")
+    for trigger in TRIGGER_MODELS:
+        for schedule in SCHEDULES:
+            r = measure(schedule, trigger, seconds, encode_ms, lift_ms, slice_ms)
+            click.echo(f"| {trigger} | {schedule} | {r['staleness_p50']:.0f} / {r['staleness_p95']:.0f} | {r['age_p95']:.0f} "
+                       f"| {r['latency_p99']:.1f} | {r['dropped']} | {r['busy_ms_per_rotation']:.1f} |")  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,34 @@
+"""The streaming section's image-lane schedules (benchmarks/streaming_schedules.py) on the tiny export."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from streamdet.benchmarks.streaming_schedules import CAMERA_HZ, LIDAR_HZ, bundled_drive, format_schedules, measure_schedules
+from streamdet.data.sample import load_bundled_sample
+
+
+@pytest.mark.parametrize("trigger", ["lidar-synced", "simultaneous"])
+def test_bundled_drive_repeats_the_sweep_and_triggers_every_camera(trigger):
+    rig = load_bundled_sample().rig
+    images = {n: np.zeros((2, 2, 3), np.uint8) for n in rig.names}
+    drive = bundled_drive(1.0, images, trigger)
+    assert len(drive.sweeps) == int(LIDAR_HZ) and drive.sweeps[-1].end_s == pytest.approx(1.0)
+    per_camera = {n: sum(n in s.images for s in drive.image_sets) for n in rig.names}
+    assert all(abs(c - CAMERA_HZ) <= 1 for c in per_camera.values())
+    if trigger == "simultaneous":
+        assert all(len(s.images) == len(rig.names) for s in drive.image_sets)
+    else:
+        assert max(len(s.images) for s in drive.image_sets) < len(rig.names)  # the cameras fire one after the other
+
+
+def test_both_schedules_are_measured_and_reported(tiny_export):
+    out = measure_schedules(tiny_export, "fp32", None, 0.2)
+    assert set(out) == {"full", "phase-locked"}
+    for r in out.values():
+        assert r["slices_total"] > 0 and 0 <= r["slices_dropped"] <= r["slices_total"]
+        assert r["image_lane_cpu_ms_per_rotation"] >= 0 and r["trigger"] == "lidar-synced"
+    assert out["phase-locked"]["phase_lock"] is not None and out["full"]["phase_lock"] is None
+    lines = format_schedules(out)
+    assert len(lines) == 2 and "image lane 'phase-locked'" in lines[1]
