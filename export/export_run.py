@@ -19,8 +19,7 @@ from streamdet.export.weights import WeightsSource
 from streamdet.models.detector import StreamDetector
 from streamdet.models.presets import Preset
 from streamdet.runtime_ort.manifest import Int8Record, Manifest, ParityRecord, PipelineParity
-
-Feeds = dict[str, np.ndarray]
+from streamdet.runtime_ort.recording import Feeds
 
 
 @dataclass(eq=False)

@@ -61,6 +61,7 @@ from onnxruntime.quantization import CalibrationDataReader, CalibrationMethod, Q
 from onnxruntime.quantization.shape_inference import quant_pre_process
 
 from streamdet.export.onnx_export import heatmap_producers, is_decode_node, upstream_to_convs
+from streamdet.runtime_ort.recording import Feeds
 
 ACTIVATION_TYPE = QuantType.QUInt8  # the only activation type x86 onnxruntime runs as fused int8 convolutions
 WEIGHT_TYPE = QuantType.QInt8
@@ -69,8 +70,6 @@ LIFTER_POOL_NOTE = "z pooling: QLinearAveragePool costs 2x the float AveragePool
 LIFTER_GATHER_NOTE = "LUT gather and weighted sum: dequantizing K x the volume costs what the uint8 gather saves"
 HEAD_OUTPUT_NOTE = "head outputs: the decode reads them as box values; uint8 steps would show in the boxes"
 PILLAR_NOTE = "pillar net and scatter: metres and centimetre offsets in one tensor do not share a uint8 scale"
-
-Feeds = dict[str, np.ndarray]
 
 
 @dataclass(frozen=True)
