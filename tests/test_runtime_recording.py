@@ -119,3 +119,18 @@ def test_a_given_manifest_is_used_and_checked(tiny_export):
     assert det.manifest is m and set(det.sessions) == {"image_encoder", "volumetric_lifter", "slice_head"}
     with pytest.raises(ValueError, match="manifest must be None or a Manifest, got dict"):
         StreamingDetector(tiny_export, manifest=m.to_dict())
+
+
+def test_both_lanes_record_from_their_threads(tiny_export, sample):
+    """StreamingRunner's image and slice workers run the graphs concurrently; the recording holds every run once."""
+    from streamdet.runtime_ort.lanes import LaneConfig, StreamingRunner
+
+    det = StreamingDetector(tiny_export)
+    images = dict(zip(sample.rig.names, sample.load_images((det.image.width, det.image.height))))
+    slices = split_sweep(sample.points, det.num_slices)
+    with det.recording() as rec, StreamingRunner(det, LaneConfig(max_in_flight=2, queue_size=16)) as runner:
+        done = [runner.submit_images(images, timestamp=0.0)]
+        done += [runner.submit_slice(pts, k, timestamp=0.01 * k) for k, pts in enumerate(slices)]
+        results = [f.result(timeout=60) for f in done]
+    non_empty = sum(r.num_pillars > 0 for r in results[1:])
+    assert sorted(r.graph for r in rec.runs) == sorted(["image_encoder", "volumetric_lifter"] + ["slice_head"] * non_empty)
