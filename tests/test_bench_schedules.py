@@ -32,3 +32,15 @@ def test_both_schedules_are_measured_and_reported(tiny_export):
     assert out["phase-locked"]["phase_lock"] is not None and out["full"]["phase_lock"] is None
     lines = format_schedules(out)
     assert len(lines) == 2 and "image lane 'phase-locked'" in lines[1]
+
+
+def test_staleness_floor_is_zero_without_processing_and_a_camera_period_when_lifts_are_long():
+    from streamdet.benchmarks.schedule_model import SleepingDetector, staleness_floor_ms
+    from streamdet.replay.cost import synthetic_drive
+
+    cams = SleepingDetector(1.0, 1.0, 1.0).quadrant_cameras
+    for trigger in ("simultaneous", "lidar-synced"):
+        drive = synthetic_drive(2.0, camera_trigger=trigger, points=720, image_size=(4, 4))
+        assert np.nanmax(staleness_floor_ms(drive, cams, 0.0)) <= 0.0  # frames lifted at once are never stale
+        long = staleness_floor_ms(drive, cams, 0.2)  # a lift longer than two camera periods misses the newest frames
+        assert np.nanmin(long) >= 0.0 and np.nanmax(long) > 80.0
