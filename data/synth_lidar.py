@@ -11,7 +11,8 @@ moving objects keep their rolling-shutter displacement relative to their annotat
 Each beam meets the nearest part of an object (``synth_shapes``) or the undulating ground. Glass lets most beams
 through to whatever is behind. Whether the pulse then comes back is the return model (``detection_probability``):
 more likely for bright surfaces, near ones and those hit head-on (steeply so for glossy paint and metal), so dark
-cars, far pedestrians and grazing surfaces lose points as they do on a real HDL-32E. A point's intensity follows
+cars, far pedestrians and grazing surfaces lose points as they do on a real HDL-32E; a part thinner than the
+beam's footprint (a bicycle's tubes, a far limb) returns in proportion to the share of the footprint it covers. A point's intensity follows
 its surface's reflectance and the incidence, not its class.
 """
 
@@ -47,6 +48,8 @@ class LidarConfig:
     dropout: float = 0.005  # fraction of returns lost at random, on top of the return model
     detect_reflectance: float = 0.02  # the return model's reference reflectance (see detection_probability)
     detect_range_m: float = 28.0  # ... and reference range
+    beam_exit_m: float = 0.01  # beam diameter at the sensor; with the divergence, the footprint a thin part may not fill
+    beam_divergence_rad: float = 0.003  # full angle: the footprint grows by this much per metre of range
     intensity_gain: float = 1.1  # intensity = gain * 255 * reflectance * (0.3 + 0.7 cos(incidence)), clipped to 255
     intensity_noise: float = 2.0  # standard deviation, in 0..255 units
 
@@ -103,17 +106,19 @@ def simulate_sweep(
     best_refl = np.zeros(n_rays)
     best_cos = np.abs(dirs[..., 2]).reshape(n_rays)  # the ground's normal is nearly +z
     best_gloss = np.full(n_rays, GROUND_GLOSS)
+    best_width = np.full(n_rays, np.inf)  # width of the surface hit across the beam (the ground: unbounded)
 
     ai, ki, beam_ok = _candidate_columns(scene, col_time, origins, rot, config)
     if len(ai):
         hits = _object_hits(scene, ai, ki, beam_ok, col_time, origins, dirs, t_best, rng)
         if hits is not None:
-            r, t_hit, obj, refl, cos, gloss = hits
+            r, t_hit, obj, refl, cos, gloss, width = hits
             t_best[r] = t_hit
             best_obj[r] = obj
             best_refl[r] = refl
             best_cos[r] = cos
             best_gloss[r] = gloss
+            best_width[r] = width
 
     valid = (t_best >= config.min_range_m) & (t_best <= config.max_range_m)
     valid &= rng.uniform(size=n_rays) >= config.dropout
@@ -129,7 +134,8 @@ def simulate_sweep(
         _, refl_all[on_ground] = ground(s_road, d_road, scene.cross_s_m)
     cos = best_cos[idx]
     # The return model: whether a pulse comes back falls with range and incidence and rises with reflectance.
-    p_return = detection_probability(refl_all, cos, t_best[idx], best_gloss[idx], config)
+    fill = footprint_fill(best_width[idx], t_best[idx], config)
+    p_return = detection_probability(refl_all * fill, cos, t_best[idx], best_gloss[idx], config)
     returned = rng.uniform(size=len(idx)) < p_return
     idx, t, a_idx, e_idx, world, obj, refl_all, cos = (v[returned] for v in (idx, t, a_idx, e_idx, world, obj, refl_all, cos))
     intensity = config.intensity_gain * 255.0 * refl_all * (0.3 + 0.7 * cos) + rng.normal(0.0, config.intensity_noise, size=len(idx))
@@ -153,11 +159,18 @@ def detection_probability(reflectance: np.ndarray, cos_incidence: np.ndarray, ra
     return 1.0 - np.exp(-signal)
 
 
+def footprint_fill(width_m: np.ndarray, range_m: np.ndarray, config: LidarConfig = LidarConfig()) -> np.ndarray:
+    """(N,) share of the beam's footprint a surface ``width_m`` across covers at ``range_m``: a part thinner than
+    the footprint (a frame tube, a limb far away) sends back only that share of the pulse."""
+    footprint = config.beam_exit_m + config.beam_divergence_rad * np.asarray(range_m)
+    return np.minimum(np.asarray(width_m) / footprint, 1.0)
+
+
 def _object_hits(scene: Scene, ai: np.ndarray, ki: np.ndarray, beam_ok: np.ndarray, col_time: np.ndarray, origins: np.ndarray,
                  dirs: np.ndarray, t_best: np.ndarray, rng: np.random.Generator):
     """Nearest part surface per ray over the candidate (column, object) pairs, nearer than the ground.
 
-    Returns (rays, distance, object, reflectance, cos incidence) or None. Each pair's rays are first tested
+    Returns (rays, distance, object, reflectance, cos incidence, gloss, part width) or None. Each pair's rays are first tested
     against the object's box; only rays entering it are tested against its parts. A glass part lets a beam
     through (to whatever is behind) with the chance its material gives.
     """
@@ -199,7 +212,8 @@ def _object_hits(scene: Scene, ai: np.ndarray, ki: np.ndarray, beam_ok: np.ndarr
     c, s = np.cos(yaws[q]), np.sin(yaws[q])
     n_world = np.stack([c * n_box[:, 0] - s * n_box[:, 1], s * n_box[:, 0] + c * n_box[:, 1], n_box[:, 2]], axis=1)
     cos = np.abs(np.sum(n_world * dirs[a[q], e[q]], axis=1))
-    return r, t_part, k[q], refl, cos, gloss
+    width = 2.0 * np.median(parts.half[part], axis=1)  # a tube's or limb's diameter, a panel's smaller side
+    return r, t_part, k[q], refl, cos, gloss, width
 
 
 def _candidate_columns(

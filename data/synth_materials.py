@@ -37,6 +37,7 @@ class Mat(IntEnum):
     FOLIAGE = 12  # leaves: gaps the sensors see through
     BARK = 13
     FACADE = 14  # a building face with glass windows
+    SPOKED = 15  # a bicycle wheel: a tyre and rim round an open disc of thin spokes that beams mostly pass
 
 
 @dataclass(frozen=True)
@@ -48,7 +49,7 @@ class MaterialSpec:
 
 
 MATERIALS: dict[Mat, MaterialSpec] = {
-    Mat.PAINT: MaterialSpec((0.04, 0.2), 1.0, True, 6.0),
+    Mat.PAINT: MaterialSpec((0.03, 0.15), 1.0, True, 6.0),
     Mat.GLASS: MaterialSpec((0.03, 0.08), 0.2, False, 4.0),
     Mat.TYRE: MaterialSpec((0.04, 0.1), 1.0, False, 1.5),
     Mat.METAL: MaterialSpec((0.06, 0.22), 1.0, False, 2.0),
@@ -63,7 +64,11 @@ MATERIALS: dict[Mat, MaterialSpec] = {
     Mat.FOLIAGE: MaterialSpec((0.06, 0.2), 1.0, False),
     Mat.BARK: MaterialSpec((0.05, 0.12), 1.0, False),
     Mat.FACADE: MaterialSpec((0.08, 0.25), 1.0, False),
+    Mat.SPOKED: MaterialSpec((0.04, 0.1), 1.0, False, 1.5),  # the tyre's; the open disc inside is set in ``shade``
 }
+
+SPOKED_RIM = 0.82  # a spoked wheel's tyre and rim: the outer part of its radius (the rest is spokes and gaps)
+SPOKED_RETURN = 0.1  # chance a beam meeting the spokes' disc comes back from a 2 mm spoke rather than passing
 
 
 _RETURN_SCALE = np.array([MATERIALS[Mat(m)].return_scale for m in range(len(Mat))])
@@ -127,6 +132,13 @@ def shade(
         refl[idx] = 0.05
         scale[idx] = 0.8  # windows with blinds and rooms behind them
         gloss[idx] = MATERIALS[Mat.GLASS].gloss
+    spoked = mat == Mat.SPOKED
+    if np.any(spoked):  # a cylinder along its part's z: the radius in x, y
+        q, h = p[spoked], half[spoked]
+        inner = np.flatnonzero(spoked)[np.hypot(q[:, 0] / h[:, 0], q[:, 1] / h[:, 1]) < SPOKED_RIM]
+        scale[inner] = SPOKED_RETURN
+        refl[inner] = MATERIALS[Mat.METAL].reflectance[1]
+        gloss[inner] = MATERIALS[Mat.METAL].gloss
     return np.clip(albedo, 0.0, 1.0), alpha, refl, scale, gloss
 
 

@@ -270,7 +270,7 @@ def _cycle(b: _Builder, w: float, l: float, h: float, color, color2, rider: bool
     wheel_x = l / 2 - radius
     tyre_w = 0.025 if not motor else 0.065
     for x in (wheel_x, -wheel_x):
-        b.add((x, 0.0, radius), (radius, radius, tyre_w), Mat.TYRE, TYRE, SHAPE_CYLINDER, WHEEL_ROT)
+        b.add((x, 0.0, radius), (radius, radius, tyre_w), Mat.TYRE if motor else Mat.SPOKED, TYRE, SHAPE_CYLINDER, WHEEL_ROT)
     frame_col = color2 if motor else color
     saddle_z = 0.85 if not motor else 0.8
     if motor:

@@ -11,7 +11,8 @@ import pytest
 from streamdet.core.classes import CLASS_NAMES
 from streamdet.data.nuscenes import NuScenesReader
 from streamdet.data.synth_kinds import DISTRACTOR_KINDS, KIND_SPECS, Kind
-from streamdet.data.synth_lidar import LidarConfig, detection_probability
+from streamdet.data.synth_lidar import LidarConfig, detection_probability, footprint_fill
+from streamdet.data.synth_materials import SPOKED_RETURN, SPOKED_RIM, Mat, shade
 from streamdet.data.synth_raycast import SHAPE_BOX, SHAPE_CYLINDER, SHAPE_ELLIPSOID, ray_shape_entry
 from streamdet.data.synth_render import Exposure
 from streamdet.data.synth_shapes import part_extents, rotation
@@ -99,6 +100,22 @@ def test_detection_probability_follows_the_physics():
     assert detection_probability(0.3, 0.7, 40.0, 2.0, cfg) > detection_probability(0.03, 0.7, 40.0, 2.0, cfg)
     assert detection_probability(0.1, 0.95, 40.0, 6.0, cfg) > detection_probability(0.1, 0.3, 40.0, 6.0, cfg)
     assert detection_probability(0.0, 1.0, 10.0, 1.0, cfg) == 0.0
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_thin_parts_and_spoked_wheels_return_less(seed):
+    rng = np.random.default_rng(seed)
+    cfg = LidarConfig()
+    width, rng_m = rng.uniform(0.0, 0.3, 50), rng.uniform(1.0, 80.0, 50)
+    naive = [min(w / (cfg.beam_exit_m + cfg.beam_divergence_rad * r), 1.0) for w, r in zip(width, rng_m)]
+    np.testing.assert_allclose(footprint_fill(width, rng_m, cfg), naive)
+    # A spoked wheel (a cylinder along its z): its rim returns like a tyre, its open disc rarely.
+    half = np.tile([0.34, 0.34, 0.025], (50, 1))
+    p = np.c_[rng.uniform(-0.34, 0.34, (50, 2)), np.full(50, 0.025)]
+    _, alpha, _, scale, _ = shade(np.full(50, int(Mat.SPOKED)), np.full((50, 3), 0.05), np.full(50, 0.07), p, half, np.tile([0.0, 0.0, 1.0], (50, 1)))
+    inner = [math.hypot(x / 0.34, y / 0.34) < SPOKED_RIM for x, y in p[:, :2]]
+    np.testing.assert_array_equal(scale, np.where(inner, SPOKED_RETURN, 1.0))
+    assert alpha.all()
 
 
 def test_layout_varies_and_keeps_the_tail_classes():
