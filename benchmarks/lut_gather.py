@@ -11,7 +11,8 @@ for the whole LUT (the full update), small ONNX graphs of the gather alone (tabl
   table in the graph, then ``DequantizeLinear`` of the gathered rows), as an int8 image lane could.
 
 and times the export's own lifter on the same quadrant (fp32 and int8, the gather plus its 3D convolutions) for
-scale. Rounds interleave the graphs so a busy machine slows them alike; medians, p95 and min are printed. The
+scale, as is and fed the compacted LUT without changing the graph (the combined rows made in numpy and appended to
+the table, a K = 1 LUT: what the runtime alone could do). Rounds interleave the graphs so a busy machine slows them alike; medians, p95 and min are printed. The
 transpose of the feature maps into the table, common to all forms, is left out. Results: benchmarks/RESULTS.md.
 """
 
@@ -109,6 +110,26 @@ def _session(model_or_path, threads: int):
     return ort.InferenceSession(src, opts, providers=["CPUExecutionProvider"])
 
 
+class _CompactedLifter:
+    """The export's lifter graph fed a compacted LUT without changing the graph: the multi-camera voxels combined in
+    numpy, appended to the feature table, and the table passed as one (1, C, 1, rows) feature map with a K = 1 LUT
+    (the same BEV bit for bit: ``tests/test_compact_lut.py`` checks the gather)."""
+
+    def __init__(self, session, lut: CompactLut, voxels: tuple[int, ...]) -> None:
+        self.session = session
+        self.lut = lut
+        self.index = lut.final_index.reshape(1, 1, *voxels)  # (1, 1, Z, Yq, Xq)
+        self.weight = lut.final_weight.reshape(1, 1, *voxels)
+
+    def run(self, _outputs, features: np.ndarray):
+        c = features.shape[1]
+        table = features.transpose(0, 2, 3, 1).reshape(-1, c)  # (J*Hf*Wf, C)
+        table = np.concatenate([table, np.zeros((1, c), np.float32)])  # + the sentinel row
+        multi = (table[self.lut.multi_index] * self.lut.multi_weight[..., None]).sum(axis=0)  # (M, C)
+        ext = np.ascontiguousarray(np.concatenate([table, multi]).T)[None, :, None, :]  # (1, C, 1, rows)
+        return self.session.run(None, {"features": ext, "lut_index": self.index, "lut_weight": self.weight})
+
+
 def _stats(ms: list[float]) -> str:
     a = np.asarray(ms)
     return f"{np.median(a):7.2f} {np.percentile(a, 95):7.2f} {a.min():7.2f}"
@@ -143,11 +164,15 @@ def run(export_dir: Path, rounds: int, threads: int, quadrant: int) -> list[str]
         cases.append((name, sessions, feeds, f"V {flat_i.shape[1]} voxels x K {k} slots, {valid} valid "
                       f"({100 * valid / flat_i.size:.0f} %), compact reads {comp.num_pairs} rows"))  # fmt: skip
     lifter = {}
+    feats = rng.standard_normal((qlut.num_feature_maps, channels, lut.feature_height, lut.feature_width)).astype(np.float32)
+    qcomp = compact_lut(qlut.index, qlut.weight, qlut.num_feature_maps * cells)
     for precision, fname in (("fp32", "volumetric_lifter.onnx"), ("int8", "volumetric_lifter.int8.onnx")):
         if (export_dir / fname).is_file():
-            feats = rng.standard_normal((qlut.num_feature_maps, channels, lut.feature_height, lut.feature_width)).astype(np.float32)
+            session = _session(export_dir / fname, threads)
             lifter[f"export lifter {precision}, quadrant {quadrant}"] = (
-                _session(export_dir / fname, threads), {"features": feats, "lut_index": qlut.index, "lut_weight": qlut.weight})
+                session, {"features": feats, "lut_index": qlut.index, "lut_weight": qlut.weight})
+            lifter[f"export lifter {precision}, quadrant {quadrant}, compacted in numpy, K = 1"] = (
+                _CompactedLifter(session, qcomp, qlut.index.shape[2:]), feats)
     times: dict[tuple[str, str], list[float]] = {}
     everything = [(case, g, s, f[g]) for case, sessions, f, _ in cases for g, s in sessions.items()]
     everything += [("lifter", g, s, f) for g, (s, f) in lifter.items()]
