@@ -17,6 +17,31 @@ def tiny_synth_data(tmp_path_factory) -> Path:
     return out
 
 
+@pytest.fixture(scope="session")
+def tiny_drive_data(tmp_path_factory) -> Path:
+    """One key frame with ten 20 Hz sweeps before it (0.5 s of drive) at 160x90, all in the split "all": the replays'
+    drive. Shared read-only."""
+    from streamdet.data.synth_world import WorldConfig
+    from streamdet.data.synth_writer import SynthConfig, generate_dataset
+
+    out = tmp_path_factory.mktemp("tiny_drive_data")
+    generate_dataset(out, SynthConfig(num_scenes=1, seed=5, resolution=(160, 90), sweeps_per_sample=10,
+                                      val_fraction=0.0, world=WorldConfig(samples_per_scene=1)))  # fmt: skip
+    return out
+
+
+@pytest.fixture(scope="session")
+def tiny_train_data(tmp_path_factory) -> Path:
+    """Three synthetic scenes of two samples at the tiny preset's 128x72: scenes 0 and 1 train (4 samples), scene 2
+    val. The training tests' dataset, shared read-only (caches go elsewhere)."""
+    from streamdet.data.synth_world import WorldConfig
+    from streamdet.data.synth_writer import SynthConfig, generate_dataset
+
+    out = tmp_path_factory.mktemp("tiny_train_data")
+    generate_dataset(out, SynthConfig(num_scenes=3, seed=3, resolution=(128, 72), world=WorldConfig(samples_per_scene=2)))
+    return out
+
+
 # ---- shared exports ----------------------------------------------------------------------------------------
 # Each is made once per test session with streamdet-export and shared read-only: a test that changes an export
 # copies it first. Tests of the exporter itself make their own.

@@ -15,15 +15,8 @@ SUMMARY_KEYS = {"map_streaming", "map_offline", "nds_streaming", "latency_ms", "
 
 
 @pytest.fixture(scope="module")
-def drive_data(tmp_path_factory):
-    """One key frame with ten 20 Hz sweeps before it (0.5 s of drive) at 160x90."""
-    from streamdet.data.synth_world import WorldConfig
-    from streamdet.data.synth_writer import SynthConfig, generate_dataset
-
-    out = tmp_path_factory.mktemp("replay_data")
-    generate_dataset(out, SynthConfig(num_scenes=1, seed=5, resolution=(160, 90), sweeps_per_sample=10,
-                                      val_fraction=0.0, world=WorldConfig(samples_per_scene=1)))  # fmt: skip
-    return out
+def drive_data(tiny_drive_data):
+    return tiny_drive_data  # one key frame with ten 20 Hz sweeps before it at 160x90 (conftest)
 
 
 def test_replay_cli_plays_every_mode_and_writes_the_issue_json(drive_data, tiny_export, tmp_path):

@@ -14,15 +14,8 @@ from streamdet.replay.record import Recording, SliceRecord
 
 
 @pytest.fixture(scope="module")
-def drive_data(tmp_path_factory):
-    """One key frame with ten 20 Hz sweeps before it (0.5 s of drive) at 160x90."""
-    from streamdet.data.synth_world import WorldConfig
-    from streamdet.data.synth_writer import SynthConfig, generate_dataset
-
-    out = tmp_path_factory.mktemp("replay_schedules")
-    generate_dataset(out, SynthConfig(num_scenes=1, seed=5, resolution=(160, 90), sweeps_per_sample=10,
-                                      val_fraction=0.0, world=WorldConfig(samples_per_scene=1)))  # fmt: skip
-    return out
+def drive_data(tiny_drive_data):
+    return tiny_drive_data  # one key frame with ten 20 Hz sweeps before it at 160x90 (conftest)
 
 
 def _slice(image_capture_s: float, newest_capture_s: float, emitted: bool = True) -> SliceRecord:

@@ -11,8 +11,6 @@ import pytest
 from click.testing import CliRunner
 
 from streamdet.data.nuscenes import NuScenesReader
-from streamdet.data.synth_world import WorldConfig
-from streamdet.data.synth_writer import SynthConfig, generate_dataset
 from streamdet.evaluation.cli import main as eval_main
 from streamdet.evaluation.dataset_eval import OnnxSweepDetector, evaluate_dataset
 from streamdet.export.weights import load_detector
@@ -23,11 +21,9 @@ TINY = get_preset("tiny")
 
 
 @pytest.fixture(scope="module")
-def data_dir(tmp_path_factory) -> Path:
-    root = tmp_path_factory.mktemp("synth")
-    size = (TINY.image.width_px, TINY.image.height_px)
-    generate_dataset(root, SynthConfig(num_scenes=2, seed=11, resolution=size, world=WorldConfig(samples_per_scene=2)))
-    return root  # scene 1 (2 samples) is val
+def data_dir(tiny_train_data) -> Path:
+    assert (TINY.image.width_px, TINY.image.height_px) == (128, 72)  # the shared dataset's image size (conftest)
+    return tiny_train_data  # scene 2 (2 samples) is val
 
 
 @pytest.fixture(scope="module")

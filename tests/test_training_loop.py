@@ -11,8 +11,6 @@ import pytest
 import torch
 from click.testing import CliRunner
 
-from streamdet.data.synth_world import WorldConfig
-from streamdet.data.synth_writer import SynthConfig, generate_dataset
 from streamdet.models.detector import build_detector
 from streamdet.models.presets import get_preset
 from streamdet.runtime_ort.pillarize import pillarize
@@ -29,10 +27,9 @@ SIZE = (TINY.image.width_px, TINY.image.height_px)
 
 
 @pytest.fixture(scope="module")
-def data_dir(tmp_path_factory) -> Path:
-    root = tmp_path_factory.mktemp("synth")
-    generate_dataset(root, SynthConfig(num_scenes=3, seed=3, resolution=SIZE, world=WorldConfig(samples_per_scene=2)))
-    return root  # scenes 0, 1 train (4 samples), scene 2 val
+def data_dir(tiny_train_data) -> Path:
+    assert SIZE == (128, 72)  # the shared dataset's image size (conftest)
+    return tiny_train_data  # scenes 0, 1 train (4 samples), scene 2 val
 
 
 @pytest.fixture(scope="module")
