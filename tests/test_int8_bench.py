@@ -80,14 +80,12 @@ def test_int8_column_in_table_json_and_plot(tmp_path):
             plot_rows(rows, tmp_path / "bad.png", "int8", peak_gflops_per_s=bad)
 
 
-def test_stream_precision_needs_its_graphs(tmp_path):
+def test_stream_precision_needs_its_graphs(tiny_export_fp32):
     from click.testing import CliRunner
 
     from streamdet.benchmarks.cli import main as bench
-    from streamdet.export.cli import main as export
 
-    out = tmp_path / "exp"
-    assert CliRunner().invoke(export, ["--preset", "tiny", "--out", str(out)]).exit_code == 0
+    out = tiny_export_fp32  # fp32 graphs alone (conftest)
     result = CliRunner().invoke(bench, ["--preset", "tiny", "--export-dir", str(out), "--stream-precision", "int8"])
     assert result.exit_code == 2 and "Traceback" not in result.output
     assert "has no int8 graphs" in result.output and "--int8" in result.output
