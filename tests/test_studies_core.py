@@ -12,8 +12,6 @@ import pytest
 from streamdet.calibration.lut import Lut, build_lut
 from streamdet.calibration.perturb import perturb_rig
 from streamdet.data.nuscenes import NuScenesReader
-from streamdet.data.synth_world import WorldConfig
-from streamdet.data.synth_writer import SynthConfig, generate_dataset
 from streamdet import studies as st
 from streamdet.evaluation.dataset_eval import OnnxSweepDetector, evaluate_dataset
 from streamdet.runtime_ort.manifest import read_manifest
@@ -28,10 +26,8 @@ def export_dir(tiny_export_fp32) -> Path:
 
 
 @pytest.fixture(scope="module")
-def data_dir(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("data")
-    generate_dataset(out, SynthConfig(num_scenes=1, seed=5, resolution=(160, 90), world=WorldConfig(samples_per_scene=N_SAMPLES)))
-    return out
+def data_dir(tiny_synth_data) -> Path:
+    return tiny_synth_data  # one scene of N_SAMPLES samples at 160x90 (conftest)
 
 
 @pytest.fixture(scope="module")
