@@ -367,7 +367,7 @@ class _Placer:
         s = self._s()  # parked on the sidewalk, alone or in a rack of several side by side
         if self._in_cross(s, 2.0):
             return False
-        d = side * rng.uniform(9.0, 12.8)
+        d = side * rng.uniform(11.0, 13.0)  # racks and lampposts by the shop fronts, behind the parked cars and clutter
         if rng.uniform() < 0.5:
             return self._try_add(Kind.BICYCLE, s, d, float(rng.uniform(-math.pi, math.pi)), 0.0, flag=False)
         yaw = (math.pi / 2 if side > 0 else -math.pi / 2) + rng.normal(0, 0.1)
@@ -420,7 +420,7 @@ class _Placer:
         side = self._side()
         s0 = self._s()
         count = int(rng.integers(3, 11))
-        color = BARRIER_COLORS[rng.integers(len(BARRIER_COLORS))]
+        color = BARRIER_COLORS[rng.integers(len(BARRIER_COLORS))] * rng.uniform(0.45, 0.85)  # weathered and dirty
         # A row of barriers along the parking strip: the long side (w) along the road, heading across it.
         angle = float(rng.uniform(-0.4, 0.4)) if rng.uniform() < 0.3 else 0.0
         for i in range(count):
@@ -504,10 +504,32 @@ class _Placer:
                 # l (the block's length) along the road, w its depth
                 self._try_add(Kind.BUILDING, s + length / 2, d, 0.0, 0.0, size=[depth, length, height], check=False)
                 gap = float(rng.uniform(3.0, 18.0))
-                if rng.uniform() < 0.5 and not self._in_cross(s + length + gap / 2, gap / 2 + 1):
-                    self._try_add(Kind.WALL, s + length + gap / 2, side * (SIDEWALK_OUTER_M + 0.3), 0.0, 0.0,
-                                  size=[0.3, gap, 1.4], check=False)
+                if not self._in_cross(s + length + gap / 2, gap / 2 + 1):
+                    if rng.uniform() < 0.5:
+                        self._try_add(Kind.WALL, s + length + gap / 2, side * (SIDEWALK_OUTER_M + 0.3), 0.0, 0.0,
+                                      size=[0.3, gap, 1.4], check=False)
+                    self._lot(s + length, gap, side)
                 s += length + gap
+
+    def _lot(self, s0: float, gap: float, side: float) -> None:
+        """The yard or small lot between two blocks (``s0`` to ``s0 + gap``): cars parked nose-in, or people standing
+        and bicycles leant against the walls; mostly hidden by the blocks and walls, and annotated all the same (as
+        nuScenes annotates what its cameras or LiDAR catch of them). The cars sit in bays 2.8 m apart, so they are
+        not collision-checked (their bounding circles would overlap)."""
+        rng = self.rng
+        if rng.uniform() < self.config.lot_prob:
+            for j in range(int((gap - 0.6) // 2.8)):
+                if rng.uniform() < 0.3:
+                    continue  # an empty bay
+                size = self._size(Kind.CAR)
+                d = side * (SIDEWALK_OUTER_M + 1.0 + rng.uniform(0.0, 1.5) + size[1] / 2)
+                yaw = side * math.pi / 2 + (math.pi if rng.uniform() < 0.5 else 0.0) + rng.normal(0, 0.05)
+                self._try_add(Kind.CAR, s0 + 1.7 + 2.8 * j, d, yaw, 0.0, size=size, check=False)
+            return
+        for _ in range(int(rng.integers(1, 6))):
+            kind = Kind.PEDESTRIAN if rng.uniform() < 0.7 else Kind.BICYCLE
+            yaw = float(rng.uniform(-math.pi, math.pi))
+            self._try_add(kind, s0 + rng.uniform(0.7, gap - 0.7), side * (SIDEWALK_OUTER_M + rng.uniform(0.8, 4.0)), yaw, 0.0, flag=False)
 
     def _cross_buildings(self) -> None:
         """Blocks lining the cross street beyond the main road's building line, on its four corners."""

@@ -46,7 +46,7 @@ class LidarConfig:
     max_range_m: float = 100.0
     range_noise_m: float = 0.015  # standard deviation along the ray
     dropout: float = 0.005  # fraction of returns lost at random, on top of the return model
-    detect_reflectance: float = 0.02  # the return model's reference reflectance (see detection_probability)
+    detect_reflectance: float = 0.025  # the return model's reference reflectance (see detection_probability)
     detect_range_m: float = 28.0  # ... and reference range
     beam_exit_m: float = 0.01  # beam diameter at the sensor; with the divergence, the footprint a thin part may not fill
     beam_divergence_rad: float = 0.003  # full angle: the footprint grows by this much per metre of range

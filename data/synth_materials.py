@@ -38,6 +38,7 @@ class Mat(IntEnum):
     BARK = 13
     FACADE = 14  # a building face with glass windows
     SPOKED = 15  # a bicycle wheel: a tyre and rim round an open disc of thin spokes that beams mostly pass
+    WEATHERED = 16  # sun-faded, grimy plastic of street furniture left outside for years: water-filled barriers, bins, feet
 
 
 @dataclass(frozen=True)
@@ -57,14 +58,15 @@ MATERIALS: dict[Mat, MaterialSpec] = {
     Mat.RETRO: MaterialSpec((0.5, 0.9), 1.0, False),
     Mat.LAMP: MaterialSpec((0.15, 0.45), 1.0, False),
     Mat.SKIN: MaterialSpec((0.08, 0.2), 1.0, False),
-    Mat.CLOTH: MaterialSpec((0.04, 0.25), 1.0, True),
-    Mat.CONCRETE: MaterialSpec((0.08, 0.2), 1.0, False),
-    Mat.STRIPES: MaterialSpec((0.06, 0.2), 1.0, False),
+    Mat.CLOTH: MaterialSpec((0.03, 0.2), 1.0, True),
+    Mat.CONCRETE: MaterialSpec((0.03, 0.1), 1.0, True),  # weathered grey concrete is darker than fresh
+    Mat.STRIPES: MaterialSpec((0.03, 0.1), 1.0, False),  # dirty, scuffed boards
     Mat.WOOD: MaterialSpec((0.06, 0.16), 1.0, False),
     Mat.FOLIAGE: MaterialSpec((0.06, 0.2), 1.0, False),
     Mat.BARK: MaterialSpec((0.05, 0.12), 1.0, False),
     Mat.FACADE: MaterialSpec((0.08, 0.25), 1.0, False),
     Mat.SPOKED: MaterialSpec((0.04, 0.1), 1.0, False, 1.5),  # the tyre's; the open disc inside is set in ``shade``
+    Mat.WEATHERED: MaterialSpec((0.02, 0.07), 1.0, True),
 }
 
 SPOKED_RIM = 0.82  # a spoked wheel's tyre and rim: the outer part of its radius (the rest is spokes and gaps)

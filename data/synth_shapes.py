@@ -331,18 +331,18 @@ def barrier(b: _Builder, w: float, l: float, h: float, color, color2, flag: bool
     """A barrier across y (its long side ``w``): concrete jersey, a striped fence on feet, or a water-filled block."""
     style = int(b.rng.integers(3))
     if style == 0:  # concrete: a low foot under a body that narrows upwards (a horizontal half-ellipse)
-        b.add((0.0, 0.0, 0.06 * h), (l / 2 * 0.9, w / 2, 0.06 * h), Mat.CONCRETE, (0.7, 0.68, 0.64))
-        b.add((0.0, 0.0, 0.3 * h), (l / 2, 0.3 * h, w / 2), Mat.CONCRETE, (0.7, 0.68, 0.64), SHAPE_CYLINDER, WHEEL_ROT_X)
-        b.add((0.0, 0.0, 0.5 * h), (l / 2 * 0.55, 0.5 * h, w / 2 - 0.01), Mat.CONCRETE, (0.7, 0.68, 0.64), SHAPE_CYLINDER, WHEEL_ROT_X)
+        b.add((0.0, 0.0, 0.06 * h), (l / 2 * 0.9, w / 2, 0.06 * h), Mat.CONCRETE, (0.58, 0.57, 0.53))
+        b.add((0.0, 0.0, 0.3 * h), (l / 2, 0.3 * h, w / 2), Mat.CONCRETE, (0.58, 0.57, 0.53), SHAPE_CYLINDER, WHEEL_ROT_X)
+        b.add((0.0, 0.0, 0.5 * h), (l / 2 * 0.55, 0.5 * h, w / 2 - 0.01), Mat.CONCRETE, (0.58, 0.57, 0.53), SHAPE_CYLINDER, WHEEL_ROT_X)
     elif style == 1:  # a striped fence on feet
         for side in (-1, 1):
-            b.add((0.0, side * (w / 2 - 0.15), 0.04), (l / 2, 0.15, 0.04), Mat.PLASTIC, (0.15, 0.15, 0.15))
+            b.add((0.0, side * (w / 2 - 0.15), 0.04), (l / 2, 0.15, 0.04), Mat.WEATHERED, (0.15, 0.15, 0.15))
             b.add((0.0, side * (w / 2 - 0.15), h / 2), (0.03, 0.03, h / 2), Mat.METAL, (0.6, 0.6, 0.6))
         for z in (0.45, 0.8):
             b.add((0.0, 0.0, h * z), (0.02, w / 2 - 0.1, h * 0.1), Mat.STRIPES, color)
     else:  # a water-filled plastic block: rounded all round
-        b.add((0.0, 0.0, h * 0.45), (l / 2, h * 0.45, w / 2), Mat.PLASTIC, color, SHAPE_CYLINDER, WHEEL_ROT_X)
-        b.add((0.0, 0.0, h * 0.55), (l / 2 * 0.7, h * 0.45, w / 2 - 0.02), Mat.PLASTIC, color, SHAPE_CYLINDER, WHEEL_ROT_X)
+        b.add((0.0, 0.0, h * 0.45), (l / 2, h * 0.45, w / 2), Mat.WEATHERED, color, SHAPE_CYLINDER, WHEEL_ROT_X)
+        b.add((0.0, 0.0, h * 0.55), (l / 2 * 0.7, h * 0.45, w / 2 - 0.02), Mat.WEATHERED, color, SHAPE_CYLINDER, WHEEL_ROT_X)
         b.add((l / 2 * 0.75, 0.0, h * 0.55), (0.01, w / 4, 0.05), Mat.RETRO, (0.95, 0.95, 0.9))
 
 
@@ -385,7 +385,7 @@ def sign(b: _Builder, w: float, l: float, h: float, color, color2, flag: bool) -
 
 def bin_(b: _Builder, w: float, l: float, h: float, color, color2, flag: bool) -> None:
     shape = SHAPE_CYLINDER if flag else SHAPE_BOX
-    b.add((0.0, 0.0, h / 2 - 0.03), (l / 2 * 0.92, w / 2 * 0.92, h / 2 - 0.03), Mat.PLASTIC, color, shape)
+    b.add((0.0, 0.0, h / 2 - 0.03), (l / 2 * 0.92, w / 2 * 0.92, h / 2 - 0.03), Mat.WEATHERED, color, shape)
     b.add((0.0, 0.0, h - 0.03), (l / 2, w / 2, 0.03), Mat.PLASTIC, color2, shape)
 
 
