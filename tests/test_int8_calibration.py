@@ -17,8 +17,7 @@ from streamdet.calibration.lut import build_lut
 from streamdet.data.nuscenes import NuScenesReader
 from streamdet.data.sample import load_image
 from streamdet.data.slicing import slice_sample
-from streamdet.data.synth_world import WorldConfig
-from streamdet.data.synth_writer import SynthConfig, generate_dataset
+from streamdet.data.synth_writer import SynthConfig
 from streamdet.export import int8 as q8
 from streamdet.export.cli import main
 from streamdet.models.presets import Preset, get_preset
@@ -26,14 +25,12 @@ from streamdet.runtime_ort.detector import StreamingDetector
 from streamdet.runtime_ort.manifest import GRAPH_NAMES, read_manifest
 from streamdet.runtime_ort.pillarize import pillarize
 
-SYNTH = SynthConfig(num_scenes=2, seed=3, resolution=(160, 90), world=WorldConfig(samples_per_scene=3))
+SYNTH = SynthConfig()  # the dataset's version
 
 
 @pytest.fixture(scope="module")
-def dataset(tmp_path_factory):
-    root = tmp_path_factory.mktemp("synth")
-    generate_dataset(root, SYNTH)
-    return root
+def dataset(tiny_train_data):
+    return tiny_train_data  # three scenes, two of them train (4 samples), read-only (conftest)
 
 
 @pytest.fixture(scope="module")
