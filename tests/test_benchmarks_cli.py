@@ -27,6 +27,7 @@ def quick_run(tmp_path_factory):
     args = ["--quick", "--preset", "tiny", "--repeat", "2", "--json", str(d / "b.json"), "--plot", str(d / "b.png")]
     args += ["--profile", str(d / "prof")]
     args += ["--stream-image-precision", "int8"]  # the streaming section: int8 image lane, fp32 slices
+    args += ["--no-fp16"]  # the rows' fp16 column is measure_rows' (tests/test_benchmarks_table.py); int8 is timed here
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr("streamdet.benchmarks.run.PAPER_RESOLUTIONS", OTHER_RESOLUTIONS)
         result = CliRunner().invoke(main, args)
@@ -45,6 +46,7 @@ def test_quick_tiny_run_writes_documented_json(quick_run):
     for r in doc["rows"]:
         assert ROW_KEYS <= set(r)
         assert r["ms_fp32"] > 0 and r["gflops_per_s"] > 0 and 0 < r["peak_fraction"]
+        assert r["ms_fp16"] is None and r["ms_int8"] > 0  # --no-fp16; int8 by default
         # the 3D convolutions are exported over folded z (models/lifter_fold.py): the graph multiplies banded zeros
         folded = folded_mac_ratio(TINY_LIFTER, TINY_NZ) if r["key"].startswith("conv3d") else 1.0
         # the multi-head's branches are exported grouped across tasks (models/slice_split.py): zero blocks too
