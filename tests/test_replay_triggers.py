@@ -173,3 +173,15 @@ def test_full_schedule_gets_one_whole_set_per_camera_cycle_under_lidar_synced_tr
         assert s.newest_capture_s == pytest.approx(min(newest))
     st = rec.staleness_ms()
     assert st.size > 0 and np.all(np.isfinite(st))  # negative where frames that came during the scan made it in
+
+
+@pytest.mark.parametrize("mode", ["full-sweep", "sequential"])
+def test_the_other_modes_get_whole_sets_too_and_frames_left_at_the_end_count_as_superseded(mode):
+    clock = FakeClock()
+    drive = synthetic_drive(0.5, camera_trigger="lidar-synced", points=720)
+    det = QuadrantFake(clock, image_ms=1.0)
+    rec = play(drive, det, clock, PlayerConfig(mode, 8))
+    assert det.updates and all(imgs == set(CAMERAS) for imgs, _, _ in det.updates)
+    used = sum(not i.superseded for i in rec.images)
+    assert used <= 6 * len(det.updates) and used + sum(i.superseded for i in rec.images) == len(rec.images)
+    assert sum(s.emitted for s in rec.slices) == len(rec.slices)  # no slice lost to the batching
