@@ -18,6 +18,8 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 DOCS_TABLE = ROOT / "docs" / "architecture.md"
 
@@ -194,19 +196,24 @@ def docs_table() -> dict[str, set[str]]:
     return rows
 
 
-def test_packages_form_no_cycle():
-    graph = package_graph(import_edges())
+@pytest.fixture(scope="module")
+def edges() -> list[Edge]:
+    """The scan of every source, once for the tests below (they only read it)."""
+    return import_edges()
+
+
+def test_packages_form_no_cycle(edges):
+    graph = package_graph(edges)
     found = cycles(graph)
-    assert not found, f"import cycles between packages: {found}; edges: {_edges_among(found)}"
+    assert not found, f"import cycles between packages: {found}; edges: {_edges_among(edges, found)}"
 
 
-def _edges_among(components: list[list[str]]) -> list[str]:
+def _edges_among(edges: list[Edge], components: list[list[str]]) -> list[str]:
     inside = [set(c) for c in components]
-    return [f"{e.source} -> {e.target} ({e.where})" for e in import_edges() if any({e.source, e.target} <= c for c in inside)]
+    return [f"{e.source} -> {e.target} ({e.where})" for e in edges if any({e.source, e.target} <= c for c in inside)]
 
 
-def test_vehicle_side_never_reaches_torch_or_the_training_side():
-    edges = import_edges()
+def test_vehicle_side_never_reaches_torch_or_the_training_side(edges):
     graph = package_graph(edges)
     for package in TORCH_FREE:
         closure = {package} | reachable(graph, package)
@@ -214,8 +221,8 @@ def test_vehicle_side_never_reaches_torch_or_the_training_side():
         assert not bad, f"{package} reaches {sorted({b.split()[2] for b in bad})} through {closure - {package} or 'nothing'}: {bad}"
 
 
-def test_nothing_imports_benchmarks_or_tests():
-    bad = [f"{e.source} -> {e.target} ({e.where})" for e in import_edges() if e.target in NOT_IMPORTABLE]
+def test_nothing_imports_benchmarks_or_tests(edges):
+    bad = [f"{e.source} -> {e.target} ({e.where})" for e in edges if e.target in NOT_IMPORTABLE]
     assert not bad, bad
 
 
@@ -226,8 +233,8 @@ def test_every_layered_package_is_scanned():
         assert len(list(_sources(name, dirs[name]))) >= 2, f"{name}/ holds no sources: the scan would see nothing"
 
 
-def test_docs_table_matches_the_graph():
-    graph = package_graph(import_edges())
+def test_docs_table_matches_the_graph(edges):
+    graph = package_graph(edges)
     table = docs_table()
     missing = sorted(set(LAYERED) - set(table))
     assert not missing, f"{DOCS_TABLE.name}'s package table has no row for {missing}"
