@@ -356,11 +356,11 @@ class _Placer:
         rng = self.rng
         side = self._side()
         mode = rng.uniform()
-        if mode < 0.35:  # riding on the road by the parking strip or in the outer lane
+        if mode < 0.25:  # riding on the road by the parking strip or in the outer lane (most bicycles stand parked)
             yaw = (0.0 if side < 0 else math.pi) + rng.normal(0, 0.04)
             d = side * float(rng.choice([PARKING_OFFSET_M - 0.9, 1.5 * LANE_WIDTH_M + 1.0]))
             return self._try_add(Kind.BICYCLE, self._s(), d + rng.normal(0, 0.2), yaw, float(rng.uniform(2.5, 7.0)))
-        if mode < 0.45 and self.cross_s is not None:  # riding along the cross street
+        if mode < 0.32 and self.cross_s is not None:  # riding along the cross street
             lane = CROSS_LANES_M[0] - 1.0 if rng.uniform() < 0.5 else CROSS_LANES_M[-1] + 1.0
             heading = math.pi / 2 if lane > 0 else -math.pi / 2
             return self._try_add(Kind.BICYCLE, self.cross_s + lane, float(rng.uniform(-50, 50)), heading, float(rng.uniform(2.5, 6.0)))
