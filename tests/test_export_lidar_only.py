@@ -219,12 +219,9 @@ def data_dir(tiny_synth_data) -> Path:
 
 
 @pytest.fixture(scope="module")
-def fused_export_dir(tmp_path_factory) -> Path:
-    from streamdet.export.exporter import ExportOptions, run_export
-
-    out = tmp_path_factory.mktemp("fused") / "tiny"
-    run_export(ExportOptions(preset="tiny", out_dir=str(out), num_slices=N_SLICES))
-    return out
+def fused_export_dir(tiny_export_fp32) -> Path:
+    assert N_SLICES == 8  # the shared export's slices
+    return tiny_export_fp32  # tiny camera + LiDAR, fp32, read-only (conftest)
 
 
 def test_streamdet_eval_data_mode(export_dir, data_dir, tmp_path):
