@@ -244,10 +244,10 @@ class _Placer:
         for _ in range(count(c.construction_zones)):
             self._construction_zone()
         lane_kinds = (Kind.CAR,) * 7 + (Kind.TRUCK,)
+        if self.cross_s is not None:  # before the lane traffic, so turns still find room in dense traffic
+            self._repeat(count(c.cross_vehicles), self._cross_or_turning_vehicle)
         self._repeat(count(c.buses), self._bus)
         self._repeat(count(c.lane_vehicles), lambda: self._lane_vehicle(lane_kinds[rng.integers(len(lane_kinds))]))
-        if self.cross_s is not None:
-            self._repeat(count(c.cross_vehicles), self._cross_or_turning_vehicle)
         self._repeat(count(c.motorcycles), self._motorcycle)
         self._repeat(count(c.parked_vehicles), self._parked_vehicle)
         self._repeat(count(c.bicycles), self._bicycle)
