@@ -19,8 +19,6 @@ every image set its own timestamp.
 
 from __future__ import annotations
 
-import collections
-import threading
 import time
 from collections.abc import Callable, Mapping
 from concurrent.futures import Future
@@ -29,7 +27,7 @@ from typing import Protocol
 
 import numpy as np
 
-from streamdet.runtime_ort.lanes import ImagesSuperseded, LaneConfig, StreamingRunner
+from streamdet.runtime_ort.lanes import ImagesSuperseded, LaneConfig, StreamingRunner, WorkerLane
 
 MODES: tuple[str, ...] = ("streaming", "full-sweep", "sequential")
 SLICE_LANE, IMAGE_LANE, ONE_QUEUE = "slice_lane", "image_lane", "one_queue"
@@ -87,60 +85,33 @@ class Instrumented:
 
 
 class SequentialRunner:
-    """One FIFO, one worker: slices and image sets in arrival order; a waiting image set is superseded by a newer one."""
+    """One FIFO, one worker: slices and image sets in arrival order; a waiting image set is superseded by a newer one.
+
+    The runtime's own worker loop (`WorkerLane`), unbounded and with one worker: no slice is ever dropped.
+    """
 
     def __init__(self, detector: Instrumented) -> None:
         self.detector = detector
-        self._jobs: collections.deque = collections.deque()  # (kind, fn, future)
-        self._cond = threading.Condition()
-        self._closed = False
-        self.images_superseded = 0
-        self.slices_dropped = 0  # never: the queue is unbounded
-        self._worker = threading.Thread(target=self._serve, name="sequential-queue", daemon=True)
-        self._worker.start()
+        self._queue = WorkerLane("sequential-queue", workers=1, capacity=None)
 
     def submit_slice(self, points: np.ndarray, slice_index: int, timestamp: float | None = None) -> Future:
-        return self._submit("slice", lambda: self.detector.detect_slice(points, slice_index, timestamp))
+        return self._queue.submit(lambda: self.detector.detect_slice(points, slice_index, timestamp), kind="slice")
 
     def submit_images(self, images: Mapping[str, np.ndarray], timestamp: float | None = None, **options) -> Future:
         # options (camera_timestamps of a set whose cameras fired at different moments) pass through
-        return self._submit("images", lambda: self.detector.update_images(images, timestamp, **options))
+        return self._queue.submit(lambda: self.detector.update_images(images, timestamp, **options), kind="images",
+                                  supersede=lambda: ImagesSuperseded("image set superseded by a newer one"))  # fmt: skip
 
-    def _submit(self, kind: str, fn: Callable[[], object]) -> Future:
-        fut: Future = Future()
-        with self._cond:
-            if self._closed:
-                raise RuntimeError("the sequential queue is closed")
-            if kind == "images":
-                stale = [job for job in self._jobs if job[0] == "images"]
-                for job in stale:
-                    self._jobs.remove(job)
-                    self.images_superseded += 1
-                    job[2].set_exception(ImagesSuperseded("image set superseded by a newer one"))
-            self._jobs.append((kind, fn, fut))
-            self._cond.notify()
-        return fut
+    @property
+    def slices_dropped(self) -> int:
+        return self._queue.dropped  # never: the queue is unbounded
 
-    def _serve(self) -> None:
-        while True:
-            with self._cond:
-                while not self._jobs and not self._closed:
-                    self._cond.wait()
-                if not self._jobs:
-                    return
-                _, fn, fut = self._jobs.popleft()
-            if not fut.set_running_or_notify_cancel():
-                continue
-            try:
-                fut.set_result(fn())
-            except BaseException as e:  # handed to the player through the future
-                fut.set_exception(e)
+    @property
+    def images_superseded(self) -> int:
+        return self._queue.superseded
 
     def close(self) -> None:
-        with self._cond:
-            self._closed = True
-            self._cond.notify_all()
-        self._worker.join()
+        self._queue.close()
 
 
 @dataclass

@@ -89,12 +89,22 @@ class LaneConfig:
             raise ValueError(f"LaneConfig.lift_margin_ms must be a number of ms in [0, 1000], got {v!r}")
 
 
-class _Lane:
-    """A bounded FIFO served by worker threads; when full, the oldest waiting job is failed with `overflow`."""
+class WorkerLane:
+    """A FIFO served by worker threads: the worker loop every lane of the runtime (and the replay's sequential
+    queue) runs.
 
-    def __init__(self, name: str, workers: int, capacity: int, overflow: Callable[[], Exception]) -> None:
+    ``capacity``: how many jobs may wait beyond those the workers are about to take; when full, the oldest waiting
+    job is failed with ``overflow()`` and counted in `dropped`. ``None``: unbounded, nothing is ever dropped.
+    A job submitted with ``supersede`` replaces the waiting jobs of its ``kind`` (each failed with ``supersede()``
+    and counted in `superseded`): one queue can carry slices that all run and image sets of which only the newest
+    matters. A job an idle worker is about to take counts as running, never as waiting.
+    """
+
+    def __init__(self, name: str, workers: int, capacity: int | None, overflow: Callable[[], Exception] | None = None) -> None:
+        if capacity is not None and overflow is None:
+            raise ValueError(f"{name}: a lane with a capacity ({capacity}) needs an overflow error")
         self._name = name
-        self._jobs: collections.deque = collections.deque()
+        self._jobs: collections.deque = collections.deque()  # (fn, future, kind)
         self._cond = threading.Condition()
         self._capacity = capacity
         self._overflow = overflow
@@ -102,12 +112,13 @@ class _Lane:
         self._workers = workers
         self._busy = 0  # workers running a job (under _cond)
         self.dropped = 0
+        self.superseded = 0
         self.cpu_s = 0.0  # CPU seconds of the jobs run (thread time of their worker threads)
         self._threads = [threading.Thread(target=self._serve, name=f"{name}-{i}", daemon=True) for i in range(workers)]
         for t in self._threads:
             t.start()
 
-    def submit(self, fn: Callable[[], object]) -> Future:
+    def submit(self, fn: Callable[[], object], kind: str = "", supersede: Callable[[], Exception] | None = None) -> Future:
         fut: Future = Future()
         with self._cond:
             if self._closed:
@@ -115,17 +126,27 @@ class _Lane:
             # jobs the caller cancelled hold no place in the queue
             self._jobs = collections.deque(job for job in self._jobs if not job[1].cancelled())
             idle = self._workers - self._busy  # the first `idle` jobs are about to start: in flight, not waiting
-            while len(self._jobs) - idle >= self._capacity:
-                _, old = self._jobs[idle]
+            if supersede is not None:
+                stale = [job for job in list(self._jobs)[idle:] if job[2] == kind]
+                for job in stale:
+                    self._jobs.remove(job)
+                    self.superseded += self._fail(job[1], supersede)
+            while self._capacity is not None and len(self._jobs) - idle >= self._capacity:
+                old = self._jobs[idle]
                 del self._jobs[idle]
-                try:
-                    old.set_exception(self._overflow())
-                    self.dropped += 1
-                except InvalidStateError:  # cancelled by its owner meanwhile: nothing to tell anyone
-                    pass
-            self._jobs.append((fn, fut))
+                self.dropped += self._fail(old[1], self._overflow)
+            self._jobs.append((fn, fut, kind))
             self._cond.notify()
         return fut
+
+    @staticmethod
+    def _fail(fut: Future, error: Callable[[], Exception]) -> int:
+        """Fail a waiting job's future; 1 when it was failed, 0 when its owner had cancelled it meanwhile."""
+        try:
+            fut.set_exception(error())
+            return 1
+        except InvalidStateError:  # cancelled by its owner meanwhile: nothing to tell anyone
+            return 0
 
     def _serve(self) -> None:
         while True:
@@ -134,7 +155,7 @@ class _Lane:
                     self._cond.wait()
                 if not self._jobs:
                     return
-                fn, fut = self._jobs.popleft()
+                fn, fut, _ = self._jobs.popleft()
                 self._busy += 1
             cpu0 = time.thread_time()
             try:
@@ -172,17 +193,17 @@ class StreamingRunner:
             raise ValueError(f"StreamingRunner takes a LaneConfig, got {type(config).__name__}")
         self.detector = detector
         self.config = config
-        self._slices = _Lane("slice-lane", config.max_in_flight, config.queue_size, lambda: SliceDropped("slice dropped: queue full"))
+        self._slices = WorkerLane("slice-lane", config.max_in_flight, config.queue_size, lambda: SliceDropped("slice dropped: queue full"))
         superseded = lambda: ImagesSuperseded("image set superseded by a newer one")  # noqa: E731
         self._phase_locked: PhaseLockedImageLane | None = None
-        self._images: _Lane | None = None
+        self._images: WorkerLane | None = None
         if config.schedule == "phase-locked" and detector.uses_images:
             self._phase_locked = PhaseLockedImageLane(
                 detector, detector.num_slices, detector.config.start_deg, config.lidar_hz, config.lift_margin_ms * 1e-3,
                 superseded=superseded, closed=lambda: RunnerClosed("image-lane: submit after close()"),
             )  # fmt: skip
         else:
-            self._images = _Lane("image-lane", 1, 1, superseded)
+            self._images = WorkerLane("image-lane", 1, 1, superseded)
 
     def submit_images(
         self, images: Mapping[str, np.ndarray], timestamp: float | None = None, camera_timestamps: Mapping[str, float] | None = None,
