@@ -19,6 +19,7 @@ import torch
 from streamdet.calibration.camera import CalibrationError, Rig
 from streamdet.calibration.lut import build_lut
 from streamdet.core.constants import BUNDLED_CALIBRATION_SOURCE
+from streamdet.core.image_layout import IMAGE_HALF
 from streamdet.export import onnx_export as ox
 from streamdet.export.export_run import ExportRun, Feeds
 from streamdet.export.fp16 import convert_model_to_fp16
@@ -40,6 +41,7 @@ from streamdet.export.staged_detector import run_manifest, staged_detector
 from streamdet.export.staging import save_checked
 from streamdet.export.weights import bundled_checkpoint, load_detector
 from streamdet.models.decode import decode_head_maps
+from streamdet.models.export_form import to_export_form
 from streamdet.models.presets import Preset
 from streamdet.runtime_ort.detector import SliceResult, StreamingDetector
 from streamdet.runtime_ort.manifest import LUT_NAME, ParityRecord, graph_file_name
@@ -102,8 +104,8 @@ def chained_feeds(run: ExportRun, name: str, upstream: np.ndarray | None) -> Fee
         lut_index, lut_weight = run.lut.for_quadrants(inputs.quadrants)
         features = scatter_cameras(upstream, inputs.cameras, len(inputs.images))  # (J, C, Hf, Wf)
         return {"features": features, "lut_index": lut_index, "lut_weight": lut_weight}
-    if run.preset.use_image:
-        return {**inputs.pillars.as_feeds(), "image_bev": upstream}
+    if run.preset.use_image:  # the image BEV, or its image half (the export's image layout names the input)
+        return {**inputs.pillars.as_feeds(), run.graph_io("slice_head").inputs[3]: upstream}
     if not run.preset.slice_crop:
         return inputs.pillars.as_feeds()  # the pillar tensors alone: one map of the whole grid
     return inputs.pillars.as_feeds(inputs.quadrants)  # the pillar tensors and the quadrant ids
@@ -150,10 +152,13 @@ def parity_image_encoder(run: ExportRun) -> None:
 def export_volumetric_lifter(run: ExportRun) -> None:
     feeds = chained_feeds(run, "volumetric_lifter", run.outputs32["image_encoder"][0])
     args = tuple(torch.from_numpy(feeds[n]) for n in ox.VOLUMETRIC_LIFTER_IO.inputs)
-    save_checked(ox.export_volumetric_lifter(run.det, *args, run.opts.opset), run.tmp, "volumetric_lifter", "fp32")
-    _, (image_bev,) = _run_fp32(run, "volumetric_lifter")
-    ref = run.det.lifter(*args).numpy()
-    _note_parity(run, [compare_dense("volumetric_lifter", "fp32", "torch", "image_bev", image_bev, ref, TORCH_TOL_REL)])
+    layout = run.opts.image_layout
+    save_checked(ox.export_volumetric_lifter(run.det, *args, run.opts.opset, layout), run.tmp, "volumetric_lifter", "fp32")
+    _, (image_map,) = _run_fp32(run, "volumetric_lifter")
+    ref = run.det.lifter(*args)  # (Q, C, Yq, Xq)
+    if layout == IMAGE_HALF:  # the BEV encoder's image half of PyTorch's image BEV (the export form's conv, no bias)
+        ref = to_export_form(run.det, layout).slice_head.slice_net.image_conv(ref)  # (Q, C0, Yh, Xh)
+    _note_parity(run, [compare_dense("volumetric_lifter", "fp32", "torch", layout, image_map, ref.numpy(), TORCH_TOL_REL)])
 
 
 @torch.no_grad()
@@ -161,9 +166,14 @@ def export_slice_head(run: ExportRun) -> None:
     upstream = run.outputs32["volumetric_lifter"][0] if run.preset.use_image else None
     feeds = chained_feeds(run, "slice_head", upstream)
     args = tuple(torch.from_numpy(feeds[n]) for n in run.graph_io("slice_head").inputs)
-    save_checked(ox.export_slice_head(run.det, args, run.opts.opset), run.tmp, "slice_head", "fp32")
+    save_checked(ox.export_slice_head(run.det, args, run.opts.opset, run.opts.image_layout), run.tmp, "slice_head", "fp32")
     _, dets = _run_fp32(run, "slice_head")
     image_bev = args[3] if run.preset.use_image else None  # a LiDAR-only net reads the map count only
+    if run.preset.use_image and run.opts.image_layout == IMAGE_HALF:
+        # PyTorch's SliceNet takes the image BEV: PyTorch's own lift of the lifter's parity feeds, so the graphs'
+        # split (image half in the lifter graph, added in the slice graph) is checked against the trained modules
+        lifter_args = (torch.from_numpy(run.feeds32["volumetric_lifter"][n]) for n in ox.VOLUMETRIC_LIFTER_IO.inputs)
+        image_bev = run.det.lifter(*lifter_args)  # (Q, C, Yq, Xq)
     maps = run.det.slice_net(*args[:3], image_bev, num_quadrants=run.inputs.num_maps)
     ref_dets, run.margins_of = reference_decode(maps, run.preset)
     _note_parity(run, compare_detections("slice_head", "fp32", "torch", dets, ref_dets, TORCH_TOL_REL, run.margins_of(ref_dets)))
@@ -179,7 +189,7 @@ def reference_decode(maps, preset: Preset):
 
 def count_gmacs(run: ExportRun) -> None:
     lifter = run.feeds32.get("volumetric_lifter", {})
-    run.gmacs = graph_gmacs(run.det, run.inputs, lifter.get("lut_index"), lifter.get("lut_weight"))
+    run.gmacs = graph_gmacs(run.det, run.inputs, lifter.get("lut_index"), lifter.get("lut_weight"), run.opts.image_layout)
     run.note(", ".join(f"{k} {v:.2f}" for k, (v, _) in run.gmacs.items()))
 
 

@@ -26,6 +26,9 @@ from torch import nn
 from streamdet.models.decode import SliceDecoder
 from streamdet.models.detector import StreamDetector
 from streamdet.models.export_form import LidarSliceDecoder, to_export_form  # noqa: F401 (LidarSliceDecoder: its old home)
+from streamdet.core.image_layout import IMAGE_BEV, IMAGE_HALF, check_image_layout
+from streamdet.core.image_layout import image_map_chw as layout_map_chw
+from streamdet.models.presets import Preset
 
 DEFAULT_OPSET = 17
 OPSET_RANGE = (14, 20)  # checked here end to end (14, 17, 18, 20); the TorchScript exporter stops at 20
@@ -78,6 +81,21 @@ SLICE_HEAD_IO = GraphIO(
     },
 )
 GRAPH_IO: dict[str, GraphIO] = {g.name: g for g in (IMAGE_ENCODER_IO, VOLUMETRIC_LIFTER_IO, SLICE_HEAD_IO)}
+# The image_half layout (models/image_half.py): the lifter graph also runs the BEV encoder's image half and outputs
+# it, (Q, C0, Yh, Xh); the slice graph takes it in place of the image BEV.
+IMAGE_HALF_LIFTER_IO = GraphIO(
+    name="volumetric_lifter",
+    inputs=VOLUMETRIC_LIFTER_IO.inputs,
+    outputs=(IMAGE_HALF,),
+    dynamic_axes={**{k: v for k, v in VOLUMETRIC_LIFTER_IO.dynamic_axes.items() if k != "image_bev"}, IMAGE_HALF: {0: "Q"}},
+)
+IMAGE_HALF_SLICE_HEAD_IO = GraphIO(
+    name="slice_head",
+    inputs=(*SLICE_HEAD_IO.inputs[:3], IMAGE_HALF),
+    outputs=SLICE_HEAD_IO.outputs,
+    dynamic_axes={**{k: v for k, v in SLICE_HEAD_IO.dynamic_axes.items() if k != "image_bev"}, IMAGE_HALF: {0: "Q"}},
+)
+IMAGE_HALF_GRAPH_IO: dict[str, GraphIO] = {g.name: g for g in (IMAGE_ENCODER_IO, IMAGE_HALF_LIFTER_IO, IMAGE_HALF_SLICE_HEAD_IO)}
 # The LiDAR-only baseline (preset use_image=False) exports this slice graph alone. It has no image BEV: the graph
 # takes the slice's quadrant ids (Q,) int64 and reads their count (models/export_form.py: LidarSliceDecoder).
 LIDAR_SLICE_HEAD_IO = GraphIO(
@@ -97,11 +115,11 @@ LIDAR_FULL_MAP_SLICE_HEAD_IO = GraphIO(
 )
 
 
-def graph_ios(use_image: bool, slice_crop: bool = True) -> dict[str, GraphIO]:
-    """The graphs an export of a preset with this ``use_image`` (and ``slice_crop``) consists of, by name, in
-    pipeline order."""
+def graph_ios(use_image: bool, slice_crop: bool = True, image_layout: str = IMAGE_BEV) -> dict[str, GraphIO]:
+    """The graphs an export of a preset with this ``use_image`` (and ``slice_crop``, ``image_layout``) consists of,
+    by name, in pipeline order."""
     if use_image:
-        return GRAPH_IO
+        return IMAGE_HALF_GRAPH_IO if check_image_layout(image_layout) == IMAGE_HALF else GRAPH_IO
     return {"slice_head": LIDAR_SLICE_HEAD_IO if slice_crop else LIDAR_FULL_MAP_SLICE_HEAD_IO}
 
 
@@ -158,9 +176,11 @@ def export_image_encoder(det: StreamDetector, images: torch.Tensor, opset: int =
 
 
 def export_volumetric_lifter(
-    det: StreamDetector, features: torch.Tensor, lut_index: torch.Tensor, lut_weight: torch.Tensor, opset: int = DEFAULT_OPSET
+    det: StreamDetector, features: torch.Tensor, lut_index: torch.Tensor, lut_weight: torch.Tensor, opset: int = DEFAULT_OPSET,
+    image_layout: str = IMAGE_BEV,
 ) -> onnx.ModelProto:
-    """features (J, C, Hf, Wf), lut_index / lut_weight (Q, K, Z, Yq, Xq) -> image_bev (Q, C, Yq, Xq).
+    """features (J, C, Hf, Wf), lut_index / lut_weight (Q, K, Z, Yq, Xq) -> image_bev (Q, C, Yq, Xq), or in the
+    image_half layout image_half (Q, C0, Yh, Xh) (models/image_half.py).
 
     Traced on a TRACE_CELLS x TRACE_CELLS crop of the LUT with Yq and Xq dynamic, which are then declared static
     again (the preset's quadrant): a full-size trace would run the paper's 179-GMAC 3D convolutions once more for
@@ -169,33 +189,42 @@ def export_volumetric_lifter(
     if det.lifter is None:
         raise ValueError(f"preset {det.preset.name!r} has use_image=False: there is no lifter to export")
     g = det.preset.grid
+    io_spec = graph_ios(True, True, image_layout)["volumetric_lifter"]
+    (out,) = io_spec.outputs
     crop = (slice(None), slice(None), slice(None), slice(None, TRACE_CELLS), slice(None, TRACE_CELLS))
     traced_axes = {
-        **VOLUMETRIC_LIFTER_IO.dynamic_axes,
+        **io_spec.dynamic_axes,
         "lut_index": {0: "Q", 1: "K", 3: "Yq", 4: "Xq"},
         "lut_weight": {0: "Q", 1: "K", 3: "Yq", 4: "Xq"},
-        "image_bev": {0: "Q", 2: "Yq", 3: "Xq"},
+        out: {0: "Q", 2: "Yo", 3: "Xo"},
     }
-    spec = dataclasses.replace(VOLUMETRIC_LIFTER_IO, dynamic_axes=traced_axes)
+    spec = dataclasses.replace(io_spec, dynamic_axes=traced_axes)
     args = (features, lut_index[crop].contiguous(), lut_weight[crop].contiguous())
-    model = export_module(to_export_form(det).volumetric_lifter, args, spec, opset)
+    model = export_module(to_export_form(det, image_layout).volumetric_lifter, args, spec, opset)
     static = {"lut_index": (None, None, g.nz, g.quadrant_ny, g.quadrant_nx), "lut_weight": (None, None, g.nz, g.quadrant_ny, g.quadrant_nx),
-              "image_bev": (None, det.preset.channels, g.quadrant_ny, g.quadrant_nx)}
+              out: (None, *image_map_chw(det.preset, image_layout))}
     _declare_static_dims(model, static)
     return model
 
 
-def slice_decoder(det: StreamDetector) -> SliceDecoder:
+def image_map_chw(preset: Preset, image_layout: str = IMAGE_BEV) -> tuple[int, int, int]:
+    """(C, H, W) of one quadrant's map between the lifter and the slice graph in this layout."""
+    g = preset.grid
+    return layout_map_chw(preset.to_dict(), (g.quadrant_ny, g.quadrant_nx), image_layout)
+
+
+def slice_decoder(det: StreamDetector, image_layout: str = IMAGE_BEV) -> SliceDecoder:
     """The module traced into slice_head.onnx (``to_export_form``)."""
-    return to_export_form(det).slice_head
+    return to_export_form(det, image_layout).slice_head
 
 
-def export_slice_head(det: StreamDetector, pillar_args: tuple[torch.Tensor, ...], opset: int = DEFAULT_OPSET) -> onnx.ModelProto:
-    """(pillar_features, pillar_mask, pillar_index, image_bev) -> det_boxes, det_scores, det_labels; for a LiDAR-only
-    ``det`` (use_image=False) the inputs are (pillar_features, pillar_mask, pillar_index, quadrants), without the crop
-    (slice_crop=False) the pillar tensors alone."""
-    io_spec = graph_ios(det.preset.use_image, det.preset.slice_crop)["slice_head"]
-    return _finish_slice_head(export_module(slice_decoder(det), pillar_args, io_spec, opset), det)
+def export_slice_head(det: StreamDetector, pillar_args: tuple[torch.Tensor, ...], opset: int = DEFAULT_OPSET,
+                      image_layout: str = IMAGE_BEV) -> onnx.ModelProto:  # fmt: skip
+    """(pillar_features, pillar_mask, pillar_index, image_bev) -> det_boxes, det_scores, det_labels (image_half in
+    place of image_bev in that layout); for a LiDAR-only ``det`` (use_image=False) the inputs are (pillar_features,
+    pillar_mask, pillar_index, quadrants), without the crop (slice_crop=False) the pillar tensors alone."""
+    io_spec = graph_ios(det.preset.use_image, det.preset.slice_crop, image_layout)["slice_head"]
+    return _finish_slice_head(export_module(slice_decoder(det, image_layout), pillar_args, io_spec, opset), det)
 
 
 def _finish_slice_head(model: onnx.ModelProto, det: StreamDetector) -> onnx.ModelProto:

@@ -7,6 +7,9 @@ from dataclasses import dataclass
 from streamdet.export import onnx_export as ox
 from streamdet.export.int8_data import DEFAULT_CALIBRATION_SAMPLES
 from streamdet.export.weights import DEFAULT_SEED
+from streamdet.core.image_layout import IMAGE_BEV
+
+DEFAULT_IMAGE_LAYOUT = IMAGE_BEV  # measured in docs/replay.md ("Less work per lift")
 
 DEFAULT_PRESET = "small"  # the shipped model's preset: what streamdet-export exports without arguments
 STEM_STRIDE = 2  # the ResNet stem's stride: image sizes must be even
@@ -30,6 +33,9 @@ class ExportOptions:
     opset: int = ox.DEFAULT_OPSET
     out_dir: str | None = None  # None: ./exports/<preset>
     seed: int = DEFAULT_SEED  # torch seed of the initial weights when there is no checkpoint
+    # which map the lifter hands the slice graph (models/image_half.py): the image BEV, or the BEV encoder's image
+    # half computed in the lifter graph; recorded in the manifest's image_layout
+    image_layout: str = DEFAULT_IMAGE_LAYOUT
 
     @property
     def precisions(self) -> tuple[str, ...]:

@@ -11,6 +11,7 @@ import onnxruntime as ort
 import torch
 
 from streamdet.core.classes import CLASS_NAMES
+from streamdet.core.image_layout import IMAGE_BEV
 from streamdet.export.weights import WeightsSource
 from streamdet.models.presets import Preset
 from streamdet.runtime_ort.manifest import (
@@ -50,7 +51,7 @@ def export_manifest(
     tmp: Path, preset: Preset, num_slices: int, opset: int, precisions: tuple[str, ...], graph_names: tuple[str, ...],
     gmacs: Gmacs, parity: list[ParityRecord], pipeline: PipelineParity | None, int8_record: Int8Record | None,
     source: WeightsSource, parity_input: str, *, image: ImageSpec | None = None,
-    normalisation: Normalisation | None = None, lut: LutEntry | None = None,
+    normalisation: Normalisation | None = None, lut: LutEntry | None = None, image_layout: str = IMAGE_BEV,
 ) -> Manifest:  # fmt: skip
     """The manifest of an export in ``tmp``: every graph of ``graph_names`` in every precision written; image,
     normalisation and lut stay None for a LiDAR-only export. Also the staged export's draft, for the runtime the
@@ -67,6 +68,7 @@ def export_manifest(
         post={**preset.to_dict()["post"], "top_k_per_quadrant": preset.top_k, "head_cell_m": preset.head_cell_m},
         graphs=tuple(entries),
         lut=lut,
+        image_layout=image_layout,
         parity=tuple(parity),
         pipeline_parity=pipeline,
         int8=int8_record,

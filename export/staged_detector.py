@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 
+from streamdet.core.image_layout import IMAGE_BEV
 from streamdet.export.export_run import ExportRun
 from streamdet.export.record import export_manifest
 from streamdet.models.image_encoder import IMAGENET_MEAN, IMAGENET_STD
@@ -34,6 +35,7 @@ def run_manifest(run: ExportRun, precisions: tuple[str, ...], int8_record: Int8R
     return export_manifest(
         run.tmp, run.preset, opts.num_slices, opts.opset, precisions, run.graphs, run.gmacs, run.parity, run.pipeline,
         int8_record, run.source, run.inputs.describe(), image=image, normalisation=normalisation, lut=lut,
+        image_layout=opts.image_layout if run.preset.use_image else IMAGE_BEV,
     )  # fmt: skip
 
 

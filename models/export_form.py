@@ -6,7 +6,9 @@ function as the trained module it replaces (the export's parity checks compare t
     graph               trained module                 export form
     image_encoder       ImageEncoder                   the same module (normalisation inside)
     volumetric_lifter   VolumetricLifter               FoldedLifter where the z-fold pays (lifter_fold.py),
-                                                       else the same module
+                                                       else the same module; in the image_half layout followed
+                                                       by the BEV encoder's image half (ImageHalfLifter,
+                                                       image_half.py)
     slice_head          SliceNet + decode              SliceDecoder(ExportSliceNet) (slice_split.py): the
                                                        concatenations split into sums of convolutions, 1x1
                                                        deblocks as convolutions, a multi-head's branches grouped
@@ -26,6 +28,7 @@ from torch import Tensor, nn
 
 from streamdet.models.decode import SliceDecoder, decode_head_maps
 from streamdet.models.detector import SliceNet, StreamDetector
+from streamdet.models.image_half import IMAGE_BEV, IMAGE_HALF, ImageHalfLifter, check_image_layout
 from streamdet.models.lifter_fold import export_lifter
 from streamdet.models.presets import Preset
 from streamdet.models.slice_split import ExportSliceNet
@@ -81,12 +84,21 @@ class ExportForm:
         return {name: module for name, module in parts.items() if module is not None}
 
 
-def to_export_form(det: StreamDetector) -> ExportForm:
-    """The export form of a trained detector (eval mode; it shares the detector's unrewritten modules)."""
+def to_export_form(det: StreamDetector, image_layout: str = IMAGE_BEV) -> ExportForm:
+    """The export form of a trained detector (eval mode; it shares the detector's unrewritten modules).
+
+    ``image_layout`` (image_half.py): ``image_bev``, the lifter outputs the image BEV and the slice graph runs both
+    halves of stage 0's first conv; ``image_half``, the lifter graph also runs the image half and outputs it, the
+    slice graph adds it. A LiDAR-only detector has no image half (the layout is ignored).
+    """
     preset = det.preset
-    slice_net = ExportSliceNet(det.slice_net.eval()).eval()
+    check_image_layout(image_layout)
+    layout = image_layout if preset.use_image else IMAGE_BEV
+    slice_net = ExportSliceNet(det.slice_net.eval(), layout).eval()
     if not preset.use_image:
         decoder = LidarSliceDecoder if preset.slice_crop else FullMapSliceDecoder
         return ExportForm(None, None, decoder(slice_net, preset).eval())
     lifter = export_lifter(det.lifter.eval(), preset.lifter, preset.grid.nz)
+    if layout == IMAGE_HALF:
+        lifter = ImageHalfLifter(lifter, slice_net.image_conv).eval()
     return ExportForm(det.image_encoder.eval(), lifter, SliceDecoder(slice_net, preset).eval())

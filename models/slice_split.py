@@ -29,7 +29,8 @@ from torch import Tensor, nn
 from streamdet.models.bn_fold import fold_bn
 from streamdet.models.detector import SliceNet, slice_map_shape
 from streamdet.models.heads import HEAD_OUTPUTS, CenterHead, HeadMaps
-from streamdet.models.pillars import gather_pillars
+from streamdet.models.image_half import IMAGE_BEV, IMAGE_HALF, check_image_layout
+from streamdet.models.pillars import MapShape, gather_pillars
 
 
 def _conv_bn_relu(stage: nn.Module) -> tuple[nn.Conv2d, nn.BatchNorm2d]:
@@ -212,9 +213,11 @@ class ExportSliceNet(nn.Module):
     A LiDAR-only net has no image BEV: its stage 0 is kept whole, the rest is rewritten alike.
     """
 
-    def __init__(self, net: SliceNet) -> None:
+    def __init__(self, net: SliceNet, image_layout: str = IMAGE_BEV) -> None:
         super().__init__()
         self.use_image = net.use_image
+        # image_half: the image half runs in the lifter graph and arrives precomputed (image_half.py)
+        self.image_layout = check_image_layout(image_layout)
         self.map_cells = net.map_cells  # (Yq, Xq), or (ny, nx) without the crop
         self.pillar_net = net.pillar_net
         self.bev_encoder = net.bev_encoder
@@ -223,8 +226,10 @@ class ExportSliceNet(nn.Module):
         conv, bn = _conv_bn_relu(stage0)
         if self.use_image:
             c = conv.in_channels // 2  # point BEV channels first, then image BEV (SliceNet.fused_bev)
-            # the image part carries the BN shift: the point BEV is the mostly-empty one
-            self.point_conv, self.image_conv = split_conv_bn(conv, bn, [c, conv.in_channels - c], bias_part=1)
+            # the image part carries the BN shift (the point BEV is the mostly-empty one), unless the image half is
+            # precomputed: then the point part does, so a zeroed image BEV's image half is exactly zero
+            bias_part = 1 if image_layout == IMAGE_BEV else 0
+            self.point_conv, self.image_conv = split_conv_bn(conv, bn, [c, conv.in_channels - c], bias_part=bias_part)
             if net.image_bev_norm is not None:  # a per-channel scale without shift folds exactly into the inputs
                 with torch.no_grad():
                     self.image_conv.weight.mul_(net.image_bev_norm.scale().view(1, -1, 1, 1))
@@ -239,14 +244,27 @@ class ExportSliceNet(nn.Module):
 
     def forward(self, pillar_features: Tensor, pillar_mask: Tensor, pillar_index: Tensor,
                 image_bev: Tensor | None = None, *, num_quadrants: int | None = None) -> HeadMaps:  # fmt: skip
-        """SliceNet's signature: the image BEV, or None with ``num_quadrants`` (LiDAR-only; zeros for a fused net)."""
-        shape = slice_map_shape(image_bev, num_quadrants, self.map_cells)
+        """SliceNet's signature: the image BEV, or None with ``num_quadrants`` (LiDAR-only; zeros for a fused net).
+
+        In the ``image_half`` layout ``image_bev`` is the precomputed image half (Q, C0, Yh, Xh) instead.
+        """
+        half = self.image_layout == IMAGE_HALF
+        if half and image_bev is not None:
+            shape: MapShape = (image_bev.shape[0], *self.map_cells)
+        else:
+            shape = slice_map_shape(image_bev, num_quadrants, self.map_cells)
         # the same map as scatter_pillars, built by a gather (pillars.py: one pass over the map instead of three)
         p_bev = gather_pillars(self.pillar_net(pillar_features, pillar_mask), pillar_index, shape)  # (Q, C, Yq, Xq)
         if self.use_image:
-            if image_bev is None:  # no image lifted yet (SliceNet.fused_bev)
-                image_bev = torch.zeros_like(p_bev)
-            x = self.relu(self.point_conv(p_bev) + self.image_conv(image_bev))  # (Q, C0, Yq / s, Xq / s)
+            x = self.point_conv(p_bev)  # (Q, C0, Yq / s, Xq / s)
+            if half and image_bev is not None:
+                x = x + image_bev  # the image half, computed once per lift
+            elif not half:
+                if image_bev is None:  # no image lifted yet (SliceNet.fused_bev)
+                    image_bev = torch.zeros_like(p_bev)
+                x = x + self.image_conv(image_bev)
+            # else no image yet: its image half is exactly zero (the shift is on the point half)
+            x = self.relu(x)
             x = self.stage0_rest(x)
         else:
             x = self.bev_encoder.blocks[0](p_bev)  # (Q, C0, Yq / s, Xq / s)
@@ -266,6 +284,6 @@ def _out_channels(deblock: nn.Sequential) -> int:
     return first.out_channels
 
 
-def export_slice_net(net: SliceNet) -> ExportSliceNet:
+def export_slice_net(net: SliceNet, image_layout: str = IMAGE_BEV) -> ExportSliceNet:
     """What the exporter traces for the slice net."""
-    return ExportSliceNet(net).eval()
+    return ExportSliceNet(net, image_layout).eval()

@@ -57,6 +57,7 @@ from streamdet.calibration.lut import (
 )
 from streamdet.calibration.quadrant_lut import QuadrantLut, quadrant_luts
 from streamdet.core.constants import BUNDLED_PREFIX, PRECISIONS  # noqa: F401 (PRECISIONS: public here too)
+from streamdet.core.image_layout import image_map_chw
 from streamdet.core.points import check_sweep
 from streamdet.core.sectors import NUM_QUADRANTS, check_num_slices, quadrants_of_sector, sector_bounds_deg
 from streamdet.core.slicing import split_sweep
@@ -201,7 +202,7 @@ class SweepResult:
 class _QuadrantState:
     """The cached image BEV of one quadrant and what it was lifted from."""
 
-    bev: np.ndarray  # (1, C, Yq, Xq) float32
+    bev: np.ndarray  # (1, C, Yq, Xq) float32, or the image half (1, C0, Yh, Xh) (the manifest's image_layout)
     # (J', C, Hf, Wf) float32 feature maps of ``feature_cameras`` (zeros for a camera not given), kept to re-lift
     # when the calibration changes; a full update's quadrants share one array of every camera
     features: np.ndarray
@@ -691,7 +692,8 @@ class StreamingDetector:
             dets = Detections.empty()
         else:
             if self.uses_images:
-                feeds = {**pillars.as_feeds(), "image_bev": self._image_bev(states)}
+                # the image BEV, or its precomputed image half (the manifest's image_layout names the input)
+                feeds = {**pillars.as_feeds(), self.manifest.image_layout: self._image_bev(states)}
             else:  # the quadrant ids tell a LiDAR-only graph Q; without the crop Q is 1 and it takes none
                 feeds = pillars.as_feeds(quadrants if self.slice_crop else None)
             num_maps = len(quadrants) if self.slice_crop else 1
@@ -718,11 +720,13 @@ class StreamingDetector:
         )
 
     def _image_bev(self, states: tuple[_QuadrantState | None, ...]) -> np.ndarray:
-        """(Q, C, Yq, Xq) image BEV of the slice's quadrants; zeros for a quadrant without images yet."""
+        """(Q, C, Yq, Xq) image BEV of the slice's quadrants, or in the image_half layout their image half
+        (Q, C0, Yh, Xh); zeros for a quadrant without images yet (in both layouts what a zeroed BEV gives: the
+        image half's bias is carried by the slice graph's point half, core/image_layout.py)."""
         if len(states) == 1 and states[0] is not None:
             return states[0].bev  # (1, C, Yq, Xq), no copy
-        c = int(self.manifest.preset["channels"])
-        zeros = np.zeros((1, c, self.grid.quadrant_ny, self.grid.quadrant_nx), dtype=np.float32)
+        chw = image_map_chw(self.manifest.preset, (self.grid.quadrant_ny, self.grid.quadrant_nx), self.manifest.image_layout)
+        zeros = np.zeros((1, *chw), dtype=np.float32)
         return np.concatenate([zeros if s is None else s.bev for s in states])  # (Q, C, Yq, Xq)
 
     def detect_sweep(self, sweep: np.ndarray, timestamp: float | None = None, num_slices: int | None = None) -> Detections:

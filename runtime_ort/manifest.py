@@ -29,6 +29,9 @@ definition (types, ranges, sizes), validated by ``Manifest.from_dict`` before an
                        (what was quantized and what was kept float, and why), parity: [Int8OutputParity] (relative L2
                        error of every output against fp32), boxes: BoxAgreement (decoded boxes of the int8 pipeline
                        against the fp32 pipeline)}. Measured and recorded, never pass/fail: int8 is an approximation.
+    image_layout       "image_bev" | "image_half" (optional; absent: "image_bev"): the map the lifter graph outputs
+                       and the slice graph takes, the image BEV or the BEV encoder's image half computed in the
+                       lifter graph (core/image_layout.py); the graphs' signatures are checked against it
 
 Which graphs a manifest must list follows from ``preset["use_image"]`` (absent means true, as in manifests written
 before LiDAR-only exports existed): a camera + LiDAR export lists all three graphs in fp32 with ``image``,
@@ -55,6 +58,7 @@ from pathlib import Path
 from typing import Any, BinaryIO, Callable
 
 from streamdet.core.constants import PRECISIONS
+from streamdet.core.image_layout import IMAGE_BEV, IMAGE_LAYOUTS
 from streamdet.runtime_ort.schema import SchemaViolation, validate
 
 MANIFEST_VERSION = 1
@@ -376,6 +380,8 @@ class Manifest:
     pipeline_parity: PipelineParity | None = None
     source: dict = field(default_factory=dict)
     int8: Int8Record | None = None  # calibration and parity of the int8 graphs, when there are any
+    # the map the lifter hands the slice graph (core/image_layout.py); absent in older manifests: image_bev
+    image_layout: str = IMAGE_BEV
     version: int = MANIFEST_VERSION
 
     def __post_init__(self) -> None:
@@ -383,6 +389,7 @@ class Manifest:
             raise ManifestError(f"manifest version {self.version!r} is not supported (expected {MANIFEST_VERSION})")
         if not self.class_names:
             raise ManifestError("class_names must not be empty")
+        _check_choice("image_layout", self.image_layout, IMAGE_LAYOUTS)
         if not isinstance(self.num_slices, int) or self.num_slices < 1:
             raise ManifestError(f"num_slices must be a positive int, got {self.num_slices!r}")
         seen = set()
@@ -485,6 +492,7 @@ class Manifest:
                 pipeline_parity=PipelineParity.from_dict(d["pipeline_parity"]) if d.get("pipeline_parity") else None,
                 source=dict(d.get("source", {})),
                 int8=Int8Record.from_dict(d["int8"]) if d.get("int8") else None,
+                image_layout=str(d.get("image_layout", IMAGE_BEV)),
             )
         except KeyError as e:
             raise ManifestError(f"manifest is missing the field {e.args[0]!r}") from None

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from streamdet.calibration.grid import GridSpec
 from streamdet.core.boxes import BOX_DIM
 from streamdet.core.classes import CLASS_NAMES
+from streamdet.core.image_layout import image_map_chw
 from streamdet.runtime_ort.manifest import GraphEntry, Manifest, ManifestError, TensorSpec
 from streamdet.runtime_ort.pillarize import PILLAR_FEATURE_DIM
 
@@ -57,6 +58,8 @@ def expected_io(manifest: Manifest, grid: GridSpec, name: str) -> tuple[tuple[Te
     c = int(manifest.preset["channels"])
     m = int(manifest.preset["pillars"]["max_points_per_pillar"])
     yq, xq, z = grid.quadrant_ny, grid.quadrant_nx, grid.nz
+    # what the lifter hands the slice graph: the image BEV or the precomputed image half (core/image_layout.py)
+    image_map = TensorSignature(manifest.image_layout, "float32", (None, *image_map_chw(manifest.preset, (yq, xq), manifest.image_layout)))
     if name == "image_encoder":
         return (
             (TensorSignature("images", "uint8", (None, None, None, 3)),),
@@ -69,7 +72,7 @@ def expected_io(manifest: Manifest, grid: GridSpec, name: str) -> tuple[tuple[Te
                 TensorSignature("lut_index", "int32", (None, None, z, yq, xq)),
                 TensorSignature("lut_weight", "float32", (None, None, z, yq, xq)),
             ),
-            (TensorSignature("image_bev", "float32", (None, c, yq, xq)),),
+            (image_map,),
         )
     pillars = (
         TensorSignature("pillar_features", "float32", (None, m, PILLAR_FEATURE_DIM)),
@@ -83,11 +86,7 @@ def expected_io(manifest: Manifest, grid: GridSpec, name: str) -> tuple[tuple[Te
     )
     if not manifest.slice_crop:  # LiDAR-only on one whole-grid map per slice: the pillar tensors alone
         return pillars, outputs
-    context = (
-        TensorSignature("image_bev", "float32", (None, c, yq, xq))
-        if manifest.use_image
-        else TensorSignature("quadrants", "int64", (None,))
-    )
+    context = image_map if manifest.use_image else TensorSignature("quadrants", "int64", (None,))
     return (*pillars, context), outputs
 
 
