@@ -36,6 +36,7 @@ import numpy as np
 
 from streamdet.calibration.camera import CalibrationError, Rig
 from streamdet.calibration.grid import GridSpec
+from streamdet.calibration.lut_file import MAX_HEIGHTS_PER_VOXEL, LutFileError, check_lut_archive  # noqa: F401  (re-exported)
 from streamdet.core.sectors import NUM_QUADRANTS
 
 ASPECT_TOLERANCE = 0.005  # relative; 1600x900 -> 800x450 is exact, 1920x1080 -> 800x450 too
@@ -45,7 +46,6 @@ _META_KEYS = (
     "format", "version", "grid", "feature_stride", "image_width", "image_height", "feature_width",
     "feature_height", "camera_names", "calibration_sha256", "sentinel", "num_slots", "min_depth_m",
 )
-MAX_HEIGHTS_PER_VOXEL = 64
 
 
 class BlindCameraWarning(UserWarning):
@@ -233,9 +233,13 @@ class Lut:
         np.savez(f, index=self.index, weight=self.weight, meta=np.array(json.dumps(self.meta(), sort_keys=True)))
 
     @classmethod
-    def load(cls, path: str | os.PathLike) -> "Lut":
-        """Read and validate a LUT written by ``save``; any defect raises CalibrationError naming file and key."""
+    def load(cls, path: str | os.PathLike, grid: GridSpec | None = None, num_cameras: int | None = None) -> "Lut":
+        """Read and validate a LUT written by ``save``; any defect raises CalibrationError naming file and key.
+
+        Before any array is read, the archive's members must fit a LUT of ``grid`` and ``num_cameras`` (the
+        manifest's; None: as the file's meta says), else `LutFileError` (`calibration/lut_file.py`)."""
         src = os.path.basename(os.fspath(path))
+        check_lut_archive(path, grid, num_cameras)
         try:
             with np.load(path, allow_pickle=False) as z:
                 missing = [k for k in ("index", "weight", "meta") if k not in z.files]

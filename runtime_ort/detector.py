@@ -330,7 +330,8 @@ class StreamingDetector:
         self._image_seq = 0  # update_images calls started (under _lock)
         self._lut: Lut | None = None  # stays None for a LiDAR-only export
         if self.uses_images and (self.image.width, self.image.height) == (m.image.width, m.image.height):
-            self._lut = self._check_lut(Lut.load(export_file(self.export_dir, m.lut.file, "lut.file")))
+            lut_path = export_file(self.export_dir, m.lut.file, "lut.file")
+            self._lut = self._check_lut(Lut.load(lut_path, self.grid, len(self.camera_names)))  # headers checked first
         elif self.uses_images:
             self._lut = self._check_lut(self._build_lut(_export_rig(m, self.export_dir)))
         self._image: _ImageCache | None = None  # None before the first image update; replaced whole under _lock
@@ -404,7 +405,7 @@ class StreamingDetector:
             raise NoImageLaneError(self._no_image_lane("set_calibration has nothing to calibrate"))
         if isinstance(calibration, (str, os.PathLike)):
             path = Path(calibration)
-            calibration = Lut.load(path) if path.suffix == ".npz" else Rig.from_calibration_json(path)
+            calibration = Lut.load(path, self.grid, len(self.camera_names)) if path.suffix == ".npz" else Rig.from_calibration_json(path)
         elif isinstance(calibration, Mapping):
             calibration = Rig.from_calibration_json(calibration)
         if isinstance(calibration, Rig):
