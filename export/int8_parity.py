@@ -113,7 +113,8 @@ class Int8Parity:
     boxes: BoxAgreement
 
 
-def int8_parity(run32: GraphRecording, run8: GraphRecording, sessions8: Mapping[str, Any], cell_m: float) -> Int8Parity:
+def int8_parity(run32: GraphRecording, run8: GraphRecording, sessions8: Mapping[str, Any], cell_m: float,
+                lifter_output: str = "image_bev") -> Int8Parity:  # fmt: skip
     """int8 graphs against fp32 graphs, from the graph runs the fp32 and the int8 detector recorded over the same
     samples (``StreamingDetector.recording``): each int8 graph alone on the fp32 graph's recorded feeds
     (``sessions8``: the int8 detector's sessions by graph name), then the int8 pipeline (the int8 detector's own
@@ -136,10 +137,11 @@ def int8_parity(run32: GraphRecording, run8: GraphRecording, sessions8: Mapping[
 
     out.append(dense_parity("image_encoder", "features", "same", first(alone("image_encoder")), first(run32.outputs("image_encoder"))))
     bev32 = first(run32.outputs("volumetric_lifter"))
-    out.append(dense_parity("volumetric_lifter", "image_bev", "same", first(alone("volumetric_lifter")), bev32))
+    # lifter_output: image_bev, or image_half in that layout (models/image_half.py)
+    out.append(dense_parity("volumetric_lifter", lifter_output, "same", first(alone("volumetric_lifter")), bev32))
     out.extend(_slice_parity("same", alone("slice_head"), dets32, cell_m))
     # the int8 pipeline: each int8 graph fed by the int8 graph before it, as the int8 detector runs them
-    out.append(dense_parity("volumetric_lifter", "image_bev", "pipeline", first(run8.outputs("volumetric_lifter")), bev32))
+    out.append(dense_parity("volumetric_lifter", lifter_output, "pipeline", first(run8.outputs("volumetric_lifter")), bev32))
     dets8 = run8.outputs("slice_head")
     out.extend(_slice_parity("pipeline", dets8, dets32, cell_m))
     return Int8Parity(tuple(out), box_agreement(dets32, dets8, cell_m))

@@ -35,6 +35,9 @@ What stays float, and why (``float_nodes``):
   BatchNormalization (which the transpose is not moved past) costs next to nothing.
 - lifter, z pooling and the max over z: QLinearAveragePool measured slower than the float AveragePool with the
   DequantizeLinear before it.
+- lifter, the BEV encoder's image half in the image_half layout (models/image_half.py): the fp32 slice graph of the
+  other layout runs it in float; quantized (input and output in uint8) it quadrupled the error the int8 image lane
+  brings to the fp32 slices' scores (docs/replay.md). A small conv next to the 3D convolutions.
 - lifter, the LUT gather and weighted sum (``Int8Config.quantize_lifter_gather``, off): quantized, the feature
   table is quantized once, gathered and weighted as uint8 (QLinearMul), and the gathered (Q, K, Z, Yq, Xq, C)
   rows, K = 2 times the volume, are dequantized before the sum. Measured, that costs what the float gather,
@@ -67,6 +70,9 @@ ACTIVATION_TYPE = QuantType.QUInt8  # the only activation type x86 onnxruntime r
 WEIGHT_TYPE = QuantType.QInt8
 INPUT_NORM_NOTE = "input normalisation: quantized it costs 50x a float BatchNormalization on the NCHW image"
 LIFTER_POOL_NOTE = "z pooling: QLinearAveragePool costs 2x the float AveragePool with its DequantizeLinear"
+IMAGE_HALF_NOTE = ("image half (image_half layout): the slice graph's first conv, float as in the fp32 slice graph; "
+                   "quantized, its output's uint8 steps reach the fp32 slices (docs/replay.md)")
+IMAGE_HALF_SCOPE = "/image_conv/"  # ImageHalfLifter.image_conv's nodes (models/image_half.py)
 LIFTER_GATHER_NOTE = "LUT gather and weighted sum: dequantizing K x the volume costs what the uint8 gather saves"
 HEAD_OUTPUT_NOTE = "head outputs: the decode reads them as box values; uint8 steps would show in the boxes"
 PILLAR_NOTE = "pillar net and scatter: metres and centimetre offsets in one tensor do not share a uint8 scale"
@@ -166,6 +172,8 @@ def float_nodes(graph: str, model: onnx.ModelProto, cfg: Int8Config = Int8Config
         for n in model.graph.node:
             if n.op_type in ("AveragePool", "ReduceMax"):
                 keep[n.name] = LIFTER_POOL_NOTE
+            elif n.name.startswith(IMAGE_HALF_SCOPE):
+                keep[n.name] = IMAGE_HALF_NOTE
     elif graph == "slice_head":
         for n in model.graph.node:
             if is_decode_node(n):

@@ -105,7 +105,8 @@ def parity(run: ExportRun) -> None:
     # the int8 detector's manifest lists its graphs with their record so far (no parity yet)
     detector8 = staged_detector(run, "int8", Int8Record(calibration, tuple(work.records), (), None))
     inputs8 = q8.record_graph_inputs(detector8, samples)
-    result = q8.int8_parity(inputs, inputs8, detector8.sessions, run.preset.head_cell_m)
+    lifter_output = run.graph_io("volumetric_lifter").outputs[0] if run.preset.use_image else "image_bev"
+    result = q8.int8_parity(inputs, inputs8, detector8.sessions, run.preset.head_cell_m, lifter_output)
     for p in result.outputs:
         run.note(f"{p.graph} {p.output} ({p.inputs} inputs): relative L2 error {p.rel_l2_error:.4f}, max |diff| {p.max_abs_diff:.3g}")
     b = result.boxes

@@ -7,6 +7,7 @@ export of the same weights through the same runtime.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 from pathlib import Path
@@ -23,15 +24,24 @@ from streamdet.models.export_form import to_export_form
 from streamdet.models.image_half import ImageHalfLifter
 from streamdet.models.presets import get_preset
 from streamdet.models.slice_split import ExportSliceNet
-from streamdet.runtime_ort.detector import StreamingDetector
+from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector
 from streamdet.runtime_ort.manifest import ManifestError, read_manifest
 
 N_SLICES = 8
 
 
-def _detector(seed: int):
+def _preset(stage0_stride: int):
+    """The tiny preset, or with a strided first conv (the small and paper-like case: the image half is coarser)."""
+    preset = get_preset("tiny")
+    if stage0_stride == 1:
+        return preset
+    bev = dataclasses.replace(preset.bev, layer_strides=(stage0_stride, 1), upsample_strides=(1.0, 1.0))
+    return dataclasses.replace(preset, bev=bev)
+
+
+def _detector(seed: int, stage0_stride: int = 1):
     torch.manual_seed(seed)
-    det = build_detector(get_preset("tiny")).eval()
+    det = build_detector(_preset(stage0_stride)).eval()
     with torch.no_grad():  # BatchNorm statistics off their defaults, so the fold is exercised
         for m in det.modules():
             if isinstance(m, torch.nn.BatchNorm2d):
@@ -63,8 +73,9 @@ def _naive_image_half(det, image_bev: torch.Tensor) -> torch.Tensor:
 
 @pytest.mark.parametrize("seed", [0, 1])
 @pytest.mark.parametrize("q", [1, 2])
-def test_slice_net_on_the_image_half_is_slicenet_on_the_image_bev(seed, q):
-    det = _detector(seed)
+@pytest.mark.parametrize("stride", [1, 2])
+def test_slice_net_on_the_image_half_is_slicenet_on_the_image_bev(seed, q, stride):
+    det = _detector(seed, stride)
     gen = torch.Generator().manual_seed(seed)
     pillars = _pillars(det, q, gen)
     image_bev = torch.randn(q, det.preset.channels, *det.preset.map_cells, generator=gen)
@@ -83,8 +94,9 @@ def test_slice_net_on_the_image_half_is_slicenet_on_the_image_bev(seed, q):
 
 
 @pytest.mark.parametrize("seed", [0, 1])
-def test_image_half_lifter_is_the_naive_conv_of_the_lifted_bev(seed):
-    det = _detector(seed)
+@pytest.mark.parametrize("stride", [1, 2])
+def test_image_half_lifter_is_the_naive_conv_of_the_lifted_bev(seed, stride):
+    det = _detector(seed, stride)
     form = to_export_form(det, IMAGE_HALF)
     assert isinstance(form.volumetric_lifter, ImageHalfLifter)
     g = det.preset.grid
@@ -128,7 +140,7 @@ def half_export(tmp_path_factory) -> Path:
     from streamdet.export.cli import main as export_main
 
     out = tmp_path_factory.mktemp("tiny_image_half") / "tiny"
-    args = ["--preset", "tiny", "--slices", str(N_SLICES), "--image-layout", IMAGE_HALF, "--out", str(out)]
+    args = ["--preset", "tiny", "--slices", str(N_SLICES), "--image-layout", IMAGE_HALF, "--int8", "--out", str(out)]
     result = CliRunner().invoke(export_main, args)
     assert result.exit_code == 0, result.output
     return out
@@ -189,3 +201,13 @@ def test_a_manifest_that_misnames_the_layout_is_refused(tiny_export_fp32, tmp_pa
     (copy / "manifest.json").write_text(json.dumps(d))
     with pytest.raises(ManifestError, match="image_half|image_layout|sideways"):
         StreamingDetector(copy)
+
+
+def test_the_int8_graphs_of_the_image_half_layout_run_and_are_recorded(half_export):
+    sample = load_bundled_sample()
+    det = StreamingDetector(half_export, DetectorConfig(precision="int8"))
+    det.update_images(_images(det, sample), timestamp=1.0)
+    result = det.detect_sweep_slices(sample.points, timestamp=1.05, num_slices=N_SLICES)
+    assert len(result.slices) == N_SLICES
+    lifter_records = [p for p in det.manifest.int8.parity if p.graph == "volumetric_lifter"]
+    assert lifter_records and all(p.output == IMAGE_HALF for p in lifter_records)
