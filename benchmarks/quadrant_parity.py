@@ -36,7 +36,7 @@ def quadrant_parity(data: Path, export_dir: Path, image_precision: str | None, e
             full.update_images(sets[-1].images, timestamp=0.0)
             for q in range(4):
                 parts.update_images(sets[-1].images, timestamp=0.0, quadrants=[q])
-            bev_diff = np.abs(full._image.bev - parts._image.bev).max()  # noqa: SLF001 - the cached image BEV
+            bev_diff = np.abs(full.image_state.bev - parts.image_state.bev).max()  # the cached image BEVs
             a, b = full.detect_sweep(sweep.points), parts.detect_sweep(sweep.points)
             same = a.boxes.shape == b.boxes.shape and np.array_equal(a.boxes, b.boxes) and np.array_equal(a.labels, b.labels)
             out["sweeps"] += 1

@@ -656,6 +656,23 @@ class StreamingDetector:
         """Timestamp of each quadrant's cached image BEV (None: no image yet), quadrants 0..3."""
         return tuple(None if s is None else s.timestamp for s in _quadrant_states(self._image))
 
+    @property
+    def image_state(self) -> _ImageCache | None:
+        """The cached image BEV the next slice reads (read-only); None before any image update.
+
+        Never changed in place: every update or re-lift swaps in a new one, so ``det.image_state is before`` tells
+        whether a call changed the cache. It has ``bev`` (a copy of every quadrant), ``features``, ``seq`` (the
+        `update_images` call, in call order, of the newest set cached), ``timestamp``, ``lut`` (the LUT it was
+        lifted with; None while quadrants differ) and ``quadrants`` (each quadrant's state, None without images).
+        Its arrays are the detector's own: read them, never write them."""
+        return self._image
+
+    @property
+    def postprocess(self) -> PostprocessConfig:
+        """The post-processing every slice runs: score threshold (the config's, else the export's), sector
+        restriction and NMS settings."""
+        return self._post
+
     # ---- slice lane ----------------------------------------------------------------------------
     def detect_slice(
         self, points: np.ndarray, slice_index: int, timestamp: float | None = None, num_slices: int | None = None

@@ -51,10 +51,10 @@ def test_a_timestamp_must_be_finite(det, sample, bad):
     pts = split_sweep(sample.points, 8)[0]
     with pytest.raises(ValueError, match="timestamp must be None or a finite number"):
         det.detect_slice(pts, 0, timestamp=bad)
-    before = det._image
+    before = det.image_state
     with pytest.raises(ValueError, match="timestamp must be None or a finite number"):
         det.update_images(_images(det, sample), timestamp=bad)
-    assert det._image is before  # a refusal changes no cache
+    assert det.image_state is before  # a refusal changes no cache
 
 
 def test_timestamps_may_go_backwards_and_none_is_the_call_time(det, sample):
@@ -188,10 +188,10 @@ def test_detector_config_names_the_field(kwargs, field):
 # ---- images and calibration: refusals change nothing ---------------------------------------------------------------
 @pytest.mark.parametrize("bad", [None, [], np.zeros((6, 72, 128, 3), np.uint8), "CAM_FRONT", 3])
 def test_images_must_be_a_dict(det, bad):
-    before = det._image
+    before = det.image_state
     with pytest.raises(ValueError, match="update_images takes a dict"):
         det.update_images(bad)
-    assert det._image is before
+    assert det.image_state is before
 
 
 def test_set_calibration_inputs(tiny_export, sample):

@@ -187,7 +187,7 @@ def test_a_calibration_relift_never_overwrites_newer_images(tiny_export, sample)
     gate = _GatedLift(det)
     det._lift = gate
     det.update_images(_images(det, sample, seed=1), timestamp=1.0)
-    gate.gate_on = det._image.features  # the re-lift of image set A blocks
+    gate.gate_on = det.image_state.features  # the re-lift of image set A blocks
     rig = _perturbed_rig(sample, 0.5)
     t = threading.Thread(target=det.set_calibration, args=(rig,))
     t.start()
@@ -197,7 +197,7 @@ def test_a_calibration_relift_never_overwrites_newer_images(tiny_export, sample)
     gate.release.set()
     t.join(30)
     assert det.image_timestamp == 2.0
-    state = det._image
+    state = det.image_state
     assert state.lut is det.lut
     assert np.array_equal(state.bev, gate.inner(state.features, det.lut))  # B, lifted with the new calibration
 
@@ -222,7 +222,7 @@ def test_images_lifted_under_the_old_calibration_are_lifted_again(tiny_export, s
     det.set_calibration(_perturbed_rig(sample, 0.5))  # re-lifts A, installs it, returns
     release.set()
     t.join(30)
-    state = det._image
+    state = det.image_state
     assert det.image_timestamp == 2.0 and state.lut is det.lut and det.lut is not old_lut
     assert np.array_equal(state.bev, inner(state.features, det.lut))
 

@@ -135,7 +135,7 @@ def test_runtime_runs_int8(export_dir):
     det8, dets8 = runs["int8"]
     assert det8.image_encoder.path.name == "image_encoder.int8.onnx"
     assert len(dets8.scores) > 0 and np.isfinite(dets8.boxes).all()
-    assert relative_l2(det8._image.bev, runs["fp32"][0]._image.bev) < 0.5  # noqa: SLF001 - the cached image BEV
+    assert relative_l2(det8.image_state.bev, runs["fp32"][0].image_state.bev) < 0.5  # the cached image BEV
 
 
 def test_runtime_refuses_int8_without_int8_graphs(tmp_path):

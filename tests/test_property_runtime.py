@@ -86,12 +86,12 @@ def point_arrays(draw):
        k=st.one_of(st.integers(0, 7), st.integers(0, 7), st.integers(-2, 9), st.booleans(), st.sampled_from([np.int64(3), 2.0])),
        n=st.sampled_from([None] * 6 + [1, 2, 4, 8, 16, 0, 3, True]))  # fmt: skip
 def test_detect_slice_results_or_value_errors(det, points, k, n):
-    before = det._image
+    before = det.image_state
     try:
         res = det.detect_slice(points, k, timestamp=1.0, num_slices=n)
     except ValueError:
         event("refused")
-        assert det._image is before
+        assert det.image_state is before
         return
     event("detected")
     assert isinstance(res, SliceResult)
@@ -102,8 +102,8 @@ def test_detect_slice_results_or_value_errors(det, points, k, n):
     assert nonfinite + res.num_outside_dropped + res.num_points_dropped <= len(points)
     d = res.detections
     assert np.isfinite(d.boxes).all() and ((d.labels >= 0) & (d.labels < len(CLASS_NAMES))).all()
-    assert (d.scores >= det._post.score_threshold).all()
-    assert det._image is before
+    assert (d.scores >= det.postprocess.score_threshold).all()
+    assert det.image_state is before
 
 
 # ---- image dicts ---------------------------------------------------------------------------------------------------
@@ -133,16 +133,16 @@ def image_dicts(draw, names: tuple[str, ...], size: tuple[int, int]):
 @given(data=st.data())
 def test_update_images_results_or_value_errors(det, data):
     images = data.draw(image_dicts(det.camera_names, (det.image.width, det.image.height)))
-    before = det._image
+    before = det.image_state
     try:
         update = det.update_images(images, timestamp=float(data.draw(st.integers(0, 100))))
     except ValueError:
         event("refused")
-        assert det._image is before  # a refused image set never touches the cache
+        assert det.image_state is before  # a refused image set never touches the cache
         return
     event("updated")
     assert isinstance(update, ImageUpdate) and not update.superseded
-    assert set(update.cameras_used) == set(images) and det._image.seq > (before.seq if before else 0)
+    assert set(update.cameras_used) == set(images) and det.image_state.seq > (before.seq if before else 0)
 
 
 # ---- call interleavings ----------------------------------------------------------------------------------------------
@@ -182,7 +182,7 @@ def test_interleaved_calls_keep_the_newest_images_under_the_current_calibration(
     for t in workers:
         t.join(60)
     assert not errors
-    state = det._image
+    state = det.image_state
     if state is not None:
         assert state.seq == det._image_seq  # the image set started last is the one cached
         assert state.lut is det.lut  # lifted with the calibration in use

@@ -72,7 +72,7 @@ def test_detects_every_slice_of_the_real_sample(detector, sample):
         assert res.num_points == len(pts) and res.num_pillars > 0
         d = res.detections
         assert d.boxes.shape[1] == 9 and d.boxes.dtype == np.float32
-        assert np.all(np.isfinite(d.boxes)) and np.all(d.scores >= detector._post.score_threshold)
+        assert np.all(np.isfinite(d.boxes)) and np.all(d.scores >= detector.postprocess.score_threshold)
     summary = detector.stats.summary()
     for stage in ("pre", "slice_head", "post", "slice_total", "image_encoder", "volumetric_lifter", "image_total"):
         assert summary[stage]["count"] >= 1 and summary[stage]["p95_ms"] >= summary[stage]["p50_ms"]
@@ -90,7 +90,7 @@ def test_sweep_equals_merged_slices(detector, sample):
 def test_missing_cameras_are_zero_features_and_reported(detector, sample):
     update = detector.update_images(_images(detector, sample, names=("CAM_FRONT", "CAM_BACK")), timestamp=3.0)
     assert set(update.cameras_missing) == set(detector.camera_names) - {"CAM_FRONT", "CAM_BACK"}
-    feats = detector._image.features
+    feats = detector.image_state.features
     for n in update.cameras_missing:
         assert not feats[detector.camera_names.index(n)].any()
     assert feats[detector.camera_names.index("CAM_FRONT")].any()
@@ -100,6 +100,21 @@ def test_before_any_image_the_slice_uses_zeros(export_dir, sample):
     det = StreamingDetector(export_dir)
     res = det.detect_slice(_slices(sample)[0], 0)
     assert res.image_timestamp is None
+
+
+def test_the_image_state_and_postprocess_are_public_and_read_only(export_dir, sample):
+    det = StreamingDetector(export_dir, DetectorConfig(score_threshold=0.25))
+    assert det.image_state is None and det.postprocess.score_threshold == 0.25
+    det.update_images(_images(det, sample), timestamp=2.0)
+    state = det.image_state
+    assert state.timestamp == 2.0 and state.seq == 1 and state.lut is det.lut and state is det.image_state
+    det.detect_slice(_slices(sample)[0], 0)
+    assert det.image_state is state  # a slice reads the cache, never replaces it
+    det.update_images(_images(det, sample), timestamp=3.0)
+    assert det.image_state is not state and det.image_state.seq == 2 and state.timestamp == 2.0
+    for name in ("image_state", "postprocess"):
+        with pytest.raises(AttributeError):
+            setattr(det, name, None)
 
 
 @pytest.mark.parametrize("precision", ["fp32", "fp16"])
@@ -185,7 +200,7 @@ def test_lut_that_does_not_fit_is_refused(detector, sample):
 def test_set_calibration_relifts_without_new_sessions(export_dir, sample):
     det = StreamingDetector(export_dir)
     det.update_images(_images(det, sample), timestamp=5.0)
-    bev_before = det._image.bev.copy()
+    bev_before = det.image_state.bev.copy()
     sessions = (det.image_encoder.session, det.lifter.session, det.slice_head.session)
     lut_hash = det.lut.calibration_sha256
     img = det.manifest.image
@@ -193,8 +208,8 @@ def test_set_calibration_relifts_without_new_sessions(export_dir, sample):
     det.set_calibration(noisy)
     assert (det.image_encoder.session, det.lifter.session, det.slice_head.session) == sessions
     assert det.lut.calibration_sha256 != lut_hash
-    assert not np.array_equal(det._image.bev, bev_before)
-    assert det._image.timestamp == 5.0
+    assert not np.array_equal(det.image_state.bev, bev_before)
+    assert det.image_state.timestamp == 5.0
 
 
 def test_threads_give_the_same_detections_as_one_thread(export_dir, sample):

@@ -62,8 +62,8 @@ def test_mixed_lanes_equal_each_lane_alone(export_dir, sample):
     fp32 = StreamingDetector(export_dir, DetectorConfig(precision="fp32"))
     for det in (mixed, int8, fp32):
         _feed(det, sample)
-    np.testing.assert_array_equal(mixed._image.bev, int8._image.bev)  # noqa: SLF001 - the cached image BEV
-    fp32._image = mixed._image  # noqa: SLF001 - the int8 image BEV, cached per quadrant
+    np.testing.assert_array_equal(mixed.image_state.bev, int8.image_state.bev)  # the cached image BEV
+    fp32._image = mixed.image_state  # noqa: SLF001 - the int8 image BEV, cached per quadrant
     for k, pts in enumerate(split_sweep(sample.points, mixed.num_slices)):
         a = mixed.detect_slice(pts, k, timestamp=float(k)).detections
         b = fp32.detect_slice(pts, k, timestamp=float(k)).detections

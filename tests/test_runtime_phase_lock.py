@@ -319,7 +319,7 @@ def test_a_phase_locked_runner_ends_with_the_full_update_bev(tiny_export):
     finally:
         runner.close(WAIT_S)
     assert det.image_timestamps == (0.5, 0.5, 0.5, 0.5)
-    np.testing.assert_allclose(det._image.bev, full._image.bev, rtol=0, atol=1e-6)  # noqa: SLF001
+    np.testing.assert_allclose(det.image_state.bev, full.image_state.bev, rtol=0, atol=1e-6)
     assert all(r.image_timestamp == 0.5 and r.image_age_s == pytest.approx(r.timestamp - 0.5) for r in late)
     assert runner.phase_lock.quadrant_lifts + runner.phase_lock.full_updates >= 1
     assert runner.image_lane_cpu_s > 0.0

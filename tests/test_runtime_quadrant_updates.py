@@ -91,7 +91,7 @@ def test_four_quadrant_updates_equal_one_full_update(tiny_export, seed, given):
         update = parts.update_images(images, timestamp=1.0, quadrants=[q])
         assert update.quadrants == (q,) and not update.superseded
         assert set(update.cameras_used) <= set(parts.quadrant_cameras([q]))
-    np.testing.assert_allclose(parts._image.bev, full._image.bev, rtol=0, atol=1e-6)  # noqa: SLF001
+    np.testing.assert_allclose(parts.image_state.bev, full.image_state.bev, rtol=0, atol=1e-6)
     for k, pts in enumerate(split_sweep(load_bundled_sample().points, N_SLICES)):
         a = full.detect_slice(pts, k, timestamp=2.0)
         b = parts.detect_slice(pts, k, timestamp=2.0)
@@ -106,7 +106,7 @@ def test_two_quadrants_at_once_equal_the_full_update(tiny_export):
     parts = StreamingDetector(tiny_export)
     parts.update_images(images, timestamp=1.0, quadrants=(0, 1))
     parts.update_images(images, timestamp=1.0, quadrants=[2, 3])
-    np.testing.assert_allclose(parts._image.bev, full._image.bev, rtol=0, atol=1e-6)  # noqa: SLF001
+    np.testing.assert_allclose(parts.image_state.bev, full.image_state.bev, rtol=0, atol=1e-6)
 
 
 def test_a_quadrant_update_encodes_only_the_cameras_that_see_it(tiny_export):
@@ -118,7 +118,7 @@ def test_a_quadrant_update_encodes_only_the_cameras_that_see_it(tiny_export):
         s = det.stats.summary()
         assert s["image_encoder"]["count"] == 1 and s["volumetric_lifter"]["count"] == 1
         # the executed GMAC follow the run's sizes: that quadrant's cameras, one quadrant
-        enc = det._graph_entries["image_encoder"]  # noqa: SLF001
+        enc = det.manifest.graph("image_encoder", det.config.image_precision)
         assert s["image_encoder"]["gmac_total"] == pytest.approx(enc.gmac * len(update.cameras_used) / enc.gmac_at["J"])
 
 
@@ -150,11 +150,11 @@ def test_before_any_image_a_slice_has_no_image_age(tiny_export, sample):
 def test_an_older_quadrant_update_never_replaces_a_newer_one(tiny_export):
     det = StreamingDetector(tiny_export)
     det.update_images(_images(det, 0), timestamp=5.0)  # seq 1
-    state = det._image  # noqa: SLF001
+    state = det.image_state
     # a later call (seq 2) for quadrant 0 installs; the cache of the other quadrants is the same objects
     det.update_images(_images(det, 1), timestamp=4.0, quadrants=[0])  # timestamps are labels: call order decides
     assert det.image_timestamps == (4.0, 5.0, 5.0, 5.0)
-    assert all(a is b for a, b in zip(det._image.quadrants[1:], state.quadrants[1:]))  # noqa: SLF001
+    assert all(a is b for a, b in zip(det.image_state.quadrants[1:], state.quadrants[1:]))
 
 
 def test_calibration_swap_relifts_quadrant_updates_like_a_full_update(tiny_export, sample):
@@ -168,20 +168,20 @@ def test_calibration_swap_relifts_quadrant_updates_like_a_full_update(tiny_expor
     for q in range(4):
         parts.update_images(images, timestamp=1.0, quadrants=[q])
     parts.set_calibration(rig)
-    assert parts._image.lut is parts.lut  # noqa: SLF001
+    assert parts.image_state.lut is parts.lut
     # a camera the new LUT reads in a quadrant but the update did not encode is zeros there: equal only where
     # each quadrant's cameras are unchanged
     same = [q for q in range(4) if parts.quadrant_cameras([q]) == StreamingDetector(tiny_export).quadrant_cameras([q])]
     for q in same:
-        np.testing.assert_allclose(parts._image.quadrants[q].bev, full._image.bev[q : q + 1], rtol=0, atol=1e-6)  # noqa: SLF001
+        np.testing.assert_allclose(parts.image_state.quadrants[q].bev, full.image_state.bev[q : q + 1], rtol=0, atol=1e-6)
 
 
 @pytest.mark.parametrize("bad", [[], [4], [1, 0], [0, 0], [True], "0", [0.0], (-1,)])
 def test_malformed_quadrants_are_refused_before_anything_changes(detector, bad):
-    before = detector._image  # noqa: SLF001
+    before = detector.image_state
     with pytest.raises(ValueError, match="quadrants must be None or a non-empty strictly increasing list of 0..3"):
         detector.update_images(_images(detector, 0), timestamp=1.0, quadrants=bad)
-    assert detector._image is before  # noqa: SLF001
+    assert detector.image_state is before
 
 
 def test_a_quadrant_whose_cameras_are_not_given_lifts_zeros(tiny_export):
@@ -192,7 +192,7 @@ def test_a_quadrant_whose_cameras_are_not_given_lifts_zeros(tiny_export):
     assert update.cameras_used == () and update.cameras_missing == det.quadrant_cameras([0])
     ref = StreamingDetector(tiny_export)
     ref.update_images(_images(ref, 0, others), timestamp=1.0)  # the full update with the same cameras missing
-    np.testing.assert_allclose(det._image.quadrants[0].bev, ref._image.bev[:1], rtol=0, atol=1e-6)  # noqa: SLF001
+    np.testing.assert_allclose(det.image_state.quadrants[0].bev, ref.image_state.bev[:1], rtol=0, atol=1e-6)
 
 
 def test_encoded_feature_maps_are_used_instead_of_encoding_again(tiny_export):
@@ -207,7 +207,7 @@ def test_encoded_feature_maps_are_used_instead_of_encoding_again(tiny_export):
         cams = det.quadrant_cameras([q])
         det.update_images({n: images[n] for n in cams}, 1.0, quadrants=[q], encoded={n: encoded[n] for n in cams})
     assert "image_encoder" not in det.stats.summary()  # nothing encoded twice
-    np.testing.assert_allclose(det._image.bev, ref._image.bev, rtol=0, atol=1e-6)  # noqa: SLF001
+    np.testing.assert_allclose(det.image_state.bev, ref.image_state.bev, rtol=0, atol=1e-6)
 
 
 @pytest.mark.parametrize("bad, match", [
@@ -217,10 +217,10 @@ def test_encoded_feature_maps_are_used_instead_of_encoding_again(tiny_export):
     ([1], "encoded must be None or a dict"),
 ])  # fmt: skip
 def test_malformed_encoded_maps_are_refused(detector, bad, match):
-    before = detector._image  # noqa: SLF001
+    before = detector.image_state
     with pytest.raises(ValueError, match=match):
         detector.update_images(_images(detector, 0), timestamp=1.0, quadrants=[0], encoded=bad)
-    assert detector._image is before  # noqa: SLF001
+    assert detector.image_state is before
 
 
 @pytest.mark.parametrize("quadrants", [None, [1], [0, 2]])
@@ -237,7 +237,7 @@ def test_camera_timestamps_make_each_quadrant_as_old_as_its_oldest_camera(tiny_e
         assert got == (min(seen) if seen else 9.0)  # a quadrant no camera sees keeps the update's timestamp
     plain = StreamingDetector(tiny_export)
     plain.update_images(_images(plain, 0), timestamp=9.0, quadrants=quadrants)
-    np.testing.assert_array_equal(det._image.bev, plain._image.bev)  # the times change nothing else
+    np.testing.assert_array_equal(det.image_state.bev, plain.image_state.bev)  # the times change nothing else
 
 
 @pytest.mark.parametrize("bad, match", [
