@@ -1,0 +1,103 @@
+"""Would the compacted LUT pay inside the lifter graph? The export's lifter in both gather forms, per quadrant.
+
+``python -m streamdet.benchmarks.compact_lifter --export-dir DIR [--checkpoint F] [--rounds 30] [--threads 1]``
+exports the detector's lifter (``to_export_form``: the folded lifter of the shipped presets) twice, fp32, with the
+export's opset and names: as exported today (K-slot LUT with sentinels) and as ``CompactLifter``
+(models/compact_lifter.py: the valid (voxel, camera) pairs, ``calibration/compact_lut.py``), and times both on
+every quadrant of the export's LUT (each quadrant's own rows and the feature maps of the cameras that see it, what
+the phase-locked lane lifts), taking turns within every round. The outputs are compared first. The features come
+from the export's encoder on the bundled sample's images. Results: docs/replay.md ("Less work per lift").
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import click
+import numpy as np
+import torch
+
+from streamdet.benchmarks.image_half import _lift_feeds, _session, _stats
+from streamdet.calibration.compact_lut import compact_lut
+from streamdet.core.sectors import NUM_QUADRANTS
+from streamdet.export.onnx_export import GRAPH_IO, GraphIO, export_module
+from streamdet.export.weights import bundled_checkpoint, load_detector
+from streamdet.models.compact_lifter import CompactLifter
+from streamdet.models.export_form import to_export_form
+from streamdet.models.presets import get_preset
+from streamdet.runtime_ort.manifest import read_manifest
+
+COMPACT_IO = GraphIO(
+    name="volumetric_lifter",
+    inputs=("features", "multi_index", "multi_weight", "final_index", "final_weight"),
+    outputs=("image_bev",),
+    dynamic_axes={"features": {0: "J", 2: "Hf", 3: "Wf"}, "multi_index": {0: "K", 1: "M"}, "multi_weight": {0: "K", 1: "M"},
+                  "final_index": {0: "Q"}, "final_weight": {0: "Q"}, "image_bev": {0: "Q"}},
+)  # fmt: skip
+
+
+def _compact_feeds(feeds: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    index, weight = feeds["lut_index"], feeds["lut_weight"]  # (1, K, Z, Yq, Xq)
+    j, _, hf, wf = feeds["features"].shape
+    lut = compact_lut(index, weight, j * hf * wf)
+    voxels = lut.voxel_shape  # (Q, Z, Yq, Xq)
+    return {"features": feeds["features"], "multi_index": lut.multi_index, "multi_weight": lut.multi_weight,
+            "final_index": lut.final_index.reshape(voxels), "final_weight": lut.final_weight.reshape(voxels)}  # fmt: skip
+
+
+def run(export_dir: Path, checkpoint: Path | None, rounds: int, threads: int) -> list[str]:
+    manifest = read_manifest(export_dir)
+    preset = get_preset(manifest.preset_name)
+    det, _ = load_detector(preset, checkpoint or bundled_checkpoint(preset.name))
+    lifter = to_export_form(det).volumetric_lifter
+    slots = _lift_feeds(export_dir, threads)
+    compact = [_compact_feeds(f) for f in slots]
+    with torch.no_grad():
+        t = lambda a: torch.from_numpy(a)  # noqa: E731
+        slots_model = export_module(lifter, tuple(t(slots[0][n]) for n in GRAPH_IO["volumetric_lifter"].inputs), GRAPH_IO["volumetric_lifter"])
+        compact_model = export_module(CompactLifter(lifter).eval(), tuple(t(compact[0][n]) for n in COMPACT_IO.inputs), COMPACT_IO)
+    sessions = {"slots": _session_of(slots_model, threads), "compact": _session_of(compact_model, threads)}
+    feeds = {"slots": slots, "compact": compact}
+    worst = max(float(np.abs(sessions["slots"].run(None, a)[0] - sessions["compact"].run(None, b)[0]).max()) for a, b in zip(slots, compact))
+    multi = [c["multi_index"].shape[1] for c in compact]
+    lines = [f"parity: {NUM_QUADRANTS} quadrants, max |diff| {worst:.3g}; voxels seen by 2+ cameras per quadrant {multi}"]
+    times: dict[str, list[float]] = {k: [] for k in sessions}
+    for r in range(rounds):
+        for key in ("slots", "compact") if r % 2 == 0 else ("compact", "slots"):
+            for f in feeds[key]:
+                t0 = time.perf_counter()
+                sessions[key].run(None, f)
+                times[key].append((time.perf_counter() - t0) * 1e3)
+    lines.append(f"{'fp32 lifter':<18} {'median':>8} {'p95':>8} {'min':>8} {'p95/med':>6}  ms per quadrant lift ({rounds} rounds, {threads} thread(s))")
+    for key in sessions:
+        lines.append(f"{key:<18} {_stats(times[key])}")
+    return lines
+
+
+def _session_of(model, threads: int):
+    import tempfile
+
+    import onnx
+
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "lifter.onnx"
+        onnx.save_model(model, str(path))
+        return _session(path, threads)
+
+
+@click.command(context_settings={"help_option_names": ["-h", "--help"]})
+@click.option("--export-dir", type=click.Path(exists=True, file_okay=False, path_type=Path), required=True,
+              help="A fused export (its manifest names the preset; its LUT and encoder give the inputs).")
+@click.option("--checkpoint", type=click.Path(exists=True, dir_okay=False, path_type=Path), default=None,
+              help="Weights of the lifter exported here (default: the preset's bundled checkpoint, else seeded weights).")
+@click.option("--rounds", type=click.IntRange(min=3), default=30, show_default=True, help="Timed rounds (every quadrant).")
+@click.option("--threads", type=click.IntRange(min=1), default=1, show_default=True, help="Intra-op threads per session.")
+def main(export_dir: Path, checkpoint: Path | None, rounds: int, threads: int) -> None:
+    """Time the lifter graph on the K-slot LUT and on the compacted LUT, per quadrant, taking turns."""
+    for line in run(export_dir, checkpoint, rounds, threads):
+        click.echo(line)
+
+
+if __name__ == "__main__":
+    main()
