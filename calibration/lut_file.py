@@ -27,7 +27,9 @@ from streamdet.calibration.camera import CalibrationError
 from streamdet.calibration.grid import GridSpec
 from streamdet.core.sectors import NUM_QUADRANTS
 
-MAX_LUT_BYTES = 1 << 30  # all members, uncompressed; far above any preset's LUT (docs/trust.md), far below a bomb
+# All members, uncompressed. The largest preset grid (16 x 256 x 256 per quadrant) takes 32 MiB per slot K for both
+# tables: 1 GiB allows K = 32, above its 6 cameras x 2 heights per voxel; a bomb declares far more.
+MAX_LUT_BYTES = 1 << 30
 MAX_LUT_META_BYTES = 1 << 20  # the meta JSON string; a real one is under a kB
 MAX_HEIGHTS_PER_VOXEL = 64  # as calibration.lut: bounds K for a given camera count
 MEMBERS = ("index", "weight", "meta")
