@@ -257,20 +257,29 @@ _SCENERY = np.array([Kind.BUILDING, Kind.WALL, Kind.CURB])  # unannotated, one b
 
 def _draw_scenery(objects, objs, parts, m, o_cam, near_t, rays_flat, zflat, cflat, idflat, sun_ego, ego2cam, camera,
                   centers, yaws) -> None:
-    """Draw single-box scenery nearest first: each box's candidate pixels are tested once, in front or not."""
+    """Draw single-box scenery: each pixel shows the nearest box in front of what is drawn, ties going to the box
+    first in ``objects`` (as drawing them one by one in that order with a strict depth test would).
+
+    The boxes are visited nearest first (by their distance from the camera), so a pixel already covered by a
+    nearer box skips the boxes behind it unintersected; the order of ``objects`` only breaks exact depth ties.
+    """
     part, pix = _part_pixels(objects, centers, yaws, parts, ego2cam, camera)  # grouped by part, in order
     if not len(part):
         return
     bounds = np.flatnonzero(np.r_[True, part[1:] != part[:-1], True])  # run starts, then the end
-    for a, b in zip(bounds[:-1], bounds[1:]):
+    starts, ends = bounds[:-1], bounds[1:]
+    rank = np.full(len(zflat), -1, dtype=np.int64)  # per pixel: the run drawn there (-1: not scenery, wins ties)
+    for run in np.argsort(near_t[part[starts]], kind="stable"):
+        a, b = starts[run], ends[run]
         p = int(part[a])
         px = pix[a:b]
-        px = px[near_t[p] < zflat[px]]
+        px = px[near_t[p] <= zflat[px]]
         if not len(px):
             continue
         d = rays_flat[px] @ m[p].T  # (R, 3) part frame
         hit, t, axis, sign = ray_box_entry(np.broadcast_to(o_cam[p], d.shape), d, parts.half[p].astype(np.float32))
-        front = np.flatnonzero(t < zflat[px])
+        z = zflat[px]
+        front = np.flatnonzero((t < z) | ((t == z) & (rank[px] > run)))
         if not len(front):
             continue
         px, t, axis, sign = px[front], t[front], axis[front], sign[front]
@@ -282,6 +291,7 @@ def _draw_scenery(objects, objs, parts, m, o_cam, near_t, rays_flat, zflat, cfla
         n_ego = n_part @ m[p].astype(np.float64)  # M^T n for row vectors
         lum = AMBIENT + SUN * np.maximum(n_ego @ sun_ego, 0.0) + 0.08 * n_ego[:, 2]
         zflat[px] = t
+        rank[px] = run
         cflat[px] = albedo * lum[:, None].astype(np.float32)
         idflat[px] = parts.owner[p]
 
@@ -356,7 +366,13 @@ def _part_pixels(order: np.ndarray, centers: np.ndarray, yaws: np.ndarray, parts
     width, height = camera.width, camera.height
     box_lo = np.floor(uv.min(axis=1)).astype(np.int64) - 1  # (R, 2) pixel bounds where the part is all in front
     box_hi = np.ceil(uv.max(axis=1)).astype(np.int64) + 2
-    for r in np.flatnonzero(~gone & ~((box_hi[:, 0] <= 0) | (box_lo[:, 0] >= width) | (box_hi[:, 1] <= 0) | (box_lo[:, 1] >= height)) | behind):
+    # For the parts all in front: the clipped bounds and the corners in OpenCV's fixed point relative to them,
+    # for all parts at once (the loop below only rasterises).
+    lo_c = np.maximum(box_lo, 0)  # (R, 2) u0, v0
+    hi_c = np.minimum(box_hi, [width, height])  # (R, 2) u1, v1
+    fixed = np.round((uv - lo_c[:, None, :]) * _SUBPIXEL).astype(np.int64)
+    fixed = np.clip(fixed, -(1 << 20), 1 << 20).astype(np.int32)  # keep OpenCV's fixed point in range for grazing parts
+    for r in np.flatnonzero(~gone & ~((box_hi[:, 0] <= 0) | (box_lo[:, 0] >= width) | (box_hi[:, 1] <= 0) | (box_lo[:, 1] >= height)) | behind).tolist():
         if gone[r]:
             continue
         if behind[r]:
@@ -369,15 +385,17 @@ def _part_pixels(order: np.ndarray, centers: np.ndarray, yaws: np.ndarray, parts
             u1 = min(int(np.ceil(q[:, 0].max())) + 2, width)
             v0 = max(int(np.floor(q[:, 1].min())) - 1, 0)
             v1 = min(int(np.ceil(q[:, 1].max())) + 2, height)
+            if u0 >= u1 or v0 >= v1:
+                continue
+            pts2 = np.round((q - [u0, v0]) * _SUBPIXEL).astype(np.int64)
+            pts2 = np.clip(pts2, -(1 << 20), 1 << 20).astype(np.int32)
         else:
-            q = uv[r]
-            u0, v0 = max(int(box_lo[r, 0]), 0), max(int(box_lo[r, 1]), 0)
-            u1, v1 = min(int(box_hi[r, 0]), width), min(int(box_hi[r, 1]), height)
-        if u0 >= u1 or v0 >= v1:
-            continue
+            u0, v0 = lo_c[r]
+            u1, v1 = hi_c[r]
+            if u0 >= u1 or v0 >= v1:
+                continue
+            pts2 = fixed[r]
         mask = np.zeros((v1 - v0, u1 - u0), dtype=np.uint8)
-        pts2 = np.round((q - [u0, v0]) * _SUBPIXEL).astype(np.int64)
-        pts2 = np.clip(pts2, -(1 << 20), 1 << 20).astype(np.int32)  # keep OpenCV's fixed point in range for grazing parts
         hull = cv2.convexHull(pts2)
         cv2.fillConvexPoly(mask, hull, 1, lineType=cv2.LINE_8, shift=_SHIFT)
         cv2.polylines(mask, [hull], True, 1, thickness=1, lineType=cv2.LINE_8, shift=_SHIFT)
