@@ -30,9 +30,14 @@ def ray_box_entry(
     t1 = (-half - o) * inv  # (P, 3)
     t2 = (half - o) * inv
     t_near = np.minimum(t1, t2)
-    t_far = np.maximum(t1, t2, out=t1).min(axis=1)
-    axis = np.argmax(t_near, axis=1)  # the last slab entered is the face the ray crosses
-    t_near = t_near.max(axis=1)
+    t_exit = np.maximum(t1, t2, out=t1)
+    # Reductions over the 3 slabs column by column (numpy's axis reductions over a length-3 axis are slow); the
+    # same values as min / max / argmax (first maximum) over the axis.
+    t_far = np.minimum(np.minimum(t_exit[:, 0], t_exit[:, 1]), t_exit[:, 2])
+    n0, n1, n2 = t_near[:, 0], t_near[:, 1], t_near[:, 2]
+    n01 = np.maximum(n0, n1)
+    axis = np.where(n2 > n01, 2, np.where(n1 > n0, 1, 0))  # the last slab entered is the face the ray crosses
+    t_near = np.maximum(n01, n2)
     hit = (t_near <= t_far) & (t_near > 0.0)
     sign = -np.sign(d_safe[np.arange(len(axis)), axis])
     return hit, np.where(hit, t_near, np.inf), axis, sign
