@@ -1,8 +1,8 @@
 """Would the compacted LUT pay inside the lifter graph? The export's lifter in both gather forms, per quadrant.
 
 ``python -m streamdet.benchmarks.compact_lifter --export-dir DIR [--checkpoint F] [--rounds 30] [--threads 1]``
-exports the detector's lifter (``to_export_form``: the folded lifter of the shipped presets) twice, fp32, with the
-export's opset and names: as exported today (K-slot LUT with sentinels) and as ``CompactLifter``
+exports the detector's lifter (``to_export_form``: the folded lifter of the shipped presets) twice, fp32 (and with
+``--int8`` quantized as the export quantizes its lifter), with the export's opset and names: as exported today (K-slot LUT with sentinels) and as ``CompactLifter``
 (models/compact_lifter.py: the valid (voxel, camera) pairs, ``calibration/compact_lut.py``), and times both on
 every quadrant of the export's LUT (each quadrant's own rows and the feature maps of the cameras that see it, what
 the phase-locked lane lifts), taking turns within every round. The outputs are compared first. The features come
@@ -46,7 +46,7 @@ def _compact_feeds(feeds: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
             "final_index": lut.final_index.reshape(voxels), "final_weight": lut.final_weight.reshape(voxels)}  # fmt: skip
 
 
-def run(export_dir: Path, checkpoint: Path | None, rounds: int, threads: int) -> list[str]:
+def run(export_dir: Path, checkpoint: Path | None, rounds: int, threads: int, int8: bool = False) -> list[str]:
     manifest = read_manifest(export_dir)
     preset = get_preset(manifest.preset_name)
     det, _ = load_detector(preset, checkpoint or bundled_checkpoint(preset.name))
@@ -59,30 +59,41 @@ def run(export_dir: Path, checkpoint: Path | None, rounds: int, threads: int) ->
         compact_model = export_module(CompactLifter(lifter).eval(), tuple(t(compact[0][n]) for n in COMPACT_IO.inputs), COMPACT_IO)
     sessions = {"slots": _session_of(slots_model, threads), "compact": _session_of(compact_model, threads)}
     feeds = {"slots": slots, "compact": compact}
+    if int8:  # both quantized as the export quantizes its lifter (float gather), calibrated on the four quadrants
+        sessions["slots_int8"] = _session_of(slots_model, threads, slots)
+        sessions["compact_int8"] = _session_of(compact_model, threads, compact)
+        feeds.update(slots_int8=slots, compact_int8=compact)
     worst = max(float(np.abs(sessions["slots"].run(None, a)[0] - sessions["compact"].run(None, b)[0]).max()) for a, b in zip(slots, compact))
     multi = [c["multi_index"].shape[1] for c in compact]
     lines = [f"parity: {NUM_QUADRANTS} quadrants, max |diff| {worst:.3g}; voxels seen by 2+ cameras per quadrant {multi}"]
     times: dict[str, list[float]] = {k: [] for k in sessions}
+    names = list(sessions)
     for r in range(rounds):
-        for key in ("slots", "compact") if r % 2 == 0 else ("compact", "slots"):
+        for key in names if r % 2 == 0 else names[::-1]:
             for f in feeds[key]:
                 t0 = time.perf_counter()
                 sessions[key].run(None, f)
                 times[key].append((time.perf_counter() - t0) * 1e3)
-    lines.append(f"{'fp32 lifter':<18} {'median':>8} {'p95':>8} {'min':>8} {'p95/med':>6}  ms per quadrant lift ({rounds} rounds, {threads} thread(s))")
+    lines.append(f"{'lifter':<18} {'median':>8} {'p95':>8} {'min':>8} {'p95/med':>6}  ms per quadrant lift ({rounds} rounds, {threads} thread(s))")
     for key in sessions:
         lines.append(f"{key:<18} {_stats(times[key])}")
     return lines
 
 
-def _session_of(model, threads: int):
+def _session_of(model, threads: int, calibration: list | None = None):
+    """A session of ``model``, or of its int8 version calibrated on ``calibration`` feeds (export/int8_quantize.py)."""
     import tempfile
 
     import onnx
 
+    from streamdet.export.int8_quantize import quantize_graph
+
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "lifter.onnx"
         onnx.save_model(model, str(path))
+        if calibration is not None:
+            quantize_graph("volumetric_lifter", path, Path(tmp) / "lifter.int8.onnx", calibration)
+            path = Path(tmp) / "lifter.int8.onnx"
         return _session(path, threads)
 
 
@@ -93,9 +104,10 @@ def _session_of(model, threads: int):
               help="Weights of the lifter exported here (default: the preset's bundled checkpoint, else seeded weights).")
 @click.option("--rounds", type=click.IntRange(min=3), default=30, show_default=True, help="Timed rounds (every quadrant).")
 @click.option("--threads", type=click.IntRange(min=1), default=1, show_default=True, help="Intra-op threads per session.")
-def main(export_dir: Path, checkpoint: Path | None, rounds: int, threads: int) -> None:
+@click.option("--int8", is_flag=True, help="Also both graphs quantized as the export quantizes its lifter (calibrated on the quadrants timed).")
+def main(export_dir: Path, checkpoint: Path | None, rounds: int, threads: int, int8: bool) -> None:
     """Time the lifter graph on the K-slot LUT and on the compacted LUT, per quadrant, taking turns."""
-    for line in run(export_dir, checkpoint, rounds, threads):
+    for line in run(export_dir, checkpoint, rounds, threads, int8):
         click.echo(line)
 
 
