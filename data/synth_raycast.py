@@ -105,7 +105,7 @@ def ray_shape_entry(
     ell = np.flatnonzero(shape == SHAPE_ELLIPSOID)
     if len(ell):
         os_, ds = o[ell] / half[ell], d[ell] / half[ell]  # the unit sphere, same parameter t
-        te = _quadratic_entry(np.sum(ds * ds, axis=1), 2 * np.sum(os_ * ds, axis=1), np.sum(os_ * os_, axis=1) - 1.0)
+        te = _quadratic_entry(_row_sum(ds * ds), 2 * _row_sum(os_ * ds), _row_sum(os_ * os_) - 1.0)
         t[ell] = te
         if with_normal:
             p = o[ell] + np.where(np.isfinite(te), te, 0.0)[:, None] * d[ell]
@@ -114,14 +114,14 @@ def ray_shape_entry(
     if len(cyl):
         oc, dc, hc = o[cyl], d[cyl], half[cyl]
         os_, ds = oc[:, :2] / hc[:, :2], dc[:, :2] / hc[:, :2]
-        ts = _quadratic_entry(np.sum(ds * ds, axis=1), 2 * np.sum(os_ * ds, axis=1), np.sum(os_ * os_, axis=1) - 1.0)
+        ts = _quadratic_entry(_row_sum(ds * ds), 2 * _row_sum(os_ * ds), _row_sum(os_ * os_) - 1.0)
         zs = oc[:, 2] + np.where(np.isfinite(ts), ts, 0.0) * dc[:, 2]
         ts = np.where(np.abs(zs) <= hc[:, 2], ts, np.inf)
         dz = np.where(np.abs(dc[:, 2]) < _EPS, _EPS, dc[:, 2])
         cap_sign = -np.sign(dz)  # the cap facing the ray
         tc = (cap_sign * hc[:, 2] - oc[:, 2]) / dz
         pc = oc[:, :2] + tc[:, None] * dc[:, :2]
-        inside_cap = np.sum((pc / hc[:, :2]) ** 2, axis=1) <= 1.0
+        inside_cap = _row_sum((pc / hc[:, :2]) ** 2) <= 1.0
         tc = np.where(inside_cap & (tc > 0) & (np.abs(oc[:, 2]) > hc[:, 2]), tc, np.inf)
         side = ts <= tc
         t[cyl] = np.minimum(ts, tc)
@@ -133,8 +133,17 @@ def ray_shape_entry(
             normal[cyl] = n
     if not with_normal:
         return t, None
-    norm = np.linalg.norm(normal, axis=1, keepdims=True)
+    norm = np.sqrt(_row_sum(normal * normal))[:, None]  # (np.linalg.norm's values)
     return t, normal / np.maximum(norm, _EPS)
+
+
+def _row_sum(x: np.ndarray) -> np.ndarray:
+    """(Q,) sums of the 2 or 3 columns of x (Q, n), left to right: the values of ``x.sum(axis=1)`` without numpy's slow
+    reduction over a short axis."""
+    s = x[:, 0] + x[:, 1]
+    for j in range(2, x.shape[1]):
+        s += x[:, j]
+    return s
 
 
 def _quadratic_entry(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:

@@ -7,7 +7,7 @@ import pytest
 
 import streamdet.data.synth_render as synth_render
 from streamdet.data.synth_materials import shade
-from streamdet.data.synth_raycast import ray_box_entry
+from streamdet.data.synth_raycast import _row_sum, ray_box_entry
 from streamdet.data.synth_world import WorldConfig, make_scene
 from streamdet.data.synth_writer import real_rig_records
 
@@ -49,6 +49,17 @@ def test_ray_box_entry_equals_axis_reductions(seed, dtype):
     single = ray_box_entry(np.broadcast_to(o[0], o.shape), d, half[0])  # one origin and box for all rays
     for got, ref in zip(single, _naive_ray_box_entry(np.broadcast_to(o[0], o.shape), d, half[0])):
         np.testing.assert_array_equal(got, ref)
+
+
+@pytest.mark.parametrize("columns", [2, 3])
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_row_sum_equals_numpy_sum(columns, dtype):
+    rng = np.random.default_rng(columns)
+    x = (rng.normal(size=(5000, columns)) * rng.lognormal(0.0, 3.0, size=(5000, columns))).astype(dtype)
+    got = _row_sum(x)
+    assert got.dtype == dtype
+    np.testing.assert_array_equal(got, x.sum(axis=1))
+    np.testing.assert_array_equal(np.sqrt(_row_sum(x * x)), np.linalg.norm(x, axis=1))
 
 
 def _sequential_scenery(objects, objs, parts, m, o_cam, near_t, rays_flat, zflat, cflat, idflat, sun_ego, ego2cam, camera,
