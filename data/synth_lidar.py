@@ -24,7 +24,7 @@ import numpy as np
 
 from streamdet.calibration.camera import invert_transform
 from streamdet.core.boxes import box_corners_bev
-from streamdet.data.synth_materials import ground, shade
+from streamdet.data.synth_materials import ground_reflectance, shade
 from streamdet.data.synth_raycast import ray_box_entry, ray_shape_entry, world_to_local
 from streamdet.data.synth_road import ray_ground_height
 from streamdet.data.synth_world import Scene
@@ -131,7 +131,7 @@ def simulate_sweep(
     refl_all = best_refl[idx].copy()
     if np.any(on_ground):
         s_road, d_road = scene.to_road(world[on_ground, :2])
-        _, refl_all[on_ground] = ground(s_road, d_road, scene.cross_s_m)
+        refl_all[on_ground] = ground_reflectance(s_road, d_road, scene.cross_s_m)
     cos = best_cos[idx]
     # The return model: whether a pulse comes back falls with range and incidence and rises with reflectance.
     fill = footprint_fill(best_width[idx], t_best[idx], config)

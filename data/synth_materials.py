@@ -151,31 +151,51 @@ def ground(s: np.ndarray, d: np.ndarray, cross_s: float | None = None) -> tuple[
     lines between the lanes and the parking strips), tiled sidewalks and grass beyond: the layout of
     ``synth_road``; plain asphalt where a cross street at ``cross_s`` crosses them.
     """
-    s = np.asarray(s, dtype=np.float64)
-    d = np.asarray(d, dtype=np.float64)
-    ad = np.abs(d)
-    # The noise repeats every GROUND_PERIOD_M along the road so the renderer can pre-sample one period.
-    grain = hash_noise(np.mod(np.floor(s / 0.3), GROUND_PERIOD_M / 0.3), np.floor(d / 0.3), 1)
+    s, d, ad, grain, road, sidewalk, painted, cross = _ground_layout(s, d, cross_s)
     patch = hash_noise(np.mod(np.floor(s / 4.0), GROUND_PERIOD_M / 4.0), np.floor(d / 4.0), 2)
-    road = ad < ROAD_HALF_WIDTH_M
-    sidewalk = (ad >= ROAD_HALF_WIDTH_M) & (ad < SIDEWALK_OUTER_M)
     shade_ = (0.85 + 0.2 * grain + 0.1 * patch)[..., None]
     albedo = np.where(road[..., None], ASPHALT * shade_, np.float32([0.33, 0.45, 0.22]) * (0.7 + 0.5 * grain)[..., None])
     tile = (np.mod(s, 1.5) < 0.05) | (np.mod(ad - ROAD_HALF_WIDTH_M, 1.5) < 0.05)
     side_rgb = np.where(tile[..., None], np.float32([0.45, 0.45, 0.44]), np.float32([0.66, 0.65, 0.62]) * (0.92 + 0.12 * grain)[..., None])
     albedo = np.where(sidewalk[..., None], side_rgb, albedo)
-    refl = np.where(road, 0.17 + 0.05 * grain, np.where(sidewalk, 0.22 + 0.05 * grain, 0.2 + 0.06 * grain))
+    marking, centre = painted
+    albedo = np.where(marking[..., None], np.float32([0.92, 0.92, 0.9]), albedo)
+    albedo = np.where(centre[..., None], np.float32([0.9, 0.75, 0.2]), albedo)
+    if cross is not None:
+        albedo = np.where(cross[..., None], ASPHALT * shade_, albedo)
+    return albedo.astype(np.float32), _ground_reflectance(grain, road, sidewalk, painted, cross)
+
+
+def ground_reflectance(s: np.ndarray, d: np.ndarray, cross_s: float | None = None) -> np.ndarray:
+    """(P,) float32: ``ground``'s reflectance alone (what the LiDAR needs), without the albedo."""
+    _, _, _, grain, road, sidewalk, painted, cross = _ground_layout(s, d, cross_s)
+    return _ground_reflectance(grain, road, sidewalk, painted, cross)
+
+
+def _ground_layout(s, d, cross_s):
+    """What ``ground`` and ``ground_reflectance`` share: s, d, |d|, the grain noise, the road and sidewalk masks,
+    the (dashed and edge line, centre line) masks and the cross-street mask (None without a cross street)."""
+    s = np.asarray(s, dtype=np.float64)
+    d = np.asarray(d, dtype=np.float64)
+    ad = np.abs(d)
+    # The noise repeats every GROUND_PERIOD_M along the road so the renderer can pre-sample one period.
+    grain = hash_noise(np.mod(np.floor(s / 0.3), GROUND_PERIOD_M / 0.3), np.floor(d / 0.3), 1)
+    road = ad < ROAD_HALF_WIDTH_M
+    sidewalk = (ad >= ROAD_HALF_WIDTH_M) & (ad < SIDEWALK_OUTER_M)
     marking = (np.abs(ad - LANE_WIDTH_M) < 0.07) & (np.mod(s, 9.0) < 3.0)  # 3 m dashes every 9 m
     marking |= np.abs(ad - 2 * LANE_WIDTH_M) < 0.09
     centre = ad < 0.1
-    albedo = np.where(marking[..., None], np.float32([0.92, 0.92, 0.9]), albedo)
-    albedo = np.where(centre[..., None], np.float32([0.9, 0.75, 0.2]), albedo)
+    cross = cross_street(s, d, cross_s) if cross_s is not None else None
+    return s, d, ad, grain, road, sidewalk, (marking, centre), cross
+
+
+def _ground_reflectance(grain, road, sidewalk, painted, cross) -> np.ndarray:
+    marking, centre = painted
+    refl = np.where(road, 0.17 + 0.05 * grain, np.where(sidewalk, 0.22 + 0.05 * grain, 0.2 + 0.06 * grain))
     refl = np.where(marking | centre, 0.45, refl)
-    if cross_s is not None:
-        cross = cross_street(s, d, cross_s)
-        albedo = np.where(cross[..., None], ASPHALT * shade_, albedo)
+    if cross is not None:
         refl = np.where(cross, 0.17 + 0.05 * grain, refl)
-    return albedo.astype(np.float32), refl.astype(np.float32)
+    return refl.astype(np.float32)
 
 
 def cross_street(s: np.ndarray, d: np.ndarray, cross_s: float) -> np.ndarray:

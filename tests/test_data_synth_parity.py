@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import streamdet.data.synth_render as synth_render
-from streamdet.data.synth_materials import shade
+from streamdet.data.synth_materials import ground, ground_reflectance, shade
 from streamdet.data.synth_raycast import _row_sum, ray_box_entry
 from streamdet.data.synth_world import WorldConfig, make_scene
 from streamdet.data.synth_writer import real_rig_records
@@ -60,6 +60,17 @@ def test_row_sum_equals_numpy_sum(columns, dtype):
     assert got.dtype == dtype
     np.testing.assert_array_equal(got, x.sum(axis=1))
     np.testing.assert_array_equal(np.sqrt(_row_sum(x * x)), np.linalg.norm(x, axis=1))
+
+
+@pytest.mark.parametrize("cross_s", [None, 12.3])
+def test_ground_reflectance_equals_grounds(cross_s):
+    rng = np.random.default_rng(0)
+    s, d = rng.uniform(-100.0, 100.0, 20000), rng.uniform(-40.0, 40.0, 20000)
+    got = ground_reflectance(s, d, cross_s)
+    ref = ground(s, d, cross_s)[1]
+    assert got.dtype == ref.dtype
+    np.testing.assert_array_equal(got, ref)
+    assert ground_reflectance(np.zeros(0), np.zeros(0), cross_s).shape == (0,)
 
 
 def _sequential_scenery(objects, objs, parts, m, o_cam, near_t, rays_flat, zflat, cflat, idflat, sun_ego, ego2cam, camera,
