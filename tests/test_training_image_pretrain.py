@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -115,6 +116,27 @@ def test_max_minutes_stops_with_a_checkpoint(tiny_synth_data, tmp_path):
     assert out["step"] == 0 and not out["finished"] and (tmp_path / "last.pt").is_file()
 
 
+def test_stop_at_step_cuts_the_schedule_where_resume_continues_it(tiny_synth_data, tmp_path):
+    cut = PretrainConfig(preset="tiny", steps=4, batch_size=2, eval_every=10, checkpoint_every=10, warmup_steps=1, stop_at_step=2)
+    out = pretrain(cut, tiny_synth_data, tmp_path / "cut", splits=(None, None), echo=lambda s: None)
+    assert out["step"] == 2 and not out["finished"]
+    whole = dataclasses.replace(cut, stop_at_step=None)
+    resumed = pretrain(whole, tiny_synth_data, tmp_path / "cut", resume=tmp_path / "cut" / "last.pt", splits=(None, None),
+                       echo=lambda s: None)  # fmt: skip
+    straight = pretrain(whole, tiny_synth_data, tmp_path / "straight", splits=(None, None), echo=lambda s: None)
+    assert resumed["step"] == straight["step"] == 4 and resumed["finished"]
+    a = torch.load(tmp_path / "cut" / "encoder.pt", weights_only=True)
+    b = torch.load(tmp_path / "straight" / "encoder.pt", weights_only=True)
+    for k in b:
+        torch.testing.assert_close(a[k], b[k])
+
+
+@pytest.mark.parametrize("bad", [0, -1, True, 1.5])
+def test_stop_at_step_refuses_non_positive_integers(bad):
+    with pytest.raises(ValueError, match="stop_at_step"):
+        PretrainConfig(preset="tiny", stop_at_step=bad)
+
+
 def test_frozen_batch_preset_pretrains_with_batch_statistics_and_the_head_stays_out():
     v2 = get_preset("small_v2")
     assert pretrain_preset(v2).image.norm == "batch" and pretrain_preset(get_preset("small")) == get_preset("small")
@@ -122,8 +144,6 @@ def test_frozen_batch_preset_pretrains_with_batch_statistics_and_the_head_stays_
     assert isinstance(seg, ImageSegmenter)
     assert not any(isinstance(m, SegHead) for m in build_detector(get_preset("tiny")).modules())
     with pytest.raises(ValueError, match="use_image=False"):
-        import dataclasses
-
         build_segmenter(dataclasses.replace(get_preset("tiny"), use_image=False))
 
 

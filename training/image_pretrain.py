@@ -61,12 +61,18 @@ class PretrainConfig:
     checkpoint_every: int = 100  # steps between rewrites of last.pt
     seed: int = 0
     max_minutes: float | None = None  # stop with a checkpoint after this much wall time (resume continues)
+    # Stop with a checkpoint once this many steps of the schedule are done (resume continues): a session cut that,
+    # unlike max_minutes, lands on the same step on every machine, so a cut schedule can be repeated exactly.
+    stop_at_step: int | None = None
 
     def __post_init__(self) -> None:
         get_preset(self.preset)
         for name in ("steps", "batch_size", "eval_every", "checkpoint_every"):
             if getattr(self, name) < 1:
                 raise ValueError(f"PretrainConfig.{name} must be >= 1, got {getattr(self, name)}")
+        if self.stop_at_step is not None and (isinstance(self.stop_at_step, bool) or not isinstance(self.stop_at_step, int)
+                                              or self.stop_at_step < 1):
+            raise ValueError(f"PretrainConfig.stop_at_step must be None or a positive integer, got {self.stop_at_step!r}")
         if not self.lr > 0 or not self.range_m > 0:
             raise ValueError(f"PretrainConfig: lr and range_m must be > 0, got {self.lr}, {self.range_m}")
 
@@ -258,6 +264,9 @@ def pretrain(config: PretrainConfig, data_dir: str | Path, out_dir: str | Path, 
         if config.max_minutes is not None and time.monotonic() - t0 > 60 * config.max_minutes:
             stopped_early = True
             break
+        if config.stop_at_step is not None and step >= config.stop_at_step:
+            stopped_early = True
+            break
         idx = np.sort(batch_indices(step, len(train_data), config))
         images = torch.from_numpy(train_data.images[idx]).to(device)  # (B, H, W, 3)
         labels = torch.from_numpy(train_data.labels[idx]).long().to(device)  # (B, H, W)
@@ -285,6 +294,6 @@ def pretrain(config: PretrainConfig, data_dir: str | Path, out_dir: str | Path, 
     last_eval = {**last_eval, "step": step, "finished": not stopped_early}
     (out / "result.json").write_text(json.dumps(last_eval, indent=1) + "\n")
     metrics.close()
-    echo(f"{'stopped at --max-minutes' if stopped_early else 'finished'} at step {step}: val mIoU {last_eval['mIoU']:.3f}; "
+    echo(f"{'stopped (--max-minutes / --stop-at-step)' if stopped_early else 'finished'} at step {step}: val mIoU {last_eval['mIoU']:.3f}; "
          f"wrote {out / 'encoder.pt'} and {out / 'detector_init.pt'}")  # fmt: skip
     return last_eval

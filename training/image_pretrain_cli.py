@@ -31,12 +31,15 @@ from streamdet.training.image_pretrain import PretrainConfig, pretrain
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Seed of the weights and the batches.")
 @click.option("--max-minutes", type=click.FloatRange(min=0, min_open=True), default=None,
               help="Stop with a checkpoint after this much wall time; --resume continues the same schedule.")
+@click.option("--stop-at-step", type=click.IntRange(min=1), default=None,
+              help="Stop with a checkpoint once this many steps of the --steps schedule are done (a session cut that, "
+                   "unlike --max-minutes, is the same on every machine); --resume continues the same schedule.")
 @click.option("--resume", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Continue from a last.pt written by this command.")
 @click.option("--max-samples", type=click.IntRange(min=1), default=None, help="Use only the first N samples of each split (tests).")
 @click.option("--device", default="cpu", show_default=True, help="torch device.")
 def main(data_dir: Path, version: str, out_dir: Path, preset: str, steps: int, batch_size: int, lr: float,
          range_m: float, eval_every: int, checkpoint_every: int, seed: int, max_minutes: float | None,
-         resume: Path | None, max_samples: int | None, device: str) -> None:  # fmt: skip
+         stop_at_step: int | None, resume: Path | None, max_samples: int | None, device: str) -> None:  # fmt: skip
     """Pretrain the detector's image encoder with a segmentation head on per-pixel class masks; report val mIoU."""
     if not (data_dir / version).is_dir():
         raise click.ClickException(f"--data {data_dir}: no table folder {data_dir / version} (is --version right?)")
@@ -44,7 +47,8 @@ def main(data_dir: Path, version: str, out_dir: Path, preset: str, steps: int, b
         raise click.ClickException(f"--resume {resume} does not exist")
     try:
         config = PretrainConfig(preset=preset, steps=steps, batch_size=batch_size, lr=lr, range_m=range_m,
-                                eval_every=eval_every, checkpoint_every=checkpoint_every, seed=seed, max_minutes=max_minutes)  # fmt: skip
+                                eval_every=eval_every, checkpoint_every=checkpoint_every, seed=seed, max_minutes=max_minutes,
+                                stop_at_step=stop_at_step)  # fmt: skip
         pretrain(config, data_dir, out_dir, version=version, resume=resume, device=device, echo=click.echo,
                  max_samples=max_samples)  # fmt: skip
     except (ValueError, FileNotFoundError, KeyError) as e:
