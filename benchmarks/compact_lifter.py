@@ -51,7 +51,7 @@ def run(export_dir: Path, checkpoint: Path | None, rounds: int, threads: int, in
     preset = get_preset(manifest.preset_name)
     det, _ = load_detector(preset, checkpoint or bundled_checkpoint(preset.name))
     lifter = to_export_form(det).volumetric_lifter
-    slots = _lift_feeds(export_dir, threads)
+    slots = _lift_feeds(export_dir, threads, compact=False)
     compact = [_compact_feeds(f) for f in slots]
     with torch.no_grad():
         t = lambda a: torch.from_numpy(a)  # noqa: E731

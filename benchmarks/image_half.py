@@ -24,10 +24,12 @@ from pathlib import Path
 import click
 import numpy as np
 
+from streamdet.calibration.compact_lut import lifter_lut_feeds
 from streamdet.calibration.grid import GridSpec
 from streamdet.calibration.lut import Lut
 from streamdet.calibration.quadrant_lut import quadrant_lut
 from streamdet.core.image_layout import IMAGE_BEV, IMAGE_HALF
+from streamdet.core.lut_layout import LUT_COMPACT
 from streamdet.core.sectors import NUM_QUADRANTS, quadrants_of_sector
 from streamdet.core.slicing import split_sweep
 from streamdet.data.sample import load_bundled_sample
@@ -49,8 +51,9 @@ def _stats(ms: list[float]) -> str:
     return f"{med:8.2f} {np.percentile(a, 95):8.2f} {a.min():8.2f} {np.percentile(a, 95) / med:6.2f}"
 
 
-def _lift_feeds(export_dir: Path, threads: int) -> list[dict[str, np.ndarray]]:
-    """Per quadrant: the lifter feeds of the cameras that see it (features from the export's fp32 encoder)."""
+def _lift_feeds(export_dir: Path, threads: int, compact: bool | None = None) -> list[dict[str, np.ndarray]]:
+    """Per quadrant: the lifter feeds of the cameras that see it (features from the export's fp32 encoder), the
+    LUT compacted or not (None: as the export's lut_layout says)."""
     manifest = read_manifest(export_dir)
     img = manifest.image
     sample = load_bundled_sample()
@@ -63,7 +66,10 @@ def _lift_feeds(export_dir: Path, threads: int) -> list[dict[str, np.ndarray]]:
     for q in range(NUM_QUADRANTS):
         qlut = quadrant_lut(lut, q)
         maps = features[list(qlut.camera_indices)] if qlut.camera_indices else features[:1] * 0
-        feeds.append({"features": np.ascontiguousarray(maps), "lut_index": qlut.index, "lut_weight": qlut.weight})
+        if compact is None:
+            compact = manifest.lut_layout == LUT_COMPACT
+        j, _, hf, wf = maps.shape
+        feeds.append({"features": np.ascontiguousarray(maps), **lifter_lut_feeds(qlut.index, qlut.weight, j * hf * wf, compact)})
     return feeds
 
 

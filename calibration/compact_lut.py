@@ -70,6 +70,18 @@ def compact_lut(index: np.ndarray, weight: np.ndarray, sentinel: int) -> Compact
     )
 
 
+def lifter_lut_feeds(index: np.ndarray, weight: np.ndarray, sentinel: int, compact: bool) -> dict[str, np.ndarray]:
+    """The lifter graph's LUT feeds of a K-slot ``index``, ``weight`` (Q, K, Z, Yq, Xq): as they are (``lut_index``,
+    ``lut_weight``), or compacted (``multi_index``, ``multi_weight`` (K, M), ``final_index``, ``final_weight``
+    (Q, Z, Yq, Xq); core/lut_layout.py names both)."""
+    if not compact:
+        return {"lut_index": index, "lut_weight": weight}
+    lut = compact_lut(index, weight, sentinel)
+    voxels = lut.voxel_shape  # (Q, Z, Yq, Xq)
+    return {"multi_index": lut.multi_index, "multi_weight": lut.multi_weight,
+            "final_index": lut.final_index.reshape(voxels), "final_weight": lut.final_weight.reshape(voxels)}  # fmt: skip
+
+
 def gather_compact(table: np.ndarray, lut: CompactLut) -> np.ndarray:
     """(Q, Z, Yq, Xq, C) = the K-slot gather ``sum_k weight * table[index]`` read through the compact form.
     ``table`` (sentinel + 1, C) float32 with its last row zero."""

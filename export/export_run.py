@@ -51,8 +51,8 @@ class ExportRun:
     @property
     def graphs(self) -> tuple[str, ...]:
         """The graphs this export writes, in pipeline order."""
-        return tuple(ox.graph_ios(self.preset.use_image, self.preset.slice_crop, self.opts.image_layout))
+        return tuple(ox.graph_ios(self.preset.use_image, self.preset.slice_crop, self.opts.image_layout, self.opts.lut_layout))
 
     def graph_io(self, name: str) -> ox.GraphIO:
         """The names and dynamic axes of graph ``name`` of this export."""
-        return ox.graph_ios(self.preset.use_image, self.preset.slice_crop, self.opts.image_layout)[name]
+        return ox.graph_ios(self.preset.use_image, self.preset.slice_crop, self.opts.image_layout, self.opts.lut_layout)[name]

@@ -17,9 +17,11 @@ import onnx
 import torch
 
 from streamdet.calibration.camera import CalibrationError, Rig
+from streamdet.calibration.compact_lut import lifter_lut_feeds
 from streamdet.calibration.lut import build_lut
 from streamdet.core.constants import BUNDLED_CALIBRATION_SOURCE
 from streamdet.core.image_layout import IMAGE_HALF
+from streamdet.core.lut_layout import LUT_COMPACT
 from streamdet.export import onnx_export as ox
 from streamdet.export.export_run import ExportRun, Feeds
 from streamdet.export.fp16 import convert_model_to_fp16
@@ -103,7 +105,8 @@ def chained_feeds(run: ExportRun, name: str, upstream: np.ndarray | None) -> Fee
     if name == "volumetric_lifter":
         lut_index, lut_weight = run.lut.for_quadrants(inputs.quadrants)
         features = scatter_cameras(upstream, inputs.cameras, len(inputs.images))  # (J, C, Hf, Wf)
-        return {"features": features, "lut_index": lut_index, "lut_weight": lut_weight}
+        j, _, hf, wf = features.shape  # the LUT in the export's layout (core/lut_layout.py)
+        return {"features": features, **lifter_lut_feeds(lut_index, lut_weight, j * hf * wf, run.opts.lut_layout == LUT_COMPACT)}
     if run.preset.use_image:  # the image BEV, or its image half (the export's image layout names the input)
         return {**inputs.pillars.as_feeds(), run.graph_io("slice_head").inputs[3]: upstream}
     if not run.preset.slice_crop:
@@ -151,9 +154,11 @@ def parity_image_encoder(run: ExportRun) -> None:
 @torch.no_grad()
 def export_volumetric_lifter(run: ExportRun) -> None:
     feeds = chained_feeds(run, "volumetric_lifter", run.outputs32["image_encoder"][0])
-    args = tuple(torch.from_numpy(feeds[n]) for n in ox.VOLUMETRIC_LIFTER_IO.inputs)
+    # the K-slot LUT: what the trained lifter (the reference) reads, whatever the graph's LUT layout
+    args = (torch.from_numpy(feeds["features"]), *(torch.from_numpy(a) for a in run.lut.for_quadrants(run.inputs.quadrants)))
     layout = run.opts.image_layout
-    save_checked(ox.export_volumetric_lifter(run.det, *args, run.opts.opset, layout), run.tmp, "volumetric_lifter", "fp32")
+    model = ox.export_volumetric_lifter(run.det, *args, run.opts.opset, layout, run.opts.lut_layout)
+    save_checked(model, run.tmp, "volumetric_lifter", "fp32")
     _, (image_map,) = _run_fp32(run, "volumetric_lifter")
     ref = run.det.lifter(*args)  # (Q, C, Yq, Xq)
     if layout == IMAGE_HALF:  # the BEV encoder's image half of PyTorch's image BEV (the export form's conv, no bias)
@@ -172,8 +177,9 @@ def export_slice_head(run: ExportRun) -> None:
     if run.preset.use_image and run.opts.image_layout == IMAGE_HALF:
         # PyTorch's SliceNet takes the image BEV: PyTorch's own lift of the lifter's parity feeds, so the graphs'
         # split (image half in the lifter graph, added in the slice graph) is checked against the trained modules
-        lifter_args = (torch.from_numpy(run.feeds32["volumetric_lifter"][n]) for n in ox.VOLUMETRIC_LIFTER_IO.inputs)
-        image_bev = run.det.lifter(*lifter_args)  # (Q, C, Yq, Xq)
+        features = torch.from_numpy(run.feeds32["volumetric_lifter"]["features"])
+        lut = (torch.from_numpy(a) for a in run.lut.for_quadrants(run.inputs.quadrants))  # the K-slot LUT
+        image_bev = run.det.lifter(features, *lut)  # (Q, C, Yq, Xq)
     maps = run.det.slice_net(*args[:3], image_bev, num_quadrants=run.inputs.num_maps)
     ref_dets, run.margins_of = reference_decode(maps, run.preset)
     _note_parity(run, compare_detections("slice_head", "fp32", "torch", dets, ref_dets, TORCH_TOL_REL, run.margins_of(ref_dets)))
@@ -188,8 +194,9 @@ def reference_decode(maps, preset: Preset):
 
 
 def count_gmacs(run: ExportRun) -> None:
-    lifter = run.feeds32.get("volumetric_lifter", {})
-    run.gmacs = graph_gmacs(run.det, run.inputs, lifter.get("lut_index"), lifter.get("lut_weight"), run.opts.image_layout)
+    # the K-slot LUT the trained lifter reads (the compact layout's graph reads fewer rows, the convolutions dominate)
+    lut_index, lut_weight = run.lut.for_quadrants(run.inputs.quadrants) if run.preset.use_image else (None, None)
+    run.gmacs = graph_gmacs(run.det, run.inputs, lut_index, lut_weight, run.opts.image_layout)
     run.note(", ".join(f"{k} {v:.2f}" for k, (v, _) in run.gmacs.items()))
 
 

@@ -26,8 +26,10 @@ from torch import nn
 from streamdet.models.decode import SliceDecoder
 from streamdet.models.detector import StreamDetector
 from streamdet.models.export_form import LidarSliceDecoder, to_export_form  # noqa: F401 (LidarSliceDecoder: its old home)
+from streamdet.calibration.compact_lut import lifter_lut_feeds
 from streamdet.core.image_layout import IMAGE_BEV, IMAGE_HALF, check_image_layout
 from streamdet.core.image_layout import image_map_chw as layout_map_chw
+from streamdet.core.lut_layout import COMPACT_INPUTS, LUT_COMPACT, LUT_SLOTS, SLOTS_INPUTS, check_lut_layout, lut_inputs
 from streamdet.models.presets import Preset
 
 DEFAULT_OPSET = 17
@@ -96,6 +98,15 @@ IMAGE_HALF_SLICE_HEAD_IO = GraphIO(
     dynamic_axes={**{k: v for k, v in SLICE_HEAD_IO.dynamic_axes.items() if k != "image_bev"}, IMAGE_HALF: {0: "Q"}},
 )
 IMAGE_HALF_GRAPH_IO: dict[str, GraphIO] = {g.name: g for g in (IMAGE_ENCODER_IO, IMAGE_HALF_LIFTER_IO, IMAGE_HALF_SLICE_HEAD_IO)}
+# The compact LUT layout (core/lut_layout.py): the lifter reads the valid (voxel, camera) pairs; M (voxels seen by two
+# or more cameras) is dynamic like K, the per-voxel arrays (Q, Z, Yq, Xq) have the preset's quadrant.
+COMPACT_LUT_AXES = {"multi_index": {0: "K", 1: "M"}, "multi_weight": {0: "K", 1: "M"}, "final_index": {0: "Q"}, "final_weight": {0: "Q"}}
+
+
+def compact_lifter_io(io_spec: GraphIO) -> GraphIO:
+    """``io_spec`` (a lifter graph's) reading the compacted LUT instead of the K-slot arrays."""
+    axes = {k: v for k, v in io_spec.dynamic_axes.items() if k not in SLOTS_INPUTS}
+    return dataclasses.replace(io_spec, inputs=("features", *COMPACT_INPUTS), dynamic_axes={**axes, **COMPACT_LUT_AXES})
 # The LiDAR-only baseline (preset use_image=False) exports this slice graph alone. It has no image BEV: the graph
 # takes the slice's quadrant ids (Q,) int64 and reads their count (models/export_form.py: LidarSliceDecoder).
 LIDAR_SLICE_HEAD_IO = GraphIO(
@@ -115,11 +126,14 @@ LIDAR_FULL_MAP_SLICE_HEAD_IO = GraphIO(
 )
 
 
-def graph_ios(use_image: bool, slice_crop: bool = True, image_layout: str = IMAGE_BEV) -> dict[str, GraphIO]:
-    """The graphs an export of a preset with this ``use_image`` (and ``slice_crop``, ``image_layout``) consists of,
-    by name, in pipeline order."""
+def graph_ios(use_image: bool, slice_crop: bool = True, image_layout: str = IMAGE_BEV, lut_layout: str = LUT_SLOTS) -> dict[str, GraphIO]:
+    """The graphs an export of a preset with this ``use_image`` (and ``slice_crop``, ``image_layout``,
+    ``lut_layout``) consists of, by name, in pipeline order."""
     if use_image:
-        return IMAGE_HALF_GRAPH_IO if check_image_layout(image_layout) == IMAGE_HALF else GRAPH_IO
+        ios = IMAGE_HALF_GRAPH_IO if check_image_layout(image_layout) == IMAGE_HALF else GRAPH_IO
+        if check_lut_layout(lut_layout) == LUT_SLOTS:
+            return ios
+        return {**ios, "volumetric_lifter": compact_lifter_io(ios["volumetric_lifter"])}
     return {"slice_head": LIDAR_SLICE_HEAD_IO if slice_crop else LIDAR_FULL_MAP_SLICE_HEAD_IO}
 
 
@@ -177,7 +191,7 @@ def export_image_encoder(det: StreamDetector, images: torch.Tensor, opset: int =
 
 def export_volumetric_lifter(
     det: StreamDetector, features: torch.Tensor, lut_index: torch.Tensor, lut_weight: torch.Tensor, opset: int = DEFAULT_OPSET,
-    image_layout: str = IMAGE_BEV,
+    image_layout: str = IMAGE_BEV, lut_layout: str = LUT_SLOTS,
 ) -> onnx.ModelProto:
     """features (J, C, Hf, Wf), lut_index / lut_weight (Q, K, Z, Yq, Xq) -> image_bev (Q, C, Yq, Xq), or in the
     image_half layout image_half (Q, C0, Yh, Xh) (models/image_half.py).
@@ -189,22 +203,32 @@ def export_volumetric_lifter(
     if det.lifter is None:
         raise ValueError(f"preset {det.preset.name!r} has use_image=False: there is no lifter to export")
     g = det.preset.grid
-    io_spec = graph_ios(True, True, image_layout)["volumetric_lifter"]
+    io_spec = graph_ios(True, True, image_layout, lut_layout)["volumetric_lifter"]
     (out,) = io_spec.outputs
     crop = (slice(None), slice(None), slice(None), slice(None, TRACE_CELLS), slice(None, TRACE_CELLS))
     traced_axes = {
         **io_spec.dynamic_axes,
         "lut_index": {0: "Q", 1: "K", 3: "Yq", 4: "Xq"},
         "lut_weight": {0: "Q", 1: "K", 3: "Yq", 4: "Xq"},
+        "final_index": {0: "Q", 2: "Yq", 3: "Xq"},
+        "final_weight": {0: "Q", 2: "Yq", 3: "Xq"},
         out: {0: "Q", 2: "Yo", 3: "Xo"},
     }
-    spec = dataclasses.replace(io_spec, dynamic_axes=traced_axes)
-    args = (features, lut_index[crop].contiguous(), lut_weight[crop].contiguous())
-    model = export_module(to_export_form(det, image_layout).volumetric_lifter, args, spec, opset)
-    static = {"lut_index": (None, None, g.nz, g.quadrant_ny, g.quadrant_nx), "lut_weight": (None, None, g.nz, g.quadrant_ny, g.quadrant_nx),
-              out: (None, *image_map_chw(det.preset, image_layout))}
+    spec = dataclasses.replace(io_spec, dynamic_axes={k: v for k, v in traced_axes.items() if k in (*spec_names(io_spec),)})
+    index, weight = lut_index[crop].contiguous(), lut_weight[crop].contiguous()
+    j, _, hf, wf = features.shape
+    lut = lifter_lut_feeds(index.numpy(), weight.numpy(), j * hf * wf, lut_layout == LUT_COMPACT)
+    args = (features, *(torch.from_numpy(lut[n]) for n in lut_inputs(lut_layout)))
+    model = export_module(to_export_form(det, image_layout, lut_layout).volumetric_lifter, args, spec, opset)
+    voxels = (g.nz, g.quadrant_ny, g.quadrant_nx)
+    static = {"lut_index": (None, None, *voxels), "lut_weight": (None, None, *voxels), "final_index": (None, *voxels),
+              "final_weight": (None, *voxels), out: (None, *image_map_chw(det.preset, image_layout))}
     _declare_static_dims(model, static)
     return model
+
+
+def spec_names(io_spec: GraphIO) -> tuple[str, ...]:
+    return (*io_spec.inputs, *io_spec.outputs)
 
 
 def image_map_chw(preset: Preset, image_layout: str = IMAGE_BEV) -> tuple[int, int, int]:

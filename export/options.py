@@ -8,8 +8,10 @@ from streamdet.export import onnx_export as ox
 from streamdet.export.int8_data import DEFAULT_CALIBRATION_SAMPLES
 from streamdet.export.weights import DEFAULT_SEED
 from streamdet.core.image_layout import IMAGE_BEV
+from streamdet.core.lut_layout import LUT_SLOTS
 
 DEFAULT_IMAGE_LAYOUT = IMAGE_BEV  # measured in docs/replay.md ("Less work per lift")
+DEFAULT_LUT_LAYOUT = LUT_SLOTS  # likewise
 
 DEFAULT_PRESET = "small"  # the shipped model's preset: what streamdet-export exports without arguments
 STEM_STRIDE = 2  # the ResNet stem's stride: image sizes must be even
@@ -36,6 +38,8 @@ class ExportOptions:
     # which map the lifter hands the slice graph (models/image_half.py): the image BEV, or the BEV encoder's image
     # half computed in the lifter graph; recorded in the manifest's image_layout
     image_layout: str = DEFAULT_IMAGE_LAYOUT
+    # how the lifter graph reads the LUT (core/lut_layout.py): K slots, or the compacted valid pairs
+    lut_layout: str = DEFAULT_LUT_LAYOUT
 
     @property
     def precisions(self) -> tuple[str, ...]:

@@ -12,6 +12,7 @@ import torch
 
 from streamdet.core.classes import CLASS_NAMES
 from streamdet.core.image_layout import IMAGE_BEV
+from streamdet.core.lut_layout import LUT_SLOTS
 from streamdet.export.weights import WeightsSource
 from streamdet.models.presets import Preset
 from streamdet.runtime_ort.manifest import (
@@ -52,6 +53,7 @@ def export_manifest(
     gmacs: Gmacs, parity: list[ParityRecord], pipeline: PipelineParity | None, int8_record: Int8Record | None,
     source: WeightsSource, parity_input: str, *, image: ImageSpec | None = None,
     normalisation: Normalisation | None = None, lut: LutEntry | None = None, image_layout: str = IMAGE_BEV,
+    lut_layout: str = LUT_SLOTS,
 ) -> Manifest:  # fmt: skip
     """The manifest of an export in ``tmp``: every graph of ``graph_names`` in every precision written; image,
     normalisation and lut stay None for a LiDAR-only export. Also the staged export's draft, for the runtime the
@@ -69,6 +71,7 @@ def export_manifest(
         graphs=tuple(entries),
         lut=lut,
         image_layout=image_layout,
+        lut_layout=lut_layout,
         parity=tuple(parity),
         pipeline_parity=pipeline,
         int8=int8_record,

@@ -13,6 +13,7 @@ from __future__ import annotations
 import dataclasses
 
 from streamdet.core.image_layout import IMAGE_BEV
+from streamdet.core.lut_layout import LUT_SLOTS
 from streamdet.export.export_run import ExportRun
 from streamdet.export.record import export_manifest
 from streamdet.models.image_encoder import IMAGENET_MEAN, IMAGENET_STD
@@ -36,6 +37,7 @@ def run_manifest(run: ExportRun, precisions: tuple[str, ...], int8_record: Int8R
         run.tmp, run.preset, opts.num_slices, opts.opset, precisions, run.graphs, run.gmacs, run.parity, run.pipeline,
         int8_record, run.source, run.inputs.describe(), image=image, normalisation=normalisation, lut=lut,
         image_layout=opts.image_layout if run.preset.use_image else IMAGE_BEV,
+        lut_layout=opts.lut_layout if run.preset.use_image else LUT_SLOTS,
     )  # fmt: skip
 
 

@@ -43,7 +43,7 @@ FP32_STEPS: dict[str, tuple[Step, ...]] = {
 
 def export_steps(preset: Preset, opts: ExportOptions, size: tuple[int, int]) -> list[Step]:
     """Every step of an export of ``preset`` (with its use_image) at ``size`` (W, H) with these options."""
-    graphs = tuple(ox.graph_ios(preset.use_image, preset.slice_crop, opts.image_layout))
+    graphs = tuple(ox.graph_ios(preset.use_image, preset.slice_crop, opts.image_layout, opts.lut_layout))
     fused = preset.use_image
     lidar = "LiDAR-only model: slice graph only" + ("" if preset.slice_crop else ", whole-grid maps (no quadrant crop)")
     steps = [Step("loading weights" if fused else f"loading weights ({lidar})", gs.load_weights)]

@@ -7,8 +7,9 @@ the same sum per voxel (bit for bit in numpy, ``tests/test_compact_lut.py``), th
 lifter's. A FoldedLifter's gather is z-major, so the (Q, Z, Yq, Xq) index is permuted in the graph (an int32 map,
 1 / C of the volume) as FoldedLifter permutes its LUT.
 
-Measured against the K-slot lifter in ``benchmarks/compact_lifter.py``; not an export form yet (the graph's
-inputs, the manifest and the runtime's LUT feeds would change with it): docs/replay.md ("Less work per lift").
+The export form of the lifter in the ``compact`` LUT layout (``streamdet-export --lut-layout compact``,
+core/lut_layout.py; the runtime compacts each LUT it lifts with once). Measured against the K-slot lifter in
+``benchmarks/compact_lifter.py``: docs/replay.md ("Less work per lift").
 """
 
 from __future__ import annotations

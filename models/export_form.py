@@ -8,7 +8,8 @@ function as the trained module it replaces (the export's parity checks compare t
     volumetric_lifter   VolumetricLifter               FoldedLifter where the z-fold pays (lifter_fold.py),
                                                        else the same module; in the image_half layout followed
                                                        by the BEV encoder's image half (ImageHalfLifter,
-                                                       image_half.py)
+                                                       image_half.py); reading the compacted LUT in the
+                                                       compact LUT layout (CompactLifter, compact_lifter.py)
     slice_head          SliceNet + decode              SliceDecoder(ExportSliceNet) (slice_split.py): the
                                                        concatenations split into sums of convolutions, 1x1
                                                        deblocks as convolutions, a multi-head's branches grouped
@@ -28,6 +29,8 @@ from torch import Tensor, nn
 
 from streamdet.models.decode import SliceDecoder, decode_head_maps
 from streamdet.models.detector import SliceNet, StreamDetector
+from streamdet.core.lut_layout import LUT_COMPACT, LUT_SLOTS, check_lut_layout
+from streamdet.models.compact_lifter import CompactLifter
 from streamdet.models.image_half import IMAGE_BEV, IMAGE_HALF, ImageHalfLifter, check_image_layout
 from streamdet.models.lifter_fold import export_lifter
 from streamdet.models.presets import Preset
@@ -84,12 +87,13 @@ class ExportForm:
         return {name: module for name, module in parts.items() if module is not None}
 
 
-def to_export_form(det: StreamDetector, image_layout: str = IMAGE_BEV) -> ExportForm:
+def to_export_form(det: StreamDetector, image_layout: str = IMAGE_BEV, lut_layout: str = LUT_SLOTS) -> ExportForm:
     """The export form of a trained detector (eval mode; it shares the detector's unrewritten modules).
 
     ``image_layout`` (image_half.py): ``image_bev``, the lifter outputs the image BEV and the slice graph runs both
     halves of stage 0's first conv; ``image_half``, the lifter graph also runs the image half and outputs it, the
-    slice graph adds it. A LiDAR-only detector has no image half (the layout is ignored).
+    slice graph adds it. A LiDAR-only detector has no image half (the layout is ignored). ``lut_layout``
+    (core/lut_layout.py): ``compact``, the lifter reads the compacted LUT (CompactLifter, compact_lifter.py).
     """
     preset = det.preset
     check_image_layout(image_layout)
@@ -99,6 +103,8 @@ def to_export_form(det: StreamDetector, image_layout: str = IMAGE_BEV) -> Export
         decoder = LidarSliceDecoder if preset.slice_crop else FullMapSliceDecoder
         return ExportForm(None, None, decoder(slice_net, preset).eval())
     lifter = export_lifter(det.lifter.eval(), preset.lifter, preset.grid.nz)
+    if check_lut_layout(lut_layout) == LUT_COMPACT:
+        lifter = CompactLifter(lifter).eval()
     if layout == IMAGE_HALF:
         lifter = ImageHalfLifter(lifter, slice_net.image_conv).eval()
     return ExportForm(det.image_encoder.eval(), lifter, SliceDecoder(slice_net, preset).eval())

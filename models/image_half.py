@@ -26,7 +26,7 @@ from streamdet.core.image_layout import IMAGE_BEV, IMAGE_HALF, IMAGE_LAYOUTS, ch
 
 
 class ImageHalfLifter(nn.Module):
-    """``forward(features, lut_index, lut_weight) -> image_half (Q, C0, Yh, Xh)``: the lifter, then the image half.
+    """``forward(features, *lut) -> image_half (Q, C0, Yh, Xh)``: the lifter, then the image half.
 
     ``image_conv`` is the export's image half without bias (``ExportSliceNet(net, IMAGE_HALF).image_conv``).
     """
@@ -38,6 +38,6 @@ class ImageHalfLifter(nn.Module):
         self.lifter = lifter
         self.image_conv = image_conv
 
-    def forward(self, features: Tensor, lut_index: Tensor, lut_weight: Tensor) -> Tensor:
-        image_bev = self.lifter(features, lut_index, lut_weight)  # (Q, C, Yq, Xq)
+    def forward(self, features: Tensor, *lut: Tensor) -> Tensor:
+        image_bev = self.lifter(features, *lut)  # (Q, C, Yq, Xq); the LUT in either layout (core/lut_layout.py)
         return self.image_conv(image_bev)  # (Q, C0, Yh, Xh)

@@ -51,6 +51,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from streamdet.calibration.camera import CalibrationError, Rig
+from streamdet.calibration.compact_lut import lifter_lut_feeds
 from streamdet.calibration.grid import GridSpec
 from streamdet.calibration.lut import (
     BlindCameraWarning, CameraMovedWarning, Lut, blind_cameras, build_lut, check_rig_fits, moved_cameras,
@@ -58,6 +59,7 @@ from streamdet.calibration.lut import (
 from streamdet.calibration.quadrant_lut import QuadrantLut, quadrant_luts
 from streamdet.core.constants import BUNDLED_PREFIX, PRECISIONS  # noqa: F401 (PRECISIONS: public here too)
 from streamdet.core.image_layout import image_map_chw
+from streamdet.core.lut_layout import LUT_COMPACT
 from streamdet.core.points import check_sweep
 from streamdet.core.sectors import NUM_QUADRANTS, check_num_slices, quadrants_of_sector, sector_bounds_deg
 from streamdet.core.slicing import split_sweep
@@ -336,6 +338,7 @@ class StreamingDetector:
             self._lut = self._check_lut(self._build_lut(_export_rig(m, self.export_dir)))
         self._image: _ImageCache | None = None  # None before the first image update; replaced whole under _lock
         self._quadrant_luts: dict[Lut, tuple[QuadrantLut, ...]] = {}  # per LUT in use (the newest two kept)
+        self._compact_luts: dict[tuple[int, int], tuple[Lut | QuadrantLut, dict[str, np.ndarray]]] = {}  # compact LUT feeds
         log.info("streamdet: %s (%s, %d slices) on %s", self.export_dir, self.precision_label, self.num_slices, list(self.providers))
 
     def _executed_gmac(self, graph: str, **sizes: int) -> float:
@@ -612,7 +615,7 @@ class StreamingDetector:
     def _lift(self, features: np.ndarray, lut: Lut) -> np.ndarray:
         """The full lift: (4, C, Yq, Xq) from the (J, C, Hf, Wf) feature maps of every camera and the whole LUT."""
         with self.stats.time("volumetric_lifter", self._executed_gmac("volumetric_lifter", Q=NUM_QUADRANTS)):
-            (bev,) = self._run_graph("volumetric_lifter", {"features": features, "lut_index": lut.index, "lut_weight": lut.weight})
+            (bev,) = self._run_graph("volumetric_lifter", {"features": features, **self._lut_feeds(lut, features)})
         return bev  # (4, C, Yq, Xq)
 
     def _lift_quadrants(self, features: np.ndarray, cameras: tuple[str, ...], quadrants: tuple[int, ...], lut: Lut) -> list[np.ndarray]:
@@ -628,11 +631,29 @@ class StreamingDetector:
         out = []
         for q in quadrants:
             qlut = qluts[q]
-            feeds = {"features": _select_maps(features, cameras, qlut.camera_names), "lut_index": qlut.index, "lut_weight": qlut.weight}
+            maps = _select_maps(features, cameras, qlut.camera_names)
+            feeds = {"features": maps, **self._lut_feeds(qlut, maps)}
             with self.stats.time("volumetric_lifter", self._executed_gmac("volumetric_lifter", Q=1)):
                 (bev,) = self._run_graph("volumetric_lifter", feeds)  # (1, C, Yq, Xq)
             out.append(bev)
         return out
+
+    def _lut_feeds(self, lut: Lut | QuadrantLut, maps: np.ndarray) -> dict[str, np.ndarray]:
+        """The lifter's LUT feeds of ``lut`` for the (J, C, Hf, Wf) ``maps`` in the export's LUT layout: the K-slot
+        arrays, or their compacted form (core/lut_layout.py), made once per LUT (the newest ones kept)."""
+        if self.manifest.lut_layout != LUT_COMPACT:
+            return {"lut_index": lut.index, "lut_weight": lut.weight}
+        j, _, hf, wf = maps.shape
+        key = (id(lut), j * hf * wf)
+        with self._lock:
+            cached = self._compact_luts.get(key)
+        if cached is None or cached[0] is not lut:  # an id is only unique while its object lives: the entry keeps it
+            cached = (lut, lifter_lut_feeds(lut.index, lut.weight, j * hf * wf, compact=True))
+            with self._lock:
+                if len(self._compact_luts) >= 2 * (NUM_QUADRANTS + 1):  # two LUTs' worth (full + per quadrant)
+                    self._compact_luts.pop(next(iter(self._compact_luts)))
+                self._compact_luts[key] = cached
+        return cached[1]
 
     def _luts_of(self, lut: Lut) -> tuple[QuadrantLut, ...]:
         """The per-quadrant LUTs of ``lut``, made once per LUT (the two newest LUTs are kept)."""

@@ -32,6 +32,8 @@ definition (types, ranges, sizes), validated by ``Manifest.from_dict`` before an
     image_layout       "image_bev" | "image_half" (optional; absent: "image_bev"): the map the lifter graph outputs
                        and the slice graph takes, the image BEV or the BEV encoder's image half computed in the
                        lifter graph (core/image_layout.py); the graphs' signatures are checked against it
+    lut_layout         "slots" | "compact" (optional; absent: "slots"): the lifter graph's LUT inputs, K slots per
+                       voxel or the compacted valid pairs (core/lut_layout.py); checked likewise
 
 Which graphs a manifest must list follows from ``preset["use_image"]`` (absent means true, as in manifests written
 before LiDAR-only exports existed): a camera + LiDAR export lists all three graphs in fp32 with ``image``,
@@ -59,6 +61,7 @@ from typing import Any, BinaryIO, Callable
 
 from streamdet.core.constants import PRECISIONS
 from streamdet.core.image_layout import IMAGE_BEV, IMAGE_LAYOUTS
+from streamdet.core.lut_layout import LUT_LAYOUTS, LUT_SLOTS
 from streamdet.runtime_ort.schema import SchemaViolation, validate
 
 MANIFEST_VERSION = 1
@@ -382,6 +385,8 @@ class Manifest:
     int8: Int8Record | None = None  # calibration and parity of the int8 graphs, when there are any
     # the map the lifter hands the slice graph (core/image_layout.py); absent in older manifests: image_bev
     image_layout: str = IMAGE_BEV
+    # how the lifter graph reads the LUT (core/lut_layout.py); absent in older manifests: slots
+    lut_layout: str = LUT_SLOTS
     version: int = MANIFEST_VERSION
 
     def __post_init__(self) -> None:
@@ -390,6 +395,7 @@ class Manifest:
         if not self.class_names:
             raise ManifestError("class_names must not be empty")
         _check_choice("image_layout", self.image_layout, IMAGE_LAYOUTS)
+        _check_choice("lut_layout", self.lut_layout, LUT_LAYOUTS)
         if not isinstance(self.num_slices, int) or self.num_slices < 1:
             raise ManifestError(f"num_slices must be a positive int, got {self.num_slices!r}")
         seen = set()
@@ -493,6 +499,7 @@ class Manifest:
                 source=dict(d.get("source", {})),
                 int8=Int8Record.from_dict(d["int8"]) if d.get("int8") else None,
                 image_layout=str(d.get("image_layout", IMAGE_BEV)),
+                lut_layout=str(d.get("lut_layout", LUT_SLOTS)),
             )
         except KeyError as e:
             raise ManifestError(f"manifest is missing the field {e.args[0]!r}") from None

@@ -18,6 +18,7 @@ from streamdet.calibration.grid import GridSpec
 from streamdet.core.boxes import BOX_DIM
 from streamdet.core.classes import CLASS_NAMES
 from streamdet.core.image_layout import image_map_chw
+from streamdet.core.lut_layout import LUT_COMPACT
 from streamdet.runtime_ort.manifest import GraphEntry, Manifest, ManifestError, TensorSpec
 from streamdet.runtime_ort.pillarize import PILLAR_FEATURE_DIM
 
@@ -66,14 +67,19 @@ def expected_io(manifest: Manifest, grid: GridSpec, name: str) -> tuple[tuple[Te
             (TensorSignature("features", "float32", (None, c, None, None)),),
         )
     if name == "volumetric_lifter":
-        return (
-            (
-                TensorSignature("features", "float32", (None, c, None, None)),
+        if manifest.lut_layout == LUT_COMPACT:  # the valid (voxel, camera) pairs (core/lut_layout.py)
+            lut = (
+                TensorSignature("multi_index", "int32", (None, None)),
+                TensorSignature("multi_weight", "float32", (None, None)),
+                TensorSignature("final_index", "int32", (None, z, yq, xq)),
+                TensorSignature("final_weight", "float32", (None, z, yq, xq)),
+            )
+        else:
+            lut = (
                 TensorSignature("lut_index", "int32", (None, None, z, yq, xq)),
                 TensorSignature("lut_weight", "float32", (None, None, z, yq, xq)),
-            ),
-            (image_map,),
-        )
+            )
+        return (TensorSignature("features", "float32", (None, c, None, None)), *lut), (image_map,)
     pillars = (
         TensorSignature("pillar_features", "float32", (None, m, PILLAR_FEATURE_DIM)),
         TensorSignature("pillar_mask", "float32", (None, m)),

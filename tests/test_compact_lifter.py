@@ -1,17 +1,28 @@
-"""CompactLifter (models/compact_lifter.py) against the K-slot lifter it wraps (the naive reference), tiny preset."""
+"""CompactLifter (models/compact_lifter.py) against the K-slot lifter it wraps (the naive reference), tiny preset;
+the compact LUT layout of an export against the slots layout through the runtime."""
 
 from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
 from streamdet.calibration.compact_lut import compact_lut
+from streamdet.core.lut_layout import COMPACT_INPUTS, LUT_COMPACT, LUT_SLOTS
+from streamdet.data.sample import load_bundled_sample
 from streamdet.models.compact_lifter import CompactLifter
 from streamdet.models.detector import build_detector
 from streamdet.models.export_form import to_export_form
 from streamdet.models.lifter_fold import FoldedLifter
 from streamdet.models.presets import get_preset
+from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector
+from streamdet.runtime_ort.manifest import ManifestError, read_manifest
+
+N_SLICES = 8
 
 
 def _lut(rng: np.random.Generator, shape: tuple[int, ...], sentinel: int, multi_share: float):
@@ -55,3 +66,65 @@ def test_compact_lifter_is_the_k_slot_lifter(seed, folded, multi_share, q):
 def test_compact_lifter_refuses_another_module():
     with pytest.raises(TypeError, match="Linear"):
         CompactLifter(torch.nn.Linear(2, 2))
+
+
+# ---- the compact LUT layout through the export and the runtime ------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def compact_export(tmp_path_factory) -> Path:
+    from click.testing import CliRunner
+
+    from streamdet.export.cli import main as export_main
+
+    out = tmp_path_factory.mktemp("tiny_compact_lut") / "tiny"
+    args = ["--preset", "tiny", "--slices", str(N_SLICES), "--lut-layout", LUT_COMPACT, "--int8", "--out", str(out)]
+    result = CliRunner().invoke(export_main, args)
+    assert result.exit_code == 0, result.output
+    return out
+
+
+def _images(det: StreamingDetector, sample) -> dict[str, np.ndarray]:
+    img = det.manifest.image
+    arr = sample.load_images((img.width, img.height))  # (J, H, W, 3)
+    return {n: arr[sample.rig.names.index(n)] for n in det.camera_names}
+
+
+@pytest.mark.parametrize("quadrants", [None, (0,), (1, 3)])  # the full update, per-quadrant lifts
+def test_compact_export_lifts_what_the_slots_export_lifts(tiny_export_fp32, compact_export, quadrants):
+    sample = load_bundled_sample()
+    results = []
+    for export_dir in (tiny_export_fp32, compact_export):
+        det = StreamingDetector(export_dir)
+        det.update_images(_images(det, sample), timestamp=1.0, quadrants=quadrants)
+        results.append((det._image.bev, det.detect_sweep_slices(sample.points, timestamp=1.05, num_slices=N_SLICES)))  # noqa: SLF001
+    (bev_a, a), (bev_b, b) = results
+    np.testing.assert_allclose(bev_b, bev_a, rtol=1e-5, atol=1e-6)
+    for sa, sb in zip(a.slices, b.slices):
+        assert sa.detections.boxes.shape == sb.detections.boxes.shape
+        np.testing.assert_allclose(sb.detections.scores, sa.detections.scores, rtol=1e-4, atol=1e-5)
+
+
+def test_the_compact_int8_graphs_run(compact_export):
+    sample = load_bundled_sample()
+    det = StreamingDetector(compact_export, DetectorConfig(precision="int8"))
+    det.update_images(_images(det, sample), timestamp=1.0, quadrants=(2,))
+    assert len(det.detect_sweep_slices(sample.points, timestamp=1.05, num_slices=N_SLICES).slices) == N_SLICES
+
+
+def test_the_manifest_names_the_lut_layout(tiny_export_fp32, compact_export, tmp_path):
+    assert read_manifest(tiny_export_fp32).lut_layout == LUT_SLOTS
+    m = read_manifest(compact_export)
+    assert m.lut_layout == LUT_COMPACT
+    assert [t.name for t in m.graph("volumetric_lifter").inputs] == ["features", *COMPACT_INPUTS]
+    d = json.loads((tiny_export_fp32 / "manifest.json").read_text())
+    d["lut_layout"] = LUT_COMPACT  # the graphs read K slots
+    copy = tmp_path / "bad"
+    shutil.copytree(tiny_export_fp32, copy)
+    (copy / "manifest.json").write_text(json.dumps(d))
+    with pytest.raises(ManifestError, match="multi_index|lut_index"):
+        StreamingDetector(copy)
+    d["lut_layout"] = "sparse"
+    (copy / "manifest.json").write_text(json.dumps(d))
+    with pytest.raises(ManifestError, match="sparse"):
+        StreamingDetector(copy)
