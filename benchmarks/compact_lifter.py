@@ -5,7 +5,8 @@ exports the detector's lifter (``to_export_form``: the folded lifter of the ship
 ``--int8`` quantized as the export quantizes its lifter), with the export's opset and names: as exported today (K-slot LUT with sentinels) and as ``CompactLifter``
 (models/compact_lifter.py: the valid (voxel, camera) pairs, ``calibration/compact_lut.py``), and times both on
 every quadrant of the export's LUT (each quadrant's own rows and the feature maps of the cameras that see it, what
-the phase-locked lane lifts), taking turns within every round. The outputs are compared first. The features come
+the phase-locked lane lifts), taking turns within every round. With ``--compact-export`` (an export of the same
+weights with ``--lut-layout compact``) it times the two exports' own lifter graphs, fp32 and int8, instead. The outputs are compared first. The features come
 from the export's encoder on the bundled sample's images. Results: docs/replay.md ("Less work per lift").
 """
 
@@ -26,7 +27,7 @@ from streamdet.export.weights import bundled_checkpoint, load_detector
 from streamdet.models.compact_lifter import CompactLifter
 from streamdet.models.export_form import to_export_form
 from streamdet.models.presets import get_preset
-from streamdet.runtime_ort.manifest import read_manifest
+from streamdet.runtime_ort.manifest import graph_file_name, read_manifest
 
 COMPACT_IO = GraphIO(
     name="volumetric_lifter",
@@ -46,13 +47,23 @@ def _compact_feeds(feeds: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
             "final_index": lut.final_index.reshape(voxels), "final_weight": lut.final_weight.reshape(voxels)}  # fmt: skip
 
 
-def run(export_dir: Path, checkpoint: Path | None, rounds: int, threads: int, int8: bool = False) -> list[str]:
+def run(export_dir: Path, checkpoint: Path | None, rounds: int, threads: int, int8: bool = False,
+        compact_export: Path | None = None) -> list[str]:  # fmt: skip
     manifest = read_manifest(export_dir)
+    slots = _lift_feeds(export_dir, threads, compact=False)
+    compact = [_compact_feeds(f) for f in slots]
+    if compact_export is not None:  # the two exports' own graphs (the int8 ones calibrated by the export)
+        precisions = [p for p in ("fp32", "int8") if p in manifest.precisions and p in read_manifest(compact_export).precisions]
+        sessions, feeds = {}, {}
+        for p in precisions:
+            suffix = "" if p == "fp32" else f"_{p}"
+            sessions["slots" + suffix] = _session(export_dir / graph_file_name("volumetric_lifter", p), threads)
+            sessions["compact" + suffix] = _session(compact_export / graph_file_name("volumetric_lifter", p), threads)
+            feeds.update({"slots" + suffix: slots, "compact" + suffix: compact})
+        return _timed(sessions, feeds, slots, compact, rounds, threads)
     preset = get_preset(manifest.preset_name)
     det, _ = load_detector(preset, checkpoint or bundled_checkpoint(preset.name))
     lifter = to_export_form(det).volumetric_lifter
-    slots = _lift_feeds(export_dir, threads, compact=False)
-    compact = [_compact_feeds(f) for f in slots]
     with torch.no_grad():
         t = lambda a: torch.from_numpy(a)  # noqa: E731
         slots_model = export_module(lifter, tuple(t(slots[0][n]) for n in GRAPH_IO["volumetric_lifter"].inputs), GRAPH_IO["volumetric_lifter"])
@@ -63,6 +74,11 @@ def run(export_dir: Path, checkpoint: Path | None, rounds: int, threads: int, in
         sessions["slots_int8"] = _session_of(slots_model, threads, slots)
         sessions["compact_int8"] = _session_of(compact_model, threads, compact)
         feeds.update(slots_int8=slots, compact_int8=compact)
+    return _timed(sessions, feeds, slots, compact, rounds, threads)
+
+
+def _timed(sessions: dict, feeds: dict, slots: list, compact: list, rounds: int, threads: int) -> list[str]:
+    """Parity of the fp32 pair, then every session on every quadrant, taking turns within every round."""
     worst = max(float(np.abs(sessions["slots"].run(None, a)[0] - sessions["compact"].run(None, b)[0]).max()) for a, b in zip(slots, compact))
     multi = [c["multi_index"].shape[1] for c in compact]
     lines = [f"parity: {NUM_QUADRANTS} quadrants, max |diff| {worst:.3g}; voxels seen by 2+ cameras per quadrant {multi}"]
@@ -105,9 +121,12 @@ def _session_of(model, threads: int, calibration: list | None = None):
 @click.option("--rounds", type=click.IntRange(min=3), default=30, show_default=True, help="Timed rounds (every quadrant).")
 @click.option("--threads", type=click.IntRange(min=1), default=1, show_default=True, help="Intra-op threads per session.")
 @click.option("--int8", is_flag=True, help="Also both graphs quantized as the export quantizes its lifter (calibrated on the quadrants timed).")
-def main(export_dir: Path, checkpoint: Path | None, rounds: int, threads: int, int8: bool) -> None:
+@click.option("--compact-export", type=click.Path(exists=True, file_okay=False, path_type=Path), default=None,
+              help="An export of the same weights with --lut-layout compact: time the two exports' own lifter graphs "
+                   "(every precision both hold) instead of exporting them here.")
+def main(export_dir: Path, checkpoint: Path | None, rounds: int, threads: int, int8: bool, compact_export: Path | None) -> None:
     """Time the lifter graph on the K-slot LUT and on the compacted LUT, per quadrant, taking turns."""
-    for line in run(export_dir, checkpoint, rounds, threads, int8):
+    for line in run(export_dir, checkpoint, rounds, threads, int8, compact_export):
         click.echo(line)
 
 
