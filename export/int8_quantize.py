@@ -36,8 +36,8 @@ What stays float, and why (``float_nodes``):
 - lifter, z pooling and the max over z: QLinearAveragePool measured slower than the float AveragePool with the
   DequantizeLinear before it.
 - lifter, the BEV encoder's image half in the image_half layout (models/image_half.py): the fp32 slice graph of the
-  other layout runs it in float; quantized (input and output in uint8) it quadrupled the error the int8 image lane
-  brings to the fp32 slices' scores (docs/replay.md). A small conv next to the 3D convolutions.
+  other layout runs it in float; quantized (input and output in uint8) it raised the error the int8 image lane
+  brings to the fp32 slices' scores several-fold (measured in docs/replay.md). A small conv next to the 3D convolutions.
 - lifter, the LUT gather and weighted sum (``Int8Config.quantize_lifter_gather``, off): quantized, the feature
   table is quantized once, gathered and weighted as uint8 (QLinearMul), and the gathered (Q, K, Z, Yq, Xq, C)
   rows, K = 2 times the volume, are dequantized before the sum. Measured, that costs what the float gather,
