@@ -6,7 +6,7 @@ exports the detector's lifter (``to_export_form``: the folded lifter of the ship
 (models/compact_lifter.py: the valid (voxel, camera) pairs, ``calibration/compact_lut.py``), and times both on
 every quadrant of the export's LUT (each quadrant's own rows and the feature maps of the cameras that see it, what
 the phase-locked lane lifts), taking turns within every round. With ``--compact-export`` (an export of the same
-weights with ``--lut-layout compact``) it times the two exports' own lifter graphs, fp32 and int8, instead. The outputs are compared first. The features come
+weights in the default ``--lut-layout compact``, ``--export-dir`` one made with ``--lut-layout slots``) it times the two exports' own lifter graphs, fp32 and int8, instead. The outputs are compared first. The features come
 from the export's encoder on the bundled sample's images. Results: docs/replay.md ("Less work per lift").
 """
 
@@ -20,7 +20,8 @@ import numpy as np
 import torch
 
 from streamdet.benchmarks.image_half import _lift_feeds, _session, _stats
-from streamdet.calibration.compact_lut import compact_lut
+from streamdet.calibration.compact_lut import lifter_feeds
+from streamdet.core.lut_layout import LUT_COMPACT, LUT_SLOTS
 from streamdet.core.sectors import NUM_QUADRANTS
 from streamdet.export.onnx_export import GRAPH_IO, GraphIO, export_module
 from streamdet.export.weights import bundled_checkpoint, load_detector
@@ -39,17 +40,18 @@ COMPACT_IO = GraphIO(
 
 
 def _compact_feeds(feeds: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    index, weight = feeds["lut_index"], feeds["lut_weight"]  # (1, K, Z, Yq, Xq)
-    j, _, hf, wf = feeds["features"].shape
-    lut = compact_lut(index, weight, j * hf * wf)
-    voxels = lut.voxel_shape  # (Q, Z, Yq, Xq)
-    return {"features": feeds["features"], "multi_index": lut.multi_index, "multi_weight": lut.multi_weight,
-            "final_index": lut.final_index.reshape(voxels), "final_weight": lut.final_weight.reshape(voxels)}  # fmt: skip
+    """The K-slot lifter ``feeds`` with their LUT compacted (the runtime's own conversion)."""
+    return lifter_feeds(feeds["features"], feeds["lut_index"], feeds["lut_weight"], LUT_COMPACT)
 
 
 def run(export_dir: Path, checkpoint: Path | None, rounds: int, threads: int, int8: bool = False,
         compact_export: Path | None = None) -> list[str]:  # fmt: skip
     manifest = read_manifest(export_dir)
+    if compact_export is not None:  # the pair timed: a K-slot export against a compact one
+        layouts = (manifest.lut_layout, read_manifest(compact_export).lut_layout)
+        if layouts != (LUT_SLOTS, LUT_COMPACT):
+            raise ValueError(f"--export-dir must hold a {LUT_SLOTS!r} export (streamdet-export --lut-layout slots) and "
+                             f"--compact-export a {LUT_COMPACT!r} one, got lut_layout {layouts[0]!r} and {layouts[1]!r}")
     slots = _lift_feeds(export_dir, threads, compact=False)
     compact = [_compact_feeds(f) for f in slots]
     if compact_export is not None:  # the two exports' own graphs (the int8 ones calibrated by the export)
@@ -115,18 +117,23 @@ def _session_of(model, threads: int, calibration: list | None = None):
 
 @click.command(context_settings={"help_option_names": ["-h", "--help"]})
 @click.option("--export-dir", type=click.Path(exists=True, file_okay=False, path_type=Path), required=True,
-              help="A fused export (its manifest names the preset; its LUT and encoder give the inputs).")
+              help="A fused export (its manifest names the preset; its LUT and encoder give the inputs); with "
+                   "--compact-export, one made with --lut-layout slots.")
 @click.option("--checkpoint", type=click.Path(exists=True, dir_okay=False, path_type=Path), default=None,
               help="Weights of the lifter exported here (default: the preset's bundled checkpoint, else seeded weights).")
 @click.option("--rounds", type=click.IntRange(min=3), default=30, show_default=True, help="Timed rounds (every quadrant).")
 @click.option("--threads", type=click.IntRange(min=1), default=1, show_default=True, help="Intra-op threads per session.")
 @click.option("--int8", is_flag=True, help="Also both graphs quantized as the export quantizes its lifter (calibrated on the quadrants timed).")
 @click.option("--compact-export", type=click.Path(exists=True, file_okay=False, path_type=Path), default=None,
-              help="An export of the same weights with --lut-layout compact: time the two exports' own lifter graphs "
+              help="An export of the same weights with --lut-layout compact (the default): time the two exports' own lifter graphs "
                    "(every precision both hold) instead of exporting them here.")
 def main(export_dir: Path, checkpoint: Path | None, rounds: int, threads: int, int8: bool, compact_export: Path | None) -> None:
     """Time the lifter graph on the K-slot LUT and on the compacted LUT, per quadrant, taking turns."""
-    for line in run(export_dir, checkpoint, rounds, threads, int8, compact_export):
+    try:
+        lines = run(export_dir, checkpoint, rounds, threads, int8, compact_export)
+    except ValueError as e:
+        raise click.ClickException(str(e)) from None
+    for line in lines:
         click.echo(line)
 
 

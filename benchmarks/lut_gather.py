@@ -11,8 +11,9 @@ for the whole LUT (the full update), small ONNX graphs of the gather alone (tabl
   table in the graph, then ``DequantizeLinear`` of the gathered rows), as an int8 image lane could.
 
 and times the export's own lifter on the same quadrant (fp32 and int8, the gather plus its 3D convolutions) for
-scale, as is and fed the compacted LUT without changing the graph (the combined rows made in numpy and appended to
-the table, a K = 1 LUT: what the runtime alone could do). Rounds interleave the graphs so a busy machine slows them alike; medians, p95 and min are printed. The
+scale, fed the LUT in the layout its manifest names (``lut_layout``), and, for a K-slot export, fed the compacted LUT
+without changing the graph (the combined rows made in numpy and appended to the table, a K = 1 LUT: what the runtime
+alone could do). Rounds interleave the graphs so a busy machine slows them alike; medians, p95 and min are printed. The
 transpose of the feature maps into the table, common to all forms, is left out. Results: benchmarks/RESULTS.md.
 """
 
@@ -27,9 +28,11 @@ import numpy as np
 import onnx
 from onnx import TensorProto, helper, numpy_helper
 
-from streamdet.calibration.compact_lut import CompactLut, compact_lut
+from streamdet.calibration.compact_lut import CompactLut, compact_lut, lifter_feeds
 from streamdet.calibration.lut import Lut
 from streamdet.calibration.quadrant_lut import quadrant_lut
+from streamdet.core.lut_layout import LUT_SLOTS
+from streamdet.runtime_ort.manifest import read_manifest
 
 OPSET = 17
 INT8_SCALE = 0.05  # per-tensor scale of the int8 table (the timing does not depend on it)
@@ -166,13 +169,15 @@ def run(export_dir: Path, rounds: int, threads: int, quadrant: int) -> list[str]
     lifter = {}
     feats = rng.standard_normal((qlut.num_feature_maps, channels, lut.feature_height, lut.feature_width)).astype(np.float32)
     qcomp = compact_lut(qlut.index, qlut.weight, qlut.num_feature_maps * cells)
+    layout = read_manifest(export_dir).lut_layout  # the lifter's LUT inputs (core/lut_layout.py)
     for precision, fname in (("fp32", "volumetric_lifter.onnx"), ("int8", "volumetric_lifter.int8.onnx")):
         if (export_dir / fname).is_file():
             session = _session(export_dir / fname, threads)
-            lifter[f"export lifter {precision}, quadrant {quadrant}"] = (
-                session, {"features": feats, "lut_index": qlut.index, "lut_weight": qlut.weight})
-            lifter[f"export lifter {precision}, quadrant {quadrant}, compacted in numpy, K = 1"] = (
-                _CompactedLifter(session, qcomp, qlut.index.shape[2:]), feats)
+            lifter[f"export lifter {precision} ({layout} LUT), quadrant {quadrant}"] = (
+                session, lifter_feeds(feats, qlut.index, qlut.weight, layout))
+            if layout == LUT_SLOTS:  # a compact export's graph already reads the compacted LUT
+                lifter[f"export lifter {precision}, quadrant {quadrant}, compacted in numpy, K = 1"] = (
+                    _CompactedLifter(session, qcomp, qlut.index.shape[2:]), feats)
     times: dict[tuple[str, str], list[float]] = {}
     everything = [(case, g, s, f[g]) for case, sessions, f, _ in cases for g, s in sessions.items()]
     everything += [("lifter", g, s, f) for g, (s, f) in lifter.items()]

@@ -22,6 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from streamdet.core.lut_layout import LUT_COMPACT, check_lut_layout
+
 
 @dataclass(frozen=True, eq=False)
 class CompactLut:
@@ -80,6 +82,17 @@ def lifter_lut_feeds(index: np.ndarray, weight: np.ndarray, sentinel: int, compa
     voxels = lut.voxel_shape  # (Q, Z, Yq, Xq)
     return {"multi_index": lut.multi_index, "multi_weight": lut.multi_weight,
             "final_index": lut.final_index.reshape(voxels), "final_weight": lut.final_weight.reshape(voxels)}  # fmt: skip
+
+
+def lifter_feeds(features: np.ndarray, index: np.ndarray, weight: np.ndarray, layout: str) -> dict[str, np.ndarray]:
+    """The lifter graph's whole feeds: the (J, C, Hf, Wf) ``features`` and the K-slot ``index``, ``weight``
+    (Q, K, Z, Yq, Xq) in ``layout`` (a manifest's ``lut_layout``, core/lut_layout.py), the sentinel being the maps'
+    J * Hf * Wf rows. What code feeding an export's lifter by hand calls, so it reads either layout."""
+    if features.ndim != 4:
+        raise ValueError(f"features must be (J, C, Hf, Wf), got shape {features.shape}")
+    j, _, hf, wf = features.shape
+    compact = check_lut_layout(layout) == LUT_COMPACT
+    return {"features": features, **lifter_lut_feeds(index, weight, j * hf * wf, compact)}
 
 
 def gather_compact(table: np.ndarray, lut: CompactLut) -> np.ndarray:

@@ -8,10 +8,10 @@ from streamdet.export import onnx_export as ox
 from streamdet.export.int8_data import DEFAULT_CALIBRATION_SAMPLES
 from streamdet.export.weights import DEFAULT_SEED
 from streamdet.core.image_layout import IMAGE_BEV
-from streamdet.core.lut_layout import LUT_SLOTS
+from streamdet.core.lut_layout import LUT_COMPACT
 
 DEFAULT_IMAGE_LAYOUT = IMAGE_BEV  # measured in docs/replay.md ("Less work per lift")
-DEFAULT_LUT_LAYOUT = LUT_SLOTS  # likewise
+DEFAULT_LUT_LAYOUT = LUT_COMPACT  # likewise: the same BEV for less lift time; --lut-layout slots keeps the K-slot form
 
 DEFAULT_PRESET = "small"  # the shipped model's preset: what streamdet-export exports without arguments
 STEM_STRIDE = 2  # the ResNet stem's stride: image sizes must be even

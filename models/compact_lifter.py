@@ -36,8 +36,10 @@ class CompactLifter(nn.Module):
                 final_weight: Tensor) -> Tensor:  # fmt: skip
         table = feature_table(features)  # (R + 1, C), the sentinel row last
         c = table.shape[1]
-        k, m = multi_index.shape
-        multi = table.index_select(0, multi_index.reshape(-1)).reshape(k, m, c)  # (K, M, C)
+        k = multi_index.shape[0]
+        # M as -1: ONNX's Reshape reads a 0 in the shape as "keep that input dim", so an M = 0 LUT (no two cameras
+        # overlap) would be reshaped to (K, C, C)
+        multi = table.index_select(0, multi_index.reshape(-1)).reshape(k, -1, c)  # (K, M, C)
         multi = (multi * multi_weight.unsqueeze(-1)).sum(dim=0)  # (M, C) the multi-camera voxels combined
         ext = torch.cat([table, multi], dim=0)  # (R + 1 + M, C)
         q, z, yq, xq = final_index.shape

@@ -11,9 +11,10 @@ import numpy as np
 import pytest
 import torch
 
-from streamdet.calibration.compact_lut import compact_lut
-from streamdet.core.lut_layout import COMPACT_INPUTS, LUT_COMPACT, LUT_SLOTS
+from streamdet.calibration.compact_lut import compact_lut, lifter_feeds
+from streamdet.core.lut_layout import COMPACT_INPUTS, LUT_COMPACT, LUT_SLOTS, lut_inputs
 from streamdet.data.sample import load_bundled_sample
+from streamdet.export.options import DEFAULT_LUT_LAYOUT
 from streamdet.models.compact_lifter import CompactLifter
 from streamdet.models.detector import build_detector
 from streamdet.models.export_form import to_export_form
@@ -63,6 +64,33 @@ def test_compact_lifter_is_the_k_slot_lifter(seed, folded, multi_share, q):
     torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-6)
 
 
+@pytest.mark.parametrize("trace_share,run_share", [(0.0, 0.3), (0.3, 0.0), (0.0, 0.0)])
+def test_the_compact_graph_takes_any_number_of_multi_voxels(trace_share, run_share):
+    """Traced and run on LUTs with and without voxels seen by two cameras (M = 0: a rig whose cameras do not
+    overlap, or a quadrant they do not share): one graph for every M."""
+    from streamdet.export.onnx_export import VOLUMETRIC_LIFTER_IO, compact_lifter_io, export_module
+    from streamdet.export.parity import ort_session
+
+    torch.manual_seed(0)
+    det = build_detector(get_preset("tiny")).eval()
+    lifter = to_export_form(det).volumetric_lifter
+    g = det.preset.grid
+    rng = np.random.default_rng(0)
+    j, hf, wf = 2, 5, 7
+    sentinel = j * hf * wf
+    shape = (1, 2, g.nz, g.quadrant_ny, g.quadrant_nx)  # (Q, K, Z, Yq, Xq)
+    features = torch.randn(j, det.preset.channels, hf, wf)
+    traced = _compact_args(*_lut(rng, shape, sentinel, trace_share), sentinel)
+    model = export_module(CompactLifter(lifter), (features, *traced), compact_lifter_io(VOLUMETRIC_LIFTER_IO))
+    index, weight = _lut(rng, shape, sentinel, run_share)
+    feeds = lifter_feeds(features.numpy(), index, weight, LUT_COMPACT)
+    assert (feeds["multi_index"].shape[1] == 0) == (run_share == 0.0)
+    (got,) = ort_session(model.SerializeToString()).run(None, feeds)
+    with torch.no_grad():
+        want = lifter(features, torch.from_numpy(index), torch.from_numpy(weight)).numpy()
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
+
+
 def test_compact_lifter_refuses_another_module():
     with pytest.raises(TypeError, match="Linear"):
         CompactLifter(torch.nn.Linear(2, 2))
@@ -72,16 +100,23 @@ def test_compact_lifter_refuses_another_module():
 
 
 @pytest.fixture(scope="module")
-def compact_export(tmp_path_factory) -> Path:
+def slots_export(tmp_path_factory) -> Path:
+    """A tiny fp32 export in the K-slot layout (``--lut-layout slots``; compact is the default)."""
     from click.testing import CliRunner
 
     from streamdet.export.cli import main as export_main
 
-    out = tmp_path_factory.mktemp("tiny_compact_lut") / "tiny"
-    args = ["--preset", "tiny", "--slices", str(N_SLICES), "--lut-layout", LUT_COMPACT, "--int8", "--out", str(out)]
+    out = tmp_path_factory.mktemp("tiny_slots_lut") / "tiny"
+    args = ["--preset", "tiny", "--slices", str(N_SLICES), "--lut-layout", LUT_SLOTS, "--out", str(out)]
     result = CliRunner().invoke(export_main, args)
     assert result.exit_code == 0, result.output
     return out
+
+
+@pytest.fixture(scope="module")
+def compact_export(tiny_int8_export) -> Path:
+    """The shared tiny fp32 + int8 export, in the default layout: compact."""
+    return tiny_int8_export.path
 
 
 def _images(det: StreamingDetector, sample) -> dict[str, np.ndarray]:
@@ -91,10 +126,10 @@ def _images(det: StreamingDetector, sample) -> dict[str, np.ndarray]:
 
 
 @pytest.mark.parametrize("quadrants", [None, (0,), (1, 3)])  # the full update, per-quadrant lifts
-def test_compact_export_lifts_what_the_slots_export_lifts(tiny_export_fp32, compact_export, quadrants):
+def test_compact_export_lifts_what_the_slots_export_lifts(slots_export, compact_export, quadrants):
     sample = load_bundled_sample()
     results = []
-    for export_dir in (tiny_export_fp32, compact_export):
+    for export_dir in (slots_export, compact_export):
         det = StreamingDetector(export_dir)
         det.update_images(_images(det, sample), timestamp=1.0, quadrants=quadrants)
         results.append((det._image.bev, det.detect_sweep_slices(sample.points, timestamp=1.05, num_slices=N_SLICES)))  # noqa: SLF001
@@ -112,15 +147,16 @@ def test_the_compact_int8_graphs_run(compact_export):
     assert len(det.detect_sweep_slices(sample.points, timestamp=1.05, num_slices=N_SLICES).slices) == N_SLICES
 
 
-def test_the_manifest_names_the_lut_layout(tiny_export_fp32, compact_export, tmp_path):
-    assert read_manifest(tiny_export_fp32).lut_layout == LUT_SLOTS
+def test_the_manifest_names_the_lut_layout(slots_export, compact_export, tmp_path):
+    assert DEFAULT_LUT_LAYOUT == LUT_COMPACT
+    assert read_manifest(slots_export).lut_layout == LUT_SLOTS
     m = read_manifest(compact_export)
     assert m.lut_layout == LUT_COMPACT
     assert [t.name for t in m.graph("volumetric_lifter").inputs] == ["features", *COMPACT_INPUTS]
-    d = json.loads((tiny_export_fp32 / "manifest.json").read_text())
+    d = json.loads((slots_export / "manifest.json").read_text())
     d["lut_layout"] = LUT_COMPACT  # the graphs read K slots
     copy = tmp_path / "bad"
-    shutil.copytree(tiny_export_fp32, copy)
+    shutil.copytree(slots_export, copy)
     (copy / "manifest.json").write_text(json.dumps(d))
     with pytest.raises(ManifestError, match="multi_index|lut_index"):
         StreamingDetector(copy)
@@ -128,3 +164,42 @@ def test_the_manifest_names_the_lut_layout(tiny_export_fp32, compact_export, tmp
     (copy / "manifest.json").write_text(json.dumps(d))
     with pytest.raises(ManifestError, match="sparse"):
         StreamingDetector(copy)
+
+
+def test_a_manifest_without_the_field_still_runs_as_slots(slots_export, tmp_path):
+    """Exports written before lut_layout existed: no field, K-slot graphs."""
+    d = json.loads((slots_export / "manifest.json").read_text())
+    del d["lut_layout"]
+    old = tmp_path / "old"
+    shutil.copytree(slots_export, old)
+    (old / "manifest.json").write_text(json.dumps(d))
+    sample = load_bundled_sample()
+    results = []
+    for export_dir in (slots_export, old):
+        det = StreamingDetector(export_dir)
+        assert det.manifest.lut_layout == LUT_SLOTS
+        det.update_images(_images(det, sample), timestamp=1.0)
+        results.append(det.detect_sweep_slices(sample.points, timestamp=1.05, num_slices=N_SLICES))
+    a, b = results
+    for sa, sb in zip(a.slices, b.slices, strict=True):
+        np.testing.assert_array_equal(sb.detections.boxes, sa.detections.boxes)
+
+
+@pytest.mark.parametrize("layout", [LUT_SLOTS, LUT_COMPACT])
+def test_lifter_feeds_name_the_layouts_inputs(layout):
+    rng = np.random.default_rng(0)
+    j, hf, wf = 2, 3, 4
+    index, weight = _lut(rng, (1, 2, 2, 3, 3), j * hf * wf, 0.3)
+    features = rng.standard_normal((j, 5, hf, wf)).astype(np.float32)
+    feeds = lifter_feeds(features, index, weight, layout)
+    assert list(feeds) == ["features", *lut_inputs(layout)]
+    assert feeds["features"] is features
+
+
+@pytest.mark.parametrize("bad,match", [("sparse", "sparse"), (None, "features")])
+def test_lifter_feeds_malformed(bad, match):
+    index = np.zeros((1, 2, 2, 3, 3), np.int32)
+    weight = np.zeros((1, 2, 2, 3, 3), np.float32)
+    features = np.zeros((2, 5, 3, 4) if bad else (5, 3, 4), np.float32)
+    with pytest.raises(ValueError, match=match):
+        lifter_feeds(features, index, weight, bad or LUT_SLOTS)

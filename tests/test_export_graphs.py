@@ -14,9 +14,11 @@ import torch
 from click.testing import CliRunner
 
 from streamdet.calibration.camera import Rig
+from streamdet.calibration.compact_lut import lifter_feeds
 from streamdet.runtime_ort.calib_cli import main as calib_main
 from streamdet.calibration.lut import Lut
 from streamdet.calibration.perturb import perturb_rig
+from streamdet.core.lut_layout import lut_inputs
 from streamdet.data.sample import load_bundled_sample
 from streamdet.data.slicing import slice_sample
 from streamdet.export.exporter import ExportOptions, run_export
@@ -90,7 +92,8 @@ def test_manifest_contents(export):
     slice_head = m.graph("slice_head")
     assert {t.name: t.shape for t in slice_head.outputs}["det_boxes"] == ("Q", TINY.top_k, 9)
     assert {t.name: t.shape for t in slice_head.inputs}["pillar_features"] == ("P", 8, 11)
-    assert {t.name: t.dtype for t in m.graph("volumetric_lifter").inputs}["lut_index"] == "int32"
+    lifter_dtypes = {t.name: t.dtype for t in m.graph("volumetric_lifter").inputs}
+    assert [lifter_dtypes[n] for n in lut_inputs(m.lut_layout) if n.endswith("_index")] in (["int32"], ["int32", "int32"])
     assert m.lut.sha256 == sha256_file(result.out_dir / "lut.npz")
 
 
@@ -175,7 +178,7 @@ def test_slice_head_dynamic_pillars_and_quadrants(export, detector, sample, n, n
 
 def _lifter_bev(result, features, lut: Lut, quadrants):
     index, weight = lut.for_quadrants(quadrants)
-    (bev,) = _session(result, "volumetric_lifter").run(None, {"features": features, "lut_index": index, "lut_weight": weight})
+    (bev,) = _session(result, "volumetric_lifter").run(None, lifter_feeds(features, index, weight, result.manifest.lut_layout))
     return bev
 
 

@@ -13,6 +13,7 @@ import onnxruntime as ort
 import pytest
 from click.testing import CliRunner
 
+from streamdet.calibration.compact_lut import lifter_feeds
 from streamdet.calibration.lut import build_lut
 from streamdet.data.nuscenes import NuScenesReader
 from streamdet.data.sample import load_image
@@ -92,9 +93,11 @@ def test_recorded_inputs_against_a_naive_rebuild(dataset, export_dir):
         images = np.stack([load_image(sample.image_paths[n], size) for n in names])
         assert np.array_equal(enc[i]["images"], images)
         lut = build_lut(sample.rig, preset.grid, preset.image.feature_stride, size)
-        assert np.array_equal(lift[i]["lut_index"], lut.index)
-        assert np.array_equal(lift[i]["lut_weight"], lut.weight)
         (features,) = sessions["image_encoder"].run(None, {"images": images})
+        want = lifter_feeds(features, lut.index, lut.weight, m.lut_layout)  # the LUT in the export's layout
+        assert sorted(lift[i]) == sorted(want)
+        for name in want.keys() - {"features"}:
+            assert np.array_equal(lift[i][name], want[name]), name
         np.testing.assert_allclose(lift[i]["features"], features, rtol=1e-5, atol=1e-5)
         (bev,) = sessions["volumetric_lifter"].run(None, lift[i])
         for s in slice_sample(sample, 8):

@@ -10,6 +10,7 @@ import numpy as np
 import onnxruntime as ort
 import pytest
 
+from streamdet.calibration.compact_lut import lifter_feeds
 from streamdet.calibration.grid import GridSpec
 from streamdet.calibration.lut import Lut
 from streamdet.core.sectors import quadrants_of_sector
@@ -64,7 +65,7 @@ def test_recorded_feeds_equal_a_naive_rebuild(tiny_export, naive, sample, empty_
     _equal_feeds(enc.feeds, {"images": images})
     (features,) = sessions["image_encoder"].run(None, {"images": images})  # (J, C, Hf, Wf)
     (lift,) = rec.of("volumetric_lifter")
-    _equal_feeds(lift.feeds, {"features": features, "lut_index": lut.index, "lut_weight": lut.weight}, rtol=1e-5)
+    _equal_feeds(lift.feeds, lifter_feeds(features, lut.index, lut.weight, det.manifest.lut_layout), rtol=1e-5)
     (bev,) = sessions["volumetric_lifter"].run(None, lift.feeds)  # (4, C, Yq, Xq)
     np.testing.assert_array_equal(lift.outputs[0], bev)
     want = []
@@ -93,8 +94,8 @@ def test_per_quadrant_update_records_one_lift_per_quadrant(tiny_export, naive, s
     _equal_feeds(enc.feeds, {"images": np.stack([images[n] for n in cameras])})
     lifts = rec.of("volumetric_lifter")
     assert len(lifts) == 2 and all(r.outputs[0].shape[0] == 1 for r in lifts)  # (1, C, Yq, Xq) each
-    full = sessions["volumetric_lifter"].run(None, {"features": sessions["image_encoder"].run(None, {"images": np.stack(list(images.values()))})[0],
-                                                    "lut_index": lut.index, "lut_weight": lut.weight})[0]  # fmt: skip
+    (features,) = sessions["image_encoder"].run(None, {"images": np.stack(list(images.values()))})  # (J, C, Hf, Wf)
+    (full,) = sessions["volumetric_lifter"].run(None, lifter_feeds(features, lut.index, lut.weight, det.manifest.lut_layout))
     for q, run in zip((1, 3), lifts):
         np.testing.assert_allclose(run.outputs[0][0], full[q], rtol=1e-4, atol=1e-5)
 
