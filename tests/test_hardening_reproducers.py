@@ -388,7 +388,10 @@ def test_ctrl_c_during_start_up_exits_130_without_traceback(tmp_path):
     slow = tmp_path / "slow_import_cli.py"
     slow.write_text("import time\nprint('importing', flush=True)\ntime.sleep(60)\nimport click\nmain = click.Command('x')\n")
     proc = subprocess.Popen(
-        [sys.executable, "-c", "from streamdet.cli_utils import run_edge; raise SystemExit(run_edge('slow_import_cli', 'streamdet-x'))"],
+        # A shell starts background jobs with SIGINT ignored and Python keeps an inherited SIG_IGN: restore Python's
+        # own handler, as a terminal-started command has it, so the test does not depend on how pytest was started.
+        [sys.executable, "-c", "import signal; signal.signal(signal.SIGINT, signal.default_int_handler); "
+         "from streamdet.cli_utils import run_edge; raise SystemExit(run_edge('slow_import_cli', 'streamdet-x'))"],
         cwd=ROOT, env={**os.environ, "PYTHONPATH": str(tmp_path)}, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
     assert proc.stdout.readline().strip() == "importing"  # Ctrl-C while the command's module loads (torch, in real life)
