@@ -225,6 +225,12 @@ def test_cli_bad_input(data_dir, tmp_path, args, message):
     assert message in res.output and "Traceback" not in res.output
 
 
+def test_training_gives_the_process_its_subnormal_floats_back(store, tmp_path):
+    train(_config(steps=1), "unused", tmp_path / "run", store=store, echo=lambda m: None)
+    tiny = float("1e-310")  # subnormal: flushed to 0 while denormals are flushed
+    assert tiny * 1.0 > 0.0 and torch.tensor([1e-40]).mul(1.0).item() > 0.0
+
+
 def test_cli_resume_of_weights_only_file(data_dir, tmp_path, store):
     train(_config(steps=1), "unused", tmp_path / "run", store=store, echo=lambda m: None)
     res = CliRunner().invoke(train_main, ["--data", str(data_dir), "--out", str(tmp_path / "o"), "--preset", "tiny",

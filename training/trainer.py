@@ -14,6 +14,7 @@ logged step: step, epoch, losses, lr, samples/s, slices/s, seconds) and ``config
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 import time
@@ -218,6 +219,24 @@ class _TrainRun:
         return float(local)
 
 
+def _denormals_flushed(fn: Callable) -> Callable:
+    """Run ``fn`` with denormals flushed to zero (Adam's second moments of tiny gradients go denormal, and denormal
+    arithmetic makes CPU steps many times slower), then give the process its default back: the setting is global,
+    and float work after training in the same process (hypothesis' float strategies, a caller's own maths) must not
+    inherit it."""
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        torch.set_flush_denormal(True)
+        try:
+            return fn(*args, **kwargs)
+        finally:
+            torch.set_flush_denormal(False)
+
+    return wrapper
+
+
+@_denormals_flushed
 def train(
     config: TrainConfig,
     data_dir: str | Path,
@@ -272,7 +291,6 @@ def _set_up(config: TrainConfig, data_dir: str | Path, out_dir: str | Path, vers
     """Device and processes, data, model (from ``init``'s weights if given), optimizer, schedule, loss."""
     t_start = time.perf_counter()
     device = torch.device(device) if device is not None else torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    torch.set_flush_denormal(True)  # Adam's second moments of tiny gradients go denormal: 100x slower steps on CPU
     ctx = init_distributed(device)
     if device.type == "cuda":
         device = torch.device("cuda", ctx.local_rank)
