@@ -22,6 +22,7 @@ from streamdet.core.boxes import box_corners_3d
 from streamdet.data.synth_kinds import NUM_ANNOTATED_KINDS, Kind
 from streamdet.data.synth_materials import ASPHALT, GROUND_PERIOD_M, Mat, cross_street, ground, shade
 from streamdet.data.synth_raycast import ray_box_entry, ray_shape_entry, world_to_local
+from streamdet.data.synth_render_raster import hull_span_pixels
 from streamdet.data.synth_world import Scene
 
 NEAR_M = 0.05
@@ -342,70 +343,103 @@ def _draw_parts(group, objs, parts, m, o_cam, near_t, rays_flat, zflat, cflat, i
 
 def _part_pixels(order: np.ndarray, centers: np.ndarray, yaws: np.ndarray, parts, ego2cam: np.ndarray,
                  camera: CameraModel) -> tuple[np.ndarray, np.ndarray]:
-    """(part, flat pixel) candidate pairs of every part of the objects ``order``: the projected hull of the
-    part's bounding box (plus a pixel).
+    """(part, flat pixel) candidate pairs of every part of the objects ``order``, grouped by part in order, each
+    part's pixels row-major: the pixels whose centres lie in the projected hull of the part's bounding box (plus
+    a margin). The caller intersects each candidate pixel's ray with the part exactly.
 
-    The corners of all parts are projected at once; a part whose box reaches behind the near plane is clipped
-    face by face. The caller intersects each candidate pixel's ray with the part exactly.
+    The corners of all parts are projected at once; the parts wholly in front of the near plane get their hull's
+    row spans all at once (``hull_span_pixels``); a part whose box reaches behind the near plane is clipped face by
+    face and filled (``_clipped_part_pixels``) unless it lies wholly beside the image.
     """
     if not len(order):
         return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    cam = _part_corners_cam(order, centers, yaws, parts, ego2cam)  # (R, 8, 3)
+    _, part = parts.expand(order)
+    z = cam[..., 2]
+    behind = z.min(axis=1) < NEAR_M
+    gone = z.max(axis=1) < NEAR_M
+    hom = cam @ camera.K.T  # (R, 8, 3) homogeneous pixel coordinates (u z, v z, z)
+    width, height = camera.width, camera.height
+    # Wholly beside the image by more than the candidate margins: every corner outside one side plane of the
+    # frustum (a convex set, so the clipped face polygons are outside it too).
+    m = _BESIDE_PX + 0.5
+    beside = np.all(hom[..., 0] < -m * z, axis=1) | np.all(hom[..., 0] > (width - 1 + m) * z, axis=1)
+    beside |= np.all(hom[..., 1] < -m * z, axis=1) | np.all(hom[..., 1] > (height - 1 + m) * z, axis=1)
+    front = np.flatnonzero(~behind & ~beside)
+    uv = hom[front, :, :2] / z[front][..., None] - 0.5  # (F, 8, 2) pixel-centre coordinates
+    # A part reaching far beyond the image keeps its polygon fill with the corners clamped to OpenCV's fixed-point
+    # range, as before this fast path (the clamp distorts its hull: a few of its pixels go undrawn, see
+    # _clamped_hull_pixels); the rest get their hull's row spans.
+    lo = np.maximum(np.floor(uv.min(axis=1)) - 1, 0.0)  # (F, 2) u0, v0
+    wide = np.any(np.abs(uv - lo[:, None, :]) > _FIXED_LIMIT_PX, axis=(1, 2))
+    idx, pix = hull_span_pixels(uv[~wide], width, height, _HULL_MARGIN_PX)
+    idx = front[~wide][idx]
+    extra = [(r, _clamped_hull_pixels(uv[i], camera)) for i, r in zip(np.flatnonzero(wide).tolist(), front[wide].tolist())]
+    extra += [(r, _clipped_part_pixels(cam[r], camera)) for r in np.flatnonzero(behind & ~gone & ~beside).tolist()]
+    extra = [(r, px) for r, px in extra if len(px)]
+    if extra:  # merge in part order (the depth test breaks exact ties by this order)
+        idx = np.concatenate([idx] + [np.full(len(px), r, dtype=np.int64) for r, px in extra])
+        pix = np.concatenate([pix] + [px for _, px in extra])
+        srt = np.argsort(idx, kind="stable")
+        idx, pix = idx[srt], pix[srt]
+    return part[idx], pix
+
+
+_FIXED_LIMIT_PX = (1 << 20) / (1 << 8)  # OpenCV fixed-point coordinates are clamped to +-2^20 at shift 8
+_HULL_MARGIN_PX = 0.25  # candidates reach this far beyond the projected hull: far more than float32 rays stray
+_BESIDE_PX = 3.0  # a part's corners this far beside the image leave no candidate pixel (the fill adds 1-2 px)
+
+
+def _part_corners_cam(order: np.ndarray, centers: np.ndarray, yaws: np.ndarray, parts, ego2cam: np.ndarray) -> np.ndarray:
+    """(R, 8, 3) the bounding-box corners of every part of the objects ``order`` in the camera frame."""
     pair, part = parts.expand(order)
     k = order[pair]
     corners = _CORNERS[None] * parts.half[part][:, None, :]  # (R, 8, 3) part frame
     box = np.einsum("rij,rcj->rci", parts.rot[part], corners) + parts.center[part][:, None, :]  # (R, 8, 3) box frame
     c, s = np.cos(yaws[k])[:, None], np.sin(yaws[k])[:, None]
     ego = np.stack([c * box[..., 0] - s * box[..., 1], s * box[..., 0] + c * box[..., 1], box[..., 2]], axis=-1) + centers[k][:, None, :]
-    cam = ego @ ego2cam[:3, :3].T + ego2cam[:3, 3]  # (R, 8, 3)
-    z = cam[..., 2]
-    behind = z.min(axis=1) < NEAR_M
-    gone = z.max(axis=1) < NEAR_M
-    uv = (cam @ camera.K.T)[..., :2] / np.maximum(z, NEAR_M)[..., None] - 0.5  # (R, 8, 2) pixel-centre coordinates
-    out_part: list[np.ndarray] = []
-    out_pix: list[np.ndarray] = []
+    return ego @ ego2cam[:3, :3].T + ego2cam[:3, 3]  # (R, 8, 3)
+
+
+def _clipped_part_pixels(cam: np.ndarray, camera: CameraModel) -> np.ndarray:
+    """Flat pixels of a box (8, 3 camera-frame corners) that reaches behind the near plane: its faces clipped to
+    z >= NEAR_M, projected, and the hull of them filled with its outline (a pixel of margin)."""
+    polys = [_clip_near(cam[list(face)]) for face in _FACES]
+    pts = np.concatenate([p for p in polys if len(p)]) if any(len(p) for p in polys) else np.zeros((0, 3))
+    if len(pts) < 3:
+        return np.zeros(0, dtype=np.int64)
+    return _filled_hull_pixels((pts @ camera.K.T)[:, :2] / pts[:, 2:3] - 0.5, camera)
+
+
+def _clamped_hull_pixels(uv: np.ndarray, camera: CameraModel) -> np.ndarray:
+    """Flat pixels of the filled hull (with its outline) of a part's projected corners (8, 2), in OpenCV's fixed
+    point relative to the clipped bounding rectangle, clamped to its range.
+
+    The clamp moves corners far beyond the image (a part reaching close to the camera plane) and so tilts the
+    hull's edges: a few pixels whose rays meet the part are left out. The renderer keeps this for such parts so
+    its output stays the same bytes as before the row-span fast path (``hull_span_pixels``).
+    """
+    return _filled_hull_pixels(uv, camera)
+
+
+def _filled_hull_pixels(q: np.ndarray, camera: CameraModel) -> np.ndarray:
+    """Flat pixels of the filled hull (with its outline: about a pixel of margin) of points q (N, 2) in pixel-centre
+    coordinates, drawn in OpenCV's fixed point within their bounding rectangle clipped to the image."""
     width, height = camera.width, camera.height
-    box_lo = np.floor(uv.min(axis=1)).astype(np.int64) - 1  # (R, 2) pixel bounds where the part is all in front
-    box_hi = np.ceil(uv.max(axis=1)).astype(np.int64) + 2
-    # For the parts all in front: the clipped bounds and the corners in OpenCV's fixed point relative to them,
-    # for all parts at once (the loop below only rasterises).
-    lo_c = np.maximum(box_lo, 0)  # (R, 2) u0, v0
-    hi_c = np.minimum(box_hi, [width, height])  # (R, 2) u1, v1
-    fixed = np.round((uv - lo_c[:, None, :]) * _SUBPIXEL).astype(np.int64)
-    fixed = np.clip(fixed, -(1 << 20), 1 << 20).astype(np.int32)  # keep OpenCV's fixed point in range for grazing parts
-    for r in np.flatnonzero(~gone & ~((box_hi[:, 0] <= 0) | (box_lo[:, 0] >= width) | (box_hi[:, 1] <= 0) | (box_lo[:, 1] >= height)) | behind).tolist():
-        if gone[r]:
-            continue
-        if behind[r]:
-            polys = [_clip_near(cam[r][list(face)]) for face in _FACES]
-            pts = np.concatenate([p for p in polys if len(p)]) if any(len(p) for p in polys) else np.zeros((0, 3))
-            if len(pts) < 3:
-                continue
-            q = (pts @ camera.K.T)[:, :2] / pts[:, 2:3] - 0.5
-            u0 = max(int(np.floor(q[:, 0].min())) - 1, 0)
-            u1 = min(int(np.ceil(q[:, 0].max())) + 2, width)
-            v0 = max(int(np.floor(q[:, 1].min())) - 1, 0)
-            v1 = min(int(np.ceil(q[:, 1].max())) + 2, height)
-            if u0 >= u1 or v0 >= v1:
-                continue
-            pts2 = np.round((q - [u0, v0]) * _SUBPIXEL).astype(np.int64)
-            pts2 = np.clip(pts2, -(1 << 20), 1 << 20).astype(np.int32)
-        else:
-            u0, v0 = lo_c[r]
-            u1, v1 = hi_c[r]
-            if u0 >= u1 or v0 >= v1:
-                continue
-            pts2 = fixed[r]
-        mask = np.zeros((v1 - v0, u1 - u0), dtype=np.uint8)
-        hull = cv2.convexHull(pts2)
-        cv2.fillConvexPoly(mask, hull, 1, lineType=cv2.LINE_8, shift=_SHIFT)
-        cv2.polylines(mask, [hull], True, 1, thickness=1, lineType=cv2.LINE_8, shift=_SHIFT)
-        rows, cols = np.nonzero(mask)
-        if len(rows):
-            out_part.append(np.full(len(rows), part[r], dtype=np.int64))
-            out_pix.append((rows + v0) * width + cols + u0)
-    if not out_part:
-        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
-    return np.concatenate(out_part), np.concatenate(out_pix)
+    u0 = max(int(np.floor(q[:, 0].min())) - 1, 0)
+    u1 = min(int(np.ceil(q[:, 0].max())) + 2, width)
+    v0 = max(int(np.floor(q[:, 1].min())) - 1, 0)
+    v1 = min(int(np.ceil(q[:, 1].max())) + 2, height)
+    if u0 >= u1 or v0 >= v1:
+        return np.zeros(0, dtype=np.int64)
+    pts2 = np.round((q - [u0, v0]) * _SUBPIXEL).astype(np.int64)
+    pts2 = np.clip(pts2, -(1 << 20), 1 << 20).astype(np.int32)
+    mask = np.zeros((v1 - v0, u1 - u0), dtype=np.uint8)
+    hull = cv2.convexHull(pts2)
+    cv2.fillConvexPoly(mask, hull, 1, lineType=cv2.LINE_8, shift=_SHIFT)
+    cv2.polylines(mask, [hull], True, 1, thickness=1, lineType=cv2.LINE_8, shift=_SHIFT)
+    rows, cols = np.nonzero(mask)
+    return (rows + v0) * width + cols + u0
 
 
 # The six faces of a box as corner indices of _CORNERS (x-, x+, y-, y+, z-, z+), each a closed loop.
