@@ -174,31 +174,11 @@ def render_camera(scene: Scene, t_s: float, camera: CameraModel, rng: np.random.
     rot2 = ego2global[:2, :2]
     sun_ego = ego2global[:3, :3].T @ scene.sun_dir_world
 
-    # Ground and sky.
+    # Sky everywhere and the ground's depth; the ground is shaded after the objects, where none covers it.
     g, ground_xy, t_ground, clear, haze_rgb, sky = camera._background()
     color = sky.copy()  # (H * W, 3)
     zbuf = np.full(h * w, np.inf, dtype=np.float32)
     zbuf[g] = t_ground
-    # Road coordinates of the ground points (elementwise: tiny BLAS products are slow on a busy machine).
-    wx = rot2[0, 0] * ground_xy[:, 0] + rot2[0, 1] * ground_xy[:, 1] + (ego2global[0, 3] - scene.road_origin_xy[0])
-    wy = rot2[1, 0] * ground_xy[:, 0] + rot2[1, 1] * ground_xy[:, 1] + (ego2global[1, 3] - scene.road_origin_xy[1])
-    (ux, uy), (nx, ny) = scene.road_u, scene.road_n
-    s_road, d_road = wx * ux + wy * uy, wx * nx + wy * ny
-    albedo = ground_atlas(s_road, d_road)
-    if scene.cross_s_m is not None:
-        cross = cross_street(s_road, d_road, scene.cross_s_m)
-        albedo[cross] = ASPHALT * 0.95
-    sun_lum = np.float32(SUN * max(sun_ego[2], 0.0))
-    lum = np.full(len(g), np.float32(AMBIENT) + sun_lum, dtype=np.float32)
-    if shadows is not None:
-        n_s = shadows.shape[0]
-        ix = np.floor((ground_xy[:, 0] + SHADOW_HALF_M) / SHADOW_TEXEL_M).astype(np.int64)
-        iy = np.floor((ground_xy[:, 1] + SHADOW_HALF_M) / SHADOW_TEXEL_M).astype(np.int64)
-        inside = (ix >= 0) & (ix < n_s) & (iy >= 0) & (iy < n_s)
-        shaded = np.zeros(len(g), dtype=bool)
-        shaded[inside] = shadows[ix[inside], iy[inside]] > 0
-        lum[shaded] = AMBIENT
-    color[g] = albedo * (clear * lum[:, None]) + haze_rgb
     color = color.reshape(h, w, 3)  # (H, W, 3)
     zbuf = zbuf.reshape(h, w)  # (H, W)
     object_id = np.full((h, w), -1, dtype=np.int64)
@@ -241,6 +221,9 @@ def render_camera(scene: Scene, t_s: float, camera: CameraModel, rng: np.random.
         _draw_scenery(ordered[scenery], objs, parts, m, o_cam, near_t, rays_flat, zflat, cflat, idflat, sun_ego, ego2cam,
                       camera, centers, yaws)
 
+    seen = np.flatnonzero(idflat[g] < 0)  # ground pixels no object covers
+    _shade_ground(scene, ego2global, sun_ego, shadows, ground_xy[seen], clear[seen], haze_rgb[seen], g[seen], cflat)
+
     if exposure is None and rng is not None:
         exposure = Exposure.draw(rng)
     if exposure is not None:
@@ -248,9 +231,37 @@ def render_camera(scene: Scene, t_s: float, camera: CameraModel, rng: np.random.
     if rng is not None:
         noise = camera._noise()
         shift = rng.integers(0, noise.shape[0])
-        color += np.roll(noise, shift, axis=0)
+        color[shift:] += noise[: h - shift]  # the noise rolled down by shift rows
+        color[:shift] += noise[h - shift :]
     image = cv2.convertScaleAbs(color, alpha=255.0)  # saturating float -> uint8 in one pass
     return Render(image=image, object_id=object_id, own_pixels=own)
+
+
+def _shade_ground(scene: Scene, ego2global: np.ndarray, sun_ego: np.ndarray, shadows: np.ndarray | None,
+                  ground_xy: np.ndarray, clear: np.ndarray, haze_rgb: np.ndarray, pix: np.ndarray, cflat: np.ndarray) -> None:
+    """Colour the ground pixels ``pix`` (flat) from their ego-frame ground points (G, 2) and haze blend (``clear``
+    (G, 1), ``haze_rgb`` (G, 3)): the ground pattern, the cross street, the sun unless in an object's shadow."""
+    rot2 = ego2global[:2, :2]
+    # Road coordinates of the ground points (elementwise: tiny BLAS products are slow on a busy machine).
+    wx = rot2[0, 0] * ground_xy[:, 0] + rot2[0, 1] * ground_xy[:, 1] + (ego2global[0, 3] - scene.road_origin_xy[0])
+    wy = rot2[1, 0] * ground_xy[:, 0] + rot2[1, 1] * ground_xy[:, 1] + (ego2global[1, 3] - scene.road_origin_xy[1])
+    (ux, uy), (nx, ny) = scene.road_u, scene.road_n
+    s_road, d_road = wx * ux + wy * uy, wx * nx + wy * ny
+    albedo = ground_atlas(s_road, d_road)
+    if scene.cross_s_m is not None:
+        cross = cross_street(s_road, d_road, scene.cross_s_m)
+        albedo[cross] = ASPHALT * 0.95
+    sun_lum = np.float32(SUN * max(sun_ego[2], 0.0))
+    lum = np.full(len(pix), np.float32(AMBIENT) + sun_lum, dtype=np.float32)
+    if shadows is not None:
+        n_s = shadows.shape[0]
+        ix = np.floor((ground_xy[:, 0] + SHADOW_HALF_M) / SHADOW_TEXEL_M).astype(np.int64)
+        iy = np.floor((ground_xy[:, 1] + SHADOW_HALF_M) / SHADOW_TEXEL_M).astype(np.int64)
+        inside = (ix >= 0) & (ix < n_s) & (iy >= 0) & (iy < n_s)
+        shaded = np.zeros(len(pix), dtype=bool)
+        shaded[inside] = shadows[ix[inside], iy[inside]] > 0
+        lum[shaded] = AMBIENT
+    cflat[pix] = albedo * (clear * lum[:, None]) + haze_rgb
 
 
 _SCENERY = np.array([Kind.BUILDING, Kind.WALL, Kind.CURB])  # unannotated, one box part each
@@ -461,9 +472,11 @@ def ground_atlas(s: np.ndarray, d: np.ndarray) -> np.ndarray:
         _ATLAS["albedo"] = albedo.reshape(-1, 3)  # (S * D, 3)
         _ATLAS["shape"] = grid_s.shape
     n_s, n_d = _ATLAS["shape"]
-    i = (np.floor(np.asarray(s) * (1.0 / ATLAS_TEXEL_M)).astype(np.int64)) % n_s
-    j = np.clip(np.floor((np.asarray(d) + ATLAS_HALF_WIDTH_M) * (1.0 / ATLAS_TEXEL_M)).astype(np.int64), 0, n_d - 1)
-    return _ATLAS["albedo"][i * n_d + j]
+    # The texel indices stay integer-valued floats until the end (the same values as integer floor-mod and clip,
+    # without numpy's slow int64 modulo).
+    i = np.mod(np.floor(np.asarray(s) * (1.0 / ATLAS_TEXEL_M)), float(n_s))
+    j = np.clip(np.floor((np.asarray(d) + ATLAS_HALF_WIDTH_M) * (1.0 / ATLAS_TEXEL_M)), 0.0, n_d - 1.0)
+    return np.take(_ATLAS["albedo"], (i * n_d + j).astype(np.int64), axis=0)
 
 
 def _in_view(centers: np.ndarray, size_wlh: np.ndarray, yaws: np.ndarray, ego2cam: np.ndarray, camera: CameraModel) -> np.ndarray:
