@@ -289,12 +289,13 @@ def _draw_scenery(objects, objs, parts, m, o_cam, near_t, rays_flat, zflat, cfla
         if not len(px):
             continue
         d = rays_flat[px] @ m[p].T  # (R, 3) part frame
-        hit, t, axis, sign = ray_box_entry(np.broadcast_to(o_cam[p], d.shape), d, parts.half[p].astype(np.float32))
+        t, entries, d_safe = _box_entry(o_cam[p], d, parts.half[p].astype(np.float32))
         z = zflat[px]
         front = np.flatnonzero((t < z) | ((t == z) & (rank[px] > run)))
         if not len(front):
             continue
-        px, t, axis, sign = px[front], t[front], axis[front], sign[front]
+        px, t = px[front], t[front]
+        axis, sign = _box_entry_face(entries[front], d_safe[front])
         n_part = np.zeros((len(px), 3))
         n_part[np.arange(len(px)), axis] = sign
         p_part = o_cam[p] + t[:, None] * d[front]
@@ -334,10 +335,11 @@ def _draw_parts(group, objs, parts, m, o_cam, near_t, rays_flat, zflat, cflat, i
     ok = np.flatnonzero(ok)
     part, pix, t, k, ann, o_part, d_part = (v[ok] for v in (part, pix, t, k, ann, o_part, d_part))
     if np.any(ann):  # pixels each annotated object covers by itself (its own parts may hide each other)
-        key = np.unique(k[ann] * n_pix + pix[ann])
+        key = np.sort(k[ann] * n_pix + pix[ann], kind="stable")  # (runs of sorted pixels per part: a fast merge)
+        key = key[np.r_[True, key[1:] != key[:-1]]]  # np.unique's values
         own += np.bincount(key // n_pix, minlength=len(own))
     # Nearest part per pixel, if nearer than what is drawn.
-    srt = np.lexsort((t, pix))
+    srt = _pixel_depth_order(pix, t)
     first = srt[np.r_[True, pix[srt][1:] != pix[srt][:-1]]] if len(srt) else srt
     first = first[t[first] < zflat[pix[first]]]
     part, pix, t, k, o_part, d_part = (v[first] for v in (part, pix, t, k, o_part, d_part))
@@ -350,6 +352,46 @@ def _draw_parts(group, objs, parts, m, o_cam, near_t, rays_flat, zflat, cflat, i
     zflat[pix] = t
     cflat[pix] = albedo * lum[:, None].astype(np.float32)
     idflat[pix] = k
+
+
+def _pixel_depth_order(pix: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """The permutation of ``np.lexsort((t, pix))`` (by pixel, then depth, stable) for hit depths t > 0.
+
+    Positive float32 depths order as their bit patterns, so pixel and depth pack into one int64 key and one stable
+    sort; the pairs come in runs of sorted pixels (part by part), which a merge sort takes quickly.
+    """
+    if t.dtype != np.float32 or not len(t):
+        return np.lexsort((t, pix))
+    key = (pix.astype(np.int64) << 32) | t.view(np.int32).astype(np.int64)  # (R,)
+    return np.argsort(key, kind="stable")
+
+
+def _box_entry(o: np.ndarray, d: np.ndarray, half: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``ray_box_entry`` for rays d (R, 3) from one origin o (3,) into one box of half extents (3,), same dtype:
+    the same entry distances t (R,) (inf where missed), with the slab entries (R, 3) and the guarded directions
+    (R, 3) that ``_box_entry_face`` turns into the entered face of the rays wanted (the same values, in fewer
+    passes: the slab planes are computed once, the face only where needed)."""
+    d_safe = np.where(np.abs(d) < _RAY_EPS, _RAY_EPS, d)
+    inv = 1.0 / d_safe
+    t1 = (-half - o) * inv  # (R, 3)
+    t2 = (half - o) * inv
+    t_near = np.minimum(t1, t2)
+    t_exit = np.maximum(t1, t2, out=t1)
+    t_far = np.minimum(np.minimum(t_exit[:, 0], t_exit[:, 1]), t_exit[:, 2])
+    t_in = np.maximum(np.maximum(t_near[:, 0], t_near[:, 1]), t_near[:, 2])
+    hit = (t_in <= t_far) & (t_in > 0.0)
+    return np.where(hit, t_in, np.inf), t_near, d_safe
+
+
+def _box_entry_face(t_near: np.ndarray, d_safe: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``ray_box_entry``'s axis (R,) int64 and sign (R,) of the entered face from ``_box_entry``'s slab entries
+    and guarded directions (rows of the rays wanted)."""
+    n0, n1, n2 = t_near[:, 0], t_near[:, 1], t_near[:, 2]
+    axis = np.where(n2 > np.maximum(n0, n1), 2, np.where(n1 > n0, 1, 0))  # the last slab entered (first on ties)
+    return axis, -np.sign(d_safe[np.arange(len(axis)), axis])
+
+
+_RAY_EPS = 1e-12  # synth_raycast's guard for direction components near 0
 
 
 def _part_pixels(order: np.ndarray, centers: np.ndarray, yaws: np.ndarray, parts, ego2cam: np.ndarray,

@@ -6,6 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
+import streamdet.data.synth_raycast as synth_raycast
 import streamdet.data.synth_render as synth_render
 from streamdet.data.synth_materials import ground, ground_reflectance, shade
 from streamdet.data.synth_raycast import _row_sum, ray_box_entry
@@ -196,3 +197,38 @@ def test_hull_span_pixels_empty_and_outside():
     far[1] += 200.0
     box, pix = hull_span_pixels(far, 32, 24, 0.25)
     assert len(box) == len(pix) == 0
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_box_entry_of_one_box_equals_ray_box_entry(seed):
+    rng = np.random.default_rng(seed)
+    n = 3000
+    o = rng.normal(0.0, 8.0, size=3).astype(np.float32)
+    half = rng.uniform(0.5, 6.0, size=3).astype(np.float32)
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    d[rng.uniform(size=(n, 3)) < 0.05] = 0.0  # rays parallel to a slab
+    d[:50] = -o / np.linalg.norm(o)  # aimed at the centre
+    d = d.astype(np.float32)
+    hit, t_ref, axis_ref, sign_ref = ray_box_entry(np.broadcast_to(o, d.shape), d, half)
+    t, entries, d_safe = synth_render._box_entry(o, d, half)
+    assert t.dtype == t_ref.dtype
+    np.testing.assert_array_equal(t, t_ref)
+    want = np.flatnonzero(hit)
+    axis, sign = synth_render._box_entry_face(entries[want], d_safe[want])
+    np.testing.assert_array_equal(axis, axis_ref[want])
+    np.testing.assert_array_equal(sign, sign_ref[want])
+    assert synth_render._RAY_EPS == synth_raycast._EPS
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_pixel_depth_order_equals_lexsort(seed):
+    rng = np.random.default_rng(seed)
+    runs = [np.sort(rng.choice(5000, rng.integers(1, 300), replace=False)) for _ in range(40)]  # part by part
+    pix = np.concatenate(runs)
+    t = rng.uniform(0.1, 80.0, len(pix)).astype(np.float32)
+    t[rng.uniform(size=len(t)) < 0.2] = 7.5  # depth ties on a pixel: the first pair stays first
+    t[:3] = [np.float32(1e-30), np.finfo(np.float32).max, np.float32(3.0)]
+    np.testing.assert_array_equal(synth_render._pixel_depth_order(pix, t), np.lexsort((t, pix)))
+    np.testing.assert_array_equal(synth_render._pixel_depth_order(pix, t.astype(np.float64)), np.lexsort((t, pix)))
+    assert len(synth_render._pixel_depth_order(np.zeros(0, np.int64), np.zeros(0, np.float32))) == 0
