@@ -215,14 +215,21 @@ def render_camera(scene: Scene, t_s: float, camera: CameraModel, rng: np.random.
         # Large single-box scenery (buildings, walls, curbs) is drawn box by box afterwards, without sorting.
         scenery = np.isin(objs.kind[ordered], _SCENERY)
         small = ordered[~scenery]
-        for group in np.array_split(small, min(3, len(small))) if len(small) else []:
-            _draw_parts(group, objs, parts, m, o_cam, near_t, rays_flat, zflat, cflat, idflat, own, sun_ego, h * w,
-                        ego2cam, camera, centers, yaws)
-        _draw_scenery(ordered[scenery], objs, parts, m, o_cam, near_t, rays_flat, zflat, cflat, idflat, sun_ego, ego2cam,
-                      camera, centers, yaws)
+        groups = np.array_split(small, min(3, len(small))) if len(small) else []
+        # The candidate pixels of every part in view at once (grouped by part in this order), drawn group by group.
+        part, pix = _part_pixels(np.concatenate([small, ordered[scenery]]), centers, yaws, parts, ego2cam, camera)
+        group_of = np.full(len(objs), len(groups), dtype=np.int64)  # (K,) scenery after the groups
+        for i, group in enumerate(groups):
+            group_of[group] = i
+        cuts = np.searchsorted(group_of[parts.owner[part]], np.arange(len(groups) + 1))  # where each group's pairs start
+        for i in range(len(groups)):
+            _draw_parts(part[cuts[i] : cuts[i + 1]], pix[cuts[i] : cuts[i + 1]], objs, parts, m, o_cam, near_t, rays_flat,
+                        zflat, cflat, idflat, own, sun_ego, h * w)
+        _draw_scenery(part[cuts[-1] :], pix[cuts[-1] :], parts, m, o_cam, near_t, rays_flat, zflat, cflat, idflat, sun_ego)
 
     seen = np.flatnonzero(idflat[g] < 0)  # ground pixels no object covers
-    _shade_ground(scene, ego2global, sun_ego, shadows, ground_xy[seen], clear[seen], haze_rgb[seen], g[seen], cflat)
+    _shade_ground(scene, ego2global, sun_ego, shadows, _rows(ground_xy, seen), _rows(clear, seen), _rows(haze_rgb, seen),
+                  g[seen], cflat)
 
     if exposure is None and rng is not None:
         exposure = Exposure.draw(rng)
@@ -261,21 +268,20 @@ def _shade_ground(scene: Scene, ego2global: np.ndarray, sun_ego: np.ndarray, sha
         shaded = np.zeros(len(pix), dtype=bool)
         shaded[inside] = shadows[ix[inside], iy[inside]] > 0
         lum[shaded] = AMBIENT
-    cflat[pix] = albedo * (clear * lum[:, None]) + haze_rgb
+    _put_rows(cflat, pix, albedo * (clear * lum[:, None]) + haze_rgb)
 
 
 _SCENERY = np.array([Kind.BUILDING, Kind.WALL, Kind.CURB])  # unannotated, one box part each
 
 
-def _draw_scenery(objects, objs, parts, m, o_cam, near_t, rays_flat, zflat, cflat, idflat, sun_ego, ego2cam, camera,
-                  centers, yaws) -> None:
-    """Draw single-box scenery: each pixel shows the nearest box in front of what is drawn, ties going to the box
-    first in ``objects`` (as drawing them one by one in that order with a strict depth test would).
+def _draw_scenery(part, pix, parts, m, o_cam, near_t, rays_flat, zflat, cflat, idflat, sun_ego) -> None:
+    """Draw single-box scenery from its candidate (part, flat pixel) pairs, grouped by part (``_part_pixels``):
+    each pixel shows the nearest box in front of what is drawn, ties going to the box first in the pairs (as
+    drawing them one by one in that order with a strict depth test would).
 
     The boxes are visited nearest first (by their distance from the camera), so a pixel already covered by a
-    nearer box skips the boxes behind it unintersected; the order of ``objects`` only breaks exact depth ties.
+    nearer box skips the boxes behind it unintersected; the order of the pairs only breaks exact depth ties.
     """
-    part, pix = _part_pixels(objects, centers, yaws, parts, ego2cam, camera)  # grouped by part, in order
     if not len(part):
         return
     bounds = np.flatnonzero(np.r_[True, part[1:] != part[:-1], True])  # run starts, then the end
@@ -288,32 +294,31 @@ def _draw_scenery(objects, objs, parts, m, o_cam, near_t, rays_flat, zflat, cfla
         px = px[near_t[p] <= zflat[px]]
         if not len(px):
             continue
-        d = rays_flat[px] @ m[p].T  # (R, 3) part frame
+        d = _rows(rays_flat, px) @ m[p].T  # (R, 3) part frame
         t, entries, d_safe = _box_entry(o_cam[p], d, parts.half[p].astype(np.float32))
         z = zflat[px]
         front = np.flatnonzero((t < z) | ((t == z) & (rank[px] > run)))
         if not len(front):
             continue
-        px, t = px[front], t[front]
-        axis, sign = _box_entry_face(entries[front], d_safe[front])
+        axis, sign = _box_entry_face(entries, d_safe)
+        px, t, axis, sign = px[front], t[front], axis[front], sign[front]
         n_part = np.zeros((len(px), 3))
         n_part[np.arange(len(px)), axis] = sign
-        p_part = o_cam[p] + t[:, None] * d[front]
+        p_part = o_cam[p] + t[:, None] * _rows(d, front)
         albedo, _, _, _, _ = shade(np.full(len(px), parts.mat[p]), np.broadcast_to(parts.albedo[p], (len(px), 3)),
                                    np.full(len(px), parts.refl[p]), p_part, np.broadcast_to(parts.half[p], (len(px), 3)), n_part)
         n_ego = n_part @ m[p].astype(np.float64)  # M^T n for row vectors
         lum = AMBIENT + SUN * np.maximum(n_ego @ sun_ego, 0.0) + 0.08 * n_ego[:, 2]
         zflat[px] = t
         rank[px] = run
-        cflat[px] = albedo * lum[:, None].astype(np.float32)
+        _put_rows(cflat, px, albedo * lum[:, None].astype(np.float32))
         idflat[px] = parts.owner[p]
 
 
-def _draw_parts(group, objs, parts, m, o_cam, near_t, rays_flat, zflat, cflat, idflat, own, sun_ego, n_pix,
-                ego2cam, camera, centers, yaws) -> None:
-    """Intersect the candidate pixels of the parts of objects ``group`` and draw each pixel's nearest solid part
-    where it is nearer than what is drawn (updates the flat depth, colour, id buffers and ``own`` in place)."""
-    part, pix = _part_pixels(group, centers, yaws, parts, ego2cam, camera)  # (R,), (R,)
+def _draw_parts(part, pix, objs, parts, m, o_cam, near_t, rays_flat, zflat, cflat, idflat, own, sun_ego, n_pix) -> None:
+    """Intersect the candidate (part, flat pixel) pairs (R,), (R,) of a group of objects (``_part_pixels``) and
+    draw each pixel's nearest solid part where it is nearer than what is drawn (updates the flat depth, colour,
+    id buffers and ``own`` in place)."""
     if not len(part):
         return
     k = parts.owner[part]
@@ -321,19 +326,19 @@ def _draw_parts(group, objs, parts, m, o_cam, near_t, rays_flat, zflat, cflat, i
     ann = objs.kind[k] < NUM_ANNOTATED_KINDS
     keep = np.flatnonzero(ann | (near_t[part] < zflat[pix]))
     part, pix, k, ann = part[keep], pix[keep], k[keep], ann[keep]
-    d_part = np.einsum("rij,rj->ri", m[part], rays_flat[pix])  # (R, 3) float32
-    o_part = o_cam[part]
-    t, _ = ray_shape_entry(o_part, d_part, parts.half[part].astype(np.float32), parts.shape[part], with_normal=False)
+    d_part = np.einsum("rij,rj->ri", _rows(m, part), _rows(rays_flat, pix))  # (R, 3) float32
+    o_part = _rows(o_cam, part)
+    t, _ = ray_shape_entry(o_part, d_part, _rows(parts.half, part).astype(np.float32), parts.shape[part], with_normal=False)
     ok = np.isfinite(t)
     foliage = ok & (parts.mat[part] == Mat.FOLIAGE)
     if np.any(foliage):  # leaves have gaps: only foliage needs its alpha before the depth test
         idx = np.flatnonzero(foliage)
-        p = o_part[idx] + t[idx, None] * d_part[idx]
-        _, alpha, _, _, _ = shade(parts.mat[part[idx]], parts.albedo[part[idx]], parts.refl[part[idx]], p, parts.half[part[idx]],
-                                  np.zeros_like(p))  # (a leaf's gaps do not depend on the normal)
+        p = _rows(o_part, idx) + t[idx, None] * _rows(d_part, idx)
+        _, alpha, _, _, _ = shade(parts.mat[part[idx]], _rows(parts.albedo, part[idx]), parts.refl[part[idx]], p,
+                                  _rows(parts.half, part[idx]), np.zeros_like(p))  # (a leaf's gaps do not depend on the normal)
         ok[idx[~alpha]] = False
     ok = np.flatnonzero(ok)
-    part, pix, t, k, ann, o_part, d_part = (v[ok] for v in (part, pix, t, k, ann, o_part, d_part))
+    part, pix, t, k, ann, o_part, d_part = (_rows(v, ok) for v in (part, pix, t, k, ann, o_part, d_part))
     if np.any(ann):  # pixels each annotated object covers by itself (its own parts may hide each other)
         key = np.sort(k[ann] * n_pix + pix[ann], kind="stable")  # (runs of sorted pixels per part: a fast merge)
         key = key[np.r_[True, key[1:] != key[:-1]]]  # np.unique's values
@@ -342,15 +347,16 @@ def _draw_parts(group, objs, parts, m, o_cam, near_t, rays_flat, zflat, cflat, i
     srt = _pixel_depth_order(pix, t)
     first = srt[np.r_[True, pix[srt][1:] != pix[srt][:-1]]] if len(srt) else srt
     first = first[t[first] < zflat[pix[first]]]
-    part, pix, t, k, o_part, d_part = (v[first] for v in (part, pix, t, k, o_part, d_part))
-    _, n_part = ray_shape_entry(o_part.astype(np.float64), d_part.astype(np.float64), parts.half[part], parts.shape[part])
+    part, pix, t, k, o_part, d_part = (_rows(v, first) for v in (part, pix, t, k, o_part, d_part))
+    half = _rows(parts.half, part)
+    _, n_part = ray_shape_entry(o_part.astype(np.float64), d_part.astype(np.float64), half, parts.shape[part])
     p_part = o_part + t[:, None] * d_part
-    albedo, _, _, _, _ = shade(parts.mat[part], parts.albedo[part], parts.refl[part], p_part, parts.half[part], n_part)
+    albedo, _, _, _, _ = shade(parts.mat[part], _rows(parts.albedo, part), parts.refl[part], p_part, half, n_part)
     # Shade with the part normal in the ego frame: n_ego = M^T n_part.
-    n_ego = np.einsum("rji,rj->ri", m[part].astype(np.float64), n_part)
+    n_ego = np.einsum("rji,rj->ri", _rows(m, part).astype(np.float64), n_part)
     lum = AMBIENT + SUN * np.maximum(n_ego @ sun_ego, 0.0) + 0.08 * n_ego[:, 2]
     zflat[pix] = t
-    cflat[pix] = albedo * lum[:, None].astype(np.float32)
+    _put_rows(cflat, pix, albedo * lum[:, None].astype(np.float32))
     idflat[pix] = k
 
 
@@ -385,13 +391,27 @@ def _box_entry(o: np.ndarray, d: np.ndarray, half: np.ndarray) -> tuple[np.ndarr
 
 def _box_entry_face(t_near: np.ndarray, d_safe: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``ray_box_entry``'s axis (R,) int64 and sign (R,) of the entered face from ``_box_entry``'s slab entries
-    and guarded directions (rows of the rays wanted)."""
+    and guarded directions (column by column: no gathers of rows)."""
     n0, n1, n2 = t_near[:, 0], t_near[:, 1], t_near[:, 2]
-    axis = np.where(n2 > np.maximum(n0, n1), 2, np.where(n1 > n0, 1, 0))  # the last slab entered (first on ties)
-    return axis, -np.sign(d_safe[np.arange(len(axis)), axis])
+    last2, last1 = n2 > np.maximum(n0, n1), n1 > n0  # the last slab entered is the face crossed (first on ties)
+    axis = np.where(last2, 2, np.where(last1, 1, 0))
+    return axis, -np.sign(np.where(last2, d_safe[:, 2], np.where(last1, d_safe[:, 1], d_safe[:, 0])))
 
 
 _RAY_EPS = 1e-12  # synth_raycast's guard for direction components near 0
+
+
+def _rows(a: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """``a[index]`` for an integer index array along the first axis (np.take: the same values, several times faster
+    than fancy indexing when the rows are a few values wide)."""
+    return np.take(a, index, axis=0)
+
+
+def _put_rows(buf: np.ndarray, index: np.ndarray, rows: np.ndarray) -> None:
+    """``buf[index] = rows`` for a C-contiguous (N, C) buffer and distinct indices: each row put as one C-value
+    item (the same bytes, several times faster than fancy assignment of rows)."""
+    item = np.dtype((np.void, buf.dtype.itemsize * buf.shape[1]))
+    np.put(buf.view(item).reshape(-1), index, np.ascontiguousarray(rows, dtype=buf.dtype).view(item).reshape(-1))
 
 
 def _part_pixels(order: np.ndarray, centers: np.ndarray, yaws: np.ndarray, parts, ego2cam: np.ndarray,

@@ -76,10 +76,8 @@ def test_ground_reflectance_equals_grounds(cross_s):
     assert ground_reflectance(np.zeros(0), np.zeros(0), cross_s).shape == (0,)
 
 
-def _sequential_scenery(objects, objs, parts, m, o_cam, near_t, rays_flat, zflat, cflat, idflat, sun_ego, ego2cam, camera,
-                        centers, yaws) -> None:
+def _sequential_scenery(part, pix, parts, m, o_cam, near_t, rays_flat, zflat, cflat, idflat, sun_ego) -> None:
     """Single-box scenery drawn box by box in the given order with a strict depth test (the plain formulation)."""
-    part, pix = synth_render._part_pixels(objects, centers, yaws, parts, ego2cam, camera)
     if not len(part):
         return
     bounds = np.flatnonzero(np.r_[True, part[1:] != part[:-1], True])
