@@ -31,23 +31,24 @@ def hull_span_pixels(uv: np.ndarray, width: int, height: int, margin_px: float) 
     row_box = np.repeat(np.arange(n_box), n_rows)  # (N,)
     row_v = v_lo[row_box] + (np.arange(len(row_box)) - np.repeat(np.cumsum(n_rows) - n_rows, n_rows))  # (N,) float
 
-    # Edges with their end points ordered by v: (R, 12) each.
+    # Edges with their end points ordered by v: (R, 12) each, then per row (N, 12) (np.take: fast row gathers).
     a, b = uv[:, BOX_EDGES[:, 0]], uv[:, BOX_EDGES[:, 1]]  # (R, 12, 2)
     swap = a[..., 1] > b[..., 1]
     lo_u, lo_v = np.where(swap, b[..., 0], a[..., 0]), np.where(swap, b[..., 1], a[..., 1])
     hi_u, hi_v = np.where(swap, a[..., 0], b[..., 0]), np.where(swap, a[..., 1], b[..., 1])
     rise = hi_v - lo_v
-    slope = np.where(rise > 0.0, (hi_u - lo_u) / np.where(rise > 0.0, rise, 1.0), 0.0)  # du / dv
-    u_min_edge, u_max_edge = np.minimum(lo_u, hi_u), np.maximum(lo_u, hi_u)
+    flat = rise <= 0.0  # a horizontal edge spans its whole u-range
+    slope = np.where(flat, 0.0, (hi_u - lo_u) / np.where(flat, 1.0, rise))  # du / dv
+    e_min, e_max = np.minimum(lo_u, hi_u), np.maximum(lo_u, hi_u)
+    per_edge = (lo_u, lo_v, hi_v, slope, e_min, e_max, flat)
+    lo_u, lo_v, hi_v, slope, e_min, e_max, flat = (np.take(x, row_box, axis=0) for x in per_edge)
 
     # Each row's band [v - margin, v + margin] clipped to each edge's v-range: (N, 12).
-    band_lo = np.maximum(row_v[:, None] - margin_px, lo_v[row_box])
-    band_hi = np.minimum(row_v[:, None] + margin_px, hi_v[row_box])
+    band_lo = np.maximum(row_v[:, None] - margin_px, lo_v)
+    band_hi = np.minimum(row_v[:, None] + margin_px, hi_v)
     crosses = band_lo <= band_hi
-    flat = (rise <= 0.0)[row_box]  # a horizontal edge spans its whole u-range
-    u1 = lo_u[row_box] + (band_lo - lo_v[row_box]) * slope[row_box]
-    u2 = lo_u[row_box] + (band_hi - lo_v[row_box]) * slope[row_box]
-    e_min, e_max = u_min_edge[row_box], u_max_edge[row_box]
+    u1 = lo_u + (band_lo - lo_v) * slope
+    u2 = lo_u + (band_hi - lo_v) * slope
     span_lo = np.where(flat, e_min, np.clip(np.minimum(u1, u2), e_min, e_max))
     span_hi = np.where(flat, e_max, np.clip(np.maximum(u1, u2), e_min, e_max))
     row_u_lo = np.where(crosses, span_lo, np.inf).min(axis=1)  # (N,)
