@@ -178,6 +178,19 @@ def test_resume_continues_exactly(store, tmp_path):
     assert len(lines) == 3 and '"samples_per_s"' in lines[0]
 
 
+def test_max_minutes_counts_this_invocation_not_the_whole_run(store, tmp_path):
+    # A run split over sessions: the first part already trained for "a day"; resumed with a limit of an hour, the
+    # limit is this invocation's, so the plan finishes instead of stopping after one step.
+    part = train(_config(max_minutes=1e-9), "unused", tmp_path / "part", store=store, echo=lambda m: None)
+    assert part.stopped_early and part.steps_done == 1
+    ckpt = load_checkpoint(tmp_path / "part" / "last.pt")
+    ckpt["scheduler"]["elapsed_s"] = 86_400.0
+    torch.save(ckpt, tmp_path / "part" / "last.pt")
+    resumed = train(_config(max_minutes=60.0), "unused", tmp_path / "resumed", resume=tmp_path / "part" / "last.pt",
+                    store=store, echo=lambda m: None)  # fmt: skip
+    assert resumed.steps_done == 3 and not resumed.stopped_early
+
+
 def test_weights_file_loads_in_export_and_half_precision(store, tmp_path):
     from streamdet.export.weights import load_detector
 

@@ -59,7 +59,7 @@ def _parse_slices(ctx, param, value: str) -> tuple[int, ...]:
 @click.option("--workers", type=click.IntRange(min=0), default=0, show_default=True, help="DataLoader worker processes.")
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Seed of the weights and of the data order.")
 @click.option("--max-minutes", type=click.FloatRange(min=0, min_open=True), default=None,
-              help="With --steps/--epochs: stop with a checkpoint after this much wall time. Alone: the one-cycle "
+              help="With --steps/--epochs: stop with a checkpoint after this much wall time of this invocation (--resume gets it again). Alone: the one-cycle "
                    "schedule runs over this much wall time (for a fixed budget on a shared machine; not step-reproducible).")
 @click.option("--amp", type=click.Choice(AMP_MODES), default="auto", show_default=True,
               help="Autocast: auto = fp16 on CUDA, off on CPU.")

@@ -412,7 +412,9 @@ def _loop(run: _TrainRun, log_file) -> tuple[bool, float]:
                 _log(window, schedule, lr, run.epoch, ctx, run.say, log_file)
             if schedule.step % config.checkpoint_every == 0:
                 run.checkpoint()
-            if not schedule.by_time and config.max_minutes is not None and schedule.elapsed_s > 60 * config.max_minutes:
+            # with a step/epoch plan the limit is this invocation's wall time (a resumed run gets it again), as a
+            # session-split run needs; a time plan (no steps) spends one budget over all of its resumes
+            if not schedule.by_time and config.max_minutes is not None and schedule.elapsed_s - run.elapsed_before > 60 * config.max_minutes:
                 stopped_early = not schedule.done  # every process sees the same (reduced) elapsed time
                 break
             if schedule.done:
