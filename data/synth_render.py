@@ -216,16 +216,19 @@ def render_camera(scene: Scene, t_s: float, camera: CameraModel, rng: np.random.
         scenery = np.isin(objs.kind[ordered], _SCENERY)
         small = ordered[~scenery]
         groups = np.array_split(small, min(3, len(small))) if len(small) else []
-        # The candidate pixels of every part in view at once (grouped by part in this order), drawn group by group.
-        part, pix = _part_pixels(np.concatenate([small, ordered[scenery]]), centers, yaws, parts, ego2cam, camera)
-        group_of = np.full(len(objs), len(groups), dtype=np.int64)  # (K,) scenery after the groups
+        # The candidate pixels of every small object's parts at once (grouped by part in this order), cut per group.
+        part, pix = _part_pixels(small, centers, yaws, parts, ego2cam, camera)
+        group_of = np.zeros(len(objs), dtype=np.int64)  # (K,)
         for i, group in enumerate(groups):
             group_of[group] = i
         cuts = np.searchsorted(group_of[parts.owner[part]], np.arange(len(groups) + 1))  # where each group's pairs start
         for i in range(len(groups)):
             _draw_parts(part[cuts[i] : cuts[i + 1]], pix[cuts[i] : cuts[i + 1]], objs, parts, m, o_cam, near_t, rays_flat,
                         zflat, cflat, idflat, own, sun_ego, h * w)
-        _draw_scenery(part[cuts[-1] :], pix[cuts[-1] :], parts, m, o_cam, near_t, rays_flat, zflat, cflat, idflat, sun_ego)
+        # The scenery keeps the polygon fills: its rays go through a BLAS product whose last digits depend on the
+        # batch of pixels around them, so the same candidates keep the same bytes (the parts' products do not).
+        part, pix = _filled_part_pixels(ordered[scenery], centers, yaws, parts, ego2cam, camera)
+        _draw_scenery(part, pix, parts, m, o_cam, near_t, rays_flat, zflat, cflat, idflat, sun_ego)
 
     seen = np.flatnonzero(idflat[g] < 0)  # ground pixels no object covers
     _shade_ground(scene, ego2global, sun_ego, shadows, _rows(ground_xy, seen), _rows(clear, seen), _rows(haze_rgb, seen),
@@ -422,7 +425,9 @@ def _part_pixels(order: np.ndarray, centers: np.ndarray, yaws: np.ndarray, parts
 
     The corners of all parts are projected at once; the parts wholly in front of the near plane get their hull's
     row spans all at once (``hull_span_pixels``); a part whose box reaches behind the near plane is clipped face by
-    face and filled (``_clipped_part_pixels``) unless it lies wholly beside the image.
+    face and filled (``_clipped_part_pixels``) unless it lies wholly beside the image. The candidates differ from
+    ``_filled_part_pixels``' by pixels no ray of the part meets, so the drawing is the same where every pair is
+    computed on its own (``_draw_parts``: einsum and elementwise work, whatever the batch).
     """
     if not len(order):
         return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
@@ -433,11 +438,7 @@ def _part_pixels(order: np.ndarray, centers: np.ndarray, yaws: np.ndarray, parts
     gone = z.max(axis=1) < NEAR_M
     hom = cam @ camera.K.T  # (R, 8, 3) homogeneous pixel coordinates (u z, v z, z)
     width, height = camera.width, camera.height
-    # Wholly beside the image by more than the candidate margins: every corner outside one side plane of the
-    # frustum (a convex set, so the clipped face polygons are outside it too).
-    m = _BESIDE_PX + 0.5
-    beside = np.all(hom[..., 0] < -m * z, axis=1) | np.all(hom[..., 0] > (width - 1 + m) * z, axis=1)
-    beside |= np.all(hom[..., 1] < -m * z, axis=1) | np.all(hom[..., 1] > (height - 1 + m) * z, axis=1)
+    beside = _beside_image(hom, camera)
     front = np.flatnonzero(~behind & ~beside)
     uv = hom[front, :, :2] / z[front][..., None] - 0.5  # (F, 8, 2) pixel-centre coordinates
     # A part reaching far beyond the image keeps its polygon fill with the corners clamped to OpenCV's fixed-point
@@ -461,6 +462,38 @@ def _part_pixels(order: np.ndarray, centers: np.ndarray, yaws: np.ndarray, parts
 _FIXED_LIMIT_PX = (1 << 20) / (1 << 8)  # OpenCV fixed-point coordinates are clamped to +-2^20 at shift 8
 _HULL_MARGIN_PX = 0.25  # candidates reach this far beyond the projected hull: far more than float32 rays stray
 _BESIDE_PX = 3.0  # a part's corners this far beside the image leave no candidate pixel (the fill adds 1-2 px)
+
+
+def _filled_part_pixels(order: np.ndarray, centers: np.ndarray, yaws: np.ndarray, parts, ego2cam: np.ndarray,
+                        camera: CameraModel) -> tuple[np.ndarray, np.ndarray]:
+    """``_part_pixels``' pairs from a polygon fill per part: the projected hull of its bounding box filled with
+    OpenCV (with its outline: about a pixel of margin; corners clamped to OpenCV's fixed-point range), clipped to
+    the near plane face by face where the box reaches behind it. A Python loop over the parts: slow for many."""
+    if not len(order):
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    _, part = parts.expand(order)
+    cam = _part_corners_cam(order, centers, yaws, parts, ego2cam)  # (R, 8, 3)
+    z = cam[..., 2]
+    hom = cam @ camera.K.T  # (R, 8, 3)
+    uv = hom[..., :2] / np.maximum(z, NEAR_M)[..., None] - 0.5  # (R, 8, 2) pixel-centre coordinates
+    out_part, out_pix = [], []
+    for r in np.flatnonzero((z.max(axis=1) >= NEAR_M) & ~_beside_image(hom, camera)).tolist():
+        px = _clipped_part_pixels(cam[r], camera) if z[r].min() < NEAR_M else _filled_hull_pixels(uv[r], camera)
+        out_part.append(np.full(len(px), part[r], dtype=np.int64))
+        out_pix.append(px)
+    if not out_part:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    return np.concatenate(out_part), np.concatenate(out_pix)
+
+
+def _beside_image(hom: np.ndarray, camera: CameraModel) -> np.ndarray:
+    """(R,) bool: boxes (R, 8, 3 homogeneous pixel coordinates (u z, v z, z) of their corners) wholly beside the
+    image by more than any candidate margin: every corner outside one side plane of the frustum, a convex set, so
+    the faces clipped to the near plane are outside it too and no pixel of the image can see the box."""
+    z = hom[..., 2]
+    m = _BESIDE_PX + 0.5
+    beside = np.all(hom[..., 0] < -m * z, axis=1) | np.all(hom[..., 0] > (camera.width - 1 + m) * z, axis=1)
+    return beside | np.all(hom[..., 1] < -m * z, axis=1) | np.all(hom[..., 1] > (camera.height - 1 + m) * z, axis=1)
 
 
 def _part_corners_cam(order: np.ndarray, centers: np.ndarray, yaws: np.ndarray, parts, ego2cam: np.ndarray) -> np.ndarray:

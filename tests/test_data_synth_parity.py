@@ -120,29 +120,6 @@ def test_scenery_nearest_first_equals_sequential_drawing(index, monkeypatch):
         np.testing.assert_array_equal(a.own_pixels, b.own_pixels)
 
 
-def _naive_part_pixels(order, centers, yaws, parts, ego2cam, camera):
-    """Every part's projected bounding-box hull filled with OpenCV one part at a time (the plain formulation of
-    ``_part_pixels``; corners in OpenCV's fixed point, clamped to its range)."""
-    if not len(order):
-        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
-    _, part = parts.expand(order)
-    cam = synth_render._part_corners_cam(order, centers, yaws, parts, ego2cam)
-    z = cam[..., 2]
-    out_part, out_pix = [], []
-    for r in range(len(part)):
-        if z[r].max() < synth_render.NEAR_M:
-            continue
-        if z[r].min() < synth_render.NEAR_M:
-            px = synth_render._clipped_part_pixels(cam[r], camera)
-        else:
-            px = synth_render._filled_hull_pixels((cam[r] @ camera.K.T)[:, :2] / z[r][:, None] - 0.5, camera)
-        out_part.append(np.full(len(px), part[r], dtype=np.int64))
-        out_pix.append(px)
-    if not out_part:
-        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
-    return np.concatenate(out_part), np.concatenate(out_pix)
-
-
 @pytest.mark.parametrize("index", [0, 1, 3])
 def test_part_pixel_spans_render_as_polygon_fills(index, monkeypatch):
     """The row-span candidates draw the same images, ids and own-pixel counts as filling each hull with OpenCV."""
@@ -151,7 +128,7 @@ def test_part_pixel_spans_render_as_polygon_fills(index, monkeypatch):
     t_s = float(scene.sample_times_s[1])
     shadows = synth_render.shadow_raster(scene, t_s)
     fast = [synth_render.render_camera(scene, t_s, cam, np.random.default_rng(0), shadows=shadows) for cam in rig.models]
-    monkeypatch.setattr(synth_render, "_part_pixels", _naive_part_pixels)
+    monkeypatch.setattr(synth_render, "_part_pixels", synth_render._filled_part_pixels)
     plain = [synth_render.render_camera(scene, t_s, cam, np.random.default_rng(0), shadows=shadows) for cam in rig.models]
     for a, b in zip(fast, plain):
         np.testing.assert_array_equal(a.image, b.image)
@@ -230,3 +207,21 @@ def test_pixel_depth_order_equals_lexsort(seed):
     np.testing.assert_array_equal(synth_render._pixel_depth_order(pix, t), np.lexsort((t, pix)))
     np.testing.assert_array_equal(synth_render._pixel_depth_order(pix, t.astype(np.float64)), np.lexsort((t, pix)))
     assert len(synth_render._pixel_depth_order(np.zeros(0, np.int64), np.zeros(0, np.float32))) == 0
+
+
+def test_products_of_the_span_candidates_do_not_depend_on_the_batch():
+    """The row-span candidates differ from the polygon fills by pixels that miss, so each candidate's products must
+    not depend on which other rows share its batch: the parts' einsums and the stacked corner projections do not
+    (the scenery's 2-D BLAS product of rays does, so the scenery keeps the fills)."""
+    rng = np.random.default_rng(0)
+    for n in (1, 7, 64, 1001):
+        m32 = rng.normal(size=(n, 3, 3)).astype(np.float32)
+        r32 = rng.normal(size=(n, 3)).astype(np.float32)
+        m64, n64 = rng.normal(size=(n, 3, 3)), rng.normal(size=(n, 3))
+        corners, k = rng.normal(size=(n, 8, 3)) * 30.0, rng.normal(size=(3, 3)) * 300.0
+        full = (np.einsum("rij,rj->ri", m32, r32), np.einsum("rji,rj->ri", m64, n64), corners @ k.T)
+        for size in (1, 2, 3, 5, 9, 17):
+            rows = np.sort(rng.integers(0, n, size))
+            np.testing.assert_array_equal(np.einsum("rij,rj->ri", m32[rows], r32[rows]), full[0][rows])
+            np.testing.assert_array_equal(np.einsum("rji,rj->ri", m64[rows], n64[rows]), full[1][rows])
+            np.testing.assert_array_equal(corners[rows] @ k.T, full[2][rows])
