@@ -162,27 +162,15 @@ class _Placer:
         # A bound on the bounding circle of the box the shape will get (its parts may reach past the nominal
         # size: a stride, a rider, the annotator's margin), so shapes are only built for accepted tracks.
         radius = 0.5 * math.hypot(size[0], size[1]) * 1.25 + 0.15
-        if check:
-            # Only tracks whose padded bounding rectangles meet can collide; test those over the time grid.
-            lo, hi = track.min(axis=0), track.max(axis=0)
-            pad = np.asarray(self.radii) + radius + self.config.collision_margin_m  # (K,)
-            boxes = np.asarray(self.track_boxes)  # (K, 4) s_lo, d_lo, s_hi, d_hi
-            near = np.flatnonzero((boxes[:, 0] - pad <= hi[0]) & (boxes[:, 2] + pad >= lo[0])
-                                  & (boxes[:, 1] - pad <= hi[1]) & (boxes[:, 3] + pad >= lo[1]))
-            if len(near):
-                others = np.stack([self.tracks[i] for i in near], axis=1)  # (T, N, 2)
-                gap = np.linalg.norm(others - track[:, None, :], axis=-1) - np.asarray(self.radii)[near] - radius  # (T, N)
-                if np.any(gap < self.config.collision_margin_m):
-                    return False
+        if check and self._collides(track, radius):
+            return False
         c1, c2 = self._colors(kind)
         if color is not None:
             c1 = np.asarray(color, dtype=np.float32)
         flag = self._flag(kind, speed) if flag is None else flag
         shape = build_shape(kind, size, self.rng, c1, c2, flag)
         if check:
-            self.tracks.append(track)
-            self.track_boxes.append(np.r_[lo, hi])
-            self.radii.append(max(radius, 0.5 * math.hypot(shape.size_wlh[0], shape.size_wlh[1])))
+            self._claim(track, max(radius, 0.5 * math.hypot(shape.size_wlh[0], shape.size_wlh[1])))
         self.rows.append(
             {
                 "kind": int(kind),
@@ -198,6 +186,27 @@ class _Placer:
             }
         )
         return True
+
+    def _collides(self, track: np.ndarray, radius: float) -> bool:
+        """Whether a circle of ``radius`` moving along ``track`` (T, 2) comes closer than the collision margin to
+        any claimed track. Only tracks whose padded bounding rectangles meet can collide; those are tested over the
+        time grid."""
+        lo, hi = track.min(axis=0), track.max(axis=0)
+        pad = np.asarray(self.radii) + radius + self.config.collision_margin_m  # (K,)
+        boxes = np.asarray(self.track_boxes)  # (K, 4) s_lo, d_lo, s_hi, d_hi
+        near = np.flatnonzero((boxes[:, 0] - pad <= hi[0]) & (boxes[:, 2] + pad >= lo[0])
+                              & (boxes[:, 1] - pad <= hi[1]) & (boxes[:, 3] + pad >= lo[1]))
+        if not len(near):
+            return False
+        others = np.stack([self.tracks[i] for i in near], axis=1)  # (T, N, 2)
+        gap = np.linalg.norm(others - track[:, None, :], axis=-1) - np.asarray(self.radii)[near] - radius  # (T, N)
+        return bool(np.any(gap < self.config.collision_margin_m))
+
+    def _claim(self, track: np.ndarray, radius: float) -> None:
+        """Reserve the circle of ``radius`` along ``track`` (T, 2): later objects keep clear of it."""
+        self.tracks.append(track)
+        self.track_boxes.append(np.r_[track.min(axis=0), track.max(axis=0)])
+        self.radii.append(radius)
 
     def _flag(self, kind: Kind, speed: float) -> bool:
         """The per-object switch: a cycle's rider (always when riding), a pedestrian's motion pose, a truck's box body."""
@@ -249,12 +258,14 @@ class _Placer:
         self._repeat(count(c.buses), self._bus)
         self._repeat(count(c.lane_vehicles), lambda: self._lane_vehicle(lane_kinds[rng.integers(len(lane_kinds))]))
         self._repeat(count(c.motorcycles), self._motorcycle)
+        self._repeat(count(c.bicycles), self._bicycle)  # before the parked cars: cyclists ride past parked rows
         self._repeat(count(c.parked_vehicles), self._parked_vehicle)
-        self._repeat(count(c.bicycles), self._bicycle)
         for _ in range(count(c.pedestrian_groups)):
             self._pedestrian_group()
         self._repeat(count(c.pedestrians), self._pedestrian)
         self._distractors()
+        if self.cross_s is not None:  # last, so the main street's layout does not depend on it
+            self._repeat(count(c.cross_pedestrians), self._cross_pedestrian)
 
     def _repeat(self, count: int, place) -> None:
         for _ in range(int(count)):
@@ -353,26 +364,55 @@ class _Placer:
         return self._try_add(kind, s, d, yaw, 0.0, size=size)
 
     def _bicycle(self) -> bool:
+        """One cyclist, or one parked bicycle or rack. What it is is drawn once and then tried at other places, so
+        a busy road does not turn would-be riders into parked bicycles."""
+        mode = self.rng.uniform()
+        if mode < 0.2:  # riding on the road by the parking strip or in the outer lane (most bicycles stand parked)
+            place = self._riding_bicycle
+        elif mode < 0.26 and self.cross_s is not None:  # riding along the cross street
+            place = self._cross_bicycle
+        else:
+            place = self._parked_bicycles
+        return any(place() for _ in range(self.MAX_TRIES))
+
+    def _riding_bicycle(self) -> bool:
         rng = self.rng
         side = self._side()
-        mode = rng.uniform()
-        if mode < 0.25:  # riding on the road by the parking strip or in the outer lane (most bicycles stand parked)
-            yaw = (0.0 if side < 0 else math.pi) + rng.normal(0, 0.04)
-            d = side * float(rng.choice([PARKING_OFFSET_M - 0.9, 1.5 * LANE_WIDTH_M + 1.0]))
-            return self._try_add(Kind.BICYCLE, self._s(), d + rng.normal(0, 0.2), yaw, float(rng.uniform(2.5, 7.0)))
-        if mode < 0.32 and self.cross_s is not None:  # riding along the cross street
-            lane = CROSS_LANES_M[0] - 1.0 if rng.uniform() < 0.5 else CROSS_LANES_M[-1] + 1.0
-            heading = math.pi / 2 if lane > 0 else -math.pi / 2
-            return self._try_add(Kind.BICYCLE, self.cross_s + lane, float(rng.uniform(-50, 50)), heading, float(rng.uniform(2.5, 6.0)))
-        s = self._s()  # parked on the sidewalk, alone or in a rack of several side by side
+        yaw = (0.0 if side < 0 else math.pi) + rng.normal(0, 0.04)
+        d = side * float(rng.choice([PARKING_OFFSET_M - 0.9, 1.5 * LANE_WIDTH_M + 1.0]))
+        return self._try_add(Kind.BICYCLE, self._s(), d + rng.normal(0, 0.2), yaw, float(rng.uniform(2.5, 7.0)))
+
+    def _cross_bicycle(self) -> bool:
+        rng = self.rng
+        lane = CROSS_LANES_M[0] - 1.0 if rng.uniform() < 0.5 else CROSS_LANES_M[-1] + 1.0
+        heading = math.pi / 2 if lane > 0 else -math.pi / 2
+        return self._try_add(Kind.BICYCLE, self.cross_s + lane, float(rng.uniform(-50, 50)), heading, float(rng.uniform(2.5, 6.0)))
+
+    def _parked_bicycles(self) -> bool:
+        """A bicycle parked on the sidewalk, alone or in a rack of several side by side."""
+        rng = self.rng
+        side = self._side()
+        s = self._s()
         if self._in_cross(s, 2.0):
             return False
         d = side * rng.uniform(11.0, 13.0)  # racks and lampposts by the shop fronts, behind the parked cars and clutter
-        if rng.uniform() < 0.5:
+        if rng.uniform() < 0.75:
             return self._try_add(Kind.BICYCLE, s, d, float(rng.uniform(-math.pi, math.pi)), 0.0, flag=False)
+        # A rack: bicycles side by side a stand apart, front wheels towards the road, hiding each other when seen
+        # along the row. The rack is claimed as a whole; its bicycles are not tested against each other.
         yaw = (math.pi / 2 if side > 0 else -math.pi / 2) + rng.normal(0, 0.1)
-        placed = [self._try_add(Kind.BICYCLE, s + 0.75 * j, d, yaw, 0.0, flag=False) for j in range(int(rng.integers(2, 5)))]
-        return any(placed)
+        count, gap = int(rng.integers(2, 4)), float(rng.uniform(0.85, 1.0))  # stands wider than a box with its margins
+        span = gap * (count - 1)
+        rack = np.tile([s + span / 2, d], (len(self.times), 1))  # (T, 2) static
+        radius = 0.5 * math.hypot(span + 0.8, 2.0)
+        if self._collides(rack, radius):
+            return False
+        self._claim(rack, radius)
+        for j in range(count):
+            if rng.uniform() < 0.15:
+                continue  # an empty stand
+            self._try_add(Kind.BICYCLE, s + gap * j, d, yaw + rng.normal(0, 0.01), 0.0, check=False, flag=False)
+        return True
 
     def _pedestrian(self) -> bool:
         rng = self.rng
@@ -392,6 +432,17 @@ class _Placer:
         yaw = (math.pi / 2 if side < 0 else -math.pi / 2) + rng.uniform(-0.7, 0.7)
         speed = 0.0 if rng.uniform() < 0.2 else float(rng.uniform(0.8, 1.8))
         return self._try_add(Kind.PEDESTRIAN, s, side * rng.uniform(0.0, 10.0), yaw, speed)
+
+    def _cross_pedestrian(self) -> bool:
+        """Someone on a sidewalk of the cross street, beyond the corners: hidden by the corner blocks until the ego
+        nears the intersection and looks down the cross street (annotated all the same, as nuScenes does)."""
+        rng = self.rng
+        s = self.cross_s + float(rng.choice([-1, 1])) * rng.uniform(CROSS_HALF_WIDTH_M + 0.6, CROSS_HALF_WIDTH_M + 4.5)
+        d = self._side() * rng.uniform(BUILDING_LINE_M + 0.5, 60.0)
+        if rng.uniform() < 0.6:  # walking along the cross street
+            yaw = (math.pi / 2 if rng.uniform() < 0.5 else -math.pi / 2) + rng.normal(0, 0.08)
+            return self._try_add(Kind.PEDESTRIAN, s, d, yaw, float(rng.uniform(0.8, 1.8)))
+        return self._try_add(Kind.PEDESTRIAN, s, d, float(rng.uniform(-math.pi, math.pi)), 0.0)
 
     def _pedestrian_group(self) -> None:
         rng = self.rng

@@ -37,7 +37,7 @@ class Mat(IntEnum):
     FOLIAGE = 12  # leaves: gaps the sensors see through
     BARK = 13
     FACADE = 14  # a building face with glass windows
-    SPOKED = 15  # a bicycle wheel: a tyre and rim round an open disc of thin spokes that beams mostly pass
+    SPOKED = 15  # a bicycle wheel: a tyre on a metal rim round an open disc of thin spokes that beams mostly pass
     WEATHERED = 16  # sun-faded, grimy plastic of street furniture left outside for years: water-filled barriers, bins, feet
 
 
@@ -70,6 +70,7 @@ MATERIALS: dict[Mat, MaterialSpec] = {
 }
 
 SPOKED_RIM = 0.82  # a spoked wheel's tyre and rim: the outer part of its radius (the rest is spokes and gaps)
+SPOKED_TYRE = 0.9  # ... of which the inner part, up to here, is the silver rim and the rest the tyre
 SPOKED_RETURN = 0.1  # chance a beam meeting the spokes' disc comes back from a 2 mm spoke rather than passing
 
 
@@ -137,10 +138,15 @@ def shade(
     spoked = mat == Mat.SPOKED
     if np.any(spoked):  # a cylinder along its part's z: the radius in x, y
         q, h = p[spoked], half[spoked]
-        inner = np.flatnonzero(spoked)[np.hypot(q[:, 0] / h[:, 0], q[:, 1] / h[:, 1]) < SPOKED_RIM]
+        radial = np.hypot(q[:, 0] / h[:, 0], q[:, 1] / h[:, 1])
+        inner = np.flatnonzero(spoked)[radial < SPOKED_RIM]
         scale[inner] = SPOKED_RETURN
         refl[inner] = MATERIALS[Mat.METAL].reflectance[1]
         gloss[inner] = MATERIALS[Mat.METAL].gloss
+        rim = np.flatnonzero(spoked)[(radial >= SPOKED_RIM) & (radial < SPOKED_TYRE)]
+        albedo[rim] = (0.62, 0.62, 0.64)
+        refl[rim] = MATERIALS[Mat.METAL].reflectance[1]
+        gloss[rim] = MATERIALS[Mat.METAL].gloss
     return np.clip(albedo, 0.0, 1.0), alpha, refl, scale, gloss
 
 

@@ -24,6 +24,8 @@ TYRE = (0.05, 0.05, 0.05)
 GLASS = (0.06, 0.08, 0.11)
 SKIN_TONES = ((0.86, 0.66, 0.52), (0.6, 0.42, 0.3), (0.35, 0.24, 0.17), (0.93, 0.78, 0.66))
 HAIR = ((0.1, 0.07, 0.05), (0.3, 0.2, 0.1), (0.6, 0.5, 0.3), (0.15, 0.15, 0.15))
+BIKE_TUBE_M = 0.016  # radius of the main tubes and the fork (about 32 mm across)
+BIKE_STAY_M = 0.009  # radius of the seat and chain stays
 
 
 def rotation(yaw: float = 0.0, pitch: float = 0.0, roll: float = 0.0) -> np.ndarray:
@@ -281,14 +283,17 @@ def _cycle(b: _Builder, w: float, l: float, h: float, color, color2, rider: bool
         b.add((-wheel_x - 0.1, 0.0, 0.6), (0.02, 0.1, 0.05), Mat.RETRO, (0.95, 0.95, 0.95))
     else:
         hub = radius
-        for (x1, z1), (x2, z2) in [((-wheel_x, hub), (-0.15, saddle_z)), ((-0.15, saddle_z), (wheel_x - 0.15, saddle_z)),
-                                   ((-0.15, hub + 0.05), (wheel_x - 0.15, saddle_z)), ((wheel_x - 0.15, saddle_z + 0.1), (wheel_x, hub)),
-                                   ((-wheel_x, hub), (-0.15, hub + 0.05))]:
+        # Round tubes (seat stays and chain stays thinner than the main triangle): a beam meets a tube's crest
+        # head-on but its flanks at a grazing angle, and a tube fills only part of the beam's footprint.
+        for (x1, z1), (x2, z2), r in [((-wheel_x, hub), (-0.15, saddle_z), BIKE_STAY_M), ((-0.15, saddle_z), (wheel_x - 0.15, saddle_z), BIKE_TUBE_M),
+                                      ((-0.15, hub + 0.05), (wheel_x - 0.15, saddle_z), BIKE_TUBE_M),
+                                      ((wheel_x - 0.15, saddle_z + 0.1), (wheel_x, hub), BIKE_TUBE_M),
+                                      ((-wheel_x, hub), (-0.15, hub + 0.05), BIKE_STAY_M)]:
             length = math.hypot(x2 - x1, z2 - z1)
             pitch = math.atan2(x2 - x1, z2 - z1)
-            b.add(((x1 + x2) / 2, 0.0, (z1 + z2) / 2), (0.02, 0.02, length / 2), Mat.PAINT, frame_col, rot=rotation(pitch=pitch))
+            b.add(((x1 + x2) / 2, 0.0, (z1 + z2) / 2), (r, r, length / 2), Mat.PAINT, frame_col, SHAPE_CYLINDER, rotation(pitch=pitch))
         b.add((-0.15, 0.0, saddle_z + 0.03), (0.12, 0.07, 0.03), Mat.PLASTIC, (0.08, 0.08, 0.08))
-        b.add((wheel_x - 0.12, 0.0, saddle_z + 0.15), (0.03, w / 2 - 0.02, 0.02), Mat.METAL, (0.3, 0.3, 0.3))
+        b.add((wheel_x - 0.12, 0.0, saddle_z + 0.15), (0.012, 0.012, w / 2 - 0.02), Mat.METAL, (0.3, 0.3, 0.3), SHAPE_CYLINDER, WHEEL_ROT)
         b.add((-wheel_x - 0.02, 0.0, radius + 0.25), (0.01, 0.04, 0.03), Mat.RETRO, (0.9, 0.1, 0.1))
     if rider:
         h_rider = float(rng.uniform(1.6, 1.9))
