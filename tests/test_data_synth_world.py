@@ -12,11 +12,12 @@ from streamdet.core.classes import CLASS_NAMES
 from streamdet.data.nuscenes import NuScenesReader
 from streamdet.data.synth_kinds import DISTRACTOR_KINDS, KIND_SPECS, Kind
 from streamdet.data.synth_lidar import LidarConfig, detection_probability, footprint_fill
-from streamdet.data.synth_materials import SPOKED_RETURN, SPOKED_RIM, Mat, shade
+from streamdet.data.synth_materials import MATERIALS, SPOKED_RETURN, SPOKED_RIM, SPOKED_TYRE, Mat, shade
 from streamdet.data.synth_raycast import SHAPE_BOX, SHAPE_CYLINDER, SHAPE_ELLIPSOID, ray_shape_entry
 from streamdet.data.synth_render import Exposure
 from streamdet.data.synth_shapes import part_extents, rotation
 from streamdet.data.synth_stats import _angle_off_axes_deg, road_axes_at
+from streamdet.data.synth_road import BUILDING_LINE_M, CROSS_HALF_WIDTH_M
 from streamdet.data.synth_world import WORLD_FILE, WORLD_VERSION, WorldConfig, make_scene
 from streamdet.data.synth_writer import MASK_SUFFIX, SynthConfig, generate_dataset
 
@@ -116,6 +117,32 @@ def test_thin_parts_and_spoked_wheels_return_less(seed):
     inner = [math.hypot(x / 0.34, y / 0.34) < SPOKED_RIM for x, y in p[:, :2]]
     np.testing.assert_array_equal(scale, np.where(inner, SPOKED_RETURN, 1.0))
     assert alpha.all()
+    # ... and between the spokes and the tyre sits a metal rim
+    radial = np.hypot(p[:, 0] / 0.34, p[:, 1] / 0.34)
+    _, _, refl, _, _ = shade(np.full(50, int(Mat.SPOKED)), np.full((50, 3), 0.05), np.full(50, 0.07), p, half, np.tile([0.0, 0.0, 1.0], (50, 1)))
+    expected = np.where(radial >= SPOKED_TYRE, 0.07, MATERIALS[Mat.METAL].reflectance[1])
+    np.testing.assert_allclose(refl, expected)
+
+
+def test_bicycle_racks_and_cross_street_people():
+    """Parked bicycles stand in racks (side by side, one heading, a stand apart) and people walk the cross street's
+    sidewalks beyond the corner blocks."""
+    racks, cross_people = 0, 0
+    for index in range(6):
+        scene = make_scene(5, index)
+        objs = scene.objects
+        parked = np.flatnonzero((objs.kind == Kind.BICYCLE) & (np.linalg.norm(objs.velocity, axis=1) == 0))
+        s, d = scene.to_road(objs.center0[parked, :2])
+        for i in range(len(parked)):
+            for j in range(i + 1, len(parked)):
+                side_by_side = 0.8 < abs(s[i] - s[j]) < 1.05 and abs(d[i] - d[j]) < 1e-6
+                racks += side_by_side and abs(objs.yaw[parked[i]] - objs.yaw[parked[j]]) < 0.1
+        if scene.cross_s_m is not None:
+            people = objs.kind == Kind.PEDESTRIAN
+            s, d = scene.to_road(objs.center0[people, :2])
+            cross_people += int(np.sum((np.abs(s - scene.cross_s_m) > CROSS_HALF_WIDTH_M) & (np.abs(d) > BUILDING_LINE_M)))
+    assert racks >= 1
+    assert cross_people >= 5
 
 
 def test_layout_varies_and_keeps_the_tail_classes():
