@@ -77,6 +77,18 @@ class CameraModel:
             self._cache["background"] = (g, hit_xy, t[g].astype(np.float32), 1 - haze, haze * SKY_HORIZON, sky)
         return self._cache["background"]
 
+    def _shadow_texels(self, n_texels: int) -> np.ndarray:
+        """(G,) int64: the flat index of the texel of an (n_texels, n_texels) ``shadow_raster`` under each ground
+        pixel of ``_background``, -1 off the raster (the raster is in the ego frame, as the ground points are)."""
+        key = ("shadow_texels", n_texels)
+        if key not in self._cache:
+            ground_xy = self._background()[1]
+            ix = np.floor((ground_xy[:, 0] + SHADOW_HALF_M) / SHADOW_TEXEL_M).astype(np.int64)
+            iy = np.floor((ground_xy[:, 1] + SHADOW_HALF_M) / SHADOW_TEXEL_M).astype(np.int64)
+            inside = (ix >= 0) & (ix < n_texels) & (iy >= 0) & (iy < n_texels)
+            self._cache[key] = np.where(inside, ix * n_texels + iy, -1)
+        return self._cache[key]
+
     def _noise(self) -> np.ndarray:
         """(H, W, 3) float32 sensor noise, drawn once per camera; frames use it rolled by a random offset."""
         if "noise" not in self._cache:
@@ -231,8 +243,9 @@ def render_camera(scene: Scene, t_s: float, camera: CameraModel, rng: np.random.
         _draw_scenery(part, pix, parts, m, o_cam, near_t, rays_flat, zflat, cflat, idflat, sun_ego)
 
     seen = np.flatnonzero(idflat[g] < 0)  # ground pixels no object covers
-    _shade_ground(scene, ego2global, sun_ego, shadows, _rows(ground_xy, seen), _rows(clear, seen), _rows(haze_rgb, seen),
-                  g[seen], cflat)
+    texels = None if shadows is None else camera._shadow_texels(shadows.shape[0])[seen]
+    _shade_ground(scene, ego2global, sun_ego, shadows, texels, _rows(ground_xy, seen), _rows(clear, seen),
+                  _rows(haze_rgb, seen), g[seen], cflat)
 
     if exposure is None and rng is not None:
         exposure = Exposure.draw(rng)
@@ -250,9 +263,11 @@ def render_camera(scene: Scene, t_s: float, camera: CameraModel, rng: np.random.
 
 
 def _shade_ground(scene: Scene, ego2global: np.ndarray, sun_ego: np.ndarray, shadows: np.ndarray | None,
-                  ground_xy: np.ndarray, clear: np.ndarray, haze_rgb: np.ndarray, pix: np.ndarray, cflat: np.ndarray) -> None:
-    """Colour the ground pixels ``pix`` (flat) from their ego-frame ground points (G, 2) and haze blend (``clear``
-    (G, 1), ``haze_rgb`` (G, 3)): the ground pattern, the cross street, the sun unless in an object's shadow."""
+                  texels: np.ndarray | None, ground_xy: np.ndarray, clear: np.ndarray, haze_rgb: np.ndarray, pix: np.ndarray,
+                  cflat: np.ndarray) -> None:
+    """Colour the ground pixels ``pix`` (flat) from their ego-frame ground points (G, 2), their texels of the
+    ``shadows`` raster (G,) (``CameraModel._shadow_texels``) and haze blend (``clear`` (G, 1), ``haze_rgb`` (G, 3)):
+    the ground pattern, the cross street, the sun unless in an object's shadow."""
     rot2 = ego2global[:2, :2]
     # Road coordinates of the ground points (elementwise: tiny BLAS products are slow on a busy machine).
     wx = rot2[0, 0] * ground_xy[:, 0] + rot2[0, 1] * ground_xy[:, 1] + (ego2global[0, 3] - scene.road_origin_xy[0])
@@ -266,12 +281,9 @@ def _shade_ground(scene: Scene, ego2global: np.ndarray, sun_ego: np.ndarray, sha
     sun_lum = np.float32(SUN * max(sun_ego[2], 0.0))
     lum = np.full(len(pix), np.float32(AMBIENT) + sun_lum, dtype=np.float32)
     if shadows is not None:
-        n_s = shadows.shape[0]
-        ix = np.floor((ground_xy[:, 0] + SHADOW_HALF_M) / SHADOW_TEXEL_M).astype(np.int64)
-        iy = np.floor((ground_xy[:, 1] + SHADOW_HALF_M) / SHADOW_TEXEL_M).astype(np.int64)
-        inside = (ix >= 0) & (ix < n_s) & (iy >= 0) & (iy < n_s)
+        on = np.flatnonzero(texels >= 0)
         shaded = np.zeros(len(pix), dtype=bool)
-        shaded[inside] = shadows[ix[inside], iy[inside]] > 0
+        shaded[on] = np.take(shadows.reshape(-1), texels[on]) > 0
         lum[shaded] = AMBIENT
     _put_rows(cflat, pix, albedo * (clear * lum[:, None]) + haze_rgb)
 
