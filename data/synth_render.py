@@ -285,7 +285,7 @@ def _shade_ground(scene: Scene, ego2global: np.ndarray, sun_ego: np.ndarray, sha
         shaded = np.zeros(len(pix), dtype=bool)
         shaded[on] = np.take(shadows.reshape(-1), texels[on]) > 0
         lum[shaded] = AMBIENT
-    _put_rows(cflat, pix, albedo * (clear * lum[:, None]) + haze_rgb)
+    _put_rows(cflat, pix, _scaled_rows(albedo, (clear * lum[:, None])[:, 0], haze_rgb))
 
 
 _SCENERY = np.array([Kind.BUILDING, Kind.WALL, Kind.CURB])  # unannotated, one box part each
@@ -321,14 +321,14 @@ def _draw_scenery(part, pix, parts, m, o_cam, near_t, rays_flat, zflat, cflat, i
         px, t, axis, sign = px[front], t[front], axis[front], sign[front]
         n_part = np.zeros((len(px), 3))
         n_part[np.arange(len(px)), axis] = sign
-        p_part = o_cam[p] + t[:, None] * _rows(d, front)
+        p_part = _scaled_rows(_rows(d, front), t, o_cam[p])  # the hit points: o + t d
         albedo, _, _, _, _ = shade(np.full(len(px), parts.mat[p]), np.broadcast_to(parts.albedo[p], (len(px), 3)),
                                    np.full(len(px), parts.refl[p]), p_part, np.broadcast_to(parts.half[p], (len(px), 3)), n_part)
         n_ego = n_part @ m[p].astype(np.float64)  # M^T n for row vectors
         lum = AMBIENT + SUN * np.maximum(n_ego @ sun_ego, 0.0) + 0.08 * n_ego[:, 2]
         zflat[px] = t
         rank[px] = run
-        _put_rows(cflat, px, albedo * lum[:, None].astype(np.float32))
+        _put_rows(cflat, px, _scaled_rows(albedo, lum.astype(np.float32)))
         idflat[px] = parts.owner[p]
 
 
@@ -367,13 +367,13 @@ def _draw_parts(part, pix, objs, parts, m, o_cam, near_t, rays_flat, zflat, cfla
     part, pix, t, k, o_part, d_part = (_rows(v, first) for v in (part, pix, t, k, o_part, d_part))
     half = _rows(parts.half, part)
     _, n_part = ray_shape_entry(o_part.astype(np.float64), d_part.astype(np.float64), half, parts.shape[part])
-    p_part = o_part + t[:, None] * d_part
+    p_part = _scaled_rows(d_part, t, o_part)
     albedo, _, _, _, _ = shade(parts.mat[part], _rows(parts.albedo, part), parts.refl[part], p_part, half, n_part)
     # Shade with the part normal in the ego frame: n_ego = M^T n_part.
     n_ego = np.einsum("rji,rj->ri", _rows(m, part).astype(np.float64), n_part)
     lum = AMBIENT + SUN * np.maximum(n_ego @ sun_ego, 0.0) + 0.08 * n_ego[:, 2]
     zflat[pix] = t
-    _put_rows(cflat, pix, albedo * lum[:, None].astype(np.float32))
+    _put_rows(cflat, pix, _scaled_rows(albedo, lum.astype(np.float32)))
     idflat[pix] = k
 
 
@@ -396,10 +396,13 @@ def _box_entry(o: np.ndarray, d: np.ndarray, half: np.ndarray) -> tuple[np.ndarr
     passes: the slab planes are computed once, the face only where needed)."""
     d_safe = np.where(np.abs(d) < _RAY_EPS, _RAY_EPS, d)
     inv = 1.0 / d_safe
-    t1 = (-half - o) * inv  # (R, 3)
-    t2 = (half - o) * inv
-    t_near = np.minimum(t1, t2)
-    t_exit = np.maximum(t1, t2, out=t1)
+    lo, hi = -half - o, half - o  # (3,) the slab planes relative to the origin
+    t_near = np.empty_like(inv)  # (R, 3)
+    t_exit = np.empty_like(inv)
+    for c in range(3):  # column by column (numpy broadcasts a (3,) row over (R, 3) several times slower)
+        t1, t2 = lo[c] * inv[:, c], hi[c] * inv[:, c]
+        np.minimum(t1, t2, out=t_near[:, c])
+        np.maximum(t1, t2, out=t_exit[:, c])
     t_far = np.minimum(np.minimum(t_exit[:, 0], t_exit[:, 1]), t_exit[:, 2])
     t_in = np.maximum(np.maximum(t_near[:, 0], t_near[:, 1]), t_near[:, 2])
     hit = (t_in <= t_far) & (t_in > 0.0)
@@ -416,6 +419,18 @@ def _box_entry_face(t_near: np.ndarray, d_safe: np.ndarray) -> tuple[np.ndarray,
 
 
 _RAY_EPS = 1e-12  # synth_raycast's guard for direction components near 0
+
+
+def _scaled_rows(rows: np.ndarray, scale: np.ndarray, offset: np.ndarray | None = None) -> np.ndarray:
+    """``rows * scale[:, None] (+ offset)`` for rows (R, 3), scale (R,) and offset (3,) or (R, 3): the same values,
+    column by column (numpy broadcasts over a length-3 last axis several times slower)."""
+    operands = (rows, scale) if offset is None else (rows, scale, offset)
+    out = np.empty(rows.shape, dtype=np.result_type(*operands))
+    for c in range(rows.shape[1]):
+        np.multiply(rows[:, c], scale, out=out[:, c])
+        if offset is not None:
+            out[:, c] += offset[..., c]
+    return out
 
 
 def _rows(a: np.ndarray, index: np.ndarray) -> np.ndarray:

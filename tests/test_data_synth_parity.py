@@ -225,3 +225,16 @@ def test_products_of_the_span_candidates_do_not_depend_on_the_batch():
             np.testing.assert_array_equal(np.einsum("rij,rj->ri", m32[rows], r32[rows]), full[0][rows])
             np.testing.assert_array_equal(np.einsum("rji,rj->ri", m64[rows], n64[rows]), full[1][rows])
             np.testing.assert_array_equal(corners[rows] @ k.T, full[2][rows])
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_scaled_rows_equal_broadcasting(dtype):
+    rng = np.random.default_rng(0)
+    rows = rng.normal(size=(500, 3)).astype(dtype)
+    scale = rng.normal(size=500).astype(dtype)
+    for offset in (None, rng.normal(size=3).astype(dtype), rng.normal(size=(500, 3)).astype(dtype)):
+        got = synth_render._scaled_rows(rows, scale, offset)
+        ref = rows * scale[:, None] if offset is None else offset + scale[:, None] * rows
+        assert got.dtype == ref.dtype and got.flags["C_CONTIGUOUS"]
+        np.testing.assert_array_equal(got, ref)
+    assert synth_render._scaled_rows(np.zeros((0, 3), dtype), np.zeros(0, dtype)).shape == (0, 3)
