@@ -587,6 +587,7 @@ _FACES = ((0, 1, 3, 2), (4, 5, 7, 6), (0, 1, 5, 4), (2, 3, 7, 6), (0, 2, 6, 4), 
 _ATLAS: dict = {}
 ATLAS_TEXEL_M = 0.05
 ATLAS_HALF_WIDTH_M = 40.0  # beyond: the edge texel (grass behind the buildings)
+_ATLAS_ROWS = 24  # atlas rows (along the road) sampled per call of ``ground``
 
 
 def ground_atlas(s: np.ndarray, d: np.ndarray) -> np.ndarray:
@@ -595,7 +596,9 @@ def ground_atlas(s: np.ndarray, d: np.ndarray) -> np.ndarray:
         ss = (np.arange(round(GROUND_PERIOD_M / ATLAS_TEXEL_M)) + 0.5) * ATLAS_TEXEL_M
         dd = (np.arange(round(2 * ATLAS_HALF_WIDTH_M / ATLAS_TEXEL_M)) + 0.5) * ATLAS_TEXEL_M - ATLAS_HALF_WIDTH_M
         grid_s, grid_d = np.meshgrid(ss, dd, indexing="ij")  # (S, D)
-        albedo, _ = ground(grid_s, grid_d)
+        albedo = np.empty(grid_s.shape + (3,), dtype=np.float32)  # (S, D, 3)
+        for i in range(0, len(ss), _ATLAS_ROWS):  # a few rows at a time: ``ground`` works texel by texel, in cache
+            albedo[i : i + _ATLAS_ROWS] = ground(grid_s[i : i + _ATLAS_ROWS], grid_d[i : i + _ATLAS_ROWS])[0]
         _ATLAS["albedo"] = albedo.reshape(-1, 3)  # (S * D, 3)
         _ATLAS["shape"] = grid_s.shape
     n_s, n_d = _ATLAS["shape"]

@@ -260,3 +260,12 @@ def test_filled_hull_pixels_equal_the_mask_nonzero():
         rows, cols = np.nonzero(mask)
         np.testing.assert_array_equal(got, (rows + v0) * 64 + cols + u0)
     assert len(synth_render._filled_hull_pixels(np.full((8, 2), -500.0), camera)) == 0
+
+
+def test_ground_atlas_sampled_in_row_blocks_equals_one_call():
+    synth_render.ground_atlas(np.zeros(1), np.zeros(1))  # builds the atlas
+    texel, half_width = synth_render.ATLAS_TEXEL_M, synth_render.ATLAS_HALF_WIDTH_M
+    ss = (np.arange(round(synth_render.GROUND_PERIOD_M / texel)) + 0.5) * texel
+    dd = (np.arange(round(2 * half_width / texel)) + 0.5) * texel - half_width
+    grid_s, grid_d = np.meshgrid(ss, dd, indexing="ij")
+    np.testing.assert_array_equal(synth_render._ATLAS["albedo"], ground(grid_s, grid_d)[0].reshape(-1, 3))
