@@ -30,6 +30,12 @@ class Kind(IntEnum):
     BUSH = 18
     SCOOTER = 19  # parked scooter / moped, unannotated
     CURB = 20
+    DELINEATOR = 21  # flexible post on lane edges and medians, with retroreflective bands
+    PLANTER = 22  # round planter pot by the kerb
+    GUARD_RAIL = 23  # a metal rail on posts, one segment
+    DIVIDER = 24  # a permanent concrete median divider (Jersey profile), one segment
+    PLANTER_BOX = 25  # a long concrete planter on a median or the sidewalk edge
+    RAILING = 26  # a pedestrian railing along the kerb, one segment
 
 
 @dataclass(frozen=True)
@@ -62,7 +68,18 @@ KIND_SPECS: tuple[KindSpec, ...] = (
     KindSpec(None, None, (1.2, 1.6, 1.1), 0.25),  # bush
     KindSpec(None, None, (0.65, 1.75, 1.15), 0.08),  # parked scooter
     KindSpec(None, None, (0.2, 12.0, 0.14), 0.0),  # curb segment, sized per instance
+    KindSpec(None, None, (0.16, 0.16, 0.92), 0.14),  # delineator post (0.08-0.25 m wide, 0.75-1.1 m tall)
+    KindSpec(None, None, (0.6, 0.6, 0.75), 0.18),  # round planter pot, with or without a shrub
+    KindSpec(None, None, (0.35, 4.0, 0.75), 0.0),  # guard rail segment, sized per instance (l along the road)
+    KindSpec(None, None, (0.6, 6.0, 0.82), 0.0),  # median divider segment, sized per instance
+    KindSpec(None, None, (0.7, 2.4, 0.75), 0.15),  # long planter
+    KindSpec(None, None, (0.08, 3.0, 1.0), 0.0),  # pedestrian railing segment, sized per instance
 )
 NUM_ANNOTATED_KINDS = 8
 # Unannotated look-alikes of the small road users (what `streamdet-synth stats` counts as distractors).
-DISTRACTOR_KINDS: tuple[Kind, ...] = (Kind.BOLLARD, Kind.SIGN, Kind.BIN, Kind.HYDRANT, Kind.BENCH, Kind.BUSH, Kind.SCOOTER)
+DISTRACTOR_KINDS: tuple[Kind, ...] = (Kind.BOLLARD, Kind.SIGN, Kind.BIN, Kind.HYDRANT, Kind.BENCH, Kind.BUSH, Kind.SCOOTER,
+                                     Kind.DELINEATOR, Kind.PLANTER)
+# Unannotated look-alikes of cones (small upright things by and on the road) and of barriers (low structures of a
+# barrier's size along the road): nuScenes annotates only temporary cones and barriers, so these are background.
+CONE_LOOKALIKE_KINDS: tuple[Kind, ...] = (Kind.BOLLARD, Kind.HYDRANT, Kind.DELINEATOR, Kind.PLANTER)
+BARRIER_LOOKALIKE_KINDS: tuple[Kind, ...] = (Kind.GUARD_RAIL, Kind.DIVIDER, Kind.PLANTER_BOX, Kind.RAILING)

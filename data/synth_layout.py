@@ -5,9 +5,11 @@ inner +u lane. Most scenes have a cross street at ``s = cross_s``; vehicles driv
 lanes, and turn at the intersection (constant yaw rate: an arc). Vehicles park parallel, angled or perpendicular;
 pedestrians walk and stand on the sidewalks, cross anywhere at any angle, and stand or walk in groups; cyclists
 ride on the road; buses drive and wait at stops. Look-alike clutter (bollards, signs, bins, hydrants, benches,
-bushes, parked scooters) lines the sidewalks beside poles, trees, walls, curbs and buildings. Objects never overlap
-each other or the ego car at any time of the scene (rejection sampling on bounding circles over a 50 ms grid),
-except the decorative layer (buildings, walls, curbs, tree crowns), which is not collision-checked.
+bushes, parked scooters, planter pots) lines the sidewalks beside poles, trees, walls, curbs and buildings; road
+works and the permanent furniture that looks like cones and barriers are ``synth_roadside``'s. Objects never overlap
+each other or the ego car at any time of the scene (rejection sampling on bounding circles over a 50 ms grid; fixed
+furniture tests the boxes themselves), except the decorative layer (buildings, walls, curbs, tree crowns), which is
+not collision-checked.
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ from streamdet.data.synth_road import (
     SIDEWALK_OUTER_M,
     ground_height,
 )
+from streamdet.data.synth_roadside import place_lookalikes, place_stray_cones, place_work_zone
 from streamdet.data.synth_shapes import build_shape
 from streamdet.data.synth_world import Objects, Parts, Scene, WorldConfig, wrap_angle
 
@@ -46,8 +49,10 @@ TROUSER_COLORS = np.array([[0.1, 0.12, 0.25], [0.15, 0.15, 0.15], [0.35, 0.3, 0.
 BUILDING_COLORS = np.array([[0.78, 0.7, 0.56], [0.6, 0.3, 0.22], [0.62, 0.62, 0.6], [0.85, 0.82, 0.75], [0.45, 0.5, 0.55]], dtype=np.float32)
 FURNITURE_COLORS = np.array([[0.15, 0.3, 0.15], [0.3, 0.3, 0.32], [0.7, 0.1, 0.1], [0.9, 0.75, 0.1], [0.1, 0.2, 0.5], [0.8, 0.8, 0.8]], dtype=np.float32)
 BARRIER_COLORS = np.array([[0.85, 0.08, 0.08], [0.95, 0.5, 0.05], [0.9, 0.9, 0.88], [0.95, 0.8, 0.1]], dtype=np.float32)
-DISTRACTOR_WEIGHTS = {Kind.BOLLARD: 0.22, Kind.SIGN: 0.12, Kind.BIN: 0.15, Kind.HYDRANT: 0.08, Kind.BENCH: 0.08,
-                      Kind.BUSH: 0.2, Kind.SCOOTER: 0.15}
+DISTRACTOR_WEIGHTS = {Kind.BOLLARD: 0.22, Kind.SIGN: 0.12, Kind.BIN: 0.15, Kind.HYDRANT: 0.1, Kind.BENCH: 0.08,
+                      Kind.BUSH: 0.2, Kind.SCOOTER: 0.15, Kind.PLANTER: 0.1}
+# Scenery that is drawn but never collision-checked (others stand in or on it, as trees under crowns).
+_UNCHECKED_SCENERY = (Kind.BUILDING, Kind.WALL, Kind.CURB, Kind.TREE_CROWN)
 CROSS_LANES_M = (-1.5 * LANE_WIDTH_M, -0.5 * LANE_WIDTH_M, 0.5 * LANE_WIDTH_M, 1.5 * LANE_WIDTH_M)
 
 
@@ -137,6 +142,12 @@ class _Placer:
         self.radii = [2.7]
         self.track_boxes = [np.r_[self.tracks[0].min(axis=0), self.tracks[0].max(axis=0)]]  # (4,) per track
         self.rows: list[dict] = []
+        # Per row: (track (T, 2), yaw (T,), half length, half width, bounds (4,)) of its box over time, None for the
+        # decorative layer; ``clear_of_boxes`` tests fixed furniture against these (tighter than bounding circles).
+        self.footprints: list[tuple | None] = []
+        ego_track = self.tracks[0]
+        self.footprints.append((ego_track, np.zeros(len(self.times)), 2.5, 1.05,
+                                np.r_[ego_track.min(axis=0) - 2.8, ego_track.max(axis=0) + 2.8]))
 
     # ---- bookkeeping --------------------------------------------------------------------------------
     def _size(self, kind: Kind) -> np.ndarray:
@@ -171,6 +182,11 @@ class _Placer:
         shape = build_shape(kind, size, self.rng, c1, c2, flag)
         if check:
             self._claim(track, max(radius, 0.5 * math.hypot(shape.size_wlh[0], shape.size_wlh[1])))
+        yaw_t = yaw_road + yaw_rate * self.times  # (T,)
+        reach = 0.5 * math.hypot(shape.size_wlh[0], shape.size_wlh[1])
+        self.footprints.append(None if kind in _UNCHECKED_SCENERY else
+                               (track, yaw_t, 0.5 * shape.size_wlh[1], 0.5 * shape.size_wlh[0],
+                                np.r_[track.min(axis=0) - reach, track.max(axis=0) + reach]))
         self.rows.append(
             {
                 "kind": int(kind),
@@ -201,6 +217,45 @@ class _Placer:
         others = np.stack([self.tracks[i] for i in near], axis=1)  # (T, N, 2)
         gap = np.linalg.norm(others - track[:, None, :], axis=-1) - np.asarray(self.radii)[near] - radius  # (T, N)
         return bool(np.any(gap < self.config.collision_margin_m))
+
+    def clear_of_boxes(self, s: float, d: float, yaw_road: float, half_l: float, half_w: float, margin_m: float = 0.25) -> bool:
+        """Whether a fixed footprint (an oriented rectangle at (s, d)) stays ``margin_m`` clear of every placed
+        object's box at every time (the ego's too). Long, thin furniture (rails, dividers, posts in a median) sits
+        closer to traffic than bounding circles allow; this tests the boxes themselves."""
+        core = max(half_l - half_w, 0.0)
+        n = max(1, int(math.ceil(2 * core / 0.5)) + 1)
+        along = np.linspace(-core, core, n)
+        pts = np.array([s, d]) + along[:, None] * np.array([math.cos(yaw_road), math.sin(yaw_road)])  # (P, 2)
+        pad = half_w + margin_m
+        lo, hi = pts.min(axis=0) - pad, pts.max(axis=0) + pad
+        for fp in self.footprints:
+            if fp is None:
+                continue
+            track, yaw_t, hl, hw, bounds = fp
+            if bounds[0] > hi[0] or bounds[2] < lo[0] or bounds[1] > hi[1] or bounds[3] < lo[1]:
+                continue
+            rel = pts[None, :, :] - track[:, None, :]  # (T, P, 2)
+            c, sn = np.cos(yaw_t)[:, None], np.sin(yaw_t)[:, None]  # (T, 1)
+            lx = rel[..., 0] * c + rel[..., 1] * sn  # (T, P)
+            ly = -rel[..., 0] * sn + rel[..., 1] * c
+            if np.any((np.abs(lx) < hl + pad) & (np.abs(ly) < hw + pad)):
+                return False
+        return True
+
+    def add_fixed(self, kind: Kind, s: float, d: float, yaw_road: float, size=None, color=None, flag: bool | None = None,
+                  margin_m: float = 0.25) -> bool:
+        """Place fixed furniture where ``clear_of_boxes`` allows, and claim its length as a row of small circles,
+        so objects placed later (tested with circles) keep clear of it too."""
+        size = self._size(kind) if size is None else np.asarray(size, dtype=np.float64)
+        half_l, half_w = 0.5 * float(size[1]), 0.5 * float(size[0])
+        if not self.clear_of_boxes(s, d, yaw_road, half_l, half_w, margin_m):
+            return False
+        self._try_add(kind, s, d, yaw_road, 0.0, size=size, check=False, color=color, flag=flag)
+        core = max(half_l - half_w, 0.0)
+        for a in np.linspace(-core, core, max(1, int(math.ceil(2 * core / 1.0)) + 1)):
+            centre = np.array([s + a * math.cos(yaw_road), d + a * math.sin(yaw_road)])
+            self._claim(np.tile(centre, (len(self.times), 1)), half_w + 0.05)
+        return True
 
     def _claim(self, track: np.ndarray, radius: float) -> None:
         """Reserve the circle of ``radius`` along ``track`` (T, 2): later objects keep clear of it."""
@@ -263,6 +318,8 @@ class _Placer:
         for _ in range(count(c.pedestrian_groups)):
             self._pedestrian_group()
         self._repeat(count(c.pedestrians), self._pedestrian)
+        place_stray_cones(self, count(c.stray_cones))
+        place_lookalikes(self)  # fixed furniture keeps clear of the boxes of everything placed so far
         self._distractors()
         if self.cross_s is not None:  # last, so the main street's layout does not depend on it
             self._repeat(count(c.cross_pedestrians), self._cross_pedestrian)
@@ -467,19 +524,7 @@ class _Placer:
                 return
 
     def _construction_zone(self) -> None:
-        rng = self.rng
-        side = self._side()
-        s0 = self._s()
-        count = int(rng.integers(3, 11))
-        color = BARRIER_COLORS[rng.integers(len(BARRIER_COLORS))] * rng.uniform(0.45, 0.85)  # weathered and dirty
-        # A row of barriers along the parking strip: the long side (w) along the road, heading across it.
-        angle = float(rng.uniform(-0.4, 0.4)) if rng.uniform() < 0.3 else 0.0
-        for i in range(count):
-            self._try_add(Kind.BARRIER, s0 + i * 3.1 * math.cos(angle), side * (PARKING_OFFSET_M + i * 3.1 * math.sin(angle) + rng.normal(0, 0.05)),
-                          math.pi / 2 + angle + rng.normal(0, 0.04), 0.0, color=color)
-        for i in range(int(rng.integers(2, 9))):
-            self._try_add(Kind.TRAFFIC_CONE, s0 - 3.0 - i * 2.5, side * (PARKING_OFFSET_M - 0.6 + rng.normal(0, 0.3)),
-                          float(rng.uniform(-math.pi, math.pi)), 0.0)
+        place_work_zone(self, BARRIER_COLORS)
 
     def _distractors(self) -> None:
         """Look-alikes along both sidewalks (and the cross street's corners), collision-checked."""
@@ -492,7 +537,7 @@ class _Placer:
             while s < self.s_hi + 20.0:
                 kind = kinds[int(rng.choice(len(kinds), p=weights / weights.sum()))]
                 if not self._in_cross(s, 0.5):
-                    if kind in (Kind.BOLLARD, Kind.SIGN, Kind.HYDRANT):
+                    if kind in (Kind.BOLLARD, Kind.SIGN, Kind.HYDRANT, Kind.PLANTER):
                         d = rng.uniform(8.8, 9.3)
                     elif kind == Kind.BUSH:
                         d = rng.uniform(12.3, 13.4)

@@ -415,6 +415,73 @@ def bush(b: _Builder, w: float, l: float, h: float, color, color2, flag: bool) -
               color, SHAPE_ELLIPSOID)
 
 
+
+# ---- permanent road furniture that looks like cones and barriers (unannotated) ---------------------------
+
+ALONG_X = rotation(pitch=math.pi / 2)  # a cylinder's axis (z) along the object's x; its half extents (x, y) become (z, y)
+
+
+def delineator(b: _Builder, w: float, l: float, h: float, color, color2, flag: bool) -> None:
+    """A flexible post on a lane edge or a median: a round plastic tube with two retroreflective bands, on a
+    low dark base (``flag``: a bare tube set in the road)."""
+    r = min(w, l) / 2
+    z0 = 0.0
+    if not flag:
+        b.add((0.0, 0.0, 0.025), (r, r, 0.025), Mat.PLASTIC, (0.08, 0.08, 0.08), SHAPE_CYLINDER)
+        z0 = 0.05
+    post_r = r * (0.55 if not flag else 1.0)
+    b.add((0.0, 0.0, (z0 + h) / 2), (post_r, post_r, (h - z0) / 2), Mat.PLASTIC, color, SHAPE_CYLINDER)
+    for z in (h - 0.1, h - 0.25):
+        b.add((0.0, 0.0, z), (post_r + 0.004, post_r + 0.004, 0.04), Mat.RETRO, (0.95, 0.95, 0.93), SHAPE_CYLINDER)
+
+
+def planter(b: _Builder, w: float, l: float, h: float, color, color2, flag: bool) -> None:
+    """A round pot of concrete or plastic, tapering down, with a shrub on top (``flag``) or bare soil."""
+    r = min(w, l) / 2
+    pot_h = h * (0.6 if flag else 1.0)
+    b.add((0.0, 0.0, pot_h * 0.3), (r * 0.8, r * 0.8, pot_h * 0.3), Mat.CONCRETE, color, SHAPE_CYLINDER)
+    b.add((0.0, 0.0, pot_h * 0.8), (r, r, pot_h * 0.2), Mat.CONCRETE, color, SHAPE_CYLINDER)
+    if flag:
+        b.add((0.0, 0.0, pot_h + (h - pot_h) / 2), (r * 0.9, r * 0.9, (h - pot_h) / 2), Mat.FOLIAGE, color2, SHAPE_ELLIPSOID)
+
+
+def guard_rail(b: _Builder, w: float, l: float, h: float, color, color2, flag: bool) -> None:
+    """A galvanised W-beam on posts about 2 m apart (``flag``: a second beam lower down)."""
+    n = max(2, int(round(l / 2.0)) + 1)
+    for x in np.linspace(-l / 2 + 0.05, l / 2 - 0.05, n):
+        b.add((x, -w / 2 + 0.05, (h - 0.05) / 2), (0.05, 0.05, (h - 0.05) / 2), Mat.METAL, (0.5, 0.5, 0.52))
+    b.add((0.0, w / 2 - 0.05, h - 0.2), (l / 2, 0.05, 0.17), Mat.METAL, (0.62, 0.63, 0.65))
+    if flag:
+        b.add((0.0, w / 2 - 0.05, h - 0.55), (l / 2, 0.04, 0.08), Mat.METAL, (0.62, 0.63, 0.65))
+
+
+def divider(b: _Builder, w: float, l: float, h: float, color, color2, flag: bool) -> None:
+    """A permanent concrete divider of Jersey profile, as a temporary concrete barrier but long and cast in place."""
+    grey = (0.6, 0.59, 0.55)
+    b.add((0.0, 0.0, 0.06 * h), (l / 2, w / 2, 0.06 * h), Mat.CONCRETE, grey)
+    b.add((0.0, 0.0, 0.3 * h), (0.3 * h, w / 2, l / 2), Mat.CONCRETE, grey, SHAPE_CYLINDER, ALONG_X)
+    b.add((0.0, 0.0, 0.5 * h), (0.5 * h, w / 2 * 0.55, l / 2), Mat.CONCRETE, grey, SHAPE_CYLINDER, ALONG_X)
+    if flag:  # painted hazard stripes along the top, the kind temporary barriers carry
+        b.add((0.0, 0.0, 0.85 * h), (l / 2, w / 2 * 0.3, 0.1 * h), Mat.STRIPES, color)
+
+
+def planter_box(b: _Builder, w: float, l: float, h: float, color, color2, flag: bool) -> None:
+    """A long concrete trough with a hedge (``flag``) or low flowers in it."""
+    body_h = h * (0.7 if flag else 0.9)
+    b.add((0.0, 0.0, body_h / 2), (l / 2, w / 2, body_h / 2), Mat.CONCRETE, color)
+    top = h - body_h
+    b.add((0.0, 0.0, body_h + top / 2 - 0.03), (l / 2 * 0.95, w / 2 * 0.85, top / 2 + 0.03), Mat.FOLIAGE, color2, SHAPE_ELLIPSOID)
+
+
+def railing(b: _Builder, w: float, l: float, h: float, color, color2, flag: bool) -> None:
+    """A pedestrian railing along the kerb: posts, a top and a lower rail, painted (``flag``: a middle rail too)."""
+    n = max(2, int(round(l / 1.8)) + 1)
+    r = w / 2 * 0.6
+    for x in np.linspace(-l / 2 + r, l / 2 - r, n):
+        b.add((x, 0.0, h / 2), (r, r, h / 2), Mat.PAINT, color, SHAPE_CYLINDER)
+    for z in (h - r, 0.25 * h) + ((0.6 * h,) if flag else ()):
+        b.add((0.0, 0.0, z), (r, r, l / 2), Mat.PAINT, color, SHAPE_CYLINDER, ALONG_X)
+
 # Builders take (w, l, h): l along the object's x (its heading), w along y.
 BUILDERS: dict[Kind, Callable] = {
     Kind.CAR: car,
@@ -438,6 +505,12 @@ BUILDERS: dict[Kind, Callable] = {
     Kind.BUSH: bush,
     Kind.SCOOTER: scooter,
     Kind.CURB: curb,
+    Kind.DELINEATOR: delineator,
+    Kind.PLANTER: planter,
+    Kind.GUARD_RAIL: guard_rail,
+    Kind.DIVIDER: divider,
+    Kind.PLANTER_BOX: planter_box,
+    Kind.RAILING: railing,
 }
 assert len(BUILDERS) == len(KIND_SPECS)
 

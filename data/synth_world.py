@@ -41,8 +41,12 @@ from streamdet.data.synth_road import (  # noqa: F401 (re-exported: the world's 
 # and materials, a return model, an intersection with turns and angled parking, look-alike clutter, curbs and an
 # undulating ground; 3: bicycles of round, thinner tubes on silver rims, parked alone or in racks where they hide
 # each other, cyclists placed before the parked rows (they were mostly squeezed out), people on the cross street's
-# sidewalks hidden by the corner blocks, denser look-alikes on the sidewalks.
-WORLD_VERSION = 3
+# sidewalks hidden by the corner blocks, denser look-alikes on the sidewalks; 4: permanent furniture that looks
+# like cones and barriers and is not annotated (delineator posts on medians, lane edges and corners, planter pots,
+# more hydrants by the kerb; railings and guard rails in barrier-sized segments behind the kerb, concrete dividers
+# and long planters on medians and sidewalks: ``synth_roadside``), and road works where real ones are (a lane
+# closed by a taper of cones, works on the sidewalk, cones among the barriers, single cones beside parked cars).
+WORLD_VERSION = 4
 WORLD_FILE = "world.json"  # beside a dataset's tables: the world version, roads and distractors per scene
 
 
@@ -58,13 +62,14 @@ class WorldConfig:
     lane_vehicles: tuple[int, int] = (9, 16)  # inclusive ranges of counts per scene; dense traffic hides what is behind it
     cross_vehicles: tuple[int, int] = (2, 5)  # on the cross street, some turning
     parked_vehicles: tuple[int, int] = (18, 34)  # city kerbs are lined with them: they hide each other and the sidewalk
-    buses: tuple[int, int] = (15, 20)  # most drive out of the annotated range: the count keeps buses a tail class above 5 %
+    buses: tuple[int, int] = (16, 21)  # most drive out of the annotated range: the count keeps buses a tail class above 5 %
     pedestrians: tuple[int, int] = (10, 24)  # singles; groups come on top
     pedestrian_groups: tuple[int, int] = (1, 3)
     cross_pedestrians: tuple[int, int] = (10, 20)  # on the cross street's sidewalks, mostly hidden by the corner blocks
     bicycles: tuple[int, int] = (4, 8)
     motorcycles: tuple[int, int] = (5, 9)
-    construction_zones: tuple[int, int] = (1, 4)  # rows of barriers with cones
+    construction_zones: tuple[int, int] = (1, 4)  # road works: barriers by the kerb, closed lanes, sidewalk works, with cones
+    stray_cones: tuple[int, int] = (1, 3)  # single cones beside parked cars and on sidewalks
     lot_prob: float = 0.6  # chance a gap between two blocks holds cars parked nose-in (a yard or a small lot)
     distractor_spacing_m: tuple[float, float] = (1.0, 2.8)  # gap between look-alikes along each sidewalk
     intersection_prob: float = 0.85  # chance a scene has a cross street
@@ -85,7 +90,7 @@ class WorldConfig:
                 f"WorldConfig.sweep_duration_s ({self.sweep_duration_s}) exceeds sample_interval_s ({self.sample_interval_s})"
             )
         for name in ("lane_vehicles", "cross_vehicles", "parked_vehicles", "buses", "pedestrians", "pedestrian_groups", "cross_pedestrians",
-                     "bicycles", "motorcycles", "construction_zones"):
+                     "bicycles", "motorcycles", "construction_zones", "stray_cones"):
             lo, hi = getattr(self, name)
             if not 0 <= lo <= hi:
                 raise ValueError(f"WorldConfig.{name} must be a (min, max) count range with 0 <= min <= max, got {(lo, hi)}")
