@@ -105,35 +105,31 @@ def _sequential_scenery(part, pix, parts, m, o_cam, near_t, rays_flat, zflat, cf
         idflat[px] = parts.owner[p]
 
 
-@pytest.mark.parametrize("index", [0, 3])
-def test_scenery_nearest_first_equals_sequential_drawing(index, monkeypatch):
+def _assert_renders_equal_with(index, monkeypatch, name, plain_impl):
+    """Every camera of one sample renders the same image, ids and own-pixel counts with ``synth_render.<name>``
+    replaced by its plain version."""
     scene = make_scene(11, index, WorldConfig(samples_per_scene=2))
     rig = real_rig_records((160, 90))
     t_s = float(scene.sample_times_s[1])
     shadows = synth_render.shadow_raster(scene, t_s)
     fast = [synth_render.render_camera(scene, t_s, cam, np.random.default_rng(0), shadows=shadows) for cam in rig.models]
-    monkeypatch.setattr(synth_render, "_draw_scenery", _sequential_scenery)
+    monkeypatch.setattr(synth_render, name, plain_impl)
     plain = [synth_render.render_camera(scene, t_s, cam, np.random.default_rng(0), shadows=shadows) for cam in rig.models]
     for a, b in zip(fast, plain):
         np.testing.assert_array_equal(a.image, b.image)
         np.testing.assert_array_equal(a.object_id, b.object_id)
         np.testing.assert_array_equal(a.own_pixels, b.own_pixels)
+
+
+@pytest.mark.parametrize("index", [0, 3])
+def test_scenery_nearest_first_equals_sequential_drawing(index, monkeypatch):
+    _assert_renders_equal_with(index, monkeypatch, "_draw_scenery", _sequential_scenery)
 
 
 @pytest.mark.parametrize("index", [0, 1, 3])
 def test_part_pixel_spans_render_as_polygon_fills(index, monkeypatch):
     """The row-span candidates draw the same images, ids and own-pixel counts as filling each hull with OpenCV."""
-    scene = make_scene(11, index, WorldConfig(samples_per_scene=2))
-    rig = real_rig_records((160, 90))
-    t_s = float(scene.sample_times_s[1])
-    shadows = synth_render.shadow_raster(scene, t_s)
-    fast = [synth_render.render_camera(scene, t_s, cam, np.random.default_rng(0), shadows=shadows) for cam in rig.models]
-    monkeypatch.setattr(synth_render, "_part_pixels", synth_render._filled_part_pixels)
-    plain = [synth_render.render_camera(scene, t_s, cam, np.random.default_rng(0), shadows=shadows) for cam in rig.models]
-    for a, b in zip(fast, plain):
-        np.testing.assert_array_equal(a.image, b.image)
-        np.testing.assert_array_equal(a.object_id, b.object_id)
-        np.testing.assert_array_equal(a.own_pixels, b.own_pixels)
+    _assert_renders_equal_with(index, monkeypatch, "_part_pixels", synth_render._filled_part_pixels)
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
