@@ -17,10 +17,9 @@ from dataclasses import dataclass
 import torch
 
 from streamdet.benchmarks.sweep_pillars import SweepPillars, busiest_quadrant_pillars, whole_grid_pillars
-from streamdet.models.detector import SliceNet
+from streamdet.models.detector import SliceNet, build_lifter
 from streamdet.models.flops import count_gmac
 from streamdet.models.image_encoder import ImageEncoder
-from streamdet.models.lifter import VolumetricLifter
 from streamdet.models.presets import Preset, get_preset
 
 BENCH_NUM_POINTS = 30_000
@@ -70,7 +69,7 @@ def slice_row_pillars(preset: Preset, cropped: bool) -> SweepPillars:
 
 def _lifter_gmac(preset: Preset, map_ny: int, map_nx: int) -> float:
     with torch.device("meta"):
-        net = VolumetricLifter(preset.lifter, preset.channels).eval()
+        net = build_lifter(preset).eval()
         lut_shape = (1, LUT_CAMERAS_PER_VOXEL, preset.grid.nz, map_ny, map_nx)  # (Q=1, K, Z, Y, X)
         args = (
             torch.empty(BENCH_NUM_IMAGES, preset.channels, preset.image.feature_height, preset.image.feature_width),

@@ -33,7 +33,7 @@ from streamdet.export.graph_steps import TORCH_REF_IMAGES, load_rig  # noqa: F40
 from streamdet.export.options import DEFAULT_PRESET, STEM_STRIDE, ExportError, ExportOptions, check_resolution  # noqa: F401
 from streamdet.export.staging import discard_staging_dir, make_staging_dir
 from streamdet.export.steps import Progress, Report, export_steps
-from streamdet.export.weights import checkpoint_preset, checkpoint_slice_crop, checkpoint_use_image
+from streamdet.export.weights import checkpoint_lifter_form, checkpoint_preset, checkpoint_slice_crop, checkpoint_use_image
 from streamdet.models.presets import Preset, get_preset, preset_names
 from streamdet.runtime_ort.manifest import Manifest
 
@@ -112,8 +112,11 @@ def _resolve_preset(opts: ExportOptions) -> tuple[Preset, int, int]:
     use_image = preset.use_image and checkpoint_use_image(opts.checkpoint) is not False
     # likewise a LiDAR-only checkpoint trained without the quadrant crop (one whole-grid map per slice)
     slice_crop = checkpoint_slice_crop(opts.checkpoint)
+    # and the lifter form it was trained with (small_v2 moved to the flat lifter; its older checkpoints are volume)
+    form = checkpoint_lifter_form(opts.checkpoint) or preset.lifter.form
     try:
-        preset = dataclasses.replace(preset, image=image, use_image=use_image, slice_crop=slice_crop)
+        lifter = dataclasses.replace(preset.lifter, form=form)
+        preset = dataclasses.replace(preset, image=image, use_image=use_image, slice_crop=slice_crop, lifter=lifter)
     except ValueError as e:
         raise ExportError(f"checkpoint {opts.checkpoint}: {e}") from None
     return preset, width, height

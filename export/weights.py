@@ -76,6 +76,17 @@ def checkpoint_slice_crop(checkpoint: str | os.PathLike | None) -> bool:
     return saved.get("slice_crop", True) is not False if saved is not None else True
 
 
+def checkpoint_lifter_form(checkpoint: str | os.PathLike | None) -> str | None:
+    """The lifter form (models/presets.py LifterConfig.form) of the preset a checkpoint names: absent in the saved
+    preset, "volume" (checkpoints from before the field); None when ``checkpoint_preset`` has none."""
+    saved = checkpoint_preset(checkpoint)
+    lifter = saved.get("lifter") if saved is not None else None
+    if not isinstance(lifter, dict):
+        return None
+    form = lifter.get("form", "volume")
+    return form if isinstance(form, str) else None
+
+
 def load_detector(preset: Preset, checkpoint: str | os.PathLike | None, seed: int = DEFAULT_SEED) -> tuple[StreamDetector, WeightsSource]:
     """The detector in eval mode with its weights, and where they came from."""
     from streamdet.runtime_ort.manifest import sha256_file

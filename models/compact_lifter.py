@@ -4,7 +4,7 @@
 two or more cameras) and ``final_index`` / ``final_weight`` (Q, Z, Yq, Xq) (one row of ``[table; multi]`` per
 voxel) and returns what the wrapped lifter returns on the K-slot LUT the compact form was made from: the gather is
 the same sum per voxel (bit for bit in numpy, ``tests/test_compact_lut.py``), the convolutions are the wrapped
-lifter's. A FoldedLifter's gather is z-major, so the (Q, Z, Yq, Xq) index is permuted in the graph (an int32 map,
+lifter's. A FoldedLifter's (and a FlatLifterExport's) gather is z-major, so the (Q, Z, Yq, Xq) index is permuted in the graph (an int32 map,
 1 / C of the volume) as FoldedLifter permutes its LUT.
 
 The export form of the lifter in the ``compact`` LUT layout (``streamdet-export --lut-layout compact``,
@@ -18,6 +18,7 @@ import torch
 from torch import Tensor, nn
 
 from streamdet.models.lifter import VolumetricLifter, feature_table
+from streamdet.models.flat_lifter import FlatLifterExport
 from streamdet.models.lifter_fold import FoldedLifter
 
 
@@ -25,12 +26,14 @@ class CompactLifter(nn.Module):
     """``forward(features (J, C, Hf, Wf), multi_index (K, M) int32, multi_weight (K, M), final_index (Q, Z, Yq, Xq)
     int32, final_weight (Q, Z, Yq, Xq)) -> image_bev (Q, C, Yq, Xq)``, the wrapped lifter's function."""
 
-    def __init__(self, lifter: FoldedLifter | VolumetricLifter) -> None:
+    def __init__(self, lifter: FoldedLifter | FlatLifterExport | VolumetricLifter) -> None:
         super().__init__()
-        if not isinstance(lifter, (FoldedLifter, VolumetricLifter)):
-            raise TypeError(f"CompactLifter wraps a FoldedLifter or a VolumetricLifter, got {type(lifter).__name__}")
+        if not isinstance(lifter, (FoldedLifter, FlatLifterExport, VolumetricLifter)):
+            raise TypeError(
+                f"CompactLifter wraps a FoldedLifter, a FlatLifterExport or a VolumetricLifter, got {type(lifter).__name__}"
+            )
         self.lifter = lifter
-        self.z_major = isinstance(lifter, FoldedLifter)
+        self.z_major = isinstance(lifter, (FoldedLifter, FlatLifterExport))  # both gather z-major
 
     def forward(self, features: Tensor, multi_index: Tensor, multi_weight: Tensor, final_index: Tensor,
                 final_weight: Tensor) -> Tensor:  # fmt: skip

@@ -16,6 +16,7 @@ from streamdet.models.bev_encoder import BevEncoder
 from streamdet.models.heads import CenterHead, HeadMaps
 from streamdet.models.image_bev_norm import ImageBevNorm
 from streamdet.models.image_encoder import ImageEncoder
+from streamdet.models.flat_lifter import FlatLifter
 from streamdet.models.lifter import VolumetricLifter
 from streamdet.models.pillars import MapShape, PillarFeatureNet, scatter_pillars
 from streamdet.models.presets import Preset
@@ -72,6 +73,13 @@ class SliceNet(nn.Module):
         return self.head(self.fused_bev(pillar_features, pillar_mask, pillar_index, image_bev, num_quadrants=num_quadrants))
 
 
+def build_lifter(preset: Preset) -> VolumetricLifter | FlatLifter:
+    """The image lane's lifter of ``preset.lifter.form`` (models/presets.py LifterConfig)."""
+    if preset.lifter.form == "flat":
+        return FlatLifter(preset.channels, preset.grid.nz)
+    return VolumetricLifter(preset.lifter, preset.channels)
+
+
 class StreamDetector(nn.Module):
     """The three parts together, for training.
 
@@ -84,7 +92,7 @@ class StreamDetector(nn.Module):
         super().__init__()
         self.preset = preset
         self.image_encoder = ImageEncoder(preset.image, preset.channels) if preset.use_image else None
-        self.lifter = VolumetricLifter(preset.lifter, preset.channels) if preset.use_image else None
+        self.lifter = build_lifter(preset) if preset.use_image else None
         self.slice_net = SliceNet(preset)
 
     def image_bev(self, images: Tensor, lut_index: Tensor, lut_weight: Tensor) -> Tensor:

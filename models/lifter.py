@@ -28,6 +28,19 @@ def gather_volume(features: Tensor, lut_index: Tensor, lut_weight: Tensor) -> Te
     return volume.permute(0, 4, 1, 2, 3)  # (Q, C, Z, Yq, Xq)
 
 
+def gather_z_major(features: Tensor, lut_index: Tensor, lut_weight: Tensor) -> Tensor:
+    """``gather_volume`` with z folded into channels, z outermost: (Q, Z * C, Yq, Xq), channel ``z * C + c``.
+
+    The LUT (an int32 map, 1 / C of the volume's size) is permuted to (Q, K, Yq, Xq, Z) instead of the gathered
+    volume, so the rows come out channels-last in the folded order and nothing of the volume's size is transposed
+    before the convolutions (the export's folded lifter, lifter_fold.py, and the flat lifter, flat_lifter.py).
+    """
+    index = lut_index.permute(0, 1, 3, 4, 2)  # (Q, K, Yq, Xq, Z)
+    weight = lut_weight.permute(0, 1, 3, 4, 2)
+    volume = gather_rows(feature_table(features), index, weight)  # (Q, Yq, Xq, Z, C)
+    return volume.flatten(3).permute(0, 3, 1, 2)  # (Q, Z*C, Yq, Xq): channel z * C + c
+
+
 def feature_table(features: Tensor) -> Tensor:
     """(J, C, Hf, Wf) -> (J * Hf * Wf + 1, C): one row per pixel, then the all-zero sentinel row."""
     c = features.shape[1]

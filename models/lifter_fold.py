@@ -24,7 +24,8 @@ import torch
 from torch import Tensor, nn
 
 from streamdet.models.bn_fold import fold_bn
-from streamdet.models.lifter import VolumetricLifter, feature_table, gather_rows
+from streamdet.models.flat_lifter import FlatLifter, FlatLifterConvs, FlatLifterExport
+from streamdet.models.lifter import VolumetricLifter, gather_z_major
 from streamdet.models.presets import LifterConfig
 
 # Largest (dense 2D MACs) / (3D MACs) the rewrite may cost: Z = 4 (ratio 1.40) measured faster (benchmarks/RESULTS.md);
@@ -180,32 +181,33 @@ class FoldedLifter(nn.Module):
         self.convs = convs.to_z_major()
 
     def forward(self, features: Tensor, lut_index: Tensor, lut_weight: Tensor) -> Tensor:
-        q, _, z, yq, xq = lut_index.shape
-        index = lut_index.permute(0, 1, 3, 4, 2)  # (Q, K, Yq, Xq, Z)
-        weight = lut_weight.permute(0, 1, 3, 4, 2)
-        volume = gather_rows(feature_table(features), index, weight)  # (Q, Yq, Xq, Z, C)
-        folded = volume.reshape(q, yq, xq, -1).permute(0, 3, 1, 2)  # (Q, Z*C, Yq, Xq): channel z * C + c
-        return self.convs.folded(folded)
+        return self.convs.folded(gather_z_major(features, lut_index, lut_weight))  # (Q, C, Yq, Xq)
 
 
-def export_lifter_convs(lifter: VolumetricLifter, cfg: LifterConfig, nz: int) -> nn.Module:
-    """What the exporter traces for the lifter's convolutions: the folded ones where they pay, else the lifter's."""
+def export_lifter_convs(lifter: VolumetricLifter | FlatLifter, cfg: LifterConfig, nz: int) -> nn.Module:
+    """What the exporter traces for the lifter's convolutions: the folded ones where they pay, else the lifter's;
+    a flat lifter's with its BatchNorms folded."""
+    if isinstance(lifter, FlatLifter):
+        return FlatLifterConvs(lifter).eval()
     if fold_pays(cfg, nz):
         return FoldedLifterConvs.from_lifter(lifter, cfg, nz)
     return LifterConvs(lifter)
 
 
-def export_lifter(lifter: VolumetricLifter, cfg: LifterConfig, nz: int) -> nn.Module:
+def export_lifter(lifter: VolumetricLifter | FlatLifter, cfg: LifterConfig, nz: int) -> nn.Module:
     """What the exporter traces for the whole lifter (gather + convolutions)."""
+    if isinstance(lifter, FlatLifter):
+        return FlatLifterExport(lifter).eval()
     if fold_pays(cfg, nz):
         return FoldedLifter(FoldedLifterConvs.from_lifter(lifter, cfg, nz)).eval()
     return lifter
 
 
 class LifterConvs(nn.Module):
-    """``VolumetricLifter.convs`` as a module to export (the unfolded fallback; the benchmark's reference)."""
+    """``VolumetricLifter.convs`` (or ``FlatLifter.convs``) as a module to export (the unfolded fallback; the
+    benchmark's reference)."""
 
-    def __init__(self, lifter: VolumetricLifter) -> None:
+    def __init__(self, lifter: VolumetricLifter | FlatLifter) -> None:
         super().__init__()
         self.lifter = lifter
 

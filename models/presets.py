@@ -18,7 +18,9 @@ Three presets:
   graph is about 0.43 GMAC (benchmarks/flops_report.py).
 - ``tiny``: for unit tests; every size minimal so a forward and backward pass take milliseconds.
 - ``small_v2``: ``small`` with the camera-lane options of issue 19 on (frozen backbone BatchNorm after image
-  pretraining, image BEV normalised at fusion, two LUT heights per voxel); the others keep them off.
+  pretraining, image BEV normalised at fusion, two LUT heights per voxel) and the flat lifter (2D convolutions over
+  z stacked into channels, ``LifterConfig.form``; its checkpoints from before it are volume and export as such);
+  the others keep them off.
 
 Any LiDAR-only variant (``use_image=False``) may drop the quadrant crop (``slice_crop=False``: one whole-grid map
 per slice, the paper's baseline set-up; ``streamdet-train --no-image --no-crop``).
@@ -91,16 +93,25 @@ class PillarConfig:
             )
 
 
+LIFTER_FORMS = ("volume", "flat")
+
+
 @dataclass(frozen=True)
 class LifterConfig:
-    z_conv_stride: int = 2  # the z-strided Conv3d: 0.5 m voxels -> 1 m
-    z_pool: int = 2  # AvgPool along z after it: 1 m -> 2 m, then max over what is left
+    # "volume": the paper's lifter, 3D convolutions over the voxel volume (models/lifter.py); "flat": the volume's
+    # z planes stacked into channels and 2D convolutions only (Fast-BEV's space-to-channel, models/flat_lifter.py),
+    # a fraction of the MACs so that one quadrant's lift fits between two slices (issue 22)
+    form: str = "volume"
+    z_conv_stride: int = 2  # the z-strided Conv3d: 0.5 m voxels -> 1 m (form "volume")
+    z_pool: int = 2  # AvgPool along z after it: 1 m -> 2 m, then max over what is left (form "volume")
     # heights sampled per image voxel by the projection LUT (calibration/lut.py heights_per_voxel); 1 = the centre.
     # A property of the trained model: training, export and every LUT rebuild must use the same value.
     lut_heights_per_voxel: int = 1
 
     def __post_init__(self) -> None:
         _check_positive_int(self, "z_conv_stride", "z_pool", "lut_heights_per_voxel")
+        if self.form not in LIFTER_FORMS:
+            raise ValueError(f"LifterConfig.form must be one of {LIFTER_FORMS}, got {self.form!r}")
 
 
 @dataclass(frozen=True)
@@ -223,7 +234,7 @@ class Preset:
                 f"Preset {self.name!r}: quadrant {g.quadrant_ny} x {g.quadrant_nx} is not divisible by head.out_stride={self.head.out_stride}"
             )
         z_div = self.lifter.z_conv_stride * self.lifter.z_pool
-        if g.nz % z_div:
+        if self.lifter.form == "volume" and g.nz % z_div:
             raise ValueError(
                 f"Preset {self.name!r}: grid.nz={g.nz} image voxels is not divisible by lifter z_conv_stride * z_pool = {z_div}"
             )
@@ -363,7 +374,9 @@ def _small_v2() -> Preset:
         small,
         name="small_v2",
         image=dataclasses.replace(small.image, norm="frozen_batch"),
-        lifter=dataclasses.replace(small.lifter, lut_heights_per_voxel=2),
+        # the flat lifter (issue 22): a quadrant's lift short enough for the phase-locked image lane, and a fused
+        # training step that is no longer mostly Conv3d backward
+        lifter=dataclasses.replace(small.lifter, form="flat", lut_heights_per_voxel=2),
         image_bev_norm=True,
     )
 

@@ -289,3 +289,21 @@ def test_init_refuses_other_preset_and_resume_together(store, tmp_path):
     torch.save(obj, tmp_path / "other.pt")
     with pytest.raises(ValueError, match="another preset"):
         train(_config(steps=1), "unused", tmp_path / "y", init=tmp_path / "other.pt", store=store, echo=lambda m: None)
+
+
+def test_init_from_an_image_encoder_keeps_the_seeded_rest(store, tmp_path):
+    """streamdet-train-image's encoder.pt as --init: the encoder's weights, every other weight the seed's own."""
+    torch.manual_seed(7)
+    encoder = build_detector(get_preset("tiny")).image_encoder
+    torch.save(encoder.state_dict(), tmp_path / "encoder.pt")
+    cfg = dataclasses.replace(_config(steps=1, lr=1e-9), seed=3)  # lr ~ 0: the weights stay where they started
+    run = train(cfg, "unused", tmp_path / "run", init=tmp_path / "encoder.pt", store=store, echo=lambda m: None)
+    fresh = train(cfg, "unused", tmp_path / "fresh", store=store, echo=lambda m: None)
+    got, ref = load_checkpoint(run.weights)["model"], load_checkpoint(fresh.weights)["model"]
+    key = "image_encoder.backbone.conv1.weight"
+    torch.testing.assert_close(got[key], encoder.state_dict()["backbone.conv1.weight"], atol=1e-6, rtol=0)
+    assert not torch.allclose(got[key], ref[key])
+    torch.testing.assert_close(got["slice_net.pillar_net.linear.weight"], ref["slice_net.pillar_net.linear.weight"])
+    torch.save({"backbone.conv1.weight": torch.zeros(1)}, tmp_path / "wrong.pt")
+    with pytest.raises(ValueError, match="does not fit the detector's image encoder"):
+        train(cfg, "unused", tmp_path / "wrong", init=tmp_path / "wrong.pt", store=store, echo=lambda m: None)

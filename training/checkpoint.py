@@ -72,6 +72,29 @@ def load_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
     return obj
 
 
+def is_encoder_weights(path: str | os.PathLike) -> bool:
+    """Whether ``path`` holds a bare state dict (``streamdet-train-image``'s ``encoder.pt``) rather than a
+    checkpoint dict with 'model' and 'preset'; False for an unreadable file (``load_checkpoint`` says why)."""
+    try:
+        obj = torch.load(Path(path), map_location="cpu", weights_only=True)
+    except Exception:  # reported by load_checkpoint
+        return False
+    return (isinstance(obj, dict) and bool(obj) and "model" not in obj
+            and all(isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in obj.items()))  # fmt: skip
+
+
+def load_encoder_weights(detector: StreamDetector, path: str | os.PathLike) -> None:
+    """Copy an ``encoder.pt`` (the image encoder's state dict, ``streamdet-train-image``) into
+    ``detector.image_encoder``; ValueError naming the file if it does not fit."""
+    if detector.image_encoder is None:
+        raise ValueError(f"{path}: holds image encoder weights, but the model has no image lane (use_image=False)")
+    state = torch.load(path, map_location="cpu", weights_only=True)
+    try:
+        detector.image_encoder.load_state_dict(state, strict=True)
+    except (RuntimeError, AttributeError, TypeError) as e:
+        raise ValueError(f"{path}: does not fit the detector's image encoder: {str(e).splitlines()[0]}") from None
+
+
 def save_weights(path: str | os.PathLike, preset: Preset, model: StreamDetector, half: bool = False,
                  meta: dict[str, Any] | None = None) -> None:  # fmt: skip
     state = {k: (v.half() if half and v.is_floating_point() else v).clone() for k, v in model.state_dict().items()}

@@ -54,7 +54,8 @@ def _parse_slices(ctx, param, value: str) -> tuple[int, ...]:
               help="Fraction of the schedule trained with the image lane off (zero image BEV); the cheap LiDAR lane learns first.")
 @click.option("--resume", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Continue from a last.pt written by this command.")
 @click.option("--init", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="Start from the weights of this checkpoint (same preset) with a fresh optimizer and schedule (fine-tuning).")
+              help="Start from the weights of this checkpoint (same preset) with a fresh optimizer and schedule (fine-tuning), "
+                   "or from streamdet-train-image's encoder.pt (the image encoder; every other weight from --seed).")
 @click.option("--balanced", is_flag=True, help="Class-balanced (CBGS) resampling of the training samples.")
 @click.option("--workers", type=click.IntRange(min=0), default=0, show_default=True, help="DataLoader worker processes.")
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Seed of the weights and of the data order.")

@@ -39,7 +39,7 @@ from streamdet.models.detector import build_detector
 from streamdet.models.image_encoder import ImageEncoder
 from streamdet.models.presets import Preset, get_preset
 from streamdet.models.seg_head import ImageSegmenter
-from streamdet.training.checkpoint import _atomic_save, save_weights
+from streamdet.training.checkpoint import _atomic_save, load_encoder_weights, save_weights  # noqa: F401 (re-exported)
 from streamdet.training.trainer import init_head_outputs
 
 NUM_LABELS = NUM_CLASSES + 1  # 0 = background
@@ -198,15 +198,6 @@ def write_detector_init(path: Path, preset: Preset, segmenter: ImageSegmenter, s
     init_head_outputs(detector)
     detector.image_encoder.load_state_dict(segmenter.encoder.state_dict(), strict=True)
     save_weights(path, preset, detector, meta={"image_pretrain": str(path.parent)})
-
-
-def load_encoder_weights(detector, path: str | Path) -> None:
-    """Copy an ``encoder.pt`` written here into ``detector.image_encoder`` (ValueError naming the file if it does not fit)."""
-    state = torch.load(path, map_location="cpu", weights_only=True)
-    try:
-        detector.image_encoder.load_state_dict(state, strict=True)
-    except (RuntimeError, AttributeError) as e:
-        raise ValueError(f"{path}: does not fit the detector's image encoder: {str(e).splitlines()[0]}") from None
 
 
 def pretrain(config: PretrainConfig, data_dir: str | Path, out_dir: str | Path, version: str = "v1.0-synth",

@@ -31,7 +31,7 @@ from torch.utils.data import DataLoader, DistributedSampler, Subset
 from streamdet.models.detector import build_detector
 from streamdet.models.presets import Preset, get_preset
 from streamdet.training.batching import Batch, Collator
-from streamdet.training.checkpoint import load_checkpoint, save_training_state, save_weights
+from streamdet.training.checkpoint import is_encoder_weights, load_checkpoint, load_encoder_weights, save_training_state, save_weights
 from streamdet.training.dataset import DataConfig, SliceDataset, SampleStore, build_store, class_balanced_indices
 from streamdet.training.distributed import DistContext, all_reduce_sum, convert_batchnorm, init_distributed
 from streamdet.training.losses import CenterPointLoss, LossConfig, loss_terms
@@ -254,8 +254,9 @@ def train(
 
     ``store`` skips reading the dataset (tests, or several runs over one store). ``resume`` continues a
     ``last.pt``: model, optimizer, scheduler and data position, so the continuation is the uninterrupted run's.
-    ``init`` starts from the weights of a checkpoint of the same preset (``model.pt``, ``last.pt`` or shipped weights)
-    with a fresh optimizer and schedule: fine-tuning, or a second budget on top of a first.
+    ``init`` starts from the weights of a checkpoint of the same preset (``model.pt``, ``last.pt`` or shipped
+    weights) with a fresh optimizer and schedule: fine-tuning, or a second budget on top of a first; or from an image
+    encoder's weights (streamdet-train-image's ``encoder.pt``), every other weight initialised with the seed.
     """
     if resume is not None and init is not None:
         raise ValueError("give either resume (continue a run) or init (start a new run from weights), not both")
@@ -328,6 +329,10 @@ def _set_up(config: TrainConfig, data_dir: str | Path, out_dir: str | Path, vers
 
 
 def _load_init_weights(detector, preset: Preset, init: str | Path, say: Callable[[str], None]) -> None:
+    if is_encoder_weights(init):  # streamdet-train-image's encoder.pt: the image encoder; the rest stays seeded
+        load_encoder_weights(detector, init)
+        say(f"initialised the image encoder from {init}; every other weight from the seed")
+        return
     state = load_checkpoint(init)
     if state["preset"] != preset.to_dict():
         raise ValueError(f"init checkpoint {init} holds another preset than {preset.name!r} (use_image={preset.use_image}, "

@@ -1,0 +1,103 @@
+"""The flat lifter: the volume's z planes stacked into channels, then 2D convolutions (``LifterConfig.form="flat"``).
+
+Same contract as ``VolumetricLifter`` (lifter.py): ``forward(features (J, C, Hf, Wf), lut_index, lut_weight
+(Q, K, Z, Yq, Xq)) -> image_bev (Q, C, Yq, Xq)``, the same LUT and gather. What follows the gather differs: the
+Z planes of each cell are one feature vector of Z * C channels (Fast-BEV's "space to channel", Li et al. 2023),
+and the lifter is
+
+    BN2d(Z*C) -> 1x1 conv Z*C -> C, BN, ReLU -> residual k3 conv C -> C, BN, ReLU
+
+instead of the paper's three Conv3d layers. Why: the lift of one quadrant has to fit between two slices of the
+LiDAR for the phase-locked image lane (issue 22, docs/replay.md "What the geometry allows"); the paper's lifter
+spends most of the image lane's MACs on Conv3d layers over a volume that, on the small presets, is four planes
+deep. The MACs of both forms are printed by ``python -m streamdet.benchmarks.flops_report``.
+
+The gather is z-major (``gather_z_major``): the LUT is permuted, not the volume. The export form folds every
+BatchNorm (``FlatLifterExport``); training never sees it.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from streamdet.models.bn_fold import fold_bn
+from streamdet.models.lifter import gather_z_major
+
+
+class FlatLifter(nn.Module):
+    """``forward(features (J, C, Hf, Wf), lut_index (Q, K, Z, Yq, Xq) int32, lut_weight (Q, K, Z, Yq, Xq) f32)
+    -> image_bev (Q, C, Yq, Xq)``."""
+
+    def __init__(self, channels: int, nz: int) -> None:
+        super().__init__()
+        c = channels
+        self.channels, self.nz = c, nz
+        # BN first, as in the volumetric lifter: one statistic per (height, channel), channel z * C + c
+        self.input_norm = nn.BatchNorm2d(nz * c)
+        self.project = nn.Sequential(nn.Conv2d(nz * c, c, kernel_size=1, bias=False), nn.BatchNorm2d(c), nn.ReLU(inplace=True))
+        self.residual = nn.Sequential(
+            nn.Conv2d(c, c, kernel_size=3, padding=1, bias=False), nn.BatchNorm2d(c), nn.ReLU(inplace=True)
+        )
+
+    def forward(self, features: Tensor, lut_index: Tensor, lut_weight: Tensor) -> Tensor:
+        return self.folded(gather_z_major(features, lut_index, lut_weight))  # (Q, C, Yq, Xq)
+
+    def convs(self, volume: Tensor) -> Tensor:
+        """Everything after the gather, from the volume (Q, C, Z, Yq, Xq), as ``VolumetricLifter.convs``."""
+        q, c, z, y, x = volume.shape
+        return self.folded(volume.permute(0, 2, 1, 3, 4).reshape(q, z * c, y, x))  # channel z * C + c
+
+    def folded(self, v: Tensor) -> Tensor:
+        """(Q, Z*C, Yq, Xq), channel z * C + c -> image_bev (Q, C, Yq, Xq)."""
+        if v.shape[1] != self.nz * self.channels:
+            raise ValueError(f"expected {self.nz} x {self.channels} folded channels, got shape {tuple(v.shape)}")
+        v = self.project(self.input_norm(v))  # (Q, C, Yq, Xq)
+        return v + self.residual(v)
+
+
+class FlatLifterConvs(nn.Module):
+    """``FlatLifter.folded`` with every BatchNorm folded into the convolution next to it (eval statistics)."""
+
+    def __init__(self, lifter: FlatLifter) -> None:
+        super().__init__()
+        c, nz = lifter.channels, lifter.nz
+        self.channels, self.nz = c, nz
+        self.project = nn.Conv2d(nz * c, c, kernel_size=1)
+        self.residual = nn.Conv2d(c, c, kernel_size=3, padding=1)
+        self.relu = nn.ReLU(inplace=True)
+        self.load_from(lifter)
+
+    @torch.no_grad()
+    def load_from(self, lifter: FlatLifter) -> None:
+        conv, bn = lifter.project[0], lifter.project[1]
+        weight, bias = fold_bn(conv.weight, None, lifter.input_norm, bn_first=True)  # conv(BN(v))
+        weight, bias = fold_bn(weight, bias, bn)  # BN(conv(BN(v)))
+        self.project.weight.copy_(weight)
+        self.project.bias.copy_(bias)
+        weight, bias = fold_bn(lifter.residual[0].weight, None, lifter.residual[1])
+        self.residual.weight.copy_(weight)
+        self.residual.bias.copy_(bias)
+
+    def forward(self, volume: Tensor) -> Tensor:
+        """From the volume (Q, C, Z, Yq, Xq), like ``FlatLifter.convs`` (the benchmark's lifter rows)."""
+        q, c, z, y, x = volume.shape
+        return self.folded(volume.permute(0, 2, 1, 3, 4).reshape(q, z * c, y, x))
+
+    def folded(self, v: Tensor) -> Tensor:
+        """(Q, Z*C, Yq, Xq), channel z * C + c -> image_bev (Q, C, Yq, Xq)."""
+        v = self.relu(self.project(v))
+        return v + self.relu(self.residual(v))
+
+
+class FlatLifterExport(nn.Module):
+    """What the exporter traces for a ``FlatLifter``: the z-major gather, then ``FlatLifterConvs``."""
+
+    z_major = True  # CompactLifter reads its gather in this order (compact_lifter.py)
+
+    def __init__(self, lifter: FlatLifter) -> None:
+        super().__init__()
+        self.convs = FlatLifterConvs(lifter).eval()
+
+    def forward(self, features: Tensor, lut_index: Tensor, lut_weight: Tensor) -> Tensor:
+        return self.convs.folded(gather_z_major(features, lut_index, lut_weight))  # (Q, C, Yq, Xq)
