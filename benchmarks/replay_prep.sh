@@ -1,11 +1,19 @@
 # Sourced by replay_readme.sh and replay_schedules.sh: the held-out dataset and the int8 export both replay from.
 # Needs OUT and BIN; sets DATA and EXPORT, making each only when missing (seed 11 is never used in training).
+# CHECKPOINT (optional, environment): export that training checkpoint instead of the default model, into
+# $OUT/export_<name of the checkpoint's folder>.
 mkdir -p "$OUT"
 DATA="$OUT/synth20"
-EXPORT="$OUT/export_small"
 if [ ! -f "$DATA/trajectories.npz" ]; then
   "$BIN/streamdet-synth" --out "$DATA" --scenes 8 --seed 11 --resolution 480x270 --sweeps-per-sample 10 --overwrite
 fi
+if [ -n "${CHECKPOINT:-}" ]; then
+  EXPORT="$OUT/export_$(basename "$(dirname "$CHECKPOINT")")"
+  CKPT_ARGS=(--checkpoint "$CHECKPOINT")
+else
+  EXPORT="$OUT/export_small"
+  CKPT_ARGS=()
+fi
 if [ ! -f "$EXPORT/manifest.json" ]; then
-  "$BIN/streamdet-export" --int8 --calibration-data "$DATA" --out "$EXPORT"
+  "$BIN/streamdet-export" "${CKPT_ARGS[@]}" --int8 --calibration-data "$DATA" --out "$EXPORT"
 fi

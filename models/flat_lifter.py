@@ -12,17 +12,35 @@ LiDAR for the phase-locked image lane (issue 22, docs/replay.md "What the geomet
 spends most of the image lane's MACs on Conv3d layers over a volume that, on the small presets, is four planes
 deep. The MACs of both forms are printed by ``python -m streamdet.benchmarks.flops_report``.
 
-The gather is z-major (``gather_z_major``): the LUT is permuted, not the volume. The export form folds every
-BatchNorm (``FlatLifterExport``); training never sees it.
+The gather is z-major: the LUT is permuted, not the volume; training gathers with ``F.embedding_bag``
+(``gather_z_major_bag``), the export form with index_select (``gather_z_major``), and folds every BatchNorm
+(``FlatLifterExport``); training never sees it.
 """
 
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor, nn
 
 from streamdet.models.bn_fold import fold_bn
-from streamdet.models.lifter import gather_z_major
+from streamdet.models.lifter import feature_table, gather_z_major
+
+
+def gather_z_major_bag(features: Tensor, lut_index: Tensor, lut_weight: Tensor) -> Tensor:
+    """``gather_z_major`` (lifter.py) as one ``F.embedding_bag``: the same sums, (Q, Z * C, Yq, Xq).
+
+    Training's form: embedding_bag's backward accumulates the feature gradient several times faster than
+    index_select's on CPU (benchmarks/RESULTS.md, "Measurements behind design choices"). ONNX has no EmbeddingBag,
+    so the export form keeps ``gather_z_major``; ``tests/test_models_flat_lifter.py`` holds the two equal.
+    """
+    table = feature_table(features)  # (R + 1, C), the all-zero sentinel row last
+    q, k, z, yq, xq = lut_index.shape
+    c = table.shape[1]
+    index = lut_index.permute(0, 3, 4, 2, 1).reshape(-1, k).long()  # (Q*Yq*Xq*Z, K): one bag per voxel, z-major
+    weight = lut_weight.permute(0, 3, 4, 2, 1).reshape(-1, k)
+    rows = F.embedding_bag(index, table, per_sample_weights=weight, mode="sum", padding_idx=table.shape[0] - 1)
+    return rows.reshape(q, yq, xq, z * c).permute(0, 3, 1, 2)  # (Q, Z*C, Yq, Xq): channel z * C + c
 
 
 class FlatLifter(nn.Module):
@@ -41,7 +59,7 @@ class FlatLifter(nn.Module):
         )
 
     def forward(self, features: Tensor, lut_index: Tensor, lut_weight: Tensor) -> Tensor:
-        return self.folded(gather_z_major(features, lut_index, lut_weight))  # (Q, C, Yq, Xq)
+        return self.folded(gather_z_major_bag(features, lut_index, lut_weight))  # (Q, C, Yq, Xq)
 
     def convs(self, volume: Tensor) -> Tensor:
         """Everything after the gather, from the volume (Q, C, Z, Yq, Xq), as ``VolumetricLifter.convs``."""

@@ -244,3 +244,27 @@ def test_sweep_through_onnx_equals_pytorch(export_dir, precision):
         np.testing.assert_allclose(onnx.boxes[:top, :3], ref.boxes[:top, :3], atol=2e-3)
     else:  # int8 image lane and slice graph: the same leading boxes, scores within quantisation error
         np.testing.assert_allclose(onnx.scores[:top], ref.scores[:top], atol=0.05)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("q", [0, 1, 3])
+def test_training_gather_equals_the_exported_gather(seed, dtype, q):
+    """embedding_bag (training) and index_select (export): the same sums and the same feature gradient."""
+    from streamdet.models.flat_lifter import gather_z_major_bag
+    from streamdet.models.lifter import gather_z_major
+
+    rng = np.random.default_rng(seed)
+    j, c, hf, wf = 3, 5, 4, 6
+    index, weight = _lut(rng, (q, 4, 3, 6, 7), j * hf * wf)
+    index_t, weight_t = torch.from_numpy(index), torch.from_numpy(weight).to(dtype)
+    features = torch.randn(j, c, hf, wf, dtype=dtype, generator=torch.Generator().manual_seed(seed), requires_grad=True)
+    want = gather_z_major(features, index_t, weight_t)
+    got = gather_z_major_bag(features, index_t, weight_t)
+    assert got.shape == want.shape == (q, 3 * c, 6, 7)
+    torch.testing.assert_close(got, want)
+    if q:
+        grad = torch.randn_like(want)
+        (g_want,) = torch.autograd.grad(want, features, grad)
+        (g_got,) = torch.autograd.grad(got, features, grad)
+        torch.testing.assert_close(g_got, g_want)
