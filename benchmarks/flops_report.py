@@ -101,6 +101,8 @@ def gmac_rows(preset: Preset, resolutions: Sequence[tuple[int, int]] = PAPER_RES
 
     multi = dataclasses.replace(preset, head=dataclasses.replace(preset.head, multi_head=True))
     single = dataclasses.replace(preset, head=dataclasses.replace(preset.head, multi_head=False))
+    # the paper's lifter runs 3D convolutions; the flat lifter (models/flat_lifter.py) 2D ones over z in channels
+    lifter_convs = "3D convolutions" if preset.lifter.form == "volume" else "flat lifter (2D convolutions, z in channels)"
     rows = [
         GmacRow("points + BEV enc + multi-head", _slice_gmac(multi, cropped=False), paper(PAPER_SLICE_MULTI_HEAD)),
         GmacRow("points + BEV enc + single head", _slice_gmac(single, cropped=False), paper(PAPER_SLICE_SINGLE_HEAD)),
@@ -109,9 +111,9 @@ def gmac_rows(preset: Preset, resolutions: Sequence[tuple[int, int]] = PAPER_RES
             _slice_gmac(single, cropped=True),
             paper(PAPER_SLICE_CROPPED),
         ),
-        GmacRow(f"3D convolutions ({g.nx}x{g.ny}x{g.nz} volume)", _lifter_gmac(preset, g.ny, g.nx), paper(PAPER_CONV3D)),
+        GmacRow(f"{lifter_convs} ({g.nx}x{g.ny}x{g.nz} volume)", _lifter_gmac(preset, g.ny, g.nx), paper(PAPER_CONV3D)),
         GmacRow(
-            "3D convolutions, cropped (1 quadrant)",
+            f"{lifter_convs}, cropped (1 quadrant)",
             _lifter_gmac(preset, g.quadrant_ny, g.quadrant_nx),
             paper(PAPER_CONV3D_CROPPED),
         ),

@@ -47,6 +47,7 @@ from streamdet.export.onnx_export import (
 )
 from streamdet.models.detector import StreamDetector
 from streamdet.models.decode import SliceDecoder
+from streamdet.models.flat_lifter import FlatLifterConvs
 from streamdet.models.lifter_fold import FoldedLifterConvs, LifterConvs, export_lifter_convs, folded_mac_ratio
 from streamdet.models.presets import Preset
 from streamdet.models.slice_split import grouped_head_mac_ratio
@@ -127,7 +128,10 @@ def build_rows(preset: Preset, resolutions: list[tuple[int, int]], seed: int = 0
     convs = LifterConvs(det.lifter).eval()
     folded: nn.Module | None = export_lifter_convs(det.lifter, preset.lifter, g.nz).eval()
     conv_notes: tuple[str, ...] = ()
-    if not isinstance(folded, FoldedLifterConvs):
+    if isinstance(folded, FlatLifterConvs):
+        conv_notes = ("the flat lifter (models/flat_lifter.py): 2D convolutions over z stacked into channels, "
+                      "exported with its BatchNorms folded",)  # fmt: skip
+    elif not isinstance(folded, FoldedLifterConvs):
         folded = None  # exported as it is: nothing else to time
     else:
         conv_notes = (
