@@ -188,8 +188,8 @@ class Difference:
 
 
 def paired_bootstrap(
-    tables_a: Mapping[tuple[str, float], MatchTable],
-    tables_b: Mapping[tuple[str, float], MatchTable],
+    tables_a: Mapping[tuple[str, float], MatchTable] | Sequence[Mapping[tuple[str, float], MatchTable]],
+    tables_b: Mapping[tuple[str, float], MatchTable] | Sequence[Mapping[tuple[str, float], MatchTable]],
     classes: Sequence[str],
     cluster_of_sample: np.ndarray,
     num_draws: int = 1000,
@@ -201,7 +201,15 @@ def paired_bootstrap(
 
     ``cluster_of_sample`` (S,) int gives each sample's scene; samples of a scene are correlated (one street, one
     traffic), so resampling samples instead would give intervals that are too narrow.
+
+    Each side may be a sequence of runs (training seeds of one recipe, scored on the same samples): its figure is
+    then the mean over its runs, and every draw also resamples each side's runs with replacement (a two-level
+    bootstrap: scenes, shared by both sides, and seeds), so the interval holds the seed-to-seed spread as well.
     """
+    runs_a = [tables_a] if isinstance(tables_a, Mapping) else list(tables_a)
+    runs_b = [tables_b] if isinstance(tables_b, Mapping) else list(tables_b)
+    if not runs_a or not runs_b:
+        raise ValueError(f"each side needs at least one run, got {len(runs_a)} and {len(runs_b)}")
     cluster_of_sample = np.asarray(cluster_of_sample)
     if cluster_of_sample.ndim != 1 or not np.issubdtype(cluster_of_sample.dtype, np.integer):
         raise ValueError(f"cluster_of_sample must be (S,) integers, got shape {cluster_of_sample.shape} dtype {cluster_of_sample.dtype}")
@@ -212,15 +220,22 @@ def paired_bootstrap(
     _, cluster = np.unique(cluster_of_sample, return_inverse=True)
     n_clusters = int(cluster.max()) + 1
     ones = np.ones(len(cluster), dtype=np.int64)
-    full_a = summary(weighted_metrics(tables_a, classes, ones, config))
-    full_b = summary(weighted_metrics(tables_b, classes, ones, config))
+
+    def mean_summary(runs, picks, weights) -> dict[str, float]:
+        each = [summary(weighted_metrics(runs[i], classes, weights, config)) for i in picks]
+        return {k: float(np.mean([e[k] for e in each])) for k in each[0]}
+
+    full_a = mean_summary(runs_a, range(len(runs_a)), ones)
+    full_b = mean_summary(runs_b, range(len(runs_b)), ones)
     rng = np.random.default_rng(seed)
     draws: dict[str, list[float]] = {k: [] for k in full_a}
     for _ in range(num_draws):
         counts = np.bincount(rng.integers(0, n_clusters, n_clusters), minlength=n_clusters)  # (C,) times drawn
         w = counts[cluster]  # (S,) a sample counts as often as its scene was drawn
-        sa = summary(weighted_metrics(tables_a, classes, w, config))
-        sb = summary(weighted_metrics(tables_b, classes, w, config))
+        picks_a = rng.integers(0, len(runs_a), len(runs_a)) if len(runs_a) > 1 else [0]
+        picks_b = rng.integers(0, len(runs_b), len(runs_b)) if len(runs_b) > 1 else [0]
+        sa = mean_summary(runs_a, picks_a, w)
+        sb = mean_summary(runs_b, picks_b, w)
         for k in draws:
             draws[k].append(sb[k] - sa[k])
     tail = 100 * (1 - confidence) / 2

@@ -123,21 +123,38 @@ def _data_inputs(data_dir: Path, version: str, split: str | None, export_dir: Pa
         click.echo(f"wrote {save_dir / 'results.json'}, {save_dir / 'gt.json'} and {save_dir / 'samples.json'}")
 
 
-def _compare(run_a: Path, run_b: Path, gt_path: Path | None, classes: tuple[str, ...] | None, draws: int, seed: int,
+def _run_group(arg: str) -> list[Path]:
+    """One side of --compare: a run, or several runs separated by commas (seeds of one recipe)."""
+    paths = [Path(p) for p in arg.split(",") if p]
+    if not paths:
+        raise click.UsageError(f"--compare: {arg!r} names no run")
+    for p in paths:
+        if not p.exists():
+            raise click.UsageError(f"--compare: {p} does not exist")
+    return paths
+
+
+def _compare(run_a: str, run_b: str, gt_path: Path | None, classes: tuple[str, ...] | None, draws: int, seed: int,
              json_path: Path | None) -> None:  # fmt: skip
     """``--compare`` mode: B - A with a paired bootstrap interval over scenes (``evaluation.compare``)."""
     from streamdet.evaluation.compare import compare_runs, format_comparison, load_run
 
+    group_a, group_b = _run_group(run_a), _run_group(run_b)
     try:
-        a, b = load_run(run_a, gt_path), load_run(run_b, gt_path)
+        a = [load_run(p, gt_path) for p in group_a]
+        b = [load_run(p, gt_path) for p in group_b]
         with click.progressbar(length=1, label=f"bootstrap ({draws} draws)") as bar:
             comparison = compare_runs(a, b, classes=classes, num_draws=draws, seed=seed)
             bar.update(1)
     except ValueError as e:
         raise click.ClickException(str(e).splitlines()[0]) from None
-    click.echo(format_comparison(comparison, str(run_a), str(run_b)))
+    name_a, name_b = ", ".join(map(str, group_a)), ", ".join(map(str, group_b))
+    click.echo(format_comparison(comparison, name_a, name_b))
     if json_path is not None:
-        doc = {"A": str(run_a), "B": str(run_b), "seed": seed, **comparison.to_dict()}
+        def one_or_list(group: list[Path]):
+            return str(group[0]) if len(group) == 1 else [str(p) for p in group]
+
+        doc = {"A": one_or_list(group_a), "B": one_or_list(group_b), "seed": seed, **comparison.to_dict()}
         try:
             json_path.write_text(json.dumps(doc, indent=1, allow_nan=False) + "\n")
         except (OSError, ValueError) as e:
@@ -187,11 +204,12 @@ def _compare(run_a: Path, run_b: Path, gt_path: Path | None, classes: tuple[str,
     "devkit; dataset mode the classes present in the ground truth.",
 )  # fmt: skip
 @click.option(
-    "--compare", "compare_runs", nargs=2, type=click.Path(exists=True, path_type=Path), default=None,
+    "--compare", "compare_runs", nargs=2, type=str, default=None,
     metavar="RUN_A RUN_B",
     help="Compare two runs on the same ground truth: B - A for mAP, NDS and per-class AP with a paired bootstrap "
     "95 % interval over scenes, also per slice, for boxes cut by a slice border and for boxes with at most 5 points. "
-    "A run is a folder written by --save-results, or a results file (then give --gt).",
+    "A run is a folder written by --save-results, or a results file (then give --gt). Either side may be several "
+    "runs separated by commas (seeds of one recipe): their mean, the bootstrap resampling the runs too.",
 )  # fmt: skip
 @click.option("--bootstrap", "draws", type=click.IntRange(min=1), default=1000, show_default=True,
               help="Compare mode: bootstrap draws.")  # fmt: skip
@@ -200,11 +218,11 @@ def _compare(run_a: Path, run_b: Path, gt_path: Path | None, classes: tuple[str,
 def main(gt_path: Path | None, results_path: Path | None, data_dir: Path | None, version: str, split: str,
          export_dir: Path, slices: int | None, precision: str, image_precision: str | None, max_samples: int | None,
          json_path: Path | None, classes: str | None, save_dir: Path | None,
-         compare_runs: tuple[Path, Path] | None = None, draws: int = 1000, seed: int = 0) -> None:  # fmt: skip
+         compare_runs: tuple[str, str] | None = None, draws: int = 1000, seed: int = 0) -> None:  # fmt: skip
     """nuScenes detection mAP, TP errors and NDS, computed as nuscenes-devkit 1.2.0 (detection_cvpr_2019).
 
     Three modes: --gt with --results (two JSON files), --data (run an export over a dataset split), or
-    --compare RUN_A RUN_B (two saved runs, paired bootstrap over scenes).
+    --compare RUN_A RUN_B (two saved runs, or two comma-separated groups of runs; paired bootstrap over scenes).
     The devkit's bike-rack filter needs the bicycle-rack annotations, which these files do not hold: it is
     skipped. Without GT attributes, every attribute error is 1.
     """

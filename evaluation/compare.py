@@ -153,19 +153,28 @@ def slice_masks(boxes: EvalBoxes, info: SampleInfo) -> tuple[np.ndarray, np.ndar
 
 
 def compare_runs(
-    run_a: Run, run_b: Run, classes: Sequence[str] | None = None, num_draws: int = 1000, seed: int = 0,
-    config: DetectionConfig = DetectionConfig(), few_points: int = FEW_POINTS, subsets: bool = True,
+    run_a: Run | Sequence[Run], run_b: Run | Sequence[Run], classes: Sequence[str] | None = None, num_draws: int = 1000,
+    seed: int = 0, config: DetectionConfig = DetectionConfig(), few_points: int = FEW_POINTS, subsets: bool = True,
 ) -> Comparison:  # fmt: skip
-    """B - A for mAP, NDS and per-class AP, on all boxes and (``subsets``) per slice / cut / few-points subset."""
-    _same_ground_truth(run_a.gt, run_b.gt, run_a.where, run_b.where)
-    gt = filter_eval_boxes(run_a.gt, config.class_range_m)
-    pred_a = filter_eval_boxes(run_a.pred, config.class_range_m)
-    pred_b = filter_eval_boxes(run_b.pred, config.class_range_m)
+    """B - A for mAP, NDS and per-class AP, on all boxes and (``subsets``) per slice / cut / few-points subset.
+
+    A side given as several runs (training seeds of one recipe) is their mean, and the bootstrap resamples its runs
+    too (``paired_bootstrap``); every run must be scored on the same ground truth."""
+    runs_a = [run_a] if isinstance(run_a, Run) else list(run_a)
+    runs_b = [run_b] if isinstance(run_b, Run) else list(run_b)
+    if not runs_a or not runs_b:
+        raise ValueError("each side of a comparison needs at least one run")
+    first = runs_a[0]
+    for other in runs_a[1:] + runs_b:
+        _same_ground_truth(first.gt, other.gt, first.where, other.where)
+    gt = filter_eval_boxes(first.gt, config.class_range_m)
+    preds_a = [filter_eval_boxes(r.pred, config.class_range_m) for r in runs_a]
+    preds_b = [filter_eval_boxes(r.pred, config.class_range_m) for r in runs_b]
     if len(gt) == 0:
-        raise ValueError(f"{run_a.where}: the ground truth holds no box with points within its class range: nothing to compare")
+        raise ValueError(f"{first.where}: the ground truth holds no box with points within its class range: nothing to compare")
     present = set(gt.detection_name.tolist())
     classes = tuple(c for c in config.class_names if c in present) if classes is None else tuple(classes)
-    info = run_a.info or run_b.info
+    info = next((r.info for r in runs_a + runs_b if r.info is not None), None)
     notes = []
     if info is None:
         clusters = np.arange(len(gt.sample_tokens))
@@ -179,29 +188,37 @@ def compare_runs(
         names = [info.scenes[t] for t in gt.sample_tokens]
         clusters = np.unique(names, return_inverse=True)[1].astype(np.int64)
         clustered_by = "scene"
+    if len(runs_a) > 1 or len(runs_b) > 1:
+        notes.append(f"A is the mean of {len(runs_a)} run(s), B of {len(runs_b)}; each draw resamples the runs too")
 
-    subset_defs: dict[str, GtSubset | None] = {"all": None}
+    # per subset: (ground truth kept, predictions kept per run of A, per run of B); None = everything
+    subset_defs: dict[str, tuple[np.ndarray, list, list] | None] = {"all": None}
     if subsets:
-        subset_defs[f"gt<={few_points}pts"] = GtSubset(gt_keep=(gt.num_pts >= 1) & (gt.num_pts <= few_points))
+        few = (gt.num_pts >= 1) & (gt.num_pts <= few_points)
+        subset_defs[f"gt<={few_points}pts"] = (few, [None] * len(preds_a), [None] * len(preds_b))
         if info is not None:
             gt_slice, gt_cut = slice_masks(gt, info)
-            a_slice, a_cut = slice_masks(pred_a, info)
-            b_slice, b_cut = slice_masks(pred_b, info)
-            subset_defs["cut_by_slice_border"] = (GtSubset(gt_cut, a_cut), GtSubset(gt_cut, b_cut))
+            masks_a = [slice_masks(p, info) for p in preds_a]
+            masks_b = [slice_masks(p, info) for p in preds_b]
+            subset_defs["cut_by_slice_border"] = (gt_cut, [m[1] for m in masks_a], [m[1] for m in masks_b])
             for k in range(info.num_slices):
-                subset_defs[f"slice{k}"] = (GtSubset(gt_slice == k, a_slice == k), GtSubset(gt_slice == k, b_slice == k))
+                subset_defs[f"slice{k}"] = (gt_slice == k, [m[0] == k for m in masks_a], [m[0] == k for m in masks_b])
         else:
             notes.append("no samples.json: no per-slice or cut-by-border subsets")
     out = {}
     for name, sub in subset_defs.items():
-        sub_a, sub_b = sub if isinstance(sub, tuple) else (sub, sub)
-        keep = np.ones(len(gt), bool) if sub_a is None else sub_a.gt_keep
+        keep = np.ones(len(gt), bool) if sub is None else sub[0]
         sub_classes = tuple(c for c in classes if np.any(gt.detection_name[keep] == c))
         if not sub_classes:
             notes.append(f"{name}: no ground truth of the compared classes, skipped")
             continue
-        _, ta = match_tables(gt, pred_a, sub_classes, config, sub_a, filtered=True)
-        _, tb = match_tables(gt, pred_b, sub_classes, config, sub_b, filtered=True)
+
+        def tables(preds, pred_keeps):
+            return [match_tables(gt, p, sub_classes, config, None if sub is None else GtSubset(keep, pk), filtered=True)[1]
+                    for p, pk in zip(preds, pred_keeps)]  # fmt: skip
+
+        ta = tables(preds_a, [None] * len(preds_a) if sub is None else sub[1])
+        tb = tables(preds_b, [None] * len(preds_b) if sub is None else sub[2])
         out[name] = paired_bootstrap(ta, tb, sub_classes, clusters, num_draws, seed, config=config)
     return Comparison(subsets=out, num_samples=len(gt.sample_tokens), num_clusters=int(clusters.max()) + 1,
                       clustered_by=clustered_by, num_draws=num_draws, notes=notes)  # fmt: skip

@@ -206,3 +206,69 @@ def test_sample_info_round_trip_and_malformed(tmp_path):
         read_sample_info(p)
     with pytest.raises(ValueError, match="does not exist"):
         load_run(tmp_path / "missing")
+
+
+def _world_runs(seed: int, num_samples: int, runs_per_side: int):
+    """One ground truth and ``runs_per_side`` prediction sets per side (seeds of a weak and of a better recipe)."""
+    gt, _ = _world(seed, num_samples)
+    sides = ([], [])
+    for r in range(runs_per_side):
+        _, (pa, pb) = _world(seed, num_samples)  # the same gt draw ...
+        rng = np.random.default_rng(1000 * seed + r)
+        for side, pred in zip(sides, (pa, pb)):  # ... predictions jittered per run
+            side.append({t: [dict(e, detection_score=float(rng.random())) for e in v] for t, v in pred.items()})
+    return gt, sides
+
+
+@pytest.mark.parametrize("seed", range(2))
+@pytest.mark.parametrize("runs", [(2, 3), (3, 1)])
+def test_groups_of_runs_match_a_naive_two_level_loop(seed, runs):
+    """A side of several runs is their mean; every draw resamples scenes (shared) and each side's runs."""
+    gt, (side_a, side_b) = _world_runs(seed, 6, max(runs))
+    side_a, side_b = side_a[: runs[0]], side_b[: runs[1]]
+    scenes = np.array([0, 0, 1, 1, 2, 2])
+    ta = [match_tables(_boxes(gt), _boxes(p), CLASSES)[1] for p in side_a]
+    tb = [match_tables(_boxes(gt), _boxes(p), CLASSES)[1] for p in side_b]
+    draws = 4
+    got = paired_bootstrap(ta, tb, CLASSES, scenes, num_draws=draws, seed=seed)
+    rng = np.random.default_rng(seed)
+    diffs = []
+    for _ in range(draws):
+        counts = np.bincount(rng.integers(0, 3, 3), minlength=3)
+        picks_a = rng.integers(0, len(side_a), len(side_a)) if len(side_a) > 1 else [0]
+        picks_b = rng.integers(0, len(side_b), len(side_b)) if len(side_b) > 1 else [0]
+        w = dict(zip(gt, counts[scenes].tolist()))
+        a = np.mean([_figures(_duplicated(gt, w), _duplicated(side_a[i], w))["mAP"] for i in picks_a])
+        b = np.mean([_figures(_duplicated(gt, w), _duplicated(side_b[i], w))["mAP"] for i in picks_b])
+        diffs.append(b - a)
+    assert got["mAP"].lo == pytest.approx(np.percentile(diffs, 2.5), abs=1e-12)
+    assert got["mAP"].hi == pytest.approx(np.percentile(diffs, 97.5), abs=1e-12)
+    mean_a = np.mean([_figures(gt, p)["mAP"] for p in side_a])
+    mean_b = np.mean([_figures(gt, p)["mAP"] for p in side_b])
+    assert got["mAP"].a == pytest.approx(mean_a, abs=1e-12) and got["mAP"].b == pytest.approx(mean_b, abs=1e-12)
+
+
+def test_a_group_of_one_run_is_that_run():
+    gt, (pa, pb) = _world(7)
+    _, ta = match_tables(_boxes(gt), _boxes(pa), CLASSES)
+    _, tb = match_tables(_boxes(gt), _boxes(pb), CLASSES)
+    single = paired_bootstrap(ta, tb, CLASSES, np.arange(len(gt)), num_draws=15, seed=2)
+    grouped = paired_bootstrap([ta], [tb], CLASSES, np.arange(len(gt)), num_draws=15, seed=2)
+    assert single == grouped
+    with pytest.raises(ValueError, match="at least one run"):
+        paired_bootstrap([], [tb], CLASSES, np.arange(len(gt)))
+
+
+def test_cli_compare_groups_of_runs(tmp_path):
+    gt, (side_a, side_b) = _world_runs(2, 8, 2)
+    scenes = {t: f"scene{i // 2}" for i, t in enumerate(gt)}
+    a = [_save(tmp_path / f"a{i}", gt, p, scenes) for i, p in enumerate(side_a)]
+    b = [_save(tmp_path / f"b{i}", gt, p, scenes) for i, p in enumerate(side_b)]
+    out = tmp_path / "cmp.json"
+    res = CliRunner().invoke(main, ["--compare", f"{a[0]},{a[1]}", f"{b[0]},{b[1]}", "--bootstrap", "10", "--json", str(out)])
+    assert res.exit_code == 0, res.output
+    doc = json.loads(out.read_text())
+    assert doc["A"] == [str(a[0]), str(a[1])] and doc["B"] == [str(b[0]), str(b[1])]
+    assert any("mean of 2 run(s)" in n for n in doc["notes"]) and "slice0" in doc["subsets"]
+    res = CliRunner().invoke(main, ["--compare", f"{a[0]},{tmp_path / 'missing'}", str(b[0])])
+    assert res.exit_code != 0 and "does not exist" in res.output and "Traceback" not in res.output
