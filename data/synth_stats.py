@@ -288,7 +288,8 @@ def plot_stats(path: str | Path, stats: list[dict]) -> Path:
             y = [bins.get(b, {}).get("points_median") for b in RANGE_BINS]
             ax.plot(x, [np.nan if v is None else v for v in y], marker="o", label=s["label"])
         ax.set_xticks(x, RANGE_BINS)
-        ax.set_yscale("symlog")
+        ax.set_yscale("symlog")  # linear through 0 (a median of 0 points is common far out), log above
+        ax.set_ylim(bottom=0)  # counts: autoscaling padded the axis below 0 and drew negative ticks
         ax.set_xlabel("range bin (m)")
         ax.set_ylabel(f"median points per {cls} box")
         ax.legend(fontsize=7)
