@@ -1,0 +1,79 @@
+"""Issue 19's decision rules (benchmarks/camera_claim.py) on made-up comparison, gate and probe files."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from click.testing import CliRunner
+
+from streamdet.benchmarks.camera_claim import decide, format_decision, main
+
+
+def _cmp(map_ab, bicycle_ab=(0.1, 0.1, 0.0, 0.0)) -> dict:
+    """A --compare JSON: (A, B, lo, hi) as fractions for mAP and bicycle AP."""
+    def d(a, b, lo, hi):
+        return {"A": a, "B": b, "B_minus_A": b - a, "ci_lo": lo, "ci_hi": hi, "p_not_positive": 0.5}
+
+    return {"subsets": {"all": {"mAP": d(*map_ab), "AP/bicycle": d(*bicycle_ab)}}}
+
+
+def _gate(drop_cost: float, noise_cost: float) -> tuple[dict, dict]:
+    drop = {"all_cameras": {"mAP": 0.5}, "no_cameras": {"mAP": 0.5 - drop_cost / 100}}
+    noise = {"reference": {"mAP": 0.5}, "levels": [{"max_angle_deg": 5.0, "max_translation_m": 0.5, "mAP_mean": 0.5 - noise_cost / 100}]}
+    return drop, noise
+
+
+STRONG8 = _cmp((0.40, 0.45, 0.02, 0.08), (0.10, 0.22, 0.05, 0.18))
+STRONG32 = _cmp((0.30, 0.37, 0.03, 0.11))
+NULL8, NULL32 = _cmp((0.40, 0.405, -0.01, 0.02)), _cmp((0.30, 0.30, -0.02, 0.02))
+
+
+def test_reproduced_needs_every_bar_with_an_interval_excluding_zero():
+    d = decide(STRONG8, STRONG32, [("fused_s0", *_gate(6.0, 3.0))], [0.7])
+    assert d.verdict == "reproduced" and all(r.met for r in d.rows)
+    assert "**reproduced**" in format_decision(d)
+    short = _cmp((0.40, 0.45, 0.02, 0.08), (0.10, 0.15, 0.01, 0.09))  # bicycle +5 only
+    assert decide(short, STRONG32, [("s0", *_gate(6.0, 3.0))], [0.7]).verdict == "undecided"
+
+
+def test_a_fused_model_that_ignores_its_cameras_voids_the_comparison():
+    d = decide(STRONG8, STRONG32, [("s0", *_gate(6.0, 3.0)), ("s1", *_gate(1.0, 3.0))], [0.7])
+    assert d.verdict == "void" and "s1" in d.reason
+    assert decide(NULL8, NULL32, [("s0", *_gate(6.0, 0.5))], [0.7]).verdict == "void"
+
+
+@pytest.mark.parametrize("probe,verdict", [([0.65, 0.7], "refuted"), ([0.65, 0.4], "undecided"), ([], "undecided")])
+def test_refuted_needs_the_image_lane_working_and_intervals_holding_zero(probe, verdict):
+    d = decide(NULL8, NULL32, [("s0", *_gate(4.0, 2.5))], probe)
+    assert d.verdict == verdict
+    assert decide(NULL8, NULL32, [], [0.7]).notes  # no gate files: said
+
+
+def test_malformed_files_give_one_line_errors(tmp_path):
+    with pytest.raises(ValueError, match="subsets.all.mAP"):
+        decide({"subsets": {}}, STRONG32)
+    with pytest.raises(ValueError, match="no_cameras"):
+        decide(STRONG8, STRONG32, [("s0", {"all_cameras": {"mAP": 0.5}}, _gate(1, 1)[1])])
+    with pytest.raises(ValueError, match="5 deg, 50 cm"):
+        decide(STRONG8, STRONG32, [("s0", _gate(1, 1)[0], {"reference": {"mAP": 0.5}, "levels": []})])
+
+
+def test_cli_writes_the_table_and_json(tmp_path):
+    files = {}
+    for name, doc in (("c8", STRONG8), ("c32", STRONG32), ("drop", _gate(6.0, 3.0)[0]), ("noise", _gate(6.0, 3.0)[1]),
+                      ("probe", {"probe_balanced_accuracy_image": 0.7})):  # fmt: skip
+        files[name] = tmp_path / f"{name}.json"
+        files[name].write_text(json.dumps(doc))
+    out = tmp_path / "decision.json"
+    args = ["--compare8", str(files["c8"]), "--compare32", str(files["c32"]), "--gate-drop", str(files["drop"]),
+            "--gate-noise", str(files["noise"]), "--probe", str(files["probe"]), "--json", str(out)]  # fmt: skip
+    res = CliRunner().invoke(main, args)
+    assert res.exit_code == 0, res.output
+    assert "| mAP, 8 slices | 40.0 | 45.0 | +5.0 |" in res.output
+    assert json.loads(out.read_text())["verdict"] == "reproduced"
+    res = CliRunner().invoke(main, args[:6])
+    assert res.exit_code != 0 and "pair up" in res.output
+    files["c8"].write_text("{broken")
+    res = CliRunner().invoke(main, args)
+    assert res.exit_code != 0 and "cannot read" in res.output and "Traceback" not in res.output
