@@ -268,3 +268,22 @@ def test_training_gather_equals_the_exported_gather(seed, dtype, q):
         (g_want,) = torch.autograd.grad(want, features, grad)
         (g_got,) = torch.autograd.grad(got, features, grad)
         torch.testing.assert_close(g_got, g_want)
+
+
+def test_the_export_builds_the_form_a_checkpoint_was_trained_with(tmp_path):
+    """A checkpoint saved before the field (no lifter.form) is a volume lifter; one of the flat form is flat."""
+    from streamdet.export.weights import checkpoint_lifter_form
+
+    flat = tmp_path / "flat.pt"
+    save_weights(flat, TINY_FLAT, build_detector(TINY_FLAT))
+    assert checkpoint_lifter_form(flat) == "flat"
+    old = tmp_path / "old.pt"
+    obj = torch.load(flat, weights_only=True)
+    tiny = get_preset("tiny")
+    obj["preset"] = {**tiny.to_dict(), "lifter": {k: v for k, v in tiny.to_dict()["lifter"].items() if k != "form"}}
+    obj["model"] = build_detector(tiny).state_dict()
+    torch.save(obj, old)
+    assert checkpoint_lifter_form(old) == "volume"
+    assert checkpoint_lifter_form(None) is None
+    (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
+    assert checkpoint_lifter_form(tmp_path / "junk.pt") is None
