@@ -125,7 +125,7 @@ def _session_of(model, threads: int, calibration: list | None = None):
 @click.option("--threads", type=click.IntRange(min=1), default=1, show_default=True, help="Intra-op threads per session.")
 @click.option("--int8", is_flag=True, help="Also both graphs quantized as the export quantizes its lifter (calibrated on the quadrants timed).")
 @click.option("--compact-export", type=click.Path(exists=True, file_okay=False, path_type=Path), default=None,
-              help="An export of the same weights with --lut-layout compact (the default): time the two exports' own lifter graphs "
+              help="An export of the same weights with --lut-layout compact: time the two exports' own lifter graphs "
                    "(every precision both hold) instead of exporting them here.")
 def main(export_dir: Path, checkpoint: Path | None, rounds: int, threads: int, int8: bool, compact_export: Path | None) -> None:
     """Time the lifter graph on the K-slot LUT and on the compacted LUT, per quadrant, taking turns."""

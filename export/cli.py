@@ -11,7 +11,7 @@ from streamdet.core.image_layout import IMAGE_LAYOUTS
 from streamdet.core.lut_layout import LUT_LAYOUTS
 from streamdet.export.exporter import STEM_STRIDE, ExportError, ExportOptions, run_export
 from streamdet.export.int8 import DEFAULT_CALIBRATION_SAMPLES
-from streamdet.export.options import DEFAULT_IMAGE_LAYOUT, DEFAULT_LUT_LAYOUT
+from streamdet.export.options import DEFAULT_IMAGE_LAYOUT, DEFAULT_LUT_LAYOUT, LUT_AUTO
 from streamdet.runtime_ort.manifest import LUT_NAME, MANIFEST_NAME
 from streamdet.export.onnx_export import DEFAULT_OPSET, OPSET_RANGE
 from streamdet.models.presets import preset_names
@@ -45,9 +45,10 @@ from streamdet.models.presets import preset_names
 @click.option("--image-layout", type=click.Choice(IMAGE_LAYOUTS), default=DEFAULT_IMAGE_LAYOUT, show_default=True,
               help="What the lifter graph hands the slice graph: the image BEV, or the BEV encoder's image half computed "
                    "once per lift in the lifter graph (models/image_half.py; recorded as the manifest's image_layout).")
-@click.option("--lut-layout", type=click.Choice(LUT_LAYOUTS), default=DEFAULT_LUT_LAYOUT, show_default=True,
+@click.option("--lut-layout", type=click.Choice((LUT_AUTO, *LUT_LAYOUTS)), default=DEFAULT_LUT_LAYOUT, show_default=True,
               help="How the lifter graph reads the LUT: K slots per voxel, or the compacted valid (voxel, camera) pairs "
-                   "(models/compact_lifter.py; recorded as the manifest's lut_layout).")
+                   "(models/compact_lifter.py; recorded as the manifest's lut_layout). auto: compact for a model with "
+                   "one LUT height per voxel, slots for several (where compacting does not pay).")
 def main(preset, checkpoint, calibration, resolution, num_slices, fp16, int8, calibration_data, calibration_samples,
          opset, out_dir, seed, image_layout, lut_layout) -> None:
     """Export the detector as three ONNX graphs plus lut.npz and manifest.json, checking each against PyTorch.

@@ -30,7 +30,7 @@ from streamdet.export import int8 as q8
 from streamdet.export import onnx_export as ox
 from streamdet.export.export_run import ExportRun
 from streamdet.export.graph_steps import TORCH_REF_IMAGES, load_rig  # noqa: F401 (public here)
-from streamdet.export.options import DEFAULT_PRESET, STEM_STRIDE, ExportError, ExportOptions, check_resolution  # noqa: F401
+from streamdet.export.options import DEFAULT_PRESET, STEM_STRIDE, ExportError, ExportOptions, check_resolution, resolve_lut_layout  # noqa: F401
 from streamdet.export.staging import discard_staging_dir, make_staging_dir
 from streamdet.export.steps import Progress, Report, export_steps
 from streamdet.export.weights import checkpoint_lifter_form, checkpoint_preset, checkpoint_slice_crop, checkpoint_use_image
@@ -57,6 +57,7 @@ def run_export(opts: ExportOptions, report: Report | None = None) -> ExportResul
     report = report or (lambda _msg: None)
     t_start = time.perf_counter()
     preset, width, height = _resolve_preset(opts)
+    opts = dataclasses.replace(opts, lut_layout=resolve_lut_layout(opts.lut_layout, preset.lifter.lut_heights_per_voxel))
     _check_options(opts)
     out_dir = Path(opts.out_dir) if opts.out_dir is not None else Path("exports") / preset.name
     steps = export_steps(preset, opts, (width, height))

@@ -8,10 +8,21 @@ from streamdet.export import onnx_export as ox
 from streamdet.export.int8_data import DEFAULT_CALIBRATION_SAMPLES
 from streamdet.export.weights import DEFAULT_SEED
 from streamdet.core.image_layout import IMAGE_BEV
-from streamdet.core.lut_layout import LUT_COMPACT
+from streamdet.core.lut_layout import LUT_COMPACT, LUT_SLOTS
 
 DEFAULT_IMAGE_LAYOUT = IMAGE_BEV  # measured in docs/replay.md ("Less work per lift")
-DEFAULT_LUT_LAYOUT = LUT_COMPACT  # likewise: the same BEV for less lift time; --lut-layout slots keeps the K-slot form
+# how the lifter reads the LUT: "auto" picks compact for one height per voxel (the same BEV for less lift time) and
+# slots for several, where nearly every voxel has two or more slots and compacting costs more than it saves
+# (measured: docs/replay.md, "Less work per lift" and "The flat lifter on a quiet machine")
+LUT_AUTO = "auto"
+DEFAULT_LUT_LAYOUT = LUT_AUTO
+
+
+def resolve_lut_layout(layout: str, heights_per_voxel: int) -> str:
+    """The layout an export writes: ``layout`` itself, or for "auto" compact (one height) / slots (several)."""
+    if layout != LUT_AUTO:
+        return layout
+    return LUT_COMPACT if heights_per_voxel == 1 else LUT_SLOTS
 
 DEFAULT_PRESET = "small"  # the shipped model's preset: what streamdet-export exports without arguments
 STEM_STRIDE = 2  # the ResNet stem's stride: image sizes must be even
@@ -38,7 +49,8 @@ class ExportOptions:
     # which map the lifter hands the slice graph (models/image_half.py): the image BEV, or the BEV encoder's image
     # half computed in the lifter graph; recorded in the manifest's image_layout
     image_layout: str = DEFAULT_IMAGE_LAYOUT
-    # how the lifter graph reads the LUT (core/lut_layout.py): K slots, or the compacted valid pairs
+    # how the lifter graph reads the LUT (core/lut_layout.py): K slots, or the compacted valid pairs; "auto":
+    # resolve_lut_layout (run_export records the resolved one)
     lut_layout: str = DEFAULT_LUT_LAYOUT
 
     @property

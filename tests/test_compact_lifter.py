@@ -14,7 +14,7 @@ import torch
 from streamdet.calibration.compact_lut import compact_lut, lifter_feeds
 from streamdet.core.lut_layout import COMPACT_INPUTS, LUT_COMPACT, LUT_SLOTS, lut_inputs
 from streamdet.data.sample import load_bundled_sample
-from streamdet.export.options import DEFAULT_LUT_LAYOUT
+from streamdet.export.options import DEFAULT_LUT_LAYOUT, LUT_AUTO, resolve_lut_layout
 from streamdet.models.compact_lifter import CompactLifter
 from streamdet.models.detector import build_detector
 from streamdet.models.export_form import to_export_form
@@ -148,7 +148,9 @@ def test_the_compact_int8_graphs_run(compact_export):
 
 
 def test_the_manifest_names_the_lut_layout(slots_export, compact_export, tmp_path):
-    assert DEFAULT_LUT_LAYOUT == LUT_COMPACT
+    assert DEFAULT_LUT_LAYOUT == LUT_AUTO  # compact for one height per voxel (tiny), slots for several
+    assert resolve_lut_layout(LUT_AUTO, 1) == LUT_COMPACT and resolve_lut_layout(LUT_AUTO, 2) == LUT_SLOTS
+    assert resolve_lut_layout(LUT_COMPACT, 2) == LUT_COMPACT and resolve_lut_layout(LUT_SLOTS, 1) == LUT_SLOTS
     assert read_manifest(slots_export).lut_layout == LUT_SLOTS
     m = read_manifest(compact_export)
     assert m.lut_layout == LUT_COMPACT
