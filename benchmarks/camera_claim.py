@@ -32,6 +32,7 @@ GATE_DROP_MAP = 3.0  # mAP points every camera zeroed must cost
 GATE_NOISE_MAP = 2.0  # mAP points (5 deg, 50 cm) noise must cost
 NEED_8, NEED_32, NEED_BICYCLE = 3.0, 5.0, 10.0  # mAP / AP points of "reproduced"
 PROBE_MIN = 0.6  # balanced accuracy of the image BEV's linear probe
+SEEDS_PER_SIDE = 3  # training seeds the issue asks of each side; fewer: the verdict is marked preliminary
 
 
 @dataclass(frozen=True)
@@ -92,6 +93,12 @@ def _gate_costs(drop: dict, noise: dict) -> tuple[float, float]:
     return drop_cost, noise_cost
 
 
+def _runs(doc: dict, side: str) -> int:
+    """Runs (seeds) on one side of a --compare JSON: a path, or a list of paths for a group."""
+    value = doc.get(side)
+    return len(value) if isinstance(value, list) else 1
+
+
 def decide(compare8: dict, compare32: dict, gates: Sequence[tuple[str, dict, dict]] = (),
            probes: Sequence[float] = ()) -> Decision:  # fmt: skip
     """The verdict from the comparisons (B = fused), each fused run's gate files and the probe accuracies."""
@@ -99,6 +106,10 @@ def decide(compare8: dict, compare32: dict, gates: Sequence[tuple[str, dict, dic
             _row(compare8, "AP/bicycle", "bicycle AP, 8 slices", NEED_BICYCLE))  # fmt: skip
     gate = tuple((name, *_gate_costs(drop, noise)) for name, drop, noise in gates)
     notes = []
+    seeds = min(_runs(c, side) for c in (compare8, compare32) for side in ("A", "B"))
+    if seeds < SEEDS_PER_SIDE:
+        notes.append(f"preliminary: {seeds} seed(s) on a side, the issue asks {SEEDS_PER_SIDE} per side "
+                     "(streamdet-eval --compare A1,A2,A3 B1,B2,B3)")  # fmt: skip
     if not gate:
         notes.append("no gate files: the image-use gate was not checked")
     failed = [g for g in gate if g[1] < GATE_DROP_MAP or g[2] < GATE_NOISE_MAP]

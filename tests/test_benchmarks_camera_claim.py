@@ -77,3 +77,11 @@ def test_cli_writes_the_table_and_json(tmp_path):
     files["c8"].write_text("{broken")
     res = CliRunner().invoke(main, args)
     assert res.exit_code != 0 and "cannot read" in res.output and "Traceback" not in res.output
+
+
+def test_fewer_than_three_seeds_per_side_is_preliminary():
+    d = decide(STRONG8, STRONG32, [("s0", *_gate(6.0, 3.0))], [0.7])
+    assert any("preliminary: 1 seed(s)" in n for n in d.notes)
+    three = {**STRONG8, "A": ["a0", "a1", "a2"], "B": ["b0", "b1", "b2"]}
+    three32 = {**STRONG32, "A": ["a0", "a1", "a2"], "B": ["b0", "b1", "b2"]}
+    assert not any("preliminary" in n for n in decide(three, three32, [("s0", *_gate(6.0, 3.0))], [0.7]).notes)
