@@ -24,14 +24,14 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from streamdet.models.bn_fold import fold_bn
-from streamdet.models.lifter import feature_table, gather_z_major
+from streamdet.models.lifter import feature_table, gather_z_major, z_major
 
 
 def gather_z_major_bag(features: Tensor, lut_index: Tensor, lut_weight: Tensor) -> Tensor:
     """``gather_z_major`` (lifter.py) as one ``F.embedding_bag``: the same sums, (Q, Z * C, Yq, Xq).
 
     Training's form: embedding_bag's backward accumulates the feature gradient several times faster than
-    index_select's on CPU (benchmarks/RESULTS.md, "Measurements behind design choices"). ONNX has no EmbeddingBag,
+    index_select's on CPU (measured: docs/training/issue19_plan.md, "Fourth session"). ONNX has no EmbeddingBag,
     so the export form keeps ``gather_z_major``; ``tests/test_models_flat_lifter.py`` holds the two equal.
     """
     table = feature_table(features)  # (R + 1, C), the all-zero sentinel row last
@@ -63,8 +63,7 @@ class FlatLifter(nn.Module):
 
     def convs(self, volume: Tensor) -> Tensor:
         """Everything after the gather, from the volume (Q, C, Z, Yq, Xq), as ``VolumetricLifter.convs``."""
-        q, c, z, y, x = volume.shape
-        return self.folded(volume.permute(0, 2, 1, 3, 4).reshape(q, z * c, y, x))  # channel z * C + c
+        return self.folded(z_major(volume))
 
     def folded(self, v: Tensor) -> Tensor:
         """(Q, Z*C, Yq, Xq), channel z * C + c -> image_bev (Q, C, Yq, Xq)."""
@@ -99,8 +98,7 @@ class FlatLifterConvs(nn.Module):
 
     def forward(self, volume: Tensor) -> Tensor:
         """From the volume (Q, C, Z, Yq, Xq), like ``FlatLifter.convs`` (the benchmark's lifter rows)."""
-        q, c, z, y, x = volume.shape
-        return self.folded(volume.permute(0, 2, 1, 3, 4).reshape(q, z * c, y, x))
+        return self.folded(z_major(volume))
 
     def folded(self, v: Tensor) -> Tensor:
         """(Q, Z*C, Yq, Xq), channel z * C + c -> image_bev (Q, C, Yq, Xq)."""
@@ -110,8 +108,6 @@ class FlatLifterConvs(nn.Module):
 
 class FlatLifterExport(nn.Module):
     """What the exporter traces for a ``FlatLifter``: the z-major gather, then ``FlatLifterConvs``."""
-
-    z_major = True  # CompactLifter reads its gather in this order (compact_lifter.py)
 
     def __init__(self, lifter: FlatLifter) -> None:
         super().__init__()

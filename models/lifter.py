@@ -41,6 +41,13 @@ def gather_z_major(features: Tensor, lut_index: Tensor, lut_weight: Tensor) -> T
     return volume.flatten(3).permute(0, 3, 1, 2)  # (Q, Z*C, Yq, Xq): channel z * C + c
 
 
+def z_major(volume: Tensor) -> Tensor:
+    """A volume (Q, C, Z, Y, X) as the folded map (Q, Z * C, Y, X), channel ``z * C + c``: what ``gather_z_major``
+    yields, for code handed the volume itself."""
+    q, c, z, y, x = volume.shape
+    return volume.permute(0, 2, 1, 3, 4).reshape(q, z * c, y, x)
+
+
 def feature_table(features: Tensor) -> Tensor:
     """(J, C, Hf, Wf) -> (J * Hf * Wf + 1, C): one row per pixel, then the all-zero sentinel row."""
     c = features.shape[1]

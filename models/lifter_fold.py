@@ -25,7 +25,7 @@ from torch import Tensor, nn
 
 from streamdet.models.bn_fold import fold_bn
 from streamdet.models.flat_lifter import FlatLifter, FlatLifterConvs, FlatLifterExport
-from streamdet.models.lifter import VolumetricLifter, gather_z_major
+from streamdet.models.lifter import VolumetricLifter, gather_z_major, z_major
 from streamdet.models.presets import LifterConfig
 
 # Largest (dense 2D MACs) / (3D MACs) the rewrite may cost: Z = 4 (ratio 1.40) measured faster (benchmarks/RESULTS.md);
@@ -132,7 +132,7 @@ class FoldedLifterConvs(nn.Module):
         if (c, z) != (self.channels, self.nz):
             raise ValueError(f"expected a volume of {self.channels} channels x {self.nz} planes, got shape {tuple(volume.shape)}")
         if self.z_major:
-            return self.folded(volume.permute(0, 2, 1, 3, 4).reshape(q, z * c, y, x))  # channel z * C + c
+            return self.folded(z_major(volume))  # channel z * C + c
         return self.folded(volume.reshape(q, c * z, y, x))  # (Q, C*Z, Y, X): channel c * Z + z
 
     def folded(self, v: Tensor) -> Tensor:
