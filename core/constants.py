@@ -11,3 +11,8 @@ BUNDLED_PREFIX = "bundled:"
 BUNDLED_SAMPLE_DIR = "nuscenes_sample"  # the bundled real nuScenes sample, under streamdet.data
 BUNDLED_SAMPLE_SOURCE = BUNDLED_PREFIX + BUNDLED_SAMPLE_DIR
 BUNDLED_CALIBRATION_SOURCE = BUNDLED_SAMPLE_SOURCE + "/calibration.json"
+
+# The shipped model (models/weights/small.pt) is of this preset; `streamdet-export` without arguments writes it to
+# exports/<preset>, which every command that reads an export takes by default.
+DEFAULT_PRESET = "small"
+DEFAULT_EXPORT_DIR = "exports/" + DEFAULT_PRESET

@@ -15,6 +15,7 @@ from pathlib import Path
 import click
 
 from streamdet.cli_utils import PRECISION_CHOICES, image_precision_option
+from streamdet.core.constants import DEFAULT_EXPORT_DIR
 from streamdet.evaluation.config import TP_METRICS, DetectionConfig
 from streamdet.evaluation.detection_eval import evaluate
 from streamdet.evaluation.eval_boxes import EvalBoxes
@@ -181,7 +182,7 @@ def _compare(run_a: str, run_b: str, gt_path: Path | None, classes: tuple[str, .
 @click.option("--version", default="v1.0-synth", show_default=True, help="Dataset mode: the table folder under --data.")
 @click.option("--split", default="val", show_default=True,
               help="Dataset mode: scenes of this split in DATA/splits.json; 'all' for every sample.")  # fmt: skip
-@click.option("--export-dir", type=click.Path(file_okay=False, path_type=Path), default=Path("exports/small"),
+@click.option("--export-dir", type=click.Path(file_okay=False, path_type=Path), default=Path(DEFAULT_EXPORT_DIR),
               show_default=True, help="Dataset mode: export directory written by streamdet-export.")  # fmt: skip
 @click.option("--slices", type=click.IntRange(min=1), default=None,
               help="Dataset mode: slices per sweep (1, 2 or a multiple of 4); default: the export's.")  # fmt: skip

@@ -11,7 +11,7 @@ from streamdet.core.image_layout import IMAGE_LAYOUTS
 from streamdet.core.lut_layout import LUT_LAYOUTS
 from streamdet.export.exporter import STEM_STRIDE, ExportError, ExportOptions, run_export
 from streamdet.export.int8 import DEFAULT_CALIBRATION_SAMPLES
-from streamdet.export.options import DEFAULT_IMAGE_LAYOUT, DEFAULT_LUT_LAYOUT, LUT_AUTO
+from streamdet.export.options import DEFAULT_IMAGE_LAYOUT, DEFAULT_LUT_LAYOUT, DEFAULT_PRESET, LUT_AUTO
 from streamdet.runtime_ort.manifest import LUT_NAME, MANIFEST_NAME
 from streamdet.export.onnx_export import DEFAULT_OPSET, OPSET_RANGE
 from streamdet.models.presets import preset_names
@@ -19,10 +19,10 @@ from streamdet.models.presets import preset_names
 
 @click.command(context_settings={"help_option_names": ["-h", "--help"]})
 @click.option("--preset", default=None, type=click.Choice(preset_names()),
-              help="Model preset to export. Default: the preset --checkpoint names, else small.")
+              help=f"Model preset to export. Default: the preset --checkpoint names, else {DEFAULT_PRESET} (the shipped model's).")
 @click.option("--checkpoint", type=click.Path(dir_okay=False), default=None,
-              help="Checkpoint of that preset (torch.load weights_only). Default: the bundled models/weights/<preset>.pt "
-                   "if present, else fixed-seed untrained weights.")
+              help="Checkpoint of that preset (torch.load weights_only). Default: the bundled fused checkpoint of the "
+                   "preset (a file in models/weights/ whose saved preset has that name), else fixed-seed untrained weights.")
 @click.option("--calibration", type=click.Path(dir_okay=False), default=None,
               help="calibration.json for lut.npz. Default: the bundled nuScenes sample's, intrinsics scaled to --resolution.")
 @click.option("--resolution", callback=resolution_callback(multiple_of=STEM_STRIDE), default=None, metavar="WxH",

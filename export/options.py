@@ -8,6 +8,7 @@ from streamdet.export import onnx_export as ox
 from streamdet.export.int8_data import DEFAULT_CALIBRATION_SAMPLES
 from streamdet.export.weights import DEFAULT_SEED
 from streamdet.core.image_layout import IMAGE_BEV
+from streamdet.core.constants import DEFAULT_PRESET as CORE_DEFAULT_PRESET
 from streamdet.core.lut_layout import LUT_COMPACT, LUT_SLOTS
 
 DEFAULT_IMAGE_LAYOUT = IMAGE_BEV  # measured in docs/replay.md ("Less work per lift")
@@ -24,7 +25,7 @@ def resolve_lut_layout(layout: str, heights_per_voxel: int) -> str:
         return layout
     return LUT_COMPACT if heights_per_voxel == 1 else LUT_SLOTS
 
-DEFAULT_PRESET = "small"  # the shipped model's preset: what streamdet-export exports without arguments
+DEFAULT_PRESET = CORE_DEFAULT_PRESET  # the shipped model's preset (models/weights/small.pt): what streamdet-export exports without arguments
 STEM_STRIDE = 2  # the ResNet stem's stride: image sizes must be even
 
 
@@ -35,7 +36,7 @@ class ExportError(Exception):
 @dataclass(frozen=True)
 class ExportOptions:
     preset: str | None = None  # None: the preset the checkpoint names, else DEFAULT_PRESET
-    checkpoint: str | None = None  # None: models/weights/<preset>.pt if bundled, else fixed-seed weights
+    checkpoint: str | None = None  # None: the bundled fused checkpoint of the preset (export/weights.py bundled_checkpoint), else fixed-seed weights
     calibration: str | None = None  # calibration.json path; None: the bundled nuScenes sample's
     resolution: tuple[int, int] | None = None  # (W, H) px of the camera images; None: the preset's
     num_slices: int = 8  # slices per sweep (the paper's headline model); picks the parity slice

@@ -41,10 +41,18 @@ class WeightsSource:
         return f"checkpoint {self.checkpoint}"
 
 
-def bundled_checkpoint(preset_name: str) -> Path | None:
-    """``models/weights/<preset>.pt`` shipped with the package, if it exists."""
-    path = Path(str(importlib.resources.files("streamdet.models"))) / "weights" / f"{preset_name}.pt"
-    return path if path.is_file() else None
+def bundled_checkpoint(preset_name: str, folder: str | os.PathLike | None = None) -> Path | None:
+    """The shipped fused checkpoint of a preset: the first ``models/weights/*.pt`` (by file name) whose saved
+    preset has this name and uses the cameras. Files are named by role, not by preset (``small.pt`` is the shipped
+    fused model whatever its preset), and a LiDAR-only baseline beside it (``small_lidar_only.pt``) is never a
+    default. None when no bundled file fits: the export then uses fixed-seed weights and says so. ``folder``: another
+    folder to search (tests)."""
+    folder = Path(folder) if folder is not None else Path(str(importlib.resources.files("streamdet.models"))) / "weights"
+    for path in sorted(folder.glob("*.pt")):
+        saved = checkpoint_preset(path)
+        if saved is not None and saved.get("name") == preset_name and saved.get("use_image", True) is not False:
+            return path
+    return None
 
 
 def checkpoint_preset(checkpoint: str | os.PathLike | None) -> dict | None:

@@ -19,10 +19,10 @@ import click
 
 from streamdet import studies as st
 from streamdet.cli_utils import image_precision_option, resolution_callback
-from streamdet.core.constants import PRECISIONS
+from streamdet.core.constants import DEFAULT_EXPORT_DIR as DEFAULT_EXPORT_DIR_NAME, PRECISIONS
 from streamdet.studies.plots import plot_calib_noise, plot_drop_camera, plot_resolution, plot_slices
 
-DEFAULT_EXPORT_DIR = Path("exports") / "small"
+DEFAULT_EXPORT_DIR = Path(DEFAULT_EXPORT_DIR_NAME)
 ALL_SPLIT = "all"  # --split value that scores every sample of the dataset
 
 

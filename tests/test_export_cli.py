@@ -162,10 +162,30 @@ def test_foreign_rig_exports_with_noise_images(tmp_path):
 
 @pytest.mark.slow
 def test_default_export_no_arguments(tmp_path, monkeypatch):
-    """No arguments at all: small preset, bundled (or fixed-seed) weights, bundled calibration, ./exports/small."""
+    """No arguments at all: the shipped model's preset, its bundled (or fixed-seed) weights, bundled calibration,
+    ./exports/<preset> (the default every reader of an export takes)."""
+    from streamdet.core.constants import DEFAULT_EXPORT_DIR, DEFAULT_PRESET
+
     monkeypatch.chdir(tmp_path)
     result = _invoke([])
     assert result.exit_code == 0, result.output
-    m = read_manifest(tmp_path / "exports" / "small")
-    assert m.preset_name == "small" and (m.image.width, m.image.height) == (384, 216)  # the small preset's native size
+    m = read_manifest(tmp_path / DEFAULT_EXPORT_DIR)
+    assert m.preset_name == DEFAULT_PRESET and (m.image.width, m.image.height) == (384, 216)  # the preset's native size
     assert m.lut.calibration_source.startswith("bundled:") and all(p.passed for p in m.parity)
+
+
+def test_bundled_checkpoint_is_found_by_the_preset_it_names(tmp_path):
+    """Bundled files are named by role: the lookup reads each file's saved preset, skips a LiDAR-only baseline
+    (even when its name sorts first) and files of other presets, and finds nothing in an empty folder."""
+    from streamdet.export.weights import bundled_checkpoint
+    from streamdet.training.checkpoint import save_weights
+
+    tiny = get_preset("tiny")
+    lidar_only = dataclasses.replace(tiny, use_image=False)
+    assert bundled_checkpoint("tiny", tmp_path) is None
+    save_weights(tmp_path / "a_lidar_only.pt", lidar_only, build_detector(lidar_only))
+    assert bundled_checkpoint("tiny", tmp_path) is None  # the baseline is never a default
+    save_weights(tmp_path / "b_fused.pt", tiny, build_detector(tiny))
+    (tmp_path / "0_broken.pt").write_bytes(b"not a checkpoint")
+    assert bundled_checkpoint("tiny", tmp_path) == tmp_path / "b_fused.pt"
+    assert bundled_checkpoint("small", tmp_path) is None
