@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 from pathlib import Path
 
 import click
@@ -144,9 +145,14 @@ def _compare(run_a: str, run_b: str, gt_path: Path | None, classes: tuple[str, .
     try:
         a = [load_run(p, gt_path) for p in group_a]
         b = [load_run(p, gt_path) for p in group_b]
-        with click.progressbar(length=1, label=f"bootstrap ({draws} draws)") as bar:
-            comparison = compare_runs(a, b, classes=classes, num_draws=draws, seed=seed)
-            bar.update(1)
+        # one step per subset (all boxes, few points, cut by a border, each slice): each draws `draws` times
+        with click.progressbar(length=1, label=f"bootstrap ({draws} draws per subset)", show_pos=True,
+                               item_show_func=lambda name: name, file=sys.stderr) as bar:  # fmt: skip
+            def progress(name: str, done: int, total: int) -> None:
+                bar.length = total
+                bar.update(done - bar.pos, name)
+
+            comparison = compare_runs(a, b, classes=classes, num_draws=draws, seed=seed, progress=progress)
     except ValueError as e:
         raise click.ClickException(str(e).splitlines()[0]) from None
     name_a, name_b = ", ".join(map(str, group_a)), ", ".join(map(str, group_b))

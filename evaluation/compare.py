@@ -17,7 +17,7 @@ says the interval is then too narrow) and only the few-points subset is availabl
 from __future__ import annotations
 
 import json
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -155,11 +155,13 @@ def slice_masks(boxes: EvalBoxes, info: SampleInfo) -> tuple[np.ndarray, np.ndar
 def compare_runs(
     run_a: Run | Sequence[Run], run_b: Run | Sequence[Run], classes: Sequence[str] | None = None, num_draws: int = 1000,
     seed: int = 0, config: DetectionConfig = DetectionConfig(), few_points: int = FEW_POINTS, subsets: bool = True,
+    progress: Callable[[str, int, int], None] | None = None,
 ) -> Comparison:  # fmt: skip
     """B - A for mAP, NDS and per-class AP, on all boxes and (``subsets``) per slice / cut / few-points subset.
 
     A side given as several runs (training seeds of one recipe) is their mean, and the bootstrap resamples its runs
-    too (``paired_bootstrap``); every run must be scored on the same ground truth."""
+    too (``paired_bootstrap``); every run must be scored on the same ground truth. ``progress(subset, done, total)``
+    is called after each subset's bootstrap (the long part: each subset draws ``num_draws`` times)."""
     runs_a = [run_a] if isinstance(run_a, Run) else list(run_a)
     runs_b = [run_b] if isinstance(run_b, Run) else list(run_b)
     if not runs_a or not runs_b:
@@ -206,20 +208,21 @@ def compare_runs(
         else:
             notes.append("no samples.json: no per-slice or cut-by-border subsets")
     out = {}
-    for name, sub in subset_defs.items():
+    for done, (name, sub) in enumerate(subset_defs.items(), start=1):
         keep = np.ones(len(gt), bool) if sub is None else sub[0]
         sub_classes = tuple(c for c in classes if np.any(gt.detection_name[keep] == c))
         if not sub_classes:
             notes.append(f"{name}: no ground truth of the compared classes, skipped")
-            continue
+        else:
+            def tables(preds, pred_keeps):
+                return [match_tables(gt, p, sub_classes, config, None if sub is None else GtSubset(keep, pk), filtered=True)[1]
+                        for p, pk in zip(preds, pred_keeps)]  # fmt: skip
 
-        def tables(preds, pred_keeps):
-            return [match_tables(gt, p, sub_classes, config, None if sub is None else GtSubset(keep, pk), filtered=True)[1]
-                    for p, pk in zip(preds, pred_keeps)]  # fmt: skip
-
-        ta = tables(preds_a, [None] * len(preds_a) if sub is None else sub[1])
-        tb = tables(preds_b, [None] * len(preds_b) if sub is None else sub[2])
-        out[name] = paired_bootstrap(ta, tb, sub_classes, clusters, num_draws, seed, config=config)
+            ta = tables(preds_a, [None] * len(preds_a) if sub is None else sub[1])
+            tb = tables(preds_b, [None] * len(preds_b) if sub is None else sub[2])
+            out[name] = paired_bootstrap(ta, tb, sub_classes, clusters, num_draws, seed, config=config)
+        if progress is not None:
+            progress(name, done, len(subset_defs))
     return Comparison(subsets=out, num_samples=len(gt.sample_tokens), num_clusters=int(clusters.max()) + 1,
                       clustered_by=clustered_by, num_draws=num_draws, notes=notes)  # fmt: skip
 

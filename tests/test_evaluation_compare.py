@@ -272,3 +272,17 @@ def test_cli_compare_groups_of_runs(tmp_path):
     assert any("mean of 2 run(s)" in n for n in doc["notes"]) and "slice0" in doc["subsets"]
     res = CliRunner().invoke(main, ["--compare", f"{a[0]},{tmp_path / 'missing'}", str(b[0])])
     assert res.exit_code != 0 and "does not exist" in res.output and "Traceback" not in res.output
+
+
+def test_compare_reports_progress_once_per_subset(tmp_path):
+    """The bootstrap of each subset is the long part: progress(subset, done, total) follows every one, in order."""
+    gt, (pa, pb) = _world(6, num_samples=8)
+    scenes = {t: f"scene{i // 2}" for i, t in enumerate(gt)}
+    a = load_run(_save(tmp_path / "a", gt, pa, scenes, num_slices=4))
+    b = load_run(_save(tmp_path / "b", gt, pb, scenes, num_slices=4))
+    calls = []
+    c = compare_runs(a, b, num_draws=5, progress=lambda name, done, total: calls.append((name, done, total)))
+    total = calls[0][2]
+    assert [d for _, d, _ in calls] == list(range(1, total + 1)) and all(t == total for _, _, t in calls)
+    assert total == 2 + 1 + 4  # all, few points, cut by a border, four slices
+    assert set(c.subsets) <= {name for name, _, _ in calls}
