@@ -14,5 +14,5 @@ BUNDLED_CALIBRATION_SOURCE = BUNDLED_SAMPLE_SOURCE + "/calibration.json"
 
 # The shipped model (models/weights/small.pt) is of this preset; `streamdet-export` without arguments writes it to
 # exports/<preset>, which every command that reads an export takes by default.
-DEFAULT_PRESET = "small"
+DEFAULT_PRESET = "small_v2"
 DEFAULT_EXPORT_DIR = "exports/" + DEFAULT_PRESET

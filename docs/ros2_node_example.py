@@ -52,7 +52,7 @@ def main() -> None:  # the ROS boilerplate
     class StreamdetNode(Node):
         def __init__(self) -> None:
             super().__init__("streamdet")
-            export_dir = self.declare_parameter("export_dir", "exports/small").value
+            export_dir = self.declare_parameter("export_dir", "exports/small_v2").value
             self.detector = StreamingDetector(export_dir, DetectorConfig())
             self.images: dict[str, np.ndarray] = {}  # newest image per camera since the last cloud
             self.boxes = self.create_publisher(Detection3DArray, "/streamdet/detections", 10)

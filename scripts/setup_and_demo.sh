@@ -11,4 +11,4 @@ fi
 .venv/bin/pip install -q torch==2.13.0
 .venv/bin/pip install -q -e ".[export,dev]"
 .venv/bin/streamdet-export --fp16
-.venv/bin/streamdet-bench --resolution 800x450 --export-dir exports/small
+.venv/bin/streamdet-bench --resolution 800x450 --export-dir exports/small_v2
