@@ -16,6 +16,7 @@ from pathlib import Path
 import click
 
 from streamdet.cli_utils import PRECISION_CHOICES, image_precision_option, resolution_callback
+from streamdet.core.constants import DEFAULT_PRESET
 from streamdet.models.presets import get_preset, preset_names
 
 QUICK_TORCH_SKIP_MS = 200.0  # --quick: PyTorch eager is timed only on rows faster than this in onnxruntime fp32
@@ -48,7 +49,7 @@ def _flops_only(preset: str, resolution: tuple[int, int] | None, json_path: Path
     "--preset",
     type=click.Choice(preset_names()),
     default=None,
-    help="Model preset to measure [default: small; paper with --flops-only, to compare with the paper's column].",
+    help=f"Model preset to measure [default: {DEFAULT_PRESET}, the shipped model's; paper with --flops-only, to compare with the paper's column].",
 )
 @click.option(
     "--resolution",
@@ -142,7 +143,7 @@ def main(
     from streamdet.benchmarks.run import BenchConfig, BenchmarkError, run_benchmark, write_plot
 
     cfg = BenchConfig(
-        preset=preset or "small",
+        preset=preset or DEFAULT_PRESET,
         resolution=resolution,
         slices=slices,
         fp16=fp16,

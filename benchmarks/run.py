@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from streamdet.benchmarks import report
+from streamdet.core.constants import DEFAULT_PRESET
 from streamdet.benchmarks.flops_report import PAPER_RESOLUTIONS, slice_row_pillars
 from streamdet.benchmarks.modules import build_rows
 from streamdet.benchmarks.probe import OtherCpuUse, ProbeConfig, ProbeResult, machine_info, measure_peak
@@ -33,7 +34,7 @@ class BenchmarkError(Exception):
 
 @dataclass(frozen=True)
 class BenchConfig:
-    preset: str = "small"
+    preset: str = DEFAULT_PRESET  # the shipped model's preset
     resolution: tuple[int, int] | None = None  # (W, H) of the given image row and the streaming export; None: preset's
     slices: int = 8  # slices per sweep of the streaming section
     fp16: bool = True  # also export and time fp16 graphs
