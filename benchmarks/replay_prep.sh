@@ -11,7 +11,8 @@ if [ -n "${CHECKPOINT:-}" ]; then
   EXPORT="$OUT/export_$(basename "$(dirname "$CHECKPOINT")")"
   CKPT_ARGS=(--checkpoint "$CHECKPOINT")
 else
-  EXPORT="$OUT/export_small"
+  # the shipped model, named by its file's hash so that an export of earlier weights is never reused
+  EXPORT="$OUT/export_shipped_$(sha256sum models/weights/small.pt | cut -c1-12)"
   CKPT_ARGS=()
 fi
 if [ ! -f "$EXPORT/manifest.json" ]; then

@@ -137,7 +137,7 @@ def _run_group(arg: str) -> list[Path]:
 
 
 def _compare(run_a: str, run_b: str, gt_path: Path | None, classes: tuple[str, ...] | None, draws: int, seed: int,
-             json_path: Path | None) -> None:  # fmt: skip
+             json_path: Path | None, subsets: bool = True) -> None:  # fmt: skip
     """``--compare`` mode: B - A with a paired bootstrap interval over scenes (``evaluation.compare``)."""
     from streamdet.evaluation.compare import compare_runs, format_comparison, load_run
 
@@ -152,7 +152,8 @@ def _compare(run_a: str, run_b: str, gt_path: Path | None, classes: tuple[str, .
                 bar.length = total
                 bar.update(done - bar.pos, name)
 
-            comparison = compare_runs(a, b, classes=classes, num_draws=draws, seed=seed, progress=progress)
+            comparison = compare_runs(a, b, classes=classes, num_draws=draws, seed=seed, subsets=subsets,
+                                      progress=progress)
     except ValueError as e:
         raise click.ClickException(str(e).splitlines()[0]) from None
     name_a, name_b = ", ".join(map(str, group_a)), ", ".join(map(str, group_b))
@@ -222,10 +223,14 @@ def _compare(run_a: str, run_b: str, gt_path: Path | None, classes: tuple[str, .
               help="Compare mode: bootstrap draws.")  # fmt: skip
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True,
               help="Compare mode: seed of the bootstrap draws.")  # fmt: skip
+@click.option("--no-subsets", "no_subsets", is_flag=True,
+              help="Compare mode: bootstrap all boxes only, without the per-slice, cut-by-border and few-points "
+              "subsets (each subset costs as much as the headline: 35 of them at 32 slices).")  # fmt: skip
 def main(gt_path: Path | None, results_path: Path | None, data_dir: Path | None, version: str, split: str,
          export_dir: Path, slices: int | None, precision: str, image_precision: str | None, max_samples: int | None,
          json_path: Path | None, classes: str | None, save_dir: Path | None,
-         compare_runs: tuple[str, str] | None = None, draws: int = 1000, seed: int = 0) -> None:  # fmt: skip
+         compare_runs: tuple[str, str] | None = None, draws: int = 1000, seed: int = 0,
+         no_subsets: bool = False) -> None:  # fmt: skip
     """nuScenes detection mAP, TP errors and NDS, computed as nuscenes-devkit 1.2.0 (detection_cvpr_2019).
 
     Three modes: --gt with --results (two JSON files), --data (run an export over a dataset split), or
@@ -237,7 +242,7 @@ def main(gt_path: Path | None, results_path: Path | None, data_dir: Path | None,
     if compare_runs:
         if data_dir is not None or results_path is not None or save_dir is not None:
             raise click.UsageError("--compare reads two saved runs; do not combine it with --data / --results / --save-results")
-        _compare(compare_runs[0], compare_runs[1], gt_path, class_list, draws, seed, json_path)
+        _compare(compare_runs[0], compare_runs[1], gt_path, class_list, draws, seed, json_path, subsets=not no_subsets)
         return
     if data_dir is not None:
         if gt_path is not None or results_path is not None:

@@ -53,7 +53,7 @@ class SliceNet(nn.Module):
         self.bev_encoder = BevEncoder(preset.bev, 2 * c if preset.use_image else c)
         self.head = CenterHead(preset.head, self.bev_encoder.out_channels)
         # the image BEV brought to the point BEV's scale (models/image_bev_norm.py); absent by default
-        self.image_bev_norm = ImageBevNorm(c) if preset.use_image and preset.image_bev_norm else None
+        self.image_bev_norm = ImageBevNorm(c, preset.image_bev_target) if preset.use_image and preset.image_bev_norm else None
 
     def fused_bev(self, pillar_features: Tensor, pillar_mask: Tensor, pillar_index: Tensor,
                   image_bev: Tensor | None = None, *, num_quadrants: int | None = None) -> Tensor:  # fmt: skip
@@ -65,7 +65,7 @@ class SliceNet(nn.Module):
         if image_bev is None:  # no image lifted yet: zeros, what the runtime feeds before its first image update
             image_bev = torch.zeros_like(p_bev)
         elif self.image_bev_norm is not None:
-            image_bev = self.image_bev_norm(image_bev)  # (Q, C, Yq, Xq)
+            image_bev = self.image_bev_norm(image_bev, p_bev)  # (Q, C, Yq, Xq)
         return self.bev_encoder(torch.cat([p_bev, image_bev], dim=1))  # (Q, 2C, Yq, Xq)
 
     def forward(self, pillar_features: Tensor, pillar_mask: Tensor, pillar_index: Tensor,

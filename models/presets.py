@@ -198,8 +198,10 @@ class Preset:
     head: HeadConfig = field(default_factory=HeadConfig)
     post: PostConfig = field(default_factory=PostConfig)
     use_image: bool = True  # False: the LiDAR-only streaming baseline (image_bev is then only read for its shape)
-    # True: the image BEV is scaled per channel to a learnt RMS before fusion (models/image_bev_norm.py)
+    # True: the image BEV is scaled per channel before fusion (models/image_bev_norm.py) to a learnt RMS
+    # (image_bev_target "learnt") or to the point BEV's RMS on the cells that hold points ("point")
     image_bev_norm: bool = False
+    image_bev_target: str = "learnt"
     # True: a slice's net runs on the quadrants it touches (the paper's crop, Sec. III-C); False: on one map of the
     # whole grid per slice, as the paper's LiDAR-only baselines (calibration/slice_maps.py). LiDAR-only nets only.
     slice_crop: bool = True
@@ -208,6 +210,8 @@ class Preset:
         _check_positive_int(self, "channels")
         if not isinstance(self.slice_crop, bool):
             raise ValueError(f"Preset.slice_crop must be True or False, got {self.slice_crop!r}")
+        if self.image_bev_target not in ("learnt", "point"):
+            raise ValueError(f"Preset.image_bev_target must be 'learnt' or 'point', got {self.image_bev_target!r}")
         if self.use_image and not self.slice_crop:
             raise ValueError(
                 f"Preset {self.name!r}: slice_crop=False (one whole-grid map per slice) is supported for the LiDAR-only "
@@ -280,6 +284,8 @@ class Preset:
             del d["lifter"]["lut_heights_per_voxel"]
         if self.image_bev_norm:
             d["image_bev_norm"] = True
+        if self.image_bev_target != "learnt":
+            d["image_bev_target"] = self.image_bev_target
         if not self.slice_crop:
             d["slice_crop"] = False
         return d
@@ -299,6 +305,7 @@ class Preset:
                 post=PostConfig(**{**d["post"], "nms_iou_threshold": tuple(d["post"]["nms_iou_threshold"])}),
                 use_image=bool(d["use_image"]),
                 image_bev_norm=bool(d.get("image_bev_norm", False)),
+                image_bev_target=str(d.get("image_bev_target", "learnt")),
                 slice_crop=d.get("slice_crop", True),
             )
         except KeyError as e:
@@ -381,7 +388,13 @@ def _small_v2() -> Preset:
     )
 
 
-_PRESETS = {"paper": _paper, "small": _small, "tiny": _tiny, "small_v2": _small_v2}
+def _small_v3() -> Preset:
+    # small_v2 with the image BEV brought to the point BEV's RMS on occupied cells instead of a learnt gain (issue 19
+    # item 2: trained, small_v2's gain left the image half at 0.28-0.35 of the point half's scale)
+    return dataclasses.replace(_small_v2(), name="small_v3", image_bev_target="point")
+
+
+_PRESETS = {"paper": _paper, "small": _small, "tiny": _tiny, "small_v2": _small_v2, "small_v3": _small_v3}
 
 
 def preset_names() -> tuple[str, ...]:

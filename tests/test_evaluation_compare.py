@@ -286,3 +286,17 @@ def test_compare_reports_progress_once_per_subset(tmp_path):
     assert [d for _, d, _ in calls] == list(range(1, total + 1)) and all(t == total for _, _, t in calls)
     assert total == 2 + 1 + 4  # all, few points, cut by a border, four slices
     assert set(c.subsets) <= {name for name, _, _ in calls}
+
+
+def test_cli_compare_no_subsets_keeps_the_headline_only(tmp_path):
+    gt, (pa, pb) = _world(7, num_samples=8)
+    scenes = {t: f"scene{i // 2}" for i, t in enumerate(gt)}
+    a = _save(tmp_path / "a", gt, pa, scenes, num_slices=8)
+    b = _save(tmp_path / "b", gt, pb, scenes, num_slices=8)
+    full, head = tmp_path / "full.json", tmp_path / "head.json"
+    for extra, out in (([], full), (["--no-subsets"], head)):
+        res = CliRunner().invoke(main, ["--compare", str(a), str(b), "--bootstrap", "20", "--json", str(out), *extra])
+        assert res.exit_code == 0, res.output
+    full_doc, head_doc = json.loads(full.read_text()), json.loads(head.read_text())
+    assert set(head_doc["subsets"]) == {"all"} and len(full_doc["subsets"]) > 1
+    assert head_doc["subsets"]["all"] == full_doc["subsets"]["all"]  # the same draws for the headline

@@ -163,3 +163,68 @@ def test_cross_process_conversion_keeps_frozen_batch_norm():
     net = torch.nn.Sequential(FrozenBatchNorm2d(4), torch.nn.BatchNorm2d(4))
     convert_batchnorm(net)
     assert type(net[0]) is FrozenBatchNorm2d and isinstance(net[1], CrossProcessBatchNorm)
+
+
+def _naive_point_match(x, point, eps):
+    """Reference of ImageBevNorm(target='point') in training, by loops over channels and cells."""
+    q, c, h, w = x.shape
+    cells = [(i, yy, xx) for i in range(q) for yy in range(h) for xx in range(w) if float(point[i, :, yy, xx].abs().sum()) > 0]
+    point_ms = sum(float(point[i, k, yy, xx]) ** 2 for i, yy, xx in cells for k in range(c)) / (len(cells) * c)
+    out = torch.empty_like(x)
+    for k in range(c):
+        ms = sum(float(x[i, k, yy, xx]) ** 2 for i, yy, xx in cells) / len(cells)
+        out[:, k] = x[:, k] * (point_ms ** 0.5 / (ms + eps) ** 0.5)
+    return out, point_ms
+
+
+@pytest.mark.parametrize("seed", range(3))
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_image_bev_matched_to_the_point_bev_on_occupied_cells(seed, dtype):
+    gen = torch.Generator().manual_seed(seed)
+    norm = ImageBevNorm(3, target="point", momentum=1.0).to(dtype)
+    x = (torch.randn(2, 3, 4, 5, generator=gen) * torch.tensor([0.01, 1.0, 30.0]).view(1, -1, 1, 1)).to(dtype)
+    point = torch.randn(2, 3, 4, 5, generator=gen).to(dtype) * 2.5
+    point[:, :, :2] = 0  # half of the cells hold no points
+    y = norm.train()(x, point)
+    ref, point_ms = _naive_point_match(x, point, norm.eps)
+    torch.testing.assert_close(y, ref, rtol=1e-4, atol=1e-6)
+    occupied = point.abs().sum(dim=1) > 0  # (Q, Y, X)
+    img_rms = y.permute(1, 0, 2, 3)[:, occupied].square().mean().sqrt()
+    pt_rms = point.permute(1, 0, 2, 3)[:, occupied].square().mean().sqrt()
+    assert abs(float(img_rms / pt_rms) - 1.0) < 1e-2  # one scale where both exist (eps bends the faintest channel)
+    torch.testing.assert_close(norm.point_ms, torch.tensor(point_ms, dtype=dtype), rtol=1e-5, atol=1e-7)
+    torch.testing.assert_close(norm.eval()(x), y, rtol=1e-4, atol=1e-6)  # momentum 1: eval = this batch's scale
+
+
+def test_image_bev_point_target_keeps_its_statistics_without_points_and_needs_them():
+    norm = ImageBevNorm(2, target="point").train()
+    before = (norm.running_ms.clone(), norm.point_ms.clone())
+    x = torch.randn(1, 2, 3, 3)
+    y = norm(x, torch.zeros(1, 2, 3, 3))  # an empty slice: nothing to match
+    torch.testing.assert_close(y, x * norm.scale().view(1, -1, 1, 1))
+    assert torch.equal(norm.running_ms, before[0]) and torch.equal(norm.point_ms, before[1])
+    with pytest.raises(ValueError, match="point BEV"):
+        norm(x)
+    with pytest.raises(ValueError, match="learnt"):
+        ImageBevNorm(2, target="cells")
+    assert not any(True for _ in norm.parameters())  # no learnt gain to shrink
+
+
+def test_small_v3_exports_with_the_point_target_folded():
+    preset = dataclasses.replace(TINY, image_bev_norm=True, image_bev_target="point")
+    assert Preset.from_dict(json.loads(json.dumps(preset.to_dict()))) == preset
+    assert "image_bev_target" not in dataclasses.replace(preset, image_bev_target="learnt").to_dict()
+    torch.manual_seed(5)
+    net = SliceNet(preset)
+    with torch.no_grad():
+        net.image_bev_norm.running_ms.uniform_(0.001, 0.01)
+        net.image_bev_norm.point_ms.fill_(3.0)
+    net.eval()
+    args = _inputs(preset, 2, 30, 5)
+    with torch.no_grad():
+        for got, ref in zip(ExportSliceNet(net)(*args), net(*args)):
+            torch.testing.assert_close(got, ref, rtol=1e-4, atol=1e-5)
+    v3 = get_preset("small_v3")
+    assert dataclasses.replace(v3, name="small_v2", image_bev_target="learnt") == get_preset("small_v2")
+    with pytest.raises(ValueError, match="image_bev_target"):
+        dataclasses.replace(TINY, image_bev_target="cells")

@@ -25,7 +25,7 @@ from streamdet.models.presets import (
 
 
 def test_preset_names():
-    assert preset_names() == ("paper", "small", "tiny", "small_v2")
+    assert preset_names() == ("paper", "small", "tiny", "small_v2", "small_v3")
 
 
 def test_unknown_preset_lists_known_ones():
