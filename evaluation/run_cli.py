@@ -15,9 +15,9 @@ import numpy as np
 
 from streamdet.cli_utils import PRECISION_CHOICES, image_precision_option
 from streamdet.runtime_ort.stats import format_latency
-from streamdet.core.constants import DEFAULT_EXPORT_DIR as DEFAULT_EXPORT_DIR_NAME
+from streamdet.core import constants
 
-DEFAULT_EXPORT_DIR = Path(DEFAULT_EXPORT_DIR_NAME)
+DEFAULT_EXPORT_DIR = Path(constants.DEFAULT_EXPORT_DIR)
 
 
 def run_sample(

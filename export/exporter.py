@@ -24,7 +24,7 @@ from pathlib import Path
 
 import torch
 
-from streamdet.core.constants import BUNDLED_CALIBRATION_SOURCE
+from streamdet.core.constants import BUNDLED_CALIBRATION_SOURCE, EXPORTS_ROOT
 from streamdet.core.sectors import check_num_slices
 from streamdet.export import int8 as q8
 from streamdet.export import onnx_export as ox
@@ -59,7 +59,7 @@ def run_export(opts: ExportOptions, report: Report | None = None) -> ExportResul
     preset, width, height = _resolve_preset(opts)
     opts = dataclasses.replace(opts, lut_layout=resolve_lut_layout(opts.lut_layout, preset.lifter.lut_heights_per_voxel))
     _check_options(opts)
-    out_dir = Path(opts.out_dir) if opts.out_dir is not None else Path("exports") / preset.name
+    out_dir = Path(opts.out_dir) if opts.out_dir is not None else Path(EXPORTS_ROOT) / preset.name
     steps = export_steps(preset, opts, (width, height))
     progress = Progress(report, total=len(steps))
     tmp = make_staging_dir(out_dir)

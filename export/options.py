@@ -8,7 +8,7 @@ from streamdet.export import onnx_export as ox
 from streamdet.export.int8_data import DEFAULT_CALIBRATION_SAMPLES
 from streamdet.export.weights import DEFAULT_SEED
 from streamdet.core.image_layout import IMAGE_BEV
-from streamdet.core.constants import DEFAULT_PRESET as CORE_DEFAULT_PRESET
+from streamdet.core.constants import DEFAULT_PRESET  # noqa: F401 (the exporter and its CLI read it here)
 from streamdet.core.lut_layout import LUT_COMPACT, LUT_SLOTS
 
 DEFAULT_IMAGE_LAYOUT = IMAGE_BEV  # measured in docs/replay.md ("Less work per lift")
@@ -25,7 +25,7 @@ def resolve_lut_layout(layout: str, heights_per_voxel: int) -> str:
         return layout
     return LUT_COMPACT if heights_per_voxel == 1 else LUT_SLOTS
 
-DEFAULT_PRESET = CORE_DEFAULT_PRESET  # the shipped model's preset (models/weights/small.pt): what streamdet-export exports without arguments
+
 STEM_STRIDE = 2  # the ResNet stem's stride: image sizes must be even
 
 

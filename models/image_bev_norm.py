@@ -22,7 +22,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-IMAGE_BEV_TARGETS = ("learnt", "point")
+from streamdet.models.presets import IMAGE_BEV_TARGETS
 
 
 class ImageBevNorm(nn.Module):
@@ -48,7 +48,7 @@ class ImageBevNorm(nn.Module):
 
     def scale(self) -> Tensor:
         """(C,) the eval-mode per-channel factor, ``gain / sqrt(running_ms + eps)``: what the export folds."""
-        return self.gain() / torch.sqrt(self.running_ms + self.eps) * torch.ones_like(self.running_ms)
+        return self.gain() / torch.sqrt(self.running_ms + self.eps)  # a () gain broadcasts to (C,)
 
     def forward(self, x: Tensor, point_bev: Tensor | None = None) -> Tensor:
         if not self.training:

@@ -37,6 +37,9 @@ from streamdet.calibration.grid import GridSpec
 from streamdet.calibration.slice_maps import map_cells
 from streamdet.core.classes import CLASS_NAMES
 
+# what the image BEV is scaled to at fusion (models/image_bev_norm.py): a learnt RMS, or the point BEV's RMS
+IMAGE_BEV_TARGETS = ("learnt", "point")
+
 # The nuScenes CenterPoint task grouping of the multi-head variant (classes of similar size share a task).
 NUSCENES_TASKS: tuple[tuple[str, ...], ...] = (
     ("car",),
@@ -201,7 +204,7 @@ class Preset:
     # True: the image BEV is scaled per channel before fusion (models/image_bev_norm.py) to a learnt RMS
     # (image_bev_target "learnt") or to the point BEV's RMS on the cells that hold points ("point")
     image_bev_norm: bool = False
-    image_bev_target: str = "learnt"
+    image_bev_target: str = "learnt"  # one of IMAGE_BEV_TARGETS
     # True: a slice's net runs on the quadrants it touches (the paper's crop, Sec. III-C); False: on one map of the
     # whole grid per slice, as the paper's LiDAR-only baselines (calibration/slice_maps.py). LiDAR-only nets only.
     slice_crop: bool = True
@@ -210,8 +213,8 @@ class Preset:
         _check_positive_int(self, "channels")
         if not isinstance(self.slice_crop, bool):
             raise ValueError(f"Preset.slice_crop must be True or False, got {self.slice_crop!r}")
-        if self.image_bev_target not in ("learnt", "point"):
-            raise ValueError(f"Preset.image_bev_target must be 'learnt' or 'point', got {self.image_bev_target!r}")
+        if self.image_bev_target not in IMAGE_BEV_TARGETS:
+            raise ValueError(f"Preset.image_bev_target must be one of {IMAGE_BEV_TARGETS}, got {self.image_bev_target!r}")
         if self.use_image and not self.slice_crop:
             raise ValueError(
                 f"Preset {self.name!r}: slice_crop=False (one whole-grid map per slice) is supported for the LiDAR-only "

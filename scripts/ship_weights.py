@@ -15,21 +15,14 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import hashlib
 import json
 import shutil
 import sys
 from pathlib import Path
 
+from streamdet.runtime_ort.manifest import sha256_file
+
 MAX_BYTES = 20 * 1024 * 1024  # issue 19: a shipped model stays under 20 MB
-
-
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with path.open("rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def _read_json(path: Path) -> dict:
@@ -101,7 +94,7 @@ def main(argv: list[str] | None = None) -> None:
         "preset": preset["name"],
         "use_image": preset.get("use_image", True),
         "format": "{'format': 'streamdet-weights-v1', 'preset': Preset.to_dict(), 'model': state_dict (fp32), 'meta': {...}}",
-        "sha256": _sha256(args.out),
+        "sha256": sha256_file(args.out),
         "size_bytes": args.out.stat().st_size,
         "shipped": datetime.date.today().isoformat(),
         "trained_on": {

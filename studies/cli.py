@@ -19,10 +19,11 @@ import click
 
 from streamdet import studies as st
 from streamdet.cli_utils import image_precision_option, resolution_callback
-from streamdet.core.constants import DEFAULT_EXPORT_DIR as DEFAULT_EXPORT_DIR_NAME, PRECISIONS
+from streamdet.core import constants
+from streamdet.core.constants import PRECISIONS
 from streamdet.studies.plots import plot_calib_noise, plot_drop_camera, plot_resolution, plot_slices
 
-DEFAULT_EXPORT_DIR = Path(DEFAULT_EXPORT_DIR_NAME)
+DEFAULT_EXPORT_DIR = Path(constants.DEFAULT_EXPORT_DIR)
 ALL_SPLIT = "all"  # --split value that scores every sample of the dataset
 
 
