@@ -82,7 +82,7 @@ def test_collate_matches_per_sample_forward(store):
     batch = collate(items)
     assert batch.num_maps == 16 and batch.lut_index.shape[0] == 8  # 4 quadrant lifts per sample
     with torch.no_grad():
-        maps = model(batch)[0]
+        maps = model(batch)[0][0]
     row = 0
     for item in items:
         lut = collate.lut(item.rig)
@@ -146,7 +146,7 @@ def test_training_steps_reduce_loss_on_a_fixed_batch(store):
     crit = CenterPointLoss()
     losses = []
     for _ in range(8):
-        terms = loss_terms(model(batch), model.task_classes, batch.heatmap, batch.index, batch.mask, batch.label, batch.box)
+        terms = loss_terms(model(batch)[0], model.task_classes, batch.heatmap, batch.index, batch.mask, batch.label, batch.box)
         loss, _ = crit(terms)
         opt.zero_grad()
         loss.backward()

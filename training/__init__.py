@@ -7,6 +7,7 @@
   ``class_balanced_indices``
 - ``batching``: ``Collator`` (crop-and-stack of slice maps, batched LUT), ``Batch``
 - ``model``: ``TrainingModel`` (the DDP-wrappable training forward)
+- ``image_class``: the image-side class loss beside detection (``ImageBevClassifier``, training-only)
 - ``schedule``: ``OneCycle`` over steps or wall time
 - ``distributed``: torchrun / gloo process group, ``CrossProcessBatchNorm``
 - ``checkpoint``: training checkpoints and shipped weights (``load_weights``)

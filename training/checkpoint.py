@@ -9,6 +9,7 @@ Training checkpoint (``save_training_state``)::
     scheduler   lr scheduler state_dict()
     step        optimizer steps done; epoch, epoch_step: where the data order resumes
     config      the TrainConfig as a dict (what the run was asked to do)
+    image_classifier   only with the image class loss: its training-only classifier (training/image_class.py)
 
 Weights for shipping (``save_weights``): only ``format`` "streamdet-weights-v1", ``preset``, ``model`` (and an
 optional ``meta`` dict). Both have the ``{"preset", "model"}`` keys that ``streamdet.export.weights.load_detector``
@@ -40,7 +41,9 @@ def _atomic_save(obj: dict, path: str | os.PathLike) -> None:
 
 
 def save_training_state(path: str | os.PathLike, *, preset: Preset, model: StreamDetector, optimizer, scheduler,
-                        step: int, epoch: int, epoch_step: int, config: dict[str, Any]) -> None:  # fmt: skip
+                        step: int, epoch: int, epoch_step: int, config: dict[str, Any],
+                        image_classifier: torch.nn.Module | None = None) -> None:  # fmt: skip
+    extra = {} if image_classifier is None else {"image_classifier": image_classifier.state_dict()}
     _atomic_save(
         {
             "format": TRAIN_FORMAT,
@@ -52,6 +55,7 @@ def save_training_state(path: str | os.PathLike, *, preset: Preset, model: Strea
             "epoch": int(epoch),
             "epoch_step": int(epoch_step),
             "config": config,
+            **extra,
         },
         path,
     )

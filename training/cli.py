@@ -52,6 +52,9 @@ def _parse_slices(ctx, param, value: str) -> tuple[int, ...]:
               help="all: a quadrant's image BEV comes from every camera, as at run time; overlapping: a slice sees only the cameras overlapping its sector.")
 @click.option("--image-warmup", type=click.FloatRange(0, 1, max_open=True), default=0.0, show_default=True,
               help="Fraction of the schedule trained with the image lane off (zero image BEV); the cheap LiDAR lane learns first.")
+@click.option("--image-class-weight", type=click.FloatRange(min=0), default=0.0, show_default=True,
+              help="Weight of an image-side loss beside detection: each object's class read linearly from the image BEV at its "
+                   "centre (cross-entropy; a training-only classifier, never exported). 0: off.")
 @click.option("--resume", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Continue from a last.pt written by this command.")
 @click.option("--init", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Start from the weights of this checkpoint (same preset) with a fresh optimizer and schedule (fine-tuning), "
@@ -71,7 +74,7 @@ def _parse_slices(ctx, param, value: str) -> tuple[int, ...]:
 @click.option("--checkpoint-every", type=click.IntRange(min=1), default=200, show_default=True, help="Steps between rewrites of last.pt.")
 def main(data_dir: Path, version: str, out_dir: Path, preset: str, steps: int | None, epochs: int, batch_size: int,
          lr: float, num_slices: tuple[int, ...], max_slices_per_sample: int | None, no_image: bool, no_crop: bool, camera_mode: str,
-         image_warmup: float, resume: Path | None, init: Path | None, balanced: bool, workers: int, seed: int, max_minutes: float | None, amp: str,
+         image_warmup: float, image_class_weight: float, resume: Path | None, init: Path | None, balanced: bool, workers: int, seed: int, max_minutes: float | None, amp: str,
          cache_dir: Path | None, device: str | None, log_every: int, checkpoint_every: int) -> None:  # fmt: skip
     """Train the streaming camera + LiDAR detector (or its LiDAR-only baseline) with CenterPoint targets."""
     if not (data_dir / version).is_dir():
@@ -87,7 +90,7 @@ def main(data_dir: Path, version: str, out_dir: Path, preset: str, steps: int | 
     try:
         config = TrainConfig(
             preset=preset, use_image=not no_image, slice_crop=not no_crop, steps=steps, epochs=epochs, batch_size=batch_size, lr=lr, amp=amp,
-            image_warmup=image_warmup, balanced=balanced, workers=workers, seed=seed, max_minutes=max_minutes, log_every=log_every,
+            image_warmup=image_warmup, image_class_weight=image_class_weight, balanced=balanced, workers=workers, seed=seed, max_minutes=max_minutes, log_every=log_every,
             checkpoint_every=checkpoint_every,
             data=DataConfig(num_slices=num_slices, max_slices_per_sample=max_slices_per_sample, camera_mode=camera_mode),
         )  # fmt: skip

@@ -34,6 +34,7 @@ from streamdet.training.batching import Batch, Collator
 from streamdet.training.checkpoint import is_encoder_weights, load_checkpoint, load_encoder_weights, save_training_state, save_weights
 from streamdet.training.dataset import DataConfig, SliceDataset, SampleStore, build_store, class_balanced_indices
 from streamdet.training.distributed import DistContext, all_reduce_sum, convert_batchnorm, init_distributed
+from streamdet.training.image_class import image_class_loss_sum
 from streamdet.training.losses import CenterPointLoss, LossConfig, loss_terms
 from streamdet.training.model import TrainingModel
 from streamdet.training.schedule import OneCycle
@@ -62,6 +63,9 @@ class TrainConfig:
     # first image update): the LiDAR lane and the BEV encoder learn first at a fraction of the step cost, the image
     # lane joins for the rest. 0: images from the first step.
     image_warmup: float = 0.0
+    # Weight of the image-side class loss beside detection (training/image_class.py: each object's class read
+    # linearly from the image BEV at its centre, cross-entropy per object); 0 = off, the CenterPoint loss alone.
+    image_class_weight: float = 0.0
     balanced: bool = False  # class-balanced (CBGS) resampling of the training samples
     workers: int = 0  # DataLoader worker processes (0: load in the training process)
     seed: int = 0
@@ -95,6 +99,10 @@ class TrainConfig:
         for name in ("lr", "grad_clip", "div_factor", "final_div_factor"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
                 raise ValueError(f"TrainConfig.{name} must be a positive number, got {getattr(self, name)!r}")
+        if not (math.isfinite(self.image_class_weight) and self.image_class_weight >= 0):
+            raise ValueError(f"TrainConfig.image_class_weight must be a number >= 0, got {self.image_class_weight!r}")
+        if self.image_class_weight > 0 and not self.use_image:
+            raise ValueError("the image class loss (image_class_weight > 0) needs the image lane: drop --no-image or the weight")
         if not 0.0 <= self.image_warmup < 1.0:
             raise ValueError(f"TrainConfig.image_warmup must be in [0, 1), got {self.image_warmup!r}")
         if not 0.0 < self.pct_start < 1.0:
@@ -111,8 +119,11 @@ class TrainConfig:
 
     def to_dict(self) -> dict[str, Any]:
         d = _jsonable(dataclasses.asdict(self))
-        if self.slice_crop:  # written only when off: the config of every run before it stays as it was
+        # written only when not at their defaults: the config of every run before them stays as it was
+        if self.slice_crop:
             del d["slice_crop"]
+        if self.image_class_weight == 0:
+            del d["image_class_weight"]
         return d
 
 
@@ -208,7 +219,8 @@ class _TrainRun:
         path = self.out_dir / "last.pt"
         save_training_state(path, preset=self.preset, model=self.detector, optimizer=self.optimizer,
                             scheduler=self.schedule, step=self.schedule.step, epoch=self.epoch,
-                            epoch_step=self.epoch_step, config=self.config.to_dict())  # fmt: skip
+                            epoch_step=self.epoch_step, config=self.config.to_dict(),
+                            image_classifier=self.model.image_classifier)  # fmt: skip
         return path
 
     def elapsed(self) -> float:
@@ -313,7 +325,7 @@ def _set_up(config: TrainConfig, data_dir: str | Path, out_dir: str | Path, vers
         _load_init_weights(detector, preset, init, say)
     if ctx.initialised and ctx.world_size > 1:
         convert_batchnorm(detector)
-    model = TrainingModel(detector).to(device).train()
+    model = TrainingModel(detector, image_classifier=config.image_class_weight > 0).to(device).train()
     warmup = preset.use_image and config.image_warmup > 0
     # During the warm-up the image lane gets no gradient; DDP must then look for unused parameters.
     wrapped = DistributedDataParallel(model, find_unused_parameters=warmup) if ctx.initialised and ctx.world_size > 1 else model
@@ -364,6 +376,12 @@ def _restore(run: _TrainRun, resume: str | Path) -> None:
         raise ValueError(f"checkpoint {resume} was trained with another preset than {preset.name!r} (use_image={preset.use_image}, "
                          f"slice_crop={preset.slice_crop})")  # fmt: skip
     run.detector.load_state_dict(state["model"])
+    classifier = run.model.image_classifier
+    if (classifier is not None) != ("image_classifier" in state):
+        raise ValueError(f"checkpoint {resume} was trained {'without' if classifier is not None else 'with'} the image class loss: "
+                         f"resume it with the image_class_weight it was started with")  # fmt: skip
+    if classifier is not None:
+        classifier.load_state_dict(state["image_classifier"])
     run.optimizer.load_state_dict(state["optimizer"])
     run.schedule.load_state_dict(state["scheduler"])
     run.epoch, run.epoch_step, run.elapsed_before = int(state["epoch"]), int(state["epoch_step"]), run.schedule.elapsed_s
@@ -435,11 +453,17 @@ def _loop(run: _TrainRun, log_file) -> tuple[bool, float]:
 def _step(run: _TrainRun, batch: Batch, use_image: bool) -> tuple[torch.Tensor, dict]:
     """One optimizer step on one batch: forward, loss over the global batch, backward, clipped update."""
     with run.amp:
-        task_maps = run.wrapped(batch, use_image=use_image)
+        task_maps, image_logits = run.wrapped(batch, use_image=use_image)
     terms = loss_terms([tuple(m.float() for m in maps) for maps in task_maps], run.model.task_classes,
                        batch.heatmap, batch.index, batch.mask, batch.label, batch.box)  # fmt: skip
     counts = all_reduce_sum(terms.num_objects, run.ctx)
     loss, parts = run.criterion(terms, counts, scale=float(run.ctx.world_size))
+    if image_logits is not None:
+        # per object, normalised by the global batch's object count like the heatmap term (every object is in
+        # exactly one task, so the tasks' counts sum to it)
+        image_class = image_class_loss_sum(image_logits, batch.label[batch.mask]) / counts.sum().clamp(min=1.0)
+        loss = loss + run.config.image_class_weight * image_class * float(run.ctx.world_size)
+        parts["image_class"] = image_class.detach()
     run.optimizer.zero_grad(set_to_none=True)
     run.scaler.scale(loss).backward()
     run.scaler.unscale_(run.optimizer)
