@@ -14,8 +14,9 @@ The rules (the issue's):
   else the comparison is **void** (a fused model that does not use its cameras says nothing about cameras);
 - **reproduced**: fused - LiDAR-only >= +3 mAP at 8 slices, >= +5 at 32 and >= +10 bicycle AP (8 slices), each
   95 % interval excluding 0;
-- **refuted**: the image lane reached its figures (probe balanced accuracy >= 0.6, given here) and the mAP
-  intervals at 8 and 32 slices still include 0;
+- **refuted**: the image lane reached its figures (probe balanced accuracy >= 0.6, image / point RMS at fusion in
+  [0.5, 2] and train / eval image BEV RMS within 10 %, all read from the probe files; the LUT coverage of item 3 is
+  measured elsewhere, ``benchmarks/lut_coverage.py``) and the mAP intervals at 8 and 32 slices still include 0;
 - otherwise **undecided**, with the rule that failed.
 """
 
@@ -32,6 +33,8 @@ GATE_DROP_MAP = 3.0  # mAP points every camera zeroed must cost
 GATE_NOISE_MAP = 2.0  # mAP points (5 deg, 50 cm) noise must cost
 NEED_8, NEED_32, NEED_BICYCLE = 3.0, 5.0, 10.0  # mAP / AP points of "reproduced"
 PROBE_MIN = 0.6  # balanced accuracy of the image BEV's linear probe
+SCALE_RANGE = (0.5, 2.0)  # image / point BEV RMS on occupied cells at fusion, eval mode
+TRAIN_EVAL_TOLERANCE = 0.10  # |train / eval image BEV RMS - 1|
 SEEDS_PER_SIDE = 3  # training seeds the issue asks of each side; fewer: the verdict is marked preliminary
 
 
@@ -63,13 +66,16 @@ class Decision:
     rows: tuple[Row, ...]
     gate: tuple[tuple[str, float, float], ...] = ()  # (run, drop-cameras cost, noise cost) in mAP points
     probe: tuple[float, ...] = ()
+    scales: tuple[tuple[float, float], ...] = ()  # per fused run: (image / point RMS at fusion, train / eval RMS)
     notes: tuple[str, ...] = field(default=())
 
     def to_dict(self) -> dict:
         return {"verdict": self.verdict, "reason": self.reason,
                 "rows": [{**r.__dict__, "excludes_zero": r.excludes_zero, "met": r.met} for r in self.rows],
                 "gate": [{"run": g[0], "drop_cameras_cost": g[1], "calib_noise_cost": g[2]} for g in self.gate],
-                "probe_balanced_accuracy": list(self.probe), "notes": list(self.notes)}  # fmt: skip
+                "probe_balanced_accuracy": list(self.probe),
+                "image_over_point_rms": [sc[0] for sc in self.scales], "train_over_eval_rms": [sc[1] for sc in self.scales],
+                "notes": list(self.notes)}  # fmt: skip
 
 
 def _row(doc: dict, key: str, label: str, need: float) -> Row:
@@ -99,9 +105,14 @@ def _runs(doc: dict, side: str) -> int:
     return len(value) if isinstance(value, list) else 1
 
 
+def _scale_ok(image_over_point: float, train_over_eval: float) -> bool:
+    return SCALE_RANGE[0] <= image_over_point <= SCALE_RANGE[1] and abs(train_over_eval - 1.0) <= TRAIN_EVAL_TOLERANCE
+
+
 def decide(compare8: dict, compare32: dict, gates: Sequence[tuple[str, dict, dict]] = (),
-           probes: Sequence[float] = ()) -> Decision:  # fmt: skip
-    """The verdict from the comparisons (B = fused), each fused run's gate files and the probe accuracies."""
+           probes: Sequence[float] = (), scales: Sequence[tuple[float, float]] = ()) -> Decision:  # fmt: skip
+    """The verdict from the comparisons (B = fused), each fused run's gate files, probe accuracies and scales
+    ((image / point RMS at fusion, train / eval image BEV RMS) per fused run)."""
     rows = (_row(compare8, "mAP", "mAP, 8 slices", NEED_8), _row(compare32, "mAP", "mAP, 32 slices", NEED_32),
             _row(compare8, "AP/bicycle", "bicycle AP, 8 slices", NEED_BICYCLE))  # fmt: skip
     gate = tuple((name, *_gate_costs(drop, noise)) for name, drop, noise in gates)
@@ -117,21 +128,26 @@ def decide(compare8: dict, compare32: dict, gates: Sequence[tuple[str, dict, dic
         g = failed[0]
         return Decision("void", f"image-use gate failed on {g[0]}: zeroing every camera costs {g[1]:.1f} mAP (needs >= "
                         f"{GATE_DROP_MAP:g}), (5 deg, 50 cm) noise {g[2]:.1f} (needs >= {GATE_NOISE_MAP:g})",
-                        rows, gate, tuple(probes), tuple(notes))  # fmt: skip
+                        rows, gate, tuple(probes), tuple(scales), tuple(notes))  # fmt: skip
     if all(r.met for r in rows):
         return Decision("reproduced", "every figure clears its bar with an interval excluding 0", rows, gate,
-                        tuple(probes), tuple(notes))  # fmt: skip
+                        tuple(probes), tuple(scales), tuple(notes))  # fmt: skip
     probe_ok = bool(probes) and min(probes) >= PROBE_MIN
-    if probe_ok and not rows[0].excludes_zero and not rows[1].excludes_zero:
+    scale_ok = bool(scales) and all(_scale_ok(*sc) for sc in scales)
+    if probe_ok and scale_ok and not rows[0].excludes_zero and not rows[1].excludes_zero:
         return Decision("refuted", "the image lane reaches its figures and the mAP intervals at 8 and 32 slices include 0",
-                        rows, gate, tuple(probes), tuple(notes))  # fmt: skip
+                        rows, gate, tuple(probes), tuple(scales), tuple(notes))  # fmt: skip
     missing = [r.label for r in rows if not r.met]
     why = f"not reproduced ({', '.join(missing)} short of its bar or its interval holds 0)"
     if not probe_ok:
         why += f"; not refuted either: the probe's balanced accuracy {min(probes) if probes else float('nan'):.2f} (needs >= {PROBE_MIN})"
+    elif not scale_ok:
+        why += ("; not refuted either: the image BEV's scale is off its figures (image / point RMS in "
+                f"[{SCALE_RANGE[0]:g}, {SCALE_RANGE[1]:g}], train / eval within {TRAIN_EVAL_TOLERANCE:.0%})"
+                if scales else "; not refuted either: no image BEV scale figures given")  # fmt: skip
     else:
         why += "; not refuted either: a mAP interval excludes 0"
-    return Decision("undecided", why, rows, gate, tuple(probes), tuple(notes))
+    return Decision("undecided", why, rows, gate, tuple(probes), tuple(scales), tuple(notes))
 
 
 def format_decision(d: Decision) -> str:
@@ -144,6 +160,10 @@ def format_decision(d: Decision) -> str:
                      f"(5 deg, 50 cm) noise {noise:.1f} (>= {GATE_NOISE_MAP:g})")  # fmt: skip
     if d.probe:
         lines.append("image BEV probe balanced accuracy: " + ", ".join(f"{p:.2f}" for p in d.probe) + f" (>= {PROBE_MIN})")
+    if d.scales:
+        lines.append("image / point RMS at fusion: " + ", ".join(f"{sc[0]:.2f}" for sc in d.scales)
+                     + f" (in [{SCALE_RANGE[0]:g}, {SCALE_RANGE[1]:g}]); train / eval image BEV RMS: "
+                     + ", ".join(f"{sc[1]:.2f}" for sc in d.scales) + f" (within {TRAIN_EVAL_TOLERANCE:.0%})")  # fmt: skip
     lines.append(f"\n**{d.verdict}**: {d.reason}")
     lines.extend(f"note: {n}" for n in d.notes)
     return "\n".join(lines)
@@ -174,12 +194,14 @@ def main(compare8: Path, compare32: Path, gate_drop: tuple[Path, ...], gate_nois
     if len(gate_drop) != len(gate_noise):
         raise click.UsageError(f"--gate-drop and --gate-noise pair up per fused run: got {len(gate_drop)} and {len(gate_noise)}")
     try:
-        probes = [float(_read(p)["probe_balanced_accuracy_image"]) for p in probe]
+        docs = [_read(p) for p in probe]
+        probes = [float(d["probe_balanced_accuracy_image"]) for d in docs]
+        scales = [(float(d["image_over_point_rms"]), float(d["train_over_eval_rms"])) for d in docs]
     except (KeyError, TypeError, ValueError) as e:
-        raise click.ClickException(f"a probe file lacks probe_balanced_accuracy_image ({e})") from None
+        raise click.ClickException(f"a probe file lacks {e} (write it with python -m streamdet.benchmarks.image_bev_probe --json)") from None
     gates = [(str(d.parent.name), _read(d), _read(n)) for d, n in zip(gate_drop, gate_noise)]
     try:
-        decision = decide(_read(compare8), _read(compare32), gates, probes)
+        decision = decide(_read(compare8), _read(compare32), gates, probes, scales)
     except ValueError as e:
         raise click.ClickException(str(e)) from None
     click.echo(format_decision(decision))

@@ -43,10 +43,22 @@ def test_a_fused_model_that_ignores_its_cameras_voids_the_comparison():
     assert decide(NULL8, NULL32, [("s0", *_gate(6.0, 0.5))], [0.7]).verdict == "void"
 
 
-@pytest.mark.parametrize("probe,verdict", [([0.65, 0.7], "refuted"), ([0.65, 0.4], "undecided"), ([], "undecided")])
-def test_refuted_needs_the_image_lane_working_and_intervals_holding_zero(probe, verdict):
-    d = decide(NULL8, NULL32, [("s0", *_gate(4.0, 2.5))], probe)
-    assert d.verdict == verdict
+GOOD_SCALES = [(1.0, 1.02), (0.6, 0.95)]
+
+
+@pytest.mark.parametrize(
+    "probe, scales, verdict, why",
+    [([0.65, 0.7], GOOD_SCALES, "refuted", "reaches its figures"),
+     ([0.65, 0.4], GOOD_SCALES, "undecided", "balanced accuracy 0.40"),
+     ([], GOOD_SCALES, "undecided", "balanced accuracy nan"),
+     ([0.65, 0.7], [(1.0, 1.0), (0.3, 1.0)], "undecided", "scale is off"),  # item 2: image / point RMS below 0.5
+     ([0.65, 0.7], [(1.0, 1.0), (2.5, 1.0)], "undecided", "scale is off"),
+     ([0.65, 0.7], [(1.0, 1.2), (1.0, 1.0)], "undecided", "scale is off"),  # train / eval RMS 20 % apart
+     ([0.65, 0.7], [], "undecided", "no image BEV scale")],
+)  # fmt: skip
+def test_refuted_needs_the_image_lane_working_and_intervals_holding_zero(probe, scales, verdict, why):
+    d = decide(NULL8, NULL32, [("s0", *_gate(4.0, 2.5))], probe, scales)
+    assert d.verdict == verdict and why in d.reason
     assert decide(NULL8, NULL32, [], [0.7]).notes  # no gate files: said
 
 
@@ -62,7 +74,7 @@ def test_malformed_files_give_one_line_errors(tmp_path):
 def test_cli_writes_the_table_and_json(tmp_path):
     files = {}
     for name, doc in (("c8", STRONG8), ("c32", STRONG32), ("drop", _gate(6.0, 3.0)[0]), ("noise", _gate(6.0, 3.0)[1]),
-                      ("probe", {"probe_balanced_accuracy_image": 0.7})):  # fmt: skip
+                      ("probe", {"probe_balanced_accuracy_image": 0.7, "image_over_point_rms": 0.3, "train_over_eval_rms": 1.01})):  # fmt: skip
         files[name] = tmp_path / f"{name}.json"
         files[name].write_text(json.dumps(doc))
     out = tmp_path / "decision.json"
@@ -72,8 +84,14 @@ def test_cli_writes_the_table_and_json(tmp_path):
     assert res.exit_code == 0, res.output
     assert "| mAP, 8 slices | 40.0 | 45.0 | +5.0 |" in res.output
     assert json.loads(out.read_text())["verdict"] == "reproduced"
+    assert "image / point RMS at fusion: 0.30 (in [0.5, 2]); train / eval image BEV RMS: 1.01" in res.output
+    assert json.loads(out.read_text())["image_over_point_rms"] == [0.3]
     res = CliRunner().invoke(main, args[:6])
     assert res.exit_code != 0 and "pair up" in res.output
+    files["probe"].write_text(json.dumps({"probe_balanced_accuracy_image": 0.7}))
+    res = CliRunner().invoke(main, args)
+    assert res.exit_code != 0 and "image_over_point_rms" in res.output and "Traceback" not in res.output
+    files["probe"].write_text(json.dumps({"probe_balanced_accuracy_image": 0.7, "image_over_point_rms": 1.0, "train_over_eval_rms": 1.0}))
     files["c8"].write_text("{broken")
     res = CliRunner().invoke(main, args)
     assert res.exit_code != 0 and "cannot read" in res.output and "Traceback" not in res.output
