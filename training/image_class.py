@@ -17,6 +17,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
+from streamdet.training.losses import gather_cells
+
 _EPS = 1e-6
 
 
@@ -46,10 +48,8 @@ class ImageBevClassifier(nn.Module):
         self.linear = nn.Linear(channels, num_classes)
 
     def forward(self, image_bev: Tensor, cells: Tensor, mask: Tensor) -> Tensor:
-        q, c = image_bev.shape[:2]
-        flat = image_bev.reshape(q, c, -1)  # (Q, C, Yq*Xq)
-        rms = flat.detach().square().mean(dim=(0, 2)).add(_EPS).sqrt()  # (C,)
-        feats = flat.gather(2, cells.unsqueeze(1).expand(-1, c, -1)).transpose(1, 2)  # (Q, K, C)
+        rms = image_bev.detach().square().mean(dim=(0, 2, 3)).add(_EPS).sqrt()  # (C,)
+        feats = gather_cells(image_bev, cells)  # (Q, K, C)
         return self.linear(feats[mask] / rms)  # (N, num_classes)
 
 
