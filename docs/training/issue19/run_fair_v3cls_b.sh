@@ -1,0 +1,27 @@
+#!/usr/bin/env bash
+# Issue 19, chain B (one CPU thread): the LiDAR-only seeds 1 and 2 of the fair schedule retrained (their runs were
+# lost with an earlier machine; seed 0 is the shipped small_lidar_only.pt's run) and scored at 8 and 32 slices,
+# then fused seed 1 once chain A's pretraining has written its encoder. Resumes when rerun.
+set -euo pipefail
+cd /work/runs
+export OMP_NUM_THREADS=1 PATH=/work/main/.venv/bin:$PATH
+COMMON="--data data60w4 --preset small_v2 --steps 6000 --balanced --num-slices 8,8,32 --max-slices-per-sample 8 --lr 2e-3 --image-warmup 0 --checkpoint-every 200"
+E=eval_lidar_w4_s0; mkdir -p $E  # seed 0: the shipped weights are its model.pt
+[ -f "$E/export/manifest.json" ] || streamdet-export --checkpoint /work/main/models/weights/small_lidar_only.pt --out "$E/export"
+for n in 8 32; do
+  [ -f "$E/eval_$n.json" ] || streamdet-eval --data val60w4 --split all --export-dir "$E/export" --slices $n --save-results "$E/res_$n" --json "$E/eval_$n.json"
+done
+for s in 1 2; do
+  OUT=lidar_w4_s$s
+  if [ ! -f "$OUT/model.pt" ]; then
+    if [ -f "$OUT/last.pt" ]; then streamdet-train $COMMON --seed $s --out $OUT --no-image --resume "$OUT/last.pt"
+    else streamdet-train $COMMON --seed $s --out $OUT --no-image; fi
+  fi
+  E=eval_$OUT; mkdir -p $E
+  [ -f "$E/export/manifest.json" ] || streamdet-export --checkpoint "$OUT/model.pt" --out "$E/export"
+  for n in 8 32; do
+    [ -f "$E/eval_$n.json" ] || streamdet-eval --data val60w4 --split all --export-dir "$E/export" --slices $n --save-results "$E/res_$n" --json "$E/eval_$n.json"
+  done
+done
+until grep -q '"finished": true' pre_v3_w4_s0/result.json 2>/dev/null; do sleep 30; done
+bash /work/main/docs/training/issue19/run_fair_v3cls_seed.sh 1
