@@ -101,8 +101,7 @@ def record_graph_inputs(detector: StreamingDetector, samples: Sequence[Sample]) 
     """Every graph run of the (fp32) ``detector`` over ``samples``, recorded: each graph's real inputs.
 
     Each sample goes through the runtime as every tool feeds it (``runtime_ort.pipeline.detect_sample``): its images
-    with a LUT of its own rig (the swap happens before the recording starts: the re-lift of the previous sample's
-    images it makes is no calibration input), then its sweep slice by slice. Slices without a pillar run no graph.
+    with a LUT of its own rig (the swap happens before the recording starts), then its sweep slice by slice. Slices without a pillar run no graph.
     A LiDAR-only export records its slice graph alone: no image is read.
     """
     recording = GraphRecording()

@@ -393,7 +393,7 @@ class StreamingDetector:
             warnings.warn(msg, BlindCameraWarning, stacklevel=3)
         return lut
 
-    def set_calibration(self, calibration: Rig | Lut | Mapping | str | os.PathLike) -> None:
+    def set_calibration(self, calibration: Rig | Lut | Mapping | str | os.PathLike, relift: bool = True) -> None:
         """Swap the projection LUT without recreating sessions: a Rig, a Lut, a parsed calibration.json (a dict),
         or the path of a calibration.json or a lut.npz.
 
@@ -402,7 +402,13 @@ class StreamingDetector:
         BlindCameraWarning naming it, one that now sees another part of the grid than with the previous calibration
         (turned around, swapped) with a CameraMovedWarning. The newest cached image set is lifted again, so the next slice sees the new
         calibration at once. A LiDAR-only export has no calibration to set: NoImageLaneError.
+
+        ``relift`` False drops the cached image BEV instead of lifting it again (slices read no image until the next
+        ``update_images``): for a caller whose next step feeds new images of the new rig, which would replace the
+        re-lifted BEV unread (the offline pipeline, ``pipeline.use_sample_calibration``).
         """
+        if not isinstance(relift, bool):
+            raise ValueError(f"relift must be a bool, got {relift!r}")
         if not self.uses_images:
             # Refused rather than ignored: a caller that believes it recalibrated a camera model should learn it did not.
             raise NoImageLaneError(self._no_image_lane("set_calibration has nothing to calibrate"))
@@ -426,6 +432,9 @@ class StreamingDetector:
         with self._calibration_lock:
             with self._lock:
                 self._lut = lut
+                if not relift:
+                    self._image = None
+                    return
                 states = _quadrant_states(self._image)
             # Re-lift the newest image set of every quadrant; an update that finishes meanwhile under the old LUT
             # lifts itself again (_install), so the loop ends once every cached quadrant was lifted with this LUT.

@@ -3,7 +3,7 @@ slice. Every tool that runs an export on recorded samples goes through here (``s
 the studies), so they all feed the detector the same way a vehicle would.
 
 - ``use_sample_calibration``: the detector's LUT swapped to the sample's rig when the rig differs (same graphs,
-  a new LUT; the cached image BEV is lifted again under it).
+  a new LUT; the cached image BEV is dropped, not lifted again: the sample's own images follow).
 - ``sample_images``: the sample's images at the detector's image size, by camera name, after
   ``use_sample_calibration``.
 - ``feed_images``: those images through the image lane at the sample's time.
@@ -43,9 +43,13 @@ def sample_time_s(sample: Sample) -> float:
 
 
 def use_sample_calibration(detector: StreamingDetector, sample: Sample) -> None:
-    """Swap the detector's LUT to one built from the sample's rig, unless the LUT in use was built from it."""
+    """Swap the detector's LUT to one built from the sample's rig, unless the LUT in use was built from it.
+
+    On a swap the cached image BEV is dropped rather than lifted again under the new LUT: every caller feeds the
+    sample's images next, which replace it (a synthetic world has a rig per sample, so the re-lift was a lift per
+    sample thrown away). Until then the detector reads no image."""
     if sample.rig.sha256() != detector.lut.calibration_sha256:
-        detector.set_calibration(sample.rig)  # another rig than the current LUT's: rebuild the LUT, same graphs
+        detector.set_calibration(sample.rig, relift=False)  # another rig than the current LUT's: rebuild the LUT
 
 
 def sample_images(detector: StreamingDetector, sample: Sample) -> dict[str, np.ndarray]:

@@ -56,3 +56,40 @@ def test_another_rig_rebuilds_the_lut_once(tiny_export, sample):
     lut = det.lut
     feed_images(det, other)
     assert det.lut is lut  # the same rig again: no rebuild
+
+
+def _with_rig(sample, rig):
+    return type(sample)(**{**{f: getattr(sample, f) for f in sample.__dataclass_fields__}, "rig": rig})
+
+
+def test_samples_of_changing_rigs_detect_as_with_the_relift(tiny_export, sample):
+    """The pipeline drops the cached BEV on a rig swap instead of lifting it again: the detections of a run of
+    samples, each with its own rig, are those of swapping with the re-lift (set_calibration's default) by hand."""
+    det, ref = StreamingDetector(tiny_export), StreamingDetector(tiny_export)
+    for seed in range(3):
+        other = _with_rig(sample, perturb_rig(sample.rig, 1.0, 0.1, seed=seed))
+        run = detect_sample(det, other)
+        ts = sample_time_s(other)
+        ref.set_calibration(other.rig)  # relift=True: the previous images lifted under the new LUT, then replaced
+        ref.update_images(sample_images(ref, other), timestamp=ts)
+        assert det.lut.calibration_sha256 == ref.lut.calibration_sha256 == other.rig.sha256()
+        assert _same(run.detections, ref.detect_sweep(other.points, timestamp=ts))
+
+
+def test_set_calibration_without_relift_drops_the_cached_bev(tiny_export, sample):
+    det = StreamingDetector(tiny_export)
+    feed_images(det, sample)
+    assert det.image_state is not None
+    det.set_calibration(perturb_rig(sample.rig, 1.0, 0.1, seed=7), relift=False)
+    assert det.image_state is None and det.image_timestamps == (None,) * 4
+    result = det.detect_slice(split_sweep(sample.points, det.num_slices)[0], 0, timestamp=1.0)
+    assert result.image_timestamp is None  # no image until the next update
+    feed_images(det, _with_rig(sample, perturb_rig(sample.rig, 1.0, 0.1, seed=7)))
+    assert det.image_state is not None and det.image_state.lut is det.lut
+
+
+@pytest.mark.parametrize("bad", [0, 1, "no", None])
+def test_set_calibration_relift_must_be_a_bool(tiny_export, sample, bad):
+    det = StreamingDetector(tiny_export)
+    with pytest.raises(ValueError, match="relift must be a bool"):
+        det.set_calibration(sample.rig, relift=bad)
