@@ -346,20 +346,7 @@ def build_lut(
         raise ValueError(str(e)) from None
     if heights_per_voxel > 1:
         return _build_lut_heights(rig, grid, feature_stride, image_size, min_depth_m, int(heights_per_voxel))
-    if isinstance(feature_stride, bool) or not isinstance(feature_stride, (int, np.integer)) or feature_stride <= 0:
-        raise ValueError(f"feature_stride must be a positive integer, got {feature_stride!r}")
-    if not (isinstance(min_depth_m, (int, float)) and math.isfinite(min_depth_m) and min_depth_m >= 0):
-        raise ValueError(f"min_depth_m must be a finite number >= 0, got {min_depth_m!r}")
-    if image_size is None:
-        sizes = {(c.width, c.height) for c in rig.cameras}
-        if len(sizes) != 1:
-            raise ValueError(f"cameras have different image sizes {sorted(sizes)}; pass image_size=(W, H)")
-        (width, height), cams_rig = sizes.pop(), rig
-    else:
-        if len(image_size) != 2:
-            raise ValueError(f"image_size must be (W, H), got {image_size!r}")
-        width, height = int(image_size[0]), int(image_size[1])
-        cams_rig = rig.resized(width, height)
+    width, height, cams_rig = _image_geometry(rig, feature_stride, image_size, min_depth_m)
     feat_w = math.ceil(width / feature_stride)
     feat_h = math.ceil(height / feature_stride)
     cells = feat_w * feat_h
@@ -411,13 +398,32 @@ def build_lut(
     )
 
 
+def _image_geometry(rig: Rig, feature_stride: int, image_size: tuple[int, int] | None, min_depth_m: float) -> tuple[int, int, Rig]:
+    """(width, height, the rig at that image size) of a LUT build, its arguments checked (ValueError quotes them)."""
+    if isinstance(feature_stride, bool) or not isinstance(feature_stride, (int, np.integer)) or feature_stride <= 0:
+        raise ValueError(f"feature_stride must be a positive integer, got {feature_stride!r}")
+    if not (isinstance(min_depth_m, (int, float)) and math.isfinite(min_depth_m) and min_depth_m >= 0):
+        raise ValueError(f"min_depth_m must be a finite number >= 0, got {min_depth_m!r}")
+    if image_size is None:
+        sizes = {(c.width, c.height) for c in rig.cameras}
+        if len(sizes) != 1:
+            raise ValueError(f"cameras have different image sizes {sorted(sizes)}; pass image_size=(W, H)")
+        (width, height), cams_rig = sizes.pop(), rig
+    else:
+        if len(image_size) != 2:
+            raise ValueError(f"image_size must be (W, H), got {image_size!r}")
+        width, height = int(image_size[0]), int(image_size[1])
+        cams_rig = rig.resized(width, height)
+    return width, height, cams_rig
+
+
 def _build_lut_heights(rig: Rig, grid: GridSpec, feature_stride: int, image_size: tuple[int, int] | None,
                        min_depth_m: float, heights: int) -> Lut:  # fmt: skip
     """``build_lut`` with ``heights`` samples per voxel: every (height, camera) hit votes for its feature row."""
-    centre = build_lut(rig, grid, feature_stride, image_size, min_depth_m)  # validates; gives sizes and names
-    width, height = centre.image_width, centre.image_height
-    cams_rig = rig if image_size is None else rig.resized(width, height)
-    feat_w, cells, sentinel = centre.feature_width, centre.feature_width * centre.feature_height, centre.sentinel
+    width, height, cams_rig = _image_geometry(rig, feature_stride, image_size, min_depth_m)
+    feat_w = math.ceil(width / feature_stride)
+    cells = feat_w * math.ceil(height / feature_stride)
+    sentinel = len(rig.cameras) * cells
     axes = [grid.voxel_center_axes(q) for q in range(NUM_QUADRANTS)]
     xs = np.stack([a[0] for a in axes]).astype(np.float32)  # (4, Xq)
     ys = np.stack([a[1] for a in axes]).astype(np.float32)  # (4, Yq)
