@@ -63,6 +63,7 @@ from streamdet.core.lut_layout import LUT_COMPACT
 from streamdet.core.points import check_sweep
 from streamdet.core.sectors import NUM_QUADRANTS, check_num_slices, quadrants_of_sector, sector_bounds_deg
 from streamdet.core.slicing import split_sweep
+from streamdet.runtime_ort.fallback import FALLBACK_GRAPH, LidarFallback, check_fallback_age, needs_fallback, open_fallback
 from streamdet.runtime_ort.manifest import ImageSpec, Manifest, ManifestError, export_file, read_manifest
 from streamdet.runtime_ort.nms import NmsConfig
 from streamdet.runtime_ort.pillarize import POINT_DIM, pillarize
@@ -110,6 +111,10 @@ class DetectorConfig:
     restrict_to_sector: bool = False  # keep only boxes centred in the slice's own sector
     verify_sha256: bool = True  # refuse graphs whose bytes differ from the manifest
     enable_profiling: bool = False  # onnxruntime profiles of every session (written on close())
+    # A LiDAR-only export whose slice graph runs the slices that have no usable camera features (no image BEV yet,
+    # or one older than fallback_after_s): runtime_ort/fallback.py. None: those slices read a zero image BEV.
+    fallback_export_dir: str | os.PathLike | None = None
+    fallback_after_s: float | None = None  # None: fall back only where a quadrant has no image BEV at all
 
     @property
     def image_precision(self) -> str:
@@ -150,6 +155,9 @@ class DetectorConfig:
             raise ValueError(
                 f"DetectorConfig.image_lane_precision must be None or one of {PRECISIONS}, got {self.image_lane_precision!r}"
             )
+        if self.fallback_export_dir is not None and not isinstance(self.fallback_export_dir, (str, os.PathLike)):
+            raise ValueError(f"DetectorConfig.fallback_export_dir must be None or a path, got {self.fallback_export_dir!r}")
+        check_fallback_age(self.fallback_after_s, self.fallback_export_dir)
         if self.image_size is not None:
             size = tuple(self.image_size)
             if len(size) != 2 or not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v > 0 for v in size):
@@ -189,6 +197,8 @@ class SliceResult:
     # timestamp - image_timestamp: how old the images behind the quadrant(s) it read were at the slice's own
     # timestamp (both labels of the caller's clock); None without images. The oldest quadrant read counts.
     image_age_s: float | None = None
+    # True: the LiDAR-only fallback's slice graph ran (DetectorConfig.fallback_export_dir), not the fused one
+    fallback: bool = False
 
 
 @dataclass(frozen=True, eq=False)
@@ -319,13 +329,22 @@ class StreamingDetector:
         self.lifter = session("volumetric_lifter", *image_lane) if self.uses_images else None
         self.slice_head = session("slice_head", config.slice_lane_threads, config.precision)
         self.providers = self.slice_head.providers
+        self._fallback: LidarFallback | None = None
+        if config.fallback_export_dir is not None:
+            if not self.uses_images:
+                raise NoImageLaneError(self._no_image_lane("it needs no LiDAR-only fallback (DetectorConfig.fallback_export_dir)"))
+            cfg = SessionConfig(config.providers, config.slice_lane_threads, enable_profiling=config.enable_profiling)
+            self._fallback = open_fallback(config.fallback_export_dir, m, self.grid, cfg, config.precision, config.verify_sha256)
         self.stats = LatencyStats()
-        graphs = {"image_encoder": self.image_encoder, "volumetric_lifter": self.lifter, "slice_head": self.slice_head}
+        graphs = {"image_encoder": self.image_encoder, "volumetric_lifter": self.lifter, "slice_head": self.slice_head,
+                  FALLBACK_GRAPH: None if self._fallback is None else self._fallback.session}  # fmt: skip
         self._sessions = {name: g for name, g in graphs.items() if g is not None}
         self._recordings: tuple[GraphRecording, ...] = ()  # open recording() blocks (swapped whole under _lock)
         # The manifest's MAC counts of the graphs in use; _executed_gmac scales them to each run's sizes for the stats.
         lanes = {"image_encoder": config.image_precision, "volumetric_lifter": config.image_precision, "slice_head": config.precision}
         self._graph_entries = {name: m.graph(name, lanes[name]) for name in m.required_graphs}
+        if self._fallback is not None:
+            self._graph_entries[FALLBACK_GRAPH] = self._fallback.entry
 
         self._lock = threading.Lock()  # guards the swaps of _lut and _image; reads take a reference
         self._calibration_lock = threading.Lock()  # one calibration swap (and its re-lift) at a time
@@ -730,27 +749,32 @@ class StreamingDetector:
         k = int(slice_index)
         quadrants = quadrants_of_sector(k, n, self.config.start_deg)
         t0 = time.perf_counter()
-        with self.stats.time("pre"):
-            pillars = pillarize(points, self.grid, quadrants, self._max_points_per_pillar, self._max_pillars, crop=self.slice_crop)
         cache = _quadrant_states(self._image)  # one read: a consistent view of the cache
         states = tuple(cache[q] for q in quadrants)
         stamps = [s.timestamp for s in states if s is not None]
         image_ts = min(stamps) if stamps else None
+        image_age = None if image_ts is None else timestamp - image_ts
+        fallback = self._fallback is not None and needs_fallback(None not in states, image_age, self.config.fallback_after_s)
+        crop = self._fallback.slice_crop if fallback else self.slice_crop
+        with self.stats.time("pre"):
+            pillars = pillarize(points, self.grid, quadrants, self._max_points_per_pillar, self._max_pillars, crop=crop)
         if pillars.num_pillars == 0:
             dets = Detections.empty()
         else:
-            if self.uses_images:
+            num_maps = len(quadrants) if crop else 1
+            if fallback:  # the LiDAR-only graph: the quadrant ids tell it Q (none without the crop)
+                feeds, graph = pillars.as_feeds(quadrants if crop else None), FALLBACK_GRAPH
+            elif self.uses_images:
                 # the image BEV, or its precomputed image half (the manifest's image_layout names the input)
-                feeds = {**pillars.as_feeds(), self.manifest.image_layout: self._image_bev(states)}
+                feeds, graph = {**pillars.as_feeds(), self.manifest.image_layout: self._image_bev(states)}, "slice_head"
             else:  # the quadrant ids tell a LiDAR-only graph Q; without the crop Q is 1 and it takes none
-                feeds = pillars.as_feeds(quadrants if self.slice_crop else None)
-            num_maps = len(quadrants) if self.slice_crop else 1
-            with self.stats.time("slice_head", self._executed_gmac("slice_head", Q=num_maps)):
-                boxes, scores, labels = self._run_graph("slice_head", feeds)
+                feeds, graph = pillars.as_feeds(quadrants if crop else None), "slice_head"
+            with self.stats.time(graph, self._executed_gmac(graph, Q=num_maps)):
+                boxes, scores, labels = self._run_graph(graph, feeds)
             with self.stats.time("post"):
                 dets = postprocess_slice(
                     boxes, scores, labels, quadrants, self.grid, self._post, sector_bounds_deg(k, n, self.config.start_deg),
-                    crop=self.slice_crop,
+                    crop=crop,
                 )  # fmt: skip
         self.stats.record("slice_total", (time.perf_counter() - t0) * 1e3)
         return SliceResult(
@@ -759,12 +783,13 @@ class StreamingDetector:
             num_slices=n,
             timestamp=timestamp,
             image_timestamp=image_ts,
-            image_age_s=None if image_ts is None else timestamp - image_ts,
+            image_age_s=image_age,
             num_points=int(points.shape[0]),
             num_pillars=pillars.num_pillars,
             num_nonfinite_dropped=pillars.num_nonfinite_dropped,
             num_outside_dropped=pillars.num_outside_dropped,
             num_points_dropped=pillars.num_points_dropped,
+            fallback=fallback,
         )
 
     def _image_bev(self, states: tuple[_QuadrantState | None, ...]) -> np.ndarray:
@@ -846,7 +871,7 @@ class StreamingDetector:
         """End profiling (if enabled); returns the profile files written."""
         if not self.config.enable_profiling:
             return []
-        return [s.end_profiling() for s in (self.image_encoder, self.lifter, self.slice_head) if s is not None]
+        return [s.end_profiling() for s in self._sessions.values()]
 
     def __enter__(self) -> "StreamingDetector":
         return self

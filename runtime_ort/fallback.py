@@ -1,0 +1,90 @@
+"""The LiDAR-only fallback of a camera + LiDAR detector: slices without usable camera features run a LiDAR-only
+export's slice graph instead (``DetectorConfig.fallback_export_dir``).
+
+Why: a fused model trained with its cameras on from the first step can lean on them so much that it finds almost
+nothing when they are gone (issue 19's class-loss model: 57 mAP with cameras, under 2 with every camera zeroed;
+docs/training/issue19_plan.md). A vehicle process must not go blind with its cameras, so the detector can hold a
+LiDAR-only slice graph (the shipped ``small_lidar_only.pt`` exported) and use it for a slice when
+
+- a quadrant the slice reads has **no image BEV** (no image update yet, or a calibration swap without re-lift), or
+- with ``fallback_after_s``, the oldest image BEV it reads is **older** than that at the slice's timestamp (the
+  image lane stopped, or fell that far behind).
+
+A camera that fails alone is not a fallback case: its features are zeros in the next updates and the other cameras
+still reach the BEV (``ImageUpdate.cameras_missing`` says so). ``SliceResult.fallback`` tells which graph ran.
+
+The fallback export must be LiDAR-only and share the main export's grid, classes and pillar limits (the slice's
+pillars are made once, for whichever graph runs); its post-processing is the main detector's.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+from dataclasses import dataclass
+from pathlib import Path
+
+from streamdet.calibration.grid import GridSpec
+from streamdet.runtime_ort.manifest import GraphEntry, Manifest, ManifestError, export_file, read_manifest
+from streamdet.runtime_ort.sessions import GraphSession, SessionConfig
+from streamdet.runtime_ort.signature import check_graph, check_runtime_fields
+
+FALLBACK_GRAPH = "slice_head_fallback"  # its name in the detector's sessions, stats and recordings
+
+
+@dataclass(frozen=True, eq=False)
+class LidarFallback:
+    """A LiDAR-only export's slice graph, opened beside a fused export's."""
+
+    export_dir: Path
+    manifest: Manifest
+    session: GraphSession
+    entry: GraphEntry  # the manifest's entry of the graph in use (its MAC count)
+    slice_crop: bool  # False: a LiDAR-only net without the quadrant crop (one whole-grid map per slice)
+
+
+def check_fallback_age(after_s: float | None, export_dir: object) -> None:
+    """ValueError unless ``after_s`` is None or a finite number of seconds >= 0, and only set with a fallback."""
+    if after_s is None:
+        return
+    if isinstance(after_s, bool) or not isinstance(after_s, numbers.Real) or not math.isfinite(after_s) or after_s < 0:
+        raise ValueError(f"DetectorConfig.fallback_after_s must be None or a finite number of seconds >= 0, got {after_s!r}")
+    if export_dir is None:
+        raise ValueError("DetectorConfig.fallback_after_s needs a fallback_export_dir (a LiDAR-only export) to fall back to")
+
+
+def open_fallback(export_dir: str | Path, main: Manifest, grid: GridSpec, session_config: SessionConfig,
+                  precision: str, verify_sha256: bool) -> LidarFallback:  # fmt: skip
+    """The slice graph of the LiDAR-only export at ``export_dir``, checked against the main export ``main``."""
+    path = Path(export_dir)
+    m = read_manifest(path, verify_files=verify_sha256)
+    check_runtime_fields(m)
+    where = f"fallback export {path}"
+    if m.use_image:
+        raise ValueError(f"{where} has an image lane: the fallback must be a LiDAR-only export (preset use_image=false)")
+    try:
+        fb_grid = GridSpec.from_dict(m.grid)
+    except (ValueError, TypeError) as e:
+        raise ManifestError(f"{path / 'manifest.json'}: grid: {e}") from None
+    if fb_grid != grid:
+        raise ValueError(f"{where} has another grid than the detector's: {m.grid} vs {main.grid}")
+    if tuple(m.class_names) != tuple(main.class_names):
+        raise ValueError(f"{where} has other classes than the detector's: {list(m.class_names)} vs {list(main.class_names)}")
+    for key in ("max_points_per_pillar", "max_pillars"):
+        if int(m.preset["pillars"][key]) != int(main.preset["pillars"][key]):
+            raise ValueError(f"{where}: pillars.{key} is {m.preset['pillars'][key]}, the detector's "
+                             f"{main.preset['pillars'][key]} (one set of pillars feeds either graph)")  # fmt: skip
+    if precision not in m.precisions:
+        raise ValueError(f"{where} has no {precision} graphs (it has {list(m.precisions)}; DetectorConfig.precision)")
+    entry = m.graph("slice_head", precision)
+    graph = GraphSession(export_file(path, entry.file, f"graph file of slice_head ({precision})"), session_config)
+    check_graph(entry, graph.inputs, graph.outputs, m, fb_grid)
+    return LidarFallback(path, m, graph, entry, m.slice_crop)
+
+
+def needs_fallback(has_every_quadrant: bool, image_age_s: float | None, after_s: float | None) -> bool:
+    """Whether a slice runs the fallback: a quadrant it reads has no image BEV, or (``after_s`` set) the oldest it
+    reads is older than ``after_s`` seconds."""
+    if not has_every_quadrant or image_age_s is None:
+        return True
+    return after_s is not None and image_age_s > after_s

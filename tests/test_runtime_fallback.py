@@ -1,0 +1,156 @@
+"""The LiDAR-only fallback (runtime_ort/fallback.py, DetectorConfig.fallback_export_dir): slices without camera
+features run the LiDAR-only export's slice graph and give exactly its detections; slices with them run the fused
+graph as before; bad fallbacks are refused with the reason."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from click.testing import CliRunner
+
+from streamdet.core.slicing import split_sweep
+from streamdet.data.sample import load_bundled_sample
+from streamdet.export.cli import main as export_main
+from streamdet.models.detector import build_detector
+from streamdet.models.presets import get_preset
+from streamdet.runtime_ort.detector import DetectorConfig, NoImageLaneError, StreamingDetector
+from streamdet.runtime_ort.fallback import FALLBACK_GRAPH, needs_fallback
+from streamdet.training.checkpoint import save_weights
+
+LIDAR_ONLY = dataclasses.replace(get_preset("tiny"), use_image=False)
+N_SLICES = 8
+
+
+@pytest.fixture(scope="module")
+def lidar_export(tmp_path_factory) -> Path:
+    torch.manual_seed(5)
+    model = build_detector(LIDAR_ONLY).eval()
+    with torch.no_grad():  # spread the untrained heatmap logits so there are detections to compare
+        for task in model.slice_net.head.tasks:
+            task.branches["heatmap"][-1].weight.normal_(0.0, 0.5)
+    root = tmp_path_factory.mktemp("fallback")
+    save_weights(root / "lidar.pt", LIDAR_ONLY, model)
+    out = root / "lidar"
+    result = CliRunner().invoke(export_main, ["--preset", "tiny", "--checkpoint", str(root / "lidar.pt"),
+                                              "--slices", str(N_SLICES), "--out", str(out)])  # fmt: skip
+    assert result.exit_code == 0, result.output
+    return out
+
+
+@pytest.fixture(scope="module")
+def sample():
+    return load_bundled_sample()
+
+
+def _images(det: StreamingDetector, seed: int = 0) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    return {n: rng.integers(0, 256, (det.image.height, det.image.width, 3), dtype=np.uint8) for n in det.camera_names}
+
+
+def _same(a, b) -> bool:
+    return np.array_equal(a.boxes, b.boxes) and np.array_equal(a.scores, b.scores) and np.array_equal(a.labels, b.labels)
+
+
+def test_slices_without_images_run_the_lidar_only_graph(tiny_export, lidar_export, sample):
+    det = StreamingDetector(tiny_export, DetectorConfig(fallback_export_dir=lidar_export))
+    lidar = StreamingDetector(lidar_export)
+    assert FALLBACK_GRAPH in det.sessions
+    slices = split_sweep(sample.points, N_SLICES)
+    found = 0
+    for k, pts in enumerate(slices):
+        got = det.detect_slice(pts, k, timestamp=1.0)
+        ref = lidar.detect_slice(pts, k, timestamp=1.0)
+        assert got.fallback and got.image_timestamp is None and not ref.fallback
+        assert _same(got.detections, ref.detections)
+        found += len(got.detections.scores)
+    assert found > 0
+    assert det.stats.summary()[FALLBACK_GRAPH]["count"] > 0
+
+
+def test_slices_with_images_run_the_fused_graph(tiny_export, lidar_export, sample):
+    det = StreamingDetector(tiny_export, DetectorConfig(fallback_export_dir=lidar_export))
+    plain = StreamingDetector(tiny_export)
+    for d in (det, plain):
+        d.update_images(_images(d), timestamp=1.0)
+    for k, pts in enumerate(split_sweep(sample.points, N_SLICES)):
+        got = det.detect_slice(pts, k, timestamp=1.05)
+        ref = plain.detect_slice(pts, k, timestamp=1.05)
+        assert not got.fallback and got.image_age_s == pytest.approx(0.05)
+        assert _same(got.detections, ref.detections)
+
+
+def test_old_images_fall_back_after_the_set_age(tiny_export, lidar_export, sample):
+    det = StreamingDetector(tiny_export, DetectorConfig(fallback_export_dir=lidar_export, fallback_after_s=0.2))
+    det.update_images(_images(det), timestamp=10.0)
+    pts = split_sweep(sample.points, N_SLICES)[3]
+    assert not det.detect_slice(pts, 3, timestamp=10.2).fallback  # as old as allowed
+    late = det.detect_slice(pts, 3, timestamp=10.5)
+    assert late.fallback and late.image_age_s == pytest.approx(0.5)
+
+
+def test_a_quadrant_without_images_falls_back(tiny_export, lidar_export, sample):
+    """Slices reading a quadrant that was never lifted fall back; the others do not."""
+    det = StreamingDetector(tiny_export, DetectorConfig(fallback_export_dir=lidar_export))
+    det.update_images(_images(det), timestamp=1.0, quadrants=[0])
+    results = [det.detect_slice(p, k, timestamp=1.0) for k, p in enumerate(split_sweep(sample.points, N_SLICES))]
+    from streamdet.core.sectors import quadrants_of_sector
+
+    for r in results:
+        assert r.fallback == (quadrants_of_sector(r.slice_index, N_SLICES, 0.0) != (0,))
+
+
+@pytest.mark.parametrize(
+    ("has_all", "age", "after", "want"),
+    [(True, 0.1, None, False), (False, 0.1, None, True), (True, None, None, True), (True, 0.3, 0.2, True),
+     (True, 0.2, 0.2, False), (True, 0.0, 0.0, False)],
+)  # fmt: skip
+def test_needs_fallback(has_all, age, after, want):
+    assert needs_fallback(has_all, age, after) is want
+
+
+def test_a_fused_fallback_is_refused(tiny_export):
+    with pytest.raises(ValueError, match="must be a LiDAR-only export"):
+        StreamingDetector(tiny_export, DetectorConfig(fallback_export_dir=tiny_export))
+
+
+def test_a_lidar_only_detector_takes_no_fallback(lidar_export):
+    with pytest.raises(NoImageLaneError, match="needs no LiDAR-only fallback"):
+        StreamingDetector(lidar_export, DetectorConfig(fallback_export_dir=lidar_export))
+
+
+def test_a_fallback_of_another_grid_is_refused(tiny_export, lidar_export, tmp_path):
+    other = tmp_path / "other"
+    shutil.copytree(lidar_export, other)
+    path = other / "manifest.json"
+    m = json.loads(path.read_text())
+    m["grid"]["voxel_xy_m"] = m["grid"]["voxel_xy_m"] * 2
+    path.write_text(json.dumps(m))
+    with pytest.raises(ValueError, match="another grid"):
+        StreamingDetector(tiny_export, DetectorConfig(fallback_export_dir=other))
+
+
+def test_a_missing_fallback_precision_is_refused(tiny_int8_export, lidar_export):
+    with pytest.raises(ValueError, match="has no int8 graphs"):
+        StreamingDetector(tiny_int8_export.path, DetectorConfig(precision="int8", fallback_export_dir=lidar_export))
+
+
+@pytest.mark.parametrize("bad", [-0.1, float("nan"), float("inf"), True, "0.2"])
+def test_fallback_after_s_must_be_a_finite_age(bad, lidar_export):
+    with pytest.raises(ValueError, match="fallback_after_s"):
+        DetectorConfig(fallback_export_dir=lidar_export, fallback_after_s=bad)
+
+
+def test_fallback_after_s_needs_a_fallback():
+    with pytest.raises(ValueError, match="needs a fallback_export_dir"):
+        DetectorConfig(fallback_after_s=0.5)
+
+
+def test_fallback_export_dir_must_be_a_path():
+    with pytest.raises(ValueError, match="fallback_export_dir must be None or a path"):
+        DetectorConfig(fallback_export_dir=3)
