@@ -58,6 +58,11 @@ def _progress(message: str) -> None:
 @click.option("--schedule", type=click.Choice(["full", "phase-locked"]), default="full", show_default=True,
               help="When the image lane works: 'full' (every image set, all cameras, all quadrants) or 'phase-locked' "
                    "(one quadrant at a time from its cameras, just before the LiDAR reaches it); LaneConfig.schedule.")
+@click.option("--fallback-export", "fallback_export_dir", type=click.Path(path_type=Path, file_okay=False), default=None,
+              help="A LiDAR-only export whose slice graph runs the slices without image BEV (DetectorConfig.fallback_export_dir). "
+                   "Default: none, such slices read zeros.")
+@click.option("--fallback-after-ms", type=click.FloatRange(min=0), default=None,
+              help="With --fallback-export, also fall back when the image BEV is older than this (drive ms). Default: only without one.")
 @click.option("--json", "json_path", type=click.Path(path_type=Path, dir_okay=False), default=None,
               help="Write the per-mode summary (the issue's keys) to this JSON file.")
 @click.option("--plot", "plot_path", type=click.Path(path_type=Path, dir_okay=False), default=None,
@@ -69,7 +74,7 @@ def main(
     image_precision: str | None, lidar_hz: float, num_slices: int | None, camera_hz: float, camera_trigger: str, mode: str,
     time_scale: float,
     max_seconds: float | None, threads: int, slice_workers: int | None, queue_size: int | None, schedule: str,
-    json_path: Path | None,
+    fallback_export_dir: Path | None, fallback_after_ms: float | None, json_path: Path | None,
     plot_path: Path | None, out_dir: Path | None,
 ) -> None:
     """Play scenes at sensor rates (LiDAR slices released when scanned, cameras at their rate) through the runtime's
@@ -96,7 +101,8 @@ def main(
             data=data, export_dir=export_dir, version=table_version, split=None if split == "all" else split, scenes=scenes,
             precision=precision, image_precision=image_precision, lidar_hz=lidar_hz, num_slices=num_slices,
             camera_hz=camera_hz, camera_trigger=camera_trigger, modes=MODES if mode == "all" else (mode,), time_scale=time_scale,
-            max_seconds=max_seconds, threads=threads, lanes=lanes,
+            max_seconds=max_seconds, threads=threads, lanes=lanes, fallback_export_dir=fallback_export_dir,
+            fallback_after_s=None if fallback_after_ms is None else fallback_after_ms / 1e3,
         )  # fmt: skip
         result = run_replay(config, _progress)
     except (ValueError, KeyError, FileNotFoundError, OSError) as e:

@@ -103,6 +103,7 @@ class _Book:
                     result = fut.result()
                     rec.detections = result.detections
                     rec.num_detections = len(result.detections)
+                    rec.fallback = bool(getattr(result, "fallback", False))
                     ts = result.image_timestamp
                     rec.image_capture_s = float(ts) if ts is not None and ts > WARM_UP_BEFORE_S else math.nan
             self.outstanding[lane] -= 1

@@ -35,6 +35,7 @@ class SliceRecord:
     newest_capture_s: float = float("nan")  # capture time of the newest image set released by its scan start
     cpu_s: float = 0.0
     num_detections: int = 0
+    fallback: bool = False  # the LiDAR-only fallback's graph ran (SliceResult.fallback)
     detections: Detections | None = field(default=None, repr=False)
 
     @property

@@ -91,9 +91,15 @@ def details_report(result: ReplayResult, info: dict) -> dict:
             streaming=r.scores.streaming.to_dict(), offline=r.scores.offline.to_dict(),
             per_scene_map_streaming=r.scores.per_scene_streaming_map, images_superseded=sum(x.images_superseded for x in r.recordings),
             cpu_share=_cpu_share(r), stages=r.stages, recordings=[x.to_dict() for x in r.recordings],
+            slices_fallback=_fallbacks(r),
             **image_lane_summary(r),
         )  # fmt: skip
     return out
+
+
+def _fallbacks(r: ModeResult) -> int:
+    """Emitted slices that ran the LiDAR-only fallback's graph (ReplayConfig.fallback_export_dir)."""
+    return sum(1 for x in r.recordings for s in x.slices if s.emitted and s.fallback)
 
 
 def _cpu_share(r: ModeResult) -> dict[str, float]:
@@ -131,6 +137,10 @@ def format_report(result: ReplayResult, info: dict) -> str:
             f"| {m['slices_dropped']} of {m['slices_total']} | {superseded} of {sum(len(x.images) for x in r.recordings)} "
             f"| {_ms(age['p50'])} / {_ms(age['p95'])} | {100 * cpu['slice_lane']:.0f} % / {100 * cpu['image_lane']:.0f} % |"
         )
+    if c.fallback_export_dir is not None:
+        after = "" if c.fallback_after_s is None else f" or image BEV older than {1e3 * c.fallback_after_s:g} ms"
+        lines += ["", f"LiDAR-only fallback {c.fallback_export_dir} (slices without image BEV{after}): "
+                  + ", ".join(f"{mode} {_fallbacks(r)}" for mode, r in result.modes.items()) + " slices"]  # fmt: skip
     lines += ["", _image_lane_table(result), "", _per_class_table(result), "", _stage_table(result), "",
               *_targets(result, period_ms)]  # fmt: skip
     return "\n".join(lines)

@@ -53,6 +53,9 @@ class ReplayConfig:
     max_seconds: float | None = None  # play only the first seconds of each scene
     threads: int = 1  # intra-op threads of each onnxruntime session
     lanes: LaneConfig = field(default_factory=LaneConfig)
+    # a LiDAR-only export for the slices without usable camera features (DetectorConfig.fallback_export_dir); None: none
+    fallback_export_dir: Path | None = None
+    fallback_after_s: float | None = None  # also fall back when the image BEV is older than this (drive seconds)
 
     def __post_init__(self) -> None:
         unknown = [m for m in self.modes if m not in MODES]
@@ -68,6 +71,7 @@ class ReplayConfig:
     def to_dict(self) -> dict:
         d = {k: getattr(self, k) for k in self.__dataclass_fields__ if k != "lanes"}
         d.update(data=str(self.data), export_dir=str(self.export_dir), modes=list(self.modes),
+                 fallback_export_dir=None if self.fallback_export_dir is None else str(self.fallback_export_dir),
                  slice_workers=self.lanes.max_in_flight, slice_queue=self.lanes.queue_size,
                  schedule=self.lanes.schedule)  # fmt: skip
         return d
@@ -112,7 +116,8 @@ def split_scenes(tables: DatasetTables, split: str | None, count: int | None) ->
 def open_detector(config: ReplayConfig, num_slices: int | None = None) -> StreamingDetector:
     return StreamingDetector(config.export_dir, DetectorConfig(
         precision=config.precision, image_lane_precision=config.image_precision, num_slices=num_slices or config.num_slices,
-        image_lane_threads=config.threads, slice_lane_threads=config.threads))  # fmt: skip
+        image_lane_threads=config.threads, slice_lane_threads=config.threads,
+        fallback_export_dir=config.fallback_export_dir, fallback_after_s=config.fallback_after_s))  # fmt: skip
 
 
 def warm_up(det: StreamingDetector, drive: Drive, num_slices: int, per_quadrant: bool = False) -> None:

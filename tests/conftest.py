@@ -83,6 +83,29 @@ def tiny_int8_export(tmp_path_factory) -> CliExport:
     return _cli_export(tmp_path_factory, "tiny_int8_export", ["--int8"])
 
 
+@pytest.fixture(scope="session")
+def tiny_lidar_export(tmp_path_factory) -> Path:
+    """A tiny LiDAR-only export (fp32, 8 slices) of seeded weights whose heatmap logits are spread (so they detect
+    something): the fallback of a tiny camera + LiDAR export. Shared read-only."""
+    import dataclasses
+
+    import torch
+
+    from streamdet.models.detector import build_detector
+    from streamdet.models.presets import get_preset
+    from streamdet.training.checkpoint import save_weights
+
+    preset = dataclasses.replace(get_preset("tiny"), use_image=False)
+    torch.manual_seed(5)
+    model = build_detector(preset).eval()
+    with torch.no_grad():
+        for task in model.slice_net.head.tasks:
+            task.branches["heatmap"][-1].weight.normal_(0.0, 0.5)
+    root = tmp_path_factory.mktemp("tiny_lidar_export")
+    save_weights(root / "lidar.pt", preset, model)
+    return _cli_export(tmp_path_factory, "tiny_lidar_export", ["--checkpoint", str(root / "lidar.pt"), "--slices", "8"]).path
+
+
 # Property tests (tests/test_property_*.py): a bounded, derandomized profile in CI; HYPOTHESIS_PROFILE=long by hand.
 try:
     import os as _os

@@ -47,6 +47,32 @@ def test_replay_cli_plays_every_mode_and_writes_the_issue_json(drive_data, tiny_
     assert (tmp_path / "r.png").stat().st_size > 10_000
 
 
+def test_replay_with_a_lidar_only_fallback_counts_its_slices(drive_data, tiny_export, tiny_lidar_export, tmp_path):
+    """Images older than 1 ms at every slice: the fallback's graph runs them, and the report counts them."""
+    from streamdet.replay.cli import main
+
+    args = ["--data", str(drive_data), "--split", "all", "--export-dir", str(tiny_export), "--max-seconds", "0.2",
+            "--mode", "streaming", "--time-scale", "2", "--fallback-export", str(tiny_lidar_export),
+            "--fallback-after-ms", "1", "--out", str(tmp_path / "out")]  # fmt: skip
+    result = CliRunner().invoke(main, args)
+    assert result.exit_code == 0, result.output
+    assert f"LiDAR-only fallback {tiny_lidar_export}" in result.output and "older than 1 ms" in result.output
+    details = json.loads((tmp_path / "out" / "replay.json").read_text())
+    summary = details["modes"]["streaming"]
+    (rec,) = summary["recordings"]
+    emitted = [s for s in rec["slices"] if not s["dropped"]]
+    assert summary["slices_fallback"] == sum(s["fallback"] for s in emitted) > 0
+    assert details["config"]["fallback_export_dir"] == str(tiny_lidar_export) and details["config"]["fallback_after_s"] == 0.001
+
+
+def test_replay_cli_refuses_a_fused_fallback(drive_data, tiny_export):
+    from streamdet.replay.cli import main
+
+    result = CliRunner().invoke(main, ["--data", str(drive_data), "--split", "all", "--export-dir", str(tiny_export),
+                                       "--fallback-export", str(tiny_export), "--max-seconds", "0.1"])  # fmt: skip
+    assert result.exit_code != 0 and "must be a LiDAR-only export" in result.output and "Traceback" not in result.output
+
+
 def test_replay_cli_refuses_a_missing_export(drive_data, tmp_path):
     from streamdet.replay.cli import main
 

@@ -4,43 +4,24 @@ graph as before; bad fallbacks are refused with the reason."""
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
-from click.testing import CliRunner
 
 from streamdet.core.slicing import split_sweep
 from streamdet.data.sample import load_bundled_sample
-from streamdet.export.cli import main as export_main
-from streamdet.models.detector import build_detector
-from streamdet.models.presets import get_preset
 from streamdet.runtime_ort.detector import DetectorConfig, NoImageLaneError, StreamingDetector
 from streamdet.runtime_ort.fallback import FALLBACK_GRAPH, needs_fallback
-from streamdet.training.checkpoint import save_weights
 
-LIDAR_ONLY = dataclasses.replace(get_preset("tiny"), use_image=False)
 N_SLICES = 8
 
 
 @pytest.fixture(scope="module")
-def lidar_export(tmp_path_factory) -> Path:
-    torch.manual_seed(5)
-    model = build_detector(LIDAR_ONLY).eval()
-    with torch.no_grad():  # spread the untrained heatmap logits so there are detections to compare
-        for task in model.slice_net.head.tasks:
-            task.branches["heatmap"][-1].weight.normal_(0.0, 0.5)
-    root = tmp_path_factory.mktemp("fallback")
-    save_weights(root / "lidar.pt", LIDAR_ONLY, model)
-    out = root / "lidar"
-    result = CliRunner().invoke(export_main, ["--preset", "tiny", "--checkpoint", str(root / "lidar.pt"),
-                                              "--slices", str(N_SLICES), "--out", str(out)])  # fmt: skip
-    assert result.exit_code == 0, result.output
-    return out
+def lidar_export(tiny_lidar_export) -> Path:
+    return tiny_lidar_export  # conftest: a tiny LiDAR-only export of seeded weights
 
 
 @pytest.fixture(scope="module")
