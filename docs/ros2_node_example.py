@@ -53,7 +53,11 @@ def main() -> None:  # the ROS boilerplate
         def __init__(self) -> None:
             super().__init__("streamdet")
             export_dir = self.declare_parameter("export_dir", "exports/small_v2").value
-            self.detector = StreamingDetector(export_dir, DetectorConfig())
+            # a LiDAR-only export for when the cameras are gone or late ("" : none): runtime_ort/fallback.py
+            fallback = self.declare_parameter("fallback_export_dir", "").value or None
+            max_age_s = self.declare_parameter("fallback_after_s", 0.5).value
+            self.detector = StreamingDetector(export_dir, DetectorConfig(
+                fallback_export_dir=fallback, fallback_after_s=max_age_s if fallback else None))  # fmt: skip
             self.images: dict[str, np.ndarray] = {}  # newest image per camera since the last cloud
             self.boxes = self.create_publisher(Detection3DArray, "/streamdet/detections", 10)
             self.markers = self.create_publisher(MarkerArray, "/streamdet/markers", 10)
