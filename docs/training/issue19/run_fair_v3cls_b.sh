@@ -13,6 +13,9 @@ for n in 8 32; do
 done
 for s in 1 2; do
   OUT=lidar_w4_s$s
+  if [ ! -f "$OUT/model.pt" ] && [ -f "/work/main/models/weights/issue19/$OUT.pt" ]; then  # kept in the repository
+    mkdir -p "$OUT" && cp "/work/main/models/weights/issue19/$OUT.pt" "$OUT/model.pt"
+  fi
   if [ ! -f "$OUT/model.pt" ]; then
     if [ -f "$OUT/last.pt" ]; then streamdet-train $COMMON --seed $s --out $OUT --no-image --resume "$OUT/last.pt"
     else streamdet-train $COMMON --seed $s --out $OUT --no-image; fi
@@ -23,5 +26,7 @@ for s in 1 2; do
     [ -f "$E/eval_$n.json" ] || streamdet-eval --data val60w4 --split all --export-dir "$E/export" --slices $n --save-results "$E/res_$n" --json "$E/eval_$n.json"
   done
 done
-until grep -q '"finished": true' pre_v3_w4_s0/result.json 2>/dev/null; do sleep 30; done
-bash /work/main/docs/training/issue19/run_fair_v3cls_seed.sh 1
+# then the fused seeds not trained yet (run_fair_v3cls_seed.sh restores the pretraining's encoder from the repository)
+for s in 1 2; do
+  [ -f "/work/main/models/weights/issue19/fused_v3fair_w4_s$s.pt" ] || bash /work/main/docs/training/issue19/run_fair_v3cls_seed.sh $s
+done
