@@ -35,14 +35,8 @@ from streamdet.core.slicing import split_sweep
 from streamdet.data.sample import load_bundled_sample
 from streamdet.runtime_ort.manifest import graph_file_name, read_manifest
 from streamdet.runtime_ort.pillarize import pillarize
+from streamdet.benchmarks.timing import ort_session
 
-def _session(path: Path, threads: int):
-    import onnxruntime as ort
-
-    opts = ort.SessionOptions()
-    opts.intra_op_num_threads = threads
-    opts.inter_op_num_threads = 1
-    return ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
 
 
 def _stats(ms: list[float]) -> str:
@@ -59,7 +53,7 @@ def _lift_feeds(export_dir: Path, threads: int, compact: bool | None = None) -> 
     sample = load_bundled_sample()
     images = sample.load_images((img.width, img.height))  # (J, H, W, 3)
     order = [sample.rig.names.index(n) for n in img.camera_names]
-    enc = _session(export_dir / graph_file_name("image_encoder", "fp32"), threads)
+    enc = ort_session(export_dir / graph_file_name("image_encoder", "fp32"), threads)
     (features,) = enc.run(None, {"images": images[order]})  # (J, C, Hf, Wf)
     lut = Lut.load(export_dir / "lut.npz")
     feeds = []
@@ -109,12 +103,12 @@ def run(old_dir: Path, new_dir: Path, rounds: int, threads: int, num_slices: int
     lines = []
     for layout, d in (("old", old_dir), ("new", new_dir)):
         for prec in precisions:
-            sessions[f"lift_{prec}_{layout}"] = _session(d / graph_file_name("volumetric_lifter", prec), threads)
+            sessions[f"lift_{prec}_{layout}"] = ort_session(d / graph_file_name("volumetric_lifter", prec), threads)
             feeds[f"lift_{prec}_{layout}"] = lift_feeds
-        lifter = _session(d / graph_file_name("volumetric_lifter", "fp32"), threads)
+        lifter = ort_session(d / graph_file_name("volumetric_lifter", "fp32"), threads)
         maps = [lifter.run(None, f)[0] for f in lift_feeds]  # each (1, C, H, W)
         name = IMAGE_BEV if layout == "old" else IMAGE_HALF
-        sessions[f"slice_fp32_{layout}"] = _session(d / graph_file_name("slice_head", "fp32"), threads)
+        sessions[f"slice_fp32_{layout}"] = ort_session(d / graph_file_name("slice_head", "fp32"), threads)
         feeds[f"slice_fp32_{layout}"] = _slice_feeds(d, name, maps, num_slices)
         if "int8" in precisions:  # the mixed lanes (int8 image lane, fp32 slices): what int8 lifts cost the scores
             maps8 = [sessions[f"lift_int8_{layout}"].run(None, f)[0] for f in lift_feeds]

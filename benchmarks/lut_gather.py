@@ -33,6 +33,7 @@ from streamdet.calibration.lut import Lut
 from streamdet.calibration.quadrant_lut import quadrant_lut
 from streamdet.core.lut_layout import LUT_SLOTS
 from streamdet.runtime_ort.manifest import read_manifest
+from streamdet.benchmarks.timing import ort_session
 
 OPSET = 17
 INT8_SCALE = 0.05  # per-tensor scale of the int8 table (the timing does not depend on it)
@@ -103,14 +104,6 @@ def _model(nodes: list, inits: list, channels: int) -> onnx.ModelProto:
     return model
 
 
-def _session(model_or_path, threads: int):
-    import onnxruntime as ort
-
-    opts = ort.SessionOptions()
-    opts.intra_op_num_threads = threads
-    opts.inter_op_num_threads = 1
-    src = model_or_path.SerializeToString() if isinstance(model_or_path, onnx.ModelProto) else str(model_or_path)
-    return ort.InferenceSession(src, opts, providers=["CPUExecutionProvider"])
 
 
 class _CompactedLifter:
@@ -159,7 +152,7 @@ def run(export_dir: Path, rounds: int, threads: int, quadrant: int) -> list[str]
             "slots": slots_graph(flat_i, flat_w, channels), "compact": compact_graph(comp, channels),
             "slots_int8": slots_graph(flat_i, flat_w, channels, int8=True), "compact_int8": compact_graph(comp, channels, int8=True),
         }  # fmt: skip
-        sessions = {g: _session(m, threads) for g, m in graphs.items()}
+        sessions = {g: ort_session(m, threads) for g, m in graphs.items()}
         ref = sessions["slots"].run(None, {"table": table})[0]
         assert np.allclose(sessions["compact"].run(None, {"table": table})[0], ref, atol=1e-6), "compact != slots"
         feeds = {g: {"table": table} for g in graphs}
@@ -172,7 +165,7 @@ def run(export_dir: Path, rounds: int, threads: int, quadrant: int) -> list[str]
     layout = read_manifest(export_dir).lut_layout  # the lifter's LUT inputs (core/lut_layout.py)
     for precision, fname in (("fp32", "volumetric_lifter.onnx"), ("int8", "volumetric_lifter.int8.onnx")):
         if (export_dir / fname).is_file():
-            session = _session(export_dir / fname, threads)
+            session = ort_session(export_dir / fname, threads)
             lifter[f"export lifter {precision} ({layout} LUT), quadrant {quadrant}"] = (
                 session, lifter_feeds(feats, qlut.index, qlut.weight, layout))
             if layout == LUT_SLOTS:  # a compact export's graph already reads the compacted LUT

@@ -35,6 +35,7 @@ from streamdet.calibration.camera_lut import CameraLut, camera_luts
 from streamdet.calibration.quadrant_lut import quadrant_luts
 from streamdet.calibration.lut import Lut
 from streamdet.runtime_ort.manifest import read_manifest
+from streamdet.benchmarks.timing import ort_session
 
 OPSET = 17
 
@@ -109,14 +110,6 @@ def tail_graph(lifter: onnx.ModelProto, cut: str, shape: tuple[int, int, int]) -
     return model
 
 
-def _session(model_or_path, threads: int):
-    import onnxruntime as ort
-
-    opts = ort.SessionOptions()
-    opts.intra_op_num_threads = threads
-    opts.inter_op_num_threads = 1
-    src = model_or_path.SerializeToString() if isinstance(model_or_path, onnx.ModelProto) else str(model_or_path)
-    return ort.InferenceSession(src, opts, providers=["CPUExecutionProvider"])
 
 
 def _features(export_dir: Path) -> dict[str, np.ndarray]:
@@ -165,14 +158,14 @@ def run(export_dir: Path, rounds: int, threads: int) -> dict:
     features = _features(export_dir)
     yq, xq = lut.index.shape[3:]
     shape = (weight.shape[0], yq, xq)
-    tail = _session(tail_graph(lifter, conv.output[0], shape), threads)
-    lift32 = _session(export_dir / "volumetric_lifter.onnx", threads)
+    tail = ort_session(tail_graph(lifter, conv.output[0], shape), threads)
+    lift32 = ort_session(export_dir / "volumetric_lifter.onnx", threads)
     int8_path = export_dir / "volumetric_lifter.int8.onnx"
-    lift8 = _session(int8_path, threads) if int8_path.is_file() else None
+    lift8 = ort_session(int8_path, threads) if int8_path.is_file() else None
     quadrants, feeds, parity = [], [], []
     for qlut in quadrant_luts(lut):
         shares = camera_luts(qlut, cells_per_map)
-        partials = {s.camera_name: _session(partial_graph(s, weight, channels, hw), threads) for s in shares}
+        partials = {s.camera_name: ort_session(partial_graph(s, weight, channels, hw), threads) for s in shares}
         quad = _Quadrant(shares, partials, bias.astype(np.float32), tail, yq * xq)
         maps = np.stack([features[n] for n in qlut.camera_names])  # (J', C, Hf, Wf)
         feed = {"features": maps, "lut_index": qlut.index, "lut_weight": qlut.weight}

@@ -156,3 +156,15 @@ def _warm_up(fn: Callable[[], object], config: TimingConfig) -> bool:
         if time.perf_counter() - start > config.slow_warmup_s:
             return True  # one run of a multi-second graph warms it as well as several
     return False
+
+
+def ort_session(model_or_path, threads: int = 1):
+    """An onnxruntime CPU session of a graph file or an in-memory ``onnx.ModelProto``, with explicit options:
+    ``threads`` intra-op threads, one inter-op thread (the benchmarks' graph timings)."""
+    import onnxruntime as ort
+
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = threads
+    opts.inter_op_num_threads = 1
+    src = model_or_path.SerializeToString() if hasattr(model_or_path, "SerializeToString") else str(model_or_path)
+    return ort.InferenceSession(src, opts, providers=["CPUExecutionProvider"])

@@ -118,7 +118,8 @@ def test_partial_graphs_and_tail_rebuild_a_flat_lifter(tmp_path, seed):
     import onnx
     import onnxruntime as ort
 
-    from streamdet.benchmarks.partial_lift import _session, first_conv, partial_graph, tail_graph
+    from streamdet.benchmarks.partial_lift import first_conv, partial_graph, tail_graph
+    from streamdet.benchmarks.timing import ort_session
     from streamdet.models.flat_lifter import FlatLifter, FlatLifterExport
 
     torch.manual_seed(seed)
@@ -142,9 +143,9 @@ def test_partial_graphs_and_tail_rebuild_a_flat_lifter(tmp_path, seed):
     conv, weight, bias = first_conv(model)
     summed = np.broadcast_to(bias, (30, c)).copy()
     for j, share in enumerate(camera_luts(qlut, hf * wf)):
-        (term,) = _session(partial_graph(share, weight, c, (hf, wf)), 1).run(None, {"features": features[j : j + 1]})
+        (term,) = ort_session(partial_graph(share, weight, c, (hf, wf)), 1).run(None, {"features": features[j : j + 1]})
         summed[share.cells] += term
-    (got,) = _session(tail_graph(model, conv.output[0], (c, 5, 6)), 1).run(None, {"summed": summed[None]})
+    (got,) = ort_session(tail_graph(model, conv.output[0], (c, 5, 6)), 1).run(None, {"summed": summed[None]})
     np.testing.assert_allclose(got, ref, rtol=1e-5, atol=1e-5)
 
 
