@@ -37,7 +37,7 @@ import numpy as np
 from streamdet.calibration.camera import CalibrationError, Rig
 from streamdet.calibration.grid import GridSpec
 from streamdet.calibration.lut_file import MAX_HEIGHTS_PER_VOXEL, LutFileError, check_lut_archive  # noqa: F401  (re-exported)
-from streamdet.core.sectors import NUM_QUADRANTS
+from streamdet.core.sectors import NUM_QUADRANTS, check_quadrants
 
 ASPECT_TOLERANCE = 0.005  # relative; 1600x900 -> 800x450 is exact, 1920x1080 -> 800x450 too
 LUT_FORMAT = "streamdet-lut"
@@ -198,15 +198,7 @@ class Lut:
     # ---- slicing ---------------------------------------------------------------------------------
     def for_quadrants(self, quadrants: Sequence[int]) -> tuple[np.ndarray, np.ndarray]:
         """(index, weight), each (Q, K, Z, Yq, Xq) contiguous, for the increasing quadrant list of one slice."""
-        qs = tuple(quadrants)
-        ok = (
-            len(qs) > 0
-            and all(isinstance(q, (int, np.integer)) and not isinstance(q, bool) and 0 <= q < NUM_QUADRANTS for q in qs)
-            and all(a < b for a, b in zip(qs, qs[1:]))
-        )
-        if not ok:
-            raise ValueError(f"quadrants must be a non-empty strictly increasing list of 0..3, got {list(qs)!r}")
-        sel = list(qs)
+        sel = list(check_quadrants(quadrants))
         return np.ascontiguousarray(self.index[sel]), np.ascontiguousarray(self.weight[sel])
 
     # ---- files -----------------------------------------------------------------------------------

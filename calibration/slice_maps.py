@@ -12,11 +12,10 @@ the four agree by construction. numpy only: the runtime uses it without PyTorch.
 
 from __future__ import annotations
 
-import numbers
 from dataclasses import dataclass
 
 from streamdet.calibration.grid import GridSpec
-from streamdet.core.sectors import NUM_QUADRANTS
+from streamdet.core.sectors import check_quadrants
 
 
 @dataclass(frozen=True)
@@ -46,10 +45,7 @@ def map_cells(grid: GridSpec, crop: bool = True) -> tuple[int, int]:
 
 def slice_maps(grid: GridSpec, quadrants: tuple[int, ...], crop: bool = True) -> SliceMaps:
     """The maps of a slice touching ``quadrants`` (increasing): one per quadrant with the crop, one without."""
-    qs = tuple(quadrants)
-    if not qs or not all(isinstance(q, numbers.Integral) and 0 <= q < NUM_QUADRANTS for q in qs) or any(a >= b for a, b in zip(qs, qs[1:])):
-        raise ValueError(f"quadrants must be a non-empty, strictly increasing tuple of 0..3, got {quadrants!r}")
-    qs = tuple(int(q) for q in qs)
+    qs = check_quadrants(quadrants)
     rows, cols = map_cells(grid, crop)
     if crop:
         origins = tuple(grid.quadrant_origin_m(q) for q in qs)

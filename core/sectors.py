@@ -17,10 +17,29 @@ quadrants is ``streamdet.calibration.grid.GridSpec``.
 from __future__ import annotations
 
 import math
+import numbers
+from collections.abc import Iterable
 
 import numpy as np
 
 NUM_QUADRANTS = 4
+
+
+def check_quadrants(quadrants: Iterable[int]) -> tuple[int, ...]:
+    """The quadrants of one slice or one image update as a tuple of ints: a non-empty, strictly increasing list of
+    0..3 (ints or numpy integers, not bools); ValueError quoting the bad value otherwise."""
+    try:
+        qs = None if isinstance(quadrants, (str, bytes)) else tuple(quadrants)
+    except TypeError:
+        qs = None
+    ok = (
+        qs is not None and len(qs) > 0
+        and all(isinstance(q, numbers.Integral) and not isinstance(q, bool) and 0 <= q < NUM_QUADRANTS for q in qs)
+        and all(a < b for a, b in zip(qs, qs[1:]))
+    )  # fmt: skip
+    if not ok:
+        raise ValueError(f"quadrants must be a non-empty strictly increasing list of 0..3, got {quadrants!r}")
+    return tuple(int(q) for q in qs)
 
 
 def check_num_slices(n: int, start_deg: float = 0.0) -> None:

@@ -12,10 +12,11 @@ import importlib
 
 _EXPORTS = {
     "StreamingDetector": "streamdet.runtime_ort.detector",
-    "DetectorConfig": "streamdet.runtime_ort.detector",
-    "SliceResult": "streamdet.runtime_ort.detector",
-    "ImageUpdate": "streamdet.runtime_ort.detector",
-    "NoImageLaneError": "streamdet.runtime_ort.detector",
+    "DetectorConfig": "streamdet.runtime_ort.detector_config",
+    "SliceResult": "streamdet.runtime_ort.detector_results",
+    "ImageUpdate": "streamdet.runtime_ort.detector_results",
+    "SweepResult": "streamdet.runtime_ort.detector_results",
+    "NoImageLaneError": "streamdet.runtime_ort.detector_config",
     "StreamingRunner": "streamdet.runtime_ort.lanes",
     "LaneConfig": "streamdet.runtime_ort.lanes",
     "SliceDropped": "streamdet.runtime_ort.lanes",

@@ -34,7 +34,6 @@ Contracts (README, "Trust and failure model"; docs/trust.md):
 from __future__ import annotations
 
 import dataclasses
-import importlib.resources
 import logging
 import math
 import numbers
@@ -44,7 +43,6 @@ import time
 import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Mapping, Sequence
 
@@ -57,15 +55,21 @@ from streamdet.calibration.lut import (
     BlindCameraWarning, CameraMovedWarning, Lut, blind_cameras, build_lut, check_rig_fits, moved_cameras,
 )
 from streamdet.calibration.quadrant_lut import QuadrantLut, quadrant_luts
-from streamdet.core.constants import BUNDLED_PREFIX, PRECISIONS  # noqa: F401 (PRECISIONS: public here too)
+from streamdet.core.constants import PRECISIONS  # noqa: F401 (public here too)
 from streamdet.core.image_layout import image_map_chw
 from streamdet.core.lut_layout import LUT_COMPACT
 from streamdet.core.points import check_sweep
 from streamdet.core.sectors import NUM_QUADRANTS, check_num_slices, quadrants_of_sector, sector_bounds_deg
 from streamdet.core.slicing import split_sweep
-from streamdet.runtime_ort.fallback import FALLBACK_GRAPH, LidarFallback, check_fallback_age, needs_fallback, open_fallback
+# the public names of the runtime's API are importable from here too, where StreamingDetector lives
+from streamdet.runtime_ort.detector_config import DetectorConfig, NoImageLaneError, lane_precision_label  # noqa: F401
+from streamdet.runtime_ort.detector_results import ImageUpdate, SliceResult, SweepResult
+from streamdet.runtime_ort.export_settings import export_nms, export_rig, image_spec_at
+from streamdet.runtime_ort.fallback import FALLBACK_GRAPH, LidarFallback, needs_fallback, open_fallback
+from streamdet.runtime_ort.image_cache import (  # noqa: F401 (check_camera_timestamps: public here too)
+    ALL_QUADRANTS, ImageCache, QuadrantState, check_camera_timestamps, quadrant_states, select_maps, update_quadrants,
+)
 from streamdet.runtime_ort.manifest import ImageSpec, Manifest, ManifestError, export_file, read_manifest
-from streamdet.runtime_ort.nms import NmsConfig
 from streamdet.runtime_ort.pillarize import POINT_DIM, pillarize
 from streamdet.runtime_ort.postprocess import Detections, PostprocessConfig, aggregate_sweep, postprocess_slice
 from streamdet.runtime_ort.recording import Feeds, GraphRecording
@@ -74,193 +78,6 @@ from streamdet.runtime_ort.signature import check_graph, check_runtime_fields
 from streamdet.runtime_ort.stats import LatencyStats
 
 log = logging.getLogger(__name__)
-ALL_QUADRANTS: tuple[int, ...] = tuple(range(NUM_QUADRANTS))
-
-
-def lane_precision_label(precision: str, image_precision: str | None) -> str:
-    """``"fp32"``, or ``"int8 image lane + fp32 slices"`` when the image lane runs another precision than the slices."""
-    if image_precision is None or image_precision == precision:
-        return precision
-    return f"{image_precision} image lane + {precision} slices"
-
-
-class NoImageLaneError(ValueError):
-    """An image-lane call (images, calibration, image size) on a LiDAR-only export, which has no image lane."""
-
-
-@dataclass(frozen=True)
-class DetectorConfig:
-    precision: str = "fp32"  # fp32 | fp16 | int8; the export must hold graphs of that precision
-    # The image lane's graphs (encoder + lifter) in another precision; None: ``precision``. On an x86 CPU, "int8"
-    # here with fp32 slices halves the image lane's time (camera features half as old) and leaves the slice graph
-    # exact; its int8 sibling is not faster (README, "Which precision").
-    image_lane_precision: str | None = None
-    providers: tuple[str, ...] | None = None  # None: TensorRT > CUDA > CPU, whichever onnxruntime has
-    image_lane_threads: int = 1  # intra-op threads of the image encoder and lifter sessions
-    slice_lane_threads: int = 1  # intra-op threads of the slice session
-    num_slices: int | None = None  # slices per sweep (1, 2 or a multiple of 4); None: the number the export was made for
-    # (W, H) px of the images fed to the encoder; None: the export's. The graphs are dynamic in H and W, so another
-    # size only needs a LUT built for it: from the export's calibration source at start, then set_calibration.
-    image_size: tuple[int, int] | None = None
-    start_deg: float = 0.0  # azimuth where slice 0 starts (a multiple of 90)
-    score_threshold: float | None = None  # None: the export's post.score_threshold
-    # Per-class NMS inside a slice and across a sweep. None: the export's post settings, i.e. circle NMS with
-    # max_out = post.max_detections and, for NmsKind.ROTATED, post.nms_iou_threshold per class (the detector's
-    # `config.nms` then holds the resolved NmsConfig).
-    nms: NmsConfig | None = None
-    restrict_to_sector: bool = False  # keep only boxes centred in the slice's own sector
-    verify_sha256: bool = True  # refuse graphs whose bytes differ from the manifest
-    enable_profiling: bool = False  # onnxruntime profiles of every session (written on close())
-    # A LiDAR-only export whose slice graph runs the slices that have no usable camera features (no image BEV yet,
-    # or one older than fallback_after_s): runtime_ort/fallback.py. None: those slices read a zero image BEV.
-    fallback_export_dir: str | os.PathLike | None = None
-    fallback_after_s: float | None = None  # None: fall back only where a quadrant has no image BEV at all
-
-    @property
-    def image_precision(self) -> str:
-        """Precision of the image lane's graphs."""
-        return self.image_lane_precision or self.precision
-
-    def __post_init__(self) -> None:
-        if self.precision not in PRECISIONS:
-            raise ValueError(f"DetectorConfig.precision must be one of {PRECISIONS}, got {self.precision!r}")
-        for name in ("image_lane_threads", "slice_lane_threads"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 0:
-                raise ValueError(f"DetectorConfig.{name} must be an int >= 0 (0: every core), got {v!r}")
-        if self.num_slices is not None:
-            if isinstance(self.num_slices, bool) or not isinstance(self.num_slices, (int, np.integer)):
-                raise ValueError(f"DetectorConfig.num_slices must be None or an int (1, 2 or a multiple of 4), got {self.num_slices!r}")
-            try:
-                check_num_slices(int(self.num_slices))
-            except ValueError as e:
-                raise ValueError(f"DetectorConfig.num_slices: {e}") from None
-        if isinstance(self.start_deg, bool) or not isinstance(self.start_deg, numbers.Real) or not math.isfinite(self.start_deg) or self.start_deg % 90.0:
-            raise ValueError(f"DetectorConfig.start_deg must be a finite multiple of 90 degrees, got {self.start_deg!r}")
-        if self.score_threshold is not None and (
-            isinstance(self.score_threshold, bool) or not isinstance(self.score_threshold, numbers.Real)
-            or not 0.0 <= self.score_threshold <= 1.0
-        ):
-            raise ValueError(f"DetectorConfig.score_threshold must be None or a number in [0, 1], got {self.score_threshold!r}")
-        if self.nms is not None and not isinstance(self.nms, NmsConfig):
-            raise ValueError(f"DetectorConfig.nms must be None or an NmsConfig, got {type(self.nms).__name__}")
-        for name in ("restrict_to_sector", "verify_sha256", "enable_profiling"):
-            if not isinstance(getattr(self, name), bool):
-                raise ValueError(f"DetectorConfig.{name} must be True or False, got {getattr(self, name)!r}")
-        if self.providers is not None and (
-            isinstance(self.providers, str) or not all(isinstance(p, str) for p in self.providers)
-        ):
-            raise ValueError(f"DetectorConfig.providers must be None or a tuple of provider names, got {self.providers!r}")
-        if self.image_lane_precision is not None and self.image_lane_precision not in PRECISIONS:
-            raise ValueError(
-                f"DetectorConfig.image_lane_precision must be None or one of {PRECISIONS}, got {self.image_lane_precision!r}"
-            )
-        if self.fallback_export_dir is not None and not isinstance(self.fallback_export_dir, (str, os.PathLike)):
-            raise ValueError(f"DetectorConfig.fallback_export_dir must be None or a path, got {self.fallback_export_dir!r}")
-        check_fallback_age(self.fallback_after_s, self.fallback_export_dir)
-        if self.image_size is not None:
-            size = tuple(self.image_size)
-            if len(size) != 2 or not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v > 0 for v in size):
-                raise ValueError(f"DetectorConfig.image_size must be (width, height) in positive pixels, got {self.image_size!r}")
-            object.__setattr__(self, "image_size", (int(size[0]), int(size[1])))
-
-
-@dataclass(frozen=True)
-class ImageUpdate:
-    """What one `update_images` call did."""
-
-    timestamp: float
-    cameras_used: tuple[str, ...]
-    cameras_missing: tuple[str, ...]  # their features were zeros in this update
-    # True when a newer image set (an update_images call that started later) was installed first in every quadrant
-    # this one lifted: it was encoded but replaced nothing (an older set never overwrites a newer one)
-    superseded: bool = False
-    quadrants: tuple[int, ...] = (0, 1, 2, 3)  # the quadrants of the image BEV this update lifted
-
-
-@dataclass(frozen=True)
-class SliceResult:
-    """The detections of one slice and where they came from."""
-
-    detections: Detections  # LiDAR frame, after uncrop, threshold and per-class NMS
-    slice_index: int
-    num_slices: int
-    timestamp: float
-    image_timestamp: float | None  # timestamp of the image BEV used; None: no images yet (zeros were used)
-    num_points: int
-    num_pillars: int
-    num_nonfinite_dropped: int  # NaN / inf points removed before pillarising
-    # finite points outside the grid range or outside the slice's quadrant(s) (e.g. another slice's points). Points
-    # in the slice's quadrants but outside its sector are kept: the slice graph sees its quadrants whole.
-    num_outside_dropped: int = 0
-    num_points_dropped: int = 0  # points lost to the pillar caps (max_points_per_pillar, max_pillars)
-    # timestamp - image_timestamp: how old the images behind the quadrant(s) it read were at the slice's own
-    # timestamp (both labels of the caller's clock); None without images. The oldest quadrant read counts.
-    image_age_s: float | None = None
-    # True: the LiDAR-only fallback's slice graph ran (DetectorConfig.fallback_export_dir), not the fused one
-    fallback: bool = False
-
-
-@dataclass(frozen=True, eq=False)
-class SweepResult:
-    """What ``detect_sweep_slices`` did with one sweep."""
-
-    detections: Detections  # every slice's detections merged with per-class NMS (what detect_sweep returns)
-    slices: tuple[SliceResult, ...]  # in scan order
-    points: tuple[np.ndarray, ...]  # (N_k, 6) float32 points of each slice
-
-
-@dataclass(frozen=True)
-class _QuadrantState:
-    """The cached image BEV of one quadrant and what it was lifted from."""
-
-    bev: np.ndarray  # (1, C, Yq, Xq) float32, or the image half (1, C0, Yh, Xh) (the manifest's image_layout)
-    # (J', C, Hf, Wf) float32 feature maps of ``feature_cameras`` (zeros for a camera not given), kept to re-lift
-    # when the calibration changes; a full update's quadrants share one array of every camera
-    features: np.ndarray
-    feature_cameras: tuple[str, ...]
-    timestamp: float
-    cameras_missing: tuple[str, ...]
-    seq: int = 0  # the update_images call that made it (call order: a larger seq is a newer image set)
-    lut: Lut | None = None  # the LUT the bev was lifted with
-
-
-@dataclass(frozen=True, eq=False)
-class _ImageCache:
-    """The cached image BEV: one state per quadrant (None: no image there yet). Never changed in place: every
-    install or re-lift swaps in a new cache, so ``cache is before`` tells whether anything changed."""
-
-    quadrants: tuple[_QuadrantState | None, ...]  # quadrants 0..3
-
-    @property
-    def bev(self) -> np.ndarray:
-        """(4, C, Yq, Xq) float32 of every quadrant (a copy; a quadrant without images is zeros)."""
-        some = next(s for s in self.quadrants if s is not None)
-        return np.concatenate([np.zeros_like(some.bev) if s is None else s.bev for s in self.quadrants])
-
-    @property
-    def newest(self) -> _QuadrantState:
-        """The quadrant state of the newest image set cached."""
-        return max((s for s in self.quadrants if s is not None), key=lambda s: s.seq)
-
-    @property
-    def features(self) -> np.ndarray:
-        return self.newest.features  # a full update's quadrants share it
-
-    @property
-    def seq(self) -> int:
-        return self.newest.seq
-
-    @property
-    def timestamp(self) -> float:
-        """The oldest quadrant's timestamp."""
-        return min(s.timestamp for s in self.quadrants if s is not None)
-
-    @property
-    def lut(self) -> Lut | None:
-        """The LUT every cached quadrant was lifted with; None while they differ."""
-        luts = {id(s.lut): s.lut for s in self.quadrants if s is not None}
-        return next(iter(luts.values())) if len(luts) == 1 else None
 
 
 class StreamingDetector:
@@ -301,7 +118,7 @@ class StreamingDetector:
             raise NoImageLaneError(self._no_image_lane(f"DetectorConfig.image_size {config.image_size!r} cannot apply"))
         self.camera_names: tuple[str, ...] = tuple(m.image.camera_names) if m.image is not None else ()
         # what update_images takes; None for a LiDAR-only export
-        self.image: ImageSpec | None = _image_spec(m.image, config.image_size) if m.image is not None else None
+        self.image: ImageSpec | None = image_spec_at(m.image, config.image_size) if m.image is not None else None
         self.num_slices = int(config.num_slices) if config.num_slices is not None else m.num_slices
         try:
             check_num_slices(self.num_slices, config.start_deg)
@@ -311,7 +128,7 @@ class StreamingDetector:
         self._max_points_per_pillar = int(pillars["max_points_per_pillar"])
         self._max_pillars = int(pillars["max_pillars"])
         if config.nms is None:
-            self.config = config = dataclasses.replace(config, nms=_export_nms(m))
+            self.config = config = dataclasses.replace(config, nms=export_nms(m))
         threshold = config.score_threshold if config.score_threshold is not None else float(m.post["score_threshold"])
         self._post = PostprocessConfig(score_threshold=threshold, restrict_to_sector=config.restrict_to_sector, nms=config.nms)
 
@@ -354,8 +171,8 @@ class StreamingDetector:
             lut_path = export_file(self.export_dir, m.lut.file, "lut.file")
             self._lut = self._check_lut(Lut.load(lut_path, self.grid, len(self.camera_names)))  # headers checked first
         elif self.uses_images:
-            self._lut = self._check_lut(self._build_lut(_export_rig(m, self.export_dir)))
-        self._image: _ImageCache | None = None  # None before the first image update; replaced whole under _lock
+            self._lut = self._check_lut(self._build_lut(export_rig(m, self.export_dir)))
+        self._image: ImageCache | None = None  # None before the first image update; replaced whole under _lock
         self._quadrant_luts: dict[Lut, tuple[QuadrantLut, ...]] = {}  # per LUT in use (the newest two kept)
         self._compact_luts: dict[tuple[int, int], tuple[Lut | QuadrantLut, dict[str, np.ndarray]]] = {}  # compact LUT feeds
         log.info("streamdet: %s (%s, %d slices) on %s", self.export_dir, self.precision_label, self.num_slices, list(self.providers))
@@ -454,14 +271,14 @@ class StreamingDetector:
                 if not relift:
                     self._image = None
                     return
-                states = _quadrant_states(self._image)
+                states = quadrant_states(self._image)
             # Re-lift the newest image set of every quadrant; an update that finishes meanwhile under the old LUT
             # lifts itself again (_install), so the loop ends once every cached quadrant was lifted with this LUT.
             while True:
                 stale = [(q, s) for q, s in enumerate(states) if s is not None and s.lut is not lut]
                 if not stale:
                     return
-                groups: dict[int, list[tuple[int, _QuadrantState]]] = {}  # quadrants lifted from one features array
+                groups: dict[int, list[tuple[int, QuadrantState]]] = {}  # quadrants lifted from one features array
                 for q, s in stale:
                     groups.setdefault(id(s.features), []).append((q, s))
                 lifted = {}
@@ -471,11 +288,11 @@ class StreamingDetector:
                     bevs = self._lift_quadrants(first.features, first.feature_cameras, quadrants, lut)
                     lifted.update({q: dataclasses.replace(s, bev=bev, lut=lut) for (q, s), bev in zip(members, bevs)})
                 with self._lock:
-                    current = list(_quadrant_states(self._image))
+                    current = list(quadrant_states(self._image))
                     for q, s in stale:
                         if current[q] is s:  # not replaced by a newer update meanwhile
                             current[q] = lifted[q]
-                    self._image = _ImageCache(tuple(current))
+                    self._image = ImageCache(tuple(current))
                     states = self._image.quadrants
 
     def _build_lut(self, rig: Rig) -> Lut:
@@ -512,7 +329,7 @@ class StreamingDetector:
         if not self.uses_images:
             raise NoImageLaneError(self._no_image_lane(f"update_images got cameras {sorted(map(str, images))} it cannot use"))
         timestamp = _timestamp(timestamp)
-        wanted = _check_quadrants(quadrants)
+        wanted = update_quadrants(quadrants)
         self.check_images(images)
         camera_ts = check_camera_timestamps(camera_timestamps, images)
         needed = self.camera_names if wanted == ALL_QUADRANTS else self.quadrant_cameras(wanted)
@@ -562,7 +379,7 @@ class StreamingDetector:
 
     def quadrant_cameras(self, quadrants: Sequence[int]) -> tuple[str, ...]:
         """The cameras whose feature maps the LUT in use reads in these quadrants, in the export's camera order."""
-        wanted = _check_quadrants(quadrants)
+        wanted = update_quadrants(quadrants)
         qluts = self._luts_of(self.lut)
         seen = {name for q in wanted for name in qluts[q].camera_names}
         return tuple(n for n in self.camera_names if n in seen)
@@ -619,7 +436,7 @@ class StreamingDetector:
         an old calibration once set_calibration has returned."""
         while True:
             with self._lock:
-                lut, current = self._lut, _quadrant_states(self._image)
+                lut, current = self._lut, quadrant_states(self._image)
             todo = tuple(q for q in quadrants if current[q] is None or current[q].seq < seq)
             if not todo:
                 return False
@@ -628,16 +445,16 @@ class StreamingDetector:
             with self._lock:
                 if self._lut is not lut:
                     continue
-                states = list(_quadrant_states(self._image))
+                states = list(quadrant_states(self._image))
                 installed = False
                 for q, bev in zip(todo, bevs):
                     if states[q] is None or states[q].seq < seq:
                         seen = [camera_timestamps[n] for n in qluts[q].camera_names if n in camera_timestamps] if qluts else []
                         stamp = min(seen) if seen else timestamp
-                        states[q] = _QuadrantState(bev, features, cameras, stamp, missing, seq, lut)
+                        states[q] = QuadrantState(bev, features, cameras, stamp, missing, seq, lut)
                         installed = True
                 if installed:
-                    self._image = _ImageCache(tuple(states))
+                    self._image = ImageCache(tuple(states))
                 return installed
 
     def _lift(self, features: np.ndarray, lut: Lut) -> np.ndarray:
@@ -659,7 +476,7 @@ class StreamingDetector:
         out = []
         for q in quadrants:
             qlut = qluts[q]
-            maps = _select_maps(features, cameras, qlut.camera_names)
+            maps = select_maps(features, cameras, qlut.camera_names)
             feeds = {"features": maps, **self._lut_feeds(qlut, maps)}
             with self.stats.time("volumetric_lifter", self._executed_gmac("volumetric_lifter", Q=1)):
                 (bev,) = self._run_graph("volumetric_lifter", feeds)  # (1, C, Yq, Xq)
@@ -703,10 +520,10 @@ class StreamingDetector:
     @property
     def image_timestamps(self) -> tuple[float | None, ...]:
         """Timestamp of each quadrant's cached image BEV (None: no image yet), quadrants 0..3."""
-        return tuple(None if s is None else s.timestamp for s in _quadrant_states(self._image))
+        return tuple(None if s is None else s.timestamp for s in quadrant_states(self._image))
 
     @property
-    def image_state(self) -> _ImageCache | None:
+    def image_state(self) -> ImageCache | None:
         """The cached image BEV the next slice reads (read-only); None before any image update.
 
         Never changed in place: every update or re-lift swaps in a new one, so ``det.image_state is before`` tells
@@ -749,7 +566,7 @@ class StreamingDetector:
         k = int(slice_index)
         quadrants = quadrants_of_sector(k, n, self.config.start_deg)
         t0 = time.perf_counter()
-        cache = _quadrant_states(self._image)  # one read: a consistent view of the cache
+        cache = quadrant_states(self._image)  # one read: a consistent view of the cache
         states = tuple(cache[q] for q in quadrants)
         stamps = [s.timestamp for s in states if s is not None]
         image_ts = min(stamps) if stamps else None
@@ -792,7 +609,7 @@ class StreamingDetector:
             fallback=fallback,
         )
 
-    def _image_bev(self, states: tuple[_QuadrantState | None, ...]) -> np.ndarray:
+    def _image_bev(self, states: tuple[QuadrantState | None, ...]) -> np.ndarray:
         """(Q, C, Yq, Xq) image BEV of the slice's quadrants, or in the image_half layout their image half
         (Q, C0, Yh, Xh); zeros for a quadrant without images yet (in both layouts what a zeroed BEV gives: the
         image half's bias is carried by the slice graph's point half, core/image_layout.py)."""
@@ -887,94 +704,3 @@ def _timestamp(value: float | None) -> float:
     if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
         raise ValueError(f"timestamp must be None or a finite number of seconds, got {value!r}")
     return float(value)
-
-
-def check_camera_timestamps(stamps: Mapping[str, float] | None, images: Mapping[str, np.ndarray]) -> dict[str, float]:
-    """{camera: finite seconds} for cameras among ``images``; ValueError naming the bad entry."""
-    if stamps is None:
-        return {}
-    if not isinstance(stamps, Mapping):
-        raise ValueError(f"camera_timestamps must be None or a dict of camera name -> seconds, got {type(stamps).__name__}")
-    out = {}
-    for name, value in stamps.items():
-        if name not in images:
-            raise ValueError(f"camera_timestamps names camera {name!r}, whose image this update was not given")
-        if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
-            raise ValueError(f"camera_timestamps[{name!r}] must be a finite number of seconds, got {value!r}")
-        out[name] = float(value)
-    return out
-
-
-def _quadrant_states(cache: _ImageCache | None) -> tuple[_QuadrantState | None, ...]:
-    return (None,) * NUM_QUADRANTS if cache is None else cache.quadrants
-
-
-def _check_quadrants(quadrants: Sequence[int] | None) -> tuple[int, ...]:
-    """The quadrants of an image update: None is all four; else a non-empty strictly increasing list of 0..3."""
-    if quadrants is None:
-        return ALL_QUADRANTS
-    qs = tuple(quadrants) if isinstance(quadrants, (tuple, list)) else None
-    ok = (
-        qs is not None and len(qs) > 0
-        and all(isinstance(q, (int, np.integer)) and not isinstance(q, bool) and 0 <= q < NUM_QUADRANTS for q in qs)
-        and all(a < b for a, b in zip(qs, qs[1:]))
-    )  # fmt: skip
-    if not ok:
-        raise ValueError(f"quadrants must be None or a non-empty strictly increasing list of 0..3, got {quadrants!r}")
-    return tuple(int(q) for q in qs)
-
-
-def _select_maps(features: np.ndarray, cameras: tuple[str, ...], wanted: tuple[str, ...]) -> np.ndarray:
-    """The (max(1, len(wanted)), C, Hf, Wf) maps of ``wanted`` out of ``features`` of ``cameras``; zeros for the absent."""
-    if cameras == wanted:
-        return features
-    out = np.zeros((max(1, len(wanted)), *features.shape[1:]), dtype=np.float32)
-    for i, name in enumerate(wanted):
-        if name in cameras:
-            out[i] = features[cameras.index(name)]
-    return out
-
-
-def _export_nms(manifest: Manifest) -> NmsConfig:
-    """The NMS the export asks for in its post settings: max_detections kept, the per-class rotated IoU thresholds."""
-    post = manifest.post
-    ious = tuple(float(v) for v in post.get("nms_iou_threshold", ()))
-    default = NmsConfig()
-    return NmsConfig(
-        iou_threshold=ious[0] if ious and len(set(ious)) == 1 else default.iou_threshold,
-        iou_threshold_per_class=ious if len(set(ious)) > 1 else None,
-        max_out=int(post.get("max_detections", default.max_out)),
-    )
-
-
-def _image_spec(exported: ImageSpec, size: tuple[int, int] | None) -> ImageSpec:
-    """The export's image spec, or the same cameras and stride at another (W, H)."""
-    if size is None or size == (exported.width, exported.height):
-        return exported
-    w, h = size
-    s = exported.feature_stride
-    return ImageSpec(w, h, s, math.ceil(w / s), math.ceil(h / s), exported.camera_names)  # the encoder's feature size
-
-
-def _export_rig(manifest: Manifest, export_dir: Path) -> Rig:
-    """The rig the export's LUT was built from (manifest.lut.calibration_source), read only from where the runtime
-    may read: a file bundled with streamdet.data, or a file inside the export directory (copy it there when the
-    export was made from a calibration elsewhere). Its hash must still be the LUT's calibration_sha256."""
-    source = manifest.lut.calibration_source
-    if source.startswith(BUNDLED_PREFIX):
-        root = Path(str(importlib.resources.files("streamdet.data"))).resolve()
-        path = (root / source[len(BUNDLED_PREFIX):]).resolve()
-        allowed = root in path.parents
-    else:
-        path = (export_dir / source).resolve()  # an absolute source stays absolute
-        allowed = path.parent == export_dir.resolve()
-    if not (allowed and path.is_file()):
-        raise ValueError(
-            f"{export_dir}: DetectorConfig.image_size needs the export's calibration to rebuild the LUT, but "
-            f"{source!r} is not a bundled file or a file inside the export directory; copy it into the export, "
-            "re-export at that size, or keep image_size=None"
-        )
-    rig = Rig.from_calibration_json(path)
-    if rig.sha256() != manifest.lut.calibration_sha256:
-        raise CalibrationError(f"{path}: this calibration changed since the export (its hash is not the LUT's calibration_sha256)")
-    return rig

@@ -40,7 +40,9 @@ from typing import Callable, Mapping
 
 import numpy as np
 
-from streamdet.runtime_ort.detector import ImageUpdate, SliceResult, StreamingDetector, check_camera_timestamps
+from streamdet.runtime_ort.detector import StreamingDetector
+from streamdet.runtime_ort.detector_results import ImageUpdate, SliceResult
+from streamdet.runtime_ort.image_cache import check_camera_timestamps
 from streamdet.runtime_ort.phase_locked_lane import PhaseLockedImageLane, PhaseLockStats
 
 

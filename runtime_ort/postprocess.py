@@ -20,7 +20,7 @@ from streamdet.calibration.grid import GridSpec
 from streamdet.calibration.slice_maps import slice_maps
 from streamdet.core.boxes import BOX_DIM, X, Y
 from streamdet.core.classes import CLASS_NAMES
-from streamdet.core.sectors import NUM_QUADRANTS, azimuth_deg
+from streamdet.core.sectors import azimuth_deg, check_quadrants
 from streamdet.runtime_ort.nms import NmsConfig, nms
 
 
@@ -85,22 +85,11 @@ class PostprocessConfig:
             raise ValueError(f"PostprocessConfig.score_threshold must be finite, got {self.score_threshold}")
 
 
-def _check_quadrants(quadrants: Sequence[int]) -> tuple[int, ...]:
-    qs = tuple(quadrants)
-    if (
-        not qs
-        or not all(isinstance(q, (int, np.integer)) and 0 <= q < NUM_QUADRANTS for q in qs)
-        or any(a >= b for a, b in zip(qs, qs[1:]))
-    ):
-        raise ValueError(f"quadrants must be a non-empty, strictly increasing tuple of 0..3, got {quadrants!r}")
-    return qs
-
-
 def uncrop_boxes(det_boxes: np.ndarray, quadrants: Sequence[int], grid: GridSpec, crop: bool = True) -> np.ndarray:
     """(Q, K, 9) boxes relative to their map's minimum corner -> (Q, K, 9) float32 in the LiDAR frame.
 
     With the crop the maps are the slice's quadrants; without it (``crop`` False) one map of the whole grid (Q = 1)."""
-    qs = _check_quadrants(quadrants)
+    qs = check_quadrants(quadrants)
     maps = slice_maps(grid, qs, crop)
     det_boxes = np.asarray(det_boxes)
     if det_boxes.ndim != 3 or det_boxes.shape[0] != maps.count or det_boxes.shape[2] != BOX_DIM:

@@ -1,0 +1,55 @@
+"""What the detector's calls return: `ImageUpdate` (an image-lane update), `SliceResult` (one slice's detections
+and where they came from) and `SweepResult` (a whole sweep, slice by slice)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from streamdet.runtime_ort.postprocess import Detections
+
+
+@dataclass(frozen=True)
+class ImageUpdate:
+    """What one `update_images` call did."""
+
+    timestamp: float
+    cameras_used: tuple[str, ...]
+    cameras_missing: tuple[str, ...]  # their features were zeros in this update
+    # True when a newer image set (an update_images call that started later) was installed first in every quadrant
+    # this one lifted: it was encoded but replaced nothing (an older set never overwrites a newer one)
+    superseded: bool = False
+    quadrants: tuple[int, ...] = (0, 1, 2, 3)  # the quadrants of the image BEV this update lifted
+
+
+@dataclass(frozen=True)
+class SliceResult:
+    """The detections of one slice and where they came from."""
+
+    detections: Detections  # LiDAR frame, after uncrop, threshold and per-class NMS
+    slice_index: int
+    num_slices: int
+    timestamp: float
+    image_timestamp: float | None  # timestamp of the image BEV used; None: no images yet (zeros were used)
+    num_points: int
+    num_pillars: int
+    num_nonfinite_dropped: int  # NaN / inf points removed before pillarising
+    # finite points outside the grid range or outside the slice's quadrant(s) (e.g. another slice's points). Points
+    # in the slice's quadrants but outside its sector are kept: the slice graph sees its quadrants whole.
+    num_outside_dropped: int = 0
+    num_points_dropped: int = 0  # points lost to the pillar caps (max_points_per_pillar, max_pillars)
+    # timestamp - image_timestamp: how old the images behind the quadrant(s) it read were at the slice's own
+    # timestamp (both labels of the caller's clock); None without images. The oldest quadrant read counts.
+    image_age_s: float | None = None
+    # True: the LiDAR-only fallback's slice graph ran (DetectorConfig.fallback_export_dir), not the fused one
+    fallback: bool = False
+
+
+@dataclass(frozen=True, eq=False)
+class SweepResult:
+    """What ``detect_sweep_slices`` did with one sweep."""
+
+    detections: Detections  # every slice's detections merged with per-class NMS (what detect_sweep returns)
+    slices: tuple[SliceResult, ...]  # in scan order
+    points: tuple[np.ndarray, ...]  # (N_k, 6) float32 points of each slice
