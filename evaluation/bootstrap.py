@@ -222,7 +222,12 @@ def paired_bootstrap(
     ones = np.ones(len(cluster), dtype=np.int64)
 
     def mean_summary(runs, picks, weights) -> dict[str, float]:
-        each = [summary(weighted_metrics(runs[i], classes, weights, config)) for i in picks]
+        # a run drawn twice is scored once (a draw of three runs holds about two distinct ones); same figures
+        scored: dict[int, dict[str, float]] = {}
+        for i in picks:
+            if i not in scored:
+                scored[i] = summary(weighted_metrics(runs[i], classes, weights, config))
+        each = [scored[i] for i in picks]
         return {k: float(np.mean([e[k] for e in each])) for k in each[0]}
 
     full_a = mean_summary(runs_a, range(len(runs_a)), ones)
