@@ -5,27 +5,12 @@
 set -euo pipefail
 cd /work/runs
 export OMP_NUM_THREADS=1 PATH=/work/main/.venv/bin:$PATH
-COMMON="--data data60w4 --preset small_v2 --steps 6000 --balanced --num-slices 8,8,32 --max-slices-per-sample 8 --lr 2e-3 --image-warmup 0 --checkpoint-every 200"
 E=eval_lidar_w4_s0; mkdir -p $E  # seed 0: the shipped weights are its model.pt
 [ -f "$E/export/manifest.json" ] || streamdet-export --checkpoint /work/main/models/weights/small_lidar_only.pt --out "$E/export"
 for n in 8 32; do
   [ -f "$E/eval_$n.json" ] || streamdet-eval --data val60w4 --split all --export-dir "$E/export" --slices $n --save-results "$E/res_$n" --json "$E/eval_$n.json"
 done
-for s in 1 2; do
-  OUT=lidar_w4_s$s
-  if [ ! -f "$OUT/model.pt" ] && [ -f "/work/main/models/weights/issue19/$OUT.pt" ]; then  # kept in the repository
-    mkdir -p "$OUT" && cp "/work/main/models/weights/issue19/$OUT.pt" "$OUT/model.pt"
-  fi
-  if [ ! -f "$OUT/model.pt" ]; then
-    if [ -f "$OUT/last.pt" ]; then streamdet-train $COMMON --seed $s --out $OUT --no-image --resume "$OUT/last.pt"
-    else streamdet-train $COMMON --seed $s --out $OUT --no-image; fi
-  fi
-  E=eval_$OUT; mkdir -p $E
-  [ -f "$E/export/manifest.json" ] || streamdet-export --checkpoint "$OUT/model.pt" --out "$E/export"
-  for n in 8 32; do
-    [ -f "$E/eval_$n.json" ] || streamdet-eval --data val60w4 --split all --export-dir "$E/export" --slices $n --save-results "$E/res_$n" --json "$E/eval_$n.json"
-  done
-done
+for s in 1 2; do bash /work/main/docs/training/issue19/run_lidar_seed.sh $s; done  # trained (or restored) and scored
 # then the fused seeds not trained yet (run_fair_v3cls_seed.sh restores the pretraining's encoder from the repository)
 for s in 1 2; do
   [ -f "/work/main/models/weights/issue19/fused_v3fair_w4_s$s.pt" ] || bash /work/main/docs/training/issue19/run_fair_v3cls_seed.sh $s
