@@ -15,5 +15,5 @@ BUNDLED_CALIBRATION_SOURCE = BUNDLED_SAMPLE_SOURCE + "/calibration.json"
 # The shipped model (models/weights/small.pt) is of this preset; `streamdet-export` without arguments writes it to
 # exports/<preset>, which every command that reads an export takes by default.
 EXPORTS_ROOT = "exports"  # streamdet-export writes EXPORTS_ROOT/<preset> without --out
-DEFAULT_PRESET = "small_v2"
+DEFAULT_PRESET = "small_v3"
 DEFAULT_EXPORT_DIR = f"{EXPORTS_ROOT}/{DEFAULT_PRESET}"

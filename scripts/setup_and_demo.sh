@@ -11,4 +11,6 @@ fi
 .venv/bin/pip install -q torch==2.13.0
 .venv/bin/pip install -q -e ".[export,dev]"
 .venv/bin/streamdet-export --fp16
-.venv/bin/streamdet-bench --resolution 800x450 --export-dir exports/small_v2
+# the folder streamdet-export writes without --out (exports/<the shipped model's preset>)
+export_dir=$(.venv/bin/python -c "from streamdet.core.constants import DEFAULT_EXPORT_DIR; print(DEFAULT_EXPORT_DIR)")
+.venv/bin/streamdet-bench --resolution 800x450 --export-dir "$export_dir"
