@@ -52,7 +52,7 @@ def main() -> None:  # the ROS boilerplate
     class StreamdetNode(Node):
         def __init__(self) -> None:
             super().__init__("streamdet")
-            export_dir = self.declare_parameter("export_dir", "exports/small_v2").value
+            export_dir = self.declare_parameter("export_dir", "exports/small_v3").value
             # a LiDAR-only export for when the cameras are gone or late ("" : none): runtime_ort/fallback.py
             fallback = self.declare_parameter("fallback_export_dir", "").value or None
             max_age_s = self.declare_parameter("fallback_after_s", 0.5).value
