@@ -1,7 +1,7 @@
 """Issue 19's decision: does the camera lane reproduce the paper's central claim here, or refute it?
 
     python -m streamdet.benchmarks.camera_claim --compare8 C8.json --compare32 C32.json
-        [--gate-drop G.json ...] [--gate-noise N.json ...] [--probe P.json ...] [--json OUT]
+        [--gate-drop G.json ...] [--gate-noise N.json ...] [--probe P.json ...] [--json OUT] [--plot OUT.png]
 
 ``C8`` / ``C32``: ``streamdet-eval --compare LIDAR FUSED --json`` at 8 and 32 slices (A = the LiDAR-only runs, B =
 the fused runs; groups of seeds give the mean of the seeds, the bootstrap resampling them). The gate files are
@@ -188,8 +188,10 @@ def _read(path: Path) -> dict:
 @click.option("--probe", multiple=True, type=click.Path(exists=True, dir_okay=False, path_type=Path),
               help="Per fused run: image_bev_probe --json (repeat).")
 @click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Also write the decision here.")
+@click.option("--plot", "plot_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Also draw the decision here (PNG): fused - LiDAR-only per figure at 8 and 32 slices with its 95 % interval.")
 def main(compare8: Path, compare32: Path, gate_drop: tuple[Path, ...], gate_noise: tuple[Path, ...],
-         probe: tuple[Path, ...], json_path: Path | None) -> None:  # fmt: skip
+         probe: tuple[Path, ...], json_path: Path | None, plot_path: Path | None) -> None:  # fmt: skip
     """Issue 19's verdict (reproduced / refuted / void / undecided) and its table."""
     if len(gate_drop) != len(gate_noise):
         raise click.UsageError(f"--gate-drop and --gate-noise pair up per fused run: got {len(gate_drop)} and {len(gate_noise)}")
@@ -200,14 +202,24 @@ def main(compare8: Path, compare32: Path, gate_drop: tuple[Path, ...], gate_nois
     except (KeyError, TypeError, ValueError) as e:
         raise click.ClickException(f"a probe file lacks {e} (write it with python -m streamdet.benchmarks.image_bev_probe --json)") from None
     gates = [(str(d.parent.name), _read(d), _read(n)) for d, n in zip(gate_drop, gate_noise)]
+    doc8, doc32 = _read(compare8), _read(compare32)
     try:
-        decision = decide(_read(compare8), _read(compare32), gates, probes, scales)
+        decision = decide(doc8, doc32, gates, probes, scales)
     except ValueError as e:
         raise click.ClickException(str(e)) from None
     click.echo(format_decision(decision))
     if json_path is not None:
         json_path.write_text(json.dumps(decision.to_dict(), indent=1) + "\n")
         click.echo(f"wrote {json_path}")
+    if plot_path is not None:
+        from streamdet.benchmarks.camera_claim_plot import plot_claim
+
+        needs = {("mAP", 8): NEED_8, ("mAP", 32): NEED_32, ("AP bicycle", 8): NEED_BICYCLE}
+        try:
+            plot_claim(doc8, doc32, plot_path, verdict=decision.verdict, needs=needs)
+        except (OSError, ValueError) as e:
+            raise click.ClickException(f"cannot draw {plot_path}: {e}") from None
+        click.echo(f"wrote {plot_path}")
 
 
 if __name__ == "__main__":

@@ -103,3 +103,30 @@ def test_fewer_than_three_seeds_per_side_is_preliminary():
     three = {**STRONG8, "A": ["a0", "a1", "a2"], "B": ["b0", "b1", "b2"]}
     three32 = {**STRONG32, "A": ["a0", "a1", "a2"], "B": ["b0", "b1", "b2"]}
     assert not any("preliminary" in n for n in decide(three, three32, [("s0", *_gate(6.0, 3.0))], [0.7]).notes)
+
+
+def test_plot_rows_follow_the_comparison_and_skip_what_it_lacks():
+    from streamdet.benchmarks.camera_claim_plot import _rows
+
+    rows = _rows(STRONG8)  # mAP and bicycle AP only: no NDS, no other class, no subsets
+    assert [r[0] for r in rows] == ["mAP", "AP bicycle"]
+    label, diff, lo, hi = rows[0]
+    assert (diff, lo, hi) == pytest.approx((5.0, 2.0, 8.0))  # points, from fractions
+    assert _rows({}) == [] and _rows({"subsets": {"all": {}}}) == []
+
+
+def test_cli_draws_the_decision(tmp_path):
+    pytest.importorskip("matplotlib")
+    c8, c32, png = tmp_path / "c8.json", tmp_path / "c32.json", tmp_path / "claim.png"
+    c8.write_text(json.dumps(STRONG8))
+    c32.write_text(json.dumps(STRONG32))
+    res = CliRunner().invoke(main, ["--compare8", str(c8), "--compare32", str(c32), "--plot", str(png)])
+    assert res.exit_code == 0, res.output
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and f"wrote {png}" in res.output
+    # nothing to draw: a clear one-line error, no traceback (the decision itself still needs subsets.all.mAP)
+    from streamdet.benchmarks.camera_claim_plot import plot_claim
+
+    with pytest.raises(ValueError, match="none of the plotted figures"):
+        plot_claim({}, {}, tmp_path / "empty.png")
+    res = CliRunner().invoke(main, ["--compare8", str(c8), "--compare32", str(c32), "--plot", str(tmp_path / "no" / "dir.png")])
+    assert res.exit_code != 0 and "cannot draw" in res.output and "Traceback" not in res.output

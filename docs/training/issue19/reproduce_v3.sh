@@ -60,4 +60,4 @@ for s in 0 1 2; do
     gates+=(--gate-drop $E/gate_drop_cameras.json --gate-noise $E/gate_calib_noise.json --probe $E/probe600.json)
 done
 python -m streamdet.benchmarks.camera_claim --compare8 compare3_8.json --compare32 compare3_32.json "${gates[@]}" \
-    --json camera_claim.json
+    --json camera_claim.json --plot camera_claim.png
