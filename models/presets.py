@@ -12,8 +12,9 @@ Three presets:
   what 1 m voxels cost; its z-stride and pooling still end in one BEV map), c = 32, a half-width ResNet-18
   (``width_divisor=2``, base width 32) at a native 384 x 216, a three-scale BEV encoder whose stages all run at
   stride >= 2, and the head at 0.8 m cells (64 x 64 per quadrant). The half-width backbone has a quarter of the
-  MACs and parameters of ResNet-18 (the shipped checkpoint is ~13 MB) and cannot load torchvision's ImageNet
-  weights, which it never does anyway (nothing is downloaded): the shipped model is trained from scratch. The
+  MACs and parameters of ResNet-18 (a checkpoint is ~13 MB) and cannot load torchvision's ImageNet
+  weights, which it never does anyway (nothing is downloaded): its encoder is trained here, from scratch or from
+  ``streamdet-train-image`` on the synthetic world's masks. The
   graphs take any image size, so ``streamdet-bench --resolution 800x450`` still runs it. One quadrant of the slice
   graph is about 0.43 GMAC (benchmarks/flops_report.py).
 - ``tiny``: for unit tests; every size minimal so a forward and backward pass take milliseconds.
@@ -21,6 +22,9 @@ Three presets:
   pretraining, image BEV normalised at fusion, two LUT heights per voxel) and the flat lifter (2D convolutions over
   z stacked into channels, ``LifterConfig.form``; its checkpoints from before it are volume and export as such);
   the others keep them off.
+- ``small_v3``: ``small_v2`` with the image BEV brought to the point BEV's RMS at fusion instead of a learnt gain
+  (``image_bev_target="point"``); the shipped model's preset (``core.constants.DEFAULT_PRESET``; its recipe, with the
+  image-side class loss of ``streamdet-train --image-class-weight``, in ``models/weights/small.json``).
 
 Any LiDAR-only variant (``use_image=False``) may drop the quadrant crop (``slice_crop=False``: one whole-grid map
 per slice, the paper's baseline set-up; ``streamdet-train --no-image --no-crop``).
@@ -393,7 +397,8 @@ def _small_v2() -> Preset:
 
 def _small_v3() -> Preset:
     # small_v2 with the image BEV brought to the point BEV's RMS on occupied cells instead of a learnt gain (issue 19
-    # item 2: trained, small_v2's gain left the image half at 0.28-0.35 of the point half's scale)
+    # item 2: trained, small_v2's learnt gain kept the image half well below the point half's scale; measured in
+    # docs/training/issue19_plan.md)
     return dataclasses.replace(_small_v2(), name="small_v3", image_bev_target="point")
 
 
