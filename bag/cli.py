@@ -10,7 +10,7 @@ from pathlib import Path
 import click
 
 from streamdet.bag.deps import MissingExtraError, require
-from streamdet.cli_utils import PRECISION_CHOICES, image_precision_option
+from streamdet.cli_utils import PRECISION_CHOICES, fallback_after_s, fallback_options, image_precision_option
 
 LIBRARY_ERRORS = (ValueError, KeyError, FileNotFoundError, OSError, MissingExtraError)
 
@@ -71,10 +71,12 @@ def export_cmd(data_dir: Path | None, scene: str | None, version: str, out: Path
 @click.option("--precision", type=click.Choice(PRECISION_CHOICES), default="fp32", show_default=True,
               help="Which graphs of the export to run.")
 @image_precision_option()
+@fallback_options(clock="bag time")
 @click.option("-v", "--verbose", is_flag=True, help="Log providers and sessions.")
 def run_cmd(bag_path: Path, export_dir: Path, out: Path, results_json: Path | None, topics: str | None,
             slice_per_message: bool, ego_frame: str, global_frame: str, num_slices: int | None, precision: str,
-            image_precision: str | None, verbose: bool) -> None:  # fmt: skip
+            image_precision: str | None, fallback_export_dir: Path | None, fallback_after_ms: float | None,
+            verbose: bool) -> None:  # fmt: skip
     """Detect every LiDAR message of a bag in recorded order (images first when new ones arrived) and write the
     detections per slice as ROS 2 topics, stamped with the slice's scan time, plus the nuScenes results JSON."""
     logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(message)s")
@@ -89,7 +91,9 @@ def run_cmd(bag_path: Path, export_dir: Path, out: Path, results_json: Path | No
         _require_extra()
         config = RunConfig(
             topics=TopicMap.parse(topics),
-            detector=DetectorConfig(precision=precision, image_lane_precision=image_precision, num_slices=num_slices),
+            detector=DetectorConfig(precision=precision, image_lane_precision=image_precision, num_slices=num_slices,
+                                    fallback_export_dir=fallback_export_dir,
+                                    fallback_after_s=fallback_after_s(fallback_after_ms)),
             slice_per_message=slice_per_message,
             ego_frame=ego_frame,
             global_frame=None if global_frame.lower() == "none" else global_frame,
@@ -103,6 +107,10 @@ def run_cmd(bag_path: Path, export_dir: Path, out: Path, results_json: Path | No
         f"{summary.num_sweeps} sweeps, {summary.num_slices} slices, {summary.num_image_sets} image sets "
         f"({summary.precision}, cameras {list(summary.cameras) or 'none'}): {summary.num_detections} detections"
     )
+    if fallback_export_dir is not None:
+        click.echo(f"{summary.num_fallback_slices} of {summary.num_slices} slices ran the LiDAR-only fallback "
+                   f"({fallback_export_dir}): no image BEV for their quadrants"
+                   + ("" if fallback_after_ms is None else f", or one older than {fallback_after_ms:g} ms"))  # fmt: skip
     if summary.cameras_without_info:
         click.echo(f"no CameraInfo for {list(summary.cameras_without_info)} at some image sets: the calibration in use "
                    "stayed (the export's until the bag's was complete); name their topics with --topics CAM.info=/topic")  # fmt: skip

@@ -53,6 +53,7 @@ class RunSummary:
     cameras_without_info: tuple[str, ...]  # their CameraInfo was missing for some image set (calibration kept)
     precision: str
     latency_ms: dict
+    num_fallback_slices: int = 0  # slices the LiDAR-only fallback ran (DetectorConfig.fallback_export_dir)
 
 
 def run_bag(
@@ -74,7 +75,7 @@ def run_bag(
     keyed_by_tokens = source.metadata().get(T.METADATA_NAME, {}).get("sample_tokens", "{}") != "{}"
     results: dict[str, list[dict]] = {}
     shown: dict[int, int] = {}  # slice index -> boxes its markers showed last
-    counts = {"sweeps": 0, "slices": 0, "image_sets": 0, "detections": 0}
+    counts = {"sweeps": 0, "slices": 0, "image_sets": 0, "detections": 0, "fallback": 0}
     pending: list[Detections] = []  # slices of the sweep being assembled (slice-per-message drivers)
     with BagWriter(out) as writer:
         for message, event in source.events():
@@ -91,6 +92,7 @@ def run_bag(
                 shown[s.index] = len(result.detections)
                 pending.append(result.detections)
                 counts["slices"] += 1
+                counts["fallback"] += result.fallback
             last = event.slices[-1]
             if last.index != last.num_slices - 1:
                 continue  # the sweep is complete when its last slice has been detected
@@ -109,7 +111,7 @@ def run_bag(
     write_results_json(results_path, results, {"use_camera": det.uses_images, "use_lidar": True})
     without = tuple(c for c in det.camera_names if c in source.cameras_without_info)
     return RunSummary(out, results_path, counts["sweeps"], counts["slices"], counts["image_sets"], counts["detections"],
-                      det.camera_names, without, det.precision_label, det.stats.summary())  # fmt: skip
+                      det.camera_names, without, det.precision_label, det.stats.summary(), counts["fallback"])  # fmt: skip
 
 
 def _feed_images(det: StreamingDetector, event: SweepEvent) -> None:

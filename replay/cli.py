@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from streamdet.cli_utils import PRECISION_CHOICES, image_precision_option
+from streamdet.cli_utils import PRECISION_CHOICES, fallback_after_s, fallback_options, image_precision_option
 from streamdet.replay.modes import MODES
 from streamdet.replay.triggers import DEFAULT_TRIGGER, TRIGGER_MODELS
 
@@ -58,11 +58,7 @@ def _progress(message: str) -> None:
 @click.option("--schedule", type=click.Choice(["full", "phase-locked"]), default="full", show_default=True,
               help="When the image lane works: 'full' (every image set, all cameras, all quadrants) or 'phase-locked' "
                    "(one quadrant at a time from its cameras, just before the LiDAR reaches it); LaneConfig.schedule.")
-@click.option("--fallback-export", "fallback_export_dir", type=click.Path(path_type=Path, file_okay=False), default=None,
-              help="A LiDAR-only export whose slice graph runs the slices without image BEV (DetectorConfig.fallback_export_dir). "
-                   "Default: none, such slices read zeros.")
-@click.option("--fallback-after-ms", type=click.FloatRange(min=0), default=None,
-              help="With --fallback-export, also fall back when the image BEV is older than this (drive ms). Default: only without one.")
+@fallback_options(clock="drive")
 @click.option("--json", "json_path", type=click.Path(path_type=Path, dir_okay=False), default=None,
               help="Write the per-mode summary (the issue's keys) to this JSON file.")
 @click.option("--plot", "plot_path", type=click.Path(path_type=Path, dir_okay=False), default=None,
@@ -102,7 +98,7 @@ def main(
             precision=precision, image_precision=image_precision, lidar_hz=lidar_hz, num_slices=num_slices,
             camera_hz=camera_hz, camera_trigger=camera_trigger, modes=MODES if mode == "all" else (mode,), time_scale=time_scale,
             max_seconds=max_seconds, threads=threads, lanes=lanes, fallback_export_dir=fallback_export_dir,
-            fallback_after_s=None if fallback_after_ms is None else fallback_after_ms / 1e3,
+            fallback_after_s=fallback_after_s(fallback_after_ms),
         )  # fmt: skip
         result = run_replay(config, _progress)
     except (ValueError, KeyError, FileNotFoundError, OSError) as e:

@@ -62,6 +62,35 @@ def image_precision_option(flag: str = "--image-precision", dest: str = "image_p
     )
 
 
+def fallback_options(clock: str = "sensor"):
+    """``--fallback-export`` and ``--fallback-after-ms``: the runtime's LiDAR-only fallback
+    (``DetectorConfig.fallback_export_dir`` / ``fallback_after_s``), spelled the same by every tool that runs slices.
+    The command gets ``fallback_export_dir`` (Path or None) and ``fallback_after_ms`` (float or None)."""
+    from pathlib import Path
+
+    export = click.option(
+        "--fallback-export", "fallback_export_dir", type=click.Path(path_type=Path, file_okay=False), default=None,
+        help="A LiDAR-only export (streamdet-export --checkpoint models/weights/small_lidar_only.pt --out DIR) whose "
+        "slice graph runs the slices that have no image BEV (DetectorConfig.fallback_export_dir). Default: none, such "
+        "slices read zeros.",
+    )  # fmt: skip
+    after = click.option(
+        "--fallback-after-ms", type=click.FloatRange(min=0), default=None,
+        help=f"With --fallback-export, also fall back when the image BEV is older than this ({clock} ms). "
+        "Default: only without one.",
+    )  # fmt: skip
+
+    def decorate(f):
+        return export(after(f))
+
+    return decorate
+
+
+def fallback_after_s(fallback_after_ms: float | None) -> float | None:
+    """``--fallback-after-ms`` as DetectorConfig.fallback_after_s."""
+    return None if fallback_after_ms is None else fallback_after_ms / 1e3
+
+
 # ---- the edge of every command-line tool ---------------------------------------------------------------------
 # The console scripts call these light functions (pyproject [project.scripts]); each imports its command inside
 # `run_edge`, so a missing optional dependency, a Ctrl-C while torch loads, or a bad input deep in a library all

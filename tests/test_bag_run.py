@@ -119,16 +119,24 @@ def test_output_bag_holds_the_inputs_and_the_detections_per_slice(bag: Path, ran
     assert all(p >= m for p, m in zip(per_sweep, merged))  # the sweep NMS only removes boxes
 
 
-def _renamed_copy(bag: Path, out: Path) -> Path:
-    """The bag with a car's own topic names (and the frames left as they are)."""
+def _copy(bag: Path, out: Path, topic_of) -> Path:
+    """The bag with each message under ``topic_of(message)``, left out where that is None."""
     source = BagSource(bag, SourceConfig())
     with BagWriter(out) as writer:
         for name, data in source.metadata().items():
             writer.metadata(name, data)
         for msg in source.messages():
+            topic = topic_of(msg)
+            if topic is None:
+                continue
             writer.schema(msg.datatype, msg.schema_text)
-            writer.write(RENAMED.get(msg.topic, msg.topic), msg.datatype, msg.message, msg.log_time_ns)
+            writer.write(topic, msg.datatype, msg.message, msg.log_time_ns)
     return out
+
+
+def _renamed_copy(bag: Path, out: Path) -> Path:
+    """The bag with a car's own topic names (and the frames left as they are)."""
+    return _copy(bag, out, lambda msg: RENAMED.get(msg.topic, msg.topic))
 
 
 def test_a_bag_with_other_topic_names_through_topics(bag: Path, export_dir: Path, reference: dict, tmp_path):
@@ -260,3 +268,33 @@ def test_channels_in_other_encodings_are_skipped(bag: Path, tmp_path, caplog):
         topics = [m.topic for m in BagSource(mixed, SourceConfig()).messages()]
     assert "/events" not in topics and topics == [m.topic for m in BagSource(bag, SourceConfig()).messages()]
     assert "topic /events is json, not ROS 2 CDR: skipped" in caplog.text
+
+
+def _copy_without_cameras(bag: Path, out: Path) -> Path:
+    """The bag with every camera message left out (the cameras died before the drive)."""
+    return _copy(bag, out, lambda msg: None if msg.datatype.endswith(("/CompressedImage", "/CameraInfo")) else msg.topic)
+
+
+def test_the_lidar_only_fallback_runs_the_slices_it_should(bag: Path, export_dir: Path, tiny_lidar_export: Path, tmp_path):
+    """--fallback-export: with images in every sweep no slice falls back; with every camera gone every slice does,
+    and the detections are the LiDAR-only export's own."""
+    base = ["run", "--export-dir", str(export_dir), "--fallback-export", str(tiny_lidar_export)]
+    res = CliRunner().invoke(bag_main, [*base, "--bag", str(bag), "--out", str(tmp_path / "a.mcap")])
+    assert res.exit_code == 0, res.output
+    assert "0 of 16 slices ran the LiDAR-only fallback" in res.output
+
+    dark = _copy_without_cameras(bag, tmp_path / "dark.mcap")
+    res = CliRunner().invoke(bag_main, [*base, "--bag", str(dark), "--fallback-after-ms", "500", "--out", str(tmp_path / "b.mcap"),
+                                        "--results", str(tmp_path / "b.json")])  # fmt: skip
+    assert res.exit_code == 0, res.output
+    assert "16 of 16 slices ran the LiDAR-only fallback" in res.output and "older than 500 ms" in res.output
+    lidar = run_bag(dark, tiny_lidar_export, tmp_path / "c.mcap", tmp_path / "c.json")
+    ours = json.loads((tmp_path / "b.json").read_text())["results"]
+    theirs = json.loads(lidar.results_json.read_text())["results"]
+    assert ours.keys() == theirs.keys() and sum(map(len, ours.values())) > 0
+    for token in ours:  # the same boxes and scores (both runs write the same JSON from the same graph)
+        assert [d["detection_score"] for d in ours[token]] == [d["detection_score"] for d in theirs[token]]
+
+    res = CliRunner().invoke(bag_main, ["run", "--bag", str(bag), "--export-dir", str(export_dir), "--fallback-after-ms", "50",
+                                        "--out", str(tmp_path / "e.mcap")])  # fmt: skip
+    assert res.exit_code != 0 and "Traceback" not in res.output  # an age without a fallback export is refused
