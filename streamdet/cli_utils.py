@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import click
 
 from streamdet.core.constants import PRECISIONS
@@ -66,8 +68,6 @@ def fallback_options(clock: str = "sensor"):
     """``--fallback-export`` and ``--fallback-after-ms``: the runtime's LiDAR-only fallback
     (``DetectorConfig.fallback_export_dir`` / ``fallback_after_s``), spelled the same by every tool that runs slices.
     The command gets ``fallback_export_dir`` (Path or None) and ``fallback_after_ms`` (float or None)."""
-    from pathlib import Path
-
     export = click.option(
         "--fallback-export", "fallback_export_dir", type=click.Path(path_type=Path, file_okay=False), default=None,
         help="A LiDAR-only export (streamdet-export --checkpoint models/weights/small_lidar_only.pt --out DIR) whose "
