@@ -32,7 +32,7 @@ from streamdet.runtime_ort.detector import ImageUpdate, SliceResult
 from streamdet.runtime_ort.lanes import SCHEDULES, LaneConfig
 from streamdet.runtime_ort.postprocess import Detections
 
-FLOOR_LIFT_MS = (0.0, 5.0, 10.0, 15.0, 20.0, 30.0)  # lift times of the floor table
+FLOOR_LIFT_MS = (0.0, 3.0, 5.0, 10.0, 15.0, 20.0, 30.0)  # lift times of the floor table
 HALF_FOV_DEG = 35.0  # the nuScenes cameras' half field of view (about 70 deg wide; CAM_BACK's 110 is wider)
 
 
@@ -99,11 +99,14 @@ def _overlaps(lo: float, hi: float, a: float, b: float) -> bool:
     return any(lo + s < b and hi + s > a for s in (-360.0, 0.0, 360.0))
 
 
-def staleness_floor_ms(drive, quadrant_cameras, lift_s: float, num_slices: int = 8, skip_rotations: int = 4) -> np.ndarray:
+def staleness_floor_ms(drive, quadrant_cameras, lift_s: float, num_slices: int = 8, skip_rotations: int = 4,
+                       delivery_s: float = 0.0) -> np.ndarray:  # fmt: skip
     """Per slice, the least staleness any schedule could add when a lift takes ``lift_s``: the oldest of the newest
     frames of its quadrant's cameras by its scan start, minus the oldest of those that arrived ``lift_s`` before the
     slice itself arrived (every quadrant lifted just in time, as if the lane had a core per quadrant). Negative:
-    frames that came during the scan could make it in. The first rotations (no frame of some camera yet) are left out."""
+    frames that came during the scan could make it in. The first rotations (no frame of some camera yet) are left out.
+    ``delivery_s``: a frame arrives that long after its capture (a real camera's exposure, readout and transport;
+    the replay delivers at capture, 0); staleness still compares capture times."""
     from streamdet.core.sectors import quadrants_of_sector
     from streamdet.replay.schedule import slice_sweep
 
@@ -114,6 +117,7 @@ def staleness_floor_ms(drive, quadrant_cameras, lift_s: float, num_slices: int =
     arrays = {n: np.asarray(t) for n, t in times.items()}
 
     def oldest_newest(cams, t: float) -> float:
+        t = t - delivery_s  # captured by then = arrived by t
         picks = [arrays[n][i] for n in cams if (i := int(np.searchsorted(arrays[n], t, side="right")) - 1) >= 0]
         return min(picks) if len(picks) == len(cams) else float("nan")
 
@@ -146,8 +150,17 @@ def measure(schedule: str, trigger: str, seconds: float, encode_ms: float, lift_
 @click.option("--slice-ms", type=click.FloatRange(min=0), default=6.3, show_default=True, help="Slice graph ms per slice.")
 @click.option("--export-dir", type=click.Path(path_type=Path, file_okay=False), default=None,
               help="Take the floor's cameras per quadrant from this export's LUT (default: by the cameras' azimuths).")
-def main(seconds: float, encode_ms: float, lift_ms: float, slice_ms: float, export_dir: Path | None) -> None:
+@click.option("--delivery-ms", "delivery_ms", default="", show_default=True,
+              help="Also print the lidar-synced floor for these camera delivery delays (capture to arrival), e.g. "
+                   "'0,10,20,30,50': where a lift must end depends on when frames arrive in the rotation.")
+def main(seconds: float, encode_ms: float, lift_ms: float, slice_ms: float, export_dir: Path | None, delivery_ms: str) -> None:
     """Staleness, image age and image-lane time per rotation of each schedule under each trigger model."""
+    try:
+        delays = [float(x) for x in delivery_ms.split(",") if x.strip()]
+    except ValueError:
+        raise click.BadParameter(f"a comma-separated list of milliseconds, got {delivery_ms!r}", param_hint="--delivery-ms") from None
+    if any(not (d >= 0 and np.isfinite(d)) for d in delays):
+        raise click.BadParameter(f"delays must be finite and >= 0 ms, got {delivery_ms!r}", param_hint="--delivery-ms")
     click.echo(f"modelled stages: encode {encode_ms} ms / frame, lift {lift_ms} ms / quadrant, slice {slice_ms} ms; "
                f"{seconds:g} s of drive per run (sleeping, not computing)")  # fmt: skip
     click.echo("| trigger | schedule | staleness added p50 / p95 ms | image age p95 ms | latency p99 ms | dropped | "
@@ -176,6 +189,17 @@ def main(seconds: float, encode_ms: float, lift_ms: float, slice_ms: float, expo
             f = staleness_floor_ms(drive, quadrant_cameras, ms / 1e3)
             cells.append(f"{np.nanpercentile(f, 50):.0f} / {np.nanpercentile(f, 95):.0f}")
         click.echo(f"| {trigger} | " + " | ".join(cells) + " |")
+    if delays:
+        click.echo("\nthe lidar-synced floor when frames arrive a delay after capture, p50 / p95 ms")
+        click.echo("| delivery delay | " + " | ".join(f"lift {ms:g} ms" for ms in FLOOR_LIFT_MS) + " |")
+        click.echo("|---|" + "---|" * len(FLOOR_LIFT_MS))
+        drive = synthetic_drive(max(seconds, 10.0), camera_trigger="lidar-synced", points=3_600, image_size=(8, 8))
+        for delay in delays:
+            cells = []
+            for ms in FLOOR_LIFT_MS:
+                f = staleness_floor_ms(drive, quadrant_cameras, ms / 1e3, delivery_s=delay / 1e3)
+                cells.append(f"{np.nanpercentile(f, 50):.0f} / {np.nanpercentile(f, 95):.0f}")
+            click.echo(f"| {delay:g} ms | " + " | ".join(cells) + " |")
 
 
 if __name__ == "__main__":

@@ -21,7 +21,8 @@ from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector
 from streamdet.runtime_ort.manifest import LUT_NAME, ImageSpec, Int8Record, LutEntry, Manifest, Normalisation, sha256_file
 from streamdet.runtime_ort.sessions import EXPORT_SESSION
 
-EXPORT_DETECTOR = DetectorConfig(providers=EXPORT_SESSION.providers, image_lane_threads=0, slice_lane_threads=0)
+EXPORT_DETECTOR = DetectorConfig(providers=EXPORT_SESSION.providers, image_lane_threads=0, slice_lane_threads=0,
+                                 camera_terms=False)  # the export runs full updates; its int8 lifter is still being made
 
 
 def run_manifest(run: ExportRun, precisions: tuple[str, ...], int8_record: Int8Record | None = None) -> Manifest:

@@ -79,7 +79,7 @@ def image_lane_summary(result: ModeResult) -> dict:
 def json_report(result: ReplayResult, info: dict) -> dict:
     config = {**result.config.to_dict(), "num_slices": result.num_slices, "precision_label": result.precision_label,
               "scenes": list(result.scenes), "cpu": info, "ground_truth": result.truth_source,
-              "notes": list(result.notes)}  # fmt: skip
+              "notes": list(result.notes), "camera_terms_used": result.camera_terms}  # fmt: skip
     return {"config": config, "modes": {mode_key(m): mode_summary(r) for m, r in result.modes.items()}}
 
 
@@ -147,7 +147,9 @@ def format_report(result: ReplayResult, info: dict) -> str:
 
 
 def _image_lane_table(result: ReplayResult) -> str:
-    rows = [f"image lane, schedule {result.config.lanes.schedule!r}:",
+    schedule = result.config.lanes.schedule
+    terms = ", per-camera lifts" if result.camera_terms and schedule == "phase-locked" else ""
+    rows = [f"image lane, schedule {schedule!r}{terms}:",
             "| mode | staleness added p50 / p95 / p99 / max ms | image age p50 / p95 ms | image-lane CPU ms per rotation |",
             "|---|---|---|---|"]  # fmt: skip
     for mode, r in result.modes.items():

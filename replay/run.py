@@ -56,6 +56,7 @@ class ReplayConfig:
     # a LiDAR-only export for the slices without usable camera features (DetectorConfig.fallback_export_dir); None: none
     fallback_export_dir: Path | None = None
     fallback_after_s: float | None = None  # also fall back when the image BEV is older than this (drive seconds)
+    camera_terms: bool | None = None  # per-camera lifts of quadrant updates (DetectorConfig.camera_terms); None: auto
 
     def __post_init__(self) -> None:
         unknown = [m for m in self.modes if m not in MODES]
@@ -95,6 +96,7 @@ class ReplayResult:
     modes: dict[str, ModeResult]
     notes: tuple[str, ...]  # the sources' notes (rates, held images)
     truth_source: str
+    camera_terms: bool = False  # whether the detector's quadrant updates used per-camera lifts (DetectorConfig.camera_terms)
 
 
 def split_scenes(tables: DatasetTables, split: str | None, count: int | None) -> list[str]:
@@ -117,7 +119,8 @@ def open_detector(config: ReplayConfig, num_slices: int | None = None) -> Stream
     return StreamingDetector(config.export_dir, DetectorConfig(
         precision=config.precision, image_lane_precision=config.image_precision, num_slices=num_slices or config.num_slices,
         image_lane_threads=config.threads, slice_lane_threads=config.threads,
-        fallback_export_dir=config.fallback_export_dir, fallback_after_s=config.fallback_after_s))  # fmt: skip
+        fallback_export_dir=config.fallback_export_dir, fallback_after_s=config.fallback_after_s,
+        camera_terms=config.camera_terms))  # fmt: skip
 
 
 def warm_up(det: StreamingDetector, drive: Drive, num_slices: int, per_quadrant: bool = False) -> None:
@@ -170,7 +173,7 @@ def run_replay(config: ReplayConfig, progress: Progress = lambda msg: None) -> R
         results[mode] = ModeResult(tuple(recordings[mode]), scores, merge_stages(stages[mode]))
     notes = tuple(dict.fromkeys(note for d in drives for note in d.notes))
     return ReplayResult(config, n, label, tuple(scenes), tuple(drives), tuple(truths), results, notes,
-                        " + ".join(sorted(sources)))  # fmt: skip
+                        " + ".join(sorted(sources)), probe.camera_terms)  # fmt: skip
 
 
 def _lanes(config: ReplayConfig) -> LaneConfig:

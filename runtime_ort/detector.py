@@ -62,6 +62,7 @@ from streamdet.core.points import check_sweep
 from streamdet.core.sectors import NUM_QUADRANTS, check_num_slices, quadrants_of_sector, sector_bounds_deg
 from streamdet.core.slicing import split_sweep
 # the public names of the runtime's API are importable from here too, where StreamingDetector lives
+from streamdet.runtime_ort.camera_terms import CameraTerms, open_camera_terms
 from streamdet.runtime_ort.detector_config import DetectorConfig, NoImageLaneError, lane_precision_label  # noqa: F401
 from streamdet.runtime_ort.detector_results import ImageUpdate, SliceResult, SweepResult
 from streamdet.runtime_ort.export_settings import export_nms, export_rig, image_spec_at
@@ -175,7 +176,32 @@ class StreamingDetector:
         self._image: ImageCache | None = None  # None before the first image update; replaced whole under _lock
         self._quadrant_luts: dict[Lut, tuple[QuadrantLut, ...]] = {}  # per LUT in use (the newest two kept)
         self._compact_luts: dict[tuple[int, int], tuple[Lut | QuadrantLut, dict[str, np.ndarray]]] = {}  # compact LUT feeds
+        # per-camera lifts of per-quadrant updates (camera_terms.py); None: every update runs the lifter graph
+        self._terms: CameraTerms | None = self._open_camera_terms() if self.uses_images and self._lut is not None else None
         log.info("streamdet: %s (%s, %d slices) on %s", self.export_dir, self.precision_label, self.num_slices, list(self.providers))
+
+    def _open_camera_terms(self) -> CameraTerms | None:
+        m, config = self.manifest, self.config
+        precisions = [p for p in ("fp32", config.image_precision) if p in m.precisions]
+        files = {p: export_file(self.export_dir, m.graph("volumetric_lifter", p).file, f"graph file of volumetric_lifter ({p})")
+                 for p in precisions}  # fmt: skip
+        fp32 = self.lifter if config.image_precision == "fp32" else None
+
+        def fp32_lift(qlut: QuadrantLut, maps: np.ndarray) -> np.ndarray:
+            nonlocal fp32
+            if fp32 is None:  # the check's reference: the export's fp32 lifter, opened for the check only
+                fp32 = GraphSession(files["fp32"], SessionConfig(config.providers, config.image_lane_threads))
+            return fp32.run({"features": maps, **self._lut_feeds(qlut, maps)})[0]
+
+        img = self.image
+        grid = self.grid
+        session = SessionConfig(config.providers, config.image_lane_threads, enable_profiling=False)
+        form = m.preset.get("lifter", {}).get("form", "volume")  # absent: manifests written before the flat lifter
+        return open_camera_terms(
+            self.export_dir, form, files, config.image_precision, config.camera_terms, int(m.preset["channels"]),
+            (img.feature_height, img.feature_width), (grid.quadrant_ny, grid.quadrant_nx), session, self.stats, fp32_lift,
+            self._luts_of(self._lut),
+        )  # fmt: skip
 
     def _executed_gmac(self, graph: str, **sizes: int) -> float:
         """GMAC of one run of ``graph``: the manifest's count scaled linearly from the sizes it was counted at
@@ -346,7 +372,8 @@ class StreamingDetector:
         for name in used:
             if name in known:
                 features[needed.index(name)] = known[name]
-        installed = self._install(features, needed, wanted, seq, timestamp, missing, camera_ts)
+        maps = {name: known[name] if name in known else features[needed.index(name)] for name in used}  # per-camera lifts
+        installed = self._install(features, needed, wanted, seq, timestamp, missing, camera_ts, maps)
         self.stats.record("image_total", (time.perf_counter() - t0) * 1e3)
         return ImageUpdate(timestamp, used, missing, superseded=not installed, quadrants=wanted)
 
@@ -362,19 +389,41 @@ class StreamingDetector:
         features = self._encode(images, used, used)  # (J_used, C, Hf, Wf)
         return {name: features[j] for j, name in enumerate(used)}
 
-    def _check_encoded(self, encoded: Mapping[str, np.ndarray] | None, images: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
-        if encoded is None:
-            return {}
+    @property
+    def camera_terms(self) -> bool:
+        """Whether per-quadrant image updates use per-camera lifts (``DetectorConfig.camera_terms``, camera_terms.py)."""
+        return self._terms is not None
+
+    def prepare_terms(self, encoded: Mapping[str, np.ndarray]) -> int:
+        """Make the per-camera lift terms of these feature maps (``encode_images``'s, by camera name) in every quadrant
+        their cameras feed, so that a later ``update_images(..., quadrants=..., encoded=...)`` given the same arrays
+        only sums the terms and runs the rest of the lifter. The number of terms made (0 without per-camera lifts)."""
+        if self._terms is None:
+            return 0
+        self._check_feature_maps(encoded)
+        with self._lock:
+            lut = self._lut
+        return self._terms.prepare(self._luts_of(lut), encoded)
+
+    def _check_feature_maps(self, encoded: Mapping[str, np.ndarray]) -> None:
         img = self.image
         shape = (int(self.manifest.preset["channels"]), img.feature_height, img.feature_width)
         if not isinstance(encoded, Mapping):
             raise ValueError(f"encoded must be None or a dict of camera name -> {shape} float32 feature map, got {type(encoded).__name__}")
         for name, f in encoded.items():
-            if name not in images:
-                raise ValueError(f"encoded names camera {name!r}, whose image this update was not given")
+            if name not in self.camera_names:
+                raise ValueError(f"encoded names unknown camera {name!r}; this export knows {list(self.camera_names)}")
             if not isinstance(f, np.ndarray) or f.dtype != np.float32 or f.shape != shape:
                 got = f"{getattr(f, 'dtype', type(f).__name__)} {getattr(f, 'shape', '')}"
                 raise ValueError(f"encoded[{name!r}] must be a float32 feature map of shape {shape} (encode_images), got {got}")
+
+    def _check_encoded(self, encoded: Mapping[str, np.ndarray] | None, images: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+        if encoded is None:
+            return {}
+        for name in encoded if isinstance(encoded, Mapping) else ():
+            if name not in images:
+                raise ValueError(f"encoded names camera {name!r}, whose image this update was not given")
+        self._check_feature_maps(encoded)
         return dict(encoded)
 
     def quadrant_cameras(self, quadrants: Sequence[int]) -> tuple[str, ...]:
@@ -427,6 +476,7 @@ class StreamingDetector:
     def _install(
         self, features: np.ndarray, cameras: tuple[str, ...], quadrants: tuple[int, ...], seq: int, timestamp: float,
         missing: tuple[str, ...], camera_timestamps: Mapping[str, float] | None = None,
+        maps: Mapping[str, np.ndarray] | None = None,
     ) -> bool:  # fmt: skip
         """Lift ``features`` into ``quadrants`` and cache each quadrant unless a newer image set is cached there
         already; False if that was so in every one. With ``camera_timestamps`` a quadrant's timestamp is the oldest
@@ -440,7 +490,7 @@ class StreamingDetector:
             todo = tuple(q for q in quadrants if current[q] is None or current[q].seq < seq)
             if not todo:
                 return False
-            bevs = self._lift_quadrants(features, cameras, todo, lut)
+            bevs = self._lift_quadrants(features, cameras, todo, lut, maps)
             qluts = self._luts_of(lut) if camera_timestamps else ()
             with self._lock:
                 if self._lut is not lut:
@@ -463,16 +513,26 @@ class StreamingDetector:
             (bev,) = self._run_graph("volumetric_lifter", {"features": features, **self._lut_feeds(lut, features)})
         return bev  # (4, C, Yq, Xq)
 
-    def _lift_quadrants(self, features: np.ndarray, cameras: tuple[str, ...], quadrants: tuple[int, ...], lut: Lut) -> list[np.ndarray]:
+    def _lift_quadrants(
+        self, features: np.ndarray, cameras: tuple[str, ...], quadrants: tuple[int, ...], lut: Lut,
+        maps: Mapping[str, np.ndarray] | None = None,
+    ) -> list[np.ndarray]:  # fmt: skip
         """(1, C, Yq, Xq) image BEV of each of ``quadrants`` from the (J', C, Hf, Wf) feature maps of ``cameras``.
 
         All four quadrants from every camera: one lifter run with the whole LUT. Otherwise one run per quadrant with
         its own rows of the LUT (quadrant_lut.py), fed the feature maps of the cameras that see it (zeros for one
-        this features array does not hold, e.g. after a calibration swap widened the quadrant's view)."""
+        this features array does not hold, e.g. after a calibration swap widened the quadrant's view); or, with
+        per-camera lifts (camera_terms.py), each quadrant from its cameras' terms, kept per feature map: ``maps``
+        (camera -> (C, Hf, Wf), the cameras given, by the objects the caller encoded) names them, else the rows of
+        ``features``."""
         if quadrants == ALL_QUADRANTS and cameras == self.camera_names:
             bev = self._lift(features, lut)  # (4, C, Yq, Xq)
             return [bev[q : q + 1] for q in range(NUM_QUADRANTS)]  # (1, C, Yq, Xq) views, no copy
         qluts = self._luts_of(lut)
+        if self._terms is not None:
+            if maps is None:
+                maps = {name: features[j] for j, name in enumerate(cameras)}
+            return [self._terms.lift(q, qluts[q], maps) for q in quadrants]
         out = []
         for q in quadrants:
             qlut = qluts[q]

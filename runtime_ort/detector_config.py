@@ -54,6 +54,10 @@ class DetectorConfig:
     # or one older than fallback_after_s): runtime_ort/fallback.py. None: those slices read a zero image BEV.
     fallback_export_dir: str | os.PathLike | None = None
     fallback_after_s: float | None = None  # None: fall back only where a quadrant has no image BEV at all
+    # Per-camera lifts for per-quadrant image updates (runtime_ort/camera_terms.py): a quadrant update recomputes
+    # only the cameras whose frames changed. None: where the export's lifter splits (the flat lifter) and the image
+    # lane is fp32 or int8; True: required (ValueError where it cannot); False: every update runs the lifter graph.
+    camera_terms: bool | None = None
 
     @property
     def image_precision(self) -> str:
@@ -83,6 +87,8 @@ class DetectorConfig:
             raise ValueError(f"DetectorConfig.score_threshold must be None or a number in [0, 1], got {self.score_threshold!r}")
         if self.nms is not None and not isinstance(self.nms, NmsConfig):
             raise ValueError(f"DetectorConfig.nms must be None or an NmsConfig, got {type(self.nms).__name__}")
+        if self.camera_terms is not None and not isinstance(self.camera_terms, bool):
+            raise ValueError(f"DetectorConfig.camera_terms must be None, True or False, got {self.camera_terms!r}")
         for name in ("restrict_to_sector", "verify_sha256", "enable_profiling"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"DetectorConfig.{name} must be True or False, got {getattr(self, name)!r}")

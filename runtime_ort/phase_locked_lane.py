@@ -10,7 +10,9 @@ lifted in time, and each quadrant is lifted at most once per new frame). Each ca
 many quadrants use it (``encode_images``), and ahead of its lifts: while the next lift is not due yet, the lane
 encodes the frames that arrived (oldest first, when the encoding ends before that lift must start), so that a lift
 is only a lift and can start later, with newer frames (cameras that fire one after the other, as the LiDAR
-crosses their axes, deliver a frame every few milliseconds).
+crosses their axes, deliver a frame every few milliseconds). Where the detector lifts per camera
+(``DetectorConfig.camera_terms``, ``camera_terms.py``), encoding a frame ahead also makes its terms
+(``prepare_terms``): the lift of a quadrant then only sums its cameras' terms and runs the rest of the lifter.
 
 Degraded behaviour, in this order (each counted in ``PhaseLockStats``):
 
@@ -226,6 +228,9 @@ class PhaseLockedImageLane:
         cpu0 = time.thread_time()
         t0 = self.clock()
         encoded = self.detector.encode_images({n: f.image for n, f in frames.items()})
+        prepare = getattr(self.detector, "prepare_terms", None)
+        if prepare is not None:  # per-camera lifts: the frame's terms now, so that its lifts only sum and finish
+            prepare(encoded)
         t1 = self.clock()
         with self._cond:
             for name, feats in encoded.items():

@@ -44,3 +44,27 @@ def test_staleness_floor_is_zero_without_processing_and_a_camera_period_when_lif
         assert np.nanmax(staleness_floor_ms(drive, cams, 0.0)) <= 0.0  # frames lifted at once are never stale
         long = staleness_floor_ms(drive, cams, 0.2)  # a lift longer than two camera periods misses the newest frames
         assert np.nanmin(long) >= 0.0 and np.nanmax(long) > 80.0
+
+
+@pytest.mark.parametrize("delivery_ms", [5.0, 20.0, 45.0])
+def test_staleness_floor_with_a_delivery_delay_is_still_zero_without_processing(delivery_ms):
+    """Frames that arrive after their capture: the newest arrived frame is older, but a lift of 0 ms still takes it."""
+    from streamdet.benchmarks.schedule_model import SleepingDetector, staleness_floor_ms
+    from streamdet.replay.cost import synthetic_drive
+
+    cams = SleepingDetector(1.0, 1.0, 1.0).quadrant_cameras
+    drive = synthetic_drive(2.0, camera_trigger="lidar-synced", points=720, image_size=(4, 4))
+    f = staleness_floor_ms(drive, cams, 0.0, delivery_s=delivery_ms / 1e3)
+    assert np.isfinite(f).any() and np.nanmax(f) <= 0.0
+    long = staleness_floor_ms(drive, cams, 0.2, delivery_s=delivery_ms / 1e3)
+    assert np.nanmin(long) >= 0.0 and np.nanmax(long) > 80.0
+
+
+@pytest.mark.parametrize("bad", ["x", "5,-1", "nan"])
+def test_schedule_model_refuses_bad_delivery_delays(bad):
+    from click.testing import CliRunner
+
+    from streamdet.benchmarks.schedule_model import main
+
+    result = CliRunner().invoke(main, ["--seconds", "1", "--delivery-ms", bad])
+    assert result.exit_code == 2 and "--delivery-ms" in result.output

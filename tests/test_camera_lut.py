@@ -107,19 +107,20 @@ def test_malformed_luts_are_refused():
         camera_luts(flat, 12)
 
 
-# ---- the split lifter graph (benchmarks/partial_lift.py) ------------------------------------------------------
+# ---- the split lifter graph (runtime_ort/lifter_split.py) ------------------------------------------------------
 
 
 @pytest.mark.parametrize("seed", [0, 1])
 def test_partial_graphs_and_tail_rebuild_a_flat_lifter(tmp_path, seed):
     """A small flat lifter exported as the exporter does (FlatLifterExport), cut after its first convolution:
-    one partial graph per camera + the numpy sum + the tail graph give the lifter's output."""
+    one term per camera (runtime_ort/camera_terms.py) + the numpy sum + the tail graph give the lifter's output."""
     torch = pytest.importorskip("torch")
     import onnx
     import onnxruntime as ort
 
-    from streamdet.benchmarks.partial_lift import first_conv, partial_graph, tail_graph
     from streamdet.benchmarks.timing import ort_session
+    from streamdet.runtime_ort.camera_terms import projected_table, share_slots, share_term
+    from streamdet.runtime_ort.lifter_split import first_conv, tail_graph
     from streamdet.models.flat_lifter import FlatLifter, FlatLifterExport
 
     torch.manual_seed(seed)
@@ -143,8 +144,7 @@ def test_partial_graphs_and_tail_rebuild_a_flat_lifter(tmp_path, seed):
     conv, weight, bias = first_conv(model)
     summed = np.broadcast_to(bias, (30, c)).copy()
     for j, share in enumerate(camera_luts(qlut, hf * wf)):
-        (term,) = ort_session(partial_graph(share, weight, c, (hf, wf)), 1).run(None, {"features": features[j : j + 1]})
-        summed[share.cells] += term
+        summed[share.cells] += share_term(projected_table(features[j], weight), *share_slots(share, hf * wf))
     (got,) = ort_session(tail_graph(model, conv.output[0], (c, 5, 6)), 1).run(None, {"summed": summed[None]})
     np.testing.assert_allclose(got, ref, rtol=1e-5, atol=1e-5)
 
@@ -153,10 +153,10 @@ def test_first_conv_refuses_a_volume_lifter(tmp_path):
     torch = pytest.importorskip("torch")
     import onnx
 
-    from streamdet.benchmarks.partial_lift import first_conv
+    from streamdet.runtime_ort.lifter_split import first_conv
 
     net = torch.nn.Sequential(torch.nn.Conv3d(2, 2, 3, padding=1))
     path = tmp_path / "vol.onnx"
     torch.onnx.export(net, (torch.zeros(1, 2, 3, 4, 4),), str(path), opset_version=17, dynamo=False)
-    with pytest.raises(ValueError, match="not 1x1"):
+    with pytest.raises(ValueError, match="not a 2D 1x1"):
         first_conv(onnx.load(str(path)))

@@ -1,0 +1,260 @@
+"""Per-camera lifts: a quadrant update that recomputes only the cameras whose frames changed.
+
+The phase-locked image lane (``phase_locked_lane.py``) lifts a quadrant again whenever one of its cameras sends a
+new frame (LiDAR-synchronised cameras fire one after the other), and the lifter graph gathers every camera's slots
+each time. With the flat lifter, a quadrant's pre-activation map is the first convolution's bias plus one **term**
+per camera (``lifter_split.py``, ``calibration/camera_lut.py``): ``CameraTerms`` keeps the newest term of every
+(quadrant, camera), computes a camera's terms when its frame is encoded (``prepare``), and a quadrant update is then
+the combine (numpy: the terms scattered into the quadrant's cells, plus the bias) and the tail graph. What it saves
+and costs is measured in docs/replay.md ("Per-camera lifts in the runtime").
+
+A camera's term is computed in numpy, the first convolution applied *before* the gather: per frame, the projected
+table ``P[z * (Hf*Wf + 1) + r] = table[r] @ W_z.T`` (the map's rows times the convolution's weight block of height
+z; one small MatMul, shared by every quadrant the camera feeds), then per share ``term[n] = sum_j w[n, j] *
+P[flat_index[n, j]]`` over its Z * S slots. Same sums as gathering the (N, Z * C) rows and multiplying by the weight
+(up to float order), without the (N, Z * S, C) intermediate of an onnxruntime Gather -> Mul -> ReduceSum -> MatMul
+chain, which measured 3x slower here (docs/replay.md).
+
+Precision: the terms are fp32; the tail is cut from the lane's own lifter graph (fp32 or int8). With an int8 image lane the sum is
+therefore quantized once, at the tail's input, instead of the int8 lifter's quantized gather and weights: the BEV
+differs from the int8 lifter's by about the int8 lifter's own error (tests/test_camera_terms.py). fp16 image lanes
+are not split.
+
+A term is cached under the feature map object it was made from and the LUT it was made with: a new frame (a new
+array) or a calibration swap (a new LUT) makes it again. ``DetectorConfig.camera_terms`` chooses: None (default)
+uses per-camera lifts where the export's lifter splits and the lane is fp32 or int8, True requires them, False never
+uses them (every quadrant update runs the lifter graph).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Mapping
+
+import numpy as np
+import onnx
+
+from streamdet.calibration.camera_lut import CameraLut, camera_luts
+from streamdet.calibration.quadrant_lut import QuadrantLut
+from streamdet.runtime_ort.lifter_split import SplitError, first_conv, first_conv_output, tail_graph
+from streamdet.runtime_ort.sessions import ORT_ERRORS, SessionConfig, ort_message, ort_session
+from streamdet.runtime_ort.stats import LatencyStats
+
+log = logging.getLogger(__name__)
+
+SPLIT_PRECISIONS = ("fp32", "int8")  # image-lane precisions whose lifter is split
+PARITY_RTOL = 1e-4  # fp32 pieces against the fp32 lifter, max |diff| relative to the output's range (float order only)
+
+
+def projected_table(features: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """(Z * (Hf*Wf + 1), C_out) rows ``z * (Hf*Wf + 1) + r``: row r of the (C, Hf, Wf) map's table (the zero row
+    last) times the (C_out, C) block of height z of the first convolution's (C_out, Z * C) ``weight``."""
+    c = features.shape[0]
+    c_out, zc = weight.shape
+    table = np.empty((features[0].size + 1, c), np.float32)  # (Hf*Wf + 1, C)
+    table[:-1] = features.reshape(c, -1).T
+    table[-1] = 0.0
+    blocks = weight.reshape(c_out, zc // c, c).transpose(2, 1, 0).reshape(c, zc // c * c_out)  # (C, Z * C_out)
+    projected = table @ blocks  # (Hf*Wf + 1, Z * C_out)
+    return np.ascontiguousarray(projected.reshape(-1, zc // c, c_out).transpose(1, 0, 2)).reshape(-1, c_out)
+
+
+def share_slots(share: CameraLut, cells_per_map: int) -> tuple[np.ndarray, np.ndarray]:
+    """A share's (N, Z * S) rows of ``projected_table`` (height z's block: ``z * (cells_per_map + 1)``) and weights."""
+    n, z, s = share.index.shape
+    offset = (np.arange(z, dtype=np.int64) * (cells_per_map + 1))[None, :, None]  # (1, Z, 1)
+    return (share.index + offset).reshape(n, z * s), share.weight.reshape(n, z * s)
+
+
+def share_term(projected: np.ndarray, slots: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """(N, C_out) = sum over the Z * S slots of weight * projected row: the share's gathered rows times the first
+    convolution's weight, without its bias."""
+    return np.einsum("nj,njo->no", weights, np.take(projected, slots, axis=0), optimize=False)
+
+
+@dataclass(frozen=True, eq=False)
+class _Share:
+    share: CameraLut
+    slots: np.ndarray  # (N, Z * S) rows of the projected table
+    weights: np.ndarray  # (N, Z * S)
+
+
+class CameraTerms:
+    """Per-camera partial lifts of one export's flat lifter, and the newest term of every (quadrant, camera)."""
+
+    def __init__(self, fp32_lifter: onnx.ModelProto, lane_lifter: onnx.ModelProto, channels: int,
+                 feature_hw: tuple[int, int], quadrant_hw: tuple[int, int], heights: int, session: SessionConfig,
+                 stats: LatencyStats | None = None) -> None:  # fmt: skip
+        """``fp32_lifter``: the export's fp32 lifter graph (the first convolution's fp32 weight and bias);
+        ``lane_lifter``: the lifter graph of the image lane's precision (the tail is cut from it); ``heights``: the
+        LUT's z planes."""
+        conv, weight, bias = first_conv(fp32_lifter)
+        if weight.shape[1] != heights * channels:
+            raise SplitError(f"the lifter's first Conv takes {weight.shape[1]} channels, not the {heights} z planes x "
+                             f"{channels} feature channels stacked: a per-camera lift needs the flat lifter "
+                             "(LifterConfig.form='flat')")  # fmt: skip
+        cut = conv.output[0] if lane_lifter is fp32_lifter else first_conv_output(lane_lifter)
+        self.channels = int(channels)
+        self.feature_hw = (int(feature_hw[0]), int(feature_hw[1]))
+        self.quadrant_hw = (int(quadrant_hw[0]), int(quadrant_hw[1]))
+        self.weight = weight  # (C_out, Z * C)
+        self.bias = bias  # (C_out,)
+        self._tail = ort_session(tail_graph(lane_lifter, cut, (weight.shape[0], *self.quadrant_hw)).SerializeToString(), session)
+        self._stats = stats
+        self._lock = threading.Lock()
+        self._shares: dict[int, tuple[QuadrantLut, tuple[_Share, ...]]] = {}  # id(qlut) -> (qlut, its shares)
+        self._projected: dict[str, tuple[np.ndarray, np.ndarray]] = {}  # camera -> (feature map, its projected table)
+        self._terms: dict[tuple[int, str], tuple[object, object, np.ndarray]] = {}  # (q, cam) -> (source, qlut, term)
+
+    # ---- the pieces --------------------------------------------------------------------------
+    def shares(self, qlut: QuadrantLut) -> tuple[_Share, ...]:
+        """The camera shares of one quadrant LUT, made once per LUT object (the newest eight kept: two LUTs)."""
+        with self._lock:
+            cached = self._shares.get(id(qlut))
+        if cached is not None and cached[0] is qlut:
+            return cached[1]
+        cells = self.feature_hw[0] * self.feature_hw[1]
+        shares = tuple(_Share(s, *share_slots(s, cells)) for s in camera_luts(qlut, cells))
+        with self._lock:
+            if len(self._shares) >= 8:
+                self._shares.pop(next(iter(self._shares)))
+            self._shares[id(qlut)] = (qlut, shares)
+        return shares
+
+    def term(self, camera: str, features: np.ndarray, share: _Share) -> np.ndarray:
+        """(N, C_out) term of one camera share from that camera's (C, Hf, Wf) float32 feature map (its projected
+        table made once per map object and camera, for every quadrant the camera feeds)."""
+        if self._stats is None:
+            return self._term(camera, features, share)
+        with self._stats.time("lifter_partial"):
+            return self._term(camera, features, share)
+
+    def _term(self, camera: str, features: np.ndarray, share: _Share) -> np.ndarray:
+        with self._lock:
+            cached = self._projected.get(camera)
+        if cached is not None and cached[0] is features:
+            projected = cached[1]
+        else:
+            projected = projected_table(features, self.weight)
+            with self._lock:
+                self._projected[camera] = (features, projected)
+        return share_term(projected, share.slots, share.weights)
+
+    def combine(self, shares: tuple[_Share, ...], terms: Mapping[str, np.ndarray]) -> np.ndarray:
+        """(1, Yq * Xq, C_out) pre-activation map: the bias plus each given camera's term in its cells."""
+        cells = self.quadrant_hw[0] * self.quadrant_hw[1]
+        summed = np.empty((cells, self.bias.size), np.float32)  # (Yq*Xq, C_out)
+        summed[:] = self.bias
+        for s in shares:
+            term = terms.get(s.share.camera_name)
+            if term is not None:
+                summed[s.share.cells] += term  # a share's cells are unique: no lost updates
+        return summed[None]
+
+    def tail(self, summed: np.ndarray) -> np.ndarray:
+        return self._tail.run(None, {"summed": summed})[0]
+
+    # ---- the cache ---------------------------------------------------------------------------
+    def prepare(self, qluts: tuple[QuadrantLut, ...], maps: Mapping[str, np.ndarray]) -> int:
+        """Compute and keep the terms of these (C, Hf, Wf) feature maps (by camera) in every quadrant of ``qluts``
+        their camera feeds, keyed by the map object. The number of terms computed."""
+        made = 0
+        for q, qlut in enumerate(qluts):
+            for s in self.shares(qlut):
+                name = s.share.camera_name
+                features = maps.get(name)
+                if features is not None and self._cached(q, name, features, qlut) is None:
+                    self._keep(q, name, features, qlut, self.term(name, features, s))
+                    made += 1
+        return made
+
+    def lift(self, quadrant: int, qlut: QuadrantLut, maps: Mapping[str, np.ndarray]) -> np.ndarray:
+        """The lifter's output for ``quadrant`` (its LUT ``qlut``) from the (C, Hf, Wf) maps of the cameras given
+        (a camera not given contributes nothing, as a zero feature map does): cached terms where the map object is
+        the one a term was made from, new terms (then kept) otherwise."""
+        shares = self.shares(qlut)
+        terms = {}
+        for s in shares:
+            name = s.share.camera_name
+            features = maps.get(name)
+            if features is None:
+                continue
+            term = self._cached(quadrant, name, features, qlut)
+            if term is None:
+                term = self.term(name, features, s)
+                self._keep(quadrant, name, features, qlut, term)
+            terms[name] = term
+        if self._stats is None:
+            return self.tail(self.combine(shares, terms))
+        with self._stats.time("lifter_tail"):
+            return self.tail(self.combine(shares, terms))
+
+    def _cached(self, q: int, camera: str, features: np.ndarray, qlut: QuadrantLut) -> np.ndarray | None:
+        with self._lock:
+            entry = self._terms.get((q, camera))
+        return entry[2] if entry is not None and entry[0] is features and entry[1] is qlut else None
+
+    def _keep(self, q: int, camera: str, features: np.ndarray, qlut: QuadrantLut, term: np.ndarray) -> None:
+        with self._lock:  # the entry holds the map and LUT, so their ids cannot be reused while it lives
+            self._terms[(q, camera)] = (features, qlut, term)
+
+    def check(self, fp32_lifter_run, qluts: tuple[QuadrantLut, ...], fp32_tail: "CameraTerms") -> float:
+        """Max |diff| / output range of this split's terms with ``fp32_tail``'s tail (the fp32 one) against
+        ``fp32_lifter_run(qlut, maps)`` (the export's fp32 lifter) on seeded random feature maps, over the quadrants
+        some camera sees."""
+        rng = np.random.default_rng(0)
+        worst = 0.0
+        for qlut in qluts:
+            if not qlut.camera_names:
+                continue
+            maps = rng.standard_normal((len(qlut.camera_names), self.channels, *self.feature_hw)).astype(np.float32)
+            ref = fp32_lifter_run(qlut, maps)
+            shares = self.shares(qlut)
+            terms = {s.share.camera_name: share_term(projected_table(maps[qlut.camera_names.index(s.share.camera_name)],
+                                                                     self.weight), s.slots, s.weights) for s in shares}  # fmt: skip
+            got = fp32_tail.tail(self.combine(shares, terms))
+            worst = max(worst, float(np.abs(got - ref).max() / max(float(np.ptp(ref)), 1e-6)))
+        return worst
+
+
+def open_camera_terms(
+    export_dir: Path, lifter_form: str, lifter_files: Mapping[str, Path], lane_precision: str, mode: bool | None, channels: int,
+    feature_hw: tuple[int, int], quadrant_hw: tuple[int, int], session: SessionConfig, stats: LatencyStats | None,
+    fp32_lifter_run, qluts: tuple[QuadrantLut, ...],
+) -> CameraTerms | None:  # fmt: skip
+    """The per-camera lifts of an export, checked against its fp32 lifter; None where ``mode`` is None (auto) and
+    the export's lifter does not split (``lifter_form``, the manifest's, is not "flat", or the lane is fp16, or the
+    graph does not cut), or where ``mode`` is False. ``mode`` True and no split:
+    ValueError saying why. ``lifter_files``: the lifter graph file by precision; ``fp32_lifter_run(qlut, maps)``:
+    the export's fp32 lifter on one quadrant (the check's reference)."""
+    if mode is False:
+        return None
+    why = None
+    if lifter_form != "flat":
+        why = f"its lifter is the {lifter_form!r} form: a per-camera lift needs the flat lifter (LifterConfig.form='flat')"
+    elif lane_precision not in SPLIT_PRECISIONS:
+        why = f"the {lane_precision} image lane's lifter is not split (only {list(SPLIT_PRECISIONS)})"
+    else:
+        heights = int(qluts[0].index.shape[2])  # (1, K, Z, Yq, Xq)
+        try:
+            fp32 = onnx.load(str(lifter_files["fp32"]))
+            lane = fp32 if lane_precision == "fp32" else onnx.load(str(lifter_files[lane_precision]))
+            terms = CameraTerms(fp32, lane, channels, feature_hw, quadrant_hw, heights, session, stats)
+            fp32_tail = terms if lane is fp32 else CameraTerms(fp32, fp32, channels, feature_hw, quadrant_hw, heights, session)
+            err = terms.check(fp32_lifter_run, qluts, fp32_tail)
+            if not err <= PARITY_RTOL:
+                why = f"its per-camera pieces differ from the fp32 lifter by {err:.2e} of the output range (> {PARITY_RTOL})"
+        except SplitError as e:
+            why = str(e)
+        except ORT_ERRORS as e:  # a cut that onnxruntime cannot run is not a split
+            why = f"its per-camera pieces do not run: {ort_message(e)}"
+    if why is None:
+        log.info("%s: per-camera lifts for quadrant updates (%s tail)", export_dir, lane_precision)
+        return terms
+    if mode is True:
+        raise ValueError(f"{export_dir}: DetectorConfig.camera_terms=True, but {why}")
+    log.info("%s: no per-camera lifts: %s", export_dir, why)
+    return None

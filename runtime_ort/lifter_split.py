@@ -1,0 +1,86 @@
+"""The flat lifter graph cut after its first convolution, for per-camera lifts: that convolution's weights and the
+``tail`` graph.
+
+The flat lifter (``models/flat_lifter.py``) gathers each voxel's LUT slots from the cameras' feature maps, stacks z
+into channels and runs a 1x1 convolution, then the rest (ReLU, a residual k3 convolution, the slice graph's image
+half where the export has it). The gather and that first convolution are linear, so the quadrant's pre-activation
+map is the convolution's bias plus one term per camera (``calibration/camera_lut.py``; the terms are computed in
+numpy by ``runtime_ort/camera_terms.py`` from ``first_conv``'s weight). This module cuts, from an export's own
+lifter graphs (ONNX surgery, no model code):
+
+- ``first_conv``: the fp32 lifter's first Conv, its (C_out, Z * C) weight and bias;
+- ``tail_graph``: the lifter graph from the first convolution's output on, fed ``summed (1, Yq * Xq, C_out)``
+  (cells-major, what the combine scatters into). Cut from the int8 lifter too, its QuantizeLinear of the cut
+  tensor quantizes the sum (ReLU included, as the int8 graph does it).
+
+Only a lifter whose first Conv is a 1x1 with constant weight and bias splits (``SplitError`` otherwise: the volume
+lifter's export form runs its 1x1 per z plane, and what follows reads the graph's inputs again).
+``runtime_ort/camera_terms.py`` runs the pieces and checks them against the lifter graph they were cut from.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import onnx
+from onnx import TensorProto, helper, numpy_helper
+
+
+class SplitError(ValueError):
+    """The lifter graph cannot be cut into per-camera partial lifts (not the flat lifter's form)."""
+
+
+def first_conv(model: onnx.ModelProto) -> tuple[onnx.NodeProto, np.ndarray, np.ndarray]:
+    """The lifter graph's first Conv (the flat lifter's 1x1 over the z-stacked channels), its weight (C_out, Z * C)
+    and bias (C_out,), from constant initializers."""
+    inits = {t.name: t for t in model.graph.initializer}
+    for node in model.graph.node:
+        if node.op_type == "Conv":
+            if len(node.input) < 3 or node.input[1] not in inits or node.input[2] not in inits:
+                raise SplitError(f"the lifter's first Conv {node.name!r} has no constant weight and bias")
+            weight = numpy_helper.to_array(inits[node.input[1]])
+            if weight.ndim != 4 or weight.shape[2:] != (1, 1):
+                raise SplitError(f"the lifter's first Conv has a {weight.shape} weight, not a 2D 1x1: a per-camera lift "
+                                 "needs the flat lifter (LifterConfig.form='flat')")  # fmt: skip
+            bias = numpy_helper.to_array(inits[node.input[2]])
+            return node, weight[:, :, 0, 0].astype(np.float32), bias.astype(np.float32)
+    raise SplitError("the lifter graph has no Conv")
+
+
+def first_conv_output(model: onnx.ModelProto) -> str:
+    """The output tensor of the first Conv of ``model`` (the fp32 or the int8 QDQ lifter: its weight may come from a
+    DequantizeLinear)."""
+    for node in model.graph.node:
+        if node.op_type == "Conv":
+            return node.output[0]
+    raise SplitError("the lifter graph has no Conv")
+
+
+def tail_graph(lifter: onnx.ModelProto, cut: str, shape: tuple[int, int, int]) -> onnx.ModelProto:
+    """``lifter`` from tensor ``cut`` (its first Conv's output) on, fed ``summed (1, Yq * Xq, C_out)`` cells-major;
+    ``shape`` = (C_out, Yq, Xq)."""
+    from onnx.utils import Extractor
+
+    outputs = [o.name for o in lifter.graph.output]
+    lifter = onnx.shape_inference.infer_shapes(lifter)
+    if cut not in {v.name for v in lifter.graph.value_info}:  # the Extractor needs the cut tensor's type
+        lifter.graph.value_info.append(helper.make_tensor_value_info(cut, TensorProto.FLOAT, None))
+    tail = Extractor(lifter).extract_model([cut], outputs)
+    c, yq, xq = shape
+    inits = [numpy_helper.from_array(np.array([1, yq, xq, c], np.int64), "tail_shape")]
+    head = [
+        helper.make_node("Reshape", ["summed", "tail_shape"], ["summed4"]),  # (1, Yq, Xq, C_out)
+        helper.make_node("Transpose", ["summed4"], [cut], perm=[0, 3, 1, 2]),  # (1, C_out, Yq, Xq)
+    ]
+    graph = helper.make_graph(
+        head + list(tail.graph.node), "lifter_tail",
+        [helper.make_tensor_value_info("summed", TensorProto.FLOAT, [1, yq * xq, c])], list(tail.graph.output),
+        inits + list(tail.graph.initializer),
+    )  # fmt: skip
+    model = helper.make_model(graph, opset_imports=list(lifter.opset_import))
+    try:
+        onnx.checker.check_model(model)
+    except onnx.checker.ValidationError as e:  # e.g. the rest of the graph reads the lifter's inputs again
+        first_line = str(e).strip().splitlines()[0]
+        raise SplitError(f"the lifter graph after its first Conv is not a graph of that Conv's output alone ({first_line}): "
+                         "a per-camera lift needs the flat lifter (LifterConfig.form='flat')") from None
+    return model

@@ -1,0 +1,232 @@
+"""Per-camera lifts (runtime_ort/camera_terms.py, lifter_split.py): the partial graph against a naive numpy
+reference, a quadrant update from cached terms against the export's own lifter graph (fp32 and int8), the cache
+(a new frame recomputes only its camera, a calibration swap every camera), and the refusals."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import onnx
+import pytest
+import torch
+from click.testing import CliRunner
+
+from streamdet.calibration.camera_lut import CameraLut, gather_share
+from streamdet.calibration.perturb import perturb_rig
+from streamdet.data.sample import load_bundled_sample
+from streamdet.export.cli import main as export_main
+from streamdet.models.detector import build_detector
+from streamdet.models.presets import get_preset
+from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector
+from streamdet.runtime_ort.camera_terms import projected_table, share_slots, share_term
+from streamdet.runtime_ort.lifter_split import SplitError, first_conv, tail_graph
+from streamdet.training.checkpoint import save_weights
+
+PRESET = dataclasses.replace(get_preset("tiny"), lifter=dataclasses.replace(get_preset("tiny").lifter, form="flat"))
+
+
+@pytest.fixture(scope="module")
+def export_dir(tmp_path_factory) -> Path:
+    """A tiny flat-lifter export (fp32 + int8, the compact LUT layout of one height per voxel), seeded weights with
+    spread BatchNorms so that the lifter's output is not flat. (The shipped model's two heights per voxel give
+    shares of two slots: the partial graph's tests cover S > 1.)"""
+    torch.manual_seed(7)
+    model = build_detector(PRESET).eval()
+    gen = torch.Generator().manual_seed(7)
+    with torch.no_grad():
+        for bn in model.lifter.modules():
+            if isinstance(bn, torch.nn.BatchNorm2d):
+                bn.running_mean.copy_(torch.randn(bn.num_features, generator=gen) * 0.3)
+                bn.weight.copy_(torch.rand(bn.num_features, generator=gen) + 0.5)
+    ckpt = tmp_path_factory.mktemp("ckpt") / "flat2.pt"
+    save_weights(ckpt, PRESET, model)
+    out = tmp_path_factory.mktemp("export") / "flat2"
+    result = CliRunner().invoke(export_main, ["--checkpoint", str(ckpt), "--int8", "--slices", "8", "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    return out
+
+
+def _images(det: StreamingDetector, seed: int, names=None) -> dict[str, np.ndarray]:
+    img = det.image
+    rng = np.random.default_rng(seed)
+    names = det.camera_names if names is None else names
+    return {n: rng.integers(0, 256, (img.height, img.width, 3), dtype=np.uint8) for n in names}
+
+
+def _bev(det: StreamingDetector, q: int) -> np.ndarray:
+    return det.image_state.quadrants[q].bev
+
+
+def _rel_l2(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.linalg.norm(a - b) / max(np.linalg.norm(b), 1e-12))
+
+
+# ---- a camera's term against the naive gather and projection ------------------------------------------------
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("n,z,s", [(0, 2, 1), (1, 1, 1), (7, 3, 2), (40, 4, 3)])
+def test_share_term_equals_the_naive_gather_and_projection(seed, n, z, s):
+    """projected_table + share_term (the convolution before the gather) against gather_share @ weight.T."""
+    rng = np.random.default_rng(seed)
+    c, hf, wf, c_out = 5, 4, 6, 3
+    features = rng.standard_normal((c, hf, wf)).astype(np.float32)
+    index = rng.integers(0, hf * wf + 1, (n, z, s)).astype(np.int64)  # hf * wf: the zero row (padding)
+    weight = (rng.random((n, z, s)).astype(np.float32) * (index < hf * wf)).astype(np.float32)
+    share = CameraLut(0, "CAM", np.arange(n, dtype=np.int64), index, weight)
+    w = rng.standard_normal((c_out, z * c)).astype(np.float32)
+    got = share_term(projected_table(features, w), *share_slots(share, hf * wf))
+    want = gather_share(features, share) @ w.T  # (N, C_out)
+    assert got.shape == (n, c_out) and got.dtype == np.float32
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5)
+
+
+def test_a_first_conv_that_is_not_the_flat_lifters_does_not_split(tiny_export):
+    """The volume lifter's export form also starts with a 1x1 Conv, but per z plane, and what follows reads the
+    graph's inputs again: no tail can be cut."""
+    volume = onnx.load(str(tiny_export / "volumetric_lifter.onnx"))
+    conv, _, _ = first_conv(volume)
+    with pytest.raises(SplitError, match="flat lifter"):
+        tail_graph(volume, conv.output[0], (8, 32, 32))
+
+
+# ---- quadrant updates from terms against the lifter graph -----------------------------------------------------
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_fp32_quadrant_updates_from_terms_equal_the_lifter_graph(export_dir, seed):
+    terms = StreamingDetector(export_dir, DetectorConfig(camera_terms=True))
+    graph = StreamingDetector(export_dir, DetectorConfig(camera_terms=False))
+    assert terms.camera_terms and not graph.camera_terms
+    images = _images(terms, seed)
+    for q in range(4):
+        terms.update_images(images, 1.0, quadrants=[q])
+        graph.update_images(images, 1.0, quadrants=[q])
+        a, b = _bev(terms, q), _bev(graph, q)
+        assert a.shape == b.shape and np.ptp(b) > 0
+        assert np.abs(a - b).max() <= 1e-5 * np.ptp(b)
+    terms.update_images(images, 2.0)  # a full update still runs the whole lifter graph: the same BEV
+    graph.update_images(images, 2.0)
+    np.testing.assert_array_equal(terms.image_state.bev, graph.image_state.bev)
+
+
+def test_int8_quadrant_updates_from_terms_stay_within_the_int8_lifters_error(export_dir):
+    cfg = dict(precision="fp32", image_lane_precision="int8")
+    terms = StreamingDetector(export_dir, DetectorConfig(**cfg, camera_terms=True))
+    graph = StreamingDetector(export_dir, DetectorConfig(**cfg, camera_terms=False))
+    fp32 = StreamingDetector(export_dir, DetectorConfig(camera_terms=False))
+    sample = load_bundled_sample()
+    img = terms.image
+    images = dict(zip(sample.rig.names, sample.load_images((img.width, img.height))))
+    images = {n: images[n] for n in terms.camera_names}
+    for q in range(4):
+        for det in (terms, graph, fp32):
+            det.update_images(images, 1.0, quadrants=[q])
+        ref = _bev(fp32, q)
+        err_graph = _rel_l2(_bev(graph, q), ref)  # the int8 lifter graph's own error
+        err_terms = _rel_l2(_bev(terms, q), ref)  # fp32 terms, int8 tail
+        assert err_terms <= max(2 * err_graph, 0.02), (q, err_terms, err_graph)
+
+
+def test_missing_cameras_contribute_nothing_as_zero_maps_do(export_dir):
+    terms = StreamingDetector(export_dir, DetectorConfig(camera_terms=True))
+    graph = StreamingDetector(export_dir, DetectorConfig(camera_terms=False))
+    q = 0
+    cams = terms.quadrant_cameras([q])
+    images = _images(terms, 3, cams[:1])
+    terms.update_images(images, 1.0, quadrants=[q])
+    graph.update_images(images, 1.0, quadrants=[q])
+    assert np.abs(_bev(terms, q) - _bev(graph, q)).max() <= 1e-5 * max(np.ptp(_bev(graph, q)), 1e-6)
+
+
+# ---- the cache ------------------------------------------------------------------------------------------------
+
+
+def _partials(det: StreamingDetector) -> int:
+    return det.stats.summary().get("lifter_partial", {}).get("count", 0)
+
+
+def test_prepared_terms_are_reused_and_a_new_frame_recomputes_only_its_camera(export_dir):
+    det = StreamingDetector(export_dir, DetectorConfig(camera_terms=True))
+    images = _images(det, 4)
+    encoded = det.encode_images(images)
+    made = det.prepare_terms(encoded)
+    feeds = {q: det.quadrant_cameras([q]) for q in range(4)}
+    assert made == sum(len(c) for c in feeds.values()) == _partials(det)
+    for q in range(4):
+        det.update_images({n: images[n] for n in feeds[q]}, 1.0, quadrants=[q], encoded={n: encoded[n] for n in feeds[q]})
+    assert _partials(det) == made  # every lift summed cached terms
+    name = feeds[0][0]
+    new = det.encode_images(_images(det, 5, [name]))
+    for q in range(4):
+        given = {n: (new[n] if n == name else encoded[n]) for n in feeds[q]}
+        det.update_images({n: images[n] for n in feeds[q]}, 2.0, quadrants=[q], encoded=given)
+    assert _partials(det) == made + sum(name in c for c in feeds.values())  # only the new frame's terms
+
+
+def test_terms_after_a_calibration_swap_use_the_new_lut(export_dir):
+    terms = StreamingDetector(export_dir, DetectorConfig(camera_terms=True))
+    graph = StreamingDetector(export_dir, DetectorConfig(camera_terms=False))
+    sample = load_bundled_sample()
+    images = _images(terms, 6)
+    encoded = terms.encode_images(images)
+    terms.prepare_terms(encoded)
+    rig = perturb_rig(sample.rig, 3.0, 0.3, seed=1).resized(terms.image.width, terms.image.height)
+    for det in (terms, graph):
+        det.set_calibration(rig, relift=False)
+    for q in range(4):
+        cams = terms.quadrant_cameras([q])
+        terms.update_images({n: images[n] for n in cams}, 1.0, quadrants=[q], encoded={n: encoded[n] for n in cams})
+        graph.update_images({n: images[n] for n in cams}, 1.0, quadrants=[q])
+        assert np.abs(_bev(terms, q) - _bev(graph, q)).max() <= 1e-5 * max(np.ptp(_bev(graph, q)), 1e-6)
+
+
+# ---- choices and refusals -------------------------------------------------------------------------------------
+
+
+def test_auto_uses_terms_where_the_lifter_splits_and_not_elsewhere(export_dir, tiny_export):
+    assert StreamingDetector(export_dir).camera_terms  # flat lifter, fp32 lane
+    assert not StreamingDetector(tiny_export).camera_terms  # volume lifter
+    assert not StreamingDetector(tiny_export, DetectorConfig(precision="fp16")).camera_terms  # not split
+    assert StreamingDetector(export_dir).prepare_terms({}) == 0
+
+
+def test_required_terms_on_a_volume_lifter_raise_naming_why(tiny_export):
+    with pytest.raises(ValueError, match="camera_terms=True.*flat lifter"):
+        StreamingDetector(tiny_export, DetectorConfig(camera_terms=True))
+
+
+@pytest.mark.parametrize("bad", ["yes", 1, 0.0])
+def test_camera_terms_config_must_be_none_or_a_bool(bad):
+    with pytest.raises(ValueError, match="camera_terms"):
+        DetectorConfig(camera_terms=bad)
+
+
+def test_prepare_terms_refuses_bad_feature_maps(export_dir):
+    det = StreamingDetector(export_dir, DetectorConfig(camera_terms=True))
+    name = det.camera_names[0]
+    with pytest.raises(ValueError, match="unknown camera"):
+        det.prepare_terms({"CAM_NOPE": np.zeros((1,), np.float32)})
+    with pytest.raises(ValueError, match="float32 feature map"):
+        det.prepare_terms({name: np.zeros((2, 2, 2), np.float32)})
+
+
+def test_pieces_that_do_not_match_the_lifter_are_refused(export_dir, monkeypatch):
+    """The check at load: terms that read the z-stacked channels in another order than the lifter (what a changed
+    lifter form would do) differ from the fp32 lifter: auto falls back to the lifter graph, True raises."""
+    import streamdet.runtime_ort.camera_terms as ct
+
+    right = ct.projected_table
+
+    def wrong_order(features, weight):
+        c_out, zc = weight.shape
+        c = features.shape[0]
+        swapped = weight.reshape(c_out, zc // c, c)[:, :, ::-1].reshape(weight.shape)  # c reversed in every block
+        return right(features, np.ascontiguousarray(swapped))
+
+    monkeypatch.setattr(ct, "projected_table", wrong_order)
+    assert not StreamingDetector(export_dir).camera_terms
+    with pytest.raises(ValueError, match="differ from the fp32 lifter"):
+        StreamingDetector(export_dir, DetectorConfig(camera_terms=True))
