@@ -10,7 +10,8 @@ runs the runtime's pieces (``runtime_ort/camera_terms.py``, cut from the export'
 ``runtime_ort/lifter_split.py``; nothing of the export is changed):
 
 - ``partial``: the camera's (C, Hf, Wf) feature map times the first convolution's weight blocks (its projected
-  table), then its share of the quadrant's LUT gathered from it and summed over the slots (no bias): (N, C);
+  table), then its share of the quadrant's LUT gathered from it and summed over the slots (no bias): (N, C),
+  ``lifter_split.term_graph``;
 - ``combine`` (numpy): the quadrant's cameras' terms scattered into (Yq * Xq, C) and the bias added;
 - ``tail``: the rest of the export's own lifter graph, cut after its first convolution, fed the sum;
 
@@ -61,7 +62,7 @@ class _Quadrant:
 
     def partial(self, name: str, features: dict[str, np.ndarray]) -> None:
         share = next(s for s in self.shares if s.share.camera_name == name)
-        self.terms[name] = self.pieces.term(name, np.array(features[name]), share)  # a new map: its table made again
+        self.terms[name] = self.pieces.term(features[name], share)
 
     def combine(self) -> np.ndarray:
         return self.pieces.combine(self.shares, self.terms)

@@ -182,10 +182,12 @@ def _per_class_table(result: ReplayResult) -> str:
 def _stage_table(result: ReplayResult) -> str:
     rows = ["| stage (mode) | runs | mean ms | GMAC / run | GFLOP/s |", "|---|---|---|---|---|"]
     for mode, r in result.modes.items():
-        for stage in ("slice_head", "image_encoder", "volumetric_lifter"):
+        for stage in ("slice_head", "image_encoder", "volumetric_lifter", "lifter_partial", "lifter_tail"):
             st = r.stages.get(stage)
             if st and "gflop_per_s" in st:
                 rows.append(f"| {stage} ({mode}) | {st['runs']} | {st['mean_ms']:.2f} | {st['gmac_per_run']:.3f} | {st['gflop_per_s']:.1f} |")
+            elif st:  # the per-camera lift's pieces (camera_terms.py): no MAC count
+                rows.append(f"| {stage} ({mode}) | {st['runs']} | {st['mean_ms']:.2f} | - | - |")
     return "\n".join(rows)
 
 

@@ -8,12 +8,9 @@ per camera (``lifter_split.py``, ``calibration/camera_lut.py``): ``CameraTerms``
 the combine (numpy: the terms scattered into the quadrant's cells, plus the bias) and the tail graph. What it saves
 and costs is measured in docs/replay.md ("Per-camera lifts in the runtime").
 
-A camera's term is computed in numpy, the first convolution applied *before* the gather: per frame, the projected
-table ``P[z * (Hf*Wf + 1) + r] = table[r] @ W_z.T`` (the map's rows times the convolution's weight block of height
-z; one small MatMul, shared by every quadrant the camera feeds), then per share ``term[n] = sum_j w[n, j] *
-P[flat_index[n, j]]`` over its Z * S slots. Same sums as gathering the (N, Z * C) rows and multiplying by the weight
-(up to float order), without the (N, Z * S, C) intermediate of an onnxruntime Gather -> Mul -> ReduceSum -> MatMul
-chain, which measured 3x slower here (docs/replay.md).
+A camera's term is computed with the first convolution applied *before* the gather (``lifter_split.term_graph``:
+the map's rows times the convolution's weight block of each height, then the share's Z * S slots of that projected
+table gathered and summed with their weights), one onnxruntime run per (quadrant, camera).
 
 Precision: the terms are fp32; the tail is cut from the lane's own lifter graph (fp32 or int8). With an int8 image lane the sum is
 therefore quantized once, at the tail's input, instead of the int8 lifter's quantized gather and weights: the BEV
@@ -39,7 +36,7 @@ import onnx
 
 from streamdet.calibration.camera_lut import CameraLut, camera_luts
 from streamdet.calibration.quadrant_lut import QuadrantLut
-from streamdet.runtime_ort.lifter_split import SplitError, first_conv, first_conv_output, tail_graph
+from streamdet.runtime_ort.lifter_split import SplitError, first_conv, first_conv_output, tail_graph, term_graph
 from streamdet.runtime_ort.sessions import ORT_ERRORS, SessionConfig, ort_message, ort_session
 from streamdet.runtime_ort.stats import LatencyStats
 
@@ -49,36 +46,18 @@ SPLIT_PRECISIONS = ("fp32", "int8")  # image-lane precisions whose lifter is spl
 PARITY_RTOL = 1e-4  # fp32 pieces against the fp32 lifter, max |diff| relative to the output's range (float order only)
 
 
-def projected_table(features: np.ndarray, weight: np.ndarray) -> np.ndarray:
-    """(Z * (Hf*Wf + 1), C_out) rows ``z * (Hf*Wf + 1) + r``: row r of the (C, Hf, Wf) map's table (the zero row
-    last) times the (C_out, C) block of height z of the first convolution's (C_out, Z * C) ``weight``."""
-    c = features.shape[0]
-    c_out, zc = weight.shape
-    table = np.empty((features[0].size + 1, c), np.float32)  # (Hf*Wf + 1, C)
-    table[:-1] = features.reshape(c, -1).T
-    table[-1] = 0.0
-    blocks = weight.reshape(c_out, zc // c, c).transpose(2, 1, 0).reshape(c, zc // c * c_out)  # (C, Z * C_out)
-    projected = table @ blocks  # (Hf*Wf + 1, Z * C_out)
-    return np.ascontiguousarray(projected.reshape(-1, zc // c, c_out).transpose(1, 0, 2)).reshape(-1, c_out)
-
-
 def share_slots(share: CameraLut, cells_per_map: int) -> tuple[np.ndarray, np.ndarray]:
-    """A share's (N, Z * S) rows of ``projected_table`` (height z's block: ``z * (cells_per_map + 1)``) and weights."""
+    """A share's (N, Z * S) rows of ``term_graph``'s projected table (height z's block starts at
+    ``z * (cells_per_map + 1)``) and their weights."""
     n, z, s = share.index.shape
     offset = (np.arange(z, dtype=np.int64) * (cells_per_map + 1))[None, :, None]  # (1, Z, 1)
     return (share.index + offset).reshape(n, z * s), share.weight.reshape(n, z * s)
 
 
-def share_term(projected: np.ndarray, slots: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """(N, C_out) = sum over the Z * S slots of weight * projected row: the share's gathered rows times the first
-    convolution's weight, without its bias."""
-    return np.einsum("nj,njo->no", weights, np.take(projected, slots, axis=0), optimize=False)
-
-
 @dataclass(frozen=True, eq=False)
 class _Share:
     share: CameraLut
-    slots: np.ndarray  # (N, Z * S) rows of the projected table
+    slots: np.ndarray  # (N, Z * S) rows of term_graph's projected table
     weights: np.ndarray  # (N, Z * S)
 
 
@@ -92,21 +71,16 @@ class CameraTerms:
         ``lane_lifter``: the lifter graph of the image lane's precision (the tail is cut from it); ``heights``: the
         LUT's z planes."""
         conv, weight, bias = first_conv(fp32_lifter)
-        if weight.shape[1] != heights * channels:
-            raise SplitError(f"the lifter's first Conv takes {weight.shape[1]} channels, not the {heights} z planes x "
-                             f"{channels} feature channels stacked: a per-camera lift needs the flat lifter "
-                             "(LifterConfig.form='flat')")  # fmt: skip
         cut = conv.output[0] if lane_lifter is fp32_lifter else first_conv_output(lane_lifter)
         self.channels = int(channels)
         self.feature_hw = (int(feature_hw[0]), int(feature_hw[1]))
         self.quadrant_hw = (int(quadrant_hw[0]), int(quadrant_hw[1]))
-        self.weight = weight  # (C_out, Z * C)
         self.bias = bias  # (C_out,)
+        self._term_graph = ort_session(term_graph(weight, self.channels, self.feature_hw, heights).SerializeToString(), session)
         self._tail = ort_session(tail_graph(lane_lifter, cut, (weight.shape[0], *self.quadrant_hw)).SerializeToString(), session)
         self._stats = stats
         self._lock = threading.Lock()
         self._shares: dict[int, tuple[QuadrantLut, tuple[_Share, ...]]] = {}  # id(qlut) -> (qlut, its shares)
-        self._projected: dict[str, tuple[np.ndarray, np.ndarray]] = {}  # camera -> (feature map, its projected table)
         self._terms: dict[tuple[int, str], tuple[object, object, np.ndarray]] = {}  # (q, cam) -> (source, qlut, term)
 
     # ---- the pieces --------------------------------------------------------------------------
@@ -124,24 +98,17 @@ class CameraTerms:
             self._shares[id(qlut)] = (qlut, shares)
         return shares
 
-    def term(self, camera: str, features: np.ndarray, share: _Share) -> np.ndarray:
-        """(N, C_out) term of one camera share from that camera's (C, Hf, Wf) float32 feature map (its projected
-        table made once per map object and camera, for every quadrant the camera feeds)."""
+    def term(self, features: np.ndarray, share: _Share) -> np.ndarray:
+        """(N, C_out) term of one camera share from that camera's (C, Hf, Wf) float32 feature map."""
         if self._stats is None:
-            return self._term(camera, features, share)
+            return self._run_term(features, share)
         with self._stats.time("lifter_partial"):
-            return self._term(camera, features, share)
+            return self._run_term(features, share)
 
-    def _term(self, camera: str, features: np.ndarray, share: _Share) -> np.ndarray:
-        with self._lock:
-            cached = self._projected.get(camera)
-        if cached is not None and cached[0] is features:
-            projected = cached[1]
-        else:
-            projected = projected_table(features, self.weight)
-            with self._lock:
-                self._projected[camera] = (features, projected)
-        return share_term(projected, share.slots, share.weights)
+    def _run_term(self, features: np.ndarray, share: _Share) -> np.ndarray:
+        if share.share.num_cells == 0:  # a camera the LUT lists in the quadrant but that reads no cell there
+            return np.zeros((0, self.bias.size), np.float32)
+        return self._term_graph.run(None, {"features": features[None], "slots": share.slots, "weights": share.weights})[0]
 
     def combine(self, shares: tuple[_Share, ...], terms: Mapping[str, np.ndarray]) -> np.ndarray:
         """(1, Yq * Xq, C_out) pre-activation map: the bias plus each given camera's term in its cells."""
@@ -167,7 +134,7 @@ class CameraTerms:
                 name = s.share.camera_name
                 features = maps.get(name)
                 if features is not None and self._cached(q, name, features, qlut) is None:
-                    self._keep(q, name, features, qlut, self.term(name, features, s))
+                    self._keep(q, name, features, qlut, self.term(features, s))
                     made += 1
         return made
 
@@ -184,7 +151,7 @@ class CameraTerms:
                 continue
             term = self._cached(quadrant, name, features, qlut)
             if term is None:
-                term = self.term(name, features, s)
+                term = self.term(features, s)
                 self._keep(quadrant, name, features, qlut, term)
             terms[name] = term
         if self._stats is None:
@@ -213,8 +180,7 @@ class CameraTerms:
             maps = rng.standard_normal((len(qlut.camera_names), self.channels, *self.feature_hw)).astype(np.float32)
             ref = fp32_lifter_run(qlut, maps)
             shares = self.shares(qlut)
-            terms = {s.share.camera_name: share_term(projected_table(maps[qlut.camera_names.index(s.share.camera_name)],
-                                                                     self.weight), s.slots, s.weights) for s in shares}  # fmt: skip
+            terms = {s.share.camera_name: self._run_term(maps[qlut.camera_names.index(s.share.camera_name)], s) for s in shares}
             got = fp32_tail.tail(self.combine(shares, terms))
             worst = max(worst, float(np.abs(got - ref).max() / max(float(np.ptp(ref)), 1e-6)))
         return worst

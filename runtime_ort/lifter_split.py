@@ -4,11 +4,12 @@
 The flat lifter (``models/flat_lifter.py``) gathers each voxel's LUT slots from the cameras' feature maps, stacks z
 into channels and runs a 1x1 convolution, then the rest (ReLU, a residual k3 convolution, the slice graph's image
 half where the export has it). The gather and that first convolution are linear, so the quadrant's pre-activation
-map is the convolution's bias plus one term per camera (``calibration/camera_lut.py``; the terms are computed in
-numpy by ``runtime_ort/camera_terms.py`` from ``first_conv``'s weight). This module cuts, from an export's own
-lifter graphs (ONNX surgery, no model code):
+map is the convolution's bias plus one term per camera (``calibration/camera_lut.py``). This module builds, from an
+export's own lifter graphs (ONNX surgery, no model code), what ``runtime_ort/camera_terms.py`` runs (in onnxruntime,
+which releases the GIL: the same work in numpy held it long enough to double the slice lane's latency beside it):
 
 - ``first_conv``: the fp32 lifter's first Conv, its (C_out, Z * C) weight and bias;
+- ``term_graph``: one camera share's term from its feature map (that weight applied before the gather);
 - ``tail_graph``: the lifter graph from the first convolution's output on, fed ``summed (1, Yq * Xq, C_out)``
   (cells-major, what the combine scatters into). Cut from the int8 lifter too, its QuantizeLinear of the cut
   tensor quantizes the sum (ReLU included, as the int8 graph does it).
@@ -23,6 +24,8 @@ from __future__ import annotations
 import numpy as np
 import onnx
 from onnx import TensorProto, helper, numpy_helper
+
+OPSET = 17
 
 
 class SplitError(ValueError):
@@ -53,6 +56,56 @@ def first_conv_output(model: onnx.ModelProto) -> str:
         if node.op_type == "Conv":
             return node.output[0]
     raise SplitError("the lifter graph has no Conv")
+
+
+def term_graph(weight: np.ndarray, channels: int, feature_hw: tuple[int, int], heights: int) -> onnx.ModelProto:
+    """One camera share's term: ``features (1, C, Hf, Wf)``, ``slots (N, J) int64``, ``weights (N, J) float32`` ->
+    ``term (N, C_out) = sum_j weights[n, j] * P[slots[n, j]]``, where ``P`` is the map's projected table: row
+    ``z * (Hf*Wf + 1) + r`` = row r of the map's (Hf*Wf + 1, C) table (the zero row last) times the (C_out, C) block
+    of height z of the first convolution's ``weight`` (C_out, Z * C), Z = ``heights``. The convolution applied before
+    the gather: the same sums as gathering the (N, Z * C) rows and multiplying by ``weight``, about 3x faster
+    (docs/replay.md). ``camera_terms.share_slots`` gives a share's slots and weights."""
+    hf, wf = feature_hw
+    c_out, zc = weight.shape
+    if zc != heights * channels:
+        raise SplitError(f"the lifter's first Conv takes {zc} channels, not the {heights} z planes x {channels} feature "
+                         "channels stacked: a per-camera lift needs the flat lifter (LifterConfig.form='flat')")  # fmt: skip
+    blocks = weight.reshape(c_out, heights, channels).transpose(2, 1, 0).reshape(channels, heights * c_out)
+
+    def const(name: str, value: np.ndarray) -> onnx.TensorProto:
+        return numpy_helper.from_array(np.ascontiguousarray(value), name)
+
+    inits = [
+        const("flat", np.array([channels, hf * wf], np.int64)),
+        const("zero_row", np.zeros((1, channels), np.float32)),
+        const("blocks", blocks.astype(np.float32)),  # (C, Z * C_out)
+        const("rzo", np.array([hf * wf + 1, heights, c_out], np.int64)),
+        const("rows_out", np.array([heights * (hf * wf + 1), c_out], np.int64)),
+        const("axis1", np.array([1], np.int64)),
+    ]
+    nodes = [
+        helper.make_node("Reshape", ["features", "flat"], ["cf"]),  # (C, Hf*Wf)
+        helper.make_node("Transpose", ["cf"], ["rows"], perm=[1, 0]),  # (Hf*Wf, C)
+        helper.make_node("Concat", ["rows", "zero_row"], ["table"], axis=0),  # (Hf*Wf + 1, C)
+        helper.make_node("MatMul", ["table", "blocks"], ["projected"]),  # (Hf*Wf + 1, Z * C_out)
+        helper.make_node("Reshape", ["projected", "rzo"], ["p3"]),  # (Hf*Wf + 1, Z, C_out)
+        helper.make_node("Transpose", ["p3"], ["zro"], perm=[1, 0, 2]),  # (Z, Hf*Wf + 1, C_out)
+        helper.make_node("Reshape", ["zro", "rows_out"], ["p"]),  # (Z * (Hf*Wf + 1), C_out)
+        helper.make_node("Gather", ["p", "slots"], ["g"], axis=0),  # (N, J, C_out)
+        helper.make_node("Unsqueeze", ["weights", "axis1"], ["w3"]),  # (N, 1, J)
+        helper.make_node("MatMul", ["w3", "g"], ["t3"]),  # (N, 1, C_out)
+        helper.make_node("Squeeze", ["t3", "axis1"], ["term"]),  # (N, C_out)
+    ]
+    graph = helper.make_graph(
+        nodes, "lifter_term",
+        [helper.make_tensor_value_info("features", TensorProto.FLOAT, [1, channels, hf, wf]),
+         helper.make_tensor_value_info("slots", TensorProto.INT64, ["N", "J"]),
+         helper.make_tensor_value_info("weights", TensorProto.FLOAT, ["N", "J"])],
+        [helper.make_tensor_value_info("term", TensorProto.FLOAT, ["N", c_out])], inits,
+    )  # fmt: skip
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)])
+    onnx.checker.check_model(model)
+    return model
 
 
 def tail_graph(lifter: onnx.ModelProto, cut: str, shape: tuple[int, int, int]) -> onnx.ModelProto:

@@ -119,8 +119,8 @@ def test_partial_graphs_and_tail_rebuild_a_flat_lifter(tmp_path, seed):
     import onnxruntime as ort
 
     from streamdet.benchmarks.timing import ort_session
-    from streamdet.runtime_ort.camera_terms import projected_table, share_slots, share_term
-    from streamdet.runtime_ort.lifter_split import first_conv, tail_graph
+    from streamdet.runtime_ort.camera_terms import share_slots
+    from streamdet.runtime_ort.lifter_split import first_conv, tail_graph, term_graph
     from streamdet.models.flat_lifter import FlatLifter, FlatLifterExport
 
     torch.manual_seed(seed)
@@ -143,8 +143,10 @@ def test_partial_graphs_and_tail_rebuild_a_flat_lifter(tmp_path, seed):
     model = onnx.load(str(path))
     conv, weight, bias = first_conv(model)
     summed = np.broadcast_to(bias, (30, c)).copy()
+    term = ort_session(term_graph(weight, c, (hf, wf), nz), 1)
     for j, share in enumerate(camera_luts(qlut, hf * wf)):
-        summed[share.cells] += share_term(projected_table(features[j], weight), *share_slots(share, hf * wf))
+        slots, slot_weights = share_slots(share, hf * wf)
+        summed[share.cells] += term.run(None, {"features": features[j : j + 1], "slots": slots, "weights": slot_weights})[0]
     (got,) = ort_session(tail_graph(model, conv.output[0], (c, 5, 6)), 1).run(None, {"summed": summed[None]})
     np.testing.assert_allclose(got, ref, rtol=1e-5, atol=1e-5)
 

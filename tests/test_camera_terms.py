@@ -20,8 +20,9 @@ from streamdet.export.cli import main as export_main
 from streamdet.models.detector import build_detector
 from streamdet.models.presets import get_preset
 from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector
-from streamdet.runtime_ort.camera_terms import projected_table, share_slots, share_term
-from streamdet.runtime_ort.lifter_split import SplitError, first_conv, tail_graph
+from streamdet.runtime_ort.camera_terms import share_slots
+from streamdet.runtime_ort.lifter_split import SplitError, first_conv, tail_graph, term_graph
+from streamdet.runtime_ort.sessions import ort_session
 from streamdet.training.checkpoint import save_weights
 
 PRESET = dataclasses.replace(get_preset("tiny"), lifter=dataclasses.replace(get_preset("tiny").lifter, form="flat"))
@@ -67,9 +68,9 @@ def _rel_l2(a: np.ndarray, b: np.ndarray) -> float:
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
-@pytest.mark.parametrize("n,z,s", [(0, 2, 1), (1, 1, 1), (7, 3, 2), (40, 4, 3)])
-def test_share_term_equals_the_naive_gather_and_projection(seed, n, z, s):
-    """projected_table + share_term (the convolution before the gather) against gather_share @ weight.T."""
+@pytest.mark.parametrize("n,z,s", [(1, 1, 1), (7, 3, 2), (40, 4, 3)])
+def test_term_graph_equals_the_naive_gather_and_projection(seed, n, z, s):
+    """term_graph (the convolution before the gather) against gather_share @ weight.T."""
     rng = np.random.default_rng(seed)
     c, hf, wf, c_out = 5, 4, 6, 3
     features = rng.standard_normal((c, hf, wf)).astype(np.float32)
@@ -77,7 +78,9 @@ def test_share_term_equals_the_naive_gather_and_projection(seed, n, z, s):
     weight = (rng.random((n, z, s)).astype(np.float32) * (index < hf * wf)).astype(np.float32)
     share = CameraLut(0, "CAM", np.arange(n, dtype=np.int64), index, weight)
     w = rng.standard_normal((c_out, z * c)).astype(np.float32)
-    got = share_term(projected_table(features, w), *share_slots(share, hf * wf))
+    slots, slot_weights = share_slots(share, hf * wf)
+    sess = ort_session(term_graph(w, c, (hf, wf), z).SerializeToString())
+    (got,) = sess.run(None, {"features": features[None], "slots": slots, "weights": slot_weights})
     want = gather_share(features, share) @ w.T  # (N, C_out)
     assert got.shape == (n, c_out) and got.dtype == np.float32
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5)
@@ -85,11 +88,13 @@ def test_share_term_equals_the_naive_gather_and_projection(seed, n, z, s):
 
 def test_a_first_conv_that_is_not_the_flat_lifters_does_not_split(tiny_export):
     """The volume lifter's export form also starts with a 1x1 Conv, but per z plane, and what follows reads the
-    graph's inputs again: no tail can be cut."""
+    graph's inputs again: no tail can be cut; a first Conv narrower than Z x C makes no term graph."""
     volume = onnx.load(str(tiny_export / "volumetric_lifter.onnx"))
-    conv, _, _ = first_conv(volume)
+    conv, weight, _ = first_conv(volume)
     with pytest.raises(SplitError, match="flat lifter"):
         tail_graph(volume, conv.output[0], (8, 32, 32))
+    with pytest.raises(SplitError, match="flat lifter"):
+        term_graph(weight, weight.shape[1], (4, 6), 4)
 
 
 # ---- quadrant updates from terms against the lifter graph -----------------------------------------------------
@@ -218,15 +223,13 @@ def test_pieces_that_do_not_match_the_lifter_are_refused(export_dir, monkeypatch
     lifter form would do) differ from the fp32 lifter: auto falls back to the lifter graph, True raises."""
     import streamdet.runtime_ort.camera_terms as ct
 
-    right = ct.projected_table
+    right = ct.term_graph
 
-    def wrong_order(features, weight):
-        c_out, zc = weight.shape
-        c = features.shape[0]
-        swapped = weight.reshape(c_out, zc // c, c)[:, :, ::-1].reshape(weight.shape)  # c reversed in every block
-        return right(features, np.ascontiguousarray(swapped))
+    def wrong_order(weight, channels, feature_hw, heights):
+        swapped = weight.reshape(weight.shape[0], heights, channels)[:, :, ::-1].reshape(weight.shape)  # c reversed
+        return right(np.ascontiguousarray(swapped), channels, feature_hw, heights)
 
-    monkeypatch.setattr(ct, "projected_table", wrong_order)
+    monkeypatch.setattr(ct, "term_graph", wrong_order)
     assert not StreamingDetector(export_dir).camera_terms
     with pytest.raises(ValueError, match="differ from the fp32 lifter"):
         StreamingDetector(export_dir, DetectorConfig(camera_terms=True))
