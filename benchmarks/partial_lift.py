@@ -12,8 +12,9 @@ runs the runtime's pieces (``runtime_ort/camera_terms.py``, cut from the export'
 - ``partial``: the camera's (C, Hf, Wf) feature map times the first convolution's weight blocks (its projected
   table), then its share of the quadrant's LUT gathered from it and summed over the slots (no bias): (N, C),
   ``lifter_split.term_graph``;
-- ``combine`` (numpy): the quadrant's cameras' terms scattered into (Yq * Xq, C) and the bias added;
-- ``tail``: the rest of the export's own lifter graph, cut after its first convolution, fed the sum;
+- ``combine`` (numpy): the quadrant's cameras' terms and cells concatenated (the tail's feeds);
+- ``tail``: the terms scattered into the quadrant's cells and added to the bias, then the rest of the export's own
+  lifter graph, cut after its first convolution;
 
 checks that ``tail(combine(partials))`` is the export's lifter output on every quadrant (max |diff|, real feature
 maps of the bundled nuScenes images), and times, in interleaved rounds, the export's quadrant lift (fp32, and the
@@ -64,11 +65,11 @@ class _Quadrant:
         share = next(s for s in self.shares if s.share.camera_name == name)
         self.terms[name] = self.pieces.term(features[name], share)
 
-    def combine(self) -> np.ndarray:
-        return self.pieces.combine(self.shares, self.terms)
+    def combine(self) -> dict[str, np.ndarray]:
+        return self.pieces.tail_feeds(self.shares, self.terms)
 
-    def lift(self, summed: np.ndarray) -> np.ndarray:
-        return self.pieces.tail(summed)
+    def lift(self, feeds: dict[str, np.ndarray]) -> np.ndarray:
+        return self.pieces.tail(feeds)
 
 
 def run(export_dir: Path, rounds: int, threads: int) -> dict:

@@ -5,7 +5,8 @@ new frame (LiDAR-synchronised cameras fire one after the other), and the lifter 
 each time. With the flat lifter, a quadrant's pre-activation map is the first convolution's bias plus one **term**
 per camera (``lifter_split.py``, ``calibration/camera_lut.py``): ``CameraTerms`` keeps the newest term of every
 (quadrant, camera), computes a camera's terms when its frame is encoded (``prepare``), and a quadrant update is then
-the combine (numpy: the terms scattered into the quadrant's cells, plus the bias) and the tail graph. What it saves
+the tail graph: the terms scattered into the quadrant's cells and added to the bias, then the rest of the lifter
+(all in onnxruntime, which releases the GIL: numpy work here measurably delayed the slice lane). What it saves
 and costs is measured in docs/replay.md ("Per-camera lifts in the runtime").
 
 A camera's term is computed with the first convolution applied *before* the gather (``lifter_split.term_graph``:
@@ -77,11 +78,12 @@ class CameraTerms:
         self.quadrant_hw = (int(quadrant_hw[0]), int(quadrant_hw[1]))
         self.bias = bias  # (C_out,)
         self._term_graph = ort_session(term_graph(weight, self.channels, self.feature_hw, heights).SerializeToString(), session)
-        self._tail = ort_session(tail_graph(lane_lifter, cut, (weight.shape[0], *self.quadrant_hw)).SerializeToString(), session)
+        self._tail = ort_session(tail_graph(lane_lifter, cut, (weight.shape[0], *self.quadrant_hw), bias).SerializeToString(), session)
         self._stats = stats
         self._lock = threading.Lock()
         self._shares: dict[int, tuple[QuadrantLut, tuple[_Share, ...]]] = {}  # id(qlut) -> (qlut, its shares)
         self._terms: dict[tuple[int, str], tuple[object, object, np.ndarray]] = {}  # (q, cam) -> (source, qlut, term)
+        self._cells: dict[int, tuple[tuple[_Share, ...], dict[tuple[str, ...], np.ndarray]]] = {}  # (M, 1) per cameras
 
     # ---- the pieces --------------------------------------------------------------------------
     def shares(self, qlut: QuadrantLut) -> tuple[_Share, ...]:
@@ -110,19 +112,29 @@ class CameraTerms:
             return np.zeros((0, self.bias.size), np.float32)
         return self._term_graph.run(None, {"features": features[None], "slots": share.slots, "weights": share.weights})[0]
 
-    def combine(self, shares: tuple[_Share, ...], terms: Mapping[str, np.ndarray]) -> np.ndarray:
-        """(1, Yq * Xq, C_out) pre-activation map: the bias plus each given camera's term in its cells."""
-        cells = self.quadrant_hw[0] * self.quadrant_hw[1]
-        summed = np.empty((cells, self.bias.size), np.float32)  # (Yq*Xq, C_out)
-        summed[:] = self.bias
-        for s in shares:
-            term = terms.get(s.share.camera_name)
-            if term is not None:
-                summed[s.share.cells] += term  # a share's cells are unique: no lost updates
-        return summed[None]
+    def tail_feeds(self, shares: tuple[_Share, ...], terms: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """The tail graph's feeds: the given cameras' terms and their cells, concatenated in the shares' order."""
+        given = [s for s in shares if s.share.camera_name in terms]
+        key = tuple(s.share.camera_name for s in given)
+        with self._lock:
+            cached = self._cells.get(id(shares))
+        if cached is None or cached[0] is not shares or key not in cached[1]:
+            cells = np.concatenate([s.share.cells for s in given] or [np.zeros(0, np.int64)])[:, None]  # (M, 1)
+            with self._lock:
+                entry = self._cells.get(id(shares))
+                if entry is None or entry[0] is not shares:
+                    if len(self._cells) >= 8:
+                        self._cells.pop(next(iter(self._cells)))
+                    entry = self._cells[id(shares)] = (shares, {})
+                entry[1][key] = cells
+        else:
+            cells = cached[1][key]
+        c_out = self.bias.size
+        stacked = np.concatenate([terms[n] for n in key]) if key else np.zeros((0, c_out), np.float32)  # (M, C_out)
+        return {"terms": stacked, "cells": cells}
 
-    def tail(self, summed: np.ndarray) -> np.ndarray:
-        return self._tail.run(None, {"summed": summed})[0]
+    def tail(self, feeds: Mapping[str, np.ndarray]) -> np.ndarray:
+        return self._tail.run(None, dict(feeds))[0]
 
     # ---- the cache ---------------------------------------------------------------------------
     def prepare(self, qluts: tuple[QuadrantLut, ...], maps: Mapping[str, np.ndarray]) -> int:
@@ -155,9 +167,9 @@ class CameraTerms:
                 self._keep(quadrant, name, features, qlut, term)
             terms[name] = term
         if self._stats is None:
-            return self.tail(self.combine(shares, terms))
+            return self.tail(self.tail_feeds(shares, terms))
         with self._stats.time("lifter_tail"):
-            return self.tail(self.combine(shares, terms))
+            return self.tail(self.tail_feeds(shares, terms))
 
     def _cached(self, q: int, camera: str, features: np.ndarray, qlut: QuadrantLut) -> np.ndarray | None:
         with self._lock:
@@ -181,7 +193,7 @@ class CameraTerms:
             ref = fp32_lifter_run(qlut, maps)
             shares = self.shares(qlut)
             terms = {s.share.camera_name: self._run_term(maps[qlut.camera_names.index(s.share.camera_name)], s) for s in shares}
-            got = fp32_tail.tail(self.combine(shares, terms))
+            got = fp32_tail.tail(self.tail_feeds(shares, terms))
             worst = max(worst, float(np.abs(got - ref).max() / max(float(np.ptp(ref)), 1e-6)))
         return worst
 

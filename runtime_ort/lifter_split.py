@@ -10,9 +10,9 @@ which releases the GIL: the same work in numpy held it long enough to double the
 
 - ``first_conv``: the fp32 lifter's first Conv, its (C_out, Z * C) weight and bias;
 - ``term_graph``: one camera share's term from its feature map (that weight applied before the gather);
-- ``tail_graph``: the lifter graph from the first convolution's output on, fed ``summed (1, Yq * Xq, C_out)``
-  (cells-major, what the combine scatters into). Cut from the int8 lifter too, its QuantizeLinear of the cut
-  tensor quantizes the sum (ReLU included, as the int8 graph does it).
+- ``tail_graph``: the cameras' terms scattered into the quadrant's cells and added to the first convolution's bias,
+  then the lifter graph from that convolution's output on. Cut from the int8 lifter too, its QuantizeLinear of the
+  cut tensor quantizes the sum (ReLU included, as the int8 graph does it).
 
 Only a lifter whose first Conv is a 1x1 with constant weight and bias splits (``SplitError`` otherwise: the volume
 lifter's export form runs its 1x1 per z plane, and what follows reads the graph's inputs again).
@@ -108,25 +108,36 @@ def term_graph(weight: np.ndarray, channels: int, feature_hw: tuple[int, int], h
     return model
 
 
-def tail_graph(lifter: onnx.ModelProto, cut: str, shape: tuple[int, int, int]) -> onnx.ModelProto:
-    """``lifter`` from tensor ``cut`` (its first Conv's output) on, fed ``summed (1, Yq * Xq, C_out)`` cells-major;
-    ``shape`` = (C_out, Yq, Xq)."""
+def tail_graph(lifter: onnx.ModelProto, cut: str, shape: tuple[int, int, int], bias: np.ndarray) -> onnx.ModelProto:
+    """``lifter`` from tensor ``cut`` (its first Conv's output) on, fed the cameras' terms: ``terms (M, C_out)`` and
+    ``cells (M, 1) int64`` (the quadrant's flat cells ``y * Xq + x`` they belong to, repeats summed), added to the
+    first convolution's ``bias`` (C_out,) in every cell (ScatterND, reduction add: the sum happens in onnxruntime,
+    which releases the GIL); ``shape`` = (C_out, Yq, Xq)."""
     from onnx.utils import Extractor
 
+    if max((o.version for o in lifter.opset_import if o.domain in ("", "ai.onnx")), default=0) < 16:
+        raise SplitError("the lifter graph's opset is below 16 (ScatterND's add): re-export it")
     outputs = [o.name for o in lifter.graph.output]
     lifter = onnx.shape_inference.infer_shapes(lifter)
     if cut not in {v.name for v in lifter.graph.value_info}:  # the Extractor needs the cut tensor's type
         lifter.graph.value_info.append(helper.make_tensor_value_info(cut, TensorProto.FLOAT, None))
     tail = Extractor(lifter).extract_model([cut], outputs)
     c, yq, xq = shape
-    inits = [numpy_helper.from_array(np.array([1, yq, xq, c], np.int64), "tail_shape")]
+    inits = [
+        numpy_helper.from_array(np.asarray(bias, np.float32).reshape(c), "tail_bias"),
+        numpy_helper.from_array(np.array([yq * xq, c], np.int64), "tail_rows"),
+        numpy_helper.from_array(np.array([1, yq, xq, c], np.int64), "tail_shape"),
+    ]
     head = [
+        helper.make_node("Expand", ["tail_bias", "tail_rows"], ["base"]),  # (Yq*Xq, C_out)
+        helper.make_node("ScatterND", ["base", "cells", "terms"], ["summed"], reduction="add"),  # (Yq*Xq, C_out)
         helper.make_node("Reshape", ["summed", "tail_shape"], ["summed4"]),  # (1, Yq, Xq, C_out)
         helper.make_node("Transpose", ["summed4"], [cut], perm=[0, 3, 1, 2]),  # (1, C_out, Yq, Xq)
     ]
     graph = helper.make_graph(
         head + list(tail.graph.node), "lifter_tail",
-        [helper.make_tensor_value_info("summed", TensorProto.FLOAT, [1, yq * xq, c])], list(tail.graph.output),
+        [helper.make_tensor_value_info("terms", TensorProto.FLOAT, ["M", c]),
+         helper.make_tensor_value_info("cells", TensorProto.INT64, ["M", 1])], list(tail.graph.output),
         inits + list(tail.graph.initializer),
     )  # fmt: skip
     model = helper.make_model(graph, opset_imports=list(lifter.opset_import))

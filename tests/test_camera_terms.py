@@ -92,7 +92,7 @@ def test_a_first_conv_that_is_not_the_flat_lifters_does_not_split(tiny_export):
     volume = onnx.load(str(tiny_export / "volumetric_lifter.onnx"))
     conv, weight, _ = first_conv(volume)
     with pytest.raises(SplitError, match="flat lifter"):
-        tail_graph(volume, conv.output[0], (8, 32, 32))
+        tail_graph(volume, conv.output[0], (8, 32, 32), np.zeros(8, np.float32))
     with pytest.raises(SplitError, match="flat lifter"):
         term_graph(weight, weight.shape[1], (4, 6), 4)
 
@@ -140,10 +140,12 @@ def test_missing_cameras_contribute_nothing_as_zero_maps_do(export_dir):
     graph = StreamingDetector(export_dir, DetectorConfig(camera_terms=False))
     q = 0
     cams = terms.quadrant_cameras([q])
-    images = _images(terms, 3, cams[:1])
-    terms.update_images(images, 1.0, quadrants=[q])
-    graph.update_images(images, 1.0, quadrants=[q])
-    assert np.abs(_bev(terms, q) - _bev(graph, q)).max() <= 1e-5 * max(np.ptp(_bev(graph, q)), 1e-6)
+    others = [n for n in terms.camera_names if n not in cams]
+    for given in (cams[:1], others[:1]):  # one of the quadrant's cameras; none of them (the bias alone)
+        images = _images(terms, 3, given)
+        terms.update_images(images, 1.0, quadrants=[q])
+        graph.update_images(images, 1.0, quadrants=[q])
+        assert np.abs(_bev(terms, q) - _bev(graph, q)).max() <= 1e-5 * max(np.ptp(_bev(graph, q)), 1e-6)
 
 
 # ---- the cache ------------------------------------------------------------------------------------------------
