@@ -8,6 +8,7 @@ dropped, older images), never by the function per quadrant.
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import click
@@ -18,12 +19,17 @@ from streamdet.replay.run import split_scenes
 from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector
 
 
-def quadrant_parity(data: Path, export_dir: Path, image_precision: str | None, every: int) -> dict:
-    """{sweeps, identical (detections bit for bit), max_bev_diff, max_box_diff} over every ``every``-th sweep."""
+def quadrant_parity(data: Path, export_dir: Path, image_precision: str | None, every: int,
+                    camera_terms: bool | None = False) -> dict:  # fmt: skip
+    """{sweeps, identical (detections bit for bit), max_bev_diff, max_box_diff, max_score_diff, boxes_full,
+    boxes_parts} over every ``every``-th sweep; ``camera_terms``: the per-quadrant detector's
+    ``DetectorConfig.camera_terms`` (False: the lifter graph, bit for bit the full update's function)."""
     config = DetectorConfig(precision="fp32", image_lane_precision=image_precision)
     tables = DatasetTables(data, "v1.0-synth")
-    full, parts = StreamingDetector(export_dir, config), StreamingDetector(export_dir, config)
-    out = {"sweeps": 0, "identical": 0, "max_bev_diff": 0.0, "max_box_diff": 0.0}
+    full = StreamingDetector(export_dir, dataclasses.replace(config, camera_terms=False))
+    parts = StreamingDetector(export_dir, dataclasses.replace(config, camera_terms=camera_terms))
+    out = {"sweeps": 0, "identical": 0, "max_bev_diff": 0.0, "max_box_diff": 0.0, "max_score_diff": 0.0,
+           "boxes_full": 0, "boxes_parts": 0, "camera_terms": parts.camera_terms}  # fmt: skip
     for scene in split_scenes(tables, "val", None):
         drive = load_drive(tables, scene, (full.image.width, full.image.height), 20.0, 12.0, None, lambda msg: None)
         if drive.rig is not None:
@@ -42,8 +48,11 @@ def quadrant_parity(data: Path, export_dir: Path, image_precision: str | None, e
             out["sweeps"] += 1
             out["identical"] += int(same)
             out["max_bev_diff"] = max(out["max_bev_diff"], float(bev_diff))
+            out["boxes_full"] += len(a.boxes)
+            out["boxes_parts"] += len(b.boxes)
             if a.boxes.shape == b.boxes.shape and len(a.boxes):
                 out["max_box_diff"] = max(out["max_box_diff"], float(np.abs(a.boxes - b.boxes).max()))
+                out["max_score_diff"] = max(out["max_score_diff"], float(np.abs(a.scores - b.scores).max()))
     return out
 
 
@@ -54,17 +63,21 @@ def quadrant_parity(data: Path, export_dir: Path, image_precision: str | None, e
 @click.option("--image-precision", type=click.Choice(["fp32", "fp16", "int8"]), default=None,
               help="The image lane's graphs (default: fp32, as the slices).")  # fmt: skip
 @click.option("--every", type=click.IntRange(min=1), default=10, show_default=True, help="Check every N-th sweep.")
-def main(data: Path, export_dir: Path, image_precision: str | None, every: int) -> None:
+@click.option("--camera-terms", type=click.Choice(["auto", "on", "off"]), default="off", show_default=True,
+              help="Per-camera lifts in the per-quadrant updates (DetectorConfig.camera_terms); 'off': the lifter graph.")
+def main(data: Path, export_dir: Path, image_precision: str | None, every: int, camera_terms: str) -> None:
     """Full image update vs four per-quadrant updates on the val scenes: the same BEV and detections?"""
     if not (export_dir / "manifest.json").is_file():
         raise click.ClickException(f"{export_dir} holds no manifest.json")
     try:
-        r = quadrant_parity(data, export_dir, image_precision, every)
+        r = quadrant_parity(data, export_dir, image_precision, every, {"auto": None, "on": True, "off": False}[camera_terms])
     except (ValueError, OSError) as e:
         raise click.ClickException(str(e)) from None
-    label = f"{image_precision or 'fp32'} image lane + fp32 slices"
+    label = f"{image_precision or 'fp32'} image lane + fp32 slices" + (", per-camera lifts" if r["camera_terms"] else "")
     click.echo(f"{label}: {r['sweeps']} sweeps of the val scenes, detections bit-identical in {r['identical']}; "
-               f"max |BEV diff| {r['max_bev_diff']:.3g}, max |box diff| {r['max_box_diff']:.3g}")  # fmt: skip
+               f"max |BEV diff| {r['max_bev_diff']:.3g}, max |box diff| {r['max_box_diff']:.3g}, max |score diff| "
+               f"{r['max_score_diff']:.3g} (where the box counts agree); boxes {r['boxes_full']} full / "
+               f"{r['boxes_parts']} per quadrant")  # fmt: skip
 
 
 if __name__ == "__main__":

@@ -235,3 +235,25 @@ def test_pieces_that_do_not_match_the_lifter_are_refused(export_dir, monkeypatch
     assert not StreamingDetector(export_dir).camera_terms
     with pytest.raises(ValueError, match="differ from the fp32 lifter"):
         StreamingDetector(export_dir, DetectorConfig(camera_terms=True))
+
+
+def test_quadrant_map_scores_the_three_ways_of_lifting(export_dir, tiny_train_data):
+    """benchmarks/quadrant_map.py: full updates and per-quadrant updates through the lifter graph score the same
+    (the same function); per-camera lifts score too (fp32: the same sums up to float order)."""
+    import re
+
+    from streamdet.benchmarks.quadrant_map import main
+
+    result = CliRunner().invoke(main, ["--data", str(tiny_train_data), "--export-dir", str(export_dir), "--samples", "2"])
+    assert result.exit_code == 0, result.output
+    scores = re.findall(r"(full update|lifter graph|per-camera lifts): 2 samples, mAP ([\d.]+), NDS ([\d.]+)", result.output)
+    assert [s[0] for s in scores] == ["full update", "lifter graph", "per-camera lifts"]
+    assert scores[0][1:] == scores[1][1:]
+    assert abs(float(scores[2][1]) - float(scores[0][1])) <= 1.0
+
+
+def test_quadrant_map_refuses_per_camera_lifts_on_a_volume_lifter(tiny_export, tiny_train_data):
+    from streamdet.benchmarks.quadrant_map import main
+
+    result = CliRunner().invoke(main, ["--data", str(tiny_train_data), "--export-dir", str(tiny_export), "--samples", "1"])
+    assert result.exit_code == 1 and "flat lifter" in result.output
