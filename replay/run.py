@@ -124,12 +124,14 @@ def open_detector(config: ReplayConfig, num_slices: int | None = None) -> Stream
 
 
 def warm_up(det: StreamingDetector, drive: Drive, num_slices: int, per_quadrant: bool = False) -> None:
-    """One untimed image update (at WARM_UP_TIMESTAMP_S: its picture has no age) and the first sweep, then fresh stats.
+    """Two untimed image updates (at WARM_UP_TIMESTAMP_S: their picture has no age) and the first sweep, then fresh stats.
     ``per_quadrant``: also one update of each quadrant alone (the phase-locked image lane's sizes: onnxruntime's
     first run of a new input shape is slow)."""
     if drive.rig is not None and det.uses_images and drive.rig.sha256() != det.lut.calibration_sha256:
         det.set_calibration(drive.rig)  # the dataset's own rig: a new LUT for the same graphs
-    if det.uses_images and drive.image_sets:
+    # twice: onnxruntime's first two runs of a graph were measured 4-20x slower than the third (the first real image
+    # update of every replay ran 0.13-0.2 s at scale 2, its slices queued behind it)
+    for _ in range(2) if det.uses_images and drive.image_sets else ():
         det.update_images(drive.image_sets[0].images, timestamp=WARM_UP_TIMESTAMP_S)
         for q in range(4) if per_quadrant else ():
             det.update_images(drive.image_sets[0].images, timestamp=WARM_UP_TIMESTAMP_S, quadrants=[q])
