@@ -77,6 +77,7 @@ from streamdet.runtime_ort.recording import Feeds, GraphRecording
 from streamdet.runtime_ort.sessions import GraphSession, SessionConfig
 from streamdet.runtime_ort.signature import check_graph, check_runtime_fields
 from streamdet.runtime_ort.stats import LatencyStats
+from streamdet.runtime_ort.warm_up import warm_up
 
 log = logging.getLogger(__name__)
 
@@ -388,6 +389,17 @@ class StreamingDetector:
         used = tuple(n for n in self.camera_names if n in images)
         features = self._encode(images, used, used)  # (J_used, C, Hf, Wf)
         return {name: features[j] for j, name in enumerate(used)}
+
+    def warm_up(self, rounds: int = 2) -> None:
+        """Run every graph ``rounds`` times on dummy inputs before the first real data (onnxruntime's first runs of
+        a graph are slow: runtime_ort/warm_up.py), then drop the dummy image BEV and the latency statistics. Call it
+        once after construction, before the first ``update_images`` / slice."""
+        warm_up(self, rounds)
+
+    def forget_images(self) -> None:
+        """Drop the cached image BEV (slices read no image until the next ``update_images``)."""
+        with self._lock:
+            self._image = None
 
     @property
     def camera_terms(self) -> bool:

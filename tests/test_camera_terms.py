@@ -257,3 +257,14 @@ def test_quadrant_map_refuses_per_camera_lifts_on_a_volume_lifter(tiny_export, t
 
     result = CliRunner().invoke(main, ["--data", str(tiny_train_data), "--export-dir", str(tiny_export), "--samples", "1"])
     assert result.exit_code == 1 and "flat lifter" in result.output
+
+
+def test_warm_up_with_per_camera_lifts_leaves_the_same_quadrant_updates(export_dir):
+    warm, cold = (StreamingDetector(export_dir, DetectorConfig(camera_terms=True)) for _ in range(2))
+    warm.warm_up()
+    assert warm.image_state is None and warm.stats.summary() == {}
+    images = _images(warm, 8)
+    for det in (warm, cold):
+        for q in range(4):
+            det.update_images(images, 1.0, quadrants=[q])
+    np.testing.assert_array_equal(warm.image_state.bev, cold.image_state.bev)

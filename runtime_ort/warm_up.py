@@ -1,0 +1,59 @@
+"""Warming a `StreamingDetector` up before the first real data (``StreamingDetector.warm_up``).
+
+onnxruntime's first two runs of a graph are slower than the ones after (its memory arena and pattern planning;
+measured on the lifter: the first two runs 4-20x the third, docs/replay.md "Notes"). A vehicle process whose first
+real image update pays that queues its first slices behind it. ``warm_up`` runs every graph of the export twice on
+dummy inputs (black images through the full and the per-quadrant image updates, a synthetic ring of points through
+every slice), then drops the dummy image BEV and the latency statistics; the LUT, calibration and sessions stay.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from streamdet.core.points import SWEEP_COLUMNS
+from streamdet.core.sectors import NUM_QUADRANTS
+
+if TYPE_CHECKING:
+    from streamdet.runtime_ort.detector import StreamingDetector
+
+DUMMY_POINTS = 8192  # points of the dummy sweep: enough pillars in every slice
+
+
+def dummy_sweep(x_range_m: tuple[float, float], num_points: int = DUMMY_POINTS, seed: int = 0) -> np.ndarray:
+    """(N, 5) float32 x, y, z, intensity, ring: points on the ground and on walls all around the sensor, within
+    ``x_range_m`` (the grid's half-width), so that every slice has pillars."""
+    rng = np.random.default_rng(seed)
+    reach = 0.9 * float(x_range_m[1])
+    azimuth = rng.uniform(-np.pi, np.pi, num_points)
+    radius = rng.uniform(2.0, reach, num_points)
+    points = np.zeros((num_points, SWEEP_COLUMNS), np.float32)
+    points[:, 0] = radius * np.cos(azimuth)
+    points[:, 1] = radius * np.sin(azimuth)
+    points[:, 2] = rng.uniform(-1.8, 1.0, num_points)
+    points[:, 3] = rng.uniform(0.0, 1.0, num_points)
+    points[:, 4] = rng.integers(0, 32, num_points)
+    return points
+
+
+def warm_up(det: StreamingDetector, rounds: int = 2) -> None:
+    """Run ``det``'s graphs ``rounds`` times on dummy inputs, then forget them (see the module doc)."""
+    if isinstance(rounds, bool) or not isinstance(rounds, (int, np.integer)) or rounds < 1:
+        raise ValueError(f"warm_up rounds must be an int >= 1, got {rounds!r}")
+    sweep = dummy_sweep(det.grid.x_range_m)
+    for _ in range(rounds):
+        if det.uses_images:
+            img = det.image
+            black = {name: np.zeros((img.height, img.width, 3), np.uint8) for name in det.camera_names}
+            det.update_images(black, timestamp=0.0)
+            encoded = det.encode_images(black)  # the phase-locked lane's calls: encode once, lift quadrant by quadrant
+            det.prepare_terms(encoded)
+            for q in range(NUM_QUADRANTS):
+                cams = det.quadrant_cameras([q])
+                det.update_images({n: black[n] for n in cams}, timestamp=0.0, quadrants=[q],
+                                  encoded={n: encoded[n] for n in cams})  # fmt: skip
+        det.detect_sweep(sweep, timestamp=0.0)
+    det.forget_images()
+    det.stats.reset()
