@@ -58,6 +58,7 @@ def main() -> None:  # the ROS boilerplate
             max_age_s = self.declare_parameter("fallback_after_s", 0.5).value
             self.detector = StreamingDetector(export_dir, DetectorConfig(
                 fallback_export_dir=fallback, fallback_after_s=max_age_s if fallback else None))  # fmt: skip
+            self.detector.warm_up()  # before the first message: onnxruntime's first runs of a graph are slow
             self.images: dict[str, np.ndarray] = {}  # newest image per camera since the last cloud
             self.boxes = self.create_publisher(Detection3DArray, "/streamdet/detections", 10)
             self.markers = self.create_publisher(MarkerArray, "/streamdet/markers", 10)
