@@ -17,7 +17,7 @@ import numpy as np
 
 from streamdet.evaluation.dataset_eval import evaluate_dataset
 from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector
-from streamdet.runtime_ort.pipeline import sample_images, sample_time_s
+from streamdet.runtime_ort.pipeline import sample_images, sample_time_s, update_by_quadrant
 
 VARIANTS = (("full update", False, False), ("per-quadrant, lifter graph", False, True),
             ("per-quadrant, per-camera lifts", True, True))  # fmt: skip
@@ -33,11 +33,7 @@ def sweep_detector(export_dir: Path, image_precision: str | None, camera_terms: 
         ts = sample_time_s(sample)
         images = sample_images(det, sample)
         if per_quadrant:
-            encoded = det.encode_images(images)
-            det.prepare_terms(encoded)
-            for q in range(4):
-                cams = [n for n in det.quadrant_cameras([q]) if n in images]
-                det.update_images({n: images[n] for n in cams}, ts, quadrants=[q], encoded={n: encoded[n] for n in cams})
+            update_by_quadrant(det, images, ts)
         else:
             det.update_images(images, ts)
         return det.detect_sweep_slices(np.asarray(sample.points, np.float32), timestamp=ts, num_slices=num_slices).detections

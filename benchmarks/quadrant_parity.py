@@ -14,6 +14,7 @@ from pathlib import Path
 import click
 import numpy as np
 
+from streamdet.cli_utils import camera_terms_option
 from streamdet.replay.nuscenes_source import DatasetTables, load_drive
 from streamdet.replay.run import split_scenes
 from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector
@@ -63,14 +64,13 @@ def quadrant_parity(data: Path, export_dir: Path, image_precision: str | None, e
 @click.option("--image-precision", type=click.Choice(["fp32", "fp16", "int8"]), default=None,
               help="The image lane's graphs (default: fp32, as the slices).")  # fmt: skip
 @click.option("--every", type=click.IntRange(min=1), default=10, show_default=True, help="Check every N-th sweep.")
-@click.option("--camera-terms", type=click.Choice(["auto", "on", "off"]), default="off", show_default=True,
-              help="Per-camera lifts in the per-quadrant updates (DetectorConfig.camera_terms); 'off': the lifter graph.")
-def main(data: Path, export_dir: Path, image_precision: str | None, every: int, camera_terms: str) -> None:
+@camera_terms_option(default="off")
+def main(data: Path, export_dir: Path, image_precision: str | None, every: int, camera_terms: bool | None) -> None:
     """Full image update vs four per-quadrant updates on the val scenes: the same BEV and detections?"""
     if not (export_dir / "manifest.json").is_file():
         raise click.ClickException(f"{export_dir} holds no manifest.json")
     try:
-        r = quadrant_parity(data, export_dir, image_precision, every, {"auto": None, "on": True, "off": False}[camera_terms])
+        r = quadrant_parity(data, export_dir, image_precision, every, camera_terms)
     except (ValueError, OSError) as e:
         raise click.ClickException(str(e)) from None
     label = f"{image_precision or 'fp32'} image lane + fp32 slices" + (", per-camera lifts" if r["camera_terms"] else "")

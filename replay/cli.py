@@ -8,7 +8,9 @@ from pathlib import Path
 
 import click
 
-from streamdet.cli_utils import PRECISION_CHOICES, fallback_after_s, fallback_options, image_precision_option
+from streamdet.cli_utils import (
+    PRECISION_CHOICES, camera_terms_option, fallback_after_s, fallback_options, image_precision_option,
+)
 from streamdet.replay.modes import MODES
 from streamdet.replay.triggers import DEFAULT_TRIGGER, TRIGGER_MODELS
 
@@ -58,10 +60,7 @@ def _progress(message: str) -> None:
 @click.option("--schedule", type=click.Choice(["full", "phase-locked"]), default="full", show_default=True,
               help="When the image lane works: 'full' (every image set, all cameras, all quadrants) or 'phase-locked' "
                    "(one quadrant at a time from its cameras, just before the LiDAR reaches it); LaneConfig.schedule.")
-@click.option("--camera-terms", type=click.Choice(["auto", "on", "off"]), default="auto", show_default=True,
-              help="Per-camera lifts for per-quadrant image updates (the phase-locked lane): 'auto' where the export's "
-                   "lifter splits (the flat lifter, fp32 or int8 image lane), 'on' required, 'off' the lifter graph "
-                   "every time; DetectorConfig.camera_terms.")
+@camera_terms_option()
 @fallback_options(clock="drive")
 @click.option("--json", "json_path", type=click.Path(path_type=Path, dir_okay=False), default=None,
               help="Write the per-mode summary (the issue's keys) to this JSON file.")
@@ -74,7 +73,7 @@ def main(
     image_precision: str | None, lidar_hz: float, num_slices: int | None, camera_hz: float, camera_trigger: str, mode: str,
     time_scale: float,
     max_seconds: float | None, threads: int, slice_workers: int | None, queue_size: int | None, schedule: str,
-    camera_terms: str, fallback_export_dir: Path | None, fallback_after_ms: float | None, json_path: Path | None,
+    camera_terms: bool | None, fallback_export_dir: Path | None, fallback_after_ms: float | None, json_path: Path | None,
     plot_path: Path | None, out_dir: Path | None,
 ) -> None:
     """Play scenes at sensor rates (LiDAR slices released when scanned, cameras at their rate) through the runtime's
@@ -102,7 +101,7 @@ def main(
             precision=precision, image_precision=image_precision, lidar_hz=lidar_hz, num_slices=num_slices,
             camera_hz=camera_hz, camera_trigger=camera_trigger, modes=MODES if mode == "all" else (mode,), time_scale=time_scale,
             max_seconds=max_seconds, threads=threads, lanes=lanes, fallback_export_dir=fallback_export_dir,
-            camera_terms={"auto": None, "on": True, "off": False}[camera_terms],
+            camera_terms=camera_terms,
             fallback_after_s=fallback_after_s(fallback_after_ms),
         )  # fmt: skip
         result = run_replay(config, _progress)

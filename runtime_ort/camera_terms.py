@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import logging
 import threading
+from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Mapping
@@ -83,7 +84,6 @@ class CameraTerms:
         self._lock = threading.Lock()
         self._shares: dict[int, tuple[QuadrantLut, tuple[_Share, ...]]] = {}  # id(qlut) -> (qlut, its shares)
         self._terms: dict[tuple[int, str], tuple[object, object, np.ndarray]] = {}  # (q, cam) -> (source, qlut, term)
-        self._cells: dict[int, tuple[tuple[_Share, ...], dict[tuple[str, ...], np.ndarray]]] = {}  # (M, 1) per cameras
 
     # ---- the pieces --------------------------------------------------------------------------
     def shares(self, qlut: QuadrantLut) -> tuple[_Share, ...]:
@@ -102,9 +102,7 @@ class CameraTerms:
 
     def term(self, features: np.ndarray, share: _Share) -> np.ndarray:
         """(N, C_out) term of one camera share from that camera's (C, Hf, Wf) float32 feature map."""
-        if self._stats is None:
-            return self._run_term(features, share)
-        with self._stats.time("lifter_partial"):
+        with self._timed("lifter_partial"):
             return self._run_term(features, share)
 
     def _run_term(self, features: np.ndarray, share: _Share) -> np.ndarray:
@@ -115,23 +113,10 @@ class CameraTerms:
     def tail_feeds(self, shares: tuple[_Share, ...], terms: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
         """The tail graph's feeds: the given cameras' terms and their cells, concatenated in the shares' order."""
         given = [s for s in shares if s.share.camera_name in terms]
-        key = tuple(s.share.camera_name for s in given)
-        with self._lock:
-            cached = self._cells.get(id(shares))
-        if cached is None or cached[0] is not shares or key not in cached[1]:
-            cells = np.concatenate([s.share.cells for s in given] or [np.zeros(0, np.int64)])[:, None]  # (M, 1)
-            with self._lock:
-                entry = self._cells.get(id(shares))
-                if entry is None or entry[0] is not shares:
-                    if len(self._cells) >= 8:
-                        self._cells.pop(next(iter(self._cells)))
-                    entry = self._cells[id(shares)] = (shares, {})
-                entry[1][key] = cells
-        else:
-            cells = cached[1][key]
-        c_out = self.bias.size
-        stacked = np.concatenate([terms[n] for n in key]) if key else np.zeros((0, c_out), np.float32)  # (M, C_out)
-        return {"terms": stacked, "cells": cells}
+        if not given:  # none of the quadrant's cameras: the bias alone
+            return {"terms": np.zeros((0, self.bias.size), np.float32), "cells": np.zeros((0, 1), np.int64)}
+        stacked = np.concatenate([terms[s.share.camera_name] for s in given])  # (M, C_out)
+        return {"terms": stacked, "cells": np.concatenate([s.share.cells for s in given])[:, None]}  # (M, 1)
 
     def tail(self, feeds: Mapping[str, np.ndarray]) -> np.ndarray:
         return self._tail.run(None, dict(feeds))[0]
@@ -143,11 +128,9 @@ class CameraTerms:
         made = 0
         for q, qlut in enumerate(qluts):
             for s in self.shares(qlut):
-                name = s.share.camera_name
-                features = maps.get(name)
-                if features is not None and self._cached(q, name, features, qlut) is None:
-                    self._keep(q, name, features, qlut, self.term(features, s))
-                    made += 1
+                features = maps.get(s.share.camera_name)
+                if features is not None:
+                    made += self._term_of(q, qlut, s, features)[1]
         return made
 
     def lift(self, quadrant: int, qlut: QuadrantLut, maps: Mapping[str, np.ndarray]) -> np.ndarray:
@@ -155,30 +138,26 @@ class CameraTerms:
         (a camera not given contributes nothing, as a zero feature map does): cached terms where the map object is
         the one a term was made from, new terms (then kept) otherwise."""
         shares = self.shares(qlut)
-        terms = {}
-        for s in shares:
-            name = s.share.camera_name
-            features = maps.get(name)
-            if features is None:
-                continue
-            term = self._cached(quadrant, name, features, qlut)
-            if term is None:
-                term = self.term(features, s)
-                self._keep(quadrant, name, features, qlut, term)
-            terms[name] = term
-        if self._stats is None:
-            return self.tail(self.tail_feeds(shares, terms))
-        with self._stats.time("lifter_tail"):
+        terms = {s.share.camera_name: self._term_of(quadrant, qlut, s, maps[s.share.camera_name])[0]
+                 for s in shares if s.share.camera_name in maps}  # fmt: skip
+        with self._timed("lifter_tail"):
             return self.tail(self.tail_feeds(shares, terms))
 
-    def _cached(self, q: int, camera: str, features: np.ndarray, qlut: QuadrantLut) -> np.ndarray | None:
+    def _term_of(self, q: int, qlut: QuadrantLut, share: _Share, features: np.ndarray) -> tuple[np.ndarray, bool]:
+        """(term, whether it was made now): the kept term of (q, camera) if it was made from this map object and
+        LUT, else a new one, kept (the entry holds the map and LUT, so their ids cannot be reused while it lives)."""
+        key = (q, share.share.camera_name)
         with self._lock:
-            entry = self._terms.get((q, camera))
-        return entry[2] if entry is not None and entry[0] is features and entry[1] is qlut else None
+            entry = self._terms.get(key)
+        if entry is not None and entry[0] is features and entry[1] is qlut:
+            return entry[2], False
+        term = self.term(features, share)
+        with self._lock:
+            self._terms[key] = (features, qlut, term)
+        return term, True
 
-    def _keep(self, q: int, camera: str, features: np.ndarray, qlut: QuadrantLut, term: np.ndarray) -> None:
-        with self._lock:  # the entry holds the map and LUT, so their ids cannot be reused while it lives
-            self._terms[(q, camera)] = (features, qlut, term)
+    def _timed(self, stage: str):
+        return nullcontext() if self._stats is None else self._stats.time(stage)
 
     def check(self, fp32_lifter_run, qluts: tuple[QuadrantLut, ...], fp32_tail: "CameraTerms") -> float:
         """Max |diff| / output range of this split's terms with ``fp32_tail``'s tail (the fp32 one) against

@@ -7,6 +7,7 @@ the studies), so they all feed the detector the same way a vehicle would.
 - ``sample_images``: the sample's images at the detector's image size, by camera name, after
   ``use_sample_calibration``.
 - ``feed_images``: those images through the image lane at the sample's time.
+- ``update_by_quadrant``: images through the image lane quadrant by quadrant, as the phase-locked lane feeds them.
 - ``detect_sample``: ``feed_images`` (when the export has an image lane), then the sweep through
   ``StreamingDetector.detect_sweep_slices``.
 """
@@ -18,6 +19,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from streamdet.core.sectors import NUM_QUADRANTS
 from streamdet.data.sample import Sample
 
 if TYPE_CHECKING:
@@ -65,6 +67,16 @@ def feed_images(detector: StreamingDetector, sample: Sample, timestamp: float | 
     """The sample's images through the image lane (``sample_images``) at ``timestamp`` (None: the sample's)."""
     ts = sample_time_s(sample) if timestamp is None else timestamp
     return detector.update_images(sample_images(detector, sample), timestamp=ts)
+
+
+def update_by_quadrant(detector: StreamingDetector, images: dict[str, np.ndarray], timestamp: float) -> None:
+    """``images`` through the image lane as the phase-locked lane feeds it: every camera encoded once (its per-camera
+    lift terms made with it, where the detector has them), then the quadrants updated one by one from their cameras."""
+    encoded = detector.encode_images(images)
+    detector.prepare_terms(encoded)
+    for q in range(NUM_QUADRANTS):
+        cams = [n for n in detector.quadrant_cameras([q]) if n in images]
+        detector.update_images({n: images[n] for n in cams}, timestamp, quadrants=[q], encoded={n: encoded[n] for n in cams})
 
 
 def detect_sample(

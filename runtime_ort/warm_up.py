@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from streamdet.core.points import SWEEP_COLUMNS
-from streamdet.core.sectors import NUM_QUADRANTS
+from streamdet.runtime_ort.pipeline import update_by_quadrant
 
 if TYPE_CHECKING:
     from streamdet.runtime_ort.detector import StreamingDetector
@@ -48,12 +48,7 @@ def warm_up(det: StreamingDetector, rounds: int = 2) -> None:
             img = det.image
             black = {name: np.zeros((img.height, img.width, 3), np.uint8) for name in det.camera_names}
             det.update_images(black, timestamp=0.0)
-            encoded = det.encode_images(black)  # the phase-locked lane's calls: encode once, lift quadrant by quadrant
-            det.prepare_terms(encoded)
-            for q in range(NUM_QUADRANTS):
-                cams = det.quadrant_cameras([q])
-                det.update_images({n: black[n] for n in cams}, timestamp=0.0, quadrants=[q],
-                                  encoded={n: encoded[n] for n in cams})  # fmt: skip
+            update_by_quadrant(det, black, 0.0)  # the phase-locked lane's calls and sizes
         det.detect_sweep(sweep, timestamp=0.0)
     det.forget_images()
     det.stats.reset()

@@ -91,6 +91,21 @@ def fallback_after_s(fallback_after_ms: float | None) -> float | None:
     return None if fallback_after_ms is None else fallback_after_ms / 1e3
 
 
+CAMERA_TERMS = {"auto": None, "on": True, "off": False}  # --camera-terms -> DetectorConfig.camera_terms
+
+
+def camera_terms_option(default: str = "auto"):
+    """``--camera-terms auto|on|off``: the runtime's per-camera lifts (``DetectorConfig.camera_terms``); the command
+    gets ``camera_terms`` as None / True / False."""
+    return click.option(
+        "--camera-terms", type=click.Choice(list(CAMERA_TERMS)), default=default, show_default=True,
+        callback=lambda ctx, param, value: CAMERA_TERMS[value],
+        help="Per-camera lifts for per-quadrant image updates (the phase-locked lane): 'auto' where the export's "
+        "lifter splits (the flat lifter, fp32 or int8 image lane), 'on' required, 'off' the lifter graph every time; "
+        "DetectorConfig.camera_terms.",
+    )  # fmt: skip
+
+
 # ---- the edge of every command-line tool ---------------------------------------------------------------------
 # The console scripts call these light functions (pyproject [project.scripts]); each imports its command inside
 # `run_edge`, so a missing optional dependency, a Ctrl-C while torch loads, or a bad input deep in a library all
