@@ -25,6 +25,8 @@ Three presets:
 - ``small_v3``: ``small_v2`` with the image BEV brought to the point BEV's RMS at fusion instead of a learnt gain
   (``image_bev_target="point"``); the shipped model's preset (``core.constants.DEFAULT_PRESET``; its recipe, with the
   image-side class loss of ``streamdet-train --image-class-weight``, in ``models/weights/small.json``).
+- ``small_v3_lite``: ``small_v3`` with a quarter-width ResNet-18 at 320 x 180: a lighter image lane for the
+  phase-locked schedule (issue 22), the rest unchanged.
 
 Any LiDAR-only variant (``use_image=False``) may drop the quadrant crop (``slice_crop=False``: one whole-grid map
 per slice, the paper's baseline set-up; ``streamdet-train --no-image --no-crop``).
@@ -402,7 +404,26 @@ def _small_v3() -> Preset:
     return dataclasses.replace(_small_v2(), name="small_v3", image_bev_target="point")
 
 
-_PRESETS = {"paper": _paper, "small": _small, "tiny": _tiny, "small_v2": _small_v2, "small_v3": _small_v3}
+def _small_v3_lite() -> Preset:
+    # small_v3 with a lighter image lane for the phase-locked schedule (issue 22): a quarter-width ResNet-18 (base
+    # width 16) at 320 x 180 (features 80 x 45). The encoder is the image lane's largest cost per camera frame and
+    # the staleness a slice sees is bounded below by a frame's encode + lift; this one's int8 encoder costs about
+    # 0.4 of small_v3's per frame (measured: docs/replay.md "A lighter image lane"). Everything after the encoder
+    # (lifter, two LUT heights, fusion, slice net) is small_v3's.
+    v3 = _small_v3()
+    return dataclasses.replace(
+        v3, name="small_v3_lite", image=dataclasses.replace(v3.image, width_px=320, height_px=180, width_divisor=4)
+    )
+
+
+_PRESETS = {
+    "paper": _paper,
+    "small": _small,
+    "tiny": _tiny,
+    "small_v2": _small_v2,
+    "small_v3": _small_v3,
+    "small_v3_lite": _small_v3_lite,
+}
 
 
 def preset_names() -> tuple[str, ...]:

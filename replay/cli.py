@@ -44,6 +44,10 @@ def _progress(message: str) -> None:
 @click.option("--camera-trigger", type=click.Choice(TRIGGER_MODELS), default=DEFAULT_TRIGGER, show_default=True,
               help="How the cameras fire: 'lidar-synced' (nuScenes: each camera as the LiDAR crosses its optical axis, "
                    "at --camera-hz on average) or 'simultaneous' (all cameras at once at --camera-hz).")
+@click.option("--camera-delivery-ms", type=click.FloatRange(min=0), default=0.0, show_default=True,
+              help="Every camera frame reaches the runtime this long after its capture (exposure, readout, ISP, "
+                   "transport; real rigs: tens of ms); frames keep their capture time as timestamp, and staleness is "
+                   "measured against the frames delivered by a slice's scan start. 0: delivered at capture.")
 @click.option("--mode", type=click.Choice([*MODES, "all"]), default="all", show_default=True,
               help="streaming (two lanes), full-sweep (wait for the rotation), sequential (one queue), or all three.")
 @click.option("--time-scale", type=click.FloatRange(min=0, min_open=True), default=1.0, show_default=True,
@@ -70,8 +74,8 @@ def _progress(message: str) -> None:
               help="Write replay.json (every slice's record, per-class scores, lane CPU, stage GMAC) and report.md here.")
 def main(
     data: Path, table_version: str, split: str, scenes: int | None, export_dir: Path, precision: str,
-    image_precision: str | None, lidar_hz: float, num_slices: int | None, camera_hz: float, camera_trigger: str, mode: str,
-    time_scale: float,
+    image_precision: str | None, lidar_hz: float, num_slices: int | None, camera_hz: float, camera_trigger: str,
+    camera_delivery_ms: float, mode: str, time_scale: float,
     max_seconds: float | None, threads: int, slice_workers: int | None, queue_size: int | None, schedule: str,
     camera_terms: bool | None, fallback_export_dir: Path | None, fallback_after_ms: float | None, json_path: Path | None,
     plot_path: Path | None, out_dir: Path | None,
@@ -101,7 +105,7 @@ def main(
             precision=precision, image_precision=image_precision, lidar_hz=lidar_hz, num_slices=num_slices,
             camera_hz=camera_hz, camera_trigger=camera_trigger, modes=MODES if mode == "all" else (mode,), time_scale=time_scale,
             max_seconds=max_seconds, threads=threads, lanes=lanes, fallback_export_dir=fallback_export_dir,
-            camera_terms=camera_terms,
+            camera_terms=camera_terms, camera_delivery_ms=camera_delivery_ms,
             fallback_after_s=fallback_after_s(fallback_after_ms),
         )  # fmt: skip
         result = run_replay(config, _progress)

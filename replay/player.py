@@ -42,6 +42,9 @@ class PlayerConfig:
     time_scale: float = 1.0  # wall seconds per drive second: 2 plays twice as slowly (a 2x faster computer)
     lanes: LaneConfig = field(default_factory=LaneConfig)  # the runner's slice-lane workers and queue
     progress_every_s: float = 0.5  # wall seconds between progress lines
+    # every camera frame reaches the detector this long after its capture (exposure, readout, ISP, transport); its
+    # timestamp stays the capture time. 0: at capture
+    camera_delivery_ms: float = 0.0
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -50,6 +53,9 @@ class PlayerConfig:
             raise ValueError(f"PlayerConfig.num_slices must be an integer >= 1, got {self.num_slices!r}")
         if not self.time_scale > 0:
             raise ValueError(f"PlayerConfig.time_scale must be > 0, got {self.time_scale!r}")
+        if not (isinstance(self.camera_delivery_ms, (int, float)) and math.isfinite(self.camera_delivery_ms)
+                and self.camera_delivery_ms >= 0):  # fmt: skip
+            raise ValueError(f"PlayerConfig.camera_delivery_ms must be finite and >= 0, got {self.camera_delivery_ms!r}")
 
 
 class _Book:
@@ -120,7 +126,9 @@ def play(
     book: _Book
     mode = open_mode(config.mode, detector, config.num_slices, _Hooks(lambda: book), config.lanes)
     book = _Book(dclock, mode)
-    schedule = release_schedule(drive, mode.num_slices, config.start_deg, images=detector.uses_images)
+    delivery_s = config.camera_delivery_ms / 1e3
+    schedule = release_schedule(drive, mode.num_slices, config.start_deg, images=detector.uses_images,
+                                camera_delivery_s=delivery_s)  # fmt: skip
     records = [_record(r) for r in schedule]
     # an image lane that updates from every camera at once gets whole sets (assemble.py); a phase-locked one each frame
     phase_locked = getattr(mode.runner, "phase_lock", None) is not None
@@ -162,7 +170,7 @@ def play(
         rec.superseded = True
     image_lane_cpu_s = getattr(mode.runner, "image_lane_cpu_s", float("nan"))  # the sequential queue has no image lane
     phase_lock = getattr(mode.runner, "phase_lock", None)  # what a phase-locked image lane did
-    _newest_images_by_scan_start(drive, records, getattr(detector, "quadrant_cameras", None), config.start_deg)
+    _newest_images_by_scan_start(drive, records, getattr(detector, "quadrant_cameras", None), config.start_deg, delivery_s)
     if book.errors:
         raise RuntimeError(f"{config.mode} replay of {drive.name} failed: {book.errors[0]!r}") from book.errors[0]
     slices = tuple(r for r in records if isinstance(r, SliceRecord))
@@ -175,12 +183,14 @@ def play(
 
 
 def _newest_images_by_scan_start(
-    drive: Drive, records: list, quadrant_cameras: Callable[[tuple[int, ...]], tuple[str, ...]] | None, start_deg: float
-) -> None:
+    drive: Drive, records: list, quadrant_cameras: Callable[[tuple[int, ...]], tuple[str, ...]] | None, start_deg: float,
+    delivery_s: float = 0.0,
+) -> None:  # fmt: skip
     """Each slice record's ``newest_capture_s``: how old the newest images of its quadrants could be when the sensor
     started scanning the slice's sector: per camera that sees its quadrant(s) (``quadrant_cameras``; None: every
-    camera), the newest frame released by then; the oldest of those (a quadrant is as old as its oldest camera's
-    frame, as the runtime stamps it). With simultaneous triggers: the newest image set released by then."""
+    camera), the newest frame released (delivered: captured ``delivery_s`` earlier) by then; the oldest of those (a
+    quadrant is as old as its oldest camera's frame, as the runtime stamps it). With simultaneous triggers: the
+    newest image set released by then."""
     captures: dict[str, list[float]] = {}
     for s in drive.image_sets:  # in time order (Drive checks)
         for name in s.images:
@@ -199,7 +209,7 @@ def _newest_images_by_scan_start(
             scan_start = sweep.start_s + sweep.duration_s * rec.slice_index / rec.num_slices
             newest = []
             for name in seen[key]:
-                i = int(np.searchsorted(times[name], scan_start, side="right")) - 1
+                i = int(np.searchsorted(times[name], scan_start - delivery_s, side="right")) - 1
                 if i >= 0:
                     newest.append(float(times[name][i]))
             rec.newest_capture_s = min(newest) if newest else math.nan

@@ -112,12 +112,18 @@ def _cpu_share(r: ModeResult) -> dict[str, float]:
     }
 
 
+def _delivery(config) -> str:
+    ms = getattr(config, "camera_delivery_ms", 0.0)
+    return "delivered at capture" if ms == 0 else f"delivered {ms:g} ms after capture"
+
+
 def format_report(result: ReplayResult, info: dict) -> str:
     c = result.config
     period_ms = 1000.0 / c.lidar_hz / result.num_slices
     lines = [
         f"streamdet-replay: {len(result.scenes)} scene(s) of {c.data} ({c.split or 'all'}), {result.precision_label}, "
-        f"LiDAR {c.lidar_hz:g} Hz x {result.num_slices} slices ({period_ms:.2f} ms per slice), cameras {c.camera_hz:g} Hz ({c.camera_trigger} triggers)",
+        f"LiDAR {c.lidar_hz:g} Hz x {result.num_slices} slices ({period_ms:.2f} ms per slice), cameras {c.camera_hz:g} Hz ({c.camera_trigger} triggers, "
+        f"{_delivery(c)})",
         f"time scale {c.time_scale:g} (latencies in drive time = wall / {c.time_scale:g}); CPU: {cpu_line(info)}; "
         f"{c.threads} thread(s) per session, {c.lanes.max_in_flight} slice worker(s), queue {c.lanes.queue_size}",
         f"ground truth at emission time: {result.truth_source}",

@@ -22,7 +22,7 @@ from streamdet.replay.modes import MODES
 from streamdet.replay.nuscenes_source import DatasetTables, load_drive
 from streamdet.replay.player import PlayerConfig, play
 from streamdet.replay.record import Recording
-from streamdet.replay.schedule import slice_sweep
+from streamdet.replay.schedule import check_delivery_s, slice_sweep
 from streamdet.replay.source import Drive
 from streamdet.replay.triggers import DEFAULT_TRIGGER, check_trigger
 from streamdet.replay.truth import load_ground_truth
@@ -57,6 +57,8 @@ class ReplayConfig:
     fallback_export_dir: Path | None = None
     fallback_after_s: float | None = None  # also fall back when the image BEV is older than this (drive seconds)
     camera_terms: bool | None = None  # per-camera lifts of quadrant updates (DetectorConfig.camera_terms); None: auto
+    # every camera frame reaches the runtime this long after its capture (PlayerConfig.camera_delivery_ms); 0: at capture
+    camera_delivery_ms: float = 0.0
 
     def __post_init__(self) -> None:
         unknown = [m for m in self.modes if m not in MODES]
@@ -66,6 +68,9 @@ class ReplayConfig:
             if not (isinstance(getattr(self, name), (int, float)) and getattr(self, name) > 0):
                 raise ValueError(f"ReplayConfig.{name} must be > 0, got {getattr(self, name)!r}")
         check_trigger(self.camera_trigger)
+        if not isinstance(self.camera_delivery_ms, (int, float)):
+            raise ValueError(f"ReplayConfig.camera_delivery_ms must be a number of ms >= 0, got {self.camera_delivery_ms!r}")
+        check_delivery_s(self.camera_delivery_ms / 1e3)
         if self.max_seconds is not None and not self.max_seconds > 0:
             raise ValueError(f"ReplayConfig.max_seconds must be > 0 s, got {self.max_seconds!r}")
 
@@ -163,7 +168,8 @@ def run_replay(config: ReplayConfig, progress: Progress = lambda msg: None) -> R
         for mode in config.modes:
             det = open_detector(config)
             warm_up(det, drive, n, per_quadrant=config.lanes.schedule == "phase-locked")
-            player = PlayerConfig(mode, n, det.config.start_deg, config.time_scale, _lanes(config))
+            player = PlayerConfig(mode, n, det.config.start_deg, config.time_scale, _lanes(config),
+                                  camera_delivery_ms=config.camera_delivery_ms)  # fmt: skip
             recordings[mode].append(play(drive, det, WallClock(), player, progress))
             stages[mode].append(det.stats.summary())
             det.close()

@@ -4,11 +4,13 @@ A slice is released the moment its last point has been scanned: the rotation sta
 of its points (the data's per-point times; without them the azimuth's fraction of the rotation, the sensor turning
 counter-clockwise from ``start_deg`` as ``streamdet.data.slicing`` assumes). An empty slice is released when the
 sensor leaves its sector. A full sweep (``num_slices`` 1) is released when the rotation ends. Image sets are
-released at their capture time (transfer and decoding are not modelled).
+released at their capture time plus a fixed delivery delay (``camera_delivery_s``, default 0: exposure, readout,
+transfer and decoding not modelled); their timestamp stays the capture time, as a camera driver stamps it.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -38,6 +40,13 @@ class Release:
     item: TimedSlice | ImageSet
 
 
+def check_delivery_s(seconds: float) -> float:
+    """A camera delivery delay: finite and >= 0 seconds."""
+    if not (isinstance(seconds, (int, float)) and math.isfinite(seconds) and seconds >= 0):
+        raise ValueError(f"camera delivery delay must be a finite number of seconds >= 0, got {seconds!r}")
+    return float(seconds)
+
+
 def slice_sweep(sweep: LidarSweep, num_slices: int, start_deg: float = 0.0) -> list[TimedSlice]:
     """The sweep's slices in scan order with their release times."""
     period = sweep.duration_s
@@ -56,9 +65,14 @@ def slice_sweep(sweep: LidarSweep, num_slices: int, start_deg: float = 0.0) -> l
     return [TimedSlice(sweep.index, k, num_slices, sweep.start_s + float(release[k]), slices[k]) for k in range(num_slices)]
 
 
-def release_schedule(drive: Drive, num_slices: int, start_deg: float = 0.0, images: bool = True) -> list[Release]:
-    """Every release of the drive in time order; at equal times slices go before image sets."""
+def release_schedule(
+    drive: Drive, num_slices: int, start_deg: float = 0.0, images: bool = True, camera_delivery_s: float = 0.0
+) -> list[Release]:
+    """Every release of the drive in time order; at equal times slices go before image sets. An image set is
+    released ``camera_delivery_s`` after its capture (a real camera's exposure, readout and transport); it keeps its
+    capture time as its timestamp."""
+    check_delivery_s(camera_delivery_s)
     out = [Release(s.scan_end_s, SLICE, s) for sweep in drive.sweeps for s in slice_sweep(sweep, num_slices, start_deg)]
     if images:
-        out += [Release(s.capture_s, IMAGES, s) for s in drive.image_sets]
+        out += [Release(s.capture_s + camera_delivery_s, IMAGES, s) for s in drive.image_sets]
     return sorted(out, key=lambda r: (r.time_s, r.kind != SLICE))

@@ -25,7 +25,17 @@ from streamdet.models.presets import (
 
 
 def test_preset_names():
-    assert preset_names() == ("paper", "small", "tiny", "small_v2", "small_v3")
+    assert preset_names() == ("paper", "small", "tiny", "small_v2", "small_v3", "small_v3_lite")
+
+
+def test_small_v3_lite_is_small_v3_with_a_lighter_image_encoder():
+    import dataclasses
+
+    v3, lite = get_preset("small_v3"), get_preset("small_v3_lite")
+    assert (lite.image.width_px, lite.image.height_px, lite.image.width_divisor) == (320, 180, 4)
+    assert (lite.image.feature_width, lite.image.feature_height) == (80, 45)
+    assert dataclasses.replace(lite, name="small_v3", image=v3.image) == v3  # nothing else differs
+    assert Preset.from_dict(lite.to_dict()) == lite
 
 
 def test_unknown_preset_lists_known_ones():

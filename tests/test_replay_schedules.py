@@ -53,3 +53,16 @@ def test_a_replay_reports_staleness_and_image_lane_cpu_for_each_schedule(drive_d
     assert fused  # (a slice scanned before the first image set has no newest capture: no staleness counted)
     for s in fused:  # the newest set released by the scan start, at or after the first set
         assert s["newest_capture_s"] <= s["scan_end_s"]
+
+
+def test_a_replay_with_a_camera_delivery_delay_says_so_and_records_it(drive_data, tiny_export, tmp_path):
+    from streamdet.replay.cli import main
+
+    args = ["--data", str(drive_data), "--split", "all", "--export-dir", str(tiny_export), "--max-seconds", "0.3",
+            "--mode", "streaming", "--camera-delivery-ms", "20", "--json", str(tmp_path / "r.json")]  # fmt: skip
+    result = CliRunner().invoke(main, args)
+    assert result.exit_code == 0, result.output
+    assert "delivered 20 ms after capture" in result.output
+    assert json.loads((tmp_path / "r.json").read_text())["config"]["camera_delivery_ms"] == 20.0
+    bad = CliRunner().invoke(main, [*args[:-2], "--camera-delivery-ms", "-5"])
+    assert bad.exit_code != 0 and "camera-delivery-ms" in bad.output

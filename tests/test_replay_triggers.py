@@ -185,3 +185,35 @@ def test_the_other_modes_get_whole_sets_too_and_frames_left_at_the_end_count_as_
     used = sum(not i.superseded for i in rec.images)
     assert used <= 6 * len(det.updates) and used + sum(i.superseded for i in rec.images) == len(rec.images)
     assert sum(s.emitted for s in rec.slices) == len(rec.slices)  # no slice lost to the batching
+
+
+@pytest.mark.parametrize("delivery_ms", [0.0, 10.0, 37.5])
+def test_camera_delivery_delay_releases_frames_late_and_moves_the_staleness_reference(delivery_ms):
+    clock = FakeClock()
+    drive = synthetic_drive(0.6, camera_trigger="lidar-synced", points=720)
+    det = QuadrantFake(clock)
+    rec = play(drive, det, clock, PlayerConfig("streaming", 8, camera_delivery_ms=delivery_ms))
+    delay = delivery_ms / 1e3
+    for i in rec.images:  # released (handed to the runtime) a delay after capture; stamped with the capture time
+        assert i.release_s == pytest.approx(i.capture_s + delay, abs=1e-9)
+    assert all(ts == min(cts.values()) for _, ts, cts in det.updates)  # the runtime still gets capture times
+    for s in rec.slices:
+        scan_start = s.sweep * PERIOD_S + PERIOD_S * s.slice_index / 8
+        cams = det.quadrant_cameras([s.slice_index // 2])
+        arrived = {n: [i.capture_s for i in drive.image_sets if n in i.images and i.capture_s + delay <= scan_start + 1e-12]
+                   for n in cams}  # fmt: skip
+        newest = [max(t) for t in arrived.values() if t]
+        if newest:
+            assert s.newest_capture_s == pytest.approx(min(newest))
+        else:
+            assert not math.isfinite(s.newest_capture_s)
+
+
+@pytest.mark.parametrize("bad", [-1.0, math.nan, math.inf])
+def test_camera_delivery_delay_refuses_negative_and_non_finite(bad):
+    from streamdet.replay.schedule import release_schedule
+
+    with pytest.raises(ValueError, match="camera_delivery_ms"):
+        PlayerConfig("streaming", 8, camera_delivery_ms=bad)
+    with pytest.raises(ValueError, match="delivery delay"):
+        release_schedule(synthetic_drive(0.1, points=90), 8, camera_delivery_s=bad)
