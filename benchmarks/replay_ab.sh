@@ -1,0 +1,42 @@
+#!/usr/bin/env bash
+# Image-lane variants side by side in the replay, taking turns within every round: the issue-22 drives (seed 11,
+# benchmarks/replay_prep.sh, made when missing), streaming mode, int8 image lane + fp32 slices, LiDAR-synchronised
+# cameras, nuScenes rates (20 Hz x 8 slices, 12 Hz cameras). Each run is preceded by the host-speed probe (2048^3
+# MatMul GFLOP/s: the shared machine's fast or slow state).
+#   benchmarks/replay_ab.sh OUT ROUNDS "SCALES" LABEL=EXPORT_DIR,SCHEDULE,TERMS ...
+# e.g. benchmarks/replay_ab.sh out/ab 2 "1 2" v3_full=exports/v3,full,off v3_terms=exports/v3,phase-locked,on
+# SCHEDULE: full | phase-locked; TERMS: auto | on | off (--camera-terms). DELIVERY_MS (environment, default 0): the
+# cameras' delivery delay (--camera-delivery-ms). Writes OUT/r<round>_scale<S>_<label>/ (replay.json, report.md),
+# OUT/r<round>_scale<S>_<label>.txt, OUT/probes_gflops.txt and OUT/table.md (benchmarks/replay_table.py: one row per
+# scale and variant, one value per round in each cell). Run it on a quiet machine.
+set -euo pipefail
+OUT=${1:?OUT}; ROUNDS=${2:?ROUNDS}; SCALES=${3:?SCALES}; shift 3
+[ $# -ge 1 ] || { echo "give at least one LABEL=EXPORT_DIR,SCHEDULE,TERMS" >&2; exit 2; }
+BIN=${BIN:-.venv/bin}
+DELIVERY_MS=${DELIVERY_MS:-0}
+source "$(dirname "$0")/replay_prep.sh"  # DATA (EXPORT, the shipped model's, made when missing)
+for V in "$@"; do
+  IFS=, read -r EXP SCHEDULE TERMS <<< "${V#*=}"
+  [ -f "$EXP/manifest.json" ] || { echo "$V: $EXP holds no manifest.json" >&2; exit 2; }
+done
+uptime > "$OUT/uptime_before.txt"
+touch "$OUT/probes_gflops.txt"
+for ROUND in $(seq 1 "$ROUNDS"); do
+  for SCALE in $SCALES; do
+    for V in "$@"; do
+      LABEL=${V%%=*}
+      IFS=, read -r EXP SCHEDULE TERMS <<< "${V#*=}"
+      NAME="r${ROUND}_scale${SCALE}_$LABEL"
+      echo "$NAME $("$BIN/python" -c 'from streamdet.benchmarks.probe import measure_peak; print(max(measure_peak(2).run_gflops_per_s))')" \
+        >> "$OUT/probes_gflops.txt"
+      "$BIN/streamdet-replay" --data "$DATA" --split val --export-dir "$EXP" --precision fp32 --image-precision int8 \
+        --lidar-hz 20 --slices 8 --camera-hz 12 --camera-trigger lidar-synced --camera-delivery-ms "$DELIVERY_MS" \
+        --mode streaming --schedule "$SCHEDULE" --camera-terms "$TERMS" --time-scale "$SCALE" --out "$OUT/$NAME" \
+        > "$OUT/$NAME.txt"
+      grep -A3 "staleness added" "$OUT/$NAME.txt" | tail -1 | sed "s/^/$NAME /"
+    done
+  done
+done
+uptime > "$OUT/uptime_after.txt"
+"$BIN/python" -m streamdet.benchmarks.replay_table "$OUT" > "$OUT/table.md"
+echo "wrote $OUT/table.md"

@@ -1,0 +1,45 @@
+"""benchmarks/replay_table.py: the A/B table of benchmarks/replay_ab.sh from replay outputs on disk."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from streamdet.benchmarks.replay_table import collect, main, table
+
+
+def _summary(p95: float, dropped: int) -> dict:
+    return {"staleness_ms": {"p50": p95 / 2, "p95": p95}, "image_age_ms": {"p95": p95 + 80}, "latency_ms": {"p99": 20.25},
+            "slices_dropped": dropped, "image_lane_cpu_ms_per_rotation": 30.0, "map_streaming": 0.4125}  # fmt: skip
+
+
+def _run(out, name, summary) -> None:
+    (out / name).mkdir(parents=True)
+    (out / name / "replay.json").write_text(json.dumps({"modes": {"streaming": summary}}))
+
+
+def test_rows_per_scale_and_variant_with_one_value_per_round(tmp_path):
+    _run(tmp_path, "r2_scale1_lite", _summary(30, 1))
+    _run(tmp_path, "r1_scale1_lite", _summary(20, 0))
+    _run(tmp_path, "r1_scale2_v3+terms", _summary(100, 0))
+    _run(tmp_path, "notarun", _summary(1, 1))  # ignored: not r<round>_scale<S>_<label>
+    (tmp_path / "probes_gflops.txt").write_text("r1_scale1_lite 410.5\nr2_scale1_lite 150\n")
+    rows = collect(tmp_path)
+    assert sorted(rows) == [(1.0, "lite"), (2.0, "v3+terms")]
+    assert [r for r, _, _ in rows[(1.0, "lite")]] == [1, 2]  # rounds in order
+    text = table(tmp_path)
+    assert "| 1 | lite | 10 / 20, 15 / 30 | 100, 110 | 20.2, 20.2 | 0, 1 | 30.0, 30.0 | 41.2, 41.2 | 410, 150 |" in text
+    assert "| 2 | v3+terms | 50 / 100 |" in text and text.endswith("nan |")  # no probe recorded: nan
+
+
+def test_errors_are_one_line_and_a_non_zero_exit(tmp_path, capsys):
+    assert main([str(tmp_path)]) == 1
+    assert "no r<round>_scale<S>_<label>/replay.json" in capsys.readouterr().err
+    assert main([]) == 2
+    (tmp_path / "r1_scale1_x").mkdir()
+    (tmp_path / "r1_scale1_x" / "replay.json").write_text(json.dumps({"modes": {"full-sweep": {}}}))
+    assert main([str(tmp_path)]) == 1
+    assert "no streaming mode" in capsys.readouterr().err
+    with pytest.raises(ValueError):
+        table(tmp_path)
