@@ -1,10 +1,11 @@
 #!/usr/bin/env bash
-# Image-lane variants side by side in the replay, taking turns within every round: the issue-22 drives (seed 11,
-# benchmarks/replay_prep.sh, made when missing), streaming mode, int8 image lane + fp32 slices, LiDAR-synchronised
+# Image-lane variants side by side in the replay, taking turns within every round: the drives of DATA (environment;
+# the issue-22 ones: benchmarks/replay_prep.sh), streaming mode, int8 image lane + fp32 slices, LiDAR-synchronised
 # cameras, nuScenes rates (20 Hz x 8 slices, 12 Hz cameras). Each run is preceded by the host-speed probe (2048^3
 # MatMul GFLOP/s: the shared machine's fast or slow state).
-#   benchmarks/replay_ab.sh OUT ROUNDS "SCALES" LABEL=EXPORT_DIR,SCHEDULE,TERMS ...
-# e.g. benchmarks/replay_ab.sh out/ab 2 "1 2" v3_full=exports/v3,full,off v3_terms=exports/v3,phase-locked,on
+#   DATA=DATASET benchmarks/replay_ab.sh OUT ROUNDS "SCALES" LABEL=EXPORT_DIR,SCHEDULE,TERMS ...
+# e.g. DATA=out/replay_readme/synth20 benchmarks/replay_ab.sh out/ab 2 "1 2" v3_full=exports/v3,full,off \
+#        v3_terms=exports/v3,phase-locked,on
 # SCHEDULE: full | phase-locked; TERMS: auto | on | off (--camera-terms). DELIVERY_MS (environment, default 0): the
 # cameras' delivery delay (--camera-delivery-ms). Writes OUT/r<round>_scale<S>_<label>/ (replay.json, report.md),
 # OUT/r<round>_scale<S>_<label>.txt, OUT/probes_gflops.txt and OUT/table.md (benchmarks/replay_table.py: one row per
@@ -14,7 +15,8 @@ OUT=${1:?OUT}; ROUNDS=${2:?ROUNDS}; SCALES=${3:?SCALES}; shift 3
 [ $# -ge 1 ] || { echo "give at least one LABEL=EXPORT_DIR,SCHEDULE,TERMS" >&2; exit 2; }
 BIN=${BIN:-.venv/bin}
 DELIVERY_MS=${DELIVERY_MS:-0}
-source "$(dirname "$0")/replay_prep.sh"  # DATA (EXPORT, the shipped model's, made when missing)
+: "${DATA:?set DATA to the drives dataset (benchmarks/replay_prep.sh makes the issue-22 one)}"
+mkdir -p "$OUT"
 for V in "$@"; do
   IFS=, read -r EXP SCHEDULE TERMS <<< "${V#*=}"
   [ -f "$EXP/manifest.json" ] || { echo "$V: $EXP holds no manifest.json" >&2; exit 2; }
@@ -33,7 +35,7 @@ for ROUND in $(seq 1 "$ROUNDS"); do
         --lidar-hz 20 --slices 8 --camera-hz 12 --camera-trigger lidar-synced --camera-delivery-ms "$DELIVERY_MS" \
         --mode streaming --schedule "$SCHEDULE" --camera-terms "$TERMS" --time-scale "$SCALE" --out "$OUT/$NAME" \
         > "$OUT/$NAME.txt"
-      grep -A3 "staleness added" "$OUT/$NAME.txt" | tail -1 | sed "s/^/$NAME /"
+      grep -A2 "staleness added" "$OUT/$NAME.txt" | tail -1 | sed "s/^/$NAME /"
     done
   done
 done

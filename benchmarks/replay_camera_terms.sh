@@ -9,5 +9,6 @@ OUT=${1:-out/replay_readme/terms}
 ROUNDS=${2:-2}
 BIN=${BIN:-.venv/bin}
 source "$(dirname "$0")/replay_prep.sh"  # DATA, EXPORT
+export DATA
 exec "$(dirname "$0")/replay_ab.sh" "$OUT" "$ROUNDS" "1 2" full="$EXPORT",full,off \
   phase-locked="$EXPORT",phase-locked,off phase-locked+terms="$EXPORT",phase-locked,on
