@@ -24,7 +24,7 @@ from streamdet.replay.assemble import SetAssembler
 from streamdet.replay.clock import PLAYER, Clock, DriveClock
 from streamdet.replay.modes import MODES, Detector, JobKey, ModeRunner, open_mode
 from streamdet.replay.record import ImageRecord, Recording, SliceRecord, percentiles
-from streamdet.replay.schedule import SLICE, Release, release_schedule
+from streamdet.replay.schedule import SLICE, Release, check_delivery, release_schedule
 from streamdet.replay.source import Drive
 from streamdet.runtime_ort.lanes import ImagesSuperseded, LaneConfig, SliceDropped
 
@@ -53,9 +53,7 @@ class PlayerConfig:
             raise ValueError(f"PlayerConfig.num_slices must be an integer >= 1, got {self.num_slices!r}")
         if not self.time_scale > 0:
             raise ValueError(f"PlayerConfig.time_scale must be > 0, got {self.time_scale!r}")
-        if not (isinstance(self.camera_delivery_ms, (int, float)) and math.isfinite(self.camera_delivery_ms)
-                and self.camera_delivery_ms >= 0):  # fmt: skip
-            raise ValueError(f"PlayerConfig.camera_delivery_ms must be finite and >= 0, got {self.camera_delivery_ms!r}")
+        check_delivery(self.camera_delivery_ms, "PlayerConfig.camera_delivery_ms", "ms")
 
 
 class _Book:

@@ -113,7 +113,7 @@ def _cpu_share(r: ModeResult) -> dict[str, float]:
 
 
 def _delivery(config) -> str:
-    ms = getattr(config, "camera_delivery_ms", 0.0)
+    ms = config.camera_delivery_ms
     return "delivered at capture" if ms == 0 else f"delivered {ms:g} ms after capture"
 
 

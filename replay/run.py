@@ -22,7 +22,7 @@ from streamdet.replay.modes import MODES
 from streamdet.replay.nuscenes_source import DatasetTables, load_drive
 from streamdet.replay.player import PlayerConfig, play
 from streamdet.replay.record import Recording
-from streamdet.replay.schedule import check_delivery_s, slice_sweep
+from streamdet.replay.schedule import check_delivery, slice_sweep
 from streamdet.replay.source import Drive
 from streamdet.replay.triggers import DEFAULT_TRIGGER, check_trigger
 from streamdet.replay.truth import load_ground_truth
@@ -68,9 +68,7 @@ class ReplayConfig:
             if not (isinstance(getattr(self, name), (int, float)) and getattr(self, name) > 0):
                 raise ValueError(f"ReplayConfig.{name} must be > 0, got {getattr(self, name)!r}")
         check_trigger(self.camera_trigger)
-        if not isinstance(self.camera_delivery_ms, (int, float)):
-            raise ValueError(f"ReplayConfig.camera_delivery_ms must be a number of ms >= 0, got {self.camera_delivery_ms!r}")
-        check_delivery_s(self.camera_delivery_ms / 1e3)
+        check_delivery(self.camera_delivery_ms, "ReplayConfig.camera_delivery_ms", "ms")
         if self.max_seconds is not None and not self.max_seconds > 0:
             raise ValueError(f"ReplayConfig.max_seconds must be > 0 s, got {self.max_seconds!r}")
 

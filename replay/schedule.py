@@ -40,11 +40,11 @@ class Release:
     item: TimedSlice | ImageSet
 
 
-def check_delivery_s(seconds: float) -> float:
-    """A camera delivery delay: finite and >= 0 seconds."""
-    if not (isinstance(seconds, (int, float)) and math.isfinite(seconds) and seconds >= 0):
-        raise ValueError(f"camera delivery delay must be a finite number of seconds >= 0, got {seconds!r}")
-    return float(seconds)
+def check_delivery(value: float, name: str = "camera delivery delay", unit: str = "seconds") -> float:
+    """A camera delivery delay (``name``, in ``unit``): a finite number >= 0."""
+    if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
+        raise ValueError(f"{name} must be a finite number of {unit} >= 0, got {value!r}")
+    return float(value)
 
 
 def slice_sweep(sweep: LidarSweep, num_slices: int, start_deg: float = 0.0) -> list[TimedSlice]:
@@ -71,7 +71,7 @@ def release_schedule(
     """Every release of the drive in time order; at equal times slices go before image sets. An image set is
     released ``camera_delivery_s`` after its capture (a real camera's exposure, readout and transport); it keeps its
     capture time as its timestamp."""
-    check_delivery_s(camera_delivery_s)
+    check_delivery(camera_delivery_s)
     out = [Release(s.scan_end_s, SLICE, s) for sweep in drive.sweeps for s in slice_sweep(sweep, num_slices, start_deg)]
     if images:
         out += [Release(s.capture_s + camera_delivery_s, IMAGES, s) for s in drive.image_sets]
