@@ -11,7 +11,9 @@ and costs is measured in docs/replay.md ("Per-camera lifts in the runtime").
 
 A camera's term is computed with the first convolution applied *before* the gather (``lifter_split.term_graph``:
 the map's rows times the convolution's weight block of each height, then the share's Z * S slots of that projected
-table gathered and summed with their weights), one onnxruntime run per (quadrant, camera).
+table gathered and summed with their weights), one onnxruntime run per camera frame for all the quadrants it feeds
+(``prepare``), and only for a share's **distinct** rows (``distinct_rows``: cells far from a camera read the same
+pixels; the tail graph gathers each cell's term from them).
 
 Precision: the terms are fp32; the tail is cut from the lane's own lifter graph (fp32 or int8). With an int8 image lane the sum is
 therefore quantized once, at the tail's input, instead of the int8 lifter's quantized gather and weights: the BEV
@@ -56,11 +58,27 @@ def share_slots(share: CameraLut, cells_per_map: int) -> tuple[np.ndarray, np.nd
     return (share.index + offset).reshape(n, z * s), share.weight.reshape(n, z * s)
 
 
+def distinct_rows(slots: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(slots (U, J), weights (U, J), inverse (N,)) of the distinct (slots, weights) rows of a share, so that row n's
+    term is term ``inverse[n]``. Neighbouring BEV cells far from a camera read the same pixels: about half of a
+    share's rows repeat one another on the nuScenes rig, and the term graph's cost is per row."""
+    if slots.shape[0] == 0:
+        return slots, weights, np.zeros((0,), np.int64)
+    key = np.concatenate([slots, weights.view(np.int32).astype(np.int64)], axis=1)  # (N, 2J), exact float bits
+    _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    return slots[first], weights[first], inverse.reshape(-1).astype(np.int64)
+
+
 @dataclass(frozen=True, eq=False)
 class _Share:
     share: CameraLut
-    slots: np.ndarray  # (N, Z * S) rows of term_graph's projected table
-    weights: np.ndarray  # (N, Z * S)
+    slots: np.ndarray  # (U, Z * S) rows of term_graph's projected table, the share's distinct rows
+    weights: np.ndarray  # (U, Z * S)
+    inverse: np.ndarray  # (N,) the distinct row of each of the share's cells
+
+
+def _share(share: CameraLut, cells_per_map: int) -> _Share:
+    return _Share(share, *distinct_rows(*share_slots(share, cells_per_map)))
 
 
 class CameraTerms:
@@ -93,7 +111,7 @@ class CameraTerms:
         if cached is not None and cached[0] is qlut:
             return cached[1]
         cells = self.feature_hw[0] * self.feature_hw[1]
-        shares = tuple(_Share(s, *share_slots(s, cells)) for s in camera_luts(qlut, cells))
+        shares = tuple(_share(s, cells) for s in camera_luts(qlut, cells))
         with self._lock:
             if len(self._shares) >= 8:
                 self._shares.pop(next(iter(self._shares)))
@@ -101,22 +119,34 @@ class CameraTerms:
         return shares
 
     def term(self, features: np.ndarray, share: _Share) -> np.ndarray:
-        """(N, C_out) term of one camera share from that camera's (C, Hf, Wf) float32 feature map."""
-        with self._timed("lifter_partial"):
-            return self._run_term(features, share)
+        """(U, C_out) distinct terms of one camera share from that camera's (C, Hf, Wf) float32 feature map."""
+        return self.terms(features, (share,))[0]
 
-    def _run_term(self, features: np.ndarray, share: _Share) -> np.ndarray:
-        if share.share.num_cells == 0:  # a camera the LUT lists in the quadrant but that reads no cell there
-            return np.zeros((0, self.bias.size), np.float32)
-        return self._term_graph.run(None, {"features": features[None], "slots": share.slots, "weights": share.weights})[0]
+    def terms(self, features: np.ndarray, shares: tuple[_Share, ...]) -> tuple[np.ndarray, ...]:
+        """The distinct terms of several shares of one camera (its quadrants), one run: the map projected once."""
+        with self._timed("lifter_partial"):
+            return self._run_terms(features, shares)
+
+    def _run_terms(self, features: np.ndarray, shares: tuple[_Share, ...]) -> tuple[np.ndarray, ...]:
+        sizes = [s.slots.shape[0] for s in shares]
+        if sum(sizes) == 0:  # a camera the LUT lists in the quadrant but that reads no cell there
+            return tuple(np.zeros((0, self.bias.size), np.float32) for _ in shares)
+        slots = np.concatenate([s.slots for s in shares]) if len(shares) > 1 else shares[0].slots  # (U, J)
+        weights = np.concatenate([s.weights for s in shares]) if len(shares) > 1 else shares[0].weights
+        out = self._term_graph.run(None, {"features": features[None], "slots": slots, "weights": weights})[0]  # (U, C_out)
+        return tuple(np.split(out, np.cumsum(sizes)[:-1]))
 
     def tail_feeds(self, shares: tuple[_Share, ...], terms: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
-        """The tail graph's feeds: the given cameras' terms and their cells, concatenated in the shares' order."""
+        """The tail graph's feeds: the given cameras' distinct terms, the term of each of their cells and those
+        cells, concatenated in the shares' order."""
         given = [s for s in shares if s.share.camera_name in terms]
         if not given:  # none of the quadrant's cameras: the bias alone
-            return {"terms": np.zeros((0, self.bias.size), np.float32), "cells": np.zeros((0, 1), np.int64)}
-        stacked = np.concatenate([terms[s.share.camera_name] for s in given])  # (M, C_out)
-        return {"terms": stacked, "cells": np.concatenate([s.share.cells for s in given])[:, None]}  # (M, 1)
+            return {"terms": np.zeros((0, self.bias.size), np.float32), "rows": np.zeros((0,), np.int64),
+                    "cells": np.zeros((0, 1), np.int64)}  # fmt: skip
+        stacked = np.concatenate([terms[s.share.camera_name] for s in given])  # (U, C_out)
+        offsets = np.cumsum([0] + [s.slots.shape[0] for s in given[:-1]])
+        rows = np.concatenate([s.inverse + o for s, o in zip(given, offsets)])  # (M,)
+        return {"terms": stacked, "rows": rows, "cells": np.concatenate([s.share.cells for s in given])[:, None]}  # (M, 1)
 
     def tail(self, feeds: Mapping[str, np.ndarray]) -> np.ndarray:
         return self._tail.run(None, dict(feeds))[0]
@@ -125,13 +155,18 @@ class CameraTerms:
     def prepare(self, qluts: tuple[QuadrantLut, ...], maps: Mapping[str, np.ndarray]) -> int:
         """Compute and keep the terms of these (C, Hf, Wf) feature maps (by camera) in every quadrant of ``qluts``
         their camera feeds, keyed by the map object. The number of terms computed."""
-        made = 0
+        wanted: dict[str, list[tuple[int, QuadrantLut, _Share]]] = {}  # camera -> its shares whose term is not kept
         for q, qlut in enumerate(qluts):
             for s in self.shares(qlut):
-                features = maps.get(s.share.camera_name)
-                if features is not None:
-                    made += self._term_of(q, qlut, s, features)[1]
-        return made
+                name = s.share.camera_name
+                if name in maps and not self._kept(q, qlut, s, maps[name]):
+                    wanted.setdefault(name, []).append((q, qlut, s))
+        for name, entries in wanted.items():  # one run per camera over all its quadrants
+            made = self.terms(maps[name], tuple(s for _, _, s in entries))
+            with self._lock:
+                for (q, qlut, s), term in zip(entries, made):
+                    self._terms[(q, name)] = (maps[name], qlut, term)
+        return sum(len(entries) for entries in wanted.values())
 
     def lift(self, quadrant: int, qlut: QuadrantLut, maps: Mapping[str, np.ndarray]) -> np.ndarray:
         """The lifter's output for ``quadrant`` (its LUT ``qlut``) from the (C, Hf, Wf) maps of the cameras given
@@ -156,6 +191,11 @@ class CameraTerms:
             self._terms[key] = (features, qlut, term)
         return term, True
 
+    def _kept(self, q: int, qlut: QuadrantLut, share: _Share, features: np.ndarray) -> bool:
+        with self._lock:
+            entry = self._terms.get((q, share.share.camera_name))
+        return entry is not None and entry[0] is features and entry[1] is qlut
+
     def _timed(self, stage: str):
         return nullcontext() if self._stats is None else self._stats.time(stage)
 
@@ -171,7 +211,7 @@ class CameraTerms:
             maps = rng.standard_normal((len(qlut.camera_names), self.channels, *self.feature_hw)).astype(np.float32)
             ref = fp32_lifter_run(qlut, maps)
             shares = self.shares(qlut)
-            terms = {s.share.camera_name: self._run_term(maps[qlut.camera_names.index(s.share.camera_name)], s) for s in shares}
+            terms = {s.share.camera_name: self._run_terms(maps[qlut.camera_names.index(s.share.camera_name)], (s,))[0] for s in shares}
             got = fp32_tail.tail(self.tail_feeds(shares, terms))
             worst = max(worst, float(np.abs(got - ref).max() / max(float(np.ptp(ref)), 1e-6)))
         return worst

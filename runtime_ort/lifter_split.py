@@ -9,7 +9,7 @@ export's own lifter graphs (ONNX surgery, no model code), what ``runtime_ort/cam
 which releases the GIL: the same work in numpy held it long enough to double the slice lane's latency beside it):
 
 - ``first_conv``: the fp32 lifter's first Conv, its (C_out, Z * C) weight and bias;
-- ``term_graph``: one camera share's term from its feature map (that weight applied before the gather);
+- ``term_graph``: one camera's terms from its feature map (that weight applied before the gather);
 - ``tail_graph``: the cameras' terms scattered into the quadrant's cells and added to the first convolution's bias,
   then the lifter graph from that convolution's output on. Cut from the int8 lifter too, its QuantizeLinear of the
   cut tensor quantizes the sum (ReLU included, as the int8 graph does it).
@@ -59,18 +59,19 @@ def first_conv_output(model: onnx.ModelProto) -> str:
 
 
 def term_graph(weight: np.ndarray, channels: int, feature_hw: tuple[int, int], heights: int) -> onnx.ModelProto:
-    """One camera share's term: ``features (1, C, Hf, Wf)``, ``slots (N, J) int64``, ``weights (N, J) float32`` ->
+    """One camera's terms: ``features (1, C, Hf, Wf)``, ``slots (N, J) int64``, ``weights (N, J) float32`` ->
     ``term (N, C_out) = sum_j weights[n, j] * P[slots[n, j]]``, where ``P`` is the map's projected table: row
-    ``z * (Hf*Wf + 1) + r`` = row r of the map's (Hf*Wf + 1, C) table (the zero row last) times the (C_out, C) block
+    ``z * (Hf*Wf + 1) + r`` = row r of the map's (Hf*Wf + 1, C) table (the zero row last) times the (C, C_out) block
     of height z of the first convolution's ``weight`` (C_out, Z * C), Z = ``heights``. The convolution applied before
     the gather: the same sums as gathering the (N, Z * C) rows and multiplying by ``weight``, about 3x faster
-    (docs/replay.md). ``camera_terms.share_slots`` gives a share's slots and weights."""
+    (docs/replay.md). ``camera_terms.share_slots`` gives a share's slots and weights; the rows of several shares of
+    one camera (its quadrants) go through one run, projecting the map once."""
     hf, wf = feature_hw
     c_out, zc = weight.shape
     if zc != heights * channels:
         raise SplitError(f"the lifter's first Conv takes {zc} channels, not the {heights} z planes x {channels} feature "
                          "channels stacked: a per-camera lift needs the flat lifter (LifterConfig.form='flat')")  # fmt: skip
-    blocks = weight.reshape(c_out, heights, channels).transpose(2, 1, 0).reshape(channels, heights * c_out)
+    blocks = weight.reshape(c_out, heights, channels).transpose(1, 2, 0)  # (Z, C, C_out)
 
     def const(name: str, value: np.ndarray) -> onnx.TensorProto:
         return numpy_helper.from_array(np.ascontiguousarray(value), name)
@@ -78,8 +79,7 @@ def term_graph(weight: np.ndarray, channels: int, feature_hw: tuple[int, int], h
     inits = [
         const("flat", np.array([channels, hf * wf], np.int64)),
         const("zero_row", np.zeros((1, channels), np.float32)),
-        const("blocks", blocks.astype(np.float32)),  # (C, Z * C_out)
-        const("rzo", np.array([hf * wf + 1, heights, c_out], np.int64)),
+        const("blocks", blocks.astype(np.float32)),  # (Z, C, C_out)
         const("rows_out", np.array([heights * (hf * wf + 1), c_out], np.int64)),
         const("axis1", np.array([1], np.int64)),
     ]
@@ -87,10 +87,9 @@ def term_graph(weight: np.ndarray, channels: int, feature_hw: tuple[int, int], h
         helper.make_node("Reshape", ["features", "flat"], ["cf"]),  # (C, Hf*Wf)
         helper.make_node("Transpose", ["cf"], ["rows"], perm=[1, 0]),  # (Hf*Wf, C)
         helper.make_node("Concat", ["rows", "zero_row"], ["table"], axis=0),  # (Hf*Wf + 1, C)
-        helper.make_node("MatMul", ["table", "blocks"], ["projected"]),  # (Hf*Wf + 1, Z * C_out)
-        helper.make_node("Reshape", ["projected", "rzo"], ["p3"]),  # (Hf*Wf + 1, Z, C_out)
-        helper.make_node("Transpose", ["p3"], ["zro"], perm=[1, 0, 2]),  # (Z, Hf*Wf + 1, C_out)
-        helper.make_node("Reshape", ["zro", "rows_out"], ["p"]),  # (Z * (Hf*Wf + 1), C_out)
+        # broadcast over the heights: the projected table comes out in gather order, no transpose of it
+        helper.make_node("MatMul", ["table", "blocks"], ["projected"]),  # (Z, Hf*Wf + 1, C_out)
+        helper.make_node("Reshape", ["projected", "rows_out"], ["p"]),  # (Z * (Hf*Wf + 1), C_out)
         helper.make_node("Gather", ["p", "slots"], ["g"], axis=0),  # (N, J, C_out)
         helper.make_node("Unsqueeze", ["weights", "axis1"], ["w3"]),  # (N, 1, J)
         helper.make_node("MatMul", ["w3", "g"], ["t3"]),  # (N, 1, C_out)
@@ -109,10 +108,11 @@ def term_graph(weight: np.ndarray, channels: int, feature_hw: tuple[int, int], h
 
 
 def tail_graph(lifter: onnx.ModelProto, cut: str, shape: tuple[int, int, int], bias: np.ndarray) -> onnx.ModelProto:
-    """``lifter`` from tensor ``cut`` (its first Conv's output) on, fed the cameras' terms: ``terms (M, C_out)`` and
-    ``cells (M, 1) int64`` (the quadrant's flat cells ``y * Xq + x`` they belong to, repeats summed), added to the
-    first convolution's ``bias`` (C_out,) in every cell (ScatterND, reduction add: the sum happens in onnxruntime,
-    which releases the GIL); ``shape`` = (C_out, Yq, Xq)."""
+    """``lifter`` from tensor ``cut`` (its first Conv's output) on, fed the cameras' distinct terms ``terms (U, C_out)``,
+    ``rows (M,) int64`` (the term of each of the quadrant's M (cell, camera) pairs: cells whose slots and weights
+    are the same share one term) and ``cells (M, 1) int64`` (the quadrant's flat cells ``y * Xq + x`` of those
+    pairs, repeats summed), added to the first convolution's ``bias`` (C_out,) in every cell (ScatterND, reduction
+    add: the sum happens in onnxruntime, which releases the GIL); ``shape`` = (C_out, Yq, Xq)."""
     from onnx.utils import Extractor
 
     if max((o.version for o in lifter.opset_import if o.domain in ("", "ai.onnx")), default=0) < 16:
@@ -130,13 +130,15 @@ def tail_graph(lifter: onnx.ModelProto, cut: str, shape: tuple[int, int, int], b
     ]
     head = [
         helper.make_node("Expand", ["tail_bias", "tail_rows"], ["base"]),  # (Yq*Xq, C_out)
-        helper.make_node("ScatterND", ["base", "cells", "terms"], ["summed"], reduction="add"),  # (Yq*Xq, C_out)
+        helper.make_node("Gather", ["terms", "rows"], ["tail_pairs"], axis=0),  # (M, C_out)
+        helper.make_node("ScatterND", ["base", "cells", "tail_pairs"], ["summed"], reduction="add"),  # (Yq*Xq, C_out)
         helper.make_node("Reshape", ["summed", "tail_shape"], ["summed4"]),  # (1, Yq, Xq, C_out)
         helper.make_node("Transpose", ["summed4"], [cut], perm=[0, 3, 1, 2]),  # (1, C_out, Yq, Xq)
     ]
     graph = helper.make_graph(
         head + list(tail.graph.node), "lifter_tail",
-        [helper.make_tensor_value_info("terms", TensorProto.FLOAT, ["M", c]),
+        [helper.make_tensor_value_info("terms", TensorProto.FLOAT, ["U", c]),
+         helper.make_tensor_value_info("rows", TensorProto.INT64, ["M"]),
          helper.make_tensor_value_info("cells", TensorProto.INT64, ["M", 1])], list(tail.graph.output),
         inits + list(tail.graph.initializer),
     )  # fmt: skip

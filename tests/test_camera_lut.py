@@ -149,7 +149,9 @@ def test_partial_graphs_and_tail_rebuild_a_flat_lifter(tmp_path, seed):
         terms.append(term.run(None, {"features": features[j : j + 1], "slots": slots, "weights": slot_weights})[0])
         cells.append(share.cells)
     tail = ort_session(tail_graph(model, conv.output[0], (c, 5, 6), bias), 1)
-    (got,) = tail.run(None, {"terms": np.concatenate(terms), "cells": np.concatenate(cells)[:, None]})
+    stacked = np.concatenate(terms)
+    feeds = {"terms": stacked, "rows": np.arange(len(stacked), dtype=np.int64), "cells": np.concatenate(cells)[:, None]}
+    (got,) = tail.run(None, feeds)
     np.testing.assert_allclose(got, ref, rtol=1e-5, atol=1e-5)
 
 

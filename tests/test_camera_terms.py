@@ -20,7 +20,7 @@ from streamdet.export.cli import main as export_main
 from streamdet.models.detector import build_detector
 from streamdet.models.presets import get_preset
 from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector
-from streamdet.runtime_ort.camera_terms import share_slots
+from streamdet.runtime_ort.camera_terms import distinct_rows, share_slots
 from streamdet.runtime_ort.lifter_split import SplitError, first_conv, tail_graph, term_graph
 from streamdet.runtime_ort.sessions import ort_session
 from streamdet.training.checkpoint import save_weights
@@ -84,6 +84,37 @@ def test_term_graph_equals_the_naive_gather_and_projection(seed, n, z, s):
     want = gather_share(features, share) @ w.T  # (N, C_out)
     assert got.shape == (n, c_out) and got.dtype == np.float32
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("n", [0, 1, 50])
+def test_distinct_rows_give_back_every_row(seed, n):
+    """distinct_rows against the rows it came from: each row is its distinct row, the distinct rows differ from one
+    another, and rows that differ only in a weight's bits stay apart."""
+    rng = np.random.default_rng(seed)
+    slots = rng.integers(0, 4, (n, 3)).astype(np.int64)  # few values: many repeats
+    weights = rng.choice(np.array([0.25, 0.5, -0.0, 0.0], np.float32), (n, 3))
+    u_slots, u_weights, inverse = distinct_rows(slots, weights)
+    assert inverse.shape == (n,) and inverse.dtype == np.int64
+    np.testing.assert_array_equal(u_slots[inverse], slots)
+    np.testing.assert_array_equal(u_weights[inverse].view(np.int32), weights.view(np.int32))  # -0.0 kept apart from 0.0
+    key = np.concatenate([u_slots, u_weights.view(np.int32)], 1)
+    assert len({tuple(r) for r in key}) == len(key)  # no two the same
+
+
+def test_prepared_terms_give_the_same_quadrants_as_terms_made_per_lift(export_dir):
+    """prepare_terms runs each camera once for all its quadrants; the lifts from those terms equal the lifts that
+    made their terms one (quadrant, camera) at a time."""
+    prepared = StreamingDetector(export_dir, DetectorConfig(camera_terms=True))
+    lazy = StreamingDetector(export_dir, DetectorConfig(camera_terms=True))
+    images = _images(prepared, 11)
+    encoded = prepared.encode_images(images)
+    prepared.prepare_terms(encoded)
+    for q in range(4):
+        cams = prepared.quadrant_cameras([q])
+        for det in (prepared, lazy):
+            det.update_images({n: images[n] for n in cams}, 1.0, quadrants=[q], encoded={n: encoded[n] for n in cams})
+        assert np.abs(_bev(prepared, q) - _bev(lazy, q)).max() <= 1e-6 * max(np.ptp(_bev(lazy, q)), 1e-6)
 
 
 def test_a_first_conv_that_is_not_the_flat_lifters_does_not_split(tiny_export):
@@ -161,16 +192,18 @@ def test_prepared_terms_are_reused_and_a_new_frame_recomputes_only_its_camera(ex
     encoded = det.encode_images(images)
     made = det.prepare_terms(encoded)
     feeds = {q: det.quadrant_cameras([q]) for q in range(4)}
-    assert made == sum(len(c) for c in feeds.values()) == _partials(det)
+    assert made == sum(len(c) for c in feeds.values())
+    runs = _partials(det)
+    assert runs == len({n for c in feeds.values() for n in c})  # one term run per camera, all its quadrants at once
     for q in range(4):
         det.update_images({n: images[n] for n in feeds[q]}, 1.0, quadrants=[q], encoded={n: encoded[n] for n in feeds[q]})
-    assert _partials(det) == made  # every lift summed cached terms
+    assert _partials(det) == runs  # every lift summed cached terms
     name = feeds[0][0]
     new = det.encode_images(_images(det, 5, [name]))
     for q in range(4):
         given = {n: (new[n] if n == name else encoded[n]) for n in feeds[q]}
         det.update_images({n: images[n] for n in feeds[q]}, 2.0, quadrants=[q], encoded=given)
-    assert _partials(det) == made + sum(name in c for c in feeds.values())  # only the new frame's terms
+    assert _partials(det) == runs + sum(name in c for c in feeds.values())  # only the new frame's terms
 
 
 def test_terms_after_a_calibration_swap_use_the_new_lut(export_dir):
