@@ -64,7 +64,8 @@ def distinct_rows(slots: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, n
     share's rows repeat one another on the nuScenes rig, and the term graph's cost is per row."""
     if slots.shape[0] == 0:
         return slots, weights, np.zeros((0,), np.int64)
-    key = np.concatenate([slots, weights.view(np.int32).astype(np.int64)], axis=1)  # (N, 2J), exact float bits
+    bits = np.ascontiguousarray(weights, dtype=np.float32).view(np.int32)  # exact float bits: -0.0 is not 0.0
+    key = np.concatenate([slots.astype(np.int64), bits.astype(np.int64)], axis=1)  # (N, 2J)
     _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
     return slots[first], weights[first], inverse.reshape(-1).astype(np.int64)
 

@@ -113,13 +113,14 @@ def test_malformed_luts_are_refused():
 @pytest.mark.parametrize("seed", [0, 1])
 def test_partial_graphs_and_tail_rebuild_a_flat_lifter(tmp_path, seed):
     """A small flat lifter exported as the exporter does (FlatLifterExport), cut after its first convolution:
-    one term per camera (runtime_ort/camera_terms.py) + the numpy sum + the tail graph give the lifter's output."""
+    one term per camera (runtime_ort/camera_terms.py) + the tail graph give the lifter's output, with every row's
+    term or with the distinct rows' terms and each row's index into them (what the runtime feeds)."""
     torch = pytest.importorskip("torch")
     import onnx
     import onnxruntime as ort
 
     from streamdet.benchmarks.timing import ort_session
-    from streamdet.runtime_ort.camera_terms import share_slots
+    from streamdet.runtime_ort.camera_terms import distinct_rows, share_slots
     from streamdet.runtime_ort.lifter_split import first_conv, tail_graph, term_graph
     from streamdet.models.flat_lifter import FlatLifter, FlatLifterExport
 
@@ -143,15 +144,20 @@ def test_partial_graphs_and_tail_rebuild_a_flat_lifter(tmp_path, seed):
     model = onnx.load(str(path))
     conv, weight, bias = first_conv(model)
     term = ort_session(term_graph(weight, c, (hf, wf), nz), 1)
-    terms, cells = [], []
+    terms, cells, distinct, rows = [], [], [], []
     for j, share in enumerate(camera_luts(qlut, hf * wf)):
         slots, slot_weights = share_slots(share, hf * wf)
         terms.append(term.run(None, {"features": features[j : j + 1], "slots": slots, "weights": slot_weights})[0])
         cells.append(share.cells)
+        u_slots, u_weights, inverse = distinct_rows(slots, slot_weights)
+        rows.append(inverse + sum(len(d) for d in distinct))
+        distinct.append(term.run(None, {"features": features[j : j + 1], "slots": u_slots, "weights": u_weights})[0])
     tail = ort_session(tail_graph(model, conv.output[0], (c, 5, 6), bias), 1)
     stacked = np.concatenate(terms)
-    feeds = {"terms": stacked, "rows": np.arange(len(stacked), dtype=np.int64), "cells": np.concatenate(cells)[:, None]}
-    (got,) = tail.run(None, feeds)
+    cells = np.concatenate(cells)[:, None]
+    (got,) = tail.run(None, {"terms": stacked, "rows": np.arange(len(stacked), dtype=np.int64), "cells": cells})
+    np.testing.assert_allclose(got, ref, rtol=1e-5, atol=1e-5)
+    (got,) = tail.run(None, {"terms": np.concatenate(distinct), "rows": np.concatenate(rows), "cells": cells})
     np.testing.assert_allclose(got, ref, rtol=1e-5, atol=1e-5)
 
 
