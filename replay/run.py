@@ -77,7 +77,7 @@ class ReplayConfig:
         d.update(data=str(self.data), export_dir=str(self.export_dir), modes=list(self.modes),
                  fallback_export_dir=None if self.fallback_export_dir is None else str(self.fallback_export_dir),
                  slice_workers=self.lanes.max_in_flight, slice_queue=self.lanes.queue_size,
-                 schedule=self.lanes.schedule)  # fmt: skip
+                 schedule=self.lanes.schedule, image_lane_nice=self.lanes.image_lane_nice)  # fmt: skip
         return d
 
 

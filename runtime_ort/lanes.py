@@ -44,6 +44,7 @@ from streamdet.runtime_ort.detector import StreamingDetector
 from streamdet.runtime_ort.detector_results import ImageUpdate, SliceResult
 from streamdet.runtime_ort.image_cache import check_camera_timestamps
 from streamdet.runtime_ort.phase_locked_lane import PhaseLockedImageLane, PhaseLockStats
+from streamdet.runtime_ort.thread_priority import check_nice, start_worker
 
 
 class SliceDropped(RuntimeError):
@@ -75,6 +76,9 @@ class LaneConfig:
     # (what to use when the clock is scaled, e.g. a replay at --time-scale 2)
     lidar_hz: float | None = None
     lift_margin_ms: float = 2.0  # phase-locked only: a lift is timed to end this long before its first slice arrives
+    # added to the image lane's thread's nice value (0..19, Linux; 0: unchanged): where the lanes share cores, the
+    # slice lane's work is then served first and the image lane runs in the time left (runtime_ort/thread_priority.py)
+    image_lane_nice: int = 0
 
     def __post_init__(self) -> None:
         for name in ("max_in_flight", "queue_size"):
@@ -89,6 +93,7 @@ class LaneConfig:
         v = self.lift_margin_ms
         if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v) or not 0 <= v <= 1000:
             raise ValueError(f"LaneConfig.lift_margin_ms must be a number of ms in [0, 1000], got {v!r}")
+        check_nice(self.image_lane_nice, "LaneConfig.image_lane_nice")
 
 
 class WorkerLane:
@@ -102,7 +107,9 @@ class WorkerLane:
     matters. A job an idle worker is about to take counts as running, never as waiting.
     """
 
-    def __init__(self, name: str, workers: int, capacity: int | None, overflow: Callable[[], Exception] | None = None) -> None:
+    def __init__(self, name: str, workers: int, capacity: int | None, overflow: Callable[[], Exception] | None = None,
+                 nice: int = 0) -> None:  # fmt: skip
+        """``nice``: added to each worker thread's nice value (thread_priority.py)."""
         if capacity is not None and overflow is None:
             raise ValueError(f"{name}: a lane with a capacity ({capacity}) needs an overflow error")
         self._name = name
@@ -112,13 +119,12 @@ class WorkerLane:
         self._overflow = overflow
         self._closed = False
         self._workers = workers
+        self._nice = check_nice(nice, f"{name}: nice")
         self._busy = 0  # workers running a job (under _cond)
         self.dropped = 0
         self.superseded = 0
         self.cpu_s = 0.0  # CPU seconds of the jobs run (thread time of their worker threads)
-        self._threads = [threading.Thread(target=self._serve, name=f"{name}-{i}", daemon=True) for i in range(workers)]
-        for t in self._threads:
-            t.start()
+        self._threads = [start_worker(self._serve, f"{name}-{i}", self._nice) for i in range(workers)]
 
     def submit(self, fn: Callable[[], object], kind: str = "", supersede: Callable[[], Exception] | None = None) -> Future:
         fut: Future = Future()
@@ -202,10 +208,10 @@ class StreamingRunner:
         if config.schedule == "phase-locked" and detector.uses_images:
             self._phase_locked = PhaseLockedImageLane(
                 detector, detector.num_slices, detector.config.start_deg, config.lidar_hz, config.lift_margin_ms * 1e-3,
-                superseded=superseded, closed=lambda: RunnerClosed("image-lane: submit after close()"),
+                superseded=superseded, closed=lambda: RunnerClosed("image-lane: submit after close()"), nice=config.image_lane_nice,
             )  # fmt: skip
         else:
-            self._images = WorkerLane("image-lane", 1, 1, superseded)
+            self._images = WorkerLane("image-lane", 1, 1, superseded, nice=config.image_lane_nice)
 
     def submit_images(
         self, images: Mapping[str, np.ndarray], timestamp: float | None = None, camera_timestamps: Mapping[str, float] | None = None,

@@ -46,6 +46,7 @@ import numpy as np
 
 from streamdet.core.sectors import NUM_QUADRANTS
 from streamdet.runtime_ort.phase_lock import RotationPhase, plan_lift
+from streamdet.runtime_ort.thread_priority import check_nice, start_worker
 
 DURATION_SAMPLES = 5  # lifts per quadrant whose second longest is the expected duration (robust to a noisy machine)
 
@@ -83,16 +84,18 @@ class PhaseLockedImageLane:
         self, detector, num_slices: int, start_deg: float = 0.0, lidar_hz: float | None = None, margin_s: float = 0.002,
         clock: Callable[[], float] = time.monotonic, thread: bool = True,
         superseded: Callable[[], Exception] = lambda: RuntimeError("image set superseded by a newer one"),
-        closed: Callable[[], Exception] = lambda: RuntimeError("image-lane: submit after close()"),
+        closed: Callable[[], Exception] = lambda: RuntimeError("image-lane: submit after close()"), nice: int = 0,
     ) -> None:  # fmt: skip
         """``detector``: a StreamingDetector (or one with its ``quadrant_cameras``, ``encode_images`` and
         ``update_images(images, timestamp, quadrants=, encoded=)``); ``clock``: the runner's seconds; ``thread``
         False: no worker, the caller drives ``step`` (tests); ``superseded`` / ``closed``: the errors of a superseded
-        image set's future and of a submit after close (the runner's ImagesSuperseded and RunnerClosed)."""
+        image set's future and of a submit after close (the runner's ImagesSuperseded and RunnerClosed); ``nice``:
+        added to the worker thread's nice value (thread_priority.py)."""
         self.detector = detector
         self._superseded = superseded
         self._closed_error = closed
         self.margin_s = float(margin_s)
+        self._nice = check_nice(nice, "image-lane: nice")
         self.clock = clock
         self.stats = PhaseLockStats()
         self.cpu_s = 0.0  # CPU seconds spent by this lane's updates (thread time of the thread running them)
@@ -112,9 +115,7 @@ class PhaseLockedImageLane:
         self._wanted_since: list[float | None] = [None] * NUM_QUADRANTS
         self._dirty = False
         self._closed = False
-        self._thread = threading.Thread(target=self._serve, name="image-lane-phase-locked", daemon=True) if thread else None
-        if self._thread is not None:
-            self._thread.start()
+        self._thread = start_worker(self._serve, "image-lane-phase-locked", self._nice) if thread else None
 
     # ---- events ---------------------------------------------------------------------------------
     def submit_images(self, images: Mapping[str, np.ndarray], timestamp: float,

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 
 import numpy as np
 import pytest
@@ -66,3 +67,17 @@ def test_a_replay_with_a_camera_delivery_delay_says_so_and_records_it(drive_data
     assert json.loads((tmp_path / "r.json").read_text())["config"]["camera_delivery_ms"] == 20.0
     bad = CliRunner().invoke(main, [*args[:-2], "--camera-delivery-ms", "-5"])
     assert bad.exit_code != 0 and "camera-delivery-ms" in bad.output
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="per-thread nice values are Linux's")
+def test_a_replay_with_a_niced_image_lane_says_so_and_records_it(drive_data, tiny_export, tmp_path):
+    from streamdet.replay.cli import main
+
+    args = ["--data", str(drive_data), "--split", "all", "--export-dir", str(tiny_export), "--max-seconds", "0.3",
+            "--mode", "streaming", "--schedule", "phase-locked", "--image-lane-nice", "5", "--json", str(tmp_path / "r.json")]  # fmt: skip
+    result = CliRunner().invoke(main, args)
+    assert result.exit_code == 0, result.output
+    assert "image lane at nice +5" in result.output
+    assert json.loads((tmp_path / "r.json").read_text())["config"]["image_lane_nice"] == 5
+    bad = CliRunner().invoke(main, [*args[:-2], "--image-lane-nice", "20"])
+    assert bad.exit_code != 0 and "image-lane-nice" in bad.output
