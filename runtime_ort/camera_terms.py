@@ -160,7 +160,7 @@ class CameraTerms:
         for q, qlut in enumerate(qluts):
             for s in self.shares(qlut):
                 name = s.share.camera_name
-                if name in maps and not self._kept(q, qlut, s, maps[name]):
+                if name in maps and self._kept(q, qlut, s, maps[name]) is None:
                     wanted.setdefault(name, []).append((q, qlut, s))
         for name, entries in wanted.items():  # one run per camera over all its quadrants
             made = self.terms(maps[name], tuple(s for _, _, s in entries))
@@ -182,20 +182,19 @@ class CameraTerms:
     def _term_of(self, q: int, qlut: QuadrantLut, share: _Share, features: np.ndarray) -> tuple[np.ndarray, bool]:
         """(term, whether it was made now): the kept term of (q, camera) if it was made from this map object and
         LUT, else a new one, kept (the entry holds the map and LUT, so their ids cannot be reused while it lives)."""
-        key = (q, share.share.camera_name)
-        with self._lock:
-            entry = self._terms.get(key)
-        if entry is not None and entry[0] is features and entry[1] is qlut:
-            return entry[2], False
+        kept = self._kept(q, qlut, share, features)
+        if kept is not None:
+            return kept, False
         term = self.term(features, share)
         with self._lock:
-            self._terms[key] = (features, qlut, term)
+            self._terms[(q, share.share.camera_name)] = (features, qlut, term)
         return term, True
 
-    def _kept(self, q: int, qlut: QuadrantLut, share: _Share, features: np.ndarray) -> bool:
+    def _kept(self, q: int, qlut: QuadrantLut, share: _Share, features: np.ndarray) -> np.ndarray | None:
+        """The kept term of (q, camera) if it was made from this map object and LUT; else None."""
         with self._lock:
             entry = self._terms.get((q, share.share.camera_name))
-        return entry is not None and entry[0] is features and entry[1] is qlut
+        return entry[2] if entry is not None and entry[0] is features and entry[1] is qlut else None
 
     def _timed(self, stage: str):
         return nullcontext() if self._stats is None else self._stats.time(stage)
