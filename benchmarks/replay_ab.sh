@@ -12,7 +12,7 @@
 # (optional, default fp32): the slice lane's precision (--precision fp32 | fp16 | int8); NICE (optional, default 0):
 # --image-lane-nice. DELIVERY_MS (environment, default 0): the
 # cameras' delivery delay (--camera-delivery-ms). Writes OUT/r<round>_scale<S>_<label>/ (replay.json, report.md),
-# OUT/r<round>_scale<S>_<label>.txt, OUT/variants.txt, OUT/probes_gflops.txt and OUT/table.md (benchmarks/replay_table.py: one row per
+# OUT/r<round>_scale<S>_<label>.txt, OUT/variants.txt, OUT/probes_gflops.txt, OUT/staleness_cdf.png and OUT/table.md (benchmarks/replay_table.py: one row per
 # scale and variant, one value per round in each cell). Run it on a quiet machine.
 set -euo pipefail
 OUT=${1:?OUT}; ROUNDS=${2:?ROUNDS}; SCALES=${3:?SCALES}; shift 3
@@ -50,4 +50,6 @@ for ROUND in $(seq 1 "$ROUNDS"); do
 done
 uptime > "$OUT/uptime_after.txt"
 "$BIN/python" -m streamdet.benchmarks.replay_table "$OUT" > "$OUT/table.md"
-echo "wrote $OUT/table.md"
+"$BIN/python" -m streamdet.benchmarks.replay_table "$OUT" --plot "$OUT/staleness_cdf.png" > /dev/null \
+  || echo "no staleness_cdf.png (matplotlib missing?)" >&2
+echo "wrote $OUT/table.md and $OUT/staleness_cdf.png"

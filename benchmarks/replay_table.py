@@ -1,6 +1,9 @@
 """The table of ``benchmarks/replay_ab.sh``: one row per (time scale, variant), one value per round in each cell.
 
-    python -m streamdet.benchmarks.replay_table OUT_DIR
+    python -m streamdet.benchmarks.replay_table OUT_DIR [--plot FILE.png]
+
+``--plot``: also a picture, one panel per time scale: the distribution (CDF) of the staleness added by processing
+over every fused slice of a variant's rounds, the variant's image-lane CPU per rotation in its legend.
 
 Reads ``OUT_DIR/r<round>_scale<S>_<label>/replay.json`` (``streamdet-replay --out``, streaming mode) and
 ``OUT_DIR/probes_gflops.txt`` (``<run name> <GFLOP/s>`` per line, the host-speed probe before each run).
@@ -12,6 +15,8 @@ import json
 import re
 import sys
 from pathlib import Path
+
+import numpy as np
 
 RUN = re.compile(r"r(\d+)_scale([0-9.]+)_(.+)")
 HEADER = ("| scale | variant | staleness added p50 / p95 ms | image age p95 ms | slice p99 ms | dropped "
@@ -65,15 +70,74 @@ def table(out: Path) -> str:
     return "\n".join(lines)
 
 
+def staleness(out: Path) -> dict[tuple[float, str], np.ndarray]:
+    """(scale, label) -> staleness added (ms) of every emitted slice fused with drive images, all rounds pooled
+    (``replay.record.SliceRecord.staleness_ms`` from the slices of replay.json)."""
+    pooled: dict[tuple[float, str], list[float]] = {}
+    for f in sorted(out.glob("r*_scale*_*/replay.json")):
+        m = RUN.fullmatch(f.parent.name)
+        if m is None:
+            continue
+        values = pooled.setdefault((float(m.group(2)), m.group(3)), [])
+        for rec in json.loads(f.read_text())["modes"]["streaming"].get("recordings", []):
+            for sl in rec["slices"]:
+                newest, used = sl.get("newest_capture_s"), sl.get("image_capture_s")
+                if sl.get("emit_s") is not None and newest is not None and used is not None:
+                    values.append((newest - used) * 1e3)
+    return {k: np.asarray(v, np.float64) for k, v in pooled.items()}
+
+
+def plot(out: Path, path: Path) -> None:
+    """The staleness CDFs of every variant, one panel per time scale, to ``path`` (PNG)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows, stale = collect(out), staleness(out)
+    scales = sorted({scale for scale, _ in rows})
+    fig, axes = plt.subplots(1, len(scales), figsize=(6.5 * len(scales), 4.2), squeeze=False)
+    for ax, scale in zip(axes[0], scales):
+        for (s, label), runs in sorted(rows.items()):
+            values = np.sort(stale.get((s, label), np.zeros(0)))
+            if s != scale or values.size == 0:
+                continue
+            cpu = ", ".join("%.1f" % r[1]["image_lane_cpu_ms_per_rotation"] for r in runs)
+            ax.step(values, np.arange(1, values.size + 1) / values.size, where="post", label=f"{label} (lane CPU {cpu} ms/rot)")
+        ax.axvline(25.0, color="grey", linestyle=":", linewidth=1)
+        ax.set_xlabel("staleness added by processing (ms)")
+        ax.set_ylabel("fraction of fused slices")
+        ax.set_title(f"time scale {scale:g}")
+        ax.set_ylim(0, 1.01)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, loc="lower right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = sys.argv[1:] if argv is None else argv
+    args = list(sys.argv[1:] if argv is None else argv)
+    plot_path = None
+    if "--plot" in args:
+        i = args.index("--plot")
+        if i + 1 >= len(args):
+            print("replay_table: --plot needs a file name", file=sys.stderr)
+            return 2
+        plot_path = Path(args[i + 1])
+        del args[i : i + 2]
     if len(args) != 1:
-        print("usage: python -m streamdet.benchmarks.replay_table OUT_DIR", file=sys.stderr)
+        print("usage: python -m streamdet.benchmarks.replay_table OUT_DIR [--plot FILE.png]", file=sys.stderr)
         return 2
     try:
         print(table(Path(args[0])))
+        if plot_path is not None:
+            plot(Path(args[0]), plot_path)
     except (ValueError, OSError, KeyError, json.JSONDecodeError) as e:
         print(f"replay_table: {e}", file=sys.stderr)
+        return 1
+    except ImportError:
+        print("replay_table: --plot needs matplotlib (pip install 'streamdet[dev]')", file=sys.stderr)
         return 1
     return 0
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 
 from streamdet.benchmarks.replay_table import collect, main, table
@@ -43,3 +44,21 @@ def test_errors_are_one_line_and_a_non_zero_exit(tmp_path, capsys):
     assert "no streaming mode" in capsys.readouterr().err
     with pytest.raises(ValueError):
         table(tmp_path)
+
+
+def test_staleness_pools_the_fused_slices_of_every_round_and_the_plot_is_written(tmp_path):
+    pytest.importorskip("matplotlib")
+    from streamdet.benchmarks.replay_table import staleness
+
+    def slices(pairs):  # (newest, used) capture times; None: not fused / not emitted
+        return [{"emit_s": None if n is None else 1.0, "newest_capture_s": n, "image_capture_s": u} for n, u in pairs]
+
+    for rnd, pairs in ((1, [(0.10, 0.05), (0.2, 0.2), (None, 0.1)]), (2, [(0.3, None), (0.4, 0.39)])):
+        summary = dict(_summary(10, 0), recordings=[{"slices": slices(pairs)}])
+        _run(tmp_path, f"r{rnd}_scale1_lite", summary)
+    got = staleness(tmp_path)[(1.0, "lite")]
+    np.testing.assert_allclose(np.sort(got), [0.0, 10.0, 50.0], atol=1e-9)
+    png = tmp_path / "ab.png"
+    assert main([str(tmp_path), "--plot", str(png)]) == 0
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert main([str(tmp_path), "--plot"]) == 2
