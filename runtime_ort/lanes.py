@@ -124,7 +124,13 @@ class WorkerLane:
         self.dropped = 0
         self.superseded = 0
         self.cpu_s = 0.0  # CPU seconds of the jobs run (thread time of their worker threads)
-        self._threads = [start_worker(self._serve, f"{name}-{i}", self._nice) for i in range(workers)]
+        self._threads: list[threading.Thread] = []
+        try:
+            for i in range(workers):
+                self._threads.append(start_worker(self._serve, f"{name}-{i}", self._nice))
+        except OSError:  # the workers already started end at once
+            self.close()
+            raise
 
     def submit(self, fn: Callable[[], object], kind: str = "", supersede: Callable[[], Exception] | None = None) -> Future:
         fut: Future = Future()

@@ -101,3 +101,22 @@ def test_a_thread_whose_priority_cannot_be_set_raises_and_runs_nothing(monkeypat
     with pytest.raises(OSError, match="could not add 5"):
         start_worker(lambda: ran.set_result(True), "w", 5)
     assert not ran.done()
+
+
+def test_a_lane_whose_second_worker_cannot_be_niced_ends_the_first(monkeypatch):
+    import streamdet.runtime_ort.lanes as lanes_mod
+
+    started: list[threading.Thread] = []
+    real = lanes_mod.start_worker
+
+    def second_fails(target, name, nice=0):
+        if started:
+            raise OSError(f"{name}: refused")
+        started.append(real(target, name, nice))
+        return started[-1]
+
+    monkeypatch.setattr(lanes_mod, "start_worker", second_fails)
+    with pytest.raises(OSError, match="refused"):
+        WorkerLane("two", 2, None, nice=0)
+    started[0].join(timeout=10)
+    assert not started[0].is_alive()
