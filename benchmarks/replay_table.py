@@ -23,6 +23,18 @@ HEADER = ("| scale | variant | staleness added p50 / p95 ms | image age p95 ms |
           "| image-lane CPU ms / rotation | streaming mAP | probe GFLOP/s |")  # fmt: skip
 
 
+def _runs(out: Path):
+    """(round, scale, label, run name, the streaming mode of its replay.json) of every r<round>_scale<S>_<label> run."""
+    for f in sorted(out.glob("r*_scale*_*/replay.json")):
+        m = RUN.fullmatch(f.parent.name)
+        if m is None:
+            continue
+        modes = json.loads(f.read_text())["modes"]
+        if "streaming" not in modes:
+            raise ValueError(f"{f}: no streaming mode in this replay")
+        yield int(m.group(1)), float(m.group(2)), m.group(3), f.parent.name, modes["streaming"]
+
+
 def collect(out: Path) -> dict[tuple[float, str], list[tuple[int, dict, float]]]:
     """(scale, label) -> [(round, the streaming mode's summary, probe GFLOP/s)], rounds in order."""
     probes_file = out / "probes_gflops.txt"
@@ -33,15 +45,8 @@ def collect(out: Path) -> dict[tuple[float, str], list[tuple[int, dict, float]]]
             if len(parts) == 2:
                 probes[parts[0]] = float(parts[1])
     rows: dict[tuple[float, str], list[tuple[int, dict, float]]] = {}
-    for f in sorted(out.glob("r*_scale*_*/replay.json")):
-        m = RUN.fullmatch(f.parent.name)
-        if m is None:
-            continue
-        modes = json.loads(f.read_text())["modes"]
-        if "streaming" not in modes:
-            raise ValueError(f"{f}: no streaming mode in this replay")
-        key = (float(m.group(2)), m.group(3))
-        rows.setdefault(key, []).append((int(m.group(1)), modes["streaming"], probes.get(f.parent.name, float("nan"))))
+    for rnd, scale, label, name, streaming in _runs(out):
+        rows.setdefault((scale, label), []).append((rnd, streaming, probes.get(name, float("nan"))))
     for runs in rows.values():
         runs.sort(key=lambda r: r[0])
     return rows
@@ -74,12 +79,9 @@ def staleness(out: Path) -> dict[tuple[float, str], np.ndarray]:
     """(scale, label) -> staleness added (ms) of every emitted slice fused with drive images, all rounds pooled
     (``replay.record.SliceRecord.staleness_ms`` from the slices of replay.json)."""
     pooled: dict[tuple[float, str], list[float]] = {}
-    for f in sorted(out.glob("r*_scale*_*/replay.json")):
-        m = RUN.fullmatch(f.parent.name)
-        if m is None:
-            continue
-        values = pooled.setdefault((float(m.group(2)), m.group(3)), [])
-        for rec in json.loads(f.read_text())["modes"]["streaming"].get("recordings", []):
+    for _, scale, label, _, streaming in _runs(out):
+        values = pooled.setdefault((scale, label), [])
+        for rec in streaming.get("recordings", []):
             for sl in rec["slices"]:
                 newest, used = sl.get("newest_capture_s"), sl.get("image_capture_s")
                 if sl.get("emit_s") is not None and newest is not None and used is not None:
