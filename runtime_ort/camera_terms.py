@@ -11,9 +11,11 @@ and costs is measured in docs/replay.md ("Per-camera lifts in the runtime").
 
 A camera's term is computed with the first convolution applied *before* the gather (``lifter_split.term_graph``:
 the map's rows times the convolution's weight block of each height, then the share's Z * S slots of that projected
-table gathered and summed with their weights), one onnxruntime run per camera frame for all the quadrants it feeds
-(``prepare``), and only for a share's **distinct** rows (``distinct_rows``: cells far from a camera read the same
-pixels; the tail graph gathers each cell's term from them).
+table summed with their weights, as one sparse-times-dense product of the share's weights kept as a sparse matrix,
+``sparse_lut_value``, made once per set of shares; the dense Gather form where this onnxruntime has no sparse
+tensors), one onnxruntime run per camera frame for all the quadrants it feeds (``prepare``), and only for a share's
+**distinct** rows (``distinct_rows``: cells far from a camera read the same pixels; the tail graph gathers each
+cell's term from them).
 
 Precision: the terms are fp32; the tail is cut from the lane's own lifter graph (fp32 or int8). With an int8 image lane the sum is
 therefore quantized once, at the tail's input, instead of the int8 lifter's quantized gather and weights: the BEV
@@ -37,10 +39,11 @@ from typing import Mapping
 
 import numpy as np
 import onnx
+import onnxruntime as ort
 
 from streamdet.calibration.camera_lut import CameraLut, camera_luts
 from streamdet.calibration.quadrant_lut import QuadrantLut
-from streamdet.runtime_ort.lifter_split import SplitError, first_conv, first_conv_output, tail_graph, term_graph
+from streamdet.runtime_ort.lifter_split import SplitError, first_conv, first_conv_output, sparse_lut, tail_graph, term_graph
 from streamdet.runtime_ort.sessions import ORT_ERRORS, SessionConfig, ort_message, ort_session
 from streamdet.runtime_ort.stats import LatencyStats
 
@@ -70,6 +73,15 @@ def distinct_rows(slots: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, n
     return slots[first], weights[first], inverse.reshape(-1).astype(np.int64)
 
 
+def sparse_lut_value(slots: np.ndarray, weights: np.ndarray, table_rows: int) -> ort.OrtValue:
+    """``lifter_split.sparse_lut`` of (N, J) slots and weights as the (N, table_rows) COO sparse OrtValue that the
+    sparse ``term_graph`` takes (CPU memory; the value keeps its arrays alive)."""
+    values, coo = sparse_lut(slots, weights, table_rows)
+    shape = np.array([slots.shape[0], table_rows], np.int64)
+    tensor = ort.SparseTensor.sparse_coo_from_numpy(shape, values, coo, ort.OrtDevice.make("cpu", 0))
+    return ort.OrtValue.ort_value_from_sparse_tensor(tensor)
+
+
 @dataclass(frozen=True, eq=False)
 class _Share:
     share: CameraLut
@@ -97,12 +109,41 @@ class CameraTerms:
         self.feature_hw = (int(feature_hw[0]), int(feature_hw[1]))
         self.quadrant_hw = (int(quadrant_hw[0]), int(quadrant_hw[1]))
         self.bias = bias  # (C_out,)
-        self._term_graph = ort_session(term_graph(weight, self.channels, self.feature_hw, heights).SerializeToString(), session)
+        self._table_rows = heights * (self.feature_hw[0] * self.feature_hw[1] + 1)
+        self._term_graph, self.sparse = self._open_term_graph(weight, heights, session)
         self._tail = ort_session(tail_graph(lane_lifter, cut, (weight.shape[0], *self.quadrant_hw), bias).SerializeToString(), session)
         self._stats = stats
         self._lock = threading.Lock()
         self._shares: dict[int, tuple[QuadrantLut, tuple[_Share, ...]]] = {}  # id(qlut) -> (qlut, its shares)
         self._terms: dict[tuple[int, str], tuple[object, object, np.ndarray]] = {}  # (q, cam) -> (source, qlut, term)
+        self._luts: dict[tuple[int, ...], tuple[tuple[_Share, ...], object]] = {}  # share ids -> (shares, sparse lut)
+
+    def _open_term_graph(self, weight: np.ndarray, heights: int, session: SessionConfig) -> tuple[ort.InferenceSession, bool]:
+        """(session, sparse): the sparse term graph where this onnxruntime runs it (its SparseToDenseMatMul and
+        sparse tensors, tried once on a one-row LUT), else the dense one."""
+        try:
+            graph = ort_session(term_graph(weight, self.channels, self.feature_hw, heights, sparse=True).SerializeToString(), session)
+            probe = sparse_lut_value(np.zeros((1, 1), np.int64), np.ones((1, 1), np.float32), self._table_rows)
+            features = ort.OrtValue.ortvalue_from_numpy(np.zeros((1, self.channels, *self.feature_hw), np.float32))
+            graph.run_with_ort_values(["term"], {"features": features, "lut": probe})
+            return graph, True
+        except (*ORT_ERRORS, AttributeError, RuntimeError) as e:  # a build without contrib ops or sparse tensors
+            log.info("per-camera terms: the dense term graph (the sparse one does not run here: %s)", ort_message(e))
+        return ort_session(term_graph(weight, self.channels, self.feature_hw, heights, sparse=False).SerializeToString(), session), False
+
+    def _sparse_lut(self, shares: tuple[_Share, ...], slots: np.ndarray, weights: np.ndarray):
+        """The sparse LUT of these shares' distinct rows in this order, made once (the newest 64 kept)."""
+        key = tuple(id(s) for s in shares)
+        with self._lock:
+            cached = self._luts.get(key)
+        if cached is not None and all(a is b for a, b in zip(cached[0], shares)):
+            return cached[1]
+        value = sparse_lut_value(slots, weights, self._table_rows)
+        with self._lock:
+            if len(self._luts) >= 64:
+                self._luts.pop(next(iter(self._luts)))
+            self._luts[key] = (shares, value)
+        return value
 
     # ---- the pieces --------------------------------------------------------------------------
     def shares(self, qlut: QuadrantLut) -> tuple[_Share, ...]:
@@ -134,7 +175,12 @@ class CameraTerms:
             return tuple(np.zeros((0, self.bias.size), np.float32) for _ in shares)
         slots = np.concatenate([s.slots for s in shares]) if len(shares) > 1 else shares[0].slots  # (U, J)
         weights = np.concatenate([s.weights for s in shares]) if len(shares) > 1 else shares[0].weights
-        out = self._term_graph.run(None, {"features": features[None], "slots": slots, "weights": weights})[0]  # (U, C_out)
+        if self.sparse:
+            feeds = {"features": ort.OrtValue.ortvalue_from_numpy(np.ascontiguousarray(features[None])),
+                     "lut": self._sparse_lut(shares, slots, weights)}  # fmt: skip
+            out = self._term_graph.run_with_ort_values(["term"], feeds)[0].numpy()  # (U, C_out)
+        else:
+            out = self._term_graph.run(None, {"features": features[None], "slots": slots, "weights": weights})[0]  # (U, C_out)
         return tuple(np.split(out, np.cumsum(sizes)[:-1]))
 
     def tail_feeds(self, shares: tuple[_Share, ...], terms: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:

@@ -110,8 +110,9 @@ def test_malformed_luts_are_refused():
 # ---- the split lifter graph (runtime_ort/lifter_split.py) ------------------------------------------------------
 
 
+@pytest.mark.parametrize("sparse", [True, False])
 @pytest.mark.parametrize("seed", [0, 1])
-def test_partial_graphs_and_tail_rebuild_a_flat_lifter(tmp_path, seed):
+def test_partial_graphs_and_tail_rebuild_a_flat_lifter(tmp_path, seed, sparse):
     """A small flat lifter exported as the exporter does (FlatLifterExport), cut after its first convolution:
     one term per camera (runtime_ort/camera_terms.py) + the tail graph give the lifter's output, with every row's
     term or with the distinct rows' terms and each row's index into them (what the runtime feeds)."""
@@ -120,7 +121,7 @@ def test_partial_graphs_and_tail_rebuild_a_flat_lifter(tmp_path, seed):
     import onnxruntime as ort
 
     from streamdet.benchmarks.timing import ort_session
-    from streamdet.runtime_ort.camera_terms import distinct_rows, share_slots
+    from streamdet.runtime_ort.camera_terms import distinct_rows, share_slots, sparse_lut_value
     from streamdet.runtime_ort.lifter_split import first_conv, tail_graph, term_graph
     from streamdet.models.flat_lifter import FlatLifter, FlatLifterExport
 
@@ -143,15 +144,22 @@ def test_partial_graphs_and_tail_rebuild_a_flat_lifter(tmp_path, seed):
         None, {"features": features, "lut_index": qlut.index, "lut_weight": qlut.weight})  # fmt: skip
     model = onnx.load(str(path))
     conv, weight, bias = first_conv(model)
-    term = ort_session(term_graph(weight, c, (hf, wf), nz), 1)
+    term = ort_session(term_graph(weight, c, (hf, wf), nz, sparse=sparse), 1)
+
+    def run_term(j: int, slots: np.ndarray, slot_weights: np.ndarray) -> np.ndarray:
+        if not sparse:
+            return term.run(None, {"features": features[j : j + 1], "slots": slots, "weights": slot_weights})[0]
+        lut = sparse_lut_value(slots, slot_weights, nz * (hf * wf + 1))
+        return term.run_with_ort_values(["term"], {"features": ort.OrtValue.ortvalue_from_numpy(features[j : j + 1]), "lut": lut})[0].numpy()
+
     terms, cells, distinct, rows = [], [], [], []
     for j, share in enumerate(camera_luts(qlut, hf * wf)):
         slots, slot_weights = share_slots(share, hf * wf)
-        terms.append(term.run(None, {"features": features[j : j + 1], "slots": slots, "weights": slot_weights})[0])
+        terms.append(run_term(j, slots, slot_weights))
         cells.append(share.cells)
         u_slots, u_weights, inverse = distinct_rows(slots, slot_weights)
         rows.append(inverse + sum(len(d) for d in distinct))
-        distinct.append(term.run(None, {"features": features[j : j + 1], "slots": u_slots, "weights": u_weights})[0])
+        distinct.append(run_term(j, u_slots, u_weights))
     tail = ort_session(tail_graph(model, conv.output[0], (c, 5, 6), bias), 1)
     stacked = np.concatenate(terms)
     cells = np.concatenate(cells)[:, None]

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import onnx
+import onnxruntime as ort
 import pytest
 import torch
 from click.testing import CliRunner
@@ -20,8 +21,8 @@ from streamdet.export.cli import main as export_main
 from streamdet.models.detector import build_detector
 from streamdet.models.presets import get_preset
 from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector
-from streamdet.runtime_ort.camera_terms import distinct_rows, share_slots
-from streamdet.runtime_ort.lifter_split import SplitError, first_conv, tail_graph, term_graph
+from streamdet.runtime_ort.camera_terms import distinct_rows, share_slots, sparse_lut_value
+from streamdet.runtime_ort.lifter_split import SplitError, first_conv, sparse_lut, tail_graph, term_graph
 from streamdet.runtime_ort.sessions import ort_session
 from streamdet.training.checkpoint import save_weights
 
@@ -67,10 +68,11 @@ def _rel_l2(a: np.ndarray, b: np.ndarray) -> float:
 # ---- a camera's term against the naive gather and projection ------------------------------------------------
 
 
+@pytest.mark.parametrize("sparse", [True, False])
 @pytest.mark.parametrize("seed", [0, 1, 2])
 @pytest.mark.parametrize("n,z,s", [(1, 1, 1), (7, 3, 2), (40, 4, 3)])
-def test_term_graph_equals_the_naive_gather_and_projection(seed, n, z, s):
-    """term_graph (the convolution before the gather) against gather_share @ weight.T."""
+def test_term_graph_equals_the_naive_gather_and_projection(seed, n, z, s, sparse):
+    """term_graph (the convolution before the gather; its sparse and dense forms) against gather_share @ weight.T."""
     rng = np.random.default_rng(seed)
     c, hf, wf, c_out = 5, 4, 6, 3
     features = rng.standard_normal((c, hf, wf)).astype(np.float32)
@@ -79,11 +81,79 @@ def test_term_graph_equals_the_naive_gather_and_projection(seed, n, z, s):
     share = CameraLut(0, "CAM", np.arange(n, dtype=np.int64), index, weight)
     w = rng.standard_normal((c_out, z * c)).astype(np.float32)
     slots, slot_weights = share_slots(share, hf * wf)
-    sess = ort_session(term_graph(w, c, (hf, wf), z).SerializeToString())
-    (got,) = sess.run(None, {"features": features[None], "slots": slots, "weights": slot_weights})
+    sess = ort_session(term_graph(w, c, (hf, wf), z, sparse=sparse).SerializeToString())
+    if sparse:
+        feeds = {"features": ort.OrtValue.ortvalue_from_numpy(features[None]),
+                 "lut": sparse_lut_value(slots, slot_weights, z * (hf * wf + 1))}  # fmt: skip
+        got = sess.run_with_ort_values(["term"], feeds)[0].numpy()
+    else:
+        (got,) = sess.run(None, {"features": features[None], "slots": slots, "weights": slot_weights})
     want = gather_share(features, share) @ w.T  # (N, C_out)
     assert got.shape == (n, c_out) and got.dtype == np.float32
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("n,j", [(0, 3), (1, 1), (30, 4)])
+def test_sparse_lut_is_the_dense_weight_matrix(seed, n, j):
+    """sparse_lut against the naive dense (N, R) matrix: repeated slots within a row summed, zero weights left out,
+    entries in row-major order."""
+    rng = np.random.default_rng(seed)
+    r = 6
+    slots = rng.integers(0, r, (n, j)).astype(np.int64)  # few columns: repeats within a row
+    weights = (rng.random((n, j)) * (rng.random((n, j)) < 0.7)).astype(np.float32)  # some zeros (padding)
+    dense = np.zeros((n, r), np.float64)
+    for i in range(n):
+        for k in range(j):
+            dense[i, slots[i, k]] += weights[i, k]
+    values, coo = sparse_lut(slots, weights, r)
+    assert values.dtype == np.float32 and coo.dtype == np.int64 and coo.shape == (values.size, 2)
+    assert np.all(values != 0)
+    got = np.zeros((n, r), np.float64)
+    got[coo[:, 0], coo[:, 1]] = values
+    np.testing.assert_allclose(got, dense, rtol=1e-6)
+    flat = coo[:, 0] * r + coo[:, 1]
+    assert np.all(np.diff(flat) > 0)  # row-major, no repeats
+
+
+def test_sparse_term_graph_of_rows_without_weights_is_zero():
+    """A share whose rows read only padding (every weight zero): an empty sparse LUT, zero terms of the right shape."""
+    w = np.ones((3, 2 * 5), np.float32)
+    sess = ort_session(term_graph(w, 5, (2, 2), 2).SerializeToString())
+    lut = sparse_lut_value(np.zeros((4, 2), np.int64), np.zeros((4, 2), np.float32), 2 * 5)
+    features = ort.OrtValue.ortvalue_from_numpy(np.ones((1, 5, 2, 2), np.float32))
+    got = sess.run_with_ort_values(["term"], {"features": features, "lut": lut})[0].numpy()
+    np.testing.assert_array_equal(got, np.zeros((4, 3), np.float32))
+
+
+@pytest.mark.parametrize("slots,weights,match", [
+    (np.zeros((2, 3), np.int64), np.zeros((2, 2), np.float32), "same"),
+    (np.zeros((3,), np.int64), np.zeros((3,), np.float32), "same"),
+    (np.full((1, 2), 6, np.int64), np.ones((1, 2), np.float32), "lie in"),
+    (np.full((1, 2), -1, np.int64), np.ones((1, 2), np.float32), "lie in"),
+])  # fmt: skip
+def test_sparse_lut_refuses_bad_slots(slots, weights, match):
+    with pytest.raises(ValueError, match=match):
+        sparse_lut(slots, weights, 6)
+
+
+def test_dense_term_graph_where_the_sparse_one_does_not_run(export_dir, monkeypatch):
+    """An onnxruntime without SparseToDenseMatMul or sparse tensors: the dense term graph, the same quadrants."""
+    import streamdet.runtime_ort.camera_terms as ct
+
+    def no_sparse(*args, **kw):
+        raise AttributeError("module 'onnxruntime' has no attribute 'SparseTensor'")
+
+    sparse = StreamingDetector(export_dir, DetectorConfig(camera_terms=True))
+    monkeypatch.setattr(ct, "sparse_lut_value", no_sparse)
+    dense = StreamingDetector(export_dir, DetectorConfig(camera_terms=True))
+    assert sparse._terms.sparse and not dense._terms.sparse
+    images = _images(sparse, 5)
+    for q in range(4):
+        cams = sparse.quadrant_cameras([q])
+        for det in (sparse, dense):
+            det.update_images({n: images[n] for n in cams}, 1.0, quadrants=[q])
+        assert np.abs(_bev(sparse, q) - _bev(dense, q)).max() <= 1e-5 * max(np.ptp(_bev(dense, q)), 1e-6)
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
@@ -260,9 +330,9 @@ def test_pieces_that_do_not_match_the_lifter_are_refused(export_dir, monkeypatch
 
     right = ct.term_graph
 
-    def wrong_order(weight, channels, feature_hw, heights):
+    def wrong_order(weight, channels, feature_hw, heights, **kw):
         swapped = weight.reshape(weight.shape[0], heights, channels)[:, :, ::-1].reshape(weight.shape)  # c reversed
-        return right(np.ascontiguousarray(swapped), channels, feature_hw, heights)
+        return right(np.ascontiguousarray(swapped), channels, feature_hw, heights, **kw)
 
     monkeypatch.setattr(ct, "term_graph", wrong_order)
     assert not StreamingDetector(export_dir).camera_terms
