@@ -177,7 +177,7 @@ class StreamingDetector:
         self._image: ImageCache | None = None  # None before the first image update; replaced whole under _lock
         self._quadrant_luts: dict[Lut, tuple[QuadrantLut, ...]] = {}  # per LUT in use (the newest two kept)
         self._compact_luts: dict[tuple[int, int], tuple[Lut | QuadrantLut, dict[str, np.ndarray]]] = {}  # compact LUT feeds
-        # per-camera lifts of per-quadrant updates (camera_terms.py); None: every update runs the lifter graph
+        # per-camera lifts of image updates (camera_terms.py); None: every update runs the lifter graph
         self._terms: CameraTerms | None = self._open_camera_terms() if self.uses_images and self._lut is not None else None
         log.info("streamdet: %s (%s, %d slices) on %s", self.export_dir, self.precision_label, self.num_slices, list(self.providers))
 
@@ -403,7 +403,8 @@ class StreamingDetector:
 
     @property
     def camera_terms(self) -> bool:
-        """Whether per-quadrant image updates use per-camera lifts (``DetectorConfig.camera_terms``, camera_terms.py)."""
+        """Whether image updates (full and per-quadrant) use per-camera lifts (``DetectorConfig.camera_terms``,
+        camera_terms.py)."""
         return self._terms is not None
 
     def prepare_terms(self, encoded: Mapping[str, np.ndarray]) -> int:
@@ -531,19 +532,22 @@ class StreamingDetector:
     ) -> list[np.ndarray]:  # fmt: skip
         """(1, C, Yq, Xq) image BEV of each of ``quadrants`` from the (J', C, Hf, Wf) feature maps of ``cameras``.
 
-        All four quadrants from every camera: one lifter run with the whole LUT. Otherwise one run per quadrant with
-        its own rows of the LUT (quadrant_lut.py), fed the feature maps of the cameras that see it (zeros for one
-        this features array does not hold, e.g. after a calibration swap widened the quadrant's view); or, with
-        per-camera lifts (camera_terms.py), each quadrant from its cameras' terms, kept per feature map: ``maps``
+        With per-camera lifts (camera_terms.py), each quadrant from its cameras' terms, kept per feature map: ``maps``
         (camera -> (C, Hf, Wf), the cameras given, by the objects the caller encoded) names them, else the rows of
-        ``features``."""
-        if quadrants == ALL_QUADRANTS and cameras == self.camera_names:
+        ``features``; a full update makes every camera's terms first, one run per camera for all its quadrants.
+        Without them: all four quadrants from every camera in one lifter run with the whole LUT, otherwise one run per
+        quadrant with its own rows of the LUT (quadrant_lut.py), fed the feature maps of the cameras that see it
+        (zeros for one this features array does not hold, e.g. after a calibration swap widened the quadrant's
+        view)."""
+        if quadrants == ALL_QUADRANTS and cameras == self.camera_names and self._terms is None:
             bev = self._lift(features, lut)  # (4, C, Yq, Xq)
             return [bev[q : q + 1] for q in range(NUM_QUADRANTS)]  # (1, C, Yq, Xq) views, no copy
         qluts = self._luts_of(lut)
         if self._terms is not None:
             if maps is None:
                 maps = {name: features[j] for j, name in enumerate(cameras)}
+            if quadrants == ALL_QUADRANTS:  # every camera's terms in one run each, then one tail per quadrant
+                self._terms.prepare(qluts, maps)
             return [self._terms.lift(q, qluts[q], maps) for q in quadrants]
         out = []
         for q in quadrants:

@@ -54,9 +54,11 @@ class DetectorConfig:
     # or one older than fallback_after_s): runtime_ort/fallback.py. None: those slices read a zero image BEV.
     fallback_export_dir: str | os.PathLike | None = None
     fallback_after_s: float | None = None  # None: fall back only where a quadrant has no image BEV at all
-    # Per-camera lifts for per-quadrant image updates (runtime_ort/camera_terms.py): a quadrant update recomputes
-    # only the cameras whose frames changed. None: where the export's lifter splits (the flat lifter) and the image
-    # lane is fp32 or int8; True: required (ValueError where it cannot); False: every update runs the lifter graph.
+    # Per-camera lifts for image updates (runtime_ort/camera_terms.py): a quadrant update recomputes only the
+    # cameras whose frames changed, a full update is one term run per camera and one tail per quadrant instead of the
+    # lifter graph (fewer rows: docs/replay.md). None: where the export's lifter splits (the flat lifter) and the
+    # image lane is fp32 or int8; True: required (ValueError where it cannot); False: every update runs the lifter
+    # graph (with an int8 lane its BEV differs from the terms' by about the int8 lifter's own error).
     camera_terms: bool | None = None
 
     @property
