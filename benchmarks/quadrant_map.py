@@ -1,6 +1,5 @@
-"""Offline mAP behind issue 22's accuracy target: a dataset's val split detected with full image updates, with four
-per-quadrant updates through the lifter graph, and with four per-quadrant updates from per-camera lifts
-(``DetectorConfig.camera_terms``), every sample's images fed at its own time (no clock: what the function per
+"""Offline mAP behind issue 22's accuracy target: a dataset's val split detected with full image updates and with four
+per-quadrant updates, each through the lifter graph and from per-camera lifts (``DetectorConfig.camera_terms``), every sample's images fed at its own time (no clock: what the function per
 quadrant does to accuracy, not what the schedule's timing does).
 
     python -m streamdet.benchmarks.quadrant_map --data DATA --export-dir EXPORT [--image-precision int8] [--samples N]
@@ -19,8 +18,8 @@ from streamdet.evaluation.dataset_eval import evaluate_dataset
 from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector
 from streamdet.runtime_ort.pipeline import sample_images, sample_time_s, update_by_quadrant
 
-VARIANTS = (("full update", False, False), ("per-quadrant, lifter graph", False, True),
-            ("per-quadrant, per-camera lifts", True, True))  # fmt: skip
+VARIANTS = (("full update, lifter graph", False, False), ("per-quadrant, lifter graph", False, True),
+            ("full update, per-camera lifts", True, False), ("per-quadrant, per-camera lifts", True, True))  # fmt: skip
 
 
 def sweep_detector(export_dir: Path, image_precision: str | None, camera_terms: bool, per_quadrant: bool, num_slices: int):
@@ -51,7 +50,7 @@ def sweep_detector(export_dir: Path, image_precision: str | None, camera_terms: 
 @click.option("--samples", type=click.IntRange(min=1), default=None, help="Only the first N val samples.")
 @click.option("--slices", type=click.IntRange(min=1), default=8, show_default=True, help="Slices per sweep.")
 def main(data: Path, export_dir: Path, image_precision: str, samples: int | None, slices: int) -> None:
-    """Offline mAP / NDS of full vs per-quadrant image updates (lifter graph, per-camera lifts) on the val split."""
+    """Offline mAP / NDS of full vs per-quadrant image updates, lifter graph vs per-camera lifts, on the val split."""
     if not (export_dir / "manifest.json").is_file():
         raise click.ClickException(f"{export_dir} holds no manifest.json")
     click.echo(f"{data} (val split), {export_dir}:")

@@ -100,8 +100,8 @@ def camera_terms_option(default: str = "auto"):
     return click.option(
         "--camera-terms", type=click.Choice(list(CAMERA_TERMS)), default=default, show_default=True,
         callback=lambda ctx, param, value: CAMERA_TERMS[value],
-        help="Per-camera lifts for per-quadrant image updates (the phase-locked lane): 'auto' where the export's "
-        "lifter splits (the flat lifter, fp32 or int8 image lane), 'on' required, 'off' the lifter graph every time; "
+        help="Per-camera lifts for image updates (full and per-quadrant): 'auto' where the export's lifter splits "
+        "(the flat lifter, fp32 or int8 image lane), 'on' required, 'off' the lifter graph every time; "
         "DetectorConfig.camera_terms.",
     )  # fmt: skip
 

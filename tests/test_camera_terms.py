@@ -358,19 +358,21 @@ def test_pieces_that_do_not_match_the_lifter_are_refused(export_dir, monkeypatch
         StreamingDetector(export_dir, DetectorConfig(camera_terms=True))
 
 
-def test_quadrant_map_scores_the_three_ways_of_lifting(export_dir, tiny_train_data):
+def test_quadrant_map_scores_the_four_ways_of_lifting(export_dir, tiny_train_data):
     """benchmarks/quadrant_map.py: full updates and per-quadrant updates through the lifter graph score the same
-    (the same function); per-camera lifts score too (fp32: the same sums up to float order)."""
+    (the same function); per-camera lifts, full or per quadrant, score too (fp32: the same sums up to float order)."""
     import re
 
     from streamdet.benchmarks.quadrant_map import main
 
     result = CliRunner().invoke(main, ["--data", str(tiny_train_data), "--export-dir", str(export_dir), "--samples", "2"])
     assert result.exit_code == 0, result.output
-    scores = re.findall(r"(full update|lifter graph|per-camera lifts): 2 samples, mAP ([\d.]+), NDS ([\d.]+)", result.output)
-    assert [s[0] for s in scores] == ["full update", "lifter graph", "per-camera lifts"]
-    assert scores[0][1:] == scores[1][1:]
-    assert abs(float(scores[2][1]) - float(scores[0][1])) <= 1.0
+    scores = dict(re.findall(r"fp32 image lane \+ fp32 slices, ([a-z, -]+): 2 samples, mAP ([\d.]+)", result.output))
+    assert list(scores) == ["full update, lifter graph", "per-quadrant, lifter graph", "full update, per-camera lifts",
+                            "per-quadrant, per-camera lifts"]  # fmt: skip
+    assert scores["full update, lifter graph"] == scores["per-quadrant, lifter graph"]
+    for label in ("full update, per-camera lifts", "per-quadrant, per-camera lifts"):
+        assert abs(float(scores[label]) - float(scores["full update, lifter graph"])) <= 1.0
 
 
 def test_quadrant_map_refuses_per_camera_lifts_on_a_volume_lifter(tiny_export, tiny_train_data):
