@@ -132,7 +132,8 @@ class CameraTerms:
         return ort_session(term_graph(weight, self.channels, self.feature_hw, heights, sparse=False).SerializeToString(), session), False
 
     def _sparse_lut(self, shares: tuple[_Share, ...], slots: np.ndarray, weights: np.ndarray):
-        """The sparse LUT of these shares' distinct rows in this order, made once (the newest 64 kept)."""
+        """The sparse LUT of these shares' distinct rows in this order, made once and kept while their quadrant LUTs'
+        shares are (``shares``), at most 64."""
         key = tuple(id(s) for s in shares)
         with self._lock:
             cached = self._luts.get(key)
@@ -156,7 +157,9 @@ class CameraTerms:
         shares = tuple(_share(s, cells) for s in camera_luts(qlut, cells))
         with self._lock:
             if len(self._shares) >= 8:
-                self._shares.pop(next(iter(self._shares)))
+                _, gone = self._shares.pop(next(iter(self._shares)))
+                gone_ids = {id(s) for s in gone}  # their sparse LUTs go with them
+                self._luts = {k: v for k, v in self._luts.items() if not gone_ids.intersection(k)}
             self._shares[id(qlut)] = (qlut, shares)
         return shares
 

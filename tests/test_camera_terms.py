@@ -311,6 +311,21 @@ def test_terms_after_a_calibration_swap_use_the_new_lut(export_dir):
         assert np.abs(_bev(terms, q) - _bev(graph, q)).max() <= 1e-5 * max(np.ptp(_bev(graph, q)), 1e-6)
 
 
+def test_sparse_luts_are_dropped_with_their_quadrant_luts(export_dir):
+    """Calibration swaps make new LUTs: the sparse LUTs kept are only those of shares still kept (two LUTs)."""
+    det = StreamingDetector(export_dir, DetectorConfig(camera_terms=True))
+    sample = load_bundled_sample()
+    images = _images(det, 2)
+    for seed in range(4):
+        rig = perturb_rig(sample.rig, 3.0, 0.3, seed=seed).resized(det.image.width, det.image.height)
+        det.set_calibration(rig, relift=False)
+        det.update_images(images, float(seed))
+    terms = det._terms
+    live = {id(s) for _, shares in terms._shares.values() for s in shares}
+    assert len(terms._shares) == 8 and terms._luts
+    assert all(set(key) <= live for key in terms._luts)
+
+
 # ---- choices and refusals -------------------------------------------------------------------------------------
 
 
