@@ -44,7 +44,7 @@ import onnxruntime as ort
 from streamdet.calibration.camera_lut import CameraLut, camera_luts
 from streamdet.calibration.quadrant_lut import QuadrantLut
 from streamdet.runtime_ort.lifter_split import SplitError, first_conv, first_conv_output, sparse_lut, tail_graph, term_graph
-from streamdet.runtime_ort.sessions import ORT_ERRORS, SessionConfig, ort_message, ort_session
+from streamdet.runtime_ort.sessions import ORT_ERRORS, SessionConfig, ort_message, ort_session, resolve_providers
 from streamdet.runtime_ort.stats import LatencyStats
 
 log = logging.getLogger(__name__)
@@ -119,8 +119,12 @@ class CameraTerms:
         self._luts: dict[tuple[int, ...], tuple[tuple[_Share, ...], object]] = {}  # share ids -> (shares, sparse lut)
 
     def _open_term_graph(self, weight: np.ndarray, heights: int, session: SessionConfig) -> tuple[ort.InferenceSession, bool]:
-        """(session, sparse): the sparse term graph where this onnxruntime runs it (its SparseToDenseMatMul and
-        sparse tensors, tried once on a one-row LUT), else the dense one."""
+        """(session, sparse): the sparse term graph where the sessions run on the CPU alone and this onnxruntime runs
+        it (its SparseToDenseMatMul and sparse tensors, tried once on a one-row LUT), else the dense one (an
+        accelerator provider has no SparseToDenseMatMul kernel: the dense form keeps the whole graph on it)."""
+        if resolve_providers(session.providers) != ["CPUExecutionProvider"]:
+            log.info("per-camera terms: the dense term graph (providers %s)", resolve_providers(session.providers))
+            return ort_session(term_graph(weight, self.channels, self.feature_hw, heights, sparse=False).SerializeToString(), session), False
         try:
             graph = ort_session(term_graph(weight, self.channels, self.feature_hw, heights, sparse=True).SerializeToString(), session)
             probe = sparse_lut_value(np.zeros((1, 1), np.int64), np.ones((1, 1), np.float32), self._table_rows)

@@ -156,6 +156,17 @@ def test_dense_term_graph_where_the_sparse_one_does_not_run(export_dir, monkeypa
         assert np.abs(_bev(sparse, q) - _bev(dense, q)).max() <= 1e-5 * max(np.ptp(_bev(dense, q)), 1e-6)
 
 
+def test_dense_term_graph_where_an_accelerator_provider_runs_the_sessions(export_dir, monkeypatch):
+    """SparseToDenseMatMul has CPU kernels only: with an accelerator provider first, the dense form (the whole term
+    graph on it). Simulated: the providers as a CUDA build would resolve them."""
+    import streamdet.runtime_ort.camera_terms as ct
+
+    monkeypatch.setattr(ct, "resolve_providers", lambda requested: ["CUDAExecutionProvider", "CPUExecutionProvider"])
+    monkeypatch.setattr(ct, "ort_session", lambda model, config: ort_session(model))  # this build has no CUDA
+    det = StreamingDetector(export_dir, DetectorConfig(camera_terms=True))
+    assert det.camera_terms and not det._terms.sparse
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
 @pytest.mark.parametrize("n", [0, 1, 50])
 def test_distinct_rows_give_back_every_row(seed, n):
