@@ -167,6 +167,22 @@ class CameraTerms:
             self._shares[id(qlut)] = (qlut, shares)
         return shares
 
+    def warm(self, qluts: tuple[QuadrantLut, ...]) -> None:
+        """Make what the lifts of ``qluts`` (one LUT's four quadrants) will need ahead of them: each quadrant's
+        camera shares and, with the sparse term graph, each camera's sparse LUT over all its quadrants (``prepare``'s
+        run) and each share's own (a lift whose frame was not prepared). Building them for a new LUT takes longer than
+        an image update (docs/replay.md): a caller swapping the calibration pays it, not the image lane."""
+        by_camera: dict[str, list[_Share]] = {}
+        for qlut in qluts:
+            for s in self.shares(qlut):
+                by_camera.setdefault(s.share.camera_name, []).append(s)
+                if self.sparse:
+                    self._sparse_lut((s,), s.slots, s.weights)
+        if self.sparse:
+            for shares in by_camera.values():
+                if len(shares) > 1:
+                    self._sparse_lut(tuple(shares), np.concatenate([s.slots for s in shares]), np.concatenate([s.weights for s in shares]))
+
     def term(self, features: np.ndarray, share: _Share) -> np.ndarray:
         """(U, C_out) distinct terms of one camera share from that camera's (C, Hf, Wf) float32 feature map."""
         return self.terms(features, (share,))[0]
@@ -302,7 +318,9 @@ def open_camera_terms(
         except ORT_ERRORS as e:  # a cut that onnxruntime cannot run is not a split
             why = f"its per-camera pieces do not run: {ort_message(e)}"
     if why is None:
-        log.info("%s: per-camera lifts for quadrant updates (%s tail)", export_dir, lane_precision)
+        log.info("%s: per-camera lifts for image updates (%s tail, %s terms)", export_dir, lane_precision,
+                 "sparse" if terms.sparse else "dense")  # fmt: skip
+        terms.warm(qluts)
         return terms
     if mode is True:
         raise ValueError(f"{export_dir}: DetectorConfig.camera_terms=True, but {why}")

@@ -288,6 +288,8 @@ class StreamingDetector:
                 f"lut.npz, got {type(calibration).__name__}"
             )
         lut = self._check_lut(calibration)
+        if self._terms is not None:  # the new LUT's per-camera pieces here, not in the image lane's next update
+            self._terms.warm(self._luts_of(lut))
         for name, iou in moved_cameras(self._lut, lut):
             msg = f"camera {name} now sees other voxels than with the previous calibration (overlap {iou:.2f})"
             log.warning("%s: %s", self.export_dir, msg)

@@ -322,6 +322,25 @@ def test_terms_after_a_calibration_swap_use_the_new_lut(export_dir):
         assert np.abs(_bev(terms, q) - _bev(graph, q)).max() <= 1e-5 * max(np.ptp(_bev(graph, q)), 1e-6)
 
 
+def test_a_calibration_swap_makes_the_new_luts_pieces_before_the_next_update(export_dir, monkeypatch):
+    """set_calibration makes the new LUT's shares and sparse LUTs (the caller pays); the updates after it, full and
+    per quadrant, build none."""
+    import streamdet.runtime_ort.camera_terms as ct
+
+    det = StreamingDetector(export_dir, DetectorConfig(camera_terms=True))
+    sample = load_bundled_sample()
+    rig = perturb_rig(sample.rig, 3.0, 0.3, seed=5).resized(det.image.width, det.image.height)
+    det.set_calibration(rig, relift=False)
+    built = []
+    monkeypatch.setattr(ct, "sparse_lut_value", lambda *a: built.append(a) or pytest.fail("a sparse LUT built in an update"))
+    monkeypatch.setattr(ct, "camera_luts", lambda *a: pytest.fail("shares made in an update"))
+    images = _images(det, 9)
+    det.update_images(images, 1.0)
+    for q in range(4):
+        det.update_images(_images(det, 10 + q), 2.0 + q, quadrants=[q])
+    assert not built
+
+
 def test_sparse_luts_are_dropped_with_their_quadrant_luts(export_dir):
     """Calibration swaps make new LUTs: the sparse LUTs kept are only those of shares still kept (two LUTs)."""
     det = StreamingDetector(export_dir, DetectorConfig(camera_terms=True))
