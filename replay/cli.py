@@ -57,6 +57,8 @@ def _progress(message: str) -> None:
               help="Play only the first seconds of each scene.")
 @click.option("--threads", type=click.IntRange(min=1), default=1, show_default=True,
               help="Intra-op threads of each onnxruntime session.")
+@click.option("--image-lane-threads", type=click.IntRange(min=1), default=None,
+              help="Intra-op threads of the image lane's sessions (encoder, lifter, per-camera terms). Default: --threads.")
 @click.option("--slice-workers", type=click.IntRange(min=1), default=None,
               help="Slices processed at once in the slice lane. Default: the runtime's LaneConfig.")
 @click.option("--queue-size", type=click.IntRange(min=1), default=None,
@@ -79,7 +81,7 @@ def main(
     data: Path, table_version: str, split: str, scenes: int | None, export_dir: Path, precision: str,
     image_precision: str | None, lidar_hz: float, num_slices: int | None, camera_hz: float, camera_trigger: str,
     camera_delivery_ms: float, mode: str, time_scale: float,
-    max_seconds: float | None, threads: int, slice_workers: int | None, queue_size: int | None, schedule: str,
+    max_seconds: float | None, threads: int, image_lane_threads: int | None, slice_workers: int | None, queue_size: int | None, schedule: str,
     image_lane_nice: int, camera_terms: bool | None, fallback_export_dir: Path | None, fallback_after_ms: float | None, json_path: Path | None,
     plot_path: Path | None, out_dir: Path | None,
 ) -> None:
@@ -107,7 +109,7 @@ def main(
             data=data, export_dir=export_dir, version=table_version, split=None if split == "all" else split, scenes=scenes,
             precision=precision, image_precision=image_precision, lidar_hz=lidar_hz, num_slices=num_slices,
             camera_hz=camera_hz, camera_trigger=camera_trigger, modes=MODES if mode == "all" else (mode,), time_scale=time_scale,
-            max_seconds=max_seconds, threads=threads, lanes=lanes, fallback_export_dir=fallback_export_dir,
+            max_seconds=max_seconds, threads=threads, image_lane_threads=image_lane_threads, lanes=lanes, fallback_export_dir=fallback_export_dir,
             camera_terms=camera_terms, camera_delivery_ms=camera_delivery_ms,
             fallback_after_s=fallback_after_s(fallback_after_ms),
         )  # fmt: skip

@@ -125,7 +125,9 @@ def format_report(result: ReplayResult, info: dict) -> str:
         f"LiDAR {c.lidar_hz:g} Hz x {result.num_slices} slices ({period_ms:.2f} ms per slice), cameras {c.camera_hz:g} Hz ({c.camera_trigger} triggers, "
         f"{_delivery(c)})",
         f"time scale {c.time_scale:g} (latencies in drive time = wall / {c.time_scale:g}); CPU: {cpu_line(info)}; "
-        f"{c.threads} thread(s) per session, {c.lanes.max_in_flight} slice worker(s), queue {c.lanes.queue_size}"
+        f"{c.threads} thread(s) per session"
+        + (f" ({c.image_lane_threads} in the image lane's)" if c.image_lane_threads not in (None, c.threads) else "")
+        + f", {c.lanes.max_in_flight} slice worker(s), queue {c.lanes.queue_size}"
         + (f", image lane at nice +{c.lanes.image_lane_nice}" if c.lanes.image_lane_nice else ""),
         f"ground truth at emission time: {result.truth_source}",
         *[f"  {note}" for note in result.notes],

@@ -52,6 +52,7 @@ class ReplayConfig:
     time_scale: float = 1.0  # wall seconds per drive second
     max_seconds: float | None = None  # play only the first seconds of each scene
     threads: int = 1  # intra-op threads of each onnxruntime session
+    image_lane_threads: int | None = None  # the image lane's sessions' (DetectorConfig.image_lane_threads); None: threads
     lanes: LaneConfig = field(default_factory=LaneConfig)
     # a LiDAR-only export for the slices without usable camera features (DetectorConfig.fallback_export_dir); None: none
     fallback_export_dir: Path | None = None
@@ -71,6 +72,10 @@ class ReplayConfig:
         check_delivery(self.camera_delivery_ms, "ReplayConfig.camera_delivery_ms", "ms")
         if self.max_seconds is not None and not self.max_seconds > 0:
             raise ValueError(f"ReplayConfig.max_seconds must be > 0 s, got {self.max_seconds!r}")
+        for name in ("threads", "image_lane_threads"):
+            v = getattr(self, name)
+            if (v is not None or name == "threads") and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
+                raise ValueError(f"ReplayConfig.{name} must be an int >= 1, got {v!r}")
 
     def to_dict(self) -> dict:
         d = {k: getattr(self, k) for k in self.__dataclass_fields__ if k != "lanes"}
@@ -121,7 +126,7 @@ def split_scenes(tables: DatasetTables, split: str | None, count: int | None) ->
 def open_detector(config: ReplayConfig, num_slices: int | None = None) -> StreamingDetector:
     return StreamingDetector(config.export_dir, DetectorConfig(
         precision=config.precision, image_lane_precision=config.image_precision, num_slices=num_slices or config.num_slices,
-        image_lane_threads=config.threads, slice_lane_threads=config.threads,
+        image_lane_threads=config.image_lane_threads or config.threads, slice_lane_threads=config.threads,
         fallback_export_dir=config.fallback_export_dir, fallback_after_s=config.fallback_after_s,
         camera_terms=config.camera_terms))  # fmt: skip
 

@@ -81,3 +81,22 @@ def test_a_replay_with_a_niced_image_lane_says_so_and_records_it(drive_data, tin
     assert json.loads((tmp_path / "r.json").read_text())["config"]["image_lane_nice"] == 5
     bad = CliRunner().invoke(main, [*args[:-2], "--image-lane-nice", "20"])
     assert bad.exit_code != 0 and "image-lane-nice" in bad.output
+
+
+def test_a_replay_with_its_own_image_lane_threads_says_so_and_records_it(drive_data, tiny_export, tmp_path):
+    from streamdet.replay.cli import main
+    from streamdet.replay.run import ReplayConfig, open_detector
+
+    args = ["--data", str(drive_data), "--split", "all", "--export-dir", str(tiny_export), "--max-seconds", "0.3",
+            "--mode", "streaming", "--image-lane-threads", "2", "--json", str(tmp_path / "r.json")]  # fmt: skip
+    result = CliRunner().invoke(main, args)
+    assert result.exit_code == 0, result.output
+    assert "1 thread(s) per session (2 in the image lane's)" in result.output
+    assert json.loads((tmp_path / "r.json").read_text())["config"]["image_lane_threads"] == 2
+    det = open_detector(ReplayConfig(data=drive_data, export_dir=tiny_export, image_lane_threads=2))
+    assert det.config.image_lane_threads == 2 and det.config.slice_lane_threads == 1
+    for bad in (0, 1.5, True):
+        with pytest.raises(ValueError, match="image_lane_threads"):
+            ReplayConfig(data=drive_data, export_dir=tiny_export, image_lane_threads=bad)
+    refused = CliRunner().invoke(main, [*args[:-2], "--image-lane-threads", "0"])
+    assert refused.exit_code != 0 and "image-lane-threads" in refused.output
