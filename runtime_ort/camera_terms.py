@@ -127,17 +127,18 @@ class CameraTerms:
         """(session, sparse): the sparse term graph where the sessions run on the CPU alone and this onnxruntime runs
         it (its SparseToDenseMatMul and sparse tensors, tried once on a one-row LUT), else the dense one (an
         accelerator provider has no SparseToDenseMatMul kernel: the dense form keeps the whole graph on it)."""
-        if resolve_providers(session.providers) != ["CPUExecutionProvider"]:
-            log.info("per-camera terms: the dense term graph (providers %s)", resolve_providers(session.providers))
-            return ort_session(term_graph(weight, self.channels, self.feature_hw, heights, sparse=False).SerializeToString(), session), False
-        try:
-            graph = ort_session(term_graph(weight, self.channels, self.feature_hw, heights, sparse=True).SerializeToString(), session)
-            probe = sparse_lut_value(np.zeros((1, 1), np.int64), np.ones((1, 1), np.float32), self._table_rows)
-            features = ort.OrtValue.ortvalue_from_numpy(np.zeros((1, self.channels, *self.feature_hw), np.float32))
-            graph.run_with_ort_values(["term"], {"features": features, "lut": probe})
-            return graph, True
-        except (*ORT_ERRORS, AttributeError, RuntimeError) as e:  # a build without contrib ops or sparse tensors
-            log.info("per-camera terms: the dense term graph (the sparse one does not run here: %s)", ort_message(e))
+        providers = resolve_providers(session.providers)
+        if providers != ["CPUExecutionProvider"]:
+            log.info("per-camera terms: the dense term graph (providers %s)", providers)
+        else:
+            try:
+                graph = ort_session(term_graph(weight, self.channels, self.feature_hw, heights, sparse=True).SerializeToString(), session)
+                probe = sparse_lut_value(np.zeros((1, 1), np.int64), np.ones((1, 1), np.float32), self._table_rows)
+                features = ort.OrtValue.ortvalue_from_numpy(np.zeros((1, self.channels, *self.feature_hw), np.float32))
+                graph.run_with_ort_values(["term"], {"features": features, "lut": probe})
+                return graph, True
+            except (*ORT_ERRORS, AttributeError, RuntimeError) as e:  # a build without contrib ops or sparse tensors
+                log.info("per-camera terms: the dense term graph (the sparse one does not run here: %s)", ort_message(e))
         return ort_session(term_graph(weight, self.channels, self.feature_hw, heights, sparse=False).SerializeToString(), session), False
 
     def _sparse_lut(self, shares: tuple[_Share, ...], slots: np.ndarray, weights: np.ndarray):
