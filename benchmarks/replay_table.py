@@ -6,7 +6,9 @@
 over every fused slice of a variant's rounds, the variant's image-lane CPU per rotation in its legend.
 
 Reads ``OUT_DIR/r<round>_scale<S>_<label>/replay.json`` (``streamdet-replay --out``, streaming mode) and
-``OUT_DIR/probes_gflops.txt`` (``<run name> <GFLOP/s>`` per line, the host-speed probe before each run).
+``OUT_DIR/probes_gflops.txt`` (``<run name> <GFLOP/s>`` per line, the host-speed probe before each run). The table
+names the CPU its runs ran on (the replay's ``config.cpu``: model, vector extensions, usable threads), and the
+staleness picture draws issue 22's target for it: p95 <= 25 ms with AVX-512, <= 100 ms on an AVX2-only part.
 """
 
 from __future__ import annotations
@@ -18,21 +20,38 @@ from pathlib import Path
 
 import numpy as np
 
+from streamdet.replay.report import cpu_line
+
 RUN = re.compile(r"r(\d+)_scale([0-9.]+)_(.+)")
 HEADER = ("| scale | variant | staleness added p50 / p95 ms | image age p95 ms | slice p99 ms | dropped "
-          "| image-lane CPU ms / rotation | streaming mAP | probe GFLOP/s |")  # fmt: skip
+          "| image-lane CPU ms / rotation | cores slice / image lane | streaming mAP | probe GFLOP/s |")  # fmt: skip
+STALENESS_TARGET_MS = {True: 25.0, False: 100.0}  # issue 22's p95 target, by whether the CPU has AVX-512
 
 
-def _runs(out: Path):
-    """(round, scale, label, run name, the streaming mode of its replay.json) of every r<round>_scale<S>_<label> run."""
+def _runs(out: Path, with_config: bool = False):
+    """(round, scale, label, run name, the streaming mode of its replay.json[, its config]) of every
+    r<round>_scale<S>_<label> run."""
     for f in sorted(out.glob("r*_scale*_*/replay.json")):
         m = RUN.fullmatch(f.parent.name)
         if m is None:
             continue
-        modes = json.loads(f.read_text())["modes"]
+        replay = json.loads(f.read_text())
+        modes = replay["modes"]
         if "streaming" not in modes:
             raise ValueError(f"{f}: no streaming mode in this replay")
-        yield int(m.group(1)), float(m.group(2)), m.group(3), f.parent.name, modes["streaming"]
+        run = (int(m.group(1)), float(m.group(2)), m.group(3), f.parent.name, modes["streaming"])
+        yield run + (replay.get("config", {}),) if with_config else run
+
+
+def machines(out: Path) -> list[dict]:
+    """The distinct CPUs (the replay's ``config.cpu``) the runs of ``out`` ran on, in the order first met; runs
+    written before replays recorded it are left out."""
+    seen: list[dict] = []
+    for *_, config in _runs(out, with_config=True):
+        cpu = config.get("cpu")
+        if cpu and cpu not in seen:
+            seen.append(cpu)
+    return seen
 
 
 def collect(out: Path) -> dict[tuple[float, str], list[tuple[int, dict, float]]]:
@@ -56,7 +75,12 @@ def table(out: Path) -> str:
     rows = collect(out)
     if not rows:
         raise ValueError(f"{out}: no r<round>_scale<S>_<label>/replay.json found")
-    lines = [HEADER, "|---|---|---|---|---|---|---|---|---|"]
+    cpus = machines(out)
+    if len(cpus) > 1:
+        lines = ["CPUs (they differ across runs: compare rows of one CPU only): " + "; ".join(map(cpu_line, cpus)), ""]
+    else:
+        lines = ["CPU: " + (cpu_line(cpus[0]) if cpus else "not recorded"), ""]
+    lines += [HEADER, "|---|---|---|---|---|---|---|---|---|---|"]
 
     def cells(runs, fn) -> str:
         return ", ".join(fn(s, p) for _, s, p in runs)
@@ -69,10 +93,25 @@ def table(out: Path) -> str:
             cells(runs, lambda s, p: "%.1f" % s["latency_ms"]["p99"]),
             cells(runs, lambda s, p: str(s["slices_dropped"])),
             cells(runs, lambda s, p: "%.1f" % s["image_lane_cpu_ms_per_rotation"]),
+            cells(runs, _cores),
             cells(runs, lambda s, p: "%.1f" % (100 * s["map_streaming"])),
             cells(runs, lambda s, p: "%.0f" % p),
         ]) + " |")  # fmt: skip
     return "\n".join(lines)
+
+
+def _cores(summary: dict, probe: float) -> str:
+    """The slice and image lanes' CPU in cores, e.g. ``1.30 / 0.60``; ``-`` where not recorded. The image lane's is
+    its own thread time over the wall time where the recordings hold it (``cpu_share`` of replays before the
+    thirteenth session charged only the image sets' updates: under the phase-locked schedule about half the lane)."""
+    share = summary.get("cpu_share") or {}
+    if "slice_lane" not in share or "image_lane" not in share:
+        return "-"
+    image = share["image_lane"]
+    recs = summary.get("recordings") or []
+    if recs and all(r.get("image_lane_cpu_s") is not None and r.get("wall_s") for r in recs):
+        image = sum(r["image_lane_cpu_s"] for r in recs) / sum(r["wall_s"] for r in recs)
+    return "%.2f / %.2f" % (share["slice_lane"], image)
 
 
 def staleness(out: Path) -> dict[tuple[float, str], np.ndarray]:
@@ -96,7 +135,8 @@ def plot(out: Path, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    rows, stale = collect(out), staleness(out)
+    rows, stale, cpus = collect(out), staleness(out), machines(out)
+    targets = sorted({STALENESS_TARGET_MS["avx512f" in cpu.get("flags", ())] for cpu in cpus}) or sorted(set(STALENESS_TARGET_MS.values()))
     scales = sorted({scale for scale, _ in rows})
     fig, axes = plt.subplots(1, len(scales), figsize=(6.5 * len(scales), 4.2), squeeze=False)
     for ax, scale in zip(axes[0], scales):
@@ -106,10 +146,12 @@ def plot(out: Path, path: Path) -> None:
                 continue
             cpu = ", ".join("%.1f" % r[1]["image_lane_cpu_ms_per_rotation"] for r in runs)
             ax.step(values, np.arange(1, values.size + 1) / values.size, where="post", label=f"{label} (lane CPU {cpu} ms/rot)")
-        ax.axvline(25.0, color="grey", linestyle=":", linewidth=1)
+        for target in targets:
+            isa = "AVX-512" if target == STALENESS_TARGET_MS[True] else "AVX2-only"
+            ax.axvline(target, color="grey", linestyle=":", linewidth=1, label=f"issue 22 target, {isa}: p95 <= {target:g} ms")
         ax.set_xlabel("staleness added by processing (ms)")
         ax.set_ylabel("fraction of fused slices")
-        ax.set_title(f"time scale {scale:g}")
+        ax.set_title(f"time scale {scale:g}" + (f", {cpu_line(cpus[0])}" if len(cpus) == 1 else ""), fontsize=9)
         ax.set_ylim(0, 1.01)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7, loc="lower right")

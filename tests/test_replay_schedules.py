@@ -32,6 +32,20 @@ def test_staleness_is_the_newest_capture_by_scan_start_minus_the_fused_one():
     assert math.isnan(rec.image_lane_cpu_s) and rec.to_dict()["image_lane_cpu_s"] is None
 
 
+def test_the_image_lanes_cpu_share_is_the_runners_own_count_where_it_has_one():
+    from streamdet.replay.record import ImageRecord
+    from streamdet.replay.report import _cpu_share
+    from streamdet.replay.run import ModeResult
+
+    # the phase-locked lane charges frames encoded ahead and a frame's later lifts to no image set
+    images = (ImageRecord(0, 0.0, cpu_s=0.1), ImageRecord(1, 0.1, cpu_s=0.1))
+    own = Recording("streaming", "s", 1.0, (), images, 2.0, 0.0, 0.0, image_lane_cpu_s=0.6)
+    sets_only = Recording("streaming", "s", 1.0, (), images, 2.0, 0.0, 0.0)  # no count of its own: the sets' sum
+    assert _cpu_share(ModeResult((own, own), None, {}))["image_lane"] == pytest.approx(0.3)
+    assert _cpu_share(ModeResult((sets_only,), None, {}))["image_lane"] == pytest.approx(0.1)
+    assert _cpu_share(ModeResult((own, sets_only), None, {}))["image_lane"] == pytest.approx(0.1)  # not mixed
+
+
 @pytest.mark.parametrize("schedule", ["full", "phase-locked"])
 def test_a_replay_reports_staleness_and_image_lane_cpu_for_each_schedule(drive_data, tiny_export, tmp_path, schedule):
     from streamdet.replay.cli import main
@@ -47,6 +61,7 @@ def test_a_replay_reports_staleness_and_image_lane_cpu_for_each_schedule(drive_d
     assert details["image_lane_cpu_ms_per_rotation"] > 0
     assert set(details["staleness_ms"]) == {"p50", "p95", "p99", "max"}
     (rec,) = details["recordings"]
+    assert details["cpu_share"]["image_lane"] == pytest.approx(rec["image_lane_cpu_s"] / rec["wall_s"])
     assert (rec["phase_lock"] is None) == (schedule == "full")
     if schedule == "phase-locked":
         assert rec["phase_lock"]["quadrant_lifts"] + rec["phase_lock"]["full_updates"] > 0

@@ -15,9 +15,29 @@ def _summary(p95: float, dropped: int) -> dict:
             "slices_dropped": dropped, "image_lane_cpu_ms_per_rotation": 30.0, "map_streaming": 0.4125}  # fmt: skip
 
 
-def _run(out, name, summary) -> None:
+def _run(out, name, summary, cpu=None) -> None:
     (out / name).mkdir(parents=True)
-    (out / name / "replay.json").write_text(json.dumps({"modes": {"streaming": summary}}))
+    replay = {"modes": {"streaming": summary}} | ({"config": {"cpu": cpu}} if cpu else {})
+    (out / name / "replay.json").write_text(json.dumps(replay))
+
+
+AVX2 = {"model": "AMD EPYC 7B13", "flags": ["avx2", "fma"], "threads": 2, "logical_cpus": 2}
+AVX512 = {"model": "AMD EPYC 9B14", "flags": ["avx2", "fma", "avx512f", "avx512_vnni"], "threads": 2, "logical_cpus": 2}
+
+
+def test_the_table_names_the_cpu_and_each_lanes_cores(tmp_path):
+    share = {"cpu_share": {"slice_lane": 1.295, "image_lane": 0.2754, "player": 0.03, "process": 1.9}}
+    _run(tmp_path, "r1_scale1_lite", _summary(20, 0) | share, AVX2)
+    _run(tmp_path, "r2_scale1_lite", _summary(20, 0) | share, AVX2)
+    text = table(tmp_path)
+    assert text.startswith("CPU: AMD EPYC 7B13, 2 threads usable (avx2, fma)\n\n| scale |")
+    assert "| 30.0, 30.0 | 1.29 / 0.28, 1.29 / 0.28 | 41.2, 41.2 |" in text  # cores of the slice / image lane
+    recs = {"recordings": [{"image_lane_cpu_s": 1.2, "wall_s": 2.0}, {"image_lane_cpu_s": 0.6, "wall_s": 1.0}]}
+    _run(tmp_path, "r1_scale3_lite", _summary(20, 0) | share | recs, AVX2)  # the lane's own count where recorded
+    assert "| 1.29 / 0.60 |" in table(tmp_path)
+    _run(tmp_path, "r1_scale2_lite", _summary(20, 0), AVX512)
+    first = table(tmp_path).splitlines()[0]  # runs of two machines: both named, and a warning
+    assert first.startswith("CPUs (they differ across runs") and "7B13" in first and "9B14" in first
 
 
 def test_rows_per_scale_and_variant_with_one_value_per_round(tmp_path):
@@ -30,7 +50,8 @@ def test_rows_per_scale_and_variant_with_one_value_per_round(tmp_path):
     assert sorted(rows) == [(1.0, "lite"), (2.0, "v3+terms")]
     assert [r for r, _, _ in rows[(1.0, "lite")]] == [1, 2]  # rounds in order
     text = table(tmp_path)
-    assert "| 1 | lite | 10 / 20, 15 / 30 | 100, 110 | 20.2, 20.2 | 0, 1 | 30.0, 30.0 | 41.2, 41.2 | 410, 150 |" in text
+    assert "| 1 | lite | 10 / 20, 15 / 30 | 100, 110 | 20.2, 20.2 | 0, 1 | 30.0, 30.0 | -, - | 41.2, 41.2 | 410, 150 |" in text
+    assert text.startswith("CPU: not recorded\n")  # replays written before they recorded it
     assert "| 2 | v3+terms | 50 / 100 |" in text and text.endswith("nan |")  # no probe recorded: nan
 
 
