@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Image-lane variants side by side in the replay, taking turns within every round: the drives of DATA (environment;
 # the issue-22 ones: benchmarks/replay_prep.sh), streaming mode, int8 image lane + fp32 slices (unless SLICES says), LiDAR-synchronised
-# cameras, nuScenes rates (20 Hz x 8 slices, 12 Hz cameras). Each run is preceded by the host-speed probe (2048^3
+# cameras, nuScenes rates (20 Hz x 8 slices unless NUM_SLICES says, 12 Hz cameras). Each run is preceded by the host-speed probe (2048^3
 # MatMul GFLOP/s: the shared machine's fast or slow state).
 #   DATA=DATASET benchmarks/replay_ab.sh OUT ROUNDS "SCALES" LABEL=EXPORT_DIR,SCHEDULE,TERMS[,CODE[,SLICES[,NICE[,IMAGE_THREADS]]]] ...
 # e.g. DATA=out/replay_readme/synth20 benchmarks/replay_ab.sh out/ab 2 "1 2" v3_full=exports/v3,full,off \
@@ -11,7 +11,7 @@
 # pip install --no-deps --no-build-isolation --target CODE W`): an earlier runtime against this one; SLICES
 # (optional, default fp32): the slice lane's precision (--precision fp32 | fp16 | int8); NICE (optional, default 0):
 # --image-lane-nice; IMAGE_THREADS (optional, default: as the slice lane, 1): --image-lane-threads. DELIVERY_MS (environment, default 0): the
-# cameras' delivery delay (--camera-delivery-ms). Writes OUT/r<round>_scale<S>_<label>/ (replay.json, report.md),
+# cameras' delivery delay (--camera-delivery-ms); NUM_SLICES (environment, default 8): slices per rotation (--slices). Writes OUT/r<round>_scale<S>_<label>/ (replay.json, report.md),
 # OUT/r<round>_scale<S>_<label>.txt, OUT/variants.txt, OUT/probes_gflops.txt, OUT/staleness_cdf.png and OUT/table.md (benchmarks/replay_table.py: one row per
 # scale and variant, one value per round in each cell). Run it on a quiet machine.
 set -euo pipefail
@@ -19,6 +19,7 @@ OUT=${1:?OUT}; ROUNDS=${2:?ROUNDS}; SCALES=${3:?SCALES}; shift 3
 [ $# -ge 1 ] || { echo "give at least one LABEL=EXPORT_DIR,SCHEDULE,TERMS[,CODE[,SLICES[,NICE[,IMAGE_THREADS]]]]" >&2; exit 2; }
 BIN=${BIN:-.venv/bin}
 DELIVERY_MS=${DELIVERY_MS:-0}
+NUM_SLICES=${NUM_SLICES:-8}
 : "${DATA:?set DATA to the drives dataset (benchmarks/replay_prep.sh makes the issue-22 one)}"
 mkdir -p "$OUT"
 for V in "$@"; do
@@ -41,9 +42,9 @@ for ROUND in $(seq 1 "$ROUNDS"); do
       EXTRA=()
       [ -z "$ITHREADS" ] || EXTRA=(--image-lane-threads "$ITHREADS")
       [ -z "$CODE" ] || RUNENV=(PYTHONPATH="$(realpath "$CODE")${PYTHONPATH:+:$PYTHONPATH}")
-      [ "$ROUND" != 1 ] || [ "$SCALE" != "${SCALES%% *}" ] || echo "$LABEL: $EXP $SCHEDULE terms=$TERMS code=${CODE:-this checkout} slices=${SLICES:-fp32} nice=${NICE:-0} image_threads=${ITHREADS:-1}" >> "$OUT/variants.txt"
+      [ "$ROUND" != 1 ] || [ "$SCALE" != "${SCALES%% *}" ] || echo "$LABEL: $EXP $SCHEDULE terms=$TERMS code=${CODE:-this checkout} slices=${SLICES:-fp32} nice=${NICE:-0} image_threads=${ITHREADS:-1} slices_per_rotation=$NUM_SLICES" >> "$OUT/variants.txt"
       env "${RUNENV[@]}" "$BIN/streamdet-replay" --data "$DATA" --split val --export-dir "$EXP" --precision "${SLICES:-fp32}" --image-precision int8 \
-        --lidar-hz 20 --slices 8 --camera-hz 12 --camera-trigger lidar-synced --camera-delivery-ms "$DELIVERY_MS" \
+        --lidar-hz 20 --slices "$NUM_SLICES" --camera-hz 12 --camera-trigger lidar-synced --camera-delivery-ms "$DELIVERY_MS" \
         --mode streaming --schedule "$SCHEDULE" --camera-terms "$TERMS" --image-lane-nice "${NICE:-0}" --time-scale "$SCALE" "${EXTRA[@]}" --out "$OUT/$NAME" \
         > "$OUT/$NAME.txt"
       grep -A2 "staleness added" "$OUT/$NAME.txt" | tail -1 | sed "s/^/$NAME /"
