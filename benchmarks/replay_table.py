@@ -102,8 +102,8 @@ def table(out: Path) -> str:
 
 def _cores(summary: dict, probe: float) -> str:
     """The slice and image lanes' CPU in cores, e.g. ``1.30 / 0.60``; ``-`` where not recorded. The image lane's is
-    its own thread time over the wall time where the recordings hold it (``cpu_share`` of replays before the
-    thirteenth session charged only the image sets' updates: under the phase-locked schedule about half the lane)."""
+    its own thread time over the wall time where the recordings hold it (the ``cpu_share`` of older replays charged
+    only the image sets' updates: under the phase-locked schedule about half the lane)."""
     share = summary.get("cpu_share") or {}
     if "slice_lane" not in share or "image_lane" not in share:
         return "-"
