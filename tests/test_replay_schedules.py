@@ -71,47 +71,45 @@ def test_a_replay_reports_staleness_and_image_lane_cpu_for_each_schedule(drive_d
         assert s["newest_capture_s"] <= s["scan_end_s"]
 
 
-def test_a_replay_with_a_camera_delivery_delay_says_so_and_records_it(drive_data, tiny_export, tmp_path):
+def _replay(drive_data, tiny_export, tmp_path, *options: str, bad: tuple[str, ...]):
+    """streamdet-replay's streaming mode for 0.3 s with ``options``: (its output, its JSON's config, the output of the
+    same run with ``bad`` options instead, which must fail)."""
     from streamdet.replay.cli import main
 
     args = ["--data", str(drive_data), "--split", "all", "--export-dir", str(tiny_export), "--max-seconds", "0.3",
-            "--mode", "streaming", "--camera-delivery-ms", "20", "--json", str(tmp_path / "r.json")]  # fmt: skip
-    result = CliRunner().invoke(main, args)
+            "--mode", "streaming", *options]  # fmt: skip
+    result = CliRunner().invoke(main, [*args, "--json", str(tmp_path / "r.json")])
     assert result.exit_code == 0, result.output
-    assert "delivered 20 ms after capture" in result.output
-    assert json.loads((tmp_path / "r.json").read_text())["config"]["camera_delivery_ms"] == 20.0
-    bad = CliRunner().invoke(main, [*args[:-2], "--camera-delivery-ms", "-5"])
-    assert bad.exit_code != 0 and "camera-delivery-ms" in bad.output
+    failed = CliRunner().invoke(main, [*args, *bad])
+    assert failed.exit_code != 0
+    return result.output, json.loads((tmp_path / "r.json").read_text())["config"], failed.output
+
+
+def test_a_replay_with_a_camera_delivery_delay_says_so_and_records_it(drive_data, tiny_export, tmp_path):
+    output, config, bad = _replay(drive_data, tiny_export, tmp_path, "--camera-delivery-ms", "20", bad=("--camera-delivery-ms", "-5"))
+    assert "delivered 20 ms after capture" in output
+    assert config["camera_delivery_ms"] == 20.0
+    assert "camera-delivery-ms" in bad
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="per-thread nice values are Linux's")
 def test_a_replay_with_a_niced_image_lane_says_so_and_records_it(drive_data, tiny_export, tmp_path):
-    from streamdet.replay.cli import main
-
-    args = ["--data", str(drive_data), "--split", "all", "--export-dir", str(tiny_export), "--max-seconds", "0.3",
-            "--mode", "streaming", "--schedule", "phase-locked", "--image-lane-nice", "5", "--json", str(tmp_path / "r.json")]  # fmt: skip
-    result = CliRunner().invoke(main, args)
-    assert result.exit_code == 0, result.output
-    assert "image lane at nice +5" in result.output
-    assert json.loads((tmp_path / "r.json").read_text())["config"]["image_lane_nice"] == 5
-    bad = CliRunner().invoke(main, [*args[:-2], "--image-lane-nice", "20"])
-    assert bad.exit_code != 0 and "image-lane-nice" in bad.output
+    output, config, bad = _replay(drive_data, tiny_export, tmp_path, "--schedule", "phase-locked", "--image-lane-nice", "5",
+                                  bad=("--image-lane-nice", "20"))  # fmt: skip
+    assert "image lane at nice +5" in output
+    assert config["image_lane_nice"] == 5
+    assert "image-lane-nice" in bad
 
 
 def test_a_replay_with_its_own_image_lane_threads_says_so_and_records_it(drive_data, tiny_export, tmp_path):
-    from streamdet.replay.cli import main
     from streamdet.replay.run import ReplayConfig, open_detector
 
-    args = ["--data", str(drive_data), "--split", "all", "--export-dir", str(tiny_export), "--max-seconds", "0.3",
-            "--mode", "streaming", "--image-lane-threads", "2", "--json", str(tmp_path / "r.json")]  # fmt: skip
-    result = CliRunner().invoke(main, args)
-    assert result.exit_code == 0, result.output
-    assert "1 thread(s) per session (2 in the image lane's)" in result.output
-    assert json.loads((tmp_path / "r.json").read_text())["config"]["image_lane_threads"] == 2
+    output, config, bad = _replay(drive_data, tiny_export, tmp_path, "--image-lane-threads", "2", bad=("--image-lane-threads", "0"))
+    assert "1 thread(s) per session (2 in the image lane's)" in output
+    assert config["image_lane_threads"] == 2
+    assert "image-lane-threads" in bad
     det = open_detector(ReplayConfig(data=drive_data, export_dir=tiny_export, image_lane_threads=2))
     assert det.config.image_lane_threads == 2 and det.config.slice_lane_threads == 1
-    for bad in (0, 1.5, True):
+    for threads in (0, 1.5, True):
         with pytest.raises(ValueError, match="image_lane_threads"):
-            ReplayConfig(data=drive_data, export_dir=tiny_export, image_lane_threads=bad)
-    refused = CliRunner().invoke(main, [*args[:-2], "--image-lane-threads", "0"])
-    assert refused.exit_code != 0 and "image-lane-threads" in refused.output
+            ReplayConfig(data=drive_data, export_dir=tiny_export, image_lane_threads=threads)
