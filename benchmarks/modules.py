@@ -50,6 +50,7 @@ from streamdet.models.decode import SliceDecoder
 from streamdet.models.flat_lifter import FlatLifterConvs
 from streamdet.models.lifter_fold import FoldedLifterConvs, LifterConvs, export_lifter_convs, folded_mac_ratio
 from streamdet.models.presets import Preset
+from streamdet.models.peak_head import peak_head_mac_ratio
 from streamdet.models.slice_split import grouped_head_mac_ratio
 
 # The deployed graph each kind of row is cut from: its int8 sibling keeps the same nodes float.
@@ -147,6 +148,17 @@ def build_rows(preset: Preset, resolutions: list[tuple[int, int]], seed: int = 0
         "blocks and runs faster; GMAC, GFLOP/s and % peak count the model's own MACs",
     )
 
+    single_head = det.slice_net.head
+
+    def single_notes(cropped: bool) -> tuple[str, ...]:
+        cells = (g.quadrant_ny * g.quadrant_nx if cropped else g.ny * g.nx) // preset.head.out_stride**2
+        ratio = peak_head_mac_ratio(single_head, cells, preset.top_k)
+        return (
+            f"exported with the head's regression computed at the decode's {preset.top_k} peaks only "
+            f"(models/peak_head.py): the graph computes {ratio:.2f}x the head branches' MACs; GMAC, GFLOP/s and % "
+            "peak count the model's own MACs",
+        )
+
     def volume(ny: int, nx: int) -> Tensor:
         gen = torch.Generator().manual_seed(seed)
         return torch.randn(1, preset.channels, g.nz, ny, nx, generator=gen)  # (Q=1, C, Z, Y, X)
@@ -158,11 +170,12 @@ def build_rows(preset: Preset, resolutions: list[tuple[int, int]], seed: int = 0
         ),
         Row(
             gmacs[1].module, "slice_single_head", "slice", slice_single, pillar_inputs(single, False, seed),
-            SLICE_HEAD_IO, gmacs[1].gmac, detector=det, export_net=split_single,
+            SLICE_HEAD_IO, gmacs[1].gmac, detector=det, export_net=split_single, notes=single_notes(False),
         ),
         Row(
             gmacs[2].module, "slice_single_head_cropped", "slice", slice_single,
             pillar_inputs(single, True, seed), SLICE_HEAD_IO, gmacs[2].gmac, detector=det, export_net=split_single,
+            notes=single_notes(True),
         ),
         Row(
             gmacs[3].module, "conv3d", "conv3d", convs, (volume(g.ny, g.nx),), LIFTER_CONVS_IO, gmacs[3].gmac,

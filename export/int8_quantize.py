@@ -111,8 +111,11 @@ def _first(model: onnx.ModelProto, op_type: str) -> onnx.NodeProto:
 
 
 def _head_outputs(model: onnx.ModelProto) -> set[str]:
-    """The last layers of the head: nodes from the decode's inputs upstream to (and including) the first Conv."""
-    return set(upstream_to_convs(model, [i for n in model.graph.node if is_decode_node(n) for i in n.input]))
+    """The last layers of the head: nodes from the decode's inputs upstream to (and including) the first Conv. A
+    path ends at a ReLU: past it are hidden features, which the peak head (models/peak_head.py) hands to the decode
+    to compute the regression outputs at the peaks in float, quantized like the rest of the head."""
+    decode_inputs = [i for n in model.graph.node if is_decode_node(n) for i in n.input]
+    return set(upstream_to_convs(model, decode_inputs, stop_ops=("Relu",)))
 
 
 def _constant(model: onnx.ModelProto, name: str) -> np.ndarray | None:
@@ -240,10 +243,34 @@ def quantize_graph(
                 calibration_providers=["CPUExecutionProvider"],
             )
     _restore_io(Path(dst), onnx.load(str(src), load_external_data=False))
+    model = onnx.load(str(dst))
+    if shapes_of_quantized(model):
+        onnx.save_model(model, str(dst))
     reasons: dict[str, int] = {}
     for why in keep.values():
         reasons[why] = reasons.get(why, 0) + 1
     return QuantizedGraph(Path(dst), len(feeds), quantized_ops(onnx.load(str(dst))), reasons, time.perf_counter() - t0)
+
+
+def shapes_of_quantized(model: onnx.ModelProto) -> int:
+    """Point every ``Shape`` that reads a DequantizeLinear's output at that node's quantized input (the same shape)
+    and drop the DequantizeLinear nodes no one reads any more. In place; returns how many Shapes moved.
+
+    The QDQ quantizer hands a quantized tensor's every consumer a dequantized copy, a Shape too: the slice graph
+    reads the quadrant count off ``image_bev``, and onnxruntime dequantized the whole map once per slice for it.
+    """
+    producer = {o: n for n in model.graph.node for o in n.output}
+    moved = 0
+    for node in model.graph.node:
+        source = producer.get(node.input[0]) if node.op_type == "Shape" and node.input else None
+        if source is not None and source.op_type == "DequantizeLinear":
+            node.input[0] = source.input[0]
+            moved += 1
+    read = {i for n in model.graph.node for i in n.input} | {o.name for o in model.graph.output}
+    dead = [n for n in model.graph.node if n.op_type == "DequantizeLinear" and not any(o in read for o in n.output)]
+    for n in dead:
+        model.graph.node.remove(n)
+    return moved
 
 
 def _restore_io(path: Path, original: onnx.ModelProto) -> None:

@@ -325,14 +325,15 @@ def heatmap_producers(model: onnx.ModelProto) -> list[str]:
     return found
 
 
-def upstream_to_convs(model: onnx.ModelProto, tensors: list[str]) -> list[str]:
-    """Names of the non-decode nodes from ``tensors`` upstream to (and including) the first Conv on each path."""
+def upstream_to_convs(model: onnx.ModelProto, tensors: list[str], stop_ops: tuple[str, ...] = ()) -> list[str]:
+    """Names of the non-decode nodes from ``tensors`` upstream to (and including) the first Conv on each path; a
+    path ends before a node of ``stop_ops``, without it."""
     producer = {out: n for n in model.graph.node for out in n.output}
     found: list[str] = []
     stack = list(tensors)
     while stack:
         node = producer.get(stack.pop())
-        if node is None or node.name in found or is_decode_node(node):
+        if node is None or node.name in found or is_decode_node(node) or node.op_type in stop_ops:
             continue
         found.append(node.name)
         if node.op_type != "Conv":

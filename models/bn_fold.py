@@ -44,3 +44,19 @@ def fold_bn(
         scale, shift = scale.repeat_interleave(planes), shift.repeat_interleave(planes)
     folded = weight * scale.view(-1, *([1] * (weight.dim() - 1)))  # (Co, ...)
     return folded, shift if bias is None else shift + scale * bias
+
+
+def stacked_conv_bn(convs: list[nn.Conv2d], bns: list[nn.BatchNorm2d]) -> nn.Conv2d:
+    """One conv whose output channels are ``bn_t(conv_t(x))`` for t in order (same input, same geometry)."""
+    first = convs[0]
+    out = nn.Conv2d(first.in_channels, sum(c.out_channels for c in convs), first.kernel_size, stride=first.stride,
+                    padding=first.padding, bias=True, dtype=first.weight.dtype)  # fmt: skip
+    with torch.no_grad():
+        weights, biases = [], []
+        for conv, bn in zip(convs, bns):
+            weight, bias = fold_bn(conv.weight, conv.bias, bn)
+            weights.append(weight)
+            biases.append(bias)
+        out.weight.copy_(torch.cat(weights))
+        out.bias.copy_(torch.cat(biases))
+    return out

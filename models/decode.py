@@ -21,7 +21,8 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from streamdet.models.detector import SliceNet
-from streamdet.models.heads import HeadMaps
+from streamdet.models.heads import REGRESSION_OUTPUTS, HeadMaps
+from streamdet.models.peak_head import PeakHead, regression_at_peaks
 from streamdet.models.presets import Preset
 
 
@@ -43,7 +44,23 @@ def decode_head_maps(maps: HeadMaps, cell_m: float, top_k: int) -> tuple[Tensor,
     Sigmoid, 3x3 max-pool peak picking (a cell survives if it equals its neighbourhood max), top-K over
     classes x cells per quadrant. ``top_k`` must not exceed classes x cells (``Preset.top_k`` clamps it).
     """
-    heatmap, reg, height, dim, rot, vel = maps
+    heatmap, *regression = maps
+    scores, labels, cell, row, col = pick_peaks(heatmap, top_k)
+    # one gather for every regression map at the peaks
+    stacked = torch.cat(regression, dim=1)  # (Q, 10, Hh, Wh)
+    at_peaks = stacked.flatten(2).gather(2, cell.unsqueeze(1).expand(-1, stacked.shape[1], -1))  # (Q, 10, K)
+    return boxes_at_peaks(at_peaks, row, col, cell_m), scores, labels
+
+
+def decode_peak_head(heatmap: Tensor, features: Tensor, head: PeakHead, cell_m: float, top_k: int) -> tuple[Tensor, Tensor, Tensor]:
+    """``decode_head_maps`` of a ``PeakHead``'s output: the regression values computed at the peaks only."""
+    scores, labels, cell, row, col = pick_peaks(heatmap, top_k)
+    at_peaks = regression_at_peaks(features, head.regression_weight, head.regression_bias, row, col, head.kernel)
+    return boxes_at_peaks(at_peaks, row, col, cell_m), scores, labels
+
+
+def pick_peaks(heatmap: Tensor, top_k: int) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """heatmap logits (Q, C_cls, Hh, Wh) -> scores, labels, cell (= row * Wh + col), row, col, each (Q, K)."""
     # Python ints: the head map size is static in the slice graph, so the index arithmetic below exports with
     # constants instead of shape computations
     hh, wh = int(heatmap.shape[-2]), int(heatmap.shape[-1])
@@ -58,18 +75,18 @@ def decode_head_maps(maps: HeadMaps, cell_m: float, top_k: int) -> tuple[Tensor,
     cell = flat - labels * cells_per_class  # (Q, K) = row * Wh + col
     row = torch.div(cell, wh, rounding_mode="trunc")
     col = cell - row * wh
+    return scores, labels, cell, row, col
 
-    # one gather for every regression map at the peaks
-    regression = (reg, height, dim, rot, vel)
-    stacked = torch.cat(regression, dim=1)  # (Q, 10, Hh, Wh)
-    at_peaks = stacked.flatten(2).gather(2, cell.unsqueeze(1).expand(-1, stacked.shape[1], -1))  # (Q, 10, K)
-    r, z, log_size, sc, v = at_peaks.split([int(m.shape[1]) for m in regression], dim=1)
+
+def boxes_at_peaks(at_peaks: Tensor, row: Tensor, col: Tensor, cell_m: float) -> Tensor:
+    """The regression values at the peaks (Q, 10, K; ``REGRESSION_OUTPUTS`` stacked) -> det_boxes (Q, K, 9)."""
+    r, z, log_size, sc, v = at_peaks.split([c for _, c in REGRESSION_OUTPUTS], dim=1)
     x = (col.to(r.dtype) + 0.5 + r[:, 0]) * cell_m  # (Q, K)
     y = (row.to(r.dtype) + 0.5 + r[:, 1]) * cell_m
     size = log_size.exp()  # (Q, 3, K): w, l, h
     yaw = torch.atan2(sc[:, 0], sc[:, 1])
     boxes = torch.cat([x[:, None], y[:, None], z, size, yaw[:, None], v], dim=1)  # (Q, 9, K)
-    return boxes.transpose(1, 2), scores, labels  # (Q, K, 9), (Q, K), (Q, K)
+    return boxes.transpose(1, 2)  # (Q, K, 9)
 
 
 class SliceDecoder(nn.Module):
@@ -88,5 +105,12 @@ class SliceDecoder(nn.Module):
     def forward(
         self, pillar_features: Tensor, pillar_mask: Tensor, pillar_index: Tensor, image_bev: Tensor
     ) -> tuple[Tensor, Tensor, Tensor]:
-        maps = self.slice_net(pillar_features, pillar_mask, pillar_index, image_bev)
-        return decode_head_maps(maps, self.cell_m, self.top_k)
+        return self.decode(self.slice_net(pillar_features, pillar_mask, pillar_index, image_bev))
+
+    def decode(self, out: HeadMaps | tuple[Tensor, Tensor]) -> tuple[Tensor, Tensor, Tensor]:
+        """The slice net's output decoded: head maps, or a ``PeakHead``'s (heatmap, regression features)."""
+        head = getattr(self.slice_net, "peak_head", None)
+        if head is None:
+            return decode_head_maps(out, self.cell_m, self.top_k)
+        heatmap, features = out
+        return decode_peak_head(heatmap, features, head, self.cell_m, self.top_k)

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 from torch import Tensor, nn
 
-from streamdet.models.decode import SliceDecoder, decode_head_maps
+from streamdet.models.decode import SliceDecoder
 from streamdet.models.detector import SliceNet, StreamDetector
 from streamdet.core.lut_layout import LUT_COMPACT, LUT_SLOTS, check_lut_layout
 from streamdet.models.compact_lifter import CompactLifter
@@ -54,7 +54,7 @@ class LidarSliceDecoder(SliceDecoder):
     def forward(self, pillar_features: Tensor, pillar_mask: Tensor, pillar_index: Tensor,
                 quadrants: Tensor) -> tuple[Tensor, Tensor, Tensor]:  # fmt: skip
         maps = self.slice_net(pillar_features, pillar_mask, pillar_index, num_quadrants=quadrants.shape[0])
-        return decode_head_maps(maps, self.cell_m, self.top_k)
+        return self.decode(maps)
 
 
 class FullMapSliceDecoder(SliceDecoder):
@@ -70,7 +70,7 @@ class FullMapSliceDecoder(SliceDecoder):
 
     def forward(self, pillar_features: Tensor, pillar_mask: Tensor, pillar_index: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         maps = self.slice_net(pillar_features, pillar_mask, pillar_index, num_quadrants=1)  # each (1, ch, Hh, Wh)
-        return decode_head_maps(maps, self.cell_m, self.top_k)
+        return self.decode(maps)
 
 
 @dataclass(frozen=True, eq=False)
@@ -98,7 +98,7 @@ def to_export_form(det: StreamDetector, image_layout: str = IMAGE_BEV, lut_layou
     preset = det.preset
     check_image_layout(image_layout)
     layout = image_layout if preset.use_image else IMAGE_BEV
-    slice_net = ExportSliceNet(det.slice_net.eval(), layout).eval()
+    slice_net = ExportSliceNet(det.slice_net.eval(), layout, peak_regression=True).eval()
     if not preset.use_image:
         decoder = LidarSliceDecoder if preset.slice_crop else FullMapSliceDecoder
         return ExportForm(None, None, decoder(slice_net, preset).eval())

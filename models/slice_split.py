@@ -26,10 +26,11 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from streamdet.models.bn_fold import fold_bn
+from streamdet.models.bn_fold import fold_bn, stacked_conv_bn
 from streamdet.models.detector import SliceNet, slice_map_shape
 from streamdet.models.heads import HEAD_OUTPUTS, CenterHead, HeadMaps
 from streamdet.models.image_half import IMAGE_BEV, IMAGE_HALF, check_image_layout
+from streamdet.models.peak_head import PeakHead
 from streamdet.models.pillars import MapShape, gather_pillars
 
 
@@ -118,7 +119,7 @@ class GroupedTaskHead(nn.Module):
             branches = [list(task.branches[name]) for task in head.tasks]
             groups = task_groups([b[3].out_channels for b in branches])
             self.group_sizes[name] = [len(g) for g in groups]
-            hidden = [_stacked_conv_bn([branches[t][0] for t in g], [branches[t][1] for t in g]) for g in groups]
+            hidden = [stacked_conv_bn([branches[t][0] for t in g], [branches[t][1] for t in g]) for g in groups]
             self.hidden[name] = nn.ModuleList(hidden)
             self.output[name] = nn.ModuleList(_block_diagonal_conv([branches[t][3] for t in g]) for g in groups)
 
@@ -155,22 +156,6 @@ def task_groups(out_channels: list[int], block: int = OUTPUT_BLOCK) -> list[rang
 
 def _cat(parts: list[Tensor]) -> Tensor:
     return parts[0] if len(parts) == 1 else torch.cat(parts, dim=1)
-
-
-def _stacked_conv_bn(convs: list[nn.Conv2d], bns: list[nn.BatchNorm2d]) -> nn.Conv2d:
-    """One conv whose output channels are ``bn_t(conv_t(x))`` for t in order (same input, same geometry)."""
-    first = convs[0]
-    out = nn.Conv2d(first.in_channels, sum(c.out_channels for c in convs), first.kernel_size, stride=first.stride,
-                    padding=first.padding, bias=True, dtype=first.weight.dtype)  # fmt: skip
-    with torch.no_grad():
-        weights, biases = [], []
-        for conv, bn in zip(convs, bns):
-            weight, bias = fold_bn(conv.weight, conv.bias, bn)
-            weights.append(weight)
-            biases.append(bias)
-        out.weight.copy_(torch.cat(weights))
-        out.bias.copy_(torch.cat(biases))
-    return out
 
 
 def _block_diagonal_conv(convs: list[nn.Conv2d]) -> nn.Conv2d:
@@ -213,7 +198,7 @@ class ExportSliceNet(nn.Module):
     A LiDAR-only net has no image BEV: its stage 0 is kept whole, the rest is rewritten alike.
     """
 
-    def __init__(self, net: SliceNet, image_layout: str = IMAGE_BEV) -> None:
+    def __init__(self, net: SliceNet, image_layout: str = IMAGE_BEV, peak_regression: bool = False) -> None:
         super().__init__()
         self.use_image = net.use_image
         # image_half: the image half runs in the lifter graph and arrives precomputed (image_half.py)
@@ -241,12 +226,16 @@ class ExportSliceNet(nn.Module):
         self.shared_parts = split_conv_bn(shared_conv, shared_bn, splits)
         self.shared_rest = nn.Sequential(*list(net.head.shared)[2:])  # its ReLU
         self.grouped_head = GroupedTaskHead(net.head) if len(net.head.tasks) > 1 else None
+        # peak_regression (a single head only): forward returns (heatmap logits, regression features) and the
+        # decode computes the regression values at its peaks (peak_head.py; SliceDecoder.decode)
+        self.peak_head = PeakHead(net.head) if peak_regression and self.grouped_head is None else None
 
     def forward(self, pillar_features: Tensor, pillar_mask: Tensor, pillar_index: Tensor,
-                image_bev: Tensor | None = None, *, num_quadrants: int | None = None) -> HeadMaps:  # fmt: skip
+                image_bev: Tensor | None = None, *, num_quadrants: int | None = None) -> HeadMaps | tuple[Tensor, Tensor]:  # fmt: skip
         """SliceNet's signature: the image BEV, or None with ``num_quadrants`` (LiDAR-only; zeros for a fused net).
 
-        In the ``image_half`` layout ``image_bev`` is the precomputed image half (Q, C0, Yh, Xh) instead.
+        In the ``image_half`` layout ``image_bev`` is the precomputed image half (Q, C0, Yh, Xh) instead. Returns
+        the head maps, or with ``peak_head`` its (heatmap logits, regression features).
         """
         half = self.image_layout == IMAGE_HALF
         if half and image_bev is not None:
@@ -274,6 +263,8 @@ class ExportSliceNet(nn.Module):
         for part, up in zip(self.shared_parts[1:], ups[1:]):
             shared = shared + part(up)
         x = self.shared_rest(shared)  # (Q, Ch, Hh, Wh) into the branches
+        if self.peak_head is not None:
+            return self.peak_head(x)
         return self.head.from_shared(x) if self.grouped_head is None else self.grouped_head(x)
 
 
