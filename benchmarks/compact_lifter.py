@@ -19,7 +19,8 @@ import click
 import numpy as np
 import torch
 
-from streamdet.benchmarks.image_half import _lift_feeds, _session, _stats
+from streamdet.benchmarks.image_half import _lift_feeds, _stats
+from streamdet.benchmarks.timing import ort_session
 from streamdet.calibration.compact_lut import lifter_feeds
 from streamdet.core.lut_layout import LUT_COMPACT, LUT_SLOTS
 from streamdet.core.sectors import NUM_QUADRANTS
@@ -59,8 +60,8 @@ def run(export_dir: Path, checkpoint: Path | None, rounds: int, threads: int, in
         sessions, feeds = {}, {}
         for p in precisions:
             suffix = "" if p == "fp32" else f"_{p}"
-            sessions["slots" + suffix] = _session(export_dir / graph_file_name("volumetric_lifter", p), threads)
-            sessions["compact" + suffix] = _session(compact_export / graph_file_name("volumetric_lifter", p), threads)
+            sessions["slots" + suffix] = ort_session(export_dir / graph_file_name("volumetric_lifter", p), threads)
+            sessions["compact" + suffix] = ort_session(compact_export / graph_file_name("volumetric_lifter", p), threads)
             feeds.update({"slots" + suffix: slots, "compact" + suffix: compact})
         return _timed(sessions, feeds, slots, compact, rounds, threads)
     preset = get_preset(manifest.preset_name)
@@ -112,7 +113,7 @@ def _session_of(model, threads: int, calibration: list | None = None):
         if calibration is not None:
             quantize_graph("volumetric_lifter", path, Path(tmp) / "lifter.int8.onnx", calibration)
             path = Path(tmp) / "lifter.int8.onnx"
-        return _session(path, threads)
+        return ort_session(path, threads)
 
 
 @click.command(context_settings={"help_option_names": ["-h", "--help"]})

@@ -23,8 +23,9 @@ What stays float, and why (``float_nodes``):
   neighbourhood. A uint8 heatmap has 256 levels over the logit range, so neighbouring cells of one object round
   to the same level, each of them is a "peak", and one object yields several boxes. The heatmap logits are
   computed in float (their last conv excluded) and the sigmoid / max-pool / equality / top-k / box arithmetic run
-  in float on them. The other head outputs (centre offset, z, log size, yaw, velocity) come from float convs too:
-  the decode turns them into box values directly, and these 1-layer convs are a few percent of the graph.
+  in float on them. The other head outputs (centre offset, z, log size, yaw, velocity) are float too: the decode
+  turns them into box values directly. The single head's are computed inside the decode at its peaks, from the
+  (quantized) hidden features of their branches (models/peak_head.py); a multi-head's come from float convs.
 - slice graph, the pillar net and scatter: ``pillar_features`` holds x and y (up to +-51 m) beside offsets of a
   few centimetres and reflectance in 0..1; one uint8 scale per tensor (0.4 m steps) would erase all but x and y.
   The PointNet is a single 11-input linear layer, which int8 would not speed up.

@@ -13,7 +13,9 @@ function as the trained module it replaces (the export's parity checks compare t
     slice_head          SliceNet + decode              SliceDecoder(ExportSliceNet) (slice_split.py): the
                                                        concatenations split into sums of convolutions, 1x1
                                                        deblocks as convolutions, a multi-head's branches grouped
-                                                       (GroupedTaskHead), the point BEV by gather_pillars;
+                                                       (GroupedTaskHead), a single head's regression computed at
+                                                       the decode's peaks (PeakHead, peak_head.py), the point BEV
+                                                       by gather_pillars;
                                                        LidarSliceDecoder for the LiDAR-only baseline,
                                                        FullMapSliceDecoder for it without the crop
 

@@ -9,8 +9,8 @@ rows and one matrix product, the same arithmetic as the convolutions at those ce
 Why: onnxruntime pads a convolution's outputs to whole channel blocks, so each 1-3 channel output convolution
 costs what a block of 8 or 16 channels does, over every cell; these convolutions stay float in the int8 export
 (export/int8_quantize.py: the decode turns them into box values directly). The six branches' hidden
-convolutions, which all read the shared features, run as one stacked convolution. Measured in docs/replay.md
-("The head's regression at the peaks").
+convolutions, which all read the shared features, run as one stacked convolution. Measured in
+benchmarks/RESULTS.md ("The head's regression at the peaks").
 
 Only the single head (the paper's, ``HeadConfig.multi_head`` False) is rewritten: a multi-head picks each cell's
 regression from the task of its best class (``CenterHead.merge``), which ``GroupedTaskHead`` (slice_split.py)

@@ -13,7 +13,8 @@ convolution. The point BEV itself is built by a gather (``pillars.gather_pillars
 is a 1x1 stride-1 transposed convolution (the stage already at the head's stride) is exported as the 1x1
 convolution it equals (weight transposed), which onnxruntime runs in the blocked layout too instead of leaving it
 for its NCHW ConvTranspose. A multi-head's branches are grouped across its tasks
-(``GroupedTaskHead``). Measured in the benchmark's slice rows (small preset, Zen 4, 2 threads): see
+(``GroupedTaskHead``); with ``peak_regression`` a single head returns its heatmap logits and regression features,
+whose outputs the decode computes at its peaks (``PeakHead``, peak_head.py). Measured in the benchmark's slice rows (small preset, Zen 4, 2 threads): see
 benchmarks/RESULTS.md.
 
 Same function as SliceNet (tests/test_models_slice_split.py; the export's parity check compares the graph with
