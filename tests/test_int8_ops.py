@@ -339,3 +339,53 @@ def test_slice_parity_wraps_yaw():
     b8[0, :, 6] = np.float32(-np.pi + 1e-3)  # the same heading, 2e-3 rad apart
     scores, boxes = q8._slice_parity("same", [(b8, s, l)], [(b, s, l)], cell_m=0.8)  # noqa: SLF001
     assert boxes.max_abs_diff == pytest.approx(2e-3, abs=1e-5) and scores.rel_l2_error == 0.0
+
+
+def test_float_nodes_slice_graph_stops_at_the_peak_heads_relu():
+    # the peak head (models/peak_head.py): the decode reads the regression branches' hidden features (a ReLU's
+    # output), so their conv is quantized; the heatmap's output conv still stays float
+    f = TensorProto.FLOAT
+    nodes = [
+        helper.make_node("MatMul", ["pf", "wl"], ["h"], name="/slice_net/pillar_net/MatMul"),
+        helper.make_node("ScatterND", ["canvas", "pi", "h"], ["bev"], name="/slice_net/ScatterND"),
+        helper.make_node("Conv", ["bev", "wb"], ["hid"], name="/slice_net/peak_head/hidden/Conv"),
+        helper.make_node("Relu", ["hid"], ["act"], name="/slice_net/peak_head/relu/Relu"),
+        helper.make_node("Conv", ["act", "wh"], ["hm"], name="/slice_net/peak_head/heatmap/Conv"),
+        helper.make_node("Sigmoid", ["hm"], ["sig"], name="/decode/Sigmoid"),
+        helper.make_node("Mul", ["act", "sig"], ["det"], name="/decode/Mul"),  # the decode reading the features
+    ]
+    inputs = [helper.make_tensor_value_info("pf", f, [4, 11]), helper.make_tensor_value_info("canvas", f, [1, 2, 4, 4]),
+              helper.make_tensor_value_info("pi", TensorProto.INT64, [4, 4])]  # fmt: skip
+    inits = [_weight("wl", [11, 2]), _weight("wb", [2, 2, 1, 1]), _weight("wh", [2, 2, 1, 1])]
+    model = _model(nodes, inputs, [helper.make_tensor_value_info("det", f, None)], inits)
+    keep = q8.float_nodes("slice_head", model)
+    assert "/slice_net/peak_head/heatmap/Conv" in keep
+    assert "/slice_net/peak_head/hidden/Conv" not in keep and "/slice_net/peak_head/relu/Relu" not in keep
+
+
+def test_shapes_of_quantized_reads_the_quantized_tensor():
+    import onnxruntime as ort
+
+    from streamdet.export.int8_quantize import shapes_of_quantized
+
+    f, u8 = TensorProto.FLOAT, TensorProto.UINT8
+    nodes = [
+        helper.make_node("QuantizeLinear", ["x", "s", "z"], ["xq"], name="q"),
+        helper.make_node("DequantizeLinear", ["xq", "s", "z"], ["xd"], name="dq"),
+        helper.make_node("DequantizeLinear", ["xq", "s", "z"], ["xd2"], name="dq_for_shape"),
+        helper.make_node("Relu", ["xd"], ["y"], name="relu"),
+        helper.make_node("Shape", ["xd2"], ["shape"], name="shape"),
+    ]
+    inits = [helper.make_tensor("s", f, [], [0.1]), helper.make_tensor("z", u8, [], [128])]
+    model = _model(nodes, [helper.make_tensor_value_info("x", f, [2, 3, 5])],
+                   [helper.make_tensor_value_info("y", f, [2, 3, 5]), helper.make_tensor_value_info("shape", TensorProto.INT64, [3])],
+                   inits)  # fmt: skip
+    assert shapes_of_quantized(model) == 1
+    names = [n.name for n in model.graph.node]
+    assert "dq_for_shape" not in names and "dq" in names  # the copy no one reads is gone, the other stays
+    assert next(n for n in model.graph.node if n.name == "shape").input[0] == "xq"
+    onnx.checker.check_model(model)
+    x = np.random.default_rng(0).normal(size=(2, 3, 5)).astype(np.float32)
+    y, shape = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"]).run(None, {"x": x})
+    assert shape.tolist() == [2, 3, 5] and y.shape == (2, 3, 5)
+    assert shapes_of_quantized(model) == 0  # nothing left to move

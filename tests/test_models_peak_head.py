@@ -146,3 +146,21 @@ def test_exported_slice_graph_computes_regression_at_the_peaks(seed):
     np.testing.assert_allclose(got[1], ref[1].numpy(), rtol=1e-4, atol=1e-5)  # scores
     np.testing.assert_array_equal(got[2], ref[2].numpy())  # labels
     np.testing.assert_allclose(got[0], ref[0].numpy(), rtol=1e-4, atol=1e-4)  # boxes
+
+
+def test_int8_slice_graph_quantizes_the_hidden_conv_and_reads_no_dequantized_shape(tiny_int8_export):
+    import onnx
+
+    model = onnx.load(str(tiny_int8_export.path / "slice_head.int8.onnx"))
+    producer = {o: n for n in model.graph.node for o in n.output}
+
+    def read_dequantized(node) -> bool:
+        source = producer.get(node.input[0])
+        return source is not None and source.op_type == "DequantizeLinear"
+
+    convs = {n.name: n for n in model.graph.node if n.op_type == "Conv" and "/peak_head/" in n.name}
+    hidden = next(n for name, n in convs.items() if "hidden" in name)
+    heatmap = next(n for name, n in convs.items() if "heatmap" in name)
+    assert read_dequantized(hidden)  # a QDQ unit: onnxruntime runs it as a QLinearConv
+    assert not read_dequantized(heatmap) or heatmap.input[1] in {i.name for i in model.graph.initializer}  # float weights
+    assert not [n.name for n in model.graph.node if n.op_type == "Shape" and read_dequantized(n)]
