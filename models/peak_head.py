@@ -94,10 +94,14 @@ def regression_at_peaks(features: Tensor, weight: Tensor, bias: Tensor, row: Ten
 
 
 def peak_head_mac_ratio(head: CenterHead, cells: int, peaks: int) -> float:
-    """MACs of ``PeakHead`` plus its regression at ``peaks`` peaks per MAC of the head's six branches, on a map of
-    ``cells`` head cells (per quadrant)."""
+    """MACs the export computes for the head's six branches (``PeakHead`` over the map, its regression product at
+    ``peaks`` peaks, block-diagonal zeros included) per MAC of the trained branches, on a map of ``cells`` head
+    cells (per quadrant)."""
     branches = [head.tasks[0].branches[name] for name in HEAD_OUTPUTS]
     hidden = sum(b[0].weight.numel() for b in branches) * cells  # each weight element: one MAC per cell
     heat = branches[0][3].weight.numel() * cells
-    regression = sum(b[3].weight.numel() for b in branches[1:])
-    return (hidden + heat + regression * peaks) / (hidden + heat + regression * cells)
+    outputs = [b[3] for b in branches[1:]]
+    own = sum(o.weight.numel() for o in outputs) * cells
+    # the product reads every output's patch of all five branches' hidden channels (PeakHead.regression_weight)
+    at_peaks = sum(o.out_channels for o in outputs) * len(outputs) * outputs[0].weight[0].numel() * peaks
+    return (hidden + heat + at_peaks) / (hidden + heat + own)

@@ -164,3 +164,23 @@ def test_int8_slice_graph_quantizes_the_hidden_conv_and_reads_no_dequantized_sha
     assert read_dequantized(hidden)  # a QDQ unit: onnxruntime runs it as a QLinearConv
     assert not read_dequantized(heatmap) or heatmap.input[1] in {i.name for i in model.graph.initializer}  # float weights
     assert not [n.name for n in model.graph.node if n.op_type == "Shape" and read_dequantized(n)]
+
+
+def test_peak_head_mac_ratio_counts_what_the_export_computes():
+    from streamdet.models.flops import count_gmac
+    from streamdet.models.peak_head import peak_head_mac_ratio
+
+    head = CenterHead(TINY.head, 16).eval()
+    hh, wh, k = 12, 10, 30
+    x = torch.randn(1, TINY.head.head_channels, hh, wh)
+    peak = PeakHead(head).eval()
+    row, col = torch.randint(0, hh, (1, k)), torch.randint(0, wh, (1, k))
+
+    def exported(x):
+        heat, features = peak(x)
+        return heat, regression_at_peaks(features, peak.regression_weight, peak.regression_bias, row, col, peak.kernel)
+
+    with torch.no_grad():
+        graph = count_gmac(exported, x)
+        trained = count_gmac(lambda x: [task(x) for task in head.tasks], x)
+    assert peak_head_mac_ratio(head, hh * wh, k) == pytest.approx(graph / trained, rel=1e-9)
