@@ -12,7 +12,6 @@ import time
 import warnings
 from pathlib import Path
 
-import click
 import numpy as np
 import pytest
 from click.testing import CliRunner
@@ -25,7 +24,6 @@ from streamdet.core.slicing import split_sweep
 from streamdet.data.sample import load_bundled_sample
 from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector
 from streamdet.runtime_ort.lanes import LaneConfig, RunnerClosed, SliceDropped, StreamingRunner
-from streamdet.runtime_ort.manifest import ManifestError
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -25,7 +25,7 @@ from hypothesis import strategies as st  # noqa: E402
 from streamdet.calibration.camera import CalibrationError, Rig  # noqa: E402
 from streamdet.runtime_ort.calib_cli import LutMismatch, rebuild_lut  # noqa: E402
 from streamdet.runtime_ort.detector import NoImageLaneError, StreamingDetector  # noqa: E402
-from streamdet.runtime_ort.manifest import Manifest, ManifestError, read_manifest  # noqa: E402
+from streamdet.runtime_ort.manifest import Manifest, ManifestError  # noqa: E402
 from streamdet.runtime_ort.schema import SchemaViolation, manifest_schema, validate  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -15,7 +15,6 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from streamdet.calibration.camera import Rig
 from streamdet.calibration.lut import build_lut
 from streamdet.calibration.perturb import perturb_rig
 from streamdet.core.classes import CLASS_NAMES

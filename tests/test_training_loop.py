@@ -13,7 +13,6 @@ from click.testing import CliRunner
 
 from streamdet.models.detector import build_detector
 from streamdet.models.presets import get_preset
-from streamdet.runtime_ort.pillarize import pillarize
 from streamdet.training.batching import Collator
 from streamdet.training.checkpoint import load_checkpoint, load_weights, save_weights
 from streamdet.training.cli import main as train_main
