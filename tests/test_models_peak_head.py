@@ -19,19 +19,9 @@ from streamdet.models.peak_head import PeakHead, regression_at_peaks
 from streamdet.models.presets import get_preset
 from streamdet.models.slice_split import ExportSliceNet
 
+from bn_helpers import random_bn
+
 TINY = get_preset("tiny")
-
-
-def _random_bn(net: torch.nn.Module, seed: int) -> None:
-    """Eval statistics far from the identity, so a wrong fold shows."""
-    gen = torch.Generator().manual_seed(seed)
-    with torch.no_grad():
-        for m in net.modules():
-            if isinstance(m, torch.nn.BatchNorm2d):
-                m.running_mean.copy_(torch.randn(m.num_features, generator=gen))
-                m.running_var.copy_(torch.rand(m.num_features, generator=gen) + 0.5)
-                m.weight.copy_(torch.rand(m.num_features, generator=gen) + 0.5)
-                m.bias.copy_(torch.randn(m.num_features, generator=gen) * 0.3)
 
 
 def naive_conv_at(features: np.ndarray, weight: np.ndarray, bias: np.ndarray, row: np.ndarray, col: np.ndarray) -> np.ndarray:
@@ -89,7 +79,7 @@ def test_regression_at_peaks_of_no_quadrant_is_empty():
 def test_peak_head_decode_equals_decode_of_the_full_maps(seed, dtype):
     torch.manual_seed(seed)
     head = CenterHead(TINY.head, 16).eval()
-    _random_bn(head, seed)
+    random_bn(head, seed)
     head = head.to(dtype)
     peak = PeakHead(head).eval()
     x = torch.randn(2, 16, 12, 10, dtype=dtype)
@@ -125,7 +115,7 @@ def test_export_slice_net_takes_the_peak_head_for_a_single_head_only(multi_head)
 def test_exported_slice_graph_computes_regression_at_the_peaks(seed):
     torch.manual_seed(seed)
     det = StreamDetector(TINY).eval()
-    _random_bn(det.slice_net, seed)
+    random_bn(det.slice_net, seed)
     g, pc = TINY.grid, TINY.pillars
     gen = torch.Generator().manual_seed(seed)
     num_pillars, q = 50, 2

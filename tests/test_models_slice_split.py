@@ -25,19 +25,9 @@ from streamdet.models.slice_split import (
     split_conv_bn,
 )
 
+from bn_helpers import random_bn
+
 TINY = get_preset("tiny")
-
-
-def _random_bn(net: torch.nn.Module, seed: int) -> None:
-    """Eval statistics far from the identity, so a wrong fold shows."""
-    gen = torch.Generator().manual_seed(seed)
-    with torch.no_grad():
-        for m in net.modules():
-            if isinstance(m, torch.nn.BatchNorm2d):
-                m.running_mean.copy_(torch.randn(m.num_features, generator=gen))
-                m.running_var.copy_(torch.rand(m.num_features, generator=gen) + 0.5)
-                m.weight.copy_(torch.rand(m.num_features, generator=gen) + 0.5)
-                m.bias.copy_(torch.randn(m.num_features, generator=gen) * 0.3)
 
 
 def _inputs(preset, q: int, num_pillars: int, seed: int, dtype=torch.float32):
@@ -59,7 +49,7 @@ def test_split_net_equals_slice_net(q, num_pillars, seed, multi_head, dtype):
     preset = dataclasses.replace(TINY, head=dataclasses.replace(TINY.head, multi_head=multi_head))
     torch.manual_seed(seed)
     net = SliceNet(preset).eval()
-    _random_bn(net, seed)
+    random_bn(net, seed)
     net = net.to(dtype)
     split = ExportSliceNet(net).to(dtype)
     args = _inputs(preset, q, num_pillars, seed, dtype)
@@ -85,7 +75,7 @@ def test_lidar_only_export_form_equals_the_net(q, num_pillars, seed, dtype):
     preset = dataclasses.replace(TINY, use_image=False)
     torch.manual_seed(seed)
     net = SliceNet(preset).eval()
-    _random_bn(net, seed)
+    random_bn(net, seed)
     net = net.to(dtype)
     rewritten = export_slice_net(net)
     assert not hasattr(rewritten, "point_conv")  # nothing to split off at stage 0
@@ -109,7 +99,7 @@ def test_unexpected_stage_layout_is_refused():
 def test_exported_slice_graph_has_no_bev_concat_and_matches_torch():
     torch.manual_seed(0)
     det = StreamDetector(TINY).eval()
-    _random_bn(det.slice_net, 5)
+    random_bn(det.slice_net, 5)
     args = _inputs(TINY, 2, 60, 4)
     model = export_slice_head(det, args)
     assert isinstance(slice_decoder(det).slice_net, ExportSliceNet)
@@ -124,7 +114,7 @@ def test_exported_slice_graph_has_no_bev_concat_and_matches_torch():
 
 def _bn(channels: int, seed: int, dtype) -> torch.nn.BatchNorm2d:
     bn = torch.nn.BatchNorm2d(channels).eval()
-    _random_bn(bn, seed)
+    random_bn(bn, seed)
     return bn.to(dtype)
 
 
@@ -211,7 +201,7 @@ def test_grouped_task_head_equals_the_multi_head(preset_name, seed, dtype):
     preset = _multi(get_preset(preset_name))
     torch.manual_seed(seed)
     head = CenterHead(preset.head, 24).eval()
-    _random_bn(head, seed)
+    random_bn(head, seed)
     for m in head.modules():  # non-zero output biases, so a misplaced bias shows
         if isinstance(m, torch.nn.Conv2d) and m.bias is not None:
             torch.nn.init.normal_(m.bias)
