@@ -3,7 +3,7 @@
 This module is torch-free on purpose: the export manifest stores ``Preset.to_dict()`` and the vehicle runtime
 reads it back with ``Preset.from_dict`` without PyTorch.
 
-Three presets:
+The presets:
 
 - ``paper``: the numbers of the paper and of DESIGN.md (0.2 m pillars over [-51.2, 51.2] m, 0.5 m image voxels,
   c = 64, ResNet-50 + FPN at 1600 x 900, CenterPoint single head at output stride 4, top 500, 10 classes).
@@ -27,6 +27,8 @@ Three presets:
   image-side class loss of ``streamdet-train --image-class-weight``, in ``models/weights/small.json``).
 - ``small_v3_lite``: ``small_v3`` with a quarter-width ResNet-18 at 320 x 180: a lighter image lane for the
   phase-locked schedule (issue 22), the rest unchanged.
+- ``small_v3_thin``: ``small_v3_lite`` with half the BEV encoder's widths and 8-channel head branches: a slice net
+  light enough for a 2-core AVX2-only part at nuScenes rates (issue 22); camera lane and pillar net unchanged.
 
 Any LiDAR-only variant (``use_image=False``) may drop the quadrant crop (``slice_crop=False``: one whole-grid map
 per slice, the paper's baseline set-up; ``streamdet-train --no-image --no-crop``).
@@ -416,6 +418,21 @@ def _small_v3_lite() -> Preset:
     )
 
 
+def _small_v3_thin() -> Preset:
+    # small_v3_lite with a thinner slice net for 2-core AVX2-only parts at nuScenes rates (issue 22): the slice graph
+    # runs 160 times a second there, and small_v3_lite's needed more than one of the two cores (docs/replay.md "On an
+    # AVX2-only part"). Half the BEV encoder's widths and a head of 8 channels per branch: about a third of the slice
+    # graph's MACs. The camera lane (encoder, lifter) and the pillar net are small_v3_lite's, so a run can start from
+    # its weights (streamdet-train --init models/weights/small_lite.pt).
+    lite = _small_v3_lite()
+    return dataclasses.replace(
+        lite,
+        name="small_v3_thin",
+        bev=dataclasses.replace(lite.bev, num_filters=(16, 32, 64), num_upsample_filters=(16, 16, 16)),
+        head=dataclasses.replace(lite.head, head_channels=8),
+    )
+
+
 _PRESETS = {
     "paper": _paper,
     "small": _small,
@@ -423,6 +440,7 @@ _PRESETS = {
     "small_v2": _small_v2,
     "small_v3": _small_v3,
     "small_v3_lite": _small_v3_lite,
+    "small_v3_thin": _small_v3_thin,
 }
 
 

@@ -25,7 +25,7 @@ from streamdet.models.presets import (
 
 
 def test_preset_names():
-    assert preset_names() == ("paper", "small", "tiny", "small_v2", "small_v3", "small_v3_lite")
+    assert preset_names() == ("paper", "small", "tiny", "small_v2", "small_v3", "small_v3_lite", "small_v3_thin")
 
 
 def test_small_v3_lite_is_small_v3_with_a_lighter_image_encoder():
@@ -36,6 +36,21 @@ def test_small_v3_lite_is_small_v3_with_a_lighter_image_encoder():
     assert (lite.image.feature_width, lite.image.feature_height) == (80, 45)
     assert dataclasses.replace(lite, name="small_v3", image=v3.image) == v3  # nothing else differs
     assert Preset.from_dict(lite.to_dict()) == lite
+
+
+def test_small_v3_thin_is_small_v3_lite_with_a_thinner_slice_net():
+    import dataclasses
+
+    from streamdet.training.checkpoint import transferable_weights
+    from streamdet.models.detector import build_detector
+
+    lite, thin = get_preset("small_v3_lite"), get_preset("small_v3_thin")
+    assert (thin.bev.num_filters, thin.bev.num_upsample_filters, thin.head.head_channels) == ((16, 32, 64), (16, 16, 16), 8)
+    assert dataclasses.replace(thin, name="small_v3_lite", bev=lite.bev, head=lite.head) == lite  # nothing else differs
+    assert Preset.from_dict(thin.to_dict()) == thin
+    # a run can start from small_v3_lite's camera lane and pillar net (streamdet-train --init)
+    _, parts = transferable_weights(thin, lite.to_dict(), build_detector(lite).state_dict())
+    assert parts == ("image_encoder", "lifter", "slice_net.pillar_net")
 
 
 def test_unknown_preset_lists_known_ones():

@@ -284,10 +284,42 @@ def test_init_refuses_other_preset_and_resume_together(store, tmp_path):
         train(_config(steps=1), "unused", tmp_path / "x", init=first.weights, resume=tmp_path / "first" / "last.pt",
               store=store, echo=lambda m: None)  # fmt: skip
     obj = load_checkpoint(first.weights)
-    obj["preset"] = dict(obj["preset"], name="other")
+    obj["preset"] = dict(obj["preset"], name="other", channels=obj["preset"]["channels"] * 2)  # no part alike
     torch.save(obj, tmp_path / "other.pt")
-    with pytest.raises(ValueError, match="another preset"):
+    with pytest.raises(ValueError, match="another preset.*shares none"):
         train(_config(steps=1), "unused", tmp_path / "y", init=tmp_path / "other.pt", store=store, echo=lambda m: None)
+
+
+def test_init_from_another_preset_takes_the_parts_configured_alike(store, tmp_path):
+    """A checkpoint whose slice net differs (another BEV encoder): the camera lane and the pillar net come from it,
+    the BEV encoder and head from the seed; tensors of a part alike in config but not in shape are refused."""
+    torch.manual_seed(11)
+    source = build_detector(get_preset("tiny"))
+    obj = {"preset": dict(get_preset("tiny").to_dict(), name="wider"), "model": source.state_dict()}
+    obj["preset"]["bev"] = dict(obj["preset"]["bev"], num_filters=[16, 32])  # its slice net is another one
+    torch.save(obj, tmp_path / "wider.pt")
+    cfg = dataclasses.replace(_config(steps=1, lr=1e-9), seed=3)  # lr ~ 0: the weights stay where they started
+    said = []
+    run = train(cfg, "unused", tmp_path / "run", init=tmp_path / "wider.pt", store=store, echo=said.append)
+    fresh = train(cfg, "unused", tmp_path / "fresh", store=store, echo=lambda m: None)
+    got, ref = load_checkpoint(run.weights)["model"], load_checkpoint(fresh.weights)["model"]
+    src = source.state_dict()
+    params = dict(source.named_parameters())  # BatchNorm's running statistics move in the one step; weights do not
+    for part in ("image_encoder.", "lifter.", "slice_net.pillar_net."):
+        keys = [k for k in params if k.startswith(part)]
+        assert keys, part
+        for k in keys:
+            torch.testing.assert_close(got[k], src[k], atol=1e-6, rtol=0)
+    bev = [k for k in params if k.startswith("slice_net.bev_encoder.")]
+    assert bev
+    for k in bev:  # the seed's own, not the checkpoint's
+        torch.testing.assert_close(got[k], ref[k], atol=1e-6, rtol=0)
+    assert not all(torch.allclose(got[k], src[k]) for k in bev)
+    assert any("image_encoder, lifter, slice_net.pillar_net" in m and "'wider'" in m for m in said)
+    obj["model"]["lifter." + next(k[len("lifter."):] for k in src if k.startswith("lifter.") and src[k].ndim > 1)] = torch.zeros(1, 2)
+    torch.save(obj, tmp_path / "edited.pt")
+    with pytest.raises(ValueError, match="edited.pt"):
+        train(cfg, "unused", tmp_path / "edited", init=tmp_path / "edited.pt", store=store, echo=lambda m: None)
 
 
 def test_init_from_an_image_encoder_keeps_the_seeded_rest(store, tmp_path):

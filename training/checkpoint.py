@@ -99,6 +99,33 @@ def load_encoder_weights(detector: StreamDetector, path: str | os.PathLike) -> N
         raise ValueError(f"{path}: does not fit the detector's image encoder: {str(e).splitlines()[0]}") from None
 
 
+# The parts a checkpoint of another preset can hand over, each with the preset fields that fix its weights' shapes and
+# what its inputs mean: a slice net of new widths (e.g. small_v3_thin) starts from a trained camera lane.
+TRANSFERABLE_PARTS: dict[str, tuple[str, ...]] = {
+    "image_encoder": ("channels", "image"),
+    "lifter": ("channels", "grid", "image", "lifter"),
+    "slice_net.pillar_net": ("channels", "grid", "pillars"),
+}
+
+
+def transferable_weights(own: Preset, other: dict[str, Any], state: dict[str, torch.Tensor]) -> tuple[dict[str, torch.Tensor], tuple[str, ...]]:
+    """The tensors of ``state`` (a model state dict of preset ``other``, as ``Preset.to_dict()``) that a model of
+    preset ``own`` can load: every part of ``TRANSFERABLE_PARTS`` whose preset fields are equal in both, and
+    the names of those parts. A part whose fields match but whose tensors are missing is skipped (e.g. the image
+    encoder of a LiDAR-only checkpoint)."""
+    mine = own.to_dict()
+    weights: dict[str, torch.Tensor] = {}
+    parts = []
+    for part, fields in TRANSFERABLE_PARTS.items():
+        if any(mine.get(f) != other.get(f) for f in fields):
+            continue
+        found = {k: v for k, v in state.items() if k.startswith(part + ".")}
+        if found:
+            weights.update(found)
+            parts.append(part)
+    return weights, tuple(parts)
+
+
 def save_weights(path: str | os.PathLike, preset: Preset, model: StreamDetector, half: bool = False,
                  meta: dict[str, Any] | None = None) -> None:  # fmt: skip
     state = {k: (v.half() if half and v.is_floating_point() else v).clone() for k, v in model.state_dict().items()}

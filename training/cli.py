@@ -57,8 +57,9 @@ def _parse_slices(ctx, param, value: str) -> tuple[int, ...]:
                    "centre (cross-entropy; a training-only classifier, never exported). 0: off.")
 @click.option("--resume", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Continue from a last.pt written by this command.")
 @click.option("--init", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="Start from the weights of this checkpoint (same preset) with a fresh optimizer and schedule (fine-tuning), "
-                   "or from streamdet-train-image's encoder.pt (the image encoder; every other weight from --seed).")
+              help="Start from the weights of this checkpoint with a fresh optimizer and schedule: all of them for the same preset "
+                   "(fine-tuning); for another preset, the parts configured alike (image encoder, lifter, pillar net; the rest from "
+                   "--seed); or streamdet-train-image's encoder.pt (the image encoder; every other weight from --seed).")
 @click.option("--balanced", is_flag=True, help="Class-balanced (CBGS) resampling of the training samples.")
 @click.option("--workers", type=click.IntRange(min=0), default=0, show_default=True, help="DataLoader worker processes.")
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Seed of the weights and of the data order.")

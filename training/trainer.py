@@ -31,7 +31,15 @@ from torch.utils.data import DataLoader, DistributedSampler, Subset
 from streamdet.models.detector import build_detector
 from streamdet.models.presets import Preset, get_preset
 from streamdet.training.batching import Batch, Collator
-from streamdet.training.checkpoint import is_encoder_weights, load_checkpoint, load_encoder_weights, save_training_state, save_weights
+from streamdet.training.checkpoint import (
+    TRANSFERABLE_PARTS,
+    is_encoder_weights,
+    load_checkpoint,
+    load_encoder_weights,
+    save_training_state,
+    save_weights,
+    transferable_weights,
+)
 from streamdet.training.dataset import DataConfig, SliceDataset, SampleStore, build_store, class_balanced_indices
 from streamdet.training.distributed import DistContext, all_reduce_sum, convert_batchnorm, init_distributed
 from streamdet.training.image_class import image_class_loss_sum
@@ -267,8 +275,10 @@ def train(
     ``store`` skips reading the dataset (tests, or several runs over one store). ``resume`` continues a
     ``last.pt``: model, optimizer, scheduler and data position, so the continuation is the uninterrupted run's.
     ``init`` starts from the weights of a checkpoint of the same preset (``model.pt``, ``last.pt`` or shipped
-    weights) with a fresh optimizer and schedule: fine-tuning, or a second budget on top of a first; or from an image
-    encoder's weights (streamdet-train-image's ``encoder.pt``), every other weight initialised with the seed.
+    weights) with a fresh optimizer and schedule: fine-tuning, or a second budget on top of a first; from a checkpoint
+    of another preset, the parts whose configuration both share (``checkpoint.TRANSFERABLE_PARTS``: image encoder,
+    lifter, pillar net), every other weight initialised with the seed; or from an image encoder's weights
+    (streamdet-train-image's ``encoder.pt``), likewise.
     """
     if resume is not None and init is not None:
         raise ValueError("give either resume (continue a run) or init (start a new run from weights), not both")
@@ -346,13 +356,25 @@ def _load_init_weights(detector, preset: Preset, init: str | Path, say: Callable
         say(f"initialised the image encoder from {init}; every other weight from the seed")
         return
     state = load_checkpoint(init)
-    if state["preset"] != preset.to_dict():
-        raise ValueError(f"init checkpoint {init} holds another preset than {preset.name!r} (use_image={preset.use_image}, "
-                         f"slice_crop={preset.slice_crop})")  # fmt: skip
     own = detector.state_dict()
-    # shipped weights may be stored in float16: back to the model's own dtypes
-    detector.load_state_dict({k: v.to(own[k].dtype) if k in own else v for k, v in state["model"].items()})
-    say(f"initialised from the weights of {init}")
+    if state["preset"] == preset.to_dict():
+        # shipped weights may be stored in float16: back to the model's own dtypes
+        detector.load_state_dict({k: v.to(own[k].dtype) if k in own else v for k, v in state["model"].items()})
+        say(f"initialised from the weights of {init}")
+        return
+    # another preset: the parts whose configuration is the same (e.g. the camera lane under a new slice net)
+    weights, parts = transferable_weights(preset, state["preset"], state["model"])
+    if not parts:
+        raise ValueError(f"init checkpoint {init} holds another preset ({state['preset'].get('name')!r}) than {preset.name!r} "
+                         f"and shares none of its parts ({', '.join(TRANSFERABLE_PARTS)}) with it")  # fmt: skip
+    try:
+        detector.load_state_dict({k: v.to(own[k].dtype) if k in own else v for k, v in weights.items()}, strict=False)
+    except RuntimeError as e:  # a size mismatch despite equal configs: a checkpoint edited by hand
+        raise ValueError(f"init checkpoint {init}: {str(e).splitlines()[0]}") from None
+    unexpected = sorted(set(weights) - set(own))
+    if unexpected:
+        raise ValueError(f"init checkpoint {init}: tensors the model does not have: {', '.join(unexpected[:5])}")
+    say(f"initialised {', '.join(parts)} from {init} (preset {state['preset'].get('name')!r}); every other weight from the seed")
 
 
 def _schedule(config: TrainConfig, steps_per_epoch: int) -> tuple[OneCycle, str]:
