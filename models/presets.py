@@ -27,8 +27,9 @@ The presets:
   image-side class loss of ``streamdet-train --image-class-weight``, in ``models/weights/small.json``).
 - ``small_v3_lite``: ``small_v3`` with a quarter-width ResNet-18 at 320 x 180: a lighter image lane for the
   phase-locked schedule (issue 22), the rest unchanged.
-- ``small_v3_thin``: ``small_v3_lite`` with half the BEV encoder's widths and 8-channel head branches: a slice net
-  light enough for a 2-core AVX2-only part at nuScenes rates (issue 22); camera lane and pillar net unchanged.
+- ``small_v3_thin``: ``small_v3_lite`` with half the BEV encoder's widths and 8-channel head branches: a lighter
+  slice net for 2-core AVX2-only parts at nuScenes rates (issue 22); camera lane and pillar net unchanged. Trained
+  once and not bundled: it drops fewer slices there but scores lower (docs/replay.md, "A thinner slice net").
 
 Any LiDAR-only variant (``use_image=False``) may drop the quadrant crop (``slice_crop=False``: one whole-grid map
 per slice, the paper's baseline set-up; ``streamdet-train --no-image --no-crop``).
