@@ -357,9 +357,12 @@ def _load_init_weights(detector, preset: Preset, init: str | Path, say: Callable
         return
     state = load_checkpoint(init)
     own = detector.state_dict()
+
+    def own_dtypes(weights: dict) -> dict:  # shipped weights may be stored in float16: back to the model's own dtypes
+        return {k: v.to(own[k].dtype) if k in own else v for k, v in weights.items()}
+
     if state["preset"] == preset.to_dict():
-        # shipped weights may be stored in float16: back to the model's own dtypes
-        detector.load_state_dict({k: v.to(own[k].dtype) if k in own else v for k, v in state["model"].items()})
+        detector.load_state_dict(own_dtypes(state["model"]))
         say(f"initialised from the weights of {init}")
         return
     # another preset: the parts whose configuration is the same (e.g. the camera lane under a new slice net)
@@ -368,12 +371,11 @@ def _load_init_weights(detector, preset: Preset, init: str | Path, say: Callable
         raise ValueError(f"init checkpoint {init} holds another preset ({state['preset'].get('name')!r}) than {preset.name!r} "
                          f"and shares none of its parts ({', '.join(TRANSFERABLE_PARTS)}) with it")  # fmt: skip
     try:
-        detector.load_state_dict({k: v.to(own[k].dtype) if k in own else v for k, v in weights.items()}, strict=False)
+        unexpected = detector.load_state_dict(own_dtypes(weights), strict=False).unexpected_keys
     except RuntimeError as e:  # a size mismatch despite equal configs: a checkpoint edited by hand
         raise ValueError(f"init checkpoint {init}: {str(e).splitlines()[0]}") from None
-    unexpected = sorted(set(weights) - set(own))
     if unexpected:
-        raise ValueError(f"init checkpoint {init}: tensors the model does not have: {', '.join(unexpected[:5])}")
+        raise ValueError(f"init checkpoint {init}: tensors the model does not have: {', '.join(sorted(unexpected)[:5])}")
     say(f"initialised {', '.join(parts)} from {init} (preset {state['preset'].get('name')!r}); every other weight from the seed")
 
 
