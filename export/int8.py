@@ -1,6 +1,7 @@
 """int8 siblings of exported graphs, by concept (this module re-exports them all, as ``q8`` in the exporter):
 
 - ``int8_quantize``: static QDQ quantization of one graph (format, what stays float and why, ``quantize_graph``);
+- ``int8_rewrites``: the ONNX rewrites applied to a graph before it is quantized (same function, faster int8);
 - ``int8_data``: the real calibration inputs (samples of a dataset or the bundled sample, each graph's feeds as
   the fp32 export's runtime records them);
 - ``int8_parity``: int8 against fp32 (relative L2 of every output, boxes paired by label and centre), from the
@@ -44,10 +45,10 @@ from streamdet.export.int8_quantize import (
     Int8Config,
     QuantizedGraph,
     float_nodes,
-    normalisation_as_batchnorm,
     quantize_graph,
     quantized_ops,
 )
+from streamdet.export.int8_rewrites import normalisation_as_batchnorm, transposed_convs_as_depth_to_space
 
 __all__ = [
     "ACTIVATION_TYPE", "BOX_SCORE_THRESHOLD", "BUNDLED_SOURCE", "DEFAULT_CALIBRATION_SAMPLES", "HEAD_OUTPUT_NOTE",
@@ -55,7 +56,7 @@ __all__ = [
     "Feeds", "Int8CalibrationDataError", "Int8Config", "Int8Parity", "QuantizedGraph", "_slice_parity",
     "box_agreement", "dataset_version", "dense_parity", "float_nodes", "int8_parity", "load_calibration_samples",
     "normalisation_as_batchnorm", "pair_boxes", "quantize_graph", "quantized_ops", "record_graph_inputs",
-    "relative_l2",
+    "relative_l2", "transposed_convs_as_depth_to_space",
 ]  # fmt: skip
 
 

@@ -30,7 +30,7 @@ What stays float, and why (``float_nodes``):
   few centimetres and reflectance in 0..1; one uint8 scale per tensor (0.4 m steps) would erase all but x and y.
   The PointNet is a single 11-input linear layer, which int8 would not speed up.
 - image encoder, the input normalisation (cast, scale, shift of the full image), rewritten as one float
-  BatchNormalization (``normalisation_as_batchnorm``, bit-identical in fp32). onnxruntime runs the int8 convolutions
+  BatchNormalization (``normalisation_as_batchnorm``, export/int8_rewrites.py, bit-identical in fp32). onnxruntime runs the int8 convolutions
   in NHWC and moves the graph's NHWC -> NCHW transpose of the image past the Mul and Add, which then broadcast
   their per-channel constants over the innermost axis of size 3: slow in float, slower quantized, while the
   BatchNormalization (which the transpose is not moved past) costs next to nothing.
@@ -44,8 +44,11 @@ What stays float, and why (``float_nodes``):
   rows, K = 2 times the volume, are dequantized before the sum. Measured, that costs what the float gather,
   weighting and sum with one QuantizeLinear of the volume cost, and quantizing the features before the camera
   average adds error, so the gather stays float and the volume is quantized once, before the first 3D convolution.
-- ConvTranspose (the BEV encoder's upsampling): onnxruntime has no QDQ ConvTranspose; it runs in float between a
-  DequantizeLinear and a QuantizeLinear.
+- ConvTranspose (the BEV encoder's upsampling) does not stay: onnxruntime runs it in float NCHW between a
+  DequantizeLinear and a QuantizeLinear, so before quantizing, every ConvTranspose whose kernel equals its stride
+  becomes the 1x1 Conv + DepthToSpace it equals (``transposed_convs_as_depth_to_space``, export/int8_rewrites.py),
+  which run in int8 (QLinearConv, uint8 DepthToSpace). Only the int8 graph: the fp32 slice graph measured faster
+  with the ConvTranspose (benchmarks/RESULTS.md, "Upsampling as DepthToSpace in the int8 slice graph").
 """
 
 from __future__ import annotations
@@ -58,12 +61,12 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 import onnx
-from onnx import numpy_helper
 from onnxruntime.quantization import CalibrationDataReader, CalibrationMethod, QuantFormat, QuantType, quantize_static
 from onnxruntime.quantization.shape_inference import quant_pre_process
 
+from streamdet.export.int8_rewrites import first_node as _first
+from streamdet.export.int8_rewrites import normalisation_as_batchnorm, transposed_convs_as_depth_to_space
 from streamdet.export.onnx_export import heatmap_producers, is_decode_node, upstream_to_convs
 from streamdet.runtime_ort.recording import Feeds
 
@@ -104,63 +107,12 @@ def _ancestors(model: onnx.ModelProto, tensor: str) -> set[str]:
     return found
 
 
-def _first(model: onnx.ModelProto, op_type: str) -> onnx.NodeProto:
-    nodes = [n for n in model.graph.node if n.op_type == op_type]
-    if not nodes:
-        raise ValueError(f"the graph has no {op_type} node")
-    return nodes[0]  # graphs are topologically sorted
-
-
 def _head_outputs(model: onnx.ModelProto) -> set[str]:
     """The last layers of the head: nodes from the decode's inputs upstream to (and including) the first Conv. A
     path ends at a ReLU: past it are hidden features, which the peak head (models/peak_head.py) hands to the decode
     to compute the regression outputs at the peaks in float, quantized like the rest of the head."""
     decode_inputs = [i for n in model.graph.node if is_decode_node(n) for i in n.input]
     return set(upstream_to_convs(model, decode_inputs, stop_ops=("Relu",)))
-
-
-def _constant(model: onnx.ModelProto, name: str) -> np.ndarray | None:
-    for t in model.graph.initializer:
-        if t.name == name:
-            return numpy_helper.to_array(t)
-    for n in model.graph.node:
-        if n.op_type == "Constant" and n.output[0] == name:
-            return numpy_helper.to_array(n.attribute[0].t)
-    return None
-
-
-def normalisation_as_batchnorm(model: onnx.ModelProto) -> bool:
-    """Rewrite the encoder's input normalisation ``Add(Mul(x, scale), shift)`` with (1, C, 1, 1) constants before
-    the first Conv into one BatchNormalization (mean 0, variance 1, epsilon 0: the same arithmetic). In place;
-    False when there is no such pair. See the module doc for why."""
-    first = _first(model, "Conv")
-    producer = {o: n for n in model.graph.node for o in n.output}
-    add = producer.get(first.input[0])
-    mul = producer.get(add.input[0]) if add is not None and add.op_type == "Add" else None
-    if mul is None or mul.op_type != "Mul":
-        return False
-    scale, shift = _constant(model, mul.input[1]), _constant(model, add.input[1])
-    per_channel = lambda a: a is not None and a.ndim == 4 and a.shape[0] == a.shape[2] == a.shape[3] == 1  # noqa: E731
-    if not (per_channel(scale) and per_channel(shift) and scale.shape == shift.shape):
-        return False
-    users = [n for n in model.graph.node if mul.output[0] in n.input]
-    if users != [add]:
-        return False
-    c = scale.shape[1]  # (1, C, 1, 1)
-    names = [f"{first.name}/input_norm_{k}" for k in ("scale", "shift", "mean", "var")]
-    values = [scale.reshape(c), shift.reshape(c), np.zeros(c), np.ones(c)]
-    model.graph.initializer.extend(numpy_helper.from_array(v.astype(np.float32), n) for n, v in zip(names, values))
-    bn = onnx.helper.make_node("BatchNormalization", [mul.input[0], *names], [add.output[0]], epsilon=0.0,
-                               name=f"{first.name}/input_norm")  # fmt: skip
-    nodes = [bn if n is mul else n for n in model.graph.node if n is not add]
-    used = {i for n in nodes for i in n.input}
-    nodes = [n for n in nodes if not (n.op_type == "Constant" and n.output[0] not in used)]
-    del model.graph.node[:]
-    model.graph.node.extend(nodes)
-    inits = [t for t in model.graph.initializer if t.name in used]
-    del model.graph.initializer[:]
-    model.graph.initializer.extend(inits)
-    return True
 
 
 def float_nodes(graph: str, model: onnx.ModelProto, cfg: Int8Config = Int8Config()) -> dict[str, str]:
@@ -227,7 +179,9 @@ def quantize_graph(
         with _quiet_quantizer():
             quant_pre_process(str(src), str(pre))
             model = onnx.load(str(pre))
-            if graph == "image_encoder" and normalisation_as_batchnorm(model):
+            rewritten = graph == "image_encoder" and normalisation_as_batchnorm(model)
+            rewritten = transposed_convs_as_depth_to_space(model) > 0 or rewritten
+            if rewritten:
                 onnx.save_model(model, str(pre))
             keep = float_nodes(graph, model, cfg)
             quantize_static(
