@@ -60,6 +60,14 @@ def _parse_slices(ctx, param, value: str) -> tuple[int, ...]:
               help="Start from the weights of this checkpoint with a fresh optimizer and schedule: all of them for the same preset "
                    "(fine-tuning); for another preset, the parts configured alike (image encoder, lifter, pillar net; the rest from "
                    "--seed); or streamdet-train-image's encoder.pt (the image encoder; every other weight from --seed).")
+@click.option("--teacher", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Distil from this trained detector (model.pt, last.pt or shipped weights; any preset whose head makes the same "
+                   "maps): its heatmap and boxes become soft targets beside the labels (training/distill.py).")
+@click.option("--distill-weight", type=click.FloatRange(min=0), default=1.0, show_default=True,
+              help="Weight of the distillation loss beside the CenterPoint loss (with --teacher).")
+@click.option("--freeze-camera-lane", is_flag=True,
+              help="Keep the image encoder and lifter as --init gave them (no gradient, fixed BatchNorm statistics); with a "
+                   "--teacher of the same camera lane one lift per step serves both.")
 @click.option("--balanced", is_flag=True, help="Class-balanced (CBGS) resampling of the training samples.")
 @click.option("--workers", type=click.IntRange(min=0), default=0, show_default=True, help="DataLoader worker processes.")
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Seed of the weights and of the data order.")
@@ -75,7 +83,8 @@ def _parse_slices(ctx, param, value: str) -> tuple[int, ...]:
 @click.option("--checkpoint-every", type=click.IntRange(min=1), default=200, show_default=True, help="Steps between rewrites of last.pt.")
 def main(data_dir: Path, version: str, out_dir: Path, preset: str, steps: int | None, epochs: int, batch_size: int,
          lr: float, num_slices: tuple[int, ...], max_slices_per_sample: int | None, no_image: bool, no_crop: bool, camera_mode: str,
-         image_warmup: float, image_class_weight: float, resume: Path | None, init: Path | None, balanced: bool, workers: int, seed: int, max_minutes: float | None, amp: str,
+         image_warmup: float, image_class_weight: float, resume: Path | None, init: Path | None, teacher: Path | None, distill_weight: float,
+         freeze_camera_lane: bool, balanced: bool, workers: int, seed: int, max_minutes: float | None, amp: str,
          cache_dir: Path | None, device: str | None, log_every: int, checkpoint_every: int) -> None:  # fmt: skip
     """Train the streaming camera + LiDAR detector (or its LiDAR-only baseline) with CenterPoint targets."""
     if not (data_dir / version).is_dir():
@@ -84,6 +93,10 @@ def main(data_dir: Path, version: str, out_dir: Path, preset: str, steps: int | 
         raise click.ClickException(f"--resume {resume} does not exist")
     if init is not None and not init.is_file():
         raise click.ClickException(f"--init {init} does not exist")
+    if teacher is not None and not teacher.is_file():
+        raise click.ClickException(f"--teacher {teacher} does not exist")
+    if freeze_camera_lane and init is None and resume is None:
+        raise click.ClickException("--freeze-camera-lane keeps the camera lane --init gives: add --init WEIGHTS")
     if init is not None and resume is not None:
         raise click.ClickException("--init and --resume exclude each other: --resume continues a run, --init starts one from weights")
     if steps is None and epochs is None and max_minutes is None:
@@ -92,7 +105,8 @@ def main(data_dir: Path, version: str, out_dir: Path, preset: str, steps: int | 
         config = TrainConfig(
             preset=preset, use_image=not no_image, slice_crop=not no_crop, steps=steps, epochs=epochs, batch_size=batch_size, lr=lr, amp=amp,
             image_warmup=image_warmup, image_class_weight=image_class_weight, balanced=balanced, workers=workers, seed=seed, max_minutes=max_minutes, log_every=log_every,
-            checkpoint_every=checkpoint_every,
+            checkpoint_every=checkpoint_every, teacher=str(teacher) if teacher is not None else None,
+            distill_weight=distill_weight, freeze_camera_lane=freeze_camera_lane,
             data=DataConfig(num_slices=num_slices, max_slices_per_sample=max_slices_per_sample, camera_mode=camera_mode),
         )  # fmt: skip
     except ValueError as e:

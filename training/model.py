@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from contextlib import nullcontext
+
+import torch
 from torch import Tensor, nn
 
 from streamdet.core.classes import CLASS_NAMES
@@ -10,20 +13,39 @@ from streamdet.models.heads import HeadMaps
 from streamdet.training.batching import Batch
 from streamdet.training.image_class import ImageBevClassifier, centre_cells
 
+CAMERA_LANE = ("image_encoder", "lifter")  # the StreamDetector parts that make the image BEV
+
 
 class TrainingModel(nn.Module):
     """``forward(batch) -> (list of HeadMaps, image class logits or None)``: one HeadMaps per head task
     (``CenterHead.forward_tasks``), each map (Qm, ch, Hh, Wh) over the batch's stacked slice maps; with
     ``image_classifier`` and the image lane on, the logits (N, num_classes) of the batch's N objects read from the
     image BEV at their centres (``training/image_class.py``). ``detector`` is the StreamDetector that is exported;
-    the classifier is training-only."""
+    the classifier is training-only.
 
-    def __init__(self, detector: StreamDetector, image_classifier: bool = False) -> None:
+    ``freeze_camera_lane``: the image encoder and lifter keep their weights (no gradient) and their BatchNorm
+    statistics (eval mode whatever ``train()`` says), and lift without building a graph: a new slice net learns to
+    read a camera lane trained before.
+    """
+
+    def __init__(self, detector: StreamDetector, image_classifier: bool = False, freeze_camera_lane: bool = False) -> None:
         super().__init__()
         self.detector = detector
         if image_classifier and not detector.preset.use_image:
             raise ValueError("the image-BEV class loss needs the image lane (the preset has use_image=False)")
+        if freeze_camera_lane and not detector.preset.use_image:
+            raise ValueError("freeze_camera_lane needs the image lane (the preset has use_image=False)")
         self.image_classifier = ImageBevClassifier(detector.preset.channels, len(CLASS_NAMES)) if image_classifier else None
+        self.frozen = tuple(getattr(detector, part) for part in CAMERA_LANE) if freeze_camera_lane else ()
+        for module in self.frozen:
+            module.requires_grad_(False)
+            module.eval()
+
+    def train(self, mode: bool = True) -> "TrainingModel":
+        super().train(mode)
+        for module in self.frozen:
+            module.eval()
+        return self
 
     @property
     def task_classes(self) -> tuple[tuple[int, ...], ...]:
@@ -36,12 +58,15 @@ class TrainingModel(nn.Module):
         d = self.detector
         if not (d.preset.use_image and use_image):
             return None
-        lifted = d.image_bev(batch.images, batch.lut_index, batch.lut_weight)  # (L, C, Yq, Xq)
+        with torch.no_grad() if self.frozen else nullcontext():
+            lifted = d.image_bev(batch.images, batch.lut_index, batch.lut_weight)  # (L, C, Yq, Xq)
         return lifted.index_select(0, batch.map_source)  # (Qm, C, Yq, Xq)
 
-    def forward(self, batch: Batch, use_image: bool = True) -> tuple[list[HeadMaps], Tensor | None]:
+    def forward(self, batch: Batch, use_image: bool = True, lifted: Tensor | None = None) -> tuple[list[HeadMaps], Tensor | None]:
+        """``lifted``: the batch's image BEV (Qm, C, Yq, Xq) when it was computed already (a frozen camera lane
+        shared with a distillation teacher, training/distill.py); None: lift it here."""
         net = self.detector.slice_net
-        image_bev = self.image_bev(batch, use_image)
+        image_bev = lifted if lifted is not None and use_image else self.image_bev(batch, use_image)
         bev = net.fused_bev(batch.pillar_features, batch.pillar_mask, batch.pillar_index, image_bev, num_quadrants=batch.num_maps)
         task_maps = net.head.forward_tasks(bev)
         if self.image_classifier is None or image_bev is None:

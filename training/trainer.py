@@ -41,6 +41,7 @@ from streamdet.training.checkpoint import (
     transferable_weights,
 )
 from streamdet.training.dataset import DataConfig, SliceDataset, SampleStore, build_store, class_balanced_indices
+from streamdet.training.distill import DistillConfig, Teacher, distill_loss
 from streamdet.training.distributed import DistContext, all_reduce_sum, convert_batchnorm, init_distributed
 from streamdet.training.image_class import image_class_loss_sum
 from streamdet.training.losses import CenterPointLoss, LossConfig, loss_terms
@@ -84,6 +85,14 @@ class TrainConfig:
     checkpoint_every: int = 200  # steps between last.pt rewrites
     data: DataConfig = field(default_factory=DataConfig)
     loss: LossConfig = field(default_factory=LossConfig)
+    # Distillation (training/distill.py): a trained detector's weights whose head's responses become soft targets
+    # beside the labels (None: off), that loss's weight beside the CenterPoint loss, and its terms.
+    teacher: str | None = None
+    distill_weight: float = 1.0
+    distill: DistillConfig = field(default_factory=DistillConfig)
+    # Keep the image encoder and lifter as --init gave them (no gradient, fixed BatchNorm statistics): a new slice
+    # net learns to read a trained camera lane; with a teacher of the same camera lane one lift serves both.
+    freeze_camera_lane: bool = False
 
     def __post_init__(self) -> None:
         get_preset(self.preset)  # raises for an unknown name
@@ -121,6 +130,12 @@ class TrainConfig:
             raise ValueError(f"TrainConfig.amp must be one of {AMP_MODES}, got {self.amp!r}")
         if self.max_minutes is not None and not self.max_minutes > 0:
             raise ValueError(f"TrainConfig.max_minutes must be > 0, got {self.max_minutes!r}")
+        if self.teacher is not None and (not isinstance(self.teacher, str) or not self.teacher):
+            raise ValueError(f"TrainConfig.teacher must be None or a path, got {self.teacher!r}")
+        if not (isinstance(self.distill_weight, (int, float)) and math.isfinite(self.distill_weight) and self.distill_weight >= 0):
+            raise ValueError(f"TrainConfig.distill_weight must be a number >= 0, got {self.distill_weight!r}")
+        if self.freeze_camera_lane and not self.use_image:
+            raise ValueError("freeze_camera_lane needs the image lane: drop --no-image or --freeze-camera-lane")
 
     def build_preset(self) -> Preset:
         return dataclasses.replace(get_preset(self.preset), use_image=self.use_image, slice_crop=self.slice_crop)
@@ -132,6 +147,11 @@ class TrainConfig:
             del d["slice_crop"]
         if self.image_class_weight == 0:
             del d["image_class_weight"]
+        if self.teacher is None:
+            for k in ("teacher", "distill_weight", "distill"):
+                del d[k]
+        if not self.freeze_camera_lane:
+            del d["freeze_camera_lane"]
         return d
 
 
@@ -217,6 +237,8 @@ class _TrainRun:
     scaler: torch.amp.GradScaler
     warmup: bool  # the image lane trains only after config.image_warmup of the schedule
     t_start: float
+    teacher: Teacher | None = None
+    shared_lane: bool = False  # the frozen camera lane is the teacher's: one lift per step serves both
     epoch: int = 0
     epoch_step: int = 0  # batches of `epoch` done
     elapsed_before: float = 0.0  # training seconds of the run this one resumes
@@ -278,13 +300,20 @@ def train(
     weights) with a fresh optimizer and schedule: fine-tuning, or a second budget on top of a first; from a checkpoint
     of another preset, the parts whose configuration both share (``checkpoint.TRANSFERABLE_PARTS``: image encoder,
     lifter, pillar net), every other weight initialised with the seed; or from an image encoder's weights
-    (streamdet-train-image's ``encoder.pt``), likewise.
+    (streamdet-train-image's ``encoder.pt``), likewise. ``config.teacher`` adds the distillation loss of that
+    detector's responses (training/distill.py); ``config.freeze_camera_lane`` keeps ``init``'s camera lane.
     """
     if resume is not None and init is not None:
         raise ValueError("give either resume (continue a run) or init (start a new run from weights), not both")
+    if config.freeze_camera_lane and init is None and resume is None:
+        raise ValueError("freeze_camera_lane keeps the camera lane as initialised: give init (the weights to keep)")
     run = _set_up(config, data_dir, out_dir, version, init, cache_dir, device, store, echo)
     if resume is not None:
         _restore(run, resume)
+    if run.teacher is not None:
+        run.shared_lane = config.freeze_camera_lane and run.teacher.shares_camera_lane(run.detector)
+        run.say(f"distilling from {config.teacher} (preset {run.teacher.preset.name!r}, weight {config.distill_weight:g})"
+                + ("; the frozen camera lane is the teacher's: one lift per step for both" if run.shared_lane else ""))  # fmt: skip
     _write_config(run, data_dir, init)
     log_file = open(run.out_dir / "metrics.jsonl", "a" if resume is not None else "w") if run.ctx.is_main else None
     n_params = sum(p.numel() for p in run.model.parameters())
@@ -335,18 +364,21 @@ def _set_up(config: TrainConfig, data_dir: str | Path, out_dir: str | Path, vers
         _load_init_weights(detector, preset, init, say)
     if ctx.initialised and ctx.world_size > 1:
         convert_batchnorm(detector)
-    model = TrainingModel(detector, image_classifier=config.image_class_weight > 0).to(device).train()
+    model = TrainingModel(detector, image_classifier=config.image_class_weight > 0,
+                          freeze_camera_lane=config.freeze_camera_lane).to(device).train()  # fmt: skip
+    teacher = Teacher(config.teacher, preset, device) if config.teacher is not None else None
     warmup = preset.use_image and config.image_warmup > 0
     # During the warm-up the image lane gets no gradient; DDP must then look for unused parameters.
     wrapped = DistributedDataParallel(model, find_unused_parameters=warmup) if ctx.initialised and ctx.world_size > 1 else model
-    optimizer = torch.optim.AdamW(model.parameters(), lr=config.lr / config.div_factor, weight_decay=config.weight_decay)
+    trained = [p for p in model.parameters() if p.requires_grad]  # not a frozen camera lane
+    optimizer = torch.optim.AdamW(trained, lr=config.lr / config.div_factor, weight_decay=config.weight_decay)
     schedule, plan = _schedule(config, len(loader))
     amp, use_scaler = _amp_context(config.amp, device)
     return _TrainRun(
         config=config, preset=preset, out_dir=Path(out_dir), device=device, ctx=ctx, say=say, dataset=dataset,
         loader=loader, sampler=sampler, detector=detector, model=model, wrapped=wrapped, optimizer=optimizer,
         schedule=schedule, plan=plan, criterion=CenterPointLoss(config.loss).to(device), amp=amp,
-        scaler=torch.amp.GradScaler("cuda", enabled=use_scaler), warmup=warmup, t_start=t_start,
+        scaler=torch.amp.GradScaler("cuda", enabled=use_scaler), warmup=warmup, t_start=t_start, teacher=teacher,
     )  # fmt: skip
 
 
@@ -399,6 +431,12 @@ def _restore(run: _TrainRun, resume: str | Path) -> None:
     if state["preset"] != preset.to_dict():
         raise ValueError(f"checkpoint {resume} was trained with another preset than {preset.name!r} (use_image={preset.use_image}, "
                          f"slice_crop={preset.slice_crop})")  # fmt: skip
+    was, now = state.get("config", {}), run.config.to_dict()
+    same_file = lambda a, b: a == b or (a is not None and b is not None and Path(a).resolve() == Path(b).resolve())  # noqa: E731
+    if not same_file(was.get("teacher"), now.get("teacher")) or was.get("freeze_camera_lane") != now.get("freeze_camera_lane"):
+        raise ValueError(f"checkpoint {resume} was trained with teacher={was.get('teacher')!r}, freeze_camera_lane="
+                         f"{bool(was.get('freeze_camera_lane'))}: resume it with the same (given teacher={now.get('teacher')!r}, "
+                         f"freeze_camera_lane={run.config.freeze_camera_lane})")  # fmt: skip
     run.detector.load_state_dict(state["model"])
     classifier = run.model.image_classifier
     if (classifier is not None) != ("image_classifier" in state):
@@ -476,12 +514,19 @@ def _loop(run: _TrainRun, log_file) -> tuple[bool, float]:
 
 def _step(run: _TrainRun, batch: Batch, use_image: bool) -> tuple[torch.Tensor, dict]:
     """One optimizer step on one batch: forward, loss over the global batch, backward, clipped update."""
+    lifted = run.model.image_bev(batch, use_image) if run.shared_lane else None  # frozen: no graph, read by both
     with run.amp:
-        task_maps, image_logits = run.wrapped(batch, use_image=use_image)
-    terms = loss_terms([tuple(m.float() for m in maps) for maps in task_maps], run.model.task_classes,
-                       batch.heatmap, batch.index, batch.mask, batch.label, batch.box)  # fmt: skip
+        task_maps, image_logits = run.wrapped(batch, use_image=use_image, lifted=lifted)
+    task_maps = [tuple(m.float() for m in maps) for maps in task_maps]
+    terms = loss_terms(task_maps, run.model.task_classes, batch.heatmap, batch.index, batch.mask, batch.label, batch.box)
     counts = all_reduce_sum(terms.num_objects, run.ctx)
     loss, parts = run.criterion(terms, counts, scale=float(run.ctx.world_size))
+    if run.teacher is not None:
+        with run.amp:
+            teacher_maps = run.teacher.maps(batch, use_image, lifted)
+        distill, distill_parts = distill_loss(task_maps, teacher_maps, counts, run.criterion.code_weights, run.config.distill)
+        loss = loss + run.config.distill_weight * distill * float(run.ctx.world_size)
+        parts.update(distill_parts)
     if image_logits is not None:
         # per object, normalised by the global batch's object count like the heatmap term (every object is in
         # exactly one task, so the tasks' counts sum to it)
