@@ -514,8 +514,8 @@ def _loop(run: _TrainRun, log_file) -> tuple[bool, float]:
 
 def _step(run: _TrainRun, batch: Batch, use_image: bool) -> tuple[torch.Tensor, dict]:
     """One optimizer step on one batch: forward, loss over the global batch, backward, clipped update."""
-    lifted = run.model.image_bev(batch, use_image) if run.shared_lane else None  # frozen: no graph, read by both
     with run.amp:
+        lifted = run.model.image_bev(batch, use_image) if run.shared_lane else None  # frozen: no graph, read by both
         task_maps, image_logits = run.wrapped(batch, use_image=use_image, lifted=lifted)
     task_maps = [tuple(m.float() for m in maps) for maps in task_maps]
     terms = loss_terms(task_maps, run.model.task_classes, batch.heatmap, batch.index, batch.mask, batch.label, batch.box)
