@@ -33,6 +33,7 @@ from streamdet.calibration.lut import Lut
 from streamdet.calibration.quadrant_lut import quadrant_lut
 from streamdet.core.lut_layout import LUT_SLOTS
 from streamdet.runtime_ort.manifest import read_manifest
+from streamdet.runtime_ort.onnx_build import make_model
 from streamdet.benchmarks.timing import ort_session
 
 OPSET = 17
@@ -99,7 +100,7 @@ def _model(nodes: list, inits: list, channels: int) -> onnx.ModelProto:
         nodes, "lut_gather", [helper.make_tensor_value_info("table", TensorProto.FLOAT, ["R", channels])],
         [helper.make_tensor_value_info("volume", TensorProto.FLOAT, ["V", channels])], inits,
     )  # fmt: skip
-    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)])
+    model = make_model(graph, [helper.make_opsetid("", OPSET)])
     onnx.checker.check_model(model)
     return model
 

@@ -18,6 +18,7 @@ import onnx
 import onnxruntime as ort
 from onnx import TensorProto, helper
 
+from streamdet.runtime_ort.onnx_build import make_model
 from streamdet.runtime_ort.sessions import GraphSession, SessionConfig
 
 
@@ -85,7 +86,7 @@ def matmul_model(n: int) -> onnx.ModelProto:
     b = helper.make_tensor_value_info("b", TensorProto.FLOAT, [n, n])
     c = helper.make_tensor_value_info("c", TensorProto.FLOAT, [n, n])
     graph = helper.make_graph([helper.make_node("MatMul", ["a", "b"], ["c"], name="probe")], "peak_probe", [a, b], [c])
-    return helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    return make_model(graph, [helper.make_opsetid("", 17)])
 
 
 def measure_peak(threads: int, config: ProbeConfig = ProbeConfig()) -> ProbeResult:

@@ -25,6 +25,8 @@ import numpy as np
 import onnx
 from onnx import TensorProto, helper, numpy_helper
 
+from streamdet.runtime_ort.onnx_build import make_model
+
 OPSET = 17
 
 
@@ -112,7 +114,7 @@ def term_graph(weight: np.ndarray, channels: int, feature_hw: tuple[int, int], h
         inputs = [features, helper.make_tensor_value_info("slots", TensorProto.INT64, ["N", "J"]),
                   helper.make_tensor_value_info("weights", TensorProto.FLOAT, ["N", "J"])]  # fmt: skip
     graph = helper.make_graph(nodes, "lifter_term", inputs, [helper.make_tensor_value_info("term", TensorProto.FLOAT, ["N", c_out])], inits)
-    model = helper.make_model(graph, opset_imports=opsets)
+    model = make_model(graph, opsets)
     onnx.checker.check_model(model)
     return model
 
@@ -172,7 +174,7 @@ def tail_graph(lifter: onnx.ModelProto, cut: str, shape: tuple[int, int, int], b
          helper.make_tensor_value_info("cells", TensorProto.INT64, ["M", 1])], list(tail.graph.output),
         inits + list(tail.graph.initializer),
     )  # fmt: skip
-    model = helper.make_model(graph, opset_imports=list(lifter.opset_import))
+    model = make_model(graph, lifter.opset_import)
     try:
         onnx.checker.check_model(model)
     except onnx.checker.ValidationError as e:  # e.g. the rest of the graph reads the lifter's inputs again
