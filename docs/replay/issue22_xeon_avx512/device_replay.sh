@@ -1,0 +1,30 @@
+#!/usr/bin/env bash
+# Device run: the issue-22 replay A/B (full vs phase-locked, int8 image lane and slices, nuScenes rates) pinned to
+# two cores of the device host's CPU. Everything it makes goes to /tmp; $OUT gets cpu.txt, run.log, ab.tar.gz.
+set -uo pipefail
+export PYTHONUNBUFFERED=1 PYTHONSAFEPATH=1  # the checkout's streamdet/ folder must not shadow the installed package
+PY=${PY:-python3}; SCENES=${SCENES:-8}; ROUNDS=${ROUNDS:-2}; WORK=${WORK:-/tmp/dev}
+mkdir -p "$WORK/bin" "$OUT"
+{ lscpu; grep -m1 flags /proc/cpuinfo; nproc; $PY -c "import onnxruntime,numpy,cv2,click;print('ort',onnxruntime.__version__,'numpy',numpy.__version__,'cv2',cv2.__version__)"; } > "$OUT/cpu.txt" 2>&1
+$PY -m pip install -q --no-deps --no-build-isolation --no-compile --target "$WORK/sd" . > "$WORK/install.log" 2>&1 || { cat "$WORK/install.log"; exit 1; }
+export PYTHONPATH="$WORK/sd"
+rm -f "$WORK/bin/python"; printf '#!/bin/sh\nexec %s "$@"\n' "$(command -v $PY)" > "$WORK/bin/python"; chmod +x "$WORK/bin/python"  # a link would lose a venv's site-packages
+for s in streamdet-replay streamdet-synth; do ln -sf "$WORK/sd/bin/$s" "$WORK/bin/$s"; done
+sed -i "1s|.*|#!$(command -v $PY)|" "$WORK"/sd/bin/streamdet-*
+# two logical CPUs on different physical cores: cpu0 and the first CPU that is not its SMT sibling
+SIB=$(cat /sys/devices/system/cpu/cpu0/topology/thread_siblings_list)
+SECOND=$($PY -c "
+import sys
+def expand(s):
+    out=set()
+    for part in s.split(','):
+        a,_,b=part.partition('-'); out.update(range(int(a),int(b or a)+1))
+    return out
+sib=expand('$SIB'); import os
+print(min(c for c in os.sched_getaffinity(0) if c not in sib))")
+CPUS="0,$SECOND"; echo "pinned to CPUs $CPUS (cpu0 siblings: $SIB)" | tee -a "$OUT/cpu.txt"
+date; time "$WORK/bin/streamdet-synth" generate --out "$WORK/synth20" --scenes "$SCENES" --seed 11 --resolution 480x270 --sweeps-per-sample 10 --workers "$SCENES" --overwrite > "$WORK/synth.log" 2>&1 || { tail "$WORK/synth.log"; exit 1; }
+date; DATA="$WORK/synth20" BIN="$WORK/bin" taskset -c "$CPUS" benchmarks/replay_ab.sh "$WORK/ab" "$ROUNDS" "1" \
+  ${VARIANTS:-lite_full=.dev/export_lite,full,on,,int8 lite_pl=.dev/export_lite,phase-locked,on,,int8}
+date; cat "$WORK/ab/table.md"; cp "$WORK"/ab/r*_scale*.txt "$OUT"/ 2>/dev/null
+tar czf "$OUT/ab.tar.gz" -C "$WORK" ab
