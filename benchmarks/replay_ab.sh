@@ -15,6 +15,9 @@
 # OUT/r<round>_scale<S>_<label>.txt, OUT/variants.txt, OUT/probes_gflops.txt, OUT/staleness_cdf.png and OUT/table.md (benchmarks/replay_table.py: one row per
 # scale and variant, one value per round in each cell). Run it on a quiet machine.
 set -euo pipefail
+# python -c / -m put the working directory first on sys.path, where the checkout's streamdet/ folder would shadow
+# a non-editable install of the package (Python >= 3.11 honours this; older ones ignore it)
+export PYTHONSAFEPATH=1
 OUT=${1:?OUT}; ROUNDS=${2:?ROUNDS}; SCALES=${3:?SCALES}; shift 3
 [ $# -ge 1 ] || { echo "give at least one LABEL=EXPORT_DIR,SCHEDULE,TERMS[,CODE[,SLICES[,NICE[,IMAGE_THREADS]]]]" >&2; exit 2; }
 BIN=${BIN:-.venv/bin}

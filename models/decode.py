@@ -84,7 +84,12 @@ def boxes_at_peaks(at_peaks: Tensor, row: Tensor, col: Tensor, cell_m: float) ->
     x = (col.to(r.dtype) + 0.5 + r[:, 0]) * cell_m  # (Q, K)
     y = (row.to(r.dtype) + 0.5 + r[:, 1]) * cell_m
     size = log_size.exp()  # (Q, 3, K): w, l, h
-    yaw = torch.atan2(sc[:, 0], sc[:, 1])
+    sin = sc[:, 0]  # (Q, K)
+    cos = sc[:, 1]
+    # ONNX has no Atan2: the exporter writes Atan(sin / cos) with quadrant fixes, NaN at sin = cos = 0 where torch
+    # gives 0 (exact zeros come from an int8 head or untrained weights); atan2(0, 1) is that 0 in both
+    cos = torch.where((sin == 0) & (cos == 0), torch.ones_like(cos), cos)
+    yaw = torch.atan2(sin, cos)
     boxes = torch.cat([x[:, None], y[:, None], z, size, yaw[:, None], v], dim=1)  # (Q, 9, K)
     return boxes.transpose(1, 2)  # (Q, K, 9)
 

@@ -136,3 +136,33 @@ def test_slice_decoder_uses_preset_cell_and_top_k():
         )
     assert boxes.shape == (2, dec.top_k, 9) and labels.max() < NUM_CLASSES
     assert torch.all(scores[:, :-1] >= scores[:, 1:])
+
+
+class _Decode(torch.nn.Module):
+    def forward(self, *maps: torch.Tensor):
+        return decode_head_maps(maps, 0.8, 12)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_exported_yaw_is_torchs_atan2_where_sin_and_cos_are_zero(seed, tmp_path):
+    """ONNX has no Atan2 (the exporter divides sin by cos): an exact zero pair gives yaw 0 as in torch, not NaN."""
+    import onnxruntime as ort
+
+    rng = np.random.default_rng(seed)
+    maps = [torch.from_numpy(m.astype(np.float32)) for m in random_maps(rng, 1, 4, 5)]
+    rot = maps[4]  # (1, 2, H, W): sin, cos
+    rot[0, :, :2] = 0.0  # both zero in the first two rows
+    rot[0, 0, 2] = 0.0  # sin zero, cos of either sign
+    rot[0, 1, 3] = 0.0  # cos zero, sin of either sign
+    path = tmp_path / "decode.onnx"
+    names = [f"m{i}" for i in range(len(maps))]
+    torch.onnx.export(_Decode().eval(), tuple(maps), str(path), dynamo=False, opset_version=17, input_names=names)
+    sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    got_boxes = sess.run(None, {n: m.numpy() for n, m in zip(names, maps)})[0]
+    want_boxes = _Decode()(*maps)[0].numpy()
+    assert np.isfinite(got_boxes).all()
+    # the same heading: atan2(0, -c) is pi in torch and -pi in the exported graph
+    dyaw = np.angle(np.exp(1j * (got_boxes[..., 6] - want_boxes[..., 6])))
+    np.testing.assert_allclose(dyaw, 0.0, atol=1e-5)
+    np.testing.assert_allclose(np.delete(got_boxes, 6, axis=-1), np.delete(want_boxes, 6, axis=-1), rtol=1e-5, atol=1e-5)
+    assert (want_boxes[..., 6] == 0).any(), "no peak landed on a zero pair: the test checks nothing"
