@@ -69,6 +69,9 @@ def _progress(message: str) -> None:
 @click.option("--image-lane-nice", type=click.IntRange(0, 19), default=0, show_default=True,
               help="Added to the image lane's thread's nice value (Linux): the slice lane is served first where the "
                    "lanes share cores; LaneConfig.image_lane_nice.")
+@click.option("--image-lane-yield", "image_lane_yield", type=click.IntRange(0, 1024), default=0, show_default=True,
+              help="Phase-locked schedule only: the image lane starts no encode or lift while this many slices wait in "
+                   "the slice lane's queue (0: never); LaneConfig.image_lane_yield_slices.")
 @camera_terms_option()
 @fallback_options(clock="drive")
 @click.option("--json", "json_path", type=click.Path(path_type=Path, dir_okay=False), default=None,
@@ -82,7 +85,7 @@ def main(
     image_precision: str | None, lidar_hz: float, num_slices: int | None, camera_hz: float, camera_trigger: str,
     camera_delivery_ms: float, mode: str, time_scale: float,
     max_seconds: float | None, threads: int, image_lane_threads: int | None, slice_workers: int | None, queue_size: int | None, schedule: str,
-    image_lane_nice: int, camera_terms: bool | None, fallback_export_dir: Path | None, fallback_after_ms: float | None, json_path: Path | None,
+    image_lane_nice: int, image_lane_yield: int, camera_terms: bool | None, fallback_export_dir: Path | None, fallback_after_ms: float | None, json_path: Path | None,
     plot_path: Path | None, out_dir: Path | None,
 ) -> None:
     """Play scenes at sensor rates (LiDAR slices released when scanned, cameras at their rate) through the runtime's
@@ -104,7 +107,7 @@ def main(
     defaults = LaneConfig()
     try:
         lanes = LaneConfig(max_in_flight=slice_workers or defaults.max_in_flight, queue_size=queue_size or defaults.queue_size,
-                           schedule=schedule, image_lane_nice=image_lane_nice)  # fmt: skip
+                           schedule=schedule, image_lane_nice=image_lane_nice, image_lane_yield_slices=image_lane_yield)  # fmt: skip
         config = ReplayConfig(
             data=data, export_dir=export_dir, version=table_version, split=None if split == "all" else split, scenes=scenes,
             precision=precision, image_precision=image_precision, lidar_hz=lidar_hz, num_slices=num_slices,

@@ -136,7 +136,8 @@ def format_report(result: ReplayResult, info: dict) -> str:
         f"{c.threads} thread(s) per session"
         + (f" ({c.image_lane_threads} in the image lane's)" if c.image_lane_threads not in (None, c.threads) else "")
         + f", {c.lanes.max_in_flight} slice worker(s), queue {c.lanes.queue_size}"
-        + (f", image lane at nice +{c.lanes.image_lane_nice}" if c.lanes.image_lane_nice else ""),
+        + (f", image lane at nice +{c.lanes.image_lane_nice}" if c.lanes.image_lane_nice else "")
+        + (f", image lane yields at {c.lanes.image_lane_yield_slices} waiting slice(s)" if c.lanes.image_lane_yield_slices else ""),
         f"ground truth at emission time: {result.truth_source}",
         *[f"  {note}" for note in result.notes],
         "",
@@ -180,7 +181,9 @@ def _image_lane_table(result: ReplayResult) -> str:
             total = {k: sum(s[k] for s in stats) for k in stats[0]}
             rows.append(f"{mode}, phase-locked lane: {total['quadrant_lifts']} quadrant lifts, {total['full_updates']} full "
                         f"updates before the lock, {total['quadrants_skipped']} passes skipped (too late), "
-                        f"{total['late_lifts']} lifts ended after their slice arrived")  # fmt: skip
+                        f"{total['late_lifts']} lifts ended after their slice arrived"
+                        + (f", held back {total['yields']} times for waiting slices ({total['yielded_ms']:.0f} ms)"
+                           if total.get("yields") else ""))  # fmt: skip
     return "\n".join(rows)
 
 

@@ -79,6 +79,11 @@ class LaneConfig:
     # added to the image lane's thread's nice value (0..19, Linux; 0: unchanged): where the lanes share cores, the
     # slice lane's work is then served first and the image lane runs in the time left (runtime_ort/thread_priority.py)
     image_lane_nice: int = 0
+    # phase-locked only: while this many slices (or more) wait in the slice lane's queue, the image lane starts no
+    # encode or lift (one running finishes), so that where the lanes share cores a backlog of slices gets them before
+    # it overflows the queue; passes that can then no longer be made are skipped (phase_locked_lane.py). 0: never.
+    # Unlike image_lane_nice it costs the images nothing while the slice lane keeps up.
+    image_lane_yield_slices: int = 0
 
     def __post_init__(self) -> None:
         for name in ("max_in_flight", "queue_size"):
@@ -94,6 +99,14 @@ class LaneConfig:
         if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v) or not 0 <= v <= 1000:
             raise ValueError(f"LaneConfig.lift_margin_ms must be a number of ms in [0, 1000], got {v!r}")
         check_nice(self.image_lane_nice, "LaneConfig.image_lane_nice")
+        v = self.image_lane_yield_slices
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 0 <= v <= 1024:
+            raise ValueError(f"LaneConfig.image_lane_yield_slices must be an int in 0..1024 (0: never yield), got {v!r}")
+        if v and self.schedule != "phase-locked":
+            raise ValueError(
+                f"LaneConfig.image_lane_yield_slices={v} needs schedule='phase-locked' (the full schedule's update is one "
+                f"job that cannot hold back between quadrants), got schedule={self.schedule!r}"
+            )
 
 
 class WorkerLane:
@@ -152,6 +165,13 @@ class WorkerLane:
             self._jobs.append((fn, fut, kind))
             self._cond.notify()
         return fut
+
+    @property
+    def waiting(self) -> int:
+        """Jobs waiting beyond those the workers run or are about to take (cancelled ones included until the next
+        submit clears them)."""
+        with self._cond:
+            return max(0, len(self._jobs) - (self._workers - self._busy))
 
     @staticmethod
     def _fail(fut: Future, error: Callable[[], Exception]) -> int:
@@ -215,6 +235,7 @@ class StreamingRunner:
             self._phase_locked = PhaseLockedImageLane(
                 detector, detector.num_slices, detector.config.start_deg, config.lidar_hz, config.lift_margin_ms * 1e-3,
                 superseded=superseded, closed=lambda: RunnerClosed("image-lane: submit after close()"), nice=config.image_lane_nice,
+                backlog=lambda: self._slices.waiting, yield_at=config.image_lane_yield_slices,
             )  # fmt: skip
         else:
             self._images = WorkerLane("image-lane", 1, 1, superseded, nice=config.image_lane_nice)

@@ -26,6 +26,11 @@ Degraded behaviour, in this order (each counted in ``PhaseLockStats``):
   cameras (shorter lifts) never starve the others;
 - **the slice lane is never blocked**: it runs on its own threads and reads whatever each quadrant holds; this lane
   never waits for a slice, only for time to pass or for frames and slices to arrive;
+- **a backlog of slices** (``yield_at`` > 0, ``LaneConfig.image_lane_yield_slices``): while at least ``yield_at``
+  slices wait in the slice lane's queue, the lane starts no encode, lift or full update (one already running
+  finishes), so that where the lanes share cores the backlog gets them; it looks again every ``YIELD_POLL_S`` and at
+  every event. A pass that can no longer finish in time once the backlog is gone is skipped as above (``yields``:
+  the times it held back, ``yielded_ms``: for how long);
 - **image sets**: an image set each of whose frames was replaced by a newer one before any lift used it fails
   its future with ``ImagesSuperseded``; otherwise its future holds the `ImageUpdate` of the first lift that used it.
 
@@ -49,6 +54,8 @@ from streamdet.runtime_ort.phase_lock import RotationPhase, plan_lift
 from streamdet.runtime_ort.thread_priority import check_nice, start_worker
 
 DURATION_SAMPLES = 5  # lifts per quadrant whose second longest is the expected duration (robust to a noisy machine)
+# how often a lane holding back for a backlog of slices looks at the slice queue again (a slice's arrival wakes it too)
+YIELD_POLL_S = 0.001
 
 
 @dataclass
@@ -59,6 +66,8 @@ class PhaseLockStats:
     cameras_encoded: int = 0  # camera frames encoded (each once)
     encoded_ahead: int = 0  # of those, encoded on arrival, before the lift that used them was due
     late_lifts: int = 0  # lifts that ended after their deadline (the duration estimate was short)
+    yields: int = 0  # times the lane held back an update because slices waited (yield_at)
+    yielded_ms: float = 0.0  # milliseconds it held back in all
 
 
 @dataclass(eq=False)
@@ -85,13 +94,23 @@ class PhaseLockedImageLane:
         clock: Callable[[], float] = time.monotonic, thread: bool = True,
         superseded: Callable[[], Exception] = lambda: RuntimeError("image set superseded by a newer one"),
         closed: Callable[[], Exception] = lambda: RuntimeError("image-lane: submit after close()"), nice: int = 0,
+        backlog: Callable[[], int] | None = None, yield_at: int = 0,
     ) -> None:  # fmt: skip
         """``detector``: a StreamingDetector (or one with its ``quadrant_cameras``, ``encode_images`` and
         ``update_images(images, timestamp, quadrants=, encoded=)``); ``clock``: the runner's seconds; ``thread``
         False: no worker, the caller drives ``step`` (tests); ``superseded`` / ``closed``: the errors of a superseded
         image set's future and of a submit after close (the runner's ImagesSuperseded and RunnerClosed); ``nice``:
-        added to the worker thread's nice value (thread_priority.py)."""
+        added to the worker thread's nice value (thread_priority.py); ``backlog``: the number of slices waiting in
+        the slice lane's queue, and ``yield_at``: how many of them make this lane hold back (0: never; needs
+        ``backlog``)."""
+        if isinstance(yield_at, bool) or not isinstance(yield_at, (int, np.integer)) or yield_at < 0:
+            raise ValueError(f"image-lane: yield_at must be an int >= 0 (slices waiting; 0: never yield), got {yield_at!r}")
+        if yield_at and backlog is None:
+            raise ValueError(f"image-lane: yield_at={yield_at} needs a backlog (the slice lane's waiting slices)")
         self.detector = detector
+        self._backlog = backlog
+        self._yield_at = int(yield_at)
+        self._yield_since: float | None = None  # when the current holding back began (None: not holding back)
         self._superseded = superseded
         self._closed_error = closed
         self.margin_s = float(margin_s)
@@ -169,26 +188,38 @@ class PhaseLockedImageLane:
     def step(self, now_s: float) -> float | None:
         """Run what is due at ``now_s`` (at most one update, or one frame encoded ahead); the time to call again
         (None: at the next event)."""
+        # read before taking this lane's lock: the slice lane's own lock is never taken inside it
+        busy = self._yield_at > 0 and self._backlog() >= self._yield_at
         with self._cond:
             if not self._frames:
+                self._hold(now_s, False)
                 return None
             if not self._phase.locked:
                 frames = dict(self._frames)
                 if all(self._full_lifted.get(n) == f.seq for n, f in frames.items()):
+                    self._hold(now_s, False)
                     return None
+                if self._hold(now_s, busy):
+                    return now_s + YIELD_POLL_S
                 quadrants, deadline = None, None
                 self._wanted_since = [None] * NUM_QUADRANTS
             else:
                 plan = plan_lift(self._phase, now_s, self._expected_s, self.margin_s, self._done, self._has_new,
                                  self._overdue(now_s))  # fmt: skip
                 if plan is None:  # no quadrant has newer frames than it was lifted from
+                    self._hold(now_s, False)
                     return None
                 if plan.start_s > now_s:
                     ahead = self._encode_ahead(now_s, plan.start_s)
                     if ahead is None:
+                        self._hold(now_s, False)
                         return plan.start_s
+                    if self._hold(now_s, busy):
+                        return now_s + YIELD_POLL_S
                     encode = ahead
                 else:
+                    if self._hold(now_s, busy):  # the pass stays planned; skipped later if it can no longer be made
+                        return now_s + YIELD_POLL_S
                     encode = None
                     self._done.extend(plan.skipped)
                     self.stats.quadrants_skipped += len(plan.skipped)
@@ -214,6 +245,18 @@ class PhaseLockedImageLane:
             raise
         _settle(owners, result=update)
         return now_s
+
+    def _hold(self, now_s: float, busy: bool) -> bool:
+        """Whether to hold back an update now (``busy``: slices wait); counts the holding back. Under the lock."""
+        if busy:
+            if self._yield_since is None:
+                self._yield_since = now_s
+                self.stats.yields += 1
+            return True
+        if self._yield_since is not None:
+            self.stats.yielded_ms += max(0.0, now_s - self._yield_since) * 1e3
+            self._yield_since = None
+        return False
 
     def _encode_ahead(self, now_s: float, start_s: float) -> tuple[str, _Frame] | None:
         """(camera, frame) of the oldest frame not encoded yet, if encoding it ends before ``start_s`` (the next

@@ -101,6 +101,14 @@ def test_a_replay_with_a_niced_image_lane_says_so_and_records_it(drive_data, tin
     assert "image-lane-nice" in bad
 
 
+def test_a_replay_whose_image_lane_yields_to_slices_says_so_and_records_it(drive_data, tiny_export, tmp_path):
+    output, config, bad = _replay(drive_data, tiny_export, tmp_path, "--schedule", "phase-locked", "--image-lane-yield", "2",
+                                  bad=("--schedule", "full"))  # fmt: skip
+    assert "image lane yields at 2 waiting slice(s)" in output
+    assert config["image_lane_yield_slices"] == 2
+    assert "needs schedule='phase-locked'" in bad  # the full schedule cannot hold back between quadrants
+
+
 def test_a_replay_with_its_own_image_lane_threads_says_so_and_records_it(drive_data, tiny_export, tmp_path):
     from streamdet.replay.run import ReplayConfig, open_detector
 

@@ -14,7 +14,7 @@ from streamdet.core.sectors import quadrants_of_sector
 from streamdet.runtime_ort.detector import ImageUpdate
 from streamdet.runtime_ort.lanes import ImagesSuperseded, LaneConfig, StreamingRunner
 from streamdet.runtime_ort.phase_lock import RotationPhase, plan_lift, slice_quadrants
-from streamdet.runtime_ort.phase_locked_lane import PhaseLockedImageLane
+from streamdet.runtime_ort.phase_locked_lane import YIELD_POLL_S, PhaseLockedImageLane
 
 WAIT_S = 30.0
 CAMERAS = ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_FRONT_LEFT", "CAM_BACK", "CAM_BACK_LEFT", "CAM_BACK_RIGHT")
@@ -66,14 +66,16 @@ class FakeDetector:
 
 
 def simulate(lift_s: float, seconds: float = 1.0, lidar_hz: float = 20.0, camera_hz: float = 12.0, n: int = 8,
-             encode_s: float = 0.001, margin_s: float = 0.002, known_rate: bool = False):  # fmt: skip
+             encode_s: float = 0.001, margin_s: float = 0.002, known_rate: bool = False, backlog=None, yield_at: int = 0):  # fmt: skip
     """A drive on the fake clock: slice k of rotation r arrives at (r * n + k + 1) / (n * lidar_hz), image sets at
-    i / camera_hz + 0.003; the lane's step runs whenever it asked to and after every event. Returns the lane, the
-    detector, the slices (arrival, k, quadrants) and the image set times."""
+    i / camera_hz + 0.003; the lane's step runs whenever it asked to and after every event. ``backlog``: slices
+    waiting in the slice lane at a clock time (with ``yield_at``). Returns the lane, the detector, the slices
+    (arrival, k, quadrants) and the image set times."""
     clock = FakeClock()
     det = FakeDetector(clock, encode_s, lift_s, n)
+    waiting = None if backlog is None else (lambda: backlog(clock.t))
     lane = PhaseLockedImageLane(det, n, 0.0, lidar_hz if known_rate else None, margin_s, clock=clock, thread=False,
-                                superseded=lambda: ImagesSuperseded("superseded"))  # fmt: skip
+                                superseded=lambda: ImagesSuperseded("superseded"), backlog=waiting, yield_at=yield_at)  # fmt: skip
     slices = [((i + 1) / (n * lidar_hz), i % n) for i in range(int(seconds * lidar_hz * n))]
     images = [i / camera_hz + 0.003 for i in range(int(seconds * camera_hz))]
     events = sorted([(t, 0, k) for t, k in slices] + [(t, 1, None) for t in images])
@@ -366,3 +368,132 @@ def test_close_cancels_image_sets_no_lift_used_and_refuses_later_submits():
     assert lane.close() and waiting.cancelled()
     with pytest.raises(RunnerClosed):
         lane.submit_images({"CAM_FRONT": np.zeros((2, 2, 3), np.uint8)}, 2.0)
+
+
+# ---- holding back for a backlog of slices (LaneConfig.image_lane_yield_slices) -----------------------------------
+@pytest.mark.parametrize("yield_at", [1, 3])
+def test_a_backlog_of_slices_holds_back_encodes_and_lifts_then_the_lane_catches_up(yield_at):
+    clock = FakeClock()
+    det = FakeDetector(clock, 0.001, 0.002)
+    waiting = [yield_at]
+    lane = PhaseLockedImageLane(det, 8, lidar_hz=20.0, clock=clock, thread=False, backlog=lambda: waiting[0], yield_at=yield_at)
+    lane.observe_slice(7, 0.0)  # slice 0 next at 6.25 ms
+    future = lane.submit_images({c: np.zeros((2, 2, 3), np.uint8) for c in CAMERAS}, 0.0)
+    assert lane.step(0.0) == pytest.approx(YIELD_POLL_S) and not det.encoded and not det.lifts  # nothing started
+    clock.t = 0.0005
+    assert lane.step(clock.t) == pytest.approx(0.0005 + YIELD_POLL_S)
+    assert lane.stats.yields == 1 and lane.stats.yielded_ms == 0.0  # one episode, still open
+    waiting[0] = yield_at - 1  # fewer than yield_at: the lane goes on
+    clock.t = 0.001
+    while not det.lifts:
+        wake = lane.step(clock.t)
+        clock.t = max(clock.t, wake)
+    assert lane.stats.yields == 1 and lane.stats.yielded_ms == pytest.approx(1.0)
+    assert det.lifts[0][0] == (0,) and future.result(0).quadrants == (0,)
+
+
+def test_before_the_lock_a_backlog_holds_back_the_full_update_too():
+    clock = FakeClock()
+    det = FakeDetector(clock, 0.0, 0.001)
+    waiting = [2]
+    lane = PhaseLockedImageLane(det, 8, clock=clock, thread=False, backlog=lambda: waiting[0], yield_at=2)
+    lane.submit_images({c: np.zeros((2, 2, 3), np.uint8) for c in CAMERAS}, 1.0)
+    assert lane.step(0.0) == pytest.approx(YIELD_POLL_S) and not det.lifts
+    waiting[0] = 0
+    assert lane.step(0.002) == 0.002 and det.lifts[-1][0] == (0, 1, 2, 3)
+    assert lane.stats.full_updates == 1 and lane.stats.yielded_ms == pytest.approx(2.0)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_no_update_starts_during_a_backlog_and_freshness_returns_after_it(seed):
+    """Random windows of waiting slices on the fake clock: no encode or lift starts inside one, passes that could not
+    be made are skipped (more than without the windows), and a rotation after the last window every slice reads the
+    newest images again (fast lifts)."""
+    rng = np.random.default_rng(seed)
+    starts = np.sort(rng.uniform(0.2, 1.2, 4))
+    windows = [(a, a + rng.uniform(0.01, 0.06)) for a in starts]
+    backlog = lambda t: 2 if any(a <= t < b for a, b in windows) else 0  # noqa: E731
+    base, *_ = simulate(lift_s=0.002, seconds=2.0, known_rate=True)
+    lane, det, slices, images, _ = simulate(lift_s=0.002, seconds=2.0, known_rate=True, backlog=backlog, yield_at=2)
+    assert all(backlog(start) == 0 for _, _, start, _ in det.lifts)
+    assert lane.stats.yields >= 1 and lane.stats.yielded_ms > 0
+    assert lane.stats.quadrants_skipped >= base.stats.quadrants_skipped and lane.stats.late_lifts == 0
+    period = 0.05
+    last = max(b for _, b in windows)
+    for t, k, (q,) in slices:
+        if t < last + period:
+            continue
+        newest = max(i for i in images if i <= t - period / 8)
+        assert image_read(det, q, t) >= newest, (t, k, q)
+
+
+@pytest.mark.parametrize("bad", [-1, True, 1.5, 2000])
+def test_lane_config_refuses_a_bad_yield_and_a_yield_without_the_phase_locked_schedule(bad):
+    with pytest.raises(ValueError, match="image_lane_yield_slices"):
+        LaneConfig(schedule="phase-locked", image_lane_yield_slices=bad)
+    with pytest.raises(ValueError, match="needs schedule='phase-locked'"):
+        LaneConfig(image_lane_yield_slices=2)
+    assert LaneConfig().image_lane_yield_slices == 0
+    with pytest.raises(ValueError, match="needs a backlog"):
+        PhaseLockedImageLane(FakeDetector(FakeClock(), 0.0, 0.0), 8, thread=False, yield_at=1)
+    with pytest.raises(ValueError, match="yield_at must be an int"):
+        PhaseLockedImageLane(FakeDetector(FakeClock(), 0.0, 0.0), 8, thread=False, backlog=lambda: 0, yield_at=-1)
+
+
+class BlockingSliceDetector(FakeDetector):
+    """Slices block until their gate opens; the image lane records when it starts encoding."""
+
+    def __init__(self) -> None:
+        super().__init__(FakeClock(), 0.0, 0.0)
+        self.slice_gate = threading.Event()
+        self.encoding = threading.Event()
+
+    def encode_images(self, images):
+        self.encoding.set()
+        return super().encode_images(images)
+
+    def detect_slice(self, points, slice_index, timestamp=None):
+        assert self.slice_gate.wait(WAIT_S)
+        return SimpleNamespace(slice_index=slice_index, timestamp=timestamp)
+
+
+def test_a_runner_image_lane_waits_while_slices_queue_and_works_once_they_drain():
+    det = BlockingSliceDetector()
+    config = LaneConfig(max_in_flight=1, queue_size=8, schedule="phase-locked", image_lane_yield_slices=2)
+    runner = StreamingRunner(det, config)  # type: ignore[arg-type]
+    try:
+        futures = [runner.submit_slice(np.zeros((0, 6), np.float32), k, float(k)) for k in range(3)]  # 1 runs, 2 wait
+        deadline = time.monotonic() + WAIT_S
+        while runner._slices.waiting < 2:  # the first slice reaches its worker
+            assert time.monotonic() < deadline
+            time.sleep(0.001)
+        update = runner.submit_images({c: np.zeros((2, 2, 3), np.uint8) for c in CAMERAS}, 0.0)
+        assert not det.encoding.wait(0.2)  # held back while two slices wait
+        det.slice_gate.set()
+        assert [f.result(WAIT_S).slice_index for f in futures] == [0, 1, 2]
+        assert det.encoding.wait(WAIT_S) and isinstance(update.result(WAIT_S), ImageUpdate)
+        assert runner.phase_lock.yields >= 1 and runner.slices_dropped == 0
+    finally:
+        det.slice_gate.set()
+        runner.close(WAIT_S)
+
+
+def test_worker_lane_waiting_counts_jobs_beyond_those_running():
+    from streamdet.runtime_ort.lanes import WorkerLane
+
+    gate = threading.Event()
+    lane = WorkerLane("test", 1, None)
+    try:
+        assert lane.waiting == 0
+        first = lane.submit(lambda: gate.wait(WAIT_S))
+        rest = [lane.submit(lambda: None) for _ in range(3)]
+        deadline = time.monotonic() + WAIT_S
+        while lane.waiting != 3:  # the first job reaches the worker
+            assert time.monotonic() < deadline
+            time.sleep(0.001)
+        gate.set()
+        assert first.result(WAIT_S) and all(f.result(WAIT_S) is None for f in rest)
+        assert lane.waiting == 0
+    finally:
+        gate.set()
+        lane.close()
