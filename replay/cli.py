@@ -72,6 +72,10 @@ def _progress(message: str) -> None:
 @click.option("--image-lane-yield", "image_lane_yield", type=click.IntRange(0, 1024), default=0, show_default=True,
               help="Phase-locked schedule only: the image lane starts no encode or lift while this many slices wait in "
                    "the slice lane's queue (0: never); LaneConfig.image_lane_yield_slices.")
+@click.option("--freeze-heap/--no-freeze-heap", default=True, show_default=True,
+              help="Freeze the Python heap alive when each drive starts out of the garbage collector's full collections "
+                   "(gc.freeze, runtime_ort/heap.py), as a vehicle process would after its start-up; such a collection "
+                   "otherwise stalls every thread for tens of ms mid-drive.")
 @camera_terms_option()
 @fallback_options(clock="drive")
 @click.option("--json", "json_path", type=click.Path(path_type=Path, dir_okay=False), default=None,
@@ -85,7 +89,7 @@ def main(
     image_precision: str | None, lidar_hz: float, num_slices: int | None, camera_hz: float, camera_trigger: str,
     camera_delivery_ms: float, mode: str, time_scale: float,
     max_seconds: float | None, threads: int, image_lane_threads: int | None, slice_workers: int | None, queue_size: int | None, schedule: str,
-    image_lane_nice: int, image_lane_yield: int, camera_terms: bool | None, fallback_export_dir: Path | None, fallback_after_ms: float | None, json_path: Path | None,
+    image_lane_nice: int, image_lane_yield: int, freeze_heap: bool, camera_terms: bool | None, fallback_export_dir: Path | None, fallback_after_ms: float | None, json_path: Path | None,
     plot_path: Path | None, out_dir: Path | None,
 ) -> None:
     """Play scenes at sensor rates (LiDAR slices released when scanned, cameras at their rate) through the runtime's
@@ -113,7 +117,7 @@ def main(
             precision=precision, image_precision=image_precision, lidar_hz=lidar_hz, num_slices=num_slices,
             camera_hz=camera_hz, camera_trigger=camera_trigger, modes=MODES if mode == "all" else (mode,), time_scale=time_scale,
             max_seconds=max_seconds, threads=threads, image_lane_threads=image_lane_threads, lanes=lanes, fallback_export_dir=fallback_export_dir,
-            camera_terms=camera_terms, camera_delivery_ms=camera_delivery_ms,
+            camera_terms=camera_terms, camera_delivery_ms=camera_delivery_ms, freeze_heap=freeze_heap,
             fallback_after_s=fallback_after_s(fallback_after_ms),
         )  # fmt: skip
         result = run_replay(config, _progress)

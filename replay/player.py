@@ -26,6 +26,7 @@ from streamdet.replay.modes import MODES, Detector, JobKey, ModeRunner, open_mod
 from streamdet.replay.record import ImageRecord, Recording, SliceRecord, percentiles
 from streamdet.replay.schedule import SLICE, Release, check_delivery, release_schedule
 from streamdet.replay.source import Drive
+from streamdet.runtime_ort.heap import GcPauses, frozen_heap
 from streamdet.runtime_ort.lanes import ImagesSuperseded, LaneConfig, SliceDropped
 
 Progress = Callable[[str], None]
@@ -45,6 +46,9 @@ class PlayerConfig:
     # every camera frame reaches the detector this long after its capture (exposure, readout, ISP, transport); its
     # timestamp stays the capture time. 0: at capture
     camera_delivery_ms: float = 0.0
+    # freeze the heap alive when the drive starts out of the garbage collector's full collections (runtime_ort/heap.py),
+    # as a vehicle process would after its start-up: such a collection stalls every Python thread for tens of ms
+    freeze_heap: bool = True
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -155,15 +159,16 @@ def play(
             if poke is not None:
                 poke()
 
-    dclock.start(0.0)
-    thread = threading.Thread(target=drive_sensors, name="replay-player", daemon=True)
-    thread.start()
-    while thread.is_alive():
-        thread.join(timeout=config.progress_every_s if progress else None)
-        if progress and thread.is_alive():
-            progress(_progress_line(config.mode, drive, dclock.now(), records))
-    concurrent.futures.wait(futures)
-    mode.close()
+    with frozen_heap(config.freeze_heap), GcPauses() as gc_pauses:
+        dclock.start(0.0)
+        thread = threading.Thread(target=drive_sensors, name="replay-player", daemon=True)
+        thread.start()
+        while thread.is_alive():
+            thread.join(timeout=config.progress_every_s if progress else None)
+            if progress and thread.is_alive():
+                progress(_progress_line(config.mode, drive, dclock.now(), records))
+        concurrent.futures.wait(futures)
+        mode.close()
     for rec in book.held:  # frames at the drive's end whose set never completed: never used
         rec.superseded = True
     image_lane_cpu_s = getattr(mode.runner, "image_lane_cpu_s", float("nan"))  # the sequential queue has no image lane
@@ -177,7 +182,7 @@ def play(
     wall_s = (max(times) - min(times)) * config.time_scale if records else 0.0
     return Recording(config.mode, drive.name, config.time_scale, slices, images, wall_s, cpu["player"],
                      time.process_time() - process0, image_lane_cpu_s, len(drive.sweeps),
-                     None if phase_lock is None else dataclasses.asdict(phase_lock))  # fmt: skip
+                     None if phase_lock is None else dataclasses.asdict(phase_lock), gc_pauses.to_dict())  # fmt: skip
 
 
 def _newest_images_by_scan_start(

@@ -94,6 +94,8 @@ class Recording:
     image_lane_cpu_s: float = float("nan")  # CPU seconds of the runner's image lane (its own count; nan: none)
     rotations: int = 0  # LiDAR rotations played
     phase_lock: dict | None = None  # a phase-locked image lane's PhaseLockStats (lifts, skips, ...); None otherwise
+    # the garbage collector's pauses during the drive, per generation (runtime_ort/heap.py: GcPauses.to_dict)
+    gc_pauses: dict | None = None
 
     @property
     def drive_s(self) -> float:
@@ -122,7 +124,7 @@ class Recording:
 
     def to_dict(self) -> dict:
         out = {k: getattr(self, k) for k in ("mode", "drive", "time_scale", "wall_s", "player_cpu_s", "process_cpu_s",
-                                             "image_lane_cpu_s", "rotations", "phase_lock")}  # fmt: skip
+                                             "image_lane_cpu_s", "rotations", "phase_lock", "gc_pauses")}  # fmt: skip
         out = {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in out.items()}
         out["slices"] = [s.to_dict() for s in self.slices]
         out["images"] = [i.to_dict() for i in self.images]

@@ -159,9 +159,21 @@ def format_report(result: ReplayResult, info: dict) -> str:
         after = "" if c.fallback_after_s is None else f" or image BEV older than {1e3 * c.fallback_after_s:g} ms"
         lines += ["", f"LiDAR-only fallback {c.fallback_export_dir} (slices without image BEV{after}): "
                   + ", ".join(f"{mode} {_fallbacks(r)}" for mode, r in result.modes.items()) + " slices"]  # fmt: skip
-    lines += ["", _image_lane_table(result), "", _per_class_table(result), "", _stage_table(result), "",
+    lines += ["", _gc_line(result), "", _image_lane_table(result), "", _per_class_table(result), "", _stage_table(result), "",
               *_targets(result, period_ms)]  # fmt: skip
     return "\n".join(lines)
+
+
+def _gc_line(result: ReplayResult) -> str:
+    """The garbage collector's full collections during the drives (they stall every Python thread)."""
+    how = "heap frozen at each drive's start" if result.config.freeze_heap else "heap not frozen"
+    parts = []
+    for mode, r in result.modes.items():
+        full = [x.gc_pauses["gen2"] for x in r.recordings if x.gc_pauses]
+        if full:
+            longest = max(g["max_ms"] for g in full)
+            parts.append(f"{mode} {sum(g['collections'] for g in full)} (longest {longest:.1f} ms)")
+    return f"garbage collector ({how}): full collections during the drives: " + (", ".join(parts) or "not measured")
 
 
 def _image_lane_table(result: ReplayResult) -> str:
@@ -182,8 +194,8 @@ def _image_lane_table(result: ReplayResult) -> str:
             rows.append(f"{mode}, phase-locked lane: {total['quadrant_lifts']} quadrant lifts, {total['full_updates']} full "
                         f"updates before the lock, {total['quadrants_skipped']} passes skipped (too late), "
                         f"{total['late_lifts']} lifts ended after their slice arrived"
-                        + (f", held back {total['yields']} times for waiting slices ({total['yielded_ms']:.0f} ms)"
-                           if total.get("yields") else ""))  # fmt: skip
+                        + (f", held back {total['yields']} times for waiting slices ({total['yielded_ms']:.0f} ms, "
+                           f"{total.get('holds_cut', 0)} cut at 0.1 s)" if total.get("yields") else ""))  # fmt: skip
     return "\n".join(rows)
 
 

@@ -60,6 +60,7 @@ class ReplayConfig:
     camera_terms: bool | None = None  # per-camera lifts of quadrant updates (DetectorConfig.camera_terms); None: auto
     # every camera frame reaches the runtime this long after its capture (PlayerConfig.camera_delivery_ms); 0: at capture
     camera_delivery_ms: float = 0.0
+    freeze_heap: bool = True  # PlayerConfig.freeze_heap: the heap alive at a drive's start is out of full collections
 
     def __post_init__(self) -> None:
         unknown = [m for m in self.modes if m not in MODES]
@@ -173,7 +174,7 @@ def run_replay(config: ReplayConfig, progress: Progress = lambda msg: None) -> R
             det = open_detector(config)
             warm_up(det, drive, n, per_quadrant=config.lanes.schedule == "phase-locked")
             player = PlayerConfig(mode, n, det.config.start_deg, config.time_scale, _lanes(config),
-                                  camera_delivery_ms=config.camera_delivery_ms)  # fmt: skip
+                                  camera_delivery_ms=config.camera_delivery_ms, freeze_heap=config.freeze_heap)  # fmt: skip
             recordings[mode].append(play(drive, det, WallClock(), player, progress))
             stages[mode].append(det.stats.summary())
             det.close()

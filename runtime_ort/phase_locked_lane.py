@@ -30,7 +30,9 @@ Degraded behaviour, in this order (each counted in ``PhaseLockStats``):
   slices wait in the slice lane's queue, the lane starts no encode, lift or full update (one already running
   finishes), so that where the lanes share cores the backlog gets them; it looks again every ``YIELD_POLL_S`` and at
   every event. A pass that can no longer finish in time once the backlog is gone is skipped as above (``yields``:
-  the times it held back, ``yielded_ms``: for how long);
+  the times it held back, ``yielded_ms``: for how long). One holding back lasts at most ``MAX_HOLD_S``; then it
+  works as long again whatever the backlog (``holds_cut``), so that a slice lane that never catches up still leaves
+  the images about half the time;
 - **image sets**: an image set each of whose frames was replaced by a newer one before any lift used it fails
   its future with ``ImagesSuperseded``; otherwise its future holds the `ImageUpdate` of the first lift that used it.
 
@@ -41,6 +43,7 @@ again: the worker thread calls it on the runner's clock, tests call it with a fa
 from __future__ import annotations
 
 import collections
+import math
 import threading
 import time
 from concurrent.futures import Future, InvalidStateError
@@ -56,6 +59,10 @@ from streamdet.runtime_ort.thread_priority import check_nice, start_worker
 DURATION_SAMPLES = 5  # lifts per quadrant whose second longest is the expected duration (robust to a noisy machine)
 # how often a lane holding back for a backlog of slices looks at the slice queue again (a slice's arrival wakes it too)
 YIELD_POLL_S = 0.001
+# the longest one holding back lasts, and how long the lane then works whatever the backlog: a slice lane that never
+# catches up must not leave the images to grow old without bound (a fixed time, not the rotation period: that is
+# learnt from the slices' arrivals, which a backlog may have bunched)
+MAX_HOLD_S = 0.1
 
 
 @dataclass
@@ -68,6 +75,7 @@ class PhaseLockStats:
     late_lifts: int = 0  # lifts that ended after their deadline (the duration estimate was short)
     yields: int = 0  # times the lane held back an update because slices waited (yield_at)
     yielded_ms: float = 0.0  # milliseconds it held back in all
+    holds_cut: int = 0  # holdings back that reached their limit (MAX_HOLD_S), after which the lane worked as long
 
 
 @dataclass(eq=False)
@@ -111,6 +119,7 @@ class PhaseLockedImageLane:
         self._backlog = backlog
         self._yield_at = int(yield_at)
         self._yield_since: float | None = None  # when the current holding back began (None: not holding back)
+        self._free_until = -math.inf  # after a holding back reached its limit: no holding back before this time
         self._superseded = superseded
         self._closed_error = closed
         self.margin_s = float(margin_s)
@@ -248,11 +257,16 @@ class PhaseLockedImageLane:
 
     def _hold(self, now_s: float, busy: bool) -> bool:
         """Whether to hold back an update now (``busy``: slices wait); counts the holding back. Under the lock."""
-        if busy:
+        if busy and now_s >= self._free_until:
             if self._yield_since is None:
                 self._yield_since = now_s
                 self.stats.yields += 1
-            return True
+                return True
+            if now_s - self._yield_since < MAX_HOLD_S:
+                return True
+            # held back as long as it may: as long again without holding back, so the images get half the time
+            self.stats.holds_cut += 1
+            self._free_until = now_s + MAX_HOLD_S
         if self._yield_since is not None:
             self.stats.yielded_ms += max(0.0, now_s - self._yield_since) * 1e3
             self._yield_since = None

@@ -109,6 +109,25 @@ def test_a_replay_whose_image_lane_yields_to_slices_says_so_and_records_it(drive
     assert "needs schedule='phase-locked'" in bad  # the full schedule cannot hold back between quadrants
 
 
+def test_a_replay_freezes_the_heap_by_default_and_reports_the_collectors_pauses(drive_data, tiny_export, tmp_path):
+    output, config, bad = _replay(drive_data, tiny_export, tmp_path, "--no-freeze-heap", bad=("--freeze-heap", "--slices", "0"))
+    assert "garbage collector (heap not frozen): full collections during the drives: streaming" in output
+    assert config["freeze_heap"] is False
+    rec = json.loads((tmp_path / "r.json").read_text())
+    from streamdet.replay.run import ReplayConfig
+
+    assert ReplayConfig(data=drive_data, export_dir=tiny_export).freeze_heap is True
+    out = tmp_path / "out"
+    from streamdet.replay.cli import main
+
+    result = CliRunner().invoke(main, ["--data", str(drive_data), "--split", "all", "--export-dir", str(tiny_export),
+                                       "--max-seconds", "0.2", "--mode", "streaming", "--out", str(out)])  # fmt: skip
+    assert result.exit_code == 0, result.output
+    assert "garbage collector (heap frozen at each drive's start)" in result.output
+    played = json.loads((out / "replay.json").read_text())["modes"]["streaming"]["recordings"][0]
+    assert set(played["gc_pauses"]) == {"gen0", "gen1", "gen2"} and rec["config"]["freeze_heap"] is False
+
+
 def test_a_replay_with_its_own_image_lane_threads_says_so_and_records_it(drive_data, tiny_export, tmp_path):
     from streamdet.replay.run import ReplayConfig, open_detector
 

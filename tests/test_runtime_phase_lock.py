@@ -14,7 +14,7 @@ from streamdet.core.sectors import quadrants_of_sector
 from streamdet.runtime_ort.detector import ImageUpdate
 from streamdet.runtime_ort.lanes import ImagesSuperseded, LaneConfig, StreamingRunner
 from streamdet.runtime_ort.phase_lock import RotationPhase, plan_lift, slice_quadrants
-from streamdet.runtime_ort.phase_locked_lane import YIELD_POLL_S, PhaseLockedImageLane
+from streamdet.runtime_ort.phase_locked_lane import MAX_HOLD_S, YIELD_POLL_S, PhaseLockedImageLane
 
 WAIT_S = 30.0
 CAMERAS = ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_FRONT_LEFT", "CAM_BACK", "CAM_BACK_LEFT", "CAM_BACK_RIGHT")
@@ -427,6 +427,18 @@ def test_no_update_starts_during_a_backlog_and_freshness_returns_after_it(seed):
         assert image_read(det, q, t) >= newest, (t, k, q)
 
 
+def test_a_backlog_that_never_drains_still_leaves_the_images_half_the_time():
+    lane, det, *_ = simulate(lift_s=0.002, seconds=2.0, known_rate=True, backlog=lambda t: 5, yield_at=1)
+    base, base_det, *_ = simulate(lift_s=0.002, seconds=2.0, known_rate=True)
+    period = 0.05
+    assert lane.stats.holds_cut > 0 and lane.stats.yields >= lane.stats.holds_cut
+    assert lane.stats.yielded_ms <= 0.6 * 2000  # held back about half of the drive at most
+    for q in range(4):  # every quadrant is still refreshed, at least 40 % as often as without the backlog
+        ends = [end for qs, _, _, end in det.lifts if q in qs]
+        assert len(ends) >= 0.4 * len([1 for qs, *_ in base_det.lifts if q in qs])
+        assert max(b - a for a, b in zip(ends, ends[1:])) <= 2 * MAX_HOLD_S + 2 * period
+
+
 @pytest.mark.parametrize("bad", [-1, True, 1.5, 2000])
 def test_lane_config_refuses_a_bad_yield_and_a_yield_without_the_phase_locked_schedule(bad):
     with pytest.raises(ValueError, match="image_lane_yield_slices"):
@@ -468,7 +480,7 @@ def test_a_runner_image_lane_waits_while_slices_queue_and_works_once_they_drain(
             assert time.monotonic() < deadline
             time.sleep(0.001)
         update = runner.submit_images({c: np.zeros((2, 2, 3), np.uint8) for c in CAMERAS}, 0.0)
-        assert not det.encoding.wait(0.2)  # held back while two slices wait
+        assert not det.encoding.wait(0.5 * MAX_HOLD_S)  # held back while two slices wait (a hold lasts 0.1 s)
         det.slice_gate.set()
         assert [f.result(WAIT_S).slice_index for f in futures] == [0, 1, 2]
         assert det.encoding.wait(WAIT_S) and isinstance(update.result(WAIT_S), ImageUpdate)
