@@ -3,7 +3,7 @@
 # the issue-22 ones: benchmarks/replay_prep.sh), streaming mode, int8 image lane + fp32 slices (unless SLICES says), LiDAR-synchronised
 # cameras, nuScenes rates (20 Hz x 8 slices unless NUM_SLICES says, 12 Hz cameras). Each run is preceded by the host-speed probe (2048^3
 # MatMul GFLOP/s: the shared machine's fast or slow state).
-#   DATA=DATASET benchmarks/replay_ab.sh OUT ROUNDS "SCALES" LABEL=EXPORT_DIR,SCHEDULE,TERMS[,CODE[,SLICES[,NICE[,IMAGE_THREADS[,YIELD[,HEAP]]]]]] ...
+#   DATA=DATASET benchmarks/replay_ab.sh OUT ROUNDS "SCALES" LABEL=EXPORT_DIR,SCHEDULE,TERMS[,CODE[,SLICES[,NICE[,IMAGE_THREADS[,YIELD[,HEAP[,WORKERS]]]]]]] ...
 # e.g. DATA=out/replay_readme/synth20 benchmarks/replay_ab.sh out/ab 2 "1 2" v3_full=exports/v3,full,off \
 #        v3_terms=exports/v3,phase-locked,on
 # SCHEDULE: full | phase-locked; TERMS: auto | on | off (--camera-terms); CODE (optional): a directory put first on
@@ -12,7 +12,8 @@
 # (optional, default fp32): the slice lane's precision (--precision fp32 | fp16 | int8); NICE (optional, default 0):
 # --image-lane-nice; IMAGE_THREADS (optional, default: as the slice lane, 1): --image-lane-threads; YIELD (optional, default 0, phase-locked only):
 # --image-lane-yield; HEAP (optional, default freeze): freeze | thaw (--freeze-heap / --no-freeze-heap; thaw: the garbage
-# collector's full collections run over the whole heap mid-drive, as in the replays before 2026-12-04's eighteenth session). DELIVERY_MS (environment, default 0): the
+# collector's full collections run over the whole heap mid-drive, as in the replays before 2026-12-04's eighteenth session);
+# WORKERS (optional, default: the runtime's LaneConfig, 2): --slice-workers. DELIVERY_MS (environment, default 0): the
 # cameras' delivery delay (--camera-delivery-ms); NUM_SLICES (environment, default 8): slices per rotation (--slices). Writes OUT/r<round>_scale<S>_<label>/ (replay.json, report.md),
 # OUT/r<round>_scale<S>_<label>.txt, OUT/variants.txt, OUT/probes_gflops.txt, OUT/staleness_cdf.png and OUT/table.md (benchmarks/replay_table.py: one row per
 # scale and variant, one value per round in each cell). Run it on a quiet machine.
@@ -21,14 +22,14 @@ set -euo pipefail
 # a non-editable install of the package (Python >= 3.11 honours this; older ones ignore it)
 export PYTHONSAFEPATH=1
 OUT=${1:?OUT}; ROUNDS=${2:?ROUNDS}; SCALES=${3:?SCALES}; shift 3
-[ $# -ge 1 ] || { echo "give at least one LABEL=EXPORT_DIR,SCHEDULE,TERMS[,CODE[,SLICES[,NICE[,IMAGE_THREADS[,YIELD[,HEAP]]]]]]" >&2; exit 2; }
+[ $# -ge 1 ] || { echo "give at least one LABEL=EXPORT_DIR,SCHEDULE,TERMS[,CODE[,SLICES[,NICE[,IMAGE_THREADS[,YIELD[,HEAP[,WORKERS]]]]]]]" >&2; exit 2; }
 BIN=${BIN:-.venv/bin}
 DELIVERY_MS=${DELIVERY_MS:-0}
 NUM_SLICES=${NUM_SLICES:-8}
 : "${DATA:?set DATA to the drives dataset (benchmarks/replay_prep.sh makes the issue-22 one)}"
 mkdir -p "$OUT"
 for V in "$@"; do
-  IFS=, read -r EXP SCHEDULE TERMS CODE SLICES NICE ITHREADS YIELD HEAP <<< "${V#*=}"
+  IFS=, read -r EXP SCHEDULE TERMS CODE SLICES NICE ITHREADS YIELD HEAP WORKERS <<< "${V#*=}"
   [ -f "$EXP/manifest.json" ] || { echo "$V: $EXP holds no manifest.json" >&2; exit 2; }
   [ -z "$CODE" ] || [ -d "$CODE/streamdet" ] || { echo "$V: $CODE holds no streamdet package" >&2; exit 2; }
 done
@@ -39,7 +40,7 @@ for ROUND in $(seq 1 "$ROUNDS"); do
   for SCALE in $SCALES; do
     for V in "$@"; do
       LABEL=${V%%=*}
-      IFS=, read -r EXP SCHEDULE TERMS CODE SLICES NICE ITHREADS YIELD HEAP <<< "${V#*=}"
+      IFS=, read -r EXP SCHEDULE TERMS CODE SLICES NICE ITHREADS YIELD HEAP WORKERS <<< "${V#*=}"
       NAME="r${ROUND}_scale${SCALE}_$LABEL"
       echo "$NAME $("$BIN/python" -c 'from streamdet.benchmarks.probe import measure_peak; print(max(measure_peak(2).run_gflops_per_s))')" \
         >> "$OUT/probes_gflops.txt"
@@ -47,13 +48,14 @@ for ROUND in $(seq 1 "$ROUNDS"); do
       EXTRA=()
       [ -z "$ITHREADS" ] || EXTRA=(--image-lane-threads "$ITHREADS")
       [ -z "$YIELD" ] || EXTRA+=(--image-lane-yield "$YIELD")  # only when asked: an earlier CODE build lacks the option
+      [ -z "$WORKERS" ] || EXTRA+=(--slice-workers "$WORKERS")
       case "${HEAP:-}" in
         ""|freeze) ;;
         thaw) EXTRA+=(--no-freeze-heap) ;;
         *) echo "$V: HEAP must be freeze or thaw, got $HEAP" >&2; exit 2 ;;
       esac
       [ -z "$CODE" ] || RUNENV=(PYTHONPATH="$(realpath "$CODE")${PYTHONPATH:+:$PYTHONPATH}")
-      [ "$ROUND" != 1 ] || [ "$SCALE" != "${SCALES%% *}" ] || echo "$LABEL: $EXP $SCHEDULE terms=$TERMS code=${CODE:-this checkout} slices=${SLICES:-fp32} nice=${NICE:-0} image_threads=${ITHREADS:-1} yield=${YIELD:-0} heap=${HEAP:-freeze} slices_per_rotation=$NUM_SLICES" >> "$OUT/variants.txt"
+      [ "$ROUND" != 1 ] || [ "$SCALE" != "${SCALES%% *}" ] || echo "$LABEL: $EXP $SCHEDULE terms=$TERMS code=${CODE:-this checkout} slices=${SLICES:-fp32} nice=${NICE:-0} image_threads=${ITHREADS:-1} yield=${YIELD:-0} heap=${HEAP:-freeze} slice_workers=${WORKERS:-default} slices_per_rotation=$NUM_SLICES" >> "$OUT/variants.txt"
       env "${RUNENV[@]}" "$BIN/streamdet-replay" --data "$DATA" --split val --export-dir "$EXP" --precision "${SLICES:-fp32}" --image-precision int8 \
         --lidar-hz 20 --slices "$NUM_SLICES" --camera-hz 12 --camera-trigger lidar-synced --camera-delivery-ms "$DELIVERY_MS" \
         --mode streaming --schedule "$SCHEDULE" --camera-terms "$TERMS" --image-lane-nice "${NICE:-0}" --time-scale "$SCALE" "${EXTRA[@]}" --out "$OUT/$NAME" \
