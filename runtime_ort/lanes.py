@@ -82,8 +82,8 @@ class LaneConfig:
     # phase-locked only: while this many slices (or more) wait in the slice lane's queue, the image lane starts no
     # encode or lift (one running finishes), so that where the lanes share cores a backlog of slices gets them before
     # it overflows the queue; passes that can then no longer be made are skipped (phase_locked_lane.py). A holding
-    # back lasts at most 0.1 s (MAX_HOLD_S), then the lane works as long again. 0: never. Unlike image_lane_nice it costs the
-    # images nothing while the slice lane keeps up.
+    # back lasts at most 0.1 s (MAX_HOLD_S), then the lane works as long again. 0: never. Unlike image_lane_nice it
+    # costs the images nothing while the slice lane keeps up. Measured no better than 0 (docs/replay.md).
     image_lane_yield_slices: int = 0
 
     def __post_init__(self) -> None:
