@@ -8,7 +8,9 @@ over every fused slice of a variant's rounds, the variant's image-lane CPU per r
 Reads ``OUT_DIR/r<round>_scale<S>_<label>/replay.json`` (``streamdet-replay --out``, streaming mode) and
 ``OUT_DIR/probes_gflops.txt`` (``<run name> <GFLOP/s>`` per line, the host-speed probe before each run). The table
 names the CPU its runs ran on (the replay's ``config.cpu``: model, vector extensions, usable threads), and the
-staleness picture draws issue 22's target for it: p95 <= 25 ms with AVX-512, <= 100 ms on an AVX2-only part.
+staleness picture draws issue 22's target for it: p95 <= 25 ms with AVX-512, <= 100 ms on an AVX2-only part. A line
+under the table gives the garbage collector's full collections during the drives where the replays recorded them
+(they stop every Python thread: docs/replay.md, "Full garbage collections stall the lanes").
 """
 
 from __future__ import annotations
@@ -97,7 +99,33 @@ def table(out: Path) -> str:
             cells(runs, lambda s, p: "%.1f" % (100 * s["map_streaming"])),
             cells(runs, lambda s, p: "%.0f" % p),
         ]) + " |")  # fmt: skip
-    return "\n".join(lines)
+    gc_line = _full_collections(rows)
+    return "\n".join(lines + ([] if gc_line is None else ["", gc_line]))
+
+
+def _full_collections(rows: dict[tuple[float, str], list[tuple[int, dict, float]]]) -> str | None:
+    """One line on the garbage collector's full collections during the drives (``gc_pauses`` of the recordings,
+    replays since 2026-12-04): "none in N runs", or per variant with any, per round the count and the longest pause.
+    None when no run recorded them."""
+    per_variant: dict[tuple[float, str], list[str]] = {}
+    measured = 0
+    for key, runs in sorted(rows.items()):
+        for _, summary, _ in runs:
+            pauses = [r["gc_pauses"]["gen2"] for r in summary.get("recordings") or [] if r.get("gc_pauses")]
+            if not pauses:
+                per_variant.setdefault(key, []).append("-")
+                continue
+            measured += 1
+            count = sum(p["collections"] for p in pauses)
+            per_variant.setdefault(key, []).append("0" if count == 0 else "%d (%.1f ms)" % (count, max(p["max_ms"] for p in pauses)))
+    if measured == 0:
+        return None
+    with_any = {k: v for k, v in per_variant.items() if any(c not in ("0", "-") for c in v)}
+    if not with_any:
+        return f"full garbage collections during the drives: none in {measured} run(s)"
+    return "full garbage collections during the drives (per round: count, longest pause): " + "; ".join(
+        f"{label} (scale {scale:g}) {', '.join(v)}" for (scale, label), v in with_any.items()
+    )
 
 
 def _cores(summary: dict, probe: float) -> str:

@@ -55,6 +55,22 @@ def test_rows_per_scale_and_variant_with_one_value_per_round(tmp_path):
     assert "| 2 | v3+terms | 50 / 100 |" in text and text.endswith("nan |")  # no probe recorded: nan
 
 
+def test_full_collections_are_summed_per_round_under_the_table(tmp_path):
+    def gc(*gen2):  # one recording per scene, each with its full collections (count, longest ms)
+        return {"recordings": [{"gc_pauses": {"gen0": {"collections": 9, "total_ms": 1.0, "max_ms": 0.2},
+                                              "gen2": {"collections": n, "total_ms": ms, "max_ms": ms}}} for n, ms in gen2]}  # fmt: skip
+
+    _run(tmp_path, "r1_scale1_pl", _summary(20, 0) | gc((0, 0.0), (0, 0.0)))
+    _run(tmp_path, "r1_scale1_thaw", _summary(20, 5) | gc((0, 0.0), (1, 66.7)))
+    _run(tmp_path, "r2_scale1_thaw", _summary(20, 0) | gc((0, 0.0), (0, 0.0)))
+    text = table(tmp_path)
+    assert text.endswith("full garbage collections during the drives (per round: count, longest pause): "
+                         "thaw (scale 1) 1 (66.7 ms), 0")  # fmt: skip
+    _run(tmp_path / "quiet", "r1_scale1_pl", _summary(20, 0) | gc((0, 0.0)))
+    _run(tmp_path / "quiet", "r1_scale1_old", _summary(20, 0))  # written before replays recorded the collector
+    assert table(tmp_path / "quiet").endswith("full garbage collections during the drives: none in 1 run(s)")
+
+
 def test_errors_are_one_line_and_a_non_zero_exit(tmp_path, capsys):
     assert main([str(tmp_path)]) == 1
     assert "no r<round>_scale<S>_<label>/replay.json" in capsys.readouterr().err
