@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from streamdet.replay.record import full_collections
 from streamdet.replay.report import cpu_line
 
 RUN = re.compile(r"r(\d+)_scale([0-9.]+)_(.+)")
@@ -107,24 +108,17 @@ def _full_collections(rows: dict[tuple[float, str], list[tuple[int, dict, float]
     """One line on the garbage collector's full collections during the drives (``gc_pauses`` of the recordings,
     replays since 2026-12-04): "none in N runs", or per variant with any, per round the count and the longest pause.
     None when no run recorded them."""
-    per_variant: dict[tuple[float, str], list[str]] = {}
-    measured = 0
-    for key, runs in sorted(rows.items()):
-        for _, summary, _ in runs:
-            pauses = [r["gc_pauses"]["gen2"] for r in summary.get("recordings") or [] if r.get("gc_pauses")]
-            if not pauses:
-                per_variant.setdefault(key, []).append("-")
-                continue
-            measured += 1
-            count = sum(p["collections"] for p in pauses)
-            per_variant.setdefault(key, []).append("0" if count == 0 else "%d (%.1f ms)" % (count, max(p["max_ms"] for p in pauses)))
+    per_variant = {key: [full_collections([r.get("gc_pauses") for r in summary.get("recordings") or []])
+                         for _, summary, _ in runs] for key, runs in sorted(rows.items())}  # fmt: skip
+    measured = sum(f is not None for runs in per_variant.values() for f in runs)
     if measured == 0:
         return None
-    with_any = {k: v for k, v in per_variant.items() if any(c not in ("0", "-") for c in v)}
+    with_any = {k: v for k, v in per_variant.items() if any(f is not None and f[0] for f in v)}
     if not with_any:
         return f"full garbage collections during the drives: none in {measured} run(s)"
+    cell = lambda f: "-" if f is None else "0" if f[0] == 0 else "%d (%.1f ms)" % f  # noqa: E731
     return "full garbage collections during the drives (per round: count, longest pause): " + "; ".join(
-        f"{label} (scale {scale:g}) {', '.join(v)}" for (scale, label), v in with_any.items()
+        f"{label} (scale {scale:g}) {', '.join(map(cell, v))}" for (scale, label), v in with_any.items()
     )
 
 

@@ -131,6 +131,15 @@ class Recording:
         return out
 
 
+def full_collections(gc_pauses: list[dict | None]) -> tuple[int, float] | None:
+    """(count, longest pause ms) of the garbage collector's full collections over recordings' ``gc_pauses``
+    (``Recording.gc_pauses`` or its JSON); None when none of them recorded any (replays before 2026-12-04)."""
+    full = [p["gen2"] for p in gc_pauses if p]
+    if not full:
+        return None
+    return sum(g["collections"] for g in full), max(g["max_ms"] for g in full)
+
+
 def percentiles(values: np.ndarray, qs: tuple[float, ...] = (50, 95, 99)) -> dict[str, float | None]:
     """{"p50": ..., "p95": ..., "p99": ..., "max": ...}; None when there are no values."""
     values = np.asarray(values, dtype=np.float64)

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from streamdet.replay.record import percentiles
+from streamdet.replay.record import full_collections, percentiles
 from streamdet.replay.run import ModeResult, ReplayResult
 
 CPU_FLAGS = ("avx2", "fma", "avx512f", "avx512_vnni", "avx_vnni", "avx512_bf16", "amx_tile")
@@ -169,10 +169,9 @@ def _gc_line(result: ReplayResult) -> str:
     how = "heap frozen at each drive's start" if result.config.freeze_heap else "heap not frozen"
     parts = []
     for mode, r in result.modes.items():
-        full = [x.gc_pauses["gen2"] for x in r.recordings if x.gc_pauses]
-        if full:
-            longest = max(g["max_ms"] for g in full)
-            parts.append(f"{mode} {sum(g['collections'] for g in full)} (longest {longest:.1f} ms)")
+        full = full_collections([x.gc_pauses for x in r.recordings])
+        if full is not None:
+            parts.append(f"{mode} {full[0]} (longest {full[1]:.1f} ms)")
     return f"garbage collector ({how}): full collections during the drives: " + (", ".join(parts) or "not measured")
 
 
