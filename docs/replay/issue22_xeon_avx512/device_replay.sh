@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Device run: the issue-22 replay A/B (full vs phase-locked, int8 image lane and slices, nuScenes rates) pinned to
-# two cores of the device host's CPU. Everything it makes goes to /tmp; $OUT gets cpu.txt, run.log, ab.tar.gz.
+# two cores of the device host's CPU. The drives and the installed package go to $WORK (/tmp); $OUT gets cpu.txt and
+# ab/ (each replay's outputs the moment it ends, so a call cut by its time limit still brings back the runs it finished).
 set -uo pipefail
 export PYTHONUNBUFFERED=1 PYTHONSAFEPATH=1  # the checkout's streamdet/ folder must not shadow the installed package
 PY=${PY:-python3}; SCENES=${SCENES:-8}; ROUNDS=${ROUNDS:-2}; WORK=${WORK:-/tmp/dev}
@@ -24,7 +25,6 @@ sib=expand('$SIB'); import os
 print(min(c for c in os.sched_getaffinity(0) if c not in sib))")
 CPUS="0,$SECOND"; echo "pinned to CPUs $CPUS (cpu0 siblings: $SIB)" | tee -a "$OUT/cpu.txt"
 date; time "$WORK/bin/streamdet-synth" generate --out "$WORK/synth20" --scenes "$SCENES" --seed 11 --resolution 480x270 --sweeps-per-sample 10 --workers "$SCENES" --overwrite > "$WORK/synth.log" 2>&1 || { tail "$WORK/synth.log"; exit 1; }
-date; DATA="$WORK/synth20" BIN="$WORK/bin" taskset -c "$CPUS" benchmarks/replay_ab.sh "$WORK/ab" "$ROUNDS" "1" \
+date; DATA="$WORK/synth20" BIN="$WORK/bin" taskset -c "$CPUS" benchmarks/replay_ab.sh "$OUT/ab" "$ROUNDS" "1" \
   ${VARIANTS:-lite_full=.dev/export_lite,full,on,,int8 lite_pl=.dev/export_lite,phase-locked,on,,int8}
-date; cat "$WORK/ab/table.md"; cp "$WORK"/ab/r*_scale*.txt "$OUT"/ 2>/dev/null
-tar czf "$OUT/ab.tar.gz" -C "$WORK" ab
+date; cat "$OUT/ab/table.md"
