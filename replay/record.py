@@ -146,3 +146,33 @@ def percentiles(values: np.ndarray, qs: tuple[float, ...] = (50, 95, 99)) -> dic
     if values.size == 0:
         return {**{f"p{q:g}": None for q in qs}, "max": None}
     return {**{f"p{q:g}": float(np.percentile(values, q)) for q in qs}, "max": float(values.max())}
+
+
+STALE_MS = 25.0  # staleness added above which a slice counts as stale in the breakdown below (issue 22's AVX-512 line)
+
+
+def staleness_by_recent_images(
+    recordings: list[Recording], period_s: float, threshold_ms: float = STALE_MS
+) -> dict[int, tuple[int, int]]:
+    """Where the stale slices are: number of image sets released in the rotation before a slice's scan start ->
+    (slices whose staleness added exceeds ``threshold_ms``, slices with a staleness added), over every emitted slice
+    fused with images of its drive.
+
+    An image lane that keeps up on average but not with a burst of frames (LiDAR-synchronised cameras firing in one
+    rotation) shows its stale slices gathered at the high counts; one that is simply too slow, at every count. A
+    slice's scan start is taken as ``scan_end_s - period_s / num_slices`` (equal sectors); an image set counts when
+    released in ``[scan start - period_s, scan start)``, superseded or not (the lane had it to consider)."""
+    if isinstance(period_s, bool) or not (isinstance(period_s, (int, float)) and np.isfinite(period_s) and period_s > 0):
+        raise ValueError(f"period_s must be a finite number of seconds > 0, got {period_s!r}")
+    out: dict[int, list[int]] = {}
+    for rec in recordings:
+        released = np.sort(np.array([i.release_s for i in rec.images if np.isfinite(i.release_s)], dtype=np.float64))
+        for s in rec.slices:
+            if not (s.emitted and np.isfinite(s.image_capture_s + s.newest_capture_s)):
+                continue
+            start = s.scan_end_s - period_s / s.num_slices
+            n = int(np.searchsorted(released, start, side="left") - np.searchsorted(released, start - period_s, side="left"))
+            counts = out.setdefault(n, [0, 0])
+            counts[0] += bool(s.staleness_ms > threshold_ms)
+            counts[1] += 1
+    return {n: (stale, total) for n, (stale, total) in sorted(out.items())}

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from streamdet.replay.record import full_collections, percentiles
+from streamdet.replay.record import STALE_MS, full_collections, percentiles, staleness_by_recent_images
 from streamdet.replay.run import ModeResult, ReplayResult
 
 CPU_FLAGS = ("avx2", "fma", "avx512f", "avx512_vnni", "avx_vnni", "avx512_bf16", "amx_tile")
@@ -195,7 +195,21 @@ def _image_lane_table(result: ReplayResult) -> str:
                         f"{total['late_lifts']} lifts ended after their slice arrived"
                         + (f", held back {total['yields']} times for waiting slices ({total['yielded_ms']:.0f} ms, "
                            f"{total.get('holds_cut', 0)} cut at 0.1 s)" if total.get("yields") else ""))  # fmt: skip
+    for mode, r in result.modes.items():
+        line = _stale_by_burst(r, 1.0 / result.config.lidar_hz)
+        if line:
+            rows.append(f"{mode}, {line}")
     return "\n".join(rows)
+
+
+def _stale_by_burst(r: ModeResult, period_s: float) -> str:
+    """Slices with staleness added > STALE_MS by the image sets released in the rotation before their scan start
+    (``staleness_by_recent_images``): whether the image lane falls behind only after bursts of frames."""
+    counts = staleness_by_recent_images(list(r.recordings), period_s)
+    if not counts:
+        return ""
+    cells = ", ".join(f"{n}: {stale} of {total} ({100 * stale / total:.0f} %)" for n, (stale, total) in counts.items())
+    return f"staleness added > {STALE_MS:g} ms by image sets released in the rotation before the scan start: {cells}"
 
 
 def _per_class_table(result: ReplayResult) -> str:

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from streamdet.replay.record import Recording, SliceRecord
+from streamdet.replay.record import ImageRecord, Recording, SliceRecord, staleness_by_recent_images
 
 
 @pytest.fixture(scope="module")
@@ -30,6 +30,52 @@ def test_staleness_is_the_newest_capture_by_scan_start_minus_the_fused_one():
     rec = Recording("streaming", "s", 1.0, slices, (), 1.0, 0.0, 0.0)
     np.testing.assert_allclose(rec.staleness_ms(), [50.0, 0.0, -50.0])  # no image, or not emitted: not counted
     assert math.isnan(rec.image_lane_cpu_s) and rec.to_dict()["image_lane_cpu_s"] is None
+
+
+def _naive_by_recent_images(recordings, period_s, threshold_ms):
+    out = {}
+    for rec in recordings:
+        for s in rec.slices:
+            if not (s.emitted and math.isfinite(s.image_capture_s) and math.isfinite(s.newest_capture_s)):
+                continue
+            start = s.scan_end_s - period_s / s.num_slices
+            n = sum(1 for i in rec.images if start - period_s <= i.release_s < start)
+            stale, total = out.get(n, (0, 0))
+            out[n] = (stale + ((s.newest_capture_s - s.image_capture_s) * 1e3 > threshold_ms), total + 1)
+    return dict(sorted(out.items()))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_stale_slices_by_the_image_sets_of_the_rotation_before_match_a_naive_count(seed):
+    rng = np.random.default_rng(seed)
+    recordings = []
+    for _ in range(2):
+        slices = []
+        for k in range(int(rng.integers(0, 60))):
+            rec = _slice(float(rng.uniform(0, 1)), float(rng.uniform(0, 1)), emitted=bool(rng.random() > 0.1))
+            rec.scan_end_s = 0.05 * (k + 1) / 8 + 0.1
+            if rng.random() < 0.1:
+                rec.image_capture_s = math.nan  # fused before the first image set: not counted
+            slices.append(rec)
+        releases = rng.uniform(0, 1, int(rng.integers(0, 40)))
+        images = tuple(ImageRecord(i, float(t) - 0.01, release_s=float(t) if rng.random() > 0.1 else math.nan)
+                       for i, t in enumerate(releases))  # fmt: skip
+        recordings.append(Recording("streaming", "s", 1.0, tuple(slices), images, 1.0, 0.0, 0.0))
+    for threshold in (0.0, 25.0, 200.0):
+        assert staleness_by_recent_images(recordings, 0.05, threshold) == _naive_by_recent_images(recordings, 0.05, threshold)
+
+
+def test_stale_slices_by_recent_images_count_the_rotation_before_the_scan_start_only():
+    s = _slice(0.0, 0.1)  # staleness added 100 ms
+    s.scan_end_s = 0.25625  # scan start 0.25 at 20 Hz x 8
+    images = tuple(ImageRecord(i, t, release_s=t) for i, t in enumerate((0.19, 0.2, 0.22, 0.2499, 0.25, 0.3)))
+    rec = Recording("streaming", "s", 1.0, (s,), images, 1.0, 0.0, 0.0)
+    assert staleness_by_recent_images([rec], 0.05) == {3: (1, 1)}  # [0.2, 0.25): 0.2, 0.22, 0.2499
+    assert staleness_by_recent_images([rec], 0.05, threshold_ms=100.0) == {3: (0, 1)}  # above, not at, the line
+    assert staleness_by_recent_images([], 0.05) == {}
+    for bad in (0, -0.05, math.nan, math.inf, "0.05", True):
+        with pytest.raises(ValueError, match="period_s"):
+            staleness_by_recent_images([rec], bad)
 
 
 def test_the_image_lanes_cpu_share_is_the_runners_own_count_where_it_has_one():
@@ -55,6 +101,7 @@ def test_a_replay_reports_staleness_and_image_lane_cpu_for_each_schedule(drive_d
     result = CliRunner().invoke(main, args)
     assert result.exit_code == 0, result.output
     assert f"image lane, schedule '{schedule}'" in result.output and "staleness added" in result.output
+    assert "by image sets released in the rotation before the scan start" in result.output
     doc = json.loads((tmp_path / "r.json").read_text())
     assert doc["config"]["schedule"] == schedule
     details = json.loads((tmp_path / "out" / "replay.json").read_text())["modes"]["streaming"]
