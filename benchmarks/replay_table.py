@@ -10,7 +10,10 @@ Reads ``OUT_DIR/r<round>_scale<S>_<label>/replay.json`` (``streamdet-replay --ou
 names the CPU its runs ran on (the replay's ``config.cpu``: model, vector extensions, usable threads), and the
 staleness picture draws issue 22's target for it: p95 <= 25 ms with AVX-512, <= 100 ms on an AVX2-only part. A line
 under the table gives the garbage collector's full collections during the drives where the replays recorded them
-(they stop every Python thread: docs/replay.md, "Full garbage collections stall the lanes").
+(they stop every Python thread: docs/replay.md, "Full garbage collections stall the lanes"), and lines after it
+where the stale slices are (staleness added > 25 ms, by the image sets released in the rotation before their scan
+start, rounds pooled: ``replay.record.staleness_by_recent_images``): stale slices gathered after bursts of frames
+mean an image lane short of time for a burst, not on average.
 """
 
 from __future__ import annotations
@@ -22,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from streamdet.replay.record import full_collections
+from streamdet.replay.record import STALE_MS, Recording, full_collections, staleness_by_recent_images
 from streamdet.replay.report import cpu_line
 
 RUN = re.compile(r"r(\d+)_scale([0-9.]+)_(.+)")
@@ -101,7 +104,31 @@ def table(out: Path) -> str:
             cells(runs, lambda s, p: "%.0f" % p),
         ]) + " |")  # fmt: skip
     gc_line = _full_collections(rows)
-    return "\n".join(lines + ([] if gc_line is None else ["", gc_line]))
+    return "\n".join(lines + ([] if gc_line is None else ["", gc_line]) + _stale_by_burst(out))
+
+
+def _stale_by_burst(out: Path) -> list[str]:
+    """Lines of stale slices by the image sets released in the rotation before their scan start, one per (scale,
+    variant), rounds pooled; none where the replays hold no fused slice."""
+    pooled: dict[tuple[float, str], dict[int, list[int]]] = {}
+    for _, scale, label, name, streaming, config in _runs(out, with_config=True):
+        if not config.get("lidar_hz") or not streaming.get("recordings"):
+            continue
+        try:
+            recs = [Recording.from_dict(r) for r in streaming["recordings"]]
+        except (KeyError, TypeError) as e:
+            raise ValueError(f"{name}: recordings not as streamdet-replay writes them ({type(e).__name__}: {e})") from None
+        counts = pooled.setdefault((scale, label), {})
+        for n, (stale, total) in staleness_by_recent_images(recs, 1.0 / config["lidar_hz"]).items():
+            cell = counts.setdefault(n, [0, 0])
+            cell[0] += stale
+            cell[1] += total
+    lines = [f"- {label} (scale {scale:g}): " + ", ".join(f"{n}: {a} of {b} ({100 * a / b:.0f} %)" for n, (a, b) in sorted(c.items()))
+             for (scale, label), c in sorted(pooled.items()) if c]  # fmt: skip
+    if not lines:
+        return []
+    return ["", f"stale slices (staleness added > {STALE_MS:g} ms) by image sets released in the rotation before the "
+            "scan start (rounds pooled):", *lines]  # fmt: skip
 
 
 def _full_collections(rows: dict[tuple[float, str], list[tuple[int, dict, float]]]) -> str | None:

@@ -122,6 +122,19 @@ class Recording:
     def images_superseded(self) -> int:
         return sum(i.superseded for i in self.images)
 
+    @classmethod
+    def from_dict(cls, d: dict) -> "Recording":
+        """The inverse of ``to_dict`` (a recording of a saved ``replay.json``), detections left out: they are not
+        saved. Fields a replay of an older version did not write keep their defaults."""
+        def nan(v):
+            return float("nan") if v is None else v
+
+        slices = tuple(SliceRecord(**{k: nan(v) for k, v in x.items() if k in SliceRecord.__slots__}) for x in d["slices"])
+        images = tuple(ImageRecord(**{k: nan(v) for k, v in x.items() if k in ImageRecord.__slots__}) for x in d["images"])
+        scalars = {k: nan(d[k]) for k in ("wall_s", "player_cpu_s", "process_cpu_s", "image_lane_cpu_s") if k in d}
+        extra = {k: d[k] for k in ("rotations", "phase_lock", "gc_pauses") if k in d}
+        return cls(d["mode"], d["drive"], d["time_scale"], slices, images, **scalars, **extra)
+
     def to_dict(self) -> dict:
         out = {k: getattr(self, k) for k in ("mode", "drive", "time_scale", "wall_s", "player_cpu_s", "process_cpu_s",
                                              "image_lane_cpu_s", "rotations", "phase_lock", "gc_pauses")}  # fmt: skip

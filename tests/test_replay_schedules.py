@@ -65,6 +65,21 @@ def test_stale_slices_by_the_image_sets_of_the_rotation_before_match_a_naive_cou
         assert staleness_by_recent_images(recordings, 0.05, threshold) == _naive_by_recent_images(recordings, 0.05, threshold)
 
 
+def test_a_recording_read_back_from_its_dict_is_the_same_but_for_detections():
+    s = _slice(0.1, 0.15)
+    dropped = _slice(math.nan, math.nan, emitted=False)
+    dropped.dropped = True
+    images = (ImageRecord(0, 0.1, release_s=0.1, start_s=0.11, end_s=0.12, emit_s=0.12), ImageRecord(1, 0.2, superseded=True))
+    rec = Recording("streaming", "d", 2.0, (s, dropped), images, 1.5, 0.01, 1.2, image_lane_cpu_s=0.4, rotations=30,
+                    phase_lock={"quadrant_lifts": 3}, gc_pauses=None)  # fmt: skip
+    d = json.loads(json.dumps(rec.to_dict()))  # as replay.json holds it: nan as null
+    back = Recording.from_dict(d)
+    assert back.to_dict() == d
+    assert back.slices[1].dropped and math.isnan(back.slices[1].emit_s) and back.images[1].superseded
+    old = {k: v for k, v in d.items() if k not in ("rotations", "phase_lock", "gc_pauses", "image_lane_cpu_s")}
+    assert Recording.from_dict(old).rotations == 0 and math.isnan(Recording.from_dict(old).image_lane_cpu_s)
+
+
 def test_stale_slices_by_recent_images_count_the_rotation_before_the_scan_start_only():
     s = _slice(0.0, 0.1)  # staleness added 100 ms
     s.scan_end_s = 0.25625  # scan start 0.25 at 20 Hz x 8

@@ -99,3 +99,35 @@ def test_staleness_pools_the_fused_slices_of_every_round_and_the_plot_is_written
     assert main([str(tmp_path), "--plot", str(png)]) == 0
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert main([str(tmp_path), "--plot"]) == 2
+
+
+def test_stale_slices_by_the_image_sets_of_the_rotation_before_are_pooled_over_rounds(tmp_path):
+    from streamdet.replay.record import ImageRecord, Recording, SliceRecord
+
+    def recording(stale: bool) -> dict:
+        s = SliceRecord(1, 0, 8, 0.05625, 10, start_s=0.06, emit_s=0.06, image_capture_s=0.0 if stale else 0.04,
+                        newest_capture_s=0.04)  # fmt: skip
+        images = tuple(ImageRecord(i, t, release_s=t) for i, t in enumerate((0.01, 0.02, 0.04)))  # all before 0.05
+        return Recording("streaming", "s", 1.0, (s,), images, 1.0, 0.0, 0.0).to_dict()
+
+    for rnd, stale in ((1, True), (2, False)):
+        summary = dict(_summary(10, 0), recordings=[recording(stale)])
+        (tmp_path / f"r{rnd}_scale1_lite").mkdir()
+        (tmp_path / f"r{rnd}_scale1_lite" / "replay.json").write_text(
+            json.dumps({"modes": {"streaming": summary}, "config": {"cpu": AVX2, "lidar_hz": 20.0}}))
+    text = table(tmp_path)
+    assert "by image sets released in the rotation before the scan start (rounds pooled):" in text
+    assert "- lite (scale 1): 3: 1 of 2 (50 %)" in text
+
+
+def test_no_stale_slice_lines_without_the_lidar_rate_or_fused_slices(tmp_path):
+    _run(tmp_path, "r1_scale1_lite", dict(_summary(10, 0), recordings=[]), AVX2)
+    assert "rotation before the scan start" not in table(tmp_path)
+
+
+def test_malformed_recordings_are_one_line_and_a_non_zero_exit(tmp_path, capsys):
+    summary = dict(_summary(10, 0), recordings=[{"slices": [{"emit_s": 1.0}]}])
+    (tmp_path / "r1_scale1_lite").mkdir()
+    (tmp_path / "r1_scale1_lite" / "replay.json").write_text(json.dumps({"modes": {"streaming": summary}, "config": {"lidar_hz": 20.0}}))
+    assert main([str(tmp_path)]) == 1
+    assert "r1_scale1_lite: recordings not as streamdet-replay writes them" in capsys.readouterr().err
