@@ -60,7 +60,7 @@ for ROUND in $(seq 1 "$ROUNDS"); do
         --lidar-hz 20 --slices "$NUM_SLICES" --camera-hz 12 --camera-trigger lidar-synced --camera-delivery-ms "$DELIVERY_MS" \
         --mode streaming --schedule "$SCHEDULE" --camera-terms "$TERMS" --image-lane-nice "${NICE:-0}" --time-scale "$SCALE" "${EXTRA[@]}" --out "$OUT/$NAME" \
         > "$OUT/$NAME.txt"
-      grep -A2 "staleness added" "$OUT/$NAME.txt" | tail -1 | sed "s/^/$NAME /"
+      grep -A2 "staleness added p50" "$OUT/$NAME.txt" | tail -1 | sed "s/^/$NAME /"
     done
   done
 done
