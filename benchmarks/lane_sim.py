@@ -276,7 +276,10 @@ def main(export_dir, costs_from, encode_ms, term_ms, tail_ms, cost_scale, jitter
     """Staleness added by the phase-locked image lane at given stage costs, with a core of its own (see the module doc)."""
     base = {}
     if costs_from:
-        base = vars(costs_from_replay(costs_from))
+        try:
+            base = vars(costs_from_replay(costs_from))
+        except (ValueError, KeyError, OSError) as e:  # JSON errors are ValueErrors
+            raise click.ClickException(f"--costs-from {costs_from}: {type(e).__name__}: {e}") from None
     for name, value in (("encode_ms", encode_ms), ("term_ms", term_ms), ("tail_ms", tail_ms)):
         if value is not None:
             base[name] = value

@@ -110,3 +110,12 @@ def test_the_cli_prints_a_row_per_cost_scale_and_writes_json(tiny_export, tmp_pa
     assert set(doc["rows"][0]["staleness_added_ms"]) == {"p50", "p95", "p99"}
     missing = CliRunner().invoke(main, ["--export-dir", str(tiny_export), "--encode-ms", "4"])
     assert missing.exit_code != 0 and "no cost for term_ms, tail_ms" in missing.output
+
+
+def test_the_cli_says_which_replay_gave_no_costs(tiny_export, tmp_path):
+    (tmp_path / "replay.json").write_text("{not json")
+    bad = CliRunner().invoke(main, ["--export-dir", str(tiny_export), "--costs-from", str(tmp_path)])
+    assert bad.exit_code != 0 and f"--costs-from {tmp_path}" in bad.output
+    (tmp_path / "replay.json").write_text(json.dumps({"modes": {}}))
+    bad = CliRunner().invoke(main, ["--export-dir", str(tiny_export), "--costs-from", str(tmp_path)])
+    assert bad.exit_code != 0 and "KeyError" in bad.output
