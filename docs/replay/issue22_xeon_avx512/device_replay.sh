@@ -1,7 +1,10 @@
 #!/usr/bin/env bash
 # Device run: the issue-22 replay A/B (full vs phase-locked, int8 image lane and slices, nuScenes rates) pinned to
-# two cores of the device host's CPU. The drives and the installed package go to $WORK (/tmp); $OUT gets cpu.txt and
-# ab/ (each replay's outputs the moment it ends, so a call cut by its time limit still brings back the runs it finished).
+# two cores of the device host's CPU. The drives and the installed package go to $WORK (/tmp); $OUT gets cpu.txt,
+# run.log-worthy output on stdout and ab.tar.gz: every replay's outputs, packed after the A/B ends or after AB_LIMIT_S
+# seconds (default 480), whichever comes first, so a call leaves time to pack what it finished (a device call brings
+# back only a few files: one archive, not the A/B's folder). The drives stay in $WORK: a second call on the still-warm
+# machine can skip them (SKIP_SYNTH=1).
 set -uo pipefail
 export PYTHONUNBUFFERED=1 PYTHONSAFEPATH=1  # the checkout's streamdet/ folder must not shadow the installed package
 PY=${PY:-python3}; SCENES=${SCENES:-8}; ROUNDS=${ROUNDS:-2}; WORK=${WORK:-/tmp/dev}
@@ -24,7 +27,11 @@ def expand(s):
 sib=expand('$SIB'); import os
 print(min(c for c in os.sched_getaffinity(0) if c not in sib))")
 CPUS="0,$SECOND"; echo "pinned to CPUs $CPUS (cpu0 siblings: $SIB)" | tee -a "$OUT/cpu.txt"
-date; time "$WORK/bin/streamdet-synth" generate --out "$WORK/synth20" --scenes "$SCENES" --seed 11 --resolution 480x270 --sweeps-per-sample 10 --workers "$SCENES" --overwrite > "$WORK/synth.log" 2>&1 || { tail "$WORK/synth.log"; exit 1; }
-date; DATA="$WORK/synth20" BIN="$WORK/bin" taskset -c "$CPUS" benchmarks/replay_ab.sh "$OUT/ab" "$ROUNDS" "1" \
+if [ "${SKIP_SYNTH:-0}" != 1 ] || [ ! -d "$WORK/synth20" ]; then
+  date; time "$WORK/bin/streamdet-synth" generate --out "$WORK/synth20" --scenes "$SCENES" --seed 11 --resolution 480x270 --sweeps-per-sample 10 --workers "$SCENES" --overwrite > "$WORK/synth.log" 2>&1 || { tail "$WORK/synth.log"; exit 1; }
+fi
+rm -rf "$WORK/ab"
+date; DATA="$WORK/synth20" BIN="$WORK/bin" timeout "${AB_LIMIT_S:-480}" taskset -c "$CPUS" benchmarks/replay_ab.sh "$WORK/ab" "$ROUNDS" "1" \
   ${VARIANTS:-lite_full=.dev/export_lite,full,on,,int8 lite_pl=.dev/export_lite,phase-locked,on,,int8}
-date; cat "$OUT/ab/table.md"
+date; cat "$WORK/ab/table.md" 2>/dev/null || "$WORK/bin/python" -m streamdet.benchmarks.replay_table "$WORK/ab"
+tar czf "$OUT/ab.tar.gz" -C "$WORK" ab
