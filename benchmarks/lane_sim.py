@@ -5,8 +5,9 @@ that only moves when work is done.
 
 The real ``PhaseLockedImageLane`` (``runtime_ort/phase_locked_lane.py``, no worker thread) is driven by the events of
 a drive at sensor rates: slice arrivals (the scan end of each of ``num_slices`` sectors of a rotation) and camera
-frames fired as the LiDAR crosses each camera's optical axis (``replay/triggers.py``: ``lidar_synced_triggers``,
-at the bundled nuScenes sample's axes, ``replay/cost.py: AXES_DEG``). Its detector does no work: it advances the
+frames fired as the LiDAR crosses each camera's optical axis (``replay/triggers.py``: ``lidar_synced_triggers``;
+the CLI takes the axes of the rig the export's LUT was built from, else the bundled nuScenes sample's,
+``replay/cost.py: AXES_DEG``). Its detector does no work: it advances the
 clock by the stage costs, per camera frame encoded (``encode_ms``), per camera term run (``term_ms``, once per
 frame: the per-camera lift's first convolution, ``camera_terms.py``) and per quadrant lifted (``tail_ms``), each
 drawn with a relative spread ``jitter``. The quadrants' cameras are the export's (its LUT). The staleness added of
@@ -39,8 +40,9 @@ from streamdet.core.sectors import NUM_QUADRANTS, quadrants_of_sector
 from streamdet.replay.cost import AXES_DEG
 from streamdet.replay.record import STALE_MS
 from streamdet.replay.source import LidarSweep
-from streamdet.replay.triggers import lidar_synced_triggers
+from streamdet.replay.triggers import camera_axis_azimuths_deg, lidar_synced_triggers
 from streamdet.runtime_ort.detector import ImageUpdate, StreamingDetector
+from streamdet.runtime_ort.export_settings import export_rig
 from streamdet.runtime_ort.phase_locked_lane import PhaseLockedImageLane, PhaseLockStats
 
 STAGES = {"image_encoder": "encode_ms", "lifter_partial": "term_ms", "lifter_tail": "tail_ms"}  # replay stage -> cost
@@ -246,10 +248,16 @@ def costs_from_replay(path: str | Path, jitter: float = 0.0) -> LaneCosts:
     return LaneCosts(total["image_encoder"] / frames, total["lifter_partial"] / frames, stages["lifter_tail"]["mean_ms"], jitter)
 
 
-def export_quadrant_cameras(export_dir: str | Path) -> dict[int, tuple[str, ...]]:
-    """Quadrant -> the cameras the export's LUT reads in it."""
+def export_layout(export_dir: str | Path) -> tuple[dict[int, tuple[str, ...]], dict[str, float] | None]:
+    """(quadrant -> the cameras the export's LUT reads in it, camera -> optical axis azimuth in degrees of the rig
+    the LUT was built from; None where the runtime may not read that rig: ``export_settings.export_rig``)."""
     with StreamingDetector(export_dir) as det:
-        return {q: det.quadrant_cameras([q]) for q in range(NUM_QUADRANTS)}
+        cameras = {q: det.quadrant_cameras([q]) for q in range(NUM_QUADRANTS)}
+        try:
+            axes = camera_axis_azimuths_deg(export_rig(det.manifest, Path(export_dir)))
+        except (ValueError, OSError):
+            axes = None
+    return cameras, axes
 
 
 @click.command()
@@ -288,10 +296,13 @@ def main(export_dir, costs_from, encode_ms, term_ms, tail_ms, cost_scale, jitter
         raise click.UsageError(f"no cost for {', '.join(missing)}: give --costs-from or --{missing[0].replace('_', '-')}")
     try:
         costs = LaneCosts(base["encode_ms"], base["term_ms"], base["tail_ms"], jitter)
-        config = SimConfig(lidar_hz=lidar_hz, num_slices=num_slices, camera_hz=camera_hz, seconds=seconds, read_delay_ms=read_delay_ms)
-        cameras = export_quadrant_cameras(export_dir)
+        cameras, axes = export_layout(export_dir)
+        config = SimConfig(lidar_hz=lidar_hz, num_slices=num_slices, camera_hz=camera_hz, seconds=seconds, read_delay_ms=read_delay_ms,
+                           axes_deg=axes or dict(AXES_DEG))  # fmt: skip
     except ValueError as e:
         raise click.ClickException(str(e)) from None
+    where = "the export's calibration" if axes else "the bundled nuScenes sample (the export's calibration is not readable here)"
+    click.echo(f"camera axes from {where}: " + ", ".join(f"{n} {a:.1f} deg" for n, a in config.axes_deg.items()))
     click.echo(f"costs: encode {costs.encode_ms:.2f} ms per frame, term {costs.term_ms:.2f} ms per frame, tail "
                f"{costs.tail_ms:.2f} ms per quadrant, jitter {jitter:g}; {lidar_hz:g} Hz x {num_slices} slices, "
                f"{camera_hz:g} Hz lidar-synced cameras, {seconds:g} s x {seeds} seed(s)")  # fmt: skip

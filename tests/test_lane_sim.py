@@ -103,6 +103,7 @@ def test_the_cli_prints_a_row_per_cost_scale_and_writes_json(tiny_export, tmp_pa
             "--cost-scale", "1", "--cost-scale", "0.5", "--json", str(out)]  # fmt: skip
     result = CliRunner().invoke(main, args)
     assert result.exit_code == 0, result.output
+    assert "camera axes from the export's calibration: CAM_FRONT 90.2 deg" in result.output  # the bundled sample's rig
     rows = [line for line in result.output.splitlines() if line.startswith("| 1 |") or line.startswith("| 0.5 |")]
     assert len(rows) == 2
     doc = json.loads(out.read_text())
@@ -119,3 +120,22 @@ def test_the_cli_says_which_replay_gave_no_costs(tiny_export, tmp_path):
     (tmp_path / "replay.json").write_text(json.dumps({"modes": {}}))
     bad = CliRunner().invoke(main, ["--export-dir", str(tiny_export), "--costs-from", str(tmp_path)])
     assert bad.exit_code != 0 and "KeyError" in bad.output
+
+
+def test_the_exports_layout_is_its_luts_cameras_and_its_rigs_axes(tiny_export, tmp_path):
+    import shutil
+
+    from streamdet.benchmarks.lane_sim import export_layout
+    from streamdet.replay.cost import AXES_DEG
+
+    cameras, axes = export_layout(tiny_export)
+    assert set(cameras) == {0, 1, 2, 3} and all(cameras.values())
+    assert axes == pytest.approx(AXES_DEG, abs=0.06)  # AXES_DEG: the bundled rig's, to 0.1 deg
+    # an export whose calibration lies elsewhere: its LUT still says the cameras, the axes are not read
+    moved = tmp_path / "export"
+    shutil.copytree(tiny_export, moved)
+    manifest = json.loads((moved / "manifest.json").read_text())
+    manifest["lut"]["calibration_source"] = "/nowhere/calibration.json"
+    (moved / "manifest.json").write_text(json.dumps(manifest))
+    cameras2, axes2 = export_layout(moved)
+    assert cameras2 == cameras and axes2 is None
