@@ -25,13 +25,14 @@ AVX-512 Xeon").
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import SimpleNamespace
-from typing import Mapping
+from typing import Callable, Iterable, Mapping
 
 import click
 import numpy as np
@@ -173,6 +174,20 @@ class _Clock:
         return self.t
 
 
+def play_events(lane: PhaseLockedImageLane, clock, events: Iterable[tuple[float, Callable[[], object]]]) -> None:
+    """Drive a lane without a worker thread (``thread=False``) through ``events``, (time s, action) in time order, on
+    ``clock`` (its ``t`` attribute is the lane's clock): the lane's ``step`` runs whenever it asked to be called
+    again and after every action, which runs with the clock at its time (never moved back: work ran past it)."""
+    wake = None
+    for t, action in events:
+        while wake is not None and wake <= t:
+            clock.t = max(clock.t, wake)
+            wake = lane.step(clock.t)
+        clock.t = max(clock.t, t)
+        action()
+        wake = lane.step(clock.t)
+
+
 def simulate(costs: LaneCosts, quadrant_cameras: Mapping[int, tuple[str, ...]], config: SimConfig = SimConfig()) -> SimResult:
     """Play ``config``'s drive through the phase-locked lane at ``costs``; ``quadrant_cameras``: quadrant -> the
     cameras its lift reads (every quadrant 0..3; each camera needs an axis in ``config.axes_deg``)."""
@@ -194,20 +209,10 @@ def simulate(costs: LaneCosts, quadrant_cameras: Mapping[int, tuple[str, ...]], 
     captures = lidar_synced_triggers(sweeps, {c: config.axes_deg[c] for c in cams}, config.camera_hz)  # camera -> (F,) s
     delivery = config.delivery_ms * 1e-3
     arrivals = [(r * period + (k + 1) * period / n, k) for r in range(rotations) for k in range(n)]  # scan ends
-    events = sorted([(t, 0, k) for t, k in arrivals] + [(t + delivery, 1, (c, t)) for c in cams for t in captures[c]],
-                    key=lambda e: (e[0], e[1]))  # fmt: skip
-    wake = None
-    for t, kind, what in events:
-        while wake is not None and wake <= t:
-            clock.t = max(clock.t, wake)
-            wake = lane.step(clock.t)
-        clock.t = max(clock.t, t)
-        if kind == 0:
-            lane.observe_slice(what, t)
-        else:
-            name, captured = what
-            lane.submit_images({name: np.zeros((1, 1, 3), np.uint8)}, captured)
-        wake = lane.step(clock.t)
+    frame = np.zeros((1, 1, 3), np.uint8)
+    slices = [(t, 0, functools.partial(lane.observe_slice, k, t)) for t, k in arrivals]
+    frames = [(t + delivery, 1, functools.partial(lane.submit_images, {c: frame}, t)) for c in cams for t in captures[c]]
+    play_events(lane, clock, [(t, act) for t, _, act in sorted(slices + frames, key=lambda e: (e[0], e[1]))])
     delivered = np.sort(np.concatenate([captures[c] + delivery for c in cams]))
     read = config.read_delay_ms * 1e-3
     stale, recent = [], []

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from streamdet.replay.record import STALE_MS, Recording, full_collections, staleness_by_recent_images
-from streamdet.replay.report import cpu_line
+from streamdet.replay.report import cpu_line, stale_cells
 
 RUN = re.compile(r"r(\d+)_scale([0-9.]+)_(.+)")
 HEADER = ("| scale | variant | staleness added p50 / p95 ms | image age p95 ms | slice p99 ms | dropped "
@@ -110,7 +110,7 @@ def table(out: Path) -> str:
 def _stale_by_burst(out: Path) -> list[str]:
     """Lines of stale slices by the image sets released in the rotation before their scan start, one per (scale,
     variant), rounds pooled; none where the replays hold no fused slice."""
-    pooled: dict[tuple[float, str], dict[int, list[int]]] = {}
+    pooled: dict[tuple[float, str, float], list[Recording]] = {}  # (scale, label, LiDAR period s) -> every round's
     for _, scale, label, name, streaming, config in _runs(out, with_config=True):
         if not config.get("lidar_hz") or not streaming.get("recordings"):
             continue
@@ -118,13 +118,9 @@ def _stale_by_burst(out: Path) -> list[str]:
             recs = [Recording.from_dict(r) for r in streaming["recordings"]]
         except (KeyError, TypeError) as e:
             raise ValueError(f"{name}: recordings not as streamdet-replay writes them ({type(e).__name__}: {e})") from None
-        counts = pooled.setdefault((scale, label), {})
-        for n, (stale, total) in staleness_by_recent_images(recs, 1.0 / config["lidar_hz"]).items():
-            cell = counts.setdefault(n, [0, 0])
-            cell[0] += stale
-            cell[1] += total
-    lines = [f"- {label} (scale {scale:g}): " + ", ".join(f"{n}: {a} of {b} ({100 * a / b:.0f} %)" for n, (a, b) in sorted(c.items()))
-             for (scale, label), c in sorted(pooled.items()) if c]  # fmt: skip
+        pooled.setdefault((scale, label, 1.0 / config["lidar_hz"]), []).extend(recs)
+    counts = {(scale, label): staleness_by_recent_images(recs, period) for (scale, label, period), recs in sorted(pooled.items())}
+    lines = [f"- {label} (scale {scale:g}): {stale_cells(c)}" for (scale, label), c in counts.items() if c]
     if not lines:
         return []
     return ["", f"stale slices (staleness added > {STALE_MS:g} ms) by image sets released in the rotation before the "

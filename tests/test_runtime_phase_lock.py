@@ -10,6 +10,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from streamdet.benchmarks.lane_sim import play_events
 from streamdet.core.sectors import quadrants_of_sector
 from streamdet.runtime_ort.detector import ImageUpdate
 from streamdet.runtime_ort.lanes import ImagesSuperseded, LaneConfig, StreamingRunner
@@ -80,17 +81,13 @@ def simulate(lift_s: float, seconds: float = 1.0, lidar_hz: float = 20.0, camera
     images = [i / camera_hz + 0.003 for i in range(int(seconds * camera_hz))]
     events = sorted([(t, 0, k) for t, k in slices] + [(t, 1, None) for t in images])
     futures = []
-    wake = None
-    for t, kind, k in events:
-        while wake is not None and wake <= t:
-            clock.t = max(clock.t, wake)
-            wake = lane.step(clock.t)
-        clock.t = max(clock.t, t)
+
+    def act(t: float, kind: int, k: int | None):
         if kind == 0:
-            lane.observe_slice(k, t)
-        else:
-            futures.append(lane.submit_images({c: np.zeros((2, 2, 3), np.uint8) for c in CAMERAS}, t))
-        wake = lane.step(clock.t)
+            return lambda: lane.observe_slice(k, t)
+        return lambda: futures.append(lane.submit_images({c: np.zeros((2, 2, 3), np.uint8) for c in CAMERAS}, t))
+
+    play_events(lane, clock, [(t, act(t, kind, k)) for t, kind, k in events])
     return lane, det, [(t, k, quadrants_of_sector(k, n)) for t, k in slices], images, futures
 
 
