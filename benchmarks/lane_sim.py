@@ -319,7 +319,8 @@ def main(export_dir, costs_from, encode_ms, term_ms, tail_ms, cost_scale, jitter
             results = [simulate(costs.scaled(scale), cameras, SimConfig(**{**vars(config), "seed": s})) for s in range(seeds)]
             st = np.concatenate([r.staleness_ms for r in results])
             recent = np.concatenate([r.recent_frames for r in results])
-            pooled = SimResult(st, recent, float(np.mean([r.busy_cores for r in results])), results[0].stats)
+            stats = PhaseLockStats(**{k: sum(getattr(r.stats, k) for r in results) for k in vars(results[0].stats)})  # all seeds
+            pooled = SimResult(st, recent, float(np.mean([r.busy_cores for r in results])), stats)
             most = int(recent.max()) if recent.size else 0
             six = pooled.by_recent_frames().get(most, (0, 0))
             rows.append({"cost_scale": scale, **pooled.summary()})
