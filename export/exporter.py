@@ -33,7 +33,13 @@ from streamdet.export.graph_steps import TORCH_REF_IMAGES, load_rig  # noqa: F40
 from streamdet.export.options import DEFAULT_PRESET, STEM_STRIDE, ExportError, ExportOptions, check_resolution, resolve_lut_layout  # noqa: F401
 from streamdet.export.staging import discard_staging_dir, make_staging_dir
 from streamdet.export.steps import Progress, Report, export_steps
-from streamdet.export.weights import checkpoint_lifter_form, checkpoint_preset, checkpoint_slice_crop, checkpoint_use_image
+from streamdet.export.weights import (
+    checkpoint_lifter_form,
+    checkpoint_lifter_residual,
+    checkpoint_preset,
+    checkpoint_slice_crop,
+    checkpoint_use_image,
+)
 from streamdet.models.presets import Preset, get_preset, preset_names
 from streamdet.runtime_ort.manifest import Manifest
 
@@ -115,8 +121,9 @@ def _resolve_preset(opts: ExportOptions) -> tuple[Preset, int, int]:
     slice_crop = checkpoint_slice_crop(opts.checkpoint)
     # and the lifter form it was trained with (small_v2 moved to the flat lifter; its older checkpoints are volume)
     form = checkpoint_lifter_form(opts.checkpoint) or preset.lifter.form
+    residual = checkpoint_lifter_residual(opts.checkpoint) or preset.lifter.residual  # the flat lifter's residual conv
     try:
-        lifter = dataclasses.replace(preset.lifter, form=form)
+        lifter = dataclasses.replace(preset.lifter, form=form, residual=residual)
         preset = dataclasses.replace(preset, image=image, use_image=use_image, slice_crop=slice_crop, lifter=lifter)
     except ValueError as e:
         raise ExportError(f"checkpoint {opts.checkpoint}: {e}") from None

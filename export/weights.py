@@ -87,12 +87,22 @@ def checkpoint_slice_crop(checkpoint: str | os.PathLike | None) -> bool:
 def checkpoint_lifter_form(checkpoint: str | os.PathLike | None) -> str | None:
     """The lifter form (models/presets.py LifterConfig.form) of the preset a checkpoint names: absent in the saved
     preset, "volume" (checkpoints from before the field); None when ``checkpoint_preset`` has none."""
+    return _checkpoint_lifter_field(checkpoint, "form", "volume")
+
+
+def checkpoint_lifter_residual(checkpoint: str | os.PathLike | None) -> str | None:
+    """The flat lifter's residual (LifterConfig.residual) of the preset a checkpoint names: absent in the saved
+    preset, "conv" (checkpoints from before the field); None when ``checkpoint_preset`` has none."""
+    return _checkpoint_lifter_field(checkpoint, "residual", "conv")
+
+
+def _checkpoint_lifter_field(checkpoint: str | os.PathLike | None, name: str, absent: str) -> str | None:
     saved = checkpoint_preset(checkpoint)
     lifter = saved.get("lifter") if saved is not None else None
     if not isinstance(lifter, dict):
         return None
-    form = lifter.get("form", "volume")
-    return form if isinstance(form, str) else None
+    value = lifter.get(name, absent)
+    return value if isinstance(value, str) else None
 
 
 def load_detector(preset: Preset, checkpoint: str | os.PathLike | None, seed: int = DEFAULT_SEED) -> tuple[StreamDetector, WeightsSource]:

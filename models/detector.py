@@ -76,7 +76,7 @@ class SliceNet(nn.Module):
 def build_lifter(preset: Preset) -> VolumetricLifter | FlatLifter:
     """The image lane's lifter of ``preset.lifter.form`` (models/presets.py LifterConfig)."""
     if preset.lifter.form == "flat":
-        return FlatLifter(preset.channels, preset.grid.nz)
+        return FlatLifter(preset.channels, preset.grid.nz, preset.lifter.residual)
     return VolumetricLifter(preset.lifter, preset.channels)
 
 

@@ -7,6 +7,7 @@ and the lifter is
 
     BN2d(Z*C) -> 1x1 conv Z*C -> C, BN, ReLU -> residual k3 conv C -> C, BN, ReLU
 
+(the residual's k3 conv factorised into a depthwise k3 and a 1x1 conv with ``LifterConfig.residual="separable"``)
 instead of the paper's three Conv3d layers. Why: the lift of one quadrant has to fit between two slices of the
 LiDAR for the phase-locked image lane (issue 22, docs/replay.md "What the geometry allows"); the paper's lifter
 spends most of the image lane's MACs on Conv3d layers over a volume that, on the small presets, is four planes
@@ -43,20 +44,30 @@ def gather_z_major_bag(features: Tensor, lut_index: Tensor, lut_weight: Tensor) 
     return rows.reshape(q, yq, xq, z * c).permute(0, 3, 1, 2)  # (Q, Z*C, Yq, Xq): channel z * C + c
 
 
+def residual_block(c: int, form: str) -> nn.Sequential:
+    """The residual branch, conv(s) -> BN -> ReLU: one k3 conv C -> C ("conv"), or a depthwise k3 conv then a 1x1
+    conv ("separable", LifterConfig.residual): the same receptive field for about a seventh of the MACs at C = 32."""
+    if form == "conv":
+        convs = [nn.Conv2d(c, c, kernel_size=3, padding=1, bias=False)]
+    elif form == "separable":
+        convs = [nn.Conv2d(c, c, kernel_size=3, padding=1, groups=c, bias=False), nn.Conv2d(c, c, kernel_size=1, bias=False)]
+    else:
+        raise ValueError(f"residual must be 'conv' or 'separable', got {form!r}")
+    return nn.Sequential(*convs, nn.BatchNorm2d(c), nn.ReLU(inplace=True))
+
+
 class FlatLifter(nn.Module):
     """``forward(features (J, C, Hf, Wf), lut_index (Q, K, Z, Yq, Xq) int32, lut_weight (Q, K, Z, Yq, Xq) f32)
     -> image_bev (Q, C, Yq, Xq)``."""
 
-    def __init__(self, channels: int, nz: int) -> None:
+    def __init__(self, channels: int, nz: int, residual: str = "conv") -> None:
         super().__init__()
         c = channels
         self.channels, self.nz = c, nz
         # BN first, as in the volumetric lifter: one statistic per (height, channel), channel z * C + c
         self.input_norm = nn.BatchNorm2d(nz * c)
         self.project = nn.Sequential(nn.Conv2d(nz * c, c, kernel_size=1, bias=False), nn.BatchNorm2d(c), nn.ReLU(inplace=True))
-        self.residual = nn.Sequential(
-            nn.Conv2d(c, c, kernel_size=3, padding=1, bias=False), nn.BatchNorm2d(c), nn.ReLU(inplace=True)
-        )
+        self.residual = residual_block(c, residual)
 
     def forward(self, features: Tensor, lut_index: Tensor, lut_weight: Tensor) -> Tensor:
         return self.folded(gather_z_major_bag(features, lut_index, lut_weight))  # (Q, C, Yq, Xq)
@@ -81,7 +92,9 @@ class FlatLifterConvs(nn.Module):
         c, nz = lifter.channels, lifter.nz
         self.channels, self.nz = c, nz
         self.project = nn.Conv2d(nz * c, c, kernel_size=1)
-        self.residual = nn.Conv2d(c, c, kernel_size=3, padding=1)
+        # every conv of the residual branch but the last as it is (no bias), the last with the branch's BN folded in
+        convs = [m for m in lifter.residual if isinstance(m, nn.Conv2d)]
+        self.residual = nn.Sequential(*(_like(m, bias=i == len(convs) - 1) for i, m in enumerate(convs)))
         self.relu = nn.ReLU(inplace=True)
         self.load_from(lifter)
 
@@ -92,9 +105,13 @@ class FlatLifterConvs(nn.Module):
         weight, bias = fold_bn(weight, bias, bn)  # BN(conv(BN(v)))
         self.project.weight.copy_(weight)
         self.project.bias.copy_(bias)
-        weight, bias = fold_bn(lifter.residual[0].weight, None, lifter.residual[1])
-        self.residual.weight.copy_(weight)
-        self.residual.bias.copy_(bias)
+        convs = [m for m in lifter.residual if isinstance(m, nn.Conv2d)]
+        bn = lifter.residual[len(convs)]
+        for mine, theirs in zip(self.residual[:-1], convs[:-1]):
+            mine.weight.copy_(theirs.weight)
+        weight, bias = fold_bn(convs[-1].weight, None, bn)
+        self.residual[-1].weight.copy_(weight)
+        self.residual[-1].bias.copy_(bias)
 
     def forward(self, volume: Tensor) -> Tensor:
         """From the volume (Q, C, Z, Yq, Xq), like ``FlatLifter.convs`` (the benchmark's lifter rows)."""
@@ -104,6 +121,11 @@ class FlatLifterConvs(nn.Module):
         """(Q, Z*C, Yq, Xq), channel z * C + c -> image_bev (Q, C, Yq, Xq)."""
         v = self.relu(self.project(v))
         return v + self.relu(self.residual(v))
+
+
+def _like(conv: nn.Conv2d, bias: bool) -> nn.Conv2d:
+    """A Conv2d of ``conv``'s geometry, with or without a bias."""
+    return nn.Conv2d(conv.in_channels, conv.out_channels, conv.kernel_size, padding=conv.padding, groups=conv.groups, bias=bias)
 
 
 class FlatLifterExport(nn.Module):

@@ -30,6 +30,8 @@ The presets:
 - ``small_v3_thin``: ``small_v3_lite`` with half the BEV encoder's widths and 8-channel head branches: a lighter
   slice net for 2-core AVX2-only parts at nuScenes rates (issue 22); camera lane and pillar net unchanged. Trained
   once and not bundled: it drops fewer slices there but scores lower (docs/replay.md, "A thinner slice net").
+- ``small_v3_swift``: ``small_v3_thin`` with a lighter camera lane: 224 x 126 images and a factorised residual conv
+  in the flat lifter (``LifterConfig.residual="separable"``), for the phase-locked image lane (issue 22). Not bundled.
 
 Any LiDAR-only variant (``use_image=False``) may drop the quadrant crop (``slice_crop=False``: one whole-grid map
 per slice, the paper's baseline set-up; ``streamdet-train --no-image --no-crop``).
@@ -106,6 +108,7 @@ class PillarConfig:
 
 
 LIFTER_FORMS = ("volume", "flat")
+LIFTER_RESIDUALS = ("conv", "separable")
 
 
 @dataclass(frozen=True)
@@ -119,11 +122,19 @@ class LifterConfig:
     # heights sampled per image voxel by the projection LUT (calibration/lut.py heights_per_voxel); 1 = the centre.
     # A property of the trained model: training, export and every LUT rebuild must use the same value.
     lut_heights_per_voxel: int = 1
+    # the flat lifter's residual k3 conv (form "flat" only): "conv", a full C -> C conv, or "separable", a depthwise
+    # k3 conv then a 1x1 conv (MobileNet's factorisation, about a seventh of the MACs): with the image-half layout this
+    # conv is most of a quadrant's tail in the phase-locked image lane (issue 22)
+    residual: str = "conv"
 
     def __post_init__(self) -> None:
         _check_positive_int(self, "z_conv_stride", "z_pool", "lut_heights_per_voxel")
         if self.form not in LIFTER_FORMS:
             raise ValueError(f"LifterConfig.form must be one of {LIFTER_FORMS}, got {self.form!r}")
+        if self.residual not in LIFTER_RESIDUALS:
+            raise ValueError(f"LifterConfig.residual must be one of {LIFTER_RESIDUALS}, got {self.residual!r}")
+        if self.residual != "conv" and self.form != "flat":
+            raise ValueError(f"LifterConfig.residual={self.residual!r} needs form 'flat', got form {self.form!r}")
 
 
 @dataclass(frozen=True)
@@ -294,6 +305,8 @@ class Preset:
             del d["image"]["norm"]
         if d["lifter"]["lut_heights_per_voxel"] == 1:
             del d["lifter"]["lut_heights_per_voxel"]
+        if d["lifter"]["residual"] == "conv":
+            del d["lifter"]["residual"]
         if self.image_bev_norm:
             d["image_bev_norm"] = True
         if self.image_bev_target != "learnt":
@@ -434,6 +447,22 @@ def _small_v3_thin() -> Preset:
     )
 
 
+def _small_v3_swift() -> Preset:
+    # small_v3_thin with a lighter camera lane for the phase-locked image lane's 25 ms line (issue 22): 224 x 126
+    # images (features 56 x 32, about half the encoder's MACs at 320 x 180: the frame a slice waits for must be
+    # encoded, its term run and the quadrant's tail run within about 9 ms of the camera's trigger, and the encoder is
+    # the largest of the three) and the flat lifter's residual conv factorised (depthwise k3 + 1x1), the largest conv
+    # of a quadrant's tail with the image-half layout. The weights of every layer but that residual keep their
+    # shapes, so a run can start from small_v3_thin's (docs/training/issue22/reproduce_swift.sh).
+    thin = _small_v3_thin()
+    return dataclasses.replace(
+        thin,
+        name="small_v3_swift",
+        image=dataclasses.replace(thin.image, width_px=224, height_px=126),
+        lifter=dataclasses.replace(thin.lifter, residual="separable"),
+    )
+
+
 _PRESETS = {
     "paper": _paper,
     "small": _small,
@@ -442,6 +471,7 @@ _PRESETS = {
     "small_v3": _small_v3,
     "small_v3_lite": _small_v3_lite,
     "small_v3_thin": _small_v3_thin,
+    "small_v3_swift": _small_v3_swift,
 }
 
 

@@ -29,13 +29,9 @@ from streamdet.training.checkpoint import save_weights
 PRESET = dataclasses.replace(get_preset("tiny"), lifter=dataclasses.replace(get_preset("tiny").lifter, form="flat"))
 
 
-@pytest.fixture(scope="module")
-def export_dir(tmp_path_factory) -> Path:
-    """A tiny flat-lifter export (fp32 + int8, the compact LUT layout of one height per voxel), seeded weights with
-    spread BatchNorms so that the lifter's output is not flat. (The shipped model's two heights per voxel give
-    shares of two slots: the partial graph's tests cover S > 1.)"""
+def _export(tmp_path_factory, preset) -> Path:
     torch.manual_seed(7)
-    model = build_detector(PRESET).eval()
+    model = build_detector(preset).eval()
     gen = torch.Generator().manual_seed(7)
     with torch.no_grad():
         for bn in model.lifter.modules():
@@ -43,11 +39,26 @@ def export_dir(tmp_path_factory) -> Path:
                 bn.running_mean.copy_(torch.randn(bn.num_features, generator=gen) * 0.3)
                 bn.weight.copy_(torch.rand(bn.num_features, generator=gen) + 0.5)
     ckpt = tmp_path_factory.mktemp("ckpt") / "flat2.pt"
-    save_weights(ckpt, PRESET, model)
+    save_weights(ckpt, preset, model)
     out = tmp_path_factory.mktemp("export") / "flat2"
     result = CliRunner().invoke(export_main, ["--checkpoint", str(ckpt), "--int8", "--slices", "8", "--out", str(out)])
     assert result.exit_code == 0, result.output
     return out
+
+
+@pytest.fixture(scope="module")
+def export_dir(tmp_path_factory) -> Path:
+    """A tiny flat-lifter export (fp32 + int8, the compact LUT layout of one height per voxel), seeded weights with
+    spread BatchNorms so that the lifter's output is not flat. (The shipped model's two heights per voxel give
+    shares of two slots: the partial graph's tests cover S > 1.)"""
+    return _export(tmp_path_factory, PRESET)
+
+
+@pytest.fixture(scope="module")
+def separable_export_dir(tmp_path_factory) -> Path:
+    """``export_dir``'s model with the flat lifter's residual factorised (LifterConfig.residual "separable"): the tail
+    cut after the first conv holds two convs instead of one."""
+    return _export(tmp_path_factory, dataclasses.replace(PRESET, lifter=dataclasses.replace(PRESET.lifter, residual="separable")))
 
 
 def _images(det: StreamingDetector, seed: int, names=None) -> dict[str, np.ndarray]:
@@ -212,8 +223,10 @@ def test_a_first_conv_that_is_not_the_flat_lifters_does_not_split(tiny_export):
 # ---- quadrant updates from terms against the lifter graph -----------------------------------------------------
 
 
+@pytest.mark.parametrize("exported", ["export_dir", "separable_export_dir"])
 @pytest.mark.parametrize("seed", [0, 1])
-def test_fp32_quadrant_updates_from_terms_equal_the_lifter_graph(export_dir, seed):
+def test_fp32_quadrant_updates_from_terms_equal_the_lifter_graph(request, exported, seed):
+    export_dir = request.getfixturevalue(exported)
     terms = StreamingDetector(export_dir, DetectorConfig(camera_terms=True))
     graph = StreamingDetector(export_dir, DetectorConfig(camera_terms=False))
     assert terms.camera_terms and not graph.camera_terms
@@ -230,7 +243,9 @@ def test_fp32_quadrant_updates_from_terms_equal_the_lifter_graph(export_dir, see
     assert a.shape == b.shape and np.abs(a - b).max() <= 1e-5 * np.ptp(b)
 
 
-def test_int8_quadrant_updates_from_terms_stay_within_the_int8_lifters_error(export_dir):
+@pytest.mark.parametrize("exported", ["export_dir", "separable_export_dir"])
+def test_int8_quadrant_updates_from_terms_stay_within_the_int8_lifters_error(request, exported):
+    export_dir = request.getfixturevalue(exported)
     cfg = dict(precision="fp32", image_lane_precision="int8")
     terms = StreamingDetector(export_dir, DetectorConfig(**cfg, camera_terms=True))
     graph = StreamingDetector(export_dir, DetectorConfig(**cfg, camera_terms=False))

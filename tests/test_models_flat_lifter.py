@@ -78,6 +78,11 @@ def _np_conv2d(x: np.ndarray, w: np.ndarray) -> np.ndarray:
     return out
 
 
+def _np_depthwise(x: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Same-padded depthwise 2D convolution: x (Q, C, Y, X), w (C, 1, k, k)."""
+    return np.concatenate([_np_conv2d(x[:, i : i + 1], w[i : i + 1]) for i in range(x.shape[1])], axis=1)
+
+
 def _np_flat_lifter(lifter: FlatLifter, features: np.ndarray, index: np.ndarray, weight: np.ndarray) -> np.ndarray:
     j, c, hf, wf = features.shape
     table = np.concatenate([features.transpose(0, 2, 3, 1).reshape(-1, c), np.zeros((1, c))])  # sentinel row last
@@ -90,16 +95,21 @@ def _np_flat_lifter(lifter: FlatLifter, features: np.ndarray, index: np.ndarray,
 
     v = _np_bn(v, lifter.input_norm)
     v = np.maximum(_np_bn(_np_conv2d(v, w(lifter.project[0])), lifter.project[1]), 0)
-    r = np.maximum(_np_bn(_np_conv2d(v, w(lifter.residual[0])), lifter.residual[1]), 0)
+    convs = [m for m in lifter.residual if isinstance(m, torch.nn.Conv2d)]
+    r = v
+    for conv in convs:
+        r = _np_depthwise(r, w(conv)) if conv.groups > 1 else _np_conv2d(r, w(conv))
+    r = np.maximum(_np_bn(r, lifter.residual[len(convs)]), 0)
     return v + r
 
 
+@pytest.mark.parametrize("residual", ["conv", "separable"])
 @pytest.mark.parametrize("seed", [0, 1, 2])
 @pytest.mark.parametrize("q", [1, 3])
-def test_flat_lifter_matches_the_naive_reference(seed, q):
+def test_flat_lifter_matches_the_naive_reference(seed, q, residual):
     torch.manual_seed(seed)
     c, nz = 4, 3
-    lifter = FlatLifter(c, nz).eval()
+    lifter = FlatLifter(c, nz, residual).eval()
     _randomise_bn(lifter, seed)
     rng = np.random.default_rng(seed)
     j, hf, wf = 2, 5, 6
@@ -141,6 +151,23 @@ def test_empty_quadrant_batch_and_wrong_channels():
         lifter.folded(torch.zeros(1, 7, 3, 3))
 
 
+def test_residual_form_is_checked_and_costs_less_separable():
+    with pytest.raises(ValueError, match="'grouped'"):
+        LifterConfig(form="flat", residual="grouped")
+    with pytest.raises(ValueError, match="needs form 'flat'"):
+        LifterConfig(form="volume", residual="separable")
+    with pytest.raises(ValueError, match="'grouped'"):
+        FlatLifter(4, 2, "grouped")
+    assert "residual" not in TINY_FLAT.to_dict()["lifter"]  # manifests of conv lifters keep their exact dict
+    swift = get_preset("small_v3_swift")
+    assert swift.lifter.residual == "separable" and type(swift).from_dict(swift.to_dict()) == swift
+    c = 32
+    x = torch.empty(1, c, 16, 16)
+    with torch.device("meta"):
+        full, separable = FlatLifter(c, 4, "conv").residual, FlatLifter(c, 4, "separable").residual
+    assert count_gmac(separable, x.to("meta")) < count_gmac(full, x.to("meta")) / 5
+
+
 def test_lifter_form_is_checked_and_old_presets_keep_the_volume():
     with pytest.raises(ValueError, match="'conv3d'"):
         LifterConfig(form="conv3d")
@@ -172,11 +199,13 @@ def test_flat_lifter_costs_a_fraction_of_the_volume_lifter(name):
 # ---- export form ----------------------------------------------------------------------------------------------
 
 
+@pytest.mark.parametrize("residual", ["conv", "separable"])
 @pytest.mark.parametrize("seed", [0, 1])
 @pytest.mark.parametrize("multi_share", [0.0, 0.3])
-def test_export_form_folds_the_batchnorms_and_reads_the_compact_lut(seed, multi_share):
+def test_export_form_folds_the_batchnorms_and_reads_the_compact_lut(seed, multi_share, residual):
     torch.manual_seed(seed)
-    det = build_detector(TINY_FLAT).eval()
+    preset = dataclasses.replace(TINY_FLAT, lifter=dataclasses.replace(TINY_FLAT.lifter, residual=residual))
+    det = build_detector(preset).eval()
     _randomise_bn(det.lifter, seed)
     form = to_export_form(det)
     assert isinstance(det.lifter, FlatLifter) and isinstance(form.volumetric_lifter, FlatLifterExport)
@@ -287,3 +316,21 @@ def test_the_export_builds_the_form_a_checkpoint_was_trained_with(tmp_path):
     assert checkpoint_lifter_form(None) is None
     (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
     assert checkpoint_lifter_form(tmp_path / "junk.pt") is None
+
+
+def test_the_export_builds_the_residual_a_checkpoint_was_trained_with(tmp_path):
+    """A checkpoint without lifter.residual (before the field, or a "conv" one) has the full conv; a separable one is
+    exported separable, whatever the preset of its name says."""
+    from streamdet.export.exporter import _resolve_preset
+    from streamdet.export.options import ExportOptions
+    from streamdet.export.weights import checkpoint_lifter_residual
+
+    separable = dataclasses.replace(TINY_FLAT, lifter=dataclasses.replace(TINY_FLAT.lifter, residual="separable"))
+    path = tmp_path / "sep.pt"
+    save_weights(path, separable, build_detector(separable))
+    assert checkpoint_lifter_residual(path) == "separable"
+    conv = tmp_path / "conv.pt"
+    save_weights(conv, TINY_FLAT, build_detector(TINY_FLAT))
+    assert checkpoint_lifter_residual(conv) == "conv" and checkpoint_lifter_residual(None) is None
+    preset, _, _ = _resolve_preset(ExportOptions(checkpoint=str(path)))
+    assert preset.lifter.residual == "separable" and preset.lifter.form == "flat"

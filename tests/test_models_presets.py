@@ -25,7 +25,7 @@ from streamdet.models.presets import (
 
 
 def test_preset_names():
-    assert preset_names() == ("paper", "small", "tiny", "small_v2", "small_v3", "small_v3_lite", "small_v3_thin")
+    assert preset_names() == ("paper", "small", "tiny", "small_v2", "small_v3", "small_v3_lite", "small_v3_thin", "small_v3_swift")
 
 
 def test_small_v3_lite_is_small_v3_with_a_lighter_image_encoder():
@@ -51,6 +51,25 @@ def test_small_v3_thin_is_small_v3_lite_with_a_thinner_slice_net():
     # a run can start from small_v3_lite's camera lane and pillar net (streamdet-train --init)
     _, parts = transferable_weights(thin, lite.to_dict(), build_detector(lite).state_dict())
     assert parts == ("image_encoder", "lifter", "slice_net.pillar_net")
+
+
+def test_small_v3_swift_is_small_v3_thin_with_a_lighter_camera_lane():
+    import dataclasses
+
+    import torch
+
+    from streamdet.models.detector import build_detector
+
+    thin, swift = get_preset("small_v3_thin"), get_preset("small_v3_swift")
+    assert (swift.image.width_px, swift.image.height_px) == (224, 126) and swift.lifter.residual == "separable"
+    assert (swift.image.feature_width, swift.image.feature_height) == (56, 32)
+    assert dataclasses.replace(swift, name="small_v3_thin", image=thin.image, lifter=thin.lifter) == thin  # nothing else
+    assert Preset.from_dict(swift.to_dict()) == swift
+    # every weight but the lifter's residual keeps its shape (docs/training/issue22/init_swift.py starts from thin's)
+    a, b = build_detector(thin).state_dict(), build_detector(swift).state_dict()
+    differ = {k for k in b if k not in a or a[k].shape != b[k].shape}
+    assert differ and all(k.startswith("lifter.residual.") for k in differ)
+    assert all(isinstance(v, torch.Tensor) for v in b.values())
 
 
 def test_unknown_preset_lists_known_ones():
