@@ -93,7 +93,7 @@ class FlatLifterConvs(nn.Module):
         self.channels, self.nz = c, nz
         self.project = nn.Conv2d(nz * c, c, kernel_size=1)
         # every conv of the residual branch but the last as it is (no bias), the last with the branch's BN folded in
-        convs = [m for m in lifter.residual if isinstance(m, nn.Conv2d)]
+        convs = _convs(lifter.residual)
         self.residual = nn.Sequential(*(_like(m, bias=i == len(convs) - 1) for i, m in enumerate(convs)))
         self.relu = nn.ReLU(inplace=True)
         self.load_from(lifter)
@@ -105,7 +105,7 @@ class FlatLifterConvs(nn.Module):
         weight, bias = fold_bn(weight, bias, bn)  # BN(conv(BN(v)))
         self.project.weight.copy_(weight)
         self.project.bias.copy_(bias)
-        convs = [m for m in lifter.residual if isinstance(m, nn.Conv2d)]
+        convs = _convs(lifter.residual)
         bn = lifter.residual[len(convs)]
         for mine, theirs in zip(self.residual[:-1], convs[:-1]):
             mine.weight.copy_(theirs.weight)
@@ -121,6 +121,11 @@ class FlatLifterConvs(nn.Module):
         """(Q, Z*C, Yq, Xq), channel z * C + c -> image_bev (Q, C, Yq, Xq)."""
         v = self.relu(self.project(v))
         return v + self.relu(self.residual(v))
+
+
+def _convs(branch: nn.Sequential) -> list[nn.Conv2d]:
+    """The convs of a ``residual_block`` branch, in order (the BN and ReLU follow them)."""
+    return [m for m in branch if isinstance(m, nn.Conv2d)]
 
 
 def _like(conv: nn.Conv2d, bias: bool) -> nn.Conv2d:
