@@ -176,6 +176,7 @@ class StreamingDetector:
             self._lut = self._check_lut(self._build_lut(export_rig(m, self.export_dir)))
         self._image: ImageCache | None = None  # None before the first image update; replaced whole under _lock
         self._quadrant_luts: dict[Lut, tuple[QuadrantLut, ...]] = {}  # per LUT in use (the newest two kept)
+        self._cameras_of: tuple[Lut, dict[tuple[int, ...], tuple[str, ...]]] | None = None  # quadrant_cameras' answers
         self._compact_luts: dict[tuple[int, int], tuple[Lut | QuadrantLut, dict[str, np.ndarray]]] = {}  # compact LUT feeds
         # per-camera lifts of image updates (camera_terms.py); None: every update runs the lifter graph
         self._terms: CameraTerms | None = self._open_camera_terms() if self.uses_images and self._lut is not None else None
@@ -443,10 +444,21 @@ class StreamingDetector:
 
     def quadrant_cameras(self, quadrants: Sequence[int]) -> tuple[str, ...]:
         """The cameras whose feature maps the LUT in use reads in these quadrants, in the export's camera order."""
+        # the phase-locked lane asks several hundred times a second, holding the GIL: answers are kept per LUT
+        key = tuple(quadrants) if isinstance(quadrants, (list, tuple)) else None
+        kept = self._cameras_of
+        if key is not None and kept is not None and kept[0] is self._lut and all(type(q) is int for q in key):
+            cams = kept[1].get(key)
+            if cams is not None:
+                return cams
         wanted = update_quadrants(quadrants)
-        qluts = self._luts_of(self.lut)
+        lut = self.lut
+        qluts = self._luts_of(lut)
         seen = {name for q in wanted for name in qluts[q].camera_names}
-        return tuple(n for n in self.camera_names if n in seen)
+        cams = tuple(n for n in self.camera_names if n in seen)
+        if key == wanted:
+            self._cameras_of = (lut, {**(kept[1] if kept is not None and kept[0] is lut else {}), key: cams})
+        return cams
 
     def check_images(self, images: Mapping[str, np.ndarray]) -> None:
         """ValueError unless ``images`` is a non-empty dict of known camera names to uint8 RGB (H, W, 3) images of

@@ -48,6 +48,7 @@ class RotationPhase:
         self._fixed_period_s = None if lidar_hz is None else 1.0 / float(lidar_hz)
         self._periods: deque[float] = deque(maxlen=PERIOD_SAMPLES)
         self._provisional_s = math.nan  # the period over less than a rotation of arrivals
+        self._median_s = math.nan  # the median of _periods
         self._anchor: tuple[int, float] | None = None  # (slice index, arrival s) of the newest arrival
         # (position, arrival s) of the last arrivals of an unbroken run, position = slices since its first one
         self._history: deque[tuple[int, float]] = deque(maxlen=HISTORY_ROTATIONS * num_slices + 1)
@@ -72,6 +73,7 @@ class RotationPhase:
                 period = (arrival_s - first_t) * self.num_slices / (pos - first_pos)
                 if pos - first_pos >= self.num_slices:  # a whole rotation or more: a measurement
                     self._periods.append(period)
+                    self._median_s = statistics.median(self._periods)  # read at every pass the lane plans
                 else:  # less: only until the first measurement
                     self._provisional_s = period
         else:
@@ -83,7 +85,7 @@ class RotationPhase:
         """Seconds per rotation (nan until known)."""
         if self._fixed_period_s is not None:
             return self._fixed_period_s
-        return statistics.median(self._periods) if self._periods else self._provisional_s
+        return self._median_s if self._periods else self._provisional_s
 
     @property
     def locked(self) -> bool:
@@ -139,11 +141,13 @@ def plan_lift(
         wanted_now &= {target}
     if not wanted_now:
         return None
-    done = tuple(done)
+    done_at: dict[tuple[int, int], list[float]] = {}  # (slice, quadrant) -> deadlines: one scan of ``done``, not one per pass
+    for dd, dk, dq in done:
+        done_at.setdefault((dk, dq), []).append(dd)
     half = phase.period_s / 2
     skipped = []
     for deadline, k, q in phase.passes(now_s):
-        if q not in wanted_now or any(dk == k and dq == q and abs(dd - deadline) < half for dd, dk, dq in done):
+        if q not in wanted_now or any(abs(dd - deadline) < half for dd in done_at.get((k, q), ())):
             continue
         if now_s + duration_s(q) <= deadline:  # the margin is the aim, the deadline the limit
             start = now_s if target is not None else max(deadline - duration_s(q) - margin_s, now_s)

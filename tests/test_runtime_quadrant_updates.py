@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from streamdet.calibration.lut import CameraMovedWarning
 from streamdet.calibration.perturb import perturb_rig
 from streamdet.calibration.quadrant_lut import quadrant_lut, quadrant_luts
 from streamdet.core.sectors import quadrants_of_sector
@@ -247,3 +248,33 @@ def test_camera_timestamps_make_each_quadrant_as_old_as_its_oldest_camera(tiny_e
 def test_malformed_camera_timestamps_are_refused(detector, bad, match):
     with pytest.raises(ValueError, match=match):
         detector.update_images(_images(detector, 0), timestamp=1.0, camera_timestamps=bad)
+
+
+def _naive_quadrant_cameras(det: StreamingDetector, quadrants) -> tuple[str, ...]:
+    seen = {n for q in quadrants for n in quadrant_lut(det.lut, q).camera_names}
+    return tuple(n for n in det.camera_names if n in seen)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_quadrant_cameras_follow_a_calibration_swap(tiny_export, sample, seed):
+    """quadrant_cameras keeps its answers per LUT: after a swap it names the new LUT's cameras, never the old one's."""
+    det = StreamingDetector(tiny_export)
+    subsets = [(0,), (1,), (2,), (3,), (0, 1), (1, 2, 3), (0, 1, 2, 3)]
+    for _ in range(2):  # the second pass reads the kept answers
+        assert [det.quadrant_cameras(list(qs)) for qs in subsets] == [_naive_quadrant_cameras(det, qs) for qs in subsets]
+    old = [det.quadrant_cameras([q]) for q in range(4)]
+    rig = perturb_rig(sample.rig, 60.0, 0.5, seed=seed).resized(det.image.width, det.image.height)
+    with pytest.warns(CameraMovedWarning):  # a swap this large moves what the cameras see: the point of the test
+        det.set_calibration(rig)
+    assert any(det.quadrant_cameras([q]) != before for q, before in enumerate(old))
+    for _ in range(2):
+        assert [det.quadrant_cameras(qs) for qs in subsets] == [_naive_quadrant_cameras(det, qs) for qs in subsets]
+    assert det.quadrant_cameras([np.int64(2)]) == _naive_quadrant_cameras(det, (2,))
+
+
+@pytest.mark.parametrize("bad", [[], [4], [1, 0], [True], (True,), [1.0], "1"])
+def test_quadrant_cameras_refuses_malformed_quadrants_after_valid_ones(detector, bad):
+    for q in range(4):
+        detector.quadrant_cameras([q])  # kept: a bool or float equal to a kept key must still be refused
+    with pytest.raises(ValueError, match="quadrants must be a non-empty strictly increasing list of 0..3"):
+        detector.quadrant_cameras(bad)
