@@ -12,6 +12,7 @@ the four agree by construction. numpy only: the runtime uses it without PyTorch.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 from streamdet.calibration.grid import GridSpec
@@ -46,6 +47,12 @@ def map_cells(grid: GridSpec, crop: bool = True) -> tuple[int, int]:
 def slice_maps(grid: GridSpec, quadrants: tuple[int, ...], crop: bool = True) -> SliceMaps:
     """The maps of a slice touching ``quadrants`` (increasing): one per quadrant with the crop, one without."""
     qs = check_quadrants(quadrants)
+    _check_crop(crop)
+    return _slice_maps(grid, qs, crop)
+
+
+@functools.lru_cache(maxsize=64)  # the slice lane asks twice per slice; a grid has 15 quadrant sets x 2 layouts
+def _slice_maps(grid: GridSpec, qs: tuple[int, ...], crop: bool) -> SliceMaps:
     rows, cols = map_cells(grid, crop)
     if crop:
         origins = tuple(grid.quadrant_origin_m(q) for q in qs)

@@ -28,6 +28,10 @@ NUM_QUADRANTS = 4
 def check_quadrants(quadrants: Iterable[int]) -> tuple[int, ...]:
     """The quadrants of one slice or one image update as a tuple of ints: a non-empty, strictly increasing list of
     0..3 (ints or numpy integers, not bools); ValueError quoting the bad value otherwise."""
+    if type(quadrants) is tuple or type(quadrants) is list:  # the hot path (every slice, several times): plain ints
+        qs = tuple(quadrants)
+        if qs and all(type(q) is int and 0 <= q < NUM_QUADRANTS for q in qs) and all(a < b for a, b in zip(qs, qs[1:])):
+            return qs
     try:
         qs = None if isinstance(quadrants, (str, bytes)) else tuple(quadrants)
     except TypeError:

@@ -114,8 +114,28 @@ def overlapping_pairs(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.nd
     return np.minimum(i, j), np.maximum(i, j)
 
 
+# Up to this many boxes the pairs come from one dense (N, N) test: a slice's NMS sees a few dozen boxes, where the
+# per-class sweeps' dozens of small numpy calls cost several times more than the N^2 comparisons.
+DENSE_PAIRS_MAX = 128
+
+
+def _dense_same_class_pairs(lo: np.ndarray, hi: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The pairs of `_same_class_pairs` from every (i, j), i < j, at once: the same set, in (i, j) order."""
+    n = labels.shape[0]
+    overlap = labels[:, None] == labels[None, :]  # (N, N)
+    for c in range(2):  # open intervals, both ways, as overlapping_pairs
+        overlap &= lo[:, None, c] < hi[None, :, c]
+        overlap &= lo[None, :, c] < hi[:, None, c]
+    overlap &= np.arange(n)[:, None] < np.arange(n)[None, :]  # i < j
+    i, j = np.nonzero(overlap)
+    return i.astype(np.int64), j.astype(np.int64)
+
+
 def _same_class_pairs(lo: np.ndarray, hi: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Overlapping pairs (i < j) among boxes of the same label; one sweep per class keeps the sweeps short."""
+    """Overlapping pairs (i < j) among boxes of the same label; one sweep per class keeps the sweeps short (a dense
+    test below DENSE_PAIRS_MAX boxes)."""
+    if labels.shape[0] <= DENSE_PAIRS_MAX:
+        return _dense_same_class_pairs(lo, hi, labels)
     firsts, seconds = [], []
     for label in np.unique(labels).tolist():
         members = np.flatnonzero(labels == label)  # increasing, so i < j survives the mapping back
@@ -136,7 +156,7 @@ def _greedy(num: int, first: np.ndarray, second: np.ndarray, keep: np.ndarray | 
     order = np.argsort(first, kind="stable")
     first, second = first[order], second[order]
     heads, starts = np.unique(first, return_index=True)
-    ends = np.r_[starts[1:], first.size]
+    ends = np.append(starts[1:], first.size)
     # A Python loop over the boxes that have a suppression link at all: the greedy rule is sequential.
     for head, start, end in zip(heads.tolist(), starts.tolist(), ends.tolist()):
         if keep[head]:

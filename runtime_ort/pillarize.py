@@ -25,6 +25,7 @@ from streamdet.core.sectors import NUM_QUADRANTS
 
 POINT_DIM = SLICE_COLUMNS  # x, y, z, reflectance, relative time, slice index (streamdet.core.points)
 PILLAR_FEATURE_DIM = 11  # the 6 point columns, 3 offsets from the pillar mean, 2 offsets from the cell centre
+_INT64_MAX = int(np.iinfo(np.int64).max)
 
 
 @dataclass(frozen=True)
@@ -145,15 +146,20 @@ def pillarize(
         flat = row[kept_rows] * grid.nx + col[kept_rows]  # (n,)
 
     # Sorting the unique key (flat, position) equals a stable argsort of flat, at a third of the cost.
-    if maps.count * maps.cells < np.iinfo(np.int64).max // max(n, 1):
+    if maps.count * maps.cells < _INT64_MAX // max(n, 1):
         key = np.sort(flat * n + np.arange(n))
         order, sorted_flat = key % n, key // n
     else:
         order = np.argsort(flat, kind="stable")
         sorted_flat = flat[order]
     src = kept_rows[order]  # rows of `pts`, grouped by pillar, input order inside a pillar
-    starts = np.flatnonzero(np.r_[True, sorted_flat[1:] != sorted_flat[:-1]])  # (U,) run starts
-    counts = np.diff(np.r_[starts, n])  # (U,) points per occupied pillar
+    new_run = np.empty(n, dtype=bool)  # (n,) a point opens a pillar's run
+    new_run[0] = True
+    np.not_equal(sorted_flat[1:], sorted_flat[:-1], out=new_run[1:])
+    starts = np.flatnonzero(new_run)  # (U,) run starts
+    counts = np.empty_like(starts)  # (U,) points per occupied pillar
+    np.subtract(starts[1:], starts[:-1], out=counts[:-1])
+    counts[-1] = n - starts[-1]
     pillar_of = np.repeat(np.arange(starts.size), counts)  # (n,) run of each sorted point
     rank = np.arange(n) - starts[pillar_of]  # position inside its pillar, in input order
 

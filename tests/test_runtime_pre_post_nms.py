@@ -56,7 +56,6 @@ def reference_iou(a, b):
             polygon = _clip(polygon, pb[k], pb[(k + 1) % 4])
     inter = 0.0
     if len(polygon) >= 3:
-        n = len(polygon)
         nxt = polygon[1:] + polygon[:1]
         inter = 0.5 * abs(sum(p[0] * q[1] - q[0] * p[1] for p, q in zip(polygon, nxt)))
     return inter / (a[3] * a[4] + b[3] * b[4] - inter)
@@ -178,6 +177,30 @@ def test_overlapping_pairs_matches_brute_force(seed):
     assert got == want and len(got) == len(i)
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("num", [0, 1, 2, 40, 128])
+def test_dense_same_class_pairs_equal_the_per_class_sweeps(seed, num):
+    from streamdet.runtime_ort import nms as nms_module
+
+    rng = np.random.default_rng(seed)
+    lo = rng.uniform(0, 6, (num, 2))
+    hi = lo + rng.uniform(0, 1.5, (num, 2))
+    hi[: num // 8] = lo[: num // 8]  # empty extents overlap nothing
+    if num >= 6:  # exact duplicates: equal extents overlap (open intervals of positive width)
+        lo[num // 2 : num // 2 + 3], hi[num // 2 : num // 2 + 3] = lo[3:6], hi[3:6]
+    labels = rng.integers(0, 4, num)
+    dense = nms_module._dense_same_class_pairs(lo, hi, labels)
+    firsts, seconds = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
+    for label in np.unique(labels).tolist():  # the sweeps, as _same_class_pairs runs them above DENSE_PAIRS_MAX
+        members = np.flatnonzero(labels == label)
+        i, j = overlapping_pairs(lo[members], hi[members])
+        firsts.append(members[i])
+        seconds.append(members[j])
+    swept = set(zip(np.concatenate(firsts).tolist(), np.concatenate(seconds).tolist()))
+    assert set(zip(dense[0].tolist(), dense[1].tolist())) == swept and dense[0].size == len(swept)
+    assert dense[0].dtype == dense[1].dtype == np.int64 and np.all(dense[0] < dense[1])
+
+
 # ---- NMS ---------------------------------------------------------------------------------------------------
 def naive_nms(boxes, scores, labels, config):
     """CenterPoint's loop: best first, a kept box suppresses same-class boxes it overlaps."""
@@ -212,9 +235,10 @@ def naive_nms(boxes, scores, labels, config):
     ],
     ids=["circle-centerpoint", "circle-1.5m-max20", "rotated-0.2", "rotated-0.05-max15"],
 )
-def test_nms_matches_naive_loop(seed, config):
+@pytest.mark.parametrize("num", [12, 120, 300])  # up to DENSE_PAIRS_MAX: the dense pair test; above: the sweeps
+def test_nms_matches_naive_loop(seed, config, num):
     rng = np.random.default_rng(seed)
-    boxes, scores, labels = random_boxes(rng, 120, spread_m=8.0)
+    boxes, scores, labels = random_boxes(rng, num, spread_m=8.0 * (num / 120) ** 0.5)
     scores[::10] = scores[1::10]  # ties: the lower index goes first
     keep = nms(boxes, scores, labels, config)
     assert keep.dtype == np.int64
