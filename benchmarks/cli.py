@@ -65,6 +65,9 @@ def _flops_only(preset: str, resolution: tuple[int, int] | None, json_path: Path
 @click.option("--stream-precision", type=click.Choice(PRECISION_CHOICES), default="fp32", show_default=True,
               help="Graphs the streaming section runs; --export-dir must hold them (streamdet-export --fp16 / --int8).")
 @image_precision_option("--stream-image-precision", "stream_image_precision")
+@click.option("--stream-slice-workers", type=click.IntRange(min=1, max=1024), default=None,
+              help="Slice workers (LaneConfig.max_in_flight) of the streaming section's image-lane schedules [default: the "
+              "runtime's, 2]; 1 leaves the image lane a core of its own on a 2-core machine (docs/replay.md).")
 @click.option("--repeat", type=click.IntRange(min=1), default=None, help="Timed runs per measurement [default: 20; 5 with --quick].")
 @click.option("--threads", type=click.IntRange(min=1), default=None, help="Threads for the Table 3 rows [default: all cores].")
 @click.option(
@@ -101,6 +104,7 @@ def main(
     int8: bool,
     stream_precision: str,
     stream_image_precision: str | None,
+    stream_slice_workers: int | None,
     repeat: int | None,
     threads: int | None,
     quick: bool,
@@ -150,6 +154,7 @@ def main(
         int8=int8,
         stream_precision=stream_precision,
         stream_image_precision=stream_image_precision,
+        stream_slice_workers=stream_slice_workers,
         repeat=repeat,
         threads=threads,
         quick=quick,

@@ -41,6 +41,7 @@ class BenchConfig:
     int8: bool = True  # also quantize and time int8 graphs of the rows
     stream_precision: str = "fp32"  # graphs of the streaming section (the export made here includes them)
     stream_image_precision: str | None = None  # its image lane's graphs; None: stream_precision
+    stream_slice_workers: int | None = None  # slice workers of its image-lane schedules; None: LaneConfig's default
     repeat: int | None = None  # timed runs per measurement; None: 20, or 5 with quick
     threads: int | None = None  # threads of the row measurements; None: every core
     quick: bool = False  # fewer repeats, shorter streaming runs
@@ -65,7 +66,8 @@ class BenchConfig:
         return ProbeConfig(size=1024, runs=4, warmup=1) if self.quick else ProbeConfig()
 
     def streaming(self) -> StreamingConfig:
-        cfg = StreamingConfig(num_slices=self.slices, precision=self.stream_precision, image_precision=self.stream_image_precision)
+        cfg = StreamingConfig(num_slices=self.slices, precision=self.stream_precision, image_precision=self.stream_image_precision,
+                              schedule_slice_workers=self.stream_slice_workers)  # fmt: skip
         return dataclasses.replace(cfg, sweeps=2, image_updates=1, queue_sweeps=1, schedule_seconds=1.0) if self.quick else cfg
 
 

@@ -61,6 +61,7 @@ class StreamingConfig:
     # (d) seconds of the bundled sweep played at nuScenes rates through each image-lane schedule
     # (streaming_schedules.py); 0: skip
     schedule_seconds: float = 3.0
+    schedule_slice_workers: int | None = None  # (d) slice workers (LaneConfig.max_in_flight); None: LaneConfig's default
 
     def __post_init__(self) -> None:
         for name in ("sweeps", "image_updates", "queue_sweeps"):
@@ -74,6 +75,9 @@ class StreamingConfig:
             raise ValueError(f"StreamingConfig.image_budget_s must be > 0 s, got {self.image_budget_s!r}")
         if not self.schedule_seconds >= 0:
             raise ValueError(f"StreamingConfig.schedule_seconds must be >= 0 s, got {self.schedule_seconds!r}")
+        v = self.schedule_slice_workers
+        if v is not None and (isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= 1024):
+            raise ValueError(f"StreamingConfig.schedule_slice_workers must be None or an int in 1..1024, got {v!r}")
 
 
 # ---- the sequential queue ----------------------------------------------------------------------------------
@@ -384,7 +388,8 @@ def measure_streaming(
     schedules = {}
     if cfg.schedule_seconds > 0:
         progress(f"[streaming] (d) image-lane schedules: {cfg.schedule_seconds:g} s at 20 Hz x {n} slices, 12 Hz cameras, each")
-        schedules = measure_schedules(export_dir, cfg.precision, cfg.image_precision, cfg.schedule_seconds)
+        schedules = measure_schedules(export_dir, cfg.precision, cfg.image_precision, cfg.schedule_seconds,
+                                      slice_workers=cfg.schedule_slice_workers)  # fmt: skip
     progress("[streaming] pillarize and post-processing alone")
     pillars = det.manifest.preset["pillars"]
     prepost = measure_prepost(det.grid, int(pillars["max_points_per_pillar"]), int(pillars["max_pillars"]),

@@ -11,6 +11,7 @@ scores detections on a dataset).
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -48,10 +49,12 @@ def bundled_drive(seconds: float, images: dict[str, np.ndarray], trigger: str, s
 
 
 def measure_schedules(
-    export_dir: str | Path, precision: str, image_precision: str | None, seconds: float, trigger: str = "lidar-synced"
+    export_dir: str | Path, precision: str, image_precision: str | None, seconds: float, trigger: str = "lidar-synced",
+    slice_workers: int | None = None,
 ) -> dict[str, dict]:
     """Per schedule: staleness and image age (ms p50 / p95), slice latency p99 ms, slices dropped / total, image-lane
-    CPU ms per rotation, and the phase-locked lane's counts."""
+    CPU ms per rotation, and the phase-locked lane's counts. ``slice_workers``: the slice lane's worker threads
+    (``LaneConfig.max_in_flight``; None: its default), the same for both schedules."""
     from streamdet.replay.run import warm_up  # the replay's warm-up: one image update, one sweep, each quadrant alone
 
     out = {}
@@ -63,10 +66,13 @@ def measure_schedules(
         drive = bundled_drive(seconds, images, trigger, det.config.start_deg)
         warm_up(det, drive, det.num_slices, per_quadrant=schedule == "phase-locked")
         lanes = LaneConfig(schedule=schedule, lidar_hz=LIDAR_HZ)
+        if slice_workers is not None:
+            lanes = dataclasses.replace(lanes, max_in_flight=slice_workers)
         rec = play(drive, det, WallClock(), PlayerConfig("streaming", det.num_slices, det.config.start_deg, lanes=lanes))
         det.close()
         out[schedule] = {
             "trigger": trigger,
+            "slice_workers": lanes.max_in_flight,
             "staleness_ms": percentiles(rec.staleness_ms(), (50, 95)),
             "image_age_ms": percentiles(rec.image_ages_ms(), (50, 95)),
             "latency_ms": percentiles(rec.latencies_ms(), (50, 99)),
@@ -83,7 +89,8 @@ def format_schedules(schedules: dict[str, dict]) -> list[str]:
     for name, r in schedules.items():
         st, age, lat = r["staleness_ms"], r["image_age_ms"], r["latency_ms"]
         lines.append(
-            f"  image lane '{name}' ({r['trigger']} cameras, {LIDAR_HZ:g} Hz x slices, {CAMERA_HZ:g} Hz): staleness added "
+            f"  image lane '{name}' ({r['trigger']} cameras, {LIDAR_HZ:g} Hz x slices, {CAMERA_HZ:g} Hz, "
+            f"{r.get('slice_workers', '?')} slice worker(s)): staleness added "
             f"p50 {_ms(st['p50'])} / p95 {_ms(st['p95'])} ms, image age p95 {_ms(age['p95'])} ms, slice p99 "
             f"{_ms(lat['p99'])} ms, {r['slices_dropped']} of {r['slices_total']} slices dropped, image lane "
             f"{r['image_lane_cpu_ms_per_rotation']:.1f} ms CPU per rotation"

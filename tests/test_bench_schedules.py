@@ -34,6 +34,20 @@ def test_both_schedules_are_measured_and_reported(tiny_export):
     assert len(lines) == 2 and "image lane 'phase-locked'" in lines[1]
 
 
+def test_slice_workers_are_the_lanes_and_are_reported(tiny_export):
+    out = measure_schedules(tiny_export, "fp32", None, 0.2, slice_workers=1)
+    assert [r["slice_workers"] for r in out.values()] == [1, 1]
+    assert all("1 slice worker(s)" in line for line in format_schedules(out))
+
+
+@pytest.mark.parametrize("bad", [0, -1, 1.5, True, "2", 1025])
+def test_streaming_config_refuses_bad_slice_workers(bad):
+    from streamdet.benchmarks.streaming import StreamingConfig
+
+    with pytest.raises(ValueError, match="schedule_slice_workers must be None or an int in 1..1024"):
+        StreamingConfig(schedule_slice_workers=bad)
+
+
 def test_staleness_floor_is_zero_without_processing_and_a_camera_period_when_lifts_are_long():
     from streamdet.benchmarks.schedule_model import SleepingDetector, staleness_floor_ms
     from streamdet.replay.cost import synthetic_drive
