@@ -67,7 +67,7 @@ def _flops_only(preset: str, resolution: tuple[int, int] | None, json_path: Path
 @image_precision_option("--stream-image-precision", "stream_image_precision")
 @click.option("--stream-slice-workers", type=click.IntRange(min=1, max=1024), default=None,
               help="Slice workers (LaneConfig.max_in_flight) of the streaming section's image-lane schedules [default: the "
-              "runtime's, 2]; 1 leaves the image lane a core of its own on a 2-core machine (docs/replay.md).")
+              "runtime's LaneConfig]; 1 leaves the image lane a core of its own on a 2-core machine (docs/replay.md).")
 @click.option("--repeat", type=click.IntRange(min=1), default=None, help="Timed runs per measurement [default: 20; 5 with --quick].")
 @click.option("--threads", type=click.IntRange(min=1), default=None, help="Threads for the Table 3 rows [default: all cores].")
 @click.option(

@@ -60,7 +60,7 @@ def _progress(message: str) -> None:
 @click.option("--image-lane-threads", type=click.IntRange(min=1), default=None,
               help="Intra-op threads of the image lane's sessions (encoder, lifter, per-camera terms). Default: --threads.")
 @click.option("--slice-workers", type=click.IntRange(min=1), default=None,
-              help="Slices processed at once in the slice lane (LaneConfig.max_in_flight). Default: the runtime's, 2. "
+              help="Slices processed at once in the slice lane (LaneConfig.max_in_flight). Default: the runtime's LaneConfig. "
                    "On two cores, 1 with --schedule phase-locked leaves the image lane a core of its own (docs/replay.md).")
 @click.option("--queue-size", type=click.IntRange(min=1), default=None,
               help="Slices waiting in the slice lane before the oldest is dropped. Default: the runtime's LaneConfig.")
