@@ -40,6 +40,7 @@ from streamdet.benchmarks.timing import TimingConfig, TimingStats, summarize
 from streamdet.core.slicing import split_sweep
 from streamdet.data.sample import load_bundled_sample
 from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector, lane_precision_label
+from streamdet.runtime_ort.lanes import LaneConfig
 from streamdet.runtime_ort.postprocess import PostprocessConfig
 
 Progress = Callable[[str], None]
@@ -75,9 +76,12 @@ class StreamingConfig:
             raise ValueError(f"StreamingConfig.image_budget_s must be > 0 s, got {self.image_budget_s!r}")
         if not self.schedule_seconds >= 0:
             raise ValueError(f"StreamingConfig.schedule_seconds must be >= 0 s, got {self.schedule_seconds!r}")
-        v = self.schedule_slice_workers
-        if v is not None and (isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= 1024):
-            raise ValueError(f"StreamingConfig.schedule_slice_workers must be None or an int in 1..1024, got {v!r}")
+        if self.schedule_slice_workers is not None:
+            try:  # LaneConfig's own rule for its workers, checked before the benchmark runs
+                LaneConfig(max_in_flight=self.schedule_slice_workers)
+            except ValueError:
+                raise ValueError(f"StreamingConfig.schedule_slice_workers must be None or an int in 1..1024, "
+                                 f"got {self.schedule_slice_workers!r}") from None  # fmt: skip
 
 
 # ---- the sequential queue ----------------------------------------------------------------------------------

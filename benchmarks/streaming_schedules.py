@@ -90,7 +90,7 @@ def format_schedules(schedules: dict[str, dict]) -> list[str]:
         st, age, lat = r["staleness_ms"], r["image_age_ms"], r["latency_ms"]
         lines.append(
             f"  image lane '{name}' ({r['trigger']} cameras, {LIDAR_HZ:g} Hz x slices, {CAMERA_HZ:g} Hz, "
-            f"{r.get('slice_workers', '?')} slice worker(s)): staleness added "
+            f"{r['slice_workers']} slice worker(s)): staleness added "
             f"p50 {_ms(st['p50'])} / p95 {_ms(st['p95'])} ms, image age p95 {_ms(age['p95'])} ms, slice p99 "
             f"{_ms(lat['p99'])} ms, {r['slices_dropped']} of {r['slices_total']} slices dropped, image lane "
             f"{r['image_lane_cpu_ms_per_rotation']:.1f} ms CPU per rotation"
