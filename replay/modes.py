@@ -65,6 +65,20 @@ class Instrumented:
         return self._run(("slice", timestamp, int(slice_index)),
                          lambda: self.detector.detect_slice(points, slice_index, timestamp, self.num_slices))
 
+    def detect_slices(self, points, slice_indices, timestamps):
+        """Slices the runner coalesced (LaneConfig.coalesce_slices): one run, each slice's start and end reported,
+        the run's CPU time shared equally."""
+        keys = [("slice", t, int(k)) for k, t in zip(slice_indices, timestamps)]
+        for key in keys:
+            self.hooks.job_started(key)
+        cpu0 = time.thread_time()
+        try:
+            return self.detector.detect_slices(points, slice_indices, timestamps, self.num_slices)
+        finally:
+            cpu_s = (time.thread_time() - cpu0) / len(keys)
+            for key in keys:
+                self.hooks.job_ended(key, cpu_s)
+
     def update_images(self, images: Mapping[str, np.ndarray], timestamp: float | None = None, **options):
         # options (e.g. the quadrants of a partial update) pass through; one image set may then be several jobs
         return self._run(("images", timestamp, 0), lambda: self.detector.update_images(images, timestamp, **options))

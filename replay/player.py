@@ -21,7 +21,7 @@ import numpy as np
 
 from streamdet.core.sectors import quadrants_of_sector
 from streamdet.replay.assemble import SetAssembler
-from streamdet.replay.clock import PLAYER, Clock, DriveClock
+from streamdet.replay.clock import PLAYER, Clock, DriveClock, FakeClock
 from streamdet.replay.modes import MODES, Detector, JobKey, ModeRunner, open_mode
 from streamdet.replay.record import ImageRecord, Recording, SliceRecord, percentiles
 from streamdet.replay.schedule import SLICE, Release, check_delivery, release_schedule
@@ -112,6 +112,7 @@ class _Book:
                     rec.detections = result.detections
                     rec.num_detections = len(result.detections)
                     rec.fallback = bool(getattr(result, "fallback", False))
+                    rec.coalesced = max(1, len(getattr(result, "coalesced", ())))
                     ts = result.image_timestamp
                     rec.image_capture_s = float(ts) if ts is not None and ts > WARM_UP_BEFORE_S else math.nan
             self.outstanding[lane] -= 1
@@ -124,6 +125,10 @@ def play(
     drive: Drive, detector: Detector, clock: Clock, config: PlayerConfig = PlayerConfig(), progress: Progress | None = None
 ) -> Recording:
     """Play ``drive`` through ``detector`` in ``config.mode`` on ``clock``; returns the record of every release."""
+    if isinstance(clock, FakeClock) and config.lanes.coalesce_slices > 1:
+        # the FakeClock's sleepers_expected counts one running job per busy worker
+        raise ValueError(f"a FakeClock replay needs LaneConfig.coalesce_slices=1 (one job per worker run), "
+                         f"got {config.lanes.coalesce_slices}")  # fmt: skip
     dclock = DriveClock(clock, config.time_scale)
     book: _Book
     mode = open_mode(config.mode, detector, config.num_slices, _Hooks(lambda: book), config.lanes)

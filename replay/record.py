@@ -36,6 +36,7 @@ class SliceRecord:
     cpu_s: float = 0.0
     num_detections: int = 0
     fallback: bool = False  # the LiDAR-only fallback's graph ran (SliceResult.fallback)
+    coalesced: int = 1  # slices detected in the run that detected this one (SliceResult.coalesced; 1: its own run)
     detections: Detections | None = field(default=None, repr=False)
 
     @property

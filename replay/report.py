@@ -92,9 +92,21 @@ def details_report(result: ReplayResult, info: dict) -> dict:
             per_scene_map_streaming=r.scores.per_scene_streaming_map, images_superseded=sum(x.images_superseded for x in r.recordings),
             cpu_share=_cpu_share(r), stages=r.stages, recordings=[x.to_dict() for x in r.recordings],
             slices_fallback=_fallbacks(r),
+            slices_coalesced=_coalesced(r),
             **image_lane_summary(r),
         )  # fmt: skip
     return out
+
+
+def _coalesced(r: ModeResult) -> int:
+    """Emitted slices detected in one run with other slices (LaneConfig.coalesce_slices)."""
+    return sum(1 for x in r.recordings for s in x.slices if s.emitted and s.coalesced > 1)
+
+
+def _coalesced_note(r: ModeResult) -> str:
+    """The slices-dropped cell's note on coalesced slices (none: nothing)."""
+    n = _coalesced(r)
+    return f" ({n} coalesced)" if n else ""
 
 
 def _fallbacks(r: ModeResult) -> int:
@@ -137,7 +149,8 @@ def format_report(result: ReplayResult, info: dict) -> str:
         + (f" ({c.image_lane_threads} in the image lane's)" if c.image_lane_threads not in (None, c.threads) else "")
         + f", {c.lanes.max_in_flight} slice worker(s), queue {c.lanes.queue_size}"
         + (f", image lane at nice +{c.lanes.image_lane_nice}" if c.lanes.image_lane_nice else "")
-        + (f", image lane yields at {c.lanes.image_lane_yield_slices} waiting slice(s)" if c.lanes.image_lane_yield_slices else ""),
+        + (f", image lane yields at {c.lanes.image_lane_yield_slices} waiting slice(s)" if c.lanes.image_lane_yield_slices else "")
+        + (f", up to {c.lanes.coalesce_slices} waiting slices coalesced per run" if c.lanes.coalesce_slices > 1 else ""),
         f"ground truth at emission time: {result.truth_source}",
         *[f"  {note}" for note in result.notes],
         "",
@@ -152,7 +165,7 @@ def format_report(result: ReplayResult, info: dict) -> str:
         lines.append(
             f"| {mode} | {_pct(m['map_streaming'])} | {_pct(m['map_offline'])} | {_pct(m['nds_streaming'])} "
             f"| {_ms(lat['p50'])} / {_ms(lat['p95'])} / {_ms(lat['p99'])} / {_ms(lat['max'])} "
-            f"| {m['slices_dropped']} of {m['slices_total']} | {superseded} of {sum(len(x.images) for x in r.recordings)} "
+            f"| {m['slices_dropped']} of {m['slices_total']}{_coalesced_note(r)} | {superseded} of {sum(len(x.images) for x in r.recordings)} "
             f"| {_ms(age['p50'])} / {_ms(age['p95'])} | {100 * cpu['slice_lane']:.0f} % / {100 * cpu['image_lane']:.0f} % |"
         )
     if c.fallback_export_dir is not None:

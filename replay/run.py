@@ -84,7 +84,8 @@ class ReplayConfig:
                  fallback_export_dir=None if self.fallback_export_dir is None else str(self.fallback_export_dir),
                  slice_workers=self.lanes.max_in_flight, slice_queue=self.lanes.queue_size,
                  schedule=self.lanes.schedule, image_lane_nice=self.lanes.image_lane_nice,
-                 image_lane_yield_slices=self.lanes.image_lane_yield_slices)  # fmt: skip
+                 image_lane_yield_slices=self.lanes.image_lane_yield_slices,
+                 coalesce_slices=self.lanes.coalesce_slices)  # fmt: skip
         return d
 
 

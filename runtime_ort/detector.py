@@ -63,6 +63,7 @@ from streamdet.core.sectors import NUM_QUADRANTS, check_num_slices, quadrants_of
 from streamdet.core.slicing import split_sweep
 # the public names of the runtime's API are importable from here too, where StreamingDetector lives
 from streamdet.runtime_ort.camera_terms import CameraTerms, open_camera_terms
+from streamdet.runtime_ort.coalesce import check_coalesced, split_by_slice
 from streamdet.runtime_ort.detector_config import DetectorConfig, NoImageLaneError, lane_precision_label  # noqa: F401
 from streamdet.runtime_ort.detector_results import ImageUpdate, SliceResult, SweepResult
 from streamdet.runtime_ort.export_settings import export_nms, export_rig, image_spec_at
@@ -643,28 +644,52 @@ class StreamingDetector:
         path, and a silent conversion would copy every slice (``detect_sweep`` converts, once per sweep).
         ``points`` is only read, during the call.
         """
-        timestamp = _timestamp(timestamp)
         n = self._slices(num_slices)
         if isinstance(slice_index, bool) or not isinstance(slice_index, (int, np.integer)) or not 0 <= slice_index < n:
             raise ValueError(f"slice_index must be an int in [0, {n}), got {slice_index!r}")
-        if not isinstance(points, np.ndarray) or points.ndim != 2 or points.shape[1] != POINT_DIM:
-            raise ValueError(
-                f"points must be a (N, {POINT_DIM}) float32 array (x, y, z, r, t, s), got {getattr(points, 'shape', type(points).__name__)}"
-            )
-        if points.dtype != np.float32:
-            raise ValueError(f"points must be float32, got {points.dtype}")
-        k = int(slice_index)
-        quadrants = quadrants_of_sector(k, n, self.config.start_deg)
+        return self.detect_slices((points,), (slice_index,), (timestamp,), num_slices)[0]
+
+    def detect_slices(
+        self,
+        points: Sequence[np.ndarray],
+        slice_indices: Sequence[int],
+        timestamps: Sequence[float | None],
+        num_slices: int | None = None,
+    ) -> tuple[SliceResult, ...]:
+        """Consecutive slices of one rotation and one quadrant detected in **one** slice-graph run (what the slice
+        lane does when it has fallen behind, `LaneConfig.coalesce_slices`): one `SliceResult` per slice, in order.
+
+        Each slice's points are checked as in `detect_slice`; they are pillarised together and each box goes to the
+        slice whose sector holds its centre (runtime_ort/coalesce.py). Every result has its own timestamp, point
+        count and image age; the run's pillar count and dropped-point counts are reported once, on the last
+        slice (0 on the others), so that sums over results stay true; ``coalesced`` names the slices of the run.
+        """
+        n = self._slices(num_slices)
+        ks = check_coalesced(slice_indices, n, self.config.start_deg)
+        points, timestamps = tuple(points), tuple(_timestamp(t) for t in timestamps)
+        if len(points) != len(ks) or len(timestamps) != len(ks):
+            raise ValueError(f"detect_slices takes one points array and one timestamp per slice: {len(ks)} slices, "
+                             f"{len(points)} point arrays, {len(timestamps)} timestamps")  # fmt: skip
+        for p in points:
+            if not isinstance(p, np.ndarray) or p.ndim != 2 or p.shape[1] != POINT_DIM:
+                raise ValueError(
+                    f"points must be a (N, {POINT_DIM}) float32 array (x, y, z, r, t, s), got {getattr(p, 'shape', type(p).__name__)}"
+                )
+            if p.dtype != np.float32:
+                raise ValueError(f"points must be float32, got {p.dtype}")
+        quadrants = quadrants_of_sector(ks[0], n, self.config.start_deg)
         t0 = time.perf_counter()
         cache = quadrant_states(self._image)  # one read: a consistent view of the cache
         states = tuple(cache[q] for q in quadrants)
         stamps = [s.timestamp for s in states if s is not None]
         image_ts = min(stamps) if stamps else None
-        image_age = None if image_ts is None else timestamp - image_ts
+        # the newest slice's image age decides: the fallback is for images too old at the moment of the run
+        image_age = None if image_ts is None else max(timestamps) - image_ts
         fallback = self._fallback is not None and needs_fallback(None not in states, image_age, self.config.fallback_after_s)
         crop = self._fallback.slice_crop if fallback else self.slice_crop
+        run_points = points[0] if len(points) == 1 else np.concatenate(points)  # (N, 6): each point keeps its own s
         with self.stats.time("pre"):
-            pillars = pillarize(points, self.grid, quadrants, self._max_points_per_pillar, self._max_pillars, crop=crop)
+            pillars = pillarize(run_points, self.grid, quadrants, self._max_points_per_pillar, self._max_pillars, crop=crop)
         if pillars.num_pillars == 0:
             dets = Detections.empty()
         else:
@@ -679,24 +704,29 @@ class StreamingDetector:
             with self.stats.time(graph, self._executed_gmac(graph, Q=num_maps)):
                 boxes, scores, labels = self._run_graph(graph, feeds)
             with self.stats.time("post"):
-                dets = postprocess_slice(
-                    boxes, scores, labels, quadrants, self.grid, self._post, sector_bounds_deg(k, n, self.config.start_deg),
-                    crop=crop,
-                )  # fmt: skip
+                lo = sector_bounds_deg(ks[0], n, self.config.start_deg)[0]
+                hi = sector_bounds_deg(ks[-1], n, self.config.start_deg)[1]
+                dets = postprocess_slice(boxes, scores, labels, quadrants, self.grid, self._post, (lo, hi), crop=crop)
         self.stats.record("slice_total", (time.perf_counter() - t0) * 1e3)
-        return SliceResult(
-            detections=dets,
-            slice_index=k,
-            num_slices=n,
-            timestamp=timestamp,
-            image_timestamp=image_ts,
-            image_age_s=image_age,
-            num_points=int(points.shape[0]),
-            num_pillars=pillars.num_pillars,
-            num_nonfinite_dropped=pillars.num_nonfinite_dropped,
-            num_outside_dropped=pillars.num_outside_dropped,
-            num_points_dropped=pillars.num_points_dropped,
-            fallback=fallback,
+        parts = split_by_slice(dets, ks, n, self.config.start_deg)
+        last = len(ks) - 1
+        return tuple(
+            SliceResult(
+                detections=part,
+                slice_index=k,
+                num_slices=n,
+                timestamp=ts,
+                image_timestamp=image_ts,
+                image_age_s=None if image_ts is None else ts - image_ts,
+                num_points=int(p.shape[0]),
+                num_pillars=pillars.num_pillars if i == last else 0,
+                num_nonfinite_dropped=pillars.num_nonfinite_dropped if i == last else 0,
+                num_outside_dropped=pillars.num_outside_dropped if i == last else 0,
+                num_points_dropped=pillars.num_points_dropped if i == last else 0,
+                fallback=fallback,
+                coalesced=ks if len(ks) > 1 else (),
+            )
+            for i, (k, p, ts, part) in enumerate(zip(ks, points, timestamps, parts))
         )
 
     def _image_bev(self, states: tuple[QuadrantState | None, ...]) -> np.ndarray:

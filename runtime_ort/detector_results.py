@@ -44,6 +44,9 @@ class SliceResult:
     image_age_s: float | None = None
     # True: the LiDAR-only fallback's slice graph ran (DetectorConfig.fallback_export_dir), not the fused one
     fallback: bool = False
+    # the slices detected together with this one in one slice-graph run (in scan order, this one included) when the
+    # slice lane had fallen behind (LaneConfig.coalesce_slices, runtime_ort/coalesce.py); () for a run of its own
+    coalesced: tuple[int, ...] = ()
 
 
 @dataclass(frozen=True, eq=False)

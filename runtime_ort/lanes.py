@@ -4,7 +4,10 @@ Back-pressure policy (what happens when work arrives faster than it is done):
 
 - **Slice lane**: up to `max_in_flight` slices run at once, up to `queue_size` more wait. When the queue is full,
   the **oldest waiting** slice is dropped: its future fails with `SliceDropped`. A stale slice is worth less
-  than a fresh one to a vehicle, and the caller (the LiDAR driver) must never block.
+  than a fresh one to a vehicle, and the caller (the LiDAR driver) must never block. With
+  `LaneConfig.coalesce_slices` > 1 a worker that starts a slice while the next slice of the same rotation and
+  quadrant waits (and no other worker is free) detects them in one run (runtime_ort/coalesce.py): a lane that has
+  fallen behind catches up at the cost of one graph run for the quadrant instead of dropping slices.
 - **Image lane**: one update runs at a time and at most one waits. A newer image set **replaces** the waiting
   one (its future fails with `ImagesSuperseded`): only the newest images matter, and the slice lane always reads
   the newest finished image BEV. That is the ``full`` schedule; under ``LaneConfig.schedule = "phase-locked"`` the
@@ -36,10 +39,12 @@ import time
 import threading
 from concurrent.futures import Future, InvalidStateError
 from dataclasses import dataclass
-from typing import Callable, Mapping
+from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
+from streamdet.core.points import SLICE_COLUMNS
+from streamdet.runtime_ort.coalesce import can_coalesce
 from streamdet.runtime_ort.detector import StreamingDetector
 from streamdet.runtime_ort.detector_results import ImageUpdate, SliceResult
 from streamdet.runtime_ort.image_cache import check_camera_timestamps
@@ -85,6 +90,10 @@ class LaneConfig:
     # back lasts at most 0.1 s (MAX_HOLD_S), then the lane works as long again. 0: never. Unlike image_lane_nice it
     # costs the images nothing while the slice lane keeps up. Measured no better than 0 (docs/replay.md).
     image_lane_yield_slices: int = 0
+    # the most waiting slices one slice-graph run detects together when the slice lane is behind (consecutive slices
+    # of one rotation and one quadrant: runtime_ort/coalesce.py); a slice joins the run a worker starts only when no
+    # other worker is free to take it. 1: never, every slice its own run (and a full queue drops the oldest).
+    coalesce_slices: int = 1
 
     def __post_init__(self) -> None:
         for name in ("max_in_flight", "queue_size"):
@@ -100,6 +109,9 @@ class LaneConfig:
         if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v) or not 0 <= v <= 1000:
             raise ValueError(f"LaneConfig.lift_margin_ms must be a number of ms in [0, 1000], got {v!r}")
         check_nice(self.image_lane_nice, "LaneConfig.image_lane_nice")
+        v = self.coalesce_slices
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 1 <= v <= 64:
+            raise ValueError(f"LaneConfig.coalesce_slices must be an int in 1..64 (1: never), got {v!r}")
         v = self.image_lane_yield_slices
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 0 <= v <= 1024:
             raise ValueError(f"LaneConfig.image_lane_yield_slices must be an int in 0..1024 (0: never yield), got {v!r}")
@@ -108,6 +120,15 @@ class LaneConfig:
                 f"LaneConfig.image_lane_yield_slices={v} needs schedule='phase-locked' (the full schedule's update is one "
                 f"job that cannot hold back between quadrants), got schedule={self.schedule!r}"
             )
+
+
+@dataclass(frozen=True)
+class JobBatching:
+    """How a `WorkerLane` runs waiting jobs together (the slice lane's coalescing)."""
+
+    joins: Callable[[object, object], bool]  # (payload of the run's last job, payload of the next waiting job)
+    run: Callable[[list], Sequence[object]]  # payloads -> one result per payload, in order
+    most: int  # jobs per run at most
 
 
 class WorkerLane:
@@ -119,15 +140,22 @@ class WorkerLane:
     A job submitted with ``supersede`` replaces the waiting jobs of its ``kind`` (each failed with ``supersede()``
     and counted in `superseded`): one queue can carry slices that all run and image sets of which only the newest
     matters. A job an idle worker is about to take counts as running, never as waiting.
+
+    ``batch`` (optional) lets a worker take waiting jobs together: a job submitted with a ``payload`` joins the job
+    a worker has just taken when no other worker is free, the two payloads ``batch.joins(previous, next)`` and the
+    run holds fewer than ``batch.most`` jobs; ``batch.run(payloads)`` then does them in one call and returns one
+    result per payload (counted in `joined`: the jobs that ran inside another's run).
     """
 
     def __init__(self, name: str, workers: int, capacity: int | None, overflow: Callable[[], Exception] | None = None,
-                 nice: int = 0) -> None:  # fmt: skip
+                 nice: int = 0, batch: "JobBatching | None" = None) -> None:  # fmt: skip
         """``nice``: added to each worker thread's nice value (thread_priority.py)."""
         if capacity is not None and overflow is None:
             raise ValueError(f"{name}: a lane with a capacity ({capacity}) needs an overflow error")
         self._name = name
-        self._jobs: collections.deque = collections.deque()  # (fn, future, kind)
+        self._jobs: collections.deque = collections.deque()  # (fn, future, kind, payload)
+        self._batch = batch
+        self.joined = 0
         self._cond = threading.Condition()
         self._capacity = capacity
         self._overflow = overflow
@@ -146,7 +174,9 @@ class WorkerLane:
             self.close()
             raise
 
-    def submit(self, fn: Callable[[], object], kind: str = "", supersede: Callable[[], Exception] | None = None) -> Future:
+    def submit(self, fn: Callable[[], object], kind: str = "", supersede: Callable[[], Exception] | None = None,
+               payload: object = None) -> Future:  # fmt: skip
+        """``payload``: what `JobBatching` reads to run this job together with others (None: always alone)."""
         fut: Future = Future()
         with self._cond:
             if self._closed:
@@ -163,7 +193,7 @@ class WorkerLane:
                 old = self._jobs[idle]
                 del self._jobs[idle]
                 self.dropped += self._fail(old[1], self._overflow)
-            self._jobs.append((fn, fut, kind))
+            self._jobs.append((fn, fut, kind, payload))
             self._cond.notify()
         return fut
 
@@ -190,19 +220,54 @@ class WorkerLane:
                     self._cond.wait()
                 if not self._jobs:
                     return
-                fn, fut, _ = self._jobs.popleft()
+                jobs = [self._jobs.popleft()]
                 self._busy += 1
+                self._join_waiting(jobs)
             cpu0 = time.thread_time()
             try:
-                if fut.set_running_or_notify_cancel():
+                jobs = [job for job in jobs if job[1].set_running_or_notify_cancel()]
+                if len(jobs) == 1:
+                    fn, fut = jobs[0][:2]
                     try:
                         fut.set_result(fn())
                     except BaseException as e:  # handed to the caller through the future, never swallowed
                         fut.set_exception(e)
+                elif jobs:
+                    self._run_joined(jobs)
             finally:
                 with self._cond:
                     self._busy -= 1
                     self.cpu_s += time.thread_time() - cpu0
+
+    def _join_waiting(self, jobs: list) -> None:
+        """(Under the lock.) Move the waiting jobs that may run with ``jobs[-1]`` into ``jobs``: only while no other
+        worker is free to take them, so joining never idles a core that could have run a job alone."""
+        b = self._batch
+        if b is None or jobs[0][3] is None:
+            return
+        while len(jobs) < b.most and self._jobs and self._busy >= self._workers:
+            nxt = self._jobs[0]
+            if nxt[1].cancelled():  # holds no place (as in submit)
+                self._jobs.popleft()
+                continue
+            if nxt[3] is None or not b.joins(jobs[-1][3], nxt[3]):
+                return
+            jobs.append(self._jobs.popleft())
+
+    def _run_joined(self, jobs: list) -> None:
+        """Run jobs that `_join_waiting` put together in one ``batch.run`` call; its error goes to every job."""
+        try:
+            results = list(self._batch.run([job[3] for job in jobs]))
+            if len(results) != len(jobs):
+                raise RuntimeError(f"{self._name}: a joined run of {len(jobs)} jobs returned {len(results)} results")
+        except BaseException as e:  # handed to the callers through the futures, never swallowed
+            for job in jobs:
+                job[1].set_exception(e)
+            return
+        for job, result in zip(jobs, results):
+            job[1].set_result(result)
+        with self._cond:
+            self.joined += len(jobs) - 1
 
     def close(self, deadline: float | None = None) -> bool:
         """Stop taking jobs, finish the queued ones by ``deadline`` (time.monotonic(); None: no limit). Past it, the
@@ -228,7 +293,11 @@ class StreamingRunner:
             raise ValueError(f"StreamingRunner takes a LaneConfig, got {type(config).__name__}")
         self.detector = detector
         self.config = config
-        self._slices = WorkerLane("slice-lane", config.max_in_flight, config.queue_size, lambda: SliceDropped("slice dropped: queue full"))
+        batch = None
+        if config.coalesce_slices > 1:
+            batch = JobBatching(joins=self._slices_join, run=self._detect_together, most=config.coalesce_slices)
+        self._slices = WorkerLane("slice-lane", config.max_in_flight, config.queue_size,
+                                  lambda: SliceDropped("slice dropped: queue full"), batch=batch)  # fmt: skip
         superseded = lambda: ImagesSuperseded("image set superseded by a newer one")  # noqa: E731
         self._phase_locked: PhaseLockedImageLane | None = None
         self._images: WorkerLane | None = None
@@ -266,15 +335,32 @@ class StreamingRunner:
         """Queue one slice; its future holds the SliceResult, or the error (bad points, SliceDropped)."""
         stamp = time.monotonic() if timestamp is None else timestamp
         own = np.array(points, copy=True) if isinstance(points, np.ndarray) else points  # the driver may reuse its buffer
-        future = self._slices.submit(lambda: self.detector.detect_slice(own, slice_index, stamp))
+        future = self._slices.submit(lambda: self.detector.detect_slice(own, slice_index, stamp), payload=(own, slice_index, stamp))
         valid = isinstance(slice_index, (int, np.integer)) and not isinstance(slice_index, bool)
         if self._phase_locked is not None and valid and 0 <= slice_index < self.detector.num_slices:
             self._phase_locked.observe_slice(int(slice_index), time.monotonic())  # its arrival on the runner's clock
         return future
 
+    def _slices_join(self, run_last: tuple, waiting: tuple) -> bool:
+        """May the waiting slice join a run that ends with ``run_last``? Both well-formed (a bad slice runs alone, so
+        its error is its own), the next slice of the rotation in the same quadrant(s)."""
+        if not (_well_formed(run_last) and _well_formed(waiting)) or waiting[2] < run_last[2]:
+            return False
+        n = self.detector.num_slices
+        return run_last[1] < n and can_coalesce(int(run_last[1]), int(waiting[1]), n, self.detector.config.start_deg)
+
+    def _detect_together(self, payloads: list) -> tuple[SliceResult, ...]:
+        points, indices, stamps = zip(*payloads)
+        return self.detector.detect_slices(points, indices, stamps)
+
     @property
     def slices_dropped(self) -> int:
         return self._slices.dropped
+
+    @property
+    def slices_coalesced(self) -> int:
+        """Slices detected inside another slice's run (LaneConfig.coalesce_slices): graph runs saved."""
+        return self._slices.joined
 
     @property
     def images_superseded(self) -> int:
@@ -314,3 +400,14 @@ class StreamingRunner:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def _well_formed(payload: tuple) -> bool:
+    """A slice job's (points, slice_index, timestamp) that `detect_slices` takes as it is."""
+    points, k, stamp = payload
+    return (
+        isinstance(points, np.ndarray) and points.dtype == np.float32 and points.ndim == 2
+        and points.shape[1] == SLICE_COLUMNS
+        and isinstance(k, (int, np.integer)) and not isinstance(k, bool) and k >= 0
+        and isinstance(stamp, numbers.Real) and not isinstance(stamp, bool) and math.isfinite(stamp)
+    )  # fmt: skip

@@ -197,3 +197,11 @@ def test_a_failing_detector_fails_the_replay_with_its_error():
     clock = FakeClock()
     with pytest.raises(RuntimeError, match="broken slice graph"):
         play(make_drive(sweeps=1), Broken(clock, 1.0, 1.0), clock, PlayerConfig("streaming", 4))
+
+
+def test_a_fake_clock_replay_refuses_coalescing():
+    """The FakeClock counts one running job per busy worker; a coalesced run would hold two: refused up front."""
+    clock = FakeClock()
+    det = FakeDetector(clock, slice_ms=5.0, image_ms=40.0)
+    with pytest.raises(ValueError, match="coalesce_slices=1"):
+        play(make_drive(sweeps=1), det, clock, PlayerConfig("streaming", num_slices=8, lanes=LaneConfig(1, 8, coalesce_slices=2)))

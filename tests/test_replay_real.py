@@ -132,3 +132,24 @@ def test_drive_of_an_unknown_scene_is_refused(drive_data):
 
     with pytest.raises(ValueError, match="no-such-scene"):
         load_drive(DatasetTables(drive_data, "v1.0-synth"), "no-such-scene", None)
+
+
+def test_replay_coalesces_slices_when_the_lane_falls_behind(drive_data, tiny_export, tmp_path):
+    """At 1/50 of real time one slice worker cannot keep up: waiting slices of a quadrant run together, every
+    slice is emitted or dropped, and the report and records say which ran together."""
+    from streamdet.replay.cli import main
+
+    args = ["--data", str(drive_data), "--split", "all", "--export-dir", str(tiny_export), "--max-seconds", "0.2",
+            "--mode", "streaming", "--time-scale", "0.02", "--slice-workers", "1", "--queue-size", "64",
+            "--coalesce-slices", "2", "--out", str(tmp_path / "out")]  # fmt: skip
+    result = CliRunner().invoke(main, args)
+    assert result.exit_code == 0, result.output
+    assert "up to 2 waiting slices coalesced per run" in result.output
+    details = json.loads((tmp_path / "out" / "replay.json").read_text())
+    summary = details["modes"]["streaming"]
+    (rec,) = summary["recordings"]
+    emitted = [s for s in rec["slices"] if not s["dropped"]]
+    assert summary["slices_dropped"] == 0 and len(emitted) == summary["slices_total"]
+    assert summary["slices_coalesced"] == sum(s["coalesced"] > 1 for s in emitted) > 0
+    assert all(s["coalesced"] in (1, 2) for s in emitted)
+    assert details["config"]["coalesce_slices"] == 2
