@@ -2,7 +2,7 @@
 its own slice-graph run and with runs of R consecutive slices of one quadrant (what the slice lane does when it has
 fallen behind), every sample's images fed at its own time (no clock: what coalescing does to accuracy).
 
-    python -m streamdet.benchmarks.coalesce_map --data DATA --export-dir EXPORT [--runs 1,2] [--samples N]
+    python -m streamdet.benchmarks.coalesce_map --data DATA --export-dir EXPORT [--runs 1,2] [--split all] [--samples N]
 
 Results: docs/replay.md, "Coalesced slices".
 """
@@ -73,17 +73,19 @@ def _runs(ctx, param, value: str) -> tuple[int, ...]:
 @click.option("--slices", type=click.IntRange(min=1), default=8, show_default=True, help="Slices per sweep.")
 @click.option("--runs", default="1,2", show_default=True, callback=_runs,
               help="Comma-separated: the most slices per run to score (1: every slice alone).")
-@click.option("--samples", type=click.IntRange(min=1), default=None, help="Only the first N val samples.")
+@click.option("--split", type=click.Choice(["val", "train", "all"]), default="val", show_default=True,
+              help="Which samples of the dataset's splits.json to score (all: every sample).")
+@click.option("--samples", type=click.IntRange(min=1), default=None, help="Only the first N samples of the split.")
 def main(data: Path, export_dir: Path, precision: str, image_precision: str, slices: int, runs: tuple[int, ...],
-         samples: int | None) -> None:  # fmt: skip
-    """Offline mAP / NDS of the val split with slices detected alone and in coalesced runs."""
+         split: str, samples: int | None) -> None:  # fmt: skip
+    """Offline mAP / NDS of a split with slices detected alone and in coalesced runs."""
     if not (export_dir / "manifest.json").is_file():
         raise click.ClickException(f"{export_dir} holds no manifest.json")
-    click.echo(f"{data} (val split), {export_dir}, {slices} slices, {image_precision} image lane + {precision} slices:")
+    click.echo(f"{data} ({split} split), {export_dir}, {slices} slices, {image_precision} image lane + {precision} slices:")
     for most in runs:
         try:
             detect = sweep_detector(export_dir, image_precision, precision, slices, most)
-            ev = evaluate_dataset(detect, data, split="val", max_samples=samples)
+            ev = evaluate_dataset(detect, data, split=None if split == "all" else split, max_samples=samples)
         except ValueError as e:
             raise click.ClickException(str(e)) from None
         m = ev.metrics

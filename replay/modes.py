@@ -11,7 +11,8 @@
   exceeds a second, its latency grows without bound.
 
 The detector only needs ``uses_images``, ``detect_slice(points, k, timestamp, num_slices)`` and
-``update_images(images, timestamp)``: a `StreamingDetector`, or a fake one in tests. `Instrumented` wraps it to
+``update_images(images, timestamp)``: a `StreamingDetector`, or a fake one in tests; with ``detect_slices`` too the
+runner may coalesce waiting slices (`LaneConfig.coalesce_slices`). `Instrumented` wraps it to
 tell the player when each job starts and ends and how much CPU its thread spent; a job is known by its kind,
 timestamp and slice index, so the player must give every slice of a drive its own (timestamp, slice index) and
 every image set its own timestamp.
@@ -47,9 +48,10 @@ class Detector(Protocol):
 class JobHooks(Protocol):
     """What the player learns from inside a job (called on the worker's thread)."""
 
-    def job_started(self, key: JobKey) -> None: ...
+    # ``joined``: the job runs inside another job's run on the same thread (a coalesced slice after the run's first)
+    def job_started(self, key: JobKey, joined: bool = False) -> None: ...
 
-    def job_ended(self, key: JobKey, cpu_s: float) -> None: ...
+    def job_ended(self, key: JobKey, cpu_s: float, joined: bool = False) -> None: ...
 
 
 class Instrumented:
@@ -60,24 +62,26 @@ class Instrumented:
         self.uses_images = detector.uses_images
         self.num_slices = num_slices
         self.hooks = hooks
+        if callable(getattr(detector, "detect_slices", None)):  # without it the runner never coalesces slices
+            self.detect_slices = self._detect_slices
 
     def detect_slice(self, points: np.ndarray, slice_index: int, timestamp: float | None = None):
         return self._run(("slice", timestamp, int(slice_index)),
                          lambda: self.detector.detect_slice(points, slice_index, timestamp, self.num_slices))
 
-    def detect_slices(self, points, slice_indices, timestamps):
-        """Slices the runner coalesced (LaneConfig.coalesce_slices): one run, each slice's start and end reported,
-        the run's CPU time shared equally."""
+    def _detect_slices(self, points, slice_indices, timestamps):
+        """Slices the runner coalesced (LaneConfig.coalesce_slices): one run, each slice's start and end reported
+        (all but the first as joined), the run's CPU time shared equally."""
         keys = [("slice", t, int(k)) for k, t in zip(slice_indices, timestamps)]
-        for key in keys:
-            self.hooks.job_started(key)
+        for i, key in enumerate(keys):
+            self.hooks.job_started(key, joined=i > 0)
         cpu0 = time.thread_time()
         try:
             return self.detector.detect_slices(points, slice_indices, timestamps, self.num_slices)
         finally:
             cpu_s = (time.thread_time() - cpu0) / len(keys)
-            for key in keys:
-                self.hooks.job_ended(key, cpu_s)
+            for i, key in enumerate(keys):
+                self.hooks.job_ended(key, cpu_s, joined=i > 0)
 
     def update_images(self, images: Mapping[str, np.ndarray], timestamp: float | None = None, **options):
         # options (e.g. the quadrants of a partial update) pass through; one image set may then be several jobs

@@ -21,7 +21,7 @@ import numpy as np
 
 from streamdet.core.sectors import quadrants_of_sector
 from streamdet.replay.assemble import SetAssembler
-from streamdet.replay.clock import PLAYER, Clock, DriveClock, FakeClock
+from streamdet.replay.clock import PLAYER, Clock, DriveClock
 from streamdet.replay.modes import MODES, Detector, JobKey, ModeRunner, open_mode
 from streamdet.replay.record import ImageRecord, Recording, SliceRecord, percentiles
 from streamdet.replay.schedule import SLICE, Release, check_delivery, release_schedule
@@ -70,25 +70,29 @@ class _Book:
         self.by_key: dict[JobKey, tuple[SliceRecord | ImageRecord, str]] = {}
         self.waiting = {lane: 0 for lane in mode.workers}  # released, not started, not dropped
         self.outstanding = {lane: 0 for lane in mode.workers}  # released, future not done
+        self.joined = {lane: 0 for lane in mode.workers}  # running inside another job's run (coalesced slices)
         self.player_active = True
         self.errors: list[BaseException] = []
         self.held: list[ImageRecord] = []  # image releases collected by the SetAssembler, not handed over yet
 
     def sleepers_expected(self) -> int:
         """Threads that must be asleep in a FakeClock before it may advance (read without the lock, see FakeClock)."""
-        busy = sum(min(self.outstanding[lane], n) for lane, n in self.mode.workers.items())
+        # a coalesced run is one busy worker however many jobs it holds
+        busy = sum(min(self.outstanding[lane] - self.joined[lane], n) for lane, n in self.mode.workers.items())
         return int(self.player_active) + busy
 
-    def job_started(self, key: JobKey) -> None:
+    def job_started(self, key: JobKey, joined: bool = False) -> None:
         with self.lock:
             rec, lane = self.by_key[key]
+            self.joined[lane] += int(joined)
             if math.isnan(rec.start_s):  # a release the runner splits into several jobs starts once
                 rec.start_s = self.clock.now()
                 self.waiting[lane] -= 1
 
-    def job_ended(self, key: JobKey, cpu_s: float) -> None:
+    def job_ended(self, key: JobKey, cpu_s: float, joined: bool = False) -> None:
         with self.lock:
-            rec, _ = self.by_key[key]
+            rec, lane = self.by_key[key]
+            self.joined[lane] -= int(joined)
             rec.end_s = self.clock.now()
             rec.cpu_s += cpu_s
 
@@ -125,10 +129,6 @@ def play(
     drive: Drive, detector: Detector, clock: Clock, config: PlayerConfig = PlayerConfig(), progress: Progress | None = None
 ) -> Recording:
     """Play ``drive`` through ``detector`` in ``config.mode`` on ``clock``; returns the record of every release."""
-    if isinstance(clock, FakeClock) and config.lanes.coalesce_slices > 1:
-        # the FakeClock's sleepers_expected counts one running job per busy worker
-        raise ValueError(f"a FakeClock replay needs LaneConfig.coalesce_slices=1 (one job per worker run), "
-                         f"got {config.lanes.coalesce_slices}")  # fmt: skip
     dclock = DriveClock(clock, config.time_scale)
     book: _Book
     mode = open_mode(config.mode, detector, config.num_slices, _Hooks(lambda: book), config.lanes)
@@ -229,11 +229,11 @@ class _Hooks:
     def __init__(self, book: Callable[[], _Book]) -> None:
         self._book = book
 
-    def job_started(self, key: JobKey) -> None:
-        self._book().job_started(key)
+    def job_started(self, key: JobKey, joined: bool = False) -> None:
+        self._book().job_started(key, joined)
 
-    def job_ended(self, key: JobKey, cpu_s: float) -> None:
-        self._book().job_ended(key, cpu_s)
+    def job_ended(self, key: JobKey, cpu_s: float, joined: bool = False) -> None:
+        self._book().job_ended(key, cpu_s, joined)
 
 
 def _record(release: Release) -> SliceRecord | ImageRecord:

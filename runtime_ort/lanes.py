@@ -5,7 +5,7 @@ Back-pressure policy (what happens when work arrives faster than it is done):
 - **Slice lane**: up to `max_in_flight` slices run at once, up to `queue_size` more wait. When the queue is full,
   the **oldest waiting** slice is dropped: its future fails with `SliceDropped`. A stale slice is worth less
   than a fresh one to a vehicle, and the caller (the LiDAR driver) must never block. With
-  `LaneConfig.coalesce_slices` > 1 a worker that starts a slice while the next slice of the same rotation and
+  `LaneConfig.coalesce_slices` > 1 (the default: 2) a worker that starts a slice while the next slice of the same rotation and
   quadrant waits (and no other worker is free) detects them in one run (runtime_ort/coalesce.py): a lane that has
   fallen behind catches up at the cost of one graph run for the quadrant instead of dropping slices.
 - **Image lane**: one update runs at a time and at most one waits. A newer image set **replaces** the waiting
@@ -92,8 +92,9 @@ class LaneConfig:
     image_lane_yield_slices: int = 0
     # the most waiting slices one slice-graph run detects together when the slice lane is behind (consecutive slices
     # of one rotation and one quadrant: runtime_ort/coalesce.py); a slice joins the run a worker starts only when no
-    # other worker is free to take it. 1: never, every slice its own run (and a full queue drops the oldest).
-    coalesce_slices: int = 1
+    # other worker is free to take it, so a lane that keeps up never coalesces. 2: pairs (a quadrant holds two of 8
+    # slices); 1: never, every slice its own run and a backlog only drains by dropping (docs/replay.md, "Coalesced slices").
+    coalesce_slices: int = 2
 
     def __post_init__(self) -> None:
         for name in ("max_in_flight", "queue_size"):
@@ -222,11 +223,18 @@ class WorkerLane:
                     return
                 jobs = [self._jobs.popleft()]
                 self._busy += 1
-                self._join_waiting(jobs)
+                try:
+                    self._join_waiting(jobs)
+                    join_error = None
+                except Exception as e:  # a failing join rule must not end the worker: its jobs get the error
+                    join_error = e
             cpu0 = time.thread_time()
             try:
                 jobs = [job for job in jobs if job[1].set_running_or_notify_cancel()]
-                if len(jobs) == 1:
+                if join_error is not None:
+                    for job in jobs:
+                        job[1].set_exception(join_error)
+                elif len(jobs) == 1:
                     fn, fut = jobs[0][:2]
                     try:
                         fut.set_result(fn())
@@ -293,8 +301,10 @@ class StreamingRunner:
             raise ValueError(f"StreamingRunner takes a LaneConfig, got {type(config).__name__}")
         self.detector = detector
         self.config = config
-        batch = None
-        if config.coalesce_slices > 1:
+        batch = None  # a detector without detect_slices (a stand-in) runs every slice alone
+        if config.coalesce_slices > 1 and callable(getattr(detector, "detect_slices", None)):
+            # read once, here: a join runs in a worker under the lane's lock and must not fail
+            self._sector_layout = (int(detector.num_slices), float(detector.config.start_deg))
             batch = JobBatching(joins=self._slices_join, run=self._detect_together, most=config.coalesce_slices)
         self._slices = WorkerLane("slice-lane", config.max_in_flight, config.queue_size,
                                   lambda: SliceDropped("slice dropped: queue full"), batch=batch)  # fmt: skip
@@ -346,8 +356,8 @@ class StreamingRunner:
         its error is its own), the next slice of the rotation in the same quadrant(s)."""
         if not (_well_formed(run_last) and _well_formed(waiting)) or waiting[2] < run_last[2]:
             return False
-        n = self.detector.num_slices
-        return run_last[1] < n and can_coalesce(int(run_last[1]), int(waiting[1]), n, self.detector.config.start_deg)
+        n, start_deg = self._sector_layout
+        return run_last[1] < n and can_coalesce(int(run_last[1]), int(waiting[1]), n, start_deg)
 
     def _detect_together(self, payloads: list) -> tuple[SliceResult, ...]:
         points, indices, stamps = zip(*payloads)

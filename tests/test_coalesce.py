@@ -303,3 +303,64 @@ def test_coalescing_still_drops_from_a_full_queue():
 def test_lane_config_refuses_a_bad_coalesce_count(bad):
     with pytest.raises(ValueError, match="coalesce_slices"):
         LaneConfig(coalesce_slices=bad)
+
+
+# ---- the offline benchmark ---------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("n,most", [(8, 1), (8, 2), (8, 4), (32, 3), (32, 8), (4, 2), (2, 2), (1, 4)])
+def test_runs_of_groups_consecutive_slices_of_a_quadrant(n, most):
+    from streamdet.benchmarks.coalesce_map import runs_of
+
+    runs = runs_of(n, most)
+    assert [k for run in runs for k in run] == list(range(n))
+    for run in runs:
+        assert 1 <= len(run) <= most
+        check_coalesced(run, n)  # each run is one the detector takes
+    for a, b in zip(runs, runs[1:]):  # a run ends only when it is full or the quadrant changes
+        assert len(a) == most or not can_coalesce(a[-1], b[0], n)
+
+
+def test_coalesce_map_scores_slices_alone_and_in_runs(tiny_export, tiny_train_data):
+    import re
+
+    from click.testing import CliRunner
+
+    from streamdet.benchmarks.coalesce_map import main
+
+    args = ["--data", str(tiny_train_data), "--export-dir", str(tiny_export), "--samples", "2", "--runs", "1,2"]
+    result = CliRunner().invoke(main, args)
+    assert result.exit_code == 0, result.output
+    assert re.findall(r"runs of up to (\d) slice\(s\): 2 samples, mAP [\d.]+", result.output) == ["1", "2"]
+    bad = CliRunner().invoke(main, [*args[:-1], "0,2"])
+    assert bad.exit_code != 0 and "ints >= 1" in bad.output
+
+
+def test_a_failing_join_rule_fails_its_jobs_and_keeps_the_worker():
+    """The lane's own join rule raising (a bug) reaches the callers through the futures; the worker serves on."""
+    import threading as th
+
+    from streamdet.runtime_ort.lanes import JobBatching, WorkerLane
+
+    gate, running = th.Event(), th.Event()
+
+    def broken(a, b):
+        raise KeyError("broken join rule")
+
+    def hold():
+        running.set()
+        return gate.wait(WAIT_S)
+
+    lane = WorkerLane("test", 1, None, batch=JobBatching(joins=broken, run=lambda ps: ps, most=2))
+    try:
+        first = lane.submit(hold, payload=0)
+        assert running.wait(WAIT_S)  # taken alone: nothing waited behind it
+        second = lane.submit(lambda: "second", payload=1)  # taken with third waiting: the rule is asked and fails
+        third = lane.submit(lambda: "third", payload=2)  # then taken alone: nothing behind it
+        gate.set()
+        assert first.result(WAIT_S) is True
+        with pytest.raises(KeyError, match="broken join rule"):
+            second.result(WAIT_S)
+        assert third.result(WAIT_S) == "third"
+    finally:
+        lane.close()

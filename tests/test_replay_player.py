@@ -199,9 +199,56 @@ def test_a_failing_detector_fails_the_replay_with_its_error():
         play(make_drive(sweeps=1), Broken(clock, 1.0, 1.0), clock, PlayerConfig("streaming", 4))
 
 
-def test_a_fake_clock_replay_refuses_coalescing():
-    """The FakeClock counts one running job per busy worker; a coalesced run would hold two: refused up front."""
+class CoalescingDetector(FakeDetector):
+    """A FakeDetector that can detect consecutive slices of a quadrant in one run of ``slice_ms``."""
+
+    class config:  # noqa: N801 (what the runner reads of a StreamingDetector's DetectorConfig)
+        start_deg = 0.0
+
+    num_slices = 8
+
+    def detect_slices(self, points, slice_indices, timestamps, num_slices=None):
+        self.calls.append(("slices", tuple(timestamps), tuple(slice_indices), num_slices))
+        self.clock.sleep(self.slice_ms / 1e3)
+        run = tuple(int(k) for k in slice_indices)
+        return tuple(SliceResult(Detections.empty(), k, num_slices, t, self.image_ts, len(p), 0, 0, coalesced=run)
+                     for k, t, p in zip(run, timestamps, points))  # fmt: skip
+
+
+def naive_coalesced_lane(releases: list[tuple[float, int]], run_s: float, most: int, n: int = 8) -> list[tuple[float, tuple]]:
+    """One worker, an unbounded queue, one run of ``run_s`` per slice or group: when the worker is free it takes the
+    oldest released slice and the released slices right after it of the same quadrant (up to ``most``).
+    Returns (end time, slice indices) of every run."""
+    runs, free_at, i = [], 0.0, 0
+    while i < len(releases):
+        start = max(free_at, releases[i][0])
+        group = [i]
+        while (len(group) < most and i + len(group) < len(releases) and releases[i + len(group)][0] <= start + 1e-12
+               and releases[group[-1]][1] + 1 == releases[i + len(group)][1]
+               and releases[group[-1]][1] // (n // 4) == releases[i + len(group)][1] // (n // 4)):  # fmt: skip
+            group.append(i + len(group))
+        free_at = start + run_s
+        runs.append((free_at, tuple(releases[j][1] for j in group)))
+        i += len(group)
+    return runs
+
+
+@pytest.mark.parametrize("slice_ms", [4.0, 9.0, 11.0])
+def test_a_lane_behind_coalesces_slices_on_the_fake_clock(slice_ms):
+    """Slices of 9-11 ms every 6.25 ms: one worker alone falls behind without end; coalescing pairs of a quadrant it
+    keeps up, drops nothing, and the runs match a naive model of the lane (4 ms: it never needs to)."""
     clock = FakeClock()
-    det = FakeDetector(clock, slice_ms=5.0, image_ms=40.0)
-    with pytest.raises(ValueError, match="coalesce_slices=1"):
-        play(make_drive(sweeps=1), det, clock, PlayerConfig("streaming", num_slices=8, lanes=LaneConfig(1, 8, coalesce_slices=2)))
+    det = CoalescingDetector(clock, slice_ms=slice_ms, image_ms=1.0)
+    lanes = LaneConfig(1, 64, coalesce_slices=2)
+    rec = play(make_drive(sweeps=4), det, clock, PlayerConfig("streaming", num_slices=8, lanes=lanes))
+    assert rec.slices_dropped == 0 and all(s.emitted for s in rec.slices)
+    releases = [(s.release_s, s.slice_index) for s in sorted(rec.slices, key=lambda s: s.release_s)]
+    # images run in their own lane (1 ms each, never in the way of the slice worker's clock)
+    want = naive_coalesced_lane(releases, slice_ms / 1e3, 2)
+    got = {}
+    for s in rec.slices:
+        got.setdefault(round(s.emit_s, 9), []).append(s.slice_index)
+    assert sorted((t, tuple(sorted(ks))) for t, ks in got.items()) == [(round(t, 9), ks) for t, ks in want]
+    assert all(s.coalesced == 2 for s in rec.slices if len(got[round(s.emit_s, 9)]) == 2)
+    if slice_ms < 6.25:
+        assert all(s.coalesced == 1 for s in rec.slices)
