@@ -647,7 +647,7 @@ class StreamingDetector:
         n = self._slices(num_slices)
         if isinstance(slice_index, bool) or not isinstance(slice_index, (int, np.integer)) or not 0 <= slice_index < n:
             raise ValueError(f"slice_index must be an int in [0, {n}), got {slice_index!r}")
-        return self.detect_slices((points,), (slice_index,), (timestamp,), num_slices)[0]
+        return self._detect_run((points,), (int(slice_index),), (timestamp,), n)[0]
 
     def detect_slices(
         self,
@@ -666,10 +666,17 @@ class StreamingDetector:
         """
         n = self._slices(num_slices)
         ks = check_coalesced(slice_indices, n, self.config.start_deg)
-        points, timestamps = tuple(points), tuple(_timestamp(t) for t in timestamps)
+        points, timestamps = tuple(points), tuple(timestamps)
         if len(points) != len(ks) or len(timestamps) != len(ks):
             raise ValueError(f"detect_slices takes one points array and one timestamp per slice: {len(ks)} slices, "
                              f"{len(points)} point arrays, {len(timestamps)} timestamps")  # fmt: skip
+        return self._detect_run(points, ks, timestamps, n)
+
+    def _detect_run(
+        self, points: tuple[np.ndarray, ...], ks: tuple[int, ...], timestamps: tuple[float | None, ...], n: int
+    ) -> tuple[SliceResult, ...]:
+        """One slice-graph run over slices ``ks`` of ``n`` (valid: the callers checked them)."""
+        timestamps = tuple(_timestamp(t) for t in timestamps)
         for p in points:
             if not isinstance(p, np.ndarray) or p.ndim != 2 or p.shape[1] != POINT_DIM:
                 raise ValueError(
@@ -704,8 +711,9 @@ class StreamingDetector:
             with self.stats.time(graph, self._executed_gmac(graph, Q=num_maps)):
                 boxes, scores, labels = self._run_graph(graph, feeds)
             with self.stats.time("post"):
-                lo = sector_bounds_deg(ks[0], n, self.config.start_deg)[0]
-                hi = sector_bounds_deg(ks[-1], n, self.config.start_deg)[1]
+                lo, hi = sector_bounds_deg(ks[0], n, self.config.start_deg)
+                if len(ks) > 1:  # the run's sector ends where its last slice's does
+                    hi = sector_bounds_deg(ks[-1], n, self.config.start_deg)[1]
                 dets = postprocess_slice(boxes, scores, labels, quadrants, self.grid, self._post, (lo, hi), crop=crop)
         self.stats.record("slice_total", (time.perf_counter() - t0) * 1e3)
         parts = split_by_slice(dets, ks, n, self.config.start_deg)
