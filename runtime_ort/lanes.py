@@ -32,14 +32,12 @@ Contracts:
 
 from __future__ import annotations
 
-import collections
 import math
 import numbers
 import time
-import threading
-from concurrent.futures import Future, InvalidStateError
+from concurrent.futures import Future
 from dataclasses import dataclass
-from typing import Callable, Mapping, Sequence
+from typing import Mapping
 
 import numpy as np
 
@@ -49,7 +47,10 @@ from streamdet.runtime_ort.detector import StreamingDetector
 from streamdet.runtime_ort.detector_results import ImageUpdate, SliceResult
 from streamdet.runtime_ort.image_cache import check_camera_timestamps
 from streamdet.runtime_ort.phase_locked_lane import PhaseLockedImageLane, PhaseLockStats
-from streamdet.runtime_ort.thread_priority import check_nice, start_worker
+from streamdet.runtime_ort.thread_priority import check_nice
+from streamdet.runtime_ort.worker_lane import JobBatching, RunnerClosed, WorkerLane
+
+__all__ = ["ImagesSuperseded", "JobBatching", "LaneConfig", "RunnerClosed", "SliceDropped", "StreamingRunner", "WorkerLane"]
 
 
 class SliceDropped(RuntimeError):
@@ -58,10 +59,6 @@ class SliceDropped(RuntimeError):
 
 class ImagesSuperseded(RuntimeError):
     """The image set was replaced by a newer one before the image lane got to it."""
-
-
-class RunnerClosed(RuntimeError):
-    """A submit after `StreamingRunner.close()`."""
 
 
 SCHEDULES: tuple[str, ...] = ("full", "phase-locked")
@@ -95,6 +92,11 @@ class LaneConfig:
     # other worker is free to take it, so a lane that keeps up never coalesces. 2: pairs (a quadrant holds two of 8
     # slices); 1: never, every slice its own run and a backlog only drains by dropping (docs/replay.md, "Coalesced slices").
     coalesce_slices: int = 2
+    # slice workers beyond max_in_flight that take a slice only while every other slice worker is busy and the image
+    # lane is idle until at least one slice run from now (between its updates; with no image lane: whenever the others
+    # are busy). Where the lanes share the cores, a slice lane that has fallen behind borrows the image lane's core
+    # when the images do not need it, instead of waiting or coalescing (docs/replay.md, "Spare slice workers").
+    spare_slice_workers: int = 0
 
     def __post_init__(self) -> None:
         for name in ("max_in_flight", "queue_size"):
@@ -110,6 +112,9 @@ class LaneConfig:
         if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v) or not 0 <= v <= 1000:
             raise ValueError(f"LaneConfig.lift_margin_ms must be a number of ms in [0, 1000], got {v!r}")
         check_nice(self.image_lane_nice, "LaneConfig.image_lane_nice")
+        v = self.spare_slice_workers
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 0 <= v <= 64:
+            raise ValueError(f"LaneConfig.spare_slice_workers must be an int in 0..64 (0: none), got {v!r}")
         v = self.coalesce_slices
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 1 <= v <= 64:
             raise ValueError(f"LaneConfig.coalesce_slices must be an int in 1..64 (1: never), got {v!r}")
@@ -121,176 +126,6 @@ class LaneConfig:
                 f"LaneConfig.image_lane_yield_slices={v} needs schedule='phase-locked' (the full schedule's update is one "
                 f"job that cannot hold back between quadrants), got schedule={self.schedule!r}"
             )
-
-
-@dataclass(frozen=True)
-class JobBatching:
-    """How a `WorkerLane` runs waiting jobs together (the slice lane's coalescing)."""
-
-    joins: Callable[[object, object], bool]  # (payload of the run's last job, payload of the next waiting job)
-    run: Callable[[list], Sequence[object]]  # payloads -> one result per payload, in order
-    most: int  # jobs per run at most
-
-
-class WorkerLane:
-    """A FIFO served by worker threads: the worker loop every lane of the runtime (and the replay's sequential
-    queue) runs.
-
-    ``capacity``: how many jobs may wait beyond those the workers are about to take; when full, the oldest waiting
-    job is failed with ``overflow()`` and counted in `dropped`. ``None``: unbounded, nothing is ever dropped.
-    A job submitted with ``supersede`` replaces the waiting jobs of its ``kind`` (each failed with ``supersede()``
-    and counted in `superseded`): one queue can carry slices that all run and image sets of which only the newest
-    matters. A job an idle worker is about to take counts as running, never as waiting.
-
-    ``batch`` (optional) lets a worker take waiting jobs together: a job submitted with a ``payload`` joins the job
-    a worker has just taken when no other worker is free, the two payloads ``batch.joins(previous, next)`` and the
-    run holds fewer than ``batch.most`` jobs; ``batch.run(payloads)`` then does them in one call and returns one
-    result per payload (counted in `joined`: the jobs that ran inside another's run).
-    """
-
-    def __init__(self, name: str, workers: int, capacity: int | None, overflow: Callable[[], Exception] | None = None,
-                 nice: int = 0, batch: "JobBatching | None" = None) -> None:  # fmt: skip
-        """``nice``: added to each worker thread's nice value (thread_priority.py)."""
-        if capacity is not None and overflow is None:
-            raise ValueError(f"{name}: a lane with a capacity ({capacity}) needs an overflow error")
-        self._name = name
-        self._jobs: collections.deque = collections.deque()  # (fn, future, kind, payload)
-        self._batch = batch
-        self.joined = 0
-        self._cond = threading.Condition()
-        self._capacity = capacity
-        self._overflow = overflow
-        self._closed = False
-        self._workers = workers
-        self._nice = check_nice(nice, f"{name}: nice")
-        self._busy = 0  # workers running a job (under _cond)
-        self.dropped = 0
-        self.superseded = 0
-        self.cpu_s = 0.0  # CPU seconds of the jobs run (thread time of their worker threads)
-        self._threads: list[threading.Thread] = []
-        try:
-            for i in range(workers):
-                self._threads.append(start_worker(self._serve, f"{name}-{i}", self._nice))
-        except OSError:  # the workers already started end at once
-            self.close()
-            raise
-
-    def submit(self, fn: Callable[[], object], kind: str = "", supersede: Callable[[], Exception] | None = None,
-               payload: object = None) -> Future:  # fmt: skip
-        """``payload``: what `JobBatching` reads to run this job together with others (None: always alone)."""
-        fut: Future = Future()
-        with self._cond:
-            if self._closed:
-                raise RunnerClosed(f"{self._name}: submit after close()")
-            # jobs the caller cancelled hold no place in the queue
-            self._jobs = collections.deque(job for job in self._jobs if not job[1].cancelled())
-            idle = self._workers - self._busy  # the first `idle` jobs are about to start: in flight, not waiting
-            if supersede is not None:
-                stale = [job for job in list(self._jobs)[idle:] if job[2] == kind]
-                for job in stale:
-                    self._jobs.remove(job)
-                    self.superseded += self._fail(job[1], supersede)
-            while self._capacity is not None and len(self._jobs) - idle >= self._capacity:
-                old = self._jobs[idle]
-                del self._jobs[idle]
-                self.dropped += self._fail(old[1], self._overflow)
-            self._jobs.append((fn, fut, kind, payload))
-            self._cond.notify()
-        return fut
-
-    @property
-    def waiting(self) -> int:
-        """Jobs waiting beyond those the workers run or are about to take (cancelled ones included until the next
-        submit clears them)."""
-        with self._cond:
-            return max(0, len(self._jobs) - (self._workers - self._busy))
-
-    @staticmethod
-    def _fail(fut: Future, error: Callable[[], Exception]) -> int:
-        """Fail a waiting job's future; 1 when it was failed, 0 when its owner had cancelled it meanwhile."""
-        try:
-            fut.set_exception(error())
-            return 1
-        except InvalidStateError:  # cancelled by its owner meanwhile: nothing to tell anyone
-            return 0
-
-    def _serve(self) -> None:
-        while True:
-            with self._cond:
-                while not self._jobs and not self._closed:
-                    self._cond.wait()
-                if not self._jobs:
-                    return
-                jobs = [self._jobs.popleft()]
-                self._busy += 1
-                try:
-                    self._join_waiting(jobs)
-                    join_error = None
-                except Exception as e:  # a failing join rule must not end the worker: its jobs get the error
-                    join_error = e
-            cpu0 = time.thread_time()
-            try:
-                jobs = [job for job in jobs if job[1].set_running_or_notify_cancel()]
-                if join_error is not None:
-                    for job in jobs:
-                        job[1].set_exception(join_error)
-                elif len(jobs) == 1:
-                    fn, fut = jobs[0][:2]
-                    try:
-                        fut.set_result(fn())
-                    except BaseException as e:  # handed to the caller through the future, never swallowed
-                        fut.set_exception(e)
-                elif jobs:
-                    self._run_joined(jobs)
-            finally:
-                with self._cond:
-                    self._busy -= 1
-                    self.cpu_s += time.thread_time() - cpu0
-
-    def _join_waiting(self, jobs: list) -> None:
-        """(Under the lock.) Move the waiting jobs that may run with ``jobs[-1]`` into ``jobs``: only while no other
-        worker is free to take them, so joining never idles a core that could have run a job alone."""
-        b = self._batch
-        if b is None or jobs[0][3] is None:
-            return
-        while len(jobs) < b.most and self._jobs and self._busy >= self._workers:
-            nxt = self._jobs[0]
-            if nxt[1].cancelled():  # holds no place (as in submit)
-                self._jobs.popleft()
-                continue
-            if nxt[3] is None or not b.joins(jobs[-1][3], nxt[3]):
-                return
-            jobs.append(self._jobs.popleft())
-
-    def _run_joined(self, jobs: list) -> None:
-        """Run jobs that `_join_waiting` put together in one ``batch.run`` call; its error goes to every job."""
-        try:
-            results = list(self._batch.run([job[3] for job in jobs]))
-            if len(results) != len(jobs):
-                raise RuntimeError(f"{self._name}: a joined run of {len(jobs)} jobs returned {len(results)} results")
-        except BaseException as e:  # handed to the callers through the futures, never swallowed
-            for job in jobs:
-                job[1].set_exception(e)
-            return
-        for job, result in zip(jobs, results):
-            job[1].set_result(result)
-        with self._cond:
-            self.joined += len(jobs) - 1
-
-    def close(self, deadline: float | None = None) -> bool:
-        """Stop taking jobs, finish the queued ones by ``deadline`` (time.monotonic(); None: no limit). Past it, the
-        jobs not started are cancelled; True when every worker has ended."""
-        with self._cond:
-            self._closed = True
-            self._cond.notify_all()
-        for t in self._threads:
-            t.join(None if deadline is None else max(0.0, deadline - time.monotonic()))
-        if all(not t.is_alive() for t in self._threads):
-            return True
-        with self._cond:
-            while self._jobs:
-                self._jobs.popleft()[1].cancel()
-        return False
 
 
 class StreamingRunner:
@@ -306,19 +141,22 @@ class StreamingRunner:
             # read once, here: a join runs in a worker under the lane's lock and must not fail
             self._sector_layout = (int(detector.num_slices), float(detector.config.start_deg))
             batch = JobBatching(joins=self._slices_join, run=self._detect_together, most=config.coalesce_slices)
-        self._slices = WorkerLane("slice-lane", config.max_in_flight, config.queue_size,
-                                  lambda: SliceDropped("slice dropped: queue full"), batch=batch)  # fmt: skip
-        superseded = lambda: ImagesSuperseded("image set superseded by a newer one")  # noqa: E731
         self._phase_locked: PhaseLockedImageLane | None = None
         self._images: WorkerLane | None = None
+        spare = config.spare_slice_workers
+        self._slices = WorkerLane("slice-lane", config.max_in_flight, config.queue_size,
+                                  lambda: SliceDropped("slice dropped: queue full"), batch=batch, spare=spare,
+                                  spare_gate=self._image_lane_idle if spare else None)  # fmt: skip
+        superseded = lambda: ImagesSuperseded("image set superseded by a newer one")  # noqa: E731
+        wake = self._slices.wake if spare else None
         if config.schedule == "phase-locked" and detector.uses_images:
             self._phase_locked = PhaseLockedImageLane(
                 detector, detector.num_slices, detector.config.start_deg, config.lidar_hz, config.lift_margin_ms * 1e-3,
                 superseded=superseded, closed=lambda: RunnerClosed("image-lane: submit after close()"), nice=config.image_lane_nice,
-                backlog=lambda: self._slices.waiting, yield_at=config.image_lane_yield_slices,
+                backlog=lambda: self._slices.waiting, yield_at=config.image_lane_yield_slices, on_idle=wake,
             )  # fmt: skip
         else:
-            self._images = WorkerLane("image-lane", 1, 1, superseded, nice=config.image_lane_nice)
+            self._images = WorkerLane("image-lane", 1, 1, superseded, nice=config.image_lane_nice, on_idle=wake)
 
     def submit_images(
         self, images: Mapping[str, np.ndarray], timestamp: float | None = None, camera_timestamps: Mapping[str, float] | None = None,
@@ -351,6 +189,14 @@ class StreamingRunner:
             self._phase_locked.observe_slice(int(slice_index), time.monotonic())  # its arrival on the runner's clock
         return future
 
+    def _image_lane_idle(self) -> bool:
+        """The spare slice workers' gate (read under the slice lane's lock, so it reads the image lane's state
+        without its lock): the image lane runs nothing and, phase-locked, plans nothing for at least one slice run."""
+        if self._phase_locked is not None:
+            lane = self._phase_locked
+            return lane.idle_until() - lane.clock() >= self._slices.run_s
+        return self._images is None or self._images.idle
+
     def _slices_join(self, run_last: tuple, waiting: tuple) -> bool:
         """May the waiting slice join a run that ends with ``run_last``? Both well-formed (a bad slice runs alone, so
         its error is its own), the next slice of the rotation in the same quadrant(s)."""
@@ -371,6 +217,11 @@ class StreamingRunner:
     def slices_coalesced(self) -> int:
         """Slices detected inside another slice's run (LaneConfig.coalesce_slices): graph runs saved."""
         return self._slices.joined
+
+    @property
+    def slices_on_spare_workers(self) -> int:
+        """Slice-graph runs the spare slice workers did (LaneConfig.spare_slice_workers)."""
+        return self._slices.spare_runs
 
     @property
     def images_superseded(self) -> int:

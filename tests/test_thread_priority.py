@@ -104,7 +104,7 @@ def test_a_thread_whose_priority_cannot_be_set_raises_and_runs_nothing(monkeypat
 
 
 def test_a_lane_whose_second_worker_cannot_be_niced_ends_the_first(monkeypatch):
-    import streamdet.runtime_ort.lanes as lanes_mod
+    import streamdet.runtime_ort.worker_lane as lanes_mod
 
     started: list[threading.Thread] = []
     real = lanes_mod.start_worker
