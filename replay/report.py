@@ -149,7 +149,9 @@ def format_report(result: ReplayResult, info: dict) -> str:
         f"{c.threads} thread(s) per session"
         + (f" ({c.image_lane_threads} in the image lane's)" if c.image_lane_threads not in (None, c.threads) else "")
         + f", {c.lanes.max_in_flight} slice worker(s)"
-        + (f" + {c.lanes.spare_slice_workers} spare (while the image lane is idle)" if c.lanes.spare_slice_workers else "")
+        + (f" + {c.lanes.spare_slice_workers} spare (while the image lane is idle"
+           + (f" or {c.lanes.spare_at_backlog} slices are queued" if c.lanes.spare_at_backlog else "") + ")"
+           if c.lanes.spare_slice_workers else "")
         + f", queue {c.lanes.queue_size}"
         + (f", image lane at nice +{c.lanes.image_lane_nice}" if c.lanes.image_lane_nice else "")
         + (f", image lane yields at {c.lanes.image_lane_yield_slices} waiting slice(s)" if c.lanes.image_lane_yield_slices else "")

@@ -97,6 +97,9 @@ class LaneConfig:
     # are busy). Where the lanes share the cores, a slice lane that has fallen behind borrows the image lane's core
     # when the images do not need it, instead of waiting or coalescing (docs/replay.md, "Spare slice workers").
     spare_slice_workers: int = 0
+    # the spare slice workers also take a slice, whatever the image lane does, while this many slices (or more) are
+    # queued: a backlog then gets both cores (the image lane shares its core for as long); 0: only when it is idle
+    spare_at_backlog: int = 0
 
     def __post_init__(self) -> None:
         for name in ("max_in_flight", "queue_size"):
@@ -115,6 +118,11 @@ class LaneConfig:
         v = self.spare_slice_workers
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 0 <= v <= 64:
             raise ValueError(f"LaneConfig.spare_slice_workers must be an int in 0..64 (0: none), got {v!r}")
+        v = self.spare_at_backlog
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 0 <= v <= 1024:
+            raise ValueError(f"LaneConfig.spare_at_backlog must be an int in 0..1024 (0: only when the image lane is idle), got {v!r}")
+        if v and not self.spare_slice_workers:
+            raise ValueError(f"LaneConfig.spare_at_backlog={v} needs spare_slice_workers >= 1, got {self.spare_slice_workers!r}")
         v = self.coalesce_slices
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 1 <= v <= 64:
             raise ValueError(f"LaneConfig.coalesce_slices must be an int in 1..64 (1: never), got {v!r}")
@@ -191,7 +199,11 @@ class StreamingRunner:
 
     def _image_lane_idle(self) -> bool:
         """The spare slice workers' gate (read under the slice lane's lock, so it reads the image lane's state
-        without its lock): the image lane runs nothing and, phase-locked, plans nothing for at least one slice run."""
+        without its lock): a backlog of ``spare_at_backlog`` queued slices, or an image lane that runs nothing and,
+        phase-locked, plans nothing for at least one slice run."""
+        at = self.config.spare_at_backlog
+        if at and self._slices.queued >= at:
+            return True
         if self._phase_locked is not None:
             lane = self._phase_locked
             return lane.idle_until() - lane.clock() >= self._slices.run_s

@@ -145,6 +145,12 @@ class WorkerLane:
             return max(0, len(self._jobs) - self._free())
 
     @property
+    def queued(self) -> int:
+        """Jobs in the queue, those a free worker is about to take included. Read without the lock, so that a
+        ``spare_gate`` (which runs under it) may read it: a hint that may be a moment old."""
+        return len(self._jobs)
+
+    @property
     def run_s(self) -> float:
         """Wall seconds of a run, the second longest of the last few (0 before the first)."""
         with self._cond:

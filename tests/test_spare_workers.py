@@ -283,3 +283,35 @@ def test_the_phase_locked_gate_closes_before_a_planned_lift():
     finally:
         det.image_gate.set()
         runner.close(WAIT_S)
+
+
+@pytest.mark.parametrize("bad", [-1, 1025, True, 2.0, "4"])
+def test_lane_config_refuses_a_bad_backlog_rule(bad):
+    with pytest.raises(ValueError, match="spare_at_backlog"):
+        LaneConfig(spare_slice_workers=1, spare_at_backlog=bad)
+    with pytest.raises(ValueError, match="needs spare_slice_workers"):
+        LaneConfig(spare_at_backlog=4)
+
+
+def test_a_backlog_opens_the_spare_workers_gate_while_the_image_lane_works():
+    det = StandIn()
+    config = LaneConfig(max_in_flight=1, schedule="phase-locked", spare_slice_workers=1, spare_at_backlog=2)
+    runner = StreamingRunner(det, config)  # type: ignore[arg-type]
+    try:
+        runner.submit_images(IMAGES, 0.0)
+        assert det.encoding.wait(WAIT_S)  # the image lane is busy, and stays so
+        first = runner.submit_slice(POINTS, 0, 0.0)
+        assert det.first.running.wait(WAIT_S)
+        second = runner.submit_slice(POINTS, 1, 0.01)
+        time.sleep(NOT_YET_S)
+        assert not second.done()  # one queued: below the backlog
+        third = runner.submit_slice(POINTS, 2, 0.02)  # two queued: the spare worker takes the older one
+        assert second.result(WAIT_S).slice_index == 1 and "spare" in det.threads[1]
+        time.sleep(NOT_YET_S)
+        assert not third.done() and not first.done()  # one queued again: below the backlog
+        det.first.release.set()
+        assert [f.result(WAIT_S).slice_index for f in (first, third)] == [0, 2]
+    finally:
+        det.image_gate.set()
+        det.first.release.set()
+        runner.close(WAIT_S)
