@@ -15,9 +15,7 @@
 # collector's full collections run over the whole heap mid-drive, as in the replays before 2026-12-04's eighteenth session);
 # WORKERS (optional, default: the runtime's LaneConfig, 2): --slice-workers; COALESCE (optional, default: the runtime's
 # LaneConfig): --coalesce-slices, the most waiting slices of one quadrant one run detects when the lane is behind; QUEUE
-# (optional, default: the runtime's LaneConfig, 8): --queue-size, slices waiting before the oldest is dropped; SPARE (optional,
-# default: the runtime's LaneConfig): --spare-slice-workers, slice workers that run only while the image lane is idle; SPAREAT (optional,
-# default 0): --spare-at-backlog, the queued slices at which they run whatever the image lane does. DELIVERY_MS (environment, default 0): the
+# (optional, default: the runtime's LaneConfig, 8): --queue-size, slices waiting before the oldest is dropped. DELIVERY_MS (environment, default 0): the
 # cameras' delivery delay (--camera-delivery-ms); NUM_SLICES (environment, default 8): slices per rotation (--slices). Writes OUT/r<round>_scale<S>_<label>/ (replay.json, report.md),
 # OUT/r<round>_scale<S>_<label>.txt, OUT/variants.txt, OUT/probes_gflops.txt, OUT/staleness_cdf.png and OUT/table.md (benchmarks/replay_table.py: one row per
 # scale and variant, one value per round in each cell). Run it on a quiet machine.
@@ -33,7 +31,7 @@ NUM_SLICES=${NUM_SLICES:-8}
 : "${DATA:?set DATA to the drives dataset (benchmarks/replay_prep.sh makes the issue-22 one)}"
 mkdir -p "$OUT"
 for V in "$@"; do
-  IFS=, read -r EXP SCHEDULE TERMS CODE SLICES NICE ITHREADS YIELD HEAP WORKERS COALESCE QUEUE SPARE SPAREAT <<< "${V#*=}"
+  IFS=, read -r EXP SCHEDULE TERMS CODE SLICES NICE ITHREADS YIELD HEAP WORKERS COALESCE QUEUE <<< "${V#*=}"
   [ -f "$EXP/manifest.json" ] || { echo "$V: $EXP holds no manifest.json" >&2; exit 2; }
   [ -z "$CODE" ] || [ -d "$CODE/streamdet" ] || { echo "$V: $CODE holds no streamdet package" >&2; exit 2; }
 done
@@ -44,7 +42,7 @@ for ROUND in $(seq 1 "$ROUNDS"); do
   for SCALE in $SCALES; do
     for V in "$@"; do
       LABEL=${V%%=*}
-      IFS=, read -r EXP SCHEDULE TERMS CODE SLICES NICE ITHREADS YIELD HEAP WORKERS COALESCE QUEUE SPARE SPAREAT <<< "${V#*=}"
+      IFS=, read -r EXP SCHEDULE TERMS CODE SLICES NICE ITHREADS YIELD HEAP WORKERS COALESCE QUEUE <<< "${V#*=}"
       NAME="r${ROUND}_scale${SCALE}_$LABEL"
       echo "$NAME $("$BIN/python" -c 'from streamdet.benchmarks.probe import measure_peak; print(max(measure_peak(2).run_gflops_per_s))')" \
         >> "$OUT/probes_gflops.txt"
@@ -55,15 +53,13 @@ for ROUND in $(seq 1 "$ROUNDS"); do
       [ -z "$WORKERS" ] || EXTRA+=(--slice-workers "$WORKERS")
       [ -z "$COALESCE" ] || EXTRA+=(--coalesce-slices "$COALESCE")  # only when asked, as YIELD
       [ -z "$QUEUE" ] || EXTRA+=(--queue-size "$QUEUE")
-      [ -z "$SPARE" ] || EXTRA+=(--spare-slice-workers "$SPARE")  # only when asked, as YIELD
-      [ -z "$SPAREAT" ] || EXTRA+=(--spare-at-backlog "$SPAREAT")
       case "${HEAP:-}" in
         ""|freeze) ;;
         thaw) EXTRA+=(--no-freeze-heap) ;;
         *) echo "$V: HEAP must be freeze or thaw, got $HEAP" >&2; exit 2 ;;
       esac
       [ -z "$CODE" ] || RUNENV=(PYTHONPATH="$(realpath "$CODE")${PYTHONPATH:+:$PYTHONPATH}")
-      [ "$ROUND" != 1 ] || [ "$SCALE" != "${SCALES%% *}" ] || echo "$LABEL: $EXP $SCHEDULE terms=$TERMS code=${CODE:-this checkout} slices=${SLICES:-fp32} nice=${NICE:-0} image_threads=${ITHREADS:-1} yield=${YIELD:-0} heap=${HEAP:-freeze} slice_workers=${WORKERS:-default} coalesce=${COALESCE:-default} queue=${QUEUE:-default} spare=${SPARE:-default} spare_at=${SPAREAT:-0} slices_per_rotation=$NUM_SLICES" >> "$OUT/variants.txt"
+      [ "$ROUND" != 1 ] || [ "$SCALE" != "${SCALES%% *}" ] || echo "$LABEL: $EXP $SCHEDULE terms=$TERMS code=${CODE:-this checkout} slices=${SLICES:-fp32} nice=${NICE:-0} image_threads=${ITHREADS:-1} yield=${YIELD:-0} heap=${HEAP:-freeze} slice_workers=${WORKERS:-default} coalesce=${COALESCE:-default} queue=${QUEUE:-default} slices_per_rotation=$NUM_SLICES" >> "$OUT/variants.txt"
       env "${RUNENV[@]}" "$BIN/streamdet-replay" --data "$DATA" --split val --export-dir "$EXP" --precision "${SLICES:-fp32}" --image-precision int8 \
         --lidar-hz 20 --slices "$NUM_SLICES" --camera-hz 12 --camera-trigger lidar-synced --camera-delivery-ms "$DELIVERY_MS" \
         --mode streaming --schedule "$SCHEDULE" --camera-terms "$TERMS" --image-lane-nice "${NICE:-0}" --time-scale "$SCALE" "${EXTRA[@]}" --out "$OUT/$NAME" \

@@ -6,8 +6,7 @@ Reads the ``OUT_DIR/r<round>_scale<S>_<label>/replay.json`` files of ``benchmark
 written with ``streamdet-replay --out``: every slice's record) and prints one row per run and drive: the slice p99
 latency (last point scanned to detections, as the replay reports it), the run length (start to end) p50 / p99, and for the **tail** (the emitted slices whose latency is at least
 ``near`` x the drive's p99): how many, their mean wait in the queue (release to start) and mean run, the share of them
-detected in a coalesced run (``LaneConfig.coalesce_slices``), and the slice-graph runs the spare workers did
-(``LaneConfig.spare_slice_workers``). All in drive ms, as the replay records them (wall / time scale).
+detected in a coalesced run (``LaneConfig.coalesce_slices``). All in drive ms, as the replay records them (wall / time scale).
 A tail of long waits and ordinary runs is a backlog (the lane short of CPU for a while); a tail of long runs is
 contention inside the run.
 """
@@ -23,7 +22,7 @@ import numpy as np
 from streamdet.benchmarks.replay_table import RUN
 
 HEADER = ("| scale | variant | round | drive | slice p99 ms | run p50 / p99 ms | tail slices | tail wait / run ms "
-          "| tail in pairs | spare runs |")  # fmt: skip
+          "| tail in pairs |")  # fmt: skip
 
 
 def drive_tail(recording: dict, near: float = 0.8) -> dict | None:
@@ -45,7 +44,6 @@ def drive_tail(recording: dict, near: float = 0.8) -> dict | None:
         "drive": recording["drive"], "p99_ms": p99, "run_p50_ms": float(np.median(run)),
         "run_p99_ms": float(np.percentile(run, 99)), "tail": int(tail.sum()), "tail_wait_ms": float(wait[tail].mean()),
         "tail_run_ms": float(run[tail].mean()), "tail_paired": float(paired[tail].mean()),
-        "spare_runs": int(recording.get("spare_runs", 0)),
     }  # fmt: skip
 
 
@@ -68,8 +66,7 @@ def table(out: Path, near: float = 0.8) -> str:
              "|---" * (HEADER.count("|") - 1) + "|"]  # fmt: skip
     for (scale, label, rnd, drive), t in sorted(rows):
         lines.append(f"| {scale:g} | {label} | {rnd} | {drive} | {t['p99_ms']:.1f} | {t['run_p50_ms']:.1f} / {t['run_p99_ms']:.1f} "
-                     f"| {t['tail']} | {t['tail_wait_ms']:.1f} / {t['tail_run_ms']:.1f} | {100 * t['tail_paired']:.0f} % "
-                     f"| {t['spare_runs']} |")  # fmt: skip
+                     f"| {t['tail']} | {t['tail_wait_ms']:.1f} / {t['tail_run_ms']:.1f} | {100 * t['tail_paired']:.0f} % |")  # fmt: skip
     return "\n".join(lines)
 
 

@@ -76,13 +76,6 @@ def _progress(message: str) -> None:
 @click.option("--coalesce-slices", type=click.IntRange(1, 64), default=None,
               help="The most waiting slices of one quadrant a slice worker detects in one run when the lane is behind "
                    "(1: never, a full queue drops the oldest); LaneConfig.coalesce_slices. Default: the runtime's LaneConfig.")
-@click.option("--spare-slice-workers", type=click.IntRange(0, 64), default=None,
-              help="Slice workers beyond --slice-workers that take a slice only while the others are busy and the image "
-                   "lane is idle (between its updates): a slice lane that has fallen behind borrows the image lane's core; "
-                   "LaneConfig.spare_slice_workers. Default: the runtime's LaneConfig.")
-@click.option("--spare-at-backlog", type=click.IntRange(0, 1024), default=0, show_default=True,
-              help="The spare slice workers also take a slice, whatever the image lane does, while this many slices are "
-                   "queued (0: only while the image lane is idle); needs --spare-slice-workers; LaneConfig.spare_at_backlog.")
 @click.option("--freeze-heap/--no-freeze-heap", default=True, show_default=True,
               help="Freeze the Python heap alive when each drive starts out of the garbage collector's full collections "
                    "(gc.freeze, runtime_ort/heap.py), as a vehicle process would after its start-up; such a collection "
@@ -100,7 +93,7 @@ def main(
     image_precision: str | None, lidar_hz: float, num_slices: int | None, camera_hz: float, camera_trigger: str,
     camera_delivery_ms: float, mode: str, time_scale: float,
     max_seconds: float | None, threads: int, image_lane_threads: int | None, slice_workers: int | None, queue_size: int | None, schedule: str,
-    image_lane_nice: int, image_lane_yield: int, coalesce_slices: int | None, spare_slice_workers: int | None, spare_at_backlog: int, freeze_heap: bool, camera_terms: bool | None, fallback_export_dir: Path | None, fallback_after_ms: float | None, json_path: Path | None,
+    image_lane_nice: int, image_lane_yield: int, coalesce_slices: int | None, freeze_heap: bool, camera_terms: bool | None, fallback_export_dir: Path | None, fallback_after_ms: float | None, json_path: Path | None,
     plot_path: Path | None, out_dir: Path | None,
 ) -> None:
     """Play scenes at sensor rates (LiDAR slices released when scanned, cameras at their rate) through the runtime's
@@ -123,9 +116,7 @@ def main(
     try:
         lanes = LaneConfig(max_in_flight=slice_workers or defaults.max_in_flight, queue_size=queue_size or defaults.queue_size,
                            schedule=schedule, image_lane_nice=image_lane_nice, image_lane_yield_slices=image_lane_yield,
-                           coalesce_slices=coalesce_slices or defaults.coalesce_slices,
-                           spare_slice_workers=defaults.spare_slice_workers if spare_slice_workers is None else spare_slice_workers,
-                           spare_at_backlog=spare_at_backlog)  # fmt: skip
+                           coalesce_slices=coalesce_slices or defaults.coalesce_slices)  # fmt: skip
         config = ReplayConfig(
             data=data, export_dir=export_dir, version=table_version, split=None if split == "all" else split, scenes=scenes,
             precision=precision, image_precision=image_precision, lidar_hz=lidar_hz, num_slices=num_slices,

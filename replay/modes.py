@@ -156,4 +156,4 @@ def open_mode(name: str, detector: Detector, num_slices: int, hooks: JobHooks, l
     n = 1 if name == "full-sweep" else num_slices
     runner = StreamingRunner(Instrumented(detector, n, hooks), lanes)  # type: ignore[arg-type]  # the detector's interface
     return ModeRunner(name, n, runner, {"slice": SLICE_LANE, "images": IMAGE_LANE},
-                      {SLICE_LANE: lanes.max_in_flight + lanes.spare_slice_workers, IMAGE_LANE: 1})  # fmt: skip
+                      {SLICE_LANE: lanes.max_in_flight, IMAGE_LANE: 1})  # fmt: skip

@@ -93,7 +93,6 @@ def details_report(result: ReplayResult, info: dict) -> dict:
             cpu_share=_cpu_share(r), stages=r.stages, recordings=[x.to_dict() for x in r.recordings],
             slices_fallback=_fallbacks(r),
             slices_coalesced=_coalesced(r),
-            slice_runs_on_spare_workers=sum(x.spare_runs for x in r.recordings),
             **image_lane_summary(r),
         )  # fmt: skip
     return out
@@ -148,11 +147,7 @@ def format_report(result: ReplayResult, info: dict) -> str:
         f"time scale {c.time_scale:g} (latencies in drive time = wall / {c.time_scale:g}); CPU: {cpu_line(info)}; "
         f"{c.threads} thread(s) per session"
         + (f" ({c.image_lane_threads} in the image lane's)" if c.image_lane_threads not in (None, c.threads) else "")
-        + f", {c.lanes.max_in_flight} slice worker(s)"
-        + (f" + {c.lanes.spare_slice_workers} spare (while the image lane is idle"
-           + (f" or {c.lanes.spare_at_backlog} slices are queued" if c.lanes.spare_at_backlog else "") + ")"
-           if c.lanes.spare_slice_workers else "")
-        + f", queue {c.lanes.queue_size}"
+        + f", {c.lanes.max_in_flight} slice worker(s), queue {c.lanes.queue_size}"
         + (f", image lane at nice +{c.lanes.image_lane_nice}" if c.lanes.image_lane_nice else "")
         + (f", image lane yields at {c.lanes.image_lane_yield_slices} waiting slice(s)" if c.lanes.image_lane_yield_slices else "")
         + (f", up to {c.lanes.coalesce_slices} waiting slices coalesced per run" if c.lanes.coalesce_slices > 1 else ""),
@@ -212,8 +207,7 @@ def _image_lane_table(result: ReplayResult) -> str:
                         f"updates before the lock, {total['quadrants_skipped']} passes skipped (too late), "
                         f"{total['late_lifts']} lifts ended after their slice arrived"
                         + (f", held back {total['yields']} times for waiting slices ({total['yielded_ms']:.0f} ms, "
-                           f"{total.get('holds_cut', 0)} cut at 0.1 s)" if total.get("yields") else "")
-                        + (f", {spare} slice runs on spare workers" if (spare := sum(x.spare_runs for x in r.recordings)) else ""))  # fmt: skip
+                           f"{total.get('holds_cut', 0)} cut at 0.1 s)" if total.get("yields") else ""))  # fmt: skip
     for mode, r in result.modes.items():
         line = _stale_by_burst(r, 1.0 / result.config.lidar_hz)
         if line:

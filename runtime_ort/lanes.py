@@ -92,14 +92,6 @@ class LaneConfig:
     # other worker is free to take it, so a lane that keeps up never coalesces. 2: pairs (a quadrant holds two of 8
     # slices); 1: never, every slice its own run and a backlog only drains by dropping (docs/replay.md, "Coalesced slices").
     coalesce_slices: int = 2
-    # slice workers beyond max_in_flight that take a slice only while every other slice worker is busy and the image
-    # lane is idle until at least one slice run from now (between its updates; with no image lane: whenever the others
-    # are busy). Where the lanes share the cores, a slice lane that has fallen behind borrows the image lane's core
-    # when the images do not need it, instead of waiting or coalescing (docs/replay.md, "Spare slice workers").
-    spare_slice_workers: int = 0
-    # the spare slice workers also take a slice, whatever the image lane does, while this many slices (or more) are
-    # queued: a backlog then gets both cores (the image lane shares its core for as long); 0: only when it is idle
-    spare_at_backlog: int = 0
 
     def __post_init__(self) -> None:
         for name in ("max_in_flight", "queue_size"):
@@ -115,14 +107,6 @@ class LaneConfig:
         if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v) or not 0 <= v <= 1000:
             raise ValueError(f"LaneConfig.lift_margin_ms must be a number of ms in [0, 1000], got {v!r}")
         check_nice(self.image_lane_nice, "LaneConfig.image_lane_nice")
-        v = self.spare_slice_workers
-        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 0 <= v <= 64:
-            raise ValueError(f"LaneConfig.spare_slice_workers must be an int in 0..64 (0: none), got {v!r}")
-        v = self.spare_at_backlog
-        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 0 <= v <= 1024:
-            raise ValueError(f"LaneConfig.spare_at_backlog must be an int in 0..1024 (0: only when the image lane is idle), got {v!r}")
-        if v and not self.spare_slice_workers:
-            raise ValueError(f"LaneConfig.spare_at_backlog={v} needs spare_slice_workers >= 1, got {self.spare_slice_workers!r}")
         v = self.coalesce_slices
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 1 <= v <= 64:
             raise ValueError(f"LaneConfig.coalesce_slices must be an int in 1..64 (1: never), got {v!r}")
@@ -149,22 +133,19 @@ class StreamingRunner:
             # read once, here: a join runs in a worker under the lane's lock and must not fail
             self._sector_layout = (int(detector.num_slices), float(detector.config.start_deg))
             batch = JobBatching(joins=self._slices_join, run=self._detect_together, most=config.coalesce_slices)
+        self._slices = WorkerLane("slice-lane", config.max_in_flight, config.queue_size,
+                                  lambda: SliceDropped("slice dropped: queue full"), batch=batch)  # fmt: skip
+        superseded = lambda: ImagesSuperseded("image set superseded by a newer one")  # noqa: E731
         self._phase_locked: PhaseLockedImageLane | None = None
         self._images: WorkerLane | None = None
-        spare = config.spare_slice_workers
-        self._slices = WorkerLane("slice-lane", config.max_in_flight, config.queue_size,
-                                  lambda: SliceDropped("slice dropped: queue full"), batch=batch, spare=spare,
-                                  spare_gate=self._image_lane_idle if spare else None)  # fmt: skip
-        superseded = lambda: ImagesSuperseded("image set superseded by a newer one")  # noqa: E731
-        wake = self._slices.wake if spare else None
         if config.schedule == "phase-locked" and detector.uses_images:
             self._phase_locked = PhaseLockedImageLane(
                 detector, detector.num_slices, detector.config.start_deg, config.lidar_hz, config.lift_margin_ms * 1e-3,
                 superseded=superseded, closed=lambda: RunnerClosed("image-lane: submit after close()"), nice=config.image_lane_nice,
-                backlog=lambda: self._slices.waiting, yield_at=config.image_lane_yield_slices, on_idle=wake,
+                backlog=lambda: self._slices.waiting, yield_at=config.image_lane_yield_slices,
             )  # fmt: skip
         else:
-            self._images = WorkerLane("image-lane", 1, 1, superseded, nice=config.image_lane_nice, on_idle=wake)
+            self._images = WorkerLane("image-lane", 1, 1, superseded, nice=config.image_lane_nice)
 
     def submit_images(
         self, images: Mapping[str, np.ndarray], timestamp: float | None = None, camera_timestamps: Mapping[str, float] | None = None,
@@ -197,18 +178,6 @@ class StreamingRunner:
             self._phase_locked.observe_slice(int(slice_index), time.monotonic())  # its arrival on the runner's clock
         return future
 
-    def _image_lane_idle(self) -> bool:
-        """The spare slice workers' gate (read under the slice lane's lock, so it reads the image lane's state
-        without its lock): a backlog of ``spare_at_backlog`` queued slices, or an image lane that runs nothing and,
-        phase-locked, plans nothing for at least one slice run."""
-        at = self.config.spare_at_backlog
-        if at and self._slices.queued >= at:
-            return True
-        if self._phase_locked is not None:
-            lane = self._phase_locked
-            return lane.idle_until() - lane.clock() >= self._slices.run_s
-        return self._images is None or self._images.idle
-
     def _slices_join(self, run_last: tuple, waiting: tuple) -> bool:
         """May the waiting slice join a run that ends with ``run_last``? Both well-formed (a bad slice runs alone, so
         its error is its own), the next slice of the rotation in the same quadrant(s)."""
@@ -229,11 +198,6 @@ class StreamingRunner:
     def slices_coalesced(self) -> int:
         """Slices detected inside another slice's run (LaneConfig.coalesce_slices): graph runs saved."""
         return self._slices.joined
-
-    @property
-    def slices_on_spare_workers(self) -> int:
-        """Slice-graph runs the spare slice workers did (LaneConfig.spare_slice_workers)."""
-        return self._slices.spare_runs
 
     @property
     def images_superseded(self) -> int:

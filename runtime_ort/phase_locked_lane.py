@@ -102,7 +102,7 @@ class PhaseLockedImageLane:
         clock: Callable[[], float] = time.monotonic, thread: bool = True,
         superseded: Callable[[], Exception] = lambda: RuntimeError("image set superseded by a newer one"),
         closed: Callable[[], Exception] = lambda: RuntimeError("image-lane: submit after close()"), nice: int = 0,
-        backlog: Callable[[], int] | None = None, yield_at: int = 0, on_idle: Callable[[], None] | None = None,
+        backlog: Callable[[], int] | None = None, yield_at: int = 0,
     ) -> None:  # fmt: skip
         """``detector``: a StreamingDetector (or one with its ``quadrant_cameras``, ``encode_images`` and
         ``update_images(images, timestamp, quadrants=, encoded=)``); ``clock``: the runner's seconds; ``thread``
@@ -110,8 +110,7 @@ class PhaseLockedImageLane:
         image set's future and of a submit after close (the runner's ImagesSuperseded and RunnerClosed); ``nice``:
         added to the worker thread's nice value (thread_priority.py); ``backlog``: the number of slices waiting in
         the slice lane's queue, and ``yield_at``: how many of them make this lane hold back (0: never; needs
-        ``backlog``); ``on_idle``: called on the worker's thread, off this lane's lock, when it has finished what was
-        due and waits (the slice lane's spare workers may then borrow its core, `idle_until`)."""
+        ``backlog``)."""
         if isinstance(yield_at, bool) or not isinstance(yield_at, (int, np.integer)) or yield_at < 0:
             raise ValueError(f"image-lane: yield_at must be an int >= 0 (slices waiting; 0: never yield), got {yield_at!r}")
         if yield_at and backlog is None:
@@ -144,9 +143,6 @@ class PhaseLockedImageLane:
         self._wanted_since: list[float | None] = [None] * NUM_QUADRANTS
         self._dirty = False
         self._closed = False
-        self._on_idle = on_idle
-        # on `clock`: when the worker is due to work next; -inf while it works or plans, inf while it waits for an event
-        self._idle_until = -math.inf
         self._thread = start_worker(self._serve, "image-lane-phase-locked", self._nice) if thread else None
 
     # ---- events ---------------------------------------------------------------------------------
@@ -354,34 +350,16 @@ class PhaseLockedImageLane:
         return update
 
     # ---- the worker -----------------------------------------------------------------------------
-    def idle_until(self) -> float:
-        """When (on ``clock``) the worker is due to work next: -inf while it works, inf while it waits for frames or
-        slices to arrive (an arrival may wake it sooner). Read without the lock: a hint for the slice lane's spare
-        workers, whose gate runs under the slice lane's lock."""
-        return self._idle_until
-
     def _serve(self) -> None:
         while True:
             with self._cond:
                 if self._closed:
                     return
                 self._dirty = False
-            self._idle_until = -math.inf
             try:
                 wake = self.step(self.clock())
             except BaseException:  # the futures of the image sets it used hold the error; the lane goes on
                 wake = None
-            with self._cond:
-                if self._closed:
-                    return
-                if self._dirty:
-                    continue
-                now = self.clock()
-                if wake is not None and wake <= now:
-                    continue
-                self._idle_until = math.inf if wake is None else wake
-            if self._on_idle is not None:
-                self._on_idle()
             with self._cond:
                 if self._closed:
                     return
