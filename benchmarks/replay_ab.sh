@@ -18,7 +18,8 @@
 # (optional, default: the runtime's LaneConfig, 8): --queue-size, slices waiting before the oldest is dropped. DELIVERY_MS (environment, default 0): the
 # cameras' delivery delay (--camera-delivery-ms); NUM_SLICES (environment, default 8): slices per rotation (--slices). Writes OUT/r<round>_scale<S>_<label>/ (replay.json, report.md),
 # OUT/r<round>_scale<S>_<label>.txt, OUT/variants.txt, OUT/probes_gflops.txt, OUT/staleness_cdf.png and OUT/table.md (benchmarks/replay_table.py: one row per
-# scale and variant, one value per round in each cell). Run it on a quiet machine.
+# scale and variant, one value per round in each cell; `python -m streamdet.benchmarks.replay_tail OUT` then says whether a
+# variant's slice p99 comes from queueing or from long runs). Run it on a quiet machine.
 set -euo pipefail
 # python -c / -m put the working directory first on sys.path, where the checkout's streamdet/ folder would shadow
 # a non-editable install of the package (Python >= 3.11 honours this; older ones ignore it)
