@@ -19,7 +19,8 @@
 # cameras' delivery delay (--camera-delivery-ms); NUM_SLICES (environment, default 8): slices per rotation (--slices). Writes OUT/r<round>_scale<S>_<label>/ (replay.json, report.md),
 # OUT/r<round>_scale<S>_<label>.txt, OUT/variants.txt, OUT/probes_gflops.txt, OUT/staleness_cdf.png and OUT/table.md (benchmarks/replay_table.py: one row per
 # scale and variant, one value per round in each cell; `python -m streamdet.benchmarks.replay_tail OUT` then says whether a
-# variant's slice p99 comes from queueing or from long runs). Run it on a quiet machine.
+# variant's slice p99 comes from queueing or from long runs, and `python -m streamdet.benchmarks.replay_table OUT --baseline full
+# [--target-ms 100]` counts the rounds meeting issue 22's line against the variant named full). Run it on a quiet machine.
 set -euo pipefail
 # python -c / -m put the working directory first on sys.path, where the checkout's streamdet/ folder would shadow
 # a non-editable install of the package (Python >= 3.11 honours this; older ones ignore it)

@@ -14,6 +14,13 @@ under the table gives the garbage collector's full collections during the drives
 where the stale slices are (staleness added > 25 ms, by the image sets released in the rotation before their scan
 start, rounds pooled: ``replay.record.staleness_by_recent_images``): stale slices gathered after bursts of frames
 mean an image lane short of time for a burst, not on average.
+
+    python -m streamdet.benchmarks.replay_table OUT_DIR --baseline LABEL [--target-ms MS]
+
+``--baseline``: instead of the table, issue 22's line for every other variant, scale by scale, counted over rounds:
+staleness added p95 within the target (default: the CPU's, as above; ``--target-ms`` sets it, e.g. 100 where a
+faster part emulates an AVX2-only one by a time scale), no slice dropped, and slice p99 at most the baseline
+variant's **in the same round** (a round the baseline lacks is not counted for that term).
 """
 
 from __future__ import annotations
@@ -211,6 +218,32 @@ def plot(out: Path, path: Path) -> None:
     plt.close(fig)
 
 
+def line_against(out: Path, baseline: str, target_ms: float | None = None) -> str:
+    """Issue 22's line per (scale, variant) against the variant ``baseline``, rounds counted (module docstring)."""
+    rows = collect(out)
+    if not any(label == baseline for _, label in rows):
+        labels = sorted({label for _, label in rows})
+        raise ValueError(f"{out}: no variant {baseline!r} to compare with (variants: {', '.join(labels) or 'none'})")
+    if target_ms is None:
+        targets = {STALENESS_TARGET_MS["avx512f" in cpu.get("flags", ())] for cpu in machines(out)}
+        if len(targets) != 1:
+            raise ValueError(f"{out}: the runs name {len(targets)} staleness targets by their CPUs: give --target-ms")
+        (target_ms,) = targets
+    lines = [f"issue 22's line against `{baseline}`: staleness added p95 <= {target_ms:g} ms, no slice dropped, slice "
+             f"p99 <= `{baseline}`'s in the same round (rounds meeting each term, then all three)"]  # fmt: skip
+    for (scale, label), runs in sorted(rows.items()):
+        if label == baseline:
+            continue
+        base = {rnd: s["latency_ms"]["p99"] for rnd, s, _ in rows.get((scale, baseline), [])}
+        fresh = [s["staleness_ms"]["p95"] <= target_ms for _, s, _ in runs]
+        kept = [s["slices_dropped"] == 0 for _, s, _ in runs]
+        tail = {rnd: s["latency_ms"]["p99"] <= base[rnd] for rnd, s, _ in runs if rnd in base}
+        whole = [f and k and tail.get(rnd, False) for (rnd, _, _), f, k in zip(runs, fresh, kept)]
+        lines.append(f"- scale {scale:g}, {label}: staleness {sum(fresh)} of {len(runs)}, none dropped {sum(kept)} of "
+                     f"{len(runs)}, p99 {sum(tail.values())} of {len(tail)} paired; the whole line {sum(whole)} of {len(runs)}")  # fmt: skip
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = list(sys.argv[1:] if argv is None else argv)
     plot_path = None
@@ -221,11 +254,25 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         plot_path = Path(args[i + 1])
         del args[i : i + 2]
-    if len(args) != 1:
-        print("usage: python -m streamdet.benchmarks.replay_table OUT_DIR [--plot FILE.png]", file=sys.stderr)
+    options = {}
+    for flag, convert in (("--baseline", str), ("--target-ms", float)):
+        if flag in args:
+            i = args.index(flag)
+            try:
+                options[flag] = convert(args[i + 1])
+            except (IndexError, ValueError):
+                print(f"replay_table: {flag} needs a value", file=sys.stderr)
+                return 2
+            del args[i : i + 2]
+    if len(args) != 1 or ("--target-ms" in options and "--baseline" not in options):
+        print("usage: python -m streamdet.benchmarks.replay_table OUT_DIR [--plot FILE.png] [--baseline LABEL [--target-ms MS]]",
+              file=sys.stderr)  # fmt: skip
         return 2
     try:
-        print(table(Path(args[0])))
+        if "--baseline" in options:
+            print(line_against(Path(args[0]), options["--baseline"], options.get("--target-ms")))
+        else:
+            print(table(Path(args[0])))
         if plot_path is not None:
             plot(Path(args[0]), plot_path)
     except (ValueError, OSError, KeyError, json.JSONDecodeError) as e:

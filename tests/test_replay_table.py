@@ -131,3 +131,43 @@ def test_malformed_recordings_are_one_line_and_a_non_zero_exit(tmp_path, capsys)
     (tmp_path / "r1_scale1_lite" / "replay.json").write_text(json.dumps({"modes": {"streaming": summary}, "config": {"lidar_hz": 20.0}}))
     assert main([str(tmp_path)]) == 1
     assert "r1_scale1_lite: recordings not as streamdet-replay writes them" in capsys.readouterr().err
+
+
+def _line_run(out, name, p95, dropped, p99, cpu=AVX2):
+    summary = _summary(p95, dropped) | {"latency_ms": {"p99": p99}}
+    _run(out, name, summary, cpu)
+
+
+def test_the_line_against_a_baseline_counts_rounds_paired_with_it(tmp_path):
+    from streamdet.benchmarks.replay_table import line_against
+
+    _line_run(tmp_path, "r1_scale0.5_full", 150, 0, 40.0)
+    _line_run(tmp_path, "r2_scale0.5_full", 150, 3, 20.0)
+    _line_run(tmp_path, "r1_scale0.5_pl", 58, 0, 30.0)  # meets all three
+    _line_run(tmp_path, "r2_scale0.5_pl", 58, 0, 25.0)  # p99 above the baseline's of its round
+    _line_run(tmp_path, "r3_scale0.5_pl", 58, 0, 1.0)  # no baseline round: its p99 is not counted
+    _line_run(tmp_path, "r1_scale1_pl", 120, 2, 5.0)  # no baseline at this scale
+    text = line_against(tmp_path, "full")
+    assert "staleness added p95 <= 100 ms" in text  # the AVX2-only CPU's target
+    assert "- scale 0.5, pl: staleness 3 of 3, none dropped 3 of 3, p99 1 of 2 paired; the whole line 1 of 3" in text
+    assert "- scale 1, pl: staleness 0 of 1, none dropped 0 of 1, p99 0 of 0 paired; the whole line 0 of 1" in text
+    assert "full:" not in text
+    assert "<= 25 ms" in line_against(tmp_path, "full", target_ms=25.0)
+
+
+def test_the_line_refuses_an_unknown_baseline_and_mixed_cpus_without_a_target(tmp_path, capsys):
+    from streamdet.benchmarks.replay_table import line_against
+
+    _line_run(tmp_path, "r1_scale1_full", 20, 0, 10.0, AVX512)
+    _line_run(tmp_path, "r1_scale1_pl", 20, 0, 9.0, AVX2)
+    with pytest.raises(ValueError, match="no variant 'nope'"):
+        line_against(tmp_path, "nope")
+    with pytest.raises(ValueError, match="give --target-ms"):
+        line_against(tmp_path, "full")
+    assert "p99 1 of 1 paired" in line_against(tmp_path, "full", target_ms=25.0)
+    assert main([str(tmp_path), "--baseline", "full", "--target-ms", "25"]) == 0
+    assert "the whole line 1 of 1" in capsys.readouterr().out
+    assert main([str(tmp_path), "--target-ms", "25"]) == 2  # a target without a baseline
+    assert main([str(tmp_path), "--baseline"]) == 2
+    assert main([str(tmp_path), "--baseline", "full", "--target-ms", "x"]) == 2
+    assert main([str(tmp_path), "--baseline", "nope"]) == 1
