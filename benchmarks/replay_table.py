@@ -41,7 +41,7 @@ HEADER = ("| scale | variant | staleness added p50 / p95 ms | image age p95 ms |
 STALENESS_TARGET_MS = {True: 25.0, False: 100.0}  # issue 22's p95 target, by whether the CPU has AVX-512
 
 
-def _runs(out: Path, with_config: bool = False):
+def streaming_runs(out: Path, with_config: bool = False):
     """(round, scale, label, run name, the streaming mode of its replay.json[, its config]) of every
     r<round>_scale<S>_<label> run."""
     for f in sorted(out.glob("r*_scale*_*/replay.json")):
@@ -51,7 +51,7 @@ def _runs(out: Path, with_config: bool = False):
         replay = json.loads(f.read_text())
         modes = replay["modes"]
         if "streaming" not in modes:
-            raise ValueError(f"{f}: no streaming mode in this replay")
+            raise ValueError(f"{f}: no streaming mode in this replay, so no streaming recordings (streamdet-replay --mode streaming --out)")
         run = (int(m.group(1)), float(m.group(2)), m.group(3), f.parent.name, modes["streaming"])
         yield run + (replay.get("config", {}),) if with_config else run
 
@@ -60,7 +60,7 @@ def machines(out: Path) -> list[dict]:
     """The distinct CPUs (the replay's ``config.cpu``) the runs of ``out`` ran on, in the order first met; runs
     written before replays recorded it are left out."""
     seen: list[dict] = []
-    for *_, config in _runs(out, with_config=True):
+    for *_, config in streaming_runs(out, with_config=True):
         cpu = config.get("cpu")
         if cpu and cpu not in seen:
             seen.append(cpu)
@@ -77,7 +77,7 @@ def collect(out: Path) -> dict[tuple[float, str], list[tuple[int, dict, float]]]
             if len(parts) == 2:
                 probes[parts[0]] = float(parts[1])
     rows: dict[tuple[float, str], list[tuple[int, dict, float]]] = {}
-    for rnd, scale, label, name, streaming in _runs(out):
+    for rnd, scale, label, name, streaming in streaming_runs(out):
         rows.setdefault((scale, label), []).append((rnd, streaming, probes.get(name, float("nan"))))
     for runs in rows.values():
         runs.sort(key=lambda r: r[0])
@@ -124,7 +124,7 @@ def _stale_by_burst(out: Path) -> list[str]:
     """Lines of stale slices by the image sets released in the rotation before their scan start, one per (scale,
     variant), rounds pooled; none where the replays hold no fused slice."""
     pooled: dict[tuple[float, str, float], list[Recording]] = {}  # (scale, label, LiDAR period s) -> every round's
-    for _, scale, label, name, streaming, config in _runs(out, with_config=True):
+    for _, scale, label, name, streaming, config in streaming_runs(out, with_config=True):
         if not config.get("lidar_hz") or not streaming.get("recordings"):
             continue
         try:
@@ -176,7 +176,7 @@ def staleness(out: Path) -> dict[tuple[float, str], np.ndarray]:
     """(scale, label) -> staleness added (ms) of every emitted slice fused with drive images, all rounds pooled
     (``replay.record.SliceRecord.staleness_ms`` from the slices of replay.json)."""
     pooled: dict[tuple[float, str], list[float]] = {}
-    for _, scale, label, _, streaming in _runs(out):
+    for _, scale, label, _, streaming in streaming_runs(out):
         values = pooled.setdefault((scale, label), [])
         for rec in streaming.get("recordings", []):
             for sl in rec["slices"]:

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from streamdet.benchmarks.replay_table import RUN
+from streamdet.benchmarks.replay_table import streaming_runs
 
 HEADER = ("| scale | variant | round | drive | slice p99 ms | run p50 / p99 ms | tail slices | tail wait / run ms "
           "| tail in pairs |")  # fmt: skip
@@ -49,17 +49,13 @@ def drive_tail(recording: dict, near: float = 0.8) -> dict | None:
 
 def table(out: Path, near: float = 0.8) -> str:
     rows = []
-    for path in sorted(Path(out).glob("r*_scale*_*/replay.json")):
-        m = RUN.fullmatch(path.parent.name)
-        if m is None:
-            continue
-        mode = json.loads(path.read_text()).get("modes", {}).get("streaming")
-        if mode is None or "recordings" not in mode:
-            raise ValueError(f"{path} holds no streaming recordings (streamdet-replay --mode streaming --out)")
+    for rnd, scale, label, name, mode in streaming_runs(Path(out)):
+        if "recordings" not in mode:
+            raise ValueError(f"{name}: its replay.json holds no streaming recordings (streamdet-replay --mode streaming --out)")
         for rec in mode["recordings"]:
             t = drive_tail(rec, near)
             if t is not None:
-                rows.append(((float(m[2]), m[3], int(m[1]), t["drive"]), t))
+                rows.append(((scale, label, rnd, t["drive"]), t))
     if not rows:
         raise ValueError(f"{out} holds no r<round>_scale<S>_<label>/replay.json with emitted slices")
     lines = [f"tail: emitted slices with latency >= {near:g} x the drive's p99 (drive ms)", "", HEADER,
