@@ -76,6 +76,10 @@ def _progress(message: str) -> None:
 @click.option("--coalesce-slices", type=click.IntRange(1, 64), default=None,
               help="The most waiting slices of one quadrant a slice worker detects in one run when the lane is behind "
                    "(1: never, a full queue drops the oldest); LaneConfig.coalesce_slices. Default: the runtime's LaneConfig.")
+@click.option("--pair-hold-load", type=click.FloatRange(0, 16), default=None,
+              help="Hold a quadrant's first slice for the next one and detect both in one run while the slice lane's "
+                   "measured load running every slice alone is above this (needs --coalesce-slices >= 2); "
+                   "LaneConfig.pair_hold_load. Default: the runtime's LaneConfig.")
 @click.option("--freeze-heap/--no-freeze-heap", default=True, show_default=True,
               help="Freeze the Python heap alive when each drive starts out of the garbage collector's full collections "
                    "(gc.freeze, runtime_ort/heap.py), as a vehicle process would after its start-up; such a collection "
@@ -93,7 +97,7 @@ def main(
     image_precision: str | None, lidar_hz: float, num_slices: int | None, camera_hz: float, camera_trigger: str,
     camera_delivery_ms: float, mode: str, time_scale: float,
     max_seconds: float | None, threads: int, image_lane_threads: int | None, slice_workers: int | None, queue_size: int | None, schedule: str,
-    image_lane_nice: int, image_lane_yield: int, coalesce_slices: int | None, freeze_heap: bool, camera_terms: bool | None, fallback_export_dir: Path | None, fallback_after_ms: float | None, json_path: Path | None,
+    image_lane_nice: int, image_lane_yield: int, coalesce_slices: int | None, pair_hold_load: float | None, freeze_heap: bool, camera_terms: bool | None, fallback_export_dir: Path | None, fallback_after_ms: float | None, json_path: Path | None,
     plot_path: Path | None, out_dir: Path | None,
 ) -> None:
     """Play scenes at sensor rates (LiDAR slices released when scanned, cameras at their rate) through the runtime's
@@ -116,7 +120,8 @@ def main(
     try:
         lanes = LaneConfig(max_in_flight=slice_workers or defaults.max_in_flight, queue_size=queue_size or defaults.queue_size,
                            schedule=schedule, image_lane_nice=image_lane_nice, image_lane_yield_slices=image_lane_yield,
-                           coalesce_slices=coalesce_slices or defaults.coalesce_slices)  # fmt: skip
+                           coalesce_slices=coalesce_slices or defaults.coalesce_slices,
+                           pair_hold_load=defaults.pair_hold_load if pair_hold_load is None else pair_hold_load)  # fmt: skip
         config = ReplayConfig(
             data=data, export_dir=export_dir, version=table_version, split=None if split == "all" else split, scenes=scenes,
             precision=precision, image_precision=image_precision, lidar_hz=lidar_hz, num_slices=num_slices,

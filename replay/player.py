@@ -187,7 +187,8 @@ def play(
     wall_s = (max(times) - min(times)) * config.time_scale if records else 0.0
     return Recording(config.mode, drive.name, config.time_scale, slices, images, wall_s, cpu["player"],
                      time.process_time() - process0, image_lane_cpu_s, len(drive.sweeps),
-                     None if phase_lock is None else dataclasses.asdict(phase_lock), gc_pauses.to_dict())  # fmt: skip
+                     None if phase_lock is None else dataclasses.asdict(phase_lock), gc_pauses.to_dict(),
+                     getattr(mode.runner, "slices_held", 0))  # fmt: skip
 
 
 def _newest_images_by_scan_start(

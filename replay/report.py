@@ -106,7 +106,8 @@ def _coalesced(r: ModeResult) -> int:
 def _coalesced_note(r: ModeResult) -> str:
     """The slices-dropped cell's note on coalesced slices (none: nothing)."""
     n = _coalesced(r)
-    return f" ({n} coalesced)" if n else ""
+    held = sum(x.slices_held for x in r.recordings)
+    return (f" ({n} coalesced" + (f", {held} runs held for the pair" if held else "") + ")") if n else ""
 
 
 def _fallbacks(r: ModeResult) -> int:
@@ -150,7 +151,8 @@ def format_report(result: ReplayResult, info: dict) -> str:
         + f", {c.lanes.max_in_flight} slice worker(s), queue {c.lanes.queue_size}"
         + (f", image lane at nice +{c.lanes.image_lane_nice}" if c.lanes.image_lane_nice else "")
         + (f", image lane yields at {c.lanes.image_lane_yield_slices} waiting slice(s)" if c.lanes.image_lane_yield_slices else "")
-        + (f", up to {c.lanes.coalesce_slices} waiting slices coalesced per run" if c.lanes.coalesce_slices > 1 else ""),
+        + (f", up to {c.lanes.coalesce_slices} waiting slices coalesced per run" if c.lanes.coalesce_slices > 1 else "")
+        + (f", a quadrant's first slice held for the next above load {c.lanes.pair_hold_load:g}" if c.lanes.pair_hold_load is not None else ""),
         f"ground truth at emission time: {result.truth_source}",
         *[f"  {note}" for note in result.notes],
         "",

@@ -85,7 +85,7 @@ class ReplayConfig:
                  slice_workers=self.lanes.max_in_flight, slice_queue=self.lanes.queue_size,
                  schedule=self.lanes.schedule, image_lane_nice=self.lanes.image_lane_nice,
                  image_lane_yield_slices=self.lanes.image_lane_yield_slices,
-                 coalesce_slices=self.lanes.coalesce_slices)  # fmt: skip
+                 coalesce_slices=self.lanes.coalesce_slices, pair_hold_load=self.lanes.pair_hold_load)  # fmt: skip
         return d
 
 

@@ -46,6 +46,7 @@ from streamdet.runtime_ort.coalesce import can_coalesce
 from streamdet.runtime_ort.detector import StreamingDetector
 from streamdet.runtime_ort.detector_results import ImageUpdate, SliceResult
 from streamdet.runtime_ort.image_cache import check_camera_timestamps
+from streamdet.runtime_ort.pair_hold import PairHold
 from streamdet.runtime_ort.phase_locked_lane import PhaseLockedImageLane, PhaseLockStats
 from streamdet.runtime_ort.thread_priority import check_nice
 from streamdet.runtime_ort.worker_lane import JobBatching, RunnerClosed, WorkerLane
@@ -92,6 +93,12 @@ class LaneConfig:
     # other worker is free to take it, so a lane that keeps up never coalesces. 2: pairs (a quadrant holds two of 8
     # slices); 1: never, every slice its own run and a backlog only drains by dropping (docs/replay.md, "Coalesced slices").
     coalesce_slices: int = 2
+    # hold a quadrant's first slice for the next one and detect both in one run when the slice lane is loaded: when its
+    # measured load running every slice alone (single-slice run time over the slice period per worker) is above this.
+    # The pair's first slice waits about a slice period; the lane does about 0.6 of the work per slice and stops
+    # queueing (runtime_ort/pair_hold.py; docs/replay.md, "Slices held for their pair"). Needs coalesce_slices >= 2.
+    # None: never hold (a slice waits only for a busy worker).
+    pair_hold_load: float | None = None
 
     def __post_init__(self) -> None:
         for name in ("max_in_flight", "queue_size"):
@@ -110,6 +117,13 @@ class LaneConfig:
         v = self.coalesce_slices
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 1 <= v <= 64:
             raise ValueError(f"LaneConfig.coalesce_slices must be an int in 1..64 (1: never), got {v!r}")
+        v = self.pair_hold_load
+        if v is not None:
+            if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v) or not 0 <= v <= 16:
+                raise ValueError(f"LaneConfig.pair_hold_load must be None or a load in [0, 16], got {v!r}")
+            if self.coalesce_slices < 2:
+                raise ValueError(f"LaneConfig.pair_hold_load={v} needs coalesce_slices >= 2 (a held slice runs with its "
+                                 f"partner), got coalesce_slices={self.coalesce_slices}")  # fmt: skip
         v = self.image_lane_yield_slices
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 0 <= v <= 1024:
             raise ValueError(f"LaneConfig.image_lane_yield_slices must be an int in 0..1024 (0: never yield), got {v!r}")
@@ -129,10 +143,14 @@ class StreamingRunner:
         self.detector = detector
         self.config = config
         batch = None  # a detector without detect_slices (a stand-in) runs every slice alone
+        self._pair_hold: PairHold | None = None
         if config.coalesce_slices > 1 and callable(getattr(detector, "detect_slices", None)):
             # read once, here: a join runs in a worker under the lane's lock and must not fail
             self._sector_layout = (int(detector.num_slices), float(detector.config.start_deg))
-            batch = JobBatching(joins=self._slices_join, run=self._detect_together, most=config.coalesce_slices)
+            if config.pair_hold_load is not None:
+                self._pair_hold = PairHold(config.pair_hold_load, config.max_in_flight, *self._sector_layout)
+            hold = None if self._pair_hold is None else self._hold_s
+            batch = JobBatching(joins=self._slices_join, run=self._detect_together, most=config.coalesce_slices, hold=hold)
         self._slices = WorkerLane("slice-lane", config.max_in_flight, config.queue_size,
                                   lambda: SliceDropped("slice dropped: queue full"), batch=batch)  # fmt: skip
         superseded = lambda: ImagesSuperseded("image set superseded by a newer one")  # noqa: E731
@@ -170,13 +188,31 @@ class StreamingRunner:
 
     def submit_slice(self, points: np.ndarray, slice_index: int, timestamp: float | None = None) -> "Future[SliceResult]":
         """Queue one slice; its future holds the SliceResult, or the error (bad points, SliceDropped)."""
-        stamp = time.monotonic() if timestamp is None else timestamp
+        arrival = time.monotonic()
+        stamp = arrival if timestamp is None else timestamp
         own = np.array(points, copy=True) if isinstance(points, np.ndarray) else points  # the driver may reuse its buffer
-        future = self._slices.submit(lambda: self.detector.detect_slice(own, slice_index, stamp), payload=(own, slice_index, stamp))
         valid = isinstance(slice_index, (int, np.integer)) and not isinstance(slice_index, bool)
-        if self._phase_locked is not None and valid and 0 <= slice_index < self.detector.num_slices:
-            self._phase_locked.observe_slice(int(slice_index), time.monotonic())  # its arrival on the runner's clock
+        valid = valid and 0 <= slice_index < self.detector.num_slices
+        if self._pair_hold is not None and valid:
+            self._pair_hold.observe_arrival(arrival)  # before the submit: a worker may decide on its hold at once
+        future = self._slices.submit(lambda: self._detect_one(own, slice_index, stamp), payload=(own, slice_index, stamp, arrival))
+        if self._phase_locked is not None and valid:
+            self._phase_locked.observe_slice(int(slice_index), arrival)  # its arrival on the runner's clock
         return future
+
+    def _detect_one(self, points: np.ndarray, slice_index: int, stamp: float) -> SliceResult:
+        if self._pair_hold is None:
+            return self.detector.detect_slice(points, slice_index, stamp)
+        t0 = time.perf_counter()
+        result = self.detector.detect_slice(points, slice_index, stamp)
+        self._pair_hold.record_run(1, time.perf_counter() - t0)
+        return result
+
+    def _hold_s(self, payload: tuple) -> float:
+        """Seconds the worker that took this slice waits for the next one of its quadrant (PairHold)."""
+        if not _well_formed(payload):
+            return 0.0
+        return self._pair_hold.hold_s(int(payload[1]), payload[3], time.monotonic())
 
     def _slices_join(self, run_last: tuple, waiting: tuple) -> bool:
         """May the waiting slice join a run that ends with ``run_last``? Both well-formed (a bad slice runs alone, so
@@ -187,8 +223,12 @@ class StreamingRunner:
         return run_last[1] < n and can_coalesce(int(run_last[1]), int(waiting[1]), n, start_deg)
 
     def _detect_together(self, payloads: list) -> tuple[SliceResult, ...]:
-        points, indices, stamps = zip(*payloads)
-        return self.detector.detect_slices(points, indices, stamps)
+        points, indices, stamps, _ = zip(*payloads)
+        t0 = time.perf_counter()
+        results = self.detector.detect_slices(points, indices, stamps)
+        if self._pair_hold is not None:
+            self._pair_hold.record_run(len(payloads), time.perf_counter() - t0)
+        return results
 
     @property
     def slices_dropped(self) -> int:
@@ -198,6 +238,17 @@ class StreamingRunner:
     def slices_coalesced(self) -> int:
         """Slices detected inside another slice's run (LaneConfig.coalesce_slices): graph runs saved."""
         return self._slices.joined
+
+    @property
+    def slices_held(self) -> int:
+        """Slice runs whose first slice waited for the next one of its quadrant (LaneConfig.pair_hold_load)."""
+        return self._slices.held
+
+    @property
+    def pair_hold_load(self) -> float | None:
+        """The slice lane's measured load running every slice alone (LaneConfig.pair_hold_load); None without the
+        hold, or before the slice period and a run's cost are measured."""
+        return None if self._pair_hold is None else self._pair_hold.load
 
     @property
     def images_superseded(self) -> int:
@@ -240,8 +291,8 @@ class StreamingRunner:
 
 
 def _well_formed(payload: tuple) -> bool:
-    """A slice job's (points, slice_index, timestamp) that `detect_slices` takes as it is."""
-    points, k, stamp = payload
+    """A slice job's (points, slice_index, timestamp, arrival) that `detect_slices` takes as it is."""
+    points, k, stamp = payload[:3]
     return (
         isinstance(points, np.ndarray) and points.dtype == np.float32 and points.ndim == 2
         and points.shape[1] == SLICE_COLUMNS

@@ -25,6 +25,10 @@ class JobBatching:
     joins: Callable[[object, object], bool]  # (payload of the run's last job, payload of the next waiting job)
     run: Callable[[list], Sequence[object]]  # payloads -> one result per payload, in order
     most: int  # jobs per run at most
+    # seconds a worker that has taken a job (payload) waits for a job to join it before it runs alone; 0: it runs at once.
+    # A job that would join a waiting worker's run is left to it by the other workers. None: never waits
+    # (LaneConfig.pair_hold_load, runtime_ort/pair_hold.py).
+    hold: Callable[[object], float] | None = None
 
 
 class WorkerLane:
@@ -39,7 +43,8 @@ class WorkerLane:
     ``batch`` (optional) lets a worker take waiting jobs together: a job submitted with a ``payload`` joins the job
     a worker has just taken when no other worker is free, the two payloads ``batch.joins(previous, next)`` and the
     run holds fewer than ``batch.most`` jobs; ``batch.run(payloads)`` then does them in one call and returns one
-    result per payload (counted in `joined`: the jobs that ran inside another's run).
+    result per payload (counted in `joined`: the jobs that ran inside another's run). With ``batch.hold``, a worker
+    whose job has no joining job waiting may wait that long for one to arrive (counted in `held`) before it runs.
     """
 
     def __init__(self, name: str, workers: int, capacity: int | None, overflow: Callable[[], Exception] | None = None,
@@ -51,6 +56,8 @@ class WorkerLane:
         self._jobs: collections.deque = collections.deque()  # (fn, future, kind, payload)
         self._batch = batch
         self.joined = 0
+        self.held = 0  # runs whose first job waited for a job to join it (batch.hold)
+        self._holding: list = []  # the last job of each run a worker is waiting to join (under _cond)
         self._cond = threading.Condition()
         self._capacity = capacity
         self._overflow = overflow
@@ -89,7 +96,10 @@ class WorkerLane:
                 del self._jobs[idle]
                 self.dropped += self._fail(old[1], self._overflow)
             self._jobs.append((fn, fut, kind, payload))
-            self._cond.notify()
+            if self._holding:  # the worker waiting for this job must wake, not only an idle one
+                self._cond.notify_all()
+            else:
+                self._cond.notify()
         return fut
 
     @property
@@ -111,7 +121,7 @@ class WorkerLane:
     def _serve(self) -> None:
         while True:
             with self._cond:
-                while not self._jobs and not self._closed:
+                while (not self._jobs or self._reserved(self._jobs[0])) and not self._closed:
                     self._cond.wait()
                 if not self._jobs:
                     return
@@ -119,6 +129,8 @@ class WorkerLane:
                 self._busy += 1
                 try:
                     self._join_waiting(jobs)
+                    if len(jobs) == 1:
+                        self._hold_for_join(jobs)
                     join_error = None
                 except Exception as e:  # a failing join rule must not end the worker: its jobs get the error
                     join_error = e
@@ -155,6 +167,48 @@ class WorkerLane:
             if nxt[3] is None or not b.joins(jobs[-1][3], nxt[3]):
                 return
             jobs.append(self._jobs.popleft())
+
+    def _reserved(self, job: tuple) -> bool:
+        """(Under the lock.) Would ``job`` join the run of a worker that is waiting for one? Then it is that worker's."""
+        if not self._holding or job[3] is None:
+            return False
+        try:
+            return any(self._batch.joins(held[3], job[3]) for held in self._holding)
+        except Exception:  # a failing join rule: the job is nobody's reserve (the holder's own call fails its run)
+            return False
+
+    def _hold_for_join(self, jobs: list) -> None:
+        """(Under the lock.) Wait, as ``batch.hold`` says, for a job to join ``jobs[-1]``; add it and whatever may join
+        after it, up to ``batch.most``. The wait ends at once on close."""
+        b = self._batch
+        while b is not None and b.hold is not None and len(jobs) < b.most and jobs[-1][3] is not None and not self._closed:
+            wait_s = b.hold(jobs[-1][3])
+            if not wait_s > 0:  # no hold: joining stays as `_join_waiting` does it
+                return
+            deadline = time.monotonic() + wait_s
+            if not self._next_waiting():
+                self.held += 1
+                self._holding.append(jobs[-1])
+                try:
+                    while not self._next_waiting() and not self._closed:
+                        left = deadline - time.monotonic()
+                        if left <= 0:
+                            break
+                        self._cond.wait(left)
+                finally:
+                    self._holding = [job for job in self._holding if job is not jobs[-1]]
+                    if self._jobs:  # an idle worker that left the reserved job alone may take the ones behind it
+                        self._cond.notify()
+            nxt = self._next_waiting()
+            if nxt is None or nxt[3] is None or not b.joins(jobs[-1][3], nxt[3]):
+                return
+            jobs.append(self._jobs.popleft())
+
+    def _next_waiting(self) -> tuple | None:
+        """(Under the lock.) The first waiting job its owner has not cancelled (cancelled ones are dropped)."""
+        while self._jobs and self._jobs[0][1].cancelled():
+            self._jobs.popleft()
+        return self._jobs[0] if self._jobs else None
 
     def _run_joined(self, jobs: list) -> None:
         """Run jobs that `_join_waiting` put together in one ``batch.run`` call; its error goes to every job."""

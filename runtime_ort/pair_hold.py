@@ -1,0 +1,125 @@
+"""Holding a quadrant's first slice for the next one (`LaneConfig.pair_hold_load`): a loaded slice lane runs pairs.
+
+A quadrant holds two of the eight slices of a rotation, and the slice graph reads the whole quadrant crop whatever
+the sector: two slices of one quadrant detected together (runtime_ort/coalesce.py) cost little more than one, a
+single graph run and one pillarisation of both slices' points (docs/replay.md, "Slices held for their pair"). Plain
+coalescing only pairs slices that already wait, i.e. once the lane has fallen behind; by then the slices in the
+backlog have waited, and the backlog is what sets a loaded lane's latency tail.
+
+`PairHold` decides, for the slice a worker has just taken, whether to wait for the next slice of its quadrant
+instead: only where the lane is **loaded** (running every slice alone it would be busy more than ``load_above`` of
+its workers' time), only where that slice has a partner (the next slice of the same rotation and quadrant), and
+for at most 1.5 slice periods after the first slice arrived (a partner that does not come, e.g. a lost packet,
+costs the first slice that long, never more than `MAX_HOLD_S`). The first slice of a pair then waits about one
+slice period longer; every slice runs in a lane that does about 0.6 of the work per slice, so the lane stops
+queueing.
+
+The load is measured, not configured: the slice period from the arrivals (median of the recent intervals), a run's
+cost from its wall time. A pair's cost is turned into the single-slice cost it stands for with the ratio of the two
+measured last (a single run updates the ratio), so the load of running alone stays known while every slice runs
+in pairs, and the decision does not flip with the mode it caused.
+"""
+
+from __future__ import annotations
+
+import collections
+import math
+import threading
+
+import numpy as np
+
+from streamdet.runtime_ort.coalesce import can_coalesce
+
+MAX_HOLD_S = 0.1  # the longest a slice ever waits for its partner, whatever the measured period
+HOLD_PERIODS = 1.5  # a partner later than this many slice periods after the first slice's arrival is not waited for
+ARRIVALS_KEPT = 33  # arrival times kept: the period is the median of the last 32 intervals
+MIN_INTERVALS = 4  # intervals measured before any hold (the period must be known)
+COST_SMOOTHING = 0.1  # weight of the newest run in the running means of the run costs
+RATIO_RUNS = 8  # a run's cost ratio to a single run is re-measured only while both ran within this many runs
+
+
+class PairHold:
+    """The slice lane's hold policy; thread-safe (arrivals come from the caller's thread, runs from the workers)."""
+
+    def __init__(self, load_above: float, workers: int, num_slices: int, start_deg: float = 0.0) -> None:
+        if isinstance(load_above, bool) or not isinstance(load_above, (int, float)) or not 0.0 <= load_above <= 16.0:
+            raise ValueError(f"PairHold.load_above must be a load in [0, 16], got {load_above!r}")
+        if isinstance(workers, bool) or not isinstance(workers, (int, np.integer)) or workers < 1:
+            raise ValueError(f"PairHold.workers must be an int >= 1, got {workers!r}")
+        self.load_above = float(load_above)
+        self._workers = int(workers)
+        self._n = int(num_slices)
+        self._start_deg = float(start_deg)
+        self._lock = threading.Lock()
+        self._arrivals: collections.deque[float] = collections.deque(maxlen=ARRIVALS_KEPT)
+        self._mean_run_s: dict[int, float] = {}  # slices per run -> running mean wall time of such runs
+        self._ratio: dict[int, float] = {}  # slices per run -> its wall time over a single run's (measured last)
+        self._last_run: dict[int, int] = {}  # slices per run -> the count of runs when one of them last ran
+        self._runs = 0
+        self._single_s: float | None = None  # running mean of the single-slice cost (a run of n slices converted)
+        self.holds = 0  # slices that waited for their partner (whether it came or not)
+
+    def observe_arrival(self, t: float) -> None:
+        """A slice arrived at ``t`` (time.monotonic(), the runner's clock)."""
+        with self._lock:
+            if not self._arrivals or t > self._arrivals[-1]:
+                self._arrivals.append(t)
+
+    def record_run(self, num_slices: int, wall_s: float) -> None:
+        """A slice-graph run of ``num_slices`` slices took ``wall_s`` seconds (release of the worker to its end)."""
+        if num_slices < 1 or not math.isfinite(wall_s) or wall_s < 0:
+            return
+        with self._lock:
+            self._runs += 1
+            mean = self._mean_run_s.get(num_slices)
+            mean = wall_s if mean is None else mean + COST_SMOOTHING * (wall_s - mean)
+            self._mean_run_s[num_slices] = mean
+            self._last_run[num_slices] = self._runs
+            single = self._mean_run_s.get(1)
+            if single is not None and single > 0:
+                # a ratio from two means measured close together: a mean not updated for long is another machine state
+                for n, m in self._mean_run_s.items():
+                    if self._runs - min(self._last_run[n], self._last_run[1]) <= RATIO_RUNS:
+                        self._ratio[n] = m / single
+            ratio = self._ratio.get(num_slices)
+            if ratio is None or ratio <= 0:  # no single run measured yet: count the run as one slice's cost
+                ratio = 1.0
+            cost = wall_s / ratio
+            self._single_s = cost if self._single_s is None else self._single_s + COST_SMOOTHING * (cost - self._single_s)
+
+    @property
+    def period_s(self) -> float | None:
+        """The slice period: median interval of the recent arrivals; None until MIN_INTERVALS were seen."""
+        with self._lock:
+            return self._period_s()
+
+    def _period_s(self) -> float | None:
+        if len(self._arrivals) <= MIN_INTERVALS:
+            return None
+        return float(np.median(np.diff(np.asarray(self._arrivals))))
+
+    @property
+    def load(self) -> float | None:
+        """The lane's load running every slice alone: the single-slice cost over the slice period per worker."""
+        with self._lock:
+            return self._load()
+
+    def _load(self) -> float | None:
+        period = self._period_s()
+        if period is None or period <= 0 or self._single_s is None:
+            return None
+        return self._single_s / (period * self._workers)
+
+    def hold_s(self, slice_index: int, arrival: float, now: float) -> float:
+        """How long the worker that took slice ``slice_index`` (arrived at ``arrival``) waits for the next slice of its
+        quadrant, from ``now``: 0 (run at once) where it has none, the load is unknown or not above ``load_above``."""
+        if not can_coalesce(slice_index, slice_index + 1, self._n, self._start_deg):
+            return 0.0
+        with self._lock:
+            load = self._load()
+            if load is None or load <= self.load_above:
+                return 0.0
+            wait = min(arrival + HOLD_PERIODS * self._period_s(), arrival + MAX_HOLD_S) - now
+            if wait > 0:
+                self.holds += 1
+            return max(0.0, wait)
