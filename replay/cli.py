@@ -77,9 +77,9 @@ def _progress(message: str) -> None:
               help="The most waiting slices of one quadrant a slice worker detects in one run when the lane is behind "
                    "(1: never, a full queue drops the oldest); LaneConfig.coalesce_slices. Default: the runtime's LaneConfig.")
 @click.option("--pair-hold-load", type=click.FloatRange(0, 16), default=None,
-              help="Hold a quadrant's first slice for the next one and detect both in one run while the slice lane's "
-                   "measured load running every slice alone is above this (needs --coalesce-slices >= 2); "
-                   "LaneConfig.pair_hold_load. Default: the runtime's LaneConfig.")
+              help="Hold a quadrant's first slice for the next one and detect both in one run from when the slice lane's "
+                   "measured load (a slice's run time over the slice period per worker) is above this until it is under "
+                   "half of it (needs --coalesce-slices >= 2); LaneConfig.pair_hold_load. Default: the runtime's LaneConfig.")
 @click.option("--freeze-heap/--no-freeze-heap", default=True, show_default=True,
               help="Freeze the Python heap alive when each drive starts out of the garbage collector's full collections "
                    "(gc.freeze, runtime_ort/heap.py), as a vehicle process would after its start-up; such a collection "

@@ -7,7 +7,9 @@ Back-pressure policy (what happens when work arrives faster than it is done):
   than a fresh one to a vehicle, and the caller (the LiDAR driver) must never block. With
   `LaneConfig.coalesce_slices` > 1 (the default: 2) a worker that starts a slice while the next slice of the same rotation and
   quadrant waits (and no other worker is free) detects them in one run (runtime_ort/coalesce.py): a lane that has
-  fallen behind catches up at the cost of one graph run for the quadrant instead of dropping slices.
+  fallen behind catches up at the cost of one graph run for the quadrant instead of dropping slices. With
+  `LaneConfig.pair_hold_load` a loaded lane does not wait to fall behind: a worker holds a quadrant's first slice
+  until the next one arrives (at most 1.5 slice periods) and detects both together (runtime_ort/pair_hold.py).
 - **Image lane**: one update runs at a time and at most one waits. A newer image set **replaces** the waiting
   one (its future fails with `ImagesSuperseded`): only the newest images matter, and the slice lane always reads
   the newest finished image BEV. That is the ``full`` schedule; under ``LaneConfig.schedule = "phase-locked"`` the
@@ -93,11 +95,11 @@ class LaneConfig:
     # other worker is free to take it, so a lane that keeps up never coalesces. 2: pairs (a quadrant holds two of 8
     # slices); 1: never, every slice its own run and a backlog only drains by dropping (docs/replay.md, "Coalesced slices").
     coalesce_slices: int = 2
-    # hold a quadrant's first slice for the next one and detect both in one run when the slice lane is loaded: when its
-    # measured load running every slice alone (single-slice run time over the slice period per worker) is above this.
-    # The pair's first slice waits about a slice period; the lane does about 0.6 of the work per slice and stops
-    # queueing (runtime_ort/pair_hold.py; docs/replay.md, "Slices held for their pair"). Needs coalesce_slices >= 2.
-    # None: never hold (a slice waits only for a busy worker).
+    # hold a quadrant's first slice for the next one and detect both in one run while the slice lane is loaded: from
+    # when its measured load (a slice's run time over the slice period per worker) is above this until it falls under
+    # half of it (pair_hold.RELEASE_FRACTION). The pair's first slice waits about a slice period; a pair costs about
+    # 0.6 of two single runs, so a loaded lane stops queueing (runtime_ort/pair_hold.py; docs/replay.md, "Slices held
+    # for their pair"). Needs coalesce_slices >= 2. None: never hold (a slice waits only for a busy worker).
     pair_hold_load: float | None = None
 
     def __post_init__(self) -> None:

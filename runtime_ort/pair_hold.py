@@ -14,10 +14,10 @@ costs the first slice that long, never more than `MAX_HOLD_S`). The first slice 
 slice period longer; every slice runs in a lane that does about 0.6 of the work per slice, so the lane stops
 queueing.
 
-The load is measured, not configured: the slice period from the arrivals (median of the recent intervals), a run's
-cost from its wall time. A pair's cost is turned into the single-slice cost it stands for with the ratio of the two
-measured last (a single run updates the ratio), so the load of running alone stays known while every slice runs
-in pairs, and the decision does not flip with the mode it caused.
+The load is measured, not configured: the slice period from the arrivals (median of the recent intervals), the cost
+of a slice from the wall time of the runs (a run of n slices costs each of them 1/n of it). Holding lowers the load it
+is decided on (a pair costs little more than one slice), so the hold starts above ``load_above`` and ends only below
+``RELEASE_FRACTION`` of it: a lane at the line does not flip between the two ways at every run.
 """
 
 from __future__ import annotations
@@ -34,8 +34,10 @@ MAX_HOLD_S = 0.1  # the longest a slice ever waits for its partner, whatever the
 HOLD_PERIODS = 1.5  # a partner later than this many slice periods after the first slice's arrival is not waited for
 ARRIVALS_KEPT = 33  # arrival times kept: the period is the median of the last 32 intervals
 MIN_INTERVALS = 4  # intervals measured before any hold (the period must be known)
-COST_SMOOTHING = 0.1  # weight of the newest run in the running means of the run costs
-RATIO_RUNS = 8  # a run's cost ratio to a single run is re-measured only while both ran within this many runs
+COST_SMOOTHING = 0.1  # weight of the newest run in the running mean of the cost per slice
+# holding ends when the load falls under this fraction of load_above: pairs cost about 0.6 of two single runs per
+# slice, so a lane held at a load just above the line measures about 0.6 of it and must keep holding
+RELEASE_FRACTION = 0.5
 
 
 class PairHold:
@@ -52,11 +54,8 @@ class PairHold:
         self._start_deg = float(start_deg)
         self._lock = threading.Lock()
         self._arrivals: collections.deque[float] = collections.deque(maxlen=ARRIVALS_KEPT)
-        self._mean_run_s: dict[int, float] = {}  # slices per run -> running mean wall time of such runs
-        self._ratio: dict[int, float] = {}  # slices per run -> its wall time over a single run's (measured last)
-        self._last_run: dict[int, int] = {}  # slices per run -> the count of runs when one of them last ran
-        self._runs = 0
-        self._single_s: float | None = None  # running mean of the single-slice cost (a run of n slices converted)
+        self._slice_s: float | None = None  # running mean of a run's wall time per slice
+        self.holding = False  # whether slices with a partner wait for it (the load went above the line, not yet under the release)
         self.holds = 0  # slices that waited for their partner (whether it came or not)
 
     def observe_arrival(self, t: float) -> None:
@@ -70,22 +69,8 @@ class PairHold:
         if num_slices < 1 or not math.isfinite(wall_s) or wall_s < 0:
             return
         with self._lock:
-            self._runs += 1
-            mean = self._mean_run_s.get(num_slices)
-            mean = wall_s if mean is None else mean + COST_SMOOTHING * (wall_s - mean)
-            self._mean_run_s[num_slices] = mean
-            self._last_run[num_slices] = self._runs
-            single = self._mean_run_s.get(1)
-            if single is not None and single > 0:
-                # a ratio from two means measured close together: a mean not updated for long is another machine state
-                for n, m in self._mean_run_s.items():
-                    if self._runs - min(self._last_run[n], self._last_run[1]) <= RATIO_RUNS:
-                        self._ratio[n] = m / single
-            ratio = self._ratio.get(num_slices)
-            if ratio is None or ratio <= 0:  # no single run measured yet: count the run as one slice's cost
-                ratio = 1.0
-            cost = wall_s / ratio
-            self._single_s = cost if self._single_s is None else self._single_s + COST_SMOOTHING * (cost - self._single_s)
+            cost = wall_s / num_slices
+            self._slice_s = cost if self._slice_s is None else self._slice_s + COST_SMOOTHING * (cost - self._slice_s)
 
     @property
     def period_s(self) -> float | None:
@@ -100,24 +85,28 @@ class PairHold:
 
     @property
     def load(self) -> float | None:
-        """The lane's load running every slice alone: the single-slice cost over the slice period per worker."""
+        """The lane's measured load: a slice's cost (runs in pairs or alone, as they ran) over the slice period per
+        worker; None until both are measured."""
         with self._lock:
             return self._load()
 
     def _load(self) -> float | None:
         period = self._period_s()
-        if period is None or period <= 0 or self._single_s is None:
+        if period is None or period <= 0 or self._slice_s is None:
             return None
-        return self._single_s / (period * self._workers)
+        return self._slice_s / (period * self._workers)
 
     def hold_s(self, slice_index: int, arrival: float, now: float) -> float:
         """How long the worker that took slice ``slice_index`` (arrived at ``arrival``) waits for the next slice of its
-        quadrant, from ``now``: 0 (run at once) where it has none, the load is unknown or not above ``load_above``."""
+        quadrant, from ``now``: 0 (run at once) where it has none or the lane is not holding. The lane starts holding
+        when its load is above ``load_above`` and stops when it is below ``RELEASE_FRACTION * load_above``."""
         if not can_coalesce(slice_index, slice_index + 1, self._n, self._start_deg):
             return 0.0
         with self._lock:
             load = self._load()
-            if load is None or load <= self.load_above:
+            if load is not None:
+                self.holding = load > self.load_above or (self.holding and load >= RELEASE_FRACTION * self.load_above)
+            if not self.holding:
                 return 0.0
             wait = min(arrival + HOLD_PERIODS * self._period_s(), arrival + MAX_HOLD_S) - now
             if wait > 0:
