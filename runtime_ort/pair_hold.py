@@ -15,7 +15,8 @@ slice period longer; every slice runs in a lane that does about 0.6 of the work 
 queueing.
 
 The load is measured, not configured: the slice period from the arrivals (median of the recent intervals), the cost
-of a slice from the wall time of the runs (a run of n slices costs each of them 1/n of it). Holding lowers the load it
+of a slice from the wall time of the recent runs (median; a run of n slices costs each of them 1/n of it). Medians,
+because one run stalled by the rest of the process (tens of ms) must not start a hold. Holding lowers the load it
 is decided on (a pair costs little more than one slice), so the hold starts above ``load_above`` and ends only below
 ``RELEASE_FRACTION`` of it: a lane at the line does not flip between the two ways at every run.
 """
@@ -34,7 +35,7 @@ MAX_HOLD_S = 0.1  # the longest a slice ever waits for its partner, whatever the
 HOLD_PERIODS = 1.5  # a partner later than this many slice periods after the first slice's arrival is not waited for
 ARRIVALS_KEPT = 33  # arrival times kept: the period is the median of the last 32 intervals
 MIN_INTERVALS = 4  # intervals measured before any hold (the period must be known)
-COST_SMOOTHING = 0.1  # weight of the newest run in the running mean of the cost per slice
+RUNS_KEPT = 64  # runs whose cost per slice is kept: the cost is their median
 # holding ends when the load falls under this fraction of load_above: pairs cost about 0.6 of two single runs per
 # slice, so a lane held at a load just above the line measures about 0.6 of it and must keep holding
 RELEASE_FRACTION = 0.5
@@ -54,7 +55,7 @@ class PairHold:
         self._start_deg = float(start_deg)
         self._lock = threading.Lock()
         self._arrivals: collections.deque[float] = collections.deque(maxlen=ARRIVALS_KEPT)
-        self._slice_s: float | None = None  # running mean of a run's wall time per slice
+        self._costs: collections.deque[float] = collections.deque(maxlen=RUNS_KEPT)  # recent runs' wall time per slice
         self.holding = False  # whether slices with a partner wait for it (the load went above the line, not yet under the release)
         self.holds = 0  # slices that waited for their partner (whether it came or not)
 
@@ -69,8 +70,7 @@ class PairHold:
         if num_slices < 1 or not math.isfinite(wall_s) or wall_s < 0:
             return
         with self._lock:
-            cost = wall_s / num_slices
-            self._slice_s = cost if self._slice_s is None else self._slice_s + COST_SMOOTHING * (cost - self._slice_s)
+            self._costs.append(wall_s / num_slices)
 
     @property
     def period_s(self) -> float | None:
@@ -85,16 +85,16 @@ class PairHold:
 
     @property
     def load(self) -> float | None:
-        """The lane's measured load: a slice's cost (runs in pairs or alone, as they ran) over the slice period per
-        worker; None until both are measured."""
+        """The lane's measured load: the median cost of a slice over the recent runs (in pairs or alone, as they ran)
+        over the slice period per worker; None until both are measured."""
         with self._lock:
             return self._load()
 
     def _load(self) -> float | None:
         period = self._period_s()
-        if period is None or period <= 0 or self._slice_s is None:
+        if period is None or period <= 0 or not self._costs:
             return None
-        return self._slice_s / (period * self._workers)
+        return float(np.median(np.asarray(self._costs))) / (period * self._workers)
 
     def hold_s(self, slice_index: int, arrival: float, now: float) -> float:
         """How long the worker that took slice ``slice_index`` (arrived at ``arrival``) waits for the next slice of its

@@ -15,7 +15,7 @@ import pytest
 from streamdet.runtime_ort.coalesce import can_coalesce
 from streamdet.runtime_ort.detector_results import SliceResult
 from streamdet.runtime_ort.lanes import LaneConfig, StreamingRunner
-from streamdet.runtime_ort.pair_hold import COST_SMOOTHING, HOLD_PERIODS, MAX_HOLD_S, MIN_INTERVALS, RELEASE_FRACTION, PairHold
+from streamdet.runtime_ort.pair_hold import HOLD_PERIODS, MAX_HOLD_S, MIN_INTERVALS, RELEASE_FRACTION, RUNS_KEPT, PairHold
 from streamdet.runtime_ort.postprocess import Detections
 from streamdet.runtime_ort.worker_lane import JobBatching, WorkerLane
 
@@ -56,16 +56,27 @@ def test_arrivals_out_of_order_or_repeated_are_ignored():
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 @pytest.mark.parametrize("workers", [1, 2])
-def test_the_load_is_the_running_mean_cost_per_slice_over_the_period(seed, workers):
+def test_the_load_is_the_median_cost_per_slice_of_the_recent_runs_over_the_period(seed, workers):
     rng = np.random.default_rng(seed)
     period_s = 0.01
     hold = _policy(workers=workers, period_s=period_s)
-    mean = None
-    for _ in range(40):
+    costs = []
+    for _ in range(150):
         n, wall = int(rng.integers(1, 3)), float(rng.uniform(0.001, 0.02))
         hold.record_run(n, wall)
-        mean = wall / n if mean is None else mean + COST_SMOOTHING * (wall / n - mean)  # naive running mean
-        assert hold.load == pytest.approx(mean / (period_s * workers), rel=1e-9)
+        costs.append(wall / n)
+        want = sorted(costs[-RUNS_KEPT:])  # naive median of the last RUNS_KEPT
+        mid = len(want) // 2
+        median = want[mid] if len(want) % 2 else (want[mid - 1] + want[mid]) / 2
+        assert hold.load == pytest.approx(median / (period_s * workers), rel=1e-9)
+
+
+def test_one_stalled_run_does_not_start_a_hold():
+    hold = _policy(load_above=0.8, period_s=0.01)
+    for _ in range(20):
+        hold.record_run(1, 0.004)
+    hold.record_run(1, 0.5)  # the process stalled for 0.5 s once
+    assert hold.load == pytest.approx(0.4) and hold.hold_s(0, 100.0, 100.0) == 0.0
 
 
 @pytest.mark.parametrize("bad", [math.nan, -1.0, math.inf])
