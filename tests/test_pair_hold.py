@@ -12,21 +12,31 @@ import time
 import numpy as np
 import pytest
 
+from streamdet.runtime_ort import pair_hold
 from streamdet.runtime_ort.coalesce import can_coalesce
 from streamdet.runtime_ort.detector_results import SliceResult
 from streamdet.runtime_ort.lanes import LaneConfig, StreamingRunner
-from streamdet.runtime_ort.pair_hold import HOLD_PERIODS, MAX_HOLD_S, MIN_INTERVALS, RELEASE_FRACTION, RUNS_KEPT, PairHold
+from streamdet.runtime_ort.pair_hold import HOLD_PERIODS, MAX_HOLD_S, MIN_INTERVALS, MIN_RUNS, RELEASE_FRACTION, RUNS_KEPT, WARM_UP_RUNS, PairHold
 from streamdet.runtime_ort.postprocess import Detections
 from streamdet.runtime_ort.worker_lane import JobBatching, WorkerLane
 
 WAIT_S = 30.0  # generous: the machine is shared; nothing here waits this long when it works
 
 
-def _policy(load_above: float = 0.5, workers: int = 1, n: int = 8, period_s: float = 0.01, arrivals: int = 10) -> PairHold:
+def _policy(load_above: float = 0.5, workers: int = 1, n: int = 8, period_s: float = 0.01, arrivals: int = 10,
+            warm: bool = True) -> PairHold:  # fmt: skip
+    """A policy that has seen ``arrivals`` slices ``period_s`` apart and (``warm``) its warm-up runs, long ones."""
     hold = PairHold(load_above, workers, n)
     for i in range(arrivals):
         hold.observe_arrival(100.0 + i * period_s)
+    for _ in range(WARM_UP_RUNS if warm else 0):
+        hold.record_run(1, 10.0)  # never counted, however long
     return hold
+
+
+def _runs(hold: PairHold, wall_s: float, count: int = MIN_RUNS) -> None:
+    for _ in range(count):
+        hold.record_run(1, wall_s)
 
 
 # ---- the policy ----------------------------------------------------------------------------------------------------
@@ -65,6 +75,9 @@ def test_the_load_is_the_median_cost_per_slice_of_the_recent_runs_over_the_perio
         n, wall = int(rng.integers(1, 3)), float(rng.uniform(0.001, 0.02))
         hold.record_run(n, wall)
         costs.append(wall / n)
+        if len(costs) < MIN_RUNS:
+            assert hold.load is None
+            continue
         want = sorted(costs[-RUNS_KEPT:])  # naive median of the last RUNS_KEPT
         mid = len(want) // 2
         median = want[mid] if len(want) % 2 else (want[mid - 1] + want[mid]) / 2
@@ -82,6 +95,7 @@ def test_one_stalled_run_does_not_start_a_hold():
 @pytest.mark.parametrize("bad", [math.nan, -1.0, math.inf])
 def test_a_run_without_a_usable_time_is_not_counted(bad):
     hold = _policy()
+    _runs(hold, 0.001, MIN_RUNS - 1)
     hold.record_run(1, bad)
     hold.record_run(0, 0.001)
     assert hold.load is None
@@ -102,7 +116,7 @@ def naive_hold(k: int, n: int, arrival: float, now: float, holding: bool) -> flo
 @pytest.mark.parametrize("late_s", [0.0, 0.004, 0.02, 0.2])
 def test_hold_against_a_naive_rule(n, cost_s, late_s):
     hold = _policy(load_above=0.5, n=n, period_s=0.01)
-    hold.record_run(1, cost_s)
+    _runs(hold, cost_s)
     arrival = 200.0
     for k in range(n):
         want = naive_hold(k, n, arrival, arrival + late_s, cost_s / 0.01 > 0.5)
@@ -115,6 +129,7 @@ def test_holding_starts_above_the_line_and_ends_below_the_release(seed):
     """A naive two-state walk over random loads: holding from a load above the line until one under half of it."""
     rng = np.random.default_rng(seed)
     hold = _policy(load_above=0.8, period_s=0.01)
+    _runs(hold, 0.001)
     holding = False
     for _ in range(200):
         wall = float(rng.uniform(0.0, 0.012))
@@ -128,15 +143,26 @@ def test_holding_starts_above_the_line_and_ends_below_the_release(seed):
 
 def test_no_hold_before_the_period_and_a_cost_are_known():
     hold = _policy(load_above=0.0, arrivals=MIN_INTERVALS)  # one interval short
-    hold.record_run(1, 1.0)
+    _runs(hold, 1.0)
     assert hold.load is None and hold.hold_s(0, 100.0, 100.0) == 0.0
     hold = _policy(load_above=0.0)
+    _runs(hold, 1.0, MIN_RUNS - 1)  # one run short
     assert hold.load is None and hold.hold_s(0, 100.0, 100.0) == 0.0
+    hold.record_run(1, 1.0)
+    assert hold.load == pytest.approx(100.0) and hold.hold_s(0, 100.0, 100.0) > 0
+
+
+def test_the_warm_up_runs_are_not_counted():
+    hold = _policy(load_above=0.5, warm=False)
+    _runs(hold, 1.0, WARM_UP_RUNS)  # a slow start
+    assert hold.load is None and hold.hold_s(0, 100.0, 100.0) == 0.0
+    _runs(hold, 0.001)
+    assert hold.load == pytest.approx(0.1) and hold.hold_s(0, 100.0, 100.0) == 0.0
 
 
 def test_a_long_period_holds_at_most_max_hold():
     hold = _policy(load_above=0.1, period_s=1.0)
-    hold.record_run(1, 0.5)
+    _runs(hold, 0.5)
     assert hold.hold_s(0, 10.0, 10.0) == pytest.approx(MAX_HOLD_S)
 
 
@@ -293,9 +319,11 @@ class SlowDetector:
 
 
 @pytest.mark.parametrize("pair_hold_load", [None, 0.5])
-def test_a_loaded_runner_runs_pairs_only_with_the_hold(pair_hold_load):
+def test_a_loaded_runner_runs_pairs_only_with_the_hold(pair_hold_load, monkeypatch):
     """Slices every 20 ms, runs of 30 ms alone (load 1.5): with the hold the lane runs pairs and keeps up; every
-    slice gets its result either way."""
+    slice gets its result either way. (No warm-up runs here, and a decision after 4 runs: a short test.)"""
+    monkeypatch.setattr(pair_hold, "WARM_UP_RUNS", 0)
+    monkeypatch.setattr(pair_hold, "MIN_RUNS", 4)
     det = SlowDetector()
     points = np.zeros((2, 6), np.float32)
     with StreamingRunner(det, LaneConfig(max_in_flight=1, queue_size=64, pair_hold_load=pair_hold_load)) as runner:
