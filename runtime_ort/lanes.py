@@ -98,8 +98,9 @@ class LaneConfig:
     # hold a quadrant's first slice for the next one and detect both in one run while the slice lane is loaded: from
     # when its measured load (a slice's run time over the slice period per worker) is above this until it falls under
     # half of it (pair_hold.RELEASE_FRACTION). The pair's first slice waits about a slice period; a pair costs about
-    # 0.6 of two single runs, so a loaded lane stops queueing (runtime_ort/pair_hold.py; docs/replay.md, "Slices held
-    # for their pair"). Needs coalesce_slices >= 2. None: never hold (a slice waits only for a busy worker).
+    # 0.6 of two single runs, so a loaded lane does a fifth less work at the same slice tail (measured: docs/replay.md,
+    # "Slices held for their pair"; runtime_ort/pair_hold.py). Needs coalesce_slices >= 2. None (the default): never
+    # hold, a slice waits only for a busy worker.
     pair_hold_load: float | None = None
 
     def __post_init__(self) -> None:
@@ -193,7 +194,8 @@ class StreamingRunner:
         arrival = time.monotonic()
         stamp = arrival if timestamp is None else timestamp
         own = np.array(points, copy=True) if isinstance(points, np.ndarray) else points  # the driver may reuse its buffer
-        valid = isinstance(slice_index, (int, np.integer)) and not isinstance(slice_index, bool)
+        tracked = self._pair_hold is not None or self._phase_locked is not None  # they learn the LiDAR's timing
+        valid = tracked and isinstance(slice_index, (int, np.integer)) and not isinstance(slice_index, bool)
         valid = valid and 0 <= slice_index < self.detector.num_slices
         if self._pair_hold is not None and valid:
             self._pair_hold.observe_arrival(arrival)  # before the submit: a worker may decide on its hold at once
@@ -248,8 +250,8 @@ class StreamingRunner:
 
     @property
     def pair_hold_load(self) -> float | None:
-        """The slice lane's measured load running every slice alone (LaneConfig.pair_hold_load); None without the
-        hold, or before the slice period and a run's cost are measured."""
+        """The slice lane's measured load, the median cost of a slice over its recent runs over the slice period per
+        worker (LaneConfig.pair_hold_load); None without the hold, or before the period and the cost are measured."""
         return None if self._pair_hold is None else self._pair_hold.load
 
     @property
