@@ -23,6 +23,7 @@ from streamdet.models.detector import StreamDetector, build_detector
 from streamdet.models.presets import Preset
 
 DEFAULT_SEED = 0
+SHIPPED_MAX_BYTES = 20 * 1024 * 1024  # issue 19: a bundled checkpoint (models/weights/*.pt) stays under 20 MB
 
 
 class CheckpointError(ValueError):
