@@ -63,7 +63,6 @@ class PairHold:
         self._costs: collections.deque[float] = collections.deque(maxlen=RUNS_KEPT)  # recent runs' wall time per slice
         self._runs_seen = 0
         self.holding = False  # whether slices with a partner wait for it (the load went above the line, not yet under the release)
-        self.holds = 0  # slices that waited for their partner (whether it came or not)
 
     def observe_arrival(self, t: float) -> None:
         """A slice arrived at ``t`` (time.monotonic(), the runner's clock)."""
@@ -116,7 +115,4 @@ class PairHold:
                 self.holding = load > self.load_above or (self.holding and load >= RELEASE_FRACTION * self.load_above)
             if not self.holding:
                 return 0.0
-            wait = min(arrival + HOLD_PERIODS * self._period_s(), arrival + MAX_HOLD_S) - now
-            if wait > 0:
-                self.holds += 1
-            return max(0.0, wait)
+            return max(0.0, min(arrival + HOLD_PERIODS * self._period_s(), arrival + MAX_HOLD_S) - now)

@@ -159,12 +159,9 @@ class WorkerLane:
         b = self._batch
         if b is None or jobs[0][3] is None:
             return
-        while len(jobs) < b.most and self._jobs and self._busy >= self._workers:
-            nxt = self._jobs[0]
-            if nxt[1].cancelled():  # holds no place (as in submit)
-                self._jobs.popleft()
-                continue
-            if nxt[3] is None or not b.joins(jobs[-1][3], nxt[3]):
+        while len(jobs) < b.most and self._busy >= self._workers:
+            nxt = self._next_waiting()
+            if nxt is None or nxt[3] is None or not b.joins(jobs[-1][3], nxt[3]):
                 return
             jobs.append(self._jobs.popleft())
 
@@ -205,7 +202,8 @@ class WorkerLane:
             jobs.append(self._jobs.popleft())
 
     def _next_waiting(self) -> tuple | None:
-        """(Under the lock.) The first waiting job its owner has not cancelled (cancelled ones are dropped)."""
+        """(Under the lock.) The first waiting job its owner has not cancelled (cancelled ones hold no place, as in
+        submit: they are dropped)."""
         while self._jobs and self._jobs[0][1].cancelled():
             self._jobs.popleft()
         return self._jobs[0] if self._jobs else None
