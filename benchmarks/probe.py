@@ -18,6 +18,8 @@ import onnx
 import onnxruntime as ort
 from onnx import TensorProto, helper
 
+from streamdet.core import cpu as core_cpu
+from streamdet.core.cpu import cpu_model, cpuid_mask
 from streamdet.runtime_ort.onnx_build import make_model
 from streamdet.runtime_ort.sessions import GraphSession, SessionConfig
 
@@ -107,30 +109,14 @@ def measure_peak(threads: int, config: ProbeConfig = ProbeConfig()) -> ProbeResu
     return ProbeResult(tuple(2.0 * n**3 / s / 1e9 for s in seconds), n, threads)
 
 
-def cpu_model() -> str:
-    """The CPU's model name from /proc/cpuinfo (platform.processor() elsewhere)."""
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown CPU"
+SIMD_FLAGS = ("avx", "avx2", "fma", "f16c", "avx512f", "avx512_bf16", "avx512_fp16", "avx512_vnni", "amx_tile")
 
 
 def cpu_flags() -> tuple[str, ...]:
-    """The SIMD flags that decide the kernels onnxruntime and PyTorch pick (avx2, fma, avx512f, ...)."""
-    wanted = ("avx", "avx2", "fma", "f16c", "avx512f", "avx512_bf16", "avx512_fp16", "avx512_vnni", "amx_tile")
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("flags"):
-                    have = set(line.split(":", 1)[1].split())
-                    return tuple(w for w in wanted if w in have)
-    except OSError:
-        pass
-    return ()
+    """The SIMD flags that decide the kernels onnxruntime and PyTorch pick (avx2, fma, avx512f, ...), as the kernels
+    see them (a CPUID mask hides some: `streamdet.core.cpu`)."""
+    have = core_cpu.cpu_flags()
+    return tuple(w for w in SIMD_FLAGS if w in have)
 
 
 class OtherCpuUse:
@@ -198,6 +184,7 @@ def machine_info(threads: int) -> dict:
     return {
         "cpu_model": cpu_model(),
         "cpu_flags": list(cpu_flags()),
+        "cpuid_mask": cpuid_mask(),
         "cpu_mhz": cpu_mhz(),
         "nominal_peak_gflops_per_s": nominal_peak_gflops(threads, cpu_flags(), cpu_mhz()),
         "logical_cpus": os.cpu_count(),

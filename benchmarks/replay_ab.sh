@@ -3,7 +3,7 @@
 # the issue-22 ones: benchmarks/replay_prep.sh), streaming mode, int8 image lane + fp32 slices (unless SLICES says), LiDAR-synchronised
 # cameras, nuScenes rates (20 Hz x 8 slices unless NUM_SLICES says, 12 Hz cameras). Each run is preceded by the host-speed probe (2048^3
 # MatMul GFLOP/s: the shared machine's fast or slow state).
-#   DATA=DATASET benchmarks/replay_ab.sh OUT ROUNDS "SCALES" LABEL=EXPORT_DIR,SCHEDULE,TERMS[,CODE[,SLICES[,NICE[,IMAGE_THREADS[,YIELD[,HEAP[,WORKERS[,COALESCE[,QUEUE[,PAIRHOLD]]]]]]]]]]] ...
+#   DATA=DATASET benchmarks/replay_ab.sh OUT ROUNDS "SCALES" LABEL=EXPORT_DIR,SCHEDULE,TERMS[,CODE[,SLICES[,NICE[,IMAGE_THREADS[,YIELD[,HEAP[,WORKERS[,COALESCE[,QUEUE[,PAIRHOLD[,ISA]]]]]]]]]]]] ...
 # e.g. DATA=out/replay_readme/synth20 benchmarks/replay_ab.sh out/ab 2 "1 2" v3_full=exports/v3,full,off \
 #        v3_terms=exports/v3,phase-locked,on
 # SCHEDULE: full | phase-locked; TERMS: auto | on | off (--camera-terms); CODE (optional): a directory put first on
@@ -16,7 +16,9 @@
 # WORKERS (optional, default: the runtime's LaneConfig, 2): --slice-workers; COALESCE (optional, default: the runtime's
 # LaneConfig): --coalesce-slices, the most waiting slices of one quadrant one run detects when the lane is behind; QUEUE
 # (optional, default: the runtime's LaneConfig, 8): --queue-size, slices waiting before the oldest is dropped; PAIRHOLD
-# (optional, default: the runtime's LaneConfig): --pair-hold-load, the slice lane's load above which a quadrant's first slice waits for the next. DELIVERY_MS (environment, default 0): the
+# (optional, default: the runtime's LaneConfig): --pair-hold-load, the slice lane's load above which a quadrant's first slice waits for the next; ISA (optional, default: the CPU's):
+# avx2 runs the variant (and its probe) under benchmarks/avx2_only.sh, the AVX2 kernels of an AVX2-only part on this CPU
+# (give replay_table --target-ms when variants of both instruction sets share OUT). DELIVERY_MS (environment, default 0): the
 # cameras' delivery delay (--camera-delivery-ms); NUM_SLICES (environment, default 8): slices per rotation (--slices). Writes OUT/r<round>_scale<S>_<label>/ (replay.json, report.md),
 # OUT/r<round>_scale<S>_<label>.txt, OUT/variants.txt, OUT/probes_gflops.txt, OUT/staleness_cdf.png and OUT/table.md (benchmarks/replay_table.py: one row per
 # scale and variant, one value per round in each cell; `python -m streamdet.benchmarks.replay_tail OUT` then says whether a
@@ -27,16 +29,17 @@ set -euo pipefail
 # a non-editable install of the package (Python >= 3.11 honours this; older ones ignore it)
 export PYTHONSAFEPATH=1
 OUT=${1:?OUT}; ROUNDS=${2:?ROUNDS}; SCALES=${3:?SCALES}; shift 3
-[ $# -ge 1 ] || { echo "give at least one LABEL=EXPORT_DIR,SCHEDULE,TERMS[,CODE[,SLICES[,NICE[,IMAGE_THREADS[,YIELD[,HEAP[,WORKERS]]]]]]]" >&2; exit 2; }
+[ $# -ge 1 ] || { echo "give at least one LABEL=EXPORT_DIR,SCHEDULE,TERMS[,CODE[,SLICES[,NICE[,IMAGE_THREADS[,YIELD[,HEAP[,WORKERS[,COALESCE[,QUEUE[,PAIRHOLD[,ISA]]]]]]]]]]]]" >&2; exit 2; }
 BIN=${BIN:-.venv/bin}
 DELIVERY_MS=${DELIVERY_MS:-0}
 NUM_SLICES=${NUM_SLICES:-8}
 : "${DATA:?set DATA to the drives dataset (benchmarks/replay_prep.sh makes the issue-22 one)}"
 mkdir -p "$OUT"
 for V in "$@"; do
-  IFS=, read -r EXP SCHEDULE TERMS CODE SLICES NICE ITHREADS YIELD HEAP WORKERS COALESCE QUEUE PAIRHOLD <<< "${V#*=}"
+  IFS=, read -r EXP SCHEDULE TERMS CODE SLICES NICE ITHREADS YIELD HEAP WORKERS COALESCE QUEUE PAIRHOLD ISA <<< "${V#*=}"
   [ -f "$EXP/manifest.json" ] || { echo "$V: $EXP holds no manifest.json" >&2; exit 2; }
   [ -z "$CODE" ] || [ -d "$CODE/streamdet" ] || { echo "$V: $CODE holds no streamdet package" >&2; exit 2; }
+  case "${ISA:-}" in ""|avx2) ;; *) echo "$V: ISA must be avx2 or empty (the CPU's own), got $ISA" >&2; exit 2 ;; esac
 done
 uptime > "$OUT/uptime_before.txt"
 : > "$OUT/variants.txt"
@@ -45,9 +48,11 @@ for ROUND in $(seq 1 "$ROUNDS"); do
   for SCALE in $SCALES; do
     for V in "$@"; do
       LABEL=${V%%=*}
-      IFS=, read -r EXP SCHEDULE TERMS CODE SLICES NICE ITHREADS YIELD HEAP WORKERS COALESCE QUEUE PAIRHOLD <<< "${V#*=}"
+      IFS=, read -r EXP SCHEDULE TERMS CODE SLICES NICE ITHREADS YIELD HEAP WORKERS COALESCE QUEUE PAIRHOLD ISA <<< "${V#*=}"
       NAME="r${ROUND}_scale${SCALE}_$LABEL"
-      echo "$NAME $("$BIN/python" -c 'from streamdet.benchmarks.probe import measure_peak; print(max(measure_peak(2).run_gflops_per_s))')" \
+      MASK=()
+      [ -z "$ISA" ] || MASK=("$(dirname "$0")/avx2_only.sh")
+      echo "$NAME $("${MASK[@]}" "$BIN/python" -c 'from streamdet.benchmarks.probe import measure_peak; print(max(measure_peak(2).run_gflops_per_s))')" \
         >> "$OUT/probes_gflops.txt"
       RUNENV=()
       EXTRA=()
@@ -63,8 +68,8 @@ for ROUND in $(seq 1 "$ROUNDS"); do
         *) echo "$V: HEAP must be freeze or thaw, got $HEAP" >&2; exit 2 ;;
       esac
       [ -z "$CODE" ] || RUNENV=(PYTHONPATH="$(realpath "$CODE")${PYTHONPATH:+:$PYTHONPATH}")
-      [ "$ROUND" != 1 ] || [ "$SCALE" != "${SCALES%% *}" ] || echo "$LABEL: $EXP $SCHEDULE terms=$TERMS code=${CODE:-this checkout} slices=${SLICES:-fp32} nice=${NICE:-0} image_threads=${ITHREADS:-1} yield=${YIELD:-0} heap=${HEAP:-freeze} slice_workers=${WORKERS:-default} coalesce=${COALESCE:-default} queue=${QUEUE:-default} pair_hold=${PAIRHOLD:-default} slices_per_rotation=$NUM_SLICES" >> "$OUT/variants.txt"
-      env "${RUNENV[@]}" "$BIN/streamdet-replay" --data "$DATA" --split val --export-dir "$EXP" --precision "${SLICES:-fp32}" --image-precision int8 \
+      [ "$ROUND" != 1 ] || [ "$SCALE" != "${SCALES%% *}" ] || echo "$LABEL: $EXP $SCHEDULE terms=$TERMS code=${CODE:-this checkout} slices=${SLICES:-fp32} nice=${NICE:-0} image_threads=${ITHREADS:-1} yield=${YIELD:-0} heap=${HEAP:-freeze} slice_workers=${WORKERS:-default} coalesce=${COALESCE:-default} queue=${QUEUE:-default} pair_hold=${PAIRHOLD:-default} isa=${ISA:-cpu} slices_per_rotation=$NUM_SLICES" >> "$OUT/variants.txt"
+      "${MASK[@]}" env "${RUNENV[@]}" "$BIN/streamdet-replay" --data "$DATA" --split val --export-dir "$EXP" --precision "${SLICES:-fp32}" --image-precision int8 \
         --lidar-hz 20 --slices "$NUM_SLICES" --camera-hz 12 --camera-trigger lidar-synced --camera-delivery-ms "$DELIVERY_MS" \
         --mode streaming --schedule "$SCHEDULE" --camera-terms "$TERMS" --image-lane-nice "${NICE:-0}" --time-scale "$SCALE" "${EXTRA[@]}" --out "$OUT/$NAME" \
         > "$OUT/$NAME.txt"

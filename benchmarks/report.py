@@ -171,6 +171,8 @@ def _pillar_words(pillars: dict | None) -> str:
 def format_header(meta: dict, peak: ProbeResult) -> str:
     m = meta["machine"]
     flags = ", ".join(m["cpu_flags"]) or "no SIMD flags read"
+    if m.get("cpuid_mask"):  # absent in results recorded before the mask existed
+        flags += f"; CPUID masked to {m['cpuid_mask']}: the kernels' instruction set, not the silicon's"
     lines = [
         f"streamdet-bench  {meta['date']}  preset {meta['preset']}",
         f"machine: {m['cpu_model']} ({flags}), {m['logical_cpus']} logical CPUs, {meta['threads']} threads; "
