@@ -26,6 +26,7 @@ from streamdet.core.sectors import NUM_QUADRANTS
 POINT_DIM = SLICE_COLUMNS  # x, y, z, reflectance, relative time, slice index (streamdet.core.points)
 PILLAR_FEATURE_DIM = 11  # the 6 point columns, 3 offsets from the pillar mean, 2 offsets from the cell centre
 _INT64_MAX = int(np.iinfo(np.int64).max)
+_UINT16_KEYS = 1 << 16  # flat indices below this sort as uint16 (two 128 x 128 quadrants, or a 256 x 256 grid)
 
 
 @dataclass(frozen=True)
@@ -124,7 +125,8 @@ def pillarize(
     quadrant_of_code = np.array([2, 3, 1, 0])  # code = 2 * (y >= 0) + (x >= 0)
     slot = np.full(NUM_QUADRANTS, -1, dtype=np.int64)
     slot[list(quadrants)] = np.arange(len(quadrants)) if crop else 0  # without the crop every quadrant is map 0
-    qi = slot[quadrant_of_code][2 * (row >= yq) + (col >= xq)]
+    upper_row, upper_col = row >= yq, col >= xq  # (N,) the half of the grid a cell lies in (nx, ny are even)
+    qi = slot[quadrant_of_code][2 * upper_row + upper_col]
     inside &= qi >= 0
 
     kept_rows = np.flatnonzero(inside)
@@ -140,13 +142,18 @@ def pillarize(
             num_nonfinite_dropped=num_nonfinite,
             num_outside_dropped=num_outside,
         )
+    # Flat indices of every point, then one gather of the kept ones: cheaper than gathering row, col and qi apart.
     if crop:  # row and column inside the quadrant: quadrant maps start at 0 or at the half-size
-        flat = qi[kept_rows] * (yq * xq) + (row[kept_rows] % yq) * xq + col[kept_rows] % xq  # (n,)
+        flat = (qi * (yq * xq) + (row - yq * upper_row) * xq + (col - xq * upper_col))[kept_rows]  # (n,)
     else:  # the whole grid is the one map
-        flat = row[kept_rows] * grid.nx + col[kept_rows]  # (n,)
+        flat = (row * grid.nx + col)[kept_rows]  # (n,)
 
-    # Sorting the unique key (flat, position) equals a stable argsort of flat, at a third of the cost.
-    if maps.count * maps.cells < _INT64_MAX // max(n, 1):
+    if maps.count * maps.cells <= _UINT16_KEYS:
+        # numpy's stable sort of 16-bit integers is a radix sort: linear, several times faster than the key below
+        order = np.argsort(flat.astype(np.uint16), kind="stable")
+        sorted_flat = flat[order]
+    elif maps.count * maps.cells < _INT64_MAX // max(n, 1):
+        # Sorting the unique key (flat, position) equals a stable argsort of flat, at a third of the cost.
         key = np.sort(flat * n + np.arange(n))
         order, sorted_flat = key % n, key // n
     else:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib
 import importlib.resources
 import math
 from fractions import Fraction
@@ -12,6 +13,8 @@ import pytest
 from streamdet.calibration.grid import GridSpec
 from streamdet.core.sectors import quadrants_of_sector, slice_index_of
 from streamdet.runtime_ort.pillarize import PILLAR_FEATURE_DIM, Pillars, pillarize
+
+pillarize_module = importlib.import_module("streamdet.runtime_ort.pillarize")  # the module, not the function
 
 PAPER = GridSpec()
 SMALL = GridSpec(x_range_m=(-4.0, 4.0), y_range_m=(-4.0, 4.0), z_range_m=(-1.0, 1.0), voxel_xy_m=0.5, voxel_z_m=0.5)
@@ -108,7 +111,8 @@ def random_points(rng, n, grid, margin_m=1.0):
         (SMALL, (0, 1, 2, 3), 32, 1000),
         (SMALL, (0, 1, 2, 3), 2, 7),  # both caps overflow
         (ODD, (2, 3), 5, 1000),
-        (PAPER, (3,), 20, 30000),
+        (PAPER, (3,), 20, 30000),  # 65536 cells: the largest map set sorted as 16-bit keys
+        (PAPER, (0, 3), 20, 30000),  # 131072 cells: the wider sort key
     ],
 )
 def test_matches_naive_reference(seed, grid, quadrants, m_max, max_pillars):
@@ -116,6 +120,20 @@ def test_matches_naive_reference(seed, grid, quadrants, m_max, max_pillars):
     points = random_points(rng, 1500, grid)
     out = pillarize(points, grid, quadrants, m_max, max_pillars)
     assert_matches_reference(out, points, grid, quadrants, m_max, max_pillars)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+@pytest.mark.parametrize("crop", [True, False])
+@pytest.mark.parametrize("grid, quadrants", [(SMALL, (0, 1, 2, 3)), (ODD, (1,)), (PAPER, (2, 3))])
+def test_sort_paths_agree(seed, crop, grid, quadrants, monkeypatch):
+    """The 16-bit radix sort and the wide key sort group the same points in the same order."""
+    points = random_points(np.random.default_rng(seed), 3000, grid)
+    narrow = pillarize(points, grid, quadrants, 6, 200, crop=crop)
+    monkeypatch.setattr(pillarize_module, "_UINT16_KEYS", 0)
+    wide = pillarize(points, grid, quadrants, 6, 200, crop=crop)
+    for field in ("features", "mask", "index"):
+        np.testing.assert_array_equal(getattr(narrow, field), getattr(wide, field))
+    assert narrow.num_points_dropped == wide.num_points_dropped and narrow.num_pillars_dropped == wide.num_pillars_dropped
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
