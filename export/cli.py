@@ -49,15 +49,19 @@ from streamdet.models.presets import preset_names
               help="How the lifter graph reads the LUT: K slots per voxel, or the compacted valid (voxel, camera) pairs "
                    "(models/compact_lifter.py; recorded as the manifest's lut_layout). auto: compact for a model with "
                    "one LUT height per voxel, slots for several (where compacting does not pay).")
+@click.option("--top-k", type=click.IntRange(min=1), default=None,
+              help="Detections per quadrant the slice graph decodes (default: the preset's, the paper's 500). Fewer make "
+                   "each slice run cheaper; the runtime's score threshold keeps far fewer anyway, and the detector counts "
+                   "the runs whose K-th score passed it (StreamingDetector.slice_runs_at_top_k: the cap cut boxes).")
 def main(preset, checkpoint, calibration, resolution, num_slices, fp16, int8, calibration_data, calibration_samples,
-         opset, out_dir, seed, image_layout, lut_layout) -> None:
+         opset, out_dir, seed, image_layout, lut_layout, top_k) -> None:
     """Export the detector as three ONNX graphs plus lut.npz and manifest.json, checking each against PyTorch.
 
     A LiDAR-only checkpoint (trained with use_image=False) exports its slice graph only, with no image_bev input."""
     opts = ExportOptions(
         preset=preset, checkpoint=checkpoint, calibration=calibration, resolution=resolution, num_slices=num_slices,
         fp16=fp16, int8=int8, calibration_data=calibration_data, calibration_samples=calibration_samples, opset=opset,
-        out_dir=out_dir, seed=seed, image_layout=image_layout, lut_layout=lut_layout,
+        out_dir=out_dir, seed=seed, image_layout=image_layout, lut_layout=lut_layout, top_k=top_k,
     )
     try:
         result = run_export(opts, report=lambda msg: click.echo(msg, err=True))

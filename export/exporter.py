@@ -92,6 +92,9 @@ def _check_options(opts: ExportOptions) -> None:
         raise ExportError(f"--opset must be an integer in [{lo}, {hi}], got {opts.opset!r}")
     if opts.calibration_data is not None and not opts.int8:
         raise ExportError("--calibration-data is the int8 calibration set: it needs --int8")
+    k = opts.top_k
+    if k is not None and (isinstance(k, bool) or not isinstance(k, int) or k < 1):
+        raise ExportError(f"--top-k must be a positive integer (detections per quadrant), got {k!r}")
     n = opts.calibration_samples
     if isinstance(n, bool) or not isinstance(n, int) or n < 1:
         raise ExportError(f"--calibration-samples must be a positive integer, got {n!r}")
@@ -122,9 +125,10 @@ def _resolve_preset(opts: ExportOptions) -> tuple[Preset, int, int]:
     # and the lifter form it was trained with (small_v2 moved to the flat lifter; its older checkpoints are volume)
     form = checkpoint_lifter_form(opts.checkpoint) or preset.lifter.form
     residual = checkpoint_lifter_residual(opts.checkpoint) or preset.lifter.residual  # the flat lifter's residual conv
+    post = preset.post if opts.top_k is None else dataclasses.replace(preset.post, top_k=opts.top_k)
     try:
         lifter = dataclasses.replace(preset.lifter, form=form, residual=residual)
-        preset = dataclasses.replace(preset, image=image, use_image=use_image, slice_crop=slice_crop, lifter=lifter)
+        preset = dataclasses.replace(preset, image=image, use_image=use_image, slice_crop=slice_crop, lifter=lifter, post=post)
     except ValueError as e:
         raise ExportError(f"checkpoint {opts.checkpoint}: {e}") from None
     return preset, width, height

@@ -53,6 +53,9 @@ class ExportOptions:
     # how the lifter graph reads the LUT (core/lut_layout.py): K slots, or the compacted valid pairs; "auto":
     # resolve_lut_layout (run_export records the resolved one)
     lut_layout: str = DEFAULT_LUT_LAYOUT
+    # detections per quadrant the slice graph decodes (PostConfig.top_k); None: the preset's (the paper's 500). The
+    # runtime's score threshold keeps far fewer; the detector counts runs whose K-th score passed it (cut by the cap)
+    top_k: int | None = None
 
     @property
     def precisions(self) -> tuple[str, ...]:

@@ -146,6 +146,7 @@ def play(
     futures: list[concurrent.futures.Future] = []
     cpu = {"player": 0.0}
     process0 = time.process_time()
+    at_top_k0 = getattr(detector, "slice_runs_at_top_k", 0)  # the warm-up's runs are not the drive's
 
     def drive_sensors() -> None:
         cpu0 = time.thread_time()
@@ -188,7 +189,7 @@ def play(
     return Recording(config.mode, drive.name, config.time_scale, slices, images, wall_s, cpu["player"],
                      time.process_time() - process0, image_lane_cpu_s, len(drive.sweeps),
                      None if phase_lock is None else dataclasses.asdict(phase_lock), gc_pauses.to_dict(),
-                     getattr(mode.runner, "slices_held", 0))  # fmt: skip
+                     getattr(mode.runner, "slices_held", 0), getattr(detector, "slice_runs_at_top_k", 0) - at_top_k0)  # fmt: skip
 
 
 def _newest_images_by_scan_start(

@@ -98,6 +98,8 @@ class Recording:
     # the garbage collector's pauses during the drive, per generation (runtime_ort/heap.py: GcPauses.to_dict)
     gc_pauses: dict | None = None
     slices_held: int = 0  # slice runs whose first slice waited for the next one of its quadrant (LaneConfig.pair_hold_load)
+    # slice runs whose K-th decoded box passed the score threshold (StreamingDetector.slice_runs_at_top_k)
+    slice_runs_at_top_k: int = 0
 
     @property
     def drive_s(self) -> float:
@@ -134,12 +136,13 @@ class Recording:
         slices = tuple(SliceRecord(**{k: nan(v) for k, v in x.items() if k in SliceRecord.__slots__}) for x in d["slices"])
         images = tuple(ImageRecord(**{k: nan(v) for k, v in x.items() if k in ImageRecord.__slots__}) for x in d["images"])
         scalars = {k: nan(d[k]) for k in ("wall_s", "player_cpu_s", "process_cpu_s", "image_lane_cpu_s") if k in d}
-        extra = {k: d[k] for k in ("rotations", "phase_lock", "gc_pauses", "slices_held") if k in d}
+        extra = {k: d[k] for k in ("rotations", "phase_lock", "gc_pauses", "slices_held", "slice_runs_at_top_k") if k in d}
         return cls(d["mode"], d["drive"], d["time_scale"], slices, images, **scalars, **extra)
 
     def to_dict(self) -> dict:
         out = {k: getattr(self, k) for k in ("mode", "drive", "time_scale", "wall_s", "player_cpu_s", "process_cpu_s",
-                                             "image_lane_cpu_s", "rotations", "phase_lock", "gc_pauses", "slices_held")}  # fmt: skip
+                                             "image_lane_cpu_s", "rotations", "phase_lock", "gc_pauses", "slices_held",
+                                             "slice_runs_at_top_k")}  # fmt: skip
         out = {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in out.items()}
         out["slices"] = [s.to_dict() for s in self.slices]
         out["images"] = [i.to_dict() for i in self.images]

@@ -173,6 +173,10 @@ def format_report(result: ReplayResult, info: dict) -> str:
         after = "" if c.fallback_after_s is None else f" or image BEV older than {1e3 * c.fallback_after_s:g} ms"
         lines += ["", f"LiDAR-only fallback {c.fallback_export_dir} (slices without image BEV{after}): "
                   + ", ".join(f"{mode} {_fallbacks(r)}" for mode, r in result.modes.items()) + " slices"]  # fmt: skip
+    at_cap = {mode: sum(x.slice_runs_at_top_k for x in r.recordings) for mode, r in result.modes.items()}
+    if any(at_cap.values()):
+        lines += ["", "slice runs whose K-th decoded box passed the score threshold (the graph's top-K cap may have cut "
+                  "boxes; streamdet-export --top-k): " + ", ".join(f"{mode} {n}" for mode, n in at_cap.items())]  # fmt: skip
     lines += ["", _gc_line(result), "", _image_lane_table(result), "", _per_class_table(result), "", _stage_table(result), "",
               *_targets(result, period_ms)]  # fmt: skip
     return "\n".join(lines)

@@ -73,7 +73,7 @@ from streamdet.runtime_ort.image_cache import (  # noqa: F401 (check_camera_time
 )
 from streamdet.runtime_ort.manifest import ImageSpec, Manifest, ManifestError, export_file, read_manifest
 from streamdet.runtime_ort.pillarize import POINT_DIM, pillarize
-from streamdet.runtime_ort.postprocess import Detections, PostprocessConfig, aggregate_sweep, postprocess_slice
+from streamdet.runtime_ort.postprocess import Detections, PostprocessConfig, aggregate_sweep, postprocess_slice, top_k_reached
 from streamdet.runtime_ort.recording import Feeds, GraphRecording
 from streamdet.runtime_ort.sessions import GraphSession, SessionConfig
 from streamdet.runtime_ort.signature import check_graph, check_runtime_fields
@@ -167,6 +167,8 @@ class StreamingDetector:
             self._graph_entries[FALLBACK_GRAPH] = self._fallback.entry
 
         self._lock = threading.Lock()  # guards the swaps of _lut and _image; reads take a reference
+        self._cap_lock = threading.Lock()  # slice workers count runs at the top-K cap at once
+        self._runs_at_top_k = 0
         self._calibration_lock = threading.Lock()  # one calibration swap (and its re-lift) at a time
         self._image_seq = 0  # update_images calls started (under _lock)
         self._lut: Lut | None = None  # stays None for a LiDAR-only export
@@ -625,6 +627,12 @@ class StreamingDetector:
         return self._image
 
     @property
+    def slice_runs_at_top_k(self) -> int:
+        """Slice-graph runs so far in which a quadrant's K-th box (the last the graph decodes: the export's
+        ``post.top_k``, ``streamdet-export --top-k``) passed the score threshold, so the cap may have cut boxes."""
+        return self._runs_at_top_k
+
+    @property
     def postprocess(self) -> PostprocessConfig:
         """The post-processing every slice runs: score threshold (the config's, else the export's), sector
         restriction and NMS settings."""
@@ -710,6 +718,9 @@ class StreamingDetector:
                 feeds, graph = pillars.as_feeds(quadrants if crop else None), "slice_head"
             with self.stats.time(graph, self._executed_gmac(graph, Q=num_maps)):
                 boxes, scores, labels = self._run_graph(graph, feeds)
+            if top_k_reached(scores, self._post.score_threshold):
+                with self._cap_lock:
+                    self._runs_at_top_k += 1
             with self.stats.time("post"):
                 lo, hi = sector_bounds_deg(ks[0], n, self.config.start_deg)
                 if len(ks) > 1:  # the run's sector ends where its last slice's does

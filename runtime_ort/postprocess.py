@@ -111,6 +111,15 @@ def in_sector(boxes: np.ndarray, sector_deg: tuple[float, float]) -> np.ndarray:
     return rel < hi - lo
 
 
+def top_k_reached(det_scores: np.ndarray, score_threshold: float) -> bool:
+    """Whether some quadrant's last decoded score, (Q, K) in descending order as the graph's top-K gives them, passes
+    the threshold: every one of its K boxes was kept, so the cap may have cut more."""
+    scores = np.asarray(det_scores)
+    if scores.ndim != 2:
+        raise ValueError(f"det_scores must be (Q, K), got shape {scores.shape}")
+    return scores.shape[1] > 0 and bool((scores[:, -1] >= score_threshold).any())
+
+
 def postprocess_slice(
     det_boxes: np.ndarray,
     det_scores: np.ndarray,

@@ -5,11 +5,16 @@ from __future__ import annotations
 import dataclasses
 import json
 
+import numpy as np
+import onnx
 import pytest
 import torch
 from click.testing import CliRunner
 
+from streamdet.data.sample import load_bundled_sample
 from streamdet.export.cli import main
+from streamdet.runtime_ort.detector import StreamingDetector
+from streamdet.runtime_ort.detector_config import DetectorConfig
 from streamdet.runtime_ort.manifest import read_manifest
 from streamdet.models.detector import build_detector
 from streamdet.models.presets import get_preset
@@ -45,10 +50,27 @@ def test_tiny_export_prints_what_it_wrote(tmp_path):
     assert (m.image.width, m.image.height, m.image.feature_width, m.image.feature_height) == (130, 74, 33, 19)
     assert m.graph("image_encoder").opset == 18 and m.precisions == ("fp32",)
     assert _leftovers(tmp_path) == []
+    assert m.post["top_k"] == get_preset("tiny").post.top_k  # the preset's cap unless --top-k says
     # exporting again replaces the old export
-    again = _invoke(["--preset", "tiny", "--resolution", "130x74", "--out", str(out), "--slices", "4"])
+    again = _invoke(["--preset", "tiny", "--resolution", "130x74", "--out", str(out), "--slices", "4", "--top-k", "7"])
     assert again.exit_code == 0, again.output
-    assert read_manifest(out).num_slices == 4 and _leftovers(tmp_path) == []
+    m = read_manifest(out)
+    assert m.num_slices == 4 and _leftovers(tmp_path) == []
+    assert m.post["top_k"] == 7 and m.post["top_k_per_quadrant"] == 7
+    scores = next(o for o in onnx.load(out / "slice_head.onnx").graph.output if o.name == "det_scores")
+    assert scores.type.tensor_type.shape.dim[1].dim_value == 7  # the graph decodes 7 boxes per quadrant
+    _check_top_k_counter(out)
+
+
+def _check_top_k_counter(export_dir) -> None:
+    """StreamingDetector.slice_runs_at_top_k counts the runs whose K-th box passed the threshold, none else."""
+    sweep = load_bundled_sample().points.astype(np.float32)
+    with StreamingDetector(export_dir, DetectorConfig(score_threshold=0.0)) as det:  # every K-th box passes 0
+        results = det.detect_sweep_slices(sweep, 0.0).slices
+        assert det.slice_runs_at_top_k == sum(r.num_pillars > 0 for r in results) > 0
+    with StreamingDetector(export_dir, DetectorConfig(score_threshold=0.999999)) as det:
+        det.detect_sweep_slices(sweep, 0.0)
+        assert det.slice_runs_at_top_k == 0
 
 
 @pytest.mark.parametrize(
@@ -126,6 +148,8 @@ def test_unwritable_and_foreign_out_dirs(tmp_path):
         (["--slices", "3"], "multiple of 4"),
         (["--opset", "9"], "9"),
         (["--calibration", "/nonexistent/calibration.json"], "does not exist"),
+        (["--top-k", "0"], "--top-k"),
+        (["--top-k", "many"], "--top-k"),
     ],
 )
 def test_other_bad_options(tmp_path, args, needle):

@@ -71,15 +71,16 @@ def test_a_recording_read_back_from_its_dict_is_the_same_but_for_detections():
     dropped.dropped = True
     images = (ImageRecord(0, 0.1, release_s=0.1, start_s=0.11, end_s=0.12, emit_s=0.12), ImageRecord(1, 0.2, superseded=True))
     rec = Recording("streaming", "d", 2.0, (s, dropped), images, 1.5, 0.01, 1.2, image_lane_cpu_s=0.4, rotations=30,
-                    phase_lock={"quadrant_lifts": 3}, gc_pauses=None, slices_held=7)  # fmt: skip
+                    phase_lock={"quadrant_lifts": 3}, gc_pauses=None, slices_held=7, slice_runs_at_top_k=2)  # fmt: skip
     d = json.loads(json.dumps(rec.to_dict()))  # as replay.json holds it: nan as null
     back = Recording.from_dict(d)
     assert back.to_dict() == d
     assert back.slices[1].dropped and math.isnan(back.slices[1].emit_s) and back.images[1].superseded
-    assert back.slices_held == 7
-    old = {k: v for k, v in d.items() if k not in ("rotations", "phase_lock", "gc_pauses", "image_lane_cpu_s", "slices_held")}
+    assert back.slices_held == 7 and back.slice_runs_at_top_k == 2
+    old = {k: v for k, v in d.items()
+           if k not in ("rotations", "phase_lock", "gc_pauses", "image_lane_cpu_s", "slices_held", "slice_runs_at_top_k")}
     assert Recording.from_dict(old).rotations == 0 and math.isnan(Recording.from_dict(old).image_lane_cpu_s)
-    assert Recording.from_dict(old).slices_held == 0
+    assert Recording.from_dict(old).slices_held == 0 and Recording.from_dict(old).slice_runs_at_top_k == 0
 
 
 def test_stale_slices_by_recent_images_count_the_rotation_before_the_scan_start_only():

@@ -18,6 +18,7 @@ from streamdet.runtime_ort.postprocess import (
     aggregate_sweep,
     in_sector,
     postprocess_slice,
+    top_k_reached,
     uncrop_boxes,
 )
 
@@ -452,3 +453,25 @@ def test_blocked_rotated_nms_matches_naive_loop(seed, block, monkeypatch):
     boxes, scores, labels = random_boxes(rng, 120, spread_m=4.0)
     config = NmsConfig(kind=NmsKind.ROTATED, iou_threshold=0.2)
     assert nms(boxes, scores, labels, config).tolist() == naive_nms(boxes, scores, labels, config)
+
+
+def _naive_top_k_reached(scores: np.ndarray, threshold: float) -> bool:
+    return any(len(row) > 0 and row[-1] >= threshold for row in scores.tolist())
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("dtype", [np.float32, np.float16, np.float64])
+def test_top_k_reached_matches_reference(seed, dtype):
+    rng = np.random.default_rng(seed)
+    for q, k in ((1, 5), (2, 3), (4, 500), (3, 0)):
+        scores = -np.sort(-rng.uniform(0, 1, (q, k)), axis=1).astype(dtype)  # descending, as the graph's top-K
+        for threshold in (0.0, 0.05, 0.5, 0.99, 1.0):
+            assert top_k_reached(scores, threshold) == _naive_top_k_reached(scores, threshold)
+
+
+def test_top_k_reached_nan_and_malformed():
+    assert not top_k_reached(np.array([[0.9, np.nan]], np.float32), 0.1)  # a NaN K-th score passes nothing
+    assert top_k_reached(np.array([[0.9, 0.2], [0.5, np.nan]], np.float32), 0.1)
+    for bad in (np.zeros(5, np.float32), np.zeros((1, 2, 3), np.float32)):
+        with pytest.raises(ValueError, match=r"\(Q, K\)"):
+            top_k_reached(bad, 0.1)
