@@ -6,6 +6,7 @@
 - ``sectors``: azimuth, quadrants and streaming sectors
 - ``slicing``: ``split_sweep``, ``boxes_in_sector``, ``relative_time_s``
 - ``constants``: the graph precisions and the ``bundled:`` sources
+- ``cpu``: the CPU model and the SIMD flags the kernels see (less what a CPUID mask hides)
 """
 
 from streamdet.core.boxes import BOX_DIM
