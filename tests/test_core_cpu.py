@@ -155,3 +155,18 @@ def test_other_segfaults_still_crash(tmp_path: Path) -> None:
 def test_wrapper_without_command_says_how(tmp_path: Path) -> None:
     done = subprocess.run([str(WRAPPER)], capture_output=True, text=True, check=False)
     assert done.returncode == 2 and "usage" in done.stderr
+
+
+@pytest.mark.parametrize("mask", [None, "avx2"])
+def test_bench_header_names_the_mask(mask):
+    from streamdet.benchmarks.probe import ProbeResult
+    from streamdet.benchmarks.report import format_header
+
+    machine = {"cpu_model": "AMD EPYC", "cpu_flags": ["avx2", "fma"], "logical_cpus": 2, "load_average_1_5_15": [0.1, 0.2, 0.3],
+               "onnxruntime": "1", "torch": "2", "cpu_mhz": None, "nominal_peak_gflops_per_s": None}  # fmt: skip
+    if mask is not None:
+        machine["cpuid_mask"] = mask
+    meta = {"date": "2026-12-05", "preset": "tiny", "machine": machine, "threads": 2, "repeat": 3, "warmup": 1, "budget_s": 2.0}
+    header = format_header(meta, ProbeResult((100.0, 120.0), 256, 2))
+    assert ("CPUID masked to avx2" in header) == (mask is not None)
+    assert "AMD EPYC (avx2, fma" in header
