@@ -92,12 +92,12 @@ def _check_options(opts: ExportOptions) -> None:
         raise ExportError(f"--opset must be an integer in [{lo}, {hi}], got {opts.opset!r}")
     if opts.calibration_data is not None and not opts.int8:
         raise ExportError("--calibration-data is the int8 calibration set: it needs --int8")
-    k = opts.top_k
-    if k is not None and (isinstance(k, bool) or not isinstance(k, int) or k < 1):
-        raise ExportError(f"--top-k must be a positive integer (detections per quadrant), got {k!r}")
-    n = opts.calibration_samples
-    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
-        raise ExportError(f"--calibration-samples must be a positive integer, got {n!r}")
+    counts = {"--calibration-samples": opts.calibration_samples}
+    if opts.top_k is not None:  # None: the preset's
+        counts["--top-k"] = opts.top_k
+    for flag, value in counts.items():
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ExportError(f"{flag} must be a positive integer, got {value!r}")
     if opts.int8 and opts.calibration_data is not None:
         try:
             q8.dataset_version(opts.calibration_data)
