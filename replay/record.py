@@ -11,7 +11,7 @@ intra-op thread computes on that thread).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 
@@ -59,8 +59,7 @@ class SliceRecord:
         return (self.newest_capture_s - self.image_capture_s) * 1e3
 
     def to_dict(self) -> dict:
-        d = {k: getattr(self, k) for k in self.__slots__ if k != "detections"}
-        return {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in d.items()}
+        return _json_fields(self, exclude=("detections",))
 
 
 @dataclass(slots=True)
@@ -76,8 +75,7 @@ class ImageRecord:
     cpu_s: float = 0.0
 
     def to_dict(self) -> dict:
-        d = {k: getattr(self, k) for k in self.__slots__}
-        return {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in d.items()}
+        return _json_fields(self)
 
 
 @dataclass(frozen=True)
@@ -129,24 +127,34 @@ class Recording:
     @classmethod
     def from_dict(cls, d: dict) -> "Recording":
         """The inverse of ``to_dict`` (a recording of a saved ``replay.json``), detections left out: they are not
-        saved. Fields a replay of an older version did not write keep their defaults."""
-        def nan(v):
-            return float("nan") if v is None else v
-
-        slices = tuple(SliceRecord(**{k: nan(v) for k, v in x.items() if k in SliceRecord.__slots__}) for x in d["slices"])
-        images = tuple(ImageRecord(**{k: nan(v) for k, v in x.items() if k in ImageRecord.__slots__}) for x in d["images"])
-        scalars = {k: nan(d[k]) for k in ("wall_s", "player_cpu_s", "process_cpu_s", "image_lane_cpu_s") if k in d}
-        extra = {k: d[k] for k in ("rotations", "phase_lock", "gc_pauses", "slices_held", "slice_runs_at_top_k") if k in d}
-        return cls(d["mode"], d["drive"], d["time_scale"], slices, images, **scalars, **extra)
+        saved. Fields a replay of an older version did not write keep their defaults; keys it does not know are
+        ignored."""
+        slices = tuple(SliceRecord(**_known_fields(SliceRecord, x)) for x in d["slices"])
+        images = tuple(ImageRecord(**_known_fields(ImageRecord, x)) for x in d["images"])
+        return cls(**_known_fields(cls, d, exclude=("slices", "images")), slices=slices, images=images)
 
     def to_dict(self) -> dict:
-        out = {k: getattr(self, k) for k in ("mode", "drive", "time_scale", "wall_s", "player_cpu_s", "process_cpu_s",
-                                             "image_lane_cpu_s", "rotations", "phase_lock", "gc_pauses", "slices_held",
-                                             "slice_runs_at_top_k")}  # fmt: skip
-        out = {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in out.items()}
+        out = _json_fields(self, exclude=("slices", "images"))
         out["slices"] = [s.to_dict() for s in self.slices]
         out["images"] = [i.to_dict() for i in self.images]
         return out
+
+
+def _json_fields(record, exclude: tuple[str, ...] = ()) -> dict:
+    """A record's fields by name, NaN written as None (JSON has no NaN)."""
+    values = {f.name: getattr(record, f.name) for f in fields(record) if f.name not in exclude}
+    return {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in values.items()}
+
+
+def _known_fields(cls, d: dict, exclude: tuple[str, ...] = ()) -> dict:
+    """The inverse of ``_json_fields``: the keys of ``d`` that name fields of ``cls``, None read back as NaN for a
+    float field (a time or CPU count that was NaN); an optional field keeps None (``phase_lock``)."""
+    out = {}
+    for f in fields(cls):
+        if f.name in d and f.name not in exclude:
+            v = d[f.name]
+            out[f.name] = float("nan") if v is None and f.type in ("float", float) else v
+    return out
 
 
 def full_collections(gc_pauses: list[dict | None]) -> tuple[int, float] | None:

@@ -81,6 +81,8 @@ def test_a_recording_read_back_from_its_dict_is_the_same_but_for_detections():
            if k not in ("rotations", "phase_lock", "gc_pauses", "image_lane_cpu_s", "slices_held", "slice_runs_at_top_k")}
     assert Recording.from_dict(old).rotations == 0 and math.isnan(Recording.from_dict(old).image_lane_cpu_s)
     assert Recording.from_dict(old).slices_held == 0 and Recording.from_dict(old).slice_runs_at_top_k == 0
+    newer = {**d, "a_later_field": 1, "slices": [{**x, "a_later_field": 2} for x in d["slices"]]}
+    assert Recording.from_dict(newer).to_dict() == d  # keys a later version writes are ignored
 
 
 def test_stale_slices_by_recent_images_count_the_rotation_before_the_scan_start_only():
