@@ -18,7 +18,7 @@ import onnx
 import onnxruntime as ort
 from onnx import TensorProto, helper
 
-from streamdet.core.cpu import cpu_flags as visible_flags
+from streamdet.core.cpu import kernel_flags
 from streamdet.core.cpu import cpu_model, cpuid_mask
 from streamdet.runtime_ort.onnx_build import make_model
 from streamdet.runtime_ort.sessions import GraphSession, SessionConfig
@@ -109,14 +109,10 @@ def measure_peak(threads: int, config: ProbeConfig = ProbeConfig()) -> ProbeResu
     return ProbeResult(tuple(2.0 * n**3 / s / 1e9 for s in seconds), n, threads)
 
 
-SIMD_FLAGS = ("avx", "avx2", "fma", "f16c", "avx512f", "avx512_bf16", "avx512_fp16", "avx512_vnni", "amx_tile")
-
-
 def cpu_flags() -> tuple[str, ...]:
     """The SIMD flags that decide the kernels onnxruntime and PyTorch pick (avx2, fma, avx512f, ...), as the kernels
-    see them (a CPUID mask hides some: `streamdet.core.cpu`)."""
-    have = visible_flags()
-    return tuple(w for w in SIMD_FLAGS if w in have)
+    see them (a CPUID mask hides some): `streamdet.core.cpu.kernel_flags`."""
+    return kernel_flags()
 
 
 class OtherCpuUse:

@@ -70,3 +70,13 @@ def cpu_flags(path: str | Path = CPUINFO, environ: dict[str, str] | None = None)
         return flags
     hidden = MASKS[mask]
     return frozenset(f for f in flags if not hidden(f))
+
+
+# The SIMD flags that decide which kernels numpy, OpenCV, onnxruntime and PyTorch pick, in the order reports list them.
+KERNEL_FLAGS = ("avx", "avx2", "fma", "f16c", "avx512f", "avx512_bf16", "avx512_fp16", "avx512_vnni", "avx_vnni", "amx_tile")
+
+
+def kernel_flags(path: str | Path = CPUINFO, environ: dict[str, str] | None = None) -> tuple[str, ...]:
+    """Those of ``KERNEL_FLAGS`` the kernels of this process can see (``cpu_flags``), in that order."""
+    visible = cpu_flags(path, environ)
+    return tuple(f for f in KERNEL_FLAGS if f in visible)

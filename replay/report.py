@@ -14,21 +14,17 @@ from pathlib import Path
 
 import numpy as np
 
-from streamdet.core.cpu import CPUINFO, cpu_flags, cpu_model, cpuid_mask
+from streamdet.core.cpu import CPUINFO, KERNEL_FLAGS, cpu_model, cpuid_mask, kernel_flags
 from streamdet.replay.record import STALE_MS, full_collections, percentiles, staleness_by_recent_images
 from streamdet.replay.run import ModeResult, ReplayResult
 
-CPU_FLAGS = ("avx2", "fma", "avx512f", "avx512_vnni", "avx_vnni", "avx512_bf16", "amx_tile")
-
-
 def cpu_info(cpuinfo: str | Path = CPUINFO) -> dict:
-    """{model, flags (those of CPU_FLAGS the kernels can see), cpuid_mask (None, or the mask hiding the rest:
+    """{model, flags (those of core.cpu.KERNEL_FLAGS the kernels can see), cpuid_mask (None, or the mask hiding the rest:
     `streamdet.core.cpu`), threads (usable by this process), logical_cpus}."""
-    flags = cpu_flags(cpuinfo)
     threads = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     return {
         "model": cpu_model(cpuinfo),
-        "flags": [f for f in CPU_FLAGS if f in flags],
+        "flags": list(kernel_flags(cpuinfo)),
         "cpuid_mask": cpuid_mask(),
         "threads": threads,
         "logical_cpus": os.cpu_count(),
@@ -36,7 +32,7 @@ def cpu_info(cpuinfo: str | Path = CPUINFO) -> dict:
 
 
 def cpu_line(info: dict) -> str:
-    flags = ", ".join(info["flags"]) or "none of " + "/".join(CPU_FLAGS)
+    flags = ", ".join(info["flags"]) or "none of " + "/".join(KERNEL_FLAGS)
     mask = info.get("cpuid_mask")  # absent in replays recorded before the mask existed
     masked = f"; CPUID masked to {mask}: the kernels' instruction set, not the silicon's" if mask else ""
     return f"{info['model']}, {info['threads']} threads usable ({flags}{masked})"

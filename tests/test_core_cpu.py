@@ -50,6 +50,17 @@ def test_avx2_mask_hides_everything_above_avx2(zen4: Path) -> None:
     assert not {"avx_vnni", "avx_ifma", "avx_vnni_int8"} & flags
 
 
+def test_kernel_flags_are_the_visible_ones_in_the_reports_order(zen4: Path, tmp_path: Path) -> None:
+    unmasked = cpu.kernel_flags(zen4, environ={})
+    assert unmasked == cpu.KERNEL_FLAGS  # this fake part has every one of them
+    masked = cpu.kernel_flags(zen4, environ={cpu.CPUID_MASK_ENV: "avx2"})
+    assert masked == ("avx", "avx2", "fma", "f16c")
+    bare = tmp_path / "bare"
+    bare.write_text(cpuinfo_text("Old", "fpu sse2 avx512_unknown"))
+    assert cpu.kernel_flags(bare, environ={}) == ()
+    assert cpu.kernel_flags(tmp_path / "missing", environ={}) == ()
+
+
 @pytest.mark.parametrize("value", ["avx512", "AVX2", "sse", " avx2"])
 def test_unknown_mask_names_the_value(value: str) -> None:
     with pytest.raises(ValueError, match=repr(value).replace("[", r"\[")):
