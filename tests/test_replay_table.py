@@ -133,8 +133,8 @@ def test_malformed_recordings_are_one_line_and_a_non_zero_exit(tmp_path, capsys)
     assert "r1_scale1_lite: recordings not as streamdet-replay writes them" in capsys.readouterr().err
 
 
-def _line_run(out, name, p95, dropped, p99, cpu=AVX2):
-    summary = _summary(p95, dropped) | {"latency_ms": {"p99": p99}}
+def _line_run(out, name, p95, dropped, p99, cpu=AVX2, map_streaming=0.4125):
+    summary = _summary(p95, dropped) | {"latency_ms": {"p99": p99}, "map_streaming": map_streaming}
     _run(out, name, summary, cpu)
 
 
@@ -143,14 +143,16 @@ def test_the_line_against_a_baseline_counts_rounds_paired_with_it(tmp_path):
 
     _line_run(tmp_path, "r1_scale0.5_full", 150, 0, 40.0)
     _line_run(tmp_path, "r2_scale0.5_full", 150, 3, 20.0)
-    _line_run(tmp_path, "r1_scale0.5_pl", 58, 0, 30.0)  # meets all three
-    _line_run(tmp_path, "r2_scale0.5_pl", 58, 0, 25.0)  # p99 above the baseline's of its round
+    _line_run(tmp_path, "r1_scale0.5_pl", 58, 0, 30.0, map_streaming=0.40)  # meets all three, mAP below
+    _line_run(tmp_path, "r2_scale0.5_pl", 58, 0, 25.0, map_streaming=None)  # p99 above the baseline's of its round
     _line_run(tmp_path, "r3_scale0.5_pl", 58, 0, 1.0)  # no baseline round: its p99 is not counted
     _line_run(tmp_path, "r1_scale1_pl", 120, 2, 5.0)  # no baseline at this scale
     text = line_against(tmp_path, "full")
     assert "staleness added p95 <= 100 ms" in text  # the AVX2-only CPU's target
-    assert "- scale 0.5, pl: staleness 3 of 3, none dropped 3 of 3, p99 1 of 2 paired; the whole line 1 of 3" in text
-    assert "- scale 1, pl: staleness 0 of 1, none dropped 0 of 1, p99 0 of 0 paired; the whole line 0 of 1" in text
+    assert ("- scale 0.5, pl: staleness 3 of 3, none dropped 3 of 3, p99 1 of 2 paired; the whole line 1 of 3; "
+            "streaming mAP >= `full`'s 0 of 1 paired") in text  # r2 has no score, r3 no baseline round
+    assert ("- scale 1, pl: staleness 0 of 1, none dropped 0 of 1, p99 0 of 0 paired; the whole line 0 of 1; "
+            "streaming mAP >= `full`'s 0 of 0 paired") in text
     assert "full:" not in text
     assert "<= 25 ms" in line_against(tmp_path, "full", target_ms=25.0)
 
