@@ -49,15 +49,13 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from streamdet.calibration.camera import CalibrationError, Rig
-from streamdet.calibration.compact_lut import lifter_lut_feeds
 from streamdet.calibration.grid import GridSpec
 from streamdet.calibration.lut import (
     BlindCameraWarning, CameraMovedWarning, Lut, blind_cameras, build_lut, check_rig_fits, moved_cameras,
 )
-from streamdet.calibration.quadrant_lut import QuadrantLut, quadrant_luts
+from streamdet.calibration.quadrant_lut import QuadrantLut
 from streamdet.core.constants import PRECISIONS  # noqa: F401 (public here too)
 from streamdet.core.image_layout import image_map_chw
-from streamdet.core.lut_layout import LUT_COMPACT
 from streamdet.core.points import check_sweep
 from streamdet.core.sectors import NUM_QUADRANTS, check_num_slices, quadrants_of_sector, sector_bounds_deg
 from streamdet.core.slicing import split_sweep
@@ -71,6 +69,7 @@ from streamdet.runtime_ort.fallback import FALLBACK_GRAPH, LidarFallback, needs_
 from streamdet.runtime_ort.image_cache import (  # noqa: F401 (check_camera_timestamps: public here too)
     ALL_QUADRANTS, ImageCache, QuadrantState, check_camera_timestamps, quadrant_states, select_maps, update_quadrants,
 )
+from streamdet.runtime_ort.lut_views import LutViews
 from streamdet.runtime_ort.manifest import ImageSpec, Manifest, ManifestError, export_file, read_manifest
 from streamdet.runtime_ort.pillarize import POINT_DIM, pillarize
 from streamdet.runtime_ort.postprocess import Detections, PostprocessConfig, aggregate_sweep, postprocess_slice, top_k_reached
@@ -178,9 +177,8 @@ class StreamingDetector:
         elif self.uses_images:
             self._lut = self._check_lut(self._build_lut(export_rig(m, self.export_dir)))
         self._image: ImageCache | None = None  # None before the first image update; replaced whole under _lock
-        self._quadrant_luts: dict[Lut, tuple[QuadrantLut, ...]] = {}  # per LUT in use (the newest two kept)
-        self._cameras_of: tuple[Lut, dict[tuple[int, ...], tuple[str, ...]]] | None = None  # quadrant_cameras' answers
-        self._compact_luts: dict[tuple[int, int], tuple[Lut | QuadrantLut, dict[str, np.ndarray]]] = {}  # compact LUT feeds
+        # per-quadrant LUTs, lifter LUT feeds and quadrant_cameras' answers, made once per LUT (lut_views.py)
+        self._views = LutViews(self.camera_names, m.lut_layout)
         # per-camera lifts of image updates (camera_terms.py); None: every update runs the lifter graph
         self._terms: CameraTerms | None = self._open_camera_terms() if self.uses_images and self._lut is not None else None
         log.info("streamdet: %s (%s, %d slices) on %s", self.export_dir, self.precision_label, self.num_slices, list(self.providers))
@@ -447,21 +445,14 @@ class StreamingDetector:
 
     def quadrant_cameras(self, quadrants: Sequence[int]) -> tuple[str, ...]:
         """The cameras whose feature maps the LUT in use reads in these quadrants, in the export's camera order."""
-        # the phase-locked lane asks several hundred times a second, holding the GIL: answers are kept per LUT
-        key = tuple(quadrants) if isinstance(quadrants, (list, tuple)) else None
-        kept = self._cameras_of
-        if key is not None and kept is not None and kept[0] is self._lut and all(type(q) is int for q in key):
-            cams = kept[1].get(key)
+        # the phase-locked lane asks several hundred times a second, holding the GIL: a kept answer before any check
+        if isinstance(quadrants, (list, tuple)) and all(type(q) is int for q in quadrants):
+            cams = self._views.known_cameras(self._lut, tuple(quadrants))
             if cams is not None:
                 return cams
         wanted = update_quadrants(quadrants)
         lut = self.lut
-        qluts = self._luts_of(lut)
-        seen = {name for q in wanted for name in qluts[q].camera_names}
-        cams = tuple(n for n in self.camera_names if n in seen)
-        if key == wanted:
-            self._cameras_of = (lut, {**(kept[1] if kept is not None and kept[0] is lut else {}), key: cams})
-        return cams
+        return self._views.cameras(lut, wanted, in_use=self._lut)
 
     def check_images(self, images: Mapping[str, np.ndarray]) -> None:
         """ValueError unless ``images`` is a non-empty dict of known camera names to uint8 RGB (H, W, 3) images of
@@ -577,32 +568,12 @@ class StreamingDetector:
         return out
 
     def _lut_feeds(self, lut: Lut | QuadrantLut, maps: np.ndarray) -> dict[str, np.ndarray]:
-        """The lifter's LUT feeds of ``lut`` for the (J, C, Hf, Wf) ``maps`` in the export's LUT layout: the K-slot
-        arrays, or their compacted form (core/lut_layout.py), made once per LUT (the newest ones kept)."""
-        if self.manifest.lut_layout != LUT_COMPACT:
-            return {"lut_index": lut.index, "lut_weight": lut.weight}
-        j, _, hf, wf = maps.shape
-        key = (id(lut), j * hf * wf)
-        with self._lock:
-            cached = self._compact_luts.get(key)
-        if cached is None or cached[0] is not lut:  # an id is only unique while its object lives: the entry keeps it
-            cached = (lut, lifter_lut_feeds(lut.index, lut.weight, j * hf * wf, compact=True))
-            with self._lock:
-                if len(self._compact_luts) >= 2 * (NUM_QUADRANTS + 1):  # two LUTs' worth (full + per quadrant)
-                    self._compact_luts.pop(next(iter(self._compact_luts)))
-                self._compact_luts[key] = cached
-        return cached[1]
+        """The lifter's LUT feeds of ``lut`` for the (J, C, Hf, Wf) ``maps`` in the export's LUT layout."""
+        return self._views.lifter_feeds(lut, maps)
 
     def _luts_of(self, lut: Lut) -> tuple[QuadrantLut, ...]:
-        """The per-quadrant LUTs of ``lut``, made once per LUT (the two newest LUTs are kept)."""
-        with self._lock:
-            qluts = self._quadrant_luts.get(lut)
-        if qluts is None:
-            qluts = quadrant_luts(lut)
-            with self._lock:
-                keep = [k for k in self._quadrant_luts if k is self._lut and k is not lut]
-                self._quadrant_luts = {**{k: self._quadrant_luts[k] for k in keep}, lut: qluts}
-        return qluts
+        """The per-quadrant LUTs of ``lut``, made once per LUT (those of the LUT in use and of ``lut`` kept)."""
+        return self._views.quadrant_luts(lut, in_use=self._lut)
 
     @property
     def image_timestamp(self) -> float | None:
