@@ -26,6 +26,11 @@ SLICE_X, SLICE_Y, SLICE_Z, SLICE_REFLECTANCE, SLICE_TIME, SLICE_INDEX = range(SL
 
 INTENSITY_SCALE = 255.0  # reflectance = intensity / INTENSITY_SCALE
 SWEEP_DURATION_S = 0.05  # nuScenes LIDAR_TOP spins at 20 Hz
+# The slice columns the net reads as features beside x, y, z have a range it was trained on: a point outside it is
+# not a point of this sensor model (a corrupted record, an unscaled 16-bit intensity) and the pillarisation drops and
+# counts it rather than let one such value drive the net's activations anywhere (runtime_ort/pillarize.py).
+REFLECTANCE_RANGE = (0.0, 1.0)
+MAX_POINT_TIME_S = 1.0  # a slice point's time: within its sweep, plus the age of a past sweep (nuScenes' 10: 0.5 s)
 
 
 def check_sweep(points: np.ndarray, name: str = "sweep", *, exact: bool = True) -> np.ndarray:

@@ -3,8 +3,8 @@
 `slice_head.onnx` returns, per touched quadrant, its top-K boxes with x, y relative to the quadrant's
 minimum corner (docs/architecture.md, "The three graphs"); a LiDAR-only graph without the crop returns one map of
 the whole grid, relative to the grid's minimum corner (`calibration/slice_maps.py`). Post-processing uncrops them
-(adds `GridSpec.quadrant_origin_m(q)`, or the grid's corner), drops low scores, optionally keeps only boxes centred in the slice's
-sector, and runs per-class NMS. The paper then aggregates the slices of a sweep with one more per-class NMS,
+(adds `GridSpec.quadrant_origin_m(q)`, or the grid's corner), drops low scores and boxes no net output of this grid
+can mean (`plausible_boxes`), optionally keeps only boxes centred in the slice's sector, and runs per-class NMS. The paper then aggregates the slices of a sweep with one more per-class NMS,
 which removes objects detected twice across a slice border.
 """
 
@@ -18,7 +18,7 @@ import numpy as np
 
 from streamdet.calibration.grid import GridSpec
 from streamdet.calibration.slice_maps import slice_maps
-from streamdet.core.boxes import BOX_DIM, X, Y
+from streamdet.core.boxes import BOX_DIM, H, W, X, Y
 from streamdet.core.classes import CLASS_NAMES
 from streamdet.core.sectors import azimuth_deg, check_quadrants
 from streamdet.runtime_ort.nms import NmsConfig, nms
@@ -102,6 +102,24 @@ def uncrop_boxes(det_boxes: np.ndarray, quadrants: Sequence[int], grid: GridSpec
     return boxes.astype(np.float32)
 
 
+# How far past the grid's edge a box centre may lie: a centre is regressed from its head cell (0.4-0.8 m in the presets,
+# models/presets.py head_cell_m) and can leave an edge cell by part of one; a few cells of slack keep every such box.
+EDGE_MARGIN_M = 2.0
+
+
+def plausible_boxes(boxes: np.ndarray, grid: GridSpec) -> np.ndarray:
+    """Boolean (N,): the box's BEV centre lies inside the grid (up to ``EDGE_MARGIN_M`` past its edge) and its sizes
+    are positive and at most the grid's extent. A trained net's boxes are; out-of-range inputs (a corrupted point,
+    an image of garbage) can drive the regression anywhere, and such a box would reach the caller with whatever
+    score came with it."""
+    span_m = max(grid.x_range_m[1] - grid.x_range_m[0], grid.y_range_m[1] - grid.y_range_m[0])
+    (x_lo, x_hi), (y_lo, y_hi) = grid.x_range_m, grid.y_range_m
+    x, y = boxes[:, X], boxes[:, Y]
+    sizes = boxes[:, W : H + 1]  # (N, 3) w, l, h
+    inside = (x >= x_lo - EDGE_MARGIN_M) & (x <= x_hi + EDGE_MARGIN_M) & (y >= y_lo - EDGE_MARGIN_M) & (y <= y_hi + EDGE_MARGIN_M)
+    return inside & (sizes > 0).all(axis=1) & (sizes <= span_m).all(axis=1)
+
+
 def in_sector(boxes: np.ndarray, sector_deg: tuple[float, float]) -> np.ndarray:
     """Boolean (N,): the BEV centre's azimuth lies in [lo, hi) of the sector (wrapping past 360 deg)."""
     lo, hi = float(sector_deg[0]), float(sector_deg[1])
@@ -132,7 +150,7 @@ def postprocess_slice(
 ) -> Detections:
     """Decoded slice graph outputs (Q, K, 9), (Q, K), (Q, K) -> the slice's detections in the LiDAR frame.
 
-    Steps: uncrop, drop rows with a non-finite value, score threshold, sector restriction (when
+    Steps: uncrop, drop rows with a non-finite value, score threshold, implausible boxes (`plausible_boxes`), sector restriction (when
     `config.restrict_to_sector`; needs `sector_deg`, e.g. `grid.sector_bounds_deg(k, n)`), per-class NMS.
     `crop` False: the outputs are one map of the whole grid (a LiDAR-only net without the quadrant crop).
     """
@@ -156,6 +174,8 @@ def postprocess_slice(
         raise ValueError(f"det_labels must index CLASS_NAMES (0..{len(CLASS_NAMES) - 1}), got {labels[bad_label][0]}")
 
     keep = np.isfinite(boxes).all(axis=1) & np.isfinite(scores) & (scores >= config.score_threshold)
+    passed = np.flatnonzero(keep)  # the few above the threshold: the plausibility test on those only
+    keep[passed[~plausible_boxes(boxes[passed], grid)]] = False
     if config.restrict_to_sector:
         keep &= in_sector(boxes, sector_deg)
     dets = Detections(boxes[keep], scores[keep], labels[keep])

@@ -17,6 +17,7 @@ from streamdet.runtime_ort.postprocess import (
     PostprocessConfig,
     aggregate_sweep,
     in_sector,
+    EDGE_MARGIN_M,
     postprocess_slice,
     top_k_reached,
     uncrop_boxes,
@@ -348,6 +349,14 @@ def test_postprocess_slice_matches_naive_pipeline(seed, restrict):
     sector = sector_bounds_deg(k % n, n)
     det, scores, labels = slice_outputs(rng, quadrants)
     det[0, 0, 0] = np.nan  # a broken row is dropped, not fatal
+    # boxes no net of this grid can mean (plausible_boxes): far away, flat, larger than the grid; and one just past
+    # the grid's edge, within EDGE_MARGIN_M, which stays
+    det[0, 1, 0] = 1.7e4
+    det[0, 2, 3] = 0.0
+    det[-1, 3, 5] = 500.0
+    det[-1, 4, 1] = -1e-29
+    det[0, 5, :2] = 51.2 + 1.5 - np.array(PAPER.quadrant_origin_m(quadrants[0]), np.float32)
+    scores[0, :6] = scores[-1, 3:5] = 0.9
     config = PostprocessConfig(score_threshold=0.3, restrict_to_sector=restrict, nms=NmsConfig(kind=NmsKind.ROTATED))
     out = postprocess_slice(det, scores, labels, quadrants, PAPER, config, sector_deg=sector)
 
@@ -359,6 +368,9 @@ def test_postprocess_slice_matches_naive_pipeline(seed, restrict):
             b[0] += x0
             b[1] += y0
             if not np.isfinite(b).all() or scores[qi, j] < 0.3:
+                continue
+            lo, hi = -51.2 - EDGE_MARGIN_M, 51.2 + EDGE_MARGIN_M
+            if not (lo <= b[0] <= hi and lo <= b[1] <= hi and all(0 < v <= 102.4 for v in b[3:6])):
                 continue
             azimuth = math.degrees(math.atan2(b[1], b[0])) % 360
             if restrict and not (sector[0] <= azimuth < sector[1]):
