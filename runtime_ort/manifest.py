@@ -60,7 +60,7 @@ from pathlib import Path
 from typing import Any, BinaryIO, Callable
 
 from streamdet.core.constants import PRECISIONS
-from streamdet.core.image_layout import IMAGE_BEV, IMAGE_LAYOUTS
+from streamdet.core.image_layout import IMAGE_BEV, IMAGE_HALF, IMAGE_LAYOUTS
 from streamdet.core.lut_layout import LUT_LAYOUTS, LUT_SLOTS
 from streamdet.runtime_ort.schema import SchemaViolation, validate
 
@@ -395,6 +395,11 @@ class Manifest:
         if not self.class_names:
             raise ManifestError("class_names must not be empty")
         _check_choice("image_layout", self.image_layout, IMAGE_LAYOUTS)
+        if self.image_layout == IMAGE_HALF:  # the image half's shape is the BEV encoder's first stage's (core/image_layout.py)
+            bev = self.preset.get("bev")
+            if not isinstance(bev, dict) or not bev.get("layer_strides") or not bev.get("num_filters"):
+                raise ManifestError(f"image_layout {IMAGE_HALF!r} needs preset.bev.layer_strides and preset.bev.num_filters "
+                                    f"(the BEV encoder's first stage), got preset.bev {bev!r:.200}")  # fmt: skip
         _check_choice("lut_layout", self.lut_layout, LUT_LAYOUTS)
         if not isinstance(self.num_slices, int) or self.num_slices < 1:
             raise ManifestError(f"num_slices must be a positive int, got {self.num_slices!r}")
@@ -525,7 +530,7 @@ def read_manifest(export_dir: str | os.PathLike, verify_files: bool = True) -> M
         if len(raw) > MAX_MANIFEST_BYTES:
             raise ManifestError(f"{path} is larger than {MAX_MANIFEST_BYTES >> 20} MiB: not a streamdet manifest")
         d = json.loads(raw.decode("utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+    except (OSError, ValueError) as e:  # ValueError: JSONDecodeError, UnicodeDecodeError, an integer of over 4300 digits
         raise ManifestError(f"{path} is not readable JSON: {e}") from None
     except RecursionError:  # deeper than the parser's stack
         raise too_deep from None

@@ -100,6 +100,17 @@ def test_verify_files(tmp_path):
         (lambda d: d["image"].update(width=0), "image.width"),
         (lambda d: d.update(num_slices=0), "num_slices"),
         (lambda d: d.update(class_names=[]), "class_names"),
+        # the preset's parts the runtime reads: the lifter's form and LUT heights, the BEV encoder's first stage
+        (lambda d: d["preset"].update(lifter=None), "preset.lifter: expected object, got NoneType None"),
+        (lambda d: d["preset"].update(lifter=["flat"]), "preset.lifter: expected object"),
+        (lambda d: d["preset"].update(lifter={"form": "bogus"}), "preset.lifter.form: 'bogus' is not one of"),
+        (lambda d: d["preset"].update(lifter={"lut_heights_per_voxel": 65}), "preset.lifter.lut_heights_per_voxel"),
+        (lambda d: d["preset"].update(bev=[]), "preset.bev: expected object"),
+        (lambda d: d["preset"].update(bev={"layer_strides": "x"}), "preset.bev.layer_strides: expected array"),
+        (lambda d: d["preset"].update(bev={"num_filters": [0]}), r"preset.bev.num_filters\[0\]"),
+        (lambda d: d.update(image_layout="image_half"), "image_layout 'image_half' needs preset.bev.layer_strides"),
+        (lambda d: (d.update(image_layout="image_half"), d["preset"].update(bev={"layer_strides": [], "num_filters": [8]})),
+         "preset.bev.layer_strides"),
     ],
 )
 def test_malformed(tmp_path, edit, match):
@@ -117,6 +128,9 @@ def test_unreadable_and_absent(tmp_path):
         read_manifest(tmp_path)
     (tmp_path / "manifest.json").write_text("[1, 2]")
     with pytest.raises(ManifestError, match="JSON object"):
+        read_manifest(tmp_path)
+    (tmp_path / "manifest.json").write_text('{"version": 1' + "0" * 5000 + "}")  # past Python's int-parsing limit
+    with pytest.raises(ManifestError, match="manifest.json is not readable JSON"):
         read_manifest(tmp_path)
 
 
