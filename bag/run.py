@@ -72,7 +72,7 @@ def run_bag(
     ))  # fmt: skip
     if Path(source.path).resolve() == out.resolve():
         raise ValueError(f"--out {out} is the input bag; write the detections to another file")
-    keyed_by_tokens = source.metadata().get(T.METADATA_NAME, {}).get("sample_tokens", "{}") != "{}"
+    keyed_by_tokens = bool(source.sample_tokens())
     results: dict[str, list[dict]] = {}
     shown: dict[int, int] = {}  # slice index -> boxes its markers showed last
     counts = {"sweeps": 0, "slices": 0, "image_sets": 0, "detections": 0, "fallback": 0}

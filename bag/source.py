@@ -9,15 +9,22 @@ this source beside the nuScenes one; ``streamdet-bag run`` feeds it to ``Streami
 Reading uses mcap + mcap-ros2-support (the ``ros`` extra), decoding each message with the schema stored in the
 bag, so bags recorded with any ROS 2 message package are read, and only the topics named in ``TopicMap`` are
 interpreted.
+
+A bag that cannot be read (truncated, or corrupted: a bad record length, a chunk that fails its CRC or does not
+decompress, a message that does not decode with its schema) raises ``BagReadError``, a ValueError naming the bag,
+whichever of the reading libraries noticed it. Chunk CRCs are checked, so flipped bytes are found rather than read.
 """
 
 from __future__ import annotations
 
+import importlib
 import json
 import logging
+import struct
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, BinaryIO, Iterator
 
 import numpy as np
 
@@ -40,6 +47,10 @@ from streamdet.runtime_ort.ros.tf import TfBuffer
 log = logging.getLogger(__name__)
 
 DEFAULT_TF_TOLERANCE_NS = 50_000_000  # a pose lookup may take the nearest pose this far past the last one
+
+
+class BagReadError(ValueError):
+    """The bag is truncated or corrupted: the message names the bag and quotes the reading library."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -99,21 +110,47 @@ class BagSource:
         self.config = config
         self._reader_mod = require("mcap.reader")
         self._decoder_mod = require("mcap_ros2.decoder")
+        self._read_errors = _read_errors()
         self._warned_missing: tuple[str, ...] = ()
+        self._warned_times = False
         self.cameras_without_info: set[str] = set()  # cameras whose CameraInfo was missing when an image set was made
+        self.num_time_dropped = 0  # LiDAR points dropped for a non-finite or implausible per-point time, all clouds
 
     def metadata(self) -> dict[str, dict[str, str]]:
         """The bag's MCAP metadata records by name."""
-        with open(self.path, "rb") as f:
-            return {m.name: dict(m.metadata) for m in self._reader_mod.make_reader(f).iter_metadata()}
+        with open(self.path, "rb") as f, self._reading():
+            return {m.name: dict(m.metadata) for m in self._reader(f).iter_metadata()}
+
+    def sample_tokens(self) -> dict[str, str]:
+        """LiDAR stamp (ns, as text) -> nuScenes sample token, from the metadata ``streamdet-bag export`` writes;
+        empty for a bag recorded elsewhere."""
+        text = self.metadata().get(T.METADATA_NAME, {}).get("sample_tokens", "{}")
+        try:
+            tokens = json.loads(text)
+        except ValueError as e:  # JSONDecodeError, or an integer too long to convert
+            raise BagReadError(f"{self.path}: metadata {T.METADATA_NAME}.sample_tokens is not JSON ({e}): "
+                               f"{text[:80]!r}") from None
+        if not (isinstance(tokens, dict) and all(isinstance(v, str) for v in tokens.values())):
+            raise BagReadError(f"{self.path}: metadata {T.METADATA_NAME}.sample_tokens must be an object of stamp -> "
+                               f"token strings, got {text[:80]!r}")  # fmt: skip
+        return tokens
 
     def topics(self) -> dict[str, str]:
         """topic -> message type of every channel in the bag."""
-        with open(self.path, "rb") as f:
-            summary = self._reader_mod.make_reader(f).get_summary()
+        with open(self.path, "rb") as f, self._reading():
+            summary = self._reader(f).get_summary()
         if summary is None:
             return {}
-        return {ch.topic: summary.schemas[ch.schema_id].name for ch in summary.channels.values()}
+        out = {}
+        for ch in summary.channels.values():
+            if ch.schema_id == 0:  # MCAP's "no schema" (a schemaless JSON channel, say): no message type
+                out[ch.topic] = ""
+            elif ch.schema_id in summary.schemas:
+                out[ch.topic] = summary.schemas[ch.schema_id].name
+            else:  # a corrupted summary
+                raise BagReadError(f"{self.path}: {_CORRUPT}: channel {ch.topic!r} names schema {ch.schema_id}, "
+                                   "which the bag does not hold")  # fmt: skip
+        return out
 
     def messages(self) -> Iterator[BagMessage]:
         """Every ROS 2 (CDR) message, decoded, in log-time order; channels in other encodings (a Foxglove protobuf
@@ -121,16 +158,31 @@ class BagSource:
         factory = self._decoder_mod.DecoderFactory()
         skipped: set[str] = set()
         with open(self.path, "rb") as f:
-            reader = self._reader_mod.make_reader(f)
-            for schema, channel, record in reader.iter_messages(log_time_order=True):
-                decode = factory.decoder_for(channel.message_encoding, schema)
+            with self._reading():
+                records = self._reader(f).iter_messages(log_time_order=True)
+            while True:
+                # only the library's work is guarded, never the consumer's: a yield sits outside every guard.
+                # KeyError: mcap looks up the channel and schema ids a chunk names in the summary
+                with self._reading(also=(KeyError,)):
+                    item = next(records, None)
+                if item is None:
+                    return
+                schema, channel, record = item
+                where = f"message on {channel.topic} at log time {record.log_time} ns"
+                # NameError and TypeError: how the vendored rosidl parser refuses a bad field or constant name or
+                # type in the schema text (guarded here alone: nothing else it runs is given bytes of the bag)
+                with self._reading(where, also=(NameError, TypeError)):
+                    decode = factory.decoder_for(channel.message_encoding, schema)
                 if decode is None:
                     if channel.topic not in skipped:
                         log.warning("%s: topic %s is %s, not ROS 2 CDR: skipped", self.path, channel.topic,
                                     channel.message_encoding)  # fmt: skip
                         skipped.add(channel.topic)
                     continue
-                yield BagMessage(channel.topic, schema.name, schema.data.decode(), int(record.log_time), decode(record.data))
+                with self._reading(where):
+                    message = BagMessage(channel.topic, schema.name, schema.data.decode(), int(record.log_time),
+                                         decode(record.data))  # fmt: skip
+                yield message
 
     def events(self) -> Iterator[tuple[BagMessage, SweepEvent | None]]:
         """Every message with, for each LiDAR message, the sweep event it makes."""
@@ -138,7 +190,7 @@ class BagSource:
         topics = cfg.topics
         image_topics = {topics.image_topic(c): c for c in cfg.camera_names}
         info_topics = {topics.camera_info_topic(c): c for c in cfg.camera_names}
-        tokens = json.loads(self.metadata().get(T.METADATA_NAME, {}).get("sample_tokens", "{}"))
+        tokens = self.sample_tokens()
         tf = TfBuffer(max_extrapolation_ns=cfg.tf_tolerance_ns)
         infos: dict[str, Any] = {}
         latest: dict[str, Any] = {}  # camera -> newest image message, decoded only when a set is made
@@ -171,9 +223,31 @@ class BagSource:
                 yield event
 
     # ---- internals ------------------------------------------------------------------------------------
+    def _reader(self, f: BinaryIO) -> Any:
+        # CRCs checked: a flipped byte in a chunk is then reported as corruption instead of read as data
+        return self._reader_mod.make_reader(f, validate_crcs=True)
+
+    @contextmanager
+    def _reading(self, where: str = "", also: tuple[type[BaseException], ...] = ()) -> Iterator[None]:
+        """The reading libraries' errors (and ``also``, what the guarded call raises for bad bytes beside them) as
+        one BagReadError naming the bag (and ``where`` in it)."""
+        try:
+            yield
+        except self._read_errors + also as e:
+            raise self._corrupt(e, where) from e
+        except RuntimeError as e:  # lz4.frame reports a corrupt block as a bare RuntimeError
+            if not _is_lz4_error(e):
+                raise
+            raise self._corrupt(e, where) from e
+
+    def _corrupt(self, e: BaseException, where: str) -> BagReadError:
+        kind = type(e).__name__ if type(e).__name__ != "error" else f"{type(e).__module__}.error"  # struct.error
+        detail = f"{kind}: {e}" if str(e) else kind
+        return BagReadError(f"{self.path}: {_CORRUPT}{f' ({where})' if where else ''}: {' '.join(detail.split())}")
+
     def _sweep(self, message: Any, tf: TfBuffer, tokens: dict, image_set: ImageSet | None) -> SweepEvent:
         cfg = self.config
-        cloud = decode_pointcloud2(message, cfg.cloud_fields)
+        cloud = self._cloud(message)
         if cfg.slice_per_message:
             slices = [slice_from_message(cloud, cfg.num_slices, cfg.start_deg)]
         else:
@@ -181,6 +255,24 @@ class BagSource:
         lidar2ego = _matrix(self._lookup(tf, cfg.ego_frame, cloud.frame_id, cloud.stamp_ns))
         pose = self._lookup(tf, cfg.global_frame, cfg.ego_frame, cloud.stamp_ns) if cfg.global_frame else IDENTITY_RECORD
         return SweepEvent(cloud, slices, lidar2ego, _matrix(pose), tokens.get(str(cloud.stamp_ns)), image_set)
+
+    def _cloud(self, message: Any) -> Cloud:
+        """The LiDAR message decoded; a malformed one is named by topic and stamp, dropped points are reported."""
+        topic = self.config.topics.lidar
+        try:
+            cloud = decode_pointcloud2(message, self.config.cloud_fields)
+        except ValueError as e:
+            raise ValueError(f"{self.path}: {topic} message at stamp {_stamp_text(message)}: {e}") from None
+        self.num_time_dropped += cloud.num_time_dropped
+        if cloud.num_time_dropped and not self._warned_times:
+            # once per bag: a clock or unit mismatch drops points of every cloud, one line says it
+            log.warning("%s: %s message at stamp %d ns: dropped %d of %d points whose per-point time (first: %.6g s "
+                        "after the stamp) is not finite or lies more than %g s from the stamp (corrupted, or another "
+                        "clock or unit); later clouds are not reported", self.path, topic, cloud.stamp_ns,
+                        cloud.num_time_dropped, len(cloud.points) + cloud.num_time_dropped + cloud.num_dropped,
+                        cloud.dropped_time_s, self.config.cloud_fields.max_time_offset_s)  # fmt: skip
+            self._warned_times = True
+        return cloud
 
     def _lookup(self, tf: TfBuffer, parent: str, child: str, stamp: int) -> dict:
         if parent == child.lstrip("/"):
@@ -211,6 +303,37 @@ class BagSource:
             except (KeyError, ValueError) as e:
                 raise ValueError(f"{self.path}: cannot build the camera rig: {e.args[0]}") from None
         return ImageSet(images, stamps, rig)
+
+
+_CORRUPT = "not a readable MCAP bag (truncated or corrupted)"
+
+
+def _read_errors() -> tuple[type[BaseException], ...]:
+    """What the reading libraries raise on bad bytes: mcap's McapError (mcap_ros2's decode errors derive from it),
+    struct.error and EOFError of a short record, OSError of a seek past the start of a tiny file, ValueError (a bad
+    CRC, UTF-8 or CDR header), zstandard's ZstdError and the vendored ROS message parser's errors where importable.
+    Not TypeError, AttributeError or the like: those are bugs and keep their traceback."""
+    errors: list[type[BaseException]] = [require("mcap.exceptions").McapError, struct.error, EOFError, OSError, ValueError]
+    for module, names in (("zstandard", ("ZstdError",)),
+                          ("mcap_ros2._vendor.rosidl_adapter.parser", ("InvalidSpecification", "InvalidValue"))):  # fmt: skip
+        try:
+            mod = importlib.import_module(module)
+        except ImportError:
+            continue
+        errors += [getattr(mod, n) for n in names if isinstance(getattr(mod, n, None), type)]
+    return tuple(errors)
+
+
+def _is_lz4_error(e: RuntimeError) -> bool:
+    # lz4.frame has no error class of its own; its messages name the failing LZ4F_ call
+    return "LZ4F_" in str(e)
+
+
+def _stamp_text(message: Any) -> str:
+    try:
+        return f"{header_stamp_ns(message)} ns"
+    except (AttributeError, ValueError):
+        return "(unreadable)"
 
 
 def _rgb(message: Any, camera: str) -> np.ndarray:

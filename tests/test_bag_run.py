@@ -298,3 +298,37 @@ def test_the_lidar_only_fallback_runs_the_slices_it_should(bag: Path, export_dir
     res = CliRunner().invoke(bag_main, ["run", "--bag", str(bag), "--export-dir", str(export_dir), "--fallback-after-ms", "50",
                                         "--out", str(tmp_path / "e.mcap")])  # fmt: skip
     assert res.exit_code != 0 and "Traceback" not in res.output  # an age without a fallback export is refused
+
+
+def test_run_on_a_truncated_bag_is_one_line_naming_it(bag: Path, export_dir: Path, tmp_path):
+    data = bag.read_bytes()
+    for name, payload in (("cut20", data[:20]), ("half", data[: len(data) // 2])):
+        bad = tmp_path / f"{name}.mcap"
+        bad.write_bytes(payload)
+        result = CliRunner().invoke(bag_main, ["run", "--bag", str(bad), "--export-dir", str(export_dir), "--out", str(tmp_path / "x.mcap")])
+        assert result.exit_code == 1 and isinstance(result.exception, SystemExit), result.output
+        assert f"{bad}: not a readable MCAP bag (truncated or corrupted): " in result.output
+        assert len(result.output.strip().splitlines()) == 1
+
+
+def test_an_absurd_point_time_is_dropped_not_a_writer_crash(export_dir: Path, tmp_path):
+    """A cloud with one finite but absurd per-point time (1e20 s): that point is dropped, the slices keep the scan
+    times of the others, and every detection is stamped as before (it used to end in struct.error in the writer)."""
+    from streamdet.runtime_ort.ros.pointcloud2 import pointcloud2_message
+
+    rng = np.random.default_rng(0)
+    points = np.zeros((3000, 5), np.float32)
+    points[:, :3] = rng.uniform(-40, 40, (3000, 3))
+    points[:, 2] = rng.uniform(-2, 2, 3000)
+    times = np.linspace(-0.05, 0.0, 3000).astype(np.float32)
+    times[0] = 1e20
+    stamp = 1_700_000_000_000_000_000
+    path = tmp_path / "time.mcap"
+    with BagWriter(path) as writer:
+        writer.write("/LIDAR_TOP", "sensor_msgs/msg/PointCloud2", pointcloud2_message(points, stamp, "LIDAR_TOP", times), stamp)
+    config = RunConfig(ego_frame="LIDAR_TOP", global_frame=None)
+    summary = run_bag(path, export_dir, tmp_path / "out.mcap", config=config)
+    assert summary.num_sweeps == 1 and summary.num_slices == N_SLICES
+    stamps = [m.header.stamp for t, _, _, m in read_with_rosbags(summary.bag_out) if t == "/streamdet/detections"]
+    assert len(stamps) == N_SLICES
+    assert all(abs(s.sec * 10**9 + s.nanosec - stamp) <= 50_000_000 for s in stamps)

@@ -8,6 +8,9 @@ from typing import Any
 import numpy as np
 
 NS_PER_S = 1_000_000_000
+# builtin_interfaces/Time and Duration hold ``int32 sec``: a stamp outside this range cannot be encoded (CDR packs
+# it with struct 'i'), so it is refused here with the value rather than as a struct.error deep in the writer
+INT32_MIN, INT32_MAX = -(2**31), 2**31 - 1
 
 
 def stamp_ns(stamp: Any) -> int:
@@ -29,6 +32,8 @@ def header_stamp_ns(msg: Any) -> int:
 def time_msg(ns: int) -> dict:
     """A ``builtin_interfaces/Time`` dict of integer nanoseconds (negative times round toward minus infinity)."""
     sec, nanosec = divmod(int(ns), NS_PER_S)
+    if not INT32_MIN <= sec <= INT32_MAX:
+        raise ValueError(f"time {int(ns)} ns does not fit a ROS 2 stamp: {sec} s is outside int32 seconds")
     return {"sec": sec, "nanosec": nanosec}
 
 
@@ -36,6 +41,8 @@ def duration_msg(seconds: float) -> dict:
     """A ``builtin_interfaces/Duration`` dict of a non-negative number of seconds."""
     if not seconds >= 0:
         raise ValueError(f"a duration must be >= 0 s, got {seconds!r}")
+    if not seconds <= INT32_MAX:  # int32 sec; also refuses inf before round() would raise OverflowError
+        raise ValueError(f"a builtin_interfaces/Duration holds at most {INT32_MAX} s (int32 sec), got {seconds!r} s")
     sec, nanosec = divmod(round(seconds * NS_PER_S), NS_PER_S)
     return {"sec": int(sec), "nanosec": int(nanosec)}
 

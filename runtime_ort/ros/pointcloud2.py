@@ -13,7 +13,13 @@ Per-point time, under the names drivers use (``TIME_FIELD_NAMES``), in seconds a
 before it). ``time_unit="auto"`` takes integer fields as nanoseconds (Ouster ``t``) and float fields as seconds
 (Velodyne ``time``), or nanoseconds when their magnitude exceeds 1e12 (an absolute nanosecond clock, Livox
 ``timestamp``); a time that is still above 1e6 s (~11 days) is absolute (Hesai ``timestamp``) and is made relative
-to the header stamp.
+to the header stamp. The unit and clock are judged from a typical (median) magnitude, so one corrupt time does
+not turn a whole cloud's times into another unit. A point whose time is not finite, or lies further than
+``CloudFields.max_time_offset_s`` from the header stamp, is dropped and counted (``Cloud.num_time_dropped``), as a
+non-finite coordinate is: its time would otherwise become the scan time its slice is detected and published at.
+
+Intensity is passed through as recorded (times ``intensity_scale``): a value outside 0..255, or one that overflows
+float32 to inf, is left for the runtime's pillarize to drop and count with the other out-of-range reflectances.
 """
 
 from __future__ import annotations
@@ -36,6 +42,13 @@ RING_FIELD_NAMES: tuple[str, ...] = ("ring", "channel", "line")
 TIME_UNITS_S: dict[str, float] = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}
 ABSOLUTE_TIME_S = 1e6  # a per-point time above this many seconds is a clock reading, not an offset
 NANOSECOND_CLOCK = 1e12  # a float time above this is nanoseconds
+# How far (s, either side) a point's time may lie from its cloud's header stamp. Drivers stamp a cloud at the start
+# or end of its sweep, so its points lie within one sweep period (0.05-0.2 s at 20-5 Hz); frames integrated for
+# longer (a Livox at a low publish rate) or clocks in whole seconds reach a few seconds. A time beyond this is a
+# corrupt value or another clock, and would move its slice's scan time (the detector's clock, and the stamp the
+# detections are published with; a ROS stamp holds only int32 seconds) by as much: such points are dropped.
+MAX_POINT_TIME_OFFSET_S = 5.0
+TIME_SAMPLE = 4097  # values of a time column that decide its unit and clock (a strided sample: fast, and robust)
 
 
 @dataclass(frozen=True)
@@ -48,12 +61,15 @@ class CloudFields:
     require_time: bool = True  # "auto" finding no time field is an error (False: the cloud is read without time)
     time_unit: str = "auto"  # "auto" | "s" | "ms" | "us" | "ns"
     ring: str | None = "auto"  # "auto": the first of RING_FIELD_NAMES, zeros if none; None: zeros
+    max_time_offset_s: float = MAX_POINT_TIME_OFFSET_S  # points timed further from the header stamp are dropped
 
     def __post_init__(self) -> None:
         if self.time_unit != "auto" and self.time_unit not in TIME_UNITS_S:
             raise ValueError(f"CloudFields.time_unit must be 'auto' or one of {list(TIME_UNITS_S)}, got {self.time_unit!r}")
         if not (np.isfinite(self.intensity_scale) and self.intensity_scale > 0):
             raise ValueError(f"CloudFields.intensity_scale must be a positive number, got {self.intensity_scale!r}")
+        if not (np.isfinite(self.max_time_offset_s) and self.max_time_offset_s > 0):
+            raise ValueError(f"CloudFields.max_time_offset_s must be a positive number, got {self.max_time_offset_s!r}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -65,6 +81,8 @@ class Cloud:
     points: np.ndarray  # (N, 5) float32 x, y, z, intensity (0..255), ring
     time_s: np.ndarray | None  # (N,) float64 seconds after the header stamp; None: the cloud has no time field
     num_dropped: int  # points removed for a non-finite coordinate
+    num_time_dropped: int = 0  # points (with finite coordinates) removed for a non-finite or implausible time
+    dropped_time_s: float | None = None  # the first such time (s after the stamp, as read): names the problem
 
 
 @dataclass(frozen=True, eq=False)
@@ -111,23 +129,34 @@ def decode_pointcloud2(msg: Any, fields: CloudFields = CloudFields()) -> Cloud:
         return grid[role].reshape(num)  # (N,), a view when the rows are unpadded
 
     points = np.empty((num, SWEEP_COLUMNS), dtype=np.float32)
-    points[:, 0] = column("x")
-    points[:, 1] = column("y")
-    points[:, 2] = column("z")
-    points[:, 3] = column("intensity")
-    if fields.intensity_scale != 1.0:
-        points[:, 3] *= np.float32(fields.intensity_scale)
+    # a float64 value beyond float32 (or an intensity scaled past it) becomes inf by design: a coordinate is then
+    # dropped below, an intensity by pillarize's range check; the overflow warning would only be noise
+    with np.errstate(over="ignore"):
+        points[:, 0] = column("x")
+        points[:, 1] = column("y")
+        points[:, 2] = column("z")
+        points[:, 3] = column("intensity")
+        if fields.intensity_scale != 1.0:
+            points[:, 3] *= np.float32(fields.intensity_scale)
     if ring_name:
         points[:, 4] = column("ring")
     else:
         points[:, 4] = 0.0
     time_s = _times_s(column("time"), fields.time_unit, header_stamp_ns(msg), time_name) if time_name else None
-    finite = np.isfinite(points[:, :3]).all(axis=1)
-    dropped = num - int(np.count_nonzero(finite))
-    if dropped:
-        points = points[finite]
-        time_s = time_s[finite] if time_s is not None else None
-    return Cloud(header_stamp_ns(msg), str(msg.header.frame_id), points, time_s, dropped)
+    keep = np.isfinite(points[:, :3]).all(axis=1)
+    dropped = num - int(np.count_nonzero(keep))
+    time_dropped, bad_time = 0, None
+    if time_s is not None:
+        plausible = np.abs(time_s) <= fields.max_time_offset_s  # False for NaN
+        bad = keep & ~plausible
+        time_dropped = int(np.count_nonzero(bad))
+        if time_dropped:
+            bad_time = float(time_s[np.argmax(bad)])
+            keep &= plausible
+    if dropped or time_dropped:
+        points = points[keep]
+        time_s = time_s[keep] if time_s is not None else None
+    return Cloud(header_stamp_ns(msg), str(msg.header.frame_id), points, time_s, dropped, time_dropped, bad_time)
 
 
 def split_cloud(cloud: Cloud, num_slices: int, start_deg: float = 0.0) -> list[TimedSlice]:
@@ -245,7 +274,7 @@ def _point_dtype(present: dict, used: list[tuple[str, str]], order: str, point_s
 
 def _times_s(raw: np.ndarray, unit: str, stamp: int, name: str) -> np.ndarray:
     integer = np.issubdtype(raw.dtype, np.integer)
-    magnitude = _magnitude(raw)  # one pass over the raw column decides the unit and whether it is a clock
+    magnitude = _typical_magnitude(raw)  # decides the unit and whether the column is a clock
     if unit == "auto":
         unit = "ns" if integer or magnitude > NANOSECOND_CLOCK else "s"
     if integer and magnitude * TIME_UNITS_S[unit] > ABSOLUTE_TIME_S:
@@ -258,15 +287,15 @@ def _times_s(raw: np.ndarray, unit: str, stamp: int, name: str) -> np.ndarray:
     return seconds
 
 
-def _magnitude(column: np.ndarray) -> float:
-    """Largest |value| of a column, NaNs ignored; 0 for an empty or all-NaN one."""
-    if column.size == 0:
-        return 0.0
-    if np.issubdtype(column.dtype, np.integer):
-        return float(max(abs(int(column.min())), abs(int(column.max()))))
-    with np.errstate(invalid="ignore"):
-        m = np.nanmax(np.abs(column)) if np.isnan(column.max()) else np.abs(column).max()
-    return 0.0 if not np.isfinite(m) else float(m)
+def _typical_magnitude(column: np.ndarray) -> float:
+    """Median |value| of a strided sample of a column, non-finite values ignored; 0 for an empty or all-NaN one.
+
+    The median, not the largest value: one corrupt time (1e20 in a column of seconds after the stamp) must not make
+    the whole column read as an absolute nanosecond clock; that point alone is then dropped as implausible.
+    """
+    sample = column[:: max(1, -(-column.size // TIME_SAMPLE))].astype(np.float64)
+    sample = np.abs(sample[np.isfinite(sample)])
+    return float(np.median(sample)) if sample.size else 0.0
 
 
 def _scan_time_ns(stamp_ns: int, latest_s: float) -> int:
