@@ -27,6 +27,9 @@ from streamdet.calibration.projection import project_points, visible_mask
 # one by far more. Anything between is refused rather than silently re-orthonormalised.
 ORTHONORMAL_TOL = 1e-5
 QUATERNION_NORM_TOL = 1e-5
+# The largest image side, in pixels, of any camera (the manifest schema's image.width/height maximum, the same
+# number): past it a calibration is corrupt, and its sizes would overflow float ratios or scale K to nothing.
+MAX_IMAGE_PX = 65536
 
 
 class CalibrationError(ValueError):
@@ -39,7 +42,7 @@ def _as_array(value: Any, shape: tuple[int, ...], field: str) -> np.ndarray:
     """float64 copy of ``value`` with exactly ``shape`` and only finite entries, else CalibrationError."""
     try:
         arr = np.array(value, dtype=np.float64)
-    except (TypeError, ValueError) as e:
+    except (TypeError, ValueError, OverflowError) as e:  # OverflowError: a JSON integer past float range (1e400)
         raise CalibrationError(f"{field}: expected a numeric array of shape {shape}, got {_short(value)} ({e})") from None
     if arr.shape != shape:
         raise CalibrationError(f"{field}: expected shape {shape}, got {arr.shape}")
@@ -76,13 +79,16 @@ def _as_intrinsics(value: Any, field: str) -> np.ndarray:
 
 
 def _as_size(value: Any, field: str) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value <= 0:
-        raise CalibrationError(f"{field}: expected a positive integer pixel count, got {value!r}")
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not 0 < value <= MAX_IMAGE_PX:
+        raise CalibrationError(f"{field}: expected a positive integer pixel count up to {MAX_IMAGE_PX}, got {_short(value)}")
     return int(value)
 
 
 def _short(value: Any, limit: int = 80) -> str:
-    text = repr(value)
+    try:
+        text = repr(value)
+    except ValueError:  # an int past Python's 4300-digit str limit: say how big instead
+        return f"<an integer of {value.bit_length()} bits>" if isinstance(value, int) else f"<a {type(value).__name__}>"
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
@@ -363,10 +369,10 @@ class Rig:
             src = getattr(path_or_dict, "name", "calibration.json")
             try:
                 doc = json.loads(path_or_dict.read_text(encoding="utf-8"))
-            except json.JSONDecodeError as e:
-                raise CalibrationError(f"{src}: not valid JSON: {e}") from None
-            except UnicodeDecodeError as e:
+            except UnicodeDecodeError as e:  # a ValueError too: caught before the JSON one below
                 raise CalibrationError(f"{src}: not UTF-8 text (a binary file?): {e.reason} at byte {e.start}") from None
+            except ValueError as e:  # JSONDecodeError, or an integer literal past Python's 4300-digit limit
+                raise CalibrationError(f"{src}: not valid JSON: {e}") from None
             except RecursionError:
                 raise CalibrationError(f"{src}: nests too deeply to be a calibration file") from None
         else:
@@ -379,12 +385,14 @@ class Rig:
                         f"{src}: larger than {MAX_CALIBRATION_BYTES} bytes, too large to be a calibration file"
                     )
                 doc = json.loads(raw.decode("utf-8"))
+            except CalibrationError:  # the size cap above; a ValueError, so it must pass the JSON clause below
+                raise
             except OSError as e:
                 raise CalibrationError(f"{src}: cannot read: {e.strerror}") from None
-            except json.JSONDecodeError as e:
-                raise CalibrationError(f"{src}: not valid JSON: {e}") from None
-            except UnicodeDecodeError as e:
+            except UnicodeDecodeError as e:  # a ValueError too: caught before the JSON one below
                 raise CalibrationError(f"{src}: not UTF-8 text (a binary file?): {e.reason} at byte {e.start}") from None
+            except ValueError as e:  # JSONDecodeError, or an integer literal past Python's 4300-digit limit
+                raise CalibrationError(f"{src}: not valid JSON: {e}") from None
             except RecursionError:
                 raise CalibrationError(f"{src}: nests too deeply to be a calibration file") from None
         if not isinstance(doc, Mapping):

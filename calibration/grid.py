@@ -39,6 +39,12 @@ from streamdet.core.sectors import (  # noqa: F401 (public here too)
     slice_index_of,
 )
 
+# The most image-volume voxels (nx * ny * nz) a grid may have: 16x the largest shipped grid (the paper's 512 x 512
+# x 16 = 4.2 M, GridSpec()). A LUT holds 8 bytes per voxel and slot, so this keeps even a one-slot LUT at 512 MiB,
+# under the 1 GiB a lut.npz may declare (calibration.lut_file.MAX_LUT_BYTES); a corrupt grid (+-3000 m, a 1e-300 m
+# voxel) is refused here rather than by the allocator.
+MAX_GRID_VOXELS = 1 << 26
+
 
 @dataclass(frozen=True)
 class GridSpec:
@@ -53,24 +59,29 @@ class GridSpec:
     def __post_init__(self) -> None:
         for name in ("x_range_m", "y_range_m", "z_range_m"):
             lo, hi = getattr(self, name)
-            if not (math.isfinite(lo) and math.isfinite(hi) and hi > lo):
+            if not (_is_finite(lo) and _is_finite(hi) and hi > lo):
                 raise ValueError(f"GridSpec.{name} must be a finite (min, max) with max > min, got {(lo, hi)}")
         for name in ("x_range_m", "y_range_m"):
             lo, hi = getattr(self, name)
             if abs(lo + hi) > 1e-9:
                 raise ValueError(f"GridSpec.{name} must be symmetric about 0 (quadrants split at the sensor), got {(lo, hi)}")
-        if not self.voxel_xy_m > 0 or not self.voxel_z_m > 0:
-            raise ValueError(f"voxel sizes must be > 0, got xy={self.voxel_xy_m}, z={self.voxel_z_m}")
+        if not (_is_finite(self.voxel_xy_m) and _is_finite(self.voxel_z_m) and self.voxel_xy_m > 0 and self.voxel_z_m > 0):
+            raise ValueError(f"voxel sizes must be finite and > 0, got xy={self.voxel_xy_m}, z={self.voxel_z_m}")
         for name, extent, voxel in (
             ("x_range_m", self.x_range_m[1] - self.x_range_m[0], self.voxel_xy_m),
             ("y_range_m", self.y_range_m[1] - self.y_range_m[0], self.voxel_xy_m),
             ("z_range_m", self.z_range_m[1] - self.z_range_m[0], self.voxel_z_m),
         ):
-            cells = extent / voxel
-            if abs(cells - round(cells)) > 1e-6:
-                raise ValueError(f"GridSpec.{name} extent {extent} m is not a whole number of {voxel} m voxels")
+            _check_cells(name, extent, voxel)
         if self.nx % 2 or self.ny % 2:
             raise ValueError(f"grid {self.nx} x {self.ny} cells must be even in x and y to split into quadrants")
+        voxels = self.nx * self.ny * self.nz
+        if voxels > MAX_GRID_VOXELS:
+            raise ValueError(
+                f"grid {self.nx} x {self.ny} x {self.nz} = {voxels} voxels (x_range_m {self.x_range_m}, voxel_xy_m "
+                f"{self.voxel_xy_m}, z_range_m {self.z_range_m}, voxel_z_m {self.voxel_z_m}) is over the "
+                f"{MAX_GRID_VOXELS}-voxel cap (MAX_GRID_VOXELS)"
+            )  # fmt: skip
 
     # ---- sizes in cells -------------------------------------------------------------------------
     @property
@@ -146,13 +157,39 @@ class GridSpec:
 
     @classmethod
     def from_dict(cls, d: dict) -> "GridSpec":
+        """The grid of ``to_dict``; KeyError, TypeError or ValueError (naming the value) for a malformed one."""
+        voxels = {}
+        for key in ("voxel_xy_m", "voxel_z_m"):
+            try:
+                voxels[key] = float(d[key])
+            except OverflowError:  # a JSON integer past float range
+                raise ValueError(f"GridSpec.{key} must be a finite number, got an integer past float range") from None
         return cls(
             x_range_m=tuple(d["x_range_m"]),
             y_range_m=tuple(d["y_range_m"]),
             z_range_m=tuple(d["z_range_m"]),
-            voxel_xy_m=float(d["voxel_xy_m"]),
-            voxel_z_m=float(d["voxel_z_m"]),
+            **voxels,
         )
+
+
+def _is_finite(value: object) -> bool:
+    """A real, finite number; False (not OverflowError) for an integer past float range, TypeError for a non-number."""
+    try:
+        return math.isfinite(value)  # type: ignore[arg-type]
+    except OverflowError:
+        return False
+
+
+def _check_cells(name: str, extent: float, voxel: float) -> None:
+    """``extent`` must be a whole number >= 1 of ``voxel``s, and not astronomically many (a 1e-300 m voxel)."""
+    cells = extent / voxel
+    if not math.isfinite(cells) or cells > MAX_GRID_VOXELS:
+        raise ValueError(f"GridSpec.{name} extent {extent} m holds {cells:.3g} voxels of {voxel} m, over the "
+                         f"{MAX_GRID_VOXELS}-voxel cap (MAX_GRID_VOXELS)")  # fmt: skip
+    if abs(cells - round(cells)) > 1e-6:
+        raise ValueError(f"GridSpec.{name} extent {extent} m is not a whole number of {voxel} m voxels")
+    if round(cells) < 1:
+        raise ValueError(f"GridSpec.{name} extent {extent} m holds 0 voxels of {voxel} m: a grid needs at least one cell per axis")
 
 
 def _check_quadrant(q: int) -> None:

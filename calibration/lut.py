@@ -27,6 +27,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import tempfile
 import zipfile
 from dataclasses import dataclass
@@ -34,9 +35,11 @@ from typing import BinaryIO, Sequence
 
 import numpy as np
 
-from streamdet.calibration.camera import CalibrationError, Rig
+from streamdet.calibration.camera import MAX_IMAGE_PX, CalibrationError, Rig, _as_size, _short
 from streamdet.calibration.grid import GridSpec
-from streamdet.calibration.lut_file import MAX_HEIGHTS_PER_VOXEL, LutFileError, check_lut_archive  # noqa: F401  (re-exported)
+from streamdet.calibration.lut_file import (  # noqa: F401  (re-exported)
+    MAX_HEIGHTS_PER_VOXEL, MAX_LUT_BYTES, LutFileError, check_lut_archive,
+)
 from streamdet.core.sectors import NUM_QUADRANTS, check_quadrants
 
 ASPECT_TOLERANCE = 0.005  # relative; 1600x900 -> 800x450 is exact, 1920x1080 -> 800x450 too
@@ -46,6 +49,8 @@ _META_KEYS = (
     "format", "version", "grid", "feature_stride", "image_width", "image_height", "feature_width",
     "feature_height", "camera_names", "calibration_sha256", "sentinel", "num_slots", "min_depth_m",
 )
+# What Rig.sha256() writes (hashlib's hexdigest); every lut.npz this project wrote holds one.
+_SHA256_HEX = re.compile(r"[0-9a-f]{64}")
 
 
 class BlindCameraWarning(UserWarning):
@@ -59,6 +64,7 @@ def check_rig_fits(rig: Rig, camera_names: Sequence[str], width: int, height: in
     aspect would distort them)."""
     if not isinstance(rig, Rig):
         raise CalibrationError(f"expected a Rig, got {type(rig).__name__}")
+    width, height = _as_size(width, "image width"), _as_size(height, "image height")  # a huge int overflows the ratio
     if tuple(rig.names) != tuple(camera_names):
         raise CalibrationError(
             f"calibration cameras {list(rig.names)} do not match the export's {list(camera_names)} "
@@ -122,16 +128,19 @@ class Lut:
     heights_per_voxel: int = 1  # H heights sampled per voxel (module doc); 1 = the voxel centre
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "camera_names", tuple(self.camera_names))
+        object.__setattr__(self, "camera_names", _check_camera_names(self.camera_names))
         _check_heights(self.heights_per_voxel)
         object.__setattr__(self, "heights_per_voxel", int(self.heights_per_voxel))
         for name in ("feature_stride", "image_width", "image_height"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value <= 0:
-                raise CalibrationError(f"Lut.{name}: expected a positive integer, got {value!r}")
+                raise CalibrationError(f"Lut.{name}: expected a positive integer, got {_short(value)}")
+            if name != "feature_stride" and value > MAX_IMAGE_PX:
+                raise CalibrationError(f"Lut.{name}: expected at most {MAX_IMAGE_PX} pixels, got {_short(value)}")
             object.__setattr__(self, name, int(value))
-        if not self.camera_names or not all(isinstance(n, str) and n for n in self.camera_names):
-            raise CalibrationError(f"Lut.camera_names: expected non-empty camera names, got {self.camera_names!r}")
+        object.__setattr__(self, "min_depth_m", _check_min_depth(self.min_depth_m))
+        if not isinstance(self.calibration_sha256, str):
+            raise CalibrationError(f"Lut.calibration_sha256: expected a string, got {_short(self.calibration_sha256)}")
         if not isinstance(self.grid, GridSpec):
             raise CalibrationError(f"Lut.grid: expected a GridSpec, got {type(self.grid).__name__}")
         _validate_tables(self.index, self.weight, self.grid, self.sentinel, "Lut")
@@ -250,7 +259,7 @@ class Lut:
             meta = json.loads(str(meta_arr))
         except RecursionError:
             raise CalibrationError(f"{src}: meta: nests too deeply") from None
-        except json.JSONDecodeError as e:
+        except ValueError as e:  # JSONDecodeError, or an integer literal past Python's 4300-digit limit
             raise CalibrationError(f"{src}: meta: not valid JSON: {e}") from None
         if not isinstance(meta, dict):
             raise CalibrationError(f"{src}: meta: expected a JSON object, got {type(meta).__name__}")
@@ -265,6 +274,9 @@ class Lut:
             grid = GridSpec.from_dict(meta["grid"])
         except (KeyError, TypeError, ValueError) as e:
             raise CalibrationError(f"{src}: meta.grid: {e}") from None
+        sha = meta["calibration_sha256"]
+        if not (isinstance(sha, str) and _SHA256_HEX.fullmatch(sha)):
+            raise CalibrationError(f"{src}: meta.calibration_sha256: expected 64 lowercase hex digits (Rig.sha256()), got {_short(sha)}")
         try:
             lut = cls(
                 index=np.array(index),
@@ -273,9 +285,9 @@ class Lut:
                 feature_stride=meta["feature_stride"],
                 image_width=meta["image_width"],
                 image_height=meta["image_height"],
-                camera_names=tuple(meta["camera_names"]),
-                calibration_sha256=str(meta["calibration_sha256"]),
-                min_depth_m=float(meta["min_depth_m"]),
+                camera_names=meta["camera_names"],  # as stored: __post_init__ refuses a string or a number here
+                calibration_sha256=sha,
+                min_depth_m=meta["min_depth_m"],
                 heights_per_voxel=meta.get("heights_per_voxel", 1),
             )
         except CalibrationError as e:
@@ -287,6 +299,28 @@ class Lut:
             if meta[key] != getattr(lut, key):
                 raise CalibrationError(f"{src}: meta.{key}: stored {meta[key]!r}, but the tables imply {getattr(lut, key)!r}")
         return lut
+
+
+def _check_camera_names(names: object) -> tuple[str, ...]:
+    """A list or tuple of distinct non-empty strings, as a tuple (a bare string would split into letters)."""
+    if not isinstance(names, (list, tuple)) or not names or not all(isinstance(n, str) and n for n in names):
+        raise CalibrationError(f"Lut.camera_names: expected a list of non-empty camera names, got {_short(names)}")
+    dupes = sorted({n for n in names if names.count(n) > 1})
+    if dupes:
+        raise CalibrationError(f"Lut.camera_names: duplicate camera names {dupes} (each names one feature map)")
+    return tuple(names)
+
+
+def _check_min_depth(value: object) -> float:
+    """A finite number >= 0 as a float; the OverflowError of a huge JSON integer becomes the CalibrationError."""
+    try:
+        ok = not isinstance(value, bool) and isinstance(value, (int, float, np.integer, np.floating))
+        depth = float(value) if ok else math.nan  # type: ignore[arg-type]
+    except OverflowError:
+        depth = math.nan
+    if not (math.isfinite(depth) and depth >= 0):
+        raise CalibrationError(f"Lut.min_depth_m: expected a finite number of metres >= 0, got {_short(value)}")
+    return depth
 
 
 def _check_heights(h: object) -> None:
@@ -330,12 +364,17 @@ def build_lut(
 
     ``image_size`` (W, H) is the size of the images fed to the encoder; the rig's K are rescaled to it. Without
     it, every camera must share one size. Math is float32 and separable in x, y, z, camera by camera.
-    ``heights_per_voxel`` > 1 samples each voxel at that many heights (module doc).
+    ``heights_per_voxel`` > 1 samples each voxel at that many heights (module doc). A LUT whose tables would
+    exceed `MAX_LUT_BYTES` (what a lut.npz may declare, so no reader would load it) is refused before they are
+    allocated: ValueError.
     """
     try:
         _check_heights(heights_per_voxel)
     except CalibrationError as e:
         raise ValueError(str(e)) from None
+    if not isinstance(grid, GridSpec):
+        raise ValueError(f"grid must be a GridSpec, got {type(grid).__name__}")
+    check_lut_bytes(grid, 1)  # K >= 1: refuse a grid too big for any LUT before projecting anything
     if heights_per_voxel > 1:
         return _build_lut_heights(rig, grid, feature_stride, image_size, min_depth_m, int(heights_per_voxel))
     width, height, cams_rig = _image_geometry(rig, feature_stride, image_size, min_depth_m)
@@ -362,6 +401,7 @@ def build_lut(
         seen_rows.append(rows + np.int32(j * cells))
 
     num_slots = max(1, int(counts.max()))
+    check_lut_bytes(grid, num_slots)
     index = np.full(NUM_QUADRANTS * num_slots * per_quadrant, sentinel, dtype=np.int32)  # flat (4, K, M)
     slot = np.zeros(num_voxels, dtype=np.int64)
     for voxels, rows in zip(seen_voxels, seen_rows):
@@ -390,21 +430,42 @@ def build_lut(
     )
 
 
+def lut_nbytes(grid: GridSpec, num_slots: int) -> int:
+    """Bytes of a LUT's two tables, int32 ``index`` + float32 ``weight`` of shape (4, K, Z, Yq, Xq)."""
+    return 8 * int(num_slots) * grid.nz * grid.ny * grid.nx
+
+
+def check_lut_bytes(grid: GridSpec, num_slots: int) -> None:
+    """ValueError (naming the grid, K and the size) when the LUT's tables would exceed `MAX_LUT_BYTES`."""
+    nbytes = lut_nbytes(grid, num_slots)
+    if nbytes > MAX_LUT_BYTES:
+        raise ValueError(
+            f"a LUT for the {grid.nx} x {grid.ny} x {grid.nz} grid with K = {num_slots} slots would take {nbytes} "
+            f"bytes, over the {MAX_LUT_BYTES}-byte cap of a lut.npz (MAX_LUT_BYTES)"
+        )  # fmt: skip
+
+
 def _image_geometry(rig: Rig, feature_stride: int, image_size: tuple[int, int] | None, min_depth_m: float) -> tuple[int, int, Rig]:
     """(width, height, the rig at that image size) of a LUT build, its arguments checked (ValueError quotes them)."""
-    if isinstance(feature_stride, bool) or not isinstance(feature_stride, (int, np.integer)) or feature_stride <= 0:
-        raise ValueError(f"feature_stride must be a positive integer, got {feature_stride!r}")
-    if not (isinstance(min_depth_m, (int, float)) and math.isfinite(min_depth_m) and min_depth_m >= 0):
-        raise ValueError(f"min_depth_m must be a finite number >= 0, got {min_depth_m!r}")
+    stride_ok = isinstance(feature_stride, (int, np.integer)) and not isinstance(feature_stride, bool)
+    if not (stride_ok and 0 < feature_stride <= MAX_IMAGE_PX):  # a stride past any image side is no feature map
+        raise ValueError(f"feature_stride must be a positive integer up to {MAX_IMAGE_PX}, got {_short(feature_stride)}")
+    try:
+        _check_min_depth(min_depth_m)  # not math.isfinite alone: it raises OverflowError for a huge int
+    except CalibrationError:
+        raise ValueError(f"min_depth_m must be a finite number >= 0, got {_short(min_depth_m)}") from None
     if image_size is None:
         sizes = {(c.width, c.height) for c in rig.cameras}
         if len(sizes) != 1:
             raise ValueError(f"cameras have different image sizes {sorted(sizes)}; pass image_size=(W, H)")
         (width, height), cams_rig = sizes.pop(), rig
     else:
-        if len(image_size) != 2:
-            raise ValueError(f"image_size must be (W, H), got {image_size!r}")
-        width, height = int(image_size[0]), int(image_size[1])
+        try:
+            if len(image_size) != 2:
+                raise ValueError
+            width, height = int(image_size[0]), int(image_size[1])
+        except (TypeError, ValueError, OverflowError):  # not a pair, or not numbers (inf overflows int())
+            raise ValueError(f"image_size must be (W, H), got {_short(image_size)}") from None
         cams_rig = rig.resized(width, height)
     return width, height, cams_rig
 
@@ -435,6 +496,7 @@ def _build_lut_heights(rig: Rig, grid: GridSpec, feature_stride: int, image_size
     first = np.searchsorted(voxel, voxel, side="left")
     slot = np.arange(len(voxel)) - first  # rank of the row within its voxel
     num_slots = max(1, int(slot.max()) + 1) if len(slot) else 1
+    check_lut_bytes(grid, num_slots)
     q, r = voxel // per_quadrant, voxel % per_quadrant
     flat = (q * num_slots + slot) * per_quadrant + r  # into (4, K, M)
     index = np.full(NUM_QUADRANTS * num_slots * per_quadrant, sentinel, dtype=np.int32)

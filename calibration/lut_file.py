@@ -8,6 +8,7 @@ the three ``.npy`` headers and the small ``meta`` string:
 - exactly the members ``index.npy``, ``weight.npy``, ``meta.npy``, once each;
 - declared uncompressed sizes within `MAX_LUT_BYTES` (all members) and `MAX_LUT_META_BYTES` (meta); the zip
   reader never inflates a member past its declared size, so these bound the memory a load can take;
+- ``meta`` one unicode string (shape (), dtype ``<U``n), the JSON object of `Lut.meta`;
 - no object (pickled) dtype; ``index`` int32, ``weight`` float32, both C-ordered and of shape (4, K, Z, Yq, Xq),
   with (Z, Yq, Xq) the expected grid's and 1 <= K <= cameras x heights per voxel (the most distinct feature rows one
   voxel can read); the expectation is the caller's (the manifest's grid and camera count) or else the file's meta;
@@ -92,13 +93,25 @@ def _header(f, name: str, src: str) -> tuple[tuple[int, ...], bool, np.dtype]:
 
 
 def _read_meta(zf: zipfile.ZipFile, info: zipfile.ZipInfo, src: str) -> dict:
-    """The meta object when it is a JSON object string, else {} (Lut.load names what is wrong with it)."""
+    """The meta object when it is a JSON object string, else {} (Lut.load names what is wrong with it).
+
+    The header must declare one unicode string whose bytes are exactly the member's rest: numpy allocates the
+    declared shape before it reads a non-file stream, so a 128-byte member announcing 2**40 float64 would
+    otherwise ask for 8 TiB (MAX_LUT_META_BYTES caps the member, not what its header claims)."""
     with zf.open(info) as f:
-        _header(f, "meta", src)
+        shape, fortran_order, dtype = _header(f, "meta", src)
+        header_bytes = f.tell()
+    if shape != () or dtype.kind != "U":
+        raise LutFileError(f"{src}: meta: expected a JSON string (a 0-d unicode array), got dtype {dtype.str} shape {shape}")
+    if info.file_size != header_bytes + dtype.itemsize:
+        raise LutFileError(
+            f"{src}: meta.npy declares {info.file_size} bytes, but its header implies {header_bytes + dtype.itemsize} "
+            f"(a {dtype.str} string): truncated or padded"
+        )  # fmt: skip
     with zf.open(info) as f:
-        arr = np.lib.format.read_array(f, allow_pickle=False)  # bounded: its declared size is capped
+        arr = np.lib.format.read_array(f, allow_pickle=False)  # bounded: one string of the member's capped size
     try:
-        meta = json.loads(str(arr)) if arr.shape == () and arr.dtype.kind == "U" else {}
+        meta = json.loads(str(arr))
     except (ValueError, RecursionError):
         return {}
     return meta if isinstance(meta, dict) else {}
@@ -107,7 +120,7 @@ def _read_meta(zf: zipfile.ZipFile, info: zipfile.ZipInfo, src: str) -> dict:
 def _meta_grid(meta: dict) -> GridSpec | None:
     try:
         return GridSpec.from_dict(meta["grid"])
-    except (KeyError, TypeError, ValueError):
+    except (KeyError, TypeError, ValueError, OverflowError):
         return None  # Lut.load names the bad grid; the tables are then bounded by MAX_LUT_BYTES alone
 
 

@@ -24,7 +24,7 @@ import click
 from streamdet.calibration.camera import CalibrationError, Rig
 from streamdet.calibration.grid import GridSpec
 from streamdet.calibration.lut import (  # noqa: F401 (ASPECT_TOLERANCE, BlindCameraWarning: public here too)
-    ASPECT_TOLERANCE, BlindCameraWarning, Lut, blind_cameras, build_lut, check_rig_fits, moved_cameras,
+    ASPECT_TOLERANCE, BlindCameraWarning, Lut, LutFileError, blind_cameras, build_lut, check_rig_fits, moved_cameras,
 )
 from streamdet.runtime_ort.manifest import (
     LUT_NAME, MANIFEST_NAME, LutEntry, ManifestError, atomic_write, export_file, read_manifest, sha256_file,
@@ -59,8 +59,16 @@ def rebuild_lut(calibration: str | Path, export_dir: str | Path) -> tuple[Lut, b
     except (KeyError, TypeError, ValueError) as e:
         raise ManifestError(f"{export_dir / 'manifest.json'}: grid: {e}") from None
     # the model's heights per voxel (models/presets.py LifterConfig; absent = 1, manifests written before it)
-    heights = manifest.preset.get("lifter", {}).get("lut_heights_per_voxel", 1)
-    lut = build_lut(rig, grid, image.feature_stride, (image.width, image.height), heights_per_voxel=heights)
+    lifter = manifest.preset.get("lifter", {})
+    if not isinstance(lifter, dict):  # the schema refuses it too; kept so this never becomes an AttributeError
+        raise ManifestError(f"{export_dir / MANIFEST_NAME}: preset.lifter: expected an object, got {type(lifter).__name__}")
+    heights = lifter.get("lut_heights_per_voxel", 1)
+    try:
+        lut = build_lut(rig, grid, image.feature_stride, (image.width, image.height), heights_per_voxel=heights)
+    except CalibrationError:
+        raise
+    except ValueError as e:  # the manifest's numbers (grid too big for a LUT, heights per voxel, stride): name it
+        raise ManifestError(f"{export_dir / MANIFEST_NAME}: {e}") from None
     if (lut.feature_width, lut.feature_height) != (image.feature_width, image.feature_height):
         raise LutMismatch(
             f"the LUT's feature map {lut.feature_width}x{lut.feature_height} differs from the manifest's "
@@ -72,6 +80,24 @@ def rebuild_lut(calibration: str | Path, export_dir: str | Path) -> tuple[Lut, b
     entry = LutEntry(LUT_NAME, new_sha, lut.calibration_sha256, str(Path(calibration)))
     write_manifest(dataclasses.replace(manifest, lut=entry), export_dir)
     return lut, new_sha != old_sha
+
+
+def _previous_lut(export_dir: str) -> Lut | None:
+    """The LUT about to be replaced, to warn about moved cameras; None when there is none or it is broken.
+
+    A broken lut.npz is exactly what a rebuild may be run to replace, so no error reading it (Lut.load's
+    LutFileError / CalibrationError, an I/O error) may stop the rebuild: it is logged and skipped."""
+    try:
+        path = export_file(export_dir, LUT_NAME, "the LUT")
+    except ManifestError:
+        return None  # a path outside the export: rebuild_lut refuses it with this same message
+    if not path.is_file():
+        return None  # a first build: nothing to compare with, nothing to report
+    try:
+        return Lut.load(path)
+    except (LutFileError, CalibrationError, ValueError, OSError) as e:  # ValueError: whatever numpy lets through
+        click.echo(f"note: the previous {LUT_NAME} is unreadable, so it is replaced without comparing cameras: {e}", err=True)
+        return None
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -86,10 +112,7 @@ def main() -> None:
               help="An existing export directory (with manifest.json); its lut.npz is replaced.")
 def lut_command(calibration: str, export_dir: str) -> None:
     """Rebuild lut.npz of an export for a new calibration; no re-export needed."""
-    try:
-        previous = Lut.load(export_file(export_dir, LUT_NAME, "the LUT"))
-    except (ManifestError, CalibrationError):  # absent or unreadable: nothing to compare the new one with
-        previous = None
+    previous = _previous_lut(export_dir)
     try:
         lut, changed = rebuild_lut(calibration, export_dir)
     except (ManifestError, CalibrationError, LutMismatch) as e:
