@@ -12,6 +12,14 @@ by ``streamdet-synth``); ``DATAROOT/samples/...`` and ``DATAROOT/sweeps/...`` th
 - ``Sample.point_time_s`` comes from the optional ``<file>.time`` beside a LiDAR file (synthetic data), else None;
 - past sweeps follow the LiDAR ``sample_data.prev`` chain and are moved into the key frame's LiDAR frame via the
   global frame, with their time lag (key frame minus sweep timestamp), as nuScenes multi-sweep detectors do.
+
+The tables are input, not trusted: a malformed row is a ValueError naming the table, its file, the row number,
+its token and the field (``_TABLE_FIELDS`` says what each field must hold), never a TypeError / OverflowError /
+bare KeyError. Every row must be an object with a unique string token (checked at load, with the fields the
+indexes use); the other fields of a row are checked the first time ``get`` uses it, so opening trainval's
+millions of rows costs no second pass, and a row is checked once per reader. Files named by
+``sample_data.filename`` must be a relative path inside the dataset root, without ``..`` (``sample.dataset_file``;
+symlinks the dataset holds are followed: set-ups link ``samples/`` and ``sweeps/`` to other disks).
 """
 
 from __future__ import annotations
@@ -21,10 +29,13 @@ from pathlib import Path
 
 import numpy as np
 
-from streamdet.calibration.camera import Rig, invert_transform, make_transform, quaternion_to_matrix
+from streamdet.calibration.camera import (
+    QUATERNION_NORM_TOL, CalibrationError, Rig, invert_transform, make_transform, quaternion_to_matrix)
 from streamdet.core.boxes import BOX_DIM
 from streamdet.core.classes import CLASS_NAMES
-from streamdet.data.sample import Sample, Sweep, load_point_times, load_points
+from streamdet.data.sample import (
+    COUNT, FLAG, NAME, TEXT, TEXTS, FieldKind, Sample, Sweep, check_fields, dataset_file, load_point_times,
+    load_points, numbers, short_repr)
 
 LIDAR_CHANNEL = "LIDAR_TOP"
 # mmdetection3d / the devkit's camera order; the J axis of every image tensor.
@@ -68,6 +79,44 @@ REQUIRED_TABLES = (
 MAX_VELOCITY_TIME_DIFF_S = 1.5  # the devkit's box_velocity default
 
 
+def _is_unit_quaternion(v: object) -> bool:
+    return numbers(4).test(v) and abs(sum(x * x for x in v) ** 0.5 - 1.0) <= QUATERNION_NORM_TOL  # type: ignore[union-attr]
+
+
+def _is_intrinsic(v: object) -> bool:
+    return v == [] or (type(v) is list and len(v) == 3 and all(numbers(3).test(r) for r in v))
+
+
+QUATERNION = FieldKind(_is_unit_quaternion, f"a unit quaternion (4 finite numbers w, x, y, z; norm within {QUATERNION_NORM_TOL})")
+INTRINSIC = FieldKind(_is_intrinsic, "a 3x3 matrix of finite numbers, or [] (non-camera sensors)")
+LINK = TEXT  # prev / next: "" at the end of a chain, else a token of the same table
+# The fields the reader uses, per table: what each must hold. Tokens naming rows of other tables are non-empty
+# strings here; that they name a row is checked where they are followed (``_ref``).
+_TABLE_FIELDS: dict[str, dict[str, FieldKind]] = {
+    "category": {"token": NAME, "name": NAME},
+    "attribute": {"token": NAME, "name": NAME},
+    "instance": {"token": NAME, "category_token": NAME},
+    "sensor": {"token": NAME, "channel": NAME},
+    "calibrated_sensor": {"token": NAME, "sensor_token": NAME, "translation": numbers(3), "rotation": QUATERNION,
+                          "camera_intrinsic": INTRINSIC},
+    "ego_pose": {"token": NAME, "translation": numbers(3), "rotation": QUATERNION},
+    "scene": {"token": NAME, "name": TEXT},
+    "sample": {"token": NAME, "timestamp": COUNT, "scene_token": NAME},
+    "sample_data": {"token": NAME, "sample_token": NAME, "ego_pose_token": NAME, "calibrated_sensor_token": NAME,
+                    "timestamp": COUNT, "is_key_frame": FLAG, "filename": NAME, "prev": LINK, "width": COUNT,
+                    "height": COUNT},
+    "sample_annotation": {"token": NAME, "sample_token": NAME, "instance_token": NAME, "translation": numbers(3),
+                          "size": numbers(3, positive=True), "rotation": QUATERNION, "prev": LINK, "next": LINK,
+                          "attribute_tokens": TEXTS, "num_lidar_pts": COUNT, "num_radar_pts": COUNT},
+}  # fmt: skip
+# Fields a row may lack: the devkit's defaults apply (no intrinsics for a LiDAR, no attribute, 0 points).
+_OPTIONAL_FIELDS: dict[str, frozenset[str]] = {
+    "calibrated_sensor": frozenset({"camera_intrinsic"}),
+    "sample_annotation": frozenset({"attribute_tokens", "num_lidar_pts", "num_radar_pts"}),
+}
+
+
+
 class NuScenesReader:
     """Samples (key frames) of a nuScenes-format dataset, in the order of the ``sample`` table."""
 
@@ -77,22 +126,37 @@ class NuScenesReader:
         table_dir = self.root / version
         if not table_dir.is_dir():
             raise FileNotFoundError(f"nuScenes table folder not found: {table_dir} (version {version!r} under {self.root})")
-        tables = {name: _load_table(table_dir, name) for name in REQUIRED_TABLES}
-        self._by_token = {name: {r["token"]: r for r in rows} for name, rows in tables.items()}
-        self._samples = tables["sample"]
+        self._table_dir = table_dir
+        self._tables = {name: _load_table(table_dir, name) for name in REQUIRED_TABLES}
+        self._checked: set[int] = set()  # id() of the rows whose fields are checked (rows live as long as the reader)
+        self._by_token = {name: self._index(name) for name in REQUIRED_TABLES}
+        self._samples = self._tables["sample"]
         channel_of_cs = {
-            cs["token"]: self._get("sensor", cs["sensor_token"])["channel"] for cs in tables["calibrated_sensor"]
-        }
-        self._channel_of_sd = {sd["token"]: channel_of_cs[sd["calibrated_sensor_token"]] for sd in tables["sample_data"]}
+            cs["token"]: self._ref("calibrated_sensor", self._row("calibrated_sensor", cs), "sensor_token", "sensor")["channel"]
+            for cs in self._tables["calibrated_sensor"]
+        }  # a small table: every row checked now
         self._key_data: dict[str, dict[str, str]] = {s["token"]: {} for s in self._samples}
-        for sd in tables["sample_data"]:
-            if sd["is_key_frame"]:
-                self._key_data[sd["sample_token"]][self._channel_of_sd[sd["token"]]] = sd["token"]
+        # The big tables (millions of rows in trainval): only the fields these indexes read, trusted on the fast path;
+        # a row that breaks it (missing field, wrong type, dangling token) is found and named by _bad_row.
+        for i, sd in enumerate(self._tables["sample_data"]):
+            try:
+                channel = channel_of_cs[sd["calibrated_sensor_token"]]
+                if sd["is_key_frame"] is True:
+                    self._key_data[sd["sample_token"]][channel] = sd["token"]
+                elif sd["is_key_frame"] is not False:
+                    raise TypeError("is_key_frame")
+            except (KeyError, TypeError):
+                raise self._bad_row("sample_data", i, {"calibrated_sensor_token": "calibrated_sensor", "is_key_frame": None,
+                                                       "sample_token": "sample"}) from None  # fmt: skip
         self._anns: dict[str, list[str]] = {s["token"]: [] for s in self._samples}
-        for ann in tables["sample_annotation"]:
-            self._anns[ann["sample_token"]].append(ann["token"])
+        for i, ann in enumerate(self._tables["sample_annotation"]):
+            try:
+                self._anns[ann["sample_token"]].append(ann["token"])
+            except (KeyError, TypeError):
+                raise self._bad_row("sample_annotation", i, {"sample_token": "sample"}) from None
         self._category_of_instance = {
-            inst["token"]: self._get("category", inst["category_token"])["name"] for inst in tables["instance"]
+            inst["token"]: self._ref("instance", self._row("instance", inst), "category_token", "category")["name"]
+            for inst in self._tables["instance"]
         }
 
     def __len__(self) -> int:
@@ -103,51 +167,54 @@ class NuScenesReader:
         return [s["token"] for s in self._samples]
 
     def scene_name(self, sample_token: str) -> str:
-        return self._get("scene", self._get("sample", sample_token)["scene_token"])["name"]
+        return self._ref("sample", self._get("sample", sample_token), "scene_token", "scene")["name"]
 
     def get(self, token_or_index: str | int, num_past_sweeps: int = 0) -> Sample:
         """The sample with its LiDAR sweep, up to ``num_past_sweeps`` earlier sweeps, images, rig and boxes."""
         if isinstance(token_or_index, (int, np.integer)) and not isinstance(token_or_index, bool):
             if not -len(self) <= token_or_index < len(self):
                 raise IndexError(f"sample index {token_or_index} out of range for {len(self)} samples")
-            record = self._samples[token_or_index]
+            record = self._row("sample", self._samples[token_or_index])
         else:
             record = self._get("sample", token_or_index)
         if not isinstance(num_past_sweeps, (int, np.integer)) or num_past_sweeps < 0:
             raise ValueError(f"num_past_sweeps must be a non-negative integer, got {num_past_sweeps!r}")
         data = self._key_data[record["token"]]
         if LIDAR_CHANNEL not in data:
-            raise KeyError(f"sample {record['token']} has no key-frame {LIDAR_CHANNEL} sample_data")
-        lidar_sd = self._get("sample_data", data[LIDAR_CHANNEL])
-        lidar_cs = self._get("calibrated_sensor", lidar_sd["calibrated_sensor_token"])
-        lidar_pose = self._get("ego_pose", lidar_sd["ego_pose_token"])
+            raise ValueError(f"{self._where('sample', record)}: no key-frame {LIDAR_CHANNEL} sample_data names this sample")
+        lidar_sd = self._row("sample_data", self._by_token["sample_data"][data[LIDAR_CHANNEL]])
+        lidar_cs = self._ref("sample_data", lidar_sd, "calibrated_sensor_token", "calibrated_sensor")
+        lidar_pose = self._ref("sample_data", lidar_sd, "ego_pose_token", "ego_pose")
         cams = []
         image_paths = {}
         for channel in [c for c in CAMERA_CHANNELS if c in data] + sorted(
             c for c in data if c.startswith("CAM_") and c not in CAMERA_CHANNELS
         ):
-            sd = self._get("sample_data", data[channel])
+            sd = self._row("sample_data", self._by_token["sample_data"][data[channel]])
             cams.append(
                 {
                     "name": channel,
-                    "calibrated_sensor": self._get("calibrated_sensor", sd["calibrated_sensor_token"]),
-                    "ego_pose": self._get("ego_pose", sd["ego_pose_token"]),
-                    "width": int(sd["width"]),
-                    "height": int(sd["height"]),
-                    "timestamp_us": int(sd["timestamp"]),
+                    "calibrated_sensor": self._ref("sample_data", sd, "calibrated_sensor_token", "calibrated_sensor"),
+                    "ego_pose": self._ref("sample_data", sd, "ego_pose_token", "ego_pose"),
+                    "width": sd["width"],
+                    "height": sd["height"],
+                    "timestamp_us": sd["timestamp"],
                 }
             )
             image_paths[channel] = self._file(sd)
         if not cams:
-            raise KeyError(f"sample {record['token']} has no key-frame camera sample_data")
-        rig = Rig.from_nuscenes_records(lidar_cs, lidar_pose, cams)
+            raise ValueError(f"{self._where('sample', record)}: no key-frame camera sample_data names this sample")
+        try:
+            rig = Rig.from_nuscenes_records(lidar_cs, lidar_pose, cams)
+        except CalibrationError as e:  # the fields are well-formed but do not make a rig (a zero image size, say)
+            raise ValueError(f"{self._where('sample', record)}: its sensors do not form a camera rig: {e}") from None
         lidar2global = rig.ego2global @ rig.lidar2ego
         boxes = self._boxes(record["token"], rig)
         lidar_path = self._file(lidar_sd)
         points = load_points(lidar_path)
         return Sample(
             token=record["token"],
-            timestamp_us=int(lidar_sd["timestamp"]),
+            timestamp_us=lidar_sd["timestamp"],
             points=points,
             point_time_s=load_point_times(lidar_path, len(points)),
             rig=rig,
@@ -159,24 +226,80 @@ class NuScenesReader:
 
     # ---- internals --------------------------------------------------------------------------------
     def _get(self, table: str, token: str) -> dict:
+        """The row of ``table`` a caller asks for by token: KeyError when there is none (a lookup, not a defect)."""
+        row = self._by_token[table].get(token)
+        if row is None:
+            raise KeyError(f"token {token!r} not found in table {table!r} of {self.root / self.version}")
+        return self._row(table, row)
+
+    def _row(self, table: str, row: dict) -> dict:
+        """``row`` of ``table`` with every field the reader uses checked (once per row)."""
+        if id(row) not in self._checked:
+            check_fields(row, _TABLE_FIELDS[table], lambda: self._where(table, row), _OPTIONAL_FIELDS.get(table, frozenset()))
+            self._checked.add(id(row))
+        return row
+
+    def _ref(self, table: str, row: dict, field: str, target: str) -> dict:
+        """The row of ``target`` that the checked ``row`` of ``table`` names in ``field``, checked in turn."""
+        found = self._by_token[target].get(row[field])
+        if found is None:
+            raise ValueError(f"{self._where(table, row)}: field {field!r} names {short_repr(row[field])}, "
+                             f"which is no token of table {target!r}")  # fmt: skip
+        return self._row(target, found)
+
+    def _where(self, table: str, row: object, index: int | None = None) -> str:
+        """'nuScenes table 'T' (path) row N (token '...')' for an error message; finds N when not given (only
+        errors pay for the search)."""
+        if index is None:
+            index = next((i for i, r in enumerate(self._tables[table]) if r is row), -1)
+        token = row.get("token") if type(row) is dict else None
+        named = f" (token {short_repr(token)})" if type(token) is str else ""
+        return f"nuScenes table {table!r} ({self._table_dir / table}.json) row {index}{named}"
+
+    def _bad_row(self, table: str, index: int, refs: dict[str, str | None]) -> ValueError:
+        """Why row ``index`` of ``table`` broke an index: a field of ``refs`` missing or of the wrong kind, or a
+        token naming no row of the table ``refs[field]``. Only called after the fast path failed on that row."""
+        row = self._tables[table][index]
+        where = self._where(table, row, index)
+        check_fields(row, {"token": NAME} | {f: _TABLE_FIELDS[table][f] for f in refs}, where)
+        for field, target in refs.items():
+            if target is not None and row[field] not in self._by_token[target]:
+                return ValueError(f"{where}: field {field!r} names {short_repr(row[field])}, which is no token of table {target!r}")
+        return ValueError(f"{where}: malformed row {short_repr(row)}")
+
+    def _index(self, table: str) -> dict[str, dict]:
+        """Rows of ``table`` by token: every row an object with a unique, non-empty string token."""
+        rows = self._tables[table]
         try:
-            return self._by_token[table][token]
-        except KeyError:
-            raise KeyError(f"token {token!r} not found in table {table!r} of {self.root / self.version}") from None
+            index = {r["token"]: r for r in rows}  # fast: a non-object row, a missing or unhashable token raise
+        except (KeyError, TypeError):
+            index = {}
+        if len(index) == len(rows) and "" not in index and set(map(type, index)) <= {str}:
+            return index
+        first: dict[object, int] = {}
+        for i, row in enumerate(rows):  # slow, naming the first bad row
+            check_fields(row, {"token": NAME}, lambda: self._where(table, row, i))
+            if row["token"] in first:
+                raise ValueError(f"{self._where(table, row, i)}: the token is also that of row {first[row['token']]}: "
+                                 "tokens must be unique")  # fmt: skip
+            first[row["token"]] = i
+        raise AssertionError(f"table {table!r}: index check failed but no row is bad")  # unreachable
 
     def _file(self, sd: dict) -> Path:
-        path = self.root / sd["filename"]
+        """The file of a checked sample_data row, a relative path inside the dataset root (``sample.dataset_file``)."""
+        path = dataset_file(self.root, sd["filename"], lambda: f"{self._where('sample_data', sd)}: field 'filename'")
         if not path.is_file():
             raise FileNotFoundError(f"file of sample_data {sd['token']} not found: {path}")
         return path
 
     def _boxes(self, sample_token: str, rig: Rig) -> dict:
-        anns = [self._get("sample_annotation", t) for t in self._anns[sample_token]]
+        anns = [self._row("sample_annotation", self._by_token["sample_annotation"][t]) for t in self._anns[sample_token]]
         m = len(anns)
         global2lidar = invert_transform(rig.ego2global @ rig.lidar2ego)
         boxes = np.zeros((m, BOX_DIM), dtype=np.float64)
         labels = np.full(m, -1, dtype=np.int64)
         names = []
+        attributes = []
         velocity = np.zeros((m, 3))
         for i, ann in enumerate(anns):
             box2global = make_transform(quaternion_to_matrix(ann["rotation"]), ann["translation"])
@@ -185,19 +308,18 @@ class NuScenesReader:
             boxes[i, 3:6] = ann["size"]  # w, l, h
             boxes[i, 6] = np.arctan2(box2lidar[1, 0], box2lidar[0, 0])
             velocity[i] = self._box_velocity(ann)
-            category = self._category_of_instance[ann["instance_token"]]
+            category = self._category_of_instance.get(ann["instance_token"])
+            if category is None:
+                self._ref("sample_annotation", ann, "instance_token", "instance")  # raises: names the dangling token
             cls = CATEGORY_TO_CLASS.get(category)
             if cls is not None:
                 labels[i] = CLASS_NAMES.index(cls)
             names.append(cls if cls is not None else category)
+            attributes.append(self._attribute(ann))
         valid = np.all(np.isfinite(velocity[:, :2]), axis=1)
         velocity[:, 2] = 0.0  # mmdetection3d keeps the ground-plane velocity only
         velocity[~valid] = 0.0
         boxes[:, 7:9] = (velocity @ global2lidar[:3, :3].T)[:, :2]
-        attributes = []
-        for ann in anns:
-            tokens = ann.get("attribute_tokens", [])
-            attributes.append(self._get("attribute", tokens[0])["name"] if len(tokens) == 1 else "")
         return {
             "gt_boxes": boxes,
             "gt_labels": labels,
@@ -210,16 +332,28 @@ class NuScenesReader:
             "attribute_names": tuple(attributes),
         }
 
+    def _attribute(self, ann: dict) -> str:
+        """The attribute name of a checked annotation: its single attribute's, else "" (none, or several)."""
+        tokens = ann.get("attribute_tokens", [])
+        if len(tokens) != 1:
+            return ""
+        row = self._by_token["attribute"].get(tokens[0])
+        if row is None:
+            raise ValueError(f"{self._where('sample_annotation', ann)}: field 'attribute_tokens' names {tokens[0]!r}, "
+                             "which is no token of table 'attribute'")  # fmt: skip
+        return self._row("attribute", row)["name"]
+
     def _box_velocity(self, ann: dict) -> np.ndarray:
         """Global (3,) velocity exactly as the devkit's ``NuScenes.box_velocity``."""
         has_prev, has_next = ann["prev"] != "", ann["next"] != ""
         if not has_prev and not has_next:
             return np.full(3, np.nan)
-        first = self._get("sample_annotation", ann["prev"]) if has_prev else ann
-        last = self._get("sample_annotation", ann["next"]) if has_next else ann
+        first = self._ref("sample_annotation", ann, "prev", "sample_annotation") if has_prev else ann
+        last = self._ref("sample_annotation", ann, "next", "sample_annotation") if has_next else ann
         time_diff = 1e-6 * (
-            self._get("sample", last["sample_token"])["timestamp"] - self._get("sample", first["sample_token"])["timestamp"]
-        )
+            self._ref("sample_annotation", last, "sample_token", "sample")["timestamp"]
+            - self._ref("sample_annotation", first, "sample_token", "sample")["timestamp"]
+        )  # fmt: skip
         max_diff = MAX_VELOCITY_TIME_DIFF_S * (2 if has_prev and has_next else 1)
         if time_diff > max_diff or time_diff <= 0:
             return np.full(3, np.nan)
@@ -230,9 +364,9 @@ class NuScenesReader:
         global2lidar = invert_transform(lidar2global)
         sd = lidar_sd
         while len(sweeps) < count and sd["prev"] != "":
-            sd = self._get("sample_data", sd["prev"])
-            cs = self._get("calibrated_sensor", sd["calibrated_sensor_token"])
-            pose = self._get("ego_pose", sd["ego_pose_token"])
+            sd = self._ref("sample_data", sd, "prev", "sample_data")
+            cs = self._ref("sample_data", sd, "calibrated_sensor_token", "calibrated_sensor")
+            pose = self._ref("sample_data", sd, "ego_pose_token", "ego_pose")
             sweep2global = _record_to_matrix(pose) @ _record_to_matrix(cs)
             sweep2key = global2lidar @ sweep2global
             points = load_points(self._file(sd)).copy()
@@ -240,8 +374,8 @@ class NuScenesReader:
             sweeps.append(
                 Sweep(
                     token=sd["token"],
-                    timestamp_us=int(sd["timestamp"]),
-                    time_lag_s=1e-6 * (int(lidar_sd["timestamp"]) - int(sd["timestamp"])),
+                    timestamp_us=sd["timestamp"],
+                    time_lag_s=1e-6 * (lidar_sd["timestamp"] - sd["timestamp"]),
                     points=points,
                 )
             )
@@ -252,13 +386,18 @@ def _record_to_matrix(record: dict) -> np.ndarray:
     return make_transform(quaternion_to_matrix(record["rotation"]), record["translation"])
 
 
-def _load_table(table_dir: Path, name: str) -> list[dict]:
+def _load_table(table_dir: Path, name: str) -> list:
+    """The rows of ``table_dir/name.json`` (a JSON list; the rows are checked by the reader)."""
     path = table_dir / f"{name}.json"
     if not path.is_file():
         raise FileNotFoundError(f"nuScenes table {name!r} not found: {path}")
     try:
-        rows = json.loads(path.read_text())
-    except json.JSONDecodeError as e:
+        rows = json.loads(path.read_bytes().decode("utf-8"))
+    except UnicodeDecodeError as e:  # before ValueError: it is one
+        raise ValueError(f"nuScenes table {name!r} ({path}) is not UTF-8 text: {e.reason} at byte {e.start}") from None
+    except RecursionError:  # the parser recurses once per level
+        raise ValueError(f"nuScenes table {name!r} ({path}) nests too deeply to be a table") from None
+    except ValueError as e:  # JSONDecodeError, and the 4300-digit limit on integer literals
         raise ValueError(f"nuScenes table {name!r} ({path}) is not valid JSON: {e}") from None
     if not isinstance(rows, list):
         raise ValueError(f"nuScenes table {name!r} ({path}) must be a JSON list of records, got {type(rows).__name__}")

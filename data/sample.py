@@ -10,19 +10,25 @@ from __future__ import annotations
 
 import importlib.resources
 import json
+import math
+import sys
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from streamdet.calibration.camera import Rig
+from streamdet.calibration.camera import MAX_CALIBRATION_BYTES, Rig
 from streamdet.core.boxes import BOX_DIM
 from streamdet.core.classes import CLASS_NAMES
 from streamdet.core.constants import BUNDLED_SAMPLE_DIR
 from streamdet.core.points import check_sweep
 
 POINT_TIME_SUFFIX = ".time"  # optional float32 (N,) per-point times beside a .pcd.bin (synthetic data writes it)
+MAX_BOXES_BYTES = 64 << 20  # boxes.json of one sample is ~100 kB; a larger file is refused before it is read
+_FLOAT_MAX = sys.float_info.max
+_INT64_MAX = (1 << 63) - 1
 
 
 @dataclass(frozen=True, eq=False)
@@ -115,6 +121,7 @@ def load_points(path: str | Path) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"LiDAR file not found: {path}")
+    _check_float32_size(path, "LiDAR file")
     raw = np.fromfile(path, dtype=np.float32)
     if raw.size % 5:
         raise ValueError(f"LiDAR file {path}: {raw.size} floats is not a multiple of 5 (x, y, z, intensity, ring)")
@@ -127,10 +134,19 @@ def load_point_times(points_path: str | Path, num_points: int) -> np.ndarray | N
     path = path.with_name(path.name + POINT_TIME_SUFFIX)
     if not path.is_file():
         return None
-    times = np.fromfile(path, dtype="<f4")
-    if times.shape != (num_points,):
-        raise ValueError(f"point-time file {path} holds {times.size} values for {num_points} points")
-    return times
+    size = _check_float32_size(path, "point-time file")
+    if size != 4 * num_points:
+        raise ValueError(f"point-time file {path} is {size} bytes ({size // 4} values) for {num_points} points: "
+                         f"expected {4 * num_points} (one float32 each)")  # fmt: skip
+    return np.fromfile(path, dtype="<f4")
+
+
+def _check_float32_size(path: Path, what: str) -> int:
+    """The size of a raw float32 file, checked before reading: np.fromfile silently drops a partial last value."""
+    size = path.stat().st_size
+    if size % 4:
+        raise ValueError(f"{what} {path}: {size} bytes is not a whole number of float32 values (truncated or corrupted?)")
+    return size
 
 
 def bundled_sample_dir() -> Path:
@@ -138,10 +154,139 @@ def bundled_sample_dir() -> Path:
     return Path(str(importlib.resources.files("streamdet.data") / BUNDLED_SAMPLE_DIR))
 
 
+# ---- fields of the JSON files a dataset is made of ---------------------------------------------------------------
+# One vocabulary for every reader of dataset JSON (boxes.json here, the nuScenes tables in nuscenes.py): a field
+# is checked against a FieldKind, and a bad one is a ValueError naming the file, the record and the field, never a
+# TypeError / OverflowError / KeyError from deep inside numpy. The tests are plain Python on what json.loads gives
+# (exact types, no numpy), cheap enough to run on every record a reader uses.
+
+
+def is_number(value: object) -> bool:
+    """A JSON number (not a bool) that is a finite float64.
+
+    A comparison, not ``math.isfinite``: JSON integers are unbounded and ``math.isfinite(10**400)`` raises
+    OverflowError, while Python compares an int with a float exactly (and NaN compares false: refused too).
+    """
+    return type(value) in (int, float) and -_FLOAT_MAX <= value <= _FLOAT_MAX  # type: ignore[operator]
+
+
+@dataclass(frozen=True)
+class FieldKind:
+    """What a JSON field must hold: ``test`` it, and ``what`` it must be, in words, for the error message."""
+
+    test: Callable[[object], bool]
+    what: str
+
+
+def numbers(n: int, positive: bool = False) -> FieldKind:
+    """Exactly ``n`` finite numbers (``positive``: each > 0), as a JSON list."""
+
+    def test(v: object) -> bool:
+        return type(v) is list and len(v) == n and all(is_number(x) and (not positive or x > 0) for x in v)
+
+    return FieldKind(test, f"{n} {'positive ' if positive else ''}finite numbers")
+
+
+NUMBER = FieldKind(is_number, "a finite number")
+COUNT = FieldKind(lambda v: type(v) is int and 0 <= v <= _INT64_MAX, "an integer >= 0 (int64)")
+TEXT = FieldKind(lambda v: type(v) is str, "a string")
+NAME = FieldKind(lambda v: type(v) is str and v != "", "a non-empty string")
+FLAG = FieldKind(lambda v: type(v) is bool, "true or false")
+TEXTS = FieldKind(lambda v: type(v) is list and all(type(x) is str for x in v), "a list of strings")
+
+
+def check_fields(record: object, kinds: Mapping[str, FieldKind], where: str | Callable[[], str],
+                 optional: frozenset[str] | set[str] = frozenset()) -> None:  # fmt: skip
+    """Check ``record`` (a JSON object) field by field; ``optional`` fields may be absent.
+
+    ``where`` names the record in the error (file, table, row); a callable is called only on an error, for
+    readers whose names cost a search (the nuScenes row number).
+    """
+    if type(record) is not dict:
+        raise ValueError(f"{_where(where)}: must be a JSON object, got {short_repr(record)}")
+    for name, kind in kinds.items():
+        if name not in record:
+            if name in optional:
+                continue
+            raise ValueError(f"{_where(where)}: field {name!r} is missing (fields: {sorted(record)[:20]})")
+        if not kind.test(record[name]):
+            raise ValueError(f"{_where(where)}: field {name!r} must be {kind.what}, got {short_repr(record[name])}")
+
+
+def _where(where: str | Callable[[], str]) -> str:
+    return where if isinstance(where, str) else where()
+
+
+def short_repr(value: object, limit: int = 80) -> str:
+    """``repr(value)`` cut to ``limit`` characters: a 10**400 or a long list must not flood a one-line error."""
+    if type(value) is int and abs(value) >= 10**60:
+        return f"an integer of {int(abs(value).bit_length() * math.log10(2)) + 1} digits"
+    try:
+        text = repr(value)
+    except ValueError:  # a container holding an int past Python's 4300-digit str() limit
+        return f"a {type(value).__name__} holding an integer too long to print"
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def dataset_file(root: str | Path, name: object, where: str | Callable[[], str]) -> Path:
+    """``root / name`` for a file that a dataset's own metadata names (a table row, calibration.json), confined.
+
+    ``name`` must be a non-empty relative path without ``..`` (nor a drive, a root or a NUL): a table or a
+    calibration file cannot make a reader open a file outside the dataset. Symlinks in the dataset are followed
+    wherever they lead: they are the file system's owner's, and nuScenes set-ups link ``samples/`` and ``sweeps/``
+    to other disks. The file need not exist: readers check. ValueError naming ``where`` (as in ``check_fields``)
+    otherwise.
+    """
+    if type(name) is not str or not name or "\x00" in name:
+        raise ValueError(f"{_where(where)}: file must be a non-empty relative path, got {short_repr(name)}")
+    rel = Path(name)
+    if rel.is_absolute() or rel.drive or rel.root or ".." in rel.parts:
+        raise ValueError(f"{_where(where)}: file {name!r} must be a relative path inside the dataset root {root}, without '..'")
+    return Path(root) / rel
+
+
+def read_json(path: Path, what: str, max_bytes: int) -> object:
+    """The JSON document of ``path`` (at most ``max_bytes``); ValueError naming the file when it is not one."""
+    try:
+        with open(path, "rb") as f:
+            raw = f.read(max_bytes + 1)  # bounded: a device or a huge file is refused, not read whole
+    except OSError as e:
+        raise ValueError(f"{what} {path}: cannot read: {e.strerror or e}") from None
+    if len(raw) > max_bytes:
+        raise ValueError(f"{what} {path} is larger than {max_bytes} bytes: not a {what}")
+    try:
+        return json.loads(raw.decode("utf-8"))
+    except UnicodeDecodeError as e:  # before ValueError: it is one
+        raise ValueError(f"{what} {path} is not UTF-8 text (a binary file?): {e.reason} at byte {e.start}") from None
+    except RecursionError:  # the parser recurses once per level
+        raise ValueError(f"{what} {path} nests too deeply to be a {what}") from None
+    except ValueError as e:  # JSONDecodeError, and the 4300-digit limit on integer literals
+        raise ValueError(f"{what} {path} is not valid JSON: {e}") from None
+
+
+def _unknown(c: object) -> bool:
+    return c is None or (type(c) is float and math.isnan(c))
+
+
+# boxes.json records, as load_bundled_sample reads them
+_BOX_FIELDS = {
+    "center_xyz": numbers(3), "size_wlh": numbers(3, positive=True), "yaw": NUMBER,
+    "label": FieldKind(lambda v: type(v) is int and -1 <= v < len(CLASS_NAMES),
+                       f"an integer in -1..{len(CLASS_NAMES) - 1} (an index into CLASS_NAMES, -1: other)"),
+    # null, or a null / NaN component, where the source had NaN; a bare number or one component would broadcast
+    "velocity_xy": FieldKind(lambda v: v is None or (type(v) is list and len(v) == 2
+                                                     and all(is_number(c) or _unknown(c) for c in v)),
+                             "null or 2 numbers (null or NaN where unknown)"),
+    "num_lidar_pts": COUNT, "num_radar_pts": COUNT, "center_global": numbers(3),
+}  # fmt: skip
+
+
 def load_bundled_sample(root: str | Path | None = None) -> Sample:
     """The shipped real nuScenes sample (scene-0061, first key frame): calibration.json, boxes.json and files.
 
     ``extras["center_global"]`` holds the boxes' global centres as boxes.json gives them (the devkit's numbers).
+    Another ``root`` is read as untrusted: every box field is checked, and the files calibration.json names must
+    lie inside ``root`` (``dataset_file``); any defect is a ValueError naming the file, box and field.
     """
     root = Path(root) if root is not None else bundled_sample_dir()
     calib_path = root / "calibration.json"
@@ -149,20 +294,25 @@ def load_bundled_sample(root: str | Path | None = None) -> Sample:
     for p in (calib_path, boxes_path):
         if not p.is_file():
             raise FileNotFoundError(f"bundled sample file not found: {p}")
-    calib = json.loads(calib_path.read_text())
-    rig = Rig.from_calibration_json(calib)
-    doc = json.loads(boxes_path.read_text())
-    records = doc.get("boxes")
+    calib = read_json(calib_path, "calibration file", MAX_CALIBRATION_BYTES)
+    rig = Rig.from_calibration_json(calib)  # CalibrationError (a ValueError) for a malformed rig
+    check_fields(calib, {"sample_token": TEXT, "sample_timestamp_us": COUNT}, str(calib_path))
+    check_fields(calib["lidar"], {"file": NAME}, f"{calib_path} lidar")  # Rig checked lidar and cameras are objects
+    for i, cam in enumerate(calib["cameras"]):
+        check_fields(cam, {"file": NAME}, f"{calib_path} cameras[{i}]")
+    doc = read_json(boxes_path, "boxes file", MAX_BOXES_BYTES)
+    records = doc.get("boxes") if isinstance(doc, dict) else None
     if not isinstance(records, list):
         raise ValueError(f"{boxes_path}: 'boxes' must be a list, got {type(records).__name__}")
     boxes = np.zeros((len(records), BOX_DIM), dtype=np.float64)
     valid_v = np.ones(len(records), dtype=bool)
     for i, r in enumerate(records):
+        check_fields(r, _BOX_FIELDS, f"{boxes_path} boxes[{i}]")
         boxes[i, 0:3] = r["center_xyz"]
         boxes[i, 3:6] = r["size_wlh"]
         boxes[i, 6] = r["yaw"]
-        v = r["velocity_xy"]  # null, or [null, null], where the source had NaN
-        if v is None or any(c is None for c in v) or not np.all(np.isfinite(np.asarray(v, dtype=np.float64))):
+        v = r["velocity_xy"]
+        if v is None or not all(is_number(c) for c in v):
             valid_v[i] = False
         else:
             boxes[i, 7:9] = v
@@ -170,10 +320,13 @@ def load_bundled_sample(root: str | Path | None = None) -> Sample:
     names = tuple(CLASS_NAMES[lab] if lab >= 0 else "other" for lab in labels)
     return Sample(
         token=calib["sample_token"],
-        timestamp_us=int(calib["sample_timestamp_us"]),
-        points=load_points(root / calib["lidar"]["file"]),
+        timestamp_us=calib["sample_timestamp_us"],
+        points=load_points(dataset_file(root, calib["lidar"]["file"], f"{calib_path} lidar")),
         rig=rig,
-        image_paths={c["name"]: root / c["file"] for c in calib["cameras"]},
+        image_paths={
+            c["name"]: dataset_file(root, c["file"], f"{calib_path} cameras[{i}]")
+            for i, c in enumerate(calib["cameras"])
+        },
         gt_boxes=boxes,
         gt_labels=labels,
         gt_names=names,
@@ -193,3 +346,4 @@ def _check_size(size: tuple[int, int]) -> tuple[int, int]:
     if width <= 0 or height <= 0:
         raise ValueError(f"size must be positive (width, height) in pixels, got {size!r}")
     return width, height
+

@@ -94,8 +94,9 @@ def _data_inputs(data_dir: Path, version: str, split: str | None, export_dir: Pa
 
             result = evaluate_dataset(detector, data_dir, version=version, split=split, classes=classes,
                                       max_samples=max_samples, progress=progress)  # fmt: skip
-    except (ValueError, FileNotFoundError, KeyError) as e:
-        raise click.ClickException(str(e).strip().splitlines()[0]) from None
+    except (ValueError, OSError, KeyError) as e:  # the dataset's own defects (NuScenesReader names table and row)
+        text = str(e.args[0]) if isinstance(e, KeyError) and e.args else str(e)  # KeyError's str() adds quotes
+        raise click.ClickException((text.strip().splitlines() or [type(e).__name__])[0]) from None
     click.echo(f"{result.num_samples} samples of {data_dir} ({split or 'all'} split), export {export_dir} ({label}), "
                f"{n} slices per sweep, {result.seconds:.1f} s")  # fmt: skip
     click.echo(format_table(result.metrics))

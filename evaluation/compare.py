@@ -91,7 +91,9 @@ def read_sample_info(path: Path) -> SampleInfo:
         e2g = {t: _matrix(s["ego2global"]) for t, s in samples.items()}
     except (OSError, json.JSONDecodeError) as e:
         raise ValueError(f"cannot read {path}: {e}") from None
-    except (KeyError, TypeError, ValueError, AttributeError) as e:
+    except RecursionError:
+        raise ValueError(f"{path} nests too deeply to be a samples file") from None
+    except (KeyError, TypeError, ValueError, AttributeError, OverflowError) as e:  # Overflow: a JSON int past float64
         raise ValueError(f"{path} is not a samples file (num_slices, samples: scene, lidar2ego, ego2global): {e}") from None
     return SampleInfo(scenes=scenes, lidar2ego=l2e, ego2global=e2g, num_slices=n, start_deg=start)
 

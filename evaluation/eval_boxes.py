@@ -17,6 +17,7 @@ inside the box; -1 = unknown). ``velocity`` may be NaN (or null) where the annot
 from __future__ import annotations
 
 import math
+import sys
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
@@ -36,6 +37,21 @@ ATTRIBUTE_NAMES: tuple[str, ...] = (
     "vehicle.parked",
     "vehicle.stopped",
 )
+_FLOAT_MAX = sys.float_info.max
+_INT64 = (-(1 << 63), 1 << 63)  # num_pts is stored as int64: [min, max)
+
+
+def is_finite_number(value: object) -> bool:
+    """Whether ``value`` is a JSON number (not a bool) that is a finite float64.
+
+    Integers by comparison, not ``math.isfinite``: JSON integers are unbounded and ``math.isfinite(10**400)``
+    raises OverflowError, while Python compares an int with a float exactly.
+    """
+    if isinstance(value, bool):
+        return False
+    if isinstance(value, (int, np.integer)):
+        return -_FLOAT_MAX <= int(value) <= _FLOAT_MAX
+    return isinstance(value, (float, np.floating)) and math.isfinite(value)
 
 
 @dataclass(frozen=True, eq=False)
@@ -117,7 +133,7 @@ class EvalBoxes:
         try:
             # Whole columns at once: a million boxes parse in seconds, not minutes.
             return cls(sample_tokens=tokens, sample_index=sample_index, **_columns(flat, tokens, sample_index))
-        except (KeyError, TypeError, ValueError, AttributeError):
+        except (KeyError, TypeError, ValueError, AttributeError, OverflowError):  # Overflow: a JSON int past float64/int64
             pass
         # Entry by entry: slower, and names the first bad entry in its error.
         rows = [
@@ -211,13 +227,24 @@ def _numbers(entry: Mapping, key: str, n: int, where: str, allow_nan: bool = Fal
     if ok:
         try:
             out = [math.nan if (v is None and allow_nan) else float(v) for v in value]
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):  # OverflowError: an int past float64 (10**400)
             ok = False
         else:
             ok = all(math.isfinite(v) or (allow_nan and math.isnan(v)) for v in out)
     if not ok:
-        raise ValueError(f"{where}.{key} must be {n} finite numbers, got {value!r}")
+        raise ValueError(f"{where}.{key} must be {n} finite numbers, got {short_repr(value)}")
     return out
+
+
+def short_repr(value: object, limit: int = 80) -> str:
+    """``repr(value)`` cut to ``limit`` characters: a 10**400 or a huge list must not flood a one-line error."""
+    if isinstance(value, int) and not isinstance(value, bool) and abs(value) >= 10**60:
+        return f"an integer of {int(abs(value).bit_length() * math.log10(2)) + 1} digits"
+    try:
+        text = repr(value)
+    except ValueError:  # a container holding an int past Python's 4300-digit str() limit
+        return f"a {type(value).__name__} holding an integer too long to print"
+    return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 def _parse_entry(entry: Mapping, token: str, where: str) -> tuple:
@@ -238,14 +265,14 @@ def _parse_entry(entry: Mapping, token: str, where: str) -> tuple:
     velocity = _numbers(entry, "velocity", 2, where, allow_nan=True)
     ego = _numbers(entry, "ego_translation", 3, where) if "ego_translation" in entry else [0.0, 0.0, 0.0]
     num_pts = entry.get("num_pts", -1)
-    if isinstance(num_pts, bool) or not isinstance(num_pts, (int, np.integer)):
-        raise ValueError(f"{where}.num_pts must be an integer, got {num_pts!r}")
+    if isinstance(num_pts, bool) or not isinstance(num_pts, (int, np.integer)) or not _INT64[0] <= num_pts < _INT64[1]:
+        raise ValueError(f"{where}.num_pts must be an integer (int64), got {short_repr(num_pts)}")
     name = entry["detection_name"]
     if name not in DETECTION_NAMES:
         raise ValueError(f"{where}.detection_name must be one of {DETECTION_NAMES}, got {name!r}")
     score = entry.get("detection_score", -1.0)
-    if isinstance(score, bool) or not isinstance(score, (int, float, np.integer, np.floating)) or not math.isfinite(score):
-        raise ValueError(f"{where}.detection_score must be a finite number, got {score!r}")
+    if not is_finite_number(score):
+        raise ValueError(f"{where}.detection_score must be a finite number, got {short_repr(score)}")
     attribute = entry.get("attribute_name", "")
     if attribute != "" and attribute not in ATTRIBUTE_NAMES:
         raise ValueError(f"{where}.attribute_name must be '' or one of {ATTRIBUTE_NAMES}, got {attribute!r}")

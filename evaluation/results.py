@@ -32,9 +32,13 @@ import numpy as np
 
 from streamdet.core.boxes import BOX_DIM, VX, VY, YAW
 from streamdet.core.classes import CLASS_NAMES
-from streamdet.evaluation.eval_boxes import EvalBoxes
+from streamdet.evaluation.eval_boxes import EvalBoxes, is_finite_number, short_repr
 
 META_KEYS = ("use_camera", "use_lidar", "use_radar", "use_map", "use_external")
+# The largest results or ground-truth file read. The devkit's cap of 500 boxes per sample over the 6019 samples
+# of nuScenes val (or the 6008 of test) is about 1.2 GiB of JSON as written here (~420 bytes a box); a larger
+# file is not a submission, and it (or /dev/zero) is refused before it is read whole.
+MAX_RESULTS_BYTES = 2 << 30
 
 # Speed (m/s) above which mmdetection3d labels a vehicle moving / a cycle ridden, when a model has no attribute head.
 _MOVING_SPEED_MPS = 0.2
@@ -303,14 +307,19 @@ def write_results_json(
 
 
 def read_results_json(path: str | os.PathLike) -> ResultsFile:
-    """Read a results or ground-truth file; ValueError (naming the file) when it is not one."""
+    """Read a results or ground-truth file; ValueError (naming the file) when it is not one.
+
+    A file over MAX_RESULTS_BYTES is refused unread, as is input nested too deeply for the JSON parser.
+    """
+    raw = _read_capped(path)
     try:
-        with open(path) as f:
-            doc = json.load(f)
-    except json.JSONDecodeError as e:
+        doc = json.loads(raw.decode("utf-8"))
+    except UnicodeDecodeError as e:  # before ValueError: it is one
+        raise ValueError(f"cannot read {path}: not UTF-8 text (a binary file?): {e}") from None
+    except RecursionError:  # json's parser recurses once per level: a hostile file can nest past the stack
+        raise ValueError(f"{path} nests too deeply to be a results file") from None
+    except ValueError as e:  # JSONDecodeError, and "Exceeds the limit (4300 digits)" for a huge integer literal
         raise ValueError(f"{path} is not valid JSON: {e}") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise ValueError(f"cannot read {path}: {e}") from None
     if not isinstance(doc, dict) or not isinstance(doc.get("results"), dict):
         got = sorted(doc) if isinstance(doc, dict) else type(doc).__name__
         raise ValueError(f"{path} must be a JSON object with a 'results' object (sample_token -> boxes), got {got}")
@@ -319,12 +328,23 @@ def read_results_json(path: str | os.PathLike) -> ResultsFile:
     if not isinstance(meta, dict) or not isinstance(ego, dict):
         raise ValueError(f"{path}: 'meta' and 'ego_positions' must be JSON objects")
     for token, xyz in ego.items():
-        ok = isinstance(xyz, list) and len(xyz) == 3 and all(
-            isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in xyz
-        )
-        if not ok:
-            raise ValueError(f"{path}: ego_positions[{token!r}] must be 3 finite numbers, got {xyz!r}")
+        # is_finite_number, not math.isfinite: a JSON int such as 10**400 must be refused, not overflow
+        if not (isinstance(xyz, list) and len(xyz) == 3 and all(is_finite_number(v) for v in xyz)):
+            raise ValueError(f"{path}: ego_positions[{token!r}] must be 3 finite numbers, got {short_repr(xyz)}")
     return ResultsFile(results=doc["results"], meta=meta, ego_positions=ego)
+
+
+def _read_capped(path: str | os.PathLike) -> bytes:
+    """The bytes of ``path``, at most MAX_RESULTS_BYTES (checked before reading when the size is known)."""
+    try:
+        with open(path, "rb") as f:
+            size = os.fstat(f.fileno()).st_size  # 0 for a pipe or a device: the bounded read still holds
+            raw = b"" if size > MAX_RESULTS_BYTES else f.read(MAX_RESULTS_BYTES + 1)
+    except OSError as e:
+        raise ValueError(f"cannot read {path}: {e.strerror or e}") from None
+    if size > MAX_RESULTS_BYTES or len(raw) > MAX_RESULTS_BYTES:
+        raise ValueError(f"{path} is larger than {MAX_RESULTS_BYTES >> 20} MiB (MAX_RESULTS_BYTES): not a results file")
+    return raw
 
 
 def load_gt_and_predictions(gt_path: str | os.PathLike, results_path: str | os.PathLike) -> tuple[EvalBoxes, EvalBoxes]:

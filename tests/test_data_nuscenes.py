@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import re
 import shutil
 from pathlib import Path
@@ -56,8 +55,8 @@ def _write_tables(root: Path) -> dict:
         rows["ego_pose"].append({"token": f"ep-{token}", "timestamp": t, **pose})
         dst = root / ("samples" if key else "sweeps") / channel / Path(filename).name
         dst.parent.mkdir(parents=True, exist_ok=True)
-        if not dst.exists():
-            os.symlink(SAMPLE_DIR / filename, dst)
+        if not dst.exists():  # a copy: a symlink out of the dataset root is refused (sample.dataset_file)
+            shutil.copyfile(SAMPLE_DIR / filename, dst)
         rows["sample_data"].append({"token": token, "sample_token": sample, "ego_pose_token": f"ep-{token}",
                                     "calibrated_sensor_token": f"cs-{channel}", "timestamp": t, "fileformat": "jpg",
                                     "is_key_frame": key, "height": height, "width": width,

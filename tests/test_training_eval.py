@@ -4,6 +4,8 @@ the PyTorch route (training/torch_eval.py) agree, and the CLI reports classes, J
 from __future__ import annotations
 
 import json
+import os
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -101,6 +103,29 @@ def test_eval_cli_data_mode_bad_input(data_dir, export_dir, args, message):
     res = CliRunner().invoke(eval_main, [*base, *args])
     assert res.exit_code != 0
     assert message in res.output and "Traceback" not in res.output
+
+
+@pytest.mark.parametrize(
+    "table, change, message",
+    [
+        ("sample_annotation", lambda r: r.update(size={}), "field 'size' must be 3 positive finite numbers"),
+        ("sample", lambda r: r.update(timestamp=10**400), "field 'timestamp'"),
+        ("sample_data", lambda r: r.update(filename="/etc/hostname"), "must be a relative path inside the dataset root"),
+    ],
+)
+def test_eval_cli_data_mode_names_a_malformed_table_row(data_dir, export_dir, tmp_path, table, change, message):
+    root = tmp_path / "data"
+    shutil.copytree(data_dir, root, copy_function=os.link)  # hard links: same files, private tables
+    path = root / "v1.0-synth" / f"{table}.json"
+    rows = json.loads(path.read_text())
+    for row in rows:
+        change(row)
+    path.unlink()  # not through the link: the shared dataset stays as it is
+    path.write_text(json.dumps(rows))
+    res = CliRunner().invoke(eval_main, ["--data", str(root), "--export-dir", str(export_dir)])
+    assert res.exit_code == 1 and "Traceback" not in res.output
+    last = res.output.strip().splitlines()[-1]
+    assert last.startswith("Error: nuScenes table") and f"'{table}'" in last and message in last
 
 
 def test_eval_cli_needs_a_mode():
