@@ -56,7 +56,7 @@ from streamdet.calibration.lut import (
 from streamdet.calibration.quadrant_lut import QuadrantLut
 from streamdet.core.constants import PRECISIONS  # noqa: F401 (public here too)
 from streamdet.core.image_layout import image_map_chw
-from streamdet.core.points import MAX_POINT_TIME_S, REFLECTANCE_RANGE, check_sweep
+from streamdet.core.points import MAX_POINT_TIME_S, MAX_SLICE_INDEX, REFLECTANCE_RANGE, check_sweep
 from streamdet.core.sectors import NUM_QUADRANTS, check_num_slices, quadrants_of_sector, sector_bounds_deg
 from streamdet.core.slicing import split_sweep
 # the public names of the runtime's API are importable from here too, where StreamingDetector lives
@@ -676,15 +676,14 @@ class StreamingDetector:
         crop = self._fallback.slice_crop if fallback else self.slice_crop
         run_points = points[0] if len(points) == 1 else np.concatenate(points)  # (N, 6): each point keeps its own s
         with self.stats.time("pre"):
-            pillars = pillarize(run_points, self.grid, quadrants, self._max_points_per_pillar, self._max_pillars, crop=crop,
-                                num_slices=n)  # fmt: skip
+            pillars = pillarize(run_points, self.grid, quadrants, self._max_points_per_pillar, self._max_pillars, crop=crop)
         if pillars.num_out_of_range_dropped and not self._warned_out_of_range:
             self._warned_out_of_range = True  # once: a sensor set up wrongly would say it with every slice
             log.warning("%s: %d point(s) of slice %d dropped for a reflectance outside %s, a time outside [0, %g] s or a "
                         "slice index outside [0, %d] (core/points.py); a sensor with another intensity range needs its "
                         "intensity scaled to 0..255 (CloudFields.intensity_scale); counted in num_outside_dropped",
                         self.export_dir, pillars.num_out_of_range_dropped, ks[-1], list(REFLECTANCE_RANGE),
-                        MAX_POINT_TIME_S, n - 1)  # fmt: skip
+                        MAX_POINT_TIME_S, MAX_SLICE_INDEX)  # fmt: skip
         if pillars.num_pillars == 0:
             dets = Detections.empty()
         else:

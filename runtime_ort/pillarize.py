@@ -20,7 +20,7 @@ import numpy as np
 
 from streamdet.calibration.grid import GridSpec
 from streamdet.calibration.slice_maps import slice_maps
-from streamdet.core.points import MAX_POINT_TIME_S, REFLECTANCE_RANGE, SLICE_COLUMNS, SLICE_REFLECTANCE
+from streamdet.core.points import MAX_POINT_TIME_S, MAX_SLICE_INDEX, REFLECTANCE_RANGE, SLICE_COLUMNS, SLICE_REFLECTANCE
 from streamdet.core.sectors import NUM_QUADRANTS
 
 POINT_DIM = SLICE_COLUMNS  # x, y, z, reflectance, relative time, slice index (streamdet.core.points)
@@ -44,7 +44,7 @@ class Pillars:
     num_pillars_dropped: int  # occupied pillars beyond max_pillars
     num_nonfinite_dropped: int  # points with a NaN or inf in any column
     # finite points outside the x, y, z range or the slice's quadrants, or with a reflectance, time or slice index
-    # outside its range (core/points.py; the slice index up to num_slices - 1 where pillarize was told num_slices)
+    # outside its range (core/points.py)
     num_outside_dropped: int
     # of num_outside_dropped: points inside the grid and the quadrants with a reflectance, time or slice index outside
     num_out_of_range_dropped: int = 0
@@ -83,10 +83,10 @@ def _check_inputs(
             raise ValueError(f"{name} must be a positive integer, got {value!r}")
 
 
-def _features_in_range(pts: np.ndarray, num_slices: int | None) -> np.ndarray | None:
+def _features_in_range(pts: np.ndarray) -> np.ndarray | None:
     """(N,) bool: the point's reflectance, time and slice index lie in their ranges; None when every point's do."""
     lo = np.array([REFLECTANCE_RANGE[0], 0.0, 0.0], dtype=np.float32)
-    hi = np.array([REFLECTANCE_RANGE[1], MAX_POINT_TIME_S, np.inf if num_slices is None else num_slices - 1], dtype=np.float32)
+    hi = np.array([REFLECTANCE_RANGE[1], MAX_POINT_TIME_S, MAX_SLICE_INDEX], dtype=np.float32)
     # (3, N) r, t, s rows: numpy reduces a row of a contiguous copy 20x faster than a column of the (N, 6) points
     rows = np.ascontiguousarray(pts[:, SLICE_REFLECTANCE:].T)
     # Row minima and maxima first: the per-point test costs more than everything else when nothing is out of range.
@@ -107,7 +107,6 @@ def pillarize(
     max_points_per_pillar: int,
     max_pillars: int,
     crop: bool = True,
-    num_slices: int | None = None,
 ) -> Pillars:
     """Group the (N, 6) float32 points of a slice into at most `max_pillars` pillars of `max_points_per_pillar`.
 
@@ -120,12 +119,10 @@ def pillarize(
     (ny, nx) map of the whole grid, ``row * nx + col``.
 
     Points whose reflectance, time or slice index lies outside its range (``core/points.py``: reflectance 0..1, time
-    0..MAX_POINT_TIME_S, slice index 0..`num_slices` - 1, only >= 0 when `num_slices` is None) are dropped and
-    counted too, as outside (``num_out_of_range_dropped`` says how many of those).
+    0..MAX_POINT_TIME_S, slice index 0..MAX_SLICE_INDEX) are dropped and counted too, as outside
+    (``num_out_of_range_dropped`` says how many of those).
     """
     _check_inputs(points, quadrants, max_points_per_pillar, max_pillars)
-    if num_slices is not None and (isinstance(num_slices, bool) or not isinstance(num_slices, (int, np.integer)) or num_slices < 1):
-        raise ValueError(f"num_slices must be None or a positive integer, got {num_slices!r}")
     maps = slice_maps(grid, tuple(quadrants), crop)
     m_max = int(max_points_per_pillar)
     xq, yq = grid.quadrant_nx, grid.quadrant_ny
@@ -151,7 +148,7 @@ def pillarize(
     upper_row, upper_col = row >= yq, col >= xq  # (N,) the half of the grid a cell lies in (nx, ny are even)
     qi = slot[quadrant_of_code][2 * upper_row + upper_col]
     inside &= qi >= 0
-    in_range = _features_in_range(pts, num_slices)
+    in_range = _features_in_range(pts)
     num_out_of_range = 0
     if in_range is not None:
         num_out_of_range = int(np.count_nonzero(inside & ~in_range))  # those the grid and quadrants would keep

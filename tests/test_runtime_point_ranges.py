@@ -21,7 +21,7 @@ def detector(tiny_export):
 
 @pytest.mark.parametrize(
     "column, value",
-    [(3, 1e6), (3, 1e10), (3, -0.5), (4, 1e6), (4, MAX_POINT_TIME_S * 2), (4, -1.0), (5, 1e6), (5, 8.0), (5, -1.0)],
+    [(3, 1e6), (3, 1e10), (3, -0.5), (4, 1e6), (4, MAX_POINT_TIME_S * 2), (4, -1.0), (5, 1e6), (5, 4096.0), (5, -1.0)],
 )
 def test_one_corrupted_point_is_dropped_and_counted_not_detected(detector, column, value):
     point = np.array([[20.0, 5.0, 0.0, 0.5, 0.01, 0.0]], np.float32)  # slice 0 of 8: x > 0, a small positive azimuth

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from streamdet.calibration.grid import GridSpec
-from streamdet.core.points import MAX_POINT_TIME_S
+from streamdet.core.points import MAX_POINT_TIME_S, MAX_SLICE_INDEX
 from streamdet.core.sectors import quadrants_of_sector, slice_index_of
 from streamdet.runtime_ort.pillarize import PILLAR_FEATURE_DIM, Pillars, pillarize
 
@@ -22,7 +22,7 @@ SMALL = GridSpec(x_range_m=(-4.0, 4.0), y_range_m=(-4.0, 4.0), z_range_m=(-1.0, 
 ODD = GridSpec(x_range_m=(-3.0, 3.0), y_range_m=(-2.4, 2.4), z_range_m=(-2.0, 3.0), voxel_xy_m=0.3, voxel_z_m=0.5)
 
 
-def naive_pillarize(points, grid, quadrants, m_max, max_pillars, num_slices=None):
+def naive_pillarize(points, grid, quadrants, m_max, max_pillars):
     """The contract, literally: exact decimal cell borders, dicts of lists, one point at a time."""
     voxel = Fraction(str(grid.voxel_xy_m))
     x_min, y_min = Fraction(str(grid.x_range_m[0])), Fraction(str(grid.y_range_m[0]))
@@ -30,7 +30,6 @@ def naive_pillarize(points, grid, quadrants, m_max, max_pillars, num_slices=None
     yq, xq = grid.quadrant_ny, grid.quadrant_nx
     pillars: dict[int, list[np.ndarray]] = {}
     nonfinite = outside = out_of_range = 0
-    top_slice = math.inf if num_slices is None else num_slices - 1
     for p in points:
         if not all(math.isfinite(float(v)) for v in p):
             nonfinite += 1
@@ -46,7 +45,7 @@ def naive_pillarize(points, grid, quadrants, m_max, max_pillars, num_slices=None
             outside += 1
             continue
         r, t, k = float(p[3]), float(p[4]), float(p[5])
-        if not (0.0 <= r <= 1.0 and 0.0 <= t <= MAX_POINT_TIME_S and 0.0 <= k <= top_slice):
+        if not (0.0 <= r <= 1.0 and 0.0 <= t <= MAX_POINT_TIME_S and 0.0 <= k <= MAX_SLICE_INDEX):
             outside += 1
             out_of_range += 1
             continue
@@ -77,9 +76,9 @@ def naive_pillarize(points, grid, quadrants, m_max, max_pillars, num_slices=None
     return features, mask, index, in_grid - kept_points, len(pillars) - len(chosen), nonfinite, outside, out_of_range
 
 
-def assert_matches_reference(out: Pillars, points, grid, quadrants, m_max, max_pillars, num_slices=None):
+def assert_matches_reference(out: Pillars, points, grid, quadrants, m_max, max_pillars):
     features, mask, index, pts_dropped, pil_dropped, nonfinite, outside, out_of_range = naive_pillarize(
-        points, grid, tuple(quadrants), m_max, max_pillars, num_slices
+        points, grid, tuple(quadrants), m_max, max_pillars
     )
     assert out.num_out_of_range_dropped == out_of_range
     assert out.features.dtype == np.float32 and out.mask.dtype == np.float32 and out.index.dtype == np.int64
@@ -131,28 +130,29 @@ def test_matches_naive_reference(seed, grid, quadrants, m_max, max_pillars):
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
-@pytest.mark.parametrize("num_slices", [None, 8, 1])
-def test_points_with_features_out_of_range_are_dropped_and_counted(seed, num_slices):
-    """A reflectance outside 0..1, a time outside 0..MAX_POINT_TIME_S or a slice index outside 0..n-1 (or negative)
+def test_points_with_features_out_of_range_are_dropped_and_counted(seed):
+    """A reflectance outside 0..1, a time outside 0..MAX_POINT_TIME_S or a slice index outside 0..MAX_SLICE_INDEX
     drops the point as outside, whichever column it is and however far (a corrupted record: 1e30)."""
     rng = np.random.default_rng(seed)
     points = random_points(rng, 1500, SMALL)
     bad = rng.choice(len(points), 300, replace=False)
     column = rng.integers(3, 6, bad.size)
-    values = np.array([-1e30, -0.01, 1.01, 1e30, MAX_POINT_TIME_S + 0.5, 8.0, -1.0], np.float32)
+    values = np.array([-1e30, -0.01, 1.01, 1e30, MAX_POINT_TIME_S + 0.5, MAX_SLICE_INDEX + 1, -1.0], np.float32)
     points[bad, column] = values[rng.integers(0, len(values), bad.size)]
     points[rng.choice(len(points), 20), 3] = rng.choice([0.0, 1.0], 20)  # the bounds themselves are in range
-    out = pillarize(points, SMALL, (0, 1, 2, 3), 8, 1000, num_slices=num_slices)
-    assert_matches_reference(out, points, SMALL, (0, 1, 2, 3), 8, 1000, num_slices)
+    points[rng.choice(len(points), 20), 5] = MAX_SLICE_INDEX
+    out = pillarize(points, SMALL, (0, 1, 2, 3), 8, 1000)
+    assert_matches_reference(out, points, SMALL, (0, 1, 2, 3), 8, 1000)
     assert out.num_out_of_range_dropped > 0 and np.abs(out.features[..., 3:5]).max() <= MAX_POINT_TIME_S
-    if num_slices is not None:  # without it only a negative slice index is out of range
-        assert out.features[..., 5].max() <= num_slices - 1
+    assert out.features[..., 5].max() <= MAX_SLICE_INDEX
 
 
-@pytest.mark.parametrize("num_slices", [0, -1, 2.0, True, "8"])
-def test_bad_num_slices_raise(num_slices):
-    with pytest.raises(ValueError, match="num_slices must be None or a positive integer"):
-        pillarize(np.zeros((1, 6), np.float32), SMALL, (0,), 4, 10, num_slices=num_slices)
+def test_the_slice_index_bound_is_the_schemas_slice_count():
+    import json
+    from importlib.resources import files
+
+    schema = json.loads(files("streamdet.runtime_ort").joinpath("manifest.schema.json").read_text())
+    assert schema["properties"]["num_slices"]["maximum"] == MAX_SLICE_INDEX + 1
 
 
 @pytest.mark.parametrize("seed", [0, 1])
