@@ -159,3 +159,26 @@ def test_cli_errors_are_one_line(tmp_path):
     assert res.exit_code != 0 and "no table folder" in res.output and "Traceback" not in res.output
     res = CliRunner().invoke(main, ["--data", str(tmp_path), "--out", str(tmp_path / "o"), "--resume", str(tmp_path / "x.pt")])
     assert res.exit_code != 0
+
+
+class _Payload:
+    """What a hostile checkpoint would hold: unpickling it runs code (here: writes a marker file)."""
+
+    def __init__(self, marker: str) -> None:
+        self.marker = marker
+
+    def __reduce__(self):
+        return (open, (self.marker, "w"))
+
+
+def test_resume_never_unpickles_code(tiny_synth_data, tmp_path):
+    marker = tmp_path / "ran"
+    evil = tmp_path / "evil.pt"
+    torch.save({"config": {"preset": "tiny"}, "step": 0, "payload": _Payload(str(marker))}, evil)
+    cfg = PretrainConfig(preset="tiny", steps=1, batch_size=2, eval_every=1)
+    with pytest.raises(ValueError, match="--resume checkpoint .*evil.pt cannot be read with weights_only=True"):
+        pretrain(cfg, tiny_synth_data, tmp_path / "o", resume=evil, splits=(None, None), echo=lambda s: None)
+    assert not marker.exists()
+    torch.save([1, 2], evil)
+    with pytest.raises(ValueError, match="not a streamdet-train-image last.pt"):
+        pretrain(cfg, tiny_synth_data, tmp_path / "o", resume=evil, splits=(None, None), echo=lambda s: None)

@@ -61,16 +61,23 @@ def save_training_state(path: str | os.PathLike, *, preset: Preset, model: Strea
     )
 
 
-def load_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
-    """The checkpoint dict; ValueError (one line) when it is missing, unreadable or lacks model / preset."""
+def read_torch_file(path: str | os.PathLike, what: str = "checkpoint", map_location: str | torch.device = "cpu") -> Any:
+    """What ``torch.save`` wrote to ``path``, read with ``weights_only=True`` (tensors, containers and numbers: a file
+    is data, never code to unpickle); ValueError (one line, naming ``what`` and the file) when it is missing or
+    unreadable that way."""
     path = Path(path)
     if not path.is_file():
-        raise ValueError(f"checkpoint {path} does not exist or is not a file")
+        raise ValueError(f"{what} {path} does not exist or is not a file")
     try:
-        obj = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as e:  # UnpicklingError, RuntimeError, EOFError, ... for a damaged file
+        return torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as e:  # UnpicklingError (code or classes in the pickle), RuntimeError, EOFError, ... for a damaged file
         first = (str(e).strip().splitlines() or [type(e).__name__])[0]
-        raise ValueError(f"checkpoint {path} cannot be read with weights_only=True: {first}") from None
+        raise ValueError(f"{what} {path} cannot be read with weights_only=True: {first}") from None
+
+
+def load_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
+    """The checkpoint dict; ValueError (one line) when it is missing, unreadable or lacks model / preset."""
+    obj = read_torch_file(path)
     if not isinstance(obj, dict) or not isinstance(obj.get("model"), dict) or not isinstance(obj.get("preset"), dict):
         raise ValueError(f"checkpoint {path} is not a streamdet checkpoint (expected a dict with 'model' and 'preset')")
     return obj

@@ -39,7 +39,7 @@ from streamdet.models.detector import build_detector
 from streamdet.models.image_encoder import ImageEncoder
 from streamdet.models.presets import Preset, get_preset
 from streamdet.models.seg_head import ImageSegmenter
-from streamdet.training.checkpoint import _atomic_save, load_encoder_weights, save_weights  # noqa: F401 (re-exported)
+from streamdet.training.checkpoint import _atomic_save, load_encoder_weights, read_torch_file, save_weights  # noqa: F401 (re-exported)
 from streamdet.training.trainer import init_head_outputs
 
 NUM_LABELS = NUM_CLASSES + 1  # 0 = background
@@ -222,8 +222,10 @@ def pretrain(config: PretrainConfig, data_dir: str | Path, out_dir: str | Path, 
     weights = class_weights(train_data.labels, config).to(device)
     step = 0
     if resume is not None:
-        state = torch.load(resume, map_location=device, weights_only=False)
-        if state.get("config", {}).get("preset") != config.preset:
+        state = read_torch_file(resume, "--resume checkpoint", map_location=device)
+        if not isinstance(state, dict) or not {"model", "optimizer", "step"} <= state.keys():
+            raise ValueError(f"--resume {resume} is not a streamdet-train-image last.pt (a dict with model, optimizer, step)")
+        if not isinstance(state.get("config"), dict) or state["config"].get("preset") != config.preset:
             raise ValueError(f"--resume {resume} was pretrained for preset {state.get('config', {}).get('preset')!r}, not {config.preset!r}")
         model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
