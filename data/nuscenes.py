@@ -169,6 +169,32 @@ class NuScenesReader:
     def scene_name(self, sample_token: str) -> str:
         return self._ref("sample", self._get("sample", sample_token), "scene_token", "scene")["name"]
 
+    # ---- the checked tables, for readers of other views of the dataset (replay/nuscenes_source.py) ----------------
+    def rows(self, table: str) -> list[dict]:
+        """The rows of ``table`` as stored, unchecked but for their tokens: pass a row to ``row`` before reading it."""
+        return self._tables[table]
+
+    def row(self, table: str, row: dict) -> dict:
+        """``row`` of ``table`` with every field a reader uses checked (ValueError naming table, row and field)."""
+        return self._row(table, row)
+
+    def by_token(self, table: str, token: str) -> dict:
+        """The checked row of ``table`` with ``token``; KeyError when there is none."""
+        return self._get(table, token)
+
+    def ref(self, table: str, row: dict, field: str, target: str) -> dict:
+        """The checked row of ``target`` that the checked ``row`` of ``table`` names in ``field``."""
+        return self._ref(table, row, field, target)
+
+    def channel(self, sample_data: dict) -> str:
+        """The sensor channel (``LIDAR_TOP``, ``CAM_FRONT``, ...) of a checked sample_data row."""
+        cs = self._ref("sample_data", sample_data, "calibrated_sensor_token", "calibrated_sensor")
+        return self._ref("calibrated_sensor", cs, "sensor_token", "sensor")["channel"]
+
+    def file(self, sample_data: dict) -> Path:
+        """The file of a checked sample_data row: a relative path inside the dataset root (``sample.dataset_file``)."""
+        return self._file(sample_data)
+
     def get(self, token_or_index: str | int, num_past_sweeps: int = 0) -> Sample:
         """The sample with its LiDAR sweep, up to ``num_past_sweeps`` earlier sweeps, images, rig and boxes."""
         if isinstance(token_or_index, (int, np.integer)) and not isinstance(token_or_index, bool):

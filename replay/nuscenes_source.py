@@ -16,7 +16,6 @@ written to ``Drive.notes``.
 
 from __future__ import annotations
 
-import json
 from collections.abc import Callable
 from pathlib import Path
 
@@ -29,55 +28,51 @@ from streamdet.replay.source import Drive, ImageSet, LidarSweep
 from streamdet.replay.triggers import (
     DEFAULT_TRIGGER, camera_axis_azimuths_deg, check_trigger, lidar_synced_triggers, simultaneous_triggers)
 
-TABLES = ("scene", "sample", "sample_data", "calibrated_sensor", "sensor", "ego_pose")
-
-
 class DatasetTables:
-    """The tables of a nuScenes-format dataset the player needs, by token."""
+    """The scenes, LiDAR and camera records of a nuScenes-format dataset, as the player reads them.
+
+    The tables are read and checked by `data.nuscenes.NuScenesReader` (one reader of them: a malformed row is a
+    ValueError naming table, row and field; a file a row names is a relative path inside the dataset root), which
+    also gives the drive its camera rig."""
 
     def __init__(self, root: str | Path, version: str) -> None:
-        self.root = Path(root)
+        self.reader = NuScenesReader(root, version)
+        self.root = self.reader.root
         self.version = version
-        folder = self.root / version
-        if not folder.is_dir():
-            raise FileNotFoundError(f"nuScenes table folder not found: {folder}")
-        self.rows: dict[str, list[dict]] = {}
-        for name in TABLES:
-            path = folder / f"{name}.json"
-            if not path.is_file():
-                raise FileNotFoundError(f"nuScenes table {name!r} not found: {path}")
-            try:
-                self.rows[name] = json.loads(path.read_text())
-            except json.JSONDecodeError as e:
-                raise ValueError(f"nuScenes table {path} is not valid JSON: {e}") from None
-        self.by_token = {name: {r["token"]: r for r in rows} for name, rows in self.rows.items()}
-        sensor_channel = {r["token"]: r["channel"] for r in self.rows["sensor"]}
-        self.channel_of_cs = {r["token"]: sensor_channel[r["sensor_token"]] for r in self.rows["calibrated_sensor"]}
 
     def scene_names(self) -> list[str]:
-        return [s["name"] for s in self.rows["scene"]]
+        return [self.reader.row("scene", s)["name"] for s in self.reader.rows("scene")]
 
     def scene(self, name: str) -> dict:
-        for s in self.rows["scene"]:
-            if s["name"] == name:
+        for s in self.reader.rows("scene"):
+            if self.reader.row("scene", s)["name"] == name:
                 return s
         raise ValueError(f"scene {name!r} is not in {self.root / self.version} (it has {self.scene_names()[:5]}...)")
 
+    def sample(self, token: str) -> dict:
+        """The sample row of ``token`` (KeyError when there is none)."""
+        return self.reader.by_token("sample", token)
+
     def sample_tokens(self, scene: dict) -> list[str]:
-        return [r["token"] for r in sorted(self.rows["sample"], key=lambda r: r["timestamp"]) if r["scene_token"] == scene["token"]]
+        rows = [r for r in (self.reader.row("sample", r) for r in self.reader.rows("sample")) if r["scene_token"] == scene["token"]]
+        return [r["token"] for r in sorted(rows, key=lambda r: r["timestamp"])]
 
     def channel_data(self, scene: dict, channel: str) -> list[dict]:
         """sample_data of ``channel`` in the scene (key frames and sweeps), by timestamp."""
         samples = set(self.sample_tokens(scene))
-        rows = [r for r in self.rows["sample_data"]
-                if r["sample_token"] in samples and self.channel_of_cs[r["calibrated_sensor_token"]] == channel]  # fmt: skip
-        return sorted(rows, key=lambda r: r["timestamp"])
+        # rows are objects with tokens (the reader's index); each of the scene's is checked before it is read
+        rows = [self.reader.row("sample_data", r) for r in self.reader.rows("sample_data") if r.get("sample_token") in samples]
+        return sorted((r for r in rows if self.reader.channel(r) == channel), key=lambda r: r["timestamp"])
 
     def pose(self, sample_data: dict) -> tuple[np.ndarray, np.ndarray]:
         """(sensor2ego, ego2global) 4x4 of a sample_data."""
-        cs = self.by_token["calibrated_sensor"][sample_data["calibrated_sensor_token"]]
-        ego = self.by_token["ego_pose"][sample_data["ego_pose_token"]]
+        cs = self.reader.ref("sample_data", sample_data, "calibrated_sensor_token", "calibrated_sensor")
+        ego = self.reader.ref("sample_data", sample_data, "ego_pose_token", "ego_pose")
         return _matrix(cs), _matrix(ego)
+
+    def file(self, sample_data: dict) -> Path:
+        """The file of a sample_data row (inside the dataset root)."""
+        return self.reader.file(sample_data)
 
 
 def load_drive(
@@ -109,7 +104,7 @@ def load_drive(
     sweeps = []
     timed = 0
     for i, sd in enumerate(lidar):
-        path = tables.root / sd["filename"]
+        path = tables.file(sd)
         points = load_points(path)
         times = load_point_times(path, len(points))
         if times is not None:
@@ -122,8 +117,7 @@ def load_drive(
     image_sets: list[ImageSet] = []
     rig = None
     if image_size is not None:
-        reader = NuScenesReader(tables.root, tables.version)
-        rig = reader.get(tables.sample_tokens(scene)[0]).rig
+        rig = tables.reader.get(tables.sample_tokens(scene)[0]).rig
         channels = [c for c in CAMERA_CHANNELS if tables.channel_data(scene, c)]
         if camera_trigger == "lidar-synced":
             axes = camera_axis_azimuths_deg(rig)
@@ -175,7 +169,7 @@ def _image_sets(
             j = max(int(np.searchsorted(stamps[c], t + 1e-9)) - 1, 0)  # newest at or before t, else the first
             row = recorded[c][j]
             if row["token"] not in cache:
-                cache[row["token"]] = load_image(tables.root / row["filename"], size)
+                cache[row["token"]] = load_image(tables.file(row), size)
             images[c] = cache[row["token"]]
             times.append(stamps[c][j])
         recorded_s = float(min(times))

@@ -167,7 +167,7 @@ def run_replay(config: ReplayConfig, progress: Progress = lambda msg: None) -> R
         progress(f"scene {i + 1}/{len(scenes)} {scene}: loading")
         drive = load_drive(tables, scene, image_size, config.lidar_hz, config.camera_hz, config.max_seconds, progress,
                            config.camera_trigger, probe.config.start_deg)  # fmt: skip
-        truth = load_ground_truth(config.data, config.version, scene)
+        truth = load_ground_truth(config.data, config.version, scene, reader=tables.reader)
         sources.add(truth.source)
         drives.append(drive)
         truths.append(query_truth(drive, truth))

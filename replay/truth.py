@@ -15,14 +15,13 @@ the number of its points inside the box grown by ``POINT_MARGIN_M``. An object i
 
 from __future__ import annotations
 
-import json
 from collections import defaultdict
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from streamdet.data.nuscenes import CATEGORY_TO_CLASS
+from streamdet.data.nuscenes import CATEGORY_TO_CLASS, NuScenesReader
 from streamdet.data.synth_trajectories import Trajectories, load_trajectories
 from streamdet.evaluation.detection_eval import points_in_boxes
 
@@ -70,37 +69,38 @@ class GroundTruth:
         return TruthBoxes(boxes, np.array(names, dtype=np.str_))
 
 
-def load_ground_truth(root: str | Path, version: str, scene_name: str, prefer_trajectories: bool = True) -> GroundTruth:
-    """The scene's ground truth: its trajectories where the dataset has them, else its key frames interpolated."""
+def load_ground_truth(root: str | Path, version: str, scene_name: str, prefer_trajectories: bool = True,
+                      reader: NuScenesReader | None = None) -> GroundTruth:  # fmt: skip
+    """The scene's ground truth: its trajectories where the dataset has them, else its key frames interpolated
+    (from ``reader``, the dataset's tables; None: read them here)."""
     if prefer_trajectories:
         trajectories = load_trajectories(root, scene_name)
         if trajectories is not None:
             return GroundTruth(trajectories, None)
-    return GroundTruth(None, key_frame_tracks(Path(root) / version, scene_name))
+    return GroundTruth(None, key_frame_tracks(reader or NuScenesReader(root, version), scene_name))
 
 
-def key_frame_tracks(table_dir: Path, scene_name: str) -> dict[str, list[tuple[int, np.ndarray, str]]]:
-    """Per instance, its key-frame annotations in time order: (timestamp us, (9,) box with velocity 0, class)."""
-    tables = {}
-    for name in ("scene", "sample", "sample_annotation", "instance", "category"):
-        path = table_dir / f"{name}.json"
-        if not path.is_file():
-            raise FileNotFoundError(f"nuScenes table {name!r} not found: {path}")
-        tables[name] = json.loads(path.read_text())
-    scenes = [s for s in tables["scene"] if s["name"] == scene_name]
+def key_frame_tracks(reader: NuScenesReader, scene_name: str) -> dict[str, list[tuple[int, np.ndarray, str]]]:
+    """Per instance, its key-frame annotations in time order: (timestamp us, (9,) box with velocity 0, class).
+    The rows are the reader's, checked as it reads them (a malformed one is a ValueError naming it)."""
+    scenes = [s for s in reader.rows("scene") if reader.row("scene", s)["name"] == scene_name]
     if not scenes:
-        raise ValueError(f"scene {scene_name!r} is not in {table_dir}")
-    stamp = {s["token"]: int(s["timestamp"]) for s in tables["sample"] if s["scene_token"] == scenes[0]["token"]}
-    category = {c["token"]: c["name"] for c in tables["category"]}
-    cls = {i["token"]: CATEGORY_TO_CLASS.get(category[i["category_token"]]) for i in tables["instance"]}
+        raise ValueError(f"scene {scene_name!r} is not in {reader.root / reader.version}")
+    samples = (reader.row("sample", r) for r in reader.rows("sample"))
+    stamp = {s["token"]: int(s["timestamp"]) for s in samples if s["scene_token"] == scenes[0]["token"]}
     tracks: dict[str, list[tuple[int, np.ndarray, str]]] = defaultdict(list)
-    for ann in tables["sample_annotation"]:
-        if ann["sample_token"] not in stamp or cls.get(ann["instance_token"]) is None:
+    for ann in reader.rows("sample_annotation"):
+        if ann["sample_token"] not in stamp:  # the reader checked every row's sample_token when it indexed them
+            continue
+        ann = reader.row("sample_annotation", ann)
+        instance = reader.ref("sample_annotation", ann, "instance_token", "instance")
+        cls = CATEGORY_TO_CLASS.get(reader.ref("instance", instance, "category_token", "category")["name"])
+        if cls is None:
             continue
         w, x, y, z = ann["rotation"]
         yaw = np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
         box = np.array([*ann["translation"], *ann["size"], yaw, 0.0, 0.0], dtype=np.float64)
-        tracks[ann["instance_token"]].append((stamp[ann["sample_token"]], box, cls[ann["instance_token"]]))
+        tracks[ann["instance_token"]].append((stamp[ann["sample_token"]], box, cls))
     return {k: sorted(v, key=lambda e: e[0]) for k, v in tracks.items()}
 
 

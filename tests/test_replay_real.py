@@ -95,7 +95,7 @@ def test_key_frames_interpolated_agree_with_the_trajectories(tiny_synth_data):
     exact = load_ground_truth(tiny_synth_data, "v1.0-synth", scene)
     interpolated = load_ground_truth(tiny_synth_data, "v1.0-synth", scene, prefer_trajectories=False)
     assert exact.source == TRAJECTORIES and interpolated.source == INTERPOLATED
-    samples = [tables.by_token["sample"][t]["timestamp"] for t in tables.sample_tokens(tables.scene(scene))]
+    samples = [tables.sample(t)["timestamp"] for t in tables.sample_tokens(tables.scene(scene))]
     t_us = 0.5 * (samples[0] + samples[1])  # between the two key frames
     a, b = exact.at(t_us), interpolated.at(t_us)
     # straight tracks (same velocity at both key frames) interpolate exactly; a turning one only approximately
@@ -153,3 +153,42 @@ def test_replay_coalesces_slices_when_the_lane_falls_behind(drive_data, tiny_exp
     assert summary["slices_coalesced"] == sum(s["coalesced"] > 1 for s in emitted) > 0
     assert all(s["coalesced"] in (1, 2) for s in emitted)
     assert details["config"]["coalesce_slices"] == 2
+
+
+def _linked_copy(src, dst):
+    """The dataset with its tables copied (the tests edit them) and its data files hard-linked."""
+    import os
+    import shutil
+
+    shutil.copytree(src, dst, copy_function=os.link, ignore=shutil.ignore_patterns("v1.0-*"))
+    shutil.copytree(src / "v1.0-synth", dst / "v1.0-synth")
+    return dst
+
+
+@pytest.mark.parametrize(
+    "table, field, value, match",
+    [
+        ("sample_data", "filename", "../../etc/hostname", r"field 'filename': file '\.\./\.\./etc/hostname' must be a relative path"),
+        ("ego_pose", "rotation", [1.0, 0.0], r"'ego_pose'.*field 'rotation' must be a unit quaternion"),
+        ("sample", "timestamp", "soon", r"'sample'.*field 'timestamp'"),
+        ("sample_annotation", "size", {}, r"'sample_annotation'.*field 'size'"),
+    ],
+)
+def test_the_player_reads_the_tables_through_the_checked_reader(tiny_synth_data, tmp_path, table, field, value, match):
+    """A malformed row reaches the player as a ValueError naming table, row and field (data/nuscenes.py), never a
+    KeyError or TypeError; a file name leaving the dataset is refused."""
+    import json
+
+    from streamdet.replay.nuscenes_source import DatasetTables, load_drive
+
+    root = _linked_copy(tiny_synth_data, tmp_path / "ds")
+    path = root / "v1.0-synth" / f"{table}.json"
+    rows = json.loads(path.read_text())
+    for row in rows:  # every row: whichever the player reads first is bad
+        row[field] = value
+    path.write_text(json.dumps(rows))
+    with pytest.raises(ValueError, match=match):
+        tables = DatasetTables(root, "v1.0-synth")
+        scene = tables.scene_names()[0]
+        load_drive(tables, scene, (64, 36), camera_trigger="simultaneous")
+        load_ground_truth(root, "v1.0-synth", scene, prefer_trajectories=False, reader=tables.reader)
