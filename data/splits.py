@@ -7,10 +7,10 @@ The file sits at the dataset root (``streamdet-synth`` writes it) and maps a spl
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 from streamdet.data.nuscenes import NuScenesReader
+from streamdet.data.sample import read_json, short_repr
 
 SPLITS_FILE = "splits.json"
 
@@ -19,16 +19,24 @@ class SplitsFileMissing(FileNotFoundError, ValueError):
     """The dataset has no splits.json (a FileNotFoundError for file readers, a ValueError for input checks)."""
 
 
+MAX_SPLITS_BYTES = 64 << 20  # nuScenes trainval's 850 scene names are 20 kB: a larger file is not a splits.json
+
+
 def split_scenes(root: str | Path, split: str) -> tuple[str, ...]:
-    """Scene names of ``split`` from ``root/splits.json``; a missing file or split raises naming the file."""
+    """Scene names of ``split`` from ``root/splits.json``; a missing or malformed file or split raises naming the
+    file (ValueError; SplitsFileMissing where there is no file)."""
     path = Path(root) / SPLITS_FILE
     if not path.is_file():
         raise SplitsFileMissing(f"{path} not found; it must name the scenes of split {split!r}")
-    splits = json.loads(path.read_text())
+    splits = read_json(path, "splits file", MAX_SPLITS_BYTES)
     if not isinstance(splits, dict) or not isinstance(splits.get(split), list):
-        have = sorted(splits) if isinstance(splits, dict) else type(splits).__name__
+        have = sorted(splits)[:20] if isinstance(splits, dict) else type(splits).__name__
         raise ValueError(f"{path} has no list of scenes for split {split!r}; it has {have}")
-    return tuple(str(s) for s in splits[split])
+    scenes = splits[split]
+    bad = next((s for s in scenes if type(s) is not str), None)
+    if bad is not None:
+        raise ValueError(f"{path}: split {split!r} must list scene names (strings), got {short_repr(bad)}")
+    return tuple(scenes)
 
 
 def has_split(root: str | Path, split: str) -> bool:

@@ -9,12 +9,13 @@ the streaming mAP of each scene alone gives the spread of the modes' difference 
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from streamdet.data.splits import SplitsFileMissing
+from streamdet.data.splits import split_scenes as data_split_scenes
 from streamdet.evaluation.config import DetectionConfig
 from streamdet.replay.clock import WallClock
 from streamdet.replay.latency_eval import ModeScores, QueryTruth, query_truth, score_mode
@@ -114,13 +115,11 @@ def split_scenes(tables: DatasetTables, split: str | None, count: int | None) ->
     """Scene names of ``split`` (``splits.json`` beside the tables), the first ``count`` of them."""
     names = tables.scene_names()
     if split is not None:
-        path = tables.root / "splits.json"
-        if not path.is_file():
-            raise ValueError(f"{path} not found; it must name the scenes of split {split!r} (or pass --split all)")
-        splits = json.loads(path.read_text())
-        if not isinstance(splits.get(split), list):
-            raise ValueError(f"{path} has no list of scenes for split {split!r}; it has {sorted(splits)}")
-        names = [n for n in names if n in set(splits[split])]
+        try:
+            chosen = set(data_split_scenes(tables.root, split))
+        except SplitsFileMissing as e:
+            raise ValueError(f"{e} (or pass --split all)") from None
+        names = [n for n in names if n in chosen]
     if not names:
         raise ValueError(f"split {split!r} of {tables.root} holds no scene")
     return names[:count] if count else names

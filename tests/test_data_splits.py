@@ -30,10 +30,17 @@ def test_split_tokens_follow_the_scenes(tiny_synth_data):
         ('["val"]', "has no list of scenes for split 'val'; it has list"),
         ('{"val": "scene-0"}', r"has no list of scenes for split 'val'; it has \['val'\]"),
         ('{"train": []}', r"has no list of scenes for split 'val'; it has \['train'\]"),
+        ('{"val": ["scene-0", 7]}', r"split 'val' must list scene names \(strings\), got 7"),
+        ('{"val": [{"name": "scene-0"}]}', r"must list scene names \(strings\), got \{'name'"),
+        ('{"val": [1' + "0" * 5000 + "]}", "splits file .*splits.json is not valid JSON"),
+        ("[" * 100_000 + "]" * 100_000, "nests too deeply"),
+        (b"\xff\xfe{}", "not UTF-8"),
     ],
 )
 def test_broken_splits_file(tmp_path, content, match):
-    if content is not None:
+    if isinstance(content, bytes):
+        (tmp_path / "splits.json").write_bytes(content)
+    elif content is not None:
         (tmp_path / "splits.json").write_text(content)
     with pytest.raises(ValueError, match=match):
         split_scenes(tmp_path, "val")
