@@ -7,6 +7,7 @@
 - ``slicing``: ``split_sweep``, ``boxes_in_sector``, ``relative_time_s``
 - ``constants``: the graph precisions and the ``bundled:`` sources
 - ``cpu``: the CPU model and the SIMD flags the kernels see (less what a CPUID mask hides)
+- ``json_input``: reading input JSON bounded and with named errors, the safe finite-number test, cut reprs
 """
 
 from streamdet.core.boxes import BOX_DIM

@@ -24,7 +24,6 @@ symlinks the dataset holds are followed: set-ups link ``samples/`` and ``sweeps/
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -33,9 +32,10 @@ from streamdet.calibration.camera import (
     QUATERNION_NORM_TOL, CalibrationError, Rig, invert_transform, make_transform, quaternion_to_matrix)
 from streamdet.core.boxes import BOX_DIM
 from streamdet.core.classes import CLASS_NAMES
+from streamdet.core.json_input import read_json, short_repr
 from streamdet.data.sample import (
     COUNT, FLAG, NAME, TEXT, TEXTS, FieldKind, Sample, Sweep, check_fields, dataset_file, load_point_times,
-    load_points, numbers, short_repr)
+    load_points, numbers)
 
 LIDAR_CHANNEL = "LIDAR_TOP"
 # mmdetection3d / the devkit's camera order; the J axis of every image tensor.
@@ -77,6 +77,7 @@ REQUIRED_TABLES = (
     "sample_annotation",
 )
 MAX_VELOCITY_TIME_DIFF_S = 1.5  # the devkit's box_velocity default
+MAX_TABLE_BYTES = 16 << 30  # trainval's largest table (sample_data) is about 1 GiB: a bound, not a limit in use
 
 
 def _is_unit_quaternion(v: object) -> bool:
@@ -417,14 +418,7 @@ def _load_table(table_dir: Path, name: str) -> list:
     path = table_dir / f"{name}.json"
     if not path.is_file():
         raise FileNotFoundError(f"nuScenes table {name!r} not found: {path}")
-    try:
-        rows = json.loads(path.read_bytes().decode("utf-8"))
-    except UnicodeDecodeError as e:  # before ValueError: it is one
-        raise ValueError(f"nuScenes table {name!r} ({path}) is not UTF-8 text: {e.reason} at byte {e.start}") from None
-    except RecursionError:  # the parser recurses once per level
-        raise ValueError(f"nuScenes table {name!r} ({path}) nests too deeply to be a table") from None
-    except ValueError as e:  # JSONDecodeError, and the 4300-digit limit on integer literals
-        raise ValueError(f"nuScenes table {name!r} ({path}) is not valid JSON: {e}") from None
+    rows = read_json(path, "nuScenes table", MAX_TABLE_BYTES)
     if not isinstance(rows, list):
         raise ValueError(f"nuScenes table {name!r} ({path}) must be a JSON list of records, got {type(rows).__name__}")
     return rows

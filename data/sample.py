@@ -9,9 +9,7 @@ the sample, the images named by ``image_paths`` in rig order, and boxes ``(M, 9)
 from __future__ import annotations
 
 import importlib.resources
-import json
 import math
-import sys
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -23,11 +21,11 @@ from streamdet.calibration.camera import MAX_CALIBRATION_BYTES, Rig
 from streamdet.core.boxes import BOX_DIM
 from streamdet.core.classes import CLASS_NAMES
 from streamdet.core.constants import BUNDLED_SAMPLE_DIR
+from streamdet.core.json_input import is_finite_number, read_json, short_repr  # noqa: F401 (public here too)
 from streamdet.core.points import check_sweep
 
 POINT_TIME_SUFFIX = ".time"  # optional float32 (N,) per-point times beside a .pcd.bin (synthetic data writes it)
 MAX_BOXES_BYTES = 64 << 20  # boxes.json of one sample is ~100 kB; a larger file is refused before it is read
-_FLOAT_MAX = sys.float_info.max
 _INT64_MAX = (1 << 63) - 1
 
 
@@ -161,15 +159,6 @@ def bundled_sample_dir() -> Path:
 # (exact types, no numpy), cheap enough to run on every record a reader uses.
 
 
-def is_number(value: object) -> bool:
-    """A JSON number (not a bool) that is a finite float64.
-
-    A comparison, not ``math.isfinite``: JSON integers are unbounded and ``math.isfinite(10**400)`` raises
-    OverflowError, while Python compares an int with a float exactly (and NaN compares false: refused too).
-    """
-    return type(value) in (int, float) and -_FLOAT_MAX <= value <= _FLOAT_MAX  # type: ignore[operator]
-
-
 @dataclass(frozen=True)
 class FieldKind:
     """What a JSON field must hold: ``test`` it, and ``what`` it must be, in words, for the error message."""
@@ -182,12 +171,12 @@ def numbers(n: int, positive: bool = False) -> FieldKind:
     """Exactly ``n`` finite numbers (``positive``: each > 0), as a JSON list."""
 
     def test(v: object) -> bool:
-        return type(v) is list and len(v) == n and all(is_number(x) and (not positive or x > 0) for x in v)
+        return type(v) is list and len(v) == n and all(is_finite_number(x) and (not positive or x > 0) for x in v)
 
     return FieldKind(test, f"{n} {'positive ' if positive else ''}finite numbers")
 
 
-NUMBER = FieldKind(is_number, "a finite number")
+NUMBER = FieldKind(is_finite_number, "a finite number")
 COUNT = FieldKind(lambda v: type(v) is int and 0 <= v <= _INT64_MAX, "an integer >= 0 (int64)")
 TEXT = FieldKind(lambda v: type(v) is str, "a string")
 NAME = FieldKind(lambda v: type(v) is str and v != "", "a non-empty string")
@@ -217,17 +206,6 @@ def _where(where: str | Callable[[], str]) -> str:
     return where if isinstance(where, str) else where()
 
 
-def short_repr(value: object, limit: int = 80) -> str:
-    """``repr(value)`` cut to ``limit`` characters: a 10**400 or a long list must not flood a one-line error."""
-    if type(value) is int and abs(value) >= 10**60:
-        return f"an integer of {int(abs(value).bit_length() * math.log10(2)) + 1} digits"
-    try:
-        text = repr(value)
-    except ValueError:  # a container holding an int past Python's 4300-digit str() limit
-        return f"a {type(value).__name__} holding an integer too long to print"
-    return text if len(text) <= limit else text[: limit - 3] + "..."
-
-
 def dataset_file(root: str | Path, name: object, where: str | Callable[[], str]) -> Path:
     """``root / name`` for a file that a dataset's own metadata names (a table row, calibration.json), confined.
 
@@ -245,25 +223,6 @@ def dataset_file(root: str | Path, name: object, where: str | Callable[[], str])
     return Path(root) / rel
 
 
-def read_json(path: Path, what: str, max_bytes: int) -> object:
-    """The JSON document of ``path`` (at most ``max_bytes``); ValueError naming the file when it is not one."""
-    try:
-        with open(path, "rb") as f:
-            raw = f.read(max_bytes + 1)  # bounded: a device or a huge file is refused, not read whole
-    except OSError as e:
-        raise ValueError(f"{what} {path}: cannot read: {e.strerror or e}") from None
-    if len(raw) > max_bytes:
-        raise ValueError(f"{what} {path} is larger than {max_bytes} bytes: not a {what}")
-    try:
-        return json.loads(raw.decode("utf-8"))
-    except UnicodeDecodeError as e:  # before ValueError: it is one
-        raise ValueError(f"{what} {path} is not UTF-8 text (a binary file?): {e.reason} at byte {e.start}") from None
-    except RecursionError:  # the parser recurses once per level
-        raise ValueError(f"{what} {path} nests too deeply to be a {what}") from None
-    except ValueError as e:  # JSONDecodeError, and the 4300-digit limit on integer literals
-        raise ValueError(f"{what} {path} is not valid JSON: {e}") from None
-
-
 def _unknown(c: object) -> bool:
     return c is None or (type(c) is float and math.isnan(c))
 
@@ -275,7 +234,7 @@ _BOX_FIELDS = {
                        f"an integer in -1..{len(CLASS_NAMES) - 1} (an index into CLASS_NAMES, -1: other)"),
     # null, or a null / NaN component, where the source had NaN; a bare number or one component would broadcast
     "velocity_xy": FieldKind(lambda v: v is None or (type(v) is list and len(v) == 2
-                                                     and all(is_number(c) or _unknown(c) for c in v)),
+                                                     and all(is_finite_number(c) or _unknown(c) for c in v)),
                              "null or 2 numbers (null or NaN where unknown)"),
     "num_lidar_pts": COUNT, "num_radar_pts": COUNT, "center_global": numbers(3),
 }  # fmt: skip
@@ -312,7 +271,7 @@ def load_bundled_sample(root: str | Path | None = None) -> Sample:
         boxes[i, 3:6] = r["size_wlh"]
         boxes[i, 6] = r["yaw"]
         v = r["velocity_xy"]
-        if v is None or not all(is_number(c) for c in v):
+        if v is None or not all(is_finite_number(c) for c in v):
             valid_v[i] = False
         else:
             boxes[i, 7:9] = v

@@ -9,8 +9,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from streamdet.core.json_input import read_json, short_repr
 from streamdet.data.nuscenes import NuScenesReader
-from streamdet.data.sample import read_json, short_repr
 
 SPLITS_FILE = "splits.json"
 

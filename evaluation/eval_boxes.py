@@ -17,12 +17,12 @@ inside the box; -1 = unknown). ``velocity`` may be NaN (or null) where the annot
 from __future__ import annotations
 
 import math
-import sys
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
+from streamdet.core.json_input import is_finite_number, short_repr  # noqa: F401 (public here too)
 from streamdet.evaluation.config import DetectionConfig
 
 # The devkit's DETECTION_NAMES and ATTRIBUTE_NAMES (nuscenes/eval/detection/constants.py).
@@ -37,21 +37,7 @@ ATTRIBUTE_NAMES: tuple[str, ...] = (
     "vehicle.parked",
     "vehicle.stopped",
 )
-_FLOAT_MAX = sys.float_info.max
 _INT64 = (-(1 << 63), 1 << 63)  # num_pts is stored as int64: [min, max)
-
-
-def is_finite_number(value: object) -> bool:
-    """Whether ``value`` is a JSON number (not a bool) that is a finite float64.
-
-    Integers by comparison, not ``math.isfinite``: JSON integers are unbounded and ``math.isfinite(10**400)``
-    raises OverflowError, while Python compares an int with a float exactly.
-    """
-    if isinstance(value, bool):
-        return False
-    if isinstance(value, (int, np.integer)):
-        return -_FLOAT_MAX <= int(value) <= _FLOAT_MAX
-    return isinstance(value, (float, np.floating)) and math.isfinite(value)
 
 
 @dataclass(frozen=True, eq=False)
@@ -234,17 +220,6 @@ def _numbers(entry: Mapping, key: str, n: int, where: str, allow_nan: bool = Fal
     if not ok:
         raise ValueError(f"{where}.{key} must be {n} finite numbers, got {short_repr(value)}")
     return out
-
-
-def short_repr(value: object, limit: int = 80) -> str:
-    """``repr(value)`` cut to ``limit`` characters: a 10**400 or a huge list must not flood a one-line error."""
-    if isinstance(value, int) and not isinstance(value, bool) and abs(value) >= 10**60:
-        return f"an integer of {int(abs(value).bit_length() * math.log10(2)) + 1} digits"
-    try:
-        text = repr(value)
-    except ValueError:  # a container holding an int past Python's 4300-digit str() limit
-        return f"a {type(value).__name__} holding an integer too long to print"
-    return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 def _parse_entry(entry: Mapping, token: str, where: str) -> tuple:

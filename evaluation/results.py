@@ -32,7 +32,8 @@ import numpy as np
 
 from streamdet.core.boxes import BOX_DIM, VX, VY, YAW
 from streamdet.core.classes import CLASS_NAMES
-from streamdet.evaluation.eval_boxes import EvalBoxes, is_finite_number, short_repr
+from streamdet.core.json_input import is_finite_number, read_json, short_repr
+from streamdet.evaluation.eval_boxes import EvalBoxes
 
 META_KEYS = ("use_camera", "use_lidar", "use_radar", "use_map", "use_external")
 # The largest results or ground-truth file read. The devkit's cap of 500 boxes per sample over the 6019 samples
@@ -311,15 +312,7 @@ def read_results_json(path: str | os.PathLike) -> ResultsFile:
 
     A file over MAX_RESULTS_BYTES is refused unread, as is input nested too deeply for the JSON parser.
     """
-    raw = _read_capped(path)
-    try:
-        doc = json.loads(raw.decode("utf-8"))
-    except UnicodeDecodeError as e:  # before ValueError: it is one
-        raise ValueError(f"cannot read {path}: not UTF-8 text (a binary file?): {e}") from None
-    except RecursionError:  # json's parser recurses once per level: a hostile file can nest past the stack
-        raise ValueError(f"{path} nests too deeply to be a results file") from None
-    except ValueError as e:  # JSONDecodeError, and "Exceeds the limit (4300 digits)" for a huge integer literal
-        raise ValueError(f"{path} is not valid JSON: {e}") from None
+    doc = read_json(path, "results file", MAX_RESULTS_BYTES)
     if not isinstance(doc, dict) or not isinstance(doc.get("results"), dict):
         got = sorted(doc) if isinstance(doc, dict) else type(doc).__name__
         raise ValueError(f"{path} must be a JSON object with a 'results' object (sample_token -> boxes), got {got}")
@@ -332,19 +325,6 @@ def read_results_json(path: str | os.PathLike) -> ResultsFile:
         if not (isinstance(xyz, list) and len(xyz) == 3 and all(is_finite_number(v) for v in xyz)):
             raise ValueError(f"{path}: ego_positions[{token!r}] must be 3 finite numbers, got {short_repr(xyz)}")
     return ResultsFile(results=doc["results"], meta=meta, ego_positions=ego)
-
-
-def _read_capped(path: str | os.PathLike) -> bytes:
-    """The bytes of ``path``, at most MAX_RESULTS_BYTES (checked before reading when the size is known)."""
-    try:
-        with open(path, "rb") as f:
-            size = os.fstat(f.fileno()).st_size  # 0 for a pipe or a device: the bounded read still holds
-            raw = b"" if size > MAX_RESULTS_BYTES else f.read(MAX_RESULTS_BYTES + 1)
-    except OSError as e:
-        raise ValueError(f"cannot read {path}: {e.strerror or e}") from None
-    if size > MAX_RESULTS_BYTES or len(raw) > MAX_RESULTS_BYTES:
-        raise ValueError(f"{path} is larger than {MAX_RESULTS_BYTES >> 20} MiB (MAX_RESULTS_BYTES): not a results file")
-    return raw
 
 
 def load_gt_and_predictions(gt_path: str | os.PathLike, results_path: str | os.PathLike) -> tuple[EvalBoxes, EvalBoxes]:

@@ -190,7 +190,7 @@ def test_an_unreadable_table_file_is_named(tiny_synth_data, tmp_path, text, mess
     root = _dataset(tiny_synth_data, tmp_path / "ds")
     path = root / VERSION / "sample_annotation.json"
     path.write_bytes(text if isinstance(text, bytes) else text.encode())
-    with pytest.raises(ValueError, match=rf"'sample_annotation' \({re.escape(str(path))}\) {message}"):
+    with pytest.raises(ValueError, match=rf"nuScenes table {re.escape(str(path))} {message}"):
         NuScenesReader(root, VERSION)
 
 

@@ -124,7 +124,7 @@ def test_a_file_over_the_cap_is_refused_unread(tmp_path, monkeypatch):
     monkeypatch.setattr(results_module, "MAX_RESULTS_BYTES", 100)
     path = tmp_path / "big.json"
     path.write_text(json.dumps({"results": {}, "pad": "x" * 200}))
-    with pytest.raises(ValueError, match=rf"{path} is larger than \d+ MiB \(MAX_RESULTS_BYTES\)"):
+    with pytest.raises(ValueError, match=rf"results file {path} is larger than \d+ (MiB|bytes): not a results file"):
         read_results_json(path)
     path.write_text(json.dumps({"results": {}}))
     assert read_results_json(path).results == {}
@@ -143,7 +143,7 @@ def test_the_cap_fits_a_full_val_split_of_submissions():
 
 
 def test_a_missing_results_file_is_named(tmp_path):
-    with pytest.raises(ValueError, match=rf"cannot read {tmp_path / 'none.json'}"):
+    with pytest.raises(ValueError, match=rf"{tmp_path / 'none.json'}: cannot read: No such file"):
         read_results_json(tmp_path / "none.json")
 
 

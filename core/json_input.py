@@ -1,0 +1,66 @@
+"""Reading JSON that comes from outside: bounded, every failure a ValueError naming the file, numbers checked safely.
+
+One place for what every reader of input JSON needs (dataset tables, boxes.json, splits.json, results files):
+
+- ``read_json``: the document of a file of at most ``max_bytes`` (checked before reading where the size is known, a
+  bounded read for a pipe or a device), with the parser's failures named: not UTF-8, not JSON, an integer literal
+  past Python's 4300-digit limit, nesting past the parser's stack;
+- ``is_finite_number``: a JSON number (not a bool) that is a finite float64, by comparison (JSON integers are
+  unbounded: ``math.isfinite(10**400)`` raises OverflowError);
+- ``short_repr``: a value cut for a one-line error (a 10**400 or a long list must not flood it).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+
+FLOAT_MAX = sys.float_info.max
+
+
+def is_finite_number(value: object) -> bool:
+    """Whether ``value`` is a JSON number (not a bool; numpy scalars too) that is a finite float64."""
+    if isinstance(value, (bool, np.bool_)):
+        return False
+    if isinstance(value, (int, np.integer)):
+        return -FLOAT_MAX <= int(value) <= FLOAT_MAX  # an exact comparison: no OverflowError for 10**400
+    return isinstance(value, (float, np.floating)) and math.isfinite(value)
+
+
+def short_repr(value: object, limit: int = 80) -> str:
+    """``repr(value)`` cut to ``limit`` characters; a huge integer by its digit count."""
+    if isinstance(value, int) and not isinstance(value, bool) and abs(value) >= 10**60:
+        return f"an integer of {int(abs(value).bit_length() * math.log10(2)) + 1} digits"
+    try:
+        text = repr(value)
+    except ValueError:  # a container holding an int past Python's 4300-digit str() limit
+        return f"a {type(value).__name__} holding an integer too long to print"
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def read_json(path: str | os.PathLike, what: str, max_bytes: int) -> object:
+    """The JSON document of ``path``, a ``what`` (named in errors: "splits file", "results file", ...) of at most
+    ``max_bytes``; ValueError naming the file when it cannot be read or is not one."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as f:
+            size = os.fstat(f.fileno()).st_size  # 0 for a pipe or a device: the bounded read still holds
+            raw = b"" if size > max_bytes else f.read(max_bytes + 1)
+    except OSError as e:
+        raise ValueError(f"{what} {path}: cannot read: {e.strerror or e}") from None
+    if size > max_bytes or len(raw) > max_bytes:
+        limit = f"{max_bytes >> 20} MiB" if max_bytes >= 1 << 20 else f"{max_bytes} bytes"
+        raise ValueError(f"{what} {path} is larger than {limit}: not a {what}")
+    try:
+        return json.loads(raw.decode("utf-8"))
+    except UnicodeDecodeError as e:  # before ValueError: it is one
+        raise ValueError(f"{what} {path} is not UTF-8 text (a binary file?): {e.reason} at byte {e.start}") from None
+    except RecursionError:  # the parser recurses once per level: a hostile file can nest past the stack
+        raise ValueError(f"{what} {path} nests too deeply to be a {what}") from None
+    except ValueError as e:  # JSONDecodeError, and the 4300-digit limit on integer literals
+        raise ValueError(f"{what} {path} is not valid JSON: {e}") from None
