@@ -49,8 +49,8 @@ def read_json(path: str | os.PathLike, what: str, max_bytes: int) -> object:
     path = Path(path)
     try:
         with open(path, "rb") as f:
-            size = os.fstat(f.fileno()).st_size  # 0 for a pipe or a device: the bounded read still holds
-            raw = b"" if size > max_bytes else f.read(max_bytes + 1)
+            size = os.fstat(f.fileno()).st_size  # 0 for a pipe or a device: read in chunks, bounded
+            raw = b"" if size > max_bytes else _read_at_most(f, max_bytes + 1, size)
     except OSError as e:
         raise ValueError(f"{what} {path}: cannot read: {e.strerror or e}") from None
     if size > max_bytes or len(raw) > max_bytes:
@@ -64,3 +64,20 @@ def read_json(path: str | os.PathLike, what: str, max_bytes: int) -> object:
         raise ValueError(f"{what} {path} nests too deeply to be a {what}") from None
     except ValueError as e:  # JSONDecodeError, and the 4300-digit limit on integer literals
         raise ValueError(f"{what} {path} is not valid JSON: {e}") from None
+
+
+def _read_at_most(f, limit: int, size: int) -> bytes:
+    """Up to ``limit`` bytes of ``f``. Never ``f.read(limit)`` with a large limit: Python allocates the whole buffer
+    before reading (16 GiB for a table cap), which fails under a memory limit; a file of known ``size`` is read at
+    its size (plus one byte, to see it grew), anything else in 1 MiB chunks."""
+    if size > 0:
+        return f.read(min(size + 1, limit))
+    chunks, total = [], 0
+    while total < limit:
+        chunk = f.read(min(1 << 20, limit - total))
+        if not chunk:
+            break
+        chunks.append(chunk)
+        total += len(chunk)
+    return b"".join(chunks)
+

@@ -31,7 +31,7 @@ SWEEP_DURATION_S = 0.05  # nuScenes LIDAR_TOP spins at 20 Hz
 # counts it rather than let one such value drive the net's activations anywhere (runtime_ort/pillarize.py).
 REFLECTANCE_RANGE = (0.0, 1.0)
 MAX_POINT_TIME_S = 1.0  # a slice point's time: within its sweep, plus the age of a past sweep (nuScenes' 10: 0.5 s)
-MAX_SLICE_INDEX = 4095  # the slice index column's bound: manifest.schema.json caps num_slices at 4096
+MAX_SLICE_INDEX = 4095  # the slice index column's bound: core/sectors.py MAX_NUM_SLICES - 1 (the schema's cap too)
 
 
 def check_sweep(points: np.ndarray, name: str = "sweep", *, exact: bool = True) -> np.ndarray:

@@ -46,10 +46,16 @@ def check_quadrants(quadrants: Iterable[int]) -> tuple[int, ...]:
     return tuple(int(q) for q in qs)
 
 
+# The most slices per sweep (sectors of 0.09 deg): manifest.schema.json's num_slices maximum, and the bound of the slice
+# index column the pillarisation accepts (core/points.py MAX_SLICE_INDEX); a larger count is a typo, not a slicing.
+MAX_NUM_SLICES = 4096
+
+
 def check_num_slices(n: int, start_deg: float = 0.0) -> None:
-    """n slices must align with the quadrant split: n in {1, 2} or a multiple of 4, start on an axis."""
-    if not isinstance(n, (int, np.integer)) or n < 1:
-        raise ValueError(f"number of slices must be a positive integer, got {n!r}")
+    """n slices must align with the quadrant split: n in {1, 2} or a multiple of 4 up to MAX_NUM_SLICES, start on an
+    axis."""
+    if not isinstance(n, (int, np.integer)) or isinstance(n, bool) or not 1 <= n <= MAX_NUM_SLICES:
+        raise ValueError(f"number of slices must be an integer in 1..{MAX_NUM_SLICES}, got {n!r}")
     if n not in (1, 2) and n % 4:
         raise ValueError(f"number of slices must be 1, 2 or a multiple of 4 (sectors aligned to quadrants), got {n}")
     if start_deg % 90.0:

@@ -63,3 +63,18 @@ def test_read_json_refuses_a_large_file_unread_and_bounds_a_device(tmp_path):
 def _write(path, data: bytes):
     path.write_bytes(data)
     return path
+
+
+def test_read_json_never_allocates_its_cap(tmp_path):
+    """A 16 GiB cap (the tables') must not mean a 16 GiB buffer: under an address-space limit the read still works."""
+    import subprocess
+    import sys
+
+    path = _write(tmp_path / "t.json", b'[{"token": "a"}]')
+    code = ("import resource; resource.setrlimit(resource.RLIMIT_AS, (4 << 30, 4 << 30)); "
+            "from streamdet.core.json_input import read_json; import sys; "
+            f"print(read_json({str(path)!r}, 'table', 16 << 30)); "
+            "print(len(read_json('/dev/stdin', 'table', 16 << 30)))")  # fmt: skip
+    done = subprocess.run([sys.executable, "-c", code], input=b"[1, 2, 3]", capture_output=True, timeout=60)
+    assert done.returncode == 0, done.stderr.decode()[-500:]
+    assert done.stdout.decode().split() == ["[{'token':", "'a'}]", "3"]

@@ -59,10 +59,22 @@ def test_azimuth_wraps():
     assert azimuth_deg(np.array([0.0]), np.array([1.0]))[0] == pytest.approx(90.0)
 
 
-@pytest.mark.parametrize("bad", [0, 3, 6, -4, 2.5])
+@pytest.mark.parametrize("bad", [0, 3, 6, -4, 2.5, True, 4100, 8192, 10**12])
 def test_bad_slice_counts(bad):
     with pytest.raises(ValueError, match="slices"):
         check_num_slices(bad)
+
+
+def test_the_slice_count_cap_is_the_schemas_and_the_slice_index_bound():
+    import json
+    from importlib.resources import files
+
+    from streamdet.core.points import MAX_SLICE_INDEX
+    from streamdet.core.sectors import MAX_NUM_SLICES
+
+    check_num_slices(MAX_NUM_SLICES)
+    schema = json.loads(files("streamdet.runtime_ort").joinpath("manifest.schema.json").read_text())
+    assert schema["properties"]["num_slices"]["maximum"] == MAX_NUM_SLICES == MAX_SLICE_INDEX + 1
 
 
 def test_bad_start_angle():
