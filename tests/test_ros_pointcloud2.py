@@ -182,6 +182,14 @@ def test_a_missing_coordinate_or_intensity_field_is_named(missing: str):
         decode_pointcloud2(make_cloud(cols, dt, list(dt)))
 
 
+def test_a_field_named_twice_is_refused_not_guessed():
+    dt = {k: FLOAT32 for k in ("x", "y", "z", "intensity", "t")}
+    msg = make_cloud({k: np.zeros(3) for k in dt}, dt, list(dt))
+    msg.fields.append(ns(name="x", offset=msg.fields[1].offset, datatype=FLOAT32, count=1))
+    with pytest.raises(ValueError, match=r"PointCloud2 names a field twice: \['x'\]"):
+        decode_pointcloud2(msg)
+
+
 def test_a_missing_time_field_is_named_unless_not_required():
     dt = {k: FLOAT32 for k in ("x", "y", "z", "intensity")}
     msg = make_cloud({k: np.zeros(3) for k in dt}, dt, list(dt))

@@ -102,6 +102,9 @@ def decode_pointcloud2(msg: Any, fields: CloudFields = CloudFields()) -> Cloud:
     height, width = int(msg.height), int(msg.width)
     point_step, row_step = int(msg.point_step), int(msg.row_step)
     present = {f.name: f for f in msg.fields}
+    if len(present) != len(msg.fields):  # which of two "x" fields is x? Refused rather than the last one taken
+        names = [f.name for f in msg.fields]
+        raise ValueError(f"PointCloud2 names a field twice: {sorted({n for n in names if names.count(n) > 1})} in {names}")
     names = {"x": "x", "y": "y", "z": "z", "intensity": fields.intensity}
     for role, name in names.items():
         if name not in present:
