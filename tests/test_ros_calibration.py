@@ -97,6 +97,26 @@ def test_tf_chains_interpolation_and_errors():
     # a leading slash (ROS 1 habit) names the same frame
     assert tf.lookup("/base_link", "/sensor_mount", 0) == a
 
+@pytest.mark.parametrize(
+    "rotation, ok",
+    [([0.707, 0.0, 0.0, 0.707], True), ([1.0, 0.0, 0.0, 0.004], True),  # rounded, as URDFs write them: normalised
+     ([5.0, 0.0, 0.0, 0.0], False), ([0.0, 0.0, 0.0, 0.0], False), ([np.nan, 0.0, 0.0, 1.0], False), ([0.9, 0, 0, 0], False)],
+)  # fmt: skip
+def test_tf_quaternions_as_tf2_takes_them(rotation, ok):
+    """tf2 accepts |q|^2 within 0.01 of 1 and refuses the rest; accepted ones are normalised, so that an exact
+    lookup and an interpolation between two stamps give unit rotations alike."""
+    tf = TfBuffer()
+    pose = {"rotation": rotation, "translation": [1.0, 2.0, 3.0]}
+    if not ok:
+        with pytest.raises(ValueError, match=r"'map' -> 'base_link' at 1000 ns: rotation .* must be a unit quaternion"):
+            tf.add(as_msg(_tf([("map", "base_link", pose, 1_000)])))
+        return
+    tf.add(as_msg(_tf([("map", "base_link", pose, 1_000), ("map", "base_link", pose, 2_000)])))
+    for stamp in (1_000, 1_500):
+        q = np.asarray(tf.lookup("map", "base_link", stamp)["rotation"])
+        assert abs(np.linalg.norm(q) - 1.0) < 1e-12
+        np.testing.assert_allclose(q, np.asarray(rotation) / np.linalg.norm(rotation), atol=1e-12)
+
 
 def test_camera_info_refusals_name_the_problem():
     K = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])

@@ -20,6 +20,9 @@ import numpy as np
 from streamdet.calibration.camera import invert_transform, make_transform, matrix_to_quaternion, quaternion_to_matrix
 from streamdet.runtime_ort.ros.header import header_msg, stamp_ns
 
+
+TF_QUATERNION_NORM2_TOL = 0.01  # tf2 BufferCore::setTransform: |q|^2 may differ from 1 by this much
+
 Record = dict  # {"rotation": [w, x, y, z], "translation": [x, y, z]}
 
 
@@ -54,6 +57,16 @@ class TfBuffer:
         r, t = ts.transform.rotation, ts.transform.translation
         record = {"rotation": [float(r.w), float(r.x), float(r.y), float(r.z)],
                   "translation": [float(t.x), float(t.y), float(t.z)]}  # fmt: skip
+        # Checked and normalised here, once, so that an exact lookup, an interpolation and a chain all see the same
+        # edges. tf2 accepts a quaternion whose squared norm is within 0.01 of 1 (drivers and URDFs write rounded
+        # ones, 0.707 for 1/sqrt(2)) and refuses others (TF_DENORMALIZED_QUATERNION): so do we.
+        q, xyz = np.asarray(record["rotation"]), np.asarray(record["translation"])
+        if not (np.isfinite(q).all() and np.isfinite(xyz).all() and abs(float(q @ q) - 1.0) <= TF_QUATERNION_NORM2_TOL):
+            raise ValueError(f"TF {parent!r} -> {child!r} at {stamp_ns(ts.header.stamp)} ns: rotation {record['rotation']} "
+                             f"must be a unit quaternion (squared norm within {TF_QUATERNION_NORM2_TOL} of 1, as tf2 "
+                             f"requires) and translation {record['translation']} finite")  # fmt: skip
+        if abs(float(q @ q) - 1.0) > 1e-12:  # a unit one to float precision is kept as given
+            record["rotation"] = (q / np.linalg.norm(q)).tolist()
         edge = self._edges.setdefault((parent, child), _Edge())
         if static:
             edge.static = record
