@@ -15,11 +15,14 @@ from pathlib import Path
 
 import click
 
-from streamdet.cli_utils import PRECISION_CHOICES, image_precision_option, resolution_callback
+from streamdet.cli_utils import (
+    MAX_SLICES, MAX_THREADS, PRECISION_CHOICES, RESOLUTION_RANGE_HELP, image_precision_option, resolution_callback,
+)
 from streamdet.core.constants import DEFAULT_PRESET
 from streamdet.models.presets import get_preset, preset_names
 
 QUICK_TORCH_SKIP_MS = 200.0  # --quick: PyTorch eager is timed only on rows faster than this in onnxruntime fp32
+MAX_REPEAT = 10_000  # timed runs per measurement: 500x the default 20; more only takes hours
 
 
 def _write(path: Path, what: str, write) -> None:
@@ -56,20 +59,24 @@ def _flops_only(preset: str, resolution: tuple[int, int] | None, json_path: Path
     callback=resolution_callback(),
     metavar="WxH",
     help="Image size of the given image row and of the streaming export, e.g. 800x450 (default: the preset's); the "
-    "other image rows are the rest of 1600x900 / 1200x675 / 800x450. With --flops-only: the only image row.",
+    "other image rows are the rest of 1600x900 / 1200x675 / 800x450. With --flops-only: the only image row. "
+    f"Sizes: {RESOLUTION_RANGE_HELP}.",
 )
-@click.option("--slices", type=click.IntRange(min=1), default=8, show_default=True, help="Slices per sweep of the streaming section.")
+@click.option("--slices", type=click.IntRange(1, MAX_SLICES), default=8, show_default=True,
+              help=f"Slices per sweep of the streaming section (1, 2 or a multiple of 4 up to {MAX_SLICES}).")
 @click.option("--fp16/--no-fp16", default=True, show_default=True, help="Also time the fp16 graphs (and export them).")
 @click.option("--int8/--no-int8", default=True, show_default=True,
               help="Also time int8 graphs of the rows (static QDQ, as streamdet-export --int8 writes them).")
 @click.option("--stream-precision", type=click.Choice(PRECISION_CHOICES), default="fp32", show_default=True,
               help="Graphs the streaming section runs; --export-dir must hold them (streamdet-export --fp16 / --int8).")
 @image_precision_option("--stream-image-precision", "stream_image_precision")
-@click.option("--stream-slice-workers", type=click.IntRange(min=1, max=1024), default=None,
-              help="Slice workers (LaneConfig.max_in_flight) of the streaming section's image-lane schedules [default: the "
+@click.option("--stream-slice-workers", type=click.IntRange(1, MAX_THREADS), default=None,
+              help=f"Slice workers (LaneConfig.max_in_flight, 1..{MAX_THREADS}) of the streaming section's image-lane schedules [default: the "
               "runtime's LaneConfig]; 1 leaves the image lane a core of its own on a 2-core machine (docs/replay.md).")
-@click.option("--repeat", type=click.IntRange(min=1), default=None, help="Timed runs per measurement [default: 20; 5 with --quick].")
-@click.option("--threads", type=click.IntRange(min=1), default=None, help="Threads for the Table 3 rows [default: all cores].")
+@click.option("--repeat", type=click.IntRange(1, MAX_REPEAT), default=None,
+              help=f"Timed runs per measurement, 1..{MAX_REPEAT} [default: 20; 5 with --quick].")
+@click.option("--threads", type=click.IntRange(1, MAX_THREADS), default=None,
+              help=f"Threads for the Table 3 rows, 1..{MAX_THREADS} [default: all cores].")
 @click.option(
     "--quick",
     is_flag=True,

@@ -13,10 +13,17 @@ from pathlib import Path
 
 import click
 
-from streamdet.cli_utils import resolution_callback
+from streamdet.cli_utils import MAX_THREADS, RESOLUTION_RANGE_HELP, resolution_callback
 from streamdet.data.synth_stats import open_samples
 from streamdet.data.synth_world import WorldConfig
 from streamdet.data.synth_writer import DEFAULT_VERSION, SynthConfig, generate_dataset
+
+
+# Upper bounds of the numeric options, far past any documented use (nuScenes: 1000 scenes of about 40 key frames),
+# short of a run that never ends (--scenes 10**12) or a layout that allocates terabytes (--samples-per-scene 10**12).
+MAX_SCENES = 10_000
+MAX_SAMPLES_PER_SCENE = 1000  # 500 s of drive per scene at 2 Hz
+MAX_STATS_SAMPLES = 1_000_000  # key frames measured by `stats` (nuScenes has 40k)
 
 
 class _DefaultGroup(click.Group):
@@ -37,18 +44,19 @@ def main() -> None:
 @main.command("generate", context_settings={"help_option_names": ["-h", "--help"]})
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path),
               help="Dataset root to write: tables go to OUT/<version>/, files to OUT/samples/ and OUT/sweeps/.")
-@click.option("--scenes", default=2, show_default=True, type=click.IntRange(min=1), help="Number of scenes.")
+@click.option("--scenes", default=2, show_default=True, type=click.IntRange(1, MAX_SCENES),
+              help=f"Number of scenes (1..{MAX_SCENES}).")
 @click.option("--seed", default=0, show_default=True, type=click.IntRange(min=0), help="Random seed; the same seed writes the same dataset.")
-@click.option("--resolution", default="800x450", show_default=True, callback=resolution_callback(min_px=16, max_px=4096),
-              help="Camera image size WIDTHxHEIGHT (intrinsics of the real rig scaled to it).")
-@click.option("--samples-per-scene", default=10, show_default=True, type=click.IntRange(min=1),
-              help="Key frames per scene, 0.5 s apart (2 Hz, as nuScenes).")
+@click.option("--resolution", default="800x450", show_default=True, callback=resolution_callback(),
+              help=f"Camera image size WIDTHxHEIGHT, {RESOLUTION_RANGE_HELP} (intrinsics of the real rig scaled to it).")
+@click.option("--samples-per-scene", default=10, show_default=True, type=click.IntRange(1, MAX_SAMPLES_PER_SCENE),
+              help=f"Key frames per scene, 0.5 s apart (2 Hz, as nuScenes); 1..{MAX_SAMPLES_PER_SCENE}.")
 @click.option("--sweeps-per-sample", default=1, show_default=True, type=click.IntRange(1, 10),
-              help="LiDAR sweeps per key-frame interval including the key frame (nuScenes has 10, at 20 Hz).")
+              help="LiDAR sweeps per key-frame interval including the key frame, 1..10 (nuScenes has 10, at 20 Hz).")
 @click.option("--version", "version", default=DEFAULT_VERSION, show_default=True, help="Name of the table folder (the nuScenes 'version').")
 @click.option("--preview", is_flag=True, help="Also write pictures of the first key frame to OUT/preview/: the six cameras with the ground truth and a bird's-eye view coloured by slice (8 slices).")
-@click.option("--workers", default=1, show_default=True, type=click.IntRange(min=1),
-              help="Processes simulating scenes in parallel (the output does not depend on it).")
+@click.option("--workers", default=1, show_default=True, type=click.IntRange(1, MAX_THREADS),
+              help=f"Processes simulating scenes in parallel, 1..{MAX_THREADS} (the output does not depend on it).")
 @click.option("--overwrite", is_flag=True, help="Write into OUT even if it already holds a dataset of this version.")
 def generate(out_dir: Path, scenes: int, seed: int, resolution: tuple[int, int], samples_per_scene: int,
          sweeps_per_sample: int, version: str, preview: bool, workers: int, overwrite: bool) -> None:
@@ -93,7 +101,8 @@ def generate(out_dir: Path, scenes: int, seed: int, resolution: tuple[int, int],
               help="Also write both measurements as JSON to this file.")
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Also draw them as a PNG to this file (needs matplotlib).")
-@click.option("--max-samples", type=click.IntRange(min=1), default=None, help="Measure only the first N key frames.")
+@click.option("--max-samples", type=click.IntRange(1, MAX_STATS_SAMPLES), default=None,
+              help=f"Measure only the first N key frames (1..{MAX_STATS_SAMPLES}).")
 def stats(data_dir: Path, reference_dir: Path | None, no_reference: bool, json_path: Path | None, plot_path: Path | None,
           max_samples: int | None) -> None:
     """Measure DATA_DIR's LiDAR cues (points on box faces, in-box intensity, points per box by range, vehicle

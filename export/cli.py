@@ -6,7 +6,7 @@ import sys
 
 import click
 
-from streamdet.cli_utils import resolution_callback
+from streamdet.cli_utils import MAX_SLICES, RESOLUTION_RANGE_HELP, resolution_callback
 from streamdet.core.image_layout import IMAGE_LAYOUTS
 from streamdet.core.lut_layout import LUT_LAYOUTS
 from streamdet.export.exporter import STEM_STRIDE, ExportError, ExportOptions, run_export
@@ -15,6 +15,13 @@ from streamdet.export.options import DEFAULT_IMAGE_LAYOUT, DEFAULT_LUT_LAYOUT, D
 from streamdet.runtime_ort.manifest import LUT_NAME, MANIFEST_NAME
 from streamdet.export.onnx_export import DEFAULT_OPSET, OPSET_RANGE
 from streamdet.models.presets import preset_names
+
+# Upper bounds of the numeric options, far past any documented use: the calibration draws its samples from a
+# dataset (default 8); the slice graph decodes at most classes x cells per quadrant (the paper's 500); torch seeds are
+# 64-bit (torch.manual_seed refuses more, after the model is built, with a bare 'Overflow when unpacking long long').
+MAX_CALIBRATION_SAMPLES = 10_000
+MAX_TOP_K = 100_000
+MAX_SEED = 2**63 - 1
 
 
 @click.command(context_settings={"help_option_names": ["-h", "--help"]})
@@ -26,9 +33,10 @@ from streamdet.models.presets import preset_names
 @click.option("--calibration", type=click.Path(dir_okay=False), default=None,
               help="calibration.json for lut.npz. Default: the bundled nuScenes sample's, intrinsics scaled to --resolution.")
 @click.option("--resolution", callback=resolution_callback(multiple_of=STEM_STRIDE), default=None, metavar="WxH",
-              help="Camera image size in pixels, e.g. 800x450; width and height must be even. Default: the preset's.")
-@click.option("--slices", "num_slices", type=int, default=8, show_default=True,
-              help="Slices per sweep (1, 2 or a multiple of 4); picks the LiDAR slice used for the parity checks.")
+              help=f"Camera image size in pixels, e.g. 800x450; width and height must be even, {RESOLUTION_RANGE_HELP}. "
+                   "Default: the preset's.")
+@click.option("--slices", "num_slices", type=click.IntRange(1, MAX_SLICES), default=8, show_default=True,
+              help=f"Slices per sweep (1, 2 or a multiple of 4 up to {MAX_SLICES}); picks the LiDAR slice used for the parity checks.")
 @click.option("--fp16", is_flag=True, help="Also write fp16 siblings (*.fp16.onnx; inputs and outputs stay fp32) and check them.")
 @click.option("--int8", is_flag=True,
               help="Also write int8 siblings (*.int8.onnx: static QDQ, int8 weights, uint8 activations; inputs and "
@@ -36,12 +44,14 @@ from streamdet.models.presets import preset_names
 @click.option("--calibration-data", type=click.Path(), default=None, metavar="DIR",
               help="nuScenes-format dataset (e.g. streamdet-synth output) whose train split calibrates the int8 graphs. "
                    "Default: the bundled nuScenes sample.")
-@click.option("--calibration-samples", type=click.IntRange(min=1), default=DEFAULT_CALIBRATION_SAMPLES, show_default=True,
-              help="Samples drawn evenly from --calibration-data (each gives all its camera images and slices).")
-@click.option("--opset", type=click.IntRange(*OPSET_RANGE), default=DEFAULT_OPSET, show_default=True, help="ONNX opset.")
+@click.option("--calibration-samples", type=click.IntRange(1, MAX_CALIBRATION_SAMPLES), default=DEFAULT_CALIBRATION_SAMPLES,
+              show_default=True, help=f"Samples drawn evenly from --calibration-data (each gives all its camera images and "
+                                      f"slices; 1..{MAX_CALIBRATION_SAMPLES}).")
+@click.option("--opset", type=click.IntRange(*OPSET_RANGE), default=DEFAULT_OPSET, show_default=True, help=f"ONNX opset ({OPSET_RANGE[0]}..{OPSET_RANGE[1]}).")
 @click.option("--out", "out_dir", type=click.Path(file_okay=False), default=None,
               help="Output directory (replaced if it holds an older export). Default: ./exports/<preset>.")
-@click.option("--seed", type=int, default=0, show_default=True, help="Torch seed of the untrained weights when no checkpoint is used.")
+@click.option("--seed", type=click.IntRange(0, MAX_SEED), default=0, show_default=True,
+              help="Torch seed of the untrained weights when no checkpoint is used (0..2**63-1).")
 @click.option("--image-layout", type=click.Choice(IMAGE_LAYOUTS), default=DEFAULT_IMAGE_LAYOUT, show_default=True,
               help="What the lifter graph hands the slice graph: the image BEV, or the BEV encoder's image half computed "
                    "once per lift in the lifter graph (models/image_half.py; recorded as the manifest's image_layout).")
@@ -49,8 +59,8 @@ from streamdet.models.presets import preset_names
               help="How the lifter graph reads the LUT: K slots per voxel, or the compacted valid (voxel, camera) pairs "
                    "(models/compact_lifter.py; recorded as the manifest's lut_layout). auto: compact for a model with "
                    "one LUT height per voxel, slots for several (where compacting does not pay).")
-@click.option("--top-k", type=click.IntRange(min=1), default=None,
-              help="Detections per quadrant the slice graph decodes (default: the preset's, the paper's 500). Fewer make "
+@click.option("--top-k", type=click.IntRange(1, MAX_TOP_K), default=None,
+              help=f"Detections per quadrant the slice graph decodes, 1..{MAX_TOP_K} (default: the preset's, the paper's 500). Fewer make "
                    "each slice run cheaper; the runtime's score threshold keeps far fewer anyway, and the detector counts "
                    "the runs whose K-th score passed it (StreamingDetector.slice_runs_at_top_k: the cap cut boxes).")
 def main(preset, checkpoint, calibration, resolution, num_slices, fp16, int8, calibration_data, calibration_samples,

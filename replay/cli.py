@@ -9,10 +9,22 @@ from pathlib import Path
 import click
 
 from streamdet.cli_utils import (
-    PRECISION_CHOICES, camera_terms_option, fallback_after_s, fallback_options, image_precision_option,
+    MAX_SLICES, MAX_THREADS, PRECISION_CHOICES, camera_terms_option, fallback_after_s, fallback_options,
+    image_precision_option,
 )
 from streamdet.replay.modes import MODES
 from streamdet.replay.triggers import DEFAULT_TRIGGER, TRIGGER_MODELS
+
+
+# Upper bounds of the numeric options: far past any real rig or documented run (nuScenes: LiDAR 20 Hz, cameras 12 Hz,
+# 20 s scenes, 1000 scenes), short of what allocates gigabytes (--camera-hz 1e9 asked for 5.7 GiB of trigger times),
+# overflows the wall clock (--time-scale / --camera-delivery-ms 1e300) or sleeps for days (--time-scale 1e6).
+MAX_SCENES = 10_000
+MAX_RATE_HZ = 1000.0  # --lidar-hz, --camera-hz
+MAX_DELIVERY_MS = 10_000.0  # a camera frame 10 s late is no camera
+MAX_TIME_SCALE = 1000.0  # a drive second played over 1000 wall seconds (a computer 1000x faster)
+MAX_SECONDS = 86_400.0  # a day of drive per scene
+MAX_QUEUE = 1024  # LaneConfig's bound
 
 
 def _progress(message: str) -> None:
@@ -29,55 +41,59 @@ def _progress(message: str) -> None:
               help="nuScenes-format dataset root (streamdet-synth output or real nuScenes tables).")
 @click.option("--version", "table_version", default="v1.0-synth", show_default=True, help="Table folder under --data.")
 @click.option("--split", default="val", show_default=True, help="Scenes of this split (splits.json); 'all' for every scene.")
-@click.option("--scenes", type=click.IntRange(min=1), default=None, help="Play only the first N scenes of the split.")
+@click.option("--scenes", type=click.IntRange(1, MAX_SCENES), default=None,
+              help=f"Play only the first N scenes of the split (1..{MAX_SCENES}).")
 @click.option("--export-dir", type=click.Path(path_type=Path, file_okay=False), required=True,
               help="Export directory written by streamdet-export (holds manifest.json).")
 @click.option("--precision", type=click.Choice(PRECISION_CHOICES), default="fp32", show_default=True,
               help="Precision of the slice graph.")
 @image_precision_option()
-@click.option("--lidar-hz", type=click.FloatRange(min=0, min_open=True), default=20.0, show_default=True,
-              help="LiDAR rotations per second (the rotation period the slices are released over).")
-@click.option("--slices", "num_slices", type=click.IntRange(min=1), default=None,
-              help="Slices per rotation in streaming and sequential modes. Default: the export's.")
-@click.option("--camera-hz", type=click.FloatRange(min=0, min_open=True), default=12.0, show_default=True,
-              help="Camera trigger rate; each trigger delivers the newest recorded image of every camera.")
+@click.option("--lidar-hz", type=click.FloatRange(0, MAX_RATE_HZ, min_open=True), default=20.0, show_default=True,
+              help=f"LiDAR rotations per second (the rotation period the slices are released over); 0 < Hz <= {MAX_RATE_HZ:.0f}.")
+@click.option("--slices", "num_slices", type=click.IntRange(1, MAX_SLICES), default=None,
+              help=f"Slices per rotation in streaming and sequential modes (1, 2 or a multiple of 4 up to {MAX_SLICES}). "
+                   "Default: the export's.")
+@click.option("--camera-hz", type=click.FloatRange(0, MAX_RATE_HZ, min_open=True), default=12.0, show_default=True,
+              help=f"Camera trigger rate; each trigger delivers the newest recorded image of every camera; "
+                   f"0 < Hz <= {MAX_RATE_HZ:.0f}.")
 @click.option("--camera-trigger", type=click.Choice(TRIGGER_MODELS), default=DEFAULT_TRIGGER, show_default=True,
               help="How the cameras fire: 'lidar-synced' (nuScenes: each camera as the LiDAR crosses its optical axis, "
                    "at --camera-hz on average) or 'simultaneous' (all cameras at once at --camera-hz).")
-@click.option("--camera-delivery-ms", type=click.FloatRange(min=0), default=0.0, show_default=True,
-              help="Every camera frame reaches the runtime this long after its capture (exposure, readout, ISP, "
+@click.option("--camera-delivery-ms", type=click.FloatRange(0, MAX_DELIVERY_MS), default=0.0, show_default=True,
+              help=f"0..{MAX_DELIVERY_MS:.0f} ms: every camera frame reaches the runtime this long after its capture (exposure, readout, ISP, "
                    "transport; real rigs: tens of ms); frames keep their capture time as timestamp, and staleness is "
                    "measured against the frames delivered by a slice's scan start. 0: delivered at capture.")
 @click.option("--mode", type=click.Choice([*MODES, "all"]), default="all", show_default=True,
               help="streaming (two lanes), full-sweep (wait for the rotation), sequential (one queue), or all three.")
-@click.option("--time-scale", type=click.FloatRange(min=0, min_open=True), default=1.0, show_default=True,
-              help="Wall seconds per drive second: 2 plays twice as slowly, what a 2x faster computer would see. "
-                   "Latencies are reported in drive time.")
-@click.option("--max-seconds", type=click.FloatRange(min=0, min_open=True), default=None,
-              help="Play only the first seconds of each scene.")
-@click.option("--threads", type=click.IntRange(min=1), default=1, show_default=True,
-              help="Intra-op threads of each onnxruntime session.")
-@click.option("--image-lane-threads", type=click.IntRange(min=1), default=None,
-              help="Intra-op threads of the image lane's sessions (encoder, lifter, per-camera terms). Default: --threads.")
-@click.option("--slice-workers", type=click.IntRange(min=1), default=None,
-              help="Slices processed at once in the slice lane (LaneConfig.max_in_flight). Default: the runtime's LaneConfig. "
+@click.option("--time-scale", type=click.FloatRange(0, MAX_TIME_SCALE, min_open=True), default=1.0, show_default=True,
+              help=f"Wall seconds per drive second (0 < scale <= {MAX_TIME_SCALE:.0f}): 2 plays twice as slowly, what a 2x "
+                   "faster computer would see. Latencies are reported in drive time.")
+@click.option("--max-seconds", type=click.FloatRange(0, MAX_SECONDS, min_open=True), default=None,
+              help=f"Play only the first seconds of each scene (0 < s <= {MAX_SECONDS:.0f}).")
+@click.option("--threads", type=click.IntRange(1, MAX_THREADS), default=1, show_default=True,
+              help=f"Intra-op threads of each onnxruntime session (1..{MAX_THREADS}).")
+@click.option("--image-lane-threads", type=click.IntRange(1, MAX_THREADS), default=None,
+              help=f"Intra-op threads of the image lane's sessions (encoder, lifter, per-camera terms; 1..{MAX_THREADS}). "
+                   "Default: --threads.")
+@click.option("--slice-workers", type=click.IntRange(1, MAX_THREADS), default=None,
+              help=f"Slices processed at once in the slice lane (LaneConfig.max_in_flight, 1..{MAX_THREADS}). Default: the runtime's LaneConfig. "
                    "On two cores, 1 with --schedule phase-locked leaves the image lane a core of its own (docs/replay.md).")
-@click.option("--queue-size", type=click.IntRange(min=1), default=None,
-              help="Slices waiting in the slice lane before the oldest is dropped. Default: the runtime's LaneConfig.")
+@click.option("--queue-size", type=click.IntRange(1, MAX_QUEUE), default=None,
+              help=f"Slices waiting in the slice lane before the oldest is dropped (1..{MAX_QUEUE}). Default: the runtime's LaneConfig.")
 @click.option("--schedule", type=click.Choice(["full", "phase-locked"]), default="full", show_default=True,
               help="When the image lane works: 'full' (every image set, all cameras, all quadrants) or 'phase-locked' "
                    "(one quadrant at a time from its cameras, just before the LiDAR reaches it); LaneConfig.schedule.")
 @click.option("--image-lane-nice", type=click.IntRange(0, 19), default=0, show_default=True,
-              help="Added to the image lane's thread's nice value (Linux): the slice lane is served first where the "
+              help="Added to the image lane's thread's nice value (Linux; 0..19): the slice lane is served first where the "
                    "lanes share cores; LaneConfig.image_lane_nice.")
 @click.option("--image-lane-yield", "image_lane_yield", type=click.IntRange(0, 1024), default=0, show_default=True,
               help="Phase-locked schedule only: the image lane starts no encode or lift while this many slices wait in "
-                   "the slice lane's queue (0: never); LaneConfig.image_lane_yield_slices.")
+                   "the slice lane's queue (0..1024; 0: never); LaneConfig.image_lane_yield_slices.")
 @click.option("--coalesce-slices", type=click.IntRange(1, 64), default=None,
               help="The most waiting slices of one quadrant a slice worker detects in one run when the lane is behind "
-                   "(1: never, a full queue drops the oldest); LaneConfig.coalesce_slices. Default: the runtime's LaneConfig.")
+                   "(1..64; 1: never, a full queue drops the oldest); LaneConfig.coalesce_slices. Default: the runtime's LaneConfig.")
 @click.option("--pair-hold-load", type=click.FloatRange(0, 16), default=None,
-              help="Hold a quadrant's first slice for the next one and detect both in one run from when the slice lane's "
+              help="0..16: hold a quadrant's first slice for the next one and detect both in one run from when the slice lane's "
                    "measured load (a slice's run time over the slice period per worker) is above this until it is under "
                    "half of it (needs --coalesce-slices >= 2); LaneConfig.pair_hold_load. Default: the runtime's LaneConfig.")
 @click.option("--freeze-heap/--no-freeze-heap", default=True, show_default=True,

@@ -7,34 +7,49 @@ from pathlib import Path
 import click
 
 from streamdet.core.constants import PRECISIONS
+from streamdet.core.sectors import MAX_NUM_SLICES
 
-# Every tool that takes an image size spells it the same way.
+# Every tool that takes an image size spells it the same way, within the same bounds: each side MIN_RESOLUTION_PX..
+# MAX_RESOLUTION_PX. 4096 px is 2.5x nuScenes' 1600x900 (a 4K camera fits); past it a tool's image tensors alone run to
+# gigabytes (30000x30000 asked the export for 2.7 GB in one image and the benchmark for 10.8 GB). The calibration
+# code's cap (calibration.camera.MAX_IMAGE_PX, 65536) bounds what a file may declare, not what a tool can run.
 RESOLUTION_HELP = "WIDTHxHEIGHT in pixels, such as 800x450"
+MIN_RESOLUTION_PX = 16
+MAX_RESOLUTION_PX = 4096
+RESOLUTION_RANGE_HELP = f"each side {MIN_RESOLUTION_PX}..{MAX_RESOLUTION_PX} px"
 
 
-def parse_resolution(text: str, *, min_px: int = 1, max_px: int | None = None, multiple_of: int = 1) -> tuple[int, int]:
+def parse_resolution(
+    text: str, *, min_px: int = MIN_RESOLUTION_PX, max_px: int | None = MAX_RESOLUTION_PX, multiple_of: int = 1
+) -> tuple[int, int]:
     """'800x450' -> (800, 450); raises click.BadParameter quoting the bad value.
 
     ``multiple_of`` is the stride the image size must divide by (the ResNet stem's 2 for tools that export);
-    ``min_px``/``max_px`` bound each side (the renderer's sane range for the synthetic world).
+    ``min_px``/``max_px`` bound each side (default MIN_RESOLUTION_PX..MAX_RESOLUTION_PX; None: no upper bound).
     """
+    shown = text if len(text) <= 40 else text[:37] + "..."
     parts = text.lower().split("x")
-    if len(parts) != 2 or not all(p.strip().isdigit() for p in parts):
-        raise click.BadParameter(f"expected {RESOLUTION_HELP}, got {text!r}")
+    # isdecimal, not isdigit: '²' is a digit int() refuses; a side of more than 9 digits is no image size (and int()
+    # refuses strings of thousands of digits)
+    if len(parts) != 2 or not all(p.strip().isdecimal() and len(p.strip()) <= 9 for p in parts):
+        if len(parts) == 2 and all(p.strip().isdecimal() for p in parts):
+            raise click.BadParameter(f"width and height must be {min_px}..{max_px} pixels, got {shown!r}")
+        raise click.BadParameter(f"expected {RESOLUTION_HELP}, got {shown!r}")
     width, height = (int(p) for p in parts)
     if width <= 0 or height <= 0:
-        raise click.BadParameter(f"width and height must be positive, got {text!r}")
+        raise click.BadParameter(f"width and height must be positive, got {shown!r}")
     if width < min_px or height < min_px or (max_px is not None and (width > max_px or height > max_px)):
-        raise click.BadParameter(f"width and height must be {min_px}..{max_px} pixels, got {text!r}")
+        bound = f"{min_px}..{max_px}" if max_px is not None else f"at least {min_px}"
+        raise click.BadParameter(f"width and height must be {bound} pixels, got {shown!r}")
     if width % multiple_of or height % multiple_of:
         raise click.BadParameter(
-            f"{text!r}: width and height must be positive and even (the ResNet stem has stride {multiple_of}); "
+            f"{shown!r}: width and height must be positive and even (the ResNet stem has stride {multiple_of}); "
             "they need not be multiples of 4, 800x450 works"
         )
     return width, height
 
 
-def resolution_callback(*, min_px: int = 1, max_px: int | None = None, multiple_of: int = 1):
+def resolution_callback(*, min_px: int = MIN_RESOLUTION_PX, max_px: int | None = MAX_RESOLUTION_PX, multiple_of: int = 1):
     """A click callback for a WxH option; ``multiple=True`` options get a tuple of sizes, None stays None."""
 
     def callback(ctx: click.Context | None, param: click.Parameter | None, value):
@@ -45,6 +60,13 @@ def resolution_callback(*, min_px: int = 1, max_px: int | None = None, multiple_
         return parse_resolution(value, min_px=min_px, max_px=max_px, multiple_of=multiple_of)
 
     return callback
+
+
+# Upper bounds of the numeric options the tools share: far past any documented use, short of a value that allocates
+# gigabytes, overflows a clock or runs for days.
+MAX_SLICES = MAX_NUM_SLICES  # slices per sweep: core.sectors' bound (sectors of 0.09 deg; the slice index column's range)
+MAX_THREADS = 1024  # intra-op threads, workers: LaneConfig's 1..1024 for the lanes
+MAX_FALLBACK_AFTER_MS = 60_000.0  # an image BEV a minute old is no image BEV
 
 
 # The graph precisions an export can hold.
@@ -75,9 +97,9 @@ def fallback_options(clock: str = "sensor"):
         "slices read zeros.",
     )  # fmt: skip
     after = click.option(
-        "--fallback-after-ms", type=click.FloatRange(min=0), default=None,
-        help=f"With --fallback-export, also fall back when the image BEV is older than this ({clock} ms). "
-        "Default: only without one.",
+        "--fallback-after-ms", type=click.FloatRange(0, MAX_FALLBACK_AFTER_MS), default=None,
+        help=f"With --fallback-export, also fall back when the image BEV is older than this ({clock} ms, "
+        f"0..{MAX_FALLBACK_AFTER_MS:.0f}). Default: only without one.",
     )  # fmt: skip
 
     def decorate(f):
