@@ -21,6 +21,7 @@ import torch
 
 from streamdet.models.detector import StreamDetector, build_detector
 from streamdet.models.presets import Preset
+from streamdet.training.checkpoint import check_fits, check_torch_zip
 
 DEFAULT_SEED = 0
 SHIPPED_MAX_BYTES = 20 * 1024 * 1024  # issue 19: a bundled checkpoint (models/weights/*.pt) stays under 20 MB
@@ -60,6 +61,10 @@ def checkpoint_preset(checkpoint: str | os.PathLike | None) -> dict | None:
     """The preset dict a checkpoint saved; None without a checkpoint, without a preset in it, or when it cannot be
     read (``load_detector`` then says why)."""
     if checkpoint is None or not Path(checkpoint).is_file():
+        return None
+    try:
+        check_torch_zip(checkpoint)
+    except ValueError:  # a zip that would inflate past its size: reported by load_detector
         return None
     obj = None
     for mmap in (True, False):  # mmap reads no tensor data, but only the zip format (torch >= 1.6) allows it
@@ -119,6 +124,10 @@ def load_detector(preset: Preset, checkpoint: str | os.PathLike | None, seed: in
     if not path.is_file():
         raise CheckpointError(f"checkpoint {path} does not exist or is not a file")
     try:
+        check_torch_zip(path)
+    except ValueError as e:
+        raise CheckpointError(str(e)) from None
+    try:
         obj = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:  # torch raises many types (UnpicklingError, RuntimeError, EOFError) for a bad file
         first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
@@ -143,6 +152,10 @@ def load_detector(preset: Preset, checkpoint: str | os.PathLike | None, seed: in
         raise CheckpointError(
             f"checkpoint {path} does not fit preset {preset.name!r}: {'; '.join(parts)}; was it trained with another preset?"
         )
+    try:  # integer-cast or non-finite weights: shapes fit, the values are no model
+        check_fits(own, state, path, target=f"preset {preset.name!r}")
+    except ValueError as e:
+        raise CheckpointError(str(e)) from None
     det.load_state_dict(state, strict=True)
     return det.eval(), WeightsSource(str(path), sha256_file(path), None)
 

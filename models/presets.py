@@ -51,6 +51,20 @@ from streamdet.core.classes import CLASS_NAMES
 # what the image BEV is scaled to at fusion (models/image_bev_norm.py): a learnt RMS, or the point BEV's RMS
 IMAGE_BEV_TARGETS = ("learnt", "point")
 
+# Upper bounds of the architectural numbers: generous (each far past every shipped preset) but finite, so that a preset
+# read from a file (a checkpoint's, a manifest's) cannot ask for a model or a buffer of terabytes. A checkpoint's
+# preset is further held to its own tensors (training/checkpoint.py builds the model on the meta device first).
+MAX_CHANNELS = 4096  # any channel width: channels, num_filters, num_upsample_filters, head_channels
+MAX_IMAGE_PX = 65536  # ImageConfig.width_px / height_px
+MAX_PILLARS = 1 << 22  # PillarConfig.max_pillars (the paper's 30000; the grid has 262144 cells)
+MAX_POINTS_PER_PILLAR = 1024
+MAX_BEV_STAGES = 8  # entries of BevEncoderConfig.layer_nums
+MAX_LAYERS_PER_STAGE = 64  # each BevEncoderConfig.layer_nums entry
+MAX_STRIDE = 64  # layer_strides, upsample factors (u or 1/u), head.out_stride, lifter z strides
+MAX_KERNEL = 15  # HeadConfig.final_kernel
+MAX_LUT_HEIGHTS = 64  # LifterConfig.lut_heights_per_voxel
+MAX_DETECTIONS = 1 << 24  # PostConfig.top_k (clamped to classes x cells where used) / max_detections
+
 # The nuScenes CenterPoint task grouping of the multi-head variant (classes of similar size share a task).
 NUSCENES_TASKS: tuple[tuple[str, ...], ...] = (
     ("car",),
@@ -75,6 +89,7 @@ class ImageConfig:
 
     def __post_init__(self) -> None:
         _check_positive_int(self, "width_px", "height_px", "width_divisor")
+        _check_at_most(self, MAX_IMAGE_PX, "width_px", "height_px")
         if self.backbone_depth not in (18, 50):
             raise ValueError(f"ImageConfig.backbone_depth must be 18 or 50, got {self.backbone_depth!r}")
         if 64 % self.width_divisor:
@@ -101,6 +116,8 @@ class PillarConfig:
 
     def __post_init__(self) -> None:
         _check_positive_int(self, "max_points_per_pillar", "max_pillars")
+        _check_at_most(self, MAX_POINTS_PER_PILLAR, "max_points_per_pillar")
+        _check_at_most(self, MAX_PILLARS, "max_pillars")
         if self.num_point_features != 11:
             raise ValueError(
                 f"PillarConfig.num_point_features must be 11 (the pillar_features contract), got {self.num_point_features!r}"
@@ -129,6 +146,8 @@ class LifterConfig:
 
     def __post_init__(self) -> None:
         _check_positive_int(self, "z_conv_stride", "z_pool", "lut_heights_per_voxel")
+        _check_at_most(self, MAX_STRIDE, "z_conv_stride", "z_pool")
+        _check_at_most(self, MAX_LUT_HEIGHTS, "lut_heights_per_voxel")
         if self.form not in LIFTER_FORMS:
             raise ValueError(f"LifterConfig.form must be one of {LIFTER_FORMS}, got {self.form!r}")
         if self.residual not in LIFTER_RESIDUALS:
@@ -164,6 +183,14 @@ class BevEncoderConfig:
                 raise ValueError(f"BevEncoderConfig.{name} must be positive integers, got {getattr(self, name)!r}")
         if any(not v > 0 for v in self.upsample_strides):
             raise ValueError(f"BevEncoderConfig.upsample_strides must be > 0, got {self.upsample_strides!r}")
+        if n > MAX_BEV_STAGES:
+            raise ValueError(f"BevEncoderConfig.layer_nums has {n} stages, over the limit {MAX_BEV_STAGES}")
+        for name, limit in (("layer_nums", MAX_LAYERS_PER_STAGE), ("layer_strides", MAX_STRIDE),
+                            ("num_filters", MAX_CHANNELS), ("num_upsample_filters", MAX_CHANNELS)):  # fmt: skip
+            if any(v > limit for v in getattr(self, name)):
+                raise ValueError(f"BevEncoderConfig.{name} must be <= {limit}, got {getattr(self, name)!r}")
+        if any(not 1.0 / MAX_STRIDE <= v <= MAX_STRIDE for v in self.upsample_strides):
+            raise ValueError(f"BevEncoderConfig.upsample_strides must be in [1/{MAX_STRIDE}, {MAX_STRIDE}], got {self.upsample_strides!r}")
 
     @property
     def cumulative_strides(self) -> tuple[int, ...]:
@@ -185,6 +212,9 @@ class HeadConfig:
 
     def __post_init__(self) -> None:
         _check_positive_int(self, "head_channels", "out_stride", "final_kernel")
+        _check_at_most(self, MAX_CHANNELS, "head_channels")
+        _check_at_most(self, MAX_STRIDE, "out_stride")
+        _check_at_most(self, MAX_KERNEL, "final_kernel")
         if self.final_kernel % 2 == 0:
             raise ValueError(f"HeadConfig.final_kernel must be odd (same-size padding), got {self.final_kernel!r}")
         flat = [c for task in self.tasks for c in task]
@@ -201,6 +231,7 @@ class PostConfig:
 
     def __post_init__(self) -> None:
         _check_positive_int(self, "top_k", "max_detections")
+        _check_at_most(self, MAX_DETECTIONS, "top_k", "max_detections")
         if not 0.0 <= self.score_threshold < 1.0:
             raise ValueError(f"PostConfig.score_threshold must be in [0, 1), got {self.score_threshold!r}")
         if len(self.nms_iou_threshold) != len(CLASS_NAMES) or any(not 0.0 < t <= 1.0 for t in self.nms_iou_threshold):
@@ -231,6 +262,7 @@ class Preset:
 
     def __post_init__(self) -> None:
         _check_positive_int(self, "channels")
+        _check_at_most(self, MAX_CHANNELS, "channels")
         if not isinstance(self.slice_crop, bool):
             raise ValueError(f"Preset.slice_crop must be True or False, got {self.slice_crop!r}")
         if self.image_bev_target not in IMAGE_BEV_TARGETS:
@@ -353,6 +385,14 @@ def _check_positive_int(obj: Any, *names: str) -> None:
         v = getattr(obj, name)
         if isinstance(v, bool) or not isinstance(v, int) or v < 1:
             raise ValueError(f"{type(obj).__name__}.{name} must be a positive integer, got {v!r}")
+
+
+def _check_at_most(obj: Any, limit: int, *names: str) -> None:
+    """After ``_check_positive_int``: each field at most ``limit``."""
+    for name in names:
+        v = getattr(obj, name)
+        if v > limit:
+            raise ValueError(f"{type(obj).__name__}.{name} must be <= {limit}, got {v!r}")
 
 
 def _paper() -> Preset:

@@ -151,11 +151,15 @@ def load_backbone_weights(model: ResNet, path: str | Path, strict: bool = True) 
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"backbone checkpoint not found: {path}")
-    ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    from streamdet.training.checkpoint import check_state_dict, read_torch_file  # imports models: not at module level
+
+    # weights_only, the zip checked before anything is inflated; ValueError naming the file when unreadable
+    ckpt = read_torch_file(path, "backbone checkpoint")
     if isinstance(ckpt, dict) and isinstance(ckpt.get("state_dict"), dict):
         ckpt = ckpt["state_dict"]
     if not isinstance(ckpt, dict):
         raise ValueError(f"{path}: expected a state dict (or a dict with 'state_dict'), got {type(ckpt).__name__}")
+    ckpt = check_state_dict(ckpt, path, "backbone checkpoint", "state_dict")  # str keys, tensor values
     state = {k.removeprefix("module."): v for k, v in ckpt.items()}
     if any(k.startswith("backbone.") for k in state):
         state = {k[len("backbone.") :]: v for k, v in state.items() if k.startswith("backbone.")}
@@ -172,6 +176,11 @@ def load_backbone_weights(model: ResNet, path: str | Path, strict: bool = True) 
             f"{path}: {len(bad_shapes)} tensors do not fit ResNet-{model.depth} "
             f"(wrong depth or width_divisor?): {'; '.join(bad_shapes[:5])}"
         )
+    for k, v in state.items():
+        if k in own and own[k].is_floating_point() and not v.is_floating_point():
+            raise ValueError(f"{path}: {k} holds {v.dtype} values where ResNet-{model.depth} has {own[k].dtype} weights")
+        if k in own and v.is_floating_point() and v.numel() and not bool(torch.isfinite(v).all()):
+            raise ValueError(f"{path}: {k} holds non-finite values (NaN or inf)")
     result = model.load_state_dict(state, strict=False)
     # Old torchvision files predate num_batches_tracked; BatchNorm fills it in, so it is not really missing.
     missing = tuple(k for k in result.missing_keys if not k.endswith("num_batches_tracked"))

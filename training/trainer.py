@@ -33,6 +33,8 @@ from streamdet.models.presets import Preset, get_preset
 from streamdet.training.batching import Batch, Collator
 from streamdet.training.checkpoint import (
     TRANSFERABLE_PARTS,
+    check_fits,
+    check_state_dict,
     is_encoder_weights,
     load_checkpoint,
     load_encoder_weights,
@@ -387,13 +389,14 @@ def _load_init_weights(detector, preset: Preset, init: str | Path, say: Callable
         load_encoder_weights(detector, init)
         say(f"initialised the image encoder from {init}; every other weight from the seed")
         return
-    state = load_checkpoint(init)
+    state = load_checkpoint(init, "init checkpoint")  # its model a state dict of tensors, else a one-line ValueError
     own = detector.state_dict()
 
     def own_dtypes(weights: dict) -> dict:  # shipped weights may be stored in float16: back to the model's own dtypes
-        return {k: v.to(own[k].dtype) if k in own else v for k, v in weights.items()}
+        return {k: v.to(own[k].dtype) for k, v in weights.items()}
 
     if state["preset"] == preset.to_dict():
+        check_fits(own, state["model"], init, "init checkpoint", f"preset {preset.name!r}")
         detector.load_state_dict(own_dtypes(state["model"]))
         say(f"initialised from the weights of {init}")
         return
@@ -402,9 +405,11 @@ def _load_init_weights(detector, preset: Preset, init: str | Path, say: Callable
     if not parts:
         raise ValueError(f"init checkpoint {init} holds another preset ({state['preset'].get('name')!r}) than {preset.name!r} "
                          f"and shares none of its parts ({', '.join(TRANSFERABLE_PARTS)}) with it")  # fmt: skip
+    # a size mismatch or a tensor the model lacks despite equal configs: a checkpoint edited by hand
+    check_fits(own, weights, init, "init checkpoint", f"preset {preset.name!r}", partial=True)
     try:
         unexpected = detector.load_state_dict(own_dtypes(weights), strict=False).unexpected_keys
-    except RuntimeError as e:  # a size mismatch despite equal configs: a checkpoint edited by hand
+    except RuntimeError as e:
         raise ValueError(f"init checkpoint {init}: {str(e).splitlines()[0]}") from None
     if unexpected:
         raise ValueError(f"init checkpoint {init}: tensors the model does not have: {', '.join(sorted(unexpected)[:5])}")
@@ -423,7 +428,7 @@ def _schedule(config: TrainConfig, steps_per_epoch: int) -> tuple[OneCycle, str]
 
 def _restore(run: _TrainRun, resume: str | Path) -> None:
     """Continue the run a ``last.pt`` holds: model, optimizer, schedule and data position."""
-    state = load_checkpoint(resume)
+    state = load_checkpoint(resume, "resume checkpoint")
     for key in ("optimizer", "scheduler", "step", "epoch", "epoch_step"):
         if key not in state:
             raise ValueError(f"checkpoint {resume} lacks {key!r}: it holds weights only, it cannot resume a run")
@@ -432,24 +437,68 @@ def _restore(run: _TrainRun, resume: str | Path) -> None:
         raise ValueError(f"checkpoint {resume} was trained with another preset than {preset.name!r} (use_image={preset.use_image}, "
                          f"slice_crop={preset.slice_crop})")  # fmt: skip
     was, now = state.get("config", {}), run.config.to_dict()
+    if not isinstance(was, dict):
+        raise ValueError(f"checkpoint {resume}: 'config' is a {type(was).__name__}, not the TrainConfig dict")
+    for key in ("epoch", "epoch_step"):
+        if isinstance(state[key], bool) or not isinstance(state[key], int) or state[key] < 0:
+            raise ValueError(f"checkpoint {resume}: {key!r} must be an integer >= 0, got {state[key]!r}")
+    for key in ("optimizer", "scheduler"):
+        if not isinstance(state[key], dict):
+            raise ValueError(f"checkpoint {resume}: {key!r} is a {type(state[key]).__name__}, not a state dict")
     same_file = lambda a, b: a == b or (a is not None and b is not None and Path(a).resolve() == Path(b).resolve())  # noqa: E731
-    if not same_file(was.get("teacher"), now.get("teacher")) or was.get("freeze_camera_lane") != now.get("freeze_camera_lane"):
+    try:
+        same = same_file(was.get("teacher"), now.get("teacher"))
+    except TypeError:  # a teacher that is no path
+        same = False
+    if not same or was.get("freeze_camera_lane") != now.get("freeze_camera_lane"):
         raise ValueError(f"checkpoint {resume} was trained with teacher={was.get('teacher')!r}, freeze_camera_lane="
                          f"{bool(was.get('freeze_camera_lane'))}: resume it with the same (given teacher={now.get('teacher')!r}, "
                          f"freeze_camera_lane={run.config.freeze_camera_lane})")  # fmt: skip
-    run.detector.load_state_dict(state["model"])
+    check_fits(run.detector.state_dict(), state["model"], resume, "resume checkpoint", f"preset {preset.name!r}")
     classifier = run.model.image_classifier
     if (classifier is not None) != ("image_classifier" in state):
         raise ValueError(f"checkpoint {resume} was trained {'without' if classifier is not None else 'with'} the image class loss: "
                          f"resume it with the image_class_weight it was started with")  # fmt: skip
     if classifier is not None:
+        weights = check_state_dict(state["image_classifier"], resume, "resume checkpoint", "image_classifier")
+        check_fits(classifier.state_dict(), weights, resume, "resume checkpoint", "the image classifier")
+    run.detector.load_state_dict(state["model"])
+    if classifier is not None:
         classifier.load_state_dict(state["image_classifier"])
-    run.optimizer.load_state_dict(state["optimizer"])
-    run.schedule.load_state_dict(state["scheduler"])
-    run.epoch, run.epoch_step, run.elapsed_before = int(state["epoch"]), int(state["epoch_step"]), run.schedule.elapsed_s
+    try:
+        run.optimizer.load_state_dict(state["optimizer"])
+    except (ValueError, KeyError, TypeError, AttributeError, IndexError, RuntimeError) as e:
+        first = (str(e).strip().splitlines() or [type(e).__name__])[0]
+        raise ValueError(f"checkpoint {resume}: its optimizer state does not fit this run's optimizer: {first}") from None
+    _check_optimizer_state(run.optimizer, resume)
+    try:
+        run.schedule.load_state_dict(state["scheduler"])
+    except (ValueError, KeyError, TypeError, AttributeError, OverflowError) as e:
+        first = (str(e).strip().splitlines() or [type(e).__name__])[0]
+        raise ValueError(f"checkpoint {resume}: its scheduler state does not fit this run: {first}") from None
+    if run.schedule.step < 0 or not math.isfinite(run.schedule.elapsed_s) or run.schedule.elapsed_s < 0:
+        raise ValueError(f"checkpoint {resume}: scheduler step {run.schedule.step} / elapsed_s {run.schedule.elapsed_s} "
+                         f"must be >= 0 and finite")  # fmt: skip
+    run.epoch, run.epoch_step, run.elapsed_before = state["epoch"], state["epoch_step"], run.schedule.elapsed_s
     run.say(f"resumed {resume} at step {run.schedule.step} (epoch {run.epoch}, batch {run.epoch_step})")
     if run.schedule.done:
         raise ValueError(f"checkpoint {resume} finished its schedule ({run.plan}): nothing left to train")
+
+
+def _check_optimizer_state(optimizer: torch.optim.Optimizer, path: str | Path) -> None:
+    """ValueError naming the file unless every per-parameter tensor of the loaded optimizer state (AdamW's moments)
+    has its parameter's shape and is finite: torch loads any, and fails (or trains on garbage) at the next step."""
+    for param, entry in optimizer.state.items():
+        if not isinstance(entry, dict):
+            raise ValueError(f"checkpoint {path}: an optimizer state entry is a {type(entry).__name__}, not a dict")
+        for name, value in entry.items():
+            if not isinstance(value, torch.Tensor):
+                continue
+            if value.dim() > 0 and tuple(value.shape) != tuple(param.shape):
+                raise ValueError(f"checkpoint {path}: optimizer state {name!r} has shape {tuple(value.shape)} for a "
+                                 f"parameter of shape {tuple(param.shape)}")  # fmt: skip
+            if value.is_floating_point() and not bool(torch.isfinite(value).all()):
+                raise ValueError(f"checkpoint {path}: optimizer state {name!r} holds non-finite values")
 
 
 def _write_config(run: _TrainRun, data_dir: str | Path, init: str | Path | None) -> None:
