@@ -115,20 +115,39 @@ def run_bag(
 
 
 def _feed_images(det: StreamingDetector, event: SweepEvent) -> None:
-    """The image set through the image lane at the export's image size, after recalibrating when its rig differs."""
+    """The image set through the image lane at the export's image size, after recalibrating when its rig differs.
+
+    An image whose size differs from its camera's CameraInfo is refused (the rig's K is for that size, so every
+    projection would be wrong); so is any image OpenCV cannot resize: a ValueError naming the camera and stamp.
+    """
     image_set = event.image_set
+    if image_set.rig is not None:
+        calibrated = {cam.name: (cam.width, cam.height) for cam in image_set.rig.cameras}
+        for name, rgb in image_set.images.items():
+            if name in calibrated and (rgb.shape[1], rgb.shape[0]) != calibrated[name]:
+                w, h = calibrated[name]
+                raise ValueError(f"camera {name}: image at stamp {image_set.stamps_ns.get(name)} ns is "
+                                 f"{rgb.shape[1]}x{rgb.shape[0]} px but its CameraInfo is for {w}x{h}")  # fmt: skip
     if image_set.rig is not None and image_set.rig.sha256() != det.lut.calibration_sha256:
         det.set_calibration(image_set.rig)  # another rig than the LUT's: rebuild the LUT, same graphs
     size = (det.image.width, det.image.height)
-    images = {name: _resized(rgb, size) for name, rgb in image_set.images.items()}
+    images = {name: _resized(rgb, size, name, image_set.stamps_ns.get(name)) for name, rgb in image_set.images.items()}
     det.update_images(images, timestamp=image_set.stamp_ns * 1e-9)
 
 
-def _resized(rgb: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    """As ``data.sample.load_image`` resizes: area averaging."""
+def _resized(rgb: np.ndarray, size: tuple[int, int], camera: str = "", stamp_ns: int | None = None) -> np.ndarray:
+    """As ``data.sample.load_image`` resizes: area averaging. ValueError naming the camera for an image OpenCV
+    cannot resize (no pixels, a failed allocation) rather than a cv2.error traceback."""
+    if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.shape[0] == 0 or rgb.shape[1] == 0:
+        raise ValueError(f"camera {camera}: image at stamp {stamp_ns} ns is {rgb.shape}, not a non-empty (H, W, 3) image")
     if (rgb.shape[1], rgb.shape[0]) == size:
         return rgb
-    return cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)
+    try:
+        return cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)
+    except cv2.error as e:
+        reason = (str(e).strip().splitlines() or ["cv2.error"])[-1].strip()
+        raise ValueError(f"camera {camera}: image at stamp {stamp_ns} ns ({rgb.shape[1]}x{rgb.shape[0]} px) "
+                         f"cannot be resized to {size[0]}x{size[1]}: {reason}") from None  # fmt: skip
 
 
 def _publish(

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import importlib.resources
 import math
+import os
+import stat
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -21,6 +23,7 @@ from streamdet.calibration.camera import MAX_CALIBRATION_BYTES, Rig
 from streamdet.core.boxes import BOX_DIM
 from streamdet.core.classes import CLASS_NAMES
 from streamdet.core.constants import BUNDLED_SAMPLE_DIR
+from streamdet.core.image_header import MAX_IMAGE_FILE_BYTES, check_image_size, read_image_header
 from streamdet.core.json_input import is_finite_number, read_json, short_repr  # noqa: F401 (public here too)
 from streamdet.core.points import check_sweep
 
@@ -97,21 +100,94 @@ class Sample:
         return self.rig.ego2global @ self.rig.lidar2ego
 
     def load_images(self, size: tuple[int, int] | None = None) -> np.ndarray:
-        """(J, H, W, 3) uint8 RGB in rig order; ``size`` = (width, height) resizes every image."""
-        return np.stack([load_image(self.image_paths[name], size) for name in self.rig.names])  # (J, H, W, 3)
+        """(J, H, W, 3) uint8 RGB in rig order; ``size`` = (width, height) resizes every image. Each file must have
+        its camera's calibrated size (a different one would project with the wrong intrinsics: ValueError)."""
+        return np.stack([load_image(self.image_paths[c.name], size, expected_size=(c.width, c.height))
+                         for c in self.rig.cameras])  # fmt: skip  # (J, H, W, 3)
 
 
-def load_image(path: str | Path, size: tuple[int, int] | None = None) -> np.ndarray:
-    """(H, W, 3) uint8 RGB image; ``size`` = (width, height) resizes with area averaging."""
+class ImageFileError(FileNotFoundError, ValueError):
+    """An image file that cannot be read: missing, not a regular file, or not a decodable JPEG / PNG.
+
+    A FileNotFoundError as ``load_image`` always raised for these, and a ValueError as every other bad input is.
+    """
+
+
+def load_image(path: str | Path, size: tuple[int, int] | None = None,
+               expected_size: tuple[int, int] | None = None) -> np.ndarray:  # fmt: skip
+    """(H, W, 3) uint8 RGB image; ``size`` = (width, height) resizes with area averaging.
+
+    The file must be a regular file holding an 8-bit colour JPEG or PNG (an alpha channel is dropped) of at most
+    ``core.image_header.MAX_IMAGE_FILE_BYTES``; its size is read from its header and refused (ValueError) over
+    ``MAX_IMAGE_SIDE_PX`` a side or ``MAX_IMAGE_PIXELS`` in all before anything is decoded. Grey and 16-bit images
+    are refused, not replicated or scaled: the detector was trained on colour images (as the ROS readers refuse
+    them). ``expected_size`` = (width, height): the size the camera is calibrated for; another size is refused,
+    since the camera's K would not fit the image. ``ImageFileError`` (a FileNotFoundError and a ValueError) for a
+    file that is missing, not a regular file (a FIFO would block), or not decodable (e.g. a truncated JPEG, which
+    ``cv2.imread`` would fill with grey); ValueError for the rest, always naming the file.
+    """
     path = Path(path)
-    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if image is None:
-        raise FileNotFoundError(f"cannot read image {path}: missing or not an image file")
     if size is not None:
-        width, height = _check_size(size)
-        if (image.shape[1], image.shape[0]) != (width, height):
-            image = cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA)
-    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+        size = _check_size(size)
+    if expected_size is not None:
+        expected_size = _check_size(expected_size)
+    data = _read_image_bytes(path)
+    try:
+        header = read_image_header(data)
+    except ValueError as e:  # not a JPEG or PNG, or its header cut short
+        raise ImageFileError(f"cannot read image {path}: it {e}") from None
+    check_image_size(header, f"image {path}")
+    if not header.is_colour_8bit:
+        raise ValueError(f"image {path} is a {header.describe()} image; streamdet takes 8-bit colour (RGB) images")
+    if expected_size is not None and (header.width, header.height) != expected_size:
+        raise ValueError(f"image {path} is {header.width}x{header.height} px but its camera is calibrated for "
+                         f"{expected_size[0]}x{expected_size[1]}")  # fmt: skip
+    try:
+        image = cv2.imdecode(data, cv2.IMREAD_COLOR)  # (H, W, 3) BGR; None where the data is cut short or corrupt
+    except cv2.error as e:
+        raise ValueError(f"image {path} ({header.width}x{header.height} {header.format}) could not be decoded: "
+                         f"{_cv2_message(e)}") from None  # fmt: skip
+    if image is None or image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
+        raise ImageFileError(f"cannot read image {path}: not a decodable image ({header.format} declaring "
+                             f"{header.width}x{header.height} px; truncated or corrupt?)")  # fmt: skip
+    try:
+        if size is not None and (image.shape[1], image.shape[0]) != size:
+            image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+        return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+    except cv2.error as e:  # a failed allocation
+        raise ValueError(f"image {path}: cannot resize or convert {image.shape[1]}x{image.shape[0]} px: "
+                         f"{_cv2_message(e)}") from None  # fmt: skip
+
+
+def _read_image_bytes(path: Path) -> np.ndarray:
+    """The bytes of an image file, bounded: a regular file (never a FIFO or device) of at most MAX_IMAGE_FILE_BYTES."""
+    if not path.is_file():  # also refuses a FIFO or a device, whose open() or read() could block for ever
+        kind = "missing" if not path.exists() else "not a regular file"
+        raise ImageFileError(f"cannot read image {path}: {kind} (missing or not an image file)")
+    try:  # O_NONBLOCK and the fstat below: a FIFO swapped in after is_file() cannot block either
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_BINARY", 0))
+    except OSError as e:
+        raise ImageFileError(f"cannot read image {path}: {e.strerror or e}") from None
+    with os.fdopen(fd, "rb") as f:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise ImageFileError(f"cannot read image {path}: not a regular file (missing or not an image file)")
+        if st.st_size > MAX_IMAGE_FILE_BYTES:
+            raise ValueError(f"image {path} is {st.st_size} bytes, over the {MAX_IMAGE_FILE_BYTES >> 20} MiB limit "
+                             "of an encoded image; refused before reading")  # fmt: skip
+        try:
+            raw = f.read(st.st_size + 1)  # + 1: a file that grew meanwhile is seen growing
+        except OSError as e:
+            raise ImageFileError(f"cannot read image {path}: {e.strerror or e}") from None
+    if len(raw) > MAX_IMAGE_FILE_BYTES:
+        raise ValueError(f"image {path} grew past the {MAX_IMAGE_FILE_BYTES >> 20} MiB limit while being read")
+    return np.frombuffer(raw, dtype=np.uint8)
+
+
+def _cv2_message(e: BaseException) -> str:
+    """The reason of a cv2.error in one line (its text spans lines and names OpenCV's source file)."""
+    text = str(e).strip().splitlines()
+    return text[-1].strip() if text else type(e).__name__
 
 
 def load_points(path: str | Path) -> np.ndarray:

@@ -3,6 +3,12 @@
 The detector was trained on colour images, so only colour encodings are taken: ``rgb8`` and ``bgr8`` raw images,
 JPEG and PNG compressed ones. A mono, Bayer, 16-bit or depth image is refused with the encoding named rather than
 silently replicated into three channels.
+
+A compressed image's size is read from its JPEG / PNG header (``core.image_header``) and refused over
+``MAX_IMAGE_SIDE_PX`` a side or ``MAX_IMAGE_PIXELS`` in all before it is decoded (a few hundred bytes can declare
+30000x30000 px); data that is neither JPEG nor PNG is refused whatever ``format`` says. A raw image needs at least
+one pixel and the same limits. Every refusal, OpenCV's errors included, is a ValueError naming the message (its
+stamp, where it has a header).
 """
 
 from __future__ import annotations
@@ -12,7 +18,14 @@ from typing import Any
 import cv2
 import numpy as np
 
-from streamdet.runtime_ort.ros.header import byte_view, header_msg
+from streamdet.core.image_header import (
+    MAX_IMAGE_FILE_BYTES,
+    MAX_IMAGE_PIXELS,
+    MAX_IMAGE_SIDE_PX,
+    check_image_size,
+    read_image_header,
+)
+from streamdet.runtime_ort.ros.header import byte_view, header_msg, header_stamp_ns
 
 RAW_ENCODINGS = ("rgb8", "bgr8")
 COMPRESSED_FORMATS = ("jpeg", "jpg", "png")
@@ -28,6 +41,11 @@ def image_to_rgb(msg: Any) -> np.ndarray:
             f"{' or '.join(RAW_ENCODINGS)} (debayer or convert mono / 16-bit images before the detector)"
         )
     height, width, step = int(msg.height), int(msg.width), int(msg.step)
+    if width <= 0 or height <= 0:
+        raise ValueError(f"sensor_msgs/Image{_at(msg)} has no pixels ({width}x{height})")
+    if width > MAX_IMAGE_SIDE_PX or height > MAX_IMAGE_SIDE_PX or width * height > MAX_IMAGE_PIXELS:
+        raise ValueError(f"sensor_msgs/Image{_at(msg)} is {width}x{height} px, over the image limit of "
+                         f"{MAX_IMAGE_SIDE_PX} px a side and {MAX_IMAGE_PIXELS} px in all")  # fmt: skip
     if step < 3 * width:
         raise ValueError(f"sensor_msgs/Image step {step} < 3 x width {width} for {encoding}")
     data = byte_view(msg.data)
@@ -50,15 +68,45 @@ def compressed_image_to_rgb(msg: Any) -> np.ndarray:
             f"{' or '.join(('jpeg', 'png'))} images"
         )
     data = byte_view(msg.data)
+    what = f"sensor_msgs/CompressedImage ({fmt}){_at(msg)}"
     if data.size == 0:
         raise ValueError(f"sensor_msgs/CompressedImage ({fmt}) holds no data")
-    bgr = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    if data.size > MAX_IMAGE_FILE_BYTES:
+        raise ValueError(f"{what} holds {data.size} bytes, over the {MAX_IMAGE_FILE_BYTES >> 20} MiB limit of an encoded image")
+    where = f"sensor_msgs/CompressedImage ({fmt}, {data.size} bytes){_at(msg)}"
+    try:
+        header = read_image_header(data)  # before decoding: the size it declares, and JPEG or PNG only
+    except ValueError as e:
+        raise ValueError(f"{where} could not be decoded: the data {e}") from None
+    check_image_size(header, f"{what}")
+    try:
+        bgr = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    except cv2.error as e:  # a failed allocation, or a limit of OpenCV's own
+        raise ValueError(f"{where} could not be decoded ({header.width}x{header.height} {header.format}): "
+                         f"{_cv2_message(e)}") from None  # fmt: skip
     if bgr is None:
-        raise ValueError(f"sensor_msgs/CompressedImage ({fmt}, {data.size} bytes) could not be decoded")
+        raise ValueError(f"{where} could not be decoded (truncated or corrupt {header.format})")
     if bgr.ndim != 3 or bgr.shape[2] not in (3, 4) or bgr.dtype != np.uint8:
         what = "single-channel" if bgr.ndim == 2 else f"{bgr.shape[2]}-channel {bgr.dtype}"
-        raise ValueError(f"sensor_msgs/CompressedImage ({fmt}) decodes to a {what} image; streamdet takes 8-bit colour")
-    return cv2.cvtColor(bgr, cv2.COLOR_BGRA2RGB if bgr.shape[2] == 4 else cv2.COLOR_BGR2RGB)
+        raise ValueError(f"sensor_msgs/CompressedImage ({fmt}){_at(msg)} decodes to a {what} image; streamdet takes 8-bit colour")
+    try:
+        return cv2.cvtColor(bgr, cv2.COLOR_BGRA2RGB if bgr.shape[2] == 4 else cv2.COLOR_BGR2RGB)
+    except cv2.error as e:
+        raise ValueError(f"{where}: cannot convert {bgr.shape[1]}x{bgr.shape[0]} px to RGB: {_cv2_message(e)}") from None
+
+
+def _at(msg: Any) -> str:
+    """" at stamp N ns" where ``msg`` has a readable header stamp, else "" (bare test messages have none)."""
+    try:
+        return f" at stamp {header_stamp_ns(msg)} ns"
+    except (AttributeError, TypeError, ValueError, OverflowError):
+        return ""
+
+
+def _cv2_message(e: BaseException) -> str:
+    """The reason of a cv2.error in one line (its text spans lines and names OpenCV's source file)."""
+    text = str(e).strip().splitlines()
+    return text[-1].strip() if text else type(e).__name__
 
 
 def compressed_image_message(data: bytes, stamp_ns: int, frame_id: str, fmt: str = "jpeg") -> dict:
