@@ -21,7 +21,7 @@ import torch
 
 from streamdet.models.detector import StreamDetector, build_detector
 from streamdet.models.presets import Preset
-from streamdet.training.checkpoint import check_fits, check_torch_zip
+from streamdet.models.torch_files import check_fits, check_torch_zip
 
 DEFAULT_SEED = 0
 SHIPPED_MAX_BYTES = 20 * 1024 * 1024  # issue 19: a bundled checkpoint (models/weights/*.pt) stays under 20 MB

@@ -15,6 +15,7 @@ import torch
 from torch import Tensor, nn
 
 from streamdet.models.norms import norm2d
+from streamdet.models.torch_files import check_state_dict, read_torch_file
 
 
 def conv3x3(in_ch: int, out_ch: int, stride: int = 1) -> nn.Conv2d:
@@ -151,8 +152,6 @@ def load_backbone_weights(model: ResNet, path: str | Path, strict: bool = True) 
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"backbone checkpoint not found: {path}")
-    from streamdet.training.checkpoint import check_state_dict, read_torch_file  # imports models: not at module level
-
     # weights_only, the zip checked before anything is inflated; ValueError naming the file when unreadable
     ckpt = read_torch_file(path, "backbone checkpoint")
     if isinstance(ckpt, dict) and isinstance(ckpt.get("state_dict"), dict):

@@ -20,14 +20,14 @@ float16 to halve the file; ``load_weights`` casts them back to the model's dtype
 from __future__ import annotations
 
 import os
-import zipfile
-from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import torch
 
 from streamdet.models.detector import StreamDetector, build_detector
+from streamdet.models.torch_files import (  # noqa: F401 (public here too)
+    MAX_CHECKPOINT_BYTES, check_fits, check_state_dict, check_torch_zip, read_torch_file)
 from streamdet.models.presets import Preset
 
 TRAIN_FORMAT = "streamdet-train-v1"
@@ -63,51 +63,6 @@ def save_training_state(path: str | os.PathLike, *, preset: Preset, model: Strea
     )
 
 
-# What the members of a checkpoint's zip may declare in all, inflated: a checkpoint is read into memory whole, and
-# torch.save stores every member uncompressed, so a real one declares no more than its own file size (the paper
-# preset's training checkpoint, ResNet-50 and AdamW moments, is a few hundred MB).
-MAX_CHECKPOINT_BYTES = 8 << 30
-
-
-def check_torch_zip(path: str | os.PathLike, what: str = "checkpoint") -> None:
-    """Refuse a zip-format torch file whose members would inflate past what the file holds, before ``torch.load``
-    reads any of it: ``torch.save`` never compresses a member, so a deflated one (a 1 GiB tensor in 1 MB) is no
-    checkpoint. ValueError (one line, naming ``what`` and the file); a file that is not a zip (torch's legacy
-    format, or damage that ``torch.load`` then reports) passes."""
-    path = Path(path)
-    try:
-        if not zipfile.is_zipfile(path):
-            return
-        with zipfile.ZipFile(path) as z:
-            infos = z.infolist()
-    except (OSError, zipfile.BadZipFile, ValueError, EOFError):  # torch.load reports an unreadable file itself
-        return
-    size = path.stat().st_size
-    for info in infos:
-        if info.compress_type != zipfile.ZIP_STORED:
-            raise ValueError(f"{what} {path}: member {info.filename!r} is compressed ({info.file_size} bytes inflated); "
-                             f"torch.save never compresses: not a checkpoint")  # fmt: skip
-    total = sum(info.file_size for info in infos)
-    if total > size or total > MAX_CHECKPOINT_BYTES:
-        raise ValueError(f"{what} {path}: its members declare {total} bytes, more than the file's {size} bytes "
-                         f"(or the cap {MAX_CHECKPOINT_BYTES}): not a checkpoint")  # fmt: skip
-
-
-def read_torch_file(path: str | os.PathLike, what: str = "checkpoint", map_location: str | torch.device = "cpu") -> Any:
-    """What ``torch.save`` wrote to ``path``, read with ``weights_only=True`` (tensors, containers and numbers: a file
-    is data, never code to unpickle); ValueError (one line, naming ``what`` and the file) when it is missing,
-    unreadable that way, or a zip that would inflate past its size (``check_torch_zip``)."""
-    path = Path(path)
-    if not path.is_file():
-        raise ValueError(f"{what} {path} does not exist or is not a file")
-    check_torch_zip(path, what)
-    try:
-        return torch.load(path, map_location=map_location, weights_only=True)
-    except Exception as e:  # UnpicklingError (code or classes in the pickle), RuntimeError, EOFError, ... for a damaged file
-        first = (str(e).strip().splitlines() or [type(e).__name__])[0]
-        raise ValueError(f"{what} {path} cannot be read with weights_only=True: {first}") from None
-
-
 def load_checkpoint(path: str | os.PathLike, what: str = "checkpoint") -> dict[str, Any]:
     """The checkpoint dict; ValueError (one line) when it is missing, unreadable or lacks model / preset, or when
     its model is not a state dict (str keys, tensor values)."""
@@ -116,45 +71,6 @@ def load_checkpoint(path: str | os.PathLike, what: str = "checkpoint") -> dict[s
         raise ValueError(f"{what} {path} is not a streamdet checkpoint (expected a dict with 'model' and 'preset')")
     check_state_dict(obj["model"], path, what)
     return obj
-
-
-def check_state_dict(state: object, path: str | os.PathLike, what: str = "checkpoint", part: str = "model") -> dict[str, torch.Tensor]:
-    """``state`` itself when it is a state dict: a dict of str keys and tensor values; ValueError naming the file
-    and the first key that is not."""
-    if not isinstance(state, Mapping):
-        raise ValueError(f"{what} {path}: {part!r} is a {type(state).__name__}, not a state dict")
-    for k, v in state.items():
-        if not isinstance(k, str):
-            raise ValueError(f"{what} {path}: {part!r} has a key {k!r} of type {type(k).__name__}, not a str")
-        if not isinstance(v, torch.Tensor):
-            raise ValueError(f"{what} {path}: {part}[{k!r}] is a {type(v).__name__}, not a tensor")
-    return dict(state)
-
-
-def check_fits(own: Mapping[str, torch.Tensor], state: Mapping[str, torch.Tensor], path: str | os.PathLike,
-               what: str = "checkpoint", target: str = "the model", partial: bool = False) -> None:  # fmt: skip
-    """ValueError (one line, naming the file) unless ``state`` (tensors, ``check_state_dict``) loads into a module whose
-    state dict is ``own``: no missing keys (unless ``partial``), no unexpected ones, the same shapes, floating
-    tensors where ``own`` has them, and finite values. Shapes only are read from ``own`` (a model on the meta
-    device will do)."""
-    missing = [] if partial else sorted(set(own) - set(state))
-    unexpected = sorted(set(state) - set(own))
-    mismatched = sorted(k for k in set(own) & set(state) if tuple(own[k].shape) != tuple(state[k].shape))
-    if missing or unexpected or mismatched:
-        parts = []
-        if missing:
-            parts.append(f"{len(missing)} missing keys (e.g. {missing[0]})")
-        if unexpected:
-            parts.append(f"{len(unexpected)} unexpected keys (e.g. {unexpected[0]})")
-        if mismatched:
-            k = mismatched[0]
-            parts.append(f"{len(mismatched)} shape mismatches (e.g. {k}: {tuple(state[k].shape)} vs {tuple(own[k].shape)})")
-        raise ValueError(f"{what} {path} does not fit {target}: {'; '.join(parts)}")
-    for k, v in state.items():
-        if own[k].is_floating_point() and not v.is_floating_point():
-            raise ValueError(f"{what} {path}: {k} holds {v.dtype} values where {target} has {own[k].dtype} weights")
-        if (v.is_floating_point() or v.is_complex()) and v.numel() and not bool(torch.isfinite(v).all()):
-            raise ValueError(f"{what} {path}: {k} holds non-finite values (NaN or inf)")
 
 
 def meta_state_dict(preset: Preset) -> dict[str, torch.Tensor]:
