@@ -169,7 +169,8 @@ def _image_sets(
             j = max(int(np.searchsorted(stamps[c], t + 1e-9)) - 1, 0)  # newest at or before t, else the first
             row = recorded[c][j]
             if row["token"] not in cache:
-                cache[row["token"]] = load_image(tables.file(row), size)
+                recorded_size = (row["width"], row["height"]) if row["width"] and row["height"] else None
+                cache[row["token"]] = load_image(tables.file(row), size, expected_size=recorded_size)
             images[c] = cache[row["token"]]
             times.append(stamps[c][j])
         recorded_s = float(min(times))
