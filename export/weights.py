@@ -21,7 +21,7 @@ import torch
 
 from streamdet.models.detector import StreamDetector, build_detector
 from streamdet.models.presets import Preset
-from streamdet.models.torch_files import check_fits, check_torch_zip
+from streamdet.models.torch_files import check_fits, check_torch_zip, read_torch_file
 
 DEFAULT_SEED = 0
 SHIPPED_MAX_BYTES = 20 * 1024 * 1024  # issue 19: a bundled checkpoint (models/weights/*.pt) stays under 20 MB
@@ -121,41 +121,19 @@ def load_detector(preset: Preset, checkpoint: str | os.PathLike | None, seed: in
         _condition_untrained_head(det)
         return det.eval(), WeightsSource(None, None, seed)
     path = Path(checkpoint)
-    if not path.is_file():
-        raise CheckpointError(f"checkpoint {path} does not exist or is not a file")
-    try:
-        check_torch_zip(path)
+    try:  # weights_only, the zip checked before anything is inflated (models/torch_files.py)
+        obj = read_torch_file(path)
     except ValueError as e:
         raise CheckpointError(str(e)) from None
-    try:
-        obj = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as e:  # torch raises many types (UnpicklingError, RuntimeError, EOFError) for a bad file
-        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        raise CheckpointError(f"checkpoint {path} cannot be read with weights_only=True: {first}") from None
     state = _state_dict(obj, path)
     if isinstance(obj, dict) and isinstance(obj.get("preset"), dict):
         _check_preset(obj["preset"], preset, path)
     det = build_detector(preset)
-    own = det.state_dict()
-    missing = sorted(set(own) - set(state))
-    unexpected = sorted(set(state) - set(own))
-    mismatched = sorted(k for k in set(own) & set(state) if tuple(own[k].shape) != tuple(state[k].shape))
-    if missing or unexpected or mismatched:
-        parts = []
-        if missing:
-            parts.append(f"{len(missing)} missing keys (e.g. {missing[0]})")
-        if unexpected:
-            parts.append(f"{len(unexpected)} unexpected keys (e.g. {unexpected[0]})")
-        if mismatched:
-            k = mismatched[0]
-            parts.append(f"{len(mismatched)} shape mismatches (e.g. {k}: {tuple(state[k].shape)} vs {tuple(own[k].shape)})")
-        raise CheckpointError(
-            f"checkpoint {path} does not fit preset {preset.name!r}: {'; '.join(parts)}; was it trained with another preset?"
-        )
-    try:  # integer-cast or non-finite weights: shapes fit, the values are no model
-        check_fits(own, state, path, target=f"preset {preset.name!r}")
+    try:  # keys and shapes, then integer-cast or non-finite weights: shapes fit, the values are no model
+        check_fits(det.state_dict(), state, path, target=f"preset {preset.name!r}")
     except ValueError as e:
-        raise CheckpointError(str(e)) from None
+        hint = "; was it trained with another preset?" if "does not fit" in str(e) else ""
+        raise CheckpointError(f"{e}{hint}") from None
     det.load_state_dict(state, strict=True)
     return det.eval(), WeightsSource(str(path), sha256_file(path), None)
 
