@@ -29,8 +29,10 @@ import numpy as np
 from streamdet.bag import topics as T
 from streamdet.bag.recording import Recording
 from streamdet.bag.writer import BagWriter
+from streamdet.core.image_header import check_image_header
 from streamdet.core.points import SWEEP_DURATION_S
 from streamdet.core.slicing import relative_time_s
+from streamdet.data.sample import read_image_bytes
 from streamdet.runtime_ort.ros.camera_info import camera_info_message
 from streamdet.runtime_ort.ros.detections import marker_array_message
 from streamdet.runtime_ort.ros.images import compressed_image_message
@@ -123,7 +125,12 @@ def _ego_pose(pose: dict, stamp: int) -> Callable[[], dict]:
 
 
 def _image(image, stamp: int) -> Callable[[], dict]:
-    return lambda: compressed_image_message(image.path.read_bytes(), stamp, image.name, "jpeg")
+    def make() -> dict:
+        data = read_image_bytes(image.path)  # bounded, a regular file: a FIFO or a device never blocks the export
+        header = check_image_header(data, f"image {image.path}")  # a JPEG or PNG of a sane size, labelled as it is
+        return compressed_image_message(data.tobytes(), stamp, image.name, header.format)
+
+    return make
 
 
 def _info(image, stamp: int) -> Callable[[], dict]:

@@ -131,7 +131,7 @@ def load_image(path: str | Path, size: tuple[int, int] | None = None,
         size = _check_size(size)
     if expected_size is not None:
         expected_size = _check_size(expected_size)
-    data = _read_image_bytes(path)
+    data = read_image_bytes(path)
     try:
         header = read_image_header(data)
     except ValueError as e:  # not a JPEG or PNG, or its header cut short
@@ -159,8 +159,9 @@ def load_image(path: str | Path, size: tuple[int, int] | None = None,
                          f"{_cv2_message(e)}") from None  # fmt: skip
 
 
-def _read_image_bytes(path: Path) -> np.ndarray:
+def read_image_bytes(path: str | Path) -> np.ndarray:
     """The bytes of an image file, bounded: a regular file (never a FIFO or device) of at most MAX_IMAGE_FILE_BYTES."""
+    path = Path(path)
     if not path.is_file():  # also refuses a FIFO or a device, whose open() or read() could block for ever
         kind = "missing" if not path.exists() else "not a regular file"
         raise ImageFileError(f"cannot read image {path}: {kind} (missing or not an image file)")

@@ -264,3 +264,25 @@ def test_a_rosbag2_folder_holding_one_mcap(exported: Path, tmp_path):
         BagSource(folder, SourceConfig())
     with pytest.raises(FileNotFoundError, match="bag not found"):
         BagSource(tmp_path / "nope.mcap", SourceConfig())
+
+
+def test_an_exported_image_is_read_bounded_and_labelled_by_its_header(tmp_path):
+    """A FIFO named like a camera image fails at once (it used to block the export for ever); a PNG is labelled png."""
+    import os
+    from types import SimpleNamespace
+
+    import cv2
+
+    from streamdet.bag.export import _image
+
+    fifo = tmp_path / "cam.jpg"
+    os.mkfifo(fifo)
+    with pytest.raises(ValueError, match="not a regular file"):
+        _image(SimpleNamespace(path=fifo, name="CAM_FRONT"), 0)()
+    png = tmp_path / "cam.png"
+    cv2.imwrite(str(png), np.zeros((4, 6, 3), np.uint8))
+    msg = _image(SimpleNamespace(path=png, name="CAM_FRONT"), 0)()
+    assert msg["format"] == "png" and msg["data"] == png.read_bytes()
+    (tmp_path / "x.jpg").write_bytes(b"GIF89a....")
+    with pytest.raises(ValueError, match="x.jpg"):
+        _image(SimpleNamespace(path=tmp_path / "x.jpg", name="CAM_FRONT"), 0)()
