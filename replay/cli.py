@@ -13,6 +13,7 @@ from streamdet.cli_utils import (
     image_precision_option,
 )
 from streamdet.replay.modes import MODES
+from streamdet.replay.schedule import MAX_DELIVERY_S, MAX_RATE_HZ, MAX_TIME_SCALE
 from streamdet.replay.triggers import DEFAULT_TRIGGER, TRIGGER_MODELS
 
 
@@ -20,9 +21,7 @@ from streamdet.replay.triggers import DEFAULT_TRIGGER, TRIGGER_MODELS
 # 20 s scenes, 1000 scenes), short of what allocates gigabytes (--camera-hz 1e9 asked for 5.7 GiB of trigger times),
 # overflows the wall clock (--time-scale / --camera-delivery-ms 1e300) or sleeps for days (--time-scale 1e6).
 MAX_SCENES = 10_000
-MAX_RATE_HZ = 1000.0  # --lidar-hz, --camera-hz
-MAX_DELIVERY_MS = 10_000.0  # a camera frame 10 s late is no camera
-MAX_TIME_SCALE = 1000.0  # a drive second played over 1000 wall seconds (a computer 1000x faster)
+MAX_DELIVERY_MS = MAX_DELIVERY_S * 1e3  # the library's bounds (replay/schedule.py), the options' ranges
 MAX_SECONDS = 86_400.0  # a day of drive per scene
 MAX_QUEUE = 1024  # LaneConfig's bound
 

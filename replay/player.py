@@ -24,7 +24,7 @@ from streamdet.replay.assemble import SetAssembler
 from streamdet.replay.clock import PLAYER, Clock, DriveClock
 from streamdet.replay.modes import MODES, Detector, JobKey, ModeRunner, open_mode
 from streamdet.replay.record import ImageRecord, Recording, SliceRecord, percentiles
-from streamdet.replay.schedule import SLICE, Release, check_delivery, release_schedule
+from streamdet.replay.schedule import SLICE, Release, check_delivery, check_time_scale, release_schedule
 from streamdet.replay.source import Drive
 from streamdet.runtime_ort.heap import GcPauses, frozen_heap
 from streamdet.runtime_ort.lanes import ImagesSuperseded, LaneConfig, SliceDropped
@@ -55,8 +55,7 @@ class PlayerConfig:
             raise ValueError(f"PlayerConfig.mode must be one of {MODES}, got {self.mode!r}")
         if not (isinstance(self.num_slices, int) and self.num_slices >= 1):
             raise ValueError(f"PlayerConfig.num_slices must be an integer >= 1, got {self.num_slices!r}")
-        if not self.time_scale > 0:
-            raise ValueError(f"PlayerConfig.time_scale must be > 0, got {self.time_scale!r}")
+        check_time_scale(self.time_scale, "PlayerConfig.time_scale")
         check_delivery(self.camera_delivery_ms, "PlayerConfig.camera_delivery_ms", "ms")
 
 

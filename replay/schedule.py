@@ -10,7 +10,6 @@ transfer and decoding not modelled); their timestamp stays the capture time, as 
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -40,10 +39,25 @@ class Release:
     item: TimedSlice | ImageSet
 
 
+# Bounds of the replay's rates and times, for the library and its CLI alike: far past any real rig, short of a value
+# that allocates gigabytes of triggers or overflows a clock.
+MAX_RATE_HZ = 1000.0  # LiDAR rotations or camera triggers per second
+MAX_DELIVERY_S = 10.0  # a camera frame 10 s late is no camera
+MAX_TIME_SCALE = 1000.0  # a drive second played over 1000 wall seconds
+
+
 def check_delivery(value: float, name: str = "camera delivery delay", unit: str = "seconds") -> float:
-    """A camera delivery delay (``name``, in ``unit``): a finite number >= 0."""
-    if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
-        raise ValueError(f"{name} must be a finite number of {unit} >= 0, got {value!r}")
+    """A camera delivery delay (``name``, in ``unit``: "seconds" or "ms"): a finite number in 0..MAX_DELIVERY_S."""
+    top = MAX_DELIVERY_S * (1e3 if unit == "ms" else 1.0)
+    if isinstance(value, bool) or not (isinstance(value, (int, float)) and 0 <= value <= top):
+        raise ValueError(f"{name} must be a number of {unit} in 0..{top:g}, got {value!r}")
+    return float(value)
+
+
+def check_time_scale(value: float, name: str = "time scale") -> float:
+    """Wall seconds per drive second: a number in (0, MAX_TIME_SCALE]."""
+    if isinstance(value, bool) or not (isinstance(value, (int, float)) and 0 < value <= MAX_TIME_SCALE):
+        raise ValueError(f"{name} must be a number in (0, {MAX_TIME_SCALE:g}], got {value!r}")
     return float(value)
 
 

@@ -9,6 +9,7 @@ from streamdet.replay.clock import FakeClock, WallClock
 from streamdet.replay.player import PlayerConfig, play
 from streamdet.replay.schedule import release_schedule, slice_sweep
 from streamdet.replay.source import Drive, ImageSet, LidarSweep
+from streamdet.replay.triggers import simultaneous_triggers
 from streamdet.runtime_ort.detector import ImageUpdate, SliceResult
 from streamdet.runtime_ort.lanes import LaneConfig
 from streamdet.runtime_ort.postprocess import Detections
@@ -187,6 +188,26 @@ def test_bad_config_is_refused():
         PlayerConfig("fastest")
     with pytest.raises(ValueError, match="time_scale"):
         PlayerConfig(time_scale=0)
+
+
+@pytest.mark.parametrize(
+    "make, match",
+    [
+        (lambda: PlayerConfig(time_scale=1e300), r"PlayerConfig.time_scale must be a number in \(0, 1000\]"),
+        (lambda: PlayerConfig(time_scale=float("nan")), "PlayerConfig.time_scale"),
+        (lambda: PlayerConfig(time_scale=True), "PlayerConfig.time_scale"),
+        (lambda: PlayerConfig(camera_delivery_ms=1e300), r"camera_delivery_ms must be a number of ms in 0..10000"),
+        (lambda: PlayerConfig(camera_delivery_ms=-1.0), "camera_delivery_ms"),
+        (lambda: simultaneous_triggers(1.0, 1e9, ["CAM_FRONT"]), r"camera_hz must be a rate in \(0, 1000\] Hz"),
+        (lambda: simultaneous_triggers(1.0, float("inf"), ["CAM_FRONT"]), "camera_hz"),
+    ],
+)
+def test_the_library_bounds_what_the_cli_bounds(make, match):
+    """The replay's own configs refuse what streamdet-replay's options refuse (rates, scales, delays that would
+    allocate gigabytes of triggers or overflow a clock), for callers of the library."""
+    with pytest.raises(ValueError, match=match):
+        make()
+    PlayerConfig(time_scale=1000.0, camera_delivery_ms=10_000.0)  # the bounds themselves are accepted
 
 
 def test_a_failing_detector_fails_the_replay_with_its_error():
