@@ -9,6 +9,7 @@ from streamdet.export.int8_data import DEFAULT_CALIBRATION_SAMPLES
 from streamdet.export.weights import DEFAULT_SEED
 from streamdet.core.image_layout import IMAGE_BEV
 from streamdet.core.constants import DEFAULT_PRESET  # noqa: F401 (the exporter and its CLI read it here)
+from streamdet.core.constants import MAX_RESOLUTION_PX, MIN_RESOLUTION_PX
 from streamdet.core.lut_layout import LUT_COMPACT, LUT_SLOTS
 
 DEFAULT_IMAGE_LAYOUT = IMAGE_BEV  # measured in docs/replay.md ("Less work per lift")
@@ -65,8 +66,9 @@ class ExportOptions:
 
 def check_resolution(width: int, height: int) -> None:
     for name, v in (("width", width), ("height", height)):
-        if isinstance(v, bool) or not isinstance(v, int) or v <= 0 or v % STEM_STRIDE:
+        if isinstance(v, bool) or not isinstance(v, int) or not MIN_RESOLUTION_PX <= v <= MAX_RESOLUTION_PX or v % STEM_STRIDE:
             raise ExportError(
-                f"resolution {width}x{height}: {name} {v!r} must be a positive even number of pixels "
-                f"(the ResNet stem has stride {STEM_STRIDE}; features are ceil(size / 4))"
+                f"resolution {width}x{height}: {name} {v!r} must be an even number of pixels in "
+                f"{MIN_RESOLUTION_PX}..{MAX_RESOLUTION_PX} (the ResNet stem has stride {STEM_STRIDE}; features are "
+                "ceil(size / 4); core/constants.py)"
             )

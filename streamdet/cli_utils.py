@@ -6,16 +6,11 @@ from pathlib import Path
 
 import click
 
-from streamdet.core.constants import PRECISIONS
+from streamdet.core.constants import MAX_RESOLUTION_PX, MIN_RESOLUTION_PX, PRECISIONS
 from streamdet.core.sectors import MAX_NUM_SLICES
 
-# Every tool that takes an image size spells it the same way, within the same bounds: each side MIN_RESOLUTION_PX..
-# MAX_RESOLUTION_PX. 4096 px is 2.5x nuScenes' 1600x900 (a 4K camera fits); past it a tool's image tensors alone run to
-# gigabytes (30000x30000 asked the export for 2.7 GB in one image and the benchmark for 10.8 GB). The calibration
-# code's cap (calibration.camera.MAX_IMAGE_PX, 65536) bounds what a file may declare, not what a tool can run.
+# Every tool that takes an image size spells it the same way, within the same bounds (core/constants.py).
 RESOLUTION_HELP = "WIDTHxHEIGHT in pixels, such as 800x450"
-MIN_RESOLUTION_PX = 16
-MAX_RESOLUTION_PX = 4096
 RESOLUTION_RANGE_HELP = f"each side {MIN_RESOLUTION_PX}..{MAX_RESOLUTION_PX} px"
 
 

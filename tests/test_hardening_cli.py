@@ -263,3 +263,13 @@ def test_report_repros_end_in_one_line(tmp_path, capsys, module, prog, args, opt
     assert "Traceback" not in err
     errors = [line for line in err.splitlines() if line.startswith("Error")]
     assert len(errors) == 1 and option in errors[0], err
+
+
+@pytest.mark.parametrize("width, height", [(30000, 30000), (4098, 450), (14, 450), (801, 450), (0, 450), (True, 450)])
+def test_the_exporters_own_resolution_check_has_the_tools_bounds(width, height):
+    """An API caller of the exporter gets the CLI's bounds (core/constants.py), not a 2.7 GB image tensor."""
+    from streamdet.export.options import ExportError, check_resolution
+
+    with pytest.raises(ExportError, match=r"must be an even number of pixels in 16..4096"):
+        check_resolution(width, height)
+    check_resolution(4096, 16)
