@@ -21,6 +21,7 @@ import numpy as np
 from streamdet.bag import topics as T
 from streamdet.bag.source import BagSource, SourceConfig, SweepEvent
 from streamdet.bag.writer import BagWriter
+from streamdet.core.image_header import decoder_error_reason
 from streamdet.evaluation.results import boxes_to_results, write_results_json
 from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector
 from streamdet.runtime_ort.postprocess import Detections, aggregate_sweep
@@ -145,9 +146,8 @@ def _resized(rgb: np.ndarray, size: tuple[int, int], camera: str = "", stamp_ns:
     try:
         return cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)
     except cv2.error as e:
-        reason = (str(e).strip().splitlines() or ["cv2.error"])[-1].strip()
         raise ValueError(f"camera {camera}: image at stamp {stamp_ns} ns ({rgb.shape[1]}x{rgb.shape[0]} px) "
-                         f"cannot be resized to {size[0]}x{size[1]}: {reason}") from None  # fmt: skip
+                         f"cannot be resized to {size[0]}x{size[1]}: {decoder_error_reason(e)}") from None  # fmt: skip
 
 
 def _publish(

@@ -139,3 +139,10 @@ def _jpeg_header(buf: memoryview) -> ImageHeader:
             return ImageHeader("jpeg", width, height, components, precision)
         i += length
     raise ValueError(f"is a malformed JPEG: no frame header in its first {_JPEG_MAX_SEGMENTS} segments")
+
+
+def decoder_error_reason(e: BaseException) -> str:
+    """The reason of a decoder's error (OpenCV's ``cv2.error``) in one line: its text spans lines and names OpenCV's
+    source file, the last line says what failed."""
+    text = str(e).strip().splitlines()
+    return text[-1].strip() if text else type(e).__name__

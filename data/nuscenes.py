@@ -117,7 +117,6 @@ _OPTIONAL_FIELDS: dict[str, frozenset[str]] = {
 }
 
 
-
 class NuScenesReader:
     """Samples (key frames) of a nuScenes-format dataset, in the order of the ``sample`` table."""
 

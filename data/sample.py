@@ -23,7 +23,7 @@ from streamdet.calibration.camera import MAX_CALIBRATION_BYTES, Rig
 from streamdet.core.boxes import BOX_DIM
 from streamdet.core.classes import CLASS_NAMES
 from streamdet.core.constants import BUNDLED_SAMPLE_DIR
-from streamdet.core.image_header import MAX_IMAGE_FILE_BYTES, check_image_size, read_image_header
+from streamdet.core.image_header import MAX_IMAGE_FILE_BYTES, check_image_size, decoder_error_reason, read_image_header
 from streamdet.core.json_input import is_finite_number, read_json, short_repr  # noqa: F401 (public here too)
 from streamdet.core.points import check_sweep
 
@@ -146,7 +146,7 @@ def load_image(path: str | Path, size: tuple[int, int] | None = None,
         image = cv2.imdecode(data, cv2.IMREAD_COLOR)  # (H, W, 3) BGR; None where the data is cut short or corrupt
     except cv2.error as e:
         raise ValueError(f"image {path} ({header.width}x{header.height} {header.format}) could not be decoded: "
-                         f"{_cv2_message(e)}") from None  # fmt: skip
+                         f"{decoder_error_reason(e)}") from None  # fmt: skip
     if image is None or image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
         raise ImageFileError(f"cannot read image {path}: not a decodable image ({header.format} declaring "
                              f"{header.width}x{header.height} px; truncated or corrupt?)")  # fmt: skip
@@ -156,7 +156,7 @@ def load_image(path: str | Path, size: tuple[int, int] | None = None,
         return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
     except cv2.error as e:  # a failed allocation
         raise ValueError(f"image {path}: cannot resize or convert {image.shape[1]}x{image.shape[0]} px: "
-                         f"{_cv2_message(e)}") from None  # fmt: skip
+                         f"{decoder_error_reason(e)}") from None  # fmt: skip
 
 
 def read_image_bytes(path: str | Path) -> np.ndarray:
@@ -183,12 +183,6 @@ def read_image_bytes(path: str | Path) -> np.ndarray:
     if len(raw) > MAX_IMAGE_FILE_BYTES:
         raise ValueError(f"image {path} grew past the {MAX_IMAGE_FILE_BYTES >> 20} MiB limit while being read")
     return np.frombuffer(raw, dtype=np.uint8)
-
-
-def _cv2_message(e: BaseException) -> str:
-    """The reason of a cv2.error in one line (its text spans lines and names OpenCV's source file)."""
-    text = str(e).strip().splitlines()
-    return text[-1].strip() if text else type(e).__name__
 
 
 def load_points(path: str | Path) -> np.ndarray:
@@ -382,4 +376,3 @@ def _check_size(size: tuple[int, int]) -> tuple[int, int]:
     if width <= 0 or height <= 0:
         raise ValueError(f"size must be positive (width, height) in pixels, got {size!r}")
     return width, height
-

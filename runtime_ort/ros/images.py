@@ -23,6 +23,7 @@ from streamdet.core.image_header import (
     MAX_IMAGE_PIXELS,
     MAX_IMAGE_SIDE_PX,
     check_image_size,
+    decoder_error_reason,
     read_image_header,
 )
 from streamdet.runtime_ort.ros.header import byte_view, header_msg, header_stamp_ns
@@ -83,7 +84,7 @@ def compressed_image_to_rgb(msg: Any) -> np.ndarray:
         bgr = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
     except cv2.error as e:  # a failed allocation, or a limit of OpenCV's own
         raise ValueError(f"{where} could not be decoded ({header.width}x{header.height} {header.format}): "
-                         f"{_cv2_message(e)}") from None  # fmt: skip
+                         f"{decoder_error_reason(e)}") from None  # fmt: skip
     if bgr is None:
         raise ValueError(f"{where} could not be decoded (truncated or corrupt {header.format})")
     if bgr.ndim != 3 or bgr.shape[2] not in (3, 4) or bgr.dtype != np.uint8:
@@ -92,7 +93,7 @@ def compressed_image_to_rgb(msg: Any) -> np.ndarray:
     try:
         return cv2.cvtColor(bgr, cv2.COLOR_BGRA2RGB if bgr.shape[2] == 4 else cv2.COLOR_BGR2RGB)
     except cv2.error as e:
-        raise ValueError(f"{where}: cannot convert {bgr.shape[1]}x{bgr.shape[0]} px to RGB: {_cv2_message(e)}") from None
+        raise ValueError(f"{where}: cannot convert {bgr.shape[1]}x{bgr.shape[0]} px to RGB: {decoder_error_reason(e)}") from None
 
 
 def _at(msg: Any) -> str:
@@ -101,12 +102,6 @@ def _at(msg: Any) -> str:
         return f" at stamp {header_stamp_ns(msg)} ns"
     except (AttributeError, TypeError, ValueError, OverflowError):
         return ""
-
-
-def _cv2_message(e: BaseException) -> str:
-    """The reason of a cv2.error in one line (its text spans lines and names OpenCV's source file)."""
-    text = str(e).strip().splitlines()
-    return text[-1].strip() if text else type(e).__name__
 
 
 def compressed_image_message(data: bytes, stamp_ns: int, frame_id: str, fmt: str = "jpeg") -> dict:
