@@ -124,7 +124,8 @@ def load_image(path: str | Path, size: tuple[int, int] | None = None,
     them). ``expected_size`` = (width, height): the size the camera is calibrated for; another size is refused,
     since the camera's K would not fit the image. ``ImageFileError`` (a FileNotFoundError and a ValueError) for a
     file that is missing, not a regular file (a FIFO would block), or not decodable (e.g. a truncated JPEG, which
-    ``cv2.imread`` would fill with grey); ValueError for the rest, always naming the file.
+    ``cv2.imread`` would fill with grey); ValueError for the rest, always naming the file. An EXIF orientation
+    tag is ignored: the pixels are returned as stored, the grid the camera was calibrated on.
     """
     path = Path(path)
     if size is not None:
@@ -143,11 +144,13 @@ def load_image(path: str | Path, size: tuple[int, int] | None = None,
         raise ValueError(f"image {path} is {header.width}x{header.height} px but its camera is calibrated for "
                          f"{expected_size[0]}x{expected_size[1]}")  # fmt: skip
     try:
-        image = cv2.imdecode(data, cv2.IMREAD_COLOR)  # (H, W, 3) BGR; None where the data is cut short or corrupt
+        # IGNORE_ORIENTATION: the camera's K is for the pixels as stored; an EXIF rotation would turn them
+        image = cv2.imdecode(data, cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)  # (H, W, 3) BGR; None: corrupt
     except cv2.error as e:
         raise ValueError(f"image {path} ({header.width}x{header.height} {header.format}) could not be decoded: "
                          f"{decoder_error_reason(e)}") from None  # fmt: skip
-    if image is None or image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
+    if (image is None or image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8
+            or image.shape[:2] != (header.height, header.width)):
         raise ImageFileError(f"cannot read image {path}: not a decodable image ({header.format} declaring "
                              f"{header.width}x{header.height} px; truncated or corrupt?)")  # fmt: skip
     try:

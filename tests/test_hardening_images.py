@@ -384,3 +384,24 @@ def test_bag_images_matching_their_camera_info_are_fed():
     assert fed["CAM_FRONT"].shape == (9, 16, 3)
     bag_run._feed_images(det, _event({"CAM_FRONT": np.zeros((90, 160, 3), np.uint8)}, None))  # no CameraInfo: no check
     assert fed["CAM_FRONT"].shape == (9, 16, 3)
+
+
+def _jpeg_with_exif_orientation(image: np.ndarray, orientation: int) -> bytes:
+    """A JPEG of ``image`` carrying an APP1 Exif segment whose IFD0 sets Orientation (0x0112)."""
+    jpg = _encode(".jpg", image)
+    tiff = b"II*\x00" + struct.pack("<IH", 8, 1) + struct.pack("<HHII", 0x0112, 3, 1, orientation) + struct.pack("<I", 0)
+    app1 = b"Exif\x00\x00" + tiff
+    return jpg[:2] + b"\xff\xe1" + struct.pack(">H", len(app1) + 2) + app1 + jpg[2:]
+
+
+@pytest.mark.parametrize("orientation", [1, 3, 6, 8])
+def test_exif_orientation_is_ignored_pixels_as_stored(tmp_path, orientation):
+    """The camera's K is for the stored pixel grid: a rotation tag must not turn (or, resized, squash) the image."""
+    bgr = _smooth()  # (90, 160, 3)
+    data = _jpeg_with_exif_orientation(bgr, orientation)
+    path = tmp_path / "rot.jpg"
+    path.write_bytes(data)
+    plain = cv2.imdecode(np.frombuffer(_encode(".jpg", bgr), np.uint8), cv2.IMREAD_COLOR)[:, :, ::-1]
+    np.testing.assert_array_equal(load_image(path, expected_size=(160, 90)), plain)
+    assert load_image(path, (32, 18)).shape == (18, 32, 3)
+    np.testing.assert_array_equal(compressed_image_to_rgb(_msg(data)), plain)
