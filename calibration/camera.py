@@ -30,6 +30,12 @@ QUATERNION_NORM_TOL = 1e-5
 # The largest image side, in pixels, of any camera (the manifest schema's image.width/height maximum, the same
 # number): past it a calibration is corrupt, and its sizes would overflow float ratios or scale K to nothing.
 MAX_IMAGE_PX = 65536
+# Past these a camera is corrupt, not unusual: a focal length of 1000 image sides is a field of view under 0.06
+# degrees, a principal point 100 sides off the image looks at nothing in it, and a camera 1 km from the LiDAR (ego
+# motion between their timestamps included) is not on the vehicle. Such numbers only made a LUT that sees nothing.
+MAX_FOCAL_PER_SIDE = 1000.0
+MAX_PRINCIPAL_POINT_PER_SIDE = 100.0
+MAX_CAMERA_OFFSET_M = 1000.0
 
 
 class CalibrationError(ValueError):
@@ -82,6 +88,23 @@ def _as_size(value: Any, field: str) -> int:
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not 0 < value <= MAX_IMAGE_PX:
         raise CalibrationError(f"{field}: expected a positive integer pixel count up to {MAX_IMAGE_PX}, got {_short(value)}")
     return int(value)
+
+
+def _check_plausible(K: np.ndarray, lidar2cam: np.ndarray, width: int, height: int, where: str) -> None:
+    """Refuse intrinsics and offsets no camera on a vehicle has (MAX_FOCAL_PER_SIDE and the two after it)."""
+    side = max(width, height)
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    if max(fx, fy) > MAX_FOCAL_PER_SIDE * side:
+        raise CalibrationError(f"{where}.K: focal length fx={fx:.6g}, fy={fy:.6g} px is over {MAX_FOCAL_PER_SIDE:g} "
+                               f"times the image's {side} px side (a field of view under 0.06 degrees)")
+    if max(abs(cx) / width, abs(cy) / height) > MAX_PRINCIPAL_POINT_PER_SIDE:
+        raise CalibrationError(f"{where}.K: principal point ({cx:.6g}, {cy:.6g}) px is over "
+                               f"{MAX_PRINCIPAL_POINT_PER_SIDE:g} image sides from a {width}x{height} image")
+    centre = -lidar2cam[:3, :3].T @ lidar2cam[:3, 3]  # (3,) the camera's centre in the LiDAR frame
+    offset_m = float(np.hypot(np.hypot(centre[0], centre[1]), centre[2]))  # hypot: no overflow at 1e308
+    if offset_m > MAX_CAMERA_OFFSET_M:
+        raise CalibrationError(f"{where}.lidar2cam: the camera is {offset_m:.6g} m from the LiDAR, over "
+                               f"{MAX_CAMERA_OFFSET_M:g} m (not a camera on the vehicle)")
 
 
 def _short(value: Any, limit: int = 80) -> str:
@@ -183,6 +206,7 @@ class Camera:
         object.__setattr__(self, "lidar2cam", _readonly(_as_transform(self.lidar2cam, f"{where}.lidar2cam")))
         object.__setattr__(self, "width", _as_size(self.width, f"{where}.width"))
         object.__setattr__(self, "height", _as_size(self.height, f"{where}.height"))
+        _check_plausible(self.K, self.lidar2cam, self.width, self.height, where)
         if self.timestamp_us is not None:
             if isinstance(self.timestamp_us, bool) or not isinstance(self.timestamp_us, (int, np.integer)):
                 raise CalibrationError(f"{where}.timestamp_us: expected an integer or None, got {self.timestamp_us!r}")
@@ -421,7 +445,10 @@ class Rig:
             ts = c.get("timestamp_us")
             if ts is not None and (isinstance(ts, bool) or not isinstance(ts, int)):
                 raise CalibrationError(f"{src}: {at}.timestamp_us: expected an integer or null, got {ts!r}")
-            cameras.append(Camera(name, K, lidar2cam, width, height, ts))
+            try:  # what only the whole camera can tell (_check_plausible)
+                cameras.append(Camera(name, K, lidar2cam, width, height, ts))
+            except CalibrationError as e:
+                raise CalibrationError(f"{src}: {at}: {e}") from None
         try:
             return cls(tuple(cameras), lidar2ego, ego2global)
         except CalibrationError as e:

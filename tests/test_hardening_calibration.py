@@ -429,3 +429,43 @@ def test_calib_lut_names_a_calibration_number_past_range(export_copy, tmp_path, 
     before = (export_copy / "lut.npz").read_bytes()
     assert said in _one_line_error(_calib_lut(export_copy, path))
     assert (export_copy / "lut.npz").read_bytes() == before  # nothing written
+
+
+def _moved(T: np.ndarray, offset_m: float) -> np.ndarray:
+    """``T`` with its camera centre moved ``offset_m`` along the LiDAR's x axis."""
+    out = T.copy()
+    centre = -T[:3, :3].T @ T[:3, 3] + np.array([offset_m, 0.0, 0.0])
+    out[:3, 3] = -T[:3, :3] @ centre
+    return out
+
+
+@pytest.mark.parametrize(
+    "change, pattern",
+    [
+        (lambda K, T: (K * np.diag([1e300, 1e300, 1]) , T), r"K: focal length fx=.* is over 1000 times the image's 1600 px side"),
+        (lambda K, T: (K * np.diag([1601e3 / K[0, 0], 1, 1]), T), r"K: focal length"),
+        (lambda K, T: (K + np.array([[0, 0, 1e7], [0, 0, 0], [0, 0, 0]]), T), r"K: principal point .* over 100 image sides"),
+        (lambda K, T: (K - np.array([[0, 0, 0], [0, 0, 1e6], [0, 0, 0]]), T), r"K: principal point"),
+        (lambda K, T: (K, _moved(T, 1e308 / 2)), r"lidar2cam: the camera is .* m from the LiDAR, over 1000 m"),
+        (lambda K, T: (K, _moved(T, 1001.0)), r"lidar2cam: the camera is 100\d\.\d* m from the LiDAR"),
+    ],
+    ids=["fx-1e300", "fx-just-over", "cx-far", "cy-far", "offset-1e308", "offset-1km"],
+)
+def test_implausible_cameras_are_refused_not_blind(rig: Rig, change, pattern) -> None:
+    """Numbers that no camera on a vehicle has: a CalibrationError naming the camera, not a LUT that sees nothing."""
+    cam = rig.cameras[0]
+    K, T = change(cam.K.copy(), cam.lidar2cam.copy())
+    with pytest.raises(CalibrationError, match=rf"Camera '{cam.name}'\.{pattern}"):
+        Camera(cam.name, K, T, cam.width, cam.height)
+    doc = _calib(lambda d: d["cameras"][0].update(K=K.tolist(), lidar2cam={"matrix": T.tolist()}))
+    with pytest.raises(CalibrationError, match=r"^calibration: cameras\[0\]"):
+        Rig.from_calibration_json(doc)
+
+
+def test_plausible_extremes_are_still_cameras(rig: Rig) -> None:
+    cam = rig.cameras[0]
+    tele = cam.K * np.diag([999.0 * 1600 / cam.K[0, 0], 999.0 * 1600 / cam.K[1, 1], 1])
+    off_image = cam.K + np.array([[0, 0, 99.0 * 1600 - cam.K[0, 2]], [0, 0, 0], [0, 0, 0]])
+    for K, T in ((tele, cam.lidar2cam), (off_image, cam.lidar2cam), (cam.K, _moved(cam.lidar2cam, 999.0))):
+        assert Camera(cam.name, K, T, cam.width, cam.height).width == cam.width
+    assert cam.resized(16, 9).K[0, 0] > 0  # resizing keeps the ratios, so never crosses a bound
