@@ -22,6 +22,7 @@ from typing import Any, Iterable, Mapping
 import numpy as np
 
 from streamdet.calibration.projection import project_points, visible_mask
+from streamdet.core.json_input import short_repr
 
 # A rotation read from a float32 source deviates from orthonormal by ~1e-7; a hand-edited or corrupted
 # one by far more. Anything between is refused rather than silently re-orthonormalised.
@@ -49,11 +50,11 @@ def _as_array(value: Any, shape: tuple[int, ...], field: str) -> np.ndarray:
     try:
         arr = np.array(value, dtype=np.float64)
     except (TypeError, ValueError, OverflowError) as e:  # OverflowError: a JSON integer past float range (1e400)
-        raise CalibrationError(f"{field}: expected a numeric array of shape {shape}, got {_short(value)} ({e})") from None
+        raise CalibrationError(f"{field}: expected a numeric array of shape {shape}, got {short_repr(value)} ({e})") from None
     if arr.shape != shape:
         raise CalibrationError(f"{field}: expected shape {shape}, got {arr.shape}")
     if not np.all(np.isfinite(arr)):
-        raise CalibrationError(f"{field}: contains NaN or infinite values: {_short(arr.tolist())}")
+        raise CalibrationError(f"{field}: contains NaN or infinite values: {short_repr(arr.tolist())}")
     return arr
 
 
@@ -84,9 +85,10 @@ def _as_intrinsics(value: Any, field: str) -> np.ndarray:
     return K
 
 
-def _as_size(value: Any, field: str) -> int:
+def as_image_px(value: Any, field: str) -> int:
+    """An image side in pixels: a positive integer up to MAX_IMAGE_PX, else CalibrationError naming ``field``."""
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not 0 < value <= MAX_IMAGE_PX:
-        raise CalibrationError(f"{field}: expected a positive integer pixel count up to {MAX_IMAGE_PX}, got {_short(value)}")
+        raise CalibrationError(f"{field}: expected a positive integer pixel count up to {MAX_IMAGE_PX}, got {short_repr(value)}")
     return int(value)
 
 
@@ -105,14 +107,6 @@ def _check_plausible(K: np.ndarray, lidar2cam: np.ndarray, width: int, height: i
     if offset_m > MAX_CAMERA_OFFSET_M:
         raise CalibrationError(f"{where}.lidar2cam: the camera is {offset_m:.6g} m from the LiDAR, over "
                                f"{MAX_CAMERA_OFFSET_M:g} m (not a camera on the vehicle)")
-
-
-def _short(value: Any, limit: int = 80) -> str:
-    try:
-        text = repr(value)
-    except ValueError:  # an int past Python's 4300-digit str limit: say how big instead
-        return f"<an integer of {value.bit_length()} bits>" if isinstance(value, int) else f"<a {type(value).__name__}>"
-    return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 # A rig of six cameras is a few kB of JSON; far more than that is not a calibration file (and is not read whole).
@@ -204,8 +198,8 @@ class Camera:
         where = f"Camera {self.name!r}"
         object.__setattr__(self, "K", _readonly(_as_intrinsics(self.K, f"{where}.K")))
         object.__setattr__(self, "lidar2cam", _readonly(_as_transform(self.lidar2cam, f"{where}.lidar2cam")))
-        object.__setattr__(self, "width", _as_size(self.width, f"{where}.width"))
-        object.__setattr__(self, "height", _as_size(self.height, f"{where}.height"))
+        object.__setattr__(self, "width", as_image_px(self.width, f"{where}.width"))
+        object.__setattr__(self, "height", as_image_px(self.height, f"{where}.height"))
         _check_plausible(self.K, self.lidar2cam, self.width, self.height, where)
         if self.timestamp_us is not None:
             if isinstance(self.timestamp_us, bool) or not isinstance(self.timestamp_us, (int, np.integer)):
@@ -247,8 +241,8 @@ class Camera:
 
     def resized(self, width: int, height: int) -> "Camera":
         """The same camera for the image resized to (width, height): pixel corners scale, so K rows scale."""
-        width = _as_size(width, "width")
-        height = _as_size(height, "height")
+        width = as_image_px(width, "width")
+        height = as_image_px(height, "height")
         scale = np.diag([width / self.width, height / self.height, 1.0])
         return Camera(self.name, scale @ self.K, self.lidar2cam, width, height, self.timestamp_us)
 
@@ -429,19 +423,19 @@ class Rig:
 
         cams_doc = _field(doc, "cameras", src, "")
         if not isinstance(cams_doc, list) or not cams_doc:
-            raise CalibrationError(f"{src}: cameras: expected a non-empty list, got {_short(cams_doc)}")
+            raise CalibrationError(f"{src}: cameras: expected a non-empty list, got {short_repr(cams_doc)}")
         cameras = []
         for i, c in enumerate(cams_doc):
             at = f"cameras[{i}]"
             if not isinstance(c, Mapping):
-                raise CalibrationError(f"{src}: {at}: expected an object, got {_short(c)}")
+                raise CalibrationError(f"{src}: {at}: expected an object, got {short_repr(c)}")
             name = _field(c, "name", src, f"{at}.")
             if not isinstance(name, str) or not name:
                 raise CalibrationError(f"{src}: {at}.name: expected a non-empty string, got {name!r}")
             K = _wrap(_as_intrinsics, _field(c, "K", src, f"{at}."), src, f"{at}.K")
             lidar2cam = _transform_entry(_field(c, "lidar2cam", src, f"{at}."), src, f"{at}.lidar2cam")
-            width = _wrap(_as_size, _field(c, "width", src, f"{at}."), src, f"{at}.width")
-            height = _wrap(_as_size, _field(c, "height", src, f"{at}."), src, f"{at}.height")
+            width = _wrap(as_image_px, _field(c, "width", src, f"{at}."), src, f"{at}.width")
+            height = _wrap(as_image_px, _field(c, "height", src, f"{at}."), src, f"{at}.height")
             ts = c.get("timestamp_us")
             if ts is not None and (isinstance(ts, bool) or not isinstance(ts, int)):
                 raise CalibrationError(f"{src}: {at}.timestamp_us: expected an integer or null, got {ts!r}")
@@ -469,12 +463,12 @@ class Rig:
         ego2global = _record_transform(lidar_pose, src, "lidar_pose")
         lidar2global = ego2global @ lidar2ego
         if not isinstance(cameras, (list, tuple)) or not cameras:
-            raise CalibrationError(f"{src}: cameras: expected a non-empty list, got {_short(cameras)}")
+            raise CalibrationError(f"{src}: cameras: expected a non-empty list, got {short_repr(cameras)}")
         out = []
         for i, c in enumerate(cameras):
             at = f"cameras[{i}]"
             if not isinstance(c, Mapping):
-                raise CalibrationError(f"{src}: {at}: expected an object, got {_short(c)}")
+                raise CalibrationError(f"{src}: {at}: expected an object, got {short_repr(c)}")
             name = _field(c, "name", src, f"{at}.")
             sensor = _field(c, "calibrated_sensor", src, f"{at}.")
             cam2ego = _record_transform(sensor, src, f"{at}.calibrated_sensor")
@@ -482,8 +476,8 @@ class Rig:
             K = _wrap(_as_intrinsics, _field(sensor, "camera_intrinsic", src, f"{at}.calibrated_sensor."),
                       src, f"{at}.calibrated_sensor.camera_intrinsic")
             lidar2cam = invert_transform(cam2ego) @ invert_transform(cam_pose) @ lidar2global
-            width = _wrap(_as_size, _field(c, "width", src, f"{at}."), src, f"{at}.width")
-            height = _wrap(_as_size, _field(c, "height", src, f"{at}."), src, f"{at}.height")
+            width = _wrap(as_image_px, _field(c, "width", src, f"{at}."), src, f"{at}.width")
+            height = _wrap(as_image_px, _field(c, "height", src, f"{at}."), src, f"{at}.height")
             try:
                 out.append(Camera(name, K, lidar2cam, width, height, c.get("timestamp_us")))
             except CalibrationError as e:
@@ -496,7 +490,7 @@ class Rig:
 
 def _field(obj: Any, key: str, src: str, at: str) -> Any:
     if not isinstance(obj, Mapping):
-        raise CalibrationError(f"{src}: {at.rstrip('.') or 'top level'}: expected an object, got {_short(obj)}")
+        raise CalibrationError(f"{src}: {at.rstrip('.') or 'top level'}: expected an object, got {short_repr(obj)}")
     if key not in obj:
         raise CalibrationError(f"{src}: {at}{key}: missing field")
     return obj[key]
@@ -513,7 +507,7 @@ def _wrap(check, value: Any, src: str, field: str):
 def _transform_entry(entry: Any, src: str, at: str) -> np.ndarray:
     """A calibration.json transform: {"matrix": 4x4} or {"rotation_wxyz", "translation"}."""
     if not isinstance(entry, Mapping):
-        raise CalibrationError(f"{src}: {at}: expected an object with 'matrix', got {_short(entry)}")
+        raise CalibrationError(f"{src}: {at}: expected an object with 'matrix', got {short_repr(entry)}")
     if "matrix" in entry:
         return _wrap(_as_transform, entry["matrix"], src, f"{at}.matrix")
     if "rotation_wxyz" in entry and "translation" in entry:

@@ -35,11 +35,12 @@ from typing import BinaryIO, Sequence
 
 import numpy as np
 
-from streamdet.calibration.camera import MAX_IMAGE_PX, CalibrationError, Rig, _as_size, _short
+from streamdet.calibration.camera import MAX_IMAGE_PX, CalibrationError, Rig, as_image_px
 from streamdet.calibration.grid import GridSpec
 from streamdet.calibration.lut_file import (  # noqa: F401  (re-exported)
     MAX_HEIGHTS_PER_VOXEL, MAX_LUT_BYTES, LutFileError, check_lut_archive,
 )
+from streamdet.core.json_input import short_repr
 from streamdet.core.sectors import NUM_QUADRANTS, check_quadrants
 
 ASPECT_TOLERANCE = 0.005  # relative; 1600x900 -> 800x450 is exact, 1920x1080 -> 800x450 too
@@ -64,7 +65,7 @@ def check_rig_fits(rig: Rig, camera_names: Sequence[str], width: int, height: in
     aspect would distort them)."""
     if not isinstance(rig, Rig):
         raise CalibrationError(f"expected a Rig, got {type(rig).__name__}")
-    width, height = _as_size(width, "image width"), _as_size(height, "image height")  # a huge int overflows the ratio
+    width, height = as_image_px(width, "image width"), as_image_px(height, "image height")  # a huge int overflows the ratio
     if tuple(rig.names) != tuple(camera_names):
         raise CalibrationError(
             f"calibration cameras {list(rig.names)} do not match the export's {list(camera_names)} "
@@ -134,13 +135,13 @@ class Lut:
         for name in ("feature_stride", "image_width", "image_height"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value <= 0:
-                raise CalibrationError(f"Lut.{name}: expected a positive integer, got {_short(value)}")
+                raise CalibrationError(f"Lut.{name}: expected a positive integer, got {short_repr(value)}")
             if name != "feature_stride" and value > MAX_IMAGE_PX:
-                raise CalibrationError(f"Lut.{name}: expected at most {MAX_IMAGE_PX} pixels, got {_short(value)}")
+                raise CalibrationError(f"Lut.{name}: expected at most {MAX_IMAGE_PX} pixels, got {short_repr(value)}")
             object.__setattr__(self, name, int(value))
         object.__setattr__(self, "min_depth_m", _check_min_depth(self.min_depth_m))
         if not isinstance(self.calibration_sha256, str):
-            raise CalibrationError(f"Lut.calibration_sha256: expected a string, got {_short(self.calibration_sha256)}")
+            raise CalibrationError(f"Lut.calibration_sha256: expected a string, got {short_repr(self.calibration_sha256)}")
         if not isinstance(self.grid, GridSpec):
             raise CalibrationError(f"Lut.grid: expected a GridSpec, got {type(self.grid).__name__}")
         _validate_tables(self.index, self.weight, self.grid, self.sentinel, "Lut")
@@ -276,7 +277,7 @@ class Lut:
             raise CalibrationError(f"{src}: meta.grid: {e}") from None
         sha = meta["calibration_sha256"]
         if not (isinstance(sha, str) and _SHA256_HEX.fullmatch(sha)):
-            raise CalibrationError(f"{src}: meta.calibration_sha256: expected 64 lowercase hex digits (Rig.sha256()), got {_short(sha)}")
+            raise CalibrationError(f"{src}: meta.calibration_sha256: expected 64 lowercase hex digits (Rig.sha256()), got {short_repr(sha)}")
         try:
             lut = cls(
                 index=np.array(index),
@@ -304,7 +305,7 @@ class Lut:
 def _check_camera_names(names: object) -> tuple[str, ...]:
     """A list or tuple of distinct non-empty strings, as a tuple (a bare string would split into letters)."""
     if not isinstance(names, (list, tuple)) or not names or not all(isinstance(n, str) and n for n in names):
-        raise CalibrationError(f"Lut.camera_names: expected a list of non-empty camera names, got {_short(names)}")
+        raise CalibrationError(f"Lut.camera_names: expected a list of non-empty camera names, got {short_repr(names)}")
     dupes = sorted({n for n in names if names.count(n) > 1})
     if dupes:
         raise CalibrationError(f"Lut.camera_names: duplicate camera names {dupes} (each names one feature map)")
@@ -319,7 +320,7 @@ def _check_min_depth(value: object) -> float:
     except OverflowError:
         depth = math.nan
     if not (math.isfinite(depth) and depth >= 0):
-        raise CalibrationError(f"Lut.min_depth_m: expected a finite number of metres >= 0, got {_short(value)}")
+        raise CalibrationError(f"Lut.min_depth_m: expected a finite number of metres >= 0, got {short_repr(value)}")
     return depth
 
 
@@ -449,11 +450,11 @@ def _image_geometry(rig: Rig, feature_stride: int, image_size: tuple[int, int] |
     """(width, height, the rig at that image size) of a LUT build, its arguments checked (ValueError quotes them)."""
     stride_ok = isinstance(feature_stride, (int, np.integer)) and not isinstance(feature_stride, bool)
     if not (stride_ok and 0 < feature_stride <= MAX_IMAGE_PX):  # a stride past any image side is no feature map
-        raise ValueError(f"feature_stride must be a positive integer up to {MAX_IMAGE_PX}, got {_short(feature_stride)}")
+        raise ValueError(f"feature_stride must be a positive integer up to {MAX_IMAGE_PX}, got {short_repr(feature_stride)}")
     try:
         _check_min_depth(min_depth_m)  # not math.isfinite alone: it raises OverflowError for a huge int
     except CalibrationError:
-        raise ValueError(f"min_depth_m must be a finite number >= 0, got {_short(min_depth_m)}") from None
+        raise ValueError(f"min_depth_m must be a finite number >= 0, got {short_repr(min_depth_m)}") from None
     if image_size is None:
         sizes = {(c.width, c.height) for c in rig.cameras}
         if len(sizes) != 1:
@@ -465,7 +466,7 @@ def _image_geometry(rig: Rig, feature_stride: int, image_size: tuple[int, int] |
                 raise ValueError
             width, height = int(image_size[0]), int(image_size[1])
         except (TypeError, ValueError, OverflowError):  # not a pair, or not numbers (inf overflows int())
-            raise ValueError(f"image_size must be (W, H), got {_short(image_size)}") from None
+            raise ValueError(f"image_size must be (W, H), got {short_repr(image_size)}") from None
         cams_rig = rig.resized(width, height)
     return width, height, cams_rig
 
