@@ -32,6 +32,7 @@ import torch
 from torch import Tensor, nn
 
 from streamdet.benchmarks.flops_report import BENCH_NUM_IMAGES, gmac_rows, slice_row_pillars
+from streamdet.core.errors import first_line
 from streamdet.export.fp16 import check_model, convert_model_to_fp16
 from streamdet.export.int8 import quantize_graph
 from streamdet.export.onnx_export import (
@@ -216,7 +217,7 @@ def _int8_row(row: Row, fp32: Path, out_dir: Path) -> tuple[Path | None, str | N
         quantize_graph(INT8_GRAPH_OF_KIND[row.kind], fp32, path, [row.feeds()])
         check_model(path)
     except Exception as e:  # noqa: BLE001 - a failed quantization is a result to report, not a crash of the run
-        return None, f"{type(e).__name__}: {str(e).strip().splitlines()[0]}"
+        return None, f"{type(e).__name__}: {first_line(e)}"
     return path, None
 
 
@@ -242,5 +243,5 @@ def export_row(row: Row, out_dir: Path, fp16: bool = True, int8: bool = False) -
         check_model(converted)  # the converter's output is no guarantee of a valid graph
         save_model(converted, fp16_path)
     except Exception as e:  # noqa: BLE001 - a failed conversion is a result to report, not a crash of the run
-        fp16_path, error = None, f"{type(e).__name__}: {str(e).strip().splitlines()[0]}"
+        fp16_path, error = None, f"{type(e).__name__}: {first_line(e)}"
     return RowGraphs(fp32, fp16_path, error, model, int8_path, int8_error)

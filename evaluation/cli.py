@@ -17,6 +17,7 @@ import click
 
 from streamdet.cli_utils import PRECISION_CHOICES, image_precision_option
 from streamdet.core.constants import DEFAULT_EXPORT_DIR
+from streamdet.core.errors import first_line
 from streamdet.evaluation.config import TP_METRICS, DetectionConfig
 from streamdet.evaluation.detection_eval import evaluate
 from streamdet.evaluation.eval_boxes import EvalBoxes
@@ -83,7 +84,7 @@ def _data_inputs(data_dir: Path, version: str, split: str | None, export_dir: Pa
     try:
         detector = OnnxSweepDetector(export_dir, precision=precision, num_slices=slices, image_precision=image_precision)
     except (ValueError, OSError) as e:  # ManifestError is a ValueError
-        raise click.ClickException(f"--export-dir {export_dir}: {str(e).splitlines()[0]}") from None
+        raise click.ClickException(f"--export-dir {export_dir}: {first_line(e)}") from None
     n = detector.detector.num_slices
     label = detector.detector.precision_label  # "int8 image lane + fp32 slices" when the lanes differ
     try:
@@ -156,7 +157,7 @@ def _compare(run_a: str, run_b: str, gt_path: Path | None, classes: tuple[str, .
             comparison = compare_runs(a, b, classes=classes, num_draws=draws, seed=seed, subsets=subsets,
                                       progress=progress)
     except ValueError as e:
-        raise click.ClickException(str(e).splitlines()[0]) from None
+        raise click.ClickException(first_line(e)) from None
     name_a, name_b = ", ".join(map(str, group_a)), ", ".join(map(str, group_b))
     click.echo(format_comparison(comparison, name_a, name_b))
     if json_path is not None:

@@ -25,6 +25,7 @@ import numpy as np
 import onnx
 from onnx import TensorProto, helper, numpy_helper
 
+from streamdet.core.errors import first_line
 from streamdet.runtime_ort.onnx_build import make_model
 
 OPSET = 17
@@ -178,7 +179,6 @@ def tail_graph(lifter: onnx.ModelProto, cut: str, shape: tuple[int, int, int], b
     try:
         onnx.checker.check_model(model)
     except onnx.checker.ValidationError as e:  # e.g. the rest of the graph reads the lifter's inputs again
-        first_line = str(e).strip().splitlines()[0]
-        raise SplitError(f"the lifter graph after its first Conv is not a graph of that Conv's output alone ({first_line}): "
+        raise SplitError(f"the lifter graph after its first Conv is not a graph of that Conv's output alone ({first_line(e)}): "
                          "a per-camera lift needs the flat lifter (LifterConfig.form='flat')") from None
     return model

@@ -21,6 +21,7 @@ from streamdet import studies as st
 from streamdet.cli_utils import image_precision_option, resolution_callback
 from streamdet.core import constants
 from streamdet.core.constants import PRECISIONS
+from streamdet.core.errors import first_line
 from streamdet.studies.plots import plot_calib_noise, plot_drop_camera, plot_resolution, plot_slices
 
 DEFAULT_EXPORT_DIR = Path(constants.DEFAULT_EXPORT_DIR)
@@ -126,7 +127,7 @@ def _running(label: str) -> Iterator[_Bar]:
     except st.StudyError as e:
         raise click.ClickException(str(e)) from None
     except (OSError, ValueError) as e:  # unreadable data: missing tables or files, a bad split
-        raise click.ClickException(str(e).splitlines()[0] if str(e) else type(e).__name__) from None
+        raise click.ClickException(first_line(e)) from None
     finally:
         bar.close()
 

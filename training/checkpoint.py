@@ -25,6 +25,7 @@ from typing import Any
 
 import torch
 
+from streamdet.core.errors import first_line
 from streamdet.models.detector import StreamDetector, build_detector
 from streamdet.models.torch_files import (  # noqa: F401 (public here too)
     MAX_CHECKPOINT_BYTES, check_fits, check_state_dict, check_torch_zip, read_torch_file)
@@ -101,7 +102,7 @@ def load_encoder_weights(detector: StreamDetector, path: str | os.PathLike) -> N
     try:
         detector.image_encoder.load_state_dict({k: v.to(own[k].dtype) for k, v in state.items()}, strict=True)
     except (RuntimeError, AttributeError, TypeError) as e:
-        raise ValueError(f"{path}: does not fit the detector's image encoder: {str(e).splitlines()[0]}") from None
+        raise ValueError(f"{path}: does not fit the detector's image encoder: {first_line(e)}") from None
 
 
 # The parts a checkpoint of another preset can hand over, each with the preset fields that fix its weights' shapes and
@@ -157,6 +158,6 @@ def load_weights(path: str | os.PathLike) -> tuple[StreamDetector, Preset]:
     try:
         model.load_state_dict(state, strict=True)
     except RuntimeError as e:
-        first = str(e).strip().splitlines()[0]
+        first = first_line(e)
         raise ValueError(f"checkpoint {path} does not fit its own preset {preset.name!r}: {first}") from None
     return model.eval(), preset

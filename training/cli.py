@@ -9,6 +9,7 @@ from pathlib import Path
 
 import click
 
+from streamdet.core.errors import first_line
 from streamdet.models.presets import preset_names
 from streamdet.training.dataset import CAMERA_MODES, DataConfig
 from streamdet.training.distributed import shutdown_distributed
@@ -118,7 +119,7 @@ def main(data_dir: Path, version: str, out_dir: Path, preset: str, steps: int | 
               echo=click.echo)  # fmt: skip
         finished = True
     except (ValueError, FileNotFoundError) as e:
-        raise click.ClickException(str(e).splitlines()[0]) from None
+        raise click.ClickException(first_line(e)) from None
     finally:
         shutdown_distributed(wait=finished)
 

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import click
 
+from streamdet.core.errors import first_line
 from streamdet.models.presets import preset_names
 from streamdet.training.image_pretrain import PretrainConfig, pretrain
 
@@ -52,7 +53,7 @@ def main(data_dir: Path, version: str, out_dir: Path, preset: str, steps: int, b
         pretrain(config, data_dir, out_dir, version=version, resume=resume, device=device, echo=click.echo,
                  max_samples=max_samples)  # fmt: skip
     except (ValueError, FileNotFoundError, KeyError) as e:
-        raise click.ClickException(str(e).splitlines()[0]) from None
+        raise click.ClickException(first_line(e)) from None
 
 
 if __name__ == "__main__":

@@ -28,6 +28,7 @@ import torch
 from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader, DistributedSampler, Subset
 
+from streamdet.core.errors import first_line
 from streamdet.models.detector import build_detector
 from streamdet.models.presets import Preset, get_preset
 from streamdet.training.batching import Batch, Collator
@@ -410,7 +411,7 @@ def _load_init_weights(detector, preset: Preset, init: str | Path, say: Callable
     try:
         unexpected = detector.load_state_dict(own_dtypes(weights), strict=False).unexpected_keys
     except RuntimeError as e:
-        raise ValueError(f"init checkpoint {init}: {str(e).splitlines()[0]}") from None
+        raise ValueError(f"init checkpoint {init}: {first_line(e)}") from None
     if unexpected:
         raise ValueError(f"init checkpoint {init}: tensors the model does not have: {', '.join(sorted(unexpected)[:5])}")
     say(f"initialised {', '.join(parts)} from {init} (preset {state['preset'].get('name')!r}); every other weight from the seed")
