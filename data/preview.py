@@ -13,25 +13,14 @@ import numpy as np
 
 from streamdet.calibration.camera import Camera
 from streamdet.core.boxes import BOX_DIM, box_corners_3d, box_corners_bev
-from streamdet.core.classes import CLASS_NAMES
+from streamdet.core.classes import CLASS_COLORS_RGB, CLASS_NAMES, OTHER_COLOR_RGB
 from streamdet.core.sectors import check_num_slices, sector_bounds_deg, slice_index_of
 from streamdet.core.slicing import split_sweep
 from streamdet.data.sample import Sample, load_image
 
-# One BGR colour per detection class (CLASS_NAMES order); grey for label -1.
-CLASS_COLORS_BGR: tuple[tuple[int, int, int], ...] = (
-    (60, 180, 255),  # car
-    (0, 120, 255),  # truck
-    (0, 80, 200),  # trailer
-    (0, 200, 255),  # bus
-    (0, 140, 140),  # construction_vehicle
-    (255, 80, 255),  # bicycle
-    (200, 60, 200),  # motorcycle
-    (80, 255, 80),  # pedestrian
-    (40, 40, 255),  # traffic_cone
-    (200, 200, 60),  # barrier
-)
-OTHER_COLOR_BGR = (160, 160, 160)
+# core.classes' class colours, in OpenCV's channel order
+CLASS_COLORS_BGR: tuple[tuple[int, int, int], ...] = tuple(c[::-1] for c in CLASS_COLORS_RGB)
+OTHER_COLOR_BGR = OTHER_COLOR_RGB[::-1]
 # Box edges in box_corners_3d order: bottom face, top face, verticals.
 BOX_EDGES = ((0, 1), (1, 2), (2, 3), (3, 0), (4, 5), (5, 6), (6, 7), (7, 4), (0, 4), (1, 5), (2, 6), (3, 7))
 NEAR_M = 0.1

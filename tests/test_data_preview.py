@@ -131,3 +131,14 @@ def test_cli_rejects_a_file_as_out(tmp_path):
     f.write_text("x")
     result = CliRunner().invoke(main, ["--out", str(f)])
     assert result.exit_code != 0 and "Traceback" not in result.output
+
+
+def test_one_palette_for_pictures_and_markers():
+    """The preview's BGR colours are core.classes' RGB ones reversed: a class is one colour everywhere."""
+    from streamdet.core.classes import CLASS_COLORS_RGB, NUM_CLASSES, OTHER_COLOR_RGB, class_color_rgb
+
+    assert len(CLASS_COLORS_RGB) == NUM_CLASSES and len(set(CLASS_COLORS_RGB)) == NUM_CLASSES
+    assert OTHER_COLOR_RGB not in CLASS_COLORS_RGB
+    assert [c[::-1] for c in CLASS_COLORS_BGR] == list(CLASS_COLORS_RGB)
+    assert [class_color_rgb(k) for k in range(NUM_CLASSES)] == list(CLASS_COLORS_RGB)
+    assert class_color_rgb(-1) == class_color_rgb(NUM_CLASSES) == OTHER_COLOR_RGB

@@ -6,13 +6,11 @@ import numpy as np
 import pytest
 
 from streamdet.core.boxes import box_corners_3d
-from streamdet.core.classes import CLASS_NAMES
+from streamdet.core.classes import CLASS_COLORS_RGB, CLASS_NAMES, OTHER_COLOR_RGB
 from streamdet.runtime_ort.ros.detections import (
-    CLASS_COLORS_RGB,
     CUBE,
     DELETE,
     DELETEALL,
-    OTHER_COLOR_RGB,
     TEXT_VIEW_FACING,
     detection3d_array_message,
     marker_array_message,
@@ -70,7 +68,8 @@ def test_markers_coloured_by_class_with_text_labels():
     cubes = [m for m in markers if m["type"] == CUBE and m["action"] == 0 and m["ns"] == "det"]
     texts = [m for m in markers if m["type"] == TEXT_VIEW_FACING]
     assert [m["id"] for m in cubes] == [0, 1, 2, 3] and [m["ns"] for m in texts] == ["det/labels"] * 4
-    expected_colours = [CLASS_COLORS_RGB[0], CLASS_COLORS_RGB[7], OTHER_COLOR_RGB, CLASS_COLORS_RGB[9]]
+    # the same colours as the preview pictures (core.classes), as ColorRGBA's 0..1
+    expected_colours = [tuple(v / 255 for v in c) for c in (CLASS_COLORS_RGB[0], CLASS_COLORS_RGB[7], OTHER_COLOR_RGB, CLASS_COLORS_RGB[9])]
     for cube, text, colour, i in zip(cubes, texts, expected_colours, range(4)):
         assert (cube["color"]["r"], cube["color"]["g"], cube["color"]["b"]) == colour and cube["color"]["a"] == 0.5
         assert cube["scale"] == {"x": float(boxes[i, 4]), "y": float(boxes[i, 3]), "z": float(boxes[i, 5])}

@@ -15,23 +15,9 @@ from typing import Sequence
 import numpy as np
 
 from streamdet.core.boxes import BOX_DIM, H, L, W, X, Y, YAW, Z
-from streamdet.core.classes import CLASS_NAMES
+from streamdet.core.classes import CLASS_NAMES, class_color_rgb
 from streamdet.runtime_ort.ros.header import duration_msg, header_msg
 
-# One RGB colour per detection class (CLASS_NAMES order), 0..1; grey for labels outside the classes.
-CLASS_COLORS_RGB: tuple[tuple[float, float, float], ...] = (
-    (1.00, 0.62, 0.00),  # car
-    (1.00, 0.39, 0.28),  # truck
-    (0.55, 0.27, 0.07),  # trailer
-    (1.00, 0.84, 0.00),  # bus
-    (0.60, 0.40, 0.80),  # construction_vehicle
-    (0.86, 0.08, 0.24),  # bicycle
-    (1.00, 0.24, 0.59),  # motorcycle
-    (0.00, 0.45, 1.00),  # pedestrian
-    (0.18, 0.80, 0.44),  # traffic_cone
-    (0.44, 0.50, 0.56),  # barrier
-)
-OTHER_COLOR_RGB = (0.7, 0.7, 0.7)
 CUBE, TEXT_VIEW_FACING = 1, 9  # visualization_msgs/Marker types
 ADD, DELETE, DELETEALL = 0, 2, 3  # visualization_msgs/Marker actions
 TEXT_HEIGHT_M = 0.8
@@ -100,7 +86,7 @@ def marker_array_message(
     markers = [_marker(header, ns, 0, DELETEALL, lifetime)] if replace else []
     for i in range(len(boxes)):
         label = int(labels[i])
-        r, g, b = CLASS_COLORS_RGB[label] if 0 <= label < len(class_names) else OTHER_COLOR_RGB
+        r, g, b = (v / 255.0 for v in class_color_rgb(label))  # ColorRGBA takes 0..1
         name = names[i] if names is not None else (class_names[label] if 0 <= label < len(class_names) else "other")
         cube = _marker(header, ns, i, ADD, lifetime)
         colour = {"r": r, "g": g, "b": b, "a": float(alpha)}
