@@ -24,6 +24,7 @@ calibration never needs a re-export.
 
 from __future__ import annotations
 
+import io
 import json
 import math
 import os
@@ -235,15 +236,18 @@ class Lut:
         np.savez(f, index=self.index, weight=self.weight, meta=np.array(json.dumps(self.meta(), sort_keys=True)))
 
     @classmethod
-    def load(cls, path: str | os.PathLike, grid: GridSpec | None = None, num_cameras: int | None = None) -> "Lut":
+    def load(cls, path: str | os.PathLike, grid: GridSpec | None = None, num_cameras: int | None = None,
+             data: bytes | None = None) -> "Lut":  # fmt: skip
         """Read and validate a LUT written by ``save``; any defect raises CalibrationError naming file and key.
 
         Before any array is read, the archive's members must fit a LUT of ``grid`` and ``num_cameras`` (the
-        manifest's; None: as the file's meta says), else `LutFileError` (`calibration/lut_file.py`)."""
+        manifest's; None: as the file's meta says), else `LutFileError` (`calibration/lut_file.py`). ``data``: the
+        file's bytes, already read (and hashed) by the caller; then ``path`` only names it and is not opened, so
+        what was checked is what is loaded."""
         src = os.path.basename(os.fspath(path))
-        check_lut_archive(path, grid, num_cameras)
+        check_lut_archive(path, grid, num_cameras, data)
         try:
-            with np.load(path, allow_pickle=False) as z:
+            with np.load(io.BytesIO(data) if data is not None else path, allow_pickle=False) as z:
                 missing = [k for k in ("index", "weight", "meta") if k not in z.files]
                 if missing:
                     raise CalibrationError(f"{src}: missing key(s) {missing}; found {sorted(z.files)}")

@@ -17,6 +17,7 @@ the three ``.npy`` headers and the small ``meta`` string:
 
 from __future__ import annotations
 
+import io
 import json
 import math
 import os
@@ -41,11 +42,13 @@ class LutFileError(CalibrationError):
     """A lut.npz that cannot be the LUT the export needs: oversized, a zip bomb, pickled, wrong header, truncated."""
 
 
-def check_lut_archive(path: str | os.PathLike, grid: GridSpec | None = None, num_cameras: int | None = None) -> None:
-    """Refuse ``path`` unless its members fit a LUT of ``grid`` and ``num_cameras`` (None: as its meta says)."""
+def check_lut_archive(path: str | os.PathLike, grid: GridSpec | None = None, num_cameras: int | None = None,
+                      data: bytes | None = None) -> None:  # fmt: skip
+    """Refuse ``path`` unless its members fit a LUT of ``grid`` and ``num_cameras`` (None: as its meta says).
+    ``data``: the file's bytes, already read (then ``path`` only names it)."""
     src = os.path.basename(os.fspath(path))
     try:
-        with zipfile.ZipFile(path) as zf:
+        with zipfile.ZipFile(io.BytesIO(data) if data is not None else path) as zf:
             infos = _members(zf, src)
             meta = _read_meta(zf, infos["meta"], src)
             grid = grid if grid is not None else _meta_grid(meta)

@@ -10,8 +10,6 @@ from __future__ import annotations
 
 import importlib.resources
 import math
-import os
-import stat
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -23,6 +21,7 @@ from streamdet.calibration.camera import MAX_CALIBRATION_BYTES, Rig
 from streamdet.core.boxes import BOX_DIM
 from streamdet.core.classes import CLASS_NAMES
 from streamdet.core.constants import BUNDLED_SAMPLE_DIR
+from streamdet.core.file_input import InputFileError, read_regular_file
 from streamdet.core.image_header import MAX_IMAGE_FILE_BYTES, check_image_size, decoder_error_reason, read_image_header
 from streamdet.core.json_input import is_finite_number, read_json, short_repr  # noqa: F401 (public here too)
 from streamdet.core.points import check_sweep
@@ -164,27 +163,12 @@ def load_image(path: str | Path, size: tuple[int, int] | None = None,
 
 def read_image_bytes(path: str | Path) -> np.ndarray:
     """The bytes of an image file, bounded: a regular file (never a FIFO or device) of at most MAX_IMAGE_FILE_BYTES."""
-    path = Path(path)
-    if not path.is_file():  # also refuses a FIFO or a device, whose open() or read() could block for ever
-        kind = "missing" if not path.exists() else "not a regular file"
-        raise ImageFileError(f"cannot read image {path}: {kind} (missing or not an image file)")
-    try:  # O_NONBLOCK and the fstat below: a FIFO swapped in after is_file() cannot block either
-        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_BINARY", 0))
-    except OSError as e:
-        raise ImageFileError(f"cannot read image {path}: {e.strerror or e}") from None
-    with os.fdopen(fd, "rb") as f:
-        st = os.fstat(fd)
-        if not stat.S_ISREG(st.st_mode):
-            raise ImageFileError(f"cannot read image {path}: not a regular file (missing or not an image file)")
-        if st.st_size > MAX_IMAGE_FILE_BYTES:
-            raise ValueError(f"image {path} is {st.st_size} bytes, over the {MAX_IMAGE_FILE_BYTES >> 20} MiB limit "
-                             "of an encoded image; refused before reading")  # fmt: skip
-        try:
-            raw = f.read(st.st_size + 1)  # + 1: a file that grew meanwhile is seen growing
-        except OSError as e:
-            raise ImageFileError(f"cannot read image {path}: {e.strerror or e}") from None
-    if len(raw) > MAX_IMAGE_FILE_BYTES:
-        raise ValueError(f"image {path} grew past the {MAX_IMAGE_FILE_BYTES >> 20} MiB limit while being read")
+    try:
+        raw = read_regular_file(path, MAX_IMAGE_FILE_BYTES)
+    except InputFileError as e:
+        if e.too_large:
+            raise ValueError(f"image {path} {e.reason}") from None
+        raise ImageFileError(f"cannot read image {path}: {e.reason}") from None
     return np.frombuffer(raw, dtype=np.uint8)
 
 

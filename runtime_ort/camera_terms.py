@@ -36,7 +36,7 @@ import threading
 from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Mapping
+from typing import Callable, Mapping
 
 import numpy as np
 import onnx
@@ -293,14 +293,15 @@ class CameraTerms:
 
 
 def open_camera_terms(
-    export_dir: Path, lifter_form: str, lifter_files: Mapping[str, Path], lane_precision: str, mode: bool | None, channels: int,
+    export_dir: Path, lifter_form: str, lifter_model: Callable[[str], onnx.ModelProto], lane_precision: str, mode: bool | None, channels: int,
     feature_hw: tuple[int, int], quadrant_hw: tuple[int, int], session: SessionConfig, stats: LatencyStats | None,
     fp32_lifter_run, qluts: tuple[QuadrantLut, ...],
 ) -> CameraTerms | None:  # fmt: skip
     """The per-camera lifts of an export, checked against its fp32 lifter; None where ``mode`` is None (auto) and
     the export's lifter does not split (``lifter_form``, the manifest's, is not "flat", or the lane is fp16, or the
     graph does not cut), or where ``mode`` is False. ``mode`` True and no split:
-    ValueError saying why. ``lifter_files``: the lifter graph file by precision; ``fp32_lifter_run(qlut, maps)``:
+    ValueError saying why. ``lifter_model(precision)``: the export's lifter graph of that precision, read and checked
+    (runtime_ort/export_files.py); ``fp32_lifter_run(qlut, maps)``:
     the export's fp32 lifter on one quadrant (the check's reference)."""
     if mode is False:
         return None
@@ -312,8 +313,8 @@ def open_camera_terms(
     else:
         heights = int(qluts[0].index.shape[2])  # (1, K, Z, Yq, Xq)
         try:
-            fp32 = onnx.load(str(lifter_files["fp32"]))
-            lane = fp32 if lane_precision == "fp32" else onnx.load(str(lifter_files[lane_precision]))
+            fp32 = lifter_model("fp32")
+            lane = fp32 if lane_precision == "fp32" else lifter_model(lane_precision)
             terms = CameraTerms(fp32, lane, channels, feature_hw, quadrant_hw, heights, session, stats)
             fp32_tail = terms if lane is fp32 else CameraTerms(fp32, fp32, channels, feature_hw, quadrant_hw, heights, session)
             err = terms.check(fp32_lifter_run, qluts, fp32_tail)

@@ -47,6 +47,7 @@ from pathlib import Path
 from typing import Mapping, Sequence
 
 import numpy as np
+import onnx
 
 from streamdet.calibration.camera import CalibrationError, Rig
 from streamdet.calibration.grid import GridSpec
@@ -64,13 +65,14 @@ from streamdet.runtime_ort.camera_terms import CameraTerms, open_camera_terms
 from streamdet.runtime_ort.coalesce import check_coalesced, split_by_slice
 from streamdet.runtime_ort.detector_config import DetectorConfig, NoImageLaneError, lane_precision_label  # noqa: F401
 from streamdet.runtime_ort.detector_results import ImageUpdate, SliceResult, SweepResult
+from streamdet.runtime_ort.graph_files import checked_model
 from streamdet.runtime_ort.export_settings import export_nms, export_rig, image_spec_at
 from streamdet.runtime_ort.fallback import FALLBACK_GRAPH, LidarFallback, needs_fallback, open_fallback
 from streamdet.runtime_ort.image_cache import (  # noqa: F401 (check_camera_timestamps: public here too)
     ALL_QUADRANTS, ImageCache, QuadrantState, check_camera_timestamps, quadrant_states, select_maps, update_quadrants,
 )
 from streamdet.runtime_ort.lut_views import LutViews
-from streamdet.runtime_ort.manifest import ImageSpec, Manifest, ManifestError, export_file, read_manifest
+from streamdet.runtime_ort.manifest import ImageSpec, Manifest, ManifestError, read_export_file, read_manifest
 from streamdet.runtime_ort.pillarize import POINT_DIM, pillarize
 from streamdet.runtime_ort.postprocess import Detections, PostprocessConfig, aggregate_sweep, postprocess_slice, top_k_reached
 from streamdet.runtime_ort.recording import Feeds, GraphRecording
@@ -136,9 +138,9 @@ class StreamingDetector:
 
         def session(name: str, threads: int, precision: str) -> GraphSession:
             entry = m.graph(name, precision)
-            path = export_file(self.export_dir, entry.file, f"graph file of {name} ({precision})")
+            path, raw, _ = self._read_graph(name, precision)
             cfg = SessionConfig(config.providers, threads, enable_profiling=config.enable_profiling)
-            graph = GraphSession(path, cfg)
+            graph = GraphSession(path, cfg, model=raw)  # the bytes hashed are the bytes loaded
             check_graph(entry, graph.inputs, graph.outputs, m, self.grid)  # the graph is what the manifest says
             return graph
 
@@ -173,8 +175,12 @@ class StreamingDetector:
         self._image_seq = 0  # update_images calls started (under _lock)
         self._lut: Lut | None = None  # stays None for a LiDAR-only export
         if self.uses_images and (self.image.width, self.image.height) == (m.image.width, m.image.height):
-            lut_path = export_file(self.export_dir, m.lut.file, "lut.file")
-            self._lut = self._check_lut(Lut.load(lut_path, self.grid, len(self.camera_names)))  # headers checked first
+            lut_path, raw = read_export_file(self.export_dir, m.lut, "lut.file", config.verify_sha256)
+            lut = Lut.load(lut_path, self.grid, len(self.camera_names), data=raw)  # headers checked first
+            if lut.calibration_sha256 != m.lut.calibration_sha256:  # streamdet-calib rewrites both together
+                raise ManifestError(f"{lut_path} was built from calibration {lut.calibration_sha256[:12]}..., the manifest "
+                                    f"records {m.lut.calibration_sha256[:12]}... (lut.calibration_sha256)")  # fmt: skip
+            self._lut = self._check_lut(lut)
         elif self.uses_images:
             self._lut = self._check_lut(self._build_lut(export_rig(m, self.export_dir)))
         self._image: ImageCache | None = None  # None before the first image update; replaced whole under _lock
@@ -184,25 +190,34 @@ class StreamingDetector:
         self._terms: CameraTerms | None = self._open_camera_terms() if self.uses_images and self._lut is not None else None
         log.info("streamdet: %s (%s, %d slices) on %s", self.export_dir, self.precision_label, self.num_slices, list(self.providers))
 
+    def _read_graph(self, name: str, precision: str) -> tuple[Path, bytes, onnx.ModelProto]:
+        """(path, bytes, parsed model) of one of the export's graphs: read once, hashed (``verify_sha256``), no
+        external data, the opset and precision its manifest entry records (runtime_ort/graph_files.py)."""
+        entry = self.manifest.graph(name, precision)
+        path, raw = read_export_file(self.export_dir, entry, f"graph file of {name} ({precision})", self.config.verify_sha256)
+        return path, raw, checked_model(path, raw, entry)
+
     def _open_camera_terms(self) -> CameraTerms | None:
         m, config = self.manifest, self.config
-        precisions = [p for p in ("fp32", config.image_precision) if p in m.precisions]
-        files = {p: export_file(self.export_dir, m.graph("volumetric_lifter", p).file, f"graph file of volumetric_lifter ({p})")
-                 for p in precisions}  # fmt: skip
         fp32 = self.lifter if config.image_precision == "fp32" else None
 
         def fp32_lift(qlut: QuadrantLut, maps: np.ndarray) -> np.ndarray:
             nonlocal fp32
             if fp32 is None:  # the check's reference: the export's fp32 lifter, opened for the check only
-                fp32 = GraphSession(files["fp32"], SessionConfig(config.providers, config.image_lane_threads))
+                path, raw, _ = self._read_graph("volumetric_lifter", "fp32")
+                fp32 = GraphSession(path, SessionConfig(config.providers, config.image_lane_threads), model=raw)
+                check_graph(m.graph("volumetric_lifter", "fp32"), fp32.inputs, fp32.outputs, m, self.grid)
             return fp32.run({"features": maps, **self._lut_feeds(qlut, maps)})[0]
+
+        def lifter_model(precision: str) -> onnx.ModelProto:
+            return self._read_graph("volumetric_lifter", precision)[2]
 
         img = self.image
         grid = self.grid
         session = SessionConfig(config.providers, config.image_lane_threads, enable_profiling=False)
         form = m.preset.get("lifter", {}).get("form", "volume")  # absent: manifests written before the flat lifter
         return open_camera_terms(
-            self.export_dir, form, files, config.image_precision, config.camera_terms, int(m.preset["channels"]),
+            self.export_dir, form, lifter_model, config.image_precision, config.camera_terms, int(m.preset["channels"]),
             (img.feature_height, img.feature_width), (grid.quadrant_ny, grid.quadrant_nx), session, self.stats, fp32_lift,
             self._luts_of(self._lut),
         )  # fmt: skip

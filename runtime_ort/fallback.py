@@ -25,7 +25,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from streamdet.calibration.grid import GridSpec
-from streamdet.runtime_ort.manifest import GraphEntry, Manifest, ManifestError, export_file, read_manifest
+from streamdet.runtime_ort.graph_files import checked_model
+from streamdet.runtime_ort.manifest import GraphEntry, Manifest, ManifestError, read_export_file, read_manifest
 from streamdet.runtime_ort.sessions import GraphSession, SessionConfig
 from streamdet.runtime_ort.signature import check_graph, check_runtime_fields
 
@@ -77,7 +78,9 @@ def open_fallback(export_dir: str | Path, main: Manifest, grid: GridSpec, sessio
     if precision not in m.precisions:
         raise ValueError(f"{where} has no {precision} graphs (it has {list(m.precisions)}; DetectorConfig.precision)")
     entry = m.graph("slice_head", precision)
-    graph = GraphSession(export_file(path, entry.file, f"graph file of slice_head ({precision})"), session_config)
+    file, raw = read_export_file(path, entry, f"graph file of slice_head ({precision})", verify_sha256)
+    checked_model(file, raw, entry)
+    graph = GraphSession(file, session_config, model=raw)  # the bytes hashed are the bytes loaded
     check_graph(entry, graph.inputs, graph.outputs, m, fb_grid)
     return LidarFallback(path, m, graph, entry, m.slice_crop)
 

@@ -59,7 +59,9 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, BinaryIO, Callable
 
+from streamdet.calibration.lut_file import MAX_LUT_BYTES, MAX_LUT_META_BYTES
 from streamdet.core.constants import PRECISIONS
+from streamdet.core.file_input import InputFileError, read_regular_file
 from streamdet.core.image_layout import IMAGE_BEV, IMAGE_HALF, IMAGE_LAYOUTS
 from streamdet.core.lut_layout import LUT_LAYOUTS, LUT_SLOTS
 from streamdet.runtime_ort.schema import SchemaViolation, validate
@@ -92,6 +94,30 @@ def export_file(export_dir: str | os.PathLike, name: str, what: str = "file") ->
     if path.parent != root:
         raise ManifestError(f"{what} {name!r} in {root} resolves to {path}, outside the export directory (a symlink?)")
     return path
+
+
+MAX_GRAPH_BYTES = (2 << 30) - 1  # protobuf's limit on one serialized message: a larger file is no ONNX graph
+# lut.npz: its members' cap (calibration/lut_file.py) plus the zip's directory and headers
+MAX_LUT_FILE_BYTES = MAX_LUT_BYTES + MAX_LUT_META_BYTES + (1 << 20)
+
+
+def read_export_file(export_dir: str | os.PathLike, entry: GraphEntry | LutEntry, what: str, verify_sha256: bool) -> tuple[Path, bytes]:
+    """(path, bytes) of the file ``entry`` names: confined to the export directory (``export_file``), a regular
+    file within its limit (MAX_GRAPH_BYTES, MAX_LUT_FILE_BYTES), and, with ``verify_sha256``, hashing to the
+    manifest's sha256. ManifestError naming the file otherwise."""
+    limit = MAX_LUT_FILE_BYTES if isinstance(entry, LutEntry) else MAX_GRAPH_BYTES
+    path = export_file(export_dir, entry.file, what)
+    try:
+        raw = read_regular_file(path, limit)
+    except InputFileError as e:
+        if e.reason == "missing":
+            raise ManifestError(f"{path} is named in the manifest but missing ({what})") from None
+        raise ManifestError(f"{what}: {e}") from None
+    if verify_sha256:
+        got = hashlib.sha256(raw).hexdigest()
+        if got != entry.sha256:
+            raise ManifestError(f"{path} has sha256 {got[:12]}..., the manifest says {entry.sha256[:12]}...")
+    return path, raw
 
 
 def sha256_file(path: str | os.PathLike) -> str:
@@ -523,12 +549,15 @@ def read_manifest(export_dir: str | os.PathLike, verify_files: bool = True) -> M
     path = export_dir / MANIFEST_NAME
     if not path.is_file():
         raise ManifestError(f"{path} does not exist: not a (complete) streamdet export directory")
+    export_file(export_dir, MANIFEST_NAME, "the manifest")  # confined as the files it names: no symlink out
     too_deep = ManifestError(f"{path} nests deeper than {MAX_MANIFEST_DEPTH} levels: not a streamdet manifest")
     try:
-        with open(path, "rb") as f:
-            raw = f.read(MAX_MANIFEST_BYTES + 1)
-        if len(raw) > MAX_MANIFEST_BYTES:
-            raise ManifestError(f"{path} is larger than {MAX_MANIFEST_BYTES >> 20} MiB: not a streamdet manifest")
+        raw = read_regular_file(path, MAX_MANIFEST_BYTES)
+    except InputFileError as e:
+        if e.too_large:
+            raise ManifestError(f"{path} is larger than {MAX_MANIFEST_BYTES >> 20} MiB: not a streamdet manifest") from None
+        raise ManifestError(f"{path}: {e.reason}") from None
+    try:
         d = json.loads(raw.decode("utf-8"))
     except (OSError, ValueError) as e:  # ValueError: JSONDecodeError, UnicodeDecodeError, an integer of over 4300 digits
         raise ManifestError(f"{path} is not readable JSON: {e}") from None
@@ -541,13 +570,10 @@ def read_manifest(export_dir: str | os.PathLike, verify_files: bool = True) -> M
     except ManifestError as e:
         raise ManifestError(f"{path}: {e}") from None
     for entry, what in m.files():
-        f = export_file(export_dir, entry.file, what)
-        if verify_files:
-            if not f.is_file():
-                raise ManifestError(f"{export_dir / entry.file} is named in the manifest but missing")
-            got = sha256_file(f)
-            if got != entry.sha256:
-                raise ManifestError(f"{export_dir / entry.file} has sha256 {got[:12]}..., the manifest says {entry.sha256[:12]}...")
+        if verify_files:  # bounded and hashed as loaders read them; the bytes are dropped at once
+            read_export_file(export_dir, entry, what, verify_sha256=True)
+        else:
+            export_file(export_dir, entry.file, what)
     return m
 
 

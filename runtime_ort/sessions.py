@@ -110,12 +110,15 @@ def ort_session(model: str | os.PathLike | bytes, config: SessionConfig = EXPORT
 class GraphSession:
     """One ONNX graph in one onnxruntime session, with its I/O metadata read once."""
 
-    def __init__(self, path: str | Path, config: SessionConfig = SessionConfig()) -> None:
+    def __init__(self, path: str | Path, config: SessionConfig = SessionConfig(), model: bytes | None = None) -> None:
+        """``model``: the graph's bytes, already read (and checked) by the caller, which onnxruntime loads instead of
+        opening ``path`` again (runtime_ort/export_files.py); ``path`` then names the graph in messages."""
         self.path = Path(path)
         opts = session_options(config, profile_prefix=str(self.path.with_suffix("")) + ".profile")
         providers = resolve_providers(config.providers)
         try:
-            self.session = ort.InferenceSession(str(self.path), sess_options=opts, providers=providers)
+            src = model if model is not None else str(self.path)
+            self.session = ort.InferenceSession(src, sess_options=opts, providers=providers)
         except ORT_ERRORS as e:  # a truncated, empty or foreign file that passed (or skipped) the sha256 check
             raise ManifestError(f"{self.path}: onnxruntime cannot load this graph: {ort_message(e)}") from None
         self.providers = tuple(self.session.get_providers())

@@ -47,11 +47,24 @@ def check_runtime_fields(manifest: Manifest) -> None:
                 f"manifest image.feature_width/height {img.feature_width}x{img.feature_height} do not follow from "
                 f"{img.width}x{img.height} at stride {img.feature_stride} (expected {want[0]}x{want[1]})"
             )
+    preset_grid = manifest.preset.get("grid")
+    if preset_grid is not None and _grid_or_none(preset_grid) != _grid_or_none(manifest.grid):
+        raise ManifestError(
+            f"manifest grid {manifest.grid} differs from the grid its preset was trained on, preset.grid {preset_grid} "
+            "(the same cell counts over other ranges would pass every graph check and put every box in the wrong place)"
+        )
     ious = manifest.post.get("nms_iou_threshold")
     if ious is not None and len(ious) != len(manifest.class_names):
         raise ManifestError(
             f"manifest post.nms_iou_threshold holds {len(ious)} values, expected one per class ({len(manifest.class_names)})"
         )
+
+
+def _grid_or_none(d: object) -> GridSpec | None:
+    try:
+        return GridSpec.from_dict(d)
+    except (ValueError, TypeError, KeyError):
+        return None
 
 
 def expected_io(manifest: Manifest, grid: GridSpec, name: str) -> tuple[tuple[TensorSignature, ...], tuple[TensorSignature, ...]]:
@@ -122,6 +135,17 @@ def check_graph(
         for got, rec, want in zip(real, recorded, wanted):
             _compare(where, got, _from_spec(rec), "the manifest records")
             _compare(where, got, want, "the runtime feeds/reads")
+            if kind == "input":  # the runtime feeds varying sizes where it leaves a dimension open
+                _check_open(where, got, want)
+
+
+def _check_open(where: str, got: TensorSignature, want: TensorSignature) -> None:
+    for axis, (g, w) in enumerate(zip(got.shape, want.shape)):
+        if w is None and g is not None:
+            raise ManifestError(
+                f"{where}: input {got.name!r} fixes dimension {axis} at {g}, which the runtime varies (cameras, pillars, "
+                "quadrants, image size): every run of another size would fail (a graph exported without its dynamic axes?)"
+            )
 
 
 def _from_spec(spec: TensorSpec) -> TensorSignature:

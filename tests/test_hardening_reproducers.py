@@ -327,7 +327,7 @@ def test_a_damaged_graph_with_its_sha256_updated_is_a_manifest_error(export_copy
     data = f.read_bytes()
     f.write_bytes({"empty": b"", "truncated": data[: len(data) // 3], "garbage": os.urandom(4096)}[damage])
     _edit_manifest(export_copy, lambda d: [g.update(sha256=sha256_file(f)) for g in d["graphs"] if g["file"] == f.name])
-    with pytest.raises(ManifestError, match="slice_head.onnx: onnxruntime cannot load this graph"):
+    with pytest.raises(ManifestError, match=r"slice_head.onnx: (onnxruntime cannot load this graph|not an ONNX model)"):
         StreamingDetector(export_copy)
 
 

@@ -112,6 +112,10 @@ def test_a_fallback_of_another_grid_is_refused(tiny_export, lidar_export, tmp_pa
     m = json.loads(path.read_text())
     m["grid"]["voxel_xy_m"] = m["grid"]["voxel_xy_m"] * 2
     path.write_text(json.dumps(m))
+    with pytest.raises(ValueError, match="differs from the grid its preset was trained on"):  # an edit of one copy
+        StreamingDetector(tiny_export, DetectorConfig(fallback_export_dir=other))
+    m["preset"]["grid"]["voxel_xy_m"] = m["grid"]["voxel_xy_m"]  # a LiDAR-only export of another grid
+    path.write_text(json.dumps(m))
     with pytest.raises(ValueError, match="another grid"):
         StreamingDetector(tiny_export, DetectorConfig(fallback_export_dir=other))
 
