@@ -22,6 +22,7 @@ from typing import Any, Iterable, Mapping
 import numpy as np
 
 from streamdet.calibration.projection import project_points, visible_mask
+from streamdet.core.file_input import InputFileError, read_regular_file
 from streamdet.core.json_input import short_repr
 
 # A rotation read from a float32 source deviates from orthonormal by ~1e-7; a hand-edited or corrupted
@@ -395,18 +396,14 @@ class Rig:
                 raise CalibrationError(f"{src}: nests too deeply to be a calibration file") from None
         else:
             src = os.path.basename(os.fspath(path_or_dict))
+            try:  # a regular file, bounded: a FIFO (it would block) or a device or a huge file is refused unread
+                raw = read_regular_file(path_or_dict, MAX_CALIBRATION_BYTES)
+            except InputFileError as e:
+                if e.too_large:
+                    raise CalibrationError(f"{src}: larger than {MAX_CALIBRATION_BYTES} bytes, too large to be a calibration file") from None
+                raise CalibrationError(f"{src}: cannot read: {e.reason}") from None
             try:
-                with open(path_or_dict, "rb") as f:
-                    raw = f.read(MAX_CALIBRATION_BYTES + 1)  # bounded: a device or a huge file is refused, not read
-                if len(raw) > MAX_CALIBRATION_BYTES:
-                    raise CalibrationError(
-                        f"{src}: larger than {MAX_CALIBRATION_BYTES} bytes, too large to be a calibration file"
-                    )
                 doc = json.loads(raw.decode("utf-8"))
-            except CalibrationError:  # the size cap above; a ValueError, so it must pass the JSON clause below
-                raise
-            except OSError as e:
-                raise CalibrationError(f"{src}: cannot read: {e.strerror}") from None
             except UnicodeDecodeError as e:  # a ValueError too: caught before the JSON one below
                 raise CalibrationError(f"{src}: not UTF-8 text (a binary file?): {e.reason} at byte {e.start}") from None
             except ValueError as e:  # JSONDecodeError, or an integer literal past Python's 4300-digit limit

@@ -39,8 +39,9 @@ import numpy as np
 from streamdet.calibration.camera import MAX_IMAGE_PX, CalibrationError, Rig, as_image_px
 from streamdet.calibration.grid import GridSpec
 from streamdet.calibration.lut_file import (  # noqa: F401  (re-exported)
-    MAX_HEIGHTS_PER_VOXEL, MAX_LUT_BYTES, LutFileError, check_lut_archive,
+    MAX_HEIGHTS_PER_VOXEL, MAX_LUT_BYTES, MAX_LUT_FILE_BYTES, LutFileError, check_lut_archive,
 )
+from streamdet.core.file_input import InputFileError, read_regular_file
 from streamdet.core.json_input import short_repr
 from streamdet.core.sectors import NUM_QUADRANTS, check_quadrants
 
@@ -245,6 +246,11 @@ class Lut:
         file's bytes, already read (and hashed) by the caller; then ``path`` only names it and is not opened, so
         what was checked is what is loaded."""
         src = os.path.basename(os.fspath(path))
+        if data is None:  # read once, bounded: a FIFO (it would block) or a device is refused, never opened twice
+            try:
+                data = read_regular_file(path, MAX_LUT_FILE_BYTES)
+            except InputFileError as e:
+                raise LutFileError(f"{src}: not a readable LUT .npz: {e.reason}") from None
         check_lut_archive(path, grid, num_cameras, data)
         try:
             with np.load(io.BytesIO(data) if data is not None else path, allow_pickle=False) as z:

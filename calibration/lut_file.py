@@ -33,6 +33,7 @@ from streamdet.core.sectors import NUM_QUADRANTS
 # tables: 1 GiB allows K = 32, above its 6 cameras x 2 heights per voxel; a bomb declares far more.
 MAX_LUT_BYTES = 1 << 30
 MAX_LUT_META_BYTES = 1 << 20  # the meta JSON string; a real one is under a kB
+MAX_LUT_FILE_BYTES = MAX_LUT_BYTES + MAX_LUT_META_BYTES + (1 << 20)  # the whole .npz: members plus zip headers
 MAX_HEIGHTS_PER_VOXEL = 64  # as calibration.lut: bounds K for a given camera count
 MEMBERS = ("index", "weight", "meta")
 DTYPES = {"index": np.dtype(np.int32), "weight": np.dtype(np.float32)}

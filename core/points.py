@@ -32,6 +32,11 @@ SWEEP_DURATION_S = 0.05  # nuScenes LIDAR_TOP spins at 20 Hz
 REFLECTANCE_RANGE = (0.0, 1.0)
 MAX_POINT_TIME_S = 1.0  # a slice point's time: within its sweep, plus the age of a past sweep (nuScenes' 10: 0.5 s)
 MAX_SLICE_INDEX = 4095  # the slice index column's bound: core/sectors.py MAX_NUM_SLICES - 1 (the schema's cap too)
+# The most points one call may hand the runtime, refused (ValueError) before any work: a 128-beam spinning LiDAR
+# gives a few hundred thousand points a sweep, a sweep with nuScenes' 10 past sweeps about 3.5 million. Past these an
+# array is corrupt (or declared through zero strides), and its pillarisation would need gigabytes.
+MAX_SLICE_POINTS = 1 << 22  # 4.2 M: one slice, or the slices of one coalesced run together
+MAX_SWEEP_POINTS = 1 << 24  # 16.8 M: one sweep for detect_sweep
 
 
 def check_sweep(points: np.ndarray, name: str = "sweep", *, exact: bool = True) -> np.ndarray:

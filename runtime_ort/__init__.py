@@ -17,6 +17,7 @@ _EXPORTS = {
     "ImageUpdate": "streamdet.runtime_ort.detector_results",
     "SweepResult": "streamdet.runtime_ort.detector_results",
     "NoImageLaneError": "streamdet.runtime_ort.detector_config",
+    "DetectorClosed": "streamdet.runtime_ort.detector_config",
     "StreamingRunner": "streamdet.runtime_ort.lanes",
     "LaneConfig": "streamdet.runtime_ort.lanes",
     "SliceDropped": "streamdet.runtime_ort.lanes",

@@ -35,10 +35,9 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import math
-import numbers
 import os
 import threading
+import weakref
 import time
 import warnings
 from collections.abc import Iterator
@@ -57,13 +56,14 @@ from streamdet.calibration.lut import (
 from streamdet.calibration.quadrant_lut import QuadrantLut
 from streamdet.core.constants import PRECISIONS  # noqa: F401 (public here too)
 from streamdet.core.image_layout import image_map_chw
-from streamdet.core.points import MAX_POINT_TIME_S, MAX_SLICE_INDEX, REFLECTANCE_RANGE, check_sweep
+from streamdet.core.json_input import is_finite_number, short_repr
+from streamdet.core.points import MAX_POINT_TIME_S, MAX_SLICE_INDEX, MAX_SLICE_POINTS, MAX_SWEEP_POINTS, REFLECTANCE_RANGE, check_sweep
 from streamdet.core.sectors import NUM_QUADRANTS, check_num_slices, quadrants_of_sector, sector_bounds_deg
 from streamdet.core.slicing import split_sweep
 # the public names of the runtime's API are importable from here too, where StreamingDetector lives
 from streamdet.runtime_ort.camera_terms import CameraTerms, open_camera_terms
 from streamdet.runtime_ort.coalesce import check_coalesced, split_by_slice
-from streamdet.runtime_ort.detector_config import DetectorConfig, NoImageLaneError, lane_precision_label  # noqa: F401
+from streamdet.runtime_ort.detector_config import DetectorClosed, DetectorConfig, NoImageLaneError, lane_precision_label  # noqa: F401
 from streamdet.runtime_ort.detector_results import ImageUpdate, SliceResult, SweepResult
 from streamdet.runtime_ort.graph_files import checked_model
 from streamdet.runtime_ort.export_settings import export_nms, export_rig, image_spec_at
@@ -76,7 +76,7 @@ from streamdet.runtime_ort.manifest import ImageSpec, Manifest, ManifestError, r
 from streamdet.runtime_ort.pillarize import POINT_DIM, pillarize
 from streamdet.runtime_ort.postprocess import Detections, PostprocessConfig, aggregate_sweep, postprocess_slice, top_k_reached
 from streamdet.runtime_ort.recording import Feeds, GraphRecording
-from streamdet.runtime_ort.sessions import GraphSession, SessionConfig
+from streamdet.runtime_ort.sessions import GraphRunError, GraphSession, SessionConfig
 from streamdet.runtime_ort.signature import check_graph, check_runtime_fields
 from streamdet.runtime_ort.stats import LatencyStats
 from streamdet.runtime_ort.warm_up import warm_up
@@ -171,6 +171,10 @@ class StreamingDetector:
         self._cap_lock = threading.Lock()  # slice workers count runs at the top-K cap at once
         self._runs_at_top_k = 0
         self._warned_out_of_range = False  # a slice dropped points with a feature out of range (logged once)
+        self._warned_nonfinite_outputs = False  # a slice graph run gave NaN / inf rows (logged once)
+        # encode_images' maps by id (weakly): trusted as they are by update_images / prepare_terms (_check_encoded)
+        self._own_maps: weakref.WeakValueDictionary[int, np.ndarray] = weakref.WeakValueDictionary()
+        self._closed = False
         self._calibration_lock = threading.Lock()  # one calibration swap (and its re-lift) at a time
         self._image_seq = 0  # update_images calls started (under _lock)
         self._lut: Lut | None = None  # stays None for a LiDAR-only export
@@ -408,7 +412,11 @@ class StreamingDetector:
         self.check_images(images)
         used = tuple(n for n in self.camera_names if n in images)
         features = self._encode(images, used, used)  # (J_used, C, Hf, Wf)
-        return {name: features[j] for j, name in enumerate(used)}
+        features.setflags(write=False)  # its views below cannot be made writable: safe to keep terms by identity
+        maps = {name: features[j] for j, name in enumerate(used)}
+        for f in maps.values():
+            self._own_maps[id(f)] = f  # weak: gone with the caller's last reference
+        return maps
 
     def warm_up(self, rounds: int = 2) -> None:
         """Run every graph ``rounds`` times on dummy inputs before the first real data (onnxruntime's first runs of
@@ -436,7 +444,9 @@ class StreamingDetector:
         self._check_feature_maps(encoded)
         with self._lock:
             lut = self._lut
-        return self._terms.prepare(self._luts_of(lut), encoded)
+        # only encode_images' maps: a caller's array is copied by update_images, so terms made of it would not be used
+        own = {name: f for name, f in encoded.items() if self._own_maps.get(id(f)) is f}
+        return self._terms.prepare(self._luts_of(lut), own) if own else 0
 
     def _check_feature_maps(self, encoded: Mapping[str, np.ndarray]) -> None:
         img = self.image
@@ -449,6 +459,8 @@ class StreamingDetector:
             if not isinstance(f, np.ndarray) or f.dtype != np.float32 or f.shape != shape:
                 got = f"{getattr(f, 'dtype', type(f).__name__)} {getattr(f, 'shape', '')}"
                 raise ValueError(f"encoded[{name!r}] must be a float32 feature map of shape {shape} (encode_images), got {got}")
+            if self._own_maps.get(id(f)) is not f and not np.isfinite(f).all():  # encode_images' own are checked
+                raise ValueError(f"encoded[{name!r}] holds NaN or infinite values: it would blind every slice reading it")
 
     def _check_encoded(self, encoded: Mapping[str, np.ndarray] | None, images: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
         if encoded is None:
@@ -457,7 +469,10 @@ class StreamingDetector:
             if name not in images:
                 raise ValueError(f"encoded names camera {name!r}, whose image this update was not given")
         self._check_feature_maps(encoded)
-        return dict(encoded)
+        # Per-camera terms are kept by the map object they were made from (camera_terms.py): only encode_images'
+        # maps, read-only views of a read-only array, cannot change under that identity. A caller's own array may be
+        # refilled in place for the next frame, so it is copied: its terms are never mistaken for the new frame's.
+        return {name: f if self._own_maps.get(id(f)) is f else _frozen_copy(f) for name, f in encoded.items()}
 
     def quadrant_cameras(self, quadrants: Sequence[int]) -> tuple[str, ...]:
         """The cameras whose feature maps the LUT in use reads in these quadrants, in the export's camera order."""
@@ -528,6 +543,10 @@ class StreamingDetector:
             if not todo:
                 return False
             bevs = self._lift_quadrants(features, cameras, todo, lut, maps)
+            for q, bev in zip(todo, bevs):  # tens of microseconds a quadrant: a sliver of its lift
+                if not np.isfinite(bev).all():
+                    raise GraphRunError(f"the image lane made a non-finite image BEV for quadrant {q} ({self.precision_label}: "
+                                        "an encoder or lifter graph overflowing?); the cached BEV is kept")  # fmt: skip
             qluts = self._luts_of(lut) if camera_timestamps else ()
             with self._lock:
                 if self._lut is not lut:
@@ -679,6 +698,11 @@ class StreamingDetector:
                 )
             if p.dtype != np.float32:
                 raise ValueError(f"points must be float32, got {p.dtype}")
+            if isinstance(p, np.ma.MaskedArray):  # its mask would be ignored: masked points detected as real ones
+                raise ValueError("points must be a plain array, got a masked array (drop the masked rows first: p[~p.mask.any(1)])")
+        total = sum(p.shape[0] for p in points)
+        if total > MAX_SLICE_POINTS:  # before any work: a corrupt count (or zero strides) would need gigabytes
+            raise ValueError(f"a slice run holds {total} points, over the {MAX_SLICE_POINTS} of MAX_SLICE_POINTS (core/points.py)")
         quadrants = quadrants_of_sector(ks[0], n, self.config.start_deg)
         t0 = time.perf_counter()
         cache = quadrant_states(self._image)  # one read: a consistent view of the cache
@@ -699,6 +723,7 @@ class StreamingDetector:
                         "intensity scaled to 0..255 (CloudFields.intensity_scale); counted in num_outside_dropped",
                         self.export_dir, pillars.num_out_of_range_dropped, ks[-1], list(REFLECTANCE_RANGE),
                         MAX_POINT_TIME_S, MAX_SLICE_INDEX)  # fmt: skip
+        nonfinite = 0
         if pillars.num_pillars == 0:
             dets = Detections.empty()
         else:
@@ -712,6 +737,7 @@ class StreamingDetector:
                 feeds, graph = pillars.as_feeds(quadrants if crop else None), "slice_head"
             with self.stats.time(graph, self._executed_gmac(graph, Q=num_maps)):
                 boxes, scores, labels = self._run_graph(graph, feeds)
+            nonfinite = self._check_slice_outputs(graph, boxes, scores, labels, ks[-1])
             if top_k_reached(scores, self._post.score_threshold):
                 with self._cap_lock:
                     self._runs_at_top_k += 1
@@ -736,11 +762,31 @@ class StreamingDetector:
                 num_nonfinite_dropped=pillars.num_nonfinite_dropped if i == last else 0,
                 num_outside_dropped=pillars.num_outside_dropped if i == last else 0,
                 num_points_dropped=pillars.num_points_dropped if i == last else 0,
+                num_nonfinite_outputs=nonfinite if i == last else 0,
                 fallback=fallback,
                 coalesced=ks if len(ks) > 1 else (),
             )
             for i, (k, p, ts, part) in enumerate(zip(ks, points, timestamps, parts))
         )
+
+    def _check_slice_outputs(self, graph: str, boxes: np.ndarray, scores: np.ndarray, labels: np.ndarray, k: int) -> int:
+        """The number of output rows with a NaN or inf (dropped by the post-processing, counted in SliceResult and
+        logged once: a graph overflowing, e.g. fp16 on unusual input). Labels outside the classes or scores outside
+        [0, 1] are no output of a slice graph at all: GraphRunError naming it (the run's input was fine)."""
+        bad = ~(np.isfinite(boxes).all(axis=-1) & np.isfinite(scores))  # (Q, K)
+        nonfinite = int(bad.sum())
+        if nonfinite and not self._warned_nonfinite_outputs:
+            self._warned_nonfinite_outputs = True
+            log.warning("%s: %s gave %d output row(s) with NaN or inf in slice %d, dropped and counted in "
+                        "SliceResult.num_nonfinite_outputs (logged once)", self.export_dir, graph, nonfinite, k)  # fmt: skip
+        file = self._sessions[graph].path.name
+        wrong = (labels < 0) | (labels >= len(self.manifest.class_names))
+        if wrong.any():
+            raise GraphRunError(f"{file}: det_labels holds {int(labels[wrong][0])}, outside the {len(self.manifest.class_names)} classes")
+        ok = scores[~bad]
+        if ok.size and not (ok.min() >= 0.0 and ok.max() <= 1.0):
+            raise GraphRunError(f"{file}: det_scores holds {float(ok.min()):.6g}..{float(ok.max()):.6g}, outside [0, 1]")
+        return nonfinite
 
     def _image_bev(self, states: tuple[QuadrantState | None, ...]) -> np.ndarray:
         """(Q, C, Yq, Xq) image BEV of the slice's quadrants, or in the image_half layout their image half
@@ -765,9 +811,13 @@ class StreamingDetector:
     def detect_sweep_slices(self, sweep: np.ndarray, timestamp: float | None = None, num_slices: int | None = None) -> SweepResult:
         """``detect_sweep`` keeping what each slice saw and found (its points and ``SliceResult``)."""
         n = self._slices(num_slices)
+        if isinstance(sweep, np.ma.MaskedArray):
+            raise ValueError("sweep must be a plain array, got a masked array (its mask would be ignored)")
         sweep = check_sweep(sweep)
         if sweep.dtype.kind not in "fiu":
             raise ValueError(f"sweep must hold real numbers (float or int), got dtype {sweep.dtype}")
+        if sweep.shape[0] > MAX_SWEEP_POINTS:
+            raise ValueError(f"sweep holds {sweep.shape[0]} points, over the {MAX_SWEEP_POINTS} of MAX_SWEEP_POINTS (core/points.py)")
         slices = split_sweep(sweep.astype(np.float32, copy=False), n, self.config.start_deg)
         results = [self.detect_slice(pts, k, timestamp, n) for k, pts in enumerate(slices)]
         with self.stats.time("sweep_nms"):
@@ -792,7 +842,10 @@ class StreamingDetector:
         return dict(self._sessions)
 
     def _run_graph(self, name: str, feeds: Feeds) -> list[np.ndarray]:
-        outputs = self._sessions[name].run(feeds)
+        session = self._sessions.get(name)
+        if session is None:
+            raise DetectorClosed(f"{self.export_dir}: the detector was closed; make a new StreamingDetector")
+        outputs = session.run(feeds)
         for recording in self._recordings:
             recording.add(name, feeds, outputs)
         return outputs
@@ -818,10 +871,18 @@ class StreamingDetector:
 
     # ---- lifetime ------------------------------------------------------------------------------
     def close(self) -> list[str]:
-        """End profiling (if enabled); returns the profile files written."""
-        if not self.config.enable_profiling:
-            return []
-        return [s.end_profiling() for s in self._sessions.values()]
+        """Release the sessions; returns the profile files written (``enable_profiling``; else none). Any later call
+        that runs a graph raises DetectorClosed; a second close returns []."""
+        with self._lock:
+            if self._closed:
+                return []
+            self._closed = True
+            sessions, self._sessions = self._sessions, {}
+        written = [s.end_profiling() for s in sessions.values()] if self.config.enable_profiling else []
+        self.image_encoder = self.lifter = self.slice_head = None
+        if self._terms is not None:
+            self._terms = None
+        return written
 
     def __enter__(self) -> "StreamingDetector":
         return self
@@ -834,6 +895,13 @@ def _timestamp(value: float | None) -> float:
     """A call's timestamp: None is now (time.monotonic()); anything else must be a finite real number of seconds."""
     if value is None:
         return time.monotonic()
-    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
-        raise ValueError(f"timestamp must be None or a finite number of seconds, got {value!r}")
+    if not is_finite_number(value):  # no OverflowError for 10**400
+        raise ValueError(f"timestamp must be None or a finite number of seconds, got {short_repr(value)}")
     return float(value)
+
+
+def _frozen_copy(a: np.ndarray) -> np.ndarray:
+    """A read-only copy of ``a``: nobody, the caller included, can change it under the object's identity."""
+    out = np.array(a, dtype=np.float32, copy=True)
+    out.setflags(write=False)
+    return out

@@ -15,6 +15,9 @@ from streamdet.core.sectors import check_num_slices
 from streamdet.runtime_ort.fallback import check_fallback_age
 from streamdet.runtime_ort.nms import NmsConfig
 
+# Intra-op threads of one lane's sessions. A vehicle computer has tens of cores; thousands of threads (512 a
+# session) made onnxruntime hang at start under an address-space limit.
+MAX_LANE_THREADS = 256
 
 def lane_precision_label(precision: str, image_precision: str | None) -> str:
     """``"fp32"``, or ``"int8 image lane + fp32 slices"`` when the image lane runs another precision than the slices."""
@@ -27,6 +30,10 @@ class NoImageLaneError(ValueError):
     """An image-lane call (images, calibration, image size) on a LiDAR-only export, which has no image lane."""
 
 
+class DetectorClosed(RuntimeError):
+    """A call that runs a graph on a StreamingDetector after its close() (or the end of its ``with`` block)."""
+
+
 @dataclass(frozen=True)
 class DetectorConfig:
     precision: str = "fp32"  # fp32 | fp16 | int8; the export must hold graphs of that precision
@@ -35,13 +42,13 @@ class DetectorConfig:
     # exact; its int8 sibling is not faster (README, "Which precision").
     image_lane_precision: str | None = None
     providers: tuple[str, ...] | None = None  # None: TensorRT > CUDA > CPU, whichever onnxruntime has
-    image_lane_threads: int = 1  # intra-op threads of the image encoder and lifter sessions
-    slice_lane_threads: int = 1  # intra-op threads of the slice session
+    image_lane_threads: int = 1  # intra-op threads of the image encoder and lifter sessions (0: every core; <= 256)
+    slice_lane_threads: int = 1  # intra-op threads of the slice session (0: every core; <= 256)
     num_slices: int | None = None  # slices per sweep (1, 2 or a multiple of 4); None: the number the export was made for
     # (W, H) px of the images fed to the encoder; None: the export's. The graphs are dynamic in H and W, so another
     # size only needs a LUT built for it: from the export's calibration source at start, then set_calibration.
     image_size: tuple[int, int] | None = None
-    start_deg: float = 0.0  # azimuth where slice 0 starts (a multiple of 90)
+    start_deg: float = 0.0  # azimuth where slice 0 starts (a multiple of 90 in [-360, 360))
     score_threshold: float | None = None  # None: the export's post.score_threshold
     # Per-class NMS inside a slice and across a sweep. None: the export's post settings, i.e. circle NMS with
     # max_out = post.max_detections and, for NmsKind.ROTATED, post.nms_iou_threshold per class (the detector's
@@ -71,8 +78,9 @@ class DetectorConfig:
             raise ValueError(f"DetectorConfig.precision must be one of {PRECISIONS}, got {self.precision!r}")
         for name in ("image_lane_threads", "slice_lane_threads"):
             v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 0:
-                raise ValueError(f"DetectorConfig.{name} must be an int >= 0 (0: every core), got {v!r}")
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 0 <= v <= MAX_LANE_THREADS:
+                raise ValueError(f"DetectorConfig.{name} must be an int in 0..{MAX_LANE_THREADS} (0: every core), got {v!r}")
+            object.__setattr__(self, name, int(v))  # onnxruntime's options take a Python int, not a numpy one
         if self.num_slices is not None:
             if isinstance(self.num_slices, bool) or not isinstance(self.num_slices, (int, np.integer)):
                 raise ValueError(f"DetectorConfig.num_slices must be None or an int (1, 2 or a multiple of 4), got {self.num_slices!r}")
@@ -80,8 +88,10 @@ class DetectorConfig:
                 check_num_slices(int(self.num_slices))
             except ValueError as e:
                 raise ValueError(f"DetectorConfig.num_slices: {e}") from None
-        if isinstance(self.start_deg, bool) or not isinstance(self.start_deg, numbers.Real) or not math.isfinite(self.start_deg) or self.start_deg % 90.0:
-            raise ValueError(f"DetectorConfig.start_deg must be a finite multiple of 90 degrees, got {self.start_deg!r}")
+        if (isinstance(self.start_deg, bool) or not isinstance(self.start_deg, numbers.Real) or not math.isfinite(self.start_deg)
+                or not -360.0 <= self.start_deg < 360.0 or self.start_deg % 90.0):
+            # bounded: 1e300 is a multiple of 90 too, and its azimuths would put every point outside every sector
+            raise ValueError(f"DetectorConfig.start_deg must be a multiple of 90 degrees in [-360, 360), got {self.start_deg!r}")
         if self.score_threshold is not None and (
             isinstance(self.score_threshold, bool) or not isinstance(self.score_threshold, numbers.Real)
             or not 0.0 <= self.score_threshold <= 1.0

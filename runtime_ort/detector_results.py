@@ -39,6 +39,8 @@ class SliceResult:
     # in the slice's quadrants but outside its sector are kept: the slice graph sees its quadrants whole.
     num_outside_dropped: int = 0
     num_points_dropped: int = 0  # points lost to the pillar caps (max_points_per_pillar, max_pillars)
+    # rows of the slice graph's output (boxes) with a NaN or inf, dropped: a graph overflowing (logged once)
+    num_nonfinite_outputs: int = 0
     # timestamp - image_timestamp: how old the images behind the quadrant(s) it read were at the slice's own
     # timestamp (both labels of the caller's clock); None without images. The oldest quadrant read counts.
     image_age_s: float | None = None

@@ -6,14 +6,13 @@ lock, so a slice that took a reference reads one consistent image BEV while the 
 
 from __future__ import annotations
 
-import math
-import numbers
 from dataclasses import dataclass
 from typing import Mapping, Sequence
 
 import numpy as np
 
 from streamdet.calibration.lut import Lut
+from streamdet.core.json_input import is_finite_number, short_repr
 from streamdet.core.sectors import NUM_QUADRANTS, check_quadrants
 
 ALL_QUADRANTS: tuple[int, ...] = tuple(range(NUM_QUADRANTS))
@@ -82,8 +81,8 @@ def check_camera_timestamps(stamps: Mapping[str, float] | None, images: Mapping[
     for name, value in stamps.items():
         if name not in images:
             raise ValueError(f"camera_timestamps names camera {name!r}, whose image this update was not given")
-        if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
-            raise ValueError(f"camera_timestamps[{name!r}] must be a finite number of seconds, got {value!r}")
+        if not is_finite_number(value):  # no OverflowError for 10**400
+            raise ValueError(f"camera_timestamps[{name!r}] must be a finite number of seconds, got {short_repr(value)}")
         out[name] = float(value)
     return out
 

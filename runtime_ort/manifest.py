@@ -59,7 +59,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, BinaryIO, Callable
 
-from streamdet.calibration.lut_file import MAX_LUT_BYTES, MAX_LUT_META_BYTES
+from streamdet.calibration.lut_file import MAX_LUT_FILE_BYTES
 from streamdet.core.constants import PRECISIONS
 from streamdet.core.file_input import InputFileError, read_regular_file
 from streamdet.core.image_layout import IMAGE_BEV, IMAGE_HALF, IMAGE_LAYOUTS
@@ -97,8 +97,6 @@ def export_file(export_dir: str | os.PathLike, name: str, what: str = "file") ->
 
 
 MAX_GRAPH_BYTES = (2 << 30) - 1  # protobuf's limit on one serialized message: a larger file is no ONNX graph
-# lut.npz: its members' cap (calibration/lut_file.py) plus the zip's directory and headers
-MAX_LUT_FILE_BYTES = MAX_LUT_BYTES + MAX_LUT_META_BYTES + (1 << 20)
 
 
 def read_export_file(export_dir: str | os.PathLike, entry: GraphEntry | LutEntry, what: str, verify_sha256: bool) -> tuple[Path, bytes]:

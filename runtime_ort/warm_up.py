@@ -42,6 +42,8 @@ def warm_up(det: StreamingDetector, rounds: int = 2) -> None:
     """Run ``det``'s graphs ``rounds`` times on dummy inputs, then forget them (see the module doc)."""
     if isinstance(rounds, bool) or not isinstance(rounds, (int, np.integer)) or rounds < 1:
         raise ValueError(f"warm_up rounds must be an int >= 1, got {rounds!r}")
+    if det.image_state is not None:  # its black images would replace (and then drop) the real BEV slices read
+        raise ValueError("warm_up runs before the first update_images: this detector holds real images already")
     sweep = dummy_sweep(det.grid.x_range_m)
     for _ in range(rounds):
         if det.uses_images:
