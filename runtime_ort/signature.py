@@ -98,10 +98,13 @@ def expected_io(manifest: Manifest, grid: GridSpec, name: str) -> tuple[tuple[Te
         TensorSignature("pillar_mask", "float32", (None, m)),
         TensorSignature("pillar_index", "int64", (None,)),
     )
+    # K, the boxes decoded per map: the export records it (post.top_k_per_quadrant; older manifests do not)
+    k = manifest.post.get("top_k_per_quadrant")
+    k = int(k) if isinstance(k, int) and not isinstance(k, bool) else None
     outputs = (
-        TensorSignature("det_boxes", "float32", (None, None, BOX_DIM)),
-        TensorSignature("det_scores", "float32", (None, None)),
-        TensorSignature("det_labels", "int64", (None, None)),
+        TensorSignature("det_boxes", "float32", (None, k, BOX_DIM)),
+        TensorSignature("det_scores", "float32", (None, k)),
+        TensorSignature("det_labels", "int64", (None, k)),
     )
     if not manifest.slice_crop:  # LiDAR-only on one whole-grid map per slice: the pillar tensors alone
         return pillars, outputs

@@ -216,3 +216,9 @@ def test_read_regular_file(tmp_path, alarm):
 @pytest.mark.parametrize("n, text", [(0, "0 bytes"), (1023, "1023 bytes"), (1024, "1 KiB"), (64 << 20, "64 MiB"), ((2 << 30) - 1, "2 GiB")])
 def test_describe_bytes(n, text):
     assert describe_bytes(n) == text
+
+
+def test_a_recorded_top_k_other_than_the_graphs_is_refused(export_copy):
+    _edit_manifest(export_copy, lambda d: d["post"].update(top_k_per_quadrant=d["post"]["top_k_per_quadrant"] // 2))
+    with pytest.raises(ManifestError, match=r"slice_head.onnx .*tensor 'det_boxes' has dimension 1 = \d+ in the graph, the runtime feeds/reads \d+"):
+        StreamingDetector(export_copy)
