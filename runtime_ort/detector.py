@@ -77,7 +77,7 @@ from streamdet.runtime_ort.pillarize import POINT_DIM, pillarize
 from streamdet.runtime_ort.postprocess import Detections, PostprocessConfig, aggregate_sweep, postprocess_slice, top_k_reached
 from streamdet.runtime_ort.recording import Feeds, GraphRecording
 from streamdet.runtime_ort.sessions import GraphRunError, GraphSession, SessionConfig
-from streamdet.runtime_ort.signature import check_graph, check_runtime_fields
+from streamdet.runtime_ort.signature import check_graph, check_parity, check_runtime_fields
 from streamdet.runtime_ort.stats import LatencyStats
 from streamdet.runtime_ort.warm_up import warm_up
 
@@ -101,6 +101,13 @@ class StreamingDetector:
         self.manifest: Manifest = manifest if manifest is not None else read_manifest(self.export_dir, verify_files=config.verify_sha256)
         m = self.manifest
         check_runtime_fields(m)
+        in_use = {"slice_head": config.precision}
+        if m.use_image:
+            in_use.update(image_encoder=config.image_precision, volumetric_lifter=config.image_precision)
+        try:
+            check_parity(m, in_use)
+        except ManifestError as e:
+            raise ManifestError(f"{self.export_dir}: {e}") from None
         try:
             self.grid = GridSpec.from_dict(m.grid)
         except (ValueError, TypeError) as e:

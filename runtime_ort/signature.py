@@ -60,6 +60,18 @@ def check_runtime_fields(manifest: Manifest) -> None:
         )
 
 
+def check_parity(manifest: Manifest, lanes: dict[str, str]) -> None:
+    """Refuse graphs in use (``lanes``: graph name -> precision) whose export-time parity check failed: the exporter
+    still writes such an export (and exits 2), but its graph does not compute what the model does."""
+    failed = [f"{p.graph} {p.precision} {p.output}" for p in manifest.parity if not p.passed and lanes.get(p.graph) == p.precision]
+    pipeline = manifest.pipeline_parity
+    if pipeline is not None and not pipeline.passed and "fp16" in lanes.values():
+        failed.append("the fp16 pipeline")
+    if failed:
+        raise ManifestError(f"the export's parity check FAILED for {', '.join(failed)} (recorded in its manifest): "
+                            "those graphs do not compute what the model does; re-export (or run another precision)")  # fmt: skip
+
+
 def _grid_or_none(d: object) -> GridSpec | None:
     try:
         return GridSpec.from_dict(d)

@@ -222,3 +222,15 @@ def test_a_recorded_top_k_other_than_the_graphs_is_refused(export_copy):
     _edit_manifest(export_copy, lambda d: d["post"].update(top_k_per_quadrant=d["post"]["top_k_per_quadrant"] // 2))
     with pytest.raises(ManifestError, match=r"slice_head.onnx .*tensor 'det_boxes' has dimension 1 = \d+ in the graph, the runtime feeds/reads \d+"):
         StreamingDetector(export_copy)
+
+
+@pytest.mark.parametrize("graph, precision, config", [
+    ("slice_head", "fp32", DetectorConfig()),
+    ("image_encoder", "fp16", DetectorConfig(image_lane_precision="fp16")),
+])  # fmt: skip
+def test_graphs_whose_export_parity_failed_are_refused_in_use_only(export_copy, graph, precision, config):
+    _edit_manifest(export_copy, lambda d: [p.update(passed=False) for p in d["parity"] if (p["graph"], p["precision"]) == (graph, precision)])
+    with pytest.raises(ManifestError, match=rf"parity check FAILED for {graph} {precision} "):
+        StreamingDetector(export_copy, config)
+    other = DetectorConfig(precision="fp16") if precision == "fp32" else DetectorConfig()
+    assert StreamingDetector(export_copy, other).num_slices == 8  # the other precision's graphs run
