@@ -18,10 +18,11 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from streamdet.calibration.camera import Rig
-from streamdet.runtime_ort.ros.header import header_msg, header_stamp_ns
+from streamdet.runtime_ort.ros.header import header_msg, header_stamp_ns, int_field, shown
 from streamdet.runtime_ort.ros.tf import TfBuffer
 
 IDENTITY_RECORD = {"rotation": [1.0, 0.0, 0.0, 0.0], "translation": [0.0, 0.0, 0.0]}
+MSG = "sensor_msgs/CameraInfo"
 
 
 def camera_info_intrinsics(msg: Any, intrinsics: str = "k") -> dict:
@@ -29,34 +30,53 @@ def camera_info_intrinsics(msg: Any, intrinsics: str = "k") -> dict:
     if intrinsics not in ("k", "p"):
         raise ValueError(f"intrinsics must be 'k' or 'p' (the rectified projection), got {intrinsics!r}")
     frame = str(msg.header.frame_id)
-    where = f"CameraInfo of {frame!r}"
-    d = np.asarray(msg.d, dtype=np.float64).reshape(-1)
+    where = f"{MSG} of {frame!r}"
+    d = _numbers(msg.d, where, "d")
     if intrinsics == "k" and d.size and np.any(d != 0):
+        if not np.isfinite(d).all():
+            raise ValueError(f"{where}: d={d.tolist()} holds non-finite distortion coefficients")
         raise ValueError(
             f"{where} has distortion ({msg.distortion_model}, d={d.tolist()}): streamdet's camera model has none; "
             "feed the rectified images and read their CameraInfo with intrinsics='p'"
         )
-    binning = (int(msg.binning_x), int(msg.binning_y))
+    # uint32 fields: int() would turn -1 into a binning that passes, and None or NaN into TypeError / its own message
+    binning = (int_field(msg.binning_x, f"{where}: binning_x"), int_field(msg.binning_y, f"{where}: binning_y"))
     if any(b > 1 for b in binning):
         raise ValueError(f"{where} has binning {binning}; streamdet takes full-resolution images (binning 0 or 1)")
-    roi = msg.roi
-    if int(roi.width) or int(roi.height) or int(roi.x_offset) or int(roi.y_offset):
-        size = f"{int(roi.width)}x{int(roi.height)}"
-        raise ValueError(f"{where} has a region of interest ({size}); streamdet takes full images")
+    roi = {f: int_field(getattr(msg.roi, f), f"{where}: roi.{f}") for f in ("x_offset", "y_offset", "height", "width")}
+    if any(roi.values()):
+        raise ValueError(f"{where} has a region of interest ({roi['width']}x{roi['height']}); streamdet takes full images")
     if intrinsics == "k":
-        K = np.asarray(msg.k, dtype=np.float64).reshape(-1)
+        K = _numbers(msg.k, where, "k")
         if K.size != 9:
             raise ValueError(f"{where}: k must hold 9 values, got {K.size}")
-        K = K.reshape(3, 3)
+        values, K = K, K.reshape(3, 3)
     else:
-        P = np.asarray(msg.p, dtype=np.float64).reshape(-1)
-        if P.size != 12:
-            raise ValueError(f"{where}: p must hold 12 values, got {P.size}")
-        K = P.reshape(3, 4)[:, :3]
-    width, height = int(msg.width), int(msg.height)
+        values = _numbers(msg.p, where, "p")
+        if values.size != 12:
+            raise ValueError(f"{where}: p must hold 12 values, got {values.size}")
+        K = values.reshape(3, 4)[:, :3]
+    # refused here by field: the Rig would refuse a NaN or zero K later, without saying it came from this message
+    if not np.isfinite(values).all():
+        raise ValueError(f"{where}: {intrinsics} holds non-finite values {values.tolist()}")
+    if not (K[0, 0] > 0 and K[1, 1] > 0):
+        raise ValueError(f"{where}: {intrinsics} focal lengths fx={K[0, 0]}, fy={K[1, 1]} must be > 0")
+    width, height = int_field(msg.width, f"{where}: width"), int_field(msg.height, f"{where}: height")
     if width <= 0 or height <= 0:
         raise ValueError(f"{where}: image size {width}x{height} must be positive")
     return {"camera_intrinsic": K.tolist(), "width": width, "height": height}
+
+
+def _numbers(values: Any, where: str, name: str) -> np.ndarray:
+    """A ``float64[]`` field as a flat float64 array. None, strings and nested or mixed lists are refused by name:
+    np.asarray(None, dtype=float) is [nan] (read as distortion), and numpy's own message names no field."""
+    try:
+        raw = np.asarray(values)
+    except ValueError:  # ragged
+        raw = None
+    if raw is None or raw.dtype.kind not in "iuf":
+        raise ValueError(f"{where}: {name} must be a list of numbers, got {shown(values)}")
+    return raw.astype(np.float64).reshape(-1)
 
 
 def rig_from_ros(
@@ -88,7 +108,7 @@ def rig_from_ros(
     cameras = []
     for name in names:
         info = camera_infos[name]
-        stamp = int(stamps.get(name, header_stamp_ns(info)))
+        stamp = int(stamps.get(name, header_stamp_ns(info, MSG)))
         mount = tf.lookup(ego_frame, str(info.header.frame_id), stamp)
         sensor = {**mount, "camera_intrinsic": camera_info_intrinsics(info, intrinsics)["camera_intrinsic"]}
         cameras.append({

@@ -16,11 +16,13 @@ import numpy as np
 
 from streamdet.core.boxes import BOX_DIM, H, L, W, X, Y, YAW, Z
 from streamdet.core.classes import CLASS_NAMES, class_color_rgb
-from streamdet.runtime_ort.ros.header import duration_msg, header_msg
+from streamdet.core.json_input import is_finite_number
+from streamdet.runtime_ort.ros.header import INT32_MAX, INT32_MIN, duration_msg, header_msg, int_field, shown
 
 CUBE, TEXT_VIEW_FACING = 1, 9  # visualization_msgs/Marker types
 ADD, DELETE, DELETEALL = 0, 2, 3  # visualization_msgs/Marker actions
 TEXT_HEIGHT_M = 0.8
+DETECTIONS, MARKERS = "vision_msgs/Detection3DArray", "visualization_msgs/MarkerArray"
 
 
 def yaw_quaternion(yaw: float) -> dict:
@@ -48,7 +50,7 @@ def detection3d_array_message(
 
     ``boxes`` (N, 9) in ``frame_id``; ``labels`` index ``class_names``. Detection ids are the box's row, as text.
     """
-    boxes, scores, labels = _check(boxes, scores, labels, class_names)
+    boxes, scores, labels = _check(boxes, scores, labels, class_names, DETECTIONS)
     header = header_msg(stamp_ns, frame_id)
     detections = []
     for i in range(len(boxes)):
@@ -77,10 +79,12 @@ def marker_array_message(
     ``replace`` starts the array with a DELETEALL so the boxes of the previous array disappear; ``stale_ids``
     deletes those ids of both namespaces (the previous array's boxes beyond this one's count).
     """
-    shown_scores = scores if scores is not None else np.zeros(len(np.asarray(boxes).reshape(-1, BOX_DIM)))
-    boxes, shown_scores, labels = _check(boxes, shown_scores, labels, class_names, allow_other=True)
+    if not (is_finite_number(alpha) and 0 <= alpha <= 1):  # ColorRGBA.a: a viewer draws NaN or 7 as it pleases
+        raise ValueError(f"{MARKERS}: alpha (the boxes' color.a) must be a number in [0, 1], got {shown(alpha)}")
+    stale_ids = [int_field(i, f"{MARKERS}: stale_ids entry (a Marker id, int32)", INT32_MIN, INT32_MAX) for i in stale_ids]
+    boxes, shown_scores, labels = _check(boxes, scores, labels, class_names, MARKERS, allow_other=True, optional_scores=True)
     if names is not None and len(names) != len(boxes):
-        raise ValueError(f"names must have {len(boxes)} entries, got {len(names)}")
+        raise ValueError(f"{MARKERS}: names must have {len(boxes)} entries, got {len(names)}")
     header = header_msg(stamp_ns, frame_id)
     lifetime = duration_msg(lifetime_s)
     markers = [_marker(header, ns, 0, DELETEALL, lifetime)] if replace else []
@@ -123,20 +127,42 @@ def _marker(header: dict, ns: str, marker_id: int, action: int, lifetime: dict) 
     }
 
 
-def _check(boxes, scores, labels, class_names, allow_other: bool = False):
-    boxes = np.asarray(boxes, dtype=np.float64)
+def _check(boxes, scores, labels, class_names, what: str, allow_other: bool = False, optional_scores: bool = False):
+    """boxes, scores (zeros for None when ``optional_scores``) and labels as arrays, or a ValueError naming ``what``
+    (the message being built), the box and the value."""
+    boxes = _floats(boxes, "boxes", what)
     if boxes.ndim != 2 or boxes.shape[1] != BOX_DIM:
-        raise ValueError(f"boxes must be (N, {BOX_DIM}) x, y, z, w, l, h, yaw, vx, vy; got shape {boxes.shape}")
+        raise ValueError(f"{what}: boxes must be (N, {BOX_DIM}) x, y, z, w, l, h, yaw, vx, vy; got shape {boxes.shape}")
     n = len(boxes)
-    scores = np.asarray(scores, dtype=np.float64)
+    scores = np.zeros(n) if scores is None and optional_scores else _floats(scores, "scores", what)
     labels = np.asarray(labels)
     if scores.shape != (n,) or labels.shape != (n,):
-        raise ValueError(f"scores and labels must be ({n},) to match boxes, got {scores.shape} and {labels.shape}")
+        raise ValueError(f"{what}: scores and labels must be ({n},) to match boxes, got {scores.shape} and {labels.shape}")
     if n and not np.issubdtype(labels.dtype, np.integer):
-        raise ValueError(f"labels must be integers, got dtype {labels.dtype}")
+        raise ValueError(f"{what}: labels must be integers, got dtype {labels.dtype}")
     bad = (labels >= len(class_names)) | (labels < (-1 if allow_other else 0))
     if np.any(bad):
-        raise ValueError(f"labels {sorted(set(labels[bad].tolist()))} are outside 0..{len(class_names) - 1}")
+        raise ValueError(f"{what}: labels {sorted(set(labels[bad].tolist()))} are outside 0..{len(class_names) - 1}")
+    # vx, vy are not checked: vision_msgs carries no velocity
     if not np.all(np.isfinite(boxes[:, :7])):
-        raise ValueError("boxes hold NaN or infinite centre, size or yaw values")
+        i = int(np.argmax(~np.isfinite(boxes[:, :7]).all(axis=1)))
+        raise ValueError(f"{what}: boxes hold NaN or infinite centre, size or yaw values (box {i}: {boxes[i, :7].tolist()})")
+    # a zero or negative extent is no box: BoundingBox3D.size and a CUBE's scale would draw it inside out or not at all
+    sizes = boxes[:, [W, L, H]]
+    if not np.all(sizes > 0):
+        i = int(np.argmax(~(sizes > 0).all(axis=1)))
+        raise ValueError(f"{what}: box {i} has size w, l, h {sizes[i].tolist()}; sizes must be > 0")
+    if not np.all(np.isfinite(scores)):  # ObjectHypothesis.score: a NaN fails every threshold and sorts anywhere
+        i = int(np.argmax(~np.isfinite(scores)))
+        raise ValueError(f"{what}: score of box {i} is {float(scores[i])}; scores must be finite")
     return boxes, scores, labels
+
+
+def _floats(values, name: str, what: str) -> np.ndarray:
+    try:
+        array = np.asarray(values, dtype=np.float64) if values is not None else None  # None would become NaN
+    except (TypeError, ValueError, OverflowError):  # strings, ragged rows, an int past float64
+        array = None
+    if array is None:
+        raise ValueError(f"{what}: {name} must be an array of numbers, got {shown(values)}")
+    return array

@@ -1,5 +1,9 @@
 """What every message adapter shares: ``builtin_interfaces/Time`` and ``std_msgs/Header`` (stamps as integer
-nanoseconds, headers as dicts) and ``uint8[]`` payloads as numpy views."""
+nanoseconds, headers as dicts), ``uint8[]`` payloads as numpy views, and the checks of integer fields.
+
+A malformed field is refused with a ValueError naming the message, the field and the value: a decoder (rclpy,
+mcap-ros2-support, rosbags) hands over Python or numpy integers, so anything else (None, a float, a string, a
+value past the field's type) is a corrupt or hand-built message, never something to coerce."""
 
 from __future__ import annotations
 
@@ -7,26 +11,50 @@ from typing import Any
 
 import numpy as np
 
+from streamdet.core.json_input import short_repr
+
 NS_PER_S = 1_000_000_000
 # builtin_interfaces/Time and Duration hold ``int32 sec``: a stamp outside this range cannot be encoded (CDR packs
 # it with struct 'i'), so it is refused here with the value rather than as a struct.error deep in the writer
 INT32_MIN, INT32_MAX = -(2**31), 2**31 - 1
+UINT8_MAX, UINT32_MAX = 2**8 - 1, 2**32 - 1
 
 
-def stamp_ns(stamp: Any) -> int:
-    """Integer nanoseconds of a ``builtin_interfaces/Time`` (``sec``, ``nanosec``)."""
+def shown(value: Any) -> str:
+    """``value`` for a one-line error: cut short (a 10**400, a long list) and on one line (numpy's array repr wraps)."""
+    return " ".join(short_repr(value).split())
+
+
+def is_integer(value: Any) -> bool:
+    """A Python or numpy integer, not a bool (``True`` would read as 1)."""
+    return isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
+
+
+def int_field(value: Any, what: str, low: int = 0, high: int = UINT32_MAX) -> int:
+    """``value`` as an int when it is an integer in ``low..high`` (the field's ROS type); else a ValueError naming
+    ``what`` (message type and field) and the value. ``int()`` would take 2.7, '3' and True, and raise TypeError,
+    OverflowError or its own message for None, inf and nan."""
+    if not (is_integer(value) and low <= value <= high):
+        raise ValueError(f"{what} must be an integer in {low}..{high}, got {shown(value)}")
+    return int(value)
+
+
+def stamp_ns(stamp: Any, what: str = "builtin_interfaces/Time") -> int:
+    """Integer nanoseconds of a ``builtin_interfaces/Time`` (``int32 sec``, ``uint32 nanosec`` below 1e9).
+
+    ``what`` names the stamp in an error (``"sensor_msgs/PointCloud2 header.stamp"``)."""
     try:
-        sec, nanosec = int(stamp.sec), int(stamp.nanosec)
+        sec, nanosec = stamp.sec, stamp.nanosec
     except AttributeError:
         raise ValueError(f"expected a builtin_interfaces/Time with sec and nanosec, got {type(stamp).__name__}") from None
-    if not 0 <= nanosec < NS_PER_S:
-        raise ValueError(f"builtin_interfaces/Time.nanosec must be in [0, 1e9), got {nanosec}")
+    sec = int_field(sec, f"{what}.sec", INT32_MIN, INT32_MAX)
+    nanosec = int_field(nanosec, f"{what}.nanosec", 0, NS_PER_S - 1)
     return sec * NS_PER_S + nanosec
 
 
-def header_stamp_ns(msg: Any) -> int:
-    """Integer nanoseconds of ``msg.header.stamp``."""
-    return stamp_ns(msg.header.stamp)
+def header_stamp_ns(msg: Any, message: str | None = None) -> int:
+    """Integer nanoseconds of ``msg.header.stamp``; ``message`` (``"sensor_msgs/PointCloud2"``) names it in an error."""
+    return stamp_ns(msg.header.stamp, f"{message} header.stamp" if message else "std_msgs/Header.stamp")
 
 
 def time_msg(ns: int) -> dict:
@@ -39,6 +67,8 @@ def time_msg(ns: int) -> dict:
 
 def duration_msg(seconds: float) -> dict:
     """A ``builtin_interfaces/Duration`` dict of a non-negative number of seconds."""
+    if not (is_integer(seconds) or isinstance(seconds, (float, np.floating))):  # '1' or None: TypeError below
+        raise ValueError(f"a builtin_interfaces/Duration must be a number of seconds, got {shown(seconds)}")
     if not seconds >= 0:
         raise ValueError(f"a duration must be >= 0 s, got {seconds!r}")
     if not seconds <= INT32_MAX:  # int32 sec; also refuses inf before round() would raise OverflowError
@@ -52,11 +82,19 @@ def header_msg(ns: int, frame_id: str) -> dict:
     return {"stamp": time_msg(ns), "frame_id": str(frame_id)}
 
 
-def byte_view(data: Any) -> np.ndarray:
-    """A uint8 view of a ``uint8[]`` payload: bytes, bytearray, array.array, memoryview or a numpy array."""
+def byte_view(data: Any, what: str = "uint8[] payload") -> np.ndarray:
+    """A uint8 view of a ``uint8[]`` payload: bytes, bytearray, array.array, memoryview, a numpy array, or a list of
+    ints 0..255; anything else is refused naming ``what`` (``"sensor_msgs/PointCloud2.data"``) and its type."""
     if isinstance(data, np.ndarray):
-        return np.ascontiguousarray(data).view(np.uint8).reshape(-1)
-    try:
-        return np.frombuffer(data, dtype=np.uint8)
-    except TypeError:
-        return np.asarray(data, dtype=np.uint8)  # a list of ints (slow path)
+        if not data.dtype.hasobject:  # an object array's bytes are pointers
+            return np.ascontiguousarray(data).view(np.uint8).reshape(-1)
+    elif isinstance(data, (list, tuple)):
+        # a list of ints (slow path), checked first: np.asarray(..., dtype=np.uint8) would wrap 256 and truncate 1.5
+        if all(is_integer(v) and 0 <= v <= UINT8_MAX for v in data):
+            return np.asarray(data, dtype=np.uint8).reshape(-1)
+    else:
+        try:
+            return np.frombuffer(data, dtype=np.uint8)
+        except (TypeError, ValueError, BufferError):  # no buffer (None, a str, a number), or not a contiguous one
+            pass
+    raise ValueError(f"{what} must be bytes, an array or a list of ints 0..255, got {type(data).__name__} {shown(data)}")

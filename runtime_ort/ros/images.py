@@ -49,7 +49,7 @@ def image_to_rgb(msg: Any) -> np.ndarray:
                          f"{MAX_IMAGE_SIDE_PX} px a side and {MAX_IMAGE_PIXELS} px in all")  # fmt: skip
     if step < 3 * width:
         raise ValueError(f"sensor_msgs/Image step {step} < 3 x width {width} for {encoding}")
-    data = byte_view(msg.data)
+    data = byte_view(msg.data, "sensor_msgs/Image.data")
     if data.size < step * height:
         raise ValueError(f"sensor_msgs/Image data holds {data.size} bytes; {height} rows of step {step} need {step * height}")
     rows = data[: step * height].reshape(height, step)  # (H, step)
@@ -68,7 +68,7 @@ def compressed_image_to_rgb(msg: Any) -> np.ndarray:
             f"sensor_msgs/CompressedImage format {fmt!r} is not supported: streamdet takes colour "
             f"{' or '.join(('jpeg', 'png'))} images"
         )
-    data = byte_view(msg.data)
+    data = byte_view(msg.data, f"sensor_msgs/CompressedImage ({fmt}) data")
     what = f"sensor_msgs/CompressedImage ({fmt}){_at(msg)}"
     if data.size == 0:
         raise ValueError(f"sensor_msgs/CompressedImage ({fmt}) holds no data")

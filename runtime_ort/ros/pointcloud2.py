@@ -29,10 +29,20 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from streamdet.core.json_input import is_finite_number
 from streamdet.core.points import INTENSITY_SCALE, SWEEP_COLUMNS
 from streamdet.core.sectors import check_num_slices, slice_index_of
 from streamdet.core.slicing import relative_time_s, split_sweep
-from streamdet.runtime_ort.ros.header import NS_PER_S, byte_view, header_msg, header_stamp_ns
+from streamdet.runtime_ort.ros.header import (
+    NS_PER_S,
+    UINT8_MAX,
+    byte_view,
+    header_msg,
+    header_stamp_ns,
+    int_field,
+    is_integer,
+    shown,
+)
 
 # sensor_msgs/PointField datatypes -> numpy type codes (without byte order)
 POINT_FIELD_TYPES: dict[int, str] = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
@@ -49,6 +59,7 @@ NANOSECOND_CLOCK = 1e12  # a float time above this is nanoseconds
 # detections are published with; a ROS stamp holds only int32 seconds) by as much: such points are dropped.
 MAX_POINT_TIME_OFFSET_S = 5.0
 TIME_SAMPLE = 4097  # values of a time column that decide its unit and clock (a strided sample: fast, and robust)
+MSG = "sensor_msgs/PointCloud2"
 
 
 @dataclass(frozen=True)
@@ -99,8 +110,13 @@ class TimedSlice:
 
 def decode_pointcloud2(msg: Any, fields: CloudFields = CloudFields()) -> Cloud:
     """A ``sensor_msgs/PointCloud2`` as the runtime's (N, 5) float32 sweep plus per-point time."""
-    height, width = int(msg.height), int(msg.width)
-    point_step, row_step = int(msg.point_step), int(msg.row_step)
+    # uint32 fields: a negative size would reach np.ndarray's strides, None or inf int()'s TypeError / OverflowError
+    height, width = int_field(msg.height, f"{MSG}.height"), int_field(msg.width, f"{MSG}.width")
+    point_step, row_step = int_field(msg.point_step, f"{MSG}.point_step"), int_field(msg.row_step, f"{MSG}.row_step")
+    stamp = header_stamp_ns(msg, MSG)  # a corrupt stamp is refused before any work
+    if not isinstance(msg.fields, (list, tuple)):
+        kind = type(msg.fields).__name__
+        raise ValueError(f"{MSG}.fields must be a list of sensor_msgs/PointField, got {kind} {shown(msg.fields)}")
     present = {f.name: f for f in msg.fields}
     if len(present) != len(msg.fields):  # which of two "x" fields is x? Refused rather than the last one taken
         names = [f.name for f in msg.fields]
@@ -116,10 +132,10 @@ def decode_pointcloud2(msg: Any, fields: CloudFields = CloudFields()) -> Cloud:
     used += [("ring", ring_name)] if ring_name else []
     order = ">" if msg.is_bigendian else "<"
     dtype = _point_dtype(present, used, order, point_step)
-    payload = byte_view(msg.data)
+    payload = byte_view(msg.data, f"{MSG}.data")
     num = height * width
     if num == 0:
-        return _empty_cloud(msg, time_name is not None)
+        return _empty_cloud(msg, stamp, time_name is not None)
     if row_step < width * point_step:
         raise ValueError(f"PointCloud2 row_step {row_step} < width {width} x point_step {point_step}")
     need = (height - 1) * row_step + width * point_step
@@ -145,7 +161,7 @@ def decode_pointcloud2(msg: Any, fields: CloudFields = CloudFields()) -> Cloud:
         points[:, 4] = column("ring")
     else:
         points[:, 4] = 0.0
-    time_s = _times_s(column("time"), fields.time_unit, header_stamp_ns(msg), time_name) if time_name else None
+    time_s = _times_s(column("time"), fields.time_unit, stamp, time_name) if time_name else None
     keep = np.isfinite(points[:, :3]).all(axis=1)
     dropped = num - int(np.count_nonzero(keep))
     time_dropped, bad_time = 0, None
@@ -159,7 +175,7 @@ def decode_pointcloud2(msg: Any, fields: CloudFields = CloudFields()) -> Cloud:
     if dropped or time_dropped:
         points = points[keep]
         time_s = time_s[keep] if time_s is not None else None
-    return Cloud(header_stamp_ns(msg), str(msg.header.frame_id), points, time_s, dropped, time_dropped, bad_time)
+    return Cloud(stamp, str(msg.header.frame_id), points, time_s, dropped, time_dropped, bad_time)
 
 
 def split_cloud(cloud: Cloud, num_slices: int, start_deg: float = 0.0) -> list[TimedSlice]:
@@ -187,14 +203,20 @@ def slice_from_message(
     columns over the sector border: the slice graph crops to the sector's quadrants itself.
     """
     check_num_slices(num_slices, start_deg)
+    # a NaN, infinite or non-positive duration makes every point's time column NaN, inf or negative, and pillarize
+    # then drops the whole slice: refused here, where the cause is still the argument
+    if not (is_finite_number(sweep_duration_s) and sweep_duration_s > 0):
+        raise ValueError(
+            f"slice_from_message: sweep_duration_s must be a finite number of seconds > 0, got {shown(sweep_duration_s)}"
+        )
+    if index is not None and not (is_integer(index) and 0 <= index < num_slices):  # True is not slice 1
+        raise ValueError(f"slice_from_message: slice index must be in 0..{num_slices - 1} (an integer), got {shown(index)}")
     pts = cloud.points
     k_of_point = slice_index_of(pts[:, 0], pts[:, 1], num_slices, start_deg)
     if index is None:
         if len(pts) == 0:
             raise ValueError("slice_from_message: an empty cloud names no sector; pass index")
         index = int(np.bincount(k_of_point, minlength=num_slices).argmax())
-    elif not (isinstance(index, (int, np.integer)) and 0 <= index < num_slices):
-        raise ValueError(f"slice index must be in 0..{num_slices - 1}, got {index!r}")
     out = np.empty((len(pts), SWEEP_COLUMNS + 1), dtype=np.float32)  # (N, 6)
     out[:, :3] = pts[:, :3]
     out[:, 3] = pts[:, 3] / INTENSITY_SCALE
@@ -261,13 +283,15 @@ def _point_dtype(present: dict, used: list[tuple[str, str]], order: str, point_s
     names, formats, offsets = [], [], []
     for role, name in used:
         field = present[name]
-        datatype, count, offset = int(field.datatype), int(field.count), int(field.offset)
+        where = f"{MSG} field {name!r}"
+        datatype, count = int_field(field.datatype, f"{where} datatype", 0, UINT8_MAX), int_field(field.count, f"{where} count")
+        offset = int_field(field.offset, f"{where} offset")
         if datatype not in POINT_FIELD_TYPES:
             raise ValueError(f"PointCloud2 field {name!r} has unknown datatype {datatype} (sensor_msgs/PointField 1..8)")
         if count != 1:
             raise ValueError(f"PointCloud2 field {name!r} has count {count}; streamdet reads scalar fields (count 1)")
         code = np.dtype(order + POINT_FIELD_TYPES[datatype])
-        if offset < 0 or offset + code.itemsize > point_step:
+        if offset + code.itemsize > point_step:
             raise ValueError(f"PointCloud2 field {name!r} at offset {offset} ({code}) does not fit point_step {point_step}")
         names.append(role)
         formats.append(code)
@@ -305,7 +329,6 @@ def _scan_time_ns(stamp_ns: int, latest_s: float) -> int:
     return int(stamp_ns) if not np.isfinite(latest_s) else int(stamp_ns) + int(round(latest_s * NS_PER_S))
 
 
-def _empty_cloud(msg: Any, has_time: bool) -> Cloud:
-    stamp = header_stamp_ns(msg)
+def _empty_cloud(msg: Any, stamp: int, has_time: bool) -> Cloud:
     return Cloud(stamp, str(msg.header.frame_id), np.zeros((0, SWEEP_COLUMNS), np.float32),
                  np.zeros(0) if has_time else None, 0)  # fmt: skip

@@ -18,10 +18,12 @@ from typing import Any
 import numpy as np
 
 from streamdet.calibration.camera import invert_transform, make_transform, matrix_to_quaternion, quaternion_to_matrix
-from streamdet.runtime_ort.ros.header import header_msg, stamp_ns
+from streamdet.core.json_input import is_finite_number
+from streamdet.runtime_ort.ros.header import header_msg, is_integer, shown, stamp_ns
 
 
 TF_QUATERNION_NORM2_TOL = 0.01  # tf2 BufferCore::setTransform: |q|^2 may differ from 1 by this much
+MSG = "geometry_msgs/TransformStamped"
 
 Record = dict  # {"rotation": [w, x, y, z], "translation": [x, y, z]}
 
@@ -37,47 +39,52 @@ class TfBuffer:
     """Static and time-stamped transforms between named frames; not thread-safe (one reader feeds it)."""
 
     def __init__(self, max_extrapolation_ns: int = 0) -> None:
-        self.max_extrapolation_ns = int(max_extrapolation_ns)  # how far past the first / last stamp a lookup may reach
+        # refused by name: int() gives its own message for NaN and OverflowError for inf and truncates 0.5; a
+        # negative reach acts as 0 and can only be a caller's mistake (a sign slip in a tolerance)
+        value = max_extrapolation_ns
+        integral = is_integer(value) or (is_finite_number(value) and float(value).is_integer())  # 5e7 is fine
+        if not (integral and value >= 0):
+            raise ValueError(f"TfBuffer.max_extrapolation_ns must be a whole number of ns >= 0, got {shown(value)}")
+        self.max_extrapolation_ns = int(value)  # how far past the first / last stamp a lookup may reach
         self._edges: dict[tuple[str, str], _Edge] = {}
         self._parent: dict[str, str] = {}
 
     def add(self, msg: Any, static: bool = False) -> None:
-        """Every ``TransformStamped`` of a ``tf2_msgs/TFMessage``; ``static`` for ``/tf_static``."""
-        for ts in msg.transforms:
-            self.add_transform(ts, static)
+        """Every ``TransformStamped`` of a ``tf2_msgs/TFMessage``; ``static`` for ``/tf_static``.
+
+        All or nothing: every transform is checked before any is stored, so a refused message changes nothing."""
+        transforms = msg.transforms
+        if not isinstance(transforms, (list, tuple)):
+            kind = type(transforms).__name__
+            raise ValueError(f"tf2_msgs/TFMessage.transforms must be a list of {MSG}, got {kind} {shown(transforms)}")
+        self._add([_parse(ts) for ts in transforms], static)
 
     def add_transform(self, ts: Any, static: bool = False) -> None:
-        parent, child = _frame(ts.header.frame_id), _frame(ts.child_frame_id)
-        if not parent or not child or parent == child:
-            raise ValueError(f"TransformStamped needs two different frame ids, got {parent!r} -> {child!r}")
-        known = self._parent.get(child)
-        if known is not None and known != parent:
-            raise ValueError(f"frame {child!r} has two parents, {known!r} and {parent!r}: TF is a tree")
-        self._parent[child] = parent
-        r, t = ts.transform.rotation, ts.transform.translation
-        record = {"rotation": [float(r.w), float(r.x), float(r.y), float(r.z)],
-                  "translation": [float(t.x), float(t.y), float(t.z)]}  # fmt: skip
-        # Checked and normalised here, once, so that an exact lookup, an interpolation and a chain all see the same
-        # edges. tf2 accepts a quaternion whose squared norm is within 0.01 of 1 (drivers and URDFs write rounded
-        # ones, 0.707 for 1/sqrt(2)) and refuses others (TF_DENORMALIZED_QUATERNION): so do we.
-        q, xyz = np.asarray(record["rotation"]), np.asarray(record["translation"])
-        if not (np.isfinite(q).all() and np.isfinite(xyz).all() and abs(float(q @ q) - 1.0) <= TF_QUATERNION_NORM2_TOL):
-            raise ValueError(f"TF {parent!r} -> {child!r} at {stamp_ns(ts.header.stamp)} ns: rotation {record['rotation']} "
-                             f"must be a unit quaternion (squared norm within {TF_QUATERNION_NORM2_TOL} of 1, as tf2 "
-                             f"requires) and translation {record['translation']} finite")  # fmt: skip
-        if abs(float(q @ q) - 1.0) > 1e-12:  # a unit one to float precision is kept as given
-            record["rotation"] = (q / np.linalg.norm(q)).tolist()
-        edge = self._edges.setdefault((parent, child), _Edge())
-        if static:
-            edge.static = record
-            return
-        stamp = stamp_ns(ts.header.stamp)
-        i = bisect.bisect_left(edge.stamps, stamp)
-        if i < len(edge.stamps) and edge.stamps[i] == stamp:
-            edge.records[i] = record
-        else:
-            edge.stamps.insert(i, stamp)
-            edge.records.insert(i, record)
+        """One ``geometry_msgs/TransformStamped``; a refused one changes nothing."""
+        self._add([_parse(ts)], static)
+
+    def _add(self, parsed: list[tuple[str, str, Record, int]], static: bool) -> None:
+        # The tree is checked on a copy, so that a refusal (here or in _parse) leaves no parent link behind: one
+        # corrupt message from a wrong parent would otherwise refuse every later valid transform of its child.
+        parents = dict(self._parent)
+        for parent, child, _, _ in parsed:
+            known = parents.get(child)
+            if known is not None and known != parent:
+                raise ValueError(f"{MSG} {parent!r} -> {child!r}: frame {child!r} has two parents, {known!r} and {parent!r}: "
+                                 "TF is a tree")  # fmt: skip
+            parents[child] = parent
+        self._parent = parents
+        for parent, child, record, stamp in parsed:
+            edge = self._edges.setdefault((parent, child), _Edge())
+            if static:
+                edge.static = record
+                continue
+            i = bisect.bisect_left(edge.stamps, stamp)
+            if i < len(edge.stamps) and edge.stamps[i] == stamp:
+                edge.records[i] = record
+            else:
+                edge.stamps.insert(i, stamp)
+                edge.records.insert(i, record)
 
     @property
     def frames(self) -> set[str]:
@@ -85,7 +92,7 @@ class TfBuffer:
 
     def lookup(self, parent: str, child: str, stamp: int) -> Record:
         """The pose of ``child`` in ``parent`` at ``stamp`` (ns) as a record; KeyError / ValueError say why not."""
-        parent, child = _frame(parent), _frame(child)
+        parent, child = _frame(parent, "TfBuffer.lookup parent"), _frame(child, "TfBuffer.lookup child")
         if (parent, child) in self._edges:
             return self._edge_record(parent, child, stamp)
         up_child = self._chain(child)
@@ -150,8 +157,45 @@ def transform_stamped_msg(parent: str, child: str, record: Record, stamp: int) -
     }
 
 
-def _frame(name: Any) -> str:
-    return str(name).lstrip("/")  # tf2 frame ids carry no leading slash; ROS 1 bags often do
+def _parse(ts: Any) -> tuple[str, str, Record, int]:
+    """(parent, child, record, stamp) of a ``TransformStamped``, every field checked; nothing is stored here."""
+    parent = _frame(ts.header.frame_id, f"{MSG} header.frame_id")
+    child = _frame(ts.child_frame_id, f"{MSG} child_frame_id")
+    if parent == child:
+        raise ValueError(f"{MSG} needs two different frame ids, got {parent!r} -> {child!r}")
+    stamp = stamp_ns(ts.header.stamp, f"{MSG} header.stamp")  # a static one's too: a corrupt stamp, a corrupt message
+    r, t = ts.transform.rotation, ts.transform.translation
+    record = {"rotation": [_number(r, axis, "rotation") for axis in "wxyz"],
+              "translation": [_number(t, axis, "translation") for axis in "xyz"]}  # fmt: skip
+    # Checked and normalised here, once, so that an exact lookup, an interpolation and a chain all see the same
+    # edges. tf2 accepts a quaternion whose squared norm is within 0.01 of 1 (drivers and URDFs write rounded
+    # ones, 0.707 for 1/sqrt(2)) and refuses others (TF_DENORMALIZED_QUATERNION): so do we.
+    q, xyz = np.asarray(record["rotation"]), np.asarray(record["translation"])
+    if not (np.isfinite(q).all() and np.isfinite(xyz).all() and abs(float(q @ q) - 1.0) <= TF_QUATERNION_NORM2_TOL):
+        raise ValueError(f"{MSG} {parent!r} -> {child!r} at {stamp} ns: rotation {record['rotation']} "
+                         f"must be a unit quaternion (squared norm within {TF_QUATERNION_NORM2_TOL} of 1, as tf2 "
+                         f"requires) and translation {record['translation']} finite")  # fmt: skip
+    if abs(float(q @ q) - 1.0) > 1e-12:  # a unit one to float precision is kept as given
+        record["rotation"] = (q / np.linalg.norm(q)).tolist()
+    return parent, child, record, stamp
+
+
+def _number(vector: Any, axis: str, name: str) -> float:
+    """One component of a ``geometry_msgs`` Quaternion / Vector3 as a float. Not a number is refused by name: float()
+    would take '1.5' and True, and raise TypeError for None, OverflowError for 10**400. A NaN or inf float is left
+    to the unit-quaternion / finite check, which quotes the whole rotation and translation."""
+    value = getattr(vector, axis)
+    if isinstance(value, (float, np.floating)) or (is_integer(value) and is_finite_number(value)):
+        return float(value)
+    raise ValueError(f"{MSG} transform.{name}.{axis} must be a float64 number, got {shown(value)}")
+
+
+def _frame(name: Any, what: str) -> str:
+    """A frame id without its leading slash (tf2's carry none; ROS 1 bags often do); anything but a non-empty str is
+    refused rather than turned into the frame 'None'."""
+    if not isinstance(name, str) or not name.lstrip("/"):
+        raise ValueError(f"{what} must be a non-empty frame id (str), got {shown(name)}")
+    return name.lstrip("/")
 
 
 def _slerp(q0: np.ndarray, q1: np.ndarray, w: float) -> np.ndarray:
