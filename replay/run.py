@@ -29,6 +29,7 @@ from streamdet.replay.triggers import DEFAULT_TRIGGER, check_trigger
 from streamdet.replay.truth import load_ground_truth
 from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector
 from streamdet.runtime_ort.lanes import LaneConfig
+from streamdet.runtime_ort.phase_lock import LIDAR_HZ_RANGE
 
 Progress = Callable[[str], None]
 WARM_UP_TIMESTAMP_S = -1e9  # earlier than player.WARM_UP_BEFORE_S: the player knows it for a warm-up
@@ -80,6 +81,12 @@ class ReplayConfig:
             v = getattr(self, name)
             if (v is not None or name == "threads") and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
                 raise ValueError(f"ReplayConfig.{name} must be an int >= 1, got {v!r}")
+        if self.lanes.schedule == "phase-locked" and self.lanes.lidar_hz is None:
+            hz, (lo, hi) = self.lidar_hz / self.time_scale, LIDAR_HZ_RANGE
+            if not lo <= hz <= hi:  # the lane takes no rate a spinning LiDAR cannot have (runtime_ort/phase_lock.py)
+                raise ValueError(f"the phase-locked schedule at time scale {self.time_scale:g} would see the LiDAR turn at "
+                                 f"{hz:g} Hz of wall time, outside {lo:g}..{hi:g} Hz (LIDAR_HZ_RANGE): use a time scale "
+                                 f"in {self.lidar_hz / hi:g}..{self.lidar_hz / lo:g} for a {self.lidar_hz:g} Hz drive")  # fmt: skip
 
     def to_dict(self) -> dict:
         d = {k: getattr(self, k) for k in self.__dataclass_fields__ if k != "lanes"}
@@ -196,7 +203,7 @@ def _lanes(config: ReplayConfig) -> LaneConfig:
     time scale), as a vehicle's driver knows its sensor's, unless the lanes name one."""
     lanes = config.lanes
     if lanes.schedule == "phase-locked" and lanes.lidar_hz is None:
-        lanes = dataclasses.replace(lanes, lidar_hz=config.lidar_hz / config.time_scale)
+        lanes = dataclasses.replace(lanes, lidar_hz=config.lidar_hz / config.time_scale)  # in range: __post_init__
     return lanes
 
 

@@ -26,7 +26,10 @@ Contracts:
   runner (`RunnerClosed`).
 - A slice an idle worker is about to take counts as in flight, not waiting: a burst of submits to idle workers
   drops the oldest slice that would really wait, never one a free worker picks up.
-- The points and images are copied at submit: the caller may reuse its buffers at once.
+- The points and images are copied at submit: the caller may reuse its buffers at once. They are checked first, so a
+  corrupt one costs the caller's thread no copy: points that are no (N, 6) float32 array of at most
+  ``MAX_SLICE_POINTS`` rows fail their future at once (never queued, so no waiting slice is dropped for them); a bad
+  image set raises ValueError (``check_images``).
 - ``timestamp=None`` means the submit time (``time.monotonic()`` when `submit_*` is called), not the run time.
 - `close(timeout)` finishes the queued work; past the timeout it cancels what has not started and returns False.
   The phase-locked image lane has no queue: its image sets that no lift has used yet are cancelled at close.
@@ -43,12 +46,13 @@ from typing import Mapping
 
 import numpy as np
 
-from streamdet.core.points import SLICE_COLUMNS
+from streamdet.core.points import MAX_SLICE_POINTS, SLICE_COLUMNS
 from streamdet.runtime_ort.coalesce import can_coalesce
 from streamdet.runtime_ort.detector import StreamingDetector
 from streamdet.runtime_ort.detector_results import ImageUpdate, SliceResult
 from streamdet.runtime_ort.image_cache import check_camera_timestamps
 from streamdet.runtime_ort.pair_hold import PairHold
+from streamdet.runtime_ort.phase_lock import check_lidar_hz
 from streamdet.runtime_ort.phase_locked_lane import PhaseLockedImageLane, PhaseLockStats
 from streamdet.runtime_ort.thread_priority import check_nice
 from streamdet.runtime_ort.worker_lane import JobBatching, RunnerClosed, WorkerLane
@@ -77,8 +81,9 @@ class LaneConfig:
     # that see it, timed to finish just before the LiDAR's first slice of that quadrant arrives
     # (runtime_ort/phase_locked_lane.py, which states how it degrades when it cannot keep up).
     schedule: str = "full"
-    # phase-locked only: LiDAR rotations per second on the runner's clock; None: measured from the slices' arrivals
-    # (what to use when the clock is scaled, e.g. a replay at --time-scale 2)
+    # phase-locked only: LiDAR rotations per second on the runner's clock, within 0.5..100 Hz (LIDAR_HZ_RANGE,
+    # runtime_ort/phase_lock.py: a spinning LiDAR's; a measured rate outside is not taken either); None: measured from
+    # the slices' arrivals (what to use when the clock is scaled, e.g. a replay at --time-scale 2)
     lidar_hz: float | None = None
     lift_margin_ms: float = 2.0  # phase-locked only: a lift is timed to end this long before its first slice arrives
     # added to the image lane's thread's nice value (0..19, Linux; 0: unchanged): where the lanes share cores, the
@@ -110,9 +115,7 @@ class LaneConfig:
                 raise ValueError(f"LaneConfig.{name} must be an int in 1..1024, got {v!r}")
         if self.schedule not in SCHEDULES:
             raise ValueError(f"LaneConfig.schedule must be one of {SCHEDULES}, got {self.schedule!r}")
-        v = self.lidar_hz
-        if v is not None and (isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v) or v <= 0):
-            raise ValueError(f"LaneConfig.lidar_hz must be None or a finite rate > 0 Hz, got {v!r}")
+        check_lidar_hz(self.lidar_hz, "LaneConfig.lidar_hz")  # bounded: a rate of 1e300 Hz hung the lane's pass scan
         v = self.lift_margin_ms
         if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v) or not 0 <= v <= 1000:
             raise ValueError(f"LaneConfig.lift_margin_ms must be a number of ms in [0, 1000], got {v!r}")
@@ -153,7 +156,8 @@ class StreamingRunner:
             if config.pair_hold_load is not None:
                 self._pair_hold = PairHold(config.pair_hold_load, config.max_in_flight, *self._sector_layout)
             hold = None if self._pair_hold is None else self._hold_s
-            batch = JobBatching(joins=self._slices_join, run=self._detect_together, most=config.coalesce_slices, hold=hold)
+            batch = JobBatching(joins=self._slices_join, run=self._detect_together, most=config.coalesce_slices, hold=hold,
+                                fits=_run_fits)  # fmt: skip
         self._slices = WorkerLane("slice-lane", config.max_in_flight, config.queue_size,
                                   lambda: SliceDropped("slice dropped: queue full"), batch=batch)  # fmt: skip
         superseded = lambda: ImagesSuperseded("image set superseded by a newer one")  # noqa: E731
@@ -179,10 +183,14 @@ class StreamingRunner:
         if not isinstance(images, Mapping):
             self.detector.update_images(images, timestamp)  # raises ValueError naming the type, in the caller's thread
         stamp = time.monotonic() if timestamp is None else timestamp
+        # a bad image set (an unknown camera, a wrong size) fails here, in the caller's thread, before any copy and not
+        # in a later lift or update; a stand-in detector without the check is checked by its update_images
+        check = getattr(self.detector, "check_images", None) if self._phase_locked is None else self.detector.check_images
+        if check is not None:
+            check(images)
         # copies: the driver may refill its buffers as soon as this returns
         own = {name: np.array(a, copy=True) if isinstance(a, np.ndarray) else a for name, a in images.items()}
         if self._phase_locked is not None:
-            self.detector.check_images(own)  # a bad image fails here, in the caller's thread, not in a later lift
             if isinstance(stamp, bool) or not isinstance(stamp, numbers.Real) or not math.isfinite(stamp):
                 raise ValueError(f"timestamp must be None or a finite number of seconds, got {timestamp!r}")
             return self._phase_locked.submit_images(own, stamp, check_camera_timestamps(camera_timestamps, own))
@@ -190,16 +198,23 @@ class StreamingRunner:
         return self._images.submit(lambda: self.detector.update_images(own, stamp, **options))
 
     def submit_slice(self, points: np.ndarray, slice_index: int, timestamp: float | None = None) -> "Future[SliceResult]":
-        """Queue one slice; its future holds the SliceResult, or the error (bad points, SliceDropped)."""
+        """Queue one slice; its future holds the SliceResult, or the error (bad points, SliceDropped). Points that are
+        no (N, 6) float32 array of at most MAX_SLICE_POINTS rows fail their future at once: they are neither copied
+        nor queued (no good slice waiting is dropped for them)."""
         arrival = time.monotonic()
         stamp = arrival if timestamp is None else timestamp
-        own = np.array(points, copy=True) if isinstance(points, np.ndarray) else points  # the driver may reuse its buffer
+        refused = _points_refused(points)  # before the copy: a huge array would be copied in the driver's thread
+        own = np.array(points, copy=True) if refused is None else None  # the driver may reuse its buffer
         tracked = self._pair_hold is not None or self._phase_locked is not None  # they learn the LiDAR's timing
         valid = tracked and isinstance(slice_index, (int, np.integer)) and not isinstance(slice_index, bool)
         valid = valid and 0 <= slice_index < self.detector.num_slices
         if self._pair_hold is not None and valid:
             self._pair_hold.observe_arrival(arrival)  # before the submit: a worker may decide on its hold at once
-        future = self._slices.submit(lambda: self._detect_one(own, slice_index, stamp), payload=(own, slice_index, stamp, arrival))
+        if refused is not None:  # still an arrival of the LiDAR's: its timing was observed
+            future: Future = Future()
+            future.set_exception(ValueError(refused))
+        else:
+            future = self._slices.submit(lambda: self._detect_one(own, slice_index, stamp), payload=(own, slice_index, stamp, arrival))
         if self._phase_locked is not None and valid:
             self._phase_locked.observe_slice(int(slice_index), arrival)  # its arrival on the runner's clock
         return future
@@ -292,6 +307,24 @@ class StreamingRunner:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def _run_fits(payloads: list) -> bool:
+    """May these well-formed slices (``_slices_join`` said so) run together? Their points together are no more than
+    MAX_SLICE_POINTS, the most one slice-graph run takes: slices each within it never fail a run for their sum."""
+    return sum(p[0].shape[0] for p in payloads) <= MAX_SLICE_POINTS
+
+
+def _points_refused(points: object) -> str | None:
+    """Why ``points`` cannot be a slice (the detector's own words), read from its type and shape alone; None if it can."""
+    if not isinstance(points, np.ndarray) or points.ndim != 2 or points.shape[1] != SLICE_COLUMNS:
+        got = getattr(points, "shape", type(points).__name__)
+        return f"points must be a (N, {SLICE_COLUMNS}) float32 array (x, y, z, r, t, s), got {got}"
+    if points.dtype != np.float32:
+        return f"points must be float32, got {points.dtype}"
+    if points.shape[0] > MAX_SLICE_POINTS:
+        return f"points: a slice of {points.shape[0]} points, more than MAX_SLICE_POINTS = {MAX_SLICE_POINTS} (a corrupt array?)"
+    return None
 
 
 def _well_formed(payload: tuple) -> bool:

@@ -6,7 +6,8 @@ arrives. This module is the pure arithmetic behind it, on the runner's clock (se
 
 - ``RotationPhase`` learns the rotation from the slices' arrival times: the newest arrival anchors the phase, and the
   period is ``1 / lidar_hz`` when the rate is given, else the median of the periods the arrivals imply over up to
-  two rotations (a slice index step of d is d / num_slices of a rotation, modulo a whole one).
+  two rotations (a slice index step of d is d / num_slices of a rotation, modulo a whole one); either way a rate
+  within ``LIDAR_HZ_RANGE``.
 - ``plan_lift`` picks the next lift among the upcoming **passes**: a pass is one slice of one rotation and one
   quadrant that slice reads, its deadline the slice's predicted arrival. The lane lifts a quadrant for the first
   slice that reads it, and again for a later slice of the same rotation only when newer frames came meanwhile (it
@@ -19,6 +20,7 @@ arrives. This module is the pure arithmetic behind it, on the runner's clock (se
 from __future__ import annotations
 
 import math
+import numbers
 import statistics
 from collections import deque
 from dataclasses import dataclass
@@ -28,6 +30,11 @@ from streamdet.core.sectors import NUM_QUADRANTS, check_num_slices, quadrants_of
 
 PERIOD_SAMPLES = 16  # period measurements the median is taken over
 HISTORY_ROTATIONS = 2  # rotations of arrivals one period measurement spans (at most)
+# LiDAR rotations per second that can be a spinning LiDAR's (on the runner's clock): a given rate outside is refused, a
+# measured one outside is no rotation (a burst of late arrivals, or a stalled driver) and not taken. The bound keeps
+# the pass scans short: a period of 1e-300 s never passed `now` in floats, and a tiny measured one (a burst of
+# submits) made every plan walk (lift duration / period) rotations of passes, under the lane's lock.
+LIDAR_HZ_RANGE = (0.5, 100.0)
 
 
 def slice_quadrants(num_slices: int, start_deg: float = 0.0) -> tuple[tuple[int, int], ...]:
@@ -36,16 +43,26 @@ def slice_quadrants(num_slices: int, start_deg: float = 0.0) -> tuple[tuple[int,
     return tuple((k, q) for k in range(num_slices) for q in quadrants_of_sector(k, num_slices, start_deg))
 
 
+def check_lidar_hz(value: object, what: str) -> float | None:
+    """``value`` (None, or LiDAR rotations per second within LIDAR_HZ_RANGE) as a float; ValueError naming ``what``."""
+    if value is None:
+        return None
+    lo, hi = LIDAR_HZ_RANGE
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not lo <= value <= hi:  # no float(10**400)
+        raise ValueError(f"{what} must be None or a finite rate > 0 Hz within {lo:g}..{hi:g} Hz (a spinning LiDAR's "
+                         f"rotations per second, LIDAR_HZ_RANGE), got {value!r}")  # fmt: skip
+    return float(value)
+
+
 class RotationPhase:
     """Arrival times of the slices -> predicted arrival times of the coming ones. Not thread-safe (the lane locks)."""
 
     def __init__(self, num_slices: int, start_deg: float = 0.0, lidar_hz: float | None = None) -> None:
-        if lidar_hz is not None and not (isinstance(lidar_hz, (int, float)) and math.isfinite(lidar_hz) and lidar_hz > 0):
-            raise ValueError(f"lidar_hz must be None or a finite rate > 0 Hz, got {lidar_hz!r}")
+        lidar_hz = check_lidar_hz(lidar_hz, "lidar_hz")
         self.num_slices = num_slices
         self.slice_quadrants = slice_quadrants(num_slices, start_deg)
         self.quadrant_order = tuple(dict.fromkeys(q for _, q in self.slice_quadrants))  # the order the LiDAR enters them
-        self._fixed_period_s = None if lidar_hz is None else 1.0 / float(lidar_hz)
+        self._fixed_period_s = None if lidar_hz is None else 1.0 / lidar_hz
         self._periods: deque[float] = deque(maxlen=PERIOD_SAMPLES)
         self._provisional_s = math.nan  # the period over less than a rotation of arrivals
         self._median_s = math.nan  # the median of _periods
@@ -69,8 +86,9 @@ class RotationPhase:
             pos = self._history[-1][0] + steps if self._history else 0
             self._history.append((pos, float(arrival_s)))
             first_pos, first_t = self._history[0]
-            if pos > first_pos and arrival_s > first_t:
-                period = (arrival_s - first_t) * self.num_slices / (pos - first_pos)
+            period = (arrival_s - first_t) * self.num_slices / (pos - first_pos) if pos > first_pos else math.nan
+            # a period no LiDAR turns at (LIDAR_HZ_RANGE) is a burst of arrivals or a stall, not a rotation: not taken
+            if 1.0 / LIDAR_HZ_RANGE[1] <= period <= 1.0 / LIDAR_HZ_RANGE[0]:
                 if pos - first_pos >= self.num_slices:  # a whole rotation or more: a measurement
                     self._periods.append(period)
                     self._median_s = statistics.median(self._periods)  # read at every pass the lane plans
@@ -101,8 +119,13 @@ class RotationPhase:
         return t0 + (steps / n + rotation) * self.period_s
 
     def passes(self, after_s: float) -> Iterator[tuple[float, int, int]]:
-        """(deadline s, slice index, quadrant) of every pass with deadline > ``after_s``, in deadline order, without end."""
-        rotation = -1
+        """(deadline s, slice index, quadrant) of every pass with deadline > ``after_s``, in deadline order, without end.
+
+        The scan starts at the rotation before the one ``after_s`` falls in (a pass's deadline lies up to a period
+        after its rotation's start), not at the anchor's: its work does not grow with the time since the last
+        arrival over the period. It never starts before the anchor's previous rotation (rotation -1)."""
+        x = (after_s - self._anchor[1]) / self.period_s  # type: ignore[index]
+        rotation = max(-1, math.floor(x) - 1)
         while True:
             here = [(self.deadline_s(k, rotation), k, q) for k, q in self.slice_quadrants]
             yield from sorted(p for p in here if p[0] > after_s)

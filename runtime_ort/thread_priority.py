@@ -13,14 +13,18 @@ import os
 import sys
 import threading
 
+import numpy as np
+
 MAX_NICE = 19
 
 
 def check_nice(nice: object, what: str) -> int:
-    """``nice`` as an int in 0..19; ValueError naming ``what`` otherwise, or where the platform has no per-thread
-    nice values (a nonzero value anywhere but Linux)."""
-    if isinstance(nice, bool) or not isinstance(nice, int) or not 0 <= nice <= MAX_NICE:
+    """``nice`` (an int, or a numpy integer as the other int fields of LaneConfig take) as an int in 0..19;
+    ValueError naming ``what`` otherwise, or where the platform has no per-thread nice values (a nonzero value
+    anywhere but Linux)."""
+    if isinstance(nice, bool) or not isinstance(nice, (int, np.integer)) or not 0 <= nice <= MAX_NICE:
         raise ValueError(f"{what} must be an int in 0..{MAX_NICE} (0: unchanged), got {nice!r}")
+    nice = int(nice)  # os.setpriority and the arithmetic on it want a Python int
     if nice and not sys.platform.startswith("linux"):
         raise ValueError(f"{what}={nice}: per-thread nice values need Linux (this is {sys.platform}); use 0")
     return nice

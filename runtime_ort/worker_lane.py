@@ -5,6 +5,7 @@ lane's coalescing)."""
 from __future__ import annotations
 
 import collections
+import logging
 import threading
 import time
 from concurrent.futures import Future, InvalidStateError
@@ -12,6 +13,8 @@ from dataclasses import dataclass
 from typing import Callable, Sequence
 
 from streamdet.runtime_ort.thread_priority import check_nice, start_worker
+
+log = logging.getLogger(__name__)
 
 
 class RunnerClosed(RuntimeError):
@@ -29,6 +32,9 @@ class JobBatching:
     # A job that would join a waiting worker's run is left to it by the other workers. None: never waits
     # (LaneConfig.pair_hold_load, runtime_ort/pair_hold.py).
     hold: Callable[[object], float] | None = None
+    # (payloads of a run with the next job's added) -> may they run together; None: any that join may. What a pairwise
+    # ``joins`` cannot see: the run's total (the slice lane's points, MAX_SLICE_POINTS for the slices of one run).
+    fits: Callable[[list], bool] | None = None
 
 
 class WorkerLane:
@@ -109,6 +115,29 @@ class WorkerLane:
         with self._cond:
             return max(0, len(self._jobs) - (self._workers - self._busy))
 
+    def _complete(self, fut: Future, result: object = None, error: BaseException | None = None) -> None:
+        """Hand a job's result or error to its future. Never raises: a done-callback's error (a BaseException, say
+        sys.exit() in a handler, escapes Future.set_result once the future is done) is logged rather than allowed to
+        end the worker, whose later jobs would then wait forever; a future its owner finished meanwhile keeps its
+        state."""
+        try:
+            if error is None:
+                fut.set_result(result)
+            else:
+                fut.set_exception(error)
+        except InvalidStateError:  # cancelled or finished by its owner meanwhile: nothing to tell anyone
+            pass
+        except BaseException:  # a done-callback's: the future is done, the worker goes on
+            log.exception("%s: a done-callback of %r raised; the lane goes on", self._name, fut)
+
+    def _start(self, fut: Future) -> bool:
+        """Future.set_running_or_notify_cancel that never raises: False for a future cancelled, or one its owner
+        finished (set_result on a future it was handed), neither of which runs."""
+        try:
+            return fut.set_running_or_notify_cancel()
+        except RuntimeError:  # finished by its owner: "Future in unexpected state"
+            return False
+
     @staticmethod
     def _fail(fut: Future, error: Callable[[], Exception]) -> int:
         """Fail a waiting job's future; 1 when it was failed, 0 when its owner had cancelled it meanwhile."""
@@ -132,20 +161,22 @@ class WorkerLane:
                     if len(jobs) == 1:
                         self._hold_for_join(jobs)
                     join_error = None
-                except Exception as e:  # a failing join rule must not end the worker: its jobs get the error
+                except BaseException as e:  # a failing join rule must not end the worker: its jobs get the error
                     join_error = e
             cpu0 = time.thread_time()
             try:
-                jobs = [job for job in jobs if job[1].set_running_or_notify_cancel()]
+                jobs = [job for job in jobs if self._start(job[1])]
                 if join_error is not None:
                     for job in jobs:
-                        job[1].set_exception(join_error)
+                        self._complete(job[1], error=join_error)
                 elif len(jobs) == 1:
                     fn, fut = jobs[0][:2]
                     try:
-                        fut.set_result(fn())
+                        result = fn()
                     except BaseException as e:  # handed to the caller through the future, never swallowed
-                        fut.set_exception(e)
+                        self._complete(fut, error=e)
+                    else:  # outside the try: a done-callback's error is no error of the job's
+                        self._complete(fut, result)
                 elif jobs:
                     self._run_joined(jobs)
             finally:
@@ -160,10 +191,16 @@ class WorkerLane:
         if b is None or jobs[0][3] is None:
             return
         while len(jobs) < b.most and self._busy >= self._workers:
-            nxt = self._next_waiting()
-            if nxt is None or nxt[3] is None or not b.joins(jobs[-1][3], nxt[3]):
+            if not self._may_join(jobs, self._next_waiting()):
                 return
             jobs.append(self._jobs.popleft())
+
+    def _may_join(self, jobs: list, nxt: tuple | None) -> bool:
+        """(Under the lock.) May the waiting job ``nxt`` run in the run ``jobs``? (``batch.joins`` and ``batch.fits``)"""
+        b = self._batch
+        if nxt is None or nxt[3] is None or not b.joins(jobs[-1][3], nxt[3]):
+            return False
+        return b.fits is None or bool(b.fits([job[3] for job in jobs] + [nxt[3]]))
 
     def _reserved(self, job: tuple) -> bool:
         """(Under the lock.) Would ``job`` join the run of a worker that is waiting for one? Then it is that worker's."""
@@ -171,7 +208,7 @@ class WorkerLane:
             return False
         try:
             return any(self._batch.joins(held[3], job[3]) for held in self._holding)
-        except Exception:  # a failing join rule: the job is nobody's reserve (the holder's own call fails its run)
+        except BaseException:  # a failing join rule: the job is nobody's reserve (the holder's own call fails its run)
             return False
 
     def _hold_for_join(self, jobs: list) -> None:
@@ -196,8 +233,7 @@ class WorkerLane:
                     self._holding = [job for job in self._holding if job is not jobs[-1]]
                     if self._jobs:  # an idle worker that left the reserved job alone may take the ones behind it
                         self._cond.notify()
-            nxt = self._next_waiting()
-            if nxt is None or nxt[3] is None or not b.joins(jobs[-1][3], nxt[3]):
+            if not self._may_join(jobs, self._next_waiting()):
                 return
             jobs.append(self._jobs.popleft())
 
@@ -216,24 +252,38 @@ class WorkerLane:
                 raise RuntimeError(f"{self._name}: a joined run of {len(jobs)} jobs returned {len(results)} results")
         except BaseException as e:  # handed to the callers through the futures, never swallowed
             for job in jobs:
-                job[1].set_exception(e)
+                self._complete(job[1], error=e)
             return
-        for job, result in zip(jobs, results):
-            job[1].set_result(result)
+        for job, result in zip(jobs, results):  # outside the try: a done-callback's error is no error of the run's
+            self._complete(job[1], result)
         with self._cond:
             self.joined += len(jobs) - 1
 
     def close(self, deadline: float | None = None) -> bool:
         """Stop taking jobs, finish the queued ones by ``deadline`` (time.monotonic(); None: no limit). Past it, the
-        jobs not started are cancelled; True when every worker has ended."""
+        jobs not started are cancelled. Jobs still queued once every worker has ended (workers that died: nobody is
+        left to run them) fail with a RuntimeError, so that nobody waits on them forever. True when every worker has
+        ended and every job ran (or was cancelled by its owner)."""
         with self._cond:
             self._closed = True
             self._cond.notify_all()
         for t in self._threads:
             t.join(None if deadline is None else max(0.0, deadline - time.monotonic()))
-        if all(not t.is_alive() for t in self._threads):
-            return True
+        ended = all(not t.is_alive() for t in self._threads)
         with self._cond:
-            while self._jobs:
-                self._jobs.popleft()[1].cancel()
-        return False
+            left = [job for job in self._jobs if not job[1].done()]  # cancelled (or finished) by their owners: as they are
+            self._jobs.clear()
+        for job in left:  # outside the lock: their done-callbacks run here
+            if ended:
+                error = RuntimeError(f"{self._name}: no worker left to run this job (they ended before it)")
+                self._complete(job[1], error=error)
+            else:
+                self._cancel(job[1])
+        return ended and not left
+
+    def _cancel(self, fut: Future) -> None:
+        """Future.cancel, a done-callback's error logged (as in `_complete`)."""
+        try:
+            fut.cancel()
+        except BaseException:
+            log.exception("%s: a done-callback of %r raised; the lane goes on", self._name, fut)

@@ -207,3 +207,19 @@ def test_a_replay_with_its_own_image_lane_threads_says_so_and_records_it(drive_d
     for threads in (0, 1.5, True):
         with pytest.raises(ValueError, match="image_lane_threads"):
             ReplayConfig(data=drive_data, export_dir=tiny_export, image_lane_threads=threads)
+
+
+@pytest.mark.parametrize("time_scale, ok", [(0.01, False), (0.2, True), (1.0, True), (40.0, True), (100.0, False)])
+def test_a_phase_locked_replay_needs_a_time_scale_that_gives_a_lidar_rate(tmp_path, time_scale, ok):
+    """20 Hz over the time scale is the rate the lane is told; outside LIDAR_HZ_RANGE it is refused at the config,
+    naming the time scales that fit, not minutes later by the lane."""
+    from streamdet.replay.run import ReplayConfig
+    from streamdet.runtime_ort.lanes import LaneConfig
+
+    lanes = LaneConfig(schedule="phase-locked")
+    make = lambda: ReplayConfig(data=tmp_path, export_dir=tmp_path, time_scale=time_scale, lanes=lanes)  # noqa: E731
+    if ok:
+        assert make().time_scale == time_scale
+    else:
+        with pytest.raises(ValueError, match=r"time scale .* outside 0.5..100 Hz .*use a time scale in 0.2..40 for a 20 Hz drive"):
+            make()
