@@ -367,3 +367,26 @@ def test_valid_tf_is_unchanged():
     assert tf.lookup("base_link", "cam", NS_PER_S) == {"rotation": [1.0, 0.0, 0.0, 0.0], "translation": POSE["translation"]}
     with pytest.raises(ValueError, match=r"at 3000000000 ns is outside its 2 stamps"):
         tf.lookup("map", "base_link", 3 * NS_PER_S)
+
+
+# ---- what the helper left: raw image sizes, stamps and frame ids written out ----------------------------------------
+@pytest.mark.parametrize("field, bad", [("width", float("nan")), ("height", None), ("step", "4800"), ("width", True)])
+def test_raw_image_sizes_must_be_integers(field, bad):
+    from types import SimpleNamespace as ns
+
+    from streamdet.runtime_ort.ros.images import image_to_rgb
+
+    msg = ns(encoding="rgb8", height=2, width=2, step=6, data=bytes(12), header=ns(stamp=ns(sec=1, nanosec=0), frame_id="c"))
+    setattr(msg, field, bad)
+    with pytest.raises(ValueError, match=rf"sensor_msgs/Image.{field} must be an integer"):
+        image_to_rgb(msg)
+
+
+@pytest.mark.parametrize("ns_, frame, said", [(1.5, "lidar", "whole nanoseconds"), (None, "lidar", "whole nanoseconds"),
+                                             (10, None, "frame_id must be a non-empty string"), (10, "", "frame_id")])  # fmt: skip
+def test_written_headers_refuse_what_ros_cannot_carry(ns_, frame, said):
+    from streamdet.runtime_ort.ros.header import header_msg
+
+    with pytest.raises(ValueError, match=said):
+        header_msg(ns_, frame)
+    assert header_msg(1_500_000_123, "lidar") == {"stamp": {"sec": 1, "nanosec": 500_000_123}, "frame_id": "lidar"}

@@ -59,6 +59,8 @@ def header_stamp_ns(msg: Any, message: str | None = None) -> int:
 
 def time_msg(ns: int) -> dict:
     """A ``builtin_interfaces/Time`` dict of integer nanoseconds (negative times round toward minus infinity)."""
+    if not is_integer(ns):  # int() would take 2.7 or '3' and raise its own errors for None and nan
+        raise ValueError(f"a ROS 2 stamp is whole nanoseconds, got {shown(ns)}")
     sec, nanosec = divmod(int(ns), NS_PER_S)
     if not INT32_MIN <= sec <= INT32_MAX:
         raise ValueError(f"time {int(ns)} ns does not fit a ROS 2 stamp: {sec} s is outside int32 seconds")
@@ -79,7 +81,9 @@ def duration_msg(seconds: float) -> dict:
 
 def header_msg(ns: int, frame_id: str) -> dict:
     """A ``std_msgs/Header`` dict."""
-    return {"stamp": time_msg(ns), "frame_id": str(frame_id)}
+    if not isinstance(frame_id, str) or not frame_id:  # str(None) would name a frame 'None'
+        raise ValueError(f"std_msgs/Header.frame_id must be a non-empty string, got {shown(frame_id)}")
+    return {"stamp": time_msg(ns), "frame_id": frame_id}
 
 
 def byte_view(data: Any, what: str = "uint8[] payload") -> np.ndarray:

@@ -26,7 +26,7 @@ from streamdet.core.image_header import (
     decoder_error_reason,
     read_image_header,
 )
-from streamdet.runtime_ort.ros.header import byte_view, header_msg, header_stamp_ns
+from streamdet.runtime_ort.ros.header import byte_view, header_msg, header_stamp_ns, is_integer, shown
 
 RAW_ENCODINGS = ("rgb8", "bgr8")
 COMPRESSED_FORMATS = ("jpeg", "jpg", "png")
@@ -41,7 +41,10 @@ def image_to_rgb(msg: Any) -> np.ndarray:
             f"sensor_msgs/Image encoding {encoding!r} is not supported: streamdet takes colour images in "
             f"{' or '.join(RAW_ENCODINGS)} (debayer or convert mono / 16-bit images before the detector)"
         )
-    height, width, step = int(msg.height), int(msg.width), int(msg.step)
+    for field in ("height", "width", "step"):  # int() would take 2.7 or '3', and raise its own errors for None, nan
+        if not is_integer(getattr(msg, field)):
+            raise ValueError(f"sensor_msgs/Image.{field} must be an integer, got {shown(getattr(msg, field))}")
+    height, width, step = int(msg.height), int(msg.width), int(msg.step)  # sizes checked below, with their own words
     if width <= 0 or height <= 0:
         raise ValueError(f"sensor_msgs/Image{_at(msg)} has no pixels ({width}x{height})")
     if width > MAX_IMAGE_SIDE_PX or height > MAX_IMAGE_SIDE_PX or width * height > MAX_IMAGE_PIXELS:
