@@ -16,18 +16,29 @@ model has; a reader interpolates linearly between samples (exact for the straigh
 
 from __future__ import annotations
 
+import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
+from streamdet.core.classes import CLASS_NAMES
+from streamdet.core.errors import first_line
 from streamdet.data.synth_world import KIND_SPECS, make_scene
 
 if TYPE_CHECKING:
     from streamdet.data.synth_writer import SynthConfig
 
 TRAJECTORIES_FILE = "trajectories.npz"
+MEMBERS = ("times_us", "boxes", "names", "ego2global")
+# The most one member may declare uncompressed (checked in the zip directory before it is inflated): a scene of
+# minutes at 100 Hz with hundreds of objects is tens of MB; a small file declaring more is a zip bomb.
+MAX_MEMBER_BYTES = 1 << 30
+# |x|, |y|, |z| of a box centre or the ego in the global frame: nuScenes maps span a few km. Beyond this a box is
+# no object a detector could see (a file edited or corrupted), not a place.
+MAX_ABS_COORD_M = 1e6
 
 
 def write_trajectories(out: str | Path, config: SynthConfig, rate_hz: float = 100.0) -> Path:
@@ -85,11 +96,74 @@ class Trajectories:
 
 
 def load_trajectories(root: str | Path, scene_name: str) -> Trajectories | None:
-    """The scene's trajectories from ``root/trajectories.npz``; None when the dataset has no such file or scene."""
+    """The scene's trajectories from ``root/trajectories.npz``; None when the dataset has no such file or scene.
+
+    The file is checked before use (ValueError naming it): a readable .npz, no pickled arrays, members within
+    MAX_MEMBER_BYTES, and for the scene: ``times_us`` (T >= 2,) integers strictly increasing, ``boxes`` (T, K, 9)
+    finite floats with centres within MAX_ABS_COORD_M and positive sizes, ``names`` (K,) detection classes,
+    ``ego2global`` (T, 4, 4) finite floats."""
     path = Path(root) / TRAJECTORIES_FILE
     if not path.is_file():
         return None
-    with np.load(path) as f:
-        if f"{scene_name}/times_us" not in f.files:
-            return None
-        return Trajectories(*(f[f"{scene_name}/{k}"] for k in ("times_us", "boxes", "names", "ego2global")))
+    keys = [f"{scene_name}/{k}" for k in MEMBERS]
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(6)
+        # named here: np.load reports a non-zip file as "pickled (object) data", which it is not
+        if head == b"\x93NUMPY":
+            raise ValueError("it holds one .npy array, not an .npz archive")
+        if not zipfile.is_zipfile(path):
+            raise ValueError("not an .npz archive (no zip directory: truncated, or another kind of file)")
+        # allow_pickle=False: the file comes with the dataset; whatever numpy's default, it is data, never code
+        f = np.load(path, allow_pickle=False)
+        if not isinstance(f, np.lib.npyio.NpzFile):  # a .npy after all: an array, no archive to close
+            raise ValueError("it holds one .npy array, not an .npz archive")
+        with f:
+            if keys[0] not in f.files:
+                return None
+            missing = [k for k in keys if k not in f.files]
+            if missing:
+                raise ValueError(f"scene {scene_name!r} lacks {missing}")
+            for k in keys:
+                size = f.zip.getinfo(f"{k}.npy").file_size
+                if size > MAX_MEMBER_BYTES:
+                    raise ValueError(f"{k} declares {size} bytes uncompressed, over the {MAX_MEMBER_BYTES}-byte cap")
+            arrays = [f[k] for k in keys]
+    except (ValueError, OSError, EOFError, KeyError, zipfile.BadZipFile, zipfile.LargeZipFile, zlib.error) as e:
+        raise ValueError(f"trajectories file {path}: {first_line(e)}") from None
+    return Trajectories(*_checked(path, scene_name, *arrays))
+
+
+def _checked(path: Path, scene: str, times: np.ndarray, boxes: np.ndarray, names: np.ndarray,
+             ego2global: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    """The scene's arrays as ``Trajectories`` reads them, or a ValueError naming the file, the scene and the array."""
+
+    def bad(what: str) -> ValueError:
+        return ValueError(f"trajectories file {path}: scene {scene!r}: {what}")
+
+    if times.ndim != 1 or times.dtype.kind not in "iu" or len(times) < 2:
+        raise bad(f"times_us must be at least 2 integer timestamps (T,), got {times.dtype} {times.shape}")
+    times = times.astype(np.int64)
+    if np.any(np.diff(times) <= 0):  # interpolation divides by the gap between samples
+        i = int(np.flatnonzero(np.diff(times) <= 0)[0])
+        raise bad(f"times_us must increase strictly, got {times[i]} then {times[i + 1]} at index {i + 1}")
+    t = len(times)
+    if boxes.dtype.kind != "f" or boxes.ndim != 3 or boxes.shape[0] != t or boxes.shape[2] != 9:
+        raise bad(f"boxes must be floats of shape ({t}, K, 9), got {boxes.dtype} {boxes.shape}")
+    k = boxes.shape[1]
+    if names.ndim != 1 or names.dtype.kind != "U" or len(names) != k:
+        raise bad(f"names must be {k} strings (one per object of boxes), got {names.dtype} {names.shape}")
+    unknown = sorted(set(names.tolist()) - set(CLASS_NAMES))
+    if unknown:
+        raise bad(f"names holds {unknown[:3]}, not detection classes {list(CLASS_NAMES)}")
+    if ego2global.dtype.kind != "f" or ego2global.shape != (t, 4, 4):
+        raise bad(f"ego2global must be floats of shape ({t}, 4, 4), got {ego2global.dtype} {ego2global.shape}")
+    for name, arr in (("boxes", boxes), ("ego2global", ego2global)):
+        if not np.isfinite(arr).all():
+            raise bad(f"{name} holds non-finite values (NaN or inf)")
+    far = max(float(np.abs(boxes[..., :3]).max(initial=0.0)), float(np.abs(ego2global[:, :3, 3]).max(initial=0.0)))
+    if far > MAX_ABS_COORD_M:
+        raise bad(f"a position {far:.3g} m from the origin, beyond {MAX_ABS_COORD_M:g} m")
+    if k and not (boxes[..., 3:6] > 0).all():
+        raise bad(f"box sizes (w, l, h) must be > 0, got a minimum of {float(boxes[..., 3:6].min())}")
+    return times, boxes.astype(np.float64), names, ego2global.astype(np.float64)

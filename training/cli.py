@@ -13,7 +13,7 @@ from streamdet.core.errors import first_line
 from streamdet.models.presets import preset_names
 from streamdet.training.dataset import CAMERA_MODES, DataConfig
 from streamdet.training.distributed import shutdown_distributed
-from streamdet.training.trainer import AMP_MODES, TrainConfig, train
+from streamdet.training.trainer import AMP_MODES, MAX_MINUTES, TrainConfig, train
 
 
 def _parse_slices(ctx, param, value: str) -> tuple[int, ...]:
@@ -57,6 +57,7 @@ def _parse_slices(ctx, param, value: str) -> tuple[int, ...]:
               help="Weight of an image-side loss beside detection: each object's class read linearly from the image BEV at its "
                    "centre (cross-entropy; a training-only classifier, never exported). 0: off.")
 @click.option("--resume", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Continue from a last.pt written by this command.")
+@click.option("--overwrite", is_flag=True, help="Train into an --out that already holds a run (model.pt, last.pt, metrics.jsonl), replacing it.")
 @click.option("--init", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Start from the weights of this checkpoint with a fresh optimizer and schedule: all of them for the same preset "
                    "(fine-tuning); for another preset, the parts configured alike (image encoder, lifter, pillar net; the rest from "
@@ -72,9 +73,9 @@ def _parse_slices(ctx, param, value: str) -> tuple[int, ...]:
 @click.option("--balanced", is_flag=True, help="Class-balanced (CBGS) resampling of the training samples.")
 @click.option("--workers", type=click.IntRange(min=0), default=0, show_default=True, help="DataLoader worker processes.")
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Seed of the weights and of the data order.")
-@click.option("--max-minutes", type=click.FloatRange(min=0, min_open=True), default=None,
+@click.option("--max-minutes", type=click.FloatRange(min=0, min_open=True, max=MAX_MINUTES), default=None,
               help="With --steps/--epochs: stop with a checkpoint after this much wall time of this invocation (--resume gets it again). Alone: the one-cycle "
-                   "schedule runs over this much wall time (for a fixed budget on a shared machine; not step-reproducible).")
+                   "schedule runs over this much wall time (for a fixed budget on a shared machine; not step-reproducible). At most 7 days.")
 @click.option("--amp", type=click.Choice(AMP_MODES), default="auto", show_default=True,
               help="Autocast: auto = fp16 on CUDA, off on CPU.")
 @click.option("--cache-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
@@ -84,7 +85,7 @@ def _parse_slices(ctx, param, value: str) -> tuple[int, ...]:
 @click.option("--checkpoint-every", type=click.IntRange(min=1), default=200, show_default=True, help="Steps between rewrites of last.pt.")
 def main(data_dir: Path, version: str, out_dir: Path, preset: str, steps: int | None, epochs: int, batch_size: int,
          lr: float, num_slices: tuple[int, ...], max_slices_per_sample: int | None, no_image: bool, no_crop: bool, camera_mode: str,
-         image_warmup: float, image_class_weight: float, resume: Path | None, init: Path | None, teacher: Path | None, distill_weight: float,
+         image_warmup: float, image_class_weight: float, resume: Path | None, overwrite: bool, init: Path | None, teacher: Path | None, distill_weight: float,
          freeze_camera_lane: bool, balanced: bool, workers: int, seed: int, max_minutes: float | None, amp: str,
          cache_dir: Path | None, device: str | None, log_every: int, checkpoint_every: int) -> None:  # fmt: skip
     """Train the streaming camera + LiDAR detector (or its LiDAR-only baseline) with CenterPoint targets."""
@@ -116,7 +117,7 @@ def main(data_dir: Path, version: str, out_dir: Path, preset: str, steps: int | 
     try:
         train(config, data_dir, out_dir, version=version, resume=resume, init=init,
               cache_dir=cache_dir if cache_dir is not None else data_dir / ".streamdet_cache", device=device,
-              echo=click.echo)  # fmt: skip
+              echo=click.echo, overwrite=overwrite)  # fmt: skip
         finished = True
     except (ValueError, FileNotFoundError) as e:
         raise click.ClickException(first_line(e)) from None

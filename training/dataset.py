@@ -18,6 +18,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -26,16 +27,19 @@ import numpy as np
 from streamdet.calibration.camera import Rig
 from streamdet.calibration.sectors import cameras_overlapping_sector
 from streamdet.core.boxes import BOX_DIM
-from streamdet.core.classes import CLASS_NAMES
+from streamdet.core.classes import CLASS_NAMES, NUM_CLASSES
+from streamdet.core.json_input import read_json, short_repr
 from streamdet.core.sectors import check_num_slices, quadrants_of_sector
 from streamdet.core.slicing import boxes_in_sector, split_sweep
-from streamdet.data.nuscenes import NuScenesReader
-from streamdet.data.splits import split_scenes
+from streamdet.data.nuscenes import LIDAR_CHANNEL, NuScenesReader
+from streamdet.data.splits import SPLITS_FILE, split_scenes
 from streamdet.models.presets import Preset
 from streamdet.runtime_ort.pillarize import Pillars, pillarize
 from streamdet.training.targets import MapTargets, TargetConfig, build_targets
 
-CACHE_FORMAT = "streamdet-train-cache-v1"
+# v2: the key and meta.json carry the data's fingerprint (``data_fingerprint``); a v1 folder is never matched again
+CACHE_FORMAT = "streamdet-train-cache-v2"
+MAX_CACHE_META_BYTES = 1 << 30  # meta.json: tokens and rigs, a few kB per sample (about 100 MB for trainval)
 CAMERA_MODES = ("all", "overlapping")
 
 
@@ -125,13 +129,18 @@ def build_store(
     tokens = tuple(t for t in reader.sample_tokens if reader.scene_name(t) in scenes)
     if not tokens:
         raise ValueError(f"split {split!r} of {root} holds no samples (scenes {sorted(scenes)})")
-    key = hashlib.sha256(
-        json.dumps({"root": str(Path(root).resolve()), "version": version, "split": split, "tokens": tokens,
-                    "image_size": image_size}).encode()  # fmt: skip
-    ).hexdigest()[:16]
-    folder = Path(cache_dir) / f"{split}-{key}" if cache_dir is not None else None
-    if folder is not None and (folder / "meta.json").is_file():
-        return _load_cache(folder)
+    folder = fingerprint = None
+    if cache_dir is not None:
+        # The data's fingerprint is part of the key: a regenerated or edited dataset (same tokens, other boxes, sweeps
+        # or images) gets a new cache instead of silently training on the old one's arrays.
+        fingerprint = data_fingerprint(reader, root, version, tokens, with_images=image_size is not None)
+        key = hashlib.sha256(
+            json.dumps({"root": str(Path(root).resolve()), "version": version, "split": split, "tokens": tokens,
+                        "image_size": image_size, "data": fingerprint}).encode()  # fmt: skip
+        ).hexdigest()[:16]
+        folder = Path(cache_dir) / f"{split}-{key}"
+        if (folder / "meta.json").is_file():
+            return _load_cache(folder, tokens, image_size, fingerprint)
 
     points, boxes, labels, n_lidar, n_radar, rigs, images = [], [], [], [], [], [], []
     for i, token in enumerate(tokens):
@@ -159,37 +168,165 @@ def build_store(
         images=np.stack(images) if image_size is not None else None,
     )
     if folder is not None:
-        _save_cache(store, folder)
+        _save_cache(store, folder, fingerprint)
     return store
+
+
+def data_fingerprint(reader: NuScenesReader, root: str | Path, version: str, tokens: tuple[str, ...], with_images: bool) -> str:
+    """sha256 over (name, size, mtime_ns) of every file a store of ``tokens`` is read from: the tables, splits.json,
+    each sample's key-frame LiDAR file and (``with_images``) its camera images.
+
+    Sizes and modification times, not the bytes: hashing trainval's sweeps and images on every start would cost as
+    much as decoding them, which the cache exists to avoid; any rewrite (``streamdet-synth --overwrite``, an edited
+    table) changes the mtime."""
+    entries = []
+
+    def add(path: Path) -> None:
+        st = path.stat()
+        entries.append((str(path), st.st_size, st.st_mtime_ns))
+
+    table_dir = Path(root) / version
+    for path in sorted(table_dir.iterdir()):
+        if path.is_file():
+            add(path)
+    if (Path(root) / SPLITS_FILE).is_file():
+        add(Path(root) / SPLITS_FILE)
+    wanted = set(tokens)
+    files: dict[str, list[Path]] = {t: [] for t in tokens}
+    for sd in reader.rows("sample_data"):
+        # the reader checked sample_token and is_key_frame of every row when it indexed the table
+        if sd["is_key_frame"] is not True or sd["sample_token"] not in wanted:
+            continue
+        sd = reader.row("sample_data", sd)
+        channel = reader.channel(sd)
+        if channel == LIDAR_CHANNEL or (with_images and channel.startswith("CAM_")):
+            files[sd["sample_token"]].append(reader.file(sd))
+    for token in tokens:
+        for path in sorted(files[token]):
+            add(path)
+    return hashlib.sha256(json.dumps(entries).encode()).hexdigest()
 
 
 _ARRAYS = ("points", "point_offsets", "boxes", "labels", "num_lidar_pts", "num_radar_pts", "box_offsets", "images")
 
 
-def _save_cache(store: SampleStore, folder: Path) -> None:
+def _save_cache(store: SampleStore, folder: Path, fingerprint: str | None) -> None:
     tmp = folder.with_name(folder.name + f".tmp{os.getpid()}")
     tmp.mkdir(parents=True, exist_ok=True)
     for name in _ARRAYS:
         value = getattr(store, name)
         if value is not None:
             np.save(tmp / f"{name}.npy", value)
-    meta = {"format": CACHE_FORMAT, "tokens": list(store.tokens), "rigs": [r.to_dict() for r in store.rigs]}
+    meta = {"format": CACHE_FORMAT, "data_fingerprint": fingerprint, "tokens": list(store.tokens),
+            "rigs": [r.to_dict() for r in store.rigs]}
     (tmp / "meta.json").write_text(json.dumps(meta))  # written last: a folder with meta.json is complete
     try:
         os.replace(tmp, folder)
-    except OSError:  # another process finished the same cache first; theirs is identical
-        pass
+    except OSError:  # another process finished the same cache first; theirs is identical (same key, same data)
+        shutil.rmtree(tmp, ignore_errors=True)
 
 
-def _load_cache(folder: Path) -> SampleStore:
-    meta = json.loads((folder / "meta.json").read_text())
+def _load_cache(folder: Path, tokens: tuple[str, ...], image_size: tuple[int, int] | None, fingerprint: str) -> SampleStore:
+    """The store a cache folder holds, every array checked against meta.json and the expected tokens before training
+    reads it: the folder lives inside the dataset by default and travels with it, so it is input like the tables."""
+    path = folder / "meta.json"
+    meta = read_json(path, "training cache meta", MAX_CACHE_META_BYTES)
+    if not isinstance(meta, dict):
+        raise ValueError(f"{path}: expected a JSON object, got {type(meta).__name__}; delete {folder}")
     if meta.get("format") != CACHE_FORMAT:
-        raise ValueError(f"{folder}: not a {CACHE_FORMAT} cache (format {meta.get('format')!r}); delete it")
+        raise ValueError(f"{folder}: not a {CACHE_FORMAT} cache (format {short_repr(meta.get('format'))}); delete it")
+    if meta.get("data_fingerprint") != fingerprint:
+        raise ValueError(f"{path}: built from other data than {folder.parent} now holds (data_fingerprint "
+                         f"{short_repr(meta.get('data_fingerprint'))}); delete {folder}")  # fmt: skip
+    if meta.get("tokens") != list(tokens):
+        raise ValueError(f"{path}: 'tokens' are not the split's {len(tokens)} sample tokens in table order; delete {folder}")
+    rigs_doc = meta.get("rigs")
+    if not isinstance(rigs_doc, list) or len(rigs_doc) != len(tokens):
+        got = f"a list of {len(rigs_doc)}" if isinstance(rigs_doc, list) else type(rigs_doc).__name__
+        raise ValueError(f"{path}: 'rigs' must be a list of {len(tokens)} calibration objects, got {got}; delete {folder}")
+    rigs = []
+    for i, doc in enumerate(rigs_doc):
+        if not isinstance(doc, dict):
+            raise ValueError(f"{path}: rigs[{i}] must be a calibration object, got {short_repr(doc)}; delete {folder}")
+        try:
+            rigs.append(Rig.from_calibration_json(doc))
+        except (ValueError, KeyError, TypeError, AttributeError, IndexError) as e:
+            raise ValueError(f"{path}: rigs[{i}] is not a camera rig: {e}; delete {folder}") from None
     arrays = {}
     for name in _ARRAYS:
-        path = folder / f"{name}.npy"
-        arrays[name] = np.load(path, mmap_mode="r") if path.is_file() else None
-    return SampleStore(tokens=tuple(meta["tokens"]), rigs=tuple(Rig.from_calibration_json(r) for r in meta["rigs"]), **arrays)
+        file = folder / f"{name}.npy"
+        if not file.is_file():
+            arrays[name] = None
+            continue
+        try:
+            # never pickles: an object array is refused here whatever numpy's default (mmap refuses it too)
+            arrays[name] = np.load(file, mmap_mode="r", allow_pickle=False)
+        except (ValueError, OSError, EOFError) as e:  # truncated, not .npy, an object dtype
+            raise ValueError(f"{file}: not a readable .npy array ({e}); delete {folder}") from None
+    _check_cache_arrays(folder, arrays, len(tokens), rigs, image_size)
+    return SampleStore(tokens=tuple(tokens), rigs=tuple(rigs), **arrays)
+
+
+# dtype and trailing shape of each cached array, as build_store makes them (None: its own check)
+_ARRAY_SPECS = {
+    "points": (np.float32, (5,)),
+    "point_offsets": (np.int64, ()),
+    "boxes": (np.float32, (BOX_DIM,)),
+    "labels": (np.int64, ()),
+    "num_lidar_pts": (np.int64, ()),
+    "num_radar_pts": (np.int64, ()),
+    "box_offsets": (np.int64, ()),
+}
+
+
+def _check_cache_arrays(folder: Path, a: dict, num_samples: int, rigs: list[Rig], image_size: tuple[int, int] | None) -> None:
+    """ValueError naming the array file unless every array has build_store's dtype and shape, the offsets cut the
+    flat arrays into ``num_samples`` ranges, labels are detection classes (or -1), boxes and point counts are sane.
+
+    The points' values are not scanned: a trainval cache holds gigabytes of them, read through the memory map only
+    as training reaches each sample (and a sweep read from the dataset is not scanned either)."""
+
+    def bad(name: str, why: str) -> ValueError:
+        return ValueError(f"{folder / (name + '.npy')}: {why}; delete {folder}")
+
+    for name, (dtype, tail) in _ARRAY_SPECS.items():
+        arr = a[name]
+        if arr is None:
+            raise ValueError(f"{folder / (name + '.npy')} is missing: an incomplete cache; delete {folder}")
+        if arr.dtype != dtype or arr.ndim != 1 + len(tail) or tuple(arr.shape[1:]) != tail:
+            want = f"(N, {', '.join(map(str, tail))})" if tail else "(N,)"
+            raise bad(name, f"expected a {np.dtype(dtype)} array of shape {want}, got {arr.dtype} {tuple(arr.shape)}")
+    for offsets, flat in (("point_offsets", "points"), ("box_offsets", "boxes")):
+        off = np.asarray(a[offsets])
+        if len(off) != num_samples + 1 or off[0] != 0 or off[-1] != len(a[flat]) or np.any(np.diff(off) < 0):
+            raise bad(offsets, f"expected {num_samples + 1} non-decreasing offsets from 0 to {len(a[flat])} (the rows of "
+                               f"{flat}.npy), got {short_repr(off.tolist())}")  # fmt: skip
+    m = len(a["boxes"])
+    for name in ("labels", "num_lidar_pts", "num_radar_pts"):
+        if len(a[name]) != m:
+            raise bad(name, f"{len(a[name])} rows for {m} boxes")
+    labels = np.asarray(a["labels"])
+    if m and (labels.min() < -1 or labels.max() >= NUM_CLASSES):
+        raise bad("labels", f"labels must be -1 (not a detection class) or 0..{NUM_CLASSES - 1}, got "
+                            f"{int(labels.min())}..{int(labels.max())}")  # fmt: skip
+    if m and not np.isfinite(np.asarray(a["boxes"])).all():
+        raise bad("boxes", "holds non-finite values (NaN or inf)")
+    for name in ("num_lidar_pts", "num_radar_pts"):
+        if m and np.asarray(a[name]).min() < 0:
+            raise bad(name, f"negative point counts (min {int(np.asarray(a[name]).min())})")
+    images = a["images"]
+    if image_size is None:
+        if images is not None:
+            raise bad("images", "a cache built without images holds images")
+        return
+    if images is None:
+        raise ValueError(f"{folder / 'images.npy'} is missing: an incomplete cache; delete {folder}")
+    w, h = image_size
+    cams = {len(r) for r in rigs}
+    if (images.dtype != np.uint8 or images.ndim != 5 or images.shape[0] != num_samples or images.shape[2:] != (h, w, 3)
+            or cams != {images.shape[1]}):  # fmt: skip
+        want = f"({num_samples}, {'/'.join(map(str, sorted(cams)))}, {h}, {w}, 3)"
+        raise bad("images", f"expected uint8 RGB images of shape {want}, got {images.dtype} {tuple(images.shape)}")
 
 
 # ---- items ----------------------------------------------------------------------------------------

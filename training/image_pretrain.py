@@ -21,6 +21,8 @@ import dataclasses
 import json
 import math
 import time
+import zipfile
+import zlib
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,11 +41,21 @@ from streamdet.models.detector import build_detector
 from streamdet.models.image_encoder import ImageEncoder
 from streamdet.models.presets import Preset, get_preset
 from streamdet.models.seg_head import ImageSegmenter
-from streamdet.training.checkpoint import _atomic_save, load_encoder_weights, read_torch_file, save_weights  # noqa: F401 (re-exported)
-from streamdet.training.trainer import init_head_outputs
+from streamdet.core.errors import first_line
+from streamdet.training.checkpoint import (  # noqa: F401 (load_encoder_weights re-exported)
+    TRAIN_FORMAT, WEIGHTS_FORMAT, _atomic_save, check_fits, check_state_dict, load_encoder_weights, read_torch_file, save_weights)
+from streamdet.training.trainer import check_max_minutes, check_out_dir, check_weights_finite, init_head_outputs
 
 NUM_LABELS = NUM_CLASSES + 1  # 0 = background
 IGNORE = 255
+MASK_NONE = 255  # a mask's class_id where no annotated object is (data/synth_writer.py)
+# The mask members read, and the most ids (instances) one mask may list: the writer stores instance ids as uint16, and
+# a token is a short hash. With the maps tied to the image's (H, W), these bound what a load can allocate.
+MASK_MEMBERS = ("class_id", "instance", "ids", "tokens")
+MAX_MASK_IDS = 1 << 16
+MAX_MASK_TOKEN_CHARS = 256
+# What a streamdet-train-image run leaves in --out: a new run there without --resume would replace (or append to) it.
+PRETRAIN_RUN_FILES = ("last.pt", "encoder.pt", "detector_init.pt", "metrics.jsonl", "result.json")
 
 
 @dataclass(frozen=True)
@@ -73,8 +85,12 @@ class PretrainConfig:
         if self.stop_at_step is not None and (isinstance(self.stop_at_step, bool) or not isinstance(self.stop_at_step, int)
                                               or self.stop_at_step < 1):
             raise ValueError(f"PretrainConfig.stop_at_step must be None or a positive integer, got {self.stop_at_step!r}")
-        if not self.lr > 0 or not self.range_m > 0:
-            raise ValueError(f"PretrainConfig: lr and range_m must be > 0, got {self.lr}, {self.range_m}")
+        # lr finite: AdamW with lr inf turns every weight NaN at the first step (range_m inf is "every object")
+        if isinstance(self.lr, bool) or not isinstance(self.lr, (int, float)) or not (math.isfinite(self.lr) and self.lr > 0):
+            raise ValueError(f"PretrainConfig.lr must be a finite number > 0, got {self.lr!r}")
+        if not self.range_m > 0:
+            raise ValueError(f"PretrainConfig.range_m must be > 0, got {self.range_m!r}")
+        check_max_minutes(self.max_minutes, "PretrainConfig.max_minutes")
 
 
 def pretrain_preset(preset: Preset) -> Preset:
@@ -97,6 +113,78 @@ class MaskedImages:
         return len(self.images)
 
 
+def read_mask(path: str | Path, height: int, width: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(class_id, instance, ids, tokens) of a ``<image>.mask.npz`` for an image of ``height`` x ``width`` pixels.
+
+    Checked from the zip directory and the ``.npy`` headers before anything is inflated (as calibration/lut_file.py
+    checks a lut.npz): a mask is an .npz from the dataset folder, and a small one can declare gigabytes. class_id and
+    instance must be integer maps of exactly the image's (H, W), ids and tokens lists of equal length (at most
+    MAX_MASK_IDS), each member exactly its header plus its data (not truncated or padded), no object (pickled) dtype.
+    Then the contents: class ids 0..NUM_CLASSES-1 or MASK_NONE, instance and ids >= 0. Any failure is a one-line
+    ValueError naming the file."""
+    path = Path(path)
+    try:
+        with zipfile.ZipFile(path) as zf:
+            names = [i.filename for i in zf.infolist()]
+            repeated = sorted({n for n in names if names.count(n) > 1})
+            missing = [m for m in MASK_MEMBERS if f"{m}.npy" not in names]
+            if repeated or missing:
+                raise ValueError(f"mask {path}: missing member(s) {missing}, repeated {repeated}; a mask holds {list(MASK_MEMBERS)}")
+            infos = {m: zf.getinfo(f"{m}.npy") for m in MASK_MEMBERS}  # other members are never read
+            headers = {m: _mask_header(zf, infos[m], path) for m in MASK_MEMBERS}
+            _check_mask_headers(headers, infos, path, height, width)
+            arrays = {}
+            for m in MASK_MEMBERS:
+                with zf.open(infos[m]) as f:
+                    arrays[m] = np.lib.format.read_array(f, allow_pickle=False)  # bounded by the checked header
+    except (OSError, EOFError, zipfile.BadZipFile, zipfile.LargeZipFile, zlib.error, KeyError) as e:
+        raise ValueError(f"mask {path}: not a readable .npz: {first_line(e)}") from None
+    except ValueError as e:
+        msg = first_line(e)
+        raise ValueError(msg if msg.startswith(f"mask {path}") else f"mask {path}: not a readable .npz: {msg}") from None
+    class_id, instance, ids, tokens = (arrays[m] for m in MASK_MEMBERS)
+    bad = (class_id < 0) | ((class_id >= NUM_CLASSES) & (class_id != MASK_NONE))
+    if bad.any():
+        raise ValueError(f"mask {path}: class_id {int(class_id[bad].flat[0])} at {int(bad.sum())} pixel(s); class ids are "
+                         f"0..{NUM_CLASSES - 1} ({NUM_CLASSES} classes) or {MASK_NONE} (no object)")  # fmt: skip
+    for name, arr in (("instance", instance), ("ids", ids)):
+        if arr.size and arr.min() < 0:
+            raise ValueError(f"mask {path}: {name} holds a negative id ({int(arr.min())})")
+    return class_id, instance, ids, tokens
+
+
+def _mask_header(zf: zipfile.ZipFile, info: zipfile.ZipInfo, path: Path) -> tuple[tuple[int, ...], np.dtype, int]:
+    """(shape, dtype, header bytes) of a member, read from its first bytes only."""
+    with zf.open(info) as f:
+        version = np.lib.format.read_magic(f)
+        read = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+        shape, _fortran, dtype = read(f)
+        header_bytes = f.tell()
+    if dtype.hasobject:
+        raise ValueError(f"mask {path}: {info.filename} holds Python objects (dtype {dtype}): a pickle, never loaded")
+    return tuple(shape), dtype, header_bytes
+
+
+def _check_mask_headers(headers: dict, infos: dict, path: Path, height: int, width: int) -> None:
+    for m in ("class_id", "instance"):
+        shape, dtype, _ = headers[m]
+        if shape != (height, width) or dtype.kind not in "iu":
+            raise ValueError(f"mask {path}: {m} must be an integer map of the image's shape ({height}, {width}), got "
+                             f"{dtype} {shape}")  # fmt: skip
+    (ids_shape, ids_dtype, _), (tok_shape, tok_dtype, _) = headers["ids"], headers["tokens"]
+    if len(ids_shape) != 1 or ids_dtype.kind not in "iu" or ids_shape[0] > MAX_MASK_IDS:
+        raise ValueError(f"mask {path}: ids must be a list of at most {MAX_MASK_IDS} integers, got {ids_dtype} {ids_shape}")
+    if tok_shape != ids_shape or tok_dtype.kind != "U" or tok_dtype.itemsize > 4 * MAX_MASK_TOKEN_CHARS:
+        raise ValueError(f"mask {path}: tokens must be {ids_shape[0]} strings (one per id) of at most {MAX_MASK_TOKEN_CHARS} "
+                         f"characters, got {tok_dtype} {tok_shape}")  # fmt: skip
+    for m in MASK_MEMBERS:
+        shape, dtype, header_bytes = headers[m]
+        want = header_bytes + math.prod(shape) * dtype.itemsize
+        if infos[m].file_size != want:  # the zip reader never inflates past the declared size: this bounds the read
+            raise ValueError(f"mask {path}: {m}.npy declares {infos[m].file_size} bytes, but its header implies {want} "
+                             f"({dtype} {shape}): truncated or padded")  # fmt: skip
+
+
 def load_masked_images(root: str | Path, split: str | None, size: tuple[int, int], range_m: float,
                        version: str = "v1.0-synth", max_samples: int | None = None,
                        progress: Callable[[int, int], None] | None = None) -> MaskedImages:  # fmt: skip
@@ -114,14 +202,15 @@ def load_masked_images(root: str | Path, split: str | None, size: tuple[int, int
             mask_path = path.with_name(path.name + MASK_SUFFIX)
             if not mask_path.is_file():
                 raise FileNotFoundError(f"{mask_path} is missing: image pretraining needs the world's masks (world version 2)")
-            with np.load(mask_path, allow_pickle=False) as z:
-                class_id, instance, ids, inst_tokens = z["class_id"], z["instance"], z["ids"], z["tokens"]
-            label = np.where(class_id == 255, 0, class_id.astype(np.int64) + 1).astype(np.uint8)
+            cam = sample.rig.camera(name)
+            image = load_image(path, size, expected_size=(cam.width, cam.height))  # the mask is at the camera's size
+            class_id, instance, ids, inst_tokens = read_mask(mask_path, cam.height, cam.width)
+            label = np.where(class_id == MASK_NONE, 0, class_id.astype(np.int64) + 1).astype(np.uint8)
             far_ids = [int(k) for k, t in zip(ids, inst_tokens) if dist.get(str(t), math.inf) >= range_m]
             far = np.isin(instance, far_ids)
             label = cv2.resize(label, size, interpolation=cv2.INTER_NEAREST)
             far = cv2.resize(far.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST).astype(bool)
-            images.append(load_image(path, size))
+            images.append(image)
             labels.append(label)
             eval_labels.append(np.where(far, IGNORE, label).astype(np.uint8))
         if progress is not None:
@@ -200,15 +289,40 @@ def write_detector_init(path: Path, preset: Preset, segmenter: ImageSegmenter, s
     save_weights(path, preset, detector, meta={"image_pretrain": str(path.parent)})
 
 
+def _check_resume(state: object, resume: str | Path, config: PretrainConfig, model: ImageSegmenter) -> None:
+    """ValueError naming ``resume`` unless it is a streamdet-train-image last.pt of ``config.preset`` that fits
+    ``model``; a streamdet-train checkpoint (same keys model / optimizer / step, same preset names) is named as one."""
+    if isinstance(state, dict) and (state.get("format") in (TRAIN_FORMAT, WEIGHTS_FORMAT) or "preset" in state or "scheduler" in state):
+        raise ValueError(f"--resume {resume} is a streamdet-train checkpoint (format {state.get('format')!r}: a detector's "
+                         f"training state or weights), not a streamdet-train-image last.pt; streamdet-train --resume or "
+                         f"--init takes it")  # fmt: skip
+    if not isinstance(state, dict) or not {"model", "optimizer", "step"} <= state.keys():
+        raise ValueError(f"--resume {resume} is not a streamdet-train-image last.pt (a dict with model, optimizer, step)")
+    if not isinstance(state.get("config"), dict) or state["config"].get("preset") != config.preset:
+        was = state["config"].get("preset") if isinstance(state.get("config"), dict) else None
+        raise ValueError(f"--resume {resume} was pretrained for preset {was!r}, not {config.preset!r}")
+    step = state["step"]
+    if isinstance(step, bool) or not isinstance(step, int) or step < 0:
+        raise ValueError(f"--resume {resume}: 'step' must be an integer >= 0, got {step!r}")
+    if not isinstance(state["optimizer"], dict):
+        raise ValueError(f"--resume {resume}: 'optimizer' is a {type(state['optimizer']).__name__}, not a state dict")
+    weights = check_state_dict(state["model"], resume, "--resume checkpoint")
+    check_fits(model.state_dict(), weights, resume, "--resume checkpoint", f"the image segmenter of preset {config.preset!r}")
+
+
 def pretrain(config: PretrainConfig, data_dir: str | Path, out_dir: str | Path, version: str = "v1.0-synth",
              resume: str | Path | None = None, device: str = "cpu", echo: Callable[[str], None] = print,
-             max_samples: int | None = None, splits: tuple[str | None, str | None] = ("train", "val")) -> dict:  # fmt: skip
+             max_samples: int | None = None, splits: tuple[str | None, str | None] = ("train", "val"),
+             overwrite: bool = False) -> dict:  # fmt: skip
     """Train the segmenter; returns the last evaluation. Resumable from ``out_dir/last.pt`` with ``resume``.
 
-    ``splits``: the (train, val) splits of ``data_dir/splits.json``; None = every sample.
+    ``splits``: the (train, val) splits of ``data_dir/splits.json``; None = every sample. An ``out_dir`` holding a
+    run (``PRETRAIN_RUN_FILES``) is refused unless ``resume`` continues it or ``overwrite`` replaces it. A NaN or inf
+    loss or weight stops with a ValueError.
     """
     t0 = time.monotonic()
     out = Path(out_dir)
+    replaced = check_out_dir(out, PRETRAIN_RUN_FILES, resume, overwrite)
     out.mkdir(parents=True, exist_ok=True)
     preset = get_preset(config.preset)
     size = (preset.image.width_px, preset.image.height_px)
@@ -223,20 +337,23 @@ def pretrain(config: PretrainConfig, data_dir: str | Path, out_dir: str | Path, 
     step = 0
     if resume is not None:
         state = read_torch_file(resume, "--resume checkpoint", map_location=device)
-        if not isinstance(state, dict) or not {"model", "optimizer", "step"} <= state.keys():
-            raise ValueError(f"--resume {resume} is not a streamdet-train-image last.pt (a dict with model, optimizer, step)")
-        if not isinstance(state.get("config"), dict) or state["config"].get("preset") != config.preset:
-            raise ValueError(f"--resume {resume} was pretrained for preset {state.get('config', {}).get('preset')!r}, not {config.preset!r}")
+        _check_resume(state, resume, config, model)
         model.load_state_dict(state["model"])
-        optimizer.load_state_dict(state["optimizer"])
-        step = int(state["step"])
+        try:
+            optimizer.load_state_dict(state["optimizer"])
+        except (ValueError, KeyError, TypeError, AttributeError, IndexError, RuntimeError) as e:
+            raise ValueError(f"--resume {resume}: its optimizer state does not fit this run's optimizer: {first_line(e)}") from None
+        step = state["step"]
         echo(f"resumed {resume} at step {step}")
+    for path in replaced:  # overwrite: none of the old run's files may outlive it beside the new run's
+        path.unlink(missing_ok=True)
     (out / "config.json").write_text(json.dumps({"pretrain": dataclasses.asdict(config), "data": str(data_dir),
                                                  "preset": preset.to_dict()}, indent=1) + "\n")  # fmt: skip
-    metrics = open(out / "metrics.jsonl", "a")
+    metrics = open(out / "metrics.jsonl", "a" if resume is not None else "w")  # a resumed run continues its log
     last_eval: dict = {}
 
     def checkpoint() -> None:
+        check_weights_finite(model, step)
         _atomic_save({"model": model.state_dict(), "optimizer": optimizer.state_dict(), "step": step,
                       "config": dataclasses.asdict(config)}, out / "last.pt")  # fmt: skip
         torch.save(model.encoder.state_dict(), out / "encoder.pt")
@@ -268,6 +385,10 @@ def pretrain(config: PretrainConfig, data_dir: str | Path, out_dir: str | Path, 
         for group in optimizer.param_groups:
             group["lr"] = lr_at(step, config)
         loss = F.cross_entropy(model(images), labels, weight=weights)
+        if not bool(torch.isfinite(loss.detach())):  # before the update: the weights stay the last finite step's
+            metrics.close()
+            raise ValueError(f"training diverged: the loss is {float(loss.detach())} at step {step + 1} (lr "
+                             f"{lr_at(step, config):.3g}); stopped there, nothing written for it (lower --lr)")  # fmt: skip
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)

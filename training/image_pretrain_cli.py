@@ -12,6 +12,7 @@ import click
 from streamdet.core.errors import first_line
 from streamdet.models.presets import preset_names
 from streamdet.training.image_pretrain import PretrainConfig, pretrain
+from streamdet.training.trainer import MAX_MINUTES
 
 
 @click.command(context_settings={"help_option_names": ["-h", "--help"]})
@@ -30,17 +31,19 @@ from streamdet.training.image_pretrain import PretrainConfig, pretrain
 @click.option("--eval-every", type=click.IntRange(min=1), default=250, show_default=True, help="Steps between val mIoU evaluations.")
 @click.option("--checkpoint-every", type=click.IntRange(min=1), default=100, show_default=True, help="Steps between checkpoints.")
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Seed of the weights and the batches.")
-@click.option("--max-minutes", type=click.FloatRange(min=0, min_open=True), default=None,
-              help="Stop with a checkpoint after this much wall time; --resume continues the same schedule.")
+@click.option("--max-minutes", type=click.FloatRange(min=0, min_open=True, max=MAX_MINUTES), default=None,
+              help="Stop with a checkpoint after this much wall time (at most 7 days); --resume continues the same schedule.")
 @click.option("--stop-at-step", type=click.IntRange(min=1), default=None,
               help="Stop with a checkpoint once this many steps of the --steps schedule are done (a session cut that, "
                    "unlike --max-minutes, is the same on every machine); --resume continues the same schedule.")
 @click.option("--resume", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Continue from a last.pt written by this command.")
+@click.option("--overwrite", is_flag=True,
+              help="Pretrain into an --out that already holds a run (last.pt, encoder.pt, metrics.jsonl, ...), replacing it.")
 @click.option("--max-samples", type=click.IntRange(min=1), default=None, help="Use only the first N samples of each split (tests).")
 @click.option("--device", default="cpu", show_default=True, help="torch device.")
 def main(data_dir: Path, version: str, out_dir: Path, preset: str, steps: int, batch_size: int, lr: float,
          range_m: float, eval_every: int, checkpoint_every: int, seed: int, max_minutes: float | None,
-         stop_at_step: int | None, resume: Path | None, max_samples: int | None, device: str) -> None:  # fmt: skip
+         stop_at_step: int | None, resume: Path | None, overwrite: bool, max_samples: int | None, device: str) -> None:  # fmt: skip
     """Pretrain the detector's image encoder with a segmentation head on per-pixel class masks; report val mIoU."""
     if not (data_dir / version).is_dir():
         raise click.ClickException(f"--data {data_dir}: no table folder {data_dir / version} (is --version right?)")
@@ -51,7 +54,7 @@ def main(data_dir: Path, version: str, out_dir: Path, preset: str, steps: int, b
                                 eval_every=eval_every, checkpoint_every=checkpoint_every, seed=seed, max_minutes=max_minutes,
                                 stop_at_step=stop_at_step)  # fmt: skip
         pretrain(config, data_dir, out_dir, version=version, resume=resume, device=device, echo=click.echo,
-                 max_samples=max_samples)  # fmt: skip
+                 max_samples=max_samples, overwrite=overwrite)  # fmt: skip
     except (ValueError, FileNotFoundError, KeyError) as e:
         raise click.ClickException(first_line(e)) from None
 

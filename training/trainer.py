@@ -53,6 +53,11 @@ from streamdet.training.schedule import OneCycle
 
 AMP_MODES = ("auto", "off", "bf16", "fp16")
 HEAD_OUTPUT_INIT_STD = 0.01
+# The longest --max-minutes (7 days): a budget is a finite wall time; inf would run the one-cycle schedule forever
+# (its lr never leaves the warm-up start), and a longer run is a --steps plan resumed across sessions.
+MAX_MINUTES = 7 * 24 * 60
+# What a finished or running streamdet-train leaves in --out: another run there without --resume would replace it.
+RUN_FILES = ("last.pt", "model.pt", "metrics.jsonl")
 
 
 @dataclass(frozen=True)
@@ -131,8 +136,7 @@ class TrainConfig:
             raise ValueError(f"TrainConfig.weight_decay must be >= 0, got {self.weight_decay!r}")
         if self.amp not in AMP_MODES:
             raise ValueError(f"TrainConfig.amp must be one of {AMP_MODES}, got {self.amp!r}")
-        if self.max_minutes is not None and not self.max_minutes > 0:
-            raise ValueError(f"TrainConfig.max_minutes must be > 0, got {self.max_minutes!r}")
+        check_max_minutes(self.max_minutes, "TrainConfig.max_minutes")
         if self.teacher is not None and (not isinstance(self.teacher, str) or not self.teacher):
             raise ValueError(f"TrainConfig.teacher must be None or a path, got {self.teacher!r}")
         if not (isinstance(self.distill_weight, (int, float)) and math.isfinite(self.distill_weight) and self.distill_weight >= 0):
@@ -156,6 +160,35 @@ class TrainConfig:
         if not self.freeze_camera_lane:
             del d["freeze_camera_lane"]
         return d
+
+
+def check_max_minutes(value: float | None, name: str) -> None:
+    """ValueError unless ``value`` is None or a finite number of minutes in (0, MAX_MINUTES]."""
+    if value is None:
+        return
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and 0 < value <= MAX_MINUTES):
+        raise ValueError(f"{name} must be a finite number of minutes in (0, {MAX_MINUTES}] (7 days), got {value!r}")
+
+
+def check_out_dir(out_dir: str | Path, run_files: tuple[str, ...], resume: str | Path | None, overwrite: bool) -> list[Path]:
+    """The files of an earlier run in ``out_dir`` that a new run (no ``resume``) will replace: ValueError when there
+    are some and ``overwrite`` is not set, so a finished run is never lost to a reused --out."""
+    if resume is not None and overwrite:
+        raise ValueError("--resume continues the run in its folder and --overwrite replaces one: give only one of them")
+    found = [Path(out_dir) / name for name in run_files if (Path(out_dir) / name).is_file()]
+    if found and resume is None and not overwrite:
+        raise ValueError(f"--out {out_dir} already holds a run ({', '.join(p.name for p in found)}): pass --resume "
+                         f"{Path(out_dir) / 'last.pt'} to continue it, --overwrite to replace it, or choose another --out")  # fmt: skip
+    return found if resume is None else []
+
+
+def check_weights_finite(module: torch.nn.Module, step: int) -> None:
+    """ValueError when a weight or buffer of ``module`` is NaN or inf: a finite loss can still end in such an
+    update (an overflowing gradient norm), and a checkpoint of it would only fail later, at export or --init."""
+    for name, value in module.state_dict().items():
+        if value.is_floating_point() and not bool(torch.isfinite(value).all()):
+            raise ValueError(f"training diverged: after step {step} the weight {name} holds NaN or inf; nothing was "
+                             f"written for it (lower --lr, or resume from an earlier last.pt)")  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -294,6 +327,7 @@ def train(
     device: str | torch.device | None = None,
     store: SampleStore | None = None,
     echo: Callable[[str], None] = print,
+    overwrite: bool = False,
 ) -> TrainResult:
     """Train on the ``train`` split of ``data_dir``; see the module docstring for what lands in ``out_dir``.
 
@@ -305,11 +339,15 @@ def train(
     lifter, pillar net), every other weight initialised with the seed; or from an image encoder's weights
     (streamdet-train-image's ``encoder.pt``), likewise. ``config.teacher`` adds the distillation loss of that
     detector's responses (training/distill.py); ``config.freeze_camera_lane`` keeps ``init``'s camera lane.
+    An ``out_dir`` that already holds a run (``RUN_FILES``) is refused unless ``resume`` continues it or ``overwrite``
+    replaces it. A loss or weight that turns NaN or inf stops training with a ValueError (nothing written for it).
     """
     if resume is not None and init is not None:
         raise ValueError("give either resume (continue a run) or init (start a new run from weights), not both")
     if config.freeze_camera_lane and init is None and resume is None:
         raise ValueError("freeze_camera_lane keeps the camera lane as initialised: give init (the weights to keep)")
+    # before any process starts (every one sees the same folder): after set-up the main process writes into it
+    replaced = check_out_dir(out_dir, RUN_FILES, resume, overwrite)
     run = _set_up(config, data_dir, out_dir, version, init, cache_dir, device, store, echo)
     if resume is not None:
         _restore(run, resume)
@@ -317,6 +355,9 @@ def train(
         run.shared_lane = config.freeze_camera_lane and run.teacher.shares_camera_lane(run.detector)
         run.say(f"distilling from {config.teacher} (preset {run.teacher.preset.name!r}, weight {config.distill_weight:g})"
                 + ("; the frozen camera lane is the teacher's: one lift per step for both" if run.shared_lane else ""))  # fmt: skip
+    if run.ctx.is_main:
+        for path in replaced:  # --overwrite: none of the old run's files may outlive it beside the new run's
+            path.unlink(missing_ok=True)
     _write_config(run, data_dir, init)
     log_file = open(run.out_dir / "metrics.jsonl", "a" if resume is not None else "w") if run.ctx.is_main else None
     n_params = sum(p.numel() for p in run.model.parameters())
@@ -326,7 +367,12 @@ def train(
         f"on {len(run.dataset.store)} samples, slices {list(config.data.num_slices)}, {run.ctx.world_size} process(es) x batch "
         f"{config.batch_size}, {len(run.loader)} steps/epoch, {run.plan}, device {run.device}"
     )
-    stopped_early, last_loss = _loop(run, log_file)
+    try:
+        stopped_early, last_loss = _loop(run, log_file)
+        check_weights_finite(run.model, run.schedule.step)
+    finally:
+        if log_file is not None:
+            log_file.close()  # also when training diverged: the log up to that step stays readable
     ckpt = run.checkpoint()
     step = run.schedule.step
     weights = None
@@ -334,7 +380,6 @@ def train(
         weights = run.out_dir / "model.pt"
         save_weights(weights, run.preset, run.detector,
                      meta={"steps": step, "config": config.to_dict(), "init": str(init) if init is not None else None})  # fmt: skip
-        log_file.close()
     seconds = time.perf_counter() - run.t_start
     run.say(f"{'stopped by --max-minutes' if stopped_early else 'done'} after {step} steps in {seconds / 60:.1f} min; wrote {run.out_dir}")
     return TrainResult(step, seconds, stopped_early, last_loss, ckpt, weights)
@@ -537,6 +582,7 @@ def _loop(run: _TrainRun, log_file) -> tuple[bool, float]:
             run.epoch_step += 1
 
             last_loss = float(loss.detach()) / ctx.world_size  # this process's share of the global loss
+            _stop_if_diverged(run, last_loss, lr)
             window["samples"] += batch.num_samples
             window["slices"] += batch.num_slices
             window["loss"] += last_loss
@@ -546,6 +592,7 @@ def _loop(run: _TrainRun, log_file) -> tuple[bool, float]:
             if schedule.step % config.log_every == 0:
                 _log(window, schedule, lr, run.epoch, ctx, run.say, log_file)
             if schedule.step % config.checkpoint_every == 0:
+                check_weights_finite(run.model, schedule.step)  # every process holds the same weights (DDP)
                 run.checkpoint()
             # with a step/epoch plan the limit is this invocation's wall time (a resumed run gets it again), as a
             # session-split run needs; a time plan (no steps) spends one budget over all of its resumes
@@ -560,6 +607,23 @@ def _loop(run: _TrainRun, log_file) -> tuple[bool, float]:
     if window["n"]:
         _log(window, schedule, lr, run.epoch, ctx, run.say, log_file)
     return stopped_early, last_loss
+
+
+def _stop_if_diverged(run: _TrainRun, loss: float, lr: float) -> None:
+    """ValueError naming the step and the loss when it is NaN or inf on any process: the update it drove left NaN
+    weights, so the run stops before anything more is logged or written (the last checkpoint predates it).
+
+    Checked on the value the loop reads anyway (no extra device sync); summed over processes, so every process
+    stops at the same step (one stopping alone would leave the others waiting in the next all-reduce)."""
+    finite = math.isfinite(loss)
+    if run.ctx.initialised and run.ctx.world_size > 1:
+        flag = all_reduce_sum(torch.tensor([0.0 if finite else 1.0], device=run.device), run.ctx)
+        finite = float(flag[0]) == 0.0
+    if not finite:
+        value = loss * run.ctx.world_size if not math.isfinite(loss) else "NaN or inf on another process"
+        raise ValueError(f"training diverged: the loss is {value} at step {run.schedule.step} (lr {lr:.3g}); stopped "
+                         f"there, no weights written for it (lower --lr or the loss weights, or resume from an earlier "
+                         f"last.pt)")  # fmt: skip
 
 
 def _step(run: _TrainRun, batch: Batch, use_image: bool) -> tuple[torch.Tensor, dict]:
