@@ -15,7 +15,13 @@ from pathlib import Path
 
 import click
 
-from streamdet.cli_utils import PRECISION_CHOICES, image_precision_option
+from streamdet.cli_utils import (
+    MAX_SLICES,
+    PRECISION_CHOICES,
+    image_precision_option,
+    refuse_output_over_inputs,
+    split_list,
+)
 from streamdet.core.constants import DEFAULT_EXPORT_DIR
 from streamdet.core.errors import first_line
 from streamdet.evaluation.config import TP_METRICS, DetectionConfig
@@ -25,17 +31,19 @@ from streamdet.evaluation.metrics import DetectionMetrics
 from streamdet.evaluation.results import load_gt_and_predictions
 
 _TP_SHORT = {"trans_err": "ATE", "scale_err": "ASE", "orient_err": "AOE", "vel_err": "AVE", "attr_err": "AAE"}
+# --bootstrap: 10^5 draws resolve a 95 % interval far below any figure's printed precision; 10^9 ran for hours.
+MAX_DRAWS = 100_000
+SAVED_FILES = ("results.json", "gt.json", "samples.json")  # what --save-results writes (compare.SAMPLES_FILE last)
 
 
 def _parse_classes(value: str | None) -> tuple[str, ...] | None:
     if value is None:
         return None
-    names = tuple(n.strip() for n in value.split(",") if n.strip())
+    names = tuple(split_list(value, "--classes", "class"))
     known = DetectionConfig().class_names
     bad = [n for n in names if n not in known]
-    if bad or not names:
-        raise click.BadParameter(f"unknown class {bad[0]!r}; choose from {','.join(known)}" if bad else "no class given",
-                                 param_hint="--classes")  # fmt: skip
+    if bad:
+        raise click.BadParameter(f"unknown class {bad[0]!r}; choose from {','.join(known)}", param_hint="--classes")
     return names
 
 
@@ -70,8 +78,8 @@ def _evaluate_and_report(gt: EvalBoxes, pred: EvalBoxes, classes: tuple[str, ...
     if json_path is not None:
         try:
             json_path.write_text(json.dumps(metrics.to_dict(), indent=1, allow_nan=False) + "\n")
-        except OSError as e:
-            raise click.ClickException(f"cannot write --json {json_path}: {e.strerror or e}") from None
+        except (OSError, ValueError) as e:  # ValueError: a non-finite figure (allow_nan=False)
+            raise click.ClickException(f"cannot write --json {json_path}: {getattr(e, 'strerror', None) or e}") from None
         click.echo(f"wrote {json_path}")
 
 
@@ -98,6 +106,9 @@ def _data_inputs(data_dir: Path, version: str, split: str | None, export_dir: Pa
     except (ValueError, OSError, KeyError) as e:  # the dataset's own defects (NuScenesReader names table and row)
         text = str(e.args[0]) if isinstance(e, KeyError) and e.args else str(e)  # KeyError's str() adds quotes
         raise click.ClickException((text.strip().splitlines() or [type(e).__name__])[0]) from None
+    except MemoryError:  # not an input error to run_edge: say what ran out, not a traceback
+        raise click.ClickException(f"out of memory while detecting over {data_dir} with {n} slices per sweep: "
+                                   "try fewer --slices or --max-samples") from None
     click.echo(f"{result.num_samples} samples of {data_dir} ({split or 'all'} split), export {export_dir} ({label}), "
                f"{n} slices per sweep, {result.seconds:.1f} s")  # fmt: skip
     click.echo(format_table(result.metrics))
@@ -108,8 +119,8 @@ def _data_inputs(data_dir: Path, version: str, split: str | None, export_dir: Pa
                "export_dir": str(export_dir), "data_dir": str(data_dir), "split": split}  # fmt: skip
         try:
             json_path.write_text(json.dumps(doc, indent=1, allow_nan=False) + "\n")
-        except OSError as e:
-            raise click.ClickException(f"cannot write --json {json_path}: {e.strerror or e}") from None
+        except (OSError, ValueError) as e:  # ValueError: a non-finite figure (allow_nan=False)
+            raise click.ClickException(f"cannot write --json {json_path}: {getattr(e, 'strerror', None) or e}") from None
         click.echo(f"wrote {json_path}")
     if save_dir is not None:
         from streamdet.evaluation.compare import SAMPLES_FILE, write_sample_info
@@ -128,10 +139,9 @@ def _data_inputs(data_dir: Path, version: str, split: str | None, export_dir: Pa
 
 
 def _run_group(arg: str) -> list[Path]:
-    """One side of --compare: a run, or several runs separated by commas (seeds of one recipe)."""
-    paths = [Path(p) for p in arg.split(",") if p]
-    if not paths:
-        raise click.UsageError(f"--compare: {arg!r} names no run")
+    """One side of --compare: a run, or several runs separated by commas (seeds of one recipe). An empty entry or a
+    run named twice (one run counted as two seeds) is refused, naming it."""
+    paths = [Path(p) for p in split_list(arg, "--compare", "run", key=lambda p: Path(p).resolve())]
     for p in paths:
         if not p.exists():
             raise click.UsageError(f"--compare: {p} does not exist")
@@ -144,6 +154,7 @@ def _compare(run_a: str, run_b: str, gt_path: Path | None, classes: tuple[str, .
     from streamdet.evaluation.compare import compare_runs, format_comparison, load_run
 
     group_a, group_b = _run_group(run_a), _run_group(run_b)
+    refuse_output_over_inputs(json_path, "--json", [("--gt", gt_path), *(("--compare run", p) for p in group_a + group_b)])
     try:
         a = [load_run(p, gt_path) for p in group_a]
         b = [load_run(p, gt_path) for p in group_b]
@@ -193,8 +204,8 @@ def _compare(run_a: str, run_b: str, gt_path: Path | None, classes: tuple[str, .
               help="Dataset mode: scenes of this split in DATA/splits.json; 'all' for every sample.")  # fmt: skip
 @click.option("--export-dir", type=click.Path(file_okay=False, path_type=Path), default=Path(DEFAULT_EXPORT_DIR),
               show_default=True, help="Dataset mode: export directory written by streamdet-export.")  # fmt: skip
-@click.option("--slices", type=click.IntRange(min=1), default=None,
-              help="Dataset mode: slices per sweep (1, 2 or a multiple of 4); default: the export's.")  # fmt: skip
+@click.option("--slices", type=click.IntRange(1, MAX_SLICES), default=None,
+              help=f"Dataset mode: slices per sweep (1, 2 or a multiple of 4, up to {MAX_SLICES}); default: the export's.")  # fmt: skip
 @click.option("--precision", type=click.Choice(PRECISION_CHOICES), default="fp32", show_default=True,
               help="Dataset mode: which graphs of the export to run.")  # fmt: skip
 @image_precision_option()
@@ -221,8 +232,8 @@ def _compare(run_a: str, run_b: str, gt_path: Path | None, classes: tuple[str, .
     "A run is a folder written by --save-results, or a results file (then give --gt). Either side may be several "
     "runs separated by commas (seeds of one recipe): their mean, the bootstrap resampling the runs too.",
 )  # fmt: skip
-@click.option("--bootstrap", "draws", type=click.IntRange(min=1), default=1000, show_default=True,
-              help="Compare mode: bootstrap draws.")  # fmt: skip
+@click.option("--bootstrap", "draws", type=click.IntRange(1, MAX_DRAWS), default=1000, show_default=True,
+              help=f"Compare mode: bootstrap draws per subset, 1..{MAX_DRAWS}.")  # fmt: skip
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True,
               help="Compare mode: seed of the bootstrap draws.")  # fmt: skip
 @click.option("--no-subsets", "no_subsets", is_flag=True,
@@ -251,6 +262,14 @@ def main(gt_path: Path | None, results_path: Path | None, data_dir: Path | None,
             raise click.UsageError("--data runs the detector itself; do not combine it with --gt / --results")
         if slices is not None and slices not in (1, 2) and slices % 4:
             raise click.BadParameter(f"{slices} must be 1, 2 or a multiple of 4", param_hint="--slices")
+        inputs = [("--data", data_dir), ("--export-dir", export_dir)]
+        refuse_output_over_inputs(json_path, "--json", inputs)
+        refuse_output_over_inputs(save_dir, "--save-results", inputs)
+        # --save-results writes its files after the --json: one of them would replace the figures just written
+        saved = {(save_dir / name).resolve() for name in SAVED_FILES} if save_dir is not None else set()
+        if json_path is not None and json_path.resolve() in saved:
+            raise click.BadParameter(f"{str(json_path)!r} is one of the files --save-results {save_dir} writes "
+                                     f"({', '.join(SAVED_FILES)}); choose another path", param_hint="--json")  # fmt: skip
         _data_inputs(data_dir, version, None if split == "all" else split, export_dir, slices, precision, max_samples,
                      class_list, json_path, save_dir, image_precision)  # fmt: skip
         return
@@ -260,6 +279,7 @@ def main(gt_path: Path | None, results_path: Path | None, data_dir: Path | None,
         raise click.UsageError("--save-results is for the dataset mode (--data): the files mode already has its files")
     if gt_path is None or results_path is None:
         raise click.UsageError("give --gt and --results (files mode), or --data (dataset mode)")
+    refuse_output_over_inputs(json_path, "--json", [("--gt", gt_path), ("--results", results_path)])
     try:
         gt, pred = load_gt_and_predictions(gt_path, results_path)
     except ValueError as e:

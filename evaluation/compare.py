@@ -34,6 +34,14 @@ from streamdet.evaluation.results import global_to_lidar, load_gt_and_prediction
 
 SAMPLES_FILE = "samples.json"
 FEW_POINTS = 5  # the issue's subset: objects with at most this many points
+# Per-slice subsets only up to this many slices: each subset costs a whole bootstrap, and a samples.json saying 4096
+# slices made 4097 of them (hours at the default draws). Beyond it the per-slice rows are skipped, with a note.
+MAX_SLICE_SUBSETS = 64
+# Two runs' ground truths are the same when every box agrees to these tolerances (float64 through JSON round-trips
+# exactly; the tolerance only absorbs a ground truth regenerated on another machine). Metres, m/s, quaternion units.
+GT_ATOL = 1e-6
+GT_RTOL = 1e-9
+POSE_ATOL = 1e-9  # samples.json poses: rotation entries and metres
 
 
 @dataclass(frozen=True)
@@ -53,6 +61,8 @@ class Run:
     pred: EvalBoxes
     info: SampleInfo | None
     where: str
+    gt_where: str = ""  # the ground-truth file, for messages ("" = unknown: ``where`` is named instead)
+    info_where: str = ""  # the samples.json read, for messages
 
 
 @dataclass(frozen=True)
@@ -122,13 +132,80 @@ def load_run(run: Path, gt_path: Path | None = None) -> Run:
     else:
         raise ValueError(f"{run} does not exist")
     gt, pred = load_gt_and_predictions(gt_file, results)
-    return Run(gt=gt, pred=pred, info=info, where=str(run))
+    info_where = str(run / SAMPLES_FILE) if info is not None else ""
+    return Run(gt=gt, pred=pred, info=info, where=str(run), gt_where=str(gt_file), info_where=info_where)
 
 
-def _same_ground_truth(a: EvalBoxes, b: EvalBoxes, where_a: str, where_b: str) -> None:
-    if set(a.sample_tokens) != set(b.sample_tokens) or len(a) != len(b):
-        raise ValueError(f"{where_a} and {where_b} are not scored on the same ground truth "
-                         f"({len(a.sample_tokens)} vs {len(b.sample_tokens)} samples, {len(a)} vs {len(b)} boxes)")  # fmt: skip
+def _canonical_rows(boxes: EvalBoxes, sample_of: np.ndarray) -> np.ndarray:
+    """Row order that sorts ``boxes`` by (sample, class, attribute, points, centre, size): the order a ground-truth
+    file happens to list a sample's boxes in does not make it another ground truth."""
+    t, s = boxes.translation, boxes.size
+    return np.lexsort((s[:, 2], s[:, 1], s[:, 0], t[:, 2], t[:, 1], t[:, 0], boxes.num_pts, boxes.attribute_name,
+                       boxes.detection_name, sample_of))  # fmt: skip
+
+
+def ground_truth_difference(a: EvalBoxes, b: EvalBoxes) -> str | None:
+    """None if ``a`` and ``b`` hold the same boxes per sample (any order within a sample, values within GT_ATOL /
+    GT_RTOL), else what differs first, naming the sample. Sample tokens, box counts *and* the boxes themselves are
+    compared: only the first run's ground truth scores a comparison, so a run scored against moved boxes must not
+    pass for one scored against these."""
+    tokens_a, tokens_b = set(a.sample_tokens), set(b.sample_tokens)
+    only_a = [t for t in a.sample_tokens if t not in tokens_b]
+    only_b = [t for t in b.sample_tokens if t not in tokens_a]
+    if only_a or only_b:
+        first, side = (only_a[0], "the first") if only_a else (only_b[0], "the second")
+        return (f"sample {first!r} is only in {side} ({len(a.sample_tokens)} vs {len(b.sample_tokens)} samples, "
+                f"{len(only_a) + len(only_b)} not in both)")  # fmt: skip
+    position = {t: k for k, t in enumerate(a.sample_tokens)}
+    sample_a = a.sample_index
+    sample_b = np.array([position[t] for t in b.sample_tokens], np.int64)[b.sample_index]
+    counts_a = np.bincount(sample_a, minlength=len(position))
+    counts_b = np.bincount(sample_b, minlength=len(position))
+    if np.any(counts_a != counts_b):
+        k = int(np.flatnonzero(counts_a != counts_b)[0])
+        return f"sample {a.sample_tokens[k]!r} has {counts_a[k]} vs {counts_b[k]} boxes"
+    ra, rb = _canonical_rows(a, sample_a), _canonical_rows(b, sample_b)
+    differs = np.zeros(len(a), bool)
+    for name in ("detection_name", "attribute_name", "num_pts"):
+        differs |= getattr(a, name)[ra] != getattr(b, name)[rb]
+    for name in ("translation", "size", "rotation", "velocity", "ego_translation"):
+        va, vb = getattr(a, name)[ra], getattr(b, name)[rb]
+        differs |= ~np.isclose(va, vb, rtol=GT_RTOL, atol=GT_ATOL, equal_nan=True).all(axis=1)
+    if not differs.any():
+        return None
+    row = int(np.flatnonzero(differs)[0])
+    ia, ib = int(ra[row]), int(rb[row])
+    token = a.sample_tokens[sample_a[ia]]
+    return (f"sample {token!r} differs: a {a.detection_name[ia]} at {np.round(a.translation[ia], 3).tolist()} "
+            f"vs a {b.detection_name[ib]} at {np.round(b.translation[ib], 3).tolist()}")
+
+
+def _gt_name(run: Run) -> str:
+    return run.gt_where or run.where
+
+
+def _same_ground_truth(first: Run, other: Run) -> None:
+    difference = ground_truth_difference(first.gt, other.gt)
+    if difference is not None:
+        raise ValueError(f"{first.where} and {other.where} are not scored on the same ground truth "
+                         f"({_gt_name(first)} vs {_gt_name(other)}): {difference}")  # fmt: skip
+
+
+def _same_sample_info(first: Run, other: Run, tokens: Sequence[str], slicing: bool) -> None:
+    """The samples.json of two runs must agree on what the comparison reads from them: every scored sample's scene
+    (the bootstrap's clusters) and pose, and with ``slicing`` (per-slice and cut-by-border subsets) the slicing."""
+    a, b = first.info, other.info  # both runs have a samples.json (compare_runs' choice)
+    where = f"{first.info_where or first.where} and {other.info_where or other.where} disagree"
+    for t in tokens:
+        if a.scenes[t] != b.scenes[t]:
+            raise ValueError(f"{where}: sample {t!r} is in scene {a.scenes[t]!r} vs {b.scenes[t]!r}")
+        for name in ("lidar2ego", "ego2global"):
+            if not np.allclose(getattr(a, name)[t], getattr(b, name)[t], rtol=0.0, atol=POSE_ATOL):
+                raise ValueError(f"{where}: sample {t!r} has another {name} pose")
+    if slicing and (a.num_slices, a.start_deg) != (b.num_slices, b.start_deg):
+        raise ValueError(f"{where}: {a.num_slices} vs {b.num_slices} slices (start {a.start_deg:g} vs "
+                         f"{b.start_deg:g} deg); the per-slice subsets need one slicing: compare without subsets "
+                         "(--no-subsets)")  # fmt: skip
 
 
 def _lidar_boxes(boxes: EvalBoxes, info: SampleInfo) -> np.ndarray:
@@ -170,7 +247,7 @@ def compare_runs(
         raise ValueError("each side of a comparison needs at least one run")
     first = runs_a[0]
     for other in runs_a[1:] + runs_b:
-        _same_ground_truth(first.gt, other.gt, first.where, other.where)
+        _same_ground_truth(first, other)
     gt = filter_eval_boxes(first.gt, config.class_range_m)
     preds_a = [filter_eval_boxes(r.pred, config.class_range_m) for r in runs_a]
     preds_b = [filter_eval_boxes(r.pred, config.class_range_m) for r in runs_b]
@@ -178,17 +255,26 @@ def compare_runs(
         raise ValueError(f"{first.where}: the ground truth holds no box with points within its class range: nothing to compare")
     present = set(gt.detection_name.tolist())
     classes = tuple(c for c in config.class_names if c in present) if classes is None else tuple(classes)
-    info = next((r.info for r in runs_a + runs_b if r.info is not None), None)
+    # Every samples.json must agree (scenes, poses, slicing): one of them serves every run, so a run's own file
+    # read as another's would silently change the clusters or the slices of the others.
+    with_info = [r for r in runs_a + runs_b if r.info is not None]
+    for r in with_info:
+        missing = [t for t in gt.sample_tokens if t not in r.info.scenes]
+        if missing:
+            raise ValueError(f"{r.info_where or SAMPLES_FILE} names no scene for sample {missing[0]!r}")
+    for other in with_info[1:]:
+        _same_sample_info(with_info[0], other, gt.sample_tokens, subsets)
+    info = with_info[0].info if with_info else None
     notes = []
+    if with_info and len(with_info) < len(runs_a) + len(runs_b):
+        notes.append(f"samples.json of {with_info[0].where} serves the runs without one: "
+                     + ", ".join(r.where for r in runs_a + runs_b if r.info is None))  # fmt: skip
     if info is None:
         clusters = np.arange(len(gt.sample_tokens))
         clustered_by = "sample"
         notes.append("no samples.json: samples resampled one by one; samples of one scene are correlated, so the "
                      "interval is too narrow")  # fmt: skip
     else:
-        missing = [t for t in gt.sample_tokens if t not in info.scenes]
-        if missing:
-            raise ValueError(f"samples.json names no scene for sample {missing[0]!r}")
         names = [info.scenes[t] for t in gt.sample_tokens]
         clusters = np.unique(names, return_inverse=True)[1].astype(np.int64)
         clustered_by = "scene"
@@ -205,8 +291,12 @@ def compare_runs(
             masks_a = [slice_masks(p, info) for p in preds_a]
             masks_b = [slice_masks(p, info) for p in preds_b]
             subset_defs["cut_by_slice_border"] = (gt_cut, [m[1] for m in masks_a], [m[1] for m in masks_b])
-            for k in range(info.num_slices):
-                subset_defs[f"slice{k}"] = (gt_slice == k, [m[0] == k for m in masks_a], [m[0] == k for m in masks_b])
+            if info.num_slices <= MAX_SLICE_SUBSETS:
+                for k in range(info.num_slices):
+                    subset_defs[f"slice{k}"] = (gt_slice == k, [m[0] == k for m in masks_a], [m[0] == k for m in masks_b])
+            else:
+                notes.append(f"{info.num_slices} slices: no per-slice subsets above {MAX_SLICE_SUBSETS} slices "
+                             "(each costs a whole bootstrap)")  # fmt: skip
         else:
             notes.append("no samples.json: no per-slice or cut-by-border subsets")
     out = {}

@@ -13,7 +13,7 @@ from pathlib import Path
 import click
 import numpy as np
 
-from streamdet.cli_utils import PRECISION_CHOICES, image_precision_option
+from streamdet.cli_utils import MAX_SLICES, PRECISION_CHOICES, image_precision_option, refuse_output_over_inputs
 from streamdet.runtime_ort.stats import format_latency
 from streamdet.core import constants
 
@@ -61,7 +61,14 @@ def run_sample(
         det_scores=merged.scores,
     )
     png_path = out_dir / "bev.png"
-    cv2.imwrite(str(png_path), picture)
+    # cv2.imwrite reports a failed write (a folder named bev.png, a full disk, no permission) only by returning False
+    try:
+        written = cv2.imwrite(str(png_path), picture)
+    except cv2.error as e:
+        raise OSError(f"cannot write {png_path}: {e}") from None
+    if not written:
+        raise OSError(f"cannot write {png_path} (is it a folder, the disk full, or the folder read-only?); "
+                      f"{results_path} was written")  # fmt: skip
     counts = {CLASS_NAMES[c]: int((merged.labels == c).sum()) for c in np.unique(merged.labels)}
     return {
         "sample": sample.token,
@@ -86,7 +93,8 @@ def run_sample(
               help="A sample folder in the bundled layout (calibration.json, boxes.json, .pcd.bin, CAM_*.jpg). "
                    "Default: the bundled real nuScenes sample.")
 @click.option("--slices", "num_slices", type=int, default=None,
-              help="Slices per sweep (1, 2 or a multiple of 4). Default: the number the export was made for.")
+              help=f"Slices per sweep (1, 2 or a multiple of 4, up to {MAX_SLICES}). Default: the number the export was "
+                   "made for.")
 @click.option("--precision", type=click.Choice(PRECISION_CHOICES), default="fp32", show_default=True,
               help="Which graphs of the export to run.")
 @image_precision_option()
@@ -101,10 +109,16 @@ def main(
     logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(message)s")
     if not (export_dir / "manifest.json").is_file():
         raise click.ClickException(f"{export_dir} holds no manifest.json: run `streamdet-export --out {export_dir}` first")
+    from streamdet.data.sample import bundled_sample_dir
+
+    # --out inside the sample (the bundled one by default) or the export would add files to what others read
+    refuse_output_over_inputs(out_dir, "--out", [("--export-dir", export_dir), ("--sample", sample_dir or bundled_sample_dir())])
     try:
         summary = run_sample(export_dir, sample_dir, num_slices, out_dir, precision, image_precision)
     except (ValueError, KeyError, FileNotFoundError, OSError) as e:
         raise click.ClickException(str(e)) from None
+    except MemoryError:  # not an input error to run_edge: say what ran out, not a traceback
+        raise click.ClickException(f"out of memory running {export_dir} on the sample: try fewer --slices") from None
     click.echo(
         f"sample {summary['sample']}: {summary['detections']} detections over {summary['num_slices']} slices "
         f"({summary['precision']}, {', '.join(summary['providers'])}{'' if summary['uses_images'] else ', LiDAR only: no images used'})"

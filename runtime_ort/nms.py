@@ -4,6 +4,10 @@ Two kinds, as CenterPoint offers them: circle NMS (suppress lower-scored boxes o
 centre lies within a class radius of a kept one) and rotated NMS (suppress when the exact rotated BEV IoU
 exceeds a threshold). Candidate pairs come from a sort-and-sweep over axis-aligned BEV extents, so the cost
 follows the number of boxes that actually come close, not the square of the box count.
+
+Memory is bounded too: when the candidate pairs of one pass would exceed PAIR_BUDGET (a sweep of 4096 slices merged
+173k boxes into 460 M candidates, 4.6 GB), the greedy runs over the boxes in score order, a chunk of at most
+PAIR_BUDGET candidates at a time (``_chunked_keep``), with the same result.
 """
 
 from __future__ import annotations
@@ -100,11 +104,24 @@ def overlapping_pairs(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.nd
     if n < 2:
         empty = np.zeros(0, np.int64)
         return empty, empty
-    # 1-D planes: numpy gathers from them several times faster than rows of an (N, 2) array.
-    lo_x, lo_y, hi_x, hi_y = (np.ascontiguousarray(v) for v in (lo[:, 0], lo[:, 1], hi[:, 0], hi[:, 1]))
+    return _swept_pairs(lo, hi, *_sweep(lo, hi))
+
+
+def _sweep(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``overlapping_pairs``' sort on lo_x: (order by lo_x, how many candidates follow each sorted position); the
+    candidates' count (``run.sum()``) is known before any pair is made."""
+    lo_x, hi_x = np.ascontiguousarray(lo[:, 0]), np.ascontiguousarray(hi[:, 0])
     by_x = np.argsort(lo_x, kind="stable")
     end = np.searchsorted(lo_x[by_x], hi_x[by_x], side="left")  # first sorted position with lo_x >= hi_x
-    run = np.maximum(end - np.arange(n) - 1, 0)  # partners after each position in sorted order
+    run = np.maximum(end - np.arange(lo.shape[0]) - 1, 0)  # partners after each position in sorted order
+    return by_x, run
+
+
+def _swept_pairs(lo: np.ndarray, hi: np.ndarray, by_x: np.ndarray, run: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The overlapping pairs among the candidates of ``_sweep``."""
+    n = lo.shape[0]
+    # 1-D planes: numpy gathers from them several times faster than rows of an (N, 2) array.
+    lo_x, lo_y, hi_x, hi_y = (np.ascontiguousarray(v) for v in (lo[:, 0], lo[:, 1], hi[:, 0], hi[:, 1]))
     first = np.repeat(np.arange(n), run)  # (C,) sorted positions
     second = np.arange(run.sum()) - np.repeat(np.cumsum(run) - run, run) + first + 1  # (C,)
     i, j = by_x[first], by_x[second]
@@ -131,18 +148,108 @@ def _dense_same_class_pairs(lo: np.ndarray, hi: np.ndarray, labels: np.ndarray) 
     return i.astype(np.int64), j.astype(np.int64)
 
 
-def _same_class_pairs(lo: np.ndarray, hi: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _same_class_pairs(
+    lo: np.ndarray, hi: np.ndarray, labels: np.ndarray, budget: int | None = None
+) -> tuple[np.ndarray, np.ndarray] | None:
     """Overlapping pairs (i < j) among boxes of the same label; one sweep per class keeps the sweeps short (a dense
-    test below DENSE_PAIRS_MAX boxes)."""
-    if labels.shape[0] <= DENSE_PAIRS_MAX:
+    test below DENSE_PAIRS_MAX boxes). None, before any pair is made, when the sweeps' candidates exceed ``budget``."""
+    n = labels.shape[0]
+    if n <= DENSE_PAIRS_MAX and (budget is None or n * (n - 1) // 2 <= budget):
         return _dense_same_class_pairs(lo, hi, labels)
-    firsts, seconds = [], []
+    sweeps, total = [], 0
     for label in np.unique(labels).tolist():
         members = np.flatnonzero(labels == label)  # increasing, so i < j survives the mapping back
-        i, j = overlapping_pairs(lo[members], hi[members])
+        if members.size < 2:
+            continue
+        lo_m, hi_m = lo[members], hi[members]
+        by_x, run = _sweep(lo_m, hi_m)
+        total += int(run.sum())
+        if budget is not None and total > budget:
+            return None
+        sweeps.append((members, lo_m, hi_m, by_x, run))
+    firsts, seconds = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
+    for members, lo_m, hi_m, by_x, run in sweeps:
+        i, j = _swept_pairs(lo_m, hi_m, by_x, run)
         firsts.append(members[i])
         seconds.append(members[j])
     return np.concatenate(firsts), np.concatenate(seconds)
+
+
+# The most candidate pairs one pass holds at once (each costs some 100 bytes over the numpy temporaries: ~50 MB).
+# Above it, ``nms`` switches to ``_chunked_keep``; a slice's NMS and a sweep of a few dozen slices stay far below.
+PAIR_BUDGET = 1 << 19
+# Heads examined per step of ``_chunked_keep`` (the alive ones among them fill a chunk up to PAIR_BUDGET pairs).
+CHUNK_HEADS = 4096
+IOU_BATCH = 1 << 15  # rotated pairs whose exact IoU one call of ``indexed_bev_iou`` computes in ``_chunked_keep``
+
+
+def _chunked_keep(lo: np.ndarray, hi: np.ndarray, labels: np.ndarray, link, max_out: int,
+                  budget: int = PAIR_BUDGET) -> np.ndarray:  # fmt: skip
+    """The greedy NMS keep mask of ranked boxes (best first) with at most ``budget`` candidate pairs in memory.
+
+    Exactly ``_greedy`` over the pairs of ``_same_class_pairs`` filtered by ``link(i, j) -> bool`` (i < j): classes
+    never suppress each other, so each runs on its own; within a class the heads go in rank order, a chunk at a
+    time, each chunk pairing its still-alive heads with the still-alive boxes whose extents overlap theirs. A head's
+    partners lie in one run of the class sorted by lo_x: lo_x in (head lo_x - widest extent, head hi_x). A class
+    stops once it kept ``max_out`` boxes: any later one of it falls past ``nms``'s cut (``keep[:max_out]``).
+    """
+    n = labels.shape[0]
+    keep = np.ones(n, dtype=bool)
+    lo_x, lo_y, hi_x, hi_y = (np.ascontiguousarray(v) for v in (lo[:, 0], lo[:, 1], hi[:, 0], hi[:, 1]))
+    for label in np.unique(labels).tolist():
+        members = np.flatnonzero(labels == label)  # rank order: a lower index is a better box
+        with np.errstate(invalid="ignore"):  # inf - inf: an extent at infinity
+            widths = hi_x[members] - lo_x[members]
+        widths = widths[~np.isnan(widths)]  # a NaN extent overlaps nothing
+        if widths.size == 0:
+            continue
+        widest = float(widths.max())
+        by_x = np.argsort(lo_x[members], kind="stable")
+        sorted_lo = lo_x[members][by_x]
+        # Margin: the float rounding of widths and of the subtraction must not drop a partner (extra ones are
+        # filtered by the exact test below).
+        with np.errstate(invalid="ignore"):  # inf - inf = NaN: a head at +infinity overlaps nothing, finds no run
+            low = lo_x[members] - widest - 1e-9 * (np.abs(lo_x[members]) + widest)
+        start = np.searchsorted(sorted_lo, low, side="left")
+        end = np.searchsorted(sorted_lo, hi_x[members], side="left")
+        count = np.maximum(end - start, 0)
+        alive = np.ones(len(members), dtype=bool)  # the class's keep mask, in its rank order
+        head = settled_kept = 0
+        while head < len(members):
+            window = head + np.flatnonzero(alive[head : head + CHUNK_HEADS])
+            if window.size == 0:
+                head += CHUNK_HEADS
+                continue
+            taken = max(int(np.searchsorted(np.cumsum(count[window]), budget, side="right")), 1)
+            heads = window[:taken]
+            # One head with more candidates than the budget: its run in pieces (its own fate is already settled).
+            pieces = [(heads, None)] if count[heads].sum() <= budget else [
+                (heads, (a, min(a + budget, end[heads[0]]))) for a in range(start[heads[0]], end[heads[0]], budget)]  # fmt: skip
+            for h, span in pieces:
+                if span is None:
+                    c = count[h]
+                    total = int(c.sum())
+                    first = np.repeat(h, c)
+                    pos = np.arange(total) - np.repeat(np.cumsum(c) - c, c) + np.repeat(start[h], c)
+                else:
+                    first = np.full(span[1] - span[0], h[0])
+                    pos = np.arange(span[0], span[1])
+                second = by_x[pos]
+                ok = (second > first) & alive[second]
+                first, second = first[ok], second[ok]
+                i, j = members[first], members[second]
+                ok = (lo_y[i] < hi_y[j]) & (lo_y[j] < hi_y[i]) & (lo_x[i] < hi_x[j]) & (lo_x[j] < hi_x[i])
+                i, j, first, second = i[ok], j[ok], first[ok], second[ok]
+                linked = link(i, j)
+                _greedy(len(members), first[linked], second[linked], alive)
+            settled_kept += int(np.count_nonzero(alive[head : int(heads[-1]) + 1]))
+            head = int(heads[-1]) + 1
+            # Boxes before `head` are settled (only better heads decide a box): enough kept ends the class.
+            if settled_kept >= max_out:
+                alive[head:] = False
+                break
+        keep[members] = alive
+    return keep
 
 
 def _greedy(num: int, first: np.ndarray, second: np.ndarray, keep: np.ndarray | None = None) -> np.ndarray:
@@ -186,30 +293,53 @@ def nms(boxes: np.ndarray, scores: np.ndarray, labels: np.ndarray, config: NmsCo
         hi = ranked[:, :2] + radius[:, None]
         # Zero-radius boxes still suppress exact duplicates (CenterPoint: squared distance <= threshold).
         hi = np.where(hi > lo, hi, np.nextafter(hi, np.inf))
-        i, j = _same_class_pairs(lo, hi, ranked_labels)
         x, y = ranked[:, 0].copy(), ranked[:, 1].copy()  # 1-D planes gather fastest
-        linked = (x[i] - x[j]) ** 2 + (y[i] - y[j]) ** 2 <= radius[i] ** 2
+
+        def link(i: np.ndarray, j: np.ndarray) -> np.ndarray:
+            return (x[i] - x[j]) ** 2 + (y[i] - y[j]) ** 2 <= radius[i] ** 2
     else:
         if config.iou_threshold_per_class is None:
             threshold = np.full(n, config.iou_threshold)  # (N,) of each ranked box: pairs share a class
         else:
             threshold = np.asarray(config.iou_threshold_per_class)[ranked_labels]
         lo, hi = bev_extent(ranked)
-        i, j = _same_class_pairs(lo, hi, ranked_labels)
-        # Cheap upper bound first: the intersection fits in both the smaller box and the extents' overlap.
         area = ranked[:, W] * ranked[:, L]
         lo_x, lo_y, hi_x, hi_y = lo[:, 0].copy(), lo[:, 1].copy(), hi[:, 0].copy(), hi[:, 1].copy()
-        overlap = (np.minimum(hi_x[i], hi_x[j]) - np.maximum(lo_x[i], lo_x[j])) * (
-            np.minimum(hi_y[i], hi_y[j]) - np.maximum(lo_y[i], lo_y[j])
-        )
-        inter_max = np.minimum(overlap, np.minimum(area[i], area[j]))
-        with np.errstate(divide="ignore", invalid="ignore"):
-            possible = inter_max / (area[i] + area[j] - inter_max) > threshold[i]
-        i, j = i[possible], j[possible]
-        keep = _greedy_rotated(n, ranked, i, j, threshold)
+
+        def possible(i: np.ndarray, j: np.ndarray) -> np.ndarray:
+            # Cheap upper bound first: the intersection fits in both the smaller box and the extents' overlap.
+            overlap = (np.minimum(hi_x[i], hi_x[j]) - np.maximum(lo_x[i], lo_x[j])) * (
+                np.minimum(hi_y[i], hi_y[j]) - np.maximum(lo_y[i], lo_y[j])
+            )
+            inter_max = np.minimum(overlap, np.minimum(area[i], area[j]))
+            with np.errstate(divide="ignore", invalid="ignore"):
+                return inter_max / (area[i] + area[j] - inter_max) > threshold[i]
+
+    pairs = _same_class_pairs(lo, hi, ranked_labels, PAIR_BUDGET)
+    if pairs is None:  # too many candidate pairs to hold at once: the greedy in chunks
+        if config.kind is not NmsKind.CIRCLE:
+            proper = (ranked[:, W] > 0) & (ranked[:, L] > 0)  # boxes without area overlap nothing
+            corners = box_corners_bev(ranked)
+
+            def link(i: np.ndarray, j: np.ndarray) -> np.ndarray:  # as _greedy_rotated: bound, then exact IoU
+                linked = possible(i, j) & proper[i] & proper[j]
+                rows = np.flatnonzero(linked)
+                # The polygon clipping's temporaries take a few hundred bytes a pair: batches keep them small.
+                for a in range(0, rows.size, IOU_BATCH):
+                    r = rows[a : a + IOU_BATCH]
+                    linked[r] = indexed_bev_iou(ranked, corners, i[r], j[r]) > threshold[i[r]]
+                return linked
+
+        keep = _chunked_keep(lo, hi, ranked_labels, link, config.max_out, PAIR_BUDGET)
         return rank[keep][: config.max_out].astype(np.int64)
 
-    keep = _greedy(n, i[linked], j[linked])
+    i, j = pairs
+    if config.kind is NmsKind.CIRCLE:
+        linked = link(i, j)
+        keep = _greedy(n, i[linked], j[linked])
+    else:
+        ok = possible(i, j)
+        keep = _greedy_rotated(n, ranked, i[ok], j[ok], threshold)
     return rank[keep][: config.max_out].astype(np.int64)
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import click
@@ -66,6 +67,70 @@ MAX_FALLBACK_AFTER_MS = 60_000.0  # an image BEV a minute old is no image BEV
 
 # The graph precisions an export can hold.
 PRECISION_CHOICES = PRECISIONS
+
+
+# ---- comma-separated lists ---------------------------------------------------------------------------------
+# "8,,16" or "8,8" is a slip of the keyboard, not a request: silently dropping the empty entry or scoring one run
+# or slice count twice (a run counted as two seeds, two identical JSON columns) hides it.
+
+
+def split_list(text: str, option: str, what: str, key=None) -> list[str]:
+    """``'a, b,c'`` -> ``['a', 'b', 'c']`` (entries stripped); click.BadParameter naming an empty or repeated entry.
+
+    ``what`` names one entry in messages ("run", "slice count"); ``key(entry)`` is what makes two entries the same
+    (default: the text itself), e.g. a resolved path, so that ``runs/A`` and ``./runs/A`` count as one.
+    """
+    shown = text if len(text) <= 60 else text[:57] + "..."
+    entries = [e.strip() for e in text.split(",")]
+    if not any(entries):
+        raise click.BadParameter(f"no {what} given in {shown!r}", param_hint=option)
+    seen: dict = {}
+    for k, entry in enumerate(entries, start=1):
+        if not entry:
+            raise click.BadParameter(f"entry {k} of {shown!r} is empty (a stray comma?)", param_hint=option)
+        ident = entry if key is None else key(entry)
+        if ident in seen:
+            raise click.BadParameter(f"{what} {entry!r} is given twice in {shown!r} (entries {seen[ident]} and {k})",
+                                     param_hint=option)  # fmt: skip
+        seen[ident] = k
+    return entries
+
+
+# ---- outputs that would replace inputs ---------------------------------------------------------------------
+# `--json ds/splits.json` replaced a dataset's split file and `--json runs/A/results.json` a saved run: a tool's
+# output must not be one of its inputs nor lie inside an input folder (a dataset, an export, a run), where it
+# would replace or pollute what the next run reads.
+
+
+def _real(path: Path) -> Path:
+    try:
+        return Path(path).resolve()  # symlinks too: a link to an input is that input
+    except (OSError, RuntimeError):  # a symlink loop: compare the spelled path
+        return Path(path).absolute()
+
+
+def refuse_output_over_inputs(output: Path | None, option: str, inputs) -> None:
+    """Raise click.BadParameter if ``output`` (a file or folder the tool writes, given as ``option``) is one of
+    ``inputs`` — pairs (option, path or None) — or lies inside an input folder. None entries are skipped."""
+    if output is None:
+        return
+    out = _real(output)
+    for in_option, path in inputs:
+        if path is None:
+            continue
+        inp = _real(path)
+        same = out == inp
+        if not same and output.exists() and Path(path).exists():
+            try:
+                same = os.path.samefile(output, path)  # a hard link or a bind mount of the input
+            except OSError:
+                pass
+        if same:
+            raise click.BadParameter(f"{str(output)!r} is the input {in_option} {path}: writing there would replace "
+                                     "or add to that input; choose another path", param_hint=option)  # fmt: skip
+        if inp in out.parents:
+            raise click.BadParameter(f"{str(output)!r} lies inside the input {in_option} {path}: write outside the "
+                                     "tool's inputs", param_hint=option)  # fmt: skip
 
 
 def image_precision_option(flag: str = "--image-precision", dest: str = "image_precision"):

@@ -37,6 +37,7 @@ def torch_sliced_detector(checkpoint: str | Path, threads: int = 1, device: str 
 
     class _Torch:
         description = f"checkpoint {checkpoint} ({preset.name}, {kind}, PyTorch fp32 on {device})"
+        uses_images = bool(preset.use_image)  # streamdet-study refuses a camera + LiDAR model as the LiDAR-only baseline
 
         def __call__(self, sample: Sample, slice_counts: Sequence[int]) -> dict[int, Detections]:
             return {n: TorchSweepDetector(model, num_slices=n, device=device)(sample) for n in slice_counts}

@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import json
 import math
+import re
 import sys
 import tempfile
 from collections.abc import Callable, Iterator
@@ -18,7 +19,14 @@ from pathlib import Path
 import click
 
 from streamdet import studies as st
-from streamdet.cli_utils import image_precision_option, resolution_callback
+from streamdet.cli_utils import (
+    MAX_SLICES,
+    MAX_THREADS,
+    image_precision_option,
+    refuse_output_over_inputs,
+    resolution_callback,
+    split_list,
+)
 from streamdet.core import constants
 from streamdet.core.constants import PRECISIONS
 from streamdet.core.errors import first_line
@@ -26,19 +34,28 @@ from streamdet.studies.plots import plot_calib_noise, plot_drop_camera, plot_res
 
 DEFAULT_EXPORT_DIR = Path(constants.DEFAULT_EXPORT_DIR)
 ALL_SPLIT = "all"  # --split value that scores every sample of the dataset
+# --seeds: each seed rebuilds the LUT and scores the split once per level; 1000 is far past a mean and std worth
+# reporting, and 10^8 ran for days.
+MAX_SEEDS = 1000
 
 
 # ---- option parsing ----------------------------------------------------------------------------------------
 
 
+def _slice_count(text: str) -> int:
+    shown = text if len(text) <= 30 else text[:27] + "..."
+    # ASCII digits only: int() also takes '8_000' and non-ASCII digits such as '٨', which no one means as a count
+    if not re.fullmatch(r"[+-]?[0-9]+", text):
+        raise click.BadParameter(f"expected comma-separated integers such as 1,4,8,16,32, got {shown!r}", param_hint="--counts")
+    if len(text) > 12 or not 1 <= int(text) <= MAX_SLICES:
+        raise click.BadParameter(f"slice count {shown} is not in 1..{MAX_SLICES}", param_hint="--counts")
+    return int(text)
+
+
 def _parse_ints(ctx, param, value: str) -> tuple[int, ...]:
-    try:
-        counts = tuple(int(v) for v in value.split(",") if v.strip())
-    except ValueError:
-        raise click.BadParameter(f"expected comma-separated integers such as 1,4,8,16,32, got {value!r}") from None
-    if not counts:
-        raise click.BadParameter("no slice count given")
-    return counts
+    # "8,,16" or "8,08": an empty or repeated count (two identical columns whose JSON keys collide) is refused
+    entries = split_list(value, "--counts", "slice count", key=_slice_count)
+    return tuple(_slice_count(v) for v in entries)
 
 
 _RESOLUTIONS = resolution_callback(min_px=16, max_px=4096)
@@ -59,6 +76,8 @@ def _parse_levels(ctx, param, values: tuple[str, ...]) -> tuple[tuple[float, flo
             raise click.BadParameter(f"expected DEG,CM such as 1,10, got {text!r}") from None
         if not (math.isfinite(deg) and math.isfinite(cm) and 0 <= deg < 180 and cm >= 0):
             raise click.BadParameter(f"angle must be in [0, 180) deg and translation >= 0 cm, got {text!r}")
+        if (deg, cm / 100.0) in levels:  # the same level twice: two identical rows, twice the run time
+            raise click.BadParameter(f"level {text!r} is given twice")
         levels.append((deg, cm / 100.0))
     return tuple(levels)
 
@@ -81,8 +100,8 @@ def _common(f: Callable) -> Callable:
         click.option("--precision", type=click.Choice(PRECISIONS), default="fp32", show_default=True,
                      help="Graphs to run; the export must hold them."),
         image_precision_option(),
-        click.option("--threads", type=click.IntRange(min=1), default=1, show_default=True,
-                     help="Intra-op threads of each onnxruntime session."),
+        click.option("--threads", type=click.IntRange(1, MAX_THREADS), default=1, show_default=True,
+                     help=f"Intra-op threads of each onnxruntime session, 1..{MAX_THREADS}."),
         click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
                      help="Write every figure of the study here as JSON."),
         click.option("--plot", "plot_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
@@ -94,8 +113,8 @@ def _common(f: Callable) -> Callable:
 
 
 def _slices_option(f: Callable) -> Callable:
-    return click.option("--slices", "num_slices", type=click.IntRange(min=1), default=None,
-                        help="Slices per sweep (1, 2 or a multiple of 4); default the export's.")(f)  # fmt: skip
+    return click.option("--slices", "num_slices", type=click.IntRange(1, MAX_SLICES), default=None,
+                        help=f"Slices per sweep (1, 2 or a multiple of 4, up to {MAX_SLICES}); default the export's.")(f)  # fmt: skip
 
 
 # ---- running -----------------------------------------------------------------------------------------------
@@ -128,6 +147,8 @@ def _running(label: str) -> Iterator[_Bar]:
         raise click.ClickException(str(e)) from None
     except (OSError, ValueError) as e:  # unreadable data: missing tables or files, a bad split
         raise click.ClickException(first_line(e)) from None
+    except MemoryError:  # not an input error to run_edge: say what ran out, not a traceback
+        raise click.ClickException(f"{label}: out of memory: try fewer or smaller slice counts, or --max-samples") from None
     finally:
         bar.close()
 
@@ -158,19 +179,34 @@ def _data(data_dir: Path, version: str, split: str, max_samples: int | None) -> 
     return st.StudyData(data_dir, version, None if split == ALL_SPLIT else split, max_samples)
 
 
+def _check_outputs(json_path: Path | None, plot_path: Path | None, **inputs: Path | None) -> None:
+    """Before any work: --json / --plot must not replace an input (``inputs``: option name -> path) nor each other."""
+    named = [("--" + k.replace("_", "-"), p) for k, p in inputs.items()]
+    refuse_output_over_inputs(json_path, "--json", named)
+    refuse_output_over_inputs(plot_path, "--plot", named)
+    if json_path is not None and plot_path is not None and json_path.resolve() == plot_path.resolve():
+        raise click.BadParameter(f"{str(plot_path)!r} is also the --json file: the plot would replace it", param_hint="--plot")
+
+
+def _inputs(export_dir: Path | None, checkpoint: Path | None, data_dir: Path) -> dict[str, Path | None]:
+    """The model and data a study reads (``_export``'s rule: the default export unless --checkpoint is given)."""
+    default = DEFAULT_EXPORT_DIR if export_dir is None and checkpoint is None else None
+    return {"export_dir": export_dir or default, "checkpoint": checkpoint, "data": data_dir}
+
+
 def _report(result, json_path: Path | None, plot_path: Path | None, plot: Callable) -> None:
     click.echo(result.format_table())
     if json_path is not None:
         try:
             json_path.write_text(json.dumps(result.to_dict(), indent=1, allow_nan=False) + "\n")
-        except OSError as e:
-            raise click.ClickException(f"cannot write --json {json_path}: {e.strerror or e}") from None
+        except (OSError, ValueError) as e:  # ValueError: a non-finite figure (allow_nan=False)
+            raise click.ClickException(f"cannot write --json {json_path}: {getattr(e, 'strerror', None) or e}") from None
         click.echo(f"wrote {json_path}")
     if plot_path is not None:
         try:
             plot(result, plot_path)
-        except OSError as e:
-            raise click.ClickException(f"cannot write --plot {plot_path}: {e.strerror or e}") from None
+        except (OSError, ValueError) as e:  # ValueError: matplotlib refuses the file's extension
+            raise click.ClickException(f"cannot write --plot {plot_path}: {getattr(e, 'strerror', None) or e}") from None
         click.echo(f"wrote {plot_path}")
 
 
@@ -186,7 +222,7 @@ def main() -> None:
 @main.command()
 @_common
 @click.option("--counts", "slice_counts", default="1,4,8,16,32", show_default=True, callback=_parse_ints,
-              help="Slice counts to score, comma-separated (each 1, 2 or a multiple of 4).")  # fmt: skip
+              help=f"Slice counts to score, comma-separated, each once (1, 2 or a multiple of 4, up to {MAX_SLICES}).")  # fmt: skip
 @click.option("--baseline-export-dir", type=click.Path(exists=True, file_okay=False, path_type=Path), default=None,
               help="Export of the LiDAR-only baseline, scored beside the fused model.")  # fmt: skip
 @click.option("--baseline-checkpoint", type=click.Path(exists=True, dir_okay=False, path_type=Path), default=None,
@@ -197,6 +233,8 @@ def slices(export_dir, checkpoint, data_dir, version, split, max_samples, precis
     """mAP at 1, 4, 8, 16, 32 slices: the fused model beside the LiDAR-only baseline (the paper's Table 2)."""
     if baseline_export_dir is not None and baseline_checkpoint is not None:
         raise click.UsageError("give --baseline-export-dir or --baseline-checkpoint, not both")
+    _check_outputs(json_path, plot_path, **_inputs(export_dir, checkpoint, data_dir), baseline_export_dir=baseline_export_dir,
+                   baseline_checkpoint=baseline_checkpoint)  # fmt: skip
     runtime = st.RuntimeOptions(precision, threads, image_precision)
     with _export(export_dir, checkpoint, runtime) as exp, _running("slices") as bar:
         fused = st.OnnxSlicedDetector(exp, runtime)
@@ -205,8 +243,13 @@ def slices(export_dir, checkpoint, data_dir, version, split, max_samples, precis
         baseline = None
         if baseline_export_dir is not None:
             baseline = st.OnnxSlicedDetector(baseline_export_dir, runtime)
+            source = f"--baseline-export-dir {baseline_export_dir}"
         elif baseline_checkpoint is not None:
             baseline = st.torch_sliced_detector(baseline_checkpoint, threads)
+            source = f"--baseline-checkpoint {baseline_checkpoint}"
+        if baseline is not None and baseline.uses_images:  # it would be tabled as "LiDAR-only baseline, PC"
+            raise st.StudyError(f"{source} is a camera + LiDAR model (preset use_image=true): the baseline must be "
+                                "LiDAR-only; pass a camera + LiDAR export as --export-dir")  # fmt: skip
         result = st.slices_study(fused, _data(data_dir, version, split, max_samples), slice_counts, baseline, bar)
     _report(result, json_path, plot_path, plot_slices)
 
@@ -221,6 +264,7 @@ def slices(export_dir, checkpoint, data_dir, version, split, max_samples, precis
 def drop_camera(export_dir, checkpoint, data_dir, version, split, max_samples, precision, image_precision, threads,
                 json_path, plot_path, num_slices, cameras, no_cameras) -> None:  # fmt: skip
     """mAP and per-class AP with a named camera missing at inference (the back camera by default)."""
+    _check_outputs(json_path, plot_path, **_inputs(export_dir, checkpoint, data_dir))
     runtime = st.RuntimeOptions(precision, threads, image_precision)
     with _export(export_dir, checkpoint, runtime) as exp, _running("drop-camera") as bar:
         result = st.drop_camera_study(exp, _data(data_dir, version, split, max_samples), cameras, runtime, num_slices, bar,
@@ -234,11 +278,12 @@ def drop_camera(export_dir, checkpoint, data_dir, version, split, max_samples, p
 @click.option("--level", "levels", multiple=True, callback=_parse_levels, metavar="DEG,CM",
               help="Noise bound: every Euler angle uniform in +-DEG and every translation axis in +-CM, per camera "
                    "(repeat; default 0.5,5 1,10 2,20 3,30 5,50).")  # fmt: skip
-@click.option("--seeds", type=click.IntRange(min=1), default=3, show_default=True,
-              help="Seeded draws per level (seeds 0..N-1); mean and std are reported.")  # fmt: skip
+@click.option("--seeds", type=click.IntRange(1, MAX_SEEDS), default=3, show_default=True,
+              help=f"Seeded draws per level (seeds 0..N-1), 1..{MAX_SEEDS}; mean and std are reported.")  # fmt: skip
 def calib_noise(export_dir, checkpoint, data_dir, version, split, max_samples, precision, image_precision, threads,
                 json_path, plot_path, num_slices, levels, seeds) -> None:  # fmt: skip
     """mAP under uniform camera-extrinsic noise, the LUT rebuilt for each noisy calibration, the graphs untouched."""
+    _check_outputs(json_path, plot_path, **_inputs(export_dir, checkpoint, data_dir))
     runtime = st.RuntimeOptions(precision, threads, image_precision)
     with _export(export_dir, checkpoint, runtime) as exp, _running("calib-noise") as bar:
         result = st.calib_noise_study(exp, _data(data_dir, version, split, max_samples), levels, seeds, runtime, num_slices, bar)
@@ -253,6 +298,7 @@ def calib_noise(export_dir, checkpoint, data_dir, version, split, max_samples, p
 def resolution(export_dir, checkpoint, data_dir, version, split, max_samples, precision, image_precision, threads,
                json_path, plot_path, num_slices, resolutions) -> None:  # fmt: skip
     """mAP and image-lane latency with the camera images resized to each size (same graphs, LUT per size)."""
+    _check_outputs(json_path, plot_path, **_inputs(export_dir, checkpoint, data_dir))
     runtime = st.RuntimeOptions(precision, threads, image_precision)
     with _export(export_dir, checkpoint, runtime) as exp, _running("resolution") as bar:
         result = st.resolution_study(exp, _data(data_dir, version, split, max_samples), resolutions, runtime, num_slices, bar)
