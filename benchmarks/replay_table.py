@@ -130,7 +130,7 @@ def _stale_by_burst(out: Path) -> list[str]:
             continue
         try:
             recs = [Recording.from_dict(r) for r in streaming["recordings"]]
-        except (KeyError, TypeError) as e:
+        except (KeyError, TypeError, ValueError) as e:  # ValueError: a field of the wrong type (replay/record.py)
             raise ValueError(f"{name}: recordings not as streamdet-replay writes them ({type(e).__name__}: {e})") from None
         pooled.setdefault((scale, label, 1.0 / config["lidar_hz"]), []).extend(recs)
     counts = {(scale, label): staleness_by_recent_images(recs, period) for (scale, label, period), recs in sorted(pooled.items())}

@@ -29,7 +29,6 @@ import json
 import math
 import os
 import re
-import tempfile
 import zipfile
 from dataclasses import dataclass
 from typing import BinaryIO, Sequence
@@ -42,6 +41,7 @@ from streamdet.calibration.lut_file import (  # noqa: F401  (re-exported)
     MAX_HEIGHTS_PER_VOXEL, MAX_LUT_BYTES, MAX_LUT_FILE_BYTES, LutFileError, check_lut_archive,
 )
 from streamdet.core.file_input import InputFileError, read_regular_file
+from streamdet.core.file_output import atomic_write_file
 from streamdet.core.json_input import short_repr
 from streamdet.core.sectors import NUM_QUADRANTS, check_quadrants
 
@@ -218,19 +218,7 @@ class Lut:
         """Write an uncompressed .npz (index, weight, meta as a JSON string) atomically: a hidden temp file beside
         ``path``, then a rename (which replaces a symlink at ``path`` rather than writing through it). The file gets
         the permissions of a plain ``open()`` (0666 minus the umask); a failure leaves no temp file."""
-        path = os.fspath(path)
-        fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(path)}.", suffix=".tmp", dir=os.path.dirname(path) or ".")
-        try:
-            umask = os.umask(0o022)  # read the process umask (there is no getter) and restore it at once
-            os.umask(umask)
-            os.fchmod(fd, 0o666 & ~umask)
-            with os.fdopen(fd, "wb") as f:
-                self.write_npz(f)
-            os.replace(tmp, path)
-        except BaseException:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
-            raise
+        atomic_write_file(path, self.write_npz)
 
     def write_npz(self, f: BinaryIO) -> None:
         """The .npz bytes of ``save`` into an open binary file (for writers that make the file themselves)."""

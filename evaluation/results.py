@@ -23,15 +23,14 @@ from __future__ import annotations
 import json
 import math
 import os
-import tempfile
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
 from streamdet.core.boxes import BOX_DIM, VX, VY, YAW
 from streamdet.core.classes import CLASS_NAMES
+from streamdet.core.file_output import atomic_write_file
 from streamdet.core.json_input import is_finite_number, read_json, short_repr
 from streamdet.evaluation.eval_boxes import EvalBoxes
 
@@ -296,15 +295,8 @@ def write_results_json(
     doc: dict = {"meta": full_meta, "results": {t: [_json_entry(e) for e in es] for t, es in results_by_sample.items()}}
     if ego_positions is not None:
         doc["ego_positions"] = {t: [float(v) for v in p] for t, p in ego_positions.items()}
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(doc, f, allow_nan=False)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    text = json.dumps(doc, allow_nan=False)  # before the file: a refused value leaves no file behind
+    atomic_write_file(path, lambda f: f.write(text.encode("utf-8")))
 
 
 def read_results_json(path: str | os.PathLike) -> ResultsFile:

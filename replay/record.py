@@ -15,6 +15,7 @@ from dataclasses import dataclass, field, fields
 
 import numpy as np
 
+from streamdet.core.json_input import short_repr
 from streamdet.runtime_ort.postprocess import Detections
 
 
@@ -129,6 +130,9 @@ class Recording:
         """The inverse of ``to_dict`` (a recording of a saved ``replay.json``), detections left out: they are not
         saved. Fields a replay of an older version did not write keep their defaults; keys it does not know are
         ignored."""
+        for key in ("slices", "images"):
+            if not isinstance(d.get(key) if isinstance(d, dict) else None, list):
+                raise ValueError(f"a Recording's {key!r} must be a JSON list of records, got {short_repr(d.get(key) if isinstance(d, dict) else d)}")
         slices = tuple(SliceRecord(**_known_fields(SliceRecord, x)) for x in d["slices"])
         images = tuple(ImageRecord(**_known_fields(ImageRecord, x)) for x in d["images"])
         return cls(**_known_fields(cls, d, exclude=("slices", "images")), slices=slices, images=images)
@@ -149,12 +153,28 @@ def _json_fields(record, exclude: tuple[str, ...] = ()) -> dict:
 def _known_fields(cls, d: dict, exclude: tuple[str, ...] = ()) -> dict:
     """The inverse of ``_json_fields``: the keys of ``d`` that name fields of ``cls``, None read back as NaN for a
     float field (a time or CPU count that was NaN); an optional field keeps None (``phase_lock``)."""
+    if not isinstance(d, dict):
+        raise ValueError(f"a {cls.__name__} record must be a JSON object, got {short_repr(d)}")
     out = {}
     for f in fields(cls):
         if f.name in d and f.name not in exclude:
             v = d[f.name]
             out[f.name] = float("nan") if v is None and f.type in ("float", float) else v
+            _check_scalar(cls, f.name, f.type, out[f.name])
     return out
+
+
+# The scalar field types a record holds, by their annotation (strings: ``from __future__ import annotations``), and
+# the JSON values each accepts; a report over a float "soon" failed deep inside numpy.
+_SCALARS = {"float": (int, float), "int": (int,), "bool": (bool,), "str": (str,)}
+
+
+def _check_scalar(cls, name: str, annotation: object, value: object) -> None:
+    kinds = _SCALARS.get(annotation if isinstance(annotation, str) else getattr(annotation, "__name__", ""))
+    if kinds is None:
+        return  # a container or an optional field: its readers check it
+    if (isinstance(value, bool) and bool not in kinds) or not isinstance(value, kinds):
+        raise ValueError(f"{cls.__name__}.{name} must be a JSON {annotation}, got {short_repr(value)}")
 
 
 def full_collections(gc_pauses: list[dict | None]) -> tuple[int, float] | None:

@@ -54,7 +54,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import tempfile
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, BinaryIO, Callable
@@ -62,6 +61,7 @@ from typing import Any, BinaryIO, Callable
 from streamdet.calibration.lut_file import MAX_LUT_FILE_BYTES
 from streamdet.core.constants import PRECISIONS
 from streamdet.core.file_input import InputFileError, read_regular_file
+from streamdet.core.file_output import atomic_write_file
 from streamdet.core.image_layout import IMAGE_BEV, IMAGE_HALF, IMAGE_LAYOUTS
 from streamdet.core.lut_layout import LUT_LAYOUTS, LUT_SLOTS
 from streamdet.runtime_ort.schema import SchemaViolation, validate
@@ -588,21 +588,7 @@ def atomic_write(export_dir: str | os.PathLike, name: str, write: Callable[[Bina
     the target instead of writing through it. The file gets the permissions of a plain ``open()`` (0666 minus the
     umask), like the graphs beside it, not mkstemp's 0600. A failure removes the temp file.
     """
-    target = export_file(export_dir, name)
-    fd, tmp = tempfile.mkstemp(prefix=f".{name}.", suffix=".tmp", dir=target.parent)
-    try:
-        umask = os.umask(0o022)  # read the process umask (there is no getter) and restore it at once
-        os.umask(umask)
-        os.fchmod(fd, 0o666 & ~umask)
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, target)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return target
+    return atomic_write_file(export_file(export_dir, name), write)
 
 
 def _optional(parse: Any, value: Any) -> Any:

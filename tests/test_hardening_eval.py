@@ -177,3 +177,16 @@ def test_a_deeply_nested_samples_file_is_named(tmp_path):
     path.write_text("[" * 100_000 + "]" * 100_000)
     with pytest.raises(ValueError, match=rf"{path} nests too deeply"):
         read_sample_info(path)
+
+
+def test_results_files_get_a_plain_files_permissions(tmp_path):
+    """Written atomically through a temp file, but readable as any file the tool writes (not mkstemp's 0600)."""
+    from streamdet.evaluation.results import write_results_json
+
+    old = os.umask(0o022)
+    try:
+        write_results_json(tmp_path / "r.json", {}, {"use_camera": True, "use_lidar": True})
+    finally:
+        os.umask(old)
+    assert (tmp_path / "r.json").stat().st_mode & 0o777 == 0o644
+    assert [p.name for p in tmp_path.iterdir()] == ["r.json"]  # no temp file left

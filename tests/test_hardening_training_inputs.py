@@ -15,6 +15,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import shutil
 import zipfile
 from pathlib import Path
@@ -508,3 +509,20 @@ def test_pretrain_resume_of_its_own_checkpoint_and_edited_ones(tiny_synth_data, 
     resumed = pretrain(_pretrain_config(steps=2), tiny_synth_data, out, resume=out / "last.pt", splits=(None, None),
                        echo=lambda s: None, max_samples=1)  # fmt: skip
     assert resumed["step"] == 2 and resumed["finished"]
+
+
+@pytest.mark.parametrize("args, said", [
+    (["--num-slices", "8,,8"], "an empty entry"),
+    (["--num-slices", "8,32,8"], r"slice count\(s\) \[8\] given twice"),
+    (["--num-slices", "8192"], "up to 4096"),
+    (["--workers", "300"], "300 is not in the range 0<=x<=256"),
+    (["--steps", str(10**21)], "is not in the range 1<=x<=100000000"),
+    (["--epochs", str(10**9)], "is not in the range 1<=x<=100000000"),
+])  # fmt: skip
+def test_train_cli_counts_are_bounded_and_lists_clean(tmp_path, args, said):
+    from click.testing import CliRunner
+
+    from streamdet.training.cli import main as train_main
+
+    result = CliRunner().invoke(train_main, ["--data", str(tmp_path / "d"), "--out", str(tmp_path / "o"), *args])
+    assert result.exit_code == 2 and re.search(said, result.output), result.output

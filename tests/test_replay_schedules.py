@@ -85,6 +85,22 @@ def test_a_recording_read_back_from_its_dict_is_the_same_but_for_detections():
     assert Recording.from_dict(newer).to_dict() == d  # keys a later version writes are ignored
 
 
+@pytest.mark.parametrize("change, said", [
+    (lambda d: d["slices"][0].update(emit_s="soon"), r"SliceRecord.emit_s must be a JSON float, got 'soon'"),
+    (lambda d: d["slices"][0].update(dropped=1), r"SliceRecord.dropped must be a JSON bool, got 1"),
+    (lambda d: d["images"][0].update(index=True), r"ImageRecord.index must be a JSON int, got True"),
+    (lambda d: d.update(time_scale=[1]), r"Recording.time_scale must be a JSON float"),
+    (lambda d: d.update(slices=5), r"'slices' must be a JSON list of records, got 5"),
+    (lambda d: d["slices"].__setitem__(0, "x"), r"a SliceRecord record must be a JSON object, got 'x'"),
+])  # fmt: skip
+def test_a_recording_with_fields_of_the_wrong_type_is_named(change, said):
+    rec = Recording("streaming", "d", 2.0, (_slice(0.1, 0.15),), (ImageRecord(0, 0.1),), 1.5, 0.01, 1.2)
+    d = json.loads(json.dumps(rec.to_dict()))
+    change(d)
+    with pytest.raises(ValueError, match=said):
+        Recording.from_dict(d)
+
+
 def test_stale_slices_by_recent_images_count_the_rotation_before_the_scan_start_only():
     s = _slice(0.0, 0.1)  # staleness added 100 ms
     s.scan_end_s = 0.25625  # scan start 0.25 at 20 Hz x 8

@@ -10,22 +10,31 @@ from pathlib import Path
 import click
 
 from streamdet.core.errors import first_line
+from streamdet.core.sectors import MAX_NUM_SLICES
 from streamdet.models.presets import preset_names
 from streamdet.training.dataset import CAMERA_MODES, DataConfig
 from streamdet.training.distributed import shutdown_distributed
 from streamdet.training.trainer import AMP_MODES, MAX_MINUTES, TrainConfig, train
 
 
+MAX_STEPS = 10**8  # a hundred million optimizer steps: far past any run here; 10**21 only printed an eta of 9e17 min
+MAX_WORKERS = 256  # DataLoader processes: a machine's cores at most, never thousands of forks
+
+
 def _parse_slices(ctx, param, value: str) -> tuple[int, ...]:
+    entries = [v.strip() for v in value.split(",")]
+    if any(not v for v in entries):
+        raise click.BadParameter(f"an empty entry in {value!r}: give slice counts such as 8 or 8,32")
     try:
-        counts = tuple(int(v) for v in value.split(",") if v.strip())
+        counts = tuple(int(v) for v in entries)
     except ValueError:
         raise click.BadParameter(f"expected slice counts such as 8 or 8,32, got {value!r}") from None
-    if not counts:
-        raise click.BadParameter("give at least one slice count")
+    dupes = sorted({n for n in counts if counts.count(n) > 1})
+    if dupes:  # each count is one view of every sample: a repeat would silently weigh it twice
+        raise click.BadParameter(f"slice count(s) {dupes} given twice in {value!r}")
     for n in counts:
-        if n < 1 or (n not in (1, 2) and n % 4):
-            raise click.BadParameter(f"slice count {n} must be 1, 2 or a multiple of 4 (sectors aligned to quadrants)")
+        if n < 1 or n > MAX_NUM_SLICES or (n not in (1, 2) and n % 4):
+            raise click.BadParameter(f"slice count {n} must be 1, 2 or a multiple of 4 up to {MAX_NUM_SLICES} (sectors aligned to quadrants)")
     return counts
 
 
@@ -36,8 +45,9 @@ def _parse_slices(ctx, param, value: str) -> tuple[int, ...]:
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path),
               help="Output folder: last.pt (resumable), model.pt (weights for streamdet-export), metrics.jsonl, config.json.")
 @click.option("--preset", default="small", show_default=True, type=click.Choice(preset_names()), help="Model preset.")
-@click.option("--steps", type=click.IntRange(min=1), default=None, help="Optimizer steps of the one-cycle schedule (overrides --epochs).")
-@click.option("--epochs", type=click.IntRange(min=1), default=None,
+@click.option("--steps", type=click.IntRange(min=1, max=MAX_STEPS), default=None,
+              help=f"Optimizer steps of the one-cycle schedule, 1..{MAX_STEPS} (overrides --epochs).")
+@click.option("--epochs", type=click.IntRange(min=1, max=MAX_STEPS), default=None,
               help="Passes over the training samples (when --steps is not given). Without both: --max-minutes, else 10.")
 @click.option("--batch-size", type=click.IntRange(min=1), default=1, show_default=True,
               help="Samples per process per step; each sample brings all its slices (8 quadrant maps at 8 slices).")
@@ -71,7 +81,8 @@ def _parse_slices(ctx, param, value: str) -> tuple[int, ...]:
               help="Keep the image encoder and lifter as --init gave them (no gradient, fixed BatchNorm statistics); with a "
                    "--teacher of the same camera lane one lift per step serves both.")
 @click.option("--balanced", is_flag=True, help="Class-balanced (CBGS) resampling of the training samples.")
-@click.option("--workers", type=click.IntRange(min=0), default=0, show_default=True, help="DataLoader worker processes.")
+@click.option("--workers", type=click.IntRange(min=0, max=MAX_WORKERS), default=0, show_default=True,
+              help=f"DataLoader worker processes, 0..{MAX_WORKERS} (each a forked process).")
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Seed of the weights and of the data order.")
 @click.option("--max-minutes", type=click.FloatRange(min=0, min_open=True, max=MAX_MINUTES), default=None,
               help="With --steps/--epochs: stop with a checkpoint after this much wall time of this invocation (--resume gets it again). Alone: the one-cycle "
