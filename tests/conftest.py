@@ -1,5 +1,6 @@
 """Fixtures several test files share."""
 
+import signal
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -123,3 +124,18 @@ try:
     settings.load_profile(_os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 except ImportError:  # hypothesis is in the dev extra; without it the property tests skip themselves
     pass
+
+
+@pytest.fixture
+def alarm():
+    """Turn a hang into a failure: SIGALRM (a TimeoutError in the test) after 10 s. For reads of FIFOs and other
+    calls that must never block."""
+
+    def handler(signum, frame):
+        raise TimeoutError("blocked for 10 s")
+
+    old = signal.signal(signal.SIGALRM, handler)
+    signal.alarm(10)
+    yield
+    signal.alarm(0)
+    signal.signal(signal.SIGALRM, old)

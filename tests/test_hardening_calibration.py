@@ -380,7 +380,7 @@ def test_a_broken_old_lut_never_stops_its_own_rebuild(export_copy, breakit, said
     breakit(export_copy)
     result = _calib_lut(export_copy)
     assert result.exit_code == 0, result.output
-    assert f"note: the previous lut.npz is unreadable" in result.output and said in result.output
+    assert "note: the previous lut.npz is unreadable" in result.output and said in result.output
     assert "rebuilt" in result.output
     Lut.load(export_copy / "lut.npz")  # the rebuilt one is sound
 

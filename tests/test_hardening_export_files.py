@@ -8,7 +8,6 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import signal
 from pathlib import Path
 
 import numpy as np
@@ -30,19 +29,6 @@ def export_copy(tiny_export, tmp_path) -> Path:
     shutil.copytree(tiny_export, out)
     return out
 
-
-@pytest.fixture
-def alarm():
-    """Turn a hang into a failure: SIGALRM after 10 s."""
-
-    def handler(signum, frame):
-        raise TimeoutError("blocked")
-
-    old = signal.signal(signal.SIGALRM, handler)
-    signal.alarm(10)
-    yield
-    signal.alarm(0)
-    signal.signal(signal.SIGALRM, old)
 
 
 def _edit_manifest(export_dir: Path, change) -> None:

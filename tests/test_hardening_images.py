@@ -5,7 +5,6 @@ JPEGs, grey and 16-bit images, and images whose size differs from their camera's
 from __future__ import annotations
 
 import os
-import signal
 import struct
 import zlib
 from pathlib import Path
@@ -238,19 +237,6 @@ def test_bag_resize_refuses_empty_or_non_colour_arrays(shape):
 
 # ---- finding 9: FIFOs, folders and devices named like images --------------------------------------------------------
 
-
-@pytest.fixture
-def alarm():
-    """Turn a hang into a failure: SIGALRM after 5 s."""
-
-    def handler(signum, frame):
-        raise TimeoutError("load_image blocked")
-
-    old = signal.signal(signal.SIGALRM, handler)
-    signal.alarm(5)
-    yield
-    signal.alarm(0)
-    signal.signal(signal.SIGALRM, old)
 
 
 @pytest.mark.parametrize("kind", ["fifo", "dir", "device", "missing", "dangling_link"])

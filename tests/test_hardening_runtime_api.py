@@ -8,7 +8,6 @@ from __future__ import annotations
 import logging
 import math
 import os
-import signal
 
 import numpy as np
 import pytest
@@ -36,17 +35,6 @@ def _images(det, sample):
     arr = sample.load_images((det.image.width, det.image.height))
     return {n: arr[sample.rig.names.index(n)] for n in det.camera_names}
 
-
-@pytest.fixture
-def alarm():
-    def handler(signum, frame):
-        raise TimeoutError("blocked")
-
-    old = signal.signal(signal.SIGALRM, handler)
-    signal.alarm(10)
-    yield
-    signal.alarm(0)
-    signal.signal(signal.SIGALRM, old)
 
 
 # ---- feature maps handed to update_images ------------------------------------------------------------------------
