@@ -21,7 +21,7 @@ from streamdet.calibration.camera import invert_transform
 from streamdet.core.boxes import box_corners_3d
 from streamdet.data.synth_kinds import NUM_ANNOTATED_KINDS, Kind
 from streamdet.data.synth_materials import ASPHALT, GROUND_PERIOD_M, Mat, cross_street, ground, shade
-from streamdet.data.synth_raycast import ray_box_entry, ray_shape_entry, world_to_local
+from streamdet.data.synth_raycast import ray_shape_entry
 from streamdet.data.synth_render_raster import hull_span_pixels
 from streamdet.data.synth_world import Scene
 
