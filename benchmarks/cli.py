@@ -16,7 +16,7 @@ from pathlib import Path
 import click
 
 from streamdet.cli_utils import (
-    MAX_SLICES, MAX_THREADS, PRECISION_CHOICES, RESOLUTION_RANGE_HELP, image_precision_option, resolution_callback,
+    MAX_SLICES, MAX_INTRA_OP_THREADS, MAX_THREADS, PRECISION_CHOICES, RESOLUTION_RANGE_HELP, image_precision_option, resolution_callback,
 )
 from streamdet.core.constants import DEFAULT_PRESET
 from streamdet.models.presets import get_preset, preset_names
@@ -75,8 +75,8 @@ def _flops_only(preset: str, resolution: tuple[int, int] | None, json_path: Path
               "runtime's LaneConfig]; 1 leaves the image lane a core of its own on a 2-core machine (docs/replay.md).")
 @click.option("--repeat", type=click.IntRange(1, MAX_REPEAT), default=None,
               help=f"Timed runs per measurement, 1..{MAX_REPEAT} [default: 20; 5 with --quick].")
-@click.option("--threads", type=click.IntRange(1, MAX_THREADS), default=None,
-              help=f"Threads for the Table 3 rows, 1..{MAX_THREADS} [default: all cores].")
+@click.option("--threads", type=click.IntRange(1, MAX_INTRA_OP_THREADS), default=None,
+              help=f"Threads for the Table 3 rows, 1..{MAX_INTRA_OP_THREADS} [default: all cores].")
 @click.option(
     "--quick",
     is_flag=True,

@@ -9,7 +9,7 @@ from pathlib import Path
 import click
 
 from streamdet.cli_utils import (
-    MAX_SLICES, MAX_THREADS, PRECISION_CHOICES, camera_terms_option, fallback_after_s, fallback_options,
+    MAX_SLICES, MAX_INTRA_OP_THREADS, MAX_THREADS, PRECISION_CHOICES, camera_terms_option, fallback_after_s, fallback_options,
     image_precision_option,
 )
 from streamdet.replay.modes import MODES
@@ -69,10 +69,10 @@ def _progress(message: str) -> None:
                    "faster computer would see. Latencies are reported in drive time.")
 @click.option("--max-seconds", type=click.FloatRange(0, MAX_SECONDS, min_open=True), default=None,
               help=f"Play only the first seconds of each scene (0 < s <= {MAX_SECONDS:.0f}).")
-@click.option("--threads", type=click.IntRange(1, MAX_THREADS), default=1, show_default=True,
-              help=f"Intra-op threads of each onnxruntime session (1..{MAX_THREADS}).")
-@click.option("--image-lane-threads", type=click.IntRange(1, MAX_THREADS), default=None,
-              help=f"Intra-op threads of the image lane's sessions (encoder, lifter, per-camera terms; 1..{MAX_THREADS}). "
+@click.option("--threads", type=click.IntRange(1, MAX_INTRA_OP_THREADS), default=1, show_default=True,
+              help=f"Intra-op threads of each onnxruntime session (1..{MAX_INTRA_OP_THREADS}).")
+@click.option("--image-lane-threads", type=click.IntRange(1, MAX_INTRA_OP_THREADS), default=None,
+              help=f"Intra-op threads of the image lane's sessions (encoder, lifter, per-camera terms; 1..{MAX_INTRA_OP_THREADS}). "
                    "Default: --threads.")
 @click.option("--slice-workers", type=click.IntRange(1, MAX_THREADS), default=None,
               help=f"Slices processed at once in the slice lane (LaneConfig.max_in_flight, 1..{MAX_THREADS}). Default: the runtime's LaneConfig. "

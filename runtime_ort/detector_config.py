@@ -10,14 +10,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from streamdet.core.constants import PRECISIONS
+from streamdet.core.constants import MAX_SESSION_THREADS, PRECISIONS
 from streamdet.core.sectors import check_num_slices
 from streamdet.runtime_ort.fallback import check_fallback_age
 from streamdet.runtime_ort.nms import NmsConfig
 
-# Intra-op threads of one lane's sessions. A vehicle computer has tens of cores; thousands of threads (512 a
-# session) made onnxruntime hang at start under an address-space limit.
-MAX_LANE_THREADS = 256
+MAX_LANE_THREADS = MAX_SESSION_THREADS  # intra-op threads of one lane's sessions (core/constants.py says why)
 
 def lane_precision_label(precision: str, image_precision: str | None) -> str:
     """``"fp32"``, or ``"int8 image lane + fp32 slices"`` when the image lane runs another precision than the slices."""
@@ -42,8 +40,8 @@ class DetectorConfig:
     # exact; its int8 sibling is not faster (README, "Which precision").
     image_lane_precision: str | None = None
     providers: tuple[str, ...] | None = None  # None: TensorRT > CUDA > CPU, whichever onnxruntime has
-    image_lane_threads: int = 1  # intra-op threads of the image encoder and lifter sessions (0: every core; <= 256)
-    slice_lane_threads: int = 1  # intra-op threads of the slice session (0: every core; <= 256)
+    image_lane_threads: int = 1  # intra-op threads of the image encoder and lifter sessions (0: every core; <= 64)
+    slice_lane_threads: int = 1  # intra-op threads of the slice session (0: every core; <= 64)
     num_slices: int | None = None  # slices per sweep (1, 2 or a multiple of 4); None: the number the export was made for
     # (W, H) px of the images fed to the encoder; None: the export's. The graphs are dynamic in H and W, so another
     # size only needs a LUT built for it: from the export's calibration source at start, then set_calibration.

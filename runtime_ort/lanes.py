@@ -322,6 +322,8 @@ def _points_refused(points: object) -> str | None:
         return f"points must be a (N, {SLICE_COLUMNS}) float32 array (x, y, z, r, t, s), got {got}"
     if points.dtype != np.float32:
         return f"points must be float32, got {points.dtype}"
+    if isinstance(points, np.ma.MaskedArray):  # the copy below would drop the mask: masked rows detected as points
+        return "points must be a plain array, got a masked array (drop the masked rows first: p[~p.mask.any(1)])"
     if points.shape[0] > MAX_SLICE_POINTS:
         return f"points: a slice of {points.shape[0]} points, more than MAX_SLICE_POINTS = {MAX_SLICE_POINTS} (a corrupt array?)"
     return None

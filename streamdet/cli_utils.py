@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from streamdet.core.constants import MAX_RESOLUTION_PX, MIN_RESOLUTION_PX, PRECISIONS
+from streamdet.core.constants import MAX_RESOLUTION_PX, MAX_SESSION_THREADS, MIN_RESOLUTION_PX, PRECISIONS
 from streamdet.core.sectors import MAX_NUM_SLICES
 
 # Every tool that takes an image size spells it the same way, within the same bounds (core/constants.py).
@@ -61,7 +61,8 @@ def resolution_callback(*, min_px: int = MIN_RESOLUTION_PX, max_px: int | None =
 # Upper bounds of the numeric options the tools share: far past any documented use, short of a value that allocates
 # gigabytes, overflows a clock or runs for days.
 MAX_SLICES = MAX_NUM_SLICES  # slices per sweep: core.sectors' bound (sectors of 0.09 deg; the slice index column's range)
-MAX_THREADS = 1024  # intra-op threads, workers: LaneConfig's 1..1024 for the lanes
+MAX_THREADS = 1024  # slice workers: LaneConfig's 1..1024 for the lanes
+MAX_INTRA_OP_THREADS = MAX_SESSION_THREADS  # --threads of one onnxruntime session (core/constants.py)
 MAX_FALLBACK_AFTER_MS = 60_000.0  # an image BEV a minute old is no image BEV
 
 

@@ -21,7 +21,7 @@ import click
 from streamdet import studies as st
 from streamdet.cli_utils import (
     MAX_SLICES,
-    MAX_THREADS,
+    MAX_INTRA_OP_THREADS,
     image_precision_option,
     refuse_output_over_inputs,
     resolution_callback,
@@ -100,8 +100,8 @@ def _common(f: Callable) -> Callable:
         click.option("--precision", type=click.Choice(PRECISIONS), default="fp32", show_default=True,
                      help="Graphs to run; the export must hold them."),
         image_precision_option(),
-        click.option("--threads", type=click.IntRange(1, MAX_THREADS), default=1, show_default=True,
-                     help=f"Intra-op threads of each onnxruntime session, 1..{MAX_THREADS}."),
+        click.option("--threads", type=click.IntRange(1, MAX_INTRA_OP_THREADS), default=1, show_default=True,
+                     help=f"Intra-op threads of each onnxruntime session, 1..{MAX_INTRA_OP_THREADS}."),
         click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
                      help="Write every figure of the study here as JSON."),
         click.option("--plot", "plot_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
