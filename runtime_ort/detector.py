@@ -65,7 +65,7 @@ from streamdet.runtime_ort.camera_terms import CameraTerms, open_camera_terms
 from streamdet.runtime_ort.coalesce import check_coalesced, split_by_slice
 from streamdet.runtime_ort.detector_config import DetectorClosed, DetectorConfig, NoImageLaneError, lane_precision_label  # noqa: F401
 from streamdet.runtime_ort.detector_results import ImageUpdate, SliceResult, SweepResult
-from streamdet.runtime_ort.graph_files import checked_model
+from streamdet.runtime_ort.graph_files import checked_model, model_signature
 from streamdet.runtime_ort.export_settings import export_nms, export_rig, image_spec_at
 from streamdet.runtime_ort.fallback import FALLBACK_GRAPH, LidarFallback, needs_fallback, open_fallback
 from streamdet.runtime_ort.image_cache import (  # noqa: F401 (check_camera_timestamps: public here too)
@@ -221,7 +221,10 @@ class StreamingDetector:
             return fp32.run({"features": maps, **self._lut_feeds(qlut, maps)})[0]
 
         def lifter_model(precision: str) -> onnx.ModelProto:
-            return self._read_graph("volumetric_lifter", precision)[2]
+            model = self._read_graph("volumetric_lifter", precision)[2]
+            # the fp32 one has no session of its own in an int8 lane: checked here, not taken for a graph that fails to split
+            check_graph(m.graph("volumetric_lifter", precision), *model_signature(model), m, self.grid)
+            return model
 
         img = self.image
         grid = self.grid

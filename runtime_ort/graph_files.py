@@ -16,6 +16,7 @@ import onnx
 from google.protobuf.message import DecodeError
 
 from streamdet.runtime_ort.manifest import GraphEntry, ManifestError
+from streamdet.runtime_ort.signature import TensorSignature
 
 def checked_model(path: Path, raw: bytes, entry: GraphEntry | None = None) -> onnx.ModelProto:
     """The ONNX model in ``raw`` (read from ``path``), refused (ManifestError) when it does not parse, keeps any
@@ -58,6 +59,19 @@ def _check_recorded(path: Path, model: onnx.ModelProto, entry: GraphEntry) -> No
     if precision != entry.precision:
         raise ManifestError(f"{path}: the graph holds a {precision} model, the manifest records {entry.precision} "
                             "(a graph of another precision copied over it?)")  # fmt: skip
+
+
+def model_signature(model: onnx.ModelProto) -> tuple[tuple[TensorSignature, ...], tuple[TensorSignature, ...]]:
+    """(inputs, outputs) a parsed graph declares, as ``GraphSession`` reads them from a session (named or unknown
+    dimensions None; initializers listed as inputs by old exporters left out): a graph checked without a session."""
+    inits = {t.name for t in model.graph.initializer}
+
+    def sig(v: onnx.ValueInfoProto) -> TensorSignature:
+        t = v.type.tensor_type
+        dtype = onnx.helper.tensor_dtype_to_np_dtype(t.elem_type).name if t.elem_type else "undefined"
+        return TensorSignature(v.name, dtype, tuple(d.dim_value if d.HasField("dim_value") else None for d in t.shape.dim))
+
+    return (tuple(sig(v) for v in model.graph.input if v.name not in inits), tuple(sig(v) for v in model.graph.output))
 
 
 def external_tensors(model: onnx.ModelProto) -> list[tuple[str, str]]:

@@ -466,3 +466,23 @@ def test_warm_up_with_per_camera_lifts_leaves_the_same_quadrant_updates(export_d
         for q in range(4):
             det.update_images(images, 1.0, quadrants=[q])
     np.testing.assert_array_equal(warm.image_state.bev, cold.image_state.bev)
+
+
+def test_the_fp32_lifter_of_an_int8_lane_is_checked_too(export_dir, tmp_path):
+    """An int8 image lane opens no session of the fp32 lifter (only its per-camera split reads it): a foreign graph
+    there, its sha256 updated, is refused, not taken for a lifter that does not split (verification audit)."""
+    import json
+    import shutil
+
+    from streamdet.runtime_ort.manifest import ManifestError, sha256_file
+
+    d = tmp_path / "i8"
+    shutil.copytree(export_dir, d)
+    shutil.copy(d / "slice_head.onnx", d / "volumetric_lifter.onnx")
+    m = json.loads((d / "manifest.json").read_text())
+    for g in m["graphs"]:
+        if g["file"] == "volumetric_lifter.onnx":
+            g["sha256"] = sha256_file(d / "volumetric_lifter.onnx")
+    (d / "manifest.json").write_text(json.dumps(m))
+    with pytest.raises(ManifestError, match=r"volumetric_lifter.onnx \(volumetric_lifter, fp32\): the graph's inputs are"):
+        StreamingDetector(d, DetectorConfig(image_lane_precision="int8"))

@@ -220,3 +220,12 @@ def test_graphs_whose_export_parity_failed_are_refused_in_use_only(export_copy, 
         StreamingDetector(export_copy, config)
     other = DetectorConfig(precision="fp16") if precision == "fp32" else DetectorConfig()
     assert StreamingDetector(export_copy, other).num_slices == 8  # the other precision's graphs run
+
+
+def test_model_signature_is_what_a_session_reads(tiny_int8_export):
+    from streamdet.runtime_ort.graph_files import model_signature
+    from streamdet.runtime_ort.sessions import GraphSession
+
+    for f in sorted(tiny_int8_export.path.glob("*.onnx")):
+        session = GraphSession(f)
+        assert model_signature(onnx.load(f)) == (session.inputs, session.outputs), f.name
