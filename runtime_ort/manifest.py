@@ -89,8 +89,11 @@ def export_file(export_dir: str | os.PathLike, name: str, what: str = "file") ->
     target); readers check ``is_file`` themselves.
     """
     _check_plain_name(what, name)
-    root = Path(export_dir).resolve()
-    path = (root / name).resolve()
+    try:
+        root = Path(export_dir).resolve()
+        path = (root / name).resolve()
+    except (OSError, RuntimeError) as e:  # RuntimeError: a symlink loop (Python before 3.13)
+        raise ManifestError(f"{what} {name!r} in {export_dir} cannot be resolved: {' '.join(str(e).split())}") from None
     if path.parent != root:
         raise ManifestError(f"{what} {name!r} in {root} resolves to {path}, outside the export directory (a symlink?)")
     return path
@@ -545,8 +548,13 @@ def read_manifest(export_dir: str | os.PathLike, verify_files: bool = True) -> M
     """
     export_dir = Path(export_dir)
     path = export_dir / MANIFEST_NAME
-    if not path.is_file():
-        raise ManifestError(f"{path} does not exist: not a (complete) streamdet export directory")
+    try:
+        exists, regular = path.exists(), path.is_file()
+    except OSError as e:  # an export directory that may not be listed (no x permission)
+        raise ManifestError(f"{path}: cannot be read: {e.strerror or e}") from None
+    if not regular:
+        raise ManifestError(f"{path} is not a regular file (a FIFO, a device or a folder?)" if exists else
+                            f"{path} does not exist: not a (complete) streamdet export directory")  # fmt: skip
     export_file(export_dir, MANIFEST_NAME, "the manifest")  # confined as the files it names: no symlink out
     too_deep = ManifestError(f"{path} nests deeper than {MAX_MANIFEST_DEPTH} levels: not a streamdet manifest")
     try:

@@ -229,3 +229,30 @@ def test_model_signature_is_what_a_session_reads(tiny_int8_export):
     for f in sorted(tiny_int8_export.path.glob("*.onnx")):
         session = GraphSession(f)
         assert model_signature(onnx.load(f)) == (session.inputs, session.outputs), f.name
+
+
+def test_a_symlink_loop_or_a_fifo_manifest_is_named(export_copy, alarm):
+    (export_copy / "slice_head.onnx").unlink()
+    (export_copy / "slice_head.onnx").symlink_to(export_copy / "slice_head.onnx")  # a loop onto itself
+    with pytest.raises(ManifestError, match=r"slice_head.onnx' in .* cannot be resolved"):
+        StreamingDetector(export_copy, DetectorConfig(verify_sha256=False))
+    (export_copy / "manifest.json").unlink()
+    os.mkfifo(export_copy / "manifest.json")
+    with pytest.raises(ManifestError, match=r"manifest.json is not a regular file"):
+        read_manifest(export_copy)
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="needs root to drop to another user")
+def test_an_export_directory_that_may_not_be_listed_is_named(export_copy, tmp_path):
+    import subprocess
+    import sys
+
+    box = export_copy.parent
+    box.chmod(0o700)  # nobody else may enter: the export inside cannot be listed
+    code = ("import sys\nfrom streamdet.runtime_ort.manifest import read_manifest, ManifestError\n"
+            f"try:\n    read_manifest({str(export_copy)!r})\nexcept ManifestError as e:\n    print('NAMED', e)\n")
+    run = subprocess.run(["setpriv", "--reuid=65534", "--regid=65534", "--clear-groups", sys.executable, "-c", code],
+                         capture_output=True, text=True, timeout=60)  # fmt: skip
+    if run.returncode != 0 and ("setpriv" in run.stderr or "import" in run.stderr.lower()):
+        pytest.skip(f"cannot run as another user here: {run.stderr.strip()[-200:]}")
+    assert "NAMED" in run.stdout and "cannot be read: Permission denied" in run.stdout, run.stdout + run.stderr
