@@ -526,3 +526,22 @@ def test_train_cli_counts_are_bounded_and_lists_clean(tmp_path, args, said):
 
     result = CliRunner().invoke(train_main, ["--data", str(tmp_path / "d"), "--out", str(tmp_path / "o"), *args])
     assert result.exit_code == 2 and re.search(said, result.output), result.output
+
+
+def test_an_out_that_cannot_be_written_is_refused_before_any_data_is_read(tmp_path):
+    from streamdet.training.trainer import check_out_dir
+
+    blocker = tmp_path / "a_file"
+    blocker.write_text("x")
+    with pytest.raises(ValueError, match=r"--out .*a_file/run cannot be written"):
+        check_out_dir(blocker / "run", ("last.pt",), None, False)
+    assert check_out_dir(tmp_path / "new" / "run", ("last.pt",), None, False) == [] and (tmp_path / "new" / "run").is_dir()
+
+
+def test_a_run_without_last_pt_is_not_offered_for_resume(tmp_path):
+    from streamdet.training.trainer import check_out_dir
+
+    (tmp_path / "metrics.jsonl").write_text("{}\n")  # what a diverged run leaves
+    with pytest.raises(ValueError, match=r"already holds a run \(metrics.jsonl\): pass --overwrite") as e:
+        check_out_dir(tmp_path, ("last.pt", "model.pt", "metrics.jsonl"), None, False)
+    assert "--resume" not in str(e.value)

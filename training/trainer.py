@@ -17,6 +17,7 @@ import dataclasses
 import functools
 import json
 import math
+import os
 import time
 from collections.abc import Callable
 from contextlib import nullcontext
@@ -177,8 +178,17 @@ def check_out_dir(out_dir: str | Path, run_files: tuple[str, ...], resume: str |
         raise ValueError("--resume continues the run in its folder and --overwrite replaces one: give only one of them")
     found = [Path(out_dir) / name for name in run_files if (Path(out_dir) / name).is_file()]
     if found and resume is None and not overwrite:
-        raise ValueError(f"--out {out_dir} already holds a run ({', '.join(p.name for p in found)}): pass --resume "
-                         f"{Path(out_dir) / 'last.pt'} to continue it, --overwrite to replace it, or choose another --out")  # fmt: skip
+        last = Path(out_dir) / "last.pt"
+        resume_hint = f"pass --resume {last} to continue it, " if last.is_file() else ""  # a run that diverged has none
+        raise ValueError(f"--out {out_dir} already holds a run ({', '.join(p.name for p in found)}): {resume_hint}"
+                         "pass --overwrite to replace it, or choose another --out")  # fmt: skip
+    try:  # now, not after minutes of reading the dataset: an --out that cannot be made or written
+        Path(out_dir).mkdir(parents=True, exist_ok=True)
+        probe = Path(out_dir) / f".write_test_{os.getpid()}"
+        probe.touch()
+        probe.unlink()
+    except OSError as e:
+        raise ValueError(f"--out {out_dir} cannot be written: {e.strerror or e}") from None
     return found if resume is None else []
 
 
