@@ -77,10 +77,12 @@ class ProbeResult:
         }
 
 
-def row_session_config(threads: int, profile: bool = False) -> SessionConfig:
+def row_session_config(threads: int, profile: bool = False, profile_dir: str | os.PathLike | None = None) -> SessionConfig:
     """Sessions of the per-module rows and of the probe: CPU, ORT_ENABLE_ALL (GraphSession's level), ``threads``
-    intra-op threads, spinning on (onnxruntime's default; one graph runs alone, so no other lane needs the core)."""
-    return SessionConfig(("CPUExecutionProvider",), threads, allow_spinning=True, enable_profiling=profile)
+    intra-op threads, spinning on (onnxruntime's default; one graph runs alone, so no other lane needs the core);
+    ``profile_dir``: where a profiling session writes (None: the current directory)."""
+    return SessionConfig(("CPUExecutionProvider",), threads, allow_spinning=True, enable_profiling=profile,
+                         profile_dir=profile_dir)  # fmt: skip
 
 
 def matmul_model(n: int) -> onnx.ModelProto:

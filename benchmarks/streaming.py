@@ -273,7 +273,8 @@ def busy_image_lane(det: StreamingDetector, images: dict[str, np.ndarray]) -> It
         worker.join()
 
 
-def _detector(export_dir: Path, cfg: StreamingConfig, profiling: bool = False, slice_threads: int = 1) -> StreamingDetector:
+def _detector(export_dir: Path, cfg: StreamingConfig, profiling: bool = False, slice_threads: int = 1,
+              profile_dir: str | None = None) -> StreamingDetector:  # fmt: skip
     return StreamingDetector(
         export_dir,
         DetectorConfig(
@@ -283,6 +284,7 @@ def _detector(export_dir: Path, cfg: StreamingConfig, profiling: bool = False, s
             slice_lane_threads=slice_threads,
             num_slices=cfg.num_slices,
             enable_profiling=profiling,
+            profile_dir=profile_dir,
         ),
     )
 
@@ -292,23 +294,15 @@ def profile_streaming(
 ) -> dict[str, ProfileSummary]:
     """onnxruntime profiles of the slice lane with the image lane idle and busy (fresh profiling sessions per phase).
 
-    Keys ``"<phase>/<graph>"``; the JSON files go to ``profile_dir/streaming_<phase>.<graph>.json``. The sessions read
-    the export through hard links (copies across file systems) in a temporary folder, where onnxruntime writes its
-    profiles, so the export directory itself is never written to. Not symbolic links: the runtime refuses a file that
-    resolves outside its export directory.
+    Keys ``"<phase>/<graph>"``; the JSON files go to ``profile_dir/streaming_<phase>.<graph>.json``. onnxruntime
+    writes them first into a temporary folder (``DetectorConfig.profile_dir``), never into the export directory.
     """
     profile_dir.mkdir(parents=True, exist_ok=True)
     summaries: dict[str, ProfileSummary] = {}
     with tempfile.TemporaryDirectory(prefix="streamdet_stream_profile_") as tmp:
-        view = Path(tmp)
-        for f in Path(export_dir).iterdir():
-            try:
-                os.link(f.resolve(), view / f.name)
-            except OSError:  # another file system, or links not allowed
-                shutil.copy2(f.resolve(), view / f.name)
         for phase in ("idle", "busy"):
             progress(f"[streaming] profiling the slice lane, image lane {phase}: {cfg.sweeps} sweep(s)")
-            det = _detector(view, cfg, profiling=True)
+            det = _detector(Path(export_dir), cfg, profiling=True, profile_dir=tmp)
             images, slices = _bundled_inputs(det)
             det.update_images(images)
             if phase == "idle":

@@ -109,7 +109,7 @@ def _first_run_ms(fn: Callable[[], object]) -> float:
 
 
 def _profile_graph(path: Path, row: Row, precision: str, threads: int, profile_dir: Path) -> ProfileSummary:
-    session = GraphSession(path, row_session_config(threads, profile=True))
+    session = GraphSession(path, row_session_config(threads, profile=True, profile_dir=profile_dir))
     feeds = row.feeds()
     for _ in range(1 + PROFILE_RUNS):  # the first run (allocations, first-touch) is in the profile too; see runs
         session.run(feeds)

@@ -146,7 +146,7 @@ class StreamingDetector:
         def session(name: str, threads: int, precision: str) -> GraphSession:
             entry = m.graph(name, precision)
             path, raw, _ = self._read_graph(name, precision)
-            cfg = SessionConfig(config.providers, threads, enable_profiling=config.enable_profiling)
+            cfg = SessionConfig(config.providers, threads, enable_profiling=config.enable_profiling, profile_dir=config.profile_dir)
             graph = GraphSession(path, cfg, model=raw)  # the bytes hashed are the bytes loaded
             check_graph(entry, graph.inputs, graph.outputs, m, self.grid)  # the graph is what the manifest says
             return graph
@@ -161,12 +161,14 @@ class StreamingDetector:
         if config.fallback_export_dir is not None:
             if not self.uses_images:
                 raise NoImageLaneError(self._no_image_lane("it needs no LiDAR-only fallback (DetectorConfig.fallback_export_dir)"))
-            cfg = SessionConfig(config.providers, config.slice_lane_threads, enable_profiling=config.enable_profiling)
+            cfg = SessionConfig(config.providers, config.slice_lane_threads, enable_profiling=config.enable_profiling,
+                                profile_dir=config.profile_dir)  # fmt: skip
             self._fallback = open_fallback(config.fallback_export_dir, m, self.grid, cfg, config.precision, config.verify_sha256)
         self.stats = LatencyStats()
         graphs = {"image_encoder": self.image_encoder, "volumetric_lifter": self.lifter, "slice_head": self.slice_head,
                   FALLBACK_GRAPH: None if self._fallback is None else self._fallback.session}  # fmt: skip
         self._sessions = {name: g for name, g in graphs.items() if g is not None}
+        self._graph_files = {name: g.path.name for name, g in self._sessions.items()}  # for messages
         self._recordings: tuple[GraphRecording, ...] = ()  # open recording() blocks (swapped whole under _lock)
         # The manifest's MAC counts of the graphs in use; _executed_gmac scales them to each run's sizes for the stats.
         lanes = {"image_encoder": config.image_precision, "volumetric_lifter": config.image_precision, "slice_head": config.precision}
@@ -789,7 +791,7 @@ class StreamingDetector:
             self._warned_nonfinite_outputs = True
             log.warning("%s: %s gave %d output row(s) with NaN or inf in slice %d, dropped and counted in "
                         "SliceResult.num_nonfinite_outputs (logged once)", self.export_dir, graph, nonfinite, k)  # fmt: skip
-        file = self._sessions[graph].path.name
+        file = self._graph_files[graph]  # not the session: close() may have released it meanwhile
         wrong = (labels < 0) | (labels >= len(self.manifest.class_names))
         if wrong.any():
             raise GraphRunError(f"{file}: det_labels holds {int(labels[wrong][0])}, outside the {len(self.manifest.class_names)} classes")

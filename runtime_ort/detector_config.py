@@ -55,6 +55,7 @@ class DetectorConfig:
     restrict_to_sector: bool = False  # keep only boxes centred in the slice's own sector
     verify_sha256: bool = True  # refuse graphs whose bytes differ from the manifest
     enable_profiling: bool = False  # onnxruntime profiles of every session (written on close())
+    profile_dir: str | os.PathLike | None = None  # where those profiles go; None: the current directory
     # A LiDAR-only export whose slice graph runs the slices that have no usable camera features (no image BEV yet,
     # or one older than fallback_after_s): runtime_ort/fallback.py. None: those slices read a zero image BEV.
     fallback_export_dir: str | os.PathLike | None = None
@@ -110,6 +111,8 @@ class DetectorConfig:
             raise ValueError(
                 f"DetectorConfig.image_lane_precision must be None or one of {PRECISIONS}, got {self.image_lane_precision!r}"
             )
+        if self.profile_dir is not None and not isinstance(self.profile_dir, (str, os.PathLike)):
+            raise ValueError(f"DetectorConfig.profile_dir must be None or a path, got {self.profile_dir!r}")
         if self.fallback_export_dir is not None and not isinstance(self.fallback_export_dir, (str, os.PathLike)):
             raise ValueError(f"DetectorConfig.fallback_export_dir must be None or a path, got {self.fallback_export_dir!r}")
         check_fallback_age(self.fallback_after_s, self.fallback_export_dir)

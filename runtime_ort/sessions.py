@@ -57,6 +57,9 @@ class SessionConfig:
     intra_op_threads: int = 1  # per session; 0 lets onnxruntime use every core (fine when nothing runs beside it)
     allow_spinning: bool = False  # spinning threads steal the core of the concurrent lane
     enable_profiling: bool = False  # onnxruntime's JSON profile (for `streamdet-bench --profile`)
+    # where a profiling session writes its JSON; None: the current directory (never beside the graphs: an export
+    # directory is read-only to the runtime)
+    profile_dir: str | os.PathLike | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.intra_op_threads, int) or self.intra_op_threads < 0:
@@ -114,7 +117,10 @@ class GraphSession:
         """``model``: the graph's bytes, already read (and checked) by the caller, which onnxruntime loads instead of
         opening ``path`` again (runtime_ort/export_files.py); ``path`` then names the graph in messages."""
         self.path = Path(path)
-        opts = session_options(config, profile_prefix=str(self.path.with_suffix("")) + ".profile")
+        prefix = Path(config.profile_dir if config.profile_dir is not None else ".") / (self.path.with_suffix("").name + ".profile")
+        if config.enable_profiling:
+            prefix.parent.mkdir(parents=True, exist_ok=True)
+        opts = session_options(config, profile_prefix=str(prefix))
         providers = resolve_providers(config.providers)
         try:
             src = model if model is not None else str(self.path)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 
 import numpy as np
 import onnx
@@ -120,11 +121,13 @@ def test_profile_summary_from_events():
 def test_profile_summary_of_a_real_session(tmp_path):
     path = tmp_path / "mm.onnx"
     onnx.save_model(matmul_model(64), str(path))
-    session = GraphSession(path, row_session_config(1, profile=True))
+    session = GraphSession(path, row_session_config(1, profile=True, profile_dir=tmp_path / "prof"))
     feeds = {"a": np.ones((64, 64), np.float32), "b": np.ones((64, 64), np.float32)}
     for _ in range(3):
         session.run(feeds)
-    s = summarize_profile(session.end_profiling())
+    written = Path(session.end_profiling())
+    assert written.parent == tmp_path / "prof" and written.name.startswith("mm.profile")  # where it was asked to go
+    s = summarize_profile(written)
     assert s.runs == 3 and s.ops[0].op_type == "MatMul"
     bad = tmp_path / "bad.json"
     bad.write_text("{not json")

@@ -220,3 +220,29 @@ def test_set_calibration_from_a_fifo_never_blocks(det, tmp_path, alarm, name):
     with pytest.raises(CalibrationError, match="not a regular file"):
         det.set_calibration(path)
     assert det.lut is before
+
+
+def test_profiles_go_to_the_profile_dir_never_the_export(tiny_export, sample, tmp_path):
+    before = sorted(p.name for p in tiny_export.iterdir())
+    det = StreamingDetector(tiny_export, DetectorConfig(enable_profiling=True, profile_dir=tmp_path / "prof"))
+    det.detect_slice(split_sweep(sample.points, 8)[0], 0, timestamp=0.0)
+    written = det.close()
+    assert written and all(os.path.dirname(w) == str(tmp_path / "prof") for w in written)
+    assert sorted(p.name for p in tiny_export.iterdir()) == before
+
+
+def test_a_slice_finishing_after_close_names_its_graph(det, sample, monkeypatch):
+    """close() from another thread while a slice runs: the slice's output check still names the graph."""
+    real = det._run_graph
+
+    def run_then_close(name, feeds):
+        out = real(name, feeds)
+        if name == "slice_head":
+            det.close()
+        return out
+
+    monkeypatch.setattr(det, "_run_graph", run_then_close)
+    res = det.detect_slice(split_sweep(sample.points, 8)[0], 0, timestamp=0.0)  # this one finishes
+    assert res.num_pillars > 0
+    with pytest.raises(DetectorClosed):
+        det.detect_slice(split_sweep(sample.points, 8)[0], 0, timestamp=0.0)
