@@ -92,7 +92,8 @@ def test_stamp_ns_names_the_field(sec, nanosec, field, shown):
     refused(lambda: stamp_ns(ns(sec=sec, nanosec=nanosec)), f"builtin_interfaces/Time.{field}", shown)
 
 
-@pytest.mark.parametrize("data", [None, "abc", 3, [256], [-1], [1.5], [True], [None], np.array([None]), memoryview(bytes(8))[::2]])
+@pytest.mark.parametrize("data", [None, "abc", 3, [256], [-1], [1.5], [True], [None], np.array([None]),
+                                  np.array([1, 256]), np.array([-1, 2]), np.array([1.0, 2.0]), np.array([1, 2], np.uint16) * 300])  # fmt: skip
 def test_byte_view_refuses_what_is_no_uint8_payload(data):
     refused(lambda: byte_view(data, "sensor_msgs/Image.data"), "sensor_msgs/Image.data", type(data).__name__)
 
@@ -390,3 +391,17 @@ def test_written_headers_refuse_what_ros_cannot_carry(ns_, frame, said):
     with pytest.raises(ValueError, match=said):
         header_msg(ns_, frame)
     assert header_msg(1_500_000_123, "lidar") == {"stamp": {"sec": 1, "nanosec": 500_000_123}, "frame_id": "lidar"}
+
+
+@pytest.mark.parametrize("data", [
+    np.array([1, 2, 255], np.int64),  # np.array(list(msg.data)): values, not eight raw bytes each
+    np.array([1, 2, 255], np.uint16),
+    array.array("q", [1, 2, 255]),
+    memoryview(bytes([1, 0, 2, 0, 255]))[::2],  # a strided view: its elements
+    [1, 2, 255],
+    bytes([1, 2, 255]),
+])  # fmt: skip
+def test_byte_view_takes_payload_elements_by_value(data):
+    from streamdet.runtime_ort.ros.header import byte_view
+
+    np.testing.assert_array_equal(byte_view(data), np.array([1, 2, 255], np.uint8))

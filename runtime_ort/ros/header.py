@@ -88,17 +88,27 @@ def header_msg(ns: int, frame_id: str) -> dict:
 
 def byte_view(data: Any, what: str = "uint8[] payload") -> np.ndarray:
     """A uint8 view of a ``uint8[]`` payload: bytes, bytearray, array.array, memoryview, a numpy array, or a list of
-    ints 0..255; anything else is refused naming ``what`` (``"sensor_msgs/PointCloud2.data"``) and its type."""
+    ints 0..255; anything else is refused naming ``what`` (``"sensor_msgs/PointCloud2.data"``) and its type.
+
+    Elements are the payload's bytes: an array of wider integers (``np.array(list(msg.data))`` is int64) is taken by
+    its values, each 0..255, never reinterpreted as its raw bytes (eight per value: a cloud decoded to garbage)."""
+    if not isinstance(data, (np.ndarray, list, tuple)):
+        try:
+            view = memoryview(data)
+        except TypeError:  # no buffer: None, a str, a number
+            view = None
+        if view is not None and view.itemsize == 1 and view.c_contiguous:
+            return np.frombuffer(data, dtype=np.uint8)
+        if view is not None:
+            data = np.asarray(view)  # an array.array of wider items, or a strided view: by its values below
     if isinstance(data, np.ndarray):
-        if not data.dtype.hasobject:  # an object array's bytes are pointers
+        if data.dtype in (np.uint8, np.int8):  # the bytes themselves (int8: the same bits)
             return np.ascontiguousarray(data).view(np.uint8).reshape(-1)
+        if data.dtype.kind in "iu" and (data.size == 0 or (int(data.min()) >= 0 and int(data.max()) <= UINT8_MAX)):
+            return data.astype(np.uint8).reshape(-1)
     elif isinstance(data, (list, tuple)):
         # a list of ints (slow path), checked first: np.asarray(..., dtype=np.uint8) would wrap 256 and truncate 1.5
         if all(is_integer(v) and 0 <= v <= UINT8_MAX for v in data):
             return np.asarray(data, dtype=np.uint8).reshape(-1)
-    else:
-        try:
-            return np.frombuffer(data, dtype=np.uint8)
-        except (TypeError, ValueError, BufferError):  # no buffer (None, a str, a number), or not a contiguous one
-            pass
-    raise ValueError(f"{what} must be bytes, an array or a list of ints 0..255, got {type(data).__name__} {shown(data)}")
+    raise ValueError(f"{what} must be bytes, a uint8 array or integers 0..255, got {type(data).__name__} "
+                     f"{getattr(data, 'dtype', '')} {shown(data)}")  # fmt: skip
