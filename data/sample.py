@@ -176,6 +176,8 @@ def load_points(path: str | Path) -> np.ndarray:
     """(N, 5) float32 sweep from a nuScenes ``.pcd.bin`` (x, y, z, intensity, ring)."""
     path = Path(path)
     if not path.is_file():
+        if path.exists():  # a FIFO would block np.fromfile; a folder is no sweep
+            raise ValueError(f"LiDAR file {path} is not a regular file (a FIFO, a device or a folder?)")
         raise FileNotFoundError(f"LiDAR file not found: {path}")
     _check_float32_size(path, "LiDAR file")
     raw = np.fromfile(path, dtype=np.float32)

@@ -104,6 +104,8 @@ def load_trajectories(root: str | Path, scene_name: str) -> Trajectories | None:
     ``ego2global`` (T, 4, 4) finite floats."""
     path = Path(root) / TRAJECTORIES_FILE
     if not path.is_file():
+        if path.exists() and not path.is_dir():  # a FIFO or a device: a broken dataset, not one without the sidecar
+            raise ValueError(f"{path} is not a regular file (a FIFO or a device?): no trajectories can be read from it")
         return None
     keys = [f"{scene_name}/{k}" for k in MEMBERS]
     try:

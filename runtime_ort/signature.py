@@ -112,7 +112,8 @@ def expected_io(manifest: Manifest, grid: GridSpec, name: str) -> tuple[tuple[Te
     )
     # K, the boxes decoded per map: the export records it (post.top_k_per_quadrant; older manifests do not)
     k = manifest.post.get("top_k_per_quadrant")
-    k = int(k) if isinstance(k, int) and not isinstance(k, bool) else None
+    if k is not None and (isinstance(k, bool) or not isinstance(k, int) or k < 1):
+        raise ManifestError(f"manifest post.top_k_per_quadrant must be a positive integer (the boxes each map decodes), got {k!r}")
     outputs = (
         TensorSignature("det_boxes", "float32", (None, k, BOX_DIM)),
         TensorSignature("det_scores", "float32", (None, k)),

@@ -406,3 +406,17 @@ def test_a_whole_point_time_file_reads(tmp_path):
     path = tmp_path / "p.pcd.bin"
     Path(str(path) + ".time").write_bytes(np.arange(10, dtype="<f4").tobytes())
     np.testing.assert_array_equal(load_point_times(path, 10), np.arange(10, dtype=np.float32))
+
+
+def test_a_fifo_is_named_not_missing(tmp_path, alarm):
+    from streamdet.data.sample import load_points
+    from streamdet.data.synth_trajectories import TRAJECTORIES_FILE, load_trajectories
+
+    os.mkfifo(tmp_path / "sweep.pcd.bin")
+    with pytest.raises(ValueError, match="is not a regular file"):
+        load_points(tmp_path / "sweep.pcd.bin")
+    os.mkfifo(tmp_path / TRAJECTORIES_FILE)  # was taken for "no sidecar": key-frame interpolation, silently
+    with pytest.raises(ValueError, match="is not a regular file"):
+        load_trajectories(tmp_path, "scene-0001")
+    with pytest.raises(FileNotFoundError, match="LiDAR file not found"):
+        load_points(tmp_path / "nothing.pcd.bin")

@@ -256,3 +256,10 @@ def test_an_export_directory_that_may_not_be_listed_is_named(export_copy, tmp_pa
     if run.returncode != 0 and ("setpriv" in run.stderr or "import" in run.stderr.lower()):
         pytest.skip(f"cannot run as another user here: {run.stderr.strip()[-200:]}")
     assert "NAMED" in run.stdout and "cannot be read: Permission denied" in run.stdout, run.stdout + run.stderr
+
+
+@pytest.mark.parametrize("k", ["500", 0, True, 12.5])
+def test_a_malformed_recorded_top_k_is_refused_not_skipped(export_copy, k):
+    _edit_manifest(export_copy, lambda d: d["post"].update(top_k_per_quadrant=k))
+    with pytest.raises(ManifestError, match=r"post.top_k_per_quadrant must be a positive integer"):
+        StreamingDetector(export_copy)
