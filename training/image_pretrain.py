@@ -201,6 +201,8 @@ def load_masked_images(root: str | Path, split: str | None, size: tuple[int, int
             path = Path(sample.image_paths[name])
             mask_path = path.with_name(path.name + MASK_SUFFIX)
             if not mask_path.is_file():
+                if mask_path.exists():  # a FIFO would block the zip reader
+                    raise ValueError(f"mask {mask_path} is not a regular file (a FIFO, a device or a folder?)")
                 raise FileNotFoundError(f"{mask_path} is missing: image pretraining needs the world's masks (world version 2)")
             cam = sample.rig.camera(name)
             image = load_image(path, size, expected_size=(cam.width, cam.height))  # the mask is at the camera's size
