@@ -5,9 +5,9 @@ centre lies within a class radius of a kept one) and rotated NMS (suppress when 
 exceeds a threshold). Candidate pairs come from a sort-and-sweep over axis-aligned BEV extents, so the cost
 follows the number of boxes that actually come close, not the square of the box count.
 
-Memory is bounded too: when the candidate pairs of one pass would exceed PAIR_BUDGET (a sweep of 4096 slices merged
-173k boxes into 460 M candidates, 4.6 GB), the greedy runs over the boxes in score order, a chunk of at most
-PAIR_BUDGET candidates at a time (``_chunked_keep``), with the same result.
+Memory is bounded too: when the candidate pairs of one pass would exceed PAIR_BUDGET (a sweep of thousands of
+slices merges enough boxes for gigabytes of pairs), the greedy runs over the boxes in score order, a chunk of at
+most PAIR_BUDGET candidates at a time (``_chunked_keep``), with the same result.
 """
 
 from __future__ import annotations
@@ -175,7 +175,7 @@ def _same_class_pairs(
     return np.concatenate(firsts), np.concatenate(seconds)
 
 
-# The most candidate pairs one pass holds at once (each costs some 100 bytes over the numpy temporaries: ~50 MB).
+# The most candidate pairs one pass holds at once (each pair costs about a hundred bytes of numpy temporaries).
 # Above it, ``nms`` switches to ``_chunked_keep``; a slice's NMS and a sweep of a few dozen slices stay far below.
 PAIR_BUDGET = 1 << 19
 # Heads examined per step of ``_chunked_keep`` (the alive ones among them fill a chunk up to PAIR_BUDGET pairs).
