@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import io
 import json
-import math
 import os
 import zipfile
 
@@ -27,6 +26,7 @@ import numpy as np
 
 from streamdet.calibration.camera import CalibrationError
 from streamdet.calibration.grid import GridSpec
+from streamdet.core.npz_input import NpyHeader, check_member_size, npy_header
 from streamdet.core.sectors import NUM_QUADRANTS
 
 # All members, uncompressed. The largest preset grid (16 x 256 x 256 per quadrant) takes 32 MiB per slot K for both
@@ -87,13 +87,20 @@ def _members(zf: zipfile.ZipFile, src: str) -> dict[str, zipfile.ZipInfo]:
     return infos
 
 
-def _header(f, name: str, src: str) -> tuple[tuple[int, ...], bool, np.dtype]:
-    version = np.lib.format.read_magic(f)
-    read = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
-    shape, fortran_order, dtype = read(f)
-    if dtype.hasobject:
-        raise LutFileError(f"{src}: {name}.npy holds Python objects (dtype {dtype}): a pickle, never loaded")
-    return shape, fortran_order, dtype
+def _header(zf: zipfile.ZipFile, info: zipfile.ZipInfo, src: str) -> NpyHeader:
+    """``core.npz_input.npy_header`` as a LutFileError naming the file."""
+    try:
+        return npy_header(zf, info)
+    except ValueError as e:
+        raise LutFileError(f"{src}: {e}") from None
+
+
+def _check_size(info: zipfile.ZipInfo, header: NpyHeader, src: str) -> None:
+    """``core.npz_input.check_member_size`` as a LutFileError naming the file."""
+    try:
+        check_member_size(info, header)
+    except ValueError as e:
+        raise LutFileError(f"{src}: {e}") from None
 
 
 def _read_meta(zf: zipfile.ZipFile, info: zipfile.ZipInfo, src: str) -> dict:
@@ -102,16 +109,10 @@ def _read_meta(zf: zipfile.ZipFile, info: zipfile.ZipInfo, src: str) -> dict:
     The header must declare one unicode string whose bytes are exactly the member's rest: numpy allocates the
     declared shape before it reads a non-file stream, so a 128-byte member announcing 2**40 float64 would
     otherwise ask for 8 TiB (MAX_LUT_META_BYTES caps the member, not what its header claims)."""
-    with zf.open(info) as f:
-        shape, fortran_order, dtype = _header(f, "meta", src)
-        header_bytes = f.tell()
-    if shape != () or dtype.kind != "U":
-        raise LutFileError(f"{src}: meta: expected a JSON string (a 0-d unicode array), got dtype {dtype.str} shape {shape}")
-    if info.file_size != header_bytes + dtype.itemsize:
-        raise LutFileError(
-            f"{src}: meta.npy declares {info.file_size} bytes, but its header implies {header_bytes + dtype.itemsize} "
-            f"(a {dtype.str} string): truncated or padded"
-        )  # fmt: skip
+    h = _header(zf, info, src)
+    if h.shape != () or h.dtype.kind != "U":
+        raise LutFileError(f"{src}: meta: expected a JSON string (a 0-d unicode array), got dtype {h.dtype.str} shape {h.shape}")
+    _check_size(info, h, src)  # exactly its header plus one string
     with zf.open(info) as f:
         arr = np.lib.format.read_array(f, allow_pickle=False)  # bounded: one string of the member's capped size
     try:
@@ -130,9 +131,8 @@ def _meta_grid(meta: dict) -> GridSpec | None:
 
 def _check_table(zf: zipfile.ZipFile, info: zipfile.ZipInfo, name: str, grid: GridSpec | None, max_slots: int | None,
                  src: str) -> tuple[int, ...]:  # fmt: skip
-    with zf.open(info) as f:
-        shape, fortran_order, dtype = _header(f, name, src)
-        header_bytes = f.tell()
+    h = _header(zf, info, src)
+    shape, fortran_order, dtype = h.shape, h.fortran_order, h.dtype
     if dtype != DTYPES[name]:
         article = "an" if name == "index" else "a"
         raise LutFileError(f"{src}: Lut.{name}: expected {article} {DTYPES[name]} array, got {dtype}")
@@ -144,10 +144,5 @@ def _check_table(zf: zipfile.ZipFile, info: zipfile.ZipInfo, name: str, grid: Gr
         raise LutFileError(f"{src}: Lut.{name}: expected shape {want} for the grid, got {shape}{order}")
     if max_slots is not None and shape[1] > max_slots:
         raise LutFileError(f"{src}: Lut.{name}: K = {shape[1]} slots, more than the {max_slots} its cameras can fill")
-    data_bytes = math.prod(shape) * dtype.itemsize
-    if info.file_size != header_bytes + data_bytes:
-        raise LutFileError(
-            f"{src}: {name}.npy declares {info.file_size} bytes, but its header implies {header_bytes + data_bytes} "
-            f"(shape {shape}, {dtype}): truncated or padded"
-        )  # fmt: skip
+    _check_size(info, h, src)
     return shape

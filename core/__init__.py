@@ -8,6 +8,7 @@
 - ``constants``: the graph precisions and the ``bundled:`` sources
 - ``cpu``: the CPU model and the SIMD flags the kernels see (less what a CPUID mask hides)
 - ``json_input``: reading input JSON bounded and with named errors, the safe finite-number test, cut reprs
+- ``npz_input``: an .npz member's header and size checked before anything inflates (LUTs, masks)
 - ``file_output``: ``atomic_write_file``, a whole output file written atomically with a plain file's permissions
 - ``file_input``: ``read_regular_file``, a whole input file read once, bounded (never a FIFO or a device)
 - ``errors``: ``first_line``, an exception in one line (what CLIs and wrapping errors quote)

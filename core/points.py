@@ -49,3 +49,16 @@ def check_sweep(points: np.ndarray, name: str = "sweep", *, exact: bool = True) 
     if not width_ok:
         raise ValueError(f"{name} must be (N, {SWEEP_COLUMNS}) x, y, z, intensity, ring; got shape {points.shape}")
     return points
+
+
+def slice_points_problem(points: object) -> str | None:
+    """Why ``points`` cannot be a slice, read from its type, shape and dtype alone (no data touched); None if it can.
+    What ``StreamingDetector`` raises and ``StreamingRunner.submit_slice`` fails a future with."""
+    if not isinstance(points, np.ndarray) or points.ndim != 2 or points.shape[1] != SLICE_COLUMNS:
+        got = getattr(points, "shape", type(points).__name__)
+        return f"points must be a (N, {SLICE_COLUMNS}) float32 array (x, y, z, r, t, s), got {got}"
+    if points.dtype != np.float32:
+        return f"points must be float32, got {points.dtype}"
+    if isinstance(points, np.ma.MaskedArray):  # a copy or a read drops the mask: masked rows detected as points
+        return "points must be a plain array, got a masked array (drop the masked rows first: p[~p.mask.any(1)])"
+    return None

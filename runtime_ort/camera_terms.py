@@ -301,7 +301,7 @@ def open_camera_terms(
     the export's lifter does not split (``lifter_form``, the manifest's, is not "flat", or the lane is fp16, or the
     graph does not cut), or where ``mode`` is False. ``mode`` True and no split:
     ValueError saying why. ``lifter_model(precision)``: the export's lifter graph of that precision, read and checked
-    (runtime_ort/export_files.py); ``fp32_lifter_run(qlut, maps)``:
+    (``manifest.read_export_file``, graph_files.py); ``fp32_lifter_run(qlut, maps)``:
     the export's fp32 lifter on one quadrant (the check's reference)."""
     if mode is False:
         return None

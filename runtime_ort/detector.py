@@ -57,7 +57,9 @@ from streamdet.calibration.quadrant_lut import QuadrantLut
 from streamdet.core.constants import PRECISIONS  # noqa: F401 (public here too)
 from streamdet.core.image_layout import image_map_chw
 from streamdet.core.json_input import is_finite_number, short_repr
-from streamdet.core.points import MAX_POINT_TIME_S, MAX_SLICE_INDEX, MAX_SLICE_POINTS, MAX_SWEEP_POINTS, REFLECTANCE_RANGE, check_sweep
+from streamdet.core.points import (
+    MAX_POINT_TIME_S, MAX_SLICE_INDEX, MAX_SLICE_POINTS, MAX_SWEEP_POINTS, REFLECTANCE_RANGE, check_sweep, slice_points_problem,
+)
 from streamdet.core.sectors import NUM_QUADRANTS, check_num_slices, quadrants_of_sector, sector_bounds_deg
 from streamdet.core.slicing import split_sweep
 # the public names of the runtime's API are importable from here too, where StreamingDetector lives
@@ -73,7 +75,7 @@ from streamdet.runtime_ort.image_cache import (  # noqa: F401 (check_camera_time
 )
 from streamdet.runtime_ort.lut_views import LutViews
 from streamdet.runtime_ort.manifest import ImageSpec, Manifest, ManifestError, read_export_file, read_manifest
-from streamdet.runtime_ort.pillarize import POINT_DIM, pillarize
+from streamdet.runtime_ort.pillarize import pillarize
 from streamdet.runtime_ort.postprocess import Detections, PostprocessConfig, aggregate_sweep, postprocess_slice, top_k_reached
 from streamdet.runtime_ort.recording import Feeds, GraphRecording
 from streamdet.runtime_ort.sessions import GraphRunError, GraphSession, SessionConfig
@@ -183,7 +185,6 @@ class StreamingDetector:
         self._warned_nonfinite_outputs = False  # a slice graph run gave NaN / inf rows (logged once)
         # encode_images' maps by id (weakly): trusted as they are by update_images / prepare_terms (_check_encoded)
         self._own_maps: weakref.WeakValueDictionary[int, np.ndarray] = weakref.WeakValueDictionary()
-        self._closed = False
         self._calibration_lock = threading.Lock()  # one calibration swap (and its re-lift) at a time
         self._image_seq = 0  # update_images calls started (under _lock)
         self._lut: Lut | None = None  # stays None for a LiDAR-only export
@@ -213,20 +214,21 @@ class StreamingDetector:
     def _open_camera_terms(self) -> CameraTerms | None:
         m, config = self.manifest, self.config
         fp32 = self.lifter if config.image_precision == "fp32" else None
+        read: dict[str, tuple[Path, bytes]] = {}  # the lifters lifter_model read, by precision
+
+        def lifter_model(precision: str) -> onnx.ModelProto:
+            path, raw, model = self._read_graph("volumetric_lifter", precision)
+            # the fp32 one has no session of its own in an int8 lane: checked here, not taken for a graph that fails to split
+            check_graph(m.graph("volumetric_lifter", precision), *model_signature(model), m, self.grid)
+            read[precision] = (path, raw)
+            return model
 
         def fp32_lift(qlut: QuadrantLut, maps: np.ndarray) -> np.ndarray:
             nonlocal fp32
-            if fp32 is None:  # the check's reference: the export's fp32 lifter, opened for the check only
-                path, raw, _ = self._read_graph("volumetric_lifter", "fp32")
+            if fp32 is None:  # the check's reference: the export's fp32 lifter (read and checked by lifter_model first)
+                path, raw = read["fp32"] if "fp32" in read else self._read_graph("volumetric_lifter", "fp32")[:2]
                 fp32 = GraphSession(path, SessionConfig(config.providers, config.image_lane_threads), model=raw)
-                check_graph(m.graph("volumetric_lifter", "fp32"), fp32.inputs, fp32.outputs, m, self.grid)
             return fp32.run({"features": maps, **self._lut_feeds(qlut, maps)})[0]
-
-        def lifter_model(precision: str) -> onnx.ModelProto:
-            model = self._read_graph("volumetric_lifter", precision)[2]
-            # the fp32 one has no session of its own in an int8 lane: checked here, not taken for a graph that fails to split
-            check_graph(m.graph("volumetric_lifter", precision), *model_signature(model), m, self.grid)
-            return model
 
         img = self.image
         grid = self.grid
@@ -704,14 +706,9 @@ class StreamingDetector:
         """One slice-graph run over slices ``ks`` of ``n`` (valid: the callers checked them)."""
         timestamps = tuple(_timestamp(t) for t in timestamps)
         for p in points:
-            if not isinstance(p, np.ndarray) or p.ndim != 2 or p.shape[1] != POINT_DIM:
-                raise ValueError(
-                    f"points must be a (N, {POINT_DIM}) float32 array (x, y, z, r, t, s), got {getattr(p, 'shape', type(p).__name__)}"
-                )
-            if p.dtype != np.float32:
-                raise ValueError(f"points must be float32, got {p.dtype}")
-            if isinstance(p, np.ma.MaskedArray):  # its mask would be ignored: masked points detected as real ones
-                raise ValueError("points must be a plain array, got a masked array (drop the masked rows first: p[~p.mask.any(1)])")
+            problem = slice_points_problem(p)
+            if problem is not None:
+                raise ValueError(problem)
         total = sum(p.shape[0] for p in points)
         if total > MAX_SLICE_POINTS:  # before any work: a corrupt count (or zero strides) would need gigabytes
             raise ValueError(f"a slice run holds {total} points, over the {MAX_SLICE_POINTS} of MAX_SLICE_POINTS (core/points.py)")
@@ -885,15 +882,11 @@ class StreamingDetector:
     def close(self) -> list[str]:
         """Release the sessions; returns the profile files written (``enable_profiling``; else none). Any later call
         that runs a graph raises DetectorClosed; a second close returns []."""
-        with self._lock:
-            if self._closed:
-                return []
-            self._closed = True
+        with self._lock:  # an open detector always holds its slice graph's session: none left means closed
             sessions, self._sessions = self._sessions, {}
         written = [s.end_profiling() for s in sessions.values()] if self.config.enable_profiling else []
         self.image_encoder = self.lifter = self.slice_head = None
-        if self._terms is not None:
-            self._terms = None
+        self._terms = None
         return written
 
     def __enter__(self) -> "StreamingDetector":

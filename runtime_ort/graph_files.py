@@ -2,8 +2,10 @@
 
 The runtime reads each file of an export once (``manifest.read_export_file``: confined, a regular file within its
 size limit, hashed from the bytes read) and hands those bytes on: to onnxruntime (``GraphSession(model=...)``) and
-the LUT reader (``Lut.load(data=...)``), so a file swapped after its check is never the one loaded. A graph must also keep every tensor inside its own file. ONNX allows "external data" (weights in a side file
-the graph names); such a file is covered by no sha256 of the manifest, and onnxruntime versions before 1.21 follow
+the LUT reader (``Lut.load(data=...)``), so a file swapped after its check is never the one loaded.
+
+A graph must also keep every tensor inside its own file. ONNX allows "external data" (weights in a side file the
+graph names); such a file is covered by no sha256 of the manifest, and onnxruntime versions before 1.21 follow
 absolute, ``..`` and symlinked locations out of the export. ``streamdet-export`` never writes external data, so a
 graph with any is refused (``checked_model``).
 """
@@ -17,6 +19,7 @@ from google.protobuf.message import DecodeError
 
 from streamdet.runtime_ort.manifest import GraphEntry, ManifestError
 from streamdet.runtime_ort.signature import TensorSignature
+
 
 def checked_model(path: Path, raw: bytes, entry: GraphEntry | None = None) -> onnx.ModelProto:
     """The ONNX model in ``raw`` (read from ``path``), refused (ManifestError) when it does not parse, keeps any

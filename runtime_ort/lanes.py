@@ -46,7 +46,7 @@ from typing import Mapping
 
 import numpy as np
 
-from streamdet.core.points import MAX_SLICE_POINTS, SLICE_COLUMNS
+from streamdet.core.points import MAX_SLICE_POINTS, SLICE_COLUMNS, slice_points_problem
 from streamdet.runtime_ort.coalesce import can_coalesce
 from streamdet.runtime_ort.detector import StreamingDetector
 from streamdet.runtime_ort.detector_results import ImageUpdate, SliceResult
@@ -316,14 +316,11 @@ def _run_fits(payloads: list) -> bool:
 
 
 def _points_refused(points: object) -> str | None:
-    """Why ``points`` cannot be a slice (the detector's own words), read from its type and shape alone; None if it can."""
-    if not isinstance(points, np.ndarray) or points.ndim != 2 or points.shape[1] != SLICE_COLUMNS:
-        got = getattr(points, "shape", type(points).__name__)
-        return f"points must be a (N, {SLICE_COLUMNS}) float32 array (x, y, z, r, t, s), got {got}"
-    if points.dtype != np.float32:
-        return f"points must be float32, got {points.dtype}"
-    if isinstance(points, np.ma.MaskedArray):  # the copy below would drop the mask: masked rows detected as points
-        return "points must be a plain array, got a masked array (drop the masked rows first: p[~p.mask.any(1)])"
+    """Why ``points`` cannot be a slice (the detector's own words, core/points.py), read from its type and shape alone;
+    None if it can."""
+    problem = slice_points_problem(points)
+    if problem is not None:
+        return problem
     if points.shape[0] > MAX_SLICE_POINTS:
         return f"points: a slice of {points.shape[0]} points, more than MAX_SLICE_POINTS = {MAX_SLICE_POINTS} (a corrupt array?)"
     return None

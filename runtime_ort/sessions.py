@@ -115,7 +115,7 @@ class GraphSession:
 
     def __init__(self, path: str | Path, config: SessionConfig = SessionConfig(), model: bytes | None = None) -> None:
         """``model``: the graph's bytes, already read (and checked) by the caller, which onnxruntime loads instead of
-        opening ``path`` again (runtime_ort/export_files.py); ``path`` then names the graph in messages."""
+        opening ``path`` again (``manifest.read_export_file``); ``path`` then names the graph in messages."""
         self.path = Path(path)
         prefix = Path(config.profile_dir if config.profile_dir is not None else ".") / (self.path.with_suffix("").name + ".profile")
         if config.enable_profiling:

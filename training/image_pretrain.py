@@ -33,6 +33,7 @@ import torch
 import torch.nn.functional as F
 
 from streamdet.core.classes import CLASS_NAMES, NUM_CLASSES
+from streamdet.core.npz_input import NpyHeader, check_member_size, npy_header
 from streamdet.data.nuscenes import NuScenesReader
 from streamdet.data.sample import load_image
 from streamdet.data.splits import split_sample_tokens
@@ -131,7 +132,7 @@ def read_mask(path: str | Path, height: int, width: int) -> tuple[np.ndarray, np
             if repeated or missing:
                 raise ValueError(f"mask {path}: missing member(s) {missing}, repeated {repeated}; a mask holds {list(MASK_MEMBERS)}")
             infos = {m: zf.getinfo(f"{m}.npy") for m in MASK_MEMBERS}  # other members are never read
-            headers = {m: _mask_header(zf, infos[m], path) for m in MASK_MEMBERS}
+            headers = {m: npy_header(zf, infos[m]) for m in MASK_MEMBERS}  # core/npz_input.py
             _check_mask_headers(headers, infos, path, height, width)
             arrays = {}
             for m in MASK_MEMBERS:
@@ -153,36 +154,21 @@ def read_mask(path: str | Path, height: int, width: int) -> tuple[np.ndarray, np
     return class_id, instance, ids, tokens
 
 
-def _mask_header(zf: zipfile.ZipFile, info: zipfile.ZipInfo, path: Path) -> tuple[tuple[int, ...], np.dtype, int]:
-    """(shape, dtype, header bytes) of a member, read from its first bytes only."""
-    with zf.open(info) as f:
-        version = np.lib.format.read_magic(f)
-        read = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
-        shape, _fortran, dtype = read(f)
-        header_bytes = f.tell()
-    if dtype.hasobject:
-        raise ValueError(f"mask {path}: {info.filename} holds Python objects (dtype {dtype}): a pickle, never loaded")
-    return tuple(shape), dtype, header_bytes
-
-
-def _check_mask_headers(headers: dict, infos: dict, path: Path, height: int, width: int) -> None:
+def _check_mask_headers(headers: dict[str, NpyHeader], infos: dict, path: Path, height: int, width: int) -> None:
     for m in ("class_id", "instance"):
-        shape, dtype, _ = headers[m]
+        shape, dtype = headers[m].shape, headers[m].dtype
         if shape != (height, width) or dtype.kind not in "iu":
             raise ValueError(f"mask {path}: {m} must be an integer map of the image's shape ({height}, {width}), got "
                              f"{dtype} {shape}")  # fmt: skip
-    (ids_shape, ids_dtype, _), (tok_shape, tok_dtype, _) = headers["ids"], headers["tokens"]
+    ids_shape, ids_dtype = headers["ids"].shape, headers["ids"].dtype
+    tok_shape, tok_dtype = headers["tokens"].shape, headers["tokens"].dtype
     if len(ids_shape) != 1 or ids_dtype.kind not in "iu" or ids_shape[0] > MAX_MASK_IDS:
         raise ValueError(f"mask {path}: ids must be a list of at most {MAX_MASK_IDS} integers, got {ids_dtype} {ids_shape}")
     if tok_shape != ids_shape or tok_dtype.kind != "U" or tok_dtype.itemsize > 4 * MAX_MASK_TOKEN_CHARS:
         raise ValueError(f"mask {path}: tokens must be {ids_shape[0]} strings (one per id) of at most {MAX_MASK_TOKEN_CHARS} "
                          f"characters, got {tok_dtype} {tok_shape}")  # fmt: skip
     for m in MASK_MEMBERS:
-        shape, dtype, header_bytes = headers[m]
-        want = header_bytes + math.prod(shape) * dtype.itemsize
-        if infos[m].file_size != want:  # the zip reader never inflates past the declared size: this bounds the read
-            raise ValueError(f"mask {path}: {m}.npy declares {infos[m].file_size} bytes, but its header implies {want} "
-                             f"({dtype} {shape}): truncated or padded")  # fmt: skip
+        check_member_size(infos[m], headers[m])  # the zip reader never inflates past it: this bounds the read
 
 
 def load_masked_images(root: str | Path, split: str | None, size: tuple[int, int], range_m: float,
