@@ -90,7 +90,8 @@ def _parse_slices(ctx, param, value: str) -> tuple[int, ...]:
 @click.option("--amp", type=click.Choice(AMP_MODES), default="auto", show_default=True,
               help="Autocast: auto = fp16 on CUDA, off on CPU.")
 @click.option("--cache-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
-              help="Keep decoded, resized images and sweeps here as .npy, reused by the next run (default: DATA/.streamdet_cache).")
+              help="Keep decoded, resized images and sweeps here as .npy, reused by the next run; a cache rebuilt for changed data "
+                   "removes the one it replaces (default: DATA/.streamdet_cache).")
 @click.option("--device", default=None, help="torch device (default: cuda if available, else cpu).")
 @click.option("--log-every", type=click.IntRange(min=1), default=10, show_default=True, help="Steps between progress lines.")
 @click.option("--checkpoint-every", type=click.IntRange(min=1), default=200, show_default=True, help="Steps between rewrites of last.pt.")

@@ -19,6 +19,9 @@ import hashlib
 import json
 import os
 import shutil
+import warnings
+import re
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -28,6 +31,7 @@ from streamdet.calibration.camera import Rig
 from streamdet.calibration.sectors import cameras_overlapping_sector
 from streamdet.core.boxes import BOX_DIM
 from streamdet.core.classes import CLASS_NAMES, NUM_CLASSES
+from streamdet.core.file_input import read_regular_file
 from streamdet.core.json_input import read_json, short_repr
 from streamdet.core.sectors import check_num_slices, quadrants_of_sector
 from streamdet.core.slicing import boxes_in_sector, split_sweep
@@ -39,6 +43,8 @@ from streamdet.training.targets import MapTargets, TargetConfig, build_targets
 
 # v2: the key and meta.json carry the data's fingerprint (``data_fingerprint``); a v1 folder is never matched again
 CACHE_FORMAT = "streamdet-train-cache-v2"
+CACHE_SOURCE_FILE = "source.json"  # {root, version, split, image_size}: small, read when pruning stale caches
+_TMP_MARK = ".tmp"  # a cache being written: <folder name>.tmp<pid of its writer>
 MAX_CACHE_META_BYTES = 1 << 30  # meta.json: tokens and rigs, a few kB per sample (about 100 MB for trainval)
 CAMERA_MODES = ("all", "overlapping")
 
@@ -120,10 +126,12 @@ def build_store(
     version: str = "v1.0-synth",
     cache_dir: str | Path | None = None,
     progress=None,
+    echo: Callable[[str], None] | None = None,
 ) -> SampleStore:
     """Read every sample of the split's scenes (in table order). ``image_size`` (W, H) resizes the images;
     None skips them. With ``cache_dir``, a finished cache of the same dataset, split and size is memory-mapped
-    instead, and a new one is written after reading."""
+    instead, and a new one is written after reading; the caches it supersedes are removed then
+    (``prune_stale_caches``), each named to ``echo``."""
     reader = NuScenesReader(root, version)
     scenes = set(split_scenes(root, split))
     tokens = tuple(t for t in reader.sample_tokens if reader.scene_name(t) in scenes)
@@ -134,10 +142,8 @@ def build_store(
         # The data's fingerprint is part of the key: a regenerated or edited dataset (same tokens, other boxes, sweeps
         # or images) gets a new cache instead of silently training on the old one's arrays.
         fingerprint = data_fingerprint(reader, root, version, tokens, with_images=image_size is not None)
-        key = hashlib.sha256(
-            json.dumps({"root": str(Path(root).resolve()), "version": version, "split": split, "tokens": tokens,
-                        "image_size": image_size, "data": fingerprint}).encode()  # fmt: skip
-        ).hexdigest()[:16]
+        source = _cache_source(root, version, split, image_size)
+        key = hashlib.sha256(json.dumps({**source, "tokens": tokens, "data": fingerprint}).encode()).hexdigest()[:16]
         folder = Path(cache_dir) / f"{split}-{key}"
         if (folder / "meta.json").is_file():
             return _load_cache(folder, tokens, image_size, fingerprint)
@@ -168,8 +174,18 @@ def build_store(
         images=np.stack(images) if image_size is not None else None,
     )
     if folder is not None:
-        _save_cache(store, folder, fingerprint)
+        _save_cache(store, folder, fingerprint, source)
+        for stale in prune_stale_caches(folder):
+            if echo is not None:
+                echo(f"removed the stale training cache {stale} (superseded by {folder.name})")
     return store
+
+
+def _cache_source(root: str | Path, version: str, split: str, image_size: tuple[int, int] | None) -> dict:
+    """What a cache folder is a cache of, but for the data's fingerprint: a newer folder of the same source
+    replaces an older one (``prune_stale_caches``)."""
+    size = None if image_size is None else [int(v) for v in image_size]
+    return {"root": str(Path(root).resolve()), "version": version, "split": split, "image_size": size}
 
 
 def data_fingerprint(reader: NuScenesReader, root: str | Path, version: str, tokens: tuple[str, ...], with_images: bool) -> str:
@@ -210,9 +226,10 @@ def data_fingerprint(reader: NuScenesReader, root: str | Path, version: str, tok
 _ARRAYS = ("points", "point_offsets", "boxes", "labels", "num_lidar_pts", "num_radar_pts", "box_offsets", "images")
 
 
-def _save_cache(store: SampleStore, folder: Path, fingerprint: str | None) -> None:
-    tmp = folder.with_name(folder.name + f".tmp{os.getpid()}")
+def _save_cache(store: SampleStore, folder: Path, fingerprint: str | None, source: dict) -> None:
+    tmp = folder.with_name(folder.name + f"{_TMP_MARK}{os.getpid()}")
     tmp.mkdir(parents=True, exist_ok=True)
+    (tmp / CACHE_SOURCE_FILE).write_text(json.dumps(source))
     for name in _ARRAYS:
         value = getattr(store, name)
         if value is not None:
@@ -224,6 +241,62 @@ def _save_cache(store: SampleStore, folder: Path, fingerprint: str | None) -> No
         os.replace(tmp, folder)
     except OSError:  # another process finished the same cache first; theirs is identical (same key, same data)
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+# A cache folder's name, as build_store makes it: <split>-<16 hex digits>, and .tmp<pid> while being written.
+_CACHE_NAME = re.compile(r"(?P<base>.+-[0-9a-f]{16})(?:\.tmp(?P<pid>[0-9]{1,10}))?")
+
+
+def prune_stale_caches(folder: Path) -> list[Path]:
+    """Remove the cache folders beside ``folder`` that it supersedes, and return them: complete caches of the same
+    source (dataset root, version, split, image size: ``source.json``) built from other data, whose arrays no
+    later run can load, and caches left half-written by a process that is gone. A cache of another source, one
+    from before ``source.json`` existed, one a live process is writing, and anything not named as a cache stay:
+    a cache folder given by ``--cache-dir`` may be shared."""
+    source = _read_source(folder)
+    if source is None:
+        return []
+    removed = []
+    for other in sorted(folder.parent.iterdir()):
+        match = _CACHE_NAME.fullmatch(other.name)
+        if other == folder or match is None or other.is_symlink() or not other.is_dir():
+            continue
+        if match["pid"] is not None:
+            stale = not _process_alive(int(match["pid"]))
+        else:
+            stale = (other / "meta.json").is_file() and _read_source(other) == source
+        if not stale:
+            continue
+        try:
+            shutil.rmtree(other)
+        except OSError as e:  # not ours to remove (permissions), or removed meanwhile by another run
+            if other.exists():
+                warnings.warn(f"could not remove the stale training cache {other}: {e}", stacklevel=2)
+            continue
+        removed.append(other)
+    return removed
+
+
+def _read_source(folder: Path) -> dict | None:
+    """A cache folder's ``source.json``, or None where it has none or an unreadable one (such a folder is kept)."""
+    try:
+        doc = json.loads(read_regular_file(folder / CACHE_SOURCE_FILE, 1 << 16))  # never a FIFO: it would block
+    except (ValueError, OSError, RecursionError):  # InputFileError is a ValueError
+        return None
+    return doc if isinstance(doc, dict) else None
+
+
+def _process_alive(pid: int) -> bool:
+    """Whether a process ``pid`` exists (a reused pid counts as alive: its folder is kept, never wrongly removed)."""
+    if os.name != "posix" or pid <= 0:
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError):  # another user's process; a pid past the platform's range
+        return True
+    return True
 
 
 def _load_cache(folder: Path, tokens: tuple[str, ...], image_size: tuple[int, int] | None, fingerprint: str) -> SampleStore:
