@@ -148,12 +148,20 @@ def _run_group(arg: str) -> list[Path]:
     return paths
 
 
+def _run_folder(path: Path) -> Path:
+    """The resolved folder of a run named by its folder or by its results.json."""
+    return (path if path.is_dir() else path.parent).resolve()
+
+
 def _compare(run_a: str, run_b: str, gt_path: Path | None, classes: tuple[str, ...] | None, draws: int, seed: int,
              json_path: Path | None, subsets: bool = True) -> None:  # fmt: skip
     """``--compare`` mode: B - A with a paired bootstrap interval over scenes (``evaluation.compare``)."""
     from streamdet.evaluation.compare import compare_runs, format_comparison, load_run
 
     group_a, group_b = _run_group(run_a), _run_group(run_b)
+    both = sorted({_run_folder(p) for p in group_a} & {_run_folder(p) for p in group_b})
+    if both:
+        raise click.UsageError(f"--compare: {both[0]} is on both sides; a run compared with itself differs by nothing")
     refuse_output_over_inputs(json_path, "--json", [("--gt", gt_path), *(("--compare run", p) for p in group_a + group_b)])
     try:
         a = [load_run(p, gt_path) for p in group_a]

@@ -188,11 +188,16 @@ def test_cli_compare_errors_are_one_line(tmp_path):
     empty.mkdir()
     res = CliRunner().invoke(main, ["--compare", str(a), str(empty)])
     assert res.exit_code != 0 and "results.json is missing" in res.output
+    b = _save(tmp_path / "b", gt, pb)
+    for twice in ([str(a), str(a)], [str(a), str(a / "results.json")], [f"{b},{a}", str(a)]):
+        res = CliRunner().invoke(main, ["--compare", *twice])
+        assert res.exit_code == 2 and f"{a.resolve()} is on both sides" in res.output, twice
     (a / "samples.json").write_text("{not json")
-    res = CliRunner().invoke(main, ["--compare", str(a), str(a)])
+    res = CliRunner().invoke(main, ["--compare", str(a), str(b)])
     assert res.exit_code != 0 and "samples.json" in res.output and "Traceback" not in res.output
     nothing = _save(tmp_path / "n", {"s0": []}, {"s0": []})
-    res = CliRunner().invoke(main, ["--compare", str(nothing), str(nothing)])
+    nothing_too = _save(tmp_path / "n2", {"s0": []}, {"s0": []})
+    res = CliRunner().invoke(main, ["--compare", str(nothing), str(nothing_too)])
     assert res.exit_code != 0 and "nothing to compare" in res.output
 
 
