@@ -118,6 +118,7 @@ class CameraTerms:
         tail_session = dataclasses.replace(session, intra_op_threads=1)
         self._tail = ort_session(tail_graph(lane_lifter, cut, (weight.shape[0], *self.quadrant_hw), bias).SerializeToString(), tail_session)
         self._stats = stats
+        self._closed: BaseException | None = None  # close(): raised by every later graph run
         self._lock = threading.Lock()
         self._shares: dict[int, tuple[QuadrantLut, tuple[_Share, ...]]] = {}  # id(qlut) -> (qlut, its shares)
         self._terms: dict[tuple[int, str], tuple[object, object, np.ndarray]] = {}  # (q, cam) -> (source, qlut, term)
@@ -198,18 +199,30 @@ class CameraTerms:
         with self._timed("lifter_partial"):
             return self._run_terms(features, shares)
 
+    def close(self, error: BaseException) -> None:
+        """Release the term and tail sessions; every later run raises ``error`` (the detector's DetectorClosed). A
+        run already under way keeps its session until it returns."""
+        self._closed = error
+        self._term_graph = self._tail = None
+
+    def _session(self, session: ort.InferenceSession | None) -> ort.InferenceSession:
+        if session is None:  # closed: set before the sessions were released
+            raise type(self._closed)(*self._closed.args)
+        return session
+
     def _run_terms(self, features: np.ndarray, shares: tuple[_Share, ...]) -> tuple[np.ndarray, ...]:
         sizes = [s.slots.shape[0] for s in shares]
         if sum(sizes) == 0:  # a camera the LUT lists in the quadrant but that reads no cell there
             return tuple(np.zeros((0, self.bias.size), np.float32) for _ in shares)
+        graph = self._session(self._term_graph)  # one read: close() may release it meanwhile
         slots = np.concatenate([s.slots for s in shares]) if len(shares) > 1 else shares[0].slots  # (U, J)
         weights = np.concatenate([s.weights for s in shares]) if len(shares) > 1 else shares[0].weights
         if self.sparse:
             feeds = {"features": ort.OrtValue.ortvalue_from_numpy(np.ascontiguousarray(features[None])),
                      "lut": self._sparse_lut(shares, slots, weights)}  # fmt: skip
-            out = self._term_graph.run_with_ort_values(["term"], feeds)[0].numpy()  # (U, C_out)
+            out = graph.run_with_ort_values(["term"], feeds)[0].numpy()  # (U, C_out)
         else:
-            out = self._term_graph.run(None, {"features": features[None], "slots": slots, "weights": weights})[0]  # (U, C_out)
+            out = graph.run(None, {"features": features[None], "slots": slots, "weights": weights})[0]  # (U, C_out)
         return tuple(np.split(out, np.cumsum(sizes)[:-1]))
 
     def tail_feeds(self, shares: tuple[_Share, ...], terms: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -225,7 +238,7 @@ class CameraTerms:
         return {"terms": stacked, "rows": rows, "cells": np.concatenate([s.share.cells for s in given])[:, None]}  # (M, 1)
 
     def tail(self, feeds: Mapping[str, np.ndarray]) -> np.ndarray:
-        return self._tail.run(None, dict(feeds))[0]
+        return self._session(self._tail).run(None, dict(feeds))[0]
 
     # ---- the cache ---------------------------------------------------------------------------
     def prepare(self, qluts: tuple[QuadrantLut, ...], maps: Mapping[str, np.ndarray]) -> int:

@@ -71,7 +71,8 @@ from streamdet.runtime_ort.graph_files import checked_model, model_signature
 from streamdet.runtime_ort.export_settings import export_nms, export_rig, image_spec_at
 from streamdet.runtime_ort.fallback import FALLBACK_GRAPH, LidarFallback, needs_fallback, open_fallback
 from streamdet.runtime_ort.image_cache import (  # noqa: F401 (check_camera_timestamps: public here too)
-    ALL_QUADRANTS, ImageCache, QuadrantState, check_camera_timestamps, quadrant_states, select_maps, update_quadrants,
+    ALL_QUADRANTS, ImageCache, QuadrantState, check_camera_timestamps, quadrant_states, quadrant_timestamp, select_maps,
+    update_quadrants,
 )
 from streamdet.runtime_ort.lut_views import LutViews
 from streamdet.runtime_ort.manifest import ImageSpec, Manifest, ManifestError, read_export_file, read_manifest
@@ -187,6 +188,7 @@ class StreamingDetector:
         self._own_maps: weakref.WeakValueDictionary[int, np.ndarray] = weakref.WeakValueDictionary()
         self._calibration_lock = threading.Lock()  # one calibration swap (and its re-lift) at a time
         self._image_seq = 0  # update_images calls started (under _lock)
+        self._image_floor = 0  # image sets of calls up to this seq were dropped (forget_images): never installed
         self._lut: Lut | None = None  # stays None for a LiDAR-only export
         if self.uses_images and (self.image.width, self.image.height) == (m.image.width, m.image.height):
             lut_path, raw = read_export_file(self.export_dir, m.lut, "lut.file", config.verify_sha256)
@@ -324,17 +326,21 @@ class StreamingDetector:
                 f"lut.npz, got {type(calibration).__name__}"
             )
         lut = self._check_lut(calibration)
-        if self._terms is not None:  # the new LUT's per-camera pieces here, not in the image lane's next update
-            self._terms.warm(self._luts_of(lut))
-        for name, iou in moved_cameras(self._lut, lut):
-            msg = f"camera {name} now sees other voxels than with the previous calibration (overlap {iou:.2f})"
-            log.warning("%s: %s", self.export_dir, msg)
-            warnings.warn(msg, CameraMovedWarning, stacklevel=2)
+        # The new LUT's per-quadrant LUTs (and per-camera pieces) here, in the caller's thread: made on first use
+        # instead, they would stall the image lane's next update and the phase-locked lane's scheduler meanwhile.
+        qluts = self._luts_of(lut)
+        if self._terms is not None:
+            self._terms.warm(qluts)
         with self._calibration_lock:
+            moved = moved_cameras(self._lut, lut)  # against the LUT this swap replaces, not a concurrent swap's
+            for name, iou in moved:
+                msg = f"camera {name} now sees other voxels than with the previous calibration (overlap {iou:.2f})"
+                log.warning("%s: %s", self.export_dir, msg)
+                warnings.warn(msg, CameraMovedWarning, stacklevel=2)
             with self._lock:
                 self._lut = lut
                 if not relift:
-                    self._image = None
+                    self._drop_images_locked(self._image_seq)  # an update already under way is of the old rig too
                     return
                 states = quadrant_states(self._image)
             # Re-lift the newest image set of every quadrant; an update that finishes meanwhile under the old LUT
@@ -351,7 +357,9 @@ class StreamingDetector:
                     first = members[0][1]
                     quadrants = tuple(q for q, _ in members)
                     bevs = self._lift_quadrants(first.features, first.feature_cameras, quadrants, lut)
-                    lifted.update({q: dataclasses.replace(s, bev=bev, lut=lut) for (q, s), bev in zip(members, bevs)})
+                    # the new LUT may read other cameras in a quadrant: its timestamp follows them
+                    lifted.update({q: dataclasses.replace(s, bev=bev, lut=lut, timestamp=_restamp(s, qluts[q]))
+                                   for (q, s), bev in zip(members, bevs)})  # fmt: skip
                 with self._lock:
                     current = list(quadrant_states(self._image))
                     for q, s in stale:
@@ -397,7 +405,8 @@ class StreamingDetector:
         wanted = update_quadrants(quadrants)
         self.check_images(images)
         camera_ts = check_camera_timestamps(camera_timestamps, images)
-        needed = self.camera_names if wanted == ALL_QUADRANTS else self.quadrant_cameras(wanted)
+        lut = self._lut  # the cameras to encode are chosen with it; a swap meanwhile re-plans (below)
+        needed = self.camera_names if wanted == ALL_QUADRANTS else self._cameras_under(lut, wanted)
         used = tuple(n for n in needed if n in images)
         missing = tuple(n for n in needed if n not in images)
         if missing:
@@ -412,9 +421,27 @@ class StreamingDetector:
             if name in known:
                 features[needed.index(name)] = known[name]
         maps = {name: known[name] if name in known else features[needed.index(name)] for name in used}  # per-camera lifts
-        installed = self._install(features, needed, wanted, seq, timestamp, missing, camera_ts, maps)
+        while True:
+            installed = self._install(features, needed, wanted, seq, timestamp, missing, camera_ts, maps, (lut, images))
+            if installed is not None:
+                break
+            # A calibration swap during this update made its quadrants read a camera it was given but did not encode:
+            # encode that one too rather than lift it as zeros (the cameras encoded already are kept).
+            lut = self._lut
+            needed = self._cameras_under(lut, wanted)
+            extra = tuple(n for n in needed if n in images and n not in maps)
+            if extra:
+                enc = self._encode(images, extra, extra)  # (E, C, Hf, Wf)
+                maps = {**maps, **{name: enc[i] for i, name in enumerate(extra)}}
+            used = tuple(n for n in needed if n in images)
+            missing = tuple(n for n in needed if n not in images)
+            features = np.zeros((max(1, len(needed)), *next(iter(maps.values())).shape), np.float32) if maps else \
+                self._encode(images, (), needed)  # fmt: skip
+            for j, name in enumerate(needed):
+                if name in maps:
+                    features[j] = maps[name]
         self.stats.record("image_total", (time.perf_counter() - t0) * 1e3)
-        return ImageUpdate(timestamp, used, missing, superseded=not installed, quadrants=wanted)
+        return ImageUpdate(timestamp, used, missing, superseded=not installed, quadrants=wanted, seq=seq)
 
     def encode_images(self, images: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
         """The (C, Hf, Wf) float32 feature maps of the given camera images, by camera name (one encoder run), for
@@ -438,10 +465,23 @@ class StreamingDetector:
         once after construction, before the first ``update_images`` / slice."""
         warm_up(self, rounds)
 
-    def forget_images(self) -> None:
-        """Drop the cached image BEV (slices read no image until the next ``update_images``)."""
+    def forget_images(self, through: int | None = None) -> None:
+        """Drop the cached image BEV: slices read no image until the next ``update_images``. An update already under
+        way when this is called installs nothing (its ``ImageUpdate.superseded`` is True).
+
+        ``through``: only the image sets of the calls up to that ``ImageUpdate.seq`` (``warm_up`` drops its own
+        dummy images so, never a real set that came after them)."""
+        if through is not None and (isinstance(through, bool) or not isinstance(through, (int, np.integer)) or through < 0):
+            raise ValueError(f"forget_images through must be None or an ImageUpdate.seq (an int >= 0), got {through!r}")
         with self._lock:
-            self._image = None
+            self._drop_images_locked(self._image_seq if through is None else int(through))
+
+    def _drop_images_locked(self, through: int) -> None:
+        """Drop the image sets of the update_images calls up to ``through`` (seq), cached or still under way
+        (``_install`` refuses them); the caller holds ``_lock``."""
+        self._image_floor = max(self._image_floor, through)
+        kept = tuple(s if s is not None and s.seq > self._image_floor else None for s in quadrant_states(self._image))
+        self._image = None if all(s is None for s in kept) else ImageCache(kept)
 
     @property
     def camera_terms(self) -> bool:
@@ -499,6 +539,11 @@ class StreamingDetector:
         lut = self.lut
         return self._views.cameras(lut, wanted, in_use=self._lut)
 
+    def _cameras_under(self, lut: Lut, quadrants: tuple[int, ...]) -> tuple[str, ...]:
+        """``quadrant_cameras`` of valid ``quadrants`` under ``lut`` (the LUT in use, or one a swap just replaced)."""
+        cams = self._views.known_cameras(lut, quadrants)
+        return cams if cams is not None else self._views.cameras(lut, quadrants, in_use=self._lut)
+
     def check_images(self, images: Mapping[str, np.ndarray]) -> None:
         """ValueError unless ``images`` is a non-empty dict of known camera names to uint8 RGB (H, W, 3) images of
         this detector's size (what update_images and encode_images refuse)."""
@@ -542,17 +587,26 @@ class StreamingDetector:
     def _install(
         self, features: np.ndarray, cameras: tuple[str, ...], quadrants: tuple[int, ...], seq: int, timestamp: float,
         missing: tuple[str, ...], camera_timestamps: Mapping[str, float] | None = None,
-        maps: Mapping[str, np.ndarray] | None = None,
-    ) -> bool:  # fmt: skip
+        maps: Mapping[str, np.ndarray] | None = None, planned: tuple[Lut | None, Mapping[str, np.ndarray]] | None = None,
+    ) -> bool | None:  # fmt: skip
         """Lift ``features`` into ``quadrants`` and cache each quadrant unless a newer image set is cached there
-        already; False if that was so in every one. With ``camera_timestamps`` a quadrant's timestamp is the oldest
-        of its cameras' (the LUT's cameras of that quadrant among those given), else ``timestamp``.
+        already or the set was dropped meanwhile (forget_images, set_calibration(relift=False)); False if that was
+        so in every one. With ``camera_timestamps`` a quadrant's timestamp is the oldest of its cameras' (the LUT's
+        cameras of that quadrant among those given), else ``timestamp``.
 
         A calibration swap during the lift makes it lift again with the new LUT: the cache never holds a BEV of
-        an old calibration once set_calibration has returned."""
+        an old calibration once set_calibration has returned. ``planned``: (the LUT ``cameras`` were chosen with,
+        the images given); None is returned, before any lift, when a swap made ``quadrants`` read a camera among
+        those images that ``cameras`` lacks (the caller encodes it and calls again)."""
+        stamps = tuple(sorted(camera_timestamps.items())) if camera_timestamps else ()
         while True:
             with self._lock:
-                lut, current = self._lut, quadrant_states(self._image)
+                lut, current, floor = self._lut, quadrant_states(self._image), self._image_floor
+            if seq <= floor:
+                return False
+            if planned is not None and lut is not planned[0] and cameras != self.camera_names:
+                if any(n in planned[1] and n not in cameras for n in self._cameras_under(lut, quadrants)):
+                    return None
             todo = tuple(q for q in quadrants if current[q] is None or current[q].seq < seq)
             if not todo:
                 return False
@@ -565,13 +619,14 @@ class StreamingDetector:
             with self._lock:
                 if self._lut is not lut:
                     continue
+                if seq <= self._image_floor:  # dropped while it lifted
+                    return False
                 states = list(quadrant_states(self._image))
                 installed = False
                 for q, bev in zip(todo, bevs):
                     if states[q] is None or states[q].seq < seq:
-                        seen = [camera_timestamps[n] for n in qluts[q].camera_names if n in camera_timestamps] if qluts else []
-                        stamp = min(seen) if seen else timestamp
-                        states[q] = QuadrantState(bev, features, cameras, stamp, missing, seq, lut)
+                        stamp = quadrant_timestamp(qluts[q].camera_names, camera_timestamps, cameras, timestamp) if qluts else timestamp
+                        states[q] = QuadrantState(bev, features, cameras, stamp, missing, seq, lut, stamps, timestamp)
                         installed = True
                 if installed:
                     self._image = ImageCache(tuple(states))
@@ -886,7 +941,10 @@ class StreamingDetector:
             sessions, self._sessions = self._sessions, {}
         written = [s.end_profiling() for s in sessions.values()] if self.config.enable_profiling else []
         self.image_encoder = self.lifter = self.slice_head = None
-        self._terms = None
+        if self._terms is not None:  # kept, closed: a lift under way raises DetectorClosed at its next graph run
+            self._terms.close(DetectorClosed(f"{self.export_dir}: the detector was closed; make a new StreamingDetector"))
+        if self._fallback is not None:
+            self._fallback = dataclasses.replace(self._fallback, session=None)
         return written
 
     def __enter__(self) -> "StreamingDetector":
@@ -903,6 +961,14 @@ def _timestamp(value: float | None) -> float:
     if not is_finite_number(value):  # no OverflowError for 10**400
         raise ValueError(f"timestamp must be None or a finite number of seconds, got {short_repr(value)}")
     return float(value)
+
+
+def _restamp(state: QuadrantState, qlut: QuadrantLut) -> float:
+    """The timestamp of ``state`` re-lifted with ``qlut``: from the cameras that LUT reads (quadrant_timestamp)."""
+    if not state.camera_timestamps:
+        return state.timestamp
+    update_ts = state.timestamp if state.update_timestamp is None else state.update_timestamp
+    return quadrant_timestamp(qlut.camera_names, dict(state.camera_timestamps), state.feature_cameras, update_ts)
 
 
 def _frozen_copy(a: np.ndarray) -> np.ndarray:

@@ -21,6 +21,7 @@ class ImageUpdate:
     # this one lifted: it was encoded but replaced nothing (an older set never overwrites a newer one)
     superseded: bool = False
     quadrants: tuple[int, ...] = (0, 1, 2, 3)  # the quadrants of the image BEV this update lifted
+    seq: int = 0  # the call's number (call order), as QuadrantState.seq; StreamingDetector.forget_images(through=seq)
 
 
 @dataclass(frozen=True)

@@ -39,7 +39,7 @@ class LidarFallback:
 
     export_dir: Path
     manifest: Manifest
-    session: GraphSession
+    session: GraphSession | None  # None once the detector that opened it was closed
     entry: GraphEntry  # the manifest's entry of the graph in use (its MAC count)
     slice_crop: bool  # False: a LiDAR-only net without the quadrant crop (one whole-grid map per slice)
 

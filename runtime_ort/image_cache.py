@@ -31,6 +31,10 @@ class QuadrantState:
     cameras_missing: tuple[str, ...]
     seq: int = 0  # the update_images call that made it (call order: a larger seq is a newer image set)
     lut: Lut | None = None  # the LUT the bev was lifted with
+    # the update's camera_timestamps (sorted pairs; empty: none given) and its timestamp, kept to stamp the quadrant
+    # again when a calibration swap re-lifts it with other cameras (quadrant_timestamp)
+    camera_timestamps: tuple[tuple[str, float], ...] = ()
+    update_timestamp: float | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -85,6 +89,14 @@ def check_camera_timestamps(stamps: Mapping[str, float] | None, images: Mapping[
             raise ValueError(f"camera_timestamps[{name!r}] must be a finite number of seconds, got {short_repr(value)}")
         out[name] = float(value)
     return out
+
+
+def quadrant_timestamp(lut_cameras: Sequence[str], camera_timestamps: Mapping[str, float], feature_cameras: Sequence[str],
+                       timestamp: float) -> float:  # fmt: skip
+    """A lifted quadrant's timestamp: the oldest capture time among the cameras its LUT reads (``lut_cameras``) whose
+    features the lift had (``feature_cameras``) and whose time was given; ``timestamp`` (the update's) without any."""
+    seen = [camera_timestamps[n] for n in lut_cameras if n in camera_timestamps and n in feature_cameras]
+    return min(seen) if seen else timestamp
 
 
 def quadrant_states(cache: ImageCache | None) -> tuple[QuadrantState | None, ...]:

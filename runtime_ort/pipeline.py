@@ -69,14 +69,18 @@ def feed_images(detector: StreamingDetector, sample: Sample, timestamp: float | 
     return detector.update_images(sample_images(detector, sample), timestamp=ts)
 
 
-def update_by_quadrant(detector: StreamingDetector, images: dict[str, np.ndarray], timestamp: float) -> None:
+def update_by_quadrant(detector: StreamingDetector, images: dict[str, np.ndarray], timestamp: float) -> tuple[ImageUpdate, ...]:
     """``images`` through the image lane as the phase-locked lane feeds it: every camera encoded once (its per-camera
-    lift terms made with it, where the detector has them), then the quadrants updated one by one from their cameras."""
+    lift terms made with it, where the detector has them), then the quadrants updated one by one from their cameras.
+    The updates of quadrants 0..3."""
     encoded = detector.encode_images(images)
     detector.prepare_terms(encoded)
+    updates = []
     for q in range(NUM_QUADRANTS):
         cams = [n for n in detector.quadrant_cameras([q]) if n in images]
-        detector.update_images({n: images[n] for n in cams}, timestamp, quadrants=[q], encoded={n: encoded[n] for n in cams})
+        updates.append(detector.update_images({n: images[n] for n in cams}, timestamp, quadrants=[q],
+                                              encoded={n: encoded[n] for n in cams}))  # fmt: skip
+    return tuple(updates)
 
 
 def detect_sample(

@@ -9,6 +9,8 @@ every slice), then drops the dummy image BEV and the latency statistics; the LUT
 
 from __future__ import annotations
 
+import logging
+import warnings
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -18,6 +20,8 @@ from streamdet.runtime_ort.pipeline import update_by_quadrant
 
 if TYPE_CHECKING:
     from streamdet.runtime_ort.detector import StreamingDetector
+
+log = logging.getLogger(__name__)
 
 DUMMY_POINTS = 8192  # points of the dummy sweep: enough pillars in every slice
 
@@ -45,12 +49,22 @@ def warm_up(det: StreamingDetector, rounds: int = 2) -> None:
     if det.image_state is not None:  # its black images would replace (and then drop) the real BEV slices read
         raise ValueError("warm_up runs before the first update_images: this detector holds real images already")
     sweep = dummy_sweep(det.grid.x_range_m)
+    first_seq = det._image_seq  # update_images calls before this one's (none, but for a racing thread)
+    own: set[int] = set()  # the seqs of warm_up's own image updates
     for _ in range(rounds):
         if det.uses_images:
             img = det.image
             black = {name: np.zeros((img.height, img.width, 3), np.uint8) for name in det.camera_names}
-            det.update_images(black, timestamp=0.0)
-            update_by_quadrant(det, black, 0.0)  # the phase-locked lane's calls and sizes
+            full = det.update_images(black, timestamp=0.0)
+            by_quadrant = update_by_quadrant(det, black, 0.0)  # the phase-locked lane's calls and sizes
+            own.update([full.seq, *(u.seq for u in by_quadrant)])
         det.detect_sweep(sweep, timestamp=0.0)
-    det.forget_images()
+    if own:
+        det.forget_images(through=max(own))  # only the black images: a real set that came after them stays
+        replaced = [seq for seq in range(first_seq + 1, max(own)) if seq not in own]
+        if replaced:  # a lane started before warm_up: its first images lost to the black ones
+            msg = (f"{len(replaced)} update_images call(s) from another thread ran during warm_up: their images were "
+                   "dropped with its black ones; call warm_up before starting the lanes")  # fmt: skip
+            log.warning("%s: %s", det.export_dir, msg)
+            warnings.warn(msg, RuntimeWarning, stacklevel=3)
     det.stats.reset()

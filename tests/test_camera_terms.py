@@ -486,3 +486,22 @@ def test_the_fp32_lifter_of_an_int8_lane_is_checked_too(export_dir, tmp_path):
     (d / "manifest.json").write_text(json.dumps(m))
     with pytest.raises(ManifestError, match=r"volumetric_lifter.onnx \(volumetric_lifter, fp32\): the graph's inputs are"):
         StreamingDetector(d, DetectorConfig(image_lane_precision="int8"))
+
+
+@pytest.mark.parametrize("quadrants", [None, [2]])
+def test_close_during_a_terms_lift_raises_detector_closed(export_dir, quadrants):
+    """close() from another thread while an update lifts through per-camera terms: that update raises DetectorClosed
+    (what close() promises every later graph run), never an AttributeError of released terms."""
+    from streamdet.runtime_ort.detector import DetectorClosed
+
+    det = StreamingDetector(export_dir, DetectorConfig(camera_terms=True))
+    assert det.camera_terms
+    lift = det._lift_quadrants
+
+    def close_first(*args, **kwargs):  # the close lands after the update chose the terms path
+        det.close()
+        return lift(*args, **kwargs)
+
+    det._lift_quadrants = close_first
+    with pytest.raises(DetectorClosed, match="closed"):
+        det.update_images(_images(det, 0), 1.0, quadrants=quadrants)

@@ -1,0 +1,190 @@
+"""The image lane's races with the caller's other threads, made deterministic by hooking the moment between an
+update's encoding and its install: a drop (forget_images, set_calibration(relift=False)) is never undone by an update
+already under way; warm_up drops only its own dummy images; a calibration swap re-stamps re-lifted quadrants from the
+cameras the new LUT reads, encodes a camera a racing per-quadrant update was given but had not planned for, and builds
+the new LUT's per-quadrant tables in the caller's thread; close() releases the LiDAR-only fallback's session."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+from streamdet.calibration.perturb import perturb_rig
+from streamdet.core.slicing import split_sweep
+from streamdet.data.sample import load_bundled_sample
+from streamdet.runtime_ort import lut_views
+from streamdet.runtime_ort.detector import DetectorClosed, DetectorConfig, StreamingDetector
+
+# A rig under which quadrant 3 of the tiny grid reads one camera more than under the bundled one (found by search,
+# asserted below: the tests' premise).
+WIDER_RIG_SEED = 1
+
+
+@pytest.fixture(scope="module")
+def rigs():
+    rig = load_bundled_sample().rig
+    return rig, perturb_rig(rig, 0.8, 1.0, seed=WIDER_RIG_SEED)
+
+
+def _images(det: StreamingDetector, seed: int) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    return {n: rng.integers(0, 256, (det.image.height, det.image.width, 3), dtype=np.uint8) for n in det.camera_names}
+
+
+def _detector(export_dir, rig=None) -> StreamingDetector:
+    det = StreamingDetector(export_dir)
+    if rig is not None:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # CameraMovedWarning, BlindCameraWarning
+            det.set_calibration(rig)
+    return det
+
+
+def _before_install(det: StreamingDetector, action, times: int = 1) -> None:
+    """Run ``action`` once an update has encoded, just before it lifts and installs (the first ``times`` updates)."""
+    install = det._install
+    left = [times]
+
+    def hooked(*args, **kwargs):
+        if left[0] > 0:
+            left[0] -= 1
+            action()
+        return install(*args, **kwargs)
+
+    det._install = hooked
+
+
+@pytest.mark.parametrize("quadrants", [None, [1]])
+def test_forget_during_an_update_is_not_undone(tiny_export, quadrants):
+    det = _detector(tiny_export)
+    _before_install(det, det.forget_images)
+    update = det.update_images(_images(det, 0), 1.0, quadrants=quadrants)
+    assert update.superseded and det.image_state is None
+    later = det.update_images(_images(det, 1), 2.0, quadrants=quadrants)  # the next update installs as ever
+    assert not later.superseded and later.seq == update.seq + 1 and det.image_state.seq == later.seq
+
+
+def test_calibration_without_relift_during_an_update_drops_it(tiny_export, rigs):
+    det = _detector(tiny_export, rigs[0])
+    other = det._build_lut(rigs[1])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        _before_install(det, lambda: det.set_calibration(other, relift=False))
+        update = det.update_images(_images(det, 0), 1.0)
+    assert update.superseded and det.image_state is None  # its images are of the old rig: never lifted with the new LUT
+    assert det.lut is other
+
+
+def test_forget_through_keeps_newer_sets(tiny_export):
+    det = _detector(tiny_export)
+    first = det.update_images(_images(det, 0), 1.0)
+    second = det.update_images(_images(det, 1), 2.0, quadrants=[2])
+    det.forget_images(through=first.seq)
+    kept = det.image_state.quadrants
+    assert kept[2] is not None and kept[2].seq == second.seq and all(kept[q] is None for q in (0, 1, 3))
+    det.forget_images(through=second.seq)
+    assert det.image_state is None
+    for bad in (-1, 1.5, True, "3"):
+        with pytest.raises(ValueError, match="forget_images through"):
+            det.forget_images(through=bad)
+
+
+def test_warm_up_keeps_a_real_set_that_came_meanwhile(tiny_export):
+    det = _detector(tiny_export)
+    real = _images(det, 3)
+    sweep = det.detect_sweep
+    came: list = []
+
+    def sweep_then_real(*args, **kwargs):  # warm_up's last step before it forgets: a runner's images arrive
+        out = sweep(*args, **kwargs)
+        came.append(det.update_images(real, 5.0))
+        return out
+
+    det.detect_sweep = sweep_then_real
+    det.warm_up(rounds=1)
+    assert len(came) == 1 and not came[0].superseded
+    assert det.image_state is not None and det.image_state.seq == came[0].seq and det.image_timestamp == 5.0
+
+
+def test_warm_up_says_when_a_real_set_was_lost_to_its_black_images(tiny_export):
+    det = _detector(tiny_export)
+    sweep = det.detect_sweep
+    came: list = []
+
+    def sweep_then_real(*args, **kwargs):  # a lane's images between warm_up's rounds: the next round replaces them
+        if not came:
+            came.append(det.update_images(_images(det, 3), 5.0))
+        return sweep(*args, **kwargs)
+
+    det.detect_sweep = sweep_then_real
+    with pytest.warns(RuntimeWarning, match="1 update_images call.* during warm_up"):
+        det.warm_up(rounds=2)
+    assert det.image_state is None
+
+
+def test_relift_restamps_from_the_new_luts_cameras(tiny_export, rigs):
+    rig_a, rig_b = rigs
+    det = _detector(tiny_export, rig_a)
+    before = det.quadrant_cameras([3])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        fresh = _detector(tiny_export, rig_b)
+    added = [n for n in fresh.quadrant_cameras([3]) if n not in before]
+    assert added, "premise: rig B widens quadrant 3's view"
+    images = _images(det, 0)
+    stamps = {n: 10.0 for n in det.camera_names}
+    stamps[added[0]] = 9.5  # the camera quadrant 3 reads under rig B only fired earlier
+    det.update_images(images, 10.0, camera_timestamps=stamps)
+    assert det.image_timestamps[3] == 10.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        det.set_calibration(rig_b)
+    fresh.update_images(images, 10.0, camera_timestamps=stamps)
+    assert det.image_timestamps == fresh.image_timestamps and det.image_timestamps[3] == 9.5
+    assert np.array_equal(det.image_state.bev, fresh.image_state.bev)
+
+
+def test_per_quadrant_update_racing_a_swap_encodes_the_camera_it_was_given(tiny_export, rigs):
+    rig_a, rig_b = rigs
+    det = _detector(tiny_export, rig_a)
+    lut_b = det._build_lut(rig_b)
+    planned = det.quadrant_cameras([3])
+    images = _images(det, 0)
+    stamps = {n: 10.0 - 0.1 * i for i, n in enumerate(det.camera_names)}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        _before_install(det, lambda: det.set_calibration(lut_b))
+        update = det.update_images(images, 10.0, quadrants=[3], camera_timestamps=stamps)
+        fresh = _detector(tiny_export, rig_b)
+    wider = fresh.quadrant_cameras([3])
+    assert set(wider) > set(planned), "premise: rig B widens quadrant 3's view"
+    assert update.cameras_used == wider and update.cameras_missing == () and not update.superseded
+    fresh.update_images(images, 10.0, quadrants=[3], camera_timestamps=stamps)
+    ours, theirs = det.image_state.quadrants[3], fresh.image_state.quadrants[3]
+    assert ours.feature_cameras == theirs.feature_cameras and ours.timestamp == theirs.timestamp
+    assert np.array_equal(ours.bev, theirs.bev)
+
+
+def test_set_calibration_builds_the_quadrant_tables_in_the_callers_thread(tiny_export, rigs, monkeypatch):
+    det = _detector(tiny_export, rigs[0])
+    det.update_images(_images(det, 0), 1.0, quadrants=[0])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        det.set_calibration(rigs[1])
+    built: list = []
+    monkeypatch.setattr(lut_views, "quadrant_luts", lambda lut: built.append(lut))  # would fail if called
+    for q in range(4):
+        det.quadrant_cameras([q])
+    det.update_images(_images(det, 1), 2.0, quadrants=[1])
+    assert built == []
+
+
+def test_close_releases_the_fallback_session(tiny_export, tiny_lidar_export):
+    det = StreamingDetector(tiny_export, DetectorConfig(fallback_export_dir=tiny_lidar_export))
+    assert det._fallback.session is not None
+    det.close()
+    assert det._fallback.session is None
+    with pytest.raises(DetectorClosed):
+        det.detect_slice(split_sweep(load_bundled_sample().points, 8)[0], 0)  # no images: the fallback's graph
