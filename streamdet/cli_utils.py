@@ -134,6 +134,41 @@ def refuse_output_over_inputs(output: Path | None, option: str, inputs) -> None:
                                      "tool's inputs", param_hint=option)  # fmt: skip
 
 
+def refuse_same_outputs(outputs) -> None:
+    """Raise click.BadParameter if two of ``outputs`` — pairs (option, path or None) — are the same file (spelled
+    alike, through a symlink, or a hard link): the later write would replace the earlier one."""
+    seen: list[tuple[str, Path, Path]] = []
+    for option, path in outputs:
+        if path is None:
+            continue
+        real = _real(path)
+        for other_option, other, other_real in seen:
+            same = real == other_real
+            if not same and Path(path).exists() and other.exists():
+                try:
+                    same = os.path.samefile(path, other)
+                except OSError:
+                    pass
+            if same:
+                raise click.BadParameter(f"{str(path)!r} is also the {other_option} file: one would replace the other",
+                                         param_hint=option)  # fmt: skip
+        seen.append((option, Path(path), real))
+
+
+def check_output_parent(output: Path | None, option: str) -> None:
+    """Raise click.BadParameter, before any work, if ``output`` (a file to write) could not be created: its folder
+    is missing or not a folder, or ``output`` is a folder. (Permissions are left to the write: a root process
+    passes every access check.)"""
+    if output is None:
+        return
+    output = Path(output)
+    if output.is_dir():
+        raise click.BadParameter(f"{str(output)!r} is a folder; give a file path", param_hint=option)
+    parent = output.parent if str(output.parent) else Path(".")
+    if not parent.is_dir():
+        raise click.BadParameter(f"the folder of {str(output)!r} does not exist (or is not a folder)", param_hint=option)
+
+
 def image_precision_option(flag: str = "--image-precision", dest: str = "image_precision"):
     """The option that runs the image lane (encoder + lifter) in another precision than the slices."""
     return click.option(
