@@ -46,7 +46,7 @@ import collections
 import math
 import threading
 import time
-from concurrent.futures import Future, InvalidStateError
+from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import Callable, Mapping
 
@@ -55,6 +55,9 @@ import numpy as np
 from streamdet.core.sectors import NUM_QUADRANTS
 from streamdet.runtime_ort.phase_lock import RotationPhase, plan_lift
 from streamdet.runtime_ort.thread_priority import check_nice, start_worker
+from streamdet.runtime_ort.worker_lane import cancel_future, claim_future, complete_future
+
+LANE = "image-lane"  # the name its logs and errors give it
 
 DURATION_SAMPLES = 5  # lifts per quadrant whose second longest is the expected duration (robust to a noisy machine)
 # how often a lane holding back for a backlog of slices looks at the slice queue again (a slice's arrival wakes it too)
@@ -141,6 +144,9 @@ class PhaseLockedImageLane:
         self._done: collections.deque = collections.deque(maxlen=4 * len(self._phase.slice_quadrants))
         # per quadrant: when a frame newer than its last lift first arrived (None: nothing new since)
         self._wanted_since: list[float | None] = [None] * NUM_QUADRANTS
+        # the image sets an update is the first to use whose futures it has not completed yet (under _cond): close()
+        # fails those still pending once the worker has ended, wherever their frames are
+        self._settling: set[_ImageSet] = set()
         self._dirty = False
         self._closed = False
         self._thread = start_worker(self._serve, "image-lane-phase-locked", self._nice) if thread else None
@@ -149,9 +155,14 @@ class PhaseLockedImageLane:
     def submit_images(self, images: Mapping[str, np.ndarray], timestamp: float,
                       camera_timestamps: Mapping[str, float] | None = None) -> Future:  # fmt: skip
         """Keep each camera's frame as the newest of its camera, stamped ``camera_timestamps[name]`` where given
-        (cameras that fired at different moments), else ``timestamp``."""
+        (cameras that fired at different moments), else ``timestamp``.
+
+        The sets it supersedes fail once every new frame is in and the lane is woken, off the lock, each
+        done-callback's error logged: a callback (slow, calling close(), raising SystemExit) neither half-installs
+        this set nor loses its future."""
         stamps = dict(camera_timestamps or {})
         fut: Future = Future()
+        superseded: list[Future] = []
         with self._cond:
             if self._closed:
                 raise self._closed_error()
@@ -164,21 +175,23 @@ class PhaseLockedImageLane:
                 self._seq += 1
                 old = self._frames.get(name)
                 self._frames[name] = _Frame(self._seq, image, float(stamps.get(name, timestamp)), owner)
-                if old is not None:
-                    self._release(old.owner)
+                if old is not None and self._release(old.owner):
+                    superseded.append(old.owner.future)
             self._dirty = True
             self._cond.notify_all()
+        for old_future in superseded:
+            complete_future(LANE, old_future, error=self._superseded())
         return fut
 
-    def _release(self, owner: _ImageSet) -> None:
-        """One frame of ``owner`` is no longer the newest of its camera; once none is and none was used: superseded."""
+    def _release(self, owner: _ImageSet) -> bool:
+        """(Under the lock.) One frame of ``owner`` is no longer the newest of its camera; once none is and none was
+        used, the set is superseded: counted, and True, its future claimed here (its owner can no longer cancel it,
+        so the count stays exact) for the caller to fail off the lock. A set its owner cancelled is not counted."""
         owner.frames_left -= 1
-        if owner.frames_left == 0 and not owner.used:
-            try:
-                owner.future.set_exception(self._superseded())
-                self.images_superseded += 1
-            except InvalidStateError:  # cancelled by its owner
-                pass
+        if owner.frames_left == 0 and not owner.used and claim_future(owner.future):
+            self.images_superseded += 1
+            return True
+        return False
 
     def observe_slice(self, slice_index: int, arrival_s: float) -> None:
         with self._cond:
@@ -244,16 +257,26 @@ class PhaseLockedImageLane:
             owners = [] if quadrants == () else list({id(f.owner): f.owner for f in frames.values() if not f.owner.used}.values())
             for owner in owners:
                 owner.used = True
+            self._settling.update(owners)
         if quadrants == ():
             self._encode_only(frames)
             return now_s
         try:
             update = self._update(frames, quadrants, deadline)
         except BaseException as e:
-            _settle(owners, error=e)
+            self._settle(owners, error=e)
             raise
-        _settle(owners, result=update)
+        self._settle(owners, result=update)
         return now_s
+
+    def _settle(self, owners: list[_ImageSet], result=None, error: BaseException | None = None) -> None:
+        """Complete the futures of the image sets an update was the first to use (a cancelled one stays cancelled).
+        Off the lock; a done-callback's error is logged, so every one of them is completed."""
+        for owner in owners:
+            if claim_future(owner.future):
+                complete_future(LANE, owner.future, result, error)
+        with self._cond:
+            self._settling.difference_update(owners)
 
     def _hold(self, now_s: float, busy: bool) -> bool:
         """Whether to hold back an update now (``busy``: slices wait); counts the holding back. Under the lock."""
@@ -370,34 +393,30 @@ class PhaseLockedImageLane:
                     self._cond.wait(timeout)
 
     def close(self, deadline: float | None = None) -> bool:
-        """Stop the worker (a running update finishes); waiting image sets that were never used are cancelled.
-        True when the worker has ended."""
+        """Stop the worker (a running update finishes); waiting image sets that were never used are cancelled, and
+        once the worker has ended, those an update used but never completed (it was cut short) fail: then no image
+        set's future is left pending. True when the worker has ended."""
         with self._cond:
             self._closed = True
             self._cond.notify_all()
         if self._thread is not None:
             self._thread.join(None if deadline is None else max(0.0, deadline - time.monotonic()))
+        ended = self._thread is None or not self._thread.is_alive()
         with self._cond:
-            for f in self._frames.values():
-                if not f.owner.used:
-                    f.owner.future.cancel()
-        return self._thread is None or not self._thread.is_alive()
+            owners = {id(f.owner): f.owner for f in self._frames.values()}
+            if ended:  # else the running update still completes the sets it uses
+                owners.update({id(o): o for o in self._settling})
+            waiting = [o.future for o in owners.values() if not o.used]
+            unsettled = [o.future for o in owners.values() if o.used and ended and not o.future.done()]
+        for fut in waiting:  # off the lock: their done-callbacks run here
+            cancel_future(LANE, fut)
+        for fut in unsettled:
+            error = RuntimeError(f"{LANE}: closed; the update that used this image set ended without completing it")
+            complete_future(LANE, fut, error=error)
+        return ended
 
 
 def _robust_max(seconds) -> float:
     """The second longest of a few durations (the longest when there is one, 0 when none)."""
     ordered = sorted(seconds)
     return ordered[-2] if len(ordered) >= 2 else (ordered[-1] if ordered else 0.0)
-
-
-def _settle(owners: list[_ImageSet], result=None, error: BaseException | None = None) -> None:
-    """Complete the futures of the image sets an update was the first to use (a cancelled one stays cancelled)."""
-    for owner in owners:
-        try:
-            if owner.future.set_running_or_notify_cancel():
-                if error is not None:
-                    owner.future.set_exception(error)
-                else:
-                    owner.future.set_result(result)
-        except (InvalidStateError, RuntimeError):  # cancelled or completed by its owner meanwhile
-            pass

@@ -84,7 +84,11 @@ class WorkerLane:
 
     def submit(self, fn: Callable[[], object], kind: str = "", supersede: Callable[[], Exception] | None = None,
                payload: object = None) -> Future:  # fmt: skip
-        """``payload``: what `JobBatching` reads to run this job together with others (None: always alone)."""
+        """``payload``: what `JobBatching` reads to run this job together with others (None: always alone).
+
+        Never raises for another job: the jobs it drops or supersedes are counted and taken off the queue under the
+        lock, and their futures are failed after it is released, each done-callback's error logged (a callback may
+        be slow, call close(), or raise SystemExit: none of that may stall the workers or lose this job)."""
         fut: Future = Future()
         with self._cond:
             if self._closed:
@@ -92,20 +96,27 @@ class WorkerLane:
             # jobs the caller cancelled hold no place in the queue
             self._jobs = collections.deque(job for job in self._jobs if not job[1].cancelled())
             idle = self._workers - self._busy  # the first `idle` jobs are about to start: in flight, not waiting
+            failed: list[tuple[Future, Callable[[], Exception]]] = []  # failed once the lock is released
             if supersede is not None:
                 stale = [job for job in list(self._jobs)[idle:] if job[2] == kind]
                 for job in stale:
                     self._jobs.remove(job)
-                    self.superseded += self._fail(job[1], supersede)
+                    if claim_future(job[1]):
+                        self.superseded += 1
+                        failed.append((job[1], supersede))
             while self._capacity is not None and len(self._jobs) - idle >= self._capacity:
                 old = self._jobs[idle]
                 del self._jobs[idle]
-                self.dropped += self._fail(old[1], self._overflow)
+                if claim_future(old[1]):
+                    self.dropped += 1
+                    failed.append((old[1], self._overflow))
             self._jobs.append((fn, fut, kind, payload))
             if self._holding:  # the worker waiting for this job must wake, not only an idle one
                 self._cond.notify_all()
             else:
                 self._cond.notify()
+        for job_fut, error in failed:
+            complete_future(self._name, job_fut, error=error())
         return fut
 
     @property
@@ -114,38 +125,6 @@ class WorkerLane:
         submit clears them)."""
         with self._cond:
             return max(0, len(self._jobs) - (self._workers - self._busy))
-
-    def _complete(self, fut: Future, result: object = None, error: BaseException | None = None) -> None:
-        """Hand a job's result or error to its future. Never raises: a done-callback's error (a BaseException, say
-        sys.exit() in a handler, escapes Future.set_result once the future is done) is logged rather than allowed to
-        end the worker, whose later jobs would then wait forever; a future its owner finished meanwhile keeps its
-        state."""
-        try:
-            if error is None:
-                fut.set_result(result)
-            else:
-                fut.set_exception(error)
-        except InvalidStateError:  # cancelled or finished by its owner meanwhile: nothing to tell anyone
-            pass
-        except BaseException:  # a done-callback's: the future is done, the worker goes on
-            log.exception("%s: a done-callback of %r raised; the lane goes on", self._name, fut)
-
-    def _start(self, fut: Future) -> bool:
-        """Future.set_running_or_notify_cancel that never raises: False for a future cancelled, or one its owner
-        finished (set_result on a future it was handed), neither of which runs."""
-        try:
-            return fut.set_running_or_notify_cancel()
-        except RuntimeError:  # finished by its owner: "Future in unexpected state"
-            return False
-
-    @staticmethod
-    def _fail(fut: Future, error: Callable[[], Exception]) -> int:
-        """Fail a waiting job's future; 1 when it was failed, 0 when its owner had cancelled it meanwhile."""
-        try:
-            fut.set_exception(error())
-            return 1
-        except InvalidStateError:  # cancelled by its owner meanwhile: nothing to tell anyone
-            return 0
 
     def _serve(self) -> None:
         while True:
@@ -165,18 +144,18 @@ class WorkerLane:
                     join_error = e
             cpu0 = time.thread_time()
             try:
-                jobs = [job for job in jobs if self._start(job[1])]
+                jobs = [job for job in jobs if claim_future(job[1])]
                 if join_error is not None:
                     for job in jobs:
-                        self._complete(job[1], error=join_error)
+                        complete_future(self._name, job[1], error=join_error)
                 elif len(jobs) == 1:
                     fn, fut = jobs[0][:2]
                     try:
                         result = fn()
                     except BaseException as e:  # handed to the caller through the future, never swallowed
-                        self._complete(fut, error=e)
+                        complete_future(self._name, fut, error=e)
                     else:  # outside the try: a done-callback's error is no error of the job's
-                        self._complete(fut, result)
+                        complete_future(self._name, fut, result)
                 elif jobs:
                     self._run_joined(jobs)
             finally:
@@ -252,10 +231,10 @@ class WorkerLane:
                 raise RuntimeError(f"{self._name}: a joined run of {len(jobs)} jobs returned {len(results)} results")
         except BaseException as e:  # handed to the callers through the futures, never swallowed
             for job in jobs:
-                self._complete(job[1], error=e)
+                complete_future(self._name, job[1], error=e)
             return
         for job, result in zip(jobs, results):  # outside the try: a done-callback's error is no error of the run's
-            self._complete(job[1], result)
+            complete_future(self._name, job[1], result)
         with self._cond:
             self.joined += len(jobs) - 1
 
@@ -276,14 +255,44 @@ class WorkerLane:
         for job in left:  # outside the lock: their done-callbacks run here
             if ended:
                 error = RuntimeError(f"{self._name}: no worker left to run this job (they ended before it)")
-                self._complete(job[1], error=error)
+                complete_future(self._name, job[1], error=error)
             else:
-                self._cancel(job[1])
+                cancel_future(self._name, job[1])
         return ended and not left
 
-    def _cancel(self, fut: Future) -> None:
-        """Future.cancel, a done-callback's error logged (as in `_complete`)."""
-        try:
-            fut.cancel()
-        except BaseException:
-            log.exception("%s: a done-callback of %r raised; the lane goes on", self._name, fut)
+
+def claim_future(fut: Future) -> bool:
+    """Future.set_running_or_notify_cancel that never raises and runs no done-callback, so it may be called under a
+    lane's lock: True when ``fut`` is now this lane's to complete (its owner can no longer cancel it); False for a
+    future its owner cancelled, or finished (set_result on a future it was handed), which is left as it is."""
+    if fut.done() and not fut.cancelled():  # finished by its owner: set_running_or_notify_cancel would log a critical
+        return False
+    try:
+        return fut.set_running_or_notify_cancel()
+    except RuntimeError:  # finished by its owner: "Future in unexpected state"
+        return False
+
+
+def complete_future(lane: str, fut: Future, result: object = None, error: BaseException | None = None) -> None:
+    """Hand a job's result or error to its future. Never raises: a done-callback's error (a BaseException, say
+    sys.exit() in a handler, escapes Future.set_result once the future is done) is logged rather than allowed to end
+    the thread completing it (a worker, whose later jobs would then wait forever, or a submitter, whose own job would
+    be lost); a future its owner finished meanwhile keeps its state. Call it with no lane lock held: callbacks run
+    here."""
+    try:
+        if error is None:
+            fut.set_result(result)
+        else:
+            fut.set_exception(error)
+    except InvalidStateError:  # cancelled or finished by its owner meanwhile: nothing to tell anyone
+        pass
+    except BaseException:  # a done-callback's: the future is done, the lane goes on
+        log.exception("%s: a done-callback of %r raised; the lane goes on", lane, fut)
+
+
+def cancel_future(lane: str, fut: Future) -> None:
+    """Future.cancel, a done-callback's error logged (as in `complete_future`). With no lane lock held."""
+    try:
+        fut.cancel()
+    except BaseException:
+        log.exception("%s: a done-callback of %r raised; the lane goes on", lane, fut)
