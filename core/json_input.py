@@ -48,11 +48,13 @@ def read_json(path: str | os.PathLike, what: str, max_bytes: int) -> object:
     ``max_bytes``; ValueError naming the file when it cannot be read or is not one."""
     path = Path(path)
     try:
-        with open(path, "rb") as f:
+        with _open_input(path) as f:
             size = os.fstat(f.fileno()).st_size  # 0 for a pipe or a device: read in chunks, bounded
             raw = b"" if size > max_bytes else _read_at_most(f, max_bytes + 1, size)
     except OSError as e:
         raise ValueError(f"{what} {path}: cannot read: {e.strerror or e}") from None
+    if not raw and size == 0 and not path.is_file():  # a named pipe nobody writes to reads as empty
+        raise ValueError(f"{what} {path} is a pipe or device that gave no data (a FIFO without a writer?)")
     if size > max_bytes or len(raw) > max_bytes:
         limit = f"{max_bytes >> 20} MiB" if max_bytes >= 1 << 20 else f"{max_bytes} bytes"
         raise ValueError(f"{what} {path} is larger than {limit}: not a {what}")
@@ -64,6 +66,20 @@ def read_json(path: str | os.PathLike, what: str, max_bytes: int) -> object:
         raise ValueError(f"{what} {path} nests too deeply to be a {what}") from None
     except ValueError as e:  # JSONDecodeError, and the 4300-digit limit on integer literals
         raise ValueError(f"{what} {path} is not valid JSON: {e}") from None
+
+
+def _open_input(path: Path):
+    """``path`` opened for reading, never blocking in the open: a named pipe (FIFO) without a writer would block
+    ``open()`` for ever, so it is opened non-blocking and then switched back, where a pipe without a writer reads as
+    empty. A pipe with one (``<(zcat gt.json.gz)``) reads as usual."""
+    fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_BINARY", 0))
+    try:
+        if hasattr(os, "set_blocking"):
+            os.set_blocking(fd, True)  # reads wait for a writer that is there
+        return os.fdopen(fd, "rb")
+    except BaseException:
+        os.close(fd)
+        raise
 
 
 def _read_at_most(f, limit: int, size: int) -> bytes:

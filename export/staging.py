@@ -4,6 +4,7 @@ complete, and an older export is replaced only by a finished one."""
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import tempfile
@@ -11,6 +12,7 @@ from pathlib import Path
 
 import onnx
 
+from streamdet.core.file_input import read_regular_file
 from streamdet.export.fp16 import check_model
 from streamdet.export.options import ExportError
 from streamdet.runtime_ort.manifest import MANIFEST_NAME, graph_file_name
@@ -48,14 +50,70 @@ def clean_stale_staging(out_dir: Path) -> None:
         shutil.rmtree(path, ignore_errors=True)
 
 
+# Files a streamdet process writes into an export besides those its manifest names: onnxruntime profiles
+# (DetectorConfig.enable_profiling writes <graph>.profile_<time>.json beside the graph).
+_PROFILE_SUFFIX = ".json"
+_PROFILE_MARK = ".profile_"
+MAX_OLD_MANIFEST_BYTES = 64 << 20  # runtime_ort's own cap on a manifest is far below; a bigger file is no manifest
+
+
+def check_replaceable(out_dir: Path) -> None:
+    """ExportError unless ``out_dir`` is absent, empty, or a streamdet export holding nothing but its own files.
+
+    A re-export replaces the whole folder, so a ``manifest.json`` alone is not enough: a web app's has the same
+    name. The manifest must be a streamdet one (its ``graphs`` and ``preset``), and every entry must be a file it
+    names, the manifest, or an onnxruntime profile of one of its graphs; anything else (a note, a calibration copy, a
+    folder) would be deleted with it, so the folder is refused, naming those entries."""
+    try:
+        entries = sorted(out_dir.iterdir()) if out_dir.is_dir() else []
+    except OSError as e:
+        raise ExportError(f"--out {out_dir} cannot be listed: {e.strerror or e}") from None
+    if not entries:
+        return
+    named = _export_files(out_dir)
+    if named is None:
+        raise ExportError(f"--out {out_dir} is a non-empty directory that is not a streamdet export (no streamdet "
+                          "manifest.json); refusing to overwrite it")  # fmt: skip
+    foreign = [e.name + ("/" if e.is_dir() else "") for e in entries if not _is_export_entry(e, named)]
+    if foreign:
+        shown = ", ".join(foreign[:6]) + (f" and {len(foreign) - 6} more" if len(foreign) > 6 else "")
+        raise ExportError(f"--out {out_dir} holds a streamdet export and other entries ({shown}), which a re-export "
+                          "would delete with it: move them out, or choose another --out")  # fmt: skip
+
+
+def _export_files(out_dir: Path) -> set[str] | None:
+    """The names of the files the manifest of ``out_dir`` lists (itself included), None if it is no streamdet
+    manifest. Read leniently: an export of an older version, or one whose graphs a hand edit broke, is still one."""
+    try:
+        raw = read_regular_file(out_dir / MANIFEST_NAME, MAX_OLD_MANIFEST_BYTES)
+        doc = json.loads(raw)
+    except (ValueError, OSError, RecursionError):  # InputFileError and JSONDecodeError are ValueErrors
+        return None
+    if not isinstance(doc, dict) or not isinstance(doc.get("graphs"), list) or not isinstance(doc.get("preset"), dict):
+        return None
+    names = {MANIFEST_NAME}
+    for entry in [*doc["graphs"], doc.get("lut")]:
+        if isinstance(entry, dict) and isinstance(entry.get("file"), str):
+            names.add(entry["file"])
+    return names
+
+
+def _is_export_entry(entry: Path, named: set[str]) -> bool:
+    if entry.is_symlink() or not entry.is_file():
+        return False
+    if entry.name in named:
+        return True
+    graph, mark, _ = entry.name.partition(_PROFILE_MARK)  # image_encoder.int8.profile_2026-12-05_08-25-13_754.json
+    return bool(mark) and entry.name.endswith(_PROFILE_SUFFIX) and f"{graph}.onnx" in named
+
+
 def make_staging_dir(out_dir: Path) -> Path:
     """A fresh temp dir beside out_dir (same filesystem, so the final rename is atomic); checks writability early.
 
     Staging folders left by an export that was killed (SIGKILL: no cleanup ran) are removed first."""
     if out_dir.exists() and not out_dir.is_dir():
         raise ExportError(f"--out {out_dir} exists and is not a directory")
-    if out_dir.is_dir() and any(out_dir.iterdir()) and not (out_dir / MANIFEST_NAME).is_file():
-        raise ExportError(f"--out {out_dir} is a non-empty directory that is not a streamdet export; refusing to overwrite it")
+    check_replaceable(out_dir)
     parent = out_dir.absolute().parent
     try:
         parent.mkdir(parents=True, exist_ok=True)

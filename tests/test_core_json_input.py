@@ -78,3 +78,26 @@ def test_read_json_never_allocates_its_cap(tmp_path):
     done = subprocess.run([sys.executable, "-c", code], input=b"[1, 2, 3]", capture_output=True, timeout=60)
     assert done.returncode == 0, done.stderr.decode()[-500:]
     assert done.stdout.decode().split() == ["[{'token':", "'a'}]", "3"]
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="named pipes are POSIX")
+def test_a_fifo_without_a_writer_is_refused_not_waited_on(tmp_path):
+    fifo = tmp_path / "results.json"
+    os.mkfifo(fifo)
+    with pytest.raises(ValueError, match=r"results file .*results\.json is a pipe or device that gave no data"):
+        read_json(fifo, "results file", 1 << 20)  # an open() that blocks would hang this test
+
+
+@pytest.mark.skipif(not os.path.isdir("/dev/fd"), reason="/dev/fd names a process's pipes (Linux, macOS)")
+def test_a_pipe_with_a_writer_is_read():
+    """A shell's ``--gt <(zcat gt.json.gz)`` names a pipe whose writer is there: it reads as a file would."""
+    read_end, write_end = os.pipe()
+    try:
+        os.write(write_end, b'{"results": {}}')
+        os.close(write_end)
+        write_end = None
+        assert read_json(f"/dev/fd/{read_end}", "gt file", 1 << 20) == {"results": {}}
+    finally:
+        os.close(read_end)
+        if write_end is not None:
+            os.close(write_end)

@@ -4,12 +4,16 @@ and puts back a previous export that the killed one had moved aside."""
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import sys
 import textwrap
 from pathlib import Path
 
+import pytest
+
+from streamdet.export.options import ExportError
 from streamdet.export.staging import clean_stale_staging, make_staging_dir
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -70,3 +74,52 @@ def test_folders_of_a_running_export_are_kept(tmp_path):
     legacy.mkdir()
     clean_stale_staging(out)
     assert mine.is_dir() and legacy.is_dir()
+
+
+def _export_like(folder: Path) -> Path:
+    """A folder holding what an export holds: a streamdet manifest naming its graphs and LUT, those files, and an
+    onnxruntime profile of one graph (DetectorConfig.enable_profiling)."""
+    import json
+
+    folder.mkdir()
+    manifest = {"preset": {}, "graphs": [{"name": "slice_head", "file": "slice_head.onnx"},
+                                        {"name": "slice_head", "file": "slice_head.int8.onnx"}],
+                "lut": {"file": "lut.npz"}}  # fmt: skip
+    (folder / "manifest.json").write_text(json.dumps(manifest))
+    for name in ("slice_head.onnx", "slice_head.int8.onnx", "lut.npz", "slice_head.int8.profile_2026-12-05_08-25-13_754.json"):
+        (folder / name).write_bytes(b"x")
+    return folder
+
+
+def test_an_export_with_only_its_own_files_may_be_replaced(tmp_path):
+    from streamdet.export.staging import check_replaceable
+
+    check_replaceable(_export_like(tmp_path / "exp"))
+    check_replaceable(tmp_path / "absent")
+    (tmp_path / "empty").mkdir()
+    check_replaceable(tmp_path / "empty")
+
+
+@pytest.mark.parametrize("extra", ["notes.txt", "calibration.json", "src/", "other.profile_1.json", "lut.npz.bak"])
+def test_an_export_holding_other_files_is_refused_and_kept(tmp_path, extra):
+    from streamdet.export.staging import check_replaceable
+
+    out = _export_like(tmp_path / "exp")
+    (out / extra.rstrip("/")).mkdir() if extra.endswith("/") else (out / extra).write_text("mine")
+    before = sorted(p.name for p in out.iterdir())
+    with pytest.raises(ExportError, match=r"holds a streamdet export and other entries \(" + re.escape(extra)):
+        make_staging_dir(out)
+    assert sorted(p.name for p in out.iterdir()) == before and _hidden(tmp_path) == []
+    with pytest.raises(ExportError):
+        check_replaceable(out)
+
+
+@pytest.mark.parametrize("manifest", ['{"name": "my web app"}', "[]", "not json", '{"graphs": "x", "preset": {}}'])
+def test_a_folder_whose_manifest_is_not_streamdets_is_refused(tmp_path, manifest):
+    out = tmp_path / "app"
+    out.mkdir()
+    (out / "manifest.json").write_text(manifest)
+    (out / "index.html").write_text("<html>")
+    with pytest.raises(ExportError, match="not a streamdet export"):
+        make_staging_dir(out)
+    assert (out / "index.html").read_text() == "<html>"
