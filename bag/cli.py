@@ -10,7 +10,16 @@ from pathlib import Path
 import click
 
 from streamdet.bag.deps import MissingExtraError, require
-from streamdet.cli_utils import PRECISION_CHOICES, fallback_after_s, fallback_options, image_precision_option
+from streamdet.cli_utils import (
+    PRECISION_CHOICES,
+    check_output_parent,
+    fallback_after_s,
+    fallback_options,
+    image_precision_option,
+    refuse_output_over_inputs,
+    refuse_same_outputs,
+    split_list,
+)
 
 LIBRARY_ERRORS = (ValueError, KeyError, FileNotFoundError, OSError, MissingExtraError)
 
@@ -32,10 +41,18 @@ def export_cmd(data_dir: Path | None, scene: str | None, version: str, out: Path
     /CAM_*/camera_info, /tf, /tf_static and the ground truth on /markers/annotations."""
     from streamdet.bag.export import export_recording
     from streamdet.bag.recording import read_recording
+    from streamdet.data.sample import bundled_sample_dir
 
     try:
         _require_extra()
-        recording = read_recording(data_dir, scene, version)
+        recording = read_recording(data_dir, scene, version)  # reads the tables alone: --data is checked first
+    except LIBRARY_ERRORS as e:
+        raise click.ClickException(_one_line(e)) from None
+    # the bag is written while the dataset's files are read: it must be none of them, nor lie among them
+    data = ("--data", data_dir) if data_dir is not None else ("--data (default: the bundled sample)", bundled_sample_dir())
+    refuse_output_over_inputs(out, "--out", [data])
+    _check_output(out, "--out")
+    try:
         with click.progressbar(length=1, label=f"writing {out}", file=sys.stderr) as bar:
             summary = export_recording(recording, out, progress=lambda done, total: _advance(bar, done, total))
     except LIBRARY_ERRORS as e:
@@ -61,7 +78,9 @@ def export_cmd(data_dir: Path | None, scene: str | None, version: str, out: Path
                    "name (its image topic) or CAMERA.info (its CameraInfo topic; default: camera_info beside the image "
                    "topic). E.g. lidar=/points_raw,CAM_FRONT=/camera/front/image/compressed")
 @click.option("--slice-per-message", is_flag=True,
-              help="The LiDAR driver publishes slices: each message is one slice (its sector found from its points).")
+              help="The LiDAR driver publishes slices: each message is one slice (its sector found from its points). "
+                   "A message whose points do not fit in one slice's sector (a full sweep) is refused: leave the flag "
+                   "off for a driver that publishes full sweeps, which are then cut into slices.")
 @click.option("--ego-frame", default="base_link", show_default=True, help="TF frame of the vehicle.")
 @click.option("--global-frame", default="map", show_default=True,
               help="TF frame of the ego poses; 'none' for a stack without localisation (ego motion between the LiDAR "
@@ -82,11 +101,12 @@ def run_cmd(bag_path: Path, export_dir: Path, out: Path, results_json: Path | No
     logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(message)s")
     if not (export_dir / "manifest.json").is_file():
         raise click.ClickException(f"{export_dir} holds no manifest.json: run `streamdet-export --out {export_dir}` first")
-    from streamdet.bag.run import RunConfig, run_bag
+    from streamdet.bag.run import RunConfig, results_path_of, run_bag
     from streamdet.bag.topics import TopicMap
     from streamdet.runtime_ort.stats import format_latency
     from streamdet.runtime_ort.detector import DetectorConfig
 
+    _check_run_outputs(bag_path, export_dir, fallback_export_dir, out, results_json, results_path_of(out, results_json))
     try:
         _require_extra()
         config = RunConfig(
@@ -137,9 +157,11 @@ def calibration_cmd(bag_path: Path, out: Path, topics: str | None, cameras: str 
     from streamdet.bag.calibration import rig_from_bag, write_calibration_json
     from streamdet.bag.topics import TopicMap
 
+    refuse_output_over_inputs(out, "--out", _bag_inputs(bag_path))
+    _check_output(out, "--out")
+    names = split_list(cameras, "--cameras", "camera") if cameras is not None else None
     try:
         _require_extra()
-        names = [c.strip() for c in cameras.split(",") if c.strip()] if cameras else None
         rig, stamp = rig_from_bag(bag_path, TopicMap.parse(topics), names, ego_frame,
                                   None if global_frame.lower() == "none" else global_frame)  # fmt: skip
         write_calibration_json(rig, out, note=f"{bag_path.name} at LiDAR stamp {stamp} ns")
@@ -147,6 +169,46 @@ def calibration_cmd(bag_path: Path, out: Path, topics: str | None, cameras: str 
         raise click.ClickException(_one_line(e)) from None
     click.echo(f"rig of {len(rig)} cameras {list(rig.names)} at LiDAR stamp {stamp} ns")
     click.echo(f"wrote {out}")
+
+
+def _bag_inputs(bag_path: Path) -> list[tuple[str, Path]]:
+    """The input paths of ``--bag``: the bag itself and, for a .mcap inside a rosbag2 folder (metadata.yaml beside
+    it), that folder: an output written into it would become part of the recording (a second .mcap makes the
+    folder unreadable as one bag)."""
+    inputs = [("--bag", bag_path)]
+    if bag_path.is_file() and (bag_path.parent / "metadata.yaml").is_file():
+        inputs.append(("--bag's rosbag2 folder", bag_path.parent))
+    return inputs
+
+
+def _check_run_outputs(bag_path: Path, export_dir: Path, fallback_export_dir: Path | None, out: Path,
+                       results_json: Path | None, results_path: Path) -> None:  # fmt: skip
+    """`run` writes the output bag and the results JSON: neither may replace or land inside an input (the bag, the
+    exports), nor be the other one. Checked before the export is loaded."""
+    results_option = "--results" if results_json is not None else "--results (default: beside --out)"
+    if bag_path.is_file() and out.resolve() == bag_path.resolve():  # the commonest slip, in run_bag's own words
+        raise click.BadParameter(f"{str(out)!r} is the input bag (--bag); write the detections to another file",
+                                 param_hint="--out")  # fmt: skip
+    inputs = [*_bag_inputs(bag_path), ("--export-dir", export_dir), ("--fallback-export", fallback_export_dir)]
+    refuse_output_over_inputs(out, "--out", inputs)
+    refuse_output_over_inputs(results_path, results_option, inputs)
+    refuse_same_outputs([("--out", out), (results_option, results_path)])
+    _check_output(out, "--out")
+    _check_output(results_path, results_option)
+
+
+def _check_output(path: Path, option: str) -> None:
+    """check_output_parent, except that a missing folder is fine (the bag tools create it): then the nearest
+    existing ancestor must be a folder, so that creating it cannot fail after the work."""
+    parent = path.parent if str(path.parent) else Path(".")
+    if parent.exists():
+        check_output_parent(path, option)
+        return
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if parent.exists() and not parent.is_dir():
+        raise click.BadParameter(f"the folder of {str(path)!r} cannot be created: {parent} is not a folder",
+                                 param_hint=option)  # fmt: skip
 
 
 def _sweep_progress(done: int) -> None:

@@ -63,9 +63,11 @@ def run_bag(
 ) -> RunSummary:  # fmt: skip
     """Detect every LiDAR message of ``bag`` with the export in ``export_dir``; write ``out`` (.mcap) and the
     results JSON (default: beside ``out``). ``progress(n)`` after each sweep."""
-    det = StreamingDetector(export_dir, config.detector)
     out = Path(out)
-    results_path = Path(results_json) if results_json is not None else out.with_name(RESULTS_NAME)
+    results_path = results_path_of(out, results_json)
+    if results_path.resolve() == out.resolve():  # the JSON, written last, would replace the detections bag
+        raise ValueError(f"the results JSON {results_path} is the output bag; write it to another file")
+    det = StreamingDetector(export_dir, config.detector)
     source = BagSource(bag, SourceConfig(
         topics=config.topics, camera_names=det.camera_names if det.uses_images else (), num_slices=det.num_slices,
         start_deg=det.config.start_deg, slice_per_message=config.slice_per_message, cloud_fields=config.cloud_fields,
@@ -73,6 +75,8 @@ def run_bag(
     ))  # fmt: skip
     if Path(source.path).resolve() == out.resolve():
         raise ValueError(f"--out {out} is the input bag; write the detections to another file")
+    if Path(source.path).resolve() == results_path.resolve():
+        raise ValueError(f"the results JSON {results_path} is the input bag; write it to another file")
     keyed_by_tokens = bool(source.sample_tokens())
     results: dict[str, list[dict]] = {}
     shown: dict[int, int] = {}  # slice index -> boxes its markers showed last
@@ -113,6 +117,11 @@ def run_bag(
     without = tuple(c for c in det.camera_names if c in source.cameras_without_info)
     return RunSummary(out, results_path, counts["sweeps"], counts["slices"], counts["image_sets"], counts["detections"],
                       det.camera_names, without, det.precision_label, det.stats.summary(), counts["fallback"])  # fmt: skip
+
+
+def results_path_of(out: str | Path, results_json: str | Path | None) -> Path:
+    """Where the results JSON goes: ``results_json``, or ``results_nusc.json`` beside the output bag."""
+    return Path(results_json) if results_json is not None else Path(out).with_name(RESULTS_NAME)
 
 
 def _feed_images(det: StreamingDetector, event: SweepEvent) -> None:

@@ -31,6 +31,7 @@ import numpy as np
 from streamdet.bag import topics as T
 from streamdet.bag.deps import require
 from streamdet.calibration.camera import Rig, make_transform, quaternion_to_matrix
+from streamdet.core.sectors import azimuth_deg
 from streamdet.runtime_ort.ros.camera_info import IDENTITY_RECORD, rig_from_ros
 from streamdet.runtime_ort.ros.header import header_stamp_ns
 from streamdet.runtime_ort.ros.images import compressed_image_to_rgb, image_to_rgb
@@ -47,6 +48,11 @@ from streamdet.runtime_ort.ros.tf import TfBuffer
 log = logging.getLogger(__name__)
 
 DEFAULT_TF_TOLERANCE_NS = 50_000_000  # a pose lookup may take the nearest pose this far past the last one
+# With slice_per_message, a message is taken as one slice only if one slice-wide arc holds most of its points
+# (min_slice_share). A driver's slice puts nearly all its points in one such arc, whatever its phase against
+# streamdet's sectors; a full sweep spreads them over the whole circle, about 1/n per arc, and taking it as one slice
+# would let the slice graph see only that sector's quadrants: most of the sweep would be silently dropped.
+ARC_BINS_PER_SLICE = 8  # azimuth resolution of that test: an eighth of a slice's width
 
 
 class BagReadError(ValueError):
@@ -191,6 +197,7 @@ class BagSource:
         image_topics = {topics.image_topic(c): c for c in cfg.camera_names}
         info_topics = {topics.camera_info_topic(c): c for c in cfg.camera_names}
         tokens = self.sample_tokens()
+        self._check_lidar_type()
         tf = TfBuffer(max_extrapolation_ns=cfg.tf_tolerance_ns)
         infos: dict[str, Any] = {}
         latest: dict[str, Any] = {}  # camera -> newest image message, decoded only when a set is made
@@ -245,10 +252,25 @@ class BagSource:
         detail = f"{kind}: {e}" if str(e) else kind
         return BagReadError(f"{self.path}: {_CORRUPT}{f' ({where})' if where else ''}: {' '.join(detail.split())}")
 
+    def _check_lidar_type(self) -> None:
+        """A LiDAR topic that carries another message type (a camera topic named by mistake) is refused up front,
+        naming the type found: otherwise its messages are taken for images, TF or nothing, and the bag would seem to
+        have no LiDAR message at all."""
+        topic = self.config.topics.lidar
+        types = self.topics()
+        found = types.get(topic)
+        if found is None or _is_pointcloud2(found):
+            return
+        kind = found or "schemaless (no message type)"
+        clouds = sorted(t for t, datatype in types.items() if _is_pointcloud2(datatype))
+        raise ValueError(f"{self.path}: the LiDAR topic {topic!r} carries {kind} messages, not {T.POINTCLOUD2}; name "
+                         f"the point cloud topic with --topics lidar=/topic (PointCloud2 topics in the bag: {clouds})")  # fmt: skip
+
     def _sweep(self, message: Any, tf: TfBuffer, tokens: dict, image_set: ImageSet | None) -> SweepEvent:
         cfg = self.config
         cloud = self._cloud(message)
         if cfg.slice_per_message:
+            self._check_one_slice(cloud)
             slices = [slice_from_message(cloud, cfg.num_slices, cfg.start_deg)]
         else:
             slices = split_cloud(cloud, cfg.num_slices, cfg.start_deg)
@@ -273,6 +295,18 @@ class BagSource:
                         cloud.dropped_time_s, self.config.cloud_fields.max_time_offset_s)  # fmt: skip
             self._warned_times = True
         return cloud
+
+    def _check_one_slice(self, cloud: Cloud) -> None:
+        """With slice_per_message, refuse a message that spreads over more than one slice's arc (a full sweep): the
+        slice graph would see only one sector's quadrants of it (ValueError naming the message and the flag)."""
+        n = self.config.num_slices
+        share = slice_arc_share(cloud.points, n, self.config.start_deg)
+        if share >= min_slice_share(n):
+            return
+        raise ValueError(f"{self.path}: {self.config.topics.lidar} message at stamp {cloud.stamp_ns} ns is not one slice: "
+                         f"at most {share:.0%} of its {len(cloud.points)} points lie within one slice's arc ({360 / n:g} "
+                         f"deg, 1 of {n}), as in a full sweep; drop --slice-per-message (SourceConfig.slice_per_message) "
+                         "for a driver that publishes full sweeps")  # fmt: skip
 
     def _lookup(self, tf: TfBuffer, parent: str, child: str, stamp: int) -> dict:
         if parent == child.lstrip("/"):
@@ -306,6 +340,34 @@ class BagSource:
 
 
 _CORRUPT = "not a readable MCAP bag (truncated or corrupted)"
+
+
+def _is_pointcloud2(datatype: str) -> bool:
+    # rosbag2 writes pkg/msg/Type; a bag converted from ROS 1 may name it pkg/Type
+    return datatype in (T.POINTCLOUD2, T.POINTCLOUD2.replace("/msg/", "/"))
+
+
+def min_slice_share(num_slices: int) -> float:
+    """The least share of a message's points one slice-wide arc must hold for the message to be one slice: midway
+    between a full sweep's even spread (1 / num_slices per arc) and a slice's (all of them), so neither a driver
+    slice cut at another phase nor an unevenly filled sweep lands on the wrong side."""
+    return (1.0 + 1.0 / num_slices) / 2.0
+
+
+def slice_arc_share(points: np.ndarray, num_slices: int, start_deg: float = 0.0) -> float:
+    """The largest share of ``points`` (N, >=2) that one arc of a slice's width (360 / num_slices deg) holds, the arc
+    placed anywhere (in steps of 1 / ARC_BINS_PER_SLICE slice): near 1 for a message that is one slice, also one cut
+    at another phase than streamdet's sectors; about 1 / num_slices for a full sweep. 1.0 for one slice per sweep or
+    no points."""
+    if num_slices <= 1 or len(points) == 0:
+        return 1.0
+    bins = num_slices * ARC_BINS_PER_SLICE
+    rel = np.mod(azimuth_deg(points[:, 0], points[:, 1]) - start_deg, 360.0)
+    which = np.minimum((rel * (bins / 360.0)).astype(np.int64), bins - 1)  # rel can round up to 360
+    counts = np.bincount(which, minlength=bins)
+    ring = np.concatenate([counts, counts[: ARC_BINS_PER_SLICE - 1]])  # arcs that wrap past 360 deg
+    window = np.convolve(ring, np.ones(ARC_BINS_PER_SLICE, np.int64), mode="valid")
+    return float(window.max()) / len(points)
 
 
 def _read_errors() -> tuple[type[BaseException], ...]:

@@ -62,19 +62,27 @@ class TopicMap:
         """``lidar=/points_raw,CAM_FRONT=/camera/front/image/compressed,CAM_FRONT.info=/camera/front/info,tf=/tf``.
 
         Keys: ``lidar``, ``tf``, ``tf_static``, a camera name (its image topic) or ``<camera>.info`` (its CameraInfo).
+        None: the defaults. An empty entry or a key given twice is a ValueError naming it.
         """
-        if not text:
+        if text is None:
             return cls()
         lidar, tf, tf_static = LIDAR_TOPIC, TF_TOPIC, TF_STATIC_TOPIC
         cameras: dict[str, str] = {}
         infos: dict[str, str] = {}
-        for item in text.split(","):
+        seen: dict[str, str] = {}  # key -> its entry
+        shown = text if len(text) <= 60 else text[:57] + "..."
+        for k, item in enumerate(text.split(","), start=1):
+            if not item.strip():  # "lidar=/a,,tf=/b" or "": a slip of the keyboard, not a request for the defaults
+                raise ValueError(f"--topics entry {k} of {shown!r} is empty (a stray comma?)")
             key, sep, topic = item.strip().partition("=")
             key, topic = key.strip(), topic.strip()
             if not sep or not key or not topic.startswith("/"):
                 raise ValueError(
                     f"--topics entry {item!r} must be KEY=/topic (KEY: lidar, tf, tf_static, a camera name or CAMERA.info)"
                 )
+            if key in seen:  # which of the two was meant? Refused rather than the last one silently taken
+                raise ValueError(f"--topics names {key!r} twice: {seen[key]!r} and {item.strip()!r}; keep one")
+            seen[key] = item.strip()
             if key == "lidar":
                 lidar = topic
             elif key == "tf":

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+import secrets
 from pathlib import Path
 from typing import Any
 
@@ -10,16 +12,26 @@ from streamdet.bag.msgdefs import full_name, schema_text
 
 
 class BagWriter:
-    """Writes one ``.mcap`` file (profile ros2, CDR messages, zstd chunks); use as a context manager."""
+    """Writes one ``.mcap`` file (profile ros2, CDR messages, zstd chunks); use as a context manager.
+
+    The bag is written to a hidden temporary file beside ``path`` and renamed onto ``path`` only once it is complete:
+    a failed or interrupted write then leaves neither a partial bag nor a truncated file at ``path`` (which may have
+    been an input the export was still reading). Leaving the ``with`` block by an exception removes the temporary.
+    """
 
     def __init__(self, path: str | Path) -> None:
         writer_mod = require("mcap_ros2.writer")
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._file = open(self.path, "wb")
-        self._writer = writer_mod.Writer(self._file)
+        self.tmp_path, self._file = _open_temporary(self.path)
+        try:
+            self._writer = writer_mod.Writer(self._file)
+        except BaseException:
+            self._discard()
+            raise
         self._schemas: dict[str, Any] = {}
         self.count = 0
+        self._closed = False
 
     def schema(self, datatype: str, text: str | None = None) -> Any:
         """The registered schema of ``datatype`` (``pkg/msg/Type``); ``text`` None: streamdet's own definition."""
@@ -37,13 +49,51 @@ class BagWriter:
         self._writer.add_metadata(name, data)
 
     def close(self) -> None:
+        """Finish the bag and move it onto ``path``; on any failure the temporary is removed and ``path`` untouched."""
+        if self._closed:
+            return
+        self._closed = True
         try:
             self._writer.finish()
-        finally:
             self._file.close()
+            os.replace(self.tmp_path, self.path)
+        except BaseException:
+            self._discard()
+            raise
+
+    def abort(self) -> None:
+        """Drop what was written: the temporary goes, ``path`` stays as it was."""
+        if not self._closed:
+            self._closed = True
+            self._discard()
+
+    def _discard(self) -> None:
+        try:
+            self._file.close()
+        finally:
+            self.tmp_path.unlink(missing_ok=True)
 
     def __enter__(self) -> "BagWriter":
         return self
 
-    def __exit__(self, *exc: Any) -> None:
-        self.close()
+    def __exit__(self, exc_type: Any, *exc: Any) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+
+
+def _open_temporary(path: Path) -> tuple[Path, Any]:
+    """A new hidden file beside ``path`` (same folder, so the final rename is atomic), opened for writing.
+
+    Created with O_EXCL (never another process's file) and mode 0666 less the umask, as ``open(path, "wb")`` would
+    create ``path`` itself, so the finished bag gets the permissions a direct write would have given it.
+    """
+    for _ in range(100):
+        tmp = path.with_name(f".{path.name}.{os.getpid()}-{secrets.token_hex(4)}.partial")
+        try:
+            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), 0o666)
+        except FileExistsError:
+            continue
+        return tmp, os.fdopen(fd, "wb")
+    raise FileExistsError(f"cannot create a temporary file beside {path}")
