@@ -12,12 +12,13 @@ Conventions (the same as data/nuscenes_sample/README.md):
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import math
 import os
 from dataclasses import dataclass
-from typing import Any, Iterable, Mapping
+from typing import Any, Callable, Iterable, Mapping
 
 import numpy as np
 
@@ -112,6 +113,54 @@ def _check_plausible(K: np.ndarray, lidar2cam: np.ndarray, width: int, height: i
 
 # A rig of six cameras is a few kB of JSON; far more than that is not a calibration file (and is not read whole).
 MAX_CALIBRATION_BYTES = 4 * 1024 * 1024
+
+
+def _read_calibration_file(path: str | os.PathLike) -> tuple[Any, str]:
+    """(parsed JSON, name for errors) of a calibration file; CalibrationError naming the path as the caller gave it
+    (a basename alone does not tell ``cal/a.json`` from ``b/a.json``, and is nothing for ``""``)."""
+    src = os.fsdecode(os.fspath(path))
+    if not src:
+        raise CalibrationError("calibration path is empty ('')")
+    try:  # a regular file, bounded: a FIFO (it would block) or a device or a huge file is refused unread
+        raw = read_regular_file(src, MAX_CALIBRATION_BYTES)
+    except InputFileError as e:
+        if e.too_large:
+            raise CalibrationError(f"{src}: larger than {MAX_CALIBRATION_BYTES} bytes, too large to be a calibration file") from None
+        raise CalibrationError(f"{src}: cannot read: {_unreadable_reason(src, e.reason)}") from None
+    return _parse_calibration(lambda: raw.decode("utf-8"), src), src
+
+
+def _read_calibration_resource(resource: Any) -> tuple[Any, str]:
+    """(parsed JSON, name for errors) of an importlib.resources file."""
+    src = getattr(resource, "name", "calibration.json")
+    return _parse_calibration(lambda: resource.read_text(encoding="utf-8"), src), src
+
+
+def _parse_calibration(text: Callable[[], str], src: str) -> Any:
+    """json.loads of ``text()``, every failure a one-line CalibrationError naming ``src``."""
+    try:
+        return json.loads(text())
+    except UnicodeDecodeError as e:  # a ValueError too: caught before the JSON one below
+        raise CalibrationError(f"{src}: not UTF-8 text (a binary file?): {e.reason} at byte {e.start}") from None
+    except ValueError as e:  # JSONDecodeError, or an integer literal past Python's 4300-digit limit
+        raise CalibrationError(f"{src}: not valid JSON: {e}") from None
+    except RecursionError:
+        raise CalibrationError(f"{src}: nests too deeply to be a calibration file") from None
+
+
+def _unreadable_reason(src: str, reason: str) -> str:
+    """``reason`` from read_regular_file, told apart where it says "missing" of a path that is a symlink: the
+    link exists, so "missing" would send the user looking for a file they can see."""
+    if reason != "missing":
+        return reason
+    if not os.path.islink(src):
+        return "no such file"
+    try:
+        os.stat(src)
+    except OSError as e:
+        if e.errno == errno.ELOOP:
+            return "a symlink loop"
+    return f"a broken symlink (to {os.readlink(src)!r}, which does not exist)"
 
 
 def _readonly(a: np.ndarray) -> np.ndarray:
@@ -375,41 +424,26 @@ class Rig:
 
     # ---- loaders ----------------------------------------------------------------------------------
     @classmethod
-    def from_calibration_json(cls, path_or_dict: str | os.PathLike | Mapping) -> "Rig":
+    def from_calibration_json(cls, path_or_dict: str | os.PathLike | Mapping, source: str | None = None) -> "Rig":
         """Rig from the calibration.json format of data/nuscenes_sample: a path, an importlib.resources file, or the
         parsed dict (``to_dict()`` output included).
+
+        Errors name the path as given; for a parsed dict they name ``source`` (the file it was read from, where the
+        caller knows it), else "calibration". Any other argument (a list, None, bytes) is a CalibrationError: a JSON
+        document that is not an object must not be taken for a path and opened.
 
         Each camera's ``lidar2cam.matrix`` is used as stored (it already holds the ego motion).
         """
         if isinstance(path_or_dict, Mapping):
-            doc, src = path_or_dict, "calibration"
-        elif not isinstance(path_or_dict, (str, os.PathLike)) and hasattr(path_or_dict, "read_text"):
+            doc, src = path_or_dict, source or "calibration"
+        elif isinstance(path_or_dict, (str, os.PathLike)):
+            doc, src = _read_calibration_file(path_or_dict)
+        elif hasattr(path_or_dict, "read_text"):
             # an importlib.resources Traversable (the bundled sample inside a zipped install)
-            src = getattr(path_or_dict, "name", "calibration.json")
-            try:
-                doc = json.loads(path_or_dict.read_text(encoding="utf-8"))
-            except UnicodeDecodeError as e:  # a ValueError too: caught before the JSON one below
-                raise CalibrationError(f"{src}: not UTF-8 text (a binary file?): {e.reason} at byte {e.start}") from None
-            except ValueError as e:  # JSONDecodeError, or an integer literal past Python's 4300-digit limit
-                raise CalibrationError(f"{src}: not valid JSON: {e}") from None
-            except RecursionError:
-                raise CalibrationError(f"{src}: nests too deeply to be a calibration file") from None
+            doc, src = _read_calibration_resource(path_or_dict)
         else:
-            src = os.path.basename(os.fspath(path_or_dict))
-            try:  # a regular file, bounded: a FIFO (it would block) or a device or a huge file is refused unread
-                raw = read_regular_file(path_or_dict, MAX_CALIBRATION_BYTES)
-            except InputFileError as e:
-                if e.too_large:
-                    raise CalibrationError(f"{src}: larger than {MAX_CALIBRATION_BYTES} bytes, too large to be a calibration file") from None
-                raise CalibrationError(f"{src}: cannot read: {e.reason}") from None
-            try:
-                doc = json.loads(raw.decode("utf-8"))
-            except UnicodeDecodeError as e:  # a ValueError too: caught before the JSON one below
-                raise CalibrationError(f"{src}: not UTF-8 text (a binary file?): {e.reason} at byte {e.start}") from None
-            except ValueError as e:  # JSONDecodeError, or an integer literal past Python's 4300-digit limit
-                raise CalibrationError(f"{src}: not valid JSON: {e}") from None
-            except RecursionError:
-                raise CalibrationError(f"{src}: nests too deeply to be a calibration file") from None
+            raise CalibrationError(f"{source or 'calibration'}: expected a path to a calibration.json or its parsed "
+                                   f"JSON object, got {type(path_or_dict).__name__} {short_repr(path_or_dict)}")
         if not isinstance(doc, Mapping):
             raise CalibrationError(f"{src}: expected a JSON object at the top level, got {type(doc).__name__}")
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import importlib.resources
 import math
+import os
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -307,22 +308,21 @@ def load_bundled_sample(root: str | Path | None = None) -> Sample:
     Another ``root`` is read as untrusted: every box field is checked, and the files calibration.json names must
     lie inside ``root`` (``dataset_file``); any defect is a ValueError naming the file, box and field.
     """
+    what = "bundled sample" if root is None else "sample"  # a user's --sample folder is not the bundled one
     root = Path(root) if root is not None else bundled_sample_dir()
     calib_path = root / "calibration.json"
     boxes_path = root / "boxes.json"
     for p in (calib_path, boxes_path):
-        if not p.is_file():
-            raise FileNotFoundError(f"bundled sample file not found: {p}")
+        _check_sample_file(p, what)
     calib = read_json(calib_path, "calibration file", MAX_CALIBRATION_BYTES)
-    rig = Rig.from_calibration_json(calib)  # CalibrationError (a ValueError) for a malformed rig
+    if type(calib) is not dict:  # Rig.from_calibration_json would take a JSON string for a path to open
+        raise ValueError(f"calibration file {calib_path}: expected a JSON object at the top level, got {_json_type(calib)}")
+    rig = Rig.from_calibration_json(calib, source=str(calib_path))  # CalibrationError (a ValueError) for a malformed rig
     check_fields(calib, {"sample_token": TEXT, "sample_timestamp_us": COUNT}, str(calib_path))
     check_fields(calib["lidar"], {"file": NAME}, f"{calib_path} lidar")  # Rig checked lidar and cameras are objects
     for i, cam in enumerate(calib["cameras"]):
         check_fields(cam, {"file": NAME}, f"{calib_path} cameras[{i}]")
-    doc = read_json(boxes_path, "boxes file", MAX_BOXES_BYTES)
-    records = doc.get("boxes") if isinstance(doc, dict) else None
-    if not isinstance(records, list):
-        raise ValueError(f"{boxes_path}: 'boxes' must be a list, got {type(records).__name__}")
+    records = _box_records(read_json(boxes_path, "boxes file", MAX_BOXES_BYTES), boxes_path)
     boxes = np.zeros((len(records), BOX_DIM), dtype=np.float64)
     valid_v = np.ones(len(records), dtype=bool)
     for i, r in enumerate(records):
@@ -340,7 +340,7 @@ def load_bundled_sample(root: str | Path | None = None) -> Sample:
     return Sample(
         token=calib["sample_token"],
         timestamp_us=calib["sample_timestamp_us"],
-        points=load_points(dataset_file(root, calib["lidar"]["file"], f"{calib_path} lidar")),
+        points=_load_sample_points(dataset_file(root, calib["lidar"]["file"], f"{calib_path} lidar")),
         rig=rig,
         image_paths={
             c["name"]: dataset_file(root, c["file"], f"{calib_path} cameras[{i}]")
@@ -355,6 +355,48 @@ def load_bundled_sample(root: str | Path | None = None) -> Sample:
         scene_name=str(calib.get("scene", "")),
         extras={"center_global": np.array([r["center_global"] for r in records], dtype=np.float64).reshape(-1, 3)},  # (M, 3)
     )
+
+
+def _check_sample_file(path: Path, what: str) -> None:
+    """FileNotFoundError for a missing calibration.json / boxes.json of a sample folder, ValueError for one that is
+    there but no regular file (a FIFO would block the reader; "not found" would send the user looking for it)."""
+    if path.is_file():
+        return
+    if path.exists():
+        raise ValueError(f"{what} file {path} is not a regular file (a FIFO, a device or a folder?)")
+    if os.path.islink(path):
+        raise FileNotFoundError(f"{what} file {path} is a broken symlink or a symlink loop")
+    raise FileNotFoundError(f"{what} file not found: {path} (a sample folder holds calibration.json and boxes.json)")
+
+
+def _box_records(doc: object, boxes_path: Path) -> list:
+    """The ``boxes`` list of a boxes.json document, ValueError naming the file and what its top level is."""
+    if type(doc) is not dict:
+        raise ValueError(f"{boxes_path}: 'boxes' must be a list in a top-level JSON object, but the top level is "
+                         f"{_json_type(doc)}")  # fmt: skip
+    if "boxes" not in doc:
+        raise ValueError(f"{boxes_path}: 'boxes' must be a list, but the object has no 'boxes' (keys: {sorted(doc)[:20]})")
+    if type(doc["boxes"]) is not list:
+        raise ValueError(f"{boxes_path}: 'boxes' must be a list, got {_json_type(doc['boxes'])}")
+    return doc["boxes"]
+
+
+def _json_type(value: object) -> str:
+    """What a parsed JSON value is, in JSON's words (an array, not a list; null, not NoneType), with the value."""
+    if value is None:
+        return "null"
+    names = {dict: "an object", list: "an array", str: "a string", bool: "a boolean", int: "a number", float: "a number"}
+    return f"{names.get(type(value), type(value).__name__)} {short_repr(value)}"
+
+
+def _load_sample_points(path: Path) -> np.ndarray:
+    """The sample's key-frame sweep; an empty one is refused: a key frame without a single LiDAR point is a broken
+    recording (a truncated copy, a failed export), and detecting on it would report "0 detections" as a result.
+    (Past sweeps and the nuScenes reader keep load_points' leniency.)"""
+    points = load_points(path)
+    if not len(points):
+        raise ValueError(f"LiDAR file {path} holds no points ({path.stat().st_size} bytes): a sample needs its sweep")
+    return points
 
 
 def _check_size(size: tuple[int, int]) -> tuple[int, int]:

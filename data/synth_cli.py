@@ -13,10 +13,25 @@ from pathlib import Path
 
 import click
 
-from streamdet.cli_utils import MAX_THREADS, RESOLUTION_RANGE_HELP, resolution_callback
+from streamdet.cli_utils import (
+    MAX_THREADS,
+    RESOLUTION_RANGE_HELP,
+    check_output_parent,
+    refuse_output_over_inputs,
+    refuse_same_outputs,
+    resolution_callback,
+)
 from streamdet.data.synth_stats import open_samples
 from streamdet.data.synth_world import WorldConfig
-from streamdet.data.synth_writer import DEFAULT_VERSION, SynthConfig, generate_dataset
+from streamdet.data.synth_writer import (
+    DEFAULT_VERSION,
+    RootSurvey,
+    SynthConfig,
+    generate_dataset,
+    remove_dataset_entries,
+    survey_root,
+    version_problem,
+)
 
 
 # Upper bounds of the numeric options, far past any documented use (nuScenes: 1000 scenes of about 40 key frames),
@@ -41,6 +56,63 @@ def main() -> None:
     a dataset; `streamdet-synth stats DIR` measures one against the real nuScenes sample."""
 
 
+def _version(value: str) -> str:
+    problem = version_problem(value)
+    if problem:
+        raise click.BadParameter(problem, param_hint="--version")
+    return value
+
+
+def _listing(entries, limit: int = 8) -> str:
+    """'a/, b.json, c/ and 3 more': folders marked with a slash."""
+    names = [e.name + ("/" if e.is_dir() and not e.is_symlink() else "") for e in entries]
+    more = f" and {len(names) - limit} more" if len(names) > limit else ""
+    return ", ".join(names[:limit]) + more
+
+
+def _check_out_dir(out_dir: Path, version: str, overwrite: bool) -> tuple[Path, ...]:
+    """What must be deleted before writing into ``out_dir`` (with --overwrite: the dataset it holds), else a
+    ClickException. A dataset's splits.json, world.json and samples/ are shared by every --version, so writing a
+    second dataset beside one replaced the first one's split and world silently: without --overwrite, OUT must be
+    new or empty."""
+    if out_dir.exists() and not out_dir.is_dir():
+        raise click.BadParameter(f"{out_dir} exists and is not a folder", param_hint="--out")
+    try:
+        if not out_dir.is_dir() or not any(out_dir.iterdir()):
+            return ()
+        survey = survey_root(out_dir)
+    except OSError as e:
+        raise click.ClickException(f"--out {out_dir}: cannot list the folder: {e}") from None
+    if survey.marker_problem is not None:
+        raise click.ClickException(
+            f"--out {out_dir} is a non-empty folder that is not a streamdet-synth dataset ({survey.marker_problem}; "
+            f"it holds {_listing(survey.dataset + survey.kept + survey.foreign)}): "
+            + ("--overwrite replaces only a streamdet-synth dataset and deletes nothing here" if overwrite
+               else "refusing to write into it")
+            + "; choose a new or empty folder"
+        )
+    if survey.foreign:
+        raise click.ClickException(
+            f"--out {out_dir} holds a streamdet-synth dataset and other entries ({_listing(survey.foreign)}): "
+            "--overwrite would replace only the dataset's own files, and these would be left mixed into the new "
+            "one; move them out, or choose a new or empty folder"
+        )
+    if not overwrite:
+        raise click.ClickException(_occupied(out_dir, version, survey))
+    return survey.dataset
+
+
+def _occupied(out_dir: Path, version: str, survey: RootSurvey) -> str:
+    """The message for an --out that holds a synth dataset, without --overwrite."""
+    held = _listing(survey.dataset)
+    if (out_dir / version).exists():
+        return (f"{out_dir / version} already exists: --out {out_dir} holds a streamdet-synth dataset ({held}); "
+                "pass --overwrite to replace it (those are deleted first), or choose another --out")
+    return (f"--out {out_dir} already holds a streamdet-synth dataset ({held}); another --version beside it would "
+            "replace its splits.json, world.json and files under samples/: pass --overwrite to replace the whole "
+            "dataset (those are deleted first), or choose another --out")
+
+
 @main.command("generate", context_settings={"help_option_names": ["-h", "--help"]})
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path),
               help="Dataset root to write: tables go to OUT/<version>/, files to OUT/samples/ and OUT/sweeps/.")
@@ -53,24 +125,32 @@ def main() -> None:
               help=f"Key frames per scene, 0.5 s apart (2 Hz, as nuScenes); 1..{MAX_SAMPLES_PER_SCENE}.")
 @click.option("--sweeps-per-sample", default=1, show_default=True, type=click.IntRange(1, 10),
               help="LiDAR sweeps per key-frame interval including the key frame, 1..10 (nuScenes has 10, at 20 Hz).")
-@click.option("--version", "version", default=DEFAULT_VERSION, show_default=True, help="Name of the table folder (the nuScenes 'version').")
+@click.option("--version", "version", default=DEFAULT_VERSION, show_default=True,
+              callback=lambda ctx, param, value: _version(value),
+              help="Name of the table folder (the nuScenes 'version'): one folder name, not one of the layout's own.")
 @click.option("--preview", is_flag=True, help="Also write pictures of the first key frame to OUT/preview/: the six cameras with the ground truth and a bird's-eye view coloured by slice (8 slices).")
 @click.option("--workers", default=1, show_default=True, type=click.IntRange(1, MAX_THREADS),
               help=f"Processes simulating scenes in parallel, 1..{MAX_THREADS} (the output does not depend on it).")
-@click.option("--overwrite", is_flag=True, help="Write into OUT even if it already holds a dataset of this version.")
+@click.option("--overwrite", is_flag=True,
+              help="Replace the streamdet-synth dataset OUT already holds (any version): its tables, samples/, sweeps/, "
+                   "maps/, preview/, splits.json, world.json and trajectories.npz are deleted first. A folder that is "
+                   "not such a dataset, or holds other files too, is refused all the same.")
 def generate(out_dir: Path, scenes: int, seed: int, resolution: tuple[int, int], samples_per_scene: int,
          sweeps_per_sample: int, version: str, preview: bool, workers: int, overwrite: bool) -> None:
     """Generate a synthetic street dataset readable by streamdet's nuScenes reader and the nuScenes devkit."""
-    table_dir = out_dir / version
-    if table_dir.exists() and not overwrite:
-        raise click.ClickException(f"{table_dir} already exists; pass --overwrite or choose another --out")
-    if out_dir.exists() and not out_dir.is_dir():
-        raise click.ClickException(f"--out {out_dir} exists and is not a folder")
     try:
         config = SynthConfig(num_scenes=scenes, seed=seed, resolution=resolution, sweeps_per_sample=sweeps_per_sample,
                              version=version, world=WorldConfig(samples_per_scene=samples_per_scene))
     except ValueError as e:
         raise click.ClickException(str(e)) from None
+    table_dir = out_dir / version
+    replaced = _check_out_dir(out_dir, version, overwrite)
+    if replaced:
+        click.echo(f"replacing the streamdet-synth dataset in {out_dir}: deleting {_listing(replaced)}")
+        try:
+            remove_dataset_entries(replaced)
+        except OSError as e:
+            raise click.ClickException(f"cannot delete the previous dataset in {out_dir}: {e}") from None
     total = scenes * samples_per_scene
     try:
         with click.progressbar(length=total, label=f"simulating {scenes} scene(s)", show_pos=True) as bar:
@@ -96,11 +176,12 @@ def generate(out_dir: Path, scenes: int, seed: int, resolution: tuple[int, int],
 @click.argument("data_dir", type=click.Path(path_type=Path))
 @click.option("--reference", "reference_dir", type=click.Path(path_type=Path), default=None,
               help="Dataset to compare with (nuScenes tables or a bundled-sample folder); default: the bundled real nuScenes sample.")
-@click.option("--no-reference", is_flag=True, help="Measure DATA_DIR alone.")
+@click.option("--no-reference", is_flag=True, help="Measure DATA_DIR alone (not with --reference).")
 @click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="Also write both measurements as JSON to this file.")
+              help="Also write both measurements as JSON to this file (its folder must exist).")
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="Also draw them as a PNG to this file (needs matplotlib).")
+              help="Also draw them to this file, a PNG or another format matplotlib writes, by its suffix "
+                   "(needs matplotlib; its folder must exist).")
 @click.option("--max-samples", type=click.IntRange(1, MAX_STATS_SAMPLES), default=None,
               help=f"Measure only the first N key frames (1..{MAX_STATS_SAMPLES}).")
 def stats(data_dir: Path, reference_dir: Path | None, no_reference: bool, json_path: Path | None, plot_path: Path | None,
@@ -109,9 +190,13 @@ def stats(data_dir: Path, reference_dir: Path | None, no_reference: bool, json_p
     headings, distractors, class shares, points per sweep) per class and 10 m bin, beside a reference."""
     from streamdet.data.synth_stats import dataset_stats, format_table, plot_stats, reference_dir as default_reference
 
+    if no_reference and reference_dir is not None:
+        raise click.BadParameter("--no-reference measures DATA_DIR alone: give one of --reference and --no-reference",
+                                 param_hint="--reference")  # fmt: skip
+    reference = None if no_reference else (reference_dir or default_reference())
+    _check_stats_outputs(data_dir, reference, json_path, plot_path)
     results = []
-    targets = [data_dir] + ([] if no_reference else [reference_dir or default_reference()])
-    for path in targets:
+    for path in [data_dir] + ([] if reference is None else [reference]):
         try:
             _, count, _, _ = open_samples(path)
             count = min(count, max_samples) if max_samples else count
@@ -121,15 +206,38 @@ def stats(data_dir: Path, reference_dir: Path | None, no_reference: bool, json_p
             raise click.ClickException(f"cannot measure {path}: {e}") from None
     click.echo(format_table(results[0], results[1] if len(results) > 1 else None))
     if json_path is not None:
-        json_path.parent.mkdir(parents=True, exist_ok=True)
         doc = {"data": results[0], "reference": results[1] if len(results) > 1 else None}
         json_path.write_text(json.dumps(doc, indent=1))
         click.echo(f"  json: {json_path}")
     if plot_path is not None:
-        try:
-            click.echo(f"  plot: {plot_stats(plot_path, results)}")
-        except ImportError:
-            raise click.ClickException("--plot needs matplotlib (pip install matplotlib)") from None
+        click.echo(f"  plot: {plot_stats(plot_path, results)}")
+
+
+def _check_stats_outputs(data_dir: Path, reference: Path | None, json_path: Path | None, plot_path: Path | None) -> None:
+    """Refuse, before measuring (minutes on a large dataset), outputs that cannot be written or would replace an
+    input: ``--json DATA_DIR/splits.json`` replaced the split file of the dataset it measured."""
+    outputs = [("--json", json_path), ("--plot", plot_path)]
+    for option, path in outputs:
+        check_output_parent(path, option)  # no folders made on the way: a typo in the folder is an error
+        refuse_output_over_inputs(path, option, [("DATA_DIR", data_dir), ("--reference", reference)])
+    refuse_same_outputs(outputs)
+    if plot_path is not None:
+        _check_plot_format(plot_path)
+
+
+def _check_plot_format(path: Path) -> None:
+    """The suffix must name a format matplotlib's Agg canvas writes (savefig picks the format from it, and fails
+    only once the figure is drawn); matplotlib is imported here, only for --plot."""
+    try:
+        from matplotlib.backend_bases import FigureCanvasBase
+    except ImportError:
+        raise click.BadParameter("needs matplotlib (pip install matplotlib)", param_hint="--plot") from None
+    formats = sorted(FigureCanvasBase.get_supported_filetypes())
+    suffix = path.suffix[1:].lower()
+    if suffix not in formats:
+        got = f"'.{suffix}'" if suffix else "no suffix"
+        raise click.BadParameter(f"{str(path)!r} has {got}; give a file ending in one of "
+                                 f"{', '.join('.' + f for f in formats)}", param_hint="--plot")  # fmt: skip
 
 
 if __name__ == "__main__":

@@ -31,6 +31,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import shutil
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
@@ -42,10 +43,11 @@ import numpy as np
 
 from streamdet.calibration.camera import make_transform, matrix_to_quaternion, quaternion_to_matrix
 from streamdet.core.classes import CLASS_NAMES
+from streamdet.core.json_input import read_json
 from streamdet.data.sample import POINT_TIME_SUFFIX, bundled_sample_dir
 from streamdet.data.synth_lidar import LidarConfig, SimSweep, simulate_sweep
 from streamdet.data.synth_render import CameraModel, Render, render_camera, shadow_raster
-from streamdet.data.synth_trajectories import write_trajectories
+from streamdet.data.synth_trajectories import TRAJECTORIES_FILE, write_trajectories
 from streamdet.data.synth_world import (
     DISTRACTOR_KINDS,
     KIND_SPECS,
@@ -77,6 +79,103 @@ ATTRIBUTES = (
 )
 
 
+# ---- the layout of a dataset's root ----------------------------------------------------------------------------
+# What generate_dataset (and the CLI's --preview) write beside the table folder. A --version that names one of them
+# would mix the 13 tables into the LiDAR sweeps or the pictures; --overwrite deletes exactly these and nothing else.
+SPLITS_FILE = "splits.json"
+LAYOUT_FILES = (SPLITS_FILE, WORLD_FILE, TRAJECTORIES_FILE)
+LAYOUT_DIRS = ("samples", "sweeps", "maps", "preview")
+# The training cache streamdet-train keeps in its --data folder by default (training/cli.py): streamdet's, and
+# derived from the dataset, so it is not someone else's file; it is left in place (it checks its data fingerprint).
+TRAINING_CACHE_DIR = ".streamdet_cache"
+RESERVED_NAMES = LAYOUT_FILES + LAYOUT_DIRS + (TRAINING_CACHE_DIR,)
+TABLE_NAMES = (
+    "category", "attribute", "visibility", "instance", "sensor", "calibrated_sensor", "ego_pose",
+    "log", "scene", "sample", "sample_data", "sample_annotation", "map",
+)  # fmt: skip
+
+
+def version_problem(version: object) -> str | None:
+    """Why ``version`` cannot name the table folder (``OUT/<version>/``), or None.
+
+    It must be one plain folder name inside OUT: not ``.`` or ``..`` (the tables would land in OUT or its parent),
+    no path separator (``/``, or ``\\`` which is one on Windows), no NUL, and none of the layout's own names.
+    Names are compared case-insensitively: on a case-insensitive file system ``Samples`` is ``samples``.
+    """
+    if type(version) is not str or not version:
+        return f"must be a non-empty folder name, got {version!r}"
+    if version in (".", "..") or any(c in version for c in "/\\\x00"):
+        return f"must be one folder name inside the dataset root (no '.', '..', '/', '\\' or NUL), got {version!r}"
+    if version.casefold() in {n.casefold() for n in RESERVED_NAMES}:
+        return (f"{version!r} is a name the dataset's own layout uses ({', '.join(RESERVED_NAMES)}): the tables "
+                "would be mixed into it; choose another")
+    return None
+
+
+# world.json of 10,000 scenes is tens of MB; a larger file is no sidecar of ours and is not read to find out.
+MAX_WORLD_BYTES = 512 << 20
+
+
+@dataclass(frozen=True)
+class RootSurvey:
+    """The entries of an existing dataset root, sorted: what a synth dataset consists of, and the rest."""
+
+    dataset: tuple[Path, ...]  # layout files and folders, table folders: what --overwrite replaces
+    kept: tuple[Path, ...]  # streamdet's training cache: neither the dataset's nor foreign
+    foreign: tuple[Path, ...]  # anything else: someone else's, never deleted
+    marker_problem: str | None  # why world.json does not mark a streamdet-synth dataset; None where it does
+
+
+def survey_root(root: Path) -> RootSurvey:
+    """Sort the entries of ``root`` (an existing folder) into a synth dataset's, streamdet's cache and the rest.
+
+    A table folder counts as the dataset's only when it holds nothing but nuScenes table files (``sample.json``
+    among them). Whether the whole is a streamdet-synth dataset is decided by its world.json alone: a real nuScenes
+    root has the same ``samples/``, ``sweeps/``, ``maps/`` and table names, and must never be taken for one.
+    """
+    dataset, kept, foreign = [], [], []
+    for entry in sorted(Path(root).iterdir()):
+        if entry.name in LAYOUT_FILES + LAYOUT_DIRS or _is_table_folder(entry):
+            dataset.append(entry)
+        elif entry.name == TRAINING_CACHE_DIR:
+            kept.append(entry)
+        else:
+            foreign.append(entry)
+    return RootSurvey(tuple(dataset), tuple(kept), tuple(foreign), _world_problem(Path(root)))
+
+
+def _is_table_folder(path: Path) -> bool:
+    if path.is_symlink() or not path.is_dir():
+        return False
+    names = {p.name for p in path.iterdir()}
+    tables = {f"{n}.json" for n in TABLE_NAMES}
+    return "sample.json" in names and names <= tables and all((path / n).is_file() for n in names)
+
+
+def _world_problem(root: Path) -> str | None:
+    """None if ``root/world.json`` is a streamdet-synth world sidecar, else why not (in words)."""
+    path = root / WORLD_FILE
+    if not path.is_file():
+        return f"it has no {WORLD_FILE}"
+    try:
+        doc = read_json(path, "world file", MAX_WORLD_BYTES)
+    except ValueError as e:
+        return str(e)
+    if type(doc) is not dict or "world_version" not in doc or type(doc.get("scenes")) is not dict:
+        return f"its {WORLD_FILE} is not a streamdet-synth world file (no 'world_version' and 'scenes')"
+    return None
+
+
+def remove_dataset_entries(entries: tuple[Path, ...]) -> None:
+    """Delete what ``survey_root`` sorted as a synth dataset's. A symlinked entry (``samples/`` linked to another
+    disk) loses the link only: what it points to is not inside the dataset root."""
+    for entry in entries:
+        if entry.is_symlink() or not entry.is_dir():
+            entry.unlink()
+        else:
+            shutil.rmtree(entry)
+
+
 @dataclass(frozen=True)
 class SynthConfig:
     """What ``generate_dataset`` writes."""
@@ -104,8 +203,9 @@ class SynthConfig:
                 f"SynthConfig.sweeps_per_sample={self.sweeps_per_sample}: sweeps of {self.world.sweep_duration_s} s "
                 f"do not fit {self.sweeps_per_sample} times in the {self.world.sample_interval_s} s key-frame interval"
             )
-        if not self.version or "/" in self.version:
-            raise ValueError(f"SynthConfig.version must be a folder name, got {self.version!r}")
+        problem = version_problem(self.version)
+        if problem:
+            raise ValueError(f"SynthConfig.version {problem}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -234,6 +334,9 @@ def generate_dataset(
     start = time.perf_counter()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    # world.json first: it marks the folder as a synth dataset, so that a run interrupted later still leaves a folder
+    # that --overwrite recognises and may replace (without it, the half-written samples/ look like anyone's).
+    write_world_sidecar(out, config)
     rig = real_rig_records(config.resolution)
     rows = _Tables(config.seed).static(rig)
     results: list[_SceneResult] = []
@@ -254,8 +357,7 @@ def generate_dataset(
     names = [r.name for r in results]
     n_val = min(config.num_scenes - 1, max(1, round(config.val_fraction * config.num_scenes))) if config.num_scenes > 1 else 0
     splits = {"train": names[: len(names) - n_val], "val": names[len(names) - n_val :]}
-    (out / "splits.json").write_text(json.dumps(splits, indent=1))
-    write_world_sidecar(out, config)
+    (out / SPLITS_FILE).write_text(json.dumps(splits, indent=1))
     write_trajectories(out, config)  # trajectories.npz: every object's pose at any time (streamdet-replay)
     point_counts = [c for r in results for c in r.point_counts]
     return GenerationSummary(
@@ -330,10 +432,7 @@ def _link(records: list[dict]) -> None:
 class _Tables:
     """Accumulates the table rows of one scene (and builds the tables all scenes share)."""
 
-    NAMES = (
-        "category", "attribute", "visibility", "instance", "sensor", "calibrated_sensor", "ego_pose",
-        "log", "scene", "sample", "sample_data", "sample_annotation", "map",
-    )
+    NAMES = TABLE_NAMES
     SCENE_TABLES = ("instance", "calibrated_sensor", "ego_pose", "log", "scene", "sample", "sample_data", "sample_annotation")
 
     def __init__(self, seed: int) -> None:
