@@ -9,16 +9,82 @@ from pathlib import Path
 
 import click
 
+from streamdet.cli_utils import refuse_output_over_inputs
 from streamdet.core.errors import first_line
 from streamdet.core.sectors import MAX_NUM_SLICES
 from streamdet.models.presets import preset_names
 from streamdet.training.dataset import CAMERA_MODES, DataConfig
 from streamdet.training.distributed import shutdown_distributed
-from streamdet.training.trainer import AMP_MODES, MAX_MINUTES, TrainConfig, train
+from streamdet.training.trainer import AMP_MODES, MAX_MINUTES, MAX_STEPS, RUN_FILES, TrainConfig, check_device, train
 
-
-MAX_STEPS = 10**8  # a hundred million optimizer steps: far past any run here; 10**21 only printed an eta of 9e17 min
 MAX_WORKERS = 256  # DataLoader processes: a machine's cores at most, never thousands of forks
+# The folders of a nuScenes-format dataset beside DATA/<version>: the files training reads. A cache written among
+# them would sit in the dataset (and a later tool listing them would find it).
+DATA_FILE_FOLDERS = ("samples", "sweeps", "maps")
+DEVICE_HELP = "cpu, cuda, cuda:N or mps, where this machine has it"
+
+
+def device_callback(ctx, param, value: str | None) -> str | None:
+    """--device checked when parsed, before anything is made: one line naming the value, not torch's traceback at
+    the first step after the run's files were written."""
+    if value is None:
+        return None
+    try:
+        check_device(value)
+    except ValueError as e:
+        raise click.BadParameter(str(e)) from None
+    return value
+
+
+def refuse_out_over_inputs(out_dir: Path, inputs: list[tuple[str, Path | None]]) -> None:
+    """--out must not be (or lie inside) a folder or file the command reads: a run written into the dataset, the
+    cache or beside a checkpoint it starts from mixes its files into that input."""
+    refuse_output_over_inputs(out_dir, "--out", inputs)
+
+
+def refuse_overwrite_of_inputs(out_dir: Path, overwrite: bool, run_files: tuple[str, ...],
+                               inputs: list[tuple[str, Path | None]]) -> None:  # fmt: skip
+    """With --overwrite, an input that is one of the run files it deletes (--init OUT/model.pt) is refused: the
+    run would read it, then delete it, and a --resume of the new run could not find its --teacher again."""
+    if not overwrite:
+        return
+    doomed = [out_dir / name for name in run_files if (out_dir / name).is_file()]
+    for option, path in inputs:
+        for file in doomed:
+            if path is not None and _same_path(path, file):
+                raise click.BadParameter(f"{str(path)!r} is the {file.name} of the run in --out that --overwrite deletes; "
+                                         "copy it elsewhere first", param_hint=option)  # fmt: skip
+
+
+def _check_cache_dir(cache_dir: Path | None, data_dir: Path, version: str) -> None:
+    """An explicit --cache-dir must not be the dataset root nor lie in its table folder or file folders (the default,
+    DATA/.streamdet_cache, is a folder of its own beside them): the cache's folders would sit among the tables,
+    sample files or the dataset's top-level entries."""
+    refuse_output_over_inputs(cache_dir, "--cache-dir", [("--data", data_dir / name) for name in (version, *DATA_FILE_FOLDERS)])
+    if _same_path(cache_dir, data_dir):
+        raise click.BadParameter(f"{str(cache_dir)!r} is the --data root: give a folder of its own (the default is "
+                                 f"{data_dir / '.streamdet_cache'})", param_hint="--cache-dir")  # fmt: skip
+
+
+def _same_path(a: Path, b: Path) -> bool:
+    """Whether two paths name one file or folder (through a symlink, a hard link or another spelling)."""
+    try:
+        return a.resolve() == b.resolve() or (a.exists() and b.exists() and a.samefile(b))
+    except (OSError, RuntimeError):  # a symlink loop: compare the spelling
+        return a.absolute() == b.absolute()
+
+
+def _check_combinations(teacher: Path | None, distill_weight: float, num_slices: tuple[int, ...],
+                        max_slices_per_sample: int | None) -> None:  # fmt: skip
+    """Options that would be silently ignored in this combination are refused: the user meant something else."""
+    source = click.get_current_context().get_parameter_source("distill_weight")
+    if teacher is None and source is not click.core.ParameterSource.DEFAULT:  # given, even at its default value
+        raise click.BadParameter(f"{distill_weight:g} weighs the distillation loss, which needs --teacher WEIGHTS",
+                                 param_hint="--distill-weight")  # fmt: skip
+    if max_slices_per_sample is not None and max_slices_per_sample > max(num_slices):
+        raise click.BadParameter(f"{max_slices_per_sample} is more than the {max(num_slices)} slices of the largest "
+                                 f"--num-slices {','.join(map(str, num_slices))}: it would change nothing",
+                                 param_hint="--max-slices-per-sample")  # fmt: skip
 
 
 def _parse_slices(ctx, param, value: str) -> tuple[int, ...]:
@@ -43,7 +109,8 @@ def _parse_slices(ctx, param, value: str) -> tuple[int, ...]:
               help="Dataset root (tables in DATA/<version>/, scenes split by DATA/splits.json); the 'train' split is used.")
 @click.option("--version", default="v1.0-synth", show_default=True, help="Name of the table folder (the nuScenes 'version').")
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path),
-              help="Output folder: last.pt (resumable), model.pt (weights for streamdet-export), metrics.jsonl, config.json.")
+              help="Output folder: last.pt (resumable), model.pt (weights for streamdet-export), metrics.jsonl, config.json. "
+                   "New, empty, or a streamdet-train run's (--resume / --overwrite); never inside an input.")
 @click.option("--preset", default="small", show_default=True, type=click.Choice(preset_names()), help="Model preset.")
 @click.option("--steps", type=click.IntRange(min=1, max=MAX_STEPS), default=None,
               help=f"Optimizer steps of the one-cycle schedule, 1..{MAX_STEPS} (overrides --epochs).")
@@ -55,7 +122,9 @@ def _parse_slices(ctx, param, value: str) -> tuple[int, ...]:
 @click.option("--num-slices", default="8", show_default=True, callback=_parse_slices,
               help="Slice count per sweep, or several separated by commas (each sample draws one), e.g. 8,32.")
 @click.option("--max-slices-per-sample", type=click.IntRange(min=1), default=None,
-              help="Train on a random subset of this many slices of each sample (default: all of them).")
+              help="Train on a random subset of at most this many slices of each sample (default: all of them). A cap: "
+                   "with several --num-slices, a sample with fewer slices trains on all of them; more than the largest "
+                   "count is refused.")
 @click.option("--no-image", is_flag=True, help="Train the LiDAR-only streaming baseline (no camera lane).")
 @click.option("--no-crop", is_flag=True,
               help="With --no-image: no quadrant crop, each slice runs on one map of the whole grid (the paper's LiDAR-only baselines' set-up).")
@@ -76,7 +145,7 @@ def _parse_slices(ctx, param, value: str) -> tuple[int, ...]:
               help="Distil from this trained detector (model.pt, last.pt or shipped weights; any preset whose head makes the same "
                    "maps): its heatmap and boxes become soft targets beside the labels (training/distill.py).")
 @click.option("--distill-weight", type=click.FloatRange(min=0), default=1.0, show_default=True,
-              help="Weight of the distillation loss beside the CenterPoint loss (with --teacher).")
+              help="Weight of the distillation loss beside the CenterPoint loss (needs --teacher).")
 @click.option("--freeze-camera-lane", is_flag=True,
               help="Keep the image encoder and lifter as --init gave them (no gradient, fixed BatchNorm statistics); with a "
                    "--teacher of the same camera lane one lift per step serves both.")
@@ -92,7 +161,8 @@ def _parse_slices(ctx, param, value: str) -> tuple[int, ...]:
 @click.option("--cache-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="Keep decoded, resized images and sweeps here as .npy, reused by the next run; a cache rebuilt for changed data "
                    "removes the one it replaces (default: DATA/.streamdet_cache).")
-@click.option("--device", default=None, help="torch device (default: cuda if available, else cpu).")
+@click.option("--device", default=None, callback=device_callback,
+              help=f"torch device: {DEVICE_HELP} (default: cuda if available, else cpu).")
 @click.option("--log-every", type=click.IntRange(min=1), default=10, show_default=True, help="Steps between progress lines.")
 @click.option("--checkpoint-every", type=click.IntRange(min=1), default=200, show_default=True, help="Steps between rewrites of last.pt.")
 def main(data_dir: Path, version: str, out_dir: Path, preset: str, steps: int | None, epochs: int, batch_size: int,
@@ -113,6 +183,14 @@ def main(data_dir: Path, version: str, out_dir: Path, preset: str, steps: int | 
         raise click.ClickException("--freeze-camera-lane keeps the camera lane --init gives: add --init WEIGHTS")
     if init is not None and resume is not None:
         raise click.ClickException("--init and --resume exclude each other: --resume continues a run, --init starts one from weights")
+    _check_combinations(teacher, distill_weight, num_slices, max_slices_per_sample)
+    if cache_dir is not None:
+        _check_cache_dir(cache_dir, data_dir, version)
+    else:
+        cache_dir = data_dir / ".streamdet_cache"
+    refuse_out_over_inputs(out_dir, [("--data", data_dir), ("--init", init), ("--resume", resume), ("--teacher", teacher),
+                                     ("--cache-dir", cache_dir)])  # fmt: skip
+    refuse_overwrite_of_inputs(out_dir, overwrite, RUN_FILES, [("--init", init), ("--teacher", teacher)])
     if steps is None and epochs is None and max_minutes is None:
         epochs = 10
     try:
@@ -127,8 +205,7 @@ def main(data_dir: Path, version: str, out_dir: Path, preset: str, steps: int | 
         raise click.ClickException(str(e)) from None
     finished = False
     try:
-        train(config, data_dir, out_dir, version=version, resume=resume, init=init,
-              cache_dir=cache_dir if cache_dir is not None else data_dir / ".streamdet_cache", device=device,
+        train(config, data_dir, out_dir, version=version, resume=resume, init=init, cache_dir=cache_dir, device=device,
               echo=click.echo, overwrite=overwrite)  # fmt: skip
         finished = True
     except (ValueError, FileNotFoundError) as e:

@@ -45,7 +45,9 @@ from streamdet.models.seg_head import ImageSegmenter
 from streamdet.core.errors import first_line
 from streamdet.training.checkpoint import (  # noqa: F401 (load_encoder_weights re-exported)
     TRAIN_FORMAT, WEIGHTS_FORMAT, _atomic_save, check_fits, check_state_dict, load_encoder_weights, read_torch_file, save_weights)
-from streamdet.training.trainer import check_max_minutes, check_out_dir, check_weights_finite, init_head_outputs
+from streamdet.training.trainer import (
+    check_device, check_max_minutes, check_out_dir, check_weights_finite, discard_unstarted_run, init_head_outputs,
+    missing_folders)  # fmt: skip
 
 NUM_LABELS = NUM_CLASSES + 1  # 0 = background
 IGNORE = 255
@@ -86,6 +88,10 @@ class PretrainConfig:
         if self.stop_at_step is not None and (isinstance(self.stop_at_step, bool) or not isinstance(self.stop_at_step, int)
                                               or self.stop_at_step < 1):
             raise ValueError(f"PretrainConfig.stop_at_step must be None or a positive integer, got {self.stop_at_step!r}")
+        # a cut past the schedule's end never happens: the run would silently go to the end instead
+        if self.stop_at_step is not None and self.stop_at_step > self.steps:
+            raise ValueError(f"PretrainConfig.stop_at_step {self.stop_at_step} is past the end of the {self.steps}-step "
+                             "schedule: give at most steps")  # fmt: skip
         # lr finite: AdamW with lr inf turns every weight NaN at the first step (range_m inf is "every object")
         if isinstance(self.lr, bool) or not isinstance(self.lr, (int, float)) or not (math.isfinite(self.lr) and self.lr > 0):
             raise ValueError(f"PretrainConfig.lr must be a finite number > 0, got {self.lr!r}")
@@ -305,12 +311,26 @@ def pretrain(config: PretrainConfig, data_dir: str | Path, out_dir: str | Path, 
     """Train the segmenter; returns the last evaluation. Resumable from ``out_dir/last.pt`` with ``resume``.
 
     ``splits``: the (train, val) splits of ``data_dir/splits.json``; None = every sample. An ``out_dir`` holding a
-    run (``PRETRAIN_RUN_FILES``) is refused unless ``resume`` continues it or ``overwrite`` replaces it. A NaN or inf
-    loss or weight stops with a ValueError.
+    run (``PRETRAIN_RUN_FILES``) is refused unless ``resume`` continues it or ``overwrite`` replaces it; one holding
+    anything but such a run is refused (``trainer.check_out_contents``). A new run that fails before its first logged
+    record leaves nothing in ``out_dir``. A NaN or inf loss or weight stops with a ValueError.
     """
+    check_device(device)  # before --out is made: a bad device is refused, not found when the model moves there
+    made = missing_folders(out_dir)
+    replaced = check_out_dir(out_dir, PRETRAIN_RUN_FILES, resume, overwrite, config_key="pretrain")
+    try:
+        return _pretrain_into(config, data_dir, Path(out_dir), version, resume, device, echo, max_samples, splits, replaced)
+    except BaseException:
+        if resume is None:
+            discard_unstarted_run(out_dir, PRETRAIN_RUN_FILES, made)
+        raise
+
+
+def _pretrain_into(config: PretrainConfig, data_dir: str | Path, out: Path, version: str, resume: str | Path | None,
+                   device: str, echo: Callable[[str], None], max_samples: int | None,
+                   splits: tuple[str | None, str | None], replaced: list[Path]) -> dict:  # fmt: skip
+    """``pretrain`` once ``out`` is checked (``replaced``: the files of an earlier run that --overwrite removes)."""
     t0 = time.monotonic()
-    out = Path(out_dir)
-    replaced = check_out_dir(out, PRETRAIN_RUN_FILES, resume, overwrite)
     out.mkdir(parents=True, exist_ok=True)
     preset = get_preset(config.preset)
     size = (preset.image.width_px, preset.image.height_px)

@@ -11,8 +11,16 @@ import click
 
 from streamdet.core.errors import first_line
 from streamdet.models.presets import preset_names
+from streamdet.training.cli import DEVICE_HELP, device_callback, refuse_out_over_inputs
 from streamdet.training.image_pretrain import PretrainConfig, pretrain
-from streamdet.training.trainer import MAX_MINUTES
+from streamdet.training.trainer import MAX_MINUTES, MAX_STEPS
+
+
+def _check_stop_at_step(stop_at_step: int | None, steps: int) -> None:
+    """A cut past the end of the schedule never happens: the run would silently train all --steps instead."""
+    if stop_at_step is not None and stop_at_step > steps:
+        raise click.BadParameter(f"{stop_at_step} is past the end of the --steps {steps} schedule: give at most {steps}",
+                                 param_hint="--stop-at-step")  # fmt: skip
 
 
 @click.command(context_settings={"help_option_names": ["-h", "--help"]})
@@ -20,10 +28,12 @@ from streamdet.training.trainer import MAX_MINUTES
               help="Dataset root written by streamdet-synth (world version 2: images with .mask.npz beside them).")
 @click.option("--version", default="v1.0-synth", show_default=True, help="Name of the table folder.")
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path),
-              help="Output folder: last.pt, encoder.pt, detector_init.pt, metrics.jsonl, result.json, config.json.")
+              help="Output folder: last.pt, encoder.pt, detector_init.pt, metrics.jsonl, result.json, config.json. New, "
+                   "empty, or a streamdet-train-image run's (--resume / --overwrite); never inside an input.")
 @click.option("--preset", default="small", show_default=True, type=click.Choice(preset_names()),
               help="The detector preset whose image encoder is pretrained (its image size is used).")
-@click.option("--steps", type=click.IntRange(min=1), default=2000, show_default=True, help="Optimizer steps of the schedule.")
+@click.option("--steps", type=click.IntRange(min=1, max=MAX_STEPS), default=2000, show_default=True,
+              help=f"Optimizer steps of the schedule, 1..{MAX_STEPS}.")
 @click.option("--batch-size", type=click.IntRange(min=1), default=8, show_default=True, help="Images per step.")
 @click.option("--lr", type=click.FloatRange(min=0, min_open=True), default=2e-3, show_default=True, help="Peak AdamW learning rate.")
 @click.option("--range", "range_m", type=click.FloatRange(min=0, min_open=True), default=30.0, show_default=True,
@@ -33,14 +43,15 @@ from streamdet.training.trainer import MAX_MINUTES
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Seed of the weights and the batches.")
 @click.option("--max-minutes", type=click.FloatRange(min=0, min_open=True, max=MAX_MINUTES), default=None,
               help="Stop with a checkpoint after this much wall time (at most 7 days); --resume continues the same schedule.")
-@click.option("--stop-at-step", type=click.IntRange(min=1), default=None,
+@click.option("--stop-at-step", type=click.IntRange(min=1, max=MAX_STEPS), default=None,
               help="Stop with a checkpoint once this many steps of the --steps schedule are done (a session cut that, "
-                   "unlike --max-minutes, is the same on every machine); --resume continues the same schedule.")
+                   "unlike --max-minutes, is the same on every machine; at most --steps); --resume continues the same "
+                   "schedule.")
 @click.option("--resume", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Continue from a last.pt written by this command.")
 @click.option("--overwrite", is_flag=True,
               help="Pretrain into an --out that already holds a run (last.pt, encoder.pt, metrics.jsonl, ...), replacing it.")
 @click.option("--max-samples", type=click.IntRange(min=1), default=None, help="Use only the first N samples of each split (tests).")
-@click.option("--device", default="cpu", show_default=True, help="torch device.")
+@click.option("--device", default="cpu", show_default=True, callback=device_callback, help=f"torch device: {DEVICE_HELP}.")
 def main(data_dir: Path, version: str, out_dir: Path, preset: str, steps: int, batch_size: int, lr: float,
          range_m: float, eval_every: int, checkpoint_every: int, seed: int, max_minutes: float | None,
          stop_at_step: int | None, resume: Path | None, overwrite: bool, max_samples: int | None, device: str) -> None:  # fmt: skip
@@ -49,6 +60,8 @@ def main(data_dir: Path, version: str, out_dir: Path, preset: str, steps: int, b
         raise click.ClickException(f"--data {data_dir}: no table folder {data_dir / version} (is --version right?)")
     if resume is not None and not resume.is_file():
         raise click.ClickException(f"--resume {resume} does not exist")
+    _check_stop_at_step(stop_at_step, steps)
+    refuse_out_over_inputs(out_dir, [("--data", data_dir), ("--resume", resume)])
     try:
         config = PretrainConfig(preset=preset, steps=steps, batch_size=batch_size, lr=lr, range_m=range_m,
                                 eval_every=eval_every, checkpoint_every=checkpoint_every, seed=seed, max_minutes=max_minutes,

@@ -30,6 +30,7 @@ from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader, DistributedSampler, Subset
 
 from streamdet.core.errors import first_line
+from streamdet.core.json_input import short_repr
 from streamdet.models.detector import build_detector
 from streamdet.models.presets import Preset, get_preset
 from streamdet.training.batching import Batch, Collator
@@ -59,6 +60,21 @@ HEAD_OUTPUT_INIT_STD = 0.01
 MAX_MINUTES = 7 * 24 * 60
 # What a finished or running streamdet-train leaves in --out: another run there without --resume would replace it.
 RUN_FILES = ("last.pt", "model.pt", "metrics.jsonl")
+# A hundred million optimizer steps: far past any run here (10**21 only printed an eta of 9e17 min). Both training
+# tools bound --steps by it.
+MAX_STEPS = 10**8
+# The device types training runs on; torch.device also parses meta, xpu, ipu ..., where the first step failed with a
+# traceback after the run's files were written.
+DEVICE_TYPES = ("cpu", "cuda", "mps")
+# config.json beside the run files: {"train": ...} for streamdet-train, {"pretrain": ...} for streamdet-train-image.
+# Its top-level key tells a run's own config.json from another tool's (a model hub folder has one too).
+CONFIG_FILE = "config.json"
+RUN_TOOLS = {"train": "streamdet-train", "pretrain": "streamdet-train-image"}
+MAX_CONFIG_BYTES = 1 << 20  # a run's config.json is a few kB: a bigger one is no run's and is not read
+# Folders a training run must not be written into, told by a file only they hold: a run mixed into them replaces
+# their files of the same name (config.json) or sits among files their readers list.
+NOT_A_RUN = (("manifest.json", "a streamdet export"), ("results.json", "a saved streamdet-eval run"),
+             ("gt.json", "a saved streamdet-eval run"), ("splits.json", "a dataset"))  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -171,11 +187,35 @@ def check_max_minutes(value: float | None, name: str) -> None:
         raise ValueError(f"{name} must be a finite number of minutes in (0, {MAX_MINUTES}] (7 days), got {value!r}")
 
 
-def check_out_dir(out_dir: str | Path, run_files: tuple[str, ...], resume: str | Path | None, overwrite: bool) -> list[Path]:
+def check_device(device: str | torch.device) -> torch.device:
+    """``device`` as a torch.device, or a one-line ValueError naming it unless training can run there: cpu, or cuda /
+    mps where this machine has them (cuda:N only for an N it has). Called before anything is made in --out."""
+    shown = short_repr(device if isinstance(device, str) else str(device), 60)
+    try:
+        parsed = torch.device(device)
+    except (RuntimeError, ValueError, TypeError):
+        raise ValueError(f"{shown} is not a torch device: give cpu, cuda, cuda:N or mps") from None
+    if parsed.type not in DEVICE_TYPES:
+        raise ValueError(f"{shown}: training runs on {', '.join(DEVICE_TYPES)}, not on {parsed.type}")
+    if parsed.type == "cuda":
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if count == 0:
+            raise ValueError(f"{shown}: this machine has no usable CUDA device (torch.cuda.is_available() is False); use cpu")
+        if parsed.index is not None and parsed.index >= count:
+            raise ValueError(f"{shown}: this machine has {count} CUDA device(s), cuda:0..cuda:{count - 1}")
+    if parsed.type == "mps" and not torch.backends.mps.is_available():
+        raise ValueError(f"{shown}: MPS is not available on this machine; use cpu")
+    return parsed
+
+
+def check_out_dir(out_dir: str | Path, run_files: tuple[str, ...], resume: str | Path | None, overwrite: bool,
+                  config_key: str = "train") -> list[Path]:  # fmt: skip
     """The files of an earlier run in ``out_dir`` that a new run (no ``resume``) will replace: ValueError when there
-    are some and ``overwrite`` is not set, so a finished run is never lost to a reused --out."""
+    are some and ``overwrite`` is not set, so a finished run is never lost to a reused --out. ``out_dir`` must be new,
+    empty, or a run of this tool (``config_key``: the key of its config.json, see ``check_out_contents``)."""
     if resume is not None and overwrite:
         raise ValueError("--resume continues the run in its folder and --overwrite replaces one: give only one of them")
+    check_out_contents(out_dir, run_files, config_key)
     found = [Path(out_dir) / name for name in run_files if (Path(out_dir) / name).is_file()]
     if found and resume is None and not overwrite:
         last = Path(out_dir) / "last.pt"
@@ -190,6 +230,87 @@ def check_out_dir(out_dir: str | Path, run_files: tuple[str, ...], resume: str |
     except OSError as e:
         raise ValueError(f"--out {out_dir} cannot be written: {e.strerror or e}") from None
     return found if resume is None else []
+
+
+def check_out_contents(out_dir: str | Path, run_files: tuple[str, ...], config_key: str) -> None:
+    """ValueError unless ``out_dir`` is missing, empty, or a run of the tool whose config.json has ``config_key``.
+
+    A run's folder may hold files of the user's beside the run's (a note, an export made from model.pt): they are
+    kept, and --overwrite replaces only the run's own files. Any other non-empty folder is refused, --overwrite or
+    not: an export, a saved eval run, a dataset or another tool's folder would get a config.json replaced or a run
+    mixed among its files, and --overwrite never deletes what is not a run's."""
+    out = Path(out_dir)
+    if not out.is_dir():
+        return  # made later; a file in the way is refused by the write probe
+    tool = RUN_TOOLS.get(config_key, config_key)
+    try:
+        names = {entry.name for entry in out.iterdir()}
+    except OSError as e:
+        raise ValueError(f"--out {out_dir} cannot be listed: {e.strerror or e}") from None
+    for name, what in NOT_A_RUN:
+        if name in names:
+            raise ValueError(f"--out {out_dir} is {what} ({name}): a {tool} run must not be mixed into it; choose "
+                             "another --out")  # fmt: skip
+    config = out / CONFIG_FILE
+    if CONFIG_FILE in names and not _is_run_config(config, config_key):
+        raise ValueError(f"--out {out_dir} holds a {CONFIG_FILE} that is not a {tool} run's: the run would replace it; "
+                         "choose another --out")  # fmt: skip
+    if any((out / name).exists() for name in (*run_files, CONFIG_FILE)):
+        return  # a run of this tool: what else is there is the user's and stays
+    foreign = sorted(n for n in names if not _is_transient(n))
+    if foreign:
+        shown = ", ".join(foreign[:5]) + (f" and {len(foreign) - 5} more" if len(foreign) > 5 else "")
+        raise ValueError(f"--out {out_dir} is not empty and holds no {tool} run ({shown}): a run there would mix with "
+                         "those files (--overwrite replaces only a run's own files); choose a new or empty folder")  # fmt: skip
+
+
+def _is_run_config(path: Path, config_key: str) -> bool:
+    """Whether ``path`` is the config.json of a run of the tool whose config has ``config_key`` (a FIFO, a huge or
+    unparsable file is not)."""
+    try:
+        if not path.is_file() or path.stat().st_size > MAX_CONFIG_BYTES:
+            return False
+        doc = json.loads(path.read_text())
+    except (OSError, ValueError, RecursionError):
+        return False
+    return isinstance(doc, dict) and config_key in doc
+
+
+def _is_transient(name: str) -> bool:
+    """The write probe of check_out_dir (another torchrun process may be making its own right now)."""
+    return name.startswith(".write_test_")
+
+
+def missing_folders(path: str | Path) -> list[Path]:
+    """``path`` and those of its parents that do not exist yet, deepest first: what check_out_dir's mkdir makes."""
+    missing = []
+    path = Path(path).absolute()
+    while not os.path.lexists(path) and path != path.parent:
+        missing.append(path)
+        path = path.parent
+    return missing
+
+
+def discard_unstarted_run(out_dir: str | Path, run_files: tuple[str, ...], made: list[Path]) -> None:
+    """After a new run (no resume) failed: if it left no checkpoint and logged no record, remove its config.json and
+    empty metrics.jsonl, and the folders it made (``made``, from ``missing_folders``). Such a folder holds nothing to
+    resume or read, and left there it made the next attempt fail as "already holds a run"."""
+    out = Path(out_dir)
+    log = out / "metrics.jsonl"
+    try:
+        logged = log.is_file() and log.stat().st_size > 0
+        kept = [name for name in run_files if name != log.name and (out / name).exists()]
+        if logged or kept:
+            return
+        for name in (log.name, CONFIG_FILE):
+            (out / name).unlink(missing_ok=True)
+    except OSError:
+        return  # what cannot be checked or removed stays; the error that ended the run is the one to report
+    for folder in made:
+        try:
+            folder.rmdir()  # only an empty folder: a cache or a user's file inside keeps it
+        except OSError:
+            break
 
 
 def check_weights_finite(module: torch.nn.Module, step: int) -> None:
@@ -350,14 +471,32 @@ def train(
     (streamdet-train-image's ``encoder.pt``), likewise. ``config.teacher`` adds the distillation loss of that
     detector's responses (training/distill.py); ``config.freeze_camera_lane`` keeps ``init``'s camera lane.
     An ``out_dir`` that already holds a run (``RUN_FILES``) is refused unless ``resume`` continues it or ``overwrite``
-    replaces it. A loss or weight that turns NaN or inf stops training with a ValueError (nothing written for it).
+    replaces it; one holding anything but a run is refused (``check_out_contents``). A new run that fails before its
+    first checkpoint or logged record leaves nothing in ``out_dir`` (``discard_unstarted_run``). A loss or weight that
+    turns NaN or inf stops training with a ValueError (nothing written for it).
     """
     if resume is not None and init is not None:
         raise ValueError("give either resume (continue a run) or init (start a new run from weights), not both")
     if config.freeze_camera_lane and init is None and resume is None:
         raise ValueError("freeze_camera_lane keeps the camera lane as initialised: give init (the weights to keep)")
+    if device is not None:
+        device = check_device(device)  # before --out is made: a bad device is refused, not found at the first step
+    made = missing_folders(out_dir)
     # before any process starts (every one sees the same folder): after set-up the main process writes into it
     replaced = check_out_dir(out_dir, RUN_FILES, resume, overwrite)
+    try:
+        return _train_into(config, data_dir, out_dir, version, resume, init, cache_dir, device, store, echo, replaced)
+    except BaseException:
+        if resume is None and os.environ.get("RANK", "0") == "0":  # the main process (torchrun's rank 0) owns --out
+            discard_unstarted_run(out_dir, RUN_FILES, made)
+        raise
+
+
+def _train_into(config: TrainConfig, data_dir: str | Path, out_dir: str | Path, version: str, resume: str | Path | None,
+                init: str | Path | None, cache_dir: str | Path | None, device: torch.device | None,
+                store: SampleStore | None, echo: Callable[[str], None], replaced: list[Path]) -> TrainResult:  # fmt: skip
+    """``train`` once ``out_dir`` is checked: set up, write the run's files, train, save (``replaced``: the files
+    of an earlier run that --overwrite removes)."""
     run = _set_up(config, data_dir, out_dir, version, init, cache_dir, device, store, echo)
     if resume is not None:
         _restore(run, resume)
