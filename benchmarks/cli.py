@@ -14,15 +14,24 @@ import time
 from pathlib import Path
 
 import click
+from click.core import ParameterSource
 
 from streamdet.cli_utils import (
-    MAX_SLICES, MAX_INTRA_OP_THREADS, MAX_THREADS, PRECISION_CHOICES, RESOLUTION_RANGE_HELP, image_precision_option, resolution_callback,
+    MAX_SLICES, MAX_INTRA_OP_THREADS, MAX_THREADS, PRECISION_CHOICES, RESOLUTION_RANGE_HELP, check_output_parent,
+    image_precision_option, refuse_output_over_inputs, refuse_same_outputs, resolution_callback,
 )
 from streamdet.core.constants import DEFAULT_PRESET
 from streamdet.models.presets import get_preset, preset_names
 
 QUICK_TORCH_SKIP_MS = 200.0  # --quick: PyTorch eager is timed only on rows faster than this in onnxruntime fp32
 MAX_REPEAT = 10_000  # timed runs per measurement: 500x the default 20; more only takes hours
+# Parameters that only steer the timing: --flops-only times nothing, so one of them given with it is a mistaken
+# command (the user expects an effect), refused rather than silently dropped.
+TIMING_ONLY = (
+    "slices", "fp16", "int8", "stream_precision", "stream_image_precision", "stream_slice_workers", "repeat", "threads",
+    "quick", "plot_path", "export_dir", "profile_dir",
+)  # fmt: skip
+_GIVEN = (ParameterSource.COMMANDLINE, ParameterSource.ENVIRONMENT)  # typed by the user, not a default
 
 
 def _write(path: Path, what: str, write) -> None:
@@ -30,6 +39,69 @@ def _write(path: Path, what: str, write) -> None:
         write(path)
     except OSError as e:
         raise click.ClickException(f"cannot write {what} {path}: {e.strerror or e}") from None
+
+
+def _refuse_timing_options(ctx: click.Context) -> None:
+    """With --flops-only: a timing option given on the command line is refused, naming every such option."""
+    given = [p for p in ctx.command.params if p.name in TIMING_ONLY and ctx.get_parameter_source(p.name) in _GIVEN]
+    if given:
+        names = ", ".join("/".join([*p.opts, *p.secondary_opts]) for p in given)
+        raise click.UsageError(f"--flops-only counts MACs and times nothing: {names} only apply to timing; drop them "
+                               "or drop --flops-only")  # fmt: skip
+
+
+def _check_plot_format(plot_path: Path) -> None:
+    """--plot's suffix must be one matplotlib writes: refused now, not after minutes of timing."""
+    try:
+        from matplotlib.backend_bases import FigureCanvasBase
+    except ImportError:
+        raise click.ClickException("--plot needs matplotlib (pip install 'streamdet[export]')") from None
+    suffix = plot_path.suffix[1:].lower()  # savefig picks the format from it (no suffix: its default, PNG)
+    formats = FigureCanvasBase.get_supported_filetypes()
+    if suffix and suffix not in formats:
+        raise click.UsageError(f"cannot write --plot {plot_path}: matplotlib has no .{suffix} format (it writes "
+                               f"{', '.join('.' + f for f in sorted(formats))})")  # fmt: skip
+
+
+def _check_profile_folder(profile_dir: Path) -> None:
+    """--profile is made with its parents once the rows are built: a file where one of its folders should be fails
+    now."""
+    for folder in (profile_dir, *profile_dir.absolute().parents):
+        if folder.exists():
+            if not folder.is_dir():
+                raise click.BadParameter(f"{str(profile_dir)!r} cannot be made: {folder} is not a folder",
+                                         param_hint="--profile")  # fmt: skip
+            return
+
+
+def _refuse_inside_profile(path: Path | None, option: str, profile_dir: Path | None) -> None:
+    # the profiles are named after the rows' graphs (ROW.PRECISION.json, streaming_PHASE.GRAPH.json): a report
+    # among them may be replaced by one, and is lost in a folder of hundreds of files anyway
+    if path is None or profile_dir is None:
+        return
+    try:
+        inside = profile_dir.resolve() in path.resolve().parents
+    except (OSError, RuntimeError):  # a symlink loop: the write will say so
+        return
+    if inside:
+        raise click.BadParameter(f"{str(path)!r} lies inside the --profile folder {profile_dir}, where the profiles "
+                                 "are written: write it elsewhere", param_hint=option)  # fmt: skip
+
+
+def _check_outputs(json_path: Path | None, plot_path: Path | None, profile_dir: Path | None, export_dir: Path | None) -> None:
+    """Before any timing: no output may replace or lie inside --export-dir, nor be or lie inside another output,
+    and each needs a folder it can go in."""
+    for path, option in ((json_path, "--json"), (plot_path, "--plot"), (profile_dir, "--profile")):
+        refuse_output_over_inputs(path, option, [("--export-dir", export_dir)])
+    refuse_same_outputs([("--profile", profile_dir), ("--json", json_path), ("--plot", plot_path)])
+    _refuse_inside_profile(json_path, "--json", profile_dir)
+    _refuse_inside_profile(plot_path, "--plot", profile_dir)
+    check_output_parent(json_path, "--json")
+    check_output_parent(plot_path, "--plot")
+    if profile_dir is not None:
+        _check_profile_folder(profile_dir)
+    if plot_path is not None:
+        _check_plot_format(plot_path)
 
 
 def _flops_only(preset: str, resolution: tuple[int, int] | None, json_path: Path | None) -> None:
@@ -46,8 +118,10 @@ def _flops_only(preset: str, resolution: tuple[int, int] | None, json_path: Path
         _write(json_path, "--json", lambda p: p.write_text(json.dumps(doc, indent=2) + "\n"))
 
 
-@click.command()
-@click.option("--flops-only", is_flag=True, help="Only count multiply-accumulates (GMAC) per module; time nothing.")
+@click.command(context_settings={"help_option_names": ["-h", "--help"]})
+@click.option("--flops-only", is_flag=True,
+              help="Only count multiply-accumulates (GMAC) per module; time nothing. Takes --preset, --resolution and "
+                   "--json; the timing options are refused with it.")
 @click.option(
     "--preset",
     type=click.Choice(preset_names()),
@@ -121,18 +195,17 @@ def main(
     profile_dir: Path | None,
 ) -> None:
     """Measure the streaming detector's modules (the paper's Table 3) and its streaming latency on this machine."""
-    if flops_only:
-        _flops_only(preset or "paper", resolution, json_path)
-        return
     from streamdet.core.sectors import check_num_slices
 
     try:
-        check_num_slices(slices)
+        check_num_slices(slices)  # in both modes: --slices 6 is the same mistake with --flops-only
     except ValueError as e:
         raise click.BadParameter(str(e), param_hint="--slices") from None
-    for path, what in ((json_path, "--json"), (plot_path, "--plot")):
-        if path is not None and not path.parent.is_dir():
-            raise click.BadParameter(f"folder {str(path.parent)!r} does not exist", param_hint=what)
+    if flops_only:
+        _refuse_timing_options(click.get_current_context())
+        _flops_only(preset or "paper", resolution, json_path)
+        return
+    _check_outputs(json_path, plot_path, profile_dir, export_dir)
     if export_dir is not None:
         from streamdet.runtime_ort.manifest import ManifestError, read_manifest
 

@@ -9,8 +9,8 @@ from pathlib import Path
 import click
 
 from streamdet.cli_utils import (
-    MAX_SLICES, MAX_INTRA_OP_THREADS, MAX_THREADS, PRECISION_CHOICES, camera_terms_option, fallback_after_s, fallback_options,
-    image_precision_option,
+    MAX_SLICES, MAX_INTRA_OP_THREADS, MAX_THREADS, PRECISION_CHOICES, camera_terms_option, check_output_parent,
+    fallback_after_s, fallback_options, image_precision_option, refuse_output_over_inputs, refuse_same_outputs,
 )
 from streamdet.replay.modes import MODES
 from streamdet.replay.schedule import MAX_DELIVERY_S, MAX_RATE_HZ, MAX_TIME_SCALE
@@ -24,6 +24,52 @@ MAX_SCENES = 10_000
 MAX_DELIVERY_MS = MAX_DELIVERY_S * 1e3  # the library's bounds (replay/schedule.py), the options' ranges
 MAX_SECONDS = 86_400.0  # a day of drive per scene
 MAX_QUEUE = 1024  # LaneConfig's bound
+OUT_FILES = ("replay.json", "report.md")  # the files --out receives
+
+
+def _check_plot_format(plot_path: Path) -> None:
+    """--plot needs matplotlib and a suffix it can write: refused now, not after the replay has run."""
+    try:
+        from matplotlib.backend_bases import FigureCanvasBase
+    except ImportError:
+        raise click.ClickException("--plot needs matplotlib (pip install 'streamdet[dev]')") from None
+    suffix = plot_path.suffix[1:].lower()  # savefig picks the format from it (no suffix: its default, PNG)
+    formats = FigureCanvasBase.get_supported_filetypes()
+    if suffix and suffix not in formats:
+        raise click.UsageError(f"cannot write --plot {plot_path}: matplotlib has no .{suffix} format (it writes "
+                               f"{', '.join('.' + f for f in sorted(formats))})")  # fmt: skip
+
+
+def _check_output_folder(out_dir: Path) -> None:
+    """--out is made with its parents after the replay: a file where one of its folders should be fails now."""
+    for folder in (out_dir, *out_dir.absolute().parents):
+        if folder.exists():
+            if not folder.is_dir():
+                raise click.BadParameter(f"{str(out_dir)!r} cannot be made: {folder} is not a folder", param_hint="--out")
+            return
+
+
+def _check_outputs(json_path: Path | None, plot_path: Path | None, out_dir: Path | None, inputs) -> None:
+    """Before the replay: no output may replace or lie inside an input (``inputs``: option, path pairs), nor be
+    another output (--json == --plot, or one of the files --out receives), and each needs a folder to go in."""
+    for path, option in ((json_path, "--json"), (plot_path, "--plot"), (out_dir, "--out")):
+        refuse_output_over_inputs(path, option, inputs)
+    out_files = [("--out", None if out_dir is None else out_dir / name) for name in OUT_FILES]
+    refuse_same_outputs([("--out", out_dir), *out_files, ("--json", json_path), ("--plot", plot_path)])
+    check_output_parent(json_path, "--json")
+    check_output_parent(plot_path, "--plot")
+    if out_dir is not None:
+        _check_output_folder(out_dir)
+    if plot_path is not None:
+        _check_plot_format(plot_path)
+
+
+def _write(path: Path, option: str, write) -> None:
+    # checked up front, but the disk can still fill or refuse: one line naming the option, not a traceback
+    try:
+        write(path)
+    except OSError as e:
+        raise click.ClickException(f"cannot write {option} {path}: {e.strerror or e}") from None
 
 
 def _progress(message: str) -> None:
@@ -122,15 +168,12 @@ def main(
     from streamdet.replay.run import ReplayConfig, run_replay
     from streamdet.runtime_ort.lanes import LaneConfig
 
+    inputs = [("--data", data), ("--export-dir", export_dir), ("--fallback-export", fallback_export_dir)]
+    _check_outputs(json_path, plot_path, out_dir, inputs)
     if not (export_dir / "manifest.json").is_file():
         raise click.ClickException(f"{export_dir} holds no manifest.json: run `streamdet-export --out {export_dir}` first")
     if not (data / table_version).is_dir():
         raise click.ClickException(f"{data / table_version} does not exist: --data must be a nuScenes-format dataset root")
-    if plot_path is not None:
-        try:
-            import matplotlib  # noqa: F401
-        except ImportError:
-            raise click.ClickException("--plot needs matplotlib (pip install 'streamdet[dev]')") from None
     defaults = LaneConfig()
     try:
         lanes = LaneConfig(max_in_flight=slice_workers or defaults.max_in_flight, queue_size=queue_size or defaults.queue_size,
@@ -154,15 +197,15 @@ def main(
     report = format_report(result, info)
     click.echo(report)
     if json_path is not None:
-        json_path.write_text(json.dumps(json_report(result, info), indent=1))
+        _write(json_path, "--json", lambda p: p.write_text(json.dumps(json_report(result, info), indent=1)))
         click.echo(f"wrote {json_path}")
     if out_dir is not None:
-        out_dir.mkdir(parents=True, exist_ok=True)
-        (out_dir / "replay.json").write_text(json.dumps(details_report(result, info)))
-        (out_dir / "report.md").write_text(report + "\n")
-        click.echo(f"wrote {out_dir / 'replay.json'} and {out_dir / 'report.md'}")
+        _write(out_dir, "--out", lambda p: p.mkdir(parents=True, exist_ok=True))
+        _write(out_dir / OUT_FILES[0], "--out", lambda p: p.write_text(json.dumps(details_report(result, info))))
+        _write(out_dir / OUT_FILES[1], "--out", lambda p: p.write_text(report + "\n"))
+        click.echo(f"wrote {out_dir / OUT_FILES[0]} and {out_dir / OUT_FILES[1]}")
     if plot_path is not None:
         from streamdet.replay.plot import plot_replay
 
-        plot_replay(result, plot_path)
+        _write(plot_path, "--plot", lambda p: plot_replay(result, p))
         click.echo(f"wrote {plot_path}")

@@ -19,11 +19,14 @@ from pathlib import Path
 import click
 
 from streamdet import studies as st
+from streamdet.calibration.camera import MAX_CAMERA_OFFSET_M
 from streamdet.cli_utils import (
     MAX_SLICES,
     MAX_INTRA_OP_THREADS,
+    check_output_parent,
     image_precision_option,
     refuse_output_over_inputs,
+    refuse_same_outputs,
     resolution_callback,
     split_list,
 )
@@ -37,6 +40,10 @@ ALL_SPLIT = "all"  # --split value that scores every sample of the dataset
 # --seeds: each seed rebuilds the LUT and scores the split once per level; 1000 is far past a mean and std worth
 # reporting, and 10^8 ran for days.
 MAX_SEEDS = 1000
+# --level's translation bound holds per axis, so a camera moves by up to sqrt(3) times it; the calibration checks
+# refuse a camera more than MAX_CAMERA_OFFSET_M from the LiDAR, which `--level 1,1e308` hit only mid-study. Half
+# that offset keeps every noisy camera inside it, with room for the rig's own camera-to-LiDAR distances.
+MAX_NOISE_TRANSLATION_CM = 100.0 * MAX_CAMERA_OFFSET_M / 2
 
 
 # ---- option parsing ----------------------------------------------------------------------------------------
@@ -74,8 +81,9 @@ def _parse_levels(ctx, param, values: tuple[str, ...]) -> tuple[tuple[float, flo
             deg, cm = (float(v) for v in text.split(","))
         except ValueError:
             raise click.BadParameter(f"expected DEG,CM such as 1,10, got {text!r}") from None
-        if not (math.isfinite(deg) and math.isfinite(cm) and 0 <= deg < 180 and cm >= 0):
-            raise click.BadParameter(f"angle must be in [0, 180) deg and translation >= 0 cm, got {text!r}")
+        if not (math.isfinite(deg) and math.isfinite(cm) and 0 <= deg < 180 and 0 <= cm <= MAX_NOISE_TRANSLATION_CM):
+            raise click.BadParameter(f"angle must be in [0, 180) deg and translation in [0, {MAX_NOISE_TRANSLATION_CM:g}] "
+                                     f"cm, got {text!r}")  # fmt: skip
         if (deg, cm / 100.0) in levels:  # the same level twice: two identical rows, twice the run time
             raise click.BadParameter(f"level {text!r} is given twice")
         levels.append((deg, cm / 100.0))
@@ -179,13 +187,30 @@ def _data(data_dir: Path, version: str, split: str, max_samples: int | None) -> 
     return st.StudyData(data_dir, version, None if split == ALL_SPLIT else split, max_samples)
 
 
+def _check_plot_format(plot_path: Path) -> None:
+    """--plot needs matplotlib and a suffix it can write: refused now, not after the study (and its --json)."""
+    try:
+        from matplotlib.backend_bases import FigureCanvasBase
+    except ImportError:
+        raise click.ClickException("--plot needs matplotlib (pip install 'streamdet[dev]')") from None
+    suffix = plot_path.suffix[1:].lower()  # savefig picks the format from it (no suffix: its default, PNG)
+    formats = FigureCanvasBase.get_supported_filetypes()
+    if suffix and suffix not in formats:
+        raise click.UsageError(f"cannot write --plot {plot_path}: matplotlib has no .{suffix} format (it writes "
+                               f"{', '.join('.' + f for f in sorted(formats))})")  # fmt: skip
+
+
 def _check_outputs(json_path: Path | None, plot_path: Path | None, **inputs: Path | None) -> None:
-    """Before any work: --json / --plot must not replace an input (``inputs``: option name -> path) nor each other."""
+    """Before any work: --json / --plot must not replace an input (``inputs``: option name -> path) nor each other,
+    and each needs an existing folder (and --plot a format matplotlib writes)."""
     named = [("--" + k.replace("_", "-"), p) for k, p in inputs.items()]
     refuse_output_over_inputs(json_path, "--json", named)
     refuse_output_over_inputs(plot_path, "--plot", named)
-    if json_path is not None and plot_path is not None and json_path.resolve() == plot_path.resolve():
-        raise click.BadParameter(f"{str(plot_path)!r} is also the --json file: the plot would replace it", param_hint="--plot")
+    refuse_same_outputs([("--json", json_path), ("--plot", plot_path)])
+    check_output_parent(json_path, "--json")
+    check_output_parent(plot_path, "--plot")
+    if plot_path is not None:
+        _check_plot_format(plot_path)
 
 
 def _inputs(export_dir: Path | None, checkpoint: Path | None, data_dir: Path) -> dict[str, Path | None]:
@@ -277,7 +302,7 @@ def drop_camera(export_dir, checkpoint, data_dir, version, split, max_samples, p
 @_slices_option
 @click.option("--level", "levels", multiple=True, callback=_parse_levels, metavar="DEG,CM",
               help="Noise bound: every Euler angle uniform in +-DEG and every translation axis in +-CM, per camera "
-                   "(repeat; default 0.5,5 1,10 2,20 3,30 5,50).")  # fmt: skip
+                   f"(repeat; DEG in [0, 180), CM in [0, {MAX_NOISE_TRANSLATION_CM:g}]; default 0.5,5 1,10 2,20 3,30 5,50).")  # fmt: skip
 @click.option("--seeds", type=click.IntRange(1, MAX_SEEDS), default=3, show_default=True,
               help=f"Seeded draws per level (seeds 0..N-1), 1..{MAX_SEEDS}; mean and std are reported.")  # fmt: skip
 def calib_noise(export_dir, checkpoint, data_dir, version, split, max_samples, precision, image_precision, threads,
