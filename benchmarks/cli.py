@@ -17,8 +17,17 @@ import click
 from click.core import ParameterSource
 
 from streamdet.cli_utils import (
-    MAX_SLICES, MAX_INTRA_OP_THREADS, MAX_THREADS, PRECISION_CHOICES, RESOLUTION_RANGE_HELP, check_output_parent,
-    image_precision_option, refuse_output_over_inputs, refuse_same_outputs, resolution_callback,
+    MAX_INTRA_OP_THREADS,
+    MAX_SLICES,
+    MAX_THREADS,
+    PRECISION_CHOICES,
+    RESOLUTION_RANGE_HELP,
+    check_output_parent,
+    check_plot_format,
+    image_precision_option,
+    refuse_output_over_inputs,
+    refuse_same_outputs,
+    resolution_callback,
 )
 from streamdet.core.constants import DEFAULT_PRESET
 from streamdet.models.presets import get_preset, preset_names
@@ -50,17 +59,6 @@ def _refuse_timing_options(ctx: click.Context) -> None:
                                "or drop --flops-only")  # fmt: skip
 
 
-def _check_plot_format(plot_path: Path) -> None:
-    """--plot's suffix must be one matplotlib writes: refused now, not after minutes of timing."""
-    try:
-        from matplotlib.backend_bases import FigureCanvasBase
-    except ImportError:
-        raise click.ClickException("--plot needs matplotlib (pip install 'streamdet[export]')") from None
-    suffix = plot_path.suffix[1:].lower()  # savefig picks the format from it (no suffix: its default, PNG)
-    formats = FigureCanvasBase.get_supported_filetypes()
-    if suffix and suffix not in formats:
-        raise click.UsageError(f"cannot write --plot {plot_path}: matplotlib has no .{suffix} format (it writes "
-                               f"{', '.join('.' + f for f in sorted(formats))})")  # fmt: skip
 
 
 def _check_profile_folder(profile_dir: Path) -> None:
@@ -101,7 +99,7 @@ def _check_outputs(json_path: Path | None, plot_path: Path | None, profile_dir: 
     if profile_dir is not None:
         _check_profile_folder(profile_dir)
     if plot_path is not None:
-        _check_plot_format(plot_path)
+        check_plot_format(plot_path)
 
 
 def _flops_only(preset: str, resolution: tuple[int, int] | None, json_path: Path | None) -> None:

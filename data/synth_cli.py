@@ -17,6 +17,7 @@ from streamdet.cli_utils import (
     MAX_THREADS,
     RESOLUTION_RANGE_HELP,
     check_output_parent,
+    check_plot_format,
     refuse_output_over_inputs,
     refuse_same_outputs,
     resolution_callback,
@@ -222,22 +223,9 @@ def _check_stats_outputs(data_dir: Path, reference: Path | None, json_path: Path
         refuse_output_over_inputs(path, option, [("DATA_DIR", data_dir), ("--reference", reference)])
     refuse_same_outputs(outputs)
     if plot_path is not None:
-        _check_plot_format(plot_path)
+        check_plot_format(plot_path)
 
 
-def _check_plot_format(path: Path) -> None:
-    """The suffix must name a format matplotlib's Agg canvas writes (savefig picks the format from it, and fails
-    only once the figure is drawn); matplotlib is imported here, only for --plot."""
-    try:
-        from matplotlib.backend_bases import FigureCanvasBase
-    except ImportError:
-        raise click.BadParameter("needs matplotlib (pip install matplotlib)", param_hint="--plot") from None
-    formats = sorted(FigureCanvasBase.get_supported_filetypes())
-    suffix = path.suffix[1:].lower()
-    if suffix not in formats:
-        got = f"'.{suffix}'" if suffix else "no suffix"
-        raise click.BadParameter(f"{str(path)!r} has {got}; give a file ending in one of "
-                                 f"{', '.join('.' + f for f in formats)}", param_hint="--plot")  # fmt: skip
 
 
 if __name__ == "__main__":

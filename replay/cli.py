@@ -9,8 +9,18 @@ from pathlib import Path
 import click
 
 from streamdet.cli_utils import (
-    MAX_SLICES, MAX_INTRA_OP_THREADS, MAX_THREADS, PRECISION_CHOICES, camera_terms_option, check_output_parent,
-    fallback_after_s, fallback_options, image_precision_option, refuse_output_over_inputs, refuse_same_outputs,
+    MAX_INTRA_OP_THREADS,
+    MAX_SLICES,
+    MAX_THREADS,
+    PRECISION_CHOICES,
+    camera_terms_option,
+    check_output_parent,
+    check_plot_format,
+    fallback_after_s,
+    fallback_options,
+    image_precision_option,
+    refuse_output_over_inputs,
+    refuse_same_outputs,
 )
 from streamdet.replay.modes import MODES
 from streamdet.replay.schedule import MAX_DELIVERY_S, MAX_RATE_HZ, MAX_TIME_SCALE
@@ -27,17 +37,6 @@ MAX_QUEUE = 1024  # LaneConfig's bound
 OUT_FILES = ("replay.json", "report.md")  # the files --out receives
 
 
-def _check_plot_format(plot_path: Path) -> None:
-    """--plot needs matplotlib and a suffix it can write: refused now, not after the replay has run."""
-    try:
-        from matplotlib.backend_bases import FigureCanvasBase
-    except ImportError:
-        raise click.ClickException("--plot needs matplotlib (pip install 'streamdet[dev]')") from None
-    suffix = plot_path.suffix[1:].lower()  # savefig picks the format from it (no suffix: its default, PNG)
-    formats = FigureCanvasBase.get_supported_filetypes()
-    if suffix and suffix not in formats:
-        raise click.UsageError(f"cannot write --plot {plot_path}: matplotlib has no .{suffix} format (it writes "
-                               f"{', '.join('.' + f for f in sorted(formats))})")  # fmt: skip
 
 
 def _check_output_folder(out_dir: Path) -> None:
@@ -61,7 +60,7 @@ def _check_outputs(json_path: Path | None, plot_path: Path | None, out_dir: Path
     if out_dir is not None:
         _check_output_folder(out_dir)
     if plot_path is not None:
-        _check_plot_format(plot_path)
+        check_plot_format(plot_path)
 
 
 def _write(path: Path, option: str, write) -> None:

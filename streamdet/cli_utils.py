@@ -169,6 +169,23 @@ def check_output_parent(output: Path | None, option: str) -> None:
         raise click.BadParameter(f"the folder of {str(output)!r} does not exist (or is not a folder)", param_hint=option)
 
 
+def check_plot_format(plot_path: Path | None, option: str = "--plot") -> None:
+    """Raise click.BadParameter, before any work, unless matplotlib can write ``plot_path``: it is installed and the
+    suffix names one of its formats (savefig picks the format from it, and fails only once the figure is drawn; no
+    suffix is its default, PNG). matplotlib is imported only here, for a plot that was asked for."""
+    if plot_path is None:
+        return
+    try:
+        from matplotlib.backend_bases import FigureCanvasBase
+    except ImportError:
+        raise click.BadParameter("needs matplotlib (pip install 'streamdet[dev]')", param_hint=option) from None
+    suffix = Path(plot_path).suffix[1:].lower()
+    formats = FigureCanvasBase.get_supported_filetypes()
+    if suffix and suffix not in formats:
+        raise click.BadParameter(f"cannot write {option} {plot_path}: matplotlib has no .{suffix} format (it writes "
+                                 f"{', '.join('.' + f for f in sorted(formats))})", param_hint=option)  # fmt: skip
+
+
 def image_precision_option(flag: str = "--image-precision", dest: str = "image_precision"):
     """The option that runs the image lane (encoder + lifter) in another precision than the slices."""
     return click.option(

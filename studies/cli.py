@@ -21,9 +21,10 @@ import click
 from streamdet import studies as st
 from streamdet.calibration.camera import MAX_CAMERA_OFFSET_M
 from streamdet.cli_utils import (
-    MAX_SLICES,
     MAX_INTRA_OP_THREADS,
+    MAX_SLICES,
     check_output_parent,
+    check_plot_format,
     image_precision_option,
     refuse_output_over_inputs,
     refuse_same_outputs,
@@ -187,17 +188,6 @@ def _data(data_dir: Path, version: str, split: str, max_samples: int | None) -> 
     return st.StudyData(data_dir, version, None if split == ALL_SPLIT else split, max_samples)
 
 
-def _check_plot_format(plot_path: Path) -> None:
-    """--plot needs matplotlib and a suffix it can write: refused now, not after the study (and its --json)."""
-    try:
-        from matplotlib.backend_bases import FigureCanvasBase
-    except ImportError:
-        raise click.ClickException("--plot needs matplotlib (pip install 'streamdet[dev]')") from None
-    suffix = plot_path.suffix[1:].lower()  # savefig picks the format from it (no suffix: its default, PNG)
-    formats = FigureCanvasBase.get_supported_filetypes()
-    if suffix and suffix not in formats:
-        raise click.UsageError(f"cannot write --plot {plot_path}: matplotlib has no .{suffix} format (it writes "
-                               f"{', '.join('.' + f for f in sorted(formats))})")  # fmt: skip
 
 
 def _check_outputs(json_path: Path | None, plot_path: Path | None, **inputs: Path | None) -> None:
@@ -210,7 +200,7 @@ def _check_outputs(json_path: Path | None, plot_path: Path | None, **inputs: Pat
     check_output_parent(json_path, "--json")
     check_output_parent(plot_path, "--plot")
     if plot_path is not None:
-        _check_plot_format(plot_path)
+        check_plot_format(plot_path)
 
 
 def _inputs(export_dir: Path | None, checkpoint: Path | None, data_dir: Path) -> dict[str, Path | None]:

@@ -37,3 +37,13 @@ def test_check_output_parent(tmp_path):
     (tmp_path / "file").write_text("")
     with pytest.raises(click.BadParameter, match="not a folder"):
         check_output_parent(tmp_path / "file" / "x.json", "--json")
+
+
+def test_check_plot_format():
+    from streamdet.cli_utils import check_plot_format
+
+    for good in (Path("a.png"), Path("a.PDF"), Path("a.svg"), Path("plot"), None):  # no suffix: matplotlib's PNG
+        check_plot_format(good)
+    for bad in (Path("a.json"), Path("a.docx")):
+        with pytest.raises(click.BadParameter, match=rf"cannot write --plot {bad}: matplotlib has no \{bad.suffix} format"):
+            check_plot_format(bad)
