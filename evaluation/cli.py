@@ -18,6 +18,7 @@ import click
 from streamdet.cli_utils import (
     MAX_SLICES,
     PRECISION_CHOICES,
+    check_output_parent,
     image_precision_option,
     refuse_output_over_inputs,
     split_list,
@@ -75,6 +76,10 @@ def _evaluate_and_report(gt: EvalBoxes, pred: EvalBoxes, classes: tuple[str, ...
     except ValueError as e:
         raise click.ClickException(str(e)) from None
     click.echo(format_table(metrics))
+    absent = [c for c in metrics.classes if c not in set(gt.detection_name.tolist())]
+    if absent:  # the devkit's rule, kept; said, so that a 0 is not read as a detector's failure
+        click.echo(f"note: no ground-truth box of {', '.join(absent)}: AP 0 and TP errors 1 by the devkit's rule, "
+                   "counted in mAP and NDS (--classes chooses the classes averaged)")  # fmt: skip
     if json_path is not None:
         try:
             json_path.write_text(json.dumps(metrics.to_dict(), indent=1, allow_nan=False) + "\n")
@@ -148,6 +153,46 @@ def _run_group(arg: str) -> list[Path]:
     return paths
 
 
+# The options of one mode only, by parameter name: given in another mode they would be ignored, silently.
+_MODE_OPTIONS = {
+    "dataset": ("version", "split", "export_dir", "slices", "precision", "image_precision", "max_samples", "save_dir"),
+    "compare": ("draws", "seed", "no_subsets"),
+}
+
+
+def _refuse_other_modes_options(ctx: click.Context, mode: str) -> None:
+    """UsageError naming the options given on the command line that only another mode reads (a default is not
+    given): ``--gt G --results R --split train`` evaluated the files and ignored the split."""
+    given = []
+    for other, names in _MODE_OPTIONS.items():
+        if other == mode:
+            continue
+        for param in ctx.command.params:
+            if param.name in names and ctx.get_parameter_source(param.name) is click.core.ParameterSource.COMMANDLINE:
+                given.append((other, param.opts[0]))
+    if given:
+        listed = ", ".join(f"{opt} ({other} mode)" for other, opt in given)
+        raise click.UsageError(f"{listed} not read in the {mode} mode; drop {'them' if len(given) > 1 else 'it'}")
+
+
+def _check_creatable(folder: Path | None, option: str) -> None:
+    """BadParameter, before any work, when ``folder`` (made with its parents at the end) cannot be: it, or its
+    nearest existing ancestor, is not a folder."""
+    if folder is None:
+        return
+    probe = Path(folder)
+    while not probe.exists() and probe != probe.parent:
+        probe = probe.parent
+    if probe.exists() and not probe.is_dir():
+        raise click.BadParameter(f"{str(folder)!r} cannot be made: {probe} is not a folder", param_hint=option)
+
+
+def _version(value: str) -> str:
+    if not value or value in (".", "..") or "/" in value or "\\" in value:
+        raise click.BadParameter(f"must be one folder name under --data, got {value!r}", param_hint="--version")
+    return value
+
+
 def _run_folder(path: Path) -> Path:
     """The resolved folder of a run named by its folder or by its results.json."""
     return (path if path.is_dir() else path.parent).resolve()
@@ -207,7 +252,8 @@ def _compare(run_a: str, run_b: str, gt_path: Path | None, classes: tuple[str, .
     help="Dataset mode: a nuScenes-format dataset root (e.g. from streamdet-synth); the export is run over it with "
     "onnxruntime (all cameras, every slice, per-sweep NMS) and scored against its ground truth.",
 )  # fmt: skip
-@click.option("--version", default="v1.0-synth", show_default=True, help="Dataset mode: the table folder under --data.")
+@click.option("--version", default="v1.0-synth", show_default=True, callback=lambda ctx, param, value: _version(value),
+              help="Dataset mode: the table folder under --data.")
 @click.option("--split", default="val", show_default=True,
               help="Dataset mode: scenes of this split in DATA/splits.json; 'all' for every sample.")  # fmt: skip
 @click.option("--export-dir", type=click.Path(file_okay=False, path_type=Path), default=Path(DEFAULT_EXPORT_DIR),
@@ -260,6 +306,8 @@ def main(gt_path: Path | None, results_path: Path | None, data_dir: Path | None,
     skipped. Without GT attributes, every attribute error is 1.
     """
     class_list = _parse_classes(classes)
+    mode = "compare" if compare_runs else "dataset" if data_dir is not None else "files"
+    _refuse_other_modes_options(click.get_current_context(), mode)
     if compare_runs:
         if data_dir is not None or results_path is not None or save_dir is not None:
             raise click.UsageError("--compare reads two saved runs; do not combine it with --data / --results / --save-results")
@@ -278,6 +326,8 @@ def main(gt_path: Path | None, results_path: Path | None, data_dir: Path | None,
         if json_path is not None and json_path.resolve() in saved:
             raise click.BadParameter(f"{str(json_path)!r} is one of the files --save-results {save_dir} writes "
                                      f"({', '.join(SAVED_FILES)}); choose another path", param_hint="--json")  # fmt: skip
+        check_output_parent(json_path, "--json")  # now, not after the whole split was detected
+        _check_creatable(save_dir, "--save-results")
         _data_inputs(data_dir, version, None if split == "all" else split, export_dir, slices, precision, max_samples,
                      class_list, json_path, save_dir, image_precision)  # fmt: skip
         return
@@ -288,6 +338,12 @@ def main(gt_path: Path | None, results_path: Path | None, data_dir: Path | None,
     if gt_path is None or results_path is None:
         raise click.UsageError("give --gt and --results (files mode), or --data (dataset mode)")
     refuse_output_over_inputs(json_path, "--json", [("--gt", gt_path), ("--results", results_path)])
+    # a saved run's other files (samples.json, which --compare reads) lie beside the two inputs
+    for option, path in (("--gt", gt_path), ("--results", results_path)):
+        siblings = {(path.parent / name).resolve() for name in SAVED_FILES}
+        if json_path is not None and json_path.resolve() in siblings:
+            raise click.BadParameter(f"{str(json_path)!r} is a file of the saved run beside {option} {path} "
+                                     f"({', '.join(SAVED_FILES)}); choose another path", param_hint="--json")  # fmt: skip
     try:
         gt, pred = load_gt_and_predictions(gt_path, results_path)
     except ValueError as e:

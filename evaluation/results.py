@@ -299,12 +299,13 @@ def write_results_json(
     atomic_write_file(path, lambda f: f.write(text.encode("utf-8")))
 
 
-def read_results_json(path: str | os.PathLike) -> ResultsFile:
-    """Read a results or ground-truth file; ValueError (naming the file) when it is not one.
+def read_results_json(path: str | os.PathLike, what: str = "results file") -> ResultsFile:
+    """Read a results or ground-truth file (``what`` names it in errors); ValueError (naming the file) when it is
+    not one.
 
     A file over MAX_RESULTS_BYTES is refused unread, as is input nested too deeply for the JSON parser.
     """
-    doc = read_json(path, "results file", MAX_RESULTS_BYTES)
+    doc = read_json(path, what, MAX_RESULTS_BYTES)
     if not isinstance(doc, dict) or not isinstance(doc.get("results"), dict):
         got = sorted(doc) if isinstance(doc, dict) else type(doc).__name__
         raise ValueError(f"{path} must be a JSON object with a 'results' object (sample_token -> boxes), got {got}")
@@ -326,7 +327,7 @@ def load_gt_and_predictions(gt_path: str | os.PathLike, results_path: str | os.P
     ego_translation`` of its ground-truth boxes; a prediction in a sample with neither keeps its own
     ``ego_translation``, which it must then have.
     """
-    gt_file, pred_file = read_results_json(gt_path), read_results_json(results_path)
+    gt_file, pred_file = read_results_json(gt_path, "ground-truth file"), read_results_json(results_path)
     for token, entries in gt_file.results.items():
         for i, e in enumerate(entries if isinstance(entries, list) else []):
             if isinstance(e, Mapping) and "ego_translation" not in e and token not in gt_file.ego_positions:

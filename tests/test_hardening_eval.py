@@ -11,9 +11,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from click.testing import CliRunner
 
 from streamdet.cli_utils import run_edge
 from streamdet.evaluation import results as results_module
+from streamdet.evaluation.cli import main as eval_main
 from streamdet.evaluation.compare import read_sample_info
 from streamdet.evaluation.eval_boxes import EvalBoxes, is_finite_number
 from streamdet.evaluation.results import load_gt_and_predictions, read_results_json
@@ -190,3 +192,77 @@ def test_results_files_get_a_plain_files_permissions(tmp_path):
         os.umask(old)
     assert (tmp_path / "r.json").stat().st_mode & 0o777 == 0o644
     assert [p.name for p in tmp_path.iterdir()] == ["r.json"]  # no temp file left
+
+
+# ---- CLI audit: options of another mode, a saved run's files, outputs checked first, names ------------------------
+
+
+def _saved_run(folder: Path) -> Path:
+    from streamdet.evaluation.results import write_results_json
+
+    folder.mkdir()
+    entry = {"sample_token": "s0", "translation": [5.0, 0.0, 1.0], "size": [1.9, 4.5, 1.6], "rotation": [1.0, 0.0, 0.0, 0.0],
+             "velocity": [0.0, 0.0], "detection_name": "car", "attribute_name": "", "detection_score": 0.9}  # fmt: skip
+    meta = {"use_camera": False, "use_lidar": True}
+    write_results_json(folder / "results.json", {"s0": [entry]}, meta)
+    gt = {k: v for k, v in entry.items() if k != "detection_score"} | {"num_pts": 10}
+    write_results_json(folder / "gt.json", {"s0": [gt]}, meta, ego_positions={"s0": [0.0, 0.0, 0.0]})
+    (folder / "samples.json").write_text("{}")
+    return folder
+
+
+@pytest.mark.parametrize(
+    "extra, message",
+    [
+        (["--split", "train"], "--split (dataset mode) not read in the files mode"),
+        (["--slices", "4", "--precision", "fp16"], "--slices (dataset mode), --precision (dataset mode) not read"),
+        (["--bootstrap", "10"], "--bootstrap (compare mode) not read in the files mode"),
+        (["--max-samples", "3", "--no-subsets"], "--max-samples (dataset mode), --no-subsets (compare mode)"),
+    ],
+)
+def test_files_mode_refuses_options_it_would_ignore(tmp_path, extra, message):
+    run = _saved_run(tmp_path / "run")
+    res = CliRunner().invoke(eval_main, ["--gt", str(run / "gt.json"), "--results", str(run / "results.json"), *extra])
+    assert res.exit_code == 2 and message in res.output, res.output
+
+
+def test_compare_mode_refuses_dataset_options(tmp_path):
+    res = CliRunner().invoke(eval_main, ["--compare", "a", "b", "--split", "train"])
+    assert res.exit_code == 2 and "--split (dataset mode) not read in the compare mode" in res.output
+
+
+def test_files_mode_json_never_replaces_a_saved_runs_file(tmp_path):
+    run = _saved_run(tmp_path / "run")
+    args = ["--gt", str(run / "gt.json"), "--results", str(run / "results.json")]
+    res = CliRunner().invoke(eval_main, [*args, "--json", str(run / "samples.json")])
+    assert res.exit_code == 2 and "is a file of the saved run beside --gt" in res.output
+    assert (run / "samples.json").read_text() == "{}"
+    res = CliRunner().invoke(eval_main, [*args, "--json", str(tmp_path / "m.json")])
+    assert res.exit_code == 0, res.output
+    assert "note: no ground-truth box of" in res.output and "pedestrian" in res.output  # only cars in the ground truth
+    res = CliRunner().invoke(eval_main, [*args, "--classes", "car"])
+    assert res.exit_code == 0 and "note:" not in res.output
+
+
+def test_dataset_mode_outputs_are_checked_before_detecting(tmp_path):
+    data, export = tmp_path / "ds", tmp_path / "exp"
+    data.mkdir()
+    export.mkdir()  # no export at all: an output check that came after loading it would not be reached
+    (tmp_path / "file").write_text("")
+    for extra, message in ((["--json", str(tmp_path / "no" / "m.json")], "does not exist"),
+                           (["--save-results", str(tmp_path / "file" / "run")], "is not a folder")):  # fmt: skip
+        res = CliRunner().invoke(eval_main, ["--data", str(data), "--export-dir", str(export), *extra])
+        assert res.exit_code == 2 and message in res.output, res.output
+
+
+@pytest.mark.parametrize("version", ["", ".", "..", "a/b"])
+def test_dataset_mode_version_is_one_folder_name(tmp_path, version):
+    res = CliRunner().invoke(eval_main, ["--data", str(tmp_path), "--version", version])
+    assert res.exit_code == 2 and "--version" in res.output and "one folder name" in res.output
+
+
+def test_a_ground_truth_file_is_named_as_one(tmp_path):
+    run = _saved_run(tmp_path / "run")
+    (tmp_path / "bad.json").write_text("{not json")
+    res = CliRunner().invoke(eval_main, ["--gt", str(tmp_path / "bad.json"), "--results", str(run / "results.json")])
+    assert res.exit_code == 1 and "ground-truth file" in res.output and "results file" not in res.output
