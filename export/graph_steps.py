@@ -18,7 +18,7 @@ import torch
 
 from streamdet.calibration.camera import CalibrationError, Rig
 from streamdet.calibration.compact_lut import lifter_lut_feeds
-from streamdet.calibration.lut import build_lut
+from streamdet.calibration.lut import build_lut, check_rig_fits
 from streamdet.core.constants import BUNDLED_CALIBRATION_SOURCE
 from streamdet.core.image_layout import IMAGE_HALF
 from streamdet.core.lut_layout import LUT_COMPACT
@@ -61,7 +61,8 @@ def load_rig(calibration: str | None) -> tuple[Rig, str]:
         return Rig.from_calibration_json(res), BUNDLED_CALIBRATION_SOURCE
     path = Path(calibration)
     if not path.is_file():
-        raise ExportError(f"calibration file {path} does not exist")
+        raise ExportError(f"calibration file {path} " + ("is not a regular file (a folder, FIFO or device?)" if path.exists()
+                                                         else "does not exist"))  # fmt: skip
     try:
         return Rig.from_calibration_json(path), str(path)
     except CalibrationError as e:
@@ -83,6 +84,11 @@ def load_weights(run: ExportRun) -> None:
 
 def build_lut_file(run: ExportRun) -> None:
     run.rig, run.calibration_source = load_rig(run.opts.calibration)
+    try:  # --resolution of another aspect than the cameras': streamdet-calib would refuse this export's rig later
+        check_rig_fits(run.rig, run.rig.names, *run.size)
+    except CalibrationError as e:
+        raise ExportError(f"--resolution {run.size[0]}x{run.size[1]} does not fit the calibration ({run.calibration_source}): "
+                          f"{e}; give a size of the cameras' aspect") from None  # fmt: skip
     run.lut = build_lut(run.rig, run.preset.grid, run.preset.image.feature_stride, run.size,
                         heights_per_voxel=run.preset.lifter.lut_heights_per_voxel)  # fmt: skip
     run.lut.save(run.tmp / LUT_NAME)

@@ -39,20 +39,20 @@ def _leftovers(parent) -> list[str]:
 
 def test_tiny_export_prints_what_it_wrote(tmp_path):
     out = tmp_path / "exp"
-    result = _invoke(["--preset", "tiny", "--resolution", "130x74", "--out", str(out), "--opset", "18"])
+    result = _invoke(["--preset", "tiny", "--resolution", "160x90", "--out", str(out), "--opset", "18"])
     assert result.exit_code == 0, result.output
     assert f"wrote {out.resolve()}" in result.output
     for name in ("image_encoder.onnx", "volumetric_lifter.onnx", "slice_head.onnx", "lut.npz", "manifest.json"):
         assert name in result.output
     assert "[1/10] loading weights" in result.output  # progress (stderr, mixed in by CliRunner)
     m = read_manifest(out)
-    # 130 x 74 is not a multiple of 4: the feature map is ceil(size / 4)
-    assert (m.image.width, m.image.height, m.image.feature_width, m.image.feature_height) == (130, 74, 33, 19)
+    # 90 is not a multiple of 4: the feature map is ceil(size / 4) (a 16:9 size, the bundled cameras' aspect)
+    assert (m.image.width, m.image.height, m.image.feature_width, m.image.feature_height) == (160, 90, 40, 23)
     assert m.graph("image_encoder").opset == 18 and m.precisions == ("fp32",)
     assert _leftovers(tmp_path) == []
     assert m.post["top_k"] == get_preset("tiny").post.top_k  # the preset's cap unless --top-k says
     # exporting again replaces the old export
-    again = _invoke(["--preset", "tiny", "--resolution", "130x74", "--out", str(out), "--slices", "4", "--top-k", "7"])
+    again = _invoke(["--preset", "tiny", "--resolution", "160x90", "--out", str(out), "--slices", "4", "--top-k", "7"])
     assert again.exit_code == 0, again.output
     m = read_manifest(out)
     assert m.num_slices == 4 and _leftovers(tmp_path) == []
@@ -81,6 +81,12 @@ def test_bad_resolution(tmp_path, resolution, needle):
     result = _invoke(["--preset", "tiny", "--resolution", resolution, "--out", str(tmp_path / "exp")])
     _assert_one_line_error(result, needle)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_resolution_of_another_aspect_than_the_cameras_is_refused(tmp_path):
+    result = _invoke(["--preset", "tiny", "--resolution", "18x4000", "--out", str(tmp_path / "exp")])
+    _assert_one_line_error(result, "--resolution 18x4000 does not fit the calibration")
+    assert "resizing would distort them" in result.output and list(tmp_path.iterdir()) == []
 
 
 def test_checkpoint_from_another_preset(tmp_path):
