@@ -82,6 +82,22 @@ def run_bag(
     shown: dict[int, int] = {}  # slice index -> boxes its markers showed last
     counts = {"sweeps": 0, "slices": 0, "image_sets": 0, "detections": 0, "fallback": 0}
     pending: list[Detections] = []  # slices of the sweep being assembled (slice-per-message drivers)
+    last_event: list[SweepEvent] = []  # the event of the newest slice in ``pending``
+
+    def finish_sweep(event: SweepEvent) -> None:
+        """The slices in ``pending`` merged into one sweep's detections, keyed by ``event`` (its last slice's)."""
+        merged = aggregate_sweep(pending, det.config.nms)
+        pending.clear()
+        counts["sweeps"] += 1
+        counts["detections"] += len(merged)
+        token = event.sample_token or f"{event.cloud.frame_id}@{event.cloud.stamp_ns}"
+        # a bag written by `streamdet-bag export` keys its key frames by sample token; any other, every sweep
+        if event.sample_token is not None or not keyed_by_tokens:
+            results[token] = boxes_to_results(token, merged.boxes.astype(np.float64), merged.scores, merged.labels,
+                                              event.lidar2ego, event.ego2global)  # fmt: skip
+        if progress is not None:
+            progress(counts["sweeps"])
+
     with BagWriter(out) as writer:
         for message, event in source.events():
             writer.schema(message.datatype, message.schema_text)
@@ -91,6 +107,11 @@ def run_bag(
             if event.image_set is not None and det.uses_images:
                 _feed_images(det, event)
                 counts["image_sets"] += 1
+            if not event.slices:  # an empty message of a slicing driver (nothing in its sector): nothing to detect
+                continue
+            if pending and event.slices[0].index <= last_event[0].slices[-1].index:
+                # a new rotation began before the last one's final slice came (it was empty, or lost): close that one
+                finish_sweep(last_event[0])
             for s in event.slices:
                 result = det.detect_slice(s.points, s.index, timestamp=s.scan_time_ns * 1e-9, num_slices=s.num_slices)
                 _publish(writer, result.detections, s, message.log_time_ns, shown.get(s.index, 0), config)
@@ -98,20 +119,12 @@ def run_bag(
                 pending.append(result.detections)
                 counts["slices"] += 1
                 counts["fallback"] += result.fallback
+            last_event[:] = [event]
             last = event.slices[-1]
-            if last.index != last.num_slices - 1:
-                continue  # the sweep is complete when its last slice has been detected
-            merged = aggregate_sweep(pending, det.config.nms)
-            pending = []
-            counts["sweeps"] += 1
-            counts["detections"] += len(merged)
-            token = event.sample_token or f"{event.cloud.frame_id}@{event.cloud.stamp_ns}"
-            # a bag written by `streamdet-bag export` keys its key frames by sample token; any other, every sweep
-            if event.sample_token is not None or not keyed_by_tokens:
-                results[token] = boxes_to_results(token, merged.boxes.astype(np.float64), merged.scores, merged.labels,
-                                                  event.lidar2ego, event.ego2global)  # fmt: skip
-            if progress is not None:
-                progress(counts["sweeps"])
+            if last.index == last.num_slices - 1:  # the sweep is complete when its last slice has been detected
+                finish_sweep(event)
+        if pending:  # the bag ended within a rotation whose last slice never came
+            finish_sweep(last_event[0])
     results_path.parent.mkdir(parents=True, exist_ok=True)
     write_results_json(results_path, results, {"use_camera": det.uses_images, "use_lidar": True})
     without = tuple(c for c in det.camera_names if c in source.cameras_without_info)

@@ -271,7 +271,8 @@ class BagSource:
         cloud = self._cloud(message)
         if cfg.slice_per_message:
             self._check_one_slice(cloud)
-            slices = [slice_from_message(cloud, cfg.num_slices, cfg.start_deg)]
+            # an empty message names no sector (nothing was returned there): no slice, the run goes on
+            slices = [slice_from_message(cloud, cfg.num_slices, cfg.start_deg)] if len(cloud.points) else []
         else:
             slices = split_cloud(cloud, cfg.num_slices, cfg.start_deg)
         lidar2ego = _matrix(self._lookup(tf, cfg.ego_frame, cloud.frame_id, cloud.stamp_ns))

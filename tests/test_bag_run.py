@@ -204,12 +204,12 @@ def test_node_recipe_helpers(bag: Path, export_dir: Path):
         example.main()  # no rclpy here
 
 
-def test_a_driver_publishing_slices(bag: Path, export_dir: Path, reference: dict, tmp_path):
-    """Each sweep re-recorded as 8 messages of one sector each: --slice-per-message gives the same detections."""
+def _sliced_bag(bag: Path, sliced: Path, empty: tuple[int, ...] = ()) -> Path:
+    """``bag`` with each sweep re-recorded as N_SLICES messages of one sector each, in scan order, each stamped like
+    its sweep (the sample token's key); the sectors in ``empty`` as messages without points."""
     from streamdet.core.sectors import slice_index_of
     from streamdet.runtime_ort.ros.pointcloud2 import pointcloud2_message
 
-    sliced = tmp_path / "sliced.mcap"
     source = BagSource(bag, SourceConfig())
     with BagWriter(sliced) as writer:
         for name, data in source.metadata().items():
@@ -221,15 +221,33 @@ def test_a_driver_publishing_slices(bag: Path, export_dir: Path, reference: dict
                 continue
             cloud = decode_pointcloud2(msg.message)
             k_of = slice_index_of(cloud.points[:, 0], cloud.points[:, 1], N_SLICES, 0.0)
-            for k in range(N_SLICES):  # in scan order, each stamped like its sweep (the sample token's key)
-                part = k_of == k
+            for k in range(N_SLICES):
+                part = (k_of == k) & (k not in empty)
                 writer.write(msg.topic, msg.datatype, pointcloud2_message(cloud.points[part], cloud.stamp_ns, cloud.frame_id,
                                                                           cloud.time_s[part].astype(np.float32)), msg.log_time_ns + k)  # fmt: skip
+    return sliced
+
+
+def test_a_driver_publishing_slices(bag: Path, export_dir: Path, reference: dict, tmp_path):
+    """Each sweep re-recorded as 8 messages of one sector each: --slice-per-message gives the same detections."""
+    sliced = _sliced_bag(bag, tmp_path / "sliced.mcap")
     result = CliRunner().invoke(bag_main, ["run", "--bag", str(sliced), "--export-dir", str(export_dir), "--out",
                                            str(tmp_path / "det.mcap"), "--slice-per-message"])  # fmt: skip
     assert result.exit_code == 0, result.output
     assert "2 sweeps, 16 slices" in result.output
     assert_same_detections(tmp_path / "results_nusc.json", reference)
+
+
+@pytest.mark.parametrize("empty", [(3,), (N_SLICES - 1,), (0, N_SLICES - 1)])
+def test_empty_slice_messages_are_skipped_and_every_sweep_still_closes(bag: Path, export_dir: Path, tmp_path, empty):
+    """A slicing driver's message with no points (nothing returned in its sector) names no slice: it is skipped, and
+    a sweep whose last slice was such a message closes when the next rotation begins, or when the bag ends."""
+    sliced = _sliced_bag(bag, tmp_path / "sliced.mcap", empty)
+    result = CliRunner().invoke(bag_main, ["run", "--bag", str(sliced), "--export-dir", str(export_dir), "--out",
+                                           str(tmp_path / "det.mcap"), "--slice-per-message"])  # fmt: skip
+    assert result.exit_code == 0, result.output
+    assert f"2 sweeps, {2 * (N_SLICES - len(empty))} slices" in result.output
+    assert len(json.loads((tmp_path / "results_nusc.json").read_text())["results"]) == 2
 
 
 def test_every_option_has_help():
