@@ -69,13 +69,15 @@ class RotationPhase:
         self._anchor: tuple[int, float] | None = None  # (slice index, arrival s) of the newest arrival
         # (position, arrival s) of the last arrivals of an unbroken run, position = slices since its first one
         self._history: deque[tuple[int, float]] = deque(maxlen=HISTORY_ROTATIONS * num_slices + 1)
+        self._in_burst = False  # after a burst (``_burst``), until an arrival comes at a LiDAR's pace
 
     def observe(self, slice_index: int, arrival_s: float) -> None:
         """A slice ``slice_index`` arrived at ``arrival_s``. Arrivals earlier than the anchor are ignored.
 
         The period is measured over the whole history (up to HISTORY_ROTATIONS rotations), never between two
         neighbouring arrivals: a driver that hands over slices in bursts (a busy machine) would make those tiny. A
-        gap of more than two periods (a pause) starts the history again."""
+        gap of more than two periods (a pause) starts the history again, and so does a rotation's worth of arrivals
+        faster than any LiDAR turns (a backlog handed over at once), from the first arrival at a LiDAR's pace."""
         if self._anchor is not None:
             k0, t0 = self._anchor
             if arrival_s < t0:
@@ -83,6 +85,16 @@ class RotationPhase:
             steps = (slice_index - k0) % self.num_slices or self.num_slices  # the same index again: a whole rotation
             if self.locked and arrival_s - t0 > 2 * self.period_s * steps / self.num_slices:
                 self._history.clear()
+            elif self._burst():
+                # A rotation's worth of arrivals faster than any LiDAR turns: a backlog handed over at once. Its
+                # spacing, or its span averaged with the pause after it, is no rotation: the history starts again
+                # with the first arrival at a LiDAR's pace, and a period guessed from the burst's start is dropped.
+                self._history.clear()
+                self._provisional_s = math.nan
+                self._in_burst = True
+            elif self._in_burst:
+                self._history.clear()
+                self._in_burst = (arrival_s - t0) * self.num_slices / steps < 1.0 / LIDAR_HZ_RANGE[1]
             pos = self._history[-1][0] + steps if self._history else 0
             self._history.append((pos, float(arrival_s)))
             first_pos, first_t = self._history[0]
@@ -97,6 +109,15 @@ class RotationPhase:
         else:
             self._history.append((0, float(arrival_s)))
         self._anchor = (int(slice_index), float(arrival_s))
+
+    def _burst(self) -> bool:
+        """Whether the last rotation's worth of arrivals in the history came faster than any LiDAR turns
+        (LIDAR_HZ_RANGE). Within a rotation a busy driver's bursts are normal; over a whole one they average out."""
+        if len(self._history) <= self.num_slices:
+            return False
+        (first_pos, first_t), (last_pos, last_t) = self._history[-self.num_slices - 1], self._history[-1]
+        span = last_pos - first_pos  # >= num_slices: positions grow by at least one an arrival
+        return (last_t - first_t) * self.num_slices / span < 1.0 / LIDAR_HZ_RANGE[1]
 
     @property
     def period_s(self) -> float:

@@ -259,14 +259,29 @@ def test_a_burst_of_submits_never_blocks_the_callers_of_a_phase_locked_runner():
     with StreamingRunner(det, LaneConfig(schedule="phase-locked", queue_size=64)) as runner:
         futures = [runner.submit_slice(points, i % 8, float(i)) for i in range(33)]
         time.sleep(0.3)
+        assert not runner._phase_locked._phase.locked  # a burst is no rotation: no period taken from it
         images = _returns_within(lambda: runner.submit_images(_images(), 1.0), 5.0)
         _returns_within(lambda: runner.submit_slice(points, 1, 2.0), 5.0)
         again = _returns_within(lambda: runner.submit_images(_images(), 3.0), 5.0)
         for f in futures:
             f.result(WAIT_S)
-        assert not runner.phase_lock.quadrant_lifts  # a burst is no rotation: full updates only
         assert _returns_within(lambda: runner.close(timeout=WAIT_S), WAIT_S + 5)
     assert images.done() and again.done()  # used, superseded, or cancelled at close: none left pending
+
+
+def test_a_burst_then_a_pause_measures_no_rotation():
+    """A backlog of 33 slices handed over at once, then one slice after a pause: the burst's span and the pause
+    once averaged into a plausible period (0.3 s x 8 / 33), taken as a measured rotation that later medians kept. A
+    rotation's worth of arrivals faster than any LiDAR is a burst: the history starts again after it."""
+    phase = RotationPhase(8)
+    for i in range(33):
+        phase.observe(i % 8, 10.0 + i * 1e-6)
+    assert not phase.locked
+    phase.observe(1, 10.3)
+    assert not phase._periods  # at most a provisional period, replaced by the first whole rotation measured
+    for i in range(2, 2 + 16):  # then a real 20 Hz LiDAR
+        phase.observe(i % 8, 10.3 + (i - 1) * 0.05 / 8)
+    assert phase.period_s == pytest.approx(0.05)
 
 
 # ---- H5: a done-callback's BaseException never ends a worker ------------------------------------------------------

@@ -90,7 +90,7 @@ def test_eval_cli_image_precision_is_for_the_dataset_mode(tmp_path):
     gt = tmp_path / "gt.json"
     gt.write_text('{"results": {}}')
     result = CliRunner().invoke(eval_main, ["--gt", str(gt), "--results", str(gt), "--image-precision", "int8"])
-    assert result.exit_code == 2 and "--image-precision is for the dataset mode" in result.output
+    assert result.exit_code == 2 and "--image-precision (dataset mode) not read in the files mode" in result.output
 
 
 def test_eval_dataset_mode_records_both_lanes(export_dir, tiny_synth_data, tmp_path):
