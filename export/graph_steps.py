@@ -65,8 +65,8 @@ def load_rig(calibration: str | None) -> tuple[Rig, str]:
                                                          else "does not exist"))  # fmt: skip
     try:
         return Rig.from_calibration_json(path), str(path)
-    except CalibrationError as e:
-        raise ExportError(f"calibration {path}: {e}") from None
+    except CalibrationError as e:  # its message names the file as given, mostly: never twice
+        raise ExportError(str(e) if str(path) in str(e) else f"calibration {path}: {e}") from None
 
 
 # ---- set-up ---------------------------------------------------------------------------------------------------
