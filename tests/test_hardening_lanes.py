@@ -24,9 +24,11 @@ from streamdet.runtime_ort.detector_results import SliceResult
 from streamdet.runtime_ort.lanes import LaneConfig, StreamingRunner
 from streamdet.runtime_ort.phase_lock import LIDAR_HZ_RANGE, RotationPhase, plan_lift
 from streamdet.runtime_ort.phase_locked_lane import PhaseLockedImageLane
-from streamdet.runtime_ort.thread_priority import check_nice
 from streamdet.runtime_ort.postprocess import Detections
+from streamdet.runtime_ort.thread_priority import check_nice
 from streamdet.runtime_ort.worker_lane import JobBatching, WorkerLane
+
+from thread_helpers import returns_within
 
 WAIT_S = 10.0
 CAMS = ("CAM_A", "CAM_B")
@@ -110,22 +112,7 @@ def _images() -> dict[str, np.ndarray]:
 
 
 def _returns_within(fn, seconds: float = WAIT_S):
-    """fn() on a daemon thread; its result, or a failure when it has not returned within ``seconds`` (a hang)."""
-    out: dict = {}
-
-    def run() -> None:
-        try:
-            out["result"] = fn()
-        except BaseException as e:  # noqa: BLE001  # handed to the test
-            out["error"] = e
-
-    t = threading.Thread(target=run, daemon=True)
-    t.start()
-    t.join(seconds)
-    assert not t.is_alive(), f"{fn} still running after {seconds} s: a hang"
-    if "error" in out:
-        raise out["error"]
-    return out.get("result")
+    return returns_within(fn, seconds)
 
 
 def _counting_deadlines(phase: RotationPhase, most: int) -> list[int]:

@@ -18,6 +18,8 @@ from streamdet.runtime_ort.lanes import ImagesSuperseded, LaneConfig, SliceDropp
 from streamdet.runtime_ort.phase_locked_lane import PhaseLockedImageLane
 from streamdet.runtime_ort.worker_lane import WorkerLane, claim_future
 
+from thread_helpers import returns_within
+
 WAIT_S = 10.0  # nothing here waits this long when it works
 CAMERAS = ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_FRONT_LEFT", "CAM_BACK", "CAM_BACK_LEFT", "CAM_BACK_RIGHT")
 POINTS = np.zeros((2, 6), np.float32)
@@ -39,22 +41,7 @@ def _raise(error: BaseException):
 
 
 def _returns_within(fn, seconds: float = WAIT_S):
-    """fn() on a daemon thread; its result, or a failure when it has not returned within ``seconds`` (a deadlock)."""
-    out: dict = {}
-
-    def run() -> None:
-        try:
-            out["result"] = fn()
-        except BaseException as e:  # noqa: BLE001  # handed to the test
-            out["error"] = e
-
-    t = threading.Thread(target=run, daemon=True)
-    t.start()
-    t.join(seconds)
-    assert not t.is_alive(), f"{fn} still running after {seconds} s: a deadlock"
-    if "error" in out:
-        raise out["error"]
-    return out.get("result")
+    return returns_within(fn, seconds)
 
 
 def _images() -> dict[str, np.ndarray]:
