@@ -417,5 +417,7 @@ def _mcap_file(path: Path) -> Path:
             raise ValueError(f"{path} is a folder holding {len(files)} .mcap files; name the bag file")
         return files[0]
     if not path.is_file():
+        if path.exists():  # a FIFO or a device: never opened
+            raise ValueError(f"{path} is not a regular file (a FIFO or a device?): not a bag")
         raise FileNotFoundError(f"bag not found: {path}")
     return path

@@ -76,16 +76,22 @@ def _evaluate_and_report(gt: EvalBoxes, pred: EvalBoxes, classes: tuple[str, ...
     except ValueError as e:
         raise click.ClickException(str(e)) from None
     click.echo(format_table(metrics))
-    absent = [c for c in metrics.classes if c not in set(gt.detection_name.tolist())]
-    if absent:  # the devkit's rule, kept; said, so that a 0 is not read as a detector's failure
-        click.echo(f"note: no ground-truth box of {', '.join(absent)}: AP 0 and TP errors 1 by the devkit's rule, "
-                   "counted in mAP and NDS (--classes chooses the classes averaged)")  # fmt: skip
+    _note_absent_classes(metrics, set(gt.detection_name.tolist()))
     if json_path is not None:
         try:
             json_path.write_text(json.dumps(metrics.to_dict(), indent=1, allow_nan=False) + "\n")
         except (OSError, ValueError) as e:  # ValueError: a non-finite figure (allow_nan=False)
             raise click.ClickException(f"cannot write --json {json_path}: {getattr(e, 'strerror', None) or e}") from None
         click.echo(f"wrote {json_path}")
+
+
+def _note_absent_classes(metrics: DetectionMetrics, present: set[str]) -> None:
+    """A line under the table for the classes averaged that have no ground-truth box: the devkit's rule (AP 0, TP
+    errors 1) is kept, and said, so that a 0 is not read as the detector's failure."""
+    absent = [c for c in metrics.classes if c not in present]
+    if absent:
+        click.echo(f"note: no ground-truth box of {', '.join(absent)}: AP 0 and TP errors 1 by the devkit's rule, "
+                   "counted in mAP and NDS (--classes chooses the classes averaged)")  # fmt: skip
 
 
 def _data_inputs(data_dir: Path, version: str, split: str | None, export_dir: Path, slices: int | None,
@@ -117,6 +123,7 @@ def _data_inputs(data_dir: Path, version: str, split: str | None, export_dir: Pa
     click.echo(f"{result.num_samples} samples of {data_dir} ({split or 'all'} split), export {export_dir} ({label}), "
                f"{n} slices per sweep, {result.seconds:.1f} s")  # fmt: skip
     click.echo(format_table(result.metrics))
+    _note_absent_classes(result.metrics, {e["detection_name"] for entries in result.ground_truth.values() for e in entries})
     if json_path is not None:
         lanes = {"image_precision": detector.detector.config.image_precision} if detector.detector.uses_images else {}
         doc = {**result.metrics.to_dict(), "num_samples": result.num_samples, "num_slices": n,
@@ -204,6 +211,7 @@ def _compare(run_a: str, run_b: str, gt_path: Path | None, classes: tuple[str, .
     from streamdet.evaluation.compare import compare_runs, format_comparison, load_run
 
     group_a, group_b = _run_group(run_a), _run_group(run_b)
+    check_output_parent(json_path, "--json")  # now, not after the bootstrap
     both = sorted({_run_folder(p) for p in group_a} & {_run_folder(p) for p in group_b})
     if both:
         raise click.UsageError(f"--compare: {both[0]} is on both sides; a run compared with itself differs by nothing")

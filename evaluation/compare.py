@@ -124,6 +124,8 @@ def load_run(run: Path, gt_path: Path | None = None) -> Run:
             if not f.is_file():
                 raise ValueError(f"{run} is not a run saved by streamdet-eval --save-results: {f.name} is missing")
         info_path = run / SAMPLES_FILE
+        if info_path.exists() and not info_path.is_file():  # a FIFO or a folder: another run's file must not stand in
+            raise ValueError(f"{info_path} is not a regular file (a FIFO, a device or a folder?)")
         info = read_sample_info(info_path) if info_path.is_file() else None
     elif run.is_file():
         if gt_path is None:

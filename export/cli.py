@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import sys
+from pathlib import Path
 
 import click
 
-from streamdet.cli_utils import MAX_SLICES, RESOLUTION_RANGE_HELP, resolution_callback
+from streamdet.cli_utils import MAX_SLICES, RESOLUTION_RANGE_HELP, refuse_output_over_inputs, resolution_callback
 from streamdet.core.image_layout import IMAGE_LAYOUTS
 from streamdet.core.lut_layout import LUT_LAYOUTS
 from streamdet.export.exporter import STEM_STRIDE, ExportError, ExportOptions, run_export
@@ -68,6 +69,10 @@ def main(preset, checkpoint, calibration, resolution, num_slices, fp16, int8, ca
     """Export the detector as three ONNX graphs plus lut.npz and manifest.json, checking each against PyTorch.
 
     A LiDAR-only checkpoint (trained with use_image=False) exports its slice graph only, with no image_bev input."""
+    # an export written into the calibration dataset (or onto an input) would sit among, or replace, what it reads
+    inputs = [("--checkpoint", checkpoint), ("--calibration", calibration), ("--calibration-data", calibration_data)]
+    refuse_output_over_inputs(None if out_dir is None else Path(out_dir), "--out",
+                              [(option, None if path is None else Path(path)) for option, path in inputs])  # fmt: skip
     opts = ExportOptions(
         preset=preset, checkpoint=checkpoint, calibration=calibration, resolution=resolution, num_slices=num_slices,
         fp16=fp16, int8=int8, calibration_data=calibration_data, calibration_samples=calibration_samples, opset=opset,

@@ -66,6 +66,8 @@ def run_export(opts: ExportOptions, report: Report | None = None) -> ExportResul
     opts = dataclasses.replace(opts, lut_layout=resolve_lut_layout(opts.lut_layout, preset.lifter.lut_heights_per_voxel))
     _check_options(opts)
     out_dir = Path(opts.out_dir) if opts.out_dir is not None else Path(EXPORTS_ROOT) / preset.name
+    if out_dir.is_symlink():  # replace the folder it points to and keep the link (committing moved the link aside)
+        out_dir = out_dir.resolve()
     steps = export_steps(preset, opts, (width, height))
     progress = Progress(report, total=len(steps))
     tmp = make_staging_dir(out_dir)

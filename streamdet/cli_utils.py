@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import stat
 from pathlib import Path
 
 import click
@@ -116,6 +117,7 @@ def refuse_output_over_inputs(output: Path | None, option: str, inputs) -> None:
     if output is None:
         return
     out = _real(output)
+    ancestors = _existing_ancestors(out)
     for in_option, path in inputs:
         if path is None:
             continue
@@ -129,9 +131,45 @@ def refuse_output_over_inputs(output: Path | None, option: str, inputs) -> None:
         if same:
             raise click.BadParameter(f"{str(output)!r} is the input {in_option} {path}: writing there would replace "
                                      "or add to that input; choose another path", param_hint=option)  # fmt: skip
-        if inp in out.parents:
+        if inp in out.parents or _same_as_any(inp, ancestors):
             raise click.BadParameter(f"{str(output)!r} lies inside the input {in_option} {path}: write outside the "
                                      "tool's inputs", param_hint=option)  # fmt: skip
+    _refuse_hard_link(output, option)
+
+
+def _refuse_hard_link(output: Path, option: str) -> None:
+    """An existing output file with another name too (a hard link) would be written through: a link made inside a
+    dataset or a saved run (``ln ds/splits.json out.json``) is that input's file, wherever the link lies."""
+    try:
+        st = os.stat(output)
+    except OSError:  # absent (the usual case), or unreadable: the write says why
+        return
+    if stat.S_ISREG(st.st_mode) and st.st_nlink > 1:
+        raise click.BadParameter(f"{str(output)!r} is a hard link of another file ({st.st_nlink} names): writing "
+                                 "would change that file too; remove the link or choose another path", param_hint=option)  # fmt: skip
+
+
+def _existing_ancestors(path: Path) -> list[Path]:
+    """The folders above ``path`` that exist (a case-insensitive file system or a bind mount can make one of them an
+    input folder under another spelling: ``os.path.samefile`` tells)."""
+    return [a for a in path.parents if a.exists()]
+
+
+def _same_as_any(folder: Path, candidates: list[Path]) -> bool:
+    if not folder.is_dir():
+        return False
+    for candidate in candidates:
+        try:
+            if os.path.samefile(folder, candidate):
+                return True
+        except OSError:
+            continue
+    return False
+
+
+def not_a_file(path: Path) -> str:
+    """Why ``path``, which is no regular file, cannot be read as one: for a one-line error after the path."""
+    return "is not a regular file (a folder, a FIFO or a device?)" if Path(path).exists() else "does not exist"
 
 
 def refuse_same_outputs(outputs) -> None:

@@ -47,3 +47,47 @@ def test_check_plot_format():
     for bad in (Path("a.json"), Path("a.docx")):
         with pytest.raises(click.BadParameter, match=rf"cannot write --plot {bad}: matplotlib has no \{bad.suffix} format"):
             check_plot_format(bad)
+
+
+def test_an_output_that_is_a_hard_link_is_refused(tmp_path):
+    """``ln ds/splits.json out.json; --json out.json`` would write through to the dataset's file."""
+    from streamdet.cli_utils import refuse_output_over_inputs
+
+    data = tmp_path / "ds"
+    data.mkdir()
+    (data / "splits.json").write_text("{}")
+    link = tmp_path / "out.json"
+    link.hardlink_to(data / "splits.json")
+    with pytest.raises(click.BadParameter, match="is a hard link of another file"):
+        refuse_output_over_inputs(link, "--json", [("--data", data)])
+    with pytest.raises(click.BadParameter, match="is a hard link"):
+        refuse_output_over_inputs(link, "--json", [])  # whatever the inputs: the other name may be anyone's
+    (tmp_path / "plain.json").write_text("{}")
+    refuse_output_over_inputs(tmp_path / "plain.json", "--json", [("--data", data)])  # an ordinary file is replaced
+
+
+def test_an_input_folder_reached_under_another_name_is_found(tmp_path):
+    """A bind mount or a case-insensitive file system spells an input folder otherwise: the folders above the output
+    are compared by identity (here a symlinked parent stands in for another spelling)."""
+    from streamdet.cli_utils import refuse_output_over_inputs
+
+    data = tmp_path / "ds"
+    (data / "sub").mkdir(parents=True)
+    alias = tmp_path / "alias"
+    alias.symlink_to(data, target_is_directory=True)
+    with pytest.raises(click.BadParameter, match="lies inside the input --data"):
+        refuse_output_over_inputs(alias / "sub" / "x.json", "--json", [("--data", data)])
+
+
+@pytest.mark.skipif(not hasattr(__import__("os"), "mkfifo"), reason="named pipes are POSIX")
+def test_not_a_file_names_a_fifo_and_a_missing_file(tmp_path):
+    import os
+
+    from streamdet.cli_utils import not_a_file
+
+    os.mkfifo(tmp_path / "fifo")
+    assert not_a_file(tmp_path / "fifo").startswith("is not a regular file")
+    assert not_a_file(tmp_path).startswith("is not a regular file")
+    assert not_a_file(tmp_path / "missing") == "does not exist"
+    (tmp_path / "dangling").symlink_to(tmp_path / "missing")
+    assert not_a_file(tmp_path / "dangling") == "does not exist"

@@ -224,6 +224,15 @@ def fused_export_dir(tiny_export_fp32) -> Path:
     return tiny_export_fp32  # tiny camera + LiDAR, fp32, read-only (conftest)
 
 
+def ground_truth_of(data_dir: Path) -> list[list[dict]]:
+    """The ground-truth entries of every sample of ``data_dir`` (as the dataset mode scores them)."""
+    from streamdet.data.nuscenes import NuScenesReader
+    from streamdet.evaluation.dataset_eval import ground_truth_entries
+
+    reader = NuScenesReader(data_dir, "v1.0-synth")
+    return [ground_truth_entries(reader.get(t)) for t in reader.sample_tokens]
+
+
 def test_streamdet_eval_data_mode(export_dir, data_dir, tmp_path):
     from streamdet.evaluation.cli import main as eval_main
 
@@ -233,6 +242,12 @@ def test_streamdet_eval_data_mode(export_dir, data_dir, tmp_path):
     assert res.exit_code == 0, res.output
     doc = json.loads(out.read_text())
     assert doc["num_samples"] == 2 and 0.0 <= doc["mAP"] <= 1.0
+    assert "note: no ground-truth box" not in res.output  # the dataset mode averages the classes present
+    res = CliRunner().invoke(eval_main, ["--data", str(data_dir), "--export-dir", str(export_dir), "--split", "all",
+                                         "--classes", "car,construction_vehicle"])  # fmt: skip
+    assert res.exit_code == 0, res.output
+    gt = {e["detection_name"] for entries in ground_truth_of(data_dir) for e in entries}
+    assert ("note: no ground-truth box of construction_vehicle" in res.output) == ("construction_vehicle" not in gt)
 
 
 def test_slices_study_baseline_export_scores_as_the_checkpoint(fused_export_dir, export_dir, checkpoint, data_dir, tmp_path):

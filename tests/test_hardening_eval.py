@@ -266,3 +266,20 @@ def test_a_ground_truth_file_is_named_as_one(tmp_path):
     (tmp_path / "bad.json").write_text("{not json")
     res = CliRunner().invoke(eval_main, ["--gt", str(tmp_path / "bad.json"), "--results", str(run / "results.json")])
     assert res.exit_code == 1 and "ground-truth file" in res.output and "results file" not in res.output
+
+
+def test_compare_json_folder_is_checked_before_the_bootstrap(tmp_path):
+    a, b = _saved_run(tmp_path / "a"), _saved_run(tmp_path / "b")
+    res = CliRunner().invoke(eval_main, ["--compare", str(a), str(b), "--json", str(tmp_path / "no" / "c.json")])
+    assert res.exit_code == 2 and "does not exist" in res.output and "bootstrap" not in res.output
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="named pipes are POSIX")
+def test_compare_a_fifo_samples_file_is_refused_not_replaced_by_the_other_runs(tmp_path):
+    from streamdet.evaluation.compare import load_run
+
+    run = _saved_run(tmp_path / "a")
+    (run / "samples.json").unlink()
+    os.mkfifo(run / "samples.json")
+    with pytest.raises(ValueError, match="samples.json is not a regular file"):
+        load_run(run)

@@ -123,3 +123,31 @@ def test_a_folder_whose_manifest_is_not_streamdets_is_refused(tmp_path, manifest
     with pytest.raises(ExportError, match="not a streamdet export"):
         make_staging_dir(out)
     assert (out / "index.html").read_text() == "<html>"
+
+
+def test_export_out_inside_the_calibration_dataset_is_refused(tmp_path):
+    from click.testing import CliRunner
+
+    from streamdet.export.cli import main as export_main
+
+    data = tmp_path / "ds"
+    data.mkdir()
+    res = CliRunner().invoke(export_main, ["--preset", "tiny", "--int8", "--calibration-data", str(data),
+                                           "--out", str(data / "exp")])  # fmt: skip
+    assert res.exit_code == 2 and "lies inside the input --calibration-data" in res.output
+    assert list(data.iterdir()) == []
+
+
+def test_export_out_through_a_symlink_replaces_its_target_and_keeps_the_link(tmp_path):
+    from click.testing import CliRunner
+
+    from streamdet.export.cli import main as export_main
+
+    target = tmp_path / "v1"
+    link = tmp_path / "current"
+    link.symlink_to(target, target_is_directory=True)  # dangling until the first export
+    for _ in range(2):  # made, then replaced
+        res = CliRunner().invoke(export_main, ["--preset", "tiny", "--slices", "4", "--out", str(link)])
+        assert res.exit_code == 0, res.output
+        assert link.is_symlink() and (target / "manifest.json").is_file()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["current", "v1"]

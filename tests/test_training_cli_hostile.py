@@ -140,6 +140,19 @@ def test_overwrite_replaces_only_the_runs_own_files(tmp_path):
     assert (out / "notes.txt").read_text() == "mine"
 
 
+def test_a_run_holding_its_own_evaluation_resumes(tmp_path):
+    """streamdet-eval --save-results RUN leaves results.json and gt.json in the run's folder: still the run's."""
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "config.json").write_text('{"train": {}}')
+    for name in (*RUN_FILES, "results.json", "gt.json", "samples.json"):
+        (out / name).write_text("{}")
+    assert check_out_dir(out, RUN_FILES, out / "last.pt", False) == []
+    (out / "manifest.json").write_text("{}")  # an export mixed into it is not
+    with pytest.raises(ValueError, match="is a streamdet export"):
+        check_out_dir(out, RUN_FILES, out / "last.pt", False)
+
+
 @pytest.mark.parametrize("option", ["--init", "--teacher"])
 def test_overwrite_would_delete_an_input_it_reads(data, tmp_path, option):
     out = tmp_path / "run"

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import click
 
-from streamdet.cli_utils import refuse_output_over_inputs
+from streamdet.cli_utils import not_a_file, refuse_output_over_inputs
 from streamdet.core.errors import first_line
 from streamdet.core.sectors import MAX_NUM_SLICES
 from streamdet.models.presets import preset_names
@@ -174,11 +174,11 @@ def main(data_dir: Path, version: str, out_dir: Path, preset: str, steps: int | 
     if not (data_dir / version).is_dir():
         raise click.ClickException(f"--data {data_dir}: no table folder {data_dir / version} (is --version right?)")
     if resume is not None and not resume.is_file():
-        raise click.ClickException(f"--resume {resume} does not exist")
+        raise click.ClickException(f"--resume {resume} {not_a_file(resume)}")
     if init is not None and not init.is_file():
-        raise click.ClickException(f"--init {init} does not exist")
+        raise click.ClickException(f"--init {init} {not_a_file(init)}")
     if teacher is not None and not teacher.is_file():
-        raise click.ClickException(f"--teacher {teacher} does not exist")
+        raise click.ClickException(f"--teacher {teacher} {not_a_file(teacher)}")
     if freeze_camera_lane and init is None and resume is None:
         raise click.ClickException("--freeze-camera-lane keeps the camera lane --init gives: add --init WEIGHTS")
     if init is not None and resume is not None:

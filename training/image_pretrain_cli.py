@@ -9,6 +9,7 @@ from pathlib import Path
 
 import click
 
+from streamdet.cli_utils import not_a_file
 from streamdet.core.errors import first_line
 from streamdet.models.presets import preset_names
 from streamdet.training.cli import DEVICE_HELP, device_callback, refuse_out_over_inputs
@@ -59,7 +60,7 @@ def main(data_dir: Path, version: str, out_dir: Path, preset: str, steps: int, b
     if not (data_dir / version).is_dir():
         raise click.ClickException(f"--data {data_dir}: no table folder {data_dir / version} (is --version right?)")
     if resume is not None and not resume.is_file():
-        raise click.ClickException(f"--resume {resume} does not exist")
+        raise click.ClickException(f"--resume {resume} {not_a_file(resume)}")
     _check_stop_at_step(stop_at_step, steps)
     refuse_out_over_inputs(out_dir, [("--data", data_dir), ("--resume", resume)])
     try:

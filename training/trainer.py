@@ -75,6 +75,7 @@ MAX_CONFIG_BYTES = 1 << 20  # a run's config.json is a few kB: a bigger one is n
 # their files of the same name (config.json) or sits among files their readers list.
 NOT_A_RUN = (("manifest.json", "a streamdet export"), ("results.json", "a saved streamdet-eval run"),
              ("gt.json", "a saved streamdet-eval run"), ("splits.json", "a dataset"))  # fmt: skip
+RUN_MAY_HOLD = ("results.json", "gt.json")  # NOT_A_RUN's files a run's folder may hold: an evaluation saved into it
 
 
 @dataclass(frozen=True)
@@ -247,15 +248,18 @@ def check_out_contents(out_dir: str | Path, run_files: tuple[str, ...], config_k
         names = {entry.name for entry in out.iterdir()}
     except OSError as e:
         raise ValueError(f"--out {out_dir} cannot be listed: {e.strerror or e}") from None
-    for name, what in NOT_A_RUN:
-        if name in names:
-            raise ValueError(f"--out {out_dir} is {what} ({name}): a {tool} run must not be mixed into it; choose "
-                             "another --out")  # fmt: skip
     config = out / CONFIG_FILE
     if CONFIG_FILE in names and not _is_run_config(config, config_key):
         raise ValueError(f"--out {out_dir} holds a {CONFIG_FILE} that is not a {tool} run's: the run would replace it; "
                          "choose another --out")  # fmt: skip
-    if any((out / name).exists() for name in (*run_files, CONFIG_FILE)):
+    is_run = any((out / name).exists() for name in (*run_files, CONFIG_FILE))
+    for name, what in NOT_A_RUN:
+        # a run's folder may hold the user's evaluation of it (streamdet-eval --save-results RUN): only an export or
+        # a dataset mixed into it is refused
+        if name in names and not (is_run and name in RUN_MAY_HOLD):
+            raise ValueError(f"--out {out_dir} is {what} ({name}): a {tool} run must not be mixed into it; choose "
+                             "another --out")  # fmt: skip
+    if is_run:
         return  # a run of this tool: what else is there is the user's and stays
     foreign = sorted(n for n in names if not _is_transient(n))
     if foreign:
