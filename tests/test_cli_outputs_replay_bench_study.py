@@ -326,10 +326,11 @@ def test_study_json_and_plot_as_one_file_are_refused(study, inputs):
     json_path, link = inputs / "s.json", inputs / "link.json"
     json_path.write_text("earlier")
     link.symlink_to(json_path)
-    hard = inputs / "hard.json"
-    hard.hardlink_to(json_path)
-    for plot in (json_path, link, hard):
+    for plot in (json_path, link):
         _usage_error(study("slices", "--json", str(json_path), "--plot", str(plot)), "--plot", str(plot), "also the --json")
+    hard = inputs / "hard.json"
+    hard.hardlink_to(json_path)  # a hard link: either name would write through to the other
+    _usage_error(study("slices", "--json", str(json_path), "--plot", str(hard)), "--json", "is a hard link")
     assert study.calls == [] and json_path.read_text() == "earlier"
 
 

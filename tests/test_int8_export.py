@@ -149,13 +149,14 @@ def test_runtime_refuses_int8_without_int8_graphs(tmp_path):
     "args, needle",
     [
         (["--int8", "--calibration-data", "{tmp}/missing"], "is not a directory"),
-        (["--int8", "--calibration-data", "{tmp}"], "no nuScenes table folder"),
-        (["--calibration-data", "{tmp}"], "needs --int8"),
+        (["--int8", "--calibration-data", "{tmp}/data"], "no nuScenes table folder"),
+        (["--calibration-data", "{tmp}/data"], "needs --int8"),
         (["--int8", "--calibration-samples", "0"], "--calibration-samples"),
     ],
 )
 def test_bad_calibration_data_is_a_one_line_error(tmp_path, args, needle):
     out = tmp_path / "exp"
+    (tmp_path / "data").mkdir()  # an empty folder, beside --out (an export inside its input is refused first)
     result = _invoke(["--preset", "tiny", "--out", str(out)] + [a.format(tmp=tmp_path) for a in args])
     _assert_one_line_error(result, needle)
     assert not out.exists()
