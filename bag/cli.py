@@ -99,7 +99,7 @@ def run_cmd(bag_path: Path, export_dir: Path, out: Path, results_json: Path | No
     """Detect every LiDAR message of a bag in recorded order (images first when new ones arrived) and write the
     detections per slice as ROS 2 topics, stamped with the slice's scan time, plus the nuScenes results JSON."""
     logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(message)s")
-    if not (export_dir / "manifest.json").is_file():
+    if not (export_dir / "manifest.json").exists():  # a FIFO or a folder: the manifest reader names it
         raise click.ClickException(f"{export_dir} holds no manifest.json: run `streamdet-export --out {export_dir}` first")
     from streamdet.bag.run import RunConfig, results_path_of, run_bag
     from streamdet.bag.topics import TopicMap

@@ -315,6 +315,8 @@ class NuScenesReader:
         """The file of a checked sample_data row, a relative path inside the dataset root (``sample.dataset_file``)."""
         path = dataset_file(self.root, sd["filename"], lambda: f"{self._where('sample_data', sd)}: field 'filename'")
         if not path.is_file():
+            if path.exists():  # a FIFO, a device or a folder: never opened
+                raise ValueError(f"file of sample_data {sd['token']} is not a regular file (a FIFO, a device or a folder?): {path}")
             raise FileNotFoundError(f"file of sample_data {sd['token']} not found: {path}")
         return path
 
@@ -416,6 +418,8 @@ def _load_table(table_dir: Path, name: str) -> list:
     """The rows of ``table_dir/name.json`` (a JSON list; the rows are checked by the reader)."""
     path = table_dir / f"{name}.json"
     if not path.is_file():
+        if path.exists():  # a FIFO, a device or a folder: never opened
+            raise ValueError(f"nuScenes table {name!r} is not a regular file (a FIFO, a device or a folder?): {path}")
         raise FileNotFoundError(f"nuScenes table {name!r} not found: {path}")
     rows = read_json(path, "nuScenes table", MAX_TABLE_BYTES)
     if not isinstance(rows, list):

@@ -27,6 +27,8 @@ def split_scenes(root: str | Path, split: str) -> tuple[str, ...]:
     file (ValueError; SplitsFileMissing where there is no file)."""
     path = Path(root) / SPLITS_FILE
     if not path.is_file():
+        if path.exists():  # a FIFO, a device or a folder: never opened
+            raise ValueError(f"{path} is not a regular file (a FIFO, a device or a folder?); it must name the scenes of split {split!r}")
         raise SplitsFileMissing(f"{path} not found; it must name the scenes of split {split!r}")
     splits = read_json(path, "splits file", MAX_SPLITS_BYTES)
     if not isinstance(splits, dict) or not isinstance(splits.get(split), list):

@@ -107,7 +107,7 @@ def main(
 ) -> None:
     """Run the streaming detector (onnxruntime, no PyTorch) on one sample: every slice, then the sweep merged."""
     logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(message)s")
-    if not (export_dir / "manifest.json").is_file():
+    if not (export_dir / "manifest.json").exists():  # a FIFO or a folder: the manifest reader names it
         raise click.ClickException(f"{export_dir} holds no manifest.json: run `streamdet-export --out {export_dir}` first")
     from streamdet.data.sample import bundled_sample_dir
 

@@ -169,7 +169,7 @@ def main(
 
     inputs = [("--data", data), ("--export-dir", export_dir), ("--fallback-export", fallback_export_dir)]
     _check_outputs(json_path, plot_path, out_dir, inputs)
-    if not (export_dir / "manifest.json").is_file():
+    if not (export_dir / "manifest.json").exists():  # a FIFO or a folder: the manifest reader names it
         raise click.ClickException(f"{export_dir} holds no manifest.json: run `streamdet-export --out {export_dir}` first")
     if not (data / table_version).is_dir():
         raise click.ClickException(f"{data / table_version} does not exist: --data must be a nuScenes-format dataset root")

@@ -420,3 +420,28 @@ def test_a_fifo_is_named_not_missing(tmp_path, alarm):
         load_trajectories(tmp_path, "scene-0001")
     with pytest.raises(FileNotFoundError, match="LiDAR file not found"):
         load_points(tmp_path / "nothing.pcd.bin")
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="named pipes are POSIX")
+@pytest.mark.parametrize("which", ["splits.json", "table", "camera image"])
+def test_a_fifo_in_a_dataset_is_named_as_one_not_as_missing(tiny_synth_data, tmp_path, which):
+    from streamdet.data.splits import split_scenes
+
+    data = tmp_path / "d"
+    shutil.copytree(tiny_synth_data, data)
+    if which == "splits.json":
+        target = data / "splits.json"
+    elif which == "table":
+        target = data / "v1.0-synth" / "sample_annotation.json"
+    else:  # a key frame's image, as the reader names it
+        reader = NuScenesReader(data, "v1.0-synth")
+        target = reader.get(reader.sample_tokens[0]).image_paths["CAM_FRONT"]
+    target.unlink()
+    os.mkfifo(target)
+    with pytest.raises(ValueError, match="is not a regular file"):  # never opened: nothing blocks
+        if which == "splits.json":
+            split_scenes(data, "val")
+        else:
+            reader = NuScenesReader(data, "v1.0-synth")
+            for token in reader.sample_tokens:
+                reader.get(token).load_images((64, 36))

@@ -240,6 +240,12 @@ def test_a_symlink_loop_or_a_fifo_manifest_is_named(export_copy, alarm):
     os.mkfifo(export_copy / "manifest.json")
     with pytest.raises(ManifestError, match=r"manifest.json is not a regular file"):
         read_manifest(export_copy)
+    from click.testing import CliRunner
+
+    from streamdet.evaluation.run_cli import main as run_main
+
+    res = CliRunner().invoke(run_main, ["--export-dir", str(export_copy), "--out", str(export_copy.parent / "run")])
+    assert res.exit_code != 0 and "is not a regular file" in res.output and "holds no manifest.json" not in res.output
 
 
 @pytest.mark.skipif(os.geteuid() != 0, reason="needs root to drop to another user")
