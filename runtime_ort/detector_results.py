@@ -32,7 +32,10 @@ class SliceResult:
     slice_index: int
     num_slices: int
     timestamp: float
-    image_timestamp: float | None  # timestamp of the image BEV used; None: no images yet (zeros were used)
+    # timestamp of the cached image BEV of the slice's quadrant(s), the oldest where it reads several (a quadrant
+    # without images reads zeros); None: none of them had images yet. With ``fallback`` the fused graph did not run:
+    # it is the BEV that was too old (or missing) and its age says why
+    image_timestamp: float | None
     num_points: int
     num_pillars: int
     num_nonfinite_dropped: int  # NaN / inf points removed before pillarising

@@ -121,10 +121,11 @@ class WorkerLane:
 
     @property
     def waiting(self) -> int:
-        """Jobs waiting beyond those the workers run or are about to take (cancelled ones included until the next
-        submit clears them)."""
+        """Jobs waiting beyond those the workers run or are about to take; jobs their owners cancelled do not count
+        (they stay queued until the next submit or a worker clears them, but nobody waits for them)."""
         with self._cond:
-            return max(0, len(self._jobs) - (self._workers - self._busy))
+            live = sum(1 for job in self._jobs if not job[1].cancelled())  # a worker skips a cancelled one
+            return max(0, live - (self._workers - self._busy))
 
     def _serve(self) -> None:
         while True:

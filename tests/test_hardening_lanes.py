@@ -350,6 +350,19 @@ class _DeadWorkers(WorkerLane):
         return
 
 
+def test_waiting_counts_no_job_its_owner_cancelled():
+    """The phase-locked lane holds back while slices wait (image_lane_yield_slices): a slice nobody waits for
+    any more must not hold it back."""
+    lane, gate, _, first = _gated_lane()  # the one worker is busy
+    queued = [lane.submit(lambda k=k: k) for k in range(3)]
+    assert lane.waiting == 3
+    queued[1].cancel()
+    assert lane.waiting == 2
+    gate.set()
+    assert first.result(WAIT_S) == "first" and [f.result(WAIT_S) for f in (queued[0], queued[2])] == [0, 2]
+    assert lane.close(time.monotonic() + WAIT_S)
+
+
 @pytest.mark.parametrize("deadline", [None, 0.5])
 def test_close_fails_the_queued_jobs_of_a_lane_whose_workers_died(deadline):
     lane = _DeadWorkers("dead-lane", 2, None)
