@@ -27,8 +27,8 @@ def parse_resolution(
     shown = text if len(text) <= 40 else text[:37] + "..."
     parts = text.lower().split("x")
     # isdecimal, not isdigit: '²' is a digit int() refuses; a side of more than 9 digits is no image size (and int()
-    # refuses strings of thousands of digits)
-    if len(parts) != 2 or not all(p.strip().isdecimal() and len(p.strip()) <= 9 for p in parts):
+    # refuses strings of thousands of digits); leading zeros do not count: 0800x450 is 800x450
+    if len(parts) != 2 or not all(p.strip().isdecimal() and len(p.strip().lstrip("0")) <= 9 for p in parts):
         if len(parts) == 2 and all(p.strip().isdecimal() for p in parts):
             raise click.BadParameter(f"width and height must be {min_px}..{max_px} pixels, got {shown!r}")
         raise click.BadParameter(f"expected {RESOLUTION_HELP}, got {shown!r}")

@@ -44,6 +44,7 @@ def test_resolution_bounds_are_the_documented_ones():
     for text in ("16x16", "4096x4096", "800x450", "1600x900", "480x270", "160x90", "130x74", " 800x450", "８００x４５０"):
         w, h = parse_resolution(text)
         assert MIN_RESOLUTION_PX <= min(w, h) and max(w, h) <= MAX_RESOLUTION_PX
+    assert parse_resolution("0000000800x0450") == (800, 450)  # leading zeros are no digits of the size
 
 
 @pytest.mark.parametrize(
