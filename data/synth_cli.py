@@ -219,8 +219,8 @@ def _check_stats_outputs(data_dir: Path, reference: Path | None, json_path: Path
     input: ``--json DATA_DIR/splits.json`` replaced the split file of the dataset it measured."""
     outputs = [("--json", json_path), ("--plot", plot_path)]
     for option, path in outputs:
-        check_output_parent(path, option)  # no folders made on the way: a typo in the folder is an error
         refuse_output_over_inputs(path, option, [("DATA_DIR", data_dir), ("--reference", reference)])
+        check_output_parent(path, option)  # no folders made on the way: a typo in the folder is an error
     refuse_same_outputs(outputs)
     if plot_path is not None:
         check_plot_format(plot_path)

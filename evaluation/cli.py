@@ -211,11 +211,11 @@ def _compare(run_a: str, run_b: str, gt_path: Path | None, classes: tuple[str, .
     from streamdet.evaluation.compare import compare_runs, format_comparison, load_run
 
     group_a, group_b = _run_group(run_a), _run_group(run_b)
-    check_output_parent(json_path, "--json")  # now, not after the bootstrap
     both = sorted({_run_folder(p) for p in group_a} & {_run_folder(p) for p in group_b})
     if both:
         raise click.UsageError(f"--compare: {both[0]} is on both sides; a run compared with itself differs by nothing")
     refuse_output_over_inputs(json_path, "--json", [("--gt", gt_path), *(("--compare run", p) for p in group_a + group_b)])
+    check_output_parent(json_path, "--json")  # now, not after the bootstrap
     try:
         a = [load_run(p, gt_path) for p in group_a]
         b = [load_run(p, gt_path) for p in group_b]

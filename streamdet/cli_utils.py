@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import stat
+import threading
 from pathlib import Path
 
 import click
@@ -195,8 +196,8 @@ def refuse_same_outputs(outputs) -> None:
 
 def check_output_parent(output: Path | None, option: str) -> None:
     """Raise click.BadParameter, before any work, if ``output`` (a file to write) could not be created: its folder
-    is missing or not a folder, or ``output`` is a folder. (Permissions are left to the write: a root process
-    passes every access check.)"""
+    is missing or not a folder, takes no new file (read-only, /proc: a file made and removed at once tells, where
+    access checks pass every root process), or ``output`` is a folder."""
     if output is None:
         return
     output = Path(output)
@@ -205,6 +206,15 @@ def check_output_parent(output: Path | None, option: str) -> None:
     parent = output.parent if str(output.parent) else Path(".")
     if not parent.is_dir():
         raise click.BadParameter(f"the folder of {str(output)!r} does not exist (or is not a folder)", param_hint=option)
+    probe = parent / f".streamdet-write-probe-{os.getpid()}-{threading.get_ident()}"
+    try:
+        os.close(os.open(probe, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o600))
+    except OSError as e:
+        raise click.BadParameter(f"cannot write into the folder of {str(output)!r}: {e.strerror or e}", param_hint=option) from None
+    try:
+        os.unlink(probe)
+    except OSError:
+        pass
 
 
 def check_plot_format(plot_path: Path | None, option: str = "--plot") -> None:

@@ -91,3 +91,14 @@ def test_not_a_file_names_a_fifo_and_a_missing_file(tmp_path):
     assert not_a_file(tmp_path / "missing") == "does not exist"
     (tmp_path / "dangling").symlink_to(tmp_path / "missing")
     assert not_a_file(tmp_path / "dangling") == "does not exist"
+
+
+@pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="needs a folder that takes no new file (Linux /proc)")
+def test_check_output_parent_finds_a_folder_that_takes_no_file():
+    with pytest.raises(click.BadParameter, match="cannot write into the folder of '/proc/x.json'"):
+        check_output_parent(Path("/proc/x.json"), "--json")
+
+
+def test_check_output_parent_leaves_no_probe_behind(tmp_path):
+    check_output_parent(tmp_path / "x.json", "--json")
+    assert list(tmp_path.iterdir()) == []
