@@ -909,8 +909,9 @@ class StreamingDetector:
         session = self._sessions.get(name)
         if session is None:
             raise DetectorClosed(f"{self.export_dir}: the detector was closed; make a new StreamingDetector")
+        recordings = self._recordings  # the blocks open when the run starts record it (one that opens meanwhile not)
         outputs = session.run(feeds)
-        for recording in self._recordings:
+        for recording in recordings:
             recording.add(name, feeds, outputs)
         return outputs
 

@@ -114,6 +114,30 @@ def test_recording_starts_and_stops_with_its_block(tiny_export, sample):
     assert outer.feeds("image_encoder") == [] and len(outer.outputs("slice_head")) == 2
 
 
+def test_a_run_records_in_the_blocks_open_when_it_started(tiny_export, sample):
+    """A block opened while a run is under way does not take that run (it began before the block), and one closed
+    meanwhile keeps it (it began inside the block)."""
+    det = StreamingDetector(tiny_export)
+    session = det._sessions["slice_head"]
+    run = session.run
+    slices = split_sweep(sample.points, det.num_slices)
+    late, early = GraphRecording(), GraphRecording()
+    opened = det.recording(late)
+    closing = det.recording(early)
+    closing.__enter__()
+
+    def during(feeds):  # the other thread's calls, made while this run is in onnxruntime
+        opened.__enter__()
+        closing.__exit__(None, None, None)
+        return run(feeds)
+
+    session.run = during
+    det.detect_slice(slices[0], 0)
+    session.run = run
+    opened.__exit__(None, None, None)
+    assert len(late) == 0 and [r.graph for r in early.runs] == ["slice_head"]
+
+
 def test_a_given_manifest_is_used_and_checked(tiny_export):
     m = read_manifest(tiny_export)
     det = StreamingDetector(tiny_export, manifest=m)
