@@ -12,6 +12,7 @@ import click
 from streamdet.bag.deps import MissingExtraError, require
 from streamdet.cli_utils import (
     PRECISION_CHOICES,
+    check_folder_creatable,
     check_output_parent,
     fallback_after_s,
     fallback_options,
@@ -203,12 +204,8 @@ def _check_output(path: Path, option: str) -> None:
     parent = path.parent if str(path.parent) else Path(".")
     if parent.exists():
         check_output_parent(path, option)
-        return
-    while not parent.exists() and parent != parent.parent:
-        parent = parent.parent
-    if parent.exists() and not parent.is_dir():
-        raise click.BadParameter(f"the folder of {str(path)!r} cannot be created: {parent} is not a folder",
-                                 param_hint=option)  # fmt: skip
+    else:
+        check_folder_creatable(parent, option)
 
 
 def _sweep_progress(done: int) -> None:

@@ -22,6 +22,7 @@ from streamdet.cli_utils import (
     MAX_THREADS,
     PRECISION_CHOICES,
     RESOLUTION_RANGE_HELP,
+    check_folder_creatable,
     check_output_parent,
     check_plot_format,
     image_precision_option,
@@ -61,15 +62,6 @@ def _refuse_timing_options(ctx: click.Context) -> None:
 
 
 
-def _check_profile_folder(profile_dir: Path) -> None:
-    """--profile is made with its parents once the rows are built: a file where one of its folders should be fails
-    now."""
-    for folder in (profile_dir, *profile_dir.absolute().parents):
-        if folder.exists():
-            if not folder.is_dir():
-                raise click.BadParameter(f"{str(profile_dir)!r} cannot be made: {folder} is not a folder",
-                                         param_hint="--profile")  # fmt: skip
-            return
 
 
 def _refuse_inside_profile(path: Path | None, option: str, profile_dir: Path | None) -> None:
@@ -96,8 +88,7 @@ def _check_outputs(json_path: Path | None, plot_path: Path | None, profile_dir: 
     _refuse_inside_profile(plot_path, "--plot", profile_dir)
     check_output_parent(json_path, "--json")
     check_output_parent(plot_path, "--plot")
-    if profile_dir is not None:
-        _check_profile_folder(profile_dir)
+    check_folder_creatable(profile_dir, "--profile")
     if plot_path is not None:
         check_plot_format(plot_path)
 

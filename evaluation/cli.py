@@ -18,6 +18,7 @@ import click
 from streamdet.cli_utils import (
     MAX_SLICES,
     PRECISION_CHOICES,
+    check_folder_creatable,
     check_output_parent,
     image_precision_option,
     refuse_output_over_inputs,
@@ -182,16 +183,6 @@ def _refuse_other_modes_options(ctx: click.Context, mode: str) -> None:
         raise click.UsageError(f"{listed} not read in the {mode} mode; drop {'them' if len(given) > 1 else 'it'}")
 
 
-def _check_creatable(folder: Path | None, option: str) -> None:
-    """BadParameter, before any work, when ``folder`` (made with its parents at the end) cannot be: it, or its
-    nearest existing ancestor, is not a folder."""
-    if folder is None:
-        return
-    probe = Path(folder)
-    while not probe.exists() and probe != probe.parent:
-        probe = probe.parent
-    if probe.exists() and not probe.is_dir():
-        raise click.BadParameter(f"{str(folder)!r} cannot be made: {probe} is not a folder", param_hint=option)
 
 
 def _version(value: str) -> str:
@@ -335,7 +326,7 @@ def main(gt_path: Path | None, results_path: Path | None, data_dir: Path | None,
             raise click.BadParameter(f"{str(json_path)!r} is one of the files --save-results {save_dir} writes "
                                      f"({', '.join(SAVED_FILES)}); choose another path", param_hint="--json")  # fmt: skip
         check_output_parent(json_path, "--json")  # now, not after the whole split was detected
-        _check_creatable(save_dir, "--save-results")
+        check_folder_creatable(save_dir, "--save-results")
         _data_inputs(data_dir, version, None if split == "all" else split, export_dir, slices, precision, max_samples,
                      class_list, json_path, save_dir, image_precision)  # fmt: skip
         return

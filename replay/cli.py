@@ -14,6 +14,7 @@ from streamdet.cli_utils import (
     MAX_THREADS,
     PRECISION_CHOICES,
     camera_terms_option,
+    check_folder_creatable,
     check_output_parent,
     check_plot_format,
     fallback_after_s,
@@ -39,13 +40,6 @@ OUT_FILES = ("replay.json", "report.md")  # the files --out receives
 
 
 
-def _check_output_folder(out_dir: Path) -> None:
-    """--out is made with its parents after the replay: a file where one of its folders should be fails now."""
-    for folder in (out_dir, *out_dir.absolute().parents):
-        if folder.exists():
-            if not folder.is_dir():
-                raise click.BadParameter(f"{str(out_dir)!r} cannot be made: {folder} is not a folder", param_hint="--out")
-            return
 
 
 def _check_outputs(json_path: Path | None, plot_path: Path | None, out_dir: Path | None, inputs) -> None:
@@ -57,8 +51,7 @@ def _check_outputs(json_path: Path | None, plot_path: Path | None, out_dir: Path
     refuse_same_outputs([("--out", out_dir), *out_files, ("--json", json_path), ("--plot", plot_path)])
     check_output_parent(json_path, "--json")
     check_output_parent(plot_path, "--plot")
-    if out_dir is not None:
-        _check_output_folder(out_dir)
+    check_folder_creatable(out_dir, "--out")
     if plot_path is not None:
         check_plot_format(plot_path)
 

@@ -217,6 +217,18 @@ def check_output_parent(output: Path | None, option: str) -> None:
         pass
 
 
+def check_folder_creatable(folder: Path | None, option: str) -> None:
+    """Raise click.BadParameter, before any work, if ``folder`` (made with its parents after the work) could not be:
+    it, or its nearest existing ancestor, is not a folder."""
+    if folder is None:
+        return
+    for existing in (Path(folder), *Path(folder).absolute().parents):
+        if existing.exists():
+            if not existing.is_dir():
+                raise click.BadParameter(f"{str(folder)!r} cannot be made: {existing} is not a folder", param_hint=option)
+            return
+
+
 def check_plot_format(plot_path: Path | None, option: str = "--plot") -> None:
     """Raise click.BadParameter, before any work, unless matplotlib can write ``plot_path``: it is installed and the
     suffix names one of its formats (savefig picks the format from it, and fails only once the figure is drawn; no
