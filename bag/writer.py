@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import os
-import secrets
 from pathlib import Path
 from typing import Any
 
 from streamdet.bag.deps import require
 from streamdet.bag.msgdefs import full_name, schema_text
+from streamdet.core.file_output import open_beside
 
 
 class BagWriter:
@@ -23,7 +23,7 @@ class BagWriter:
         writer_mod = require("mcap_ros2.writer")
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self.tmp_path, self._file = _open_temporary(self.path)
+        self.tmp_path, self._file = open_beside(self.path, suffix=".partial")
         try:
             self._writer = writer_mod.Writer(self._file)
         except BaseException:
@@ -81,19 +81,3 @@ class BagWriter:
             self.close()
         else:
             self.abort()
-
-
-def _open_temporary(path: Path) -> tuple[Path, Any]:
-    """A new hidden file beside ``path`` (same folder, so the final rename is atomic), opened for writing.
-
-    Created with O_EXCL (never another process's file) and mode 0666 less the umask, as ``open(path, "wb")`` would
-    create ``path`` itself, so the finished bag gets the permissions a direct write would have given it.
-    """
-    for _ in range(100):
-        tmp = path.with_name(f".{path.name}.{os.getpid()}-{secrets.token_hex(4)}.partial")
-        try:
-            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), 0o666)
-        except FileExistsError:
-            continue
-        return tmp, os.fdopen(fd, "wb")
-    raise FileExistsError(f"cannot create a temporary file beside {path}")

@@ -13,6 +13,7 @@ from pathlib import Path
 import onnx
 
 from streamdet.core.file_input import read_regular_file
+from streamdet.core.file_output import writer_alive
 from streamdet.export.fp16 import check_model
 from streamdet.export.options import ExportError
 from streamdet.runtime_ort.manifest import MANIFEST_NAME, graph_file_name
@@ -25,19 +26,9 @@ def _stale_dirs(parent: Path, name: str) -> list[tuple[str, Path]]:
     for kind in ("partial", "old"):
         for path in parent.glob(f".{name}.{kind}-*-*"):
             pid = path.name[len(f".{name}.{kind}-"):].split("-", 1)[0]
-            if pid.isdigit() and int(pid) != os.getpid() and not _alive(int(pid)) and path.is_dir():
+            if pid.isdigit() and int(pid) != os.getpid() and not writer_alive(int(pid)) and path.is_dir():
                 stale.append((kind, path))
     return stale
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # exists, owned by someone else
-        return True
-    return True
 
 
 def clean_stale_staging(out_dir: Path) -> None:

@@ -535,14 +535,11 @@ class StreamingDetector:
             cams = self._views.known_cameras(self._lut, tuple(quadrants))
             if cams is not None:
                 return cams
-        wanted = update_quadrants(quadrants)
-        lut = self.lut
-        return self._views.cameras(lut, wanted, in_use=self._lut)
+        return self._cameras_under(self.lut, update_quadrants(quadrants))
 
     def _cameras_under(self, lut: Lut, quadrants: tuple[int, ...]) -> tuple[str, ...]:
         """``quadrant_cameras`` of valid ``quadrants`` under ``lut`` (the LUT in use, or one a swap just replaced)."""
-        cams = self._views.known_cameras(lut, quadrants)
-        return cams if cams is not None else self._views.cameras(lut, quadrants, in_use=self._lut)
+        return self._views.cameras(lut, quadrants, in_use=self._lut)  # a kept answer first (lut_views.py)
 
     def check_images(self, images: Mapping[str, np.ndarray]) -> None:
         """ValueError unless ``images`` is a non-empty dict of known camera names to uint8 RGB (H, W, 3) images of

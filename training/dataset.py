@@ -32,6 +32,7 @@ from streamdet.calibration.sectors import cameras_overlapping_sector
 from streamdet.core.boxes import BOX_DIM
 from streamdet.core.classes import CLASS_NAMES, NUM_CLASSES
 from streamdet.core.file_input import read_regular_file
+from streamdet.core.file_output import writer_alive
 from streamdet.core.json_input import read_json, short_repr
 from streamdet.core.sectors import check_num_slices, quadrants_of_sector
 from streamdet.core.slicing import boxes_in_sector, split_sweep
@@ -262,7 +263,7 @@ def prune_stale_caches(folder: Path) -> list[Path]:
         if other == folder or match is None or other.is_symlink() or not other.is_dir():
             continue
         if match["pid"] is not None:
-            stale = not _process_alive(int(match["pid"]))
+            stale = not writer_alive(int(match["pid"]))
         else:
             stale = (other / "meta.json").is_file() and _read_source(other) == source
         if not stale:
@@ -284,19 +285,6 @@ def _read_source(folder: Path) -> dict | None:
     except (ValueError, OSError, RecursionError):  # InputFileError is a ValueError
         return None
     return doc if isinstance(doc, dict) else None
-
-
-def _process_alive(pid: int) -> bool:
-    """Whether a process ``pid`` exists (a reused pid counts as alive: its folder is kept, never wrongly removed)."""
-    if os.name != "posix" or pid <= 0:
-        return True
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except (PermissionError, OverflowError):  # another user's process; a pid past the platform's range
-        return True
-    return True
 
 
 def _load_cache(folder: Path, tokens: tuple[str, ...], image_size: tuple[int, int] | None, fingerprint: str) -> SampleStore:
