@@ -905,7 +905,7 @@ class StreamingDetector:
     def _run_graph(self, name: str, feeds: Feeds) -> list[np.ndarray]:
         session = self._sessions.get(name)
         if session is None:
-            raise DetectorClosed(f"{self.export_dir}: the detector was closed; make a new StreamingDetector")
+            raise self._closed_error()
         recordings = self._recordings  # the blocks open when the run starts record it (one that opens meanwhile not)
         outputs = session.run(feeds)
         for recording in recordings:
@@ -940,10 +940,13 @@ class StreamingDetector:
         written = [s.end_profiling() for s in sessions.values()] if self.config.enable_profiling else []
         self.image_encoder = self.lifter = self.slice_head = None
         if self._terms is not None:  # kept, closed: a lift under way raises DetectorClosed at its next graph run
-            self._terms.close(DetectorClosed(f"{self.export_dir}: the detector was closed; make a new StreamingDetector"))
+            self._terms.close(self._closed_error())
         if self._fallback is not None:
             self._fallback = dataclasses.replace(self._fallback, session=None)
         return written
+
+    def _closed_error(self) -> DetectorClosed:
+        return DetectorClosed(f"{self.export_dir}: the detector was closed; make a new StreamingDetector")
 
     def __enter__(self) -> "StreamingDetector":
         return self
