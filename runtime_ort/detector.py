@@ -86,6 +86,10 @@ from streamdet.runtime_ort.warm_up import warm_up
 
 log = logging.getLogger(__name__)
 
+# Calibration swaps one image update follows (each a lift again with the newest LUT) before it gives its images up: a
+# caller swapping faster than one lift would otherwise keep the image lane lifting for ever.
+MAX_RELIFTS_PER_UPDATE = 4
+
 
 class StreamingDetector:
     """Runs an export of streamdet with onnxruntime. Thread-safe.
@@ -421,14 +425,15 @@ class StreamingDetector:
             if name in known:
                 features[needed.index(name)] = known[name]
         maps = {name: known[name] if name in known else features[needed.index(name)] for name in used}  # per-camera lifts
-        while True:
-            installed = self._install(features, needed, wanted, seq, timestamp, missing, camera_ts, maps, (lut, images))
+        for _ in range(MAX_RELIFTS_PER_UPDATE + 1):
+            installed = self._install(features, needed, wanted, seq, timestamp, missing, camera_ts, maps, lut)
             if installed is not None:
                 break
-            # A calibration swap during this update made its quadrants read a camera it was given but did not encode:
-            # encode that one too rather than lift it as zeros (the cameras encoded already are kept).
+            # The calibration was swapped during this update: plan it again with the new LUT. Its quadrants may now read
+            # a camera it was given but did not encode: that one is encoded too rather than lifted as zeros (the cameras
+            # encoded already are kept).
             lut = self._lut
-            needed = self._cameras_under(lut, wanted)
+            needed = self.camera_names if wanted == ALL_QUADRANTS else self._cameras_under(lut, wanted)
             extra = tuple(n for n in needed if n in images and n not in maps)
             if extra:
                 enc = self._encode(images, extra, extra)  # (E, C, Hf, Wf)
@@ -440,6 +445,8 @@ class StreamingDetector:
             for j, name in enumerate(needed):
                 if name in maps:
                     features[j] = maps[name]
+        else:
+            installed = _gave_up(seq)
         self.stats.record("image_total", (time.perf_counter() - t0) * 1e3)
         return ImageUpdate(timestamp, used, missing, superseded=not installed, quadrants=wanted, seq=seq)
 
@@ -583,51 +590,48 @@ class StreamingDetector:
 
     def _install(
         self, features: np.ndarray, cameras: tuple[str, ...], quadrants: tuple[int, ...], seq: int, timestamp: float,
-        missing: tuple[str, ...], camera_timestamps: Mapping[str, float] | None = None,
-        maps: Mapping[str, np.ndarray] | None = None, planned: tuple[Lut | None, Mapping[str, np.ndarray]] | None = None,
+        missing: tuple[str, ...], camera_timestamps: Mapping[str, float] | None, maps: Mapping[str, np.ndarray] | None,
+        lut: Lut,
     ) -> bool | None:  # fmt: skip
-        """Lift ``features`` into ``quadrants`` and cache each quadrant unless a newer image set is cached there
-        already or the set was dropped meanwhile (forget_images, set_calibration(relift=False)); False if that was
-        so in every one. With ``camera_timestamps`` a quadrant's timestamp is the oldest of its cameras' (the LUT's
-        cameras of that quadrant among those given), else ``timestamp``.
+        """Lift ``features`` into ``quadrants`` with ``lut`` and cache each quadrant unless a newer image set is
+        cached there already or the set was dropped meanwhile (forget_images, set_calibration(relift=False)); False
+        if that was so in every one. With ``camera_timestamps`` a quadrant's timestamp is the oldest of its cameras'
+        (the LUT's cameras of that quadrant among those given), else ``timestamp``.
 
-        A calibration swap during the lift makes it lift again with the new LUT: the cache never holds a BEV of
-        an old calibration once set_calibration has returned. ``planned``: (the LUT ``cameras`` were chosen with,
-        the images given); None is returned, before any lift, when a swap made ``quadrants`` read a camera among
-        those images that ``cameras`` lacks (the caller encodes it and calls again)."""
+        None, and nothing cached, when ``lut`` is no longer the LUT in use, before or after the lift (a calibration
+        swap): the caller plans the update again with the new LUT, so the cache never holds a BEV of an old
+        calibration once set_calibration has returned."""
         stamps = tuple(sorted(camera_timestamps.items())) if camera_timestamps else ()
-        while True:
-            with self._lock:
-                lut, current, floor = self._lut, quadrant_states(self._image), self._image_floor
-            if seq <= floor:
+        with self._lock:
+            if self._lut is not lut:
+                return None
+            current, floor = quadrant_states(self._image), self._image_floor
+        if seq <= floor:
+            return False
+        todo = tuple(q for q in quadrants if current[q] is None or current[q].seq < seq)
+        if not todo:
+            return False
+        bevs = self._lift_quadrants(features, cameras, todo, lut, maps)
+        for q, bev in zip(todo, bevs):  # tens of microseconds a quadrant: a sliver of its lift
+            if not np.isfinite(bev).all():
+                raise GraphRunError(f"the image lane made a non-finite image BEV for quadrant {q} ({self.precision_label}: "
+                                    "an encoder or lifter graph overflowing?); the cached BEV is kept")  # fmt: skip
+        qluts = self._luts_of(lut) if camera_timestamps else ()
+        with self._lock:
+            if self._lut is not lut:
+                return None
+            if seq <= self._image_floor:  # dropped while it lifted
                 return False
-            if planned is not None and lut is not planned[0] and cameras != self.camera_names:
-                if any(n in planned[1] and n not in cameras for n in self._cameras_under(lut, quadrants)):
-                    return None
-            todo = tuple(q for q in quadrants if current[q] is None or current[q].seq < seq)
-            if not todo:
-                return False
-            bevs = self._lift_quadrants(features, cameras, todo, lut, maps)
-            for q, bev in zip(todo, bevs):  # tens of microseconds a quadrant: a sliver of its lift
-                if not np.isfinite(bev).all():
-                    raise GraphRunError(f"the image lane made a non-finite image BEV for quadrant {q} ({self.precision_label}: "
-                                        "an encoder or lifter graph overflowing?); the cached BEV is kept")  # fmt: skip
-            qluts = self._luts_of(lut) if camera_timestamps else ()
-            with self._lock:
-                if self._lut is not lut:
-                    continue
-                if seq <= self._image_floor:  # dropped while it lifted
-                    return False
-                states = list(quadrant_states(self._image))
-                installed = False
-                for q, bev in zip(todo, bevs):
-                    if states[q] is None or states[q].seq < seq:
-                        stamp = quadrant_timestamp(qluts[q].camera_names, camera_timestamps, cameras, timestamp) if qluts else timestamp
-                        states[q] = QuadrantState(bev, features, cameras, stamp, missing, seq, lut, stamps, timestamp)
-                        installed = True
-                if installed:
-                    self._image = ImageCache(tuple(states))
-                return installed
+            states = list(quadrant_states(self._image))
+            installed = False
+            for q, bev in zip(todo, bevs):
+                if states[q] is None or states[q].seq < seq:
+                    stamp = quadrant_timestamp(qluts[q].camera_names, camera_timestamps, cameras, timestamp) if qluts else timestamp
+                    states[q] = QuadrantState(bev, features, cameras, stamp, missing, seq, lut, stamps, timestamp)
+                    installed = True
+            if installed:
+                self._image = ImageCache(tuple(states))
+            return installed
 
     def _lift(self, features: np.ndarray, lut: Lut) -> np.ndarray:
         """The full lift: (4, C, Yq, Xq) from the (J, C, Hf, Wf) feature maps of every camera and the whole LUT."""
@@ -953,6 +957,13 @@ class StreamingDetector:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def _gave_up(seq: int) -> bool:
+    """False (nothing installed) for an update that saw more calibration swaps than MAX_RELIFTS_PER_UPDATE."""
+    log.warning("update_images: the calibration was swapped more than %d times during image update %d; its images are "
+                "given up (the next update lifts with the LUT then in use)", MAX_RELIFTS_PER_UPDATE, seq)
+    return False
 
 
 def _timestamp(value: float | None) -> float:

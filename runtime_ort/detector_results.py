@@ -18,7 +18,9 @@ class ImageUpdate:
     cameras_used: tuple[str, ...]
     cameras_missing: tuple[str, ...]  # their features were zeros in this update
     # True when a newer image set (an update_images call that started later) was installed first in every quadrant
-    # this one lifted: it was encoded but replaced nothing (an older set never overwrites a newer one)
+    # this one lifted: it was encoded but replaced nothing (an older set never overwrites a newer one); also when the
+    # set was dropped while it lifted (forget_images, set_calibration(relift=False)) or the calibration was swapped
+    # more than detector.MAX_RELIFTS_PER_UPDATE times during it
     superseded: bool = False
     quadrants: tuple[int, ...] = (0, 1, 2, 3)  # the quadrants of the image BEV this update lifted
     seq: int = 0  # the call's number (call order), as QuadrantState.seq; StreamingDetector.forget_images(through=seq)

@@ -14,6 +14,7 @@ import pytest
 from streamdet.calibration.perturb import perturb_rig
 from streamdet.core.slicing import split_sweep
 from streamdet.data.sample import load_bundled_sample
+from streamdet.runtime_ort import detector as detector_module
 from streamdet.runtime_ort import lut_views
 from streamdet.runtime_ort.detector import DetectorClosed, DetectorConfig, StreamingDetector
 
@@ -165,6 +166,33 @@ def test_per_quadrant_update_racing_a_swap_encodes_the_camera_it_was_given(tiny_
     ours, theirs = det.image_state.quadrants[3], fresh.image_state.quadrants[3]
     assert ours.feature_cameras == theirs.feature_cameras and ours.timestamp == theirs.timestamp
     assert np.array_equal(ours.bev, theirs.bev)
+
+
+@pytest.mark.parametrize("quadrants", [None, [3]])
+def test_an_update_gives_up_when_the_calibration_is_swapped_during_every_lift(tiny_export, rigs, quadrants, caplog):
+    """A caller swapping calibrations faster than one lift: the update lifts again at most MAX_RELIFTS_PER_UPDATE
+    times, then installs nothing and says so (it lifted for ever before); the cache keeps no old calibration's BEV."""
+    det = _detector(tiny_export, rigs[0])
+    luts = [det._build_lut(rig) for rig in rigs]
+    lift = det._lift_quadrants
+    lifts = [0]
+
+    def swapping(*args, **kwargs):
+        lifts[0] += 1
+        out = lift(*args, **kwargs)
+        det.set_calibration(luts[lifts[0] % 2])  # no images yet: nothing to re-lift
+        return out
+
+    det._lift_quadrants = swapping
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        update = det.update_images(_images(det, 0), 1.0, quadrants=quadrants)
+    assert update.superseded
+    assert det.image_state is None or all(s is None for s in det.image_state.quadrants)
+    assert 1 <= lifts[0] <= detector_module.MAX_RELIFTS_PER_UPDATE + 1
+    assert "given up" in caplog.text
+    det._lift_quadrants = lift  # swaps stop: the next update lands
+    assert not det.update_images(_images(det, 1), 2.0, quadrants=quadrants).superseded
 
 
 def test_set_calibration_builds_the_quadrant_tables_in_the_callers_thread(tiny_export, rigs, monkeypatch):
