@@ -33,6 +33,11 @@ Contracts:
 - ``timestamp=None`` means the submit time (``time.monotonic()`` when `submit_*` is called), not the run time.
 - `close(timeout)` finishes the queued work; past the timeout it cancels what has not started and returns False.
   The phase-locked image lane has no queue: its image sets that no lift has used yet are cancelled at close.
+  Every future a lane cancels or skips (the caller cancelled it) is one ``concurrent.futures.wait`` and
+  ``as_completed`` see done.
+- A runner dropped without `close()` is collected (its lanes' threads hold no reference to it): its workers end once
+  the jobs already queued are done, as concurrent.futures' pools do; the phase-locked lane's unused image sets are
+  cancelled. `close()` is still the way to wait for them.
 """
 
 from __future__ import annotations
@@ -40,6 +45,7 @@ from __future__ import annotations
 import math
 import numbers
 import time
+import weakref
 from concurrent.futures import Future
 from dataclasses import dataclass
 from typing import Mapping
@@ -148,18 +154,17 @@ class StreamingRunner:
             raise ValueError(f"StreamingRunner takes a LaneConfig, got {type(config).__name__}")
         self.detector = detector
         self.config = config
+        # What the lanes' threads run holds no reference to the runner (the slice jobs are _SliceJobs', the image jobs
+        # the detector's): a runner dropped without close() is collected, and its finalizer stops the workers.
+        self._slice_jobs = _SliceJobs(detector, config)
         batch = None  # a detector without detect_slices (a stand-in) runs every slice alone
-        self._pair_hold: PairHold | None = None
-        if config.coalesce_slices > 1 and callable(getattr(detector, "detect_slices", None)):
-            # read once, here: a join runs in a worker under the lane's lock and must not fail
-            self._sector_layout = (int(detector.num_slices), float(detector.config.start_deg))
-            if config.pair_hold_load is not None:
-                self._pair_hold = PairHold(config.pair_hold_load, config.max_in_flight, *self._sector_layout)
-            hold = None if self._pair_hold is None else self._hold_s
-            batch = JobBatching(joins=self._slices_join, run=self._detect_together, most=config.coalesce_slices, hold=hold,
-                                fits=_run_fits)  # fmt: skip
-        self._slices = WorkerLane("slice-lane", config.max_in_flight, config.queue_size,
-                                  lambda: SliceDropped("slice dropped: queue full"), batch=batch)  # fmt: skip
+        if self._slice_jobs.sector_layout is not None:
+            jobs = self._slice_jobs
+            hold = None if jobs.pair_hold is None else jobs.hold_s
+            batch = JobBatching(joins=jobs.joins, run=jobs.detect_together, most=config.coalesce_slices, hold=hold, fits=_run_fits)
+        self._pair_hold = self._slice_jobs.pair_hold
+        slices = self._slices = WorkerLane("slice-lane", config.max_in_flight, config.queue_size,
+                                           lambda: SliceDropped("slice dropped: queue full"), batch=batch)  # fmt: skip
         superseded = lambda: ImagesSuperseded("image set superseded by a newer one")  # noqa: E731
         self._phase_locked: PhaseLockedImageLane | None = None
         self._images: WorkerLane | None = None
@@ -167,10 +172,11 @@ class StreamingRunner:
             self._phase_locked = PhaseLockedImageLane(
                 detector, detector.num_slices, detector.config.start_deg, config.lidar_hz, config.lift_margin_ms * 1e-3,
                 superseded=superseded, closed=lambda: RunnerClosed("image-lane: submit after close()"), nice=config.image_lane_nice,
-                backlog=lambda: self._slices.waiting, yield_at=config.image_lane_yield_slices,
+                backlog=lambda: slices.waiting, yield_at=config.image_lane_yield_slices,
             )  # fmt: skip
         else:
             self._images = WorkerLane("image-lane", 1, 1, superseded, nice=config.image_lane_nice)
+        weakref.finalize(self, _stop_lanes, self._slices, self._images if self._images is not None else self._phase_locked)
 
     def submit_images(
         self, images: Mapping[str, np.ndarray], timestamp: float | None = None, camera_timestamps: Mapping[str, float] | None = None,
@@ -195,7 +201,8 @@ class StreamingRunner:
                 raise ValueError(f"timestamp must be None or a finite number of seconds, got {timestamp!r}")
             return self._phase_locked.submit_images(own, stamp, check_camera_timestamps(camera_timestamps, own))
         options = {} if camera_timestamps is None else {"camera_timestamps": dict(camera_timestamps)}
-        return self._images.submit(lambda: self.detector.update_images(own, stamp, **options))
+        update = self.detector.update_images  # the job holds the detector's method, not the runner
+        return self._images.submit(lambda: update(own, stamp, **options))
 
     def submit_slice(self, points: np.ndarray, slice_index: int, timestamp: float | None = None) -> "Future[SliceResult]":
         """Queue one slice; its future holds the SliceResult, or the error (bad points, SliceDropped). Points that are
@@ -214,40 +221,11 @@ class StreamingRunner:
             future: Future = Future()
             future.set_exception(ValueError(refused))
         else:
-            future = self._slices.submit(lambda: self._detect_one(own, slice_index, stamp), payload=(own, slice_index, stamp, arrival))
+            detect = self._slice_jobs.detect_one  # the job holds _SliceJobs', not the runner
+            future = self._slices.submit(lambda: detect(own, slice_index, stamp), payload=(own, slice_index, stamp, arrival))
         if self._phase_locked is not None and valid:
             self._phase_locked.observe_slice(int(slice_index), arrival)  # its arrival on the runner's clock
         return future
-
-    def _detect_one(self, points: np.ndarray, slice_index: int, stamp: float) -> SliceResult:
-        if self._pair_hold is None:
-            return self.detector.detect_slice(points, slice_index, stamp)
-        t0 = time.perf_counter()
-        result = self.detector.detect_slice(points, slice_index, stamp)
-        self._pair_hold.record_run(1, time.perf_counter() - t0)
-        return result
-
-    def _hold_s(self, payload: tuple) -> float:
-        """Seconds the worker that took this slice waits for the next one of its quadrant (PairHold)."""
-        if not _well_formed(payload):
-            return 0.0
-        return self._pair_hold.hold_s(int(payload[1]), payload[3], time.monotonic())
-
-    def _slices_join(self, run_last: tuple, waiting: tuple) -> bool:
-        """May the waiting slice join a run that ends with ``run_last``? Both well-formed (a bad slice runs alone, so
-        its error is its own), the next slice of the rotation in the same quadrant(s)."""
-        if not (_well_formed(run_last) and _well_formed(waiting)) or waiting[2] < run_last[2]:
-            return False
-        n, start_deg = self._sector_layout
-        return run_last[1] < n and can_coalesce(int(run_last[1]), int(waiting[1]), n, start_deg)
-
-    def _detect_together(self, payloads: list) -> tuple[SliceResult, ...]:
-        points, indices, stamps, _ = zip(*payloads)
-        t0 = time.perf_counter()
-        results = self.detector.detect_slices(points, indices, stamps)
-        if self._pair_hold is not None:
-            self._pair_hold.record_run(len(payloads), time.perf_counter() - t0)
-        return results
 
     @property
     def slices_dropped(self) -> int:
@@ -307,6 +285,58 @@ class StreamingRunner:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+class _SliceJobs:
+    """What the slice lane's workers run: one slice, or slices of one quadrant together (coalesced), and the pair
+    hold's timing. Apart from the runner so that the lane's threads never hold it (runner finalizer)."""
+
+    def __init__(self, detector: StreamingDetector, config: LaneConfig) -> None:
+        self.detector = detector
+        self.pair_hold: PairHold | None = None
+        self.sector_layout: tuple[int, float] | None = None  # None: every slice runs alone
+        if config.coalesce_slices > 1 and callable(getattr(detector, "detect_slices", None)):
+            # read once, here: a join runs in a worker under the lane's lock and must not fail
+            self.sector_layout = (int(detector.num_slices), float(detector.config.start_deg))
+            if config.pair_hold_load is not None:
+                self.pair_hold = PairHold(config.pair_hold_load, config.max_in_flight, *self.sector_layout)
+
+    def detect_one(self, points: np.ndarray, slice_index: int, stamp: float) -> SliceResult:
+        if self.pair_hold is None:
+            return self.detector.detect_slice(points, slice_index, stamp)
+        t0 = time.perf_counter()
+        result = self.detector.detect_slice(points, slice_index, stamp)
+        self.pair_hold.record_run(1, time.perf_counter() - t0)
+        return result
+
+    def hold_s(self, payload: tuple) -> float:
+        """Seconds the worker that took this slice waits for the next one of its quadrant (PairHold)."""
+        if not _well_formed(payload):
+            return 0.0
+        return self.pair_hold.hold_s(int(payload[1]), payload[3], time.monotonic())
+
+    def joins(self, run_last: tuple, waiting: tuple) -> bool:
+        """May the waiting slice join a run that ends with ``run_last``? Both well-formed (a bad slice runs alone, so
+        its error is its own), the next slice of the rotation in the same quadrant(s)."""
+        if not (_well_formed(run_last) and _well_formed(waiting)) or waiting[2] < run_last[2]:
+            return False
+        n, start_deg = self.sector_layout
+        return run_last[1] < n and can_coalesce(int(run_last[1]), int(waiting[1]), n, start_deg)
+
+    def detect_together(self, payloads: list) -> tuple[SliceResult, ...]:
+        points, indices, stamps, _ = zip(*payloads)
+        t0 = time.perf_counter()
+        results = self.detector.detect_slices(points, indices, stamps)
+        if self.pair_hold is not None:
+            self.pair_hold.record_run(len(payloads), time.perf_counter() - t0)
+        return results
+
+
+def _stop_lanes(slices: WorkerLane, images: "WorkerLane | PhaseLockedImageLane") -> None:
+    """A runner dropped without close(): its workers end once they have done the jobs already queued (their futures
+    still complete); nothing is waited for here (this may run on any thread, a worker's included)."""
+    slices.stop()
+    images.stop()
 
 
 def _run_fits(payloads: list) -> bool:

@@ -396,10 +396,18 @@ class PhaseLockedImageLane:
         """Stop the worker (a running update finishes); waiting image sets that were never used are cancelled, and
         once the worker has ended, those an update used but never completed (it was cut short) fail: then no image
         set's future is left pending. True when the worker has ended."""
+        return self._shut(deadline, join=True)
+
+    def stop(self) -> None:
+        """close() without waiting for the worker, for a lane whose owner is gone (StreamingRunner's finalizer): this
+        may run on any thread, the worker's too. A running update still completes the sets it uses."""
+        self._shut(None, join=False)
+
+    def _shut(self, deadline: float | None, join: bool) -> bool:
         with self._cond:
             self._closed = True
             self._cond.notify_all()
-        if self._thread is not None:
+        if join and self._thread is not None:
             self._thread.join(None if deadline is None else max(0.0, deadline - time.monotonic()))
         ended = self._thread is None or not self._thread.is_alive()
         with self._cond:

@@ -93,8 +93,14 @@ class WorkerLane:
         with self._cond:
             if self._closed:
                 raise RunnerClosed(f"{self._name}: submit after close()")
-            # jobs the caller cancelled hold no place in the queue
-            self._jobs = collections.deque(job for job in self._jobs if not job[1].cancelled())
+            # jobs the caller cancelled hold no place in the queue (claimed: concurrent.futures.wait sees them done)
+            kept: collections.deque = collections.deque()
+            for job in self._jobs:
+                if not job[1].cancelled():
+                    kept.append(job)
+                else:
+                    claim_future(job[1])  # False
+            self._jobs = kept
             idle = self._workers - self._busy  # the first `idle` jobs are about to start: in flight, not waiting
             failed: list[tuple[Future, Callable[[], Exception]]] = []  # failed once the lock is released
             if supersede is not None:
@@ -221,7 +227,7 @@ class WorkerLane:
         """(Under the lock.) The first waiting job its owner has not cancelled (cancelled ones hold no place, as in
         submit: they are dropped)."""
         while self._jobs and self._jobs[0][1].cancelled():
-            self._jobs.popleft()
+            claim_future(self._jobs.popleft()[1])  # False; concurrent.futures.wait now sees it done
         return self._jobs[0] if self._jobs else None
 
     def _run_joined(self, jobs: list) -> None:
@@ -239,6 +245,13 @@ class WorkerLane:
         with self._cond:
             self.joined += len(jobs) - 1
 
+    def stop(self) -> None:
+        """Stop taking jobs without waiting: the workers end once the queued jobs are done (their futures complete).
+        For a lane whose owner is gone (StreamingRunner's finalizer): this may run on any thread, a worker's too."""
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+
     def close(self, deadline: float | None = None) -> bool:
         """Stop taking jobs, finish the queued ones by ``deadline`` (time.monotonic(); None: no limit). Past it, the
         jobs not started are cancelled. Jobs still queued once every worker has ended (workers that died: nobody is
@@ -251,7 +264,10 @@ class WorkerLane:
             t.join(None if deadline is None else max(0.0, deadline - time.monotonic()))
         ended = all(not t.is_alive() for t in self._threads)
         with self._cond:
-            left = [job for job in self._jobs if not job[1].done()]  # cancelled (or finished) by their owners: as they are
+            left = [job for job in self._jobs if not job[1].done()]
+            for job in self._jobs:  # cancelled (or finished) by their owners: as they are, the cancelled ones claimed
+                if job[1].done():
+                    claim_future(job[1])  # False; concurrent.futures.wait sees a cancelled one done
             self._jobs.clear()
         for job in left:  # outside the lock: their done-callbacks run here
             if ended:
@@ -265,7 +281,11 @@ class WorkerLane:
 def claim_future(fut: Future) -> bool:
     """Future.set_running_or_notify_cancel that never raises and runs no done-callback, so it may be called under a
     lane's lock: True when ``fut`` is now this lane's to complete (its owner can no longer cancel it); False for a
-    future its owner cancelled, or finished (set_result on a future it was handed), which is left as it is."""
+    future its owner cancelled, or finished (set_result on a future it was handed), which is left as it is.
+
+    A lane calls it once on every future it takes off its books, cancelled ones too: `Future.cancel` alone leaves a
+    future that ``concurrent.futures.wait`` and ``as_completed`` never see done; this call tells them (an executor's
+    worker does the same when it reaches a cancelled job)."""
     if fut.done() and not fut.cancelled():  # finished by its owner: set_running_or_notify_cancel would log a critical
         return False
     try:
@@ -292,8 +312,11 @@ def complete_future(lane: str, fut: Future, result: object = None, error: BaseEx
 
 
 def cancel_future(lane: str, fut: Future) -> None:
-    """Future.cancel, a done-callback's error logged (as in `complete_future`). With no lane lock held."""
+    """Future.cancel, a done-callback's error logged (as in `complete_future`), then claimed (`claim_future`), so
+    that ``concurrent.futures.wait`` sees it done. With no lane lock held; for a future the lane still holds."""
     try:
         fut.cancel()
     except BaseException:
         log.exception("%s: a done-callback of %r raised; the lane goes on", lane, fut)
+    if fut.cancelled():
+        claim_future(fut)

@@ -8,7 +8,7 @@ from __future__ import annotations
 import logging
 import sys
 import threading
-from concurrent.futures import Future
+from concurrent.futures import Future, as_completed, wait
 from types import SimpleNamespace
 
 import numpy as np
@@ -388,3 +388,59 @@ def test_after_close_no_image_set_is_pending():
     assert _returns_within(lambda: runner.close(timeout=WAIT_S), 2 * WAIT_S)
     assert all(f.done() for f in futures), [f for f in futures if not f.done()]
     assert futures[0].result(0) == 0.0 and isinstance(futures[1].exception(0), ImagesSuperseded)
+
+
+# ---- concurrent.futures.wait / as_completed see every future a lane cancels or skips --------------------------------
+# Future.cancel() alone leaves a future they never count as done (only set_running_or_notify_cancel tells them): a
+# caller waiting on the runner's futures with wait() hung until its timeout on every one close() cancelled.
+def _seen_done(futures) -> bool:
+    done, pending = wait(futures, timeout=WAIT_S)
+    return not pending and set(done) == set(futures)
+
+
+def test_wait_sees_the_jobs_close_cancels_done():
+    lane, gate, first = _gated_lane(capacity=None)
+    queued = [lane.submit(lambda: "queued") for _ in range(3)]
+    assert not lane.close(deadline=0.0)  # the first job still runs: the queued ones are cancelled
+    assert all(f.cancelled() for f in queued)
+    assert _returns_within(lambda: _seen_done(queued), 2 * WAIT_S)
+    assert len(list(_returns_within(lambda: list(as_completed(queued, timeout=WAIT_S)), 2 * WAIT_S))) == 3
+    gate.set()
+    assert first.result(WAIT_S) == "first"
+
+
+@pytest.mark.parametrize("taken_off_by", ["submit", "worker", "close"])
+def test_wait_sees_a_job_its_owner_cancelled_done(taken_off_by):
+    lane, gate, first = _gated_lane(capacity=None)
+    cancelled = lane.submit(lambda: "never")
+    assert cancelled.cancel()
+    if taken_off_by == "submit":
+        lane.submit(lambda: "next")
+    elif taken_off_by == "worker":
+        gate.set()
+    else:
+        lane.close(deadline=0.0)
+    assert _returns_within(lambda: _seen_done([cancelled]), 2 * WAIT_S)
+    gate.set()
+    assert first.result(WAIT_S) == "first"
+    lane.close()
+
+
+@pytest.mark.parametrize("owner_cancels", [False, True])
+def test_wait_sees_the_image_sets_the_phase_locked_close_cancels_done(owner_cancels):
+    lane = _fake_lane()
+    sets = [lane.submit_images({c: _images()[c] for c in cameras}, t) for cameras, t in ((CAMERAS[:3], 1.0), (CAMERAS[3:], 1.1))]
+    if owner_cancels:
+        assert sets[0].cancel()
+    assert lane.close()
+    assert all(f.cancelled() for f in sets)
+    assert _returns_within(lambda: _seen_done(sets), 2 * WAIT_S)
+
+
+def test_wait_sees_a_superseded_set_its_owner_cancelled_done():
+    lane = _fake_lane()
+    old = lane.submit_images(_images(), 1.0)
+    assert old.cancel()
+    lane.submit_images(_images(), 2.0)  # replaces every frame of the cancelled set
+    assert _returns_within(lambda: _seen_done([old]), 2 * WAIT_S)
+    lane.close()
