@@ -107,6 +107,9 @@ class SourceConfig:
     global_frame: str | None = T.GLOBAL_FRAME  # None: the stack has no localisation; ego motion is ignored
     tf_tolerance_ns: int = DEFAULT_TF_TOLERANCE_NS
 
+    def __post_init__(self) -> None:
+        self.topics.check_distinct(tuple(self.camera_names))  # one topic feeding two roles reads garbage into one
+
 
 class BagSource:
     """Iterates a ``.mcap`` ROS 2 bag (or a rosbag2 folder holding one)."""

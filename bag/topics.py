@@ -57,12 +57,26 @@ class TopicMap:
     def camera_info_topic(self, camera: str) -> str:
         return self.camera_infos.get(camera, camera_info_topic_of(self.image_topic(camera)))
 
+    def check_distinct(self, cameras: tuple[str, ...] = ()) -> None:
+        """ValueError naming both when two roles read one topic (``lidar=/x,CAM_FRONT=/x``, two cameras on one image
+        topic, a camera on the default topic of another): the bag's messages of that topic would feed both. Roles: the
+        LiDAR, TF, static TF and the image and CameraInfo topics of ``cameras`` and of every camera the map names."""
+        roles = {"lidar": self.lidar, "tf": self.tf, "tf_static": self.tf_static}
+        for camera in dict.fromkeys((*cameras, *self.cameras, *self.camera_infos)):
+            roles[camera] = self.image_topic(camera)
+            roles[f"{camera}.info"] = self.camera_info_topic(camera)
+        owner: dict[str, str] = {}
+        for role, topic in roles.items():
+            if topic in owner:
+                raise ValueError(f"topics: {owner[topic]} and {role} both read {topic!r}; give each its own topic (--topics)")
+            owner[topic] = role
+
     @classmethod
     def parse(cls, text: str | None) -> "TopicMap":
         """``lidar=/points_raw,CAM_FRONT=/camera/front/image/compressed,CAM_FRONT.info=/camera/front/info,tf=/tf``.
 
         Keys: ``lidar``, ``tf``, ``tf_static``, a camera name (its image topic) or ``<camera>.info`` (its CameraInfo).
-        None: the defaults. An empty entry or a key given twice is a ValueError naming it.
+        None: the defaults. An empty entry, a key given twice or two keys on one topic is a ValueError naming them.
         """
         if text is None:
             return cls()
@@ -93,4 +107,6 @@ class TopicMap:
                 infos[key[: -len(".info")]] = topic
             else:
                 cameras[key] = topic
-        return cls(lidar, cameras, infos, tf, tf_static)
+        parsed = cls(lidar, cameras, infos, tf, tf_static)
+        parsed.check_distinct()
+        return parsed

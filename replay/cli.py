@@ -185,6 +185,9 @@ def main(
         raise click.ClickException(str(e)) from None
     if sys.stderr.isatty():
         sys.stderr.write("\n")
+    if scenes is not None and len(result.scenes) < scenes:
+        click.echo(f"note: --scenes {scenes}, but split {split!r} holds {len(result.scenes)} scene(s): all of them were played",
+                   err=True)  # fmt: skip
     info = cpu_info()
     report = format_report(result, info)
     click.echo(report)

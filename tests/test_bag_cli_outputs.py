@@ -7,6 +7,8 @@ is enough to reach the checks (a check that did not fire would fail loading it, 
 
 from __future__ import annotations
 
+import re
+
 import hashlib
 import shutil
 from pathlib import Path
@@ -282,6 +284,31 @@ def test_topic_map_refuses_empty_entries_and_repeated_keys(text: str, needle: st
         TopicMap.parse(text)
 
 
+@pytest.mark.parametrize("text, needle", [
+    ("lidar=/x,CAM_FRONT=/x", "lidar and CAM_FRONT both read '/x'"),
+    ("CAM_FRONT=/cam,CAM_BACK=/cam", "CAM_FRONT and CAM_BACK both read '/cam'"),
+    ("CAM_BACK=/CAM_FRONT/image_rect_compressed,CAM_FRONT.info=/f", "CAM_BACK and CAM_FRONT both read"),
+    ("CAM_FRONT=/front/image,CAM_FRONT_LEFT=/front/left", "CAM_FRONT.info and CAM_FRONT_LEFT.info both read '/front/camera_info'"),
+    ("tf=/tf_static", "tf and tf_static both read '/tf_static'"),
+])  # fmt: skip
+def test_topic_map_refuses_two_roles_on_one_topic(text: str, needle: str):
+    """Two keys on one topic (or a key on another's default topic): the topic's messages would feed both."""
+    with pytest.raises(ValueError, match=re.escape(needle)):
+        TopicMap.parse(text).check_distinct(("CAM_FRONT", "CAM_BACK"))
+
+
+def test_a_source_refuses_a_camera_on_the_lidar_topic():
+    with pytest.raises(ValueError, match="lidar and CAM_FRONT both read '/LIDAR_TOP'"):
+        SourceConfig(topics=TopicMap(cameras={"CAM_FRONT": "/LIDAR_TOP"}), camera_names=("CAM_FRONT",))
+
+
+@pytest.mark.parametrize("command", ["calibration", "run"])
+def test_topics_refuses_two_keys_on_one_topic(bag: Path, export_dir: Path, tmp_path: Path, command: str):
+    args = ["--bag", bag, "--out", tmp_path / "x.out", "--topics", "CAM_FRONT=/c,CAM_BACK=/c"]
+    result = invoke(command, *args, *(["--export-dir", export_dir] if command == "run" else []))
+    one_line_error(result, "CAM_FRONT and CAM_BACK both read '/c'")
+
+
 def test_topic_map_keeps_distinct_keys():
     topics = TopicMap.parse("lidar=/p,CAM_FRONT=/f,CAM_FRONT.info=/fi,tf=/t")
     assert (topics.lidar, topics.image_topic("CAM_FRONT"), topics.camera_info_topic("CAM_FRONT"), topics.tf) == ("/p", "/f", "/fi", "/t")
@@ -300,7 +327,7 @@ def test_a_lidar_topic_of_another_type_is_named(bag: Path):
 
 def test_a_lidar_topic_of_another_type_through_the_cli(bag: Path, tmp_path: Path):
     result = invoke("calibration", "--bag", bag, "--out", tmp_path / "c.json", "--cameras", "CAM_FRONT",
-                    "--topics", f"lidar={CAMERA_TOPIC}")  # fmt: skip
+                    "--topics", f"lidar={CAMERA_TOPIC},CAM_FRONT=/CAM_FRONT/other")  # fmt: skip
     one_line_error(result, f"the LiDAR topic '{CAMERA_TOPIC}' carries sensor_msgs/msg/CompressedImage")
 
 

@@ -47,6 +47,16 @@ def test_replay_cli_plays_every_mode_and_writes_the_issue_json(drive_data, tiny_
     assert (tmp_path / "r.png").stat().st_size > 10_000
 
 
+def test_replay_cli_says_when_the_split_holds_fewer_scenes_than_asked(drive_data, tiny_export):
+    from streamdet.replay.cli import main
+
+    args = ["--data", str(drive_data), "--split", "all", "--export-dir", str(tiny_export), "--max-seconds", "0.1",
+            "--mode", "streaming", "--scenes", "50"]  # fmt: skip
+    result = CliRunner().invoke(main, args)
+    assert result.exit_code == 0, result.output
+    assert "note: --scenes 50, but split 'all' holds 1 scene(s): all of them were played" in result.output
+
+
 def test_replay_with_a_lidar_only_fallback_counts_its_slices(drive_data, tiny_export, tiny_lidar_export, tmp_path):
     """Images older than 1 ms at every slice: the fallback's graph runs them, and the report counts them."""
     from streamdet.replay.cli import main
