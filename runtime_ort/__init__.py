@@ -30,8 +30,9 @@ _EXPORTS = {
     "NmsConfig": "streamdet.runtime_ort.nms",
     "NmsKind": "streamdet.runtime_ort.nms",
     "CLASS_NAMES": "streamdet.core.classes",
-    "pillarize": "streamdet.runtime_ort.pillarize",
 }
+# Not here: the ``pillarize`` function (``from streamdet.runtime_ort.pillarize import pillarize``). The package attribute
+# of that name is its submodule once anything has imported it, so the function cannot be a package name reliably.
 
 __all__ = sorted(_EXPORTS)
 
