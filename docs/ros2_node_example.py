@@ -3,8 +3,8 @@
 Drop it into a ROS 2 (Humble or newer) Python package with ``pip install streamdet`` beside it, and run it with
 ``ros2 run <your_package> streamdet_node --ros-args -p export_dir:=/path/to/export``. It needs rclpy,
 sensor_msgs, vision_msgs, visualization_msgs and rosidl_runtime_py, none of which is installed where streamdet is
-developed, so the node itself has never run there; the functions above ``main`` are streamdet's tested adapters
-and are imported and run by tests/test_bag_run.py. docs/ros2.md explains each step.
+developed, so the node itself has never run there; the functions and the class above ``main`` are run on a bag's
+messages by tests/test_bag_run.py. docs/ros2.md explains each step.
 """
 
 from __future__ import annotations
@@ -12,8 +12,9 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector
+from streamdet.runtime_ort.detector import DetectorConfig, ImageUpdate, StreamingDetector
 from streamdet.runtime_ort.ros.detections import detection3d_array_message, marker_array_message
+from streamdet.runtime_ort.ros.header import header_stamp_ns
 from streamdet.runtime_ort.ros.images import compressed_image_to_rgb
 from streamdet.runtime_ort.ros.pointcloud2 import CloudFields, decode_pointcloud2, split_cloud
 
@@ -34,6 +35,30 @@ def camera_image(detector: StreamingDetector, image_msg) -> np.ndarray:
     rgb = compressed_image_to_rgb(image_msg)
     size = (detector.image.width, detector.image.height)
     return rgb if rgb.shape[1::-1] == size else cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)
+
+
+class CameraFrames:
+    """The newest image of every camera with its capture time, fed to the image lane whole when any camera sent a
+    new one: a camera left out of an update would be lifted as zeros. The times are the messages' header stamps,
+    the clock of the slices' scan times, so the image age at fusion (and the LiDAR-only fallback) reads true."""
+
+    def __init__(self) -> None:
+        self.images: dict[str, np.ndarray] = {}
+        self.stamps_s: dict[str, float] = {}
+        self.new = False  # a frame arrived since the last update
+
+    def add(self, detector: StreamingDetector, camera: str, image_msg) -> None:
+        self.images[camera] = camera_image(detector, image_msg)
+        self.stamps_s[camera] = header_stamp_ns(image_msg, "sensor_msgs/CompressedImage") * 1e-9
+        self.new = True
+
+    def update(self, detector: StreamingDetector) -> ImageUpdate | None:
+        """The image lane on the newest frame of every camera, if one is new since the last call; None if none is."""
+        if not self.new:
+            return None
+        self.new = False
+        return detector.update_images(dict(self.images), timestamp=max(self.stamps_s.values()),
+                                      camera_timestamps=dict(self.stamps_s))  # fmt: skip
 
 
 def main() -> None:  # the ROS boilerplate
@@ -59,7 +84,7 @@ def main() -> None:  # the ROS boilerplate
             self.detector = StreamingDetector(export_dir, DetectorConfig(
                 fallback_export_dir=fallback, fallback_after_s=max_age_s if fallback else None))  # fmt: skip
             self.detector.warm_up()  # before the first message: onnxruntime's first runs of a graph are slow
-            self.images: dict[str, np.ndarray] = {}  # newest image per camera since the last cloud
+            self.frames = CameraFrames()
             self.boxes = self.create_publisher(Detection3DArray, "/streamdet/detections", 10)
             self.markers = self.create_publisher(MarkerArray, "/streamdet/markers", 10)
             self.create_subscription(PointCloud2, "/LIDAR_TOP", self.on_cloud, 1)
@@ -68,12 +93,10 @@ def main() -> None:  # the ROS boilerplate
                                          lambda msg, cam=cam: self.on_image(cam, msg), 1)  # fmt: skip
 
         def on_image(self, cam: str, msg) -> None:
-            self.images[cam] = camera_image(self.detector, msg)
+            self.frames.add(self.detector, cam, msg)
 
         def on_cloud(self, msg) -> None:
-            if self.images:  # the image lane first, so the slices see the newest cameras
-                self.detector.update_images(self.images)
-                self.images = {}
+            self.frames.update(self.detector)  # the image lane first, so the slices see the newest cameras
             for detections, markers in detect_cloud(self.detector, msg):
                 self.boxes.publish(filled(Detection3DArray, detections))
                 self.markers.publish(filled(MarkerArray, markers))

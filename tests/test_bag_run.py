@@ -191,8 +191,18 @@ def test_node_recipe_helpers(bag: Path, export_dir: Path):
     detector = StreamingDetector(export_dir)
     messages = read_with_rosbags(bag)
     images = {t.split("/")[1]: m for t, _, _, m in messages if t.endswith("image_rect_compressed")}
-    detector.update_images({cam: example.camera_image(detector, m) for cam, m in images.items()})
+    frames = example.CameraFrames()
+    assert frames.update(detector) is None  # nothing yet
+    for cam, m in images.items():
+        frames.add(detector, cam, m)
+    assert frames.update(detector).cameras_missing == () and frames.update(detector) is None  # nothing new since
     cloud = next(m for t, _, _, m in messages if t == "/LIDAR_TOP")
+    cloud_s = cloud.header.stamp.sec + cloud.header.stamp.nanosec * 1e-9
+    assert abs(detector.image_timestamp - cloud_s) < 1.0  # the images on the slices' clock, not time.monotonic()
+    cam = next(iter(images))
+    frames.add(detector, cam, images[cam])  # one camera's new frame: the update still gives every camera
+    update = frames.update(detector)
+    assert update.cameras_used == tuple(n for n in detector.camera_names if n in images) and update.cameras_missing == ()
     slices = example.detect_cloud(detector, cloud)
     assert len(slices) == N_SLICES
     with BagWriter(bag.with_name("node.mcap")) as writer:  # the dicts are valid messages of their types
