@@ -123,7 +123,7 @@ class _CostedDetector:
 
     uses_images = True
 
-    def __init__(self, clock: "_Clock", costs: LaneCosts, cameras: Mapping[int, tuple[str, ...]], rng: np.random.Generator) -> None:
+    def __init__(self, clock: "ManualClock", costs: LaneCosts, cameras: Mapping[int, tuple[str, ...]], rng: np.random.Generator) -> None:
         self.clock, self.costs, self.rng = clock, costs, rng
         self.camera_names = tuple(dict.fromkeys(n for q in range(NUM_QUADRANTS) for n in cameras[q]))
         self._cameras = cameras
@@ -167,8 +167,12 @@ class _CostedDetector:
         return ImageUpdate(timestamp, tuple(images), (), quadrants=qs)
 
 
-class _Clock:
-    t = 0.0
+class ManualClock:
+    """A clock in seconds that only moves when told (``clock.t = ...``): the lane's ``clock`` in `play_events` and
+    in tests that step a lane by hand."""
+
+    def __init__(self, t: float = 0.0) -> None:
+        self.t = t
 
     def __call__(self) -> float:
         return self.t
@@ -197,7 +201,7 @@ def simulate(costs: LaneCosts, quadrant_cameras: Mapping[int, tuple[str, ...]], 
     unknown = sorted({n for q in range(NUM_QUADRANTS) for n in quadrant_cameras[q]} - set(config.axes_deg))
     if unknown:
         raise ValueError(f"cameras without an optical axis in SimConfig.axes_deg: {unknown}")
-    clock = _Clock()
+    clock = ManualClock()
     det = _CostedDetector(clock, costs, quadrant_cameras, np.random.default_rng(config.seed))
     n, period = config.num_slices, 1.0 / config.lidar_hz
     lane = PhaseLockedImageLane(det, n, 0.0, config.lidar_hz, config.lift_margin_ms * 1e-3, clock=clock, thread=False,

@@ -14,6 +14,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from streamdet.benchmarks.lane_sim import ManualClock
 from streamdet.runtime_ort.lanes import ImagesSuperseded, LaneConfig, SliceDropped, StreamingRunner
 from streamdet.runtime_ort.phase_locked_lane import PhaseLockedImageLane
 from streamdet.runtime_ort.worker_lane import WorkerLane, claim_future
@@ -88,14 +89,6 @@ class GatedDetector:
         return SimpleNamespace(slice_index=slice_index)
 
 
-class FakeClock:
-    def __init__(self) -> None:
-        self.t = 0.0
-
-    def __call__(self) -> float:
-        return self.t
-
-
 class FakeDetector:
     """The phase-locked lane's detector on a fake clock (as tests/test_runtime_phase_lock.py's): records lifts."""
 
@@ -116,7 +109,7 @@ class FakeDetector:
 
 
 def _fake_lane() -> PhaseLockedImageLane:
-    return PhaseLockedImageLane(FakeDetector(), 8, clock=FakeClock(), thread=False,
+    return PhaseLockedImageLane(FakeDetector(), 8, clock=ManualClock(), thread=False,
                                 superseded=lambda: ImagesSuperseded("superseded"))  # fmt: skip
 
 

@@ -10,7 +10,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from streamdet.benchmarks.lane_sim import play_events
+from streamdet.benchmarks.lane_sim import ManualClock, play_events
 from streamdet.core.sectors import quadrants_of_sector
 from streamdet.runtime_ort.detector import ImageUpdate
 from streamdet.runtime_ort.lanes import ImagesSuperseded, LaneConfig, StreamingRunner
@@ -24,21 +24,13 @@ SEES = {0: {"CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_RIGHT"}, 1: {"CAM_FRONT", 
         2: {"CAM_BACK", "CAM_BACK_LEFT"}, 3: {"CAM_BACK", "CAM_BACK_RIGHT"}}  # fmt: skip
 
 
-class FakeClock:
-    def __init__(self) -> None:
-        self.t = 0.0
-
-    def __call__(self) -> float:
-        return self.t
-
-
 class FakeDetector:
     """Takes ``encode_s`` per camera encoded and ``lift_s`` per quadrant lifted, on the fake clock; records lifts."""
 
     uses_images = True
     camera_names = CAMERAS
 
-    def __init__(self, clock: FakeClock, encode_s: float, lift_s: float, num_slices: int = 8) -> None:
+    def __init__(self, clock: ManualClock, encode_s: float, lift_s: float, num_slices: int = 8) -> None:
         self.clock = clock
         self.encode_s = encode_s
         self.lift_s = lift_s
@@ -72,7 +64,7 @@ def simulate(lift_s: float, seconds: float = 1.0, lidar_hz: float = 20.0, camera
     i / camera_hz + 0.003; the lane's step runs whenever it asked to and after every event. ``backlog``: slices
     waiting in the slice lane at a clock time (with ``yield_at``). Returns the lane, the detector, the slices
     (arrival, k, quadrants) and the image set times."""
-    clock = FakeClock()
+    clock = ManualClock()
     det = FakeDetector(clock, encode_s, lift_s, n)
     waiting = None if backlog is None else (lambda: backlog(clock.t))
     lane = PhaseLockedImageLane(det, n, 0.0, lidar_hz if known_rate else None, margin_s, clock=clock, thread=False,
@@ -205,7 +197,7 @@ def test_slow_lifts_skip_quadrants_in_time_order_and_never_finish_late():
 
 
 def test_before_the_rotation_is_known_every_image_set_is_a_full_update():
-    clock = FakeClock()
+    clock = ManualClock()
     det = FakeDetector(clock, 0.0, 0.001)
     lane = PhaseLockedImageLane(det, 8, clock=clock, thread=False)
     images = {c: np.zeros((2, 2, 3), np.uint8) for c in CAMERAS}
@@ -218,7 +210,7 @@ def test_before_the_rotation_is_known_every_image_set_is_a_full_update():
 
 
 def test_an_image_set_replaced_before_any_lift_is_superseded():
-    clock = FakeClock()
+    clock = ManualClock()
     det = FakeDetector(clock, 0.0, 0.001)
     lane = PhaseLockedImageLane(det, 8, lidar_hz=20.0, clock=clock, thread=False,
                                 superseded=lambda: ImagesSuperseded("superseded"))  # fmt: skip
@@ -262,7 +254,7 @@ class GatedImageDetector(FakeDetector):
     """Its image lane blocks until the gate opens; slices are instant."""
 
     def __init__(self) -> None:
-        super().__init__(FakeClock(), 0.0, 0.0)
+        super().__init__(ManualClock(), 0.0, 0.0)
         self.gate = threading.Event()
         self.entered = threading.Event()
 
@@ -327,7 +319,7 @@ def test_a_phase_locked_runner_ends_with_the_full_update_bev(tiny_export):
 def test_an_image_set_replaced_while_a_lift_uses_it_still_gets_that_lift():
     """The frames of set A are replaced by set B during A's lift (the driver's thread): A's future holds the lift's
     ImageUpdate, not ImagesSuperseded, and nothing fails."""
-    clock = FakeClock()
+    clock = ManualClock()
     images = {c: np.zeros((2, 2, 3), np.uint8) for c in CAMERAS}
 
     class Replacing(FakeDetector):
@@ -358,7 +350,7 @@ def test_slices_handed_over_in_bursts_still_give_the_rotation_period():
 def test_close_cancels_image_sets_no_lift_used_and_refuses_later_submits():
     from streamdet.runtime_ort.lanes import RunnerClosed
 
-    clock = FakeClock()
+    clock = ManualClock()
     lane = PhaseLockedImageLane(FakeDetector(clock, 0.0, 0.001), 8, lidar_hz=20.0, clock=clock, thread=False,
                                 closed=lambda: RunnerClosed("closed"))  # fmt: skip
     waiting = lane.submit_images({c: np.zeros((2, 2, 3), np.uint8) for c in CAMERAS}, 1.0)
@@ -370,7 +362,7 @@ def test_close_cancels_image_sets_no_lift_used_and_refuses_later_submits():
 # ---- holding back for a backlog of slices (LaneConfig.image_lane_yield_slices) -----------------------------------
 @pytest.mark.parametrize("yield_at", [1, 3])
 def test_a_backlog_of_slices_holds_back_encodes_and_lifts_then_the_lane_catches_up(yield_at):
-    clock = FakeClock()
+    clock = ManualClock()
     det = FakeDetector(clock, 0.001, 0.002)
     waiting = [yield_at]
     lane = PhaseLockedImageLane(det, 8, lidar_hz=20.0, clock=clock, thread=False, backlog=lambda: waiting[0], yield_at=yield_at)
@@ -390,7 +382,7 @@ def test_a_backlog_of_slices_holds_back_encodes_and_lifts_then_the_lane_catches_
 
 
 def test_before_the_lock_a_backlog_holds_back_the_full_update_too():
-    clock = FakeClock()
+    clock = ManualClock()
     det = FakeDetector(clock, 0.0, 0.001)
     waiting = [2]
     lane = PhaseLockedImageLane(det, 8, clock=clock, thread=False, backlog=lambda: waiting[0], yield_at=2)
@@ -446,16 +438,16 @@ def test_lane_config_refuses_a_bad_yield_and_a_yield_without_the_phase_locked_sc
         LaneConfig(image_lane_yield_slices=2)
     assert LaneConfig().image_lane_yield_slices == 0
     with pytest.raises(ValueError, match="needs a backlog"):
-        PhaseLockedImageLane(FakeDetector(FakeClock(), 0.0, 0.0), 8, thread=False, yield_at=1)
+        PhaseLockedImageLane(FakeDetector(ManualClock(), 0.0, 0.0), 8, thread=False, yield_at=1)
     with pytest.raises(ValueError, match="yield_at must be an int"):
-        PhaseLockedImageLane(FakeDetector(FakeClock(), 0.0, 0.0), 8, thread=False, backlog=lambda: 0, yield_at=-1)
+        PhaseLockedImageLane(FakeDetector(ManualClock(), 0.0, 0.0), 8, thread=False, backlog=lambda: 0, yield_at=-1)
 
 
 class BlockingSliceDetector(FakeDetector):
     """Slices block until their gate opens; the image lane records when it starts encoding."""
 
     def __init__(self) -> None:
-        super().__init__(FakeClock(), 0.0, 0.0)
+        super().__init__(ManualClock(), 0.0, 0.0)
         self.slice_gate = threading.Event()
         self.encoding = threading.Event()
 
