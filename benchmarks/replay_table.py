@@ -249,8 +249,15 @@ def line_against(out: Path, baseline: str, target_ms: float | None = None) -> st
     return "\n".join(lines)
 
 
+USAGE = ("usage: python -m streamdet.benchmarks.replay_table OUT_DIR [--plot FILE.png] "
+         "[--baseline LABEL [--target-ms MS]]")
+
+
 def main(argv: list[str] | None = None) -> int:
     args = list(sys.argv[1:] if argv is None else argv)
+    if "--help" in args or "-h" in args:  # before the parsing below, which would take it for OUT_DIR
+        print(f"{USAGE}\n\n{__doc__ or ''}")
+        return 0
     plot_path = None
     if "--plot" in args:
         i = args.index("--plot")
@@ -270,8 +277,7 @@ def main(argv: list[str] | None = None) -> int:
                 return 2
             del args[i : i + 2]
     if len(args) != 1 or ("--target-ms" in options and "--baseline" not in options):
-        print("usage: python -m streamdet.benchmarks.replay_table OUT_DIR [--plot FILE.png] [--baseline LABEL [--target-ms MS]]",
-              file=sys.stderr)  # fmt: skip
+        print(USAGE, file=sys.stderr)
         return 2
     try:
         if "--baseline" in options:

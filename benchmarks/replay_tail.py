@@ -66,8 +66,14 @@ def table(out: Path, near: float = 0.8) -> str:
     return "\n".join(lines)
 
 
+USAGE = "usage: python -m streamdet.benchmarks.replay_tail OUT_DIR [--near 0.8]"
+
+
 def main(argv: list[str] | None = None) -> int:
     args = list(sys.argv[1:] if argv is None else argv)
+    if "--help" in args or "-h" in args:  # before the parsing below, which would take it for OUT_DIR
+        print(f"{USAGE}\n\n{__doc__ or ''}")
+        return 0
     near = 0.8
     if "--near" in args:
         i = args.index("--near")
@@ -78,7 +84,7 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         del args[i : i + 2]
     if len(args) != 1:
-        print("usage: python -m streamdet.benchmarks.replay_tail OUT_DIR [--near 0.8]", file=sys.stderr)
+        print(USAGE, file=sys.stderr)
         return 2
     try:
         print(table(Path(args[0]), near))

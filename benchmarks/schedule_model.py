@@ -10,7 +10,8 @@ Each quadrant is stamped as the runtime stamps it (the oldest frame of the camer
 added by processing, the image age and the slices dropped are the replay's own measures. Sleeping takes no CPU, so
 the lanes do not compete for cores here: this isolates what the *schedule* costs from what the CPU costs (the
 replay on the real export measures both). The defaults are the quiet-machine stage times of the int8 image lane on
-the README's AMD EPYC Zen 4 (docs/replay.md). Results: docs/replay.md, "Trigger models".
+the README's AMD EPYC Zen 4 (docs/replay.md). Results: docs/replay.md, section "Camera triggers and the
+image-lane schedules (issue 22)", paragraphs "The schedules on a modelled computer" and "What the geometry allows".
 """
 
 from __future__ import annotations

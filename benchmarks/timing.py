@@ -106,8 +106,9 @@ def time_interleaved(
 
     Each callable is warmed up first (``config.warmup`` runs; one when a run takes longer than ``slow_warmup_s``).
     At each of its turns it then runs untimed for ``settle_s`` before its timed runs: the thread pool of the
-    callable before it (onnxruntime's, PyTorch's OpenMP) keeps spinning for a while after its last run and slowed
-    a small graph timed at once about twofold (measured there). Callables that slow skip the settling. The
+    callable before it (onnxruntime's, PyTorch's OpenMP) keeps spinning for a while after its last run and slows
+    a small graph timed at once (measured: benchmarks/RESULTS.md, section "Measurements behind design choices
+    (moved from code docstrings on 2026-12-01)", **Timing**). Callables that slow skip the settling. The
     timed runs are spread evenly over the rounds; ``repeat``, ``budget_s`` and ``min_repeat`` apply to each
     callable on its own.
     """

@@ -4,8 +4,9 @@ Without it the lifter's output reaches the BEV encoder far weaker than the point
 ratio), so the encoder's first convolution learns to ignore it. ``ImageBevNorm`` divides each channel by its
 root mean square (batch statistics in training, a running average in eval) and multiplies by a gain:
 
-- ``target="learnt"``: a learnt gain per channel. Training is free to shrink it (issue 19 measured the image half at
-  0.28-0.35 of the point half's RMS after training, while the model depended on it);
+- ``target="learnt"``: a learnt gain per channel. Training is free to shrink it (after training, issue 19 found the
+  image half well below the point half's RMS while the model depended on it; measured:
+  docs/training/issue19_plan.md, section "Results of the fifth session: three seeds a side, the verdict");
 - ``target="point"``: no learnt gain; every channel is brought to the point BEV's RMS on the cells that hold points,
   a running average of it kept as a buffer, and the image's own mean square is taken on those same cells (the cells
   where the two halves meet). Both statistics are updated in training only; the point BEV's is detached (the image

@@ -2,8 +2,9 @@
 export's slice graph instead (``DetectorConfig.fallback_export_dir``).
 
 Why: a fused model trained with its cameras on from the first step can lean on them so much that it finds almost
-nothing when they are gone (issue 19's class-loss model: 57 mAP with cameras, under 2 with every camera zeroed;
-docs/training/issue19_plan.md). A vehicle process must not go blind with its cameras, so the detector can hold a
+nothing when they are gone (issue 19's class-loss model detected almost nothing with every camera zeroed; measured:
+docs/training/issue19_plan.md, section "Fifth session (2026-12-02, fourth): `small_v3` (item 2) and an image-side
+class loss (item 1)"). A vehicle process must not go blind with its cameras, so the detector can hold a
 LiDAR-only slice graph (the shipped ``small_lidar_only.pt`` exported) and use it for a slice when
 
 - a quadrant the slice reads has **no image BEV** (no image update yet, or a calibration swap without re-lift), or

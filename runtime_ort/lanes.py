@@ -229,6 +229,9 @@ class StreamingRunner:
 
     @property
     def slices_dropped(self) -> int:
+        """Slices dropped so far because the slice queue was full (``LaneConfig.queue_size``): each time, the oldest
+        waiting slice's future failed with ``SliceDropped``. A count that keeps rising means the slice lane is short
+        of CPU for the slice rate."""
         return self._slices.dropped
 
     @property
@@ -249,6 +252,9 @@ class StreamingRunner:
 
     @property
     def images_superseded(self) -> int:
+        """Image sets replaced by a newer one before the image lane used them, so far: each one's future failed
+        with ``ImagesSuperseded``. Under ``schedule="full"`` a set still waiting when the next arrives; under
+        ``"phase-locked"`` a set none of whose frames was lifted before newer frames of its cameras replaced them."""
         return self._images.dropped if self._images is not None else self._phase_locked.images_superseded
 
     @property

@@ -66,13 +66,15 @@ def term_graph(weight: np.ndarray, channels: int, feature_hw: tuple[int, int], h
     projected table: row ``z * (Hf*Wf + 1) + r`` = row r of the map's (Hf*Wf + 1, C) table (the zero row last) times
     the (C, C_out) block of height z of the first convolution's ``weight`` (C_out, Z * C), Z = ``heights``. The
     convolution applied before the gather: the same sums as gathering the (N, Z * C) rows and multiplying by
-    ``weight``, about 3x faster (docs/replay.md). ``camera_terms.share_slots`` gives a share's slots and weights; the
-    rows of several shares of one camera (its quadrants) go through one run, projecting the map once.
+    ``weight``, and faster (measured: docs/replay.md, section "Per-camera lifts in the runtime (issue 22, ninth
+    session)", "The convolution before the gather"). ``camera_terms.share_slots`` gives a share's slots and
+    weights; the rows of several shares of one camera (its quadrants) go through one run, projecting the map once.
 
     Inputs: ``features (1, C, Hf, Wf)`` and, with ``sparse`` (the default), ``lut``: the (N, Z * (Hf*Wf + 1))
     sparse matrix of the weights (``sparse_lut``; onnxruntime's ``com.microsoft`` SparseToDenseMatMul, which does
-    not materialise the (N, J, C_out) gathered rows: about 0.6x the time of the dense form on the nuScenes rig,
-    docs/replay.md), else ``slots (N, J) int64`` and ``weights (N, J) float32`` (Gather, then a batched MatMul)."""
+    not materialise the (N, J, C_out) gathered rows and is faster than the dense form; measured: docs/replay.md,
+    section "Sparse terms and full updates through terms (issue 22, twelfth session)"), else ``slots (N, J) int64``
+    and ``weights (N, J) float32`` (Gather, then a batched MatMul)."""
     hf, wf = feature_hw
     c_out, zc = weight.shape
     if zc != heights * channels:

@@ -2,8 +2,9 @@
 
 Each graph gets its own session with its own thread pool. On a small CPU the lanes of the streaming detector
 run concurrently, so every session defaults to one intra-op thread and no spinning: a session that spins
-would burn the core the other lane needs (measured on 2 cores: spinning sessions double the slice latency
-while the image lane runs).
+would burn the core the other lane needs and slow the slice lane while the image lane runs (a thread pool still
+spinning after its last run slowing the graph run next: benchmarks/RESULTS.md, section "Measurements behind design
+choices (moved from code docstrings on 2026-12-01)", **Timing**).
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Warming a `StreamingDetector` up before the first real data (``StreamingDetector.warm_up``).
 
 onnxruntime's first two runs of a graph are slower than the ones after (its memory arena and pattern planning;
-measured on the lifter: the first two runs 4-20x the third, docs/replay.md "Notes"). A vehicle process whose first
+measured on the lifter graph: docs/replay.md, section "Notes"). A vehicle process whose first
 real image update pays that queues its first slices behind it. ``warm_up`` runs every graph of the export twice on
 dummy inputs (black images through the full and the per-quadrant image updates, a synthetic ring of points through
 every slice), then drops the dummy image BEV and the latency statistics; the LUT, calibration and sessions stay.

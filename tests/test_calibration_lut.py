@@ -125,7 +125,8 @@ def test_real_rig_overlap_is_front_and_front_right(rig: Rig, coarse_lut: Lut) ->
 def test_real_rig_default_grid_on_random_voxels(rig: Rig) -> None:
     """The paper grid (4 x 16 x 256 x 256, stride 4, 1600 x 900) against a pure-Python check of 3,000 voxels.
 
-    How long the build takes is a benchmark's question, not a test's (timings on a shared machine vary 2-8x)."""
+    How long the build takes is a benchmark's question, not a test's (timings on a shared machine vary too much to
+    assert on)."""
     grid = GridSpec()
     lut = build_lut(rig, grid)
     assert lut.index.shape == (4, 2, 16, 256, 256)  # nuScenes: at most two cameras see one voxel
