@@ -19,10 +19,10 @@ from streamdet.runtime_ort.lanes import ImagesSuperseded, LaneConfig, SliceDropp
 from streamdet.runtime_ort.phase_locked_lane import PhaseLockedImageLane
 from streamdet.runtime_ort.worker_lane import WorkerLane, claim_future
 
+from lane_fakes import CAMERAS, StandInDetector
 from thread_helpers import returns_within
 
 WAIT_S = 10.0  # nothing here waits this long when it works
-CAMERAS = ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_FRONT_LEFT", "CAM_BACK", "CAM_BACK_LEFT", "CAM_BACK_RIGHT")
 POINTS = np.zeros((2, 6), np.float32)
 
 
@@ -50,15 +50,10 @@ def _images() -> dict[str, np.ndarray]:
 
 
 # ---- stand-ins ---------------------------------------------------------------------------------------------------
-class GatedDetector:
+class GatedDetector(StandInDetector):
     """A StreamingDetector stand-in for both lanes and both image schedules: the first slice and the first image
     update wait for ``gate``; every camera sees every quadrant; ``updated[t]`` is set once an image update stamped
     ``t`` ran."""
-
-    uses_images = True
-    num_slices = 8
-    camera_names = CAMERAS
-    config = SimpleNamespace(start_deg=0.0)
 
     def __init__(self) -> None:
         self.gate = threading.Event()
@@ -69,15 +64,6 @@ class GatedDetector:
         if not self.started.is_set():
             self.started.set()
             assert self.gate.wait(WAIT_S), "the test never opened the gate"
-
-    def quadrant_cameras(self, quadrants):
-        return CAMERAS
-
-    def check_images(self, images) -> None:
-        pass
-
-    def encode_images(self, images):
-        return {n: np.zeros((1, 1, 1), np.float32) for n in images}
 
     def update_images(self, images, timestamp=None, quadrants=None, encoded=None, camera_timestamps=None):
         self._hold()

@@ -19,33 +19,17 @@ from streamdet.data.sample import load_bundled_sample
 from streamdet.runtime_ort.detector import StreamingDetector
 from streamdet.runtime_ort.lanes import LaneConfig, StreamingRunner
 
+from lane_fakes import StandInDetector
+
 WAIT_S = 10.0
 CAMERAS = ("CAM_FRONT", "CAM_BACK")
 POINTS = np.zeros((3, 6), np.float32)
 
 
-class SliceDetector:
-    """A StreamingDetector stand-in with detect_slices (the slice lane coalesces and may hold pairs)."""
+class SliceDetector(StandInDetector):
+    """With detect_slices: the slice lane coalesces and may hold pairs."""
 
-    uses_images = True
-    num_slices = 8
     camera_names = CAMERAS
-    config = SimpleNamespace(start_deg=0.0)
-
-    def quadrant_cameras(self, quadrants):
-        return CAMERAS
-
-    def check_images(self, images) -> None:
-        pass
-
-    def encode_images(self, images):
-        return {n: np.zeros((1, 1, 1), np.float32) for n in images}
-
-    def update_images(self, images, timestamp=None, quadrants=None, encoded=None, camera_timestamps=None):
-        return SimpleNamespace(timestamp=timestamp, quadrants=tuple(quadrants) if quadrants else (0, 1, 2, 3))
-
-    def detect_slice(self, points, slice_index, timestamp=None):
-        return SimpleNamespace(slice_index=slice_index)
 
     def detect_slices(self, points, indices, stamps):
         return tuple(SimpleNamespace(slice_index=k) for k in indices)
