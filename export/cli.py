@@ -106,6 +106,8 @@ def main(preset, checkpoint, calibration, resolution, num_slices, fp16, int8, ca
         if m.pipeline_parity is not None and not m.pipeline_parity.passed:
             failed.append("fp16 pipeline")
         click.echo(f"error: parity FAILED for {', '.join(failed)} (recorded in {MANIFEST_NAME})", err=True)
+        if result.kept_dir is not None:
+            click.echo(f"{result.kept_dir} keeps the export it held; the one that failed is in {result.out_dir}", err=True)
         sys.exit(2)
 
 

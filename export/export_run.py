@@ -47,6 +47,12 @@ class ExportRun:
     int8_work: Any = None  # export/int8_steps.py: Int8Work between its steps
     int8_record: Int8Record | None = None
     manifest: Manifest | None = None
+    committed_dir: Path | None = None  # where the export went: out_dir, or beside it when its parity failed
+
+    @property
+    def parity_passed(self) -> bool:
+        """Every parity record of the manifest passed (and the fp16 pipeline check where there is one)."""
+        return manifest_parity_passed(self.manifest)
 
     @property
     def graphs(self) -> tuple[str, ...]:
@@ -56,3 +62,9 @@ class ExportRun:
     def graph_io(self, name: str) -> ox.GraphIO:
         """The names and dynamic axes of graph ``name`` of this export."""
         return ox.graph_ios(self.preset.use_image, self.preset.slice_crop, self.opts.image_layout, self.opts.lut_layout)[name]
+
+
+def manifest_parity_passed(manifest: Manifest) -> bool:
+    """Every parity record of ``manifest`` passed, and its fp16 pipeline check where there is one."""
+    pipeline_ok = manifest.pipeline_parity is None or manifest.pipeline_parity.passed
+    return pipeline_ok and all(p.passed for p in manifest.parity)

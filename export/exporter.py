@@ -28,10 +28,10 @@ from streamdet.core.constants import BUNDLED_CALIBRATION_SOURCE, EXPORTS_ROOT
 from streamdet.core.sectors import check_num_slices
 from streamdet.export import int8 as q8
 from streamdet.export import onnx_export as ox
-from streamdet.export.export_run import ExportRun
+from streamdet.export.export_run import ExportRun, manifest_parity_passed
 from streamdet.export.graph_steps import TORCH_REF_IMAGES, load_rig  # noqa: F401 (public here)
 from streamdet.export.options import DEFAULT_PRESET, STEM_STRIDE, ExportError, ExportOptions, check_resolution, resolve_lut_layout  # noqa: F401
-from streamdet.export.staging import discard_staging_dir, make_staging_dir
+from streamdet.export.staging import check_replaceable, discard_staging_dir, make_staging_dir, parity_failed_dir
 from streamdet.export.steps import Progress, Report, export_steps
 from streamdet.export.weights import (
     checkpoint_lifter_form,
@@ -52,10 +52,11 @@ class ExportResult:
     manifest: Manifest
     seconds: float
 
+    kept_dir: Path | None = None  # the --out that kept the export it held because this one failed its parity check
+
     @property
     def parity_passed(self) -> bool:
-        pipeline_ok = self.manifest.pipeline_parity is None or self.manifest.pipeline_parity.passed
-        return pipeline_ok and all(p.passed for p in self.manifest.parity)
+        return manifest_parity_passed(self.manifest)
 
 
 def run_export(opts: ExportOptions, report: Report | None = None) -> ExportResult:
@@ -70,6 +71,7 @@ def run_export(opts: ExportOptions, report: Report | None = None) -> ExportResul
         out_dir = out_dir.resolve()
     steps = export_steps(preset, opts, (width, height))
     progress = Progress(report, total=len(steps))
+    check_replaceable(parity_failed_dir(out_dir))  # where a failed export goes if out_dir holds one (commit_target)
     tmp = make_staging_dir(out_dir)
     run = ExportRun(tmp, out_dir, preset, (width, height), opts, progress.note)
     try:
@@ -80,7 +82,8 @@ def run_export(opts: ExportOptions, report: Report | None = None) -> ExportResul
     except BaseException:
         discard_staging_dir(tmp)
         raise
-    return ExportResult(out_dir.resolve(), run.manifest, time.perf_counter() - t_start)
+    kept = out_dir.resolve() if run.committed_dir != out_dir else None
+    return ExportResult(run.committed_dir.resolve(), run.manifest, time.perf_counter() - t_start, kept)
 
 
 def _check_options(opts: ExportOptions) -> None:

@@ -1,9 +1,16 @@
 """Parity checks the export runs on itself, recorded in the manifest (numpy + onnxruntime; no torch here).
 
-Tolerances (of the reference output's range, max - min):
+Tolerances (of the reference output's scale: its range, max - min, but never less than a fraction of its magnitude,
+max |value|):
 
-- onnxruntime fp32 against PyTorch: max |a - b| <= 1e-4 * range.
-- onnxruntime fp16 graph against the fp32 graph on the same inputs: <= 1e-2 * range.
+- onnxruntime fp32 against PyTorch: max |a - b| <= 1e-4 * scale, the scale at least 0.1 * magnitude.
+- onnxruntime fp16 graph against the fp32 graph on the same inputs: <= 1e-2 * scale, the scale at least the magnitude.
+
+Why the floor: the scores of a nearly untrained head, or the few of a small ``--top-k``, can span a band far narrower
+than their size (a range of 5e-4 at scores near 0.3), where 1e-4 x range falls to a float32 ulp of the scores and
+rounding alone failed the export. With the floor the fp32 tolerance is never under about 80 float32 ulps of the
+largest value, the fp16 one about 10 fp16 ulps; a trained model's outputs span most of their magnitude, and there the
+range decides as before.
 
 Dense outputs (features, image BEV) are compared element-wise. Decoded detections (det_boxes, det_scores,
 det_labels) are compared as *sets*: top-K keeps the K best peaks of classes x cells, and two peaks whose scores
@@ -37,6 +44,9 @@ from streamdet.runtime_ort.sessions import ort_session  # noqa: F401 (the parity
 
 TORCH_TOL_REL = 1e-4  # onnxruntime fp32 vs PyTorch
 FP16_TOL_REL = 1e-2  # onnxruntime fp16 vs onnxruntime fp32
+# the scale a tolerance is relative to is at least this fraction of the reference's magnitude (module doc)
+TORCH_SCALE_FLOOR = 0.1
+FP16_SCALE_FLOOR = 1.0
 PIPELINE_SCORE_THRESHOLD = 0.1
 PIPELINE_CENTRE_TOL_M = 0.1
 
@@ -49,19 +59,27 @@ def value_range(x: np.ndarray) -> float:
     return float(x.max() - x.min())
 
 
+def value_scale(x: np.ndarray, floor: float = 0.0) -> float:
+    """What a tolerance is relative to: the range of ``x``, but at least ``floor`` x max |x| (module doc)."""
+    if x.size == 0:
+        return 0.0
+    return max(value_range(x), floor * float(np.abs(x.astype(np.float64)).max()))
+
+
 def compare_dense(
-    graph: str, precision: str, reference: str, output: str, got: np.ndarray, ref: np.ndarray, tol_rel: float
-) -> ParityRecord:
-    """Element-wise max |got - ref| against tol_rel * range(ref)."""
+    graph: str, precision: str, reference: str, output: str, got: np.ndarray, ref: np.ndarray, tol_rel: float,
+    scale_floor: float = 0.0,
+) -> ParityRecord:  # fmt: skip
+    """Element-wise max |got - ref| against tol_rel * value_scale(ref, scale_floor)."""
+    rng, scale = value_range(ref), value_scale(ref, scale_floor)
     if got.shape != ref.shape:
-        return ParityRecord(graph, precision, reference, output, math.inf, value_range(ref), tol_rel, False,
-                            f"shape {got.shape} differs from the reference's {ref.shape}")
+        return ParityRecord(graph, precision, reference, output, math.inf, rng, tol_rel, False,
+                            f"shape {got.shape} differs from the reference's {ref.shape}", scale)  # fmt: skip
     diff = float(np.abs(got.astype(np.float64) - ref.astype(np.float64)).max()) if ref.size else 0.0
-    rng = value_range(ref)
     finite = bool(np.isfinite(got).all())
-    passed = finite and diff <= tol_rel * rng
+    passed = finite and diff <= tol_rel * scale
     note = "" if finite else "non-finite values in the output"
-    return ParityRecord(graph, precision, reference, output, diff, rng, tol_rel, passed, note)
+    return ParityRecord(graph, precision, reference, output, diff, rng, tol_rel, passed, note, scale)
 
 
 # ---- near-ties -------------------------------------------------------------------------------------------
@@ -170,17 +188,20 @@ def compare_detections(
     ref: Sequence[np.ndarray],
     tol_rel: float,
     ref_margins: np.ndarray | None = None,
+    scale_floor: float = 0.0,
 ) -> list[ParityRecord]:
-    """Set-wise comparison of decoded top-K detections; one record per output (det_boxes, det_scores, det_labels).
+    """Set-wise comparison of decoded top-K detections; one record per output (det_boxes, det_scores, det_labels),
+    each against tol_rel * value_scale(reference output, scale_floor).
 
     ``ref_margins`` (Q, K): the reference detections' peak margins (``detection_margins``); those within the score
     tolerance are near-ties, left out and counted.
     """
     rb, rs, rl = ref
     box_rng, score_rng = value_range(rb), value_range(rs)
-    score_tol = tol_rel * score_rng
+    box_scale, score_scale = value_scale(rb, scale_floor), value_scale(rs, scale_floor)
+    score_tol = tol_rel * score_scale
     near_tie = None if ref_margins is None else np.abs(ref_margins) <= score_tol
-    box_diff, score_diff, boundary, unmatched, ties = match_detections(got, ref, score_tol, tol_rel * box_rng, near_tie)
+    box_diff, score_diff, boundary, unmatched, ties = match_detections(got, ref, score_tol, tol_rel * box_scale, near_tie)
     matched = box_diff.size
     note = (
         f"{matched} detections matched as sets; {boundary} at the top-K boundary and {ties} near-tie peaks (margin "
@@ -191,8 +212,9 @@ def compare_detections(
     sd = float(score_diff.max()) if matched else 0.0
     ok = finite and unmatched == 0
     return [
-        ParityRecord(graph, precision, reference, "det_boxes", bd, box_rng, tol_rel, ok and bd <= tol_rel * box_rng, note),
-        ParityRecord(graph, precision, reference, "det_scores", sd, score_rng, tol_rel, ok and sd <= score_tol, note),
+        ParityRecord(graph, precision, reference, "det_boxes", bd, box_rng, tol_rel, ok and bd <= tol_rel * box_scale, note,
+                     box_scale),
+        ParityRecord(graph, precision, reference, "det_scores", sd, score_rng, tol_rel, ok and sd <= score_tol, note, score_scale),
         ParityRecord(graph, precision, reference, "det_labels", float(unmatched), float(rl.max() - rl.min()) if rl.size else 0.0,
                      tol_rel, ok, "labels must agree on every matched detection; max_abs_diff holds the unmatched count"),
     ]
@@ -220,13 +242,13 @@ def pipeline_parity(
 
     Boxes of the two runs are paired greedily by centre distance (``core.boxes.pair_boxes``: same quadrant and label,
     within two head cells, ``2 * cell_m``). Left out of the count, and counted instead: a pair or unpaired box whose score lies within the
-    band ``FP16_TOL_REL * range(fp32 scores)`` of the threshold in either run (it may land on either side,
+    band ``FP16_TOL_REL * value_scale(fp32 scores, FP16_SCALE_FLOOR)`` of the threshold in either run (it may land on either side,
     ``excluded_in_band``); an unpaired box within the band of its run's K-th score (its partner may have dropped
     out of the other top K, ``excluded_at_top_k``); a pair or unpaired box whose peak margin is within the band
     (a near-tie, see the module doc, ``excluded_near_ties``). Every other box above the threshold must be paired
     with a box above the threshold in the other run, centres within ``centre_tol_m``: then both counts agree.
     """
-    band = FP16_TOL_REL * value_range(fp32["det_scores"])
+    band = FP16_TOL_REL * value_scale(fp32["det_scores"], FP16_SCALE_FLOOR)
     pair_radius_m = 2.0 * cell_m
     runs = []
     for run, margins in ((fp32, margins32), (fp16, margins16)):
@@ -283,7 +305,7 @@ def pipeline_parity(
         and (centre.size == 0 or max_d <= centre_tol_m)
     )
     note = (
-        f"band = {FP16_TOL_REL:g} x fp32 score range = {band:.3g}; {int(pair_above.sum())} boxes above in both runs; "
+        f"band = {FP16_TOL_REL:g} x fp32 score scale = {band:.3g}; {int(pair_above.sum())} boxes above in both runs; "
         f"{int(pair_split.sum())} pairs split by the threshold, {int(la32.sum())} fp32 and {int(la16.sum())} fp16 "
         f"boxes above it without a partner within {pair_radius_m:g} m"
     )

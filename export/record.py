@@ -115,7 +115,7 @@ def tensor_specs(values) -> tuple[TensorSpec, ...]:
 
 def format_parity(p: ParityRecord) -> str:
     status = "ok" if p.passed else "FAILED"
-    return (
-        f"{p.graph} {p.precision} {p.output}: max |diff| {p.max_abs_diff:.3g} vs {p.tolerance_rel:g} x range "
-        f"{p.output_range:.3g} = {p.tolerance_rel * p.output_range:.3g}: {status}"
-    )
+    scale = p.output_range if p.output_scale is None else p.output_scale
+    what = f"range {p.output_range:.3g}" if scale == p.output_range else f"scale {scale:.3g} (range {p.output_range:.3g})"
+    return f"{p.graph} {p.precision} {p.output}: max |diff| {p.max_abs_diff:.3g} vs {p.tolerance_rel:g} x {what} = " \
+           f"{p.tolerance_rel * scale:.3g}: {status}"  # fmt: skip

@@ -15,6 +15,7 @@ import dataclasses
 from streamdet.core.image_layout import IMAGE_BEV
 from streamdet.core.lut_layout import LUT_SLOTS
 from streamdet.export.export_run import ExportRun
+from streamdet.export.options import ExportError
 from streamdet.export.record import export_manifest
 from streamdet.models.image_encoder import IMAGENET_MEAN, IMAGENET_STD
 from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector
@@ -45,6 +46,10 @@ def run_manifest(run: ExportRun, precisions: tuple[str, ...], int8_record: Int8R
 def staged_detector(run: ExportRun, precision: str, int8_record: Int8Record | None = None) -> StreamingDetector:
     """The detector of the staged graphs of ``precision`` (both lanes); ``int8_record`` (int8 only): the record of
     the int8 graphs so far (a manifest lists int8 graphs with their record)."""
+    failed = [f"{p.graph} {p.output}" for p in run.parity if p.precision == "fp32" and not p.passed]
+    if failed:  # the runtime refuses such graphs; say why here, in the exporter's words
+        raise ExportError(f"the fp32 graphs failed their parity check against PyTorch ({', '.join(failed)}): int8 "
+                          "calibration runs the pipeline through them, so no int8 graph can be made")  # fmt: skip
     precisions = ("fp32",) if precision == "fp32" else ("fp32", precision)
     manifest = run_manifest(run, precisions, int8_record)
     return StreamingDetector(run.tmp, dataclasses.replace(EXPORT_DETECTOR, precision=precision), manifest=manifest)

@@ -116,6 +116,23 @@ def make_staging_dir(out_dir: Path) -> Path:
     return tmp
 
 
+PARITY_FAILED_SUFFIX = ".parity-failed"
+
+
+def parity_failed_dir(out_dir: Path) -> Path:
+    """Where an export whose parity check failed goes when ``out_dir`` holds an export already (``commit_target``)."""
+    return out_dir.with_name(out_dir.name + PARITY_FAILED_SUFFIX)
+
+
+def commit_target(out_dir: Path, parity_passed: bool) -> Path:
+    """``out_dir``, unless the new export failed its parity check and ``out_dir`` holds an export: a working export
+    is never replaced by one the runtime refuses; the failed one goes beside it (``parity_failed_dir``), replacing
+    an earlier failed one, for inspection."""
+    if parity_passed or not out_dir.is_dir() or not any(out_dir.iterdir()):
+        return out_dir
+    return parity_failed_dir(out_dir)
+
+
 def commit_staging_dir(tmp: Path, out_dir: Path) -> None:
     """Replace out_dir (absent, empty, or an older export) by tmp."""
     out_dir = out_dir.absolute()

@@ -18,7 +18,7 @@ from streamdet.export import int8_steps
 from streamdet.export import onnx_export as ox
 from streamdet.export.export_run import ExportRun
 from streamdet.export.options import ExportOptions, resolve_lut_layout
-from streamdet.export.staging import commit_staging_dir
+from streamdet.export.staging import commit_staging_dir, commit_target
 from streamdet.models.presets import Preset
 
 Report = Callable[[str], None]
@@ -65,8 +65,15 @@ def export_steps(preset: Preset, opts: ExportOptions, size: tuple[int, int]) -> 
                 else "slice graph on every slice of the bundled sample")  # fmt: skip
         steps.append(Step(f"int8: parity against fp32 ({what})", int8_steps.parity))
     steps.append(Step("writing manifest.json", gs.write_manifest))
-    steps.append(Step("moving the export into place", lambda run: commit_staging_dir(run.tmp, run.out_dir)))
+    steps.append(Step("moving the export into place", _commit))
     return steps
+
+
+def _commit(run: ExportRun) -> None:
+    run.committed_dir = commit_target(run.out_dir, run.parity_passed)
+    if run.committed_dir != run.out_dir:
+        run.note(f"parity FAILED: {run.out_dir} keeps the export it held; this one goes to {run.committed_dir}")
+    commit_staging_dir(run.tmp, run.committed_dir)
 
 
 class Progress:

@@ -261,7 +261,9 @@ class LutEntry:
 
 @dataclass(frozen=True)
 class ParityRecord:
-    """One graph's ONNX output against its reference: max |a - b| <= tolerance_rel * range(reference)."""
+    """One graph's ONNX output against its reference: max |a - b| <= tolerance_rel * scale, the scale the
+    reference's range floored at a fraction of its magnitude (export/parity.py; ``output_scale``, absent in manifests
+    written before it: the range)."""
 
     graph: str
     precision: str  # the graph checked
@@ -272,6 +274,7 @@ class ParityRecord:
     tolerance_rel: float
     passed: bool
     note: str = ""
+    output_scale: float | None = None  # what tolerance_rel is relative to; None: output_range
 
     @classmethod
     def from_dict(cls, d: dict) -> "ParityRecord":
