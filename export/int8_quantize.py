@@ -70,6 +70,8 @@ from streamdet.export.int8_rewrites import normalisation_as_batchnorm, transpose
 from streamdet.export.onnx_export import heatmap_producers, is_decode_node, upstream_to_convs
 from streamdet.runtime_ort.recording import Feeds
 
+log = logging.getLogger(__name__)
+
 ACTIVATION_TYPE = QuantType.QUInt8  # the only activation type x86 onnxruntime runs as fused int8 convolutions
 WEIGHT_TYPE = QuantType.QInt8
 INPUT_NORM_NOTE = "input normalisation: quantized it costs 50x a float BatchNormalization on the NCHW image"
@@ -167,6 +169,17 @@ class QuantizedGraph:
     seconds: float
 
 
+def _pre_process(src: str | Path, pre: Path) -> None:
+    """``quant_pre_process`` (module doc); its symbolic shape inference is skipped where it fails: onnxruntime's
+    raises a TypeError on the slice graph at opsets 18-20 (``Shape`` with ``start`` / ``end``), and ONNX's own shape
+    inference, which still runs, gives the quantizer what it needs there."""
+    try:
+        quant_pre_process(str(src), str(pre))
+    except Exception as e:  # noqa: BLE001  # onnxruntime.tools' symbolic inference has no error type of its own
+        log.info("int8: symbolic shape inference failed on %s (%s: %s); pre-processing without it", src, type(e).__name__, e)
+        quant_pre_process(str(src), str(pre), skip_symbolic_shape=True)
+
+
 def quantize_graph(
     graph: str, src: str | Path, dst: str | Path, feeds: Sequence[Feeds], cfg: Int8Config = Int8Config()
 ) -> QuantizedGraph:
@@ -177,7 +190,7 @@ def quantize_graph(
     with tempfile.TemporaryDirectory(prefix="streamdet_int8_") as tmp:
         pre = Path(tmp) / "pre.onnx"
         with _quiet_quantizer():
-            quant_pre_process(str(src), str(pre))
+            _pre_process(src, pre)
             model = onnx.load(str(pre))
             rewritten = graph == "image_encoder" and normalisation_as_batchnorm(model)
             rewritten = transposed_convs_as_depth_to_space(model) > 0 or rewritten
