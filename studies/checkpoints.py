@@ -65,6 +65,11 @@ def export_checkpoint(
     fp16 = "fp16" in (precision, image_precision)
     opts = ExportOptions(preset=str(preset["name"]), checkpoint=str(checkpoint), fp16=fp16, out_dir=str(out_dir))
     try:
-        return run_export(opts).out_dir
+        result = run_export(opts)
     except (ExportError, ValueError) as e:
         raise StudyError(f"exporting {checkpoint}: {e}") from None
+    if not result.parity_passed:  # the runtime would refuse the graphs, naming a temporary folder gone by then
+        failed = [f"{p.graph} {p.precision} {p.output}" for p in result.manifest.parity if not p.passed]
+        raise StudyError(f"exporting {checkpoint}: the graphs failed their parity check ({', '.join(failed) or 'fp16 pipeline'}); "
+                         f"`streamdet-export --checkpoint {checkpoint} --out DIR` writes them with the record")  # fmt: skip
+    return result.out_dir

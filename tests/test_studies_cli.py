@@ -84,6 +84,25 @@ def test_checkpoint_is_exported_first(data_dir, tmp_path):
     assert "streamdet-study-" in json.loads((tmp_path / "d.json").read_text())["source"]  # the temporary export
 
 
+def test_a_checkpoint_whose_export_fails_parity_is_named(data_dir, tmp_path, monkeypatch):
+    """The study's own words, naming the checkpoint, not the runtime's refusal of a temporary folder gone by then."""
+    import torch
+
+    from streamdet.export import graph_steps
+    from streamdet.models.detector import build_detector
+    from streamdet.models.presets import get_preset
+    from streamdet.training.checkpoint import save_weights
+
+    torch.manual_seed(1)
+    ckpt = tmp_path / "fused.pt"
+    save_weights(ckpt, get_preset("tiny"), build_detector(get_preset("tiny")).eval())
+    monkeypatch.setattr(graph_steps, "TORCH_TOL_REL", -1.0)  # every fp32 check fails
+    res = _run(["drop-camera", "--checkpoint", str(ckpt), "--data", str(data_dir), "--split", "all", "--max-samples", "1"])
+    assert res.exit_code == 1 and "Traceback" not in res.output
+    assert f"exporting {ckpt}: the graphs failed their parity check (" in res.output
+    assert "streamdet-study-" not in res.output.split("Error:")[-1]
+
+
 def test_slices_without_baseline_says_so(export_dir, data_dir, tmp_path):
     res = _run(["slices", *_base(export_dir, data_dir, tmp_path, "s"), "--counts", "8", "--max-samples", "1"])
     assert res.exit_code == 0, res.output
