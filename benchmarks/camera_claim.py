@@ -49,14 +49,15 @@ class Row:
     lo: float
     hi: float
     need: float
+    interval_defined: bool = True  # False: the comparison resampled fewer than 2 scenes (evaluation/bootstrap.py)
 
     @property
     def excludes_zero(self) -> bool:
-        return self.lo > 0 or self.hi < 0
+        return self.interval_defined and (self.lo > 0 or self.hi < 0)
 
     @property
     def met(self) -> bool:
-        return self.diff >= self.need and self.lo > 0
+        return self.diff >= self.need and self.interval_defined and self.lo > 0
 
 
 @dataclass(frozen=True)
@@ -81,7 +82,8 @@ class Decision:
 def _row(doc: dict, key: str, label: str, need: float) -> Row:
     try:
         d = doc["subsets"]["all"][key]
-        return Row(label, 100 * d["A"], 100 * d["B"], 100 * d["B_minus_A"], 100 * d["ci_lo"], 100 * d["ci_hi"], need)
+        defined = bool(d.get("interval_defined", True))  # absent in comparisons written before the flag
+        return Row(label, 100 * d["A"], 100 * d["B"], 100 * d["B_minus_A"], 100 * d["ci_lo"], 100 * d["ci_hi"], need, defined)
     except (KeyError, TypeError) as e:
         raise ValueError(f"a comparison file lacks subsets.all.{key} ({e}): is it streamdet-eval --compare --json output?") from None
 

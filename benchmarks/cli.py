@@ -125,8 +125,10 @@ def _flops_only(preset: str, resolution: tuple[int, int] | None, json_path: Path
     "other image rows are the rest of 1600x900 / 1200x675 / 800x450. With --flops-only: the only image row. "
     f"Sizes: {RESOLUTION_RANGE_HELP}.",
 )
-@click.option("--slices", type=click.IntRange(1, MAX_SLICES), default=8, show_default=True,
-              help=f"Slices per sweep of the streaming section (1, 2 or a multiple of 4 up to {MAX_SLICES}).")
+@click.option("--slices", type=click.IntRange(1, MAX_SLICES), default=None,
+              help=f"Slices per sweep of the streaming section (1, 2 or a multiple of 4 up to {MAX_SLICES}) [default: "
+                   "the --export-dir export's slice count, as streamdet-run and the other tools; 8 for the export "
+                   "made here without --export-dir].")
 @click.option("--fp16/--no-fp16", default=True, show_default=True, help="Also time the fp16 graphs (and export them).")
 @click.option("--int8/--no-int8", default=True, show_default=True,
               help="Also time int8 graphs of the rows (static QDQ, as streamdet-export --int8 writes them).")
@@ -169,7 +171,7 @@ def main(
     flops_only: bool,
     preset: str | None,
     resolution: tuple[int, int] | None,
-    slices: int,
+    slices: int | None,
     fp16: bool,
     int8: bool,
     stream_precision: str,
@@ -187,7 +189,8 @@ def main(
     from streamdet.core.sectors import check_num_slices
 
     try:
-        check_num_slices(slices)  # in both modes: --slices 6 is the same mistake with --flops-only
+        if slices is not None:
+            check_num_slices(slices)  # in both modes: --slices 6 is the same mistake with --flops-only
     except ValueError as e:
         raise click.BadParameter(str(e), param_hint="--slices") from None
     if flops_only:
@@ -196,6 +199,7 @@ def main(
         return
     _check_outputs(json_path, plot_path, profile_dir, export_dir)
     if export_dir is not None:
+        from streamdet.benchmarks.streaming import export_unfit  # torch-free: the rows' modules load later
         from streamdet.runtime_ort.manifest import ManifestError, read_manifest
 
         try:
@@ -208,6 +212,11 @@ def main(
                     f"{export_dir} has no {precision} graphs (it has {', '.join(manifest.precisions)}); re-export with "
                     f"--{precision}", param_hint=flag,
                 )  # fmt: skip
+        problem = export_unfit(manifest)  # a LiDAR-only export, other cameras: also before any timing
+        if problem is not None:
+            raise click.BadParameter(f"{export_dir} {problem}", param_hint="--export-dir")
+        if slices is None:
+            slices = manifest.num_slices  # the export's, as streamdet-run, -eval, -replay, -bag and -study take it
     elif resolution is not None and (resolution[0] % 2 or resolution[1] % 2):
         raise click.BadParameter(
             f"{resolution[0]}x{resolution[1]}: the export needs even sizes (ResNet stem stride 2)", param_hint="--resolution"

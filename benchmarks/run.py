@@ -20,7 +20,13 @@ from streamdet.core.constants import DEFAULT_PRESET
 from streamdet.benchmarks.flops_report import PAPER_RESOLUTIONS, slice_row_pillars
 from streamdet.benchmarks.modules import build_rows
 from streamdet.benchmarks.probe import OtherCpuUse, ProbeConfig, ProbeResult, machine_info, measure_peak
-from streamdet.benchmarks.streaming import StreamingConfig, StreamingResult, measure_streaming, profile_streaming
+from streamdet.benchmarks.streaming import (
+    StreamingConfig,
+    StreamingResult,
+    check_streaming_export,
+    measure_streaming,
+    profile_streaming,
+)
 from streamdet.benchmarks.table import ROUNDS, RowResult, TableConfig, measure_rows
 from streamdet.benchmarks.timing import TimingConfig
 from streamdet.models.presets import Preset, get_preset
@@ -32,11 +38,14 @@ class BenchmarkError(Exception):
     """A problem with the benchmark's inputs (the export, the export directory), stated in one line."""
 
 
+DEFAULT_SLICES = 8  # slices per sweep of the export the benchmark makes itself (no export_dir)
+
+
 @dataclass(frozen=True)
 class BenchConfig:
     preset: str = DEFAULT_PRESET  # the shipped model's preset
     resolution: tuple[int, int] | None = None  # (W, H) of the given image row and the streaming export; None: preset's
-    slices: int = 8  # slices per sweep of the streaming section
+    slices: int | None = None  # slices per sweep of the streaming section; None: export_dir's, or DEFAULT_SLICES
     fp16: bool = True  # also export and time fp16 graphs
     int8: bool = True  # also quantize and time int8 graphs of the rows
     stream_precision: str = "fp32"  # graphs of the streaming section (the export made here includes them)
@@ -116,7 +125,22 @@ def _slice_pillars(preset: Preset) -> dict:
     return {"uncropped": full.num_pillars, "cropped": crop.num_pillars, "cropped_quadrant": crop.quadrant}
 
 
+def resolve_stream_export(cfg: BenchConfig) -> BenchConfig:
+    """``cfg`` with its slice count settled, after checking that the streaming section can time ``export_dir``
+    (``streaming.check_streaming_export``: camera + LiDAR, the streamed precisions' graphs, the bundled sample's
+    cameras). ``slices`` None becomes the export's count, or DEFAULT_SLICES for the export the benchmark makes.
+    Raises BenchmarkError; reads files only, so it runs before any timing."""
+    if cfg.export_dir is None:
+        return cfg if cfg.slices is not None else dataclasses.replace(cfg, slices=DEFAULT_SLICES)
+    try:
+        manifest = check_streaming_export(cfg.export_dir, cfg.streaming())
+    except ValueError as e:
+        raise BenchmarkError(f"streaming section: {e}") from None
+    return cfg if cfg.slices is not None else dataclasses.replace(cfg, slices=manifest.num_slices)
+
+
 def run_benchmark(cfg: BenchConfig, progress: Progress = lambda msg: None) -> BenchResult:
+    cfg = resolve_stream_export(cfg)  # a wrong export fails now, not after minutes of row timing
     preset = get_preset(cfg.preset)
     threads = cfg.threads or os.cpu_count() or 1
     timing = cfg.timing()

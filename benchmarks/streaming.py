@@ -41,6 +41,7 @@ from streamdet.core.slicing import split_sweep
 from streamdet.data.sample import load_bundled_sample
 from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector, lane_precision_label
 from streamdet.runtime_ort.lanes import LaneConfig
+from streamdet.runtime_ort.manifest import Manifest, ManifestError, read_manifest
 from streamdet.runtime_ort.postprocess import PostprocessConfig
 
 Progress = Callable[[str], None]
@@ -318,13 +319,44 @@ def profile_streaming(
     return summaries
 
 
+def export_unfit(manifest: Manifest, cfg: StreamingConfig | None = None) -> str | None:
+    """Why the streaming section cannot time an export with this manifest, as the end of a sentence that starts with
+    the export's name; None if it can. Read from the manifest and the bundled sample's calibration alone (no graph
+    is loaded), so that a caller can refuse the export before any timing. With ``cfg``, its graphs' precisions too.
+    """
+    if not manifest.use_image:
+        # the section measures the two lanes against each other; a LiDAR-only export has one
+        return ("is a LiDAR-only export: the streaming section times the slice lane with the image lane idle and "
+                "busy, so it needs a camera + LiDAR export")  # fmt: skip
+    if cfg is not None:
+        for precision in dict.fromkeys((cfg.precision, cfg.image_precision or cfg.precision)):
+            if precision not in manifest.precisions:
+                return f"has no {precision} graphs (it has {', '.join(manifest.precisions)}); re-export with --{precision}"
+    cameras = tuple(load_bundled_sample().rig.names)  # the section feeds the bundled sample's images
+    if tuple(manifest.image.camera_names) != cameras:
+        return (f"takes the cameras {list(manifest.image.camera_names)}, but the streaming section feeds the bundled "
+                f"sample's {list(cameras)}")  # fmt: skip
+    return None
+
+
+def check_streaming_export(export_dir: str | Path, cfg: StreamingConfig | None = None) -> Manifest:
+    """The export's manifest if the streaming section can time it (``export_unfit``), else a one-line ValueError
+    naming the export; an unreadable manifest is a ValueError too."""
+    try:
+        manifest = read_manifest(export_dir)
+    except (ManifestError, OSError) as e:
+        raise ValueError(f"{export_dir} is not a usable export: {e}") from None
+    problem = export_unfit(manifest, cfg)
+    if problem is not None:
+        raise ValueError(f"{export_dir} {problem}")
+    return manifest
+
+
 def measure_streaming(
     export_dir: str | Path, cfg: StreamingConfig = StreamingConfig(), progress: Progress = lambda msg: None
 ) -> StreamingResult:
+    check_streaming_export(export_dir, cfg)  # before the sessions are made
     det = _detector(Path(export_dir), cfg)
-    if not det.uses_images:
-        # the section measures the two lanes against each other; a LiDAR-only export has one
-        raise ValueError(f"{export_dir} is a LiDAR-only export: the streaming section needs a camera + LiDAR export")
     n = det.num_slices
     img = det.manifest.image
     images, slices = _bundled_inputs(det)

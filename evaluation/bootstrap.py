@@ -171,9 +171,24 @@ def summary(metrics: DetectionMetrics) -> dict[str, float]:
     return {"mAP": metrics.mean_ap, "NDS": metrics.nd_score, **{f"AP/{c}": ap for c, ap in metrics.mean_dist_aps.items()}}
 
 
+# A resampling interval needs at least this many clusters: with one, every draw is the whole data again, so the
+# percentile "interval" collapses onto the point estimate (only the runs of a group of seeds still vary) and says
+# nothing about the scene-to-scene spread. Below it no difference is called significant.
+MIN_CLUSTERS = 2
+# Below this many clusters the interval is defined but unreliable, and the comparison says so in a note: n clusters
+# give only C(2n-1, n) distinct draws (3, 10, 35 for n = 2, 3, 4; 126 for 5), so the 2.5 % and 97.5 % ends rest on
+# a few of them, and a percentile bootstrap over few clusters is too narrow (it never sees a scene unlike the ones
+# it has). A chosen threshold, not a derived one: more clusters are better still.
+FEW_CLUSTERS = 5
+
+
 @dataclass(frozen=True)
 class Difference:
-    """B minus A for one figure: on the data as it is, and the bootstrap's percentile interval."""
+    """B minus A for one figure: on the data as it is, and the bootstrap's percentile interval.
+
+    ``interval_defined`` is False when the draws resampled fewer than ``MIN_CLUSTERS`` clusters: ``lo`` / ``hi`` are
+    then still the draws' percentiles (kept so that the fields stay numbers) but do not bound anything, and
+    ``significant`` is False whatever they are."""
 
     a: float
     b: float
@@ -181,10 +196,17 @@ class Difference:
     lo: float  # lower end of the interval of the difference
     hi: float
     p_not_positive: float  # share of bootstrap draws in which B - A <= 0
+    interval_defined: bool = True
 
-    def to_dict(self) -> dict[str, float]:
+    @property
+    def significant(self) -> bool:
+        """The interval is defined and excludes 0 (the '*' of the printed table)."""
+        return self.interval_defined and (self.lo > 0 or self.hi < 0)
+
+    def to_dict(self) -> dict[str, float | bool]:
         return {"A": self.a, "B": self.b, "B_minus_A": self.diff, "ci_lo": self.lo, "ci_hi": self.hi,
-                "p_not_positive": self.p_not_positive}  # fmt: skip
+                "p_not_positive": self.p_not_positive, "interval_defined": self.interval_defined,
+                "significant": self.significant}  # fmt: skip
 
 
 def paired_bootstrap(
@@ -205,6 +227,9 @@ def paired_bootstrap(
     Each side may be a sequence of runs (training seeds of one recipe, scored on the same samples): its figure is
     then the mean over its runs, and every draw also resamples each side's runs with replacement (a two-level
     bootstrap: scenes, shared by both sides, and seeds), so the interval holds the seed-to-seed spread as well.
+
+    With fewer than ``MIN_CLUSTERS`` distinct clusters there is nothing to resample: the draws are still made (the
+    figures keep their shape) but every ``Difference`` has ``interval_defined=False`` and is never ``significant``.
     """
     runs_a = [tables_a] if isinstance(tables_a, Mapping) else list(tables_a)
     runs_b = [tables_b] if isinstance(tables_b, Mapping) else list(tables_b)
@@ -219,6 +244,7 @@ def paired_bootstrap(
         raise ValueError(f"need num_draws >= 1 and 0 < confidence < 1, got {num_draws}, {confidence}")
     _, cluster = np.unique(cluster_of_sample, return_inverse=True)
     n_clusters = int(cluster.max()) + 1
+    defined = n_clusters >= MIN_CLUSTERS
     ones = np.ones(len(cluster), dtype=np.int64)
 
     def mean_summary(runs, picks, weights) -> dict[str, float]:
@@ -248,5 +274,6 @@ def paired_bootstrap(
     for k, values in draws.items():
         v = np.asarray(values)
         out[k] = Difference(a=full_a[k], b=full_b[k], diff=full_b[k] - full_a[k], lo=float(np.percentile(v, tail)),
-                            hi=float(np.percentile(v, 100 - tail)), p_not_positive=float(np.mean(v <= 0)))  # fmt: skip
+                            hi=float(np.percentile(v, 100 - tail)), p_not_positive=float(np.mean(v <= 0)),
+                            interval_defined=defined)  # fmt: skip
     return out

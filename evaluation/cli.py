@@ -26,6 +26,7 @@ from streamdet.cli_utils import (
 )
 from streamdet.core.constants import DEFAULT_EXPORT_DIR
 from streamdet.core.errors import first_line
+from streamdet.evaluation.bootstrap import FEW_CLUSTERS
 from streamdet.evaluation.config import TP_METRICS, DetectionConfig
 from streamdet.evaluation.detection_eval import evaluate
 from streamdet.evaluation.eval_boxes import EvalBoxes
@@ -283,7 +284,9 @@ def _compare(run_a: str, run_b: str, gt_path: Path | None, classes: tuple[str, .
     help="Compare two runs on the same ground truth: B - A for mAP, NDS and per-class AP with a paired bootstrap "
     "95 % interval over scenes, also per slice, for boxes cut by a slice border and for boxes with at most 5 points. "
     "A run is a folder written by --save-results, or a results file (then give --gt). Either side may be several "
-    "runs separated by commas (seeds of one recipe): their mean, the bootstrap resampling the runs too.",
+    "runs separated by commas (seeds of one recipe): their mean, the bootstrap resampling the runs too. With one "
+    f"scene the interval is undefined and nothing is marked significant; with fewer than {FEW_CLUSTERS} a note says "
+    "it is unreliable.",
 )  # fmt: skip
 @click.option("--bootstrap", "draws", type=click.IntRange(1, MAX_DRAWS), default=1000, show_default=True,
               help=f"Compare mode: bootstrap draws per subset, 1..{MAX_DRAWS}.")  # fmt: skip

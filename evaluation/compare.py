@@ -12,6 +12,10 @@ slice k, predictions too), boxes cut by a slice border (centre or a BEV corner i
 and ground truth with at most ``few_points`` LiDAR + radar points (predictions are not located by point count:
 unmatched ones count everywhere, see ``bootstrap``). Without it, samples are resampled on their own (a warning
 says the interval is then too narrow) and only the few-points subset is available.
+
+With a single cluster (one scene, or one sample without samples.json) the interval is undefined: it is printed as
+'undefined', nothing is starred, and the JSON says ``"interval_defined": false`` (top level and per figure). With
+fewer than ``bootstrap.FEW_CLUSTERS`` clusters a note says the interval is unreliable (``"few_clusters": true``).
 """
 
 from __future__ import annotations
@@ -26,7 +30,7 @@ import numpy as np
 from streamdet.core.boxes import BOX_DIM
 from streamdet.core.sectors import check_num_slices, slice_index_of
 from streamdet.core.slicing import boxes_in_sector
-from streamdet.evaluation.bootstrap import Difference, GtSubset, match_tables, paired_bootstrap
+from streamdet.evaluation.bootstrap import FEW_CLUSTERS, MIN_CLUSTERS, Difference, GtSubset, match_tables, paired_bootstrap
 from streamdet.evaluation.config import DetectionConfig
 from streamdet.evaluation.detection_eval import filter_eval_boxes
 from streamdet.evaluation.eval_boxes import EvalBoxes
@@ -74,9 +78,21 @@ class Comparison:
     num_draws: int
     notes: list[str] = field(default_factory=list)
 
+    @property
+    def interval_defined(self) -> bool:
+        """At least ``MIN_CLUSTERS`` clusters: the bootstrap had something to resample."""
+        return self.num_clusters >= MIN_CLUSTERS
+
+    @property
+    def few_clusters(self) -> bool:
+        """Fewer than ``FEW_CLUSTERS`` clusters: any interval is unreliable (too narrow), see ``bootstrap``."""
+        return self.num_clusters < FEW_CLUSTERS
+
     def to_dict(self) -> dict:
+        # interval_defined / few_clusters / min_reliable_clusters were added later: older readers ignore them
         return {"num_samples": self.num_samples, "num_clusters": self.num_clusters, "clustered_by": self.clustered_by,
-                "num_draws": self.num_draws, "notes": self.notes,
+                "num_draws": self.num_draws, "interval_defined": self.interval_defined,
+                "few_clusters": self.few_clusters, "min_reliable_clusters": FEW_CLUSTERS, "notes": self.notes,
                 "subsets": {s: {k: d.to_dict() for k, d in figs.items()} for s, figs in self.subsets.items()}}  # fmt: skip
 
 
@@ -282,6 +298,7 @@ def compare_runs(
         clustered_by = "scene"
     if len(runs_a) > 1 or len(runs_b) > 1:
         notes.append(f"A is the mean of {len(runs_a)} run(s), B of {len(runs_b)}; each draw resamples the runs too")
+    notes.extend(cluster_notes(int(clusters.max()) + 1, clustered_by))
 
     # per subset: (ground truth kept, predictions kept per run of A, per run of B); None = everything
     subset_defs: dict[str, tuple[np.ndarray, list, list] | None] = {"all": None}
@@ -321,17 +338,40 @@ def compare_runs(
                       clustered_by=clustered_by, num_draws=num_draws, notes=notes)  # fmt: skip
 
 
+def _count(n: int, what: str) -> str:
+    return f"{n} {what}" if n == 1 else f"{n} {what}s"
+
+
+def cluster_notes(num_clusters: int, clustered_by: str) -> list[str]:
+    """What the number of clusters does to the interval: undefined below MIN_CLUSTERS, unreliable below FEW_CLUSTERS."""
+    if num_clusters < MIN_CLUSTERS:
+        return [f"only {_count(num_clusters, clustered_by)}: the bootstrap interval is undefined (every draw is the "
+                f"whole data again) and no difference is marked significant; compare on at least {FEW_CLUSTERS} "
+                f"{clustered_by}s"]  # fmt: skip
+    if num_clusters < FEW_CLUSTERS:
+        return [f"only {num_clusters} {clustered_by}s: a bootstrap over fewer than {FEW_CLUSTERS} clusters gives "
+                "intervals that are too narrow; read '*' with caution"]  # fmt: skip
+    return []
+
+
 def format_comparison(c: Comparison, name_a: str, name_b: str) -> str:
-    """A table: per subset and figure, A, B, B - A and its interval; '*' where the interval excludes 0."""
+    """A table: per subset and figure, A, B, B - A and its interval; '*' where the interval excludes 0.
+
+    With fewer than ``MIN_CLUSTERS`` clusters the interval column reads 'undefined' and nothing is starred."""
+    interval = "95 % interval" if c.interval_defined else f"no interval (it needs {MIN_CLUSTERS} {c.clustered_by}s or more)"
     lines = [f"A = {name_a}", f"B = {name_b}",
-             f"paired bootstrap over {c.num_clusters} {c.clustered_by}s ({c.num_samples} samples), {c.num_draws} draws, 95 % interval",
+             f"paired bootstrap over {_count(c.num_clusters, c.clustered_by)} ({c.num_samples} samples), "
+             f"{c.num_draws} draws, {interval}",
              f"{'subset':<22}{'figure':<26}{'A':>8}{'B':>8}{'B-A':>8}{'interval':>20}"]  # fmt: skip
     lines.append("-" * len(lines[-1]))
     for subset, figs in c.subsets.items():
         for fig, d in figs.items():
             if subset != "all" and fig != "mAP":
                 continue  # subsets: mAP in the table, everything in the JSON
-            star = " *" if d.lo > 0 or d.hi < 0 else ""
+            if not d.interval_defined:
+                lines.append(f"{subset:<22}{fig:<26}{d.a:>8.4f}{d.b:>8.4f}{d.diff:>+8.4f}   {'undefined':>18}")
+                continue
+            star = " *" if d.significant else ""
             lines.append(f"{subset:<22}{fig:<26}{d.a:>8.4f}{d.b:>8.4f}{d.diff:>+8.4f}   [{d.lo:+.4f}, {d.hi:+.4f}]{star}")
     lines.extend(f"note: {n}" for n in c.notes)
     return "\n".join(lines)

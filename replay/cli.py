@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 import click
+from click.core import ParameterSource
 
 from streamdet.cli_utils import (
     MAX_INTRA_OP_THREADS,
@@ -36,6 +37,15 @@ MAX_DELIVERY_MS = MAX_DELIVERY_S * 1e3  # the library's bounds (replay/schedule.
 MAX_SECONDS = 86_400.0  # a day of drive per scene
 MAX_QUEUE = 1024  # LaneConfig's bound
 OUT_FILES = ("replay.json", "report.md")  # the files --out receives
+# The options of the image lane and of the cameras that feed it, by parameter name. A LiDAR-only export has neither
+# (no images are even loaded), so one of them typed on the command line would be ignored, yet echoed in the report as
+# if in effect: they are refused together, before any work. Their defaults are not "given" and pass. (The runtime
+# refuses --image-precision and --fallback-export on its own, DetectorConfig, but only once the replay has started.)
+IMAGE_LANE_OPTIONS = (
+    "image_precision", "camera_hz", "camera_trigger", "camera_delivery_ms", "image_lane_threads", "schedule",
+    "image_lane_nice", "image_lane_yield", "camera_terms", "fallback_export_dir", "fallback_after_ms",
+)  # fmt: skip
+_GIVEN = (ParameterSource.COMMANDLINE, ParameterSource.ENVIRONMENT)  # typed by the user, not a default
 
 
 
@@ -54,6 +64,30 @@ def _check_outputs(json_path: Path | None, plot_path: Path | None, out_dir: Path
     check_folder_creatable(out_dir, "--out")
     if plot_path is not None:
         check_plot_format(plot_path)
+
+
+def image_lane_options_given(ctx: click.Context) -> list[str]:
+    """The image-lane options (IMAGE_LANE_OPTIONS) given on the command line, as --help spells them."""
+    return ["/".join([*p.opts, *p.secondary_opts]) for p in ctx.command.params
+            if p.name in IMAGE_LANE_OPTIONS and ctx.get_parameter_source(p.name) in _GIVEN]  # fmt: skip
+
+
+def _refuse_image_lane_options(ctx: click.Context, export_dir: Path) -> None:
+    """With a LiDAR-only export: UsageError naming every image-lane option given (a default is not given)."""
+    given = image_lane_options_given(ctx)
+    if not given:
+        return
+    from streamdet.runtime_ort.manifest import ManifestError, read_manifest
+
+    try:
+        manifest = read_manifest(export_dir, verify_files=False)  # the modality only; the detector verifies the files
+    except ManifestError:
+        return  # not an export at all: the replay's own opening of it says what is wrong, as without these options
+    if not manifest.use_image:
+        apply, them = ("apply", "them") if len(given) > 1 else ("applies", "it")
+        raise click.UsageError(f"{export_dir} is a LiDAR-only export (manifest preset use_image=false) with no image "
+                               f"lane and no cameras: {', '.join(given)} only {apply} to an export with cameras; drop "
+                               f"{them}")  # fmt: skip
 
 
 def _write(path: Path, option: str, write) -> None:
@@ -155,7 +189,10 @@ def main(
 ) -> None:
     """Play scenes at sensor rates (LiDAR slices released when scanned, cameras at their rate) through the runtime's
     StreamingRunner in each mode, and score every detection against the world at the moment it is emitted
-    (streaming mAP) beside the same detections at their scan time (offline mAP)."""
+    (streaming mAP) beside the same detections at their scan time (offline mAP).
+
+    A LiDAR-only export has no image lane and no cameras: the options that steer them (--image-precision, the
+    --camera-* options, --image-lane-*, --schedule, --camera-terms, --fallback-*) are refused with it."""
     from streamdet.replay.report import cpu_info, details_report, format_report, json_report
     from streamdet.replay.run import ReplayConfig, run_replay
     from streamdet.runtime_ort.lanes import LaneConfig
@@ -166,6 +203,7 @@ def main(
         raise click.ClickException(f"{export_dir} holds no manifest.json: run `streamdet-export --out {export_dir}` first")
     if not (data / table_version).is_dir():
         raise click.ClickException(f"{data / table_version} does not exist: --data must be a nuScenes-format dataset root")
+    _refuse_image_lane_options(click.get_current_context(), export_dir)
     defaults = LaneConfig()
     try:
         lanes = LaneConfig(max_in_flight=slice_workers or defaults.max_in_flight, queue_size=queue_size or defaults.queue_size,

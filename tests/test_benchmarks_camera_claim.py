@@ -37,6 +37,18 @@ def test_reproduced_needs_every_bar_with_an_interval_excluding_zero():
     assert decide(short, STRONG32, [("s0", *_gate(6.0, 3.0))], [0.7]).verdict == "undecided"
 
 
+def test_a_comparison_over_one_scene_reproduces_nothing():
+    """One scene: every bootstrap draw is the data again and the interval collapses onto the difference
+    (``interval_defined`` false, evaluation/bootstrap.py): no bar is met however large the difference."""
+    one_scene = json.loads(json.dumps(STRONG8))
+    for d in one_scene["subsets"]["all"].values():
+        d["ci_lo"] = d["ci_hi"] = d["B_minus_A"]
+        d["interval_defined"] = False
+    d = decide(one_scene, STRONG32, [("fused_s0", *_gate(6.0, 3.0))], [0.7])
+    eight = [r for r in d.rows if "8 slices" in r.label]
+    assert d.verdict != "reproduced" and len(eight) == 2 and not any(r.met or r.excludes_zero for r in eight)
+
+
 def test_a_fused_model_that_ignores_its_cameras_voids_the_comparison():
     d = decide(STRONG8, STRONG32, [("s0", *_gate(6.0, 3.0)), ("s1", *_gate(1.0, 3.0))], [0.7])
     assert d.verdict == "void" and "s1" in d.reason
