@@ -30,6 +30,7 @@ from streamdet.data.synth_writer import (
     SynthConfig,
     generate_dataset,
     remove_dataset_entries,
+    resolution_problem,
     survey_root,
     version_problem,
 )
@@ -62,6 +63,16 @@ def _version(value: str) -> str:
     if problem:
         raise click.BadParameter(problem, param_hint="--version")
     return value
+
+
+def _resolution(ctx: click.Context, param: click.Parameter, value: str) -> tuple[int, int]:
+    """WIDTHxHEIGHT in range, and of the cameras' aspect (``resolution_problem``): refused before any work, as
+    streamdet-train, streamdet-export and the runtime would refuse the dataset afterwards."""
+    size = resolution_callback()(ctx, param, value)
+    problem = resolution_problem(size)
+    if problem:
+        raise click.BadParameter(problem, ctx=ctx, param=param)
+    return size
 
 
 def _listing(entries, limit: int = 8) -> str:
@@ -120,8 +131,9 @@ def _occupied(out_dir: Path, version: str, survey: RootSurvey) -> str:
 @click.option("--scenes", default=2, show_default=True, type=click.IntRange(1, MAX_SCENES),
               help=f"Number of scenes (1..{MAX_SCENES}).")
 @click.option("--seed", default=0, show_default=True, type=click.IntRange(min=0), help="Random seed; the same seed writes the same dataset.")
-@click.option("--resolution", default="800x450", show_default=True, callback=resolution_callback(),
-              help=f"Camera image size WIDTHxHEIGHT, {RESOLUTION_RANGE_HELP} (intrinsics of the real rig scaled to it).")
+@click.option("--resolution", default="800x450", show_default=True, callback=_resolution,
+              help=f"Camera image size WIDTHxHEIGHT, {RESOLUTION_RANGE_HELP}, of the real rig's aspect (16:9, as the "
+                   "other tools require; intrinsics of the real rig scaled to it).")
 @click.option("--samples-per-scene", default=10, show_default=True, type=click.IntRange(1, MAX_SAMPLES_PER_SCENE),
               help=f"Key frames per scene, 0.5 s apart (2 Hz, as nuScenes); 1..{MAX_SAMPLES_PER_SCENE}.")
 @click.option("--sweeps-per-sample", default=1, show_default=True, type=click.IntRange(1, 10),

@@ -11,23 +11,28 @@ Beside each image ``<file>.jpg`` a ``<file>.jpg.mask.npz`` (numpy ``savez_compre
 the per-pixel object masks the renderer knows, at the image's resolution:
 
     class_id      (H, W) uint8   index into CLASS_NAMES of the annotated object seen there, 255 where none
-                                 (ground, sky, buildings and the unannotated look-alikes)
+                                 (ground, sky, buildings, the unannotated look-alikes, and objects this key frame
+                                 does not annotate: those beyond ``annotation_range_m``)
     instance      (H, W) uint16  1 + the object's number in its scene, 0 where none; one object keeps its number
                                  in every camera and key frame of the scene
     ids           (M,) uint16    the instance numbers present in this image
-    tokens        (M,) str       their nuScenes instance tokens (the ``instance`` table), in the order of ``ids``
+    tokens        (M,) str       their nuScenes instance tokens (the ``instance`` table; each has a
+                                 ``sample_annotation`` in this key frame), in the order of ``ids``
 
 ``DIR/world.json`` names the world version (``synth_world.WORLD_VERSION``) and, per scene, its start time, roads
 and look-alike distractors (read by ``streamdet-synth stats``).
 
 The rig is the real one of the bundled nuScenes sample: LiDAR and camera mountings (calibrated_sensor) and
-intrinsics, scaled to the chosen resolution. Cameras expose at the key frame's timestamp, so every sample_data
-of a key frame shares one ego pose. Every scene, sample and sweep draws its randomness from its own
-``numpy`` generator seeded by (seed, scene, ...), so a dataset is a pure function of its config.
+intrinsics, scaled to the chosen resolution, which must keep the cameras' aspect (``resolution_problem``: the rule
+``calibration.lut.check_rig_fits`` that streamdet-train, streamdet-export and the runtime apply). Cameras expose at
+the key frame's timestamp, so every sample_data of a key frame shares one ego pose. Every scene, sample and sweep
+draws its randomness from its own ``numpy`` generator seeded by (seed, scene, ...), so a dataset is a pure function
+of its config.
 """
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import math
@@ -41,8 +46,12 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from streamdet.calibration.camera import make_transform, matrix_to_quaternion, quaternion_to_matrix
+from streamdet.calibration.camera import (
+    CalibrationError, Rig, make_transform, matrix_to_quaternion, quaternion_to_matrix,
+)  # fmt: skip
+from streamdet.calibration.lut import ASPECT_TOLERANCE, check_rig_fits
 from streamdet.core.classes import CLASS_NAMES
+from streamdet.core.constants import MAX_RESOLUTION_PX, MIN_RESOLUTION_PX
 from streamdet.core.json_input import read_json
 from streamdet.data.sample import POINT_TIME_SUFFIX, bundled_sample_dir
 from streamdet.data.synth_lidar import LidarConfig, SimSweep, simulate_sweep
@@ -110,6 +119,57 @@ def version_problem(version: object) -> str | None:
         return (f"{version!r} is a name the dataset's own layout uses ({', '.join(RESERVED_NAMES)}): the tables "
                 "would be mixed into it; choose another")
     return None
+
+
+@functools.lru_cache(maxsize=1)
+def _bundled_rig() -> Rig:
+    """The camera rig of the bundled nuScenes sample, at its own image size: the one every dataset is written with."""
+    return Rig.from_calibration_json(bundled_sample_dir() / "calibration.json")
+
+
+def _fits(rig: Rig, width: int, height: int) -> bool:
+    try:
+        check_rig_fits(rig, rig.names, width, height)
+    except CalibrationError:
+        return False
+    return True
+
+
+def fitting_resolutions(width: int, height: int, rig: Rig | None = None) -> list[tuple[int, int]]:
+    """The image sizes nearest ``width`` x ``height`` that ``rig`` (default: the bundled one) fits, each side
+    MIN_RESOLUTION_PX..MAX_RESOLUTION_PX: the one of the nearest width, then the one of the nearest height (one
+    entry where they are the same size; ties go to the size nearer the camera's aspect). Whether a size fits is
+    ``check_rig_fits``'s decision, not a rule of this module's."""
+    rig = _bundled_rig() if rig is None else rig
+    cam = rig.cameras[0]
+    aspect = cam.width / cam.height
+    lo, hi = MIN_RESOLUTION_PX, MAX_RESOLUTION_PX
+    sizes = {(round(h * aspect), h) for h in range(lo, hi + 1)} | {(w, round(w / aspect)) for w in range(lo, hi + 1)}
+    sizes = [(w, h) for w, h in sorted(sizes) if lo <= w <= hi and lo <= h <= hi and _fits(rig, w, h)]
+    if not sizes:
+        return []
+    by_width = min(sizes, key=lambda s: (abs(s[0] - width), abs(s[1] - s[0] / aspect)))
+    by_height = min(sizes, key=lambda s: (abs(s[1] - height), abs(s[0] - s[1] * aspect)))
+    return [by_width] if by_width == by_height else [by_width, by_height]
+
+
+def resolution_problem(resolution: tuple[int, int]) -> str | None:
+    """Why images of ``resolution`` (width, height) do not fit the rig a dataset is written with, or None.
+
+    The rule is ``calibration.lut.check_rig_fits``, the one streamdet-train, streamdet-export and the runtime
+    (streamdet-eval, -replay, -study, -run) apply: the images must have the aspect of the rig's cameras, since a
+    camera's intrinsics scaled to another aspect describe a distorted image. A dataset at such a size could be
+    written, but no tool could use it; the message names the nearest sizes that fit."""
+    width, height = resolution
+    rig = _bundled_rig()
+    if _fits(rig, width, height):
+        return None
+    cams = ", ".join(f"{w}x{h}, aspect {w / h:.4f}" for w, h in sorted({(c.width, c.height) for c in rig.cameras}))
+    near = [f"{w}x{h}" for w, h in fitting_resolutions(width, height, rig)]
+    return (f"{width}x{height} (aspect {width / height:.4f}) does not fit the cameras of the rig a dataset is written "
+            f"with ({cams}): streamdet-train, streamdet-export and the runtime refuse images of another aspect than "
+            f"their cameras' (within {ASPECT_TOLERANCE:.1%}: calibration.lut.check_rig_fits); the nearest "
+            f"{'size that fits' if len(near) == 1 else 'sizes that fit'}: {' or '.join(near) or 'none'}")
 
 
 # world.json of 10,000 scenes is tens of MB; a larger file is no sidecar of ours and is not read to find out.
@@ -194,8 +254,13 @@ class SynthConfig:
         if not (isinstance(self.num_scenes, int) and self.num_scenes >= 1):
             raise ValueError(f"SynthConfig.num_scenes must be an integer >= 1, got {self.num_scenes!r}")
         w, h = self.resolution
-        if not (isinstance(w, int) and isinstance(h, int) and 16 <= w <= 4096 and 16 <= h <= 4096):
-            raise ValueError(f"SynthConfig.resolution must be (width, height) with 16..4096 pixels each, got {self.resolution!r}")
+        lo, hi = MIN_RESOLUTION_PX, MAX_RESOLUTION_PX
+        if not (isinstance(w, int) and isinstance(h, int) and lo <= w <= hi and lo <= h <= hi):
+            raise ValueError(f"SynthConfig.resolution must be (width, height) with {lo}..{hi} pixels each, "
+                             f"got {self.resolution!r}")
+        problem = resolution_problem((w, h))
+        if problem:
+            raise ValueError(f"SynthConfig.resolution {problem}")
         if not (isinstance(self.sweeps_per_sample, int) and 1 <= self.sweeps_per_sample <= 20):
             raise ValueError(f"SynthConfig.sweeps_per_sample must be an integer in 1..20, got {self.sweeps_per_sample!r}")
         if self.world.sample_interval_s / self.sweeps_per_sample < self.world.sweep_duration_s - 1e-9:
@@ -535,7 +600,7 @@ class _Tables:
         if not ok:
             raise RuntimeError(f"JPEG encoding failed for {filename}")
         path.write_bytes(buf.tobytes())
-        self.write_mask(path, scene, frame.renders[channel].object_id)
+        self.write_mask(path, scene, frame.renders[channel].object_id, frame.annotated)
         prev = next((r for r in reversed(self.rows["sample_data"]) if r["filename"].startswith(f"samples/{channel}/{scene.name}__")), None)
         row = {
             "token": self.tok("sample_data", scene.name, channel, ts),
@@ -555,10 +620,17 @@ class _Tables:
             prev["next"] = row["token"]
         self.rows["sample_data"].append(row)
 
-    def write_mask(self, image_path: Path, scene: Scene, object_id: np.ndarray) -> Path:
-        """``<image>.mask.npz`` beside the image: class and instance of the annotated object at every pixel."""
+    def write_mask(self, image_path: Path, scene: Scene, object_id: np.ndarray, frame_annotated: np.ndarray) -> Path:
+        """``<image>.mask.npz`` beside the image: class and instance of the annotated object at every pixel.
+
+        Annotated means annotated in this key frame (``frame_annotated``, the indices ``annotations`` writes boxes
+        for): an object of an annotated kind beyond ``annotation_range_m`` has no box here and is none (255), as a
+        look-alike is; so every token is in the scene's ``instance`` table and every masked object has a box in this
+        sample."""
         kinds = scene.objects.kind
-        annotated = (object_id >= 0) & (kinds[np.maximum(object_id, 0)] < NUM_ANNOTATED_KINDS)
+        boxed = np.zeros(len(kinds), dtype=bool)
+        boxed[np.asarray(frame_annotated, dtype=np.int64)] = True
+        annotated = (object_id >= 0) & boxed[np.maximum(object_id, 0)]
         class_id = np.full(object_id.shape, 255, dtype=np.uint8)
         class_id[annotated] = CLASS_OF_KIND[kinds[object_id[annotated]]]
         instance = np.where(annotated, object_id + 1, 0).astype(np.uint16)

@@ -172,10 +172,11 @@ def test_exposure_differs_per_draw():
     assert 0.5 < a.gain < 2.0 and all(0.8 < v < 1.25 for v in a.white_balance)
 
 
-@pytest.fixture(scope="module")
-def swept(tmp_path_factory):
-    root = tmp_path_factory.mktemp("swept")
-    cfg = SynthConfig(num_scenes=1, seed=2, resolution=(64, 36), sweeps_per_sample=10, world=WorldConfig(samples_per_scene=2))
+@pytest.fixture(scope="module", params=[2, 43])  # 43: a car beyond annotation_range_m shows in CAM_FRONT
+def swept(tmp_path_factory, request):
+    root = tmp_path_factory.mktemp(f"swept{request.param}")
+    cfg = SynthConfig(num_scenes=1, seed=request.param, resolution=(64, 36), sweeps_per_sample=10,
+                      world=WorldConfig(samples_per_scene=2))
     generate_dataset(root, cfg)
     return root, cfg
 
@@ -196,7 +197,12 @@ def test_intermediate_sweeps_are_written_as_nuscenes(swept):
 
 def test_masks_beside_each_image(swept):
     root, cfg = swept
-    instances = {r["token"] for r in json.loads((root / cfg.version / "instance.json").read_text())}
+    tables = root / cfg.version
+    instances = {r["token"] for r in json.loads((tables / "instance.json").read_text())}
+    sample_of = {r["filename"]: r["sample_token"] for r in json.loads((tables / "sample_data.json").read_text())}
+    boxed: dict[str, set[str]] = {}  # sample token -> instance tokens of its boxes
+    for ann in json.loads((tables / "sample_annotation.json").read_text()):
+        boxed.setdefault(ann["sample_token"], set()).add(ann["instance_token"])
     images = sorted(root.glob("samples/CAM_*/*.jpg"))
     assert len(images) == 12
     seen_classes = set()
@@ -206,7 +212,9 @@ def test_masks_beside_each_image(swept):
         assert class_id.shape == (36, 64) and class_id.dtype == np.uint8 and instance.dtype == np.uint16
         assert np.all((class_id == 255) == (instance == 0))
         assert set(np.unique(instance[instance > 0]).tolist()) == set(ids.tolist())
-        assert set(tokens.tolist()) <= instances or len(tokens) == 0  # every masked object is annotated somewhere
+        assert set(tokens.tolist()) <= instances  # every token names a row of the instance table
+        # and a box of this very sample: an object of an annotated kind beyond annotation_range_m is no mask object
+        assert set(tokens.tolist()) <= boxed.get(sample_of[image.relative_to(root).as_posix()], set())
         for i in ids:  # one object, one class
             assert len(np.unique(class_id[instance == i])) == 1
         seen_classes |= set(np.unique(class_id[class_id < 255]).tolist())

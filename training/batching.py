@@ -17,14 +17,16 @@ LUT rows of sample b shift by ``b * J * Hf * Wf`` and every sentinel moves to th
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
+from pathlib import Path
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from streamdet.calibration.lut import Lut, build_lut
+from streamdet.calibration.camera import CalibrationError, Rig
+from streamdet.calibration.lut import Lut, build_lut, check_rig_fits
 from streamdet.models.presets import Preset
-from streamdet.training.dataset import CAMERA_MODES, SampleItem
+from streamdet.training.dataset import CAMERA_MODES, SampleItem, SampleStore
 
 
 @dataclass
@@ -59,8 +61,25 @@ class Batch:
         return Batch(**moved)
 
 
+def check_rig_fits_preset(rig: Rig, preset: Preset, where: str) -> None:
+    """ValueError (one line, led by ``where``: the dataset and sample) unless the preset's images fit every camera of
+    ``rig``: ``calibration.lut.check_rig_fits``, the rule streamdet-export and the runtime apply to the same rig. A
+    camera of another aspect would be trained on distorted images, with a LUT of intrinsics that no longer describe
+    them, and no export of the model could run on its data afterwards."""
+    img = preset.image
+    try:
+        check_rig_fits(rig, rig.names, img.width_px, img.height_px)
+    except CalibrationError as e:
+        raise ValueError(
+            f"{where}: its cameras do not fit the {img.width_px}x{img.height_px} images of preset {preset.name!r}, "
+            f"which streamdet-export and the runtime would refuse too ({e}); train on a dataset whose cameras have "
+            "the aspect of the preset's images"
+        ) from None
+
+
 class Collator:
-    """``collate(items) -> Batch``; builds (and caches) one projection LUT per rig at the preset's image size."""
+    """``collate(items) -> Batch``; builds (and caches) one projection LUT per rig at the preset's image size, each
+    rig checked first (``check_rig_fits_preset``); ``check_store`` checks a whole dataset before training."""
 
     def __init__(self, preset: Preset, camera_mode: str = "all") -> None:
         if camera_mode not in CAMERA_MODES:
@@ -69,9 +88,19 @@ class Collator:
         self.camera_mode = camera_mode
         self._luts: dict[str, Lut] = {}
 
-    def lut(self, rig) -> Lut:
+    def check_store(self, store: SampleStore, dataset: str | Path) -> None:
+        """``check_rig_fits_preset`` for every sample of ``store`` (read from ``dataset``), before any batch is made
+        (in a loader's worker process the error would come wrapped in a traceback). LiDAR-only presets read no
+        image."""
+        if not self.preset.use_image:
+            return
+        for token, rig in zip(store.tokens, store.rigs):
+            check_rig_fits_preset(rig, self.preset, f"dataset {dataset}, sample {token}")
+
+    def lut(self, rig: Rig, where: str = "a sample") -> Lut:
         key = rig.sha256()
         if key not in self._luts:
+            check_rig_fits_preset(rig, self.preset, where)
             img = self.preset.image
             self._luts[key] = build_lut(rig, self.preset.grid, img.feature_stride, image_size=(img.width_px, img.height_px),
                                         heights_per_voxel=self.preset.lifter.lut_heights_per_voxel)  # fmt: skip
@@ -149,7 +178,7 @@ class Collator:
         out_idx, out_w = [], []
         for b, q, cams in entries:
             item = items[b]
-            lut = self.lut(item.rig)
+            lut = self.lut(item.rig, f"sample {item.sample_index}")
             if lut.num_cameras != num_cams:
                 raise ValueError(f"sample {item.sample_index}: its LUT has {lut.num_cameras} cameras but the batch images have {num_cams}")
             idx = lut.index[q].astype(np.int64)  # (K, Z, Yq, Xq)

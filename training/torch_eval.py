@@ -22,6 +22,13 @@ from streamdet.models.detector import StreamDetector
 from streamdet.runtime_ort.nms import NmsConfig
 from streamdet.runtime_ort.pillarize import pillarize
 from streamdet.runtime_ort.postprocess import Detections, PostprocessConfig, aggregate_sweep, postprocess_slice
+from streamdet.training.batching import check_rig_fits_preset
+
+
+def _first_image(sample: Sample) -> str:
+    """Where the sample's images lie (its first camera's file), for an error to name the dataset."""
+    path = next(iter(sample.image_paths.values()), None)
+    return f"image {path}" if path is not None else "no image files"
 
 
 class TorchSweepDetector:
@@ -40,6 +47,8 @@ class TorchSweepDetector:
     def _lut(self, sample: Sample) -> Lut:
         key = sample.rig.sha256()
         if key not in self._luts:
+            # the rule the ONNX runtime applies to the same sample (check_rig_fits): a distorting resize is refused
+            check_rig_fits_preset(sample.rig, self.preset, f"sample {sample.token} ({_first_image(sample)})")
             img = self.preset.image
             self._luts[key] = build_lut(sample.rig, self.preset.grid, img.feature_stride, (img.width_px, img.height_px),
                                         heights_per_voxel=self.preset.lifter.lut_heights_per_voxel)  # fmt: skip

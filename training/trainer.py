@@ -554,8 +554,9 @@ def _set_up(config: TrainConfig, data_dir: str | Path, out_dir: str | Path, vers
         size = (preset.image.width_px, preset.image.height_px) if preset.use_image else None
         say(f"reading the train split of {data_dir} ({'images ' + f'{size[0]}x{size[1]}' if size else 'no images'})")
         store = build_store(data_dir, "train", size, version=version, cache_dir=cache_dir, echo=say)
-    dataset = SliceDataset(store, preset, config.data, seed=config.seed)
     collate = Collator(preset, config.data.camera_mode)
+    collate.check_store(store, data_dir)  # the cameras must fit the preset's images: the export's and runtime's rule
+    dataset = SliceDataset(store, preset, config.data, seed=config.seed)
     loader, sampler = make_loader(dataset, config, ctx, collate)
 
     torch.manual_seed(config.seed)
