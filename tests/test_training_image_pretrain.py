@@ -80,6 +80,12 @@ def test_masked_images_and_class_weights(tiny_synth_data):
     assert w.shape == (NUM_LABELS,) and w[0] == 1.0 and torch.all(w[1:] >= 1.0)
 
 
+def test_images_of_another_aspect_than_the_cameras_are_refused(tiny_synth_data):
+    """The rule of streamdet-train and the runtime (check_rig_fits): a resize to another aspect would distort them."""
+    with pytest.raises(ValueError, match=r"dataset .*, sample \S+: its cameras do not fit the 64x48 images"):
+        load_masked_images(tiny_synth_data, None, (64, 48), 30.0)
+
+
 def test_missing_mask_is_named(tiny_synth_data, tmp_path):
     import shutil
 

@@ -32,6 +32,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from streamdet.calibration.camera import CalibrationError
+from streamdet.calibration.lut import check_rig_fits
 from streamdet.core.classes import CLASS_NAMES, NUM_CLASSES
 from streamdet.core.npz_input import NpyHeader, check_member_size, npy_header
 from streamdet.data.nuscenes import NuScenesReader
@@ -188,6 +190,11 @@ def load_masked_images(root: str | Path, split: str | None, size: tuple[int, int
     images, labels, eval_labels = [], [], []
     for i, token in enumerate(tokens):
         sample = reader.get(token)
+        try:  # the rule of streamdet-train and the runtime: images resized to another aspect come out distorted
+            check_rig_fits(sample.rig, sample.rig.names, *size)
+        except CalibrationError as e:
+            raise ValueError(f"dataset {root}, sample {token}: its cameras do not fit the {size[0]}x{size[1]} images of "
+                             f"the preset ({e})") from None  # fmt: skip
         dist = {t: float(np.hypot(*b[:2])) for t, b in zip(sample.instance_tokens, sample.gt_boxes)}
         for name in sample.rig.names:
             path = Path(sample.image_paths[name])
