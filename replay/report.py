@@ -138,14 +138,16 @@ def format_report(result: ReplayResult, info: dict) -> str:
     period_ms = 1000.0 / c.lidar_hz / result.num_slices
     lines = [
         f"streamdet-replay: {len(result.scenes)} scene(s) of {c.data} ({c.split or 'all'}), {result.precision_label}, "
-        f"LiDAR {c.lidar_hz:g} Hz x {result.num_slices} slices ({period_ms:.2f} ms per slice), cameras {c.camera_hz:g} Hz ({c.camera_trigger} triggers, "
-        f"{_delivery(c)})",
+        f"LiDAR {c.lidar_hz:g} Hz x {result.num_slices} slices ({period_ms:.2f} ms per slice), " + (
+            f"cameras {c.camera_hz:g} Hz ({c.camera_trigger} triggers, {_delivery(c)})" if result.uses_images
+            else "no cameras (a LiDAR-only export)"),
         f"time scale {c.time_scale:g} (latencies in drive time = wall / {c.time_scale:g}); CPU: {cpu_line(info)}; "
         f"{c.threads} thread(s) per session"
         + (f" ({c.image_lane_threads} in the image lane's)" if c.image_lane_threads not in (None, c.threads) else "")
         + f", {c.lanes.max_in_flight} slice worker(s), queue {c.lanes.queue_size}"
-        + (f", image lane at nice +{c.lanes.image_lane_nice}" if c.lanes.image_lane_nice else "")
-        + (f", image lane yields at {c.lanes.image_lane_yield_slices} waiting slice(s)" if c.lanes.image_lane_yield_slices else "")
+        + (f", image lane at nice +{c.lanes.image_lane_nice}" if c.lanes.image_lane_nice and result.uses_images else "")
+        + (f", image lane yields at {c.lanes.image_lane_yield_slices} waiting slice(s)"
+           if c.lanes.image_lane_yield_slices and result.uses_images else "")
         + (f", up to {c.lanes.coalesce_slices} waiting slices coalesced per run" if c.lanes.coalesce_slices > 1 else "")
         + (f", a quadrant's first slice held for the next above load {c.lanes.pair_hold_load:g}" if c.lanes.pair_hold_load is not None else ""),
         f"ground truth at emission time: {result.truth_source}",
@@ -173,7 +175,8 @@ def format_report(result: ReplayResult, info: dict) -> str:
     if any(at_cap.values()):
         lines += ["", "slice runs whose K-th decoded box passed the score threshold (the graph's top-K cap may have cut "
                   "boxes; streamdet-export --top-k): " + ", ".join(f"{mode} {n}" for mode, n in at_cap.items())]  # fmt: skip
-    lines += ["", _gc_line(result), "", _image_lane_table(result), "", _per_class_table(result), "", _stage_table(result), "",
+    image_lane = ["", _image_lane_table(result)] if result.uses_images else []
+    lines += ["", _gc_line(result), *image_lane, "", _per_class_table(result), "", _stage_table(result), "",
               *_targets(result, period_ms)]  # fmt: skip
     return "\n".join(lines)
 

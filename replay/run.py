@@ -118,6 +118,7 @@ class ReplayResult:
     notes: tuple[str, ...]  # the sources' notes (rates, held images)
     truth_source: str
     camera_terms: bool = False  # whether the detector's quadrant updates used per-camera lifts (DetectorConfig.camera_terms)
+    uses_images: bool = True  # False: a LiDAR-only export (no cameras played, no image lane)
 
 
 def split_scenes(tables: DatasetTables, split: str | None, count: int | None) -> list[str]:
@@ -195,7 +196,7 @@ def run_replay(config: ReplayConfig, progress: Progress = lambda msg: None) -> R
         results[mode] = ModeResult(tuple(recordings[mode]), scores, merge_stages(stages[mode]))
     notes = tuple(dict.fromkeys(note for d in drives for note in d.notes))
     return ReplayResult(config, n, label, tuple(scenes), tuple(drives), tuple(truths), results, notes,
-                        " + ".join(sorted(sources)), probe.camera_terms)  # fmt: skip
+                        " + ".join(sorted(sources)), probe.camera_terms, probe.uses_images)  # fmt: skip
 
 
 def _lanes(config: ReplayConfig) -> LaneConfig:

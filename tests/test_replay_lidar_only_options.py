@@ -121,3 +121,6 @@ def test_a_real_replay_of_a_lidar_only_export_with_defaults(tiny_drive_data, tin
     result = CliRunner().invoke(replay_cli.main, args)
     assert result.exit_code == 0, result.output
     assert "| sequential |" in result.output
+    # its report says there are no cameras and shows no image-lane table (they were defaults, not in effect)
+    assert "no cameras (a LiDAR-only export)" in result.output and "cameras 12 Hz" not in result.output
+    assert "image lane, schedule" not in result.output
