@@ -14,6 +14,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from streamdet.calibration.camera import CalibrationError
 from streamdet.data.splits import SplitsFileMissing
 from streamdet.data.splits import split_scenes as data_split_scenes
 from streamdet.evaluation.config import DetectionConfig
@@ -148,7 +149,10 @@ def warm_up(det: StreamingDetector, drive: Drive, num_slices: int, per_quadrant:
     ``per_quadrant``: also one update of each quadrant alone (the phase-locked image lane's sizes: onnxruntime's
     first run of a new input shape is slow)."""
     if drive.rig is not None and det.uses_images and drive.rig.sha256() != det.lut.calibration_sha256:
-        det.set_calibration(drive.rig)  # the dataset's own rig: a new LUT for the same graphs
+        try:  # the dataset's own rig: a new LUT for the same graphs
+            det.set_calibration(drive.rig)
+        except CalibrationError as e:  # a rig the export cannot take (another aspect, other cameras): name the scene
+            raise CalibrationError(f"scene {drive.name}: {e}") from None
     # twice: onnxruntime's first two runs of a graph were measured 4-20x slower than the third (the first real image
     # update of every replay ran 0.13-0.2 s at scale 2, its slices queued behind it)
     for _ in range(2) if det.uses_images and drive.image_sets else ():

@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from streamdet.calibration.camera import CalibrationError
 from streamdet.core.sectors import NUM_QUADRANTS
 from streamdet.data.sample import Sample
 
@@ -51,7 +52,12 @@ def use_sample_calibration(detector: StreamingDetector, sample: Sample) -> None:
     sample's images next, which replace it (a synthetic world has a rig per sample, so the re-lift was a lift per
     sample thrown away). Until then the detector reads no image."""
     if sample.rig.sha256() != detector.lut.calibration_sha256:
-        detector.set_calibration(sample.rig, relift=False)  # another rig than the current LUT's: rebuild the LUT
+        try:  # another rig than the current LUT's: rebuild the LUT
+            detector.set_calibration(sample.rig, relift=False)
+        except CalibrationError as e:  # a rig the export cannot take (another aspect, other cameras): name the sample
+            first = next(iter(sample.image_paths.values()), None)
+            where = f"sample {sample.token}" + (f" ({first.parent.parent.parent})" if first is not None else "")
+            raise CalibrationError(f"{where}: {e}") from None
 
 
 def sample_images(detector: StreamingDetector, sample: Sample) -> dict[str, np.ndarray]:

@@ -93,3 +93,17 @@ def test_set_calibration_relift_must_be_a_bool(tiny_export, sample, bad):
     det = StreamingDetector(tiny_export)
     with pytest.raises(ValueError, match="relift must be a bool"):
         det.set_calibration(sample.rig, relift=bad)
+
+
+def test_a_sample_whose_rig_the_export_cannot_take_is_named(tiny_export, sample):
+    """A hand-made dataset of another aspect: the runtime's refusal names the sample (eval, study), not only the camera."""
+    import dataclasses
+
+    from streamdet.calibration.camera import CalibrationError
+
+    det = StreamingDetector(tiny_export)
+    cam = sample.rig.cameras[0]
+    other = dataclasses.replace(sample, rig=sample.rig.resized(cam.width, cam.width * 3 // 4))  # 4:3
+    with pytest.raises(CalibrationError, match=rf"^sample {other.token} \(.*\): calibration camera {cam.name} is"):
+        feed_images(det, other)
+    det.close()
