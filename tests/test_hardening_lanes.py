@@ -240,13 +240,20 @@ def test_the_phase_locked_lane_steps_quickly_a_day_after_its_last_slice():
 
 def test_a_burst_of_submits_never_blocks_the_callers_of_a_phase_locked_runner():
     """The audit's burst repro on a stand-in: 33 slices a few microseconds apart, a pause, then submits return at
-    once (before the fix the measured period was microseconds and every plan walked the pause in passes)."""
+    once (before the fix the measured period was microseconds and every plan walked the pause in passes).
+
+    The runner stamps arrivals with the wall clock: on a loaded machine the loop may take long enough that its
+    arrivals are no burst, so "no period taken" is asserted only when the whole loop ran within a rotation of the
+    fastest LiDAR (its rule on timed arrivals is test_a_burst_then_a_pause_measures_no_rotation's)."""
     det = ImageFake()
     points = np.zeros((1, 6), np.float32)
     with StreamingRunner(det, LaneConfig(schedule="phase-locked", queue_size=64)) as runner:
+        t0 = time.monotonic()
         futures = [runner.submit_slice(points, i % 8, float(i)) for i in range(33)]
+        burst = time.monotonic() - t0 < 1.0 / LIDAR_HZ_RANGE[1]
         time.sleep(0.3)
-        assert not runner._phase_locked._phase.locked  # a burst is no rotation: no period taken from it
+        if burst:
+            assert not runner._phase_locked._phase.locked  # a burst is no rotation: no period taken from it
         images = _returns_within(lambda: runner.submit_images(_images(), 1.0), 5.0)
         _returns_within(lambda: runner.submit_slice(points, 1, 2.0), 5.0)
         again = _returns_within(lambda: runner.submit_images(_images(), 3.0), 5.0)
