@@ -17,6 +17,7 @@ from click.testing import CliRunner
 from streamdet.models.presets import get_preset
 from streamdet.training.checkpoint import load_checkpoint
 from streamdet.training.cli import main as train_main
+from streamdet.training.distributed import DistContext, process_device
 
 TINY = get_preset("tiny")
 STEPS = 3
@@ -140,3 +141,15 @@ def test_cross_process_batchnorm_equals_one_batchnorm(tmp_path):
     # parameter gradients are per-process sums; DDP's average times the loss scale (world size) gives the total
     torch.testing.assert_close(r[0]["gw"] + r[1]["gw"], bn.weight.grad)
     torch.testing.assert_close(r[0]["gb"] + r[1]["gb"], bn.bias.grad)
+
+
+@pytest.mark.parametrize("given, ctx, expected", [
+    ("cuda:1", DistContext(), "cuda:1"),  # one process: the GPU asked for (it trained on cuda:0 before)
+    ("cuda", DistContext(), "cuda"),
+    ("cpu", DistContext(), "cpu"),
+    ("cuda", DistContext(rank=3, world_size=4, local_rank=1, initialised=True), "cuda:1"),  # torchrun: its own GPU
+    ("cuda:0", DistContext(rank=1, world_size=2, local_rank=1, initialised=True), "cuda:1"),
+    ("cpu", DistContext(rank=1, world_size=2, local_rank=1, initialised=True), "cpu"),
+])  # fmt: skip
+def test_process_device(given, ctx, expected):
+    assert process_device(torch.device(given), ctx) == torch.device(expected)

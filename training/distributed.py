@@ -49,6 +49,14 @@ def init_distributed(device: torch.device) -> DistContext:
     return DistContext(dist.get_rank(), dist.get_world_size(), int(os.environ.get("LOCAL_RANK", 0)), True)
 
 
+def process_device(device: torch.device, ctx: DistContext) -> torch.device:
+    """The device this process trains on: under torchrun a CUDA device is the process's own GPU (``cuda:LOCAL_RANK``);
+    a single process keeps the one it was given (``--device cuda:1`` trained on GPU 0 before)."""
+    if device.type == "cuda" and ctx.initialised:
+        return torch.device("cuda", ctx.local_rank)
+    return device
+
+
 def shutdown_distributed(wait: bool = True) -> None:
     """Leave the process group, if this process joined one. With ``wait`` (a normal end) every process waits for
     the others first: a process that tore gloo down while another still ran (rank 0 writing the checkpoint) aborted

@@ -47,7 +47,7 @@ from streamdet.training.checkpoint import (
 )
 from streamdet.training.dataset import DataConfig, SliceDataset, SampleStore, build_store, class_balanced_indices
 from streamdet.training.distill import DistillConfig, Teacher, distill_loss
-from streamdet.training.distributed import DistContext, all_reduce_sum, convert_batchnorm, init_distributed
+from streamdet.training.distributed import DistContext, all_reduce_sum, convert_batchnorm, init_distributed, process_device
 from streamdet.training.image_class import image_class_loss_sum
 from streamdet.training.losses import CenterPointLoss, LossConfig, loss_terms
 from streamdet.training.model import TrainingModel
@@ -545,8 +545,7 @@ def _set_up(config: TrainConfig, data_dir: str | Path, out_dir: str | Path, vers
     t_start = time.perf_counter()
     device = torch.device(device) if device is not None else torch.device("cuda" if torch.cuda.is_available() else "cpu")
     ctx = init_distributed(device)
-    if device.type == "cuda":
-        device = torch.device("cuda", ctx.local_rank)
+    device = process_device(device, ctx)
     say = echo if ctx.is_main else (lambda _msg: None)
     preset = config.build_preset()
 
