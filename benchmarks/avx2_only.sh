@@ -5,6 +5,7 @@
 # machine's, so speeds are not an AVX2 part's speeds.
 #   benchmarks/avx2_only.sh COMMAND [ARGS...]
 # e.g. DATA=out/r21/synth20 benchmarks/avx2_only.sh benchmarks/replay_ab.sh out/avx2 3 1 full=EXP,full,on,,int8
+# Python's faulthandler must stay off under the mask (PYTHONFAULTHANDLER is cleared; pytest: -p no:faulthandler).
 # Needs Linux on x86-64 with CPUID faulting (/proc/cpuinfo lists cpuid_fault) and a C compiler (CC, default cc); the
 # mask is built once into STREAMDET_CACHE (default ${XDG_CACHE_HOME:-~/.cache}/streamdet) and rebuilt when its
 # source changes. Reports name the mask (streamdet.core.cpu: STREAMDET_CPUID_MASK=avx2).
@@ -23,5 +24,20 @@ if [ ! -f "$LIB" ]; then
   "$CC" -O2 -Wall -Wextra -Werror -shared -fPIC -o "$LIB.tmp.$$" "$SRC"
   mv "$LIB.tmp.$$" "$LIB"
 fi
+# Python's faulthandler installs its own SIGSEGV handler, which then receives the CPUID faults and kills the process
+# (exit 139): PYTHONFAULTHANDLER is cleared here; pytest enables faulthandler itself, so run it with -p no:faulthandler.
+if [ -n "${PYTHONFAULTHANDLER:-}" ]; then
+  echo "$0: PYTHONFAULTHANDLER unset (faulthandler would take the CPUID faults the mask answers)" >&2
+  unset PYTHONFAULTHANDLER
+fi
+prev=""
+for arg in "$@"; do
+  case "$prev $arg" in
+    "-X faulthandler"*|"-X dev"|*" -Xfaulthandler"*|*" -Xdev")
+      echo "$0: '$prev $arg' enables Python's faulthandler, which takes the CPUID faults the mask answers: drop it" >&2
+      exit 2 ;;
+  esac
+  prev=$arg
+done
 export LD_PRELOAD="$LIB${LD_PRELOAD:+:$LD_PRELOAD}"
 exec "$@"

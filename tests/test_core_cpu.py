@@ -163,6 +163,21 @@ def test_other_segfaults_still_crash(tmp_path: Path) -> None:
     assert done.returncode == -signal.SIGSEGV
 
 
+@needs_mask
+def test_mask_clears_pythonfaulthandler_and_refuses_x_faulthandler(tmp_path: Path) -> None:
+    """Python's faulthandler takes the CPUID faults the mask answers (exit 139 under PYTHONFAULTHANDLER=1, as CI
+    systems set it): the wrapper clears the variable, and refuses ``-X faulthandler`` / ``-X dev``."""
+    env = {**os.environ, "STREAMDET_CACHE": str(tmp_path / "cache"), "PYTHONFAULTHANDLER": "1"}
+    env.pop(cpu.CPUID_MASK_ENV, None)
+    done = subprocess.run([str(WRAPPER), sys.executable, "-c", PROBE], capture_output=True, text=True, env=env, timeout=300,
+                          check=False)  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert json.loads(done.stdout.strip().splitlines()[-1])["numpy_avx512f"] is False and "PYTHONFAULTHANDLER" in done.stderr
+    for flag in (["-X", "faulthandler"], ["-X", "dev"], ["-Xdev"]):
+        refused = _masked([sys.executable, *flag, "-c", "print(1)"], tmp_path)
+        assert refused.returncode == 2 and "faulthandler" in refused.stderr, flag
+
+
 def test_wrapper_without_command_says_how(tmp_path: Path) -> None:
     done = subprocess.run([str(WRAPPER)], capture_output=True, text=True, check=False)
     assert done.returncode == 2 and "usage" in done.stderr
