@@ -218,6 +218,7 @@ def main(
             camera_terms=camera_terms, camera_delivery_ms=camera_delivery_ms, freeze_heap=freeze_heap,
             fallback_after_s=fallback_after_s(fallback_after_ms),
         )  # fmt: skip
+        info = cpu_info()  # before the replay: a failure here must not throw a finished replay away
         result = run_replay(config, _progress)
     except (ValueError, KeyError, FileNotFoundError, OSError) as e:
         raise click.ClickException(str(e)) from None
@@ -226,7 +227,6 @@ def main(
     if scenes is not None and len(result.scenes) < scenes:
         click.echo(f"note: --scenes {scenes}, but split {split!r} holds {len(result.scenes)} scene(s): all of them were played",
                    err=True)  # fmt: skip
-    info = cpu_info()
     report = format_report(result, info)
     click.echo(report)
     if json_path is not None:
