@@ -156,7 +156,8 @@ def _progress(message: str) -> None:
                    "(one quadrant at a time from its cameras, just before the LiDAR reaches it); LaneConfig.schedule.")
 @click.option("--image-lane-nice", type=click.IntRange(0, 19), default=0, show_default=True,
               help="Added to the image lane's thread's nice value (Linux; 0..19): the slice lane is served first where the "
-                   "lanes share cores; LaneConfig.image_lane_nice.")
+                   "lanes share cores; LaneConfig.image_lane_nice. The lane's own thread only: use it with one image-lane "
+                   "thread (onnxruntime's pool threads keep nice 0).")
 @click.option("--image-lane-yield", "image_lane_yield", type=click.IntRange(0, 1024), default=0, show_default=True,
               help="Phase-locked schedule only: the image lane starts no encode or lift while this many slices wait in "
                    "the slice lane's queue (0..1024; 0: never); LaneConfig.image_lane_yield_slices.")

@@ -45,6 +45,7 @@ from __future__ import annotations
 import math
 import numbers
 import time
+import warnings
 import weakref
 from concurrent.futures import Future
 from dataclasses import dataclass
@@ -93,7 +94,9 @@ class LaneConfig:
     lidar_hz: float | None = None
     lift_margin_ms: float = 2.0  # phase-locked only: a lift is timed to end this long before its first slice arrives
     # added to the image lane's thread's nice value (0..19, Linux; 0: unchanged): where the lanes share cores, the
-    # slice lane's work is then served first and the image lane runs in the time left (runtime_ort/thread_priority.py)
+    # slice lane's work is then served first and the image lane runs in the time left (runtime_ort/thread_priority.py).
+    # Only the lane's own thread: with DetectorConfig.image_lane_threads != 1 onnxruntime's pool threads keep nice 0
+    # (the runner warns)
     image_lane_nice: int = 0
     # phase-locked only: while this many slices (or more) wait in the slice lane's queue, the image lane starts no
     # encode or lift (one running finishes), so that where the lanes share cores a backlog of slices gets them before
@@ -177,6 +180,12 @@ class StreamingRunner:
         else:
             self._images = WorkerLane("image-lane", 1, 1, superseded, nice=config.image_lane_nice)
         weakref.finalize(self, _stop_lanes, self._slices, self._images if self._images is not None else self._phase_locked)
+        threads = getattr(getattr(detector, "config", None), "image_lane_threads", 1)
+        if config.image_lane_nice and threads != 1 and detector.uses_images:
+            warnings.warn(f"LaneConfig.image_lane_nice={config.image_lane_nice} renices the image lane's own thread only: "
+                          f"with DetectorConfig.image_lane_threads={threads} onnxruntime's pool threads of the image "
+                          "sessions keep nice 0 and compete with the slice lane as before; use image_lane_threads=1",
+                          RuntimeWarning, stacklevel=2)  # fmt: skip
 
     def submit_images(
         self, images: Mapping[str, np.ndarray], timestamp: float | None = None, camera_timestamps: Mapping[str, float] | None = None,

@@ -120,3 +120,24 @@ def test_a_lane_whose_second_worker_cannot_be_niced_ends_the_first(monkeypatch):
         WorkerLane("two", 2, None, nice=0)
     started[0].join(timeout=10)
     assert not started[0].is_alive()
+
+
+@pytest.mark.parametrize("threads, warned", [(1, False), (0, True), (4, True)])
+def test_the_runner_says_when_the_nice_value_misses_onnxruntimes_pool_threads(threads, warned):
+    """Only the lane's own thread is reniced: with more than one image-lane thread onnxruntime's pool keeps nice 0."""
+    import warnings
+    from types import SimpleNamespace
+
+    from lane_fakes import StandInDetector
+
+    det = StandInDetector()
+    det.config = SimpleNamespace(start_deg=0.0, image_lane_threads=threads)
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        runner = StreamingRunner(det, LaneConfig(image_lane_nice=5))  # type: ignore[arg-type]
+        runner.close()
+        StreamingRunner(det, LaneConfig()).close()  # no nice asked: nothing to say
+    said = [w for w in seen if issubclass(w.category, RuntimeWarning) and "image_lane_nice" in str(w.message)]
+    assert len(said) == int(warned)
+    if warned:
+        assert f"image_lane_threads={threads}" in str(said[0].message) and said[0].filename == __file__
