@@ -141,7 +141,8 @@ def _flops_only(preset: str, resolution: tuple[int, int] | None, json_path: Path
 @click.option("--repeat", type=click.IntRange(1, MAX_REPEAT), default=None,
               help=f"Timed runs per measurement, 1..{MAX_REPEAT} [default: 20; 5 with --quick].")
 @click.option("--threads", type=click.IntRange(1, MAX_INTRA_OP_THREADS), default=None,
-              help=f"Threads for the Table 3 rows, 1..{MAX_INTRA_OP_THREADS} [default: all cores].")
+              help=f"Threads for the Table 3 rows, 1..{MAX_INTRA_OP_THREADS} [default: every CPU this process may use "
+                   f"(affinity, cgroup quota), at most {MAX_INTRA_OP_THREADS}].")
 @click.option(
     "--quick",
     is_flag=True,

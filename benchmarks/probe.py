@@ -2,7 +2,9 @@
 
 A square n x n x n float32 matmul is the most efficient kernel onnxruntime (MLAS) has, so its best-of-several
 GFLOP/s with the benchmark's thread count is the "peak" the rows' achieved GFLOP/s are divided by. It is an
-attainable peak, not the data-sheet one (FMA width x clock x cores), which no library reaches on a shared VM.
+attainable rate, not an upper bound (convolution kernels can outrun it). Beside it the report prints an estimate
+from FMA width x clock x physical cores (``nominal_peak_gflops``): a rough figure, not a data-sheet one and not a
+bound either, since the clock /proc/cpuinfo shows and the FMA width the flags suggest can both be off.
 """
 
 from __future__ import annotations
@@ -18,8 +20,7 @@ import onnx
 import onnxruntime as ort
 from onnx import TensorProto, helper
 
-from streamdet.core.cpu import kernel_flags
-from streamdet.core.cpu import cpu_model, cpuid_mask
+from streamdet.core.cpu import cpu_model, cpu_vendor_family, cpuid_mask, kernel_flags, physical_cores, usable_cpus
 from streamdet.runtime_ort.onnx_build import make_model
 from streamdet.runtime_ort.sessions import GraphSession, SessionConfig
 
@@ -159,15 +160,26 @@ def cpu_mhz() -> float | None:
     return None
 
 
-def nominal_peak_gflops(threads: int, flags: tuple[str, ...], mhz: float | None) -> float | None:
-    """Data-sheet fp32 peak: FMA lanes x 2 FLOP x 2 FMA pipes x clock x threads (one thread per core assumed).
+def estimate_cores(threads: int, cores: int | None) -> int:
+    """The cores ``nominal_peak_gflops`` counts: ``threads`` on at most ``cores`` physical cores (None: one per thread)."""
+    return threads if cores is None else max(1, min(threads, cores))
 
-    AVX-512: 16 lanes, AVX2 + FMA: 8 lanes (Zen 3 and recent Intel cores have two FMA pipes); None without FMA.
+
+def nominal_peak_gflops(threads: int, flags: tuple[str, ...], mhz: float | None, cores: int | None = None,
+                        vendor: str | None = None, family: int | None = None) -> float | None:
+    """An estimate of the fp32 rate, not a bound: FMA lanes x 2 FLOP x 2 FMA pipes x clock x cores, with cores the
+    physical cores the threads can run on (``estimate_cores``).
+
+    AVX-512: 16 lanes, AVX2 + FMA: 8 lanes; None without FMA or a clock. It can be far off either way: ``mhz`` is
+    the clock /proc/cpuinfo shows (boost runs above it, an idle core with cpufreq below), several Intel parts have one
+    512-bit FMA pipe, hybrid E-cores have others; there is no per-microarchitecture table, only the Zen 4 case below.
     """
     if mhz is None or "fma" not in flags:
         return None
     lanes = 16 if "avx512f" in flags else 8
-    return lanes * 2 * 2 * mhz / 1e3 * threads
+    if vendor == "AuthenticAMD" and family == 25:  # Zen 4 runs a 512-bit FMA as two 256-bit halves: no doubling
+        lanes = 8
+    return lanes * 2 * 2 * mhz / 1e3 * estimate_cores(threads, cores)
 
 
 def load_average() -> list[float]:
@@ -179,13 +191,19 @@ def load_average() -> list[float]:
 def machine_info(threads: int) -> dict:
     import torch  # the benchmark needs torch anyway; kept local so the probe itself stays torch-free
 
+    flags, mhz, cores = cpu_flags(), cpu_mhz(), physical_cores()
+    estimate = nominal_peak_gflops(threads, flags, mhz, cores, *cpu_vendor_family())
     return {
         "cpu_model": cpu_model(),
-        "cpu_flags": list(cpu_flags()),
+        "cpu_flags": list(flags),
         "cpuid_mask": cpuid_mask(),
-        "cpu_mhz": cpu_mhz(),
-        "nominal_peak_gflops_per_s": nominal_peak_gflops(threads, cpu_flags(), cpu_mhz()),
-        "logical_cpus": os.cpu_count(),
+        "cpu_mhz": mhz,  # the first "cpu MHz" of /proc/cpuinfo: the nominal clock in a VM, cpu0's current one otherwise
+        "peak_estimate_gflops_per_s": estimate,  # nominal_peak_gflops: an estimate, not a data-sheet figure nor a bound
+        "nominal_peak_gflops_per_s": estimate,  # the same estimate under its older key (kept for readers of old JSON)
+        "peak_estimate_cores": estimate_cores(threads, cores),  # the cores that estimate counts
+        "physical_cores": cores,  # among the CPUs this process may run on (core.cpu.physical_cores); None: unknown
+        "logical_cpus": os.cpu_count(),  # the machine's, whatever this process may use
+        "usable_cpus": usable_cpus(),  # what this process may use: affinity and cgroup quota (core.cpu.usable_cpus)
         "threads": threads,
         "load_average_1_5_15": load_average(),
         "onnxruntime": ort.__version__,

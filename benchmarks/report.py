@@ -175,7 +175,9 @@ def format_header(meta: dict, peak: ProbeResult) -> str:
         flags += f"; CPUID masked to {m['cpuid_mask']}: the kernels' instruction set, not the silicon's"
     lines = [
         f"streamdet-bench  {meta['date']}  preset {meta['preset']}",
-        f"machine: {m['cpu_model']} ({flags}), {m['logical_cpus']} logical CPUs, {meta['threads']} threads; "
+        f"machine: {m['cpu_model']} ({flags}), {m['logical_cpus']} logical CPUs"
+        + (f" ({usable} usable by this process)" if (usable := m.get("usable_cpus")) is not None else "")  # absent in older results
+        + f", {meta['threads']} threads; "
         f"load average (1/5/15 min) {'/'.join(str(v) for v in m['load_average_1_5_15'])} at start; "
         + (
             f"other processes used {others:.2f} CPUs on average during the run"
@@ -193,8 +195,10 @@ def format_header(meta: dict, peak: ProbeResult) -> str:
         f"peak probe: {peak.size}^3 fp32 MatMul in onnxruntime, best of {peak.runs} runs (at the start and the end): "
         f"{peak.gflops_per_s:.1f} GFLOP/s (median {peak.median_gflops_per_s:.1f})"
         + (
-            f"; data-sheet peak at the reported {m['cpu_mhz']:.0f} MHz: {nominal:.0f} GFLOP/s"
-            if (nominal := m.get("nominal_peak_gflops_per_s"))
+            f"; estimate from FMA width x the reported {m['cpu_mhz']:.0f} MHz x "
+            + (f"{cores} physical core(s)" if (cores := m.get("peak_estimate_cores")) else f"{meta['threads']} threads")
+            + f" (not a bound): {estimate:.0f} GFLOP/s"
+            if (estimate := m.get("peak_estimate_gflops_per_s", m.get("nominal_peak_gflops_per_s")))
             else ""
         ),
         f"input as in the paper's Table 3: 1 image, 30,000 points{_pillar_words(meta.get('slice_pillars'))}; {UNITS}",
@@ -240,7 +244,7 @@ def format_rows(rows: Sequence[RowResult], peak: ProbeResult) -> str:
     if any(r.gflops_per_s > peak.gflops_per_s for r in rows):
         notes.append(
             "  % peak above 100: onnxruntime's convolution kernels outrun its own large MatMul here; the probe is the "
-            "attainable MatMul rate, not an upper bound (the data-sheet peak in the header is)"
+            "attainable MatMul rate, not an upper bound (nor is the estimate in the header)"
         )
     if notes:
         lines += ["notes:"] + notes

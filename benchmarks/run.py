@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import dataclasses
 import datetime
-import os
 import tempfile
 import time
 from collections.abc import Callable
@@ -28,6 +27,7 @@ from streamdet.benchmarks.streaming import (
     profile_streaming,
 )
 from streamdet.benchmarks.table import ROUNDS, RowResult, TableConfig, measure_rows
+from streamdet.benchmarks.thread_counts import check_session_threads, default_session_threads
 from streamdet.benchmarks.timing import TimingConfig
 from streamdet.models.presets import Preset, get_preset
 
@@ -52,7 +52,7 @@ class BenchConfig:
     stream_image_precision: str | None = None  # its image lane's graphs; None: stream_precision
     stream_slice_workers: int | None = None  # slice workers of its image-lane schedules; None: LaneConfig's default
     repeat: int | None = None  # timed runs per measurement; None: 20, or 5 with quick
-    threads: int | None = None  # threads of the row measurements; None: every core
+    threads: int | None = None  # threads of the row measurements (1..64); None: every usable CPU, at most 64
     quick: bool = False  # fewer repeats, shorter streaming runs
     torch_skip_ms: float | None = None  # no PyTorch timing of rows whose onnxruntime fp32 median exceeds this
     export_dir: Path | None = None  # existing export for the streaming section; None: export to a temporary folder
@@ -71,12 +71,20 @@ class BenchConfig:
             return TimingConfig(repeat=self.repeat or 5, warmup=1, budget_s=2.0, min_repeat=2, slow_warmup_s=1.0)
         return TimingConfig(repeat=self.repeat or 20, warmup=2, budget_s=15.0)
 
+    def row_threads(self) -> int:
+        """Threads of the rows and the peak probe: ``threads``, or every CPU this process may use, at most
+        MAX_SESSION_THREADS (benchmarks/thread_counts.py); ValueError for a ``threads`` outside 1..MAX_SESSION_THREADS."""
+        if self.threads is None:
+            return default_session_threads()
+        return check_session_threads(self.threads, "BenchConfig.threads")
+
     def probe(self) -> ProbeConfig:
         return ProbeConfig(size=1024, runs=4, warmup=1) if self.quick else ProbeConfig()
 
     def streaming(self) -> StreamingConfig:
         cfg = StreamingConfig(num_slices=self.slices, precision=self.stream_precision, image_precision=self.stream_image_precision,
-                              schedule_slice_workers=self.stream_slice_workers)  # fmt: skip
+                              schedule_slice_workers=self.stream_slice_workers,
+                              wide_slice_threads=default_session_threads())  # fmt: skip
         return dataclasses.replace(cfg, sweeps=2, image_updates=1, queue_sweeps=1, schedule_seconds=1.0) if self.quick else cfg
 
 
@@ -128,12 +136,18 @@ def _slice_pillars(preset: Preset) -> dict:
 def resolve_stream_export(cfg: BenchConfig) -> BenchConfig:
     """``cfg`` with its slice count settled, after checking that the streaming section can time ``export_dir``
     (``streaming.check_streaming_export``: camera + LiDAR, the streamed precisions' graphs, the bundled sample's
-    cameras). ``slices`` None becomes the export's count, or DEFAULT_SLICES for the export the benchmark makes.
+    cameras) and that every thread count the run will use (``row_threads``, the streaming section's) is one a
+    session takes. ``slices`` None becomes the export's count, or DEFAULT_SLICES for the export the benchmark makes.
     Raises BenchmarkError; reads files only, so it runs before any timing."""
+    try:
+        cfg.row_threads()
+        stream = cfg.streaming()  # StreamingConfig checks its own thread and worker counts
+    except ValueError as e:
+        raise BenchmarkError(str(e)) from None
     if cfg.export_dir is None:
         return cfg if cfg.slices is not None else dataclasses.replace(cfg, slices=DEFAULT_SLICES)
     try:
-        manifest = check_streaming_export(cfg.export_dir, cfg.streaming())
+        manifest = check_streaming_export(cfg.export_dir, stream)
     except ValueError as e:
         raise BenchmarkError(f"streaming section: {e}") from None
     return cfg if cfg.slices is not None else dataclasses.replace(cfg, slices=manifest.num_slices)
@@ -142,7 +156,7 @@ def resolve_stream_export(cfg: BenchConfig) -> BenchConfig:
 def run_benchmark(cfg: BenchConfig, progress: Progress = lambda msg: None) -> BenchResult:
     cfg = resolve_stream_export(cfg)  # a wrong export fails now, not after minutes of row timing
     preset = get_preset(cfg.preset)
-    threads = cfg.threads or os.cpu_count() or 1
+    threads = cfg.row_threads()
     timing = cfg.timing()
     other_cpu = OtherCpuUse()
     started = time.perf_counter()

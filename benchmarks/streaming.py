@@ -4,7 +4,8 @@ Three ways to serve the same stream with one ``StreamingDetector`` (one intra-op
 the lanes are for latency isolation, not throughput):
 
 (a) idle:       only slices; each ``detect_slice`` timed end to end (pillarize + graph + post-processing).
-                Also with every core given to the slice session (what the lane could do with the machine to itself).
+                Also with every usable CPU (at most MAX_SESSION_THREADS) given to the slice session (what the lane
+                could do with the machine to itself; benchmarks/thread_counts.py).
 (b) busy:       a thread calls ``update_images`` in a loop (the image lane never rests) while the slices are timed.
 (c) sequential: one worker serves image updates and slices in arrival order (slices every 100 ms / N, images at
                 ``image_hz``); a slice's latency is its wait plus its processing. The worker runs the real jobs
@@ -22,7 +23,6 @@ from __future__ import annotations
 import collections
 import contextlib
 import dataclasses
-import os
 import shutil
 import tempfile
 import threading
@@ -36,6 +36,7 @@ import numpy as np
 from streamdet.benchmarks.ort_profile import ProfileSummary, summarize_profile
 from streamdet.benchmarks.prepost import PrePostCase, measure_prepost
 from streamdet.benchmarks.streaming_schedules import measure_schedules
+from streamdet.benchmarks.thread_counts import check_session_threads, default_session_threads
 from streamdet.benchmarks.timing import TimingConfig, TimingStats, summarize
 from streamdet.core.slicing import split_sweep
 from streamdet.data.sample import load_bundled_sample
@@ -64,6 +65,9 @@ class StreamingConfig:
     # (streaming_schedules.py); 0: skip
     schedule_seconds: float = 3.0
     schedule_slice_workers: int | None = None  # (d) slice workers (LaneConfig.max_in_flight); None: LaneConfig's default
+    # (a) again: the slice session's threads (1..MAX_SESSION_THREADS; 1 skips it); None: every usable CPU, at most
+    # MAX_SESSION_THREADS (benchmarks/thread_counts.py)
+    wide_slice_threads: int | None = None
 
     def __post_init__(self) -> None:
         for name in ("sweeps", "image_updates", "queue_sweeps"):
@@ -83,6 +87,14 @@ class StreamingConfig:
             except ValueError:
                 raise ValueError(f"StreamingConfig.schedule_slice_workers must be None or an int in 1..1024, "
                                  f"got {self.schedule_slice_workers!r}") from None  # fmt: skip
+        if self.wide_slice_threads is not None:
+            check_session_threads(self.wide_slice_threads, "StreamingConfig.wide_slice_threads")
+
+    @property
+    def wide_threads(self) -> int:
+        """Threads of the slice session in (a) again: ``wide_slice_threads``, or every usable CPU, at most
+        MAX_SESSION_THREADS."""
+        return self.wide_slice_threads if self.wide_slice_threads is not None else default_session_threads()
 
 
 # ---- the sequential queue ----------------------------------------------------------------------------------
@@ -198,7 +210,7 @@ class StreamingResult:
     slice_budget_ms: float  # 1000 / lidar_hz / N
     idle: LaneStats
     idle_all_cores: LaneStats | None  # slice session with every core; None when an image update is too slow to redo
-    all_cores: int  # the threads of that session (os.cpu_count())
+    all_cores: int  # the threads of that session (StreamingConfig.wide_threads)
     busy: LaneStats
     image_alone: LaneStats  # update_images with the slice lane idle
     image_busy_updates: int  # image updates completed while the busy slices were timed
@@ -383,7 +395,7 @@ def measure_streaming(
     det.stats.reset()
     idle = LaneStats(summarize(_time_slices(det, slices, cfg.sweeps)), det.stats.summary())
     idle_all_cores = None
-    cores = os.cpu_count() or 1
+    cores = cfg.wide_threads  # at most MAX_SESSION_THREADS, which DetectorConfig takes
     if cores > 1 and warm_s <= cfg.image_budget_s:
         progress(f"[streaming] (a) again with {cores} threads in the slice session")
         wide = _detector(Path(export_dir), cfg, slice_threads=cores)

@@ -14,14 +14,15 @@ from pathlib import Path
 
 import numpy as np
 
-from streamdet.core.cpu import CPUINFO, KERNEL_FLAGS, cpu_model, cpuid_mask, kernel_flags
+from streamdet.core.cpu import CPUINFO, KERNEL_FLAGS, cpu_model, cpuid_mask, kernel_flags, usable_cpus
 from streamdet.replay.record import STALE_MS, full_collections, percentiles, staleness_by_recent_images
 from streamdet.replay.run import ModeResult, ReplayResult
 
 def cpu_info(cpuinfo: str | Path = CPUINFO) -> dict:
     """{model, flags (those of core.cpu.KERNEL_FLAGS the kernels can see), cpuid_mask (None, or the mask hiding the rest:
-    `streamdet.core.cpu`), threads (usable by this process), logical_cpus}."""
-    threads = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    `streamdet.core.cpu`), threads (usable by this process: `streamdet.core.cpu.usable_cpus`, which also counts a cgroup
+    CPU quota), logical_cpus}."""
+    threads = usable_cpus()
     return {
         "model": cpu_model(cpuinfo),
         "flags": list(kernel_flags(cpuinfo)),
