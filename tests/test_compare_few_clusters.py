@@ -17,6 +17,8 @@ from streamdet.evaluation.cli import main
 from streamdet.evaluation.compare import Comparison, cluster_notes, compare_runs, format_comparison, load_run, write_sample_info
 from streamdet.evaluation.results import write_results_json
 
+from result_entries import result_entry
+
 CLASSES = ("car", "pedestrian")
 META = {"use_camera": False, "use_lidar": True}
 OLD_FIGURE_KEYS = {"A", "B", "B_minus_A", "ci_lo", "ci_hi", "p_not_positive"}
@@ -24,11 +26,7 @@ OLD_TOP_KEYS = {"A", "B", "seed", "num_samples", "num_clusters", "clustered_by",
 
 
 def _entry(token: str, xy, name: str, score: float | None, num_pts: int = 8) -> dict:
-    e = {"sample_token": token, "translation": [float(xy[0]), float(xy[1]), 1.0], "size": [1.0, 2.0, 1.5],
-         "rotation": [1.0, 0.0, 0.0, 0.0], "velocity": [0.0, 0.0], "detection_name": name, "attribute_name": ""}  # fmt: skip
-    if score is None:
-        return e | {"ego_translation": e["translation"], "num_pts": num_pts, "detection_score": -1.0}
-    return e | {"detection_score": score}
+    return result_entry(token, xy, name, score, num_pts)
 
 
 def _world(num_samples: int, seed: int = 0):

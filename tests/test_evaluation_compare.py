@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import math
 
 import numpy as np
 import pytest
@@ -14,20 +13,11 @@ from streamdet.evaluation.bootstrap import GtSubset, match_tables, paired_bootst
 from streamdet.evaluation.cli import main
 from streamdet.evaluation.compare import compare_runs, load_run, read_sample_info, write_sample_info
 
+from result_entries import result_entry as _entry
+
 CFG = DetectionConfig()
 CLASSES = ("car", "pedestrian", "traffic_cone")
 META = {"use_camera": False, "use_lidar": True}
-
-
-def _entry(token: str, xy, name: str, score: float | None, num_pts: int, yaw: float = 0.0) -> dict:
-    e = {"sample_token": token, "translation": [float(xy[0]), float(xy[1]), 1.0], "size": [1.0, 2.0, 1.5],
-         "rotation": [math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)], "velocity": [0.0, 0.0],
-         "detection_name": name, "attribute_name": ""}  # fmt: skip
-    if score is None:
-        e |= {"ego_translation": e["translation"], "num_pts": num_pts, "detection_score": -1.0}
-    else:
-        e |= {"detection_score": score}
-    return e
 
 
 def _world(seed: int, num_samples: int = 8, quality: float = 0.5):

@@ -25,19 +25,13 @@ from streamdet.runtime_ort.nms import NmsConfig, NmsKind, nms, overlapping_pairs
 from streamdet.studies.cli import MAX_SEEDS
 from streamdet.studies.cli import main as study_main
 
+from result_entries import result_entry as _entry
+
 META = {"use_camera": False, "use_lidar": True}
 CLASSES = ("car", "pedestrian", "traffic_cone")
 
 
 # ---- saved runs -------------------------------------------------------------------------------------------------
-
-
-def _entry(token: str, xy, name: str, score: float | None, num_pts: int = 5) -> dict:
-    e = {"sample_token": token, "translation": [float(xy[0]), float(xy[1]), 1.0], "size": [1.0, 2.0, 1.5],
-         "rotation": [1.0, 0.0, 0.0, 0.0], "velocity": [0.0, 0.0], "detection_name": name, "attribute_name": ""}  # fmt: skip
-    if score is None:
-        return e | {"ego_translation": e["translation"], "num_pts": num_pts, "detection_score": -1.0}
-    return e | {"detection_score": score}
 
 
 def _world(seed: int = 0, num_samples: int = 6):
