@@ -83,8 +83,7 @@ class BenchConfig:
 
     def streaming(self) -> StreamingConfig:
         cfg = StreamingConfig(num_slices=self.slices, precision=self.stream_precision, image_precision=self.stream_image_precision,
-                              schedule_slice_workers=self.stream_slice_workers,
-                              wide_slice_threads=default_session_threads())  # fmt: skip
+                              schedule_slice_workers=self.stream_slice_workers)  # fmt: skip
         return dataclasses.replace(cfg, sweeps=2, image_updates=1, queue_sweeps=1, schedule_seconds=1.0) if self.quick else cfg
 
 

@@ -43,6 +43,14 @@ def cpuid_mask(environ: dict[str, str] | None = None) -> str | None:
     return name
 
 
+def _cpuinfo_fields(text: str):
+    """(key, value) of each "key : value" line of a /proc/cpuinfo text, both stripped, in order."""
+    for line in text.splitlines():
+        key, sep, value = line.partition(":")
+        if sep:
+            yield key.strip(), value.strip()
+
+
 def read_cpuinfo(path: str | Path = CPUINFO) -> tuple[str | None, frozenset[str]]:
     """(model name, flags) of the first processor in a /proc/cpuinfo text; (None, empty) where it cannot be read."""
     try:
@@ -50,13 +58,9 @@ def read_cpuinfo(path: str | Path = CPUINFO) -> tuple[str | None, frozenset[str]
     except OSError:
         return None, frozenset()
     model, flags = None, None
-    for line in text.splitlines():
-        key, sep, value = line.partition(":")
-        if not sep:
-            continue
-        key = key.strip()
-        if key == "model name" and model is None and value.strip():
-            model = value.strip()
+    for key, value in _cpuinfo_fields(text):
+        if key == "model name" and model is None and value:
+            model = value
         elif key == "flags" and flags is None:
             flags = frozenset(value.split())
     return model, flags or frozenset()
@@ -199,17 +203,13 @@ def count_cores(sibling_lists: Iterable[str]) -> int | None:
 def cpuinfo_cores(text: str) -> int | None:
     """Physical cores of a /proc/cpuinfo text: its distinct (physical id, core id) pairs; None without core ids."""
     cores, package = set(), ""
-    for line in text.splitlines():
-        key, sep, value = line.partition(":")
-        key = key.strip()
-        if not sep:
-            continue
+    for key, value in _cpuinfo_fields(text):
         if key == "processor":
             package = ""
         elif key == "physical id":
-            package = value.strip()
+            package = value
         elif key == "core id":
-            cores.add((package, value.strip()))
+            cores.add((package, value))
     return len(cores) or None
 
 
@@ -240,10 +240,8 @@ def cpu_vendor_family(path: str | Path = CPUINFO) -> tuple[str | None, int | Non
     does not say or cannot be read."""
     text = _read(Path(path))
     vendor, family = None, None
-    for line in (text or "").splitlines():
-        key, sep, value = line.partition(":")
-        key, value = key.strip(), value.strip()
-        if not sep or not value:
+    for key, value in _cpuinfo_fields(text or ""):
+        if not value:
             continue
         if key == "vendor_id" and vendor is None:
             vendor = value

@@ -425,26 +425,27 @@ class StreamingDetector:
             if name in known:
                 features[needed.index(name)] = known[name]
         maps = {name: known[name] if name in known else features[needed.index(name)] for name in used}  # per-camera lifts
-        for _ in range(MAX_RELIFTS_PER_UPDATE + 1):
+        for attempt in range(MAX_RELIFTS_PER_UPDATE + 1):
+            if attempt:
+                # The calibration was swapped during this update: plan it again with the new LUT. Its quadrants may now
+                # read a camera it was given but did not encode: that one is encoded too rather than lifted as zeros
+                # (the cameras encoded already are kept).
+                lut = self._lut
+                needed = self.camera_names if wanted == ALL_QUADRANTS else self._cameras_under(lut, wanted)
+                extra = tuple(n for n in needed if n in images and n not in maps)
+                if extra:
+                    enc = self._encode(images, extra, extra)  # (E, C, Hf, Wf)
+                    maps = {**maps, **{name: enc[i] for i, name in enumerate(extra)}}
+                used = tuple(n for n in needed if n in images)
+                missing = tuple(n for n in needed if n not in images)
+                features = np.zeros((max(1, len(needed)), *next(iter(maps.values())).shape), np.float32) if maps else \
+                    self._encode(images, (), needed)  # fmt: skip
+                for j, name in enumerate(needed):
+                    if name in maps:
+                        features[j] = maps[name]
             installed = self._install(features, needed, wanted, seq, timestamp, missing, camera_ts, maps, lut)
             if installed is not None:
                 break
-            # The calibration was swapped during this update: plan it again with the new LUT. Its quadrants may now read
-            # a camera it was given but did not encode: that one is encoded too rather than lifted as zeros (the cameras
-            # encoded already are kept).
-            lut = self._lut
-            needed = self.camera_names if wanted == ALL_QUADRANTS else self._cameras_under(lut, wanted)
-            extra = tuple(n for n in needed if n in images and n not in maps)
-            if extra:
-                enc = self._encode(images, extra, extra)  # (E, C, Hf, Wf)
-                maps = {**maps, **{name: enc[i] for i, name in enumerate(extra)}}
-            used = tuple(n for n in needed if n in images)
-            missing = tuple(n for n in needed if n not in images)
-            features = np.zeros((max(1, len(needed)), *next(iter(maps.values())).shape), np.float32) if maps else \
-                self._encode(images, (), needed)  # fmt: skip
-            for j, name in enumerate(needed):
-                if name in maps:
-                    features[j] = maps[name]
         else:
             installed = _gave_up(seq)
         self.stats.record("image_total", (time.perf_counter() - t0) * 1e3)

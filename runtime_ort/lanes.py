@@ -165,7 +165,6 @@ class StreamingRunner:
             jobs = self._slice_jobs
             hold = None if jobs.pair_hold is None else jobs.hold_s
             batch = JobBatching(joins=jobs.joins, run=jobs.detect_together, most=config.coalesce_slices, hold=hold, fits=_run_fits)
-        self._pair_hold = self._slice_jobs.pair_hold
         slices = self._slices = WorkerLane("slice-lane", config.max_in_flight, config.queue_size,
                                            lambda: SliceDropped("slice dropped: queue full"), batch=batch)  # fmt: skip
         superseded = lambda: ImagesSuperseded("image set superseded by a newer one")  # noqa: E731
@@ -221,11 +220,11 @@ class StreamingRunner:
         stamp = arrival if timestamp is None else timestamp
         refused = _points_refused(points)  # before the copy: a huge array would be copied in the driver's thread
         own = np.array(points, copy=True) if refused is None else None  # the driver may reuse its buffer
-        tracked = self._pair_hold is not None or self._phase_locked is not None  # they learn the LiDAR's timing
+        tracked = self._slice_jobs.pair_hold is not None or self._phase_locked is not None  # they learn the LiDAR's timing
         valid = tracked and isinstance(slice_index, (int, np.integer)) and not isinstance(slice_index, bool)
         valid = valid and 0 <= slice_index < self.detector.num_slices
-        if self._pair_hold is not None and valid:
-            self._pair_hold.observe_arrival(arrival)  # before the submit: a worker may decide on its hold at once
+        if self._slice_jobs.pair_hold is not None and valid:
+            self._slice_jobs.pair_hold.observe_arrival(arrival)  # before the submit: a worker may decide on its hold at once
         if refused is not None:  # still an arrival of the LiDAR's: its timing was observed
             future: Future = Future()
             future.set_exception(ValueError(refused))
@@ -257,7 +256,7 @@ class StreamingRunner:
     def pair_hold_load(self) -> float | None:
         """The slice lane's measured load, the median cost of a slice over its recent runs over the slice period per
         worker (LaneConfig.pair_hold_load); None without the hold, or before the period and the cost are measured."""
-        return None if self._pair_hold is None else self._pair_hold.load
+        return None if self._slice_jobs.pair_hold is None else self._slice_jobs.pair_hold.load
 
     @property
     def images_superseded(self) -> int:

@@ -213,13 +213,15 @@ def test_a_drop_callback_that_closes_the_runner_does_not_deadlock():
     assert isinstance(waiting.exception(0), SliceDropped) and runner.slices_dropped == 1
 
 
-def test_a_supersede_callback_that_closes_the_full_schedule_runner_does_not_deadlock():
+def _superseded_set_closes_the_runner(schedule: str) -> tuple[StreamingRunner, Future, Future, Future, list]:
+    """Set 0 is in its (gated) update, set 1 waits, set 2 supersedes set 1, whose done-callback opens the gate and
+    closes the runner. (runner, set 0, set 1, set 2, what close() returned)."""
     det = GatedDetector()
-    runner = StreamingRunner(det, LaneConfig(schedule="full"))
-    running = runner.submit_images(_images(), 0.0)
+    runner = StreamingRunner(det, LaneConfig(schedule=schedule))
+    first = runner.submit_images(_images(), 0.0)
     assert det.started.wait(WAIT_S)
     waiting = runner.submit_images(_images(), 1.0)
-    closed = []
+    closed: list = []
 
     def close_runner(_f: Future) -> None:
         det.gate.set()
@@ -227,6 +229,11 @@ def test_a_supersede_callback_that_closes_the_full_schedule_runner_does_not_dead
 
     waiting.add_done_callback(close_runner)
     newest = _returns_within(lambda: runner.submit_images(_images(), 2.0), 2 * WAIT_S)
+    return runner, first, waiting, newest, closed
+
+
+def test_a_supersede_callback_that_closes_the_full_schedule_runner_does_not_deadlock():
+    runner, running, waiting, newest, closed = _superseded_set_closes_the_runner("full")
     assert closed == [True]
     assert running.result(0) == 0.0 and newest.result(0) == 2.0
     assert isinstance(waiting.exception(0), ImagesSuperseded) and runner.images_superseded == 1
@@ -235,20 +242,8 @@ def test_a_supersede_callback_that_closes_the_full_schedule_runner_does_not_dead
 def test_a_supersede_callback_that_closes_the_phase_locked_runner_does_not_deadlock():
     """The lane's worker is in the update of set 0 (gated); set 1 waits; set 2 supersedes it, and set 1's callback
     opens the gate and closes the runner: the worker finishes set 0's update and ends, set 2 (never used) is
-    cancelled, nothing is left pending."""
-    det = GatedDetector()
-    runner = StreamingRunner(det, LaneConfig(schedule="phase-locked"))
-    used = runner.submit_images(_images(), 0.0)
-    assert det.started.wait(WAIT_S)
-    waiting = runner.submit_images(_images(), 1.0)  # set 0 is used: not superseded
-    closed = []
-
-    def close_runner(_f: Future) -> None:
-        det.gate.set()
-        closed.append(runner.close(timeout=WAIT_S))
-
-    waiting.add_done_callback(close_runner)
-    newest = _returns_within(lambda: runner.submit_images(_images(), 2.0), 2 * WAIT_S)
+    cancelled, nothing is left pending (set 0 is used: not superseded)."""
+    runner, used, waiting, newest, closed = _superseded_set_closes_the_runner("phase-locked")
     assert closed == [True]
     assert used.result(0) == 0.0 and isinstance(waiting.exception(0), ImagesSuperseded)
     # the worker may have lifted set 2 between the gate opening and close(): lifted, or cancelled, never pending
