@@ -17,6 +17,7 @@ from streamdet.cli_utils import (
     fallback_after_s,
     fallback_options,
     image_precision_option,
+    providers_option,
     refuse_output_over_inputs,
     refuse_same_outputs,
     split_list,
@@ -91,11 +92,12 @@ def export_cmd(data_dir: Path | None, scene: str | None, version: str, out: Path
 @click.option("--precision", type=click.Choice(PRECISION_CHOICES), default="fp32", show_default=True,
               help="Which graphs of the export to run.")
 @image_precision_option()
+@providers_option()
 @fallback_options(clock="bag time")
 @click.option("-v", "--verbose", is_flag=True, help="Log providers and sessions.")
 def run_cmd(bag_path: Path, export_dir: Path, out: Path, results_json: Path | None, topics: str | None,
             slice_per_message: bool, ego_frame: str, global_frame: str, num_slices: int | None, precision: str,
-            image_precision: str | None, fallback_export_dir: Path | None, fallback_after_ms: float | None,
+            image_precision: str | None, providers: tuple[str, ...] | None, fallback_export_dir: Path | None, fallback_after_ms: float | None,
             verbose: bool) -> None:  # fmt: skip
     """Detect every LiDAR message of a bag in recorded order (images first when new ones arrived) and write the
     detections per slice as ROS 2 topics, stamped with the slice's scan time, plus the nuScenes results JSON."""
@@ -113,7 +115,7 @@ def run_cmd(bag_path: Path, export_dir: Path, out: Path, results_json: Path | No
         config = RunConfig(
             topics=TopicMap.parse(topics),
             detector=DetectorConfig(precision=precision, image_lane_precision=image_precision, num_slices=num_slices,
-                                    fallback_export_dir=fallback_export_dir,
+                                    fallback_export_dir=fallback_export_dir, providers=providers,
                                     fallback_after_s=fallback_after_s(fallback_after_ms)),
             slice_per_message=slice_per_message,
             ego_frame=ego_frame,
@@ -126,7 +128,8 @@ def run_cmd(bag_path: Path, export_dir: Path, out: Path, results_json: Path | No
         click.echo("", err=True)
     click.echo(
         f"{summary.num_sweeps} sweeps, {summary.num_slices} slices, {summary.num_image_sets} image sets "
-        f"({summary.precision}, cameras {list(summary.cameras) or 'none'}): {summary.num_detections} detections"
+        f"({summary.precision}, {', '.join(summary.providers)}, cameras {list(summary.cameras) or 'none'}): "
+        f"{summary.num_detections} detections"
     )
     if fallback_export_dir is not None:
         click.echo(f"{summary.num_fallback_slices} of {summary.num_slices} slices ran the LiDAR-only fallback "

@@ -55,6 +55,7 @@ class RunSummary:
     precision: str
     latency_ms: dict
     num_fallback_slices: int = 0  # slices the LiDAR-only fallback ran (DetectorConfig.fallback_export_dir)
+    providers: tuple[str, ...] = ()  # onnxruntime's execution providers of the slice session
 
 
 def run_bag(
@@ -129,7 +130,8 @@ def run_bag(
     write_results_json(results_path, results, {"use_camera": det.uses_images, "use_lidar": True})
     without = tuple(c for c in det.camera_names if c in source.cameras_without_info)
     return RunSummary(out, results_path, counts["sweeps"], counts["slices"], counts["image_sets"], counts["detections"],
-                      det.camera_names, without, det.precision_label, det.stats.summary(), counts["fallback"])  # fmt: skip
+                      det.camera_names, without, det.precision_label, det.stats.summary(), counts["fallback"],
+                      tuple(det.providers))  # fmt: skip
 
 
 def results_path_of(out: str | Path, results_json: str | Path | None) -> Path:

@@ -41,6 +41,7 @@ from streamdet.benchmarks.timing import TimingConfig, TimingStats, summarize
 from streamdet.core.slicing import split_sweep
 from streamdet.data.sample import load_bundled_sample
 from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector, lane_precision_label
+from streamdet.runtime_ort.sessions import CPU_ONLY
 from streamdet.runtime_ort.lanes import LaneConfig
 from streamdet.runtime_ort.manifest import Manifest, ManifestError, read_manifest
 from streamdet.runtime_ort.postprocess import PostprocessConfig
@@ -225,6 +226,7 @@ class StreamingResult:
     image_precision: str = ""  # the image lane's graphs; "" (older results): precision
     # (d) per image-lane schedule: staleness, image age, slice p99, drops, CPU per rotation (streaming_schedules.py)
     schedules: dict[str, dict] = dataclasses.field(default_factory=dict)
+    providers: tuple[str, ...] = ()  # the slice session's onnxruntime providers; () in older results
 
     @property
     def precision_label(self) -> str:
@@ -298,6 +300,7 @@ def _detector(export_dir: Path, cfg: StreamingConfig, profiling: bool = False, s
             num_slices=cfg.num_slices,
             enable_profiling=profiling,
             profile_dir=profile_dir,
+            providers=CPU_ONLY,
         ),
     )
 
@@ -461,4 +464,5 @@ def measure_streaming(
         config=cfg,
         prepost=prepost,
         schedules=schedules,
+        providers=tuple(det.providers),
     )

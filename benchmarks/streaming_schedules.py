@@ -23,6 +23,7 @@ from streamdet.replay.record import percentiles
 from streamdet.replay.source import Drive, ImageSet, LidarSweep
 from streamdet.replay.triggers import camera_axis_azimuths_deg, lidar_synced_triggers, simultaneous_triggers
 from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector
+from streamdet.runtime_ort.sessions import CPU_ONLY
 from streamdet.runtime_ort.lanes import SCHEDULES, LaneConfig
 
 LIDAR_HZ = 20.0  # nuScenes rates
@@ -59,7 +60,8 @@ def measure_schedules(
 
     out = {}
     for schedule in SCHEDULES:
-        det = StreamingDetector(export_dir, DetectorConfig(precision=precision, image_lane_precision=image_precision))
+        det = StreamingDetector(export_dir, DetectorConfig(precision=precision, image_lane_precision=image_precision,
+                                                           providers=CPU_ONLY))  # fmt: skip
         img = det.manifest.image
         stacked = load_bundled_sample().load_images((img.width, img.height))  # (J, H, W, 3) rig order
         images = {n: np.ascontiguousarray(stacked[j]) for j, n in enumerate(det.camera_names)}

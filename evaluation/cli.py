@@ -21,6 +21,7 @@ from streamdet.cli_utils import (
     check_folder_creatable,
     check_output_parent,
     image_precision_option,
+    providers_option,
     refuse_output_over_inputs,
     split_list,
 )
@@ -98,12 +99,14 @@ def _note_absent_classes(metrics: DetectionMetrics, present: set[str]) -> None:
 
 def _data_inputs(data_dir: Path, version: str, split: str | None, export_dir: Path, slices: int | None,
                  precision: str, max_samples: int | None, classes: tuple[str, ...] | None, json_path: Path | None,
-                 save_dir: Path | None = None, image_precision: str | None = None) -> None:  # fmt: skip
+                 save_dir: Path | None = None, image_precision: str | None = None,
+                 providers: tuple[str, ...] | None = None) -> None:  # fmt: skip
     """``--data`` mode: run the ONNX runtime over the split, then the same report as the files mode."""
     from streamdet.evaluation.dataset_eval import OnnxSweepDetector, evaluate_dataset  # onnxruntime, not torch
 
     try:
-        detector = OnnxSweepDetector(export_dir, precision=precision, num_slices=slices, image_precision=image_precision)
+        detector = OnnxSweepDetector(export_dir, precision=precision, num_slices=slices, image_precision=image_precision,
+                                     providers=providers)  # fmt: skip
     except (ValueError, OSError) as e:  # ManifestError is a ValueError
         raise click.ClickException(f"--export-dir {export_dir}: {first_line(e)}") from None
     n = detector.detector.num_slices
@@ -130,6 +133,7 @@ def _data_inputs(data_dir: Path, version: str, split: str | None, export_dir: Pa
         lanes = {"image_precision": detector.detector.config.image_precision} if detector.detector.uses_images else {}
         doc = {**result.metrics.to_dict(), "num_samples": result.num_samples, "num_slices": n,
                "precision": detector.detector.config.precision, **lanes,
+               "providers": list(detector.detector.providers),
                "export_dir": str(export_dir), "data_dir": str(data_dir), "split": split}  # fmt: skip
         try:
             json_path.write_text(json.dumps(doc, indent=1, allow_nan=False) + "\n")
@@ -164,7 +168,8 @@ def _run_group(arg: str) -> list[Path]:
 
 # The options of one mode only, by parameter name: given in another mode they would be ignored, silently.
 _MODE_OPTIONS = {
-    "dataset": ("version", "split", "export_dir", "slices", "precision", "image_precision", "max_samples", "save_dir"),
+    "dataset": ("version", "split", "export_dir", "slices", "precision", "image_precision", "providers", "max_samples",
+                "save_dir"),
     "compare": ("draws", "seed", "no_subsets"),
 }
 
@@ -263,6 +268,7 @@ def _compare(run_a: str, run_b: str, gt_path: Path | None, classes: tuple[str, .
 @click.option("--precision", type=click.Choice(PRECISION_CHOICES), default="fp32", show_default=True,
               help="Dataset mode: which graphs of the export to run.")  # fmt: skip
 @image_precision_option()
+@providers_option()
 @click.option("--max-samples", type=click.IntRange(min=1), default=None, help="Dataset mode: score only the first N samples of the split.")
 @click.option(
     "--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
@@ -296,8 +302,8 @@ def _compare(run_a: str, run_b: str, gt_path: Path | None, classes: tuple[str, .
               help="Compare mode: bootstrap all boxes only, without the per-slice, cut-by-border and few-points "
               "subsets (each subset costs as much as the headline: 35 of them at 32 slices).")  # fmt: skip
 def main(gt_path: Path | None, results_path: Path | None, data_dir: Path | None, version: str, split: str,
-         export_dir: Path, slices: int | None, precision: str, image_precision: str | None, max_samples: int | None,
-         json_path: Path | None, classes: str | None, save_dir: Path | None,
+         export_dir: Path, slices: int | None, precision: str, image_precision: str | None,
+         providers: tuple[str, ...] | None, max_samples: int | None, json_path: Path | None, classes: str | None, save_dir: Path | None,
          compare_runs: tuple[str, str] | None = None, draws: int = 1000, seed: int = 0,
          no_subsets: bool = False) -> None:  # fmt: skip
     """nuScenes detection mAP, TP errors and NDS, computed as nuscenes-devkit 1.2.0 (detection_cvpr_2019).
@@ -331,7 +337,7 @@ def main(gt_path: Path | None, results_path: Path | None, data_dir: Path | None,
         check_output_parent(json_path, "--json")  # now, not after the whole split was detected
         check_folder_creatable(save_dir, "--save-results")
         _data_inputs(data_dir, version, None if split == "all" else split, export_dir, slices, precision, max_samples,
-                     class_list, json_path, save_dir, image_precision)  # fmt: skip
+                     class_list, json_path, save_dir, image_precision, providers)  # fmt: skip
         return
     if image_precision is not None:
         raise click.UsageError("--image-precision is for the dataset mode (--data), which runs the detector")

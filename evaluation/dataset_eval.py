@@ -117,12 +117,12 @@ class OnnxSweepDetector:
 
     def __init__(
         self, export_dir: str | Path, precision: str = "fp32", num_slices: int | None = None, threads: int = 1,
-        image_precision: str | None = None,
+        image_precision: str | None = None, providers: tuple[str, ...] | None = None,
     ) -> None:
         from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector
 
         cfg = DetectorConfig(precision=precision, image_lane_precision=image_precision, num_slices=num_slices,
-                             image_lane_threads=threads, slice_lane_threads=threads)  # fmt: skip
+                             image_lane_threads=threads, slice_lane_threads=threads, providers=providers)  # fmt: skip
         self.detector = StreamingDetector(export_dir, cfg)
 
     def __call__(self, sample: Sample) -> Detections:

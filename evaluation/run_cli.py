@@ -13,7 +13,7 @@ from pathlib import Path
 import click
 import numpy as np
 
-from streamdet.cli_utils import MAX_SLICES, PRECISION_CHOICES, image_precision_option, refuse_output_over_inputs
+from streamdet.cli_utils import MAX_SLICES, PRECISION_CHOICES, image_precision_option, providers_option, refuse_output_over_inputs
 from streamdet.runtime_ort.stats import format_latency
 from streamdet.core import constants
 
@@ -22,7 +22,7 @@ DEFAULT_EXPORT_DIR = Path(constants.DEFAULT_EXPORT_DIR)
 
 def run_sample(
     export_dir: Path, sample_dir: Path | None, num_slices: int | None, out_dir: Path, precision: str,
-    image_precision: str | None = None,
+    image_precision: str | None = None, providers: tuple[str, ...] | None = None,
 ) -> dict:
     """Detect every slice of one sample through the runtime; write results JSON and a BEV picture. Returns a summary."""
     import cv2
@@ -35,7 +35,7 @@ def run_sample(
     from streamdet.runtime_ort.pipeline import detect_sample
 
     sample = load_bundled_sample(sample_dir)
-    config = DetectorConfig(precision=precision, image_lane_precision=image_precision, num_slices=num_slices)
+    config = DetectorConfig(precision=precision, image_lane_precision=image_precision, num_slices=num_slices, providers=providers)
     det = StreamingDetector(export_dir, config)
     # A LiDAR-only export (the streaming baseline) has no image lane: the sample's images are not read.
     run = detect_sample(det, sample)
@@ -98,12 +98,13 @@ def run_sample(
 @click.option("--precision", type=click.Choice(PRECISION_CHOICES), default="fp32", show_default=True,
               help="Which graphs of the export to run.")
 @image_precision_option()
+@providers_option()
 @click.option("--out", "out_dir", type=click.Path(path_type=Path, file_okay=False), default=Path("out") / "run",
               show_default=True, help="Where to write results_nusc.json and bev.png.")
 @click.option("-v", "--verbose", is_flag=True, help="Log providers and sessions.")
 def main(
     export_dir: Path, sample_dir: Path | None, num_slices: int | None, precision: str, image_precision: str | None,
-    out_dir: Path, verbose: bool,
+    providers: tuple[str, ...] | None, out_dir: Path, verbose: bool,
 ) -> None:
     """Run the streaming detector (onnxruntime, no PyTorch) on one sample: every slice, then the sweep merged."""
     logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(message)s")
@@ -114,7 +115,7 @@ def main(
     # --out inside the sample (the bundled one by default) or the export would add files to what others read
     refuse_output_over_inputs(out_dir, "--out", [("--export-dir", export_dir), ("--sample", sample_dir or bundled_sample_dir())])
     try:
-        summary = run_sample(export_dir, sample_dir, num_slices, out_dir, precision, image_precision)
+        summary = run_sample(export_dir, sample_dir, num_slices, out_dir, precision, image_precision, providers)
     except (ValueError, KeyError, FileNotFoundError, OSError) as e:
         raise click.ClickException(str(e)) from None
     except MemoryError:  # not an input error to run_edge: say what ran out, not a traceback

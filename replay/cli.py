@@ -21,6 +21,7 @@ from streamdet.cli_utils import (
     fallback_after_s,
     fallback_options,
     image_precision_option,
+    providers_option,
     refuse_output_over_inputs,
     refuse_same_outputs,
 )
@@ -119,6 +120,7 @@ def _progress(message: str) -> None:
 @click.option("--precision", type=click.Choice(PRECISION_CHOICES), default="fp32", show_default=True,
               help="Precision of the slice graph.")
 @image_precision_option()
+@providers_option()
 @click.option("--lidar-hz", type=click.FloatRange(0, MAX_RATE_HZ, min_open=True), default=20.0, show_default=True,
               help=f"LiDAR rotations per second (the rotation period the slices are released over); 0 < Hz <= {MAX_RATE_HZ:.0f}.")
 @click.option("--slices", "num_slices", type=click.IntRange(1, MAX_SLICES), default=None,
@@ -182,7 +184,7 @@ def _progress(message: str) -> None:
               help="Write replay.json (every slice's record, per-class scores, lane CPU, stage GMAC) and report.md here.")
 def main(
     data: Path, table_version: str, split: str, scenes: int | None, export_dir: Path, precision: str,
-    image_precision: str | None, lidar_hz: float, num_slices: int | None, camera_hz: float, camera_trigger: str,
+    image_precision: str | None, providers: tuple[str, ...] | None, lidar_hz: float, num_slices: int | None, camera_hz: float, camera_trigger: str,
     camera_delivery_ms: float, mode: str, time_scale: float,
     max_seconds: float | None, threads: int, image_lane_threads: int | None, slice_workers: int | None, queue_size: int | None, schedule: str,
     image_lane_nice: int, image_lane_yield: int, coalesce_slices: int | None, pair_hold_load: float | None, freeze_heap: bool, camera_terms: bool | None, fallback_export_dir: Path | None, fallback_after_ms: float | None, json_path: Path | None,
@@ -217,7 +219,7 @@ def main(
             camera_hz=camera_hz, camera_trigger=camera_trigger, modes=MODES if mode == "all" else (mode,), time_scale=time_scale,
             max_seconds=max_seconds, threads=threads, image_lane_threads=image_lane_threads, lanes=lanes, fallback_export_dir=fallback_export_dir,
             camera_terms=camera_terms, camera_delivery_ms=camera_delivery_ms, freeze_heap=freeze_heap,
-            fallback_after_s=fallback_after_s(fallback_after_ms),
+            fallback_after_s=fallback_after_s(fallback_after_ms), providers=providers,
         )  # fmt: skip
         info = cpu_info()  # before the replay: a failure here must not throw a finished replay away
         result = run_replay(config, _progress)

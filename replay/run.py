@@ -64,6 +64,7 @@ class ReplayConfig:
     # every camera frame reaches the runtime this long after its capture (PlayerConfig.camera_delivery_ms); 0: at capture
     camera_delivery_ms: float = 0.0
     freeze_heap: bool = True  # PlayerConfig.freeze_heap: the heap alive at a drive's start is out of full collections
+    providers: tuple[str, ...] | None = None  # onnxruntime's execution providers (DetectorConfig.providers); None: default
 
     def __post_init__(self) -> None:
         unknown = [m for m in self.modes if m not in MODES]
@@ -92,6 +93,7 @@ class ReplayConfig:
     def to_dict(self) -> dict:
         d = {k: getattr(self, k) for k in self.__dataclass_fields__ if k != "lanes"}
         d.update(data=str(self.data), export_dir=str(self.export_dir), modes=list(self.modes),
+                 providers=None if self.providers is None else list(self.providers),
                  fallback_export_dir=None if self.fallback_export_dir is None else str(self.fallback_export_dir),
                  slice_workers=self.lanes.max_in_flight, slice_queue=self.lanes.queue_size,
                  schedule=self.lanes.schedule, image_lane_nice=self.lanes.image_lane_nice,
@@ -120,6 +122,7 @@ class ReplayResult:
     truth_source: str
     camera_terms: bool = False  # whether the detector's quadrant updates used per-camera lifts (DetectorConfig.camera_terms)
     uses_images: bool = True  # False: a LiDAR-only export (no cameras played, no image lane)
+    providers: tuple[str, ...] = ()  # the providers the slice session ran on (its onnxruntime session's)
 
 
 def split_scenes(tables: DatasetTables, split: str | None, count: int | None) -> list[str]:
@@ -141,7 +144,7 @@ def open_detector(config: ReplayConfig, num_slices: int | None = None) -> Stream
         precision=config.precision, image_lane_precision=config.image_precision, num_slices=num_slices or config.num_slices,
         image_lane_threads=config.image_lane_threads or config.threads, slice_lane_threads=config.threads,
         fallback_export_dir=config.fallback_export_dir, fallback_after_s=config.fallback_after_s,
-        camera_terms=config.camera_terms))  # fmt: skip
+        camera_terms=config.camera_terms, providers=config.providers))  # fmt: skip
 
 
 def warm_up(det: StreamingDetector, drive: Drive, num_slices: int, per_quadrant: bool = False) -> None:
@@ -200,7 +203,7 @@ def run_replay(config: ReplayConfig, progress: Progress = lambda msg: None) -> R
         results[mode] = ModeResult(tuple(recordings[mode]), scores, merge_stages(stages[mode]))
     notes = tuple(dict.fromkeys(note for d in drives for note in d.notes))
     return ReplayResult(config, n, label, tuple(scenes), tuple(drives), tuple(truths), results, notes,
-                        " + ".join(sorted(sources)), probe.camera_terms, probe.uses_images)  # fmt: skip
+                        " + ".join(sorted(sources)), probe.camera_terms, probe.uses_images, tuple(probe.providers))  # fmt: skip
 
 
 def _lanes(config: ReplayConfig) -> LaneConfig:

@@ -75,13 +75,14 @@ from streamdet.runtime_ort.image_cache import (  # noqa: F401 (check_camera_time
     update_quadrants,
 )
 from streamdet.runtime_ort.lut_views import LutViews
-from streamdet.runtime_ort.manifest import ImageSpec, Manifest, ManifestError, read_export_file, read_manifest
+from streamdet.runtime_ort.manifest import GraphEntry, ImageSpec, Manifest, ManifestError, read_export_file, read_manifest
 from streamdet.runtime_ort.pillarize import pillarize
 from streamdet.runtime_ort.postprocess import Detections, PostprocessConfig, aggregate_sweep, postprocess_slice, top_k_reached
 from streamdet.runtime_ort.recording import Feeds, GraphRecording
-from streamdet.runtime_ort.sessions import GraphRunError, GraphSession, SessionConfig
+from streamdet.runtime_ort.sessions import TENSORRT_PROVIDER, GraphRunError, GraphSession, SessionConfig, resolve_providers
 from streamdet.runtime_ort.signature import check_graph, check_parity, check_runtime_fields
 from streamdet.runtime_ort.stats import LatencyStats
+from streamdet.runtime_ort.tensorrt import default_cache_dir, tensorrt_options
 from streamdet.runtime_ort.warm_up import warm_up
 
 log = logging.getLogger(__name__)
@@ -154,7 +155,7 @@ class StreamingDetector:
             entry = m.graph(name, precision)
             path, raw, _ = self._read_graph(name, precision)
             cfg = SessionConfig(config.providers, threads, enable_profiling=config.enable_profiling, profile_dir=config.profile_dir)
-            graph = GraphSession(path, cfg, model=raw)  # the bytes hashed are the bytes loaded
+            graph = GraphSession(path, cfg, model=raw, provider_options=self._provider_options(entry))  # the bytes hashed are the bytes loaded
             check_graph(entry, graph.inputs, graph.outputs, m, self.grid)  # the graph is what the manifest says
             return graph
 
@@ -170,7 +171,8 @@ class StreamingDetector:
                 raise NoImageLaneError(self._no_image_lane("it needs no LiDAR-only fallback (DetectorConfig.fallback_export_dir)"))
             cfg = SessionConfig(config.providers, config.slice_lane_threads, enable_profiling=config.enable_profiling,
                                 profile_dir=config.profile_dir)  # fmt: skip
-            self._fallback = open_fallback(config.fallback_export_dir, m, self.grid, cfg, config.precision, config.verify_sha256)
+            self._fallback = open_fallback(config.fallback_export_dir, m, self.grid, cfg, config.precision, config.verify_sha256,
+                                           self._provider_options)  # fmt: skip
         self.stats = LatencyStats()
         graphs = {"image_encoder": self.image_encoder, "volumetric_lifter": self.lifter, "slice_head": self.slice_head,
                   FALLBACK_GRAPH: None if self._fallback is None else self._fallback.session}  # fmt: skip
@@ -209,6 +211,24 @@ class StreamingDetector:
         # per-camera lifts of image updates (camera_terms.py); None: every update runs the lifter graph
         self._terms: CameraTerms | None = self._open_camera_terms() if self.uses_images and self._lut is not None else None
         log.info("streamdet: %s (%s, %d slices) on %s", self.export_dir, self.precision_label, self.num_slices, list(self.providers))
+
+    def _provider_options(self, entry: GraphEntry) -> dict[str, dict[str, str]] | None:
+        """TensorRT's options for one graph where TensorRT is among the providers (runtime_ort/tensorrt.py): the
+        engine cache, and a shape profile for the graphs whose dynamic dimensions are known here: the pillar count P
+        (1 to the export's max_pillars), the quadrants Q a slice reads, the cameras J and the image size (the
+        lifter's LUT depth K is the LUT's, unknown until it is built: that graph builds from the shapes it sees)."""
+        if TENSORRT_PROVIDER not in resolve_providers(self.config.providers):
+            return None
+        img = self.image
+        q_opt = len(quadrants_of_sector(0, self.num_slices, self.config.start_deg))
+        dims = {"P": (1, self._max_pillars, self._max_pillars), "Q": (1, q_opt, NUM_QUADRANTS)}
+        if img is not None:
+            cams = len(self.camera_names)
+            dims.update(J=(1, cams, cams), H=(img.height,) * 3, W=(img.width,) * 3,
+                        Hf=(img.feature_height,) * 3, Wf=(img.feature_width,) * 3)  # fmt: skip
+        cache = Path(self.config.tensorrt_cache_dir if self.config.tensorrt_cache_dir is not None else default_cache_dir())
+        cache.mkdir(parents=True, exist_ok=True)
+        return {TENSORRT_PROVIDER: tensorrt_options(entry.inputs, dims, cache, fp16=entry.precision == "fp16")}
 
     def _read_graph(self, name: str, precision: str) -> tuple[Path, bytes, onnx.ModelProto]:
         """(path, bytes, parsed model) of one of the export's graphs: read once, hashed (``verify_sha256``), no

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from streamdet.core.constants import MAX_SESSION_THREADS, PRECISIONS
+from streamdet.core.providers import parse_providers
 from streamdet.core.sectors import check_num_slices
 from streamdet.runtime_ort.fallback import check_fallback_age
 from streamdet.runtime_ort.nms import NmsConfig
@@ -39,7 +40,9 @@ class DetectorConfig:
     # here with fp32 slices halves the image lane's time (camera features half as old) and leaves the slice graph
     # exact; its int8 sibling is not faster (README, "Which precision").
     image_lane_precision: str | None = None
-    providers: tuple[str, ...] | None = None  # None: TensorRT > CUDA > CPU, whichever onnxruntime has
+    # onnxruntime execution providers by preference ("cuda", "CUDAExecutionProvider", ...; the CPU is always appended
+    # as the fallback); None: STREAMDET_PROVIDERS's, else CUDA > CPU, whichever onnxruntime has (runtime_ort/sessions.py)
+    providers: tuple[str, ...] | None = None
     image_lane_threads: int = 1  # intra-op threads of the image encoder and lifter sessions (0: every core; <= 64)
     slice_lane_threads: int = 1  # intra-op threads of the slice session (0: every core; <= 64)
     num_slices: int | None = None  # slices per sweep (1, 2 or a multiple of 4); None: the number the export was made for
@@ -66,6 +69,9 @@ class DetectorConfig:
     # image lane is fp32 or int8; True: required (ValueError where it cannot); False: every update runs the lifter
     # graph (with an int8 lane its BEV differs from the terms' by about the int8 lifter's own error).
     camera_terms: bool | None = None
+    # Where TensorRT keeps its engines between runs (only with TensorrtExecutionProvider among the providers);
+    # None: runtime_ort/tensorrt.py's default_cache_dir ($STREAMDET_TENSORRT_CACHE, else ~/.cache/streamdet/tensorrt).
+    tensorrt_cache_dir: str | os.PathLike | None = None
 
     @property
     def image_precision(self) -> str:
@@ -107,6 +113,10 @@ class DetectorConfig:
             isinstance(self.providers, str) or not all(isinstance(p, str) for p in self.providers)
         ):
             raise ValueError(f"DetectorConfig.providers must be None or a tuple of provider names, got {self.providers!r}")
+        if self.providers:  # short names ("cuda") become onnxruntime's; an unknown one raises here, not at the first session
+            object.__setattr__(self, "providers", parse_providers(",".join(self.providers), "DetectorConfig.providers"))
+        if self.tensorrt_cache_dir is not None and not isinstance(self.tensorrt_cache_dir, (str, os.PathLike)):
+            raise ValueError(f"DetectorConfig.tensorrt_cache_dir must be None or a path, got {self.tensorrt_cache_dir!r}")
         if self.image_lane_precision is not None and self.image_lane_precision not in PRECISIONS:
             raise ValueError(
                 f"DetectorConfig.image_lane_precision must be None or one of {PRECISIONS}, got {self.image_lane_precision!r}"

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 import numbers
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -56,8 +57,10 @@ def check_fallback_age(after_s: float | None, export_dir: object) -> None:
 
 
 def open_fallback(export_dir: str | Path, main: Manifest, grid: GridSpec, session_config: SessionConfig,
-                  precision: str, verify_sha256: bool) -> LidarFallback:  # fmt: skip
-    """The slice graph of the LiDAR-only export at ``export_dir``, checked against the main export ``main``."""
+                  precision: str, verify_sha256: bool,
+                  provider_options: Callable[[GraphEntry], Mapping[str, Mapping[str, str]]] | None = None) -> LidarFallback:  # fmt: skip
+    """The slice graph of the LiDAR-only export at ``export_dir``, checked against the main export ``main``;
+    ``provider_options``: the session's provider options for the graph's manifest entry (GraphSession)."""
     path = Path(export_dir)
     m = read_manifest(path, verify_files=verify_sha256)
     check_runtime_fields(m)
@@ -81,7 +84,8 @@ def open_fallback(export_dir: str | Path, main: Manifest, grid: GridSpec, sessio
     entry = m.graph("slice_head", precision)
     file, raw = read_export_file(path, entry, f"graph file of slice_head ({precision})", verify_sha256)
     checked_model(file, raw, entry)
-    graph = GraphSession(file, session_config, model=raw)  # the bytes hashed are the bytes loaded
+    options = None if provider_options is None else provider_options(entry)
+    graph = GraphSession(file, session_config, model=raw, provider_options=options)  # the bytes hashed are the bytes loaded
     check_graph(entry, graph.inputs, graph.outputs, m, fb_grid)
     return LidarFallback(path, m, graph, entry, m.slice_crop)
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import os
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -18,6 +19,15 @@ import numpy as np
 import onnxruntime as ort
 from onnxruntime.capi import onnxruntime_pybind11_state as _ort_state
 
+from streamdet.core.providers import (  # noqa: F401 (parse_providers and the names: public here too)
+    AUTO_PROVIDERS,
+    CPU_PROVIDER,
+    CUDA_PROVIDER,
+    PROVIDER_ALIASES,
+    PROVIDERS_ENV,
+    TENSORRT_PROVIDER,
+    parse_providers,
+)
 from streamdet.runtime_ort.manifest import ManifestError
 from streamdet.runtime_ort.signature import TensorSignature
 
@@ -39,8 +49,23 @@ def ort_message(e: BaseException) -> str:
     text = " ".join(str(e).split())
     return text.rsplit(" : ", 1)[-1] if text.startswith("[ONNXRuntimeError]") else text
 
-# Preference order when the caller does not name providers: the first ones this onnxruntime build has win.
-PREFERRED_PROVIDERS: tuple[str, ...] = ("TensorrtExecutionProvider", "CUDAExecutionProvider", "CPUExecutionProvider")
+
+# Preference order when neither the caller nor STREAMDET_PROVIDERS names providers: those this onnxruntime build has.
+# TensorRT only when asked for: it builds an engine per graph and input-shape range at start-up (minutes), a choice
+# for a deployment that caches its engines (runtime_ort/tensorrt.py), not a default.
+PREFERRED_PROVIDERS: tuple[str, ...] = (CUDA_PROVIDER, CPU_PROVIDER)
+CPU_ONLY: tuple[str, ...] = (CPU_PROVIDER,)  # the exporter's and the benchmarks' sessions: they measure the CPU
+
+
+class ProviderError(ValueError):
+    """An execution provider named explicitly that this onnxruntime build lacks or could not start."""
+
+
+def default_providers(environ: dict[str, str] | None = None) -> tuple[str, ...] | None:
+    """The providers ``STREAMDET_PROVIDERS`` names (``parse_providers``); None where it is unset, empty or ``auto``."""
+    text = (os.environ if environ is None else environ).get(PROVIDERS_ENV, "")
+    return parse_providers(text, f"environment variable {PROVIDERS_ENV}") if text.strip() else None
+
 
 _ORT_TO_NUMPY = {
     "tensor(float)": np.float32,
@@ -54,7 +79,8 @@ _ORT_TO_NUMPY = {
 
 @dataclass(frozen=True)
 class SessionConfig:
-    providers: tuple[str, ...] | None = None  # None: TensorRT > CUDA > CPU, whichever this build offers
+    # None: STREAMDET_PROVIDERS's, else CUDA > CPU, whichever this build offers (PREFERRED_PROVIDERS)
+    providers: tuple[str, ...] | None = None
     intra_op_threads: int = 1  # per session; 0 lets onnxruntime use every core (fine when nothing runs beside it)
     allow_spinning: bool = False  # spinning threads steal the core of the concurrent lane
     enable_profiling: bool = False  # onnxruntime's JSON profile (for `streamdet-bench --profile`)
@@ -68,18 +94,37 @@ class SessionConfig:
 
 
 def resolve_providers(requested: tuple[str, ...] | None) -> list[str]:
-    """The providers to use, in order; unknown names raise, unavailable preferred ones are skipped."""
+    """The providers to use, in order: ``requested``, else ``STREAMDET_PROVIDERS``'s, else those of
+    PREFERRED_PROVIDERS this build has. Providers named (by the caller or the variable) that this build lacks raise
+    ProviderError; the CPU is appended as the fallback for ops an accelerator lacks."""
     available = ort.get_available_providers()
+    if requested is None:
+        requested = default_providers()
     if requested is None:
         chosen = [p for p in PREFERRED_PROVIDERS if p in available]
     else:
         missing = [p for p in requested if p not in available]
         if missing:
-            raise ValueError(f"execution providers {missing} are not available in this onnxruntime build (it has {available})")
+            raise ProviderError(f"execution providers {missing} are not available in this onnxruntime build (it has "
+                                f"{available}; a GPU needs the onnxruntime-gpu wheel: README, \"Set-up\")")  # fmt: skip
         chosen = list(requested)
-    if "CPUExecutionProvider" not in chosen:
-        chosen.append("CPUExecutionProvider")  # fallback for ops the accelerator provider lacks
+    if CPU_PROVIDER not in chosen:
+        chosen.append(CPU_PROVIDER)  # fallback for ops the accelerator provider lacks
     return chosen
+
+
+def check_started(path: str | os.PathLike, wanted: list[str], started: list[str], explicit: bool) -> None:
+    """onnxruntime falls back to the CPU (printing its own "EP Error" banner) when a provider it has fails to start
+    (a missing CUDA or cuDNN library, no GPU): a provider named explicitly that did not start raises ProviderError;
+    under the default order the fallback is logged."""
+    lost = [p for p in wanted if p not in started]
+    if not lost:
+        return
+    message = (f"{Path(path).name}: onnxruntime could not start {lost} (the session runs on {started}); its own log "
+               "above says why (a missing CUDA, cuDNN or TensorRT library, or no GPU)")  # fmt: skip
+    if explicit:
+        raise ProviderError(message + "; choose others with --providers / DetectorConfig.providers")
+    log.warning("%s", message)
 
 
 def session_options(config: SessionConfig = SessionConfig(), profile_prefix: str | None = None) -> ort.SessionOptions:
@@ -101,34 +146,43 @@ def session_options(config: SessionConfig = SessionConfig(), profile_prefix: str
 
 
 # The exporter's sessions (parity, int8 calibration): the CPU, every core (nothing runs beside an export).
-EXPORT_SESSION = SessionConfig(providers=("CPUExecutionProvider",), intra_op_threads=0)
+EXPORT_SESSION = SessionConfig(providers=CPU_ONLY, intra_op_threads=0)
 
 
 def ort_session(model: str | os.PathLike | bytes, config: SessionConfig = EXPORT_SESSION) -> ort.InferenceSession:
     """A plain onnxruntime session of a graph file or serialized model, with ``session_options``: for tools that
     feed a graph its raw inputs (the exporter's parity and int8 calibration) rather than run an export."""
     src = model if isinstance(model, bytes) else os.fspath(model)
-    return ort.InferenceSession(src, sess_options=session_options(config), providers=resolve_providers(config.providers))
+    providers = resolve_providers(config.providers)
+    session = ort.InferenceSession(src, sess_options=session_options(config), providers=providers)
+    check_started("<graph>" if isinstance(model, bytes) else model, providers, session.get_providers(),
+                  explicit=config.providers is not None or default_providers() is not None)  # fmt: skip
+    return session
 
 
 class GraphSession:
     """One ONNX graph in one onnxruntime session, with its I/O metadata read once."""
 
-    def __init__(self, path: str | Path, config: SessionConfig = SessionConfig(), model: bytes | None = None) -> None:
+    def __init__(self, path: str | Path, config: SessionConfig = SessionConfig(), model: bytes | None = None,
+                 provider_options: Mapping[str, Mapping[str, str]] | None = None) -> None:  # fmt: skip
         """``model``: the graph's bytes, already read (and checked) by the caller, which onnxruntime loads instead of
-        opening ``path`` again (``manifest.read_export_file``); ``path`` then names the graph in messages."""
+        opening ``path`` again (``manifest.read_export_file``); ``path`` then names the graph in messages.
+        ``provider_options``: onnxruntime's options of a provider by its name (TensorRT's shape profiles and engine
+        cache: runtime_ort/tensorrt.py), used where that provider is among the session's."""
         self.path = Path(path)
         prefix = Path(config.profile_dir if config.profile_dir is not None else ".") / (self.path.with_suffix("").name + ".profile")
         if config.enable_profiling:
             prefix.parent.mkdir(parents=True, exist_ok=True)
         opts = session_options(config, profile_prefix=str(prefix))
         providers = resolve_providers(config.providers)
+        options = provider_options or {}
         try:
             src = model if model is not None else str(self.path)
-            self.session = ort.InferenceSession(src, sess_options=opts, providers=providers)
+            self.session = ort.InferenceSession(src, sess_options=opts, providers=[(p, dict(options[p])) if p in options else p for p in providers])
         except ORT_ERRORS as e:  # a truncated, empty or foreign file that passed (or skipped) the sha256 check
             raise ManifestError(f"{self.path}: onnxruntime cannot load this graph: {ort_message(e)}") from None
         self.providers = tuple(self.session.get_providers())
+        check_started(self.path, providers, list(self.providers), explicit=config.providers is not None or default_providers() is not None)
         log.info("%s: providers %s, %d intra-op thread(s)", self.path.name, list(self.providers), config.intra_op_threads)
         self.input_names = tuple(i.name for i in self.session.get_inputs())
         self.output_names = tuple(o.name for o in self.session.get_outputs())

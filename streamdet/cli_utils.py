@@ -9,6 +9,7 @@ from pathlib import Path
 
 import click
 
+from streamdet.core.providers import parse_providers
 from streamdet.core.constants import MAX_RESOLUTION_PX, MAX_SESSION_THREADS, MIN_RESOLUTION_PX, PRECISIONS
 from streamdet.core.sectors import MAX_NUM_SLICES
 
@@ -298,6 +299,29 @@ def camera_terms_option(default: str = "auto"):
         help="Per-camera lifts for image updates (full and per-quadrant): 'auto' where the export's lifter splits "
         "(the flat lifter, fp32 or int8 image lane), 'on' required, 'off' the lifter graph every time; "
         "DetectorConfig.camera_terms.",
+    )  # fmt: skip
+
+
+def _providers_callback(ctx, param, value: str | None):
+    if value is None:
+        return None
+    try:
+        return parse_providers(value, "--providers")
+    except ValueError as e:
+        raise click.BadParameter(str(e).removeprefix("--providers: "), param_hint="--providers") from None
+
+
+def providers_option():
+    """``--providers``: onnxruntime's execution providers of every session the command opens
+    (``DetectorConfig.providers``); the command gets ``providers`` as a tuple of onnxruntime names, or None (auto)."""
+    return click.option(
+        "--providers", default=None, callback=_providers_callback, metavar="LIST",
+        help="onnxruntime execution providers by preference, comma-separated: cpu, cuda, tensorrt (also rocm, openvino, "
+        "dml, coreml, or onnxruntime's names such as CUDAExecutionProvider), or auto; the CPU is always added for ops "
+        "an accelerator lacks. A provider named here that this onnxruntime lacks, or cannot start, is an error. "
+        "Default: $STREAMDET_PROVIDERS, else auto: cuda,cpu where this onnxruntime has CUDA, else cpu (tensorrt only "
+        "when asked: its engines take minutes to build; they are cached in $STREAMDET_TENSORRT_CACHE, else "
+        "~/.cache/streamdet/tensorrt).",
     )  # fmt: skip
 
 

@@ -26,6 +26,7 @@ from streamdet.cli_utils import (
     check_output_parent,
     check_plot_format,
     image_precision_option,
+    providers_option,
     refuse_output_over_inputs,
     refuse_same_outputs,
     resolution_callback,
@@ -109,6 +110,7 @@ def _common(f: Callable) -> Callable:
         click.option("--precision", type=click.Choice(PRECISIONS), default="fp32", show_default=True,
                      help="Graphs to run; the export must hold them."),
         image_precision_option(),
+        providers_option(),
         click.option("--threads", type=click.IntRange(1, MAX_INTRA_OP_THREADS), default=1, show_default=True,
                      help=f"Intra-op threads of each onnxruntime session, 1..{MAX_INTRA_OP_THREADS}."),
         click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
@@ -243,14 +245,14 @@ def main() -> None:
 @click.option("--baseline-checkpoint", type=click.Path(exists=True, dir_okay=False, path_type=Path), default=None,
               help="Checkpoint of the LiDAR-only baseline, evaluated with PyTorch (needs PyTorch); or export it with "
                    "streamdet-export --checkpoint and pass --baseline-export-dir.")  # fmt: skip
-def slices(export_dir, checkpoint, data_dir, version, split, max_samples, precision, image_precision, threads,
+def slices(export_dir, checkpoint, data_dir, version, split, max_samples, precision, image_precision, providers, threads,
            json_path, plot_path, slice_counts, baseline_export_dir, baseline_checkpoint) -> None:  # fmt: skip
     """mAP at 1, 4, 8, 16, 32 slices: the fused model beside the LiDAR-only baseline (the paper's Table 2)."""
     if baseline_export_dir is not None and baseline_checkpoint is not None:
         raise click.UsageError("give --baseline-export-dir or --baseline-checkpoint, not both")
     _check_outputs(json_path, plot_path, **_inputs(export_dir, checkpoint, data_dir), baseline_export_dir=baseline_export_dir,
                    baseline_checkpoint=baseline_checkpoint)  # fmt: skip
-    runtime = st.RuntimeOptions(precision, threads, image_precision)
+    runtime = st.RuntimeOptions(precision, threads, image_precision, providers)
     with _export(export_dir, checkpoint, runtime) as exp, _running("slices") as bar:
         fused = st.OnnxSlicedDetector(exp, runtime)
         if not fused.uses_images:  # it would be tabled as "fused (ours), PC+RGB"
@@ -276,11 +278,11 @@ def slices(export_dir, checkpoint, data_dir, version, split, max_samples, precis
               help="Camera to remove at inference (repeat to study several, each on its own).")  # fmt: skip
 @click.option("--no-cameras", is_flag=True,
               help="Also score with every camera missing (zero image BEV): how much the model uses its cameras at all.")
-def drop_camera(export_dir, checkpoint, data_dir, version, split, max_samples, precision, image_precision, threads,
+def drop_camera(export_dir, checkpoint, data_dir, version, split, max_samples, precision, image_precision, providers, threads,
                 json_path, plot_path, num_slices, cameras, no_cameras) -> None:  # fmt: skip
     """mAP and per-class AP with a named camera missing at inference (the back camera by default)."""
     _check_outputs(json_path, plot_path, **_inputs(export_dir, checkpoint, data_dir))
-    runtime = st.RuntimeOptions(precision, threads, image_precision)
+    runtime = st.RuntimeOptions(precision, threads, image_precision, providers)
     with _export(export_dir, checkpoint, runtime) as exp, _running("drop-camera") as bar:
         result = st.drop_camera_study(exp, _data(data_dir, version, split, max_samples), cameras, runtime, num_slices, bar,
                                       no_cameras)  # fmt: skip
@@ -295,11 +297,11 @@ def drop_camera(export_dir, checkpoint, data_dir, version, split, max_samples, p
                    f"(repeat; DEG in [0, 180), CM in [0, {MAX_NOISE_TRANSLATION_CM:g}]; default 0.5,5 1,10 2,20 3,30 5,50).")  # fmt: skip
 @click.option("--seeds", type=click.IntRange(1, MAX_SEEDS), default=3, show_default=True,
               help=f"Seeded draws per level (seeds 0..N-1), 1..{MAX_SEEDS}; mean and std are reported.")  # fmt: skip
-def calib_noise(export_dir, checkpoint, data_dir, version, split, max_samples, precision, image_precision, threads,
+def calib_noise(export_dir, checkpoint, data_dir, version, split, max_samples, precision, image_precision, providers, threads,
                 json_path, plot_path, num_slices, levels, seeds) -> None:  # fmt: skip
     """mAP under uniform camera-extrinsic noise, the LUT rebuilt for each noisy calibration, the graphs untouched."""
     _check_outputs(json_path, plot_path, **_inputs(export_dir, checkpoint, data_dir))
-    runtime = st.RuntimeOptions(precision, threads, image_precision)
+    runtime = st.RuntimeOptions(precision, threads, image_precision, providers)
     with _export(export_dir, checkpoint, runtime) as exp, _running("calib-noise") as bar:
         result = st.calib_noise_study(exp, _data(data_dir, version, split, max_samples), levels, seeds, runtime, num_slices, bar)
     _report(result, json_path, plot_path, plot_calib_noise)
@@ -310,11 +312,11 @@ def calib_noise(export_dir, checkpoint, data_dir, version, split, max_samples, p
 @_slices_option
 @click.option("--resolution", "resolutions", multiple=True, callback=_parse_resolutions, metavar="WxH",
               help="Image size to feed the encoder (repeat; default 1600x900 1200x675 800x450).")  # fmt: skip
-def resolution(export_dir, checkpoint, data_dir, version, split, max_samples, precision, image_precision, threads,
+def resolution(export_dir, checkpoint, data_dir, version, split, max_samples, precision, image_precision, providers, threads,
                json_path, plot_path, num_slices, resolutions) -> None:  # fmt: skip
     """mAP and image-lane latency with the camera images resized to each size (same graphs, LUT per size)."""
     _check_outputs(json_path, plot_path, **_inputs(export_dir, checkpoint, data_dir))
-    runtime = st.RuntimeOptions(precision, threads, image_precision)
+    runtime = st.RuntimeOptions(precision, threads, image_precision, providers)
     with _export(export_dir, checkpoint, runtime) as exp, _running("resolution") as bar:
         result = st.resolution_study(exp, _data(data_dir, version, split, max_samples), resolutions, runtime, num_slices, bar)
     _report(result, json_path, plot_path, plot_resolution)

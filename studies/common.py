@@ -60,6 +60,7 @@ class RuntimeOptions:
     precision: str = "fp32"  # fp32 | fp16 | int8; the export must hold graphs of that precision
     threads: int = 1  # intra-op threads of each lane's sessions (the studies' machines are shared)
     image_precision: str | None = None  # the image lane's graphs of a camera + LiDAR export; None: precision
+    providers: tuple[str, ...] | None = None  # onnxruntime's execution providers; None: the runtime's default
 
     @property
     def label(self) -> str:
@@ -134,7 +135,7 @@ def open_detector(export_dir: str | Path, runtime: RuntimeOptions, image_size: t
         use_image = runtime.image_precision is not None and read_manifest(export_dir, verify_files=False).use_image
         cfg = DetectorConfig(precision=runtime.precision, image_lane_precision=runtime.image_precision if use_image else None,
                              image_lane_threads=runtime.threads, slice_lane_threads=runtime.threads,
-                             image_size=image_size)  # fmt: skip
+                             image_size=image_size, providers=runtime.providers)  # fmt: skip
         return StreamingDetector(export_dir, cfg)
     except (OSError, ValueError) as e:  # ManifestError and CalibrationError are ValueErrors
         raise StudyError(f"export {export_dir}: {e}") from None

@@ -1,10 +1,16 @@
 """Fixtures several test files share."""
 
+import os
 import signal
 from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
+
+# Every session the tests open runs on onnxruntime's CPU provider, also on a machine with onnxruntime-gpu: the tests
+# compare outputs bit for bit, which a GPU's kernel choices would not keep, and TensorRT would build engines for
+# minutes. The variable reaches the tools the tests start as processes too. A developer who sets it runs them elsewhere.
+os.environ.setdefault("STREAMDET_PROVIDERS", "cpu")
 
 
 @pytest.fixture(scope="session")
