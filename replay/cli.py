@@ -144,7 +144,9 @@ def _progress(message: str) -> None:
 @click.option("--max-seconds", type=click.FloatRange(0, MAX_SECONDS, min_open=True), default=None,
               help=f"Play only the first seconds of each scene (0 < s <= {MAX_SECONDS:.0f}).")
 @click.option("--threads", type=click.IntRange(1, MAX_INTRA_OP_THREADS), default=1, show_default=True,
-              help=f"Intra-op threads of each onnxruntime session (1..{MAX_INTRA_OP_THREADS}).")
+              help=f"Intra-op threads of each onnxruntime session (1..{MAX_INTRA_OP_THREADS}): per session, not in all; "
+                   "the slice lane's and the image lane's run at once (so use about half the cores each), and every "
+                   "session keeps its own pool (4 or more sessions: 4x the threads, asleep while idle).")
 @click.option("--image-lane-threads", type=click.IntRange(1, MAX_INTRA_OP_THREADS), default=None,
               help=f"Intra-op threads of the image lane's sessions (encoder, lifter, per-camera terms; 1..{MAX_INTRA_OP_THREADS}). "
                    "Default: --threads.")

@@ -43,8 +43,12 @@ class DetectorConfig:
     # onnxruntime execution providers by preference ("cuda", "CUDAExecutionProvider", ...; the CPU is always appended
     # as the fallback); None: STREAMDET_PROVIDERS's, else CUDA > CPU, whichever onnxruntime has (runtime_ort/sessions.py)
     providers: tuple[str, ...] | None = None
-    image_lane_threads: int = 1  # intra-op threads of the image encoder and lifter sessions (0: every core; <= 64)
-    slice_lane_threads: int = 1  # intra-op threads of the slice session (0: every core; <= 64)
+    # Intra-op threads per session (0: every core; <= 64). Each session keeps its own pool, so the image lane's two to
+    # four sessions hold that many threads each (asleep while idle: no spinning); the lanes run at once, so the threads
+    # busy together are about image_lane_threads + slice_lane_threads (x the runner's slice workers, which share the
+    # slice session): past the usable CPUs they only take turns (the detector logs a warning).
+    image_lane_threads: int = 1  # the image encoder's, the lifter's and the per-camera terms' sessions
+    slice_lane_threads: int = 1  # the slice session's (and the LiDAR-only fallback's)
     num_slices: int | None = None  # slices per sweep (1, 2 or a multiple of 4); None: the number the export was made for
     # (W, H) px of the images fed to the encoder; None: the export's. The graphs are dynamic in H and W, so another
     # size only needs a LUT built for it: from the export's calibration source at start, then set_calibration.

@@ -53,6 +53,7 @@ from typing import Mapping
 
 import numpy as np
 
+from streamdet.core.cpu import usable_cpus
 from streamdet.core.points import MAX_SLICE_POINTS, SLICE_COLUMNS, slice_points_problem
 from streamdet.runtime_ort.coalesce import can_coalesce
 from streamdet.runtime_ort.detector import StreamingDetector
@@ -60,6 +61,7 @@ from streamdet.runtime_ort.detector_results import ImageUpdate, SliceResult
 from streamdet.runtime_ort.image_cache import check_camera_timestamps
 from streamdet.runtime_ort.pair_hold import PairHold
 from streamdet.runtime_ort.phase_lock import check_lidar_hz
+from streamdet.runtime_ort.sessions import CPU_PROVIDER
 from streamdet.runtime_ort.phase_locked_lane import PhaseLockedImageLane, PhaseLockStats
 from streamdet.runtime_ort.thread_priority import check_nice
 from streamdet.runtime_ort.worker_lane import JobBatching, RunnerClosed, WorkerLane
@@ -149,6 +151,14 @@ class LaneConfig:
             )
 
 
+def lanes_oversubscribe(image_threads: int, slice_threads: int, cpus: int) -> str | None:
+    """The two lanes' intra-op threads (0: every CPU), which a runner runs at once, as ``"2 + 1"`` where together they
+    exceed ``cpus`` and fewer would do; None where they fit (or are 1 + 1: on one CPU the lanes take turns whatever
+    the setting)."""
+    image, slices = image_threads or cpus, slice_threads or cpus
+    return f"{image} + {slices}" if image + slices > cpus and image + slices > 2 else None
+
+
 class StreamingRunner:
     """Asynchronous front of a StreamingDetector: `submit_images` and `submit_slice` return futures."""
 
@@ -184,6 +194,13 @@ class StreamingRunner:
             warnings.warn(f"LaneConfig.image_lane_nice={config.image_lane_nice} renices the image lane's own thread only: "
                           f"with DetectorConfig.image_lane_threads={threads} onnxruntime's pool threads of the image "
                           "sessions keep nice 0 and compete with the slice lane as before; use image_lane_threads=1",
+                          RuntimeWarning, stacklevel=2)  # fmt: skip
+        slice_threads = getattr(getattr(detector, "config", None), "slice_lane_threads", 1)
+        on_cpu = tuple(getattr(detector, "providers", (CPU_PROVIDER,)))[:1] == (CPU_PROVIDER,)
+        if detector.uses_images and on_cpu and (busy := lanes_oversubscribe(threads, slice_threads, usable_cpus())):
+            warnings.warn(f"the image lane's and the slice lane's intra-op threads run at once: {busy} on "
+                          f"{usable_cpus()} usable CPU(s), so they take turns and the slice lane waits on the image "
+                          "lane's work (DetectorConfig.image_lane_threads / slice_lane_threads count per session)",
                           RuntimeWarning, stacklevel=2)  # fmt: skip
 
     def submit_images(

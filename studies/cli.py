@@ -112,7 +112,8 @@ def _common(f: Callable) -> Callable:
         image_precision_option(),
         providers_option(),
         click.option("--threads", type=click.IntRange(1, MAX_INTRA_OP_THREADS), default=1, show_default=True,
-                     help=f"Intra-op threads of each onnxruntime session, 1..{MAX_INTRA_OP_THREADS}."),
+                     help=f"Intra-op threads of each onnxruntime session, 1..{MAX_INTRA_OP_THREADS}: per session, not in "
+                          "all (every session keeps its own pool; the studies run the lanes one after the other)."),
         click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
                      help="Write every figure of the study here as JSON."),
         click.option("--plot", "plot_path", type=click.Path(dir_okay=False, path_type=Path), default=None,

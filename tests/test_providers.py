@@ -278,3 +278,31 @@ def test_replay_config_records_the_providers(tmp_path):
 
     assert ReplayConfig(tmp_path, tmp_path, providers=(CPU_PROVIDER,)).to_dict()["providers"] == [CPU_PROVIDER]
     assert ReplayConfig(tmp_path, tmp_path).to_dict()["providers"] is None
+
+
+# ---- threads per session (portability audit L6) -----------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("image", "slices", "cpus", "want"),
+    [(1, 1, 2, None), (1, 1, 1, None), (2, 1, 2, "2 + 1"), (1, 1, 64, None), (32, 32, 64, None), (64, 64, 64, "64 + 64"),
+     (0, 1, 8, "8 + 1"), (0, 0, 1, None)],
+)
+def test_lanes_oversubscribe(image, slices, cpus, want):
+    from streamdet.runtime_ort.lanes import lanes_oversubscribe
+
+    assert lanes_oversubscribe(image, slices, cpus) == want
+
+
+def test_a_runner_warns_when_its_lanes_threads_exceed_the_cpus(tiny_export, monkeypatch):
+    import warnings
+
+    from streamdet.runtime_ort import lanes
+
+    monkeypatch.setattr(lanes, "usable_cpus", lambda: 2)
+    with StreamingDetector(tiny_export, DetectorConfig(image_lane_threads=2, slice_lane_threads=2)) as det:
+        with pytest.warns(RuntimeWarning, match=r"2 \+ 2 on 2 usable CPU\(s\).*per session"):
+            lanes.StreamingRunner(det).close()
+    with StreamingDetector(tiny_export) as det, warnings.catch_warnings():
+        warnings.simplefilter("error")
+        lanes.StreamingRunner(det).close()  # 1 + 1 on 2 CPUs: quiet
