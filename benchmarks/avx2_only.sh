@@ -11,6 +11,8 @@
 # source changes. Reports name the mask (streamdet.core.cpu: STREAMDET_CPUID_MASK=avx2).
 set -euo pipefail
 [ $# -ge 1 ] || { echo "usage: $0 COMMAND [ARGS...]" >&2; exit 2; }
+[ "$(uname -s)" = Linux ] || {
+  echo "$0: CPUID masks need Linux (CPUID faulting through arch_prctl ARCH_SET_CPUID), this is $(uname -s)" >&2; exit 2; }
 [ "$(uname -m)" = x86_64 ] || { echo "$0: CPUID masks need an x86-64 CPU, this is $(uname -m)" >&2; exit 2; }
 grep -qw cpuid_fault /proc/cpuinfo || {
   echo "$0: this CPU or hypervisor offers no CPUID faulting (no cpuid_fault in /proc/cpuinfo): cannot mask" >&2; exit 2; }

@@ -11,9 +11,11 @@ from __future__ import annotations
 
 import os
 import platform
+import re
 import tempfile
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import onnx
@@ -118,32 +120,87 @@ def cpu_flags() -> tuple[str, ...]:
     return kernel_flags()
 
 
-class OtherCpuUse:
-    """CPU time other processes take while this one runs, from /proc/stat minus this process's own time.
+PROC_STAT = Path("/proc/stat")
+_STAT_CPU = re.compile(r"cpu([0-9]*)")
 
-    ``cores()`` is the average number of CPUs busy with (or stolen by) anything but this process since the start:
-    0 on a quiet machine; 1 means another job took a whole core from the benchmark. None off Linux.
+
+def affinity_cpu_ids() -> frozenset[int] | None:
+    """The CPUs this process may run on (its affinity mask); None where the OS does not say (no sched_getaffinity,
+    or it fails)."""
+    if not hasattr(os, "sched_getaffinity"):
+        return None
+    try:
+        return frozenset(os.sched_getaffinity(0)) or None
+    except OSError:
+        return None
+
+
+def stat_busy_ticks(text: str, cpus: frozenset[int] | None) -> tuple[float, int | None] | None:
+    """(busy clock ticks, the CPUs they count) of a /proc/stat text: the per-CPU ``cpuN`` lines of ``cpus`` summed;
+    the host-wide ``cpu`` line where ``cpus`` is None or the text has a line for none of them (the CPUs counted: None,
+    every CPU of the host). Busy: user, nice, system, irq, softirq and steal (guest time is already inside user and
+    nice; idle and iowait are not busy). None where a line counted is not one of numbers, or there is none to count.
+    A CPU of ``cpus`` without a line (offline) counts nothing."""
+    host, per_cpu = None, {}
+    for line in text.splitlines():
+        parts = line.split()
+        found = _STAT_CPU.fullmatch(parts[0]) if parts else None
+        if found is None:
+            continue
+        values = parts[1:]
+        if found[1]:
+            per_cpu[int(found[1])] = values
+        elif host is None:
+            host = values
+    wanted = [per_cpu[c] for c in sorted(cpus) if c in per_cpu] if cpus is not None else []
+    counted: int | None = len(wanted)
+    if not wanted:
+        if host is None:
+            return None
+        wanted, counted = [host], None
+    busy = 0.0
+    for values in wanted:
+        if not values or not all(v.isascii() and v.isdigit() for v in values):
+            return None
+        fields = [float(v) for v in values]
+        # user nice system idle iowait irq softirq steal [guest guest_nice, already inside user and nice]
+        busy += sum(fields[:3]) + sum(fields[5:8])
+    return busy, counted
+
+
+class OtherCpuUse:
+    """CPU time other processes take on the CPUs this one may run on while it runs: the /proc/stat lines of those
+    CPUs (``stat_busy_ticks``: the affinity set; host-wide where it is unknown) minus this process's own time.
+
+    ``cores()`` is the average number of those CPUs busy with (or stolen by) anything but this process since the
+    start: 0 on a quiet machine; 1 means another job took a whole core from the benchmark. None off Linux.
+    ``cpus`` is how many CPUs that counts (None: the host-wide line, or no /proc/stat); load on CPUs the process may
+    not use (``taskset``, a container's cpuset) is not counted. ``stat`` and ``cpus_allowed`` (None: this process's
+    affinity) are for tests.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, stat: str | Path = PROC_STAT, cpus_allowed: frozenset[int] | None = None) -> None:
+        self._stat = Path(stat)
+        self._allowed = affinity_cpu_ids() if cpus_allowed is None else cpus_allowed
         self._start = self._sample()
+        self.cpus: int | None = None if self._start is None else self._start[3]
 
-    @staticmethod
-    def _sample() -> tuple[float, float, float] | None:
+    def _sample(self) -> tuple[float, float, float, int | None] | None:
         try:
-            with open("/proc/stat") as f:
-                fields = [float(v) for v in f.readline().split()[1:]]
+            text = self._stat.read_text(errors="replace")
         except (OSError, ValueError):
             return None
-        # user nice system idle iowait irq softirq steal [guest guest_nice, already inside user and nice]
-        busy = sum(fields[:3]) + sum(fields[5:8])
+        found = stat_busy_ticks(text, self._allowed)
+        if found is None:
+            return None
+        busy, counted = found
         t = os.times()
-        return busy / os.sysconf("SC_CLK_TCK"), t.user + t.system, time.monotonic()
+        return busy / os.sysconf("SC_CLK_TCK"), t.user + t.system, time.monotonic(), counted
 
     def cores(self) -> float | None:
         end = self._sample()
-        if self._start is None or end is None or end[2] <= self._start[2]:
-            return None
+        if self._start is None or end is None or end[2] <= self._start[2] or end[3] != self._start[3]:
+            return None  # no figure, or a CPU went offline (its time left the sum) during the run
         others = (end[0] - self._start[0]) - (end[1] - self._start[1])
         return max(0.0, others / (end[2] - self._start[2]))
 
@@ -170,9 +227,11 @@ def nominal_peak_gflops(threads: int, flags: tuple[str, ...], mhz: float | None,
     """An estimate of the fp32 rate, not a bound: FMA lanes x 2 FLOP x 2 FMA pipes x clock x cores, with cores the
     physical cores the threads can run on (``estimate_cores``).
 
-    AVX-512: 16 lanes, AVX2 + FMA: 8 lanes; None without FMA or a clock. It can be far off either way: ``mhz`` is
-    the clock /proc/cpuinfo shows (boost runs above it, an idle core with cpufreq below), several Intel parts have one
-    512-bit FMA pipe, hybrid E-cores have others; there is no per-microarchitecture table, only the Zen 4 case below.
+    AVX-512: 16 lanes, AVX2 + FMA: 8 lanes; None without FMA or a clock (FMA: x86's ``fma`` flag, so an ARM part,
+    whose lanes this rule does not know, and flags that could not be read give None, not a wrong number). It can be
+    far off either way: ``mhz`` is the clock /proc/cpuinfo shows (boost runs above it, an idle core with cpufreq
+    below), several Intel parts have one 512-bit FMA pipe, hybrid E-cores have others; there is no
+    per-microarchitecture table, only the Zen 4 case below.
     """
     if mhz is None or "fma" not in flags:
         return None
@@ -204,6 +263,7 @@ def machine_info(threads: int) -> dict:
         "physical_cores": cores,  # among the CPUs this process may run on (core.cpu.physical_cores); None: unknown
         "logical_cpus": os.cpu_count(),  # the machine's, whatever this process may use
         "usable_cpus": usable_cpus(),  # what this process may use: affinity and cgroup quota (core.cpu.usable_cpus)
+        "other_cpu_use_cpus": OtherCpuUse().cpus,  # the CPUs other_cpu_use counts (the affinity set); None: all, or unknown
         "threads": threads,
         "load_average_1_5_15": load_average(),
         "onnxruntime": ort.__version__,

@@ -14,7 +14,9 @@ OUT=${1:-out/replay_readme}
 DOCS=${2:-}
 BIN=${BIN:-.venv/bin}
 source "$(dirname "$0")/replay_prep.sh"  # DATA, EXPORT
-nproc > "$OUT/nproc.txt"; uptime > "$OUT/uptime_before.txt"
+# the CPUs this process may use (affinity and cgroup quota: streamdet.core.cpu.usable_cpus; nproc is not on macOS)
+"$BIN/python" -c 'from streamdet.core.cpu import usable_cpus; print(usable_cpus())' > "$OUT/nproc.txt"
+uptime > "$OUT/uptime_before.txt"
 for SCALE in 1 2 4; do
   PLOT=()
   if [ "$SCALE" = 1 ]; then PLOT=(--plot "$OUT/replay_timeline.png"); fi

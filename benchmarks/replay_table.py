@@ -8,7 +8,8 @@ over every fused slice of a variant's rounds, the variant's image-lane CPU per r
 Reads ``OUT_DIR/r<round>_scale<S>_<label>/replay.json`` (``streamdet-replay --out``, streaming mode) and
 ``OUT_DIR/probes_gflops.txt`` (``<run name> <GFLOP/s>`` per line, the host-speed probe before each run). The table
 names the CPU its runs ran on (the replay's ``config.cpu``: model, vector extensions, usable threads), and the
-staleness picture draws issue 22's target for it: p95 <= 25 ms with AVX-512, <= 100 ms on an AVX2-only part. A line
+staleness picture draws issue 22's target for it: p95 <= 25 ms with AVX-512, <= 100 ms on an AVX2-only part; a CPU
+with neither (ARM, or flags that could not be read) has no target, and none is drawn or claimed for it. A line
 under the table gives the garbage collector's full collections during the drives where the replays recorded them
 (they stop every Python thread: docs/replay.md, "Full garbage collections stall the lanes"), and lines after it
 where the stale slices are (staleness added > 25 ms, by the image sets released in the rotation before their scan
@@ -19,9 +20,10 @@ mean an image lane short of time for a burst, not on average.
 
 ``--baseline``: instead of the table, issue 22's line for every other variant, scale by scale, counted over rounds:
 staleness added p95 within the target (default: the CPU's, as above; ``--target-ms`` sets it, e.g. 100 where a
-faster part emulates an AVX2-only one by a time scale), no slice dropped, and slice p99 at most the baseline
-variant's **in the same round** (a round the baseline lacks is not counted for that term); beside the line, the issue's
-accuracy term: streaming mAP at least the baseline's in the same round.
+faster part emulates an AVX2-only one by a time scale, and it must be given for a CPU without a target), no slice
+dropped, and slice p99 at most the baseline variant's **in the same round** (a round the baseline lacks is not
+counted for that term); beside the line, the issue's accuracy term: streaming mAP at least the baseline's in the same
+round.
 """
 
 from __future__ import annotations
@@ -39,7 +41,28 @@ from streamdet.replay.report import cpu_line, stale_cells
 RUN = re.compile(r"r(\d+)_scale([0-9.]+)_(.+)")
 HEADER = ("| scale | variant | staleness added p50 / p95 ms | image age p95 ms | slice p99 ms | dropped "
           "(coalesced) | image-lane CPU ms / rotation | cores slice / image lane | streaming mAP | probe GFLOP/s |")  # fmt: skip
-STALENESS_TARGET_MS = {True: 25.0, False: 100.0}  # issue 22's p95 target, by whether the CPU has AVX-512
+STALENESS_TARGET_MS = {True: 25.0, False: 100.0}  # issue 22's p95 target, by whether the CPU has AVX-512 (with AVX2)
+TARGET_ISA = {True: "AVX-512", False: "AVX2-only"}
+
+
+def staleness_target(cpu: dict) -> float | None:
+    """Issue 22's staleness p95 target for a CPU (a replay's ``config.cpu``): AVX-512 (avx512f) 25 ms, AVX2 without
+    it 100 ms; None for any other (an ARM part, flags that could not be read): the issue names no target for it, and
+    "no AVX-512" does not make a part an AVX2 one."""
+    flags = cpu.get("flags") or ()
+    if "avx512f" in flags:
+        return STALENESS_TARGET_MS[True]
+    if "avx2" in flags:
+        return STALENESS_TARGET_MS[False]
+    return None
+
+
+def no_target_label(cpu: dict) -> str:
+    """Why a CPU has no ``staleness_target``, by what was found: "no issue 22 target for asimd/asimddp (no AVX2)",
+    or "... for unknown SIMD flags" where none were read."""
+    flags = list(cpu.get("flags") or ())
+    found = "/".join(flags) + " (no AVX2)" if flags else "unknown SIMD flags"
+    return f"no issue 22 target for {cpu.get('model', 'this CPU')}: {found}"
 
 
 def streaming_runs(out: Path, with_config: bool = False):
@@ -195,7 +218,11 @@ def plot(out: Path, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     rows, stale, cpus = collect(out), staleness(out), machines(out)
-    targets = sorted({STALENESS_TARGET_MS["avx512f" in cpu.get("flags", ())] for cpu in cpus}) or sorted(set(STALENESS_TARGET_MS.values()))
+    # the targets of the CPUs that have one; none recorded (older replays): both, each labelled by its instruction set
+    targets = sorted({t for cpu in cpus if (t := staleness_target(cpu)) is not None})
+    if not cpus:
+        targets = sorted(set(STALENESS_TARGET_MS.values()))
+    untargeted = [no_target_label(cpu) for cpu in cpus if staleness_target(cpu) is None]
     scales = sorted({scale for scale, _ in rows})
     fig, axes = plt.subplots(1, len(scales), figsize=(6.5 * len(scales), 4.2), squeeze=False)
     for ax, scale in zip(axes[0], scales):
@@ -206,8 +233,10 @@ def plot(out: Path, path: Path) -> None:
             cpu = ", ".join("%.1f" % r[1]["image_lane_cpu_ms_per_rotation"] for r in runs)
             ax.step(values, np.arange(1, values.size + 1) / values.size, where="post", label=f"{label} (lane CPU {cpu} ms/rot)")
         for target in targets:
-            isa = "AVX-512" if target == STALENESS_TARGET_MS[True] else "AVX2-only"
+            isa = TARGET_ISA[target == STALENESS_TARGET_MS[True]]
             ax.axvline(target, color="grey", linestyle=":", linewidth=1, label=f"issue 22 target, {isa}: p95 <= {target:g} ms")
+        for label in untargeted:  # a legend line without a drawn target
+            ax.plot([], [], linestyle="none", label=label)
         ax.set_xlabel("staleness added by processing (ms)")
         ax.set_ylabel("fraction of fused slices")
         ax.set_title(f"time scale {scale:g}" + (f", {cpu_line(cpus[0])}" if len(cpus) == 1 else ""), fontsize=9)
@@ -226,7 +255,11 @@ def line_against(out: Path, baseline: str, target_ms: float | None = None) -> st
         labels = sorted({label for _, label in rows})
         raise ValueError(f"{out}: no variant {baseline!r} to compare with (variants: {', '.join(labels) or 'none'})")
     if target_ms is None:
-        targets = {STALENESS_TARGET_MS["avx512f" in cpu.get("flags", ())] for cpu in machines(out)}
+        cpus = machines(out)
+        untargeted = [no_target_label(cpu) for cpu in cpus if staleness_target(cpu) is None]
+        if untargeted:
+            raise ValueError(f"{out}: {'; '.join(untargeted)}: give --target-ms")
+        targets = {staleness_target(cpu) for cpu in cpus}
         if len(targets) != 1:
             raise ValueError(f"{out}: the runs name {len(targets)} staleness targets by their CPUs: give --target-ms")
         (target_ms,) = targets

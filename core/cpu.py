@@ -1,14 +1,21 @@
-"""The CPU as this process's kernels see it: the model name and SIMD flags of /proc/cpuinfo, less what a CPUID mask hides.
+"""The CPU as this process's kernels see it: its model and SIMD flags, less what a CPUID mask hides.
 
 onnxruntime, numpy and OpenCV pick their kernels from the CPUID instruction, not from /proc/cpuinfo (which always
 shows the silicon). ``benchmarks/avx2_only.sh`` runs a command with a CPUID mask (``benchmarks/cpuid_mask/``,
 LD_PRELOAD): the instruction reports an AVX2-only CPU (no AVX-512, AVX-VNNI or AMX), so every library takes its AVX2
 code path, and the mask writes its name into ``STREAMDET_CPUID_MASK``. Reports read the flags here, so a run under
-the mask names the instruction set its kernels used.
+the mask names the instruction set its kernels used; a variable that names a mask the process's CPUID contradicts
+(set by hand, or inherited without the LD_PRELOAD) is refused rather than reported (``cpuid_mask``).
+
+The model and flags come from /proc/cpuinfo on Linux: x86's ``model name`` and ``flags``, aarch64's ``CPU
+implementer`` / ``CPU part`` and ``Features``, POWER's ``cpu``. Where it has no flags (no /proc: macOS, Windows;
+POWER), numpy's CPU feature table stands in (``numpy_cpu_features``: what numpy's own dispatch read from CPUID);
+where neither can be read the flags are unknown, and reports say so rather than "none of" them (``cpu_line``).
 
 Also how many CPUs this process may use (``usable_cpus``: affinity and cgroup quota, the one count every default
 thread count and every report's "usable" figure comes from) and the physical cores among them (``physical_cores``).
-Standard library only: every package imports core.
+Standard library only at import time: every package imports core (numpy, a base dependency, is imported inside the
+functions that read its table).
 """
 
 from __future__ import annotations
@@ -16,7 +23,10 @@ from __future__ import annotations
 import os
 import platform
 import re
-from collections.abc import Iterable
+import subprocess
+import sys
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 
 CPUID_MASK_ENV = "STREAMDET_CPUID_MASK"  # set by the mask itself (its constructor), inherited by child processes
@@ -33,13 +43,65 @@ def _hidden_by_avx2(flag: str) -> bool:
 MASKS = {"avx2": _hidden_by_avx2}  # mask name -> which /proc/cpuinfo flags it hides
 
 
-def cpuid_mask(environ: dict[str, str] | None = None) -> str | None:
-    """The CPUID mask this process runs under (``"avx2"``), None without one; an unknown name raises."""
+def _avx2_mask_contradicted(features: Mapping[str, bool]) -> str | None:
+    """What in numpy's CPU feature table shows the "avx2" mask is not in effect (AVX-512 still reported, or no AVX2
+    at all: not an x86 CPU the mask could make AVX2-only); None where it agrees or the table does not say."""
+    if "AVX2" not in features:
+        return None
+    above = sorted((k for k, v in features.items() if k.startswith("AVX512") and v is True), key=lambda k: (k != "AVX512F", k))
+    if above:
+        more = f" and {len(above) - 3} more" if len(above) > 3 else ""
+        return f"still reports {', '.join(above[:3])}{more}"
+    if features["AVX2"] is not True:
+        return "reports no AVX2"
+    return None
+
+
+# mask name -> what in numpy's CPU feature table contradicts it (None: nothing does)
+MASK_CONTRADICTIONS = {"avx2": _avx2_mask_contradicted}
+
+
+def numpy_cpu_features() -> dict[str, bool] | None:
+    """numpy's CPU feature table (``__cpu_features__``: "AVX2" -> True, ...), the features numpy's dispatch found with
+    CPUID in this process (so a CPUID mask shows in it); None where numpy or its table cannot be imported. numpy is
+    imported here, not at module level: core stays importable without it."""
+    try:
+        from numpy._core._multiarray_umath import __cpu_features__  # numpy >= 2
+    except ImportError:
+        try:
+            from numpy.core._multiarray_umath import __cpu_features__  # numpy 1.x
+        except ImportError:
+            return None
+    return dict(__cpu_features__)
+
+
+def _features(features: Mapping[str, bool] | None) -> Mapping[str, bool]:
+    """``features`` as given, or this process's numpy table where None (empty where numpy has none)."""
+    if features is not None:
+        return features
+    return numpy_cpu_features() or {}
+
+
+def cpuid_mask(environ: Mapping[str, str] | None = None, features: Mapping[str, bool] | None = None) -> str | None:
+    """The CPUID mask this process runs under (``"avx2"``), None without one.
+
+    The name comes from ``STREAMDET_CPUID_MASK`` (``environ``; None: os.environ), and is checked against the CPUID the
+    process sees, numpy's CPU feature table (``features``; None: this process's ``numpy_cpu_features``, {}: no
+    table): a variable set by hand, or inherited by a process that did not inherit the mask's LD_PRELOAD, would make
+    every report name an instruction set its kernels did not use. Raises ValueError for an unknown name and for a
+    mask the table contradicts; where there is no table, the variable is trusted."""
     name = (os.environ if environ is None else environ).get(CPUID_MASK_ENV, "")
     if not name:
         return None
     if name not in MASKS:
         raise ValueError(f"{CPUID_MASK_ENV}={name!r} names no known CPUID mask (known: {', '.join(sorted(MASKS))})")
+    contradiction = MASK_CONTRADICTIONS[name](_features(features))
+    if contradiction is not None:
+        raise ValueError(
+            f"{CPUID_MASK_ENV}={name!r}, but the mask is not in effect: this process's CPUID {contradiction} (numpy's "
+            "CPU feature table). The variable was set by hand, or inherited without the LD_PRELOAD of "
+            "benchmarks/avx2_only.sh: unset it, or run the command under benchmarks/avx2_only.sh"
+        )
     return name
 
 
@@ -51,45 +113,202 @@ def _cpuinfo_fields(text: str):
             yield key.strip(), value.strip()
 
 
-def read_cpuinfo(path: str | Path = CPUINFO) -> tuple[str | None, frozenset[str]]:
-    """(model name, flags) of the first processor in a /proc/cpuinfo text; (None, empty) where it cannot be read."""
-    try:
-        text = Path(path).read_text(errors="replace")
-    except OSError:
-        return None, frozenset()
-    model, flags = None, None
+# aarch64's "CPU implementer" / "CPU part" (the MIDR register's fields, as Linux's arch/arm64 cputype.h names them):
+# a few common ones by name; any other is printed by its numbers
+ARM_IMPLEMENTERS = {0x41: "ARM", 0x4E: "NVIDIA", 0x51: "Qualcomm", 0x61: "Apple", 0xC0: "Ampere"}
+ARM_PARTS = {
+    (0x41, 0xD03): "Cortex-A53",
+    (0x41, 0xD05): "Cortex-A55",
+    (0x41, 0xD08): "Cortex-A72",
+    (0x41, 0xD0B): "Cortex-A76",
+    (0x41, 0xD0C): "Neoverse N1",
+    (0x41, 0xD40): "Neoverse V1",
+    (0x41, 0xD49): "Neoverse N2",
+    (0x41, 0xD4F): "Neoverse V2",
+}
+_HEX = re.compile(r"0[xX][0-9a-fA-F]{1,8}")
+_GENERIC_ARM = re.compile(r"ARMv[0-9]")  # the "model name" some kernels give any ARM core
+
+
+def arm_core_name(implementer: str, part: str) -> str | None:
+    """The core that aarch64's ``CPU implementer`` and ``CPU part`` texts name ("0x41", "0xd0c" -> "ARM Neoverse
+    N1"); an unknown part of a known implementer by its number ("Apple part 0x23"), an unknown implementer by both
+    ("ARM implementer 0x42 part 0x516"); None for text that is not a hexadecimal number."""
+    if _HEX.fullmatch(implementer) is None or _HEX.fullmatch(part) is None:
+        return None
+    imp, prt = int(implementer, 16), int(part, 16)
+    vendor = ARM_IMPLEMENTERS.get(imp)
+    if vendor is None:
+        return f"ARM implementer {imp:#x} part {prt:#x}"
+    name = ARM_PARTS.get((imp, prt))
+    return f"{vendor} {name}" if name else f"{vendor} part {prt:#x}"
+
+
+@dataclass(frozen=True)
+class ProcCpuinfo:
+    """What a /proc/cpuinfo text says of the CPU.
+
+    ``model``: x86's ``model name`` (the first processor's); else the aarch64 cores by ``CPU implementer`` / ``CPU
+    part`` (each kind once, in order: "ARM Cortex-A76 + ARM Cortex-A55" on a big.LITTLE part); else POWER's ``cpu``;
+    with the board's ``Model`` or ``Hardware`` line (Raspberry Pi and other boards) beside it, or alone. None where
+    the text names none. ``flags``: x86's ``flags`` or aarch64's ``Features`` line of the first processor; None
+    where the text has neither (unknown: not the same as an empty line)."""
+
+    model: str | None
+    flags: frozenset[str] | None
+
+
+def parse_cpuinfo(text: str) -> ProcCpuinfo:
+    """``ProcCpuinfo`` of a /proc/cpuinfo text (any text: lines without "key : value" are skipped)."""
+    first: dict[str, str] = {}  # the first non-empty value of each key
+    cores: list[str] = []  # aarch64: each processor's core, once each
+    implementer = part = None
+    flags = None
+
+    def end_processor() -> None:
+        if implementer is not None and part is not None:
+            name = arm_core_name(implementer, part)
+            if name is not None and name not in cores:
+                cores.append(name)
+
     for key, value in _cpuinfo_fields(text):
-        if key == "model name" and model is None and value:
-            model = value
-        elif key == "flags" and flags is None:
+        if key == "processor":
+            end_processor()
+            implementer = part = None
+        elif key == "CPU implementer":
+            implementer = value
+        elif key == "CPU part":
+            part = value
+        elif key in ("flags", "Features") and flags is None:
             flags = frozenset(value.split())
-    return model, flags or frozenset()
+        if value and key not in first:
+            first[key] = value
+    end_processor()
+    model_name = first.get("model name")
+    if model_name and cores and _GENERIC_ARM.match(model_name):  # "ARMv8 Processor rev 1 (v8l)": the cores say more
+        model_name = None
+    core = model_name or " + ".join(cores) or first.get("cpu")
+    board = first.get("Model") or first.get("Hardware")
+    if core and board:
+        return ProcCpuinfo(f"{core} ({board})", flags)
+    return ProcCpuinfo(core or board, flags)
+
+
+def read_cpuinfo(path: str | Path = CPUINFO) -> tuple[str | None, frozenset[str]]:
+    """(model, flags) of a /proc/cpuinfo file (``parse_cpuinfo``); (None, empty) where it cannot be read, empty flags
+    where it has no flags line."""
+    info = parse_cpuinfo(_read(Path(path)) or "")
+    return info.model, info.flags or frozenset()
+
+
+def _macos_brand() -> str | None:
+    """macOS's name of the CPU ("Apple M2", "Intel(R) Core(TM) i7-9750H ..."): sysctl machdep.cpu.brand_string;
+    None where it cannot be run."""
+    try:
+        args = ["sysctl", "-n", "machdep.cpu.brand_string"]
+        done = subprocess.run(args, capture_output=True, text=True, timeout=5, check=False)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return (done.stdout.strip() or None) if done.returncode == 0 else None
 
 
 def cpu_model(path: str | Path = CPUINFO) -> str:
-    """The CPU's model name (platform.processor() where /proc/cpuinfo has none)."""
+    """The CPU's model (``parse_cpuinfo``); where /proc/cpuinfo names none, macOS's brand string, else
+    platform.processor() (on Linux often empty, on macOS only "arm" or "i386"), else the machine's architecture."""
     model, _ = read_cpuinfo(path)
-    return model or platform.processor() or platform.machine() or "unknown CPU"
+    if model:
+        return model
+    brand = _macos_brand() if sys.platform == "darwin" else None
+    return brand or platform.processor() or platform.machine() or "unknown CPU"
 
 
-def cpu_flags(path: str | Path = CPUINFO, environ: dict[str, str] | None = None) -> frozenset[str]:
-    """The /proc/cpuinfo flags the kernels of this process can see: those of the silicon less the CPUID mask's."""
-    _, flags = read_cpuinfo(path)
-    mask = cpuid_mask(environ)
-    if mask is None:
-        return flags
-    hidden = MASKS[mask]
-    return frozenset(f for f in flags if not hidden(f))
+# The SIMD flags that decide which kernels numpy, OpenCV, onnxruntime and PyTorch pick, by Linux's names, in the order
+# reports list them: x86's, then aarch64's (NEON, its dot product, SVE / SVE2, the int8 and bf16 matrix instructions).
+X86_KERNEL_FLAGS = ("avx", "avx2", "fma", "f16c", "avx512f", "avx512_bf16", "avx512_fp16", "avx512_vnni", "avx_vnni", "amx_tile")
+ARM_KERNEL_FLAGS = ("asimd", "asimddp", "sve", "sve2", "i8mm", "bf16")
+KERNEL_FLAGS = X86_KERNEL_FLAGS + ARM_KERNEL_FLAGS
+# numpy's names of those it has in its CPU feature table (it has none for avx_vnni, amx_tile, sve2, i8mm, bf16)
+NUMPY_FLAG_NAMES = {"AVX": "avx", "AVX2": "avx2", "FMA3": "fma", "F16C": "f16c", "AVX512F": "avx512f",
+                    "AVX512BF16": "avx512_bf16", "AVX512FP16": "avx512_fp16", "AVX512VNNI": "avx512_vnni",
+                    "ASIMD": "asimd", "ASIMDDP": "asimddp", "SVE": "sve"}  # fmt: skip
+FLAGS_FROM_CPUINFO = "/proc/cpuinfo"
+FLAGS_FROM_NUMPY = "numpy"
 
 
-# The SIMD flags that decide which kernels numpy, OpenCV, onnxruntime and PyTorch pick, in the order reports list them.
-KERNEL_FLAGS = ("avx", "avx2", "fma", "f16c", "avx512f", "avx512_bf16", "avx512_fp16", "avx512_vnni", "avx_vnni", "amx_tile")
+def numpy_flags(features: Mapping[str, bool]) -> frozenset[str]:
+    """The flags (Linux's names, ``NUMPY_FLAG_NAMES``) a numpy CPU feature table reports present."""
+    return frozenset(flag for name, flag in NUMPY_FLAG_NAMES.items() if features.get(name) is True)
 
 
-def kernel_flags(path: str | Path = CPUINFO, environ: dict[str, str] | None = None) -> tuple[str, ...]:
+def visible_flags(
+    path: str | Path = CPUINFO, environ: Mapping[str, str] | None = None, features: Mapping[str, bool] | None = None
+) -> tuple[frozenset[str], str | None]:
+    """(flags, where they came from) as the kernels of this process see them: /proc/cpuinfo's flags less the CPUID
+    mask's (``FLAGS_FROM_CPUINFO``); where the file has no flags line, numpy's table (``features``, as for
+    ``cpuid_mask``: ``FLAGS_FROM_NUMPY``, by Linux's names and only those in ``NUMPY_FLAG_NAMES``); (empty, None)
+    where neither says: unknown. Raises ValueError as ``cpuid_mask`` does."""
+    mask = cpuid_mask(environ, features)
+    flags = parse_cpuinfo(_read(Path(path)) or "").flags
+    source: str | None = FLAGS_FROM_CPUINFO
+    if flags is None:
+        table = _features(features)
+        flags, source = numpy_flags(table), FLAGS_FROM_NUMPY if table else None
+    if mask is not None:
+        hidden = MASKS[mask]
+        flags = frozenset(f for f in flags if not hidden(f))
+    return flags, source
+
+
+def cpu_flags(
+    path: str | Path = CPUINFO, environ: Mapping[str, str] | None = None, features: Mapping[str, bool] | None = None
+) -> frozenset[str]:
+    """The flags the kernels of this process can see: those of the silicon less the CPUID mask's (``visible_flags``;
+    empty where unknown)."""
+    return visible_flags(path, environ, features)[0]
+
+
+def kernel_flags(
+    path: str | Path = CPUINFO, environ: Mapping[str, str] | None = None, features: Mapping[str, bool] | None = None
+) -> tuple[str, ...]:
     """Those of ``KERNEL_FLAGS`` the kernels of this process can see (``cpu_flags``), in that order."""
-    visible = cpu_flags(path, environ)
+    visible = cpu_flags(path, environ, features)
     return tuple(f for f in KERNEL_FLAGS if f in visible)
+
+
+def cpu_info(
+    cpuinfo: str | Path = CPUINFO, environ: Mapping[str, str] | None = None, features: Mapping[str, bool] | None = None
+) -> dict:
+    """What reports record of the CPU (the replay's ``config.cpu``): {model (``cpu_model``), flags (those of
+    KERNEL_FLAGS the kernels can see, in that order), flags_source (``visible_flags``: "/proc/cpuinfo", "numpy", or
+    None: unknown), cpuid_mask (None, or the mask hiding the rest), threads (usable by this process:
+    ``usable_cpus``, which also counts a cgroup CPU quota), logical_cpus}. Raises ValueError as ``cpuid_mask``
+    does: call it before the work it describes, not after."""
+    visible, source = visible_flags(cpuinfo, environ, features)
+    return {
+        "model": cpu_model(cpuinfo),
+        "flags": [f for f in KERNEL_FLAGS if f in visible],
+        "flags_source": source,
+        "cpuid_mask": cpuid_mask(environ, features),
+        "threads": usable_cpus(),
+        "logical_cpus": os.cpu_count(),
+    }
+
+
+def cpu_line(info: dict) -> str:
+    """One line of a ``cpu_info`` record: "model, N threads usable (flags; the mask)". Flags that could not be read
+    say "SIMD flags unknown", not "none of" them: so do records written before ``flags_source`` that hold none."""
+    flags = list(info.get("flags") or ())
+    source = info.get("flags_source", FLAGS_FROM_CPUINFO if flags else None)  # absent in records written before it
+    if source == FLAGS_FROM_NUMPY:
+        known = [f for f in KERNEL_FLAGS if f in NUMPY_FLAG_NAMES.values()]
+        text = (", ".join(flags) or "none of " + "/".join(known)) + ": numpy's CPU features"
+    elif source is not None:
+        text = ", ".join(flags) or "none of " + "/".join(KERNEL_FLAGS)
+    else:
+        text = "SIMD flags unknown"
+    mask = info.get("cpuid_mask")  # absent in replays recorded before the mask existed
+    masked = f"; CPUID masked to {mask}: the kernels' instruction set, not the silicon's" if mask else ""
+    return f"{info['model']}, {info['threads']} threads usable ({text}{masked})"
 
 
 # ---- how many CPUs this process may use ------------------------------------------------------------------------

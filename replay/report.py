@@ -9,34 +9,12 @@ slice's record) goes to ``--out DIR`` (``replay.json``).
 from __future__ import annotations
 
 import math
-import os
-from pathlib import Path
 
 import numpy as np
 
-from streamdet.core.cpu import CPUINFO, KERNEL_FLAGS, cpu_model, cpuid_mask, kernel_flags, usable_cpus
+from streamdet.core.cpu import cpu_info, cpu_line  # noqa: F401  (cpu_info re-exported: moved to core.cpu, imported from here too)
 from streamdet.replay.record import STALE_MS, full_collections, percentiles, staleness_by_recent_images
 from streamdet.replay.run import ModeResult, ReplayResult
-
-def cpu_info(cpuinfo: str | Path = CPUINFO) -> dict:
-    """{model, flags (those of core.cpu.KERNEL_FLAGS the kernels can see), cpuid_mask (None, or the mask hiding the rest:
-    `streamdet.core.cpu`), threads (usable by this process: `streamdet.core.cpu.usable_cpus`, which also counts a cgroup
-    CPU quota), logical_cpus}."""
-    threads = usable_cpus()
-    return {
-        "model": cpu_model(cpuinfo),
-        "flags": list(kernel_flags(cpuinfo)),
-        "cpuid_mask": cpuid_mask(),
-        "threads": threads,
-        "logical_cpus": os.cpu_count(),
-    }
-
-
-def cpu_line(info: dict) -> str:
-    flags = ", ".join(info["flags"]) or "none of " + "/".join(KERNEL_FLAGS)
-    mask = info.get("cpuid_mask")  # absent in replays recorded before the mask existed
-    masked = f"; CPUID masked to {mask}: the kernels' instruction set, not the silicon's" if mask else ""
-    return f"{info['model']}, {info['threads']} threads usable ({flags}{masked})"
 
 
 def mode_key(mode: str) -> str:

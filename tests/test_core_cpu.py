@@ -23,6 +23,14 @@ ZEN4_FLAGS = "fpu sse2 avx avx2 fma f16c avx512f avx512dq avx512ifma avx512cd av
 SPR_EXTRA = "amx_bf16 amx_tile amx_int8 avx_vnni avx512_fp16 avx_ifma avx_vnni_int8 avx10"
 
 
+# numpy CPU feature tables (numpy's __cpu_features__) injected so the tests do not depend on this host's CPUID:
+# a Zen 4 as it is, the same under the AVX2 mask, and none at all (the mask's variable is then trusted)
+ZEN4_FEATURES = {"AVX": True, "AVX2": True, "FMA3": True, "F16C": True, "AVX512F": True, "AVX512BW": True, "AVX512VNNI": True,
+                 "AVX512BF16": True, "AVX512FP16": False, "ASIMD": False}  # fmt: skip
+MASKED_FEATURES = {k: v and not k.startswith("AVX512") for k, v in ZEN4_FEATURES.items()}
+NO_TABLE: dict[str, bool] = {}
+
+
 def cpuinfo_text(model: str, flags: str, processors: int = 2) -> str:
     block = f"processor\t: {{i}}\nvendor_id\t: AuthenticAMD\nmodel name\t: {model}\nflags\t\t: {flags}\n\n"
     return "".join(block.format(i=i) for i in range(processors))
@@ -42,7 +50,7 @@ def test_flags_unmasked_are_the_silicon(zen4: Path) -> None:
 
 
 def test_avx2_mask_hides_everything_above_avx2(zen4: Path) -> None:
-    flags = cpu.cpu_flags(zen4, environ={cpu.CPUID_MASK_ENV: "avx2"})
+    flags = cpu.cpu_flags(zen4, environ={cpu.CPUID_MASK_ENV: "avx2"}, features=MASKED_FEATURES)
     assert {"avx", "avx2", "fma", "f16c", "sse2", "cpuid_fault"} <= flags
     hidden = set(cpu.read_cpuinfo(zen4)[1]) - flags
     assert hidden == set((ZEN4_FLAGS + " " + SPR_EXTRA).split()) - flags
@@ -52,13 +60,14 @@ def test_avx2_mask_hides_everything_above_avx2(zen4: Path) -> None:
 
 def test_kernel_flags_are_the_visible_ones_in_the_reports_order(zen4: Path, tmp_path: Path) -> None:
     unmasked = cpu.kernel_flags(zen4, environ={})
-    assert unmasked == cpu.KERNEL_FLAGS  # this fake part has every one of them
-    masked = cpu.kernel_flags(zen4, environ={cpu.CPUID_MASK_ENV: "avx2"})
+    assert unmasked == cpu.X86_KERNEL_FLAGS  # this fake part has every x86 one of them
+    assert cpu.KERNEL_FLAGS[: len(cpu.X86_KERNEL_FLAGS)] == cpu.X86_KERNEL_FLAGS  # x86's order kept, ARM's after it
+    masked = cpu.kernel_flags(zen4, environ={cpu.CPUID_MASK_ENV: "avx2"}, features=MASKED_FEATURES)
     assert masked == ("avx", "avx2", "fma", "f16c")
     bare = tmp_path / "bare"
     bare.write_text(cpuinfo_text("Old", "fpu sse2 avx512_unknown"))
     assert cpu.kernel_flags(bare, environ={}) == ()
-    assert cpu.kernel_flags(tmp_path / "missing", environ={}) == ()
+    assert cpu.kernel_flags(tmp_path / "missing", environ={}, features=NO_TABLE) == ()
 
 
 @pytest.mark.parametrize("value", ["avx512", "AVX2", "sse", " avx2"])
@@ -82,12 +91,13 @@ def test_malformed_or_empty_cpuinfo(tmp_path: Path, text: str) -> None:
     model, flags = cpu.read_cpuinfo(path)
     assert model in (None, "X") and isinstance(flags, frozenset)
     assert cpu.cpu_model(path)  # falls back to the platform's name
-    assert cpu.cpu_flags(path, environ={cpu.CPUID_MASK_ENV: "avx2"}) <= flags
+    masked = cpu.cpu_flags(path, environ={cpu.CPUID_MASK_ENV: "avx2"}, features=MASKED_FEATURES)
+    assert masked <= flags | cpu.numpy_flags(MASKED_FEATURES)  # numpy's where the text has no flags line
 
 
 def test_missing_cpuinfo(tmp_path: Path) -> None:
     assert cpu.read_cpuinfo(tmp_path / "absent") == (None, frozenset())
-    assert cpu.cpu_flags(tmp_path / "absent", environ={}) == frozenset()
+    assert cpu.cpu_flags(tmp_path / "absent", environ={}, features=NO_TABLE) == frozenset()
 
 
 def test_first_processor_decides(tmp_path: Path) -> None:
@@ -97,14 +107,56 @@ def test_first_processor_decides(tmp_path: Path) -> None:
 
 
 def test_replay_cpu_line_names_the_mask(zen4: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The variable of this process's environment, with the CPUID it claims (features without AVX-512) injected."""
     monkeypatch.setenv(cpu.CPUID_MASK_ENV, "avx2")
-    info = cpu_info(zen4)
+    info = cpu_info(zen4, features=MASKED_FEATURES)
     assert info["cpuid_mask"] == "avx2" and "avx512f" not in info["flags"] and "avx2" in info["flags"]
     assert "masked to avx2" in cpu_line(info)
     monkeypatch.delenv(cpu.CPUID_MASK_ENV)
-    info = cpu_info(zen4)
+    info = cpu_info(zen4, features=ZEN4_FEATURES)
     assert info["cpuid_mask"] is None and "avx512f" in info["flags"] and "masked" not in cpu_line(info)
     assert "masked" not in cpu_line({k: v for k, v in info.items() if k != "cpuid_mask"})  # replays recorded before
+
+
+def test_mask_claimed_and_confirmed(zen4: Path) -> None:
+    env = {cpu.CPUID_MASK_ENV: "avx2"}
+    assert cpu.cpuid_mask(env, features=MASKED_FEATURES) == "avx2"
+    info = cpu_info(zen4, environ=env, features=MASKED_FEATURES)
+    assert info["cpuid_mask"] == "avx2" and "masked to avx2" in cpu_line(info)
+
+
+@pytest.mark.parametrize(
+    "features, says",
+    [
+        (ZEN4_FEATURES, "still reports AVX512F, AVX512BF16, AVX512BW and 1 more"),  # set by hand on an AVX-512 part
+        ({**MASKED_FEATURES, "AVX512_SKX": True}, "still reports AVX512_SKX"),  # any AVX-512 feature, not only AVX512F
+        ({"AVX2": False, "AVX512F": False, "ASIMD": True}, "reports no AVX2"),  # an ARM part: nothing to mask to AVX2
+    ],
+)
+def test_mask_claimed_but_not_in_effect_is_refused(zen4: Path, features: dict, says: str) -> None:
+    env = {cpu.CPUID_MASK_ENV: "avx2"}
+    for call in (lambda: cpu.cpuid_mask(env, features=features), lambda: cpu_info(zen4, environ=env, features=features),
+                 lambda: cpu.kernel_flags(zen4, environ=env, features=features)):  # fmt: skip
+        with pytest.raises(ValueError, match="STREAMDET_CPUID_MASK='avx2', but the mask is not in effect") as raised:
+            call()
+        assert says in str(raised.value) and "LD_PRELOAD of benchmarks/avx2_only.sh" in str(raised.value)
+
+
+def test_mask_without_a_numpy_table_is_trusted(zen4: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    env = {cpu.CPUID_MASK_ENV: "avx2"}
+    assert cpu.cpuid_mask(env, features=NO_TABLE) == "avx2"
+    assert cpu.cpuid_mask(env, features={"SSE2": True}) == "avx2"  # a table that does not say
+    monkeypatch.setattr(cpu, "numpy_cpu_features", lambda: None)  # numpy's table cannot be imported
+    assert cpu.cpuid_mask(env) == "avx2" and cpu.kernel_flags(zen4, environ=env) == ("avx", "avx2", "fma", "f16c")
+
+
+def test_mask_is_checked_against_this_process_by_default(monkeypatch: pytest.MonkeyPatch) -> None:
+    """No features given: this process's numpy table decides (the case of the audit: the variable set by hand)."""
+    monkeypatch.setattr(cpu, "numpy_cpu_features", lambda: dict(ZEN4_FEATURES))
+    with pytest.raises(ValueError, match="not in effect"):
+        cpu.cpuid_mask({cpu.CPUID_MASK_ENV: "avx2"})
+    monkeypatch.setattr(cpu, "numpy_cpu_features", lambda: dict(MASKED_FEATURES))
+    assert cpu.cpuid_mask({cpu.CPUID_MASK_ENV: "avx2"}) == "avx2"
 
 
 def _can_mask() -> str | None:
