@@ -199,6 +199,12 @@ def main(
         _flops_only(preset or "paper", resolution, json_path)
         return
     _check_outputs(json_path, plot_path, profile_dir, export_dir)
+    from streamdet.core.cpu import cpuid_mask
+
+    try:
+        cpuid_mask()  # the report names the kernels' instruction set: a mask variable not in effect fails now, not later
+    except ValueError as e:
+        raise click.ClickException(str(e)) from None
     if export_dir is not None:
         from streamdet.benchmarks.streaming import export_unfit  # torch-free: the rows' modules load later
         from streamdet.runtime_ort.manifest import ManifestError, read_manifest

@@ -6,7 +6,8 @@
 # and slices, LiDAR-synchronised cameras, 20 Hz x 8 slices, 12 Hz cameras (benchmarks/replay_ab.sh).
 #   benchmarks/issue22_line.sh [OUT_DIR [ROUNDS [SCALE]]]   (default out/issue22_line, 3 rounds, time scale 1)
 # Writes OUT_DIR/ab/ (replay_ab.sh's runs and table.md) and OUT_DIR/line.md: per round, staleness added p95 within the
-# CPU's target (25 ms with AVX-512, 100 ms on an AVX2-only part), no slice dropped, slice p99 at most `full`'s of the
+# CPU's target (25 ms with AVX-512, 100 ms on an AVX2-only part; the issue names none for other CPUs, e.g. ARM:
+# give replay_table.py --target-ms there), no slice dropped, slice p99 at most `full`'s of the
 # round, streaming mAP at least `full`'s (benchmarks/replay_table.py --baseline full). About 2 minutes a round once
 # the drives and the export exist (their first making: about 10 minutes on 2 cores). Run it with nothing else running.
 # Environment: ISA=avx2 runs both variants under benchmarks/avx2_only.sh (the AVX2 kernels on an AVX-512 part: a

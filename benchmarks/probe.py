@@ -22,9 +22,9 @@ import onnx
 import onnxruntime as ort
 from onnx import TensorProto, helper
 
-from streamdet.core.cpu import cpu_model, cpu_vendor_family, cpuid_mask, kernel_flags, physical_cores, usable_cpus
+from streamdet.core.cpu import cpu_model, cpu_vendor_family, cpuid_mask, kernel_flags, physical_cores, usable_cpus, visible_flags
 from streamdet.runtime_ort.onnx_build import make_model
-from streamdet.runtime_ort.sessions import GraphSession, SessionConfig
+from streamdet.runtime_ort.sessions import CPU_ONLY, GraphSession, SessionConfig
 
 
 @dataclass(frozen=True)
@@ -84,7 +84,7 @@ def row_session_config(threads: int, profile: bool = False, profile_dir: str | o
     """Sessions of the per-module rows and of the probe: CPU, ORT_ENABLE_ALL (GraphSession's level), ``threads``
     intra-op threads, spinning on (onnxruntime's default; one graph runs alone, so no other lane needs the core);
     ``profile_dir``: where a profiling session writes (None: the current directory)."""
-    return SessionConfig(("CPUExecutionProvider",), threads, allow_spinning=True, enable_profiling=profile,
+    return SessionConfig(CPU_ONLY, threads, allow_spinning=True, enable_profiling=profile,
                          profile_dir=profile_dir)  # fmt: skip
 
 
@@ -251,10 +251,12 @@ def machine_info(threads: int) -> dict:
     import torch  # the benchmark needs torch anyway; kept local so the probe itself stays torch-free
 
     flags, mhz, cores = cpu_flags(), cpu_mhz(), physical_cores()
+    flags_source = visible_flags()[1]
     estimate = nominal_peak_gflops(threads, flags, mhz, cores, *cpu_vendor_family())
     return {
         "cpu_model": cpu_model(),
         "cpu_flags": list(flags),
+        "cpu_flags_source": flags_source,  # core.cpu.visible_flags: "/proc/cpuinfo", "numpy", or None (unknown)
         "cpuid_mask": cpuid_mask(),
         "cpu_mhz": mhz,  # the first "cpu MHz" of /proc/cpuinfo: the nominal clock in a VM, cpu0's current one otherwise
         "peak_estimate_gflops_per_s": estimate,  # nominal_peak_gflops: an estimate, not a data-sheet figure nor a bound

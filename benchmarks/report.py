@@ -179,7 +179,11 @@ def _pillar_words(pillars: dict | None) -> str:
 
 def format_header(meta: dict, peak: ProbeResult) -> str:
     m = meta["machine"]
-    flags = ", ".join(m["cpu_flags"]) or "no SIMD flags read"
+    if m.get("cpu_flags_source", "/proc/cpuinfo") is None:  # absent in results recorded before it
+        flags = "SIMD flags unknown"
+    else:
+        flags = ", ".join(m["cpu_flags"]) or "none of the SIMD flags reports list"
+        flags += ": numpy's CPU features" if m.get("cpu_flags_source") == "numpy" else ""
     if m.get("cpuid_mask"):  # absent in results recorded before the mask existed
         flags += f"; CPUID masked to {m['cpuid_mask']}: the kernels' instruction set, not the silicon's"
     lines = [
@@ -282,7 +286,8 @@ def _stage(lane: LaneStats, name: str) -> str:
 def format_streaming(s: StreamingResult) -> str:
     pts = f"{min(s.num_points):,}..{max(s.num_points):,}"
     lines = [
-        f"streaming ({s.preset} export, {s.precision_label}, 1 intra-op thread per session; bundled nuScenes sweep in "
+        f"streaming ({s.preset} export, {s.precision_label}, {', '.join(s.providers) or 'CPUExecutionProvider'}, "
+        "1 intra-op thread per session; bundled nuScenes sweep in "
         f"{s.num_slices} slices of {pts} points; {s.num_cameras} cameras at {s.image_size[0]}x{s.image_size[1]})",
         _lane_line("slice lane, image lane idle", s.idle),
         *(
@@ -383,6 +388,7 @@ def streaming_to_dict(s: StreamingResult) -> dict:
         "image_size": list(s.image_size),
         "num_cameras": s.num_cameras,
         "threads_per_session": 1,
+        "providers": list(s.providers),  # the slice session's (the bench pins the CPU provider)
         "slice_budget_ms": s.slice_budget_ms,
         "slice_idle": _lane(s.idle),
         "slice_busy": _lane(s.busy),

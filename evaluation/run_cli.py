@@ -34,6 +34,9 @@ def run_sample(
     from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector
     from streamdet.runtime_ort.pipeline import detect_sample
 
+    from streamdet.core.cpu import cpu_info
+
+    cpu = cpu_info()  # before any work: a CPUID mask variable not in effect is refused here
     sample = load_bundled_sample(sample_dir)
     config = DetectorConfig(precision=precision, image_lane_precision=image_precision, num_slices=num_slices, providers=providers)
     det = StreamingDetector(export_dir, config)
@@ -75,6 +78,7 @@ def run_sample(
         "num_slices": n,
         "precision": det.precision_label,
         "providers": list(det.providers),
+        "cpu": cpu,
         "uses_images": det.uses_images,
         "cameras_missing": list(missing),
         "detections": len(merged),
@@ -124,6 +128,9 @@ def main(
         f"sample {summary['sample']}: {summary['detections']} detections over {summary['num_slices']} slices "
         f"({summary['precision']}, {', '.join(summary['providers'])}{'' if summary['uses_images'] else ', LiDAR only: no images used'})"
     )
+    from streamdet.core.cpu import cpu_line
+
+    click.echo(f"CPU: {cpu_line(summary['cpu'])}")
     if summary["cameras_missing"]:
         click.echo(f"cameras missing (zero features): {summary['cameras_missing']}")
     click.echo("per class: " + (json.dumps(summary["per_class"]) if summary["per_class"] else "none"))

@@ -53,7 +53,8 @@ def image_lane_summary(result: ModeResult) -> dict:
 def json_report(result: ReplayResult, info: dict) -> dict:
     config = {**result.config.to_dict(), "num_slices": result.num_slices, "precision_label": result.precision_label,
               "scenes": list(result.scenes), "cpu": info, "ground_truth": result.truth_source,
-              "notes": list(result.notes), "camera_terms_used": result.camera_terms}  # fmt: skip
+              "notes": list(result.notes), "camera_terms_used": result.camera_terms,
+              "providers_used": list(result.providers)}  # fmt: skip
     return {"config": config, "modes": {mode_key(m): mode_summary(r) for m, r in result.modes.items()}}
 
 
@@ -121,7 +122,8 @@ def format_report(result: ReplayResult, info: dict) -> str:
             f"cameras {c.camera_hz:g} Hz ({c.camera_trigger} triggers, {_delivery(c)})" if result.uses_images
             else "no cameras (a LiDAR-only export)"),
         f"time scale {c.time_scale:g} (latencies in drive time = wall / {c.time_scale:g}); CPU: {cpu_line(info)}; "
-        f"{c.threads} thread(s) per session"
+        + (f"onnxruntime {', '.join(result.providers)}; " if result.providers else "")
+        + f"{c.threads} thread(s) per session"
         + (f" ({c.image_lane_threads} in the image lane's)" if c.image_lane_threads not in (None, c.threads) else "")
         + f", {c.lanes.max_in_flight} slice worker(s), queue {c.lanes.queue_size}"
         + (f", image lane at nice +{c.lanes.image_lane_nice}" if c.lanes.image_lane_nice and result.uses_images else "")

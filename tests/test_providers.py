@@ -306,3 +306,39 @@ def test_a_runner_warns_when_its_lanes_threads_exceed_the_cpus(tiny_export, monk
     with StreamingDetector(tiny_export) as det, warnings.catch_warnings():
         warnings.simplefilter("error")
         lanes.StreamingRunner(det).close()  # 1 + 1 on 2 CPUs: quiet
+
+
+def test_a_replay_records_the_providers_asked_and_used(tiny_drive_data, tiny_export, tmp_path):
+    import json
+
+    from streamdet.replay import cli as replay_cli
+
+    out = tmp_path / "r.json"
+    args = ["--data", str(tiny_drive_data), "--split", "all", "--export-dir", str(tiny_export), "--max-seconds", "0.1",
+            "--mode", "sequential", "--time-scale", "2", "--providers", "cpu", "--json", str(out)]  # fmt: skip
+    result = CliRunner().invoke(replay_cli.main, args)
+    assert result.exit_code == 0, result.output
+    assert "onnxruntime CPUExecutionProvider; " in result.output
+    config = json.loads(out.read_text())["config"]
+    assert config["providers"] == [CPU_PROVIDER] and config["providers_used"] == [CPU_PROVIDER]
+
+
+def test_streamdet_run_names_the_cpu(tiny_export, tmp_path):
+    from streamdet.evaluation.run_cli import main
+
+    result = CliRunner().invoke(main, ["--export-dir", str(tiny_export), "--out", str(tmp_path / "o")])
+    assert result.exit_code == 0, result.output
+    assert result.output.splitlines()[1].startswith("CPU: ") and "threads usable" in result.output
+
+
+def test_bench_header_says_when_the_flags_are_unknown():
+    from streamdet.benchmarks import report
+    from streamdet.benchmarks.probe import ProbeResult
+
+    machine = {"cpu_model": "x", "cpu_flags": [], "cpu_flags_source": None, "logical_cpus": 2, "load_average_1_5_15": [0, 0, 0],
+               "onnxruntime": "1", "torch": "2"}  # fmt: skip
+    meta = {"date": "d", "preset": "p", "machine": machine, "threads": 2, "repeat": 1, "warmup": 1, "budget_s": 1.0}
+    header = report.format_header(meta, ProbeResult((1.0,), 8, 2))
+    assert "(SIMD flags unknown)" in header
+    machine.update(cpu_flags=["avx2"], cpu_flags_source="numpy")
+    assert "(avx2: numpy's CPU features)" in report.format_header(meta, ProbeResult((1.0,), 8, 2))
