@@ -21,16 +21,7 @@ from streamdet.core import cpu
 REPO = Path(__file__).resolve().parents[1]
 
 # ---- /proc/cpuinfo texts (those of the audit, and a few more) -----------------------------------------------------
-AARCH64 = """processor\t: 0
-BogoMIPS\t: 50.00
-Features\t: fp asimd evtstrm aes pmull sha1 sha2 crc32 atomics fphp asimdhp cpuid asimdrdm lrcpc dcpop asimddp ssbs
-CPU implementer\t: 0x41
-CPU architecture: 8
-CPU variant\t: 0x3
-CPU part\t: 0xd0c
-CPU revision\t: 1
-
-processor\t: 1
+_NEOVERSE_N1 = """processor\t: {n}
 BogoMIPS\t: 50.00
 Features\t: fp asimd evtstrm aes pmull sha1 sha2 crc32 atomics fphp asimdhp cpuid asimdrdm lrcpc dcpop asimddp ssbs
 CPU implementer\t: 0x41
@@ -39,6 +30,7 @@ CPU variant\t: 0x3
 CPU part\t: 0xd0c
 CPU revision\t: 1
 """
+AARCH64 = "\n".join(_NEOVERSE_N1.format(n=n) for n in range(2))  # two processors, as the file lists every one
 INTEL_HYBRID = """processor\t: 0
 vendor_id\t: GenuineIntel
 cpu family\t: 6
