@@ -12,6 +12,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from streamdet.core.providers import parse_providers
 from streamdet.runtime_ort.detector import DetectorConfig, ImageUpdate, StreamingDetector
 from streamdet.runtime_ort.ros.detections import detection3d_array_message, marker_array_message
 from streamdet.runtime_ort.ros.header import header_stamp_ns
@@ -81,8 +82,10 @@ def main() -> None:  # the ROS boilerplate
             # a LiDAR-only export for when the cameras are gone or late ("" : none): runtime_ort/fallback.py
             fallback = self.declare_parameter("fallback_export_dir", "").value or None
             max_age_s = self.declare_parameter("fallback_after_s", 0.5).value
+            # onnxruntime's providers by preference, "cuda,cpu" or "tensorrt,cuda" ("auto": CUDA where present, else CPU)
+            providers = parse_providers(self.declare_parameter("providers", "auto").value, "parameter providers")
             self.detector = StreamingDetector(export_dir, DetectorConfig(
-                fallback_export_dir=fallback, fallback_after_s=max_age_s if fallback else None))  # fmt: skip
+                fallback_export_dir=fallback, fallback_after_s=max_age_s if fallback else None, providers=providers))  # fmt: skip
             self.detector.warm_up()  # before the first message: onnxruntime's first runs of a graph are slow
             self.frames = CameraFrames()
             self.boxes = self.create_publisher(Detection3DArray, "/streamdet/detections", 10)
