@@ -79,7 +79,16 @@ from streamdet.runtime_ort.manifest import GraphEntry, ImageSpec, Manifest, Mani
 from streamdet.runtime_ort.pillarize import pillarize
 from streamdet.runtime_ort.postprocess import Detections, PostprocessConfig, aggregate_sweep, postprocess_slice, top_k_reached
 from streamdet.runtime_ort.recording import Feeds, GraphRecording
-from streamdet.runtime_ort.sessions import TENSORRT_PROVIDER, GraphRunError, GraphSession, SessionConfig, resolve_providers
+from streamdet.runtime_ort.sessions import (
+    CPU_ONLY,
+    TENSORRT_PROVIDER,
+    GraphRunError,
+    GraphSession,
+    ProviderError,
+    SessionConfig,
+    resolve_providers,
+    without_tensorrt,
+)
 from streamdet.runtime_ort.signature import check_graph, check_parity, check_runtime_fields
 from streamdet.runtime_ort.stats import LatencyStats
 from streamdet.runtime_ort.tensorrt import default_cache_dir, tensorrt_options
@@ -90,6 +99,9 @@ log = logging.getLogger(__name__)
 # Calibration swaps one image update follows (each a lift again with the newest LUT) before it gives its images up: a
 # caller swapping faster than one lift would otherwise keep the image lane lifting for ever.
 MAX_RELIFTS_PER_UPDATE = 4
+
+
+TYPICAL_PILLAR_SHARE = 8  # TensorRT's "opt" pillar count: the cap / this (the bundled sweep's slices hold far fewer)
 
 
 class StreamingDetector:
@@ -211,6 +223,9 @@ class StreamingDetector:
         # per-camera lifts of image updates (camera_terms.py); None: every update runs the lifter graph
         self._terms: CameraTerms | None = self._open_camera_terms() if self.uses_images and self._lut is not None else None
         log.info("streamdet: %s (%s, %d slices) on %s", self.export_dir, self.precision_label, self.num_slices, list(self.providers))
+        if self.providers[0] != CPU_ONLY[0] and "int8" in lanes.values():
+            log.warning("streamdet: int8 graphs on %s: their quantize / dequantize pairs are made for x86 CPUs (uint8 "
+                        "activations) and run slower there than the fp32 or fp16 graphs", self.providers[0])  # fmt: skip
 
     def _provider_options(self, entry: GraphEntry) -> dict[str, dict[str, str]] | None:
         """TensorRT's options for one graph where TensorRT is among the providers (runtime_ort/tensorrt.py): the
@@ -219,15 +234,27 @@ class StreamingDetector:
         lifter's LUT depth K is the LUT's, unknown until it is built: that graph builds from the shapes it sees)."""
         if TENSORRT_PROVIDER not in resolve_providers(self.config.providers):
             return None
+        if entry.precision == "int8":  # static QDQ with uint8 activations: TensorRT takes symmetric int8 only
+            raise ProviderError(f"{self.export_dir}: the {entry.name} int8 graph is made for x86 CPUs (uint8 activations, "
+                                "asymmetric); TensorRT runs symmetric int8 only: run fp32 or fp16 graphs there")  # fmt: skip
         img = self.image
         q_opt = len(quadrants_of_sector(0, self.num_slices, self.config.start_deg))
-        dims = {"P": (1, self._max_pillars, self._max_pillars), "Q": (1, q_opt, NUM_QUADRANTS)}
+        # the engine is tuned at "opt": a slice's pillar count, far below the cap on a real sweep
+        p_opt = max(1, self._max_pillars // TYPICAL_PILLAR_SHARE)
+        dims = {"P": (1, p_opt, self._max_pillars), "Q": (1, q_opt, NUM_QUADRANTS)}
         if img is not None:
             cams = len(self.camera_names)
             dims.update(J=(1, cams, cams), H=(img.height,) * 3, W=(img.width,) * 3,
                         Hf=(img.feature_height,) * 3, Wf=(img.feature_width,) * 3)  # fmt: skip
-        cache = Path(self.config.tensorrt_cache_dir if self.config.tensorrt_cache_dir is not None else default_cache_dir())
-        cache.mkdir(parents=True, exist_ok=True)
+        base = self.config.tensorrt_cache_dir if self.config.tensorrt_cache_dir is not None else default_cache_dir()
+        # onnxruntime names an engine by the graph's structure and the library versions, not its weights: one folder
+        # per graph file's sha256 keeps a retrained export of the same preset off the old one's engines
+        cache = Path(base) / entry.sha256[:16]
+        try:
+            cache.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise ProviderError(f"cannot make the TensorRT engine cache {cache}: {e.strerror or e} "
+                                "(DetectorConfig.tensorrt_cache_dir, STREAMDET_TENSORRT_CACHE)") from None  # fmt: skip
         return {TENSORRT_PROVIDER: tensorrt_options(entry.inputs, dims, cache, fp16=entry.precision == "fp16")}
 
     def _read_graph(self, name: str, precision: str) -> tuple[Path, bytes, onnx.ModelProto]:
@@ -239,7 +266,9 @@ class StreamingDetector:
 
     def _open_camera_terms(self) -> CameraTerms | None:
         m, config = self.manifest, self.config
-        fp32 = self.lifter if config.image_precision == "fp32" else None
+        # small graphs whose row counts change with every camera and quadrant: never TensorRT (an engine per shape)
+        terms_providers = without_tensorrt(config.providers)
+        fp32 = self.lifter if config.image_precision == "fp32" and terms_providers == config.providers else None
         read: dict[str, tuple[Path, bytes]] = {}  # the lifters lifter_model read, by precision
 
         def lifter_model(precision: str) -> onnx.ModelProto:
@@ -253,12 +282,12 @@ class StreamingDetector:
             nonlocal fp32
             if fp32 is None:  # the check's reference: the export's fp32 lifter (read and checked by lifter_model first)
                 path, raw = read["fp32"] if "fp32" in read else self._read_graph("volumetric_lifter", "fp32")[:2]
-                fp32 = GraphSession(path, SessionConfig(config.providers, config.image_lane_threads), model=raw)
+                fp32 = GraphSession(path, SessionConfig(terms_providers, config.image_lane_threads), model=raw)
             return fp32.run({"features": maps, **self._lut_feeds(qlut, maps)})[0]
 
         img = self.image
         grid = self.grid
-        session = SessionConfig(config.providers, config.image_lane_threads, enable_profiling=False)
+        session = SessionConfig(terms_providers, config.image_lane_threads, enable_profiling=False)
         form = m.preset.get("lifter", {}).get("form", "volume")  # absent: manifests written before the flat lifter
         return open_camera_terms(
             self.export_dir, form, lifter_model, config.image_precision, config.camera_terms, int(m.preset["channels"]),

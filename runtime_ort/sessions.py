@@ -98,6 +98,8 @@ def resolve_providers(requested: tuple[str, ...] | None) -> list[str]:
     PREFERRED_PROVIDERS this build has. Providers named (by the caller or the variable) that this build lacks raise
     ProviderError; the CPU is appended as the fallback for ops an accelerator lacks."""
     available = ort.get_available_providers()
+    if requested:  # short names ("cuda") as onnxruntime's; an unknown one raises ValueError naming it
+        requested = parse_providers(",".join(requested), "providers")
     if requested is None:
         requested = default_providers()
     if requested is None:
@@ -108,9 +110,28 @@ def resolve_providers(requested: tuple[str, ...] | None) -> list[str]:
             raise ProviderError(f"execution providers {missing} are not available in this onnxruntime build (it has "
                                 f"{available}; a GPU needs the onnxruntime-gpu wheel: README, \"Set-up\")")  # fmt: skip
         chosen = list(requested)
+        if TENSORRT_PROVIDER in chosen and CUDA_PROVIDER not in chosen and CUDA_PROVIDER in available:
+            # onnxruntime's advice: the nodes TensorRT rejects run on CUDA, not on the CPU with copies either way
+            chosen.insert(chosen.index(TENSORRT_PROVIDER) + 1, CUDA_PROVIDER)
     if CPU_PROVIDER not in chosen:
         chosen.append(CPU_PROVIDER)  # fallback for ops the accelerator provider lacks
     return chosen
+
+
+def without_tensorrt(providers: tuple[str, ...] | None) -> tuple[str, ...] | None:
+    """``providers`` less TensorRT (with CUDA in its place where the build has it), for small graphs whose shapes change
+    with every camera and quadrant (the per-camera terms): TensorRT would build an engine for each new shape on the
+    image lane. None (the default order) stays None: it never picks TensorRT."""
+    if providers is None:
+        providers = default_providers()
+        if providers is None:
+            return None
+    if TENSORRT_PROVIDER not in providers:
+        return providers
+    rest = [p for p in providers if p != TENSORRT_PROVIDER]
+    if CUDA_PROVIDER not in rest and CUDA_PROVIDER in ort.get_available_providers():
+        rest.insert(0, CUDA_PROVIDER)
+    return tuple(rest) or (CPU_PROVIDER,)
 
 
 def check_started(path: str | os.PathLike, wanted: list[str], started: list[str], explicit: bool) -> None:
@@ -155,6 +176,7 @@ def ort_session(model: str | os.PathLike | bytes, config: SessionConfig = EXPORT
     src = model if isinstance(model, bytes) else os.fspath(model)
     providers = resolve_providers(config.providers)
     session = ort.InferenceSession(src, sess_options=session_options(config), providers=providers)
+    session.disable_fallback()  # as GraphSession's: a provider failing in run() raises, not silently moves to the CPU
     check_started("<graph>" if isinstance(model, bytes) else model, providers, session.get_providers(),
                   explicit=config.providers is not None or default_providers() is not None)  # fmt: skip
     return session
@@ -179,8 +201,16 @@ class GraphSession:
         try:
             src = model if model is not None else str(self.path)
             self.session = ort.InferenceSession(src, sess_options=opts, providers=[(p, dict(options[p])) if p in options else p for p in providers])
-        except ORT_ERRORS as e:  # a truncated, empty or foreign file that passed (or skipped) the sha256 check
+        except ORT_ERRORS as e:
+            if providers != [CPU_PROVIDER]:  # an accelerator's engine build or kernel, more likely than the file
+                raise ProviderError(f"{self.path}: onnxruntime cannot create a session of this graph on {providers}: "
+                                    f"{ort_message(e)} (if --providers cpu loads it, these providers cannot run it)") from None  # fmt: skip
+            # a truncated, empty or foreign file that passed (or skipped) the sha256 check
             raise ManifestError(f"{self.path}: onnxruntime cannot load this graph: {ort_message(e)}") from None
+        # onnxruntime's Python session otherwise answers a provider failing in run() (a TensorRT engine rebuild, an
+        # enqueue) by printing "EP Error", recreating itself on the CPU without our options and going on: the failure
+        # is raised instead (GraphRunError), and the providers recorded stay the ones that run
+        self.session.disable_fallback()
         self.providers = tuple(self.session.get_providers())
         check_started(self.path, providers, list(self.providers), explicit=config.providers is not None or default_providers() is not None)
         log.info("%s: providers %s, %d intra-op thread(s)", self.path.name, list(self.providers), config.intra_op_threads)

@@ -5,6 +5,8 @@ TensorRT builds an engine per graph for a range of input shapes. Without a profi
 first shapes it sees and rebuilds (seconds each) whenever a run leaves the range seen so far: the slice graph's
 pillar count ``P`` changes every slice, so the first seconds of a drive would rebuild again and again. A profile
 covering ``P`` from 1 to the export's ``max_pillars`` is built once; the engine cache keeps it across processes.
+The per-camera term graphs never run on TensorRT (their row counts change with every camera and quadrant:
+``sessions.without_tensorrt``), nor do int8 graphs (uint8 activations; TensorRT takes symmetric int8 only).
 The option names are onnxruntime's (its TensorRT execution provider documentation, "Configurations"); shapes are
 written ``name:d0xd1x...`` and joined by commas. Not run on a GPU in this repository's CI (it has none).
 """
@@ -57,9 +59,10 @@ def check_dim_ranges(dims: Mapping[str, tuple[int, int, int]]) -> None:
 
 def tensorrt_options(inputs: Sequence[TensorSpec], dims: Mapping[str, tuple[int, int, int]], cache_dir: str | os.PathLike,
                      fp16: bool = False) -> dict[str, str]:  # fmt: skip
-    """The TensorRT provider options of one graph: engine and timing caches in ``cache_dir`` (engines are named by
-    onnxruntime from the graph's hash, so exports share the directory safely), the shape profile of
-    ``profile_shapes`` where every dynamic dimension has a range, and ``trt_fp16_enable`` for an fp16 graph."""
+    """The TensorRT provider options of one graph: engine and timing caches in ``cache_dir`` (onnxruntime names an
+    engine by the graph's structure and the library versions, not by its weights: give each graph file its own
+    folder, as the detector does by its sha256), the shape profile of ``profile_shapes`` where every dynamic dimension
+    has a range, and ``trt_fp16_enable`` for an fp16 graph."""
     check_dim_ranges(dims)
     options = {
         "trt_engine_cache_enable": "True",

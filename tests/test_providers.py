@@ -100,6 +100,43 @@ def test_asked_providers_come_in_order_with_the_cpu_appended(gpu_build):
     assert resolve_providers((CPU_PROVIDER,)) == [CPU_PROVIDER]
 
 
+def test_tensorrt_asked_alone_gets_cuda_behind_it(gpu_build, monkeypatch):
+    assert resolve_providers((TRT,)) == [TRT, CUDA, CPU_PROVIDER]  # the nodes TensorRT rejects run on CUDA
+    assert resolve_providers((TRT, CPU_PROVIDER)) == [TRT, CUDA, CPU_PROVIDER]
+    monkeypatch.setattr(ort, "get_available_providers", lambda: [TRT, CPU_PROVIDER])
+    assert resolve_providers((TRT,)) == [TRT, CPU_PROVIDER]  # a build without CUDA
+
+
+def test_the_camera_terms_never_run_on_tensorrt(gpu_build, monkeypatch):
+    from streamdet.runtime_ort.sessions import without_tensorrt
+
+    assert without_tensorrt(None) is None
+    assert without_tensorrt((TRT, CUDA)) == (CUDA,)
+    assert without_tensorrt((TRT,)) == (CUDA,)
+    assert without_tensorrt((CUDA, CPU_PROVIDER)) == (CUDA, CPU_PROVIDER)
+    monkeypatch.setenv(PROVIDERS_ENV, "tensorrt")
+    assert without_tensorrt(None) == (CUDA,)
+    monkeypatch.setattr(ort, "get_available_providers", lambda: [TRT, CPU_PROVIDER])
+    assert without_tensorrt((TRT,)) == (CPU_PROVIDER,)
+
+
+def test_sessions_raise_a_provider_failure_in_run_instead_of_moving_to_the_cpu(tiny_export):
+    graph = sessions.GraphSession(tiny_export / "slice_head.onnx", sessions.SessionConfig(providers=("cpu",)))
+    assert graph.session._enable_fallback is False  # onnxruntime's Python fallback off: EPFail becomes GraphRunError
+    assert sessions.ort_session(tiny_export / "slice_head.onnx")._enable_fallback is False
+
+
+def test_a_graph_an_accelerator_cannot_load_is_a_provider_error_not_a_broken_file(tiny_export, monkeypatch):
+    monkeypatch.setattr(sessions, "resolve_providers", lambda requested: [CUDA, CPU_PROVIDER])
+
+    def failing(src, sess_options=None, providers=None, **kw):
+        raise ort.capi.onnxruntime_pybind11_state.Fail("TensorRT EP could not build the engine")
+
+    monkeypatch.setattr(ort, "InferenceSession", failing)
+    with pytest.raises(ProviderError, match=r"cannot create a session of this graph on \['CUDAExecutionProvider'.*--providers cpu"):
+        sessions.GraphSession(tiny_export / "slice_head.onnx", sessions.SessionConfig(providers=(CUDA,)))
+
+
 def test_the_environment_chooses_where_the_caller_names_none(gpu_build, monkeypatch):
     monkeypatch.setenv(PROVIDERS_ENV, "cpu")
     assert resolve_providers(None) == [CPU_PROVIDER]
@@ -161,6 +198,14 @@ def test_the_detector_runs_on_the_providers_asked(tiny_export):
     det.close()
 
 
+def test_tensorrt_refuses_the_int8_graphs(tiny_int8_export, tmp_path, gpu_build):
+    det = StreamingDetector(tiny_int8_export.path, DetectorConfig(providers=("cpu",)))
+    det.config = DetectorConfig(providers=("tensorrt",), tensorrt_cache_dir=tmp_path)
+    with pytest.raises(ProviderError, match="slice_head int8 graph is made for x86 CPUs.*fp32 or fp16"):
+        det._provider_options(det.manifest.graph("slice_head", "int8"))
+    det.close()
+
+
 def test_the_detector_gives_tensorrt_a_profile_of_the_pillar_count(tiny_export, tmp_path, gpu_build):
     det = StreamingDetector(tiny_export, DetectorConfig(providers=("cpu",)))
     det.config = DetectorConfig(providers=("tensorrt", "cuda"), tensorrt_cache_dir=tmp_path / "engines")
@@ -168,8 +213,11 @@ def test_the_detector_gives_tensorrt_a_profile_of_the_pillar_count(tiny_export, 
     points = int(det.manifest.preset["pillars"]["max_points_per_pillar"])
     slice_opts = det._provider_options(det.manifest.graph("slice_head", "fp32"))[TRT]
     assert slice_opts["trt_engine_cache_enable"] == "True"
-    assert slice_opts["trt_engine_cache_path"] == str(tmp_path / "engines")
-    assert (tmp_path / "engines").is_dir()
+    # one folder per graph file: onnxruntime names engines by structure, not weights
+    sha = det.manifest.graph("slice_head", "fp32").sha256
+    assert slice_opts["trt_engine_cache_path"] == str(tmp_path / "engines" / sha[:16])
+    assert (tmp_path / "engines" / sha[:16]).is_dir()
+    assert f"pillar_features:{max_pillars // 8}x{points}x11" in slice_opts["trt_profile_opt_shapes"]
     assert f"pillar_features:1x{points}x11" in slice_opts["trt_profile_min_shapes"]
     assert f"pillar_features:{max_pillars}x{points}x11" in slice_opts["trt_profile_max_shapes"]
     assert f"pillar_index:{max_pillars}" in slice_opts["trt_profile_max_shapes"]
