@@ -54,6 +54,7 @@ from typing import Mapping
 import numpy as np
 
 from streamdet.core.cpu import usable_cpus
+from streamdet.core.json_input import is_finite_number, short_repr
 from streamdet.core.points import MAX_SLICE_POINTS, SLICE_COLUMNS, slice_points_problem
 from streamdet.runtime_ort.coalesce import can_coalesce
 from streamdet.runtime_ort.detector import StreamingDetector
@@ -214,6 +215,9 @@ class StreamingRunner:
         if not isinstance(images, Mapping):
             self.detector.update_images(images, timestamp)  # raises ValueError naming the type, in the caller's thread
         stamp = time.monotonic() if timestamp is None else timestamp
+        # a bad timestamp fails here too, under either schedule: queued, it would supersede a good set waiting
+        if not is_finite_number(stamp):
+            raise ValueError(f"timestamp must be None or a finite number of seconds, got {short_repr(timestamp)}")
         # a bad image set (an unknown camera, a wrong size) fails here, in the caller's thread, before any copy and not
         # in a later lift or update; a stand-in detector without the check is checked by its update_images
         check = getattr(self.detector, "check_images", None) if self._phase_locked is None else self.detector.check_images
@@ -221,21 +225,23 @@ class StreamingRunner:
             check(images)
         # copies: the driver may refill its buffers as soon as this returns
         own = {name: np.array(a, copy=True) if isinstance(a, np.ndarray) else a for name, a in images.items()}
+        cameras = check_camera_timestamps(camera_timestamps, own)
         if self._phase_locked is not None:
-            if isinstance(stamp, bool) or not isinstance(stamp, numbers.Real) or not math.isfinite(stamp):
-                raise ValueError(f"timestamp must be None or a finite number of seconds, got {timestamp!r}")
-            return self._phase_locked.submit_images(own, stamp, check_camera_timestamps(camera_timestamps, own))
-        options = {} if camera_timestamps is None else {"camera_timestamps": dict(camera_timestamps)}
+            return self._phase_locked.submit_images(own, stamp, cameras)
+        options = {} if camera_timestamps is None else {"camera_timestamps": cameras}
         update = self.detector.update_images  # the job holds the detector's method, not the runner
         return self._images.submit(lambda: update(own, stamp, **options))
 
     def submit_slice(self, points: np.ndarray, slice_index: int, timestamp: float | None = None) -> "Future[SliceResult]":
         """Queue one slice; its future holds the SliceResult, or the error (bad points, SliceDropped). Points that are
-        no (N, 6) float32 array of at most MAX_SLICE_POINTS rows fail their future at once: they are neither copied
-        nor queued (no good slice waiting is dropped for them)."""
+        no (N, 6) float32 array of at most MAX_SLICE_POINTS rows, a ``slice_index`` outside [0, num_slices) and a
+        ``timestamp`` that is no finite number fail their future at once: such a slice is neither copied nor queued
+        (no good slice waiting is dropped for it)."""
         arrival = time.monotonic()
         stamp = arrival if timestamp is None else timestamp
-        refused = _points_refused(points)  # before the copy: a huge array would be copied in the driver's thread
+        # before the copy (a huge array would be copied in the driver's thread) and never queued (it would push a good
+        # slice out of a full queue only to fail in its worker)
+        refused = _points_refused(points) or _call_refused(slice_index, timestamp, getattr(self.detector, "num_slices", None))
         own = np.array(points, copy=True) if refused is None else None  # the driver may reuse its buffer
         tracked = self._slice_jobs.pair_hold is not None or self._phase_locked is not None  # they learn the LiDAR's timing
         valid = tracked and isinstance(slice_index, (int, np.integer)) and not isinstance(slice_index, bool)
@@ -384,6 +390,17 @@ def _points_refused(points: object) -> str | None:
         return problem
     if points.shape[0] > MAX_SLICE_POINTS:
         return f"points: a slice of {points.shape[0]} points, more than MAX_SLICE_POINTS = {MAX_SLICE_POINTS} (a corrupt array?)"
+    return None
+
+
+def _call_refused(slice_index: object, timestamp: object, num_slices: int | None) -> str | None:
+    """Why a slice's index or timestamp cannot be (the detector's own words); None if they can. ``num_slices`` None
+    (a stand-in detector without it): the index is checked for an int >= 0 only."""
+    top = num_slices if num_slices is not None else math.inf
+    if isinstance(slice_index, bool) or not isinstance(slice_index, (int, np.integer)) or not 0 <= slice_index < top:
+        return f"slice_index must be an int in [0, {num_slices if num_slices is not None else 'num_slices'}), got {short_repr(slice_index)}"
+    if timestamp is not None and not is_finite_number(timestamp):
+        return f"timestamp must be None or a finite number of seconds, got {short_repr(timestamp)}"
     return None
 
 

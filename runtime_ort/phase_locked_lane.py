@@ -86,6 +86,7 @@ class _ImageSet:
     future: Future
     frames_left: int  # frames of this set still the newest of their camera
     used: bool = False
+    closed: bool = False  # cancelled by close() / stop() already: a second shut leaves it (claimed once only)
 
 
 @dataclass(eq=False)
@@ -414,7 +415,12 @@ class PhaseLockedImageLane:
             owners = {id(f.owner): f.owner for f in self._frames.values()}
             if ended:  # else the running update still completes the sets it uses
                 owners.update({id(o): o for o in self._settling})
-            waiting = [o.future for o in owners.values() if not o.used]
+            # not those an earlier close() cancelled (a finalizer's stop() after close()): claiming a future twice makes
+            # concurrent.futures log a CRITICAL "unexpected state"
+            shut = [o for o in owners.values() if not o.used and not o.closed]
+            for o in shut:
+                o.closed = True
+            waiting = [o.future for o in shut]
             unsettled = [o.future for o in owners.values() if o.used and ended and not o.future.done()]
         for fut in waiting:  # off the lock: their done-callbacks run here
             cancel_future(LANE, fut)

@@ -255,9 +255,10 @@ def test_a_bad_slice_never_joins_a_run():
         assert good.result(WAIT_S).coalesced == ()
         with pytest.raises(ValueError, match="float32"):
             bad.result(WAIT_S)
-        nan_stamp.result(WAIT_S)  # the stand-in takes any stamp; it ran alone
+        with pytest.raises(ValueError, match="timestamp must be None or a finite number"):
+            nan_stamp.result(0)  # refused at submit, never queued
         assert after.result(WAIT_S).coalesced == ()
-    assert det.runs == [(0,), (2,), (4,), (5,)]  # 3 failed its own checks; 4 (NaN stamp) and 5 each alone
+    assert det.runs == [(0,), (2,), (5,)]  # 3 failed its own checks, 4 (NaN stamp) its submit; 5 alone
 
 
 def test_a_failed_run_fails_every_slice_of_it():
