@@ -371,6 +371,8 @@ class StreamingDetector:
             calibration = Lut.load(path, self.grid, len(self.camera_names)) if path.suffix == ".npz" else Rig.from_calibration_json(path)
         elif isinstance(calibration, Mapping):
             calibration = Rig.from_calibration_json(calibration)
+        if isinstance(calibration, Rig) and relift and self._is_current_rig(calibration):
+            return  # the rig in use, published again: its LUT is the one in use (a vehicle republishes calibration)
         if isinstance(calibration, Rig):
             calibration = self._build_lut(calibration)
         if not isinstance(calibration, Lut):
@@ -420,6 +422,17 @@ class StreamingDetector:
                             current[q] = lifted[q]
                     self._image = ImageCache(tuple(current))
                     states = self._image.quadrants
+
+    def _is_current_rig(self, rig: Rig) -> bool:
+        """Whether ``rig`` is the one the LUT in use was built from (its sha256), once any swap under way has installed
+        its LUT (the calibration lock): the LUT is a function of the rig and the detector's fixed grid, image size and
+        heights, so the swap would change nothing but cost a LUT build and a re-lift. A rig that does not fit the
+        export is never current (it is refused as before)."""
+        lut = self._lut
+        if lut is None or lut.calibration_sha256 != rig.sha256():
+            return False
+        with self._calibration_lock:
+            return self._lut is not None and self._lut.calibration_sha256 == rig.sha256()
 
     def _build_lut(self, rig: Rig) -> Lut:
         img = self.image
