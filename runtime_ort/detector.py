@@ -355,7 +355,9 @@ class StreamingDetector:
         (CalibrationError otherwise, and the LUT in use stays). A camera that sees no voxel is accepted with a
         BlindCameraWarning naming it, one that now sees another part of the grid than with the previous calibration
         (turned around, swapped) with a CameraMovedWarning. The newest cached image set is lifted again, so the next slice sees the new
-        calibration at once. A LiDAR-only export has no calibration to set: NoImageLaneError.
+        calibration at once. A LiDAR-only export has no calibration to set: NoImageLaneError. The rig in use given
+        again (an equal Rig, dict or calibration.json: the same ``Rig.sha256``, as a vehicle republishing its
+        calibration sends) returns at once: no LUT build, no re-lift.
 
         ``relift`` False drops the cached image BEV instead of lifting it again (slices read no image until the next
         ``update_images``): for a caller whose next step feeds new images of the new rig, which would replace the
