@@ -266,6 +266,12 @@ class StreamingRunner:
         return self._slices.dropped
 
     @property
+    def slices_waiting(self) -> int:
+        """Slices queued now and not yet taken by a worker (at most ``LaneConfig.queue_size``): the slice lane's
+        backlog at this moment, where ``slices_dropped`` counts what it has cost so far."""
+        return self._slices.waiting
+
+    @property
     def slices_coalesced(self) -> int:
         """Slices detected inside another slice's run (LaneConfig.coalesce_slices): graph runs saved."""
         return self._slices.joined

@@ -117,3 +117,19 @@ def test_a_closed_phase_locked_runner_dropped_later_logs_nothing(caplog):
         del runner
         gc.collect()
     assert not [r for r in caplog.records if r.levelno >= logging.CRITICAL], caplog.text
+
+
+def test_slices_waiting_is_the_backlog_now():
+    from tests.test_coalesce import GatedSliceDetector
+
+    det = GatedSliceDetector()
+    with StreamingRunner(det, LaneConfig(max_in_flight=1, coalesce_slices=1)) as runner:  # type: ignore[arg-type]
+        assert runner.slices_waiting == 0
+        first = runner.submit_slice(np.zeros((0, 6), np.float32), 0, 0.0)
+        assert det.started.wait(WAIT_S)
+        later = [runner.submit_slice(np.zeros((0, 6), np.float32), k, 0.01 * k) for k in (1, 2)]
+        assert runner.slices_waiting == 2
+        det.gate.set()
+        for f in (first, *later):
+            f.result(WAIT_S)
+        assert runner.slices_waiting == 0
