@@ -879,6 +879,7 @@ class StreamingDetector:
         self.stats.record("slice_total", (time.perf_counter() - t0) * 1e3)
         parts = split_by_slice(dets, ks, n, self.config.start_deg)
         last = len(ks) - 1
+        missing = self._cameras_missing(quadrants, states) if any(s is not None and s.cameras_missing for s in states) else ()
         return tuple(
             SliceResult(
                 detections=part,
@@ -895,6 +896,7 @@ class StreamingDetector:
                 num_nonfinite_outputs=nonfinite if i == last else 0,
                 fallback=fallback,
                 coalesced=ks if len(ks) > 1 else (),
+                cameras_missing=missing,
             )
             for i, (k, p, ts, part) in enumerate(zip(ks, points, timestamps, parts))
         )
@@ -917,6 +919,15 @@ class StreamingDetector:
         if ok.size and not (ok.min() >= 0.0 and ok.max() <= 1.0):
             raise GraphRunError(f"{file}: det_scores holds {float(ok.min()):.6g}..{float(ok.max()):.6g}, outside [0, 1]")
         return nonfinite
+
+    def _cameras_missing(self, quadrants: tuple[int, ...], states: tuple[QuadrantState | None, ...]) -> tuple[str, ...]:
+        """The cameras whose features were zeros (not given to the image update that made the BEV) among those the LUT
+        of each quadrant read reads there, in the export's camera order."""
+        missing: set[str] = set()
+        for q, state in zip(quadrants, states):
+            if state is not None and state.cameras_missing and state.lut is not None:
+                missing.update(set(state.cameras_missing) & set(self._cameras_under(state.lut, (q,))))
+        return tuple(c for c in self.camera_names if c in missing)
 
     def _image_bev(self, states: tuple[QuadrantState | None, ...]) -> np.ndarray:
         """(Q, C, Yq, Xq) image BEV of the slice's quadrants, or in the image_half layout their image half

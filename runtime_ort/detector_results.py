@@ -55,6 +55,10 @@ class SliceResult:
     # the slices detected together with this one in one slice-graph run (in scan order, this one included) when the
     # slice lane had fallen behind (LaneConfig.coalesce_slices, runtime_ort/coalesce.py); () for a run of its own
     coalesced: tuple[int, ...] = ()
+    # cameras the slice's quadrant(s) read whose features were zeros: not given to the image update that made their
+    # BEV (a camera out, under the "full" schedule); () when every camera they read was there. image_age_s does not
+    # show this: the quadrant's age is that of the cameras that were given
+    cameras_missing: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True, eq=False)

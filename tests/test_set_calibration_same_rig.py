@@ -53,3 +53,4 @@ def test_the_rig_in_use_with_relift_false_still_drops_the_images(det):
     rig = export_rig(det.manifest, det.export_dir)
     det.set_calibration(rig, relift=False)
     assert all(s is None for s in det._image.quadrants) if det._image is not None else True
+
