@@ -68,6 +68,7 @@ from streamdet.runtime_ort.coalesce import check_coalesced, split_by_slice
 from streamdet.runtime_ort.detector_config import DetectorClosed, DetectorConfig, NoImageLaneError, lane_precision_label  # noqa: F401
 from streamdet.runtime_ort.detector_results import ImageUpdate, SliceResult, SweepResult
 from streamdet.runtime_ort.graph_files import checked_model, model_signature
+from streamdet.runtime_ort.heap import release_free_memory
 from streamdet.runtime_ort.export_settings import export_nms, export_rig, image_spec_at
 from streamdet.runtime_ort.fallback import FALLBACK_GRAPH, LidarFallback, needs_fallback, open_fallback
 from streamdet.runtime_ort.image_cache import (  # noqa: F401 (check_camera_timestamps: public here too)
@@ -363,6 +364,11 @@ class StreamingDetector:
         ``update_images``): for a caller whose next step feeds new images of the new rig, which would replace the
         re-lifted BEV unread (the offline pipeline, ``pipeline.use_sample_calibration``).
         """
+        if self._swap_calibration(calibration, relift):
+            release_free_memory()  # the LUT build's temporaries: freed, but kept mapped by the allocator (heap.py)
+
+    def _swap_calibration(self, calibration: Rig | Lut | Mapping | str | os.PathLike, relift: bool) -> bool:
+        """set_calibration's work; False where it had none (the rig in use again)."""
         if not isinstance(relift, bool):
             raise ValueError(f"relift must be a bool, got {relift!r}")
         if not self.uses_images:
@@ -374,7 +380,7 @@ class StreamingDetector:
         elif isinstance(calibration, Mapping):
             calibration = Rig.from_calibration_json(calibration)
         if isinstance(calibration, Rig) and relift and self._is_current_rig(calibration):
-            return  # the rig in use, published again: its LUT is the one in use (a vehicle republishes calibration)
+            return False  # the rig in use, published again: its LUT is the one in use (a vehicle republishes calibration)
         if isinstance(calibration, Rig):
             calibration = self._build_lut(calibration)
         if not isinstance(calibration, Lut):
@@ -398,14 +404,14 @@ class StreamingDetector:
                 self._lut = lut
                 if not relift:
                     self._drop_images_locked(self._image_seq)  # an update already under way is of the old rig too
-                    return
+                    return True
                 states = quadrant_states(self._image)
             # Re-lift the newest image set of every quadrant; an update that finishes meanwhile under the old LUT
             # lifts itself again (_install), so the loop ends once every cached quadrant was lifted with this LUT.
             while True:
                 stale = [(q, s) for q, s in enumerate(states) if s is not None and s.lut is not lut]
                 if not stale:
-                    return
+                    return True
                 groups: dict[int, list[tuple[int, QuadrantState]]] = {}  # quadrants lifted from one features array
                 for q, s in stale:
                     groups.setdefault(id(s.features), []).append((q, s))
@@ -1023,6 +1029,8 @@ class StreamingDetector:
             self._terms.close(self._closed_error())
         if self._fallback is not None:
             self._fallback = dataclasses.replace(self._fallback, session=None)
+        del sessions
+        release_free_memory()  # the sessions' arenas: a process that reopens detectors would keep them all mapped
         return written
 
     def _closed_error(self) -> DetectorClosed:

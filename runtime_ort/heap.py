@@ -14,6 +14,12 @@ process has loaded what it keeps (after opening the detector and warming it up),
 runtime. ``GcPauses`` measures what the collector cost meanwhile (counts and pause times per generation).
 
 The runtime never calls either itself: the heap belongs to the process that embeds it.
+
+The C heap is another matter: a calibration swap builds a new LUT through large temporary arrays, and glibc's
+allocator keeps the freed pages mapped, so a process's resident memory climbed with every swap and every detector
+reopened after a ``close()`` (benchmarks/RESULTS.md, "Memory after calibration swaps"). ``release_free_memory``
+hands them back (glibc's ``malloc_trim``); the detector calls it after each swap and on ``close()``. A no-op where
+the C library has no such call (musl, macOS, Windows).
 """
 
 from __future__ import annotations
@@ -26,6 +32,31 @@ from dataclasses import dataclass, field
 from typing import Iterator
 
 NUM_GENERATIONS = 3
+
+
+def _malloc_trim():
+    """glibc's malloc_trim, or None where the C library has none."""
+    try:
+        import ctypes
+        import ctypes.util
+
+        name = ctypes.util.find_library("c")
+        return None if name is None else getattr(ctypes.CDLL(name), "malloc_trim", None)
+    except (OSError, AttributeError, ImportError):
+        return None
+
+
+_TRIM = _malloc_trim()
+
+
+def release_free_memory() -> bool:
+    """Return the C heap's free pages to the operating system (glibc ``malloc_trim(0)``); False where this C library
+    cannot. It holds each allocator arena's lock while it walks it, so other threads' allocations wait that long:
+    call it after rare, large frees (a calibration swap, a detector closed), not per slice."""
+    if _TRIM is None:
+        return False
+    _TRIM(0)
+    return True
 
 
 @contextmanager

@@ -55,3 +55,43 @@ def test_no_collection_means_zero_pauses_and_exit_twice_is_harmless():
         pass
     pauses.__exit__(None, None, None)
     assert set(pauses.to_dict()) == {"gen0", "gen1", "gen2"}
+
+
+def test_release_free_memory_hands_the_c_heap_back_where_glibc_has_malloc_trim():
+    import ctypes.util
+    import platform
+
+    from streamdet.runtime_ort import heap
+
+    released = heap.release_free_memory()
+    assert isinstance(released, bool)
+    if platform.system() == "Linux" and platform.libc_ver()[0] == "glibc" and ctypes.util.find_library("c"):
+        assert released  # the detector's calibration swaps and close() rely on it here
+
+
+def test_release_free_memory_is_a_no_op_without_malloc_trim(monkeypatch):
+    from streamdet.runtime_ort import heap
+
+    monkeypatch.setattr(heap, "_TRIM", None)
+    assert heap.release_free_memory() is False
+
+
+def test_a_calibration_swap_and_close_release_the_c_heap(tiny_export, monkeypatch):
+    import dataclasses
+
+    from streamdet.runtime_ort import detector as detector_module
+    from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector
+    from streamdet.runtime_ort.export_settings import export_rig
+
+    calls = []
+    monkeypatch.setattr(detector_module, "release_free_memory", lambda: calls.append(1) or True)
+    det = StreamingDetector(tiny_export, DetectorConfig())
+    rig = export_rig(det.manifest, det.export_dir)
+    det.set_calibration(rig)  # the rig in use: nothing built, nothing to release
+    assert calls == []
+    focal = rig.cameras[0].K.copy()
+    focal[:2, :2] *= 1.001
+    det.set_calibration(dataclasses.replace(rig, cameras=(dataclasses.replace(rig.cameras[0], K=focal), *rig.cameras[1:])))
+    assert calls == [1]
+    det.close()
+    assert calls == [1, 1]
