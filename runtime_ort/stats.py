@@ -82,7 +82,11 @@ class LatencyStats:
     def summary(self) -> dict[str, dict[str, float]]:
         """{stage: {count, p50_ms, p95_ms, mean_ms, min_ms, max_ms}} over the samples still in each buffer.
 
-        Percentiles use numpy's default linear interpolation; `count` is the number of samples ever recorded.
+        Percentiles use numpy's default linear interpolation; `count` is the number of samples ever recorded. The
+        windows are runs, not time: at the same `capacity` a stage that runs per slice covers seconds of a drive
+        where one that runs per image update covers minutes, and under the phase-locked schedule the image stages
+        are per quadrant lift (a few cameras, one quadrant), under ``full`` per whole image set: compare a stage
+        across schedules by its work (``gmac_per_run``), not its name alone. Call ``reset`` to start a window.
         Stages told their work also get ``gmac_total`` and ``gmac_per_run`` (GMAC executed, all samples ever) and
         ``gflop_per_s`` (2 * gmac_total over the total time of all samples ever).
         """
