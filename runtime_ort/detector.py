@@ -209,6 +209,7 @@ class StreamingDetector:
         self._image_seq = 0  # update_images calls started (under _lock)
         self._image_floor = 0  # image sets of calls up to this seq were dropped (forget_images): never installed
         self._lut: Lut | None = None  # stays None for a LiDAR-only export
+        self._built_from: tuple[Lut, str] | None = None  # (a LUT this detector built, its rig's sha256): _is_current_rig
         if self.uses_images and (self.image.width, self.image.height) == (m.image.width, m.image.height):
             lut_path, raw = read_export_file(self.export_dir, m.lut, "lut.file", config.verify_sha256)
             lut = Lut.load(lut_path, self.grid, len(self.camera_names), data=raw)  # headers checked first
@@ -217,7 +218,9 @@ class StreamingDetector:
                                     f"records {m.lut.calibration_sha256[:12]}... (lut.calibration_sha256)")  # fmt: skip
             self._lut = self._check_lut(lut)
         elif self.uses_images:
-            self._lut = self._check_lut(self._build_lut(export_rig(m, self.export_dir)))
+            rig = export_rig(m, self.export_dir)
+            self._lut = self._check_lut(self._build_lut(rig))
+            self._built_from = (self._lut, rig.sha256())
         self._image: ImageCache | None = None  # None before the first image update; replaced whole under _lock
         # per-quadrant LUTs, lifter LUT feeds and quadrant_cameras' answers, made once per LUT (lut_views.py)
         self._views = LutViews(self.camera_names, m.lut_layout)
@@ -356,9 +359,10 @@ class StreamingDetector:
         (CalibrationError otherwise, and the LUT in use stays). A camera that sees no voxel is accepted with a
         BlindCameraWarning naming it, one that now sees another part of the grid than with the previous calibration
         (turned around, swapped) with a CameraMovedWarning. The newest cached image set is lifted again, so the next slice sees the new
-        calibration at once. A LiDAR-only export has no calibration to set: NoImageLaneError. The rig in use given
-        again (an equal Rig, dict or calibration.json: the same ``Rig.sha256``, as a vehicle republishing its
-        calibration sends) returns at once: no LUT build, no re-lift.
+        calibration at once. A LiDAR-only export has no calibration to set: NoImageLaneError. The rig the LUT in
+        use was built from given again (an equal Rig, dict or calibration.json: the same ``Rig.sha256``, as a vehicle
+        republishing its calibration sends) returns at once: no LUT build, no re-lift. (A LUT read from a file, the
+        export's lut.npz included, may have been built otherwise: the first such call builds one from the rig.)
 
         ``relift`` False drops the cached image BEV instead of lifting it again (slices read no image until the next
         ``update_images``): for a caller whose next step feeds new images of the new rig, which would replace the
@@ -381,7 +385,9 @@ class StreamingDetector:
             calibration = Rig.from_calibration_json(calibration)
         if isinstance(calibration, Rig) and relift and self._is_current_rig(calibration):
             return False  # the rig in use, published again: its LUT is the one in use (a vehicle republishes calibration)
+        rig_sha = None
         if isinstance(calibration, Rig):
+            rig_sha = calibration.sha256()
             calibration = self._build_lut(calibration)
         if not isinstance(calibration, Lut):
             raise CalibrationError(
@@ -402,6 +408,7 @@ class StreamingDetector:
                 warnings.warn(msg, CameraMovedWarning, stacklevel=2)
             with self._lock:
                 self._lut = lut
+                self._built_from = None if rig_sha is None else (lut, rig_sha)
                 if not relift:
                     self._drop_images_locked(self._image_seq)  # an update already under way is of the old rig too
                     return True
@@ -432,15 +439,17 @@ class StreamingDetector:
                     states = self._image.quadrants
 
     def _is_current_rig(self, rig: Rig) -> bool:
-        """Whether ``rig`` is the one the LUT in use was built from (its sha256), once any swap under way has installed
-        its LUT (the calibration lock): the LUT is a function of the rig and the detector's fixed grid, image size and
-        heights, so the swap would change nothing but cost a LUT build and a re-lift. A rig that does not fit the
-        export is never current (it is refused as before)."""
-        lut = self._lut
-        if lut is None or lut.calibration_sha256 != rig.sha256():
+        """Whether the LUT in use is one this detector built from ``rig`` (the same sha256), once any swap under way
+        has installed its LUT (the calibration lock): such a LUT is a function of the rig and the detector's fixed
+        grid, image size and heights, so the swap would change nothing but cost a LUT build and a re-lift. A LUT read
+        from a file or handed over (the export's lut.npz, a Lut) may have been built otherwise: never current."""
+        sha = rig.sha256()
+        built = self._built_from
+        if built is None or built[0] is not self._lut or built[1] != sha:
             return False
         with self._calibration_lock:
-            return self._lut is not None and self._lut.calibration_sha256 == rig.sha256()
+            built = self._built_from
+            return built is not None and built[0] is self._lut and built[1] == sha
 
     def _build_lut(self, rig: Rig) -> Lut:
         img = self.image

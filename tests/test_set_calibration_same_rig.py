@@ -27,12 +27,22 @@ def det(tiny_export):
 
 def test_the_rig_in_use_again_changes_nothing(det, monkeypatch):
     rig = export_rig(det.manifest, det.export_dir)
+    det.set_calibration(rig)  # the export's lut.npz may have been built otherwise: this once, built here
     lut, image = det._lut, det._image
     built = []
     monkeypatch.setattr(det, "_build_lut", lambda r: built.append(r))
     det.set_calibration(rig)
     det.set_calibration(dataclasses.replace(rig))  # an equal rig, another object (as a message decoder makes)
     assert built == [] and det._lut is lut and det._image is image  # no build, no re-lift
+
+
+def test_a_lut_read_from_a_file_is_never_taken_for_the_rig(det):
+    """The export's lut.npz (or a Lut handed over) may have other heights or depths than this detector builds."""
+    rig = export_rig(det.manifest, det.export_dir)
+    lut = det._lut  # read from the export's lut.npz
+    assert lut.calibration_sha256 == rig.sha256()
+    det.set_calibration(rig)
+    assert det._lut is not lut  # built from the rig, once
 
 
 def test_another_rig_still_swaps(det):
