@@ -59,6 +59,17 @@ class SliceResult:
     # BEV (a camera out, under the "full" schedule); () when every camera they read was there. image_age_s does not
     # show this: the quadrant's age is that of the cameras that were given
     cameras_missing: tuple[str, ...] = ()
+    # StreamingRunner's clock (time.monotonic()): when submit_slice took the slice, and when its result was made (before
+    # its future completes and runs callbacks); None for the detector's own calls. latency_s is their difference
+    submitted_s: float | None = None
+    completed_s: float | None = None
+
+    @property
+    def latency_s(self) -> float | None:
+        """Seconds from submit_slice to the result (queue wait, a pair hold, the run); None outside a runner."""
+        if self.submitted_s is None or self.completed_s is None:
+            return None
+        return self.completed_s - self.submitted_s
 
 
 @dataclass(frozen=True, eq=False)

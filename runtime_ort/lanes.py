@@ -42,6 +42,7 @@ Contracts:
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import numbers
 import time
@@ -253,7 +254,7 @@ class StreamingRunner:
             future.set_exception(ValueError(refused))
         else:
             detect = self._slice_jobs.detect_one  # the job holds _SliceJobs', not the runner
-            future = self._slices.submit(lambda: detect(own, slice_index, stamp), payload=(own, slice_index, stamp, arrival))
+            future = self._slices.submit(lambda: detect(own, slice_index, stamp, arrival), payload=(own, slice_index, stamp, arrival))
         if self._phase_locked is not None and valid:
             self._phase_locked.observe_slice(int(slice_index), arrival)  # its arrival on the runner's clock
         return future
@@ -344,13 +345,13 @@ class _SliceJobs:
             if config.pair_hold_load is not None:
                 self.pair_hold = PairHold(config.pair_hold_load, config.max_in_flight, *self.sector_layout)
 
-    def detect_one(self, points: np.ndarray, slice_index: int, stamp: float) -> SliceResult:
+    def detect_one(self, points: np.ndarray, slice_index: int, stamp: float, arrival: float) -> SliceResult:
         if self.pair_hold is None:
-            return self.detector.detect_slice(points, slice_index, stamp)
+            return _timed(self.detector.detect_slice(points, slice_index, stamp), arrival)
         t0 = time.perf_counter()
         result = self.detector.detect_slice(points, slice_index, stamp)
         self.pair_hold.record_run(1, time.perf_counter() - t0)
-        return result
+        return _timed(result, arrival)
 
     def hold_s(self, payload: tuple) -> float:
         """Seconds the worker that took this slice waits for the next one of its quadrant (PairHold)."""
@@ -367,12 +368,19 @@ class _SliceJobs:
         return run_last[1] < n and can_coalesce(int(run_last[1]), int(waiting[1]), n, start_deg)
 
     def detect_together(self, payloads: list) -> tuple[SliceResult, ...]:
-        points, indices, stamps, _ = zip(*payloads)
+        points, indices, stamps, arrivals = zip(*payloads)
         t0 = time.perf_counter()
         results = self.detector.detect_slices(points, indices, stamps)
         if self.pair_hold is not None:
             self.pair_hold.record_run(len(payloads), time.perf_counter() - t0)
-        return results
+        return tuple(_timed(r, a) for r, a in zip(results, arrivals))
+
+
+def _timed(result: SliceResult, arrival: float) -> SliceResult:
+    """``result`` with the runner's submit and completion times (a stand-in's result of another type as it is)."""
+    if not isinstance(result, SliceResult):
+        return result
+    return dataclasses.replace(result, submitted_s=arrival, completed_s=time.monotonic())
 
 
 def _stop_lanes(slices: WorkerLane, images: "WorkerLane | PhaseLockedImageLane") -> None:

@@ -133,3 +133,24 @@ def test_slices_waiting_is_the_backlog_now():
         for f in (first, *later):
             f.result(WAIT_S)
         assert runner.slices_waiting == 0
+
+
+@pytest.mark.parametrize("coalesce", [1, 2])
+def test_a_runners_slice_results_carry_their_latency(tiny_export, coalesce):
+    import time
+
+    from streamdet.core.slicing import split_sweep
+    from streamdet.data.sample import load_bundled_sample
+    from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector
+
+    with StreamingDetector(tiny_export, DetectorConfig()) as det:
+        slices = split_sweep(load_bundled_sample().points, det.num_slices)
+        assert det.detect_slice(slices[0], 0, 0.0).latency_s is None  # the detector's own call: no runner clock
+        with StreamingRunner(det, LaneConfig(max_in_flight=1, coalesce_slices=coalesce)) as runner:
+            before = time.monotonic()
+            futures = [runner.submit_slice(p, k, 0.01 * k) for k, p in enumerate(slices)]
+            results = [f.result(WAIT_S) for f in futures]
+            after = time.monotonic()
+        for r in results:
+            assert before <= r.submitted_s <= r.completed_s <= after
+            assert r.latency_s == r.completed_s - r.submitted_s >= 0
