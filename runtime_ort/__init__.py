@@ -22,6 +22,7 @@ _EXPORTS = {
     "LaneConfig": "streamdet.runtime_ort.lanes",
     "SliceDropped": "streamdet.runtime_ort.lanes",
     "ImagesSuperseded": "streamdet.runtime_ort.lanes",
+    "CalibrationSuperseded": "streamdet.runtime_ort.lanes",
     "RunnerClosed": "streamdet.runtime_ort.lanes",
     "ManifestError": "streamdet.runtime_ort.manifest",
     "GraphRunError": "streamdet.runtime_ort.sessions",

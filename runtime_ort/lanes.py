@@ -45,6 +45,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import numbers
+import os
 import time
 import warnings
 import weakref
@@ -54,6 +55,8 @@ from typing import Mapping
 
 import numpy as np
 
+from streamdet.calibration.camera import Rig
+from streamdet.calibration.lut import Lut
 from streamdet.core.cpu import usable_cpus
 from streamdet.core.json_input import is_finite_number, short_repr
 from streamdet.core.points import MAX_SLICE_POINTS, SLICE_COLUMNS, slice_points_problem
@@ -77,6 +80,10 @@ class SliceDropped(RuntimeError):
 
 class ImagesSuperseded(RuntimeError):
     """The image set was replaced by a newer one before the image lane got to it."""
+
+
+class CalibrationSuperseded(RuntimeError):
+    """The calibration was replaced by a newer one before the calibration lane got to it."""
 
 
 SCHEDULES: tuple[str, ...] = ("full", "phase-locked")
@@ -190,7 +197,11 @@ class StreamingRunner:
             )  # fmt: skip
         else:
             self._images = WorkerLane("image-lane", 1, 1, superseded, nice=config.image_lane_nice)
-        weakref.finalize(self, _stop_lanes, self._slices, self._images if self._images is not None else self._phase_locked)
+        # calibration swaps (submit_calibration): one at a time off the caller's thread, a newer one replacing one waiting
+        self._calibration = WorkerLane("calibration-lane", 1, 1,
+                                       lambda: CalibrationSuperseded("calibration superseded by a newer one"))  # fmt: skip
+        weakref.finalize(self, _stop_lanes, self._slices, self._images if self._images is not None else self._phase_locked,
+                         self._calibration)  # fmt: skip
         threads = getattr(getattr(detector, "config", None), "image_lane_threads", 1)
         if config.image_lane_nice and threads != 1 and detector.uses_images:
             warnings.warn(f"LaneConfig.image_lane_nice={config.image_lane_nice} renices the image lane's own thread only: "
@@ -232,6 +243,20 @@ class StreamingRunner:
         options = {} if camera_timestamps is None else {"camera_timestamps": cameras}
         update = self.detector.update_images  # the job holds the detector's method, not the runner
         return self._images.submit(lambda: update(own, stamp, **options))
+
+    def submit_calibration(self, calibration: Rig | Lut | Mapping | str | os.PathLike) -> "Future[None]":
+        """``StreamingDetector.set_calibration`` off the caller's thread: a LUT build and a re-lift take a good part of
+        a second of CPU, which a vehicle's calibration callback should not spend itself. One swap runs at a time; a
+        newer calibration replaces one still waiting (its future fails with CalibrationSuperseded). The future holds
+        None, or the swap's error (CalibrationError: the LUT in use stays). A parsed calibration.json (a dict) is
+        read into a Rig here, in the caller's thread (its errors raise here, and the caller may reuse the dict); a
+        LiDAR-only detector raises NoImageLaneError here."""
+        if not self.detector.uses_images:
+            self.detector.set_calibration(calibration)  # raises NoImageLaneError naming the export
+        if isinstance(calibration, Mapping):
+            calibration = Rig.from_calibration_json(calibration)
+        swap = self.detector.set_calibration  # the job holds the detector's method, not the runner
+        return self._calibration.submit(lambda: swap(calibration))
 
     def submit_slice(self, points: np.ndarray, slice_index: int, timestamp: float | None = None) -> "Future[SliceResult]":
         """Queue one slice; its future holds the SliceResult, or the error (bad points, SliceDropped). Points that are
@@ -322,7 +347,8 @@ class StreamingRunner:
         deadline = None if timeout is None else time.monotonic() + timeout
         slices_done = self._slices.close(deadline)
         images_done = (self._images if self._images is not None else self._phase_locked).close(deadline)
-        return slices_done and images_done
+        calibration_done = self._calibration.close(deadline)
+        return slices_done and images_done and calibration_done
 
     def __enter__(self) -> "StreamingRunner":
         return self
@@ -383,11 +409,12 @@ def _timed(result: SliceResult, arrival: float) -> SliceResult:
     return dataclasses.replace(result, submitted_s=arrival, completed_s=time.monotonic())
 
 
-def _stop_lanes(slices: WorkerLane, images: "WorkerLane | PhaseLockedImageLane") -> None:
+def _stop_lanes(slices: WorkerLane, images: "WorkerLane | PhaseLockedImageLane", calibration: WorkerLane) -> None:
     """A runner dropped without close(): its workers end once they have done the jobs already queued (their futures
     still complete); nothing is waited for here (this may run on any thread, a worker's included)."""
     slices.stop()
     images.stop()
+    calibration.stop()
 
 
 def _run_fits(payloads: list) -> bool:
