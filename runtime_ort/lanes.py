@@ -338,7 +338,7 @@ class StreamingRunner:
     def close(self, timeout: float | None = None) -> bool:
         """Finish the queued work, then stop the workers; later submits raise RunnerClosed.
 
-        With ``timeout`` (seconds, for both lanes together), work not started by then is cancelled (its futures
+        With ``timeout`` (seconds, for the slice, image and calibration lanes together), work not started by then is cancelled (its futures
         report cancelled) and this returns False while a job still runs (its worker ends after it); True when
         everything finished.
         """
