@@ -22,7 +22,7 @@ import onnx
 import onnxruntime as ort
 from onnx import TensorProto, helper
 
-from streamdet.core.cpu import cpu_model, cpu_vendor_family, cpuid_mask, kernel_flags, physical_cores, usable_cpus, visible_flags
+from streamdet.core.cpu import cpu_info, cpu_vendor_family, physical_cores
 from streamdet.runtime_ort.onnx_build import make_model
 from streamdet.runtime_ort.sessions import CPU_ONLY, GraphSession, SessionConfig
 
@@ -112,12 +112,6 @@ def measure_peak(threads: int, config: ProbeConfig = ProbeConfig()) -> ProbeResu
         session.run(feeds)
         seconds.append(time.perf_counter() - start)
     return ProbeResult(tuple(2.0 * n**3 / s / 1e9 for s in seconds), n, threads)
-
-
-def cpu_flags() -> tuple[str, ...]:
-    """The SIMD flags that decide the kernels onnxruntime and PyTorch pick (avx2, fma, avx512f, ...), as the kernels
-    see them (a CPUID mask hides some): `streamdet.core.cpu.kernel_flags`."""
-    return kernel_flags()
 
 
 PROC_STAT = Path("/proc/stat")
@@ -250,21 +244,21 @@ def load_average() -> list[float]:
 def machine_info(threads: int) -> dict:
     import torch  # the benchmark needs torch anyway; kept local so the probe itself stays torch-free
 
-    flags, mhz, cores = cpu_flags(), cpu_mhz(), physical_cores()
-    flags_source = visible_flags()[1]
-    estimate = nominal_peak_gflops(threads, flags, mhz, cores, *cpu_vendor_family())
+    # the CPU as every report records it (core.cpu.cpu_info: the kernels' SIMD flags, less a CPUID mask's)
+    cpu, mhz, cores = cpu_info(), cpu_mhz(), physical_cores()
+    estimate = nominal_peak_gflops(threads, tuple(cpu["flags"]), mhz, cores, *cpu_vendor_family())
     return {
-        "cpu_model": cpu_model(),
-        "cpu_flags": list(flags),
-        "cpu_flags_source": flags_source,  # core.cpu.visible_flags: "/proc/cpuinfo", "numpy", or None (unknown)
-        "cpuid_mask": cpuid_mask(),
+        "cpu_model": cpu["model"],
+        "cpu_flags": cpu["flags"],
+        "cpu_flags_source": cpu["flags_source"],  # core.cpu.visible_flags: "/proc/cpuinfo", "numpy", or None (unknown)
+        "cpuid_mask": cpu["cpuid_mask"],
         "cpu_mhz": mhz,  # the first "cpu MHz" of /proc/cpuinfo: the nominal clock in a VM, cpu0's current one otherwise
         "peak_estimate_gflops_per_s": estimate,  # nominal_peak_gflops: an estimate, not a data-sheet figure nor a bound
         "nominal_peak_gflops_per_s": estimate,  # the same estimate under its older key (kept for readers of old JSON)
         "peak_estimate_cores": estimate_cores(threads, cores),  # the cores that estimate counts
         "physical_cores": cores,  # among the CPUs this process may run on (core.cpu.physical_cores); None: unknown
-        "logical_cpus": os.cpu_count(),  # the machine's, whatever this process may use
-        "usable_cpus": usable_cpus(),  # what this process may use: affinity and cgroup quota (core.cpu.usable_cpus)
+        "logical_cpus": cpu["logical_cpus"],  # the machine's, whatever this process may use
+        "usable_cpus": cpu["threads"],  # what this process may use: affinity and cgroup quota (core.cpu.usable_cpus)
         "other_cpu_use_cpus": OtherCpuUse().cpus,  # the CPUs other_cpu_use counts (the affinity set); None: all, or unknown
         "threads": threads,
         "load_average_1_5_15": load_average(),

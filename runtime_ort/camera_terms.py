@@ -322,6 +322,7 @@ def open_camera_terms(
     if mode is False:
         return None
     why = None
+    failed = False  # a split that fails its check or does not run: news, where a form or precision without one is not
     if lifter_form != "flat":
         why = f"its lifter is the {lifter_form!r} form: a per-camera lift needs the flat lifter (LifterConfig.form='flat')"
     elif lane_precision not in SPLIT_PRECISIONS:
@@ -337,10 +338,11 @@ def open_camera_terms(
             rtol = PARITY_RTOL if resolve_providers(session.providers) == [CPU_PROVIDER] else ACCELERATOR_PARITY_RTOL
             if not err <= rtol:
                 why = f"its per-camera pieces differ from the fp32 lifter by {err:.2e} of the output range (> {rtol})"
+                failed = True
         except SplitError as e:
             why = str(e)
         except ORT_ERRORS as e:  # a cut that onnxruntime cannot run is not a split
-            why = f"its per-camera pieces do not run: {ort_message(e)}"
+            why, failed = f"its per-camera pieces do not run: {ort_message(e)}", True
     if why is None:
         log.info("%s: per-camera lifts for image updates (%s tail, %s terms)", export_dir, lane_precision,
                  "sparse" if terms.sparse else "dense")  # fmt: skip
@@ -348,7 +350,5 @@ def open_camera_terms(
         return terms
     if mode is True:
         raise ValueError(f"{export_dir}: DetectorConfig.camera_terms=True, but {why}")
-    # a form or precision that does not split is the export's choice; a split that fails its check is news
-    (log.warning if "differ from the fp32 lifter" in why or "do not run" in why else log.info)(
-        "%s: no per-camera lifts: %s", export_dir, why)
+    (log.warning if failed else log.info)("%s: no per-camera lifts: %s", export_dir, why)
     return None

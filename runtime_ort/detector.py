@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 import os
 import threading
 import weakref
@@ -81,7 +82,7 @@ from streamdet.runtime_ort.pillarize import pillarize
 from streamdet.runtime_ort.postprocess import Detections, PostprocessConfig, aggregate_sweep, postprocess_slice, top_k_reached
 from streamdet.runtime_ort.recording import Feeds, GraphRecording
 from streamdet.runtime_ort.sessions import (
-    CPU_ONLY,
+    CPU_PROVIDER,
     TENSORRT_PROVIDER,
     GraphRunError,
     GraphSession,
@@ -227,7 +228,7 @@ class StreamingDetector:
         # per-camera lifts of image updates (camera_terms.py); None: every update runs the lifter graph
         self._terms: CameraTerms | None = self._open_camera_terms() if self.uses_images and self._lut is not None else None
         log.info("streamdet: %s (%s, %d slices) on %s", self.export_dir, self.precision_label, self.num_slices, list(self.providers))
-        if self.providers[0] != CPU_ONLY[0] and "int8" in lanes.values():
+        if self.providers[0] != CPU_PROVIDER and "int8" in lanes.values():
             log.warning("streamdet: int8 graphs on %s: their quantize / dequantize pairs are made for x86 CPUs (uint8 "
                         "activations) and run slower there than the fp32 or fp16 graphs", self.providers[0])  # fmt: skip
 
@@ -444,12 +445,15 @@ class StreamingDetector:
         grid, image size and heights, so the swap would change nothing but cost a LUT build and a re-lift. A LUT read
         from a file or handed over (the export's lut.npz, a Lut) may have been built otherwise: never current."""
         sha = rig.sha256()
-        built = self._built_from
-        if built is None or built[0] is not self._lut or built[1] != sha:
-            return False
-        with self._calibration_lock:
+
+        def current() -> bool:
             built = self._built_from
             return built is not None and built[0] is self._lut and built[1] == sha
+
+        if not current():  # the common answer for a new rig, without waiting on a swap under way
+            return False
+        with self._calibration_lock:
+            return current()
 
     def _build_lut(self, rig: Rig) -> Lut:
         img = self.image
@@ -809,8 +813,9 @@ class StreamingDetector:
         ``points`` is only read, during the call.
         """
         n = self._slices(num_slices)
-        if isinstance(slice_index, bool) or not isinstance(slice_index, (int, np.integer)) or not 0 <= slice_index < n:
-            raise ValueError(f"slice_index must be an int in [0, {n}), got {slice_index!r}")
+        problem = slice_index_problem(slice_index, n)
+        if problem is not None:
+            raise ValueError(problem)
         return self._detect_run((points,), (int(slice_index),), (timestamp,), n)[0]
 
     def detect_slices(
@@ -894,7 +899,7 @@ class StreamingDetector:
         self.stats.record("slice_total", (time.perf_counter() - t0) * 1e3)
         parts = split_by_slice(dets, ks, n, self.config.start_deg)
         last = len(ks) - 1
-        missing = self._cameras_missing(quadrants, states) if any(s is not None and s.cameras_missing for s in states) else ()
+        missing = self._cameras_missing(quadrants, states)
         return tuple(
             SliceResult(
                 detections=part,
@@ -940,9 +945,9 @@ class StreamingDetector:
         of each quadrant read reads there, in the export's camera order."""
         missing: set[str] = set()
         for q, state in zip(quadrants, states):
-            if state is not None and state.cameras_missing and state.lut is not None:
+            if state is not None and state.cameras_missing and state.lut is not None:  # () on every slice but a camera out
                 missing.update(set(state.cameras_missing) & set(self._cameras_under(state.lut, (q,))))
-        return tuple(c for c in self.camera_names if c in missing)
+        return tuple(c for c in self.camera_names if c in missing) if missing else ()
 
     def _image_bev(self, states: tuple[QuadrantState | None, ...]) -> np.ndarray:
         """(Q, C, Yq, Xq) image BEV of the slice's quadrants, or in the image_half layout their image half
@@ -1059,13 +1064,28 @@ def _gave_up(seq: int) -> bool:
     return False
 
 
+def slice_index_problem(slice_index: object, num_slices: int | None) -> str | None:
+    """Why ``slice_index`` is no slice of ``num_slices`` (None: any int >= 0, for a stand-in detector without a
+    count); None if it is one. The words of detect_slice and of StreamingRunner.submit_slice."""
+    top = num_slices if num_slices is not None else math.inf
+    if isinstance(slice_index, bool) or not isinstance(slice_index, (int, np.integer)) or not 0 <= slice_index < top:
+        return f"slice_index must be an int in [0, {num_slices if num_slices is not None else 'num_slices'}), got {short_repr(slice_index)}"
+    return None
+
+
+def timestamp_problem(value: object) -> str | None:
+    """Why ``value`` is no call's timestamp (None, or a finite real number of seconds); None if it is one."""
+    if value is None or is_finite_number(value):  # is_finite_number: no OverflowError for 10**400
+        return None
+    return f"timestamp must be None or a finite number of seconds, got {short_repr(value)}"
+
+
 def _timestamp(value: float | None) -> float:
     """A call's timestamp: None is now (time.monotonic()); anything else must be a finite real number of seconds."""
-    if value is None:
-        return time.monotonic()
-    if not is_finite_number(value):  # no OverflowError for 10**400
-        raise ValueError(f"timestamp must be None or a finite number of seconds, got {short_repr(value)}")
-    return float(value)
+    problem = timestamp_problem(value)
+    if problem is not None:
+        raise ValueError(problem)
+    return time.monotonic() if value is None else float(value)
 
 
 def _restamp(state: QuadrantState, qlut: QuadrantLut) -> float:

@@ -58,10 +58,9 @@ import numpy as np
 from streamdet.calibration.camera import Rig
 from streamdet.calibration.lut import Lut
 from streamdet.core.cpu import usable_cpus
-from streamdet.core.json_input import is_finite_number, short_repr
 from streamdet.core.points import MAX_SLICE_POINTS, SLICE_COLUMNS, slice_points_problem
 from streamdet.runtime_ort.coalesce import can_coalesce
-from streamdet.runtime_ort.detector import StreamingDetector
+from streamdet.runtime_ort.detector import StreamingDetector, slice_index_problem, timestamp_problem
 from streamdet.runtime_ort.detector_results import ImageUpdate, SliceResult
 from streamdet.runtime_ort.image_cache import check_camera_timestamps
 from streamdet.runtime_ort.pair_hold import PairHold
@@ -228,8 +227,9 @@ class StreamingRunner:
             self.detector.update_images(images, timestamp)  # raises ValueError naming the type, in the caller's thread
         stamp = time.monotonic() if timestamp is None else timestamp
         # a bad timestamp fails here too, under either schedule: queued, it would supersede a good set waiting
-        if not is_finite_number(stamp):
-            raise ValueError(f"timestamp must be None or a finite number of seconds, got {short_repr(timestamp)}")
+        problem = timestamp_problem(timestamp)
+        if problem is not None:
+            raise ValueError(problem)
         # a bad image set (an unknown camera, a wrong size) fails here, in the caller's thread, before any copy and not
         # in a later lift or update; a stand-in detector without the check is checked by its update_images
         check = getattr(self.detector, "check_images", None) if self._phase_locked is None else self.detector.check_images
@@ -267,11 +267,11 @@ class StreamingRunner:
         stamp = arrival if timestamp is None else timestamp
         # before the copy (a huge array would be copied in the driver's thread) and never queued (it would push a good
         # slice out of a full queue only to fail in its worker)
-        refused = _points_refused(points) or _call_refused(slice_index, timestamp, getattr(self.detector, "num_slices", None))
+        index_problem = slice_index_problem(slice_index, getattr(self.detector, "num_slices", None))
+        refused = _points_refused(points) or index_problem or timestamp_problem(timestamp)
         own = np.array(points, copy=True) if refused is None else None  # the driver may reuse its buffer
         tracked = self._slice_jobs.pair_hold is not None or self._phase_locked is not None  # they learn the LiDAR's timing
-        valid = tracked and isinstance(slice_index, (int, np.integer)) and not isinstance(slice_index, bool)
-        valid = valid and 0 <= slice_index < self.detector.num_slices
+        valid = tracked and index_problem is None
         if self._slice_jobs.pair_hold is not None and valid:
             self._slice_jobs.pair_hold.observe_arrival(arrival)  # before the submit: a worker may decide on its hold at once
         if refused is not None:  # still an arrival of the LiDAR's: its timing was observed
@@ -431,17 +431,6 @@ def _points_refused(points: object) -> str | None:
         return problem
     if points.shape[0] > MAX_SLICE_POINTS:
         return f"points: a slice of {points.shape[0]} points, more than MAX_SLICE_POINTS = {MAX_SLICE_POINTS} (a corrupt array?)"
-    return None
-
-
-def _call_refused(slice_index: object, timestamp: object, num_slices: int | None) -> str | None:
-    """Why a slice's index or timestamp cannot be (the detector's own words); None if they can. ``num_slices`` None
-    (a stand-in detector without it): the index is checked for an int >= 0 only."""
-    top = num_slices if num_slices is not None else math.inf
-    if isinstance(slice_index, bool) or not isinstance(slice_index, (int, np.integer)) or not 0 <= slice_index < top:
-        return f"slice_index must be an int in [0, {num_slices if num_slices is not None else 'num_slices'}), got {short_repr(slice_index)}"
-    if timestamp is not None and not is_finite_number(timestamp):
-        return f"timestamp must be None or a finite number of seconds, got {short_repr(timestamp)}"
     return None
 
 

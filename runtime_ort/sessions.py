@@ -170,16 +170,26 @@ def session_options(config: SessionConfig = SessionConfig(), profile_prefix: str
 EXPORT_SESSION = SessionConfig(providers=CPU_ONLY, intra_op_threads=0)
 
 
+def _open(src: str | bytes, opts: ort.SessionOptions, config: SessionConfig, providers: list[str], name: str | os.PathLike,
+          provider_options: Mapping[str, Mapping[str, str]] | None = None) -> ort.InferenceSession:  # fmt: skip
+    """An onnxruntime session on ``providers`` (``resolve_providers(config.providers)``), each with its options where
+    given, checked to run on them (``check_started``); onnxruntime's own errors propagate."""
+    options = provider_options or {}
+    session = ort.InferenceSession(src, sess_options=opts, providers=[(p, dict(options[p])) if p in options else p for p in providers])
+    # onnxruntime's Python session otherwise answers a provider failing in run() (a TensorRT engine rebuild, an
+    # enqueue) by printing "EP Error", recreating itself on the CPU without our options and going on: the failure is
+    # raised instead (GraphRunError), and the providers recorded stay the ones that run
+    session.disable_fallback()
+    check_started(name, providers, session.get_providers(), explicit=config.providers is not None or default_providers() is not None)
+    return session
+
+
 def ort_session(model: str | os.PathLike | bytes, config: SessionConfig = EXPORT_SESSION) -> ort.InferenceSession:
     """A plain onnxruntime session of a graph file or serialized model, with ``session_options``: for tools that
     feed a graph its raw inputs (the exporter's parity and int8 calibration) rather than run an export."""
     src = model if isinstance(model, bytes) else os.fspath(model)
-    providers = resolve_providers(config.providers)
-    session = ort.InferenceSession(src, sess_options=session_options(config), providers=providers)
-    session.disable_fallback()  # as GraphSession's: a provider failing in run() raises, not silently moves to the CPU
-    check_started("<graph>" if isinstance(model, bytes) else model, providers, session.get_providers(),
-                  explicit=config.providers is not None or default_providers() is not None)  # fmt: skip
-    return session
+    name = "<graph>" if isinstance(model, bytes) else model
+    return _open(src, session_options(config), config, resolve_providers(config.providers), name)
 
 
 class GraphSession:
@@ -197,22 +207,15 @@ class GraphSession:
             prefix.parent.mkdir(parents=True, exist_ok=True)
         opts = session_options(config, profile_prefix=str(prefix))
         providers = resolve_providers(config.providers)
-        options = provider_options or {}
         try:
-            src = model if model is not None else str(self.path)
-            self.session = ort.InferenceSession(src, sess_options=opts, providers=[(p, dict(options[p])) if p in options else p for p in providers])
+            self.session = _open(model if model is not None else str(self.path), opts, config, providers, self.path, provider_options)
         except ORT_ERRORS as e:
             if providers != [CPU_PROVIDER]:  # an accelerator's engine build or kernel, more likely than the file
                 raise ProviderError(f"{self.path}: onnxruntime cannot create a session of this graph on {providers}: "
                                     f"{ort_message(e)} (if --providers cpu loads it, these providers cannot run it)") from None  # fmt: skip
             # a truncated, empty or foreign file that passed (or skipped) the sha256 check
             raise ManifestError(f"{self.path}: onnxruntime cannot load this graph: {ort_message(e)}") from None
-        # onnxruntime's Python session otherwise answers a provider failing in run() (a TensorRT engine rebuild, an
-        # enqueue) by printing "EP Error", recreating itself on the CPU without our options and going on: the failure
-        # is raised instead (GraphRunError), and the providers recorded stay the ones that run
-        self.session.disable_fallback()
         self.providers = tuple(self.session.get_providers())
-        check_started(self.path, providers, list(self.providers), explicit=config.providers is not None or default_providers() is not None)
         log.info("%s: providers %s, %d intra-op thread(s)", self.path.name, list(self.providers), config.intra_op_threads)
         self.input_names = tuple(i.name for i in self.session.get_inputs())
         self.output_names = tuple(o.name for o in self.session.get_outputs())
