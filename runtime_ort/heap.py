@@ -16,10 +16,12 @@ runtime. ``GcPauses`` measures what the collector cost meanwhile (counts and pau
 The runtime never calls either itself: the heap belongs to the process that embeds it.
 
 The C heap is another matter: a calibration swap builds a new LUT through large temporary arrays, and glibc's
-allocator keeps the freed pages mapped, so a process's resident memory climbed with every swap and every detector
-reopened after a ``close()`` (benchmarks/RESULTS.md, "Memory after calibration swaps"). ``release_free_memory``
-hands them back (glibc's ``malloc_trim``); the detector calls it after each swap and on ``close()``. A no-op where
-the C library has no such call (musl, macOS, Windows).
+allocator keeps the freed pages mapped, so a process's resident memory climbed with every swap
+(benchmarks/RESULTS.md, "Memory after calibration swaps"). ``release_free_memory`` hands them back (glibc's
+``malloc_trim``); the detector calls it after each swap and on ``close()``. A no-op where the C library has no such
+call (musl, macOS, Windows). (The climb from one detector to the next, once blamed on the allocator too, was a
+reference cycle that kept closed detectors alive until a full collection: tests/test_runtime_heap.py keeps a closed
+detector freed by reference counts alone.)
 """
 
 from __future__ import annotations

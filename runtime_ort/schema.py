@@ -106,7 +106,10 @@ def _validate(value: Any, schema: dict, root: dict, path: str, what: str) -> Non
                 _validate(value, option, root, path, what)
                 break
             except SchemaViolation as e:
-                errors.append(e)
+                # kept without its traceback: the traceback holds this frame, whose `errors` holds it (a cycle), and a
+                # finished frame keeps its callers' frames alive, StreamingDetector.__init__'s with its sessions among
+                # them, until the next full garbage collection (hundreds of MB per detector closed and dropped)
+                errors.append(e.with_traceback(None))
         else:
             # the most specific complaint: the option that got deepest into the value
             deepest = max(errors, key=lambda e: len(e.path))
