@@ -208,7 +208,8 @@ class StreamingDetector:
         self._own_maps: weakref.WeakValueDictionary[int, np.ndarray] = weakref.WeakValueDictionary()
         self._calibration_lock = threading.Lock()  # one calibration swap (and its re-lift) at a time
         self._image_seq = 0  # update_images calls started (under _lock)
-        self._image_floor = 0  # image sets of calls up to this seq were dropped (forget_images): never installed
+        # per quadrant: image sets of calls up to this seq were dropped there (forget_images): never installed there
+        self._image_floor = [0] * NUM_QUADRANTS
         self._lut: Lut | None = None  # stays None for a LiDAR-only export
         self._built_from: tuple[Lut, str] | None = None  # (a LUT this detector built, its rig's sha256): _is_current_rig
         if self.uses_images and (self.image.width, self.image.height) == (m.image.width, m.image.height):
@@ -556,22 +557,30 @@ class StreamingDetector:
         once after construction, before the first ``update_images`` / slice."""
         warm_up(self, rounds)
 
-    def forget_images(self, through: int | None = None) -> None:
+    def forget_images(self, through: int | None = None, quadrants: Sequence[int] | None = None) -> None:
         """Drop the cached image BEV: slices read no image until the next ``update_images``. An update already under
         way when this is called installs nothing (its ``ImageUpdate.superseded`` is True).
 
         ``through``: only the image sets of the calls up to that ``ImageUpdate.seq`` (``warm_up`` drops its own
-        dummy images so, never a real set that came after them)."""
+        dummy images so, never a real set that came after them).
+
+        ``quadrants``: only those (a strictly increasing list of 0..3; None: all four); the others keep their BEV,
+        and an update under way still installs there. The phase-locked image lane drops so a quadrant all of whose
+        cameras are out (``LaneConfig.camera_timeout_s``): its slices then read no image (zeros, or the LiDAR-only
+        fallback), as before the first image."""
         if through is not None and (isinstance(through, bool) or not isinstance(through, (int, np.integer)) or through < 0):
             raise ValueError(f"forget_images through must be None or an ImageUpdate.seq (an int >= 0), got {through!r}")
+        wanted = update_quadrants(quadrants)
         with self._lock:
-            self._drop_images_locked(self._image_seq if through is None else int(through))
+            self._drop_images_locked(self._image_seq if through is None else int(through), wanted)
 
-    def _drop_images_locked(self, through: int) -> None:
-        """Drop the image sets of the update_images calls up to ``through`` (seq), cached or still under way
-        (``_install`` refuses them); the caller holds ``_lock``."""
-        self._image_floor = max(self._image_floor, through)
-        kept = tuple(s if s is not None and s.seq > self._image_floor else None for s in quadrant_states(self._image))
+    def _drop_images_locked(self, through: int, quadrants: tuple[int, ...] = ALL_QUADRANTS) -> None:
+        """Drop the image sets of the update_images calls up to ``through`` (seq) in ``quadrants``, cached or still
+        under way (``_install`` refuses them there); the caller holds ``_lock``."""
+        floor = self._image_floor
+        for q in quadrants:
+            floor[q] = max(floor[q], through)
+        kept = tuple(s if s is not None and s.seq > floor[q] else None for q, s in enumerate(quadrant_states(self._image)))
         self._image = None if all(s is None for s in kept) else ImageCache(kept)
 
     @property
@@ -689,10 +698,8 @@ class StreamingDetector:
         with self._lock:
             if self._lut is not lut:
                 return None
-            current, floor = quadrant_states(self._image), self._image_floor
-        if seq <= floor:
-            return False
-        todo = tuple(q for q in quadrants if current[q] is None or current[q].seq < seq)
+            current, floor = quadrant_states(self._image), tuple(self._image_floor)
+        todo = tuple(q for q in quadrants if seq > floor[q] and (current[q] is None or current[q].seq < seq))
         if not todo:
             return False
         bevs = self._lift_quadrants(features, cameras, todo, lut, maps)
@@ -704,11 +711,11 @@ class StreamingDetector:
         with self._lock:
             if self._lut is not lut:
                 return None
-            if seq <= self._image_floor:  # dropped while it lifted
-                return False
             states = list(quadrant_states(self._image))
             installed = False
             for q, bev in zip(todo, bevs):
+                if seq <= self._image_floor[q]:  # dropped there while it lifted
+                    continue
                 if states[q] is None or states[q].seq < seq:
                     stamp = quadrant_timestamp(qluts[q].camera_names, camera_timestamps, cameras, timestamp) if qluts else timestamp
                     states[q] = QuadrantState(bev, features, cameras, stamp, missing, seq, lut, stamps, timestamp)

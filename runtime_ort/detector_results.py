@@ -56,8 +56,9 @@ class SliceResult:
     # slice lane had fallen behind (LaneConfig.coalesce_slices, runtime_ort/coalesce.py); () for a run of its own
     coalesced: tuple[int, ...] = ()
     # cameras the slice's quadrant(s) read whose features were zeros: not given to the image update that made their
-    # BEV (a camera out, under the "full" schedule); () when every camera they read was there. image_age_s does not
-    # show this: the quadrant's age is that of the cameras that were given
+    # BEV (a camera out: missing from the image set under "full", silent for LaneConfig.camera_timeout_s under
+    # "phase-locked"); () when every camera they read was there. image_age_s does not show this: the quadrant's age
+    # is that of the cameras that were given
     cameras_missing: tuple[str, ...] = ()
     # StreamingRunner's clock (time.monotonic()): when submit_slice took the slice, and when its result was made (before
     # its future completes and runs callbacks); None for the detector's own calls. latency_s is their difference

@@ -66,7 +66,7 @@ from streamdet.runtime_ort.image_cache import check_camera_timestamps
 from streamdet.runtime_ort.pair_hold import PairHold
 from streamdet.runtime_ort.phase_lock import check_lidar_hz
 from streamdet.runtime_ort.sessions import CPU_PROVIDER
-from streamdet.runtime_ort.phase_locked_lane import PhaseLockedImageLane, PhaseLockStats
+from streamdet.runtime_ort.phase_locked_lane import PhaseLockedImageLane, PhaseLockStats, check_camera_timeout
 from streamdet.runtime_ort.thread_priority import check_nice
 from streamdet.runtime_ort.worker_lane import JobBatching, RunnerClosed, WorkerLane
 
@@ -103,6 +103,14 @@ class LaneConfig:
     # the slices' arrivals (what to use when the clock is scaled, e.g. a replay at --time-scale 2)
     lidar_hz: float | None = None
     lift_margin_ms: float = 2.0  # phase-locked only: a lift is timed to end this long before its first slice arrives
+    # phase-locked only: a camera that has sent no frame for this long (seconds on the runner's clock, from its last
+    # frame's arrival) counts as out: its last frame is no longer fused, the quadrants that see it are lifted again
+    # without it (SliceResult.cameras_missing names it) and a quadrant none of whose cameras is left reads no image
+    # (zeros, or the LiDAR-only fallback export) until a frame comes (phase_locked_lane.py). A camera whose frame
+    # period is over a third of this gets three of its periods instead, once its second frame tells its period. None: a camera's last
+    # frame is fused however old.
+    # (Under "full" each image set stands alone: a camera not in it is zeros already.)
+    camera_timeout_s: float | None = 1.0
     # added to the image lane's thread's nice value (0..19, Linux; 0: unchanged): where the lanes share cores, the
     # slice lane's work is then served first and the image lane runs in the time left (runtime_ort/thread_priority.py).
     # Only the lane's own thread: with DetectorConfig.image_lane_threads != 1 onnxruntime's pool threads keep nice 0
@@ -139,6 +147,7 @@ class LaneConfig:
         if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v) or not 0 <= v <= 1000:
             raise ValueError(f"LaneConfig.lift_margin_ms must be a number of ms in [0, 1000], got {v!r}")
         check_nice(self.image_lane_nice, "LaneConfig.image_lane_nice")
+        check_camera_timeout(self.camera_timeout_s, "LaneConfig.camera_timeout_s")
         v = self.coalesce_slices
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 1 <= v <= 64:
             raise ValueError(f"LaneConfig.coalesce_slices must be an int in 1..64 (1: never), got {v!r}")
@@ -192,7 +201,7 @@ class StreamingRunner:
             self._phase_locked = PhaseLockedImageLane(
                 detector, detector.num_slices, detector.config.start_deg, config.lidar_hz, config.lift_margin_ms * 1e-3,
                 superseded=superseded, closed=lambda: RunnerClosed("image-lane: submit after close()"), nice=config.image_lane_nice,
-                backlog=lambda: slices.waiting, yield_at=config.image_lane_yield_slices,
+                backlog=lambda: slices.waiting, yield_at=config.image_lane_yield_slices, camera_timeout_s=config.camera_timeout_s,
             )  # fmt: skip
         else:
             self._images = WorkerLane("image-lane", 1, 1, superseded, nice=config.image_lane_nice)

@@ -33,6 +33,14 @@ Degraded behaviour, in this order (each counted in ``PhaseLockStats``):
   the times it held back, ``yielded_ms``: for how long). One holding back lasts at most ``MAX_HOLD_S``; then it
   works as long again whatever the backlog (``holds_cut``), so that a slice lane that never catches up still leaves
   the images about half the time;
+- **a camera that stops sending** (``camera_timeout_s``, ``LaneConfig.camera_timeout_s``): once it has sent no frame
+  for that long on this lane's clock (or for TIMEOUT_PERIODS of its own frame period, learnt from its arrivals, where
+  that is longer: a slow camera is not timed out between its frames), its last frame is dropped
+  (``cameras_timed_out``) and every quadrant lifted with it is lifted again without it, as soon as it can be (its features zeros: ``SliceResult.cameras_missing`` names
+  it), rather than its old frame being fused for as long as it stays out. A quadrant left with none of its cameras
+  drops its image BEV (``StreamingDetector.forget_images(quadrants=...)``, ``quadrants_cleared``): its slices read
+  no image, as before the first one (zeros, or the LiDAR-only fallback export where one is configured). The camera's
+  next frame brings it back;
 - **image sets**: an image set each of whose frames was replaced by a newer one before any lift used it fails
   its future with ``ImagesSuperseded``; otherwise its future holds the `ImageUpdate` of the first lift that used it.
 
@@ -44,6 +52,7 @@ from __future__ import annotations
 
 import collections
 import math
+import statistics
 import threading
 import time
 from concurrent.futures import Future
@@ -66,6 +75,10 @@ YIELD_POLL_S = 0.001
 # catches up must not leave the images to grow old without bound (a fixed time, not the rotation period: that is
 # learnt from the slices' arrivals, which a backlog may have bunched)
 MAX_HOLD_S = 0.1
+# a camera counts as out after camera_timeout_s without a frame, or after this many of its own frame periods where
+# that is longer (the median of its last TIMEOUT_INTERVALS intervals): a slow camera is never timed out between frames
+TIMEOUT_PERIODS = 3.0
+TIMEOUT_INTERVALS = 5
 
 
 @dataclass
@@ -79,6 +92,8 @@ class PhaseLockStats:
     yields: int = 0  # times the lane held back an update because slices waited (yield_at)
     yielded_ms: float = 0.0  # milliseconds it held back in all
     holds_cut: int = 0  # holdings back that reached their limit (MAX_HOLD_S), after which the lane worked as long
+    cameras_timed_out: int = 0  # frames dropped because their camera sent nothing newer for camera_timeout_s
+    quadrants_cleared: int = 0  # quadrants whose image BEV was dropped: every camera that sees them had timed out
 
 
 @dataclass(eq=False)
@@ -95,6 +110,8 @@ class _Frame:
     image: np.ndarray
     timestamp: float
     owner: _ImageSet
+    arrival_s: float  # the lane's clock when it was submitted
+    expires_s: float = math.inf  # when its camera counts as out unless a newer frame came (_expiry_s)
     features: np.ndarray | None = field(default=None, repr=False)  # (C, Hf, Wf) once encoded
 
 
@@ -106,7 +123,7 @@ class PhaseLockedImageLane:
         clock: Callable[[], float] = time.monotonic, thread: bool = True,
         superseded: Callable[[], Exception] = lambda: RuntimeError("image set superseded by a newer one"),
         closed: Callable[[], Exception] = lambda: RuntimeError("image-lane: submit after close()"), nice: int = 0,
-        backlog: Callable[[], int] | None = None, yield_at: int = 0,
+        backlog: Callable[[], int] | None = None, yield_at: int = 0, camera_timeout_s: float | None = None,
     ) -> None:  # fmt: skip
         """``detector``: a StreamingDetector (or one with its ``quadrant_cameras``, ``encode_images`` and
         ``update_images(images, timestamp, quadrants=, encoded=)``); ``clock``: the runner's seconds; ``thread``
@@ -114,12 +131,15 @@ class PhaseLockedImageLane:
         image set's future and of a submit after close (the runner's ImagesSuperseded and RunnerClosed); ``nice``:
         added to the worker thread's nice value (thread_priority.py); ``backlog``: the number of slices waiting in
         the slice lane's queue, and ``yield_at``: how many of them make this lane hold back (0: never; needs
-        ``backlog``)."""
+        ``backlog``); ``camera_timeout_s``: seconds without a new frame after which a camera counts as out, or
+        TIMEOUT_PERIODS of its own frame period where that is longer (None: its last frame is kept however old;
+        check_camera_timeout)."""
         if isinstance(yield_at, bool) or not isinstance(yield_at, (int, np.integer)) or yield_at < 0:
             raise ValueError(f"image-lane: yield_at must be an int >= 0 (slices waiting; 0: never yield), got {yield_at!r}")
         if yield_at and backlog is None:
             raise ValueError(f"image-lane: yield_at={yield_at} needs a backlog (the slice lane's waiting slices)")
         self.detector = detector
+        self._camera_timeout_s = check_camera_timeout(camera_timeout_s, "image-lane: camera_timeout_s")
         self._backlog = backlog
         self._yield_at = int(yield_at)
         self._yield_since: float | None = None  # when the current holding back began (None: not holding back)
@@ -135,6 +155,7 @@ class PhaseLockedImageLane:
         self._phase = RotationPhase(num_slices, start_deg, lidar_hz)
         self._cond = threading.Condition()
         self._frames: dict[str, _Frame] = {}
+        self._arrivals: dict[str, collections.deque] = {}  # camera -> its last frames' arrival times (_expiry_s)
         self._seq = 0
         self._lifted: list[dict[str, int]] = [{} for _ in range(NUM_QUADRANTS)]  # camera -> frame seq, per quadrant
         self._full_lifted: dict[str, int] = {}
@@ -175,7 +196,7 @@ class PhaseLockedImageLane:
             for name, image in images.items():
                 self._seq += 1
                 old = self._frames.get(name)
-                self._frames[name] = _Frame(self._seq, image, float(stamps.get(name, timestamp)), owner)
+                self._frames[name] = _Frame(self._seq, image, float(stamps.get(name, timestamp)), owner, now, self._expiry_s(name, now))
                 if old is not None and self._release(old.owner):
                     superseded.append(old.owner.future)
             self._dirty = True
@@ -183,6 +204,17 @@ class PhaseLockedImageLane:
         for old_future in superseded:
             complete_future(LANE, old_future, error=self._superseded())
         return fut
+
+    def _expiry_s(self, camera: str, now_s: float) -> float:
+        """(Under the lock.) When a frame of ``camera`` arriving at ``now_s`` times out: ``camera_timeout_s`` later, or
+        TIMEOUT_PERIODS of the camera's median frame interval where that is longer."""
+        if self._camera_timeout_s is None:
+            return math.inf
+        arrivals = self._arrivals.setdefault(camera, collections.deque(maxlen=TIMEOUT_INTERVALS + 1))
+        arrivals.append(now_s)
+        gaps = [b - a for a, b in zip(arrivals, list(arrivals)[1:])]
+        period = statistics.median(gaps) if gaps else 0.0
+        return now_s + max(self._camera_timeout_s, TIMEOUT_PERIODS * period)
 
     def _release(self, owner: _ImageSet) -> bool:
         """(Under the lock.) One frame of ``owner`` is no longer the newest of its camera; once none is and none was
@@ -211,15 +243,51 @@ class PhaseLockedImageLane:
     def step(self, now_s: float) -> float | None:
         """Run what is due at ``now_s`` (at most one update, or one frame encoded ahead); the time to call again
         (None: at the next event)."""
+        for old_future in self._expire(now_s):  # off the lock: their done-callbacks run here
+            complete_future(LANE, old_future, error=self._superseded())
+        wake = self._step(now_s)
+        with self._cond:
+            expiry = self._next_expiry_s()
+        if expiry is None:
+            return wake
+        return expiry if wake is None else min(wake, expiry)
+
+    def _expire(self, now_s: float) -> list[Future]:
+        """Drop the frames of cameras that sent nothing newer for ``camera_timeout_s``; mark the quadrants lifted with
+        them as wanting a lift. The futures of the image sets that leaves superseded, for the caller to fail."""
+        if self._camera_timeout_s is None:
+            return []
+        superseded: list[Future] = []
+        with self._cond:
+            gone = [n for n, f in self._frames.items() if now_s >= f.expires_s]
+            for name in gone:
+                frame = self._frames.pop(name)
+                self.stats.cameras_timed_out += 1
+                if self._release(frame.owner):
+                    superseded.append(frame.owner.future)
+                for q in range(NUM_QUADRANTS):
+                    seen = name in self._lifted[q] and name in self.detector.quadrant_cameras([q])
+                    if seen and self._wanted_since[q] is None:
+                        self._wanted_since[q] = now_s
+        return superseded
+
+    def _next_expiry_s(self) -> float | None:
+        """(Under the lock.) When the oldest frame held times out; None without a timeout or frames."""
+        if self._camera_timeout_s is None or not self._frames:
+            return None
+        return min(f.expires_s for f in self._frames.values())
+
+    def _step(self, now_s: float) -> float | None:
         # read before taking this lane's lock: the slice lane's own lock is never taken inside it
         busy = self._yield_at > 0 and self._backlog() >= self._yield_at
         with self._cond:
-            if not self._frames:
+            if not self._frames and not any(self._lifted):
                 self._hold(now_s, False)
                 return None
             if not self._phase.locked:
                 frames = dict(self._frames)
-                if all(self._full_lifted.get(n) == f.seq for n, f in frames.items()):
+                # nothing newer, and no camera lifted before has timed out since
+                if all(self._full_lifted.get(n) == f.seq for n, f in frames.items()) and self._full_lifted.keys() <= frames.keys():
                     self._hold(now_s, False)
                     return None
                 if self._hold(now_s, busy):
@@ -329,9 +397,10 @@ class PhaseLockedImageLane:
         return min(waiting)[1] if waiting else None
 
     def _has_new(self, quadrant: int) -> bool:
+        """Whether a camera that sees ``quadrant`` sent a frame after its last lift, or timed out since."""
         cams = self.detector.quadrant_cameras([quadrant])
         lifted = self._lifted[quadrant]
-        return any(n in self._frames and self._frames[n].seq != lifted.get(n) for n in cams)
+        return any(self._frames[n].seq != lifted.get(n) if n in self._frames else n in lifted for n in cams)
 
     def _update(self, frames: dict[str, _Frame], quadrants: tuple[int, ...] | None, deadline_s: float | None):
         """Encode the frames not encoded yet, then lift ``quadrants`` (None: all four) with them. Off the lock."""
@@ -349,26 +418,35 @@ class PhaseLockedImageLane:
         stamps = {n: f.timestamp for n, f in frames.items()}
         # each quadrant is as old as the oldest frame of its cameras: say so where the frames' times differ
         options = {"camera_timestamps": stamps} if len(set(stamps.values())) > 1 else {}
+        cleared = not frames
         if frames:
             update = self.detector.update_images(images, timestamp, quadrants=quadrants, encoded=encoded, **options)
-        else:  # none of the quadrant's cameras has sent a frame: nothing to lift
+        else:  # every camera that sees these quadrants timed out: their slices read no image rather than old frames
+            self.detector.forget_images(quadrants=quadrants)
             update = None
         t2 = self.clock()
         with self._cond:
             if fresh:
                 self._encode_s.append((t1 - t0) / len(fresh))
             self.cpu_s += time.thread_time() - cpu0
-            if quadrants is None:
+            lifted_now = {n: f.seq for n, f in frames.items()}  # a camera timed out since its last lift is left out
+            if cleared:
+                self.stats.quadrants_cleared += NUM_QUADRANTS if quadrants is None else len(quadrants)
+                for q in range(NUM_QUADRANTS) if quadrants is None else quadrants:
+                    self._lifted[q] = {}
+                if quadrants is None:
+                    self._full_lifted = {}
+            elif quadrants is None:
                 self.stats.full_updates += 1
-                self._full_lifted = {n: f.seq for n, f in frames.items()}
-                for lifted, durations in zip(self._lifted, self._durations):
-                    lifted.update(self._full_lifted)
+                self._full_lifted = lifted_now
+                for q, durations in enumerate(self._durations):
+                    self._lifted[q] = dict(lifted_now)
                     if not durations:
                         durations.append((t2 - t1) / NUM_QUADRANTS)
             else:
                 self.stats.quadrant_lifts += 1
                 self._durations[quadrants[0]].append(t2 - t1)
-                self._lifted[quadrants[0]].update({n: f.seq for n, f in frames.items()})
+                self._lifted[quadrants[0]] = lifted_now
                 if deadline_s is not None and t2 > deadline_s:
                     self.stats.late_lifts += 1
         return update
@@ -428,6 +506,15 @@ class PhaseLockedImageLane:
             error = RuntimeError(f"{LANE}: closed; the update that used this image set ended without completing it")
             complete_future(LANE, fut, error=error)
         return ended
+
+
+def check_camera_timeout(value: object, what: str) -> float | None:
+    """``value`` as seconds (None stays None); ValueError quoting it unless None or a finite number > 0."""
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) or not math.isfinite(value) or value <= 0:
+        raise ValueError(f"{what} must be None or a finite number of seconds > 0, got {value!r}")
+    return float(value)
 
 
 def _robust_max(seconds) -> float:
