@@ -207,6 +207,8 @@ class CameraTerms:
         run already under way keeps its session until it returns."""
         self._closed = error
         self._term_graph = self._tail = None
+        with self._lock:  # the kept terms and tables (about a hundred MB at the default size) go now, not with the detector
+            self._shares, self._terms, self._luts = {}, {}, {}
 
     def _session(self, session: ort.InferenceSession | None) -> ort.InferenceSession:
         if session is None:  # closed: set before the sessions were released

@@ -1040,10 +1040,13 @@ class StreamingDetector:
 
     # ---- lifetime ------------------------------------------------------------------------------
     def close(self) -> list[str]:
-        """Release the sessions; returns the profile files written (``enable_profiling``; else none). Any later call
-        that runs a graph raises DetectorClosed; a second close returns []."""
+        """Release the sessions, the cached image BEV and the views and terms kept of the LUT (a closed detector an
+        application still holds keeps none of its memory); returns the profile files written (``enable_profiling``;
+        else none). Any later call that runs a graph raises DetectorClosed; a second close returns []."""
         with self._lock:  # an open detector always holds its slice graph's session: none left means closed
             sessions, self._sessions = self._sessions, {}
+            self._image = None
+        self._views.clear()
         written = [s.end_profiling() for s in sessions.values()] if self.config.enable_profiling else []
         self.image_encoder = self.lifter = self.slice_head = None
         if self._terms is not None:  # kept, closed: a lift under way raises DetectorClosed at its next graph run

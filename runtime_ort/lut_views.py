@@ -37,6 +37,11 @@ class LutViews:
         self._cameras: tuple[Lut, dict[tuple[int, ...], tuple[str, ...]]] | None = None  # answers for one LUT
         self._feeds: dict[tuple[int, int], tuple[Lut | QuadrantLut, dict[str, np.ndarray]]] = {}
 
+    def clear(self) -> None:
+        """Forget every view kept (a closed detector's): they are made again on use."""
+        with self._lock:
+            self._quadrant_luts, self._cameras, self._feeds = {}, None, {}
+
     def quadrant_luts(self, lut: Lut, in_use: Lut | None) -> tuple[QuadrantLut, ...]:
         """The per-quadrant LUTs of ``lut``, made once; those of ``lut`` and of ``in_use`` (the detector's LUT now)
         are kept, any other LUT's dropped."""

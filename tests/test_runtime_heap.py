@@ -141,3 +141,21 @@ def test_a_closed_detector_and_its_sessions_are_freed_without_a_collection(tiny_
         det.close()
         del det
         assert [r() is None for r in alive] == [True] * len(alive)
+
+
+def test_close_lets_go_of_the_image_bev_and_the_lut_views_while_the_detector_is_held(tiny_export):
+    """An application that keeps its closed detector (an attribute of its node) keeps none of its large arrays."""
+    import numpy as np
+
+    from streamdet.runtime_ort.detector import StreamingDetector
+
+    det = StreamingDetector(tiny_export)
+    rng = np.random.default_rng(0)
+    det.update_images({n: rng.integers(0, 256, (det.image.height, det.image.width, 3), dtype=np.uint8) for n in det.camera_names}, 1.0)
+    held = [weakref.ref(s.bev) for s in det.image_state.quadrants]
+    assert det.image_state is not None and det._views._quadrant_luts
+    det.close()
+    assert det.image_state is None and not det._views._quadrant_luts and not det._views._feeds
+    assert all(r() is None for r in held)
+    if det._terms is not None:
+        assert not det._terms._terms and not det._terms._shares and not det._terms._luts
