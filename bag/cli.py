@@ -12,6 +12,8 @@ import click
 from streamdet.bag.deps import MissingExtraError, require
 from streamdet.cli_utils import (
     PRECISION_CHOICES,
+    camera_timeout_option,
+    camera_timeout_s,
     check_folder_creatable,
     check_output_parent,
     fallback_after_s,
@@ -94,11 +96,12 @@ def export_cmd(data_dir: Path | None, scene: str | None, version: str, out: Path
 @image_precision_option()
 @providers_option()
 @fallback_options(clock="bag time")
+@camera_timeout_option()
 @click.option("-v", "--verbose", is_flag=True, help="Log providers and sessions.")
 def run_cmd(bag_path: Path, export_dir: Path, out: Path, results_json: Path | None, topics: str | None,
             slice_per_message: bool, ego_frame: str, global_frame: str, num_slices: int | None, precision: str,
             image_precision: str | None, providers: tuple[str, ...] | None, fallback_export_dir: Path | None, fallback_after_ms: float | None,
-            verbose: bool) -> None:  # fmt: skip
+            camera_timeout_ms: float, verbose: bool) -> None:  # fmt: skip
     """Detect every LiDAR message of a bag in recorded order (images first when new ones arrived) and write the
     detections per slice as ROS 2 topics, stamped with the slice's scan time, plus the nuScenes results JSON."""
     logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(message)s")
@@ -120,6 +123,7 @@ def run_cmd(bag_path: Path, export_dir: Path, out: Path, results_json: Path | No
             slice_per_message=slice_per_message,
             ego_frame=ego_frame,
             global_frame=None if global_frame.lower() == "none" else global_frame,
+            camera_timeout_s=camera_timeout_s(camera_timeout_ms),  # on the header stamps
         )
         summary = run_bag(bag_path, export_dir, out, results_json, config, progress=_sweep_progress)
     except LIBRARY_ERRORS as e:
@@ -138,6 +142,9 @@ def run_cmd(bag_path: Path, export_dir: Path, out: Path, results_json: Path | No
     if summary.cameras_without_info:
         click.echo(f"no CameraInfo for {list(summary.cameras_without_info)} at some image sets: the calibration in use "
                    "stayed (the export's until the bag's was complete); name their topics with --topics CAM.info=/topic")  # fmt: skip
+    if summary.cameras_timed_out:
+        said = ", ".join(f"{c} {n}x" for c, n in summary.cameras_timed_out.items())
+        click.echo(f"cameras that stopped sending for --camera-timeout-ms and were left out (their features zeros): {said}")
     click.echo(format_latency(summary.latency_ms))
     click.echo(f"wrote {summary.bag_out}")
     click.echo(f"wrote {summary.results_json}")

@@ -23,6 +23,7 @@ from streamdet.bag.source import BagSource, SourceConfig, SweepEvent
 from streamdet.bag.writer import BagWriter
 from streamdet.core.image_header import decoder_error_reason
 from streamdet.evaluation.results import boxes_to_results, write_results_json
+from streamdet.core.camera_timeout import DEFAULT_CAMERA_TIMEOUT_S
 from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector
 from streamdet.runtime_ort.postprocess import Detections, aggregate_sweep
 from streamdet.runtime_ort.ros.detections import detection3d_array_message, marker_array_message
@@ -39,6 +40,7 @@ class RunConfig:
     cloud_fields: CloudFields = field(default_factory=lambda: CloudFields(require_time=False))
     ego_frame: str = T.EGO_FRAME
     global_frame: str | None = T.GLOBAL_FRAME
+    camera_timeout_s: float | None = DEFAULT_CAMERA_TIMEOUT_S  # SourceConfig.camera_timeout_s
     marker_lifetime_s: float = 0.0  # 0: a slice's boxes stay until the same slice of the next sweep replaces them
 
 
@@ -56,6 +58,7 @@ class RunSummary:
     latency_ms: dict
     num_fallback_slices: int = 0  # slices the LiDAR-only fallback ran (DetectorConfig.fallback_export_dir)
     providers: tuple[str, ...] = ()  # onnxruntime's execution providers of the slice session
+    cameras_timed_out: dict[str, int] = field(default_factory=dict)  # camera -> times it was left out (camera timeout)
 
 
 def run_bag(
@@ -72,7 +75,7 @@ def run_bag(
     source = BagSource(bag, SourceConfig(
         topics=config.topics, camera_names=det.camera_names if det.uses_images else (), num_slices=det.num_slices,
         start_deg=det.config.start_deg, slice_per_message=config.slice_per_message, cloud_fields=config.cloud_fields,
-        ego_frame=config.ego_frame, global_frame=config.global_frame,
+        ego_frame=config.ego_frame, global_frame=config.global_frame, camera_timeout_s=config.camera_timeout_s,
     ))  # fmt: skip
     if Path(source.path).resolve() == out.resolve():
         raise ValueError(f"--out {out} is the input bag; write the detections to another file")
@@ -131,7 +134,7 @@ def run_bag(
     without = tuple(c for c in det.camera_names if c in source.cameras_without_info)
     return RunSummary(out, results_path, counts["sweeps"], counts["slices"], counts["image_sets"], counts["detections"],
                       det.camera_names, without, det.precision_label, det.stats.summary(), counts["fallback"],
-                      tuple(det.providers))  # fmt: skip
+                      tuple(det.providers), dict(source.cameras_timed_out))  # fmt: skip
 
 
 def results_path_of(out: str | Path, results_json: str | Path | None) -> Path:
@@ -146,6 +149,9 @@ def _feed_images(det: StreamingDetector, event: SweepEvent) -> None:
     projection would be wrong); so is any image OpenCV cannot resize: a ValueError naming the camera and stamp.
     """
     image_set = event.image_set
+    if not image_set.images:  # every camera timed out: slices read no image (or the LiDAR-only fallback) until one sends
+        det.forget_images()
+        return
     if image_set.rig is not None:
         calibrated = {cam.name: (cam.width, cam.height) for cam in image_set.rig.cameras}
         for name, rgb in image_set.images.items():

@@ -32,6 +32,7 @@ from streamdet.bag import topics as T
 from streamdet.bag.deps import require
 from streamdet.calibration.camera import Rig, make_transform, quaternion_to_matrix
 from streamdet.core.sectors import azimuth_deg
+from streamdet.core.camera_timeout import DEFAULT_CAMERA_TIMEOUT_S, CameraTimeout, check_camera_timeout
 from streamdet.runtime_ort.ros.camera_info import IDENTITY_RECORD, rig_from_ros
 from streamdet.runtime_ort.ros.header import header_stamp_ns
 from streamdet.runtime_ort.ros.images import compressed_image_to_rgb, image_to_rgb
@@ -72,15 +73,16 @@ class BagMessage:
 
 @dataclass(frozen=True, eq=False)
 class ImageSet:
-    """The newest image of every camera seen so far, and the rig they were taken with."""
+    """The newest image of every camera seen so far and not timed out (``SourceConfig.camera_timeout_s``), and the rig
+    they were taken with. No image at all: every camera timed out, the image BEV is to be dropped."""
 
     images: dict[str, np.ndarray]  # camera -> (H, W, 3) uint8 RGB as recorded
     stamps_ns: dict[str, int]  # camera -> image stamp
     rig: Rig | None  # None: no CameraInfo / TF for the cameras yet (the export's own LUT stays in use)
 
     @property
-    def stamp_ns(self) -> int:
-        return max(self.stamps_ns.values())
+    def stamp_ns(self) -> int | None:
+        return max(self.stamps_ns.values()) if self.stamps_ns else None
 
 
 @dataclass(frozen=True, eq=False)
@@ -106,9 +108,14 @@ class SourceConfig:
     ego_frame: str = T.EGO_FRAME
     global_frame: str | None = T.GLOBAL_FRAME  # None: the stack has no localisation; ego motion is ignored
     tf_tolerance_ns: int = DEFAULT_TF_TOLERANCE_NS
+    # a camera whose newest image is older than this (seconds of header stamps, against the LiDAR message's) is left
+    # out of the image sets from then on, its features zeros, until it sends again: a dead camera's last image is not
+    # fused on (three of its own frame periods where longer: core/camera_timeout.py). None: never left out
+    camera_timeout_s: float | None = DEFAULT_CAMERA_TIMEOUT_S
 
     def __post_init__(self) -> None:
         self.topics.check_distinct(tuple(self.camera_names))  # one topic feeding two roles reads garbage into one
+        check_camera_timeout(self.camera_timeout_s, "SourceConfig.camera_timeout_s")
 
 
 class BagSource:
@@ -123,6 +130,7 @@ class BagSource:
         self._warned_missing: tuple[str, ...] = ()
         self._warned_times = False
         self.cameras_without_info: set[str] = set()  # cameras whose CameraInfo was missing when an image set was made
+        self.cameras_timed_out: dict[str, int] = {}  # camera -> times its images stopped for the camera timeout
         self.num_time_dropped = 0  # LiDAR points dropped for a non-finite or implausible per-point time, all clouds
 
     def metadata(self) -> dict[str, dict[str, str]]:
@@ -204,6 +212,7 @@ class BagSource:
         tf = TfBuffer(max_extrapolation_ns=cfg.tf_tolerance_ns)
         infos: dict[str, Any] = {}
         latest: dict[str, Any] = {}  # camera -> newest image message, decoded only when a set is made
+        timeout = CameraTimeout(cfg.camera_timeout_s, "SourceConfig.camera_timeout_s")
         fresh = False
         saw_lidar = False
         for msg in self.messages():
@@ -215,11 +224,19 @@ class BagSource:
             elif msg.topic in info_topics:
                 infos[info_topics[msg.topic]] = msg.message
             elif msg.topic in image_topics:
-                latest[image_topics[msg.topic]] = msg.message
+                camera = image_topics[msg.topic]
+                latest[camera] = msg.message
+                timeout.seen(camera, header_stamp_ns(msg.message) * 1e-9)
                 fresh = True
             elif msg.topic == topics.lidar:
                 saw_lidar = True
-                image_set = self._image_set(latest, infos, tf, msg.message) if fresh else None
+                for camera in timeout.out(list(latest), header_stamp_ns(msg.message) * 1e-9):
+                    del latest[camera]  # its features are zeros from this set on, until it sends again
+                    self.cameras_timed_out[camera] = self.cameras_timed_out.get(camera, 0) + 1
+                    fresh = True
+                image_set = None
+                if fresh:
+                    image_set = self._image_set(latest, infos, tf, msg.message) if latest else ImageSet({}, {}, None)
                 fresh = False
                 event = self._sweep(msg.message, tf, tokens, image_set)
             yield msg, event

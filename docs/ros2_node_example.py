@@ -12,6 +12,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from streamdet.core.camera_timeout import DEFAULT_CAMERA_TIMEOUT_S, CameraTimeout
 from streamdet.core.providers import parse_providers
 from streamdet.runtime_ort.detector import DetectorConfig, ImageUpdate, StreamingDetector
 from streamdet.runtime_ort.ros.detections import detection3d_array_message, marker_array_message
@@ -41,23 +42,37 @@ def camera_image(detector: StreamingDetector, image_msg) -> np.ndarray:
 class CameraFrames:
     """The newest image of every camera with its capture time, fed to the image lane whole when any camera sent a
     new one: a camera left out of an update would be lifted as zeros. The times are the messages' header stamps,
-    the clock of the slices' scan times, so the image age at fusion (and the LiDAR-only fallback) reads true."""
+    the clock of the slices' scan times, so the image age at fusion (and the LiDAR-only fallback) reads true.
 
-    def __init__(self) -> None:
+    A camera that has sent nothing for ``timeout_s`` (against the cloud's stamp; three of its own frame periods where
+    longer: streamdet.core.camera_timeout) is dropped, so a dead camera's last image is not fused on: the next update
+    lifts its features as zeros (``ImageUpdate.cameras_missing``), and with every camera gone the image BEV is dropped
+    (slices read none, or the LiDAR-only fallback). None: kept however old."""
+
+    def __init__(self, timeout_s: float | None = DEFAULT_CAMERA_TIMEOUT_S) -> None:
         self.images: dict[str, np.ndarray] = {}
         self.stamps_s: dict[str, float] = {}
-        self.new = False  # a frame arrived since the last update
+        self.new = False  # a frame arrived, or a camera timed out, since the last update
+        self.timeout = CameraTimeout(timeout_s, "CameraFrames timeout_s")
 
     def add(self, detector: StreamingDetector, camera: str, image_msg) -> None:
         self.images[camera] = camera_image(detector, image_msg)
         self.stamps_s[camera] = header_stamp_ns(image_msg, "sensor_msgs/CompressedImage") * 1e-9
+        self.timeout.seen(camera, self.stamps_s[camera])
         self.new = True
 
-    def update(self, detector: StreamingDetector) -> ImageUpdate | None:
-        """The image lane on the newest frame of every camera, if one is new since the last call; None if none is."""
+    def update(self, detector: StreamingDetector, now_s: float | None = None) -> ImageUpdate | None:
+        """The image lane on the newest frame of every camera, if one is new since the last call (or a camera timed
+        out at ``now_s``, the cloud's stamp); None if none is."""
+        for camera in [] if now_s is None else self.timeout.out(list(self.images), now_s):
+            del self.images[camera], self.stamps_s[camera]
+            self.new = True
         if not self.new:
             return None
         self.new = False
+        if not self.images:  # every camera timed out
+            detector.forget_images()
+            return None
         return detector.update_images(dict(self.images), timestamp=max(self.stamps_s.values()),
                                       camera_timestamps=dict(self.stamps_s))  # fmt: skip
 
@@ -84,10 +99,12 @@ def main() -> None:  # the ROS boilerplate
             max_age_s = self.declare_parameter("fallback_after_s", 0.5).value
             # onnxruntime's providers by preference, "cuda,cpu" or "tensorrt,cuda" ("auto": CUDA where present, else CPU)
             providers = parse_providers(self.declare_parameter("providers", "auto").value, "parameter providers")
+            # seconds without an image after which a camera is left out (0: never): streamdet.core.camera_timeout
+            camera_timeout_s = self.declare_parameter("camera_timeout_s", DEFAULT_CAMERA_TIMEOUT_S).value
             self.detector = StreamingDetector(export_dir, DetectorConfig(
                 fallback_export_dir=fallback, fallback_after_s=max_age_s if fallback else None, providers=providers))  # fmt: skip
             self.detector.warm_up()  # before the first message: onnxruntime's first runs of a graph are slow
-            self.frames = CameraFrames()
+            self.frames = CameraFrames(camera_timeout_s or None)
             self.boxes = self.create_publisher(Detection3DArray, "/streamdet/detections", 10)
             self.markers = self.create_publisher(MarkerArray, "/streamdet/markers", 10)
             self.create_subscription(PointCloud2, "/LIDAR_TOP", self.on_cloud, 1)
@@ -99,7 +116,8 @@ def main() -> None:  # the ROS boilerplate
             self.frames.add(self.detector, cam, msg)
 
         def on_cloud(self, msg) -> None:
-            self.frames.update(self.detector)  # the image lane first, so the slices see the newest cameras
+            # the image lane first, so the slices see the newest cameras (and none that stopped sending)
+            self.frames.update(self.detector, header_stamp_ns(msg, "sensor_msgs/PointCloud2") * 1e-9)
             for detections, markers in detect_cloud(self.detector, msg):
                 self.boxes.publish(filled(Detection3DArray, detections))
                 self.markers.publish(filled(MarkerArray, markers))

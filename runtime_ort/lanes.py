@@ -66,7 +66,8 @@ from streamdet.runtime_ort.image_cache import check_camera_timestamps
 from streamdet.runtime_ort.pair_hold import PairHold
 from streamdet.runtime_ort.phase_lock import check_lidar_hz
 from streamdet.runtime_ort.sessions import CPU_PROVIDER
-from streamdet.runtime_ort.phase_locked_lane import PhaseLockedImageLane, PhaseLockStats, check_camera_timeout
+from streamdet.core.camera_timeout import DEFAULT_CAMERA_TIMEOUT_S, check_camera_timeout
+from streamdet.runtime_ort.phase_locked_lane import PhaseLockedImageLane, PhaseLockStats
 from streamdet.runtime_ort.thread_priority import check_nice
 from streamdet.runtime_ort.worker_lane import JobBatching, RunnerClosed, WorkerLane
 
@@ -107,10 +108,10 @@ class LaneConfig:
     # frame's arrival) counts as out: its last frame is no longer fused, the quadrants that see it are lifted again
     # without it (SliceResult.cameras_missing names it) and a quadrant none of whose cameras is left reads no image
     # (zeros, or the LiDAR-only fallback export) until a frame comes (phase_locked_lane.py). A camera whose frame
-    # period is over a third of this gets three of its periods instead, once its second frame tells its period. None: a camera's last
-    # frame is fused however old.
-    # (Under "full" each image set stands alone: a camera not in it is zeros already.)
-    camera_timeout_s: float | None = 1.0
+    # period is over a third of this gets three of its periods instead, once its second frame tells its period
+    # (core/camera_timeout.py). None: a camera's last frame is fused however old. (Under "full" each image set stands
+    # alone: a camera not in it is zeros already.)
+    camera_timeout_s: float | None = DEFAULT_CAMERA_TIMEOUT_S
     # added to the image lane's thread's nice value (0..19, Linux; 0: unchanged): where the lanes share cores, the
     # slice lane's work is then served first and the image lane runs in the time left (runtime_ort/thread_priority.py).
     # Only the lane's own thread: with DetectorConfig.image_lane_threads != 1 onnxruntime's pool threads keep nice 0

@@ -34,13 +34,12 @@ Degraded behaviour, in this order (each counted in ``PhaseLockStats``):
   works as long again whatever the backlog (``holds_cut``), so that a slice lane that never catches up still leaves
   the images about half the time;
 - **a camera that stops sending** (``camera_timeout_s``, ``LaneConfig.camera_timeout_s``): once it has sent no frame
-  for that long on this lane's clock (or for TIMEOUT_PERIODS of its own frame period, learnt from its arrivals, where
-  that is longer: a slow camera is not timed out between its frames), its last frame is dropped
-  (``cameras_timed_out``) and every quadrant lifted with it is lifted again without it, as soon as it can be (its features zeros: ``SliceResult.cameras_missing`` names
-  it), rather than its old frame being fused for as long as it stays out. A quadrant left with none of its cameras
-  drops its image BEV (``StreamingDetector.forget_images(quadrants=...)``, ``quadrants_cleared``): its slices read
-  no image, as before the first one (zeros, or the LiDAR-only fallback export where one is configured). The camera's
-  next frame brings it back;
+  for that long on this lane's clock (or for three of its own frame periods where that is longer: core/camera_timeout.py),
+  its last frame is dropped (``cameras_timed_out``) and every quadrant lifted with it is lifted again without it, as
+  soon as it can be (its features zeros: ``SliceResult.cameras_missing`` names it), rather than its old frame being
+  fused for as long as it stays out. A quadrant left with none of its cameras drops its image BEV
+  (``StreamingDetector.forget_images(quadrants=...)``, ``quadrants_cleared``): its slices read no image, as before
+  the first one (zeros, or the LiDAR-only fallback export where one is configured). Its next frame brings it back;
 - **image sets**: an image set each of whose frames was replaced by a newer one before any lift used it fails
   its future with ``ImagesSuperseded``; otherwise its future holds the `ImageUpdate` of the first lift that used it.
 
@@ -52,7 +51,6 @@ from __future__ import annotations
 
 import collections
 import math
-import statistics
 import threading
 import time
 from concurrent.futures import Future
@@ -62,6 +60,7 @@ from typing import Callable, Mapping
 import numpy as np
 
 from streamdet.core.sectors import NUM_QUADRANTS
+from streamdet.core.camera_timeout import CameraTimeout
 from streamdet.runtime_ort.phase_lock import RotationPhase, plan_lift
 from streamdet.runtime_ort.thread_priority import check_nice, start_worker
 from streamdet.runtime_ort.worker_lane import cancel_future, claim_future, complete_future
@@ -75,10 +74,6 @@ YIELD_POLL_S = 0.001
 # catches up must not leave the images to grow old without bound (a fixed time, not the rotation period: that is
 # learnt from the slices' arrivals, which a backlog may have bunched)
 MAX_HOLD_S = 0.1
-# a camera counts as out after camera_timeout_s without a frame, or after this many of its own frame periods where
-# that is longer (the median of its last TIMEOUT_INTERVALS intervals): a slow camera is never timed out between frames
-TIMEOUT_PERIODS = 3.0
-TIMEOUT_INTERVALS = 5
 
 
 @dataclass
@@ -111,7 +106,7 @@ class _Frame:
     timestamp: float
     owner: _ImageSet
     arrival_s: float  # the lane's clock when it was submitted
-    expires_s: float = math.inf  # when its camera counts as out unless a newer frame came (_expiry_s)
+    expires_s: float = math.inf  # when its camera counts as out unless a newer frame came (core/camera_timeout.py)
     features: np.ndarray | None = field(default=None, repr=False)  # (C, Hf, Wf) once encoded
 
 
@@ -131,15 +126,14 @@ class PhaseLockedImageLane:
         image set's future and of a submit after close (the runner's ImagesSuperseded and RunnerClosed); ``nice``:
         added to the worker thread's nice value (thread_priority.py); ``backlog``: the number of slices waiting in
         the slice lane's queue, and ``yield_at``: how many of them make this lane hold back (0: never; needs
-        ``backlog``); ``camera_timeout_s``: seconds without a new frame after which a camera counts as out, or
-        TIMEOUT_PERIODS of its own frame period where that is longer (None: its last frame is kept however old;
-        check_camera_timeout)."""
+        ``backlog``); ``camera_timeout_s``: seconds without a new frame after which a camera counts as out
+        (core/camera_timeout.py; None: its last frame is kept however old)."""
         if isinstance(yield_at, bool) or not isinstance(yield_at, (int, np.integer)) or yield_at < 0:
             raise ValueError(f"image-lane: yield_at must be an int >= 0 (slices waiting; 0: never yield), got {yield_at!r}")
         if yield_at and backlog is None:
             raise ValueError(f"image-lane: yield_at={yield_at} needs a backlog (the slice lane's waiting slices)")
         self.detector = detector
-        self._camera_timeout_s = check_camera_timeout(camera_timeout_s, "image-lane: camera_timeout_s")
+        self._timeout = CameraTimeout(camera_timeout_s, "image-lane: camera_timeout_s")
         self._backlog = backlog
         self._yield_at = int(yield_at)
         self._yield_since: float | None = None  # when the current holding back began (None: not holding back)
@@ -155,7 +149,6 @@ class PhaseLockedImageLane:
         self._phase = RotationPhase(num_slices, start_deg, lidar_hz)
         self._cond = threading.Condition()
         self._frames: dict[str, _Frame] = {}
-        self._arrivals: dict[str, collections.deque] = {}  # camera -> its last frames' arrival times (_expiry_s)
         self._seq = 0
         self._lifted: list[dict[str, int]] = [{} for _ in range(NUM_QUADRANTS)]  # camera -> frame seq, per quadrant
         self._full_lifted: dict[str, int] = {}
@@ -196,7 +189,7 @@ class PhaseLockedImageLane:
             for name, image in images.items():
                 self._seq += 1
                 old = self._frames.get(name)
-                self._frames[name] = _Frame(self._seq, image, float(stamps.get(name, timestamp)), owner, now, self._expiry_s(name, now))
+                self._frames[name] = _Frame(self._seq, image, float(stamps.get(name, timestamp)), owner, now, self._timeout.seen(name, now))
                 if old is not None and self._release(old.owner):
                     superseded.append(old.owner.future)
             self._dirty = True
@@ -204,17 +197,6 @@ class PhaseLockedImageLane:
         for old_future in superseded:
             complete_future(LANE, old_future, error=self._superseded())
         return fut
-
-    def _expiry_s(self, camera: str, now_s: float) -> float:
-        """(Under the lock.) When a frame of ``camera`` arriving at ``now_s`` times out: ``camera_timeout_s`` later, or
-        TIMEOUT_PERIODS of the camera's median frame interval where that is longer."""
-        if self._camera_timeout_s is None:
-            return math.inf
-        arrivals = self._arrivals.setdefault(camera, collections.deque(maxlen=TIMEOUT_INTERVALS + 1))
-        arrivals.append(now_s)
-        gaps = [b - a for a, b in zip(arrivals, list(arrivals)[1:])]
-        period = statistics.median(gaps) if gaps else 0.0
-        return now_s + max(self._camera_timeout_s, TIMEOUT_PERIODS * period)
 
     def _release(self, owner: _ImageSet) -> bool:
         """(Under the lock.) One frame of ``owner`` is no longer the newest of its camera; once none is and none was
@@ -255,7 +237,7 @@ class PhaseLockedImageLane:
     def _expire(self, now_s: float) -> list[Future]:
         """Drop the frames of cameras that sent nothing newer for ``camera_timeout_s``; mark the quadrants lifted with
         them as wanting a lift. The futures of the image sets that leaves superseded, for the caller to fail."""
-        if self._camera_timeout_s is None:
+        if self._timeout.timeout_s is None:
             return []
         superseded: list[Future] = []
         with self._cond:
@@ -273,7 +255,7 @@ class PhaseLockedImageLane:
 
     def _next_expiry_s(self) -> float | None:
         """(Under the lock.) When the oldest frame held times out; None without a timeout or frames."""
-        if self._camera_timeout_s is None or not self._frames:
+        if self._timeout.timeout_s is None or not self._frames:
             return None
         return min(f.expires_s for f in self._frames.values())
 
@@ -506,15 +488,6 @@ class PhaseLockedImageLane:
             error = RuntimeError(f"{LANE}: closed; the update that used this image set ended without completing it")
             complete_future(LANE, fut, error=error)
         return ended
-
-
-def check_camera_timeout(value: object, what: str) -> float | None:
-    """``value`` as seconds (None stays None); ValueError quoting it unless None or a finite number > 0."""
-    if value is None:
-        return None
-    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) or not math.isfinite(value) or value <= 0:
-        raise ValueError(f"{what} must be None or a finite number of seconds > 0, got {value!r}")
-    return float(value)
 
 
 def _robust_max(seconds) -> float:

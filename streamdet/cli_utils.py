@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 import stat
 import threading
@@ -9,6 +10,7 @@ from pathlib import Path
 
 import click
 
+from streamdet.core.camera_timeout import DEFAULT_CAMERA_TIMEOUT_S, MAX_CAMERA_TIMEOUT_S
 from streamdet.core.providers import parse_providers
 from streamdet.core.constants import MAX_RESOLUTION_PX, MAX_SESSION_THREADS, MIN_RESOLUTION_PX, PRECISIONS
 from streamdet.core.sectors import MAX_NUM_SLICES
@@ -17,6 +19,19 @@ from streamdet.core.sectors import MAX_NUM_SLICES
 RESOLUTION_HELP = "WIDTHxHEIGHT in pixels, such as 800x450"
 RESOLUTION_RANGE_HELP = f"each side {MIN_RESOLUTION_PX}..{MAX_RESOLUTION_PX} px"
 
+
+
+class FiniteFloatRange(click.FloatRange):
+    """click.FloatRange that also refuses "nan" (which passes FloatRange's bounds: every comparison with it is
+    false), so that no option takes a NaN into a config, a sleep or a schedule. Every CLI's float ranges use it."""
+
+    name = "float range"
+
+    def convert(self, value, param, ctx):
+        rv = super().convert(value, param, ctx)
+        if isinstance(rv, float) and math.isnan(rv):
+            self.fail(f"{value!r} is not a number", param, ctx)
+        return rv
 
 def parse_resolution(
     text: str, *, min_px: int = MIN_RESOLUTION_PX, max_px: int | None = MAX_RESOLUTION_PX, multiple_of: int = 1
@@ -271,7 +286,7 @@ def fallback_options(clock: str = "sensor"):
         "slices read zeros.",
     )  # fmt: skip
     after = click.option(
-        "--fallback-after-ms", type=click.FloatRange(0, MAX_FALLBACK_AFTER_MS), default=None,
+        "--fallback-after-ms", type=FiniteFloatRange(0, MAX_FALLBACK_AFTER_MS), default=None,
         help=f"With --fallback-export, also fall back when the image BEV is older than this ({clock} ms, "
         f"0..{MAX_FALLBACK_AFTER_MS:.0f}). Default: only without one.",
     )  # fmt: skip
@@ -280,6 +295,22 @@ def fallback_options(clock: str = "sensor"):
         return export(after(f))
 
     return decorate
+
+
+def camera_timeout_option():
+    """``--camera-timeout-ms``: when a camera that stopped sending is left out (core/camera_timeout.py). The command
+    gets ``camera_timeout_ms`` (float; 0: never); ``camera_timeout_s`` turns it into the configs' seconds."""
+    return click.option(
+        "--camera-timeout-ms", type=FiniteFloatRange(0, MAX_CAMERA_TIMEOUT_S * 1e3), default=DEFAULT_CAMERA_TIMEOUT_S * 1e3,
+        show_default=True,
+        help="A camera that has sent no image for this long (or three of its own frame periods where longer) is left "
+        "out, its features zeros, until it sends again: a dead camera's last image is not fused on. 0: never left out.",
+    )  # fmt: skip
+
+
+def camera_timeout_s(camera_timeout_ms: float) -> float | None:
+    """``--camera-timeout-ms`` as seconds (None for 0: never)."""
+    return camera_timeout_ms / 1e3 if camera_timeout_ms > 0 else None
 
 
 def fallback_after_s(fallback_after_ms: float | None) -> float | None:

@@ -3,6 +3,7 @@ them as ROS 2 topics per slice (read back with rosbags), and works on a bag with
 
 from __future__ import annotations
 
+import copy
 import importlib.util
 import json
 from pathlib import Path
@@ -210,6 +211,23 @@ def test_node_recipe_helpers(bag: Path, export_dir: Path):
             writer.write("/d", "vision_msgs/msg/Detection3DArray", detections, 1)
             writer.write("/m", "visualization_msgs/msg/MarkerArray", markers, 1)
     assert sum(len(d["detections"]) for d, _ in slices) > 0
+    # a camera that stops: left out once its image is older than the timeout against the cloud's stamp
+    frames = example.CameraFrames(timeout_s=0.2)
+    for c, m in images.items():
+        frames.add(detector, c, m)
+    stamp = max(frames.stamps_s.values())
+    assert frames.update(detector, stamp + 0.1).cameras_missing == ()
+    for c in list(images)[1:]:  # every camera but the first sends again, 0.25 s later
+        later = copy.deepcopy(images[c])
+        later.header.stamp.nanosec += 250_000_000
+        frames.add(detector, c, later)
+    cam0 = list(images)[0]
+    update = frames.update(detector, stamp + 0.3)
+    assert cam0 not in update.cameras_used and cam0 in update.cameras_missing
+    assert frames.update(detector, stamp + 0.9) is None  # the others: 0.25 s apart, so out after three periods
+    assert frames.update(detector, stamp + 1.05) is None and detector.image_state is None  # every camera out: dropped
+    with pytest.raises(ValueError, match="timeout_s must be None or a finite number of seconds > 0"):
+        example.CameraFrames(timeout_s=0)
     with pytest.raises(ImportError):
         example.main()  # no rclpy here
 
@@ -360,3 +378,61 @@ def test_an_absurd_point_time_is_dropped_not_a_writer_crash(export_dir: Path, tm
     stamps = [m.header.stamp for t, _, _, m in read_with_rosbags(summary.bag_out) if t == "/streamdet/detections"]
     assert len(stamps) == N_SLICES
     assert all(abs(s.sec * 10**9 + s.nanosec - stamp) <= 50_000_000 for s in stamps)
+
+
+# ---- a camera that stops sending (SourceConfig.camera_timeout_s, --camera-timeout-ms) --------------------------------
+def _bag_dropping(bag: Path, out: Path, cameras: tuple[str, ...]) -> Path:
+    """``bag`` re-recorded without the images of ``cameras`` after its first LiDAR message (they stop sending)."""
+    source = BagSource(bag, SourceConfig())
+    seen_lidar = False
+    with BagWriter(out) as writer:
+        for name, data in source.metadata().items():
+            writer.metadata(name, data)
+        for msg in source.messages():
+            writer.schema(msg.datatype, msg.schema_text)
+            seen_lidar |= msg.topic == "/LIDAR_TOP"
+            if seen_lidar and any(msg.topic == f"/{c}/image_rect_compressed" for c in cameras):
+                continue
+            writer.write(msg.topic, msg.datatype, msg.message, msg.log_time_ns)
+    return out
+
+
+@pytest.mark.parametrize("timeout_s", [0.2, None, 1.0])
+def test_a_camera_that_stops_is_left_out_of_the_image_sets(bag: Path, export_dir: Path, tmp_path, timeout_s):
+    """The bag's sweeps are 0.5 s apart: under a 0.2 s timeout CAM_BACK's first image is not in the second set; with
+    none, or one longer than the gap, its old image still is."""
+    dropped = _bag_dropping(bag, tmp_path / "dropped.mcap", ("CAM_BACK",))
+    names = StreamingDetector(export_dir).camera_names
+    source = BagSource(dropped, SourceConfig(camera_names=names, camera_timeout_s=timeout_s))
+    sets = [event.image_set for event in source.sweeps()]
+    assert len(sets) == 2 and set(sets[0].images) == set(names)
+    left_out = timeout_s is not None and timeout_s < 0.5
+    assert ("CAM_BACK" in sets[1].images) is not left_out
+    assert source.cameras_timed_out == ({"CAM_BACK": 1} if left_out else {})
+
+
+def test_every_camera_stopping_drops_the_image_bev(bag: Path, export_dir: Path, tmp_path):
+    names = StreamingDetector(export_dir).camera_names
+    dropped = _bag_dropping(bag, tmp_path / "dropped.mcap", names)
+    sets = [event.image_set for event in BagSource(dropped, SourceConfig(camera_names=names, camera_timeout_s=0.2)).sweeps()]
+    assert sets[1] is not None and sets[1].images == {} and sets[1].stamp_ns is None and sets[1].rig is None
+    out = tmp_path / "det.mcap"
+    summary = run_bag(dropped, export_dir, out, config=RunConfig(camera_timeout_s=0.2))
+    assert summary.num_sweeps == 2 and summary.cameras_timed_out == {n: 1 for n in names}
+
+
+@pytest.mark.parametrize("ms, said", [("200", True), ("0", False)])
+def test_run_says_which_cameras_it_left_out(bag: Path, export_dir: Path, tmp_path, ms, said):
+    dropped = _bag_dropping(bag, tmp_path / "dropped.mcap", ("CAM_BACK", "CAM_FRONT"))
+    result = CliRunner().invoke(bag_main, ["run", "--bag", str(dropped), "--export-dir", str(export_dir), "--out",
+                                           str(tmp_path / "det.mcap"), "--camera-timeout-ms", ms])  # fmt: skip
+    assert result.exit_code == 0, result.output
+    line = "stopped sending for --camera-timeout-ms and were left out (their features zeros): CAM_FRONT 1x, CAM_BACK 1x"
+    assert (line in result.output) is said
+
+
+@pytest.mark.parametrize("bad", ["-1", "nan", "1e9"])
+def test_run_refuses_a_bad_camera_timeout(bag: Path, export_dir: Path, tmp_path, bad):
+    result = CliRunner().invoke(bag_main, ["run", "--bag", str(bag), "--export-dir", str(export_dir), "--out",
+                                           str(tmp_path / "det.mcap"), "--camera-timeout-ms", bad])  # fmt: skip
+    assert result.exit_code == 2 and "--camera-timeout-ms" in result.output

@@ -17,7 +17,8 @@ from streamdet.core.slicing import split_sweep
 from streamdet.data.sample import load_bundled_sample
 from streamdet.runtime_ort.detector import ImageUpdate, StreamingDetector
 from streamdet.runtime_ort.lanes import ImagesSuperseded, LaneConfig, StreamingRunner
-from streamdet.runtime_ort.phase_locked_lane import PhaseLockedImageLane, check_camera_timeout
+from streamdet.core.camera_timeout import TIMEOUT_INTERVALS, TIMEOUT_PERIODS, CameraTimeout, check_camera_timeout
+from streamdet.runtime_ort.phase_locked_lane import PhaseLockedImageLane
 
 CAMERAS = ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_FRONT_LEFT", "CAM_BACK", "CAM_BACK_LEFT", "CAM_BACK_RIGHT")
 SEES = {0: {"CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_RIGHT"}, 1: {"CAM_FRONT", "CAM_FRONT_LEFT", "CAM_BACK_LEFT"},
@@ -284,3 +285,30 @@ def test_a_slow_camera_is_not_timed_out_between_its_frames():
     assert lane.stats.cameras_timed_out == 2 and det.held[2] == {"CAM_BACK_LEFT"}
     dropped = [lift for lift in det.lifts if lift[0] == (2,) and "CAM_BACK" not in lift[1] and lift[2] > 1.1]
     assert 3.0 + 3 * 1.0 <= dropped[0][2] < 3.0 + 3 * 1.0 + 2 / LIDAR_HZ + 0.01  # its last frame came at 3.003 s
+
+
+# ---- the rule itself (core/camera_timeout.py), against a naive reference ----------------------------------------
+def _reference_expiry(times: list[float], timeout_s: float) -> float:
+    last = times[-(TIMEOUT_INTERVALS + 1):]
+    gaps = sorted(b - a for a, b in zip(last, last[1:]))
+    if not gaps:
+        return times[-1] + timeout_s
+    mid = len(gaps) // 2
+    median = gaps[mid] if len(gaps) % 2 else (gaps[mid - 1] + gaps[mid]) / 2
+    return times[-1] + max(timeout_s, TIMEOUT_PERIODS * median)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_the_expiry_matches_a_naive_reference(seed):
+    rng = np.random.default_rng(seed)
+    timeout = CameraTimeout(float(rng.uniform(0.05, 2.0)))
+    times = list(np.cumsum(rng.exponential(rng.uniform(0.01, 1.0), size=12)))
+    for i, t in enumerate(times):
+        assert timeout.seen("CAM", float(t)) == pytest.approx(_reference_expiry(times[: i + 1], timeout.timeout_s))
+    last = timeout.expires_s("CAM")
+    assert timeout.out(["CAM", "OTHER"], last - 1e-6) == [] and timeout.out(["CAM"], last) == ["CAM"]
+
+
+def test_without_a_timeout_nothing_expires():
+    timeout = CameraTimeout(None)
+    assert timeout.seen("CAM", 0.0) == math.inf and timeout.out(["CAM"], 1e12) == []
