@@ -35,6 +35,8 @@ from types import SimpleNamespace
 from typing import Callable, Iterable, Mapping
 
 import click
+
+from streamdet.cli_utils import FiniteFloatRange
 import numpy as np
 
 from streamdet.core.sectors import NUM_QUADRANTS, quadrants_of_sector
@@ -274,18 +276,18 @@ def export_layout(export_dir: str | Path) -> tuple[dict[int, tuple[str, ...]], d
               help="Export whose LUT says which cameras each quadrant's lift reads.")
 @click.option("--costs-from", type=click.Path(exists=True),
               help="A replay's output folder (or its replay.json): its measured encoder, term and tail means as the costs.")
-@click.option("--encode-ms", type=click.FloatRange(min=0), help="Encoding one camera frame, ms (overrides --costs-from).")
-@click.option("--term-ms", type=click.FloatRange(min=0), help="One camera's term run, ms (overrides --costs-from).")
-@click.option("--tail-ms", type=click.FloatRange(min=0), help="Lifting one quadrant from its terms, ms (overrides --costs-from).")
-@click.option("--cost-scale", multiple=True, type=click.FloatRange(min=0, min_open=True), default=(1.0,), show_default=True,
+@click.option("--encode-ms", type=FiniteFloatRange(min=0), help="Encoding one camera frame, ms (overrides --costs-from).")
+@click.option("--term-ms", type=FiniteFloatRange(min=0), help="One camera's term run, ms (overrides --costs-from).")
+@click.option("--tail-ms", type=FiniteFloatRange(min=0), help="Lifting one quadrant from its terms, ms (overrides --costs-from).")
+@click.option("--cost-scale", multiple=True, type=FiniteFloatRange(min=0, min_open=True), default=(1.0,), show_default=True,
               help="Multiply every cost by this; repeat for a row per scale.")
-@click.option("--jitter", type=click.FloatRange(min=0), default=0.0, show_default=True, help="Relative spread of every cost.")
-@click.option("--seconds", type=click.FloatRange(min=1), default=10.0, show_default=True, help="Simulated drive.")
+@click.option("--jitter", type=FiniteFloatRange(min=0), default=0.0, show_default=True, help="Relative spread of every cost.")
+@click.option("--seconds", type=FiniteFloatRange(min=1), default=10.0, show_default=True, help="Simulated drive.")
 @click.option("--seeds", type=click.IntRange(min=1), default=1, show_default=True, help="Runs per scale (jitter seeds 0..N-1).")
-@click.option("--lidar-hz", type=click.FloatRange(min=0, min_open=True), default=20.0, show_default=True, help="LiDAR rotations per second.")
+@click.option("--lidar-hz", type=FiniteFloatRange(min=0, min_open=True), default=20.0, show_default=True, help="LiDAR rotations per second.")
 @click.option("--slices", "num_slices", type=click.IntRange(min=1), default=8, show_default=True, help="Slices per rotation.")
-@click.option("--camera-hz", type=click.FloatRange(min=0, min_open=True), default=12.0, show_default=True, help="Frames per second per camera.")
-@click.option("--read-delay-ms", type=click.FloatRange(min=0), default=0.0, show_default=True,
+@click.option("--camera-hz", type=FiniteFloatRange(min=0, min_open=True), default=12.0, show_default=True, help="Frames per second per camera.")
+@click.option("--read-delay-ms", type=FiniteFloatRange(min=0), default=0.0, show_default=True,
               help="After its arrival, when a slice reads the image BEV (0: at once, a free slice worker).")
 @click.option("--json", "json_path", type=click.Path(dir_okay=False), help="Also write every row's figures here.")
 def main(export_dir, costs_from, encode_ms, term_ms, tail_ms, cost_scale, jitter, seconds, seeds, lidar_hz, num_slices,

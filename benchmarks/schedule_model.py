@@ -21,6 +21,8 @@ import time
 from pathlib import Path
 
 import click
+
+from streamdet.cli_utils import FiniteFloatRange
 import numpy as np
 
 from streamdet.core.sectors import NUM_QUADRANTS
@@ -145,10 +147,10 @@ def measure(schedule: str, trigger: str, seconds: float, encode_ms: float, lift_
 
 
 @click.command(context_settings={"help_option_names": ["-h", "--help"]})
-@click.option("--seconds", type=click.FloatRange(min=1.0), default=10.0, show_default=True, help="Drive seconds per run.")
-@click.option("--encode-ms", type=click.FloatRange(min=0), default=4.5, show_default=True, help="Encoder ms per camera frame.")
-@click.option("--lift-ms", type=click.FloatRange(min=0), default=16.0, show_default=True, help="Lifter ms per quadrant.")
-@click.option("--slice-ms", type=click.FloatRange(min=0), default=6.3, show_default=True, help="Slice graph ms per slice.")
+@click.option("--seconds", type=FiniteFloatRange(min=1.0), default=10.0, show_default=True, help="Drive seconds per run.")
+@click.option("--encode-ms", type=FiniteFloatRange(min=0), default=4.5, show_default=True, help="Encoder ms per camera frame.")
+@click.option("--lift-ms", type=FiniteFloatRange(min=0), default=16.0, show_default=True, help="Lifter ms per quadrant.")
+@click.option("--slice-ms", type=FiniteFloatRange(min=0), default=6.3, show_default=True, help="Slice graph ms per slice.")
 @click.option("--export-dir", type=click.Path(path_type=Path, file_okay=False), default=None,
               help="Take the floor's cameras per quadrant from this export's LUT (default: by the cameras' azimuths).")
 @click.option("--delivery-ms", "delivery_ms", default="", show_default=True,

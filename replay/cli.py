@@ -10,6 +10,7 @@ import click
 from click.core import ParameterSource
 
 from streamdet.cli_utils import (
+    FiniteFloatRange,
     MAX_INTRA_OP_THREADS,
     MAX_SLICES,
     MAX_THREADS,
@@ -121,27 +122,27 @@ def _progress(message: str) -> None:
               help="Precision of the slice graph.")
 @image_precision_option()
 @providers_option()
-@click.option("--lidar-hz", type=click.FloatRange(0, MAX_RATE_HZ, min_open=True), default=20.0, show_default=True,
+@click.option("--lidar-hz", type=FiniteFloatRange(0, MAX_RATE_HZ, min_open=True), default=20.0, show_default=True,
               help=f"LiDAR rotations per second (the rotation period the slices are released over); 0 < Hz <= {MAX_RATE_HZ:.0f}.")
 @click.option("--slices", "num_slices", type=click.IntRange(1, MAX_SLICES), default=None,
               help=f"Slices per rotation in streaming and sequential modes (1, 2 or a multiple of 4 up to {MAX_SLICES}). "
                    "Default: the export's.")
-@click.option("--camera-hz", type=click.FloatRange(0, MAX_RATE_HZ, min_open=True), default=12.0, show_default=True,
+@click.option("--camera-hz", type=FiniteFloatRange(0, MAX_RATE_HZ, min_open=True), default=12.0, show_default=True,
               help=f"Camera trigger rate; each trigger delivers the newest recorded image of every camera; "
                    f"0 < Hz <= {MAX_RATE_HZ:.0f}.")
 @click.option("--camera-trigger", type=click.Choice(TRIGGER_MODELS), default=DEFAULT_TRIGGER, show_default=True,
               help="How the cameras fire: 'lidar-synced' (nuScenes: each camera as the LiDAR crosses its optical axis, "
                    "at --camera-hz on average) or 'simultaneous' (all cameras at once at --camera-hz).")
-@click.option("--camera-delivery-ms", type=click.FloatRange(0, MAX_DELIVERY_MS), default=0.0, show_default=True,
+@click.option("--camera-delivery-ms", type=FiniteFloatRange(0, MAX_DELIVERY_MS), default=0.0, show_default=True,
               help=f"0..{MAX_DELIVERY_MS:.0f} ms: every camera frame reaches the runtime this long after its capture (exposure, readout, ISP, "
                    "transport; real rigs: tens of ms); frames keep their capture time as timestamp, and staleness is "
                    "measured against the frames delivered by a slice's scan start. 0: delivered at capture.")
 @click.option("--mode", type=click.Choice([*MODES, "all"]), default="all", show_default=True,
               help="streaming (two lanes), full-sweep (wait for the rotation), sequential (one queue), or all three.")
-@click.option("--time-scale", type=click.FloatRange(0, MAX_TIME_SCALE, min_open=True), default=1.0, show_default=True,
+@click.option("--time-scale", type=FiniteFloatRange(0, MAX_TIME_SCALE, min_open=True), default=1.0, show_default=True,
               help=f"Wall seconds per drive second (0 < scale <= {MAX_TIME_SCALE:.0f}): 2 plays twice as slowly, what a 2x "
                    "faster computer would see. Latencies are reported in drive time.")
-@click.option("--max-seconds", type=click.FloatRange(0, MAX_SECONDS, min_open=True), default=None,
+@click.option("--max-seconds", type=FiniteFloatRange(0, MAX_SECONDS, min_open=True), default=None,
               help=f"Play only the first seconds of each scene (0 < s <= {MAX_SECONDS:.0f}).")
 @click.option("--threads", type=click.IntRange(1, MAX_INTRA_OP_THREADS), default=1, show_default=True,
               help=f"Intra-op threads of each onnxruntime session (1..{MAX_INTRA_OP_THREADS}): per session, not in all; "
@@ -168,7 +169,7 @@ def _progress(message: str) -> None:
 @click.option("--coalesce-slices", type=click.IntRange(1, 64), default=None,
               help="The most waiting slices of one quadrant a slice worker detects in one run when the lane is behind "
                    "(1..64; 1: never, a full queue drops the oldest); LaneConfig.coalesce_slices. Default: the runtime's LaneConfig.")
-@click.option("--pair-hold-load", type=click.FloatRange(0, 16), default=None,
+@click.option("--pair-hold-load", type=FiniteFloatRange(0, 16), default=None,
               help="0..16: hold a quadrant's first slice for the next one and detect both in one run from when the slice lane's "
                    "measured load (a slice's run time over the slice period per worker) is above this until it is under "
                    "half of it (needs --coalesce-slices >= 2); LaneConfig.pair_hold_load. Default: the runtime's LaneConfig.")

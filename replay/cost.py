@@ -12,6 +12,8 @@ from __future__ import annotations
 import time
 
 import click
+
+from streamdet.cli_utils import FiniteFloatRange
 import numpy as np
 
 from streamdet.replay.clock import WallClock
@@ -87,7 +89,7 @@ def measure(seconds: float, mode: str, num_slices: int = 8) -> dict:
 
 
 @click.command(context_settings={"help_option_names": ["-h", "--help"]})
-@click.option("--seconds", type=click.FloatRange(min=1.0), default=10.0, show_default=True, help="Drive seconds per mode.")
+@click.option("--seconds", type=FiniteFloatRange(min=1.0), default=10.0, show_default=True, help="Drive seconds per mode.")
 def main(seconds: float) -> None:
     """The player's own CPU with a no-op detector, per mode (target: under 5 % of one core)."""
     click.echo("mode        process CPU   player thread   slicing (before play)   no-op latency p99")

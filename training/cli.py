@@ -9,7 +9,7 @@ from pathlib import Path
 
 import click
 
-from streamdet.cli_utils import not_a_file, refuse_output_over_inputs
+from streamdet.cli_utils import FiniteFloatRange, not_a_file, refuse_output_over_inputs
 from streamdet.core.errors import first_line
 from streamdet.core.sectors import MAX_NUM_SLICES
 from streamdet.models.presets import preset_names
@@ -118,7 +118,7 @@ def _parse_slices(ctx, param, value: str) -> tuple[int, ...]:
               help="Passes over the training samples (when --steps is not given). Without both: --max-minutes, else 10.")
 @click.option("--batch-size", type=click.IntRange(min=1), default=1, show_default=True,
               help="Samples per process per step; each sample brings all its slices (8 quadrant maps at 8 slices).")
-@click.option("--lr", type=click.FloatRange(min=0, min_open=True), default=2e-3, show_default=True, help="Peak learning rate of the one-cycle schedule (AdamW).")
+@click.option("--lr", type=FiniteFloatRange(min=0, min_open=True), default=2e-3, show_default=True, help="Peak learning rate of the one-cycle schedule (AdamW).")
 @click.option("--num-slices", default="8", show_default=True, callback=_parse_slices,
               help="Slice count per sweep, or several separated by commas (each sample draws one), e.g. 8,32.")
 @click.option("--max-slices-per-sample", type=click.IntRange(min=1), default=None,
@@ -130,9 +130,9 @@ def _parse_slices(ctx, param, value: str) -> tuple[int, ...]:
               help="With --no-image: no quadrant crop, each slice runs on one map of the whole grid (the paper's LiDAR-only baselines' set-up).")
 @click.option("--camera-mode", type=click.Choice(CAMERA_MODES), default="all", show_default=True,
               help="all: a quadrant's image BEV comes from every camera, as at run time; overlapping: a slice sees only the cameras overlapping its sector.")
-@click.option("--image-warmup", type=click.FloatRange(0, 1, max_open=True), default=0.0, show_default=True,
+@click.option("--image-warmup", type=FiniteFloatRange(0, 1, max_open=True), default=0.0, show_default=True,
               help="Fraction of the schedule trained with the image lane off (zero image BEV); the cheap LiDAR lane learns first.")
-@click.option("--image-class-weight", type=click.FloatRange(min=0), default=0.0, show_default=True,
+@click.option("--image-class-weight", type=FiniteFloatRange(min=0), default=0.0, show_default=True,
               help="Weight of an image-side loss beside detection: each object's class read linearly from the image BEV at its "
                    "centre (cross-entropy; a training-only classifier, never exported). 0: off.")
 @click.option("--resume", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Continue from a last.pt written by this command.")
@@ -144,7 +144,7 @@ def _parse_slices(ctx, param, value: str) -> tuple[int, ...]:
 @click.option("--teacher", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Distil from this trained detector (model.pt, last.pt or shipped weights; any preset whose head makes the same "
                    "maps): its heatmap and boxes become soft targets beside the labels (training/distill.py).")
-@click.option("--distill-weight", type=click.FloatRange(min=0), default=1.0, show_default=True,
+@click.option("--distill-weight", type=FiniteFloatRange(min=0), default=1.0, show_default=True,
               help="Weight of the distillation loss beside the CenterPoint loss (needs --teacher).")
 @click.option("--freeze-camera-lane", is_flag=True,
               help="Keep the image encoder and lifter as --init gave them (no gradient, fixed BatchNorm statistics); with a "
@@ -153,7 +153,7 @@ def _parse_slices(ctx, param, value: str) -> tuple[int, ...]:
 @click.option("--workers", type=click.IntRange(min=0, max=MAX_WORKERS), default=0, show_default=True,
               help=f"DataLoader worker processes, 0..{MAX_WORKERS} (each a forked process).")
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Seed of the weights and of the data order.")
-@click.option("--max-minutes", type=click.FloatRange(min=0, min_open=True, max=MAX_MINUTES), default=None,
+@click.option("--max-minutes", type=FiniteFloatRange(min=0, min_open=True, max=MAX_MINUTES), default=None,
               help="With --steps/--epochs: stop with a checkpoint after this much wall time of this invocation (--resume gets it again). Alone: the one-cycle "
                    "schedule runs over this much wall time (for a fixed budget on a shared machine; not step-reproducible). At most 7 days.")
 @click.option("--amp", type=click.Choice(AMP_MODES), default="auto", show_default=True,

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import click
 
-from streamdet.cli_utils import not_a_file
+from streamdet.cli_utils import FiniteFloatRange, not_a_file
 from streamdet.core.errors import first_line
 from streamdet.models.presets import preset_names
 from streamdet.training.cli import DEVICE_HELP, device_callback, refuse_out_over_inputs
@@ -36,13 +36,13 @@ def _check_stop_at_step(stop_at_step: int | None, steps: int) -> None:
 @click.option("--steps", type=click.IntRange(min=1, max=MAX_STEPS), default=2000, show_default=True,
               help=f"Optimizer steps of the schedule, 1..{MAX_STEPS}.")
 @click.option("--batch-size", type=click.IntRange(min=1), default=8, show_default=True, help="Images per step.")
-@click.option("--lr", type=click.FloatRange(min=0, min_open=True), default=2e-3, show_default=True, help="Peak AdamW learning rate.")
-@click.option("--range", "range_m", type=click.FloatRange(min=0, min_open=True), default=30.0, show_default=True,
+@click.option("--lr", type=FiniteFloatRange(min=0, min_open=True), default=2e-3, show_default=True, help="Peak AdamW learning rate.")
+@click.option("--range", "range_m", type=FiniteFloatRange(min=0, min_open=True), default=30.0, show_default=True,
               help="Evaluation: objects within this distance (m) count toward the mIoU.")
 @click.option("--eval-every", type=click.IntRange(min=1), default=250, show_default=True, help="Steps between val mIoU evaluations.")
 @click.option("--checkpoint-every", type=click.IntRange(min=1), default=100, show_default=True, help="Steps between checkpoints.")
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Seed of the weights and the batches.")
-@click.option("--max-minutes", type=click.FloatRange(min=0, min_open=True, max=MAX_MINUTES), default=None,
+@click.option("--max-minutes", type=FiniteFloatRange(min=0, min_open=True, max=MAX_MINUTES), default=None,
               help="Stop with a checkpoint after this much wall time (at most 7 days); --resume continues the same schedule.")
 @click.option("--stop-at-step", type=click.IntRange(min=1, max=MAX_STEPS), default=None,
               help="Stop with a checkpoint once this many steps of the --steps schedule are done (a session cut that, "
