@@ -19,6 +19,7 @@ import numpy as np
 
 from streamdet.calibration.lut import build_lut
 from streamdet.calibration.lut_coverage import object_coverage
+from streamdet.cli_utils import FiniteFloatRange
 from streamdet.core.classes import CLASS_NAMES
 from streamdet.data.nuscenes import NuScenesReader
 from streamdet.data.synth_writer import MASK_SUFFIX
@@ -82,7 +83,8 @@ def measure(data: Path, preset_name: str, heights: list[int], classes: list[str]
 @click.option("--preset", "preset_name", default="small", show_default=True, help="Preset whose grid and image size the LUT uses.")
 @click.option("--heights", default="1,2,4", show_default=True, help="Heights per voxel to compare, comma separated.")
 @click.option("--classes", default=DEFAULT_CLASSES, show_default=True, help="Classes to measure, comma separated.")
-@click.option("--range", "range_m", type=float, default=40.0, show_default=True, help="Objects within this distance (m).")
+@click.option("--range", "range_m", type=FiniteFloatRange(min=0.0, min_open=True), default=40.0, show_default=True,
+              help="Objects within this distance (m, > 0).")
 @click.option("--max-samples", type=click.IntRange(min=1), default=None, help="Only the first N samples.")
 @click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Also write JSON here.")
 def main(data: Path, preset_name: str, heights: str, classes: str, range_m: float, max_samples: int | None,

@@ -14,12 +14,12 @@ from streamdet.cli_utils import FiniteFloatRange
 TOOLS = ("streamdet.export.cli", "streamdet.benchmarks.cli", "streamdet.evaluation.run_cli", "streamdet.runtime_ort.calib_cli",
          "streamdet.data.synth_cli", "streamdet.training.cli", "streamdet.evaluation.cli", "streamdet.studies.cli",
          "streamdet.training.image_pretrain_cli", "streamdet.bag.cli", "streamdet.replay.cli", "streamdet.replay.cost",
-         "streamdet.benchmarks.lane_sim", "streamdet.benchmarks.schedule_model")  # fmt: skip
+         "streamdet.benchmarks.lane_sim", "streamdet.benchmarks.schedule_model", "streamdet.benchmarks.lut_coverage")  # fmt: skip
 
 
 def _float_ranges(command: click.Command, path: str):
     for param in command.params:
-        if isinstance(param.type, click.FloatRange):
+        if isinstance(param.type, click.FloatRange) or param.type is click.FLOAT:  # type=float: no bounds, NaN too
             yield f"{path} {param.opts[0]}", param.type
     if isinstance(command, click.Group):
         for name, sub in command.commands.items():
