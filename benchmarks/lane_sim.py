@@ -158,6 +158,9 @@ class _CostedDetector:
             self._spend(self.costs.term_ms)
             self._termed[id(feats)] = feats
 
+    def forget_images(self, through=None, quadrants=None) -> None:
+        """Quadrants none of whose cameras has a frame (before the lane locks): no lift to cost, nothing to record."""
+
     def update_images(self, images, timestamp=None, quadrants=None, encoded=None, camera_timestamps=None):
         qs = tuple(range(NUM_QUADRANTS)) if quadrants is None else tuple(quadrants)
         for feats in encoded.values():

@@ -3,8 +3,11 @@
 not fused on for as long as it stays out.
 
 A camera is out once it has sent no frame for ``timeout_s``, or for ``TIMEOUT_PERIODS`` of its own frame period
-where that is longer (the median of its last ``TIMEOUT_INTERVALS`` frame intervals, known from its second frame on):
-a camera whose frame period is over a third of the timeout is not timed out between two of its frames. The times are the
+where that is longer, at most ``MAX_TIMEOUTS`` timeouts: a camera whose frame period is over a third of the timeout
+is not timed out between two of its frames. The period is the median of its last ``TIMEOUT_INTERVALS`` frame
+intervals, known from its second frame on; an interval over which the camera was out (an outage) does not count
+while others do, so a camera that stops and comes back is not taken for a slow one. Only a camera all of whose
+recent intervals were outages is (its first frame times out before its period is known). The times are the
 caller's: the runner's clock for the lane, the messages' header stamps for a bag or a ROS node.
 """
 
@@ -17,6 +20,7 @@ import statistics
 
 TIMEOUT_PERIODS = 3.0
 TIMEOUT_INTERVALS = 5
+MAX_TIMEOUTS = 10.0  # a slow camera's expiry is at most this many timeouts
 DEFAULT_CAMERA_TIMEOUT_S = 1.0  # LaneConfig.camera_timeout_s, SourceConfig's, streamdet-bag run --camera-timeout-ms
 MAX_CAMERA_TIMEOUT_S = 3600.0  # the CLIs' bound (an hour: longer is "never", which is None)
 
@@ -31,29 +35,32 @@ def check_camera_timeout(value: object, what: str) -> float | None:
 
 
 class CameraTimeout:
-    """Each camera's frame times, and when its newest frame times out. Not thread-safe: its owner's lock guards it."""
+    """Each camera's frame intervals, and when its newest frame times out. Not thread-safe: its owner's lock guards
+    it."""
 
     def __init__(self, timeout_s: float | None, what: str = "camera_timeout_s") -> None:
         self.timeout_s = check_camera_timeout(timeout_s, what)  # None: never
-        self._times: dict[str, collections.deque] = {}
+        # camera -> (newest frame's time, when it times out, its last intervals as (seconds, an outage))
+        self._cameras: dict[str, tuple[float, float, collections.deque]] = {}
 
     def seen(self, camera: str, t_s: float) -> float:
         """Record a frame of ``camera`` at ``t_s``; when it times out unless a newer one comes (inf: never)."""
         if self.timeout_s is None:
             return math.inf
-        times = self._times.setdefault(camera, collections.deque(maxlen=TIMEOUT_INTERVALS + 1))
-        times.append(t_s)
-        return self.expires_s(camera)
+        last = self._cameras.get(camera)
+        gaps = last[2] if last is not None else collections.deque(maxlen=TIMEOUT_INTERVALS)
+        if last is not None:
+            gaps.append((t_s - last[0], t_s >= last[1]))  # an outage: the frame before had timed out by now
+        usable = [g for g, outage in gaps if not outage] or [g for g, _ in gaps]
+        period = statistics.median(usable) if usable else 0.0
+        expires = t_s + min(max(self.timeout_s, TIMEOUT_PERIODS * period), MAX_TIMEOUTS * self.timeout_s)
+        self._cameras[camera] = (t_s, expires, gaps)
+        return expires
 
     def expires_s(self, camera: str) -> float:
         """When the newest frame recorded of ``camera`` times out (inf: never, or none recorded)."""
-        times = self._times.get(camera)
-        if self.timeout_s is None or not times:
-            return math.inf
-        ordered = list(times)
-        gaps = [b - a for a, b in zip(ordered, ordered[1:])]
-        period = statistics.median(gaps) if gaps else 0.0
-        return ordered[-1] + max(self.timeout_s, TIMEOUT_PERIODS * period)
+        last = self._cameras.get(camera)
+        return math.inf if last is None else last[1]
 
     def out(self, cameras, now_s: float) -> list[str]:
         """Those of ``cameras`` whose newest frame has timed out at ``now_s``."""

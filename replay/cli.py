@@ -215,7 +215,9 @@ def main(
         lanes = LaneConfig(max_in_flight=slice_workers or defaults.max_in_flight, queue_size=queue_size or defaults.queue_size,
                            schedule=schedule, image_lane_nice=image_lane_nice, image_lane_yield_slices=image_lane_yield,
                            coalesce_slices=coalesce_slices or defaults.coalesce_slices,
-                           pair_hold_load=defaults.pair_hold_load if pair_hold_load is None else pair_hold_load)  # fmt: skip
+                           pair_hold_load=defaults.pair_hold_load if pair_hold_load is None else pair_hold_load,
+                           # on the runner's clock, the wall's: a drive played slower sends each camera's frames slower
+                           camera_timeout_s=defaults.camera_timeout_s * max(1.0, time_scale))  # fmt: skip
         config = ReplayConfig(
             data=data, export_dir=export_dir, version=table_version, split=None if split == "all" else split, scenes=scenes,
             precision=precision, image_precision=image_precision, lidar_hz=lidar_hz, num_slices=num_slices,

@@ -368,7 +368,8 @@ class StreamingDetector:
 
         ``relift`` False drops the cached image BEV instead of lifting it again (slices read no image until the next
         ``update_images``): for a caller whose next step feeds new images of the new rig, which would replace the
-        re-lifted BEV unread (the offline pipeline, ``pipeline.use_sample_calibration``).
+        re-lifted BEV unread (the offline pipeline, ``pipeline.use_sample_calibration``). On a closed detector:
+        DetectorClosed.
         """
         if self._swap_calibration(calibration, relift):
             release_free_memory()  # the LUT build's temporaries: freed, but kept mapped by the allocator (heap.py)
@@ -380,6 +381,8 @@ class StreamingDetector:
         if not self.uses_images:
             # Refused rather than ignored: a caller that believes it recalibrated a camera model should learn it did not.
             raise NoImageLaneError(self._no_image_lane("set_calibration has nothing to calibrate"))
+        if not self._sessions:  # closed: a LUT built now would only refill what close() let go of
+            raise self._closed_error()
         if isinstance(calibration, (str, os.PathLike)):
             path = Path(calibration)
             calibration = Lut.load(path, self.grid, len(self.camera_names)) if path.suffix == ".npz" else Rig.from_calibration_json(path)
@@ -435,10 +438,11 @@ class StreamingDetector:
                 with self._lock:
                     current = list(quadrant_states(self._image))
                     for q, s in stale:
-                        if current[q] is s:  # not replaced by a newer update meanwhile
+                        if current[q] is s:  # not replaced by a newer update (or dropped: forget_images) meanwhile
                             current[q] = lifted[q]
-                    self._image = ImageCache(tuple(current))
-                    states = self._image.quadrants
+                    # every quadrant dropped meanwhile (the phase-locked lane's cameras timed out): no cache at all
+                    self._image = None if all(s is None for s in current) else ImageCache(tuple(current))
+                    states = quadrant_states(self._image)
 
     def _is_current_rig(self, rig: Rig) -> bool:
         """Whether the LUT in use is one this detector built from ``rig`` (the same sha256), once any swap under way
@@ -1045,7 +1049,7 @@ class StreamingDetector:
         else none). Any later call that runs a graph raises DetectorClosed; a second close returns []."""
         with self._lock:  # an open detector always holds its slice graph's session: none left means closed
             sessions, self._sessions = self._sessions, {}
-            self._image = None
+            self._drop_images_locked(self._image_seq)  # and an update under way installs nothing
         self._views.clear()
         written = [s.end_profiling() for s in sessions.values()] if self.config.enable_profiling else []
         self.image_encoder = self.lifter = self.slice_head = None

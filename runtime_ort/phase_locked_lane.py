@@ -401,8 +401,13 @@ class PhaseLockedImageLane:
         # each quadrant is as old as the oldest frame of its cameras: say so where the frames' times differ
         options = {"camera_timestamps": stamps} if len(set(stamps.values())) > 1 else {}
         cleared = not frames
+        blind: tuple[int, ...] = ()  # quadrants of a full update none of whose cameras has a frame
         if frames:
             update = self.detector.update_images(images, timestamp, quadrants=quadrants, encoded=encoded, **options)
+            if quadrants is None:
+                blind = tuple(q for q in range(NUM_QUADRANTS) if not frames.keys() & set(self.detector.quadrant_cameras([q])))
+                if blind:  # they would hold a BEV of zeros stamped as new: no image there instead, as when locked
+                    self.detector.forget_images(quadrants=blind)
         else:  # every camera that sees these quadrants timed out: their slices read no image rather than old frames
             self.detector.forget_images(quadrants=quadrants)
             update = None
@@ -420,9 +425,10 @@ class PhaseLockedImageLane:
                     self._full_lifted = {}
             elif quadrants is None:
                 self.stats.full_updates += 1
+                self.stats.quadrants_cleared += sum(1 for q in blind if self._lifted[q])
                 self._full_lifted = lifted_now
                 for q, durations in enumerate(self._durations):
-                    self._lifted[q] = dict(lifted_now)
+                    self._lifted[q] = {} if q in blind else dict(lifted_now)
                     if not durations:
                         durations.append((t2 - t1) / NUM_QUADRANTS)
             else:
@@ -443,7 +449,8 @@ class PhaseLockedImageLane:
             try:
                 wake = self.step(self.clock())
             except BaseException:  # the futures of the image sets it used hold the error; the lane goes on
-                wake = None
+                with self._cond:
+                    wake = self._next_expiry_s()  # a camera timing out still wakes it
             with self._cond:
                 if self._closed:
                     return

@@ -15,9 +15,9 @@ import pytest
 from streamdet.benchmarks.lane_sim import ManualClock, play_events
 from streamdet.core.slicing import split_sweep
 from streamdet.data.sample import load_bundled_sample
-from streamdet.runtime_ort.detector import ImageUpdate, StreamingDetector
+from streamdet.runtime_ort.detector import DetectorClosed, ImageUpdate, StreamingDetector
 from streamdet.runtime_ort.lanes import ImagesSuperseded, LaneConfig, StreamingRunner
-from streamdet.core.camera_timeout import TIMEOUT_INTERVALS, TIMEOUT_PERIODS, CameraTimeout, check_camera_timeout
+from streamdet.core.camera_timeout import MAX_TIMEOUTS, TIMEOUT_INTERVALS, TIMEOUT_PERIODS, CameraTimeout, check_camera_timeout
 from streamdet.runtime_ort.phase_locked_lane import PhaseLockedImageLane
 
 CAMERAS = ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_FRONT_LEFT", "CAM_BACK", "CAM_BACK_LEFT", "CAM_BACK_RIGHT")
@@ -273,14 +273,14 @@ def test_a_runner_on_the_tiny_export_stops_fusing_a_silent_camera(tiny_export, t
 
 
 def test_a_slow_camera_is_not_timed_out_between_its_frames():
-    """CAM_BACK at 1 Hz, under a 0.2 s timeout: once its period is known (its second frame) three of its periods
+    """CAM_BACK at 1 Hz, under a 0.4 s timeout: once its period is known (its second frame) three of its periods
     count, so it is not dropped while it sends, and is dropped about three periods after it stops."""
-    lane, det, _ = drive(0.2, lambda t: CAMERAS if (t * CAMERA_HZ) % CAMERA_HZ < 1 else
+    lane, det, _ = drive(0.4, lambda t: CAMERAS if (t * CAMERA_HZ) % CAMERA_HZ < 1 else
                          tuple(c for c in CAMERAS if c != "CAM_BACK"), seconds=8.0)  # fmt: skip
     assert lane.stats.cameras_timed_out == 1  # after its first frame only: its period was not known yet
     assert [lift for lift in det.lifts if lift[2] > 1.1 and 2 in lift[0] and "CAM_BACK" not in lift[1]] == []
     assert det.held[2] == SEES[2]
-    lane, det, _ = drive(0.2, lambda t: CAMERAS if (t < 4 and (t * CAMERA_HZ) % CAMERA_HZ < 1) else
+    lane, det, _ = drive(0.4, lambda t: CAMERAS if (t < 4 and (t * CAMERA_HZ) % CAMERA_HZ < 1) else
                          tuple(c for c in CAMERAS if c != "CAM_BACK"), seconds=8.0)  # fmt: skip
     assert lane.stats.cameras_timed_out == 2 and det.held[2] == {"CAM_BACK_LEFT"}
     dropped = [lift for lift in det.lifts if lift[0] == (2,) and "CAM_BACK" not in lift[1] and lift[2] > 1.1]
@@ -288,27 +288,130 @@ def test_a_slow_camera_is_not_timed_out_between_its_frames():
 
 
 # ---- the rule itself (core/camera_timeout.py), against a naive reference ----------------------------------------
-def _reference_expiry(times: list[float], timeout_s: float) -> float:
-    last = times[-(TIMEOUT_INTERVALS + 1):]
-    gaps = sorted(b - a for a, b in zip(last, last[1:]))
-    if not gaps:
-        return times[-1] + timeout_s
-    mid = len(gaps) // 2
-    median = gaps[mid] if len(gaps) % 2 else (gaps[mid - 1] + gaps[mid]) / 2
-    return times[-1] + max(timeout_s, TIMEOUT_PERIODS * median)
+def _reference_expiries(times: list[float], timeout_s: float) -> list[float]:
+    """Each frame's expiry, recomputed from scratch: intervals over which the camera had timed out (outages) count
+    only where every interval of the last TIMEOUT_INTERVALS was one."""
+    out = []
+    intervals = []  # (seconds, outage)
+    for i, t in enumerate(times):
+        if i:
+            intervals.append((t - times[i - 1], t >= out[-1]))
+        recent = intervals[-TIMEOUT_INTERVALS:]
+        usable = sorted(g for g, outage in recent if not outage) or sorted(g for g, _ in recent)
+        if usable:
+            mid = len(usable) // 2
+            period = usable[mid] if len(usable) % 2 else (usable[mid - 1] + usable[mid]) / 2
+        else:
+            period = 0.0
+        out.append(t + min(max(timeout_s, TIMEOUT_PERIODS * period), MAX_TIMEOUTS * timeout_s))
+    return out
 
 
-@pytest.mark.parametrize("seed", range(5))
+@pytest.mark.parametrize("seed", range(6))
 def test_the_expiry_matches_a_naive_reference(seed):
     rng = np.random.default_rng(seed)
     timeout = CameraTimeout(float(rng.uniform(0.05, 2.0)))
-    times = list(np.cumsum(rng.exponential(rng.uniform(0.01, 1.0), size=12)))
-    for i, t in enumerate(times):
-        assert timeout.seen("CAM", float(t)) == pytest.approx(_reference_expiry(times[: i + 1], timeout.timeout_s))
+    gaps = rng.exponential(rng.uniform(0.01, 1.0), size=30)
+    gaps[rng.integers(0, 30, 4)] += rng.uniform(1, 30, 4)  # outages
+    times = [float(t) for t in np.cumsum(gaps)]
+    expected = _reference_expiries(times, timeout.timeout_s)
+    for t, want in zip(times, expected):
+        assert timeout.seen("CAM", t) == pytest.approx(want)
     last = timeout.expires_s("CAM")
     assert timeout.out(["CAM", "OTHER"], last - 1e-6) == [] and timeout.out(["CAM"], last) == ["CAM"]
+
+
+def test_an_outage_is_not_taken_for_the_cameras_period():
+    timeout = CameraTimeout(1.0)
+    t = [i / 12 for i in range(12)]  # 12 Hz
+    t += [t[-1] + 4 + i / 12 for i in range(1, 4)]  # 4 s out, then 12 Hz again
+    for x in t:
+        expires = timeout.seen("CAM", x)
+    assert expires == pytest.approx(t[-1] + 1.0)  # the 4 s interval did not count
+    sparse = CameraTimeout(1.0)
+    for x in [i / 12 for i in range(12)]:
+        sparse.seen("CAM", x)
+    # it drops to a frame every 4 s: each times out after the timeout while 12 Hz intervals are among its last five
+    assert [sparse.seen("CAM", 1 + 4 * k) - (1 + 4 * k) for k in range(1, 5)] == [pytest.approx(1.0)] * 4
+    # once all five are 4 s it is a slow camera: three periods, at most MAX_TIMEOUTS timeouts
+    assert sparse.seen("CAM", 21) == pytest.approx(21 + min(12.0, MAX_TIMEOUTS * 1.0))
+
+
+def test_one_long_outage_is_capped():
+    timeout = CameraTimeout(0.5)
+    timeout.seen("CAM", 0.0)
+    assert timeout.seen("CAM", 100.0) == pytest.approx(100.0 + MAX_TIMEOUTS * 0.5)  # not 300 s
 
 
 def test_without_a_timeout_nothing_expires():
     timeout = CameraTimeout(None)
     assert timeout.seen("CAM", 0.0) == math.inf and timeout.out(["CAM"], 1e12) == []
+
+
+# ---- races and corners found in review ---------------------------------------------------------------------------
+def test_a_swap_relifting_while_the_lane_drops_the_last_quadrant_leaves_no_cache(tiny_export):
+    det = StreamingDetector(tiny_export)
+    det.update_images(_images(det, 0), 1.0)
+    det.forget_images(quadrants=[1, 2, 3])
+    other = type(det.lut).load(tiny_export / "lut.npz", det.grid, len(det.camera_names))  # never "current": re-lifts
+    lift = det._lift_quadrants
+
+    def lift_then_lane_drops(*a, **k):  # quadrant 0's cameras time out while the swap re-lifts it
+        out = lift(*a, **k)
+        det.forget_images(quadrants=[0])
+        return out
+
+    det._lift_quadrants = lift_then_lane_drops
+    det.set_calibration(other)
+    assert det.image_state is None and det.image_timestamp is None
+
+
+def test_before_the_lane_locks_a_quadrant_without_cameras_holds_no_image():
+    """Cameras out before any slice: the full updates leave the quadrants none of whose cameras is left without an
+    image BEV (as a locked lane does), not a BEV lifted from zeros and stamped as new; still so once locked."""
+    clock = ManualClock()
+    det = RecordingDetector(clock)
+    lane = PhaseLockedImageLane(det, N, 0.0, None, 0.002, clock=clock, thread=False, camera_timeout_s=0.25)
+    frame = np.zeros((2, 2, 3), np.uint8)
+    events = [(t, lambda t=t: lane.submit_images({c: frame for c in (CAMERAS if t < 1.0 else CAMERAS[:2])}, t))
+              for t in np.arange(0.0, 4.0, 1 / 12)]  # fmt: skip
+    events += [(2.0 + (i + 1) / (N * LIDAR_HZ), lambda i=i: lane.observe_slice(i % N, 2.0 + (i + 1) / (N * LIDAR_HZ)))
+               for i in range(int(2 * LIDAR_HZ * N))]  # fmt: skip
+    play_events(lane, clock, sorted(events, key=lambda e: e[0]))
+    assert lane._phase.locked and lane.stats.cameras_timed_out == 4 and lane.stats.quadrants_cleared == 2
+    assert det.held[2] is None and det.held[3] is None  # CAMERAS[:2] are front cameras: nothing sees 2 and 3
+    assert det.held[0] == SEES[0] & set(CAMERAS[:2]) and det.held[1] == SEES[1] & set(CAMERAS[:2])
+
+
+def test_a_closed_detector_takes_no_calibration_and_an_update_under_way_installs_nothing(tiny_export):
+    det = StreamingDetector(tiny_export)
+    lift = det._lift_quadrants
+
+    def lift_then_close(*a, **k):
+        out = lift(*a, **k)
+        det.close()
+        return out
+
+    det._lift_quadrants = lift_then_close
+    update = det.update_images(_images(det, 0), 1.0)
+    assert update.superseded and det.image_state is None
+    with pytest.raises(DetectorClosed):
+        det.set_calibration(load_bundled_sample().rig)
+
+
+def test_the_lane_still_times_cameras_out_after_an_update_failed(tiny_export):
+    """The detector closed under a running lane: the failed update's step raised, and the worker still wakes for the
+    timeout with no other event coming."""
+    det = StreamingDetector(tiny_export)
+    runner = StreamingRunner(det, LaneConfig(schedule="phase-locked", camera_timeout_s=0.1))
+    try:
+        runner.submit_images(_images(det, 0), 0.0).result(timeout=WAIT_S)
+        det.close()
+        with pytest.raises(DetectorClosed):
+            runner.submit_images(_images(det, 1), 0.05).result(timeout=WAIT_S)
+        deadline = time.monotonic() + WAIT_S
+        while runner.phase_lock.cameras_timed_out < len(det.camera_names):
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
+    finally:
+        runner.close()

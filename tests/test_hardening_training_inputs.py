@@ -125,7 +125,7 @@ def test_max_minutes_valid_values():
 
 
 @pytest.mark.parametrize("cli", [train_main, pretrain_main])
-@pytest.mark.parametrize("value, message", [("inf", "not in the range"), ("20000", "not in the range"), ("nan", "finite number")])
+@pytest.mark.parametrize("value, message", [("inf", "not in the range"), ("20000", "not in the range"), ("nan", "is not a number")])
 def test_cli_max_minutes(cli, tiny_train_data, tmp_path, value, message):
     res = CliRunner().invoke(cli, ["--data", str(tiny_train_data), "--out", str(tmp_path / "o"), "--preset", "tiny",
                                    "--max-minutes", value])  # fmt: skip
@@ -464,7 +464,7 @@ def test_pretrain_lr_is_finite_positive(value):
     assert PretrainConfig(preset="tiny", lr=1e-3).lr == 1e-3
 
 
-@pytest.mark.parametrize("args, message", [(["--lr", "inf"], "PretrainConfig.lr"), (["--lr", "nan"], "PretrainConfig.lr")])
+@pytest.mark.parametrize("args, message", [(["--lr", "inf"], "PretrainConfig.lr"), (["--lr", "nan"], "is not a number")])
 def test_pretrain_cli_numeric(tiny_synth_data, tmp_path, args, message):
     res = CliRunner().invoke(pretrain_main, ["--data", str(tiny_synth_data), "--out", str(tmp_path / "o"), "--preset", "tiny", *args])
     assert message in _one_line(res)
