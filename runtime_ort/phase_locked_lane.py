@@ -189,7 +189,8 @@ class PhaseLockedImageLane:
             for name, image in images.items():
                 self._seq += 1
                 old = self._frames.get(name)
-                self._frames[name] = _Frame(self._seq, image, float(stamps.get(name, timestamp)), owner, now, self._timeout.seen(name, now))
+                expires = self._timeout.seen(name, now)
+                self._frames[name] = _Frame(self._seq, image, float(stamps.get(name, timestamp)), owner, now, expires)
                 if old is not None and self._release(old.owner):
                     superseded.append(old.owner.future)
             self._dirty = True
@@ -269,7 +270,8 @@ class PhaseLockedImageLane:
             if not self._phase.locked:
                 frames = dict(self._frames)
                 # nothing newer, and no camera lifted before has timed out since
-                if all(self._full_lifted.get(n) == f.seq for n, f in frames.items()) and self._full_lifted.keys() <= frames.keys():
+                lifted = self._full_lifted
+                if all(lifted.get(n) == f.seq for n, f in frames.items()) and lifted.keys() <= frames.keys():
                     self._hold(now_s, False)
                     return None
                 if self._hold(now_s, busy):
