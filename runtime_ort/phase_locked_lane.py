@@ -227,7 +227,9 @@ class PhaseLockedImageLane:
         """Run what is due at ``now_s`` (at most one update, or one frame encoded ahead); the time to call again
         (None: at the next event)."""
         for old_future in self._expire(now_s):  # off the lock: their done-callbacks run here
-            complete_future(LANE, old_future, error=self._superseded())
+            error = self._superseded()  # the runner's type (ImagesSuperseded), saying why
+            complete_future(LANE, old_future, error=type(error)("image set dropped unused: its cameras' frames were "
+                                                                "replaced or timed out (camera_timeout_s) before a lift used them"))  # fmt: skip
         wake = self._step(now_s)
         with self._cond:
             expiry = self._next_expiry_s()
