@@ -37,8 +37,8 @@ Degraded behaviour, in this order (each counted in ``PhaseLockStats``):
   for that long on this lane's clock (or for three of its own frame periods where that is longer: core/camera_timeout.py),
   its last frame is dropped (``cameras_timed_out``) and every quadrant lifted with it is lifted again without it, as
   soon as it can be (its features zeros: ``SliceResult.cameras_missing`` names it), rather than its old frame being
-  fused for as long as it stays out. A quadrant left with none of its cameras drops its image BEV
-  (``StreamingDetector.forget_images(quadrants=...)``, ``quadrants_cleared``): its slices read no image, as before
+  fused for as long as it stays out. A quadrant left with none of its cameras drops its image BEV at once, without
+  waiting for its pass (``StreamingDetector.forget_images(quadrants=...)``, ``quadrants_cleared``): its slices read no image, as before
   the first one (zeros, or the LiDAR-only fallback export where one is configured). Its next frame brings it back;
 - **image sets**: an image set each of whose frames was replaced by a newer one before any lift used it fails
   its future with ``ImagesSuperseded``; otherwise its future holds the `ImageUpdate` of the first lift that used it.
@@ -280,6 +280,10 @@ class PhaseLockedImageLane:
                     return now_s + YIELD_POLL_S
                 quadrants, deadline = None, None
                 self._wanted_since = [None] * NUM_QUADRANTS
+            elif self._blind():  # every camera of a quadrant timed out: drop its BEV now, no pass to wait for
+                quadrants, frames, deadline = self._blind(), {}, None
+                for q in quadrants:
+                    self._wanted_since[q] = None
             else:
                 plan = plan_lift(self._phase, now_s, self._expected_s, self.margin_s, self._done, self._has_new,
                                  self._overdue(now_s))  # fmt: skip
@@ -381,6 +385,11 @@ class PhaseLockedImageLane:
         saturated: it is lifted next, round robin in effect); else None (earliest deadline first)."""
         waiting = [(t, q) for q, t in enumerate(self._wanted_since) if t is not None and now_s - t > self._phase.period_s]
         return min(waiting)[1] if waiting else None
+
+    def _blind(self) -> tuple[int, ...]:
+        """(Under the lock.) The quadrants lifted with cameras none of which has a frame now (all timed out)."""
+        return tuple(q for q in range(NUM_QUADRANTS)
+                     if self._lifted[q] and not any(n in self._frames for n in self.detector.quadrant_cameras([q])))  # fmt: skip
 
     def _has_new(self, quadrant: int) -> bool:
         """Whether a camera that sees ``quadrant`` sent a frame after its last lift, or timed out since."""

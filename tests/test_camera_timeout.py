@@ -119,7 +119,7 @@ def test_a_quadrant_whose_cameras_all_stop_drops_its_image_bev_and_a_frame_bring
     assert lane.stats.cameras_timed_out == 2 and lane.stats.quadrants_cleared >= 1
     cleared = [t for qs, t in det.forgets if qs == (2,)]
     last_frame = 11 / CAMERA_HZ + 0.003  # their last frame before 1 s
-    assert cleared and last_frame + 0.3 <= cleared[0] < last_frame + 0.3 + 2 / LIDAR_HZ  # within two rotations
+    assert cleared and last_frame + 0.3 <= cleared[0] < last_frame + 0.3 + 0.01  # at once: no pass to wait for
     assert det.held[2] == SEES[2]  # the cameras came back at 2 s: lifted again from their new frames
 
 
