@@ -145,6 +145,9 @@ def run_cmd(bag_path: Path, export_dir: Path, out: Path, results_json: Path | No
     if summary.cameras_timed_out:
         said = ", ".join(f"{c} {n}x" for c, n in summary.cameras_timed_out.items())
         click.echo(f"cameras that stopped sending for --camera-timeout-ms and were left out (their features zeros): {said}")
+    if summary.cameras_lagging:
+        click.echo(f"{list(summary.cameras_lagging)} sent images stamped more than --camera-timeout-ms behind the LiDAR's and "
+                   "were left out for it: is their clock synchronised with the LiDAR's?")  # fmt: skip
     click.echo(format_latency(summary.latency_ms))
     click.echo(f"wrote {summary.bag_out}")
     click.echo(f"wrote {summary.results_json}")

@@ -59,6 +59,7 @@ class RunSummary:
     num_fallback_slices: int = 0  # slices the LiDAR-only fallback ran (DetectorConfig.fallback_export_dir)
     providers: tuple[str, ...] = ()  # onnxruntime's execution providers of the slice session
     cameras_timed_out: dict[str, int] = field(default_factory=dict)  # camera -> times it was left out (camera timeout)
+    cameras_lagging: tuple[str, ...] = ()  # of those, cameras left out although they were sending (another clock?)
 
 
 def run_bag(
@@ -134,7 +135,8 @@ def run_bag(
     without = tuple(c for c in det.camera_names if c in source.cameras_without_info)
     return RunSummary(out, results_path, counts["sweeps"], counts["slices"], counts["image_sets"], counts["detections"],
                       det.camera_names, without, det.precision_label, det.stats.summary(), counts["fallback"],
-                      tuple(det.providers), dict(source.cameras_timed_out))  # fmt: skip
+                      tuple(det.providers), dict(source.cameras_timed_out),
+                      tuple(c for c in det.camera_names if c in source.cameras_lagging))  # fmt: skip
 
 
 def results_path_of(out: str | Path, results_json: str | Path | None) -> Path:

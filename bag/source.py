@@ -131,6 +131,8 @@ class BagSource:
         self._warned_times = False
         self.cameras_without_info: set[str] = set()  # cameras whose CameraInfo was missing when an image set was made
         self.cameras_timed_out: dict[str, int] = {}  # camera -> times its images stopped for the camera timeout
+        # cameras timed out although they had just sent an image: stamped on another clock than the LiDAR? (logged once)
+        self.cameras_lagging: set[str] = set()
         self.num_time_dropped = 0  # LiDAR points dropped for a non-finite or implausible per-point time, all clouds
 
     def metadata(self) -> dict[str, dict[str, str]]:
@@ -213,6 +215,7 @@ class BagSource:
         infos: dict[str, Any] = {}
         latest: dict[str, Any] = {}  # camera -> newest image message, decoded only when a set is made
         timeout = CameraTimeout(cfg.camera_timeout_s, "SourceConfig.camera_timeout_s")
+        sent: set[str] = set()  # cameras with an image since the last LiDAR message
         fresh = False
         saw_lidar = False
         for msg in self.messages():
@@ -227,13 +230,18 @@ class BagSource:
                 camera = image_topics[msg.topic]
                 latest[camera] = msg.message
                 timeout.seen(camera, header_stamp_ns(msg.message) * 1e-9)
+                sent.add(camera)
                 fresh = True
             elif msg.topic == topics.lidar:
                 saw_lidar = True
-                for camera in timeout.out(list(latest), header_stamp_ns(msg.message) * 1e-9):
+                lidar_s = header_stamp_ns(msg.message) * 1e-9
+                for camera in timeout.out(list(latest), lidar_s):
+                    if camera in sent:  # it does send: its images are stamped far behind the LiDAR's
+                        self._lagging(camera, lidar_s - header_stamp_ns(latest[camera]) * 1e-9)
                     del latest[camera]  # its features are zeros from this set on, until it sends again
                     self.cameras_timed_out[camera] = self.cameras_timed_out.get(camera, 0) + 1
                     fresh = True
+                sent.clear()
                 image_set = None
                 if fresh:
                     image_set = self._image_set(latest, infos, tf, msg.message) if latest else ImageSet({}, {}, None)
@@ -336,6 +344,12 @@ class BagSource:
             return tf.lookup(parent, child, stamp)
         except (KeyError, ValueError) as e:
             raise ValueError(f"{self.path}: {e.args[0]}") from None
+
+    def _lagging(self, camera: str, behind_s: float) -> None:
+        if camera not in self.cameras_lagging:
+            self.cameras_lagging.add(camera)
+            log.warning("%s: camera %s sends images, but stamped %.3g s behind the LiDAR's (a clock not synchronised with "
+                        "the LiDAR's?): left out for the camera timeout, its features zeros", self.path, camera, behind_s)  # fmt: skip
 
     def _image_set(self, latest: dict, infos: dict, tf: TfBuffer, lidar_message: Any) -> ImageSet:
         cfg = self.config
