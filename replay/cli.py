@@ -16,6 +16,8 @@ from streamdet.cli_utils import (
     MAX_THREADS,
     PRECISION_CHOICES,
     camera_terms_option,
+    camera_timeout_option,
+    camera_timeout_s,
     check_folder_creatable,
     check_output_parent,
     check_plot_format,
@@ -45,13 +47,19 @@ OUT_FILES = ("replay.json", "report.md")  # the files --out receives
 # refuses --image-precision and --fallback-export on its own, DetectorConfig, but only once the replay has started.)
 IMAGE_LANE_OPTIONS = (
     "image_precision", "camera_hz", "camera_trigger", "camera_delivery_ms", "image_lane_threads", "schedule",
-    "image_lane_nice", "image_lane_yield", "camera_terms", "fallback_export_dir", "fallback_after_ms",
+    "image_lane_nice", "image_lane_yield", "camera_terms", "fallback_export_dir", "fallback_after_ms", "camera_outages",
+    "camera_timeout_ms",
 )  # fmt: skip
 _GIVEN = (ParameterSource.COMMANDLINE, ParameterSource.ENVIRONMENT)  # typed by the user, not a default
 
 
 
 
+
+
+def _scaled(timeout_s: float | None, time_scale: float) -> float | None:
+    """--camera-timeout-ms (drive time) on the runner's clock, the wall's: a drive played slower sends frames slower."""
+    return None if timeout_s is None else timeout_s * time_scale
 
 
 def _check_outputs(json_path: Path | None, plot_path: Path | None, out_dir: Path | None, inputs) -> None:
@@ -137,6 +145,11 @@ def _progress(message: str) -> None:
               help=f"0..{MAX_DELIVERY_MS:.0f} ms: every camera frame reaches the runtime this long after its capture (exposure, readout, ISP, "
                    "transport; real rigs: tens of ms); frames keep their capture time as timestamp, and staleness is "
                    "measured against the frames delivered by a slice's scan start. 0: delivered at capture.")
+@click.option("--camera-outage", "camera_outages", multiple=True, metavar="CAM@START-END",
+              help="A camera sends nothing from START to END drive seconds (END empty: to the end of each scene), e.g. "
+                   "CAM_FRONT@3-8; repeat it for more. What the runtime does meanwhile is in the report: zeros at once "
+                   "under --schedule full, the last frame until --camera-timeout-ms under phase-locked.")
+@camera_timeout_option()
 @click.option("--mode", type=click.Choice([*MODES, "all"]), default="all", show_default=True,
               help="streaming (two lanes), full-sweep (wait for the rotation), sequential (one queue), or all three.")
 @click.option("--time-scale", type=FiniteFloatRange(0, MAX_TIME_SCALE, min_open=True), default=1.0, show_default=True,
@@ -188,7 +201,7 @@ def _progress(message: str) -> None:
 def main(
     data: Path, table_version: str, split: str, scenes: int | None, export_dir: Path, precision: str,
     image_precision: str | None, providers: tuple[str, ...] | None, lidar_hz: float, num_slices: int | None, camera_hz: float, camera_trigger: str,
-    camera_delivery_ms: float, mode: str, time_scale: float,
+    camera_delivery_ms: float, camera_outages: tuple[str, ...], camera_timeout_ms: float, mode: str, time_scale: float,
     max_seconds: float | None, threads: int, image_lane_threads: int | None, slice_workers: int | None, queue_size: int | None, schedule: str,
     image_lane_nice: int, image_lane_yield: int, coalesce_slices: int | None, pair_hold_load: float | None, freeze_heap: bool, camera_terms: bool | None, fallback_export_dir: Path | None, fallback_after_ms: float | None, json_path: Path | None,
     plot_path: Path | None, out_dir: Path | None,
@@ -200,6 +213,7 @@ def main(
     A LiDAR-only export has no image lane and no cameras: the options that steer them (--image-precision, the
     --camera-* options, --image-lane-*, --schedule, --camera-terms, --fallback-*) are refused with it."""
     from streamdet.replay.report import cpu_info, details_report, format_report, json_report
+    from streamdet.replay.outages import CameraOutage
     from streamdet.replay.run import ReplayConfig, run_replay
     from streamdet.runtime_ort.lanes import LaneConfig
 
@@ -217,7 +231,7 @@ def main(
                            coalesce_slices=coalesce_slices or defaults.coalesce_slices,
                            pair_hold_load=defaults.pair_hold_load if pair_hold_load is None else pair_hold_load,
                            # on the runner's clock, the wall's: a drive played slower sends each camera's frames slower
-                           camera_timeout_s=defaults.camera_timeout_s * max(1.0, time_scale))  # fmt: skip
+                           camera_timeout_s=_scaled(camera_timeout_s(camera_timeout_ms), time_scale))  # fmt: skip
         config = ReplayConfig(
             data=data, export_dir=export_dir, version=table_version, split=None if split == "all" else split, scenes=scenes,
             precision=precision, image_precision=image_precision, lidar_hz=lidar_hz, num_slices=num_slices,
@@ -225,6 +239,7 @@ def main(
             max_seconds=max_seconds, threads=threads, image_lane_threads=image_lane_threads, lanes=lanes, fallback_export_dir=fallback_export_dir,
             camera_terms=camera_terms, camera_delivery_ms=camera_delivery_ms, freeze_heap=freeze_heap,
             fallback_after_s=fallback_after_s(fallback_after_ms), providers=providers,
+            camera_outages=tuple(CameraOutage.parse(spec) for spec in camera_outages),
         )  # fmt: skip
         info = cpu_info()  # before the replay: a failure here must not throw a finished replay away
         result = run_replay(config, _progress)

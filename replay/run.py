@@ -22,6 +22,7 @@ from streamdet.replay.clock import WallClock
 from streamdet.replay.latency_eval import ModeScores, QueryTruth, query_truth, score_mode
 from streamdet.replay.modes import MODES
 from streamdet.replay.nuscenes_source import DatasetTables, load_drive
+from streamdet.replay.outages import CameraOutage, apply_outages, check_outage_cameras
 from streamdet.replay.player import PlayerConfig, play
 from streamdet.replay.record import Recording
 from streamdet.replay.schedule import MAX_RATE_HZ, check_delivery, check_time_scale, slice_sweep
@@ -65,6 +66,7 @@ class ReplayConfig:
     camera_delivery_ms: float = 0.0
     freeze_heap: bool = True  # PlayerConfig.freeze_heap: the heap alive at a drive's start is out of full collections
     providers: tuple[str, ...] | None = None  # onnxruntime's execution providers (DetectorConfig.providers); None: default
+    camera_outages: tuple[CameraOutage, ...] = ()  # cameras that send nothing for a while (outages.py)
 
     def __post_init__(self) -> None:
         unknown = [m for m in self.modes if m not in MODES]
@@ -77,6 +79,8 @@ class ReplayConfig:
         check_time_scale(self.time_scale, "ReplayConfig.time_scale")
         check_trigger(self.camera_trigger)
         check_delivery(self.camera_delivery_ms, "ReplayConfig.camera_delivery_ms", "ms")
+        if not isinstance(self.camera_outages, tuple) or not all(isinstance(o, CameraOutage) for o in self.camera_outages):
+            raise ValueError(f"ReplayConfig.camera_outages must be a tuple of CameraOutage, got {self.camera_outages!r}")
         if self.max_seconds is not None and not self.max_seconds > 0:
             raise ValueError(f"ReplayConfig.max_seconds must be > 0 s, got {self.max_seconds!r}")
         for name in ("threads", "image_lane_threads"):
@@ -98,7 +102,8 @@ class ReplayConfig:
                  slice_workers=self.lanes.max_in_flight, slice_queue=self.lanes.queue_size,
                  schedule=self.lanes.schedule, image_lane_nice=self.lanes.image_lane_nice,
                  image_lane_yield_slices=self.lanes.image_lane_yield_slices,
-                 coalesce_slices=self.lanes.coalesce_slices, pair_hold_load=self.lanes.pair_hold_load)  # fmt: skip
+                 coalesce_slices=self.lanes.coalesce_slices, pair_hold_load=self.lanes.pair_hold_load,
+                 camera_timeout_s=self.lanes.camera_timeout_s, camera_outages=[str(o) for o in self.camera_outages])  # fmt: skip
         return d
 
 
@@ -172,6 +177,7 @@ def run_replay(config: ReplayConfig, progress: Progress = lambda msg: None) -> R
     tables = DatasetTables(config.data, config.version)
     scenes = split_scenes(tables, config.split, config.scenes)
     probe = open_detector(config)
+    check_outage_cameras(config.camera_outages, probe.camera_names if probe.uses_images else ())
     n = probe.num_slices
     image_size = (probe.image.width, probe.image.height) if probe.uses_images else None
     label = probe.precision_label
@@ -183,6 +189,7 @@ def run_replay(config: ReplayConfig, progress: Progress = lambda msg: None) -> R
         progress(f"scene {i + 1}/{len(scenes)} {scene}: loading")
         drive = load_drive(tables, scene, image_size, config.lidar_hz, config.camera_hz, config.max_seconds, progress,
                            config.camera_trigger, probe.config.start_deg)  # fmt: skip
+        drive = apply_outages(drive, config.camera_outages)
         truth = load_ground_truth(config.data, config.version, scene, reader=tables.reader)
         sources.add(truth.source)
         drives.append(drive)

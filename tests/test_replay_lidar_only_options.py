@@ -26,6 +26,8 @@ IMAGE_LANE_ARGS = [
     (["--camera-terms", "auto"], "--camera-terms"),
     (["--fallback-export", "{lidar}"], "--fallback-export"),
     (["--fallback-after-ms", "5"], "--fallback-after-ms"),
+    (["--camera-outage", "CAM_FRONT@0-1"], "--camera-outage"),
+    (["--camera-timeout-ms", "500"], "--camera-timeout-ms"),
 ]
 # slice-lane and run options: they apply to a LiDAR-only export too
 SLICE_LANE_ARGS = [["--slice-workers", "1"], ["--queue-size", "4"], ["--coalesce-slices", "2"], ["--threads", "1"],
