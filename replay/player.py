@@ -139,7 +139,8 @@ def play(
     # an image lane that updates from every camera at once gets whole sets (assemble.py); a phase-locked one each frame
     phase_locked = getattr(mode.runner, "phase_lock", None) is not None
     cameras = tuple(dict.fromkeys(n for s in drive.image_sets for n in s.images))
-    assembler = SetAssembler(cameras) if cameras and not phase_locked else None
+    timeout = config.lanes.camera_timeout_s  # the runner's (wall) seconds: drive seconds for the assembler
+    assembler = SetAssembler(cameras, None if timeout is None else timeout / config.time_scale) if cameras and not phase_locked else None
     if hasattr(clock, "set_participants"):
         clock.set_participants(book.sleepers_expected)
     futures: list[concurrent.futures.Future] = []

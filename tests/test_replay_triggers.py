@@ -118,6 +118,35 @@ def test_assembler_hands_over_a_whole_set_when_every_camera_is_fresh():
         SetAssembler(())
 
 
+def test_assembler_leaves_out_a_camera_silent_for_the_timeout():
+    """C stops after its first frame: with a 0.2 s timeout the sets are made of A and B once C is 0.2 s silent; without
+    one they wait for C forever. C's next frame makes it one of the set again."""
+    img = np.zeros((2, 2, 3), np.uint8)
+    for timeout in (0.2, None):
+        asm = SetAssembler("ABC", timeout)
+        assert asm.offer({"A": img, "B": img, "C": img}, 0.0) is not None
+        offers = [(k / 10 + dt, cam) for k in range(1, 6) for dt, cam in ((0.01, "A"), (0.02, "B"))]
+        got = [(t, s) for t, cam in offers if (s := asm.offer({cam: img}, t)) is not None]
+        if timeout is None:
+            assert got == []
+            continue
+        assert [t for t, _ in got] == pytest.approx([0.21, 0.31, 0.41, 0.51])  # from C's timeout on, one set per pair
+        assert all(set(s.images) == {"A", "B"} for _, s in got)
+        assert got[0][1].camera_timestamps == pytest.approx({"A": 0.21, "B": 0.12})
+        assert asm.offer({"C": img}, 0.6) is None  # A and B are not fresh since the last set
+        back = asm.offer({"A": img, "B": img}, 0.61)
+        assert back is not None and set(back.images) == {"A", "B", "C"}
+
+
+def test_assembler_a_camera_never_heard_from_counts_from_the_first_frame():
+    img = np.zeros((2, 2, 3), np.uint8)
+    asm = SetAssembler("ABC", 0.2)
+    assert asm.offer({"A": img, "B": img}, 0.0) is None  # C may still come
+    assert asm.offer({"A": img, "B": img}, 0.1) is None
+    late = asm.offer({"A": img, "B": img}, 0.25)
+    assert late is not None and set(late.images) == {"A", "B"}
+
+
 class QuadrantFake:
     """A fake detector with cameras per quadrant; records update calls; takes ``image_ms`` per update."""
 
