@@ -232,28 +232,36 @@ def test_node_recipe_helpers(bag: Path, export_dir: Path):
         example.main()  # no rclpy here
 
 
+def _rerecord(bag: Path, out: Path, edit) -> Path:
+    """``bag`` written again to ``out``: each message as ``edit(msg)`` says, a list of (message, log time ns) to write
+    in its place (none: dropped)."""
+    source = BagSource(bag, SourceConfig())
+    with BagWriter(out) as writer:
+        for name, data in source.metadata().items():
+            writer.metadata(name, data)
+        for msg in source.messages():
+            writer.schema(msg.datatype, msg.schema_text)
+            for message, log_time_ns in edit(msg):
+                writer.write(msg.topic, msg.datatype, message, log_time_ns)
+    return out
+
+
 def _sliced_bag(bag: Path, sliced: Path, empty: tuple[int, ...] = ()) -> Path:
     """``bag`` with each sweep re-recorded as N_SLICES messages of one sector each, in scan order, each stamped like
     its sweep (the sample token's key); the sectors in ``empty`` as messages without points."""
     from streamdet.core.sectors import slice_index_of
     from streamdet.runtime_ort.ros.pointcloud2 import pointcloud2_message
 
-    source = BagSource(bag, SourceConfig())
-    with BagWriter(sliced) as writer:
-        for name, data in source.metadata().items():
-            writer.metadata(name, data)
-        for msg in source.messages():
-            writer.schema(msg.datatype, msg.schema_text)
-            if msg.topic != "/LIDAR_TOP":
-                writer.write(msg.topic, msg.datatype, msg.message, msg.log_time_ns)
-                continue
-            cloud = decode_pointcloud2(msg.message)
-            k_of = slice_index_of(cloud.points[:, 0], cloud.points[:, 1], N_SLICES, 0.0)
-            for k in range(N_SLICES):
-                part = (k_of == k) & (k not in empty)
-                writer.write(msg.topic, msg.datatype, pointcloud2_message(cloud.points[part], cloud.stamp_ns, cloud.frame_id,
-                                                                          cloud.time_s[part].astype(np.float32)), msg.log_time_ns + k)  # fmt: skip
-    return sliced
+    def edit(msg):
+        if msg.topic != "/LIDAR_TOP":
+            return [(msg.message, msg.log_time_ns)]
+        cloud = decode_pointcloud2(msg.message)
+        k_of = slice_index_of(cloud.points[:, 0], cloud.points[:, 1], N_SLICES, 0.0)
+        parts = [(k_of == k) & (k not in empty) for k in range(N_SLICES)]
+        return [(pointcloud2_message(cloud.points[part], cloud.stamp_ns, cloud.frame_id, cloud.time_s[part].astype(np.float32)),
+                 msg.log_time_ns + k) for k, part in enumerate(parts)]  # fmt: skip
+
+    return _rerecord(bag, sliced, edit)
 
 
 def test_a_driver_publishing_slices(bag: Path, export_dir: Path, reference: dict, tmp_path):
@@ -383,18 +391,14 @@ def test_an_absurd_point_time_is_dropped_not_a_writer_crash(export_dir: Path, tm
 # ---- a camera that stops sending (SourceConfig.camera_timeout_s, --camera-timeout-ms) --------------------------------
 def _bag_dropping(bag: Path, out: Path, cameras: tuple[str, ...]) -> Path:
     """``bag`` re-recorded without the images of ``cameras`` after its first LiDAR message (they stop sending)."""
-    source = BagSource(bag, SourceConfig())
-    seen_lidar = False
-    with BagWriter(out) as writer:
-        for name, data in source.metadata().items():
-            writer.metadata(name, data)
-        for msg in source.messages():
-            writer.schema(msg.datatype, msg.schema_text)
-            seen_lidar |= msg.topic == "/LIDAR_TOP"
-            if seen_lidar and any(msg.topic == f"/{c}/image_rect_compressed" for c in cameras):
-                continue
-            writer.write(msg.topic, msg.datatype, msg.message, msg.log_time_ns)
-    return out
+    seen_lidar = [False]
+
+    def edit(msg):
+        seen_lidar[0] |= msg.topic == "/LIDAR_TOP"
+        stopped = seen_lidar[0] and any(msg.topic == f"/{c}/image_rect_compressed" for c in cameras)
+        return [] if stopped else [(msg.message, msg.log_time_ns)]
+
+    return _rerecord(bag, out, edit)
 
 
 @pytest.mark.parametrize("timeout_s", [0.2, None, 1.0])
@@ -440,16 +444,13 @@ def test_run_refuses_a_bad_camera_timeout(bag: Path, export_dir: Path, tmp_path,
 
 def _bag_lagging(bag: Path, out: Path, camera: str, behind_s: float) -> Path:
     """``bag`` with ``camera``'s images stamped ``behind_s`` earlier (its clock behind the LiDAR's)."""
-    source = BagSource(bag, SourceConfig())
-    with BagWriter(out) as writer:
-        for name, data in source.metadata().items():
-            writer.metadata(name, data)
-        for msg in source.messages():
-            writer.schema(msg.datatype, msg.schema_text)
-            if msg.topic == f"/{camera}/image_rect_compressed":
-                msg.message.header.stamp.sec -= int(behind_s)  # decoded afresh for this loop: its own copy
-            writer.write(msg.topic, msg.datatype, msg.message, msg.log_time_ns)
-    return out
+
+    def edit(msg):
+        if msg.topic == f"/{camera}/image_rect_compressed":
+            msg.message.header.stamp.sec -= int(behind_s)  # decoded afresh for this loop: its own copy
+        return [(msg.message, msg.log_time_ns)]
+
+    return _rerecord(bag, out, edit)
 
 
 def test_a_camera_on_another_clock_is_named(bag: Path, export_dir: Path, tmp_path, caplog):
