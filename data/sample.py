@@ -9,6 +9,7 @@ the sample, the images named by ``image_paths`` in rig order, and boxes ``(M, 9)
 from __future__ import annotations
 
 import importlib.resources
+import logging
 import math
 import os
 from collections.abc import Callable, Mapping
@@ -26,6 +27,8 @@ from streamdet.core.file_input import InputFileError, read_regular_file
 from streamdet.core.image_header import MAX_IMAGE_FILE_BYTES, check_image_size, decoder_error_reason, read_image_header
 from streamdet.core.json_input import is_finite_number, read_json, short_repr  # noqa: F401 (public here too)
 from streamdet.core.points import check_sweep
+
+log = logging.getLogger(__name__)
 
 POINT_TIME_SUFFIX = ".time"  # optional float32 (N,) per-point times beside a .pcd.bin (synthetic data writes it)
 MAX_BOXES_BYTES = 64 << 20  # boxes.json of one sample is ~100 kB; a larger file is refused before it is read
@@ -184,6 +187,8 @@ def load_points(path: str | Path) -> np.ndarray:
     raw = np.fromfile(path, dtype=np.float32)
     if raw.size % 5:
         raise ValueError(f"LiDAR file {path}: {raw.size} floats is not a multiple of 5 (x, y, z, intensity, ring)")
+    if raw.size == 0:  # read as a sweep without returns (the devkit does too), but a copy cut short is likelier
+        log.warning("LiDAR file %s holds no points (an empty or unfinished copy?): read as a sweep without returns", path)
     return raw.reshape(-1, 5)  # (N, 5)
 
 

@@ -8,6 +8,7 @@ reproduce the stored velocities, a past sweep with a known ego motion) and the r
 from __future__ import annotations
 
 import json
+import logging
 import math
 import re
 import shutil
@@ -253,7 +254,7 @@ def test_bundled_sample_matches_its_files():
     assert load_image(s.image_paths["CAM_FRONT"], size=(400, 225)).shape == (225, 400, 3)
 
 
-def test_load_image_and_points_errors(tmp_path):
+def test_load_image_and_points_errors(tmp_path, caplog):
     with pytest.raises(FileNotFoundError, match="missing.jpg"):
         load_image(tmp_path / "missing.jpg")
     (tmp_path / "bad.jpg").write_bytes(b"not an image")
@@ -266,6 +267,10 @@ def test_load_image_and_points_errors(tmp_path):
         load_points(tmp_path / "odd.pcd.bin")
     with pytest.raises(FileNotFoundError, match="nothing.pcd.bin"):
         load_points(tmp_path / "nothing.pcd.bin")
+    (tmp_path / "empty.pcd.bin").write_bytes(b"")
+    with caplog.at_level(logging.WARNING, logger="streamdet.data.sample"):
+        assert load_points(tmp_path / "empty.pcd.bin").shape == (0, 5)  # the devkit reads it so too
+    assert "empty.pcd.bin holds no points" in caplog.text
     copy = tmp_path / "sample"
     shutil.copytree(SAMPLE_DIR, copy)
     (copy / "boxes.json").unlink()
