@@ -226,6 +226,9 @@ def test_node_recipe_helpers(bag: Path, export_dir: Path):
     assert cam0 not in update.cameras_used and cam0 in update.cameras_missing
     assert frames.update(detector, stamp + 0.9) is None  # the others: 0.25 s apart, so out after three periods
     assert frames.update(detector, stamp + 1.05) is None and detector.image_state is None  # every camera out: dropped
+    lag = example.CameraFrames(timeout_s=0.2)  # a camera that sends, stamped 5 s behind the cloud
+    lag.add(detector, cam0, images[cam0])
+    assert lag.update(detector, stamp + 5.0) is None and lag.lagging == {cam0}
     with pytest.raises(ValueError, match="timeout_s must be None or a finite number of seconds > 0"):
         example.CameraFrames(timeout_s=0)
     with pytest.raises(ImportError):
