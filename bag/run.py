@@ -21,9 +21,9 @@ import numpy as np
 from streamdet.bag import topics as T
 from streamdet.bag.source import BagSource, SourceConfig, SweepEvent
 from streamdet.bag.writer import BagWriter
+from streamdet.core.camera_timeout import DEFAULT_CAMERA_TIMEOUT_S
 from streamdet.core.image_header import decoder_error_reason
 from streamdet.evaluation.results import boxes_to_results, write_results_json
-from streamdet.core.camera_timeout import DEFAULT_CAMERA_TIMEOUT_S
 from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector
 from streamdet.runtime_ort.postprocess import Detections, aggregate_sweep
 from streamdet.runtime_ort.ros.detections import detection3d_array_message, marker_array_message

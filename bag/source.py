@@ -31,8 +31,8 @@ import numpy as np
 from streamdet.bag import topics as T
 from streamdet.bag.deps import require
 from streamdet.calibration.camera import Rig, make_transform, quaternion_to_matrix
-from streamdet.core.sectors import azimuth_deg
 from streamdet.core.camera_timeout import DEFAULT_CAMERA_TIMEOUT_S, CameraTimeout, check_camera_timeout
+from streamdet.core.sectors import azimuth_deg
 from streamdet.runtime_ort.ros.camera_info import IDENTITY_RECORD, rig_from_ros
 from streamdet.runtime_ort.ros.header import header_stamp_ns
 from streamdet.runtime_ort.ros.images import compressed_image_to_rgb, image_to_rgb
@@ -215,7 +215,6 @@ class BagSource:
         infos: dict[str, Any] = {}
         latest: dict[str, Any] = {}  # camera -> newest image message, decoded only when a set is made
         timeout = CameraTimeout(cfg.camera_timeout_s, "SourceConfig.camera_timeout_s")
-        sent: set[str] = set()  # cameras with an image since the last LiDAR message
         fresh = False
         saw_lidar = False
         for msg in self.messages():
@@ -230,18 +229,17 @@ class BagSource:
                 camera = image_topics[msg.topic]
                 latest[camera] = msg.message
                 timeout.seen(camera, header_stamp_ns(msg.message) * 1e-9)
-                sent.add(camera)
                 fresh = True
             elif msg.topic == topics.lidar:
                 saw_lidar = True
                 lidar_s = header_stamp_ns(msg.message) * 1e-9
-                for camera in timeout.out(list(latest), lidar_s):
-                    if camera in sent:  # it does send: its images are stamped far behind the LiDAR's
-                        self._lagging(camera, lidar_s - header_stamp_ns(latest[camera]) * 1e-9)
+                gone, lagging = timeout.check(list(latest), lidar_s)
+                for camera in lagging:  # it does send: its images are stamped far behind the LiDAR's
+                    self._lagging(camera, lidar_s - header_stamp_ns(latest[camera]) * 1e-9)
+                for camera in gone:
                     del latest[camera]  # its features are zeros from this set on, until it sends again
                     self.cameras_timed_out[camera] = self.cameras_timed_out.get(camera, 0) + 1
                     fresh = True
-                sent.clear()
                 image_set = None
                 if fresh:
                     image_set = self._image_set(latest, infos, tf, msg.message) if latest else ImageSet({}, {}, None)

@@ -42,6 +42,7 @@ class CameraTimeout:
         self.timeout_s = check_camera_timeout(timeout_s, what)  # None: never
         # camera -> (newest frame's time, when it times out, its last intervals as (seconds, an outage))
         self._cameras: dict[str, tuple[float, float, collections.deque]] = {}
+        self._sent: set[str] = set()  # cameras with a frame since the last check()
 
     def seen(self, camera: str, t_s: float) -> float:
         """Record a frame of ``camera`` at ``t_s``; when it times out unless a newer one comes (inf: never)."""
@@ -55,6 +56,7 @@ class CameraTimeout:
         period = statistics.median(usable) if usable else 0.0
         expires = t_s + min(max(self.timeout_s, TIMEOUT_PERIODS * period), MAX_TIMEOUTS * self.timeout_s)
         self._cameras[camera] = (t_s, expires, gaps)
+        self._sent.add(camera)
         return expires
 
     def expires_s(self, camera: str) -> float:
@@ -65,3 +67,12 @@ class CameraTimeout:
     def out(self, cameras, now_s: float) -> list[str]:
         """Those of ``cameras`` whose newest frame has timed out at ``now_s``."""
         return [c for c in cameras if now_s >= self.expires_s(c)]
+
+    def check(self, cameras, now_s: float) -> tuple[list[str], list[str]]:
+        """``out(cameras, now_s)``, and of those the ones that sent a frame since the last check: a camera timed out
+        while sending has its frames stamped further behind ``now_s`` than the timeout (a clock not synchronised with
+        the one ``now_s`` is read on?). For a feeder that checks at each cloud against the cloud's stamp."""
+        out = self.out(cameras, now_s)
+        lagging = [c for c in out if c in self._sent]
+        self._sent.clear()
+        return out, lagging

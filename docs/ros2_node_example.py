@@ -58,27 +58,25 @@ class CameraFrames:
         self.stamps_s: dict[str, float] = {}
         self.new = False  # a frame arrived, or a camera timed out, since the last update
         self.timeout = CameraTimeout(timeout_s, "CameraFrames timeout_s")
-        self.sent: set[str] = set()  # cameras with a frame since the last update
         self.lagging: set[str] = set()  # timed out although sending: stamped on another clock? (warned once each)
 
     def add(self, detector: StreamingDetector, camera: str, image_msg) -> None:
         self.images[camera] = camera_image(detector, image_msg)
         self.stamps_s[camera] = header_stamp_ns(image_msg, "sensor_msgs/CompressedImage") * 1e-9
         self.timeout.seen(camera, self.stamps_s[camera])
-        self.sent.add(camera)
         self.new = True
 
     def update(self, detector: StreamingDetector, now_s: float | None = None) -> ImageUpdate | None:
         """The image lane on the newest frame of every camera, if one is new since the last call (or a camera timed
         out at ``now_s``, the cloud's stamp); None if none is."""
-        for camera in [] if now_s is None else self.timeout.out(list(self.images), now_s):
-            if camera in self.sent and camera not in self.lagging:
-                self.lagging.add(camera)
-                log.warning("camera %s sends images stamped %.3g s behind the cloud's: is its clock synchronised with the "
-                            "LiDAR's? Left out meanwhile", camera, now_s - self.stamps_s[camera])  # fmt: skip
+        gone, lagging = ([], []) if now_s is None else self.timeout.check(list(self.images), now_s)
+        for camera in set(lagging) - self.lagging:
+            self.lagging.add(camera)
+            log.warning("camera %s sends images stamped %.3g s behind the cloud's: is its clock synchronised with the "
+                        "LiDAR's? Left out meanwhile", camera, now_s - self.stamps_s[camera])  # fmt: skip
+        for camera in gone:
             del self.images[camera], self.stamps_s[camera]
             self.new = True
-        self.sent.clear()
         if not self.new:
             return None
         self.new = False

@@ -147,8 +147,8 @@ def _progress(message: str) -> None:
                    "measured against the frames delivered by a slice's scan start. 0: delivered at capture.")
 @click.option("--camera-outage", "camera_outages", multiple=True, metavar="CAM@START-END",
               help="A camera sends nothing from START to END drive seconds (END empty: to the end of each scene), e.g. "
-                   "CAM_FRONT@3-8; repeat it for more. What the runtime does meanwhile is in the report: zeros at once "
-                   "under --schedule full, the last frame until --camera-timeout-ms under phase-locked.")
+                   "CAM_FRONT@3-8; repeat it for more. Its last frame counts until --camera-timeout-ms (phase-locked: fused; "
+                   "full: the camera sets wait for it), then its features are zeros; the report says what the runtime did.")
 @camera_timeout_option()
 @click.option("--mode", type=click.Choice([*MODES, "all"]), default="all", show_default=True,
               help="streaming (two lanes), full-sweep (wait for the rotation), sequential (one queue), or all three.")

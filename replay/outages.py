@@ -2,8 +2,9 @@
 what the runtime does with it (``streamdet-replay --camera-outage CAM@START-END``).
 
 An outage removes the camera's frames captured in ``[start_s, end_s)`` of drive time from the drive's image sets
-(a set left with no frame is dropped). Under the ``full`` schedule the image sets then lack the camera (its features
-zeros at once); under ``phase-locked`` the lane keeps the camera's last frame until ``LaneConfig.camera_timeout_s``.
+(a set left with no frame is dropped). Under either schedule the camera's last frame counts until
+``LaneConfig.camera_timeout_s`` (the phase-locked lane keeps it; under ``full`` the camera sets wait for the camera
+that long, assemble.py); then its features are zeros.
 """
 
 from __future__ import annotations

@@ -1058,7 +1058,7 @@ class StreamingDetector:
         if self._fallback is not None:
             self._fallback = dataclasses.replace(self._fallback, session=None)
         del sessions
-        release_free_memory()  # the sessions' arenas: a process that reopens detectors would keep them all mapped
+        release_free_memory()  # the sessions' arenas and the image BEV, freed above: handed back, not kept mapped
         return written
 
     def _closed_error(self) -> DetectorClosed:

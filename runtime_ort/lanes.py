@@ -57,6 +57,7 @@ import numpy as np
 
 from streamdet.calibration.camera import Rig
 from streamdet.calibration.lut import Lut
+from streamdet.core.camera_timeout import DEFAULT_CAMERA_TIMEOUT_S, check_camera_timeout
 from streamdet.core.cpu import usable_cpus
 from streamdet.core.points import MAX_SLICE_POINTS, SLICE_COLUMNS, slice_points_problem
 from streamdet.runtime_ort.coalesce import can_coalesce
@@ -66,7 +67,6 @@ from streamdet.runtime_ort.image_cache import check_camera_timestamps
 from streamdet.runtime_ort.pair_hold import PairHold
 from streamdet.runtime_ort.phase_lock import check_lidar_hz
 from streamdet.runtime_ort.sessions import CPU_PROVIDER
-from streamdet.core.camera_timeout import DEFAULT_CAMERA_TIMEOUT_S, check_camera_timeout
 from streamdet.runtime_ort.phase_locked_lane import PhaseLockedImageLane, PhaseLockStats
 from streamdet.runtime_ort.thread_priority import check_nice
 from streamdet.runtime_ort.worker_lane import JobBatching, RunnerClosed, WorkerLane

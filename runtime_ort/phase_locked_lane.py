@@ -59,8 +59,8 @@ from typing import Callable, Mapping
 
 import numpy as np
 
-from streamdet.core.sectors import NUM_QUADRANTS
 from streamdet.core.camera_timeout import CameraTimeout
+from streamdet.core.sectors import NUM_QUADRANTS
 from streamdet.runtime_ort.phase_lock import RotationPhase, plan_lift
 from streamdet.runtime_ort.thread_priority import check_nice, start_worker
 from streamdet.runtime_ort.worker_lane import cancel_future, claim_future, complete_future
@@ -105,7 +105,6 @@ class _Frame:
     image: np.ndarray
     timestamp: float
     owner: _ImageSet
-    arrival_s: float  # the lane's clock when it was submitted
     expires_s: float = math.inf  # when its camera counts as out unless a newer frame came (core/camera_timeout.py)
     features: np.ndarray | None = field(default=None, repr=False)  # (C, Hf, Wf) once encoded
 
@@ -190,7 +189,7 @@ class PhaseLockedImageLane:
                 self._seq += 1
                 old = self._frames.get(name)
                 expires = self._timeout.seen(name, now)
-                self._frames[name] = _Frame(self._seq, image, float(stamps.get(name, timestamp)), owner, now, expires)
+                self._frames[name] = _Frame(self._seq, image, float(stamps.get(name, timestamp)), owner, expires)
                 if old is not None and self._release(old.owner):
                     superseded.append(old.owner.future)
             self._dirty = True
@@ -280,8 +279,8 @@ class PhaseLockedImageLane:
                     return now_s + YIELD_POLL_S
                 quadrants, deadline = None, None
                 self._wanted_since = [None] * NUM_QUADRANTS
-            elif self._blind():  # every camera of a quadrant timed out: drop its BEV now, no pass to wait for
-                quadrants, frames, deadline = self._blind(), {}, None
+            elif blind := self._blind():  # every camera of a quadrant timed out: drop its BEV now, no pass to wait for
+                quadrants, frames, deadline = blind, {}, None
                 for q in quadrants:
                     self._wanted_since[q] = None
             else:
@@ -388,8 +387,11 @@ class PhaseLockedImageLane:
 
     def _blind(self) -> tuple[int, ...]:
         """(Under the lock.) The quadrants lifted with cameras none of which has a frame now (all timed out)."""
-        return tuple(q for q in range(NUM_QUADRANTS)
-                     if self._lifted[q] and not any(n in self._frames for n in self.detector.quadrant_cameras([q])))  # fmt: skip
+        return tuple(q for q in self._without(self._frames) if self._lifted[q])
+
+    def _without(self, frames: Mapping[str, _Frame]) -> tuple[int, ...]:
+        """The quadrants none of whose cameras has a frame in ``frames``."""
+        return tuple(q for q in range(NUM_QUADRANTS) if not frames.keys() & set(self.detector.quadrant_cameras([q])))
 
     def _has_new(self, quadrant: int) -> bool:
         """Whether a camera that sees ``quadrant`` sent a frame after its last lift, or timed out since."""
@@ -418,7 +420,7 @@ class PhaseLockedImageLane:
         if frames:
             update = self.detector.update_images(images, timestamp, quadrants=quadrants, encoded=encoded, **options)
             if quadrants is None:
-                blind = tuple(q for q in range(NUM_QUADRANTS) if not frames.keys() & set(self.detector.quadrant_cameras([q])))
+                blind = self._without(frames)
                 if blind:  # they would hold a BEV of zeros stamped as new: no image there instead, as when locked
                     self.detector.forget_images(quadrants=blind)
         else:  # every camera that sees these quadrants timed out: their slices read no image rather than old frames
