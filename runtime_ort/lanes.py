@@ -350,7 +350,9 @@ class StreamingRunner:
 
         With ``timeout`` (seconds, for the slice, image and calibration lanes together), work not started by then is cancelled (its futures
         report cancelled) and this returns False while a job still runs (its worker ends after it); True when
-        everything finished.
+        everything finished. Called from a done-callback on one of the runner's own workers, it closes every lane
+        without waiting for that worker (it ends once the callback returns and its queued work is done) and returns
+        False.
         """
         if timeout is not None and (isinstance(timeout, bool) or not isinstance(timeout, (int, float)) or not timeout >= 0):
             raise ValueError(f"close(timeout=...) takes None or seconds >= 0, got {timeout!r}")

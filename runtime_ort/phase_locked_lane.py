@@ -490,7 +490,8 @@ class PhaseLockedImageLane:
         with self._cond:
             self._closed = True
             self._cond.notify_all()
-        if join and self._thread is not None:
+        if join and self._thread is not None and self._thread is not threading.current_thread():
+            # (from a done-callback run on the worker, the worker cannot wait for itself: it ends after this update)
             self._thread.join(None if deadline is None else max(0.0, deadline - time.monotonic()))
         ended = self._thread is None or not self._thread.is_alive()
         with self._cond:

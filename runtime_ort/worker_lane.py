@@ -256,13 +256,22 @@ class WorkerLane:
         """Stop taking jobs, finish the queued ones by ``deadline`` (time.monotonic(); None: no limit). Past it, the
         jobs not started are cancelled. Jobs still queued once every worker has ended (workers that died: nobody is
         left to run them) fail with a RuntimeError, so that nobody waits on them forever. True when every worker has
-        ended and every job ran (or was cancelled by its owner)."""
+        ended and every job ran (or was cancelled by its owner).
+
+        From one of this lane's own workers (a future's done-callback run there) it cannot wait for that worker: the
+        other workers are joined as above, the calling one runs the queued jobs after its callback returns (unless
+        ``deadline`` has passed by then: they are cancelled), and this returns False."""
         with self._cond:
             self._closed = True
             self._cond.notify_all()
+        me = threading.current_thread()
         for t in self._threads:
-            t.join(None if deadline is None else max(0.0, deadline - time.monotonic()))
+            if t is not me:  # called from a done-callback on a worker: that worker cannot wait for itself
+                t.join(None if deadline is None else max(0.0, deadline - time.monotonic()))
         ended = all(not t.is_alive() for t in self._threads)
+        if me in self._threads and (deadline is None or deadline > time.monotonic()):
+            # the calling worker runs the queued jobs once its callback returns, then ends: nothing to cancel yet
+            return False
         with self._cond:
             left = [job for job in self._jobs if not job[1].done()]
             for job in self._jobs:  # cancelled (or finished) by their owners: as they are, the cancelled ones claimed
