@@ -31,6 +31,7 @@ from __future__ import annotations
 import json
 import re
 import sys
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -239,7 +240,8 @@ def plot(out: Path, path: Path) -> None:
             ax.plot([], [], linestyle="none", label=label)
         ax.set_xlabel("staleness added by processing (ms)")
         ax.set_ylabel("fraction of fused slices")
-        ax.set_title(f"time scale {scale:g}" + (f", {cpu_line(cpus[0])}" if len(cpus) == 1 else ""), fontsize=9)
+        title = f"time scale {scale:g}" + (f", {cpu_line(cpus[0])}" if len(cpus) == 1 else "")
+        ax.set_title(textwrap.fill(title, 80), fontsize=9)  # a long CPU line (its flags) would run off the figure
         ax.set_ylim(0, 1.01)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7, loc="lower right")

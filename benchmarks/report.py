@@ -283,6 +283,15 @@ def _stage(lane: LaneStats, name: str) -> str:
     return "-" if s is None else f"{s['p50_ms']:.2f}"
 
 
+def _lift(lane: LaneStats) -> str:
+    """The lift's stages: the lifter graph, or (DetectorConfig.camera_terms) a term run per camera and a tail per
+    quadrant, which is how the detector lifts by default where the export allows it."""
+    if "volumetric_lifter" in lane.stages or "lifter_tail" not in lane.stages:
+        return f"lifter p50 {_stage(lane, 'volumetric_lifter')} ms"
+    return (f"lift through per-camera terms: term p50 {_stage(lane, 'lifter_partial')} ms a camera, "
+            f"tail p50 {_stage(lane, 'lifter_tail')} ms a quadrant")
+
+
 def format_streaming(s: StreamingResult) -> str:
     pts = f"{min(s.num_points):,}..{max(s.num_points):,}"
     lines = [
@@ -303,7 +312,7 @@ def format_streaming(s: StreamingResult) -> str:
         f"  busy / idle slice p95: {s.busy_over_idle_p95:.2f}x ({s.image_busy_updates} image updates finished while the "
         "busy slices ran; the image lane ran throughout)",
         _lane_line(f"image lane alone ({s.num_cameras} cameras)", s.image_alone),
-        f"    encoder p50 {_stage(s.image_alone, 'image_encoder')} ms, lifter p50 {_stage(s.image_alone, 'volumetric_lifter')} ms"
+        f"    encoder p50 {_stage(s.image_alone, 'image_encoder')} ms, {_lift(s.image_alone)}"
         + (f"; with slices running: update p50 {_stage(s.busy, 'image_total')} ms" if "image_total" in s.busy.stages else ""),
     ]
     for label, lane in (("idle", s.idle), ("busy", s.busy)):
