@@ -9,10 +9,11 @@ takes it in place of ``image_bev`` and adds it to ``point_conv``'s output.
 Exactness: each quadrant is its own map in both graphs, so the convolution's zero padding at the quadrant's edges
 is the same; its output grid is ``image_half_cells`` (k3, padding 1, stride ``layer_strides[0]``), the grid the
 slice graph adds it to. The BatchNorm shift, which the ``image_bev`` layout puts on the image half, goes to the
-point half here: the image half of a zeroed image BEV (no image yet, camera dropout) is then exactly zero, so the
-runtime keeps feeding zeros before its first image update, and ``relu(point_conv(p) + 0)`` is what
-``relu(point_conv(p) + image_conv(0))`` gives in the other layout (the shift is a per-channel constant: the
-"bias map" of a zeroed BEV is that constant everywhere, carried by the point half).
+point half here: the image half of a zeroed image BEV (the first part of a schedule with ``image_warmup``) is then
+exactly zero, and ``relu(point_conv(p) + 0)`` is what ``relu(point_conv(p) + image_conv(0))`` gives in the other
+layout (the shift is a per-channel constant: the "bias map" of a zeroed BEV is that constant everywhere, carried by
+the point half). Where it has no image the runtime feeds neither, but the lift of zero features in the export's own
+layout (``StreamingDetector.blank_image_bev``), which both layouts give alike.
 
 The layouts are named by ``core/image_layout.py`` (torch-free, for the runtime too); the manifest records which one an export's graphs use (older exports:
 ``image_bev``). Measured: docs/replay.md ("Less work per lift").

@@ -56,7 +56,6 @@ from streamdet.calibration.lut import (
 )
 from streamdet.calibration.quadrant_lut import QuadrantLut
 from streamdet.core.constants import PRECISIONS  # noqa: F401 (public here too)
-from streamdet.core.image_layout import image_map_chw
 from streamdet.core.json_input import is_finite_number, short_repr
 from streamdet.core.points import (
     MAX_POINT_TIME_S, MAX_SLICE_INDEX, MAX_SLICE_POINTS, MAX_SWEEP_POINTS, REFLECTANCE_RANGE, check_sweep, slice_points_problem,
@@ -224,10 +223,13 @@ class StreamingDetector:
             self._lut = self._check_lut(self._build_lut(rig))
             self._built_from = (self._lut, rig.sha256())
         self._image: ImageCache | None = None  # None before the first image update; replaced whole under _lock
+        self._blank_bev: np.ndarray | None = None  # blank_image_bev (set below, once the lanes can lift)
         # per-quadrant LUTs, lifter LUT feeds and quadrant_cameras' answers, made once per LUT (lut_views.py)
         self._views = LutViews(self.camera_names, m.lut_layout)
         # per-camera lifts of image updates (camera_terms.py); None: every update runs the lifter graph
         self._terms: CameraTerms | None = self._open_camera_terms() if self.uses_images and self._lut is not None else None
+        if self.uses_images and self._lut is not None:
+            self._blank_bev = self._lift_blank()
         log.info("streamdet: %s (%s, %d slices) on %s", self.export_dir, self.precision_label, self.num_slices, list(self.providers))
         if self.providers[0] != CPU_PROVIDER and "int8" in lanes.values():
             log.warning("streamdet: int8 graphs on %s: their quantize / dequantize pairs are made for x86 CPUs (uint8 "
@@ -486,8 +488,11 @@ class StreamingDetector:
         moments (a LiDAR-synchronised rig); each lifted quadrant then gets the oldest of the times of the cameras
         that see it (given ones), rather than ``timestamp``, which still labels the update.
 
-        Cameras not given are allowed: their features are zeros. Unknown names, wrong sizes or dtypes raise, and so
-        does any call on a LiDAR-only export (NoImageLaneError).
+        Cameras not given are allowed: their features are zeros. A quadrant none of whose cameras is given is not
+        lifted from zeros and stamped with this update's time: its older image BEV is dropped instead
+        (``ImageUpdate.cleared``), so that its slices read what a quadrant without images reads (the LiDAR-only
+        fallback where one is configured, else the camera-less BEV) and report no image age. Unknown names, wrong
+        sizes or dtypes raise, and so does any call on a LiDAR-only export (NoImageLaneError).
         """
         if not isinstance(images, Mapping):
             raise ValueError(f"update_images takes a dict of camera name -> uint8 RGB (H, W, 3) image, got {type(images).__name__}")
@@ -531,13 +536,28 @@ class StreamingDetector:
                 for j, name in enumerate(needed):
                     if name in maps:
                         features[j] = maps[name]
-            installed = self._install(features, needed, wanted, seq, timestamp, missing, camera_ts, maps, lut)
+            blind = tuple(q for q in wanted if not any(c in images for c in self._cameras_under(lut, (q,))))
+            lifted = tuple(q for q in wanted if q not in blind)
+            if blind and not self._clear_blind(lut, blind, seq):
+                continue  # the calibration was swapped: plan again
+            installed = self._install(features, needed, lifted, seq, timestamp, missing, camera_ts, maps, lut) if lifted else True
             if installed is not None:
                 break
         else:
-            installed = _gave_up(seq)
+            installed, blind, lifted = _gave_up(seq), (), wanted
         self.stats.record("image_total", (time.perf_counter() - t0) * 1e3)
-        return ImageUpdate(timestamp, used, missing, superseded=not installed, quadrants=wanted, seq=seq)
+        return ImageUpdate(timestamp, used, missing, superseded=not installed, quadrants=lifted, seq=seq, cleared=blind)
+
+    def _clear_blind(self, lut: Lut, quadrants: tuple[int, ...], seq: int) -> bool:
+        """Drop the image BEV of ``quadrants`` (none of whose cameras update ``seq`` was given) as of the calls before
+        it: an older update still under way installs nothing there, a newer one already installed stays. False, and
+        nothing dropped, when ``lut`` is no longer the LUT in use (the caller plans again: under the new LUT the
+        quadrant may see a camera it was given, and this update must then still install there)."""
+        with self._lock:
+            if self._lut is not lut:
+                return False
+            self._drop_images_locked(seq - 1, quadrants)
+            return True
 
     def encode_images(self, images: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
         """The (C, Hf, Wf) float32 feature maps of the given camera images, by camera name (one encoder run), for
@@ -570,8 +590,8 @@ class StreamingDetector:
 
         ``quadrants``: only those (a strictly increasing list of 0..3; None: all four); the others keep their BEV,
         and an update under way still installs there. The phase-locked image lane drops so a quadrant all of whose
-        cameras are out (``LaneConfig.camera_timeout_s``): its slices then read no image (zeros, or the LiDAR-only
-        fallback), as before the first image."""
+        cameras are out (``LaneConfig.camera_timeout_s``): its slices then read no image (the camera-less BEV, or
+        the LiDAR-only fallback), as before the first image."""
         if through is not None and (isinstance(through, bool) or not isinstance(through, (int, np.integer)) or through < 0):
             raise ValueError(f"forget_images through must be None or an ImageUpdate.seq (an int >= 0), got {through!r}")
         wanted = update_quadrants(quadrants)
@@ -816,7 +836,7 @@ class StreamingDetector:
         """Detections of slice `slice_index` of `num_slices` (None: the detector's) from its (N, 6) float32 points
         (x, y, z, r, t, s).
 
-        Uses the newest cached image BEV of the slice's quadrant(s) (zeros before the first image update); a
+        Uses the newest cached image BEV of the slice's quadrant(s) (``blank_image_bev`` where there is none); a
         LiDAR-only export's slice graph takes the quadrant ids instead. NaN / inf points are dropped and counted
         (``num_nonfinite_dropped``), so are points outside the grid or the slice's quadrant(s)
         (``num_outside_dropped``); an empty slice gives no detections. Only float32 is accepted: this is the hot
@@ -962,13 +982,41 @@ class StreamingDetector:
 
     def _image_bev(self, states: tuple[QuadrantState | None, ...]) -> np.ndarray:
         """(Q, C, Yq, Xq) image BEV of the slice's quadrants, or in the image_half layout their image half
-        (Q, C0, Yh, Xh); zeros for a quadrant without images yet (in both layouts what a zeroed BEV gives: the
-        image half's bias is carried by the slice graph's point half, core/image_layout.py)."""
+        (Q, C0, Yh, Xh); for a quadrant without images (none yet, dropped, or all its cameras out) the camera-less
+        BEV (``blank_image_bev``)."""
         if len(states) == 1 and states[0] is not None:
             return states[0].bev  # (1, C, Yq, Xq), no copy
-        chw = image_map_chw(self.manifest.preset, (self.grid.quadrant_ny, self.grid.quadrant_nx), self.manifest.image_layout)
-        zeros = np.zeros((1, *chw), dtype=np.float32)
-        return np.concatenate([zeros if s is None else s.bev for s in states])  # (Q, C, Yq, Xq)
+        blank = self.blank_image_bev
+        if len(states) == 1:
+            return blank
+        return np.concatenate([blank if s is None else s.bev for s in states])  # (Q, C, Yq, Xq)
+
+    @property
+    def blank_image_bev(self) -> np.ndarray:
+        """(1, C, Yq, Xq) (image_half layout: (1, C0, Yh, Xh)) what a quadrant's slices read where there is no image
+        BEV (none yet, dropped, or none of its cameras sending): the image lane's lift of zero feature maps, made
+        with its own graphs when the detector is built (``_lift_blank``). A LiDAR-only export has none (NoImageLaneError)."""
+        blank = self._blank_bev
+        if blank is None:
+            if not self.uses_images:
+                raise NoImageLaneError(self._no_image_lane("it has no camera-less image BEV"))
+            raise self._closed_error()
+        return blank
+
+    def _lift_blank(self) -> np.ndarray:
+        """The lift of zero feature maps (no camera), for ``blank_image_bev``. Not zeros: the lifter's biases make it
+        a constant map away from the quadrant's edges, and the shipped models (trained with images from the first
+        step: neither map is in their training) read it far better than an all-zero map (docs/replay.md, "A quadrant
+        without cameras"). The same for every quadrant and calibration (zero feature maps gather zeros through any
+        LUT), so one lift serves for good; its run is not counted in ``stats``."""
+        zeros = self._encode({}, (), ())  # (1, C, Hf, Wf)
+        (bev,) = self._lift_quadrants(zeros, (), (0,), self._lut, {})  # (1, C, Yq, Xq)
+        if not np.isfinite(bev).all():
+            raise GraphRunError(f"{self.export_dir}: the image lane's lift of zero features is not finite ({self.precision_label})")
+        self.stats.reset()
+        bev = np.array(bev, dtype=np.float32)  # its own copy, read-only: every slice without images shares it
+        bev.setflags(write=False)
+        return bev
 
     def detect_sweep(self, sweep: np.ndarray, timestamp: float | None = None, num_slices: int | None = None) -> Detections:
         """Slice a full (N, 5) sweep (x, y, z, intensity 0..255, ring) into `num_slices` (None: the detector's),
@@ -1050,6 +1098,7 @@ class StreamingDetector:
         with self._lock:  # an open detector always holds its slice graph's session: none left means closed
             sessions, self._sessions = self._sessions, {}
             self._drop_images_locked(self._image_seq)  # and an update under way installs nothing
+            self._blank_bev = None
         self._views.clear()
         written = [s.end_profiling() for s in sessions.values()] if self.config.enable_profiling else []
         self.image_encoder = self.lifter = self.slice_head = None

@@ -64,7 +64,8 @@ class DetectorConfig:
     enable_profiling: bool = False  # onnxruntime profiles of every session (written on close())
     profile_dir: str | os.PathLike | None = None  # where those profiles go; None: the current directory
     # A LiDAR-only export whose slice graph runs the slices that have no usable camera features (no image BEV yet,
-    # or one older than fallback_after_s): runtime_ort/fallback.py. None: those slices read a zero image BEV.
+    # or one older than fallback_after_s): runtime_ort/fallback.py. None: those slices read the camera-less BEV
+    # (StreamingDetector.blank_image_bev), which the shipped models read far worse than the LiDAR-only model's.
     fallback_export_dir: str | os.PathLike | None = None
     fallback_after_s: float | None = None  # None: fall back only where a quadrant has no image BEV at all
     # Per-camera lifts for image updates (runtime_ort/camera_terms.py): a quadrant update recomputes only the

@@ -24,6 +24,9 @@ class ImageUpdate:
     superseded: bool = False
     quadrants: tuple[int, ...] = (0, 1, 2, 3)  # the quadrants of the image BEV this update lifted
     seq: int = 0  # the call's number (call order), as QuadrantState.seq; StreamingDetector.forget_images(through=seq)
+    # the quadrants it dropped the image BEV of instead of lifting them, none of their cameras being given (their
+    # slices then read the fallback or the camera-less BEV, as before the first image)
+    cleared: tuple[int, ...] = ()
 
 
 @dataclass(frozen=True)

@@ -107,10 +107,10 @@ class LaneConfig:
     # phase-locked only: a camera that has sent no frame for this long (seconds on the runner's clock, from its last
     # frame's arrival) counts as out: its last frame is no longer fused, the quadrants that see it are lifted again
     # without it (SliceResult.cameras_missing names it) and a quadrant none of whose cameras is left reads no image
-    # (zeros, or the LiDAR-only fallback export) until a frame comes (phase_locked_lane.py). A camera whose frame
+    # (the LiDAR-only fallback export, else the camera-less BEV) until a frame comes (phase_locked_lane.py). A camera whose frame
     # period is over a third of this gets three of its periods instead, once its second frame tells its period
     # (core/camera_timeout.py). None: a camera's last frame is fused however old. (Under "full" each image set stands
-    # alone: a camera not in it is zeros already.)
+    # alone: a camera not in it is zeros already, and a quadrant none of whose cameras it holds is cleared.)
     camera_timeout_s: float | None = DEFAULT_CAMERA_TIMEOUT_S
     # added to the image lane's thread's nice value (0..19, Linux; 0: unchanged): where the lanes share cores, the
     # slice lane's work is then served first and the image lane runs in the time left (runtime_ort/thread_priority.py).

@@ -39,7 +39,7 @@ Degraded behaviour, in this order (each counted in ``PhaseLockStats``):
   soon as it can be (its features zeros: ``SliceResult.cameras_missing`` names it), rather than its old frame being
   fused for as long as it stays out. A quadrant left with none of its cameras drops its image BEV at once, without
   waiting for its pass (``StreamingDetector.forget_images(quadrants=...)``, ``quadrants_cleared``): its slices read no image, as before
-  the first one (zeros, or the LiDAR-only fallback export where one is configured). Its next frame brings it back;
+  the first one (the LiDAR-only fallback export where one is configured, else the camera-less BEV). Its next frame brings it back;
 - **image sets**: an image set each of whose frames was replaced by a newer one before any lift used it fails
   its future with ``ImagesSuperseded``; otherwise its future holds the `ImageUpdate` of the first lift that used it.
 

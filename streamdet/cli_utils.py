@@ -283,7 +283,7 @@ def fallback_options(clock: str = "sensor"):
         "--fallback-export", "fallback_export_dir", type=click.Path(path_type=Path, file_okay=False), default=None,
         help="A LiDAR-only export (streamdet-export --checkpoint models/weights/small_lidar_only.pt --out DIR) whose "
         "slice graph runs the slices that have no image BEV (DetectorConfig.fallback_export_dir). Default: none, such "
-        "slices read zeros.",
+        "slices read the camera-less BEV (the lift of zero features), far weaker than the LiDAR-only model.",
     )  # fmt: skip
     after = click.option(
         "--fallback-after-ms", type=FiniteFloatRange(0, MAX_FALLBACK_AFTER_MS), default=None,

@@ -278,7 +278,7 @@ def slices(export_dir, checkpoint, data_dir, version, split, max_samples, precis
 @click.option("--camera", "cameras", multiple=True, default=(st.DEFAULT_DROPPED_CAMERA,), show_default=True,
               help="Camera to remove at inference (repeat to study several, each on its own).")  # fmt: skip
 @click.option("--no-cameras", is_flag=True,
-              help="Also score with every camera missing (zero image BEV): how much the model uses its cameras at all.")
+              help="Also score with every camera missing (the runtime's camera-less BEV): how much the model uses its cameras at all.")
 def drop_camera(export_dir, checkpoint, data_dir, version, split, max_samples, precision, image_precision, providers, threads,
                 json_path, plot_path, num_slices, cameras, no_cameras) -> None:  # fmt: skip
     """mAP and per-class AP with a named camera missing at inference (the back camera by default)."""

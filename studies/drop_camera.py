@@ -95,7 +95,8 @@ def drop_camera_study(
     """mAP with all cameras, and with each named camera removed from the image lane (same model, same LUT).
 
     ``no_cameras`` also scores the model with every camera missing: a detector that never gets an image update
-    reads a zero image BEV, so the gap to "all" says how much the model leans on its cameras at all.
+    reads the camera-less BEV (``StreamingDetector.blank_image_bev``), so the gap to "all" says how much the model
+    leans on its cameras at all.
     """
     det = open_image_detector(export_dir, runtime, "drop-camera")
     names = check_cameras(det, cameras)

@@ -286,11 +286,17 @@ def test_missing_cameras_contribute_nothing_as_zero_maps_do(export_dir):
     q = 0
     cams = terms.quadrant_cameras([q])
     others = [n for n in terms.camera_names if n not in cams]
-    for given in (cams[:1], others[:1]):  # one of the quadrant's cameras; none of them (the bias alone)
-        images = _images(terms, 3, given)
-        terms.update_images(images, 1.0, quadrants=[q])
-        graph.update_images(images, 1.0, quadrants=[q])
-        assert np.abs(_bev(terms, q) - _bev(graph, q)).max() <= 1e-5 * max(np.ptp(_bev(graph, q)), 1e-6)
+    images = _images(terms, 3, cams[:1])  # one of the quadrant's cameras
+    terms.update_images(images, 1.0, quadrants=[q])
+    graph.update_images(images, 1.0, quadrants=[q])
+    assert np.abs(_bev(terms, q) - _bev(graph, q)).max() <= 1e-5 * max(np.ptp(_bev(graph, q)), 1e-6)
+    # none of them: the update clears the quadrant, whose slices read the lift of no camera (the bias alone here)
+    images = _images(terms, 3, others[:1])
+    assert terms.update_images(images, 2.0, quadrants=[q]).cleared == (q,)
+    assert graph.update_images(images, 2.0, quadrants=[q]).cleared == (q,)
+    assert terms.image_state is None and graph.image_state is None
+    blank, want = terms.blank_image_bev, graph.blank_image_bev
+    assert np.abs(blank - want).max() <= 1e-5 * max(np.ptp(want), 1e-6) and np.ptp(want) > 0
 
 
 # ---- the cache ------------------------------------------------------------------------------------------------

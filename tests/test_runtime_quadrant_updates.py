@@ -84,15 +84,23 @@ def test_a_quadrant_no_camera_sees_lifts_zeros_like_the_full_lut(detector):
 @pytest.mark.parametrize("given", ["all", "some"])
 def test_four_quadrant_updates_equal_one_full_update(tiny_export, seed, given):
     full = StreamingDetector(tiny_export)
-    names = full.camera_names if given == "all" else full.camera_names[::2]  # missing cameras are zeros in both
+    # missing cameras are zeros in both; a quadrant none of whose cameras is given is cleared in both
+    names = full.camera_names if given == "all" else full.camera_names[::2]
     images = _images(full, seed, names)
-    full.update_images(images, timestamp=1.0)
+    whole = full.update_images(images, timestamp=1.0)
     parts = StreamingDetector(tiny_export)
+    cleared = []
     for q in (2, 0, 3, 1):  # any order
         update = parts.update_images(images, timestamp=1.0, quadrants=[q])
-        assert update.quadrants == (q,) and not update.superseded
+        assert update.quadrants + update.cleared == (q,) and not update.superseded
         assert set(update.cameras_used) <= set(parts.quadrant_cameras([q]))
-    np.testing.assert_allclose(parts.image_state.bev, full.image_state.bev, rtol=0, atol=1e-6)
+        cleared += update.cleared
+    assert tuple(sorted(cleared)) == whole.cleared
+    assert whole.quadrants == tuple(q for q in range(4) if q not in whole.cleared)
+    for a, b in zip(parts.image_state.quadrants, full.image_state.quadrants):
+        assert (a is None) == (b is None)
+        if a is not None:
+            np.testing.assert_allclose(a.bev, b.bev, rtol=0, atol=1e-6)
     for k, pts in enumerate(split_sweep(load_bundled_sample().points, N_SLICES)):
         a = full.detect_slice(pts, k, timestamp=2.0)
         b = parts.detect_slice(pts, k, timestamp=2.0)
@@ -185,15 +193,18 @@ def test_malformed_quadrants_are_refused_before_anything_changes(detector, bad):
     assert detector.image_state is before
 
 
-def test_a_quadrant_whose_cameras_are_not_given_lifts_zeros(tiny_export):
+def test_a_quadrant_whose_cameras_are_not_given_is_cleared(tiny_export):
     det = StreamingDetector(tiny_export)
+    det.update_images(_images(det, 1), timestamp=0.5)  # an older BEV everywhere
     seeing = set(det.quadrant_cameras([0]))
     others = [n for n in det.camera_names if n not in seeing]
     update = det.update_images(_images(det, 0, others), timestamp=1.0, quadrants=[0])
     assert update.cameras_used == () and update.cameras_missing == det.quadrant_cameras([0])
+    assert update.quadrants == () and update.cleared == (0,) and not update.superseded
+    assert det.image_state.quadrants[0] is None and det.image_timestamps[1:] == (0.5, 0.5, 0.5)
     ref = StreamingDetector(tiny_export)
-    ref.update_images(_images(ref, 0, others), timestamp=1.0)  # the full update with the same cameras missing
-    np.testing.assert_allclose(det.image_state.quadrants[0].bev, ref.image_state.bev[:1], rtol=0, atol=1e-6)
+    whole = ref.update_images(_images(ref, 0, others), timestamp=1.0)  # the full update with the same cameras missing
+    assert 0 in whole.cleared and ref.image_state.quadrants[0] is None
 
 
 def test_encoded_feature_maps_are_used_instead_of_encoding_again(tiny_export):

@@ -94,8 +94,8 @@ class TrainConfig:
     div_factor: float = 10.0  # start lr = lr / div_factor
     final_div_factor: float = 1e4  # end lr = start lr / final_div_factor
     amp: str = "auto"  # auto: fp16 autocast on CUDA, off on CPU (bf16 autocast was slower on an AVX2 CPU)
-    # Fraction of the schedule trained with the image lane off (a zero image BEV, what the runtime feeds before its
-    # first image update): the LiDAR lane and the BEV encoder learn first at a fraction of the step cost, the image
+    # Fraction of the schedule trained with the image lane off (a zero image BEV; the runtime, where it has no image,
+    # feeds the lift of zero features instead: StreamingDetector.blank_image_bev): the LiDAR lane and the BEV encoder learn first at a fraction of the step cost, the image
     # lane joins for the rest. 0: images from the first step.
     image_warmup: float = 0.0
     # Weight of the image-side class loss beside detection (training/image_class.py: each object's class read
