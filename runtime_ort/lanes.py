@@ -46,6 +46,7 @@ import dataclasses
 import math
 import numbers
 import os
+import threading
 import time
 import warnings
 import weakref
@@ -357,10 +358,13 @@ class StreamingRunner:
         if timeout is not None and (isinstance(timeout, bool) or not isinstance(timeout, (int, float)) or not timeout >= 0):
             raise ValueError(f"close(timeout=...) takes None or seconds >= 0, got {timeout!r}")
         deadline = None if timeout is None else time.monotonic() + timeout
-        slices_done = self._slices.close(deadline)
-        images_done = (self._images if self._images is not None else self._phase_locked).close(deadline)
-        calibration_done = self._calibration.close(deadline)
-        return slices_done and images_done and calibration_done
+        lanes = (self._slices, self._images if self._images is not None else self._phase_locked, self._calibration)
+        if any(lane.runs_on(threading.current_thread()) for lane in lanes):
+            # on a worker (a done-callback): wait for none, or two callbacks closing at once would wait for each other
+            for lane in lanes:
+                lane.close(deadline, wait=False)
+            return False
+        return all([lane.close(deadline) for lane in lanes])  # a list: every lane is closed, whatever one returns
 
     def __enter__(self) -> "StreamingRunner":
         return self

@@ -265,6 +265,8 @@ class PhaseLockedImageLane:
         # read before taking this lane's lock: the slice lane's own lock is never taken inside it
         busy = self._yield_at > 0 and self._backlog() >= self._yield_at
         with self._cond:
+            if self._closed:  # close() from a done-callback this step ran (an image set it expired): no more updates
+                return None
             if not self._frames and not any(self._lifted):
                 self._hold(now_s, False)
                 return None
@@ -312,7 +314,8 @@ class PhaseLockedImageLane:
                     frames = {encode[0]: encode[1]}
                     quadrants, deadline = (), None
             # the image sets this update is the first to use: from here on none of them can be superseded
-            owners = [] if quadrants == () else list({id(f.owner): f.owner for f in frames.values() if not f.owner.used}.values())
+            owners = [] if quadrants == () else list({id(f.owner): f.owner for f in frames.values()
+                                                      if not f.owner.used and not f.owner.closed}.values())  # fmt: skip
             for owner in owners:
                 owner.used = True
             self._settling.update(owners)
@@ -475,11 +478,16 @@ class PhaseLockedImageLane:
                 if timeout is None or timeout > 0:
                     self._cond.wait(timeout)
 
-    def close(self, deadline: float | None = None) -> bool:
+    def runs_on(self, thread: threading.Thread) -> bool:
+        """Whether ``thread`` is this lane's worker."""
+        return self._thread is not None and thread is self._thread
+
+    def close(self, deadline: float | None = None, wait: bool = True) -> bool:
         """Stop the worker (a running update finishes); waiting image sets that were never used are cancelled, and
         once the worker has ended, those an update used but never completed (it was cut short) fail: then no image
-        set's future is left pending. True when the worker has ended."""
-        return self._shut(deadline, join=True)
+        set's future is left pending. True when the worker has ended. ``wait`` False does not wait for it (as
+        `stop`)."""
+        return self._shut(deadline, join=wait)
 
     def stop(self) -> None:
         """close() without waiting for the worker, for a lane whose owner is gone (StreamingRunner's finalizer): this

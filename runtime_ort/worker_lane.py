@@ -68,6 +68,7 @@ class WorkerLane:
         self._capacity = capacity
         self._overflow = overflow
         self._closed = False
+        self._deadline: float | None = None  # close(deadline): jobs not started by then are cancelled by the workers
         self._workers = workers
         self._nice = check_nice(nice, f"{name}: nice")
         self._busy = 0  # workers running a job (under _cond)
@@ -140,15 +141,23 @@ class WorkerLane:
                     self._cond.wait()
                 if not self._jobs:
                     return
-                jobs = [self._jobs.popleft()]
-                self._busy += 1
-                try:
-                    self._join_waiting(jobs)
-                    if len(jobs) == 1:
-                        self._hold_for_join(jobs)
-                    join_error = None
-                except BaseException as e:  # a failing join rule must not end the worker: its jobs get the error
-                    join_error = e
+                if self._closed and self._deadline is not None and time.monotonic() >= self._deadline:
+                    expired, self._jobs = list(self._jobs), collections.deque()  # not started by close()'s deadline
+                else:
+                    expired = None
+                    jobs = [self._jobs.popleft()]
+                    self._busy += 1
+                    try:
+                        self._join_waiting(jobs)
+                        if len(jobs) == 1:
+                            self._hold_for_join(jobs)
+                        join_error = None
+                    except BaseException as e:  # a failing join rule must not end the worker: its jobs get the error
+                        join_error = e
+            if expired is not None:
+                for job in expired:  # off the lock: their done-callbacks run here
+                    cancel_future(self._name, job[1])
+                return
             cpu0 = time.thread_time()
             try:
                 jobs = [job for job in jobs if claim_future(job[1])]
@@ -252,18 +261,27 @@ class WorkerLane:
             self._closed = True
             self._cond.notify_all()
 
-    def close(self, deadline: float | None = None) -> bool:
+    def runs_on(self, thread: threading.Thread) -> bool:
+        """Whether ``thread`` is one of this lane's workers."""
+        return thread in self._threads
+
+    def close(self, deadline: float | None = None, wait: bool = True) -> bool:
         """Stop taking jobs, finish the queued ones by ``deadline`` (time.monotonic(); None: no limit). Past it, the
         jobs not started are cancelled. Jobs still queued once every worker has ended (workers that died: nobody is
         left to run them) fail with a RuntimeError, so that nobody waits on them forever. True when every worker has
         ended and every job ran (or was cancelled by its owner).
 
-        From one of this lane's own workers (a future's done-callback run there) it cannot wait for that worker: the
-        other workers are joined as above, the calling one runs the queued jobs after its callback returns (unless
-        ``deadline`` has passed by then: they are cancelled), and this returns False."""
+        ``wait`` False, or a call from one of this lane's own workers (a future's done-callback run there), does not
+        wait for the calling worker: the workers run the queued jobs, except those not started by ``deadline``, which
+        they cancel; this returns False (``wait`` False joins no worker at all: StreamingRunner.close on a worker of
+        any of its lanes, where two callbacks closing at once would otherwise wait for each other)."""
         with self._cond:
             self._closed = True
+            if deadline is not None:
+                self._deadline = deadline if self._deadline is None else min(self._deadline, deadline)
             self._cond.notify_all()
+        if not wait:
+            return False
         me = threading.current_thread()
         for t in self._threads:
             if t is not me:  # called from a done-callback on a worker: that worker cannot wait for itself

@@ -108,3 +108,110 @@ def test_a_worker_lane_closed_from_its_own_worker_past_its_deadline_cancels_the_
     assert callback.outcome() == ([False], [])
     assert queued.cancelled()
     _threads_end(list(lane._threads))
+
+
+@pytest.mark.parametrize("pair", ["two slice workers", "a slice worker and the image worker"])
+def test_two_callbacks_closing_the_runner_at_once_do_not_wait_for_each_other(pair):
+    """Each callback runs on a worker the other close() would join: neither may wait (audit of the thirty-second
+    session: with joins, both waited for good)."""
+    before = set(threading.enumerate())
+    det = GatedDetector()
+    det.gate.set()
+    workers = 2 if pair == "two slice workers" else 1
+    runner = StreamingRunner(det, LaneConfig(max_in_flight=workers, queue_size=4, coalesce_slices=1))
+    threads = _lane_threads(before)
+    together = threading.Barrier(2, timeout=WAIT_S)
+
+    def close_together():
+        together.wait()  # both callbacks inside close() at the same time
+        return runner.close()
+
+    callbacks = [ClosingCallback(close_together), ClosingCallback(close_together)]
+    first = runner.submit_slice(POINTS, 0, 0.0)
+    second = runner.submit_slice(POINTS, 1, 0.0) if workers == 2 else runner.submit_images(_images(), 0.0)
+    first.add_done_callback(callbacks[0])
+    second.add_done_callback(callbacks[1])
+    assert [c.outcome() for c in callbacks] == [([False], []), ([False], [])]
+    _threads_end(threads)
+    assert runner.close(timeout=WAIT_S) is True
+
+
+def test_close_from_a_worker_cancels_the_queued_slices_not_started_by_its_deadline():
+    det = GatedDetector()
+    det.gate.set()
+    runner = StreamingRunner(det, LaneConfig(max_in_flight=1, queue_size=8, coalesce_slices=1))
+    slow = threading.Event()
+    calls: list[int] = []
+    detect = det.detect_slice
+
+    def slow_detect(points, slice_index, timestamp=None):
+        calls.append(slice_index)
+        if slice_index > 0:
+            slow.wait(0.2)  # never set: each queued slice takes 0.2 s
+        return detect(points, slice_index, timestamp)
+
+    det.detect_slice = slow_detect
+    gate = threading.Event()
+    first = runner.submit_slice(POINTS, 0, 0.0)
+    callback = ClosingCallback(lambda: (gate.wait(WAIT_S), runner.close(timeout=0.05))[1])
+    first.add_done_callback(callback)
+    queued = [runner.submit_slice(POINTS, k, 0.0) for k in range(1, 6)]
+    gate.set()
+    assert callback.outcome() == ([False], [])
+    for fut in queued:  # each settles: run (started before the deadline) or cancelled (not started by it)
+        assert fut.cancelled() or fut.result(WAIT_S) is not None
+    started = [k for k in calls if k > 0]
+    assert len(started) <= 2 and sum(f.cancelled() for f in queued) >= 3, (started, [f.cancelled() for f in queued])
+    assert runner.close(timeout=WAIT_S) is True
+
+
+class _GatedFirstUpdate:
+    """A phase-locked lane's detector: the first update waits for ``gate``; records when each update starts."""
+
+    camera_names = ("a", "b", "c")
+
+    def __init__(self) -> None:
+        self.gate = threading.Event()
+        self.calls: list[float] = []
+
+    def quadrant_cameras(self, quadrants):
+        return self.camera_names
+
+    def encode_images(self, images):
+        return {n: np.zeros((1, 1, 1), np.float32) for n in images}
+
+    def update_images(self, images, timestamp=None, quadrants=None, encoded=None, camera_timestamps=None):
+        self.calls.append(time.monotonic())
+        if len(self.calls) == 1:
+            assert self.gate.wait(WAIT_S)
+        return sorted(images)
+
+    def forget_images(self, through=None, quadrants=None):
+        pass
+
+
+def test_the_phase_locked_lane_closed_from_an_expired_sets_callback_starts_no_update(caplog):
+    from streamdet.runtime_ort.phase_locked_lane import PhaseLockedImageLane
+
+    det = _GatedFirstUpdate()
+    lane = PhaseLockedImageLane(det, 8, camera_timeout_s=0.05)
+    img = np.zeros((2, 2, 3), np.uint8)
+    lane.submit_images({"a": img}, 0.0)  # its full update waits in the detector
+    deadline = time.monotonic() + WAIT_S
+    while not det.calls and time.monotonic() < deadline:
+        time.sleep(0.005)
+    expiring = lane.submit_images({"b": img}, 1.0)  # times out unused while that update waits
+    closed_at: list[float] = []
+    callback = ClosingCallback(lambda: (closed_at.append(time.monotonic()), lane.close())[1])
+    expiring.add_done_callback(callback)
+    time.sleep(0.04)
+    later = lane.submit_images({"c": img}, 2.0)  # not timed out yet when the first update ends
+    time.sleep(0.03)
+    det.gate.set()
+    returned, raised = callback.outcome()
+    assert raised == [] and returned == [False]
+    time.sleep(0.2)
+    assert [t for t in det.calls if t > closed_at[0]] == []  # no update began after close()
+    assert later.cancelled() or later.done()
+    assert not [r for r in caplog.records if r.levelname == "CRITICAL"]  # no future claimed twice
+    assert lane.close(deadline=time.monotonic() + WAIT_S) is True
