@@ -50,8 +50,9 @@ class CameraFrames:
 
     A camera that has sent nothing for ``timeout_s`` (against the cloud's stamp; three of its own frame periods where
     longer: streamdet.core.camera_timeout) is dropped, so a dead camera's last image is not fused on: the next update
-    lifts its features as zeros (``ImageUpdate.cameras_missing``), and with every camera gone the image BEV is dropped
-    (slices read none, or the LiDAR-only fallback). None: kept however old."""
+    lifts its features as zeros (``ImageUpdate.cameras_missing``); a quadrant none of whose cameras is left is cleared
+    by that update (``ImageUpdate.cleared``), and with every camera gone the image BEV is dropped (slices read the
+    camera-less BEV, or the LiDAR-only fallback). None: kept however old."""
 
     def __init__(self, timeout_s: float | None = DEFAULT_CAMERA_TIMEOUT_S) -> None:
         self.images: dict[str, np.ndarray] = {}

@@ -363,7 +363,8 @@ class StreamingDetector:
         (CalibrationError otherwise, and the LUT in use stays). A camera that sees no voxel is accepted with a
         BlindCameraWarning naming it, one that now sees another part of the grid than with the previous calibration
         (turned around, swapped) with a CameraMovedWarning. The newest cached image set is lifted again, so the next slice sees the new
-        calibration at once. A LiDAR-only export has no calibration to set: NoImageLaneError. The rig the LUT in
+        calibration at once (a quadrant the last update cleared, none of its cameras being given, stays cleared until
+        the next update, even where the new LUT makes it read a camera that update gave). A LiDAR-only export has no calibration to set: NoImageLaneError. The rig the LUT in
         use was built from given again (an equal Rig, dict or calibration.json: the same ``Rig.sha256``, as a vehicle
         republishing its calibration sends) returns at once: no LUT build, no re-lift. (A LUT read from a file, the
         export's lut.npz included, may have been built otherwise: the first such call builds one from the rig.)
@@ -518,6 +519,7 @@ class StreamingDetector:
             if name in known:
                 features[needed.index(name)] = known[name]
         maps = {name: known[name] if name in known else features[needed.index(name)] for name in used}  # per-camera lifts
+        cleared: set[int] = set()  # quadrants this update dropped, none of their cameras being given (_clear_blind)
         for attempt in range(MAX_RELIFTS_PER_UPDATE + 1):
             if attempt:
                 # The calibration was swapped during this update: plan it again with the new LUT. Its quadrants may now
@@ -540,11 +542,13 @@ class StreamingDetector:
             lifted = tuple(q for q in wanted if q not in blind)
             if blind and not self._clear_blind(lut, blind, seq):
                 continue  # the calibration was swapped: plan again
+            cleared.update(blind)
             installed = self._install(features, needed, lifted, seq, timestamp, missing, camera_ts, maps, lut) if lifted else True
             if installed is not None:
                 break
-        else:
-            installed, blind, lifted = _gave_up(seq), (), wanted
+        else:  # nothing installed; the quadrants an earlier plan cleared stay cleared
+            installed = _gave_up(seq)
+            blind, lifted = tuple(sorted(cleared)), tuple(q for q in wanted if q not in cleared)
         self.stats.record("image_total", (time.perf_counter() - t0) * 1e3)
         return ImageUpdate(timestamp, used, missing, superseded=not installed, quadrants=lifted, seq=seq, cleared=blind)
 
@@ -813,8 +817,9 @@ class StreamingDetector:
         Never changed in place: every update or re-lift swaps in a new one, so ``det.image_state is before`` tells
         whether a call changed the cache. It has ``bev`` (a copy of every quadrant), ``features``, ``seq`` (the
         `update_images` call, in call order, of the newest set cached), ``timestamp``, ``lut`` (the LUT it was
-        lifted with; None while quadrants differ) and ``quadrants`` (each quadrant's state, None without images).
-        Its arrays are the detector's own: read them, never write them."""
+        lifted with; None while quadrants differ) and ``quadrants`` (each quadrant's state, None without images:
+        its slices read ``blank_image_bev``, where ``bev`` shows zeros). Its arrays are the detector's own: read
+        them, never write them."""
         return self._image
 
     @property

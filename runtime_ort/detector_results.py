@@ -38,7 +38,7 @@ class SliceResult:
     num_slices: int
     timestamp: float
     # timestamp of the cached image BEV of the slice's quadrant(s), the oldest where it reads several (a quadrant
-    # without images reads zeros); None: none of them had images yet. With ``fallback`` the fused graph did not run:
+    # without images reads the camera-less BEV, StreamingDetector.blank_image_bev); None: none of them had images. With ``fallback`` the fused graph did not run:
     # it is the BEV that was too old (or missing) and its age says why
     image_timestamp: float | None
     num_points: int

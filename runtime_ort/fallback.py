@@ -7,7 +7,8 @@ docs/training/issue19_plan.md, section "Fifth session (2026-12-02, fourth): `sma
 class loss (item 1)"). A vehicle process must not go blind with its cameras, so the detector can hold a
 LiDAR-only slice graph (the shipped ``small_lidar_only.pt`` exported) and use it for a slice when
 
-- a quadrant the slice reads has **no image BEV** (no image update yet, or a calibration swap without re-lift), or
+- a quadrant the slice reads has **no image BEV** (no image update yet, a calibration swap without re-lift, or an
+  image update given none of that quadrant's cameras: ``ImageUpdate.cleared``), or
 - with ``fallback_after_s``, the oldest image BEV it reads is **older** than that at the slice's timestamp (the
   image lane stopped, or fell that far behind).
 

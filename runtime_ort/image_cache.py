@@ -46,7 +46,8 @@ class ImageCache:
 
     @property
     def bev(self) -> np.ndarray:
-        """(4, C, Yq, Xq) float32 of every quadrant (a copy; a quadrant without images is zeros)."""
+        """(4, C, Yq, Xq) float32 of every quadrant (a copy; a quadrant without images is zeros here, where the
+        detector's slices read its camera-less BEV, StreamingDetector.blank_image_bev)."""
         some = next(s for s in self.quadrants if s is not None)
         return np.concatenate([np.zeros_like(some.bev) if s is None else s.bev for s in self.quadrants])
 

@@ -156,3 +156,29 @@ def test_close_lets_go_of_the_blank_bev_and_a_lidar_only_export_has_none(tiny_ex
         det.blank_image_bev
     with pytest.raises(NoImageLaneError):
         StreamingDetector(tiny_lidar_export).blank_image_bev
+
+
+def test_an_update_that_gives_up_reports_the_quadrants_it_cleared(tiny_export):
+    """A calibration swap during every attempt's lift: the update gives up installing, but the quadrant an attempt
+    cleared is cleared, and the result says so (audit of the thirty-second session)."""
+    det = StreamingDetector(tiny_export)
+    q = 2
+    det.update_images(_images(det, 0), timestamp=0.5)
+    others = [n for n in det.camera_names if n not in det.quadrant_cameras([q])]
+    luts = [det.lut, det._build_lut(perturb_rig(load_bundled_sample().rig, 0.01, 0.001, seed=3))]
+    install = det._install
+    swaps = []
+
+    def swapping(*args, **kwargs):  # a calibration swap lands during every attempt's lift
+        swaps.append(1)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # CameraMovedWarning
+            det.set_calibration(luts[len(swaps) % 2])
+        return install(*args, **kwargs)
+
+    det._install = swapping
+    update = det.update_images(_images(det, 1, others), timestamp=1.0)
+    det._install = install
+    assert len(swaps) > 1 and update.superseded
+    assert q in update.cleared and q not in update.quadrants
+    assert det.image_state.quadrants[q] is None

@@ -7,7 +7,8 @@ cameras", thirty-second session).
 Run before that session's change: "zeros lifted" was what a full update did (the quadrant lifted from zero features and
 stamped fresh), "no image BEV" what a slice read without images (an all-zero map). With the change both read the
 camera-less BEV (the lift of zero features) and give the same score, and the full update clears the quadrant, so the
-fallback detector gets it without the forget_images call below."""
+fallback detector gets it without the forget_images call below. Run on that code, the "zeros lifted" variants
+measure the camera-less BEV too (their quadrant updates now clear), and "no image BEV" is no longer an all-zero map."""
 import sys
 from streamdet.runtime_ort.detector import StreamingDetector
 from streamdet.runtime_ort.detector_config import DetectorConfig
