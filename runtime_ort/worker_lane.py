@@ -69,6 +69,7 @@ class WorkerLane:
         self._overflow = overflow
         self._closed = False
         self._deadline: float | None = None  # close(deadline): jobs not started by then are cancelled by the workers
+        self._expired = 0  # jobs the workers cancelled so (close() then reports that not everything ran)
         self._workers = workers
         self._nice = check_nice(nice, f"{name}: nice")
         self._busy = 0  # workers running a job (under _cond)
@@ -143,6 +144,7 @@ class WorkerLane:
                     return
                 if self._closed and self._deadline is not None and time.monotonic() >= self._deadline:
                     expired, self._jobs = list(self._jobs), collections.deque()  # not started by close()'s deadline
+                    self._expired += sum(1 for job in expired if not job[1].cancelled())  # their owners' own: not counted
                 else:
                     expired = None
                     jobs = [self._jobs.popleft()]
@@ -273,7 +275,7 @@ class WorkerLane:
 
         ``wait`` False, or a call from one of this lane's own workers (a future's done-callback run there), does not
         wait for the calling worker: the workers run the queued jobs, except those not started by ``deadline``, which
-        they cancel; this returns False (``wait`` False joins no worker at all: StreamingRunner.close on a worker of
+        they cancel (a later close() then returns False too: not every job ran); this returns False (``wait`` False joins no worker at all: StreamingRunner.close on a worker of
         any of its lanes, where two callbacks closing at once would otherwise wait for each other)."""
         with self._cond:
             self._closed = True
@@ -302,7 +304,9 @@ class WorkerLane:
                 complete_future(self._name, job[1], error=error)
             else:
                 cancel_future(self._name, job[1])
-        return ended and not left
+        with self._cond:
+            expired = self._expired
+        return ended and not left and not expired
 
 
 def claim_future(fut: Future) -> bool:
