@@ -424,8 +424,8 @@ class PhaseLockedImageLane:
             update = self.detector.update_images(images, timestamp, quadrants=quadrants, encoded=encoded, **options)
             if quadrants is None:
                 blind = self._without(frames)
-                if blind:  # they would hold a BEV of zeros stamped as new: no image there instead, as when locked
-                    self.detector.forget_images(quadrants=blind)
+                if blind:  # no image there, as when locked (StreamingDetector's update cleared them already; a
+                    self.detector.forget_images(quadrants=blind)  # detector that lifts them from zeros would not)
         else:  # every camera that sees these quadrants timed out: their slices read no image rather than old frames
             self.detector.forget_images(quadrants=quadrants)
             update = None

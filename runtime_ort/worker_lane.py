@@ -259,9 +259,7 @@ class WorkerLane:
     def stop(self) -> None:
         """Stop taking jobs without waiting: the workers end once the queued jobs are done (their futures complete).
         For a lane whose owner is gone (StreamingRunner's finalizer): this may run on any thread, a worker's too."""
-        with self._cond:
-            self._closed = True
-            self._cond.notify_all()
+        self.close(wait=False)
 
     def runs_on(self, thread: threading.Thread) -> bool:
         """Whether ``thread`` is one of this lane's workers."""
