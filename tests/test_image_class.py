@@ -103,8 +103,9 @@ def test_forward_returns_one_logit_row_per_object(store):
 
     model = TrainingModel(build_detector(TINY), image_classifier=True).train()
     batch = Collator(TINY)([SliceDataset(store, TINY)[0]])
-    maps, logits = model(batch)
+    maps, (logits, labels) = model(batch)
     assert logits.shape == (int(batch.mask.sum()), 10) and torch.isfinite(logits).all()
+    assert torch.equal(labels, batch.label[batch.mask])
     assert model(batch, use_image=False)[1] is None  # the image lane off (warm-up): nothing to read
 
 

@@ -37,6 +37,7 @@ class Batch:
     lut_index: Tensor | None  # (L, K, Z, Yq, Xq) int64 rows of the batch feature table
     lut_weight: Tensor | None  # (L, K, Z, Yq, Xq) float32
     map_source: Tensor | None  # (Qm,) int64 lift entry feeding each slice map
+    map_sample: Tensor | None  # (Qm,) int64 sample (of the batch's B) each slice map belongs to
     pillar_features: Tensor  # (P, M, 11) float32
     pillar_mask: Tensor  # (P, M) float32
     pillar_index: Tensor  # (P,) int64 into the stacked slice maps: map * Yq * Xq + row * Xq + col ((ny, nx) maps
@@ -115,6 +116,7 @@ class Collator:
         feats, masks, indices = [], [], []
         heat, obj_index, obj_mask, obj_label, obj_box = [], [], [], [], []
         map_source: list[int] = []
+        map_sample: list[int] = []
         entries: list[tuple[int, int, tuple[str, ...] | None]] = []  # (sample b, quadrant, cameras or None = all)
         entry_of: dict[tuple[int, int], int] = {}
         num_maps = 0
@@ -134,6 +136,7 @@ class Collator:
                     obj_label.append(t.label)
                     obj_box.append(t.box)
                     if p.use_image:
+                        map_sample.append(b)
                         if self.camera_mode == "all":
                             key = (b, q)
                             if key not in entry_of:
@@ -145,7 +148,7 @@ class Collator:
                             entries.append((b, q, sl.camera_names))
                     num_maps += 1
 
-        images = lut_index = lut_weight = source = None
+        images = lut_index = lut_weight = source = sample_of_map = None
         if p.use_image:
             images = torch.from_numpy(np.stack([it.images for it in items]))  # (B, J, H, W, 3)
             num_cams = images.shape[1]
@@ -153,6 +156,7 @@ class Collator:
             idx, wgt = self._lift_entries(items, entries, num_cams)
             lut_index, lut_weight = torch.from_numpy(idx), torch.from_numpy(wgt)
             source = torch.tensor(map_source, dtype=torch.int64)
+            sample_of_map = torch.tensor(map_sample, dtype=torch.int64)
 
         m = p.pillars.max_points_per_pillar
         return Batch(
@@ -160,6 +164,7 @@ class Collator:
             lut_index=lut_index,
             lut_weight=lut_weight,
             map_source=source,
+            map_sample=sample_of_map,
             pillar_features=torch.from_numpy(np.concatenate(feats) if feats else np.zeros((0, m, 11), np.float32)),
             pillar_mask=torch.from_numpy(np.concatenate(masks) if masks else np.zeros((0, m), np.float32)),
             pillar_index=torch.from_numpy(np.concatenate(indices) if indices else np.zeros(0, np.int64)),

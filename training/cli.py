@@ -135,6 +135,9 @@ def _parse_slices(ctx, param, value: str) -> tuple[int, ...]:
 @click.option("--image-class-weight", type=FiniteFloatRange(min=0), default=0.0, show_default=True,
               help="Weight of an image-side loss beside detection: each object's class read linearly from the image BEV at its "
                    "centre (cross-entropy; a training-only classifier, never exported). 0: off.")
+@click.option("--camera-dropout", type=FiniteFloatRange(0, 1, max_open=True), default=0.0, show_default=True,
+              help="Probability that a training sample loses cameras: k of its J cameras, k uniform in 1..J, lifted from zero "
+                   "features as the runtime lifts a camera without a frame (training/camera_dropout.py). 0: off.")
 @click.option("--resume", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Continue from a last.pt written by this command.")
 @click.option("--overwrite", is_flag=True, help="Train into an --out that already holds a run (model.pt, last.pt, metrics.jsonl), replacing it.")
 @click.option("--init", type=click.Path(dir_okay=False, path_type=Path), default=None,
@@ -167,7 +170,7 @@ def _parse_slices(ctx, param, value: str) -> tuple[int, ...]:
 @click.option("--checkpoint-every", type=click.IntRange(min=1), default=200, show_default=True, help="Steps between rewrites of last.pt.")
 def main(data_dir: Path, version: str, out_dir: Path, preset: str, steps: int | None, epochs: int, batch_size: int,
          lr: float, num_slices: tuple[int, ...], max_slices_per_sample: int | None, no_image: bool, no_crop: bool, camera_mode: str,
-         image_warmup: float, image_class_weight: float, resume: Path | None, overwrite: bool, init: Path | None, teacher: Path | None, distill_weight: float,
+         image_warmup: float, image_class_weight: float, camera_dropout: float, resume: Path | None, overwrite: bool, init: Path | None, teacher: Path | None, distill_weight: float,
          freeze_camera_lane: bool, balanced: bool, workers: int, seed: int, max_minutes: float | None, amp: str,
          cache_dir: Path | None, device: str | None, log_every: int, checkpoint_every: int) -> None:  # fmt: skip
     """Train the streaming camera + LiDAR detector (or its LiDAR-only baseline) with CenterPoint targets."""
@@ -196,7 +199,7 @@ def main(data_dir: Path, version: str, out_dir: Path, preset: str, steps: int | 
     try:
         config = TrainConfig(
             preset=preset, use_image=not no_image, slice_crop=not no_crop, steps=steps, epochs=epochs, batch_size=batch_size, lr=lr, amp=amp,
-            image_warmup=image_warmup, image_class_weight=image_class_weight, balanced=balanced, workers=workers, seed=seed, max_minutes=max_minutes, log_every=log_every,
+            image_warmup=image_warmup, image_class_weight=image_class_weight, camera_dropout=camera_dropout, balanced=balanced, workers=workers, seed=seed, max_minutes=max_minutes, log_every=log_every,
             checkpoint_every=checkpoint_every, teacher=str(teacher) if teacher is not None else None,
             distill_weight=distill_weight, freeze_camera_lane=freeze_camera_lane,
             data=DataConfig(num_slices=num_slices, max_slices_per_sample=max_slices_per_sample, camera_mode=camera_mode),

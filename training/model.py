@@ -17,10 +17,10 @@ CAMERA_LANE = ("image_encoder", "lifter")  # the StreamDetector parts that make 
 
 
 class TrainingModel(nn.Module):
-    """``forward(batch) -> (list of HeadMaps, image class logits or None)``: one HeadMaps per head task
+    """``forward(batch) -> (list of HeadMaps, (image class logits, labels) or None)``: one HeadMaps per head task
     (``CenterHead.forward_tasks``), each map (Qm, ch, Hh, Wh) over the batch's stacked slice maps; with
     ``image_classifier`` and the image lane on, the logits (N, num_classes) of the batch's N objects read from the
-    image BEV at their centres (``training/image_class.py``). ``detector`` is the StreamDetector that is exported;
+    image BEV at their centres (``training/image_class.py``) and their labels (N,). ``detector`` is the StreamDetector that is exported;
     the classifier is training-only.
 
     ``freeze_camera_lane``: the image encoder and lifter keep their weights (no gradient) and their BatchNorm
@@ -51,26 +51,43 @@ class TrainingModel(nn.Module):
     def task_classes(self) -> tuple[tuple[int, ...], ...]:
         return self.detector.slice_net.head.task_classes
 
-    def image_bev(self, batch: Batch, use_image: bool = True) -> Tensor | None:
+    def image_bev(self, batch: Batch, use_image: bool = True, camera_keep: Tensor | None = None) -> Tensor | None:
         """(Qm, C, Yq, Xq): the lifted quadrant volumes, each slice map reading its lift entry; None for the
         LiDAR-only preset or with ``use_image`` False (the slice net then sees zeros, what the runtime feeds before
-        its first image update, or no image BEV at all: ``SliceNet.fused_bev``)."""
+        its first image update, or no image BEV at all: ``SliceNet.fused_bev``). ``camera_keep`` (B, J) bool: the
+        cameras False are lifted from zero features, as the runtime lifts a camera without a frame
+        (training/camera_dropout.py); None: every camera."""
         d = self.detector
         if not (d.preset.use_image and use_image):
             return None
+        if d.image_encoder is None or d.lifter is None:
+            raise RuntimeError(f"preset {d.preset.name!r} has use_image=False: there is no image lane")
         with torch.no_grad() if self.frozen else nullcontext():
-            lifted = d.image_bev(batch.images, batch.lut_index, batch.lut_weight)  # (L, C, Yq, Xq)
+            feats = d.image_encoder(batch.images)  # (B * J, C, Hf, Wf), sample-major
+            if camera_keep is not None:
+                if camera_keep.numel() != feats.shape[0]:
+                    raise ValueError(f"camera_keep has {tuple(camera_keep.shape)} entries for {feats.shape[0]} images")
+                feats = feats * camera_keep.reshape(-1, 1, 1, 1).to(feats.dtype)  # (B * J, C, Hf, Wf)
+            lifted = d.lifter(feats, batch.lut_index, batch.lut_weight)  # (L, C, Yq, Xq)
         return lifted.index_select(0, batch.map_source)  # (Qm, C, Yq, Xq)
 
-    def forward(self, batch: Batch, use_image: bool = True, lifted: Tensor | None = None) -> tuple[list[HeadMaps], Tensor | None]:
+    def forward(self, batch: Batch, use_image: bool = True, lifted: Tensor | None = None,
+                camera_keep: Tensor | None = None) -> tuple[list[HeadMaps], tuple[Tensor, Tensor] | None]:  # fmt: skip
         """``lifted``: the batch's image BEV (Qm, C, Yq, Xq) when it was computed already (a frozen camera lane
-        shared with a distillation teacher, training/distill.py); None: lift it here."""
+        shared with a distillation teacher, training/distill.py); None: lift it here, with the cameras of
+        ``camera_keep`` (``image_bev``). The second output: (logits (N, num_classes), labels (N,)) of the image-side
+        class loss over the N objects of the samples that kept every camera (an object whose cameras were dropped
+        has nothing to be read from), or None without the classifier or the image lane."""
         net = self.detector.slice_net
-        image_bev = lifted if lifted is not None and use_image else self.image_bev(batch, use_image)
+        image_bev = lifted if lifted is not None and use_image else self.image_bev(batch, use_image, camera_keep)
         bev = net.fused_bev(batch.pillar_features, batch.pillar_mask, batch.pillar_index, image_bev, num_quadrants=batch.num_maps)
         task_maps = net.head.forward_tasks(bev)
         if self.image_classifier is None or image_bev is None:
             return task_maps, None
+        objects = batch.mask  # (Qm, K)
+        if camera_keep is not None:
+            whole = camera_keep.reshape(batch.num_samples, -1).all(dim=1)  # (B,) samples that kept every camera
+            objects = objects & whole.index_select(0, batch.map_sample)[:, None]  # (Qm, K)
         head_width = batch.heatmap.shape[-1]
         cells = centre_cells(batch.index, batch.box, head_width, image_bev.shape[-1] // head_width)  # (Qm, K)
-        return task_maps, self.image_classifier(image_bev, cells, batch.mask)
+        return task_maps, (self.image_classifier(image_bev, cells, objects), batch.label[objects])

@@ -34,6 +34,7 @@ from streamdet.core.json_input import short_repr
 from streamdet.models.detector import build_detector
 from streamdet.models.presets import Preset, get_preset
 from streamdet.training.batching import Batch, Collator
+from streamdet.training.camera_dropout import check_camera_dropout, draw_camera_keep
 from streamdet.training.checkpoint import (
     TRANSFERABLE_PARTS,
     check_fits,
@@ -101,6 +102,9 @@ class TrainConfig:
     # Weight of the image-side class loss beside detection (training/image_class.py: each object's class read
     # linearly from the image BEV at its centre, cross-entropy per object); 0 = off, the CenterPoint loss alone.
     image_class_weight: float = 0.0
+    # Probability that a training sample loses cameras (training/camera_dropout.py: k of its J cameras, k uniform in
+    # 1..J, lifted from zero features as the runtime lifts a camera without a frame); 0 = off, every camera always.
+    camera_dropout: float = 0.0
     balanced: bool = False  # class-balanced (CBGS) resampling of the training samples
     workers: int = 0  # DataLoader worker processes (0: load in the training process)
     seed: int = 0
@@ -146,6 +150,9 @@ class TrainConfig:
             raise ValueError(f"TrainConfig.image_class_weight must be a number >= 0, got {self.image_class_weight!r}")
         if self.image_class_weight > 0 and not self.use_image:
             raise ValueError("the image class loss (image_class_weight > 0) needs the image lane: drop --no-image or the weight")
+        check_camera_dropout(self.camera_dropout, "TrainConfig.camera_dropout")
+        if self.camera_dropout > 0 and not self.use_image:
+            raise ValueError("camera dropout (camera_dropout > 0) needs the image lane: drop --no-image or --camera-dropout")
         if not 0.0 <= self.image_warmup < 1.0:
             raise ValueError(f"TrainConfig.image_warmup must be in [0, 1), got {self.image_warmup!r}")
         if not 0.0 < self.pct_start < 1.0:
@@ -172,6 +179,8 @@ class TrainConfig:
             del d["slice_crop"]
         if self.image_class_weight == 0:
             del d["image_class_weight"]
+        if self.camera_dropout == 0:
+            del d["camera_dropout"]
         if self.teacher is None:
             for k in ("teacher", "distill_weight", "distill"):
                 del d[k]
@@ -505,7 +514,8 @@ def _train_into(config: TrainConfig, data_dir: str | Path, out_dir: str | Path, 
     if resume is not None:
         _restore(run, resume)
     if run.teacher is not None:
-        run.shared_lane = config.freeze_camera_lane and run.teacher.shares_camera_lane(run.detector)
+        # with camera dropout the teacher lifts every camera itself: its targets are the whole scene's
+        run.shared_lane = config.freeze_camera_lane and not config.camera_dropout and run.teacher.shares_camera_lane(run.detector)
         run.say(f"distilling from {config.teacher} (preset {run.teacher.preset.name!r}, weight {config.distill_weight:g})"
                 + ("; the frozen camera lane is the teacher's: one lift per step for both" if run.shared_lane else ""))  # fmt: skip
     if run.ctx.is_main:
@@ -781,9 +791,10 @@ def _stop_if_diverged(run: _TrainRun, loss: float, lr: float) -> None:
 
 def _step(run: _TrainRun, batch: Batch, use_image: bool) -> tuple[torch.Tensor, dict]:
     """One optimizer step on one batch: forward, loss over the global batch, backward, clipped update."""
+    keep = _camera_keep(run, batch) if use_image else None
     with run.amp:
         lifted = run.model.image_bev(batch, use_image) if run.shared_lane else None  # frozen: no graph, read by both
-        task_maps, image_logits = run.wrapped(batch, use_image=use_image, lifted=lifted)
+        task_maps, image_class = run.wrapped(batch, use_image=use_image, lifted=lifted, camera_keep=keep)
     task_maps = [tuple(m.float() for m in maps) for maps in task_maps]
     terms = loss_terms(task_maps, run.model.task_classes, batch.heatmap, batch.index, batch.mask, batch.label, batch.box)
     counts = all_reduce_sum(terms.num_objects, run.ctx)
@@ -794,12 +805,12 @@ def _step(run: _TrainRun, batch: Batch, use_image: bool) -> tuple[torch.Tensor, 
         distill, distill_parts = distill_loss(task_maps, teacher_maps, counts, run.criterion.code_weights, run.config.distill)
         loss = loss + run.config.distill_weight * distill * float(run.ctx.world_size)
         parts.update(distill_parts)
-    if image_logits is not None:
+    if image_class is not None:
         # per object, normalised by the global batch's object count like the heatmap term (every object is in
-        # exactly one task, so the tasks' counts sum to it)
-        image_class = image_class_loss_sum(image_logits, batch.label[batch.mask]) / counts.sum().clamp(min=1.0)
-        loss = loss + run.config.image_class_weight * image_class * float(run.ctx.world_size)
-        parts["image_class"] = image_class.detach()
+        # exactly one task, so the tasks' counts sum to it); objects whose cameras were dropped are not read
+        image_loss = image_class_loss_sum(*image_class) / counts.sum().clamp(min=1.0)
+        loss = loss + run.config.image_class_weight * image_loss * float(run.ctx.world_size)
+        parts["image_class"] = image_loss.detach()
     run.optimizer.zero_grad(set_to_none=True)
     run.scaler.scale(loss).backward()
     run.scaler.unscale_(run.optimizer)
@@ -807,6 +818,17 @@ def _step(run: _TrainRun, batch: Batch, use_image: bool) -> tuple[torch.Tensor, 
     run.scaler.step(run.optimizer)
     run.scaler.update()
     return loss, parts
+
+
+def _camera_keep(run: _TrainRun, batch: Batch) -> torch.Tensor | None:
+    """(B, J) bool cameras kept by camera dropout at this step, None when it is off. Drawn from a generator seeded by
+    (seed, step, process): a resumed run drops what the uninterrupted one would, and processes drop apart."""
+    p = run.config.camera_dropout
+    if p == 0 or batch.images is None:
+        return None
+    gen = torch.Generator().manual_seed((run.config.seed * 1_000_003 + run.schedule.step) * 1_009 + run.ctx.rank)
+    num_cameras = batch.images.shape[0] // batch.num_samples
+    return draw_camera_keep(batch.num_samples, num_cameras, p, gen, device=batch.images.device)
 
 
 def _log(window: dict, schedule: OneCycle, lr: float, epoch: int, ctx: DistContext, say, log_file) -> None:
