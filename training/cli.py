@@ -95,9 +95,8 @@ def _parse_slices(ctx, param, value: str) -> tuple[int, ...]:
         counts = tuple(int(v) for v in entries)
     except ValueError:
         raise click.BadParameter(f"expected slice counts such as 8 or 8,32, got {value!r}") from None
-    dupes = sorted({n for n in counts if counts.count(n) > 1})
-    if dupes:  # each count is one view of every sample: a repeat would silently weigh it twice
-        raise click.BadParameter(f"slice count(s) {dupes} given twice in {value!r}")
+    # a repeat is a weight, not a slip: each sample draws one entry uniformly (SliceDataset), so 8,8,32 trains two
+    # samples at 8 slices for every one at 32 (the recipe of the shipped models, docs/training/)
     for n in counts:
         if n < 1 or n > MAX_NUM_SLICES or (n not in (1, 2) and n % 4):
             raise click.BadParameter(f"slice count {n} must be 1, 2 or a multiple of 4 up to {MAX_NUM_SLICES} (sectors aligned to quadrants)")
@@ -120,7 +119,8 @@ def _parse_slices(ctx, param, value: str) -> tuple[int, ...]:
               help="Samples per process per step; each sample brings all its slices (8 quadrant maps at 8 slices).")
 @click.option("--lr", type=FiniteFloatRange(min=0, min_open=True), default=2e-3, show_default=True, help="Peak learning rate of the one-cycle schedule (AdamW).")
 @click.option("--num-slices", default="8", show_default=True, callback=_parse_slices,
-              help="Slice count per sweep, or several separated by commas (each sample draws one), e.g. 8,32.")
+              help="Slice count per sweep, or several separated by commas (each sample draws one entry uniformly, so a "
+                   "count given twice is drawn twice as often), e.g. 8,32 or 8,8,32.")
 @click.option("--max-slices-per-sample", type=click.IntRange(min=1), default=None,
               help="Train on a random subset of at most this many slices of each sample (default: all of them). A cap: "
                    "with several --num-slices, a sample with fewer slices trains on all of them; more than the largest "
