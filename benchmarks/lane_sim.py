@@ -158,7 +158,7 @@ class _CostedDetector:
             self._spend(self.costs.term_ms)
             self._termed[id(feats)] = feats
 
-    def forget_images(self, through=None, quadrants=None) -> None:
+    def forget_images(self, through=None, quadrants=None, cameras_out=False) -> None:
         """Quadrants none of whose cameras has a frame (before the lane locks): no lift to cost, nothing to record."""
 
     def update_images(self, images, timestamp=None, quadrants=None, encoded=None, camera_timestamps=None):

@@ -209,6 +209,10 @@ class StreamingDetector:
         self._image_seq = 0  # update_images calls started (under _lock)
         # per quadrant: image sets of calls up to this seq were dropped there (forget_images): never installed there
         self._image_floor = [0] * NUM_QUADRANTS
+        # per quadrant: whether its image BEV was last dropped because none of its cameras had a frame (an update given
+        # none of them, or the phase-locked lane's cameras timed out): its slices then name them in cameras_missing.
+        # Read only where the quadrant holds no image; a tuple swapped whole, so a slice reads it without the lock
+        self._cameras_out: tuple[bool, ...] = (False,) * NUM_QUADRANTS
         self._lut: Lut | None = None  # stays None for a LiDAR-only export
         self._built_from: tuple[Lut, str] | None = None  # (a LUT this detector built, its rig's sha256): _is_current_rig
         if self.uses_images and (self.image.width, self.image.height) == (m.image.width, m.image.height):
@@ -560,7 +564,7 @@ class StreamingDetector:
         with self._lock:
             if self._lut is not lut:
                 return False
-            self._drop_images_locked(seq - 1, quadrants)
+            self._drop_images_locked(seq - 1, quadrants, cameras_out=True)
             return True
 
     def encode_images(self, images: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -585,7 +589,7 @@ class StreamingDetector:
         once after construction, before the first ``update_images`` / slice."""
         warm_up(self, rounds)
 
-    def forget_images(self, through: int | None = None, quadrants: Sequence[int] | None = None) -> None:
+    def forget_images(self, through: int | None = None, quadrants: Sequence[int] | None = None, cameras_out: bool = False) -> None:
         """Drop the cached image BEV: slices read no image until the next ``update_images``. An update already under
         way when this is called installs nothing (its ``ImageUpdate.superseded`` is True).
 
@@ -595,19 +599,24 @@ class StreamingDetector:
         ``quadrants``: only those (a strictly increasing list of 0..3; None: all four); the others keep their BEV,
         and an update under way still installs there. The phase-locked image lane drops so a quadrant all of whose
         cameras are out (``LaneConfig.camera_timeout_s``): its slices then read no image (the camera-less BEV, or
-        the LiDAR-only fallback), as before the first image."""
+        the LiDAR-only fallback), as before the first image, and passes ``cameras_out`` True: the slices of those
+        quadrants then name their cameras in ``SliceResult.cameras_missing`` (False: no camera is said to be out)."""
+        if not isinstance(cameras_out, bool):
+            raise ValueError(f"forget_images cameras_out must be True or False, got {cameras_out!r}")
         if through is not None and (isinstance(through, bool) or not isinstance(through, (int, np.integer)) or through < 0):
             raise ValueError(f"forget_images through must be None or an ImageUpdate.seq (an int >= 0), got {through!r}")
         wanted = update_quadrants(quadrants)
         with self._lock:
-            self._drop_images_locked(self._image_seq if through is None else int(through), wanted)
+            self._drop_images_locked(self._image_seq if through is None else int(through), wanted, cameras_out)
 
-    def _drop_images_locked(self, through: int, quadrants: tuple[int, ...] = ALL_QUADRANTS) -> None:
+    def _drop_images_locked(self, through: int, quadrants: tuple[int, ...] = ALL_QUADRANTS, cameras_out: bool = False) -> None:
         """Drop the image sets of the update_images calls up to ``through`` (seq) in ``quadrants``, cached or still
-        under way (``_install`` refuses them there); the caller holds ``_lock``."""
+        under way (``_install`` refuses them there); ``cameras_out``: because none of their cameras has a frame
+        (``_cameras_out``). The caller holds ``_lock``."""
         floor = self._image_floor
         for q in quadrants:
             floor[q] = max(floor[q], through)
+        self._cameras_out = tuple(cameras_out if q in quadrants else out for q, out in enumerate(self._cameras_out))
         kept = tuple(s if s is not None and s.seq > floor[q] else None for q, s in enumerate(quadrant_states(self._image)))
         self._image = None if all(s is None for s in kept) else ImageCache(kept)
 
@@ -892,6 +901,7 @@ class StreamingDetector:
         quadrants = quadrants_of_sector(ks[0], n, self.config.start_deg)
         t0 = time.perf_counter()
         cache = quadrant_states(self._image)  # one read: a consistent view of the cache
+        out = self._cameras_out  # (read after the cache: a drop between the two reads only renames a quadrant's absence)
         states = tuple(cache[q] for q in quadrants)
         stamps = [s.timestamp for s in states if s is not None]
         image_ts = min(stamps) if stamps else None
@@ -935,7 +945,7 @@ class StreamingDetector:
         self.stats.record("slice_total", (time.perf_counter() - t0) * 1e3)
         parts = split_by_slice(dets, ks, n, self.config.start_deg)
         last = len(ks) - 1
-        missing = self._cameras_missing(quadrants, states)
+        missing = self._cameras_missing(quadrants, states, out)
         return tuple(
             SliceResult(
                 detections=part,
@@ -976,12 +986,18 @@ class StreamingDetector:
             raise GraphRunError(f"{file}: det_scores holds {float(ok.min()):.6g}..{float(ok.max()):.6g}, outside [0, 1]")
         return nonfinite
 
-    def _cameras_missing(self, quadrants: tuple[int, ...], states: tuple[QuadrantState | None, ...]) -> tuple[str, ...]:
+    def _cameras_missing(self, quadrants: tuple[int, ...], states: tuple[QuadrantState | None, ...],
+                         cameras_out: tuple[bool, ...]) -> tuple[str, ...]:  # fmt: skip
         """The cameras whose features were zeros (not given to the image update that made the BEV) among those the LUT
-        of each quadrant read reads there, in the export's camera order."""
+        of each quadrant read reads there, and every camera the current LUT reads in a quadrant dropped because none
+        of its cameras had a frame (``cameras_out``, per quadrant 0..3), in the export's camera order."""
         missing: set[str] = set()
+        lut = self._lut
         for q, state in zip(quadrants, states):
-            if state is not None and state.cameras_missing and state.lut is not None:  # () on every slice but a camera out
+            if state is None:
+                if cameras_out[q] and lut is not None:
+                    missing.update(self._cameras_under(lut, (q,)))
+            elif state.cameras_missing and state.lut is not None:  # () on every slice but a camera out
                 missing.update(set(state.cameras_missing) & set(self._cameras_under(state.lut, (q,))))
         return tuple(c for c in self.camera_names if c in missing) if missing else ()
 

@@ -60,8 +60,10 @@ class SliceResult:
     coalesced: tuple[int, ...] = ()
     # cameras the slice's quadrant(s) read whose features were zeros: not given to the image update that made their
     # BEV (a camera out: missing from the image set under "full", silent for LaneConfig.camera_timeout_s under
-    # "phase-locked"); () when every camera they read was there. image_age_s does not show this: the quadrant's age
-    # is that of the cameras that were given
+    # "phase-locked"), and every camera of a quadrant without an image BEV because none of them had a frame (an
+    # update given none of them, or all timed out); () when every camera they read was there, and for a quadrant
+    # without images for another reason (none yet, forget_images). image_age_s does not show a camera missing from a
+    # lifted quadrant: its age is that of the cameras that were given
     cameras_missing: tuple[str, ...] = ()
     # StreamingRunner's clock (time.monotonic()): when submit_slice took the slice, and when its result was made (before
     # its future completes and runs callbacks); None for the detector's own calls. latency_s is their difference

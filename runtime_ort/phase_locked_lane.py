@@ -38,8 +38,8 @@ Degraded behaviour, in this order (each counted in ``PhaseLockStats``):
   its last frame is dropped (``cameras_timed_out``) and every quadrant lifted with it is lifted again without it, as
   soon as it can be (its features zeros: ``SliceResult.cameras_missing`` names it), rather than its old frame being
   fused for as long as it stays out. A quadrant left with none of its cameras drops its image BEV at once, without
-  waiting for its pass (``StreamingDetector.forget_images(quadrants=...)``, ``quadrants_cleared``): its slices read no image, as before
-  the first one (the LiDAR-only fallback export where one is configured, else the camera-less BEV). Its next frame brings it back;
+  waiting for its pass (``StreamingDetector.forget_images(quadrants=..., cameras_out=True)``, ``quadrants_cleared``): its slices read no
+  image, as before the first one, and name its cameras in ``SliceResult.cameras_missing`` (the LiDAR-only fallback export where one is configured, else the camera-less BEV). Its next frame brings it back;
 - **image sets**: an image set each of whose frames was replaced by a newer one before any lift used it fails
   its future with ``ImagesSuperseded``; otherwise its future holds the `ImageUpdate` of the first lift that used it.
 
@@ -425,9 +425,9 @@ class PhaseLockedImageLane:
             if quadrants is None:
                 blind = self._without(frames)
                 if blind:  # no image there, as when locked (StreamingDetector's update cleared them already; a
-                    self.detector.forget_images(quadrants=blind)  # detector that lifts them from zeros would not)
+                    self.detector.forget_images(quadrants=blind, cameras_out=True)  # detector that lifts them from zeros would not)
         else:  # every camera that sees these quadrants timed out: their slices read no image rather than old frames
-            self.detector.forget_images(quadrants=quadrants)
+            self.detector.forget_images(quadrants=quadrants, cameras_out=True)
             update = None
         t2 = self.clock()
         with self._cond:

@@ -41,6 +41,7 @@ class RecordingDetector:
         self.held: list[frozenset[str] | None] = [None] * 4
         self.lifts: list[tuple[tuple[int, ...], frozenset[str], float]] = []  # (quadrants, cameras given, end)
         self.forgets: list[tuple[tuple[int, ...], float]] = []
+        self.forgot_cameras_out: list[bool] = []  # forget_images' cameras_out, per call
 
     def quadrant_cameras(self, quadrants):
         return tuple(n for n in CAMERAS if any(n in SEES[q] for q in quadrants))
@@ -60,11 +61,12 @@ class RecordingDetector:
         self.lifts.append((qs, frozenset(images), self.clock.t))
         return ImageUpdate(timestamp, tuple(images), (), quadrants=qs)
 
-    def forget_images(self, through=None, quadrants=None):
+    def forget_images(self, through=None, quadrants=None, cameras_out=False):
         qs = tuple(quadrants) if quadrants else (0, 1, 2, 3)
         for q in qs:
             self.held[q] = None
         self.forgets.append((qs, self.clock.t))
+        self.forgot_cameras_out.append(cameras_out)
 
 
 def drive(timeout_s: float | None, senders, seconds: float = 3.0, slices: bool = True):
@@ -126,6 +128,7 @@ def test_a_quadrant_whose_cameras_all_stop_drops_its_image_bev_and_a_frame_bring
 def test_every_camera_stopping_clears_every_quadrant_and_the_lane_then_idles():
     lane, det, _ = drive(0.25, lambda t: CAMERAS if t < 1.0 else ())
     assert lane.stats.cameras_timed_out == len(CAMERAS) and det.held == [None] * 4
+    assert det.forgot_cameras_out and all(det.forgot_cameras_out)  # their slices name the cameras (cameras_missing)
     steps = det.lifts[:], det.forgets[:]
     assert lane.step(10.0) is None and (det.lifts, det.forgets) == steps  # nothing left to do or to time out
 

@@ -186,7 +186,7 @@ class _GatedFirstUpdate:
             assert self.gate.wait(WAIT_S)
         return sorted(images)
 
-    def forget_images(self, through=None, quadrants=None):
+    def forget_images(self, through=None, quadrants=None, cameras_out=False):
         pass
 
 

@@ -182,3 +182,37 @@ def test_an_update_that_gives_up_reports_the_quadrants_it_cleared(tiny_export):
     assert len(swaps) > 1 and update.superseded
     assert q in update.cleared and q not in update.quadrants
     assert det.image_state.quadrants[q] is None
+
+
+def test_a_cleared_quadrants_slices_name_its_cameras_missing(tiny_export, sample):
+    """A quadrant cleared because none of its cameras was given names them in cameras_missing (in the export's camera
+    order); a quadrant without images for any other reason (none yet, forget_images) names none."""
+    det = StreamingDetector(tiny_export)
+    q = 2
+    cams = det.quadrant_cameras([q])
+    k, pts = _slice_in(q, sample.points)
+    assert det.detect_slice(pts, k, timestamp=0.1).cameras_missing == ()  # no image yet: no camera is out
+    others = [n for n in det.camera_names if n not in cams]
+    det.update_images(_images(det, 0, others), timestamp=1.0)
+    got = det.detect_slice(pts, k, timestamp=1.1)
+    assert got.cameras_missing == cams and got.image_age_s is None
+    det.update_images(_images(det, 1), timestamp=2.0)  # every camera again: nothing missing
+    assert det.detect_slice(pts, k, timestamp=2.1).cameras_missing == ()
+    det.forget_images(quadrants=[q])  # dropped, not out
+    assert det.detect_slice(pts, k, timestamp=2.2).cameras_missing == ()
+    det.forget_images(quadrants=[q], cameras_out=True)  # the phase-locked lane: every camera of q timed out
+    assert det.detect_slice(pts, k, timestamp=2.3).cameras_missing == cams
+    det.forget_images()
+    assert det.detect_slice(pts, k, timestamp=2.4).cameras_missing == ()
+    # another quadrant's slice is untouched by q's record
+    k0, pts0 = _slice_in(0, sample.points)
+    det.update_images(_images(det, 2, others), timestamp=3.0)
+    assert det.detect_slice(pts0, k0, timestamp=3.1).cameras_missing == tuple(c for c in det.camera_names
+                                                                              if c in det.quadrant_cameras([0]) and c in cams)  # fmt: skip
+
+
+@pytest.mark.parametrize("bad", [1, None, "yes"])
+def test_forget_images_refuses_a_cameras_out_that_is_no_bool(tiny_export, bad):
+    det = StreamingDetector(tiny_export)
+    with pytest.raises(ValueError, match="cameras_out must be True or False"):
+        det.forget_images(cameras_out=bad)
