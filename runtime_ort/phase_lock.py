@@ -160,12 +160,14 @@ class LiftPlan:
     deadline_s: float  # predicted arrival of that slice
     start_s: float  # when to start the lift (<= now: at once)
     skipped: tuple[tuple[float, int, int], ...] = ()  # (deadline, slice, quadrant) passes too late to finish
+    # True: the quadrant's newest frames could not be lifted by the deadline, its ready ones (``ready_s``) can
+    ready: bool = False
 
 
 def plan_lift(
     phase: RotationPhase, now_s: float, duration_s: Callable[[int], float], margin_s: float,
     done: Iterable[tuple[float, int, int]] = (), wanted: Callable[[int], bool] = lambda q: True,
-    target: int | None = None,
+    target: int | None = None, ready_s: Callable[[int], float | None] = lambda q: None,
 ) -> LiftPlan | None:  # fmt: skip
     """The next lift after ``now_s``, or None when no quadrant is ``wanted``.
 
@@ -175,6 +177,11 @@ def plan_lift(
     cannot keep up) only that quadrant's passes count and the lift starts at once: a quadrant whose lifts take
     longer is never starved by those whose lifts are shorter, and a saturated lane never idles. The passes before
     it that cannot finish any more are returned as ``skipped``.
+
+    ``ready_s(q)``: expected seconds to lift quadrant q from the frames ready for it (encoded already: a camera whose
+    newest frame is still to encode gives its previous one), or None where that would lift nothing newer than q holds.
+    A pass its newest frames cannot make but its ready ones can is planned with them (``ready``) rather than skipped:
+    its slice reads the cameras whose new frames were ready, not an older lift.
 
     ``done`` holds (deadline, slice, quadrant) of passes already lifted or given up (a pass of the same slice and
     quadrant within half a rotation of one is the same: the predicted phase moves a little with every arrival).
@@ -196,5 +203,9 @@ def plan_lift(
         if now_s + duration_s(q) <= deadline:  # the margin is the aim, the deadline the limit
             start = now_s if target is not None else max(deadline - duration_s(q) - margin_s, now_s)
             return LiftPlan(q, k, deadline, start, tuple(skipped))
+        ready = ready_s(q)
+        if ready is not None and now_s + ready <= deadline:
+            start = now_s if target is not None else max(deadline - ready - margin_s, now_s)
+            return LiftPlan(q, k, deadline, start, tuple(skipped), ready=True)
         skipped.append((deadline, k, q))
     raise AssertionError("unreachable: passes() never ends")

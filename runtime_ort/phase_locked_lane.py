@@ -18,6 +18,12 @@ Degraded behaviour, in this order (each counted in ``PhaseLockStats``):
 
 - **not locked yet** (no slice seen, or the rotation period not known yet): full updates of the newest frames, as
   the ``full`` schedule does (``full_updates``);
+- **a pass the newest frames cannot make** because a camera's newest frame is still to encode, while the frames
+  already encoded can (that camera's previous frame, which an earlier lift used) and are younger than the quadrant's
+  BEV (by their oldest frame: the quadrant's age), is lifted from those (``ready_lifts``); the newest frames follow
+  at a later pass. Only while the lane spent at most ``READY_BUSY_SHARE`` of the last rotation working and no
+  quadrant is overdue: a lane short of time does not add lifts. Without it a camera whose frame came just before such
+  a pass left the pass skipped, and its slice read a lift a camera period older (docs/replay.md, "Ready lifts");
 - **a quadrant that cannot be lifted in time** (the expected lift, measured from the last lifts of that quadrant,
   would end after its first slice arrives) is skipped for that pass: it keeps its older BEV, which its slices read
   and whose age they report (``quadrants_skipped``; only passes with newer frames to lift count);
@@ -74,6 +80,10 @@ YIELD_POLL_S = 0.001
 # catches up must not leave the images to grow old without bound (a fixed time, not the rotation period: that is
 # learnt from the slices' arrivals, which a backlog may have bunched)
 MAX_HOLD_S = 0.1
+# ready lifts (a pass its newest frames cannot make, lifted from the frames already encoded) only while the lane spent
+# at most this share of the last rotation working: past it they push later lifts back (lane_sim across LiDAR rates,
+# slice counts, camera rates and stage costs: docs/replay.md, "Ready lifts")
+READY_BUSY_SHARE = 0.5
 
 
 @dataclass
@@ -89,6 +99,9 @@ class PhaseLockStats:
     holds_cut: int = 0  # holdings back that reached their limit (MAX_HOLD_S), after which the lane worked as long
     cameras_timed_out: int = 0  # frames dropped because their camera sent nothing newer for camera_timeout_s
     quadrants_cleared: int = 0  # quadrants whose image BEV was dropped: every camera that sees them had timed out
+    # lifts from a quadrant's ready frames for a pass its newest could not make (a camera's newest frame still to
+    # encode: its previous one, which an earlier lift used, is lifted instead)
+    ready_lifts: int = 0
 
 
 @dataclass(eq=False)
@@ -148,9 +161,14 @@ class PhaseLockedImageLane:
         self._phase = RotationPhase(num_slices, start_deg, lidar_hz)
         self._cond = threading.Condition()
         self._frames: dict[str, _Frame] = {}
+        # per camera whose newest frame is not encoded yet: its newest frame that is, and that a lift used already
+        # (``_ready``: a pass the newest frames cannot make in time is lifted from these rather than skipped)
+        self._previous: dict[str, _Frame] = {}
         self._seq = 0
         self._lifted: list[dict[str, int]] = [{} for _ in range(NUM_QUADRANTS)]  # camera -> frame seq, per quadrant
         self._full_lifted: dict[str, int] = {}
+        self._lifted_s: list[float] = [-math.inf] * NUM_QUADRANTS  # per quadrant: its last lift's oldest frame time
+        self._work: collections.deque = collections.deque(maxlen=1024)  # (end s, seconds) of the lane's recent updates and encodes
         # seconds of the last lifts of each quadrant (update_images alone), and of encoding one camera frame
         self._durations = [collections.deque(maxlen=DURATION_SAMPLES) for _ in range(NUM_QUADRANTS)]
         self._encode_s: collections.deque = collections.deque(maxlen=DURATION_SAMPLES)
@@ -190,6 +208,8 @@ class PhaseLockedImageLane:
                 old = self._frames.get(name)
                 expires = self._timeout.seen(name, now)
                 self._frames[name] = _Frame(self._seq, image, float(stamps.get(name, timestamp)), owner, expires)
+                if old is not None and old.features is not None and old.owner.used:
+                    self._previous[name] = old  # (a used set is never superseded: its future holds an update)
                 if old is not None and self._release(old.owner):
                     superseded.append(old.owner.future)
             self._dirty = True
@@ -222,6 +242,41 @@ class PhaseLockedImageLane:
         fresh = sum(1 for n in self.detector.quadrant_cameras([quadrant]) if n in self._frames and self._frames[n].features is None)
         return _robust_max(self._durations[quadrant]) + fresh * _robust_max(self._encode_s)
 
+    def _ready(self, quadrant: int) -> dict[str, _Frame] | None:
+        """(Under the lock.) The frames ready to lift ``quadrant`` without encoding: each camera's newest frame, or
+        where that is not encoded yet its previous one (``_previous``). None unless they differ from the newest
+        frames (a camera's newest is still to encode), their oldest is newer than the oldest of the quadrant's last
+        lift, and every camera with a frame has one ready (a ready lift never leaves out a camera the newest frames
+        have)."""
+        ready, waiting = {}, False
+        for name in self.detector.quadrant_cameras([quadrant]):
+            frame = self._frames.get(name)
+            if frame is None:
+                continue
+            if frame.features is None:
+                waiting = True
+                frame = self._previous.get(name)
+                if frame is None:
+                    return None
+            ready[name] = frame
+        # the quadrant's age is its oldest frame's: a ready lift that leaves that frame in makes it no younger, and
+        # is not worth its CPU (it would push later lifts back where the lane is short of time)
+        if not waiting or not ready or min(f.timestamp for f in ready.values()) <= self._lifted_s[quadrant]:
+            return None
+        return ready
+
+    def _busy_share(self, now_s: float) -> float:
+        """(Under the lock.) The share of the last rotation the lane spent on updates and encodes."""
+        period = self._phase.period_s
+        while self._work and self._work[0][0] <= now_s - period:
+            self._work.popleft()
+        return sum(min(d, e - (now_s - period)) for e, d in self._work) / period
+
+    def _ready_s(self, quadrant: int) -> float | None:
+        """Expected seconds to lift ``quadrant`` from its ready frames (its lifts' duration, nothing to encode); None
+        without such a lift (``_ready``)."""
+        return None if self._ready(quadrant) is None else _robust_max(self._durations[quadrant])
+
     def step(self, now_s: float) -> float | None:
         """Run what is due at ``now_s`` (at most one update, or one frame encoded ahead); the time to call again
         (None: at the next event)."""
@@ -247,6 +302,7 @@ class PhaseLockedImageLane:
             for name in gone:
                 frame = self._frames.pop(name)
                 self.stats.cameras_timed_out += 1
+                self._previous.pop(name, None)  # a camera that is out is not lifted from an older frame either
                 if self._release(frame.owner):
                     superseded.append(frame.owner.future)
                 for q in range(NUM_QUADRANTS):
@@ -286,8 +342,12 @@ class PhaseLockedImageLane:
                 for q in quadrants:
                     self._wanted_since[q] = None
             else:
-                plan = plan_lift(self._phase, now_s, self._expected_s, self.margin_s, self._done, self._has_new,
-                                 self._overdue(now_s))  # fmt: skip
+                overdue = self._overdue(now_s)
+                # a lane short of time (a quadrant overdue, or busy for most of the last rotation) spends no CPU on
+                # ready lifts: each adds a lift, and later passes would then be skipped
+                short = overdue is not None or self._busy_share(now_s) > READY_BUSY_SHARE
+                ready = (lambda q: None) if short else self._ready_s
+                plan = plan_lift(self._phase, now_s, self._expected_s, self.margin_s, self._done, self._has_new, overdue, ready)
                 if plan is None:  # no quadrant has newer frames than it was lifted from
                     self._hold(now_s, False)
                     return None
@@ -306,9 +366,13 @@ class PhaseLockedImageLane:
                     self._done.extend(plan.skipped)
                     self.stats.quadrants_skipped += len(plan.skipped)
                     self._done.append((plan.deadline_s, plan.slice_index, plan.quadrant))
-                    self._wanted_since[plan.quadrant] = None  # frames that arrive during the lift set it again
-                    cams = set(self.detector.quadrant_cameras([plan.quadrant]))
-                    frames = {n: f for n, f in self._frames.items() if n in cams}
+                    if plan.ready:  # the newest frames still wait for a later pass: the quadrant stays wanted
+                        frames = self._ready(plan.quadrant) or {}
+                        self.stats.ready_lifts += 1
+                    else:
+                        self._wanted_since[plan.quadrant] = None  # frames that arrive during the lift set it again
+                        cams = set(self.detector.quadrant_cameras([plan.quadrant]))
+                        frames = {n: f for n, f in self._frames.items() if n in cams}
                     quadrants, deadline = (plan.quadrant,), plan.deadline_s
                 if encode is not None:  # nothing due yet: encode a frame that arrived, off the lock
                     frames = {encode[0]: encode[1]}
@@ -380,6 +444,7 @@ class PhaseLockedImageLane:
             self.stats.cameras_encoded += len(encoded)
             self.stats.encoded_ahead += len(encoded)
             self._encode_s.append((t1 - t0) / max(1, len(encoded)))
+            self._work.append((t1, t1 - t0))
             self.cpu_s += time.thread_time() - cpu0
 
     def _overdue(self, now_s: float) -> int | None:
@@ -431,6 +496,9 @@ class PhaseLockedImageLane:
             update = None
         t2 = self.clock()
         with self._cond:
+            self._work.append((t2, t2 - t0))
+            for q in range(NUM_QUADRANTS) if quadrants is None else quadrants:
+                self._lifted_s[q] = -math.inf if cleared else min(f.timestamp for f in frames.values())
             if fresh:
                 self._encode_s.append((t1 - t0) / len(fresh))
             self.cpu_s += time.thread_time() - cpu0

@@ -159,8 +159,8 @@ def test_trainer_records_dropout_and_resumes_exactly(store, tmp_path):
     assert a["config"]["camera_dropout"] == 0.6
     part = train(_config(image_class_weight=0.5, max_minutes=1e-9), "unused", tmp_path / "part", store=store, echo=lambda m: None)
     assert part.stopped_early
-    resumed = train(_config(image_class_weight=0.5), "unused", tmp_path / "resumed", resume=tmp_path / "part" / "last.pt",
-                    store=store, echo=lambda m: None)  # fmt: skip
+    train(_config(image_class_weight=0.5), "unused", tmp_path / "resumed", resume=tmp_path / "part" / "last.pt",
+          store=store, echo=lambda m: None)  # fmt: skip
     b = load_checkpoint(tmp_path / "resumed" / "last.pt")
     for k in a["model"]:
         assert torch.equal(a["model"][k], b["model"][k]), k

@@ -42,6 +42,7 @@ class RecordingDetector:
         self.lifts: list[tuple[tuple[int, ...], frozenset[str], float]] = []  # (quadrants, cameras given, end)
         self.forgets: list[tuple[tuple[int, ...], float]] = []
         self.forgot_cameras_out: list[bool] = []  # forget_images' cameras_out, per call
+        self.stamps: list[dict[str, float]] = []  # per lift: each camera's frame time
 
     def quadrant_cameras(self, quadrants):
         return tuple(n for n in CAMERAS if any(n in SEES[q] for q in quadrants))
@@ -59,6 +60,7 @@ class RecordingDetector:
         for q in qs:
             self.held[q] = frozenset(n for n in images if n in SEES[q])
         self.lifts.append((qs, frozenset(images), self.clock.t))
+        self.stamps.append(dict(camera_timestamps) if camera_timestamps else {n: timestamp for n in images})
         return ImageUpdate(timestamp, tuple(images), (), quadrants=qs)
 
     def forget_images(self, through=None, quadrants=None, cameras_out=False):
@@ -107,6 +109,27 @@ def test_a_camera_that_stops_is_dropped_and_its_quadrants_relifted_without_it(ti
     assert _lifts_with(det, "CAM_BACK", stop_s + timeout_s + 2 / LIDAR_HZ) == []
     assert det.held[2] == {"CAM_BACK_LEFT"} and det.held[3] == {"CAM_BACK_RIGHT"}  # lifted again, without it
     assert det.held[0] == SEES[0] and det.held[1] == SEES[1]
+
+
+@pytest.mark.parametrize("lift_ms", [1, 4])
+def test_a_camera_back_from_an_outage_is_never_lifted_from_a_frame_before_it(lift_ms, monkeypatch):
+    """Whatever the lifts cost: a pass its newest frames cannot make may be lifted from the frames ready (a camera's
+    previous frame while its newest is still to encode), and a camera that timed out must leave none of those, nor
+    any other frame from before its outage."""
+    monkeypatch.setattr(RecordingDetector, "update_images", _slow(RecordingDetector.update_images, lift_ms * 1e-3))
+    back_s = 2.0
+    lane, det, _ = drive(0.2, lambda t: CAMERAS if t < 1.0 or t > back_s else tuple(c for c in CAMERAS if c != "CAM_BACK"))
+    assert lane.stats.cameras_timed_out == 1
+    after = [st["CAM_BACK"] for (qs, cams, end), st in zip(det.lifts, det.stamps) if end > back_s and "CAM_BACK" in st]
+    assert after and min(after) > back_s  # every lift since reads its new frames only
+
+
+def _slow(update, extra_s: float):
+    def slower(self, *args, **kwargs):
+        self.clock.t += extra_s
+        return update(self, *args, **kwargs)
+
+    return slower
 
 
 def test_without_a_timeout_the_last_frame_of_a_stopped_camera_stays():

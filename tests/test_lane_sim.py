@@ -139,3 +139,22 @@ def test_the_exports_layout_is_its_luts_cameras_and_its_rigs_axes(tiny_export, t
     (moved / "manifest.json").write_text(json.dumps(manifest))
     cameras2, axes2 = export_layout(moved)
     assert cameras2 == cameras and axes2 is None
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_faster_part_never_fuses_a_rotation_older_images(seed):
+    """At 0.9x the Xeon guest's stage costs (docs/replay.md, "Ready lifts") a camera's frame that came just before a
+    pass made its encode-and-lift miss it, and the pass was skipped: its slice read a lift two camera periods old
+    (p99 100 ms, where 1.0x gave 10 ms). The lane now lifts such a pass from the frames ready (that camera's previous
+    one): no slice is older than a frame of the newest by more than the step of one camera's frame."""
+    costs = LaneCosts(2.01, 1.54, 3.47, jitter=0.15).scaled(0.9)
+    r = simulate(costs, CAMERAS, SimConfig(seconds=10.0, seed=seed))
+    assert r.stats.ready_lifts > 0
+    assert np.percentile(r.staleness_ms, 99) <= 25
+    assert (r.staleness_ms > 25).mean() < 0.01
+
+
+def test_a_busy_lane_makes_no_ready_lifts():
+    """Past READY_BUSY_SHARE of the rotation spent working, a ready lift would push later lifts back: none is made."""
+    r = simulate(LaneCosts(2.01, 1.54, 3.47).scaled(2.0), CAMERAS, SimConfig(seconds=5.0))
+    assert r.busy_cores > 0.8 and r.stats.ready_lifts == 0

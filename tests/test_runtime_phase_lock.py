@@ -144,6 +144,22 @@ def test_the_plan_starts_as_late_as_possible_and_skips_what_cannot_finish():
     assert plan_lift(phase, 0.0, lambda q: 0.003, 0.001, wanted=lambda q: False) is None
 
 
+def test_a_pass_the_newest_frames_cannot_make_is_planned_with_the_ready_ones():
+    phase = RotationPhase(8, 0.0, 20.0)
+    phase.observe(7, 0.0)  # slice 0 next at 6.25 ms, slice 1 at 12.5 ms
+    ready = plan_lift(phase, 0.0, lambda q: 0.010, 0.001, ready_s=lambda q: 0.003)
+    assert (ready.slice_index, ready.quadrant, ready.ready) == (0, 0, True)  # not skipped: lifted from what is ready
+    assert ready.start_s == pytest.approx(0.00625 - 0.004) and ready.skipped == ()
+    newest = plan_lift(phase, 0.0, lambda q: 0.003, 0.001, ready_s=lambda q: 0.001)
+    assert not newest.ready  # the newest frames make it: never the ready ones
+    none = plan_lift(phase, 0.0, lambda q: 0.010, 0.001, ready_s=lambda q: None)
+    assert (none.slice_index, none.ready) == (1, False) and [(k, q) for _, k, q in none.skipped] == [(0, 0)]
+    both_late = plan_lift(phase, 0.0, lambda q: 0.010, 0.001, ready_s=lambda q: 0.008)
+    assert (both_late.slice_index, both_late.ready) == (1, False)  # slice 1 takes the newest frames again
+    target = plan_lift(phase, 0.0, lambda q: 0.010, 0.001, target=0, ready_s=lambda q: 0.003)
+    assert target.ready and target.start_s == 0.0  # a quadrant overdue starts at once
+
+
 # ---- the lane on a fake clock ----------------------------------------------------------------------------------
 @pytest.mark.parametrize("known_rate", [True, False])
 def test_fast_lifts_follow_the_lidar_and_add_no_staleness(known_rate):
