@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 from streamdet.models.detector import build_detector
 from streamdet.models.presets import get_preset
 from streamdet.training.batching import Collator
-from streamdet.training.camera_dropout import check_camera_dropout, draw_camera_keep
+from streamdet.training.camera_dropout import check_camera_dropout, draw_camera_keep, drops_cameras, step_generator, stored_statistics
 from streamdet.training.checkpoint import load_checkpoint
 from streamdet.training.cli import main as train_main
 from streamdet.training.dataset import DataConfig, SliceDataset, build_store
@@ -39,38 +39,42 @@ def batch(store):
 
 # ---- the draw ---------------------------------------------------------------------------------------------------------
 @settings(max_examples=60, deadline=None)
-@given(b=st.integers(0, 40), j=st.integers(1, 8), p=st.floats(0.0, 0.99), seed=st.integers(0, 2**31))
-def test_draw_shape_and_at_least_one_drop_when_dropping(b, j, p, seed):
-    keep = draw_camera_keep(b, j, p, torch.Generator().manual_seed(seed))
+@given(b=st.integers(0, 40), j=st.integers(1, 8), seed=st.integers(0, 2**70))
+def test_every_sample_of_a_dropping_step_loses_one_to_all_cameras(b, j, seed):
+    keep = draw_camera_keep(b, j, step_generator(seed, 3))
     assert keep.shape == (b, j) and keep.dtype == torch.bool
-    # a sample either keeps every camera or loses 1..J of them: never "dropping" nothing
     lost = (~keep).sum(dim=1)
-    assert ((lost >= 0) & (lost <= j)).all()
+    assert ((lost >= 1) & (lost <= j)).all()
 
 
 @pytest.mark.parametrize("seed", range(3))
 @pytest.mark.parametrize("j", [1, 6])
 def test_draw_matches_its_distribution(seed, j):
-    p, n = 0.3, 20000
-    keep = draw_camera_keep(n, j, p, torch.Generator().manual_seed(seed)).numpy()
+    n = 20000
+    keep = draw_camera_keep(n, j, torch.Generator().manual_seed(seed)).numpy()
     lost = (~keep).sum(axis=1)
-    share = (lost > 0).mean()
-    assert abs(share - p) < 4 * np.sqrt(p * (1 - p) / n)
-    # k uniform in 1..J among the samples that lose cameras, and every camera as likely as any other
-    counts = np.bincount(lost[lost > 0], minlength=j + 1)[1:]
-    expected = (lost > 0).sum() / j
+    # k uniform in 1..J, and every camera as likely as any other
+    counts = np.bincount(lost, minlength=j + 1)[1:]
+    expected = n / j
     assert np.all(np.abs(counts - expected) < 5 * np.sqrt(expected))
-    per_camera = (~keep[lost > 0]).mean(axis=0)
+    per_camera = (~keep).mean(axis=0)
     assert np.allclose(per_camera, per_camera.mean(), atol=0.03)
     assert abs(per_camera.mean() - (j + 1) / (2 * j)) < 0.02  # E[k] / J
 
 
-def test_draw_is_reproducible_and_p0_keeps_everything():
-    a = draw_camera_keep(50, 6, 0.5, torch.Generator().manual_seed(7))
-    b = draw_camera_keep(50, 6, 0.5, torch.Generator().manual_seed(7))
-    assert torch.equal(a, b)
-    assert draw_camera_keep(50, 6, 0.0, torch.Generator().manual_seed(7)).all()
-    assert draw_camera_keep(0, 6, 0.5).shape == (0, 6)
+@pytest.mark.parametrize("p", [0.0, 0.3, 0.7])
+def test_a_share_p_of_the_steps_drop(p):
+    steps = 4000
+    share = np.mean([drops_cameras(p, step_generator(5, s)) for s in range(steps)])
+    assert abs(share - p) < 4 * np.sqrt(max(p * (1 - p), 1e-9) / steps) + 1e-9
+
+
+def test_the_generators_are_reproducible_for_any_seed():
+    a = draw_camera_keep(50, 6, step_generator(7, 11, 0))
+    assert torch.equal(a, draw_camera_keep(50, 6, step_generator(7, 11, 0)))
+    assert not torch.equal(a, draw_camera_keep(50, 6, step_generator(7, 11, 1)))  # processes draw apart
+    draw_camera_keep(3, 6, step_generator(2**80, 10**12, 3))  # no overflow for a huge seed or step
+    assert draw_camera_keep(0, 6).shape == (0, 6)
 
 
 @pytest.mark.parametrize("bad", [-0.1, 1.0, 1.5, float("nan"), float("inf"), True, "0.3", None])
@@ -83,7 +87,7 @@ def test_bad_probability_is_refused_quoting_it(bad):
 
 def test_draw_refuses_no_cameras():
     with pytest.raises(ValueError, match="num_cameras"):
-        draw_camera_keep(3, 0, 0.5)
+        draw_camera_keep(3, 0)
 
 
 # ---- the lift -----------------------------------------------------------------------------------------------------------
@@ -94,7 +98,7 @@ def test_dropped_cameras_lift_as_zero_features(batch, seed):
     det = model.detector
     b = batch.num_samples
     j = batch.images.shape[0] // b
-    keep = draw_camera_keep(b, j, 0.9, torch.Generator().manual_seed(seed))
+    keep = draw_camera_keep(b, j, torch.Generator().manual_seed(seed))
     with torch.no_grad():
         got = model.image_bev(batch, camera_keep=keep)
         feats = det.image_encoder(batch.images)  # the naive reference: zero the dropped rows by hand
@@ -116,6 +120,51 @@ def test_every_camera_dropped_is_the_lift_of_zero_features(batch):
         zeros = torch.zeros_like(det.image_encoder(batch.images))
         ref = det.lifter(zeros, batch.lut_index, batch.lut_weight).index_select(0, batch.map_source)
     torch.testing.assert_close(got, ref, rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("preset", ["tiny", "small_v3_swift"])
+def test_a_dropping_step_normalises_with_the_stored_statistics_and_keeps_them(store, tiny_train_data, tmp_path_factory, preset):
+    """In training mode a dropping step's forward equals the eval-mode forward (what the exported graphs compute), its
+    BatchNorm statistics stay as they were, and every module gets its mode back."""
+    torch.manual_seed(0)
+    p = get_preset(preset)
+    size = (p.image.width_px, p.image.height_px)
+    here = store if size == SIZE else build_store(tiny_train_data, "train", size, cache_dir=tmp_path_factory.mktemp("c"))
+    ds = SliceDataset(here, p, DataConfig(num_slices=(8,), max_slices_per_sample=2), seed=2)
+    b = Collator(p)([ds[0]])
+    model = TrainingModel(build_detector(p)).train()
+    keep = torch.ones(1, b.images.shape[0], dtype=torch.bool)
+    keep[0, 1] = False
+    before = {k: v.clone() for k, v in model.state_dict().items()}
+    norm = model.detector.slice_net.image_bev_norm
+    seen = []
+    if norm is not None:
+        norm.register_forward_pre_hook(lambda m, args: seen.append(m.training))
+    with torch.no_grad():
+        got = model.image_bev(b, camera_keep=keep)
+        model(b, camera_keep=keep)
+        model.eval()
+        want = model.image_bev(b, camera_keep=keep)
+        model.train()
+    torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-6)  # the exported graphs' normalisation
+    assert seen == ([False] if norm is not None else [])  # the forward of the dropping step
+    after = model.state_dict()
+    cam = [k for k in before if k.startswith(("detector.image_encoder", "detector.lifter", "detector.slice_net.image_bev_norm"))
+           and ("running" in k or "num_batches" in k or k.endswith("_ms"))]  # fmt: skip
+    assert cam and all(torch.equal(before[k], after[k]) for k in cam)
+    assert all(m.training for m in model.modules())
+    with torch.no_grad():
+        model(b)  # a step without dropout updates them as before
+    assert any(not torch.equal(before[k], model.state_dict()[k]) for k in cam)
+
+
+def test_stored_statistics_restores_mixed_modes():
+    net = torch.nn.Sequential(torch.nn.BatchNorm1d(2), torch.nn.Sequential(torch.nn.BatchNorm1d(2)))
+    net.train()
+    net[1].eval()
+    with stored_statistics([net, None]):
+        assert not any(m.training for m in net.modules())
+    assert net.training and net[0].training and not net[1].training and not net[1][0].training
 
 
 def test_camera_keep_of_the_wrong_size_is_refused(batch):
@@ -148,13 +197,15 @@ def test_map_sample_names_each_maps_sample(store):
 
 # ---- the trainer ----------------------------------------------------------------------------------------------------------
 def _config(**kw) -> TrainConfig:
-    base = dict(preset="tiny", steps=3, batch_size=2, lr=1e-3, log_every=1, checkpoint_every=100, seed=0, camera_dropout=0.6)
+    base = dict(preset="tiny", steps=4, batch_size=2, lr=1e-3, log_every=1, checkpoint_every=100, seed=2, camera_dropout=0.6)
     return TrainConfig(**{**base, **kw})
 
 
 def test_trainer_records_dropout_and_resumes_exactly(store, tmp_path):
     full = train(_config(image_class_weight=0.5), "unused", tmp_path / "full", store=store, echo=lambda m: None)
-    assert full.steps_done == 3
+    assert full.steps_done == 4
+    drops = [drops_cameras(0.6, step_generator(2, step)) for step in range(5)]
+    assert any(drops[:4]) and any(drops[1:]) and not all(drops)  # the run drops in some steps, not in all
     a = load_checkpoint(tmp_path / "full" / "last.pt")
     assert a["config"]["camera_dropout"] == 0.6
     part = train(_config(image_class_weight=0.5, max_minutes=1e-9), "unused", tmp_path / "part", store=store, echo=lambda m: None)
@@ -164,9 +215,12 @@ def test_trainer_records_dropout_and_resumes_exactly(store, tmp_path):
     b = load_checkpoint(tmp_path / "resumed" / "last.pt")
     for k in a["model"]:
         assert torch.equal(a["model"][k], b["model"][k]), k
-    plain = train(_config(camera_dropout=0.0), "unused", tmp_path / "plain", store=store, echo=lambda m: None)
-    assert plain.steps_done == 3
-    assert "camera_dropout" not in load_checkpoint(tmp_path / "plain" / "last.pt")["config"]  # older runs' configs unchanged
+    plain = train(_config(image_class_weight=0.5, camera_dropout=0.0), "unused", tmp_path / "plain", store=store,
+                  echo=lambda m: None)  # fmt: skip
+    assert plain.steps_done == 4
+    c = load_checkpoint(tmp_path / "plain" / "last.pt")
+    assert "camera_dropout" not in c["config"]  # older runs' configs unchanged
+    assert any(not torch.equal(a["model"][k], c["model"][k]) for k in a["model"])  # the drops changed the run
 
 
 def test_dropout_without_the_image_lane_is_refused():

@@ -136,8 +136,8 @@ def _parse_slices(ctx, param, value: str) -> tuple[int, ...]:
               help="Weight of an image-side loss beside detection: each object's class read linearly from the image BEV at its "
                    "centre (cross-entropy; a training-only classifier, never exported). 0: off.")
 @click.option("--camera-dropout", type=FiniteFloatRange(0, 1, max_open=True), default=0.0, show_default=True,
-              help="Probability that a training sample loses cameras: k of its J cameras, k uniform in 1..J, lifted from zero "
-                   "features as the runtime lifts a camera without a frame (training/camera_dropout.py). 0: off.")
+              help="Probability that a training step drops cameras: each sample loses k of its J cameras, k uniform in 1..J, "
+                   "lifted from zero features as the runtime lifts a camera without a frame (training/camera_dropout.py). 0: off.")
 @click.option("--resume", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Continue from a last.pt written by this command.")
 @click.option("--overwrite", is_flag=True, help="Train into an --out that already holds a run (model.pt, last.pt, metrics.jsonl), replacing it.")
 @click.option("--init", type=click.Path(dir_okay=False, path_type=Path), default=None,

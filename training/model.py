@@ -11,6 +11,7 @@ from streamdet.core.classes import CLASS_NAMES
 from streamdet.models.detector import StreamDetector
 from streamdet.models.heads import HeadMaps
 from streamdet.training.batching import Batch
+from streamdet.training.camera_dropout import stored_statistics
 from streamdet.training.image_class import ImageBevClassifier, centre_cells
 
 CAMERA_LANE = ("image_encoder", "lifter")  # the StreamDetector parts that make the image BEV
@@ -54,20 +55,24 @@ class TrainingModel(nn.Module):
     def image_bev(self, batch: Batch, use_image: bool = True, camera_keep: Tensor | None = None) -> Tensor | None:
         """(Qm, C, Yq, Xq): the lifted quadrant volumes, each slice map reading its lift entry; None for the
         LiDAR-only preset or with ``use_image`` False (the slice net then sees zeros, what the runtime feeds before
-        its first image update, or no image BEV at all: ``SliceNet.fused_bev``). ``camera_keep`` (B, J) bool: the
-        cameras False are lifted from zero features, as the runtime lifts a camera without a frame
-        (training/camera_dropout.py); None: every camera."""
+        its first image update, or no image BEV at all: ``SliceNet.fused_bev``). ``camera_keep`` (B, J) bool, given
+        for a step that drops cameras: the cameras False are lifted from zero features, as the runtime lifts a camera
+        without a frame, and the camera lane normalises with its stored statistics (training/camera_dropout.py);
+        None: every camera."""
         d = self.detector
         if not (d.preset.use_image and use_image):
             return None
         if d.image_encoder is None or d.lifter is None:
             raise RuntimeError(f"preset {d.preset.name!r} has use_image=False: there is no image lane")
-        with torch.no_grad() if self.frozen else nullcontext():
+        # a step that drops cameras normalises with the stored statistics, as the exported graphs (camera_dropout.py)
+        stored = stored_statistics((d.image_encoder, d.lifter)) if camera_keep is not None else nullcontext()
+        with torch.no_grad() if self.frozen else nullcontext(), stored:
             feats = d.image_encoder(batch.images)  # (B * J, C, Hf, Wf), sample-major
             if camera_keep is not None:
                 if camera_keep.numel() != feats.shape[0]:
                     raise ValueError(f"camera_keep has {tuple(camera_keep.shape)} entries for {feats.shape[0]} images")
-                feats = feats * camera_keep.reshape(-1, 1, 1, 1).to(feats.dtype)  # (B * J, C, Hf, Wf)
+                # exact zeros, as the runtime feeds a missing camera (a product with 0 would keep an inf as NaN)
+                feats = torch.where(camera_keep.reshape(-1, 1, 1, 1), feats, torch.zeros_like(feats))  # (B * J, C, Hf, Wf)
             lifted = d.lifter(feats, batch.lut_index, batch.lut_weight)  # (L, C, Yq, Xq)
         return lifted.index_select(0, batch.map_source)  # (Qm, C, Yq, Xq)
 
@@ -75,12 +80,16 @@ class TrainingModel(nn.Module):
                 camera_keep: Tensor | None = None) -> tuple[list[HeadMaps], tuple[Tensor, Tensor] | None]:  # fmt: skip
         """``lifted``: the batch's image BEV (Qm, C, Yq, Xq) when it was computed already (a frozen camera lane
         shared with a distillation teacher, training/distill.py); None: lift it here, with the cameras of
-        ``camera_keep`` (``image_bev``). The second output: (logits (N, num_classes), labels (N,)) of the image-side
-        class loss over the N objects of the samples that kept every camera (an object whose cameras were dropped
-        has nothing to be read from), or None without the classifier or the image lane."""
+        ``camera_keep`` (``image_bev``), given for a step that drops cameras (training/camera_dropout.py): the camera
+        lane and the image-BEV norm then normalise with their stored statistics, as the exported graphs do. The second
+        output: (logits (N, num_classes), labels (N,)) of the image-side class loss over the N objects of the samples
+        that kept every camera (an object whose cameras were dropped has nothing to be read from), or None without
+        the classifier or the image lane."""
         net = self.detector.slice_net
         image_bev = lifted if lifted is not None and use_image else self.image_bev(batch, use_image, camera_keep)
-        bev = net.fused_bev(batch.pillar_features, batch.pillar_mask, batch.pillar_index, image_bev, num_quadrants=batch.num_maps)
+        stored = stored_statistics((net.image_bev_norm,)) if camera_keep is not None else nullcontext()
+        with stored:
+            bev = net.fused_bev(batch.pillar_features, batch.pillar_mask, batch.pillar_index, image_bev, num_quadrants=batch.num_maps)
         task_maps = net.head.forward_tasks(bev)
         if self.image_classifier is None or image_bev is None:
             return task_maps, None

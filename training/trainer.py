@@ -34,7 +34,7 @@ from streamdet.core.json_input import short_repr
 from streamdet.models.detector import build_detector
 from streamdet.models.presets import Preset, get_preset
 from streamdet.training.batching import Batch, Collator
-from streamdet.training.camera_dropout import check_camera_dropout, draw_camera_keep
+from streamdet.training.camera_dropout import check_camera_dropout, draw_camera_keep, drops_cameras, step_generator
 from streamdet.training.checkpoint import (
     TRANSFERABLE_PARTS,
     check_fits,
@@ -102,8 +102,9 @@ class TrainConfig:
     # Weight of the image-side class loss beside detection (training/image_class.py: each object's class read
     # linearly from the image BEV at its centre, cross-entropy per object); 0 = off, the CenterPoint loss alone.
     image_class_weight: float = 0.0
-    # Probability that a training sample loses cameras (training/camera_dropout.py: k of its J cameras, k uniform in
-    # 1..J, lifted from zero features as the runtime lifts a camera without a frame); 0 = off, every camera always.
+    # Probability that a training step drops cameras (training/camera_dropout.py: each sample loses k of its J cameras,
+    # k uniform in 1..J, lifted from zero features as the runtime lifts a camera without a frame, the camera lane
+    # normalising with its stored statistics); 0 = off, every camera always.
     camera_dropout: float = 0.0
     balanced: bool = False  # class-balanced (CBGS) resampling of the training samples
     workers: int = 0  # DataLoader worker processes (0: load in the training process)
@@ -821,14 +822,16 @@ def _step(run: _TrainRun, batch: Batch, use_image: bool) -> tuple[torch.Tensor, 
 
 
 def _camera_keep(run: _TrainRun, batch: Batch) -> torch.Tensor | None:
-    """(B, J) bool cameras kept by camera dropout at this step, None when it is off. Drawn from a generator seeded by
-    (seed, step, process): a resumed run drops what the uninterrupted one would, and processes drop apart."""
+    """(B, J) bool cameras kept at this step when camera dropout drops cameras in it, else None (training/
+    camera_dropout.py). Whether it drops is drawn from (seed, step), the same on every process (their BatchNorms then
+    all use stored statistics); which cameras from (seed, step, process). A resumed run drops what the uninterrupted
+    one would."""
     p = run.config.camera_dropout
-    if p == 0 or batch.images is None:
+    if p == 0 or batch.images is None or not drops_cameras(p, step_generator(run.config.seed, run.schedule.step)):
         return None
-    gen = torch.Generator().manual_seed((run.config.seed * 1_000_003 + run.schedule.step) * 1_009 + run.ctx.rank)
     num_cameras = batch.images.shape[0] // batch.num_samples
-    return draw_camera_keep(batch.num_samples, num_cameras, p, gen, device=batch.images.device)
+    gen = step_generator(run.config.seed, run.schedule.step, run.ctx.rank)
+    return draw_camera_keep(batch.num_samples, num_cameras, gen, device=batch.images.device)
 
 
 def _log(window: dict, schedule: OneCycle, lr: float, epoch: int, ctx: DistContext, say, log_file) -> None:
