@@ -213,6 +213,7 @@ class StreamingDetector:
         # none of them, or the phase-locked lane's cameras timed out): its slices then name them in cameras_missing.
         # Read only where the quadrant holds no image; a tuple swapped whole, so a slice reads it without the lock
         self._cameras_out: tuple[bool, ...] = (False,) * NUM_QUADRANTS
+        self._out_said = [0] * NUM_QUADRANTS  # per quadrant: the seq of the call that set _cameras_out there (_lock)
         self._lut: Lut | None = None  # stays None for a LiDAR-only export
         self._built_from: tuple[Lut, str] | None = None  # (a LUT this detector built, its rig's sha256): _is_current_rig
         if self.uses_images and (self.image.width, self.image.height) == (m.image.width, m.image.height):
@@ -564,7 +565,7 @@ class StreamingDetector:
         with self._lock:
             if self._lut is not lut:
                 return False
-            self._drop_images_locked(seq - 1, quadrants, cameras_out=True)
+            self._drop_images_locked(seq - 1, quadrants, cameras_out=True, said_by=seq)
             return True
 
     def encode_images(self, images: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -600,7 +601,9 @@ class StreamingDetector:
         and an update under way still installs there. The phase-locked image lane drops so a quadrant all of whose
         cameras are out (``LaneConfig.camera_timeout_s``): its slices then read no image (the camera-less BEV, or
         the LiDAR-only fallback), as before the first image, and passes ``cameras_out`` True: the slices of those
-        quadrants then name their cameras in ``SliceResult.cameras_missing`` (False: no camera is said to be out)."""
+        quadrants then name their cameras in ``SliceResult.cameras_missing`` (False: no camera is said to be out).
+        What a quadrant's slices say is set by the newest call that dropped it: this one, unless an update newer than
+        ``through`` was given none of the quadrant's cameras and so cleared it."""
         if not isinstance(cameras_out, bool):
             raise ValueError(f"forget_images cameras_out must be True or False, got {cameras_out!r}")
         if through is not None and (isinstance(through, bool) or not isinstance(through, (int, np.integer)) or through < 0):
@@ -609,14 +612,24 @@ class StreamingDetector:
         with self._lock:
             self._drop_images_locked(self._image_seq if through is None else int(through), wanted, cameras_out)
 
-    def _drop_images_locked(self, through: int, quadrants: tuple[int, ...] = ALL_QUADRANTS, cameras_out: bool = False) -> None:
+    def _drop_images_locked(self, through: int, quadrants: tuple[int, ...] = ALL_QUADRANTS, cameras_out: bool = False,
+                            said_by: int | None = None) -> None:  # fmt: skip
         """Drop the image sets of the update_images calls up to ``through`` (seq) in ``quadrants``, cached or still
         under way (``_install`` refuses them there); ``cameras_out``: because none of their cameras has a frame
-        (``_cameras_out``). The caller holds ``_lock``."""
+        (``_cameras_out``), as update ``said_by`` found (None: a forget through ``through``). The caller holds
+        ``_lock``."""
         floor = self._image_floor
+        out = list(self._cameras_out)
         for q in quadrants:
+            # Why q is empty is said by the newest call that dropped it: a forget through seq T, or an update S that
+            # was given none of q's cameras (said_by). Neither an older forget (warm_up forgetting its own dummies)
+            # nor the late clear of an update begun before a forget through it changes what a newer call said.
+            newer = through >= self._out_said[q] if said_by is None else said_by > self._out_said[q]
+            if newer:
+                out[q] = cameras_out
+                self._out_said[q] = through if said_by is None else said_by
             floor[q] = max(floor[q], through)
-        self._cameras_out = tuple(cameras_out if q in quadrants else out for q, out in enumerate(self._cameras_out))
+        self._cameras_out = tuple(out)
         kept = tuple(s if s is not None and s.seq > floor[q] else None for q, s in enumerate(quadrant_states(self._image)))
         self._image = None if all(s is None for s in kept) else ImageCache(kept)
 

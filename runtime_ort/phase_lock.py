@@ -179,7 +179,8 @@ def plan_lift(
     it that cannot finish any more are returned as ``skipped``.
 
     ``ready_s(q)``: expected seconds to lift quadrant q from the frames ready for it (encoded already: a camera whose
-    newest frame is still to encode gives its previous one), or None where that would lift nothing newer than q holds.
+    newest frame is still to encode gives its newest encoded one), or None where that would lift nothing younger than
+    q holds.
     A pass its newest frames cannot make but its ready ones can is planned with them (``ready``) rather than skipped:
     its slice reads the cameras whose new frames were ready, not an older lift.
 

@@ -19,8 +19,9 @@ Degraded behaviour, in this order (each counted in ``PhaseLockStats``):
 - **not locked yet** (no slice seen, or the rotation period not known yet): full updates of the newest frames, as
   the ``full`` schedule does (``full_updates``);
 - **a pass the newest frames cannot make** because a camera's newest frame is still to encode, while the frames
-  already encoded can (that camera's previous frame, which an earlier lift used) and are younger than the quadrant's
-  BEV (by their oldest frame: the quadrant's age), is lifted from those (``ready_lifts``); the newest frames follow
+  already encoded can (for that camera its newest encoded frame, of an image set a lift used, and never older than
+  the one the quadrant holds) and are younger than the quadrant's BEV (by their oldest frame: the quadrant's age), is
+  lifted from those (``ready_lifts``); the newest frames follow
   at a later pass. Only while the lane spent at most ``READY_BUSY_SHARE`` of the last rotation working and no
   quadrant is overdue: a lane short of time does not add lifts. Without it a camera whose frame came just before such
   a pass left the pass skipped, and its slice read a lift a camera period older (docs/replay.md, "Ready lifts");
@@ -161,8 +162,9 @@ class PhaseLockedImageLane:
         self._phase = RotationPhase(num_slices, start_deg, lidar_hz)
         self._cond = threading.Condition()
         self._frames: dict[str, _Frame] = {}
-        # per camera whose newest frame is not encoded yet: its newest frame that is, and that a lift used already
-        # (``_ready``: a pass the newest frames cannot make in time is lifted from these rather than skipped)
+        # per camera whose newest frame is not encoded yet: its newest frame that is, of an image set a lift used (so
+        # never one reported superseded; ``_ready``: a pass the newest frames cannot make in time is lifted from
+        # these rather than skipped)
         self._previous: dict[str, _Frame] = {}
         self._seq = 0
         self._lifted: list[dict[str, int]] = [{} for _ in range(NUM_QUADRANTS)]  # camera -> frame seq, per quadrant
@@ -244,10 +246,10 @@ class PhaseLockedImageLane:
 
     def _ready(self, quadrant: int) -> dict[str, _Frame] | None:
         """(Under the lock.) The frames ready to lift ``quadrant`` without encoding: each camera's newest frame, or
-        where that is not encoded yet its previous one (``_previous``). None unless they differ from the newest
+        where that is not encoded yet its newest encoded one (``_previous``). None unless they differ from the newest
         frames (a camera's newest is still to encode), their oldest is newer than the oldest of the quadrant's last
-        lift, and every camera with a frame has one ready (a ready lift never leaves out a camera the newest frames
-        have)."""
+        lift, every camera with a frame has one ready (a ready lift never leaves out a camera the newest frames have)
+        and none is older than the frame of its camera the quadrant holds."""
         ready, waiting = {}, False
         for name in self.detector.quadrant_cameras([quadrant]):
             frame = self._frames.get(name)
@@ -256,8 +258,8 @@ class PhaseLockedImageLane:
             if frame.features is None:
                 waiting = True
                 frame = self._previous.get(name)
-                if frame is None:
-                    return None
+                if frame is None or frame.seq < self._lifted[quadrant].get(name, -1):
+                    return None  # nothing ready, or older than the frame the quadrant holds of that camera
             ready[name] = frame
         # the quadrant's age is its oldest frame's: a ready lift that leaves that frame in makes it no younger, and
         # is not worth its CPU (it would push later lifts back where the lane is short of time)
@@ -367,7 +369,8 @@ class PhaseLockedImageLane:
                     self.stats.quadrants_skipped += len(plan.skipped)
                     self._done.append((plan.deadline_s, plan.slice_index, plan.quadrant))
                     if plan.ready:  # the newest frames still wait for a later pass: the quadrant stays wanted
-                        frames = self._ready(plan.quadrant) or {}
+                        frames = self._ready(plan.quadrant)
+                        assert frames, "a ready plan is made only where _ready gives frames (same lock, same state)"
                         self.stats.ready_lifts += 1
                     else:
                         self._wanted_since[plan.quadrant] = None  # frames that arrive during the lift set it again
@@ -439,13 +442,24 @@ class PhaseLockedImageLane:
             prepare(encoded)
         t1 = self.clock()
         with self._cond:
-            for name, feats in encoded.items():
-                frames[name].features = feats
+            self._store_features(frames, encoded)
             self.stats.cameras_encoded += len(encoded)
             self.stats.encoded_ahead += len(encoded)
             self._encode_s.append((t1 - t0) / max(1, len(encoded)))
             self._work.append((t1, t1 - t0))
             self.cpu_s += time.thread_time() - cpu0
+
+    def _store_features(self, frames: Mapping[str, _Frame], encoded: Mapping[str, np.ndarray]) -> None:
+        """(Under the lock.) Give the frames their feature maps. A frame replaced while it was encoded, by a frame
+        still to encode, becomes its camera's ``_previous`` when its set is used and it is newer than the one there
+        (submit_images saw it without features)."""
+        for name, feats in encoded.items():
+            frame = frames[name]
+            frame.features = feats
+            newest, kept = self._frames.get(name), self._previous.get(name)
+            if newest is not None and newest is not frame and newest.features is None and frame.owner.used \
+                    and (kept is None or kept.seq < frame.seq):  # fmt: skip
+                self._previous[name] = frame
 
     def _overdue(self, now_s: float) -> int | None:
         """The quadrant that has waited longest for its newer frames, if that is more than a rotation (the lane is
@@ -473,8 +487,9 @@ class PhaseLockedImageLane:
         t0 = self.clock()
         fresh = {n: f.image for n, f in frames.items() if f.features is None}
         if fresh:
-            for name, feats in self.detector.encode_images(fresh).items():
-                frames[name].features = feats
+            encoded = self.detector.encode_images(fresh)
+            with self._cond:
+                self._store_features(frames, encoded)
             self.stats.cameras_encoded += len(fresh)
         t1 = self.clock()
         images = {n: f.image for n, f in frames.items()}

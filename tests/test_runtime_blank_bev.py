@@ -200,6 +200,9 @@ def test_a_cleared_quadrants_slices_name_its_cameras_missing(tiny_export, sample
     assert det.detect_slice(pts, k, timestamp=2.1).cameras_missing == ()
     det.forget_images(quadrants=[q])  # dropped, not out
     assert det.detect_slice(pts, k, timestamp=2.2).cameras_missing == ()
+    det.forget_images(quadrants=[q], cameras_out=True)  # empty already, and now its cameras are out: named
+    assert det.detect_slice(pts, k, timestamp=2.25).cameras_missing == cams
+    det.update_images(_images(det, 3), timestamp=2.26)
     det.forget_images(quadrants=[q], cameras_out=True)  # the phase-locked lane: every camera of q timed out
     assert det.detect_slice(pts, k, timestamp=2.3).cameras_missing == cams
     det.forget_images()
@@ -216,3 +219,24 @@ def test_forget_images_refuses_a_cameras_out_that_is_no_bool(tiny_export, bad):
     det = StreamingDetector(tiny_export)
     with pytest.raises(ValueError, match="cameras_out must be True or False"):
         det.forget_images(cameras_out=bad)
+
+
+def test_an_older_drop_neither_names_nor_clears_the_cameras_out(tiny_export, sample):
+    """Why a quadrant is empty is said by the newest drop there: an update cut off by forget_images() that clears the
+    quadrant afterwards names no camera, and a forget of older image sets (warm_up's dummies) keeps the cameras a
+    newer clear named."""
+    det = StreamingDetector(tiny_export)
+    q = 2
+    cams = det.quadrant_cameras([q])
+    others = [n for n in det.camera_names if n not in cams]
+    k, pts = _slice_in(q, sample.points)
+    old = det.update_images(_images(det, 0), timestamp=0.5)  # seq 1: every camera
+    cleared = det.update_images(_images(det, 1, others), timestamp=1.0)  # seq 2 clears q
+    assert q in cleared.cleared
+    det.forget_images(through=old.seq)  # older than the clear: q's cameras stay named
+    assert det.detect_slice(pts, k, timestamp=1.1).cameras_missing == cams
+    det.forget_images()  # newer: q is empty because of it now
+    assert det.detect_slice(pts, k, timestamp=1.2).cameras_missing == ()
+    with det._lock:  # an update begun before that forget clearing q only now (as _clear_blind would, late)
+        det._drop_images_locked(cleared.seq - 1, (q,), cameras_out=True)
+    assert det.detect_slice(pts, k, timestamp=1.3).cameras_missing == ()

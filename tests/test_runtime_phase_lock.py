@@ -516,3 +516,45 @@ def test_worker_lane_waiting_counts_jobs_beyond_those_running():
     finally:
         gate.set()
         lane.close()
+
+
+# ---- ready lifts: the frames a pass may be lifted from ---------------------------------------------------------------
+def _lane_with_frames(timeout_s: float | None = None):
+    clock = ManualClock()
+    det = FakeDetector(clock, 0.001, 0.001)
+    lane = PhaseLockedImageLane(det, 8, 0.0, 20.0, 0.002, clock=clock, thread=False, camera_timeout_s=timeout_s,
+                                superseded=lambda: ImagesSuperseded("superseded"))  # fmt: skip
+    return lane, det, clock
+
+
+def test_a_frame_replaced_while_it_was_encoded_becomes_its_cameras_previous():
+    """submit_images saw it without features (it was being encoded inside a lift): once its features come, it is the
+    newest encoded frame of its camera and a ready lift may use it, not the frame before it."""
+    lane, det, clock = _lane_with_frames()
+    frame = np.zeros((2, 2, 3), np.uint8)
+    lane.submit_images({"CAM_BACK": frame}, 0.0)
+    first = lane._frames["CAM_BACK"]
+    first.features, first.owner.used = np.zeros((1, 1, 1), np.float32), True
+    lane.submit_images({"CAM_BACK": frame}, 0.05)
+    second = lane._frames["CAM_BACK"]
+    assert lane._previous["CAM_BACK"] is first
+    second.owner.used = True  # a lift took it and is encoding it ...
+    lane.submit_images({"CAM_BACK": frame}, 0.1)  # ... when the next frame comes
+    assert lane._previous["CAM_BACK"] is first  # it had no features yet
+    lane._store_features({"CAM_BACK": second}, {"CAM_BACK": np.ones((1, 1, 1), np.float32)})
+    assert lane._previous["CAM_BACK"] is second
+    lane._store_features({"CAM_BACK": first}, {"CAM_BACK": np.ones((1, 1, 1), np.float32)})  # an older one: not taken
+    assert lane._previous["CAM_BACK"] is second
+
+
+def test_a_camera_that_times_out_leaves_no_previous_frame():
+    lane, det, clock = _lane_with_frames(timeout_s=0.2)
+    frame = np.zeros((2, 2, 3), np.uint8)
+    lane.submit_images({c: frame for c in CAMERAS}, 0.0)
+    for f in lane._frames.values():
+        f.features, f.owner.used = np.zeros((1, 1, 1), np.float32), True
+    lane.submit_images({"CAM_BACK": frame}, 0.05)
+    assert "CAM_BACK" in lane._previous
+    clock.t = 1.0  # every camera silent for longer than the timeout
+    lane.step(clock.t)
+    assert lane.stats.cameras_timed_out == len(CAMERAS) and lane._previous == {}
