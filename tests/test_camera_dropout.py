@@ -233,3 +233,11 @@ def test_cli_refuses_a_bad_dropout(tiny_train_data, tmp_path, value):
     r = CliRunner().invoke(train_main, ["--data", str(tiny_train_data), "--out", str(tmp_path / "o"), "--preset", "tiny",
                                         "--steps", "1", "--camera-dropout", value])  # fmt: skip
     assert r.exit_code == 2 and "--camera-dropout" in r.output
+
+
+def test_a_resume_with_another_dropout_says_so(store, tmp_path):
+    train(_config(max_minutes=1e-9), "unused", tmp_path / "part", store=store, echo=lambda m: None)
+    said = []
+    train(_config(camera_dropout=0.2), "unused", tmp_path / "resumed", resume=tmp_path / "part" / "last.pt", store=store,
+          echo=said.append)  # fmt: skip
+    assert any("camera_dropout 0.2; it was trained with 0.6" in line for line in said)

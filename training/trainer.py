@@ -665,6 +665,9 @@ def _restore(run: _TrainRun, resume: str | Path) -> None:
                          f"{bool(was.get('freeze_camera_lane'))}: resume it with the same (given teacher={now.get('teacher')!r}, "
                          f"freeze_camera_lane={run.config.freeze_camera_lane})")  # fmt: skip
     check_fits(run.detector.state_dict(), state["model"], resume, "resume checkpoint", f"preset {preset.name!r}")
+    if was.get("camera_dropout", 0.0) != run.config.camera_dropout:  # allowed (an augmentation), but said
+        run.say(f"resuming {resume} with camera_dropout {run.config.camera_dropout:g}; it was trained with "
+                f"{was.get('camera_dropout', 0.0):g} so far")  # fmt: skip
     classifier = run.model.image_classifier
     if (classifier is not None) != ("image_classifier" in state):
         raise ValueError(f"checkpoint {resume} was trained {'without' if classifier is not None else 'with'} the image class loss: "
