@@ -199,6 +199,7 @@ class StreamingRunner:
         superseded = lambda: ImagesSuperseded("image set superseded by a newer one")  # noqa: E731
         self._phase_locked: PhaseLockedImageLane | None = None
         self._images: WorkerLane | None = None
+        self._cleared = _Count()  # quadrants the full schedule's updates cleared (ImageUpdate.cleared)
         if config.schedule == "phase-locked" and detector.uses_images:
             self._phase_locked = PhaseLockedImageLane(
                 detector, detector.num_slices, detector.config.start_deg, config.lidar_hz, config.lift_margin_ms * 1e-3,
@@ -252,8 +253,15 @@ class StreamingRunner:
         if self._phase_locked is not None:
             return self._phase_locked.submit_images(own, stamp, cameras)
         options = {} if camera_timestamps is None else {"camera_timestamps": cameras}
-        update = self.detector.update_images  # the job holds the detector's method, not the runner
-        return self._images.submit(lambda: update(own, stamp, **options))
+        update = self.detector.update_images  # the job holds the detector's method and the count, not the runner
+        cleared = self._cleared
+
+        def job():
+            result = update(own, stamp, **options)
+            cleared.add(len(getattr(result, "cleared", ())))
+            return result
+
+        return self._images.submit(job)
 
     def submit_calibration(self, calibration: Rig | Lut | Mapping | str | os.PathLike) -> "Future[None]":
         """``StreamingDetector.set_calibration`` off the caller's thread: a LUT build and a re-lift take a good part of
@@ -330,6 +338,14 @@ class StreamingRunner:
         with ``ImagesSuperseded``. Under ``schedule="full"`` a set still waiting when the next arrives; under
         ``"phase-locked"`` a set none of whose frames was lifted before newer frames of its cameras replaced them."""
         return self._images.dropped if self._images is not None else self._phase_locked.images_superseded
+
+    @property
+    def quadrants_cleared(self) -> int:
+        """Quadrants left without image BEV so far because none of their cameras had a frame: under ``"full"`` the
+        quadrants of each image update given none of their cameras (``ImageUpdate.cleared``); under
+        ``"phase-locked"`` also those whose cameras all timed out (``PhaseLockStats.quadrants_cleared``). Their
+        slices read the camera-less BEV or the LiDAR-only fallback and name the cameras in ``cameras_missing``."""
+        return self._cleared.value if self._images is not None else self._phase_locked.stats.quadrants_cleared
 
     @property
     def image_lane_cpu_s(self) -> float:
@@ -459,3 +475,15 @@ def _well_formed(payload: tuple) -> bool:
         and isinstance(k, (int, np.integer)) and not isinstance(k, bool) and k >= 0
         and isinstance(stamp, numbers.Real) and not isinstance(stamp, bool) and math.isfinite(stamp)
     )  # fmt: skip
+
+
+class _Count:
+    """A counter jobs on the lanes' threads add to (held by the jobs, not by the runner)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self.value = 0
+
+    def add(self, n: int) -> None:
+        with self._lock:
+            self.value += n

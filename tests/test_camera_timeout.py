@@ -291,6 +291,7 @@ def test_a_runner_on_the_tiny_export_stops_fusing_a_silent_camera(tiny_export, t
             runner.submit_images(others, time.monotonic() - t0)
             time.sleep(0.03)
         assert runner.phase_lock.cameras_timed_out == (1 if timeout_s else 0)
+        assert runner.quadrants_cleared == runner.phase_lock.quadrants_cleared == 0  # CAM_BACK_LEFT still sees q2
         parts = split_sweep(load_bundled_sample().points, det.num_slices, det.config.start_deg)
         k = next(k for k in range(det.num_slices) if k * 4 // det.num_slices == 2)
         result = runner.submit_slice(parts[k], k, 0.6).result(timeout=WAIT_S)

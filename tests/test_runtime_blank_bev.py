@@ -240,3 +240,17 @@ def test_an_older_drop_neither_names_nor_clears_the_cameras_out(tiny_export, sam
     with det._lock:  # an update begun before that forget clearing q only now (as _clear_blind would, late)
         det._drop_images_locked(cleared.seq - 1, (q,), cameras_out=True)
     assert det.detect_slice(pts, k, timestamp=1.3).cameras_missing == ()
+
+
+def test_a_full_schedule_runner_counts_the_quadrants_its_updates_cleared(tiny_export):
+    from streamdet.runtime_ort.lanes import LaneConfig, StreamingRunner
+
+    det = StreamingDetector(tiny_export)
+    q = 2
+    others = [n for n in det.camera_names if n not in det.quadrant_cameras([q])]
+    with StreamingRunner(det, LaneConfig()) as runner:
+        assert runner.quadrants_cleared == 0
+        runner.submit_images(_images(det, 0), timestamp=1.0).result(timeout=60)
+        assert runner.quadrants_cleared == 0
+        update = runner.submit_images(_images(det, 1, others), timestamp=2.0).result(timeout=60)
+        assert q in update.cleared and runner.quadrants_cleared == len(update.cleared)
