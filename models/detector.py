@@ -95,10 +95,18 @@ class StreamDetector(nn.Module):
         self.lifter = build_lifter(preset) if preset.use_image else None
         self.slice_net = SliceNet(preset)
 
-    def image_bev(self, images: Tensor, lut_index: Tensor, lut_weight: Tensor) -> Tensor:
+    def image_bev(self, images: Tensor, lut_index: Tensor, lut_weight: Tensor, camera_keep: Tensor | None = None) -> Tensor:
+        """``camera_keep`` (one bool per image, in ``images`` order; None: all): the images False are lifted from
+        zero features, as the runtime lifts a camera without a frame (training/camera_dropout.py)."""
         if self.image_encoder is None or self.lifter is None:
             raise RuntimeError(f"preset {self.preset.name!r} has use_image=False: there is no image lane")
-        return self.lifter(self.image_encoder(images), lut_index, lut_weight)  # (Q, C, Yq, Xq)
+        feats = self.image_encoder(images)  # (J, C, Hf, Wf)
+        if camera_keep is not None:
+            if camera_keep.numel() != feats.shape[0]:
+                raise ValueError(f"camera_keep has {tuple(camera_keep.shape)} entries for {feats.shape[0]} images")
+            # exact zeros, as the runtime feeds a missing camera (a product with 0 would keep an inf as NaN)
+            feats = torch.where(camera_keep.reshape(-1, 1, 1, 1), feats, torch.zeros_like(feats))  # (J, C, Hf, Wf)
+        return self.lifter(feats, lut_index, lut_weight)  # (Q, C, Yq, Xq)
 
     def forward(
         self,

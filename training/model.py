@@ -62,18 +62,11 @@ class TrainingModel(nn.Module):
         d = self.detector
         if not (d.preset.use_image and use_image):
             return None
-        if d.image_encoder is None or d.lifter is None:
-            raise RuntimeError(f"preset {d.preset.name!r} has use_image=False: there is no image lane")
         # a step that drops cameras normalises with the stored statistics, as the exported graphs (camera_dropout.py)
         stored = stored_statistics((d.image_encoder, d.lifter)) if camera_keep is not None else nullcontext()
         with torch.no_grad() if self.frozen else nullcontext(), stored:
-            feats = d.image_encoder(batch.images)  # (B * J, C, Hf, Wf), sample-major
-            if camera_keep is not None:
-                if camera_keep.numel() != feats.shape[0]:
-                    raise ValueError(f"camera_keep has {tuple(camera_keep.shape)} entries for {feats.shape[0]} images")
-                # exact zeros, as the runtime feeds a missing camera (a product with 0 would keep an inf as NaN)
-                feats = torch.where(camera_keep.reshape(-1, 1, 1, 1), feats, torch.zeros_like(feats))  # (B * J, C, Hf, Wf)
-            lifted = d.lifter(feats, batch.lut_index, batch.lut_weight)  # (L, C, Yq, Xq)
+            # images sample-major (B * J): camera_keep (B, J) flattens in their order
+            lifted = d.image_bev(batch.images, batch.lut_index, batch.lut_weight, camera_keep)  # (L, C, Yq, Xq)
         return lifted.index_select(0, batch.map_source)  # (Qm, C, Yq, Xq)
 
     def forward(self, batch: Batch, use_image: bool = True, lifted: Tensor | None = None,
