@@ -77,6 +77,20 @@ def distinct_rows(slots: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, n
     return slots[first], weights[first], inverse.reshape(-1).astype(np.int64)
 
 
+def stack_rows(slots: tuple[np.ndarray, ...], weights: tuple[np.ndarray, ...], pad_row: int) -> tuple[np.ndarray, np.ndarray]:
+    """The (U, J) slots and weights of several shares of one camera, stacked row-wise for one term run. A share is
+    Z * S slots wide, S the most slots the camera holds in one voxel of that quadrant, so one camera's shares differ
+    in width where it barely reaches a quadrant (a camera that sees a few cells of a neighbouring quadrant at one
+    height, two elsewhere): the narrower ones are padded with zero-weight slots of ``pad_row``, which add nothing
+    (the sparse LUT leaves them out; the dense gather multiplies that row by 0)."""
+    if len(slots) == 1:
+        return slots[0], weights[0]
+    width = max(s.shape[1] for s in slots)
+    padded_slots = [np.pad(s, ((0, 0), (0, width - s.shape[1])), constant_values=pad_row) for s in slots]
+    padded_weights = [np.pad(w, ((0, 0), (0, width - w.shape[1])), constant_values=0.0) for w in weights]
+    return np.concatenate(padded_slots), np.concatenate(padded_weights)  # (U, J)
+
+
 def sparse_lut_value(slots: np.ndarray, weights: np.ndarray, table_rows: int) -> ort.OrtValue:
     """``lifter_split.sparse_lut`` of (N, J) slots and weights as the (N, table_rows) COO sparse OrtValue that the
     sparse ``term_graph`` takes (CPU memory; the value keeps its arrays alive)."""
@@ -191,7 +205,7 @@ class CameraTerms:
         if self.sparse:
             for shares in by_camera.values():
                 if len(shares) > 1:
-                    self._sparse_lut(tuple(shares), np.concatenate([s.slots for s in shares]), np.concatenate([s.weights for s in shares]))
+                    self._sparse_lut(tuple(shares), *self._stacked(shares))
 
     def term(self, features: np.ndarray, share: _Share) -> np.ndarray:
         """(U, C_out) distinct terms of one camera share from that camera's (C, Hf, Wf) float32 feature map."""
@@ -215,13 +229,17 @@ class CameraTerms:
             raise type(self._closed)(*self._closed.args)
         return session
 
+    def _stacked(self, shares: tuple[_Share, ...] | list[_Share]) -> tuple[np.ndarray, np.ndarray]:
+        """``stack_rows`` of these shares' distinct rows, padded with height 0's zero row (the sentinel)."""
+        pad_row = self.feature_hw[0] * self.feature_hw[1]
+        return stack_rows(tuple(s.slots for s in shares), tuple(s.weights for s in shares), pad_row)
+
     def _run_terms(self, features: np.ndarray, shares: tuple[_Share, ...]) -> tuple[np.ndarray, ...]:
         sizes = [s.slots.shape[0] for s in shares]
         if sum(sizes) == 0:  # a camera the LUT lists in the quadrant but that reads no cell there
             return tuple(np.zeros((0, self.bias.size), np.float32) for _ in shares)
         graph = self._session(self._term_graph)  # one read: close() may release it meanwhile
-        slots = np.concatenate([s.slots for s in shares]) if len(shares) > 1 else shares[0].slots  # (U, J)
-        weights = np.concatenate([s.weights for s in shares]) if len(shares) > 1 else shares[0].weights
+        slots, weights = self._stacked(shares)  # (U, J)
         if self.sparse:
             feeds = {"features": ort.OrtValue.ortvalue_from_numpy(np.ascontiguousarray(features[None])),
                      "lut": self._sparse_lut(shares, slots, weights)}  # fmt: skip

@@ -21,7 +21,7 @@ from streamdet.export.cli import main as export_main
 from streamdet.models.detector import build_detector
 from streamdet.models.presets import get_preset
 from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector
-from streamdet.runtime_ort.camera_terms import distinct_rows, share_slots, sparse_lut_value
+from streamdet.runtime_ort.camera_terms import distinct_rows, share_slots, sparse_lut_value, stack_rows
 from streamdet.runtime_ort.lifter_split import SplitError, first_conv, sparse_lut, tail_graph, term_graph
 from streamdet.runtime_ort.sessions import ort_session
 from streamdet.training.checkpoint import save_weights
@@ -511,3 +511,80 @@ def test_close_during_a_terms_lift_raises_detector_closed(export_dir, quadrants)
     det._lift_quadrants = close_first
     with pytest.raises(DetectorClosed, match="closed"):
         det.update_images(_images(det, 0), 1.0, quadrants=quadrants)
+
+
+# ---- one camera's shares of different widths ------------------------------------------------------------------
+
+
+def _lut_with_a_second_slot(lut, camera: str, quadrant: int):
+    """``lut`` where ``camera`` holds a second slot (the next feature cell of its map) in every voxel of ``quadrant``
+    that has a free slot, so that its share there is two slots wide and one slot wide in its other quadrants: what a
+    camera that reaches a neighbouring quadrant at one height only makes of a LUT with two heights per voxel."""
+    cells = lut.feature_width * lut.feature_height
+    j = lut.camera_names.index(camera)
+    index, weight = lut.index.copy(), lut.weight.copy()
+    q_index = index[quadrant]  # (K, Z, Yq, Xq)
+    valid = q_index != lut.sentinel
+    mine = valid & (q_index // cells == j)
+    row = np.where(mine, q_index, -1).max(axis=0)  # (Z, Yq, Xq) the camera's one slot (one height per voxel)
+    z, y, x = np.nonzero(mine.any(axis=0) & ~valid[-1])
+    second = np.where(row[z, y, x] % cells + 1 < cells, row[z, y, x] + 1, row[z, y, x] - 1)
+    q_index[valid.sum(axis=0)[z, y, x], z, y, x] = second
+    count = (q_index != lut.sentinel).sum(axis=0)  # (Z, Yq, Xq)
+    index[quadrant] = q_index
+    weight[quadrant] = np.where(q_index != lut.sentinel, 1.0 / np.maximum(count, 1), 0.0)
+    return dataclasses.replace(lut, index=index, weight=weight)
+
+
+@pytest.mark.parametrize("sparse", [True, False])
+def test_a_camera_two_slots_wide_in_one_quadrant_and_one_in_another_lifts_as_the_lifter_graph(export_dir, monkeypatch, sparse):
+    """A noisy calibration once made a camera reach a neighbouring quadrant at one height only: its shares differed
+    in width, and set_calibration (the sparse LUTs of a camera's quadrants) and full updates (one term run per camera
+    for all its quadrants) failed to stack them. Narrower shares are padded with zero-weight slots now."""
+    import streamdet.runtime_ort.camera_terms as ct
+    from streamdet.calibration.camera_lut import camera_luts
+
+    def no_sparse(*args, **kw):
+        raise AttributeError("module 'onnxruntime' has no attribute 'SparseTensor'")
+
+    if not sparse:
+        monkeypatch.setattr(ct, "sparse_lut_value", no_sparse)
+    terms = StreamingDetector(export_dir, DetectorConfig(camera_terms=True))
+    graph = StreamingDetector(export_dir, DetectorConfig(camera_terms=False))
+    assert terms._terms.sparse == sparse
+    camera = next(c for c in terms.camera_names if len([q for q in range(4) if c in terms.quadrant_cameras([q])]) > 1)
+    quadrant = next(q for q in range(4) if camera in terms.quadrant_cameras([q]))
+    lut = _lut_with_a_second_slot(terms.lut, camera, quadrant)
+    cells = lut.feature_width * lut.feature_height
+    widths = {q: s.index.shape[2] for q, ql in enumerate(terms._luts_of(lut)) for s in camera_luts(ql, cells) if s.camera_name == camera}
+    assert widths[quadrant] == 2 and 1 in widths.values(), widths
+    images = _images(terms, 8)
+    for det in (terms, graph):
+        det.set_calibration(lut, relift=False)
+        det.update_images(images, 1.0)  # the full update: one term run per camera, all its quadrants
+    a, b = terms.image_state.bev, graph.image_state.bev  # (4, C, Yq, Xq)
+    assert a.shape == b.shape and np.ptp(b) > 0
+    assert np.abs(a - b).max() <= 1e-5 * np.ptp(b)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_stacked_rows_of_shares_of_different_widths_give_each_shares_sparse_rows(seed):
+    rng = np.random.default_rng(seed)
+    table_rows, pad_row = 50, 9
+    widths, counts = (4, 8, 2), (3, 0, 5)
+    slots = tuple(rng.integers(0, table_rows, (n, w)) for n, w in zip(counts, widths))
+    weights = tuple(rng.random((n, w)).astype(np.float32) for n, w in zip(counts, widths))
+    stacked_slots, stacked_weights = stack_rows(slots, weights, pad_row)
+    assert stacked_slots.shape == stacked_weights.shape == (sum(counts), max(widths))
+    dense = np.zeros((sum(counts), table_rows))  # the naive reference: each row's weights at its slots
+    start = 0
+    for s, w in zip(slots, weights):
+        for i in range(s.shape[0]):
+            np.add.at(dense[start + i], s[i], w[i])
+        start += s.shape[0]
+    values, coo = sparse_lut(stacked_slots, stacked_weights, table_rows)
+    got = np.zeros_like(dense)
+    got[coo[:, 0], coo[:, 1]] = values
+    np.testing.assert_allclose(got, dense, rtol=1e-6, atol=1e-7)
+    one_slots, one_weights = stack_rows(slots[:1], weights[:1], pad_row)
+    assert one_slots is slots[0] and one_weights is weights[0]
