@@ -1,20 +1,21 @@
 #!/usr/bin/env bash
-# Camera dropout against a control (docs/training/RESULTS.md, "Camera dropout"): both fine-tuned from the shipped
-# models/weights/small_v3_swift.pt with the same recipe, 58 minutes of wall time each, run side by side on the 2-vCPU
-# guest with one torch thread each (seed 5, peak lr 3e-4, balanced sampling, slices 8,8,32, the image-side class loss
-# at 0.5, no teacher); one with --camera-dropout 0.3, one without. Then each export is scored on all 600 val60w4
+# Camera dropout against a control (docs/training/RESULTS.md, "Camera dropout"): both fine-tuned from the then shipped
+# small_v3_swift.pt (models/weights/issue22/small_v3_swift_v1.pt since the dropout run replaced it) with the same
+# recipe, 58 minutes of wall time each, run side by side on the 2-vCPU guest with one torch thread each (seed 5, peak
+# lr 3e-4, balanced sampling, slices 8,8,32, the image-side class loss at 0.5, no teacher); one with --camera-dropout
+# 0.3, one without. Then each export is scored on all 600 val60w4
 # samples with cameras missing (measure.py), and paired bootstrap intervals over the 60 scenes per variant.
 # Run from the repository root with the datasets beside it (streamdet-synth --out data60w4 --scenes 60 --seed 7
 # --resolution 480x270; the same with --out val60w4 --seed 8).
 set -euo pipefail
 HERE=$(dirname "$0")
 train() {  # $1: out folder, $2: --camera-dropout
-  OMP_NUM_THREADS=1 streamdet-train --data data60w4 --preset small_v3_swift --init models/weights/small_v3_swift.pt \
+  OMP_NUM_THREADS=1 streamdet-train --data data60w4 --preset small_v3_swift --init models/weights/issue22/small_v3_swift_v1.pt \
     --out "$1" --max-minutes ${MINUTES:-58} --balanced --num-slices 8,8,32 --max-slices-per-sample 8 --lr 3e-4 \
     --image-warmup 0 --image-class-weight 0.5 --checkpoint-every 100 --seed 5 --camera-dropout "$2"
 }
 train drop30 0.3 & sleep 15; train ctrl00 0 & wait
-for t in swift:models/weights/small_v3_swift.pt ctrl00:ctrl00/model.pt drop30:drop30/model.pt; do
+for t in swift:models/weights/issue22/small_v3_swift_v1.pt ctrl00:ctrl00/model.pt drop30:drop30/model.pt; do
   streamdet-export --checkpoint "${t#*:}" --out "exp_${t%%:*}"
   python "$HERE/measure.py" "exp_${t%%:*}" val60w4 all "meas_${t%%:*}"
 done
