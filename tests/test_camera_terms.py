@@ -61,6 +61,16 @@ def separable_export_dir(tmp_path_factory) -> Path:
     return _export(tmp_path_factory, dataclasses.replace(PRESET, lifter=dataclasses.replace(PRESET.lifter, residual="separable")))
 
 
+@pytest.fixture(scope="module")
+def two_height_export_dir(tmp_path_factory) -> Path:
+    """The bundled ``small_v3_swift`` (fp32): two heights per voxel in its LUT, as every shipped fused model, so a
+    camera's share is two slots wide, or one where it sees a quadrant at one height only."""
+    out = tmp_path_factory.mktemp("export") / "swift"
+    result = CliRunner().invoke(export_main, ["--preset", "small_v3_swift", "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    return out
+
+
 def _images(det: StreamingDetector, seed: int, names=None) -> dict[str, np.ndarray]:
     img = det.image
     rng = np.random.default_rng(seed)
@@ -588,3 +598,19 @@ def test_stacked_rows_of_shares_of_different_widths_give_each_shares_sparse_rows
     np.testing.assert_allclose(got, dense, rtol=1e-6, atol=1e-7)
     one_slots, one_weights = stack_rows(slots[:1], weights[:1], pad_row)
     assert one_slots is slots[0] and one_weights is weights[0]
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_noisy_calibrations_of_a_two_height_lut_lift_as_the_lifter_graph(two_height_export_dir, seed):
+    """set_calibration with noisy rigs (the calib-noise study's worst level), then a full update: per-camera terms
+    give the lifter graph's BEV whatever widths the cameras' shares take."""
+    terms = StreamingDetector(two_height_export_dir, DetectorConfig(camera_terms=True))
+    graph = StreamingDetector(two_height_export_dir, DetectorConfig(camera_terms=False))
+    rig = perturb_rig(load_bundled_sample().rig, 5.0, 0.5, seed=seed).resized(terms.image.width, terms.image.height)
+    images = _images(terms, seed)
+    for det in (terms, graph):
+        det.set_calibration(rig, relift=False)
+        det.update_images(images, 1.0)
+    a, b = terms.image_state.bev, graph.image_state.bev  # (4, C, Yq, Xq)
+    assert a.shape == b.shape and np.ptp(b) > 0
+    assert np.abs(a - b).max() <= 1e-5 * np.ptp(b)
