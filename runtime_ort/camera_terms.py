@@ -86,9 +86,16 @@ def stack_rows(slots: tuple[np.ndarray, ...], weights: tuple[np.ndarray, ...], p
     if len(slots) == 1:
         return slots[0], weights[0]
     width = max(s.shape[1] for s in slots)
-    padded_slots = [np.pad(s, ((0, 0), (0, width - s.shape[1])), constant_values=pad_row) for s in slots]
-    padded_weights = [np.pad(w, ((0, 0), (0, width - w.shape[1])), constant_values=0.0) for w in weights]
-    return np.concatenate(padded_slots), np.concatenate(padded_weights)  # (U, J)
+    if all(s.shape[1] == width for s in slots):  # the usual case: one concatenation each
+        return np.concatenate(slots), np.concatenate(weights)
+    out_slots = np.full((sum(s.shape[0] for s in slots), width), pad_row, slots[0].dtype)  # (U, J)
+    out_weights = np.zeros(out_slots.shape, weights[0].dtype)
+    start = 0
+    for s, w in zip(slots, weights):
+        out_slots[start : start + s.shape[0], : s.shape[1]] = s
+        out_weights[start : start + s.shape[0], : s.shape[1]] = w
+        start += s.shape[0]
+    return out_slots, out_weights
 
 
 def sparse_lut_value(slots: np.ndarray, weights: np.ndarray, table_rows: int) -> ort.OrtValue:
@@ -159,7 +166,7 @@ class CameraTerms:
                 log.info("per-camera terms: the dense term graph (the sparse one does not run here: %s)", ort_message(e))
         return ort_session(term_graph(weight, self.channels, self.feature_hw, heights, sparse=False).SerializeToString(), session), False
 
-    def _sparse_lut(self, shares: tuple[_Share, ...], slots: np.ndarray, weights: np.ndarray):
+    def _sparse_lut(self, shares: tuple[_Share, ...]):
         """The sparse LUT of these shares' distinct rows in this order, made once and kept while their quadrant LUTs'
         shares are (``shares``), at most 64."""
         key = tuple(id(s) for s in shares)
@@ -167,7 +174,7 @@ class CameraTerms:
             cached = self._luts.get(key)
         if cached is not None and all(a is b for a, b in zip(cached[0], shares)):
             return cached[1]
-        value = sparse_lut_value(slots, weights, self._table_rows)
+        value = sparse_lut_value(*self._stacked(shares), self._table_rows)
         with self._lock:
             if len(self._luts) >= 64:
                 self._luts.pop(next(iter(self._luts)))
@@ -201,11 +208,11 @@ class CameraTerms:
             for s in self.shares(qlut):
                 by_camera.setdefault(s.share.camera_name, []).append(s)
                 if self.sparse:
-                    self._sparse_lut((s,), s.slots, s.weights)
+                    self._sparse_lut((s,))
         if self.sparse:
             for shares in by_camera.values():
                 if len(shares) > 1:
-                    self._sparse_lut(tuple(shares), *self._stacked(shares))
+                    self._sparse_lut(tuple(shares))
 
     def term(self, features: np.ndarray, share: _Share) -> np.ndarray:
         """(U, C_out) distinct terms of one camera share from that camera's (C, Hf, Wf) float32 feature map."""
@@ -239,12 +246,12 @@ class CameraTerms:
         if sum(sizes) == 0:  # a camera the LUT lists in the quadrant but that reads no cell there
             return tuple(np.zeros((0, self.bias.size), np.float32) for _ in shares)
         graph = self._session(self._term_graph)  # one read: close() may release it meanwhile
-        slots, weights = self._stacked(shares)  # (U, J)
-        if self.sparse:
+        if self.sparse:  # the rows are stacked only where the sparse LUT of these shares is not kept yet
             feeds = {"features": ort.OrtValue.ortvalue_from_numpy(np.ascontiguousarray(features[None])),
-                     "lut": self._sparse_lut(shares, slots, weights)}  # fmt: skip
+                     "lut": self._sparse_lut(tuple(shares))}  # fmt: skip
             out = graph.run_with_ort_values(["term"], feeds)[0].numpy()  # (U, C_out)
         else:
+            slots, weights = self._stacked(shares)  # (U, J)
             out = graph.run(None, {"features": features[None], "slots": slots, "weights": weights})[0]  # (U, C_out)
         return tuple(np.split(out, np.cumsum(sizes)[:-1]))
 

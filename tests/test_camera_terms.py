@@ -600,17 +600,26 @@ def test_stacked_rows_of_shares_of_different_widths_give_each_shares_sparse_rows
     assert one_slots is slots[0] and one_weights is weights[0]
 
 
-@pytest.mark.parametrize("seed", [0, 1, 2, 3])
-def test_noisy_calibrations_of_a_two_height_lut_lift_as_the_lifter_graph(two_height_export_dir, seed):
-    """set_calibration with noisy rigs (the calib-noise study's worst level), then a full update: per-camera terms
-    give the lifter graph's BEV whatever widths the cameras' shares take."""
+@pytest.mark.parametrize("angle_deg,shift_m,seed,mixed", [(5.0, 0.5, 0, False), (5.0, 0.5, 1, False), (10.0, 1.0, 7, True)])
+def test_noisy_calibrations_of_a_two_height_lut_lift_as_the_lifter_graph(two_height_export_dir, angle_deg, shift_m, seed, mixed):
+    """set_calibration with noisy rigs, then a full update: per-camera terms give the lifter graph's BEV. At (10 deg,
+    1 m) seed 7 CAM_FRONT_LEFT reaches a neighbouring quadrant at one height only: its shares are one and two slots
+    wide, which set_calibration failed to stack before the padding (``mixed``: that case, checked)."""
+    from streamdet.calibration.camera_lut import camera_luts
+
     terms = StreamingDetector(two_height_export_dir, DetectorConfig(camera_terms=True))
     graph = StreamingDetector(two_height_export_dir, DetectorConfig(camera_terms=False))
-    rig = perturb_rig(load_bundled_sample().rig, 5.0, 0.5, seed=seed).resized(terms.image.width, terms.image.height)
+    rig = perturb_rig(load_bundled_sample().rig, angle_deg, shift_m, seed=seed).resized(terms.image.width, terms.image.height)
     images = _images(terms, seed)
     for det in (terms, graph):
         det.set_calibration(rig, relift=False)
         det.update_images(images, 1.0)
+    cells = terms._terms.feature_hw[0] * terms._terms.feature_hw[1]
+    widths: dict[str, set[int]] = {}
+    for qlut in terms._luts_of(terms.lut):
+        for share in camera_luts(qlut, cells):
+            widths.setdefault(share.camera_name, set()).add(share.index.shape[2])
+    assert any(len(w) > 1 for w in widths.values()) == mixed, widths
     a, b = terms.image_state.bev, graph.image_state.bev  # (4, C, Yq, Xq)
     assert a.shape == b.shape and np.ptp(b) > 0
     assert np.abs(a - b).max() <= 1e-5 * np.ptp(b)
