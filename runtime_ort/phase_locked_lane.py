@@ -21,9 +21,10 @@ Degraded behaviour, in this order (each counted in ``PhaseLockStats``):
 - **a pass the newest frames cannot make** because a camera's newest frame is still to encode, while the frames
   already encoded can (for that camera its newest encoded frame, of an image set a lift used, and never older than
   the one the quadrant holds) and are younger than the quadrant's BEV (by their oldest frame: the quadrant's age), is
-  lifted from those (``ready_lifts``); the newest frames follow at a later pass. Only while the lane spent at most ``READY_BUSY_SHARE`` of the last rotation working and no
-  quadrant is overdue: a lane short of time does not add lifts. Without it a camera whose frame came just before such
-  a pass left the pass skipped, and its slice read a lift a camera period older (docs/replay.md, "Ready lifts");
+  lifted from those (``ready_lifts``); the newest frames follow at a later pass. Only while the lane spent at most
+  ``READY_BUSY_SHARE`` of the last rotation working and no quadrant is overdue: a lane short of time does not add
+  lifts. Without it a camera whose frame came just before such a pass left the pass skipped, and its slice read a
+  lift a camera period older (docs/replay.md, "Ready lifts");
 - **a quadrant that cannot be lifted in time** (the expected lift, measured from the last lifts of that quadrant,
   would end after its first slice arrives) is skipped for that pass: it keeps its older BEV, which its slices read
   and whose age they report (``quadrants_skipped``; only passes with newer frames to lift count);
