@@ -89,6 +89,9 @@ def run(export_dir: Path, rounds: int, threads: int) -> dict:
     lift8 = ort_session(int8_path, threads) if int8_path.is_file() else None
     quadrants, feeds, parity = [], [], []
     for qlut in quadrant_luts(lut):
+        if not qlut.camera_names:  # a quadrant no camera sees has nothing to lift (the runtime clears it)
+            parity.append({"quadrant": qlut.quadrant, "max_abs_diff": None, "output_range": None})
+            continue
         quad = _Quadrant(pieces, qlut)
         maps = np.stack([features[n] for n in qlut.camera_names])  # (J', C, Hf, Wf)
         feed = lifter_feeds(maps, qlut.index, qlut.weight, manifest.lut_layout)
@@ -101,7 +104,8 @@ def run(export_dir: Path, rounds: int, threads: int) -> dict:
         quadrants.append(quad)
         feeds.append(feed)
     jobs = []  # (label, callable), interleaved every round
-    for q, (quad, feed) in enumerate(zip(quadrants, feeds)):
+    for quad, feed in zip(quadrants, feeds):
+        q = quad.qlut.quadrant
         jobs.append((f"q{q} lift fp32", lambda f=feed: lift32.run(None, f)))
         if lift8 is not None:
             jobs.append((f"q{q} lift int8", lambda f=feed: lift8.run(None, f)))
@@ -120,7 +124,8 @@ def run(export_dir: Path, rounds: int, threads: int) -> dict:
             times[label].append((time.perf_counter() - t0) * 1e3)
     stats = {k: {"median": float(np.median(v)), "p95": float(np.percentile(v, 95)), "min": float(np.min(v))} for k, v in times.items()}
     per_camera = []
-    for q, quad in enumerate(quadrants):
+    for quad in quadrants:
+        q = quad.qlut.quadrant
         rest = stats[f"q{q} combine"]["median"] + stats[f"q{q} tail"]["median"]
         for s in quad.shares:
             share = s.share
@@ -137,6 +142,9 @@ def report(result: dict) -> list[str]:
     lines = [f"{result['rounds']} interleaved rounds, {result['threads']} intra-op thread(s); LUT K = {result['lut_slots']} "
              f"slots, {result['cells_per_quadrant']} cells per quadrant; ms medians"]  # fmt: skip
     for p in result["parity"]:
+        if p["max_abs_diff"] is None:
+            lines.append(f"quadrant {p['quadrant']}: no camera sees it, nothing to lift")
+            continue
         lines.append(f"quadrant {p['quadrant']}: per-camera sum vs the export's lifter max |diff| {p['max_abs_diff']:.2e} "
                      f"(output range {p['output_range']:.2f})")  # fmt: skip
     lines.append("| quadrant | camera | cells | one camera's update (partial + combine + tail) | quadrant lift fp32 | int8 |")
@@ -145,7 +153,7 @@ def report(result: dict) -> list[str]:
         int8 = "-" if r["lift_int8_ms"] is None else f"{r['lift_int8_ms']:.2f}"
         lines.append(f"| {r['quadrant']} | {r['camera']} | {r['cells']} | {r['update_ms']:.2f} | {r['lift_fp32_ms']:.2f} | {int8} |")
     t = result["times_ms"]
-    for q in range(len(result["parity"])):
+    for q in (p["quadrant"] for p in result["parity"] if p["max_abs_diff"] is not None):
         lines.append(f"q{q}: combine {t[f'q{q} combine']['median']:.2f}, tail {t[f'q{q} tail']['median']:.2f} ms")
     return lines
 

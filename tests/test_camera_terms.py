@@ -623,3 +623,32 @@ def test_noisy_calibrations_of_a_two_height_lut_lift_as_the_lifter_graph(two_hei
     a, b = terms.image_state.bev, graph.image_state.bev  # (4, C, Yq, Xq)
     assert a.shape == b.shape and np.ptp(b) > 0
     assert np.abs(a - b).max() <= 1e-5 * np.ptp(b)
+
+
+def test_partial_lift_benchmark_reports_a_quadrant_no_camera_sees(export_dir, tmp_path):
+    """benchmarks/partial_lift.py on a LUT whose quadrant 3 no camera sees: that quadrant is reported as having
+    nothing to lift, the others are checked against the lifter and timed."""
+    import json
+    import shutil
+
+    from streamdet.benchmarks import partial_lift
+    from streamdet.calibration.lut import Lut
+    from streamdet.runtime_ort.manifest import sha256_file
+
+    out = tmp_path / "blind"
+    shutil.copytree(export_dir, out)
+    lut = Lut.load(out / "lut.npz")
+    index, weight = lut.index.copy(), lut.weight.copy()
+    index[3], weight[3] = lut.sentinel, 0.0
+    dataclasses.replace(lut, index=index, weight=weight).save(out / "lut.npz")
+    manifest = json.loads((out / "manifest.json").read_text())
+    manifest["lut"]["sha256"] = sha256_file(out / "lut.npz")  # a re-export with that LUT
+    (out / "manifest.json").write_text(json.dumps(manifest))
+    result = partial_lift.run(out, rounds=3, threads=1)
+    parity = {p["quadrant"]: p for p in result["parity"]}
+    assert parity[3]["max_abs_diff"] is None
+    assert all(parity[q]["max_abs_diff"] <= 1e-4 * max(parity[q]["output_range"], 1.0) for q in range(3))
+    assert {r["quadrant"] for r in result["per_camera_update"]} == {0, 1, 2}
+    lines = partial_lift.report(result)
+    assert "quadrant 3: no camera sees it, nothing to lift" in lines
+    assert not any(line.startswith("q3:") for line in lines)
