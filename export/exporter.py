@@ -34,8 +34,7 @@ from streamdet.export.options import DEFAULT_PRESET, STEM_STRIDE, ExportError, E
 from streamdet.export.staging import check_replaceable, discard_staging_dir, make_staging_dir, parity_failed_dir
 from streamdet.export.steps import Progress, Report, export_steps
 from streamdet.export.weights import (
-    checkpoint_lifter_form,
-    checkpoint_lifter_residual,
+    checkpoint_lifter,
     checkpoint_preset,
     checkpoint_slice_crop,
     checkpoint_use_image,
@@ -127,12 +126,11 @@ def _resolve_preset(opts: ExportOptions) -> tuple[Preset, int, int]:
     use_image = preset.use_image and checkpoint_use_image(opts.checkpoint) is not False
     # likewise a LiDAR-only checkpoint trained without the quadrant crop (one whole-grid map per slice)
     slice_crop = checkpoint_slice_crop(opts.checkpoint)
-    # and the lifter form it was trained with (small_v2 moved to the flat lifter; its older checkpoints are volume)
-    form = checkpoint_lifter_form(opts.checkpoint) or preset.lifter.form
-    residual = checkpoint_lifter_residual(opts.checkpoint) or preset.lifter.residual  # the flat lifter's residual conv
+    # and the lifter it was trained with (small_v2 moved to the flat lifter, so its older checkpoints are volume;
+    # the residual conv and the LUT's heights per voxel are the model's too)
+    lifter = checkpoint_lifter(opts.checkpoint) or preset.lifter
     post = preset.post if opts.top_k is None else dataclasses.replace(preset.post, top_k=opts.top_k)
     try:
-        lifter = dataclasses.replace(preset.lifter, form=form, residual=residual)
         preset = dataclasses.replace(preset, image=image, use_image=use_image, slice_crop=slice_crop, lifter=lifter, post=post)
     except ValueError as e:
         raise ExportError(f"checkpoint {opts.checkpoint}: {e}") from None

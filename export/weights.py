@@ -20,7 +20,7 @@ from pathlib import Path
 import torch
 
 from streamdet.models.detector import StreamDetector, build_detector
-from streamdet.models.presets import Preset
+from streamdet.models.presets import LifterConfig, Preset
 from streamdet.models.torch_files import check_fits, check_torch_zip, read_torch_file
 
 DEFAULT_SEED = 0
@@ -90,25 +90,19 @@ def checkpoint_slice_crop(checkpoint: str | os.PathLike | None) -> bool:
     return saved.get("slice_crop", True) is not False if saved is not None else True
 
 
-def checkpoint_lifter_form(checkpoint: str | os.PathLike | None) -> str | None:
-    """The lifter form (models/presets.py LifterConfig.form) of the preset a checkpoint names: absent in the saved
-    preset, "volume" (checkpoints from before the field); None when ``checkpoint_preset`` has none."""
-    return _checkpoint_lifter_field(checkpoint, "form", "volume")
-
-
-def checkpoint_lifter_residual(checkpoint: str | os.PathLike | None) -> str | None:
-    """The flat lifter's residual (LifterConfig.residual) of the preset a checkpoint names: absent in the saved
-    preset, "conv" (checkpoints from before the field); None when ``checkpoint_preset`` has none."""
-    return _checkpoint_lifter_field(checkpoint, "residual", "conv")
-
-
-def _checkpoint_lifter_field(checkpoint: str | os.PathLike | None, name: str, absent: str) -> str | None:
+def checkpoint_lifter(checkpoint: str | os.PathLike | None) -> LifterConfig | None:
+    """The lifter settings (models/presets.py LifterConfig) of the preset a checkpoint names: its form, residual
+    and LUT heights per voxel, which presets changed after checkpoints were trained. A field absent in the saved
+    preset has the value it had before the field existed (the dataclass default: "volume", "conv", one height).
+    None when ``checkpoint_preset`` has none or its lifter is malformed (``load_detector`` then says why)."""
     saved = checkpoint_preset(checkpoint)
     lifter = saved.get("lifter") if saved is not None else None
     if not isinstance(lifter, dict):
         return None
-    value = lifter.get(name, absent)
-    return value if isinstance(value, str) else None
+    try:
+        return LifterConfig(**lifter)
+    except (TypeError, ValueError):
+        return None
 
 
 def load_detector(preset: Preset, checkpoint: str | os.PathLike | None, seed: int = DEFAULT_SEED) -> tuple[StreamDetector, WeightsSource]:

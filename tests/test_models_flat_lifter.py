@@ -301,21 +301,21 @@ def test_training_gather_equals_the_exported_gather(seed, dtype, q):
 
 def test_the_export_builds_the_form_a_checkpoint_was_trained_with(tmp_path):
     """A checkpoint saved before the field (no lifter.form) is a volume lifter; one of the flat form is flat."""
-    from streamdet.export.weights import checkpoint_lifter_form
+    from streamdet.export.weights import checkpoint_lifter
 
     flat = tmp_path / "flat.pt"
     save_weights(flat, TINY_FLAT, build_detector(TINY_FLAT))
-    assert checkpoint_lifter_form(flat) == "flat"
+    assert checkpoint_lifter(flat).form == "flat"
     old = tmp_path / "old.pt"
     obj = torch.load(flat, weights_only=True)
     tiny = get_preset("tiny")
     obj["preset"] = {**tiny.to_dict(), "lifter": {k: v for k, v in tiny.to_dict()["lifter"].items() if k != "form"}}
     obj["model"] = build_detector(tiny).state_dict()
     torch.save(obj, old)
-    assert checkpoint_lifter_form(old) == "volume"
-    assert checkpoint_lifter_form(None) is None
+    assert checkpoint_lifter(old).form == "volume"
+    assert checkpoint_lifter(None) is None
     (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
-    assert checkpoint_lifter_form(tmp_path / "junk.pt") is None
+    assert checkpoint_lifter(tmp_path / "junk.pt") is None
 
 
 def test_the_export_builds_the_residual_a_checkpoint_was_trained_with(tmp_path):
@@ -323,14 +323,49 @@ def test_the_export_builds_the_residual_a_checkpoint_was_trained_with(tmp_path):
     exported separable, whatever the preset of its name says."""
     from streamdet.export.exporter import _resolve_preset
     from streamdet.export.options import ExportOptions
-    from streamdet.export.weights import checkpoint_lifter_residual
+    from streamdet.export.weights import checkpoint_lifter
 
     separable = dataclasses.replace(TINY_FLAT, lifter=dataclasses.replace(TINY_FLAT.lifter, residual="separable"))
     path = tmp_path / "sep.pt"
     save_weights(path, separable, build_detector(separable))
-    assert checkpoint_lifter_residual(path) == "separable"
+    assert checkpoint_lifter(path).residual == "separable"
     conv = tmp_path / "conv.pt"
     save_weights(conv, TINY_FLAT, build_detector(TINY_FLAT))
-    assert checkpoint_lifter_residual(conv) == "conv" and checkpoint_lifter_residual(None) is None
+    assert checkpoint_lifter(conv).residual == "conv"
     preset, _, _ = _resolve_preset(ExportOptions(checkpoint=str(path)))
     assert preset.lifter.residual == "separable" and preset.lifter.form == "flat"
+
+
+def test_the_export_builds_the_lut_heights_a_checkpoint_was_trained_with(tmp_path):
+    """A checkpoint trained with other LUT heights per voxel than its preset's name says today exports with its
+    own: the LUT it ships samples those heights (the weights alone cannot tell)."""
+    from streamdet.export.exporter import _resolve_preset
+    from streamdet.export.options import ExportOptions
+
+    three = dataclasses.replace(TINY_FLAT, lifter=dataclasses.replace(TINY_FLAT.lifter, lut_heights_per_voxel=3))
+    path = tmp_path / "three.pt"
+    save_weights(path, three, build_detector(three))
+    preset, _, _ = _resolve_preset(ExportOptions(checkpoint=str(path)))
+    assert preset.lifter == three.lifter
+    out = tmp_path / "export"
+    result = CliRunner().invoke(export_main, ["--checkpoint", str(path), "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    assert read_manifest(out).preset["lifter"]["lut_heights_per_voxel"] == 3
+
+
+def test_a_checkpoint_with_a_malformed_lifter_is_refused_by_the_export(tmp_path):
+    """An unknown or invalid lifter field: no lifter is taken from it, and the export says what is wrong."""
+    from streamdet.export.exporter import _resolve_preset
+    from streamdet.export.options import ExportOptions
+    from streamdet.export.weights import CheckpointError, checkpoint_lifter, load_detector
+
+    path = tmp_path / "bad.pt"
+    save_weights(path, TINY_FLAT, build_detector(TINY_FLAT))
+    for lifter in ({**TINY_FLAT.to_dict()["lifter"], "colour": "red"}, {**TINY_FLAT.to_dict()["lifter"], "form": "cube"}):
+        obj = torch.load(path, weights_only=True)
+        obj["preset"]["lifter"] = lifter
+        torch.save(obj, path)
+        assert checkpoint_lifter(path) is None
+        preset, _, _ = _resolve_preset(ExportOptions(checkpoint=str(path)))
+        with pytest.raises(CheckpointError, match="unreadable preset"):
+            load_detector(preset, path)
