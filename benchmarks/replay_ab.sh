@@ -19,7 +19,7 @@
 # (optional, default: the runtime's LaneConfig): --pair-hold-load, the slice lane's load above which a quadrant's first slice waits for the next; ISA (optional, default: the CPU's):
 # avx2 runs the variant (and its probe) under benchmarks/avx2_only.sh, the AVX2 kernels of an AVX2-only part on this CPU
 # (give replay_table --target-ms when variants of both instruction sets share OUT). DELIVERY_MS (environment, default 0): the
-# cameras' delivery delay (--camera-delivery-ms); NUM_SLICES (environment, default 8): slices per rotation (--slices). Writes OUT/r<round>_scale<S>_<label>/ (replay.json, report.md),
+# cameras' delivery delay (--camera-delivery-ms); NUM_SLICES (environment, default 8): slices per rotation (--slices); SPLIT (environment, default val): the drives' split played (--split; all: every scene, to compare models rather than schedules). Writes OUT/r<round>_scale<S>_<label>/ (replay.json, report.md),
 # OUT/r<round>_scale<S>_<label>.txt, OUT/variants.txt, OUT/probes_gflops.txt, OUT/staleness_cdf.png and OUT/table.md (benchmarks/replay_table.py: one row per
 # scale and variant, one value per round in each cell; `python -m streamdet.benchmarks.replay_tail OUT` then says whether a
 # variant's slice p99 comes from queueing or from long runs, and `python -m streamdet.benchmarks.replay_table OUT --baseline full
@@ -33,6 +33,7 @@ OUT=${1:?OUT}; ROUNDS=${2:?ROUNDS}; SCALES=${3:?SCALES}; shift 3
 BIN=${BIN:-.venv/bin}
 DELIVERY_MS=${DELIVERY_MS:-0}
 NUM_SLICES=${NUM_SLICES:-8}
+SPLIT=${SPLIT:-val}
 : "${DATA:?set DATA to the drives dataset (benchmarks/replay_prep.sh makes the issue-22 one)}"
 mkdir -p "$OUT"
 for V in "$@"; do
@@ -68,8 +69,8 @@ for ROUND in $(seq 1 "$ROUNDS"); do
         *) echo "$V: HEAP must be freeze or thaw, got $HEAP" >&2; exit 2 ;;
       esac
       [ -z "$CODE" ] || RUNENV=(PYTHONPATH="$(realpath "$CODE")${PYTHONPATH:+:$PYTHONPATH}")
-      [ "$ROUND" != 1 ] || [ "$SCALE" != "${SCALES%% *}" ] || echo "$LABEL: $EXP $SCHEDULE terms=$TERMS code=${CODE:-this checkout} slices=${SLICES:-fp32} nice=${NICE:-0} image_threads=${ITHREADS:-1} yield=${YIELD:-0} heap=${HEAP:-freeze} slice_workers=${WORKERS:-default} coalesce=${COALESCE:-default} queue=${QUEUE:-default} pair_hold=${PAIRHOLD:-default} isa=${ISA:-cpu} slices_per_rotation=$NUM_SLICES" >> "$OUT/variants.txt"
-      "${MASK[@]}" env "${RUNENV[@]}" "$BIN/streamdet-replay" --data "$DATA" --split val --export-dir "$EXP" --precision "${SLICES:-fp32}" --image-precision int8 \
+      [ "$ROUND" != 1 ] || [ "$SCALE" != "${SCALES%% *}" ] || echo "$LABEL: $EXP $SCHEDULE terms=$TERMS code=${CODE:-this checkout} slices=${SLICES:-fp32} nice=${NICE:-0} image_threads=${ITHREADS:-1} yield=${YIELD:-0} heap=${HEAP:-freeze} slice_workers=${WORKERS:-default} coalesce=${COALESCE:-default} queue=${QUEUE:-default} pair_hold=${PAIRHOLD:-default} isa=${ISA:-cpu} slices_per_rotation=$NUM_SLICES split=$SPLIT" >> "$OUT/variants.txt"
+      "${MASK[@]}" env "${RUNENV[@]}" "$BIN/streamdet-replay" --data "$DATA" --split "$SPLIT" --export-dir "$EXP" --precision "${SLICES:-fp32}" --image-precision int8 \
         --lidar-hz 20 --slices "$NUM_SLICES" --camera-hz 12 --camera-trigger lidar-synced --camera-delivery-ms "$DELIVERY_MS" \
         --mode streaming --schedule "$SCHEDULE" --camera-terms "$TERMS" --image-lane-nice "${NICE:-0}" --time-scale "$SCALE" "${EXTRA[@]}" --out "$OUT/$NAME" \
         > "$OUT/$NAME.txt"
