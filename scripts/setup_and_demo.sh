@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# Set-up command 1 of the README: create .venv, install everything (torch pinned first: an unpinned torch pulls a
-# multi-GB CUDA build), export the shipped model with its fp16 siblings, and benchmark it at 800x450.
+# Set-up command 1 of the README: create .venv, install everything (torch pinned first; a CPU build already in
+# .venv is kept, else pip picks the build: on Linux x86-64 PyPI's is the multi-GB CUDA one, see the README),
+# export the shipped model with its fp16 siblings, and benchmark it at 800x450.
 # Command 2 (the tests) is the one .ci/run runs: .venv/bin/python -m pytest -q
 set -euo pipefail
 cd "$(dirname "$0")/.."
