@@ -512,8 +512,8 @@ class PhaseLockedImageLane:
         t2 = self.clock()
         with self._cond:
             self._work.append((t2, t2 - t0))
-            for q in range(NUM_QUADRANTS) if quadrants is None else quadrants:
-                self._lifted_s[q] = -math.inf if cleared else min(f.timestamp for f in frames.values())
+            for q in range(NUM_QUADRANTS) if quadrants is None else quadrants:  # a quadrant cleared holds no frame
+                self._lifted_s[q] = -math.inf if cleared or q in blind else min(f.timestamp for f in frames.values())
             if fresh:
                 self._encode_s.append((t1 - t0) / len(fresh))
             self.cpu_s += time.thread_time() - cpu0
