@@ -6,9 +6,13 @@ Reads the ``OUT_DIR/r<round>_scale<S>_<label>/replay.json`` files of ``benchmark
 written with ``streamdet-replay --out``: every slice's record) and prints one row per run and drive: the slice p99
 latency (last point scanned to detections, as the replay reports it), the run length (start to end) p50 / p99, and for the **tail** (the emitted slices whose latency is at least
 ``near`` x the drive's p99): how many, their mean wait in the queue (release to start) and mean run, the share of them
-detected in a coalesced run (``LaneConfig.coalesce_slices``). All in drive ms, as the replay records them (wall / time scale).
+detected in a coalesced run (``LaneConfig.coalesce_slices``); and how late the player itself released slices (release
+minus scan end, every slice of the drive): how many more than 10 ms late, and the most. All in drive ms, as the replay
+records them (wall / time scale).
 A tail of long waits and ordinary runs is a backlog (the lane short of CPU for a while); a tail of long runs is
-contention inside the run.
+contention inside the run. A player that released slices late stalled with the rest of the process (the machine did
+not run it: another guest, a page-in), which no schedule causes or avoids; a backlog after such a stall is the lane
+catching up.
 """
 
 from __future__ import annotations
@@ -22,13 +26,16 @@ import numpy as np
 from streamdet.benchmarks.replay_table import streaming_runs
 
 HEADER = ("| scale | variant | round | drive | slice p99 ms | run p50 / p99 ms | tail slices | tail wait / run ms "
-          "| tail in pairs |")  # fmt: skip
+          "| tail in pairs | released > 10 ms late (most ms) |")  # fmt: skip
+LATE_MS = 10.0  # a release this much after the slice's scan end: the player (the process) stalled
 
 
 def drive_tail(recording: dict, near: float = 0.8) -> dict | None:
     """The tail figures of one recording (``Recording.to_dict``) in drive ms; None when no slice was emitted."""
     if not 0 < near <= 1:
         raise ValueError(f"near must be in (0, 1], got {near!r}")
+    late = np.array([(s["release_s"] - s["scan_end_s"]) * 1e3 for s in recording["slices"]
+                     if s.get("release_s") is not None and s.get("scan_end_s") is not None], dtype=np.float64)  # fmt: skip
     slices = [s for s in recording["slices"] if not s["dropped"] and s.get("emit_s") is not None]
     if not slices:
         return None
@@ -44,6 +51,7 @@ def drive_tail(recording: dict, near: float = 0.8) -> dict | None:
         "drive": recording["drive"], "p99_ms": p99, "run_p50_ms": float(np.median(run)),
         "run_p99_ms": float(np.percentile(run, 99)), "tail": int(tail.sum()), "tail_wait_ms": float(wait[tail].mean()),
         "tail_run_ms": float(run[tail].mean()), "tail_paired": float(paired[tail].mean()),
+        "released_late": int((late > LATE_MS).sum()), "release_late_max_ms": float(late.max(initial=0.0)),
     }  # fmt: skip
 
 
@@ -62,7 +70,8 @@ def table(out: Path, near: float = 0.8) -> str:
              "|---" * (HEADER.count("|") - 1) + "|"]  # fmt: skip
     for (scale, label, rnd, drive), t in sorted(rows):
         lines.append(f"| {scale:g} | {label} | {rnd} | {drive} | {t['p99_ms']:.1f} | {t['run_p50_ms']:.1f} / {t['run_p99_ms']:.1f} "
-                     f"| {t['tail']} | {t['tail_wait_ms']:.1f} / {t['tail_run_ms']:.1f} | {100 * t['tail_paired']:.0f} % |")  # fmt: skip
+                     f"| {t['tail']} | {t['tail_wait_ms']:.1f} / {t['tail_run_ms']:.1f} | {100 * t['tail_paired']:.0f} % "
+                     f"| {t['released_late']} ({t['release_late_max_ms']:.0f}) |")  # fmt: skip
     return "\n".join(lines)
 
 

@@ -71,3 +71,19 @@ def test_bad_input_is_reported(tmp_path, capsys):
     assert main([str(tmp_path)]) == 1
     (tmp_path / "r1_scale1_x" / "replay.json").write_text(json.dumps({"modes": {"full-sweep": {}}}))
     assert main([str(tmp_path)]) == 1 and "no streaming recordings" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_slices_the_player_released_late_are_counted(seed):
+    """A stall of the whole process: the player releases a run of slices long after their scans ended; counted
+    against a naive loop over every slice, dropped ones too."""
+    rec = _recording(seed)
+    stall = slice(40 + seed, 47 + seed)
+    for s in rec["slices"][stall]:
+        s["release_s"] = s["scan_end_s"] + 0.025 + 0.005 * seed
+    rec["slices"][-1]["release_s"] = rec["slices"][-1]["scan_end_s"] + 0.05  # a dropped slice, released late too
+    got = drive_tail(rec)
+    late = [(s["release_s"] - s["scan_end_s"]) * 1e3 for s in rec["slices"]]
+    assert got["released_late"] == sum(x > 10.0 for x in late) == 8
+    assert got["release_late_max_ms"] == pytest.approx(max(late)) and got["release_late_max_ms"] == pytest.approx(50.0)
+    assert drive_tail(_recording(seed))["released_late"] == 0
