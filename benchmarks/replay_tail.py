@@ -10,9 +10,10 @@ detected in a coalesced run (``LaneConfig.coalesce_slices``); and how late the p
 minus scan end, every slice of the drive): how many more than 10 ms late, and the most. All in drive ms, as the replay
 records them (wall / time scale).
 A tail of long waits and ordinary runs is a backlog (the lane short of CPU for a while); a tail of long runs is
-contention inside the run. A player that released slices late stalled with the rest of the process (the machine did
-not run it: another guest, a page-in), which no schedule causes or avoids; a backlog after such a stall is the lane
-catching up.
+contention inside the run. A player that released slices late was held up itself: it is one thread that sleeps until
+each scan end and then submits, so the process stalled (the machine did not run it) or the submit was slow; a backlog
+after such a stall is the lane catching up, not the lane's own doing. The threshold is in drive ms (10 x the time
+scale in wall ms).
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ from streamdet.benchmarks.replay_table import streaming_runs
 
 HEADER = ("| scale | variant | round | drive | slice p99 ms | run p50 / p99 ms | tail slices | tail wait / run ms "
           "| tail in pairs | released > 10 ms late (most ms) |")  # fmt: skip
-LATE_MS = 10.0  # a release this much after the slice's scan end: the player (the process) stalled
+LATE_MS = 10.0  # drive ms: a release this much after the slice's scan end means the player itself was held up
 
 
 def drive_tail(recording: dict, near: float = 0.8) -> dict | None:

@@ -9,7 +9,7 @@ cd "$(git -C "$(dirname "$0")" rev-parse --show-toplevel)"
 OLD=out/issue22_s32/export_small_v3_swift_eb04782151e4_image_layout_image_half_top_k_100
 NEW=out/issue22_s34/export_small_v3_swift_944239bca08a_image_layout_image_half_top_k_100
 OUT=${2:-out/weights_all}
-SPLIT=all DATA=out/issue22_s32/synth20 benchmarks/replay_ab.sh "$OUT" "${1:-2}" 1 \
+SPLIT=all DATA=out/issue22_s32/synth20 benchmarks/replay_ab.sh "$OUT" "${1:-3}" 1 \
   "pl_v1=$OLD,phase-locked,on,,int8,,,,,1,,16,," \
   "pl_drop=$NEW,phase-locked,on,,int8,,,,,1,,16,,"
 .venv/bin/python -m streamdet.benchmarks.replay_table "$OUT" --baseline pl_v1 | tee "$OUT/line.md"
