@@ -9,12 +9,12 @@
 # --resolution 480x270; the same with --out val60w4 --seed 8).
 set -euo pipefail
 HERE=$(dirname "$0")
-train() {  # $1: out folder, $2: --camera-dropout
+train() {  # $1: out folder, $2: --camera-dropout, $3: --seed
   OMP_NUM_THREADS=1 streamdet-train --data data60w4 --preset small_v3_swift --init models/weights/issue22/small_v3_swift_v1.pt \
     --out "$1" --max-minutes ${MINUTES:-58} --balanced --num-slices 8,8,32 --max-slices-per-sample 8 --lr 3e-4 \
-    --image-warmup 0 --image-class-weight 0.5 --checkpoint-every 100 --seed 5 --camera-dropout "$2"
+    --image-warmup 0 --image-class-weight 0.5 --checkpoint-every 100 --seed "$3" --camera-dropout "$2"
 }
-train drop30 0.3 & sleep 15; train ctrl00 0 & wait
+train drop30 0.3 5 & sleep 15; train ctrl00 0 5 & wait
 for t in swift:models/weights/issue22/small_v3_swift_v1.pt ctrl00:ctrl00/model.pt drop30:drop30/model.pt; do
   streamdet-export --checkpoint "${t#*:}" --out "exp_${t%%:*}"
   python "$HERE/measure.py" "exp_${t%%:*}" val60w4 all "meas_${t%%:*}"
@@ -25,4 +25,17 @@ for v in all front_dead back_dead all_dark; do
   for a in ctrl00 swift; do
     streamdet-eval --compare "meas_$a/$v" "meas_drop30/$v" --bootstrap 1000 --json "cmp_${a}_vs_drop30_$v.json"
   done
+done
+# The second seed (thirty-fifth session): the same pair with seed 6, then extrinsic noise (5 deg, 50 cm, 3 seeds) on
+# its dropout run and both controls (the shipped run's own: ship.sh's gate).
+train drop30s6 0.3 6 & sleep 15; train ctrl00s6 0 6 & wait
+for t in drop30s6 ctrl00s6; do
+  streamdet-export --checkpoint "$t/model.pt" --out "exp_$t"
+  python "$HERE/measure.py" "exp_$t" val60w4 all "meas_$t"
+done
+for v in all front_dead back_dead all_dark; do
+  streamdet-eval --compare "meas_ctrl00s6/$v" "meas_drop30s6/$v" --bootstrap 1000 --json "cmp_ctrl00s6_vs_drop30s6_$v.json"
+done
+for t in ctrl00 ctrl00s6 drop30s6; do
+  streamdet-study calib-noise --export-dir "exp_$t" --data val60w4 --split all --slices 8 --level 5,50 --json "cn_$t.json"
 done
