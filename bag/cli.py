@@ -3,8 +3,10 @@ rig as calibration.json (``calibration``)."""
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import sys
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import click
@@ -24,6 +26,7 @@ from streamdet.cli_utils import (
     refuse_same_outputs,
     split_list,
 )
+from streamdet.progress import counted, progressbar
 
 LIBRARY_ERRORS = (ValueError, KeyError, FileNotFoundError, OSError, MissingExtraError)
 
@@ -57,7 +60,7 @@ def export_cmd(data_dir: Path | None, scene: str | None, version: str, out: Path
     refuse_output_over_inputs(out, "--out", [data])
     _check_output(out, "--out")
     try:
-        with click.progressbar(length=1, label=f"writing {out}", file=sys.stderr) as bar:
+        with progressbar(length=1, label=f"writing {out}", show_pos=False) as bar:
             summary = export_recording(recording, out, progress=lambda done, total: _advance(bar, done, total))
     except LIBRARY_ERRORS as e:
         raise click.ClickException(_one_line(e)) from None
@@ -125,7 +128,8 @@ def run_cmd(bag_path: Path, export_dir: Path, out: Path, results_json: Path | No
             global_frame=None if global_frame.lower() == "none" else global_frame,
             camera_timeout_s=camera_timeout_s(camera_timeout_ms),  # on the header stamps
         )
-        summary = run_bag(bag_path, export_dir, out, results_json, config, progress=_sweep_progress)
+        with _sweep_counter() as progress:
+            summary = run_bag(bag_path, export_dir, out, results_json, config, progress=progress)
     except LIBRARY_ERRORS as e:
         raise click.ClickException(_one_line(e)) from None
     if sys.stderr.isatty():
@@ -221,10 +225,14 @@ def _check_output(path: Path, option: str) -> None:
         check_folder_creatable(parent, option)
 
 
-def _sweep_progress(done: int) -> None:
-    """A count of the sweeps done, rewritten in place on a terminal (nothing in a log)."""
+@contextlib.contextmanager
+def _sweep_counter() -> Iterator[Callable[[int], None]]:
+    """The count of sweeps done (the bag's total is not known): rewritten in place on a terminal, lines in a log."""
     if sys.stderr.isatty():
-        click.echo(f"\rsweeps detected: {done}", nl=False, err=True)
+        yield lambda done: click.echo(f"\rsweeps detected: {done}", nl=False, err=True)
+        return
+    with counted("sweeps detected", lambda line: click.echo(line, err=True)) as progress:
+        yield progress
 
 
 def _require_extra() -> None:

@@ -30,6 +30,7 @@ from streamdet.core.slicing import split_sweep
 from streamdet.data.nuscenes import NuScenesReader
 from streamdet.data.splits import split_sample_tokens
 from streamdet.models.pillars import scatter_pillars
+from streamdet.progress import progressbar
 from streamdet.runtime_ort.pillarize import pillarize
 from streamdet.training.checkpoint import load_weights
 
@@ -127,7 +128,7 @@ def measure(checkpoint: Path, data: Path, split: str | None, max_samples: int | 
 
     sums = {k: [] for k in ("fused", "raw_eval", "raw_train", "point")}
     probe = {"image": [], "point": [], "labels": []}
-    with click.progressbar(tokens, label="samples") as bar:
+    with progressbar(tokens, label="samples") as bar:
         for token in bar:
             f = sample_features(model, preset, reader.get(token), lut_for)
             occ = f["occupied"]

@@ -28,7 +28,6 @@ from __future__ import annotations
 import functools
 import json
 import math
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import SimpleNamespace
@@ -40,6 +39,7 @@ from streamdet.cli_utils import FiniteFloatRange
 import numpy as np
 
 from streamdet.core.sectors import NUM_QUADRANTS, quadrants_of_sector
+from streamdet.progress import progressbar
 from streamdet.replay.cost import AXES_DEG
 from streamdet.replay.record import STALE_MS
 from streamdet.replay.source import LidarSweep
@@ -323,7 +323,7 @@ def main(export_dir, costs_from, encode_ms, term_ms, tail_ms, cost_scale, jitter
     click.echo(f"| cost scale | staleness added p50 / p95 / p99 ms | slices stale (> {STALE_MS:g} ms) | stale where the rotation "
                "before brought the most frames | image lane busy (cores) |\n|---|---|---|---|---|")  # fmt: skip
     rows = []
-    with click.progressbar(cost_scale, label="simulating", file=sys.stderr) as scales:
+    with progressbar(cost_scale, label="simulating") as scales:
         for scale in scales:
             results = [simulate(costs.scaled(scale), cameras, SimConfig(**{**vars(config), "seed": s})) for s in range(seeds)]
             st = np.concatenate([r.staleness_ms for r in results])

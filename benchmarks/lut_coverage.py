@@ -24,6 +24,7 @@ from streamdet.core.classes import CLASS_NAMES
 from streamdet.data.nuscenes import NuScenesReader
 from streamdet.data.synth_writer import MASK_SUFFIX
 from streamdet.models.presets import get_preset
+from streamdet.progress import progressbar
 
 DEFAULT_CLASSES = "pedestrian,traffic_cone,barrier,bicycle"
 
@@ -49,7 +50,7 @@ def measure(data: Path, preset_name: str, heights: list[int], classes: list[str]
     counts = {h: {c: [0, 0] for c in classes} for h in heights}  # covered, visible
     luts: dict = {}
     n = len(reader) if max_samples is None else min(max_samples, len(reader))
-    with click.progressbar(range(n), label="samples") as bar:
+    with progressbar(range(n), label="samples") as bar:
         for i in bar:
             sample = reader.get(i)
             masks, ids = sample_masks(sample, size)

@@ -8,7 +8,6 @@ and ``streamdet-synth stats DIR`` to measure a dataset against the real nuScenes
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 
 import click
@@ -34,6 +33,7 @@ from streamdet.data.synth_writer import (
     survey_root,
     version_problem,
 )
+from streamdet.progress import progressbar
 
 
 # Upper bounds of the numeric options, far past any documented use (nuScenes: 1000 scenes of about 40 key frames),
@@ -166,7 +166,7 @@ def generate(out_dir: Path, scenes: int, seed: int, resolution: tuple[int, int],
             raise click.ClickException(f"cannot delete the previous dataset in {out_dir}: {e}") from None
     total = scenes * samples_per_scene
     try:
-        with click.progressbar(length=total, label=f"simulating {scenes} scene(s)", show_pos=True) as bar:
+        with progressbar(length=total, label=f"simulating {scenes} scene(s)") as bar:
             summary = generate_dataset(out_dir, config, progress=bar.update, workers=workers)
     except OSError as e:
         raise click.ClickException(f"cannot write the dataset under {out_dir}: {e}") from None
@@ -213,7 +213,7 @@ def stats(data_dir: Path, reference_dir: Path | None, no_reference: bool, json_p
         try:
             _, count, _, _ = open_samples(path)
             count = min(count, max_samples) if max_samples else count
-            with click.progressbar(length=count, label=f"measuring {path}", show_pos=True, file=sys.stderr) as bar:
+            with progressbar(length=count, label=f"measuring {path}") as bar:
                 results.append(dataset_stats(path, max_samples=max_samples, progress=bar.update))
         except (FileNotFoundError, ValueError, KeyError) as e:
             raise click.ClickException(f"cannot measure {path}: {e}") from None

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import json
 import math
-import sys
 from pathlib import Path
 
 import click
@@ -33,6 +32,7 @@ from streamdet.evaluation.detection_eval import evaluate
 from streamdet.evaluation.eval_boxes import EvalBoxes
 from streamdet.evaluation.metrics import DetectionMetrics
 from streamdet.evaluation.results import load_gt_and_predictions
+from streamdet.progress import progressbar
 
 _TP_SHORT = {"trans_err": "ATE", "scale_err": "ASE", "orient_err": "AOE", "vel_err": "AVE", "attr_err": "AAE"}
 # --bootstrap: 10^5 draws resolve a 95 % interval far below any figure's printed precision; 10^9 ran for hours.
@@ -112,7 +112,7 @@ def _data_inputs(data_dir: Path, version: str, split: str | None, export_dir: Pa
     n = detector.detector.num_slices
     label = detector.detector.precision_label  # "int8 image lane + fp32 slices" when the lanes differ
     try:
-        with click.progressbar(length=1, label=f"detecting ({label}, {n} slices)", show_pos=True) as bar:
+        with progressbar(length=1, label=f"detecting ({label}, {n} slices)") as bar:
             def progress(done: int, total: int) -> None:
                 bar.length = total
                 bar.update(1)
@@ -217,8 +217,8 @@ def _compare(run_a: str, run_b: str, gt_path: Path | None, classes: tuple[str, .
         a = [load_run(p, gt_path) for p in group_a]
         b = [load_run(p, gt_path) for p in group_b]
         # one step per subset (all boxes, few points, cut by a border, each slice): each draws `draws` times
-        with click.progressbar(length=1, label=f"bootstrap ({draws} draws per subset)", show_pos=True,
-                               item_show_func=lambda name: name, file=sys.stderr) as bar:  # fmt: skip
+        with progressbar(length=1, label=f"bootstrap ({draws} draws per subset)",
+                         item_show_func=lambda name: name) as bar:  # fmt: skip
             def progress(name: str, done: int, total: int) -> None:
                 bar.length = total
                 bar.update(done - bar.pos, name)

@@ -11,7 +11,6 @@ import contextlib
 import json
 import math
 import re
-import sys
 import tempfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -35,6 +34,7 @@ from streamdet.cli_utils import (
 from streamdet.core import constants
 from streamdet.core.constants import PRECISIONS
 from streamdet.core.errors import first_line
+from streamdet.progress import progressbar
 from streamdet.studies.plots import plot_calib_noise, plot_drop_camera, plot_resolution, plot_slices
 
 DEFAULT_EXPORT_DIR = Path(constants.DEFAULT_EXPORT_DIR)
@@ -141,7 +141,7 @@ class _Bar:
 
     def __call__(self, done: int, total: int) -> None:
         if self.bar is None:
-            self.bar = click.progressbar(length=total, label=self.label, show_pos=True, file=sys.stderr)
+            self.bar = progressbar(length=total, label=self.label)
             self.bar.__enter__()
         self.bar.update(1)
 

@@ -57,6 +57,7 @@ def ran(bag: Path, export_dir: Path, tmp_path_factory) -> Path:
     result = CliRunner().invoke(bag_main, ["run", "--bag", str(bag), "--export-dir", str(export_dir), "--out", str(out)])
     assert result.exit_code == 0, result.output
     assert "2 sweeps, 16 slices, 2 image sets" in result.output
+    assert "sweeps detected: 2 done in " in result.stderr  # not a terminal: a count in lines (streamdet.progress)
     return out
 
 

@@ -439,7 +439,7 @@ def test_nan_weights_are_never_checkpointed():
 def test_train_cli_nan_loss_is_one_line(tiny_train_data, tmp_path):
     res = CliRunner().invoke(train_main, ["--data", str(tiny_train_data), "--out", str(tmp_path / "o"), "--preset", "tiny",
                                           "--steps", "2", "--lr", "1e30", "--cache-dir", str(tmp_path / "c")])  # fmt: skip
-    assert "training diverged: the loss is nan at step 2" in _one_line(res) and "done" not in res.output
+    assert "training diverged: the loss is nan at step 2" in _one_line(res) and "done after" not in res.output  # the end line
 
 
 def test_pretrain_nan_loss_stops(tiny_synth_data, tmp_path):

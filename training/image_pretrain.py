@@ -45,6 +45,7 @@ from streamdet.models.image_encoder import ImageEncoder
 from streamdet.models.presets import Preset, get_preset
 from streamdet.models.seg_head import ImageSegmenter
 from streamdet.core.errors import first_line
+from streamdet.progress import counted
 from streamdet.training.checkpoint import (  # noqa: F401 (load_encoder_weights re-exported)
     TRAIN_FORMAT, WEIGHTS_FORMAT, _atomic_save, check_fits, check_state_dict, load_encoder_weights, read_torch_file, save_weights)
 from streamdet.training.trainer import (
@@ -342,8 +343,10 @@ def _pretrain_into(config: PretrainConfig, data_dir: str | Path, out: Path, vers
     preset = get_preset(config.preset)
     size = (preset.image.width_px, preset.image.height_px)
     echo(f"loading {data_dir} train / val images at {size[0]}x{size[1]} with their masks")
-    train_data = load_masked_images(data_dir, splits[0], size, config.range_m, version, max_samples)
-    val_data = load_masked_images(data_dir, splits[1], size, config.range_m, version, max_samples)
+    with counted("  train images", echo) as progress:
+        train_data = load_masked_images(data_dir, splits[0], size, config.range_m, version, max_samples, progress)
+    with counted("  val images", echo) as progress:
+        val_data = load_masked_images(data_dir, splits[1], size, config.range_m, version, max_samples, progress)
     echo(f"{len(train_data)} train images, {len(val_data)} val images")
     torch.manual_seed(config.seed)
     model = build_segmenter(preset).to(device)

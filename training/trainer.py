@@ -53,6 +53,7 @@ from streamdet.training.image_class import image_class_loss_sum
 from streamdet.training.losses import CenterPointLoss, LossConfig, loss_terms
 from streamdet.training.model import TrainingModel
 from streamdet.training.schedule import OneCycle
+from streamdet.progress import counted
 
 AMP_MODES = ("auto", "off", "bf16", "fp16")
 HEAD_OUTPUT_INIT_STD = 0.01
@@ -563,7 +564,8 @@ def _set_up(config: TrainConfig, data_dir: str | Path, out_dir: str | Path, vers
     if store is None:
         size = (preset.image.width_px, preset.image.height_px) if preset.use_image else None
         say(f"reading the train split of {data_dir} ({'images ' + f'{size[0]}x{size[1]}' if size else 'no images'})")
-        store = build_store(data_dir, "train", size, version=version, cache_dir=cache_dir, echo=say)
+        with counted("  samples read", say) as progress:  # none on a cache hit
+            store = build_store(data_dir, "train", size, version=version, cache_dir=cache_dir, progress=progress, echo=say)
     collate = Collator(preset, config.data.camera_mode)
     collate.check_store(store, data_dir)  # the cameras must fit the preset's images: the export's and runtime's rule
     dataset = SliceDataset(store, preset, config.data, seed=config.seed)
