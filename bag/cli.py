@@ -231,7 +231,7 @@ def _sweep_counter() -> Iterator[Callable[[int], None]]:
     if sys.stderr.isatty():
         yield lambda done: click.echo(f"\rsweeps detected: {done}", nl=False, err=True)
         return
-    with counted("sweeps detected", lambda line: click.echo(line, err=True)) as progress:
+    with counted("sweeps detected") as progress:
         yield progress
 
 

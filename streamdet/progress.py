@@ -52,23 +52,37 @@ def progressbar(
 
 
 @contextlib.contextmanager
-def counted(label: str, write: Callable[[str], None], *, interval_s: float = PROGRESS_LINE_INTERVAL_S,
-            clock: Callable[[], float] = time.monotonic) -> Iterator[Callable[..., None]]:  # fmt: skip
-    """``progress(done, total=None)`` for a library loop that reports counts, in ``LineProgress`` lines to ``write``.
+def counted(label: str, write: Callable[[str], None] | None = None, *, file: IO | None = None,
+            interval_s: float = PROGRESS_LINE_INTERVAL_S, clock: Callable[[], float] = time.monotonic,
+            ) -> Iterator[Callable[..., None]]:  # fmt: skip
+    """``progress(done, total=None)`` for a library loop that reports counts: ``LineProgress`` lines to ``write``, or
+    without it ``progressbar`` on ``file`` (default stderr; a total-less count there is in lines too).
 
-    The lines start with the first report, so work that fails before it (an unreadable input) or has nothing to do
-    (a cache hit) writes none; the end line follows only a loop that reported and ended without an error.
+    The bar opens with the first report, so work that fails before it (an unreadable input) or has nothing to do
+    (a cache hit) shows none; the end line follows only a loop that reported and ended without an error.
     """
-    bar: LineProgress | None = None
+    bar = None
 
     def progress(done: int, total: int | None = None) -> None:
         nonlocal bar
         if bar is None:
-            bar = LineProgress(length=total, label=label, write=write, interval_s=interval_s, clock=clock).__enter__()
-        bar.length = total if total is not None else bar.length
+            stream = sys.stderr if file is None else file
+            if write is None and total is not None:
+                bar = progressbar(length=total, label=label, file=stream, interval_s=interval_s, clock=clock)
+            else:
+                out = write if write is not None else (lambda line: click.echo(line, file=stream))
+                bar = LineProgress(length=total, label=label, write=out, interval_s=interval_s, clock=clock)
+            bar.__enter__()
+        if total is not None:
+            bar.length = total
         bar.update(done - bar.pos)
 
-    yield progress
+    try:
+        yield progress
+    except BaseException as e:
+        if bar is not None:  # click's bar ends its line; LineProgress writes nothing
+            bar.__exit__(type(e), e, e.__traceback__)
+        raise
     if bar is not None:
         bar.__exit__(None, None, None)
 

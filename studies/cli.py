@@ -34,7 +34,7 @@ from streamdet.cli_utils import (
 from streamdet.core import constants
 from streamdet.core.constants import PRECISIONS
 from streamdet.core.errors import first_line
-from streamdet.progress import progressbar
+from streamdet.progress import counted
 from streamdet.studies.plots import plot_calib_noise, plot_drop_camera, plot_resolution, plot_slices
 
 DEFAULT_EXPORT_DIR = Path(constants.DEFAULT_EXPORT_DIR)
@@ -132,37 +132,19 @@ def _slices_option(f: Callable) -> Callable:
 # ---- running -----------------------------------------------------------------------------------------------
 
 
-class _Bar:
-    """A click progress bar over samples, opened on the first report (the sample count is known only then)."""
-
-    def __init__(self, label: str) -> None:
-        self.label = label
-        self.bar = None
-
-    def __call__(self, done: int, total: int) -> None:
-        if self.bar is None:
-            self.bar = progressbar(length=total, label=self.label)
-            self.bar.__enter__()
-        self.bar.update(1)
-
-    def close(self) -> None:
-        if self.bar is not None:
-            self.bar.__exit__(None, None, None)
-
-
 @contextlib.contextmanager
-def _running(label: str) -> Iterator[_Bar]:
-    bar = _Bar(label)
+def _running(label: str) -> Iterator[Callable[[int, int], None]]:
+    """A progress bar over samples, opened on the first report (the sample count is known only then), and the
+    library's errors as one-line click errors."""
     try:
-        yield bar
+        with counted(label) as progress:
+            yield progress
     except st.StudyError as e:
         raise click.ClickException(str(e)) from None
     except (OSError, ValueError) as e:  # unreadable data: missing tables or files, a bad split
         raise click.ClickException(first_line(e)) from None
     except MemoryError:  # not an input error to run_edge: say what ran out, not a traceback
         raise click.ClickException(f"{label}: out of memory: try fewer or smaller slice counts, or --max-samples") from None
-    finally:
-        bar.close()
 
 
 @contextlib.contextmanager

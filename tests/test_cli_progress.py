@@ -131,6 +131,24 @@ def test_counted_starts_with_the_first_report():
     assert written == ["sweeps"]
 
 
+def test_counted_without_write_follows_the_stream():
+    term = Terminal()
+    with pytest.raises(ValueError):
+        with counted("slices", file=term) as progress:
+            progress(1, 3)
+            raise ValueError("bad split")
+    assert "slices  [####" in term.getvalue() and term.getvalue().endswith("\n")  # click's bar, its line ended
+    log, clock = io.StringIO(), Clock()
+    with counted("slices", file=log, clock=clock) as progress:
+        progress(1, 3)
+        progress(3, 3)
+    assert lines(log) == ["slices (3 steps)", "slices: 3/3 done in 0 s"]
+    log = io.StringIO()
+    with counted("sweeps", file=log, clock=clock) as progress:  # no total: lines (click's bar needs one)
+        progress(5)
+    assert lines(log) == ["sweeps", "sweeps: 5 done in 0 s"]
+
+
 def test_an_error_writes_no_end_line():
     out = io.StringIO()
     with pytest.raises(KeyError):
