@@ -195,7 +195,10 @@ def _image_lane_table(result: ReplayResult) -> str:
                         + (f", held back {total['yields']} times for waiting slices ({total['yielded_ms']:.0f} ms, "
                            f"{total.get('holds_cut', 0)} cut at 0.1 s)" if total.get("yields") else "")
                         + (f", {total['cameras_timed_out']} camera frames timed out, {total.get('quadrants_cleared', 0)} "
-                           "quadrants left without image" if total.get("cameras_timed_out") else ""))  # fmt: skip
+                           "quadrants left without image" if total.get("cameras_timed_out") else "")
+                        + (f", {total['slices_out_of_order']} slices out of order (not taken for the phase)"
+                           if total.get("slices_out_of_order") else "")
+                        + (f", {total['errors']} steps raised (logged)" if total.get("errors") else ""))  # fmt: skip
     for mode, r in result.modes.items():
         line = _stale_by_burst(r, 1.0 / result.config.lidar_hz)
         if line:

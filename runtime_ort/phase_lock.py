@@ -7,7 +7,9 @@ arrives. This module is the pure arithmetic behind it, on the runner's clock (se
 - ``RotationPhase`` learns the rotation from the slices' arrival times: the newest arrival anchors the phase, and the
   period is ``1 / lidar_hz`` when the rate is given, else the median of the periods the arrivals imply over up to
   two rotations (a slice index step of d is d / num_slices of a rotation, modulo a whole one); either way a rate
-  within ``LIDAR_HZ_RANGE``.
+  within ``LIDAR_HZ_RANGE``. A slice that comes **out of order** (its index the anchor's again, or more than half a
+  rotation ahead of it, far sooner than that step takes: a late, reordered or re-sent slice) is not taken: read as
+  a step forward, it would count rotations that never passed and shrink the period.
 - ``plan_lift`` picks the next lift among the upcoming **passes**: a pass is one slice of one rotation and one
   quadrant that slice reads, its deadline the slice's predicted arrival. The lane lifts a quadrant for the first
   slice that reads it, and again for a later slice of the same rotation only when newer frames came meanwhile (it
@@ -71,20 +73,25 @@ class RotationPhase:
         self._history: deque[tuple[int, float]] = deque(maxlen=HISTORY_ROTATIONS * num_slices + 1)
         self._in_burst = False  # after a burst (``_burst``), until an arrival comes at a LiDAR's pace
 
-    def observe(self, slice_index: int, arrival_s: float) -> None:
-        """A slice ``slice_index`` arrived at ``arrival_s``. Arrivals earlier than the anchor are ignored.
+    def observe(self, slice_index: int, arrival_s: float) -> bool:
+        """A slice ``slice_index`` arrived at ``arrival_s``; False where it is not taken: it arrived before the anchor,
+        or out of order (``_out_of_order``).
 
         The period is measured over the whole history (up to HISTORY_ROTATIONS rotations), never between two
-        neighbouring arrivals: a driver that hands over slices in bursts (a busy machine) would make those tiny. A
-        gap of more than two periods (a pause) starts the history again, and so does a rotation's worth of arrivals
-        faster than any LiDAR turns (a backlog handed over at once), from the first arrival at a LiDAR's pace."""
+        neighbouring arrivals: a driver that hands over slices in bursts (a busy machine) would make those tiny. An
+        arrival more than half a rotation later than its index step takes (a pause: the step may hide whole
+        rotations) starts the history again; a slice a little early or late (a busy driver, slices handed over out of
+        order) does not. A rotation's worth of arrivals faster than any LiDAR turns (a backlog handed over at once)
+        starts it again too, from the first arrival at a LiDAR's pace."""
         if self._anchor is not None:
             k0, t0 = self._anchor
             if arrival_s < t0:
-                return
+                return False
             steps = (slice_index - k0) % self.num_slices or self.num_slices  # the same index again: a whole rotation
-            if self.locked and arrival_s - t0 > 2 * self.period_s * steps / self.num_slices:
-                self._history.clear()
+            if self._out_of_order(steps, arrival_s - t0):
+                return False
+            if self.locked and arrival_s - t0 > self.period_s * (steps / self.num_slices + 0.5):
+                self._history.clear()  # a pause: the step may hide whole rotations
             elif self._burst():
                 # A rotation's worth of arrivals faster than any LiDAR turns: a backlog handed over at once. Its
                 # spacing, or its span averaged with the pause after it, is no rotation: the history starts again
@@ -109,6 +116,18 @@ class RotationPhase:
         else:
             self._history.append((0, float(arrival_s)))
         self._anchor = (int(slice_index), float(arrival_s))
+        return True
+
+    def _out_of_order(self, steps: int, elapsed_s: float) -> bool:
+        """Whether an index step of ``steps`` (1..num_slices) after ``elapsed_s`` is a slice behind the anchor rather
+        than one ahead. Only a step of more than half a rotation can be either (the same index is a whole one): it is
+        taken as behind when it came in less than half the time the step forward takes at the period known (a
+        reordered or re-sent slice comes at once), or, with no period yet, faster than any LiDAR turns."""
+        if 2 * steps <= self.num_slices:
+            return False
+        if self.locked:
+            return elapsed_s < 0.5 * self.period_s * steps / self.num_slices
+        return elapsed_s * self.num_slices / steps < 1.0 / LIDAR_HZ_RANGE[1]
 
     def _burst(self) -> bool:
         """Whether the last rotation's worth of arrivals in the history came faster than any LiDAR turns

@@ -57,6 +57,7 @@ again: the worker thread calls it on the runner's clock, tests call it with a fa
 from __future__ import annotations
 
 import collections
+import logging
 import math
 import threading
 import time
@@ -73,6 +74,9 @@ from streamdet.runtime_ort.thread_priority import check_nice, start_worker
 from streamdet.runtime_ort.worker_lane import cancel_future, claim_future, complete_future
 
 LANE = "image-lane"  # the name its logs and errors give it
+ERROR_LOG_INTERVAL_S = 10.0  # at most one log record of the worker's errors per this many seconds (a lasting failure)
+
+log = logging.getLogger(__name__)
 
 DURATION_SAMPLES = 5  # lifts per quadrant whose second longest is the expected duration (robust to a noisy machine)
 # how often a lane holding back for a backlog of slices looks at the slice queue again (a slice's arrival wakes it too)
@@ -103,6 +107,12 @@ class PhaseLockStats:
     # lifts from a quadrant's ready frames for a pass its newest could not make (a camera's newest frame still to
     # encode: its newest encoded frame, of an image set a lift used, is lifted instead)
     ready_lifts: int = 0
+    # slice arrivals not taken for the rotation's phase: behind the newest one (a late, reordered or re-sent slice,
+    # phase_lock.RotationPhase); many point at the driver or at slices submitted from several threads
+    slices_out_of_order: int = 0
+    # steps of the worker that raised: an update's error also fails the futures of the image sets it was the first to
+    # use; an encode ahead of its lift (the lift encodes the frame again) or the lane's planning has none: all are logged
+    errors: int = 0
 
 
 @dataclass(eq=False)
@@ -183,6 +193,7 @@ class PhaseLockedImageLane:
         self._settling: set[_ImageSet] = set()
         self._dirty = False
         self._closed = False
+        self._error_logged_s = -math.inf  # when the worker last logged an error (time.monotonic)
         self._thread = start_worker(self._serve, "image-lane-phase-locked", self._nice) if thread else None
 
     # ---- events ---------------------------------------------------------------------------------
@@ -232,7 +243,8 @@ class PhaseLockedImageLane:
 
     def observe_slice(self, slice_index: int, arrival_s: float) -> None:
         with self._cond:
-            self._phase.observe(slice_index, arrival_s)
+            if not self._phase.observe(slice_index, arrival_s):
+                self.stats.slices_out_of_order += 1
             self._dirty = True
             self._cond.notify_all()
 
@@ -549,9 +561,10 @@ class PhaseLockedImageLane:
                 self._dirty = False
             try:
                 wake = self.step(self.clock())
-            except BaseException:  # the futures of the image sets it used hold the error; the lane goes on
+            except BaseException as e:  # counted and logged; the lane goes on
                 with self._cond:
                     wake = self._next_expiry_s()  # a camera timing out still wakes it
+                self._note_error(e)
             with self._cond:
                 if self._closed:
                     return
@@ -560,6 +573,20 @@ class PhaseLockedImageLane:
                 timeout = None if wake is None else wake - self.clock()
                 if timeout is None or timeout > 0:
                     self._cond.wait(timeout)
+
+    def _note_error(self, error: BaseException) -> None:
+        """Count a step's error and log it, the first and then at most one per ERROR_LOG_INTERVAL_S (with the count
+        meanwhile): a failure on every step would flood the log."""
+        now = time.monotonic()
+        with self._cond:
+            self.stats.errors += 1
+            errors = self.stats.errors
+            due = now - self._error_logged_s >= ERROR_LOG_INTERVAL_S
+            if due:
+                self._error_logged_s = now
+        if due:
+            log.error("%s: a step of the phase-locked schedule raised (%d errors so far; an update's error also "
+                      "fails its image sets' futures); the lane goes on", LANE, errors, exc_info=error)  # fmt: skip
 
     def runs_on(self, thread: threading.Thread) -> bool:
         """Whether ``thread`` is this lane's worker."""
