@@ -176,6 +176,8 @@ class CameraTerms:
             return cached[1]
         value = sparse_lut_value(*self._stacked(shares), self._table_rows)
         with self._lock:
+            if self._closed is not None:  # closed meanwhile: a closed detector keeps nothing
+                return value
             if len(self._luts) >= 64:
                 self._luts.pop(next(iter(self._luts)))
             self._luts[key] = (shares, value)
@@ -191,6 +193,8 @@ class CameraTerms:
         cells = self.feature_hw[0] * self.feature_hw[1]
         shares = tuple(_share(s, cells) for s in camera_luts(qlut, cells))
         with self._lock:
+            if self._closed is not None:
+                return shares
             if len(self._shares) >= 8:
                 _, gone = self._shares.pop(next(iter(self._shares)))
                 gone_ids = {id(s) for s in gone}  # their sparse LUTs go with them
@@ -225,10 +229,10 @@ class CameraTerms:
 
     def close(self, error: BaseException) -> None:
         """Release the term and tail sessions; every later run raises ``error`` (the detector's DetectorClosed). A
-        run already under way keeps its session until it returns."""
-        self._closed = error
+        run already under way keeps its session until it returns, and nothing is kept from then on."""
         self._term_graph = self._tail = None
         with self._lock:  # the kept terms and tables (about a hundred MB at the default size) go now, not with the detector
+            self._closed = error
             self._shares, self._terms, self._luts = {}, {}, {}
 
     def _session(self, session: ort.InferenceSession | None) -> ort.InferenceSession:
@@ -284,7 +288,8 @@ class CameraTerms:
             made = self.terms(maps[name], tuple(s for _, _, s in entries))
             with self._lock:
                 for (q, qlut, s), term in zip(entries, made):
-                    self._terms[(q, name)] = (maps[name], qlut, term)
+                    if self._closed is None:
+                        self._terms[(q, name)] = (maps[name], qlut, term)
         return sum(len(entries) for entries in wanted.values())
 
     def lift(self, quadrant: int, qlut: QuadrantLut, maps: Mapping[str, np.ndarray]) -> np.ndarray:
@@ -305,7 +310,8 @@ class CameraTerms:
             return kept, False
         term = self.term(features, share)
         with self._lock:
-            self._terms[(q, share.share.camera_name)] = (features, qlut, term)
+            if self._closed is None:
+                self._terms[(q, share.share.camera_name)] = (features, qlut, term)
         return term, True
 
     def _kept(self, q: int, qlut: QuadrantLut, share: _Share, features: np.ndarray) -> np.ndarray | None:

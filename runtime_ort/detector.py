@@ -206,6 +206,10 @@ class StreamingDetector:
         # encode_images' maps by id (weakly): trusted as they are by update_images / prepare_terms (_check_encoded)
         self._own_maps: weakref.WeakValueDictionary[int, np.ndarray] = weakref.WeakValueDictionary()
         self._calibration_lock = threading.Lock()  # one calibration swap (and its re-lift) at a time
+        # set_calibration calls started, and the newest of them whose LUT is in use (or that found its rig in use):
+        # a swap started earlier that reaches the lock later installs nothing (the newest call wins, as image updates)
+        self._calibration_seq = 0
+        self._calibration_won = 0
         self._image_seq = 0  # update_images calls started (under _lock)
         # per quadrant: image sets of calls up to this seq were dropped there (forget_images): never installed there
         self._image_floor = [0] * NUM_QUADRANTS
@@ -376,8 +380,12 @@ class StreamingDetector:
 
         ``relift`` False drops the cached image BEV instead of lifting it again (slices read no image until the next
         ``update_images``): for a caller whose next step feeds new images of the new rig, which would replace the
-        re-lifted BEV unread (the offline pipeline, ``pipeline.use_sample_calibration``). On a closed detector:
-        DetectorClosed.
+        re-lifted BEV unread (the offline pipeline, ``pipeline.use_sample_calibration``). On a closed detector, or one
+        closed while the LUT was built: DetectorClosed (nothing installed). A re-lift that fails (an onnxruntime
+        error) leaves the new LUT in use and the cached image BEV dropped, as ``relift`` False does, and raises.
+
+        Calls from several threads: the one started last wins; one started earlier that finishes its LUT build later
+        installs nothing (``StreamingRunner.submit_calibration`` runs them one at a time, in order).
         """
         if self._swap_calibration(calibration, relift):
             release_free_memory()  # the LUT build's temporaries: freed, but kept mapped by the allocator (heap.py)
@@ -391,12 +399,15 @@ class StreamingDetector:
             raise NoImageLaneError(self._no_image_lane("set_calibration has nothing to calibrate"))
         if not self._sessions:  # closed: a LUT built now would only refill what close() let go of
             raise self._closed_error()
+        with self._lock:
+            self._calibration_seq += 1
+            seq = self._calibration_seq
         if isinstance(calibration, (str, os.PathLike)):
             path = Path(calibration)
             calibration = Lut.load(path, self.grid, len(self.camera_names)) if path.suffix == ".npz" else Rig.from_calibration_json(path)
         elif isinstance(calibration, Mapping):
             calibration = Rig.from_calibration_json(calibration)
-        if isinstance(calibration, Rig) and relift and self._is_current_rig(calibration):
+        if isinstance(calibration, Rig) and relift and self._is_current_rig(calibration, seq):
             return False  # the rig in use, published again: its LUT is the one in use (a vehicle republishes calibration)
         rig_sha = None
         if isinstance(calibration, Rig):
@@ -414,49 +425,75 @@ class StreamingDetector:
         if self._terms is not None:
             self._terms.warm(qluts)
         with self._calibration_lock:
+            if seq < self._calibration_won:  # a call started later set its calibration already: this one is older
+                return False
+            self._calibration_won = seq
             moved = moved_cameras(self._lut, lut)  # against the LUT this swap replaces, not a concurrent swap's
             for name, iou in moved:
                 msg = f"camera {name} now sees other voxels than with the previous calibration (overlap {iou:.2f})"
                 log.warning("%s: %s", self.export_dir, msg)
                 warnings.warn(msg, CameraMovedWarning, stacklevel=2)
             with self._lock:
+                if not self._sessions:  # closed while the LUT was built: nothing installed on a closed detector
+                    raise self._closed_error()
                 self._lut = lut
                 self._built_from = None if rig_sha is None else (lut, rig_sha)
                 if not relift:
                     self._drop_images_locked(self._image_seq)  # an update already under way is of the old rig too
                     return True
                 states = quadrant_states(self._image)
-            # Re-lift the newest image set of every quadrant; an update that finishes meanwhile under the old LUT
-            # lifts itself again (_install), so the loop ends once every cached quadrant was lifted with this LUT.
-            while True:
-                stale = [(q, s) for q, s in enumerate(states) if s is not None and s.lut is not lut]
-                if not stale:
-                    return True
-                groups: dict[int, list[tuple[int, QuadrantState]]] = {}  # quadrants lifted from one features array
-                for q, s in stale:
-                    groups.setdefault(id(s.features), []).append((q, s))
-                lifted = {}
-                for members in groups.values():
-                    first = members[0][1]
-                    quadrants = tuple(q for q, _ in members)
-                    bevs = self._lift_quadrants(first.features, first.feature_cameras, quadrants, lut)
-                    # the new LUT may read other cameras in a quadrant: its timestamp follows them
-                    lifted.update({q: dataclasses.replace(s, bev=bev, lut=lut, timestamp=_restamp(s, qluts[q]))
-                                   for (q, s), bev in zip(members, bevs)})  # fmt: skip
+            try:
+                self._relift(lut, qluts, states)
+            except BaseException:
+                # the LUT is in use: a BEV lifted with the old one must not stay under it (a retry with this rig is a
+                # no-op): dropped, as relift=False does; the next update lifts with the new LUT
                 with self._lock:
-                    current = list(quadrant_states(self._image))
-                    for q, s in stale:
-                        if current[q] is s:  # not replaced by a newer update (or dropped: forget_images) meanwhile
-                            current[q] = lifted[q]
-                    # every quadrant dropped meanwhile (the phase-locked lane's cameras timed out): no cache at all
-                    self._image = None if all(s is None for s in current) else ImageCache(tuple(current))
-                    states = quadrant_states(self._image)
+                    self._drop_images_locked(self._image_seq)
+                raise
+            return True
 
-    def _is_current_rig(self, rig: Rig) -> bool:
+    def _relift(self, lut: Lut, qluts: tuple[QuadrantLut, ...], states: tuple[QuadrantState | None, ...]) -> None:
+        """Re-lift the newest image set of every cached quadrant with ``lut`` (just installed; the caller holds the
+        calibration lock). An update that finishes meanwhile under the old LUT lifts itself again (_install), so the
+        loop ends once every cached quadrant was lifted with this LUT."""
+        while True:
+            stale = [(q, s) for q, s in enumerate(states) if s is not None and s.lut is not lut]
+            if not stale:
+                return
+            groups: dict[int, list[tuple[int, QuadrantState]]] = {}  # quadrants lifted from one features array
+            for q, s in stale:
+                groups.setdefault(id(s.features), []).append((q, s))
+            lifted = {}
+            for members in groups.values():
+                first = members[0][1]
+                quadrants = tuple(q for q, _ in members)
+                bevs = self._lift_quadrants(first.features, first.feature_cameras, quadrants, lut)
+                # the new LUT may read other cameras in a quadrant: its timestamp follows them, and one the update
+                # did not encode for it (a per-quadrant update) is lifted as zeros: missing, as a camera not given
+                lifted.update({q: dataclasses.replace(s, bev=bev, lut=lut, timestamp=_restamp(s, qluts[q]),
+                                                      cameras_missing=self._missing_after_swap(s, qluts[q]))
+                               for (q, s), bev in zip(members, bevs)})  # fmt: skip
+            with self._lock:
+                current = list(quadrant_states(self._image))
+                for q, s in stale:
+                    if current[q] is s:  # not replaced by a newer update (or dropped: forget_images) meanwhile
+                        current[q] = lifted[q]
+                # every quadrant dropped meanwhile (the phase-locked lane's cameras timed out): no cache at all
+                self._image = None if all(s is None for s in current) else ImageCache(tuple(current))
+                states = quadrant_states(self._image)
+
+    def _missing_after_swap(self, state: QuadrantState, qlut: QuadrantLut) -> tuple[str, ...]:
+        """``state``'s missing cameras re-lifted with ``qlut``: those it missed, and those ``qlut`` reads that its
+        feature maps do not hold, in the export's camera order."""
+        missing = set(state.cameras_missing) | (set(qlut.camera_names) - set(state.feature_cameras))
+        return tuple(n for n in self.camera_names if n in missing)
+
+    def _is_current_rig(self, rig: Rig, seq: int) -> bool:
         """Whether the LUT in use is one this detector built from ``rig`` (the same sha256), once any swap under way
         has installed its LUT (the calibration lock): such a LUT is a function of the rig and the detector's fixed
         grid, image size and heights, so the swap would change nothing but cost a LUT build and a re-lift. A LUT read
-        from a file or handed over (the export's lut.npz, a Lut) may have been built otherwise: never current."""
+        from a file or handed over (the export's lut.npz, a Lut) may have been built otherwise: never current. When
+        current, call ``seq`` wins: a swap started before it and still building its LUT installs nothing."""
         sha = rig.sha256()
 
         def current() -> bool:
@@ -466,7 +503,10 @@ class StreamingDetector:
         if not current():  # the common answer for a new rig, without waiting on a swap under way
             return False
         with self._calibration_lock:
-            return current()
+            if not current():
+                return False
+            self._calibration_won = max(self._calibration_won, seq)
+            return True
 
     def _build_lut(self, rig: Rig) -> Lut:
         img = self.image
@@ -1133,7 +1173,7 @@ class StreamingDetector:
             sessions, self._sessions = self._sessions, {}
             self._drop_images_locked(self._image_seq)  # and an update under way installs nothing
             self._blank_bev = None
-        self._views.clear()
+        self._views.close()
         written = [s.end_profiling() for s in sessions.values()] if self.config.enable_profiling else []
         self.image_encoder = self.lifter = self.slice_head = None
         if self._terms is not None:  # kept, closed: a lift under way raises DetectorClosed at its next graph run

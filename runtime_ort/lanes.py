@@ -128,6 +128,9 @@ class LaneConfig:
     # of one rotation and one quadrant: runtime_ort/coalesce.py); a slice joins the run a worker starts only when no
     # other worker is free to take it, so a lane that keeps up never coalesces. 2: pairs (a quadrant holds two of 8
     # slices); 1: never, every slice its own run and a backlog only drains by dropping (docs/replay.md, "Coalesced slices").
+    # Slices of two rotations are told apart by their timestamps (one stamped before the run's last never joins it):
+    # a driver that may hand a slice over after the next rotation's first should pass the scan timestamps, since
+    # ``timestamp=None`` stamps the arrival, and such a late slice could then join that first slice's run.
     coalesce_slices: int = 2
     # hold a quadrant's first slice for the next one and detect both in one run while the slice lane is loaded: from
     # when its measured load (a slice's run time over the slice period per worker) is above this until it falls under

@@ -36,10 +36,13 @@ class LutViews:
         self._quadrant_luts: dict[Lut, tuple[QuadrantLut, ...]] = {}
         self._cameras: tuple[Lut, dict[tuple[int, ...], tuple[str, ...]]] | None = None  # answers for one LUT
         self._feeds: dict[tuple[int, int], tuple[Lut | QuadrantLut, dict[str, np.ndarray]]] = {}
+        self._closed = False
 
-    def clear(self) -> None:
-        """Forget every view kept (a closed detector's): they are made again on use."""
+    def close(self) -> None:
+        """Forget every view kept and keep none from now on (a closed detector's: views are still made on use, for a
+        call that races the close, but not kept)."""
         with self._lock:
+            self._closed = True
             self._quadrant_luts, self._cameras, self._feeds = {}, None, {}
 
     def quadrant_luts(self, lut: Lut, in_use: Lut | None) -> tuple[QuadrantLut, ...]:
@@ -50,6 +53,8 @@ class LutViews:
         if qluts is None:
             qluts = quadrant_luts(lut)
             with self._lock:
+                if self._closed:
+                    return qluts
                 keep = [k for k in self._quadrant_luts if k is in_use and k is not lut]
                 self._quadrant_luts = {**{k: self._quadrant_luts[k] for k in keep}, lut: qluts}
         return qluts
@@ -68,12 +73,14 @@ class LutViews:
         cams = self.known_cameras(lut, quadrants)
         if cams is not None:
             return cams
-        kept = self._cameras
         qluts = self.quadrant_luts(lut, in_use)
         seen = {name for q in quadrants for name in qluts[q].camera_names}
         cams = tuple(n for n in self._camera_names if n in seen)
-        if lut is in_use:  # one tuple swapped whole: readers without the lock see an old or a new answer set
-            self._cameras = (lut, {**(kept[1] if kept is not None and kept[0] is lut else {}), quadrants: cams})
+        if lut is in_use:
+            with self._lock:  # one tuple swapped whole: readers without the lock see an old or a new answer set
+                kept = self._cameras
+                if not self._closed:
+                    self._cameras = (lut, {**(kept[1] if kept is not None and kept[0] is lut else {}), quadrants: cams})
         return cams
 
     def lifter_feeds(self, lut: Lut | QuadrantLut, maps: np.ndarray) -> dict[str, np.ndarray]:
@@ -88,6 +95,8 @@ class LutViews:
         if cached is None or cached[0] is not lut:  # an id is only unique while its object lives: the entry keeps it
             cached = (lut, lifter_lut_feeds(lut.index, lut.weight, j * hf * wf, compact=True))
             with self._lock:
+                if self._closed:
+                    return cached[1]
                 if len(self._feeds) >= 2 * (NUM_QUADRANTS + 1):  # two LUTs' worth (full + per quadrant)
                     self._feeds.pop(next(iter(self._feeds)))
                 self._feeds[key] = cached

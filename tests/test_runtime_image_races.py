@@ -216,3 +216,126 @@ def test_close_releases_the_fallback_session(tiny_export, tiny_lidar_export):
     assert det._fallback.session is None
     with pytest.raises(DetectorClosed):
         det.detect_slice(split_sweep(load_bundled_sample().points, 8)[0], 0)  # no images: the fallback's graph
+
+
+def test_a_relift_that_widens_a_quadrant_says_the_camera_it_did_not_encode_is_missing(tiny_export, rigs):
+    """A per-quadrant update kept only the cameras the old LUT read there: re-lifted with a LUT that reads one more,
+    that camera is zeros, and its slices say so (they said nothing missing)."""
+    rig_a, rig_b = rigs
+    det = _detector(tiny_export, rig_a)
+    before = det.quadrant_cameras([3])
+    det.update_images(_images(det, 0), 1.0, quadrants=[3])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        det.set_calibration(rig_b)
+    added = tuple(n for n in det.quadrant_cameras([3]) if n not in before)
+    assert added, "premise: rig B widens quadrant 3's view"
+    assert det.image_state.quadrants[3].cameras_missing == added
+    full = _detector(tiny_export, rig_a)
+    full.update_images(_images(full, 0), 1.0)  # a full update holds every camera's map: nothing missing after a swap
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        full.set_calibration(rig_b)
+    assert all(s.cameras_missing == () for s in full.image_state.quadrants)
+
+
+def _hold_lut_builds(det: StreamingDetector, first_only: bool = True):
+    """(started, release) events: the first set_calibration's LUT build waits for ``release`` once it started."""
+    import threading
+
+    started, release, build = threading.Event(), threading.Event(), det._build_lut
+    calls = [0]
+
+    def held(rig):
+        calls[0] += 1
+        if calls[0] == 1 or not first_only:
+            started.set()
+            assert release.wait(30)
+        return build(rig)
+
+    det._build_lut = held
+    return started, release
+
+
+def _in_thread(fn):
+    import threading
+
+    out: dict = {}
+
+    def run():
+        try:
+            out["result"] = fn()
+        except BaseException as e:  # noqa: BLE001 - handed to the test
+            out["error"] = e
+
+    t = threading.Thread(target=run)
+    t.start()
+    return t, out
+
+
+@pytest.mark.parametrize("later", ["another rig", "the rig in use again", "a Lut"])
+def test_the_calibration_call_started_last_wins(tiny_export, rigs, later):
+    """Two threads swapping: a call started earlier whose LUT build ends later installed last, over the newer one."""
+    rig_a, rig_b = rigs
+    det = _detector(tiny_export, rig_a)
+    lut_of_a = det.lut
+    det.update_images(_images(det, 0), 1.0)
+    started, release = _hold_lut_builds(det)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        slow, out = _in_thread(lambda: det.set_calibration(rig_b))  # started first, its build held
+        assert started.wait(30)
+        newer = {"another rig": perturb_rig(rig_a, 0.5, 0.5, seed=7), "the rig in use again": rig_a,
+                 "a Lut": det._build_lut(rig_a)}[later]  # fmt: skip
+        det.set_calibration(newer)
+        in_use = det.lut
+        release.set()
+        slow.join(30)
+    assert "error" not in out
+    assert det.lut is in_use  # the older call installed nothing
+    if later == "the rig in use again":
+        assert det.lut is lut_of_a
+    assert all(s.lut is det.lut for s in det.image_state.quadrants)
+
+
+def test_a_calibration_swap_racing_close_installs_nothing_and_a_closed_detector_keeps_nothing(tiny_export, rigs):
+    rig_a, rig_b = rigs
+    det = _detector(tiny_export, rig_a)
+    lut_a = det.lut
+    det.update_images(_images(det, 0), 1.0)
+    started, release = _hold_lut_builds(det)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        swap, out = _in_thread(lambda: det.set_calibration(rig_b))
+        assert started.wait(30)
+        det.close()
+        release.set()
+        swap.join(30)
+    assert isinstance(out.get("error"), DetectorClosed) and det.lut is lut_a
+    with pytest.raises(DetectorClosed):
+        det.update_images(_images(det, 1), 2.0, quadrants=[3])  # it made the views it needed before it failed
+    views = det._views
+    assert views._quadrant_luts == {} and views._cameras is None and views._feeds == {}
+
+
+def test_a_failed_relift_drops_the_old_bev_rather_than_keep_it_under_the_new_lut(tiny_export, rigs):
+    rig_a, rig_b = rigs
+    det = _detector(tiny_export, rig_a)
+    det.update_images(_images(det, 0), 1.0)
+    lift = det._lift_quadrants
+
+    def failing(*args, **kwargs):
+        raise RuntimeError("volumetric_lifter.onnx: onnxruntime failed (injected)")
+
+    det._lift_quadrants = failing
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        with pytest.raises(RuntimeError, match="injected"):
+            det.set_calibration(rig_b)
+        lut_b = det.lut
+        assert det.image_state is None  # not the old rig's BEV under the new LUT
+        det._lift_quadrants = lift
+        det.set_calibration(rig_b)  # the rig in use: nothing to do, and nothing stale left
+    assert det.lut is lut_b and det.image_state is None
+    det.update_images(_images(det, 1), 2.0)
+    assert all(s.lut is lut_b for s in det.image_state.quadrants)
