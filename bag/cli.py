@@ -26,14 +26,14 @@ from streamdet.cli_utils import (
     refuse_same_outputs,
     split_list,
 )
-from streamdet.progress import counted, progressbar
+from streamdet.progress import counted
 
 LIBRARY_ERRORS = (ValueError, KeyError, FileNotFoundError, OSError, MissingExtraError)
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
 def main() -> None:
-    """ROS 2 bags in and out, viewable in Foxglove, without a ROS installation (needs `pip install 'streamdet[ros]'`)."""
+    """ROS 2 bags in and out, viewable in Foxglove, without a ROS installation (needs `pip install '.[ros]'` in the streamdet checkout)."""
 
 
 @main.command("export")
@@ -60,8 +60,8 @@ def export_cmd(data_dir: Path | None, scene: str | None, version: str, out: Path
     refuse_output_over_inputs(out, "--out", [data])
     _check_output(out, "--out")
     try:
-        with progressbar(length=1, label=f"writing {out}", show_pos=False) as bar:
-            summary = export_recording(recording, out, progress=lambda done, total: _advance(bar, done, total))
+        with counted(f"writing {out}") as progress:  # one step per sensor message
+            summary = export_recording(recording, out, progress=progress)
     except LIBRARY_ERRORS as e:
         raise click.ClickException(_one_line(e)) from None
     click.echo(
@@ -79,7 +79,7 @@ def export_cmd(data_dir: Path | None, scene: str | None, version: str, out: Path
 @click.option("--out", type=click.Path(path_type=Path, dir_okay=False), required=True,
               help="The .mcap bag to write: the input topics plus /streamdet/detections and /streamdet/markers.")
 @click.option("--results", "results_json", type=click.Path(path_type=Path, dir_okay=False), default=None,
-              help="Where to write the nuScenes results JSON. Default: results_nusc.json beside --out.")
+              help="Where to write the nuScenes results JSON. Default: beside --out, named after it (det.mcap: det.results_nusc.json).")
 @click.option("--topics", default=None,
               help="Topic names of a bag recorded elsewhere, KEY=/topic comma-separated: lidar, tf, tf_static, a camera "
                    "name (its image topic) or CAMERA.info (its CameraInfo topic; default: camera_info beside the image "
@@ -239,11 +239,6 @@ def _require_extra() -> None:
     """Fail before any work when the ``ros`` extra is missing."""
     for module in ("mcap.reader", "mcap_ros2.writer", "mcap_ros2.decoder"):
         require(module)
-
-
-def _advance(bar, done: int, total: int) -> None:
-    bar.length = total
-    bar.update(done - bar.pos)
 
 
 def _one_line(e: BaseException) -> str:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import importlib
 from types import ModuleType
 
-INSTALL_HINT = "pip install 'streamdet[ros]'"
+INSTALL_HINT = "pip install '.[ros]' in the streamdet checkout"
 
 
 class MissingExtraError(ImportError):

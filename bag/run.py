@@ -29,7 +29,7 @@ from streamdet.runtime_ort.postprocess import Detections, aggregate_sweep
 from streamdet.runtime_ort.ros.detections import detection3d_array_message, marker_array_message
 from streamdet.runtime_ort.ros.pointcloud2 import CloudFields, TimedSlice
 
-RESULTS_NAME = "results_nusc.json"
+RESULTS_SUFFIX = ".results_nusc.json"  # the default results JSON: the output bag's name with this suffix
 
 
 @dataclass(frozen=True)
@@ -140,8 +140,9 @@ def run_bag(
 
 
 def results_path_of(out: str | Path, results_json: str | Path | None) -> Path:
-    """Where the results JSON goes: ``results_json``, or ``results_nusc.json`` beside the output bag."""
-    return Path(results_json) if results_json is not None else Path(out).with_name(RESULTS_NAME)
+    """Where the results JSON goes: ``results_json``, or beside the output bag under its name (``det.mcap`` ->
+    ``det.results_nusc.json``), so that runs into one folder keep their own."""
+    return Path(results_json) if results_json is not None else Path(out).with_name(Path(out).stem + RESULTS_SUFFIX)
 
 
 def _feed_images(det: StreamingDetector, event: SweepEvent) -> None:

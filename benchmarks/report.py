@@ -135,12 +135,12 @@ def evaluate_targets(rows: Sequence[RowResult], peak: ProbeResult, streaming: St
 
 
 def _int8_targets(rows: Sequence[RowResult]) -> list[Target]:
-    """int8 >= 2.5x fp32 for the image encoder and the 3D convolutions, faster than fp32 for the slice graph (no
+    """int8 >= 2.5x fp32 for the image encoder and the lifter convolutions (3D, or the flat lifter's 2D ones), faster than fp32 for the slice graph (no
     lines when nothing was timed in int8, --no-int8)."""
     targets: list[Target] = []
     if all(r.int8 is None for r in rows):
         return targets
-    for kind, what in (("image", "image encoder"), ("conv3d", "3D convolutions"), ("slice", "slice graph")):
+    for kind, what in (("image", "image encoder"), ("conv3d", "lifter convolutions"), ("slice", "slice graph")):
         least = INT8_SPEEDUP_MIN[kind]
         kind_rows = [r for r in rows if r.kind == kind]
         timed = [(r, r.int8_speedup) for r in kind_rows if r.int8_speedup is not None]

@@ -33,7 +33,7 @@ ROUNDS = 4  # the measurements of a row take turns in this many rounds
 # (uncropped row key, cropped row key, what): the cropping targets' ratios; each pair is timed taking turns too
 CROP_PAIRS = (
     ("slice_single_head", "slice_single_head_cropped", "slice graph"),
-    ("conv3d", "conv3d_cropped", "3D convolutions"),
+    ("conv3d", "conv3d_cropped", "lifter convolutions"),  # 3D, or the flat lifter's 2D ones
 )
 TORCH, TORCH_EXPORT = "PyTorch", "PyTorch on the export form"  # their names in progress lines and notes
 

@@ -23,6 +23,7 @@ DEFAULT_EXPORT_DIR = f"{EXPORTS_ROOT}/{DEFAULT_PRESET}"
 # for 2.7 GB in one image). calibration.camera.MAX_IMAGE_PX (65536) bounds what a file may declare, not what runs.
 MIN_RESOLUTION_PX = 16
 MAX_RESOLUTION_PX = 4096
+STEM_STRIDE = 2  # the image encoder's ResNet stem stride: a model's image width and height are multiples of it
 # Intra-op threads of one onnxruntime session (a lane's): one graph of this size gains nothing past a few dozen, and
 # hundreds (180 a session, each with its own stack) made onnxruntime hang at start under a 6 GB address-space limit.
 MAX_SESSION_THREADS = 64

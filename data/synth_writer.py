@@ -51,7 +51,7 @@ from streamdet.calibration.camera import (
 )  # fmt: skip
 from streamdet.calibration.lut import ASPECT_TOLERANCE, check_rig_fits
 from streamdet.core.classes import CLASS_NAMES
-from streamdet.core.constants import MAX_RESOLUTION_PX, MIN_RESOLUTION_PX
+from streamdet.core.constants import MAX_RESOLUTION_PX, MIN_RESOLUTION_PX, STEM_STRIDE
 from streamdet.core.json_input import read_json
 from streamdet.data.sample import POINT_TIME_SUFFIX, bundled_sample_dir
 from streamdet.data.synth_lidar import LidarConfig, SimSweep, simulate_sweep
@@ -138,8 +138,9 @@ def _fits(rig: Rig, width: int, height: int) -> bool:
 def fitting_resolutions(width: int, height: int, rig: Rig | None = None) -> list[tuple[int, int]]:
     """The image sizes nearest ``width`` x ``height`` that ``rig`` (default: the bundled one) fits, each side
     MIN_RESOLUTION_PX..MAX_RESOLUTION_PX: the one of the nearest width, then the one of the nearest height (one
-    entry where they are the same size; ties go to the size nearer the camera's aspect). Whether a size fits is
-    ``check_rig_fits``'s decision, not a rule of this module's."""
+    entry where they are the same size; ties go to the size nearer the camera's aspect). Sizes a model can take too
+    (sides multiples of STEM_STRIDE: streamdet-export's rule) come first: a size suggested here is one every tool
+    takes. Whether a size fits is ``check_rig_fits``'s decision, not a rule of this module's."""
     rig = _bundled_rig() if rig is None else rig
     cam = rig.cameras[0]
     aspect = cam.width / cam.height
@@ -148,6 +149,8 @@ def fitting_resolutions(width: int, height: int, rig: Rig | None = None) -> list
     sizes = [(w, h) for w, h in sorted(sizes) if lo <= w <= hi and lo <= h <= hi and _fits(rig, w, h)]
     if not sizes:
         return []
+    model_sizes = [(w, h) for w, h in sizes if w % STEM_STRIDE == 0 and h % STEM_STRIDE == 0]
+    sizes = model_sizes or sizes
     by_width = min(sizes, key=lambda s: (abs(s[0] - width), abs(s[1] - s[0] / aspect)))
     by_height = min(sizes, key=lambda s: (abs(s[1] - height), abs(s[0] - s[1] * aspect)))
     return [by_width] if by_width == by_height else [by_width, by_height]

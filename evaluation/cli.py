@@ -32,7 +32,7 @@ from streamdet.evaluation.detection_eval import evaluate
 from streamdet.evaluation.eval_boxes import EvalBoxes
 from streamdet.evaluation.metrics import DetectionMetrics
 from streamdet.evaluation.results import load_gt_and_predictions
-from streamdet.progress import progressbar
+from streamdet.progress import counted
 
 _TP_SHORT = {"trans_err": "ATE", "scale_err": "ASE", "orient_err": "AOE", "vel_err": "AVE", "attr_err": "AAE"}
 # --bootstrap: 10^5 draws resolve a 95 % interval far below any figure's printed precision; 10^9 ran for hours.
@@ -112,11 +112,7 @@ def _data_inputs(data_dir: Path, version: str, split: str | None, export_dir: Pa
     n = detector.detector.num_slices
     label = detector.detector.precision_label  # "int8 image lane + fp32 slices" when the lanes differ
     try:
-        with progressbar(length=1, label=f"detecting ({label}, {n} slices)") as bar:
-            def progress(done: int, total: int) -> None:
-                bar.length = total
-                bar.update(1)
-
+        with counted(f"detecting ({label}, {n} slices)") as progress:  # the sample count is known once the data is read
             result = evaluate_dataset(detector, data_dir, version=version, split=split, classes=classes,
                                       max_samples=max_samples, progress=progress)  # fmt: skip
     except (ValueError, OSError, KeyError) as e:  # the dataset's own defects (NuScenesReader names table and row)
@@ -217,14 +213,9 @@ def _compare(run_a: str, run_b: str, gt_path: Path | None, classes: tuple[str, .
         a = [load_run(p, gt_path) for p in group_a]
         b = [load_run(p, gt_path) for p in group_b]
         # one step per subset (all boxes, few points, cut by a border, each slice): each draws `draws` times
-        with progressbar(length=1, label=f"bootstrap ({draws} draws per subset)",
-                         item_show_func=lambda name: name) as bar:  # fmt: skip
-            def progress(name: str, done: int, total: int) -> None:
-                bar.length = total
-                bar.update(done - bar.pos, name)
-
+        with counted(f"bootstrap ({draws} draws per subset)", item_show_func=lambda name: name) as progress:
             comparison = compare_runs(a, b, classes=classes, num_draws=draws, seed=seed, subsets=subsets,
-                                      progress=progress)
+                                      progress=lambda name, done, total: progress(done, total, name))
     except ValueError as e:
         raise click.ClickException(first_line(e)) from None
     name_a, name_b = ", ".join(map(str, group_a)), ", ".join(map(str, group_b))

@@ -9,7 +9,7 @@ from streamdet.export.int8_data import DEFAULT_CALIBRATION_SAMPLES
 from streamdet.export.weights import DEFAULT_SEED
 from streamdet.core.image_layout import IMAGE_BEV
 from streamdet.core.constants import DEFAULT_PRESET  # noqa: F401 (the exporter and its CLI read it here)
-from streamdet.core.constants import MAX_RESOLUTION_PX, MIN_RESOLUTION_PX
+from streamdet.core.constants import MAX_RESOLUTION_PX, MIN_RESOLUTION_PX, STEM_STRIDE
 from streamdet.core.lut_layout import LUT_COMPACT, LUT_SLOTS
 
 DEFAULT_IMAGE_LAYOUT = IMAGE_BEV  # measured in docs/replay.md ("Less work per lift")
@@ -26,8 +26,6 @@ def resolve_lut_layout(layout: str, heights_per_voxel: int) -> str:
         return layout
     return LUT_COMPACT if heights_per_voxel == 1 else LUT_SLOTS
 
-
-STEM_STRIDE = 2  # the ResNet stem's stride: image sizes must be even
 
 
 class ExportError(Exception):

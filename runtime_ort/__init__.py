@@ -26,6 +26,12 @@ _EXPORTS = {
     "RunnerClosed": "streamdet.runtime_ort.lanes",
     "ManifestError": "streamdet.runtime_ort.manifest",
     "GraphRunError": "streamdet.runtime_ort.sessions",
+    "ProviderError": "streamdet.runtime_ort.sessions",
+    # what set_calibration raises and warns (defined with the LUT, which the runtime shares with the export)
+    "CalibrationError": "streamdet.calibration.camera",
+    "BlindCameraWarning": "streamdet.calibration.lut",
+    "CameraMovedWarning": "streamdet.calibration.lut",
+    "PhaseLockStats": "streamdet.runtime_ort.phase_locked_lane",
     "Detections": "streamdet.runtime_ort.postprocess",
     "PostprocessConfig": "streamdet.runtime_ort.postprocess",
     "NmsConfig": "streamdet.runtime_ort.nms",

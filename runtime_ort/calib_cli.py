@@ -52,8 +52,8 @@ def rebuild_lut(calibration: str | Path, export_dir: str | Path) -> tuple[Lut, b
     rig = Rig.from_calibration_json(calibration)
     try:
         check_rig_fits(rig, image.camera_names, image.width, image.height)
-    except CalibrationError as e:
-        raise LutMismatch(str(e)) from None
+    except CalibrationError as e:  # the rig read well but fits another export: name both
+        raise LutMismatch(f"{calibration}: {e} (export {export_dir})") from None
     try:
         grid = GridSpec.from_dict(manifest.grid)
     except (KeyError, TypeError, ValueError) as e:

@@ -254,7 +254,7 @@ def check_plot_format(plot_path: Path | None, option: str = "--plot") -> None:
     try:
         from matplotlib.backend_bases import FigureCanvasBase
     except ImportError:
-        raise click.BadParameter("needs matplotlib (pip install 'streamdet[dev]')", param_hint=option) from None
+        raise click.BadParameter("needs matplotlib (pip install matplotlib, or '.[dev]' in the streamdet checkout)", param_hint=option) from None
     suffix = Path(plot_path).suffix[1:].lower()
     formats = FigureCanvasBase.get_supported_filetypes()
     if suffix and suffix not in formats:
@@ -380,7 +380,7 @@ def run_edge(module: str, prog: str, *, extra: str | None = None, args: list[str
         except ModuleNotFoundError as e:
             if e.name is None or e.name.split(".")[0] == "streamdet":
                 raise
-            hint = f": pip install 'streamdet[{extra}]' (install torch first: pip install torch==2.13.0, with --index-url https://download.pytorch.org/whl/cpu for the CPU build)" if extra else ""
+            hint = f": pip install '.[{extra}]' in the streamdet checkout (install torch first: pip install torch==2.13.0, with --index-url https://download.pytorch.org/whl/cpu for the CPU build)" if extra else ""
             return _fail(prog, f"needs the Python package {e.name!r}, which is not installed{hint}")
         # click's own main() would print a bare newline on Ctrl-C and turn it into Abort: parse and invoke directly
         with command.make_context(prog, list(sys.argv[1:] if args is None else args)) as ctx:

@@ -53,29 +53,32 @@ def progressbar(
 
 @contextlib.contextmanager
 def counted(label: str, write: Callable[[str], None] | None = None, *, file: IO | None = None,
-            interval_s: float = PROGRESS_LINE_INTERVAL_S, clock: Callable[[], float] = time.monotonic,
-            ) -> Iterator[Callable[..., None]]:  # fmt: skip
-    """``progress(done, total=None)`` for a library loop that reports counts: ``LineProgress`` lines to ``write``, or
-    without it ``progressbar`` on ``file`` (default stderr; a total-less count there is in lines too).
+            item_show_func: Callable[[Any], str | None] | None = None, interval_s: float = PROGRESS_LINE_INTERVAL_S,
+            clock: Callable[[], float] = time.monotonic) -> Iterator[Callable[..., None]]:  # fmt: skip
+    """``progress(done, total=None, item=None)`` for a library loop that reports counts (and what it works on, shown by
+    ``item_show_func``): ``LineProgress`` lines to ``write``, or without it ``progressbar`` on ``file`` (default
+    stderr; a total-less count there is in lines too). The total may change between reports.
 
     The bar opens with the first report, so work that fails before it (an unreadable input) or has nothing to do
     (a cache hit) shows none; the end line follows only a loop that reported and ended without an error.
     """
     bar = None
 
-    def progress(done: int, total: int | None = None) -> None:
+    def progress(done: int, total: int | None = None, item: Any = None) -> None:
         nonlocal bar
         if bar is None:
             stream = sys.stderr if file is None else file
             if write is None and total is not None:
-                bar = progressbar(length=total, label=label, file=stream, interval_s=interval_s, clock=clock)
+                bar = progressbar(length=total, label=label, item_show_func=item_show_func, file=stream,
+                                  interval_s=interval_s, clock=clock)  # fmt: skip
             else:
                 out = write if write is not None else (lambda line: click.echo(line, file=stream))
-                bar = LineProgress(length=total, label=label, write=out, interval_s=interval_s, clock=clock)
+                bar = LineProgress(length=total, label=label, item_show_func=item_show_func, write=out,
+                                   interval_s=interval_s, clock=clock)  # fmt: skip
             bar.__enter__()
         if total is not None:
             bar.length = total
-        bar.update(done - bar.pos)
+        bar.update(done - bar.pos, item)
 
     try:
         yield progress
@@ -133,7 +136,7 @@ class LineProgress:
         self._start = self._last = self.clock()
         if not self._started:
             self._started = True
-            total = f" ({self.length} steps)" if self.length is not None else ""
+            total = f" ({self.length} step{'' if self.length == 1 else 's'})" if self.length is not None else ""
             self.write(f"{self.label}{total}")
         return self
 

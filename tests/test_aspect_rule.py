@@ -12,6 +12,7 @@ from click.testing import CliRunner
 
 from streamdet.calibration.camera import CalibrationError
 from streamdet.calibration.lut import check_rig_fits
+from streamdet.core.constants import STEM_STRIDE
 from streamdet.data.nuscenes import NuScenesReader
 from streamdet.data.synth_cli import main as synth_main
 from streamdet.data.synth_world import WorldConfig
@@ -65,7 +66,7 @@ def test_synth_refuses_exactly_what_the_runtime_refuses(size):
     assert (resolution_problem(size) is None) == _runtime_fits(*size)
 
 
-@pytest.mark.parametrize("size, nearest", [((320, 240), "320x180 or 427x240"), ((17, 31), "32x18 or 55x31"),
+@pytest.mark.parametrize("size, nearest", [((320, 240), "320x180 or 426x240"), ((17, 31), "32x18 or 50x28"),
                                            ((16, 16), "the nearest size that fits: 32x18"),
                                            ((4096, 4096), "the nearest size that fits: 4096x2304")])  # fmt: skip
 def test_synth_config_names_the_rule_and_what_fits(size, nearest):
@@ -82,12 +83,13 @@ def test_the_suggested_sizes_fit(size):
     assert 1 <= len(near) <= 2 and len(set(near)) == len(near)
     for w, h in near:
         assert _runtime_fits(w, h) and 16 <= w <= 4096 and 16 <= h <= 4096
+        assert w % STEM_STRIDE == 0 and h % STEM_STRIDE == 0  # a size streamdet-export takes too (427x240 was not)
         assert SynthConfig(resolution=(w, h)).resolution == (w, h)
 
 
 def test_a_fitting_size_is_its_own_nearest():
     assert fitting_resolutions(384, 216) == [(384, 216)]
-    assert fitting_resolutions(320, 240) == [(320, 180), (427, 240)]  # the same width, then the same height
+    assert fitting_resolutions(320, 240) == [(320, 180), (426, 240)]  # the same width, then the same height
 
 
 def test_range_errors_come_before_the_aspect():
@@ -97,7 +99,7 @@ def test_range_errors_come_before_the_aspect():
         SynthConfig(resolution=(320.0, 240))
 
 
-@pytest.mark.parametrize("text, nearest", [("320x240", "320x180 or 427x240"), ("17x31", "32x18 or 55x31"),
+@pytest.mark.parametrize("text, nearest", [("320x240", "320x180 or 426x240"), ("17x31", "32x18 or 50x28"),
                                            ("16x16", "32x18")])  # fmt: skip
 def test_synth_cli_refuses_before_writing(tmp_path, text, nearest):
     out = tmp_path / "ds"

@@ -105,9 +105,14 @@ def test_run_results_is_not_the_input_bag(bag: Path, export_dir: Path, tmp_path:
 def test_run_results_is_not_the_output_bag(bag: Path, export_dir: Path, tmp_path: Path):
     out = tmp_path / "det.mcap"
     one_line_error(invoke(*run_args(bag, export_dir, "--out", out, "--results", out)), "--results", str(out), "--out")
-    # the default results path, results_nusc.json beside --out, is --out itself
-    out = tmp_path / "results_nusc.json"
-    one_line_error(invoke(*run_args(bag, export_dir, "--out", out)), "--results (default: beside --out)", str(out))
+    # the default results path is named after --out: two runs into one folder keep both (one name overwrote the
+    # other), and it is never --out itself
+    from streamdet.bag.run import results_path_of
+
+    assert results_path_of(tmp_path / "a.mcap", None) == tmp_path / "a.results_nusc.json"
+    assert results_path_of(tmp_path / "b.mcap", None) == tmp_path / "b.results_nusc.json"
+    for name in ("results_nusc.json", "a.results_nusc.json", "a"):
+        assert results_path_of(tmp_path / name, None) != tmp_path / name
 
 
 def test_run_outputs_stay_out_of_the_export(bag: Path, export_dir: Path, tmp_path: Path):

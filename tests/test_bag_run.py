@@ -96,7 +96,7 @@ def assert_same_detections(results_path: Path, reference: dict) -> float:
 
 
 def test_same_detections_as_the_dataset_evaluation(ran: Path, reference: dict):
-    assert_same_detections(ran.with_name("results_nusc.json"), reference)
+    assert_same_detections(ran.with_name("detections.results_nusc.json"), reference)
 
 
 def test_output_bag_holds_the_inputs_and_the_detections_per_slice(bag: Path, ran: Path, reference: dict):
@@ -155,7 +155,7 @@ def test_a_bag_with_other_topic_names_through_topics(bag: Path, export_dir: Path
     result = CliRunner().invoke(bag_main, ["run", "--bag", str(renamed), "--export-dir", str(export_dir), "--out", str(tmp_path / "b.mcap"),
                                            "--topics", topics])  # fmt: skip
     assert result.exit_code == 0, result.output
-    assert_same_detections(tmp_path / "results_nusc.json", reference)
+    assert_same_detections(tmp_path / "b.results_nusc.json", reference)
 
 
 def test_run_errors_are_one_line(bag: Path, export_dir: Path, tmp_path):
@@ -275,7 +275,7 @@ def test_a_driver_publishing_slices(bag: Path, export_dir: Path, reference: dict
                                            str(tmp_path / "det.mcap"), "--slice-per-message"])  # fmt: skip
     assert result.exit_code == 0, result.output
     assert "2 sweeps, 16 slices" in result.output
-    assert_same_detections(tmp_path / "results_nusc.json", reference)
+    assert_same_detections(tmp_path / "det.results_nusc.json", reference)
 
 
 @pytest.mark.parametrize("empty", [(3,), (N_SLICES - 1,), (0, N_SLICES - 1)])
@@ -287,7 +287,7 @@ def test_empty_slice_messages_are_skipped_and_every_sweep_still_closes(bag: Path
                                            str(tmp_path / "det.mcap"), "--slice-per-message"])  # fmt: skip
     assert result.exit_code == 0, result.output
     assert f"2 sweeps, {2 * (N_SLICES - len(empty))} slices" in result.output
-    assert len(json.loads((tmp_path / "results_nusc.json").read_text())["results"]) == 2
+    assert len(json.loads((tmp_path / "det.results_nusc.json").read_text())["results"]) == 2
 
 
 def test_every_option_has_help():

@@ -197,3 +197,15 @@ def test_a_cli_run_under_a_pipe_ends_with_a_done_line(tmp_path):
     assert "simulating 1 scene(s) (2 steps)" in result.stderr
     assert "simulating 1 scene(s): 2/2 done in " in result.stderr
     assert "simulating" not in result.stdout  # progress is not a result
+
+
+def test_a_count_known_only_later_opens_with_it(tiny_synth_data, tmp_path):
+    """streamdet-bag export learns its message count from the dataset: its first line said "(1 steps)" (a placeholder
+    length), then counted to 150."""
+    from streamdet.bag.cli import main as bag_main
+
+    result = CliRunner().invoke(bag_main, ["export", "--data", str(tiny_synth_data), "--out", str(tmp_path / "d.mcap")])
+    assert result.exit_code == 0, result.output
+    progress = [line for line in result.stderr.splitlines() if line.startswith("writing ")]
+    total = int(progress[0].rsplit("(", 1)[1].split()[0])
+    assert total > 1 and f": {total}/{total} done in " in progress[-1]

@@ -233,7 +233,7 @@ def test_calib_lut_refusals(export, sample, tmp_path, edit, match):
     out = CliRunner().invoke(calib_main, ["lut", "--calibration", str(calib), "--export-dir", str(result.out_dir)])
     assert out.exit_code != 0
     assert out.output.count("\n") == 1 and out.output.startswith("Error: ") and match in out.output
-    assert "Traceback" not in out.output
+    assert str(calib) in out.output and "Traceback" not in out.output  # every refusal names the file
     assert (sha256_file(result.out_dir / "lut.npz"), sha256_file(result.out_dir / "manifest.json")) == before
 
 

@@ -381,7 +381,7 @@ def test_export_help_without_torch_is_one_line():
     assert proc.returncode == 1, proc.stderr
     assert proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr
     assert proc.stderr.startswith("streamdet-export: error: needs the Python package 'torch'")
-    assert "streamdet[export]" in proc.stderr
+    assert "pip install '.[export]' in the streamdet checkout" in proc.stderr
 
 
 def test_ctrl_c_during_start_up_exits_130_without_traceback(tmp_path):

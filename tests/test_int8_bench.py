@@ -53,7 +53,7 @@ def test_int8_targets():
     by_name = {t.name: t for t in evaluate_targets(rows, peak, None)}
     image = by_name[f"int8 >= {INT8_SPEEDUP_MIN['image']}x fp32, image encoder"]
     assert image.met is False and "image_800x450 3.33x" in image.detail and "image_1600x900 2.00x" in image.detail
-    assert by_name[f"int8 >= {INT8_SPEEDUP_MIN['conv3d']}x fp32, 3D convolutions"].met is True
+    assert by_name[f"int8 >= {INT8_SPEEDUP_MIN['conv3d']}x fp32, lifter convolutions"].met is True
     assert by_name["int8 faster than fp32, slice graph"].met is True
     slower = [_row("slice_single_head_cropped", "slice", 10.0, 10.0)]
     assert {t.name: t for t in evaluate_targets(slower, peak, None)}["int8 faster than fp32, slice graph"].met is False
