@@ -13,6 +13,7 @@ import click
 
 from streamdet.bag.deps import MissingExtraError, require
 from streamdet.cli_utils import (
+    MAX_SLICES,
     PRECISION_CHOICES,
     camera_timeout_option,
     camera_timeout_s,
@@ -25,6 +26,9 @@ from streamdet.cli_utils import (
     refuse_output_over_inputs,
     refuse_same_outputs,
     split_list,
+
+    version_option,
+    dataset_inputs,
 )
 from streamdet.progress import counted
 
@@ -41,7 +45,7 @@ def main() -> None:
               help="A nuScenes-format dataset folder (tables under VERSION/, e.g. streamdet-synth output), or a folder in "
                    "the bundled sample's layout (calibration.json). Default: the bundled real nuScenes sample.")
 @click.option("--scene", default=None, help="Scene name (e.g. synth-0-0000). Default: the only scene of the dataset.")
-@click.option("--version", default="v1.0-synth", show_default=True, help="Table folder of the dataset under --data.")
+@version_option()
 @click.option("--out", type=click.Path(path_type=Path, dir_okay=False), required=True, help="The .mcap bag to write.")
 def export_cmd(data_dir: Path | None, scene: str | None, version: str, out: Path) -> None:
     """Write one scene as the ROS 2 MCAP bag a car records: /LIDAR_TOP, /CAM_*/image_rect_compressed,
@@ -57,7 +61,7 @@ def export_cmd(data_dir: Path | None, scene: str | None, version: str, out: Path
         raise click.ClickException(_one_line(e)) from None
     # the bag is written while the dataset's files are read: it must be none of them, nor lie among them
     data = ("--data", data_dir) if data_dir is not None else ("--data (default: the bundled sample)", bundled_sample_dir())
-    refuse_output_over_inputs(out, "--out", [data])
+    refuse_output_over_inputs(out, "--out", dataset_inputs(data[1], version, data[0]))
     _check_output(out, "--out")
     try:
         with counted(f"writing {out}") as progress:  # one step per sensor message
@@ -92,7 +96,7 @@ def export_cmd(data_dir: Path | None, scene: str | None, version: str, out: Path
 @click.option("--global-frame", default="map", show_default=True,
               help="TF frame of the ego poses; 'none' for a stack without localisation (ego motion between the LiDAR "
                    "and camera times is then ignored).")
-@click.option("--slices", "num_slices", type=int, default=None,
+@click.option("--slices", "num_slices", type=click.IntRange(1, MAX_SLICES), default=None,
               help="Slices per sweep (1, 2 or a multiple of 4). Default: the number the export was made for.")
 @click.option("--precision", type=click.Choice(PRECISION_CHOICES), default="fp32", show_default=True,
               help="Which graphs of the export to run.")

@@ -33,6 +33,7 @@ from streamdet.calibration.camera import (
 from streamdet.core.boxes import BOX_DIM
 from streamdet.core.classes import CLASS_NAMES
 from streamdet.core.json_input import read_json, short_repr
+from streamdet.core.table_version import table_version_problem
 from streamdet.data.sample import (
     COUNT, FLAG, NAME, TEXT, TEXTS, FieldKind, Sample, Sweep, check_fields, dataset_file, load_point_times,
     load_points, numbers)
@@ -121,6 +122,9 @@ class NuScenesReader:
     """Samples (key frames) of a nuScenes-format dataset, in the order of the ``sample`` table."""
 
     def __init__(self, root: str | Path, version: str = "v1.0-mini") -> None:
+        problem = table_version_problem(version)
+        if problem is not None:  # a path would read tables from outside the dataset (core/table_version.py)
+            raise ValueError(f"version {problem}")
         self.root = Path(root)
         self.version = version
         table_dir = self.root / version

@@ -53,6 +53,7 @@ from streamdet.calibration.lut import ASPECT_TOLERANCE, check_rig_fits
 from streamdet.core.classes import CLASS_NAMES
 from streamdet.core.constants import MAX_RESOLUTION_PX, MIN_RESOLUTION_PX, STEM_STRIDE
 from streamdet.core.json_input import read_json
+from streamdet.core.table_version import table_version_problem
 from streamdet.data.sample import POINT_TIME_SUFFIX, bundled_sample_dir
 from streamdet.data.synth_lidar import LidarConfig, SimSweep, simulate_sweep
 from streamdet.data.synth_render import CameraModel, Render, render_camera, shadow_raster
@@ -111,10 +112,9 @@ def version_problem(version: object) -> str | None:
     no path separator (``/``, or ``\\`` which is one on Windows), no NUL, and none of the layout's own names.
     Names are compared case-insensitively: on a case-insensitive file system ``Samples`` is ``samples``.
     """
-    if type(version) is not str or not version:
-        return f"must be a non-empty folder name, got {version!r}"
-    if version in (".", "..") or any(c in version for c in "/\\\x00"):
-        return f"must be one folder name inside the dataset root (no '.', '..', '/', '\\' or NUL), got {version!r}"
+    problem = table_version_problem(version)
+    if problem is not None:
+        return problem
     if version.casefold() in {n.casefold() for n in RESERVED_NAMES}:
         return (f"{version!r} is a name the dataset's own layout uses ({', '.join(RESERVED_NAMES)}): the tables "
                 "would be mixed into it; choose another")

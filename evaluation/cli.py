@@ -9,6 +9,7 @@ as one table and optionally written as JSON.
 from __future__ import annotations
 
 import json
+import os
 import math
 from pathlib import Path
 
@@ -23,6 +24,8 @@ from streamdet.cli_utils import (
     providers_option,
     refuse_output_over_inputs,
     split_list,
+    version_option,
+    dataset_inputs,
 )
 from streamdet.core.constants import DEFAULT_EXPORT_DIR
 from streamdet.core.errors import first_line
@@ -140,14 +143,21 @@ def _data_inputs(data_dir: Path, version: str, split: str | None, export_dir: Pa
         from streamdet.evaluation.compare import SAMPLES_FILE, write_sample_info
         from streamdet.evaluation.results import write_results_json
 
+        # the three files are written beside their places first and renamed once all are: a failed write leaves
+        # no run of mixed or missing files (a folder that held an earlier run keeps it whole)
+        staged = {name: save_dir / f".{name}.{os.getpid()}.tmp" for name in SAVED_FILES}
         try:
             save_dir.mkdir(parents=True, exist_ok=True)
-            write_results_json(save_dir / "results.json", result.predictions,
+            write_results_json(staged["results.json"], result.predictions,
                                {"use_camera": detector.detector.uses_images, "use_lidar": True})  # fmt: skip
-            write_results_json(save_dir / "gt.json", result.ground_truth, {"use_camera": False, "use_lidar": False},
+            write_results_json(staged["gt.json"], result.ground_truth, {"use_camera": False, "use_lidar": False},
                                ego_positions=result.ego_positions)  # fmt: skip
-            write_sample_info(save_dir / SAMPLES_FILE, result.scenes, result.poses, n)
+            write_sample_info(staged[SAMPLES_FILE], result.scenes, result.poses, n)
+            for name, tmp in staged.items():
+                os.replace(tmp, save_dir / name)
         except OSError as e:
+            for tmp in staged.values():
+                tmp.unlink(missing_ok=True)
             raise click.ClickException(f"cannot write --save-results {save_dir}: {e.strerror or e}") from None
         click.echo(f"wrote {save_dir / 'results.json'}, {save_dir / 'gt.json'} and {save_dir / 'samples.json'}")
 
@@ -185,12 +195,6 @@ def _refuse_other_modes_options(ctx: click.Context, mode: str) -> None:
         raise click.UsageError(f"{listed} not read in the {mode} mode; drop {'them' if len(given) > 1 else 'it'}")
 
 
-
-
-def _version(value: str) -> str:
-    if not value or value in (".", "..") or "/" in value or "\\" in value:
-        raise click.BadParameter(f"must be one folder name under --data, got {value!r}", param_hint="--version")
-    return value
 
 
 def _run_folder(path: Path) -> Path:
@@ -248,8 +252,7 @@ def _compare(run_a: str, run_b: str, gt_path: Path | None, classes: tuple[str, .
     help="Dataset mode: a nuScenes-format dataset root (e.g. from streamdet-synth); the export is run over it with "
     "onnxruntime (all cameras, every slice, per-sweep NMS) and scored against its ground truth.",
 )  # fmt: skip
-@click.option("--version", default="v1.0-synth", show_default=True, callback=lambda ctx, param, value: _version(value),
-              help="Dataset mode: the table folder under --data.")
+@version_option(help="Dataset mode: the table folder under --data.")
 @click.option("--split", default="val", show_default=True,
               help="Dataset mode: scenes of this split in DATA/splits.json; 'all' for every sample.")  # fmt: skip
 @click.option("--export-dir", type=click.Path(file_okay=False, path_type=Path), default=Path(DEFAULT_EXPORT_DIR),
@@ -317,7 +320,7 @@ def main(gt_path: Path | None, results_path: Path | None, data_dir: Path | None,
             raise click.UsageError("--data runs the detector itself; do not combine it with --gt / --results")
         if slices is not None and slices not in (1, 2) and slices % 4:
             raise click.BadParameter(f"{slices} must be 1, 2 or a multiple of 4", param_hint="--slices")
-        inputs = [("--data", data_dir), ("--export-dir", export_dir)]
+        inputs = [*dataset_inputs(data_dir, version), ("--export-dir", export_dir)]
         refuse_output_over_inputs(json_path, "--json", inputs)
         refuse_output_over_inputs(save_dir, "--save-results", inputs)
         # --save-results writes its files after the --json: one of them would replace the figures just written
@@ -327,6 +330,9 @@ def main(gt_path: Path | None, results_path: Path | None, data_dir: Path | None,
                                      f"({', '.join(SAVED_FILES)}); choose another path", param_hint="--json")  # fmt: skip
         check_output_parent(json_path, "--json")  # now, not after the whole split was detected
         check_folder_creatable(save_dir, "--save-results")
+        if save_dir is not None and save_dir.is_dir():  # a folder or a FIFO where a file goes: found now, not after detecting
+            for name in SAVED_FILES:
+                check_output_parent(save_dir / name, "--save-results")
         _data_inputs(data_dir, version, None if split == "all" else split, export_dir, slices, precision, max_samples,
                      class_list, json_path, save_dir, image_precision, providers)  # fmt: skip
         return

@@ -27,6 +27,9 @@ from streamdet.cli_utils import (
     providers_option,
     refuse_output_over_inputs,
     refuse_same_outputs,
+
+    version_option,
+    dataset_inputs,
 )
 from streamdet.replay.modes import MODES
 from streamdet.replay.schedule import MAX_DELIVERY_S, MAX_RATE_HZ, MAX_TIME_SCALE
@@ -120,7 +123,7 @@ def _progress(message: str) -> None:
 @click.command(context_settings={"help_option_names": ["-h", "--help"]})
 @click.option("--data", type=click.Path(path_type=Path, file_okay=False), required=True,
               help="nuScenes-format dataset root (streamdet-synth output or real nuScenes tables).")
-@click.option("--version", "table_version", default="v1.0-synth", show_default=True, help="Table folder under --data.")
+@version_option("table_version")
 @click.option("--split", default="val", show_default=True, help="Scenes of this split (splits.json); 'all' for every scene.")
 @click.option("--scenes", type=click.IntRange(1, MAX_SCENES), default=None,
               help=f"Play only the first N scenes of the split (1..{MAX_SCENES}).")
@@ -217,7 +220,7 @@ def main(
     from streamdet.replay.run import ReplayConfig, run_replay
     from streamdet.runtime_ort.lanes import LaneConfig
 
-    inputs = [("--data", data), ("--export-dir", export_dir), ("--fallback-export", fallback_export_dir)]
+    inputs = [*dataset_inputs(data, table_version), ("--export-dir", export_dir), ("--fallback-export", fallback_export_dir)]
     _check_outputs(json_path, plot_path, out_dir, inputs)
     if not (export_dir / "manifest.json").exists():  # a FIFO or a folder: the manifest reader names it
         raise click.ClickException(f"{export_dir} holds no manifest.json: run `streamdet-export --out {export_dir}` first")

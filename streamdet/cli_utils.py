@@ -14,6 +14,7 @@ from streamdet.core.camera_timeout import DEFAULT_CAMERA_TIMEOUT_S, MAX_CAMERA_T
 from streamdet.core.providers import parse_providers
 from streamdet.core.constants import MAX_RESOLUTION_PX, MAX_SESSION_THREADS, MIN_RESOLUTION_PX, PRECISIONS
 from streamdet.core.sectors import MAX_NUM_SLICES
+from streamdet.core.table_version import table_version_problem
 
 # Every tool that takes an image size spells it the same way, within the same bounds (core/constants.py).
 RESOLUTION_HELP = "WIDTHxHEIGHT in pixels, such as 800x450"
@@ -154,6 +155,24 @@ def refuse_output_over_inputs(output: Path | None, option: str, inputs) -> None:
     _refuse_hard_link(output, option)
 
 
+def dataset_inputs(data_dir: Path | None, version: str | None, option: str = "--data") -> list[tuple[str, Path]]:
+    """The input pairs a dataset stands for in ``refuse_output_over_inputs``: its root, and the entries of it that
+    are symlinks (its table folder above all, which the tools read as ``DATA/<version>``): an output beside a
+    link's target is inside the dataset though outside ``data_dir``."""
+    if data_dir is None:
+        return []
+    pairs = [(option, Path(data_dir))]
+    try:
+        links = sorted(e for e in Path(data_dir).iterdir() if e.is_symlink())
+    except OSError:  # no folder (yet): the tool's own check names it
+        links = []
+    if version is not None and not table_version_problem(version):
+        table = Path(data_dir) / version
+        links = sorted(set(links) | ({table} if table.is_symlink() else set()))
+    pairs += [(f"{option}'s {e.name} (a link to {_real(e)})", e) for e in links]
+    return pairs
+
+
 def _refuse_hard_link(output: Path, option: str) -> None:
     """An existing output file with another name too (a hard link) would be written through: a link made inside a
     dataset or a saved run (``ln ds/splits.json out.json``) is that input's file, wherever the link lies."""
@@ -213,12 +232,17 @@ def refuse_same_outputs(outputs) -> None:
 def check_output_parent(output: Path | None, option: str) -> None:
     """Raise click.BadParameter, before any work, if ``output`` (a file to write) could not be created: its folder
     is missing or not a folder, takes no new file (read-only, /proc: a file made and removed at once tells, where
-    access checks pass every root process), or ``output`` is a folder."""
+    access checks pass every root process), or ``output`` is a folder, a FIFO, a device, a broken link or a loop."""
     if output is None:
         return
     output = Path(output)
     if output.is_dir():
         raise click.BadParameter(f"{str(output)!r} is a folder; give a file path", param_hint=option)
+    if output.exists() and not output.is_file():  # through a link too: /dev/stdout, a FIFO (opening it would block)
+        raise click.BadParameter(f"{str(output)!r} is not a regular file (a FIFO, a device or a socket): writing "
+                                 "would block or go elsewhere; give a file path", param_hint=option)  # fmt: skip
+    if output.is_symlink() and not output.exists():
+        raise click.BadParameter(f"{str(output)!r} is a broken link or a link loop; give a file path", param_hint=option)
     parent = output.parent if str(output.parent) else Path(".")
     if not parent.is_dir():
         raise click.BadParameter(f"the folder of {str(output)!r} does not exist (or is not a folder)", param_hint=option)
@@ -342,6 +366,18 @@ def _providers_callback(ctx, param, value: str | None):
         raise click.BadParameter(str(e).removeprefix("--providers: "), param_hint="--providers") from None
 
 
+def _version_callback(ctx, param, value):
+    problem = table_version_problem(value)
+    if problem is not None:
+        raise click.BadParameter(problem, param_hint="--version")
+    return value
+
+
+def version_option(dest: str = "version", default: str = "v1.0-synth", help: str = "Table folder of the dataset under --data."):
+    """``--version``: the dataset's table folder, one plain folder name under the dataset root (core/table_version.py)."""
+    return click.option("--version", dest, default=default, show_default=True, callback=_version_callback, help=help)
+
+
 def providers_option():
     """``--providers``: onnxruntime's execution providers of every session the command opens
     (``DetectorConfig.providers``); the command gets ``providers`` as a tuple of onnxruntime names, or None (auto)."""
@@ -411,6 +447,8 @@ def describe_error(e: BaseException) -> str:
         text = f"{e.filename}: {e.strerror or e}"
     elif isinstance(e, RecursionError):
         text = "the input nests too deeply to read"
+    elif isinstance(e, RuntimeError) and str(e).startswith("Symlink loop from "):
+        text = f"{str(e)[len('Symlink loop from '):]}: a symlink loop (a link that leads back to itself)"
     elif type(e).__module__.startswith("onnxruntime"):
         text = f"onnxruntime: {str(e).rsplit(' : ', 1)[-1]}"
     else:
@@ -422,6 +460,8 @@ def is_input_error(e: BaseException) -> bool:
     """Whether a tool reports ``e`` in one line: bad input (ValueError, and the project's named errors: any class
     defined in a streamdet module), OS and decode errors, onnxruntime's errors. Anything else is a bug."""
     if isinstance(e, (ValueError, OSError, RecursionError)):
+        return True
+    if isinstance(e, RuntimeError) and str(e).startswith("Symlink loop from "):  # pathlib's resolve() on a loop
         return True
     return any(k.__module__.startswith(("streamdet.", "onnxruntime.")) for k in type(e).__mro__)
 

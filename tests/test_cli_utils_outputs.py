@@ -102,3 +102,70 @@ def test_check_output_parent_finds_a_folder_that_takes_no_file():
 def test_check_output_parent_leaves_no_probe_behind(tmp_path):
     check_output_parent(tmp_path / "x.json", "--json")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_an_output_that_is_no_regular_file_is_refused_before_any_work(tmp_path):
+    """A FIFO made writing hang for ever after the whole run; a link to a device went elsewhere."""
+    import os
+
+    fifo = tmp_path / "out.json"
+    os.mkfifo(fifo)
+    (tmp_path / "dev.json").symlink_to("/dev/null")
+    (tmp_path / "loop1").symlink_to(tmp_path / "loop2")
+    (tmp_path / "loop2").symlink_to(tmp_path / "loop1")
+    (tmp_path / "dangling.json").symlink_to(tmp_path / "gone" / "x.json")
+    for bad, said in ((fifo, "not a regular file"), (tmp_path / "dev.json", "not a regular file"),
+                      (tmp_path / "loop1", "broken link or a link loop"), (tmp_path / "dangling.json", "broken link")):  # fmt: skip
+        with pytest.raises(click.BadParameter, match=said) as info:
+            check_output_parent(bad, "--json")
+        assert str(bad) in str(info.value.message)
+    (tmp_path / "target.json").write_text("{}")
+    (tmp_path / "link.json").symlink_to(tmp_path / "target.json")
+    check_output_parent(tmp_path / "link.json", "--json")  # a link to a regular file is a file to write
+
+
+@pytest.mark.parametrize("bad", ["", ".", "..", "../tables", "/etc", "a/b", "a\\b", "v\x00", "v" * 256])
+def test_a_table_version_is_one_folder_name_everywhere(tmp_path, bad):
+    from click.testing import CliRunner
+
+    from streamdet.bag.cli import main as bag_main
+    from streamdet.core.table_version import table_version_problem
+    from streamdet.data.nuscenes import NuScenesReader
+    from streamdet.replay.cli import main as replay_main
+    from streamdet.studies.cli import main as study_main
+
+    assert table_version_problem(bad) is not None and table_version_problem("v1.0-mini") is None
+    with pytest.raises(ValueError, match="version must be"):
+        NuScenesReader(tmp_path, bad)
+    if "\x00" in bad:
+        return  # not an argv string
+    for main, args in ((replay_main, ["--data", str(tmp_path)]), (study_main, ["slices", "--data", str(tmp_path)]),
+                       (bag_main, ["export", "--data", str(tmp_path), "--out", str(tmp_path / "b.mcap")])):  # fmt: skip
+        result = CliRunner().invoke(main, [*args, "--version", bad])
+        assert result.exit_code == 2 and "--version" in result.output and "Traceback" not in result.output, result.output
+
+
+def test_a_linked_table_folder_is_an_input_too(tmp_path):
+    from streamdet.cli_utils import dataset_inputs, refuse_output_over_inputs
+
+    tables = tmp_path / "elsewhere" / "tables"
+    tables.mkdir(parents=True)
+    (tables / "scene.json").write_text("[]")
+    data = tmp_path / "data"
+    data.mkdir()
+    (data / "v1.0-synth").symlink_to(tables)
+    inputs = dataset_inputs(data, "v1.0-synth")
+    assert [p for _, p in inputs] == [data, data / "v1.0-synth"]
+    for out in (tables / "scene.json", tables / "new.json"):  # outside --data, inside the tables it reads
+        with pytest.raises(click.BadParameter, match="v1.0-synth"):
+            refuse_output_over_inputs(out, "--json", inputs)
+    refuse_output_over_inputs(tmp_path / "elsewhere" / "ok.json", "--json", inputs)
+    assert dataset_inputs(tmp_path / "missing", "v1.0-synth") == [("--data", tmp_path / "missing")]
+
+
+def test_a_symlink_loop_is_an_input_error_in_one_line():
+    from streamdet.cli_utils import describe_error, is_input_error
+
+    e = RuntimeError("Symlink loop from '/tmp/x/loop1'")
+    assert is_input_error(e) and describe_error(e) == "'/tmp/x/loop1': a symlink loop (a link that leads back to itself)"
+    assert not is_input_error(RuntimeError("something else"))

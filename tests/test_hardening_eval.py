@@ -249,8 +249,10 @@ def test_dataset_mode_outputs_are_checked_before_detecting(tmp_path):
     data.mkdir()
     export.mkdir()  # no export at all: an output check that came after loading it would not be reached
     (tmp_path / "file").write_text("")
+    (tmp_path / "run2" / "gt.json").mkdir(parents=True)  # a folder where --save-results writes a file
     for extra, message in ((["--json", str(tmp_path / "no" / "m.json")], "does not exist"),
-                           (["--save-results", str(tmp_path / "file" / "run")], "is not a folder")):  # fmt: skip
+                           (["--save-results", str(tmp_path / "file" / "run")], "is not a folder"),
+                           (["--save-results", str(tmp_path / "run2")], "gt.json' is a folder")):  # fmt: skip
         res = CliRunner().invoke(eval_main, ["--data", str(data), "--export-dir", str(export), *extra])
         assert res.exit_code == 2 and message in res.output, res.output
 

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import click
 
-from streamdet.cli_utils import FiniteFloatRange, not_a_file, refuse_output_over_inputs
+from streamdet.cli_utils import FiniteFloatRange, not_a_file, refuse_output_over_inputs, version_option
 from streamdet.core.errors import first_line
 from streamdet.core.sectors import MAX_NUM_SLICES
 from streamdet.models.presets import preset_names
@@ -106,7 +106,7 @@ def _parse_slices(ctx, param, value: str) -> tuple[int, ...]:
 @click.command(context_settings={"help_option_names": ["-h", "--help"]})
 @click.option("--data", "data_dir", required=True, type=click.Path(file_okay=False, path_type=Path),
               help="Dataset root (tables in DATA/<version>/, scenes split by DATA/splits.json); the 'train' split is used.")
-@click.option("--version", default="v1.0-synth", show_default=True, help="Name of the table folder (the nuScenes 'version').")
+@version_option(help="Name of the table folder (the nuScenes 'version').")
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path),
               help="Output folder: last.pt (resumable), model.pt (weights for streamdet-export), metrics.jsonl, config.json. "
                    "New, empty, or a streamdet-train run's (--resume / --overwrite); never inside an input.")

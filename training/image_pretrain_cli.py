@@ -9,7 +9,7 @@ from pathlib import Path
 
 import click
 
-from streamdet.cli_utils import FiniteFloatRange, not_a_file
+from streamdet.cli_utils import FiniteFloatRange, not_a_file, version_option
 from streamdet.core.errors import first_line
 from streamdet.models.presets import preset_names
 from streamdet.training.cli import DEVICE_HELP, device_callback, refuse_out_over_inputs
@@ -27,7 +27,7 @@ def _check_stop_at_step(stop_at_step: int | None, steps: int) -> None:
 @click.command(context_settings={"help_option_names": ["-h", "--help"]})
 @click.option("--data", "data_dir", required=True, type=click.Path(file_okay=False, path_type=Path),
               help="Dataset root written by streamdet-synth (world version 2: images with .mask.npz beside them).")
-@click.option("--version", default="v1.0-synth", show_default=True, help="Name of the table folder.")
+@version_option(help="Name of the table folder.")
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path),
               help="Output folder: last.pt, encoder.pt, detector_init.pt, metrics.jsonl, result.json, config.json. New, "
                    "empty, or a streamdet-train-image run's (--resume / --overwrite); never inside an input.")
