@@ -21,13 +21,13 @@ from streamdet.cli_utils import (
     refuse_same_outputs,
     resolution_callback,
 )
+from streamdet.data.synth_staging import StagedDataset
 from streamdet.data.synth_stats import open_samples
 from streamdet.data.synth_world import WorldConfig
 from streamdet.data.synth_writer import (
     DEFAULT_VERSION,
     RootSurvey,
     SynthConfig,
-    generate_dataset,
     remove_dataset_entries,
     resolution_problem,
     survey_root,
@@ -95,6 +95,10 @@ def _check_out_dir(out_dir: Path, version: str, overwrite: bool) -> tuple[Path, 
         survey = survey_root(out_dir)
     except OSError as e:
         raise click.ClickException(f"--out {out_dir}: cannot list the folder: {e}") from None
+    if not survey.dataset and not survey.foreign:
+        # streamdet's training cache alone (what a failed --overwrite leaves: the old dataset deleted, the new one
+        # removed): as an empty folder; the cache stays, and checks its data fingerprint before any use
+        return ()
     if survey.marker_problem is not None:
         raise click.ClickException(
             f"--out {out_dir} is a non-empty folder that is not a streamdet-synth dataset ({survey.marker_problem}; "
@@ -158,31 +162,64 @@ def generate(out_dir: Path, scenes: int, seed: int, resolution: tuple[int, int],
         raise click.ClickException(str(e)) from None
     table_dir = out_dir / version
     replaced = _check_out_dir(out_dir, version, overwrite)
+    # Everything that needs no simulation is checked and made before any is run, and before --overwrite deletes
+    # anything: --out (and its parents) made, the staging folder beside it and its table folder. The dataset is
+    # written there and renamed into --out at the end: an error or Ctrl-C leaves --out as it was (StagedDataset).
+    try:
+        staged = StagedDataset(out_dir, config)
+    except OSError as e:
+        raise click.ClickException(f"cannot write the dataset under {out_dir}: {e}") from None
+    deleted = _listing(replaced)  # listed while they exist (folders marked)
     if replaced:
-        click.echo(f"replacing the streamdet-synth dataset in {out_dir}: deleting {_listing(replaced)}")
+        click.echo(f"replacing the streamdet-synth dataset in {out_dir}: deleting {deleted}")
         try:
             remove_dataset_entries(replaced)
-        except OSError as e:
-            raise click.ClickException(f"cannot delete the previous dataset in {out_dir}: {e}") from None
+        except BaseException as e:  # Ctrl-C too: the staging folder goes
+            staged.abandon()
+            if isinstance(e, OSError):
+                raise click.ClickException(f"cannot delete the previous dataset in {out_dir}: {e}") from None
+            raise
+    previews: list[Path] = []
+
+    def finish(root: Path) -> None:  # in the staging folder: the previews are part of what appears at once
+        if preview:
+            from streamdet.data.nuscenes import NuScenesReader
+            from streamdet.data.preview import write_previews
+
+            reader = NuScenesReader(root, version)
+            previews.extend(out_dir / p.relative_to(root) for p in write_previews(reader.get(0), root / "preview", n_slices=8))
+
     total = scenes * samples_per_scene
     try:
         with progressbar(length=total, label=f"simulating {scenes} scene(s)") as bar:
-            summary = generate_dataset(out_dir, config, progress=bar.update, workers=workers)
-    except OSError as e:
-        raise click.ClickException(f"cannot write the dataset under {out_dir}: {e}") from None
+            summary = staged.generate(progress=bar.update, workers=workers, finish=finish)
+    except (OSError, ValueError) as e:
+        raise click.ClickException(f"cannot write the dataset under {out_dir}: {e}; {_abandoned(out_dir, deleted, staged.left)}") from None
+    except KeyboardInterrupt:
+        click.echo(f"streamdet-synth: {_abandoned(out_dir, deleted, staged.left)}", err=True)
+        raise
     click.echo(
         f"wrote {len(summary.scenes)} scenes, {summary.num_samples} key frames, {summary.num_sweeps} LiDAR sweeps "
         f"(mean {summary.mean_points_per_sweep:.0f} points), {summary.num_images} images "
         f"({resolution[0]}x{resolution[1]}), {summary.num_annotations} box annotations in {summary.seconds:.1f} s"
     )
     click.echo(f"  tables: {table_dir}/  files: {out_dir / 'samples'}/, {out_dir / 'sweeps'}/  splits: {out_dir / 'splits.json'}")
-    if preview:
-        from streamdet.data.nuscenes import NuScenesReader
-        from streamdet.data.preview import write_previews
+    for path in previews:
+        click.echo(f"  preview: {path}")
 
-        reader = NuScenesReader(out_dir, version)
-        for path in write_previews(reader.get(0), out_dir / "preview", n_slices=8):
-            click.echo(f"  preview: {path}")
+
+def _abandoned(out_dir: Path, deleted: str, left: list[str]) -> str:
+    """What an abandoned run left: nothing of its own (else what); with --overwrite, no previous dataset either
+    (``deleted``: its entries, listed; "" without one)."""
+    if left:
+        text = f"could not remove all that this run had written: {'; '.join(left)}"
+    else:
+        text = f"removed what this run had written ({out_dir} is as it was before the run"
+        text += ", less the previous dataset)" if deleted else ")"
+    if deleted:
+        text += (f"; the previous dataset ({deleted}) was deleted before the run started, as --overwrite "
+                 "does: run again to write a new one")
+    return text
 
 
 @main.command("stats", context_settings={"help_option_names": ["-h", "--help"]})

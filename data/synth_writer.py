@@ -71,6 +71,7 @@ from streamdet.data.synth_world import (
     make_scene,
 )
 
+
 DEFAULT_VERSION = "v1.0-synth"
 MASK_SUFFIX = ".mask.npz"  # beside each image: per-pixel class and instance of the annotated objects
 LIDAR_CHANNEL = "LIDAR_TOP"
@@ -412,12 +413,17 @@ def generate_dataset(
         for s in range(config.num_scenes):
             results.append(_write_scene(out, config, s, progress))
     else:
-        with ProcessPoolExecutor(max_workers=min(workers, config.num_scenes)) as pool:
+        pool = ProcessPoolExecutor(max_workers=min(workers, config.num_scenes))
+        try:
             futures = [pool.submit(_write_scene, out, config, s, None) for s in range(config.num_scenes)]
             for future in as_completed(futures):
                 if progress is not None:
                     progress(future.result().num_samples)
             results = [f.result() for f in futures]  # scene order, whatever order they finished in
+        finally:
+            # after an error or Ctrl-C the scenes not started are cancelled (a plain `with` waited for every one of
+            # them), and the running ones end before this returns: a caller removing the folder races no worker
+            pool.shutdown(wait=True, cancel_futures=True)
     for result in results:
         for name, scene_rows in result.rows.items():
             rows[name].extend(scene_rows)

@@ -103,17 +103,30 @@ def load_drive(
     progress(f"[{scene_name}] reading {len(lidar)} LiDAR sweeps")
     sweeps = []
     timed = 0
+    bad_points = bad_times = 0
     for i, sd in enumerate(lidar):
         path = tables.file(sd)
         points = load_points(path)
         times = load_point_times(path, len(points))
+        # Non-finite points and times are kept as they are read (streamdet-eval reads the same files): the slices
+        # hand the points to the detector, which drops and counts them, and the release schedule and the camera
+        # triggers leave them out of their timing (LidarSweep.timing_rows, schedule.slice_sweep).
+        bad_points += int(len(points) - np.count_nonzero(np.isfinite(points).all(axis=1)))
         if times is not None:
             timed += 1
-            times = np.clip(times.astype(np.float64), 0.0, period_s)  # a sweep recorded at another rate keeps its order
+            times = times.astype(np.float64)
+            finite = np.isfinite(times)
+            bad_times += int(len(times) - np.count_nonzero(finite))
+            # a sweep recorded at another rate keeps its order; an inf time stays unknown (NaN), not a clipped end
+            times = np.where(finite, np.clip(times, 0.0, period_s), np.nan)
         lidar2ego, ego2global = tables.pose(sd)
         sweeps.append(LidarSweep(i, (int(sd["timestamp"]) - t0_us) * 1e-6, period_s, points, times, lidar2ego, ego2global, sd["token"]))
     end_s = sweeps[-1].end_s
     notes = [_lidar_note(lidar, lidar_hz, timed)]
+    if bad_points or bad_times:
+        notes.append(f"LiDAR of {scene_name}: {bad_points} point(s) with a NaN / inf value (the detector drops and counts "
+                     f"them; one without an azimuth is in no slice, as in streamdet-eval), {bad_times} non-finite "
+                     f"per-point time(s); neither times a slice release or a camera trigger")  # fmt: skip
     image_sets: list[ImageSet] = []
     rig = None
     if image_size is not None:
@@ -121,7 +134,9 @@ def load_drive(
         channels = [c for c in CAMERA_CHANNELS if tables.channel_data(scene, c)]
         if camera_trigger == "lidar-synced":
             axes = camera_axis_azimuths_deg(rig)
-            triggers = lidar_synced_triggers(sweeps, {c: axes[c] for c in channels if c in axes}, camera_hz, start_deg)
+            # each sweep's finite points alone: a NaN time would make a crossing (a trigger) NaN
+            timing = [s.for_timing() for s in sweeps]
+            triggers = lidar_synced_triggers(timing, {c: axes[c] for c in channels if c in axes}, camera_hz, start_deg)
         else:
             triggers = simultaneous_triggers(end_s, camera_hz, channels)
         image_sets, note = _image_sets(tables, scene, t0_us, triggers, camera_hz, camera_trigger, image_size, progress)

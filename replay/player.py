@@ -181,7 +181,7 @@ def play(
     phase_lock = getattr(mode.runner, "phase_lock", None)  # what a phase-locked image lane did
     _newest_images_by_scan_start(drive, records, getattr(detector, "quadrant_cameras", None), config.start_deg, delivery_s)
     if book.errors:
-        raise RuntimeError(f"{config.mode} replay of {drive.name} failed: {book.errors[0]!r}") from book.errors[0]
+        _raise_failure(f"{config.mode} replay of {drive.name}", book.errors[0])
     slices = tuple(r for r in records if isinstance(r, SliceRecord))
     images = tuple(r for r in records if isinstance(r, ImageRecord))
     times = [r.release_s for r in records] + [r.emit_s for r in records if math.isfinite(r.emit_s)]
@@ -223,6 +223,23 @@ def _newest_images_by_scan_start(
                 if i >= 0:
                     newest.append(float(times[name][i]))
             rec.newest_capture_s = min(newest) if newest else math.nan
+
+
+class ReplayInputError(ValueError, RuntimeError):
+    """A replay stopped by its input (a ValueError or OSError inside the detector or the player: bad data, a file
+    that cannot be read). A ValueError, so that the tools report the cause in one line as they do any input error,
+    and a RuntimeError, as every failed replay was before, for callers that catch that."""
+
+
+def _raise_failure(where: str, error: BaseException) -> None:
+    """Raise the first error of a replay, named after ``where``: bad input as a `ReplayInputError` whose message is
+    the cause's own (one line for the user), anything else as a RuntimeError chained to it (a bug: its traceback is
+    what a report needs)."""
+    if not isinstance(error, Exception):  # KeyboardInterrupt, SystemExit: as they are
+        raise error
+    if isinstance(error, (ValueError, OSError)):
+        raise ReplayInputError(f"{where}: {error}") from error
+    raise RuntimeError(f"{where} failed: {error!r}") from error
 
 
 class _Hooks:

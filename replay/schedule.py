@@ -62,14 +62,30 @@ def check_time_scale(value: float, name: str = "time scale") -> float:
 
 
 def slice_sweep(sweep: LidarSweep, num_slices: int, start_deg: float = 0.0) -> list[TimedSlice]:
-    """The sweep's slices in scan order with their release times."""
+    """The sweep's slices in scan order with their release times.
+
+    Non-finite points (a NaN / inf coordinate, intensity or per-point time) are handled as streamdet-eval handles
+    them, so that the replay's offline and streaming scores stay comparable with eval's on the same files: a point
+    with a finite azimuth goes into its slice like any other, and the detector drops and counts it
+    (``SliceResult.num_nonfinite_dropped``); a point whose x or y is NaN has no azimuth, hence no slice, and is in
+    none (eval's ``split_sweep`` leaves it out too). None of them times a release (`LidarSweep.timing_rows`): a
+    slice whose points all lack a finite time is released when the sensor leaves its sector, as an empty one is.
+    A NaN time is no firing time, and a clipped inf would release its slice at the rotation's end.
+    """
     period = sweep.duration_s
-    slices = split_sweep(sweep.points, num_slices, start_deg, sweep_duration_s=period)
+    points = np.asarray(sweep.points)
+    no_azimuth = np.isnan(points[:, 0]) | np.isnan(points[:, 1])
+    # left out here rather than by split_sweep's cast of a NaN slice index (INT64_MIN on x86, 0 elsewhere)
+    slices = split_sweep(points[~no_azimuth] if no_azimuth.any() else points, num_slices, start_deg, sweep_duration_s=period)
+    timed = sweep.timing_rows()
+    every = bool(timed.all())
+    pts = points if every else points[timed]
     if sweep.point_time_s is not None:
         times = np.asarray(sweep.point_time_s, dtype=np.float64)
+        times = times if every else times[timed]
     else:
-        times = relative_time_s(sweep.points, start_deg, period)
-    k_of_point = slice_index_of(sweep.points[:, 0], sweep.points[:, 1], num_slices, start_deg)
+        times = relative_time_s(pts, start_deg, period)
+    k_of_point = slice_index_of(pts[:, 0], pts[:, 1], num_slices, start_deg)
     latest = np.full(num_slices, -np.inf)
     np.maximum.at(latest, k_of_point, times)
     sector_end = period * (np.arange(num_slices) + 1) / num_slices  # where the sensor leaves each sector

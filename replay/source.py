@@ -48,6 +48,27 @@ class LidarSweep:
     def start_s(self) -> float:
         return self.end_s - self.duration_s
 
+    def timing_rows(self) -> np.ndarray:
+        """(N,) bool: the points that may time a slice release or a camera trigger: every column finite and, where
+        the sweep has per-point times, a finite time. The others (a NaN / inf coordinate, intensity or time: a
+        corrupted file, a non-dense cloud) still reach the detector in their slice, which drops and counts them
+        (``SliceResult.num_nonfinite_dropped``) as it does in streamdet-eval; only the replay's timing ignores them."""
+        pts = np.asarray(self.points)
+        ok = np.isfinite(pts).all(axis=1)
+        if self.point_time_s is not None:
+            ok &= np.isfinite(np.asarray(self.point_time_s, dtype=np.float64))
+        return ok
+
+    def for_timing(self) -> LidarSweep:
+        """This sweep with only its `timing_rows` (itself where every row is one): what a timing model that reads
+        the points (``triggers.crossing_phase_s``) must be given."""
+        ok = self.timing_rows()
+        if ok.all():
+            return self
+        times = None if self.point_time_s is None else np.asarray(self.point_time_s)[ok]
+        return LidarSweep(self.index, self.end_s, self.duration_s, np.asarray(self.points)[ok], times, self.lidar2ego,
+                          self.ego2global, self.token)  # fmt: skip
+
 
 @dataclass(frozen=True, eq=False)
 class ImageSet:
