@@ -32,7 +32,7 @@ from streamdet.cli_utils import (
     dataset_inputs,
 )
 from streamdet.replay.modes import MODES
-from streamdet.replay.schedule import MAX_DELIVERY_S, MAX_RATE_HZ, MAX_TIME_SCALE
+from streamdet.replay.schedule import MAX_DELIVERY_S, MAX_RATE_HZ, MAX_TIME_SCALE, MIN_RATE_HZ, MIN_TIME_SCALE
 from streamdet.replay.triggers import DEFAULT_TRIGGER, TRIGGER_MODELS
 
 
@@ -133,14 +133,14 @@ def _progress(message: str) -> None:
               help="Precision of the slice graph.")
 @image_precision_option()
 @providers_option()
-@click.option("--lidar-hz", type=FiniteFloatRange(0, MAX_RATE_HZ, min_open=True), default=20.0, show_default=True,
-              help=f"LiDAR rotations per second (the rotation period the slices are released over); 0 < Hz <= {MAX_RATE_HZ:.0f}.")
+@click.option("--lidar-hz", type=FiniteFloatRange(MIN_RATE_HZ, MAX_RATE_HZ), default=20.0, show_default=True,
+              help=f"LiDAR rotations per second (the rotation period the slices are released over); {MIN_RATE_HZ:g}..{MAX_RATE_HZ:.0f} Hz.")
 @click.option("--slices", "num_slices", type=click.IntRange(1, MAX_SLICES), default=None,
               help=f"Slices per rotation in streaming and sequential modes (1, 2 or a multiple of 4 up to {MAX_SLICES}). "
                    "Default: the export's.")
-@click.option("--camera-hz", type=FiniteFloatRange(0, MAX_RATE_HZ, min_open=True), default=12.0, show_default=True,
+@click.option("--camera-hz", type=FiniteFloatRange(MIN_RATE_HZ, MAX_RATE_HZ), default=12.0, show_default=True,
               help=f"Camera trigger rate; each trigger delivers the newest recorded image of every camera; "
-                   f"0 < Hz <= {MAX_RATE_HZ:.0f}.")
+                   f"{MIN_RATE_HZ:g}..{MAX_RATE_HZ:.0f} Hz.")
 @click.option("--camera-trigger", type=click.Choice(TRIGGER_MODELS), default=DEFAULT_TRIGGER, show_default=True,
               help="How the cameras fire: 'lidar-synced' (nuScenes: each camera as the LiDAR crosses its optical axis, "
                    "at --camera-hz on average) or 'simultaneous' (all cameras at once at --camera-hz).")
@@ -155,8 +155,8 @@ def _progress(message: str) -> None:
 @camera_timeout_option()
 @click.option("--mode", type=click.Choice([*MODES, "all"]), default="all", show_default=True,
               help="streaming (two lanes), full-sweep (wait for the rotation), sequential (one queue), or all three.")
-@click.option("--time-scale", type=FiniteFloatRange(0, MAX_TIME_SCALE, min_open=True), default=1.0, show_default=True,
-              help=f"Wall seconds per drive second (0 < scale <= {MAX_TIME_SCALE:.0f}): 2 plays twice as slowly, what a 2x "
+@click.option("--time-scale", type=FiniteFloatRange(MIN_TIME_SCALE, MAX_TIME_SCALE), default=1.0, show_default=True,
+              help=f"Wall seconds per drive second ({MIN_TIME_SCALE:g}..{MAX_TIME_SCALE:.0f}): 2 plays twice as slowly, what a 2x "
                    "faster computer would see. Latencies are reported in drive time.")
 @click.option("--max-seconds", type=FiniteFloatRange(0, MAX_SECONDS, min_open=True), default=None,
               help=f"Play only the first seconds of each scene (0 < s <= {MAX_SECONDS:.0f}).")

@@ -25,7 +25,7 @@ from streamdet.replay.nuscenes_source import DatasetTables, load_drive
 from streamdet.replay.outages import CameraOutage, apply_outages, check_outage_cameras
 from streamdet.replay.player import PlayerConfig, play
 from streamdet.replay.record import Recording
-from streamdet.replay.schedule import MAX_RATE_HZ, check_delivery, check_time_scale, slice_sweep
+from streamdet.replay.schedule import check_delivery, check_rate, check_time_scale, slice_sweep
 from streamdet.replay.source import Drive
 from streamdet.replay.triggers import DEFAULT_TRIGGER, check_trigger
 from streamdet.replay.truth import load_ground_truth
@@ -73,9 +73,7 @@ class ReplayConfig:
         if unknown or not self.modes:
             raise ValueError(f"modes must be a non-empty subset of {MODES}, got {list(self.modes)}")
         for name in ("lidar_hz", "camera_hz"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not (isinstance(v, (int, float)) and 0 < v <= MAX_RATE_HZ):
-                raise ValueError(f"ReplayConfig.{name} must be a rate in (0, {MAX_RATE_HZ:g}] Hz, got {v!r}")
+            check_rate(getattr(self, name), f"ReplayConfig.{name}")
         check_time_scale(self.time_scale, "ReplayConfig.time_scale")
         check_trigger(self.camera_trigger)
         check_delivery(self.camera_delivery_ms, "ReplayConfig.camera_delivery_ms", "ms")

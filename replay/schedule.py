@@ -41,9 +41,18 @@ class Release:
 
 # Bounds of the replay's rates and times, for the library and its CLI alike: far past any real rig, short of a value
 # that allocates gigabytes of triggers or overflows a clock.
+MIN_RATE_HZ = 0.1  # a rotation or trigger every 10 s (1e-300 Hz asked numpy for an array of 1e300 trigger times)
 MAX_RATE_HZ = 1000.0  # LiDAR rotations or camera triggers per second
 MAX_DELIVERY_S = 10.0  # a camera frame 10 s late is no camera
+MIN_TIME_SCALE = 0.01  # a drive second played in 10 wall ms (1e-300 reported latencies of 1e296 ms as a result)
 MAX_TIME_SCALE = 1000.0  # a drive second played over 1000 wall seconds
+
+
+def check_rate(value: float, name: str) -> float:
+    """LiDAR rotations or camera triggers per second (``name``): a number in MIN_RATE_HZ..MAX_RATE_HZ."""
+    if isinstance(value, bool) or not (isinstance(value, (int, float)) and MIN_RATE_HZ <= value <= MAX_RATE_HZ):
+        raise ValueError(f"{name} must be a rate in {MIN_RATE_HZ:g}..{MAX_RATE_HZ:g} Hz, got {value!r}")
+    return float(value)
 
 
 def check_delivery(value: float, name: str = "camera delivery delay", unit: str = "seconds") -> float:
@@ -55,9 +64,9 @@ def check_delivery(value: float, name: str = "camera delivery delay", unit: str 
 
 
 def check_time_scale(value: float, name: str = "time scale") -> float:
-    """Wall seconds per drive second: a number in (0, MAX_TIME_SCALE]."""
-    if isinstance(value, bool) or not (isinstance(value, (int, float)) and 0 < value <= MAX_TIME_SCALE):
-        raise ValueError(f"{name} must be a number in (0, {MAX_TIME_SCALE:g}], got {value!r}")
+    """Wall seconds per drive second: a number in MIN_TIME_SCALE..MAX_TIME_SCALE."""
+    if isinstance(value, bool) or not (isinstance(value, (int, float)) and MIN_TIME_SCALE <= value <= MAX_TIME_SCALE):
+        raise ValueError(f"{name} must be a number in {MIN_TIME_SCALE:g}..{MAX_TIME_SCALE:g}, got {value!r}")
     return float(value)
 
 

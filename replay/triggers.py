@@ -24,7 +24,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from streamdet.core.sectors import azimuth_deg
-from streamdet.replay.schedule import MAX_RATE_HZ
+from streamdet.replay.schedule import check_rate
 from streamdet.replay.source import LidarSweep
 
 TRIGGER_MODELS: tuple[str, ...] = ("simultaneous", "lidar-synced")
@@ -85,5 +85,4 @@ def lidar_synced_triggers(
 
 
 def _check_rate(camera_hz: float) -> None:
-    if isinstance(camera_hz, bool) or not (isinstance(camera_hz, (int, float)) and 0 < camera_hz <= MAX_RATE_HZ):
-        raise ValueError(f"camera_hz must be a rate in (0, {MAX_RATE_HZ:g}] Hz, got {camera_hz!r}")
+    check_rate(camera_hz, "camera_hz")

@@ -84,10 +84,12 @@ def _replay_args(tmp_path) -> list[str]:
 @pytest.mark.parametrize(
     "option, value, bound",
     [
-        ("--camera-hz", "1e9", "0<x<=1000"),
-        ("--lidar-hz", "1e9", "0<x<=1000"),
-        ("--time-scale", HUGE_FLOAT, "0<x<=1000"),
-        ("--time-scale", "1e6", "0<x<=1000"),
+        ("--camera-hz", "1e9", "0.1<=x<=1000"),
+        ("--lidar-hz", "1e9", "0.1<=x<=1000"),
+        ("--lidar-hz", "1e-300", "0.1<=x<=1000"),  # asked numpy for 1e300 trigger times
+        ("--time-scale", HUGE_FLOAT, "0.01<=x<=1000"),
+        ("--time-scale", "1e6", "0.01<=x<=1000"),
+        ("--time-scale", "1e-300", "0.01<=x<=1000"),  # reported latencies of 1e296 ms
         ("--camera-delivery-ms", HUGE_FLOAT, "0<=x<=10000"),
         ("--max-seconds", HUGE_FLOAT, "0<x<=86400"),
         ("--scenes", HUGE_INT, "1<=x<=10000"),

@@ -193,12 +193,14 @@ def test_bad_config_is_refused():
 @pytest.mark.parametrize(
     "make, match",
     [
-        (lambda: PlayerConfig(time_scale=1e300), r"PlayerConfig.time_scale must be a number in \(0, 1000\]"),
+        (lambda: PlayerConfig(time_scale=1e300), r"PlayerConfig.time_scale must be a number in 0.01..1000"),
+        (lambda: PlayerConfig(time_scale=1e-300), r"PlayerConfig.time_scale must be a number in 0.01..1000"),
         (lambda: PlayerConfig(time_scale=float("nan")), "PlayerConfig.time_scale"),
         (lambda: PlayerConfig(time_scale=True), "PlayerConfig.time_scale"),
         (lambda: PlayerConfig(camera_delivery_ms=1e300), r"camera_delivery_ms must be a number of ms in 0..10000"),
         (lambda: PlayerConfig(camera_delivery_ms=-1.0), "camera_delivery_ms"),
-        (lambda: simultaneous_triggers(1.0, 1e9, ["CAM_FRONT"]), r"camera_hz must be a rate in \(0, 1000\] Hz"),
+        (lambda: simultaneous_triggers(1.0, 1e9, ["CAM_FRONT"]), r"camera_hz must be a rate in 0.1..1000 Hz"),
+        (lambda: simultaneous_triggers(1.0, 1e-300, ["CAM_FRONT"]), r"camera_hz must be a rate in 0.1..1000 Hz"),
         (lambda: simultaneous_triggers(1.0, float("inf"), ["CAM_FRONT"]), "camera_hz"),
     ],
 )
@@ -208,6 +210,7 @@ def test_the_library_bounds_what_the_cli_bounds(make, match):
     with pytest.raises(ValueError, match=match):
         make()
     PlayerConfig(time_scale=1000.0, camera_delivery_ms=10_000.0)  # the bounds themselves are accepted
+    PlayerConfig(time_scale=0.01)
 
 
 def test_a_failing_detector_fails_the_replay_with_its_error():
