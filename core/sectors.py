@@ -79,11 +79,14 @@ def sector_bounds_deg(k: int, n: int, start_deg: float = 0.0) -> tuple[float, fl
 
 
 def slice_index_of(x: np.ndarray, y: np.ndarray, n: int, start_deg: float = 0.0) -> np.ndarray:
-    """Slice index (int64, 0..n-1) of each point by azimuth, in scan order from start_deg."""
+    """Slice index (int64, 0..n-1) of each point by azimuth, in scan order from start_deg; -1 where x or y is NaN
+    (no azimuth: in no slice). Casting the NaN gave INT64_MIN on x86 and 0 elsewhere, with a warning."""
     check_num_slices(n, start_deg)
     rel = np.mod(azimuth_deg(x, y) - start_deg, 360.0)
-    k = np.floor(rel / (360.0 / n)).astype(np.int64)
-    return np.minimum(k, n - 1)  # rel can round up to exactly 360 in float
+    no_azimuth = np.isnan(rel)
+    k = np.floor(np.where(no_azimuth, 0.0, rel) / (360.0 / n)).astype(np.int64)
+    k = np.minimum(k, n - 1)  # rel can round up to exactly 360 in float
+    return np.where(no_azimuth, -1, k) if no_azimuth.any() else k
 
 
 def quadrants_of_sector(k: int, n: int, start_deg: float = 0.0) -> tuple[int, ...]:

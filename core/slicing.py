@@ -45,7 +45,8 @@ def split_sweep(
 
     ``time_lag_s`` (scalar or (N,)) is added to each point's relative time: the age of the point's sweep for
     points of past sweeps (nuScenes multi-sweep input), 0 for the current sweep. Within a slice the points keep
-    their input order.
+    their input order. A point whose x or y is NaN has no azimuth and is in no slice (``slice_index_of``: -1); one
+    with another non-finite value goes into its slice, where the detector drops and counts it.
     """
     check_num_slices(n, start_deg)
     points = _check_points(points, "points")
@@ -60,7 +61,8 @@ def split_sweep(
     out[:, SLICE_TIME] = relative_time_s(points, start_deg, sweep_duration_s) + lag
     k = slice_index_of(points[:, 0], points[:, 1], n, start_deg)
     out[:, SLICE_INDEX] = k
-    # A stable sort by slice keeps the input order inside each slice and costs one pass.
+    # A stable sort by slice keeps the input order inside each slice and costs one pass; -1 (no azimuth) sorts
+    # before slice 0's bound and is in no slice.
     order = np.argsort(k, kind="stable")
     bounds = np.searchsorted(k[order], np.arange(n + 1))
     return [out[order[bounds[i] : bounds[i + 1]]] for i in range(n)]

@@ -163,3 +163,31 @@ def test_slice_sample_on_the_real_sample():
     assert covered.all()
     # the front camera (lidar +y) sees the slices around azimuth 90 deg
     assert "CAM_FRONT" in slices[2].camera_names and "CAM_BACK" in slices[6].camera_names
+
+
+@pytest.mark.parametrize("n", [1, 2, 8, 32])
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_point_without_azimuth_is_in_no_slice_on_every_platform(n, seed):
+    """x or y NaN: the slice index was a float-to-int cast of NaN (INT64_MIN on x86, 0 on ARM, with a warning);
+    now -1, and split_sweep leaves the point out as eval always did on x86. Other non-finite values keep their slice."""
+    import warnings
+
+    from streamdet.core.sectors import slice_index_of
+
+    rng = np.random.default_rng(seed)
+    pts = np.zeros((40, 5), np.float32)
+    pts[:, :3] = rng.uniform(-30, 30, (40, 3))
+    pts[:, 3] = rng.uniform(0, 255, 40)
+    pts[3, 0] = np.nan
+    pts[7, 1] = np.nan
+    pts[11, 2] = np.nan  # z only: it has an azimuth
+    pts[13, 0] = np.inf
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no "invalid value encountered in cast"
+        k = slice_index_of(pts[:, 0], pts[:, 1], n)
+        slices = split_sweep(pts, n)
+    assert k[3] == k[7] == -1 and ((k >= 0) & (k < n)).sum() == 38
+    naive = [[i for i in range(40) if k[i] == j] for j in range(n)]  # the reference: by index, input order
+    for j, s in enumerate(slices):
+        np.testing.assert_array_equal(s[:, :3], pts[naive[j], :3])
+    assert sum(len(s) for s in slices) == 38
