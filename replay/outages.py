@@ -65,10 +65,18 @@ def apply_outages(drive: Drive, outages: Sequence[CameraOutage]) -> Drive:
     if not outages:
         return drive
     sets = []
+    removed = [0] * len(outages)  # frames each outage took out
     for image_set in drive.image_sets:
-        out = {o.camera for o in outages if o.start_s <= image_set.capture_s < o.end_s}
+        hits = [i for i, o in enumerate(outages) if o.start_s <= image_set.capture_s < o.end_s and o.camera in image_set.images]
+        for i in hits:
+            removed[i] += 1
+        out = {outages[i].camera for i in hits}
         images = {name: image for name, image in image_set.images.items() if name not in out}
         if images:
             sets.append(image_set if len(images) == len(image_set.images) else dataclasses.replace(image_set, images=images))
-    note = "camera outages: " + ", ".join(str(o) for o in outages)
+    # an outage that took out nothing (past the drive's end, or over a stretch without frames) is said, not silent
+    last = max((image_set.capture_s for image_set in drive.image_sets), default=0.0)
+    parts = [f"{o} ({n} frames)" if n else f"{o} (no frame in it; the drive's images end at {last:.2f} s)"
+             for o, n in zip(outages, removed)]  # fmt: skip
+    note = "camera outages: " + ", ".join(parts)
     return dataclasses.replace(drive, image_sets=tuple(sets), notes=(*drive.notes, note))

@@ -52,6 +52,16 @@ def test_outages_remove_exactly_the_frames_in_their_windows(seed):
     assert out.notes[-1].startswith("camera outages: ") and apply_outages(drive, []) is drive
 
 
+def test_an_outage_that_takes_out_nothing_is_said():
+    drive = synthetic_drive(0.5, image_size=(8, 4))
+    cam = list(drive.image_sets[0].images)[0]
+    out = apply_outages(drive, [CameraOutage(cam, 100.0, 200.0), CameraOutage(cam, 0.0)])
+    n = sum(cam in s.images for s in drive.image_sets)
+    last = max(s.capture_s for s in drive.image_sets)
+    assert out.notes[-1] == (f"camera outages: {cam}@100-200 (no frame in it; the drive's images end at {last:.2f} s), "
+                             f"{cam}@0- ({n} frames)")  # fmt: skip
+
+
 def test_an_outage_of_an_unknown_camera_is_refused():
     with pytest.raises(ValueError, match=r"--camera-outage names \['CAM_X'\]"):
         check_outage_cameras([CameraOutage("CAM_X", 0.0)], ("CAM_FRONT", "CAM_BACK"))
