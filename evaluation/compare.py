@@ -138,7 +138,8 @@ def load_run(run: Path, gt_path: Path | None = None) -> Run:
         results, gt_file = run / "results.json", gt_path or run / "gt.json"
         for f in (results, gt_file):
             if not f.is_file():
-                raise ValueError(f"{run} is not a run saved by streamdet-eval --save-results: {f.name} is missing")
+                what = "is not a regular file (a FIFO, a device or a folder?)" if f.exists() else "is missing"
+                raise ValueError(f"{run} is not a run saved by streamdet-eval --save-results: {f.name} {what}")
         info_path = run / SAMPLES_FILE
         if info_path.exists() and not info_path.is_file():  # a FIFO or a folder: another run's file must not stand in
             raise ValueError(f"{info_path} is not a regular file (a FIFO, a device or a folder?)")
@@ -147,6 +148,8 @@ def load_run(run: Path, gt_path: Path | None = None) -> Run:
         if gt_path is None:
             raise ValueError(f"{run} is a results file: give the ground truth with --gt")
         results, gt_file, info = run, gt_path, None
+    elif run.exists():
+        raise ValueError(f"{run} is neither a saved run's folder nor a results file (a FIFO or a device?)")
     else:
         raise ValueError(f"{run} does not exist")
     gt, pred = load_gt_and_predictions(gt_file, results)

@@ -295,3 +295,21 @@ def test_cli_compare_no_subsets_keeps_the_headline_only(tmp_path):
     full_doc, head_doc = json.loads(full.read_text()), json.loads(head.read_text())
     assert set(head_doc["subsets"]) == {"all"} and len(full_doc["subsets"]) > 1
     assert head_doc["subsets"]["all"] == full_doc["subsets"]["all"]  # the same draws for the headline
+
+
+def test_a_run_whose_files_are_no_regular_files_says_so(tmp_path):
+    """A FIFO or a folder where results.json goes was reported "missing", a FIFO run "does not exist"."""
+    import os
+
+    from streamdet.evaluation.compare import load_run
+
+    run = tmp_path / "run"
+    (run / "results.json").mkdir(parents=True)
+    (run / "gt.json").write_text("{}")
+    with pytest.raises(ValueError, match="results.json is not a regular file"):
+        load_run(run)
+    os.mkfifo(tmp_path / "fifo.json")
+    with pytest.raises(ValueError, match="neither a saved run's folder nor a results file"):
+        load_run(tmp_path / "fifo.json", tmp_path / "gt.json")
+    with pytest.raises(ValueError, match="does not exist"):
+        load_run(tmp_path / "absent")
