@@ -31,9 +31,12 @@ def split_scenes(root: str | Path, split: str) -> tuple[str, ...]:
             raise ValueError(f"{path} is not a regular file (a FIFO, a device or a folder?); it must name the scenes of split {split!r}")
         raise SplitsFileMissing(f"{path} not found; it must name the scenes of split {split!r}")
     splits = read_json(path, "splits file", MAX_SPLITS_BYTES)
-    if not isinstance(splits, dict) or not isinstance(splits.get(split), list):
-        have = sorted(splits)[:20] if isinstance(splits, dict) else type(splits).__name__
-        raise ValueError(f"{path} has no list of scenes for split {split!r}; it has {have}")
+    if not isinstance(splits, dict):
+        raise ValueError(f"{path} must map split names to lists of scene names, got a JSON {type(splits).__name__}")
+    if split not in splits:
+        raise ValueError(f"{path} has no split {split!r}; it has {sorted(splits)[:20]}")
+    if not isinstance(splits[split], list):
+        raise ValueError(f"{path}: split {split!r} must be a list of scene names, got {short_repr(splits[split])}")
     scenes = splits[split]
     bad = next((s for s in scenes if type(s) is not str), None)
     if bad is not None:
@@ -58,5 +61,8 @@ def split_sample_tokens(reader: NuScenesReader, root: str | Path, split: str | N
     scenes = set(split_scenes(root, split))
     chosen = [t for t in tokens if reader.scene_name(t) in scenes]
     if not chosen:
-        raise ValueError(f"split {split!r} of {root} holds no samples")
+        known = {reader.scene_name(t) for t in tokens}
+        unknown = sorted(scenes - known)[:5]
+        why = f": its scenes {unknown} are not in the tables" if unknown else ""
+        raise ValueError(f"split {split!r} of {root} holds no samples{why}")
     return chosen

@@ -131,14 +131,17 @@ class ReplayResult:
 def split_scenes(tables: DatasetTables, split: str | None, count: int | None) -> list[str]:
     """Scene names of ``split`` (``splits.json`` beside the tables), the first ``count`` of them."""
     names = tables.scene_names()
+    unknown: list[str] = []
     if split is not None:
         try:
             chosen = set(data_split_scenes(tables.root, split))
         except SplitsFileMissing as e:
             raise ValueError(f"{e} (or pass --split all)") from None
+        unknown = sorted(chosen - set(names))[:5]
         names = [n for n in names if n in chosen]
     if not names:
-        raise ValueError(f"split {split!r} of {tables.root} holds no scene")
+        why = f": its scenes {unknown} are not in the tables" if unknown else ""
+        raise ValueError(f"split {split!r} of {tables.root} holds no scene{why}")
     return names[:count] if count else names
 
 

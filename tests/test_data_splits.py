@@ -27,9 +27,9 @@ def test_split_tokens_follow_the_scenes(tiny_synth_data):
     [
         (None, "splits.json not found; it must name the scenes of split 'val'"),
         ("{not json", "Expecting property name"),
-        ('["val"]', "has no list of scenes for split 'val'; it has list"),
-        ('{"val": "scene-0"}', r"has no list of scenes for split 'val'; it has \['val'\]"),
-        ('{"train": []}', r"has no list of scenes for split 'val'; it has \['train'\]"),
+        ('["val"]', "must map split names to lists of scene names, got a JSON list"),
+        ('{"val": "scene-0"}', r"split 'val' must be a list of scene names, got 'scene-0'"),
+        ('{"train": []}', r"has no split 'val'; it has \['train'\]"),
         ('{"val": ["scene-0", 7]}', r"split 'val' must list scene names \(strings\), got 7"),
         ('{"val": [{"name": "scene-0"}]}', r"must list scene names \(strings\), got \{'name'"),
         ('{"val": [1' + "0" * 5000 + "]}", "splits file .*splits.json is not valid JSON"),
@@ -59,3 +59,15 @@ def test_a_split_without_samples_is_refused(tiny_synth_data, tmp_path):
     (root / "splits.json").write_text(json.dumps({"val": ["no-such-scene"]}))
     with pytest.raises(ValueError, match="split 'val' of .* holds no samples"):
         split_sample_tokens(NuScenesReader(root, "v1.0-synth"), root, "val")
+
+
+def test_a_split_of_unknown_scenes_names_them(tmp_path):
+    """A typo in a scene name left "holds no samples" with nothing to go on."""
+    import json as _json
+
+    from streamdet.data.splits import split_sample_tokens
+
+    (tmp_path / "splits.json").write_text(_json.dumps({"val": ["synth-0-000"]}))
+    reader = type("Reader", (), {"sample_tokens": ["t0"], "scene_name": lambda self, t: "synth-0-0000"})()  # NuScenesReader's two reads
+    with pytest.raises(ValueError, match=r"holds no samples: its scenes \['synth-0-000'\] are not in the tables"):
+        split_sample_tokens(reader, tmp_path, "val")

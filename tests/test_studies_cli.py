@@ -155,7 +155,7 @@ def test_resolution_rows(export_dir, data_dir, tmp_path):
         (["calib-noise", "--level", "1"], "DEG,CM"),
         (["calib-noise", "--level", "1,-5"], "translation"),
         (["resolution", "--resolution", "800by450"], "WIDTHxHEIGHT"),
-        (["slices", "--split", "nope"], "no list of scenes for split 'nope'"),
+        (["slices", "--split", "nope"], "has no split 'nope'"),
         (["slices", "--split", "val"], "holds no samples"),
         (["drop-camera", "--precision", "fp16"], "no fp16 graphs"),
         (["drop-camera", "--image-precision", "int8"], "no int8 graphs"),
