@@ -55,7 +55,10 @@ def start_worker(target, name: str, nice: int = 0) -> threading.Thread:
         target()
 
     thread = threading.Thread(target=run, name=name, daemon=True)
-    thread.start()
+    try:
+        thread.start()
+    except RuntimeError as e:  # "can't start new thread": a memory, pids or stack limit; an OSError, as the nice one
+        raise OSError(f"{name}: could not start the thread ({e}): fewer workers, or a higher memory / pids limit") from e
     ready.wait()
     if failed:
         raise OSError(f"{name}: could not add {nice} to the thread's nice value: {failed[0]}") from failed[0]

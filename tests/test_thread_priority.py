@@ -141,3 +141,15 @@ def test_the_runner_says_when_the_nice_value_misses_onnxruntimes_pool_threads(th
     assert len(said) == int(warned)
     if warned:
         assert f"image_lane_threads={threads}" in str(said[0].message) and said[0].filename == __file__
+
+
+def test_a_thread_that_cannot_start_is_an_os_error_naming_it(monkeypatch):
+    """--slice-workers 1024 under a memory limit: "can't start new thread" was a RuntimeError traceback."""
+    import threading
+
+    def refuse(self):
+        raise RuntimeError("can't start new thread")
+
+    monkeypatch.setattr(threading.Thread, "start", refuse)
+    with pytest.raises(OSError, match="slice-worker-900: could not start the thread .* fewer workers"):
+        start_worker(lambda: None, "slice-worker-900")
