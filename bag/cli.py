@@ -143,6 +143,9 @@ def run_cmd(bag_path: Path, export_dir: Path, out: Path, results_json: Path | No
         f"({summary.precision}, {', '.join(summary.providers)}, cameras {list(summary.cameras) or 'none'}): "
         f"{summary.num_detections} detections"
     )
+    if summary.input_dropped:  # the input is itself a run's output: its detections are not mixed with these
+        click.echo("not copied from the input (this run writes these topics): "
+                   + ", ".join(f"{n} messages on {topic}" for topic, n in summary.input_dropped.items()))
     if fallback_export_dir is not None:
         click.echo(f"{summary.num_fallback_slices} of {summary.num_slices} slices ran the LiDAR-only fallback "
                    f"({fallback_export_dir}): no image BEV for their quadrants"

@@ -22,6 +22,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Callable
 
 import numpy as np
@@ -35,7 +36,7 @@ from streamdet.core.slicing import relative_time_s
 from streamdet.data.sample import read_image_bytes
 from streamdet.runtime_ort.ros.camera_info import camera_info_message
 from streamdet.runtime_ort.ros.detections import marker_array_message
-from streamdet.runtime_ort.ros.images import compressed_image_message
+from streamdet.runtime_ort.ros.images import compressed_image_message, compressed_image_to_rgb
 from streamdet.runtime_ort.ros.pointcloud2 import pointcloud2_message
 from streamdet.runtime_ort.ros.tf import transform_stamped_msg
 
@@ -72,7 +73,8 @@ def export_recording(
         poses[stamp] = image.ego_pose
         events.append((stamp, _INFO, T.camera_info_topic_of(T.image_topic(image.name)), T.CAMERA_INFO,
                        _info(image, stamp)))  # fmt: skip
-        events.append((stamp, _IMAGE, T.image_topic(image.name), T.COMPRESSED_IMAGE, _image(image, stamp)))
+        events.append((stamp, _IMAGE, T.image_topic(image.name), T.COMPRESSED_IMAGE,
+                       _image(image, stamp, (image.width, image.height))))  # fmt: skip
     for stamp, pose in poses.items():
         events.append((stamp, _TF, T.TF_TOPIC, T.TF_MESSAGE, _ego_pose(pose, stamp)))
     events.sort(key=lambda e: (e[0], e[1]))
@@ -124,11 +126,24 @@ def _ego_pose(pose: dict, stamp: int) -> Callable[[], dict]:
     return lambda: {"transforms": [transform_stamped_msg(T.GLOBAL_FRAME, T.EGO_FRAME, pose, stamp)]}
 
 
-def _image(image, stamp: int) -> Callable[[], dict]:
+def _image(image, stamp: int, size: tuple[int, int] | None = None) -> Callable[[], dict]:
+    """The image file as a CompressedImage, refused (ValueError naming the file) where ``streamdet-bag run`` would
+    refuse the message: not decodable by the runtime's decoder (a truncated JPEG), or of another size than ``size``
+    (width, height), the one its camera is calibrated for. Found here, the bag is never written; found there, only
+    after a bag that looked fine was copied to the car."""
+
     def make() -> dict:
         data = read_image_bytes(image.path)  # bounded, a regular file: a FIFO or a device never blocks the export
         header = check_image_header(data, f"image {image.path}")  # a JPEG or PNG of a sane size, labelled as it is
-        return compressed_image_message(data.tobytes(), stamp, image.name, header.format)
+        if size is not None and (header.width, header.height) != tuple(size):
+            raise ValueError(f"image {image.path} is {header.width}x{header.height} px but its camera {image.name} is "
+                             f"calibrated for {size[0]}x{size[1]}")  # fmt: skip
+        message = compressed_image_message(data.tobytes(), stamp, image.name, header.format)
+        try:
+            compressed_image_to_rgb(SimpleNamespace(**message))  # as bag run decodes it; the pixels are not kept
+        except ValueError as e:
+            raise ValueError(f"image {image.path}: {e}") from None
+        return message
 
     return make
 

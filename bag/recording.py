@@ -3,19 +3,27 @@ ego pose, read from a nuScenes-format dataset (the tables, e.g. ``streamdet-synt
 real sample (``calibration.json`` layout, one key frame).
 
 Poses are kept as nuScenes records ``{"rotation": [w, x, y, z], "translation": [x, y, z]}`` with the tables'
-own numbers, so the bag carries them unchanged and a reader rebuilds the rig with the same arithmetic.
+own numbers, so the bag carries them unchanged and a reader rebuilds the rig with the same arithmetic. The bundled
+sample's come from its rig (``Rig.from_calibration_json``), so its bag gives back that rig, not a second reading of
+calibration.json.
 """
 
 from __future__ import annotations
 
-import json
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+# _transform_entry: how the Rig reads a calibration.json transform (matrix, or rotation_wxyz + translation)
+from streamdet.calibration.camera import (
+    MAX_CALIBRATION_BYTES, Camera, CalibrationError, Rig, _transform_entry, invert_transform, matrix_to_quaternion)
+from streamdet.core.json_input import read_json
 from streamdet.data.nuscenes import LIDAR_CHANNEL, NuScenesReader
-from streamdet.data.sample import Sample, load_bundled_sample, load_point_times, load_points
+from streamdet.data.sample import (
+    COUNT, FieldKind, Sample, bundled_sample_dir, check_fields, load_bundled_sample, load_point_times, load_points)
+from streamdet.runtime_ort.ros.header import INT32_MAX
 
 Record = dict  # {"rotation": [w, x, y, z], "translation": [x, y, z]}
 
@@ -73,18 +81,36 @@ class Recording:
 
 def read_recording(data_dir: str | Path | None, scene: str | None = None, version: str = "v1.0-synth") -> Recording:
     """The scene ``scene`` of the nuScenes-format dataset in ``data_dir``; a folder holding ``calibration.json``
-    (or None: the bundled sample) is read as the bundled real sample's one key frame."""
+    (or None: the bundled sample) is read as the bundled real sample's one key frame.
+
+    Both are read by the toolkit's own readers, as untrusted input: the tables through ``NuScenesReader`` (a malformed
+    row is a ValueError naming table, row and field; a file a row names must lie inside the dataset root), the sample
+    through ``load_bundled_sample`` and ``Rig.from_calibration_json``. A bag export then fails where eval and replay
+    fail, with their words, and carries the rig they use."""
     if data_dir is None or (Path(data_dir) / "calibration.json").is_file():
         return _bundled(data_dir, scene)
     return _tables(Path(data_dir), scene, version)
 
 
+# Every message of a bag is stamped in ROS 2 time (builtin_interfaces/Time: int32 seconds) and logged in MCAP's
+# uint64 nanoseconds: a timestamp outside both cannot be written, and is refused where it is read, by field,
+# rather than as a struct.error (a negative one) or an unnamed stamp (a huge one) half-way through the bag.
+MAX_STAMP_US = INT32_MAX * 1_000_000 + 999_999
+STAMP_US = FieldKind(lambda v: COUNT.test(v) and v <= MAX_STAMP_US,
+                     f"an integer of microseconds in 0..{MAX_STAMP_US} (a ROS 2 stamp holds int32 seconds)")  # fmt: skip
+
+
+# How far the bundled sample's lidar2cam may come back off through the bag's TF chain (metres, and rotation matrix
+# entries): the rotations the rig takes may be off orthonormal by ORTHONORMAL_TOL (1e-5), and the chain inverts them
+# by transposing (the shipped sample: 6e-8 off); a millimetre more means numbers float64 cannot carry (poses 1e308 m
+# from the map origin, which the rig's finite-number checks pass).
+MAX_CHAIN_ERROR = 1e-3
+
+
 def _tables(root: Path, scene: str | None, version: str) -> Recording:
-    reader = NuScenesReader(root, version)
+    reader = NuScenesReader(root, version)  # every table loaded and indexed by token; a row's fields checked on use
     table_dir = root / version
-    rows = {name: json.loads((table_dir / f"{name}.json").read_text()) for name in
-            ("scene", "sample", "sample_data", "calibrated_sensor", "ego_pose", "sensor")}  # fmt: skip
-    scenes = {s["name"]: s for s in rows["scene"]}
+    scenes = {s["name"]: s for s in (reader.row("scene", r) for r in reader.rows("scene"))}
     if scene is None:
         if len(scenes) != 1:
             raise ValueError(f"{root} holds {len(scenes)} scenes; name one with --scene: {sorted(scenes)}")
@@ -92,59 +118,102 @@ def _tables(root: Path, scene: str | None, version: str) -> Recording:
     if scene not in scenes:
         raise ValueError(f"scene {scene!r} not found in {table_dir}; it has {sorted(scenes)}")
     scene_token = scenes[scene]["token"]
-    samples = {s["token"] for s in rows["sample"] if s["scene_token"] == scene_token}
-    by_token = {name: {r["token"]: r for r in rows[name]} for name in ("calibrated_sensor", "ego_pose", "sensor")}
-    sensors = by_token["sensor"]
-    channel_of_cs = {t: sensors[cs["sensor_token"]]["channel"] for t, cs in by_token["calibrated_sensor"].items()}
+    # every sample's scene followed, as eval does: one naming no scene is an error, not a key frame left out
+    samples = {s["token"] for s in (reader.row("sample", r) for r in reader.rows("sample"))
+               if reader.ref("sample", s, "scene_token", "scene")["token"] == scene_token}  # fmt: skip
+    # the scene's rows are checked before they are read; so is a row whose sample_token is no string (it cannot be
+    # told to be another scene's, and skipping it would drop data silently); other scenes' rows are not read
+    rows = [reader.row("sample_data", r) for r in reader.rows("sample_data")
+            if type(r.get("sample_token")) is not str or r["sample_token"] in samples]  # fmt: skip
     mounts: dict[str, Record] = {}
     sweeps, images = [], []
-    for sd in sorted((r for r in rows["sample_data"] if r["sample_token"] in samples), key=lambda r: r["timestamp"]):
-        channel = channel_of_cs[sd["calibrated_sensor_token"]]
-        cs = by_token["calibrated_sensor"][sd["calibrated_sensor_token"]]
-        pose = _record(by_token["ego_pose"][sd["ego_pose_token"]])
+    for sd in sorted(rows, key=lambda r: r["timestamp"]):
+        channel = reader.channel(sd)
+        if channel != LIDAR_CHANNEL and not channel.startswith("CAM_"):
+            continue  # radar and the like: not in the bag
+        cs = reader.ref("sample_data", sd, "calibrated_sensor_token", "calibrated_sensor")
+        pose = _record(reader.ref("sample_data", sd, "ego_pose_token", "ego_pose"))
         mount = _record(cs)
         if mounts.setdefault(channel, mount) != mount:
             raise ValueError(f"{channel} changes its calibrated_sensor within scene {scene!r}; a bag holds one mounting")
-        path = root / sd["filename"]
+        # _where: the reader's own naming of a row (table, file, row number, token), as its checks word it
+        check_fields(sd, {"timestamp": STAMP_US}, lambda: reader._where("sample_data", sd))
+        path = reader.file(sd)  # inside the dataset root, a regular file
         if channel == LIDAR_CHANNEL:
-            if not path.is_file():
-                raise FileNotFoundError(f"LiDAR file of sample_data {sd['token']} not found: {path}")
-            key = bool(sd["is_key_frame"])
+            key = sd["is_key_frame"]
             token = sd["sample_token"] if key else None
             gt = GroundTruth.of(reader.get(token)) if key else None
-            sweeps.append(LidarSweep(int(sd["timestamp"]), pose, token, gt, path=path))
-        elif channel.startswith("CAM_"):
-            if not path.is_file():
-                raise FileNotFoundError(f"image of sample_data {sd['token']} not found: {path}")
-            images.append(CameraImage(channel, int(sd["timestamp"]), path, np.asarray(cs["camera_intrinsic"], np.float64),
-                                      int(sd["width"]), int(sd["height"]), pose))  # fmt: skip
+            sweeps.append(LidarSweep(sd["timestamp"], pose, token, gt, path=path))
+        else:
+            camera = _camera(channel, cs.get("camera_intrinsic", []), sd["width"], sd["height"],
+                             lambda: f"{reader._where('sample_data', sd)} and its calibrated_sensor")  # fmt: skip
+            images.append(CameraImage(channel, sd["timestamp"], path, camera.K, camera.width, camera.height, pose))
     if LIDAR_CHANNEL not in mounts:
         raise ValueError(f"scene {scene!r} of {table_dir} has no {LIDAR_CHANNEL} data")
     cameras = {name: mounts[name] for name in mounts if name.startswith("CAM_")}
     return Recording(scene, mounts[LIDAR_CHANNEL], cameras, tuple(sweeps), tuple(images))
 
 
+def _camera(name: str, K: object, width: object, height: object, where: Callable[[], str]) -> Camera:
+    """The pinhole camera an image is taken with, checked as a rig's cameras are (``Camera``: a 3x3 upper-triangular
+    K with positive focal lengths, a plausible field of view, 1..MAX_IMAGE_PX a side). Key frames' cameras go through
+    the rig of ``NuScenesReader.get`` too; the images between key frames (12 Hz in nuScenes) only through this."""
+    try:
+        return Camera(name, K, np.eye(4), width, height)  # no extrinsic: the bag carries the mounting and poses
+    except CalibrationError as e:
+        raise ValueError(f"{where()}: not a camera the toolkit takes: {e}") from None
+
+
 def _bundled(root: str | Path | None, scene: str | None) -> Recording:
-    sample = load_bundled_sample(root)
-    folder = sample.image_paths[sample.rig.names[0]].parent
-    calib = json.loads((folder / "calibration.json").read_text())
+    """The sample's one key frame. Its transforms are the rig's (``Rig.from_calibration_json``, which takes a
+    transform as ``matrix`` or as ``rotation_wxyz`` + ``translation``, and each camera's ``lidar2cam`` as stored):
+    the LiDAR mounting and pose as the rig holds them, each camera's mounting chosen so that the bag's TF chain
+    (``inv(cam2ego) @ inv(ego2global(t_cam)) @ ego2global(t_lidar) @ lidar2ego``) gives back the rig's lidar2cam."""
+    sample = load_bundled_sample(root)  # calibration.json through the Rig, boxes.json and the files checked
+    folder = bundled_sample_dir() if root is None else Path(root)
+    calib_path = folder / "calibration.json"
+    calib = read_json(calib_path, "calibration file", MAX_CALIBRATION_BYTES)
+    rig = Rig.from_calibration_json(calib, source=str(calib_path))  # this very document's rig (the sample's, checked)
     if scene is not None and scene != sample.scene_name:
         raise ValueError(f"the sample in {folder} is of scene {sample.scene_name!r}, not {scene!r}")
-    lidar = calib["lidar"]
-    images = tuple(
-        CameraImage(c["name"], int(c["timestamp_us"]), folder / c["file"], np.asarray(c["K"], np.float64),
-                    int(c["width"]), int(c["height"]), _calib_record(c["ego2global"]))  # fmt: skip
-        for c in sorted(calib["cameras"], key=lambda c: c["timestamp_us"])
-    )
-    sweep = LidarSweep(sample.timestamp_us, _calib_record(lidar["ego2global"]), sample.token, GroundTruth.of(sample),
-                       points_in_memory=sample.points)  # fmt: skip
-    cameras = {c["name"]: _calib_record(c["sensor2ego"]) for c in calib["cameras"]}
-    return Recording(sample.scene_name, _calib_record(lidar["sensor2ego"]), cameras, (sweep,), images)
+    check_fields(calib, {"sample_timestamp_us": STAMP_US}, str(calib_path))
+    lidar2global = rig.ego2global @ rig.lidar2ego
+    images, cameras = [], {}
+    for i, (entry, cam) in enumerate(zip(calib["cameras"], rig.cameras)):
+        at = f"cameras[{i}]"
+        check_fields(entry, {"timestamp_us": STAMP_US}, f"{calib_path} {at}")  # the rig takes null; a bag stamps the image
+        # the ego pose at the camera's time where the file gives one, else the LiDAR's (no motion known: the rig's
+        # lidar2cam holds whatever there was, and the mounting below takes it up)
+        pose = rig.ego2global if "ego2global" not in entry else _transform_entry(entry["ego2global"], str(calib_path), f"{at}.ego2global")
+        cam2ego = invert_transform(pose) @ lidar2global @ invert_transform(cam.lidar2cam)
+        # the chain a reader of the bag composes must give back the rig's lidar2cam: poses far past any map cancel to
+        # nothing in float64, and the bag would carry another rig
+        error = float(np.abs(invert_transform(cam2ego) @ invert_transform(pose) @ lidar2global - cam.lidar2cam).max())
+        if not error <= MAX_CHAIN_ERROR:
+            raise ValueError(f"{calib_path} {at}: its lidar2cam cannot be carried as a mounting beside lidar.sensor2ego, "
+                             f"lidar.ego2global and {at}.ego2global: the bag's TF chain gives it back {error:.3g} off, "
+                             f"over {MAX_CHAIN_ERROR:g} (translations too large for float64?)")  # fmt: skip
+        cameras[cam.name] = _matrix_record(cam2ego, f"{calib_path} {at}: the mounting its lidar2cam implies")
+        images.append(CameraImage(cam.name, entry["timestamp_us"], sample.image_paths[cam.name], cam.K, cam.width, cam.height,
+                                  _matrix_record(pose, f"{calib_path} {at}.ego2global")))  # fmt: skip
+    sweep = LidarSweep(sample.timestamp_us, _matrix_record(rig.ego2global, f"{calib_path} lidar.ego2global"), sample.token,
+                       GroundTruth.of(sample), points_in_memory=sample.points)  # fmt: skip
+    lidar_mount = _matrix_record(rig.lidar2ego, f"{calib_path} lidar.sensor2ego")
+    return Recording(sample.scene_name, lidar_mount, cameras, (sweep,), tuple(sorted(images, key=lambda c: c.timestamp_us)))
 
 
 def _record(row: dict) -> Record:
+    """A checked nuScenes calibrated_sensor / ego_pose row as a Record, its numbers as the table gives them."""
     return {"rotation": [float(v) for v in row["rotation"]], "translation": [float(v) for v in row["translation"]]}
 
 
-def _calib_record(entry: dict) -> Record:
-    return _record({"rotation": entry["rotation_wxyz"], "translation": entry["translation"]})
+def _matrix_record(T: np.ndarray, where: str) -> Record:
+    """A rigid (4, 4) transform of the rig as a Record (unit quaternion w >= 0, translation). The rotation goes to
+    the nearest one first: the rig takes rotations within ORTHONORMAL_TOL of one, and a camera's mounting is the product
+    of three such, up to three times as far off; a quaternion holds the nearest rotation anyway."""
+    try:
+        u, _, vt = np.linalg.svd(T[:3, :3])
+        q = matrix_to_quaternion(u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt)
+    except (CalibrationError, np.linalg.LinAlgError) as e:  # a product of checked rotations: not expected
+        raise ValueError(f"{where}: not a rotation: {e}") from None
+    return {"rotation": [float(v) for v in q], "translation": [float(v) for v in T[:3, 3]]}

@@ -6,11 +6,14 @@ the bag's CameraInfo and TF when it differs from the LUT in use (as the dataset 
 then each slice through the slice lane, published as ``/streamdet/detections`` (vision_msgs/Detection3DArray) and
 ``/streamdet/markers`` (visualization_msgs/MarkerArray) stamped with the slice's scan time; then the sweep's
 slices merged with per-class NMS (``aggregate_sweep``) make the sweep's results entry. Every input message is
-copied into the output bag unchanged.
+copied into the output bag unchanged, but for those on the topics this run writes (``OUTPUT_TOPICS``: a bag that
+``streamdet-bag run`` wrote before): they are dropped, with a warning, so that the output holds this run's
+detections only, not two runs' mixed on one topic.
 """
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -19,6 +22,7 @@ import cv2
 import numpy as np
 
 from streamdet.bag import topics as T
+from streamdet.bag.calibration import check_mapped_cameras
 from streamdet.bag.source import BagSource, SourceConfig, SweepEvent
 from streamdet.bag.writer import BagWriter
 from streamdet.core.camera_timeout import DEFAULT_CAMERA_TIMEOUT_S
@@ -29,7 +33,10 @@ from streamdet.runtime_ort.postprocess import Detections, aggregate_sweep
 from streamdet.runtime_ort.ros.detections import detection3d_array_message, marker_array_message
 from streamdet.runtime_ort.ros.pointcloud2 import CloudFields, TimedSlice
 
+log = logging.getLogger(__name__)
+
 RESULTS_SUFFIX = ".results_nusc.json"  # the default results JSON: the output bag's name with this suffix
+OUTPUT_TOPICS = (T.DETECTIONS_TOPIC, T.DETECTION_MARKERS_TOPIC)  # what a run writes; the input's are not copied
 
 
 @dataclass(frozen=True)
@@ -60,6 +67,7 @@ class RunSummary:
     providers: tuple[str, ...] = ()  # onnxruntime's execution providers of the slice session
     cameras_timed_out: dict[str, int] = field(default_factory=dict)  # camera -> times it was left out (camera timeout)
     cameras_lagging: tuple[str, ...] = ()  # of those, cameras left out although they were sending (another clock?)
+    input_dropped: dict[str, int] = field(default_factory=dict)  # topic of OUTPUT_TOPICS -> input messages not copied
 
 
 def run_bag(
@@ -82,6 +90,13 @@ def run_bag(
         raise ValueError(f"--out {out} is the input bag; write the detections to another file")
     if Path(source.path).resolve() == results_path.resolve():
         raise ValueError(f"the results JSON {results_path} is the input bag; write it to another file")
+    # a camera --topics maps to a topic the bag lacks would never send: refused, not run as a camera without images
+    check_mapped_cameras(source, config.topics, source.config.camera_names)
+    earlier = [t for t in OUTPUT_TOPICS if t in source.topics()]
+    if earlier:  # said before the work: the output is not the input plus detections, as the user may expect
+        log.warning("%s already holds %s (a bag streamdet-bag run wrote?): those messages are not copied to %s, which "
+                    "holds this run's detections only", source.path, ", ".join(earlier), out)  # fmt: skip
+    dropped: dict[str, int] = {}
     keyed_by_tokens = bool(source.sample_tokens())
     results: dict[str, list[dict]] = {}
     shown: dict[int, int] = {}  # slice index -> boxes its markers showed last
@@ -105,6 +120,9 @@ def run_bag(
 
     with BagWriter(out) as writer:
         for message, event in source.events():
+            if message.topic in OUTPUT_TOPICS:  # an earlier run's detections: mixed with this run's, neither is readable
+                dropped[message.topic] = dropped.get(message.topic, 0) + 1
+                continue
             writer.schema(message.datatype, message.schema_text)
             writer.write(message.topic, message.datatype, message.message, message.log_time_ns)
             if event is None:
@@ -136,7 +154,7 @@ def run_bag(
     return RunSummary(out, results_path, counts["sweeps"], counts["slices"], counts["image_sets"], counts["detections"],
                       det.camera_names, without, det.precision_label, det.stats.summary(), counts["fallback"],
                       tuple(det.providers), dict(source.cameras_timed_out),
-                      tuple(c for c in det.camera_names if c in source.cameras_lagging))  # fmt: skip
+                      tuple(c for c in det.camera_names if c in source.cameras_lagging), dropped)  # fmt: skip
 
 
 def results_path_of(out: str | Path, results_json: str | Path | None) -> Path:
