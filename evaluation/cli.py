@@ -349,6 +349,7 @@ def main(gt_path: Path | None, results_path: Path | None, data_dir: Path | None,
         if json_path is not None and json_path.resolve() in siblings:
             raise click.BadParameter(f"{str(json_path)!r} is a file of the saved run beside {option} {path} "
                                      f"({', '.join(SAVED_FILES)}); choose another path", param_hint="--json")  # fmt: skip
+    check_output_parent(json_path, "--json")  # a FIFO there blocked the write after the scoring
     try:
         gt, pred = load_gt_and_predictions(gt_path, results_path)
     except ValueError as e:

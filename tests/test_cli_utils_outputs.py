@@ -169,3 +169,19 @@ def test_a_symlink_loop_is_an_input_error_in_one_line():
     e = RuntimeError("Symlink loop from '/tmp/x/loop1'")
     assert is_input_error(e) and describe_error(e) == "'/tmp/x/loop1': a symlink loop (a link that leads back to itself)"
     assert not is_input_error(RuntimeError("something else"))
+
+
+def test_eval_files_mode_refuses_a_fifo_json_before_scoring(tmp_path):
+    """The files mode scored, printed, then blocked for ever opening the FIFO."""
+    import os
+
+    from click.testing import CliRunner
+
+    from streamdet.evaluation.cli import main as eval_main
+
+    os.mkfifo(tmp_path / "out.json")
+    (tmp_path / "gt.json").write_text("{}")
+    (tmp_path / "results.json").write_text("{}")
+    res = CliRunner().invoke(eval_main, ["--gt", str(tmp_path / "gt.json"), "--results", str(tmp_path / "results.json"),
+                                         "--json", str(tmp_path / "out.json")])  # fmt: skip
+    assert res.exit_code == 2 and "not a regular file" in res.output
