@@ -17,33 +17,18 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from click.testing import CliRunner
 
 pytest.importorskip("mcap_ros2.writer")
 
 from streamdet.bag.calibration import rig_from_bag, write_calibration_json  # noqa: E402
-from streamdet.bag.cli import main as bag_main  # noqa: E402
 from streamdet.bag.run import OUTPUT_TOPICS, RunConfig, run_bag  # noqa: E402
 from streamdet.bag.source import BagSource, SourceConfig  # noqa: E402
 from streamdet.calibration.camera import Rig  # noqa: E402
 from streamdet.data.sample import bundled_sample_dir, load_bundled_sample  # noqa: E402
 
+from test_bag_cli_outputs import invoke, one_line_error  # noqa: E402  # the bag CLI checks' own helpers
+
 VERSION = "v1.0-synth"
-
-
-def invoke(*args) -> object:
-    return CliRunner().invoke(bag_main, [str(a) for a in args])
-
-
-def one_line_error(result, *needles: str) -> str:
-    """The command failed with one `Error:` line holding every needle; no traceback."""
-    assert result.exit_code != 0, result.output
-    assert "Traceback" not in result.output and not isinstance(result.exception, (AssertionError, TypeError)), result.output
-    errors = [line for line in result.output.splitlines() if line.startswith("Error:")]
-    assert len(errors) == 1, result.output
-    for needle in needles:
-        assert needle in errors[0], result.output
-    return errors[0]
 
 
 def assert_nothing_written(out: Path) -> None:

@@ -273,18 +273,26 @@ def _in_thread(fn):
     return t, out
 
 
+def _held_swap(export_dir, rigs):
+    """(detector on rig A with an image set, its LUT, the thread of a swap to rig B whose LUT build is held, that
+    thread's outcome, the event releasing the build)."""
+    rig_a, rig_b = rigs
+    det = _detector(export_dir, rig_a)
+    lut_a = det.lut
+    det.update_images(_images(det, 0), 1.0)
+    started, release = _hold_lut_builds(det)
+    swap, out = _in_thread(lambda: det.set_calibration(rig_b))
+    assert started.wait(30)
+    return det, lut_a, swap, out, release
+
+
 @pytest.mark.parametrize("later", ["another rig", "the rig in use again", "a Lut"])
 def test_the_calibration_call_started_last_wins(tiny_export, rigs, later):
     """Two threads swapping: a call started earlier whose LUT build ends later installed last, over the newer one."""
-    rig_a, rig_b = rigs
-    det = _detector(tiny_export, rig_a)
-    lut_of_a = det.lut
-    det.update_images(_images(det, 0), 1.0)
-    started, release = _hold_lut_builds(det)
+    rig_a = rigs[0]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        slow, out = _in_thread(lambda: det.set_calibration(rig_b))  # started first, its build held
-        assert started.wait(30)
+        det, lut_of_a, slow, out, release = _held_swap(tiny_export, rigs)  # started first, its build held
         newer = {"another rig": perturb_rig(rig_a, 0.5, 0.5, seed=7), "the rig in use again": rig_a,
                  "a Lut": det._build_lut(rig_a)}[later]  # fmt: skip
         det.set_calibration(newer)
@@ -299,15 +307,9 @@ def test_the_calibration_call_started_last_wins(tiny_export, rigs, later):
 
 
 def test_a_calibration_swap_racing_close_installs_nothing_and_a_closed_detector_keeps_nothing(tiny_export, rigs):
-    rig_a, rig_b = rigs
-    det = _detector(tiny_export, rig_a)
-    lut_a = det.lut
-    det.update_images(_images(det, 0), 1.0)
-    started, release = _hold_lut_builds(det)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        swap, out = _in_thread(lambda: det.set_calibration(rig_b))
-        assert started.wait(30)
+        det, lut_a, swap, out, release = _held_swap(tiny_export, rigs)
         det.close()
         release.set()
         swap.join(30)
