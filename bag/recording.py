@@ -16,9 +16,9 @@ from pathlib import Path
 
 import numpy as np
 
-# _transform_entry: how the Rig reads a calibration.json transform (matrix, or rotation_wxyz + translation)
+# transform_entry: how the Rig reads a calibration.json transform (matrix, or rotation_wxyz + translation)
 from streamdet.calibration.camera import (
-    MAX_CALIBRATION_BYTES, Camera, CalibrationError, Rig, _transform_entry, invert_transform, matrix_to_quaternion)
+    MAX_CALIBRATION_BYTES, Camera, CalibrationError, Rig, transform_entry, invert_transform, matrix_to_quaternion)
 from streamdet.core.json_input import read_json
 from streamdet.data.nuscenes import LIDAR_CHANNEL, NuScenesReader
 from streamdet.data.sample import (
@@ -136,8 +136,8 @@ def _tables(root: Path, scene: str | None, version: str) -> Recording:
         mount = _record(cs)
         if mounts.setdefault(channel, mount) != mount:
             raise ValueError(f"{channel} changes its calibrated_sensor within scene {scene!r}; a bag holds one mounting")
-        # _where: the reader's own naming of a row (table, file, row number, token), as its checks word it
-        check_fields(sd, {"timestamp": STAMP_US}, lambda: reader._where("sample_data", sd))
+        # the reader's own naming of a row (table, file, row number, token), as its checks word it
+        check_fields(sd, {"timestamp": STAMP_US}, lambda: reader.row_name("sample_data", sd))
         path = reader.file(sd)  # inside the dataset root, a regular file
         if channel == LIDAR_CHANNEL:
             key = sd["is_key_frame"]
@@ -146,7 +146,7 @@ def _tables(root: Path, scene: str | None, version: str) -> Recording:
             sweeps.append(LidarSweep(sd["timestamp"], pose, token, gt, path=path))
         else:
             camera = _camera(channel, cs.get("camera_intrinsic", []), sd["width"], sd["height"],
-                             lambda: f"{reader._where('sample_data', sd)} and its calibrated_sensor")  # fmt: skip
+                             lambda: f"{reader.row_name('sample_data', sd)} and its calibrated_sensor")  # fmt: skip
             images.append(CameraImage(channel, sd["timestamp"], path, camera.K, camera.width, camera.height, pose))
     if LIDAR_CHANNEL not in mounts:
         raise ValueError(f"scene {scene!r} of {table_dir} has no {LIDAR_CHANNEL} data")
@@ -184,7 +184,7 @@ def _bundled(root: str | Path | None, scene: str | None) -> Recording:
         check_fields(entry, {"timestamp_us": STAMP_US}, f"{calib_path} {at}")  # the rig takes null; a bag stamps the image
         # the ego pose at the camera's time where the file gives one, else the LiDAR's (no motion known: the rig's
         # lidar2cam holds whatever there was, and the mounting below takes it up)
-        pose = rig.ego2global if "ego2global" not in entry else _transform_entry(entry["ego2global"], str(calib_path), f"{at}.ego2global")
+        pose = rig.ego2global if "ego2global" not in entry else transform_entry(entry["ego2global"], str(calib_path), f"{at}.ego2global")
         cam2ego = invert_transform(pose) @ lidar2global @ invert_transform(cam.lidar2cam)
         # the chain a reader of the bag composes must give back the rig's lidar2cam: poses far past any map cancel to
         # nothing in float64, and the bag would carry another rig

@@ -448,9 +448,9 @@ class Rig:
             raise CalibrationError(f"{src}: expected a JSON object at the top level, got {type(doc).__name__}")
 
         lidar = _field(doc, "lidar", src, "")
-        lidar2ego = _transform_entry(_field(lidar, "sensor2ego", src, "lidar."), src, "lidar.sensor2ego")
+        lidar2ego = transform_entry(_field(lidar, "sensor2ego", src, "lidar."), src, "lidar.sensor2ego")
         pose = lidar.get("ego2global") if isinstance(lidar, Mapping) else None
-        ego2global = np.eye(4) if pose is None else _transform_entry(pose, src, "lidar.ego2global")
+        ego2global = np.eye(4) if pose is None else transform_entry(pose, src, "lidar.ego2global")
 
         cams_doc = _field(doc, "cameras", src, "")
         if not isinstance(cams_doc, list) or not cams_doc:
@@ -464,7 +464,7 @@ class Rig:
             if not isinstance(name, str) or not name:
                 raise CalibrationError(f"{src}: {at}.name: expected a non-empty string, got {name!r}")
             K = _wrap(_as_intrinsics, _field(c, "K", src, f"{at}."), src, f"{at}.K")
-            lidar2cam = _transform_entry(_field(c, "lidar2cam", src, f"{at}."), src, f"{at}.lidar2cam")
+            lidar2cam = transform_entry(_field(c, "lidar2cam", src, f"{at}."), src, f"{at}.lidar2cam")
             width = _wrap(as_image_px, _field(c, "width", src, f"{at}."), src, f"{at}.width")
             height = _wrap(as_image_px, _field(c, "height", src, f"{at}."), src, f"{at}.height")
             ts = c.get("timestamp_us")
@@ -535,7 +535,7 @@ def _wrap(check, value: Any, src: str, field: str):
         raise CalibrationError(f"{src}: {e}") from None
 
 
-def _transform_entry(entry: Any, src: str, at: str) -> np.ndarray:
+def transform_entry(entry: Any, src: str, at: str) -> np.ndarray:
     """A calibration.json transform: {"matrix": 4x4} or {"rotation_wxyz", "translation"}."""
     if not isinstance(entry, Mapping):
         raise CalibrationError(f"{src}: {at}: expected an object with 'matrix', got {short_repr(entry)}")

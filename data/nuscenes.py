@@ -211,7 +211,7 @@ class NuScenesReader:
             raise ValueError(f"num_past_sweeps must be a non-negative integer, got {num_past_sweeps!r}")
         data = self._key_data[record["token"]]
         if LIDAR_CHANNEL not in data:
-            raise ValueError(f"{self._where('sample', record)}: no key-frame {LIDAR_CHANNEL} sample_data names this sample")
+            raise ValueError(f"{self.row_name('sample', record)}: no key-frame {LIDAR_CHANNEL} sample_data names this sample")
         lidar_sd = self._row("sample_data", self._by_token["sample_data"][data[LIDAR_CHANNEL]])
         lidar_cs = self._ref("sample_data", lidar_sd, "calibrated_sensor_token", "calibrated_sensor")
         lidar_pose = self._ref("sample_data", lidar_sd, "ego_pose_token", "ego_pose")
@@ -233,11 +233,11 @@ class NuScenesReader:
             )
             image_paths[channel] = self._file(sd)
         if not cams:
-            raise ValueError(f"{self._where('sample', record)}: no key-frame camera sample_data names this sample")
+            raise ValueError(f"{self.row_name('sample', record)}: no key-frame camera sample_data names this sample")
         try:
             rig = Rig.from_nuscenes_records(lidar_cs, lidar_pose, cams)
         except CalibrationError as e:  # the fields are well-formed but do not make a rig (a zero image size, say)
-            raise ValueError(f"{self._where('sample', record)}: its sensors do not form a camera rig: {e}") from None
+            raise ValueError(f"{self.row_name('sample', record)}: its sensors do not form a camera rig: {e}") from None
         lidar2global = rig.ego2global @ rig.lidar2ego
         boxes = self._boxes(record["token"], rig)
         lidar_path = self._file(lidar_sd)
@@ -265,7 +265,7 @@ class NuScenesReader:
     def _row(self, table: str, row: dict) -> dict:
         """``row`` of ``table`` with every field the reader uses checked (once per row)."""
         if id(row) not in self._checked:
-            check_fields(row, _TABLE_FIELDS[table], lambda: self._where(table, row), _OPTIONAL_FIELDS.get(table, frozenset()))
+            check_fields(row, _TABLE_FIELDS[table], lambda: self.row_name(table, row), _OPTIONAL_FIELDS.get(table, frozenset()))
             self._checked.add(id(row))
         return row
 
@@ -273,11 +273,11 @@ class NuScenesReader:
         """The row of ``target`` that the checked ``row`` of ``table`` names in ``field``, checked in turn."""
         found = self._by_token[target].get(row[field])
         if found is None:
-            raise ValueError(f"{self._where(table, row)}: field {field!r} names {short_repr(row[field])}, "
+            raise ValueError(f"{self.row_name(table, row)}: field {field!r} names {short_repr(row[field])}, "
                              f"which is no token of table {target!r}")  # fmt: skip
         return self._row(target, found)
 
-    def _where(self, table: str, row: object, index: int | None = None) -> str:
+    def row_name(self, table: str, row: object, index: int | None = None) -> str:
         """'nuScenes table 'T' (path) row N (token '...')' for an error message; finds N when not given (only
         errors pay for the search)."""
         if index is None:
@@ -290,7 +290,7 @@ class NuScenesReader:
         """Why row ``index`` of ``table`` broke an index: a field of ``refs`` missing or of the wrong kind, or a
         token naming no row of the table ``refs[field]``. Only called after the fast path failed on that row."""
         row = self._tables[table][index]
-        where = self._where(table, row, index)
+        where = self.row_name(table, row, index)
         check_fields(row, {"token": NAME} | {f: _TABLE_FIELDS[table][f] for f in refs}, where)
         for field, target in refs.items():
             if target is not None and row[field] not in self._by_token[target]:
@@ -308,16 +308,16 @@ class NuScenesReader:
             return index
         first: dict[object, int] = {}
         for i, row in enumerate(rows):  # slow, naming the first bad row
-            check_fields(row, {"token": NAME}, lambda: self._where(table, row, i))
+            check_fields(row, {"token": NAME}, lambda: self.row_name(table, row, i))
             if row["token"] in first:
-                raise ValueError(f"{self._where(table, row, i)}: the token is also that of row {first[row['token']]}: "
+                raise ValueError(f"{self.row_name(table, row, i)}: the token is also that of row {first[row['token']]}: "
                                  "tokens must be unique")  # fmt: skip
             first[row["token"]] = i
         raise AssertionError(f"table {table!r}: index check failed but no row is bad")  # unreachable
 
     def _file(self, sd: dict) -> Path:
         """The file of a checked sample_data row, a relative path inside the dataset root (``sample.dataset_file``)."""
-        path = dataset_file(self.root, sd["filename"], lambda: f"{self._where('sample_data', sd)}: field 'filename'")
+        path = dataset_file(self.root, sd["filename"], lambda: f"{self.row_name('sample_data', sd)}: field 'filename'")
         if not path.is_file():
             if path.exists():  # a FIFO, a device or a folder: never opened
                 raise ValueError(f"file of sample_data {sd['token']} is not a regular file (a FIFO, a device or a folder?): {path}")
@@ -371,7 +371,7 @@ class NuScenesReader:
             return ""
         row = self._by_token["attribute"].get(tokens[0])
         if row is None:
-            raise ValueError(f"{self._where('sample_annotation', ann)}: field 'attribute_tokens' names {tokens[0]!r}, "
+            raise ValueError(f"{self.row_name('sample_annotation', ann)}: field 'attribute_tokens' names {tokens[0]!r}, "
                              "which is no token of table 'attribute'")  # fmt: skip
         return self._row("attribute", row)["name"]
 
