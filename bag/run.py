@@ -92,6 +92,11 @@ def run_bag(
         raise ValueError(f"the results JSON {results_path} is the input bag; write it to another file")
     # a camera --topics maps to a topic the bag lacks would never send: refused, not run as a camera without images
     check_mapped_cameras(source, config.topics, source.config.camera_names)
+    # a key that is no camera of the export (a typo, another rig's name) would map nothing: refused, not ignored
+    unknown = sorted((set(config.topics.cameras) | set(config.topics.camera_infos)) - set(source.config.camera_names))
+    if unknown:
+        raise ValueError(f"--topics names {unknown}, no camera of the export "
+                         f"({list(source.config.camera_names) or 'LiDAR-only: it has none'})")
     earlier = [t for t in OUTPUT_TOPICS if t in source.topics()]
     if earlier:  # said before the work: the output is not the input plus detections, as the user may expect
         log.warning("%s already holds %s (a bag streamdet-bag run wrote?): those messages are not copied to %s, which "

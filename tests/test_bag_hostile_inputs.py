@@ -427,3 +427,12 @@ def test_the_cli_says_what_it_did_not_copy(bag: Path, tiny_export: Path, tmp_pat
     result = invoke("run", "--bag", tmp_path / "first.mcap", "--export-dir", tiny_export, "--out", tmp_path / "second.mcap")
     assert result.exit_code == 0, result.output
     assert "not copied from the input (this run writes these topics): 16 messages on /streamdet/detections" in result.output
+
+
+def test_run_refuses_a_topics_key_that_is_no_camera_of_the_export(bag: Path, tiny_export: Path, tmp_path: Path):
+    """`--topics foo=/elsewhere/image` mapped nothing and ran silently."""
+    out = tmp_path / "out" / "det.mcap"
+    for key in ("foo", "foo.info", "CAM_FRONTT"):
+        result = invoke("run", "--bag", bag, "--export-dir", tiny_export, "--out", out, "--topics", f"{key}=/elsewhere/image")
+        one_line_error(result, "--topics names", "no camera of the export")
+        assert_nothing_written(out)
