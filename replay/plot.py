@@ -8,6 +8,8 @@ triggers (an x where the image set was superseded). matplotlib is imported here 
 
 from __future__ import annotations
 
+import math
+
 from pathlib import Path
 
 import numpy as np
@@ -31,6 +33,7 @@ def plot_replay(result: ReplayResult, path: str | Path, window_s: tuple[float, f
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import FuncFormatter
 
     lo, hi = window_s or timeline_window(result)
     modes = list(result.modes)
@@ -49,6 +52,10 @@ def plot_replay(result: ReplayResult, path: str | Path, window_s: tuple[float, f
             cdf.step(lat, np.arange(1, lat.size + 1) / lat.size, where="post", color=COLORS.get(mode), label=mode)
     cdf.axvline(2 * period_ms, color="k", ls="--", lw=0.8, label=f"two slice periods ({2 * period_ms:.1f} ms)")
     cdf.set_xscale("log")
+    # plain numbers at 1, 2 and 5 of each decade: matplotlib labels every minor tick of a log axis that spans a decade
+    # or two, and in this narrow panel "2x10^1 3x10^1 4x10^1 ..." ran into each other (the other ticks stay unlabelled)
+    cdf.xaxis.set_major_formatter(FuncFormatter(_one_two_five))
+    cdf.xaxis.set_minor_formatter(FuncFormatter(_one_two_five))
     cdf.set_xlabel("latency: last point scanned to detections (ms, drive time)")
     cdf.set_ylabel("fraction of emitted slices")
     cdf.set_title(f"latency CDF, {len(result.scenes)} scene(s), time scale {result.config.time_scale:g}", fontsize=9)
@@ -60,6 +67,14 @@ def plot_replay(result: ReplayResult, path: str | Path, window_s: tuple[float, f
     fig.savefig(path, dpi=110, bbox_inches="tight")
     plt.close(fig)
     return path
+
+
+def _one_two_five(value: float, _pos=None) -> str:
+    """A log axis tick's label: the value where it is 1, 2 or 5 times a power of ten, else none."""
+    if not value > 0:
+        return ""
+    mantissa = value / 10 ** math.floor(math.log10(value))
+    return f"{value:g}" if any(abs(mantissa - m) < 1e-6 for m in (1, 2, 5)) else ""
 
 
 def _timeline(ax, rec: Recording, lo: float, hi: float, color: str) -> None:

@@ -276,3 +276,12 @@ def test_a_lane_behind_coalesces_slices_on_the_fake_clock(slice_ms):
     assert all(s.coalesced == 2 for s in rec.slices if len(got[round(s.emit_s, 9)]) == 2)
     if slice_ms < 6.25:
         assert all(s.coalesced == 1 for s in rec.slices)
+
+
+@pytest.mark.parametrize("value, label", [(10.0, "10"), (20.0, "20"), (50.0, "50"), (0.5, "0.5"), (3.0, ""), (40.0, ""),
+                                          (0.0, ""), (-2.0, "")])  # fmt: skip
+def test_the_latency_axis_labels_one_two_five_only(value, label):
+    """Every minor tick of the CDF's log axis was labelled "2x10^1 3x10^1 ...", and the labels ran into each other."""
+    from streamdet.replay.plot import _one_two_five
+
+    assert _one_two_five(value) == label
