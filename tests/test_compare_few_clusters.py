@@ -207,3 +207,24 @@ def test_compare_runs_counts_clusters_once_for_every_subset(tmp_path):
 def test_help_documents_the_one_scene_rule():
     res = CliRunner().invoke(main, ["--help"])
     assert res.exit_code == 0 and "interval is undefined" in " ".join(res.output.split())
+
+
+
+def test_one_cluster_gives_the_same_figures_without_scoring_every_draw(monkeypatch):
+    """Every draw over one scene is the whole data: the figures a thousand re-scorings gave, without them."""
+    import streamdet.evaluation.bootstrap as bootstrap_mod
+
+    gt, a, b = _world(4)
+    ta, tb = _tables(gt, a), _tables(gt, b)
+    calls = []
+    real = bootstrap_mod.weighted_metrics
+
+    def counting(*args, **kwargs):
+        calls.append(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(bootstrap_mod, "weighted_metrics", counting)
+    out = paired_bootstrap(ta, tb, CLASSES, np.zeros(4, np.int64), num_draws=200)
+    assert len(calls) == 2  # the full figures of each side; no draw scored
+    for d in out.values():
+        assert d.lo == d.hi == d.diff and not d.interval_defined and d.p_not_positive == float(d.diff <= 0)
