@@ -91,9 +91,16 @@ def open_fallback(export_dir: str | Path, main: Manifest, grid: GridSpec, sessio
     return LidarFallback(path, m, graph, entry, m.slice_crop)
 
 
+# An image BEV stamped more than this after the slice it would be fused with: the caller's image and slice clocks
+# disagree (a clock that jumped, two clocks never aligned), so the image's age is unknown. Frames newer than the scan
+# by up to a camera period are normal (the phase-locked lane lifts them); seconds are not.
+CLOCKS_APART_S = 1.0
+
+
 def needs_fallback(has_every_quadrant: bool, image_age_s: float | None, after_s: float | None) -> bool:
     """Whether a slice runs the fallback: a quadrant it reads has no image BEV, or (``after_s`` set) the oldest it
-    reads is older than ``after_s`` seconds."""
+    reads is older than ``after_s`` seconds, or of unknown age: stamped more than CLOCKS_APART_S after the slice
+    (a stale image behind a forward clock jump fused for ever before)."""
     if not has_every_quadrant or image_age_s is None:
         return True
-    return after_s is not None and image_age_s > after_s
+    return after_s is not None and (image_age_s > after_s or image_age_s < -CLOCKS_APART_S)

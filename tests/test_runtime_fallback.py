@@ -89,7 +89,9 @@ def test_a_quadrant_without_images_falls_back(tiny_export, lidar_export, sample)
 @pytest.mark.parametrize(
     ("has_all", "age", "after", "want"),
     [(True, 0.1, None, False), (False, 0.1, None, True), (True, None, None, True), (True, 0.3, 0.2, True),
-     (True, 0.2, 0.2, False), (True, 0.0, 0.0, False)],
+     (True, 0.2, 0.2, False), (True, 0.0, 0.0, False),
+     # an image stamped seconds after its slice: the clocks disagree, its age is unknown (it was fused for ever)
+     (True, -2.0, 0.5, True), (True, -0.08, 0.0, False), (True, -0.9, 0.5, False), (True, -2.0, None, False)],
 )  # fmt: skip
 def test_needs_fallback(has_all, age, after, want):
     assert needs_fallback(has_all, age, after) is want
