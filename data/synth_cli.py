@@ -15,6 +15,7 @@ import click
 from streamdet.cli_utils import (
     MAX_THREADS,
     RESOLUTION_RANGE_HELP,
+    check_folder_creatable,
     check_output_parent,
     check_plot_format,
     refuse_output_over_inputs,
@@ -89,6 +90,7 @@ def _check_out_dir(out_dir: Path, version: str, overwrite: bool) -> tuple[Path, 
     new or empty."""
     if out_dir.exists() and not out_dir.is_dir():
         raise click.BadParameter(f"{out_dir} exists and is not a folder", param_hint="--out")
+    check_folder_creatable(out_dir, "--out")  # a broken link or a loop: said now, not after the simulation
     try:
         if not out_dir.is_dir() or not any(out_dir.iterdir()):
             return ()
@@ -266,6 +268,10 @@ def stats(data_dir: Path, reference_dir: Path | None, no_reference: bool, json_p
 def _check_stats_outputs(data_dir: Path, reference: Path | None, json_path: Path | None, plot_path: Path | None) -> None:
     """Refuse, before measuring (minutes on a large dataset), outputs that cannot be written or would replace an
     input: ``--json DATA_DIR/splits.json`` replaced the split file of the dataset it measured."""
+    for option, folder in (("DATA_DIR", data_dir), ("--reference", reference)):
+        if folder is not None and not Path(folder).is_dir():  # both are measured in turn: a bad reference said first
+            why = "not a folder" if Path(folder).exists() else "does not exist (or is a broken link)"
+            raise click.BadParameter(f"{str(folder)!r} is no dataset folder: {why}", param_hint=option)
     outputs = [("--json", json_path), ("--plot", plot_path)]
     for option, path in outputs:
         refuse_output_over_inputs(path, option, [("DATA_DIR", data_dir), ("--reference", reference)])

@@ -259,10 +259,14 @@ def check_output_parent(output: Path | None, option: str) -> None:
 
 def check_folder_creatable(folder: Path | None, option: str) -> None:
     """Raise click.BadParameter, before any work, if ``folder`` (made with its parents after the work) could not be:
-    it, or its nearest existing ancestor, is not a folder."""
+    it, or its nearest existing ancestor, is not a folder, or it is a broken link or a link loop (found only when the
+    work was done, as "File exists")."""
     if folder is None:
         return
     for existing in (Path(folder), *Path(folder).absolute().parents):
+        if existing.is_symlink() and not existing.exists():
+            raise click.BadParameter(f"{str(folder)!r} cannot be made: {existing} is a broken link or a link loop",
+                                     param_hint=option)  # fmt: skip
         if existing.exists():
             if not existing.is_dir():
                 raise click.BadParameter(f"{str(folder)!r} cannot be made: {existing} is not a folder", param_hint=option)

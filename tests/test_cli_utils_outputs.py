@@ -185,3 +185,23 @@ def test_eval_files_mode_refuses_a_fifo_json_before_scoring(tmp_path):
     res = CliRunner().invoke(eval_main, ["--gt", str(tmp_path / "gt.json"), "--results", str(tmp_path / "results.json"),
                                          "--json", str(tmp_path / "out.json")])  # fmt: skip
     assert res.exit_code == 2 and "not a regular file" in res.output
+
+
+def test_a_folder_output_that_is_a_broken_link_or_a_loop_is_refused_before_any_work(tmp_path):
+    """`streamdet-replay --out loop1` and `streamdet-synth generate --out loop1` said "File exists" after the work."""
+    from click.testing import CliRunner
+
+    from streamdet.cli_utils import check_folder_creatable
+    from streamdet.data.synth_cli import main as synth_main
+
+    (tmp_path / "loop1").symlink_to(tmp_path / "loop2")
+    (tmp_path / "loop2").symlink_to(tmp_path / "loop1")
+    (tmp_path / "dangling").symlink_to(tmp_path / "gone")
+    for bad in ("loop1", "dangling"):
+        with pytest.raises(click.BadParameter, match="broken link or a link loop"):
+            check_folder_creatable(tmp_path / bad / "sub", "--out")
+    res = CliRunner().invoke(synth_main, ["generate", "--out", str(tmp_path / "loop1"), "--scenes", "1"])
+    assert res.exit_code == 2 and "broken link or a link loop" in res.output and "simulating" not in res.output
+    # synth stats measured DATA_DIR first and only then found --reference missing
+    res = CliRunner().invoke(synth_main, ["stats", str(tmp_path), "--reference", str(tmp_path / "loop1")])
+    assert res.exit_code == 2 and "is no dataset folder" in res.output and "measuring" not in res.output
