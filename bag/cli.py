@@ -61,7 +61,7 @@ def export_cmd(data_dir: Path | None, scene: str | None, version: str, out: Path
         raise click.ClickException(_one_line(e)) from None
     # the bag is written while the dataset's files are read: it must be none of them, nor lie among them
     data = ("--data", data_dir) if data_dir is not None else ("--data (default: the bundled sample)", bundled_sample_dir())
-    refuse_output_over_inputs(out, "--out", dataset_inputs(data[1], version, data[0]))
+    refuse_output_over_inputs(out, "--out", dataset_inputs(data[1], data[0]))
     _check_output(out, "--out")
     try:
         with counted(f"writing {out}") as progress:  # one step per sensor message

@@ -320,7 +320,7 @@ def main(gt_path: Path | None, results_path: Path | None, data_dir: Path | None,
             raise click.UsageError("--data runs the detector itself; do not combine it with --gt / --results")
         if slices is not None and slices not in (1, 2) and slices % 4:
             raise click.BadParameter(f"{slices} must be 1, 2 or a multiple of 4", param_hint="--slices")
-        inputs = [*dataset_inputs(data_dir, version), ("--export-dir", export_dir)]
+        inputs = [*dataset_inputs(data_dir), ("--export-dir", export_dir)]
         refuse_output_over_inputs(json_path, "--json", inputs)
         refuse_output_over_inputs(save_dir, "--save-results", inputs)
         # --save-results writes its files after the --json: one of them would replace the figures just written

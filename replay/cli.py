@@ -220,7 +220,7 @@ def main(
     from streamdet.replay.run import ReplayConfig, run_replay
     from streamdet.runtime_ort.lanes import LaneConfig
 
-    inputs = [*dataset_inputs(data, table_version), ("--export-dir", export_dir), ("--fallback-export", fallback_export_dir)]
+    inputs = [*dataset_inputs(data), ("--export-dir", export_dir), ("--fallback-export", fallback_export_dir)]
     _check_outputs(json_path, plot_path, out_dir, inputs)
     if not (export_dir / "manifest.json").exists():  # a FIFO or a folder: the manifest reader names it
         raise click.ClickException(f"{export_dir} holds no manifest.json: run `streamdet-export --out {export_dir}` first")

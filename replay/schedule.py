@@ -77,15 +77,13 @@ def slice_sweep(sweep: LidarSweep, num_slices: int, start_deg: float = 0.0) -> l
     them, so that the replay's offline and streaming scores stay comparable with eval's on the same files: a point
     with a finite azimuth goes into its slice like any other, and the detector drops and counts it
     (``SliceResult.num_nonfinite_dropped``); a point whose x or y is NaN has no azimuth, hence no slice, and is in
-    none (eval's ``split_sweep`` leaves it out too). None of them times a release (`LidarSweep.timing_rows`): a
+    none (``split_sweep``, eval's too). None of them times a release (`LidarSweep.timing_rows`): a
     slice whose points all lack a finite time is released when the sensor leaves its sector, as an empty one is.
     A NaN time is no firing time, and a clipped inf would release its slice at the rotation's end.
     """
     period = sweep.duration_s
     points = np.asarray(sweep.points)
-    no_azimuth = np.isnan(points[:, 0]) | np.isnan(points[:, 1])
-    # left out here rather than by split_sweep's cast of a NaN slice index (INT64_MIN on x86, 0 elsewhere)
-    slices = split_sweep(points[~no_azimuth] if no_azimuth.any() else points, num_slices, start_deg, sweep_duration_s=period)
+    slices = split_sweep(points, num_slices, start_deg, sweep_duration_s=period)
     timed = sweep.timing_rows()
     every = bool(timed.all())
     pts = points if every else points[timed]

@@ -155,7 +155,7 @@ def refuse_output_over_inputs(output: Path | None, option: str, inputs) -> None:
     _refuse_hard_link(output, option)
 
 
-def dataset_inputs(data_dir: Path | None, version: str | None, option: str = "--data") -> list[tuple[str, Path]]:
+def dataset_inputs(data_dir: Path | None, option: str = "--data") -> list[tuple[str, Path]]:
     """The input pairs a dataset stands for in ``refuse_output_over_inputs``: its root, and the entries of it that
     are symlinks (its table folder above all, which the tools read as ``DATA/<version>``): an output beside a
     link's target is inside the dataset though outside ``data_dir``."""
@@ -166,9 +166,6 @@ def dataset_inputs(data_dir: Path | None, version: str | None, option: str = "--
         links = sorted(e for e in Path(data_dir).iterdir() if e.is_symlink())
     except OSError:  # no folder (yet): the tool's own check names it
         links = []
-    if version is not None and not table_version_problem(version):
-        table = Path(data_dir) / version
-        links = sorted(set(links) | ({table} if table.is_symlink() else set()))
     pairs += [(f"{option}'s {e.name} (a link to {_real(e)})", e) for e in links]
     return pairs
 
@@ -451,8 +448,8 @@ def describe_error(e: BaseException) -> str:
         text = f"{e.filename}: {e.strerror or e}"
     elif isinstance(e, RecursionError):
         text = "the input nests too deeply to read"
-    elif isinstance(e, RuntimeError) and str(e).startswith("Symlink loop from "):
-        text = f"{str(e)[len('Symlink loop from '):]}: a symlink loop (a link that leads back to itself)"
+    elif _is_symlink_loop(e):
+        text = f"{str(e).removeprefix(SYMLINK_LOOP)}: a symlink loop (a link that leads back to itself)"
     elif type(e).__module__.startswith("onnxruntime"):
         text = f"onnxruntime: {str(e).rsplit(' : ', 1)[-1]}"
     else:
@@ -465,9 +462,16 @@ def is_input_error(e: BaseException) -> bool:
     defined in a streamdet module), OS and decode errors, onnxruntime's errors. Anything else is a bug."""
     if isinstance(e, (ValueError, OSError, RecursionError)):
         return True
-    if isinstance(e, RuntimeError) and str(e).startswith("Symlink loop from "):  # pathlib's resolve() on a loop
+    if _is_symlink_loop(e):
         return True
     return any(k.__module__.startswith(("streamdet.", "onnxruntime.")) for k in type(e).__mro__)
+
+
+SYMLINK_LOOP = "Symlink loop from "  # how pathlib's resolve() words the RuntimeError of a link loop
+
+
+def _is_symlink_loop(e: BaseException) -> bool:
+    return isinstance(e, RuntimeError) and str(e).startswith(SYMLINK_LOOP)
 
 
 def _fail(prog: str, message: str) -> int:

@@ -178,12 +178,12 @@ def _data(data_dir: Path, version: str, split: str, max_samples: int | None) -> 
 
 
 
-def _check_outputs(json_path: Path | None, plot_path: Path | None, version: str, **inputs: Path | None) -> None:
+def _check_outputs(json_path: Path | None, plot_path: Path | None, **inputs: Path | None) -> None:
     """Before any work: --json / --plot must not replace an input (``inputs``: option name -> path; the dataset's
-    linked entries too, its table folder ``version`` above all) nor each other, and each needs an existing folder (and
-    --plot a format matplotlib writes)."""
+    linked entries too, its table folder above all) nor each other, and each needs an existing folder (and --plot a
+    format matplotlib writes)."""
     named = [("--" + k.replace("_", "-"), p) for k, p in inputs.items()]
-    named += dataset_inputs(inputs.get("data"), version)[1:]
+    named += dataset_inputs(inputs.get("data"))[1:]
     refuse_output_over_inputs(json_path, "--json", named)
     refuse_output_over_inputs(plot_path, "--plot", named)
     refuse_same_outputs([("--json", json_path), ("--plot", plot_path)])
@@ -238,7 +238,7 @@ def slices(export_dir, checkpoint, data_dir, version, split, max_samples, precis
     """mAP at 1, 4, 8, 16, 32 slices: the fused model beside the LiDAR-only baseline (the paper's Table 2)."""
     if baseline_export_dir is not None and baseline_checkpoint is not None:
         raise click.UsageError("give --baseline-export-dir or --baseline-checkpoint, not both")
-    _check_outputs(json_path, plot_path, version, **_inputs(export_dir, checkpoint, data_dir), baseline_export_dir=baseline_export_dir,
+    _check_outputs(json_path, plot_path, **_inputs(export_dir, checkpoint, data_dir), baseline_export_dir=baseline_export_dir,
                    baseline_checkpoint=baseline_checkpoint)  # fmt: skip
     runtime = st.RuntimeOptions(precision, threads, image_precision, providers)
     with _export(export_dir, checkpoint, runtime) as exp, _running("slices") as bar:
@@ -269,7 +269,7 @@ def slices(export_dir, checkpoint, data_dir, version, split, max_samples, precis
 def drop_camera(export_dir, checkpoint, data_dir, version, split, max_samples, precision, image_precision, providers, threads,
                 json_path, plot_path, num_slices, cameras, no_cameras) -> None:  # fmt: skip
     """mAP and per-class AP with a named camera missing at inference (the back camera by default)."""
-    _check_outputs(json_path, plot_path, version, **_inputs(export_dir, checkpoint, data_dir))
+    _check_outputs(json_path, plot_path, **_inputs(export_dir, checkpoint, data_dir))
     runtime = st.RuntimeOptions(precision, threads, image_precision, providers)
     with _export(export_dir, checkpoint, runtime) as exp, _running("drop-camera") as bar:
         result = st.drop_camera_study(exp, _data(data_dir, version, split, max_samples), cameras, runtime, num_slices, bar,
@@ -288,7 +288,7 @@ def drop_camera(export_dir, checkpoint, data_dir, version, split, max_samples, p
 def calib_noise(export_dir, checkpoint, data_dir, version, split, max_samples, precision, image_precision, providers, threads,
                 json_path, plot_path, num_slices, levels, seeds) -> None:  # fmt: skip
     """mAP under uniform camera-extrinsic noise, the LUT rebuilt for each noisy calibration, the graphs untouched."""
-    _check_outputs(json_path, plot_path, version, **_inputs(export_dir, checkpoint, data_dir))
+    _check_outputs(json_path, plot_path, **_inputs(export_dir, checkpoint, data_dir))
     runtime = st.RuntimeOptions(precision, threads, image_precision, providers)
     with _export(export_dir, checkpoint, runtime) as exp, _running("calib-noise") as bar:
         result = st.calib_noise_study(exp, _data(data_dir, version, split, max_samples), levels, seeds, runtime, num_slices, bar)
@@ -303,7 +303,7 @@ def calib_noise(export_dir, checkpoint, data_dir, version, split, max_samples, p
 def resolution(export_dir, checkpoint, data_dir, version, split, max_samples, precision, image_precision, providers, threads,
                json_path, plot_path, num_slices, resolutions) -> None:  # fmt: skip
     """mAP and image-lane latency with the camera images resized to each size (same graphs, LUT per size)."""
-    _check_outputs(json_path, plot_path, version, **_inputs(export_dir, checkpoint, data_dir))
+    _check_outputs(json_path, plot_path, **_inputs(export_dir, checkpoint, data_dir))
     runtime = st.RuntimeOptions(precision, threads, image_precision, providers)
     with _export(export_dir, checkpoint, runtime) as exp, _running("resolution") as bar:
         result = st.resolution_study(exp, _data(data_dir, version, split, max_samples), resolutions, runtime, num_slices, bar)

@@ -154,13 +154,13 @@ def test_a_linked_table_folder_is_an_input_too(tmp_path):
     data = tmp_path / "data"
     data.mkdir()
     (data / "v1.0-synth").symlink_to(tables)
-    inputs = dataset_inputs(data, "v1.0-synth")
+    inputs = dataset_inputs(data)
     assert [p for _, p in inputs] == [data, data / "v1.0-synth"]
     for out in (tables / "scene.json", tables / "new.json"):  # outside --data, inside the tables it reads
         with pytest.raises(click.BadParameter, match="v1.0-synth"):
             refuse_output_over_inputs(out, "--json", inputs)
     refuse_output_over_inputs(tmp_path / "elsewhere" / "ok.json", "--json", inputs)
-    assert dataset_inputs(tmp_path / "missing", "v1.0-synth") == [("--data", tmp_path / "missing")]
+    assert dataset_inputs(tmp_path / "missing") == [("--data", tmp_path / "missing")]
 
 
 def test_a_symlink_loop_is_an_input_error_in_one_line():
