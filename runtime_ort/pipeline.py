@@ -21,9 +21,9 @@ import numpy as np
 
 from streamdet.calibration.camera import CalibrationError
 from streamdet.core.sectors import NUM_QUADRANTS
-from streamdet.data.sample import Sample
 
-if TYPE_CHECKING:
+if TYPE_CHECKING:  # a type only: the embedded detector (warm_up imports update_by_quadrant) needs no dataset reader
+    from streamdet.data.sample import Sample
     from streamdet.runtime_ort.detector import ImageUpdate, StreamingDetector, SweepResult
     from streamdet.runtime_ort.postprocess import Detections
 

@@ -315,6 +315,21 @@ def test_detection_without_torch(export_dir):
     assert out.stdout.startswith("ok")
 
 
+def test_embedding_the_runtime_loads_no_dataset_reader():
+    """A vehicle process imports the runtime (detector, lanes, warm-up, ROS adapters) without the dataset package:
+    ``streamdet.data`` reads nuScenes tables and loads images from files, nothing the vehicle does."""
+    code = (
+        "import sys\n"
+        "from streamdet.runtime_ort import StreamingDetector, StreamingRunner, DetectorConfig\n"
+        "import streamdet.runtime_ort.warm_up, streamdet.runtime_ort.lanes, streamdet.runtime_ort.phase_locked_lane\n"
+        "import streamdet.runtime_ort.ros.pointcloud2, streamdet.runtime_ort.ros.images\n"
+        "loaded = sorted(m for m in sys.modules if m.startswith('streamdet.data') or m.split('.')[0] == 'torch')\n"
+        "assert not loaded, loaded\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+
+
 def test_run_cli_writes_results_and_picture(export_dir, tmp_path):
     from streamdet.evaluation.run_cli import main
 
