@@ -22,6 +22,7 @@ from streamdet.training.checkpoint import (
     load_encoder_weights,
     load_weights,
     read_torch_file,
+    save_atomic,
     save_weights,
 )
 from streamdet.training.trainer import TrainConfig, _load_init_weights, train
@@ -337,3 +338,26 @@ def test_resume_refuses_a_malformed_checkpoint(store, last_pt, tmp_path, name):
 def test_resume_of_a_valid_checkpoint_still_works(store, last_pt, tmp_path):
     resumed = train(_config(), "unused", tmp_path / "run", resume=last_pt, store=store, echo=lambda m: None)
     assert resumed.steps_done == 3
+
+
+def test_checkpoints_are_saved_atomically(tiny_weights, tmp_path):
+    """A checkpoint replaces a symlink at its path rather than writing through it, and a save that fails part-way
+    leaves the previous file whole and no temp file beside it."""
+    victim = tmp_path / "victim.pt"
+    victim.write_bytes(b"not yours")
+    link = tmp_path / "last.pt"
+    link.symlink_to(victim)
+    save_weights(link, TINY, build_detector(TINY))
+    assert victim.read_bytes() == b"not yours"
+    assert not link.is_symlink()
+    load_weights(link)
+    before = link.read_bytes()
+
+    class Unsaveable:
+        def __reduce__(self):
+            raise RuntimeError("disk full")
+
+    with pytest.raises(RuntimeError, match="disk full"):
+        save_atomic({"model": Unsaveable()}, link)
+    assert link.read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["last.pt", "victim.pt"]

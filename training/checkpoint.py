@@ -26,6 +26,7 @@ from typing import Any
 import torch
 
 from streamdet.core.errors import first_line
+from streamdet.core.file_output import atomic_write_file
 from streamdet.models.detector import StreamDetector, build_detector
 from streamdet.models.torch_files import (  # noqa: F401 (public here too)
     MAX_CHECKPOINT_BYTES, check_fits, check_state_dict, check_torch_zip, read_torch_file)
@@ -35,19 +36,20 @@ TRAIN_FORMAT = "streamdet-train-v1"
 WEIGHTS_FORMAT = "streamdet-weights-v1"
 
 
-def _atomic_save(obj: dict, path: str | os.PathLike) -> None:
+def save_atomic(obj: Any, path: str | os.PathLike) -> None:
+    """``torch.save(obj)`` to ``path`` the way every output file is written (core/file_output.py): a hidden temp
+    file beside it, flushed, then renamed. A crash or a kill mid-save leaves the previous checkpoint whole, and a
+    symlink at ``path`` is replaced rather than written through."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
+    atomic_write_file(path, lambda f: torch.save(obj, f))
 
 
 def save_training_state(path: str | os.PathLike, *, preset: Preset, model: StreamDetector, optimizer, scheduler,
                         step: int, epoch: int, epoch_step: int, config: dict[str, Any],
                         image_classifier: torch.nn.Module | None = None) -> None:  # fmt: skip
     extra = {} if image_classifier is None else {"image_classifier": image_classifier.state_dict()}
-    _atomic_save(
+    save_atomic(
         {
             "format": TRAIN_FORMAT,
             "preset": preset.to_dict(),
@@ -138,7 +140,7 @@ def save_weights(path: str | os.PathLike, preset: Preset, model: StreamDetector,
     obj: dict[str, Any] = {"format": WEIGHTS_FORMAT, "preset": preset.to_dict(), "model": state}
     if meta is not None:
         obj["meta"] = meta
-    _atomic_save(obj, path)
+    save_atomic(obj, path)
 
 
 def load_weights(path: str | os.PathLike) -> tuple[StreamDetector, Preset]:

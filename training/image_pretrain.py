@@ -47,7 +47,7 @@ from streamdet.models.seg_head import ImageSegmenter
 from streamdet.core.errors import first_line
 from streamdet.progress import counted
 from streamdet.training.checkpoint import (  # noqa: F401 (load_encoder_weights re-exported)
-    TRAIN_FORMAT, WEIGHTS_FORMAT, _atomic_save, check_fits, check_state_dict, load_encoder_weights, read_torch_file, save_weights)
+    TRAIN_FORMAT, WEIGHTS_FORMAT, check_fits, check_state_dict, load_encoder_weights, read_torch_file, save_atomic, save_weights)
 from streamdet.training.trainer import (
     check_device, check_max_minutes, check_out_dir, check_weights_finite, discard_unstarted_run, init_head_outputs,
     missing_folders)  # fmt: skip
@@ -372,9 +372,9 @@ def _pretrain_into(config: PretrainConfig, data_dir: str | Path, out: Path, vers
 
     def checkpoint() -> None:
         check_weights_finite(model, step)
-        _atomic_save({"model": model.state_dict(), "optimizer": optimizer.state_dict(), "step": step,
+        save_atomic({"model": model.state_dict(), "optimizer": optimizer.state_dict(), "step": step,
                       "config": dataclasses.asdict(config)}, out / "last.pt")  # fmt: skip
-        torch.save(model.encoder.state_dict(), out / "encoder.pt")
+        save_atomic(model.encoder.state_dict(), out / "encoder.pt")
         write_detector_init(out / "detector_init.pt", preset, model, config.seed)
 
     def evaluate() -> dict:
