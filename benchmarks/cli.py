@@ -31,6 +31,7 @@ from streamdet.cli_utils import (
     resolution_callback,
 )
 from streamdet.core.constants import DEFAULT_PRESET
+from streamdet.core.file_output import write_text_atomic
 from streamdet.models.presets import get_preset, preset_names
 
 QUICK_TORCH_SKIP_MS = 200.0  # --quick: PyTorch eager is timed only on rows faster than this in onnxruntime fp32
@@ -104,7 +105,7 @@ def _flops_only(preset: str, resolution: tuple[int, int] | None, json_path: Path
             "unit": "GMAC (1e9 multiply-accumulates; FLOPs = 2 x MACs)",
             "rows": [r.to_dict() for r in rows],
         }
-        _write(json_path, "--json", lambda p: p.write_text(json.dumps(doc, indent=2) + "\n"))
+        _write(json_path, "--json", lambda p: write_text_atomic(p, json.dumps(doc, indent=2) + "\n"))
 
 
 @click.command(context_settings={"help_option_names": ["-h", "--help"]})
@@ -255,6 +256,6 @@ def main(
         raise click.ClickException(str(e)) from None
     click.echo(result.text())
     if json_path is not None:
-        _write(json_path, "--json", lambda path: path.write_text(json.dumps(result.document(), indent=2) + "\n"))
+        _write(json_path, "--json", lambda path: write_text_atomic(path, json.dumps(result.document(), indent=2) + "\n"))
     if plot_path is not None:
         _write(plot_path, "--plot", lambda path: write_plot(result, path))

@@ -47,6 +47,11 @@ def atomic_write_file(path: str | os.PathLike, write: Callable[[BinaryIO], Any])
     return path
 
 
+def write_text_atomic(path: str | os.PathLike, text: str) -> Path:
+    """Write ``text`` (UTF-8) to ``path`` atomically (``atomic_write_file``); returns ``path``."""
+    return atomic_write_file(path, lambda f: f.write(text.encode("utf-8")))
+
+
 def writer_alive(pid: int) -> bool:
     """Whether the process ``pid``, named in a temporary output of its (a staging folder, a half-written cache), still
     runs: a reused pid counts as alive, so a live writer's folder is never removed, at worst a dead one's kept."""

@@ -7,7 +7,6 @@ and ``streamdet-synth stats DIR`` to measure a dataset against the real nuScenes
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import click
@@ -21,6 +20,7 @@ from streamdet.cli_utils import (
     refuse_output_over_inputs,
     refuse_same_outputs,
     resolution_callback,
+    write_json_output,
 )
 from streamdet.data.synth_staging import StagedDataset
 from streamdet.data.synth_stats import open_samples
@@ -259,7 +259,7 @@ def stats(data_dir: Path, reference_dir: Path | None, no_reference: bool, json_p
     click.echo(format_table(results[0], results[1] if len(results) > 1 else None))
     if json_path is not None:
         doc = {"data": results[0], "reference": results[1] if len(results) > 1 else None}
-        json_path.write_text(json.dumps(doc, indent=1))
+        write_json_output(json_path, doc, allow_nan=True)
         click.echo(f"  json: {json_path}")
     if plot_path is not None:
         click.echo(f"  plot: {plot_stats(plot_path, results)}")

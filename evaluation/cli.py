@@ -8,7 +8,6 @@ as one table and optionally written as JSON.
 
 from __future__ import annotations
 
-import json
 import os
 import math
 from pathlib import Path
@@ -26,6 +25,7 @@ from streamdet.cli_utils import (
     split_list,
     version_option,
     dataset_inputs,
+    write_json_output,
 )
 from streamdet.core.constants import DEFAULT_EXPORT_DIR
 from streamdet.core.errors import first_line
@@ -84,10 +84,7 @@ def _evaluate_and_report(gt: EvalBoxes, pred: EvalBoxes, classes: tuple[str, ...
     click.echo(format_table(metrics))
     _note_absent_classes(metrics, set(gt.detection_name.tolist()))
     if json_path is not None:
-        try:
-            json_path.write_text(json.dumps(metrics.to_dict(), indent=1, allow_nan=False) + "\n")
-        except (OSError, ValueError) as e:  # ValueError: a non-finite figure (allow_nan=False)
-            raise click.ClickException(f"cannot write --json {json_path}: {getattr(e, 'strerror', None) or e}") from None
+        write_json_output(json_path, metrics.to_dict())
         click.echo(f"wrote {json_path}")
 
 
@@ -134,10 +131,7 @@ def _data_inputs(data_dir: Path, version: str, split: str | None, export_dir: Pa
                "precision": detector.detector.config.precision, **lanes,
                "providers": list(detector.detector.providers),
                "export_dir": str(export_dir), "data_dir": str(data_dir), "split": split}  # fmt: skip
-        try:
-            json_path.write_text(json.dumps(doc, indent=1, allow_nan=False) + "\n")
-        except (OSError, ValueError) as e:  # ValueError: a non-finite figure (allow_nan=False)
-            raise click.ClickException(f"cannot write --json {json_path}: {getattr(e, 'strerror', None) or e}") from None
+        write_json_output(json_path, doc)
         click.echo(f"wrote {json_path}")
     if save_dir is not None:
         from streamdet.evaluation.compare import SAMPLES_FILE, write_sample_info
@@ -229,10 +223,7 @@ def _compare(run_a: str, run_b: str, gt_path: Path | None, classes: tuple[str, .
             return str(group[0]) if len(group) == 1 else [str(p) for p in group]
 
         doc = {"A": one_or_list(group_a), "B": one_or_list(group_b), "seed": seed, **comparison.to_dict()}
-        try:
-            json_path.write_text(json.dumps(doc, indent=1, allow_nan=False) + "\n")
-        except (OSError, ValueError) as e:
-            raise click.ClickException(f"cannot write --json {json_path}: {e}") from None
+        write_json_output(json_path, doc)
         click.echo(f"wrote {json_path}")
 
 

@@ -31,6 +31,7 @@ from streamdet.cli_utils import (
     version_option,
     dataset_inputs,
 )
+from streamdet.core.file_output import write_text_atomic
 from streamdet.replay.modes import MODES
 from streamdet.replay.schedule import MAX_DELIVERY_S, MAX_RATE_HZ, MAX_TIME_SCALE, MIN_RATE_HZ, MIN_TIME_SCALE
 from streamdet.replay.triggers import DEFAULT_TRIGGER, TRIGGER_MODELS
@@ -256,12 +257,12 @@ def main(
     report = format_report(result, info)
     click.echo(report)
     if json_path is not None:
-        _write(json_path, "--json", lambda p: p.write_text(json.dumps(json_report(result, info), indent=1)))
+        _write(json_path, "--json", lambda p: write_text_atomic(p, json.dumps(json_report(result, info), indent=1) + "\n"))
         click.echo(f"wrote {json_path}")
     if out_dir is not None:
         _write(out_dir, "--out", lambda p: p.mkdir(parents=True, exist_ok=True))
-        _write(out_dir / OUT_FILES[0], "--out", lambda p: p.write_text(json.dumps(details_report(result, info))))
-        _write(out_dir / OUT_FILES[1], "--out", lambda p: p.write_text(report + "\n"))
+        _write(out_dir / OUT_FILES[0], "--out", lambda p: write_text_atomic(p, json.dumps(details_report(result, info)) + "\n"))
+        _write(out_dir / OUT_FILES[1], "--out", lambda p: write_text_atomic(p, report + "\n"))
         click.echo(f"wrote {out_dir / OUT_FILES[0]} and {out_dir / OUT_FILES[1]}")
     if plot_path is not None:
         from streamdet.replay.plot import plot_replay

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import stat
@@ -12,6 +13,7 @@ import click
 
 from streamdet.core.camera_timeout import DEFAULT_CAMERA_TIMEOUT_S, MAX_CAMERA_TIMEOUT_S
 from streamdet.core.providers import parse_providers
+from streamdet.core.file_output import write_text_atomic
 from streamdet.core.constants import MAX_RESOLUTION_PX, MAX_SESSION_THREADS, MIN_RESOLUTION_PX, PRECISIONS
 from streamdet.core.sectors import MAX_NUM_SLICES
 from streamdet.core.table_version import table_version_problem
@@ -285,6 +287,16 @@ def check_plot_format(plot_path: Path | None, option: str = "--plot") -> None:
     if suffix and suffix not in formats:
         raise click.BadParameter(f"cannot write {option} {plot_path}: matplotlib has no .{suffix} format (it writes "
                                  f"{', '.join('.' + f for f in sorted(formats))})", param_hint=option)  # fmt: skip
+
+
+def write_json_output(path: Path, doc, option: str = "--json", *, indent: int | None = 1, allow_nan: bool = False) -> None:
+    """``doc`` as JSON at ``path``, written atomically (a reader never sees half a report; a symlink there is replaced,
+    not written through); a failure is one line naming the option. ``allow_nan=False`` refuses a non-finite figure,
+    which strict JSON readers reject."""
+    try:
+        write_text_atomic(path, json.dumps(doc, indent=indent, allow_nan=allow_nan) + "\n")
+    except (OSError, ValueError) as e:  # ValueError: a non-finite figure (allow_nan=False)
+        raise click.ClickException(f"cannot write {option} {path}: {getattr(e, 'strerror', None) or e}") from None
 
 
 def image_precision_option(flag: str = "--image-precision", dest: str = "image_precision"):

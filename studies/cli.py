@@ -8,7 +8,6 @@
 from __future__ import annotations
 
 import contextlib
-import json
 import math
 import re
 import tempfile
@@ -28,6 +27,7 @@ from streamdet.cli_utils import (
     providers_option,
     refuse_output_over_inputs,
     refuse_same_outputs,
+    write_json_output,
     resolution_callback,
     split_list,
 
@@ -202,10 +202,7 @@ def _inputs(export_dir: Path | None, checkpoint: Path | None, data_dir: Path) ->
 def _report(result, json_path: Path | None, plot_path: Path | None, plot: Callable) -> None:
     click.echo(result.format_table())
     if json_path is not None:
-        try:
-            json_path.write_text(json.dumps(result.to_dict(), indent=1, allow_nan=False) + "\n")
-        except (OSError, ValueError) as e:  # ValueError: a non-finite figure (allow_nan=False)
-            raise click.ClickException(f"cannot write --json {json_path}: {getattr(e, 'strerror', None) or e}") from None
+        write_json_output(json_path, result.to_dict())
         click.echo(f"wrote {json_path}")
     if plot_path is not None:
         try:

@@ -14,6 +14,7 @@ from click.testing import CliRunner
 from streamdet.benchmarks.cli import main as bench_main
 from streamdet.cli_utils import (
     MAX_RESOLUTION_PX, MIN_RESOLUTION_PX, RESOLUTION_RANGE_HELP, parse_resolution, resolution_callback, run_edge,
+    write_json_output,
 )
 from streamdet.data.synth_cli import generate as synth_generate
 from streamdet.data.synth_cli import main as synth_main
@@ -277,3 +278,20 @@ def test_the_exporters_own_resolution_check_has_the_tools_bounds(width, height):
     with pytest.raises(ExportError, match=r"must be an even number of pixels in 16..4096"):
         check_resolution(width, height)
     check_resolution(4096, 16)
+
+
+def test_json_outputs_are_written_atomically(tmp_path):
+    """Every tool's --json goes through write_json_output: a symlink at the path is replaced rather than written
+    through, a non-finite figure is a one-line error that leaves no file, and the document ends in a newline."""
+    victim = tmp_path / "victim.json"
+    victim.write_text("keep")
+    link = tmp_path / "out.json"
+    link.symlink_to(victim)
+    write_json_output(link, {"mAP": 0.5})
+    assert victim.read_text() == "keep" and not link.is_symlink()
+    assert link.read_text() == '{\n "mAP": 0.5\n}\n'
+    with pytest.raises(click.ClickException, match=r"cannot write --json .*nan.json: Out of range float"):
+        write_json_output(tmp_path / "nan.json", {"mAP": float("nan")})
+    with pytest.raises(click.ClickException, match="cannot write --out .*: No such file or directory"):
+        write_json_output(tmp_path / "missing" / "x.json", {}, "--out")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.json", "victim.json"]

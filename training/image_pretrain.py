@@ -45,6 +45,7 @@ from streamdet.models.image_encoder import ImageEncoder
 from streamdet.models.presets import Preset, get_preset
 from streamdet.models.seg_head import ImageSegmenter
 from streamdet.core.errors import first_line
+from streamdet.core.file_output import write_text_atomic
 from streamdet.progress import counted
 from streamdet.training.checkpoint import (  # noqa: F401 (load_encoder_weights re-exported)
     TRAIN_FORMAT, WEIGHTS_FORMAT, check_fits, check_state_dict, load_encoder_weights, read_torch_file, save_atomic, save_weights)
@@ -365,8 +366,8 @@ def _pretrain_into(config: PretrainConfig, data_dir: str | Path, out: Path, vers
         echo(f"resumed {resume} at step {step}")
     for path in replaced:  # overwrite: none of the old run's files may outlive it beside the new run's
         path.unlink(missing_ok=True)
-    (out / "config.json").write_text(json.dumps({"pretrain": dataclasses.asdict(config), "data": str(data_dir),
-                                                 "preset": preset.to_dict()}, indent=1) + "\n")  # fmt: skip
+    write_text_atomic(out / "config.json", json.dumps({"pretrain": dataclasses.asdict(config), "data": str(data_dir),
+                                                       "preset": preset.to_dict()}, indent=1) + "\n")  # fmt: skip
     metrics = open(out / "metrics.jsonl", "a" if resume is not None else "w")  # a resumed run continues its log
     last_eval: dict = {}
 
@@ -424,7 +425,7 @@ def _pretrain_into(config: PretrainConfig, data_dir: str | Path, out: Path, vers
     if not last_eval or last_eval.get("step") != step:
         last_eval = evaluate()
     last_eval = {**last_eval, "step": step, "finished": not stopped_early}
-    (out / "result.json").write_text(json.dumps(last_eval, indent=1) + "\n")
+    write_text_atomic(out / "result.json", json.dumps(last_eval, indent=1) + "\n")
     metrics.close()
     echo(f"{'stopped (--max-minutes / --stop-at-step)' if stopped_early else 'finished'} at step {step}: val mIoU {last_eval['mIoU']:.3f}; "
          f"wrote {out / 'encoder.pt'} and {out / 'detector_init.pt'}")  # fmt: skip

@@ -30,6 +30,7 @@ from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader, DistributedSampler, Subset
 
 from streamdet.core.errors import first_line
+from streamdet.core.file_output import write_text_atomic
 from streamdet.core.json_input import short_repr
 from streamdet.models.detector import build_detector
 from streamdet.models.presets import Preset, get_preset
@@ -719,9 +720,10 @@ def _check_optimizer_state(optimizer: torch.optim.Optimizer, path: str | Path) -
 def _write_config(run: _TrainRun, data_dir: str | Path, init: str | Path | None) -> None:
     if run.ctx.is_main:
         run.out_dir.mkdir(parents=True, exist_ok=True)
-        (run.out_dir / "config.json").write_text(json.dumps({"train": run.config.to_dict(), "preset": run.preset.to_dict(),
-                                                             "data_dir": str(data_dir), "world_size": run.ctx.world_size,
-                                                             "init": str(init) if init is not None else None}, indent=1))  # fmt: skip
+        # atomic: a config.json cut short would make the folder look like no run at all to --resume / --overwrite
+        write_text_atomic(run.out_dir / "config.json", json.dumps({"train": run.config.to_dict(), "preset": run.preset.to_dict(),
+                                                                   "data_dir": str(data_dir), "world_size": run.ctx.world_size,
+                                                                   "init": str(init) if init is not None else None}, indent=1))  # fmt: skip
 
 
 def _loop(run: _TrainRun, log_file) -> tuple[bool, float]:
