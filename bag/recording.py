@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 # transform_entry: how the Rig reads a calibration.json transform (matrix, or rotation_wxyz + translation)
+from streamdet.core.table_version import DEFAULT_TABLE_VERSION
 from streamdet.calibration.camera import (
     MAX_CALIBRATION_BYTES, Camera, CalibrationError, Rig, transform_entry, invert_transform, matrix_to_quaternion)
 from streamdet.core.json_input import read_json
@@ -79,7 +80,7 @@ class Recording:
     images: tuple[CameraImage, ...]  # time order
 
 
-def read_recording(data_dir: str | Path | None, scene: str | None = None, version: str = "v1.0-synth") -> Recording:
+def read_recording(data_dir: str | Path | None, scene: str | None = None, version: str = DEFAULT_TABLE_VERSION) -> Recording:
     """The scene ``scene`` of the nuScenes-format dataset in ``data_dir``; a folder holding ``calibration.json``
     (or None: the bundled sample) is read as the bundled real sample's one key frame.
 

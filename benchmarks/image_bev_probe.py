@@ -25,6 +25,7 @@ import click
 import numpy as np
 import torch
 
+from streamdet.core.table_version import DEFAULT_TABLE_VERSION
 from streamdet.core.sectors import quadrants_of_sector
 from streamdet.core.slicing import split_sweep
 from streamdet.data.nuscenes import NuScenesReader
@@ -108,7 +109,7 @@ def balanced_probe(x_train: np.ndarray, y_train: np.ndarray, x_test: np.ndarray,
     return float(np.mean(recalls)) if recalls else float("nan")
 
 
-def measure(checkpoint: Path, data: Path, split: str | None, max_samples: int | None, version: str = "v1.0-synth") -> dict:
+def measure(checkpoint: Path, data: Path, split: str | None, max_samples: int | None, version: str = DEFAULT_TABLE_VERSION) -> dict:
     from streamdet.calibration.lut import build_lut
 
     model, preset = load_weights(checkpoint)

@@ -17,6 +17,7 @@ import click
 import cv2
 import numpy as np
 
+from streamdet.core.table_version import DEFAULT_TABLE_VERSION
 from streamdet.calibration.lut import build_lut
 from streamdet.calibration.lut_coverage import object_coverage
 from streamdet.cli_utils import FiniteFloatRange
@@ -42,7 +43,7 @@ def sample_masks(sample, size: tuple[int, int]) -> tuple[list[np.ndarray], dict[
 
 
 def measure(data: Path, preset_name: str, heights: list[int], classes: list[str], range_m: float,
-            max_samples: int | None, version: str = "v1.0-synth") -> dict:  # fmt: skip
+            max_samples: int | None, version: str = DEFAULT_TABLE_VERSION) -> dict:  # fmt: skip
     preset = get_preset(preset_name)
     size = (preset.image.width_px, preset.image.height_px)
     reader = NuScenesReader(data, version)

@@ -14,6 +14,7 @@ from pathlib import Path
 import click
 import numpy as np
 
+from streamdet.core.table_version import DEFAULT_TABLE_VERSION
 from streamdet.cli_utils import camera_terms_option
 from streamdet.replay.nuscenes_source import DatasetTables, load_drive
 from streamdet.replay.run import split_scenes
@@ -26,7 +27,7 @@ def quadrant_parity(data: Path, export_dir: Path, image_precision: str | None, e
     boxes_parts} over every ``every``-th sweep; ``camera_terms``: the per-quadrant detector's
     ``DetectorConfig.camera_terms`` (False: the lifter graph, bit for bit the full update's function)."""
     config = DetectorConfig(precision="fp32", image_lane_precision=image_precision)
-    tables = DatasetTables(data, "v1.0-synth")
+    tables = DatasetTables(data, DEFAULT_TABLE_VERSION)
     full = StreamingDetector(export_dir, dataclasses.replace(config, camera_terms=False))
     parts = StreamingDetector(export_dir, dataclasses.replace(config, camera_terms=camera_terms))
     out = {"sweeps": 0, "identical": 0, "max_bev_diff": 0.0, "max_box_diff": 0.0, "max_score_diff": 0.0,

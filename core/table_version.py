@@ -8,6 +8,7 @@ very table being read; so the name is checked once, here, for the reader (``data
 
 from __future__ import annotations
 
+DEFAULT_TABLE_VERSION = "v1.0-synth"  # the table folder streamdet-synth writes and every tool reads by default
 MAX_NAME_BYTES = 255  # one file-system name (NAME_MAX on Linux and macOS)
 
 

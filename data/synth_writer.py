@@ -53,7 +53,7 @@ from streamdet.calibration.lut import ASPECT_TOLERANCE, check_rig_fits
 from streamdet.core.classes import CLASS_NAMES
 from streamdet.core.constants import MAX_RESOLUTION_PX, MIN_RESOLUTION_PX, STEM_STRIDE
 from streamdet.core.json_input import read_json
-from streamdet.core.table_version import table_version_problem
+from streamdet.core.table_version import DEFAULT_TABLE_VERSION, table_version_problem
 from streamdet.data.sample import POINT_TIME_SUFFIX, bundled_sample_dir
 from streamdet.data.synth_lidar import LidarConfig, SimSweep, simulate_sweep
 from streamdet.data.synth_render import CameraModel, Render, render_camera, shadow_raster
@@ -72,7 +72,7 @@ from streamdet.data.synth_world import (
 )
 
 
-DEFAULT_VERSION = "v1.0-synth"
+DEFAULT_VERSION = DEFAULT_TABLE_VERSION
 MASK_SUFFIX = ".mask.npz"  # beside each image: per-pixel class and instance of the annotated objects
 LIDAR_CHANNEL = "LIDAR_TOP"
 # Kind -> index into CLASS_NAMES for the annotated kinds (255 for the others).

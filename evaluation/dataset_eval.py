@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from streamdet.core.table_version import DEFAULT_TABLE_VERSION
 from streamdet.data.nuscenes import NuScenesReader
 from streamdet.data.sample import Sample
 from streamdet.data.splits import split_sample_tokens
@@ -70,7 +71,7 @@ def prediction_entries(sample: Sample, dets: Detections, max_boxes: int) -> list
 def evaluate_dataset(
     detect: SweepDetector,
     root: str | Path,
-    version: str = "v1.0-synth",
+    version: str = DEFAULT_TABLE_VERSION,
     split: str | None = "val",
     classes: Sequence[str] | None = None,
     max_samples: int | None = None,

@@ -14,6 +14,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from streamdet.core.table_version import DEFAULT_TABLE_VERSION
 from streamdet.calibration.camera import CalibrationError
 from streamdet.data.splits import SplitsFileMissing
 from streamdet.data.splits import split_scenes as data_split_scenes
@@ -41,7 +42,7 @@ WARM_UP_TIMESTAMP_S = -1e9  # earlier than player.WARM_UP_BEFORE_S: the player k
 class ReplayConfig:
     data: Path  # nuScenes-format dataset root
     export_dir: Path
-    version: str = "v1.0-synth"
+    version: str = DEFAULT_TABLE_VERSION
     split: str | None = "val"  # scenes of splits.json; None: every scene
     scenes: int | None = None  # the first N scenes of the split; None: all
     precision: str = "fp32"  # the slice graph's

@@ -16,7 +16,7 @@ from streamdet.core.providers import parse_providers
 from streamdet.core.file_output import write_text_atomic
 from streamdet.core.constants import MAX_RESOLUTION_PX, MAX_SESSION_THREADS, MIN_RESOLUTION_PX, PRECISIONS
 from streamdet.core.sectors import MAX_NUM_SLICES
-from streamdet.core.table_version import table_version_problem
+from streamdet.core.table_version import DEFAULT_TABLE_VERSION, table_version_problem
 
 # Every tool that takes an image size spells it the same way, within the same bounds (core/constants.py).
 RESOLUTION_HELP = "WIDTHxHEIGHT in pixels, such as 800x450"
@@ -386,7 +386,7 @@ def _version_callback(ctx, param, value):
     return value
 
 
-def version_option(dest: str = "version", default: str = "v1.0-synth", help: str = "Table folder of the dataset under --data."):
+def version_option(dest: str = "version", default: str = DEFAULT_TABLE_VERSION, help: str = "Table folder of the dataset under --data."):
     """``--version``: the dataset's table folder, one plain folder name under the dataset root (core/table_version.py)."""
     return click.option("--version", dest, default=default, show_default=True, callback=_version_callback, help=help)
 

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from streamdet.core.table_version import DEFAULT_TABLE_VERSION
 from streamdet.core.sectors import check_num_slices
 from streamdet.data.nuscenes import NuScenesReader
 from streamdet.data.sample import Sample
@@ -42,7 +43,7 @@ class StudyData:
     """Which samples a study scores."""
 
     root: Path  # dataset root (nuScenes layout, with splits.json for a named split)
-    version: str = "v1.0-synth"  # table folder
+    version: str = DEFAULT_TABLE_VERSION  # table folder
     split: str | None = "val"  # a split of root/splits.json; None: every sample
     max_samples: int | None = None  # the first N samples of the split; None: all
 

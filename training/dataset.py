@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from streamdet.core.table_version import DEFAULT_TABLE_VERSION
 from streamdet.calibration.camera import Rig
 from streamdet.calibration.sectors import cameras_overlapping_sector
 from streamdet.core.boxes import BOX_DIM
@@ -124,7 +125,7 @@ def build_store(
     root: str | Path,
     split: str,
     image_size: tuple[int, int] | None,
-    version: str = "v1.0-synth",
+    version: str = DEFAULT_TABLE_VERSION,
     cache_dir: str | Path | None = None,
     progress=None,
     echo: Callable[[str], None] | None = None,

@@ -32,6 +32,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from streamdet.core.table_version import DEFAULT_TABLE_VERSION
 from streamdet.calibration.camera import CalibrationError
 from streamdet.calibration.lut import check_rig_fits
 from streamdet.core.classes import CLASS_NAMES, NUM_CLASSES
@@ -182,7 +183,7 @@ def _check_mask_headers(headers: dict[str, NpyHeader], infos: dict, path: Path, 
 
 
 def load_masked_images(root: str | Path, split: str | None, size: tuple[int, int], range_m: float,
-                       version: str = "v1.0-synth", max_samples: int | None = None,
+                       version: str = DEFAULT_TABLE_VERSION, max_samples: int | None = None,
                        progress: Callable[[int, int], None] | None = None) -> MaskedImages:  # fmt: skip
     """Every camera image of the split's samples at ``size`` (W, H), with its labels; a missing mask is an error."""
     reader = NuScenesReader(root, version)
@@ -313,7 +314,7 @@ def _check_resume(state: object, resume: str | Path, config: PretrainConfig, mod
     check_fits(model.state_dict(), weights, resume, "--resume checkpoint", f"the image segmenter of preset {config.preset!r}")
 
 
-def pretrain(config: PretrainConfig, data_dir: str | Path, out_dir: str | Path, version: str = "v1.0-synth",
+def pretrain(config: PretrainConfig, data_dir: str | Path, out_dir: str | Path, version: str = DEFAULT_TABLE_VERSION,
              resume: str | Path | None = None, device: str = "cpu", echo: Callable[[str], None] = print,
              max_samples: int | None = None, splits: tuple[str | None, str | None] = ("train", "val"),
              overwrite: bool = False) -> dict:  # fmt: skip

@@ -29,6 +29,7 @@ import torch
 from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader, DistributedSampler, Subset
 
+from streamdet.core.table_version import DEFAULT_TABLE_VERSION
 from streamdet.core.errors import first_line
 from streamdet.core.file_output import write_text_atomic
 from streamdet.core.json_input import short_repr
@@ -467,7 +468,7 @@ def train(
     data_dir: str | Path,
     out_dir: str | Path,
     *,
-    version: str = "v1.0-synth",
+    version: str = DEFAULT_TABLE_VERSION,
     resume: str | Path | None = None,
     init: str | Path | None = None,
     cache_dir: str | Path | None = None,
