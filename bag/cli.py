@@ -29,6 +29,7 @@ from streamdet.cli_utils import (
 
     version_option,
     dataset_inputs,
+    require_export_dir,
 )
 from streamdet.progress import counted
 
@@ -112,8 +113,7 @@ def run_cmd(bag_path: Path, export_dir: Path, out: Path, results_json: Path | No
     """Detect every LiDAR message of a bag in recorded order (images first when new ones arrived) and write the
     detections per slice as ROS 2 topics, stamped with the slice's scan time, plus the nuScenes results JSON."""
     logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(message)s")
-    if not (export_dir / "manifest.json").exists():  # a FIFO or a folder: the manifest reader names it
-        raise click.ClickException(f"{export_dir} holds no manifest.json: run `streamdet-export --out {export_dir}` first")
+    require_export_dir(export_dir)
     from streamdet.bag.run import RunConfig, results_path_of, run_bag
     from streamdet.bag.topics import TopicMap
     from streamdet.runtime_ort.stats import format_latency

@@ -17,6 +17,7 @@ BUNDLED_CALIBRATION_SOURCE = BUNDLED_SAMPLE_SOURCE + "/calibration.json"
 EXPORTS_ROOT = "exports"  # streamdet-export writes EXPORTS_ROOT/<preset> without --out
 DEFAULT_PRESET = "small_v3"
 DEFAULT_EXPORT_DIR = f"{EXPORTS_ROOT}/{DEFAULT_PRESET}"
+MANIFEST_NAME = "manifest.json"  # what makes a folder an export (runtime_ort/manifest.py reads and writes it)
 
 # The image sizes the tools run at (export, bench, synth, study): each side 16..4096 px. 4096 px is 2.5x nuScenes'
 # 1600x900 (a 4K camera fits); past it a tool's image tensors alone run to gigabytes (30000x30000 asked the export

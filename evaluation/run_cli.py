@@ -13,7 +13,8 @@ from pathlib import Path
 import click
 import numpy as np
 
-from streamdet.cli_utils import MAX_SLICES, PRECISION_CHOICES, image_precision_option, providers_option, refuse_output_over_inputs
+from streamdet.cli_utils import (
+    MAX_SLICES, PRECISION_CHOICES, image_precision_option, providers_option, refuse_output_over_inputs, require_export_dir)
 from streamdet.runtime_ort.stats import format_latency
 from streamdet.core import constants
 
@@ -112,8 +113,7 @@ def main(
 ) -> None:
     """Run the streaming detector (onnxruntime, no PyTorch) on one sample: every slice, then the sweep merged."""
     logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(message)s")
-    if not (export_dir / "manifest.json").exists():  # a FIFO or a folder: the manifest reader names it
-        raise click.ClickException(f"{export_dir} holds no manifest.json: run `streamdet-export --out {export_dir}` first")
+    require_export_dir(export_dir)
     from streamdet.data.sample import bundled_sample_dir
 
     # --out inside the sample (the bundled one by default) or the export would add files to what others read

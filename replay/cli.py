@@ -30,6 +30,7 @@ from streamdet.cli_utils import (
 
     version_option,
     dataset_inputs,
+    require_export_dir,
 )
 from streamdet.core.file_output import write_text_atomic
 from streamdet.replay.modes import MODES
@@ -223,8 +224,7 @@ def main(
 
     inputs = [*dataset_inputs(data), ("--export-dir", export_dir), ("--fallback-export", fallback_export_dir)]
     _check_outputs(json_path, plot_path, out_dir, inputs)
-    if not (export_dir / "manifest.json").exists():  # a FIFO or a folder: the manifest reader names it
-        raise click.ClickException(f"{export_dir} holds no manifest.json: run `streamdet-export --out {export_dir}` first")
+    require_export_dir(export_dir)
     if not (data / table_version).is_dir():
         raise click.ClickException(f"{data / table_version} does not exist: --data must be a nuScenes-format dataset root")
     _refuse_image_lane_options(click.get_current_context(), export_dir)

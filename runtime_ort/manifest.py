@@ -59,7 +59,7 @@ from pathlib import Path
 from typing import Any, BinaryIO, Callable
 
 from streamdet.calibration.lut_file import MAX_LUT_FILE_BYTES
-from streamdet.core.constants import PRECISIONS
+from streamdet.core.constants import MANIFEST_NAME, PRECISIONS
 from streamdet.core.file_input import InputFileError, read_regular_file
 from streamdet.core.file_output import atomic_write_file
 from streamdet.core.image_layout import IMAGE_BEV, IMAGE_HALF, IMAGE_LAYOUTS
@@ -67,7 +67,6 @@ from streamdet.core.lut_layout import LUT_LAYOUTS, LUT_SLOTS
 from streamdet.runtime_ort.schema import SchemaViolation, validate
 
 MANIFEST_VERSION = 1
-MANIFEST_NAME = "manifest.json"
 LUT_NAME = "lut.npz"
 GRAPH_NAMES: tuple[str, ...] = ("image_encoder", "volumetric_lifter", "slice_head")
 IMAGE_GRAPH_NAMES: tuple[str, ...] = ("image_encoder", "volumetric_lifter")  # the image lane; absent when LiDAR-only

@@ -14,7 +14,7 @@ import click
 from streamdet.core.camera_timeout import DEFAULT_CAMERA_TIMEOUT_S, MAX_CAMERA_TIMEOUT_S
 from streamdet.core.providers import parse_providers
 from streamdet.core.file_output import write_text_atomic
-from streamdet.core.constants import MAX_RESOLUTION_PX, MAX_SESSION_THREADS, MIN_RESOLUTION_PX, PRECISIONS
+from streamdet.core.constants import MANIFEST_NAME, MAX_RESOLUTION_PX, MAX_SESSION_THREADS, MIN_RESOLUTION_PX, PRECISIONS
 from streamdet.core.sectors import MAX_NUM_SLICES
 from streamdet.core.table_version import DEFAULT_TABLE_VERSION, table_version_problem
 
@@ -287,6 +287,15 @@ def check_plot_format(plot_path: Path | None, option: str = "--plot") -> None:
     if suffix and suffix not in formats:
         raise click.BadParameter(f"cannot write {option} {plot_path}: matplotlib has no .{suffix} format (it writes "
                                  f"{', '.join('.' + f for f in sorted(formats))})", param_hint=option)  # fmt: skip
+
+
+def require_export_dir(export_dir: Path, hint: str | None = None) -> None:
+    """A one-line error (exit 1) before any work unless ``export_dir`` holds a manifest; ``hint``: how to make one
+    (default: the streamdet-export command for that folder). A manifest that is a FIFO or a folder is named by the
+    manifest reader later."""
+    if not (export_dir / MANIFEST_NAME).exists():
+        hint = f"run `streamdet-export --out {export_dir}` first" if hint is None else hint
+        raise click.ClickException(f"{export_dir} holds no {MANIFEST_NAME}: {hint}")
 
 
 def write_json_output(path: Path, doc, option: str = "--json", *, indent: int | None = 1, allow_nan: bool = False) -> None:

@@ -33,6 +33,7 @@ from streamdet.cli_utils import (
 
     version_option,
     dataset_inputs,
+    require_export_dir,
 )
 from streamdet.core import constants
 from streamdet.core.constants import PRECISIONS
@@ -157,9 +158,8 @@ def _export(export_dir: Path | None, checkpoint: Path | None, runtime: st.Runtim
         raise click.UsageError("give --export-dir or --checkpoint, not both")
     if checkpoint is None:
         path = export_dir if export_dir is not None else DEFAULT_EXPORT_DIR
-        if not (path / "manifest.json").exists():  # a FIFO or a folder: the manifest reader names it
-            hint = " (make it with streamdet-export or pass --checkpoint)" if export_dir is None else ""
-            raise click.BadParameter(f"{path} holds no manifest.json: not an export directory{hint}", param_hint="--export-dir")
+        require_export_dir(path, f"not an export directory (make it with `streamdet-export --out {path}`"
+                                 + (" or pass --checkpoint)" if export_dir is None else ")"))
         yield path
         return
     if not checkpoint.is_file():
