@@ -160,12 +160,11 @@ def _warm_up(fn: Callable[[], object], config: TimingConfig) -> bool:
 
 
 def ort_session(model_or_path, threads: int = 1):
-    """An onnxruntime CPU session of a graph file or an in-memory ``onnx.ModelProto``, with explicit options:
-    ``threads`` intra-op threads, one inter-op thread (the benchmarks' graph timings)."""
-    import onnxruntime as ort
+    """An onnxruntime CPU session of a graph file or an in-memory ``onnx.ModelProto`` with ``threads`` intra-op
+    threads, opened with the runtime's own options (``runtime_ort.sessions.session_options``: optimisation level,
+    sequential execution, no spinning), so a graph is timed as the vehicle runs it."""
+    from streamdet.runtime_ort.sessions import CPU_ONLY, SessionConfig
+    from streamdet.runtime_ort.sessions import ort_session as runtime_session
 
-    opts = ort.SessionOptions()
-    opts.intra_op_num_threads = threads
-    opts.inter_op_num_threads = 1
-    src = model_or_path.SerializeToString() if hasattr(model_or_path, "SerializeToString") else str(model_or_path)
-    return ort.InferenceSession(src, opts, providers=["CPUExecutionProvider"])
+    src = model_or_path.SerializeToString() if hasattr(model_or_path, "SerializeToString") else model_or_path
+    return runtime_session(src, SessionConfig(providers=CPU_ONLY, intra_op_threads=threads))
