@@ -15,8 +15,8 @@ The presets:
   MACs and parameters of ResNet-18 (a checkpoint is ~13 MB) and cannot load torchvision's ImageNet
   weights, which it never does anyway (nothing is downloaded): its encoder is trained here, from scratch or from
   ``streamdet-train-image`` on the synthetic world's masks. The
-  graphs take any image size, so ``streamdet-bench --resolution 800x450`` still runs it. One quadrant of the slice
-  graph is about 0.43 GMAC (benchmarks/flops_report.py).
+  graphs take any image size, so ``streamdet-bench --resolution 800x450`` still runs it. The slice graph's GMAC
+  per quadrant: ``streamdet-bench --flops-only`` (benchmarks/flops_report.py).
 - ``tiny``: for unit tests; every size minimal so a forward and backward pass take milliseconds.
 - ``small_v2``: ``small`` with the camera-lane options of issue 19 on (frozen backbone BatchNorm after image
   pretraining, image BEV normalised at fusion, two LUT heights per voxel) and the flat lifter (2D convolutions over

@@ -370,8 +370,9 @@ def init_head_outputs(detector, std: float = HEAD_OUTPUT_INIT_STD) -> None:
     """Draw every head branch's output conv from N(0, std), keeping its bias (the heatmap's is the prior).
 
     The focal-loss paper's rule (RetinaNet, Lin et al. 2017). With the head's kaiming init, the few occupied
-    cells of a sparse slice map come out of batch norm as 10-20 sigma outliers, so the first heatmap holds
-    logits near +20 and the first hundred steps only undo that (loss ~1000, gradients clipped from ~1e4).
+    cells of a sparse slice map come out of batch norm as outliers of many sigma, so the first heatmap holds large
+    positive logits and the first steps only undo that (a loss orders of magnitude above a trained one, every
+    gradient clipped).
     """
     with torch.no_grad():
         for task in detector.slice_net.head.tasks:
