@@ -23,7 +23,7 @@ from streamdet.calibration.lut_coverage import object_coverage
 from streamdet.cli_utils import FiniteFloatRange
 from streamdet.core.classes import CLASS_NAMES
 from streamdet.data.nuscenes import NuScenesReader
-from streamdet.data.synth_writer import MASK_SUFFIX
+from streamdet.data.synth_masks import mask_path, read_mask
 from streamdet.models.presets import get_preset
 from streamdet.progress import progressbar
 
@@ -34,10 +34,9 @@ def sample_masks(sample, size: tuple[int, int]) -> tuple[list[np.ndarray], dict[
     """Per camera the instance mask resized (nearest) to ``size`` (W, H), and instance token -> mask id."""
     masks, ids = [], {}
     for name in sample.rig.names:
-        path = Path(str(sample.image_paths[name]) + MASK_SUFFIX)
-        with np.load(path, allow_pickle=False) as z:
-            inst = z["instance"]
-            ids.update({str(t): int(i) for t, i in zip(z["tokens"], z["ids"])})
+        cam = sample.rig.camera(name)
+        _, inst, mask_ids, tokens = read_mask(mask_path(sample.image_paths[name]), cam.height, cam.width)
+        ids.update({str(t): int(i) for t, i in zip(tokens, mask_ids)})
         masks.append(cv2.resize(inst, size, interpolation=cv2.INTER_NEAREST))
     return masks, ids
 

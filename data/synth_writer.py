@@ -7,17 +7,8 @@
 ``<file>.time`` (float32 per point, the firing time after the sweep start) is a streamdet extension that the
 devkit ignores and ``NuScenesReader`` returns as ``Sample.point_time_s``.
 
-Beside each image ``<file>.jpg`` a ``<file>.jpg.mask.npz`` (numpy ``savez_compressed``; the devkit ignores it) holds
-the per-pixel object masks the renderer knows, at the image's resolution:
-
-    class_id      (H, W) uint8   index into CLASS_NAMES of the annotated object seen there, 255 where none
-                                 (ground, sky, buildings, the unannotated look-alikes, and objects this key frame
-                                 does not annotate: those beyond ``annotation_range_m``)
-    instance      (H, W) uint16  1 + the object's number in its scene, 0 where none; one object keeps its number
-                                 in every camera and key frame of the scene
-    ids           (M,) uint16    the instance numbers present in this image
-    tokens        (M,) str       their nuScenes instance tokens (the ``instance`` table; each has a
-                                 ``sample_annotation`` in this key frame), in the order of ``ids``
+Beside each image ``<file>.jpg`` a ``<file>.jpg.mask.npz`` (the devkit ignores it) holds the per-pixel object masks
+the renderer knows, at the image's resolution: ``data/synth_masks.py`` defines the format.
 
 ``DIR/world.json`` names the world version (``synth_world.WORLD_VERSION``) and, per scene, its start time, roads
 and look-alike distractors (read by ``streamdet-synth stats``).
@@ -56,6 +47,7 @@ from streamdet.core.json_input import read_json
 from streamdet.core.table_version import DEFAULT_TABLE_VERSION, table_version_problem
 from streamdet.data.sample import POINT_TIME_SUFFIX, bundled_sample_dir
 from streamdet.data.synth_lidar import LidarConfig, SimSweep, simulate_sweep
+from streamdet.data.synth_masks import MASK_NONE, MASK_SUFFIX, mask_path, write_mask  # noqa: F401 (MASK_SUFFIX re-exported)
 from streamdet.data.synth_render import CameraModel, Render, render_camera, shadow_raster
 from streamdet.data.synth_trajectories import TRAJECTORIES_FILE, write_trajectories
 from streamdet.data.synth_world import (
@@ -73,7 +65,6 @@ from streamdet.data.synth_world import (
 
 
 DEFAULT_VERSION = DEFAULT_TABLE_VERSION
-MASK_SUFFIX = ".mask.npz"  # beside each image: per-pixel class and instance of the annotated objects
 LIDAR_CHANNEL = "LIDAR_TOP"
 # Kind -> index into CLASS_NAMES for the annotated kinds (255 for the others).
 CLASS_OF_KIND = np.array([CLASS_NAMES.index(s.detection_class) if s.detection_class else 255 for s in KIND_SPECS], dtype=np.uint8)
@@ -630,7 +621,8 @@ class _Tables:
         self.rows["sample_data"].append(row)
 
     def write_mask(self, image_path: Path, scene: Scene, object_id: np.ndarray, frame_annotated: np.ndarray) -> Path:
-        """``<image>.mask.npz`` beside the image: class and instance of the annotated object at every pixel.
+        """``<image>.mask.npz`` beside the image (``data/synth_masks.py``): class and instance of the annotated object at
+        every pixel.
 
         Annotated means annotated in this key frame (``frame_annotated``, the indices ``annotations`` writes boxes
         for): an object of an annotated kind beyond ``annotation_range_m`` has no box here and is none (255), as a
@@ -640,15 +632,12 @@ class _Tables:
         boxed = np.zeros(len(kinds), dtype=bool)
         boxed[np.asarray(frame_annotated, dtype=np.int64)] = True
         annotated = (object_id >= 0) & boxed[np.maximum(object_id, 0)]
-        class_id = np.full(object_id.shape, 255, dtype=np.uint8)
+        class_id = np.full(object_id.shape, MASK_NONE, dtype=np.uint8)
         class_id[annotated] = CLASS_OF_KIND[kinds[object_id[annotated]]]
         instance = np.where(annotated, object_id + 1, 0).astype(np.uint16)
         ids = np.unique(instance[instance > 0])
         tokens = np.array([self.tok("instance", scene.name, int(i) - 1) for i in ids], dtype=np.str_)
-        path = image_path.with_name(image_path.name + MASK_SUFFIX)
-        with open(path, "wb") as f:
-            np.savez_compressed(f, class_id=class_id, instance=instance, ids=ids.astype(np.uint16), tokens=tokens)
-        return path
+        return write_mask(mask_path(image_path), class_id, instance, ids, tokens)
 
     def annotations(self, scene: Scene, sample_token: str, frame: SimFrame) -> None:
         objs = scene.objects

@@ -1,7 +1,7 @@
 """Image pretraining on the synthetic world's per-pixel masks: the detector's image encoder + a segmentation head.
 
 The analogue of the paper's pretrained backbone (issue 19). Every camera image of the train split, with its
-``<image>.mask.npz`` (``data/synth_writer.py``: ``class_id`` per pixel, 255 = no annotated object), is a training
+``<image>.mask.npz`` (``data/synth_masks.py``: ``class_id`` per pixel, 255 = no annotated object), is a training
 example; labels are 0 = background and 1 + class index. A batch mixes images of different samples, so the
 backbone's BatchNorm (if the preset's is "batch" or "frozen_batch") sees varied statistics here and can be
 frozen afterwards.
@@ -21,8 +21,6 @@ import dataclasses
 import json
 import math
 import time
-import zipfile
-import zlib
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -36,11 +34,10 @@ from streamdet.core.table_version import DEFAULT_TABLE_VERSION
 from streamdet.calibration.camera import CalibrationError
 from streamdet.calibration.lut import check_rig_fits
 from streamdet.core.classes import CLASS_NAMES, NUM_CLASSES
-from streamdet.core.npz_input import NpyHeader, check_member_size, npy_header
 from streamdet.data.nuscenes import NuScenesReader
 from streamdet.data.sample import load_image
 from streamdet.data.splits import split_sample_tokens
-from streamdet.data.synth_writer import MASK_SUFFIX
+from streamdet.data.synth_masks import MASK_NONE, mask_path, read_mask  # noqa: F401 (read_mask re-exported)
 from streamdet.models.detector import build_detector
 from streamdet.models.image_encoder import ImageEncoder
 from streamdet.models.presets import Preset, get_preset
@@ -56,12 +53,6 @@ from streamdet.training.trainer import (
 
 NUM_LABELS = NUM_CLASSES + 1  # 0 = background
 IGNORE = 255
-MASK_NONE = 255  # a mask's class_id where no annotated object is (data/synth_writer.py)
-# The mask members read, and the most ids (instances) one mask may list: the writer stores instance ids as uint16, and
-# a token is a short hash. With the maps tied to the image's (H, W), these bound what a load can allocate.
-MASK_MEMBERS = ("class_id", "instance", "ids", "tokens")
-MAX_MASK_IDS = 1 << 16
-MAX_MASK_TOKEN_CHARS = 256
 # What a streamdet-train-image run leaves in --out: a new run there without --resume would replace (or append to) it.
 PRETRAIN_RUN_FILES = ("last.pt", "encoder.pt", "detector_init.pt", "metrics.jsonl", "result.json")
 
@@ -125,63 +116,6 @@ class MaskedImages:
         return len(self.images)
 
 
-def read_mask(path: str | Path, height: int, width: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(class_id, instance, ids, tokens) of a ``<image>.mask.npz`` for an image of ``height`` x ``width`` pixels.
-
-    Checked from the zip directory and the ``.npy`` headers before anything is inflated (as calibration/lut_file.py
-    checks a lut.npz): a mask is an .npz from the dataset folder, and a small one can declare gigabytes. class_id and
-    instance must be integer maps of exactly the image's (H, W), ids and tokens lists of equal length (at most
-    MAX_MASK_IDS), each member exactly its header plus its data (not truncated or padded), no object (pickled) dtype.
-    Then the contents: class ids 0..NUM_CLASSES-1 or MASK_NONE, instance and ids >= 0. Any failure is a one-line
-    ValueError naming the file."""
-    path = Path(path)
-    try:
-        with zipfile.ZipFile(path) as zf:
-            names = [i.filename for i in zf.infolist()]
-            repeated = sorted({n for n in names if names.count(n) > 1})
-            missing = [m for m in MASK_MEMBERS if f"{m}.npy" not in names]
-            if repeated or missing:
-                raise ValueError(f"mask {path}: missing member(s) {missing}, repeated {repeated}; a mask holds {list(MASK_MEMBERS)}")
-            infos = {m: zf.getinfo(f"{m}.npy") for m in MASK_MEMBERS}  # other members are never read
-            headers = {m: npy_header(zf, infos[m]) for m in MASK_MEMBERS}  # core/npz_input.py
-            _check_mask_headers(headers, infos, path, height, width)
-            arrays = {}
-            for m in MASK_MEMBERS:
-                with zf.open(infos[m]) as f:
-                    arrays[m] = np.lib.format.read_array(f, allow_pickle=False)  # bounded by the checked header
-    except (OSError, EOFError, zipfile.BadZipFile, zipfile.LargeZipFile, zlib.error, KeyError) as e:
-        raise ValueError(f"mask {path}: not a readable .npz: {first_line(e)}") from None
-    except ValueError as e:
-        msg = first_line(e)
-        raise ValueError(msg if msg.startswith(f"mask {path}") else f"mask {path}: not a readable .npz: {msg}") from None
-    class_id, instance, ids, tokens = (arrays[m] for m in MASK_MEMBERS)
-    bad = (class_id < 0) | ((class_id >= NUM_CLASSES) & (class_id != MASK_NONE))
-    if bad.any():
-        raise ValueError(f"mask {path}: class_id {int(class_id[bad].flat[0])} at {int(bad.sum())} pixel(s); class ids are "
-                         f"0..{NUM_CLASSES - 1} ({NUM_CLASSES} classes) or {MASK_NONE} (no object)")  # fmt: skip
-    for name, arr in (("instance", instance), ("ids", ids)):
-        if arr.size and arr.min() < 0:
-            raise ValueError(f"mask {path}: {name} holds a negative id ({int(arr.min())})")
-    return class_id, instance, ids, tokens
-
-
-def _check_mask_headers(headers: dict[str, NpyHeader], infos: dict, path: Path, height: int, width: int) -> None:
-    for m in ("class_id", "instance"):
-        shape, dtype = headers[m].shape, headers[m].dtype
-        if shape != (height, width) or dtype.kind not in "iu":
-            raise ValueError(f"mask {path}: {m} must be an integer map of the image's shape ({height}, {width}), got "
-                             f"{dtype} {shape}")  # fmt: skip
-    ids_shape, ids_dtype = headers["ids"].shape, headers["ids"].dtype
-    tok_shape, tok_dtype = headers["tokens"].shape, headers["tokens"].dtype
-    if len(ids_shape) != 1 or ids_dtype.kind not in "iu" or ids_shape[0] > MAX_MASK_IDS:
-        raise ValueError(f"mask {path}: ids must be a list of at most {MAX_MASK_IDS} integers, got {ids_dtype} {ids_shape}")
-    if tok_shape != ids_shape or tok_dtype.kind != "U" or tok_dtype.itemsize > 4 * MAX_MASK_TOKEN_CHARS:
-        raise ValueError(f"mask {path}: tokens must be {ids_shape[0]} strings (one per id) of at most {MAX_MASK_TOKEN_CHARS} "
-                         f"characters, got {tok_dtype} {tok_shape}")  # fmt: skip
-    for m in MASK_MEMBERS:
-        check_member_size(infos[m], headers[m])  # the zip reader never inflates past it: this bounds the read
-
-
 def load_masked_images(root: str | Path, split: str | None, size: tuple[int, int], range_m: float,
                        version: str = DEFAULT_TABLE_VERSION, max_samples: int | None = None,
                        progress: Callable[[int, int], None] | None = None) -> MaskedImages:  # fmt: skip
@@ -201,14 +135,14 @@ def load_masked_images(root: str | Path, split: str | None, size: tuple[int, int
         dist = {t: float(np.hypot(*b[:2])) for t, b in zip(sample.instance_tokens, sample.gt_boxes)}
         for name in sample.rig.names:
             path = Path(sample.image_paths[name])
-            mask_path = path.with_name(path.name + MASK_SUFFIX)
-            if not mask_path.is_file():
-                if mask_path.exists():  # a FIFO would block the zip reader
-                    raise ValueError(f"mask {mask_path} is not a regular file (a FIFO, a device or a folder?)")
-                raise FileNotFoundError(f"{mask_path} is missing: image pretraining needs the world's masks (world version 2)")
+            mask = mask_path(path)
+            if not mask.is_file():
+                if mask.exists():  # a FIFO would block the zip reader
+                    raise ValueError(f"mask {mask} is not a regular file (a FIFO, a device or a folder?)")
+                raise FileNotFoundError(f"{mask} is missing: image pretraining needs the world's masks (world version 2)")
             cam = sample.rig.camera(name)
             image = load_image(path, size, expected_size=(cam.width, cam.height))  # the mask is at the camera's size
-            class_id, instance, ids, inst_tokens = read_mask(mask_path, cam.height, cam.width)
+            class_id, instance, ids, inst_tokens = read_mask(mask, cam.height, cam.width)
             label = np.where(class_id == MASK_NONE, 0, class_id.astype(np.int64) + 1).astype(np.uint8)
             far_ids = [int(k) for k, t in zip(ids, inst_tokens) if dist.get(str(t), math.inf) >= range_m]
             far = np.isin(instance, far_ids)
