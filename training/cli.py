@@ -15,7 +15,9 @@ from streamdet.core.sectors import MAX_NUM_SLICES
 from streamdet.models.presets import preset_names
 from streamdet.training.dataset import CAMERA_MODES, DataConfig
 from streamdet.training.distributed import shutdown_distributed
-from streamdet.training.trainer import AMP_MODES, MAX_MINUTES, MAX_STEPS, RUN_FILES, TrainConfig, check_device, train
+from streamdet.training.run_dir import RUN_FILES
+from streamdet.training.train_config import AMP_MODES, MAX_MINUTES, MAX_STEPS, TrainConfig, check_device
+from streamdet.training.trainer import train
 
 MAX_WORKERS = 256  # DataLoader processes: a machine's cores at most, never thousands of forks
 # The folders of a nuScenes-format dataset beside DATA/<version>: the files training reads. A cache written among

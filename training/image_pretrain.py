@@ -47,9 +47,9 @@ from streamdet.core.file_output import write_text_atomic
 from streamdet.progress import counted
 from streamdet.training.checkpoint import (  # noqa: F401 (load_encoder_weights re-exported)
     TRAIN_FORMAT, WEIGHTS_FORMAT, check_fits, check_state_dict, load_encoder_weights, read_torch_file, save_atomic, save_weights)
-from streamdet.training.trainer import (
-    check_device, check_max_minutes, check_out_dir, check_weights_finite, discard_unstarted_run, init_head_outputs,
-    missing_folders)  # fmt: skip
+from streamdet.training.run_dir import check_out_dir, discard_unstarted_run, missing_folders
+from streamdet.training.train_config import check_device, check_max_minutes
+from streamdet.training.trainer import check_weights_finite, init_head_outputs
 
 NUM_LABELS = NUM_CLASSES + 1  # 0 = background
 IGNORE = 255

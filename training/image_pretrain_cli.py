@@ -14,7 +14,7 @@ from streamdet.core.errors import first_line
 from streamdet.models.presets import preset_names
 from streamdet.training.cli import DEVICE_HELP, device_callback, refuse_out_over_inputs
 from streamdet.training.image_pretrain import PretrainConfig, pretrain
-from streamdet.training.trainer import MAX_MINUTES, MAX_STEPS
+from streamdet.training.train_config import MAX_MINUTES, MAX_STEPS
 
 
 def _check_stop_at_step(stop_at_step: int | None, steps: int) -> None:

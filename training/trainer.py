@@ -13,7 +13,6 @@ logged step: step, epoch, losses, lr, samples/s, slices/s, seconds) and ``config
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import json
 import math
@@ -21,7 +20,7 @@ import os
 import time
 from collections.abc import Callable
 from contextlib import nullcontext
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -32,11 +31,10 @@ from torch.utils.data import DataLoader, DistributedSampler, Subset
 from streamdet.core.table_version import DEFAULT_TABLE_VERSION
 from streamdet.core.errors import first_line
 from streamdet.core.file_output import write_text_atomic
-from streamdet.core.json_input import short_repr
 from streamdet.models.detector import build_detector
-from streamdet.models.presets import Preset, get_preset
+from streamdet.models.presets import Preset
 from streamdet.training.batching import Batch, Collator
-from streamdet.training.camera_dropout import check_camera_dropout, draw_camera_keep, drops_cameras, step_generator
+from streamdet.training.camera_dropout import draw_camera_keep, drops_cameras, step_generator
 from streamdet.training.checkpoint import (
     TRANSFERABLE_PARTS,
     check_fits,
@@ -48,286 +46,20 @@ from streamdet.training.checkpoint import (
     save_weights,
     transferable_weights,
 )
-from streamdet.training.dataset import DataConfig, SliceDataset, SampleStore, build_store, class_balanced_indices
-from streamdet.training.distill import DistillConfig, Teacher, distill_loss
+from streamdet.training.dataset import SliceDataset, SampleStore, build_store, class_balanced_indices
+from streamdet.training.distill import Teacher, distill_loss
 from streamdet.training.distributed import DistContext, all_reduce_sum, convert_batchnorm, init_distributed, process_device
 from streamdet.training.image_class import image_class_loss_sum
-from streamdet.training.losses import CenterPointLoss, LossConfig, loss_terms
+from streamdet.training.losses import CenterPointLoss, loss_terms
 from streamdet.training.model import TrainingModel
 from streamdet.training.schedule import OneCycle
 from streamdet.progress import counted
+from streamdet.training.run_dir import (  # noqa: F401 (re-exported: the run-folder rules, for tests and scripts)
+    CONFIG_FILE, NOT_A_RUN, RUN_FILES, check_out_contents, check_out_dir, discard_unstarted_run, missing_folders)
+from streamdet.training.train_config import (  # noqa: F401 (re-exported)
+    AMP_MODES, MAX_MINUTES, MAX_STEPS, TrainConfig, check_device, check_max_minutes)
 
-AMP_MODES = ("auto", "off", "bf16", "fp16")
 HEAD_OUTPUT_INIT_STD = 0.01
-# The longest --max-minutes (7 days): a budget is a finite wall time; inf would run the one-cycle schedule forever
-# (its lr never leaves the warm-up start), and a longer run is a --steps plan resumed across sessions.
-MAX_MINUTES = 7 * 24 * 60
-# What a finished or running streamdet-train leaves in --out: another run there without --resume would replace it.
-RUN_FILES = ("last.pt", "model.pt", "metrics.jsonl")
-# A hundred million optimizer steps: far past any run here (10**21 only printed an eta of 9e17 min). Both training
-# tools bound --steps by it.
-MAX_STEPS = 10**8
-# The device types training runs on; torch.device also parses meta, xpu, ipu ..., where the first step failed with a
-# traceback after the run's files were written.
-DEVICE_TYPES = ("cpu", "cuda", "mps")
-# config.json beside the run files: {"train": ...} for streamdet-train, {"pretrain": ...} for streamdet-train-image.
-# Its top-level key tells a run's own config.json from another tool's (a model hub folder has one too).
-CONFIG_FILE = "config.json"
-RUN_TOOLS = {"train": "streamdet-train", "pretrain": "streamdet-train-image"}
-MAX_CONFIG_BYTES = 1 << 20  # a run's config.json is a few kB: a bigger one is no run's and is not read
-# Folders a training run must not be written into, told by a file only they hold: a run mixed into them replaces
-# their files of the same name (config.json) or sits among files their readers list.
-NOT_A_RUN = (("manifest.json", "a streamdet export"), ("results.json", "a saved streamdet-eval run"),
-             ("gt.json", "a saved streamdet-eval run"), ("splits.json", "a dataset"))  # fmt: skip
-RUN_MAY_HOLD = ("results.json", "gt.json")  # NOT_A_RUN's files a run's folder may hold: an evaluation saved into it
-
-
-@dataclass(frozen=True)
-class TrainConfig:
-    preset: str = "small"
-    use_image: bool = True  # False: the LiDAR-only streaming baseline (no image lane at all)
-    # False: that baseline without the quadrant crop, one map of the whole grid per slice (Preset.slice_crop)
-    slice_crop: bool = True
-    steps: int | None = None  # optimizer steps of the one-cycle schedule
-    epochs: int | None = None  # when steps is None: epochs * steps per epoch; both None: a schedule over max_minutes
-    batch_size: int = 1  # samples per process per step; each sample brings its slices (8 maps for n = 8)
-    lr: float = 2e-3  # one-cycle peak
-    weight_decay: float = 0.01  # AdamW
-    grad_clip: float = 35.0  # max global gradient norm (CenterPoint)
-    pct_start: float = 0.4  # one-cycle warm-up fraction (CenterPoint)
-    div_factor: float = 10.0  # start lr = lr / div_factor
-    final_div_factor: float = 1e4  # end lr = start lr / final_div_factor
-    amp: str = "auto"  # auto: fp16 autocast on CUDA, off on CPU (bf16 autocast was slower on an AVX2 CPU)
-    # Fraction of the schedule trained with the image lane off (a zero image BEV; the runtime, where it has no image,
-    # feeds the lift of zero features instead: StreamingDetector.blank_image_bev): the LiDAR lane and the BEV encoder learn first at a fraction of the step cost, the image
-    # lane joins for the rest. 0: images from the first step.
-    image_warmup: float = 0.0
-    # Weight of the image-side class loss beside detection (training/image_class.py: each object's class read
-    # linearly from the image BEV at its centre, cross-entropy per object); 0 = off, the CenterPoint loss alone.
-    image_class_weight: float = 0.0
-    # Probability that a training step drops cameras (training/camera_dropout.py: each sample loses k of its J cameras,
-    # k uniform in 1..J, lifted from zero features as the runtime lifts a camera without a frame, the camera lane
-    # normalising with its stored statistics); 0 = off, every camera always.
-    camera_dropout: float = 0.0
-    balanced: bool = False  # class-balanced (CBGS) resampling of the training samples
-    workers: int = 0  # DataLoader worker processes (0: load in the training process)
-    seed: int = 0
-    # With steps or epochs: stop (with a checkpoint) once this much wall time has passed. Alone: the one-cycle
-    # schedule runs on wall time and training ends when it is spent (not step-reproducible, see schedule.py).
-    max_minutes: float | None = None
-    log_every: int = 10  # steps between progress lines / metrics records
-    checkpoint_every: int = 200  # steps between last.pt rewrites
-    data: DataConfig = field(default_factory=DataConfig)
-    loss: LossConfig = field(default_factory=LossConfig)
-    # Distillation (training/distill.py): a trained detector's weights whose head's responses become soft targets
-    # beside the labels (None: off), that loss's weight beside the CenterPoint loss, and its terms.
-    teacher: str | None = None
-    distill_weight: float = 1.0
-    distill: DistillConfig = field(default_factory=DistillConfig)
-    # Keep the image encoder and lifter as --init gave them (no gradient, fixed BatchNorm statistics): a new slice
-    # net learns to read a trained camera lane; with a teacher of the same camera lane one lift serves both.
-    freeze_camera_lane: bool = False
-
-    def __post_init__(self) -> None:
-        get_preset(self.preset)  # raises for an unknown name
-        if not isinstance(self.slice_crop, bool):
-            raise ValueError(f"TrainConfig.slice_crop must be True or False, got {self.slice_crop!r}")
-        if self.use_image and not self.slice_crop:
-            raise ValueError("training without the quadrant crop (slice_crop=False, --no-crop) is supported for the "
-                             "LiDAR-only baseline only: add --no-image")  # fmt: skip
-        if self.steps is not None and (isinstance(self.steps, bool) or not isinstance(self.steps, int) or self.steps < 1):
-            raise ValueError(f"TrainConfig.steps must be None or a positive integer, got {self.steps!r}")
-        if self.epochs is not None and (isinstance(self.epochs, bool) or not isinstance(self.epochs, int) or self.epochs < 1):
-            raise ValueError(f"TrainConfig.epochs must be None or a positive integer, got {self.epochs!r}")
-        if self.steps is None and self.epochs is None and self.max_minutes is None:
-            raise ValueError("TrainConfig needs steps, epochs or max_minutes to know how long to train")
-        for name in ("batch_size", "log_every", "checkpoint_every"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-                raise ValueError(f"TrainConfig.{name} must be a positive integer, got {v!r}")
-        if isinstance(self.workers, bool) or not isinstance(self.workers, int) or self.workers < 0:
-            raise ValueError(f"TrainConfig.workers must be a non-negative integer, got {self.workers!r}")
-        for name in ("lr", "grad_clip", "div_factor", "final_div_factor"):
-            if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
-                raise ValueError(f"TrainConfig.{name} must be a positive number, got {getattr(self, name)!r}")
-        if not (math.isfinite(self.image_class_weight) and self.image_class_weight >= 0):
-            raise ValueError(f"TrainConfig.image_class_weight must be a number >= 0, got {self.image_class_weight!r}")
-        if self.image_class_weight > 0 and not self.use_image:
-            raise ValueError("the image class loss (image_class_weight > 0) needs the image lane: drop --no-image or the weight")
-        check_camera_dropout(self.camera_dropout, "TrainConfig.camera_dropout")
-        if self.camera_dropout > 0 and not self.use_image:
-            raise ValueError("camera dropout (camera_dropout > 0) needs the image lane: drop --no-image or --camera-dropout")
-        if not 0.0 <= self.image_warmup < 1.0:
-            raise ValueError(f"TrainConfig.image_warmup must be in [0, 1), got {self.image_warmup!r}")
-        if not 0.0 < self.pct_start < 1.0:
-            raise ValueError(f"TrainConfig.pct_start must be in (0, 1), got {self.pct_start!r}")
-        if not self.weight_decay >= 0:
-            raise ValueError(f"TrainConfig.weight_decay must be >= 0, got {self.weight_decay!r}")
-        if self.amp not in AMP_MODES:
-            raise ValueError(f"TrainConfig.amp must be one of {AMP_MODES}, got {self.amp!r}")
-        check_max_minutes(self.max_minutes, "TrainConfig.max_minutes")
-        if self.teacher is not None and (not isinstance(self.teacher, str) or not self.teacher):
-            raise ValueError(f"TrainConfig.teacher must be None or a path, got {self.teacher!r}")
-        if not (isinstance(self.distill_weight, (int, float)) and math.isfinite(self.distill_weight) and self.distill_weight >= 0):
-            raise ValueError(f"TrainConfig.distill_weight must be a number >= 0, got {self.distill_weight!r}")
-        if self.freeze_camera_lane and not self.use_image:
-            raise ValueError("freeze_camera_lane needs the image lane: drop --no-image or --freeze-camera-lane")
-
-    def build_preset(self) -> Preset:
-        return dataclasses.replace(get_preset(self.preset), use_image=self.use_image, slice_crop=self.slice_crop)
-
-    def to_dict(self) -> dict[str, Any]:
-        d = _jsonable(dataclasses.asdict(self))
-        # written only when not at their defaults: the config of every run before them stays as it was
-        if self.slice_crop:
-            del d["slice_crop"]
-        if self.image_class_weight == 0:
-            del d["image_class_weight"]
-        if self.camera_dropout == 0:
-            del d["camera_dropout"]
-        if self.teacher is None:
-            for k in ("teacher", "distill_weight", "distill"):
-                del d[k]
-        if not self.freeze_camera_lane:
-            del d["freeze_camera_lane"]
-        return d
-
-
-def check_max_minutes(value: float | None, name: str) -> None:
-    """ValueError unless ``value`` is None or a finite number of minutes in (0, MAX_MINUTES]."""
-    if value is None:
-        return
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and 0 < value <= MAX_MINUTES):
-        raise ValueError(f"{name} must be a finite number of minutes in (0, {MAX_MINUTES}] (7 days), got {value!r}")
-
-
-def check_device(device: str | torch.device) -> torch.device:
-    """``device`` as a torch.device, or a one-line ValueError naming it unless training can run there: cpu, or cuda /
-    mps where this machine has them (cuda:N only for an N it has). Called before anything is made in --out."""
-    shown = short_repr(device if isinstance(device, str) else str(device), 60)
-    try:
-        parsed = torch.device(device)
-    except (RuntimeError, ValueError, TypeError):
-        raise ValueError(f"{shown} is not a torch device: give cpu, cuda, cuda:N or mps") from None
-    if parsed.type not in DEVICE_TYPES:
-        raise ValueError(f"{shown}: training runs on {', '.join(DEVICE_TYPES)}, not on {parsed.type}")
-    if parsed.type == "cuda":
-        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
-        if count == 0:
-            raise ValueError(f"{shown}: this machine has no usable CUDA device (torch.cuda.is_available() is False); use cpu")
-        if parsed.index is not None and parsed.index >= count:
-            raise ValueError(f"{shown}: this machine has {count} CUDA device(s), cuda:0..cuda:{count - 1}")
-    if parsed.type == "mps" and not torch.backends.mps.is_available():
-        raise ValueError(f"{shown}: MPS is not available on this machine; use cpu")
-    return parsed
-
-
-def check_out_dir(out_dir: str | Path, run_files: tuple[str, ...], resume: str | Path | None, overwrite: bool,
-                  config_key: str = "train") -> list[Path]:  # fmt: skip
-    """The files of an earlier run in ``out_dir`` that a new run (no ``resume``) will replace: ValueError when there
-    are some and ``overwrite`` is not set, so a finished run is never lost to a reused --out. ``out_dir`` must be new,
-    empty, or a run of this tool (``config_key``: the key of its config.json, see ``check_out_contents``)."""
-    if resume is not None and overwrite:
-        raise ValueError("--resume continues the run in its folder and --overwrite replaces one: give only one of them")
-    check_out_contents(out_dir, run_files, config_key)
-    found = [Path(out_dir) / name for name in run_files if (Path(out_dir) / name).is_file()]
-    if found and resume is None and not overwrite:
-        last = Path(out_dir) / "last.pt"
-        resume_hint = f"pass --resume {last} to continue it, " if last.is_file() else ""  # a run that diverged has none
-        raise ValueError(f"--out {out_dir} already holds a run ({', '.join(p.name for p in found)}): {resume_hint}"
-                         "pass --overwrite to replace it, or choose another --out")  # fmt: skip
-    try:  # now, not after minutes of reading the dataset: an --out that cannot be made or written
-        Path(out_dir).mkdir(parents=True, exist_ok=True)
-        probe = Path(out_dir) / f".write_test_{os.getpid()}"
-        probe.touch()
-        probe.unlink()
-    except OSError as e:
-        raise ValueError(f"--out {out_dir} cannot be written: {e.strerror or e}") from None
-    return found if resume is None else []
-
-
-def check_out_contents(out_dir: str | Path, run_files: tuple[str, ...], config_key: str) -> None:
-    """ValueError unless ``out_dir`` is missing, empty, or a run of the tool whose config.json has ``config_key``.
-
-    A run's folder may hold files of the user's beside the run's (a note, an export made from model.pt): they are
-    kept, and --overwrite replaces only the run's own files. Any other non-empty folder is refused, --overwrite or
-    not: an export, a saved eval run, a dataset or another tool's folder would get a config.json replaced or a run
-    mixed among its files, and --overwrite never deletes what is not a run's."""
-    out = Path(out_dir)
-    if not out.is_dir():
-        return  # made later; a file in the way is refused by the write probe
-    tool = RUN_TOOLS.get(config_key, config_key)
-    try:
-        names = {entry.name for entry in out.iterdir()}
-    except OSError as e:
-        raise ValueError(f"--out {out_dir} cannot be listed: {e.strerror or e}") from None
-    config = out / CONFIG_FILE
-    if CONFIG_FILE in names and not _is_run_config(config, config_key):
-        raise ValueError(f"--out {out_dir} holds a {CONFIG_FILE} that is not a {tool} run's: the run would replace it; "
-                         "choose another --out")  # fmt: skip
-    is_run = any((out / name).exists() for name in (*run_files, CONFIG_FILE))
-    for name, what in NOT_A_RUN:
-        # a run's folder may hold the user's evaluation of it (streamdet-eval --save-results RUN): only an export or
-        # a dataset mixed into it is refused
-        if name in names and not (is_run and name in RUN_MAY_HOLD):
-            raise ValueError(f"--out {out_dir} is {what} ({name}): a {tool} run must not be mixed into it; choose "
-                             "another --out")  # fmt: skip
-    if is_run:
-        return  # a run of this tool: what else is there is the user's and stays
-    foreign = sorted(n for n in names if not _is_transient(n))
-    if foreign:
-        shown = ", ".join(foreign[:5]) + (f" and {len(foreign) - 5} more" if len(foreign) > 5 else "")
-        raise ValueError(f"--out {out_dir} is not empty and holds no {tool} run ({shown}): a run there would mix with "
-                         "those files (--overwrite replaces only a run's own files); choose a new or empty folder")  # fmt: skip
-
-
-def _is_run_config(path: Path, config_key: str) -> bool:
-    """Whether ``path`` is the config.json of a run of the tool whose config has ``config_key`` (a FIFO, a huge or
-    unparsable file is not)."""
-    try:
-        if not path.is_file() or path.stat().st_size > MAX_CONFIG_BYTES:
-            return False
-        doc = json.loads(path.read_text())
-    except (OSError, ValueError, RecursionError):
-        return False
-    return isinstance(doc, dict) and config_key in doc
-
-
-def _is_transient(name: str) -> bool:
-    """The write probe of check_out_dir (another torchrun process may be making its own right now)."""
-    return name.startswith(".write_test_")
-
-
-def missing_folders(path: str | Path) -> list[Path]:
-    """``path`` and those of its parents that do not exist yet, deepest first: what check_out_dir's mkdir makes."""
-    missing = []
-    path = Path(path).absolute()
-    while not os.path.lexists(path) and path != path.parent:
-        missing.append(path)
-        path = path.parent
-    return missing
-
-
-def discard_unstarted_run(out_dir: str | Path, run_files: tuple[str, ...], made: list[Path]) -> None:
-    """After a new run (no resume) failed: if it left no checkpoint and logged no record, remove its config.json and
-    empty metrics.jsonl, and the folders it made (``made``, from ``missing_folders``). Such a folder holds nothing to
-    resume or read, and left there it made the next attempt fail as "already holds a run"."""
-    out = Path(out_dir)
-    log = out / "metrics.jsonl"
-    try:
-        logged = log.is_file() and log.stat().st_size > 0
-        kept = [name for name in run_files if name != log.name and (out / name).exists()]
-        if logged or kept:
-            return
-        for name in (log.name, CONFIG_FILE):
-            (out / name).unlink(missing_ok=True)
-    except OSError:
-        return  # what cannot be checked or removed stays; the error that ended the run is the one to report
-    for folder in made:
-        try:
-            folder.rmdir()  # only an empty folder: a cache or a user's file inside keeps it
-        except OSError:
-            break
 
 
 def check_weights_finite(module: torch.nn.Module, step: int) -> None:
@@ -347,14 +79,6 @@ class TrainResult:
     final_loss: float
     checkpoint: Path | None  # last.pt (main process only)
     weights: Path | None  # model.pt
-
-
-def _jsonable(x: Any) -> Any:
-    if isinstance(x, dict):
-        return {k: _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    return x
 
 
 def _amp_context(mode: str, device: torch.device):

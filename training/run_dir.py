@@ -1,0 +1,129 @@
+"""A training run's folder (``--out`` of ``streamdet-train`` and ``streamdet-train-image``): which files make a run,
+what a new run may be written into, what it replaces, and what a run that never started leaves behind. Torch-free."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+# What a finished or running streamdet-train leaves in --out: another run there without --resume would replace it.
+RUN_FILES = ("last.pt", "model.pt", "metrics.jsonl")
+# config.json beside the run files: {"train": ...} for streamdet-train, {"pretrain": ...} for streamdet-train-image.
+# Its top-level key tells a run's own config.json from another tool's (a model hub folder has one too).
+CONFIG_FILE = "config.json"
+RUN_TOOLS = {"train": "streamdet-train", "pretrain": "streamdet-train-image"}
+MAX_CONFIG_BYTES = 1 << 20  # a run's config.json is a few kB: a bigger one is no run's and is not read
+# Folders a training run must not be written into, told by a file only they hold: a run mixed into them replaces
+# their files of the same name (config.json) or sits among files their readers list.
+NOT_A_RUN = (("manifest.json", "a streamdet export"), ("results.json", "a saved streamdet-eval run"),
+             ("gt.json", "a saved streamdet-eval run"), ("splits.json", "a dataset"))  # fmt: skip
+RUN_MAY_HOLD = ("results.json", "gt.json")  # NOT_A_RUN's files a run's folder may hold: an evaluation saved into it
+
+
+def check_out_dir(out_dir: str | Path, run_files: tuple[str, ...], resume: str | Path | None, overwrite: bool,
+                  config_key: str = "train") -> list[Path]:  # fmt: skip
+    """The files of an earlier run in ``out_dir`` that a new run (no ``resume``) will replace: ValueError when there
+    are some and ``overwrite`` is not set, so a finished run is never lost to a reused --out. ``out_dir`` must be new,
+    empty, or a run of this tool (``config_key``: the key of its config.json, see ``check_out_contents``)."""
+    if resume is not None and overwrite:
+        raise ValueError("--resume continues the run in its folder and --overwrite replaces one: give only one of them")
+    check_out_contents(out_dir, run_files, config_key)
+    found = [Path(out_dir) / name for name in run_files if (Path(out_dir) / name).is_file()]
+    if found and resume is None and not overwrite:
+        last = Path(out_dir) / "last.pt"
+        resume_hint = f"pass --resume {last} to continue it, " if last.is_file() else ""  # a run that diverged has none
+        raise ValueError(f"--out {out_dir} already holds a run ({', '.join(p.name for p in found)}): {resume_hint}"
+                         "pass --overwrite to replace it, or choose another --out")  # fmt: skip
+    try:  # now, not after minutes of reading the dataset: an --out that cannot be made or written
+        Path(out_dir).mkdir(parents=True, exist_ok=True)
+        probe = Path(out_dir) / f".write_test_{os.getpid()}"
+        probe.touch()
+        probe.unlink()
+    except OSError as e:
+        raise ValueError(f"--out {out_dir} cannot be written: {e.strerror or e}") from None
+    return found if resume is None else []
+
+
+def check_out_contents(out_dir: str | Path, run_files: tuple[str, ...], config_key: str) -> None:
+    """ValueError unless ``out_dir`` is missing, empty, or a run of the tool whose config.json has ``config_key``.
+
+    A run's folder may hold files of the user's beside the run's (a note, an export made from model.pt): they are
+    kept, and --overwrite replaces only the run's own files. Any other non-empty folder is refused, --overwrite or
+    not: an export, a saved eval run, a dataset or another tool's folder would get a config.json replaced or a run
+    mixed among its files, and --overwrite never deletes what is not a run's."""
+    out = Path(out_dir)
+    if not out.is_dir():
+        return  # made later; a file in the way is refused by the write probe
+    tool = RUN_TOOLS.get(config_key, config_key)
+    try:
+        names = {entry.name for entry in out.iterdir()}
+    except OSError as e:
+        raise ValueError(f"--out {out_dir} cannot be listed: {e.strerror or e}") from None
+    config = out / CONFIG_FILE
+    if CONFIG_FILE in names and not _is_run_config(config, config_key):
+        raise ValueError(f"--out {out_dir} holds a {CONFIG_FILE} that is not a {tool} run's: the run would replace it; "
+                         "choose another --out")  # fmt: skip
+    is_run = any((out / name).exists() for name in (*run_files, CONFIG_FILE))
+    for name, what in NOT_A_RUN:
+        # a run's folder may hold the user's evaluation of it (streamdet-eval --save-results RUN): only an export or
+        # a dataset mixed into it is refused
+        if name in names and not (is_run and name in RUN_MAY_HOLD):
+            raise ValueError(f"--out {out_dir} is {what} ({name}): a {tool} run must not be mixed into it; choose "
+                             "another --out")  # fmt: skip
+    if is_run:
+        return  # a run of this tool: what else is there is the user's and stays
+    foreign = sorted(n for n in names if not _is_transient(n))
+    if foreign:
+        shown = ", ".join(foreign[:5]) + (f" and {len(foreign) - 5} more" if len(foreign) > 5 else "")
+        raise ValueError(f"--out {out_dir} is not empty and holds no {tool} run ({shown}): a run there would mix with "
+                         "those files (--overwrite replaces only a run's own files); choose a new or empty folder")  # fmt: skip
+
+
+def _is_run_config(path: Path, config_key: str) -> bool:
+    """Whether ``path`` is the config.json of a run of the tool whose config has ``config_key`` (a FIFO, a huge or
+    unparsable file is not)."""
+    try:
+        if not path.is_file() or path.stat().st_size > MAX_CONFIG_BYTES:
+            return False
+        doc = json.loads(path.read_text())
+    except (OSError, ValueError, RecursionError):
+        return False
+    return isinstance(doc, dict) and config_key in doc
+
+
+def _is_transient(name: str) -> bool:
+    """The write probe of check_out_dir (another torchrun process may be making its own right now)."""
+    return name.startswith(".write_test_")
+
+
+def missing_folders(path: str | Path) -> list[Path]:
+    """``path`` and those of its parents that do not exist yet, deepest first: what check_out_dir's mkdir makes."""
+    missing = []
+    path = Path(path).absolute()
+    while not os.path.lexists(path) and path != path.parent:
+        missing.append(path)
+        path = path.parent
+    return missing
+
+
+def discard_unstarted_run(out_dir: str | Path, run_files: tuple[str, ...], made: list[Path]) -> None:
+    """After a new run (no resume) failed: if it left no checkpoint and logged no record, remove its config.json and
+    empty metrics.jsonl, and the folders it made (``made``, from ``missing_folders``). Such a folder holds nothing to
+    resume or read, and left there it made the next attempt fail as "already holds a run"."""
+    out = Path(out_dir)
+    log = out / "metrics.jsonl"
+    try:
+        logged = log.is_file() and log.stat().st_size > 0
+        kept = [name for name in run_files if name != log.name and (out / name).exists()]
+        if logged or kept:
+            return
+        for name in (log.name, CONFIG_FILE):
+            (out / name).unlink(missing_ok=True)
+    except OSError:
+        return  # what cannot be checked or removed stays; the error that ended the run is the one to report
+    for folder in made:
+        try:
+            folder.rmdir()  # only an empty folder: a cache or a user's file inside keeps it
+        except OSError:
+            break
