@@ -48,7 +48,7 @@ class CompactLifter(nn.Module):
         q, z, yq, xq = final_index.shape
         if self.z_major:
             index = final_index.permute(0, 2, 3, 1)  # (Q, Yq, Xq, Z)
-            weight = final_weight.permute(0, 2, 3, 1)
+            weight = final_weight.permute(0, 2, 3, 1)  # (Q, Yq, Xq, Z)
         else:
             index, weight = final_index, final_weight  # (Q, Z, Yq, Xq)
         rows = ext.index_select(0, index.reshape(-1)) * weight.reshape(-1, 1)  # (V, C)

@@ -45,7 +45,7 @@ def z_major(volume: Tensor) -> Tensor:
     """A volume (Q, C, Z, Y, X) as the folded map (Q, Z * C, Y, X), channel ``z * C + c``: what ``gather_z_major``
     yields, for code handed the volume itself."""
     q, c, z, y, x = volume.shape
-    return volume.permute(0, 2, 1, 3, 4).reshape(q, z * c, y, x)
+    return volume.permute(0, 2, 1, 3, 4).reshape(q, z * c, y, x)  # (Q, Z, C, Y, X) -> (Q, Z*C, Y, X)
 
 
 def feature_table(features: Tensor) -> Tensor:

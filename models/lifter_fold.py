@@ -57,7 +57,7 @@ def banded_weight(weight: Tensor, z_in: int, stride: int, pad: int) -> Tensor:
             zi = zo * stride - pad + t
             if 0 <= zi < z_in:
                 band[:, zo, :, zi] = weight[:, :, t]
-    return band.reshape(co * z_out, ci * z_in, ky, kx)
+    return band.reshape(co * z_out, ci * z_in, ky, kx)  # (Co*Zo, Ci*Z, ky, kx): out co*Zo+zo, in ci*Z+z
 
 
 def folded_mac_ratio(cfg: LifterConfig, nz: int) -> float:
@@ -115,7 +115,7 @@ class FoldedLifterConvs(nn.Module):
         # project(BN(v)) = W (s * v + t) + b = (W s) v + (W t + b), the same (C, C) block on every plane
         w, b = fold_bn(lifter.project.weight[:, :, 0, 0, 0], lifter.project.bias, lifter.input_norm, bn_first=True)
         block = torch.einsum("oc,zy->ozcy", w, torch.eye(nz, dtype=w.dtype))  # (C, Z, C, Z)
-        self.project.weight.copy_(block.reshape(c * nz, c * nz, 1, 1))
+        self.project.weight.copy_(block.reshape(c * nz, c * nz, 1, 1))  # (C*Z, C*Z, 1, 1): out c*Z+z, in c*Z+z
         self.project.bias.copy_(b.repeat_interleave(nz))  # channel c * Z + z
         for conv2d, seq, planes in ((self.residual, lifter.residual, nz), (self.z_down, lifter.z_down, zd)):
             conv3d, bn = seq[0], seq[1]
