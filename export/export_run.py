@@ -18,7 +18,8 @@ from streamdet.export.record import Gmacs
 from streamdet.export.weights import WeightsSource
 from streamdet.models.detector import StreamDetector
 from streamdet.models.presets import Preset
-from streamdet.runtime_ort.manifest import Int8Record, Manifest, ParityRecord, PipelineParity
+from streamdet.runtime_ort.manifest import Manifest
+from streamdet.runtime_ort.manifest_records import Int8Record, ParityRecord, PipelineParity
 from streamdet.runtime_ort.recording import Feeds
 
 

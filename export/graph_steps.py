@@ -48,7 +48,8 @@ from streamdet.models.decode import decode_head_maps
 from streamdet.models.export_form import to_export_form
 from streamdet.models.presets import Preset
 from streamdet.runtime_ort.detector import SliceResult, StreamingDetector
-from streamdet.runtime_ort.manifest import LUT_NAME, ParityRecord, graph_file_name
+from streamdet.runtime_ort.manifest import LUT_NAME, graph_file_name
+from streamdet.runtime_ort.manifest_records import ParityRecord
 from streamdet.runtime_ort.manifest import write_manifest as write_manifest_file
 from streamdet.runtime_ort.sessions import ort_session
 

@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from streamdet.core.boxes import YAW, pair_boxes
-from streamdet.runtime_ort.manifest import BoxAgreement, Int8OutputParity
+from streamdet.runtime_ort.manifest_records import BoxAgreement, Int8OutputParity
 from streamdet.runtime_ort.recording import GraphRecording
 
 BOX_SCORE_THRESHOLD = 0.1  # boxes compared by box_agreement (the pipeline parity's threshold)

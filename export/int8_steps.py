@@ -23,7 +23,8 @@ from streamdet.export.fp16 import check_model
 from streamdet.export.options import ExportError
 from streamdet.export.staged_detector import staged_detector
 from streamdet.runtime_ort.detector import StreamingDetector
-from streamdet.runtime_ort.manifest import Int8Calibration, Int8GraphRecord, Int8Record, graph_file_name
+from streamdet.runtime_ort.manifest import graph_file_name
+from streamdet.runtime_ort.manifest_records import Int8Calibration, Int8GraphRecord, Int8Record
 from streamdet.runtime_ort.recording import GraphRecording
 
 

@@ -39,7 +39,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from streamdet.core.boxes import pair_boxes
-from streamdet.runtime_ort.manifest import ParityRecord, PipelineParity
+from streamdet.runtime_ort.manifest_records import ParityRecord, PipelineParity
 from streamdet.runtime_ort.sessions import ort_session  # noqa: F401 (the parity run's sessions; imported from here too)
 
 TORCH_TOL_REL = 1e-4  # onnxruntime fp32 vs PyTorch

@@ -19,7 +19,8 @@ from streamdet.export.options import ExportError
 from streamdet.export.record import export_manifest
 from streamdet.models.image_encoder import IMAGENET_MEAN, IMAGENET_STD
 from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector
-from streamdet.runtime_ort.manifest import LUT_NAME, ImageSpec, Int8Record, LutEntry, Manifest, Normalisation, sha256_file
+from streamdet.runtime_ort.manifest import LUT_NAME, ImageSpec, LutEntry, Manifest, Normalisation, sha256_file
+from streamdet.runtime_ort.manifest_records import Int8Record
 from streamdet.runtime_ort.sessions import EXPORT_SESSION
 
 EXPORT_DETECTOR = DetectorConfig(providers=EXPORT_SESSION.providers, image_lane_threads=0, slice_lane_threads=0,

@@ -28,7 +28,8 @@ from streamdet.export.parity import (
 )
 from streamdet.export.record import format_parity
 from streamdet.export.staging import PARITY_FAILED_SUFFIX
-from streamdet.runtime_ort.manifest import ParityRecord, read_manifest
+from streamdet.runtime_ort.manifest import read_manifest
+from streamdet.runtime_ort.manifest_records import ParityRecord
 
 SEEDS = [0, 1, 2]
 

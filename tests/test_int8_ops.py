@@ -12,7 +12,7 @@ from onnx import TensorProto, helper
 
 from streamdet.core.classes import CLASS_NAMES
 from streamdet.export import int8 as q8
-from streamdet.runtime_ort.manifest import BoxAgreement
+from streamdet.runtime_ort.manifest_records import BoxAgreement
 
 SEEDS = (0, 1, 2)
 
