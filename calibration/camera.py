@@ -25,6 +25,7 @@ import numpy as np
 from streamdet.calibration.projection import project_points, visible_mask
 from streamdet.core.file_input import InputFileError, read_regular_file
 from streamdet.core.json_input import short_repr
+from streamdet.core.sectors import angle_diff_deg
 
 # A rotation read from a float32 source deviates from orthonormal by ~1e-7; a hand-edited or corrupted
 # one by far more. Anything between is refused rather than silently re-orthonormalised.
@@ -308,6 +309,12 @@ class Camera:
         return (rays / np.linalg.norm(rays, axis=0)).T  # (B, 3)
 
     @property
+    def axis_azimuth_deg(self) -> float:
+        """Azimuth in [0, 360) of the optical axis (camera z) in the LiDAR frame."""
+        axis = self.lidar2cam[:3, :3].T @ np.array([0.0, 0.0, 1.0])
+        return math.degrees(math.atan2(axis[1], axis[0])) % 360.0
+
+    @property
     def fov_azimuth_deg(self) -> tuple[float, float]:
         """Horizontal field of view as an azimuth interval (lo, hi) in degrees, LiDAR frame, of ray directions.
 
@@ -315,9 +322,8 @@ class Camera:
         and the LiDAR is ignored, which is exact far away (see ``sectors.py`` for the near-range test).
         """
         rays = self.border_rays_lidar()
-        axis = self.lidar2cam[:3, :3].T @ np.array([0.0, 0.0, 1.0])  # optical axis in the LiDAR frame
-        centre = math.degrees(math.atan2(axis[1], axis[0]))
-        rel = np.mod(np.degrees(np.arctan2(rays[:, 1], rays[:, 0])) - centre + 180.0, 360.0) - 180.0
+        centre = self.axis_azimuth_deg
+        rel = angle_diff_deg(np.degrees(np.arctan2(rays[:, 1], rays[:, 0])), centre)
         lo = (centre + float(rel.min())) % 360.0
         return lo, lo + float(rel.max() - rel.min())
 

@@ -68,6 +68,11 @@ def azimuth_deg(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return np.mod(a, 360.0)
 
 
+def angle_diff_deg(a, b):
+    """``a - b`` in degrees wrapped to [-180, 180): the signed angular distance from ``b`` to ``a`` (arrays broadcast)."""
+    return np.mod(np.subtract(a, b) + 180.0, 360.0) - 180.0
+
+
 def sector_bounds_deg(k: int, n: int, start_deg: float = 0.0) -> tuple[float, float]:
     """Azimuth interval [lo, hi) of slice k of n, in degrees from the x axis (lo in [0, 360), hi = lo + 360/n)."""
     check_num_slices(n, start_deg)

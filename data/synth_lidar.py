@@ -24,6 +24,7 @@ import numpy as np
 
 from streamdet.calibration.camera import invert_transform
 from streamdet.core.boxes import box_corners_bev
+from streamdet.core.sectors import angle_diff_deg
 from streamdet.data.synth_materials import ground_reflectance, shade
 from streamdet.data.synth_raycast import ray_box_entry, ray_shape_entry, world_to_local
 from streamdet.data.synth_road import ray_ground_height
@@ -233,7 +234,7 @@ def _candidate_columns(
     ax, ay = rot[:2, 0], rot[:2, 1]
     ang = np.degrees(np.arctan2(rel @ ay, rel @ ax))  # (K, 8)
     centre = ang[:, 0:1]
-    delta = np.mod(ang - centre + 180.0, 360.0) - 180.0
+    delta = angle_diff_deg(ang, centre)
     dist = np.linalg.norm(rel, axis=-1).min(axis=1)  # (K,)
     travel = np.linalg.norm(origins[-1] - origins[0]) + 0.5
     pad = np.degrees(np.arctan2(travel, np.maximum(dist, 1e-3))) + 360.0 / n_az

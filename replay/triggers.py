@@ -18,12 +18,11 @@ the start azimuth and the direction of rotation are the data's own; otherwise th
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from streamdet.core.sectors import azimuth_deg
+from streamdet.core.sectors import angle_diff_deg, azimuth_deg
 from streamdet.replay.schedule import check_rate
 from streamdet.replay.source import LidarSweep
 
@@ -41,18 +40,14 @@ def check_trigger(model: str) -> str:
 
 def camera_axis_azimuths_deg(rig) -> dict[str, float]:
     """Azimuth in [0, 360) of each camera's optical axis in the LiDAR frame (a `Rig` of cameras)."""
-    out = {}
-    for cam in rig.cameras:
-        axis = cam.lidar2cam[:3, :3].T @ np.array([0.0, 0.0, 1.0])  # optical axis, camera z, in LiDAR axes
-        out[cam.name] = math.degrees(math.atan2(axis[1], axis[0])) % 360.0
-    return out
+    return {cam.name: cam.axis_azimuth_deg for cam in rig.cameras}
 
 
 def crossing_phase_s(sweep: LidarSweep, azimuth: float, start_deg: float = 0.0) -> float:
     """Seconds after the rotation start at which the LiDAR points at ``azimuth`` (degrees, LiDAR frame)."""
     if sweep.point_time_s is not None and len(sweep.points):
         az = azimuth_deg(sweep.points[:, 0], sweep.points[:, 1])
-        off = np.abs(np.mod(az - azimuth + 180.0, 360.0) - 180.0)  # angular distance, degrees
+        off = np.abs(angle_diff_deg(az, azimuth))  # angular distance, degrees
         near = off <= WINDOW_DEG
         if int(near.sum()) >= MIN_POINTS:
             return float(np.median(np.asarray(sweep.point_time_s)[near]))

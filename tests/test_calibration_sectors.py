@@ -126,3 +126,24 @@ def test_finite_range_uses_the_camera_position() -> None:
     # within 30 m, seen from the LiDAR the wedge lies at x in [5, 15], azimuths up to ~80 deg: slices 0 and 1
     near = [k for k in range(8) if cameras_overlapping_sector(rig, k, 8, max_range_m=30.0)]
     assert near == [k for k in range(8) if _naive_sees_within_range(cam, k, 8, 30.0)] == [0, 1]
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_angle_diff_deg_against_a_naive_reference(seed, dtype):
+    from streamdet.core.sectors import angle_diff_deg
+
+    rng = np.random.default_rng(seed)
+    a = rng.uniform(-1000, 1000, 200).astype(dtype)
+    b = rng.uniform(-1000, 1000, 200).astype(dtype)
+    got = angle_diff_deg(a, b)
+    for x, y, d in zip(a.astype(float), b.astype(float), got.astype(float)):
+        naive = x - y
+        while naive >= 180.0:
+            naive -= 360.0
+        while naive < -180.0:
+            naive += 360.0
+        assert -180.0 <= d < 180.0 + 1e-3
+        assert min(abs(d - naive), 360.0 - abs(d - naive)) < (1e-9 if dtype is np.float64 else 1e-3)
+    assert angle_diff_deg(10.0, 350.0) == 20.0 and angle_diff_deg(350.0, 10.0) == -20.0 and angle_diff_deg(180.0, 0.0) == -180.0
+    assert angle_diff_deg(np.zeros(0), 5.0).shape == (0,)
