@@ -25,7 +25,9 @@ SLICE_COLUMNS = 6
 SLICE_X, SLICE_Y, SLICE_Z, SLICE_REFLECTANCE, SLICE_TIME, SLICE_INDEX = range(SLICE_COLUMNS)
 
 INTENSITY_SCALE = 255.0  # reflectance = intensity / INTENSITY_SCALE
-SWEEP_DURATION_S = 0.05  # nuScenes LIDAR_TOP spins at 20 Hz
+NUSCENES_LIDAR_HZ = 20.0  # LIDAR_TOP rotations per second
+NUSCENES_CAMERA_HZ = 12.0  # frames per second of each camera
+SWEEP_DURATION_S = 1.0 / NUSCENES_LIDAR_HZ  # one rotation
 # The slice columns the net reads as features beside x, y, z have a range it was trained on: a point outside it is
 # not a point of this sensor model (a corrupted record, an unscaled 16-bit intensity) and the pillarisation drops and
 # counts it rather than let one such value drive the net's activations anywhere (runtime_ort/pillarize.py).

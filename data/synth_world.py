@@ -24,6 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from streamdet.core.points import SWEEP_DURATION_S
 from streamdet.data.synth_kinds import DISTRACTOR_KINDS, KIND_SPECS, NUM_ANNOTATED_KINDS, Kind, KindSpec  # noqa: F401
 from streamdet.data.synth_road import (  # noqa: F401 (re-exported: the world's layout constants)
     BUILDING_LINE_M,
@@ -56,7 +57,7 @@ class WorldConfig:
 
     samples_per_scene: int = 10  # key frames per scene
     sample_interval_s: float = 0.5  # 2 Hz key frames, as nuScenes
-    sweep_duration_s: float = 0.05  # one LiDAR rotation (20 Hz)
+    sweep_duration_s: float = SWEEP_DURATION_S  # one LiDAR rotation, as nuScenes
     ego_speed_mps: tuple[float, float] = (3.0, 12.0)  # uniform range when the ego drives
     ego_stopped_prob: float = 0.2  # chance the ego waits the whole scene
     lane_vehicles: tuple[int, int] = (9, 16)  # inclusive ranges of counts per scene; dense traffic hides what is behind it

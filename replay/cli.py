@@ -9,6 +9,7 @@ from pathlib import Path
 import click
 from click.core import ParameterSource
 
+from streamdet.core.points import NUSCENES_CAMERA_HZ, NUSCENES_LIDAR_HZ
 from streamdet.cli_utils import (
     FiniteFloatRange,
     MAX_INTRA_OP_THREADS,
@@ -135,12 +136,12 @@ def _progress(message: str) -> None:
               help="Precision of the slice graph.")
 @image_precision_option()
 @providers_option()
-@click.option("--lidar-hz", type=FiniteFloatRange(MIN_RATE_HZ, MAX_RATE_HZ), default=20.0, show_default=True,
+@click.option("--lidar-hz", type=FiniteFloatRange(MIN_RATE_HZ, MAX_RATE_HZ), default=NUSCENES_LIDAR_HZ, show_default=True,
               help=f"LiDAR rotations per second (the rotation period the slices are released over); {MIN_RATE_HZ:g}..{MAX_RATE_HZ:.0f} Hz.")
 @click.option("--slices", "num_slices", type=click.IntRange(1, MAX_SLICES), default=None,
               help=f"Slices per rotation in streaming and sequential modes (1, 2 or a multiple of 4 up to {MAX_SLICES}). "
                    "Default: the export's.")
-@click.option("--camera-hz", type=FiniteFloatRange(MIN_RATE_HZ, MAX_RATE_HZ), default=12.0, show_default=True,
+@click.option("--camera-hz", type=FiniteFloatRange(MIN_RATE_HZ, MAX_RATE_HZ), default=NUSCENES_CAMERA_HZ, show_default=True,
               help=f"Camera trigger rate; each trigger delivers the newest recorded image of every camera; "
                    f"{MIN_RATE_HZ:g}..{MAX_RATE_HZ:.0f} Hz.")
 @click.option("--camera-trigger", type=click.Choice(TRIGGER_MODELS), default=DEFAULT_TRIGGER, show_default=True,

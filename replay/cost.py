@@ -13,6 +13,7 @@ import time
 
 import click
 
+from streamdet.core.points import NUSCENES_CAMERA_HZ, NUSCENES_LIDAR_HZ
 from streamdet.cli_utils import FiniteFloatRange
 import numpy as np
 
@@ -46,7 +47,7 @@ class NoOpDetector:
         return ImageUpdate(timestamp, tuple(images), ())
 
 
-def synthetic_drive(seconds: float, lidar_hz: float = 20.0, camera_hz: float = 12.0, points: int = 34_000,
+def synthetic_drive(seconds: float, lidar_hz: float = NUSCENES_LIDAR_HZ, camera_hz: float = NUSCENES_CAMERA_HZ, points: int = 34_000,
                     image_size: tuple[int, int] = (384, 216), camera_trigger: str = DEFAULT_TRIGGER) -> Drive:  # fmt: skip
     """A made-up drive of ``seconds``: rotations of ``points`` points fired counter-clockwise, six cameras
     triggered by ``camera_trigger`` (``triggers.py``; lidar-synced at the nuScenes sample's axes)."""

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from streamdet.core.points import NUSCENES_CAMERA_HZ, NUSCENES_LIDAR_HZ
 from streamdet.calibration.camera import make_transform, quaternion_to_matrix
 from streamdet.data.nuscenes import CAMERA_CHANNELS, LIDAR_CHANNEL, NuScenesReader
 from streamdet.data.sample import load_image, load_point_times, load_points
@@ -79,8 +80,8 @@ def load_drive(
     tables: DatasetTables,
     scene_name: str,
     image_size: tuple[int, int] | None,
-    lidar_hz: float = 20.0,
-    camera_hz: float = 12.0,
+    lidar_hz: float = NUSCENES_LIDAR_HZ,
+    camera_hz: float = NUSCENES_CAMERA_HZ,
     max_seconds: float | None = None,
     progress: Callable[[str], None] = lambda msg: None,
     camera_trigger: str = DEFAULT_TRIGGER,

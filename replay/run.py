@@ -14,6 +14,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from streamdet.core.points import NUSCENES_CAMERA_HZ, NUSCENES_LIDAR_HZ
 from streamdet.core.table_version import DEFAULT_TABLE_VERSION
 from streamdet.calibration.camera import CalibrationError
 from streamdet.data.splits import SplitsFileMissing
@@ -47,9 +48,9 @@ class ReplayConfig:
     scenes: int | None = None  # the first N scenes of the split; None: all
     precision: str = "fp32"  # the slice graph's
     image_precision: str | None = None  # the image lane's; None: precision
-    lidar_hz: float = 20.0
+    lidar_hz: float = NUSCENES_LIDAR_HZ
     num_slices: int | None = None  # None: the export's
-    camera_hz: float = 12.0
+    camera_hz: float = NUSCENES_CAMERA_HZ
     # how the cameras fire (triggers.py): "lidar-synced" (nuScenes: each as the LiDAR crosses its optical axis) or
     # "simultaneous" (all at once)
     camera_trigger: str = DEFAULT_TRIGGER
