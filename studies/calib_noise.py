@@ -13,7 +13,7 @@ import numpy as np
 from streamdet.calibration.perturb import perturb_rig
 from streamdet.data.sample import Sample
 from streamdet.runtime_ort.manifest import sha256_file
-from streamdet.runtime_ort.pipeline import feed_images
+from streamdet.runtime_ort.pipeline import feed_images, sample_time_s
 from streamdet.runtime_ort.postprocess import Detections
 from streamdet.studies.common import (
     Progress,
@@ -141,7 +141,7 @@ def calib_noise_study(
     changed = np.zeros(len(level_list))
 
     def detect(i: int, sample: Sample) -> dict[str, Detections]:
-        ts = sample.timestamp_us * 1e-6
+        ts = sample_time_s(sample)
         feed_images(det, sample, ts)
         true_index = det.lut.index[:, 0]  # (4, Z, Yq, Xq) first slot
         out = {"reference": det.detect_sweep(sweep_points(sample), timestamp=ts, num_slices=n)}

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from streamdet.data.sample import Sample
 from streamdet.runtime_ort.detector import StreamingDetector
-from streamdet.runtime_ort.pipeline import sample_images
+from streamdet.runtime_ort.pipeline import sample_images, sample_time_s
 from streamdet.runtime_ort.postprocess import Detections
 from streamdet.studies.common import (
     Progress,
@@ -105,7 +105,7 @@ def drop_camera_study(
 
     def detect(_i: int, sample: Sample) -> dict[str, Detections]:
         images = sample_images(det, sample)
-        ts = sample.timestamp_us * 1e-6
+        ts = sample_time_s(sample)
         out = {}
         for drop in (None, *names):
             det.update_images({c: a for c, a in images.items() if c != drop}, timestamp=ts)

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from streamdet.data.sample import Sample
-from streamdet.runtime_ort.pipeline import sample_images
+from streamdet.runtime_ort.pipeline import sample_images, sample_time_s
 from streamdet.runtime_ort.postprocess import Detections
 from streamdet.studies.common import (
     Progress,
@@ -112,7 +112,7 @@ def resolution_study(
 
     def detect(i: int, sample: Sample) -> dict[str, Detections]:
         native.update((c.width, c.height) for c in sample.rig.cameras)
-        ts = sample.timestamp_us * 1e-6
+        ts = sample_time_s(sample)
         out = {}
         for (w, h), det in zip(sizes, dets):
             images = sample_images(det, sample)

@@ -10,7 +10,7 @@ from typing import Protocol
 
 from streamdet.core.sectors import check_num_slices
 from streamdet.data.sample import Sample
-from streamdet.runtime_ort.pipeline import feed_images
+from streamdet.runtime_ort.pipeline import feed_images, sample_time_s
 from streamdet.runtime_ort.postprocess import Detections
 from streamdet.studies.common import (
     Progress,
@@ -51,7 +51,7 @@ class OnnxSlicedDetector:
 
     def __call__(self, sample: Sample, slice_counts: Sequence[int]) -> dict[int, Detections]:
         det = self.detector
-        ts = sample.timestamp_us * 1e-6
+        ts = sample_time_s(sample)
         if self.uses_images:
             feed_images(det, sample, ts)
         return {n: det.detect_sweep(sweep_points(sample), timestamp=ts, num_slices=n) for n in slice_counts}
