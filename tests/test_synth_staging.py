@@ -98,7 +98,7 @@ def test_a_failure_after_the_simulation_rolls_back_too(tmp_path, monkeypatch, wh
         raise OSError(5, f"I/O error in {where} (test)")
 
     if where == "tables":
-        monkeypatch.setattr(writer, "_write_tables", boom)
+        monkeypatch.setattr(writer, "write_tables", boom)
     elif where == "trajectories":
         monkeypatch.setattr(writer, "write_trajectories", boom)
     elif where == "preview":
