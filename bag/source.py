@@ -22,7 +22,7 @@ import json
 import logging
 import struct
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, BinaryIO, Iterator
 
@@ -38,6 +38,7 @@ from streamdet.runtime_ort.ros.header import header_stamp_ns
 from streamdet.runtime_ort.ros.images import compressed_image_to_rgb, image_to_rgb
 from streamdet.runtime_ort.ros.pointcloud2 import (
     Cloud,
+    CloudClockError,
     CloudFields,
     TimedSlice,
     decode_pointcloud2,
@@ -134,6 +135,10 @@ class BagSource:
         # cameras timed out although they had just sent an image: stamped on another clock than the LiDAR? (logged once)
         self.cameras_lagging: set[str] = set()
         self.num_time_dropped = 0  # LiDAR points dropped for a non-finite or implausible per-point time, all clouds
+        # LiDAR messages read without per-point times because their time column was on another clock or unit
+        # (CloudClockError; only where CloudFields.require_time is False), their slices stamped with the cloud's stamp
+        self.num_clouds_untimed = 0
+        self._warned_clock = False
 
     def metadata(self) -> dict[str, dict[str, str]]:
         """The bag's MCAP metadata records by name."""
@@ -308,8 +313,16 @@ class BagSource:
     def _cloud(self, message: Any) -> Cloud:
         """The LiDAR message decoded; a malformed one is named by topic and stamp, dropped points are reported."""
         topic = self.config.topics.lidar
+        fields = self.config.cloud_fields
         try:
-            cloud = decode_pointcloud2(message, self.config.cloud_fields)
+            try:
+                cloud = decode_pointcloud2(message, fields)
+            except CloudClockError as e:
+                if fields.require_time:  # the caller asked for per-point times: without them is not what it ran
+                    raise
+                # the bag is read anyway: a clock offset costs the slices their scan times, never their points
+                cloud = decode_pointcloud2(message, replace(fields, time=None))
+                self._untimed(e)
         except ValueError as e:
             raise ValueError(f"{self.path}: {topic} message at stamp {_stamp_text(message)}: {e}") from None
         self.num_time_dropped += cloud.num_time_dropped
@@ -322,6 +335,13 @@ class BagSource:
                         cloud.dropped_time_s, self.config.cloud_fields.max_time_offset_s)  # fmt: skip
             self._warned_times = True
         return cloud
+
+    def _untimed(self, e: CloudClockError) -> None:
+        self.num_clouds_untimed += 1
+        if not self._warned_clock:
+            self._warned_clock = True  # once per bag: every cloud of a driver on another clock says the same
+            log.warning("%s: %s: read without per-point times, each slice stamped with its cloud's stamp; later clouds "
+                        "are not reported (SourceConfig.cloud_fields)", self.path, " ".join(str(e).split()))  # fmt: skip
 
     def _check_one_slice(self, cloud: Cloud) -> None:
         """With slice_per_message, refuse a message that spreads over more than one slice's arc (a full sweep): the

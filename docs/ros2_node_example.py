@@ -3,13 +3,22 @@
 Drop it into a ROS 2 (Humble or newer) Python package with ``pip install streamdet`` beside it, and run it with
 ``ros2 run <your_package> streamdet_node --ros-args -p export_dir:=/path/to/export``. It needs rclpy,
 sensor_msgs, vision_msgs, visualization_msgs and rosidl_runtime_py, none of which is installed where streamdet is
-developed, so the node itself has never run there; the functions and the class above ``main`` are run on a bag's
-messages by tests/test_bag_run.py. docs/ros2.md explains each step.
+developed, so the node itself has never run there; the functions and the classes above ``main`` are run on a bag's
+messages by tests/test_bag_run.py, and ``main``'s callbacks on stand-in rclpy modules by
+tests/test_ros_embed_review.py. docs/ros2.md explains each step.
+
+One bad message (a JPEG truncated on a lossy link, a short PointCloud2 after a driver restart) must not end the node:
+rclpy re-raises a callback's exception out of ``rclpy.spin``. So each callback catches the ValueErrors a message
+causes (``RosMessageError``: the adapters' refusals; the detector's refusals of its input), logs them at most every
+few seconds per source (``ErrorLog``) and goes on with the next message. Other exceptions are bugs, and end it.
 """
 
 from __future__ import annotations
 
 import logging
+import time
+import weakref
+from typing import Callable
 
 import cv2
 import numpy as np
@@ -20,19 +29,75 @@ from streamdet.runtime_ort.detector import DetectorConfig, ImageUpdate, Streamin
 from streamdet.runtime_ort.ros.detections import detection3d_array_message, marker_array_message
 from streamdet.runtime_ort.ros.header import header_stamp_ns
 from streamdet.runtime_ort.ros.images import compressed_image_to_rgb
-from streamdet.runtime_ort.ros.pointcloud2 import CloudFields, decode_pointcloud2, split_cloud
+from streamdet.runtime_ort.ros.pointcloud2 import Cloud, CloudClockError, CloudFields, decode_pointcloud2, split_cloud
 
 log = logging.getLogger("streamdet_node")
 
+# Per-point times where the cloud has them: each slice is then stamped when it was scanned, not with the cloud's stamp.
+TIMED = CloudFields(require_time=False)
+UNTIMED = CloudFields(time=None)
 
-def detect_cloud(detector: StreamingDetector, cloud_msg) -> list[tuple[dict, dict]]:
-    """(Detection3DArray, MarkerArray) message dicts of every slice of one PointCloud2, in scan order."""
-    cloud = decode_pointcloud2(cloud_msg, CloudFields(require_time=False))
-    out = []
+
+class ErrorLog:
+    """Logs a bad message's error at most once per ``period_s`` for each source (a camera, the LiDAR), with how many
+    were not logged meanwhile: a camera sending corrupt frames at 30 Hz must neither flood the log nor go unseen."""
+
+    def __init__(self, period_s: float = 5.0, clock: Callable[[], float] = time.monotonic) -> None:
+        self.period_s = period_s
+        self.clock = clock
+        self.count = 0  # every error reported, logged or not
+        self._last: dict[str, float] = {}
+        self._quiet: dict[str, int] = {}
+
+    def report(self, source: str, error: BaseException | str) -> None:
+        self.count += 1
+        now = self.clock()
+        last = self._last.get(source)
+        if last is not None and now - last < self.period_s:
+            self._quiet[source] = self._quiet.get(source, 0) + 1
+            return
+        self._last[source] = now
+        quiet = self._quiet.pop(source, 0)
+        more = f" ({quiet} more since the last report)" if quiet else ""
+        log.warning("%s: %s%s", source, " ".join(str(error).split()), more)
+
+
+_ERRORS = ErrorLog()  # for callers that keep none of their own
+# detector -> {slice index: boxes its markers showed last}: a caller that keeps no record still deletes what it left
+_SHOWN: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def decode_cloud(cloud_msg, errors: ErrorLog | None = None) -> Cloud:
+    """The cloud with its per-point times; without them (every slice stamped with the cloud's stamp, reported to
+    ``errors``) when its time column is on another clock or in another unit than its header (``CloudClockError``):
+    dropping those points, or refusing every cloud, would leave the detector blind."""
+    try:
+        return decode_pointcloud2(cloud_msg, TIMED)
+    except CloudClockError as e:
+        (errors or _ERRORS).report("LiDAR per-point time", f"{e}; read without per-point times")
+        return decode_pointcloud2(cloud_msg, UNTIMED)
+
+
+def detect_cloud(
+    detector: StreamingDetector, cloud_msg, shown: dict[int, int] | None = None, errors: ErrorLog | None = None
+) -> list[tuple[dict, dict]]:
+    """(Detection3DArray, MarkerArray) message dicts of every slice of one PointCloud2, in scan order.
+
+    ``shown`` (slice index -> boxes its markers showed; None: a record kept for ``detector``) is updated once every
+    slice is done: a slice that finds fewer boxes than last time deletes the markers beyond its count, which would
+    otherwise stay on screen (lifetime 0), as ``streamdet-bag run`` does. A RosMessageError (or the detector's
+    ValueError) leaves it as it was, so the next cloud deletes what is really on screen."""
+    shown = _SHOWN.setdefault(detector, {}) if shown is None else shown
+    cloud = decode_cloud(cloud_msg, errors)
+    out, counts = [], {}
     for s in split_cloud(cloud, detector.num_slices, detector.config.start_deg):
         d = detector.detect_slice(s.points, s.index, timestamp=s.scan_time_ns * 1e-9).detections
+        counts[s.index] = len(d.scores)
+        stale = range(len(d.scores), shown.get(s.index, 0))
         out.append((detection3d_array_message(d.boxes, d.scores, d.labels, s.scan_time_ns, s.frame_id),
-                    marker_array_message(d.boxes, d.labels, s.scan_time_ns, s.frame_id, d.scores, ns=f"slice_{s.index}")))  # fmt: skip
+                    marker_array_message(d.boxes, d.labels, s.scan_time_ns, s.frame_id, d.scores, ns=f"slice_{s.index}",
+                                         stale_ids=stale)))  # fmt: skip
+    shown.update(counts)
     return out
 
 
@@ -116,6 +181,8 @@ def main() -> None:  # the ROS boilerplate
                 fallback_export_dir=fallback, fallback_after_s=max_age_s if fallback else None, providers=providers))  # fmt: skip
             self.detector.warm_up()  # before the first message: onnxruntime's first runs of a graph are slow
             self.frames = CameraFrames(camera_timeout_s or None)
+            self.shown: dict[int, int] = {}  # slice -> boxes its markers show, so fewer next time deletes the rest
+            self.errors = ErrorLog()
             self.boxes = self.create_publisher(Detection3DArray, "/streamdet/detections", 10)
             self.markers = self.create_publisher(MarkerArray, "/streamdet/markers", 10)
             self.create_subscription(PointCloud2, "/LIDAR_TOP", self.on_cloud, 1)
@@ -124,12 +191,28 @@ def main() -> None:  # the ROS boilerplate
                                          lambda msg, cam=cam: self.on_image(cam, msg), 1)  # fmt: skip
 
         def on_image(self, cam: str, msg) -> None:
-            self.frames.add(self.detector, cam, msg)
+            try:
+                self.frames.add(self.detector, cam, msg)
+            except ValueError as e:  # this image only (RosMessageError: truncated, not colour, ...): the last one stays
+                self.errors.report(f"{cam} image", e)
 
         def on_cloud(self, msg) -> None:
-            # the image lane first, so the slices see the newest cameras (and none that stopped sending)
-            self.frames.update(self.detector, header_stamp_ns(msg, "sensor_msgs/PointCloud2") * 1e-9)
-            for detections, markers in detect_cloud(self.detector, msg):
+            try:
+                stamp_s = header_stamp_ns(msg, "sensor_msgs/PointCloud2") * 1e-9
+            except ValueError as e:
+                self.errors.report("LiDAR cloud", e)
+                return
+            try:
+                # the image lane first, so the slices see the newest cameras (and none that stopped sending)
+                self.frames.update(self.detector, stamp_s)
+            except ValueError as e:  # the slices run on the image BEV in use
+                self.errors.report("image lane", e)
+            try:
+                published = detect_cloud(self.detector, msg, self.shown, self.errors)
+            except ValueError as e:  # this cloud only (RosMessageError: short data, a missing field, ...)
+                self.errors.report("LiDAR cloud", e)
+                return
+            for detections, markers in published:
                 self.boxes.publish(filled(Detection3DArray, detections))
                 self.markers.publish(filled(MarkerArray, markers))
 

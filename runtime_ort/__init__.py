@@ -31,6 +31,11 @@ _EXPORTS = {
     "CalibrationError": "streamdet.calibration.camera",
     "BlindCameraWarning": "streamdet.calibration.lut",
     "CameraMovedWarning": "streamdet.calibration.lut",
+    # what the ROS 2 adapters (streamdet.runtime_ort.ros) raise for a message they cannot read or write, and the two
+    # refusals a node may want to tell apart: a cloud's per-point clock, and a TF lookup with no answer
+    "RosMessageError": "streamdet.runtime_ort.ros.header",
+    "CloudClockError": "streamdet.runtime_ort.ros.pointcloud2",
+    "TfLookupError": "streamdet.runtime_ort.ros.tf",
     "PhaseLockStats": "streamdet.runtime_ort.phase_locked_lane",
     "Detections": "streamdet.runtime_ort.postprocess",
     "PostprocessConfig": "streamdet.runtime_ort.postprocess",

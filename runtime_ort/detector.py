@@ -951,6 +951,8 @@ class StreamingDetector:
         total = sum(p.shape[0] for p in points)
         if total > MAX_SLICE_POINTS:  # before any work: a corrupt count (or zero strides) would need gigabytes
             raise ValueError(f"a slice run holds {total} points, over the {MAX_SLICE_POINTS} of MAX_SLICE_POINTS (core/points.py)")
+        if not self._sessions:  # closed: a slice without pillars runs no graph, and would answer "no objects"
+            raise self._closed_error()
         quadrants = quadrants_of_sector(ks[0], n, self.config.start_deg)
         t0 = time.perf_counter()
         cache = quadrant_states(self._image)  # one read: a consistent view of the cache

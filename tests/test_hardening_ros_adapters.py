@@ -257,9 +257,14 @@ def test_valid_camera_info_is_unchanged():
                         binning_x=np.uint32(1), binning_y=0)  # fmt: skip
     assert camera_info_intrinsics(as_msg(numpy_style)) == expected
     assert camera_info_intrinsics(as_msg(_info(d=[]))) == expected
-    P = np.c_[K * [[0.9], [0.9], [1]], [10.0, 0, 0]]
+    P = np.c_[K * [[0.9], [0.9], [1]], [0.0, 0, 0]]
     rectified = camera_info_intrinsics(as_msg(_info(d=[0.1, 0, 0, 0, 0], p=P.reshape(-1).tolist())), intrinsics="p")
     np.testing.assert_array_equal(rectified["camera_intrinsic"], P[:, :3])
+    # a stereo pair's second camera (Tx = -fx' * baseline) is refused by name: which frame P's points are in, TF's
+    # or the first camera's rectified one, the message cannot tell (tests/test_ros_embed_review.py)
+    stereo = np.c_[P[:, :3], [10.0, 0, 0]]
+    refused(lambda: camera_info_intrinsics(as_msg(_info(d=[0.1, 0, 0, 0, 0], p=stereo.reshape(-1).tolist())), intrinsics="p"),
+            "sensor_msgs/CameraInfo of 'cam'", "p's 4th column [Tx, Ty, Tz] = [10.0, 0.0, 0.0]", "stereo")
 
 
 # ---- M2 and L6: TfBuffer -------------------------------------------------------------------------------------------

@@ -17,7 +17,7 @@ import numpy as np
 from streamdet.core.boxes import BOX_DIM, H, L, W, X, Y, YAW, Z
 from streamdet.core.classes import CLASS_NAMES, class_color_rgb
 from streamdet.core.json_input import is_finite_number
-from streamdet.runtime_ort.ros.header import INT32_MAX, INT32_MIN, duration_msg, header_msg, int_field, shown
+from streamdet.runtime_ort.ros.header import INT32_MAX, INT32_MIN, RosMessageError, duration_msg, header_msg, int_field, shown
 
 CUBE, TEXT_VIEW_FACING = 1, 9  # visualization_msgs/Marker types
 ADD, DELETE, DELETEALL = 0, 2, 3  # visualization_msgs/Marker actions
@@ -84,7 +84,7 @@ def marker_array_message(
     stale_ids = [int_field(i, f"{MARKERS}: stale_ids entry (a Marker id, int32)", INT32_MIN, INT32_MAX) for i in stale_ids]
     boxes, shown_scores, labels = _check(boxes, scores, labels, class_names, MARKERS, allow_other=True, optional_scores=True)
     if names is not None and len(names) != len(boxes):
-        raise ValueError(f"{MARKERS}: names must have {len(boxes)} entries, got {len(names)}")
+        raise RosMessageError(f"{MARKERS}: names must have {len(boxes)} entries, got {len(names)}")
     header = header_msg(stamp_ns, frame_id)
     lifetime = duration_msg(lifetime_s)
     markers = [_marker(header, ns, 0, DELETEALL, lifetime)] if replace else []
@@ -128,33 +128,33 @@ def _marker(header: dict, ns: str, marker_id: int, action: int, lifetime: dict) 
 
 
 def _check(boxes, scores, labels, class_names, what: str, allow_other: bool = False, optional_scores: bool = False):
-    """boxes, scores (zeros for None when ``optional_scores``) and labels as arrays, or a ValueError naming ``what``
+    """boxes, scores (zeros for None when ``optional_scores``) and labels as arrays, or a RosMessageError naming ``what``
     (the message being built), the box and the value."""
     boxes = _floats(boxes, "boxes", what)
     if boxes.ndim != 2 or boxes.shape[1] != BOX_DIM:
-        raise ValueError(f"{what}: boxes must be (N, {BOX_DIM}) x, y, z, w, l, h, yaw, vx, vy; got shape {boxes.shape}")
+        raise RosMessageError(f"{what}: boxes must be (N, {BOX_DIM}) x, y, z, w, l, h, yaw, vx, vy; got shape {boxes.shape}")
     n = len(boxes)
     scores = np.zeros(n) if scores is None and optional_scores else _floats(scores, "scores", what)
     labels = np.asarray(labels)
     if scores.shape != (n,) or labels.shape != (n,):
-        raise ValueError(f"{what}: scores and labels must be ({n},) to match boxes, got {scores.shape} and {labels.shape}")
+        raise RosMessageError(f"{what}: scores and labels must be ({n},) to match boxes, got {scores.shape} and {labels.shape}")
     if n and not np.issubdtype(labels.dtype, np.integer):
-        raise ValueError(f"{what}: labels must be integers, got dtype {labels.dtype}")
+        raise RosMessageError(f"{what}: labels must be integers, got dtype {labels.dtype}")
     bad = (labels >= len(class_names)) | (labels < (-1 if allow_other else 0))
     if np.any(bad):
-        raise ValueError(f"{what}: labels {sorted(set(labels[bad].tolist()))} are outside 0..{len(class_names) - 1}")
+        raise RosMessageError(f"{what}: labels {sorted(set(labels[bad].tolist()))} are outside 0..{len(class_names) - 1}")
     # vx, vy are not checked: vision_msgs carries no velocity
     if not np.all(np.isfinite(boxes[:, :7])):
         i = int(np.argmax(~np.isfinite(boxes[:, :7]).all(axis=1)))
-        raise ValueError(f"{what}: boxes hold NaN or infinite centre, size or yaw values (box {i}: {boxes[i, :7].tolist()})")
+        raise RosMessageError(f"{what}: boxes hold NaN or infinite centre, size or yaw values (box {i}: {boxes[i, :7].tolist()})")
     # a zero or negative extent is no box: BoundingBox3D.size and a CUBE's scale would draw it inside out or not at all
     sizes = boxes[:, [W, L, H]]
     if not np.all(sizes > 0):
         i = int(np.argmax(~(sizes > 0).all(axis=1)))
-        raise ValueError(f"{what}: box {i} has size w, l, h {sizes[i].tolist()}; sizes must be > 0")
+        raise RosMessageError(f"{what}: box {i} has size w, l, h {sizes[i].tolist()}; sizes must be > 0")
     if not np.all(np.isfinite(scores)):  # ObjectHypothesis.score: a NaN fails every threshold and sorts anywhere
         i = int(np.argmax(~np.isfinite(scores)))
-        raise ValueError(f"{what}: score of box {i} is {float(scores[i])}; scores must be finite")
+        raise RosMessageError(f"{what}: score of box {i} is {float(scores[i])}; scores must be finite")
     return boxes, scores, labels
 
 
@@ -164,5 +164,5 @@ def _floats(values, name: str, what: str) -> np.ndarray:
     except (TypeError, ValueError, OverflowError):  # strings, ragged rows, an int past float64
         array = None
     if array is None:
-        raise ValueError(f"{what}: {name} must be an array of numbers, got {shown(values)}")
+        raise RosMessageError(f"{what}: {name} must be an array of numbers, got {shown(values)}")
     return array

@@ -1,9 +1,9 @@
 """What every message adapter shares: ``builtin_interfaces/Time`` and ``std_msgs/Header`` (stamps as integer
 nanoseconds, headers as dicts), ``uint8[]`` payloads as numpy views, and the checks of integer fields.
 
-A malformed field is refused with a ValueError naming the message, the field and the value: a decoder (rclpy,
-mcap-ros2-support, rosbags) hands over Python or numpy integers, so anything else (None, a float, a string, a
-value past the field's type) is a corrupt or hand-built message, never something to coerce."""
+A malformed field is refused with a ``RosMessageError`` (a ValueError) naming the message, the field and the value:
+a decoder (rclpy, mcap-ros2-support, rosbags) hands over Python or numpy integers, so anything else (None, a float, a
+string, a value past the field's type) is a corrupt or hand-built message, never something to coerce."""
 
 from __future__ import annotations
 
@@ -20,6 +20,13 @@ INT32_MIN, INT32_MAX = -(2**31), 2**31 - 1
 UINT8_MAX, UINT32_MAX = 2**8 - 1, 2**32 - 1
 
 
+class RosMessageError(ValueError):
+    """A ROS message the adapters cannot read or write: a malformed field, or a value its field cannot hold. Every
+    adapter refuses a message with this class (or a subclass), so a node catches it per message, logs it and goes on,
+    while an error of its own code (a TypeError, a wrong argument's plain ValueError) still stops it. A ValueError,
+    so callers written against ``except ValueError`` keep working."""
+
+
 def shown(value: Any) -> str:
     """``value`` for a one-line error: cut short (a 10**400, a long list) and on one line (numpy's array repr wraps)."""
     return " ".join(short_repr(value).split())
@@ -31,11 +38,11 @@ def is_integer(value: Any) -> bool:
 
 
 def int_field(value: Any, what: str, low: int = 0, high: int = UINT32_MAX) -> int:
-    """``value`` as an int when it is an integer in ``low..high`` (the field's ROS type); else a ValueError naming
+    """``value`` as an int when it is an integer in ``low..high`` (the field's ROS type); else a RosMessageError naming
     ``what`` (message type and field) and the value. ``int()`` would take 2.7, '3' and True, and raise TypeError,
     OverflowError or its own message for None, inf and nan."""
     if not (is_integer(value) and low <= value <= high):
-        raise ValueError(f"{what} must be an integer in {low}..{high}, got {shown(value)}")
+        raise RosMessageError(f"{what} must be an integer in {low}..{high}, got {shown(value)}")
     return int(value)
 
 
@@ -46,7 +53,7 @@ def stamp_ns(stamp: Any, what: str = "builtin_interfaces/Time") -> int:
     try:
         sec, nanosec = stamp.sec, stamp.nanosec
     except AttributeError:
-        raise ValueError(f"expected a builtin_interfaces/Time with sec and nanosec, got {type(stamp).__name__}") from None
+        raise RosMessageError(f"expected a builtin_interfaces/Time with sec and nanosec, got {type(stamp).__name__}") from None
     sec = int_field(sec, f"{what}.sec", INT32_MIN, INT32_MAX)
     nanosec = int_field(nanosec, f"{what}.nanosec", 0, NS_PER_S - 1)
     return sec * NS_PER_S + nanosec
@@ -60,29 +67,38 @@ def header_stamp_ns(msg: Any, message: str | None = None) -> int:
 def time_msg(ns: int) -> dict:
     """A ``builtin_interfaces/Time`` dict of integer nanoseconds (negative times round toward minus infinity)."""
     if not is_integer(ns):  # int() would take 2.7 or '3' and raise its own errors for None and nan
-        raise ValueError(f"a ROS 2 stamp is whole nanoseconds, got {shown(ns)}")
+        raise RosMessageError(f"a ROS 2 stamp is whole nanoseconds, got {shown(ns)}")
     sec, nanosec = divmod(int(ns), NS_PER_S)
     if not INT32_MIN <= sec <= INT32_MAX:
-        raise ValueError(f"time {int(ns)} ns does not fit a ROS 2 stamp: {sec} s is outside int32 seconds")
+        raise RosMessageError(f"time {int(ns)} ns does not fit a ROS 2 stamp: {sec} s is outside int32 seconds")
     return {"sec": sec, "nanosec": nanosec}
 
 
 def duration_msg(seconds: float) -> dict:
     """A ``builtin_interfaces/Duration`` dict of a non-negative number of seconds."""
     if not (is_integer(seconds) or isinstance(seconds, (float, np.floating))):  # '1' or None: TypeError below
-        raise ValueError(f"a builtin_interfaces/Duration must be a number of seconds, got {shown(seconds)}")
+        raise RosMessageError(f"a builtin_interfaces/Duration must be a number of seconds, got {shown(seconds)}")
     if not seconds >= 0:
-        raise ValueError(f"a duration must be >= 0 s, got {seconds!r}")
+        raise RosMessageError(f"a duration must be >= 0 s, got {seconds!r}")
     if not seconds <= INT32_MAX:  # int32 sec; also refuses inf before round() would raise OverflowError
-        raise ValueError(f"a builtin_interfaces/Duration holds at most {INT32_MAX} s (int32 sec), got {seconds!r} s")
+        raise RosMessageError(f"a builtin_interfaces/Duration holds at most {INT32_MAX} s (int32 sec), got {seconds!r} s")
     sec, nanosec = divmod(round(seconds * NS_PER_S), NS_PER_S)
     return {"sec": int(sec), "nanosec": int(nanosec)}
+
+
+def header_frame_id(msg: Any, message: str | None = None) -> str:
+    """``msg.header.frame_id``, a non-empty str; ``message`` (``"sensor_msgs/PointCloud2"``) names it in an error.
+    str() would turn None into the frame 'None', in which the detections would then be published."""
+    frame_id = msg.header.frame_id
+    if not isinstance(frame_id, str) or not frame_id:
+        raise RosMessageError(f"{message or 'std_msgs/Header'} header.frame_id must be a non-empty string, got {shown(frame_id)}")
+    return frame_id
 
 
 def header_msg(ns: int, frame_id: str) -> dict:
     """A ``std_msgs/Header`` dict."""
     if not isinstance(frame_id, str) or not frame_id:  # str(None) would name a frame 'None'
-        raise ValueError(f"std_msgs/Header.frame_id must be a non-empty string, got {shown(frame_id)}")
+        raise RosMessageError(f"std_msgs/Header.frame_id must be a non-empty string, got {shown(frame_id)}")
     return {"stamp": time_msg(ns), "frame_id": frame_id}
 
 
@@ -110,5 +126,5 @@ def byte_view(data: Any, what: str = "uint8[] payload") -> np.ndarray:
         # a list of ints (slow path), checked first: np.asarray(..., dtype=np.uint8) would wrap 256 and truncate 1.5
         if all(is_integer(v) and 0 <= v <= UINT8_MAX for v in data):
             return np.asarray(data, dtype=np.uint8).reshape(-1)
-    raise ValueError(f"{what} must be bytes, a uint8 array or integers 0..255, got {type(data).__name__} "
-                     f"{getattr(data, 'dtype', '')} {shown(data)}")  # fmt: skip
+    raise RosMessageError(f"{what} must be bytes, a uint8 array or integers 0..255, got {type(data).__name__} "
+                          f"{getattr(data, 'dtype', '')} {shown(data)}")  # fmt: skip

@@ -17,6 +17,12 @@ to the header stamp. The unit and clock are judged from a typical (median) magni
 not turn a whole cloud's times into another unit. A point whose time is not finite, or lies further than
 ``CloudFields.max_time_offset_s`` from the header stamp, is dropped and counted (``Cloud.num_time_dropped``), as a
 non-finite coordinate is: its time would otherwise become the scan time its slice is detected and published at.
+When most of a cloud's timed points lie outside that window, the column is on another clock than the header (a
+LiDAR on PTP in TAI with a UTC header: 37 s; GPS time: 18 s; a simulator's header stamp of 0) or in another unit, and
+dropping them would blind the detector without a word: ``CloudClockError`` is raised instead, quoting the typical
+offset. So is a float32 column holding an absolute clock: float32 resolves only minutes at today's epoch seconds, so
+every point of a sweep would read the same, wrong, time. A node that does not need per-point times reads the cloud
+with ``CloudFields(time=None)`` and never meets either.
 
 Intensity is passed through as recorded (times ``intensity_scale``): a value outside 0..255, or one that overflows
 float32 to inf, is left for the runtime's pillarize to drop and count with the other out-of-range reflectances.
@@ -36,7 +42,9 @@ from streamdet.core.slicing import relative_time_s, split_sweep
 from streamdet.runtime_ort.ros.header import (
     NS_PER_S,
     UINT8_MAX,
+    RosMessageError,
     byte_view,
+    header_frame_id,
     header_msg,
     header_stamp_ns,
     int_field,
@@ -60,6 +68,12 @@ NANOSECOND_CLOCK = 1e12  # a float time above this is nanoseconds
 MAX_POINT_TIME_OFFSET_S = 5.0
 TIME_SAMPLE = 4097  # values of a time column that decide its unit and clock (a strided sample: fast, and robust)
 MSG = "sensor_msgs/PointCloud2"
+
+
+class CloudClockError(RosMessageError):
+    """A cloud's per-point time column cannot give the points' times after its header stamp: most of them lie further
+    from the stamp than ``CloudFields.max_time_offset_s`` (another clock, or another unit), or it is a float32
+    absolute clock. The message quotes the offset or the value and says what to set."""
 
 
 @dataclass(frozen=True)
@@ -114,33 +128,36 @@ def decode_pointcloud2(msg: Any, fields: CloudFields = CloudFields()) -> Cloud:
     height, width = int_field(msg.height, f"{MSG}.height"), int_field(msg.width, f"{MSG}.width")
     point_step, row_step = int_field(msg.point_step, f"{MSG}.point_step"), int_field(msg.row_step, f"{MSG}.row_step")
     stamp = header_stamp_ns(msg, MSG)  # a corrupt stamp is refused before any work
+    frame_id = header_frame_id(msg, MSG)
     if not isinstance(msg.fields, (list, tuple)):
         kind = type(msg.fields).__name__
-        raise ValueError(f"{MSG}.fields must be a list of sensor_msgs/PointField, got {kind} {shown(msg.fields)}")
+        raise RosMessageError(f"{MSG}.fields must be a list of sensor_msgs/PointField, got {kind} {shown(msg.fields)}")
     present = {f.name: f for f in msg.fields}
     if len(present) != len(msg.fields):  # which of two "x" fields is x? Refused rather than the last one taken
         names = [f.name for f in msg.fields]
-        raise ValueError(f"PointCloud2 names a field twice: {sorted({n for n in names if names.count(n) > 1})} in {names}")
+        raise RosMessageError(f"PointCloud2 names a field twice: {sorted({n for n in names if names.count(n) > 1})} in {names}")
     names = {"x": "x", "y": "y", "z": "z", "intensity": fields.intensity}
     for role, name in names.items():
         if name not in present:
-            raise ValueError(f"PointCloud2 has no {name!r} field ({role}); it has {list(present)}")
+            raise RosMessageError(f"PointCloud2 has no {name!r} field ({role}); it has {list(present)}")
     time_name = _resolve(fields.time, TIME_FIELD_NAMES, present, "per-point time" if fields.require_time else None)
     ring_name = _resolve(fields.ring, RING_FIELD_NAMES, present, None)
     used = [("x", "x"), ("y", "y"), ("z", "z"), ("intensity", fields.intensity)]
     used += [("time", time_name)] if time_name else []
     used += [("ring", ring_name)] if ring_name else []
+    if not isinstance(msg.is_bigendian, (bool, np.bool_)):  # the str 'false' is truthy: every value byte-swapped
+        raise RosMessageError(f"{MSG}.is_bigendian must be a bool, got {shown(msg.is_bigendian)}")
     order = ">" if msg.is_bigendian else "<"
     dtype = _point_dtype(present, used, order, point_step)
     payload = byte_view(msg.data, f"{MSG}.data")
     num = height * width
     if num == 0:
-        return _empty_cloud(msg, stamp, time_name is not None)
+        return _empty_cloud(frame_id, stamp, time_name is not None)
     if row_step < width * point_step:
-        raise ValueError(f"PointCloud2 row_step {row_step} < width {width} x point_step {point_step}")
+        raise RosMessageError(f"PointCloud2 row_step {row_step} < width {width} x point_step {point_step}")
     need = (height - 1) * row_step + width * point_step
     if payload.size < need:
-        raise ValueError(f"PointCloud2 data holds {payload.size} bytes; {height} rows of {width} points need {need}")
+        raise RosMessageError(f"PointCloud2 data holds {payload.size} bytes; {height} rows of {width} points need {need}")
     # A strided view: rows row_step apart, points point_step apart; no copy until the columns below.
     grid = np.ndarray((height, width), dtype=dtype, buffer=payload, strides=(row_step, point_step))  # (H, W)
 
@@ -161,7 +178,7 @@ def decode_pointcloud2(msg: Any, fields: CloudFields = CloudFields()) -> Cloud:
         points[:, 4] = column("ring")
     else:
         points[:, 4] = 0.0
-    time_s = _times_s(column("time"), fields.time_unit, stamp, time_name) if time_name else None
+    time_s, unit = _times_s(column("time"), fields.time_unit, stamp, time_name) if time_name else (None, "")
     keep = np.isfinite(points[:, :3]).all(axis=1)
     dropped = num - int(np.count_nonzero(keep))
     time_dropped, bad_time = 0, None
@@ -170,12 +187,13 @@ def decode_pointcloud2(msg: Any, fields: CloudFields = CloudFields()) -> Cloud:
         bad = keep & ~plausible
         time_dropped = int(np.count_nonzero(bad))
         if time_dropped:
+            _check_clock(time_s, keep, plausible, fields, time_name, unit, stamp, frame_id)
             bad_time = float(time_s[np.argmax(bad)])
             keep &= plausible
     if dropped or time_dropped:
         points = points[keep]
         time_s = time_s[keep] if time_s is not None else None
-    return Cloud(stamp, str(msg.header.frame_id), points, time_s, dropped, time_dropped, bad_time)
+    return Cloud(stamp, frame_id, points, time_s, dropped, time_dropped, bad_time)
 
 
 def split_cloud(cloud: Cloud, num_slices: int, start_deg: float = 0.0) -> list[TimedSlice]:
@@ -215,7 +233,7 @@ def slice_from_message(
     k_of_point = slice_index_of(pts[:, 0], pts[:, 1], num_slices, start_deg)
     if index is None:
         if len(pts) == 0:
-            raise ValueError("slice_from_message: an empty cloud names no sector; pass index")
+            raise RosMessageError("slice_from_message: an empty cloud names no sector; pass index")
         index = int(np.bincount(k_of_point, minlength=num_slices).argmax())
     out = np.empty((len(pts), SWEEP_COLUMNS + 1), dtype=np.float32)  # (N, 6)
     out[:, :3] = pts[:, :3]
@@ -266,13 +284,13 @@ def _resolve(wanted: str | None, candidates: Sequence[str], present: dict, requi
         return None
     if wanted != "auto":
         if wanted not in present:
-            raise ValueError(f"PointCloud2 has no {wanted!r} field; it has {list(present)}")
+            raise RosMessageError(f"PointCloud2 has no {wanted!r} field; it has {list(present)}")
         return wanted
     for name in candidates:
         if name in present:
             return name
     if required_as is not None:
-        raise ValueError(
+        raise RosMessageError(
             f"PointCloud2 has no {required_as} field (looked for {list(candidates)}); it has {list(present)}; "
             "name it with CloudFields(time=...) or read the cloud without time (CloudFields(require_time=False))"
         )
@@ -287,31 +305,66 @@ def _point_dtype(present: dict, used: list[tuple[str, str]], order: str, point_s
         datatype, count = int_field(field.datatype, f"{where} datatype", 0, UINT8_MAX), int_field(field.count, f"{where} count")
         offset = int_field(field.offset, f"{where} offset")
         if datatype not in POINT_FIELD_TYPES:
-            raise ValueError(f"PointCloud2 field {name!r} has unknown datatype {datatype} (sensor_msgs/PointField 1..8)")
+            raise RosMessageError(f"PointCloud2 field {name!r} has unknown datatype {datatype} (sensor_msgs/PointField 1..8)")
         if count != 1:
-            raise ValueError(f"PointCloud2 field {name!r} has count {count}; streamdet reads scalar fields (count 1)")
+            raise RosMessageError(f"PointCloud2 field {name!r} has count {count}; streamdet reads scalar fields (count 1)")
         code = np.dtype(order + POINT_FIELD_TYPES[datatype])
         if offset + code.itemsize > point_step:
-            raise ValueError(f"PointCloud2 field {name!r} at offset {offset} ({code}) does not fit point_step {point_step}")
+            raise RosMessageError(f"PointCloud2 field {name!r} at offset {offset} ({code}) does not fit point_step {point_step}")
         names.append(role)
         formats.append(code)
         offsets.append(offset)
     return np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": point_step})
 
 
-def _times_s(raw: np.ndarray, unit: str, stamp: int, name: str) -> np.ndarray:
+def _times_s(raw: np.ndarray, unit: str, stamp: int, name: str) -> tuple[np.ndarray, str]:
+    """The column in seconds after the header stamp, and the unit it was read in."""
     integer = np.issubdtype(raw.dtype, np.integer)
     magnitude = _typical_magnitude(raw)  # decides the unit and whether the column is a clock
     if unit == "auto":
         unit = "ns" if integer or magnitude > NANOSECOND_CLOCK else "s"
-    if integer and magnitude * TIME_UNITS_S[unit] > ABSOLUTE_TIME_S:
+    absolute = magnitude * TIME_UNITS_S[unit] > ABSOLUTE_TIME_S
+    if integer and absolute:
         # an absolute integer clock: subtract in integer nanoseconds, exact
         ns_per_unit = round(TIME_UNITS_S[unit] * NS_PER_S)
-        return (raw.astype(np.int64) * np.int64(ns_per_unit) - np.int64(stamp)).astype(np.float64) * 1e-9
+        return (raw.astype(np.int64) * np.int64(ns_per_unit) - np.int64(stamp)).astype(np.float64) * 1e-9, unit
+    if absolute and raw.dtype.itemsize < 8:
+        # float32 keeps 24 bits: past ~1e6 s its step is a good part of a sweep, at epoch seconds it is minutes, so
+        # every point would read one time, off by up to half a step, and still pass the window check
+        step_s = float(np.spacing(np.float32(magnitude))) * TIME_UNITS_S[unit]
+        raise CloudClockError(
+            f"{MSG} at stamp {stamp} ns: per-point time field {name!r} is {raw.dtype.newbyteorder('=')} holding an "
+            f"absolute clock (typical value {magnitude:.10g}, read as {unit}), where float32 resolves only {step_s:g} s: "
+            "the points' times are lost. Set CloudFields(time=None) where per-point times are not needed, have the driver "
+            "publish times relative to the header stamp (or as float64 / integer ns), or name the column's unit with "
+            "CloudFields(time_unit=...) if it is not seconds"
+        )
     seconds = raw.astype(np.float64) * TIME_UNITS_S[unit]
-    if magnitude * TIME_UNITS_S[unit] > ABSOLUTE_TIME_S:
+    if absolute:
         seconds -= stamp / NS_PER_S
-    return seconds
+    return seconds, unit
+
+
+def _check_clock(time_s: np.ndarray, keep: np.ndarray, plausible: np.ndarray, fields: CloudFields, name: str, unit: str,
+                 stamp: int, frame_id: str) -> None:  # fmt: skip
+    """CloudClockError when more than half of the points with a finite time (and coordinates) lie outside the window.
+
+    A few such points are corrupt values, dropped and counted; most of them is a whole column on another clock or in
+    another unit, and dropping them would leave an empty or gutted cloud that detects nothing, silently."""
+    timed = keep & np.isfinite(time_s)
+    off = timed & ~plausible
+    num_off, num_timed = int(np.count_nonzero(off)), int(np.count_nonzero(timed))
+    if 2 * num_off <= num_timed:
+        return
+    typical = float(np.median(time_s[off]))
+    how = " (time_unit 'auto')" if fields.time_unit == "auto" else ""
+    raise CloudClockError(
+        f"{MSG} at stamp {stamp} ns in {frame_id!r}: {num_off} of {num_timed} timed points have a per-point time (field "
+        f"{name!r}, read as {unit}{how}) more than {fields.max_time_offset_s:g} s from the header stamp, typically "
+        f"{typical:+.6g} s: the LiDAR's clock is not the header's (TAI runs 37 s ahead of UTC, GPS time 18 s; a header "
+        "stamp of 0), or the column is in another unit. Set CloudFields(time=None) where per-point times are not needed, "
+        "or fix the driver's clock, or name the unit with CloudFields(time_unit=...)"
+    )
 
 
 def _typical_magnitude(column: np.ndarray) -> float:
@@ -329,6 +382,6 @@ def _scan_time_ns(stamp_ns: int, latest_s: float) -> int:
     return int(stamp_ns) if not np.isfinite(latest_s) else int(stamp_ns) + int(round(latest_s * NS_PER_S))
 
 
-def _empty_cloud(msg: Any, stamp: int, has_time: bool) -> Cloud:
-    return Cloud(stamp, str(msg.header.frame_id), np.zeros((0, SWEEP_COLUMNS), np.float32),
+def _empty_cloud(frame_id: str, stamp: int, has_time: bool) -> Cloud:
+    return Cloud(stamp, frame_id, np.zeros((0, SWEEP_COLUMNS), np.float32),
                  np.zeros(0) if has_time else None, 0)  # fmt: skip

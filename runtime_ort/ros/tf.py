@@ -7,6 +7,13 @@ Lookups return nuScenes-style records ``{"rotation": [w, x, y, z], "translation"
 out of the same ``Rig.from_nuscenes_records`` arithmetic as the nuScenes tables. A direct edge at an exact stamp
 returns the message's own numbers, untouched; a stamp between two messages is interpolated (linear translation,
 spherical rotation); a chain of edges is composed.
+
+Like tf2's buffer, it keeps the last ``cache_s`` seconds of each time-stamped edge (10 s by default, tf2's
+default cache time), counted back from the edge's newest stamp and pruned as transforms are added, so a node fed
+``/tf`` for hours holds a bounded buffer; static transforms are kept for ever. A lookup it cannot answer (no path
+between the frames, or a stamp outside an edge's kept stamps) raises ``TfLookupError``: a KeyError (what a missing
+path raised before) and a ``RosMessageError`` (a ValueError), so a node's per-message handler catches it with the
+adapters' other errors.
 """
 
 from __future__ import annotations
@@ -19,13 +26,24 @@ import numpy as np
 
 from streamdet.calibration.camera import invert_transform, make_transform, matrix_to_quaternion, quaternion_to_matrix
 from streamdet.core.json_input import is_finite_number
-from streamdet.runtime_ort.ros.header import header_msg, is_integer, shown, stamp_ns
+from streamdet.runtime_ort.ros.header import NS_PER_S, RosMessageError, header_msg, is_integer, shown, stamp_ns
 
 
 TF_QUATERNION_NORM2_TOL = 0.01  # tf2 BufferCore::setTransform: |q|^2 may differ from 1 by this much
+DEFAULT_CACHE_S = 10.0  # tf2's BufferCore::DEFAULT_CACHE_TIME: how far back from its newest stamp an edge is kept
 MSG = "geometry_msgs/TransformStamped"
 
 Record = dict  # {"rotation": [w, x, y, z], "translation": [x, y, z]}
+
+
+class TfLookupError(KeyError, RosMessageError):
+    """A lookup the buffer cannot answer: no TF path between the frames, or a stamp outside an edge's kept stamps.
+
+    A KeyError for callers written against the earlier "no path" KeyError, and a ValueError (RosMessageError) so that
+    one ``except ValueError`` covers every adapter's refusal."""
+
+    def __str__(self) -> str:  # KeyError's str() quotes its argument as a key's repr; this is a sentence
+        return str(self.args[0]) if self.args else ""
 
 
 @dataclass
@@ -36,9 +54,14 @@ class _Edge:
 
 
 class TfBuffer:
-    """Static and time-stamped transforms between named frames; not thread-safe (one reader feeds it)."""
+    """Static and time-stamped transforms between named frames; not thread-safe (one reader feeds it).
 
-    def __init__(self, max_extrapolation_ns: int = 0) -> None:
+    ``max_extrapolation_ns`` (default 0): how far past an edge's first or last kept stamp a lookup may take that
+    pose. ``cache_s`` (default ``DEFAULT_CACHE_S``, 10 s as tf2): how many seconds of each time-stamped edge are
+    kept, back from its newest stamp; older transforms are dropped when a newer one is added. None keeps every
+    transform (a tool that looks up a whole recording afterwards; memory grows with it)."""
+
+    def __init__(self, max_extrapolation_ns: int = 0, cache_s: float | None = DEFAULT_CACHE_S) -> None:
         # refused by name: int() gives its own message for NaN and OverflowError for inf and truncates 0.5; a
         # negative reach acts as 0 and can only be a caller's mistake (a sign slip in a tolerance)
         value = max_extrapolation_ns
@@ -46,6 +69,10 @@ class TfBuffer:
         if not (integral and value >= 0):
             raise ValueError(f"TfBuffer.max_extrapolation_ns must be a whole number of ns >= 0, got {shown(value)}")
         self.max_extrapolation_ns = int(value)  # how far past the first / last stamp a lookup may reach
+        if cache_s is not None and not (is_finite_number(cache_s) and cache_s > 0):
+            raise ValueError(f"TfBuffer.cache_s must be a number of seconds > 0 or None (keep all), got {shown(cache_s)}")
+        self.cache_s = cache_s
+        self._cache_ns = None if cache_s is None else round(cache_s * NS_PER_S)
         self._edges: dict[tuple[str, str], _Edge] = {}
         self._parent: dict[str, str] = {}
 
@@ -56,7 +83,7 @@ class TfBuffer:
         transforms = msg.transforms
         if not isinstance(transforms, (list, tuple)):
             kind = type(transforms).__name__
-            raise ValueError(f"tf2_msgs/TFMessage.transforms must be a list of {MSG}, got {kind} {shown(transforms)}")
+            raise RosMessageError(f"tf2_msgs/TFMessage.transforms must be a list of {MSG}, got {kind} {shown(transforms)}")
         self._add([_parse(ts) for ts in transforms], static)
 
     def add_transform(self, ts: Any, static: bool = False) -> None:
@@ -70,8 +97,8 @@ class TfBuffer:
         for parent, child, _, _ in parsed:
             known = parents.get(child)
             if known is not None and known != parent:
-                raise ValueError(f"{MSG} {parent!r} -> {child!r}: frame {child!r} has two parents, {known!r} and {parent!r}: "
-                                 "TF is a tree")  # fmt: skip
+                raise RosMessageError(f"{MSG} {parent!r} -> {child!r}: frame {child!r} has two parents, {known!r} and {parent!r}: "
+                                      "TF is a tree")  # fmt: skip
             parents[child] = parent
         self._parent = parents
         for parent, child, record, stamp in parsed:
@@ -85,13 +112,18 @@ class TfBuffer:
             else:
                 edge.stamps.insert(i, stamp)
                 edge.records.insert(i, record)
+            if self._cache_ns is not None:
+                # tf2's TimeCache::pruneList: the newest stamp stays, whatever the window, so an edge is never emptied
+                old = bisect.bisect_left(edge.stamps, edge.stamps[-1] - self._cache_ns)
+                if old:
+                    del edge.stamps[:old], edge.records[:old]
 
     @property
     def frames(self) -> set[str]:
         return set(self._parent) | set(self._parent.values())
 
     def lookup(self, parent: str, child: str, stamp: int) -> Record:
-        """The pose of ``child`` in ``parent`` at ``stamp`` (ns) as a record; KeyError / ValueError say why not."""
+        """The pose of ``child`` in ``parent`` at ``stamp`` (ns) as a record; TfLookupError says why not."""
         parent, child = _frame(parent, "TfBuffer.lookup parent"), _frame(child, "TfBuffer.lookup child")
         if (parent, child) in self._edges:
             return self._edge_record(parent, child, stamp)
@@ -99,7 +131,7 @@ class TfBuffer:
         up_parent = self._chain(parent)
         common = next((f for f in up_child if f in up_parent), None)
         if common is None:
-            raise KeyError(f"no TF path from {parent!r} to {child!r}; known frames {sorted(self.frames)}")
+            raise TfLookupError(f"no TF path from {parent!r} to {child!r}; known frames {sorted(self.frames)}")
         child2common = self._compose(up_child[: up_child.index(common) + 1], stamp)
         parent2common = self._compose(up_parent[: up_parent.index(common) + 1], stamp)
         child2parent = invert_transform(parent2common) @ child2common
@@ -112,7 +144,7 @@ class TfBuffer:
         while chain[-1] in self._parent:
             chain.append(self._parent[chain[-1]])
             if len(chain) > 1000:
-                raise ValueError(f"TF loop above frame {frame!r}")
+                raise RosMessageError(f"TF loop above frame {frame!r}")
         return chain
 
     def _compose(self, chain: list[str], stamp: int) -> np.ndarray:
@@ -135,9 +167,10 @@ class TfBuffer:
             end = stamps[0] if i == 0 else stamps[-1]
             if abs(stamp - end) <= self.max_extrapolation_ns:
                 return edge.records[0 if i == 0 else -1]
-            raise ValueError(
+            kept = "" if self.cache_s is None else f"; the buffer keeps the last {self.cache_s:g} s of each edge (cache_s)"
+            raise TfLookupError(
                 f"TF {parent!r} -> {child!r} at {stamp} ns is outside its {len(stamps)} stamps "
-                f"[{stamps[0]}, {stamps[-1]}] (max_extrapolation_ns {self.max_extrapolation_ns})"
+                f"[{stamps[0]}, {stamps[-1]}] (max_extrapolation_ns {self.max_extrapolation_ns}){kept}"
             )
         a, b = edge.records[i - 1], edge.records[i]
         w = (stamp - stamps[i - 1]) / (stamps[i] - stamps[i - 1])
@@ -162,7 +195,7 @@ def _parse(ts: Any) -> tuple[str, str, Record, int]:
     parent = _frame(ts.header.frame_id, f"{MSG} header.frame_id")
     child = _frame(ts.child_frame_id, f"{MSG} child_frame_id")
     if parent == child:
-        raise ValueError(f"{MSG} needs two different frame ids, got {parent!r} -> {child!r}")
+        raise RosMessageError(f"{MSG} needs two different frame ids, got {parent!r} -> {child!r}")
     stamp = stamp_ns(ts.header.stamp, f"{MSG} header.stamp")  # a static one's too: a corrupt stamp, a corrupt message
     r, t = ts.transform.rotation, ts.transform.translation
     record = {"rotation": [_number(r, axis, "rotation") for axis in "wxyz"],
@@ -172,9 +205,9 @@ def _parse(ts: Any) -> tuple[str, str, Record, int]:
     # ones, 0.707 for 1/sqrt(2)) and refuses others (TF_DENORMALIZED_QUATERNION): so do we.
     q, xyz = np.asarray(record["rotation"]), np.asarray(record["translation"])
     if not (np.isfinite(q).all() and np.isfinite(xyz).all() and abs(float(q @ q) - 1.0) <= TF_QUATERNION_NORM2_TOL):
-        raise ValueError(f"{MSG} {parent!r} -> {child!r} at {stamp} ns: rotation {record['rotation']} "
-                         f"must be a unit quaternion (squared norm within {TF_QUATERNION_NORM2_TOL} of 1, as tf2 "
-                         f"requires) and translation {record['translation']} finite")  # fmt: skip
+        raise RosMessageError(f"{MSG} {parent!r} -> {child!r} at {stamp} ns: rotation {record['rotation']} "
+                              f"must be a unit quaternion (squared norm within {TF_QUATERNION_NORM2_TOL} of 1, as tf2 "
+                              f"requires) and translation {record['translation']} finite")  # fmt: skip
     if abs(float(q @ q) - 1.0) > 1e-12:  # a unit one to float precision is kept as given
         record["rotation"] = (q / np.linalg.norm(q)).tolist()
     return parent, child, record, stamp
@@ -187,14 +220,14 @@ def _number(vector: Any, axis: str, name: str) -> float:
     value = getattr(vector, axis)
     if isinstance(value, (float, np.floating)) or (is_integer(value) and is_finite_number(value)):
         return float(value)
-    raise ValueError(f"{MSG} transform.{name}.{axis} must be a float64 number, got {shown(value)}")
+    raise RosMessageError(f"{MSG} transform.{name}.{axis} must be a float64 number, got {shown(value)}")
 
 
 def _frame(name: Any, what: str) -> str:
     """A frame id without its leading slash (tf2's carry none; ROS 1 bags often do); anything but a non-empty str is
     refused rather than turned into the frame 'None'."""
     if not isinstance(name, str) or not name.lstrip("/"):
-        raise ValueError(f"{what} must be a non-empty frame id (str), got {shown(name)}")
+        raise RosMessageError(f"{what} must be a non-empty frame id (str), got {shown(name)}")
     return name.lstrip("/")
 
 
