@@ -22,7 +22,8 @@ Contracts (README, "Trust and failure model"; docs/trust.md):
 
 - **Start-up** verifies everything before the first slice: the manifest against ``manifest.schema.json``, every
   file it names confined to the export directory and matching its sha256, each graph's real signature against
-  the manifest and against what the runtime feeds (``signature.py``). Any defect is a ManifestError.
+  the manifest and against what the runtime feeds (``signature.py``). Any defect is a ManifestError
+  (``export_open.py`` opens and checks the export; the call-argument checks are ``call_checks.py``).
 - **Timestamps** are labels in seconds: a finite real number (NaN, inf, a bool or a string raise ValueError) or
   None, which means ``time.monotonic()`` when the call starts. They may go backwards (a driver clock that steps);
   they never order anything: the newest image set is the one whose `update_images` call started last.
@@ -35,7 +36,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import math
 import os
 import threading
 import weakref
@@ -47,52 +47,34 @@ from pathlib import Path
 from typing import Mapping, Sequence
 
 import numpy as np
-import onnx
 
 from streamdet.calibration.camera import CalibrationError, Rig
-from streamdet.calibration.grid import GridSpec
-from streamdet.calibration.lut import (
-    BlindCameraWarning, CameraMovedWarning, Lut, blind_cameras, build_lut, check_rig_fits, moved_cameras,
-)
+from streamdet.calibration.lut import BlindCameraWarning, CameraMovedWarning, Lut, moved_cameras  # noqa: F401 (BlindCameraWarning: public here)
 from streamdet.calibration.quadrant_lut import QuadrantLut
 from streamdet.core.constants import PRECISIONS  # noqa: F401 (public here too)
-from streamdet.core.json_input import is_finite_number, short_repr
 from streamdet.core.points import (
     MAX_POINT_TIME_S, MAX_SLICE_INDEX, MAX_SLICE_POINTS, MAX_SWEEP_POINTS, REFLECTANCE_RANGE, check_sweep, slice_points_problem,
 )
-from streamdet.core.sectors import NUM_QUADRANTS, check_num_slices, quadrants_of_sector, sector_bounds_deg
+from streamdet.core.sectors import NUM_QUADRANTS, quadrants_of_sector, sector_bounds_deg
 from streamdet.core.slicing import split_sweep
+from streamdet.runtime_ort.call_checks import call_timestamp, slice_count, slice_index_problem
 # the public names of the runtime's API are importable from here too, where StreamingDetector lives
-from streamdet.runtime_ort.camera_terms import CameraTerms, open_camera_terms
+from streamdet.runtime_ort.camera_terms import CameraTerms
 from streamdet.runtime_ort.coalesce import check_coalesced, split_by_slice
 from streamdet.runtime_ort.detector_config import DetectorClosed, DetectorConfig, NoImageLaneError, lane_precision_label  # noqa: F401
 from streamdet.runtime_ort.detector_results import ImageUpdate, SliceResult, SweepResult
-from streamdet.runtime_ort.graph_files import checked_model, model_signature
+from streamdet.runtime_ort.export_open import check_lut, executed_gmac, export_lut, no_image_lane, open_export, provider_options
 from streamdet.runtime_ort.heap import release_free_memory
-from streamdet.runtime_ort.export_settings import export_nms, export_rig, image_spec_at
-from streamdet.runtime_ort.fallback import FALLBACK_GRAPH, LidarFallback, needs_fallback, open_fallback
+from streamdet.runtime_ort.fallback import FALLBACK_GRAPH, LidarFallback, needs_fallback
 from streamdet.runtime_ort.image_cache import (  # noqa: F401 (check_camera_timestamps: public here too)
     ALL_QUADRANTS, ImageCache, QuadrantState, check_camera_timestamps, quadrant_states, quadrant_timestamp, select_maps,
     update_quadrants,
 )
-from streamdet.runtime_ort.lut_views import LutViews
-from streamdet.runtime_ort.manifest import GraphEntry, ImageSpec, Manifest, ManifestError, read_export_file, read_manifest
+from streamdet.runtime_ort.manifest import GraphEntry, ImageSpec, Manifest, ManifestError  # noqa: F401 (ManifestError: public here)
 from streamdet.runtime_ort.pillarize import pillarize
 from streamdet.runtime_ort.postprocess import Detections, PostprocessConfig, aggregate_sweep, postprocess_slice, top_k_reached
 from streamdet.runtime_ort.recording import Feeds, GraphRecording
-from streamdet.runtime_ort.sessions import (
-    CPU_PROVIDER,
-    TENSORRT_PROVIDER,
-    GraphRunError,
-    GraphSession,
-    ProviderError,
-    SessionConfig,
-    resolve_providers,
-    without_tensorrt,
-)
-from streamdet.runtime_ort.signature import check_graph, check_parity, check_runtime_fields
-from streamdet.runtime_ort.stats import LatencyStats
-from streamdet.runtime_ort.tensorrt import default_cache_dir, tensorrt_options
+from streamdet.runtime_ort.sessions import CPU_PROVIDER, GraphRunError, GraphSession, ProviderError  # noqa: F401 (ProviderError: public here)
 from streamdet.runtime_ort.warm_up import warm_up
 
 log = logging.getLogger(__name__)
@@ -100,9 +82,6 @@ log = logging.getLogger(__name__)
 # Calibration swaps one image update follows (each a lift again with the newest LUT) before it gives its images up: a
 # caller swapping faster than one lift would otherwise keep the image lane lifting for ever.
 MAX_RELIFTS_PER_UPDATE = 4
-
-
-TYPICAL_PILLAR_SHARE = 8  # TensorRT's "opt" pillar count: the cap / this (the bundled sweep's slices hold far fewer)
 
 
 class StreamingDetector:
@@ -116,87 +95,30 @@ class StreamingDetector:
 
     def __init__(self, export_dir: str | Path, config: DetectorConfig = DetectorConfig(), manifest: Manifest | None = None) -> None:
         self.export_dir = Path(export_dir)
-        self.config = config
-        if manifest is not None and not isinstance(manifest, Manifest):
-            raise ValueError(f"manifest must be None or a Manifest, got {type(manifest).__name__}")
-        self.manifest: Manifest = manifest if manifest is not None else read_manifest(self.export_dir, verify_files=config.verify_sha256)
-        m = self.manifest
-        check_runtime_fields(m)
-        in_use = {"slice_head": config.precision}
-        if m.use_image:
-            in_use.update(image_encoder=config.image_precision, volumetric_lifter=config.image_precision)
-        try:
-            check_parity(m, in_use)
-        except ManifestError as e:
-            raise ManifestError(f"{self.export_dir}: {e}") from None
-        try:
-            self.grid = GridSpec.from_dict(m.grid)
-        except (ValueError, TypeError) as e:
-            raise ManifestError(f"{self.export_dir / 'manifest.json'}: grid: {e}") from None
-        self.uses_images: bool = m.use_image  # False: LiDAR-only export, slice lane only
+        # every check of the export and the config, its sessions, LUT and per-camera lifts (export_open.py)
+        opened = open_export(self.export_dir, config, manifest)
+        self.config = config = opened.config  # with the export's NMS settings where the config named none
+        self.manifest: Manifest = opened.manifest
+        self.grid = opened.grid
+        self.uses_images: bool = opened.uses_images  # False: LiDAR-only export, slice lane only
         # False: a LiDAR-only net without the quadrant crop, one whole-grid map per slice (calibration/slice_maps.py)
-        self.slice_crop: bool = m.slice_crop
-        if not self.uses_images and config.image_lane_precision is not None:
-            raise NoImageLaneError(
-                self._no_image_lane(f"DetectorConfig.image_lane_precision {config.image_lane_precision!r} cannot apply")
-            )
-        for what, precision in (("precision", config.precision), ("image_lane_precision", config.image_precision)):
-            if precision not in m.precisions:
-                raise ValueError(
-                    f"{self.export_dir} has no {precision} graphs (it has {list(m.precisions)}; DetectorConfig.{what}); "
-                    + (f"re-export with --{precision}" if precision != "fp32" else "the export lacks its fp32 graphs")
-                )
-        if not self.uses_images and config.image_size is not None:
-            raise NoImageLaneError(self._no_image_lane(f"DetectorConfig.image_size {config.image_size!r} cannot apply"))
-        self.camera_names: tuple[str, ...] = tuple(m.image.camera_names) if m.image is not None else ()
-        # what update_images takes; None for a LiDAR-only export
-        self.image: ImageSpec | None = image_spec_at(m.image, config.image_size) if m.image is not None else None
-        self.num_slices = int(config.num_slices) if config.num_slices is not None else m.num_slices
-        try:
-            check_num_slices(self.num_slices, config.start_deg)
-        except ValueError as e:
-            raise ManifestError(f"{self.export_dir / 'manifest.json'}: num_slices: {e}") from None
-        pillars = m.preset["pillars"]
-        self._max_points_per_pillar = int(pillars["max_points_per_pillar"])
-        self._max_pillars = int(pillars["max_pillars"])
-        if config.nms is None:
-            self.config = config = dataclasses.replace(config, nms=export_nms(m))
-        threshold = config.score_threshold if config.score_threshold is not None else float(m.post["score_threshold"])
-        self._post = PostprocessConfig(score_threshold=threshold, restrict_to_sector=config.restrict_to_sector, nms=config.nms)
-
-        def session(name: str, threads: int, precision: str) -> GraphSession:
-            entry = m.graph(name, precision)
-            path, raw, _ = self._read_graph(name, precision)
-            cfg = SessionConfig(config.providers, threads, enable_profiling=config.enable_profiling, profile_dir=config.profile_dir)
-            graph = GraphSession(path, cfg, model=raw, provider_options=self._provider_options(entry))  # the bytes hashed are the bytes loaded
-            check_graph(entry, graph.inputs, graph.outputs, m, self.grid)  # the graph is what the manifest says
-            return graph
-
+        self.slice_crop: bool = opened.slice_crop
+        self.camera_names: tuple[str, ...] = opened.camera_names
+        self.image: ImageSpec | None = opened.image  # what update_images takes; None for a LiDAR-only export
+        self.num_slices = opened.num_slices
+        self._max_points_per_pillar = opened.max_points_per_pillar
+        self._max_pillars = opened.max_pillars
+        self._post = opened.post
         # None for a LiDAR-only export: it has no image lane
-        image_lane = (config.image_lane_threads, config.image_precision)
-        self.image_encoder = session("image_encoder", *image_lane) if self.uses_images else None
-        self.lifter = session("volumetric_lifter", *image_lane) if self.uses_images else None
-        self.slice_head = session("slice_head", config.slice_lane_threads, config.precision)
-        self.providers = self.slice_head.providers
-        self._fallback: LidarFallback | None = None
-        if config.fallback_export_dir is not None:
-            if not self.uses_images:
-                raise NoImageLaneError(self._no_image_lane("it needs no LiDAR-only fallback (DetectorConfig.fallback_export_dir)"))
-            cfg = SessionConfig(config.providers, config.slice_lane_threads, enable_profiling=config.enable_profiling,
-                                profile_dir=config.profile_dir)  # fmt: skip
-            self._fallback = open_fallback(config.fallback_export_dir, m, self.grid, cfg, config.precision, config.verify_sha256,
-                                           self._provider_options)  # fmt: skip
-        self.stats = LatencyStats()
-        graphs = {"image_encoder": self.image_encoder, "volumetric_lifter": self.lifter, "slice_head": self.slice_head,
-                  FALLBACK_GRAPH: None if self._fallback is None else self._fallback.session}  # fmt: skip
-        self._sessions = {name: g for name, g in graphs.items() if g is not None}
-        self._graph_files = {name: g.path.name for name, g in self._sessions.items()}  # for messages
+        self.image_encoder, self.lifter, self.slice_head = opened.image_encoder, opened.lifter, opened.slice_head
+        self.providers = opened.providers
+        self._fallback: LidarFallback | None = opened.fallback
+        self.stats = opened.stats
+        self._sessions = opened.sessions
+        self._graph_files = opened.graph_files  # for messages
         self._recordings: tuple[GraphRecording, ...] = ()  # open recording() blocks (swapped whole under _lock)
         # The manifest's MAC counts of the graphs in use; _executed_gmac scales them to each run's sizes for the stats.
-        lanes = {"image_encoder": config.image_precision, "volumetric_lifter": config.image_precision, "slice_head": config.precision}
-        self._graph_entries = {name: m.graph(name, lanes[name]) for name in m.required_graphs}
-        if self._fallback is not None:
-            self._graph_entries[FALLBACK_GRAPH] = self._fallback.entry
+        self._graph_entries = opened.graph_entries
 
         self._lock = threading.Lock()  # guards the swaps of _lut and _image; reads take a reference
         self._cap_lock = threading.Lock()  # slice workers count runs at the top-K cap at once
@@ -218,111 +140,29 @@ class StreamingDetector:
         # Read only where the quadrant holds no image; a tuple swapped whole, so a slice reads it without the lock
         self._cameras_out: tuple[bool, ...] = (False,) * NUM_QUADRANTS
         self._out_said = [0] * NUM_QUADRANTS  # per quadrant: the seq of the call that set _cameras_out there (_lock)
-        self._lut: Lut | None = None  # stays None for a LiDAR-only export
-        self._built_from: tuple[Lut, str] | None = None  # (a LUT this detector built, its rig's sha256): _is_current_rig
-        if self.uses_images and (self.image.width, self.image.height) == (m.image.width, m.image.height):
-            lut_path, raw = read_export_file(self.export_dir, m.lut, "lut.file", config.verify_sha256)
-            lut = Lut.load(lut_path, self.grid, len(self.camera_names), data=raw)  # headers checked first
-            if lut.calibration_sha256 != m.lut.calibration_sha256:  # streamdet-calib rewrites both together
-                raise ManifestError(f"{lut_path} was built from calibration {lut.calibration_sha256[:12]}..., the manifest "
-                                    f"records {m.lut.calibration_sha256[:12]}... (lut.calibration_sha256)")  # fmt: skip
-            self._lut = self._check_lut(lut)
-        elif self.uses_images:
-            rig = export_rig(m, self.export_dir)
-            self._lut = self._check_lut(self._build_lut(rig))
-            self._built_from = (self._lut, rig.sha256())
+        self._lut: Lut | None = opened.lut  # stays None for a LiDAR-only export
+        self._built_from: tuple[Lut, str] | None = opened.built_from  # (a LUT this detector built, its rig's sha256): _is_current_rig
         self._image: ImageCache | None = None  # None before the first image update; replaced whole under _lock
         self._blank_bev: np.ndarray | None = None  # blank_image_bev (set below, once the lanes can lift)
         # per-quadrant LUTs, lifter LUT feeds and quadrant_cameras' answers, made once per LUT (lut_views.py)
-        self._views = LutViews(self.camera_names, m.lut_layout)
+        self._views = opened.views
         # per-camera lifts of image updates (camera_terms.py); None: every update runs the lifter graph
-        self._terms: CameraTerms | None = self._open_camera_terms() if self.uses_images and self._lut is not None else None
+        self._terms: CameraTerms | None = opened.terms
         if self.uses_images and self._lut is not None:
             self._blank_bev = self._lift_blank()
         log.info("streamdet: %s (%s, %d slices) on %s", self.export_dir, self.precision_label, self.num_slices, list(self.providers))
-        if self.providers[0] != CPU_PROVIDER and "int8" in lanes.values():
+        if self.providers[0] != CPU_PROVIDER and "int8" in (config.image_precision, config.precision):  # a lane's graphs
             log.warning("streamdet: int8 graphs on %s: their quantize / dequantize pairs are made for x86 CPUs (uint8 "
                         "activations) and run slower there than the fp32 or fp16 graphs", self.providers[0])  # fmt: skip
 
     def _provider_options(self, entry: GraphEntry) -> dict[str, dict[str, str]] | None:
-        """TensorRT's options for one graph where TensorRT is among the providers (runtime_ort/tensorrt.py): the
-        engine cache, and a shape profile for the graphs whose dynamic dimensions are known here: the pillar count P
-        (1 to the export's max_pillars), the quadrants Q a slice reads, the cameras J and the image size (the
-        lifter's LUT depth K is the LUT's, unknown until it is built: that graph builds from the shapes it sees)."""
-        if TENSORRT_PROVIDER not in resolve_providers(self.config.providers):
-            return None
-        if entry.precision == "int8":  # static QDQ with uint8 activations: TensorRT takes symmetric int8 only
-            raise ProviderError(f"{self.export_dir}: the {entry.name} int8 graph is made for x86 CPUs (uint8 activations, "
-                                "asymmetric); TensorRT runs symmetric int8 only: run fp32 or fp16 graphs there")  # fmt: skip
-        img = self.image
-        q_opt = len(quadrants_of_sector(0, self.num_slices, self.config.start_deg))
-        # the engine is tuned at "opt": a slice's pillar count, far below the cap on a real sweep
-        p_opt = max(1, self._max_pillars // TYPICAL_PILLAR_SHARE)
-        dims = {"P": (1, p_opt, self._max_pillars), "Q": (1, q_opt, NUM_QUADRANTS)}
-        if img is not None:
-            cams = len(self.camera_names)
-            dims.update(J=(1, cams, cams), H=(img.height,) * 3, W=(img.width,) * 3,
-                        Hf=(img.feature_height,) * 3, Wf=(img.feature_width,) * 3)  # fmt: skip
-        base = self.config.tensorrt_cache_dir if self.config.tensorrt_cache_dir is not None else default_cache_dir()
-        # onnxruntime names an engine by the graph's structure and the library versions, not its weights: one folder
-        # per graph file's sha256 keeps a retrained export of the same preset off the old one's engines
-        cache = Path(base) / entry.sha256[:16]
-        try:
-            cache.mkdir(parents=True, exist_ok=True)
-        except OSError as e:
-            raise ProviderError(f"cannot make the TensorRT engine cache {cache}: {e.strerror or e} "
-                                "(DetectorConfig.tensorrt_cache_dir, STREAMDET_TENSORRT_CACHE)") from None  # fmt: skip
-        return {TENSORRT_PROVIDER: tensorrt_options(entry.inputs, dims, cache, fp16=entry.precision == "fp16")}
-
-    def _read_graph(self, name: str, precision: str) -> tuple[Path, bytes, onnx.ModelProto]:
-        """(path, bytes, parsed model) of one of the export's graphs: read once, hashed (``verify_sha256``), no
-        external data, the opset and precision its manifest entry records (runtime_ort/graph_files.py)."""
-        entry = self.manifest.graph(name, precision)
-        path, raw = read_export_file(self.export_dir, entry, f"graph file of {name} ({precision})", self.config.verify_sha256)
-        return path, raw, checked_model(path, raw, entry)
-
-    def _open_camera_terms(self) -> CameraTerms | None:
-        m, config = self.manifest, self.config
-        # small graphs whose row counts change with every camera and quadrant: never TensorRT (an engine per shape)
-        terms_providers = without_tensorrt(config.providers)
-        fp32 = self.lifter if config.image_precision == "fp32" and terms_providers == config.providers else None
-        read: dict[str, tuple[Path, bytes]] = {}  # the lifters lifter_model read, by precision
-
-        def lifter_model(precision: str) -> onnx.ModelProto:
-            path, raw, model = self._read_graph("volumetric_lifter", precision)
-            # the fp32 one has no session of its own in an int8 lane: checked here, not taken for a graph that fails to split
-            check_graph(m.graph("volumetric_lifter", precision), *model_signature(model), m, self.grid)
-            read[precision] = (path, raw)
-            return model
-
-        def fp32_lift(qlut: QuadrantLut, maps: np.ndarray) -> np.ndarray:
-            nonlocal fp32
-            if fp32 is None:  # the check's reference: the export's fp32 lifter (read and checked by lifter_model first)
-                path, raw = read["fp32"] if "fp32" in read else self._read_graph("volumetric_lifter", "fp32")[:2]
-                fp32 = GraphSession(path, SessionConfig(terms_providers, config.image_lane_threads), model=raw)
-            return fp32.run({"features": maps, **self._lut_feeds(qlut, maps)})[0]
-
-        img = self.image
-        grid = self.grid
-        session = SessionConfig(terms_providers, config.image_lane_threads, enable_profiling=False)
-        form = m.preset.get("lifter", {}).get("form", "volume")  # absent: manifests written before the flat lifter
-        return open_camera_terms(
-            self.export_dir, form, lifter_model, config.image_precision, config.camera_terms, int(m.preset["channels"]),
-            (img.feature_height, img.feature_width), (grid.quadrant_ny, grid.quadrant_nx), session, self.stats, fp32_lift,
-            self._luts_of(self._lut),
-        )  # fmt: skip
+        """TensorRT's options for one graph where TensorRT is among the providers (export_open.provider_options)."""
+        return provider_options(entry, export_dir=self.export_dir, config=self.config, image=self.image,
+                                camera_names=self.camera_names, num_slices=self.num_slices, max_pillars=self._max_pillars)  # fmt: skip
 
     def _executed_gmac(self, graph: str, **sizes: int) -> float:
-        """GMAC of one run of ``graph``: the manifest's count scaled linearly from the sizes it was counted at
-        (``gmac_at``) to these (cameras J, image H and W, quadrants Q); sizes it was not counted at stay as counted
-        (the slice graph's pillar net at the export's pillar count P, a small share of it)."""
-        entry = self._graph_entries[graph]
-        gmac = entry.gmac
-        for name, size in sizes.items():
-            at = entry.gmac_at.get(name)
-            if at:
-                gmac *= size / at
-        return gmac
+        """GMAC of one run of ``graph`` at these sizes (export_open.executed_gmac), for the stats."""
+        return executed_gmac(self._graph_entries[graph], **sizes)
 
     @property
     def precision_label(self) -> str:
@@ -339,30 +179,11 @@ class StreamingDetector:
         return self._lut
 
     def _no_image_lane(self, what: str) -> str:
-        return (f"{self.export_dir} is a LiDAR-only export (manifest preset use_image=false) with no image lane: {what}; "
-                "feed its slices to detect_slice / detect_sweep only")  # fmt: skip
+        return no_image_lane(self.export_dir, what)
 
     def _check_lut(self, lut: Lut) -> Lut:
-        img = self.image
-        problems = []
-        if tuple(lut.camera_names) != self.camera_names:
-            problems.append(f"cameras {list(lut.camera_names)} != the export's {list(self.camera_names)}")
-        if (lut.image_width, lut.image_height) != (img.width, img.height):
-            problems.append(f"image size {lut.image_width}x{lut.image_height} != the detector's {img.width}x{img.height}")
-        if (lut.feature_width, lut.feature_height, lut.feature_stride) != (img.feature_width, img.feature_height, img.feature_stride):
-            problems.append(
-                f"feature map {lut.feature_width}x{lut.feature_height}/s{lut.feature_stride} != the export's "
-                f"{img.feature_width}x{img.feature_height}/s{img.feature_stride}"
-            )
-        if lut.grid != self.grid:
-            problems.append(f"grid {lut.grid} != the export's {self.grid}")
-        if problems:
-            raise CalibrationError("the LUT does not fit the graphs: " + "; ".join(problems))
-        for name, slots in blind_cameras(lut):
-            msg = f"camera {name} sees no voxel of the grid ({slots} LUT slots): its images will not reach the BEV"
-            log.warning("%s: %s", self.export_dir, msg)
-            warnings.warn(msg, BlindCameraWarning, stacklevel=3)
-        return lut
+        """``lut`` if it fits this detector (export_open.check_lut: the check of the export's own LUT too)."""
+        return check_lut(lut, self.image, self.camera_names, self.grid, self.export_dir)
 
     def set_calibration(self, calibration: Rig | Lut | Mapping | str | os.PathLike, relift: bool = True) -> None:
         """Swap the projection LUT without recreating sessions: a Rig, a Lut, a parsed calibration.json (a dict),
@@ -509,11 +330,8 @@ class StreamingDetector:
             return True
 
     def _build_lut(self, rig: Rig) -> Lut:
-        img = self.image
-        check_rig_fits(rig, self.camera_names, img.width, img.height)
-        # the model's heights per voxel (models/presets.py LifterConfig; absent = 1, manifests written before it)
-        heights = self.manifest.preset.get("lifter", {}).get("lut_heights_per_voxel", 1)
-        return build_lut(rig, self.grid, img.feature_stride, image_size=(img.width, img.height), heights_per_voxel=heights)
+        """The LUT of ``rig`` for this detector (export_open.export_lut: how the export's own is built too)."""
+        return export_lut(rig, self.image, self.camera_names, self.grid, self.manifest)
 
     # ---- image lane ----------------------------------------------------------------------------
     def update_images(
@@ -544,7 +362,7 @@ class StreamingDetector:
             raise ValueError(f"update_images takes a dict of camera name -> uint8 RGB (H, W, 3) image, got {type(images).__name__}")
         if not self.uses_images:
             raise NoImageLaneError(self._no_image_lane(f"update_images got cameras {sorted(map(str, images))} it cannot use"))
-        timestamp = _timestamp(timestamp)
+        timestamp = call_timestamp(timestamp)
         wanted = update_quadrants(quadrants)
         self.check_images(images)
         camera_ts = check_camera_timestamps(camera_timestamps, images)
@@ -943,7 +761,7 @@ class StreamingDetector:
         self, points: tuple[np.ndarray, ...], ks: tuple[int, ...], timestamps: tuple[float | None, ...], n: int
     ) -> tuple[SliceResult, ...]:
         """One slice-graph run over slices ``ks`` of ``n`` (valid: the callers checked them)."""
-        timestamps = tuple(_timestamp(t) for t in timestamps)
+        timestamps = tuple(call_timestamp(t) for t in timestamps)
         for p in points:
             problem = slice_points_problem(p)
             if problem is not None:
@@ -1121,15 +939,7 @@ class StreamingDetector:
         return SweepResult(merged, tuple(results), tuple(slices))
 
     def _slices(self, num_slices: int | None) -> int:
-        if num_slices is None:
-            return self.num_slices
-        if isinstance(num_slices, bool):
-            raise ValueError(f"num_slices must be None or an int (1, 2 or a multiple of 4), got {num_slices!r}")
-        try:
-            check_num_slices(num_slices, self.config.start_deg)
-        except ValueError as e:
-            raise ValueError(f"num_slices: {e}") from None
-        return int(num_slices)
+        return slice_count(num_slices, self.num_slices, self.config.start_deg)
 
     # ---- graph runs ----------------------------------------------------------------------------
     @property
@@ -1201,30 +1011,6 @@ def _gave_up(seq: int) -> bool:
     log.warning("update_images: the calibration was swapped more than %d times during image update %d; its images are "
                 "given up (the next update lifts with the LUT then in use)", MAX_RELIFTS_PER_UPDATE, seq)
     return False
-
-
-def slice_index_problem(slice_index: object, num_slices: int | None) -> str | None:
-    """Why ``slice_index`` is no slice of ``num_slices`` (None: any int >= 0, for a stand-in detector without a
-    count); None if it is one. The words of detect_slice and of StreamingRunner.submit_slice."""
-    top = num_slices if num_slices is not None else math.inf
-    if isinstance(slice_index, bool) or not isinstance(slice_index, (int, np.integer)) or not 0 <= slice_index < top:
-        return f"slice_index must be an int in [0, {num_slices if num_slices is not None else 'num_slices'}), got {short_repr(slice_index)}"
-    return None
-
-
-def timestamp_problem(value: object) -> str | None:
-    """Why ``value`` is no call's timestamp (None, or a finite real number of seconds); None if it is one."""
-    if value is None or is_finite_number(value):  # is_finite_number: no OverflowError for 10**400
-        return None
-    return f"timestamp must be None or a finite number of seconds, got {short_repr(value)}"
-
-
-def _timestamp(value: float | None) -> float:
-    """A call's timestamp: None is now (time.monotonic()); anything else must be a finite real number of seconds."""
-    problem = timestamp_problem(value)
-    if problem is not None:
-        raise ValueError(problem)
-    return time.monotonic() if value is None else float(value)
 
 
 def _restamp(state: QuadrantState, qlut: QuadrantLut) -> float:

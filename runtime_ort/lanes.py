@@ -61,8 +61,9 @@ from streamdet.calibration.lut import Lut
 from streamdet.core.camera_timeout import DEFAULT_CAMERA_TIMEOUT_S, check_camera_timeout
 from streamdet.core.cpu import usable_cpus
 from streamdet.core.points import MAX_SLICE_POINTS, SLICE_COLUMNS, slice_points_problem
+from streamdet.runtime_ort.call_checks import slice_index_problem, timestamp_problem
 from streamdet.runtime_ort.coalesce import can_coalesce
-from streamdet.runtime_ort.detector import StreamingDetector, slice_index_problem, timestamp_problem
+from streamdet.runtime_ort.detector import StreamingDetector
 from streamdet.runtime_ort.detector_results import ImageUpdate, SliceResult
 from streamdet.runtime_ort.image_cache import check_camera_timestamps
 from streamdet.runtime_ort.pair_hold import PairHold

@@ -1,7 +1,8 @@
 """Profile the phase-locked lane's graphs (encoder, term, tail) of an export: per-op kernel time per run."""
 import sys, json, collections, glob, os
 import numpy as np
-import streamdet.runtime_ort.detector as D
+import streamdet.runtime_ort.export_open as D  # where the detector builds its SessionConfig
+from streamdet.runtime_ort.detector import StreamingDetector
 from streamdet.data.sample import load_bundled_sample
 from streamdet.runtime_ort.detector_config import DetectorConfig
 from streamdet.runtime_ort.pipeline import use_sample_calibration, sample_time_s, sample_images
@@ -15,7 +16,7 @@ D.SessionConfig = patched
 os.makedirs(prefix, exist_ok=True); os.chdir(prefix)
 for f in glob.glob("*.json"): os.remove(f)
 sample = load_bundled_sample()
-d = D.StreamingDetector(exp, DetectorConfig(precision="int8", image_lane_precision="int8", enable_profiling=True, camera_terms=True))
+d = StreamingDetector(exp, DetectorConfig(precision="int8", image_lane_precision="int8", enable_profiling=True, camera_terms=True))
 use_sample_calibration(d, sample)
 imgs = sample_images(d, sample)
 t = sample_time_s(sample)
