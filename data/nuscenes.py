@@ -9,6 +9,8 @@ by ``streamdet-synth``); ``DATAROOT/samples/...`` and ``DATAROOT/sweeps/...`` th
 - velocity is ``NuScenes.box_velocity`` (centred difference of the neighbouring annotations' global centres,
   one-sided at a track's ends, NaN for a lone annotation or a gap over 1.5 s, 3 s when centred), rotated into
   the LiDAR frame with its z set to 0 first as mmdetection3d does; NaN becomes 0 with ``velocity_valid`` False;
+- the annotations as the devkit scores them (global box, ``box_velocity``) ride along in
+  ``Sample.extras[GLOBAL_ANNOTATIONS]``, for the evaluation;
 - ``Sample.point_time_s`` comes from the optional ``<file>.time`` beside a LiDAR file (synthetic data), else None;
 - past sweeps follow the LiDAR ``sample_data.prev`` chain and are moved into the key frame's LiDAR frame via the
   global frame, with their time lag (key frame minus sweep timestamp), as nuScenes multi-sweep detectors do.
@@ -78,6 +80,11 @@ REQUIRED_TABLES = (
     "sample_annotation",
 )
 MAX_VELOCITY_TIME_DIFF_S = 1.5  # the devkit's box_velocity default
+# Sample.extras key: every annotation of the sample as the table holds it (global frame, rows of gt_boxes):
+# {"translation": (M, 3), "size": (M, 3) w l h, "rotation": (M, 4) w x y z, "velocity": (M, 3) box_velocity, NaN where
+# unknown}. The devkit scores these; the LiDAR-frame gt_boxes keep the yaw only and the velocity's LiDAR xy, which
+# do not map back to them exactly (the LiDAR is tilted from the ground), so the evaluation reads them from here.
+GLOBAL_ANNOTATIONS = "global_annotations"
 MAX_TABLE_BYTES = 16 << 30  # trainval's largest table (sample_data) is about 1 GiB: a bound, not a limit in use
 
 
@@ -333,7 +340,9 @@ class NuScenesReader:
         names = []
         attributes = []
         velocity = np.zeros((m, 3))
+        global_boxes = np.zeros((m, 10))  # translation, size, rotation as annotated
         for i, ann in enumerate(anns):
+            global_boxes[i] = [*ann["translation"], *ann["size"], *ann["rotation"]]
             box2global = make_transform(quaternion_to_matrix(ann["rotation"]), ann["translation"])
             box2lidar = global2lidar @ box2global
             boxes[i, 0:3] = box2lidar[:3, 3]
@@ -349,6 +358,8 @@ class NuScenesReader:
             names.append(cls if cls is not None else category)
             attributes.append(self._attribute(ann))
         valid = np.all(np.isfinite(velocity[:, :2]), axis=1)
+        annotated = {"translation": global_boxes[:, 0:3], "size": global_boxes[:, 3:6], "rotation": global_boxes[:, 6:10],
+                     "velocity": velocity.copy()}  # fmt: skip
         velocity[:, 2] = 0.0  # mmdetection3d keeps the ground-plane velocity only
         velocity[~valid] = 0.0
         boxes[:, 7:9] = (velocity @ global2lidar[:3, :3].T)[:, :2]
@@ -362,6 +373,7 @@ class NuScenesReader:
             "instance_tokens": tuple(a["instance_token"] for a in anns),
             "annotation_tokens": tuple(a["token"] for a in anns),
             "attribute_names": tuple(attributes),
+            "extras": {GLOBAL_ANNOTATIONS: annotated},
         }
 
     def _attribute(self, ann: dict) -> str:
@@ -382,10 +394,10 @@ class NuScenesReader:
             return np.full(3, np.nan)
         first = self._ref("sample_annotation", ann, "prev", "sample_annotation") if has_prev else ann
         last = self._ref("sample_annotation", ann, "next", "sample_annotation") if has_next else ann
-        time_diff = 1e-6 * (
-            self._ref("sample_annotation", last, "sample_token", "sample")["timestamp"]
-            - self._ref("sample_annotation", first, "sample_token", "sample")["timestamp"]
-        )  # fmt: skip
+        # Each timestamp in seconds first, then the difference, as the devkit: 1e-6 * (t_last - t_first) rounds
+        # otherwise (to the float64 step of a timestamp in seconds), which moves the velocity in its 8th digit.
+        time_diff = (1e-6 * self._ref("sample_annotation", last, "sample_token", "sample")["timestamp"]
+                     - 1e-6 * self._ref("sample_annotation", first, "sample_token", "sample")["timestamp"])  # fmt: skip
         max_diff = MAX_VELOCITY_TIME_DIFF_S * (2 if has_prev and has_next else 1)
         if time_diff > max_diff or time_diff <= 0:
             return np.full(3, np.nan)

@@ -16,28 +16,23 @@ where ``pred_keep`` holds (default: everywhere).
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
-from streamdet.evaluation.config import TP_METRICS, UNDEFINED_TP_METRICS, DetectionConfig
+from streamdet.evaluation.config import TP_METRICS, DetectionConfig
 from streamdet.evaluation.detection_eval import (
-    _greedy_match,
-    _ordered_classes,
-    calc_ap,
-    calc_tp,
-    center_distance,
-    cummean,
+    detection_metrics,
     filter_eval_boxes,
-    scale_iou,
-    velocity_l2,
-    yaw_diff,
-    attr_acc,
+    greedy_match,
+    metric_curves,
+    ordered_classes,
+    score_order,
+    tp_errors,
 )
 from streamdet.evaluation.eval_boxes import EvalBoxes
-from streamdet.evaluation.metrics import NUM_RECALL_POINTS, DetectionMetricData, DetectionMetrics
+from streamdet.evaluation.metrics import DetectionMetricData, DetectionMetrics
 
 
 @dataclass(frozen=True)
@@ -66,33 +61,39 @@ def match_tables(
     config: DetectionConfig = DetectionConfig(),
     subset: GtSubset | None = None,
     filtered: bool = False,
+    bike_racks: Mapping[str, np.ndarray] | None = None,
 ) -> tuple[tuple[str, ...], dict[tuple[str, float], MatchTable]]:
     """Match once: (the samples, in gt's order; a table per (class, threshold)). Inputs as ``evaluate`` takes them.
 
-    ``filtered``: the boxes already went through ``filter_eval_boxes`` (a subset's masks refer to those rows).
+    ``filtered``: the boxes already went through ``filter_eval_boxes`` (a subset's masks refer to those rows);
+    otherwise they are filtered here, with ``bike_racks`` as ``evaluate`` takes them. A class without ground truth
+    gets a table all of false positives: ``weighted_metrics`` then scores it as ``evaluate`` does (AP 0, TP errors 1).
     """
     if set(gt.sample_tokens) != set(pred.sample_tokens):
         raise ValueError("predictions must cover exactly the ground-truth samples")
     if not filtered:
-        gt = filter_eval_boxes(gt, config.class_range_m)
-        pred = filter_eval_boxes(pred, config.class_range_m)
+        gt = filter_eval_boxes(gt, config.class_range_m, bike_racks)
+        pred = filter_eval_boxes(pred, config.class_range_m, bike_racks)
     if subset is not None:
         _check_subset(subset, len(gt), len(pred))
     samples = gt.sample_tokens
     rank = {t: i for i, t in enumerate(samples)}
     pred_sample = np.array([rank[t] for t in pred.sample_tokens], dtype=np.int64)[pred.sample_index]  # (P,)
     tables = {}
-    for c in _ordered_classes(classes, config):
+    for c in ordered_classes(classes, config):
         gmask, pmask = gt.detection_name == c, pred.detection_name == c
         gt_c, pred_c = gt.select(gmask), pred.select(pmask)
         gt_keep = np.ones(len(gt_c), bool) if subset is None else subset.gt_keep[gmask]
         pred_keep = np.ones(len(pred_c), bool) if subset is None or subset.pred_keep is None else subset.pred_keep[pmask]
         npos = np.bincount(gt_c.sample_index[gt_keep], minlength=len(samples)).astype(np.int64)
-        order = np.lexsort((np.arange(len(pred_c)), pred_c.detection_score))[::-1]
+        order = score_order(pred_c.detection_score)
         for th in config.dist_ths_m:
-            matched = _greedy_match(gt_c, pred_c, order, th)
+            matched = greedy_match(gt_c, pred_c, order, th)
             # Waymo-style: a match to ground truth outside the subset is ignored; an unmatched box counts where kept.
-            counted = np.where(matched >= 0, gt_keep[np.maximum(matched, 0)], pred_keep[order])
+            # (Indexed only where matched: a class without ground truth has an empty gt_keep.)
+            counted = pred_keep[order]
+            hit = matched >= 0
+            counted[hit] = gt_keep[matched[hit]]
             o, m = order[counted], matched[counted]
             tables[c, th] = MatchTable(
                 score=pred_c.detection_score[o], is_tp=m >= 0, sample=pred_sample[pmask][o],
@@ -109,20 +110,12 @@ def _check_subset(subset: GtSubset, n_gt: int, n_pred: int) -> None:
 
 
 def _tp_errors(gt: EvalBoxes, pred: EvalBoxes, order: np.ndarray, matched: np.ndarray, c: str) -> dict[str, np.ndarray]:
+    """``detection_eval.tp_errors`` of the matched predictions, spread over all of ``order`` (NaN where unmatched)."""
     tp = matched >= 0
-    p, g = order[tp], matched[tp]
-    period = np.pi if c == "barrier" else 2 * np.pi
-    values = {
-        "trans_err": center_distance(gt.translation[g, :2], pred.translation[p, :2]),
-        "vel_err": velocity_l2(gt.velocity[g], pred.velocity[p]),
-        "scale_err": 1 - scale_iou(gt.size[g], pred.size[p]),
-        "orient_err": yaw_diff(gt.rotation[g], pred.rotation[p], period=period),
-        "attr_err": 1 - attr_acc(gt.attribute_name[g], pred.attribute_name[p]),
-    }
     out = {}
-    for key, v in values.items():
+    for key, values in tp_errors(gt, pred, matched[tp], order[tp], c).items():
         full = np.full(len(order), np.nan)
-        full[tp] = v
+        full[tp] = values
         out[key] = full
     return out
 
@@ -131,22 +124,12 @@ def metric_data(table: MatchTable, weights: np.ndarray) -> DetectionMetricData:
     """``accumulate``'s curves for the multiset of samples drawn ``weights`` (S,) times each."""
     npos = float(np.dot(weights, table.npos))
     reps = weights[table.sample]  # (P,)
-    if npos == 0 or not np.any(table.is_tp & (reps > 0)):
+    if npos == 0 or not np.any(table.is_tp & (reps > 0)):  # before the copies: common in draws, and the answer
         return DetectionMetricData.no_predictions()
     idx = np.repeat(np.arange(len(table.score)), reps)  # copies stay adjacent: one score, one outcome
     is_tp = table.is_tp[idx]
-    tp = np.cumsum(is_tp).astype(float)
-    fp = np.cumsum(~is_tp).astype(float)
-    conf = table.score[idx]
-    rec_interp = np.linspace(0, 1, NUM_RECALL_POINTS)
-    prec = np.interp(rec_interp, tp / npos, tp / (fp + tp), right=0)
-    conf_interp = np.interp(rec_interp, tp / npos, conf, right=0)
-    match_conf = conf[is_tp]
-    resampled = {
-        key: np.interp(conf_interp[::-1], match_conf[::-1], cummean(table.errors[key][idx][is_tp])[::-1])[::-1]
-        for key in TP_METRICS
-    }
-    return DetectionMetricData(recall=rec_interp, precision=prec, confidence=conf_interp, **resampled)
+    errors = {key: table.errors[key][idx][is_tp] for key in TP_METRICS}
+    return metric_curves(is_tp, table.score[idx], npos, errors)
 
 
 def weighted_metrics(
@@ -155,15 +138,7 @@ def weighted_metrics(
 ) -> DetectionMetrics:  # fmt: skip
     """``evaluate``'s result on the samples drawn ``weights`` times each (all ones: the data as it is)."""
     data = {(c, th): metric_data(tables[c, th], weights) for c in classes for th in config.dist_ths_m}
-    label_aps = {c: {th: calc_ap(data[c, th], config.min_recall, config.min_precision) for th in config.dist_ths_m}
-                 for c in classes}  # fmt: skip
-    label_tp = {
-        c: {m: math.nan if m in UNDEFINED_TP_METRICS.get(c, ()) else calc_tp(data[c, config.dist_th_tp_m], config.min_recall, m)
-            for m in TP_METRICS}
-        for c in classes
-    }  # fmt: skip
-    return DetectionMetrics(config=config, classes=tuple(classes), label_aps=label_aps, label_tp_errors=label_tp,
-                            metric_data=data)  # fmt: skip
+    return detection_metrics(data, tuple(classes), config)
 
 
 def summary(metrics: DetectionMetrics) -> dict[str, float]:

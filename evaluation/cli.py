@@ -1,18 +1,18 @@
 """``streamdet-eval``: nuScenes detection metrics of a results file against a ground-truth file.
 
 The command has two stages, so that input modes share the second: *inputs* (``--gt`` / ``--results`` files,
-through ``load_gt_and_predictions``, or ``--data DIR``, which runs an export over a dataset split with the ONNX
+through ``load_eval_inputs``, or ``--data DIR``, which runs an export over a dataset split with the ONNX
 runtime, ``dataset_eval.evaluate_dataset``) produce ground truth and predictions; the metrics are then printed
 as one table and optionally written as JSON.
 """
 
 from __future__ import annotations
 
-import os
 import math
 from pathlib import Path
 
 import click
+import numpy as np
 
 from streamdet.cli_utils import (
     MAX_SLICES,
@@ -34,13 +34,13 @@ from streamdet.evaluation.config import TP_METRICS, DetectionConfig
 from streamdet.evaluation.detection_eval import evaluate
 from streamdet.evaluation.eval_boxes import EvalBoxes
 from streamdet.evaluation.metrics import DetectionMetrics
-from streamdet.evaluation.results import load_gt_and_predictions
+from streamdet.evaluation.results import load_eval_inputs
+from streamdet.evaluation.saved_run import SAVED_FILES, save_run
 from streamdet.progress import counted
 
 _TP_SHORT = {"trans_err": "ATE", "scale_err": "ASE", "orient_err": "AOE", "vel_err": "AVE", "attr_err": "AAE"}
 # --bootstrap: 10^5 draws resolve a 95 % interval far below any figure's printed precision; 10^9 ran for hours.
 MAX_DRAWS = 100_000
-SAVED_FILES = ("results.json", "gt.json", "samples.json")  # what --save-results writes (compare.SAMPLES_FILE last)
 
 
 def _parse_classes(value: str | None) -> tuple[str, ...] | None:
@@ -76,13 +76,17 @@ def _fmt(x: float) -> str:
     return "n/a" if math.isnan(x) else f"{x:.3f}"
 
 
-def _evaluate_and_report(gt: EvalBoxes, pred: EvalBoxes, classes: tuple[str, ...] | None, json_path: Path | None) -> None:
+def _evaluate_and_report(gt: EvalBoxes, pred: EvalBoxes, classes: tuple[str, ...] | None, json_path: Path | None,
+                         bike_racks: dict | None = None, gt_path: Path | None = None) -> None:  # fmt: skip
     try:
-        metrics = evaluate(gt, pred, classes=classes)
+        metrics = evaluate(gt, pred, classes=classes, bike_racks=bike_racks)
     except ValueError as e:
         raise click.ClickException(str(e)) from None
     click.echo(format_table(metrics))
     _note_absent_classes(metrics, set(gt.detection_name.tolist()))
+    if bike_racks is None and np.isin(gt.detection_name, ("bicycle", "motorcycle")).any():
+        # only where the rule could matter: a cycle in a rack would count here and not in the devkit
+        click.echo(f"note: {gt_path or 'the ground truth'} has no bike_racks: the devkit's bike-rack rule is not applied")
     if json_path is not None:
         write_json_output(json_path, metrics.to_dict())
         click.echo(f"wrote {json_path}")
@@ -134,26 +138,13 @@ def _data_inputs(data_dir: Path, version: str, split: str | None, export_dir: Pa
         write_json_output(json_path, doc)
         click.echo(f"wrote {json_path}")
     if save_dir is not None:
-        from streamdet.evaluation.compare import SAMPLES_FILE, write_sample_info
-        from streamdet.evaluation.results import write_results_json
-
-        # the three files are written beside their places first and renamed once all are: a failed write leaves
-        # no run of mixed or missing files (a folder that held an earlier run keeps it whole)
-        staged = {name: save_dir / f".{name}.{os.getpid()}.tmp" for name in SAVED_FILES}
         try:
-            save_dir.mkdir(parents=True, exist_ok=True)
-            write_results_json(staged["results.json"], result.predictions,
-                               {"use_camera": detector.detector.uses_images, "use_lidar": True})  # fmt: skip
-            write_results_json(staged["gt.json"], result.ground_truth, {"use_camera": False, "use_lidar": False},
-                               ego_positions=result.ego_positions)  # fmt: skip
-            write_sample_info(staged[SAMPLES_FILE], result.scenes, result.poses, n)
-            for name, tmp in staged.items():
-                os.replace(tmp, save_dir / name)
+            written = save_run(save_dir, predictions=result.predictions, ground_truth=result.ground_truth,
+                               ego_positions=result.ego_positions, scenes=result.scenes, poses=result.poses,
+                               num_slices=n, use_camera=detector.detector.uses_images, bike_racks=result.bike_racks)  # fmt: skip
         except OSError as e:
-            for tmp in staged.values():
-                tmp.unlink(missing_ok=True)
             raise click.ClickException(f"cannot write --save-results {save_dir}: {e.strerror or e}") from None
-        click.echo(f"wrote {save_dir / 'results.json'}, {save_dir / 'gt.json'} and {save_dir / 'samples.json'}")
+        click.echo(f"wrote {', '.join(map(str, written[:-1]))} and {written[-1]}")
 
 
 def _run_group(arg: str) -> list[Path]:
@@ -231,7 +222,8 @@ def _compare(run_a: str, run_b: str, gt_path: Path | None, classes: tuple[str, .
 @click.option(
     "--gt", "gt_path", type=click.Path(exists=True, dir_okay=False, path_type=Path), default=None,
     help="Ground-truth JSON: {'results': {sample_token: [box, ...]}} in the nuScenes global frame, each box with "
-    "'ego_translation' and 'num_pts' (see streamdet.evaluation.results). Files mode, with --results.",
+    "'ego_translation' and 'num_pts', optionally 'bike_racks' for the devkit's bike-rack rule (see "
+    "streamdet.evaluation.results). Files mode, with --results.",
 )  # fmt: skip
 @click.option(
     "--results", "results_path", type=click.Path(exists=True, dir_okay=False, path_type=Path), default=None,
@@ -262,7 +254,8 @@ def _compare(run_a: str, run_b: str, gt_path: Path | None, classes: tuple[str, .
 @click.option(
     "--save-results", "save_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
     help="Dataset mode: also write what was scored to this folder: results.json (the detections, nuScenes "
-    "submission format) and gt.json (the ground truth), which the files mode scores again with --gt / --results.",
+    "submission format), gt.json (the ground truth, with its bicycle racks), which the files mode scores again "
+    "with --gt / --results to the same figures, and samples.json (scenes and poses, for --compare).",
 )  # fmt: skip
 @click.option(
     "--classes", default=None, metavar="NAME[,NAME...]",
@@ -295,8 +288,9 @@ def main(gt_path: Path | None, results_path: Path | None, data_dir: Path | None,
 
     Three modes: --gt with --results (two JSON files), --data (run an export over a dataset split), or
     --compare RUN_A RUN_B (two saved runs, or two comma-separated groups of runs; paired bootstrap over scenes).
-    The devkit's bike-rack filter needs the bicycle-rack annotations, which these files do not hold: it is
-    skipped. Without GT attributes, every attribute error is 1.
+    The devkit's bike-rack filter needs the bicycle-rack annotations: the dataset mode reads them, a ground-truth
+    file carries them as 'bike_racks' (gt.json of --save-results does); without them it is skipped, with a note.
+    Without GT attributes, every attribute error is 1.
     """
     class_list = _parse_classes(classes)
     mode = "compare" if compare_runs else "dataset" if data_dir is not None else "files"
@@ -342,12 +336,12 @@ def main(gt_path: Path | None, results_path: Path | None, data_dir: Path | None,
                                      f"({', '.join(SAVED_FILES)}); choose another path", param_hint="--json")  # fmt: skip
     check_output_parent(json_path, "--json")  # a FIFO there blocked the write after the scoring
     try:
-        gt, pred = load_gt_and_predictions(gt_path, results_path)
+        inputs = load_eval_inputs(gt_path, results_path)
     except ValueError as e:
         raise click.ClickException(str(e)) from None
-    if len(gt) == 0:  # every AP would be 0 by definition: a score of nothing, not a result
+    if len(inputs.gt) == 0:  # every AP would be 0 by definition: a score of nothing, not a result
         raise click.ClickException(f"{gt_path}: the ground truth holds no box, so there is nothing to evaluate")
-    _evaluate_and_report(gt, pred, class_list, json_path)
+    _evaluate_and_report(inputs.gt, inputs.pred, class_list, json_path, inputs.bike_racks, gt_path)
 
 
 if __name__ == "__main__":

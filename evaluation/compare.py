@@ -1,17 +1,16 @@
 """Compare two runs on the same ground truth: B - A per figure, with a paired bootstrap interval over scenes.
 
 A *run* is a folder written by ``streamdet-eval --data ... --save-results DIR`` (``results.json``, ``gt.json`` and,
-from this version on, ``samples.json``) or a results JSON file (then the ground truth comes from ``gt_path``).
-``samples.json`` holds, per sample, its scene and its LiDAR pose, and the export's slice count::
-
-    {"num_slices": n, "start_deg": 0.0,
-     "samples": {sample_token: {"scene": name, "lidar2ego": 4x4, "ego2global": 4x4}}}
+from this version on, ``samples.json``; the format, its writer and its reader are ``saved_run``) or a results JSON
+file (then the ground truth comes from ``gt_path``). ``samples.json`` holds, per sample, its scene and its LiDAR
+pose, and the export's slice count.
 
 With it the bootstrap resamples scenes, and the comparison adds subsets: per slice (boxes whose BEV centre lies in
 slice k, predictions too), boxes cut by a slice border (centre or a BEV corner in two slices, predictions too),
 and ground truth with at most ``few_points`` LiDAR + radar points (predictions are not located by point count:
 unmatched ones count everywhere, see ``bootstrap``). Without it, samples are resampled on their own (a warning
-says the interval is then too narrow) and only the few-points subset is available.
+says the interval is then too narrow) and only the few-points subset is available. The ground truth's
+``bike_racks`` (gt.json) apply the devkit's bike-rack rule, as in the files mode.
 
 With a single cluster (one scene, or one sample without samples.json) the interval is undefined: it is printed as
 'undefined', nothing is starred, and the JSON says ``"interval_defined": false`` (top level and per figure). With
@@ -20,23 +19,30 @@ fewer than ``bootstrap.FEW_CLUSTERS`` clusters a note says the interval is unrel
 
 from __future__ import annotations
 
-import json
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
 from streamdet.core.boxes import BOX_DIM
-from streamdet.core.sectors import check_num_slices, slice_index_of
+from streamdet.core.sectors import slice_index_of
 from streamdet.core.slicing import boxes_in_sector
 from streamdet.evaluation.bootstrap import FEW_CLUSTERS, MIN_CLUSTERS, Difference, GtSubset, match_tables, paired_bootstrap
 from streamdet.evaluation.config import DetectionConfig
-from streamdet.evaluation.detection_eval import filter_eval_boxes
+from streamdet.evaluation.detection_eval import filter_eval_boxes, ordered_classes
 from streamdet.evaluation.eval_boxes import EvalBoxes
-from streamdet.evaluation.results import global_to_lidar, load_gt_and_predictions
+from streamdet.evaluation.results import global_to_lidar
 
-SAMPLES_FILE = "samples.json"
+# The saved-run format moved to saved_run; these names stay importable from here, where they were defined.
+from streamdet.evaluation.saved_run import (  # noqa: F401
+    SAMPLES_FILE,
+    Run,
+    SampleInfo,
+    load_run,
+    read_sample_info,
+    write_sample_info,
+)
+
 FEW_POINTS = 5  # the issue's subset: objects with at most this many points
 # Per-slice subsets only up to this many slices: each subset costs a whole bootstrap, and a samples.json saying 4096
 # slices made 4097 of them (hours at the default draws). Beyond it the per-slice rows are skipped, with a note.
@@ -46,27 +52,6 @@ MAX_SLICE_SUBSETS = 64
 GT_ATOL = 1e-6
 GT_RTOL = 1e-9
 POSE_ATOL = 1e-9  # samples.json poses: rotation entries and metres
-
-
-@dataclass(frozen=True)
-class SampleInfo:
-    """What ``samples.json`` says: scene and LiDAR pose per sample, the slicing of the run."""
-
-    scenes: dict[str, str]
-    lidar2ego: dict[str, np.ndarray]
-    ego2global: dict[str, np.ndarray]
-    num_slices: int
-    start_deg: float = 0.0
-
-
-@dataclass(frozen=True)
-class Run:
-    gt: EvalBoxes
-    pred: EvalBoxes
-    info: SampleInfo | None
-    where: str
-    gt_where: str = ""  # the ground-truth file, for messages ("" = unknown: ``where`` is named instead)
-    info_where: str = ""  # the samples.json read, for messages
 
 
 @dataclass(frozen=True)
@@ -94,67 +79,6 @@ class Comparison:
                 "num_draws": self.num_draws, "interval_defined": self.interval_defined,
                 "few_clusters": self.few_clusters, "min_reliable_clusters": FEW_CLUSTERS, "notes": self.notes,
                 "subsets": {s: {k: d.to_dict() for k, d in figs.items()} for s, figs in self.subsets.items()}}  # fmt: skip
-
-
-def write_sample_info(path: Path, scenes: dict[str, str], poses: dict[str, tuple[np.ndarray, np.ndarray]],
-                      num_slices: int, start_deg: float = 0.0) -> None:  # fmt: skip
-    """``samples.json`` beside a saved run (see the module doc)."""
-    doc = {"num_slices": int(num_slices), "start_deg": float(start_deg), "samples": {
-        t: {"scene": scenes[t], "lidar2ego": np.asarray(poses[t][0]).tolist(), "ego2global": np.asarray(poses[t][1]).tolist()}
-        for t in scenes}}  # fmt: skip
-    path.write_text(json.dumps(doc) + "\n")
-
-
-def read_sample_info(path: Path) -> SampleInfo:
-    try:
-        doc = json.loads(path.read_text())
-        n = int(doc["num_slices"])
-        start = float(doc.get("start_deg", 0.0))
-        check_num_slices(n, start)
-        samples = doc["samples"]
-        scenes = {t: str(s["scene"]) for t, s in samples.items()}
-        l2e = {t: _matrix(s["lidar2ego"]) for t, s in samples.items()}
-        e2g = {t: _matrix(s["ego2global"]) for t, s in samples.items()}
-    except (OSError, json.JSONDecodeError) as e:
-        raise ValueError(f"cannot read {path}: {e}") from None
-    except RecursionError:
-        raise ValueError(f"{path} nests too deeply to be a samples file") from None
-    except (KeyError, TypeError, ValueError, AttributeError, OverflowError) as e:  # Overflow: a JSON int past float64
-        raise ValueError(f"{path} is not a samples file (num_slices, samples: scene, lidar2ego, ego2global): {e}") from None
-    return SampleInfo(scenes=scenes, lidar2ego=l2e, ego2global=e2g, num_slices=n, start_deg=start)
-
-
-def _matrix(value: object) -> np.ndarray:
-    m = np.asarray(value, dtype=np.float64)
-    if m.shape != (4, 4) or not np.all(np.isfinite(m)):
-        raise ValueError(f"a pose must be a finite 4x4 matrix, got shape {m.shape}")
-    return m
-
-
-def load_run(run: Path, gt_path: Path | None = None) -> Run:
-    """A saved folder (results.json, gt.json, optional samples.json) or a results file scored against ``gt_path``."""
-    run = Path(run)
-    if run.is_dir():
-        results, gt_file = run / "results.json", gt_path or run / "gt.json"
-        for f in (results, gt_file):
-            if not f.is_file():
-                what = "is not a regular file (a FIFO, a device or a folder?)" if f.exists() else "is missing"
-                raise ValueError(f"{run} is not a run saved by streamdet-eval --save-results: {f.name} {what}")
-        info_path = run / SAMPLES_FILE
-        if info_path.exists() and not info_path.is_file():  # a FIFO or a folder: another run's file must not stand in
-            raise ValueError(f"{info_path} is not a regular file (a FIFO, a device or a folder?)")
-        info = read_sample_info(info_path) if info_path.is_file() else None
-    elif run.is_file():
-        if gt_path is None:
-            raise ValueError(f"{run} is a results file: give the ground truth with --gt")
-        results, gt_file, info = run, gt_path, None
-    elif run.exists():
-        raise ValueError(f"{run} is neither a saved run's folder nor a results file (a FIFO or a device?)")
-    else:
-        raise ValueError(f"{run} does not exist")
-    gt, pred = load_gt_and_predictions(gt_file, results)
-    info_where = str(run / SAMPLES_FILE) if info is not None else ""
-    return Run(gt=gt, pred=pred, info=info, where=str(run), gt_where=str(gt_file), info_where=info_where)
 
 
 def _canonical_rows(boxes: EvalBoxes, sample_of: np.ndarray) -> np.ndarray:
@@ -186,19 +110,59 @@ def ground_truth_difference(a: EvalBoxes, b: EvalBoxes) -> str | None:
         k = int(np.flatnonzero(counts_a != counts_b)[0])
         return f"sample {a.sample_tokens[k]!r} has {counts_a[k]} vs {counts_b[k]} boxes"
     ra, rb = _canonical_rows(a, sample_a), _canonical_rows(b, sample_b)
-    differs = np.zeros(len(a), bool)
-    for name in ("detection_name", "attribute_name", "num_pts"):
-        differs |= getattr(a, name)[ra] != getattr(b, name)[rb]
-    for name in ("translation", "size", "rotation", "velocity", "ego_translation"):
+    fields = ("detection_name", "attribute_name", "num_pts", "translation", "size", "rotation", "velocity", "ego_translation")
+    differs = np.zeros((len(fields), len(a)), bool)  # field x row
+    for k, name in enumerate(fields):
         va, vb = getattr(a, name)[ra], getattr(b, name)[rb]
-        differs |= ~np.isclose(va, vb, rtol=GT_RTOL, atol=GT_ATOL, equal_nan=True).all(axis=1)
+        if va.ndim == 1:
+            differs[k] = va != vb
+        else:
+            differs[k] = ~np.isclose(va, vb, rtol=GT_RTOL, atol=GT_ATOL, equal_nan=True).all(axis=1)
     if not differs.any():
         return None
-    row = int(np.flatnonzero(differs)[0])
+    row = int(np.flatnonzero(differs.any(axis=0))[0])
+    name = fields[int(np.flatnonzero(differs[:, row])[0])]
     ia, ib = int(ra[row]), int(rb[row])
     token = a.sample_tokens[sample_a[ia]]
-    return (f"sample {token!r} differs: a {a.detection_name[ia]} at {np.round(a.translation[ia], 3).tolist()} "
-            f"vs a {b.detection_name[ib]} at {np.round(b.translation[ib], 3).tolist()}")
+    # the field is named: a ground truth saved before attributes and unknown velocities were kept differs only there
+    return (f"sample {token!r} differs in {name}: a {a.detection_name[ia]} at {np.round(a.translation[ia], 3).tolist()} "
+            f"({_field_text(a, name, ia)}) vs a {b.detection_name[ib]} at {np.round(b.translation[ib], 3).tolist()} "
+            f"({_field_text(b, name, ib)})")
+
+
+def _field_text(boxes: EvalBoxes, name: str, row: int) -> str:
+    value = getattr(boxes, name)[row]
+    return f"{name} {value.tolist() if isinstance(value, np.ndarray) else repr(value.item())}"
+
+
+def bike_racks_difference(a: Mapping[str, np.ndarray], b: Mapping[str, np.ndarray]) -> str | None:
+    """None if the two ``bike_racks`` hold the same racks per sample (to GT_ATOL / GT_RTOL, in order), else what
+    differs first, naming the sample."""
+    for token in sorted(set(a) | set(b)):
+        ra, rb = np.asarray(a.get(token, np.zeros((0, 10)))), np.asarray(b.get(token, np.zeros((0, 10))))
+        if ra.shape != rb.shape:
+            return f"sample {token!r} has {len(ra)} vs {len(rb)} bicycle racks"
+        if not np.allclose(ra, rb, rtol=GT_RTOL, atol=GT_ATOL):
+            return f"sample {token!r} has another bicycle rack"
+    return None
+
+
+def _bike_racks(runs: Sequence[Run], notes: list[str]) -> dict[str, np.ndarray] | None:
+    """The bike racks that score every run: those of the runs' ground-truth files that name some (they must
+    agree), None when none does. A run whose file names none (saved before racks were) is scored with the others'
+    racks, and a note says so."""
+    declared = [r for r in runs if r.bike_racks is not None]
+    if not declared:
+        return None
+    for other in declared[1:]:
+        difference = bike_racks_difference(declared[0].bike_racks, other.bike_racks)
+        if difference is not None:
+            raise ValueError(f"{declared[0].where} and {other.where} are not scored on the same ground truth "
+                             f"({_gt_name(declared[0])} vs {_gt_name(other)}): {difference}")  # fmt: skip
+    if len(declared) < len(runs):
+        notes.append(f"bike_racks of {_gt_name(declared[0])} serve the runs whose ground truth names none: "
+                     + ", ".join(r.where for r in runs if r.bike_racks is None))  # fmt: skip
+    return declared[0].bike_racks
 
 
 def _gt_name(run: Run) -> str:
@@ -261,7 +225,11 @@ def compare_runs(
 
     A side given as several runs (training seeds of one recipe) is their mean, and the bootstrap resamples its runs
     too (``paired_bootstrap``); every run must be scored on the same ground truth. ``progress(subset, done, total)``
-    is called after each subset's bootstrap (the long part: each subset draws ``num_draws`` times)."""
+    is called after each subset's bootstrap (the long part: each subset draws ``num_draws`` times).
+
+    ``classes`` are averaged as ``evaluate(classes=...)`` averages them, in every subset: a named class without
+    ground truth (in the data or in a subset) scores AP 0 and TP errors 1, and a note says so. Default: the classes
+    present in the filtered ground truth, and in a subset those of them present there."""
     runs_a = [run_a] if isinstance(run_a, Run) else list(run_a)
     runs_b = [run_b] if isinstance(run_b, Run) else list(run_b)
     if not runs_a or not runs_b:
@@ -269,13 +237,21 @@ def compare_runs(
     first = runs_a[0]
     for other in runs_a[1:] + runs_b:
         _same_ground_truth(first, other)
-    gt = filter_eval_boxes(first.gt, config.class_range_m)
-    preds_a = [filter_eval_boxes(r.pred, config.class_range_m) for r in runs_a]
-    preds_b = [filter_eval_boxes(r.pred, config.class_range_m) for r in runs_b]
+    notes: list[str] = []
+    racks = _bike_racks(runs_a + runs_b, notes)
+    gt = filter_eval_boxes(first.gt, config.class_range_m, racks)
+    preds_a = [filter_eval_boxes(r.pred, config.class_range_m, racks) for r in runs_a]
+    preds_b = [filter_eval_boxes(r.pred, config.class_range_m, racks) for r in runs_b]
     if len(gt) == 0:
         raise ValueError(f"{first.where}: the ground truth holds no box with points within its class range: nothing to compare")
     present = set(gt.detection_name.tolist())
-    classes = tuple(c for c in config.class_names if c in present) if classes is None else tuple(classes)
+    named = classes is not None
+    # the config's order, as evaluate: the means over classes then sum in the same order
+    classes = ordered_classes(classes, config) if named else tuple(c for c in config.class_names if c in present)
+    absent = [c for c in classes if c not in present]
+    if absent:
+        notes.append(f"no ground-truth box of {', '.join(absent)}: AP 0 and TP errors 1 by the devkit's rule, counted "
+                     "in mAP and NDS")  # fmt: skip
     # Every samples.json must agree (scenes, poses, slicing): one of them serves every run, so a run's own file
     # read as another's would silently change the clusters or the slices of the others.
     with_info = [r for r in runs_a + runs_b if r.info is not None]
@@ -286,7 +262,6 @@ def compare_runs(
     for other in with_info[1:]:
         _same_sample_info(with_info[0], other, gt.sample_tokens, subsets)
     info = with_info[0].info if with_info else None
-    notes = []
     if with_info and len(with_info) < len(runs_a) + len(runs_b):
         notes.append(f"samples.json of {with_info[0].where} serves the runs without one: "
                      + ", ".join(r.where for r in runs_a + runs_b if r.info is None))  # fmt: skip
@@ -322,10 +297,14 @@ def compare_runs(
         else:
             notes.append("no samples.json: no per-slice or cut-by-border subsets")
     out = {}
+    absent_in_subsets = []
     for done, (name, sub) in enumerate(subset_defs.items(), start=1):
         keep = np.ones(len(gt), bool) if sub is None else sub[0]
-        sub_classes = tuple(c for c in classes if np.any(gt.detection_name[keep] == c))
-        if not sub_classes:
+        with_gt = tuple(c for c in classes if np.any(gt.detection_name[keep] == c))
+        sub_classes = classes if named else with_gt  # named classes stay, as in evaluate(classes=...)
+        if name != "all" and with_gt and len(with_gt) < len(sub_classes):
+            absent_in_subsets.append(name)
+        if not with_gt:
             notes.append(f"{name}: no ground truth of the compared classes, skipped")
         else:
             def tables(preds, pred_keeps):
@@ -337,6 +316,10 @@ def compare_runs(
             out[name] = paired_bootstrap(ta, tb, sub_classes, clusters, num_draws, seed, config=config)
         if progress is not None:
             progress(name, done, len(subset_defs))
+    if absent_in_subsets:
+        notes.append(f"{_count(len(absent_in_subsets), 'subset')} ({', '.join(absent_in_subsets[:3])}"
+                     f"{', ...' if len(absent_in_subsets) > 3 else ''}) lack ground truth of some of the classes named: "
+                     "AP 0 and TP errors 1 there, as evaluate")  # fmt: skip
     return Comparison(subsets=out, num_samples=len(gt.sample_tokens), num_clusters=int(clusters.max()) + 1,
                       clustered_by=clustered_by, num_draws=num_draws, notes=notes)  # fmt: skip
 

@@ -9,11 +9,19 @@ both the nearest ground truth, so the first of equally near boxes wins, and the 
 TP errors, and the recall / precision clipping. The per-sample greedy loop runs only over predictions
 that have some ground truth within the threshold: the others can never match.
 
+The floating-point routes are the devkit's too, so that a distance that lands on a threshold, or two equally near
+boxes, fall on the devkit's side: distances and velocity errors go through the BLAS dot product that the devkit's
+``np.linalg.norm`` of a 1-D vector calls, and yaws through pyquaternion's rotation matrix (normalisation by
+``np.dot``, the 4x4 matrix product, the product with the x axis), batched (``_dot_last``, ``_rotation_matrix``).
+A closed form (``sqrt(dx*dx + dy*dy)``, ``atan2`` of the quaternion) differs from those in the last bit for some
+inputs, which flips a match at an exact tie.
+
 Differences from the devkit, on purpose:
 
 - The bike-rack rule (bicycles and motorcycles whose centre lies in a ``static_object.bicycle_rack``
   annotation are not evaluated) needs those rack annotations, which results files do not carry; it is
-  applied only when ``bike_racks`` is given, otherwise skipped.
+  applied when ``bike_racks`` is given (dataset mode passes the dataset's racks, files mode those of a
+  ground-truth file's ``bike_racks``), otherwise skipped.
 - The attribute error needs GT ``attribute_name``; GT without attributes gives ``attr_err`` 1 for every
   class (the devkit's value for that case).
 - Inputs are validated up front (sizes > 0 for every box, not only matched ones; unknown names rejected).
@@ -22,7 +30,7 @@ Differences from the devkit, on purpose:
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 
 import numpy as np
 
@@ -34,9 +42,10 @@ from streamdet.evaluation.metrics import NUM_RECALL_POINTS, DetectionMetricData,
 
 
 def center_distance(gt_xy: np.ndarray, pred_xy: np.ndarray) -> np.ndarray:
-    """xy distance between box centres, m; broadcasts (..., 2) against (..., 2)."""
-    d = pred_xy - gt_xy
-    return np.sqrt(d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1])
+    """xy distance between box centres, m; broadcasts (..., 2) against (..., 2). Bit for bit the devkit's
+    ``np.linalg.norm(pred - gt)``."""
+    d = np.asarray(pred_xy, dtype=np.float64) - np.asarray(gt_xy, dtype=np.float64)
+    return np.sqrt(_dot_last(d, d))
 
 
 def velocity_l2(gt_v: np.ndarray, pred_v: np.ndarray) -> np.ndarray:
@@ -54,10 +63,20 @@ def scale_iou(gt_size: np.ndarray, pred_size: np.ndarray) -> np.ndarray:
 
 
 def quaternion_yaw(q_wxyz: np.ndarray) -> np.ndarray:
-    """Heading about global z: the box x axis rotated by q, projected onto the xy plane."""
-    q = _normalised(q_wxyz)
-    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    return np.arctan2(2.0 * (x * y + w * z), w * w + x * x - y * y - z * z)
+    """Heading about global z: the box x axis rotated by q, projected onto the xy plane (the devkit's
+    ``quaternion_yaw``: ``np.dot(Quaternion(q).rotation_matrix, [1, 0, 0])``, then ``arctan2``)."""
+    q = np.asarray(q_wxyz, dtype=np.float64)
+    flat = q.reshape(-1, 4)
+    yaw = np.empty(len(flat))
+    for i in range(0, len(flat), _YAW_CHUNK):
+        x_axis = _rotation_matrix(flat[i : i + _YAW_CHUNK]) @ np.array([1.0, 0.0, 0.0])  # the matrix-vector product
+        yaw[i : i + _YAW_CHUNK] = np.arctan2(x_axis[:, 1], x_axis[:, 0])
+    return yaw.reshape(q.shape[:-1])
+
+
+# Quaternions per pass of quaternion_yaw: the (n, 4, 4) temporaries of a whole set of matches at once outgrow the
+# caches, and a single pass then costs several times the chunked ones.
+_YAW_CHUNK = 1 << 14
 
 
 def yaw_diff(gt_q: np.ndarray, pred_q: np.ndarray, period: float = 2 * np.pi) -> np.ndarray:
@@ -81,22 +100,34 @@ def cummean(x: np.ndarray) -> np.ndarray:
     return np.divide(sums, counts, out=np.zeros_like(sums), where=counts != 0)
 
 
+def _dot_last(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Dot product over the last axis, one BLAS dot per row.
+
+    A stacked (1, n) @ (n, 1) product is the BLAS routine that ``np.dot`` of two 1-D vectors calls (and so
+    ``np.linalg.norm``, and pyquaternion's sum of squares). An elementwise ``sum(a * b)`` rounds differently (the
+    BLAS kernel fuses multiply and add), so it would not give the devkit's last bit."""
+    return (a[..., None, :] @ b[..., :, None])[..., 0, 0]
+
+
 def _normalised(q: np.ndarray) -> np.ndarray:
-    # pyquaternion normalises only quaternions off unit length by 1e-14 or more; do the same, for the same rounding.
-    sq = np.sum(q * q, axis=-1, keepdims=True)
+    # pyquaternion normalises only quaternions off unit length by 1e-14 or more, by its norm sqrt(np.dot(q, q)):
+    # the same test and division, for the same rounding.
+    q = np.asarray(q, dtype=np.float64)
+    sq = _dot_last(q, q)[..., None]
     return np.where(np.abs(1.0 - sq) < 1e-14, q, q / np.sqrt(sq))
 
 
 def _rotation_matrix(q_wxyz: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) rotation of unit-normalised quaternions."""
+    """(..., 3, 3) rotation of quaternions (normalised here) by pyquaternion's route: the 4x4 product
+    ``Q @ Qbar^T``, lower-right 3x3 block. A closed form of the entries rounds differently in the last bit."""
     q = _normalised(q_wxyz)
     w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    r = [
-        [w * w + x * x - y * y - z * z, 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), w * w - x * x + y * y - z * z, 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), w * w - x * x - y * y + z * z],
-    ]
-    return np.stack([np.stack(row, axis=-1) for row in r], axis=-2)  # (..., 3, 3)
+    q_matrix = np.stack([np.stack(row, axis=-1) for row in
+                         ([w, -x, -y, -z], [x, w, -z, y], [y, z, w, -x], [z, -y, x, w])], axis=-2)  # fmt: skip
+    q_bar = np.stack([np.stack(row, axis=-1) for row in
+                      ([w, -x, -y, -z], [x, w, z, -y], [y, -z, w, x], [z, y, -x, w])], axis=-2)  # fmt: skip
+    # Q_bar transposed as a view, as pyquaternion's .conj().transpose(): the same BLAS product (B transposed).
+    return (q_matrix @ np.swapaxes(q_bar, -1, -2))[..., 1:, 1:]
 
 
 # ---- filtering (devkit eval/common/loaders.py filter_eval_boxes) --------------------------------
@@ -115,8 +146,9 @@ def points_in_boxes(points: np.ndarray, boxes: np.ndarray) -> np.ndarray:
     p1 = corners[:, :, 0]  # (B, 3)
     axes = np.stack([corners[:, :, 4], corners[:, :, 1], corners[:, :, 3]], axis=1) - p1[:, None, :]  # (B, 3 axes, 3)
     rel = points[:, None, :] - p1[None, :, :]  # (P, B, 3)
-    proj = np.einsum("pbk,bak->pba", rel, axes)  # (P, B, 3 axes)
-    extent = np.einsum("bak,bak->ba", axes, axes)  # (B, 3 axes)
+    # np.dot of an axis with a point and with itself, as the devkit's points_in_box: the same BLAS dot
+    proj = np.stack([_dot_last(rel, axes[None, :, a, :]) for a in range(3)], axis=-1)  # (P, B, 3 axes)
+    extent = _dot_last(axes, axes)  # (B, 3 axes)
     return np.all((proj >= 0) & (proj <= extent[None]), axis=-1)
 
 
@@ -151,7 +183,13 @@ def filter_eval_boxes(
 # ---- accumulate / calc_ap / calc_tp (devkit eval/detection/algo.py) -----------------------------
 
 
-def _greedy_match(gt: EvalBoxes, pred: EvalBoxes, order: np.ndarray, dist_th_m: float) -> np.ndarray:
+def score_order(scores: np.ndarray) -> np.ndarray:
+    """Indices of the predictions in the devkit's order: descending score, equal scores the later box first (the
+    devkit reverses an ascending (score, index) sort)."""
+    return np.lexsort((np.arange(len(scores)), scores))[::-1]
+
+
+def greedy_match(gt: EvalBoxes, pred: EvalBoxes, order: np.ndarray, dist_th_m: float) -> np.ndarray:
     """GT row matched by each prediction taken in ``order`` (-1 = none), the devkit's greedy loop per sample."""
     matched = np.full(len(order), -1, dtype=np.int64)
     if len(order) == 0 or len(gt) == 0:
@@ -186,24 +224,27 @@ def _greedy_match(gt: EvalBoxes, pred: EvalBoxes, order: np.ndarray, dist_th_m: 
     return matched
 
 
-def accumulate(gt: EvalBoxes, pred: EvalBoxes, class_name: str, dist_th_m: float) -> DetectionMetricData:
-    """Match the predictions of ``class_name`` to the ground truth at ``dist_th_m`` and build the 101-point curves."""
-    gt = gt.select(gt.detection_name == class_name)
-    npos = len(gt)
-    if npos == 0:
-        return DetectionMetricData.no_predictions()
-    pred = pred.select(pred.detection_name == class_name)
+def tp_errors(gt: EvalBoxes, pred: EvalBoxes, g: np.ndarray, p: np.ndarray, class_name: str) -> dict[str, np.ndarray]:
+    """The five TP errors of the matched pairs (ground-truth row ``g[i]``, prediction row ``p[i]``), the devkit's
+    definitions: one place for ``accumulate`` and the bootstrap, so the two cannot drift apart."""
+    period = np.pi if class_name == "barrier" else 2 * np.pi  # a barrier's front is ambiguous
+    return {
+        "trans_err": center_distance(gt.translation[g, :2], pred.translation[p, :2]),
+        "vel_err": velocity_l2(gt.velocity[g], pred.velocity[p]),
+        "scale_err": 1 - scale_iou(gt.size[g], pred.size[p]),
+        "orient_err": yaw_diff(gt.rotation[g], pred.rotation[p], period=period),
+        "attr_err": 1 - attr_acc(gt.attribute_name[g], pred.attribute_name[p]),
+    }
 
-    # Descending score; equal scores: the later box first (the devkit reverses an ascending (score, index) sort).
-    order = np.lexsort((np.arange(len(pred)), pred.detection_score))[::-1]
-    matched = _greedy_match(gt, pred, order, dist_th_m)
-    is_tp = matched >= 0
-    if not np.any(is_tp):
-        return DetectionMetricData.no_predictions()
 
+def metric_curves(is_tp: np.ndarray, conf: np.ndarray, npos: float, errors: Mapping[str, np.ndarray]) -> DetectionMetricData:
+    """``accumulate``'s 101-point curves from the predictions in score order: ``is_tp`` (P,) their outcome, ``conf``
+    (P,) their scores, ``npos`` the ground-truth count, ``errors`` each TP metric's (T,) errors of the true
+    positives in that order. No ground truth or no true positive: ``DetectionMetricData.no_predictions()``."""
+    if npos == 0 or not np.any(is_tp):
+        return DetectionMetricData.no_predictions()
     tp = np.cumsum(is_tp).astype(float)
     fp = np.cumsum(~is_tp).astype(float)
-    conf = pred.detection_score[order]
     prec = tp / (fp + tp)
     rec = tp / float(npos)
 
@@ -211,24 +252,29 @@ def accumulate(gt: EvalBoxes, pred: EvalBoxes, class_name: str, dist_th_m: float
     prec = np.interp(rec_interp, rec, prec, right=0)
     conf_interp = np.interp(rec_interp, rec, conf, right=0)
 
-    p = order[is_tp]  # matched predictions, in score order
-    g = matched[is_tp]
-    period = np.pi if class_name == "barrier" else 2 * np.pi
-    match_data = {
-        "trans_err": center_distance(gt.translation[g, :2], pred.translation[p, :2]),
-        "vel_err": velocity_l2(gt.velocity[g], pred.velocity[p]),
-        "scale_err": 1 - scale_iou(gt.size[g], pred.size[p]),
-        "orient_err": yaw_diff(gt.rotation[g], pred.rotation[p], period=period),
-        "attr_err": 1 - attr_acc(gt.attribute_name[g], pred.attribute_name[p]),
-    }
-    match_conf = pred.detection_score[p]
+    match_conf = conf[is_tp]
     # Each TP error at an operating point is the running mean over the matches of at least that confidence;
     # np.interp needs increasing x, hence the reversals.
     resampled = {
-        key: np.interp(conf_interp[::-1], match_conf[::-1], cummean(values)[::-1])[::-1]
-        for key, values in match_data.items()
+        key: np.interp(conf_interp[::-1], match_conf[::-1], cummean(errors[key])[::-1])[::-1] for key in TP_METRICS
     }
     return DetectionMetricData(recall=rec_interp, precision=prec, confidence=conf_interp, **resampled)
+
+
+def accumulate(gt: EvalBoxes, pred: EvalBoxes, class_name: str, dist_th_m: float) -> DetectionMetricData:
+    """Match the predictions of ``class_name`` to the ground truth at ``dist_th_m`` and build the 101-point curves."""
+    gt = gt.select(gt.detection_name == class_name)
+    npos = len(gt)
+    if npos == 0:
+        return DetectionMetricData.no_predictions()
+    pred = pred.select(pred.detection_name == class_name)
+    order = score_order(pred.detection_score)
+    matched = greedy_match(gt, pred, order, dist_th_m)
+    is_tp = matched >= 0
+    if not np.any(is_tp):
+        return DetectionMetricData.no_predictions()
+    errors = tp_errors(gt, pred, matched[is_tp], order[is_tp], class_name)  # matched pairs, in score order
+    return metric_curves(is_tp, pred.detection_score[order], npos, errors)
 
 
 def calc_ap(md: DetectionMetricData, min_recall: float, min_precision: float) -> float:
@@ -266,8 +312,9 @@ def evaluate(
 
     ``classes`` restricts the classes evaluated and averaged (default: all of ``config``). Like the devkit,
     the predictions must cover exactly the ground-truth samples (an empty list for a sample without
-    detections) with at most ``config.max_boxes_per_sample`` boxes each. ``filter_boxes=False`` skips
-    ``filter_eval_boxes`` for inputs already filtered.
+    detections) with at most ``config.max_boxes_per_sample`` boxes each. ``bike_racks`` ({sample_token: (R, 10)
+    rack boxes, global frame}, see ``filter_eval_boxes``) applies the devkit's bike-rack rule; without it the rule is
+    skipped. ``filter_boxes=False`` skips ``filter_eval_boxes`` for inputs already filtered.
     """
     if set(gt.sample_tokens) != set(pred.sample_tokens):
         only_gt = sorted(set(gt.sample_tokens) - set(pred.sample_tokens))
@@ -283,7 +330,7 @@ def evaluate(
             f"sample {pred.sample_tokens[worst]!r} has {counts[worst]} predictions, more than "
             f"max_boxes_per_sample={config.max_boxes_per_sample}"
         )
-    classes = config.class_names if classes is None else _ordered_classes(classes, config)
+    classes = config.class_names if classes is None else ordered_classes(classes, config)
     if filter_boxes:
         gt = filter_eval_boxes(gt, config.class_range_m, bike_racks)
         pred = filter_eval_boxes(pred, config.class_range_m, bike_racks)
@@ -292,6 +339,14 @@ def evaluate(
     for c in classes:
         gt_c, pred_c = gt.select(gt.detection_name == c), pred.select(pred.detection_name == c)  # split once per class
         metric_data.update({(c, th): accumulate(gt_c, pred_c, c, th) for th in config.dist_ths_m})
+    return detection_metrics(metric_data, classes, config)
+
+
+def detection_metrics(
+    metric_data: Mapping[tuple[str, float], DetectionMetricData], classes: Sequence[str], config: DetectionConfig
+) -> DetectionMetrics:
+    """``DetectionEval``'s summary of the curves of each (class, threshold): AP per class and threshold, the TP
+    errors at ``config.dist_th_tp_m`` (NaN where the devkit leaves one undefined for the class)."""
     label_aps = {
         c: {th: calc_ap(metric_data[c, th], config.min_recall, config.min_precision) for th in config.dist_ths_m}
         for c in classes
@@ -305,12 +360,12 @@ def evaluate(
         }
         for c in classes
     }
-    return DetectionMetrics(
-        config=config, classes=classes, label_aps=label_aps, label_tp_errors=label_tp_errors, metric_data=metric_data
-    )
+    return DetectionMetrics(config=config, classes=tuple(classes), label_aps=label_aps, label_tp_errors=label_tp_errors,
+                            metric_data=dict(metric_data))  # fmt: skip
 
 
-def _ordered_classes(classes: Iterable[str], config: DetectionConfig) -> tuple[str, ...]:
+def ordered_classes(classes: Iterable[str], config: DetectionConfig) -> tuple[str, ...]:
+    """``classes`` in the config's (the devkit's) order; ValueError for an empty list or an unknown name."""
     wanted = list(classes)
     unknown = [c for c in wanted if c not in config.class_range_m]
     if unknown or not wanted:

@@ -15,7 +15,11 @@ forward map gave the global xy velocity, so lidar -> global -> lidar is the iden
 Files: ``{"meta": {...}, "results": {sample_token: [entry, ...]}}`` (the official submission format);
 a ground-truth file has the same layout, its entries carrying ``ego_translation`` and ``num_pts``, plus an
 optional ``"ego_positions": {sample_token: [x, y, z]}`` (ego position at the sample's LiDAR time, global),
-which the evaluation needs for samples without any ground-truth box. NaN velocities are written as null.
+which the evaluation needs for samples without any ground-truth box, and an optional
+``"bike_racks": {sample_token: [[x, y, z, w, l, h, qw, qx, qy, qz], ...]}`` (the sample's
+``static_object.bicycle_rack`` annotations, global frame), with which the evaluation applies the devkit's bike-rack
+rule; a sample not listed has no rack, and a file without the key (one written before racks were saved) skips the
+rule. NaN velocities are written as null.
 """
 
 from __future__ import annotations
@@ -272,6 +276,7 @@ class ResultsFile:
     results: dict[str, list]
     meta: dict = field(default_factory=dict)
     ego_positions: dict[str, list[float]] = field(default_factory=dict)
+    bike_racks: dict[str, np.ndarray] | None = None  # {sample_token: (R, 10)}; None: the file has no bike_racks
 
 
 def write_results_json(
@@ -279,10 +284,14 @@ def write_results_json(
     results_by_sample: Mapping[str, Sequence[Mapping]],
     meta: Mapping,
     ego_positions: Mapping[str, Sequence[float]] | None = None,
+    bike_racks: Mapping[str, np.ndarray | Sequence[Sequence[float]]] | None = None,
 ) -> None:
-    """Write a submission ``{"meta", "results"}`` (plus ``ego_positions`` for ground truth), atomically.
+    """Write a submission ``{"meta", "results"}`` (plus ``ego_positions`` and ``bike_racks`` for ground truth),
+    atomically.
 
-    ``meta`` needs ``use_camera`` and ``use_lidar``; the other official flags default to False.
+    ``meta`` needs ``use_camera`` and ``use_lidar``; the other official flags default to False. ``bike_racks``
+    ({sample_token: (R, 10) rows}, see the module doc) is written even when empty: ``{}`` says "no rack anywhere",
+    where a missing key says "racks unknown".
     """
     missing = [k for k in ("use_camera", "use_lidar") if k not in meta]
     if missing:
@@ -295,6 +304,8 @@ def write_results_json(
     doc: dict = {"meta": full_meta, "results": {t: [_json_entry(e) for e in es] for t, es in results_by_sample.items()}}
     if ego_positions is not None:
         doc["ego_positions"] = {t: [float(v) for v in p] for t, p in ego_positions.items()}
+    if bike_racks is not None:
+        doc["bike_racks"] = {t: rows.tolist() for t, rows in check_bike_racks(bike_racks, "bike_racks").items()}
     text = json.dumps(doc, allow_nan=False)  # before the file: a refused value leaves no file behind
     atomic_write_file(path, lambda f: f.write(text.encode("utf-8")))
 
@@ -317,15 +328,59 @@ def read_results_json(path: str | os.PathLike, what: str = "results file") -> Re
         # is_finite_number, not math.isfinite: a JSON int such as 10**400 must be refused, not overflow
         if not (isinstance(xyz, list) and len(xyz) == 3 and all(is_finite_number(v) for v in xyz)):
             raise ValueError(f"{path}: ego_positions[{token!r}] must be 3 finite numbers, got {short_repr(xyz)}")
-    return ResultsFile(results=doc["results"], meta=meta, ego_positions=ego)
+    racks = doc.get("bike_racks")  # absent (or null): a file written before racks were saved
+    return ResultsFile(results=doc["results"], meta=meta, ego_positions=ego,
+                       bike_racks=None if racks is None else check_bike_racks(racks, f"{path}: bike_racks"))  # fmt: skip
+
+
+def check_bike_racks(racks: object, where: str = "bike_racks") -> dict[str, np.ndarray]:
+    """``{sample_token: [[x, y, z, w, l, h, qw, qx, qy, qz], ...]}`` as ``{token: (R, 10) float64}``; ValueError
+    (naming ``where``, the sample and the bad value) unless every row is 10 finite numbers with sizes > 0 and a
+    non-zero quaternion, the rule every box of the evaluation follows."""
+    if not isinstance(racks, Mapping):
+        raise ValueError(f"{where} must map sample tokens to lists of rack boxes, got {type(racks).__name__}")
+    out = {}
+    for token, rows in racks.items():
+        if isinstance(rows, np.ndarray):
+            rows = rows.tolist()
+        if not isinstance(token, str) or not isinstance(rows, (list, tuple)):
+            raise ValueError(f"{where}[{short_repr(token)}] must be a list of rack boxes, got {short_repr(rows)}")
+        for i, row in enumerate(rows):
+            if isinstance(row, np.ndarray):
+                row = row.tolist()
+            if not (isinstance(row, (list, tuple)) and len(row) == 10 and all(is_finite_number(v) for v in row)):
+                raise ValueError(f"{where}[{token!r}][{i}] must be 10 finite numbers (translation, size w l h, "
+                                 f"rotation w x y z), got {short_repr(row)}")  # fmt: skip
+            if min(row[3:6]) <= 0 or sum(float(v) * float(v) for v in row[6:10]) < 1e-12:
+                raise ValueError(f"{where}[{token!r}][{i}] must have sizes > 0 and a non-zero quaternion, "
+                                 f"got {short_repr(row)}")  # fmt: skip
+        out[token] = np.array(rows, dtype=np.float64).reshape(len(rows), 10)
+    return out
+
+
+@dataclass(frozen=True)
+class EvalInputs:
+    """A ground-truth file and a results file as the evaluation takes them (``load_eval_inputs``)."""
+
+    gt: EvalBoxes
+    pred: EvalBoxes
+    bike_racks: dict[str, np.ndarray] | None  # the ground-truth file's (for evaluate's bike_racks); None: it has none
 
 
 def load_gt_and_predictions(gt_path: str | os.PathLike, results_path: str | os.PathLike) -> tuple[EvalBoxes, EvalBoxes]:
-    """Both files as EvalBoxes, predictions' ``ego_translation`` set from each sample's ego position.
+    """Both files as EvalBoxes (``load_eval_inputs`` without the bike racks)."""
+    inputs = load_eval_inputs(gt_path, results_path)
+    return inputs.gt, inputs.pred
+
+
+def load_eval_inputs(gt_path: str | os.PathLike, results_path: str | os.PathLike) -> EvalInputs:
+    """Both files as EvalBoxes, predictions' ``ego_translation`` set from each sample's ego position, and the
+    ground-truth file's ``bike_racks``.
 
     The ego position of a sample is the ground-truth file's ``ego_positions`` entry, else ``translation -
     ego_translation`` of its ground-truth boxes; a prediction in a sample with neither keeps its own
-    ``ego_translation``, which it must then have.
+    ``ego_translation``, which it must then have. A rack of a sample the ground truth does not hold is refused:
+    the file belongs to other data.
     """
     gt_file, pred_file = read_results_json(gt_path, "ground-truth file"), read_results_json(results_path)
     for token, entries in gt_file.results.items():
@@ -342,7 +397,11 @@ def load_gt_and_predictions(gt_path: str | os.PathLike, results_path: str | os.P
                 f"{results_path}: no ego position for sample {token!r} (no ground-truth box or ego_positions entry "
                 "in the ground-truth file) and its predictions carry no ego_translation"
             )
-    return gt, pred.with_ego_position(ego)
+    if gt_file.bike_racks is not None:
+        stray = [t for t in gt_file.bike_racks if t not in gt_file.results]
+        if stray:
+            raise ValueError(f"{gt_path}: bike_racks names sample {stray[0]!r}, which its results do not hold")
+    return EvalInputs(gt=gt, pred=pred.with_ego_position(ego), bike_racks=gt_file.bike_racks)
 
 
 def _ego_positions_from_boxes(gt: EvalBoxes, where: str | os.PathLike) -> dict[str, list[float]]:

@@ -313,3 +313,113 @@ def test_a_run_whose_files_are_no_regular_files_says_so(tmp_path):
         load_run(tmp_path / "fifo.json", tmp_path / "gt.json")
     with pytest.raises(ValueError, match="does not exist"):
         load_run(tmp_path / "absent")
+
+
+# ---- a class without ground truth, bike racks, one TP-error definition ------------------------------------------
+
+
+def test_a_class_with_predictions_and_no_ground_truth_scores_as_evaluate_does():
+    """match_tables used to raise IndexError for it; now its table is all false positives and weighted_metrics gives
+    evaluate's figures bit for bit (the devkit's AP 0 and TP errors 1 for the class), for every class set."""
+    gt, (pred, _) = _world(2)
+    pred = {t: v + [_entry(t, (3.0, 4.0), "truck", 0.7, -1)] for t, v in pred.items()}  # trucks: no GT anywhere
+    g, p = _boxes(gt), _boxes(pred)
+    for classes in (CFG.class_names, ("car", "truck"), ("truck",)):
+        samples, tables = match_tables(g, p, classes)
+        fast = weighted_metrics(tables, CFG.class_names if classes is CFG.class_names else tuple(
+            c for c in CFG.class_names if c in classes), np.ones(len(samples), np.int64))  # fmt: skip
+        ref = evaluate(g, p, classes=classes)
+        assert summary(fast) == summary(ref) and fast.label_tp_errors == ref.label_tp_errors
+        assert fast.mean_dist_aps["truck"] == 0.0 and all(e == 1.0 for e in fast.label_tp_errors["truck"].values())
+    empty = {t: [] for t in gt}  # no ground truth at all: every class is such a class
+    samples, tables = match_tables(_boxes(empty), p, ("car",))
+    assert weighted_metrics(tables, ("car",), np.ones(len(samples), np.int64)).mean_ap == 0.0
+
+
+def test_compare_keeps_named_classes_without_ground_truth(tmp_path):
+    """--classes car,truck with trucks only predicted: the comparison averages both, as evaluate(classes=...) does
+    (it used to drop truck silently), and says so."""
+    gt, (pa, pb) = _world(6)
+    pb = {t: v + [_entry(t, (3.0, 4.0), "truck", 0.7, -1)] for t, v in pb.items()}
+    a, b = load_run(_save(tmp_path / "a", gt, pa)), load_run(_save(tmp_path / "b", gt, pb))
+    c = compare_runs(a, b, classes=("truck", "car"), num_draws=3)
+    assert {"AP/car", "AP/truck"} <= set(c.subsets["all"])
+    assert c.subsets["all"]["mAP"].a == evaluate(a.gt, a.pred, classes=("car", "truck")).mean_ap
+    assert c.subsets["all"]["mAP"].b == evaluate(b.gt, b.pred, classes=("car", "truck")).mean_ap
+    assert any("no ground-truth box of truck" in n for n in c.notes)
+    default = compare_runs(a, b, num_draws=3)  # default: the classes present, as before
+    assert "AP/truck" not in default.subsets["all"]
+    with pytest.raises(ValueError, match="subset of"):
+        compare_runs(a, b, classes=("lorry",), num_draws=3)
+
+
+def _racked_world():
+    """Two samples; in s0 a rack holds a GT bicycle that run A misses and run B finds, and A predicts a motorcycle
+    in it. The devkit's rule removes all of them, so A and B score the same with the racks and differ without."""
+    rack = [10.0, 0.0, 1.0, 2.0, 4.0, 2.0, 1.0, 0.0, 0.0, 0.0]
+    gt = {"s0": [_entry("s0", (10.0, 0.5), "bicycle", None, 8), _entry("s0", (-5.0, 3.0), "bicycle", None, 8)],
+          "s1": [_entry("s1", (4.0, 4.0), "car", None, 8)]}  # fmt: skip
+    common = [_entry("s0", (-5.1, 3.0), "bicycle", 0.9, -1)]
+    pa = {"s0": common + [_entry("s0", (10.0, -0.8), "motorcycle", 0.8, -1)], "s1": [_entry("s1", (4.1, 4.0), "car", 0.9, -1)]}
+    pb = {"s0": common + [_entry("s0", (10.1, 0.5), "bicycle", 0.5, -1)], "s1": [_entry("s1", (4.1, 4.0), "car", 0.9, -1)]}
+    return gt, pa, pb, {"s0": [rack]}
+
+
+def _save_with_racks(folder, gt, pred, racks):
+    from streamdet.evaluation.results import write_results_json
+
+    folder.mkdir()
+    write_results_json(folder / "results.json", pred, META)
+    write_results_json(folder / "gt.json", gt, META, ego_positions={t: [0.0, 0.0, 0.0] for t in gt}, bike_racks=racks)
+    return folder
+
+
+def test_compare_applies_the_ground_truths_bike_racks(tmp_path):
+    gt, pa, pb, racks = _racked_world()
+    a = load_run(_save_with_racks(tmp_path / "a", gt, pa, racks))
+    b = load_run(_save_with_racks(tmp_path / "b", gt, pb, racks))
+    assert a.bike_racks is not None and a.bike_racks["s0"].shape == (1, 10)
+    c = compare_runs(a, b, num_draws=3, subsets=False)
+    bike_racks = {t: np.asarray(r) for t, r in racks.items()}
+    for side, run in (("a", a), ("b", b)):
+        ref = summary(evaluate(run.gt, run.pred, classes=("car", "bicycle"), bike_racks=bike_racks))
+        assert {k: getattr(d, side) for k, d in c.subsets["all"].items()} == ref
+    assert c.subsets["all"]["mAP"].diff == 0.0  # all that differed stood in the rack
+    assert evaluate(a.gt, a.pred).mean_ap != evaluate(b.gt, b.pred).mean_ap  # without the rule it counts
+    # saved before racks were: the other run's racks serve it, with a note; racks that disagree are refused
+    old = load_run(_save(tmp_path / "old", gt, pb))
+    assert old.bike_racks is None
+    c_old = compare_runs(a, old, num_draws=3, subsets=False)
+    assert c_old.subsets["all"]["mAP"].diff == 0.0 and any("bike_racks of" in n for n in c_old.notes)
+    moved = load_run(_save_with_racks(tmp_path / "moved", gt, pb, {"s0": [[12.0, *racks["s0"][0][1:]]]}))
+    with pytest.raises(ValueError, match=r"same ground truth .* sample 's0' has another bicycle rack"):
+        compare_runs(a, moved, num_draws=3)
+    two = load_run(_save_with_racks(tmp_path / "two", gt, pb, {"s0": racks["s0"] * 2}))
+    with pytest.raises(ValueError, match="sample 's0' has 1 vs 2 bicycle racks"):
+        compare_runs(a, two, num_draws=3)
+
+
+def test_ground_truth_difference_names_the_field():
+    """A gt.json saved before attributes and unknown velocities were kept differs from a new one only there: the
+    message says which field, with both values."""
+    from streamdet.evaluation.compare import ground_truth_difference
+
+    gt, _ = _world(7)
+    with_attr = {t: [dict(e, attribute_name="vehicle.parked") if e["detection_name"] == "car" else e for e in v]
+                 for t, v in gt.items()}  # fmt: skip
+    msg = ground_truth_difference(_boxes(gt), _boxes(with_attr))
+    assert "differs in attribute_name" in msg and "attribute_name ''" in msg and "'vehicle.parked'" in msg
+    nan_vel = {t: [dict(e, velocity=[float("nan")] * 2) for e in v] for t, v in gt.items()}
+    assert "differs in velocity" in ground_truth_difference(_boxes(gt), _boxes(nan_vel))
+    assert ground_truth_difference(_boxes(nan_vel), _boxes(nan_vel)) is None
+
+
+def test_bootstrap_and_evaluate_share_one_tp_error_definition():
+    """The bootstrap's TP errors are detection_eval's own function, not a copy that could drift from the official
+    figure (and its matching, class order and summary too)."""
+    import streamdet.evaluation.bootstrap as bootstrap
+    import streamdet.evaluation.detection_eval as detection_eval
+
+    for name in ("tp_errors", "greedy_match", "ordered_classes", "score_order", "metric_curves", "detection_metrics"):
+        assert getattr(bootstrap, name) is getattr(detection_eval, name), name
+    assert not hasattr(detection_eval, "_greedy_match") and not hasattr(detection_eval, "_ordered_classes")

@@ -21,7 +21,7 @@ from streamdet.evaluation import (
     results_to_boxes,
     write_results_json,
 )
-from streamdet.evaluation.results import default_attribute, quaternion_to_rotation, rotation_to_quaternion
+from streamdet.evaluation.results import default_attribute, load_eval_inputs, quaternion_to_rotation, rotation_to_quaternion
 
 SAMPLE = importlib.resources.files("streamdet.data") / "nuscenes_sample"
 CALIB = json.loads((SAMPLE / "calibration.json").read_text())
@@ -169,3 +169,72 @@ def test_bad_arguments():
         results_to_boxes([{"sample_token": "a"}, {"sample_token": "b"}], L2E, E2G)
     empty = boxes_to_results(TOKEN, np.zeros((0, 9)), np.zeros(0), np.zeros(0, np.int64), L2E, E2G)
     assert empty == [] and results_to_boxes([], L2E, E2G)[0].shape == (0, 9)
+
+
+# ---- bike racks in a ground-truth file ---------------------------------------------------------------------------
+
+RACK = [10.0, 5.0, 0.5, 1.0, 4.0, 1.2, 0.995, 0.0, 0.0, 0.0998]  # translation, size w l h, rotation w x y z
+
+
+def test_bike_racks_round_trip_and_absent_is_not_empty(tmp_path):
+    """A GT file's bike_racks come back as written (float64 through JSON exactly); a file without the key (written
+    before racks were saved) reads as None, "racks unknown", and {} as "no rack anywhere"."""
+    _, boxes, labels = _sample_boxes()
+    num_pts = np.ones(len(boxes), dtype=np.int64)
+    entries = {TOKEN: boxes_to_gt(TOKEN, boxes, labels, num_pts, L2E, E2G), "other": []}
+    pred = tmp_path / "pred.json"
+    write_results_json(pred, {TOKEN: [], "other": []}, META)
+    racks = {TOKEN: np.array([RACK, [0.1 + 0.2, -3.0, 0.3, 0.7, 2.0, 1.0, 1.0, 0.0, 0.0, 0.0]])}
+    cases = {"with": racks, "empty": {}, "none": None}
+    for name, value in cases.items():
+        write_results_json(tmp_path / f"{name}.json", entries, META, ego_positions={"other": [0.0, 0.0, 0.0]},
+                           bike_racks=value)  # fmt: skip
+    got = load_eval_inputs(tmp_path / "with.json", pred)
+    assert set(got.bike_racks) == {TOKEN}
+    np.testing.assert_array_equal(got.bike_racks[TOKEN], racks[TOKEN])  # bit for bit
+    assert got.bike_racks[TOKEN].dtype == np.float64 and got.bike_racks[TOKEN].shape == (2, 10)
+    assert load_eval_inputs(tmp_path / "empty.json", pred).bike_racks == {}
+    assert load_eval_inputs(tmp_path / "none.json", pred).bike_racks is None
+    assert "bike_racks" not in json.loads((tmp_path / "none.json").read_text())
+    assert read_results_json(tmp_path / "with.json").bike_racks[TOKEN].shape == (2, 10)
+    # a results file (no key) reads as it always did
+    assert read_results_json(pred).bike_racks is None
+
+
+@pytest.mark.parametrize(
+    "racks, message",
+    [
+        ([RACK], "bike_racks must map sample tokens"),
+        ({"a": RACK}, r"bike_racks\['a'\]\[0\] must be 10 finite numbers .* got 10.0"),
+        ({"a": [RACK[:9]]}, r"must be 10 finite numbers .* got \[10.0, 5.0"),
+        ({"a": [[*RACK[:9], "x"]]}, r"must be 10 finite numbers .*'x'"),
+        ({"a": [[*RACK[:9], True]]}, r"must be 10 finite numbers .*True"),
+        ({"a": [[float("nan"), *RACK[1:]]]}, r"must be 10 finite numbers .*nan"),
+        ({"a": [[*RACK[:3], 0.0, *RACK[4:]]]}, r"sizes > 0 and a non-zero quaternion, got \[10.0, 5.0, 0.5, 0.0"),
+        ({"a": [[*RACK[:6], 0, 0, 0, 0]]}, r"non-zero quaternion, got .*0, 0, 0, 0\]"),
+        ({"a": 3}, r"bike_racks\['a'\] must be a list of rack boxes, got 3"),
+    ],
+)
+def test_malformed_bike_racks_are_refused_quoting_the_value(tmp_path, racks, message):
+    """Read (a file) or written: the rack, its sample and the bad value are named."""
+    good = tmp_path / "good.json"
+    write_results_json(good, {"a": []}, META)
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"results": {"a": []}, "bike_racks": racks}, allow_nan=True))
+    with pytest.raises(ValueError, match=message):
+        load_eval_inputs(bad, good)
+    with pytest.raises(ValueError, match=f"{bad}: bike_racks"):
+        read_results_json(bad)
+    with pytest.raises(ValueError, match=message):
+        write_results_json(tmp_path / "never.json", {"a": []}, META, bike_racks=racks)
+    assert not (tmp_path / "never.json").exists()
+
+
+def test_bike_racks_of_a_sample_the_ground_truth_lacks_are_refused(tmp_path):
+    gt, pred = tmp_path / "gt.json", tmp_path / "pred.json"
+    write_results_json(gt, {"a": []}, META, ego_positions={"a": [0.0, 0.0, 0.0]}, bike_racks={"b": [RACK]})
+    write_results_json(pred, {"a": []}, META)
+    with pytest.raises(ValueError, match=r"bike_racks names sample 'b', which its results do not hold"):
+        load_eval_inputs(gt, pred)
+    write_results_json(gt, {"a": []}, META, ego_positions={"a": [0.0, 0.0, 0.0]}, bike_racks={"a": []})
+    assert load_eval_inputs(gt, pred).bike_racks["a"].shape == (0, 10)  # a sample without racks
