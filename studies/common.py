@@ -18,7 +18,7 @@ from streamdet.data.nuscenes import NuScenesReader
 from streamdet.data.sample import Sample
 from streamdet.data.splits import split_sample_tokens
 from streamdet.evaluation.config import DetectionConfig
-from streamdet.evaluation.dataset_eval import ground_truth_entries, prediction_entries
+from streamdet.evaluation.dataset_eval import bike_racks_of, ground_truth_entries, prediction_entries
 from streamdet.evaluation.detection_eval import evaluate
 from streamdet.evaluation.eval_boxes import EvalBoxes
 from streamdet.evaluation.metrics import DetectionMetrics
@@ -106,12 +106,15 @@ def score_variants(
     gt_results: dict[str, list[dict]] = {}
     pred_results: dict[str, dict[str, list[dict]]] = {}
     ego: dict[str, list[float]] = {}
+    racks: dict[str, np.ndarray] = {}  # the devkit's bike-rack rule, as evaluate_dataset applies it
     for i, token in enumerate(tokens):
         sample = reader.get(token)
         dets = detect(i, sample)
         if pred_results and set(dets) != set(pred_results):
             raise RuntimeError(f"sample {i} gave variants {sorted(dets)}, earlier samples {sorted(pred_results)}")
         gt_results[token] = ground_truth_entries(sample)
+        if len(sample_racks := bike_racks_of(sample)):
+            racks[token] = sample_racks
         for name, d in dets.items():
             pred_results.setdefault(name, {})[token] = prediction_entries(sample, d, config.max_boxes_per_sample)
         ego[token] = sample.ego2global[:3, 3].tolist()
@@ -125,7 +128,7 @@ def score_variants(
     scores = {}
     for name, results in pred_results.items():
         pred = EvalBoxes.from_results(results, source=f"predictions ({name})").with_ego_position(ego)
-        scores[name] = Score(evaluate(gt, pred, config=config, classes=classes))
+        scores[name] = Score(evaluate(gt, pred, config=config, classes=classes, bike_racks=racks))
     return scores, len(tokens)
 
 

@@ -226,3 +226,34 @@ def test_empty_and_malformed_inputs(export_dir, data_dir, data):
         st.open_detector(export_dir, st.RuntimeOptions(precision="int8"))
     one = st.drop_camera_study(export_dir, st.StudyData(data_dir, split=None, max_samples=1))
     assert one.num_samples == 1
+
+
+def test_studies_score_as_the_dataset_evaluation_does_racks_included(export_dir, data, monkeypatch):
+    """score_variants builds the ground truth and applies the devkit's bike-rack rule as evaluate_dataset does: the
+    same figures, NDS included, with and without racks (a rack over the whole scene here, as the synthetic world
+    has none)."""
+    import streamdet.evaluation.dataset_eval as dataset_eval
+    import streamdet.studies.common as common
+
+    det = OnnxSweepDetector(export_dir)
+
+    def run() -> tuple[dict, dict]:
+        plain = evaluate_dataset(det, data.root, split=None).metrics.to_dict()
+        scores, _ = common.score_variants(data, lambda i, sample: {"plain": det(sample)})
+        return plain, scores["plain"].metrics.to_dict()
+
+    plain, study = run()
+    assert study == plain
+
+    asked = []
+
+    def everything_racked(sample):  # one rack, 200 m wide, centred on the ego: every bicycle lies in it
+        asked.append(sample.token)
+        centre = sample.ego2global[:3, 3]
+        return np.array([[*centre, 200.0, 200.0, 50.0, 1.0, 0.0, 0.0, 0.0]])
+
+    monkeypatch.setattr(dataset_eval, "bike_racks_of", everything_racked)
+    monkeypatch.setattr(common, "bike_racks_of", everything_racked)
+    racked_plain, racked_study = run()
+    assert racked_study == racked_plain
+    assert len(asked) == 2 * N_SAMPLES  # both paths asked for every sample's racks
