@@ -45,6 +45,7 @@ from streamdet.data.sample import bundled_sample_dir
 from streamdet.data.synth_lidar import LidarConfig, SimSweep, simulate_sweep
 from streamdet.data.synth_masks import MASK_SUFFIX  # noqa: F401 (re-exported)
 from streamdet.data.synth_render import CameraModel, Render, render_camera, shadow_raster
+from streamdet.data.splits import SPLITS_FILE
 from streamdet.data.synth_tables import TABLE_NAMES, Tables, link_records, write_tables
 from streamdet.data.synth_trajectories import TRAJECTORIES_FILE, write_trajectories
 from streamdet.data.synth_world import (
@@ -64,7 +65,6 @@ DEFAULT_VERSION = DEFAULT_TABLE_VERSION
 # ---- the layout of a dataset's root ----------------------------------------------------------------------------
 # What generate_dataset (and the CLI's --preview) write beside the table folder. A --version that names one of them
 # would mix the 13 tables into the LiDAR sweeps or the pictures; --overwrite deletes exactly these and nothing else.
-SPLITS_FILE = "splits.json"
 LAYOUT_FILES = (SPLITS_FILE, WORLD_FILE, TRAJECTORIES_FILE)
 LAYOUT_DIRS = ("samples", "sweeps", "maps", "preview")
 # The training cache streamdet-train keeps in its --data folder by default (training/cli.py): streamdet's, and

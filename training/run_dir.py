@@ -7,6 +7,10 @@ import json
 import os
 from pathlib import Path
 
+from streamdet.core.constants import MANIFEST_NAME
+from streamdet.data.splits import SPLITS_FILE
+from streamdet.evaluation.saved_run import SAVED_FILES
+
 # What a finished or running streamdet-train leaves in --out: another run there without --resume would replace it.
 RUN_FILES = ("last.pt", "model.pt", "metrics.jsonl")
 # config.json beside the run files: {"train": ...} for streamdet-train, {"pretrain": ...} for streamdet-train-image.
@@ -16,9 +20,9 @@ RUN_TOOLS = {"train": "streamdet-train", "pretrain": "streamdet-train-image"}
 MAX_CONFIG_BYTES = 1 << 20  # a run's config.json is a few kB: a bigger one is no run's and is not read
 # Folders a training run must not be written into, told by a file only they hold: a run mixed into them replaces
 # their files of the same name (config.json) or sits among files their readers list.
-NOT_A_RUN = (("manifest.json", "a streamdet export"), ("results.json", "a saved streamdet-eval run"),
-             ("gt.json", "a saved streamdet-eval run"), ("splits.json", "a dataset"))  # fmt: skip
-RUN_MAY_HOLD = ("results.json", "gt.json")  # NOT_A_RUN's files a run's folder may hold: an evaluation saved into it
+NOT_A_RUN = ((MANIFEST_NAME, "a streamdet export"), *((name, "a saved streamdet-eval run") for name in SAVED_FILES),
+             (SPLITS_FILE, "a dataset"))  # fmt: skip
+RUN_MAY_HOLD = SAVED_FILES  # NOT_A_RUN's files a run's folder may hold: an evaluation saved into it
 
 
 def check_out_dir(out_dir: str | Path, run_files: tuple[str, ...], resume: str | Path | None, overwrite: bool,
