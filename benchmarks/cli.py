@@ -225,6 +225,15 @@ def main(
             raise click.BadParameter(f"{export_dir} {problem}", param_hint="--export-dir")
         if slices is None:
             slices = manifest.num_slices  # the export's, as streamdet-run, -eval, -replay, -bag and -study take it
+        from streamdet.benchmarks.streaming import StreamingConfig, verify_streaming_export
+
+        try:  # the graphs too, as the runtime opens them: a swapped graph (its sha256 updated) fails now, not after the rows
+            verify_streaming_export(export_dir, StreamingConfig(precision=stream_precision, image_precision=stream_image_precision,
+                                                                num_slices=slices))  # fmt: skip
+        except ValueError as e:
+            raise click.BadParameter(str(e), param_hint="--export-dir") from None
+        except MemoryError:
+            raise click.ClickException(f"out of memory opening {export_dir}") from None
     elif resolution is not None and (resolution[0] % 2 or resolution[1] % 2):
         raise click.BadParameter(
             f"{resolution[0]}x{resolution[1]}: the export needs even sizes (ResNet stem stride 2)", param_hint="--resolution"

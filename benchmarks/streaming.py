@@ -367,6 +367,19 @@ def check_streaming_export(export_dir: str | Path, cfg: StreamingConfig | None =
     return manifest
 
 
+def verify_streaming_export(export_dir: str | Path, cfg: StreamingConfig) -> None:
+    """Open the export as the streaming section will (``StreamingDetector``'s start-up: every graph's file against its
+    sha256, its real signature against the manifest and the runtime, the LUT) and close it again: a ValueError (one
+    line, naming the export) for an export the runtime refuses. The manifest alone (``check_streaming_export``) does
+    not tell a swapped graph whose sha256 was updated with it; run before any timing, this costs one session start
+    per graph, where the section would fail only after every row was timed (minutes)."""
+    try:
+        det = _detector(Path(export_dir), cfg)
+    except (ValueError, KeyError, OSError) as e:  # ManifestError, CalibrationError, ProviderError are ValueErrors
+        raise ValueError(f"{export_dir} is not a usable export: {e}") from None
+    det.close()
+
+
 def measure_streaming(
     export_dir: str | Path, cfg: StreamingConfig = StreamingConfig(), progress: Progress = lambda msg: None
 ) -> StreamingResult:

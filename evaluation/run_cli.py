@@ -14,11 +14,49 @@ import click
 import numpy as np
 
 from streamdet.cli_utils import (
-    MAX_SLICES, PRECISION_CHOICES, image_precision_option, providers_option, refuse_output_over_inputs, require_export_dir)
+    MAX_SLICES, PRECISION_CHOICES, check_folder_creatable, check_output_parent, image_precision_option, providers_option,
+    refuse_output_over_inputs, require_export_dir)
 from streamdet.runtime_ort.stats import format_latency
 from streamdet.core import constants
 
 DEFAULT_EXPORT_DIR = Path(constants.DEFAULT_EXPORT_DIR)
+RESULTS_NAME = "results_nusc.json"
+BEV_NAME = "bev.png"
+
+
+def check_out_dir(out_dir: Path, inputs: list[tuple[str, Path | None]]) -> None:
+    """Before any work: --out and the two files written in it (results_nusc.json, bev.png) must not be, lie inside
+    or link into an input (``inputs``: option, path pairs), --out must be a folder or creatable as one, and each file
+    a regular file or absent (a FIFO there would block the write, a folder fail it after the whole run)."""
+    refuse_output_over_inputs(out_dir, "--out", inputs)
+    check_folder_creatable(out_dir, "--out")
+    if out_dir.is_dir():
+        for name in (RESULTS_NAME, BEV_NAME):
+            path = out_dir / name
+            try:
+                refuse_output_over_inputs(path, "--out", inputs)  # OUT/bev.png -> EXPORT/lut.npz
+                check_output_parent(path, "--out")
+            except click.BadParameter as e:  # the shared checks name the path first: say which file of --out it is
+                shown = f"{str(path)!r} "
+                reason = "it " + e.message[len(shown):] if e.message.startswith(shown) else e.message
+                raise click.BadParameter(f"cannot write {path}: {reason}", param_hint="--out") from None
+    else:  # made after the run: the highest folder of it that is missing must be creatable where it goes
+        absolute = out_dir.absolute()
+        missing = next((p for p in reversed([absolute, *absolute.parents]) if not p.exists()), None)
+        if missing is not None:
+            check_output_parent(missing, "--out")
+
+
+def _slices_callback(ctx: click.Context, param: click.Parameter, value: int | None) -> int | None:
+    """--slices 6, 0 or -8 is a usage error (exit 2), as streamdet-bench gives it, not a failed run."""
+    if value is not None:
+        from streamdet.core.sectors import check_num_slices
+
+        try:
+            check_num_slices(value)
+        except ValueError as e:
+            raise click.BadParameter(f"{e} (the detector's num_slices)") from None
+    return value
 
 
 def run_sample(
@@ -36,6 +74,7 @@ def run_sample(
     from streamdet.runtime_ort.pipeline import detect_sample
 
     from streamdet.core.cpu import cpu_info
+    from streamdet.core.file_output import atomic_write_file
 
     cpu = cpu_info()  # before any work: a CPUID mask variable not in effect is refused here
     sample = load_bundled_sample(sample_dir)
@@ -49,10 +88,8 @@ def run_sample(
     results = run.sweep.slices
     merged = run.detections
 
-    out_dir.mkdir(parents=True, exist_ok=True)
     entries = boxes_to_results(sample.token, merged.boxes, merged.scores, merged.labels, sample.lidar2ego, sample.ego2global)
-    results_path = out_dir / "results_nusc.json"
-    write_results_json(results_path, {sample.token: entries}, {"use_camera": det.uses_images, "use_lidar": True})
+    results_path = out_dir / RESULTS_NAME
     slice_of_point = np.concatenate([np.full(len(p), k) for k, p in enumerate(slices)])
     pts = np.concatenate(slices)
     picture = draw_bev(
@@ -64,15 +101,21 @@ def run_sample(
         det_boxes=merged.boxes,
         det_scores=merged.scores,
     )
-    png_path = out_dir / "bev.png"
-    # cv2.imwrite reports a failed write (a folder named bev.png, a full disk, no permission) only by returning False
+    png_path = out_dir / BEV_NAME
+    # encoded before anything is written (cv2 reports a failure only by its return value), then both files written
+    # atomically: a reader never sees half a file, and a link at either path is replaced, never written through
     try:
-        written = cv2.imwrite(str(png_path), picture)
+        encoded, png = cv2.imencode(".png", picture)
     except cv2.error as e:
-        raise OSError(f"cannot write {png_path}: {e}") from None
-    if not written:
-        raise OSError(f"cannot write {png_path} (is it a folder, the disk full, or the folder read-only?); "
-                      f"{results_path} was written")  # fmt: skip
+        raise OSError(f"cannot encode {png_path}: {e}") from None
+    if not encoded:
+        raise OSError(f"cannot encode {png_path} as PNG")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    write_results_json(results_path, {sample.token: entries}, {"use_camera": det.uses_images, "use_lidar": True})
+    try:
+        atomic_write_file(png_path, lambda f: f.write(png.tobytes()))
+    except OSError as e:
+        raise OSError(f"cannot write {png_path}: {e.strerror or e}; {results_path} was written") from None
     counts = {CLASS_NAMES[c]: int((merged.labels == c).sum()) for c in np.unique(merged.labels)}
     return {
         "sample": sample.token,
@@ -97,7 +140,7 @@ def run_sample(
 @click.option("--sample", "sample_dir", type=click.Path(path_type=Path, file_okay=False), default=None,
               help="A sample folder in the bundled layout (calibration.json, boxes.json, .pcd.bin, CAM_*.jpg). "
                    "Default: the bundled real nuScenes sample.")
-@click.option("--slices", "num_slices", type=int, default=None,
+@click.option("--slices", "num_slices", type=int, default=None, callback=_slices_callback,
               help=f"Slices per sweep (1, 2 or a multiple of 4, up to {MAX_SLICES}). Default: the number the export was "
                    "made for.")
 @click.option("--precision", type=click.Choice(PRECISION_CHOICES), default="fp32", show_default=True,
@@ -116,8 +159,9 @@ def main(
     require_export_dir(export_dir)
     from streamdet.data.sample import bundled_sample_dir
 
-    # --out inside the sample (the bundled one by default) or the export would add files to what others read
-    refuse_output_over_inputs(out_dir, "--out", [("--export-dir", export_dir), ("--sample", sample_dir or bundled_sample_dir())])
+    # --out inside the sample (the bundled one by default) or the export would add files to what others read; a
+    # FIFO or a link into an input at OUT/bev.png or OUT/results_nusc.json is refused now, not after the run
+    check_out_dir(out_dir, [("--export-dir", export_dir), ("--sample", sample_dir or bundled_sample_dir())])
     try:
         summary = run_sample(export_dir, sample_dir, num_slices, out_dir, precision, image_precision, providers)
     except (ValueError, KeyError, FileNotFoundError, OSError) as e:

@@ -7,10 +7,13 @@ from pathlib import Path
 
 import click
 
-from streamdet.cli_utils import MAX_SLICES, RESOLUTION_RANGE_HELP, refuse_output_over_inputs, resolution_callback
+from click.core import ParameterSource
+
+from streamdet.cli_utils import MAX_SLICES, RESOLUTION_RANGE_HELP, dataset_inputs, refuse_output_over_inputs, resolution_callback
+from streamdet.core.sectors import check_num_slices
 from streamdet.core.image_layout import IMAGE_LAYOUTS
 from streamdet.core.lut_layout import LUT_LAYOUTS
-from streamdet.export.exporter import STEM_STRIDE, ExportError, ExportOptions, run_export
+from streamdet.export.exporter import STEM_STRIDE, ExportError, ExportOptions, ExportUsageError, run_export
 from streamdet.export.int8 import DEFAULT_CALIBRATION_SAMPLES
 from streamdet.export.options import DEFAULT_IMAGE_LAYOUT, DEFAULT_LUT_LAYOUT, DEFAULT_PRESET, LUT_AUTO
 from streamdet.runtime_ort.manifest import LUT_NAME, MANIFEST_NAME
@@ -23,6 +26,21 @@ from streamdet.models.presets import preset_names
 MAX_CALIBRATION_SAMPLES = 10_000
 MAX_TOP_K = 100_000
 MAX_SEED = 2**63 - 1
+# options passed to the exporter only when typed: None there is "not given", and an option this export would ignore
+# (an image option of a LiDAR-only checkpoint, --calibration-samples without --int8, --seed with a checkpoint) is
+# refused only when given; their defaults are still shown in --help
+_GIVEN_ONLY = ("calibration_samples", "seed", "image_layout", "lut_layout")
+_GIVEN = (ParameterSource.COMMANDLINE, ParameterSource.ENVIRONMENT)
+
+
+def _slices_callback(ctx: click.Context, param: click.Parameter, value: int | None) -> int | None:
+    """--slices 6 is a usage error (exit 2) as streamdet-bench and streamdet-run give it, not a failed export."""
+    if value is not None:
+        try:
+            check_num_slices(value)
+        except ValueError as e:
+            raise click.BadParameter(str(e)) from None
+    return value
 
 
 @click.command(context_settings={"help_option_names": ["-h", "--help"]})
@@ -32,11 +50,12 @@ MAX_SEED = 2**63 - 1
               help="Checkpoint of that preset (torch.load weights_only). Default: the bundled fused checkpoint of the "
                    "preset (a file in models/weights/ whose saved preset has that name), else fixed-seed untrained weights.")
 @click.option("--calibration", type=click.Path(dir_okay=False), default=None,
-              help="calibration.json for lut.npz. Default: the bundled nuScenes sample's, intrinsics scaled to --resolution.")
+              help="calibration.json for lut.npz. Default: the bundled nuScenes sample's, intrinsics scaled to --resolution. "
+                   "Refused for a LiDAR-only checkpoint (no LUT).")
 @click.option("--resolution", callback=resolution_callback(multiple_of=STEM_STRIDE), default=None, metavar="WxH",
               help=f"Camera image size in pixels, e.g. 800x450; width and height must be even, {RESOLUTION_RANGE_HELP}. "
-                   "Default: the preset's.")
-@click.option("--slices", "num_slices", type=click.IntRange(1, MAX_SLICES), default=8, show_default=True,
+                   "Default: the preset's. Refused for a LiDAR-only checkpoint (no images).")
+@click.option("--slices", "num_slices", type=click.IntRange(1, MAX_SLICES), default=8, show_default=True, callback=_slices_callback,
               help=f"Slices per sweep (1, 2 or a multiple of 4 up to {MAX_SLICES}); picks the LiDAR slice used for the parity checks.")
 @click.option("--fp16", is_flag=True, help="Also write fp16 siblings (*.fp16.onnx; inputs and outputs stay fp32) and check them.")
 @click.option("--int8", is_flag=True,
@@ -47,19 +66,24 @@ MAX_SEED = 2**63 - 1
                    "Default: the bundled nuScenes sample.")
 @click.option("--calibration-samples", type=click.IntRange(1, MAX_CALIBRATION_SAMPLES), default=DEFAULT_CALIBRATION_SAMPLES,
               show_default=True, help=f"Samples drawn evenly from --calibration-data (each gives all its camera images and "
-                                      f"slices; 1..{MAX_CALIBRATION_SAMPLES}).")
+                                      f"slices; 1..{MAX_CALIBRATION_SAMPLES}). Needs --int8.")
 @click.option("--opset", type=click.IntRange(*OPSET_RANGE), default=DEFAULT_OPSET, show_default=True, help=f"ONNX opset ({OPSET_RANGE[0]}..{OPSET_RANGE[1]}).")
 @click.option("--out", "out_dir", type=click.Path(file_okay=False), default=None,
-              help="Output directory (replaced if it holds an older export). Default: ./exports/<preset>.")
+              help="Output directory (replaced if it holds an older export). Not the current folder ('.'): the export is "
+                   "staged beside --out and renamed into place. Default: ./exports/<preset>.")
 @click.option("--seed", type=click.IntRange(0, MAX_SEED), default=0, show_default=True,
-              help="Torch seed of the untrained weights when no checkpoint is used (0..2**63-1).")
+              help="Torch seed (0..2**63-1) of the untrained weights when no checkpoint is used (none given, none bundled "
+                   "for the preset), and of the parity check's noise images when --calibration names cameras the "
+                   "bundled sample lacks. Refused where the export uses neither.")
 @click.option("--image-layout", type=click.Choice(IMAGE_LAYOUTS), default=DEFAULT_IMAGE_LAYOUT, show_default=True,
               help="What the lifter graph hands the slice graph: the image BEV, or the BEV encoder's image half computed "
-                   "once per lift in the lifter graph (models/image_half.py; recorded as the manifest's image_layout).")
+                   "once per lift in the lifter graph (models/image_half.py; recorded as the manifest's image_layout). "
+                   "Refused for a LiDAR-only checkpoint (no lifter).")
 @click.option("--lut-layout", type=click.Choice((LUT_AUTO, *LUT_LAYOUTS)), default=DEFAULT_LUT_LAYOUT, show_default=True,
               help="How the lifter graph reads the LUT: K slots per voxel, or the compacted valid (voxel, camera) pairs "
                    "(models/compact_lifter.py; recorded as the manifest's lut_layout). auto: compact for a model with "
-                   "one LUT height per voxel, slots for several (where compacting does not pay).")
+                   "one LUT height per voxel, slots for several (where compacting does not pay). Refused for a LiDAR-only "
+                   "checkpoint (no lifter).")
 @click.option("--top-k", type=click.IntRange(1, MAX_TOP_K), default=None,
               help=f"Detections per quadrant the slice graph decodes, 1..{MAX_TOP_K} (default: the preset's, the paper's 500). Fewer make "
                    "each slice run cheaper; the runtime's score threshold keeps far fewer anyway, and the detector counts "
@@ -70,16 +94,25 @@ def main(preset, checkpoint, calibration, resolution, num_slices, fp16, int8, ca
 
     A LiDAR-only checkpoint (trained with use_image=False) exports its slice graph only, with no image_bev input."""
     # an export written into the calibration dataset (or onto an input) would sit among, or replace, what it reads
-    inputs = [("--checkpoint", checkpoint), ("--calibration", calibration), ("--calibration-data", calibration_data)]
+    # (its linked table folder included: docs/trust.md)
+    inputs = [("--checkpoint", checkpoint), ("--calibration", calibration)]
     refuse_output_over_inputs(None if out_dir is None else Path(out_dir), "--out",
-                              [(option, None if path is None else Path(path)) for option, path in inputs])  # fmt: skip
+                              [(option, None if path is None else Path(path)) for option, path in inputs]
+                              + dataset_inputs(None if calibration_data is None else Path(calibration_data),
+                                               "--calibration-data"))  # fmt: skip
+    ctx = click.get_current_context()
+    given = {name: ctx.get_parameter_source(name) in _GIVEN for name in _GIVEN_ONLY}
     opts = ExportOptions(
         preset=preset, checkpoint=checkpoint, calibration=calibration, resolution=resolution, num_slices=num_slices,
-        fp16=fp16, int8=int8, calibration_data=calibration_data, calibration_samples=calibration_samples, opset=opset,
-        out_dir=out_dir, seed=seed, image_layout=image_layout, lut_layout=lut_layout, top_k=top_k,
-    )
+        fp16=fp16, int8=int8, calibration_data=calibration_data,
+        calibration_samples=calibration_samples if given["calibration_samples"] else None, opset=opset,
+        out_dir=out_dir, seed=seed if given["seed"] else None, image_layout=image_layout if given["image_layout"] else None,
+        lut_layout=lut_layout if given["lut_layout"] else None, top_k=top_k,
+    )  # fmt: skip
     try:
         result = run_export(opts, report=lambda msg: click.echo(msg, err=True))
+    except ExportUsageError as e:  # options that do not go together (one this export would ignore): exit 2
+        raise click.UsageError(str(e)) from None
     except ExportError as e:
         raise click.ClickException(str(e)) from None
     m = result.manifest

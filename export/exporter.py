@@ -30,10 +30,13 @@ from streamdet.export import int8 as q8
 from streamdet.export import onnx_export as ox
 from streamdet.export.export_run import ExportRun, manifest_parity_passed
 from streamdet.export.graph_steps import TORCH_REF_IMAGES, load_rig  # noqa: F401 (public here)
-from streamdet.export.options import DEFAULT_PRESET, STEM_STRIDE, ExportError, ExportOptions, check_resolution, resolve_lut_layout  # noqa: F401
-from streamdet.export.staging import check_replaceable, discard_staging_dir, make_staging_dir, parity_failed_dir
+from streamdet.export.options import (  # noqa: F401 (public here)
+    DEFAULT_PRESET, STEM_STRIDE, ExportError, ExportOptions, ExportUsageError, check_resolution, resolve_lut_layout)
+from streamdet.export.staging import (
+    check_out_dir_name, check_replaceable, discard_staging_dir, make_staging_dir, parity_failed_dir)
 from streamdet.export.steps import Progress, Report, export_steps
 from streamdet.export.weights import (
+    bundled_checkpoint,
     checkpoint_lifter,
     checkpoint_preset,
     checkpoint_slice_crop,
@@ -62,12 +65,15 @@ def run_export(opts: ExportOptions, report: Report | None = None) -> ExportResul
     """Run the whole export; raises ExportError (one line) for bad options or an unusable target directory."""
     report = report or (lambda _msg: None)
     t_start = time.perf_counter()
+    if opts.out_dir is not None:
+        check_out_dir_name(opts.out_dir)  # '.', '/', '..': before the checkpoint is read
     preset, width, height = _resolve_preset(opts)
-    opts = dataclasses.replace(opts, lut_layout=resolve_lut_layout(opts.lut_layout, preset.lifter.lut_heights_per_voxel))
-    _check_options(opts)
+    _check_options(opts, preset)  # on the options as given: None is "not given"
+    opts = opts.with_defaults(preset.lifter.lut_heights_per_voxel)
     out_dir = Path(opts.out_dir) if opts.out_dir is not None else Path(EXPORTS_ROOT) / preset.name
     if out_dir.is_symlink():  # replace the folder it points to and keep the link (committing moved the link aside)
         out_dir = out_dir.resolve()
+        check_out_dir_name(out_dir)  # a link to '/' or to the current folder
     steps = export_steps(preset, opts, (width, height))
     progress = Progress(report, total=len(steps))
     check_replaceable(parity_failed_dir(out_dir))  # where a failed export goes if out_dir holds one (commit_target)
@@ -85,28 +91,70 @@ def run_export(opts: ExportOptions, report: Report | None = None) -> ExportResul
     return ExportResult(run.committed_dir.resolve(), run.manifest, time.perf_counter() - t_start, kept)
 
 
-def _check_options(opts: ExportOptions) -> None:
-    """Fail before any work on options that cannot be used."""
+def _check_options(opts: ExportOptions, preset: Preset) -> None:
+    """Fail before any work on options that cannot be used, or that this export would ignore (``preset``: the one
+    ``_resolve_preset`` settled, whose use_image says whether the export has an image lane). ``opts`` as given:
+    None is an option not given."""
     try:
         check_num_slices(opts.num_slices)
     except ValueError as e:
-        raise ExportError(f"--slices: {e}") from None
+        raise ExportUsageError(f"--slices: {e}") from None
     lo, hi = ox.OPSET_RANGE
     if isinstance(opts.opset, bool) or not isinstance(opts.opset, int) or not lo <= opts.opset <= hi:
         raise ExportError(f"--opset must be an integer in [{lo}, {hi}], got {opts.opset!r}")
     if opts.calibration_data is not None and not opts.int8:
-        raise ExportError("--calibration-data is the int8 calibration set: it needs --int8")
-    counts = {"--calibration-samples": opts.calibration_samples}
-    if opts.top_k is not None:  # None: the preset's
-        counts["--top-k"] = opts.top_k
+        raise ExportUsageError("--calibration-data is the int8 calibration set: it needs --int8")
+    if opts.calibration_samples is not None and not opts.int8:
+        raise ExportUsageError(f"--calibration-samples {opts.calibration_samples!r} sizes the int8 calibration: it needs "
+                               "--int8 (nothing is calibrated without it)")  # fmt: skip
+    counts = {"--calibration-samples": opts.calibration_samples, "--top-k": opts.top_k}
     for flag, value in counts.items():
-        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):  # None: default
             raise ExportError(f"{flag} must be a positive integer, got {value!r}")
+    if not preset.use_image:
+        _check_lidar_only_options(opts)
+    _check_seed(opts, preset)
     if opts.int8 and opts.calibration_data is not None:
         try:
             q8.dataset_version(opts.calibration_data)
         except q8.Int8CalibrationDataError as e:
             raise ExportError(f"--calibration-data: {e}") from None
+
+
+def _check_lidar_only_options(opts: ExportOptions) -> None:
+    """A LiDAR-only checkpoint exports the slice graph alone: no image encoder, no lifter, no LUT, no image. The
+    options that shape those would be ignored (the manifest recorded the default image layout whatever was asked),
+    so each one given is refused."""
+    given = [flag for flag, value in (("--image-layout", opts.image_layout), ("--lut-layout", opts.lut_layout),
+                                      ("--resolution", opts.resolution), ("--calibration", opts.calibration))
+             if value is not None]  # fmt: skip
+    if given:
+        raise ExportUsageError(
+            f"--checkpoint {opts.checkpoint} is a LiDAR-only model (use_image false): its export is the slice graph "
+            f"alone, with no image lane, lifter or LUT, so {', '.join(given)} would be ignored; drop "
+            f"{'it' if len(given) == 1 else 'them'}"
+        )  # fmt: skip
+
+
+def _check_seed(opts: ExportOptions, preset: Preset) -> None:
+    """``--seed`` draws the fixed-seed initial weights (no checkpoint file: none given and none bundled for the
+    preset) and the parity check's noise images (a --calibration naming cameras the bundled sample lacks, whose
+    images the check cannot use). Given where the export does neither, it would be ignored: refused."""
+    if opts.seed is None:
+        return
+    weights = opts.checkpoint if opts.checkpoint is not None else bundled_checkpoint(preset.name)
+    if weights is None:
+        return  # the seed draws the weights
+    if preset.use_image and opts.calibration is not None:
+        rig, _ = load_rig(opts.calibration)  # an unreadable file: the ExportError the LUT step would give
+        bundled, _ = load_rig(None)  # the bundled sample's cameras, whose images the parity check reads
+        if not set(rig.names) <= set(bundled.names):
+            return  # the seed draws the parity check's noise images
+    what = f"--checkpoint {opts.checkpoint}" if opts.checkpoint is not None else f"the bundled checkpoint {weights}"
+    images = ("a LiDAR-only export reads no image" if not preset.use_image
+              else "this one reads the bundled sample's images: its cameras are the sample's")  # fmt: skip
+    raise ExportUsageError(f"--seed {opts.seed!r} would be ignored: it seeds the untrained weights (this export loads "
+                           f"{what}) and the parity check's noise images ({images}); drop it")  # fmt: skip
 
 
 def _resolve_preset(opts: ExportOptions) -> tuple[Preset, int, int]:

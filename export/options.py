@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 from streamdet.export import onnx_export as ox
@@ -20,9 +21,10 @@ LUT_AUTO = "auto"
 DEFAULT_LUT_LAYOUT = LUT_AUTO
 
 
-def resolve_lut_layout(layout: str, heights_per_voxel: int) -> str:
-    """The layout an export writes: ``layout`` itself, or for "auto" compact (one height) / slots (several)."""
-    if layout != LUT_AUTO:
+def resolve_lut_layout(layout: str | None, heights_per_voxel: int) -> str:
+    """The layout an export writes: ``layout`` itself, or for "auto" (and None, not given) compact (one height) /
+    slots (several)."""
+    if layout is not None and layout != LUT_AUTO:
         return layout
     return LUT_COMPACT if heights_per_voxel == 1 else LUT_SLOTS
 
@@ -30,6 +32,10 @@ def resolve_lut_layout(layout: str, heights_per_voxel: int) -> str:
 
 class ExportError(Exception):
     """A problem with the export's inputs or target, stated in one line."""
+
+
+class ExportUsageError(ExportError):
+    """Options that do not go together, e.g. one this export would ignore (streamdet-export: a usage error, exit 2)."""
 
 
 @dataclass(frozen=True)
@@ -42,19 +48,36 @@ class ExportOptions:
     fp16: bool = False  # also write *.fp16.onnx siblings
     int8: bool = False  # also write *.int8.onnx siblings (static QDQ, calibrated on real samples)
     calibration_data: str | None = None  # nuScenes-format dataset for the int8 calibration; None: the bundled sample
-    calibration_samples: int = DEFAULT_CALIBRATION_SAMPLES  # samples drawn from calibration_data (its train split)
+    # samples drawn from calibration_data (its train split); None (not given): DEFAULT_CALIBRATION_SAMPLES. Given
+    # without int8 it is refused: nothing is calibrated
+    calibration_samples: int | None = None
     opset: int = ox.DEFAULT_OPSET
     out_dir: str | None = None  # None: ./exports/<preset>
-    seed: int = DEFAULT_SEED  # torch seed of the initial weights when there is no checkpoint
+    # torch seed of the fixed-seed initial weights (no checkpoint) and of the parity check's noise images (a
+    # calibration of cameras the bundled sample lacks); None (not given): DEFAULT_SEED. Given where the export uses
+    # neither, it is refused (exporter._check_seed)
+    seed: int | None = None
     # which map the lifter hands the slice graph (models/image_half.py): the image BEV, or the BEV encoder's image
-    # half computed in the lifter graph; recorded in the manifest's image_layout
-    image_layout: str = DEFAULT_IMAGE_LAYOUT
-    # how the lifter graph reads the LUT (core/lut_layout.py): K slots, or the compacted valid pairs; "auto":
-    # resolve_lut_layout (run_export records the resolved one)
-    lut_layout: str = DEFAULT_LUT_LAYOUT
+    # half computed in the lifter graph; recorded in the manifest's image_layout. None (not given):
+    # DEFAULT_IMAGE_LAYOUT. A LiDAR-only export (no lifter) refuses one given, as it does resolution and calibration
+    image_layout: str | None = None
+    # how the lifter graph reads the LUT (core/lut_layout.py): K slots, or the compacted valid pairs; "auto" (and
+    # None, not given): resolve_lut_layout (run_export records the resolved one). A LiDAR-only export refuses one given
+    lut_layout: str | None = None
     # detections per quadrant the slice graph decodes (PostConfig.top_k); None: the preset's (the paper's 500). The
     # runtime's score threshold keeps far fewer; the detector counts runs whose K-th score passed it (cut by the cap)
     top_k: int | None = None
+
+    def with_defaults(self, heights_per_voxel: int) -> "ExportOptions":
+        """These options with every one not given (None) at its default and the LUT layout resolved for a model
+        sampling ``heights_per_voxel`` heights per voxel: what the export steps read."""
+        return dataclasses.replace(
+            self,
+            calibration_samples=DEFAULT_CALIBRATION_SAMPLES if self.calibration_samples is None else self.calibration_samples,
+            seed=DEFAULT_SEED if self.seed is None else self.seed,
+            image_layout=DEFAULT_IMAGE_LAYOUT if self.image_layout is None else self.image_layout,
+            lut_layout=resolve_lut_layout(self.lut_layout, heights_per_voxel),
+        )
 
     @property
     def precisions(self) -> tuple[str, ...]:

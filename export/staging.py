@@ -1,12 +1,20 @@
 """Staging and commit of an export directory: all files are written into a temporary directory beside the target and
 renamed into place at the end (manifest last), so a failed or interrupted export never leaves a directory that looks
-complete, and an older export is replaced only by a finished one."""
+complete, and an older export is replaced only by a finished one.
+
+Every staging folder this module makes (``.<out>.partial-<pid>-*`` for the export being written, ``.<out>.old-<pid>-*``
+for the previous export moved aside during the commit) holds a marker file naming its writer's pid
+(``STAGING_MARKER``). A later export removes only such folders whose writer no longer runs: a folder that merely
+has the name (a user's, another tool's) is never touched. The partial folder's marker is removed just before the
+folder is renamed into place, so an export never carries it."""
 
 from __future__ import annotations
 
+import glob
 import json
 import os
 import shutil
+import stat
 import tempfile
 from pathlib import Path
 
@@ -19,14 +27,42 @@ from streamdet.export.options import ExportError
 from streamdet.runtime_ort.manifest import MANIFEST_NAME, graph_file_name
 
 
+STAGING_MARKER = ".streamdet-export-staging"  # in every staging folder made here; only such folders are ever removed
+STAGING_MARKER_TEXT = "streamdet export staging folder of pid"
+_MAX_MARKER_BYTES = 256
+
+
+def _mark(folder: Path) -> None:
+    """Write the marker that makes ``folder`` one of this module's staging folders (``_is_marked``)."""
+    (folder / STAGING_MARKER).write_text(f"{STAGING_MARKER_TEXT} {os.getpid()}\n", encoding="ascii")
+
+
+def _is_marked(folder: Path, pid: int) -> bool:
+    """Whether ``folder`` (no symlink) holds the marker of a staging folder written by process ``pid``: a regular
+    file (not a link) with exactly the text ``_mark`` writes."""
+    marker = folder / STAGING_MARKER
+    try:
+        if folder.is_symlink() or not folder.is_dir():
+            return False
+        st = os.lstat(marker)
+        if not stat.S_ISREG(st.st_mode) or st.st_size > _MAX_MARKER_BYTES:
+            return False
+        return marker.read_text(encoding="ascii") == f"{STAGING_MARKER_TEXT} {pid}\n"
+    except (OSError, UnicodeDecodeError):
+        return False
+
+
 def _stale_dirs(parent: Path, name: str) -> list[tuple[str, Path]]:
     """("partial" | "old", path) of staging folders beside ``name`` left by an export process that no longer runs
-    (killed with SIGKILL, or the machine went down); the writer's pid is part of the folder's name."""
+    (killed with SIGKILL, or the machine went down); the writer's pid is part of the folder's name and of its
+    marker (``STAGING_MARKER``). A folder without the marker is not one of ours, whatever its name: never listed."""
     stale = []
     for kind in ("partial", "old"):
-        for path in parent.glob(f".{name}.{kind}-*-*"):
+        for path in parent.glob(f".{glob.escape(name)}.{kind}-*-*"):
             pid = path.name[len(f".{name}.{kind}-"):].split("-", 1)[0]
-            if pid.isdigit() and int(pid) != os.getpid() and not writer_alive(int(pid)) and path.is_dir():
+            if not (pid.isdigit() and len(pid) <= 10):
+                continue
+            if int(pid) != os.getpid() and not writer_alive(int(pid)) and _is_marked(path, int(pid)):
                 stale.append((kind, path))
     return stale
 
@@ -112,8 +148,37 @@ def make_staging_dir(out_dir: Path) -> Path:
         tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.partial-{os.getpid()}-", dir=parent))
     except OSError as e:
         raise ExportError(f"--out {out_dir}: cannot write into {parent}: {e.strerror or e}") from None
-    tmp.chmod(0o755)  # mkdtemp makes it private; the export is an ordinary directory
+    try:
+        tmp.chmod(0o755)  # mkdtemp makes it private; the export is an ordinary directory
+        _mark(tmp)
+    except OSError as e:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise ExportError(f"--out {out_dir}: cannot write into {tmp}: {e.strerror or e}") from None
     return tmp
+
+
+def check_out_dir_name(out_dir: str | os.PathLike) -> None:
+    """ExportError unless ``out_dir`` (as spelled) names a folder the export can be renamed onto: not empty, not the
+    root, not a path ending in '..', and not the current folder. An export is staged beside its --out and renamed
+    into place, so even an empty current folder is no target: the rename would swap the folder the calling shell
+    stands in for a new one, and leave the shell in a deleted folder that shows nothing."""
+    raw = os.fspath(out_dir)
+    hint = "give a named folder, e.g. --out exports/NAME"
+    if raw == "":
+        raise ExportError(f"--out '' is empty: {hint}")
+    name = Path(raw).name  # pathlib drops '.' components: '.' and '/' have no name, 'a/.' is 'a'
+    if name == "" and Path(raw).anchor and Path(raw) == Path(Path(raw).anchor):
+        raise ExportError(f"--out {raw!r} is the root folder: {hint}")
+    if name == "..":
+        raise ExportError(f"--out {raw!r} ends in '..': {hint}")
+    try:
+        is_cwd = name == "" or (os.path.isdir(raw) and os.path.samefile(raw, "."))
+    except OSError:
+        is_cwd = False
+    if is_cwd:
+        raise ExportError(f"--out {raw!r} is the current folder: an export is staged beside its --out and renamed into "
+                          f"place, which would swap the folder this shell stands in for a new one; {hint}, or run from "
+                          "the parent folder")  # fmt: skip
 
 
 PARITY_FAILED_SUFFIX = ".parity-failed"
@@ -134,11 +199,14 @@ def commit_target(out_dir: Path, parity_passed: bool) -> Path:
 
 
 def commit_staging_dir(tmp: Path, out_dir: Path) -> None:
-    """Replace out_dir (absent, empty, or an older export) by tmp."""
+    """Replace out_dir (absent, empty, or an older export) by tmp (a staging folder of ``make_staging_dir``, whose
+    marker is removed first: the export must not carry it)."""
     out_dir = out_dir.absolute()
+    (tmp / STAGING_MARKER).unlink(missing_ok=True)
     old = None
     if out_dir.exists():
         old = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.old-{os.getpid()}-", dir=out_dir.parent))
+        _mark(old)  # a kill before the export is back or removed leaves a folder the next export may clean
         os.replace(out_dir, old / "export")
     try:
         os.replace(tmp, out_dir)

@@ -17,7 +17,7 @@ from streamdet.export import graph_steps as gs
 from streamdet.export import int8_steps
 from streamdet.export import onnx_export as ox
 from streamdet.export.export_run import ExportRun
-from streamdet.export.options import ExportOptions, resolve_lut_layout
+from streamdet.export.options import ExportOptions
 from streamdet.export.staging import commit_staging_dir, commit_target
 from streamdet.models.presets import Preset
 
@@ -43,8 +43,8 @@ FP32_STEPS: dict[str, tuple[Step, ...]] = {
 
 def export_steps(preset: Preset, opts: ExportOptions, size: tuple[int, int]) -> list[Step]:
     """Every step of an export of ``preset`` (with its use_image) at ``size`` (W, H) with these options."""
-    lut_layout = resolve_lut_layout(opts.lut_layout, preset.lifter.lut_heights_per_voxel)  # "auto" -> the preset's
-    graphs = tuple(ox.graph_ios(preset.use_image, preset.slice_crop, opts.image_layout, lut_layout))
+    opts = opts.with_defaults(preset.lifter.lut_heights_per_voxel)  # "auto" -> the preset's; None -> the default
+    graphs = tuple(ox.graph_ios(preset.use_image, preset.slice_crop, opts.image_layout, opts.lut_layout))
     fused = preset.use_image
     lidar = "LiDAR-only model: slice graph only" + ("" if preset.slice_crop else ", whole-grid maps (no quadrant crop)")
     steps = [Step("loading weights" if fused else f"loading weights ({lidar})", gs.load_weights)]

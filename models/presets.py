@@ -41,6 +41,9 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import reprlib
+import typing
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -349,26 +352,127 @@ class Preset:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "Preset":
+        """The preset of ``to_dict`` (a manifest's, a checkpoint's), read as untrusted: ValueError (one line, naming
+        the field) for a malformed one. Every value must have its field's own type, never coerced: an integer where
+        an int is (8.9 channels is refused, not read as 8), true / false where a bool is (``"no"`` is refused, not
+        read as True), a finite number where a float is, a string, a list of them. A field absent from a sub-config
+        takes its default (an option added after the file was written: ``to_dict`` leaves defaults out); the
+        top-level fields (but the optional image_bev_norm, image_bev_target, slice_crop), ``head.tasks`` and
+        ``post.nms_iou_threshold`` are required."""
         try:
+            if not isinstance(d, Mapping):
+                raise ValueError(f"preset dict is malformed: expected a mapping of fields, got {_short(d)}")
             return cls(
-                name=str(d["name"]),
-                grid=GridSpec.from_dict(d["grid"]),
-                channels=int(d["channels"]),
-                image=ImageConfig(**d["image"]),
-                pillars=PillarConfig(**d["pillars"]),
-                lifter=LifterConfig(**d["lifter"]),
-                bev=BevEncoderConfig(**{k: tuple(v) for k, v in d["bev"].items()}),
-                head=HeadConfig(**{**d["head"], "tasks": tuple(tuple(t) for t in d["head"]["tasks"])}),
-                post=PostConfig(**{**d["post"], "nms_iou_threshold": tuple(d["post"]["nms_iou_threshold"])}),
-                use_image=bool(d["use_image"]),
-                image_bev_norm=bool(d.get("image_bev_norm", False)),
-                image_bev_target=str(d.get("image_bev_target", "learnt")),
-                slice_crop=d.get("slice_crop", True),
+                name=_typed(d["name"], str, "name"),
+                grid=_grid(d["grid"]),
+                channels=_typed(d["channels"], int, "channels"),
+                image=_sub_config(ImageConfig, d["image"], "image"),
+                pillars=_sub_config(PillarConfig, d["pillars"], "pillars"),
+                lifter=_sub_config(LifterConfig, d["lifter"], "lifter"),
+                bev=_sub_config(BevEncoderConfig, d["bev"], "bev"),
+                head=_sub_config(HeadConfig, d["head"], "head", required=("tasks",)),
+                post=_sub_config(PostConfig, d["post"], "post", required=("nms_iou_threshold",)),
+                use_image=_typed(d["use_image"], bool, "use_image"),
+                image_bev_norm=_typed(d.get("image_bev_norm", False), bool, "image_bev_norm"),
+                image_bev_target=_typed(d.get("image_bev_target", "learnt"), str, "image_bev_target"),
+                slice_crop=_typed(d.get("slice_crop", True), bool, "slice_crop"),
             )
         except KeyError as e:
             raise ValueError(f"preset dict lacks the field {e.args[0]!r}") from None
-        except TypeError as e:  # unknown or missing dataclass field
+        except (TypeError, AttributeError, OverflowError, ZeroDivisionError, RecursionError) as e:  # a value the
+            # checks above let through but a dataclass cannot take: still one line, never a traceback
             raise ValueError(f"preset dict is malformed: {e}") from None
+
+
+# ---- reading a preset dict (Preset.from_dict) ---------------------------------------------------------------
+
+
+def _short(value: Any) -> str:
+    """A value for a one-line message: its type and a repr cut short (a field may hold a megabyte list)."""
+    if isinstance(value, int) and not isinstance(value, bool) and value.bit_length() > 64:
+        return f"an integer of {value.bit_length()} bits"  # past 4300 digits repr itself fails
+    text = reprlib.repr(value)  # nesting and lengths capped: a deeply nested list is no RecursionError
+    return f"{type(value).__name__} {text if len(text) <= 60 else text[:57] + '...'}"
+
+
+def _finite(value: Any) -> bool:
+    try:
+        return math.isfinite(value)
+    except OverflowError:  # an integer past float range
+        return False
+
+
+def _typed(value: Any, hint: Any, where: str) -> Any:
+    """``value`` if it has the type ``hint`` (int, float, bool, str, tuple[X, ...] as a list or tuple: returned as a
+    tuple), else ValueError naming ``where``."""
+    if hint is bool:
+        if not isinstance(value, bool):
+            raise ValueError(f"preset dict is malformed: {where} must be true or false, got {_short(value)}")
+    elif hint is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ValueError(f"preset dict is malformed: {where} must be an integer, got {_short(value)}")
+        if value.bit_length() > 63:  # every field's own bound is far below; such a number is no preset's
+            raise ValueError(f"preset dict is malformed: {where} must be an integer below 2**63, got {_short(value)}")
+    elif hint is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not _finite(value):
+            raise ValueError(f"preset dict is malformed: {where} must be a finite number, got {_short(value)}")
+    elif hint is str:
+        if not isinstance(value, str):
+            raise ValueError(f"preset dict is malformed: {where} must be a string, got {_short(value)}")
+    elif typing.get_origin(hint) is tuple:
+        if not isinstance(value, (list, tuple)):
+            raise ValueError(f"preset dict is malformed: {where} must be a list, got {_short(value)}")
+        args = typing.get_args(hint)
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_typed(v, args[0], f"{where}[{i}]") for i, v in enumerate(value))
+        if len(value) != len(args):
+            raise ValueError(f"preset dict is malformed: {where} must hold {len(args)} entries, got {_short(value)}")
+        return tuple(_typed(v, a, f"{where}[{i}]") for i, (v, a) in enumerate(zip(value, args)))
+    else:  # a field type this reader does not know: a programming error, named rather than let through
+        raise TypeError(f"{where}: no reader for the field type {hint!r}")
+    return value
+
+
+def _fields(config: type) -> dict[str, Any]:
+    """The fields of a config dataclass and their types (resolved: this module's annotations are strings)."""
+    hints = typing.get_type_hints(config)
+    return {f.name: hints[f.name] for f in dataclasses.fields(config)}
+
+
+def _sub_config(config: type, raw: Any, key: str, required: tuple[str, ...] = ()) -> Any:
+    """``config(**raw)`` with every entry of ``raw`` checked (``_typed``); an absent field takes its default."""
+    if not isinstance(raw, Mapping):
+        raise ValueError(f"preset dict is malformed: {key} must be a mapping of {config.__name__}'s fields, got {_short(raw)}")
+    fields = _fields(config)
+    for name in required:
+        if name not in raw:
+            raise KeyError(name)
+    kwargs = {}
+    for name, value in raw.items():
+        if name not in fields:
+            raise ValueError(f"preset dict is malformed: {key}.{name} is not a field of {config.__name__} "
+                             f"(it has {', '.join(fields)})")  # fmt: skip
+        kwargs[name] = _typed(value, fields[name], f"{key}.{name}")
+    return config(**kwargs)
+
+
+_GRID_FIELDS = {"x_range_m": tuple[float, float], "y_range_m": tuple[float, float], "z_range_m": tuple[float, float],
+                "voxel_xy_m": float, "voxel_z_m": float}  # GridSpec.to_dict's, all required  # fmt: skip
+
+
+def _grid(raw: Any) -> GridSpec:
+    """The grid of ``GridSpec.to_dict``, every field checked first (GridSpec.from_dict would read "0.4" as 0.4)."""
+    if not isinstance(raw, Mapping):
+        raise ValueError(f"preset dict is malformed: grid must be a mapping of GridSpec's fields, got {_short(raw)}")
+    for name in raw:
+        if name not in _GRID_FIELDS:
+            raise ValueError(f"preset dict is malformed: grid.{name} is not a field of GridSpec (it has {', '.join(_GRID_FIELDS)})")
+    checked = {}
+    for name, hint in _GRID_FIELDS.items():
+        if name not in raw:
+            raise KeyError(f"grid.{name}")
+        checked[name] = _typed(raw[name], hint, f"grid.{name}")
+    return GridSpec.from_dict(checked)
 
 
 def _plain(x: Any) -> Any:

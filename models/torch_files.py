@@ -3,7 +3,9 @@
 ``read_torch_file`` reads with ``weights_only=True`` (tensors, containers and numbers: never code to unpickle) after
 ``check_torch_zip`` refused a zip that would inflate past its own size, and turns every failure into one ValueError
 naming the file; ``check_state_dict`` checks that a loaded object is a state dict (str keys, tensor values) and
-``check_fits`` that it loads into a given module's state dict (keys, shapes, float dtypes, finite values).
+``check_fits`` that it loads into a given module's state dict (keys, shapes, float dtypes, finite values). Both
+refuse a tensor that is no dense weight (sparse, meta, quantized or nested: ``weights_only`` loads them all, and the
+finiteness check or the model would fail on them with a traceback).
 ``models/`` (backbone weights) and ``training/`` (checkpoints) both use it, so it lives below both.
 """
 
@@ -72,7 +74,25 @@ def check_state_dict(state: object, path: str | os.PathLike, what: str = "checkp
             raise ValueError(f"{what} {path}: {part!r} has a key {k!r} of type {type(k).__name__}, not a str")
         if not isinstance(v, torch.Tensor):
             raise ValueError(f"{what} {path}: {part}[{k!r}] is a {type(v).__name__}, not a tensor")
+        check_dense(v, k, path, what)
     return dict(state)
+
+
+def check_dense(tensor: torch.Tensor, key: str, path: str | os.PathLike, what: str = "checkpoint") -> None:
+    """ValueError (one line, naming the file and ``key``) unless ``tensor`` is a dense tensor with data: a sparse
+    (any non-strided layout), meta (shape only, no values), quantized or nested tensor loads under ``weights_only``
+    but is no weight (``torch.isfinite`` and ``load_state_dict`` fail on it with a traceback, or load it silently)."""
+    kind = None
+    if tensor.is_meta:
+        kind = "a meta tensor (a shape without values)"
+    elif getattr(tensor, "is_nested", False):
+        kind = "a nested tensor"
+    elif tensor.layout != torch.strided:
+        kind = f"a sparse tensor (layout {str(tensor.layout).removeprefix('torch.')})"
+    elif tensor.is_quantized:
+        kind = f"a quantized tensor ({tensor.dtype})"
+    if kind is not None:
+        raise ValueError(f"{what} {path}: {key} is {kind}, not a dense weight")
 
 
 def check_fits(own: Mapping[str, torch.Tensor], state: Mapping[str, torch.Tensor], path: str | os.PathLike,
@@ -81,6 +101,9 @@ def check_fits(own: Mapping[str, torch.Tensor], state: Mapping[str, torch.Tensor
     state dict is ``own``: no missing keys (unless ``partial``), no unexpected ones, the same shapes, floating
     tensors where ``own`` has them, and finite values. Shapes only are read from ``own`` (a model on the meta
     device will do)."""
+    for k, v in state.items():  # before the shapes: a sparse or meta tensor has one, and fails only on its values
+        if isinstance(v, torch.Tensor):
+            check_dense(v, k, path, what)
     missing = [] if partial else sorted(set(own) - set(state))
     unexpected = sorted(set(state) - set(own))
     mismatched = sorted(k for k in set(own) & set(state) if tuple(own[k].shape) != tuple(state[k].shape))

@@ -15,6 +15,7 @@ the studies), so they all feed the detector the same way a vehicle would.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -56,8 +57,25 @@ def use_sample_calibration(detector: StreamingDetector, sample: Sample) -> None:
             detector.set_calibration(sample.rig, relift=False)
         except CalibrationError as e:  # a rig the export cannot take (another aspect, other cameras): name the sample
             first = next(iter(sample.image_paths.values()), None)
-            where = f"sample {sample.token}" + (f" ({first.parent.parent.parent})" if first is not None else "")
+            where = f"sample {sample.token}" + (f" ({sample_folder(first)})" if first is not None else "")
             raise CalibrationError(f"{where}: {e}") from None
+
+
+# the folders of a nuScenes dataset's files (sample_data filenames: samples/CAM_FRONT/x.jpg, sweeps/LIDAR_TOP/y.bin)
+_DATASET_FILE_FOLDERS = ("samples", "sweeps")
+SAMPLE_CALIBRATION = "calibration.json"  # what makes a folder one sample in the bundled layout (data/sample.py)
+
+
+def sample_folder(image: Path) -> Path:
+    """The folder a sample was read from, for messages, from one of its image files: the sample folder of the
+    bundled layout (calibration.json beside the files it names, or above them), else the dataset root of the
+    nuScenes layout (``DATA/samples/CAM_FRONT/x.jpg``), else the image's own folder."""
+    for folder in image.parents:
+        if (folder / SAMPLE_CALIBRATION).is_file():
+            return folder  # the bundled layout: the sample folder itself (whatever its name)
+        if folder.name in _DATASET_FILE_FOLDERS:
+            return folder.parent  # the dataset layout: its root
+    return image.parent
 
 
 def sample_images(detector: StreamingDetector, sample: Sample) -> dict[str, np.ndarray]:

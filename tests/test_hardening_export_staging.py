@@ -14,24 +14,29 @@ from pathlib import Path
 import pytest
 
 from streamdet.export.options import ExportError
-from streamdet.export.staging import clean_stale_staging, make_staging_dir
+from streamdet.export.staging import STAGING_MARKER, STAGING_MARKER_TEXT, clean_stale_staging, make_staging_dir
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def _killed_writer(out_dir: Path, also_move_aside: bool) -> int:
-    """A process that stages an export as export/staging.py names it (the folder carries the pid; asserted by
-    test_a_killed_exports_partial_folder_is_cleaned_by_the_next), optionally moves the old export aside, and is
-    then killed with SIGKILL. Plain Python, so the test does not wait for onnx to import in a second process."""
+    """A process that stages an export as export/staging.py names and marks it (the folder carries the pid and a
+    marker naming it; asserted by test_a_killed_exports_partial_folder_is_cleaned_by_the_next and
+    test_staging_folders_carry_the_marker), optionally moves the old export aside, and is then killed with SIGKILL.
+    Plain Python, so the test does not wait for onnx to import in a second process."""
     code = textwrap.dedent(
         f"""
         import os, sys, tempfile, time
         from pathlib import Path
         out = Path({str(out_dir)!r})
+        def mark(folder):
+            (folder / {STAGING_MARKER!r}).write_text(f"{STAGING_MARKER_TEXT} {{os.getpid()}}\\n")
         tmp = Path(tempfile.mkdtemp(prefix=f".{{out.name}}.partial-{{os.getpid()}}-", dir=out.parent))
+        mark(tmp)
         (tmp / "slice_head.onnx").write_bytes(b"half")
         if {also_move_aside!r}:
             old = Path(tempfile.mkdtemp(prefix=f".{{out.name}}.old-{{os.getpid()}}-", dir=out.parent))
+            mark(old)
             os.replace(out, old / "export")  # the first rename of commit_staging_dir; killed before the second
         print("staged", flush=True)
         time.sleep(60)
