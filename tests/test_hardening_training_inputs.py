@@ -414,7 +414,16 @@ def test_pretrain_refuses_an_out_holding_a_run_and_never_appends(tiny_synth_data
 # ---- 6. non-finite training ---------------------------------------------------------------------------------------
 
 
-def test_nan_loss_stops_training_without_weights(store, tmp_path):
+@pytest.fixture
+def huge_lr_allowed(monkeypatch):
+    """Lets the configs take lr 1e30, past MAX_LR (--lr's bound): the quickest way to a loss that turns NaN, to test
+    the divergence stop (a lr within the bound needs many steps to get there)."""
+    from streamdet.training import train_config
+
+    monkeypatch.setattr(train_config, "MAX_LR", 1e31)
+
+
+def test_nan_loss_stops_training_without_weights(store, tmp_path, huge_lr_allowed):
     out = tmp_path / "huge_lr"
     with pytest.raises(ValueError, match="training diverged: the loss is nan at step 2 \\(lr ") as e:
         train(_config(lr=1e30), "unused", out, store=store, echo=lambda m: None)
@@ -437,12 +446,13 @@ def test_nan_weights_are_never_checkpointed():
 
 
 def test_train_cli_nan_loss_is_one_line(tiny_train_data, tmp_path):
+    # --lr is bounded (MAX_LR) below what diverges in two steps: a huge loss weight makes the loss inf at once instead
     res = CliRunner().invoke(train_main, ["--data", str(tiny_train_data), "--out", str(tmp_path / "o"), "--preset", "tiny",
-                                          "--steps", "2", "--lr", "1e30", "--cache-dir", str(tmp_path / "c")])  # fmt: skip
-    assert "training diverged: the loss is nan at step 2" in _one_line(res) and "done after" not in res.output  # the end line
+                                          "--steps", "2", "--image-class-weight", "1e300", "--cache-dir", str(tmp_path / "c")])  # fmt: skip
+    assert "training diverged: the loss is inf at step 1" in _one_line(res) and "done after" not in res.output  # the end line
 
 
-def test_pretrain_nan_loss_stops(tiny_synth_data, tmp_path):
+def test_pretrain_nan_loss_stops(tiny_synth_data, tmp_path, huge_lr_allowed):
     with pytest.raises(ValueError, match="training diverged: the loss is nan at step 2"):
         pretrain(_pretrain_config(steps=2, lr=1e30, warmup_steps=1), tiny_synth_data, tmp_path / "o", splits=(None, None),
                  echo=lambda s: None, max_samples=1)  # fmt: skip
@@ -464,13 +474,15 @@ def test_pretrain_lr_is_finite_positive(value):
     assert PretrainConfig(preset="tiny", lr=1e-3).lr == 1e-3
 
 
-@pytest.mark.parametrize("args, message", [(["--lr", "inf"], "PretrainConfig.lr"), (["--lr", "nan"], "is not a number")])
+@pytest.mark.parametrize("args, message", [(["--lr", "inf"], "'--lr': inf is not in the range 0<x<=10"),
+                                           (["--lr", "nan"], "is not a number")])  # fmt: skip
 def test_pretrain_cli_numeric(tiny_synth_data, tmp_path, args, message):
     res = CliRunner().invoke(pretrain_main, ["--data", str(tiny_synth_data), "--out", str(tmp_path / "o"), "--preset", "tiny", *args])
     assert message in _one_line(res)
 
 
-@pytest.mark.parametrize("args, message", [(["--lr", "inf"], "TrainConfig.lr"), (["--image-class-weight", "inf"], "image_class_weight")])
+@pytest.mark.parametrize("args, message", [(["--lr", "inf"], "'--lr': inf is not in the range 0<x<=10"),
+                                           (["--image-class-weight", "inf"], "image_class_weight")])  # fmt: skip
 def test_train_cli_numeric(tiny_train_data, tmp_path, args, message):
     res = CliRunner().invoke(train_main, ["--data", str(tiny_train_data), "--out", str(tmp_path / "o"), "--preset", "tiny",
                                           "--steps", "1", *args])  # fmt: skip
@@ -492,7 +504,9 @@ def test_pretrain_resume_of_a_detector_checkpoint(tiny_synth_data, tiny_train_da
 
 def test_pretrain_resume_of_its_own_checkpoint_and_edited_ones(tiny_synth_data, tmp_path):
     out = tmp_path / "ti"
-    pretrain(_pretrain_config(), tiny_synth_data, out, splits=(None, None), echo=lambda s: None, max_samples=1)
+    # cut at step 1 of 2: the resume continues the same --steps (another is refused, as is resuming a finished run)
+    pretrain(_pretrain_config(steps=2, stop_at_step=1), tiny_synth_data, out, splits=(None, None), echo=lambda s: None,
+             max_samples=1)  # fmt: skip
     state = torch.load(out / "last.pt", weights_only=True)
     first = next(iter(state["model"]))
     for name, edit, match in [

@@ -97,9 +97,11 @@ def test_missing_mask_is_named(tiny_synth_data, tmp_path):
 
 
 def test_pretrain_resumes_and_its_weights_load_into_the_detector(tiny_synth_data, tmp_path):
-    cfg = PretrainConfig(preset="tiny", steps=2, batch_size=2, eval_every=1, checkpoint_every=1, warmup_steps=1)
+    # a 4-step schedule cut at step 2, then resumed to its end (with other evaluation and checkpoint intervals,
+    # which a resume may change; another --steps it may not: training/image_pretrain.py PRETRAIN_RESUME_OPTIONS)
+    cfg = PretrainConfig(preset="tiny", steps=4, batch_size=2, eval_every=1, checkpoint_every=1, warmup_steps=1, stop_at_step=2)
     first = pretrain(cfg, tiny_synth_data, tmp_path, splits=(None, None), echo=lambda s: None)
-    assert first["step"] == 2 and 0.0 <= first["mIoU"] <= 1.0
+    assert first["step"] == 2 and 0.0 <= first["mIoU"] <= 1.0 and not first["finished"]
     cfg4 = PretrainConfig(preset="tiny", steps=4, batch_size=2, eval_every=10, checkpoint_every=10, warmup_steps=1)
     again = pretrain(cfg4, tiny_synth_data, tmp_path, resume=tmp_path / "last.pt", splits=(None, None), echo=lambda s: None)
     assert again["step"] == 4 and again["finished"]

@@ -49,6 +49,9 @@ class Batch:
     box: Tensor  # (Qm, K_obj, 10) float32
     num_samples: int
     num_slices: int
+    # store indices of the samples left out of this batch for holding no pillar in any of their slices (a sweep that
+    # is empty, all NaN or outside the grid); the trainer counts and names them
+    skipped: tuple[int, ...] = ()
 
     @property
     def num_maps(self) -> int:
@@ -111,6 +114,14 @@ class Collator:
         if not items:
             raise ValueError("collate needs at least one sample")
         p = self.preset
+        # A sample whose slices hold no pillar at all has nothing for the model to read while its boxes would still
+        # be targets, and a batch of only such samples made the pillar net fail on zero pillars mid-epoch (hours into
+        # a run): such samples are left out and named in ``skipped``, a batch of none comes back empty (num_samples
+        # 0) and the trainer skips it. A sample with pillars in some slice trains as before.
+        skipped = tuple(it.sample_index for it in items if not any(len(sl.pillars.index) for sl in it.slices))
+        items = [it for it in items if it.sample_index not in skipped]
+        if not items:
+            return self.empty_batch(skipped)
         rows, cols = p.map_cells  # a quadrant, or the whole grid without the crop (calibration/slice_maps.py)
         cells = rows * cols
         feats, masks, indices = [], [], []
@@ -175,7 +186,17 @@ class Collator:
             box=torch.from_numpy(np.stack(obj_box)),
             num_samples=len(items),
             num_slices=sum(len(it.slices) for it in items),
+            skipped=skipped,
         )
+
+    def empty_batch(self, skipped: tuple[int, ...]) -> Batch:
+        """A batch that holds no sample (every one was ``skipped``): zero-length tensors, never stepped on."""
+        m = self.preset.pillars.max_points_per_pillar
+        none = torch.zeros(0, dtype=torch.int64)
+        return Batch(images=None, lut_index=None, lut_weight=None, map_source=None, map_sample=None,
+                     pillar_features=torch.zeros(0, m, 11), pillar_mask=torch.zeros(0, m), pillar_index=none,
+                     heatmap=torch.zeros(0), index=none, mask=torch.zeros(0, dtype=torch.bool), label=none,
+                     box=torch.zeros(0), num_samples=0, num_slices=0, skipped=skipped)  # fmt: skip
 
     def _lift_entries(self, items: list[SampleItem], entries, num_cams: int) -> tuple[np.ndarray, np.ndarray]:
         rows_per_image = self.preset.image.feature_height * self.preset.image.feature_width

@@ -9,14 +9,16 @@ from pathlib import Path
 
 import click
 
-from streamdet.cli_utils import FiniteFloatRange, not_a_file, refuse_output_over_inputs, version_option
+from streamdet.cli_utils import (
+    FiniteFloatRange, check_folder_creatable, dataset_inputs, not_a_file, refuse_output_over_inputs, version_option)
 from streamdet.core.errors import first_line
 from streamdet.core.sectors import MAX_NUM_SLICES
 from streamdet.models.presets import preset_names
 from streamdet.training.dataset import CAMERA_MODES, DataConfig
 from streamdet.training.distributed import shutdown_distributed
-from streamdet.training.run_dir import RUN_FILES
-from streamdet.training.train_config import AMP_MODES, MAX_MINUTES, MAX_STEPS, TrainConfig, check_device
+from streamdet.training.image_pretrain import PRETRAIN_RUN_FILES
+from streamdet.training.run_dir import CONFIG_FILE, NOT_A_RUN, RUN_FILES
+from streamdet.training.train_config import AMP_MODES, MAX_LR, MAX_MINUTES, MAX_SEED, MAX_STEPS, TrainConfig, check_device
 from streamdet.training.trainer import train
 
 MAX_WORKERS = 256  # DataLoader processes: a machine's cores at most, never thousands of forks
@@ -68,6 +70,26 @@ def _check_cache_dir(cache_dir: Path | None, data_dir: Path, version: str) -> No
                                  f"{data_dir / '.streamdet_cache'})", param_hint="--cache-dir")  # fmt: skip
 
 
+# Files that tell a folder is no cache folder but an export, a saved evaluation, a dataset, or a training run of
+# either tool (their config.json and run files): a cache written there puts train-* folders among their files, and
+# an export holding one is refused by the next streamdet-export into it.
+NOT_A_CACHE = (*NOT_A_RUN, *((name, "a training run") for name in dict.fromkeys((*RUN_FILES, *PRETRAIN_RUN_FILES, CONFIG_FILE))))
+
+
+def _check_cache_folder(cache_dir: Path, option: str) -> None:
+    """Before the split is read (minutes for a large one): the cache folder (--cache-dir, or the default
+    DATA/.streamdet_cache) must be a folder that can be made (not a file, a broken link or a link loop: those failed
+    only when the cache was written, as "Not a directory" or "File exists") and, where it exists, no export, saved
+    evaluation, dataset or training run (``NOT_A_CACHE``)."""
+    check_folder_creatable(cache_dir, option)
+    if not cache_dir.is_dir():
+        return
+    for name, what in NOT_A_CACHE:
+        if (cache_dir / name).exists() or (cache_dir / name).is_symlink():
+            raise click.BadParameter(f"{str(cache_dir)!r} is {what} ({name}): the training cache must not be written "
+                                     "into it; give a folder of its own", param_hint=option)  # fmt: skip
+
+
 def _same_path(a: Path, b: Path) -> bool:
     """Whether two paths name one file or folder (through a symlink, a hard link or another spelling)."""
     try:
@@ -77,12 +99,21 @@ def _same_path(a: Path, b: Path) -> bool:
 
 
 def _check_combinations(teacher: Path | None, distill_weight: float, num_slices: tuple[int, ...],
-                        max_slices_per_sample: int | None) -> None:  # fmt: skip
+                        max_slices_per_sample: int | None, no_image: bool = False) -> None:  # fmt: skip
     """Options that would be silently ignored in this combination are refused: the user meant something else."""
-    source = click.get_current_context().get_parameter_source("distill_weight")
+    ctx = click.get_current_context()
+    source = ctx.get_parameter_source("distill_weight")
     if teacher is None and source is not click.core.ParameterSource.DEFAULT:  # given, even at its default value
         raise click.BadParameter(f"{distill_weight:g} weighs the distillation loss, which needs --teacher WEIGHTS",
                                  param_hint="--distill-weight")  # fmt: skip
+    # the image lane's options with --no-image, at a value that would change a fused run (config.json recorded an
+    # ignored --image-warmup 0.5 as if it held), as TrainConfig refuses --camera-dropout and --image-class-weight.
+    # Their defaults given explicitly stay accepted: they change nothing, and the docs/training scripts pass one
+    # COMMON option string (--image-warmup 0 ...) to the fused and the LiDAR-only runs of a comparison.
+    for name, option, default in (("image_warmup", "--image-warmup", 0.0), ("camera_mode", "--camera-mode", "all")):
+        if no_image and ctx.params[name] != default:
+            raise click.BadParameter(f"{ctx.params[name]!r} sets the image lane, which --no-image leaves out: drop one of "
+                                     "them", param_hint=option)  # fmt: skip
     if max_slices_per_sample is not None and max_slices_per_sample > max(num_slices):
         raise click.BadParameter(f"{max_slices_per_sample} is more than the {max(num_slices)} slices of the largest "
                                  f"--num-slices {','.join(map(str, num_slices))}: it would change nothing",
@@ -119,7 +150,8 @@ def _parse_slices(ctx, param, value: str) -> tuple[int, ...]:
               help="Passes over the training samples (when --steps is not given). Without both: --max-minutes, else 10.")
 @click.option("--batch-size", type=click.IntRange(min=1), default=1, show_default=True,
               help="Samples per process per step; each sample brings all its slices (8 quadrant maps at 8 slices).")
-@click.option("--lr", type=FiniteFloatRange(min=0, min_open=True), default=2e-3, show_default=True, help="Peak learning rate of the one-cycle schedule (AdamW).")
+@click.option("--lr", type=FiniteFloatRange(min=0, min_open=True, max=MAX_LR), default=2e-3, show_default=True,
+              help=f"Peak learning rate of the one-cycle schedule (AdamW), at most {MAX_LR:g}.")
 @click.option("--num-slices", default="8", show_default=True, callback=_parse_slices,
               help="Slice count per sweep, or several separated by commas (each sample draws one entry uniformly, so a "
                    "count given twice is drawn twice as often), e.g. 8,32 or 8,8,32.")
@@ -140,7 +172,10 @@ def _parse_slices(ctx, param, value: str) -> tuple[int, ...]:
 @click.option("--camera-dropout", type=FiniteFloatRange(0, 1, max_open=True), default=0.0, show_default=True,
               help="Probability that a training step drops cameras: each sample loses k of its J cameras, k uniform in 1..J, "
                    "lifted from zero features as the runtime lifts a camera without a frame (training/camera_dropout.py). 0: off.")
-@click.option("--resume", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Continue from a last.pt written by this command.")
+@click.option("--resume", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Continue from a last.pt written by this command, in its own folder (--out) or a new or empty one, "
+                   "on the same data with the options it was started with; only --max-minutes (with --steps/--epochs), "
+                   "--log-every, --checkpoint-every, --workers, --amp, --device and --camera-dropout may change.")
 @click.option("--overwrite", is_flag=True, help="Train into an --out that already holds a run (model.pt, last.pt, metrics.jsonl), replacing it.")
 @click.option("--init", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Start from the weights of this checkpoint with a fresh optimizer and schedule: all of them for the same preset "
@@ -157,7 +192,8 @@ def _parse_slices(ctx, param, value: str) -> tuple[int, ...]:
 @click.option("--balanced", is_flag=True, help="Class-balanced (CBGS) resampling of the training samples.")
 @click.option("--workers", type=click.IntRange(min=0, max=MAX_WORKERS), default=0, show_default=True,
               help=f"DataLoader worker processes, 0..{MAX_WORKERS} (each a forked process).")
-@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Seed of the weights and of the data order.")
+@click.option("--seed", type=click.IntRange(min=0, max=MAX_SEED), default=0, show_default=True,
+              help=f"Seed of the weights and of the data order, 0..{MAX_SEED}.")
 @click.option("--max-minutes", type=FiniteFloatRange(min=0, min_open=True, max=MAX_MINUTES), default=None,
               help="With --steps/--epochs: stop with a checkpoint after this much wall time of this invocation (--resume gets it again). Alone: the one-cycle "
                    "schedule runs over this much wall time (for a fixed budget on a shared machine; not step-reproducible). At most 7 days.")
@@ -188,12 +224,15 @@ def main(data_dir: Path, version: str, out_dir: Path, preset: str, steps: int | 
         raise click.ClickException("--freeze-camera-lane keeps the camera lane --init gives: add --init WEIGHTS")
     if init is not None and resume is not None:
         raise click.ClickException("--init and --resume exclude each other: --resume continues a run, --init starts one from weights")
-    _check_combinations(teacher, distill_weight, num_slices, max_slices_per_sample)
+    _check_combinations(teacher, distill_weight, num_slices, max_slices_per_sample, no_image)
     if cache_dir is not None:
         _check_cache_dir(cache_dir, data_dir, version)
+        _check_cache_folder(cache_dir, "--cache-dir")
     else:
         cache_dir = data_dir / ".streamdet_cache"
-    refuse_out_over_inputs(out_dir, [("--data", data_dir), ("--init", init), ("--resume", resume), ("--teacher", teacher),
+        _check_cache_folder(cache_dir, "--cache-dir (the default, DATA/.streamdet_cache)")
+    # the dataset's symlinked entries too (its table folder above all): a run beside a link's target is in the dataset
+    refuse_out_over_inputs(out_dir, [*dataset_inputs(data_dir), ("--init", init), ("--resume", resume), ("--teacher", teacher),
                                      ("--cache-dir", cache_dir)])  # fmt: skip
     refuse_overwrite_of_inputs(out_dir, overwrite, RUN_FILES, [("--init", init), ("--teacher", teacher)])
     if steps is None and epochs is None and max_minutes is None:

@@ -18,6 +18,7 @@ right nor wrong); mIoU averages the classes present in those labels.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import math
 import time
@@ -44,12 +45,13 @@ from streamdet.models.presets import Preset, get_preset
 from streamdet.models.seg_head import ImageSegmenter
 from streamdet.core.errors import first_line
 from streamdet.core.file_output import write_text_atomic
+from streamdet.core.json_input import short_repr
 from streamdet.progress import counted
 from streamdet.training.checkpoint import (  # noqa: F401 (load_encoder_weights re-exported)
     TRAIN_FORMAT, WEIGHTS_FORMAT, check_fits, check_state_dict, load_encoder_weights, read_torch_file, save_atomic, save_weights)
-from streamdet.training.run_dir import check_out_dir, discard_unstarted_run, missing_folders
-from streamdet.training.train_config import check_device, check_max_minutes
-from streamdet.training.trainer import check_weights_finite, init_head_outputs
+from streamdet.training.run_dir import check_out_dir, discard_unstarted_run, missing_folders, open_run_log
+from streamdet.training.train_config import check_device, check_lr, check_max_minutes, check_seed, show_option_value, values_differ
+from streamdet.training.trainer import check_optimizer_state, check_weights_finite, init_head_outputs
 
 NUM_LABELS = NUM_CLASSES + 1  # 0 = background
 IGNORE = 255
@@ -91,6 +93,8 @@ class PretrainConfig:
         # lr finite: AdamW with lr inf turns every weight NaN at the first step (range_m inf is "every object")
         if isinstance(self.lr, bool) or not isinstance(self.lr, (int, float)) or not (math.isfinite(self.lr) and self.lr > 0):
             raise ValueError(f"PretrainConfig.lr must be a finite number > 0, got {self.lr!r}")
+        check_lr(self.lr, "PretrainConfig.lr")  # and at most MAX_LR, streamdet-train's bound
+        check_seed(self.seed, "PretrainConfig.seed")
         if not self.range_m > 0:
             raise ValueError(f"PretrainConfig.range_m must be > 0, got {self.range_m!r}")
         check_max_minutes(self.max_minutes, "PretrainConfig.max_minutes")
@@ -111,6 +115,7 @@ class MaskedImages:
     images: np.ndarray
     labels: np.ndarray
     eval_labels: np.ndarray
+    tokens: tuple[str, ...] = ()  # the samples the images are of, in order (a resume checks it trains on the same)
 
     def __len__(self) -> int:
         return len(self.images)
@@ -153,7 +158,7 @@ def load_masked_images(root: str | Path, split: str | None, size: tuple[int, int
             eval_labels.append(np.where(far, IGNORE, label).astype(np.uint8))
         if progress is not None:
             progress(i + 1, len(tokens))
-    return MaskedImages(np.stack(images), np.stack(labels), np.stack(eval_labels))
+    return MaskedImages(np.stack(images), np.stack(labels), np.stack(eval_labels), tuple(tokens))
 
 
 def class_weights(labels: np.ndarray, config: PretrainConfig) -> torch.Tensor:
@@ -227,9 +232,28 @@ def write_detector_init(path: Path, preset: Preset, segmenter: ImageSegmenter, s
     save_weights(path, preset, detector, meta={"image_pretrain": str(path.parent)})
 
 
-def _check_resume(state: object, resume: str | Path, config: PretrainConfig, model: ImageSegmenter) -> None:
-    """ValueError naming ``resume`` unless it is a streamdet-train-image last.pt of ``config.preset`` that fits
-    ``model``; a streamdet-train checkpoint (same keys model / optimizer / step, same preset names) is named as one."""
+# What a resumed streamdet-train-image run must keep of its PretrainConfig, by the option that sets it: the cosine
+# schedule (steps, lr, warm-up), the batches drawn from (seed, step) and their size, the loss's class weights, and
+# what the val mIoU in metrics.jsonl means (--range). --eval-every, --checkpoint-every, --max-minutes and
+# --stop-at-step may change: they say when to evaluate, save and stop, not what is trained (a --stop-at-step at or
+# before the resumed step is refused in _check_resume: it would stop at once). Every other field is compared, named
+# PretrainConfig.<field>.
+PRETRAIN_RESUME_OPTIONS = {"preset": "--preset", "steps": "--steps", "batch_size": "--batch-size", "lr": "--lr",
+                           "range_m": "--range", "seed": "--seed"}  # fmt: skip
+PRETRAIN_RESUME_MAY_CHANGE = ("eval_every", "checkpoint_every", "max_minutes", "stop_at_step")
+
+
+def data_record(data: MaskedImages) -> dict:
+    """What a last.pt records of its train images: their count and a digest of their samples' tokens in order. The
+    batches are drawn by index from (seed, step) and the class weights from the labels, so a resume on other images
+    (another --data or --max-samples) would continue a run it never was."""
+    return {"images": len(data), "tokens_sha256": hashlib.sha256("\n".join(data.tokens).encode()).hexdigest()}
+
+
+def _check_resume(state: object, resume: str | Path, config: PretrainConfig) -> None:
+    """ValueError naming ``resume`` unless it is a streamdet-train-image last.pt of ``config.preset``, run with the
+    same settings (``PRETRAIN_RESUME_OPTIONS``) and not yet at ``config.steps``; a streamdet-train checkpoint (same
+    keys model / optimizer / step, same preset names) is named as one. Before the images are read."""
     if isinstance(state, dict) and (state.get("format") in (TRAIN_FORMAT, WEIGHTS_FORMAT) or "preset" in state or "scheduler" in state):
         raise ValueError(f"--resume {resume} is a streamdet-train checkpoint (format {state.get('format')!r}: a detector's "
                          f"training state or weights), not a streamdet-train-image last.pt; streamdet-train --resume or "
@@ -244,8 +268,35 @@ def _check_resume(state: object, resume: str | Path, config: PretrainConfig, mod
         raise ValueError(f"--resume {resume}: 'step' must be an integer >= 0, got {step!r}")
     if not isinstance(state["optimizer"], dict):
         raise ValueError(f"--resume {resume}: 'optimizer' is a {type(state['optimizer']).__name__}, not a state dict")
+    was, now = state["config"], dataclasses.asdict(config)
+    changes = [(PRETRAIN_RESUME_OPTIONS.get(k, f"PretrainConfig.{k}"), was.get(k), v) for k, v in now.items()
+               if k not in PRETRAIN_RESUME_MAY_CHANGE and (k not in was or values_differ(was[k], v))]  # fmt: skip
+    if changes:
+        # another --steps once marked a run cut at step 6 of 500 "finished" under --steps 3, or bent its cosine
+        had = ", ".join(f"{option} {show_option_value(old)}" for option, old, _ in changes)
+        given = ", ".join(f"{option} {show_option_value(new)}" for option, _, new in changes)
+        raise ValueError(f"--resume {resume} was pretrained with {had}; given {given}: a resumed run continues with its "
+                         "own schedule and batches; give the same again, or start a new run")  # fmt: skip
+    if step >= config.steps:
+        raise ValueError(f"--resume {resume} is at step {step}, {'the end' if step == config.steps else 'past the end'} of "
+                         f"its {config.steps}-step schedule: nothing left to train")  # fmt: skip
+    if config.stop_at_step is not None and config.stop_at_step <= step:
+        raise ValueError(f"--stop-at-step {config.stop_at_step}: --resume {resume} is already at step {step}; give a "
+                         f"later step (up to {config.steps})")  # fmt: skip
+
+
+def _check_resume_fits(state: dict, resume: str | Path, config: PretrainConfig, model: ImageSegmenter,
+                       train_data: MaskedImages) -> None:  # fmt: skip
+    """ValueError naming ``resume`` unless its weights fit ``model`` and it was trained on ``train_data``'s samples
+    (a last.pt from before the record: not checked)."""
     weights = check_state_dict(state["model"], resume, "--resume checkpoint")
     check_fits(model.state_dict(), weights, resume, "--resume checkpoint", f"the image segmenter of preset {config.preset!r}")
+    data, here = state.get("data"), data_record(train_data)
+    if data is not None and data != here:
+        count = data.get("images") if isinstance(data, dict) else None
+        raise ValueError(f"--resume {resume} was pretrained on other train images ({short_repr(count)} of them) than "
+                         f"--data gives now ({here['images']}): a resumed run continues over its own images; give its "
+                         "--data and --max-samples, or start a new run")  # fmt: skip
 
 
 def pretrain(config: PretrainConfig, data_dir: str | Path, out_dir: str | Path, version: str = DEFAULT_TABLE_VERSION,
@@ -265,7 +316,7 @@ def pretrain(config: PretrainConfig, data_dir: str | Path, out_dir: str | Path, 
     try:
         return _pretrain_into(config, data_dir, Path(out_dir), version, resume, device, echo, max_samples, splits, replaced)
     except BaseException:
-        if resume is None:
+        if resume is None or made:  # a failed resume removes only a folder it made itself (its files are all its own)
             discard_unstarted_run(out_dir, PRETRAIN_RUN_FILES, made)
         raise
 
@@ -277,6 +328,10 @@ def _pretrain_into(config: PretrainConfig, data_dir: str | Path, out: Path, vers
     t0 = time.monotonic()
     out.mkdir(parents=True, exist_ok=True)
     preset = get_preset(config.preset)
+    state = None
+    if resume is not None:  # before the images are read: a resume its own config refuses costs no minutes
+        state = read_torch_file(resume, "--resume checkpoint", map_location=device)
+        _check_resume(state, resume, config)
     size = (preset.image.width_px, preset.image.height_px)
     echo(f"loading {data_dir} train / val images at {size[0]}x{size[1]} with their masks")
     with counted("  train images", echo) as progress:
@@ -289,27 +344,28 @@ def _pretrain_into(config: PretrainConfig, data_dir: str | Path, out: Path, vers
     optimizer = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
     weights = class_weights(train_data.labels, config).to(device)
     step = 0
-    if resume is not None:
-        state = read_torch_file(resume, "--resume checkpoint", map_location=device)
-        _check_resume(state, resume, config, model)
+    if state is not None:
+        _check_resume_fits(state, resume, config, model, train_data)
         model.load_state_dict(state["model"])
         try:
             optimizer.load_state_dict(state["optimizer"])
         except (ValueError, KeyError, TypeError, AttributeError, IndexError, RuntimeError) as e:
             raise ValueError(f"--resume {resume}: its optimizer state does not fit this run's optimizer: {first_line(e)}") from None
+        check_optimizer_state(optimizer, resume)  # moments of other shapes failed at the first step, with a traceback
         step = state["step"]
         echo(f"resumed {resume} at step {step}")
     for path in replaced:  # overwrite: none of the old run's files may outlive it beside the new run's
         path.unlink(missing_ok=True)
     write_text_atomic(out / "config.json", json.dumps({"pretrain": dataclasses.asdict(config), "data": str(data_dir),
                                                        "preset": preset.to_dict()}, indent=1) + "\n")  # fmt: skip
-    metrics = open(out / "metrics.jsonl", "a" if resume is not None else "w")  # a resumed run continues its log
+    # a resumed run continues its log; never through a symlink nor into a FIFO (check_out_dir refused them before)
+    metrics = open_run_log(out / "metrics.jsonl", append=resume is not None)
     last_eval: dict = {}
 
     def checkpoint() -> None:
         check_weights_finite(model, step)
         save_atomic({"model": model.state_dict(), "optimizer": optimizer.state_dict(), "step": step,
-                      "config": dataclasses.asdict(config)}, out / "last.pt")  # fmt: skip
+                      "config": dataclasses.asdict(config), "data": data_record(train_data)}, out / "last.pt")  # fmt: skip
         save_atomic(model.encoder.state_dict(), out / "encoder.pt")
         write_detector_init(out / "detector_init.pt", preset, model, config.seed)
 

@@ -9,12 +9,12 @@ from pathlib import Path
 
 import click
 
-from streamdet.cli_utils import FiniteFloatRange, not_a_file, version_option
+from streamdet.cli_utils import FiniteFloatRange, dataset_inputs, not_a_file, version_option
 from streamdet.core.errors import first_line
 from streamdet.models.presets import preset_names
 from streamdet.training.cli import DEVICE_HELP, device_callback, refuse_out_over_inputs
 from streamdet.training.image_pretrain import PretrainConfig, pretrain
-from streamdet.training.train_config import MAX_MINUTES, MAX_STEPS
+from streamdet.training.train_config import MAX_LR, MAX_MINUTES, MAX_SEED, MAX_STEPS
 
 
 def _check_stop_at_step(stop_at_step: int | None, steps: int) -> None:
@@ -36,19 +36,24 @@ def _check_stop_at_step(stop_at_step: int | None, steps: int) -> None:
 @click.option("--steps", type=click.IntRange(min=1, max=MAX_STEPS), default=2000, show_default=True,
               help=f"Optimizer steps of the schedule, 1..{MAX_STEPS}.")
 @click.option("--batch-size", type=click.IntRange(min=1), default=8, show_default=True, help="Images per step.")
-@click.option("--lr", type=FiniteFloatRange(min=0, min_open=True), default=2e-3, show_default=True, help="Peak AdamW learning rate.")
+@click.option("--lr", type=FiniteFloatRange(min=0, min_open=True, max=MAX_LR), default=2e-3, show_default=True,
+              help=f"Peak AdamW learning rate, at most {MAX_LR:g}.")
 @click.option("--range", "range_m", type=FiniteFloatRange(min=0, min_open=True), default=30.0, show_default=True,
               help="Evaluation: objects within this distance (m) count toward the mIoU.")
 @click.option("--eval-every", type=click.IntRange(min=1), default=250, show_default=True, help="Steps between val mIoU evaluations.")
 @click.option("--checkpoint-every", type=click.IntRange(min=1), default=100, show_default=True, help="Steps between checkpoints.")
-@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Seed of the weights and the batches.")
+@click.option("--seed", type=click.IntRange(min=0, max=MAX_SEED), default=0, show_default=True,
+              help=f"Seed of the weights and the batches, 0..{MAX_SEED}.")
 @click.option("--max-minutes", type=FiniteFloatRange(min=0, min_open=True, max=MAX_MINUTES), default=None,
               help="Stop with a checkpoint after this much wall time (at most 7 days); --resume continues the same schedule.")
 @click.option("--stop-at-step", type=click.IntRange(min=1, max=MAX_STEPS), default=None,
               help="Stop with a checkpoint once this many steps of the --steps schedule are done (a session cut that, "
                    "unlike --max-minutes, is the same on every machine; at most --steps); --resume continues the same "
                    "schedule.")
-@click.option("--resume", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Continue from a last.pt written by this command.")
+@click.option("--resume", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Continue from a last.pt written by this command, in its own folder (--out) or a new or empty one, "
+                   "on the same images with the options it was started with; only --max-minutes, --stop-at-step, "
+                   "--eval-every, --checkpoint-every and --device may change.")
 @click.option("--overwrite", is_flag=True,
               help="Pretrain into an --out that already holds a run (last.pt, encoder.pt, metrics.jsonl, ...), replacing it.")
 @click.option("--max-samples", type=click.IntRange(min=1), default=None, help="Use only the first N samples of each split (tests).")
@@ -62,7 +67,8 @@ def main(data_dir: Path, version: str, out_dir: Path, preset: str, steps: int, b
     if resume is not None and not resume.is_file():
         raise click.ClickException(f"--resume {resume} {not_a_file(resume)}")
     _check_stop_at_step(stop_at_step, steps)
-    refuse_out_over_inputs(out_dir, [("--data", data_dir), ("--resume", resume)])
+    # the dataset's symlinked entries too (its table folder above all): a run beside a link's target is in the dataset
+    refuse_out_over_inputs(out_dir, [*dataset_inputs(data_dir), ("--resume", resume)])
     try:
         config = PretrainConfig(preset=preset, steps=steps, batch_size=batch_size, lr=lr, range_m=range_m,
                                 eval_every=eval_every, checkpoint_every=checkpoint_every, seed=seed, max_minutes=max_minutes,

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import stat
 from pathlib import Path
 
 from streamdet.core.constants import MANIFEST_NAME
@@ -32,7 +33,10 @@ def check_out_dir(out_dir: str | Path, run_files: tuple[str, ...], resume: str |
     empty, or a run of this tool (``config_key``: the key of its config.json, see ``check_out_contents``)."""
     if resume is not None and overwrite:
         raise ValueError("--resume continues the run in its folder and --overwrite replaces one: give only one of them")
+    check_run_files_regular(out_dir, run_files)
     check_out_contents(out_dir, run_files, config_key)
+    if resume is not None:
+        check_resume_folder(out_dir, run_files, resume)
     found = [Path(out_dir) / name for name in run_files if (Path(out_dir) / name).is_file()]
     if found and resume is None and not overwrite:
         last = Path(out_dir) / "last.pt"
@@ -47,6 +51,70 @@ def check_out_dir(out_dir: str | Path, run_files: tuple[str, ...], resume: str |
     except OSError as e:
         raise ValueError(f"--out {out_dir} cannot be written: {e.strerror or e}") from None
     return found if resume is None else []
+
+
+def check_run_files_regular(out_dir: str | Path, run_files: tuple[str, ...]) -> None:
+    """ValueError naming the file when one of the run's files in ``out_dir`` (``run_files`` and config.json) is a
+    symlink or no regular file. The run appends to or truncates metrics.jsonl in place: a FIFO there blocked the
+    run for ever (--overwrite removes only regular files, so it stayed), and a link had the records written into
+    whatever it points to. Refused before any work, --resume and --overwrite alike: the user removes it."""
+    out = Path(out_dir)
+    if not out.is_dir():
+        return  # made later; a file in the way is refused by the write probe
+    for name in (*run_files, CONFIG_FILE):
+        path = out / name
+        if path.is_symlink():
+            raise ValueError(f"--out {out_dir}: {name} is a symlink (to {os.readlink(path)!r}): a run writes its own "
+                             f"files, never through a link; remove {path}")  # fmt: skip
+        if path.exists() and not path.is_file():
+            raise ValueError(f"--out {out_dir}: {name} is not a regular file (a FIFO, a device or a folder): writing "
+                             f"it would block or go elsewhere; remove {path}")  # fmt: skip
+
+
+def check_resume_folder(out_dir: str | Path, run_files: tuple[str, ...], resume: str | Path) -> None:
+    """ValueError naming both folders when ``out_dir`` holds a run (a run file or config.json) and ``resume`` does not
+    lie in it: the continuation would replace that other run's weights and config and append to its log, a finished
+    run lost without --overwrite. A resume continues in its checkpoint's own folder, or in a new or empty one (a copy
+    of the run that leaves the checkpoint's folder as it was)."""
+    out = Path(out_dir)
+    if not out.is_dir():
+        return
+    held = [name for name in (*run_files, CONFIG_FILE) if os.path.lexists(out / name)]
+    own = Path(resume).parent
+    if not held or _same_folder(own, out):
+        return
+    raise ValueError(f"--resume {resume} continues the run in {own}, but --out {out_dir} holds another run "
+                     f"({', '.join(held)}): resuming there would replace it; give --out {own} to continue the run in "
+                     "its own folder, or a new or empty --out")  # fmt: skip
+
+
+def _same_folder(a: Path, b: Path) -> bool:
+    """Whether two paths name one folder (another spelling, a symlink, a bind mount)."""
+    try:
+        return a.resolve() == b.resolve() or os.path.samefile(a, b)
+    except (OSError, RuntimeError):  # missing, or a link loop: no folder to be the same
+        return False
+
+
+def open_run_log(path: str | Path, append: bool):
+    """``path`` (a run's metrics.jsonl) opened for text writing, appended to (a resume) or truncated (a new run);
+    ValueError when it is a symlink or no regular file. check_run_files_regular refuses those before any work; this
+    holds when one appears while the data is read: O_NOFOLLOW never writes through a link, O_NONBLOCK makes a FIFO
+    fail (ENXIO, no reader) instead of blocking, and the descriptor is checked to be a regular file."""
+    flags = os.O_WRONLY | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK | (os.O_APPEND if append else os.O_TRUNC)
+    try:
+        fd = os.open(path, flags, 0o666)
+    except OSError as e:
+        raise ValueError(f"{path} cannot be written as the run's log (a symlink, a FIFO or a device?): "
+                         f"{e.strerror or e}") from None  # fmt: skip
+    try:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            raise ValueError(f"{path} is not a regular file (a FIFO, a device or a socket): the run's log must be one; remove it")
+        os.set_blocking(fd, True)
+        return os.fdopen(fd, "a" if append else "w")
+    except BaseException:
+        os.close(fd)
+        raise
 
 
 def check_out_contents(out_dir: str | Path, run_files: tuple[str, ...], config_key: str) -> None:
@@ -114,7 +182,10 @@ def missing_folders(path: str | Path) -> list[Path]:
 def discard_unstarted_run(out_dir: str | Path, run_files: tuple[str, ...], made: list[Path]) -> None:
     """After a new run (no resume) failed: if it left no checkpoint and logged no record, remove its config.json and
     empty metrics.jsonl, and the folders it made (``made``, from ``missing_folders``). Such a folder holds nothing to
-    resume or read, and left there it made the next attempt fail as "already holds a run"."""
+    resume or read, and left there it made the next attempt fail as "already holds a run".
+
+    After a failed resume the callers call it only when this invocation made ``out_dir`` (``made`` not empty): then
+    everything in it is this invocation's; a resume in an existing folder must leave that run's files alone."""
     out = Path(out_dir)
     log = out / "metrics.jsonl"
     try:

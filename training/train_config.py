@@ -24,6 +24,14 @@ MAX_MINUTES = 7 * 24 * 60
 # A hundred million optimizer steps: far past any run here (10**21 only printed an eta of 9e17 min). Both training
 # tools bound --steps by it.
 MAX_STEPS = 10**8
+# The largest --seed: torch's generators take at most 2**64 - 1, and the data order seeds one with seed + epoch (the
+# DistributedSampler), so a seed up to 2**63 - 1 leaves every epoch count room; 2**64 failed with "Overflow when
+# unpacking long long" after the dataset was read. streamdet-export's bound (export/cli.py MAX_SEED), copied.
+MAX_SEED = 2**63 - 1
+# The largest peak learning rate of both training tools: AdamW moves each weight by about lr per step, so past 10 the
+# first step throws every weight far outside its scale (the run then stops as diverged); past float32's range
+# (--lr 1e41) torch failed with a traceback when the optimizer was built.
+MAX_LR = 10.0
 # The device types training runs on; torch.device also parses meta, xpu, ipu ..., where the first step failed with a
 # traceback after the run's files were written.
 DEVICE_TYPES = ("cpu", "cuda", "mps")
@@ -97,6 +105,8 @@ class TrainConfig:
         for name in ("lr", "grad_clip", "div_factor", "final_div_factor"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
                 raise ValueError(f"TrainConfig.{name} must be a positive number, got {getattr(self, name)!r}")
+        check_lr(self.lr, "TrainConfig.lr")
+        check_seed(self.seed, "TrainConfig.seed")
         if not (math.isfinite(self.image_class_weight) and self.image_class_weight >= 0):
             raise ValueError(f"TrainConfig.image_class_weight must be a number >= 0, got {self.image_class_weight!r}")
         if self.image_class_weight > 0 and not self.use_image:
@@ -106,6 +116,13 @@ class TrainConfig:
             raise ValueError("camera dropout (camera_dropout > 0) needs the image lane: drop --no-image or --camera-dropout")
         if not 0.0 <= self.image_warmup < 1.0:
             raise ValueError(f"TrainConfig.image_warmup must be in [0, 1), got {self.image_warmup!r}")
+        # options of the image lane that a LiDAR-only run would ignore (config.json recorded them as if they held)
+        if self.image_warmup > 0 and not self.use_image:
+            raise ValueError(f"the image warm-up (image_warmup {self.image_warmup!r}) needs the image lane: drop --no-image "
+                             "or --image-warmup")  # fmt: skip
+        if self.data.camera_mode != "all" and not self.use_image:
+            raise ValueError(f"camera_mode {self.data.camera_mode!r} picks the cameras a slice sees, which needs the image "
+                             "lane: drop --no-image or --camera-mode")  # fmt: skip
         if not 0.0 < self.pct_start < 1.0:
             raise ValueError(f"TrainConfig.pct_start must be in (0, 1), got {self.pct_start!r}")
         if not self.weight_decay >= 0:
@@ -138,6 +155,94 @@ class TrainConfig:
         if not self.freeze_camera_lane:
             del d["freeze_camera_lane"]
         return d
+
+
+def check_lr(value: float, name: str) -> None:
+    """ValueError unless ``value`` is a finite learning rate in (0, MAX_LR]."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and 0 < value <= MAX_LR):
+        raise ValueError(f"{name} must be a finite learning rate in (0, {MAX_LR:g}], got {value!r}")
+
+
+def check_seed(value: int, name: str) -> None:
+    """ValueError unless ``value`` is an integer seed in 0..MAX_SEED."""
+    if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= MAX_SEED:
+        raise ValueError(f"{name} must be an integer in 0..{MAX_SEED}, got {short_repr(value)}")
+
+
+# What a resumed streamdet-train run must keep of its TrainConfig, by the option that sets it: each changes the data
+# order the resume skips ahead in (seed, batch size, balanced, slice counts and subsets), the schedule the optimizer
+# state continues (steps, epochs, lr) or what the loss asks of the model (camera mode, warm-up, loss weights).
+RESUME_OPTIONS = {
+    "preset": "--preset", "use_image": "--no-image", "slice_crop": "--no-crop", "steps": "--steps", "epochs": "--epochs",
+    "batch_size": "--batch-size", "lr": "--lr", "seed": "--seed", "balanced": "--balanced",
+    "image_warmup": "--image-warmup", "image_class_weight": "--image-class-weight", "distill_weight": "--distill-weight",
+    "data.num_slices": "--num-slices", "data.max_slices_per_sample": "--max-slices-per-sample",
+    "data.camera_mode": "--camera-mode",
+}  # fmt: skip
+# What a resume may change, and why that is sound: --max-minutes with --steps/--epochs is this invocation's wall-time
+# limit (a run split over sessions gets a new one each time; a schedule over --max-minutes alone is compared);
+# --log-every / --checkpoint-every / --workers / --amp change how the run is logged, saved, loaded and computed, not
+# its data or schedule; --camera-dropout is an augmentation, allowed but said (trainer._restore); --teacher and
+# --freeze-camera-lane have their own check (trainer._check_resume_state). Every other field is compared.
+RESUME_MAY_CHANGE = ("max_minutes", "log_every", "checkpoint_every", "workers", "amp", "camera_dropout", "teacher",
+                     "freeze_camera_lane")  # fmt: skip
+
+
+def resume_config_changes(was: dict[str, Any], now: TrainConfig) -> list[tuple[str, Any, Any]]:
+    """(option, the run's value, the given value) for every field of ``now`` that differs from ``was`` (a resumed
+    checkpoint's ``config``, TrainConfig.to_dict: fields at their default may be absent) and that a resume must keep
+    (``RESUME_OPTIONS``; a field no option sets is named TrainConfig.<field>)."""
+    # the fields' own defaults (steps=1 only makes the instance valid: steps defaults to None)
+    defaults = {**_flat(_jsonable(dataclasses.asdict(TrainConfig(preset=now.preset, steps=1)))), "steps": None}
+    old = {**defaults, **_flat(was)}
+    new = _flat(_jsonable(dataclasses.asdict(now)))
+    by_time = (old.get("steps"), old.get("epochs")) == (None, None) or (now.steps, now.epochs) == (None, None)
+    changes = []
+    for key, value in new.items():
+        top = key.split(".")[0]
+        if top in RESUME_MAY_CHANGE and not (key == "max_minutes" and by_time):  # a time plan's budget is its schedule
+            continue
+        if key not in old or values_differ(old[key], value):
+            changes.append((RESUME_OPTIONS.get(key, "--max-minutes" if key == "max_minutes" else f"TrainConfig.{key}"),
+                            old.get(key), value))  # fmt: skip
+    return changes
+
+
+def values_differ(was: Any, now: Any) -> bool:
+    """Whether a checkpoint's config value differs from the given one. A checkpoint is input: a tensor or another
+    object in its config compares to no option's value (and its ``!=`` may not even give a bool)."""
+    try:
+        return bool(was != now)
+    except Exception:  # noqa: BLE001 (any object a checkpoint may hold: it differs)
+        return True
+
+
+def show_option_value(value: Any) -> str:
+    """A config value as the user typed it: 8,32 for slice counts, on / off for a flag, none for a missing value
+    (anything else a checkpoint holds: its short repr, one line)."""
+    if value is None:
+        return "none"
+    if isinstance(value, bool):
+        return "on" if value else "off"
+    if isinstance(value, float):
+        return f"{value:g}"
+    if isinstance(value, int):
+        return short_repr(value)  # a huge one by its digit count
+    if isinstance(value, list) and all(isinstance(v, (int, float, str)) and not isinstance(v, bool) for v in value):
+        text = ",".join(short_repr(v, 20) if isinstance(v, str) else short_repr(v) for v in value)
+        return text if len(text) <= 60 else text[:57] + "..."
+    return " ".join(short_repr(value, 60).split())  # a tensor's repr spans lines: the error stays one
+
+
+def _flat(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """A nested dict as {"a.b": value} (the config's data / loss / distill sections)."""
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flat(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
 
 
 def check_max_minutes(value: float | None, name: str) -> None:

@@ -14,6 +14,7 @@ logged step: step, epoch, losses, lr, samples/s, slices/s, seconds) and ``config
 from __future__ import annotations
 
 import functools
+import hashlib
 import json
 import math
 import os
@@ -31,6 +32,7 @@ from torch.utils.data import DataLoader, DistributedSampler, Subset
 from streamdet.core.table_version import DEFAULT_TABLE_VERSION
 from streamdet.core.errors import first_line
 from streamdet.core.file_output import write_text_atomic
+from streamdet.core.json_input import short_repr
 from streamdet.models.detector import build_detector
 from streamdet.models.presets import Preset
 from streamdet.training.batching import Batch, Collator
@@ -55,9 +57,11 @@ from streamdet.training.model import TrainingModel
 from streamdet.training.schedule import OneCycle
 from streamdet.progress import counted
 from streamdet.training.run_dir import (  # noqa: F401 (re-exported: the run-folder rules, for tests and scripts)
-    CONFIG_FILE, NOT_A_RUN, RUN_FILES, check_out_contents, check_out_dir, discard_unstarted_run, missing_folders)
+    CONFIG_FILE, NOT_A_RUN, RUN_FILES, check_out_contents, check_out_dir, discard_unstarted_run, missing_folders,
+    open_run_log)
 from streamdet.training.train_config import (  # noqa: F401 (re-exported)
-    AMP_MODES, MAX_MINUTES, MAX_STEPS, TrainConfig, check_device, check_max_minutes)
+    AMP_MODES, MAX_LR, MAX_MINUTES, MAX_SEED, MAX_STEPS, TrainConfig, check_device, check_max_minutes,
+    resume_config_changes, show_option_value)
 
 HEAD_OUTPUT_INIT_STD = 0.01
 
@@ -79,6 +83,7 @@ class TrainResult:
     final_loss: float
     checkpoint: Path | None  # last.pt (main process only)
     weights: Path | None  # model.pt
+    skipped_samples: int = 0  # samples left out of their batch for holding no pillar (Collator: no usable LiDAR point)
 
 
 def _amp_context(mode: str, device: torch.device):
@@ -151,6 +156,9 @@ class _TrainRun:
     epoch: int = 0
     epoch_step: int = 0  # batches of `epoch` done
     elapsed_before: float = 0.0  # training seconds of the run this one resumes
+    data_dir: str = ""  # --data, as given (for messages)
+    skipped_samples: int = 0  # this invocation's samples without a pillar, left out of their batches
+    skipped_steps: int = 0  # batches left with no sample at all, no optimizer step taken
 
     def checkpoint(self) -> Path | None:
         if not self.ctx.is_main:
@@ -159,7 +167,7 @@ class _TrainRun:
         save_training_state(path, preset=self.preset, model=self.detector, optimizer=self.optimizer,
                             scheduler=self.schedule, step=self.schedule.step, epoch=self.epoch,
                             epoch_step=self.epoch_step, config=self.config.to_dict(),
-                            image_classifier=self.model.image_classifier)  # fmt: skip
+                            image_classifier=self.model.image_classifier, data=data_record(self.dataset.store))  # fmt: skip
         return path
 
     def elapsed(self) -> float:
@@ -229,7 +237,9 @@ def train(
     try:
         return _train_into(config, data_dir, out_dir, version, resume, init, cache_dir, device, store, echo, replaced)
     except BaseException:
-        if resume is None and os.environ.get("RANK", "0") == "0":  # the main process (torchrun's rank 0) owns --out
+        # a new run, or a resume into a folder this invocation made (everything in it is its own); a resume in an
+        # existing folder leaves that run's files alone. The main process (torchrun's rank 0) owns --out.
+        if (resume is None or made) and os.environ.get("RANK", "0") == "0":
             discard_unstarted_run(out_dir, RUN_FILES, made)
         raise
 
@@ -239,9 +249,13 @@ def _train_into(config: TrainConfig, data_dir: str | Path, out_dir: str | Path, 
                 store: SampleStore | None, echo: Callable[[str], None], replaced: list[Path]) -> TrainResult:  # fmt: skip
     """``train`` once ``out_dir`` is checked: set up, write the run's files, train, save (``replaced``: the files
     of an earlier run that --overwrite removes)."""
+    state = None
+    if resume is not None:  # before the dataset is read: a resume the run's own config refuses costs no minutes
+        state = load_checkpoint(resume, "resume checkpoint")
+        _check_resume_state(state, resume, config)
     run = _set_up(config, data_dir, out_dir, version, init, cache_dir, device, store, echo)
     if resume is not None:
-        _restore(run, resume)
+        _restore(run, resume, state)
     if run.teacher is not None:
         # with camera dropout the teacher lifts every camera itself: its targets are the whole scene's
         run.shared_lane = config.freeze_camera_lane and not config.camera_dropout and run.teacher.shares_camera_lane(run.detector)
@@ -251,7 +265,8 @@ def _train_into(config: TrainConfig, data_dir: str | Path, out_dir: str | Path, 
         for path in replaced:  # --overwrite: none of the old run's files may outlive it beside the new run's
             path.unlink(missing_ok=True)
     _write_config(run, data_dir, init)
-    log_file = open(run.out_dir / "metrics.jsonl", "a" if resume is not None else "w") if run.ctx.is_main else None
+    # never through a symlink nor into a FIFO that appeared while the data was read (check_out_dir refused them before)
+    log_file = open_run_log(run.out_dir / "metrics.jsonl", append=resume is not None) if run.ctx.is_main else None
     n_params = sum(p.numel() for p in run.model.parameters())
     run.say(
         f"training {run.preset.name} ({'camera + LiDAR' if run.preset.use_image else 'LiDAR only'}"
@@ -273,8 +288,11 @@ def _train_into(config: TrainConfig, data_dir: str | Path, out_dir: str | Path, 
         save_weights(weights, run.preset, run.detector,
                      meta={"steps": step, "config": config.to_dict(), "init": str(init) if init is not None else None})  # fmt: skip
     seconds = time.perf_counter() - run.t_start
+    if run.skipped_samples:
+        run.say(f"skipped {run.skipped_samples} sample(s) without a usable LiDAR point in their slices "
+                f"({run.skipped_steps} batch(es) left empty, no step taken for them)")  # fmt: skip
     run.say(f"{'stopped by --max-minutes' if stopped_early else 'done'} after {step} steps in {seconds / 60:.1f} min; wrote {run.out_dir}")
-    return TrainResult(step, seconds, stopped_early, last_loss, ckpt, weights)
+    return TrainResult(step, seconds, stopped_early, last_loss, ckpt, weights, run.skipped_samples)
 
 
 def _set_up(config: TrainConfig, data_dir: str | Path, out_dir: str | Path, version: str, init: str | Path | None,
@@ -320,6 +338,7 @@ def _set_up(config: TrainConfig, data_dir: str | Path, out_dir: str | Path, vers
         loader=loader, sampler=sampler, detector=detector, model=model, wrapped=wrapped, optimizer=optimizer,
         schedule=schedule, plan=plan, criterion=CenterPointLoss(config.loss).to(device), amp=amp,
         scaler=torch.amp.GradScaler("cuda", enabled=use_scaler), warmup=warmup, t_start=t_start, teacher=teacher,
+        data_dir=str(data_dir),
     )  # fmt: skip
 
 
@@ -365,17 +384,28 @@ def _schedule(config: TrainConfig, steps_per_epoch: int) -> tuple[OneCycle, str]
     return schedule, f"one-cycle over {config.max_minutes:g} min of wall time"
 
 
-def _restore(run: _TrainRun, resume: str | Path) -> None:
-    """Continue the run a ``last.pt`` holds: model, optimizer, schedule and data position."""
-    state = load_checkpoint(resume, "resume checkpoint")
+def data_record(store: SampleStore) -> dict[str, Any]:
+    """What a last.pt records of the data it trained on: the train split's sample count and a digest of its tokens
+    in order. A resume skips ahead in the data order of these samples; another split (another --data, a dataset
+    regenerated with other scenes) would continue in an order the run never had. The path is not compared: a run
+    split over sessions may find the same dataset at another path on another machine."""
+    digest = hashlib.sha256("\n".join(store.tokens).encode()).hexdigest()
+    return {"samples": len(store.tokens), "tokens_sha256": digest}
+
+
+def _check_resume_state(state: dict[str, Any], resume: str | Path, config: TrainConfig) -> None:
+    """ValueError (one line) unless ``state`` (a loaded last.pt) can continue under ``config``: a training checkpoint
+    of the same preset, run with the same settings (``train_config.resume_config_changes``: a changed --batch-size
+    or --seed once failed with StopIteration, or silently continued in another data order). Before the dataset is
+    read and before anything in --out is written."""
     for key in ("optimizer", "scheduler", "step", "epoch", "epoch_step"):
         if key not in state:
             raise ValueError(f"checkpoint {resume} lacks {key!r}: it holds weights only, it cannot resume a run")
-    preset = run.preset
+    preset = config.build_preset()
     if state["preset"] != preset.to_dict():
         raise ValueError(f"checkpoint {resume} was trained with another preset than {preset.name!r} (use_image={preset.use_image}, "
                          f"slice_crop={preset.slice_crop})")  # fmt: skip
-    was, now = state.get("config", {}), run.config.to_dict()
+    was, now = state.get("config", {}), config.to_dict()
     if not isinstance(was, dict):
         raise ValueError(f"checkpoint {resume}: 'config' is a {type(was).__name__}, not the TrainConfig dict")
     for key in ("epoch", "epoch_step"):
@@ -392,15 +422,43 @@ def _restore(run: _TrainRun, resume: str | Path) -> None:
     if not same or was.get("freeze_camera_lane") != now.get("freeze_camera_lane"):
         raise ValueError(f"checkpoint {resume} was trained with teacher={was.get('teacher')!r}, freeze_camera_lane="
                          f"{bool(was.get('freeze_camera_lane'))}: resume it with the same (given teacher={now.get('teacher')!r}, "
-                         f"freeze_camera_lane={run.config.freeze_camera_lane})")  # fmt: skip
+                         f"freeze_camera_lane={config.freeze_camera_lane})")  # fmt: skip
+    if (config.image_class_weight > 0) != ("image_classifier" in state):
+        raise ValueError(f"checkpoint {resume} was trained {'without' if config.image_class_weight > 0 else 'with'} the image "
+                         f"class loss: resume it with the image_class_weight it was started with")  # fmt: skip
+    changes = resume_config_changes(was, config)
+    if changes:
+        had = ", ".join(f"{option} {show_option_value(old)}" for option, old, _ in changes)
+        given = ", ".join(f"{option} {show_option_value(new)}" for option, _, new in changes)
+        raise ValueError(f"--resume {resume} was trained with {had}; given {given}: a resumed run continues with its own "
+                         f"data order, schedule and loss; give the same again, or start a new run from its weights "
+                         f"with --init {resume}")  # fmt: skip
+
+
+def _restore(run: _TrainRun, resume: str | Path, state: dict[str, Any]) -> None:
+    """Continue the run a ``last.pt`` holds (``state``, checked by ``_check_resume_state``): model, optimizer,
+    schedule and data position."""
+    preset = run.preset
+    was = state.get("config", {})
+    data, here = state.get("data"), data_record(run.dataset.store)
+    if data is not None and data != here:  # a checkpoint from before the record: not checked
+        def show(d: object) -> str:
+            if not isinstance(d, dict):
+                return short_repr(d, 40)
+            return f"{short_repr(d.get('samples'), 20)} samples, tokens sha256 {short_repr(d.get('tokens_sha256'), 20)[:13]}..."
+
+        raise ValueError(f"--resume {resume} was trained on another train split ({show(data)}) than --data {run.data_dir} "
+                         f"holds ({show(here)}): a resumed run continues over its own samples in its own order; give its "
+                         f"--data, or start a new run with --init {resume}")  # fmt: skip
+    # the skip-ahead would run out of batches (StopIteration); equal is a run cut right after an epoch's last batch
+    if state["epoch_step"] > len(run.loader):
+        raise ValueError(f"checkpoint {resume}: its data position (batch {state['epoch_step']} of epoch {state['epoch']}) "
+                         f"is past the {len(run.loader)} batches of an epoch of this run")  # fmt: skip
     check_fits(run.detector.state_dict(), state["model"], resume, "resume checkpoint", f"preset {preset.name!r}")
     if was.get("camera_dropout", 0.0) != run.config.camera_dropout:  # allowed (an augmentation), but said
         run.say(f"resuming {resume} with camera_dropout {run.config.camera_dropout:g}; it was trained with "
                 f"{was.get('camera_dropout', 0.0):g} so far")  # fmt: skip
     classifier = run.model.image_classifier
-    if (classifier is not None) != ("image_classifier" in state):
-        raise ValueError(f"checkpoint {resume} was trained {'without' if classifier is not None else 'with'} the image class loss: "
-                         f"resume it with the image_class_weight it was started with")  # fmt: skip
     if classifier is not None:
         weights = check_state_dict(state["image_classifier"], resume, "resume checkpoint", "image_classifier")
         check_fits(classifier.state_dict(), weights, resume, "resume checkpoint", "the image classifier")
@@ -412,7 +470,7 @@ def _restore(run: _TrainRun, resume: str | Path) -> None:
     except (ValueError, KeyError, TypeError, AttributeError, IndexError, RuntimeError) as e:
         first = (str(e).strip().splitlines() or [type(e).__name__])[0]
         raise ValueError(f"checkpoint {resume}: its optimizer state does not fit this run's optimizer: {first}") from None
-    _check_optimizer_state(run.optimizer, resume)
+    check_optimizer_state(run.optimizer, resume)
     try:
         run.schedule.load_state_dict(state["scheduler"])
     except (ValueError, KeyError, TypeError, AttributeError, OverflowError) as e:
@@ -427,9 +485,10 @@ def _restore(run: _TrainRun, resume: str | Path) -> None:
         raise ValueError(f"checkpoint {resume} finished its schedule ({run.plan}): nothing left to train")
 
 
-def _check_optimizer_state(optimizer: torch.optim.Optimizer, path: str | Path) -> None:
+def check_optimizer_state(optimizer: torch.optim.Optimizer, path: str | Path) -> None:
     """ValueError naming the file unless every per-parameter tensor of the loaded optimizer state (AdamW's moments)
-    has its parameter's shape and is finite: torch loads any, and fails (or trains on garbage) at the next step."""
+    has its parameter's shape and is finite: torch loads any, and fails (or trains on garbage) at the next step.
+    streamdet-train-image's --resume calls it too (image_pretrain._pretrain_into)."""
     for param, entry in optimizer.state.items():
         if not isinstance(entry, dict):
             raise ValueError(f"checkpoint {path}: an optimizer state entry is a {type(entry).__name__}, not a dict")
@@ -467,8 +526,13 @@ def _loop(run: _TrainRun, log_file) -> tuple[bool, float]:
         batches = iter(run.loader)
         for _ in range(run.epoch_step):  # resume: skip the batches this epoch already used (same order: same seed)
             next(batches)
+        stepped = run.epoch_step > 0  # whether this epoch took an optimizer step (a resumed one: before the cut)
         for batch in batches:
             batch = batch.to(run.device)
+            if _skip_batch(run, batch):  # no sample with a pillar: no step, the data position moves on
+                run.epoch_step += 1
+                continue
+            stepped = True
             lr = schedule.apply(run.optimizer)
             use_image = preset.use_image and schedule.progress >= config.image_warmup
             if run.warmup and use_image and not images_on:
@@ -499,11 +563,39 @@ def _loop(run: _TrainRun, log_file) -> tuple[bool, float]:
             if schedule.done:
                 break
         else:
+            if not stepped and run.skipped_steps:  # every batch was empty: another epoch would spin for ever
+                raise ValueError(f"no sample of the train split of {run.data_dir} holds a usable LiDAR point in its "
+                                 f"slices (every batch of epoch {run.epoch} was empty): nothing to train on")  # fmt: skip
             run.epoch += 1
             run.epoch_step = 0
     if window["n"]:
         _log(window, schedule, lr, run.epoch, ctx, run.say, log_file)
     return stopped_early, last_loss
+
+
+# The samples skipped for want of a pillar named one by one, up to this many; the rest only counted (at the end).
+MAX_SKIPS_NAMED = 5
+
+
+def _skip_batch(run: _TrainRun, batch: Batch) -> bool:
+    """Count (and name the first few of) the samples the collator left out of ``batch`` for holding no pillar (a
+    sweep that is empty, all NaN or outside the grid: the model has nothing to read in it, while its boxes would
+    still be targets). True when no sample is left on some process: then no process steps (under torchrun every
+    one must join the same all-reduces), and the batch is skipped."""
+    for i in batch.skipped:
+        run.skipped_samples += 1
+        if run.skipped_samples <= MAX_SKIPS_NAMED:
+            token = run.dataset.store.tokens[i]
+            run.say(f"step {run.schedule.step}: sample {token} holds no usable LiDAR point in its slices (an empty, "
+                    f"all-NaN or out-of-grid sweep): left out of its batch"
+                    + ("; further ones are counted at the end" if run.skipped_samples == MAX_SKIPS_NAMED else ""))  # fmt: skip
+    empty = batch.num_samples == 0
+    if run.ctx.initialised and run.ctx.world_size > 1:
+        flag = all_reduce_sum(torch.tensor([1.0 if empty else 0.0], device=run.device), run.ctx)
+        empty = float(flag[0]) > 0
+    if empty:
+        run.skipped_steps += 1
+    return empty
 
 
 def _stop_if_diverged(run: _TrainRun, loss: float, lr: float) -> None:
