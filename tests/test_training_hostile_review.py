@@ -514,3 +514,15 @@ def test_a_resume_into_a_new_folder_continues_there(part, store, tmp_path):
     done = train(_config(), "unused", tmp_path / "copy", resume=part / "last.pt", store=store, echo=quiet)
     assert done.steps_done == 3 and (tmp_path / "copy" / "model.pt").is_file()
     assert _listing(part) == before  # the checkpoint's own folder as it was
+
+
+@pytest.mark.parametrize("kind", ["meta", "sparse"])
+def test_optimizer_state_of_a_meta_or_sparse_moment_is_refused_in_one_line(kind, tmp_path):
+    from streamdet.training.trainer import check_optimizer_state
+
+    param = torch.nn.Parameter(torch.zeros(3, 2))
+    optimizer = torch.optim.AdamW([param])
+    moment = torch.empty(3, 2, device="meta") if kind == "meta" else torch.zeros(3, 2).to_sparse()
+    optimizer.state[param] = {"step": torch.tensor(1.0), "exp_avg": moment, "exp_avg_sq": torch.zeros(3, 2)}
+    with pytest.raises(ValueError, match=r"checkpoint .*last\.pt: optimizer state 'exp_avg' is a (meta|sparse) tensor"):
+        check_optimizer_state(optimizer, tmp_path / "last.pt")

@@ -35,6 +35,7 @@ from streamdet.core.file_output import write_text_atomic
 from streamdet.core.json_input import short_repr
 from streamdet.models.detector import build_detector
 from streamdet.models.presets import Preset
+from streamdet.models.torch_files import check_dense
 from streamdet.training.batching import Batch, Collator
 from streamdet.training.camera_dropout import draw_camera_keep, drops_cameras, step_generator
 from streamdet.training.checkpoint import (
@@ -495,6 +496,7 @@ def check_optimizer_state(optimizer: torch.optim.Optimizer, path: str | Path) ->
         for name, value in entry.items():
             if not isinstance(value, torch.Tensor):
                 continue
+            check_dense(value, f"optimizer state {name!r}", path)  # a sparse or meta moment: isfinite would fail on it
             if value.dim() > 0 and tuple(value.shape) != tuple(param.shape):
                 raise ValueError(f"checkpoint {path}: optimizer state {name!r} has shape {tuple(value.shape)} for a "
                                  f"parameter of shape {tuple(param.shape)}")  # fmt: skip
