@@ -52,15 +52,8 @@ def boxes_of(entries: list[dict], tokens: list[str] | None = None) -> EvalBoxes:
 
 
 def _ref_yaw(q):
-    # pyquaternion: normalise, then rotation_matrix = (Q Qbar^T)[1:, 1:]; yaw of the rotated x axis.
-    q = np.asarray(q, dtype=float)
-    if abs(1.0 - np.dot(q, q)) >= 1e-14:
-        q = q / np.sqrt(np.dot(q, q))
-    w, x, y, z = q
-    qm = np.array([[w, -x, -y, -z], [x, w, -z, y], [y, z, w, -x], [z, -y, x, w]])
-    qb = np.array([[w, -x, -y, -z], [x, w, z, -y], [y, -z, w, x], [z, y, -x, w]])
-    r = (qm @ qb.T)[1:, 1:]
-    v = r @ np.array([1.0, 0.0, 0.0])
+    # pyquaternion's yaw: the x axis turned by its rotation_matrix (_ref_rotation below)
+    v = _ref_rotation(q) @ np.array([1.0, 0.0, 0.0])
     return np.arctan2(v[1], v[0])
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from pathlib import Path
 
 import numpy as np
 import onnx
@@ -172,9 +173,8 @@ def test_broken_calibration_file(tmp_path):
     assert not (tmp_path / "exp").exists() and _leftovers(tmp_path) == []
 
 
-def test_foreign_rig_exports_with_noise_images(tmp_path):
-    """A calibration of other cameras (not the bundled sample's): the LUT follows it and the parity inputs fall
-    back to seeded noise images, which the manifest says."""
+def two_camera_calibration(tmp_path: Path) -> Path:
+    """A calibration of two cameras the bundled sample lacks (CAM_0, CAM_1: its first two, renamed)."""
     from streamdet.data.sample import load_bundled_sample
 
     doc = load_bundled_sample().rig.to_dict()
@@ -183,6 +183,13 @@ def test_foreign_rig_exports_with_noise_images(tmp_path):
         cam["name"] = f"CAM_{i}"
     calib = tmp_path / "rig.json"
     calib.write_text(json.dumps(doc))
+    return calib
+
+
+def test_foreign_rig_exports_with_noise_images(tmp_path):
+    """A calibration of other cameras (not the bundled sample's): the LUT follows it and the parity inputs fall
+    back to seeded noise images, which the manifest says."""
+    calib = two_camera_calibration(tmp_path)
     result = _invoke(["--preset", "tiny", "--calibration", str(calib), "--out", str(tmp_path / "exp")])
     assert result.exit_code == 0, result.output
     m = read_manifest(tmp_path / "exp")

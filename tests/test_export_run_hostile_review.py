@@ -322,15 +322,10 @@ def test_seed_with_the_bundled_checkpoint_of_a_preset_is_refused():
 def test_seed_is_kept_where_it_still_draws_something(tiny_weights, tmp_path):
     """Without a checkpoint it draws the weights; with one and a calibration of other cameras it draws the parity
     check's noise images (export/parity_inputs.py): both are accepted. The int8 calibration draws no random sample."""
-    from streamdet.data.sample import load_bundled_sample
     from streamdet.export.exporter import ExportOptions, _check_options, _resolve_preset
+    from test_export_cli import two_camera_calibration
 
-    doc = load_bundled_sample().rig.to_dict()
-    doc["cameras"] = doc["cameras"][:2]
-    for i, cam in enumerate(doc["cameras"]):
-        cam["name"] = f"CAM_{i}"
-    calib = tmp_path / "rig.json"
-    calib.write_text(json.dumps(doc))
+    calib = two_camera_calibration(tmp_path)
     for opts in (ExportOptions(preset="tiny", seed=5), ExportOptions(checkpoint=str(tiny_weights), calibration=str(calib), seed=5)):
         _check_options(opts, _resolve_preset(opts)[0])
 
