@@ -72,6 +72,21 @@ def _cli_export(tmp_path_factory, name: str, args: list[str]) -> CliExport:
 
 
 @pytest.fixture(scope="session")
+def tiny_weights(tmp_path_factory) -> Path:
+    """Weights of the tiny preset drawn with seed 0 (save_weights' format); read-only: copy it before editing."""
+    import torch
+
+    from streamdet.models.detector import build_detector
+    from streamdet.models.presets import get_preset
+    from streamdet.training.checkpoint import save_weights
+
+    torch.manual_seed(0)
+    path = tmp_path_factory.mktemp("w") / "tiny.pt"
+    save_weights(path, get_preset("tiny"), build_detector(get_preset("tiny")))
+    return path
+
+
+@pytest.fixture(scope="session")
 def tiny_export(tmp_path_factory) -> Path:
     """A tiny camera + LiDAR export (fp32 + fp16, 8 slices), shared read-only: tests that change it copy it first."""
     return _cli_export(tmp_path_factory, "tiny_export", ["--fp16", "--slices", "8"]).path

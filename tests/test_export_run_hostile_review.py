@@ -37,14 +37,6 @@ def _one_line_error(result, code: int, *needles: str) -> str:
     return errors[0]
 
 
-@pytest.fixture(scope="module")
-def tiny_weights(tmp_path_factory) -> Path:
-    from streamdet.training.checkpoint import save_weights
-
-    torch.manual_seed(0)
-    path = tmp_path_factory.mktemp("w") / "tiny.pt"
-    save_weights(path, TINY, build_detector(TINY))
-    return path
 
 
 @pytest.fixture(scope="module")

@@ -33,12 +33,6 @@ REPO = Path(__file__).resolve().parents[1]
 FIRST = "image_encoder.backbone.conv1.weight"
 
 
-@pytest.fixture(scope="module")
-def tiny_weights(tmp_path_factory) -> Path:
-    torch.manual_seed(0)
-    path = tmp_path_factory.mktemp("w") / "tiny.pt"
-    save_weights(path, TINY, build_detector(TINY))
-    return path
 
 
 def _edit_model(obj: dict, how: str) -> dict:
