@@ -4,9 +4,11 @@ Two sources, the better one when the dataset has it:
 
 - **trajectories**: the synthetic world's ``trajectories.npz`` sidecar (``streamdet.data.synth_trajectories``),
   every object's box sampled at 100 Hz by the generator: exact at any time;
-- **key frames interpolated** (the ASAP benchmark's way, for real nuScenes): an object annotated in two consecutive
-  key frames is placed between them by linear interpolation of its centre and of its yaw along the shorter arc,
-  with the velocity of that interval; outside the key frames that annotate it, it does not exist.
+- **key frames interpolated** (the ASAP benchmark's way, for real nuScenes): between two successive annotations of
+  an object (key frames it misses in between included) it is placed by linear interpolation of its centre and of its
+  yaw along the shorter arc, with the velocity of that interval; outside the key frames that annotate it, it does
+  not exist. Before the scene's first annotated key frame and after its last, no object is known: such query times
+  are not scored (``GroundTruth.covers``).
 
 Which objects count at a query time (the devkit's ``num_pts > 0`` rule) is decided with the LiDAR sweep ending then:
 the number of its points inside the box grown by ``POINT_MARGIN_M``. An object is *moving* when its speed exceeds
@@ -54,6 +56,17 @@ class GroundTruth:
         self._trajectories = trajectories
         self._tracks = tracks
         self.source = TRAJECTORIES if trajectories is not None else INTERPOLATED
+        # interpolated: the times the key frames annotate, first to last (None: nothing annotated)
+        stamps = [e[0] for track in (tracks or {}).values() for e in track]
+        self._span_us = (min(stamps), max(stamps)) if stamps else None
+
+    def covers(self, t_us: float) -> bool:
+        """Whether the truth knows the world at ``t_us``: always with trajectories; with interpolated key frames only
+        between the scene's first and last annotated key frame (before and after, every object would be missing
+        and every detection scored as a false positive)."""
+        if self._span_us is None:
+            return True
+        return self._span_us[0] - 1.0 <= t_us <= self._span_us[1] + 1.0
 
     def at(self, t_us: float) -> TruthBoxes:
         if self._trajectories is not None:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -130,3 +132,59 @@ def test_interpolated_ground_truth_matches_the_trajectories_of_a_straight_track(
 def test_ground_truth_needs_one_source():
     with pytest.raises(ValueError, match="exactly one"):
         GroundTruth(None, None)
+
+
+def test_a_late_box_of_a_moving_object_is_no_false_positive_of_the_static_split():
+    """0.27 s late, the moving car's box lies 3 m behind it at a query: more than SPLIT_RADIUS_M from the car now,
+    but on its trail of the last SPLIT_LAG_S, so it is the moving car's and the static split is untouched."""
+    streaming, _ = scores_at(0.27, first_sweep=8)
+    assert streaming.map_static == pytest.approx(1.0)
+    assert streaming.map_moving < 0.5
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_trail_distance_against_a_sampled_trail(seed):
+    from streamdet.replay.latency_eval import trail_distance
+
+    rng = np.random.default_rng(seed)
+    points = rng.uniform(-20, 20, (30, 2))
+    centres = rng.uniform(-20, 20, (5, 2))
+    velocity = rng.uniform(-15, 15, (5, 2))
+    velocity[0] = 0.0  # a static object: its trail is its centre
+    velocity[1] = np.nan  # an unknown velocity counts as standing still
+    got = trail_distance(points, centres, velocity, 0.5)
+    taus = np.linspace(0.0, 0.5, 20001)
+    for g in range(5):
+        trail = centres[g] - np.nan_to_num(velocity[g])[None] * taus[:, None]  # (T, 2) where it was tau ago
+        naive = np.linalg.norm(points[:, None, :] - trail[None], axis=-1).min(axis=1)
+        np.testing.assert_allclose(got[:, g], naive, atol=1e-3)
+    assert trail_distance(np.zeros((0, 2)), centres, velocity, 0.5).shape == (0, 5)
+
+
+def test_interpolated_truth_scores_no_query_outside_its_key_frames():
+    """Key frames at 0.2 s and 0.4 s: queries (rotation ends at 0.1 .. 0.6 s) before the first and after the last
+    have no ground truth and are not scored, rather than scored as all false positives."""
+    drive = make_drive()
+    tracks = {name: [(T0_US + int(t * 1e6), car_boxes(t)[i].copy(), "car") for t in (0.2, 0.4)]
+              for i, name in enumerate(("moving", "parked"))}  # fmt: skip
+    truth = GroundTruth(None, tracks)
+    assert not truth.covers(T0_US + 0.15e6) and truth.covers(T0_US + 0.3e6) and not truth.covers(T0_US + 0.45e6)
+    q = query_truth(drive, truth)
+    assert q.source == INTERPOLATED
+    assert q.sweeps == (3, 4, 5, 6, 7)  # ends 0.20 .. 0.40 s
+    streaming, offline = prediction_entries(drive, recording(drive, 0.0), q, NmsConfig(), 500)
+    assert score([q], [offline]).map == pytest.approx(1.0)
+
+
+def test_the_newest_scan_of_a_sector_counts_not_the_last_emitted():
+    """Sweep 4's slice finishes after sweep 5's of the same sector: at the query after both, sweep 5's is scored."""
+    drive = make_drive()
+    q = query_truth(drive, GroundTruth(trajectories(), None))
+    rec = recording(drive, 0.0)
+    late = {4: 0.34, 5: 0.33, 6: 0.36}  # emit times: sweep 4 after sweep 5, sweep 6 after the query
+    slices = tuple(dataclasses.replace(s, emit_s=late[s.sweep]) if s.sweep in late else s for s in rec.slices)
+    rec = dataclasses.replace(rec, slices=slices)
+    streaming, _ = prediction_entries(drive, rec, q, NmsConfig(), 500)
+    token = q.tokens[q.sweeps.index(6)]  # t = 0.35 s: sweeps 4 and 5 emitted, 6 not yet
+    moving_x = [e["translation"][0] for e in streaming[token] if e["translation"][1] > 0]
+    assert moving_x == pytest.approx([5.0 + SPEED * 0.30])  # sweep 5's scan (end 0.30 s), not sweep 4's
