@@ -356,7 +356,7 @@ class NuScenesReader:
             if cls is not None:
                 labels[i] = CLASS_NAMES.index(cls)
             names.append(cls if cls is not None else category)
-            attributes.append(self._attribute(ann))
+            attributes.append(self.attribute_name(ann))
         valid = np.all(np.isfinite(velocity[:, :2]), axis=1)
         annotated = {"translation": global_boxes[:, 0:3], "size": global_boxes[:, 3:6], "rotation": global_boxes[:, 6:10],
                      "velocity": velocity.copy()}  # fmt: skip
@@ -376,7 +376,7 @@ class NuScenesReader:
             "extras": {GLOBAL_ANNOTATIONS: annotated},
         }
 
-    def _attribute(self, ann: dict) -> str:
+    def attribute_name(self, ann: dict) -> str:
         """The attribute name of a checked annotation: its single attribute's, else "" (none, or several)."""
         tokens = ann.get("attribute_tokens", [])
         if len(tokens) != 1:

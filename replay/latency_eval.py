@@ -70,7 +70,8 @@ def query_truth(drive: Drive, truth: GroundTruth, config: DetectionConfig = Dete
         pts = sweep.points[:, :3].astype(np.float64) @ lidar2global[:3, :3].T + lidar2global[:3, 3]  # (N, 3)
         ego_xyz = sweep.ego2global[:3, 3]
         num_pts = count_points(boxes, pts, max_range + 5.0, ego_xyz[:2])
-        entries[token] = [_gt_entry(token, b, str(n), int(p), ego_xyz) for b, n, p in zip(boxes.boxes, boxes.names, num_pts)]
+        entries[token] = [_gt_entry(token, b, str(n), str(a), int(p), ego_xyz)
+                          for b, n, a, p in zip(boxes.boxes, boxes.names, boxes.attribute_names(), num_pts)]  # fmt: skip
         moving[token] = boxes.moving
         ego[token] = ego_xyz.tolist()
         sweeps.append(sweep.index)
@@ -78,11 +79,11 @@ def query_truth(drive: Drive, truth: GroundTruth, config: DetectionConfig = Dete
     return QueryTruth(drive.name, truth.source, tuple(sweeps), tuple(tokens), entries, moving, ego)
 
 
-def _gt_entry(token: str, box: np.ndarray, name: str, num_pts: int, ego_xyz: np.ndarray) -> dict:
+def _gt_entry(token: str, box: np.ndarray, name: str, attribute: str, num_pts: int, ego_xyz: np.ndarray) -> dict:
     return {
         "sample_token": token, "translation": box[0:3].tolist(), "size": box[3:6].tolist(),
         "rotation": [float(np.cos(box[6] / 2)), 0.0, 0.0, float(np.sin(box[6] / 2))], "velocity": box[7:9].tolist(),
-        "detection_name": name, "detection_score": -1.0, "attribute_name": "",
+        "detection_name": name, "detection_score": -1.0, "attribute_name": attribute,
         "ego_translation": (box[0:3] - ego_xyz).tolist(), "num_pts": num_pts,
     }  # fmt: skip
 

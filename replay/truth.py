@@ -38,13 +38,19 @@ class TruthBoxes:
 
     boxes: np.ndarray  # (M, 9) x, y, z, w, l, h, yaw, vx, vy
     names: np.ndarray  # (M,) str detection class
+    # (M,) str nuScenes attribute ("" = unknown: the synthetic trajectories carry none); None: all unknown
+    attributes: np.ndarray | None = None
 
     @property
     def moving(self) -> np.ndarray:
         return np.hypot(self.boxes[:, 7], self.boxes[:, 8]) > MOVING_SPEED_MPS
 
+    def attribute_names(self) -> np.ndarray:
+        """(M,) str: each object's attribute, "" where unknown."""
+        return self.attributes if self.attributes is not None else np.full(len(self.boxes), "", dtype=object)
+
     def select(self, mask: np.ndarray) -> "TruthBoxes":
-        return TruthBoxes(self.boxes[mask], self.names[mask])
+        return TruthBoxes(self.boxes[mask], self.names[mask], None if self.attributes is None else self.attributes[mask])
 
 
 class GroundTruth:
@@ -72,14 +78,15 @@ class GroundTruth:
         if self._trajectories is not None:
             boxes = self._trajectories.boxes_at(t_us)
             return TruthBoxes(boxes, self._trajectories.names)
-        rows, names = [], []
+        rows, names, attributes = [], [], []
         for track in self._tracks.values():
             box = _interpolate(track, t_us)
             if box is not None:
                 rows.append(box)
                 names.append(track[0][2])
+                attributes.append(_attribute_at(track, t_us))
         boxes = np.array(rows, dtype=np.float64).reshape(-1, 9)  # (M, 9), also when no object exists at t_us
-        return TruthBoxes(boxes, np.array(names, dtype=np.str_))
+        return TruthBoxes(boxes, np.array(names, dtype=np.str_), np.array(attributes, dtype=object))
 
 
 def load_ground_truth(root: str | Path, version: str, scene_name: str, prefer_trajectories: bool = True,
@@ -93,8 +100,9 @@ def load_ground_truth(root: str | Path, version: str, scene_name: str, prefer_tr
     return GroundTruth(None, key_frame_tracks(reader or NuScenesReader(root, version), scene_name))
 
 
-def key_frame_tracks(reader: NuScenesReader, scene_name: str) -> dict[str, list[tuple[int, np.ndarray, str]]]:
-    """Per instance, its key-frame annotations in time order: (timestamp us, (9,) box with velocity 0, class).
+def key_frame_tracks(reader: NuScenesReader, scene_name: str) -> dict[str, list[tuple[int, np.ndarray, str, str]]]:
+    """Per instance, its key-frame annotations in time order: (timestamp us, (9,) box with velocity 0, class,
+    attribute name or "").
     The rows are the reader's, checked as it reads them (a malformed one is a ValueError naming it)."""
     scenes = [s for s in reader.rows("scene") if reader.row("scene", s)["name"] == scene_name]
     if not scenes:
@@ -113,7 +121,7 @@ def key_frame_tracks(reader: NuScenesReader, scene_name: str) -> dict[str, list[
         w, x, y, z = ann["rotation"]
         yaw = np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
         box = np.array([*ann["translation"], *ann["size"], yaw, 0.0, 0.0], dtype=np.float64)
-        tracks[ann["instance_token"]].append((stamp[ann["sample_token"]], box, cls))
+        tracks[ann["instance_token"]].append((stamp[ann["sample_token"]], box, cls, reader.attribute_name(ann)))
     return {k: sorted(v, key=lambda e: e[0]) for k, v in tracks.items()}
 
 
@@ -125,13 +133,22 @@ def _interpolate(track: list[tuple[int, np.ndarray, str]], t_us: float) -> np.nd
     if not times[0] <= t_us <= times[-1]:
         return None
     i = min(int(np.searchsorted(times, t_us, side="right")) - 1, len(track) - 2)
-    (ta, a, _), (tb, b, _) = track[i], track[i + 1]
+    (ta, a), (tb, b) = track[i][:2], track[i + 1][:2]
     w = (t_us - ta) / (tb - ta)
     out = a + w * (b - a)
     out[6] = a[6] + w * (np.mod(b[6] - a[6] + np.pi, 2 * np.pi) - np.pi)
     out[3:6] = a[3:6]
     out[7:9] = (b[:2] - a[:2]) / ((tb - ta) * 1e-6)
     return out
+
+
+def _attribute_at(track: list[tuple], t_us: float) -> str:
+    """The attribute of the track's annotation at or before ``t_us`` (its first one before its span): an attribute
+    holds from the key frame that annotates it until the next. "" where the track carries none."""
+    times = [e[0] for e in track]
+    i = max(int(np.searchsorted(times, t_us, side="right")) - 1, 0)
+    entry = track[i]
+    return str(entry[3]) if len(entry) > 3 else ""
 
 
 def count_points(truth: TruthBoxes, points_global: np.ndarray, max_range_m: float, ego_xy: np.ndarray) -> np.ndarray:

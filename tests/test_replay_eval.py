@@ -188,3 +188,16 @@ def test_the_newest_scan_of_a_sector_counts_not_the_last_emitted():
     token = q.tokens[q.sweeps.index(6)]  # t = 0.35 s: sweeps 4 and 5 emitted, 6 not yet
     moving_x = [e["translation"][0] for e in streaming[token] if e["translation"][1] > 0]
     assert moving_x == pytest.approx([5.0 + SPEED * 0.30])  # sweep 5's scan (end 0.30 s), not sweep 4's
+
+
+def test_interpolated_truth_carries_each_annotations_attribute():
+    """An attribute holds from the key frame that annotates it to the next; the trajectories carry none ("")."""
+    moving = [(T0_US + int(t * 1e6), car_boxes(t)[0].copy(), "car", a) for t, a in ((0.2, "vehicle.stopped"), (0.4, "vehicle.moving"))]
+    truth = GroundTruth(None, {"m": moving})
+    assert truth.at(T0_US + 0.2e6).attribute_names().tolist() == ["vehicle.stopped"]
+    assert truth.at(T0_US + 0.3e6).attribute_names().tolist() == ["vehicle.stopped"]
+    assert truth.at(T0_US + 0.4e6).attribute_names().tolist() == ["vehicle.moving"]
+    q = query_truth(make_drive(), truth)
+    assert [e["attribute_name"] for e in q.entries[q.tokens[0]]] == ["vehicle.stopped"]
+    q = query_truth(make_drive(), GroundTruth(trajectories(), None))
+    assert {e["attribute_name"] for t in q.tokens for e in q.entries[t]} == {""}
