@@ -36,7 +36,9 @@ DEFAULT_NOISE_LEVELS = ((0.5, 0.05), (1.0, 0.10), (2.0, 0.20), (3.0, 0.30), (5.0
 
 
 def noise_seed(seed: int, sample_index: int) -> int:
-    """The perturbation seed of one sample in one seeded run: fresh noise per sample, reproducible per seed."""
+    """The perturbation seed of one sample in one seeded run: fresh noise per sample, reproducible per seed. The level
+    is not part of it: every level scales the same unit draw to its bound (common random numbers), so the change
+    from one level to the next is the size of the error alone, not another draw of it."""
     return int(np.random.SeedSequence([seed, sample_index]).generate_state(1)[0])
 
 
@@ -106,8 +108,8 @@ class CalibNoiseResult:
             )
         lines += [
             "", classes_line(self.classes, self.num_samples),
-            "mean and sample std over seeds; per sample and seed a fresh draw per camera; the LUT is rebuilt for every "
-            "noisy rig, the graphs are untouched"
+            "mean and sample std over seeds; per sample and seed a fresh draw per camera, scaled to each level; the LUT "
+            "is rebuilt for every noisy rig, the graphs are untouched"
             + (" (sha256 checked after the run)" if self.graphs_untouched else " (GRAPH SHA256 CHANGED)"),
             "LUT moved: voxels whose first camera slot reads another feature cell than with the true calibration",
             f"model: {self.source}",

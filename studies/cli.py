@@ -279,7 +279,9 @@ def drop_camera(export_dir, checkpoint, data_dir, version, split, max_samples, p
 @_slices_option
 @click.option("--level", "levels", multiple=True, callback=_parse_levels, metavar="DEG,CM",
               help="Noise bound: every Euler angle uniform in +-DEG and every translation axis in +-CM, per camera "
-                   f"(repeat; DEG in [0, 180), CM in [0, {MAX_NOISE_TRANSLATION_CM:g}]; default 0.5,5 1,10 2,20 3,30 5,50).")  # fmt: skip
+                   f"(repeat; DEG in [0, 180), CM in [0, {MAX_NOISE_TRANSLATION_CM:g}]; default 0.5,5 1,10 2,20 3,30 5,50, "
+                   "this tool's choice beside the paper's levels). One draw per sample and seed serves every level, "
+                   "scaled to its bound, so levels differ in size only.")  # fmt: skip
 @click.option("--seeds", type=click.IntRange(1, MAX_SEEDS), default=3, show_default=True,
               help=f"Seeded draws per level (seeds 0..N-1), 1..{MAX_SEEDS}; mean and std are reported.")  # fmt: skip
 def calib_noise(export_dir, checkpoint, data_dir, version, split, max_samples, precision, image_precision, providers, threads,
