@@ -106,9 +106,11 @@ def drop_camera_study(
     def detect(_i: int, sample: Sample) -> dict[str, Detections]:
         images = sample_images(det, sample)
         ts = sample_time_s(sample)
+        encoded = det.encode_images(images)  # once per sample: a variant only leaves cameras out of the lift
         out = {}
         for drop in (None, *names):
-            det.update_images({c: a for c, a in images.items() if c != drop}, timestamp=ts)
+            kept = {c: a for c, a in images.items() if c != drop}
+            det.update_images(kept, timestamp=ts, encoded={c: encoded[c] for c in kept})
             out["all" if drop is None else drop] = det.detect_sweep(sweep_points(sample), timestamp=ts, num_slices=n)
         if blind is not None:
             out[_NO_CAMERAS] = blind.detect_sweep(sweep_points(sample), timestamp=ts, num_slices=n)
