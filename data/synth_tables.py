@@ -38,6 +38,7 @@ ATTRIBUTES = (
     "pedestrian.standing",
     "pedestrian.moving",
 )
+ATTRIBUTE_NAMES = ("", *ATTRIBUTES)  # attribute_indices' codes: 0 = none
 
 TABLE_NAMES = (
     "category", "attribute", "visibility", "instance", "sensor", "calibrated_sensor", "ego_pose",
@@ -272,13 +273,27 @@ def write_tables(table_dir: Path, root: Path, rows: dict[str, list[dict]], seed:
         (table_dir / f"{name}.json").write_text(json.dumps(rows[name], indent=0))
 
 
+def attribute_indices(kind, speed_mps, flag, lateral_m) -> np.ndarray:
+    """Each object's nuScenes attribute as an index into ATTRIBUTE_NAMES (0: none), arrays broadcast: a vehicle moves
+    above 0.3 m/s, else it is parked beside the road or stopped on it; a cycle has a rider or not (``flag``); a
+    pedestrian moves above 0.2 m/s or stands. The annotations (``Tables.annotations``) and the trajectories sidecar
+    (``synth_trajectories``) both take it from here."""
+    kind, speed, flag, lateral = np.broadcast_arrays(np.asarray(kind, np.int64), np.asarray(speed_mps, np.float64),
+                                                     np.asarray(flag, bool), np.asarray(lateral_m, np.float64))  # fmt: skip
+    index = ATTRIBUTE_NAMES.index
+    vehicle = np.isin(kind, [int(Kind.CAR), int(Kind.TRUCK), int(Kind.BUS)])
+    cycle = np.isin(kind, [int(Kind.BICYCLE), int(Kind.MOTORCYCLE)])
+    walker = kind == int(Kind.PEDESTRIAN)
+    parked = lateral > PARKING_OFFSET_M - 1.0
+    choices = [
+        (vehicle & (speed > 0.3), "vehicle.moving"), (vehicle & ~(speed > 0.3) & parked, "vehicle.parked"),
+        (vehicle & ~(speed > 0.3) & ~parked, "vehicle.stopped"), (cycle & flag, "cycle.with_rider"),
+        (cycle & ~flag, "cycle.without_rider"), (walker & (speed > 0.2), "pedestrian.moving"),
+        (walker & ~(speed > 0.2), "pedestrian.standing"),
+    ]  # fmt: skip
+    return np.select([c for c, _ in choices], [index(name) for _, name in choices], default=0).astype(np.uint8)
+
+
 def attribute_of(kind: int, speed: float, flag: bool, lateral_m: float) -> str:
-    if kind in (Kind.CAR, Kind.TRUCK, Kind.BUS):
-        if speed > 0.3:
-            return "vehicle.moving"
-        return "vehicle.parked" if lateral_m > PARKING_OFFSET_M - 1.0 else "vehicle.stopped"
-    if kind in (Kind.BICYCLE, Kind.MOTORCYCLE):
-        return "cycle.with_rider" if flag else "cycle.without_rider"
-    if kind == Kind.PEDESTRIAN:
-        return "pedestrian.moving" if speed > 0.2 else "pedestrian.standing"
-    return ""
+    """One object's attribute name ("" for none): ``attribute_indices`` of one object."""
+    return ATTRIBUTE_NAMES[int(attribute_indices(kind, speed, flag, lateral_m))]

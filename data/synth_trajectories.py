@@ -12,6 +12,8 @@ model has; a reader interpolates linearly between samples (exact for the straigh
     S/boxes         (T, K, 9) float64 world boxes x, y, z, w, l, h, yaw, vx, vy (nuScenes global frame)
     S/names         (K,) str detection class of each object
     S/ego2global    (T, 4, 4) float64 ego pose
+    S/attributes    (T, K) uint8 each object's nuScenes attribute at each sample, an index into
+                    ``synth_tables.ATTRIBUTE_NAMES`` (0: none); optional (absent in datasets written before it)
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ import numpy as np
 
 from streamdet.core.classes import CLASS_NAMES
 from streamdet.core.errors import first_line
+from streamdet.data.synth_tables import ATTRIBUTE_NAMES, attribute_indices
 from streamdet.data.synth_world import KIND_SPECS, make_scene
 
 if TYPE_CHECKING:
@@ -33,6 +36,7 @@ if TYPE_CHECKING:
 
 TRAJECTORIES_FILE = "trajectories.npz"
 MEMBERS = ("times_us", "boxes", "names", "ego2global")
+ATTRIBUTES_MEMBER = "attributes"  # optional: files written before it have none
 # The most one member may declare uncompressed (checked in the zip directory before it is inflated): a scene of
 # minutes at 100 Hz with hundreds of objects is tens of MB; a small file declaring more is a zip bomb.
 MAX_MEMBER_BYTES = 1 << 30
@@ -60,6 +64,9 @@ def write_trajectories(out: str | Path, config: SynthConfig, rate_hz: float = 10
         arrays[f"{scene.name}/boxes"] = boxes.astype(np.float64)
         arrays[f"{scene.name}/names"] = np.array([KIND_SPECS[int(k)].detection_class for k in objs.kind[keep]], dtype=np.str_)
         arrays[f"{scene.name}/ego2global"] = np.stack([scene.ego2global(float(t)) for t in times_s])  # (T, 4, 4)
+        lateral = np.abs(scene.to_road(boxes[..., :2])[1])  # (T, K) distance from the road's centre line
+        speed = np.linalg.norm(objs.velocity[keep], axis=-1)  # (K,)
+        arrays[f"{scene.name}/{ATTRIBUTES_MEMBER}"] = attribute_indices(objs.kind[keep], speed, objs.flag[keep], lateral)
     path = Path(out) / TRAJECTORIES_FILE
     np.savez_compressed(path, **arrays)
     return path
@@ -73,6 +80,15 @@ class Trajectories:
     boxes: np.ndarray  # (T, K, 9) world boxes
     names: np.ndarray  # (K,) str
     ego2global: np.ndarray  # (T, 4, 4)
+    attributes: np.ndarray | None = None  # (T, K) uint8 codes of ATTRIBUTE_NAMES; None: the file has none
+
+    def attributes_at(self, t_us: float) -> np.ndarray | None:
+        """(K,) attribute names at ``t_us`` (the sample at or before it: an attribute holds until the next); None
+        when the file records none."""
+        if self.attributes is None:
+            return None
+        i, w = self._bracket(t_us)
+        return np.array(ATTRIBUTE_NAMES, dtype=object)[self.attributes[i + 1 if w >= 1.0 else i]]
 
     def _bracket(self, t_us: float) -> tuple[int, float]:
         t = self.times_us
@@ -131,9 +147,24 @@ def load_trajectories(root: str | Path, scene_name: str) -> Trajectories | None:
                 if size > MAX_MEMBER_BYTES:
                     raise ValueError(f"{k} declares {size} bytes uncompressed, over the {MAX_MEMBER_BYTES}-byte cap")
             arrays = [f[k] for k in keys]
+            attr_key = f"{scene_name}/{ATTRIBUTES_MEMBER}"
+            attributes = None
+            if attr_key in f.files:
+                size = f.zip.getinfo(f"{attr_key}.npy").file_size
+                if size > MAX_MEMBER_BYTES:
+                    raise ValueError(f"{attr_key} declares {size} bytes uncompressed, over the {MAX_MEMBER_BYTES}-byte cap")
+                attributes = f[attr_key]
     except (ValueError, OSError, EOFError, KeyError, zipfile.BadZipFile, zipfile.LargeZipFile, zlib.error) as e:
         raise ValueError(f"trajectories file {path}: {first_line(e)}") from None
-    return Trajectories(*_checked(path, scene_name, *arrays))
+    checked = _checked(path, scene_name, *arrays)
+    if attributes is not None:
+        t, k = checked[1].shape[:2]
+        if attributes.shape != (t, k) or attributes.dtype.kind not in "iu" or (attributes.size and
+                                                                               not 0 <= int(attributes.min()) <= int(attributes.max()) < len(ATTRIBUTE_NAMES)):  # fmt: skip
+            raise ValueError(f"trajectories file {path}: scene {scene_name!r}: attributes must be ({t}, {k}) integer codes "
+                             f"0..{len(ATTRIBUTE_NAMES) - 1}, got {attributes.dtype} {attributes.shape}")  # fmt: skip
+        attributes = attributes.astype(np.uint8)
+    return Trajectories(*checked, attributes)
 
 
 def _checked(path: Path, scene: str, times: np.ndarray, boxes: np.ndarray, names: np.ndarray,

@@ -77,7 +77,7 @@ class GroundTruth:
     def at(self, t_us: float) -> TruthBoxes:
         if self._trajectories is not None:
             boxes = self._trajectories.boxes_at(t_us)
-            return TruthBoxes(boxes, self._trajectories.names)
+            return TruthBoxes(boxes, self._trajectories.names, self._trajectories.attributes_at(t_us))
         rows, names, attributes = [], [], []
         for track in self._tracks.values():
             box = _interpolate(track, t_us)
