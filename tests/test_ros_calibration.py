@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from types import SimpleNamespace as ns
 
 import numpy as np
 import pytest
@@ -10,14 +9,9 @@ import pytest
 from streamdet.calibration.camera import Rig, make_transform, matrix_to_quaternion, quaternion_to_matrix
 from streamdet.runtime_ort.ros.camera_info import camera_info_intrinsics, camera_info_message, rig_from_ros
 from streamdet.runtime_ort.ros.tf import TfBuffer, transform_stamped_msg
+from test_hardening_ros_adapters import as_msg
 
 
-def as_msg(value):
-    if isinstance(value, dict):
-        return ns(**{k: as_msg(v) for k, v in value.items()})
-    if isinstance(value, list):
-        return [as_msg(v) for v in value]
-    return value
 
 
 def _record(rng: np.random.Generator, scale: float = 1.0) -> dict:

@@ -27,18 +27,13 @@ from streamdet.runtime_ort.ros.images import compressed_image_to_rgb, image_to_r
 from streamdet.runtime_ort.ros.pointcloud2 import CloudFields, decode_pointcloud2, pointcloud2_message
 from streamdet.runtime_ort.ros.tf import TfBuffer, transform_stamped_msg
 
+from test_hardening_ros_adapters import as_msg  # noqa: E402 (a dict message as the readers' attribute object)
+
 ROOT = Path(__file__).resolve().parents[1]
 STAMP_NS = 1_700_000_000_000_000_000
 IDENTITY = {"rotation": [1.0, 0.0, 0.0, 0.0], "translation": [0.0, 0.0, 0.0]}
 
 
-def as_msg(value):
-    """A message dict (what the adapters write) as an object with ROS field attributes (what the readers give)."""
-    if isinstance(value, dict):
-        return ns(**{k: as_msg(v) for k, v in value.items()})
-    if isinstance(value, list):
-        return [as_msg(v) for v in value]
-    return value
 
 
 def sweep(n: int = 2000, seed: int = 0) -> np.ndarray:
