@@ -15,7 +15,7 @@ import numpy as np
 
 from streamdet.cli_utils import (
     MAX_SLICES, PRECISION_CHOICES, check_folder_creatable, check_output_parent, image_precision_option, providers_option,
-    refuse_output_over_inputs, require_export_dir)
+    refuse_output_over_inputs, require_export_dir, slices_callback)
 from streamdet.runtime_ort.stats import format_latency
 from streamdet.core import constants
 
@@ -45,18 +45,6 @@ def check_out_dir(out_dir: Path, inputs: list[tuple[str, Path | None]]) -> None:
         missing = next((p for p in reversed([absolute, *absolute.parents]) if not p.exists()), None)
         if missing is not None:
             check_output_parent(missing, "--out")
-
-
-def _slices_callback(ctx: click.Context, param: click.Parameter, value: int | None) -> int | None:
-    """--slices 6, 0 or -8 is a usage error (exit 2), as streamdet-bench gives it, not a failed run."""
-    if value is not None:
-        from streamdet.core.sectors import check_num_slices
-
-        try:
-            check_num_slices(value)
-        except ValueError as e:
-            raise click.BadParameter(f"{e} (the detector's num_slices)") from None
-    return value
 
 
 def run_sample(
@@ -140,7 +128,7 @@ def run_sample(
 @click.option("--sample", "sample_dir", type=click.Path(path_type=Path, file_okay=False), default=None,
               help="A sample folder in the bundled layout (calibration.json, boxes.json, .pcd.bin, CAM_*.jpg). "
                    "Default: the bundled real nuScenes sample.")
-@click.option("--slices", "num_slices", type=int, default=None, callback=_slices_callback,
+@click.option("--slices", "num_slices", type=int, default=None, callback=slices_callback,
               help=f"Slices per sweep (1, 2 or a multiple of 4, up to {MAX_SLICES}). Default: the number the export was "
                    "made for.")
 @click.option("--precision", type=click.Choice(PRECISION_CHOICES), default="fp32", show_default=True,

@@ -9,8 +9,8 @@ import click
 
 from click.core import ParameterSource
 
-from streamdet.cli_utils import MAX_SLICES, RESOLUTION_RANGE_HELP, dataset_inputs, refuse_output_over_inputs, resolution_callback
-from streamdet.core.sectors import check_num_slices
+from streamdet.cli_utils import (
+    MAX_SLICES, RESOLUTION_RANGE_HELP, dataset_inputs, refuse_output_over_inputs, resolution_callback, slices_callback)
 from streamdet.core.image_layout import IMAGE_LAYOUTS
 from streamdet.core.lut_layout import LUT_LAYOUTS
 from streamdet.export.exporter import STEM_STRIDE, ExportError, ExportOptions, ExportUsageError, run_export
@@ -33,16 +33,6 @@ _GIVEN_ONLY = ("calibration_samples", "seed", "image_layout", "lut_layout")
 _GIVEN = (ParameterSource.COMMANDLINE, ParameterSource.ENVIRONMENT)
 
 
-def _slices_callback(ctx: click.Context, param: click.Parameter, value: int | None) -> int | None:
-    """--slices 6 is a usage error (exit 2) as streamdet-bench and streamdet-run give it, not a failed export."""
-    if value is not None:
-        try:
-            check_num_slices(value)
-        except ValueError as e:
-            raise click.BadParameter(str(e)) from None
-    return value
-
-
 @click.command(context_settings={"help_option_names": ["-h", "--help"]})
 @click.option("--preset", default=None, type=click.Choice(preset_names()),
               help=f"Model preset to export. Default: the preset --checkpoint names, else {DEFAULT_PRESET} (the shipped model's).")
@@ -55,7 +45,7 @@ def _slices_callback(ctx: click.Context, param: click.Parameter, value: int | No
 @click.option("--resolution", callback=resolution_callback(multiple_of=STEM_STRIDE), default=None, metavar="WxH",
               help=f"Camera image size in pixels, e.g. 800x450; width and height must be even, {RESOLUTION_RANGE_HELP}. "
                    "Default: the preset's. Refused for a LiDAR-only checkpoint (no images).")
-@click.option("--slices", "num_slices", type=click.IntRange(1, MAX_SLICES), default=8, show_default=True, callback=_slices_callback,
+@click.option("--slices", "num_slices", type=click.IntRange(1, MAX_SLICES), default=8, show_default=True, callback=slices_callback,
               help=f"Slices per sweep (1, 2 or a multiple of 4 up to {MAX_SLICES}); picks the LiDAR slice used for the parity checks.")
 @click.option("--fp16", is_flag=True, help="Also write fp16 siblings (*.fp16.onnx; inputs and outputs stay fp32) and check them.")
 @click.option("--int8", is_flag=True,

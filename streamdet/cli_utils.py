@@ -12,7 +12,7 @@ from streamdet.cli_outputs import (  # noqa: F401 (re-exported: every CLI import
 from streamdet.core.camera_timeout import DEFAULT_CAMERA_TIMEOUT_S, MAX_CAMERA_TIMEOUT_S
 from streamdet.core.providers import parse_providers
 from streamdet.core.constants import MAX_RESOLUTION_PX, MAX_SESSION_THREADS, MIN_RESOLUTION_PX, PRECISIONS
-from streamdet.core.sectors import MAX_NUM_SLICES
+from streamdet.core.sectors import MAX_NUM_SLICES, check_num_slices
 from streamdet.core.table_version import DEFAULT_TABLE_VERSION, table_version_problem
 
 # Every tool that takes an image size spells it the same way, within the same bounds (core/constants.py).
@@ -79,6 +79,18 @@ def resolution_callback(*, min_px: int = MIN_RESOLUTION_PX, max_px: int | None =
 # Upper bounds of the numeric options the tools share: far past any documented use, short of a value that allocates
 # gigabytes, overflows a clock or runs for days.
 MAX_SLICES = MAX_NUM_SLICES  # slices per sweep: core.sectors' bound (sectors of 0.09 deg; the slice index column's range)
+
+
+def slices_callback(ctx: click.Context, param: click.Parameter, value: int | None) -> int | None:
+    """A ``--slices`` value that is no slice count (6, 0, -8) as a usage error (exit 2), not a failed run."""
+    if value is not None:
+        try:
+            check_num_slices(value)
+        except ValueError as e:
+            raise click.BadParameter(f"{e} (the detector's num_slices)") from None
+    return value
+
+
 MAX_THREADS = 1024  # slice workers: LaneConfig's 1..1024 for the lanes
 MAX_INTRA_OP_THREADS = MAX_SESSION_THREADS  # --threads of one onnxruntime session (core/constants.py)
 MAX_FALLBACK_AFTER_MS = 60_000.0  # an image BEV a minute old is no image BEV
