@@ -27,6 +27,12 @@ from streamdet.core.points import (
 from streamdet.core.sectors import azimuth_deg, check_num_slices, sector_bounds_deg, slice_index_of
 
 
+# The azimuth where the slices of training start (training/dataset.py, training/torch_eval.py): a model learns its
+# points' slice-index and time features counted from here. A runtime slicing from another start (DetectorConfig.
+# start_deg) cuts the same sectors but feeds other feature values for them (runtime_ort: SliceStartWarning).
+TRAINED_START_DEG = 0.0
+
+
 def relative_time_s(points: np.ndarray, start_deg: float = 0.0, sweep_duration_s: float = SWEEP_DURATION_S) -> np.ndarray:
     """(N,) float64 time of each point after the scan start, from its azimuth (counter-clockwise scan)."""
     points = np.asarray(points)

@@ -25,6 +25,12 @@ def lane_precision_label(precision: str, image_precision: str | None) -> str:
     return f"{image_precision} image lane + {precision} slices"
 
 
+class SliceStartWarning(UserWarning):
+    """``DetectorConfig.start_deg`` is not where the model's training slices started (``core.slicing.
+    TRAINED_START_DEG``): the sectors are cut right, but their points' slice-index and time features differ from
+    the values the model learnt for the same azimuths."""
+
+
 class NoImageLaneError(ValueError):
     """An image-lane call (images, calibration, image size) on a LiDAR-only export, which has no image lane."""
 
@@ -53,7 +59,9 @@ class DetectorConfig:
     # (W, H) px of the images fed to the encoder; None: the export's. The graphs are dynamic in H and W, so another
     # size only needs a LUT built for it: from the export's calibration source at start, then set_calibration.
     image_size: tuple[int, int] | None = None
-    start_deg: float = 0.0  # azimuth where slice 0 starts (a multiple of 90 in [-360, 360))
+    # Azimuth where slice 0 starts (a multiple of 90 in [-360, 360)). The models are trained with slices from 0
+    # (core.slicing.TRAINED_START_DEG): another start feeds them other slice-index / time features (SliceStartWarning)
+    start_deg: float = 0.0
     score_threshold: float | None = None  # None: the export's post.score_threshold
     # Per-class NMS inside a slice and across a sweep. None: the export's post settings, i.e. circle NMS with
     # max_out = post.max_detections and, for NmsKind.ROTATED, post.nms_iou_threshold per class (the detector's

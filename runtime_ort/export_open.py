@@ -28,7 +28,8 @@ from streamdet.calibration.lut import BlindCameraWarning, Lut, blind_cameras, bu
 from streamdet.calibration.quadrant_lut import QuadrantLut
 from streamdet.core.sectors import NUM_QUADRANTS, check_num_slices, quadrants_of_sector
 from streamdet.runtime_ort.camera_terms import CameraTerms, open_camera_terms
-from streamdet.runtime_ort.detector_config import DetectorConfig, NoImageLaneError
+from streamdet.core.slicing import TRAINED_START_DEG
+from streamdet.runtime_ort.detector_config import DetectorConfig, NoImageLaneError, SliceStartWarning
 from streamdet.runtime_ort.export_settings import export_nms, export_rig, image_spec_at
 from streamdet.runtime_ort.fallback import FALLBACK_GRAPH, LidarFallback, open_fallback
 from streamdet.runtime_ort.graph_files import checked_model, model_signature
@@ -129,6 +130,11 @@ def open_export(export_dir: Path, config: DetectorConfig, manifest: Manifest | N
         check_num_slices(num_slices, config.start_deg)
     except ValueError as e:
         raise ManifestError(f"{export_dir / 'manifest.json'}: num_slices: {e}") from None
+    if (config.start_deg - TRAINED_START_DEG) % 360.0:
+        warnings.warn(f"DetectorConfig.start_deg {config.start_deg:g}: {export_dir} was trained on slices starting at "
+                      f"{TRAINED_START_DEG:g} deg; its slices are cut right, but their points' slice index and time "
+                      f"features differ from the ones it learnt for the same azimuths (detections may degrade)",
+                      SliceStartWarning, stacklevel=3)  # fmt: skip
     pillars = m.preset["pillars"]
     max_points_per_pillar = int(pillars["max_points_per_pillar"])
     max_pillars = int(pillars["max_pillars"])

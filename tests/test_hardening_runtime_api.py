@@ -248,3 +248,28 @@ def test_a_slice_finishing_after_close_names_its_graph(det, sample, monkeypatch)
     assert res.num_pillars > 0
     with pytest.raises(DetectorClosed):
         det.detect_slice(split_sweep(sample.points, 8)[0], 0, timestamp=0.0)
+
+
+@pytest.mark.parametrize("start_deg, warns", [(90.0, True), (-90, True), (0.0, False), (-360, False)])
+def test_a_start_azimuth_other_than_training_s_is_warned(tiny_export, sample, start_deg, warns):
+    """The models learn their points' slice-index and time features from slices starting at TRAINED_START_DEG; a
+    detector slicing from another start cuts the same sectors but feeds other features for them (training review)."""
+    import warnings
+
+    from streamdet.core.slicing import TRAINED_START_DEG
+    from streamdet.runtime_ort import SliceStartWarning
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        det = StreamingDetector(tiny_export, DetectorConfig(start_deg=start_deg))
+    said = [w for w in caught if issubclass(w.category, SliceStartWarning)]
+    assert len(said) == int(warns)
+    if warns:
+        assert said[0].filename == __file__  # points at the code that built the detector
+        assert f"start_deg {start_deg:g}" in str(said[0].message) and f"starting at {TRAINED_START_DEG:g}" in str(said[0].message)
+        ours = split_sweep(sample.points, det.num_slices, start_deg)
+        trained = split_sweep(sample.points, det.num_slices, TRAINED_START_DEG)
+        shift = round((start_deg - TRAINED_START_DEG) % 360 / 360 * det.num_slices)
+        assert np.array_equal(ours[0][:, :4], trained[shift][:, :4])  # the same sector ...
+        assert not np.array_equal(ours[0][:, 4:], trained[shift][:, 4:])  # ... with other features
+    det.close()

@@ -76,6 +76,8 @@ def test_two_processes_match_one_process(data_dir, tmp_path):
     assert loose <= max(2, total // 200), f"{loose} of {total} weights differ by more than 2e-4"
     for ra, rb in zip(la, lb):
         assert ra["loss"] == pytest.approx(rb["loss"], rel=1e-4)
+        for part in ("heatmap", "reg", "loc_xy", "dim", "rot", "vel"):  # parts were logged 1 / world_size of their value
+            assert ra[part] == pytest.approx(rb[part], rel=1e-3), part
 
 
 @pytest.mark.slow
@@ -87,6 +89,8 @@ def test_two_processes_fused_first_step_matches(data_dir, tmp_path):
     one step is run: the steps after it, and the epoch boundary, are the LiDAR-only test's."""
     a, b, la, lb = _run_both(data_dir, tmp_path, no_image=False, steps=1)
     assert la[0]["loss"] == pytest.approx(lb[0]["loss"], rel=1e-4)
+    for part in ("heatmap", "reg"):
+        assert la[0][part] == pytest.approx(lb[0][part], rel=1e-4), part
     for k, va in a["model"].items():
         if k.startswith("slice_net.head") and va.is_floating_point():
             assert torch.isfinite(b["model"][k]).all(), k

@@ -526,3 +526,48 @@ def test_optimizer_state_of_a_meta_or_sparse_moment_is_refused_in_one_line(kind,
     optimizer.state[param] = {"step": torch.tensor(1.0), "exp_avg": moment, "exp_avg_sq": torch.zeros(3, 2)}
     with pytest.raises(ValueError, match=r"checkpoint .*last\.pt: optimizer state 'exp_avg' is a (meta|sparse) tensor"):
         check_optimizer_state(optimizer, tmp_path / "last.pt")
+
+
+def test_resume_restores_the_fp16_loss_scaler(tmp_path):
+    """last.pt keeps the loss scaler's state (CUDA fp16 autocast): its scale and growth tracker decide which next
+    steps are skipped, so a resume without them was not the uninterrupted run. Another --amp on resume is said."""
+    from types import SimpleNamespace
+
+    from streamdet.training.trainer import _restore_scaler
+
+    said: list[str] = []
+    saved_scaler = torch.amp.GradScaler("cpu", init_scale=1024.0, growth_interval=7)
+    saved_scaler._lazy_init_scale_growth_tracker(torch.device("cpu"))
+    saved_scaler.update(new_scale=256.0)
+    saved = saved_scaler.state_dict()
+    run = SimpleNamespace(scaler=torch.amp.GradScaler("cpu", growth_interval=7), say=said.append)
+    _restore_scaler(run, "last.pt", saved)
+    assert run.scaler.get_scale() == 256.0 and not said
+    run = SimpleNamespace(scaler=torch.amp.GradScaler("cpu"), say=said.append)
+    _restore_scaler(run, "last.pt", None)  # trained without fp16 autocast
+    assert run.scaler.get_scale() == 65536.0 and "fresh loss scaler" in said[-1]
+    run = SimpleNamespace(scaler=torch.amp.GradScaler("cpu", enabled=False), say=said.append)
+    _restore_scaler(run, "last.pt", saved)
+    assert "dropped" in said[-1]
+    for bad, match in ((["x"], "not the GradScaler"), ({**saved, "scale": float("nan")}, "finite"), ({**saved, "scale": -1.0}, "finite")):
+        run = SimpleNamespace(scaler=torch.amp.GradScaler("cpu"), say=said.append)
+        with pytest.raises(ValueError, match=match):
+            _restore_scaler(run, "last.pt", bad)
+
+
+@pytest.mark.parametrize("world, rank, skip", [(1, 0, 0), (1, 0, 3), (2, 1, 2), (3, 0, 5)])
+def test_a_resumed_epoch_skips_indices_not_batches(world, rank, skip):
+    """A resume leaves the batches already trained out at the index level (they were built, pillarised and thrown
+    away: about a second a batch); what follows is the uninterrupted epoch's order, epoch after epoch."""
+    from streamdet.training.trainer import ResumableSampler
+
+    data = list(range(23))
+    for epoch in (0, 4):
+        full = torch.utils.data.DistributedSampler(data, num_replicas=world, rank=rank, shuffle=True, seed=9, drop_last=True)
+        ours = ResumableSampler(data, num_replicas=world, rank=rank, shuffle=True, seed=9, drop_last=True)
+        full.set_epoch(epoch)
+        ours.set_epoch(epoch)
+        ours.skip = skip
+        assert list(ours) == list(full)[skip:] and len(ours) == len(full)
+        ours.skip = 0
+        assert list(ours) == list(full)

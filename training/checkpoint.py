@@ -12,6 +12,7 @@ Training checkpoint (``save_training_state``)::
     data        {"samples", "tokens_sha256"} of the train split (trainer.data_record): a resume checks it continues
                 over the same samples (absent in checkpoints from before it: not checked)
     image_classifier   only with the image class loss: its training-only classifier (training/image_class.py)
+    scaler      only under CUDA fp16 autocast (--amp): the loss scaler's state dict (scale, growth tracker)
 
 Weights for shipping (``save_weights``): only ``format`` "streamdet-weights-v1", ``preset``, ``model`` (and an
 optional ``meta`` dict). Both have the ``{"preset", "model"}`` keys that ``streamdet.export.weights.load_detector``
@@ -49,10 +50,13 @@ def save_atomic(obj: Any, path: str | os.PathLike) -> None:
 
 def save_training_state(path: str | os.PathLike, *, preset: Preset, model: StreamDetector, optimizer, scheduler,
                         step: int, epoch: int, epoch_step: int, config: dict[str, Any],
-                        image_classifier: torch.nn.Module | None = None, data: dict[str, Any] | None = None) -> None:  # fmt: skip
+                        image_classifier: torch.nn.Module | None = None, data: dict[str, Any] | None = None,
+                        scaler: dict[str, Any] | None = None) -> None:  # fmt: skip
     extra = {} if image_classifier is None else {"image_classifier": image_classifier.state_dict()}
     if data is not None:
         extra["data"] = data
+    if scaler is not None:
+        extra["scaler"] = scaler
     save_atomic(
         {
             "format": TRAIN_FORMAT,

@@ -110,6 +110,21 @@ def init_head_outputs(detector, std: float = HEAD_OUTPUT_INIT_STD) -> None:
                 torch.nn.init.normal_(branch[-1].weight, 0.0, std)
 
 
+class ResumableSampler(DistributedSampler):
+    """``DistributedSampler`` that can start an epoch part-way: ``skip`` leaves out the first indices of this
+    process's order (a resume's batches already trained), so they are never read or pillarised. The samples' own
+    randomness is drawn from (seed, epoch, index) (``SliceDataset``), so the batches after the cut are the
+    uninterrupted run's. ``len`` stays the whole epoch's."""
+
+    skip: int = 0
+
+    def __iter__(self):
+        order = super().__iter__()
+        for _ in range(self.skip):
+            next(order, None)
+        return order
+
+
 def make_loader(dataset: SliceDataset, config: TrainConfig, ctx: DistContext, collate: Collator) -> tuple[DataLoader, DistributedSampler]:
     """Per-process loader over the (optionally class-balanced) sample list; drop_last keeps every step's global
     batch full and the same on every process count."""
@@ -117,7 +132,7 @@ def make_loader(dataset: SliceDataset, config: TrainConfig, ctx: DistContext, co
     if config.balanced:
         view = class_balanced_indices(dataset.class_sets(), config.seed).tolist()
     source = Subset(dataset, view)
-    sampler = DistributedSampler(source, num_replicas=ctx.world_size, rank=ctx.rank, shuffle=True, seed=config.seed, drop_last=True)
+    sampler = ResumableSampler(source, num_replicas=ctx.world_size, rank=ctx.rank, shuffle=True, seed=config.seed, drop_last=True)
     if len(sampler) < config.batch_size:
         raise ValueError(
             f"{len(view)} training samples over {ctx.world_size} process(es) give {len(sampler)} per process, "
@@ -140,7 +155,7 @@ class _TrainRun:
     say: Callable[[str], None]
     dataset: SliceDataset
     loader: DataLoader
-    sampler: DistributedSampler
+    sampler: ResumableSampler
     detector: Any  # StreamDetector
     model: TrainingModel
     wrapped: torch.nn.Module  # the model, DDP-wrapped under torchrun
@@ -168,7 +183,8 @@ class _TrainRun:
         save_training_state(path, preset=self.preset, model=self.detector, optimizer=self.optimizer,
                             scheduler=self.schedule, step=self.schedule.step, epoch=self.epoch,
                             epoch_step=self.epoch_step, config=self.config.to_dict(),
-                            image_classifier=self.model.image_classifier, data=data_record(self.dataset.store))  # fmt: skip
+                            image_classifier=self.model.image_classifier, data=data_record(self.dataset.store),
+                            scaler=self.scaler.state_dict() if self.scaler.is_enabled() else None)  # fmt: skip
         return path
 
     def elapsed(self) -> float:
@@ -214,7 +230,8 @@ def train(
     """Train on the ``train`` split of ``data_dir``; see the module docstring for what lands in ``out_dir``.
 
     ``store`` skips reading the dataset (tests, or several runs over one store). ``resume`` continues a
-    ``last.pt``: model, optimizer, scheduler and data position, so the continuation is the uninterrupted run's.
+    ``last.pt``: model, optimizer, scheduler, fp16 loss scaler and data position, so the continuation is the
+    uninterrupted run's (given the same --amp and device kind).
     ``init`` starts from the weights of a checkpoint of the same preset (``model.pt``, ``last.pt`` or shipped
     weights) with a fresh optimizer and schedule: fine-tuning, or a second budget on top of a first; from a checkpoint
     of another preset, the parts whose configuration both share (``checkpoint.TRANSFERABLE_PARTS``: image encoder,
@@ -480,10 +497,33 @@ def _restore(run: _TrainRun, resume: str | Path, state: dict[str, Any]) -> None:
     if run.schedule.step < 0 or not math.isfinite(run.schedule.elapsed_s) or run.schedule.elapsed_s < 0:
         raise ValueError(f"checkpoint {resume}: scheduler step {run.schedule.step} / elapsed_s {run.schedule.elapsed_s} "
                          f"must be >= 0 and finite")  # fmt: skip
+    _restore_scaler(run, resume, state.get("scaler"))
     run.epoch, run.epoch_step, run.elapsed_before = state["epoch"], state["epoch_step"], run.schedule.elapsed_s
     run.say(f"resumed {resume} at step {run.schedule.step} (epoch {run.epoch}, batch {run.epoch_step})")
     if run.schedule.done:
         raise ValueError(f"checkpoint {resume} finished its schedule ({run.plan}): nothing left to train")
+
+
+def _restore_scaler(run: _TrainRun, resume: str | Path, saved: object) -> None:
+    """The fp16 loss scaler's state (CUDA fp16 autocast): its scale and growth tracker decide which of the next steps
+    are skipped, so a resume without them is not the uninterrupted run. A run resumed under another --amp starts a
+    fresh scaler (or drops the saved one), and says so."""
+    if not run.scaler.is_enabled():
+        if saved:
+            run.say(f"resuming {resume} without fp16 autocast: it was trained with it (--amp), its loss scaler is dropped")
+        return
+    if not saved:
+        run.say(f"resuming {resume} with fp16 autocast and a fresh loss scaler: it was trained without it (--amp)")
+        return
+    if not isinstance(saved, dict):
+        raise ValueError(f"checkpoint {resume}: 'scaler' is a {type(saved).__name__}, not the GradScaler's state dict")
+    try:
+        run.scaler.load_state_dict(saved)
+    except (ValueError, KeyError, TypeError, RuntimeError) as e:
+        raise ValueError(f"checkpoint {resume}: its loss scaler state does not fit: {first_line(e)}") from None
+    scale = run.scaler.get_scale()
+    if not (math.isfinite(scale) and scale > 0):
+        raise ValueError(f"checkpoint {resume}: its loss scaler's scale must be finite and > 0, got {scale!r}")
 
 
 def check_optimizer_state(optimizer: torch.optim.Optimizer, path: str | Path) -> None:
@@ -524,10 +564,9 @@ def _loop(run: _TrainRun, log_file) -> tuple[bool, float]:
     images_on = schedule.progress >= config.image_warmup
     while not schedule.done and not stopped_early:
         run.sampler.set_epoch(run.epoch)
+        run.sampler.skip = run.epoch_step * run.config.batch_size  # resume: not the batches this epoch already used
         run.dataset.set_epoch(run.epoch)
         batches = iter(run.loader)
-        for _ in range(run.epoch_step):  # resume: skip the batches this epoch already used (same order: same seed)
-            next(batches)
         stepped = run.epoch_step > 0  # whether this epoch took an optimizer step (a resumed one: before the cut)
         for batch in batches:
             batch = batch.to(run.device)
@@ -549,8 +588,8 @@ def _loop(run: _TrainRun, log_file) -> tuple[bool, float]:
             window["samples"] += batch.num_samples
             window["slices"] += batch.num_slices
             window["loss"] += last_loss
-            for k, v in parts.items():
-                window["parts"][k] = window["parts"].get(k, 0.0) + float(v) / ctx.world_size
+            for k, v in parts.items():  # unscaled local shares (normalised by the global counts): they sum to the part
+                window["parts"][k] = window["parts"].get(k, 0.0) + float(v)
             window["n"] += 1
             if schedule.step % config.log_every == 0:
                 _log(window, schedule, lr, run.epoch, ctx, run.say, log_file)
