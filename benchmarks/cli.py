@@ -122,8 +122,10 @@ def _flops_only(preset: str, resolution: tuple[int, int] | None, json_path: Path
     "--resolution",
     callback=resolution_callback(),
     metavar="WxH",
-    help="Image size of the given image row and of the streaming export, e.g. 800x450 (default: the preset's); the "
-    "other image rows are the rest of 1600x900 / 1200x675 / 800x450. With --flops-only: the only image row. "
+    help="Image size of the given image row and of the export made here for the streaming section, e.g. 800x450 "
+    "(default: the preset's); the other image rows are the rest of 1600x900 / 1200x675 / 800x450. An --export-dir "
+    "export keeps its own size: the streaming section runs at it and --resolution sets only the rows. With "
+    "--flops-only: the only image row. "
     f"Sizes: {RESOLUTION_RANGE_HELP}.",
 )
 @click.option("--slices", type=click.IntRange(1, MAX_SLICES), default=None,

@@ -260,7 +260,10 @@ def _compare(run_a: str, run_b: str, gt_path: Path | None, classes: tuple[str, .
 @click.option(
     "--classes", default=None, metavar="NAME[,NAME...]",
     help="Evaluate and average only these classes (e.g. car,pedestrian,bicycle); default: files mode all 10, as the "
-    "devkit; dataset mode the classes present in the ground truth.",
+    "devkit; dataset mode the classes with a ground-truth box with points; compare mode the classes left with such "
+    "a box after the devkit's class-range and bike-rack filters. A class whose boxes all lie beyond its range counts "
+    "as AP 0 in the dataset mode but drops out of --compare, so a saved run's mAP can differ there: give --compare "
+    "the classes the dataset mode printed to get its figures again.",
 )  # fmt: skip
 @click.option(
     "--compare", "compare_runs", nargs=2, type=str, default=None,
