@@ -13,6 +13,7 @@ They are renamed to ``/decode/<op>...`` so they are recognisable in the file and
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import io
 import os
@@ -186,7 +187,8 @@ def export_image_encoder(det: StreamDetector, images: torch.Tensor, opset: int =
     if det.image_encoder is None:
         raise ValueError(f"preset {det.preset.name!r} has use_image=False: there is no image encoder to export")
     crop = images[:1, :TRACE_PIXELS, :TRACE_PIXELS].contiguous()  # (1, <=64, <=64, 3)
-    return export_module(det.image_encoder, (crop,), IMAGE_ENCODER_IO, opset)
+    # a copy: tracing puts the module in eval mode, and the caller's detector keeps its own modes (as to_export_form)
+    return export_module(copy.deepcopy(det.image_encoder).eval(), (crop,), IMAGE_ENCODER_IO, opset)
 
 
 def export_volumetric_lifter(

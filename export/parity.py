@@ -16,9 +16,25 @@ Dense outputs (features, image BEV) are compared element-wise. Decoded detection
 det_labels) are compared as *sets*: top-K keeps the K best peaks of classes x cells, and two peaks whose scores
 differ by less than the rounding error may swap ranks, or one may fall out of the top K for the other. So each
 reference detection whose score clears the K-th score by more than the score tolerance is matched to the
-detection of the same label with the nearest centre in the other output; its box and score must agree within
-the tolerance, and a detection with no partner there is a failure. Detections at the top-K boundary are not
+detection of the same label with the nearest centre in the other output; its score must agree within the
+tolerance, and a detection with no partner there is a failure. Detections at the top-K boundary are not
 compared, and how many were left out is recorded in the record's note.
+
+Box columns: the nine columns of det_boxes hold five quantities of unrelated size (core/boxes.py), so each group
+has its own record and scale (``BOX_COLUMN_GROUPS``): centre x, y; z; size w, l, h; yaw; velocity. One scale for
+all nine was set by the widest column, the centres' metres across a quadrant, and let an fp16 yaw or height be
+off by half a radian or metre. The scale of a group is that of the reference boxes that matter, those with score
+>= ``BOX_SCORE_THRESHOLD`` (the low-score rest of the top K spans the whole map and holds boxes no one reads),
+floored as above and at ``MIN_BOX_SCALE``; the columns are compared on the matched detections above the
+threshold. Yaw is an angle: compared modulo 2 pi (+pi and -pi are one heading, and the ONNX atan2 gives -pi where
+PyTorch's gives +pi, models/decode.py), against a fixed scale of 2 pi, since its error comes from the sin and cos
+the head regresses, not from which headings the boxes have.
+
+How many were compared: a check that left out nearly every detection (an untrained head's flat heatmap is mostly
+near-ties) says little. The note starts with the count, and below ``MIN_COMPARED`` it says so as a warning, which
+the exporter prints. It is not a failure: the fixed-seed untrained export (the default of a preset without a
+checkpoint) can legitimately leave only one or none clear of the near-ties, and its graphs are still the ones the
+dense checks and the decode check covered.
 
 Near-ties: peak picking keeps a cell that equals the max of its 3x3 neighbourhood (same class). Where a cell and
 a neighbour differ by less than the other precision's error, the peak may move to the neighbour or vanish (the
@@ -28,17 +44,19 @@ eight neighbours. A detection whose cell's |margin| is within the score toleranc
 comparison and counted. A trained model's confident peaks stand clear of their neighbours; an untrained model's
 flat heatmap is full of near-ties.
 
-The whole-pipeline check (fp16 graphs against fp32 graphs on the real sample) lives in ``pipeline_parity``.
+The whole-pipeline check (fp16 graphs against fp32 graphs on the real sample) lives in ``pipeline_parity``: counts
+and centres (in metres), and the other box groups of the paired boxes with the fp16 tolerances above.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
-from streamdet.core.boxes import pair_boxes
+from streamdet.core.boxes import BOX_DIM, H, L, VX, VY, W, X, Y, YAW, Z, pair_boxes
 from streamdet.runtime_ort.manifest_records import ParityRecord, PipelineParity
 from streamdet.runtime_ort.sessions import ort_session  # noqa: F401 (the parity run's sessions; imported from here too)
 
@@ -49,6 +67,19 @@ TORCH_SCALE_FLOOR = 0.1
 FP16_SCALE_FLOOR = 1.0
 PIPELINE_SCORE_THRESHOLD = 0.1
 PIPELINE_CENTRE_TOL_M = 0.1
+# det_boxes column groups, each with its own tolerance (module doc)
+BOX_COLUMN_GROUPS: tuple[tuple[str, tuple[int, ...]], ...] = (
+    ("centre", (X, Y)), ("z", (Z,)), ("size", (W, L, H)), ("yaw", (YAW,)), ("velocity", (VX, VY)))
+YAW_GROUP = "yaw"
+YAW_SCALE = 2.0 * math.pi  # an angle's scale is the full turn, whatever headings the boxes have
+# The boxes whose columns set the scales and are compared: the runtime's default score threshold (PostConfig).
+BOX_SCORE_THRESHOLD = PIPELINE_SCORE_THRESHOLD
+# A group's scale is never under 1 (metre, m/s): the velocities of a model trained without them, or the z of a single
+# box at the LiDAR's height (z = 0), have neither range nor magnitude, yet their error is that of the features behind.
+MIN_BOX_SCALE = 1.0
+# Below this many detections compared (as sets, or pipeline boxes above the threshold) the record warns (module doc).
+MIN_COMPARED = 5
+FEW_COMPARED = "WARNING: few compared"  # how such a note starts (the exporter prints it)
 
 
 def value_range(x: np.ndarray) -> float:
@@ -134,19 +165,61 @@ def detection_margins(boxes: np.ndarray, labels: np.ndarray, margins: np.ndarray
 # ---- detections as sets ----------------------------------------------------------------------------------
 
 
+def wrap_angle(a: np.ndarray) -> np.ndarray:
+    """Angles (radians) mapped to [-pi, pi): a difference of headings, +pi and -pi being the same one."""
+    return (np.asarray(a, dtype=np.float64) + math.pi) % (2.0 * math.pi) - math.pi
+
+
+def box_differences(got: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """(N, 9) |got - ref| per column, float64, yaw modulo 2 pi."""
+    diff = np.abs(got.astype(np.float64) - ref.astype(np.float64))
+    diff[:, YAW] = np.abs(wrap_angle(diff[:, YAW]))
+    return diff
+
+
+def box_group_scales(boxes: np.ndarray, scale_floor: float) -> dict[str, float]:
+    """Each group's scale (module doc) from the (N, 9) reference boxes that matter: ``value_scale`` floored at
+    ``MIN_BOX_SCALE``, yaw's fixed at ``YAW_SCALE``."""
+    boxes = boxes.reshape(-1, BOX_DIM)
+    return {name: YAW_SCALE if name == YAW_GROUP else max(value_scale(boxes[:, list(cols)], scale_floor), MIN_BOX_SCALE)
+            for name, cols in BOX_COLUMN_GROUPS}  # fmt: skip
+
+
+def box_group_max(diff: np.ndarray) -> dict[str, float]:
+    """(N, 9) per-column differences -> each group's max (0 with no rows)."""
+    return {name: float(diff[:, list(cols)].max()) if diff.size else 0.0 for name, cols in BOX_COLUMN_GROUPS}
+
+
+@dataclass(frozen=True)
+class DetectionMatch:
+    """What ``match_detections`` found: per matched pair, the per-column box differences (N, 9) (yaw modulo 2 pi),
+    the score difference (N,) and the reference's score (N,); how many reference detections were left out at the
+    top-K boundary, how many have no partner (failures), how many were left out as near-ties."""
+
+    box_diff: np.ndarray
+    score_diff: np.ndarray
+    ref_score: np.ndarray
+    boundary: int
+    unmatched: int
+    ties: int
+
+    @property
+    def compared(self) -> int:
+        return int(self.score_diff.size)
+
+
 def match_detections(
     got: Sequence[np.ndarray],
     ref: Sequence[np.ndarray],
     score_tol: float,
     centre_tol: float,
     near_tie: np.ndarray | None = None,
-) -> tuple[np.ndarray, np.ndarray, int, int, int]:
+) -> DetectionMatch:
     """Pair the reference's safely-in-top-K detections with the other output's (see the module doc).
 
     got, ref: (det_boxes (Q, K, 9), det_scores (Q, K), det_labels (Q, K)); near_tie (Q, K) bool flags reference
-    detections left out as near-ties. Returns (box_diff, score_diff) per matched pair, each (N_matched,) max-abs;
-    the number of reference detections left out at the top-K boundary; the number with no partner of the same
-    label within ``centre_tol`` of its centre (failures); and the number of near-ties left out.
+    detections left out as near-ties. A reference detection with no partner of the same label within ``centre_tol``
+    of its centre is counted as unmatched (a failure).
     """
     gb, gs, gl = got
     rb, rs, rl = ref
@@ -156,7 +229,7 @@ def match_detections(
         near_tie = np.zeros(rs.shape, dtype=bool)
     if near_tie.shape != rs.shape:
         raise ValueError(f"near_tie has shape {near_tie.shape}, the detections {rs.shape}")
-    box_diffs, score_diffs = [], []
+    box_diffs, score_diffs, ref_scores = [], [], []
     boundary = unmatched = ties = 0
     for qi in range(rb.shape[0]):
         if rs.shape[1] == 0:
@@ -174,10 +247,12 @@ def match_detections(
         j = np.argmin(dist, axis=1)  # (n,)
         ok = dist[np.arange(idx.size), j] <= centre_tol
         unmatched += int((~ok).sum())
-        box_diffs.append(np.abs(gb[qi, j[ok]] - rb[qi, idx[ok]]).max(axis=1))
-        score_diffs.append(np.abs(gs[qi, j[ok]] - rs[qi, idx[ok]]))
+        box_diffs.append(box_differences(gb[qi, j[ok]], rb[qi, idx[ok]]))
+        score_diffs.append(np.abs(gs[qi, j[ok]].astype(np.float64) - rs[qi, idx[ok]]))
+        ref_scores.append(rs[qi, idx[ok]])
     cat = lambda xs: np.concatenate(xs).astype(np.float64) if xs else np.zeros(0)  # noqa: E731
-    return cat(box_diffs), cat(score_diffs), boundary, unmatched, ties
+    return DetectionMatch(np.concatenate(box_diffs) if box_diffs else np.zeros((0, BOX_DIM)), cat(score_diffs),
+                          cat(ref_scores), boundary, unmatched, ties)  # fmt: skip
 
 
 def compare_detections(
@@ -189,33 +264,47 @@ def compare_detections(
     tol_rel: float,
     ref_margins: np.ndarray | None = None,
     scale_floor: float = 0.0,
+    score_threshold: float = BOX_SCORE_THRESHOLD,
 ) -> list[ParityRecord]:
-    """Set-wise comparison of decoded top-K detections; one record per output (det_boxes, det_scores, det_labels),
-    each against tol_rel * value_scale(reference output, scale_floor).
+    """Set-wise comparison of decoded top-K detections: one record per box column group (``det_boxes.centre``,
+    ``.z``, ``.size``, ``.yaw``, ``.velocity``), then det_scores and det_labels, each against tol_rel x its scale.
 
-    ``ref_margins`` (Q, K): the reference detections' peak margins (``detection_margins``); those within the score
-    tolerance are near-ties, left out and counted.
+    The box groups' scales come from the reference boxes with score >= ``score_threshold`` (``box_group_scales``;
+    all reference boxes when none clears it, for the centre tolerance that pairs them), and their columns are
+    compared on the matched detections above the threshold; the scores' scale is ``value_scale(reference scores,
+    scale_floor)``. ``ref_margins`` (Q, K): the reference detections' peak margins (``detection_margins``); those
+    within the score tolerance are near-ties, left out and counted.
     """
     rb, rs, rl = ref
-    box_rng, score_rng = value_range(rb), value_range(rs)
-    box_scale, score_scale = value_scale(rb, scale_floor), value_scale(rs, scale_floor)
+    matter = rb[rs >= score_threshold]  # (n, 9)
+    scales = box_group_scales(matter if len(matter) else rb, scale_floor)
+    score_rng, score_scale = value_range(rs), value_scale(rs, scale_floor)
     score_tol = tol_rel * score_scale
     near_tie = None if ref_margins is None else np.abs(ref_margins) <= score_tol
-    box_diff, score_diff, boundary, unmatched, ties = match_detections(got, ref, score_tol, tol_rel * box_scale, near_tie)
-    matched = box_diff.size
+    m = match_detections(got, ref, score_tol, tol_rel * scales["centre"], near_tie)
+    total = int(rs.size)
+    confident = m.ref_score >= score_threshold
+    few = f"{FEW_COMPARED}: only {m.compared} of {total} detections; " if total and m.compared < MIN_COMPARED else ""
     note = (
-        f"{matched} detections matched as sets; {boundary} at the top-K boundary and {ties} near-tie peaks (margin "
-        f"over a neighbour <= {score_tol:.3g}) not compared; {unmatched} without a partner"
+        f"{few}{m.compared} of {total} detections compared as sets; {m.boundary} at the top-K boundary and {m.ties} "
+        f"near-tie peaks (margin over a neighbour <= {score_tol:.3g}) not compared; {m.unmatched} without a partner"
+    )
+    box_note = (
+        f"{note}; box columns compared on the {int(confident.sum())} of them with score >= {score_threshold:g}, scaled by "
+        + (f"the {len(matter)} reference boxes there" if len(matter) else "all reference boxes (none above it)")
     )
     finite = all(bool(np.isfinite(x).all()) for x in got[:2])
-    bd = float(box_diff.max()) if matched else 0.0
-    sd = float(score_diff.max()) if matched else 0.0
-    ok = finite and unmatched == 0
-    return [
-        ParityRecord(graph, precision, reference, "det_boxes", bd, box_rng, tol_rel, ok and bd <= tol_rel * box_scale, note,
-                     box_scale),
+    ok = finite and m.unmatched == 0
+    group_diff = box_group_max(m.box_diff[confident])
+    sd = float(m.score_diff.max()) if m.compared else 0.0
+    records = []
+    for name, cols in BOX_COLUMN_GROUPS:
+        rng = value_range(matter[:, list(cols)]) if len(matter) else 0.0
+        records.append(ParityRecord(graph, precision, reference, f"det_boxes.{name}", group_diff[name], rng, tol_rel,
+                                    ok and group_diff[name] <= tol_rel * scales[name], box_note, scales[name]))  # fmt: skip
+    return records + [
         ParityRecord(graph, precision, reference, "det_scores", sd, score_rng, tol_rel, ok and sd <= score_tol, note, score_scale),
-        ParityRecord(graph, precision, reference, "det_labels", float(unmatched), float(rl.max() - rl.min()) if rl.size else 0.0,
+        ParityRecord(graph, precision, reference, "det_labels", float(m.unmatched), float(rl.max() - rl.min()) if rl.size else 0.0,
                      tol_rel, ok, "labels must agree on every matched detection; max_abs_diff holds the unmatched count"),
     ]
 
@@ -246,7 +335,11 @@ def pipeline_parity(
     ``excluded_in_band``); an unpaired box within the band of its run's K-th score (its partner may have dropped
     out of the other top K, ``excluded_at_top_k``); a pair or unpaired box whose peak margin is within the band
     (a near-tie, see the module doc, ``excluded_near_ties``). Every other box above the threshold must be paired
-    with a box above the threshold in the other run, centres within ``centre_tol_m``: then both counts agree.
+    with a box above the threshold in the other run, centres within ``centre_tol_m``: then both counts agree. The
+    other box groups of those pairs (z, size, yaw modulo 2 pi, velocity) must agree within ``FP16_TOL_REL`` x their
+    scale (``box_group_scales`` of the fp32 boxes above the threshold, floor ``FP16_SCALE_FLOOR``); PipelineParity
+    has no field for them, so the note holds each group's max difference and tolerance. Fewer than
+    ``MIN_COMPARED`` pairs compared: the note starts with a warning (module doc).
     """
     band = FP16_TOL_REL * value_scale(fp32["det_scores"], FP16_SCALE_FLOOR)
     pair_radius_m = 2.0 * cell_m
@@ -300,14 +393,22 @@ def pipeline_parity(
     count16 = int(pair_above.sum() + (pair_split & (ps16 >= score_threshold)).sum() + la16.sum())
     centre = pair_dist[paired][pair_above]
     max_d = float(centre.max()) if centre.size else math.nan
+    # the other columns of the pairs counted above the threshold, each group against its own tolerance
+    scales = box_group_scales(b32[s32 >= score_threshold], FP16_SCALE_FLOOR)
+    group_diff = box_group_max(box_differences(b16[i16[pair_above]], b32[i32[pair_above]]))
+    groups = [name for name, _ in BOX_COLUMN_GROUPS if name != "centre"]
+    groups_ok = all(group_diff[g] <= FP16_TOL_REL * scales[g] for g in groups)
     passed = bool(
         count32 == count16 and not pair_split.any() and not la32.any() and not la16.any()
-        and (centre.size == 0 or max_d <= centre_tol_m)
+        and (centre.size == 0 or max_d <= centre_tol_m) and groups_ok
     )
+    compared = int(pair_above.sum())
+    few = f"{FEW_COMPARED}: only {compared} boxes above the threshold compared; " if compared < MIN_COMPARED else ""
     note = (
-        f"band = {FP16_TOL_REL:g} x fp32 score scale = {band:.3g}; {int(pair_above.sum())} boxes above in both runs; "
+        f"{few}band = {FP16_TOL_REL:g} x fp32 score scale = {band:.3g}; {compared} boxes above in both runs; "
         f"{int(pair_split.sum())} pairs split by the threshold, {int(la32.sum())} fp32 and {int(la16.sum())} fp16 "
-        f"boxes above it without a partner within {pair_radius_m:g} m"
+        f"boxes above it without a partner within {pair_radius_m:g} m; max diff of the pairs above: "
+        + ", ".join(f"{g} {group_diff[g]:.3g} (tolerance {FP16_TOL_REL * scales[g]:.3g})" for g in groups)
     )
     return PipelineParity(
         slice_index=slice_index,

@@ -87,7 +87,9 @@ def boxes_at_peaks(at_peaks: Tensor, row: Tensor, col: Tensor, cell_m: float) ->
     sin = sc[:, 0]  # (Q, K)
     cos = sc[:, 1]
     # ONNX has no Atan2: the exporter writes Atan(sin / cos) with quadrant fixes, NaN at sin = cos = 0 where torch
-    # gives 0 (exact zeros come from an int8 head or untrained weights); atan2(0, 1) is that 0 in both
+    # gives 0 (exact zeros come from an int8 head or untrained weights); atan2(0, 1) is that 0 in both. Not patched:
+    # at sin = +0, cos < 0 the graph gives -pi where torch gives +pi: the same heading, so the export's parity
+    # checks compare yaw modulo 2 pi (export/parity.py)
     cos = torch.where((sin == 0) & (cos == 0), torch.ones_like(cos), cos)
     yaw = torch.atan2(sin, cos)
     boxes = torch.cat([x[:, None], y[:, None], z, size, yaw[:, None], v], dim=1)  # (Q, 9, K)

@@ -4,7 +4,7 @@
 function as the trained module it replaces (the export's parity checks compare them with the PyTorch modules):
 
     graph               trained module                 export form
-    image_encoder       ImageEncoder                   the same module (normalisation inside)
+    image_encoder       ImageEncoder                   the same function (a copy; normalisation inside)
     volumetric_lifter   VolumetricLifter               FoldedLifter where the z-fold pays (lifter_fold.py),
                                                        else the same module; in the image_half layout followed
                                                        by the BEV encoder's image half (ImageHalfLifter,
@@ -25,6 +25,7 @@ measured of them is in benchmarks/RESULTS.md.
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 
 from torch import Tensor, nn
@@ -90,7 +91,11 @@ class ExportForm:
 
 
 def to_export_form(det: StreamDetector, image_layout: str = IMAGE_BEV, lut_layout: str = LUT_SLOTS) -> ExportForm:
-    """The export form of a trained detector (eval mode; it shares the detector's unrewritten modules).
+    """The export form of a trained detector: a snapshot of its weights, every module in eval mode.
+
+    ``det`` is left as it was: the form is built from a copy, so it shares no module or tensor with it, and its
+    modes (train or eval, module by module) are unchanged. Taking the form inside a training loop (a periodic export)
+    neither stops the BatchNorm statistics' updates nor sees later steps; the folded modules are snapshots anyway.
 
     ``image_layout`` (image_half.py): ``image_bev``, the lifter outputs the image BEV and the slice graph runs both
     halves of stage 0's first conv; ``image_half``, the lifter graph also runs the image half and outputs it, the
@@ -100,13 +105,14 @@ def to_export_form(det: StreamDetector, image_layout: str = IMAGE_BEV, lut_layou
     preset = det.preset
     check_image_layout(image_layout)
     layout = image_layout if preset.use_image else IMAGE_BEV
-    slice_net = ExportSliceNet(det.slice_net.eval(), layout, peak_regression=True).eval()
+    det = copy.deepcopy(det).eval()  # eval() on the caller's modules would stop a training detector's BN updates
+    slice_net = ExportSliceNet(det.slice_net, layout, peak_regression=True).eval()
     if not preset.use_image:
         decoder = LidarSliceDecoder if preset.slice_crop else FullMapSliceDecoder
         return ExportForm(None, None, decoder(slice_net, preset).eval())
-    lifter = export_lifter(det.lifter.eval(), preset.lifter, preset.grid.nz)
+    lifter = export_lifter(det.lifter, preset.lifter, preset.grid.nz)
     if check_lut_layout(lut_layout) == LUT_COMPACT:
         lifter = CompactLifter(lifter).eval()
     if layout == IMAGE_HALF:
         lifter = ImageHalfLifter(lifter, slice_net.image_conv).eval()
-    return ExportForm(det.image_encoder.eval(), lifter, SliceDecoder(slice_net, preset).eval())
+    return ExportForm(det.image_encoder, lifter, SliceDecoder(slice_net, preset).eval())

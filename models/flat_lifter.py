@@ -85,13 +85,15 @@ class FlatLifter(nn.Module):
 
 
 class FlatLifterConvs(nn.Module):
-    """``FlatLifter.folded`` with every BatchNorm folded into the convolution next to it (eval statistics)."""
+    """``FlatLifter.folded`` with every BatchNorm folded into the convolution next to it (eval statistics), in the
+    lifter's dtype and on its device (the folded weights keep the source's precision, as slice_split.py's)."""
 
     def __init__(self, lifter: FlatLifter) -> None:
         super().__init__()
         c, nz = lifter.channels, lifter.nz
         self.channels, self.nz = c, nz
-        self.project = nn.Conv2d(nz * c, c, kernel_size=1)
+        source = lifter.project[0].weight
+        self.project = nn.Conv2d(nz * c, c, kernel_size=1, dtype=source.dtype, device=source.device)
         # every conv of the residual branch but the last as it is (no bias), the last with the branch's BN folded in
         convs = _convs(lifter.residual)
         self.residual = nn.Sequential(*(_like(m, bias=i == len(convs) - 1) for i, m in enumerate(convs)))
@@ -129,8 +131,9 @@ def _convs(branch: nn.Sequential) -> list[nn.Conv2d]:
 
 
 def _like(conv: nn.Conv2d, bias: bool) -> nn.Conv2d:
-    """A Conv2d of ``conv``'s geometry, with or without a bias."""
-    return nn.Conv2d(conv.in_channels, conv.out_channels, conv.kernel_size, padding=conv.padding, groups=conv.groups, bias=bias)
+    """A Conv2d of ``conv``'s geometry, dtype and device, with or without a bias."""
+    return nn.Conv2d(conv.in_channels, conv.out_channels, conv.kernel_size, padding=conv.padding, groups=conv.groups, bias=bias,
+                     dtype=conv.weight.dtype, device=conv.weight.device)  # fmt: skip
 
 
 class FlatLifterExport(nn.Module):

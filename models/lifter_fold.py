@@ -79,19 +79,22 @@ def fold_pays(cfg: LifterConfig, nz: int) -> bool:
 class FoldedLifterConvs(nn.Module):
     """``forward(volume (Q, C, Z, Y, X)) -> image_bev (Q, C, Y, X)``: ``VolumetricLifter.convs`` over folded z.
 
-    Built with zero weights; ``load_from`` copies a trained lifter's (``from_lifter`` does both).
+    Built with zero weights of ``dtype`` on ``device`` (default: torch's); ``load_from`` copies a trained lifter's
+    (``from_lifter`` does both, in the lifter's dtype and on its device).
     """
 
-    def __init__(self, cfg: LifterConfig, channels: int, nz: int) -> None:
+    def __init__(self, cfg: LifterConfig, channels: int, nz: int, *, dtype: torch.dtype | None = None,
+                 device: torch.device | str | None = None) -> None:  # fmt: skip
         super().__init__()
         c = channels
         self.channels, self.nz = c, nz
         self.z_major = False  # input channel order: c * Z + z (False), z * C + c (True, see to_z_major)
         self.z_down_planes = folded_depth(nz, 3, cfg.z_conv_stride, 1)
+        like = {"dtype": dtype, "device": device}
         # input BN folded into the 1x1x1 projection: block-diagonal over z
-        self.project = nn.Conv2d(c * nz, c * nz, kernel_size=1)
-        self.residual = nn.Conv2d(c * nz, c * nz, kernel_size=3, padding=1)  # BN folded in
-        self.z_down = nn.Conv2d(c * nz, c * self.z_down_planes, kernel_size=3, padding=1)  # BN folded in
+        self.project = nn.Conv2d(c * nz, c * nz, kernel_size=1, **like)
+        self.residual = nn.Conv2d(c * nz, c * nz, kernel_size=3, padding=1, **like)  # BN folded in
+        self.z_down = nn.Conv2d(c * nz, c * self.z_down_planes, kernel_size=3, padding=1, **like)  # BN folded in
         self.z_pool = nn.AvgPool3d(kernel_size=(cfg.z_pool, 1, 1), stride=(cfg.z_pool, 1, 1))
         self.relu = nn.ReLU(inplace=True)
         for conv in (self.project, self.residual, self.z_down):
@@ -101,7 +104,8 @@ class FoldedLifterConvs(nn.Module):
 
     @classmethod
     def from_lifter(cls, lifter: VolumetricLifter, cfg: LifterConfig, nz: int) -> FoldedLifterConvs:
-        folded = cls(cfg, lifter.project.out_channels, nz)
+        weight = lifter.project.weight  # the folded weights keep the source's precision (as slice_split.py's)
+        folded = cls(cfg, lifter.project.out_channels, nz, dtype=weight.dtype, device=weight.device)
         folded.load_from(lifter)
         return folded.eval()
 
@@ -114,7 +118,7 @@ class FoldedLifterConvs(nn.Module):
             raise ValueError(f"lifter z-stride {lifter.z_down[0].stride[0]} != {self._z_stride}")
         # project(BN(v)) = W (s * v + t) + b = (W s) v + (W t + b), the same (C, C) block on every plane
         w, b = fold_bn(lifter.project.weight[:, :, 0, 0, 0], lifter.project.bias, lifter.input_norm, bn_first=True)
-        block = torch.einsum("oc,zy->ozcy", w, torch.eye(nz, dtype=w.dtype))  # (C, Z, C, Z)
+        block = torch.einsum("oc,zy->ozcy", w, torch.eye(nz, dtype=w.dtype, device=w.device))  # (C, Z, C, Z)
         self.project.weight.copy_(block.reshape(c * nz, c * nz, 1, 1))  # (C*Z, C*Z, 1, 1): out c*Z+z, in c*Z+z
         self.project.bias.copy_(b.repeat_interleave(nz))  # channel c * Z + z
         for conv2d, seq, planes in ((self.residual, lifter.residual, nz), (self.z_down, lifter.z_down, zd)):
@@ -158,6 +162,7 @@ class FoldedLifterConvs(nn.Module):
         out = copy.deepcopy(self)
         c, nz = self.channels, self.nz
         order = torch.tensor([ci * nz + zi for zi in range(nz) for ci in range(c)])  # z-major channel -> c-major
+        order = order.to(out.project.weight.device)
         for conv in (out.project, out.residual):  # z-major in and out (the residual adds its input)
             conv.weight.copy_(conv.weight[order][:, order])
             conv.bias.copy_(conv.bias[order])

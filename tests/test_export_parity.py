@@ -61,11 +61,12 @@ def test_match_detections_tolerates_rank_swaps(seed):
     perm = np.stack([rng.permutation(20) for _ in range(2)])
     got = tuple(np.take_along_axis(a, perm[..., None] if a.ndim == 3 else perm, axis=1).copy() for a in ref)
     got[0][...] += 1e-6
-    box_diff, score_diff, boundary, unmatched, ties = match_detections(got, ref, score_tol=1e-3, centre_tol=1e-3)
+    m = match_detections(got, ref, score_tol=1e-3, centre_tol=1e-3)
     # naive: every reference detection clearly above its quadrant's K-th score has its twin
     naive_safe = sum(int(s > ref[1][q].min() + 1e-3) for q in range(2) for s in ref[1][q])
-    assert box_diff.size == naive_safe and unmatched == ties == 0 and boundary == 40 - naive_safe
-    assert box_diff.max() <= 2e-6 and score_diff.max() == 0.0
+    assert m.compared == naive_safe and m.box_diff.shape == (naive_safe, 9)
+    assert m.unmatched == m.ties == 0 and m.boundary == 40 - naive_safe
+    assert m.box_diff.max() <= 2e-6 and m.score_diff.max() == 0.0
 
 
 @pytest.mark.parametrize("seed", [0, 1])
@@ -75,12 +76,13 @@ def test_match_detections_flags_moved_and_relabelled(seed):
     got = tuple(a.copy() for a in ref)
     got[0][0, 0, 0] += 1.0  # the best detection moved by a metre
     got[2][0, 1] = (got[2][0, 1] + 1) % 10  # the second changed class
-    _, _, _, unmatched, ties = match_detections(got, ref, score_tol=1e-4, centre_tol=0.1)
-    assert unmatched == 2 and ties == 0
+    m = match_detections(got, ref, score_tol=1e-4, centre_tol=0.1)
+    assert m.unmatched == 2 and m.ties == 0
     recs = compare_detections("slice_head", "fp16", "onnx-fp32", got, ref, 1e-2)
-    assert [r.output for r in recs] == ["det_boxes", "det_scores", "det_labels"]
+    assert [r.output for r in recs] == ["det_boxes.centre", "det_boxes.z", "det_boxes.size", "det_boxes.yaw",
+                                        "det_boxes.velocity", "det_scores", "det_labels"]
     assert not any(r.passed for r in recs)
-    assert recs[2].max_abs_diff == 2.0
+    assert recs[-1].max_abs_diff == 2.0
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
@@ -121,14 +123,16 @@ def test_near_ties_are_left_out_and_counted():
     scores[0] = np.linspace(0.9, 0.45, 10)
     got = tuple(a.copy() for a in (boxes, scores, labels))
     got[0][0, 2, :2] += 5.0  # detection 2 is gone from where it was
-    assert match_detections(got, (boxes, scores, labels), 1e-3, 1e-3)[3:] == (1, 0)
+    m = match_detections(got, (boxes, scores, labels), 1e-3, 1e-3)
+    assert (m.unmatched, m.ties) == (1, 0)
     tie = np.zeros((1, 10), bool)
     tie[0, 2] = True
-    assert match_detections(got, (boxes, scores, labels), 1e-3, 1e-3, tie)[3:] == (0, 1)
+    m = match_detections(got, (boxes, scores, labels), 1e-3, 1e-3, tie)
+    assert (m.unmatched, m.ties) == (0, 1)
     margins = np.full((1, 10), 0.3)
     margins[0, 2] = 1e-4
     recs = compare_detections("slice_head", "fp16", "onnx-fp32", got, (boxes, scores, labels), 1e-2, margins)
-    assert all(r.passed for r in recs) and "1 near-tie peaks" in recs[0].note
+    assert all(r.passed for r in recs) and all("1 near-tie peaks" in r.note for r in recs[:-1])
     margins[0, 2] = 0.05  # a clear peak: its loss is a failure
     assert not any(r.passed for r in compare_detections("slice_head", "fp16", "onnx-fp32", got, (boxes, scores, labels), 1e-2, margins))
     with pytest.raises(ValueError, match="near_tie"):
@@ -144,8 +148,8 @@ def test_near_ties_are_left_out_and_counted():
 
 def test_match_detections_empty_and_malformed():
     empty = (np.zeros((1, 0, 9), np.float32), np.zeros((1, 0), np.float32), np.zeros((1, 0), np.int64))
-    box_diff, score_diff, boundary, unmatched, ties = match_detections(empty, empty, 1e-4, 1e-4)
-    assert box_diff.size == score_diff.size == boundary == unmatched == ties == 0
+    m = match_detections(empty, empty, 1e-4, 1e-4)
+    assert m.box_diff.shape == (0, 9) and m.compared == m.boundary == m.unmatched == m.ties == 0
     assert all(r.passed for r in compare_detections("s", "fp32", "torch", empty, empty, 1e-4))
     ref = _detections(np.random.default_rng(0), 1, 5)
     short = (ref[0][:, :4], ref[1][:, :4], ref[2][:, :4])

@@ -26,12 +26,43 @@ def test_export_form_holds_one_module_per_graph(use_image):
     assert list(form.graphs()) == list(graph_ios(use_image))
     assert isinstance(form.slice_head.slice_net, ExportSliceNet)
     if use_image:
-        assert form.image_encoder is det.image_encoder and isinstance(form.volumetric_lifter, FoldedLifter)
+        assert isinstance(form.image_encoder, type(det.image_encoder)) and isinstance(form.volumetric_lifter, FoldedLifter)
         assert type(form.slice_head) is SliceDecoder
     else:
         assert form.image_encoder is None and form.volumetric_lifter is None
         assert isinstance(form.slice_head, LidarSliceDecoder)
     assert not any(m.training for m in form.graphs().values())
+
+
+def _modes(module: torch.nn.Module) -> dict[str, bool]:
+    return {name: m.training for name, m in module.named_modules()}
+
+
+@pytest.mark.parametrize("image_layout", ["image_bev", "image_half"])
+@pytest.mark.parametrize("use_image", [True, False])
+@pytest.mark.parametrize("mode", ["train", "eval", "mixed"])
+def test_export_form_leaves_the_detector_as_it_was(mode, use_image, image_layout):
+    """The form is an eval-mode snapshot: the caller's modes are untouched (a periodic export in a training loop
+    keeps its BatchNorm statistics updating), and the form shares no module or tensor with the detector."""
+    det = build_detector(dataclasses.replace(TINY, use_image=use_image))
+    det.train(mode != "eval")
+    if mode == "mixed":
+        det.slice_net.eval()
+    before = _modes(det)
+    state = {k: v.clone() for k, v in det.state_dict().items()}
+    form = to_export_form(det, image_layout)
+    assert _modes(det) == before
+    assert not any(m.training for g in form.graphs().values() for m in g.modules())
+    det_tensors = {t.data_ptr() for t in (*det.parameters(), *det.buffers())}
+    assert not det_tensors & {t.data_ptr() for g in form.graphs().values() for t in (*g.parameters(), *g.buffers())}
+    assert all(torch.equal(v, state[k]) for k, v in det.state_dict().items())  # no weight or statistic changed
+    if use_image:  # a later step on the detector leaves the form as it was
+        x = torch.randint(0, 255, (1, 32, 48, 3), dtype=torch.uint8)
+        with torch.no_grad():
+            want = form.image_encoder(x)
+            for p in det.image_encoder.parameters():
+                p.add_(1.0)
+            torch.testing.assert_close(form.image_encoder(x), want)
 
 
 def _bn(cls, channels: int, seed: int, dtype):

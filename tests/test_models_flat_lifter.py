@@ -141,6 +141,22 @@ def test_convs_from_the_volume_equal_the_gathered_path(seed, dtype):
     torch.testing.assert_close(got, want)
 
 
+@pytest.mark.parametrize("residual", ["conv", "separable"])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_folded_convs_keep_the_lifter_dtype(dtype, residual):
+    """FlatLifterConvs in the source lifter's dtype (as slice_split.py's folds): a float64 lifter folds exactly."""
+    torch.manual_seed(0)
+    lifter = FlatLifter(3, 4, residual).eval().to(dtype)
+    _randomise_bn(lifter, 0)
+    folded = FlatLifterExport(lifter).convs
+    assert {p.dtype for p in folded.parameters()} == {dtype}
+    volume = torch.randn(2, 3, 4, 6, 5, dtype=dtype)  # (Q, C, Z, Y, X)
+    with torch.no_grad():
+        got, want = folded(volume), lifter.convs(volume)
+    tol = {"rtol": 1e-12, "atol": 1e-12} if dtype == torch.float64 else {}
+    torch.testing.assert_close(got, want, **tol)
+
+
 def test_empty_quadrant_batch_and_wrong_channels():
     lifter = FlatLifter(4, 2).eval()
     index = torch.zeros((0, 2, 2, 3, 3), dtype=torch.int32)
