@@ -83,7 +83,7 @@ def run_bag(
     det = StreamingDetector(export_dir, config.detector)
     source = BagSource(bag, SourceConfig(
         topics=config.topics, camera_names=det.camera_names if det.uses_images else (), num_slices=det.num_slices,
-        start_deg=det.config.start_deg, slice_per_message=config.slice_per_message, cloud_fields=config.cloud_fields,
+        start_deg=det.config.start_deg, clockwise=det.config.clockwise, slice_per_message=config.slice_per_message, cloud_fields=config.cloud_fields,
         ego_frame=config.ego_frame, global_frame=config.global_frame, camera_timeout_s=config.camera_timeout_s,
     ))  # fmt: skip
     if Path(source.path).resolve() == out.resolve():

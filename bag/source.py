@@ -103,7 +103,8 @@ class SourceConfig:
     topics: T.TopicMap = field(default_factory=T.TopicMap)
     camera_names: tuple[str, ...] = ()  # the cameras to read, in the rig's order (the export's)
     num_slices: int = 8
-    start_deg: float = 0.0
+    start_deg: float = 0.0  # the LiDAR's scan layout (core/sectors.py; the detector's DetectorConfig.start_deg, clockwise)
+    clockwise: bool = False
     slice_per_message: bool = False  # the driver publishes slices: one message = one slice
     cloud_fields: CloudFields = field(default_factory=lambda: CloudFields(require_time=False))
     ego_frame: str = T.EGO_FRAME
@@ -303,9 +304,9 @@ class BagSource:
         if cfg.slice_per_message:
             self._check_one_slice(cloud)
             # an empty message names no sector (nothing was returned there): no slice, the run goes on
-            slices = [slice_from_message(cloud, cfg.num_slices, cfg.start_deg)] if len(cloud.points) else []
+            slices = [slice_from_message(cloud, cfg.num_slices, cfg.start_deg, clockwise=cfg.clockwise)] if len(cloud.points) else []
         else:
-            slices = split_cloud(cloud, cfg.num_slices, cfg.start_deg)
+            slices = split_cloud(cloud, cfg.num_slices, cfg.start_deg, cfg.clockwise)
         lidar2ego = _matrix(self._lookup(tf, cfg.ego_frame, cloud.frame_id, cloud.stamp_ns))
         pose = self._lookup(tf, cfg.global_frame, cfg.ego_frame, cloud.stamp_ns) if cfg.global_frame else IDENTITY_RECORD
         return SweepEvent(cloud, slices, lidar2ego, _matrix(pose), tokens.get(str(cloud.stamp_ns)), image_set)

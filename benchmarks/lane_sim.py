@@ -129,7 +129,7 @@ class _CostedDetector:
         self.clock, self.costs, self.rng = clock, costs, rng
         self.camera_names = tuple(dict.fromkeys(n for q in range(NUM_QUADRANTS) for n in cameras[q]))
         self._cameras = cameras
-        self.config = SimpleNamespace(start_deg=0.0)
+        self.config = SimpleNamespace(start_deg=0.0, clockwise=False)
         self.busy_s = 0.0
         self.lifts: list[list[tuple[float, float]]] = [[] for _ in range(NUM_QUADRANTS)]  # (end s, timestamp)
         self._termed: dict[int, np.ndarray] = {}  # id -> the feature array (held: a freed array's id is reused)

@@ -10,8 +10,13 @@ A **slice** (what the slice graph's pillarisation reads) is ``(N, 6)`` float32, 
 
     x, y, z      metres, LiDAR frame
     reflectance  intensity / 255, 0..1
-    time         seconds after the sweep start (>= 0), plus the age of the point's sweep for past sweeps
-    slice        slice index 0..n-1
+    time         the azimuth's share of a rotation counter-clockwise from +x, in seconds (>= 0), plus the age of
+                 the point's sweep for past sweeps: the time since the sweep start in the default scan layout
+    slice        the index 0..n-1 of the point's sector counted counter-clockwise from +x: the slice's index in
+                 the default scan layout
+
+Both features say where a point lies whatever way the sensor turns (``core.slicing.slice_features``; the scan
+layout, ``core/sectors.py``, only decides which slice a point arrives in).
 """
 
 from __future__ import annotations

@@ -8,15 +8,20 @@ The BEV plane is split at the sensor origin into four quadrants, numbered counte
     q = 0: x >= 0, y >= 0   (azimuth [0, 90) deg)        q = 1: x < 0, y >= 0   ([90, 180))
     q = 2: x < 0,  y < 0    ([180, 270))                  q = 3: x >= 0, y < 0   ([270, 360))
 
-The LiDAR scans counter-clockwise from ``start_deg``; slice k of n covers azimuths
-``[start + k * 360 / n, start + (k + 1) * 360 / n)``. With ``start_deg`` a multiple of 90 and n >= 4 (n a
-multiple of 4), a slice lies in one quadrant; n = 2 touches two and n = 1 all four. The metric grid over the
-quadrants is ``streamdet.calibration.grid.GridSpec``.
+The scan layout is where the LiDAR's sweep starts (``start_deg``) and which way it turns (``clockwise``, seen from
++z). Slices are numbered in the order the sensor delivers them; every sector is half-open, ``[lo, lo + 360 / n)``:
+
+- counter-clockwise (the default): slice k of n covers ``[start + k * 360 / n, start + (k + 1) * 360 / n)``;
+- clockwise (the Velodyne HDL-32E of nuScenes' LIDAR_TOP turns so, from about the car's left): slice k covers
+  ``[start - (k + 1) * 360 / n, start - k * 360 / n)``, the counter-clockwise sector n - 1 - k.
+
+With ``start_deg`` a multiple of 90 and n >= 4 (n a multiple of 4), a slice lies in one quadrant; n = 2 touches two
+and n = 1 all four. The layout decides which points form a slice and when it arrives, never the points' features
+(``core/slicing.py``). The metric grid over the quadrants is ``streamdet.calibration.grid.GridSpec``.
 """
 
 from __future__ import annotations
 
-import math
 import numbers
 from collections.abc import Iterable
 
@@ -64,8 +69,9 @@ def check_num_slices(n: int, start_deg: float = 0.0) -> None:
 
 def azimuth_deg(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """Azimuth atan2(y, x) in degrees, wrapped to [0, 360)."""
-    a = np.degrees(np.arctan2(y, x))
-    return np.mod(a, 360.0)
+    a = np.mod(np.degrees(np.arctan2(y, x)), 360.0)
+    # a tiny negative angle wraps to 360 - tiny, which rounds to exactly 360 in float: that is azimuth 0
+    return np.where(a >= 360.0, 0.0, a) if np.ndim(a) else (0.0 if a >= 360.0 else a)
 
 
 def angle_diff_deg(a, b):
@@ -73,30 +79,56 @@ def angle_diff_deg(a, b):
     return np.mod(np.subtract(a, b) + 180.0, 360.0) - 180.0
 
 
-def sector_bounds_deg(k: int, n: int, start_deg: float = 0.0) -> tuple[float, float]:
-    """Azimuth interval [lo, hi) of slice k of n, in degrees from the x axis (lo in [0, 360), hi = lo + 360/n)."""
+def scan_fraction(azimuth, start_deg: float = 0.0, clockwise: bool = False):
+    """The share of a rotation (in [0, 1]) after which a sensor of this scan layout points at ``azimuth`` (degrees,
+    arrays broadcast). A clockwise scan reaches its start azimuth itself last (1.0): that point is in its last slice."""
+    offset = np.mod(np.subtract(azimuth, start_deg), 360.0)
+    return (360.0 - offset if clockwise else offset) / 360.0
+
+
+def _ccw_index(k: int, n: int, start_deg: float, clockwise: bool) -> int:
+    """The counter-clockwise position from ``start_deg`` of slice k's sector (checked)."""
     check_num_slices(n, start_deg)
-    if not (isinstance(k, (int, np.integer)) and 0 <= k < n):
+    if isinstance(k, bool) or not (isinstance(k, (int, np.integer)) and 0 <= k < n):
         raise ValueError(f"slice index must be in [0, {n}), got {k!r}")
-    width = 360.0 / n
-    lo = (start_deg + k * width) % 360.0
-    return lo, lo + width
+    return n - 1 - int(k) if clockwise else int(k)
 
 
-def slice_index_of(x: np.ndarray, y: np.ndarray, n: int, start_deg: float = 0.0) -> np.ndarray:
-    """Slice index (int64, 0..n-1) of each point by azimuth, in scan order from start_deg; -1 where x or y is NaN
-    (no azimuth: in no slice). Casting the NaN gave INT64_MIN on x86 and 0 elsewhere, with a warning."""
+def sector_bounds_deg(k: int, n: int, start_deg: float = 0.0, clockwise: bool = False) -> tuple[float, float]:
+    """Azimuth interval [lo, hi) of slice k of n, in degrees from the x axis (lo in [0, 360), hi = lo + 360/n)."""
+    j = _ccw_index(k, n, start_deg, clockwise)
+    # 360 * j / n, not j * (360 / n): the division is exact where the bound is an axis (39 * (360 / 156) is
+    # 89.99999999999999, which put that slice in the quadrant before it)
+    lo = (start_deg + 360.0 * j / n) % 360.0
+    return lo, lo + 360.0 / n
+
+
+def run_bounds_deg(first: int, last: int, n: int, start_deg: float = 0.0, clockwise: bool = False) -> tuple[float, float]:
+    """Azimuth interval [lo, hi) of the consecutive slices ``first..last`` of n (scan order), as sector_bounds_deg."""
+    if isinstance(last, bool) or not (isinstance(last, (int, np.integer)) and first <= last):
+        raise ValueError(f"a run of slices ends at or after its first slice {first!r}, got {last!r}")
+    lo = sector_bounds_deg(last if clockwise else first, n, start_deg, clockwise)[0]
+    sector_bounds_deg(first if clockwise else last, n, start_deg, clockwise)  # the other end is a slice too
+    return lo, lo + 360.0 * (int(last) - int(first) + 1) / n
+
+
+def slice_index_of(x: np.ndarray, y: np.ndarray, n: int, start_deg: float = 0.0, clockwise: bool = False) -> np.ndarray:
+    """Slice index (int64, 0..n-1) of each point by azimuth, in scan order; -1 where x or y is NaN (no azimuth: in
+    no slice). Casting the NaN gave INT64_MIN on x86 and 0 elsewhere, with a warning."""
     check_num_slices(n, start_deg)
     rel = np.mod(azimuth_deg(x, y) - start_deg, 360.0)
     no_azimuth = np.isnan(rel)
-    k = np.floor(np.where(no_azimuth, 0.0, rel) / (360.0 / n)).astype(np.int64)
-    k = np.minimum(k, n - 1)  # rel can round up to exactly 360 in float
+    # rel * n / 360 rounds as sector_bounds_deg's 360 * j / n: a point on a sector's bound is in the sector it starts
+    j = np.floor(np.where(no_azimuth, 0.0, rel) * n / 360.0).astype(np.int64)
+    j = np.minimum(j, n - 1)  # rel can round up to exactly 360 in float
+    k = n - 1 - j if clockwise else j
     return np.where(no_azimuth, -1, k) if no_azimuth.any() else k
 
 
-def quadrants_of_sector(k: int, n: int, start_deg: float = 0.0) -> tuple[int, ...]:
+def quadrants_of_sector(k: int, n: int, start_deg: float = 0.0, clockwise: bool = False) -> tuple[int, ...]:
     """Quadrants (increasing) that slice k of n touches."""
-    lo, hi = sector_bounds_deg(k, n, start_deg)
-    first = int(lo // 90.0)
-    count = max(1, math.ceil((hi - lo) / 90.0 - 1e-9))
-    return tuple(sorted({(first + i) % NUM_QUADRANTS for i in range(count)}))
+    j = _ccw_index(k, n, start_deg, clockwise)
+    # in integers of a quarter turn / n: the sector is [a, a + 4) from the +x axis, no rounding at the axes
+    a = round(start_deg / 90.0) * n + 4 * j
+    first, last = a // n, (a + 4 + n - 1) // n - 1
+    return tuple(sorted({q % NUM_QUADRANTS for q in range(first, last + 1)}))

@@ -11,6 +11,8 @@ of them holds none of its points. Slicing a whole ``Sample`` (its past sweeps, c
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from streamdet.core.boxes import BOX_DIM, box_corners_bev
@@ -24,20 +26,16 @@ from streamdet.core.points import (
     SWEEP_INTENSITY,
     check_sweep,
 )
-from streamdet.core.sectors import azimuth_deg, check_num_slices, sector_bounds_deg, slice_index_of
+from streamdet.core.sectors import azimuth_deg, check_num_slices, scan_fraction, sector_bounds_deg, slice_index_of
 
 
-# The azimuth where the slices of training start (training/dataset.py, training/torch_eval.py): a model learns its
-# points' slice-index and time features counted from here. A runtime slicing from another start (DetectorConfig.
-# start_deg) cuts the same sectors but feeds other feature values for them (runtime_ort: SliceStartWarning).
-TRAINED_START_DEG = 0.0
-
-
-def relative_time_s(points: np.ndarray, start_deg: float = 0.0, sweep_duration_s: float = SWEEP_DURATION_S) -> np.ndarray:
-    """(N,) float64 time of each point after the scan start, from its azimuth (counter-clockwise scan)."""
+def relative_time_s(points: np.ndarray, start_deg: float = 0.0, sweep_duration_s: float = SWEEP_DURATION_S,
+                    clockwise: bool = False) -> np.ndarray:  # fmt: skip
+    """(N,) float64 time of each point after the scan start, from its azimuth: when a sensor of this scan layout
+    (``core/sectors.py``) passes it. A clockwise scan reaches its start azimuth itself last (time = the duration),
+    as that point lies in its last slice."""
     points = np.asarray(points)
-    offset_deg = np.mod(azimuth_deg(points[:, 0], points[:, 1]) - start_deg, 360.0)
-    return offset_deg / 360.0 * sweep_duration_s
+    return scan_fraction(azimuth_deg(points[:, 0], points[:, 1]), start_deg, clockwise) * sweep_duration_s
 
 
 def split_sweep(
@@ -46,6 +44,7 @@ def split_sweep(
     start_deg: float = 0.0,
     sweep_duration_s: float = SWEEP_DURATION_S,
     time_lag_s: float | np.ndarray = 0.0,
+    clockwise: bool = False,
 ) -> list[np.ndarray]:
     """Cut a sweep ``(N, 5)`` (x, y, z, intensity, ring) into n slices ``(N_k, 6)`` float32, in scan order.
 
@@ -64,9 +63,8 @@ def split_sweep(
     out = np.empty((len(points), SLICE_COLUMNS), dtype=np.float32)
     out[:, :3] = points[:, :3]
     out[:, SLICE_REFLECTANCE] = points[:, SWEEP_INTENSITY] / INTENSITY_SCALE
-    out[:, SLICE_TIME] = relative_time_s(points, start_deg, sweep_duration_s) + lag
-    k = slice_index_of(points[:, 0], points[:, 1], n, start_deg)
-    out[:, SLICE_INDEX] = k
+    out[:, SLICE_TIME], out[:, SLICE_INDEX] = slice_features(points, n, sweep_duration_s, lag)
+    k = slice_index_of(points[:, 0], points[:, 1], n, start_deg, clockwise)
     # A stable sort by slice keeps the input order inside each slice and costs one pass; -1 (no azimuth) sorts
     # before slice 0's bound and is in no slice.
     order = np.argsort(k, kind="stable")
@@ -74,16 +72,36 @@ def split_sweep(
     return [out[order[bounds[i] : bounds[i + 1]]] for i in range(n)]
 
 
-def boxes_in_sector(boxes: np.ndarray, k: int, n: int, start_deg: float = 0.0) -> np.ndarray:
+def slice_features(points: np.ndarray, n: int, sweep_duration_s: float = SWEEP_DURATION_S,
+                   time_lag_s: float | np.ndarray = 0.0) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """The (N,) time and slice-index features of the points of a sweep cut into n slices (``SLICE_TIME``,
+    ``SLICE_INDEX``), counted counter-clockwise from the +x axis whatever the scan layout: they say where a point
+    lies, as the models learn them from recorded sweeps sliced so (the paper's setup), so a sensor that starts
+    elsewhere or turns the other way feeds the model the same values for the same azimuths. Only a slice's points
+    and the order slices arrive in follow the layout. ``time_lag_s``: added to the time (past sweeps' age)."""
+    check_num_slices(n)
+    az = azimuth_deg(points[:, 0], points[:, 1])  # (N,) in [0, 360); NaN without an azimuth (in no slice)
+    index = np.minimum(np.floor(np.nan_to_num(az) * n / 360.0), n - 1)  # slice_index_of's rounding, start 0
+    return az / 360.0 * sweep_duration_s + time_lag_s, index
+
+
+def feature_index(k: int, n: int, start_deg: float = 0.0, clockwise: bool = False) -> int:
+    """The slice-index feature (``slice_features``) of the points of slice k of n in this scan layout: the index
+    counter-clockwise from +x of the sector it covers (k itself in the default layout)."""
+    lo = sector_bounds_deg(k, n, start_deg, clockwise)[0]
+    return min(int(math.floor(lo * n / 360.0)), n - 1)
+
+
+def boxes_in_sector(boxes: np.ndarray, k: int, n: int, start_deg: float = 0.0, clockwise: bool = False) -> np.ndarray:
     """(M,) bool: the box's BEV centre or any of its four BEV corners lies in slice k of n."""
-    sector_bounds_deg(k, n, start_deg)  # validates k, n and start_deg before any work
+    sector_bounds_deg(k, n, start_deg, clockwise)  # validates k, n and start_deg before any work
     boxes = np.asarray(boxes, dtype=np.float64)
     if boxes.ndim != 2 or boxes.shape[1] != BOX_DIM:
         raise ValueError(f"boxes must be (M, {BOX_DIM}), got shape {boxes.shape}")
     if len(boxes) == 0:
         return np.zeros(0, dtype=bool)
     xy = np.concatenate([box_corners_bev(boxes), boxes[:, None, :2]], axis=1)  # (M, 5, 2): 4 corners + centre
-    return np.any(slice_index_of(xy[..., 0], xy[..., 1], n, start_deg) == k, axis=1)
+    return np.any(slice_index_of(xy[..., 0], xy[..., 1], n, start_deg, clockwise) == k, axis=1)
 
 
 def _check_points(points: np.ndarray, name: str) -> np.ndarray:

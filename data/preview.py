@@ -185,7 +185,8 @@ def write_previews(sample: Sample, out_dir: str | Path, n_slices: int = 8, start
         mosaic = cv2.resize(mosaic, (max_width_px, int(round(mosaic.shape[0] * f))), interpolation=cv2.INTER_AREA)
     slices = split_sweep(sample.points, n_slices, start_deg)
     pts = np.concatenate(slices, axis=0)  # (N, 6)
-    bev = draw_bev(pts, sample.gt_boxes, sample.gt_labels, pts[:, 5], n_slices, start_deg=start_deg)
+    index = np.repeat(np.arange(n_slices), [len(s) for s in slices])  # (N,) each point's slice (its feature may differ)
+    bev = draw_bev(pts, sample.gt_boxes, sample.gt_labels, index, n_slices, start_deg=start_deg)
     paths = [out_dir / f"{stem}_cameras.png", out_dir / f"{stem}_bev.png"]
     for path, image in zip(paths, (mosaic, bev)):
         if not cv2.imwrite(str(path), image):

@@ -4,8 +4,9 @@ Cutting one sweep (``split_sweep``, ``boxes_in_sector``) lives in ``streamdet.co
 from here as before. The sensor scans counter-clockwise from ``start_deg``; slice k of n covers the azimuths
 ``[start + k * 360 / n, start + (k + 1) * 360 / n)`` (``streamdet.core.sectors``). A slice's points are
 ``(N, 6)`` float32 ``x, y, z, reflectance, relative time, slice index`` (docs/architecture.md "Points"), where
-the relative time of a point is its azimuth offset from the scan start as a fraction of the sweep duration,
-plus the time lag of its sweep for points of past sweeps. A ground-truth box belongs to every slice whose sector
+the time and index features are counted counter-clockwise from +x whatever ``start_deg`` (the azimuth as a
+fraction of the sweep duration, plus the time lag of its sweep for points of past sweeps;
+``core.slicing.slice_features``). A ground-truth box belongs to every slice whose sector
 holds its centre or any of its four BEV corners (the paper's rule), so an object cut by a sector boundary is
 annotated in both slices, even where one of them holds none of its points.
 """

@@ -1,6 +1,8 @@
 """A ROS 2 node that runs streamdet: subscribe to the LiDAR and cameras, detect each slice, publish the boxes.
 
-Drop it into a ROS 2 (Humble or newer) Python package with ``pip install streamdet`` beside it, and run it with
+Drop it into a ROS 2 (Humble or newer) Python package with streamdet installed beside it from its checkout, as the
+README does (``pip install /path/to/streamdet``, the vehicle runtime alone, or ``pip install -e /path/to/streamdet``
+to follow the checkout; not from a package registry), and run it with
 ``ros2 run <your_package> streamdet_node --ros-args -p export_dir:=/path/to/export``. It needs rclpy,
 sensor_msgs, vision_msgs, visualization_msgs and rosidl_runtime_py, none of which is installed where streamdet is
 developed, so the node itself has never run there; the functions and the classes above ``main`` are run on a bag's
@@ -90,7 +92,7 @@ def detect_cloud(
     shown = _SHOWN.setdefault(detector, {}) if shown is None else shown
     cloud = decode_cloud(cloud_msg, errors)
     out, counts = [], {}
-    for s in split_cloud(cloud, detector.num_slices, detector.config.start_deg):
+    for s in split_cloud(cloud, detector.num_slices, detector.config.start_deg, detector.config.clockwise):
         d = detector.detect_slice(s.points, s.index, timestamp=s.scan_time_ns * 1e-9).detections
         counts[s.index] = len(d.scores)
         stale = range(len(d.scores), shown.get(s.index, 0))

@@ -28,6 +28,7 @@ from streamdet.cli_utils import (
     providers_option,
     refuse_output_over_inputs,
     refuse_same_outputs,
+    scan_layout_options,
 
     version_option,
     dataset_inputs,
@@ -197,6 +198,7 @@ def _progress(message: str) -> None:
                    "(gc.freeze, runtime_ort/heap.py), as a vehicle process would after its start-up; such a collection "
                    "otherwise stalls every thread for tens of ms mid-drive.")
 @camera_terms_option()
+@scan_layout_options(from_data=True)
 @fallback_options(clock="drive")
 @click.option("--json", "json_path", type=click.Path(path_type=Path, dir_okay=False), default=None,
               help="Write the per-mode summary (the issue's keys) to this JSON file.")
@@ -209,7 +211,8 @@ def main(
     image_precision: str | None, providers: tuple[str, ...] | None, lidar_hz: float, num_slices: int | None, camera_hz: float, camera_trigger: str,
     camera_delivery_ms: float, camera_outages: tuple[str, ...], camera_timeout_ms: float, mode: str, time_scale: float,
     max_seconds: float | None, threads: int, image_lane_threads: int | None, slice_workers: int | None, queue_size: int | None, schedule: str,
-    image_lane_nice: int, image_lane_yield: int, coalesce_slices: int | None, pair_hold_load: float | None, freeze_heap: bool, camera_terms: bool | None, fallback_export_dir: Path | None, fallback_after_ms: float | None, json_path: Path | None,
+    image_lane_nice: int, image_lane_yield: int, coalesce_slices: int | None, pair_hold_load: float | None, freeze_heap: bool, camera_terms: bool | None,
+    scan_start_deg: float | None, clockwise: bool | None, fallback_export_dir: Path | None, fallback_after_ms: float | None, json_path: Path | None,
     plot_path: Path | None, out_dir: Path | None,
 ) -> None:
     """Play scenes at sensor rates (LiDAR slices released when scanned, cameras at their rate) through the runtime's
@@ -245,6 +248,7 @@ def main(
             camera_terms=camera_terms, camera_delivery_ms=camera_delivery_ms, freeze_heap=freeze_heap,
             fallback_after_s=fallback_after_s(fallback_after_ms), providers=providers,
             camera_outages=tuple(CameraOutage.parse(spec) for spec in camera_outages),
+            start_deg=scan_start_deg, clockwise=clockwise,
         )  # fmt: skip
         info = cpu_info()  # before the replay: a failure here must not throw a finished replay away
         result = run_replay(config, _progress)

@@ -25,6 +25,7 @@ from streamdet.core.points import NUSCENES_CAMERA_HZ, NUSCENES_LIDAR_HZ
 from streamdet.calibration.camera import make_transform, quaternion_to_matrix
 from streamdet.data.nuscenes import CAMERA_CHANNELS, LIDAR_CHANNEL, NuScenesReader
 from streamdet.data.sample import load_image, load_point_times, load_points
+from streamdet.replay.scan_layout import resolve_layout
 from streamdet.replay.source import Drive, ImageSet, LidarSweep
 from streamdet.replay.triggers import (
     DEFAULT_TRIGGER, camera_axis_azimuths_deg, check_trigger, lidar_synced_triggers, simultaneous_triggers)
@@ -85,11 +86,13 @@ def load_drive(
     max_seconds: float | None = None,
     progress: Callable[[str], None] = lambda msg: None,
     camera_trigger: str = DEFAULT_TRIGGER,
-    start_deg: float = 0.0,
+    start_deg: float | None = None,
+    clockwise: bool | None = None,
 ) -> Drive:
     """The scene as a `Drive`; images resized to ``image_size`` (W, H), None: no images (a LiDAR-only detector).
-    ``camera_trigger``: a model of ``triggers.TRIGGER_MODELS``; ``start_deg``: where the release schedule's rotation
-    starts (used to time lidar-synced triggers when the sweeps have no per-point times)."""
+    ``camera_trigger``: a model of ``triggers.TRIGGER_MODELS``; ``start_deg``, ``clockwise``: the LiDAR's scan
+    layout (None: from the data, ``scan_layout.py``), which the drive carries (``Drive.scan_layout``) and which times
+    the lidar-synced triggers where the sweeps have no per-point times."""
     check_trigger(camera_trigger)
     if not lidar_hz > 0 or not camera_hz > 0:
         raise ValueError(f"lidar_hz and camera_hz must be > 0, got {lidar_hz}, {camera_hz}")
@@ -123,7 +126,8 @@ def load_drive(
         lidar2ego, ego2global = tables.pose(sd)
         sweeps.append(LidarSweep(i, (int(sd["timestamp"]) - t0_us) * 1e-6, period_s, points, times, lidar2ego, ego2global, sd["token"]))
     end_s = sweeps[-1].end_s
-    notes = [_lidar_note(lidar, lidar_hz, timed)]
+    layout = resolve_layout(sweeps, start_deg, clockwise)
+    notes = [_lidar_note(lidar, lidar_hz, timed), layout.describe()]
     if bad_points or bad_times:
         notes.append(f"LiDAR of {scene_name}: {bad_points} point(s) with a NaN / inf value (the detector drops and counts "
                      f"them; one without an azimuth is in no slice, as in streamdet-eval), {bad_times} non-finite "
@@ -137,12 +141,13 @@ def load_drive(
             axes = camera_axis_azimuths_deg(rig)
             # each sweep's finite points alone: a NaN time would make a crossing (a trigger) NaN
             timing = [s.for_timing() for s in sweeps]
-            triggers = lidar_synced_triggers(timing, {c: axes[c] for c in channels if c in axes}, camera_hz, start_deg)
+            triggers = lidar_synced_triggers(timing, {c: axes[c] for c in channels if c in axes}, camera_hz, layout.start_deg,
+                                             layout.clockwise)  # fmt: skip
         else:
             triggers = simultaneous_triggers(end_s, camera_hz, channels)
         image_sets, note = _image_sets(tables, scene, t0_us, triggers, camera_hz, camera_trigger, image_size, progress)
         notes.append(note)
-    return Drive(scene_name, tuple(sweeps), tuple(image_sets), t0_us, rig, tuple(notes))
+    return Drive(scene_name, tuple(sweeps), tuple(image_sets), t0_us, rig, tuple(notes), layout)
 
 
 def _keep_every_rotation(rows: list[dict], period_s: float) -> list[dict]:

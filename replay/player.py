@@ -39,7 +39,7 @@ WARM_UP_BEFORE_S = -1e6
 class PlayerConfig:
     mode: str = "streaming"  # one of MODES
     num_slices: int = 8  # slices per rotation in streaming and sequential modes
-    start_deg: float = 0.0  # azimuth where slice 0 starts (the detector's)
+    start_deg: float = 0.0  # the LiDAR's scan layout (the detector's DetectorConfig.start_deg and clockwise, below)
     time_scale: float = 1.0  # wall seconds per drive second: 2 plays twice as slowly (a 2x faster computer)
     lanes: LaneConfig = field(default_factory=LaneConfig)  # the runner's slice-lane workers and queue
     progress_every_s: float = 0.5  # wall seconds between progress lines
@@ -49,6 +49,7 @@ class PlayerConfig:
     # freeze the heap alive when the drive starts out of the garbage collector's full collections (runtime_ort/heap.py),
     # as a vehicle process would after its start-up: such a collection stalls every Python thread for tens of ms
     freeze_heap: bool = True
+    clockwise: bool = False  # the LiDAR turns clockwise seen from above (with start_deg: its scan layout)
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -134,7 +135,7 @@ def play(
     book = _Book(dclock, mode)
     delivery_s = config.camera_delivery_ms / 1e3
     schedule = release_schedule(drive, mode.num_slices, config.start_deg, images=detector.uses_images,
-                                camera_delivery_s=delivery_s)  # fmt: skip
+                                camera_delivery_s=delivery_s, clockwise=config.clockwise)  # fmt: skip
     records = [_record(r) for r in schedule]
     # an image lane that updates from every camera at once gets whole sets (assemble.py); a phase-locked one each frame
     phase_locked = getattr(mode.runner, "phase_lock", None) is not None
@@ -179,7 +180,8 @@ def play(
         rec.superseded = True
     image_lane_cpu_s = getattr(mode.runner, "image_lane_cpu_s", float("nan"))  # the sequential queue has no image lane
     phase_lock = getattr(mode.runner, "phase_lock", None)  # what a phase-locked image lane did
-    _newest_images_by_scan_start(drive, records, getattr(detector, "quadrant_cameras", None), config.start_deg, delivery_s)
+    _newest_images_by_scan_start(drive, records, getattr(detector, "quadrant_cameras", None), config.start_deg, delivery_s,
+                                 config.clockwise)  # fmt: skip
     if book.errors:
         _raise_failure(f"{config.mode} replay of {drive.name}", book.errors[0])
     slices = tuple(r for r in records if isinstance(r, SliceRecord))
@@ -194,7 +196,7 @@ def play(
 
 def _newest_images_by_scan_start(
     drive: Drive, records: list, quadrant_cameras: Callable[[tuple[int, ...]], tuple[str, ...]] | None, start_deg: float,
-    delivery_s: float = 0.0,
+    delivery_s: float = 0.0, clockwise: bool = False,
 ) -> None:  # fmt: skip
     """Each slice record's ``newest_capture_s``: how old the newest images of its quadrants could be when the sensor
     started scanning the slice's sector: per camera that sees its quadrant(s) (``quadrant_cameras``; None: every
@@ -213,7 +215,7 @@ def _newest_images_by_scan_start(
             key = (rec.slice_index, rec.num_slices)
             if key not in seen:
                 cams = tuple(times) if quadrant_cameras is None else tuple(
-                    quadrant_cameras(quadrants_of_sector(rec.slice_index, rec.num_slices, start_deg)))  # fmt: skip
+                    quadrant_cameras(quadrants_of_sector(rec.slice_index, rec.num_slices, start_deg, clockwise)))  # fmt: skip
                 seen[key] = tuple(n for n in cams if n in times) or tuple(times)
             sweep = sweeps[rec.sweep]
             scan_start = sweep.start_s + sweep.duration_s * rec.slice_index / rec.num_slices

@@ -27,6 +27,7 @@ from streamdet.replay.nuscenes_source import DatasetTables, load_drive
 from streamdet.replay.outages import CameraOutage, apply_outages, check_outage_cameras
 from streamdet.replay.player import PlayerConfig, play
 from streamdet.replay.record import Recording
+from streamdet.replay.scan_layout import ScanLayout, check_layout
 from streamdet.replay.schedule import check_delivery, check_rate, check_time_scale, slice_sweep
 from streamdet.replay.source import Drive
 from streamdet.replay.triggers import DEFAULT_TRIGGER, check_trigger
@@ -69,6 +70,10 @@ class ReplayConfig:
     freeze_heap: bool = True  # PlayerConfig.freeze_heap: the heap alive at a drive's start is out of full collections
     providers: tuple[str, ...] | None = None  # onnxruntime's execution providers (DetectorConfig.providers); None: default
     camera_outages: tuple[CameraOutage, ...] = ()  # cameras that send nothing for a while (outages.py)
+    # the LiDAR's scan layout (core/sectors.py): where its sweep starts and whether it turns clockwise; None: from the
+    # data (scan_layout.py: the per-point times, else nuScenes' LIDAR_TOP, clockwise from 180 deg)
+    start_deg: float | None = None
+    clockwise: bool | None = None
 
     def __post_init__(self) -> None:
         unknown = [m for m in self.modes if m not in MODES]
@@ -78,6 +83,7 @@ class ReplayConfig:
             check_rate(getattr(self, name), f"ReplayConfig.{name}")
         check_time_scale(self.time_scale, "ReplayConfig.time_scale")
         check_trigger(self.camera_trigger)
+        check_layout(self.start_deg, self.clockwise)
         check_delivery(self.camera_delivery_ms, "ReplayConfig.camera_delivery_ms", "ms")
         if not isinstance(self.camera_outages, tuple) or not all(isinstance(o, CameraOutage) for o in self.camera_outages):
             raise ValueError(f"ReplayConfig.camera_outages must be a tuple of CameraOutage, got {self.camera_outages!r}")
@@ -147,12 +153,14 @@ def split_scenes(tables: DatasetTables, split: str | None, count: int | None) ->
     return names[:count] if count else names
 
 
-def open_detector(config: ReplayConfig, num_slices: int | None = None) -> StreamingDetector:
+def open_detector(config: ReplayConfig, num_slices: int | None = None, layout: ScanLayout | None = None) -> StreamingDetector:
+    """The detector of a replay; ``layout``: the drive's scan layout (None: the default, for a probe)."""
+    scan = {} if layout is None else {"start_deg": layout.start_deg, "clockwise": layout.clockwise}
     return StreamingDetector(config.export_dir, DetectorConfig(
         precision=config.precision, image_lane_precision=config.image_precision, num_slices=num_slices or config.num_slices,
         image_lane_threads=config.image_lane_threads or config.threads, slice_lane_threads=config.threads,
         fallback_export_dir=config.fallback_export_dir, fallback_after_s=config.fallback_after_s,
-        camera_terms=config.camera_terms, providers=config.providers))  # fmt: skip
+        camera_terms=config.camera_terms, providers=config.providers, **scan))  # fmt: skip
 
 
 def warm_up(det: StreamingDetector, drive: Drive, num_slices: int, per_quadrant: bool = False) -> None:
@@ -171,7 +179,7 @@ def warm_up(det: StreamingDetector, drive: Drive, num_slices: int, per_quadrant:
         for q in range(4) if per_quadrant else ():
             det.update_images(drive.image_sets[0].images, timestamp=WARM_UP_TIMESTAMP_S, quadrants=[q])
     for n in {num_slices, 1}:
-        for s in slice_sweep(drive.sweeps[0], n):
+        for s in slice_sweep(drive.sweeps[0], n, det.config.start_deg, det.config.clockwise):
             det.detect_slice(s.points, s.slice_index, WARM_UP_TIMESTAMP_S, n)
     det.stats.reset()
 
@@ -191,17 +199,18 @@ def run_replay(config: ReplayConfig, progress: Progress = lambda msg: None) -> R
     for i, scene in enumerate(scenes):
         progress(f"scene {i + 1}/{len(scenes)} {scene}: loading")
         drive = load_drive(tables, scene, image_size, config.lidar_hz, config.camera_hz, config.max_seconds, progress,
-                           config.camera_trigger, probe.config.start_deg)  # fmt: skip
+                           config.camera_trigger, config.start_deg, config.clockwise)  # fmt: skip
         drive = apply_outages(drive, config.camera_outages)
         truth = load_ground_truth(config.data, config.version, scene, reader=tables.reader)
         sources.add(truth.source)
         drives.append(drive)
         truths.append(query_truth(drive, truth))
         for mode in config.modes:
-            det = open_detector(config)
+            det = open_detector(config, layout=drive.scan_layout)
             warm_up(det, drive, n, per_quadrant=config.lanes.schedule == "phase-locked")
             player = PlayerConfig(mode, n, det.config.start_deg, config.time_scale, _lanes(config),
-                                  camera_delivery_ms=config.camera_delivery_ms, freeze_heap=config.freeze_heap)  # fmt: skip
+                                  camera_delivery_ms=config.camera_delivery_ms, freeze_heap=config.freeze_heap,
+                                  clockwise=det.config.clockwise)  # fmt: skip
             recordings[mode].append(play(drive, det, WallClock(), player, progress))
             stages[mode].append(det.stats.summary())
             det.close()

@@ -2,7 +2,7 @@
 
 A slice is released the moment its last point has been scanned: the rotation start plus the latest firing time
 of its points (the data's per-point times; without them the azimuth's fraction of the rotation, the sensor turning
-counter-clockwise from ``start_deg`` as ``streamdet.data.slicing`` assumes). An empty slice is released when the
+as the scan layout says: ``start_deg``, ``clockwise``, ``core/sectors.py``). An empty slice is released when the
 sensor leaves its sector. A full sweep (``num_slices`` 1) is released when the rotation ends. Image sets are
 released at their capture time plus a fixed delivery delay (``camera_delivery_s``, default 0: exposure, readout,
 transfer and decoding not modelled); their timestamp stays the capture time, as a camera driver stamps it.
@@ -70,8 +70,8 @@ def check_time_scale(value: float, name: str = "time scale") -> float:
     return float(value)
 
 
-def slice_sweep(sweep: LidarSweep, num_slices: int, start_deg: float = 0.0) -> list[TimedSlice]:
-    """The sweep's slices in scan order with their release times.
+def slice_sweep(sweep: LidarSweep, num_slices: int, start_deg: float = 0.0, clockwise: bool = False) -> list[TimedSlice]:
+    """The sweep's slices in scan order (the layout ``start_deg``, ``clockwise``) with their release times.
 
     Non-finite points (a NaN / inf coordinate, intensity or per-point time) are handled as streamdet-eval handles
     them, so that the replay's offline and streaming scores stay comparable with eval's on the same files: a point
@@ -83,7 +83,7 @@ def slice_sweep(sweep: LidarSweep, num_slices: int, start_deg: float = 0.0) -> l
     """
     period = sweep.duration_s
     points = np.asarray(sweep.points)
-    slices = split_sweep(points, num_slices, start_deg, sweep_duration_s=period)
+    slices = split_sweep(points, num_slices, start_deg, sweep_duration_s=period, clockwise=clockwise)
     timed = sweep.timing_rows()
     every = bool(timed.all())
     pts = points if every else points[timed]
@@ -91,8 +91,8 @@ def slice_sweep(sweep: LidarSweep, num_slices: int, start_deg: float = 0.0) -> l
         times = np.asarray(sweep.point_time_s, dtype=np.float64)
         times = times if every else times[timed]
     else:
-        times = relative_time_s(pts, start_deg, period)
-    k_of_point = slice_index_of(pts[:, 0], pts[:, 1], num_slices, start_deg)
+        times = relative_time_s(pts, start_deg, period, clockwise)
+    k_of_point = slice_index_of(pts[:, 0], pts[:, 1], num_slices, start_deg, clockwise)
     latest = np.full(num_slices, -np.inf)
     np.maximum.at(latest, k_of_point, times)
     sector_end = period * (np.arange(num_slices) + 1) / num_slices  # where the sensor leaves each sector
@@ -103,13 +103,14 @@ def slice_sweep(sweep: LidarSweep, num_slices: int, start_deg: float = 0.0) -> l
 
 
 def release_schedule(
-    drive: Drive, num_slices: int, start_deg: float = 0.0, images: bool = True, camera_delivery_s: float = 0.0
+    drive: Drive, num_slices: int, start_deg: float = 0.0, images: bool = True, camera_delivery_s: float = 0.0,
+    clockwise: bool = False,
 ) -> list[Release]:
     """Every release of the drive in time order; at equal times slices go before image sets. An image set is
     released ``camera_delivery_s`` after its capture (a real camera's exposure, readout and transport); it keeps its
     capture time as its timestamp."""
     check_delivery(camera_delivery_s)
-    out = [Release(s.scan_end_s, SLICE, s) for sweep in drive.sweeps for s in slice_sweep(sweep, num_slices, start_deg)]
+    out = [Release(s.scan_end_s, SLICE, s) for sweep in drive.sweeps for s in slice_sweep(sweep, num_slices, start_deg, clockwise)]
     if images:
         out += [Release(s.capture_s + camera_delivery_s, IMAGES, s) for s in drive.image_sets]
     return sorted(out, key=lambda r: (r.time_s, r.kind != SLICE))

@@ -90,6 +90,8 @@ class Drive:
     t0_us: int  # dataset timestamp (us) of drive time 0
     rig: object | None = None  # streamdet.calibration.camera.Rig of the cameras, None where unknown
     notes: tuple[str, ...] = ()  # what the source did that a reader of the report must know (held images, ...)
+    # scan_layout.ScanLayout: how the LiDAR turns, which the player slices with; None: counter-clockwise from 0 deg
+    scan_layout: object | None = None
 
     def __post_init__(self) -> None:
         ends = [s.end_s for s in self.sweeps]

@@ -12,8 +12,8 @@
 
 When the LiDAR points at an azimuth is read from the data: where the sweep has per-point firing times (the
 synthetic world's ``<file>.time``), the median time of the points within ``WINDOW_DEG`` of the camera's axis, so
-the start azimuth and the direction of rotation are the data's own; otherwise the release schedule's convention
-(``schedule.py``: counter-clockwise from ``start_deg``), so triggers and slice releases agree with each other.
+the start azimuth and the direction of rotation are the data's own; otherwise the release schedule's scan layout
+(``schedule.py``: ``start_deg``, ``clockwise``), so triggers and slice releases agree with each other.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from streamdet.core.sectors import angle_diff_deg, azimuth_deg
+from streamdet.core.sectors import angle_diff_deg, azimuth_deg, scan_fraction
 from streamdet.replay.schedule import check_rate
 from streamdet.replay.source import LidarSweep
 
@@ -43,7 +43,7 @@ def camera_axis_azimuths_deg(rig) -> dict[str, float]:
     return {cam.name: cam.axis_azimuth_deg for cam in rig.cameras}
 
 
-def crossing_phase_s(sweep: LidarSweep, azimuth: float, start_deg: float = 0.0) -> float:
+def crossing_phase_s(sweep: LidarSweep, azimuth: float, start_deg: float = 0.0, clockwise: bool = False) -> float:
     """Seconds after the rotation start at which the LiDAR points at ``azimuth`` (degrees, LiDAR frame)."""
     if sweep.point_time_s is not None and len(sweep.points):
         az = azimuth_deg(sweep.points[:, 0], sweep.points[:, 1])
@@ -51,7 +51,7 @@ def crossing_phase_s(sweep: LidarSweep, azimuth: float, start_deg: float = 0.0) 
         near = off <= WINDOW_DEG
         if int(near.sum()) >= MIN_POINTS:
             return float(np.median(np.asarray(sweep.point_time_s)[near]))
-    return float(np.mod(azimuth - start_deg, 360.0) / 360.0 * sweep.duration_s)
+    return float(scan_fraction(azimuth, start_deg, clockwise) * sweep.duration_s)
 
 
 def simultaneous_triggers(end_s: float, camera_hz: float, cameras: Sequence[str]) -> dict[str, np.ndarray]:
@@ -62,7 +62,8 @@ def simultaneous_triggers(end_s: float, camera_hz: float, cameras: Sequence[str]
 
 
 def lidar_synced_triggers(
-    sweeps: Sequence[LidarSweep], axes_deg: Mapping[str, float], camera_hz: float, start_deg: float = 0.0
+    sweeps: Sequence[LidarSweep], axes_deg: Mapping[str, float], camera_hz: float, start_deg: float = 0.0,
+    clockwise: bool = False,
 ) -> dict[str, np.ndarray]:
     """Each camera's trigger times (drive seconds, increasing): the first crossing of its axis at or after each
     ``i / camera_hz`` (see the module doc). A camera asked to be faster than the LiDAR fires at every crossing (its
@@ -72,7 +73,7 @@ def lidar_synced_triggers(
         return {c: np.zeros(0) for c in axes_deg}
     out = {}
     for name, axis in axes_deg.items():
-        crossings = np.array([s.start_s + crossing_phase_s(s, axis, start_deg) for s in sweeps])  # (R,) increasing
+        crossings = np.array([s.start_s + crossing_phase_s(s, axis, start_deg, clockwise) for s in sweeps])  # (R,) increasing
         nominal = np.arange(0.0, crossings[-1] + 1e-9, 1.0 / camera_hz)
         picked = np.searchsorted(crossings, nominal - 1e-9)  # first crossing at or after each nominal time
         out[name] = crossings[np.unique(picked[picked < len(crossings)])]

@@ -18,7 +18,6 @@ _EXPORTS = {
     "SweepResult": "streamdet.runtime_ort.detector_results",
     "NoImageLaneError": "streamdet.runtime_ort.detector_config",
     "DetectorClosed": "streamdet.runtime_ort.detector_config",
-    "SliceStartWarning": "streamdet.runtime_ort.detector_config",
     "StreamingRunner": "streamdet.runtime_ort.lanes",
     "LaneConfig": "streamdet.runtime_ort.lanes",
     "SliceDropped": "streamdet.runtime_ort.lanes",

@@ -55,7 +55,7 @@ from streamdet.core.constants import PRECISIONS  # noqa: F401 (public here too)
 from streamdet.core.points import (
     MAX_POINT_TIME_S, MAX_SLICE_INDEX, MAX_SLICE_POINTS, MAX_SWEEP_POINTS, REFLECTANCE_RANGE, check_sweep, slice_points_problem,
 )
-from streamdet.core.sectors import NUM_QUADRANTS, quadrants_of_sector, sector_bounds_deg
+from streamdet.core.sectors import NUM_QUADRANTS, quadrants_of_sector, run_bounds_deg
 from streamdet.core.slicing import split_sweep
 from streamdet.runtime_ort.call_checks import call_timestamp, slice_count, slice_index_problem
 # the public names of the runtime's API are importable from here too, where StreamingDetector lives
@@ -750,7 +750,7 @@ class StreamingDetector:
         slice (0 on the others), so that sums over results stay true; ``coalesced`` names the slices of the run.
         """
         n = self._slices(num_slices)
-        ks = check_coalesced(slice_indices, n, self.config.start_deg)
+        ks = check_coalesced(slice_indices, n, self.config.start_deg, self.config.clockwise)
         points, timestamps = tuple(points), tuple(timestamps)
         if len(points) != len(ks) or len(timestamps) != len(ks):
             raise ValueError(f"detect_slices takes one points array and one timestamp per slice: {len(ks)} slices, "
@@ -771,7 +771,7 @@ class StreamingDetector:
             raise ValueError(f"a slice run holds {total} points, over the {MAX_SLICE_POINTS} of MAX_SLICE_POINTS (core/points.py)")
         if not self._sessions:  # closed: a slice without pillars runs no graph, and would answer "no objects"
             raise self._closed_error()
-        quadrants = quadrants_of_sector(ks[0], n, self.config.start_deg)
+        quadrants = quadrants_of_sector(ks[0], n, self.config.start_deg, self.config.clockwise)
         t0 = time.perf_counter()
         cache = quadrant_states(self._image)  # one read: a consistent view of the cache
         out = self._cameras_out  # (read after the cache: a drop between the two reads only renames a quadrant's absence)
@@ -811,12 +811,10 @@ class StreamingDetector:
                 with self._cap_lock:
                     self._runs_at_top_k += 1
             with self.stats.time("post"):
-                lo, hi = sector_bounds_deg(ks[0], n, self.config.start_deg)
-                if len(ks) > 1:  # the run's sector ends where its last slice's does
-                    hi = sector_bounds_deg(ks[-1], n, self.config.start_deg)[1]
+                lo, hi = run_bounds_deg(ks[0], ks[-1], n, self.config.start_deg, self.config.clockwise)
                 dets = postprocess_slice(boxes, scores, labels, quadrants, self.grid, self._post, (lo, hi), crop=crop)
         self.stats.record("slice_total", (time.perf_counter() - t0) * 1e3)
-        parts = split_by_slice(dets, ks, n, self.config.start_deg)
+        parts = split_by_slice(dets, ks, n, self.config.start_deg, self.config.clockwise)
         last = len(ks) - 1
         missing = self._cameras_missing(quadrants, states, out)
         return tuple(
@@ -932,7 +930,7 @@ class StreamingDetector:
             raise ValueError(f"sweep must hold real numbers (float or int), got dtype {sweep.dtype}")
         if sweep.shape[0] > MAX_SWEEP_POINTS:
             raise ValueError(f"sweep holds {sweep.shape[0]} points, over the {MAX_SWEEP_POINTS} of MAX_SWEEP_POINTS (core/points.py)")
-        slices = split_sweep(sweep.astype(np.float32, copy=False), n, self.config.start_deg)
+        slices = split_sweep(sweep.astype(np.float32, copy=False), n, self.config.start_deg, clockwise=self.config.clockwise)
         results = [self.detect_slice(pts, k, timestamp, n) for k, pts in enumerate(slices)]
         with self.stats.time("sweep_nms"):
             merged = aggregate_sweep([r.detections for r in results], self.config.nms)

@@ -25,12 +25,6 @@ def lane_precision_label(precision: str, image_precision: str | None) -> str:
     return f"{image_precision} image lane + {precision} slices"
 
 
-class SliceStartWarning(UserWarning):
-    """``DetectorConfig.start_deg`` is not where the model's training slices started (``core.slicing.
-    TRAINED_START_DEG``): the sectors are cut right, but their points' slice-index and time features differ from
-    the values the model learnt for the same azimuths."""
-
-
 class NoImageLaneError(ValueError):
     """An image-lane call (images, calibration, image size) on a LiDAR-only export, which has no image lane."""
 
@@ -59,9 +53,11 @@ class DetectorConfig:
     # (W, H) px of the images fed to the encoder; None: the export's. The graphs are dynamic in H and W, so another
     # size only needs a LUT built for it: from the export's calibration source at start, then set_calibration.
     image_size: tuple[int, int] | None = None
-    # Azimuth where slice 0 starts (a multiple of 90 in [-360, 360)). The models are trained with slices from 0
-    # (core.slicing.TRAINED_START_DEG): another start feeds them other slice-index / time features (SliceStartWarning)
+    # The LiDAR's scan layout (core/sectors.py): the azimuth where its sweep, and slice 0, starts (a multiple of 90 in
+    # [-360, 360)), and whether it turns clockwise seen from above (nuScenes' LIDAR_TOP does, from about 180). Slices
+    # are numbered in the order the sensor delivers them; the points' features do not depend on it (core/slicing.py)
     start_deg: float = 0.0
+    clockwise: bool = False
     score_threshold: float | None = None  # None: the export's post.score_threshold
     # Per-class NMS inside a slice and across a sweep. None: the export's post settings, i.e. circle NMS with
     # max_out = post.max_detections and, for NmsKind.ROTATED, post.nms_iou_threshold per class (the detector's
@@ -70,7 +66,8 @@ class DetectorConfig:
     restrict_to_sector: bool = False  # keep only boxes centred in the slice's own sector
     verify_sha256: bool = True  # refuse graphs whose bytes differ from the manifest
     enable_profiling: bool = False  # onnxruntime profiles of every session (written on close())
-    profile_dir: str | os.PathLike | None = None  # where those profiles go; None: the current directory
+    # where those profiles go (never inside an export: refused when the detector opens); None: the current directory
+    profile_dir: str | os.PathLike | None = None
     # A LiDAR-only export whose slice graph runs the slices that have no usable camera features (no image BEV yet,
     # or one older than fallback_after_s): runtime_ort/fallback.py. None: those slices read the camera-less BEV
     # (StreamingDetector.blank_image_bev), which the shipped models read far worse than the LiDAR-only model's.
@@ -110,6 +107,8 @@ class DetectorConfig:
                 or not -360.0 <= self.start_deg < 360.0 or self.start_deg % 90.0):
             # bounded: 1e300 is a multiple of 90 too, and its azimuths would put every point outside every sector
             raise ValueError(f"DetectorConfig.start_deg must be a multiple of 90 degrees in [-360, 360), got {self.start_deg!r}")
+        if not isinstance(self.clockwise, (bool, np.bool_)):
+            raise ValueError(f"DetectorConfig.clockwise must be True or False, got {self.clockwise!r}")
         if self.score_threshold is not None and (
             isinstance(self.score_threshold, bool) or not isinstance(self.score_threshold, numbers.Real)
             or not 0.0 <= self.score_threshold <= 1.0

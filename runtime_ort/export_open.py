@@ -28,8 +28,7 @@ from streamdet.calibration.lut import BlindCameraWarning, Lut, blind_cameras, bu
 from streamdet.calibration.quadrant_lut import QuadrantLut
 from streamdet.core.sectors import NUM_QUADRANTS, check_num_slices, quadrants_of_sector
 from streamdet.runtime_ort.camera_terms import CameraTerms, open_camera_terms
-from streamdet.core.slicing import TRAINED_START_DEG
-from streamdet.runtime_ort.detector_config import DetectorConfig, NoImageLaneError, SliceStartWarning
+from streamdet.runtime_ort.detector_config import DetectorConfig, NoImageLaneError
 from streamdet.runtime_ort.export_settings import export_nms, export_rig, image_spec_at
 from streamdet.runtime_ort.fallback import FALLBACK_GRAPH, LidarFallback, open_fallback
 from streamdet.runtime_ort.graph_files import checked_model, model_signature
@@ -53,6 +52,21 @@ TYPICAL_PILLAR_SHARE = 8  # TensorRT's "opt" pillar count: the cap / this (the b
 # open_export <- StreamingDetector.__init__ <- caller) or set_calibration (check_lut <- StreamingDetector._check_lut <-
 # _swap_calibration <- set_calibration), where they pointed when the check was a method of the detector.
 _LUT_WARNING_STACKLEVEL = 4
+
+
+def check_profile_dir(config: DetectorConfig, export_dir: Path) -> None:
+    """ValueError unless the profiles go outside every export the detector reads: the runtime writes nothing into an
+    export (a file there that the manifest does not name is left alone, but an export is a unit that is copied, hashed
+    and shipped whole). The default, the current directory, counts: a process started inside an export is refused."""
+    target = Path(config.profile_dir if config.profile_dir is not None else ".").resolve()
+    where = "DetectorConfig.profile_dir" if config.profile_dir is not None else "the profiles' default folder (the current directory)"
+    for export in (export_dir, config.fallback_export_dir):
+        if export is None:
+            continue
+        root = Path(export).resolve()
+        if target == root or root in target.parents:
+            raise ValueError(f"{where} {target} lies inside the export {export}: the runtime writes nothing into an "
+                             f"export; give DetectorConfig.profile_dir another folder")  # fmt: skip
 
 
 @dataclass(frozen=True, eq=False)
@@ -130,11 +144,6 @@ def open_export(export_dir: Path, config: DetectorConfig, manifest: Manifest | N
         check_num_slices(num_slices, config.start_deg)
     except ValueError as e:
         raise ManifestError(f"{export_dir / 'manifest.json'}: num_slices: {e}") from None
-    if (config.start_deg - TRAINED_START_DEG) % 360.0:
-        warnings.warn(f"DetectorConfig.start_deg {config.start_deg:g}: {export_dir} was trained on slices starting at "
-                      f"{TRAINED_START_DEG:g} deg; its slices are cut right, but their points' slice index and time "
-                      f"features differ from the ones it learnt for the same azimuths (detections may degrade)",
-                      SliceStartWarning, stacklevel=3)  # fmt: skip
     pillars = m.preset["pillars"]
     max_points_per_pillar = int(pillars["max_points_per_pillar"])
     max_pillars = int(pillars["max_pillars"])
@@ -142,6 +151,9 @@ def open_export(export_dir: Path, config: DetectorConfig, manifest: Manifest | N
         config = dataclasses.replace(config, nms=export_nms(m))
     threshold = config.score_threshold if config.score_threshold is not None else float(m.post["score_threshold"])
     post = PostprocessConfig(score_threshold=threshold, restrict_to_sector=config.restrict_to_sector, nms=config.nms)
+
+    if config.enable_profiling:
+        check_profile_dir(config, export_dir)
 
     def options(entry: GraphEntry) -> dict[str, dict[str, str]] | None:
         return provider_options(entry, export_dir=export_dir, config=config, image=image, camera_names=camera_names,

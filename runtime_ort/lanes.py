@@ -209,6 +209,7 @@ class StreamingRunner:
                 detector, detector.num_slices, detector.config.start_deg, config.lidar_hz, config.lift_margin_ms * 1e-3,
                 superseded=superseded, closed=lambda: RunnerClosed("image-lane: submit after close()"), nice=config.image_lane_nice,
                 backlog=lambda: slices.waiting, yield_at=config.image_lane_yield_slices, camera_timeout_s=config.camera_timeout_s,
+                clockwise=bool(detector.config.clockwise),
             )  # fmt: skip
         else:
             self._images = WorkerLane("image-lane", 1, 1, superseded, nice=config.image_lane_nice)
@@ -400,10 +401,10 @@ class _SliceJobs:
     def __init__(self, detector: StreamingDetector, config: LaneConfig) -> None:
         self.detector = detector
         self.pair_hold: PairHold | None = None
-        self.sector_layout: tuple[int, float] | None = None  # None: every slice runs alone
+        self.sector_layout: tuple[int, float, bool] | None = None  # (n, start_deg, clockwise); None: every slice runs alone
         if config.coalesce_slices > 1 and callable(getattr(detector, "detect_slices", None)):
             # read once, here: a join runs in a worker under the lane's lock and must not fail
-            self.sector_layout = (int(detector.num_slices), float(detector.config.start_deg))
+            self.sector_layout = (int(detector.num_slices), float(detector.config.start_deg), bool(detector.config.clockwise))
             if config.pair_hold_load is not None:
                 self.pair_hold = PairHold(config.pair_hold_load, config.max_in_flight, *self.sector_layout)
 
@@ -426,8 +427,8 @@ class _SliceJobs:
         its error is its own), the next slice of the rotation in the same quadrant(s)."""
         if not (_well_formed(run_last) and _well_formed(waiting)) or waiting[2] < run_last[2]:
             return False
-        n, start_deg = self.sector_layout
-        return run_last[1] < n and can_coalesce(int(run_last[1]), int(waiting[1]), n, start_deg)
+        n, start_deg, clockwise = self.sector_layout
+        return run_last[1] < n and can_coalesce(int(run_last[1]), int(waiting[1]), n, start_deg, clockwise)
 
     def detect_together(self, payloads: list) -> tuple[SliceResult, ...]:
         points, indices, stamps, arrivals = zip(*payloads)

@@ -49,7 +49,7 @@ RELEASE_FRACTION = 0.5
 class PairHold:
     """The slice lane's hold policy; thread-safe (arrivals come from the caller's thread, runs from the workers)."""
 
-    def __init__(self, load_above: float, workers: int, num_slices: int, start_deg: float = 0.0) -> None:
+    def __init__(self, load_above: float, workers: int, num_slices: int, start_deg: float = 0.0, clockwise: bool = False) -> None:
         if isinstance(load_above, bool) or not isinstance(load_above, (int, float)) or not 0.0 <= load_above <= 16.0:
             raise ValueError(f"PairHold.load_above must be a load in [0, 16], got {load_above!r}")
         if isinstance(workers, bool) or not isinstance(workers, (int, np.integer)) or workers < 1:
@@ -58,6 +58,7 @@ class PairHold:
         self._workers = int(workers)
         self._n = int(num_slices)
         self._start_deg = float(start_deg)
+        self._clockwise = bool(clockwise)
         self._lock = threading.Lock()
         self._arrivals: collections.deque[float] = collections.deque(maxlen=ARRIVALS_KEPT)
         self._costs: collections.deque[float] = collections.deque(maxlen=RUNS_KEPT)  # recent runs' wall time per slice
@@ -107,7 +108,7 @@ class PairHold:
         """How long the worker that took slice ``slice_index`` (arrived at ``arrival``) waits for the next slice of its
         quadrant, from ``now``: 0 (run at once) where it has none or the lane is not holding. The lane starts holding
         when its load is above ``load_above`` and stops when it is below ``RELEASE_FRACTION * load_above``."""
-        if not can_coalesce(slice_index, slice_index + 1, self._n, self._start_deg):
+        if not can_coalesce(slice_index, slice_index + 1, self._n, self._start_deg, self._clockwise):
             return 0.0
         with self._lock:
             load = self._load()

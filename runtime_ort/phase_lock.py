@@ -39,10 +39,10 @@ HISTORY_ROTATIONS = 2  # rotations of arrivals one period measurement spans (at 
 LIDAR_HZ_RANGE = (0.5, 100.0)
 
 
-def slice_quadrants(num_slices: int, start_deg: float = 0.0) -> tuple[tuple[int, int], ...]:
+def slice_quadrants(num_slices: int, start_deg: float = 0.0, clockwise: bool = False) -> tuple[tuple[int, int], ...]:
     """(slice index, quadrant) of every quadrant every slice of a rotation reads, in scan order."""
     check_num_slices(num_slices, start_deg)
-    return tuple((k, q) for k in range(num_slices) for q in quadrants_of_sector(k, num_slices, start_deg))
+    return tuple((k, q) for k in range(num_slices) for q in quadrants_of_sector(k, num_slices, start_deg, clockwise))
 
 
 def check_lidar_hz(value: object, what: str) -> float | None:
@@ -59,10 +59,10 @@ def check_lidar_hz(value: object, what: str) -> float | None:
 class RotationPhase:
     """Arrival times of the slices -> predicted arrival times of the coming ones. Not thread-safe (the lane locks)."""
 
-    def __init__(self, num_slices: int, start_deg: float = 0.0, lidar_hz: float | None = None) -> None:
+    def __init__(self, num_slices: int, start_deg: float = 0.0, lidar_hz: float | None = None, clockwise: bool = False) -> None:
         lidar_hz = check_lidar_hz(lidar_hz, "lidar_hz")
         self.num_slices = num_slices
-        self.slice_quadrants = slice_quadrants(num_slices, start_deg)
+        self.slice_quadrants = slice_quadrants(num_slices, start_deg, clockwise)
         self.quadrant_order = tuple(dict.fromkeys(q for _, q in self.slice_quadrants))  # the order the LiDAR enters them
         self._fixed_period_s = None if lidar_hz is None else 1.0 / lidar_hz
         self._periods: deque[float] = deque(maxlen=PERIOD_SAMPLES)

@@ -142,6 +142,7 @@ class PhaseLockedImageLane:
         superseded: Callable[[], Exception] = lambda: RuntimeError("image set superseded by a newer one"),
         closed: Callable[[], Exception] = lambda: RuntimeError("image-lane: submit after close()"), nice: int = 0,
         backlog: Callable[[], int] | None = None, yield_at: int = 0, camera_timeout_s: float | None = None,
+        clockwise: bool = False,
     ) -> None:  # fmt: skip
         """``detector``: a StreamingDetector (or one with its ``quadrant_cameras``, ``encode_images`` and
         ``update_images(images, timestamp, quadrants=, encoded=)``); ``clock``: the runner's seconds; ``thread``
@@ -150,7 +151,8 @@ class PhaseLockedImageLane:
         added to the worker thread's nice value (thread_priority.py); ``backlog``: the number of slices waiting in
         the slice lane's queue, and ``yield_at``: how many of them make this lane hold back (0: never; needs
         ``backlog``); ``camera_timeout_s``: seconds without a new frame after which a camera counts as out
-        (core/camera_timeout.py; None: its last frame is kept however old)."""
+        (core/camera_timeout.py; None: its last frame is kept however old); ``num_slices``, ``start_deg``,
+        ``clockwise``: the LiDAR's scan layout (core/sectors.py), which tells the quadrants' order."""
         if isinstance(yield_at, bool) or not isinstance(yield_at, (int, np.integer)) or yield_at < 0:
             raise ValueError(f"image-lane: yield_at must be an int >= 0 (slices waiting; 0: never yield), got {yield_at!r}")
         if yield_at and backlog is None:
@@ -169,7 +171,7 @@ class PhaseLockedImageLane:
         self.stats = PhaseLockStats()
         self.cpu_s = 0.0  # CPU seconds spent by this lane's updates (thread time of the thread running them)
         self.images_superseded = 0
-        self._phase = RotationPhase(num_slices, start_deg, lidar_hz)
+        self._phase = RotationPhase(num_slices, start_deg, lidar_hz, clockwise)
         self._cond = threading.Condition()
         self._frames: dict[str, _Frame] = {}
         # per camera whose newest frame is not encoded yet: its newest frame that is, of an image set a lift used (so

@@ -198,6 +198,30 @@ def camera_terms_option(default: str = "auto"):
     )  # fmt: skip
 
 
+SCAN_STARTS_DEG = ("0", "90", "180", "270")
+
+
+def scan_layout_options(from_data: bool):
+    """``--scan-start-deg`` and ``--clockwise/--counter-clockwise``: the LiDAR's scan layout (core/sectors.py;
+    ``DetectorConfig.start_deg`` / ``clockwise``), which decides the order slices arrive in, never the points'
+    features. ``from_data``: both default to None (the command reads them from its data); else 0 and
+    counter-clockwise. The command gets ``scan_start_deg`` (float or None) and ``clockwise`` (bool or None)."""
+    auto = " (default: from the data)" if from_data else ""
+
+    def apply(f):
+        f = click.option("--clockwise/--counter-clockwise", "clockwise", default=None if from_data else False,
+                         show_default=not from_data,
+                         help="Which way the LiDAR turns, seen from above: slices are numbered and released in the order "
+                         f"it scans them (nuScenes' LIDAR_TOP, a Velodyne, turns clockwise){auto}.")(f)  # fmt: skip
+        return click.option("--scan-start-deg", "scan_start_deg", type=click.Choice(SCAN_STARTS_DEG),
+                            default=None if from_data else "0", show_default=not from_data,
+                            callback=lambda ctx, param, value: None if value is None else float(value),
+                            help="Azimuth (deg, LiDAR frame, counter-clockwise from +x) where the LiDAR's sweep, and slice 0, "
+                            f"starts: the axis nearest its real start (nuScenes' LIDAR_TOP: 180){auto}.")(f)  # fmt: skip
+
+    return apply
+
+
 def _providers_callback(ctx, param, value: str | None):
     if value is None:
         return None

@@ -16,7 +16,7 @@ class StandInDetector:
     uses_images = True
     num_slices = 8
     camera_names = CAMERAS
-    config = SimpleNamespace(start_deg=0.0)
+    config = SimpleNamespace(start_deg=0.0, clockwise=False)
 
     def quadrant_cameras(self, quadrants):
         return self.camera_names

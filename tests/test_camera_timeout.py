@@ -34,7 +34,7 @@ class RecordingDetector:
     uses_images = True
     camera_names = CAMERAS
     num_slices = N
-    config = SimpleNamespace(start_deg=0.0)
+    config = SimpleNamespace(start_deg=0.0, clockwise=False)
 
     def __init__(self, clock: ManualClock) -> None:
         self.clock = clock

@@ -158,6 +158,7 @@ def test_detect_slices_of_empty_slices(detector):
 
 class _Config:
     start_deg = 0.0
+    clockwise = False
 
 
 class GatedSliceDetector:

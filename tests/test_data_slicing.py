@@ -24,13 +24,17 @@ def _random_sweep(seed: int, n: int = 3000) -> np.ndarray:
     return pts
 
 
-def _naive_slices(points, n, start_deg, duration, lag=0.0):
+def _naive_slices(points, n, start_deg, duration, lag=0.0, clockwise=False):
+    """Membership in the scan layout's order (clockwise: slice k is the counter-clockwise sector n - 1 - k); the time
+    and index features counted counter-clockwise from +x whatever the layout."""
     out = [[] for _ in range(n)]
     for p in points:
         az = math.degrees(math.atan2(float(p[1]), float(p[0]))) % 360.0
         off = (az - start_deg) % 360.0
-        k = min(int(off // (360.0 / n)), n - 1)
-        out[k].append([p[0], p[1], p[2], p[3] / 255.0, off / 360.0 * duration + lag, k])
+        j = min(int(off // (360.0 / n)), n - 1)
+        k = n - 1 - j if clockwise else j
+        feature = min(int(az // (360.0 / n)), n - 1)
+        out[k].append([p[0], p[1], p[2], p[3] / 255.0, az / 360.0 * duration + lag, feature])
     return [np.array(s, dtype=np.float64).reshape(-1, 6) for s in out]
 
 
@@ -49,11 +53,12 @@ def _in_sector(x, y, k, n, start_deg):
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
-@pytest.mark.parametrize("n,start_deg", [(1, 0.0), (2, 0.0), (4, 90.0), (8, 0.0), (16, 270.0)])
-def test_split_sweep_matches_naive(seed, n, start_deg):
+@pytest.mark.parametrize("clockwise", [False, True])
+@pytest.mark.parametrize("n,start_deg", [(1, 0.0), (2, 0.0), (2, 90.0), (4, 90.0), (8, 0.0), (16, 270.0), (12, 180.0)])
+def test_split_sweep_matches_naive(seed, n, start_deg, clockwise):
     pts = _random_sweep(seed, 800)
-    got = split_sweep(pts, n, start_deg)
-    ref = _naive_slices(pts, n, start_deg, SWEEP_DURATION_S)
+    got = split_sweep(pts, n, start_deg, clockwise=clockwise)
+    ref = _naive_slices(pts, n, start_deg, SWEEP_DURATION_S, clockwise=clockwise)
     assert len(got) == n
     for k in range(n):
         assert got[k].dtype == np.float32 and got[k].shape[1] == 6

@@ -41,7 +41,7 @@ class SliceFake:
 
     uses_images = False
     num_slices = 8
-    config = SimpleNamespace(start_deg=0.0)
+    config = SimpleNamespace(start_deg=0.0, clockwise=False)
 
     def __init__(self, joins: bool = False) -> None:
         self.gate = threading.Event()
@@ -78,7 +78,7 @@ class ImageFake:
     uses_images = True
     num_slices = 8
     camera_names = CAMS
-    config = SimpleNamespace(start_deg=0.0)
+    config = SimpleNamespace(start_deg=0.0, clockwise=False)
 
     def __init__(self) -> None:
         self.checked: list[object] = []

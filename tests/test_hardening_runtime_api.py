@@ -8,6 +8,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import shutil
 
 import numpy as np
 import pytest
@@ -233,6 +234,26 @@ def test_profiles_go_to_the_profile_dir_never_the_export(tiny_export, sample, tm
     assert sorted(p.name for p in tiny_export.iterdir()) == before
 
 
+@pytest.mark.parametrize("where", ["export", "inside", "cwd"])
+def test_profiles_inside_the_export_are_refused(tiny_export, tmp_path, monkeypatch, where):
+    """README and docs/trust.md: the runtime writes nothing into an export; profile_dir=<the export> (or a folder in
+    it, or the default current directory while the process runs inside it) wrote three profile JSONs there."""
+    export = tmp_path / "export"
+    shutil.copytree(tiny_export, export)
+    (export / "sub").mkdir()
+    before = sorted(p.name for p in export.iterdir())
+    if where == "cwd":
+        monkeypatch.chdir(export / "sub")
+        config, said = DetectorConfig(enable_profiling=True), "current directory"
+    else:
+        target = export if where == "export" else export / "sub" / "prof"
+        config, said = DetectorConfig(enable_profiling=True, profile_dir=target), "DetectorConfig.profile_dir"
+    with pytest.raises(ValueError, match=f"{said}.*lies inside the export"):
+        StreamingDetector(export, config)
+    assert sorted(p.name for p in export.iterdir()) == before
+    StreamingDetector(export, DetectorConfig(profile_dir=export)).close()  # without profiling nothing is written
+
+
 def test_a_slice_finishing_after_close_names_its_graph(det, sample, monkeypatch):
     """close() from another thread while a slice runs: the slice's output check still names the graph."""
     real = det._run_graph
@@ -249,27 +270,3 @@ def test_a_slice_finishing_after_close_names_its_graph(det, sample, monkeypatch)
     with pytest.raises(DetectorClosed):
         det.detect_slice(split_sweep(sample.points, 8)[0], 0, timestamp=0.0)
 
-
-@pytest.mark.parametrize("start_deg, warns", [(90.0, True), (-90, True), (0.0, False), (-360, False)])
-def test_a_start_azimuth_other_than_training_s_is_warned(tiny_export, sample, start_deg, warns):
-    """The models learn their points' slice-index and time features from slices starting at TRAINED_START_DEG; a
-    detector slicing from another start cuts the same sectors but feeds other features for them (training review)."""
-    import warnings
-
-    from streamdet.core.slicing import TRAINED_START_DEG
-    from streamdet.runtime_ort import SliceStartWarning
-
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        det = StreamingDetector(tiny_export, DetectorConfig(start_deg=start_deg))
-    said = [w for w in caught if issubclass(w.category, SliceStartWarning)]
-    assert len(said) == int(warns)
-    if warns:
-        assert said[0].filename == __file__  # points at the code that built the detector
-        assert f"start_deg {start_deg:g}" in str(said[0].message) and f"starting at {TRAINED_START_DEG:g}" in str(said[0].message)
-        ours = split_sweep(sample.points, det.num_slices, start_deg)
-        trained = split_sweep(sample.points, det.num_slices, TRAINED_START_DEG)
-        shift = round((start_deg - TRAINED_START_DEG) % 360 / 360 * det.num_slices)
-        assert np.array_equal(ours[0][:, :4], trained[shift][:, :4])  # the same sector ...
-        assert not np.array_equal(ours[0][:, 4:], trained[shift][:, 4:])  # ... with other features
-    det.close()

@@ -293,6 +293,7 @@ def test_no_hold_keeps_the_free_worker_rule():
 
 class _Config:
     start_deg = 0.0
+    clockwise = False
 
 
 class SlowDetector:

@@ -228,6 +228,7 @@ class CoalescingDetector(FakeDetector):
 
     class config:  # noqa: N801 (what the runner reads of a StreamingDetector's DetectorConfig)
         start_deg = 0.0
+        clockwise = False
 
     num_slices = 8
 

@@ -411,7 +411,7 @@ class _Slices:
     """A stand-in detector for detect_cloud: slice k finds ``counts[k]`` boxes; ``fail_at`` raises at that slice."""
 
     def __init__(self, counts: list[int], fail_at: int | None = None) -> None:
-        self.num_slices, self.config, self.counts, self.fail_at = len(counts), ns(start_deg=0.0), counts, fail_at
+        self.num_slices, self.config, self.counts, self.fail_at = len(counts), ns(start_deg=0.0, clockwise=False), counts, fail_at
         self.stamps: list[float] = []
 
     def detect_slice(self, points, index, timestamp):

@@ -36,7 +36,7 @@ class FakeDetector:
         self.encode_s = encode_s
         self.lift_s = lift_s
         self.num_slices = num_slices
-        self.config = SimpleNamespace(start_deg=0.0)
+        self.config = SimpleNamespace(start_deg=0.0, clockwise=False)
         self.encoded: list[str] = []
         self.lifts: list[tuple[tuple[int, ...], float, float, float]] = []  # (quadrants, image ts, start, end)
 

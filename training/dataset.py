@@ -36,7 +36,7 @@ from streamdet.core.file_input import read_regular_file
 from streamdet.core.file_output import writer_alive
 from streamdet.core.json_input import read_json, short_repr
 from streamdet.core.sectors import check_num_slices, quadrants_of_sector
-from streamdet.core.slicing import TRAINED_START_DEG, boxes_in_sector, split_sweep
+from streamdet.core.slicing import boxes_in_sector, split_sweep
 from streamdet.data.nuscenes import LIDAR_CHANNEL, NuScenesReader
 from streamdet.data.splits import SPLITS_FILE, split_scenes
 from streamdet.models.presets import Preset
@@ -451,7 +451,7 @@ class SliceDataset:
         keep = (s.labels[rows] >= 0) & (s.num_lidar_pts[rows] >= cfg.min_lidar_points)
         boxes = np.asarray(s.boxes[rows][keep], np.float64)
         labels = np.asarray(s.labels[rows][keep])
-        parts = split_sweep(np.asarray(s.sweep(i)), n, TRAINED_START_DEG)
+        parts = split_sweep(np.asarray(s.sweep(i)), n)
         rig = s.rigs[i]
         slices = []
         for k in ks.tolist():

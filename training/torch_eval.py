@@ -15,7 +15,7 @@ import torch
 from streamdet.calibration.lut import Lut, build_lut
 from streamdet.calibration.slice_maps import slice_maps
 from streamdet.core.sectors import quadrants_of_sector
-from streamdet.core.slicing import TRAINED_START_DEG, split_sweep
+from streamdet.core.slicing import split_sweep
 from streamdet.data.sample import Sample
 from streamdet.models.decode import decode_head_maps
 from streamdet.models.detector import StreamDetector
@@ -66,7 +66,7 @@ class TorchSweepDetector:
         else:
             bev = None  # the LiDAR-only net reads the slice's quadrant count only
         results = []
-        for k, points in enumerate(split_sweep(np.asarray(sample.points, np.float32), self.num_slices, TRAINED_START_DEG)):
+        for k, points in enumerate(split_sweep(np.asarray(sample.points, np.float32), self.num_slices)):
             quadrants = quadrants_of_sector(k, self.num_slices)
             pil = pillarize(points, g, quadrants, p.pillars.max_points_per_pillar, p.pillars.max_pillars, crop=p.slice_crop)
             if pil.num_pillars == 0:

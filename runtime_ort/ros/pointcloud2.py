@@ -38,7 +38,7 @@ import numpy as np
 from streamdet.core.json_input import is_finite_number
 from streamdet.core.points import INTENSITY_SCALE, SWEEP_COLUMNS
 from streamdet.core.sectors import check_num_slices, slice_index_of
-from streamdet.core.slicing import relative_time_s, split_sweep
+from streamdet.core.slicing import feature_index, slice_features, split_sweep
 from streamdet.runtime_ort.ros.header import (
     NS_PER_S,
     UINT8_MAX,
@@ -196,14 +196,15 @@ def decode_pointcloud2(msg: Any, fields: CloudFields = CloudFields()) -> Cloud:
     return Cloud(stamp, frame_id, points, time_s, dropped, time_dropped, bad_time)
 
 
-def split_cloud(cloud: Cloud, num_slices: int, start_deg: float = 0.0) -> list[TimedSlice]:
-    """A full-sweep cloud cut into the runtime's ``num_slices`` slices by azimuth (``split_sweep``), each stamped
-    with its scan time from the per-point times."""
+def split_cloud(cloud: Cloud, num_slices: int, start_deg: float = 0.0, clockwise: bool = False) -> list[TimedSlice]:
+    """A full-sweep cloud cut into the runtime's ``num_slices`` slices by azimuth (``split_sweep``; ``start_deg``,
+    ``clockwise``: the sensor's scan layout, ``DetectorConfig``'s), each stamped with its scan time from the
+    per-point times."""
     check_num_slices(num_slices, start_deg)
-    parts = split_sweep(cloud.points, num_slices, start_deg)
+    parts = split_sweep(cloud.points, num_slices, start_deg, clockwise=clockwise)
     if cloud.time_s is None:
         return [TimedSlice(p, k, num_slices, cloud.stamp_ns, cloud.stamp_ns, cloud.frame_id) for k, p in enumerate(parts)]
-    k_of_point = slice_index_of(cloud.points[:, 0], cloud.points[:, 1], num_slices, start_deg)
+    k_of_point = slice_index_of(cloud.points[:, 0], cloud.points[:, 1], num_slices, start_deg, clockwise)
     latest = np.full(num_slices, -np.inf)
     np.maximum.at(latest, k_of_point, cloud.time_s)
     return [
@@ -213,12 +214,14 @@ def split_cloud(cloud: Cloud, num_slices: int, start_deg: float = 0.0) -> list[T
 
 
 def slice_from_message(
-    cloud: Cloud, num_slices: int, start_deg: float = 0.0, index: int | None = None, sweep_duration_s: float = 0.05
+    cloud: Cloud, num_slices: int, start_deg: float = 0.0, index: int | None = None, sweep_duration_s: float = 0.05,
+    clockwise: bool = False,
 ) -> TimedSlice:
     """One message that already holds one slice (a driver publishing partial scans) as a runtime slice.
 
     ``index`` None: the sector holding most of the points. Every point of the message is kept, also those a few
-    columns over the sector border: the slice graph crops to the sector's quadrants itself.
+    columns over the sector border (with the slice's own index feature): the slice graph crops to the sector's
+    quadrants itself. ``start_deg``, ``clockwise``: the sensor's scan layout (``DetectorConfig``'s).
     """
     check_num_slices(num_slices, start_deg)
     # a NaN, infinite or non-positive duration makes every point's time column NaN, inf or negative, and pillarize
@@ -230,7 +233,7 @@ def slice_from_message(
     if index is not None and not (is_integer(index) and 0 <= index < num_slices):  # True is not slice 1
         raise ValueError(f"slice_from_message: slice index must be in 0..{num_slices - 1} (an integer), got {shown(index)}")
     pts = cloud.points
-    k_of_point = slice_index_of(pts[:, 0], pts[:, 1], num_slices, start_deg)
+    k_of_point = slice_index_of(pts[:, 0], pts[:, 1], num_slices, start_deg, clockwise)
     if index is None:
         if len(pts) == 0:
             raise RosMessageError("slice_from_message: an empty cloud names no sector; pass index")
@@ -238,8 +241,8 @@ def slice_from_message(
     out = np.empty((len(pts), SWEEP_COLUMNS + 1), dtype=np.float32)  # (N, 6)
     out[:, :3] = pts[:, :3]
     out[:, 3] = pts[:, 3] / INTENSITY_SCALE
-    out[:, 4] = relative_time_s(pts, start_deg, sweep_duration_s)
-    out[:, 5] = index
+    out[:, 4] = slice_features(pts, num_slices, sweep_duration_s)[0]  # as split_sweep's, whatever the layout
+    out[:, 5] = feature_index(int(index), num_slices, start_deg, clockwise)
     latest = float(cloud.time_s.max()) if cloud.time_s is not None and len(pts) else -np.inf
     return TimedSlice(out, int(index), num_slices, _scan_time_ns(cloud.stamp_ns, latest), cloud.stamp_ns, cloud.frame_id)
 
