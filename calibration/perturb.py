@@ -1,8 +1,9 @@
 """Seeded camera-LiDAR miscalibration, as in the paper's robustness study (Sec. "On Calibration").
 
 Per camera, three Euler angles and a translation are drawn uniformly within +-bounds and the resulting rigid
-transform N is applied to the extrinsic in the camera frame: ``lidar2cam' = N @ lidar2cam``. The camera thus
-turns about its own optical centre and shifts along its own axes, the way a mount that moved would.
+transform N = [R | t] is applied to the extrinsic in the camera frame: ``lidar2cam' = N @ lidar2cam``, the way a
+mount that moved would: the camera turns about its own optical centre, and the points' camera coordinates shift by
+t (its centre moves by -R^T t in its old axes: the same size, and as the draws are symmetric, the same spread).
 """
 
 from __future__ import annotations

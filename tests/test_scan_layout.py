@@ -4,7 +4,6 @@ lock's quadrant order, the replay's layout read from per-point times, and the CL
 
 from __future__ import annotations
 
-
 import numpy as np
 import pytest
 from click.testing import CliRunner

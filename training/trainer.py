@@ -7,8 +7,15 @@ the global batch and multiplied by the world size, so the update equals that of 
 global batch.
 
 Outputs in ``out_dir``: ``last.pt`` (training checkpoint, rewritten every ``checkpoint_every`` steps and at the
-end), ``model.pt`` (weights only, for ``streamdet-export --checkpoint``), ``metrics.jsonl`` (one JSON object per
-logged step: step, epoch, losses, lr, samples/s, slices/s, seconds) and ``config.json``.
+end), ``model.pt`` (weights only, for ``streamdet-export --checkpoint``), ``metrics.jsonl`` and ``config.json``.
+
+``metrics.jsonl`` holds one JSON object per logged step, its values over the global batch averaged over the steps
+since the previous record: ``step``, ``epoch``, ``loss`` (what the optimizer minimised: ``heatmap + reg_weight * reg``
+plus the weighted image class and distillation terms), ``heatmap`` (focal loss per object), ``reg`` (the code-weighted
+L1 of the box codes per object, before ``reg_weight``), its parts before their code weights ``loc_xy``, ``z``,
+``dim``, ``rot``, ``vel`` (the sum over those codes of the L1 per object), ``image_class`` / ``distill_heatmap`` /
+``distill_box`` where those losses run (before their weights), ``lr``, ``samples_per_s`` and ``slices_per_s`` (over
+every process), ``elapsed_s`` (training seconds, a resumed run's included).
 """
 
 from __future__ import annotations
@@ -81,7 +88,7 @@ class TrainResult:
     steps_done: int
     seconds: float
     stopped_early: bool  # max_minutes ran out before the planned steps
-    final_loss: float
+    final_loss: float  # the global batch's loss at the last step (summed over processes)
     checkpoint: Path | None  # last.pt (main process only)
     weights: Path | None  # model.pt
     skipped_samples: int = 0  # samples left out of their batch for holding no pillar (Collator: no usable LiDAR point)
@@ -294,6 +301,8 @@ def _train_into(config: TrainConfig, data_dir: str | Path, out_dir: str | Path, 
     )
     try:
         stopped_early, last_loss = _loop(run, log_file)
+        # this process's share: the global batch's loss is the sum over processes (NaN where no step was taken: on all)
+        last_loss = float(all_reduce_sum(torch.tensor([last_loss], dtype=torch.float64), run.ctx)[0])
         check_weights_finite(run.model, run.schedule.step)
     finally:
         if log_file is not None:
@@ -708,8 +717,9 @@ def _log(window: dict, schedule: OneCycle, lr: float, epoch: int, ctx: DistConte
     stats = all_reduce_sum(torch.tensor([window["loss"]] + list(window["parts"].values()), dtype=torch.float64), ctx)
     loss = float(stats[0]) / n
     parts = {k: float(v) / n for k, v in zip(window["parts"], stats[1:].tolist())}
-    samples_s = window["samples"] * ctx.world_size / dt
-    slices_s = window["slices"] * ctx.world_size / dt
+    counts = all_reduce_sum(torch.tensor([window["samples"], window["slices"]], dtype=torch.float64), ctx)  # every process's
+    samples_s = float(counts[0]) / dt
+    slices_s = float(counts[1]) / dt
     if schedule.by_time:
         total, eta = "time", schedule.budget_s - schedule.elapsed_s
     else:
