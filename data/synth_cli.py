@@ -7,6 +7,7 @@ and ``streamdet-synth stats DIR`` to measure a dataset against the real nuScenes
 
 from __future__ import annotations
 
+from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
 import click
@@ -22,6 +23,8 @@ from streamdet.cli_utils import (
     resolution_callback,
     write_json_output,
 )
+from streamdet.core.errors import first_line
+from streamdet.data.synth_memory import PEAK_BYTES_PER_PIXEL, memory_problem
 from streamdet.data.synth_staging import StagedDataset
 from streamdet.data.synth_stats import open_samples
 from streamdet.data.synth_world import WorldConfig
@@ -139,7 +142,9 @@ def _occupied(out_dir: Path, version: str, survey: RootSurvey) -> str:
 @click.option("--seed", default=0, show_default=True, type=click.IntRange(min=0), help="Random seed; the same seed writes the same dataset.")
 @click.option("--resolution", default="800x450", show_default=True, callback=_resolution,
               help=f"Camera image size WIDTHxHEIGHT, {RESOLUTION_RANGE_HELP}, of the real rig's aspect (16:9, as the "
-                   "other tools require; intrinsics of the real rig scaled to it).")
+                   "other tools require; intrinsics of the real rig scaled to it). Memory grows with it (about "
+                   f"{PEAK_BYTES_PER_PIXEL * 1e6 / 1e9:.1f} GB per megapixel per --workers process): a run this machine "
+                   "cannot hold is refused before it starts.")
 @click.option("--samples-per-scene", default=10, show_default=True, type=click.IntRange(1, MAX_SAMPLES_PER_SCENE),
               help=f"Key frames per scene, 0.5 s apart (2 Hz, as nuScenes); 1..{MAX_SAMPLES_PER_SCENE}.")
 @click.option("--sweeps-per-sample", default=1, show_default=True, type=click.IntRange(1, 10),
@@ -162,6 +167,10 @@ def generate(out_dir: Path, scenes: int, seed: int, resolution: tuple[int, int],
                              version=version, world=WorldConfig(samples_per_scene=samples_per_scene))
     except ValueError as e:
         raise click.ClickException(str(e)) from None
+    # Before any work: the largest resolutions need GBs per process, and numpy ran out minutes into the run.
+    problem = memory_problem(resolution, workers, scenes)
+    if problem:
+        raise click.ClickException(problem)
     table_dir = out_dir / version
     replaced = _check_out_dir(out_dir, version, overwrite)
     # Everything that needs no simulation is checked and made before any is run, and before --overwrite deletes
@@ -197,6 +206,17 @@ def generate(out_dir: Path, scenes: int, seed: int, resolution: tuple[int, int],
             summary = staged.generate(progress=bar.update, workers=workers, finish=finish)
     except (OSError, ValueError) as e:
         raise click.ClickException(f"cannot write the dataset under {out_dir}: {e}; {_abandoned(out_dir, deleted, staged.left)}") from None
+    except (MemoryError, BrokenProcessPool) as e:
+        # The estimate passed, yet memory ran out (other programs took it meanwhile, or a limit the probe does not
+        # see); a worker the kernel kills for memory breaks the pool without a MemoryError of its own.
+        if isinstance(e, MemoryError):
+            what = f"out of memory ({first_line(e)})"
+        else:
+            what = f"a worker process ended abruptly, as one killed for memory does ({first_line(e)})"
+        fewer = " or fewer --workers" if workers > 1 and scenes > 1 else ""
+        raise click.ClickException(
+            f"--resolution {resolution[0]}x{resolution[1]} with --workers {workers}: {what}; choose a lower "
+            f"--resolution{fewer}; {_abandoned(out_dir, deleted, staged.left)}") from None
     except KeyboardInterrupt:
         click.echo(f"streamdet-synth: {_abandoned(out_dir, deleted, staged.left)}", err=True)
         raise

@@ -102,6 +102,7 @@ def layout_scene(seed: int, index: int, config: WorldConfig) -> Scene:
         color=np.stack([r["color"] for r in rows]).astype(np.float32),
         color2=np.stack([r["color2"] for r in rows]).astype(np.float32),
         flag=np.array([r["flag"] for r in rows], dtype=bool),
+        parked=np.array([r["parked"] for r in rows], dtype=bool),
         parts=parts,
     )
     sun_az = rng.uniform(0, 2 * math.pi)
@@ -160,8 +161,13 @@ class _Placer:
 
     def _try_add(self, kind: Kind, s: float, d: float, yaw_road: float, speed: float, size: np.ndarray | None = None,
                  z: float | None = None, check: bool = True, yaw_rate: float = 0.0, flag: bool | None = None,
-                 color=None) -> bool:
-        """Place an object at road position (s, d) moving along its heading; False if it would collide."""
+                 color=None, parked: bool = False) -> bool:
+        """Place an object at road position (s, d) moving along its heading; False if it would collide.
+
+        ``parked``: left there (kerb, bay, lot, rack), as opposed to waiting in traffic or at a stop; it becomes
+        ``Objects.parked``, from which the attribute is taken (vehicle.parked vs vehicle.stopped)."""
+        if parked and speed != 0.0:
+            raise ValueError(f"a parked {Kind(kind).name.lower()} must stand still, got speed {speed!r} m/s")
         size = self._size(kind) if size is None else np.asarray(size, dtype=np.float64)
         if yaw_rate == 0.0:
             v = speed * np.array([math.cos(yaw_road), math.sin(yaw_road)])
@@ -199,6 +205,7 @@ class _Placer:
                 "color": c1,
                 "color2": c2,
                 "flag": flag,
+                "parked": bool(parked),
             }
         )
         return True
@@ -351,7 +358,7 @@ class _Placer:
 
     def _bus(self) -> bool:
         rng = self.rng
-        if rng.uniform() < 0.35:  # at a stop by the curb
+        if rng.uniform() < 0.35:  # at a stop by the curb: waiting for passengers (stopped), not parked
             side = self._side()
             s = self._s()
             if self._in_cross(s, 8.0):
@@ -367,6 +374,7 @@ class _Placer:
             lane = CROSS_LANES_M[rng.integers(len(CROSS_LANES_M))]
             heading = math.pi / 2 if lane > 0 else -math.pi / 2  # right-hand traffic on the cross street
             d = float(rng.uniform(-55.0, 55.0))
+            # waiting (stopped, as at a light: never parked, the cross street has no parking) or driving
             speed = 0.0 if abs(d) > ROAD_HALF_WIDTH_M + 3 and rng.uniform() < 0.4 else float(rng.uniform(2.0, 10.0))
             if speed == 0.0 and abs(d) < ROAD_HALF_WIDTH_M + 2:
                 return False
@@ -396,7 +404,7 @@ class _Placer:
             if self._in_cross(s, 1.0):
                 return False
             yaw = (math.pi / 2 if side > 0 else -math.pi / 2) + rng.uniform(-0.9, 0.9)
-            return self._try_add(Kind.MOTORCYCLE, s, side * rng.uniform(8.9, 9.6), yaw, 0.0, flag=False)
+            return self._try_add(Kind.MOTORCYCLE, s, side * rng.uniform(8.9, 9.6), yaw, 0.0, flag=False, parked=True)
         return self._lane_vehicle(Kind.MOTORCYCLE)
 
     def _parked_vehicle(self) -> bool:
@@ -410,7 +418,7 @@ class _Placer:
         style = rng.uniform()
         if style < 0.3:  # parallel, by the curb
             yaw = along + rng.normal(0, 0.04)
-            return self._try_add(kind, s, side * (PARKING_OFFSET_M + rng.normal(0, 0.15)), yaw, 0.0)
+            return self._try_add(kind, s, side * (PARKING_OFFSET_M + rng.normal(0, 0.15)), yaw, 0.0, parked=True)
         size = self._size(kind)
         if style < 0.7:  # angled bays, nose in
             off = float(rng.uniform(math.radians(35), math.radians(60)))
@@ -418,7 +426,7 @@ class _Placer:
             off = math.pi / 2 + rng.normal(0, 0.06)
         yaw = along + side * (1 if side < 0 else -1) * off + (math.pi if rng.uniform() < 0.2 else 0.0)
         d = side * (ROAD_HALF_WIDTH_M - 1.2 + 0.5 * size[1] * abs(math.sin(off)))
-        return self._try_add(kind, s, d, yaw, 0.0, size=size)
+        return self._try_add(kind, s, d, yaw, 0.0, size=size, parked=True)
 
     def _bicycle(self) -> bool:
         """One cyclist, or one parked bicycle or rack. What it is is drawn once and then tried at other places, so
@@ -454,7 +462,7 @@ class _Placer:
             return False
         d = side * rng.uniform(11.0, 13.0)  # racks and lampposts by the shop fronts, behind the parked cars and clutter
         if rng.uniform() < 0.75:
-            return self._try_add(Kind.BICYCLE, s, d, float(rng.uniform(-math.pi, math.pi)), 0.0, flag=False)
+            return self._try_add(Kind.BICYCLE, s, d, float(rng.uniform(-math.pi, math.pi)), 0.0, flag=False, parked=True)
         # A rack: bicycles side by side a stand apart, front wheels towards the road, hiding each other when seen
         # along the row. The rack is claimed as a whole; its bicycles are not tested against each other.
         yaw = (math.pi / 2 if side > 0 else -math.pi / 2) + rng.normal(0, 0.1)
@@ -468,7 +476,7 @@ class _Placer:
         for j in range(count):
             if rng.uniform() < 0.15:
                 continue  # an empty stand
-            self._try_add(Kind.BICYCLE, s + gap * j, d, yaw + rng.normal(0, 0.01), 0.0, check=False, flag=False)
+            self._try_add(Kind.BICYCLE, s + gap * j, d, yaw + rng.normal(0, 0.01), 0.0, check=False, flag=False, parked=True)
         return True
 
     def _pedestrian(self) -> bool:
@@ -620,12 +628,13 @@ class _Placer:
                 size = self._size(Kind.CAR)
                 d = side * (SIDEWALK_OUTER_M + 1.0 + rng.uniform(0.0, 1.5) + size[1] / 2)
                 yaw = side * math.pi / 2 + (math.pi if rng.uniform() < 0.5 else 0.0) + rng.normal(0, 0.05)
-                self._try_add(Kind.CAR, s0 + 1.7 + 2.8 * j, d, yaw, 0.0, size=size, check=False)
+                self._try_add(Kind.CAR, s0 + 1.7 + 2.8 * j, d, yaw, 0.0, size=size, check=False, parked=True)
             return
         for _ in range(int(rng.integers(1, 6))):
             kind = Kind.PEDESTRIAN if rng.uniform() < 0.7 else Kind.BICYCLE
             yaw = float(rng.uniform(-math.pi, math.pi))
-            self._try_add(kind, s0 + rng.uniform(0.7, gap - 0.7), side * (SIDEWALK_OUTER_M + rng.uniform(0.8, 4.0)), yaw, 0.0, flag=False)
+            self._try_add(kind, s0 + rng.uniform(0.7, gap - 0.7), side * (SIDEWALK_OUTER_M + rng.uniform(0.8, 4.0)), yaw, 0.0, flag=False,
+                          parked=kind == Kind.BICYCLE)
 
     def _cross_buildings(self) -> None:
         """Blocks lining the cross street beyond the main road's building line, on its four corners."""

@@ -19,7 +19,7 @@ from streamdet.core.classes import CLASS_NAMES
 from streamdet.data.nuscenes import LIDAR_CHANNEL
 from streamdet.data.sample import POINT_TIME_SUFFIX
 from streamdet.data.synth_masks import MASK_NONE, mask_path, write_mask
-from streamdet.data.synth_world import KIND_SPECS, NUM_ANNOTATED_KINDS, PARKING_OFFSET_M, Kind, Scene
+from streamdet.data.synth_world import KIND_SPECS, NUM_ANNOTATED_KINDS, Kind, Scene
 
 if TYPE_CHECKING:
     from streamdet.data.synth_lidar import SimSweep
@@ -215,7 +215,7 @@ class Tables:
             vis = frame.visibility[i]
             vis_token = next(t for t, _, hi in VISIBILITY_LEVELS if (0.0 if np.isnan(vis) else vis) < hi)
             attribute = attribute_of(int(objs.kind[k]), float(np.linalg.norm(objs.velocity[k])), bool(objs.flag[k]),
-                                   abs(float(scene.to_road(boxes[k, :2])[1])))
+                                     bool(objs.parked[k]))
             row = {
                 "token": self.tok("sample_annotation", scene.name, frame.index, k),
                 "sample_token": sample_token,
@@ -273,18 +273,23 @@ def write_tables(table_dir: Path, root: Path, rows: dict[str, list[dict]], seed:
         (table_dir / f"{name}.json").write_text(json.dumps(rows[name], indent=0))
 
 
-def attribute_indices(kind, speed_mps, flag, lateral_m) -> np.ndarray:
+def attribute_indices(kind, speed_mps, flag, parked) -> np.ndarray:
     """Each object's nuScenes attribute as an index into ATTRIBUTE_NAMES (0: none), arrays broadcast: a vehicle moves
-    above 0.3 m/s, else it is parked beside the road or stopped on it; a cycle has a rider or not (``flag``); a
-    pedestrian moves above 0.2 m/s or stands. The annotations (``Tables.annotations``) and the trajectories sidecar
-    (``synth_trajectories``) both take it from here."""
-    kind, speed, flag, lateral = np.broadcast_arrays(np.asarray(kind, np.int64), np.asarray(speed_mps, np.float64),
-                                                     np.asarray(flag, bool), np.asarray(lateral_m, np.float64))  # fmt: skip
+    above 0.3 m/s, else it is parked if the layout parked it (``parked``: ``Objects.parked``) and stopped otherwise
+    (waiting in a lane of either street, at a bus stop); a cycle has a rider or not (``flag``); a pedestrian moves
+    above 0.2 m/s or stands. The annotations (``Tables.annotations``) and the trajectories sidecar
+    (``synth_trajectories``) both take it from here.
+
+    Parked is what the layout decided, not where the object stands: a rule on the distance to the main road called
+    cars waiting in a cross-street lane and buses at a stop parked."""
+    kind, speed, flag, parked = np.broadcast_arrays(np.asarray(kind, np.int64), np.asarray(speed_mps, np.float64),
+                                                    np.asarray(flag, bool), np.asarray(parked))  # fmt: skip
+    if parked.dtype != bool:  # a distance passed where the flag belongs (the old signature) would read as True
+        raise TypeError(f"attribute_indices: parked must be booleans (Objects.parked), got {parked.dtype}")
     index = ATTRIBUTE_NAMES.index
     vehicle = np.isin(kind, [int(Kind.CAR), int(Kind.TRUCK), int(Kind.BUS)])
     cycle = np.isin(kind, [int(Kind.BICYCLE), int(Kind.MOTORCYCLE)])
     walker = kind == int(Kind.PEDESTRIAN)
-    parked = lateral > PARKING_OFFSET_M - 1.0
     choices = [
         (vehicle & (speed > 0.3), "vehicle.moving"), (vehicle & ~(speed > 0.3) & parked, "vehicle.parked"),
         (vehicle & ~(speed > 0.3) & ~parked, "vehicle.stopped"), (cycle & flag, "cycle.with_rider"),
@@ -294,6 +299,6 @@ def attribute_indices(kind, speed_mps, flag, lateral_m) -> np.ndarray:
     return np.select([c for c, _ in choices], [index(name) for _, name in choices], default=0).astype(np.uint8)
 
 
-def attribute_of(kind: int, speed: float, flag: bool, lateral_m: float) -> str:
+def attribute_of(kind: int, speed: float, flag: bool, parked: bool) -> str:
     """One object's attribute name ("" for none): ``attribute_indices`` of one object."""
-    return ATTRIBUTE_NAMES[int(attribute_indices(kind, speed, flag, lateral_m))]
+    return ATTRIBUTE_NAMES[int(attribute_indices(kind, speed, flag, bool(parked)))]

@@ -64,9 +64,11 @@ def write_trajectories(out: str | Path, config: SynthConfig, rate_hz: float = 10
         arrays[f"{scene.name}/boxes"] = boxes.astype(np.float64)
         arrays[f"{scene.name}/names"] = np.array([KIND_SPECS[int(k)].detection_class for k in objs.kind[keep]], dtype=np.str_)
         arrays[f"{scene.name}/ego2global"] = np.stack([scene.ego2global(float(t)) for t in times_s])  # (T, 4, 4)
-        lateral = np.abs(scene.to_road(boxes[..., :2])[1])  # (T, K) distance from the road's centre line
         speed = np.linalg.norm(objs.velocity[keep], axis=-1)  # (K,)
-        arrays[f"{scene.name}/{ATTRIBUTES_MEMBER}"] = attribute_indices(objs.kind[keep], speed, objs.flag[keep], lateral)
+        codes = attribute_indices(objs.kind[keep], speed, objs.flag[keep], objs.parked[keep])  # (K,)
+        # One row per sample: constant along a scene today (speeds and roles do not change), (T, K) in the file so
+        # that a world whose objects start or stop needs no new format.
+        arrays[f"{scene.name}/{ATTRIBUTES_MEMBER}"] = np.ascontiguousarray(np.broadcast_to(codes, boxes.shape[:2]))
     path = Path(out) / TRAJECTORIES_FILE
     np.savez_compressed(path, **arrays)
     return path

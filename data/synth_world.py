@@ -46,8 +46,11 @@ from streamdet.data.synth_road import (  # noqa: F401 (re-exported: the world's 
 # like cones and barriers and is not annotated (delineator posts on medians, lane edges and corners, planter pots,
 # more hydrants by the kerb; railings and guard rails in barrier-sized segments behind the kerb, concrete dividers
 # and long planters on medians and sidewalks: ``synth_roadside``), and road works where real ones are (a lane
-# closed by a taper of cones, works on the sidewalk, cones among the barriers, single cones beside parked cars).
-WORLD_VERSION = 4
+# closed by a taper of cones, works on the sidewalk, cones among the barriers, single cones beside parked cars); 5: the
+# same scenes (layouts, sweeps and images byte for byte), annotated as the devkit counts: num_lidar_pts is the key
+# frame's points inside the box (it counted the rays that hit the object), and a vehicle is parked only where the
+# layout parked it (cars waiting in a cross-street lane and buses at a stop were called parked: now stopped).
+WORLD_VERSION = 5
 WORLD_FILE = "world.json"  # beside a dataset's tables: the world version, roads and distractors per scene
 
 
@@ -139,6 +142,11 @@ class Objects:
     color: np.ndarray  # (K, 3) float32 main albedo 0..1 (paint, shirt)
     color2: np.ndarray  # (K, 3) float32 second albedo (trousers, cargo)
     flag: np.ndarray  # (K,) bool: cycle with rider / truck with box body / pedestrian in motion pose
+    # (K,) bool: left where it stands (a car at the kerb, in a bay or a lot; a cycle in a rack or on the sidewalk),
+    # as the layout placed it. A vehicle waiting in a lane (either street) or at a bus stop is not parked though it
+    # stands as still: nuScenes calls that stopped, and the attribute rule (synth_tables.attribute_indices) reads
+    # this flag, not where the object stands.
+    parked: np.ndarray
     parts: Parts
 
     def __len__(self) -> int:

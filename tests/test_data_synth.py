@@ -412,6 +412,65 @@ def test_reader_returns_what_the_generator_wrote(dataset, frame):
         assert np.abs(images[j].astype(float) - f.renders[name].image).mean() < 6.0  # JPEG
 
 
+
+def _naive_in_box_count(points, box):
+    """Points (N, 3) inside one box (x, y, z, w, l, h, yaw), boundary included: one point at a time."""
+    c, s = math.cos(box[6]), math.sin(box[6])
+    n = 0
+    for p in points:
+        dx, dy, dz = p[0] - box[0], p[1] - box[1], p[2] - box[2]
+        n += abs(c * dx + s * dy) <= box[4] / 2 and abs(-s * dx + c * dy) <= box[3] / 2 and abs(dz) <= box[5] / 2
+    return n
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_count_points_in_boxes_matches_naive(seed, monkeypatch):
+    import streamdet.data.synth_writer as writer
+
+    rng = np.random.default_rng(seed)
+    pts = rng.uniform([-20, -60, -1], [20, 60, 3], size=(3000, 3))  # a street along y: sorting along x pairs all
+    boxes = np.concatenate([rng.uniform([-15, -55, 0], [15, 55, 2], size=(40, 3)), rng.uniform(0.4, 6.0, size=(40, 3)),
+                            rng.uniform(-math.pi, math.pi, size=(40, 1))], axis=1)  # fmt: skip
+    boxes[:5, :3] = pts[:5]  # some points on a box's centre; one on a corner (the boundary is inside)
+    corner = boxes[5, :3] + [math.cos(boxes[5, 6]) * boxes[5, 4] / 2, math.sin(boxes[5, 6]) * boxes[5, 4] / 2, boxes[5, 5] / 2]
+    pts[5] = corner + 1e-12 * np.sign(boxes[5, :3] - corner)
+    want = [_naive_in_box_count(pts, b) for b in boxes]
+    np.testing.assert_array_equal(writer.count_points_in_boxes(pts, boxes), want)
+    monkeypatch.setattr(writer, "_PAIR_CHUNK", 50)  # many chunks, some of one box only
+    np.testing.assert_array_equal(writer.count_points_in_boxes(pts, boxes), want)
+    assert writer.count_points_in_boxes(pts, boxes[:0]).shape == (0,)
+    np.testing.assert_array_equal(writer.count_points_in_boxes(pts[:0], boxes), np.zeros(len(boxes)))
+
+
+def test_num_lidar_pts_counts_the_points_in_the_annotated_box(dataset):
+    """Through the written files and tables only, as the devkit's points_in_box counts (its port in
+    evaluation.detection_eval): each annotation's num_lidar_pts is the number of its key frame's points in its box."""
+    from streamdet.evaluation.detection_eval import points_in_boxes
+
+    root, _ = dataset
+    tables = {n: json.loads((root / CONFIG.version / f"{n}.json").read_text())
+              for n in ("sample_data", "ego_pose", "calibrated_sensor", "sample_annotation")}  # fmt: skip
+    by_token = {n: {r["token"]: r for r in rows} for n, rows in tables.items()}
+    anns_of: dict[str, list[dict]] = {}
+    for ann in tables["sample_annotation"]:
+        anns_of.setdefault(ann["sample_token"], []).append(ann)
+    checked = nonzero = 0
+    for sd in tables["sample_data"]:
+        if not (sd["is_key_frame"] and sd["fileformat"] == "pcd"):
+            continue
+        pts = np.fromfile(root / sd["filename"], dtype="<f4").reshape(-1, 5)[:, :3].astype(np.float64)
+        cs, pose = by_token["calibrated_sensor"][sd["calibrated_sensor_token"]], by_token["ego_pose"][sd["ego_pose_token"]]
+        for rec in (cs, pose):  # sensor -> ego -> global
+            pts = pts @ quaternion_to_matrix(rec["rotation"]).T + np.asarray(rec["translation"])
+        anns = anns_of[sd["sample_token"]]
+        rows = np.array([a["translation"] + a["size"] + a["rotation"] for a in anns], dtype=np.float64)
+        want = points_in_boxes(pts, rows).sum(axis=0)
+        got = np.array([a["num_lidar_pts"] for a in anns])
+        np.testing.assert_array_equal(got, want)
+        checked += len(anns)
+        nonzero += int((got > 0).sum())
+    assert checked > 50 and 0 < nonzero < checked
+
 def test_tables_follow_the_nuscenes_schema(dataset):
     root, _ = dataset
     schema = {

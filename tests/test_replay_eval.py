@@ -231,18 +231,18 @@ def test_synthetic_trajectories_carry_the_annotations_attributes(tiny_synth_data
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_attribute_indices_against_the_rule_object_by_object(seed):
     from streamdet.data.synth_tables import ATTRIBUTE_NAMES, attribute_indices
-    from streamdet.data.synth_world import Kind, PARKING_OFFSET_M
+    from streamdet.data.synth_world import Kind
 
     rng = np.random.default_rng(seed)
     kinds = rng.choice([int(k) for k in Kind], 300)
     speed = rng.choice([0.0, 0.1, 0.25, 0.35, 3.0], 300)
     flag = rng.random(300) < 0.5
-    lateral = rng.uniform(0, 2 * PARKING_OFFSET_M, 300)
-    got = attribute_indices(kinds, speed, flag, lateral)
-    for k, v, f, d, a in zip(kinds, speed, flag, lateral, got):
+    parked = rng.random(300) < 0.5  # placed parked (synth_world.Objects.parked): a kerb or a lot, not a lane or a stop
+    got = attribute_indices(kinds, speed, flag, parked)
+    for k, v, f, p, a in zip(kinds, speed, flag, parked, got):
         kind = Kind(int(k))
         if kind in (Kind.CAR, Kind.TRUCK, Kind.BUS):
-            want = "vehicle.moving" if v > 0.3 else ("vehicle.parked" if d > PARKING_OFFSET_M - 1.0 else "vehicle.stopped")
+            want = "vehicle.moving" if v > 0.3 else ("vehicle.parked" if p else "vehicle.stopped")
         elif kind in (Kind.BICYCLE, Kind.MOTORCYCLE):
             want = "cycle.with_rider" if f else "cycle.without_rider"
         elif kind == Kind.PEDESTRIAN:
@@ -250,4 +250,4 @@ def test_attribute_indices_against_the_rule_object_by_object(seed):
         else:
             want = ""
         assert ATTRIBUTE_NAMES[a] == want
-    assert attribute_indices(np.zeros(0, int), 0.0, False, 0.0).shape == (0,)
+    assert attribute_indices(np.zeros(0, int), 0.0, False, False).shape == (0,)
