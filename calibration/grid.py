@@ -34,6 +34,7 @@ from streamdet.core.sectors import (  # noqa: F401 (public here too)
     NUM_QUADRANTS,
     azimuth_deg,
     check_num_slices,
+    quadrant_of_xy,
     quadrants_of_sector,
     sector_bounds_deg,
     slice_index_of,
@@ -119,11 +120,9 @@ class GridSpec:
         return (self.x_range_m[0] + col0 * self.voxel_xy_m, self.y_range_m[0] + row0 * self.voxel_xy_m)
 
     def quadrant_of_xy(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        """Quadrant index (int64) of each (x, y); points on an axis go to the non-negative side."""
-        x = np.asarray(x)
-        y = np.asarray(y)
-        q = np.where(y >= 0, np.where(x >= 0, 0, 1), np.where(x < 0, 2, 3))
-        return q.astype(np.int64)
+        """Quadrant index (int64) of each (x, y); points on an axis go to the non-negative side
+        (``core.sectors.quadrant_of_xy``, the rule the slices follow too)."""
+        return quadrant_of_xy(x, y)
 
     def voxel_center_axes(self, q: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Quadrant q's voxel-centre coordinates per axis, (Xq,), (Yq,), (Z,) float64 in metres.

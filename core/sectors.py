@@ -67,6 +67,14 @@ def check_num_slices(n: int, start_deg: float = 0.0) -> None:
         raise ValueError(f"slice start angle must be a multiple of 90 deg, got {start_deg}")
 
 
+def quadrant_of_xy(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Quadrant index (int64) of each (x, y); a point on an axis goes to the non-negative side (x = 0 to q0 / q3,
+    y = 0 to q0 / q1), as the grid's cells split there (``GridSpec``). NaN goes to q3 (such a point is in no slice)."""
+    x = np.asarray(x)
+    y = np.asarray(y)
+    return np.where(y >= 0, np.where(x >= 0, 0, 1), np.where(x < 0, 2, 3)).astype(np.int64)
+
+
 def azimuth_deg(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """Azimuth atan2(y, x) in degrees, wrapped to [0, 360)."""
     a = np.mod(np.degrees(np.arctan2(y, x)), 360.0)
@@ -121,6 +129,11 @@ def slice_index_of(x: np.ndarray, y: np.ndarray, n: int, start_deg: float = 0.0,
     # rel * n / 360 rounds as sector_bounds_deg's 360 * j / n: a point on a sector's bound is in the sector it starts
     j = np.floor(np.where(no_azimuth, 0.0, rel) * n / 360.0).astype(np.int64)
     j = np.minimum(j, n - 1)  # rel can round up to exactly 360 in float
+    # A point on an axis (0, 5), (-5, 0), or rounded onto one in float32, is in the quadrant quadrant_of_xy gives it
+    # (its grid cell's): its slice must be one that reads that quadrant, else pillarize drops it as outside. The
+    # slices of the quadrant r quarter turns after the start are (r n) // 4 .. ((r + 1) n - 1) // 4 (any n).
+    r = np.mod(quadrant_of_xy(x, y) - round(start_deg / 90.0), NUM_QUADRANTS)
+    j = np.clip(j, (r * n) // NUM_QUADRANTS, ((r + 1) * n - 1) // NUM_QUADRANTS)
     k = n - 1 - j if clockwise else j
     return np.where(no_azimuth, -1, k) if no_azimuth.any() else k
 

@@ -79,9 +79,8 @@ def slice_features(points: np.ndarray, n: int, sweep_duration_s: float = SWEEP_D
     lies, as the models learn them from recorded sweeps sliced so (the paper's setup), so a sensor that starts
     elsewhere or turns the other way feeds the model the same values for the same azimuths. Only a slice's points
     and the order slices arrive in follow the layout. ``time_lag_s``: added to the time (past sweeps' age)."""
-    check_num_slices(n)
     az = azimuth_deg(points[:, 0], points[:, 1])  # (N,) in [0, 360); NaN without an azimuth (in no slice)
-    index = np.minimum(np.floor(np.nan_to_num(az) * n / 360.0), n - 1)  # slice_index_of's rounding, start 0
+    index = np.maximum(slice_index_of(points[:, 0], points[:, 1], n), 0)  # the default layout's slice (-1: none)
     return az / 360.0 * sweep_duration_s + time_lag_s, index
 
 

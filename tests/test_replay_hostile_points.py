@@ -70,6 +70,11 @@ def naive_slices(sweep: LidarSweep, n: int, start_deg: float) -> tuple[list[list
             continue
         rel = (math.degrees(math.atan2(y, x)) % 360.0 - start_deg) % 360.0
         k = min(int(rel // (360.0 / n)), n - 1)
+        # in a slice of the quadrant the grid puts the point in (axes to the non-negative side): (inf, -0.5) has
+        # azimuth -0.0, but it lies below the x axis
+        q = (0 if x >= 0 else 1) if y >= 0 else (2 if x < 0 else 3)
+        r = (q - round(start_deg / 90.0)) % 4
+        k = min(max(k, r * n // 4), ((r + 1) * n - 1) // 4)
         members[k].append(i)
         t = float(sweep.point_time_s[i]) if sweep.point_time_s is not None else rel / 360.0 * sweep.duration_s
         if all(math.isfinite(v) for v in p) and math.isfinite(t):

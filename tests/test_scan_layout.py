@@ -181,3 +181,30 @@ def test_the_clis_take_the_scan_layout(command):
     text = " ".join(CliRunner().invoke(main, ["--help"]).output.split())
     assert "--scan-start-deg" in text and "--clockwise / --counter-clockwise" in text
     assert ("from the data" in text) == (command == "replay")
+
+
+@pytest.mark.parametrize("n", [1, 2, 4, 8, 32])
+@pytest.mark.parametrize("start, clockwise", [(0.0, False), (90.0, False), (180.0, True), (-90.0, True)])
+def test_points_on_an_axis_are_in_a_slice_of_their_grid_quadrant(n, start, clockwise):
+    """(0, 5) and (-5, 0) were in the slice after their grid quadrant's (azimuth 90 and 180 open the next sector,
+    the grid puts x = 0 and y = 0 on the non-negative side) and pillarize dropped them; so did float32 points within
+    about 1e-7 rad of an axis (geometry review M2)."""
+    from streamdet.calibration.grid import GridSpec
+    from streamdet.runtime_ort.pillarize import pillarize
+
+    grid = GridSpec()
+    on_axes = [(0.0, 5.0), (-5.0, 0.0), (5.0, 0.0), (0.0, -5.0), (-0.0, 5.0), (-5.0, -0.0), (0.0, 0.0)]
+    rng = np.random.default_rng(n)
+    angle = np.repeat(np.radians([0.0, 90.0, 180.0, 270.0]), 500) + rng.uniform(-1e-6, 1e-6, 2000)
+    near = np.stack([20 * np.cos(angle), 20 * np.sin(angle)], axis=1).astype(np.float32)  # (2000, 2) float32
+    xy = np.concatenate([np.array(on_axes, np.float32), near])
+    sweep = np.zeros((len(xy), 5), np.float32)
+    sweep[:, :2] = xy
+    slices = split_sweep(sweep, n, start, clockwise=clockwise)
+    assert sum(len(s) for s in slices) == len(xy)
+    for k, s in enumerate(slices):
+        if len(s):
+            q = quadrants_of_sector(k, n, start, clockwise)
+            assert set(grid.quadrant_of_xy(s[:, 0], s[:, 1]).tolist()) <= set(q), k
+            kept = pillarize(s, grid, q, 32, 4096)
+            assert kept.num_outside_dropped == 0, (k, kept.num_outside_dropped)
