@@ -106,12 +106,12 @@ def export_cmd(data_dir: Path | None, scene: str | None, version: str, out: Path
 @providers_option()
 @fallback_options(clock="bag time")
 @camera_timeout_option()
-@scan_layout_options(from_data=False)
+@scan_layout_options(from_data=True)
 @click.option("-v", "--verbose", is_flag=True, help="Log providers and sessions.")
 def run_cmd(bag_path: Path, export_dir: Path, out: Path, results_json: Path | None, topics: str | None,
             slice_per_message: bool, ego_frame: str, global_frame: str, num_slices: int | None, precision: str,
             image_precision: str | None, providers: tuple[str, ...] | None, fallback_export_dir: Path | None, fallback_after_ms: float | None,
-            camera_timeout_ms: float, scan_start_deg: float, clockwise: bool, verbose: bool) -> None:  # fmt: skip
+            camera_timeout_ms: float, scan_start_deg: float | None, clockwise: bool | None, verbose: bool) -> None:  # fmt: skip
     """Detect every LiDAR message of a bag in recorded order (images first when new ones arrived) and write the
     detections per slice as ROS 2 topics, stamped with the slice's scan time, plus the nuScenes results JSON."""
     logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(message)s")
@@ -128,8 +128,9 @@ def run_cmd(bag_path: Path, export_dir: Path, out: Path, results_json: Path | No
             topics=TopicMap.parse(topics),
             detector=DetectorConfig(precision=precision, image_lane_precision=image_precision, num_slices=num_slices,
                                     fallback_export_dir=fallback_export_dir, providers=providers,
-                                    fallback_after_s=fallback_after_s(fallback_after_ms), start_deg=scan_start_deg,
-                                    clockwise=clockwise),
+                                    fallback_after_s=fallback_after_s(fallback_after_ms)),
+            start_deg=scan_start_deg,
+            clockwise=clockwise,
             slice_per_message=slice_per_message,
             ego_frame=ego_frame,
             global_frame=None if global_frame.lower() == "none" else global_frame,
@@ -146,6 +147,7 @@ def run_cmd(bag_path: Path, export_dir: Path, out: Path, results_json: Path | No
         f"({summary.precision}, {', '.join(summary.providers)}, cameras {list(summary.cameras) or 'none'}): "
         f"{summary.num_detections} detections"
     )
+    click.echo(summary.scan_layout)
     if summary.input_dropped:  # the input is itself a run's output: its detections are not mixed with these
         click.echo("not copied from the input (this run writes these topics): "
                    + ", ".join(f"{n} messages on {topic}" for topic, n in summary.input_dropped.items()))

@@ -32,6 +32,7 @@ from streamdet.bag.recording import Recording
 from streamdet.bag.writer import BagWriter
 from streamdet.core.image_header import check_image_header
 from streamdet.core.points import SWEEP_DURATION_S
+from streamdet.core.scan_layout import NUSCENES_LIDAR_TOP
 from streamdet.core.slicing import relative_time_s
 from streamdet.data.sample import read_image_bytes
 from streamdet.runtime_ort.ros.camera_info import camera_info_message
@@ -108,9 +109,12 @@ def cloud_time_s(
     points: np.ndarray, time_s: np.ndarray | None, sweep_duration_s: float = SWEEP_DURATION_S
 ) -> np.ndarray:
     """(N,) float32 per-point time relative to the sweep's stamp (its end): the recorded time after the sweep
-    start minus the sweep duration, or, without recorded times, the azimuth-derived one."""
+    start minus the sweep duration, or, without recorded times (real nuScenes sweeps), the time nuScenes' LIDAR_TOP
+    reaches the point's azimuth (clockwise from 180 deg, ``core.scan_layout.NUSCENES_LIDAR_TOP``): derived, within
+    a few ms of the real firing."""
     if time_s is None:
-        time_s = relative_time_s(points).astype(np.float32)
+        layout = NUSCENES_LIDAR_TOP
+        time_s = relative_time_s(points, layout.start_deg, sweep_duration_s, layout.clockwise).astype(np.float32)
     return np.asarray(time_s, dtype=np.float32) - np.float32(sweep_duration_s)
 
 

@@ -14,7 +14,7 @@ detections only, not two runs' mixed on one topic.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable
 
@@ -26,6 +26,7 @@ from streamdet.bag.calibration import check_mapped_cameras
 from streamdet.bag.source import BagSource, SourceConfig, SweepEvent
 from streamdet.bag.writer import BagWriter
 from streamdet.core.camera_timeout import DEFAULT_CAMERA_TIMEOUT_S
+from streamdet.core.scan_layout import ScanLayout, check_layout, choose_layout
 from streamdet.core.image_header import decoder_error_reason
 from streamdet.evaluation.results import boxes_to_results, write_results_json
 from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector
@@ -35,6 +36,9 @@ from streamdet.runtime_ort.ros.pointcloud2 import CloudFields, TimedSlice
 
 log = logging.getLogger(__name__)
 
+# The layout where the bag's clouds have no per-point times and none is given: the runtime's default (a driver that
+# publishes no times gives nothing to read the direction from; --scan-start-deg / --clockwise say it).
+NO_TIMES_LAYOUT = ScanLayout(0.0, False, "the runtime's default: the clouds have no per-point times")
 RESULTS_SUFFIX = ".results_nusc.json"  # the default results JSON: the output bag's name with this suffix
 OUTPUT_TOPICS = (T.DETECTIONS_TOPIC, T.DETECTION_MARKERS_TOPIC)  # what a run writes; the input's are not copied
 
@@ -49,6 +53,13 @@ class RunConfig:
     global_frame: str | None = T.GLOBAL_FRAME
     camera_timeout_s: float | None = DEFAULT_CAMERA_TIMEOUT_S  # SourceConfig.camera_timeout_s
     marker_lifetime_s: float = 0.0  # 0: a slice's boxes stay until the same slice of the next sweep replaces them
+    # The LiDAR's scan layout (core/sectors.py), which replaces the detector config's: where its sweep starts and
+    # whether it turns clockwise; None: from the bag's per-point times (BagSource.scan_layout), else NO_TIMES_LAYOUT
+    start_deg: float | None = None
+    clockwise: bool | None = None
+
+    def __post_init__(self) -> None:
+        check_layout(self.start_deg, self.clockwise)
 
 
 @dataclass(frozen=True)
@@ -68,6 +79,7 @@ class RunSummary:
     cameras_timed_out: dict[str, int] = field(default_factory=dict)  # camera -> times it was left out (camera timeout)
     cameras_lagging: tuple[str, ...] = ()  # of those, cameras left out although they were sending (another clock?)
     input_dropped: dict[str, int] = field(default_factory=dict)  # topic of OUTPUT_TOPICS -> input messages not copied
+    scan_layout: str = ""  # the layout the clouds were sliced with, and what said so (ScanLayout.describe)
 
 
 def run_bag(
@@ -80,7 +92,9 @@ def run_bag(
     results_path = results_path_of(out, results_json)
     if results_path.resolve() == out.resolve():  # the JSON, written last, would replace the detections bag
         raise ValueError(f"the results JSON {results_path} is the output bag; write it to another file")
-    det = StreamingDetector(export_dir, config.detector)
+    layout = scan_layout_of(bag, config)
+    log.info("%s: %s", bag, layout.describe())
+    det = StreamingDetector(export_dir, replace(config.detector, start_deg=layout.start_deg, clockwise=layout.clockwise))
     source = BagSource(bag, SourceConfig(
         topics=config.topics, camera_names=det.camera_names if det.uses_images else (), num_slices=det.num_slices,
         start_deg=det.config.start_deg, clockwise=det.config.clockwise, slice_per_message=config.slice_per_message, cloud_fields=config.cloud_fields,
@@ -129,7 +143,7 @@ def run_bag(
                 dropped[message.topic] = dropped.get(message.topic, 0) + 1
                 continue
             writer.schema(message.datatype, message.schema_text)
-            writer.write(message.topic, message.datatype, message.message, message.log_time_ns)
+            writer.write(message.topic, message.datatype, message.message, message.log_time_ns, message.channel_metadata)
             if event is None:
                 continue
             if event.image_set is not None and det.uses_images:
@@ -159,7 +173,25 @@ def run_bag(
     return RunSummary(out, results_path, counts["sweeps"], counts["slices"], counts["image_sets"], counts["detections"],
                       det.camera_names, without, det.precision_label, det.stats.summary(), counts["fallback"],
                       tuple(det.providers), dict(source.cameras_timed_out),
-                      tuple(c for c in det.camera_names if c in source.cameras_lagging), dropped)  # fmt: skip
+                      tuple(c for c in det.camera_names if c in source.cameras_lagging), dropped, layout.describe())  # fmt: skip
+
+
+def scan_layout_of(bag: str | Path, config: RunConfig) -> ScanLayout:
+    """The layout ``run_bag`` slices with: ``config.start_deg`` / ``clockwise`` where given, the rest from the bag's
+    per-point times (a full-sweep cloud's: direction and start; slice messages': the direction), else
+    NO_TIMES_LAYOUT. Given values the times contradict are kept, with a warning."""
+    # read even where both are given: a layout the data contradicts is said
+    probe = BagSource(bag, SourceConfig(topics=config.topics, slice_per_message=config.slice_per_message,
+                                        cloud_fields=config.cloud_fields))  # fmt: skip
+    found = probe.scan_layout()
+    if found is not None and config.slice_per_message:  # slices say which way the sensor turns, not where it starts
+        found = ScanLayout(NO_TIMES_LAYOUT.start_deg, found.clockwise,
+                           f"{found.source}; the start the runtime's default: slice messages name no sweep start")  # fmt: skip
+    layout = choose_layout(found, NO_TIMES_LAYOUT, config.start_deg, config.clockwise)
+    if found is not None and (layout.start_deg, layout.clockwise) != (found.start_deg, found.clockwise):
+        log.warning("%s: slicing %s as given, but the clouds' per-point times show %s: slices then arrive out of "
+                    "their order (--scan-start-deg / --clockwise)", bag, layout.describe(), found.describe())  # fmt: skip
+    return layout
 
 
 def results_path_of(out: str | Path, results_json: str | Path | None) -> Path:

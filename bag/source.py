@@ -32,6 +32,7 @@ from streamdet.bag import topics as T
 from streamdet.bag.deps import require
 from streamdet.calibration.camera import Rig, make_transform, quaternion_to_matrix
 from streamdet.core.camera_timeout import DEFAULT_CAMERA_TIMEOUT_S, CameraTimeout, check_camera_timeout
+from streamdet.core.scan_layout import ScanLayout, layout_from_times
 from streamdet.core.sectors import azimuth_deg
 from streamdet.runtime_ort.ros.camera_info import IDENTITY_RECORD, rig_from_ros
 from streamdet.runtime_ort.ros.header import header_stamp_ns
@@ -70,6 +71,7 @@ class BagMessage:
     schema_text: str  # the schema stored in the bag
     log_time_ns: int
     message: Any  # decoded (attributes named as the ROS fields)
+    channel_metadata: dict[str, str] = field(default_factory=dict)  # the recorded channel's (offered_qos_profiles, ...)
 
 
 @dataclass(frozen=True, eq=False)
@@ -97,6 +99,10 @@ class SweepEvent:
     sample_token: str | None  # from the bag's streamdet metadata (bags written by streamdet-bag export)
     image_set: ImageSet | None  # feed before the slices; None: no new image since the previous cloud
 
+
+# BagSource.scan_layout reads at most this many LiDAR messages, and at least this many slices of a slicing driver.
+LAYOUT_MESSAGES = 64
+LAYOUT_MIN_SLICES = 4
 
 @dataclass(frozen=True)
 class SourceConfig:
@@ -177,14 +183,14 @@ class BagSource:
                                    "which the bag does not hold")  # fmt: skip
         return out
 
-    def messages(self) -> Iterator[BagMessage]:
-        """Every ROS 2 (CDR) message, decoded, in log-time order; channels in other encodings (a Foxglove protobuf
-        or JSON topic) are skipped with a warning."""
+    def messages(self, topics: tuple[str, ...] | None = None) -> Iterator[BagMessage]:
+        """Every ROS 2 (CDR) message (of ``topics``; None: all), decoded, in log-time order; channels in other
+        encodings (a Foxglove protobuf or JSON topic) are skipped with a warning."""
         factory = self._decoder_mod.DecoderFactory()
         skipped: set[str] = set()
         with open(self.path, "rb") as f:
             with self._reading():
-                records = self._reader(f).iter_messages(log_time_order=True)
+                records = self._reader(f).iter_messages(topics=None if topics is None else list(topics), log_time_order=True)
             while True:
                 # only the library's work is guarded, never the consumer's: a yield sits outside every guard.
                 # KeyError: mcap looks up the channel and schema ids a chunk names in the summary
@@ -206,8 +212,33 @@ class BagSource:
                     continue
                 with self._reading(where):
                     message = BagMessage(channel.topic, schema.name, schema.data.decode(), int(record.log_time),
-                                         decode(record.data))  # fmt: skip
+                                         decode(record.data), dict(channel.metadata))  # fmt: skip
                 yield message
+
+    def scan_layout(self, max_messages: int = LAYOUT_MESSAGES) -> ScanLayout | None:
+        """How the LiDAR turns, from the per-point times of its first clouds (``core/scan_layout.py``): their points
+        together, by absolute time, until they cover a rotation's worth of azimuth steps (one full-sweep message, or
+        the first slice messages of a driver publishing slices); None where the clouds have no usable times."""
+        points, times = [], []
+        lidar = self.config.topics.lidar
+        first_stamp = None
+        for i, message in enumerate(self.messages((lidar,))):
+            if i >= max_messages:
+                break
+            try:
+                cloud = decode_pointcloud2(message.message, replace(self.config.cloud_fields, require_time=False))
+            except (ValueError, CloudClockError):  # read again, and refused with its name, by events()
+                continue
+            if cloud.time_s is None or not len(cloud.points):
+                continue
+            first_stamp = cloud.stamp_ns if first_stamp is None else first_stamp
+            points.append(cloud.points[:, :2])
+            times.append((cloud.stamp_ns - first_stamp) * 1e-9 + cloud.time_s.astype(np.float64))  # one clock
+            found = layout_from_times(np.concatenate(points), np.concatenate(times))
+            # slices: a few of them, so that a quarter turn is not read off one slice's jitter
+            if found is not None and (not self.config.slice_per_message or len(points) >= LAYOUT_MIN_SLICES):
+                return ScanLayout(found.start_deg, found.clockwise, f"from the per-point times of {lidar}")
+        return None
 
     def events(self) -> Iterator[tuple[BagMessage, SweepEvent | None]]:
         """Every message with, for each LiDAR message, the sweep event it makes."""

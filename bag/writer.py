@@ -30,6 +30,7 @@ class BagWriter:
             self._discard()
             raise
         self._schemas: dict[str, Any] = {}
+        self._topics: set[str] = set()  # topics with a channel
         self.count = 0
         self._closed = False
 
@@ -40,10 +41,27 @@ class BagWriter:
             self._schemas[name] = self._writer.register_msgdef(name, text if text is not None else schema_text(name))
         return self._schemas[name]
 
-    def write(self, topic: str, datatype: str, message: Any, log_time_ns: int) -> None:
+    def write(self, topic: str, datatype: str, message: Any, log_time_ns: int,
+              channel_metadata: dict[str, str] | None = None) -> None:  # fmt: skip
+        """One message. ``channel_metadata``: the channel's, with the topic's first message (a copied bag's recorded
+        ``offered_qos_profiles``, which ``ros2 bag play`` offers again: a latched /tf_static stays latched)."""
         stamp = int(log_time_ns)
-        self._writer.write_message(topic, self.schema(datatype), message, log_time=stamp, publish_time=stamp)
+        schema = self.schema(datatype)
+        if channel_metadata and topic not in self._topics:
+            self._register_channel(topic, schema, channel_metadata)
+        self._topics.add(topic)
+        self._writer.write_message(topic, schema, message, log_time=stamp, publish_time=stamp)
         self.count += 1
+
+    def _register_channel(self, topic: str, schema: Any, metadata: dict[str, str]) -> None:
+        # mcap_ros2's Writer registers a channel on a topic's first message, without metadata, and has no call that
+        # takes any: the channel is registered here the same way (CDR, its schema) and handed to it by topic
+        inner, ids = getattr(self._writer, "_writer", None), getattr(self._writer, "_channel_ids", None)
+        if inner is None or not isinstance(ids, dict):
+            raise RuntimeError("mcap_ros2.writer.Writer no longer keeps _writer / _channel_ids: the channel metadata of "
+                               f"{topic} cannot be written (bag/writer.py needs updating for this mcap-ros2-support)")
+        ids[topic] = inner.register_channel(topic=topic, message_encoding="cdr", schema_id=schema.id,
+                                            metadata={str(k): str(v) for k, v in metadata.items()})  # fmt: skip
 
     def metadata(self, name: str, data: dict[str, str]) -> None:
         self._writer.add_metadata(name, data)

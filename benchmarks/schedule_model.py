@@ -41,6 +41,7 @@ HALF_FOV_DEG = 35.0  # the nuScenes cameras' half field of view (about 70 deg wi
 
 class _Config:
     start_deg = 0.0
+    clockwise = False
 
 
 class SleepingDetector:

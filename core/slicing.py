@@ -11,8 +11,6 @@ of them holds none of its points. Slicing a whole ``Sample`` (its past sweeps, c
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from streamdet.core.boxes import BOX_DIM, box_corners_bev
@@ -87,8 +85,12 @@ def slice_features(points: np.ndarray, n: int, sweep_duration_s: float = SWEEP_D
 def feature_index(k: int, n: int, start_deg: float = 0.0, clockwise: bool = False) -> int:
     """The slice-index feature (``slice_features``) of the points of slice k of n in this scan layout: the index
     counter-clockwise from +x of the sector it covers (k itself in the default layout)."""
-    lo = sector_bounds_deg(k, n, start_deg, clockwise)[0]
-    return min(int(math.floor(lo * n / 360.0)), n - 1)
+    sector_bounds_deg(k, n, start_deg, clockwise)  # checks k, n and the layout
+    j = n - 1 - int(k) if clockwise else int(k)  # the sector's counter-clockwise position from the start
+    # in integers (floor(lo * n / 360) in floats gave slice 11 of 28 the index 10): the sector starts a / 4 sectors
+    # of n from +x, with a in quarter turns / n
+    a = round(start_deg / 90.0) * n + 4 * j
+    return (a // 4) % n
 
 
 def boxes_in_sector(boxes: np.ndarray, k: int, n: int, start_deg: float = 0.0, clockwise: bool = False) -> np.ndarray:

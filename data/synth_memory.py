@@ -8,8 +8,12 @@ with a margin over what docs/synth/memory.md measured; the largest accepted reso
 
 from __future__ import annotations
 
-import resource
 from pathlib import Path
+
+try:
+    import resource  # Unix only: elsewhere no address-space limit is read
+except ImportError:  # pragma: no cover (Windows)
+    resource = None
 
 # Peak bytes of one simulating process: a fixed part (Python, numpy, OpenCV, the scene, LiDAR sweeps) and a part per
 # pixel of the images (six cameras' renders and their temporaries). Bounds above the measurements in
@@ -50,6 +54,8 @@ def available_memory() -> tuple[int | None, int | None]:
     candidates = [_meminfo_available(), _cgroup_left()]
     known = [c for c in candidates if c is not None]
     total = min(known) if known else None
+    if resource is None:
+        return total, None
     soft, _ = resource.getrlimit(resource.RLIMIT_AS)
     per_process = None if soft == resource.RLIM_INFINITY or soft >= _NO_LIMIT else int(soft)
     return total, per_process
@@ -92,10 +98,11 @@ def _meminfo_available(path: Path = Path("/proc/meminfo")) -> int | None:
 
 
 def _cgroup_left(base: Path = Path("/sys/fs/cgroup")) -> int | None:
-    """What the memory cgroup the file system shows still allows (limit less usage; in a container, its own group),
-    None without a limit."""
-    v1 = ("memory/memory.limit_in_bytes", "memory/memory.usage_in_bytes")
-    for limit_file, usage_file in (("memory.max", "memory.current"), v1):
+    """What the memory cgroup the file system shows still allows (limit less its working set, i.e. usage less the
+    inactive page cache the kernel reclaims before it kills anything, as container runtimes count it; in a
+    container, its own group), None without a limit."""
+    v1 = ("memory/memory.limit_in_bytes", "memory/memory.usage_in_bytes", "memory/memory.stat", "total_inactive_file")
+    for limit_file, usage_file, stat_file, inactive_key in (("memory.max", "memory.current", "memory.stat", "inactive_file"), v1):
         try:
             limit = (base / limit_file).read_text().strip()
             usage = int((base / usage_file).read_text().strip())
@@ -103,6 +110,18 @@ def _cgroup_left(base: Path = Path("/sys/fs/cgroup")) -> int | None:
             continue
         if limit == "max" or not limit.isdigit() or int(limit) >= _NO_LIMIT:
             return None
-        return max(0, int(limit) - usage)
+        return max(0, int(limit) - max(0, usage - _stat_value(base / stat_file, inactive_key)))
     return None
+
+
+def _stat_value(path: Path, key: str) -> int:
+    """``key``'s value in a cgroup memory.stat file (bytes), 0 where the file or the key is missing."""
+    try:
+        for line in path.read_text().splitlines():
+            name, _, value = line.partition(" ")
+            if name == key:
+                return int(value)
+    except (OSError, ValueError):
+        pass
+    return 0
 

@@ -13,6 +13,12 @@ One bad message (a JPEG truncated on a lossy link, a short PointCloud2 after a d
 rclpy re-raises a callback's exception out of ``rclpy.spin``. So each callback catches the ValueErrors a message
 causes (``RosMessageError``: the adapters' refusals; the detector's refusals of its input), logs them at most every
 few seconds per source (``ErrorLog``) and goes on with the next message. Other exceptions are bugs, and end it.
+
+Kept short, it runs the image lane inside the cloud callback of a single-threaded executor, so a cloud waits for the
+image update before it: a vehicle node moves the image lane off that path (``StreamingRunner``, README "Python API",
+or its own callback group on a MultiThreadedExecutor) and freezes the heap after start-up
+(``streamdet.runtime_ort.heap``). It fuses with the export's calibration; a rig of its own comes from CameraInfo and
+TF (docs/ros2.md, ``rig_from_ros`` and ``set_calibration``).
 """
 
 from __future__ import annotations
@@ -157,7 +163,9 @@ class CameraFrames:
 
 def main() -> None:  # the ROS boilerplate
     import rclpy
+    from rcl_interfaces.msg import ParameterDescriptor
     from rclpy.node import Node
+    from rclpy.qos import qos_profile_sensor_data
     from rosidl_runtime_py.set_message_fields import set_message_fields
     from sensor_msgs.msg import CompressedImage, PointCloud2
     from vision_msgs.msg import Detection3DArray
@@ -171,26 +179,34 @@ def main() -> None:  # the ROS boilerplate
     class StreamdetNode(Node):
         def __init__(self) -> None:
             super().__init__("streamdet")
+            number = ParameterDescriptor(dynamic_typing=True)  # -p camera_timeout_s:=0 (an int) is taken as well as 0.0
             export_dir = self.declare_parameter("export_dir", "exports/small_v3").value
             # a LiDAR-only export for when the cameras are gone or late ("" : none): runtime_ort/fallback.py
             fallback = self.declare_parameter("fallback_export_dir", "").value or None
-            max_age_s = self.declare_parameter("fallback_after_s", 0.5).value
+            max_age_s = float(self.declare_parameter("fallback_after_s", 0.5, number).value)
             # onnxruntime's providers by preference, "cuda,cpu" or "tensorrt,cuda" ("auto": CUDA where present, else CPU)
             providers = parse_providers(self.declare_parameter("providers", "auto").value, "parameter providers")
             # seconds without an image after which a camera is left out (0: never): streamdet.core.camera_timeout
-            camera_timeout_s = self.declare_parameter("camera_timeout_s", DEFAULT_CAMERA_TIMEOUT_S).value
+            camera_timeout_s = float(self.declare_parameter("camera_timeout_s", DEFAULT_CAMERA_TIMEOUT_S, number).value)
+            # the LiDAR's scan layout (core/sectors.py): where its sweep starts, which way it turns (a Velodyne as
+            # nuScenes' LIDAR_TOP: 180.0 and true); slices are cut and numbered in the order it scans them
+            start_deg = float(self.declare_parameter("scan_start_deg", 0.0, number).value)
+            clockwise = bool(self.declare_parameter("clockwise", False).value)
             self.detector = StreamingDetector(export_dir, DetectorConfig(
-                fallback_export_dir=fallback, fallback_after_s=max_age_s if fallback else None, providers=providers))  # fmt: skip
+                fallback_export_dir=fallback, fallback_after_s=max_age_s if fallback else None, providers=providers,
+                start_deg=start_deg, clockwise=clockwise))  # fmt: skip
             self.detector.warm_up()  # before the first message: onnxruntime's first runs of a graph are slow
             self.frames = CameraFrames(camera_timeout_s or None)
             self.shown: dict[int, int] = {}  # slice -> boxes its markers show, so fewer next time deletes the rest
             self.errors = ErrorLog()
             self.boxes = self.create_publisher(Detection3DArray, "/streamdet/detections", 10)
             self.markers = self.create_publisher(MarkerArray, "/streamdet/markers", 10)
-            self.create_subscription(PointCloud2, "/LIDAR_TOP", self.on_cloud, 1)
+            # best effort, newest only, as sensor drivers publish (a reliable subscription never matches their
+            # best-effort publishers and receives nothing)
+            self.create_subscription(PointCloud2, "/LIDAR_TOP", self.on_cloud, qos_profile_sensor_data)
             for cam in self.detector.camera_names:
                 self.create_subscription(CompressedImage, f"/{cam}/image_rect_compressed",
-                                         lambda msg, cam=cam: self.on_image(cam, msg), 1)  # fmt: skip
+                                         lambda msg, cam=cam: self.on_image(cam, msg), qos_profile_sensor_data)  # fmt: skip
 
         def on_image(self, cam: str, msg) -> None:
             try:

@@ -464,3 +464,49 @@ def test_a_camera_on_another_clock_is_named(bag: Path, export_dir: Path, tmp_pat
     assert result.exit_code == 0, result.output
     assert "['CAM_BACK'] sent images stamped more than --camera-timeout-ms behind the LiDAR's" in result.output
     assert "CAM_BACK 2x" in result.output  # at both sweeps: each set without it
+
+
+def test_run_slices_in_the_layout_the_bag_s_times_show(bag: Path, export_dir: Path, tmp_path, caplog):
+    """The synthetic drive's clouds turn counter-clockwise from 0 deg, the real nuScenes sweep's (exported with times
+    of its LiDAR, clockwise from 180) the other way: run reads the layout from the times, and warns where the flags
+    given contradict them (ROS review H3: a clockwise bag split 19 sweeps into 133 without a word)."""
+    synth = CliRunner().invoke(bag_main, ["run", "--bag", str(bag), "--export-dir", str(export_dir), "--out",
+                                          str(tmp_path / "a.mcap")])  # fmt: skip
+    assert synth.exit_code == 0, synth.output
+    assert "counter-clockwise from 0 deg (from the per-point times of /LIDAR_TOP)" in synth.output
+    real = tmp_path / "real.mcap"
+    assert CliRunner().invoke(bag_main, ["export", "--out", str(real)]).exit_code == 0
+    found = CliRunner().invoke(bag_main, ["run", "--bag", str(real), "--export-dir", str(export_dir), "--out",
+                                          str(tmp_path / "b.mcap")])  # fmt: skip
+    assert found.exit_code == 0, found.output
+    assert "LiDAR scan layout: clockwise from 180 deg (from the per-point times of /LIDAR_TOP)" in found.output
+    with caplog.at_level("WARNING", logger="streamdet.bag.run"):
+        given = CliRunner().invoke(bag_main, ["run", "--bag", str(real), "--export-dir", str(export_dir), "--out",
+                                              str(tmp_path / "c.mcap"), "--counter-clockwise"])  # fmt: skip
+    assert given.exit_code == 0, given.output
+    assert "counter-clockwise from 180 deg (partly given" in given.output
+    assert any("but the clouds' per-point times show" in r.getMessage() for r in caplog.records)
+
+
+def test_run_copies_the_recorded_channels_qos(bag: Path, export_dir: Path, tmp_path):
+    """A recorded channel's metadata (rosbag2's offered_qos_profiles: /tf_static transient-local) reaches the output,
+    so `ros2 bag play` of it latches /tf_static again (ROS review M5: it was dropped)."""
+    from mcap.reader import make_reader
+
+    qos = "- history: 1\n  depth: 1\n  reliability: 1\n  durability: 1\n"
+    source = BagSource(bag, SourceConfig())
+    recorded = tmp_path / "recorded.mcap"
+    with BagWriter(recorded) as writer:
+        for name, data in source.metadata().items():
+            writer.metadata(name, data)
+        for msg in source.messages():
+            writer.schema(msg.datatype, msg.schema_text)
+            extra = {"offered_qos_profiles": qos} if msg.topic == "/tf_static" else None
+            writer.write(msg.topic, msg.datatype, msg.message, msg.log_time_ns, extra)
+    out = tmp_path / "det.mcap"
+    result = CliRunner().invoke(bag_main, ["run", "--bag", str(recorded), "--export-dir", str(export_dir), "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    with open(out, "rb") as f:
+        channels = {c.topic: dict(c.metadata) for c in make_reader(f).get_summary().channels.values()}
+    assert channels["/tf_static"] == {"offered_qos_profiles": qos}
+    assert channels["/LIDAR_TOP"] == {}

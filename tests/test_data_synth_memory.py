@@ -90,6 +90,16 @@ def test_the_probe_reads_meminfo_and_cgroups(tmp_path):
     (v1 / "memory" / "memory.limit_in_bytes").write_text(f"{3 * GB}\n")  # over the limit already: nothing left
     assert memory._cgroup_left(v1) == 0
     assert memory._cgroup_left(tmp_path / "none") is None
+    # the page cache the kernel drops before it kills (inactive_file) is not counted as used: a 4 GiB container
+    # with 3.5 GiB of such cache refused the default 800x450 run
+    (v2 / "memory.max").write_text(f"{4 * 2**30}\n")
+    (v2 / "memory.current").write_text(f"{int(3.9 * 2**30)}\n")
+    (v2 / "memory.stat").write_text(f"anon 12345\ninactive_file {int(3.5 * 2**30)}\nactive_file 1\n")
+    assert memory._cgroup_left(v2) == 4 * 2**30 - (int(3.9 * 2**30) - int(3.5 * 2**30))
+    (v1 / "memory" / "memory.stat").write_text("cache 5\ntotal_inactive_file 1000\n")
+    assert memory._cgroup_left(v1) == 0  # 3 GB limit, 3.97 GB used, 1000 B of it reclaimable
+    (v1 / "memory" / "memory.limit_in_bytes").write_text(f"{5 * GB}\n")
+    assert memory._cgroup_left(v1) == 5 * GB - (3973672960 - 1000)
 
     total, per_process = memory.available_memory()  # this machine: whatever it says, in bytes
     assert total is None or total >= 0

@@ -44,7 +44,7 @@ def test_detection3d_array_carries_class_score_and_the_same_box(seed: int):
         (hyp,) = d["results"]
         assert hyp["hypothesis"]["class_id"] == CLASS_NAMES[labels[i]]
         assert hyp["hypothesis"]["score"] == float(scores[i])
-        assert d["header"]["frame_id"] == "LIDAR_TOP" and d["id"] == str(i)
+        assert d["header"]["frame_id"] == "LIDAR_TOP" and d["id"] == ""
         assert d["bbox"]["size"] == {"x": float(boxes[i, 4]), "y": float(boxes[i, 3]), "z": float(boxes[i, 5])}  # l, w, h
         np.testing.assert_allclose(_corners_from_pose(d["bbox"]["center"], d["bbox"]["size"]), box_corners_3d(boxes[i : i + 1].astype(np.float64))[0], atol=1e-5)
         assert hyp["pose"]["pose"] == d["bbox"]["center"] and len(hyp["pose"]["covariance"]) == 36

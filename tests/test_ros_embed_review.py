@@ -478,7 +478,7 @@ def _stand_in_ros(monkeypatch, export_dir: Path) -> dict:
         def __init__(self, name: str) -> None:
             self.subscriptions, self.published = {}, {}
 
-        def declare_parameter(self, name, default):
+        def declare_parameter(self, name, default, descriptor=None):
             return ns(value=str(export_dir) if name == "export_dir" else default)
 
         def create_publisher(self, cls, topic, qos):
@@ -486,6 +486,7 @@ def _stand_in_ros(monkeypatch, export_dir: Path) -> dict:
             return ns(publish=self.published[topic].append)
 
         def create_subscription(self, cls, topic, callback, qos):
+            assert qos == "sensor data", topic  # best effort: a reliable subscription misses sensor drivers
             self.subscriptions[topic] = callback
 
     def module(name: str, **attrs) -> None:
@@ -496,6 +497,9 @@ def _stand_in_ros(monkeypatch, export_dir: Path) -> dict:
     message = type("Message", (), {})
     module("rclpy", init=lambda: None, spin=lambda node: spun.update(node=node))
     module("rclpy.node", Node=Node)
+    module("rclpy.qos", qos_profile_sensor_data="sensor data")
+    module("rcl_interfaces")
+    module("rcl_interfaces.msg", ParameterDescriptor=lambda **fields: ns(**fields))
     module("rosidl_runtime_py")
     module("rosidl_runtime_py.set_message_fields", set_message_fields=lambda msg, values: setattr(msg, "values", values))
     for package, names in (("sensor_msgs", ["CompressedImage", "PointCloud2"]), ("vision_msgs", ["Detection3DArray"]),

@@ -101,6 +101,20 @@ def test_the_points_features_do_not_depend_on_the_layout(n):
                     assert np.all(s[:, 5] == feature_index(k, n, start, clockwise))
 
 
+@pytest.mark.parametrize("clockwise", [False, True])
+def test_a_slice_s_feature_index_is_the_sector_it_covers(clockwise):
+    """Counted in integers: floor(lo * n / 360) in floats gave slice 11 of 28 the index 10 (diff review M1)."""
+    for n in [1, 2, *range(4, 260, 4)]:
+        for start in STARTS:
+            got = [feature_index(k, n, start, clockwise) for k in range(n)]
+            if n >= 4:  # one feature sector per slice: the one holding its middle
+                mids = [sum(sector_bounds_deg(k, n, start, clockwise)) / 2 % 360.0 for k in range(n)]
+                assert got == [int(m * n // 360) for m in mids], (n, start)
+            else:  # n = 1, 2: the feature sector holding the slice's first bound
+                assert got == [int(sector_bounds_deg(k, n, start, clockwise)[0] * n // 360) % n for k in range(n)]
+    assert [feature_index(k, 28) for k in range(28)] == list(range(28))
+
+
 def test_relative_time_follows_the_scan():
     pts = np.array([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0]])  # azimuths 0, 90, 180, 270
     np.testing.assert_allclose(relative_time_s(pts, 0.0, 0.1), [0, 0.025, 0.05, 0.075])
@@ -156,6 +170,20 @@ def test_the_real_sample_turns_as_nuscenes_lidar_top_is_said_to():
     assert (found.start_deg, found.clockwise) == (NUSCENES_LIDAR_TOP.start_deg, NUSCENES_LIDAR_TOP.clockwise)
 
 
+def test_times_that_show_no_steady_turn_say_nothing():
+    sweep = _ring(45.0 + 0.1, True)  # a start just past an axis midpoint is not pulled the other way by the group mean
+    assert layout_from_times(sweep.points, sweep.point_time_s).start_deg == 90.0
+    sweep = _ring(44.9, False)
+    assert layout_from_times(sweep.points, sweep.point_time_s).start_deg == 0.0
+    rng = np.random.default_rng(3)
+    assert layout_from_times(sweep.points, rng.permutation(sweep.point_time_s)) is None  # shuffled
+    assert layout_from_times(sweep.points, np.zeros(len(sweep.points))) is None  # constant
+    assert layout_from_times(sweep.points, rng.uniform(0, 0.05, len(sweep.points))) is None  # random
+    constant = LidarSweep(0, 0.05, 0.05, sweep.points, np.zeros(len(sweep.points)), np.eye(4), np.eye(4))
+    assert "show no steady turn" in drive_layout([constant]).source
+    assert (drive_layout([constant]).start_deg, drive_layout([constant]).clockwise) == (180.0, True)
+
+
 def test_without_per_point_times_the_layout_is_nuscenes_lidar_top():
     sweep = _ring(0.0, False)
     untimed = LidarSweep(0, 0.05, 0.05, sweep.points, None, np.eye(4), np.eye(4))
@@ -179,8 +207,7 @@ def test_the_clis_take_the_scan_layout(command):
     else:
         from streamdet.bag.cli import run_cmd as main
     text = " ".join(CliRunner().invoke(main, ["--help"]).output.split())
-    assert "--scan-start-deg" in text and "--clockwise / --counter-clockwise" in text
-    assert ("from the data" in text) == (command == "replay")
+    assert "--scan-start-deg" in text and "--clockwise / --counter-clockwise" in text and "from the data" in text
 
 
 @pytest.mark.parametrize("n", [1, 2, 4, 8, 32])

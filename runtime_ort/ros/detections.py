@@ -48,7 +48,10 @@ def detection3d_array_message(
 ) -> dict:  # fmt: skip
     """A ``vision_msgs/Detection3DArray`` dict: one Detection3D per box, one hypothesis (class name, score) each.
 
-    ``boxes`` (N, 9) in ``frame_id``; ``labels`` index ``class_names``. Detection ids are the box's row, as text.
+    ``boxes`` (N, 9) in ``frame_id``; ``labels`` index ``class_names``. Detection ids are empty: vision_msgs keeps
+    an id for the same object across messages (a tracker's), which a per-slice detector does not know, and allows
+    an empty one; a box's row was read as an identity it is not. The velocity (vx, vy) has no field here: it is in
+    the results JSON and ``Detections``.
     """
     boxes, scores, labels = _check(boxes, scores, labels, class_names, DETECTIONS)
     header = header_msg(stamp_ns, frame_id)
@@ -62,7 +65,7 @@ def detection3d_array_message(
                 "pose": {"pose": pose, "covariance": [0.0] * 36},
             }],
             "bbox": {"center": pose, "size": box_size(boxes[i])},
-            "id": str(i),
+            "id": "",
         })  # fmt: skip
     return {"header": header, "detections": detections}
 
