@@ -57,6 +57,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from streamdet.core.boxes import BOX_DIM, H, L, VX, VY, W, X, Y, YAW, Z, pair_boxes
+from streamdet.core.classes import CLASS_NAMES
 from streamdet.runtime_ort.manifest_records import ParityRecord, PipelineParity
 from streamdet.runtime_ort.sessions import ort_session  # noqa: F401 (the parity run's sessions; imported from here too)
 
@@ -71,6 +72,10 @@ PIPELINE_CENTRE_TOL_M = 0.1
 BOX_COLUMN_GROUPS: tuple[tuple[str, tuple[int, ...]], ...] = (
     ("centre", (X, Y)), ("z", (Z,)), ("size", (W, L, H)), ("yaw", (YAW,)), ("velocity", (VX, VY)))
 YAW_GROUP = "yaw"
+# Labels whose boxes have no heading to compare: a cone's predicted heading vector is near zero, so fp16 rounding may
+# turn it by anything up to pi on a genuine export. The devkit scores no orientation for them either
+# (evaluation/config.py).
+NO_HEADING_LABELS = (CLASS_NAMES.index("traffic_cone"),)
 YAW_SCALE = 2.0 * math.pi  # an angle's scale is the full turn, whatever headings the boxes have
 # The boxes whose columns set the scales and are compared: the runtime's default score threshold (PostConfig).
 BOX_SCORE_THRESHOLD = PIPELINE_SCORE_THRESHOLD
@@ -170,10 +175,13 @@ def wrap_angle(a: np.ndarray) -> np.ndarray:
     return (np.asarray(a, dtype=np.float64) + math.pi) % (2.0 * math.pi) - math.pi
 
 
-def box_differences(got: np.ndarray, ref: np.ndarray) -> np.ndarray:
-    """(N, 9) |got - ref| per column, float64, yaw modulo 2 pi."""
+def box_differences(got: np.ndarray, ref: np.ndarray, labels: np.ndarray | None = None) -> np.ndarray:
+    """(N, 9) |got - ref| per column, float64, yaw modulo 2 pi; 0 for the yaw of boxes whose ``labels`` (N,) (the
+    pairs' label) have no heading (NO_HEADING_LABELS)."""
     diff = np.abs(got.astype(np.float64) - ref.astype(np.float64))
     diff[:, YAW] = np.abs(wrap_angle(diff[:, YAW]))
+    if labels is not None:
+        diff[np.isin(np.asarray(labels), NO_HEADING_LABELS), YAW] = 0.0
     return diff
 
 
@@ -247,7 +255,7 @@ def match_detections(
         j = np.argmin(dist, axis=1)  # (n,)
         ok = dist[np.arange(idx.size), j] <= centre_tol
         unmatched += int((~ok).sum())
-        box_diffs.append(box_differences(gb[qi, j[ok]], rb[qi, idx[ok]]))
+        box_diffs.append(box_differences(gb[qi, j[ok]], rb[qi, idx[ok]], rl[qi, idx[ok]]))
         score_diffs.append(np.abs(gs[qi, j[ok]].astype(np.float64) - rs[qi, idx[ok]]))
         ref_scores.append(rs[qi, idx[ok]])
     cat = lambda xs: np.concatenate(xs).astype(np.float64) if xs else np.zeros(0)  # noqa: E731
@@ -395,7 +403,7 @@ def pipeline_parity(
     max_d = float(centre.max()) if centre.size else math.nan
     # the other columns of the pairs counted above the threshold, each group against its own tolerance
     scales = box_group_scales(b32[s32 >= score_threshold], FP16_SCALE_FLOOR)
-    group_diff = box_group_max(box_differences(b16[i16[pair_above]], b32[i32[pair_above]]))
+    group_diff = box_group_max(box_differences(b16[i16[pair_above]], b32[i32[pair_above]], l32[i32[pair_above]]))
     groups = [name for name, _ in BOX_COLUMN_GROUPS if name != "centre"]
     groups_ok = all(group_diff[g] <= FP16_TOL_REL * scales[g] for g in groups)
     passed = bool(
