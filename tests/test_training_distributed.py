@@ -157,3 +157,18 @@ def test_cross_process_batchnorm_equals_one_batchnorm(tmp_path):
 ])  # fmt: skip
 def test_process_device(given, ctx, expected):
     assert process_device(torch.device(given), ctx) == torch.device(expected)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_convert_batchnorm_keeps_dtype_stats_and_mode(dtype):
+    """The cross-process norm is made in the replaced one's dtype and device (it was float32 whatever the model's)."""
+    from streamdet.training.distributed import CrossProcessBatchNorm, convert_batchnorm
+
+    model = torch.nn.Sequential(torch.nn.Conv2d(3, 4, 1), torch.nn.BatchNorm2d(4)).to(dtype)
+    model[1].running_mean.fill_(0.25)
+    model.eval()
+    converted = convert_batchnorm(model)
+    bn = converted[1]
+    assert isinstance(bn, CrossProcessBatchNorm) and not bn.training
+    assert bn.weight.dtype == bn.running_mean.dtype == dtype and bn.num_batches_tracked.dtype == torch.int64
+    assert torch.equal(bn.running_mean, torch.full((4,), 0.25, dtype=dtype))

@@ -143,7 +143,11 @@ def convert_batchnorm(module: nn.Module) -> nn.Module:
     """
     frozen = isinstance(module, FrozenBatchNorm2d)
     if isinstance(module, _BatchNorm) and not isinstance(module, CrossProcessBatchNorm) and not frozen:
-        new = CrossProcessBatchNorm(module.num_features, module.eps, module.momentum, module.affine, module.track_running_stats)
+        # on the module's device and in its dtype (load_state_dict copies values, it does not move the new module)
+        floats = [*module.parameters(recurse=False), *(b for b in module.buffers(recurse=False) if b.is_floating_point())]
+        factory = {"device": floats[0].device, "dtype": floats[0].dtype} if floats else {}
+        new = CrossProcessBatchNorm(module.num_features, module.eps, module.momentum, module.affine,
+                                    module.track_running_stats, **factory)  # fmt: skip
         new.load_state_dict(module.state_dict())
         new.train(module.training)
         return new
