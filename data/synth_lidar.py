@@ -1,12 +1,16 @@
 """A rotating 32-beam LiDAR ray-cast into the synthetic world, with a rolling scan.
 
-The sensor turns counter-clockwise (seen from above) once per sweep, starting at azimuth ``start_deg`` of the
-LiDAR frame at ``t_end - sweep_duration`` and finishing at ``t_end``, the sweep's timestamp. Azimuth column a
+The sensor turns as nuScenes' LIDAR_TOP (a Velodyne HDL-32E) does: clockwise seen from above, once per sweep,
+starting at azimuth ``start_deg`` (180 deg: the LiDAR frame's -x, the car's left; the real sensor starts a few
+degrees past that, behind-left) at ``t_end - sweep_duration`` and finishing at ``t_end``, the sweep's timestamp.
+``LidarConfig.clockwise`` and ``start_deg`` say so (``scan_fraction`` maps an azimuth to the share of the sweep at
+which the sensor points there); until world 6 the sensor turned counter-clockwise from 0 deg. Azimuth column a
 fires its 32 beams together at ``(a + 0.5) / A`` of the sweep, from where the sensor is at that instant, and
 sees every object where it is at that instant: a car at 15 m/s moves 0.75 m during one sweep, so its points
 are smeared along its motion exactly as on a real rolling scan. Points are then expressed in the LiDAR frame at
 ``t_end`` (the ego motion within the sweep compensated, as nuScenes does), so static surfaces stay sharp while
-moving objects keep their rolling-shutter displacement relative to their annotated pose at ``t_end``.
+moving objects keep their rolling-shutter displacement relative to their annotated pose at ``t_end``. The cameras
+fire as the sensor crosses their optical axes (``synth_writer.camera_trigger_times_s``), as nuScenes' do.
 
 Each beam meets the nearest part of an object (``synth_shapes``) or the undulating ground. Glass lets most beams
 through to whatever is behind. Whether the pulse then comes back is the return model (``detection_probability``):
@@ -24,6 +28,7 @@ import numpy as np
 
 from streamdet.calibration.camera import invert_transform
 from streamdet.core.boxes import box_corners_bev
+from streamdet.core import sectors
 from streamdet.core.sectors import angle_diff_deg
 from streamdet.data.synth_materials import ground_reflectance, shade
 from streamdet.data.synth_raycast import ray_box_entry, ray_shape_entry, world_to_local
@@ -42,7 +47,8 @@ class LidarConfig:
 
     elevations_deg: tuple[float, ...] = HDL32E_ELEVATIONS_DEG  # beam elevations; ring index = position here
     azimuth_steps: int = 1080  # columns per rotation (0.33 deg, ~34.5 k rays)
-    start_deg: float = 0.0  # azimuth (LiDAR frame) where each rotation starts
+    start_deg: float = 180.0  # azimuth (LiDAR frame, from +x towards +y) where each rotation starts
+    clockwise: bool = True  # seen from above, as nuScenes' LIDAR_TOP turns (world 5 and before: counter-clockwise from 0)
     min_range_m: float = 1.0  # returns nearer than this are dropped (the car's own body)
     max_range_m: float = 100.0
     range_noise_m: float = 0.015  # standard deviation along the ray
@@ -63,6 +69,22 @@ class LidarConfig:
             raise ValueError(f"LidarConfig needs 0 < min_range_m < max_range_m, got {self.min_range_m}, {self.max_range_m}")
         if not 0 <= self.dropout < 1:
             raise ValueError(f"LidarConfig.dropout must be in [0, 1), got {self.dropout!r}")
+        if not isinstance(self.clockwise, bool):
+            raise ValueError(f"LidarConfig.clockwise must be True or False, got {self.clockwise!r}")
+        if not np.isfinite(self.start_deg):
+            raise ValueError(f"LidarConfig.start_deg must be a finite angle, got {self.start_deg!r}")
+
+    @property
+    def turn_sign(self) -> float:
+        """+1 counter-clockwise, -1 clockwise: the azimuth at sweep fraction f is ``start_deg + turn_sign * 360 f``."""
+        return -1.0 if self.clockwise else 1.0
+
+
+def scan_fraction(azimuth_deg, config: LidarConfig = LidarConfig()) -> np.ndarray:
+    """The share of the sweep after which the sensor points at ``azimuth_deg`` (LiDAR frame): the time since the
+    sweep start at which it crosses that azimuth, over the sweep's duration (``core.sectors.scan_fraction`` of this
+    sensor's layout)."""
+    return np.asarray(sectors.scan_fraction(np.asarray(azimuth_deg, dtype=np.float64), config.start_deg, config.clockwise))
 
 
 @dataclass(frozen=True, eq=False)
@@ -87,7 +109,7 @@ def simulate_sweep(
     n_az, n_el = config.azimuth_steps, len(config.elevations_deg)
     frac = (np.arange(n_az) + 0.5) / n_az  # (A,) position of each column within the sweep
     col_time = t_end_s - sweep_s + frac * sweep_s  # (A,) scene time of each column
-    az = np.radians(config.start_deg + frac * 360.0)  # (A,)
+    az = np.radians(config.start_deg + config.turn_sign * frac * 360.0)  # (A,) in scan order
     el = np.radians(np.asarray(config.elevations_deg))  # (E,)
     dirs_lidar = np.stack(
         [np.cos(el)[None, :] * np.cos(az)[:, None], np.cos(el)[None, :] * np.sin(az)[:, None], np.broadcast_to(np.sin(el), (n_az, n_el))],
@@ -241,7 +263,9 @@ def _candidate_columns(
     lo = centre[:, 0] + delta.min(axis=1) - pad
     hi = centre[:, 0] + delta.max(axis=1) + pad
     step = 360.0 / n_az
-    c_lo = np.floor((lo - config.start_deg) / step).astype(np.int64)
+    # the first column of the span [lo, hi]: column a points at start + turn_sign * (a + 0.5) * step
+    first_edge = lo if not config.clockwise else -hi
+    c_lo = np.floor((first_edge - config.turn_sign * config.start_deg) / step).astype(np.int64)
     width = np.ceil((hi - lo) / step).astype(np.int64) + 1
     local = world_to_local(np.r_[sensor, 0.0], boxes[: len(objs), :3], objs.yaw)  # (K, 3); motion within the slack
     slack = travel + np.linalg.norm(objs.velocity, axis=1) * (t1 - t0)

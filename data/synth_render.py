@@ -6,8 +6,10 @@ ground. The candidate pixels of a part are the projected hull of its bounding bo
 exactly with the part. The ground pattern is looked up in a pre-sampled raster of ``synth_materials.ground``.
 Shading is Lambertian per pixel under a sun plus ambient light; objects cast shadows on the ground
 (``shadow_raster``); each camera has its own exposure gain and white balance per frame (``Exposure``). The cameras
-are global-shutter and expose at the sample timestamp (the end of the LiDAR sweep), so the rendered objects sit
-exactly at their annotated poses. ``Render.object_id`` is the per-pixel object the writer turns into masks.
+are global-shutter and render the world at the time they are given: the writer gives each the moment the LiDAR
+crosses its optical axis (``synth_writer.camera_trigger_times_s``, world 6 on; until then the sample timestamp), so
+a moving object sits where it is then, behind its annotated pose at the sweep's end, as on real nuScenes.
+``Render.object_id`` is the per-pixel object the writer turns into masks.
 """
 
 from __future__ import annotations
@@ -131,8 +133,9 @@ SHADOW_HALF_M = 60.0  # shadows are drawn on the ground within this distance of 
 def shadow_raster(scene: Scene, t_s: float) -> np.ndarray:
     """(S, S) uint8 ego-frame BEV raster of the ground in the shade of objects at time t (1: shaded).
 
-    Every part's bounding box is projected along the sun onto the ground plane and filled; the cameras of one
-    frame share it. Objects and the ground's undulation are not shaded by other objects (ground shadows only).
+    Every part's bounding box is projected along the sun onto the ground plane and filled; each camera takes the
+    raster of its own exposure time. Objects and the ground's undulation are not shaded by other objects (ground
+    shadows only).
     """
     n = int(round(2 * SHADOW_HALF_M / SHADOW_TEXEL_M))
     raster = np.zeros((n, n), dtype=np.uint8)

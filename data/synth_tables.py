@@ -158,7 +158,8 @@ class Tables:
 
     def camera_data(self, out: Path, scene: Scene, sample_token: str, frame: SimFrame, channel: str, sensor_tokens: dict,
                     config: SynthConfig) -> None:
-        ts = frame.timestamp_us
+        t_cam = frame.camera_times_s[channel]  # the camera's exposure: when the LiDAR crossed its axis
+        ts = scene.timestamp_us(t_cam)
         filename = f"samples/{channel}/{scene.name}__{channel}__{ts}.jpg"
         path = out / filename
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -172,7 +173,7 @@ class Tables:
         row = {
             "token": self.tok("sample_data", scene.name, channel, ts),
             "sample_token": sample_token,
-            "ego_pose_token": self.ego_pose(scene, frame.t_s, f"{channel}/{ts}"),
+            "ego_pose_token": self.ego_pose(scene, t_cam, f"{channel}/{ts}"),
             "calibrated_sensor_token": sensor_tokens[channel],
             "timestamp": ts,
             "fileformat": "jpg",

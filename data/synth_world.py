@@ -49,8 +49,14 @@ from streamdet.data.synth_road import (  # noqa: F401 (re-exported: the world's 
 # closed by a taper of cones, works on the sidewalk, cones among the barriers, single cones beside parked cars); 5: the
 # same scenes (layouts, sweeps and images byte for byte), annotated as the devkit counts: num_lidar_pts is the key
 # frame's points inside the box (it counted the rays that hit the object), and a vehicle is parked only where the
-# layout parked it (cars waiting in a cross-street lane and buses at a stop were called parked: now stopped).
-WORLD_VERSION = 5
+# layout parked it (cars waiting in a cross-street lane and buses at a stop were called parked: now stopped); 6: the
+# sensor timing of the real rig (docs/synth/timing.md): the LiDAR turns clockwise seen from above from 180 deg (the
+# car's left), as nuScenes' LIDAR_TOP does (it turned counter-clockwise from 0 deg, the car's right), so the per-point
+# times and the rolling-shutter smear follow it; each camera exposes when the LiDAR crosses its optical axis, 2.6 to
+# 45 ms before the sweep's end (it exposed at the end), rendered with the ego and the objects at that moment, and its
+# sample_data carries that timestamp and an ego_pose of that time. The same scenes (layouts and trajectories); the
+# sweeps, images, masks, visibility and num_lidar_pts change, the annotations' poses do not.
+WORLD_VERSION = 6
 WORLD_FILE = "world.json"  # beside a dataset's tables: the world version, roads and distractors per scene
 
 

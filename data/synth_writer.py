@@ -15,8 +15,11 @@ and look-alike distractors (read by ``streamdet-synth stats``).
 
 The rig is the real one of the bundled nuScenes sample: LiDAR and camera mountings (calibrated_sensor) and
 intrinsics, scaled to the chosen resolution, which must keep the cameras' aspect (``resolution_problem``: the rule
-``calibration.lut.check_rig_fits`` that streamdet-train, streamdet-export and the runtime apply). Cameras expose at
-the key frame's timestamp, so every sample_data of a key frame shares one ego pose. Every scene, sample and sweep
+``calibration.lut.check_rig_fits`` that streamdet-train, streamdet-export and the runtime apply). As in nuScenes,
+each camera exposes when the LiDAR sweeps across its optical axis (``camera_trigger_times_s``; world 6 on, until then
+all at the sweep end): its image shows the ego and every object where they are at that instant, and its
+sample_data carries that timestamp and an ego_pose of that time, 2.6 to 45 ms before the key frame's (the LiDAR's:
+the sweep end, where the annotations are); docs/synth/timing.md. Every scene, sample and sweep
 draws its randomness from its own ``numpy`` generator seeded by (seed, scene, ...), so a dataset is a pure function
 of its config.
 """
@@ -42,7 +45,7 @@ from streamdet.core.constants import MAX_RESOLUTION_PX, MIN_RESOLUTION_PX, STEM_
 from streamdet.core.json_input import read_json
 from streamdet.core.table_version import DEFAULT_TABLE_VERSION, table_version_problem
 from streamdet.data.sample import bundled_sample_dir
-from streamdet.data.synth_lidar import LidarConfig, SimSweep, simulate_sweep
+from streamdet.data.synth_lidar import LidarConfig, SimSweep, scan_fraction, simulate_sweep
 from streamdet.data.synth_masks import MASK_SUFFIX  # noqa: F401 (re-exported)
 from streamdet.data.synth_render import CameraModel, Render, render_camera, shadow_raster
 from streamdet.data.splits import SPLITS_FILE
@@ -288,6 +291,24 @@ def real_rig_records(resolution: tuple[int, int], calibration_path: str | Path |
     )
 
 
+def camera_axis_azimuths_deg(rig: RigRecords) -> dict[str, float]:
+    """Each camera's optical axis (its +z) as an azimuth in the LiDAR frame, degrees in [-180, 180]."""
+    ego2lidar = rig.lidar2ego[:3, :3].T
+    out = {}
+    for model in rig.models:
+        axis = ego2lidar @ model.cam2ego[:3, 2]
+        out[model.name] = float(np.degrees(np.arctan2(axis[1], axis[0])))
+    return out
+
+
+def camera_trigger_times_s(rig: RigRecords, t_end_s: float, sweep_s: float, lidar: LidarConfig = LidarConfig()) -> dict[str, float]:
+    """Scene time at which each camera of ``rig`` exposes for the sweep ending at ``t_end_s``: when the LiDAR, turning
+    as ``lidar`` says, crosses the camera's optical axis (nuScenes: "the exposure of a camera is triggered when the
+    top LiDAR sweeps across the centre of the camera's FOV"), ``t_end - sweep + scan_fraction(axis) * sweep``."""
+    return {name: float(t_end_s - sweep_s + float(scan_fraction(az, lidar)) * sweep_s)
+            for name, az in camera_axis_azimuths_deg(rig).items()}
+
+
 @dataclass(frozen=True, eq=False)
 class SimFrame:
     """Everything simulated for one key frame."""
@@ -299,6 +320,7 @@ class SimFrame:
     sweep: SimSweep  # the key-frame sweep
     past_sweeps: tuple[SimSweep, ...]  # the sweeps between the previous key frame and this one, newest first
     renders: dict[str, Render]  # by camera name
+    camera_times_s: dict[str, float]  # by camera name: scene time of its exposure (camera_trigger_times_s)
     annotated: np.ndarray  # (M,) int64 indices into scene.objects of the annotated objects
     num_lidar_pts: np.ndarray  # (M,) points of the key-frame sweep inside each annotated box (count_points_in_boxes)
     visibility: np.ndarray  # (M,) float: visible / unoccluded pixels over the six cameras (NaN: in no image)
@@ -314,10 +336,12 @@ def simulate_frame(scene: Scene, index: int, rig: RigRecords, config: SynthConfi
         rng = np.random.default_rng([config.seed, scene.index, index, j, 1])
         sweeps.append(simulate_sweep(scene, t_s - j * step, lidar2ego, rng, config.lidar))
     renders = {}
-    shadows = shadow_raster(scene, t_s)
+    # Each camera at its own exposure time: the ego, the objects and their shadows where they are then.
+    camera_times = camera_trigger_times_s(rig, t_s, scene.config.sweep_duration_s, config.lidar)
     for c, model in enumerate(rig.models):
         rng = np.random.default_rng([config.seed, scene.index, index, c, 2])
-        renders[model.name] = render_camera(scene, t_s, model, rng, shadows=shadows)
+        t_cam = camera_times[model.name]
+        renders[model.name] = render_camera(scene, t_cam, model, rng, shadows=shadow_raster(scene, t_cam))
     objs = scene.objects
     ego_xy = scene.ego_xy(t_s)
     boxes = objs.boxes_at(t_s)
@@ -340,6 +364,7 @@ def simulate_frame(scene: Scene, index: int, rig: RigRecords, config: SynthConfi
         sweep=sweeps[0],
         past_sweeps=tuple(sweeps[1:]),
         renders=renders,
+        camera_times_s=camera_times,
         annotated=annotated,
         num_lidar_pts=count_points_in_boxes(points_global, boxes[annotated]),
         visibility=visibility[annotated],
