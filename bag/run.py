@@ -178,15 +178,13 @@ def run_bag(
 
 def scan_layout_of(bag: str | Path, config: RunConfig) -> ScanLayout:
     """The layout ``run_bag`` slices with: ``config.start_deg`` / ``clockwise`` where given, the rest from the bag's
-    per-point times (a full-sweep cloud's: direction and start; slice messages': the direction), else
-    NO_TIMES_LAYOUT. Given values the times contradict are kept, with a warning."""
+    per-point times (a full-sweep cloud's; a driver's slice messages: the first ones together, the start being the
+    axis nearest where the first began), else NO_TIMES_LAYOUT. Given values the times contradict are kept, with a
+    warning."""
     # read even where both are given: a layout the data contradicts is said
     probe = BagSource(bag, SourceConfig(topics=config.topics, slice_per_message=config.slice_per_message,
                                         cloud_fields=config.cloud_fields))  # fmt: skip
     found = probe.scan_layout()
-    if found is not None and config.slice_per_message:  # slices say which way the sensor turns, not where it starts
-        found = ScanLayout(NO_TIMES_LAYOUT.start_deg, found.clockwise,
-                           f"{found.source}; the start the runtime's default: slice messages name no sweep start")  # fmt: skip
     layout = choose_layout(found, NO_TIMES_LAYOUT, config.start_deg, config.clockwise)
     if found is not None and (layout.start_deg, layout.clockwise) != (found.start_deg, found.clockwise):
         log.warning("%s: slicing %s as given, but the clouds' per-point times show %s: slices then arrive out of "

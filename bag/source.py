@@ -217,8 +217,9 @@ class BagSource:
 
     def scan_layout(self, max_messages: int = LAYOUT_MESSAGES) -> ScanLayout | None:
         """How the LiDAR turns, from the per-point times of its first clouds (``core/scan_layout.py``): their points
-        together, by absolute time, until they cover a rotation's worth of azimuth steps (one full-sweep message, or
-        the first slice messages of a driver publishing slices); None where the clouds have no usable times."""
+        together, by absolute time (one full-sweep message, or the first LAYOUT_MIN_SLICES or more messages of a
+        driver publishing slices, whose start is then the axis nearest where the first one began); None where the
+        clouds have no usable times."""
         points, times = [], []
         lidar = self.config.topics.lidar
         first_stamp = None

@@ -135,7 +135,7 @@ def test_a_malformed_table_field_is_one_line_naming_table_row_and_field(tiny_syn
 
 @pytest.mark.parametrize("field, value, says", [
     ("camera_intrinsic", [[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 1.0]], "focal lengths must be > 0"),
-    ("camera_intrinsic", [], "calibrated_sensor.camera_intrinsic"),  # a camera with a LiDAR's intrinsics
+    ("camera_intrinsic", [], "Camera 'CAM_FRONT'.K: expected shape (3, 3)"),  # a camera with a LiDAR's intrinsics
 ])  # fmt: skip
 def test_a_camera_the_rig_would_refuse_is_refused(tiny_synth_data: Path, tmp_path: Path, field, value, says):
     """Well-formed fields that make no camera: the rig's checks (Camera) say why, naming the sample's rows."""

@@ -23,7 +23,7 @@ from streamdet.data.nuscenes import NuScenesReader
 from streamdet.evaluation.dataset_eval import OnnxSweepDetector
 from streamdet.evaluation.results import results_to_boxes
 from streamdet.runtime_ort.detector import StreamingDetector
-from streamdet.runtime_ort.ros.pointcloud2 import decode_pointcloud2, split_cloud
+from streamdet.runtime_ort.ros.pointcloud2 import decode_pointcloud2, pointcloud2_message, split_cloud
 
 rosbags_highlevel = pytest.importorskip("rosbags.highlevel")
 rosbags_typesys = pytest.importorskip("rosbags.typesys")
@@ -110,7 +110,9 @@ def test_output_bag_holds_the_inputs_and_the_detections_per_slice(bag: Path, ran
     assert len(detections) == len(markers) == 2 * N_SLICES
     assert {msgtype for topic, msgtype, _, _ in outputs if topic == "/streamdet/detections"} == {"vision_msgs/msg/Detection3DArray"}
     clouds = [m for topic, _, _, m in inputs if topic == "/LIDAR_TOP"]
-    expected_stamps = [s.scan_time_ns for c in clouds for s in split_cloud(decode_pointcloud2(c), N_SLICES)]
+    layout = BagSource(bag, SourceConfig()).scan_layout()  # the run slices as the clouds' times show the LiDAR turns
+    expected_stamps = [s.scan_time_ns for c in clouds
+                       for s in split_cloud(decode_pointcloud2(c), N_SLICES, layout.start_deg, layout.clockwise)]  # fmt: skip
     stamps = [m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for _, m in detections]
     assert stamps == expected_stamps  # each slice stamped with its scan time
     assert all(m.header.frame_id == "LIDAR_TOP" for _, m in detections)
@@ -251,8 +253,10 @@ def _rerecord(bag: Path, out: Path, edit) -> Path:
 
 
 def _sliced_bag(bag: Path, sliced: Path, empty: tuple[int, ...] = ()) -> Path:
-    """``bag`` with each sweep re-recorded as N_SLICES messages of one sector each, in scan order, each stamped like
-    its sweep (the sample token's key); the sectors in ``empty`` as messages without points."""
+    """``bag`` with each sweep re-recorded as N_SLICES messages of one sector each, in the order its LiDAR scans them
+    (the layout its per-point times show), each stamped like its sweep (the sample token's key); the sectors in
+    ``empty`` as messages without points."""
+    from streamdet.core.scan_layout import layout_from_times
     from streamdet.core.sectors import slice_index_of
     from streamdet.runtime_ort.ros.pointcloud2 import pointcloud2_message
 
@@ -260,7 +264,8 @@ def _sliced_bag(bag: Path, sliced: Path, empty: tuple[int, ...] = ()) -> Path:
         if msg.topic != "/LIDAR_TOP":
             return [(msg.message, msg.log_time_ns)]
         cloud = decode_pointcloud2(msg.message)
-        k_of = slice_index_of(cloud.points[:, 0], cloud.points[:, 1], N_SLICES, 0.0)
+        layout = layout_from_times(cloud.points, cloud.time_s)
+        k_of = slice_index_of(cloud.points[:, 0], cloud.points[:, 1], N_SLICES, layout.start_deg, layout.clockwise)
         parts = [(k_of == k) & (k not in empty) for k in range(N_SLICES)]
         return [(pointcloud2_message(cloud.points[part], cloud.stamp_ns, cloud.frame_id, cloud.time_s[part].astype(np.float32)),
                  msg.log_time_ns + k) for k, part in enumerate(parts)]  # fmt: skip
@@ -283,8 +288,10 @@ def test_empty_slice_messages_are_skipped_and_every_sweep_still_closes(bag: Path
     """A slicing driver's message with no points (nothing returned in its sector) names no slice: it is skipped, and
     a sweep whose last slice was such a message closes when the next rotation begins, or when the bag ends."""
     sliced = _sliced_bag(bag, tmp_path / "sliced.mcap", empty)
+    # a bag whose first slice message is empty shows where its second one began, not where the sweep starts: said
+    start = ["--scan-start-deg", "180"] if 0 in empty else []
     result = CliRunner().invoke(bag_main, ["run", "--bag", str(sliced), "--export-dir", str(export_dir), "--out",
-                                           str(tmp_path / "det.mcap"), "--slice-per-message"])  # fmt: skip
+                                           str(tmp_path / "det.mcap"), "--slice-per-message", *start])  # fmt: skip
     assert result.exit_code == 0, result.output
     assert f"2 sweeps, {2 * (N_SLICES - len(empty))} slices" in result.output
     assert len(json.loads((tmp_path / "det.results_nusc.json").read_text())["results"]) == 2
@@ -467,13 +474,28 @@ def test_a_camera_on_another_clock_is_named(bag: Path, export_dir: Path, tmp_pat
 
 
 def test_run_slices_in_the_layout_the_bag_s_times_show(bag: Path, export_dir: Path, tmp_path, caplog):
-    """The synthetic drive's clouds turn counter-clockwise from 0 deg, the real nuScenes sweep's (exported with times
-    of its LiDAR, clockwise from 180) the other way: run reads the layout from the times, and warns where the flags
-    given contradict them (ROS review H3: a clockwise bag split 19 sweeps into 133 without a word)."""
+    """The synthetic drive's clouds (world 6) and the real nuScenes sweep's (exported with the times of its LiDAR) turn
+    clockwise from 180 deg, a bag of world 5 counter-clockwise from 0: run reads the layout from the times, and warns
+    where the flags given contradict them (ROS review H3: a clockwise bag split 19 sweeps into 133 without a word)."""
     synth = CliRunner().invoke(bag_main, ["run", "--bag", str(bag), "--export-dir", str(export_dir), "--out",
                                           str(tmp_path / "a.mcap")])  # fmt: skip
     assert synth.exit_code == 0, synth.output
-    assert "counter-clockwise from 0 deg (from the per-point times of /LIDAR_TOP)" in synth.output
+    assert "LiDAR scan layout: clockwise from 180 deg (from the per-point times of /LIDAR_TOP)" in synth.output
+    # world 5's sensor: the same clouds mirrored about the x axis turn counter-clockwise from 180 (y -> -y)
+    source = BagSource(bag, SourceConfig())
+    mirrored = tmp_path / "mirrored.mcap"
+    with BagWriter(mirrored) as writer:
+        for msg in source.messages():
+            writer.schema(msg.datatype, msg.schema_text)
+            if msg.topic == "/LIDAR_TOP":
+                cloud = decode_pointcloud2(msg.message)
+                points = cloud.points.copy()
+                points[:, 1] *= -1
+                writer.write(msg.topic, msg.datatype, pointcloud2_message(points, cloud.stamp_ns, cloud.frame_id,
+                                                                          cloud.time_s.astype(np.float32)), msg.log_time_ns)  # fmt: skip
+            else:
+                writer.write(msg.topic, msg.datatype, msg.message, msg.log_time_ns)
+    assert BagSource(mirrored, SourceConfig()).scan_layout().clockwise is False
     real = tmp_path / "real.mcap"
     assert CliRunner().invoke(bag_main, ["export", "--out", str(real)]).exit_code == 0
     found = CliRunner().invoke(bag_main, ["run", "--bag", str(real), "--export-dir", str(export_dir), "--out",
