@@ -21,9 +21,11 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
+from streamdet.core.json_input import read_json
 from streamdet.core.points import SWEEP_DURATION_S
 from streamdet.data.synth_kinds import DISTRACTOR_KINDS, KIND_SPECS, NUM_ANNOTATED_KINDS, Kind, KindSpec  # noqa: F401
 from streamdet.data.synth_road import (  # noqa: F401 (re-exported: the world's layout constants)
@@ -58,6 +60,23 @@ from streamdet.data.synth_road import (  # noqa: F401 (re-exported: the world's 
 # sweeps, images, masks, visibility and num_lidar_pts change, the annotations' poses do not.
 WORLD_VERSION = 6
 WORLD_FILE = "world.json"  # beside a dataset's tables: the world version, roads and distractors per scene
+# world.json of 10,000 scenes is tens of MB; a larger file is no sidecar of ours and is not read to find out.
+MAX_WORLD_BYTES = 512 << 20
+
+
+def world_version_of(root: str | Path) -> int | None:
+    """The synthetic world a dataset at ``root`` was generated in (its world.json's ``world_version``), None for a
+    dataset without one (real nuScenes) or an unreadable one: what a report names beside its results, since the
+    worlds differ (WORLD_VERSION's history)."""
+    path = Path(root) / WORLD_FILE
+    if not path.is_file():
+        return None
+    try:
+        doc = read_json(path, "world file", MAX_WORLD_BYTES)
+    except ValueError:
+        return None
+    version = doc.get("world_version") if type(doc) is dict else None
+    return version if type(version) is int else None
 
 
 @dataclass(frozen=True)

@@ -53,6 +53,7 @@ from streamdet.data.synth_tables import TABLE_NAMES, Tables, link_records, write
 from streamdet.data.synth_trajectories import TRAJECTORIES_FILE, write_trajectories
 from streamdet.data.synth_world import (
     DISTRACTOR_KINDS,
+    MAX_WORLD_BYTES,
     WORLD_FILE,
     WORLD_VERSION,
     Kind,
@@ -146,8 +147,6 @@ def resolution_problem(resolution: tuple[int, int]) -> str | None:
             f"{'size that fits' if len(near) == 1 else 'sizes that fit'}: {' or '.join(near) or 'none'}")
 
 
-# world.json of 10,000 scenes is tens of MB; a larger file is no sidecar of ours and is not read to find out.
-MAX_WORLD_BYTES = 512 << 20
 
 
 @dataclass(frozen=True)

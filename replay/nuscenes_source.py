@@ -25,6 +25,7 @@ from streamdet.core.points import NUSCENES_CAMERA_HZ, NUSCENES_LIDAR_HZ
 from streamdet.calibration.camera import make_transform, quaternion_to_matrix
 from streamdet.data.nuscenes import CAMERA_CHANNELS, LIDAR_CHANNEL, NuScenesReader
 from streamdet.data.sample import load_image, load_point_times, load_points
+from streamdet.data.synth_world import world_version_of
 from streamdet.replay.scan_layout import resolve_layout
 from streamdet.replay.source import Drive, ImageSet, LidarSweep
 from streamdet.replay.triggers import (
@@ -128,6 +129,9 @@ def load_drive(
     end_s = sweeps[-1].end_s
     layout = resolve_layout(sweeps, start_deg, clockwise)
     notes = [_lidar_note(lidar, lidar_hz, timed), layout.describe()]
+    world = world_version_of(tables.root)
+    if world is not None:  # the worlds differ (sensor timing, annotations): results are labelled with theirs
+        notes.append(f"data: streamdet-synth world {world} (world.json; data/synth_world.py WORLD_VERSION's history)")
     if bad_points or bad_times:
         notes.append(f"LiDAR of {scene_name}: {bad_points} point(s) with a NaN / inf value (the detector drops and counts "
                      f"them; one without an azimuth is in no slice, as in streamdet-eval), {bad_times} non-finite "

@@ -235,3 +235,26 @@ def test_points_on_an_axis_are_in_a_slice_of_their_grid_quadrant(n, start, clock
             assert set(grid.quadrant_of_xy(s[:, 0], s[:, 1]).tolist()) <= set(q), k
             kept = pillarize(s, grid, q, 32, 4096)
             assert kept.num_outside_dropped == 0, (k, kept.num_outside_dropped)
+
+
+def test_the_replay_names_the_synthetic_world_of_its_drives(tmp_path):
+    """World 6 plays differently from world 4 (sensor timing, annotations): a replay's notes name the world."""
+    import json
+
+    from streamdet.data.synth_world import WORLD_FILE, world_version_of
+
+    assert world_version_of(tmp_path) is None  # real nuScenes: no world.json
+    (tmp_path / WORLD_FILE).write_text(json.dumps({"world_version": 6, "scenes": {}}))
+    assert world_version_of(tmp_path) == 6
+    for bad in ("{", json.dumps({"world_version": "6"}), json.dumps([6])):
+        (tmp_path / WORLD_FILE).write_text(bad)
+        assert world_version_of(tmp_path) is None
+
+
+def test_a_replay_of_world_6_drives_says_its_world_and_layout(tiny_drive_data):
+    from streamdet.replay.nuscenes_source import DatasetTables, load_drive
+
+    tables = DatasetTables(tiny_drive_data, "v1.0-synth")
+    drive = load_drive(tables, tables.scene_names()[0], None, max_seconds=0.2)
+    assert "data: streamdet-synth world 6" in " ".join(drive.notes)
+    assert (drive.scan_layout.start_deg, drive.scan_layout.clockwise) == (180.0, True)
