@@ -232,6 +232,12 @@ def invert_transform(T: np.ndarray) -> np.ndarray:
 
 # ---- camera ---------------------------------------------------------------------------------------
 
+
+def optical_axis_azimuth_deg(cam2lidar_rotation: np.ndarray) -> float:
+    """Azimuth in [0, 360) of a camera's optical axis (its z) in the LiDAR frame, given the camera -> LiDAR rotation."""
+    axis = np.asarray(cam2lidar_rotation, dtype=np.float64) @ np.array([0.0, 0.0, 1.0])
+    return math.degrees(math.atan2(axis[1], axis[0])) % 360.0
+
 @dataclass(frozen=True, eq=False)
 class Camera:
     """One pinhole camera: intrinsics, LiDAR-to-camera extrinsic and image size."""
@@ -311,8 +317,7 @@ class Camera:
     @property
     def axis_azimuth_deg(self) -> float:
         """Azimuth in [0, 360) of the optical axis (camera z) in the LiDAR frame."""
-        axis = self.lidar2cam[:3, :3].T @ np.array([0.0, 0.0, 1.0])
-        return math.degrees(math.atan2(axis[1], axis[0])) % 360.0
+        return optical_axis_azimuth_deg(self.lidar2cam[:3, :3].T)
 
     @property
     def fov_azimuth_deg(self) -> tuple[float, float]:

@@ -94,8 +94,9 @@ def scan_fraction(azimuth, start_deg: float = 0.0, clockwise: bool = False):
     return (360.0 - offset if clockwise else offset) / 360.0
 
 
-def _ccw_index(k: int, n: int, start_deg: float, clockwise: bool) -> int:
-    """The counter-clockwise position from ``start_deg`` of slice k's sector (checked)."""
+def ccw_position(k: int, n: int, start_deg: float, clockwise: bool) -> int:
+    """The counter-clockwise position from ``start_deg`` of slice k's sector: k, or n - 1 - k for a clockwise scan
+    (ValueError for a bad k, n or start)."""
     check_num_slices(n, start_deg)
     if isinstance(k, bool) or not (isinstance(k, (int, np.integer)) and 0 <= k < n):
         raise ValueError(f"slice index must be in [0, {n}), got {k!r}")
@@ -104,7 +105,7 @@ def _ccw_index(k: int, n: int, start_deg: float, clockwise: bool) -> int:
 
 def sector_bounds_deg(k: int, n: int, start_deg: float = 0.0, clockwise: bool = False) -> tuple[float, float]:
     """Azimuth interval [lo, hi) of slice k of n, in degrees from the x axis (lo in [0, 360), hi = lo + 360/n)."""
-    j = _ccw_index(k, n, start_deg, clockwise)
+    j = ccw_position(k, n, start_deg, clockwise)
     # 360 * j / n, not j * (360 / n): the division is exact where the bound is an axis (39 * (360 / 156) is
     # 89.99999999999999, which put that slice in the quadrant before it)
     lo = (start_deg + 360.0 * j / n) % 360.0
@@ -140,7 +141,7 @@ def slice_index_of(x: np.ndarray, y: np.ndarray, n: int, start_deg: float = 0.0,
 
 def quadrants_of_sector(k: int, n: int, start_deg: float = 0.0, clockwise: bool = False) -> tuple[int, ...]:
     """Quadrants (increasing) that slice k of n touches."""
-    j = _ccw_index(k, n, start_deg, clockwise)
+    j = ccw_position(k, n, start_deg, clockwise)
     # in integers of a quarter turn / n: the sector is [a, a + 4) from the +x axis, no rounding at the axes
     a = round(start_deg / 90.0) * n + 4 * j
     first, last = a // n, (a + 4 + n - 1) // n - 1

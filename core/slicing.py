@@ -24,7 +24,7 @@ from streamdet.core.points import (
     SWEEP_INTENSITY,
     check_sweep,
 )
-from streamdet.core.sectors import azimuth_deg, check_num_slices, scan_fraction, sector_bounds_deg, slice_index_of
+from streamdet.core.sectors import azimuth_deg, ccw_position, check_num_slices, scan_fraction, sector_bounds_deg, slice_index_of
 
 
 def relative_time_s(points: np.ndarray, start_deg: float = 0.0, sweep_duration_s: float = SWEEP_DURATION_S,
@@ -61,8 +61,9 @@ def split_sweep(
     out = np.empty((len(points), SLICE_COLUMNS), dtype=np.float32)
     out[:, :3] = points[:, :3]
     out[:, SLICE_REFLECTANCE] = points[:, SWEEP_INTENSITY] / INTENSITY_SCALE
-    out[:, SLICE_TIME], out[:, SLICE_INDEX] = slice_features(points, n, sweep_duration_s, lag)
-    k = slice_index_of(points[:, 0], points[:, 1], n, start_deg, clockwise)
+    default = slice_index_of(points[:, 0], points[:, 1], n)  # (N,) the default layout's slices: the index feature
+    k = default if (start_deg % 360.0 == 0.0 and not clockwise) else slice_index_of(points[:, 0], points[:, 1], n, start_deg, clockwise)
+    out[:, SLICE_TIME], out[:, SLICE_INDEX] = slice_features(points, n, sweep_duration_s, lag, default)
     # A stable sort by slice keeps the input order inside each slice and costs one pass; -1 (no azimuth) sorts
     # before slice 0's bound and is in no slice.
     order = np.argsort(k, kind="stable")
@@ -71,22 +72,23 @@ def split_sweep(
 
 
 def slice_features(points: np.ndarray, n: int, sweep_duration_s: float = SWEEP_DURATION_S,
-                   time_lag_s: float | np.ndarray = 0.0) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+                   time_lag_s: float | np.ndarray = 0.0, default_slices: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
     """The (N,) time and slice-index features of the points of a sweep cut into n slices (``SLICE_TIME``,
     ``SLICE_INDEX``), counted counter-clockwise from the +x axis whatever the scan layout: they say where a point
     lies, as the models learn them from recorded sweeps sliced so (the paper's setup), so a sensor that starts
     elsewhere or turns the other way feeds the model the same values for the same azimuths. Only a slice's points
-    and the order slices arrive in follow the layout. ``time_lag_s``: added to the time (past sweeps' age)."""
+    and the order slices arrive in follow the layout. ``time_lag_s``: added to the time (past sweeps' age);
+    ``default_slices``: the points' ``slice_index_of(x, y, n)`` where the caller has it (not computed twice)."""
     az = azimuth_deg(points[:, 0], points[:, 1])  # (N,) in [0, 360); NaN without an azimuth (in no slice)
-    index = np.maximum(slice_index_of(points[:, 0], points[:, 1], n), 0)  # the default layout's slice (-1: none)
-    return az / 360.0 * sweep_duration_s + time_lag_s, index
+    if default_slices is None:
+        default_slices = slice_index_of(points[:, 0], points[:, 1], n)
+    return az / 360.0 * sweep_duration_s + time_lag_s, np.maximum(default_slices, 0)  # -1 (no azimuth): in no slice
 
 
 def feature_index(k: int, n: int, start_deg: float = 0.0, clockwise: bool = False) -> int:
     """The slice-index feature (``slice_features``) of the points of slice k of n in this scan layout: the index
     counter-clockwise from +x of the sector it covers (k itself in the default layout)."""
-    sector_bounds_deg(k, n, start_deg, clockwise)  # checks k, n and the layout
-    j = n - 1 - int(k) if clockwise else int(k)  # the sector's counter-clockwise position from the start
+    j = ccw_position(k, n, start_deg, clockwise)  # checked
     # in integers (floor(lo * n / 360) in floats gave slice 11 of 28 the index 10): the sector starts a / 4 sectors
     # of n from +x, with a in quarter turns / n
     a = round(start_deg / 90.0) * n + 4 * j

@@ -38,7 +38,7 @@ from typing import Callable
 import numpy as np
 
 from streamdet.calibration.camera import (
-    CalibrationError, Rig, make_transform, quaternion_to_matrix,
+    CalibrationError, Rig, make_transform, optical_axis_azimuth_deg, quaternion_to_matrix,
 )  # fmt: skip
 from streamdet.calibration.lut import ASPECT_TOLERANCE, check_rig_fits
 from streamdet.core.constants import MAX_RESOLUTION_PX, MIN_RESOLUTION_PX, STEM_STRIDE
@@ -290,22 +290,13 @@ def real_rig_records(resolution: tuple[int, int], calibration_path: str | Path |
     )
 
 
-def camera_axis_azimuths_deg(rig: RigRecords) -> dict[str, float]:
-    """Each camera's optical axis (its +z) as an azimuth in the LiDAR frame, degrees in [-180, 180]."""
-    ego2lidar = rig.lidar2ego[:3, :3].T
-    out = {}
-    for model in rig.models:
-        axis = ego2lidar @ model.cam2ego[:3, 2]
-        out[model.name] = float(np.degrees(np.arctan2(axis[1], axis[0])))
-    return out
-
-
 def camera_trigger_times_s(rig: RigRecords, t_end_s: float, sweep_s: float, lidar: LidarConfig = LidarConfig()) -> dict[str, float]:
     """Scene time at which each camera of ``rig`` exposes for the sweep ending at ``t_end_s``: when the LiDAR, turning
     as ``lidar`` says, crosses the camera's optical axis (nuScenes: "the exposure of a camera is triggered when the
     top LiDAR sweeps across the centre of the camera's FOV"), ``t_end - sweep + scan_fraction(axis) * sweep``."""
-    return {name: float(t_end_s - sweep_s + float(scan_fraction(az, lidar)) * sweep_s)
-            for name, az in camera_axis_azimuths_deg(rig).items()}
+    ego2lidar = rig.lidar2ego[:3, :3].T
+    axes = {m.name: optical_axis_azimuth_deg(ego2lidar @ m.cam2ego[:3, :3]) for m in rig.models}
+    return {name: float(t_end_s - sweep_s + float(scan_fraction(az, lidar)) * sweep_s) for name, az in axes.items()}
 
 
 @dataclass(frozen=True, eq=False)

@@ -36,5 +36,4 @@ def drive_layout(sweeps: Sequence[LidarSweep]) -> ScanLayout:
 
 def resolve_layout(sweeps: Sequence[LidarSweep], start_deg: float | None, clockwise: bool | None) -> ScanLayout:
     """The layout the replay slices with: what the caller named, the rest from the data (``drive_layout``)."""
-    check_layout(start_deg, clockwise)
     return choose_layout(drive_layout(sweeps) if None in (start_deg, clockwise) else None, NUSCENES_LIDAR_TOP, start_deg, clockwise)
