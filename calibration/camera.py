@@ -23,6 +23,7 @@ from typing import Any, Callable, Iterable, Mapping
 import numpy as np
 
 from streamdet.calibration.projection import project_points, visible_mask
+from streamdet.core import rotations
 from streamdet.core.file_input import InputFileError, read_regular_file
 from streamdet.core.json_input import short_repr
 from streamdet.core.sectors import angle_diff_deg
@@ -173,44 +174,21 @@ def _readonly(a: np.ndarray) -> np.ndarray:
 # ---- rotations -------------------------------------------------------------------------------------
 
 def quaternion_to_matrix(wxyz: Any, field: str = "quaternion") -> np.ndarray:
-    """(3, 3) rotation of a unit quaternion (w, x, y, z); norms off by more than 1e-5 are refused."""
+    """(3, 3) rotation of a unit quaternion (w, x, y, z); norms off by more than 1e-5 are refused (the maths:
+    ``core/rotations.py``)."""
     q = _as_array(wxyz, (4,), field)
     norm = float(np.linalg.norm(q))
     if abs(norm - 1.0) > QUATERNION_NORM_TOL:
         raise CalibrationError(f"{field}: quaternion must have unit norm, got norm {norm:.6g} for {q.tolist()}")
-    w, x, y, z = q / norm
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
+    return rotations.quaternion_to_matrix(q)
 
 
 def matrix_to_quaternion(R: Any) -> np.ndarray:
-    """Unit quaternion (w, x, y, z), w >= 0, of a (3, 3) rotation (Shepperd's method, stable for all angles)."""
+    """Unit quaternion (w, x, y, z), w >= 0, of a checked (3, 3) rotation (Shepperd's method, stable for all angles;
+    ``core/rotations.py``)."""
     R = _as_array(R, (3, 3), "R")
     _check_rotation(R, "R")
-    trace = np.trace(R)
-    # Pick the largest of 4w^2, 4x^2, 4y^2, 4z^2 as the divisor so it never comes close to 0.
-    cands = np.array([trace, R[0, 0], R[1, 1], R[2, 2]])
-    i = int(np.argmax(cands))
-    if i == 0:
-        s = 2.0 * math.sqrt(1.0 + trace)
-        q = [0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s]
-    elif i == 1:
-        s = 2.0 * math.sqrt(max(1.0 + R[0, 0] - R[1, 1] - R[2, 2], 0.0))
-        q = [(R[2, 1] - R[1, 2]) / s, 0.25 * s, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s]
-    elif i == 2:
-        s = 2.0 * math.sqrt(max(1.0 + R[1, 1] - R[0, 0] - R[2, 2], 0.0))
-        q = [(R[0, 2] - R[2, 0]) / s, (R[0, 1] + R[1, 0]) / s, 0.25 * s, (R[1, 2] + R[2, 1]) / s]
-    else:
-        s = 2.0 * math.sqrt(max(1.0 + R[2, 2] - R[0, 0] - R[1, 1], 0.0))
-        q = [(R[1, 0] - R[0, 1]) / s, (R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s]
-    q = np.array(q)
-    q /= np.linalg.norm(q)
-    return -q if q[0] < 0 else q
+    return rotations.matrix_to_quaternion(R)
 
 
 def make_transform(R: Any, t: Any) -> np.ndarray:

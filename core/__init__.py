@@ -4,6 +4,7 @@
 - ``boxes``: the ``(N, 9)`` box layout and the box geometry (corners, rotated BEV IoU)
 - ``points``: the sweep ``(N, 5)`` and slice ``(N, 6)`` point layouts
 - ``sectors``: azimuth, quadrants and streaming sectors
+- ``rotations``: quaternions (w, x, y, z), rotation matrices and yaw
 - ``slicing``: ``split_sweep``, ``boxes_in_sector``, ``relative_time_s``
 - ``constants``: the graph precisions and the ``bundled:`` sources
 - ``cpu``: the CPU model and the SIMD flags the kernels see (less what a CPUID mask hides)

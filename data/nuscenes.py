@@ -35,6 +35,7 @@ from streamdet.calibration.camera import (
 from streamdet.core.boxes import BOX_DIM
 from streamdet.core.classes import CLASS_NAMES
 from streamdet.core.json_input import read_json, short_repr
+from streamdet.core.rotations import matrix_to_yaw
 from streamdet.core.table_version import table_version_problem
 from streamdet.data.sample import (
     COUNT, FLAG, NAME, TEXT, TEXTS, FieldKind, Sample, Sweep, check_fields, dataset_file, load_point_times,
@@ -347,7 +348,7 @@ class NuScenesReader:
             box2lidar = global2lidar @ box2global
             boxes[i, 0:3] = box2lidar[:3, 3]
             boxes[i, 3:6] = ann["size"]  # w, l, h
-            boxes[i, 6] = np.arctan2(box2lidar[1, 0], box2lidar[0, 0])
+            boxes[i, 6] = matrix_to_yaw(box2lidar[:3, :3])
             velocity[i] = self._box_velocity(ann)
             category = self._category_of_instance.get(ann["instance_token"])
             if category is None:

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -16,6 +15,7 @@ import numpy as np
 
 from streamdet.calibration.camera import matrix_to_quaternion
 from streamdet.core.classes import CLASS_NAMES
+from streamdet.core.rotations import yaw_to_quaternion
 from streamdet.data.nuscenes import LIDAR_CHANNEL
 from streamdet.data.sample import POINT_TIME_SUFFIX
 from streamdet.data.synth_masks import MASK_NONE, mask_path, write_mask
@@ -49,10 +49,6 @@ TABLE_NAMES = (
 def token(*parts) -> str:
     """A 32-hex-digit token (nuScenes style), a pure function of its parts."""
     return hashlib.md5("/".join(str(p) for p in parts).encode()).hexdigest()
-
-
-def yaw_quaternion(yaw: float) -> list[float]:
-    return [math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)]
 
 
 def link_records(records: list[dict]) -> None:
@@ -225,7 +221,7 @@ class Tables:
                 "attribute_tokens": [self.attribute_token[attribute]] if attribute else [],
                 "translation": boxes[k, :3].tolist(),
                 "size": boxes[k, 3:6].tolist(),
-                "rotation": yaw_quaternion(float(boxes[k, 6])),
+                "rotation": yaw_to_quaternion(boxes[k, 6]).tolist(),
                 "prev": "",
                 "next": "",
                 "num_lidar_pts": int(frame.num_lidar_pts[i]),

@@ -36,6 +36,7 @@ from streamdet.core.boxes import BOX_DIM, VX, VY, YAW
 from streamdet.core.classes import CLASS_NAMES
 from streamdet.core.file_output import atomic_write_file
 from streamdet.core.json_input import is_finite_number, read_json, short_repr
+from streamdet.core.rotations import matrix_to_quaternion, quaternion_to_matrix
 from streamdet.evaluation.eval_boxes import EvalBoxes
 
 META_KEYS = ("use_camera", "use_lidar", "use_radar", "use_map", "use_external")
@@ -61,38 +62,6 @@ def _check_transform(m: np.ndarray, name: str) -> np.ndarray:
     return m
 
 
-def rotation_to_quaternion(r: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) rotations -> (..., 4) unit quaternions w, x, y, z with w >= 0 (Shepperd's method)."""
-    m00, m11, m22 = r[..., 0, 0], r[..., 1, 1], r[..., 2, 2]
-    # Four algebraically equal forms; each is accurate where its leading term is largest.
-    cand = np.stack(
-        [
-            np.stack([1 + m00 + m11 + m22, r[..., 2, 1] - r[..., 1, 2], r[..., 0, 2] - r[..., 2, 0], r[..., 1, 0] - r[..., 0, 1]], -1),
-            np.stack([r[..., 2, 1] - r[..., 1, 2], 1 + m00 - m11 - m22, r[..., 0, 1] + r[..., 1, 0], r[..., 0, 2] + r[..., 2, 0]], -1),
-            np.stack([r[..., 0, 2] - r[..., 2, 0], r[..., 0, 1] + r[..., 1, 0], 1 - m00 + m11 - m22, r[..., 1, 2] + r[..., 2, 1]], -1),
-            np.stack([r[..., 1, 0] - r[..., 0, 1], r[..., 0, 2] + r[..., 2, 0], r[..., 1, 2] + r[..., 2, 1], 1 - m00 - m11 + m22], -1),
-        ],
-        axis=-2,
-    )  # (..., 4 forms, 4)
-    best = np.argmax(np.stack([m00 + m11 + m22, m00, m11, m22], -1), axis=-1)  # (...)
-    q = np.take_along_axis(cand, best[..., None, None], axis=-2)[..., 0, :]  # (..., 4)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    return np.where(q[..., :1] < 0, -q, q)
-
-
-def quaternion_to_rotation(q_wxyz: np.ndarray) -> np.ndarray:
-    """(..., 4) quaternions w, x, y, z (normalised here) -> (..., 3, 3) rotations."""
-    q = np.asarray(q_wxyz, dtype=np.float64)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    rows = [
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ]
-    return np.stack([np.stack(row, axis=-1) for row in rows], axis=-2)  # (..., 3, 3)
-
-
 def lidar_to_global(
     boxes: np.ndarray, lidar2ego: np.ndarray, ego2global: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -104,7 +73,7 @@ def lidar_to_global(
     zeros, ones = np.zeros_like(c), np.ones_like(c)
     rz = np.stack([np.stack([c, -s, zeros], -1), np.stack([s, c, zeros], -1), np.stack([zeros, zeros, ones], -1)], -2)  # (N, 3, 3)
     translation = boxes[:, 0:3] @ rot.T + trans
-    rotation = rotation_to_quaternion(_nearest_rotation(rot) @ rz)
+    rotation = matrix_to_quaternion(_nearest_rotation(rot) @ rz)
     vel_lidar = np.concatenate([boxes[:, [VX, VY]], zeros[:, None]], axis=1)  # (N, 3)
     velocity = (vel_lidar @ rot.T)[:, :2]
     return translation, boxes[:, 3:6].copy(), rotation, velocity
@@ -127,7 +96,7 @@ def global_to_lidar(
     velocity = np.asarray(velocity, dtype=np.float64).reshape(n, 2)
     # The exact inverse, not R^T: calibration matrices stored in float32 are orthonormal only to ~1e-7.
     inv_rot = np.linalg.inv(rot)
-    heading = _nearest_rotation(rot).T @ quaternion_to_rotation(rotation)[:, :, 0].T  # (3, N): box x axis, lidar frame
+    heading = _nearest_rotation(rot).T @ quaternion_to_matrix(rotation)[:, :, 0].T  # (3, N): box x axis, lidar frame
     out = np.empty((n, BOX_DIM), dtype=np.float64)
     out[:, 0:3] = (translation - trans) @ inv_rot.T
     out[:, 3:6] = np.asarray(size, dtype=np.float64).reshape(n, 3)

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from streamdet.core.rotations import quaternion_to_yaw, yaw_to_quaternion
 from streamdet.data.nuscenes import CATEGORY_TO_CLASS, NuScenesReader
 from streamdet.data.synth_trajectories import Trajectories, load_trajectories
 from streamdet.evaluation.detection_eval import points_in_boxes
@@ -118,8 +119,7 @@ def key_frame_tracks(reader: NuScenesReader, scene_name: str) -> dict[str, list[
         cls = CATEGORY_TO_CLASS.get(reader.ref("instance", instance, "category_token", "category")["name"])
         if cls is None:
             continue
-        w, x, y, z = ann["rotation"]
-        yaw = np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+        yaw = float(quaternion_to_yaw(ann["rotation"]))
         box = np.array([*ann["translation"], *ann["size"], yaw, 0.0, 0.0], dtype=np.float64)
         tracks[ann["instance_token"]].append((stamp[ann["sample_token"]], box, cls, reader.attribute_name(ann)))
     return {k: sorted(v, key=lambda e: e[0]) for k, v in tracks.items()}
@@ -158,9 +158,8 @@ def count_points(truth: TruthBoxes, points_global: np.ndarray, max_range_m: floa
     if near.size == 0 or len(points_global) == 0:
         return counts
     b = truth.boxes[near]
-    rows = np.concatenate(
-        [b[:, 0:3], b[:, 3:6] + 2 * POINT_MARGIN_M, np.cos(b[:, 6:7] / 2), np.zeros((len(b), 2)), np.sin(b[:, 6:7] / 2)], axis=1
-    )  # (B, 10) translation, size w l h, quaternion w x y z of the yaw
+    # (B, 10) translation, size w l h, quaternion w x y z of the yaw
+    rows = np.concatenate([b[:, 0:3], b[:, 3:6] + 2 * POINT_MARGIN_M, yaw_to_quaternion(b[:, 6])], axis=1)
     lo, hi = b[:, :2].min(axis=0) - 15.0, b[:, :2].max(axis=0) + 15.0  # no box is longer than 30 m
     pts = points_global[np.all((points_global[:, :2] >= lo) & (points_global[:, :2] <= hi), axis=1)]
     for start in range(0, len(pts), 8192):  # (P, B, 3) intermediates stay small

@@ -9,7 +9,6 @@ vision_msgs has no velocity field: the velocity is not carried (the results JSON
 
 from __future__ import annotations
 
-import math
 from typing import Sequence
 
 import numpy as np
@@ -17,6 +16,7 @@ import numpy as np
 from streamdet.core.boxes import BOX_DIM, H, L, W, X, Y, YAW, Z
 from streamdet.core.classes import CLASS_NAMES, class_color_rgb
 from streamdet.core.json_input import is_finite_number
+from streamdet.core.rotations import yaw_to_quaternion
 from streamdet.runtime_ort.ros.header import INT32_MAX, INT32_MIN, RosMessageError, duration_msg, header_msg, int_field, shown
 
 CUBE, TEXT_VIEW_FACING = 1, 9  # visualization_msgs/Marker types
@@ -27,8 +27,8 @@ DETECTIONS, MARKERS = "vision_msgs/Detection3DArray", "visualization_msgs/Marker
 
 def yaw_quaternion(yaw: float) -> dict:
     """A ``geometry_msgs/Quaternion`` dict of a rotation by ``yaw`` radians about +z."""
-    half = 0.5 * float(yaw)
-    return {"x": 0.0, "y": 0.0, "z": math.sin(half), "w": math.cos(half)}
+    w, _, _, z = yaw_to_quaternion(float(yaw)).tolist()
+    return {"x": 0.0, "y": 0.0, "z": z, "w": w}
 
 
 def box_pose(box: np.ndarray) -> dict:
