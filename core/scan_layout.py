@@ -11,6 +11,7 @@ nearest axis being 180 deg. ``streamdet-replay`` and ``streamdet-bag`` take the 
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
 
 import numpy as np
@@ -66,14 +67,17 @@ def layout_from_times(points: np.ndarray, times: np.ndarray) -> ScanLayout | Non
     return ScanLayout(start, turned < 0, "from the per-point times")
 
 
-def check_layout(start_deg: float | None, clockwise: bool | None) -> None:
-    """ValueError quoting the bad value unless ``start_deg`` is None (from the data) or a multiple of 90 in
-    [-360, 360) and ``clockwise`` None (from the data) or a bool."""
-    if start_deg is not None and (isinstance(start_deg, bool) or not isinstance(start_deg, (int, float))
-                                  or not math.isfinite(start_deg) or not -360.0 <= start_deg < 360.0 or start_deg % 90.0):
-        raise ValueError(f"the scan start must be None (from the data) or a multiple of 90 degrees in [-360, 360), got {start_deg!r}")
-    if clockwise is not None and not isinstance(clockwise, bool):
-        raise ValueError(f"clockwise must be None (from the data), True or False, got {clockwise!r}")
+def check_layout(start_deg: float | None, clockwise: bool | None, from_data: bool = True) -> None:
+    """ValueError quoting the bad value unless ``start_deg`` is a multiple of 90 in [-360, 360) and ``clockwise`` a
+    bool; with ``from_data`` either may also be None (read from the data)."""
+    or_none = " (or None: from the data)" if from_data else ""
+    # bounded: 1e300 is a multiple of 90 too, and its azimuths would put every point outside every sector
+    if (start_deg is not None or not from_data) and (
+            isinstance(start_deg, (bool, np.bool_)) or not isinstance(start_deg, numbers.Real)
+            or not math.isfinite(start_deg) or not -360.0 <= start_deg < 360.0 or start_deg % 90.0):
+        raise ValueError(f"start_deg must be a multiple of 90 degrees in [-360, 360){or_none}, got {start_deg!r}")
+    if (clockwise is not None or not from_data) and not isinstance(clockwise, (bool, np.bool_)):
+        raise ValueError(f"clockwise must be True or False{or_none}, got {clockwise!r}")
 
 
 def choose_layout(found: ScanLayout | None, fallback: ScanLayout, start_deg: float | None = None,

@@ -3,7 +3,6 @@ export. Every field is checked when the config is made, so a bad value fails whe
 
 from __future__ import annotations
 
-import math
 import numbers
 import os
 from dataclasses import dataclass
@@ -12,6 +11,7 @@ import numpy as np
 
 from streamdet.core.constants import MAX_SESSION_THREADS, PRECISIONS
 from streamdet.core.providers import parse_providers
+from streamdet.core.scan_layout import check_layout
 from streamdet.core.sectors import check_num_slices
 from streamdet.runtime_ort.fallback import check_fallback_age
 from streamdet.runtime_ort.nms import NmsConfig
@@ -103,12 +103,10 @@ class DetectorConfig:
                 check_num_slices(int(self.num_slices))
             except ValueError as e:
                 raise ValueError(f"DetectorConfig.num_slices: {e}") from None
-        if (isinstance(self.start_deg, bool) or not isinstance(self.start_deg, numbers.Real) or not math.isfinite(self.start_deg)
-                or not -360.0 <= self.start_deg < 360.0 or self.start_deg % 90.0):
-            # bounded: 1e300 is a multiple of 90 too, and its azimuths would put every point outside every sector
-            raise ValueError(f"DetectorConfig.start_deg must be a multiple of 90 degrees in [-360, 360), got {self.start_deg!r}")
-        if not isinstance(self.clockwise, (bool, np.bool_)):
-            raise ValueError(f"DetectorConfig.clockwise must be True or False, got {self.clockwise!r}")
+        try:
+            check_layout(self.start_deg, self.clockwise, from_data=False)  # the runtime slices in one known layout
+        except ValueError as e:
+            raise ValueError(f"DetectorConfig.{e}") from None
         if self.score_threshold is not None and (
             isinstance(self.score_threshold, bool) or not isinstance(self.score_threshold, numbers.Real)
             or not 0.0 <= self.score_threshold <= 1.0

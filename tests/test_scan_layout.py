@@ -13,6 +13,7 @@ from streamdet.core.sectors import (
 )
 from streamdet.core.slicing import feature_index, relative_time_s, split_sweep
 from streamdet.data.sample import load_bundled_sample
+from streamdet.core.scan_layout import check_layout, choose_layout
 from streamdet.replay.scan_layout import NUSCENES_LIDAR_TOP, drive_layout, layout_from_times, resolve_layout
 from streamdet.replay.source import LidarSweep
 from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector
@@ -258,3 +259,34 @@ def test_a_replay_of_world_6_drives_says_its_world_and_layout(tiny_drive_data):
     drive = load_drive(tables, tables.scene_names()[0], None, max_seconds=0.2)
     assert "data: streamdet-synth world 6" in " ".join(drive.notes)
     assert (drive.scan_layout.start_deg, drive.scan_layout.clockwise) == (180.0, True)
+
+
+@pytest.mark.parametrize("start, clockwise", [(None, None), (0, True), (-360, False), (270.0, None), (np.float32(90), np.bool_(True))])
+def test_check_layout_takes_axes_bools_and_none_from_data(start, clockwise):
+    check_layout(start, clockwise)
+    if start is not None and clockwise is not None:
+        check_layout(start, clockwise, from_data=False)
+
+
+@pytest.mark.parametrize("start, clockwise, match", [
+    (45, True, "start_deg must be a multiple of 90 .* got 45"),
+    (360, True, "start_deg .* got 360"),
+    (1e300, True, "start_deg .* got 1e\\+300"),
+    (float("nan"), True, "start_deg .* got nan"),
+    (True, True, "start_deg .* got True"),
+    ("90", True, "start_deg .* got '90'"),
+    (0, 1, "clockwise must be True or False .* got 1"),
+    (0, "yes", "clockwise must be True or False .* got 'yes'"),
+])  # fmt: skip
+def test_check_layout_refuses_quoting_the_value(start, clockwise, match):
+    with pytest.raises(ValueError, match=match):
+        check_layout(start, clockwise)
+    with pytest.raises(ValueError, match=match):
+        choose_layout(None, NUSCENES_LIDAR_TOP, start, clockwise)
+
+
+def test_none_is_refused_where_the_layout_is_not_read_from_data():
+    with pytest.raises(ValueError, match=r"start_deg must be a multiple of 90 degrees in \[-360, 360\), got None"):
+        check_layout(None, True, from_data=False)
+    with pytest.raises(ValueError, match="DetectorConfig.clockwise must be True or False, got None"):
+        DetectorConfig(clockwise=None)
