@@ -9,7 +9,8 @@
 # CPU's target (25 ms with AVX-512, 100 ms on an AVX2-only part; the issue names none for other CPUs, e.g. ARM:
 # give replay_table.py --target-ms there), no slice dropped, slice p99 at most `full`'s of the
 # round, streaming mAP at least `full`'s (benchmarks/replay_table.py --baseline full). About 2 minutes a round once
-# the drives and the export exist (their first making: about 10 minutes on 2 cores). Run it with nothing else running.
+# the drives and the export exist (their first making: about 15 minutes on 2 cores, most of it rendering the
+# drives' 12 Hz camera images). Run it with nothing else running.
 # Environment: ISA=avx2 runs both variants under benchmarks/avx2_only.sh (the AVX2 kernels on an AVX-512 part: a
 # rehearsal, not the AVX2 line, whose target this then applies); TOP_K (default 100): the export's --top-k; BIN (default
 # .venv/bin).

@@ -4,9 +4,10 @@
 # $OUT/export_<checkpoint's file name>_<first 12 hex digits of its sha256>. EXPORT_ARGS (optional, environment): more streamdet-export options,
 # space-separated (e.g. "--image-layout image_half --top-k 100"); they name the export folder too.
 mkdir -p "$OUT"
-DATA="$OUT/synth20"
+# 12 Hz cameras at the LiDAR's crossings, as nuScenes records them (synth20, without them, held key-frame images)
+DATA="$OUT/synth20_cam12"
 if [ ! -f "$DATA/trajectories.npz" ]; then
-  "$BIN/streamdet-synth" --out "$DATA" --scenes 8 --seed 11 --resolution 480x270 --sweeps-per-sample 10 --overwrite
+  "$BIN/streamdet-synth" --out "$DATA" --scenes 8 --seed 11 --resolution 480x270 --sweeps-per-sample 10 --camera-hz 12 --overwrite
 fi
 # an export is named by its checkpoint's file name and hash, so that an export of other weights is never reused (two
 # checkpoints of one folder, or earlier weights under the same name); hashed by Python: no sha256sum on every system

@@ -14,6 +14,7 @@ import click
 
 from streamdet.cli_utils import (
     MAX_THREADS,
+    FiniteFloatRange,
     RESOLUTION_RANGE_HELP,
     check_folder_creatable,
     check_output_parent,
@@ -24,6 +25,7 @@ from streamdet.cli_utils import (
     write_json_output,
 )
 from streamdet.core.errors import first_line
+from streamdet.core.points import SWEEP_DURATION_S
 from streamdet.data.synth_memory import PEAK_BYTES_PER_PIXEL, memory_problem
 from streamdet.data.synth_staging import StagedDataset
 from streamdet.data.synth_stats import open_samples
@@ -45,6 +47,7 @@ from streamdet.progress import progressbar
 MAX_SCENES = 10_000
 MAX_SAMPLES_PER_SCENE = 1000  # 500 s of drive per scene at 2 Hz
 MAX_STATS_SAMPLES = 1_000_000  # key frames measured by `stats` (nuScenes has 40k)
+MAX_CAMERA_HZ = round(1.0 / SWEEP_DURATION_S, 6)  # once per rotation of the LiDAR (20 Hz)
 
 
 class _DefaultGroup(click.Group):
@@ -149,6 +152,12 @@ def _occupied(out_dir: Path, version: str, survey: RootSurvey) -> str:
               help=f"Key frames per scene, 0.5 s apart (2 Hz, as nuScenes); 1..{MAX_SAMPLES_PER_SCENE}.")
 @click.option("--sweeps-per-sample", default=1, show_default=True, type=click.IntRange(1, 10),
               help="LiDAR sweeps per key-frame interval including the key frame, 1..10 (nuScenes has 10, at 20 Hz).")
+@click.option("--camera-hz", default=0.0, show_default=True, type=FiniteFloatRange(0.0, MAX_CAMERA_HZ),
+              help="Camera exposures a second, each as the LiDAR crosses the camera's axis (nuScenes: 12, with "
+                   "--sweeps-per-sample 10); 0: at key frames only (2 Hz). The frames between key frames go to "
+                   "OUT/sweeps/CAM_*/ as nuScenes files its camera sweeps (no masks, no annotations; training reads key "
+                   "frames only, streamdet-replay and streamdet-bag read them all). Rendering time grows with the "
+                   f"rate: 12 Hz renders about 6 times the images. At most {MAX_CAMERA_HZ:g} (once per LiDAR rotation).")
 @click.option("--version", "version", default=DEFAULT_VERSION, show_default=True,
               callback=lambda ctx, param, value: _version(value),
               help="Name of the table folder (the nuScenes 'version'): one folder name, not one of the layout's own.")
@@ -160,11 +169,11 @@ def _occupied(out_dir: Path, version: str, survey: RootSurvey) -> str:
                    "maps/, preview/, splits.json, world.json and trajectories.npz are deleted first. A folder that is "
                    "not such a dataset, or holds other files too, is refused all the same.")
 def generate(out_dir: Path, scenes: int, seed: int, resolution: tuple[int, int], samples_per_scene: int,
-         sweeps_per_sample: int, version: str, preview: bool, workers: int, overwrite: bool) -> None:
+         sweeps_per_sample: int, camera_hz: float, version: str, preview: bool, workers: int, overwrite: bool) -> None:
     """Generate a synthetic street dataset readable by streamdet's nuScenes reader and the nuScenes devkit."""
     try:
         config = SynthConfig(num_scenes=scenes, seed=seed, resolution=resolution, sweeps_per_sample=sweeps_per_sample,
-                             version=version, world=WorldConfig(samples_per_scene=samples_per_scene))
+                             camera_hz=camera_hz, version=version, world=WorldConfig(samples_per_scene=samples_per_scene))
     except ValueError as e:
         raise click.ClickException(str(e)) from None
     # Before any work: the largest resolutions need GBs per process, and numpy ran out minutes into the run.
@@ -223,11 +232,17 @@ def generate(out_dir: Path, scenes: int, seed: int, resolution: tuple[int, int],
     click.echo(
         f"wrote {len(summary.scenes)} scenes, {summary.num_samples} key frames, {summary.num_sweeps} LiDAR sweeps "
         f"(mean {summary.mean_points_per_sweep:.0f} points), {summary.num_images} images "
-        f"({resolution[0]}x{resolution[1]}), {summary.num_annotations} box annotations in {summary.seconds:.1f} s"
+        f"({resolution[0]}x{resolution[1]}{_sweep_images(summary)}), {summary.num_annotations} box annotations in "
+        f"{summary.seconds:.1f} s"
     )
     click.echo(f"  tables: {table_dir}/  files: {out_dir / 'samples'}/, {out_dir / 'sweeps'}/  splits: {out_dir / 'splits.json'}")
     for path in previews:
         click.echo(f"  preview: {path}")
+
+
+def _sweep_images(summary) -> str:
+    sweeps = summary.num_images - summary.num_key_images
+    return f"; {summary.num_key_images} at key frames, {sweeps} between" if sweeps else ""
 
 
 def _abandoned(out_dir: Path, deleted: str, left: list[str]) -> str:

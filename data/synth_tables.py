@@ -108,6 +108,7 @@ class Tables:
             )
         self._scene_samples = []
         self._instances = {}
+        self._last_camera_row: dict[str, dict] = {}  # by channel: the scene's latest camera sample_data row
         return log_token, sensor_tokens
 
     def sample(self, scene: Scene, frame: SimFrame) -> str:
@@ -154,18 +155,28 @@ class Tables:
 
     def camera_data(self, out: Path, scene: Scene, sample_token: str, frame: SimFrame, channel: str, sensor_tokens: dict,
                     config: SynthConfig) -> None:
+        """The key frame's image of ``channel`` (samples/), its mask and its sample_data row."""
         t_cam = frame.camera_times_s[channel]  # the camera's exposure: when the LiDAR crossed its axis
+        path = self._camera_file(out, scene, sample_token, channel, t_cam, frame.renders[channel].image, True, sensor_tokens, config)
+        self.write_mask(path, scene, frame.renders[channel].object_id, frame.annotated)
+
+    def camera_sweep_data(self, out: Path, scene: Scene, sample_token: str, channel: str, t_cam: float, image: np.ndarray,
+                          sensor_tokens: dict, config: SynthConfig) -> None:
+        """An image of ``channel`` between key frames (sweeps/, as nuScenes files its 12 Hz camera frames; no mask:
+        nothing annotates it) and its sample_data row, filed under the next key frame's ``sample_token``."""
+        self._camera_file(out, scene, sample_token, channel, t_cam, image, False, sensor_tokens, config)
+
+    def _camera_file(self, out: Path, scene: Scene, sample_token: str, channel: str, t_cam: float, image: np.ndarray, key: bool,
+                     sensor_tokens: dict, config: SynthConfig) -> Path:
         ts = scene.timestamp_us(t_cam)
-        filename = f"samples/{channel}/{scene.name}__{channel}__{ts}.jpg"
+        filename = f"{'samples' if key else 'sweeps'}/{channel}/{scene.name}__{channel}__{ts}.jpg"
         path = out / filename
         path.parent.mkdir(parents=True, exist_ok=True)
-        image = frame.renders[channel].image
         ok, buf = cv2.imencode(".jpg", cv2.cvtColor(image, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, config.jpeg_quality])
         if not ok:
             raise RuntimeError(f"JPEG encoding failed for {filename}")
         path.write_bytes(buf.tobytes())
-        self.write_mask(path, scene, frame.renders[channel].object_id, frame.annotated)
-        prev = next((r for r in reversed(self.rows["sample_data"]) if r["filename"].startswith(f"samples/{channel}/{scene.name}__")), None)
+        prev = self._last_camera_row.get(channel)  # the camera's previous frame in this scene, key frame or not
         row = {
             "token": self.tok("sample_data", scene.name, channel, ts),
             "sample_token": sample_token,
@@ -173,7 +184,7 @@ class Tables:
             "calibrated_sensor_token": sensor_tokens[channel],
             "timestamp": ts,
             "fileformat": "jpg",
-            "is_key_frame": True,
+            "is_key_frame": key,
             "height": int(image.shape[0]),
             "width": int(image.shape[1]),
             "filename": filename,
@@ -183,6 +194,8 @@ class Tables:
         if prev:
             prev["next"] = row["token"]
         self.rows["sample_data"].append(row)
+        self._last_camera_row[channel] = row
+        return path
 
     def write_mask(self, image_path: Path, scene: Scene, object_id: np.ndarray, frame_annotated: np.ndarray) -> Path:
         """``<image>.mask.npz`` beside the image (``data/synth_masks.py``): class and instance of the annotated object at

@@ -3,7 +3,8 @@
 ``DIR/<version>/*.json`` holds the 13 nuScenes tables with the field names of v1.0-mini (so both
 ``streamdet.data.nuscenes.NuScenesReader`` and the devkit's ``NuScenes`` table loader read it), LiDAR sweeps go to
 ``DIR/samples/LIDAR_TOP/*.pcd.bin`` (key frames) and ``DIR/sweeps/LIDAR_TOP/`` (the sweeps between them), images to
-``DIR/samples/CAM_*/*.jpg``, and ``DIR/splits.json`` names the train / val scenes. Beside each LiDAR file a
+``DIR/samples/CAM_*/*.jpg`` (key frames) and, with ``SynthConfig.camera_hz``, ``DIR/sweeps/CAM_*/`` (the camera's
+frames between them, ``synth_camera_frames.py``), and ``DIR/splits.json`` names the train / val scenes. Beside each LiDAR file a
 ``<file>.time`` (float32 per point, the firing time after the sweep start) is a streamdet extension that the
 devkit ignores and ``NuScenesReader`` returns as ``Sample.point_time_s``.
 
@@ -28,6 +29,8 @@ from __future__ import annotations
 
 import functools
 import json
+import math
+import numbers
 import shutil
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -38,16 +41,17 @@ from typing import Callable
 import numpy as np
 
 from streamdet.calibration.camera import (
-    CalibrationError, Rig, make_transform, optical_axis_azimuth_deg, quaternion_to_matrix,
+    CalibrationError, Rig, make_transform, quaternion_to_matrix,
 )  # fmt: skip
 from streamdet.calibration.lut import ASPECT_TOLERANCE, check_rig_fits
 from streamdet.core.constants import MAX_RESOLUTION_PX, MIN_RESOLUTION_PX, STEM_STRIDE
 from streamdet.core.json_input import read_json
 from streamdet.core.table_version import DEFAULT_TABLE_VERSION, table_version_problem
 from streamdet.data.sample import bundled_sample_dir
-from streamdet.data.synth_lidar import LidarConfig, SimSweep, scan_fraction, simulate_sweep
+from streamdet.data.synth_camera_frames import CameraFrame, camera_frames, camera_trigger_times_s, rotations_per_interval
+from streamdet.data.synth_lidar import LidarConfig, SimSweep, simulate_sweep
 from streamdet.data.synth_masks import MASK_SUFFIX  # noqa: F401 (re-exported)
-from streamdet.data.synth_render import CameraModel, Render, render_camera, shadow_raster
+from streamdet.data.synth_render import CameraModel, Exposure, Render, render_camera, shadow_raster
 from streamdet.data.splits import SPLITS_FILE
 from streamdet.data.synth_tables import TABLE_NAMES, Tables, link_records, write_tables
 from streamdet.data.synth_trajectories import TRAJECTORIES_FILE, write_trajectories
@@ -217,6 +221,8 @@ class SynthConfig:
     seed: int = 0
     resolution: tuple[int, int] = (800, 450)  # image width, height in pixels
     sweeps_per_sample: int = 1  # LiDAR sweeps per key-frame interval, key frame included (nuScenes: 10)
+    # Camera exposures a second, lidar-synced (synth_camera_frames.py); 0: at key frames only (2 Hz). nuScenes: 12.
+    camera_hz: float = 0.0
     version: str = DEFAULT_VERSION
     jpeg_quality: int = 92
     val_fraction: float = 0.2  # the last scenes go to val
@@ -244,6 +250,14 @@ class SynthConfig:
         problem = version_problem(self.version)
         if problem:
             raise ValueError(f"SynthConfig.version {problem}")
+        rate_hz = 1.0 / self.world.sweep_duration_s  # the LiDAR's: a camera exposes at a crossing, once a rotation at most
+        if (isinstance(self.camera_hz, bool) or not isinstance(self.camera_hz, numbers.Real) or not math.isfinite(self.camera_hz)
+                or not 0.0 <= self.camera_hz <= rate_hz + 1e-9):
+            raise ValueError(f"SynthConfig.camera_hz must be 0 (key frames only) or a rate up to the LiDAR's {rate_hz:g} Hz, "
+                             f"got {self.camera_hz!r}")
+        if self.camera_hz > 0 and rotations_per_interval(self.world.sample_interval_s, self.world.sweep_duration_s) is None:
+            raise ValueError(f"SynthConfig.camera_hz > 0 needs a key-frame interval of whole LiDAR rotations, got "
+                             f"{self.world.sample_interval_s} s / {self.world.sweep_duration_s} s")
 
 
 @dataclass(frozen=True, eq=False)
@@ -288,15 +302,6 @@ def real_rig_records(resolution: tuple[int, int], calibration_path: str | Path |
         cameras=tuple(cams),
         models=tuple(models),
     )
-
-
-def camera_trigger_times_s(rig: RigRecords, t_end_s: float, sweep_s: float, lidar: LidarConfig = LidarConfig()) -> dict[str, float]:
-    """Scene time at which each camera of ``rig`` exposes for the sweep ending at ``t_end_s``: when the LiDAR, turning
-    as ``lidar`` says, crosses the camera's optical axis (nuScenes: "the exposure of a camera is triggered when the
-    top LiDAR sweeps across the centre of the camera's FOV"), ``t_end - sweep + scan_fraction(axis) * sweep``."""
-    ego2lidar = rig.lidar2ego[:3, :3].T
-    axes = {m.name: optical_axis_azimuth_deg(ego2lidar @ m.cam2ego[:3, :3]) for m in rig.models}
-    return {name: float(t_end_s - sweep_s + float(scan_fraction(az, lidar)) * sweep_s) for name, az in axes.items()}
 
 
 @dataclass(frozen=True, eq=False)
@@ -361,6 +366,26 @@ def simulate_frame(scene: Scene, index: int, rig: RigRecords, config: SynthConfi
     )
 
 
+def scene_camera_frames(scene: Scene, rig: RigRecords, config: SynthConfig) -> dict[str, list[CameraFrame]]:
+    """Every camera exposure of ``scene`` (``synth_camera_frames.camera_frames``), by camera name, in time order."""
+    c = scene.config
+    step = c.sample_interval_s / config.sweeps_per_sample
+    times = scene.sample_times_s
+    first_sweep_start = float(times[0]) - (config.sweeps_per_sample - 1) * step - c.sweep_duration_s
+    return camera_frames(rig, times, c.sample_interval_s, c.sweep_duration_s, first_sweep_start, config.camera_hz, config.lidar)
+
+
+def render_camera_sweep(scene: Scene, rig: RigRecords, config: SynthConfig, camera: int, frame: CameraFrame) -> np.ndarray:
+    """(H, W, 3) uint8 RGB image of camera ``camera`` (its index in the rig) at a camera sweep ``frame``: the scene
+    at that instant, with the exposure of the key frame it is filed under (auto exposure settles over many frames,
+    it does not jump at each), its own sensor noise."""
+    model = rig.models[camera]
+    exposure = Exposure.draw(np.random.default_rng([config.seed, scene.index, frame.key_index, camera, 2]))
+    rng = np.random.default_rng([config.seed, scene.index, camera, scene.timestamp_us(frame.t_s), 3])
+    render = render_camera(scene, frame.t_s, model, rng, shadows=shadow_raster(scene, frame.t_s), exposure=exposure)
+    return render.image
+
+
 # Box-point pairs tested at once by count_points_in_boxes: bounds its memory (a few arrays of 8 bytes per pair).
 _PAIR_CHUNK = 1 << 21
 
@@ -411,10 +436,11 @@ class GenerationSummary:
     scenes: tuple[str, ...]
     num_samples: int
     num_sweeps: int
-    num_images: int
+    num_images: int  # key frames' and camera sweeps'
     num_annotations: int
     mean_points_per_sweep: float
     seconds: float
+    num_key_images: int = 0  # of num_images, those of key frames
 
 
 def generate_dataset(
@@ -471,6 +497,7 @@ def generate_dataset(
         num_samples=len(rows["sample"]),
         num_sweeps=len(point_counts),
         num_images=sum(1 for r in rows["sample_data"] if r["fileformat"] == "jpg"),
+        num_key_images=sum(1 for r in rows["sample_data"] if r["fileformat"] == "jpg" and r["is_key_frame"]),
         num_annotations=len(rows["sample_annotation"]),
         mean_points_per_sweep=float(np.mean(point_counts)),
         seconds=time.perf_counter() - start,
@@ -494,6 +521,7 @@ def _write_scene(out: Path, config: SynthConfig, index: int, progress: Callable[
     log_token, sensor_tokens = tables.scene_start(scene, rig)
     lidar_chain: list[dict] = []
     point_counts = []
+    frames = scene_camera_frames(scene, rig, config)
     for k in range(scene.config.samples_per_scene):
         frame = simulate_frame(scene, k, rig, config)
         sample_token = tables.sample(scene, frame)
@@ -503,7 +531,12 @@ def _write_scene(out: Path, config: SynthConfig, index: int, progress: Callable[
             point_counts.append(len(sweep.points))
         lidar_chain.append(tables.lidar_data(out, scene, sample_token, frame.sweep, sensor_tokens, key=True))
         point_counts.append(len(frame.sweep.points))
-        for cam in rig.cameras:
+        for c, cam in enumerate(rig.cameras):
+            # The camera's sweeps since the previous key frame, oldest first, then its key-frame image.
+            for f in frames[cam["name"]]:
+                if f.key_index == k and not f.is_key:
+                    image = render_camera_sweep(scene, rig, config, c, f)
+                    tables.camera_sweep_data(out, scene, sample_token, cam["name"], f.t_s, image, sensor_tokens, config)
             tables.camera_data(out, scene, sample_token, frame, cam["name"], sensor_tokens, config)
         tables.annotations(scene, sample_token, frame)
         if progress is not None:
@@ -532,7 +565,8 @@ def world_sidecar(config: SynthConfig) -> dict:
             "distractors_xy": objs.center0[distractor, :2].round(3).tolist(),
             "distractor_kinds": [Kind(int(k)).name.lower() for k in objs.kind[distractor]],
         }
-    return {"world_version": WORLD_VERSION, "scenes": scenes}
+    # camera_hz: how often the cameras expose (0: at key frames only), which a replay's image age depends on
+    return {"world_version": WORLD_VERSION, "camera_hz": float(config.camera_hz), "scenes": scenes}
 
 
 def write_world_sidecar(out: Path, config: SynthConfig) -> Path:

@@ -8,10 +8,12 @@ has gaps between rotations (the report says which rate the data had).
 Cameras: each camera triggers at ``camera_hz`` by the trigger model (``triggers.py``: ``simultaneous``, all at once
 from drive time 0, or ``lidar-synced``, each as the LiDAR crosses its optical axis, as nuScenes does); a trigger
 delivers the newest recorded image of that camera at or before it (the first one before any), and the cameras
-triggered at the same moment form one `ImageSet`. Real nuScenes records cameras at 12 Hz,
-so the images are close to their trigger; the synthetic world renders images at key frames only (2 Hz), so there
-the images are *held* between key frames: the image lane does the work of a 12 Hz rig, on older pictures. Both are
-written to ``Drive.notes``.
+triggered at the same moment form one `ImageSet`. A frame stamped up to ``TRIGGER_MATCH_S`` after its trigger is
+the trigger's, delivered at its stamp; a trigger before a camera's first frame delivers nothing from it (never a
+frame from the future). Real nuScenes records cameras at 12 Hz, and so does the synthetic world generated with
+``--camera-hz 12`` (at the crossings this trigger model picks), so the images are close to their trigger; generated
+without it, the synthetic world has images at key frames only (2 Hz), *held* between key frames: the image lane does
+the work of a 12 Hz rig, on older pictures. Both are written to ``Drive.notes``.
 """
 
 from __future__ import annotations
@@ -30,6 +32,11 @@ from streamdet.replay.scan_layout import resolve_layout
 from streamdet.replay.source import Drive, ImageSet, LidarSweep
 from streamdet.replay.triggers import (
     DEFAULT_TRIGGER, camera_axis_azimuths_deg, check_trigger, lidar_synced_triggers, simultaneous_triggers)
+
+# A recorded frame stamped at most this long after a trigger is that trigger's frame: the replay times a LiDAR crossing
+# from the sweep's points to within a fraction of a millisecond, and one camera's frames lie a rotation (50 ms) apart.
+TRIGGER_MATCH_S = 0.002
+
 
 class DatasetTables:
     """The scenes, LiDAR and camera records of a nuScenes-format dataset, as the player reads them.
@@ -186,25 +193,38 @@ def _image_sets(
         for t in triggers[c]:
             moments.setdefault(float(t), []).append(c)
     progress(f"[{scene['name']}] reading images of {len(channels)} cameras for {len(moments)} trigger moments")
-    sets = []
+    found = []  # (capture time, images, recorded time) per trigger moment that delivers any image
     lags = []
-    for i, t in enumerate(sorted(moments)):
+    early = 0
+    for t in sorted(moments):
         images, times = {}, []
         for c in moments[t]:
-            j = max(int(np.searchsorted(stamps[c], t + 1e-9)) - 1, 0)  # newest at or before t, else the first
+            j = int(np.searchsorted(stamps[c], t + TRIGGER_MATCH_S, side="right")) - 1  # newest by the trigger
+            if j < 0:  # nothing recorded yet: a camera delivers no frame before its first (never one from the future)
+                early += 1
+                continue
             row = recorded[c][j]
             if row["token"] not in cache:
                 recorded_size = (row["width"], row["height"]) if row["width"] and row["height"] else None
                 cache[row["token"]] = load_image(tables.file(row), size, expected_size=recorded_size)
             images[c] = cache[row["token"]]
             times.append(stamps[c][j])
+        if not images:
+            continue
         recorded_s = float(min(times))
         lags.append(t - recorded_s)
-        sets.append(ImageSet(i, float(t), images, recorded_s))
-    rate = np.median(np.diff(stamps[channels[0]])) if len(stamps[channels[0]]) > 1 else float("inf")
+        # a frame stamped just after its trigger was timed a little early from the points: it is captured at its stamp
+        found.append((max(float(t), float(max(times))), images, recorded_s))
+    found.sort(key=lambda f: f[0])
+    sets = [ImageSet(i, capture, images, recorded_s) for i, (capture, images, recorded_s) in enumerate(found)]
+    first = stamps[channels[0]]
+    span = float(first[-1] - first[0]) if len(first) > 1 else 0.0
+    rate = span / (len(first) - 1) if span > 0 else float("inf")  # mean period: lidar-synced intervals are 50 or 100 ms
+    lag = f"median {1e3 * np.median(lags):.0f} ms older than the trigger" if lags else "none delivered"
     note = (f"cameras: {len(channels)} triggered at {camera_hz:g} Hz ({model}); data records them at "
-            f"{1.0 / rate:.1f} Hz, so each trigger delivers the newest recorded images (median {1e3 * np.median(lags):.0f} ms "
-            f"older than the trigger){'; images are held between key frames' if 1.0 / rate < camera_hz / 2 else ''}")  # fmt: skip
+            f"{1.0 / rate:.1f} Hz, so each trigger delivers the newest recorded images ({lag})"
+            f"{'; images are held between key frames' if 1.0 / rate < camera_hz / 2 else ''}"
+            f"{f'; {early} camera trigger(s) before the camera first recorded a frame delivered nothing' if early else ''}")  # fmt: skip
     return sets, note
 
 

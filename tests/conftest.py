@@ -26,13 +26,13 @@ def tiny_synth_data(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="session")
 def tiny_drive_data(tmp_path_factory) -> Path:
-    """One key frame with ten 20 Hz sweeps before it (0.5 s of drive) at 160x90, all in the split "all": the replays'
-    drive. Shared read-only."""
+    """One key frame with ten 20 Hz sweeps before it (0.5 s of drive) and 12 Hz cameras (as nuScenes) at 160x90, all
+    in the split "all": the replays' drive. Shared read-only."""
     from streamdet.data.synth_world import WorldConfig
     from streamdet.data.synth_writer import SynthConfig, generate_dataset
 
     out = tmp_path_factory.mktemp("tiny_drive_data")
-    generate_dataset(out, SynthConfig(num_scenes=1, seed=5, resolution=(160, 90), sweeps_per_sample=10,
+    generate_dataset(out, SynthConfig(num_scenes=1, seed=5, resolution=(160, 90), sweeps_per_sample=10, camera_hz=12.0,
                                       val_fraction=0.0, world=WorldConfig(samples_per_scene=1)))  # fmt: skip
     return out
 

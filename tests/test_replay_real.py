@@ -125,16 +125,22 @@ def test_key_frames_interpolated_agree_with_the_trajectories(tiny_synth_data):
 
 @pytest.mark.parametrize("lidar_hz, sweeps", [(20.0, 10), (10.0, 5)])
 def test_drive_from_tables_keeps_one_sweep_per_rotation(drive_data, lidar_hz, sweeps):
-    from streamdet.replay.nuscenes_source import DatasetTables, load_drive
+    from streamdet.data.nuscenes import CAMERA_CHANNELS
+    from streamdet.replay.nuscenes_source import TRIGGER_MATCH_S, DatasetTables, load_drive
 
     tables = DatasetTables(drive_data, "v1.0-synth")
     drive = load_drive(tables, tables.scene_names()[0], (64, 36), lidar_hz=lidar_hz, camera_hz=12.0, camera_trigger="simultaneous")
     assert len(drive.sweeps) == sweeps
     assert drive.sweeps[0].start_s == pytest.approx(0.0) and all(s.point_time_s is not None for s in drive.sweeps)
     np.testing.assert_allclose(np.diff([s.end_s for s in drive.sweeps]), 1.0 / lidar_hz, atol=1e-6)
-    assert len(drive.image_sets) == int(drive.sweeps[-1].end_s * 12.0 + 1e-9) + 1  # triggers from drive time 0
+    # triggers from drive time 0; those before the cameras' first frame (the key frame's) deliver nothing
+    triggers = np.arange(int(drive.sweeps[-1].end_s * 12.0 + 1e-9) + 1) / 12.0
+    scene = tables.scene(tables.scene_names()[0])
+    first_frame_s = min(int(r["timestamp"]) for c in CAMERA_CHANNELS for r in tables.channel_data(scene, c)) * 1e-6 - drive.t0_us * 1e-6
+    assert len(drive.image_sets) == int(np.sum(triggers + TRIGGER_MATCH_S >= first_frame_s)) < len(triggers)
+    assert all(s.recorded_s <= s.capture_s for s in drive.image_sets)  # never an image from the future
     assert all(im.shape == (36, 64, 3) for s in drive.image_sets for im in s.images.values())
-    assert any("held between key frames" in note for note in drive.notes)
+    assert any("delivered nothing" in note and "held" not in note for note in drive.notes)  # 12 Hz cameras, as recorded
 
 
 def test_drive_of_an_unknown_scene_is_refused(drive_data):
