@@ -1,7 +1,8 @@
 """A whole replay: scenes of a dataset split played in each mode through a real export, then scored.
 
 For every (scene, mode) a fresh `StreamingDetector` is opened, warmed up (its first image set and first sweep
-run once, untimed, at WARM_UP_TIMESTAMP_S, so that no slice counts that warm-up picture's age) and played
+run once, untimed, at WARM_UP_TIMESTAMP_S, the warm-up picture then dropped: slices before the first real image
+update read no image, and no slice is fused with a picture captured after it) and played
 on the wall clock; its stage statistics (with the GMAC executed) are kept. The scores pool all scenes of a mode;
 the streaming mAP of each scene alone gives the spread of the modes' difference over scenes.
 """
@@ -164,7 +165,7 @@ def open_detector(config: ReplayConfig, num_slices: int | None = None, layout: S
 
 
 def warm_up(det: StreamingDetector, drive: Drive, num_slices: int, per_quadrant: bool = False) -> None:
-    """Two untimed image updates (at WARM_UP_TIMESTAMP_S: their picture has no age) and the first sweep, then fresh stats.
+    """Two untimed image updates (at WARM_UP_TIMESTAMP_S), dropped again, and the first sweep, then fresh stats.
     ``per_quadrant``: also one update of each quadrant alone (the phase-locked image lane's sizes: onnxruntime's
     first run of a new input shape is slow)."""
     if drive.rig is not None and det.uses_images and drive.rig.sha256() != det.lut.calibration_sha256:
@@ -181,6 +182,10 @@ def warm_up(det: StreamingDetector, drive: Drive, num_slices: int, per_quadrant:
     for n in {num_slices, 1}:
         for s in slice_sweep(drive.sweeps[0], n, det.config.start_deg, det.config.clockwise):
             det.detect_slice(s.points, s.slice_index, WARM_UP_TIMESTAMP_S, n)
+    # The warm-up picture is the drive's first image set, captured after the drive's first slices: they must not see
+    # it. Until the first real update they read no image, as a vehicle starting up does.
+    if det.uses_images:
+        det.forget_images()
     det.stats.reset()
 
 

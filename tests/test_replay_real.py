@@ -208,3 +208,29 @@ def test_the_player_reads_the_tables_through_the_checked_reader(tiny_synth_data,
         scene = tables.scene_names()[0]
         load_drive(tables, scene, (64, 36), camera_trigger="simultaneous")
         load_ground_truth(root, "v1.0-synth", scene, prefer_trajectories=False, reader=tables.reader)
+
+
+@pytest.mark.parametrize("per_quadrant", [False, True])
+def test_warm_up_leaves_no_picture_for_the_first_slices(drive_data, tiny_export, per_quadrant):
+    """The warm-up runs the drive's first image set, captured after the drive's first slices: it is dropped again, so
+    slices before the first real update read no image (and the warm-up's runs are not counted)."""
+    from streamdet.replay.nuscenes_source import DatasetTables, load_drive
+    from streamdet.replay.run import warm_up
+    from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector
+
+    tables = DatasetTables(drive_data, "v1.0-synth")
+    with StreamingDetector(tiny_export, DetectorConfig(start_deg=180.0, clockwise=True)) as det:
+        drive = load_drive(tables, tables.scene_names()[0], (det.image.width, det.image.height), max_seconds=0.2)
+        assert drive.image_sets
+        warm_up(det, drive, det.num_slices, per_quadrant=per_quadrant)
+        assert det.image_timestamp is None and det.image_timestamps == (None,) * 4
+        first = _first_slice(drive, det)
+        assert det.detect_slice(first.points, first.slice_index, 0.01).image_timestamp is None
+        det.update_images(drive.image_sets[0].images, timestamp=drive.image_sets[0].capture_s)
+        assert det.image_timestamp == drive.image_sets[0].capture_s
+
+
+def _first_slice(drive, det):
+    from streamdet.replay.schedule import slice_sweep
+
+    return slice_sweep(drive.sweeps[0], det.num_slices, det.config.start_deg, det.config.clockwise)[0]
