@@ -192,7 +192,8 @@ def require_export_dir(export_dir: Path, hint: str | None = None) -> None:
     (default: the streamdet-export command for that folder). A manifest that is a FIFO or a folder is named by the
     manifest reader later."""
     if not (export_dir / MANIFEST_NAME).exists():
-        hint = f"run `streamdet-export --out {export_dir}` first" if hint is None else hint
+        hint = (f"run `streamdet-export --out {export_dir}` first (it needs PyTorch, the export extra; an export made on "
+                "another machine can be copied here: the runtime itself needs no PyTorch)") if hint is None else hint
         raise click.ClickException(f"{export_dir} holds no {MANIFEST_NAME}: {hint}")
 
 

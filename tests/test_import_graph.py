@@ -13,7 +13,10 @@ from __future__ import annotations
 import ast
 import re
 import sys
-import tomllib
+try:
+    import tomllib
+except ModuleNotFoundError:  # Python 3.10: the dev extra installs tomli
+    import tomli as tomllib
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path

@@ -6,7 +6,10 @@ import os
 import subprocess
 import sys
 import textwrap
-import tomllib
+try:
+    import tomllib
+except ModuleNotFoundError:  # Python 3.10: the dev extra installs tomli
+    import tomli as tomllib
 from pathlib import Path
 
 import pytest
@@ -44,6 +47,25 @@ def test_every_package_folder_is_declared():
     for d in ROOT.iterdir():
         if d.is_dir() and (d / "__init__.py").exists() and d.name not in ("tests",):
             assert d.name in mapped, f"{d.name}/ has an __init__.py but is not listed in pyproject.toml"
+
+
+def test_the_version_is_written_once():
+    """pyproject.toml takes its version from streamdet.__version__; the installed metadata says the same."""
+    import importlib.metadata
+
+    import streamdet
+
+    cfg = tomllib.loads((ROOT / "pyproject.toml").read_text())
+    assert "version" not in cfg["project"] and "version" in cfg["project"]["dynamic"]
+    assert cfg["tool"]["setuptools"]["dynamic"]["version"] == {"attr": "streamdet.__version__"}
+    assert importlib.metadata.version("streamdet") == streamdet.__version__
+
+
+def test_the_licenses_ship_with_the_package():
+    cfg = tomllib.loads((ROOT / "pyproject.toml").read_text())
+    for path in cfg["project"]["license-files"]:
+        assert (ROOT / path).is_file(), path
+    assert "Apache License" in (ROOT / "LICENSE").read_text()
 
 
 @pytest.mark.slow
