@@ -34,7 +34,9 @@ from streamdet.core.constants import DEFAULT_PRESET
 from streamdet.core.file_output import write_text_atomic
 from streamdet.models.presets import get_preset, preset_names
 
-QUICK_TORCH_SKIP_MS = 200.0  # --quick: PyTorch eager is timed only on rows faster than this in onnxruntime fp32
+# --quick: PyTorch eager is timed only on rows whose first, cold onnxruntime fp32 run (a fresh session's, before
+# any warm-up; not the median) is faster than this
+QUICK_TORCH_SKIP_MS = 200.0
 MAX_REPEAT = 10_000  # timed runs per measurement: 500x the default 20; more only takes hours
 # Parameters that only steer the timing: --flops-only times nothing, so one of them given with it is a mistaken
 # command (the user expects an effect), refused rather than silently dropped.
@@ -94,15 +96,28 @@ def _check_outputs(json_path: Path | None, plot_path: Path | None, profile_dir: 
         check_plot_format(plot_path)
 
 
+FLOPS_UNITS = "GMAC (1e9 multiply-accumulates; FLOPs = 2 x MACs)"
+
+
+def _command() -> str:
+    """The command line as typed, recorded in the JSON's meta."""
+    return "streamdet-bench " + shlex.join(sys.argv[1:])
+
+
 def _flops_only(preset: str, resolution: tuple[int, int] | None, json_path: Path | None) -> None:
     from streamdet.benchmarks.flops_report import PAPER_RESOLUTIONS, format_rows, gmac_rows  # torch: only when needed
+    from streamdet.benchmarks.provenance import provenance
 
-    rows = gmac_rows(get_preset(preset), [resolution] if resolution else PAPER_RESOLUTIONS)
+    resolutions = [resolution] if resolution else PAPER_RESOLUTIONS
+    rows = gmac_rows(get_preset(preset), resolutions)
     click.echo(format_rows(preset, rows))
     if json_path is not None:
         doc = {
-            "preset": preset,
-            "unit": "GMAC (1e9 multiply-accumulates; FLOPs = 2 x MACs)",
+            # the timing mode's meta keys that apply to a count (no machine: MACs do not depend on it)
+            "meta": {**provenance(_command(), "flops-only"), "preset": preset, "resolutions": [list(r) for r in resolutions]},
+            "units": FLOPS_UNITS,  # the key the timing mode's JSON uses
+            "unit": FLOPS_UNITS,  # the same under its older key (kept for readers of older files)
+            "preset": preset,  # also in meta; kept where older files had it
             "rows": [r.to_dict() for r in rows],
         }
         _write(json_path, "--json", lambda p: write_text_atomic(p, json.dumps(doc, indent=2) + "\n"))
@@ -142,17 +157,22 @@ def _flops_only(preset: str, resolution: tuple[int, int] | None, json_path: Path
               help=f"Slice workers (LaneConfig.max_in_flight, 1..{MAX_THREADS}) of the streaming section's image-lane schedules [default: the "
               "runtime's LaneConfig]; 1 leaves the image lane a core of its own on a 2-core machine (docs/replay.md).")
 @click.option("--repeat", type=click.IntRange(1, MAX_REPEAT), default=None,
-              help=f"Timed runs per measurement, 1..{MAX_REPEAT} [default: 20; 5 with --quick].")
+              help=f"Timed runs per measurement of the Table 3 rows (each precision and PyTorch), 1..{MAX_REPEAT} [default: 20; "
+                   "5 with --quick]. The streaming section has its own counts: 5 sweeps of slices per phase (2 with "
+                   "--quick), 3 image updates (1), 50 runs of each pre/post-processing case (10 with --quick).")
 @click.option("--threads", type=click.IntRange(1, MAX_INTRA_OP_THREADS), default=None,
               help=f"Threads for the Table 3 rows, 1..{MAX_INTRA_OP_THREADS} [default: every CPU this process may use "
                    f"(affinity, cgroup quota), at most {MAX_INTRA_OP_THREADS}].")
 @click.option(
     "--quick",
     is_flag=True,
-    help=f"Fewer repeats, shorter streaming runs, no PyTorch timing of rows whose fp32 run exceeds {QUICK_TORCH_SKIP_MS:.0f} ms.",
+    help=f"Fewer repeats, shorter streaming runs, no PyTorch timing of rows whose first, cold fp32 run (not the "
+    f"median) exceeds {QUICK_TORCH_SKIP_MS:.0f} ms.",
 )
 @click.option(
-    "--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), help='Write {"rows": [...], "streaming": {...}, ...} here.'
+    "--json", "json_path", type=click.Path(dir_okay=False, path_type=Path),
+    help='Write the results here: {"meta": {"schema_version": ..., ...}, "units": ..., "peak": {...}, "rows": [...], '
+         '"streaming": {...}, "targets": [...]}; with --flops-only {"meta", "units", "rows"}. The keys: docs/cli.md.',
 )
 @click.option(
     "--plot",
@@ -191,6 +211,7 @@ def main(
 ) -> None:
     """Measure the streaming detector's modules (the paper's Table 3) and its streaming latency on this machine."""
     from streamdet.core.sectors import check_num_slices
+
 
     try:
         if slices is not None:
@@ -236,10 +257,16 @@ def main(
             raise click.BadParameter(str(e), param_hint="--export-dir") from None
         except MemoryError:
             raise click.ClickException(f"out of memory opening {export_dir}") from None
-    elif resolution is not None and (resolution[0] % 2 or resolution[1] % 2):
-        raise click.BadParameter(
-            f"{resolution[0]}x{resolution[1]}: the export needs even sizes (ResNet stem stride 2)", param_hint="--resolution"
-        )
+    elif resolution is not None:
+        if resolution[0] % 2 or resolution[1] % 2:
+            raise click.BadParameter(
+                f"{resolution[0]}x{resolution[1]}: the export needs even sizes (ResNet stem stride 2)", param_hint="--resolution"
+            )
+        from streamdet.benchmarks.run import export_resolution_problem
+
+        problem = export_resolution_problem(resolution)  # the export's aspect rule: now, not after the rows' timing
+        if problem is not None:
+            raise click.BadParameter(problem, param_hint="--resolution")
 
     from streamdet.benchmarks.run import BenchConfig, BenchmarkError, run_benchmark, write_plot
 
@@ -258,7 +285,7 @@ def main(
         torch_skip_ms=QUICK_TORCH_SKIP_MS if quick else None,
         export_dir=export_dir,
         profile_dir=profile_dir,
-        command="streamdet-bench " + shlex.join(sys.argv[1:]),
+        command=_command(),
     )
     started = time.perf_counter()
     try:

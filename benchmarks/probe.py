@@ -22,7 +22,7 @@ import onnx
 import onnxruntime as ort
 from onnx import TensorProto, helper
 
-from streamdet.core.cpu import cpu_info, cpu_vendor_family, physical_cores
+from streamdet.core.cpu import cpu_identity, cpu_info, physical_cores
 from streamdet.runtime_ort.onnx_build import make_model
 from streamdet.runtime_ort.sessions import CPU_ONLY, GraphSession, SessionConfig
 
@@ -245,10 +245,13 @@ def machine_info(threads: int) -> dict:
     import torch  # the benchmark needs torch anyway; kept local so the probe itself stays torch-free
 
     # the CPU as every report records it (core.cpu.cpu_info: the kernels' SIMD flags, less a CPUID mask's)
-    cpu, mhz, cores = cpu_info(), cpu_mhz(), physical_cores()
-    estimate = nominal_peak_gflops(threads, tuple(cpu["flags"]), mhz, cores, *cpu_vendor_family())
+    cpu, mhz, cores, identity = cpu_info(), cpu_mhz(), physical_cores(), cpu_identity()
+    estimate = nominal_peak_gflops(threads, tuple(cpu["flags"]), mhz, cores, identity["vendor_id"], identity["family"])
     return {
         "cpu_model": cpu["model"],
+        # vendor_id, family, model, stepping (core.cpu.cpu_identity; None each where /proc/cpuinfo does not say): a
+        # guest's model name is often generic ("AMD EPYC"), and parts of one family differ
+        "cpu_identity": identity,
         "cpu_flags": cpu["flags"],
         "cpu_flags_source": cpu["flags_source"],  # core.cpu.visible_flags: "/proc/cpuinfo", "numpy", or None (unknown)
         "cpuid_mask": cpu["cpuid_mask"],

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 from streamdet.benchmarks.prepost import format_prepost, prepost_to_dict
 from streamdet.benchmarks.probe import ProbeResult
-from streamdet.benchmarks.streaming import LaneStats, StreamingResult
+from streamdet.benchmarks.streaming import LaneStats, StreamingResult, sweeps_per_round
 from streamdet.benchmarks.streaming_schedules import format_schedules
 from streamdet.benchmarks.table import CROP_PAIRS, RowResult
 from streamdet.benchmarks.timing import TimingStats
@@ -31,6 +31,18 @@ BUSY_OTHER_CPUS = 0.2
 INT8_SPEEDUP_MIN = {"image": 2.5, "conv3d": 2.5, "slice": 1.0}  # int8 over fp32, by row kind (int8 issue)
 
 UNITS = "GMAC = 1e9 multiply-accumulates (FLOPs = 2 x MACs); times in ms of wall clock (median, p95 in brackets)"
+# The peak probe runs at the start and at the end: a best run that changed by more than this between them means the
+# machine's speed changed during the run (a neighbour, a clock change), which no busy-CPU figure may show (a slowed
+# host, benchmarks/RESULTS.md: probe 168 against 422 GFLOP/s quiet, other processes at 0.008 CPUs).
+PROBE_DRIFT_MAX = 0.15
+# Fewer samples than this give no p95 worth printing (linear interpolation between the two largest, or the maximum
+# itself): "n/a" in the text; the JSON keeps every figure with its count.
+MIN_P95_SAMPLES = 20
+
+
+def probe_drift(start: ProbeResult, end: ProbeResult) -> float:
+    """The end probe's best run over the start's, less 1 (-0.25: a quarter slower at the end)."""
+    return end.gflops_per_s / start.gflops_per_s - 1.0
 
 
 def busy_threshold(cpus: int | None) -> float:
@@ -161,7 +173,9 @@ def _int8_targets(rows: Sequence[RowResult]) -> list[Target]:
 def _ms(stats: TimingStats | None) -> str:
     if stats is None:
         return "-"
-    return f"{stats.median_ms:.1f} ({stats.p95_ms:.1f})" if stats.median_ms >= 10 else f"{stats.median_ms:.2f} ({stats.p95_ms:.2f})"
+    digits = 1 if stats.median_ms >= 10 else 2
+    p95 = f"{stats.p95_ms:.{digits}f}" if stats.count >= MIN_P95_SAMPLES else "n/a"
+    return f"{stats.median_ms:.{digits}f} ({p95})"
 
 
 def _noise(stats: TimingStats) -> str:
@@ -177,7 +191,21 @@ def _pillar_words(pillars: dict | None) -> str:
     )
 
 
-def format_header(meta: dict, peak: ProbeResult) -> str:
+def _identity(m: dict) -> str:
+    """", GenuineIntel family 6 model 167 stepping 1" of the machine's cpu_identity; "" where unknown (older results)."""
+    ident = m.get("cpu_identity") or {}
+    words = [str(ident["vendor_id"])] if ident.get("vendor_id") else []
+    words += [f"{k} {ident[k]}" for k in ("family", "model", "stepping") if ident.get(k) is not None]
+    return (", " + " ".join(words)) if words else ""
+
+
+def _probe_words(p: ProbeResult) -> str:
+    return f"best {p.gflops_per_s:.1f} (median {p.median_gflops_per_s:.1f})"
+
+
+def format_header(meta: dict, peak: ProbeResult, probes: tuple[ProbeResult, ProbeResult] | None = None) -> str:
+    """The machine, the software, the method and the peak probe; ``probes``: the probe at the start and at the end
+    (apart, and a WARNING where their best runs differ by more than PROBE_DRIFT_MAX); None: the merged one alone."""
     m = meta["machine"]
     if m.get("cpu_flags_source", "/proc/cpuinfo") is None:  # absent in results recorded before it
         flags = "SIMD flags unknown"
@@ -188,7 +216,7 @@ def format_header(meta: dict, peak: ProbeResult) -> str:
         flags += f"; CPUID masked to {m['cpuid_mask']}: the kernels' instruction set, not the silicon's"
     lines = [
         f"streamdet-bench  {meta['date']}  preset {meta['preset']}",
-        f"machine: {m['cpu_model']} ({flags}), {m['logical_cpus']} logical CPUs"
+        f"machine: {m['cpu_model']} ({flags}){_identity(m)}, {m['logical_cpus']} logical CPUs"
         + (f" ({usable} usable by this process)" if (usable := m.get("usable_cpus")) is not None else "")  # absent in older results
         + f", {meta['threads']} threads; "
         f"load average (1/5/15 min) {'/'.join(str(v) for v in m['load_average_1_5_15'])} at start; "
@@ -207,6 +235,7 @@ def format_header(meta: dict, peak: ProbeResult) -> str:
         ),
         f"peak probe: {peak.size}^3 fp32 MatMul in onnxruntime, best of {peak.runs} runs (at the start and the end): "
         f"{peak.gflops_per_s:.1f} GFLOP/s (median {peak.median_gflops_per_s:.1f})"
+        + (f"; at the start {_probe_words(probes[0])}, at the end {_probe_words(probes[1])}" if probes else "")
         + (
             f"; estimate from FMA width x the reported {m['cpu_mhz']:.0f} MHz x "
             + (f"{cores} physical core(s)" if (cores := m.get("peak_estimate_cores")) else f"{meta['threads']} threads")
@@ -225,6 +254,12 @@ def format_header(meta: dict, peak: ProbeResult) -> str:
         lines.append(
             f"WARNING: the machine was busy: other processes used {of} during the run, "
             "so these times are pessimistic and noisy; re-run on a quiet machine"
+        )
+    if probes and abs(drift := probe_drift(*probes)) > PROBE_DRIFT_MAX:
+        lines.append(
+            f"WARNING: the peak probe's best run changed by {drift:+.0%} between the start ({probes[0].gflops_per_s:.1f} "
+            f"GFLOP/s) and the end ({probes[1].gflops_per_s:.1f}): the machine's speed changed during the run (a "
+            "neighbour, a clock change), so rows timed minutes apart are not comparable; re-run on a quiet machine"
         )
     return "\n".join(lines)
 
@@ -258,6 +293,9 @@ def format_rows(rows: Sequence[RowResult], peak: ProbeResult) -> str:
     fmt = lambda cells: "  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(cells, widths)))  # noqa: E731
     lines = [fmt(header)] + [fmt(t) for t in table]
     notes = [f"  {r.module}: {note}" for r in rows for note in r.notes]
+    timed = [st for r in rows for st in (r.fp32, r.fp16, r.int8) if st is not None]
+    if any(st.count < MIN_P95_SAMPLES for st in timed):
+        notes.append(f"  p95 n/a: fewer than {MIN_P95_SAMPLES} timed runs (the JSON has it, with the count)")
     if any(r.gflops_per_s > peak.gflops_per_s for r in rows):
         notes.append(
             "  % peak above 100: onnxruntime's convolution kernels outrun its own large MatMul here; the probe is the "
@@ -275,7 +313,8 @@ def format_rows(rows: Sequence[RowResult], peak: ProbeResult) -> str:
 def _lane_line(label: str, lane: LaneStats | TimingStats) -> str:
     t = lane.latency if isinstance(lane, LaneStats) else lane
     n = f"n={t.count}" + (f" of {t.requested} (time budget)" if t.reduced else "")
-    return f"  {label:<44} p50 {t.median_ms:8.2f} ms  p95 {t.p95_ms:8.2f} ms  min-max {_noise(t)} ms  {n}"
+    p95 = f"{t.p95_ms:8.2f} ms" if t.count >= MIN_P95_SAMPLES else f"{'n/a':>11}"  # under 20: the max, near enough
+    return f"  {label:<44} p50 {t.median_ms:8.2f} ms  p95 {p95}  min-max {_noise(t)} ms  {n}"
 
 
 def _stage(lane: LaneStats, name: str) -> str:
@@ -290,6 +329,22 @@ def _lift(lane: LaneStats) -> str:
         return f"lifter p50 {_stage(lane, 'volumetric_lifter')} ms"
     return (f"lift through per-camera terms: term p50 {_stage(lane, 'lifter_partial')} ms a camera, "
             f"tail p50 {_stage(lane, 'lifter_tail')} ms a quadrant")
+
+
+def _turns(s: StreamingResult) -> str:
+    """How the slice-lane phases were taken: in turns (how many rounds), or one after the other."""
+    phases = "idle" + (f", idle with {s.all_cores} threads" if s.idle_all_cores is not None else "") + " and busy"
+    if s.phase_rounds > 1:
+        return (f"({phases} taken in turns: {s.phase_rounds} rounds of {', '.join(map(str, _per_round(s)))} sweep(s) "
+                "each, the busy image lane started and stopped every round)")  # fmt: skip
+    if s.config.sweeps == 1:
+        return f"({phases}: one sweep each, in one round)"
+    return (f"({phases} one after the other, not in turns: an image update takes too long to stop the busy image lane "
+            "every round, StreamingConfig.image_budget_s)")  # fmt: skip
+
+
+def _per_round(s: StreamingResult) -> list[int]:
+    return sorted(set(sweeps_per_round(s.config.sweeps, s.phase_rounds)), reverse=True)
 
 
 def format_streaming(s: StreamingResult) -> str:
@@ -311,6 +366,7 @@ def format_streaming(s: StreamingResult) -> str:
         f"superseded; slice wait p50 {s.sequential_wait.median_ms:.1f} ms, p95 {s.sequential_wait.p95_ms:.1f} ms)",
         f"  busy / idle slice p95: {s.busy_over_idle_p95:.2f}x ({s.image_busy_updates} image updates finished while the "
         "busy slices ran; the image lane ran throughout)",
+        "    " + _turns(s),
         _lane_line(f"image lane alone ({s.num_cameras} cameras)", s.image_alone),
         f"    encoder p50 {_stage(s.image_alone, 'image_encoder')} ms, {_lift(s.image_alone)}"
         + (f"; with slices running: update p50 {_stage(s.busy, 'image_total')} ms" if "image_total" in s.busy.stages else ""),
@@ -340,9 +396,10 @@ def format_streaming(s: StreamingResult) -> str:
 
 
 def format_report(
-    doc_meta: dict, rows: Sequence[RowResult], peak: ProbeResult, streaming: StreamingResult | None, targets: Sequence[Target]
+    doc_meta: dict, rows: Sequence[RowResult], peak: ProbeResult, streaming: StreamingResult | None, targets: Sequence[Target],
+    probes: tuple[ProbeResult, ProbeResult] | None = None,
 ) -> str:
-    parts = [format_header(doc_meta, peak), "", format_rows(rows, peak)]
+    parts = [format_header(doc_meta, peak, probes), "", format_rows(rows, peak)]
     if streaming is not None:
         parts += ["", format_streaming(streaming)]
     parts += ["", "targets:"] + [t.line() for t in targets]
@@ -405,6 +462,10 @@ def streaming_to_dict(s: StreamingResult) -> dict:
         "all_cores": s.all_cores,
         "image_updates_during_busy": s.image_busy_updates,
         "busy_over_idle_p95": s.busy_over_idle_p95,
+        # idle, idle with all_cores threads and busy took turns in this many rounds (1: one after the other), a share
+        # of config.sweeps each round (phase_sweeps_per_round)
+        "phase_rounds": s.phase_rounds,
+        "phase_sweeps_per_round": sweeps_per_round(s.config.sweeps, s.phase_rounds),
         "sequential": {
             "slice_latency": s.sequential_slice.to_dict(),
             "slice_wait": s.sequential_wait.to_dict(),
@@ -431,13 +492,25 @@ def _sum_share(lane: LaneStats) -> float | None:
     return lane.share("pre", "post")
 
 
+def peak_to_dict(peak: ProbeResult, probes: tuple[ProbeResult, ProbeResult] | None = None) -> dict:
+    """The merged probe (the keys of every result), and with ``probes`` each apart and the drift between them."""
+    out = peak.to_dict()
+    if probes is not None:
+        start, end = probes
+        out |= {"start": start.to_dict(), "end": end.to_dict(), "end_over_start": end.gflops_per_s / start.gflops_per_s,
+                "drift_warning": abs(probe_drift(start, end)) > PROBE_DRIFT_MAX}  # fmt: skip
+    return out
+
+
 def build_document(
-    meta: dict, rows: Sequence[RowResult], peak: ProbeResult, streaming: StreamingResult | None, targets: Sequence[Target]
+    meta: dict, rows: Sequence[RowResult], peak: ProbeResult, streaming: StreamingResult | None, targets: Sequence[Target],
+    probes: tuple[ProbeResult, ProbeResult] | None = None,
 ) -> dict:
+    """The JSON document; docs/cli.md ("streamdet-bench") describes its keys, schema_version in meta."""
     return {
         "meta": meta,
         "units": UNITS,
-        "peak": peak.to_dict(),
+        "peak": peak_to_dict(peak, probes),
         "rows": [row_to_dict(r, peak) for r in rows],
         "streaming": None if streaming is None else streaming_to_dict(streaming),
         "targets": [{"name": t.name, "met": t.met, "detail": t.detail} for t in targets],

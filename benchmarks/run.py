@@ -7,7 +7,6 @@ document (benchmarks/report.py).
 from __future__ import annotations
 
 import dataclasses
-import datetime
 import tempfile
 import time
 from collections.abc import Callable
@@ -19,6 +18,7 @@ from streamdet.core.constants import DEFAULT_PRESET
 from streamdet.benchmarks.flops_report import PAPER_RESOLUTIONS, slice_row_pillars
 from streamdet.benchmarks.modules import build_rows
 from streamdet.benchmarks.probe import OtherCpuUse, ProbeConfig, ProbeResult, machine_info, measure_peak
+from streamdet.benchmarks.provenance import manifest_sha256, provenance
 from streamdet.benchmarks.streaming import (
     StreamingConfig,
     StreamingResult,
@@ -54,7 +54,9 @@ class BenchConfig:
     repeat: int | None = None  # timed runs per measurement; None: 20, or 5 with quick
     threads: int | None = None  # threads of the row measurements (1..64); None: every usable CPU, at most 64
     quick: bool = False  # fewer repeats, shorter streaming runs
-    torch_skip_ms: float | None = None  # no PyTorch timing of rows whose onnxruntime fp32 median exceeds this
+    # no PyTorch timing of rows whose first, cold onnxruntime fp32 run exceeds this (table.TableConfig.torch_skip_ms:
+    # one run of a fresh session, taken before the warm-up, not the median)
+    torch_skip_ms: float | None = None
     export_dir: Path | None = None  # existing export for the streaming section; None: export to a temporary folder
     profile_dir: Path | None = None  # onnxruntime profiles of every row graph
     command: str = ""  # the command line, recorded in the metadata
@@ -68,8 +70,10 @@ class BenchConfig:
 
     def timing(self) -> TimingConfig:
         if self.quick:
-            return TimingConfig(repeat=self.repeat or 5, warmup=1, budget_s=2.0, min_repeat=2, slow_warmup_s=1.0)
-        return TimingConfig(repeat=self.repeat or 20, warmup=2, budget_s=15.0)
+            repeat = self.repeat or 5
+            # TimingConfig refuses a floor above the count: --repeat 1 asks for one run
+            return TimingConfig(repeat=repeat, warmup=1, budget_s=2.0, min_repeat=min(2, repeat), slow_warmup_s=1.0)
+        return TimingConfig(repeat=self.repeat or 20, warmup=2, budget_s=15.0)  # min_repeat: 3, or repeat where fewer
 
     def row_threads(self) -> int:
         """Threads of the rows and the peak probe: ``threads``, or every CPU this process may use, at most
@@ -90,16 +94,17 @@ class BenchConfig:
 @dataclass(frozen=True)
 class BenchResult:
     meta: dict
-    peak: ProbeResult
+    peak: ProbeResult  # both probes' runs: the best of them is the peak the rows are divided by
     rows: tuple[RowResult, ...]
     streaming: StreamingResult
     targets: tuple[report.Target, ...]
+    probes: tuple[ProbeResult, ProbeResult] | None = None  # the probe at the start and at the end, apart
 
     def text(self) -> str:
-        return report.format_report(self.meta, self.rows, self.peak, self.streaming, self.targets)
+        return report.format_report(self.meta, self.rows, self.peak, self.streaming, self.targets, self.probes)
 
     def document(self) -> dict:
-        return report.build_document(self.meta, self.rows, self.peak, self.streaming, self.targets)
+        return report.build_document(self.meta, self.rows, self.peak, self.streaming, self.targets, self.probes)
 
 
 def image_resolutions(given: tuple[int, int]) -> list[tuple[int, int]]:
@@ -132,18 +137,50 @@ def _slice_pillars(preset: Preset) -> dict:
     return {"uncropped": full.num_pillars, "cropped": crop.num_pillars, "cropped_quadrant": crop.quadrant}
 
 
+def export_resolution_problem(resolution: tuple[int, int]) -> str | None:
+    """Why the export the benchmark makes for the streaming section (no ``export_dir``) would refuse images of
+    ``resolution`` (width, height), as the end of a sentence that starts with the option's name; None where it takes
+    them. The export's own rules, not a copy: ``export.options.check_resolution`` (sides even and in range) and
+    ``calibration.lut.check_rig_fits`` against the rig it exports with (``export.graph_steps.load_rig(None)``, the
+    bundled calibration: images must have its cameras' aspect). Reads one file, so it runs before any timing: the
+    export itself runs after the rows, minutes later."""
+    from streamdet.calibration.camera import CalibrationError
+    from streamdet.calibration.lut import check_rig_fits
+    from streamdet.data.synth_writer import fitting_resolutions
+    from streamdet.export.graph_steps import load_rig
+    from streamdet.export.options import ExportError, check_resolution
+
+    width, height = resolution
+    try:
+        check_resolution(width, height)
+    except ExportError as e:
+        return str(e)
+    try:
+        rig, source = load_rig(None)  # the calibration _export's ExportOptions leave at the default
+        check_rig_fits(rig, rig.names, width, height)
+    except (CalibrationError, ExportError) as e:
+        near = " or ".join(f"{w}x{h}" for w, h in fitting_resolutions(width, height, rig))
+        return (f"{width}x{height} does not fit the calibration of the export made for the streaming section ({source}): {e}; "
+                f"give a size of the cameras' aspect" + (f" (nearest: {near})" if near else ""))  # fmt: skip
+    return None
+
+
 def resolve_stream_export(cfg: BenchConfig) -> BenchConfig:
     """``cfg`` with its slice count settled, after checking that the streaming section can time ``export_dir``
     (``streaming.check_streaming_export``: camera + LiDAR, the streamed precisions' graphs, the bundled sample's
     cameras) and that every thread count the run will use (``row_threads``, the streaming section's) is one a
-    session takes. ``slices`` None becomes the export's count, or DEFAULT_SLICES for the export the benchmark makes.
-    Raises BenchmarkError; reads files only, so it runs before any timing."""
+    session takes. Without ``export_dir``, that the export the benchmark makes takes its image size
+    (``export_resolution_problem``). ``slices`` None becomes the export's count, or DEFAULT_SLICES for the export
+    the benchmark makes. Raises BenchmarkError; reads files only, so it runs before any timing."""
     try:
         cfg.row_threads()
         stream = cfg.streaming()  # StreamingConfig checks its own thread and worker counts
     except ValueError as e:
         raise BenchmarkError(str(e)) from None
     if cfg.export_dir is None:
+        problem = export_resolution_problem(cfg.given_resolution)
+        if problem is not None:
+            raise BenchmarkError(f"BenchConfig.resolution: {problem}")
         return cfg if cfg.slices is not None else dataclasses.replace(cfg, slices=DEFAULT_SLICES)
     try:
         manifest = check_streaming_export(cfg.export_dir, stream)
@@ -160,8 +197,7 @@ def run_benchmark(cfg: BenchConfig, progress: Progress = lambda msg: None) -> Be
     other_cpu = OtherCpuUse()
     started = time.perf_counter()
     meta = {
-        "date": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
-        "command": cfg.command,
+        **provenance(cfg.command, "timing"),  # schema_version, mode, streamdet_version, git_commit, git_dirty, date, command
         "preset": cfg.preset,
         "resolutions": [list(r) for r in image_resolutions(cfg.given_resolution)],
         "slices": cfg.slices,
@@ -177,13 +213,15 @@ def run_benchmark(cfg: BenchConfig, progress: Progress = lambda msg: None) -> Be
         "stream_precision": cfg.stream_precision,
         "stream_image_precision": cfg.stream_image_precision or cfg.stream_precision,
         "export_dir": str(cfg.export_dir) if cfg.export_dir is not None else "(temporary export)",
+        # the manifest names every graph and the LUT by sha256: this names the export timed (set once it exists)
+        "export_manifest_sha256": None,
         "machine": machine_info(threads),
         "slice_pillars": _slice_pillars(preset),
     }
     with tempfile.TemporaryDirectory(prefix="streamdet_bench_") as tmp:
         work = Path(tmp)
         progress(f"peak probe ({threads} threads)")
-        peak = measure_peak(threads, cfg.probe())
+        peak_start = measure_peak(threads, cfg.probe())
         progress(f"building the {cfg.preset} rows")
         rows = build_rows(preset, image_resolutions(cfg.given_resolution))
         table_cfg = TableConfig(
@@ -197,7 +235,8 @@ def run_benchmark(cfg: BenchConfig, progress: Progress = lambda msg: None) -> Be
         results = measure_rows(rows, work, table_cfg, progress)
         del rows  # the paper preset's modules and inputs hold gigabytes
         progress("peak probe again (the best run of both counts: the machine is shared)")
-        peak = peak.merged(measure_peak(threads, cfg.probe()))
+        peak_end = measure_peak(threads, cfg.probe())
+        peak = peak_start.merged(peak_end)  # the report shows both apart too: a drift flags a slowed host
 
         stream_dir = cfg.export_dir
         if stream_dir is None:
@@ -208,6 +247,7 @@ def run_benchmark(cfg: BenchConfig, progress: Progress = lambda msg: None) -> Be
             if warning:
                 progress(f"warning: {warning}")
                 meta["export_warning"] = warning
+        meta["export_manifest_sha256"] = manifest_sha256(stream_dir)
         try:
             streaming = measure_streaming(stream_dir, cfg.streaming(), progress)
             if cfg.profile_dir is not None:
@@ -218,7 +258,7 @@ def run_benchmark(cfg: BenchConfig, progress: Progress = lambda msg: None) -> Be
     meta["seconds"] = round(time.perf_counter() - started, 1)
     meta["other_cpu_use"] = other_cpu.cores()
     targets = report.evaluate_targets(results, peak, streaming)
-    return BenchResult(meta, peak, tuple(results), streaming, tuple(targets))
+    return BenchResult(meta, peak, tuple(results), streaming, tuple(targets), (peak_start, peak_end))
 
 
 def write_plot(result: BenchResult, path: Path) -> Path:

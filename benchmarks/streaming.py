@@ -7,13 +7,17 @@ the lanes are for latency isolation, not throughput):
                 Also with every usable CPU (at most MAX_SESSION_THREADS) given to the slice session (what the lane
                 could do with the machine to itself; benchmarks/thread_counts.py).
 (b) busy:       a thread calls ``update_images`` in a loop (the image lane never rests) while the slices are timed.
+                (a), (a) with every CPU and (b) take turns, a sweep each, in rounds (``phase_rounds``): the busy/idle
+                ratio is a target, and two phases measured one after the other compare the machine's states as much
+                as the phases (benchmarks/RESULTS.md, **Timing**). The busy thread starts and stops every round.
 (c) sequential: one worker serves image updates and slices in arrival order (slices every 100 ms / N, images at
                 ``image_hz``); a slice's latency is its wait plus its processing. The worker runs the real jobs
                 back to back and keeps a virtual clock (start = max(arrival, previous finish)), so no time is
                 spent sleeping; like the image lane of ``runtime_ort.lanes``, a waiting image set is replaced
                 by a newer one.
 (d) schedules:  the image lane's ``full`` and ``phase-locked`` schedules on the wall clock at nuScenes rates
-                (``streaming_schedules.py``): staleness added, image age, slice p99, drops, image-lane CPU.
+                (``streaming_schedules.py``): staleness added, image age, slice p99, drops, image-lane CPU; they take
+                turns in ``schedule_rounds`` rounds.
 
 Real-time factor = slice p50 / (100 ms / N) for a 10 Hz LiDAR delivering N slices: <= 1 keeps up.
 """
@@ -35,7 +39,7 @@ import numpy as np
 
 from streamdet.benchmarks.ort_profile import ProfileSummary, summarize_profile
 from streamdet.benchmarks.prepost import PrePostCase, measure_prepost
-from streamdet.benchmarks.streaming_schedules import measure_schedules
+from streamdet.benchmarks.streaming_schedules import SCHEDULE_ROUNDS, measure_schedules
 from streamdet.benchmarks.thread_counts import check_session_threads, default_session_threads
 from streamdet.benchmarks.timing import TimingConfig, TimingStats, summarize
 from streamdet.core.slicing import split_sweep
@@ -45,6 +49,7 @@ from streamdet.runtime_ort.sessions import CPU_ONLY
 from streamdet.runtime_ort.lanes import LaneConfig
 from streamdet.runtime_ort.manifest import Manifest, ManifestError, read_manifest
 from streamdet.runtime_ort.postprocess import PostprocessConfig
+from streamdet.runtime_ort.stats import LatencyStats
 
 Progress = Callable[[str], None]
 SLICE, IMAGES = "slice", "images"
@@ -57,7 +62,7 @@ class StreamingConfig:
     num_slices: int | None = None  # None: the export's
     lidar_hz: float = 10.0  # sweeps per second of the LiDAR the slice lane must keep up with
     image_hz: float = 12.0  # camera rate of the sequential-queue schedule
-    sweeps: int = 5  # timed sweeps in (a) and (b): sweeps x N slice latencies each
+    sweeps: int = 5  # timed sweeps in (a) and (b): sweeps x N slice latencies each, taken in turns (phase_rounds)
     image_updates: int = 3  # image updates timed with the slice lane idle ...
     image_budget_s: float = 20.0  # ... unless they would take longer than this (the paper preset: a minute each)
     queue_sweeps: int = 4  # sweeps of arrivals in (c)
@@ -65,13 +70,14 @@ class StreamingConfig:
     # (d) seconds of the bundled sweep played at nuScenes rates through each image-lane schedule
     # (streaming_schedules.py); 0: skip
     schedule_seconds: float = 3.0
+    schedule_rounds: int = SCHEDULE_ROUNDS  # (d) the schedules take turns in this many plays of schedule_seconds / rounds each
     schedule_slice_workers: int | None = None  # (d) slice workers (LaneConfig.max_in_flight); None: LaneConfig's default
     # (a) again: the slice session's threads (1..MAX_SESSION_THREADS; 1 skips it); None: every usable CPU, at most
     # MAX_SESSION_THREADS (benchmarks/thread_counts.py)
     wide_slice_threads: int | None = None
 
     def __post_init__(self) -> None:
-        for name in ("sweeps", "image_updates", "queue_sweeps"):
+        for name in ("sweeps", "image_updates", "queue_sweeps", "schedule_rounds"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ValueError(f"StreamingConfig.{name} must be a positive integer, got {v!r}")
@@ -227,6 +233,8 @@ class StreamingResult:
     # (d) per image-lane schedule: staleness, image age, slice p99, drops, CPU per rotation (streaming_schedules.py)
     schedules: dict[str, dict] = dataclasses.field(default_factory=dict)
     providers: tuple[str, ...] = ()  # the slice session's onnxruntime providers; () in older results
+    # (a), (a) with every CPU and (b) took turns in this many rounds (phase_rounds; 1: one after the other)
+    phase_rounds: int = 1
 
     @property
     def precision_label(self) -> str:
@@ -286,6 +294,42 @@ def busy_image_lane(det: StreamingDetector, images: dict[str, np.ndarray]) -> It
     finally:
         stop.set()
         worker.join()
+
+
+def phase_rounds(sweeps: int, update_s: float, budget_s: float) -> int:
+    """Rounds in which (a), (a) with every CPU and (b) take turns, a share of the ``sweeps`` each round: one per
+    sweep, fewer where stopping the busy image lane every round would wait too long. A stop waits for the running
+    update to end (``update_s`` at most), so the stops may wait ``budget_s`` in all (StreamingConfig.image_budget_s);
+    at least one round: a preset whose update takes longer than that (the paper's: a minute) runs the phases one
+    after the other, and the report says so."""
+    if update_s <= 0:
+        return sweeps
+    return max(1, min(sweeps, int(budget_s / update_s)))
+
+
+def sweeps_per_round(sweeps: int, rounds: int) -> list[int]:
+    """``sweeps`` spread over ``rounds`` as evenly as they go, the larger shares first."""
+    return [sweeps // rounds + (r < sweeps % rounds) for r in range(rounds)]
+
+
+@contextlib.contextmanager
+def copied_into(stats: LatencyStats, phase: LatencyStats) -> Iterator[LatencyStats]:
+    """Every duration ``stats`` records inside the block goes into ``phase`` too (from any thread).
+
+    The phases take turns on one detector, whose ``stats`` would mix them; it cannot be swapped for a phase's own,
+    since the per-camera lifts hold the same object and time their runs into it. So each phase's stage summary is
+    a copy of what ``stats`` recorded while the phase ran."""
+    record = stats.record
+
+    def both(stage: str, duration_ms: float, gmac: float | None = None) -> None:
+        record(stage, duration_ms, gmac)
+        phase.record(stage, duration_ms, gmac)
+
+    stats.record = both  # type: ignore[method-assign]  # stats.time() calls self.record: it finds this one
+    try:
+        yield phase
+    finally:
+        del stats.record  # the class's method again
 
 
 def _detector(export_dir: Path, cfg: StreamingConfig, profiling: bool = False, slice_threads: int = 1,
@@ -406,26 +450,38 @@ def measure_streaming(
         image_ms.append((time.perf_counter() - start) * 1e3)
     image_alone = LaneStats(summarize(image_ms, requested=cfg.image_updates), det.stats.summary())
 
-    progress(f"[streaming] (a) slices, image lane idle: {cfg.sweeps} sweep(s) of {n}")
-    _time_slices(det, slices, cfg.warmup_sweeps)
-    det.stats.reset()
-    idle = LaneStats(summarize(_time_slices(det, slices, cfg.sweeps)), det.stats.summary())
-    idle_all_cores = None
     cores = cfg.wide_threads  # at most MAX_SESSION_THREADS, which DetectorConfig takes
+    wide = None
     if cores > 1 and warm_s <= cfg.image_budget_s:
-        progress(f"[streaming] (a) again with {cores} threads in the slice session")
         wide = _detector(Path(export_dir), cfg, slice_threads=cores)
         wide.update_images(images)  # the same image BEV, so post-processing sees the same boxes
         _time_slices(wide, slices, cfg.warmup_sweeps)
         wide.stats.reset()
-        idle_all_cores = LaneStats(summarize(_time_slices(wide, slices, cfg.sweeps)), wide.stats.summary())
-
-    progress(f"[streaming] (b) slices, image lane busy: {cfg.sweeps} sweep(s) of {n}")
-    det.stats.reset()
-    with busy_image_lane(det, images) as finished:
-        busy_ms = _time_slices(det, slices, cfg.sweeps)
-        busy_updates = finished[0]
-    busy = LaneStats(summarize(busy_ms), det.stats.summary())
+    rounds = phase_rounds(cfg.sweeps, warm_s, cfg.image_budget_s)
+    phases = "(a) slices, image lane idle" + (f"; (a) again with {cores} threads in the slice session" if wide else "")
+    progress(f"[streaming] {phases}; (b) slices, image lane busy: {cfg.sweeps} sweep(s) of {n} each, taking turns in "
+             f"{rounds} round(s)")  # fmt: skip
+    _time_slices(det, slices, cfg.warmup_sweeps)
+    idle_stats, busy_stats = LatencyStats(), LatencyStats()
+    idle_ms: list[float] = []
+    wide_ms: list[float] = []
+    busy_ms: list[float] = []
+    busy_updates = 0
+    for sweeps in sweeps_per_round(cfg.sweeps, rounds):
+        with copied_into(det.stats, idle_stats):
+            idle_ms += _time_slices(det, slices, sweeps)
+        if wide is not None:
+            wide_ms += _time_slices(wide, slices, sweeps)
+        # the copy outlasts the busy lane: the update running when it stops finishes (and records) inside it
+        with copied_into(det.stats, busy_stats), busy_image_lane(det, images) as finished:
+            busy_ms += _time_slices(det, slices, sweeps)
+            busy_updates += finished[0]  # updates finished while the busy slices ran
+    idle = LaneStats(summarize(idle_ms), idle_stats.summary())
+    busy = LaneStats(summarize(busy_ms), busy_stats.summary())
+    idle_all_cores = None
+    if wide is not None:
+        idle_all_cores = LaneStats(summarize(wide_ms), wide.stats.summary())
+        wide.close()  # its sessions, image BEV and LUT views: not held through (c), (d) and the rest
 
     jobs = arrival_schedule(n, cfg.lidar_hz, cfg.image_hz, cfg.queue_sweeps)
     progress(
@@ -445,9 +501,10 @@ def measure_streaming(
     det.close()
     schedules = {}
     if cfg.schedule_seconds > 0:
-        progress(f"[streaming] (d) image-lane schedules: {cfg.schedule_seconds:g} s at 20 Hz x {n} slices, 12 Hz cameras, each")
+        progress(f"[streaming] (d) image-lane schedules: {cfg.schedule_seconds:g} s at 20 Hz x {n} slices, 12 Hz cameras, each, "
+                 f"taking turns in {cfg.schedule_rounds} round(s)")
         schedules = measure_schedules(export_dir, cfg.precision, cfg.image_precision, cfg.schedule_seconds,
-                                      slice_workers=cfg.schedule_slice_workers)  # fmt: skip
+                                      slice_workers=cfg.schedule_slice_workers, rounds=cfg.schedule_rounds)  # fmt: skip
     progress("[streaming] pillarize and post-processing alone")
     pillars = det.manifest.preset["pillars"]
     prepost = measure_prepost(det.grid, int(pillars["max_points_per_pillar"]), int(pillars["max_pillars"]),
@@ -478,4 +535,5 @@ def measure_streaming(
         prepost=prepost,
         schedules=schedules,
         providers=tuple(det.providers),
+        phase_rounds=rounds,
     )

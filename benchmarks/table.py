@@ -42,7 +42,7 @@ TORCH, TORCH_EXPORT = "PyTorch", "PyTorch on the export form"  # their names in 
 class TableConfig:
     threads: int = 2  # intra-op threads of onnxruntime and torch.set_num_threads
     timing: TimingConfig = field(default_factory=TimingConfig)
-    torch_skip_ms: float | None = None  # skip PyTorch on rows whose first fp32 run exceeds this (--quick); None: never
+    torch_skip_ms: float | None = None  # skip PyTorch on rows whose first, cold fp32 run exceeds this (--quick); None: never
     profile_dir: Path | None = None  # write onnxruntime profiles of every row graph here
     fp16: bool = True  # also convert, time (and profile) the fp16 sibling of every graph
     int8: bool = True  # also quantize, time (and profile) the int8 sibling of every graph
@@ -149,7 +149,7 @@ def _time_rows(rows: list[Row], graphs: list[RowGraphs], notes: list[list[str]],
         first_ms = _first_run_ms(makers[f"{i}:fp32"]())  # its own session, dropped again
         slowest_ms = max(slowest_ms, first_ms)
         if cfg.torch_skip_ms is not None and first_ms > cfg.torch_skip_ms:
-            notes[i].append(f"PyTorch skipped (fp32 run {first_ms:.0f} ms > {cfg.torch_skip_ms:.0f} ms, --quick)")
+            notes[i].append(f"PyTorch skipped (first, cold fp32 run {first_ms:.0f} ms > {cfg.torch_skip_ms:.0f} ms, --quick)")
             continue
         makers[f"{i}:{TORCH}"] = partial(_torch_runner, row.net, row)
         if row.export_net is not None:

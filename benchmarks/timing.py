@@ -16,20 +16,31 @@ from dataclasses import dataclass
 import numpy as np
 
 
+DEFAULT_MIN_REPEAT = 3  # TimingConfig.min_repeat where not given (or repeat, where that is fewer)
+
+
 @dataclass(frozen=True)
 class TimingConfig:
     repeat: int = 20  # timed runs per measurement, unless the budget below cuts them
     warmup: int = 2  # untimed runs first (allocator, thread pools, caches)
-    budget_s: float = 20.0  # a measurement stops adding repeats once this much time is spent on timed runs
-    min_repeat: int = 3  # ... but never fewer than this many timed runs
+    budget_s: float = 20.0  # a measurement stops adding repeats once this much time is spent on timed runs (time_interleaved: spread over its rounds)
+    # ... but never fewer than this many timed runs (nor, in time_interleaved, fewer than one a round); at most
+    # ``repeat``. None: DEFAULT_MIN_REPEAT, or ``repeat`` where that is fewer
+    min_repeat: int | None = None
     slow_warmup_s: float = 2.0  # a warm-up run longer than this ends the warm-up after one run
     settle_s: float = 0.1  # time_interleaved: untimed runs at each turn this long (other thread pools stop spinning)
 
     def __post_init__(self) -> None:
+        if self.min_repeat is None and isinstance(self.repeat, int) and not isinstance(self.repeat, bool):
+            object.__setattr__(self, "min_repeat", min(DEFAULT_MIN_REPEAT, self.repeat))
         for name in ("repeat", "min_repeat"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ValueError(f"TimingConfig.{name} must be a positive integer, got {v!r}")
+        if self.min_repeat > self.repeat:
+            # the floor would overrule the count asked for: one of the two is a mistake
+            raise ValueError(f"TimingConfig.min_repeat must be at most repeat, got min_repeat={self.min_repeat!r} "
+                             f"> repeat={self.repeat!r}")  # fmt: skip
         if isinstance(self.warmup, bool) or not isinstance(self.warmup, int) or self.warmup < 0:
             raise ValueError(f"TimingConfig.warmup must be an integer >= 0, got {self.warmup!r}")
         for name in ("budget_s", "slow_warmup_s", "settle_s"):
@@ -108,9 +119,15 @@ def time_interleaved(
     At each of its turns it then runs untimed for ``settle_s`` before its timed runs: the thread pool of the
     callable before it (onnxruntime's, PyTorch's OpenMP) keeps spinning for a while after its last run and slows
     a small graph timed at once (measured: benchmarks/RESULTS.md, section "Measurements behind design choices
-    (moved from code docstrings on 2026-12-01)", **Timing**). Callables that slow skip the settling. The
-    timed runs are spread evenly over the rounds; ``repeat``, ``budget_s`` and ``min_repeat`` apply to each
-    callable on its own.
+    (moved from code docstrings on 2026-12-01)", **Timing**). Callables that slow skip the settling.
+
+    ``repeat``, ``budget_s`` and ``min_repeat`` apply to each callable on its own, and each is spread evenly over the
+    rounds: by the end of round r (of R) a callable has made at most (r + 1) / R of its ``repeat`` runs, stops adding
+    runs once it has spent (r + 1) / R of ``budget_s``, and has made at least (r + 1) / R of ``min_repeat``. A
+    callable the budget cuts still runs at least once in every round (until it has its ``repeat`` runs), so its
+    samples span the whole measurement as the others' do: spending its budget in the first rounds would leave the
+    others to run their last rounds back to back, and the ratios would compare different stretches of time. The
+    price is that a callable slower than its share of the budget per round runs once a round, up to R runs.
     """
     if not fns:
         raise ValueError("time_interleaved needs at least one callable, got none")
@@ -122,21 +139,24 @@ def time_interleaved(
     per_round = -(-config.repeat // rounds)
     last = next(reversed(fns))  # the last one warmed up
     for r in range(rounds):
-        target = min(config.repeat, (r + 1) * per_round)
+        target = min(config.repeat, (r + 1) * per_round)  # runs by the end of this round
+        quota_s = config.budget_s * (r + 1) / rounds  # the budget spent by then, cumulative: an overrun costs later
+        floor = -(-config.min_repeat * (r + 1) // rounds)  # min_repeat, spread over the rounds alike (<= target)
         for name, fn in fns.items():
             done = samples[name]
-            if len(done) >= target or (spent[name] >= config.budget_s and len(done) >= config.min_repeat):
+            if len(done) >= target:
                 continue
             if name != last and not slow[name]:
                 _settle(fn, config.settle_s)
             last = name
+            least = max(floor, len(done) + 1)  # one run a round at least, so a cut measurement keeps taking turns
             while len(done) < target:
                 start = time.perf_counter()
                 fn()
                 elapsed = time.perf_counter() - start
                 done.append(elapsed * 1e3)
                 spent[name] += elapsed
-                if spent[name] >= config.budget_s and len(done) >= config.min_repeat:
+                if spent[name] >= quota_s and len(done) >= least:
                     break
     return {name: summarize(done, requested=config.repeat) for name, done in samples.items()}
 

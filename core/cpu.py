@@ -454,16 +454,34 @@ def physical_cores(sys_cpu: str | Path | None = None, cpuinfo: str | Path = CPUI
     return None if text is None else cpuinfo_cores(text)
 
 
+def _small_int(value: str) -> int | None:
+    """A /proc/cpuinfo number ("25"); None for anything else ("unknown", which some VMs give as the stepping, or
+    another script's digits, which int() would take)."""
+    return int(value) if value.isascii() and value.isdigit() and len(value) < 6 else None
+
+
+def cpu_identity(path: str | Path = CPUINFO) -> dict[str, str | int | None]:
+    """{vendor_id, family, model, stepping} of the first processor in a /proc/cpuinfo file (x86's ``vendor_id``,
+    ``cpu family``, ``model`` and ``stepping``: "AuthenticAMD", 25, 17, 1); None for each one it does not say (an
+    ARM or POWER CPU, a VM that hides it) or that cannot be read. The model name alone does not tell parts apart:
+    a guest often shows a generic one ("AMD EPYC"), and Zen 3 and Zen 4 are both family 25."""
+    out: dict[str, str | int | None] = {"vendor_id": None, "family": None, "model": None, "stepping": None}
+    keys = {"vendor_id": "vendor_id", "cpu family": "family", "model": "model", "stepping": "stepping"}
+    seen = set()
+    for key, value in _cpuinfo_fields(_read(Path(path)) or ""):
+        if key == "processor" and seen:
+            break  # the first processor's lines only
+        name = keys.get(key)
+        if name is None or not value or name in seen:
+            continue
+        seen.add(name)
+        out[name] = value if name == "vendor_id" else _small_int(value)
+    return out
+
+
 def cpu_vendor_family(path: str | Path = CPUINFO) -> tuple[str | None, int | None]:
     """(vendor_id, cpu family) of the first processor in a /proc/cpuinfo text ("AuthenticAMD", 25); None for what it
-    does not say or cannot be read."""
-    text = _read(Path(path))
-    vendor, family = None, None
-    for key, value in _cpuinfo_fields(text or ""):
-        if not value:
-            continue
-        if key == "vendor_id" and vendor is None:
-            vendor = value
-        elif key == "cpu family" and family is None:
-            family = int(value) if value.isascii() and value.isdigit() and len(value) < 6 else None
-    return vendor, family
+    does not say or cannot be read (``cpu_identity``)."""
+    found = cpu_identity(path)
+    vendor, family = found["vendor_id"], found["family"]
+    return (vendor if isinstance(vendor, str) else None), (family if isinstance(family, int) else None)

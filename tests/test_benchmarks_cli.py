@@ -7,7 +7,9 @@ import json
 import pytest
 from click.testing import CliRunner
 
+import streamdet
 from streamdet.benchmarks.cli import main
+from streamdet.benchmarks.provenance import SCHEMA_VERSION
 from streamdet.benchmarks.run import image_resolutions
 from streamdet.models.lifter_fold import folded_mac_ratio
 from streamdet.models.presets import get_preset
@@ -73,6 +75,18 @@ def test_quick_tiny_run_writes_documented_json(quick_run):
     assert any(t["name"].startswith("post-process 500 candidates") for t in doc["targets"])
     meta = doc["meta"]
     assert meta["preset"] == "tiny" and meta["threads"] >= 1 and meta["repeat"] == 2 and meta["machine"]["cpu_model"]
+    # provenance (docs/cli.md, "streamdet-bench"): the schema, the code, the export timed, the CPU's identity
+    assert meta["schema_version"] == SCHEMA_VERSION and meta["mode"] == "timing"
+    assert meta["streamdet_version"] == streamdet.__version__ and "git_commit" in meta and "git_dirty" in meta
+    assert meta["command"].startswith("streamdet-bench ") and meta["date"]
+    assert len(meta["export_manifest_sha256"]) == 64 and meta["export_dir"] == "(temporary export)"
+    assert set(meta["machine"]["cpu_identity"]) == {"vendor_id", "family", "model", "stepping"}
+    # the peak probe at the start and at the end, apart (the merged keys stay)
+    peak = doc["peak"]
+    assert peak["runs"] == peak["start"]["runs"] + peak["end"]["runs"]
+    assert peak["gflops_per_s"] == max(peak["start"]["gflops_per_s"], peak["end"]["gflops_per_s"])
+    assert peak["end_over_start"] == pytest.approx(peak["end"]["gflops_per_s"] / peak["start"]["gflops_per_s"])
+    assert isinstance(peak["drift_warning"], bool)
     s = doc["streaming"]
     for key in ("slice_idle", "slice_busy", "sequential", "image_lane_alone", "busy_over_idle_p95", "real_time_factor_idle",
                 "real_time_factor_busy", "pre_post_share_idle", "keeps_up_busy", "slice_budget_ms"):
@@ -85,6 +99,9 @@ def test_quick_tiny_run_writes_documented_json(quick_run):
         assert s["slice_idle_all_cores"]["latency"]["count"] == 2 * 8
     assert {"pre", "slice_head", "post", "slice_total"} <= set(s["slice_idle"]["stages"])
     assert s["sequential"]["slice_latency"]["count"] == 8
+    # --quick: 2 sweeps, taken in turns (idle, all cores, busy) in 2 rounds; the schedules in 2 rounds too
+    assert s["phase_rounds"] == 2 and s["phase_sweeps_per_round"] == [1, 1]
+    assert [r["rounds"] for r in s["image_lane_schedules"].values()] == [2, 2]
     assert all(t["met"] in (True, False, None) for t in doc["targets"])
     assert (d / "b.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert len(list((d / "prof").glob("*.fp32.json"))) == NUM_ROWS
@@ -96,8 +113,11 @@ def test_quick_tiny_run_prints_the_table(quick_run):
     result, _ = quick_run
     out = result.output
     for text in ("ms fp32 (p95)", "torch/ort", "% peak", "peak probe", "slice lane, image lane busy", "one sequential queue",
-                 "real-time", "targets:", "machine:"):
+                 "real-time", "targets:", "machine:", "at the start best", "at the end best", "taken in turns: 2 rounds",
+                 "in turns with the other schedule: 2 rounds"):
         assert text in out
+    # --repeat 2 and the image lane alone timed once: too few runs for a p95
+    assert "p95 n/a" in out and "(n/a)" in out
     assert f"[row 1/{NUM_ROWS}]" in out  # progress lines (stderr, mixed into the runner's output)
 
 

@@ -46,7 +46,7 @@ def test_a_slow_row_goes_one_after_the_other(encoder_row, tmp_path):
 def test_quick_skips_pytorch_on_a_slow_row(encoder_row, tmp_path):
     result, _ = _measure(encoder_row, tmp_path, timing=FAST, torch_skip_ms=1e-6)
     assert result.torch is None and result.torch_over_ort is None
-    assert any(n.startswith("PyTorch skipped (fp32 run") for n in result.notes)
+    assert any(n.startswith("PyTorch skipped (first, cold fp32 run") for n in result.notes)
     assert result.fp32.count == result.fp16.count == 2
 
 

@@ -102,6 +102,15 @@ def test_timing_config_rejects_bad_values(kwargs, field):
         TimingConfig(**kwargs)
 
 
+def test_timing_config_min_repeat_is_at_most_repeat():
+    with pytest.raises(ValueError, match=r"TimingConfig.min_repeat must be at most repeat, got min_repeat=5 > repeat=2"):
+        TimingConfig(repeat=2, min_repeat=5)
+    assert TimingConfig(repeat=2, min_repeat=2).min_repeat == 2
+    # not given: 3, or every run where fewer are asked for (TimingConfig(repeat=2) stays valid)
+    assert TimingConfig().min_repeat == timing.DEFAULT_MIN_REPEAT == 3
+    assert TimingConfig(repeat=2).min_repeat == 2 and TimingConfig(repeat=1).min_repeat == 1
+
+
 class Machine:
     """A fake machine whose speed changes at ``slow_after_s``: each callable costs its base seconds, ``slowdown``
     times more from then on. Records the order of the calls."""
@@ -165,10 +174,11 @@ def test_time_interleaved_budget_and_slow_callables_apart(machine):
     cfg = TimingConfig(repeat=8, warmup=2, budget_s=7.0, min_repeat=2, slow_warmup_s=2.0, settle_s=0.0015)
     s = time_interleaved({"fast": m.fn("fast"), "slow": m.fn("slow")}, cfg, rounds=4)
     assert s["fast"].count == 8 and not s["fast"].reduced
-    assert s["slow"].count == 3 and s["slow"].reduced  # 3 + 3 + 3 s >= 7 s; its budget does not stop the fast one
-    assert m.calls.count("slow") == 1 + 3  # one slow warm-up, no settling runs
-    # warm-up, 2 settling runs at the turns that follow the slow one (the last round follows itself), timed
-    assert m.calls.count("fast") == 2 + 3 * 2 + 8
+    # over its 7 / 4 s share of the budget in each round, but still one run a round; its budget does not stop the fast one
+    assert s["slow"].count == 4 and s["slow"].reduced
+    assert m.calls.count("slow") == 1 + 4  # one slow warm-up, no settling runs
+    # warm-up, 2 settling runs at each turn (each follows the slow one), timed
+    assert m.calls.count("fast") == 2 + 4 * 2 + 8
 
 
 def test_time_interleaved_one_callable_settles_never(machine):
@@ -182,3 +192,48 @@ def test_time_interleaved_one_callable_settles_never(machine):
 def test_time_interleaved_rejects_malformed(fns, rounds, message):
     with pytest.raises(ValueError, match=message):
         time_interleaved(fns, TimingConfig(repeat=2, warmup=0), rounds=rounds)
+
+
+def _runs(calls: list[str]) -> str:
+    """The call order with runs of one callable compressed: "A1 B1 A3 B6"."""
+    out: list[list] = []
+    for name in calls:
+        if out and out[-1][0] == name:
+            out[-1][1] += 1
+        else:
+            out.append([name, 1])
+    return " ".join(f"{name}{n}" for name, n in out)
+
+
+@pytest.mark.parametrize("a_s, timed_per_round", [(1.0, 1), (0.4, 2)])
+def test_a_measurement_cut_by_the_budget_keeps_taking_turns(machine, a_s, timed_per_round):
+    """The review's case (A slow, B fast, budget 3 s, repeat 20, 4 rounds): A spent its budget in the first round or
+    two and was absent from the rest ("A1 B1 A4 B21"; at 0.4 s "A1 B1 A6 B6 A4 B16"), so B's last rounds ran back
+    to back. With a per-round share of the budget A runs in every round, and B never runs two rounds in a row."""
+    m = machine({"A": a_s, "B": 0.001})
+    cfg = TimingConfig(repeat=20, warmup=1, budget_s=3.0, min_repeat=3, settle_s=0.0005)
+    s = time_interleaved({"A": m.fn("A"), "B": m.fn("B")}, cfg, rounds=4)
+    # warm-ups; then at each turn A settles with one untimed run, B with one, before the timed runs (5 a round for B)
+    turn = f"A{1 + timed_per_round} B{1 + 5}"
+    assert _runs(m.calls) == "A1 B1 " + " ".join([turn] * 4)
+    assert s["A"].count == 4 * timed_per_round and s["A"].reduced and s["B"].count == 20
+    # its budget is spread over the rounds: spent by the end, give or take a run in each round
+    assert s["A"].count * a_s <= cfg.budget_s + 4 * a_s
+
+
+def test_a_cut_measurement_samples_every_round_when_the_machine_slows(machine):
+    # the machine slows 2x at 4.6 s, in the last round (A's turns: 1.0-2.0, 2.5-3.0, 3.5-4.5, 5.0-6.0 s): a cut A
+    # that spent its budget at the start (0.5-4.0 s, before the change) would not see it, while B would
+    m = machine({"A": 0.5, "B": 0.001}, slow_after_s=4.6, slowdown=2.0)
+    cfg = TimingConfig(repeat=20, warmup=1, budget_s=3.0, min_repeat=3, settle_s=0.0005)
+    s = time_interleaved({"A": m.fn("A"), "B": m.fn("B")}, cfg, rounds=4)
+    assert s["A"].max_ms == pytest.approx(1000.0) and s["B"].max_ms == pytest.approx(2.0)
+
+
+def test_min_repeat_is_spread_over_the_rounds(machine):
+    # each run is over the whole budget: the floor of min_repeat runs still falls 2 to a round, not 8 at once
+    m = machine({"A": 10.0, "B": 0.001})
+    cfg = TimingConfig(repeat=20, warmup=1, budget_s=1.0, min_repeat=8, slow_warmup_s=20.0, settle_s=0.0005)
+    s = time_interleaved({"A": m.fn("A"), "B": m.fn("B")}, cfg, rounds=4)
+    assert s["A"].count == 8
+    assert _runs(m.calls) == "A1 B1 " + " ".join(["A3 B6"] * 4)
