@@ -39,7 +39,7 @@ LIBRARY_ERRORS = (ValueError, KeyError, FileNotFoundError, OSError, MissingExtra
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
 def main() -> None:
-    """ROS 2 bags in and out, viewable in Foxglove, without a ROS installation (needs `pip install '.[ros]'` in the streamdet checkout)."""
+    """ROS 2 bags in and out, viewable in Foxglove, without a ROS installation (needs the ros extra: `pip install 'streamdet[ros]'`, from a checkout `pip install '.[ros]'`)."""
 
 
 @main.command("export")

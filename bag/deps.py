@@ -5,7 +5,7 @@ from __future__ import annotations
 import importlib
 from types import ModuleType
 
-INSTALL_HINT = "pip install '.[ros]' in the streamdet checkout"
+INSTALL_HINT = "pip install 'streamdet[ros]'; from a checkout: pip install '.[ros]'"
 
 
 class MissingExtraError(ImportError):

@@ -325,7 +325,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"replay_table: {e}", file=sys.stderr)
         return 1
     except ImportError:
-        print("replay_table: --plot needs matplotlib (pip install matplotlib, or '.[dev]' in the streamdet checkout)", file=sys.stderr)
+        print("replay_table: --plot needs matplotlib (pip install matplotlib)", file=sys.stderr)
         return 1
     return 0
 

@@ -179,7 +179,7 @@ def check_plot_format(plot_path: Path | None, option: str = "--plot") -> None:
     try:
         from matplotlib.backend_bases import FigureCanvasBase
     except ImportError:
-        raise click.BadParameter("needs matplotlib (pip install matplotlib, or '.[dev]' in the streamdet checkout)", param_hint=option) from None
+        raise click.BadParameter("needs matplotlib (pip install matplotlib)", param_hint=option) from None
     suffix = Path(plot_path).suffix[1:].lower()
     formats = FigureCanvasBase.get_supported_filetypes()
     if suffix and suffix not in formats:

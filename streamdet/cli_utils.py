@@ -281,11 +281,15 @@ def run_edge(module: str, prog: str, *, extra: str | None = None, args: list[str
         except ModuleNotFoundError as e:
             if e.name is None or e.name.split(".")[0] == "streamdet":
                 raise
-            hint = f": pip install '.[{extra}]' in the streamdet checkout (install torch first: pip install torch==2.13.0, with --index-url https://download.pytorch.org/whl/cpu for the CPU build)" if extra else ""
-            return _fail(prog, f"needs the Python package {e.name!r}, which is not installed{hint}")
+            return _fail(prog, _missing_package(e.name, extra))
         # click's own main() would print a bare newline on Ctrl-C and turn it into Abort: parse and invoke directly
-        with command.make_context(prog, list(sys.argv[1:] if args is None else args)) as ctx:
-            command.invoke(ctx)
+        try:
+            with command.make_context(prog, list(sys.argv[1:] if args is None else args)) as ctx:
+                command.invoke(ctx)
+        except ModuleNotFoundError as e:  # a command that imports its extra's packages lazily (bench: torch)
+            if extra is None or e.name is None or e.name.split(".")[0] == "streamdet":
+                raise
+            return _fail(prog, _missing_package(e.name, extra))
         return 0
     except (KeyboardInterrupt, click.exceptions.Abort):
         click.echo(f"{prog}: interrupted", err=True)
@@ -336,6 +340,12 @@ SYMLINK_LOOP = "Symlink loop from "  # how pathlib's resolve() words the Runtime
 
 def _is_symlink_loop(e: BaseException) -> bool:
     return isinstance(e, RuntimeError) and str(e).startswith(SYMLINK_LOOP)
+
+
+def _missing_package(name: str, extra: str | None) -> str:
+    hint = (f": pip install 'streamdet[{extra}]' (from a checkout: pip install '.[{extra}]'; install torch first: pip install "
+            "torch==2.13.0, with --index-url https://download.pytorch.org/whl/cpu for the CPU build)") if extra else ""
+    return f"needs the Python package {name!r}, which is not installed{hint}"
 
 
 def _fail(prog: str, message: str) -> int:

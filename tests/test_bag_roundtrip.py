@@ -186,7 +186,7 @@ def test_missing_extra_is_a_one_line_hint(tiny_synth_data: Path, tmp_path, monke
     monkeypatch.setattr("importlib.import_module", lambda name: no_mcap(name))
     result = CliRunner().invoke(bag_main, ["export", "--data", str(tiny_synth_data), "--out", str(tmp_path / "x.mcap")])
     assert result.exit_code != 0
-    assert "streamdet-bag needs mcap (pip install '.[ros]' in the streamdet checkout)" in result.output
+    assert "streamdet-bag needs mcap (pip install 'streamdet[ros]'; from a checkout: pip install '.[ros]')" in result.output
     assert len(result.output.strip().splitlines()) == 1
 
 
