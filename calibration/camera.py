@@ -41,6 +41,14 @@ MAX_IMAGE_PX = 65536
 MAX_FOCAL_PER_SIDE = 1000.0
 MAX_PRINCIPAL_POINT_PER_SIDE = 100.0
 MAX_CAMERA_OFFSET_M = 1000.0
+# The other end: a focal length under a thousandth of the image side is a field of view over 179.77 degrees across
+# it (2 atan(500)), which no distortion-free pinhole has; it maps the whole grid onto a few pixels and makes a LUT
+# that is wrong but not blind, so no BlindCameraWarning would say so.
+MIN_FOCAL_PER_SIDE = 1e-3
+# Skew K[0, 1] = fx cot(theta), theta the angle between the pixel axes. Real sensors have square pixels (the devkit's
+# and OpenCV's K have zero skew); a tenth of fx is an axis angle 5.7 degrees off square, far past any calibration
+# error, and a huge one shears the image into garbage that is, again, not blind.
+MAX_SKEW_PER_FOCAL = 0.1
 
 
 class CalibrationError(ValueError):
@@ -96,13 +104,27 @@ def as_image_px(value: Any, field: str) -> int:
     return int(value)
 
 
+def check_camera_name(name: Any, field: str) -> str:
+    """``name`` if it is a non-empty printable string (``str.isprintable``), else CalibrationError quoting its repr:
+    names go into log lines, warnings and CLI output, where a newline or a terminal escape would forge or hide text."""
+    if not isinstance(name, str) or not name or not name.isprintable():
+        raise CalibrationError(f"{field}: expected a non-empty printable string, got {short_repr(name)}")
+    return name
+
+
 def _check_plausible(K: np.ndarray, lidar2cam: np.ndarray, width: int, height: int, where: str) -> None:
-    """Refuse intrinsics and offsets no camera on a vehicle has (MAX_FOCAL_PER_SIDE and the two after it)."""
+    """Refuse intrinsics and offsets no camera on a vehicle has (MAX_FOCAL_PER_SIDE and the constants after it)."""
     side = max(width, height)
-    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    fx, fy, cx, cy, skew = K[0, 0], K[1, 1], K[0, 2], K[1, 2], K[0, 1]
     if max(fx, fy) > MAX_FOCAL_PER_SIDE * side:
         raise CalibrationError(f"{where}.K: focal length fx={fx:.6g}, fy={fy:.6g} px is over {MAX_FOCAL_PER_SIDE:g} "
                                f"times the image's {side} px side (a field of view under 0.06 degrees)")
+    if min(fx, fy) < MIN_FOCAL_PER_SIDE * side:
+        raise CalibrationError(f"{where}.K: focal length fx={fx:.6g}, fy={fy:.6g} px is under {MIN_FOCAL_PER_SIDE:g} "
+                               f"times the image's {side} px side (a field of view of almost 180 degrees: no pinhole's)")
+    if abs(skew) > MAX_SKEW_PER_FOCAL * fx:
+        raise CalibrationError(f"{where}.K: skew K[0][1]={skew:.6g} is over {MAX_SKEW_PER_FOCAL:g} times fx={fx:.6g} "
+                               f"(pixel axes {math.degrees(math.atan2(fx, abs(skew))):.3g} degrees apart, not about 90)")
     if max(abs(cx) / width, abs(cy) / height) > MAX_PRINCIPAL_POINT_PER_SIDE:
         raise CalibrationError(f"{where}.K: principal point ({cx:.6g}, {cy:.6g}) px is over "
                                f"{MAX_PRINCIPAL_POINT_PER_SIDE:g} image sides from a {width}x{height} image")
@@ -228,8 +250,7 @@ class Camera:
     timestamp_us: int | None = None  # capture time; informative only, no geometry depends on it
 
     def __post_init__(self) -> None:
-        if not isinstance(self.name, str) or not self.name:
-            raise CalibrationError(f"Camera.name: expected a non-empty string, got {self.name!r}")
+        check_camera_name(self.name, "Camera.name")
         where = f"Camera {self.name!r}"
         object.__setattr__(self, "K", _readonly(_as_intrinsics(self.K, f"{where}.K")))
         object.__setattr__(self, "lidar2cam", _readonly(_as_transform(self.lidar2cam, f"{where}.lidar2cam")))
@@ -449,9 +470,7 @@ class Rig:
             at = f"cameras[{i}]"
             if not isinstance(c, Mapping):
                 raise CalibrationError(f"{src}: {at}: expected an object, got {short_repr(c)}")
-            name = _field(c, "name", src, f"{at}.")
-            if not isinstance(name, str) or not name:
-                raise CalibrationError(f"{src}: {at}.name: expected a non-empty string, got {name!r}")
+            name = _wrap(check_camera_name, _field(c, "name", src, f"{at}."), src, f"{at}.name")
             K = _wrap(_as_intrinsics, _field(c, "K", src, f"{at}."), src, f"{at}.K")
             lidar2cam = transform_entry(_field(c, "lidar2cam", src, f"{at}."), src, f"{at}.lidar2cam")
             width = _wrap(as_image_px, _field(c, "width", src, f"{at}."), src, f"{at}.width")

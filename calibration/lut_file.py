@@ -21,6 +21,7 @@ import io
 import json
 import os
 import zipfile
+import zlib
 
 import numpy as np
 
@@ -62,7 +63,8 @@ def check_lut_archive(path: str | os.PathLike, grid: GridSpec | None = None, num
             shapes = [_check_table(zf, infos[name], name, grid, max_slots, src) for name in DTYPES]
     except LutFileError:
         raise
-    except (OSError, EOFError, zipfile.BadZipFile, zipfile.LargeZipFile, ValueError, KeyError) as e:
+    except (OSError, EOFError, zipfile.BadZipFile, zipfile.LargeZipFile, zlib.error, ValueError, KeyError,
+            NotImplementedError, RuntimeError) as e:  # the last two: zip flags zipfile does not support (patched, encrypted)
         raise LutFileError(f"{src}: not a readable LUT .npz: {e}") from None
     if shapes[0] != shapes[1]:
         raise LutFileError(f"{src}: Lut.weight: shape {shapes[1]} differs from index shape {shapes[0]}")

@@ -30,12 +30,20 @@ class NpyHeader:
 
 
 def npy_header(zf: zipfile.ZipFile, info: zipfile.ZipInfo) -> NpyHeader:
-    """The header of member ``info``, read from its first bytes only; ValueError for an object (pickled) dtype."""
-    with zf.open(info) as f:
-        version = np.lib.format.read_magic(f)
-        read = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
-        shape, fortran_order, dtype = read(f)
-        header_bytes = f.tell()
+    """The header of member ``info``, read from its first bytes only; ValueError for an object (pickled) dtype, and
+    for a member whose header cannot be read at all (naming the member and what went wrong)."""
+    try:
+        with zf.open(info) as f:
+            version = np.lib.format.read_magic(f)
+            read = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+            shape, fortran_order, dtype = read(f)
+            header_bytes = f.tell()
+    except Exception as e:
+        # Not only ValueError: numpy parses the header dict with Python's tokenizer (a damaged byte there raises
+        # tokenize.TokenError or SyntaxError), and zipfile raises NotImplementedError / RuntimeError for flags it does
+        # not support (patched data, encryption), BadZipFile and zlib.error for damaged entries. Every caller is a
+        # reader of someone else's file that reports a ValueError as "not a readable .npz"; anything else escaped it.
+        raise ValueError(f"{info.filename}: cannot read its .npy header: {type(e).__name__}: {e}") from None
     if dtype.hasobject:
         raise ValueError(f"{info.filename} holds Python objects (dtype {dtype}): a pickle, never loaded")
     return NpyHeader(tuple(shape), bool(fortran_order), dtype, header_bytes)

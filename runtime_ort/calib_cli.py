@@ -24,7 +24,7 @@ import click
 from streamdet.calibration.camera import CalibrationError, Rig
 from streamdet.calibration.grid import GridSpec
 from streamdet.calibration.lut import (  # noqa: F401 (ASPECT_TOLERANCE, BlindCameraWarning: public here too)
-    ASPECT_TOLERANCE, BlindCameraWarning, Lut, LutFileError, blind_cameras, build_lut, check_rig_fits, moved_cameras,
+    ASPECT_TOLERANCE, BlindCameraWarning, Lut, blind_cameras, build_lut, check_rig_fits, moved_cameras,
 )
 from streamdet.runtime_ort.manifest import (
     LUT_NAME, MANIFEST_NAME, LutEntry, ManifestError, atomic_write, export_file, read_manifest, sha256_file,
@@ -86,7 +86,8 @@ def _previous_lut(export_dir: str) -> Lut | None:
     """The LUT about to be replaced, to warn about moved cameras; None when there is none or it is broken.
 
     A broken lut.npz is exactly what a rebuild may be run to replace, so no error reading it (Lut.load's
-    LutFileError / CalibrationError, an I/O error) may stop the rebuild: it is logged and skipped."""
+    LutFileError / CalibrationError, an I/O error, or whatever a damaged file makes numpy or zipfile raise) may stop
+    the rebuild: it is logged and skipped."""
     try:
         path = export_file(export_dir, LUT_NAME, "the LUT")
     except ManifestError:
@@ -95,8 +96,9 @@ def _previous_lut(export_dir: str) -> Lut | None:
         return None  # a first build: nothing to compare with, nothing to report
     try:
         return Lut.load(path)
-    except (LutFileError, CalibrationError, ValueError, OSError) as e:  # ValueError: whatever numpy lets through
-        click.echo(f"note: the previous {LUT_NAME} is unreadable, so it is replaced without comparing cameras: {e}", err=True)
+    except Exception as e:  # any Exception: the old file only feeds a warning, and a rebuild is how it gets repaired
+        reason = str(e) if isinstance(e, (CalibrationError, OSError)) else f"{type(e).__name__}: {e}"
+        click.echo(f"note: the previous {LUT_NAME} is unreadable, so it is replaced without comparing cameras: {reason}", err=True)
         return None
 
 

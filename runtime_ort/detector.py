@@ -183,7 +183,7 @@ class StreamingDetector:
 
     def _check_lut(self, lut: Lut) -> Lut:
         """``lut`` if it fits this detector (export_open.check_lut: the check of the export's own LUT too)."""
-        return check_lut(lut, self.image, self.camera_names, self.grid, self.export_dir)
+        return check_lut(lut, self.image, self.camera_names, self.grid, self.export_dir, self.manifest)
 
     def set_calibration(self, calibration: Rig | Lut | Mapping | str | os.PathLike, relift: bool = True) -> None:
         """Swap the projection LUT without recreating sessions: a Rig, a Lut, a parsed calibration.json (a dict),
@@ -225,7 +225,8 @@ class StreamingDetector:
             seq = self._calibration_seq
         if isinstance(calibration, (str, os.PathLike)):
             path = Path(calibration)
-            calibration = Lut.load(path, self.grid, len(self.camera_names)) if path.suffix == ".npz" else Rig.from_calibration_json(path)
+            is_lut = path.suffix.lower() == ".npz"  # lut.NPZ too (a case-insensitive file system's name): never read as JSON
+            calibration = Lut.load(path, self.grid, len(self.camera_names)) if is_lut else Rig.from_calibration_json(path)
         elif isinstance(calibration, Mapping):
             calibration = Rig.from_calibration_json(calibration)
         if isinstance(calibration, Rig) and relift and self._is_current_rig(calibration, seq):

@@ -52,6 +52,9 @@ TYPICAL_PILLAR_SHARE = 8  # TensorRT's "opt" pillar count: the cap / this (the b
 # open_export <- StreamingDetector.__init__ <- caller) or set_calibration (check_lut <- StreamingDetector._check_lut <-
 # _swap_calibration <- set_calibration), where they pointed when the check was a method of the detector.
 _LUT_WARNING_STACKLEVEL = 4
+# The min_depth_m of every LUT an export runs with: export/graph_steps.py, streamdet-calib and export_lut all build
+# with build_lut's default, and the model was trained on such LUTs (check_lut refuses any other).
+EXPORT_LUT_MIN_DEPTH_M = 0.0
 
 
 def check_profile_dir(config: DetectorConfig, export_dir: Path) -> None:
@@ -195,10 +198,10 @@ def open_export(export_dir: Path, config: DetectorConfig, manifest: Manifest | N
         if loaded.calibration_sha256 != m.lut.calibration_sha256:  # streamdet-calib rewrites both together
             raise ManifestError(f"{lut_path} was built from calibration {loaded.calibration_sha256[:12]}..., the manifest "
                                 f"records {m.lut.calibration_sha256[:12]}... (lut.calibration_sha256)")  # fmt: skip
-        lut = check_lut(loaded, image, camera_names, grid, export_dir)
+        lut = check_lut(loaded, image, camera_names, grid, export_dir, m)
     elif uses_images:
         rig = export_rig(m, export_dir)
-        lut = check_lut(export_lut(rig, image, camera_names, grid, m), image, camera_names, grid, export_dir)
+        lut = check_lut(export_lut(rig, image, camera_names, grid, m), image, camera_names, grid, export_dir, m)
         built_from = (lut, rig.sha256())
     views = LutViews(camera_names, m.lut_layout)
     terms = _open_camera_terms(export_dir, m, config, grid, image, lifter, stats, views, lut) if uses_images and lut is not None else None
@@ -302,9 +305,12 @@ def executed_gmac(entry: GraphEntry, **sizes: int) -> float:
 
 
 # ---- the LUT a detector runs with (at construction and on every set_calibration) ------------------------------------
-def check_lut(lut: Lut, image: ImageSpec, camera_names: tuple[str, ...], grid: GridSpec, export_dir: Path) -> Lut:
-    """``lut`` if it fits the export's cameras, image and feature-map sizes and grid (CalibrationError naming every
-    misfit otherwise); a camera that sees no voxel is logged and warned about (BlindCameraWarning), not refused."""
+def check_lut(lut: Lut, image: ImageSpec, camera_names: tuple[str, ...], grid: GridSpec, export_dir: Path,
+              manifest: Manifest) -> Lut:  # fmt: skip
+    """``lut`` if it fits the export's cameras, image and feature-map sizes and grid, and is the kind of LUT the
+    model was trained and exported with (`export_lut`'s: the manifest's heights per voxel, no minimum depth);
+    CalibrationError naming every misfit otherwise. A camera that sees no voxel is logged and warned about
+    (BlindCameraWarning), not refused."""
     img = image
     problems = []
     if tuple(lut.camera_names) != camera_names:
@@ -318,6 +324,14 @@ def check_lut(lut: Lut, image: ImageSpec, camera_names: tuple[str, ...], grid: G
         )
     if lut.grid != grid:
         problems.append(f"grid {lut.grid} != the export's {grid}")
+    # Another kind of LUT fits every graph shape but lifts another image BEV than the model learnt from, silently; and
+    # pipeline.use_sample_calibration would keep it for its rig, since only calibration_sha256 keys that.
+    heights = lut_heights_per_voxel(manifest)
+    if lut.heights_per_voxel != heights:
+        problems.append(f"heights per voxel {lut.heights_per_voxel} != the export's {heights} "
+                        "(manifest preset.lifter.lut_heights_per_voxel)")  # fmt: skip
+    if lut.min_depth_m != EXPORT_LUT_MIN_DEPTH_M:
+        problems.append(f"min depth {lut.min_depth_m:g} m != the {EXPORT_LUT_MIN_DEPTH_M:g} m every export's LUT is built with")
     if problems:
         raise CalibrationError("the LUT does not fit the graphs: " + "; ".join(problems))
     for name, slots in blind_cameras(lut):
@@ -327,10 +341,14 @@ def check_lut(lut: Lut, image: ImageSpec, camera_names: tuple[str, ...], grid: G
     return lut
 
 
+def lut_heights_per_voxel(manifest: Manifest) -> int:
+    """The model's LUT heights per voxel (models/presets.py LifterConfig; absent = 1, manifests written before it)."""
+    return manifest.preset.get("lifter", {}).get("lut_heights_per_voxel", 1)
+
+
 def export_lut(rig: Rig, image: ImageSpec, camera_names: tuple[str, ...], grid: GridSpec, manifest: Manifest) -> Lut:
     """The LUT of ``rig`` for this export: its cameras (in order) and image size, grid, feature stride and heights."""
     img = image
     check_rig_fits(rig, camera_names, img.width, img.height)
-    # the model's heights per voxel (models/presets.py LifterConfig; absent = 1, manifests written before it)
-    heights = manifest.preset.get("lifter", {}).get("lut_heights_per_voxel", 1)
-    return build_lut(rig, grid, img.feature_stride, image_size=(img.width, img.height), heights_per_voxel=heights)
+    return build_lut(rig, grid, img.feature_stride, image_size=(img.width, img.height), min_depth_m=EXPORT_LUT_MIN_DEPTH_M,
+                     heights_per_voxel=lut_heights_per_voxel(manifest))  # fmt: skip

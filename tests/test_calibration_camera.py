@@ -5,6 +5,7 @@ from __future__ import annotations
 import copy
 import json
 import math
+import re
 from importlib.resources import files
 
 import numpy as np
@@ -398,3 +399,67 @@ def test_loads_from_a_traversable(rig: Rig) -> None:
             return CALIB.read_text(encoding=encoding)
 
     assert Rig.from_calibration_json(Resource()) == rig
+
+
+# ---- implausible intrinsics at the other end: a tiny focal length, a huge skew (review 39, L1) ---------------------
+
+def _with_K(K: np.ndarray) -> Camera:
+    return Camera("CAM_X", K, np.eye(4), 1600, 900)
+
+
+def _naive_fov_deg(f: float, side: int) -> float:
+    return math.degrees(2 * math.atan(side / (2 * f)))
+
+
+@pytest.mark.parametrize("fx, fy", [(1e-9, 1e-9), (1.5, 1000.0), (1000.0, 1.599), (0.5, 0.5)])
+def test_a_focal_length_under_a_thousandth_of_the_side_is_refused(fx, fy) -> None:
+    assert _naive_fov_deg(min(fx, fy), 1600) > 179.77  # what the bound means: no pinhole sees that wide
+    with pytest.raises(CalibrationError, match=rf"Camera 'CAM_X'\.K: focal length fx={fx:.6g}, fy={fy:.6g} px is under "
+                                               r"0\.001 times the image's 1600 px side"):  # fmt: skip
+        _with_K(np.array([[fx, 0, 800], [0, fy, 450], [0, 0, 1.0]]))
+
+
+@pytest.mark.parametrize("skew", [1e6, -1e6, 1e300, 0.11 * 1000, -0.101 * 1000])
+def test_a_skew_over_a_tenth_of_fx_is_refused(skew) -> None:
+    with pytest.raises(CalibrationError, match=rf"Camera 'CAM_X'\.K: skew K\[0\]\[1\]={re.escape(f'{skew:.6g}')} is over 0\.1 times "
+                                               r"fx=1000 \(pixel axes [\d.e+-]+ degrees apart"):  # fmt: skip
+        _with_K(np.array([[1000.0, skew, 800], [0, 1000.0, 450], [0, 0, 1.0]]))
+
+
+def test_the_bounds_themselves_and_real_cameras_pass(rig: Rig) -> None:
+    assert 179.77 < _naive_fov_deg(1.6, 1600) < 179.78  # the focal bound's field of view, documented in camera.py
+    assert _with_K(np.array([[1.6, 0, 800], [0, 1.6, 450], [0, 0, 1.0]])).K[0, 0] == 1.6  # exactly side / 1000
+    for skew in (100.0, -100.0, 0.5):  # exactly 0.1 fx, and a little skew as some calibration tools report
+        assert _with_K(np.array([[1000.0, skew, 800], [0, 1000.0, 450], [0, 0, 1.0]])).K[0, 1] == skew
+    for cam in rig.cameras:  # the bundled nuScenes sample: square pixels, focal lengths near 0.8 of the width
+        assert cam.K[0, 1] == 0 and cam.K[0, 0] > 1e-3 * max(cam.width, cam.height)
+
+
+def test_a_calibration_file_with_a_tiny_focal_length_names_file_and_camera(doc: dict, tmp_path) -> None:
+    bad = copy.deepcopy(doc)
+    bad["cameras"][3]["K"] = [[0.5, 0.0, 800.0], [0.0, 0.5, 450.0], [0.0, 0.0, 1.0]]
+    (tmp_path / "calibration.json").write_text(json.dumps(bad))
+    with pytest.raises(CalibrationError, match=r"calibration\.json: cameras\[3\]: Camera 'CAM_BACK'\.K: focal length fx=0\.5"):
+        Rig.from_calibration_json(tmp_path / "calibration.json")
+
+
+# ---- camera names go into logs and CLI output: printable only (review 39, L3) ----------------------------------
+
+@pytest.mark.parametrize("name", ["CAM\n\x1b[31mX", "CAM\tFRONT", "CAM\x00", "CAM\u2028X", "\x7f"])
+def test_an_unprintable_camera_name_is_refused_quoting_its_repr(doc: dict, tmp_path, name) -> None:
+    K = [[1000.0, 0, 800], [0, 1000.0, 450], [0, 0, 1]]
+    with pytest.raises(CalibrationError, match=r"Camera\.name: expected a non-empty printable string, got " + re.escape(repr(name))):
+        Camera(name, K, np.eye(4), 1600, 900)
+    bad = copy.deepcopy(doc)
+    bad["cameras"][1]["name"] = name
+    (tmp_path / "calibration.json").write_text(json.dumps(bad))
+    with pytest.raises(CalibrationError, match=r"calibration\.json: cameras\[1\]\.name: expected a non-empty printable string, got "
+                                               + re.escape(repr(name))):  # fmt: skip
+        Rig.from_calibration_json(tmp_path / "calibration.json")
+    assert name.isprintable() is False  # the rule is str.isprintable
+
+
+def test_printable_names_pass_including_non_ascii() -> None:
+    K = [[1000.0, 0, 800], [0, 1000.0, 450], [0, 0, 1]]
+    for name in ("CAM_FRONT", "cam front 2", "Kamera_vorn_ü", "相机"):
+        assert Camera(name, K, np.eye(4), 1600, 900).name == name

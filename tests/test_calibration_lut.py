@@ -379,3 +379,38 @@ def test_construction_leaves_caller_arrays_writable(tiny_lut: Lut) -> None:
     lut = Lut(index, weight, TINY, 4, tiny_lut.image_width, tiny_lut.image_height, tiny_lut.camera_names,
               tiny_lut.calibration_sha256)
     assert index.flags.writeable and not lut.index.flags.writeable
+
+
+def test_the_caller_cannot_change_a_lut_through_its_own_arrays(tiny_lut: Lut) -> None:
+    index, weight = tiny_lut.index.copy(), tiny_lut.weight.copy()
+    lut = Lut(index, weight, TINY, 4, tiny_lut.image_width, tiny_lut.image_height, tiny_lut.camera_names,
+              tiny_lut.calibration_sha256)
+    assert not np.shares_memory(lut.index, index) and not np.shares_memory(lut.weight, weight)
+    index[...] = lut.sentinel  # what a caller reusing its buffers for the next LUT does
+    weight[...] = 0.0
+    index.flat[0] = 10**9  # past the sentinel: never validated, it would reach the lifter's Gather
+    assert np.array_equal(lut.index, tiny_lut.index) and np.array_equal(lut.weight, tiny_lut.weight)
+    assert not lut.index.flags.writeable and not lut.weight.flags.writeable
+    with pytest.raises(ValueError, match="read-only"):
+        lut.index[0, 0, 0, 0, 0] = 0
+    # a writable view of another array is copied too: writes through its base must not reach the LUT
+    base = tiny_lut.index.copy()
+    view = Lut(base[:], tiny_lut.weight.copy(), TINY, 4, tiny_lut.image_width, tiny_lut.image_height,
+               tiny_lut.camera_names, tiny_lut.calibration_sha256)
+    base[...] = 0
+    assert np.array_equal(view.index, tiny_lut.index)
+
+
+def test_an_owned_read_only_table_is_kept_without_a_copy(tiny_lut: Lut, tmp_path) -> None:
+    assert tiny_lut.index.base is None and tiny_lut.weight.base is None  # build_lut hands Lut its own tables
+    again = Lut(tiny_lut.index, tiny_lut.weight, TINY, 4, tiny_lut.image_width, tiny_lut.image_height,
+                tiny_lut.camera_names, tiny_lut.calibration_sha256)
+    assert again.index is tiny_lut.index and again.weight is tiny_lut.weight  # nobody can write them: shared
+    ro_view = tiny_lut.index.view()  # read-only, but a view: its base might be writable elsewhere, so copied
+    ro_view.setflags(write=False)
+    copied = Lut(ro_view, tiny_lut.weight, TINY, 4, tiny_lut.image_width, tiny_lut.image_height,
+                 tiny_lut.camera_names, tiny_lut.calibration_sha256)
+    assert copied.index is not ro_view and copied.index.base is None and np.array_equal(copied.index, tiny_lut.index)
+    tiny_lut.save(tmp_path / "lut.npz")
+    loaded = Lut.load(tmp_path / "lut.npz")  # np.load's arrays: one copy, owned and read-only
+    assert loaded.index.base is None and not loaded.index.flags.writeable and np.array_equal(loaded.index, tiny_lut.index)

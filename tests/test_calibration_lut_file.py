@@ -147,3 +147,60 @@ def test_the_detector_refuses_a_hostile_lut_before_reading_it(tiny_export, tmp_p
     _declare_size(path, "weight.npy", 0xFFFFFFF0)
     with pytest.raises(LutFileError, match=r"lut\.npz: declares \d+ bytes uncompressed, over the"):
         StreamingDetector(export, DetectorConfig(verify_sha256=False))
+
+
+# ---- damage that numpy and zipfile report with other exceptions than ValueError (review 39, M1) ------------------
+
+def _header_byte_damaged(data: bytes) -> bytes:
+    """The first .npy header's shape tuple loses its closing parenthesis (one byte): numpy's header parser, Python's
+    tokenizer, raises tokenize.TokenError."""
+    at = data.index(b")", data.index(b"'shape': ("))
+    return data[:at] + b" " + data[at + 1:]
+
+
+def _patched_flag_set(data: bytes) -> bytes:
+    """General-purpose flag bit 5 ("compressed patched data") set in the first central-directory entry: zipfile
+    raises NotImplementedError when that member is opened."""
+    out = bytearray(data)
+    out[data.index(b"PK\x01\x02") + 8] |= 0x20
+    return bytes(out)
+
+
+DAMAGE = [(_header_byte_damaged, r"TokenError"), (_patched_flag_set, r"NotImplementedError: compressed patched data")]
+
+
+@pytest.mark.parametrize("damage, cause", DAMAGE, ids=["npy_header_byte", "zip_flag_bit_5"])
+def test_a_damaged_file_is_a_lut_file_error_naming_it(lut, tmp_path, damage, cause):
+    good = tmp_path / "good.npz"
+    lut.save(good)
+    bad = tmp_path / "broken_lut.npz"
+    bad.write_bytes(damage(good.read_bytes()))
+    for load in (lambda: Lut.load(bad), lambda: Lut.load(bad, TINY, lut.num_cameras), lambda: Lut.load(bad, data=bad.read_bytes())):
+        with pytest.raises(LutFileError, match=rf"broken_lut\.npz: index\.npy: cannot read its \.npy header: {cause}"):
+            load()
+
+
+@pytest.mark.parametrize("damage, cause", DAMAGE, ids=["npy_header_byte", "zip_flag_bit_5"])
+def test_the_detector_and_streamdet_calib_handle_a_damaged_lut(tiny_export, tmp_path, damage, cause):
+    from click.testing import CliRunner
+
+    from streamdet.runtime_ort.calib_cli import main as calib_main
+
+    export = tmp_path / "export"
+    shutil.copytree(tiny_export, export)
+    good = (export / "lut.npz").read_bytes()
+    (export / "lut.npz").write_bytes(damage(good))
+    with pytest.raises(LutFileError, match=rf"lut\.npz: .*{cause}"):  # unhashed: the header check is what stops it
+        StreamingDetector(export, DetectorConfig(verify_sha256=False))
+    det = StreamingDetector(tiny_export, DetectorConfig())
+    in_use = det.lut
+    with pytest.raises(LutFileError, match=rf"lut\.npz: .*{cause}"):  # a CalibrationError, as callers catch
+        det.set_calibration(export / "lut.npz")
+    assert det.lut is in_use
+    det.close()
+    # a rebuild is how a broken LUT is repaired: the old one is noted and replaced, not a traceback
+    result = CliRunner().invoke(calib_main, ["lut", "--calibration", str(SAMPLE / "calibration.json"), "--export-dir", str(export)])
+    assert result.exit_code == 0, result.output
+    assert "the previous lut.npz is unreadable, so it is replaced without comparing cameras" in result.output
+    assert (export / "lut.npz").read_bytes() == good  # the same calibration: the same file again
+    StreamingDetector(export, DetectorConfig())  # and its manifest's hash matches it

@@ -11,6 +11,8 @@ import numpy as np
 import pytest
 
 from streamdet.calibration import Camera, CalibrationError, GridSpec, Lut, Rig, build_lut, make_transform
+from streamdet.calibration import lut as lut_module
+from streamdet.calibration.lut import MAX_LUT_BUILD_BYTES, lut_build_nbytes, lut_nbytes
 from streamdet.calibration.lut_coverage import instance_feature_cells, object_coverage
 
 TINY = GridSpec(x_range_m=(-6.4, 6.4), y_range_m=(-6.4, 6.4), z_range_m=(-1.0, 1.0), voxel_xy_m=0.4, voxel_z_m=0.5)
@@ -96,6 +98,104 @@ def test_heights_match_a_naive_vote_count(seed, heights, stride):
         checked += 1
     assert checked > 0.9 * len(votes)
     assert lut.num_slots >= build_lut(rig, TINY, feature_stride=stride).num_slots
+
+
+
+def _all_cameras_at_once(rig, grid: GridSpec, stride: int, size, min_depth_m: float, heights: int):
+    """(index, weight) as build_lut made them before it went camera by camera: every (height, camera) hit of every
+    camera as one int64 key voxel * (sentinel + 1) + row, one np.unique over all of them, slots ranked by
+    searchsorted. The same projection (lut_module._project_camera); only the vote counting differs."""
+    width, height = size
+    cams = rig.resized(width, height).cameras
+    feat_w = math.ceil(width / stride)
+    cells = feat_w * math.ceil(height / stride)
+    sentinel = len(cams) * cells
+    axes = [grid.voxel_center_axes(q) for q in range(4)]
+    xs = np.stack([a[0] for a in axes]).astype(np.float32)
+    ys = np.stack([a[1] for a in axes]).astype(np.float32)
+    per_quadrant = grid.nz * grid.quadrant_ny * grid.quadrant_nx
+    keys = []
+    for dz in ((np.arange(heights) + 0.5) / heights - 0.5) * grid.voxel_z_m:
+        zs = (axes[0][2] + dz).astype(np.float32)
+        for j, cam in enumerate(cams):
+            voxels, rows = lut_module._project_camera(cam.K @ cam.lidar2cam[:3], xs, ys, zs, width, height, stride,
+                                                      feat_w, min_depth_m)  # fmt: skip
+            keys.append(voxels.astype(np.int64) * (sentinel + 1) + rows + j * cells)
+    key, votes = np.unique(np.concatenate(keys), return_counts=True)
+    voxel, row = key // (sentinel + 1), (key % (sentinel + 1)).astype(np.int32)
+    total = np.bincount(voxel, weights=votes, minlength=4 * per_quadrant)
+    slot = np.arange(len(voxel)) - np.searchsorted(voxel, voxel, side="left")
+    k = max(1, int(slot.max()) + 1) if len(slot) else 1
+    flat = ((voxel // per_quadrant) * k + slot) * per_quadrant + voxel % per_quadrant
+    index = np.full(4 * k * per_quadrant, sentinel, np.int32)
+    weight = np.zeros(4 * k * per_quadrant, np.float32)
+    index[flat] = row
+    weight[flat] = (votes / total[voxel]).astype(np.float32)
+    shape = (4, k, grid.nz, grid.quadrant_ny, grid.quadrant_nx)
+    return index.reshape(shape), weight.reshape(shape)
+
+
+@pytest.mark.parametrize("seed, num_cameras", [(0, 1), (1, 3), (2, 6), (5, 9)])
+@pytest.mark.parametrize("heights", [2, 3, 5])
+@pytest.mark.parametrize("stride, min_depth_m", [(4, 0.0), (1, 1.5), (8, 0.0)])
+def test_camera_by_camera_votes_are_the_all_at_once_count_bit_for_bit(seed, num_cameras, heights, stride, min_depth_m):
+    rig = random_rig(seed, num_cameras, size=(66, 50))  # 9 cameras on a 1 m circle overlap: K well above 1
+    lut = build_lut(rig, TINY, stride, (66, 50), min_depth_m=min_depth_m, heights_per_voxel=heights)
+    index, weight = _all_cameras_at_once(rig, TINY, stride, (66, 50), min_depth_m, heights)
+    assert lut.index.shape == index.shape and lut.index.tobytes() == index.tobytes()
+    assert lut.weight.tobytes() == weight.tobytes()
+
+
+
+def test_a_blind_camera_between_seeing_ones_is_counted_bit_for_bit():
+    seeing = random_rig(3, 2, size=(66, 50)).cameras
+    up = make_transform(np.eye(3), [0, 0, 10.0])  # 10 m up, looking up: sees no voxel at any height
+    sky = Camera("SKY", [[30, 0, 33], [0, 30, 25], [0, 0, 1]], np.linalg.inv(up), 66, 50)
+    rig = Rig((seeing[0], sky, seeing[1]), np.eye(4), np.eye(4))
+    lut = build_lut(rig, TINY, 4, (66, 50), heights_per_voxel=3)
+    index, weight = _all_cameras_at_once(rig, TINY, 4, (66, 50), 0.0, 3)
+    assert lut.index.tobytes() == index.tobytes() and lut.weight.tobytes() == weight.tobytes()
+    assert lut.slots_per_camera()["SKY"] == 0 and lut.num_slots > 1
+    alone = build_lut(Rig((sky,), np.eye(4), np.eye(4)), TINY, 4, (66, 50), heights_per_voxel=3)
+    assert alone.num_slots == 1 and np.all(alone.index == alone.sentinel) and not alone.weight.any()
+
+def _count_projections(monkeypatch) -> list[int]:
+    calls = []
+    project = lut_module._project_camera
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        return project(*args, **kwargs)
+
+    monkeypatch.setattr(lut_module, "_project_camera", counted)
+    return calls
+
+
+def test_a_build_whose_votes_pass_the_cap_is_refused_before_projecting(monkeypatch):
+    rig = random_rig(0)
+    calls = _count_projections(monkeypatch)
+    assert lut_build_nbytes(TINY, 4) == 8 * 4 * TINY.nx * TINY.ny * TINY.nz
+    monkeypatch.setattr(lut_module, "MAX_LUT_BUILD_BYTES", lut_build_nbytes(TINY, 4))
+    assert build_lut(rig, TINY, heights_per_voxel=4).heights_per_voxel == 4  # at the cap: built
+    calls.clear()
+    with pytest.raises(ValueError, match=rf"a LUT build for the 32 x 32 x 4 grid at 5 heights per voxel would hold "
+                                         rf"{lut_build_nbytes(TINY, 5)} bytes of votes per camera, over the "
+                                         rf"{lut_build_nbytes(TINY, 4)}-byte cap \(MAX_LUT_BUILD_BYTES\)"):  # fmt: skip
+        build_lut(rig, TINY, heights_per_voxel=5)
+    assert not calls  # refused up front
+    # the paper grid's documented reach with the real cap: 32 heights fit, 33 do not
+    assert lut_build_nbytes(GridSpec(), 32) <= MAX_LUT_BUILD_BYTES < lut_build_nbytes(GridSpec(), 33)
+
+
+def test_k_over_the_table_cap_is_refused_after_the_camera_that_needs_it(monkeypatch):
+    rig = random_rig(2, 6, size=(66, 50))
+    full = build_lut(rig, TINY, heights_per_voxel=3)
+    assert full.num_slots > 2
+    calls = _count_projections(monkeypatch)
+    monkeypatch.setattr(lut_module, "MAX_LUT_BYTES", lut_nbytes(TINY, 1))  # the first camera that needs K >= 2 stops it
+    with pytest.raises(ValueError, match=r"with K = [2-9]\d* slots would take"):
+        build_lut(rig, TINY, heights_per_voxel=3)
+    assert 0 < len(calls) < 3 * len(rig) and len(calls) % 3 == 0  # whole cameras, not every camera, were projected
 
 
 def test_heights_round_trip_and_bad_values(tmp_path):

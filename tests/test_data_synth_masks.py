@@ -32,3 +32,38 @@ def test_empty_mask(tmp_path):
                       np.zeros(0, np.uint16), np.zeros(0, np.str_))  # fmt: skip
     class_id, instance, ids, tokens = read_mask(path, 2, 2)
     assert (class_id == MASK_NONE).all() and not instance.any() and ids.size == 0 and tokens.size == 0
+
+
+
+def _stored_mask(path, damage=lambda b: b):
+    """A 2 x 3 mask written uncompressed (any zip is read), its class_id member's bytes passed through ``damage``
+    before they are stored (the zip's CRC then matches them: only the .npy header is wrong)."""
+    import io
+    import zipfile
+
+    arrays = {"class_id": np.full((2, 3), MASK_NONE, np.uint8), "instance": np.zeros((2, 3), np.uint16),
+              "ids": np.zeros(0, np.uint16), "tokens": np.zeros(0, np.str_)}  # fmt: skip
+    with zipfile.ZipFile(path, "w") as zf:
+        for name, a in arrays.items():
+            buf = io.BytesIO()
+            np.lib.format.write_array(buf, a)
+            zf.writestr(f"{name}.npy", damage(buf.getvalue()) if name == "class_id" else buf.getvalue())
+    return path
+
+
+def _unterminated_shape(b: bytes) -> bytes:
+    at = b.index(b")", b.index(b"'shape': ("))
+    return b[:at] + b" " + b[at + 1:]
+
+
+def test_a_damaged_header_or_zip_flag_is_a_value_error_naming_the_file(tmp_path):
+    # the two damages of a lut.npz that escaped as tokenize.TokenError / NotImplementedError (core/npz_input.py)
+    good = _stored_mask(tmp_path / "good.npz").read_bytes()
+    assert read_mask(tmp_path / "good.npz", 2, 3)[0].shape == (2, 3)
+    tok = _stored_mask(tmp_path / "tok.npz", _unterminated_shape)
+    flag = bytearray(good)
+    flag[good.index(b"PK\x01\x02") + 8] |= 0x20  # "compressed patched data" on the first member
+    (tmp_path / "flag.npz").write_bytes(bytes(flag))
+    for path, cause in ((tok, "TokenError"), (tmp_path / "flag.npz", "NotImplementedError: compressed patched data")):
+        with pytest.raises(ValueError, match=rf"^mask .*{path.name}: not a readable \.npz: class_id\.npy: cannot read its \.npy header: {cause}"):
+            read_mask(path, 2, 3)
