@@ -121,6 +121,8 @@ def bike_racks_of(sample: Sample) -> np.ndarray:
 
 
 def prediction_entries(sample: Sample, dets: Detections, max_boxes: int) -> list[dict]:
+    if not isinstance(dets, Detections):  # a caller's sweep detector: name what it gave, not an attribute it lacks
+        raise TypeError(f"the sweep detector must return Detections, got {type(dets).__name__} for sample {sample.token}")
     order = np.argsort(-dets.scores, kind="stable")[:max_boxes]  # the evaluation refuses more per sample
     return boxes_to_results(sample.token, dets.boxes[order].astype(np.float64), dets.scores[order], dets.labels[order],
                             sample.lidar2ego, sample.ego2global)  # fmt: skip
@@ -136,7 +138,11 @@ def evaluate_dataset(
     config: DetectionConfig = DetectionConfig(),
     progress: Callable[[int, int], None] | None = None,
 ) -> DatasetEvaluation:
-    """Detect every sample of the split and compute nuScenes detection metrics in the global frame."""
+    """Detect every sample of the split and compute nuScenes detection metrics in the global frame.
+    ``max_samples``: the split's first samples only (None: all of them), an int >= 1."""
+    if max_samples is not None and (isinstance(max_samples, bool) or not isinstance(max_samples, (int, np.integer)) or max_samples < 1):
+        # a slice bound: -1 would drop the last sample silently, 0 score nothing
+        raise ValueError(f"max_samples must be None or an int >= 1, got {max_samples!r}")
     reader = NuScenesReader(root, version)
     tokens = split_sample_tokens(reader, root, split)
     if max_samples is not None:

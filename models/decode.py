@@ -63,7 +63,9 @@ def pick_peaks(heatmap: Tensor, top_k: int) -> tuple[Tensor, Tensor, Tensor, Ten
     """heatmap logits (Q, C_cls, Hh, Wh) -> scores, labels, cell (= row * Wh + col), row, col, each (Q, K)."""
     # Python ints: the head map size is static in the slice graph, so the index arithmetic below exports with
     # constants instead of shape computations
-    hh, wh = int(heatmap.shape[-2]), int(heatmap.shape[-1])
+    classes, hh, wh = int(heatmap.shape[-3]), int(heatmap.shape[-2]), int(heatmap.shape[-1])
+    if top_k > classes * hh * wh:  # torch.topk's own error ("selected index k out of range") names neither
+        raise ValueError(f"top_k must be at most classes x cells of the head map ({classes * hh * wh}), got {top_k!r}")
     heat = heatmap.sigmoid()
     hmax = F.max_pool2d(heat, kernel_size=3, stride=1, padding=1)
     heat = heat * (hmax == heat).to(heat.dtype)  # (Q, C_cls, Hh, Wh), non-peaks zeroed

@@ -19,7 +19,7 @@ import pytest
 
 from streamdet.calibration.camera import make_transform, matrix_to_quaternion, quaternion_to_matrix
 from streamdet.core.classes import CLASS_NAMES
-from streamdet.data.nuscenes import NuScenesReader
+from streamdet.data.nuscenes import GLOBAL_ANNOTATIONS, NuScenesReader
 from streamdet.data.sample import bundled_sample_dir, load_bundled_sample, load_image, load_points
 
 SAMPLE_DIR = bundled_sample_dir()
@@ -191,6 +191,70 @@ def test_one_sided_and_missing_velocity(tmp_path):
     assert not s.velocity_valid[0] and np.all(s.gt_boxes[0, 7:9] == 0)
     np.testing.assert_array_equal(s.velocity_valid, known)
     np.testing.assert_allclose(s.gt_boxes[known, 7:9], np.array([b["velocity_xy"] for b in ref], dtype=object)[known].tolist(), atol=1e-6)
+
+
+def _devkit_box_velocity(first: dict, last: dict, t_first_us: int, t_last_us: int, centred: bool) -> np.ndarray:
+    """nuscenes-devkit ``NuScenes.box_velocity`` (max_time_diff=1.5) written out: each timestamp in seconds, then the
+    difference; NaN when it is over 1.5 s, or over twice that for a centred difference (one exactly at the limit is
+    kept: the devkit's test is ``time_diff > max_time_diff``)."""
+    time_diff = 1e-6 * t_last_us - 1e-6 * t_first_us
+    if time_diff > 1.5 * (2 if centred else 1):
+        return np.full(3, np.nan)
+    return (np.asarray(last["translation"]) - np.asarray(first["translation"])) / time_diff
+
+
+@pytest.mark.parametrize(
+    ("prev_gap_us", "next_gap_us", "valid"),
+    [(1_250_000, 1_250_000, True),  # centred over 2.5 s: over 1.5 s, but within the 3 s a centred difference has
+     (500_000, 2_000_000, True),  # the limit is on the whole span, not on either side
+     (1_500_000, 1_500_000, True),  # exactly 3 s (exact in float64 for this timestamp): kept
+     (1_500_000, 1_500_001, False),  # 1 us over
+     (1_750_000, 1_750_000, False),  # 3.5 s
+     (1_000_000, None, True),  # one-sided (no next annotation): 1.5 s at most
+     (1_500_000, None, True),  # exactly 1.5 s: kept
+     (1_500_001, None, False),
+     (1_600_000, None, False),
+     (2_500_000, None, False)],  # what a centred difference may span, one-sided: not kept
+)  # fmt: skip
+def test_velocity_window_is_the_devkits(tmp_path, prev_gap_us, next_gap_us, valid):
+    """The gap box_velocity accepts: 1.5 s for a one-sided difference, 3 s for a centred one, a gap exactly at the
+    limit kept; the reader against the devkit's rule written out, on neighbours moved in time."""
+    root = tmp_path / "nusc"
+    info = _write_tables(root)
+    table_dir = root / "v1.0-mini"
+    ts = info["calib"]["sample_timestamp_us"]
+    samples = json.loads((table_dir / "sample.json").read_text())
+    stamps = {"prev": ts - prev_gap_us, "next": ts + (next_gap_us or 500_000)}
+    for s in samples:
+        s["timestamp"] = stamps.get(s["token"], s["timestamp"])
+    (table_dir / "sample.json").write_text(json.dumps(samples))
+    path = table_dir / "sample_annotation.json"
+    anns = json.loads(path.read_text())
+    if next_gap_us is None:  # cut every track after the key frame: a one-sided difference back to "prev"
+        for a in anns:
+            if a["sample_token"] == info["calib"]["sample_token"]:
+                a["next"] = ""
+        path.write_text(json.dumps(anns))
+    by_token = {a["token"]: a for a in anns}
+    sample_ts = {s["token"]: s["timestamp"] for s in samples}
+    s = NuScenesReader(root, "v1.0-mini").get(info["calib"]["sample_token"])
+    velocity = s.extras[GLOBAL_ANNOTATIONS]["velocity"]
+    tracked = np.array([by_token[t]["prev"] != "" for t in s.annotation_tokens])  # the others are lone annotations
+    assert tracked.sum() == len(tracked) - 2
+    for i, token in enumerate(s.annotation_tokens):
+        ann = by_token[token]
+        if not tracked[i]:
+            assert not s.velocity_valid[i] and np.isnan(velocity[i]).all()
+            continue
+        first = by_token[ann["prev"]]
+        last = by_token[ann["next"]] if ann["next"] else ann
+        want = _devkit_box_velocity(first, last, sample_ts[first["sample_token"]], sample_ts[last["sample_token"]],
+                                    centred=ann["next"] != "")  # fmt: skip
+        assert np.isfinite(want).all() == valid, (token, want)  # the case is the one named
+        np.testing.assert_allclose(velocity[i], want, rtol=1e-12, atol=1e-12, err_msg=token)  # NaN where want is
+        assert s.velocity_valid[i] == valid, (token, s.velocity_valid[i])
+        if not valid:
+            assert np.all(s.gt_boxes[i, 7:9] == 0), (token, s.gt_boxes[i, 7:9])
 
 
 def test_reader_errors_name_what_is_missing(tmp_path):

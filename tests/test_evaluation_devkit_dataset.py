@@ -292,6 +292,35 @@ def test_dataset_mode_gives_the_devkits_figures(dataset_run):
     assert_devkit_figures(figures(dataset_run.metrics), DEVKIT)
 
 
+@pytest.mark.parametrize("bad", [0, -1, np.int64(-1), True, 1.0, "1"])
+def test_max_samples_must_be_a_count(tables, bad):
+    """A slice bound would take -1 as "all but the last sample" and 0 as none (then the misleading "holds no box"):
+    refused before anything is read or detected, the value quoted (the CLI's IntRange says so for the command)."""
+    root, _ = tables
+
+    def never(sample):
+        raise AssertionError("detected a sample")
+
+    with pytest.raises(ValueError, match=r"max_samples must be None or an int >= 1, got ") as e:
+        evaluate_dataset(never, root, version=VERSION, split="val", classes=CLASSES, max_samples=bad)
+    assert str(e.value).endswith(repr(bad))
+
+
+@pytest.mark.parametrize("returned", [None, [], {"boxes": []}])
+def test_a_sweep_detector_returning_no_detections_is_named(tables, returned):
+    root, _ = tables
+    with pytest.raises(TypeError, match=f"the sweep detector must return Detections, got {type(returned).__name__} for sample "):
+        evaluate_dataset(lambda sample: returned, root, version=VERSION, split="val", classes=CLASSES)
+
+
+@pytest.mark.parametrize("count", [1, np.int64(1), 5])
+def test_max_samples_takes_the_first_samples(tables, dataset_run, count):
+    root, info = tables
+    run = evaluate_dataset(oracle_detector(info["extra_predictions"]), root, version=VERSION, split="val",
+                           classes=CLASSES, max_samples=count)  # fmt: skip
+    assert run.num_samples == 1 and figures(run.metrics) == figures(dataset_run.metrics)  # the split holds one
+
+
 def _boxes(entries_by_sample: dict, ego: dict):
     from streamdet.evaluation import EvalBoxes
 

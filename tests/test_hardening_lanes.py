@@ -238,24 +238,32 @@ def test_the_phase_locked_lane_steps_quickly_a_day_after_its_last_slice():
     assert lane.close()
 
 
-def test_a_burst_of_submits_never_blocks_the_callers_of_a_phase_locked_runner():
-    """The audit's burst repro on a stand-in: 33 slices a few microseconds apart, a pause, then submits return at
-    once (before the fix the measured period was microseconds and every plan walked the pause in passes).
+def test_a_burst_of_submits_never_blocks_the_callers_of_a_phase_locked_runner(monkeypatch):
+    """The audit's burst repro on a stand-in: 33 slices a microsecond apart, a pause, then submits return at once
+    (before the fix the measured period was microseconds and every plan walked the pause in passes).
 
-    The runner stamps arrivals with the wall clock: on a loaded machine the loop may take long enough that its
-    arrivals are no burst, so "no period taken" is asserted only when the whole loop ran within a rotation of the
-    fastest LiDAR (its rule on timed arrivals is test_a_burst_then_a_pause_measures_no_rotation's)."""
+    The runner stamps arrivals with its clock (``lanes.time.monotonic``): during the burst that clock steps 1 us a
+    call from the wall clock's present, so the arrivals are a burst however slowly a loaded machine runs the loop
+    (on the wall clock a cold loop can take a rotation of the fastest LiDAR, and be no burst); the clock is the wall
+    clock again for the pause and after."""
     det = ImageFake()
     points = np.zeros((1, 6), np.float32)
     with StreamingRunner(det, LaneConfig(schedule="phase-locked", queue_size=64)) as runner:
-        t0 = time.monotonic()
-        futures = [runner.submit_slice(points, i % 8, float(i)) for i in range(33)]
-        burst = time.monotonic() - t0 < 1.0 / LIDAR_HZ_RANGE[1]
+        ticks = iter(range(10**6))
+        start = time.monotonic()
+        burst_clock = SimpleNamespace(monotonic=lambda: start + next(ticks) * 1e-6, perf_counter=time.perf_counter)
+        monkeypatch.setattr(lanes, "time", burst_clock)
+        try:
+            futures = [runner.submit_slice(points, i % 8, float(i)) for i in range(33)]
+        finally:
+            monkeypatch.setattr(lanes, "time", time)
+        phase = runner._phase_locked._phase
+        assert not phase.locked  # a burst is no rotation: no period taken from it
         time.sleep(0.3)
-        if burst:
-            assert not runner._phase_locked._phase.locked  # a burst is no rotation: no period taken from it
         images = _returns_within(lambda: runner.submit_images(_images(), 1.0), 5.0)
         _returns_within(lambda: runner.submit_slice(points, 1, 2.0), 5.0)
+        # the pause after the burst is no rotation either (33 arrivals' span + the pause once made a plausible one)
+        assert not phase._periods, phase._periods
         again = _returns_within(lambda: runner.submit_images(_images(), 3.0), 5.0)
         for f in futures:
             f.result(WAIT_S)

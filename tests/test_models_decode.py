@@ -91,8 +91,10 @@ def test_decode_empty_quadrant_stack():
 
 def test_decode_rejects_top_k_beyond_cells():
     maps = tuple(torch.zeros(1, ch, 2, 2) for ch in (NUM_CLASSES, 2, 1, 3, 2, 2))
-    with pytest.raises(RuntimeError):
+    with pytest.raises(ValueError, match=rf"top_k must be at most classes x cells of the head map \({NUM_CLASSES * 4}\), got {NUM_CLASSES * 4 + 1}$"):
         decode_head_maps(maps, 1.0, NUM_CLASSES * 4 + 1)
+    boxes, scores, labels = decode_head_maps(maps, 1.0, NUM_CLASSES * 4)  # every class x cell: the most there is
+    assert boxes.shape == (1, NUM_CLASSES * 4, 9) and scores.shape == labels.shape == (1, NUM_CLASSES * 4)
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])

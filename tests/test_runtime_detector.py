@@ -143,6 +143,19 @@ def test_empty_slice_gives_no_detections(detector):
     assert len(res.detections) == 0 and res.num_pillars == 0
 
 
+@pytest.mark.parametrize("num_slices", [None, 4])
+def test_an_empty_sweep_gives_no_detections(detector, num_slices):
+    """A sweep of no point at all (a LiDAR that sent an empty frame): every slice runs empty, nothing is detected."""
+    n = N_SLICES if num_slices is None else num_slices
+    sweep = np.zeros((0, 5), np.float32)
+    dets = detector.detect_sweep(sweep, timestamp=1.0, num_slices=num_slices)
+    assert len(dets) == 0 and dets.boxes.shape == (0, 9) and dets.scores.shape == (0,) and dets.labels.shape == (0,)
+    run = detector.detect_sweep_slices(sweep, timestamp=1.0, num_slices=num_slices)
+    assert len(run.detections) == 0 and [r.slice_index for r in run.slices] == list(range(n))
+    assert all(r.num_points == 0 and r.num_pillars == 0 and len(r.detections) == 0 and r.timestamp == 1.0 for r in run.slices)
+    assert [p.shape for p in run.points] == [(0, 6)] * n
+
+
 @pytest.mark.parametrize(
     "points,k,match",
     [

@@ -75,6 +75,32 @@ def test_old_images_fall_back_after_the_set_age(tiny_export, lidar_export, sampl
     assert late.fallback and late.image_age_s == pytest.approx(0.5)
 
 
+def test_the_newest_slice_of_a_coalesced_run_decides_its_fallback(tiny_export, lidar_export, sample):
+    """detect_slices: one graph run for the run's slices, so one decision; the images' age at the newest slice
+    decides (images too old at the moment of the run), even where the older slice alone would fuse them."""
+    det = StreamingDetector(tiny_export, DetectorConfig(fallback_export_dir=lidar_export, fallback_after_s=0.2))
+    lidar, fused = StreamingDetector(lidar_export), StreamingDetector(tiny_export)
+    for d in (det, fused):
+        d.update_images(_images(d), timestamp=10.0)
+    slices = split_sweep(sample.points, N_SLICES)
+    pts, ks = [slices[2], slices[3]], [2, 3]  # one quadrant's two slices (quadrants_of_sector)
+    # ages 0.1 s and 0.3 s on both sides of 0.2 s: alone, the first would fuse the images, the second fall back
+    assert not det.detect_slice(pts[0], 2, timestamp=10.1).fallback and det.detect_slice(pts[1], 3, timestamp=10.3).fallback
+    got = det.detect_slices(pts, ks, [10.1, 10.3])
+    ref = lidar.detect_slices(pts, ks, [10.1, 10.3])
+    assert [r.fallback for r in got] == [True, True], [(r.fallback, r.image_age_s) for r in got]
+    assert [r.image_age_s for r in got] == pytest.approx([0.1, 0.3])  # each result keeps its own age
+    assert sum(len(r.detections.scores) for r in got) > 0
+    for a, b in zip(got, ref, strict=True):
+        assert _same(a.detections, b.detections)  # the LiDAR-only graph's detections, exactly
+    # both within the age: the fused graph, as a detector without a fallback gives
+    got = det.detect_slices(pts, ks, [10.05, 10.2])
+    ref = fused.detect_slices(pts, ks, [10.05, 10.2])
+    assert [r.fallback for r in got] == [False, False]
+    for a, b in zip(got, ref, strict=True):
+        assert _same(a.detections, b.detections)
+
+
 def test_a_quadrant_without_images_falls_back(tiny_export, lidar_export, sample):
     """Slices reading a quadrant that was never lifted fall back; the others do not."""
     det = StreamingDetector(tiny_export, DetectorConfig(fallback_export_dir=lidar_export))

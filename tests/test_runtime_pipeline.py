@@ -3,6 +3,8 @@ calibration, then the sweep), for a camera + LiDAR export."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -42,6 +44,21 @@ def test_detect_sample_at_another_slice_count_and_without_images(tiny_export, sa
     run = detect_sample(det, sample, num_slices=num_slices, images=False)
     assert run.images is None and len(run.sweep.slices) == num_slices
     assert all(r.image_timestamp is None for r in run.sweep.slices)  # no image ever fed: zeros
+
+
+@pytest.mark.parametrize("fixture", ["tiny_export", "tiny_lidar_export"])
+def test_a_sample_of_an_empty_sweep_detects_nothing(fixture, request, sample):
+    """The per-sample call on a sample whose sweep holds no point: its images still go in, no slice finds anything."""
+    det = StreamingDetector(request.getfixturevalue(fixture))
+    empty = dataclasses.replace(sample, points=np.zeros((0, 5), np.float32), point_time_s=None)
+    run = detect_sample(det, empty)
+    assert len(run.detections) == 0 and len(run.sweep.slices) == det.num_slices
+    assert all(r.num_points == 0 and r.num_pillars == 0 for r in run.sweep.slices)
+    if det.uses_images:
+        assert run.images is not None and run.images.cameras_missing == ()
+        assert all(r.image_timestamp == sample_time_s(sample) for r in run.sweep.slices)
+    else:
+        assert run.images is None
 
 
 def test_another_rig_rebuilds_the_lut_once(tiny_export, sample):

@@ -248,15 +248,19 @@ def _lidar_config() -> TrainConfig:
 def test_a_run_failing_in_set_up_or_before_its_first_record_leaves_nothing(lidar_store, tmp_path, monkeypatch):
     out = tmp_path / "new" / "run"
 
-    def boom(*args, **kwargs):
+    def loop_boom(*args, **kwargs):
         raise RuntimeError("the first step failed on the device")
 
-    monkeypatch.setattr(trainer, "_loop", boom)  # after set-up: config.json and metrics.jsonl are written
+    def set_up_boom(*args, **kwargs):
+        raise RuntimeError("set-up failed: no device")
+
+    monkeypatch.setattr(trainer, "_loop", loop_boom)  # after set-up: config.json and metrics.jsonl are written
     with pytest.raises(RuntimeError, match="first step"):
         train(_lidar_config(), "unused", out, store=lidar_store, echo=lambda m: None)
     assert not (tmp_path / "new").exists()
-    monkeypatch.setattr(trainer, "_set_up", boom)
-    with pytest.raises(RuntimeError):
+    monkeypatch.undo()  # the real loop again: only set-up fails below
+    monkeypatch.setattr(trainer, "_set_up", set_up_boom)
+    with pytest.raises(RuntimeError, match="set-up failed"):
         train(_lidar_config(), "unused", out, store=lidar_store, echo=lambda m: None)
     assert not (tmp_path / "new").exists()
     monkeypatch.undo()
@@ -273,7 +277,7 @@ def test_a_failed_overwrite_keeps_the_old_run_until_set_up_succeeds(lidar_store,
         raise RuntimeError("set-up failed")
 
     monkeypatch.setattr(trainer, "_set_up", boom)
-    with pytest.raises(RuntimeError):
+    with pytest.raises(RuntimeError, match="set-up failed"):
         train(_lidar_config(), "unused", out, store=lidar_store, echo=lambda m: None, overwrite=True)
     assert _listing(out) == before
 

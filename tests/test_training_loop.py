@@ -69,9 +69,24 @@ def test_item_slices_pillars_and_targets(store, seed):
     assert picks  # another epoch draws again (no assertion on which: it is random)
 
 
-def test_collate_matches_per_sample_forward(store):
-    """The batched image lane (stacked images, shifted LUT rows, one sentinel) and pillar offsets give each slice
-    map exactly what a per-slice StreamDetector call gives (eval mode: no batch statistics)."""
+@pytest.fixture
+def one_torch_thread():
+    """torch on one intra-op thread for the test: tiny tensors gain nothing from a second, and on a busy machine the
+    threads wait for each other (measured on 2 cores with one busy loop: 0.9 s with two threads, 0.6 s with one)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def test_collate_matches_per_sample_forward(store, one_torch_thread):
+    """The batched image lane (stacked images, shifted LUT rows, one sentinel, one lift per sample and quadrant shared
+    by that quadrant's two slices) and pillar offsets give each slice map exactly what a per-slice StreamDetector
+    call gives (eval mode: no batch statistics).
+
+    The per-slice call is image_bev (encoder, then lifter) then slice_net: the reference encodes each sample's images
+    once and lifts each of its quadrants once (the same inputs give the same outputs), and is checked against the
+    whole call itself, bit for bit, on each sample's first slice."""
     torch.manual_seed(0)
     det = build_detector(TINY).eval()
     model = TrainingModel(det).eval()
@@ -82,18 +97,31 @@ def test_collate_matches_per_sample_forward(store):
     assert batch.num_maps == 16 and batch.lut_index.shape[0] == 8  # 4 quadrant lifts per sample
     with torch.no_grad():
         maps = model(batch)[0][0]
-    row = 0
+    row = whole = lifts = 0
     for item in items:
         lut = collate.lut(item.rig)
+        images = torch.from_numpy(item.images)
+        with torch.no_grad():
+            feats = det.image_encoder(images)
+        bevs: dict[tuple[int, ...], torch.Tensor] = {}
         for sl in item.slices:
             idx, w = lut.for_quadrants(sl.quadrants)
+            idx, w = torch.from_numpy(idx.astype(np.int64)), torch.from_numpy(w)
             pil = sl.pillars
+            pillars = (torch.from_numpy(pil.features), torch.from_numpy(pil.mask), torch.from_numpy(pil.index))
             with torch.no_grad():
-                ref = det(torch.from_numpy(item.images), torch.from_numpy(idx.astype(np.int64)), torch.from_numpy(w),
-                          torch.from_numpy(pil.features), torch.from_numpy(pil.mask), torch.from_numpy(pil.index))  # fmt: skip
-            for got, want in zip(maps, ref):
+                if sl.quadrants not in bevs:
+                    bevs[sl.quadrants] = det.lifter(feats, idx, w)
+                    lifts += 1
+                ref = det.slice_net(*pillars, bevs[sl.quadrants])
+                if sl is item.slices[0]:  # the reference is the per-slice call
+                    for a, b in zip(ref, det(images, idx, w, *pillars), strict=True):
+                        torch.testing.assert_close(a, b, rtol=0, atol=0)
+                    whole += 1
+            for got, want in zip(maps, ref, strict=True):
                 torch.testing.assert_close(got[row : row + 1], want, rtol=1e-4, atol=1e-4)
             row += 1
+    assert row == 16 and whole == 2 and lifts == 8  # every slice map; every quadrant of both samples
 
 
 def test_overlapping_cameras_equal_zero_features(store):
