@@ -25,8 +25,9 @@
 # variant's slice p99 comes from queueing or from long runs, and `python -m streamdet.benchmarks.replay_table OUT --baseline full
 # [--target-ms 100]` counts the rounds meeting issue 22's line against the variant named full). Run it on a quiet machine.
 set -euo pipefail
-# python -c / -m put the working directory first on sys.path, where the checkout's streamdet/ folder would shadow
-# a non-editable install of the package (Python >= 3.11 honours this; older ones ignore it)
+# python -c / -m put the working directory first on sys.path, where a checkout folder named like the package would
+# shadow a non-editable install of it (revisions before the package root moved to toplevel/ had one; Python >= 3.11
+# honours this, older ones ignore it)
 export PYTHONSAFEPATH=1
 OUT=${1:?OUT}; ROUNDS=${2:?ROUNDS}; SCALES=${3:?SCALES}; shift 3
 [ $# -ge 1 ] || { echo "give at least one LABEL=EXPORT_DIR,SCHEDULE,TERMS[,CODE[,SLICES[,NICE[,IMAGE_THREADS[,YIELD[,HEAP[,WORKERS[,COALESCE[,QUEUE[,PAIRHOLD[,ISA]]]]]]]]]]]]" >&2; exit 2; }

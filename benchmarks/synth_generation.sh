@@ -20,7 +20,8 @@ export_revision() {  # $1: revision -> prints a PYTHONPATH folder holding its st
   local src="$SCRATCH/src-$1" pkg="$SCRATCH/pkg-$1"
   mkdir -p "$src" "$pkg"
   git -C "$ROOT" archive "$1" | tar -x -C "$src"
-  cp -r "$src/streamdet" "$pkg/streamdet"
+  # the package root's folder: toplevel/ (streamdet/ in revisions before the thirty-ninth session)
+  if [ -d "$src/toplevel" ]; then cp -r "$src/toplevel" "$pkg/streamdet"; else cp -r "$src/streamdet" "$pkg/streamdet"; fi
   for d in calibration core models export runtime_ort benchmarks data training evaluation studies bag replay; do
     if [ -d "$src/$d" ]; then ln -s "$src/$d" "$pkg/streamdet/$d"; fi
   done

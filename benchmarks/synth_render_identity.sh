@@ -17,7 +17,7 @@ trap 'rm -rf "$SCRATCH"' EXIT
 
 snapshot() {  # $1: folder -> a PYTHONPATH folder holding a copy of the working tree's streamdet package
   mkdir -p "$1/src" "$1/pkg"
-  cp -r "$ROOT/streamdet" "$1/pkg/streamdet"
+  cp -r "$ROOT/toplevel" "$1/pkg/streamdet"  # the package root's folder (pyproject.toml maps it to streamdet)
   for d in calibration core models export runtime_ort benchmarks data training evaluation studies bag replay; do
     if [ -d "$ROOT/$d" ]; then cp -r "$ROOT/$d" "$1/src/$d"; ln -s "$1/src/$d" "$1/pkg/streamdet/$d"; fi
   done

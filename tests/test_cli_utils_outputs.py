@@ -1,4 +1,4 @@
-"""The CLIs' shared output checks (streamdet/cli_utils.py): two outputs that are one file, and a file output whose
+"""The CLIs' shared output checks (streamdet.cli_utils, toplevel/cli_utils.py): two outputs that are one file, and a file output whose
 folder is missing, refused before any work."""
 
 from __future__ import annotations

@@ -32,7 +32,7 @@ LAYERED = ("calibration", "core", "data", "runtime_ort", "evaluation", "models",
 TORCH_FREE = ("calibration", "core", "runtime_ort", "evaluation", "data")
 FORBIDDEN_FROM_VEHICLE = ("torch", "torchvision", "onnxscript", "onnxconverter_common", "models", "export", "training", "benchmarks")
 NOT_IMPORTABLE = ("benchmarks", "tests", "conftest")  # entry points and test code: nothing imports them
-ROOT_PACKAGE = "streamdet"  # streamdet/ itself (cli_utils): a package of the graph like the others
+ROOT_PACKAGE = "streamdet"  # the root package itself (toplevel/: cli_utils): a package of the graph like the others
 
 
 @dataclass(frozen=True)
@@ -193,7 +193,9 @@ def docs_table() -> dict[str, set[str]]:
             continue
         if set(cells[0]) <= set("-: "):
             continue
-        folder = cells[header.index("folder")].strip("`/ ")
+        # keyed by the package's name in the graph (the root's folder is not named streamdet: pyproject.toml)
+        package = cells[header.index("import")].strip("` ")
+        folder = ROOT_PACKAGE if package == ROOT_PACKAGE else package.removeprefix(ROOT_PACKAGE + ".")
         named = cells[header.index("imports (streamdet)")]
         rows[folder] = set(re.findall(r"`([a-z_]+)`", named))
     return rows

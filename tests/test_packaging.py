@@ -91,6 +91,15 @@ def test_regular_install_imports(tmp_path):
     env["PYTHONPATH"] = str(site)
     # -I would drop PYTHONPATH; run from tmp so the source tree is not on sys.path.
     subprocess.run([sys.executable, "-c", code, str(site)], check=True, cwd=tmp_path, env=env)
+    # From the checkout's root, where a user of the installed package works (the README's paths are relative to it):
+    # sys.path[0] is the checkout, and nothing there may hide the installed package (a streamdet/ folder did).
+    subprocess.run([sys.executable, "-c", code, str(site)], check=True, cwd=ROOT, env=env)
+
+
+def test_no_folder_of_the_checkout_hides_the_installed_package():
+    """Python puts the current folder first on sys.path: a checkout folder named like the package (or an importable
+    streamdet.py) would be imported instead of the installed package, without its subpackages."""
+    assert not (ROOT / "streamdet").exists() and not (ROOT / "streamdet.py").exists()
 
 
 @pytest.mark.parametrize("package", TORCH_FREE)
