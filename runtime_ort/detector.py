@@ -558,7 +558,7 @@ class StreamingDetector:
         if unknown:
             raise ValueError(f"unknown camera names {unknown}; this export knows {list(self.camera_names)}")
         if not images:
-            raise ValueError(f"update_images needs at least one camera image of {list(self.camera_names)}")
+            raise ValueError(f"no camera image given: at least one of {list(self.camera_names)} is needed")  # update_images and encode_images
         for name in self.camera_names:
             if name not in images:
                 continue

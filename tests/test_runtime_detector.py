@@ -156,6 +156,12 @@ def test_an_empty_sweep_gives_no_detections(detector, num_slices):
     assert [p.shape for p in run.points] == [(0, 6)] * n
 
 
+@pytest.mark.parametrize("method", ["update_images", "encode_images"])
+def test_no_camera_image_is_refused_naming_the_cameras(detector, method):
+    with pytest.raises(ValueError, match=r"no camera image given: at least one of \['CAM_"):
+        getattr(detector, method)({})
+
+
 @pytest.mark.parametrize(
     "points,k,match",
     [
