@@ -59,7 +59,9 @@ class RunConfig:
     clockwise: bool | None = None
 
     def __post_init__(self) -> None:
-        check_layout(self.start_deg, self.clockwise)
+        start_deg, clockwise = check_layout(self.start_deg, self.clockwise)
+        object.__setattr__(self, "start_deg", start_deg)  # Python numbers, as the CLI gives them
+        object.__setattr__(self, "clockwise", clockwise)
 
 
 @dataclass(frozen=True)

@@ -157,6 +157,9 @@ def export_resolution_problem(resolution: tuple[int, int]) -> str | None:
         return str(e)
     try:
         rig, source = load_rig(None)  # the calibration _export's ExportOptions leave at the default
+    except (CalibrationError, ExportError) as e:  # a damaged install: the export would fail the same way
+        return f"the export made for the streaming section cannot read its calibration: {e}"
+    try:
         check_rig_fits(rig, rig.names, width, height)
     except (CalibrationError, ExportError) as e:
         near = " or ".join(f"{w}x{h}" for w, h in fitting_resolutions(width, height, rig))
@@ -205,6 +208,7 @@ def run_benchmark(cfg: BenchConfig, progress: Progress = lambda msg: None) -> Be
         "repeat": timing.repeat,
         "warmup": timing.warmup,
         "budget_s": timing.budget_s,
+        "min_repeat": timing.min_repeat,  # the runs a measurement cut by its budget still gets, spread over the rounds
         "rounds": ROUNDS,
         "settle_s": timing.settle_s,
         "quick": cfg.quick,

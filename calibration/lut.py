@@ -370,10 +370,12 @@ def _validate_tables(index: np.ndarray, weight: np.ndarray, grid: GridSpec, sent
 
 # At most this many cameras in one LUT build: the centre-sampled build counts the cameras seeing a voxel in a uint8.
 MAX_LUT_CAMERAS = 255
-# What a build with heights_per_voxel > 1 may take for one camera's votes (`lut_build_nbytes`): an int32 row per
+# What a build with heights_per_voxel > 1 may take for one camera's vote table (`lut_build_nbytes`): an int32 row per
 # (voxel, height) and the masks found from it. Refused over this before anything is projected, so a manifest's grid
 # and heights cannot drive a build into gigabytes before the tables' own cap (MAX_LUT_BYTES) refuses it. The paper
-# grid (16 x 512 x 512 voxels) fits 32 heights per voxel.
+# grid (16 x 512 x 512 voxels) fits 32 heights per voxel. It bounds the vote table only: the arrays of distinct
+# (voxel, feature row) runs built from it take up to 6 int64 a run, and there are as many runs as distinct pairs
+# (one a voxel where its heights meet one feature cell, the usual case; one a vote at worst).
 MAX_LUT_BUILD_BYTES = 1 << 30
 _LUT_BUILD_BYTES_PER_VOTE = 8  # the int32 row, its hit / run-start masks and the comparison between them
 

@@ -66,13 +66,13 @@ def yaw_to_quaternion(yaw: np.ndarray | float) -> np.ndarray:
 
 
 def quaternion_to_yaw(q_wxyz: np.ndarray) -> np.ndarray:
-    """(..., 4) unit quaternions -> (...) yaw in (-pi, pi]: the heading of the rotated x axis in the x-y plane."""
+    """(..., 4) unit quaternions -> (...) yaw in [-pi, pi] (arctan2: a -0.0 numerator gives -pi): the heading of the rotated x axis in the x-y plane."""
     q = np.asarray(q_wxyz, dtype=np.float64)
     w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
     return np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
 
 
 def matrix_to_yaw(r: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) rotation matrices -> (...) yaw in (-pi, pi]: the heading of the rotated x axis."""
+    """(..., 3, 3) rotation matrices -> (...) yaw in [-pi, pi] (arctan2: a -0.0 numerator gives -pi): the heading of the rotated x axis."""
     r = np.asarray(r, dtype=np.float64)
     return np.arctan2(r[..., 1, 0], r[..., 0, 0])

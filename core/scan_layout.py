@@ -67,9 +67,10 @@ def layout_from_times(points: np.ndarray, times: np.ndarray) -> ScanLayout | Non
     return ScanLayout(start, turned < 0, "from the per-point times")
 
 
-def check_layout(start_deg: float | None, clockwise: bool | None, from_data: bool = True) -> None:
+def check_layout(start_deg: float | None, clockwise: bool | None, from_data: bool = True) -> tuple[float | None, bool | None]:
     """ValueError quoting the bad value unless ``start_deg`` is a multiple of 90 in [-360, 360) and ``clockwise`` a
-    bool; with ``from_data`` either may also be None (read from the data)."""
+    bool; with ``from_data`` either may also be None (read from the data). Returns them as a Python float and bool
+    (numpy's are taken, and would not go into a JSON report)."""
     or_none = " (or None: from the data)" if from_data else ""
     # bounded: 1e300 is a multiple of 90 too, and its azimuths would put every point outside every sector
     if (start_deg is not None or not from_data) and (
@@ -78,6 +79,7 @@ def check_layout(start_deg: float | None, clockwise: bool | None, from_data: boo
         raise ValueError(f"start_deg must be a multiple of 90 degrees in [-360, 360){or_none}, got {start_deg!r}")
     if (clockwise is not None or not from_data) and not isinstance(clockwise, (bool, np.bool_)):
         raise ValueError(f"clockwise must be True or False{or_none}, got {clockwise!r}")
+    return (None if start_deg is None else float(start_deg)), (None if clockwise is None else bool(clockwise))
 
 
 def choose_layout(found: ScanLayout | None, fallback: ScanLayout, start_deg: float | None = None,

@@ -154,7 +154,8 @@ def _occupied(out_dir: Path, version: str, survey: RootSurvey) -> str:
               help="LiDAR sweeps per key-frame interval including the key frame, 1..10 (nuScenes has 10, at 20 Hz).")
 @click.option("--camera-hz", default=0.0, show_default=True, type=FiniteFloatRange(0.0, MAX_CAMERA_HZ),
               help="Camera exposures a second, each as the LiDAR crosses the camera's axis (nuScenes: 12, with "
-                   "--sweeps-per-sample 10); 0: at key frames only (2 Hz). The frames between key frames go to "
+                   "--sweeps-per-sample 10, which a replay needs to find a frame at each of its triggers: "
+                   "docs/synth/timing.md); 0: at key frames only (2 Hz). The frames between key frames go to "
                    "OUT/sweeps/CAM_*/ as nuScenes files its camera sweeps (no masks, no annotations; training reads key "
                    "frames only, streamdet-replay and streamdet-bag read them all). Rendering time grows with the "
                    f"rate: 12 Hz renders about 6 times the images. At most {MAX_CAMERA_HZ:g} (once per LiDAR rotation).")

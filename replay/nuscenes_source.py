@@ -7,7 +7,7 @@ has gaps between rotations (the report says which rate the data had).
 
 Cameras: each camera triggers at ``camera_hz`` by the trigger model (``triggers.py``: ``simultaneous``, all at once
 from drive time 0, or ``lidar-synced``, each as the LiDAR crosses its optical axis, as nuScenes does); a trigger
-delivers the newest recorded image of that camera at or before it (the first one before any), and the cameras
+delivers the newest recorded image of that camera at or before it, and the cameras
 triggered at the same moment form one `ImageSet`. A frame stamped up to ``TRIGGER_MATCH_S`` after its trigger is
 the trigger's, delivered at its stamp; a trigger before a camera's first frame delivers nothing from it (never a
 frame from the future). Real nuScenes records cameras at 12 Hz, and so does the synthetic world generated with
@@ -212,9 +212,10 @@ def _image_sets(
         if not images:
             continue
         recorded_s = float(min(times))
-        lags.append(t - recorded_s)
         # a frame stamped just after its trigger was timed a little early from the points: it is captured at its stamp
-        found.append((max(float(t), float(max(times))), images, recorded_s))
+        capture_s = max(float(t), float(max(times)))
+        lags.append(capture_s - recorded_s)
+        found.append((capture_s, images, recorded_s))
     found.sort(key=lambda f: f[0])
     sets = [ImageSet(i, capture, images, recorded_s) for i, (capture, images, recorded_s) in enumerate(found)]
     first = stamps[channels[0]]

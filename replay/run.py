@@ -84,7 +84,9 @@ class ReplayConfig:
             check_rate(getattr(self, name), f"ReplayConfig.{name}")
         check_time_scale(self.time_scale, "ReplayConfig.time_scale")
         check_trigger(self.camera_trigger)
-        check_layout(self.start_deg, self.clockwise)
+        start_deg, clockwise = check_layout(self.start_deg, self.clockwise)
+        object.__setattr__(self, "start_deg", start_deg)  # Python numbers: the config goes into the JSON report
+        object.__setattr__(self, "clockwise", clockwise)
         check_delivery(self.camera_delivery_ms, "ReplayConfig.camera_delivery_ms", "ms")
         if not isinstance(self.camera_outages, tuple) or not all(isinstance(o, CameraOutage) for o in self.camera_outages):
             raise ValueError(f"ReplayConfig.camera_outages must be a tuple of CameraOutage, got {self.camera_outages!r}")
@@ -179,13 +181,19 @@ def warm_up(det: StreamingDetector, drive: Drive, num_slices: int, per_quadrant:
         det.update_images(drive.image_sets[0].images, timestamp=WARM_UP_TIMESTAMP_S)
         for q in range(4) if per_quadrant else ():
             det.update_images(drive.image_sets[0].images, timestamp=WARM_UP_TIMESTAMP_S, quadrants=[q])
-    for n in {num_slices, 1}:
-        for s in slice_sweep(drive.sweeps[0], n, det.config.start_deg, det.config.clockwise):
-            det.detect_slice(s.points, s.slice_index, WARM_UP_TIMESTAMP_S, n)
+    def slices_once() -> None:
+        for n in {num_slices, 1}:
+            for s in slice_sweep(drive.sweeps[0], n, det.config.start_deg, det.config.clockwise):
+                det.detect_slice(s.points, s.slice_index, WARM_UP_TIMESTAMP_S, n)
+
+    slices_once()
     # The warm-up picture is the drive's first image set, captured after the drive's first slices: they must not see
-    # it. Until the first real update they read no image, as a vehicle starting up does.
+    # it. Until the first real update they read no image, as a vehicle starting up does; with a LiDAR-only fallback
+    # they run its graph, which is warmed here too (its first runs would be the drive's).
     if det.uses_images:
         det.forget_images()
+        if det.config.fallback_export_dir is not None:
+            slices_once()
     det.stats.reset()
 
 

@@ -75,7 +75,9 @@ class ImageSet:
     """The images of the cameras at one camera trigger."""
 
     index: int
-    capture_s: float  # drive time of the trigger: the image BEV made from this set is as old as now - capture_s
+    # drive time of the trigger (or of its frame, stamped up to nuscenes_source.TRIGGER_MATCH_S after a trigger timed
+    # a little early): the image BEV made from this set is as old as now - capture_s
+    capture_s: float
     images: Mapping[str, np.ndarray]  # camera name -> (H, W, 3) uint8 RGB at the detector's image size
     recorded_s: float  # drive time the images were recorded at (earlier than capture_s where a source holds images)
 

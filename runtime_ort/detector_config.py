@@ -104,9 +104,11 @@ class DetectorConfig:
             except ValueError as e:
                 raise ValueError(f"DetectorConfig.num_slices: {e}") from None
         try:
-            check_layout(self.start_deg, self.clockwise, from_data=False)  # the runtime slices in one known layout
+            start_deg, clockwise = check_layout(self.start_deg, self.clockwise, from_data=False)  # one known layout
         except ValueError as e:
             raise ValueError(f"DetectorConfig.{e}") from None
+        object.__setattr__(self, "start_deg", start_deg)
+        object.__setattr__(self, "clockwise", clockwise)
         if self.score_threshold is not None and (
             isinstance(self.score_threshold, bool) or not isinstance(self.score_threshold, numbers.Real)
             or not 0.0 <= self.score_threshold <= 1.0

@@ -414,3 +414,30 @@ def test_ctrl_c_during_start_up_exits_130_without_traceback(tmp_path):
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 130 and err == "streamdet-x: interrupted\n"
+
+
+@pytest.mark.parametrize("missing, extra, hinted", [("torch", "export", True), ("torch._C", "export", True),
+                                                    ("mcap", "ros", True), ("somelib", "export", False),
+                                                    ("torch", None, False)])  # fmt: skip
+def test_a_late_missing_module_is_the_extras_hint_only_where_the_extra_installs_it(tmp_path, monkeypatch, capsys,
+                                                                                   missing, extra, hinted):
+    """A module missing while a command runs gets its extra's one-line hint where that extra installs it; any other
+    is a bug (its traceback), which installing an extra would not mend."""
+    from streamdet.cli_utils import run_edge
+
+    module = f"late_import_cli_{missing.replace('.', '_')}_{extra}"  # one module per case: imported modules stay cached
+    (tmp_path / f"{module}.py").write_text(
+        "import click\n"
+        "@click.command()\n"
+        "def main():\n"
+        f"    raise ModuleNotFoundError('no module', name={missing!r})\n"
+    )
+    monkeypatch.syspath_prepend(str(tmp_path))
+    if not hinted:
+        with pytest.raises(ModuleNotFoundError):
+            run_edge(module, "streamdet-x", extra=extra, args=[])
+        return
+    assert run_edge(module, "streamdet-x", extra=extra, args=[]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith(f"streamdet-x: error: needs the Python package {missing!r}") and err.count("\n") == 1
+    assert f"pip install 'streamdet[{extra}]'" in err and ("torch==2.13.0" in err) == (extra == "export")

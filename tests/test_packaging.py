@@ -130,3 +130,18 @@ def test_every_module_imports():
                     continue
                 failed.append(f"{name}: {e}")
     assert not failed, failed
+
+
+def test_the_extras_hints_name_real_extras():
+    """cli_utils.EXTRA_MODULES names the extras whose missing modules get a hint: each is one of pyproject.toml's, and
+    each module is what one of its requirements installs."""
+    import re
+
+    from streamdet.cli_utils import EXTRA_MODULES
+
+    extras = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["optional-dependencies"]
+    for extra, modules in EXTRA_MODULES.items():
+        assert extra in extras
+        dists = {re.split(r"[<>=;\[ ]", r, maxsplit=1)[0].lower().replace("-", "_") for r in extras[extra]}
+        for module in modules:
+            assert any(d == module or d.startswith(module + "_") for d in dists), (extra, module, dists)

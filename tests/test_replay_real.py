@@ -234,3 +234,23 @@ def _first_slice(drive, det):
     from streamdet.replay.schedule import slice_sweep
 
     return slice_sweep(drive.sweeps[0], det.num_slices, det.config.start_deg, det.config.clockwise)[0]
+
+
+def test_warm_up_runs_the_fallback_graph_too(drive_data, tiny_export, tiny_lidar_export):
+    """The drive's first slices, with no image yet, run the LiDAR-only fallback where one is configured: the warm-up
+    runs it once too, so that its slow first runs are not the drive's."""
+    from streamdet.replay.nuscenes_source import DatasetTables, load_drive
+    from streamdet.replay.run import warm_up
+    from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector
+    from streamdet.runtime_ort.fallback import FALLBACK_GRAPH
+
+    tables = DatasetTables(drive_data, "v1.0-synth")
+    for fallback in (None, str(tiny_lidar_export)):
+        config = DetectorConfig(start_deg=180.0, clockwise=True, fallback_export_dir=fallback)
+        with StreamingDetector(tiny_export, config) as det:
+            drive = load_drive(tables, tables.scene_names()[0], (det.image.width, det.image.height), max_seconds=0.2)
+            with det.recording() as rec:
+                warm_up(det, drive, det.num_slices)
+            graphs = {run.graph for run in rec.runs}
+            assert (FALLBACK_GRAPH in graphs) == (fallback is not None)
+            assert det.image_timestamp is None and det.stats.summary() == {}

@@ -186,7 +186,7 @@ def test_bad_images(detector, sample):
         detector.update_images({"CAM_FRONT": good["CAM_FRONT"][:-2]})
     with pytest.raises(ValueError, match="uint8"):
         detector.update_images({"CAM_FRONT": good["CAM_FRONT"].astype(np.float32)})
-    with pytest.raises(ValueError, match="at least one camera"):
+    with pytest.raises(ValueError, match="no camera image given: at least one of"):
         detector.update_images({})
 
 

@@ -35,8 +35,8 @@ def test_warm_up_leaves_no_image_no_stats_and_the_same_detections(fixture, reque
 @pytest.mark.parametrize("bad", [0, -1, np.int64(0), 1.5, True, "2", None])
 def test_warm_up_rounds_must_be_a_positive_int(tiny_export, bad):
     """warm_up(0) is no "warm nothing": refused as any other count below 1, the value quoted, the detector left as it was."""
-    det = StreamingDetector(tiny_export)
-    with pytest.raises(ValueError, match=r"warm_up rounds must be an int >= 1, got ") as e:
-        det.warm_up(bad)
-    assert str(e.value).endswith(repr(bad))
-    assert det.stats.summary() == {} and det.image_state is None
+    with StreamingDetector(tiny_export) as det:
+        with pytest.raises(ValueError, match=r"warm_up rounds must be an int >= 1, got ") as e:
+            det.warm_up(bad)
+        assert str(e.value).endswith(repr(bad))
+        assert det.stats.summary() == {} and det.image_state is None

@@ -290,3 +290,20 @@ def test_none_is_refused_where_the_layout_is_not_read_from_data():
         check_layout(None, True, from_data=False)
     with pytest.raises(ValueError, match="DetectorConfig.clockwise must be True or False, got None"):
         DetectorConfig(clockwise=None)
+
+
+def test_check_layout_gives_python_numbers_for_the_reports():
+    """numpy numbers are taken, and handed on as Python ones: a replay's config goes into its JSON report."""
+    import json
+    from pathlib import Path
+
+    from streamdet.replay.run import ReplayConfig
+
+    start, cw = check_layout(np.float32(180), np.bool_(True))
+    assert (start, cw) == (180.0, True) and type(start) is float and type(cw) is bool
+    assert check_layout(None, None) == (None, None)
+    config = ReplayConfig(data=Path("x"), export_dir=Path("y"), start_deg=np.float32(180), clockwise=np.bool_(True))
+    assert type(config.start_deg) is float and type(config.clockwise) is bool
+    json.dumps(config.to_dict())
+    det_config = DetectorConfig(start_deg=np.int64(90), clockwise=np.bool_(False))
+    assert type(det_config.start_deg) is float and det_config.clockwise is False

@@ -287,8 +287,8 @@ def run_edge(module: str, prog: str, *, extra: str | None = None, args: list[str
             with command.make_context(prog, list(sys.argv[1:] if args is None else args)) as ctx:
                 command.invoke(ctx)
         except ModuleNotFoundError as e:  # a command that imports its extra's packages lazily (bench: torch)
-            if extra is None or e.name is None or e.name.split(".")[0] == "streamdet":
-                raise
+            if e.name is None or e.name.split(".")[0] not in EXTRA_MODULES.get(extra, ()):
+                raise  # not the extra's: installing it would not help
             return _fail(prog, _missing_package(e.name, extra))
         return 0
     except (KeyboardInterrupt, click.exceptions.Abort):
@@ -342,10 +342,21 @@ def _is_symlink_loop(e: BaseException) -> bool:
     return isinstance(e, RuntimeError) and str(e).startswith(SYMLINK_LOOP)
 
 
+# The top-level modules each extra of pyproject.toml installs (a late ModuleNotFoundError of another is a bug).
+EXTRA_MODULES: dict[str, tuple[str, ...]] = {
+    "export": ("torch", "onnxscript", "onnxconverter_common", "matplotlib"),
+    "ros": ("mcap", "mcap_ros2", "rosbags"),
+}
+TORCH_FIRST = ("install torch first: pip install torch==2.13.0, with --index-url https://download.pytorch.org/whl/cpu for "
+               "the CPU build")
+
+
 def _missing_package(name: str, extra: str | None) -> str:
-    hint = (f": pip install 'streamdet[{extra}]' (from a checkout: pip install '.[{extra}]'; install torch first: pip install "
-            "torch==2.13.0, with --index-url https://download.pytorch.org/whl/cpu for the CPU build)") if extra else ""
-    return f"needs the Python package {name!r}, which is not installed{hint}"
+    if extra is None:
+        return f"needs the Python package {name!r}, which is not installed"
+    first = f"; {TORCH_FIRST}" if extra == "export" else ""
+    return (f"needs the Python package {name!r}, which is not installed: pip install 'streamdet[{extra}]' (from a "
+            f"checkout: pip install '.[{extra}]'{first})")
 
 
 def _fail(prog: str, message: str) -> int:
