@@ -110,7 +110,7 @@ def balanced_probe(x_train: np.ndarray, y_train: np.ndarray, x_test: np.ndarray,
 
 
 def measure(checkpoint: Path, data: Path, split: str | None, max_samples: int | None, version: str = DEFAULT_TABLE_VERSION) -> dict:
-    from streamdet.calibration.lut import build_lut
+    from streamdet.calibration.lut_build import build_lut
 
     model, preset = load_weights(checkpoint)
     if not preset.use_image:

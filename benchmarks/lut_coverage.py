@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 
 from streamdet.core.table_version import DEFAULT_TABLE_VERSION
-from streamdet.calibration.lut import build_lut
+from streamdet.calibration.lut_build import build_lut
 from streamdet.calibration.lut_coverage import object_coverage
 from streamdet.cli_utils import FiniteFloatRange
 from streamdet.core.classes import CLASS_NAMES

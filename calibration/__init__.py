@@ -13,7 +13,8 @@ from streamdet.calibration.camera import (
     quaternion_to_matrix,
 )
 from streamdet.calibration.grid import GridSpec
-from streamdet.calibration.lut import Lut, build_lut
+from streamdet.calibration.lut import Lut
+from streamdet.calibration.lut_build import build_lut
 from streamdet.calibration.perturb import euler_to_matrix, matrix_to_euler, perturb_rig
 from streamdet.calibration.projection import project_points, visible_mask
 from streamdet.calibration.sectors import (

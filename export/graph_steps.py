@@ -18,7 +18,8 @@ import torch
 
 from streamdet.calibration.camera import CalibrationError, Rig
 from streamdet.calibration.compact_lut import lifter_lut_feeds
-from streamdet.calibration.lut import build_lut, check_rig_fits
+from streamdet.calibration.lut import check_rig_fits
+from streamdet.calibration.lut_build import build_lut
 from streamdet.core.constants import BUNDLED_CALIBRATION_SOURCE
 from streamdet.core.image_layout import IMAGE_HALF
 from streamdet.core.lut_layout import LUT_COMPACT

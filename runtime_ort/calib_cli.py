@@ -24,8 +24,9 @@ import click
 from streamdet.calibration.camera import CalibrationError, Rig
 from streamdet.calibration.grid import GridSpec
 from streamdet.calibration.lut import (  # noqa: F401 (ASPECT_TOLERANCE, BlindCameraWarning: public here too)
-    ASPECT_TOLERANCE, BlindCameraWarning, Lut, blind_cameras, build_lut, check_rig_fits, moved_cameras,
+    ASPECT_TOLERANCE, BlindCameraWarning, Lut, blind_cameras, check_rig_fits, moved_cameras,
 )
+from streamdet.calibration.lut_build import build_lut
 from streamdet.runtime_ort.manifest import (
     LUT_NAME, MANIFEST_NAME, LutEntry, ManifestError, atomic_write, export_file, read_manifest, sha256_file,
     write_manifest,

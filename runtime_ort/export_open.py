@@ -24,7 +24,8 @@ import onnx
 
 from streamdet.calibration.camera import CalibrationError, Rig
 from streamdet.calibration.grid import GridSpec
-from streamdet.calibration.lut import BlindCameraWarning, Lut, blind_cameras, build_lut, check_rig_fits
+from streamdet.calibration.lut import BlindCameraWarning, Lut, blind_cameras, check_rig_fits
+from streamdet.calibration.lut_build import build_lut
 from streamdet.calibration.quadrant_lut import QuadrantLut
 from streamdet.core.sectors import NUM_QUADRANTS, check_num_slices, quadrants_of_sector
 from streamdet.runtime_ort.camera_terms import CameraTerms, open_camera_terms

@@ -14,7 +14,7 @@ from streamdet.bag.cli import main as bag_main
 from streamdet.bag.export import cloud_time_s
 from streamdet.calibration.camera import make_transform, quaternion_to_matrix
 from streamdet.calibration.grid import GridSpec
-from streamdet.calibration.lut import build_lut
+from streamdet.calibration.lut_build import build_lut
 from streamdet.core.points import SWEEP_DURATION_S
 from streamdet.data.nuscenes import NuScenesReader
 from streamdet.data.sample import load_bundled_sample, load_image

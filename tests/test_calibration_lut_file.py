@@ -15,7 +15,8 @@ import pytest
 
 from streamdet.calibration.camera import CalibrationError, Rig
 from streamdet.calibration.grid import GridSpec
-from streamdet.calibration.lut import Lut, build_lut
+from streamdet.calibration.lut import Lut
+from streamdet.calibration.lut_build import build_lut
 from streamdet.calibration.lut_file import MAX_LUT_BYTES, MAX_LUT_META_BYTES, LutFileError
 from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector
 

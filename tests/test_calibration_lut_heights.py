@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 
 from streamdet.calibration import Camera, CalibrationError, GridSpec, Lut, Rig, build_lut, make_transform
-from streamdet.calibration import lut as lut_module
-from streamdet.calibration.lut import MAX_LUT_BUILD_BYTES, lut_build_nbytes, lut_nbytes
+from streamdet.calibration import lut_build as lut_module
+from streamdet.calibration.lut import lut_nbytes
+from streamdet.calibration.lut_build import MAX_LUT_BUILD_BYTES, lut_build_nbytes
 from streamdet.calibration.lut_coverage import instance_feature_cells, object_coverage
 
 TINY = GridSpec(x_range_m=(-6.4, 6.4), y_range_m=(-6.4, 6.4), z_range_m=(-1.0, 1.0), voxel_xy_m=0.4, voxel_z_m=0.5)
@@ -192,7 +193,7 @@ def test_k_over_the_table_cap_is_refused_after_the_camera_that_needs_it(monkeypa
     full = build_lut(rig, TINY, heights_per_voxel=3)
     assert full.num_slots > 2
     calls = _count_projections(monkeypatch)
-    monkeypatch.setattr(lut_module, "MAX_LUT_BYTES", lut_nbytes(TINY, 1))  # the first camera that needs K >= 2 stops it
+    monkeypatch.setattr("streamdet.calibration.lut.MAX_LUT_BYTES", lut_nbytes(TINY, 1))  # the first camera that needs K >= 2 stops it
     with pytest.raises(ValueError, match=r"with K = [2-9]\d* slots would take"):
         build_lut(rig, TINY, heights_per_voxel=3)
     assert 0 < len(calls) < 3 * len(rig) and len(calls) % 3 == 0  # whole cameras, not every camera, were projected

@@ -14,10 +14,11 @@ import warnings
 import numpy as np
 import pytest
 
-from streamdet.calibration import lut as lut_module
+from streamdet.calibration import lut_build as lut_module
 from streamdet.calibration.camera import CalibrationError, Camera, Rig, make_transform
 from streamdet.calibration.grid import GridSpec
-from streamdet.calibration.lut import MAX_LUT_CAMERAS, CameraMovedWarning, Lut, LutFileError, build_lut
+from streamdet.calibration.lut import CameraMovedWarning, Lut, LutFileError
+from streamdet.calibration.lut_build import MAX_LUT_CAMERAS, build_lut
 from streamdet.data.sample import load_bundled_sample
 from streamdet.runtime_ort.detector import DetectorConfig, StreamingDetector
 from streamdet.runtime_ort.export_open import EXPORT_LUT_MIN_DEPTH_M, check_lut

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from streamdet.calibration.camera_lut import camera_luts, gather_share
-from streamdet.calibration.lut import build_lut
+from streamdet.calibration.lut_build import build_lut
 from streamdet.calibration.quadrant_lut import QuadrantLut, quadrant_luts
 from streamdet.data.sample import load_bundled_sample
 

@@ -14,7 +14,7 @@ import pytest
 
 from streamdet.calibration.camera import Camera, Rig
 from streamdet.calibration.grid import GridSpec
-from streamdet.calibration.lut import build_lut
+from streamdet.calibration.lut_build import build_lut
 from streamdet.core.scan_layout import ScanLayout, layout_from_times
 from streamdet.data.nuscenes import NuScenesReader
 from streamdet.data.sample import bundled_sample_dir, load_point_times, load_points

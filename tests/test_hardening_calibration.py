@@ -24,7 +24,8 @@ from click.testing import CliRunner
 from streamdet.calibration import lut as lut_module
 from streamdet.calibration.camera import MAX_IMAGE_PX, CalibrationError, Camera, Rig
 from streamdet.calibration.grid import MAX_GRID_VOXELS, GridSpec
-from streamdet.calibration.lut import Lut, build_lut, check_rig_fits, lut_nbytes
+from streamdet.calibration.lut import Lut, check_rig_fits, lut_nbytes
+from streamdet.calibration.lut_build import build_lut
 from streamdet.calibration.lut_file import LutFileError
 from streamdet.models.presets import get_preset, preset_names
 

@@ -14,7 +14,7 @@ import pytest
 from click.testing import CliRunner
 
 from streamdet.calibration.compact_lut import lifter_feeds
-from streamdet.calibration.lut import build_lut
+from streamdet.calibration.lut_build import build_lut
 from streamdet.data.nuscenes import NuScenesReader
 from streamdet.data.sample import load_image
 from streamdet.data.slicing import slice_sample

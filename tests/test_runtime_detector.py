@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from streamdet.calibration.lut import build_lut
+from streamdet.calibration.lut_build import build_lut
 from streamdet.calibration.perturb import perturb_rig
 from streamdet.core.classes import CLASS_NAMES
 from streamdet.core.slicing import split_sweep

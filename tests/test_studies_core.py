@@ -9,7 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from streamdet.calibration.lut import Lut, build_lut
+from streamdet.calibration.lut import Lut
+from streamdet.calibration.lut_build import build_lut
 from streamdet.calibration.perturb import perturb_rig
 from streamdet.data.nuscenes import NuScenesReader
 from streamdet import studies as st

@@ -24,7 +24,8 @@ import torch
 from torch import Tensor
 
 from streamdet.calibration.camera import CalibrationError, Rig
-from streamdet.calibration.lut import Lut, build_lut, check_rig_fits
+from streamdet.calibration.lut import Lut, check_rig_fits
+from streamdet.calibration.lut_build import build_lut
 from streamdet.models.presets import Preset
 from streamdet.training.dataset import CAMERA_MODES, SampleItem, SampleStore
 

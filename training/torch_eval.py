@@ -12,7 +12,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from streamdet.calibration.lut import Lut, build_lut
+from streamdet.calibration.lut import Lut
+from streamdet.calibration.lut_build import build_lut
 from streamdet.calibration.slice_maps import slice_maps
 from streamdet.core.sectors import quadrants_of_sector
 from streamdet.core.slicing import split_sweep
