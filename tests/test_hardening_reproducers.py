@@ -368,36 +368,23 @@ def _entry(code: str, env: dict | None = None, **kw) -> subprocess.CompletedProc
                           env={**os.environ, **(env or {})}, timeout=120, **kw)  # fmt: skip
 
 
-def test_export_help_without_torch_is_one_line():
+@pytest.mark.parametrize("tool, argv", [("export", ["--help"]), ("bench", ["--flops-only"])])
+def test_a_torch_tool_without_torch_is_one_line(tool, argv):
+    """streamdet-export needs torch at import, streamdet-bench only when it measures: the same one-line hint, never a
+    traceback."""
     proc = _entry(
-        """
+        f"""
         import sys
         sys.modules["torch"] = None  # as in the torch-free vehicle install
-        sys.argv = ["streamdet-export", "--help"]
-        from streamdet.cli_utils import export_main
-        export_main()
+        sys.argv = ["streamdet-{tool}", *{argv!r}]
+        from streamdet.cli_utils import {tool}_main
+        {tool}_main()
         """
     )
     assert proc.returncode == 1, proc.stderr
     assert proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr
-    assert proc.stderr.startswith("streamdet-export: error: needs the Python package 'torch'")
+    assert proc.stderr.startswith(f"streamdet-{tool}: error: needs the Python package 'torch'")
     assert "pip install 'streamdet[export]' (from a checkout: pip install '.[export]'" in proc.stderr
-
-
-def test_bench_without_torch_is_one_line_where_it_imports_torch_late():
-    """streamdet-bench imports torch only when it measures: the same one-line hint, not a traceback."""
-    proc = _entry(
-        """
-        import sys
-        sys.modules["torch"] = None  # as in the torch-free vehicle install
-        sys.argv = ["streamdet-bench", "--flops-only"]
-        from streamdet.cli_utils import bench_main
-        bench_main()
-        """
-    )
-    assert proc.returncode == 1, proc.stderr
-    assert proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr
-    assert proc.stderr.startswith("streamdet-bench: error: needs the Python package 'torch'")
 
 
 def test_ctrl_c_during_start_up_exits_130_without_traceback(tmp_path):
