@@ -29,8 +29,8 @@ class _Msg:
 def _cloud(layout: str, n: int, rng: np.random.Generator) -> _Msg:
     xyz = rng.uniform(-50, 50, (n, 3))
     if layout == "streamdet":
-        names, formats, offsets, step, big = ["x", "y", "z", "intensity", "ring", "time"], ["<f4"] * 6, [0, 4, 8, 12, 16, 20], 24, False
-        types = [7] * 6
+        names, formats, offsets, step, big = ["x", "y", "z", "intensity", "ring", "time"], ["<f4"] * 4 + ["<u2", "<f4"], [0, 4, 8, 12, 16, 20], 24, False
+        types = [7, 7, 7, 7, 4, 7]  # pointcloud2_message's: the ring a uint16
     elif layout == "ouster":
         names = ["x", "y", "z", "intensity", "t", "reflectivity", "ring", "ambient", "range"]
         formats = ["<f4", "<f4", "<f4", "<u2", "<u4", "<u2", "<u2", "<u2", "<u4"]

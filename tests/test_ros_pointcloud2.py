@@ -280,12 +280,21 @@ def test_slice_from_message_takes_the_sector_of_most_points():
 def test_message_round_trip_is_bit_identical():
     rng = np.random.default_rng(7)
     points = rng.normal(0, 20, (300, 5)).astype(np.float32)
+    points[:, 4] = rng.integers(0, 65536, 300)  # ring: a uint16 field, as drivers publish it
     times = rng.uniform(-0.05, 0, 300).astype(np.float32)
     msg = pointcloud2_message(points, STAMP_NS, "LIDAR_TOP", times)
     cloud = decode_pointcloud2(as_msg(msg))
     assert cloud.points.tobytes() == points.tobytes()
     assert cloud.time_s.astype(np.float32).tobytes() == times.tobytes()
     assert msg["point_step"] == 24 and msg["row_step"] == 24 * 300 and msg["is_dense"]
+    # the Velodyne / Ouster drivers' layout: float32 x y z intensity, uint16 ring at 16, float32 time at 20
+    assert [(f["name"], f["offset"], f["datatype"]) for f in msg["fields"]] == [
+        ("x", 0, 7), ("y", 4, 7), ("z", 8, 7), ("intensity", 12, 7), ("ring", 16, 4), ("time", 20, 7)]
+    raw = np.frombuffer(msg["data"], np.uint8).reshape(300, 24)
+    np.testing.assert_array_equal(raw[:, 16:18].copy().view("<u2")[:, 0], points[:, 4].astype(np.uint16))
+    plain = pointcloud2_message(points, STAMP_NS, "LIDAR_TOP")
+    assert plain["point_step"] == 20 and [f["name"] for f in plain["fields"]] == ["x", "y", "z", "intensity", "ring"]
+    assert decode_pointcloud2(as_msg(plain), CloudFields(require_time=False)).points.tobytes() == points.tobytes()
     with pytest.raises(ValueError, match=r"points must be \(N, 5\)"):
         pointcloud2_message(points[:, :4], STAMP_NS, "l")
     with pytest.raises(ValueError, match=r"time_s must be \(300,\)"):
@@ -299,3 +308,11 @@ def test_integer_clock_in_whole_units_is_made_relative_exactly():
     cloud = decode_pointcloud2(make_cloud(cols, dt, list(dt)), CloudFields(time_unit="s"))
     frac = (STAMP_NS % 10**9) * 1e-9  # the header stamp's fraction of a second
     np.testing.assert_allclose(cloud.time_s, np.array([-1.0, 0.0, 2.0]) - frac, rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("ring", [1.5, -1.0, 65536.0, np.nan, np.inf])
+def test_a_ring_that_is_no_uint16_is_refused(ring):
+    points = np.zeros((3, 5), np.float32)
+    points[1, 4] = ring
+    with pytest.raises(ValueError, match=r"ring column must hold whole numbers in 0..65535 \(a uint16 field\), got .* at row 1"):
+        pointcloud2_message(points, STAMP_NS, "l")

@@ -55,6 +55,8 @@ from streamdet.runtime_ort.ros.header import (
 # sensor_msgs/PointField datatypes -> numpy type codes (without byte order)
 POINT_FIELD_TYPES: dict[int, str] = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
 FLOAT32 = 7
+UINT16 = 4
+UINT16_MAX = 65535
 TIME_FIELD_NAMES: tuple[str, ...] = ("t", "time", "timestamp", "time_stamp")  # Ouster, Velodyne, Hesai/Livox, others
 RING_FIELD_NAMES: tuple[str, ...] = ("ring", "channel", "line")
 TIME_UNITS_S: dict[str, float] = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}
@@ -251,12 +253,24 @@ def pointcloud2_message(
     points: np.ndarray, stamp_ns: int, frame_id: str, time_s: np.ndarray | None = None
 ) -> dict:
     """A little-endian dense ``sensor_msgs/PointCloud2`` dict of a (N, 5) sweep (x, y, z, intensity, ring), with
-    a float32 ``time`` field (seconds after the stamp, Velodyne's convention) when ``time_s`` is given."""
+    a float32 ``time`` field (seconds after the stamp, Velodyne's convention) when ``time_s`` is given.
+
+    The layout of the Velodyne and Ouster drivers' clouds: float32 x, y, z, intensity at 0, 4, 8, 12, ``ring`` a
+    uint16 at 16 (consumers such as a ring outlier filter read it so), ``time`` at 20; 24 bytes a point (20 without
+    time). The ring column must hold whole numbers in 0..65535 (ValueError otherwise)."""
     points = np.asarray(points)
     if points.ndim != 2 or points.shape[1] != SWEEP_COLUMNS:
         raise ValueError(f"points must be (N, {SWEEP_COLUMNS}) x, y, z, intensity, ring; got shape {points.shape}")
+    ring = points[:, 4]
+    bad = ~(np.isfinite(ring) & (ring == np.round(ring)) & (ring >= 0) & (ring <= UINT16_MAX))
+    if bad.any():
+        raise ValueError(f"points' ring column must hold whole numbers in 0..{UINT16_MAX} (a uint16 field), got "
+                         f"{ring[bad][0]!r} at row {int(np.flatnonzero(bad)[0])}")  # fmt: skip
     names = ["x", "y", "z", "intensity", "ring"] + (["time"] if time_s is not None else [])
-    rec = np.empty(len(points), dtype=np.dtype({"names": names, "formats": ["<f4"] * len(names)}))
+    formats = ["<f4", "<f4", "<f4", "<f4", "<u2"] + (["<f4"] if time_s is not None else [])
+    offsets = [0, 4, 8, 12, 16] + ([20] if time_s is not None else [])
+    step = 24 if time_s is not None else 20  # 4-byte aligned: two bytes of padding after the ring
+    rec = np.zeros(len(points), dtype=np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": step}))
     for j, name in enumerate(names[:SWEEP_COLUMNS]):
         rec[name] = points[:, j]
     if time_s is not None:
@@ -264,12 +278,12 @@ def pointcloud2_message(
         if time_s.shape != (len(points),):
             raise ValueError(f"time_s must be ({len(points)},), got shape {time_s.shape}")
         rec["time"] = time_s
-    step = rec.dtype.itemsize
+    types = {"<f4": FLOAT32, "<u2": UINT16}
     return {
         "header": header_msg(stamp_ns, frame_id),
         "height": 1,
         "width": len(points),
-        "fields": [{"name": n, "offset": 4 * j, "datatype": FLOAT32, "count": 1} for j, n in enumerate(names)],
+        "fields": [{"name": n, "offset": o, "datatype": types[f], "count": 1} for n, f, o in zip(names, formats, offsets)],
         "is_bigendian": False,
         "point_step": step,
         "row_step": step * len(points),
