@@ -191,7 +191,7 @@ def _image_lane_table(result: ReplayResult) -> str:
             rows.append(f"{mode}, phase-locked lane: {total['quadrant_lifts']} quadrant lifts, {total['full_updates']} full "
                         f"updates before the lock, {total['quadrants_skipped']} passes skipped (too late), "
                         + (f"{total['ready_lifts']} lifted from the frames ready, " if total.get("ready_lifts") else "")
-                        + f"{total['late_lifts']} lifts ended after their slice arrived"
+                        + f"{total['late_lifts']} lifts ended after their slice's predicted arrival"
                         + (f", held back {total['yields']} times for waiting slices ({total['yielded_ms']:.0f} ms, "
                            f"{total.get('holds_cut', 0)} cut at 0.1 s)" if total.get("yields") else "")
                         + (f", {total['cameras_timed_out']} camera frames timed out, {total.get('quadrants_cleared', 0)} "

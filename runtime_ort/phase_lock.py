@@ -72,6 +72,7 @@ class RotationPhase:
         # (position, arrival s) of the last arrivals of an unbroken run, position = slices since its first one
         self._history: deque[tuple[int, float]] = deque(maxlen=HISTORY_ROTATIONS * num_slices + 1)
         self._in_burst = False  # after a burst (``_burst``), until an arrival comes at a LiDAR's pace
+        self._pauses = 0  # arrivals in a row that came as pauses (``observe``)
 
     def observe(self, slice_index: int, arrival_s: float) -> bool:
         """A slice ``slice_index`` arrived at ``arrival_s``; False where it is not taken: it arrived before the anchor,
@@ -82,7 +83,8 @@ class RotationPhase:
         arrival more than half a rotation later than its index step takes (a pause: the step may hide whole
         rotations) starts the history again; a slice a little early or late (a busy driver, slices handed over out of
         order) does not. A rotation's worth of arrivals faster than any LiDAR turns (a backlog handed over at once)
-        starts it again too, from the first arrival at a LiDAR's pace."""
+        starts it again too, from the first arrival at a LiDAR's pace. A rotation's worth of pauses in a row (a LiDAR
+        that now turns far slower) drops the period learnt, unless ``lidar_hz`` fixed it."""
         if self._anchor is not None:
             k0, t0 = self._anchor
             if arrival_s < t0:
@@ -90,8 +92,18 @@ class RotationPhase:
             steps = (slice_index - k0) % self.num_slices or self.num_slices  # the same index again: a whole rotation
             if self._out_of_order(steps, arrival_s - t0):
                 return False
-            if self.locked and arrival_s - t0 > self.period_s * (steps / self.num_slices + 0.5):
+            paused = self.locked and arrival_s - t0 > self.period_s * (steps / self.num_slices + 0.5)
+            self._pauses = self._pauses + 1 if paused else 0
+            if paused:
                 self._history.clear()  # a pause: the step may hide whole rotations
+                if self._pauses >= self.num_slices and self._fixed_period_s is None:
+                    # A rotation's worth of pauses in a row is no pause: the LiDAR turns more than 1 + n / 2 times
+                    # slower than the period learnt, whose every step looks like one. That period is dropped and
+                    # the new one learnt from the arrivals to come (kept, it would hold for good).
+                    self._periods.clear()
+                    self._median_s = math.nan
+                    self._provisional_s = math.nan
+                    self._pauses = 0
             elif self._burst():
                 # A rotation's worth of arrivals faster than any LiDAR turns: a backlog handed over at once. Its
                 # spacing, or its span averaged with the pause after it, is no rotation: the history starts again

@@ -98,7 +98,8 @@ class PhaseLockStats:
     quadrants_skipped: int = 0  # passes with newer frames that could not be lifted in time (older BEV kept)
     cameras_encoded: int = 0  # camera frames encoded (each once)
     encoded_ahead: int = 0  # of those, encoded on arrival, before the lift that used them was due
-    late_lifts: int = 0  # lifts that ended after their deadline (the duration estimate was short)
+    late_lifts: int = 0  # lifts that ended after their deadline, the predicted arrival (the duration estimate was short); the
+    # slice itself may have come earlier or later (jitter, a wrong lidar_hz): its SliceResult.image_age_s says what it read
     yields: int = 0  # times the lane held back an update because slices waited (yield_at)
     yielded_ms: float = 0.0  # milliseconds it held back in all
     holds_cut: int = 0  # holdings back that reached their limit (MAX_HOLD_S), after which the lane worked as long

@@ -122,6 +122,39 @@ def test_a_pause_and_late_arrivals_do_not_move_the_period():
     assert phase.period_s == pytest.approx(0.05)
 
 
+@pytest.mark.parametrize("n, slow_hz", [(4, 5.0), (8, 4.0), (8, 2.0), (16, 1.0)])
+def test_a_lidar_that_turns_far_slower_is_learnt_again(n, slow_hz):
+    """More than 1 + n / 2 times slower, every step looks like a pause: a rotation's worth of them in a row drops the
+    old period, and the new one is learnt (the review found 20 -> 4 Hz at 8 slices kept 20 Hz for good)."""
+    phase = RotationPhase(n, 0.0, None)
+    t = 0.0
+    for i in range(3 * n):  # 20 Hz
+        t += 0.05 / n
+        phase.observe(i % n, t)
+    assert phase.period_s == pytest.approx(0.05)
+    for i in range(4 * n):  # then slow_hz
+        t += 1.0 / slow_hz / n
+        phase.observe(i % n, t)
+    assert phase.period_s == pytest.approx(1.0 / slow_hz)
+    fixed = RotationPhase(n, 0.0, 20.0)  # a rate the caller gave is kept
+    for i in range(4 * n):
+        fixed.observe(i % n, (i + 1) / slow_hz / n)
+    assert fixed.period_s == pytest.approx(0.05)
+
+
+def test_single_pauses_keep_the_period():
+    """A pause now and then (fewer than a rotation's worth in a row) is a pause: the period stays."""
+    phase = RotationPhase(8, 0.0, None)
+    t, k = 0.0, 0
+    for rotation in range(6):
+        for _ in range(8):
+            t += 0.05 / 8
+            phase.observe(k % 8, t)
+            k += 1
+        t += 1.0  # the driver stalls a second after every rotation
+    assert phase.period_s == pytest.approx(0.05)
+
+
 def _arrivals(n: int, rotations: int, period_s: float, swap=(), resend=(), jitter_s: float = 0.0, seed: int = 0):
     """(slice index, arrival s) of a LiDAR with ``n`` slices: ``swap`` holds the slice numbers (counted over the
     drive) that arrive just after their successor, ``resend`` those that arrive twice (again 1 ms later)."""
