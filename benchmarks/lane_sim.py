@@ -186,14 +186,26 @@ class ManualClock:
 def play_events(lane: PhaseLockedImageLane, clock, events: Iterable[tuple[float, Callable[[], object]]]) -> None:
     """Drive a lane without a worker thread (``thread=False``) through ``events``, (time s, action) in time order, on
     ``clock`` (its ``t`` attribute is the lane's clock): the lane's ``step`` runs whenever it asked to be called
-    again and after every action, which runs with the clock at its time (never moved back: work ran past it)."""
+    again and after every action, which runs with the clock at its time (never moved back: work ran past it).
+
+    Every event due by the time a step returns is delivered before the next step plans: slices and frames that came
+    while the lane worked reach it together, as they reach the runner's lane (its worker plans after its update
+    ends, with everything submitted meanwhile). Delivering one of them per step lagged the lane's view of the drive
+    behind its own work, more the busier it was (the thirty-ninth session's review: up to 90 ms at 2.5x costs)."""
+    events = list(events)
     wake = None
-    for t, action in events:
+    i = 0
+    while i < len(events):
+        t, action = events[i]
         while wake is not None and wake <= t:
             clock.t = max(clock.t, wake)
             wake = lane.step(clock.t)
         clock.t = max(clock.t, t)
         action()
+        i += 1
+        while i < len(events) and events[i][0] <= clock.t:  # came while the lane worked: delivered at once
+            events[i][1]()
+            i += 1
         wake = lane.step(clock.t)
 
 
