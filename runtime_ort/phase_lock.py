@@ -158,6 +158,12 @@ class RotationPhase:
         return self._median_s if self._periods else self._provisional_s
 
     @property
+    def measured_period_s(self) -> float:
+        """Seconds per rotation the arrivals show (the median of the measurements; nan before a whole rotation), also
+        where ``lidar_hz`` fixed the period the lane plans with."""
+        return self._median_s if self._periods else math.nan
+
+    @property
     def locked(self) -> bool:
         """True once a slice has arrived and the period is known."""
         return self._anchor is not None and math.isfinite(self.period_s)

@@ -69,7 +69,7 @@ import numpy as np
 
 from streamdet.core.camera_timeout import CameraTimeout
 from streamdet.core.sectors import NUM_QUADRANTS
-from streamdet.runtime_ort.phase_lock import RotationPhase, plan_lift
+from streamdet.runtime_ort.phase_lock import RotationPhase, check_lidar_hz, plan_lift
 from streamdet.runtime_ort.thread_priority import check_nice, start_worker
 from streamdet.runtime_ort.worker_lane import cancel_future, claim_future, complete_future
 
@@ -77,6 +77,8 @@ LANE = "image-lane"  # the name its logs and errors give it
 ERROR_LOG_INTERVAL_S = 10.0  # at most one log record of the worker's errors per this many seconds (a lasting failure)
 
 log = logging.getLogger(__name__)
+# A given lidar_hz whose period the arrivals' measured one is off by more than this share is logged as contradicted.
+GIVEN_RATE_TOLERANCE = 0.25
 
 DURATION_SAMPLES = 5  # lifts per quadrant whose second longest is the expected duration (robust to a noisy machine)
 # how often a lane holding back for a backlog of slices looks at the slice queue again (a slice's arrival wakes it too)
@@ -98,6 +100,7 @@ class PhaseLockStats:
     quadrants_skipped: int = 0  # passes with newer frames that could not be lifted in time (older BEV kept)
     cameras_encoded: int = 0  # camera frames encoded (each once)
     encoded_ahead: int = 0  # of those, encoded on arrival, before the lift that used them was due
+    given_rate_contradicted: int = 0  # 1: the slices arrive at a rate off the given lidar_hz (logged once)
     late_lifts: int = 0  # lifts that ended after their deadline, the predicted arrival (the duration estimate was short); the
     # slice itself may have come earlier or later (jitter, a wrong lidar_hz): its SliceResult.image_age_s says what it read
     yields: int = 0  # times the lane held back an update because slices waited (yield_at)
@@ -173,6 +176,8 @@ class PhaseLockedImageLane:
         self.cpu_s = 0.0  # CPU seconds spent by this lane's updates (thread time of the thread running them)
         self.images_superseded = 0
         self._phase = RotationPhase(num_slices, start_deg, lidar_hz, clockwise)
+        self._given_hz = check_lidar_hz(lidar_hz, "lidar_hz")
+        self._rate_said = False  # _check_given_rate logged once
         self._cond = threading.Condition()
         self._frames: dict[str, _Frame] = {}
         # per camera whose newest frame is not encoded yet: its newest frame that is, of an image set a lift used (so
@@ -248,8 +253,24 @@ class PhaseLockedImageLane:
         with self._cond:
             if not self._phase.observe(slice_index, arrival_s):
                 self.stats.slices_out_of_order += 1
+            self._check_given_rate()
             self._dirty = True
             self._cond.notify_all()
+
+    def _check_given_rate(self) -> None:
+        """(Under the lock.) Log once where a given ``lidar_hz`` contradicts the arrivals: the lane plans every lift with
+        the rate it was given, so its lifts end at the wrong moments (10 Hz given for a 20 Hz LiDAR: every slice's
+        image a rotation late), and no other figure says why."""
+        if self._rate_said or self._given_hz is None:
+            return
+        measured = self._phase.measured_period_s
+        given = 1.0 / self._given_hz
+        if math.isfinite(measured) and abs(measured / given - 1.0) > GIVEN_RATE_TOLERANCE:
+            self._rate_said = True
+            self.stats.given_rate_contradicted = 1
+            log.warning("phase-locked lane: lidar_hz is %g Hz, the slices arrive at %.3g Hz; the lane plans with %g Hz "
+                        "(give the LiDAR's rate, or None to learn it from the arrivals)", self._given_hz, 1.0 / measured,
+                        self._given_hz)  # fmt: skip
 
     # ---- the schedule ---------------------------------------------------------------------------
     def _expected_s(self, quadrant: int) -> float:

@@ -685,3 +685,20 @@ def test_a_camera_that_times_out_leaves_no_previous_frame():
     clock.t = 1.0  # every camera silent for longer than the timeout
     lane.step(clock.t)
     assert lane.stats.cameras_timed_out == len(CAMERAS) and lane._previous == {}
+
+
+@pytest.mark.parametrize("given_hz, said", [(10.0, 1), (20.0, 0), (None, 0)])
+def test_a_given_rate_the_arrivals_contradict_is_said_once(caplog, given_hz, said):
+    """lidar_hz fixes the period the lane plans with; where the slices arrive at another rate its lifts end at the
+    wrong moments, and nothing else says why: logged once, counted in the stats."""
+    clock = ManualClock()
+    lane = PhaseLockedImageLane(FakeDetector(clock, 0.001, 0.002, 8), 8, 0.0, given_hz, 0.002, clock=clock, thread=False,
+                                superseded=lambda: ImagesSuperseded("superseded"))  # fmt: skip
+    with caplog.at_level("WARNING", logger="streamdet.runtime_ort.phase_locked_lane"):
+        for i in range(5 * 8):  # 20 Hz
+            lane.observe_slice(i % 8, (i + 1) * 0.05 / 8)
+    assert lane.stats.given_rate_contradicted == said
+    warned = [r for r in caplog.records if "lidar_hz is" in r.getMessage()]
+    assert len(warned) == said
+    if said:
+        assert "the slices arrive at 20 Hz" in warned[0].getMessage()
