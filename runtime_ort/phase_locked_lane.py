@@ -79,6 +79,9 @@ ERROR_LOG_INTERVAL_S = 10.0  # at most one log record of the worker's errors per
 log = logging.getLogger(__name__)
 # A given lidar_hz whose period the arrivals' measured one is off by more than this share is logged as contradicted.
 GIVEN_RATE_TOLERANCE = 0.25
+# Skipped passes remembered so that none is counted twice (_newly_skipped): far more than the passes of the longest
+# lift a plan gives up at once (a 3 s stall at 20 Hz x 8 slices: about 500).
+SKIPS_REMEMBERED = 8192
 
 DURATION_SAMPLES = 5  # lifts per quadrant whose second longest is the expected duration (robust to a noisy machine)
 # how often a lane holding back for a backlog of slices looks at the slice queue again (a slice's arrival wakes it too)
@@ -178,6 +181,7 @@ class PhaseLockedImageLane:
         self._phase = RotationPhase(num_slices, start_deg, lidar_hz, clockwise)
         self._given_hz = check_lidar_hz(lidar_hz, "lidar_hz")
         self._rate_said = False  # _check_given_rate logged once
+        self._skips_counted: collections.OrderedDict = collections.OrderedDict()  # (deadline, slice, quadrant) counted
         self._cond = threading.Condition()
         self._frames: dict[str, _Frame] = {}
         # per camera whose newest frame is not encoded yet: its newest frame that is, of an image set a lift used (so
@@ -402,7 +406,7 @@ class PhaseLockedImageLane:
                         return now_s + YIELD_POLL_S
                     encode = None
                     self._done.extend(plan.skipped)
-                    self.stats.quadrants_skipped += len(plan.skipped)
+                    self.stats.quadrants_skipped += self._newly_skipped(plan.skipped)
                     self._done.append((plan.deadline_s, plan.slice_index, plan.quadrant))
                     if plan.ready:  # the newest frames still wait for a later pass: the quadrant stays wanted
                         frames = self._ready(plan.quadrant)
@@ -575,6 +579,23 @@ class PhaseLockedImageLane:
                 if deadline_s is not None and t2 > deadline_s:
                     self.stats.late_lifts += 1
         return update
+
+    def _newly_skipped(self, passes: tuple[tuple[float, int, int], ...]) -> int:
+        """(Under the lock.) How many of ``passes`` were not counted as skipped before. A plan gives up every pass it
+        cannot make, rotations ahead where a lift is expected to take that long; ``_done`` keeps only a few
+        rotations of them, so the same far passes came back in the next plan and were counted twice."""
+        new = 0
+        # a pass is its slice's arrival, to within a slice's time: a deadline recomputed from a newer anchor moves a
+        # little, never by half a slice (digits of the deadline itself would split passes at a rounding boundary)
+        slot_s = self._phase.period_s / self._phase.num_slices
+        for deadline, k, q in passes:
+            key = (round(deadline / slot_s) if math.isfinite(slot_s) and slot_s > 0 else round(deadline, 6), k, q)
+            if key not in self._skips_counted:
+                self._skips_counted[key] = None
+                new += 1
+        while len(self._skips_counted) > SKIPS_REMEMBERED:
+            self._skips_counted.popitem(last=False)
+        return new
 
     # ---- the worker -----------------------------------------------------------------------------
     def _serve(self) -> None:

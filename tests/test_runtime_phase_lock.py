@@ -162,7 +162,7 @@ def _arrivals(n: int, rotations: int, period_s: float, swap=(), resend=(), jitte
     out = [(i % n, (i + 1) * period_s / n + rng.uniform(0, jitter_s)) for i in range(rotations * n)]
     for i in sorted(swap):
         if i + 1 < len(out):
-            (k0, t0), (k1, t1) = out[i], out[i + 1]
+            (k0, t0), (k1, _) = out[i], out[i + 1]
             out[i], out[i + 1] = (k1, t0), (k0, t0 + 1e-4)  # the next slice first, this one right after it
     for i in sorted(resend, reverse=True):
         out.insert(i + 1, (out[i][0], out[i][1] + 1e-3))
@@ -702,3 +702,16 @@ def test_a_given_rate_the_arrivals_contradict_is_said_once(caplog, given_hz, sai
     assert len(warned) == said
     if said:
         assert "the slices arrive at 20 Hz" in warned[0].getMessage()
+
+
+def test_a_skipped_pass_is_counted_once():
+    """A plan gives up every pass it cannot make, rotations ahead where a lift is expected to take that long; the
+    same far passes come back in the next plan: each counts once in quadrants_skipped."""
+    clock = ManualClock()
+    lane = PhaseLockedImageLane(FakeDetector(clock, 0.001, 0.002, 8), 8, 0.0, 20.0, 0.002, clock=clock, thread=False,
+                                superseded=lambda: ImagesSuperseded("superseded"))  # fmt: skip
+    passes = tuple((1.0 + 0.05 * r + 0.00625 * k, k, k // 2) for r in range(40) for k in range(8))
+    assert lane._newly_skipped(passes) == len(passes)
+    assert lane._newly_skipped(passes[::-1]) == 0  # the same passes again (another plan's): none new
+    assert lane._newly_skipped(tuple((d + 0.002, k, q) for d, k, q in passes[:5])) == 0  # recomputed: moved a little
+    assert lane._newly_skipped(((99.0, 0, 0),)) == 1
