@@ -181,7 +181,7 @@ def play(
     image_lane_cpu_s = getattr(mode.runner, "image_lane_cpu_s", float("nan"))  # the sequential queue has no image lane
     phase_lock = getattr(mode.runner, "phase_lock", None)  # what a phase-locked image lane did
     _newest_images_by_scan_start(drive, records, getattr(detector, "quadrant_cameras", None), config.start_deg, delivery_s,
-                                 config.clockwise)  # fmt: skip
+                                 config.clockwise, None if timeout is None else timeout / config.time_scale)  # fmt: skip
     if book.errors:
         _raise_failure(f"{config.mode} replay of {drive.name}", book.errors[0])
     slices = tuple(r for r in records if isinstance(r, SliceRecord))
@@ -196,13 +196,15 @@ def play(
 
 def _newest_images_by_scan_start(
     drive: Drive, records: list, quadrant_cameras: Callable[[tuple[int, ...]], tuple[str, ...]] | None, start_deg: float,
-    delivery_s: float = 0.0, clockwise: bool = False,
+    delivery_s: float = 0.0, clockwise: bool = False, timeout_s: float | None = None,
 ) -> None:  # fmt: skip
     """Each slice record's ``newest_capture_s``: how old the newest images of its quadrants could be when the sensor
     started scanning the slice's sector: per camera that sees its quadrant(s) (``quadrant_cameras``; None: every
     camera), the newest frame released (delivered: captured ``delivery_s`` earlier) by then; the oldest of those (a
     quadrant is as old as its oldest camera's frame, as the runtime stamps it). With simultaneous triggers: the
-    newest image set released by then."""
+    newest image set released by then. A camera whose newest frame was released more than ``timeout_s`` (drive
+    seconds; LaneConfig.camera_timeout_s) before is out, as the lanes count it, and left out: its last frame, however
+    old, made the reference seconds old and the staleness added hugely negative during an outage."""
     captures: dict[str, list[float]] = {}
     for s in drive.image_sets:  # in time order (Drive checks)
         for name in s.images:
@@ -222,7 +224,7 @@ def _newest_images_by_scan_start(
             newest = []
             for name in seen[key]:
                 i = int(np.searchsorted(times[name], scan_start - delivery_s, side="right")) - 1
-                if i >= 0:
+                if i >= 0 and (timeout_s is None or times[name][i] + delivery_s >= scan_start - timeout_s):
                     newest.append(float(times[name][i]))
             rec.newest_capture_s = min(newest) if newest else math.nan
 

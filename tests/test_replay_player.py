@@ -286,3 +286,25 @@ def test_the_latency_axis_labels_one_two_five_only(value, label):
     from streamdet.replay.plot import _one_two_five
 
     assert _one_two_five(value) == label
+
+
+def test_a_camera_out_longer_than_the_timeout_leaves_the_staleness_reference():
+    """The reference of staleness added is the oldest of the newest frames of a slice's cameras; a camera silent for
+    longer than the lanes' camera_timeout_s is out (the lane drops it) and leaves it, as the review found it made the
+    reference seconds old and the staleness hugely negative during an outage."""
+    import numpy as np
+
+    from streamdet.replay.player import _newest_images_by_scan_start
+    from streamdet.replay.record import SliceRecord
+    from streamdet.replay.source import Drive, ImageSet, LidarSweep
+
+    empty = np.zeros((0, 5), np.float32)
+    sweeps = tuple(LidarSweep(i, (i + 1) * 0.05, 0.05, empty, None, np.eye(4), np.eye(4)) for i in range(60))
+    img = np.zeros((2, 2, 3), np.uint8)
+    sets = [ImageSet(0, 0.01, {"A": img, "B": img}, 0.01)]  # B's only frame; A goes on at 12 Hz
+    sets += [ImageSet(i, 0.01 + i / 12, {"A": img}, 0.01 + i / 12) for i in range(1, 36)]
+    drive = Drive("d", sweeps, tuple(sets), 0)
+    records = [SliceRecord(50, 0, 1, 2.55, 0)]  # scan start 2.5 s: A's newest frame 2.51 - ..., B's 2.5 s old
+    for timeout, want in ((None, 0.01), (1.0, max(s.capture_s for s in sets if s.capture_s <= 2.5))):
+        _newest_images_by_scan_start(drive, records, None, 0.0, 0.0, False, timeout)
+        assert records[0].newest_capture_s == pytest.approx(want)
