@@ -334,9 +334,9 @@ def simulate_frame(scene: Scene, index: int, rig: RigRecords, config: SynthConfi
     # Each camera at its own exposure time: the ego, the objects and their shadows where they are then.
     camera_times = camera_trigger_times_s(rig, t_s, scene.config.sweep_duration_s, config.lidar)
     for c, model in enumerate(rig.models):
-        rng = np.random.default_rng([config.seed, scene.index, index, c, 2])
+        rng, exposure = _key_frame_camera(config, scene, index, c)
         t_cam = camera_times[model.name]
-        renders[model.name] = render_camera(scene, t_cam, model, rng, shadows=shadow_raster(scene, t_cam))
+        renders[model.name] = render_camera(scene, t_cam, model, rng, shadows=shadow_raster(scene, t_cam), exposure=exposure)
     objs = scene.objects
     ego_xy = scene.ego_xy(t_s)
     boxes = objs.boxes_at(t_s)
@@ -366,6 +366,13 @@ def simulate_frame(scene: Scene, index: int, rig: RigRecords, config: SynthConfi
     )
 
 
+def _key_frame_camera(config: SynthConfig, scene: Scene, key_index: int, camera: int) -> tuple[np.random.Generator, Exposure]:
+    """The random generator of key frame ``key_index``'s image of camera ``camera`` (its index in the rig), and the
+    auto exposure drawn from it first: the camera's sweeps filed under that key frame take the same exposure."""
+    rng = np.random.default_rng([config.seed, scene.index, key_index, camera, 2])
+    return rng, Exposure.draw(rng)
+
+
 def scene_camera_frames(scene: Scene, rig: RigRecords, config: SynthConfig) -> dict[str, list[CameraFrame]]:
     """Every camera exposure of ``scene`` (``synth_camera_frames.camera_frames``), by camera name, in time order."""
     c = scene.config
@@ -380,7 +387,7 @@ def render_camera_sweep(scene: Scene, rig: RigRecords, config: SynthConfig, came
     at that instant, with the exposure of the key frame it is filed under (auto exposure settles over many frames,
     it does not jump at each), its own sensor noise."""
     model = rig.models[camera]
-    exposure = Exposure.draw(np.random.default_rng([config.seed, scene.index, frame.key_index, camera, 2]))
+    _, exposure = _key_frame_camera(config, scene, frame.key_index, camera)
     rng = np.random.default_rng([config.seed, scene.index, camera, scene.timestamp_us(frame.t_s), 3])
     render = render_camera(scene, frame.t_s, model, rng, shadows=shadow_raster(scene, frame.t_s), exposure=exposure)
     return render.image

@@ -164,6 +164,11 @@ class RotationPhase:
         return self._median_s if self._periods else math.nan
 
     @property
+    def given_period_s(self) -> float | None:
+        """Seconds per rotation of the ``lidar_hz`` given (None: learnt from the arrivals)."""
+        return self._fixed_period_s
+
+    @property
     def locked(self) -> bool:
         """True once a slice has arrived and the period is known."""
         return self._anchor is not None and math.isfinite(self.period_s)

@@ -69,7 +69,7 @@ import numpy as np
 
 from streamdet.core.camera_timeout import CameraTimeout
 from streamdet.core.sectors import NUM_QUADRANTS
-from streamdet.runtime_ort.phase_lock import RotationPhase, check_lidar_hz, plan_lift
+from streamdet.runtime_ort.phase_lock import RotationPhase, plan_lift
 from streamdet.runtime_ort.thread_priority import check_nice, start_worker
 from streamdet.runtime_ort.worker_lane import cancel_future, claim_future, complete_future
 
@@ -179,8 +179,6 @@ class PhaseLockedImageLane:
         self.cpu_s = 0.0  # CPU seconds spent by this lane's updates (thread time of the thread running them)
         self.images_superseded = 0
         self._phase = RotationPhase(num_slices, start_deg, lidar_hz, clockwise)
-        self._given_hz = check_lidar_hz(lidar_hz, "lidar_hz")
-        self._rate_said = False  # _check_given_rate logged once
         self._skips_counted: collections.OrderedDict = collections.OrderedDict()  # (deadline, slice, quadrant) counted
         self._cond = threading.Condition()
         self._frames: dict[str, _Frame] = {}
@@ -265,16 +263,15 @@ class PhaseLockedImageLane:
         """(Under the lock.) Log once where a given ``lidar_hz`` contradicts the arrivals: the lane plans every lift with
         the rate it was given, so its lifts end at the wrong moments (10 Hz given for a 20 Hz LiDAR: every slice's
         image a rotation late), and no other figure says why."""
-        if self._rate_said or self._given_hz is None:
+        given = self._phase.given_period_s
+        if self.stats.given_rate_contradicted or given is None:
             return
         measured = self._phase.measured_period_s
-        given = 1.0 / self._given_hz
         if math.isfinite(measured) and abs(measured / given - 1.0) > GIVEN_RATE_TOLERANCE:
-            self._rate_said = True
             self.stats.given_rate_contradicted = 1
             log.warning("phase-locked lane: lidar_hz is %g Hz, the slices arrive at %.3g Hz; the lane plans with %g Hz "
-                        "(give the LiDAR's rate, or None to learn it from the arrivals)", self._given_hz, 1.0 / measured,
-                        self._given_hz)  # fmt: skip
+                        "(give the LiDAR's rate, or None to learn it from the arrivals)", 1.0 / given, 1.0 / measured,
+                        1.0 / given)  # fmt: skip
 
     # ---- the schedule ---------------------------------------------------------------------------
     def _expected_s(self, quadrant: int) -> float:
