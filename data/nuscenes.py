@@ -13,7 +13,8 @@ by ``streamdet-synth``); ``DATAROOT/samples/...`` and ``DATAROOT/sweeps/...`` th
   ``Sample.extras[GLOBAL_ANNOTATIONS]``, for the evaluation;
 - ``Sample.point_time_s`` comes from the optional ``<file>.time`` beside a LiDAR file (synthetic data), else None;
 - past sweeps follow the LiDAR ``sample_data.prev`` chain and are moved into the key frame's LiDAR frame via the
-  global frame, with their time lag (key frame minus sweep timestamp), as nuScenes multi-sweep detectors do.
+  global frame, with their time lag (key frame minus sweep timestamp), as nuScenes multi-sweep detectors do. Each
+  link must name a ``LIDAR_TOP`` row older than the one before and not yet on the chain (ValueError otherwise).
 
 The tables are input, not trusted: a malformed row is a ValueError naming the table, its file, the row number,
 its token and the field (``_TABLE_FIELDS`` says what each field must hold), never a TypeError / OverflowError /
@@ -26,12 +27,13 @@ symlinks the dataset holds are followed: set-ups link ``samples/`` and ``sweeps/
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
 
 from streamdet.calibration.camera import (
-    QUATERNION_NORM_TOL, CalibrationError, Rig, invert_transform, make_transform, quaternion_to_matrix)
+    QUATERNION_NORM_TOL, CalibrationError, Rig, _unreadable_reason, invert_transform, make_transform, quaternion_to_matrix)
 from streamdet.core.boxes import BOX_DIM
 from streamdet.core.classes import CLASS_NAMES
 from streamdet.core.json_input import read_json, short_repr
@@ -329,6 +331,12 @@ class NuScenesReader:
         if not path.is_file():
             if path.exists():  # a FIFO, a device or a folder: never opened
                 raise ValueError(f"file of sample_data {sd['token']} is not a regular file (a FIFO, a device or a folder?): {path}")
+            link = _dead_link(self.root, path)
+            if link == path:  # "not found" would send the user looking for a file whose link they can see
+                raise FileNotFoundError(f"file of sample_data {sd['token']} is {_unreadable_reason(str(link), 'missing')}: {path}")
+            if link is not None:
+                raise FileNotFoundError(f"file of sample_data {sd['token']} cannot be reached: {link} is "
+                                        f"{_unreadable_reason(str(link), 'missing')}: {path}")  # fmt: skip
             raise FileNotFoundError(f"file of sample_data {sd['token']} not found: {path}")
         return path
 
@@ -408,8 +416,11 @@ class NuScenesReader:
         sweeps = []
         global2lidar = invert_transform(lidar2global)
         sd = lidar_sd
+        on_chain = {lidar_sd["token"]}
         while len(sweeps) < count and sd["prev"] != "":
-            sd = self._ref("sample_data", sd, "prev", "sample_data")
+            after, sd = sd, self._ref("sample_data", sd, "prev", "sample_data")
+            self._check_past_sweep(after, sd, lidar_sd, on_chain)
+            on_chain.add(sd["token"])
             cs = self._ref("sample_data", sd, "calibrated_sensor_token", "calibrated_sensor")
             pose = self._ref("sample_data", sd, "ego_pose_token", "ego_pose")
             sweep2global = _record_to_matrix(pose) @ _record_to_matrix(cs)
@@ -425,6 +436,34 @@ class NuScenesReader:
                 )
             )
         return tuple(sweeps)
+
+    def _check_past_sweep(self, after: dict, sd: dict, lidar_sd: dict, on_chain: set[str]) -> None:
+        """``sd``, which the 'prev' of ``after`` names, as a past sweep of ``lidar_sd``: a loop would hand the key frame
+        back as its own past sweep (lag 0), another channel's file would be read as points (a JPEG whose size is a
+        multiple of 20 bytes reads as garbage coordinates), and a sweep not older than the next a lag <= 0."""
+        if sd["token"] in on_chain:
+            raise ValueError(f"{self.row_name('sample_data', after)}: field 'prev' names {short_repr(after['prev'])}, a "
+                             f"sweep already on the {LIDAR_CHANNEL} 'prev' chain of key frame {short_repr(lidar_sd['token'])}: "
+                             "the chain loops")  # fmt: skip
+        channel = self.channel(sd)
+        if channel != LIDAR_CHANNEL:
+            raise ValueError(f"{self.row_name('sample_data', after)}: field 'prev' names {short_repr(after['prev'])}, a "
+                             f"{channel} sample_data, not a {LIDAR_CHANNEL} sweep")  # fmt: skip
+        if not sd["timestamp"] < after["timestamp"]:
+            raise ValueError(f"{self.row_name('sample_data', sd)}: field 'timestamp' is {sd['timestamp']}, not before the "
+                             f"{after['timestamp']} of the {LIDAR_CHANNEL} sweep whose 'prev' names it "
+                             f"({short_repr(after['token'])}): a past sweep must be older")  # fmt: skip
+
+
+def _dead_link(root: Path, path: Path) -> Path | None:
+    """The first symlink from ``root`` down to ``path`` (its folders, then the file) that leads nowhere: a loop, or a
+    link to what is not there (``samples/`` linked to a disk that is not mounted); None where there is none."""
+    at = root
+    for part in path.relative_to(root).parts:
+        at = at / part
+        if not at.exists():
+            return at if os.path.islink(at) else None
+    return None
 
 
 def _record_to_matrix(record: dict) -> np.ndarray:

@@ -26,7 +26,7 @@ from streamdet.core.constants import BUNDLED_SAMPLE_DIR
 from streamdet.core.file_input import InputFileError, read_regular_file
 from streamdet.core.image_header import MAX_IMAGE_FILE_BYTES, check_image_size, decoder_error_reason, read_image_header
 from streamdet.core.json_input import is_finite_number, read_json, short_repr  # noqa: F401 (public here too)
-from streamdet.core.points import check_sweep
+from streamdet.core.points import MAX_SWEEP_POINTS, SWEEP_COLUMNS, check_sweep
 
 log = logging.getLogger(__name__)
 
@@ -176,15 +176,27 @@ def read_image_bytes(path: str | Path) -> np.ndarray:
     return np.frombuffer(raw, dtype=np.uint8)
 
 
-def load_points(path: str | Path) -> np.ndarray:
-    """(N, 5) float32 sweep from a nuScenes ``.pcd.bin`` (x, y, z, intensity, ring)."""
+def load_points(path: str | Path, allow_empty: bool = True) -> np.ndarray:
+    """(N, 5) float32 sweep from a nuScenes ``.pcd.bin`` (x, y, z, intensity, ring).
+
+    A file of more than ``core.points.MAX_SWEEP_POINTS`` points is refused (ValueError naming it) before it is read.
+    An empty file is a sweep without returns (with a warning), or, with ``allow_empty`` False, a ValueError: a reader
+    that needs the sweep refuses it without the warning that it was read.
+    """
     path = Path(path)
     if not path.is_file():
         if path.exists():  # a FIFO would block np.fromfile; a folder is no sweep
             raise ValueError(f"LiDAR file {path} is not a regular file (a FIFO, a device or a folder?)")
         raise FileNotFoundError(f"LiDAR file not found: {path}")
-    _check_float32_size(path, "LiDAR file")
-    raw = np.fromfile(path, dtype=np.float32)
+    size = _check_float32_size(path, "LiDAR file")
+    point_bytes = 4 * SWEEP_COLUMNS
+    if size > MAX_SWEEP_POINTS * point_bytes:  # np.fromfile would allocate it whole: a wrong or corrupt file, unread
+        raise ValueError(f"LiDAR file {path} is {size} bytes ({size // point_bytes} points), over the {MAX_SWEEP_POINTS} "
+                         "points of any sweep (core.points.MAX_SWEEP_POINTS): not a sweep, or corrupt; refused before "
+                         "reading")  # fmt: skip
+    if size == 0 and not allow_empty:
+        raise ValueError(f"LiDAR file {path} holds no points (0 bytes): a sample needs its sweep")
+    raw = np.fromfile(path, dtype=np.float32, count=size // 4)  # count: a file grown since the check is read no further
     if raw.size % 5:
         raise ValueError(f"LiDAR file {path}: {raw.size} floats is not a multiple of 5 (x, y, z, intensity, ring)")
     if raw.size == 0:  # read as a sweep without returns (the devkit does too), but a copy cut short is likelier
@@ -398,10 +410,7 @@ def _load_sample_points(path: Path) -> np.ndarray:
     """The sample's key-frame sweep; an empty one is refused: a key frame without a single LiDAR point is a broken
     recording (a truncated copy, a failed export), and detecting on it would report "0 detections" as a result.
     (Past sweeps and the nuScenes reader keep load_points' leniency.)"""
-    points = load_points(path)
-    if not len(points):
-        raise ValueError(f"LiDAR file {path} holds no points ({path.stat().st_size} bytes): a sample needs its sweep")
-    return points
+    return load_points(path, allow_empty=False)
 
 
 def _check_size(size: tuple[int, int]) -> tuple[int, int]:

@@ -27,9 +27,10 @@ from typing import Callable
 
 import numpy as np
 
-from streamdet.data.sample import Sample, bundled_sample_dir, load_bundled_sample
-from streamdet.data.synth_world import WORLD_FILE
+from streamdet.data.sample import NUMBER, FieldKind, Sample, bundled_sample_dir, check_fields, load_bundled_sample, numbers
+from streamdet.data.synth_world import MAX_WORLD_BYTES, WORLD_FILE
 from streamdet.core.classes import CLASS_NAMES
+from streamdet.core.json_input import is_finite_number, read_json, short_repr
 
 FACE_M = 0.05  # a point this close to a box face counts as "on the face"
 RANGE_BIN_M = 10.0
@@ -40,7 +41,15 @@ DISTRACTOR_RANGE_M = 40.0
 HEADING_OFF_DEG = 10.0
 VEHICLES = ("car", "truck", "bus", "construction_vehicle", "trailer")
 SMALL_CLASSES = ("pedestrian", "traffic_cone", "bicycle")  # what the distractors imitate
-
+# world.json, as far as the stats read it (synth_writer.world_sidecar writes it; other fields are not read)
+_XY = numbers(2)
+_WORLD_FIELDS = {"world_version": FieldKind(lambda v: type(v) is int, "an integer (synth_world.WORLD_VERSION)"),
+                 "scenes": FieldKind(lambda v: type(v) is dict, "an object of scenes by name")}
+_SCENE_FIELDS = {"roads": FieldKind(lambda v: type(v) is list, "a list of road strips"),
+                 "distractors_xy": FieldKind(lambda v: type(v) is list and all(_XY.test(p) for p in v),
+                                             "a list of [x, y] pairs of finite numbers")}
+_ROAD_FIELDS = {"origin_xy": _XY, "yaw": NUMBER,
+                "half_width_m": FieldKind(lambda v: is_finite_number(v) and v >= 0, "a finite number >= 0")}  # fmt: skip
 
 
 def open_samples(root: str | Path) -> tuple[str, int, Callable[[int], Sample], dict | None]:
@@ -57,10 +66,33 @@ def open_samples(root: str | Path) -> tuple[str, int, Callable[[int], Sample], d
     from streamdet.data.nuscenes import NuScenesReader
 
     reader = NuScenesReader(root, versions[0])
-    world_path = root / WORLD_FILE
-    world = json.loads(world_path.read_text()) if world_path.is_file() else None
-    label = f"{root.name} ({versions[0]}" + (f", world {world.get('world_version')})" if world else ")")
+    world = _read_world(root)
+    label = f"{root.name} ({versions[0]}" + (f", world {world['world_version']})" if world else ")")
     return label, len(reader), reader.get, world
+
+
+def _read_world(root: Path) -> dict | None:
+    """``root``'s world.json, checked as far as the stats read it; None where there is none (real nuScenes).
+
+    One that is there but unreadable or malformed is a ValueError naming it and the field, where
+    ``synth_world.world_version_of`` reads it as no world: a report's label loses only the version, but the heading
+    and distractor figures come from this file, and "no world" would print them n/a, as for real data. Both read
+    the file alike (``read_json``, ``MAX_WORLD_BYTES``, an integer ``world_version``), so a world measured here has
+    the version world_version_of names.
+    """
+    path = root / WORLD_FILE
+    if not path.is_file():
+        if path.exists():  # a FIFO would block the read; a folder is no world
+            raise ValueError(f"world file {path} is not a regular file (a FIFO, a device or a folder?)")
+        return None
+    world = read_json(path, "world file", MAX_WORLD_BYTES)
+    check_fields(world, _WORLD_FIELDS, f"world file {path}")
+    for name, scene in world["scenes"].items():
+        where = f"world file {path} scenes[{short_repr(name)}]"
+        check_fields(scene, _SCENE_FIELDS, where, optional=frozenset(_SCENE_FIELDS))
+        for i, road in enumerate(scene.get("roads", [])):
+            check_fields(road, _ROAD_FIELDS, f"{where} roads[{i}]")
+    return world
 
 
 def range_bin(distance_m: np.ndarray) -> np.ndarray:
@@ -115,7 +147,7 @@ def dataset_stats(root: str | Path, max_samples: int | None = None, progress: Ca
         sweep_points.append(len(pts))
         l2g = sample.lidar2global
         yaw_offset = math.atan2(l2g[1, 0], l2g[0, 0])
-        scene = (world or {}).get("scenes", {}).get(sample.scene_name) if world else None
+        scene = world["scenes"].get(sample.scene_name) if world else None
         for m, box in enumerate(np.asarray(sample.gt_boxes, dtype=np.float64)):
             label_id = int(sample.gt_labels[m])
             if label_id < 0:
