@@ -15,8 +15,10 @@ from __future__ import annotations
 import errno
 import hashlib
 import json
+import logging
 import math
 import os
+import threading
 from dataclasses import dataclass
 from typing import Any, Callable, Iterable, Mapping
 
@@ -27,6 +29,8 @@ from streamdet.core import rotations
 from streamdet.core.file_input import InputFileError, read_regular_file
 from streamdet.core.json_input import short_repr
 from streamdet.core.sectors import angle_diff_deg
+
+log = logging.getLogger(__name__)
 
 # A rotation read from a float32 source deviates from orthonormal by ~1e-7; a hand-edited or corrupted
 # one by far more. Anything between is refused rather than silently re-orthonormalised.
@@ -49,6 +53,15 @@ MIN_FOCAL_PER_SIDE = 1e-3
 # and OpenCV's K have zero skew); a tenth of fx is an axis angle 5.7 degrees off square, far past any calibration
 # error, and a huge one shears the image into garbage that is, again, not blind.
 MAX_SKEW_PER_FOCAL = 0.1
+# A calibration.json transform given both as "matrix" and as "rotation_wxyz" + "translation": written from one float32
+# source, the two forms agree to ~1e-7 in the rotation's entries and to float32's rounding of the translation (6e-8 of
+# it: 0.06 m of a 1e6 m map coordinate). Past TRANSFORM_FORMS_ATOL (rotation entries; metres) plus TRANSFORM_FORMS_RTOL
+# of the entry they say two things, an edit made to one of them alone: refused, since which one was meant is unknown.
+TRANSFORM_FORMS_ATOL = 1e-4
+TRANSFORM_FORMS_RTOL = 1e-6
+# A camera's lidar2img is [K 0; 0 1] @ lidar2cam, written for other tools and never read here. Rounding moves it by
+# ~1e-7 of its largest entry (float32 sources); past this fraction of that entry it is another projection.
+LIDAR2IMG_RTOL = 1e-5
 
 
 class CalibrationError(ValueError):
@@ -442,7 +455,13 @@ class Rig:
         caller knows it), else "calibration". Any other argument (a list, None, bytes) is a CalibrationError: a JSON
         document that is not an object must not be taken for a path and opened.
 
-        Each camera's ``lidar2cam.matrix`` is used as stored (it already holds the ego motion).
+        Read: ``lidar.sensor2ego``, ``lidar.ego2global`` (optional: identity) and each camera's ``name``, ``K``,
+        ``width``, ``height``, ``lidar2cam`` and ``timestamp_us`` (optional). A transform is its ``matrix``, else its
+        ``rotation_wxyz`` + ``translation``; given both ways they must agree (TRANSFORM_FORMS_ATOL). Each camera's
+        ``lidar2cam`` is used as stored: it must hold the ego motion between the LiDAR's timestamp and the camera's.
+        Not read: a camera's ``sensor2ego`` and ``ego2global``, ``note`` and the file's other fields; a camera's
+        ``lidar2img`` is only compared with ``K @ lidar2cam`` (a warning where it differs: ``check_lidar2img``).
+        docs/architecture.md, "calibration.json".
         """
         if isinstance(path_or_dict, Mapping):
             doc, src = path_or_dict, source or "calibration"
@@ -482,6 +501,8 @@ class Rig:
                 cameras.append(Camera(name, K, lidar2cam, width, height, ts))
             except CalibrationError as e:
                 raise CalibrationError(f"{src}: {at}: {e}") from None
+            if "lidar2img" in c:
+                check_lidar2img(c["lidar2img"], cameras[-1], src, at)
         try:
             return cls(tuple(cameras), lidar2ego, ego2global)
         except CalibrationError as e:
@@ -544,16 +565,65 @@ def _wrap(check, value: Any, src: str, field: str):
 
 
 def transform_entry(entry: Any, src: str, at: str) -> np.ndarray:
-    """A calibration.json transform: {"matrix": 4x4} or {"rotation_wxyz", "translation"}."""
+    """A calibration.json transform: {"matrix": 4x4} or {"rotation_wxyz", "translation"}; a rotation or translation
+    given beside the matrix must agree with it (TRANSFORM_FORMS_ATOL), else CalibrationError naming the entry."""
     if not isinstance(entry, Mapping):
         raise CalibrationError(f"{src}: {at}: expected an object with 'matrix', got {short_repr(entry)}")
-    if "matrix" in entry:
-        return _wrap(_as_transform, entry["matrix"], src, f"{at}.matrix")
-    if "rotation_wxyz" in entry and "translation" in entry:
+    m = _wrap(_as_transform, entry["matrix"], src, f"{at}.matrix") if "matrix" in entry else None
+    R = t = None
+    if "rotation_wxyz" in entry:
         R = _wrap(quaternion_to_matrix, entry["rotation_wxyz"], src, f"{at}.rotation_wxyz")
+    if "translation" in entry:
         t = _wrap(lambda v, f: _as_array(v, (3,), f), entry["translation"], src, f"{at}.translation")
+    if m is not None:
+        # the matrix is what is read: a rotation or translation beside it must say the same (TRANSFORM_FORMS_ATOL)
+        for name, alt, got in (("rotation_wxyz", R, m[:3, :3]), ("translation", t, m[:3, 3])):
+            if alt is None:
+                continue
+            diff = np.abs(got - alt)
+            if np.any(diff > TRANSFORM_FORMS_ATOL + TRANSFORM_FORMS_RTOL * np.abs(alt)):
+                raise CalibrationError(
+                    f"{src}: {at}: matrix and {name} disagree (max |diff| {float(diff.max()):.3g}, over "
+                    f"{TRANSFORM_FORMS_ATOL:g} + {TRANSFORM_FORMS_RTOL:g} of the entry): keep the one meant, drop the other"
+                )
+        return m
+    if R is not None and t is not None:
         return make_transform(R, t)
     raise CalibrationError(f"{src}: {at}.matrix: missing field (nor rotation_wxyz + translation)")
+
+
+_lidar2img_lock = threading.Lock()
+_lidar2img_warned: set[tuple[str, bytes]] = set()  # (camera, its lidar2img's bytes) said once, not per republish
+
+
+def check_lidar2img(value: Any, camera: "Camera", src: str, at: str) -> None:
+    """Log a warning, once per camera and value, where a camera entry's ``lidar2img`` (its ``matrix``, 3x4 or 4x4)
+    is not ``K @ lidar2cam[:3]`` beyond rounding (LIDAR2IMG_RTOL), naming the camera and the difference.
+
+    Warned, not refused: the projection is K and lidar2cam, and lidar2img is never read. Other tools write it for
+    their own image size or crop, so a refusal would reject a calibration whose read fields are right; an engineer
+    who edited lidar2img instead of lidar2cam still learns that the edit did nothing. One that cannot be read as a
+    matrix is informational all the same: not compared, and not an error."""
+    matrix = value.get("matrix") if isinstance(value, Mapping) else value
+    try:
+        given = np.array(matrix, dtype=np.float64)
+    except (TypeError, ValueError, OverflowError):
+        return
+    if given.shape not in ((3, 4), (4, 4)) or not np.all(np.isfinite(given)):
+        return
+    want = camera.projection_matrix  # (3, 4)
+    diff = float(np.abs(given[:3] - want).max())
+    if diff <= LIDAR2IMG_RTOL * float(np.abs(want).max()):
+        return
+    key = (camera.name, given.tobytes())
+    with _lidar2img_lock:
+        if key in _lidar2img_warned:
+            return
+        if len(_lidar2img_warned) >= 256:  # a caller editing it over and over: bounded, it may warn again
+            _lidar2img_warned.clear()
+        _lidar2img_warned.add(key)
+    log.warning("%s: %s.lidar2img of camera %s differs from K @ lidar2cam by up to %.6g: lidar2img is not read (the "
+                "projection is K and lidar2cam); edit those to change where this camera looks", src, at, camera.name, diff)
 
 
 def _record_transform(record: Any, src: str, at: str) -> np.ndarray:

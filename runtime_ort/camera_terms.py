@@ -45,7 +45,10 @@ import onnxruntime as ort
 from streamdet.calibration.camera_lut import CameraLut, camera_luts
 from streamdet.calibration.quadrant_lut import QuadrantLut
 from streamdet.runtime_ort.lifter_split import SplitError, first_conv, first_conv_output, sparse_lut, tail_graph, term_graph
-from streamdet.runtime_ort.sessions import CPU_PROVIDER, ORT_ERRORS, SessionConfig, ort_message, ort_session, resolve_providers
+from streamdet.runtime_ort.recording import Feeds, GraphRecording
+from streamdet.runtime_ort.sessions import (
+    CPU_PROVIDER, ORT_ERRORS, GraphRunError, SessionConfig, graph_run_error, ort_message, ort_session, resolve_providers,
+)
 from streamdet.runtime_ort.stats import LatencyStats
 
 log = logging.getLogger(__name__)
@@ -55,6 +58,23 @@ PARITY_RTOL = 1e-4  # fp32 pieces against the fp32 lifter, max |diff| relative t
 # the same on an accelerator: its fp32 GEMMs and convolutions run in TF32 by default (CUDA, TensorRT), whose 10-bit
 # mantissa alone differs by about 1e-3 of the range
 ACCELERATOR_PARITY_RTOL = 5e-3
+# The two graphs' names in a detector's recordings (StreamingDetector.recording) and in their errors: they are cut
+# from the lifter in memory, so no export file names them
+TERM_GRAPH = "lifter_term"
+TAIL_GRAPH = "lifter_tail"
+
+
+def _no_recordings() -> tuple[GraphRecording, ...]:
+    return ()
+
+
+def _ort_run(graph: str, run: Callable[[], np.ndarray]) -> np.ndarray:
+    """``run()``, onnxruntime's failure in it raised as the GraphRunError that the detector's other graph runs raise
+    (GraphSession.run): a caller catching it on the image lane must not learn the export's lifter form first."""
+    try:
+        return run()
+    except ORT_ERRORS as e:
+        raise graph_run_error(f"{graph} (volumetric_lifter split into per-camera terms)", e) from None
 
 
 def share_slots(share: CameraLut, cells_per_map: int) -> tuple[np.ndarray, np.ndarray]:
@@ -142,6 +162,9 @@ class CameraTerms:
         tail_session = dataclasses.replace(session, intra_op_threads=1)
         self._tail = ort_session(tail_graph(lane_lifter, cut, (weight.shape[0], *self.quadrant_hw), bias).SerializeToString(), tail_session)
         self._stats = stats
+        # the recordings open now (the detector's recording() blocks), read when a run starts, as the detector's own
+        # runs read them: set by the detector that holds these terms (weakly: no cycle keeps a closed detector alive)
+        self.recordings: Callable[[], tuple[GraphRecording, ...]] = _no_recordings
         self._closed: BaseException | None = None  # close(): raised by every later graph run
         self._lock = threading.Lock()
         self._shares: dict[int, tuple[QuadrantLut, tuple[_Share, ...]]] = {}  # id(qlut) -> (qlut, its shares)
@@ -250,13 +273,21 @@ class CameraTerms:
         if sum(sizes) == 0:  # a camera the LUT lists in the quadrant but that reads no cell there
             return tuple(np.zeros((0, self.bias.size), np.float32) for _ in shares)
         graph = self._session(self._term_graph)  # one read: close() may release it meanwhile
+        recordings = self.recordings()
+        rows = None
         if self.sparse:  # the rows are stacked only where the sparse LUT of these shares is not kept yet
             feeds = {"features": ort.OrtValue.ortvalue_from_numpy(np.ascontiguousarray(features[None])),
                      "lut": self._sparse_lut(tuple(shares))}  # fmt: skip
-            out = graph.run_with_ort_values(["term"], feeds)[0].numpy()  # (U, C_out)
+            out = _ort_run(TERM_GRAPH, lambda: graph.run_with_ort_values(["term"], feeds)[0].numpy())  # (U, C_out)
         else:
-            slots, weights = self._stacked(shares)  # (U, J)
-            out = graph.run(None, {"features": features[None], "slots": slots, "weights": weights})[0]  # (U, C_out)
+            rows = self._stacked(shares)  # (U, J) slots and weights
+            dense = {"features": features[None], "slots": rows[0], "weights": rows[1]}
+            out = _ort_run(TERM_GRAPH, lambda: graph.run(None, dense)[0])  # (U, C_out)
+        if recordings:
+            # the dense term graph's feeds whichever form ran: a sparse OrtValue is no array, and the rows define it
+            slots, weights = self._stacked(shares) if rows is None else rows
+            for recording in recordings:
+                recording.add(TERM_GRAPH, {"features": features[None], "slots": slots, "weights": weights}, (out,))
         return tuple(np.split(out, np.cumsum(sizes)[:-1]))
 
     def tail_feeds(self, shares: tuple[_Share, ...], terms: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -272,7 +303,13 @@ class CameraTerms:
         return {"terms": stacked, "rows": rows, "cells": np.concatenate([s.share.cells for s in given])[:, None]}  # (M, 1)
 
     def tail(self, feeds: Mapping[str, np.ndarray]) -> np.ndarray:
-        return self._session(self._tail).run(None, dict(feeds))[0]
+        session = self._session(self._tail)
+        recordings = self.recordings()
+        given: Feeds = dict(feeds)
+        out = _ort_run(TAIL_GRAPH, lambda: session.run(None, given)[0])  # (1, C, Yq, Xq)
+        for recording in recordings:
+            recording.add(TAIL_GRAPH, given, (out,))
+        return out
 
     # ---- the cache ---------------------------------------------------------------------------
     def prepare(self, qluts: tuple[QuadrantLut, ...], maps: Mapping[str, np.ndarray]) -> int:
@@ -374,7 +411,7 @@ def open_camera_terms(
                 failed = True
         except SplitError as e:
             why = str(e)
-        except ORT_ERRORS as e:  # a cut that onnxruntime cannot run is not a split
+        except (*ORT_ERRORS, GraphRunError) as e:  # a cut that onnxruntime cannot run is not a split
             why, failed = f"its per-camera pieces do not run: {ort_message(e)}", True
     if why is None:
         log.info("%s: per-camera lifts for image updates (%s tail, %s terms)", export_dir, lane_precision,

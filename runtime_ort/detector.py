@@ -36,12 +36,13 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 import os
 import threading
 import weakref
 import time
 import warnings
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Mapping, Sequence
@@ -53,10 +54,11 @@ from streamdet.calibration.lut import BlindCameraWarning, CameraMovedWarning, Lu
 from streamdet.calibration.quadrant_lut import QuadrantLut
 from streamdet.core.constants import PRECISIONS  # noqa: F401 (public here too)
 from streamdet.core.points import (
-    MAX_POINT_TIME_S, MAX_SLICE_INDEX, MAX_SLICE_POINTS, MAX_SWEEP_POINTS, REFLECTANCE_RANGE, check_sweep, slice_points_problem,
+    MAX_POINT_TIME_S, MAX_SLICE_INDEX, MAX_SLICE_POINTS, MAX_SWEEP_POINTS, REFLECTANCE_RANGE, SLICE_INDEX, check_sweep,
+    slice_points_problem,
 )
 from streamdet.core.sectors import NUM_QUADRANTS, quadrants_of_sector, run_bounds_deg
-from streamdet.core.slicing import split_sweep
+from streamdet.core.slicing import feature_index, split_sweep
 from streamdet.runtime_ort.call_checks import call_timestamp, slice_count, slice_index_problem
 # the public names of the runtime's API are importable from here too, where StreamingDetector lives
 from streamdet.runtime_ort.camera_terms import CameraTerms
@@ -65,7 +67,7 @@ from streamdet.runtime_ort.detector_config import DetectorClosed, DetectorConfig
 from streamdet.runtime_ort.detector_results import ImageUpdate, SliceResult, SweepResult
 from streamdet.runtime_ort.export_open import check_lut, executed_gmac, export_lut, no_image_lane, open_export, provider_options
 from streamdet.runtime_ort.heap import release_free_memory
-from streamdet.runtime_ort.fallback import FALLBACK_GRAPH, LidarFallback, needs_fallback
+from streamdet.runtime_ort.fallback import CLOCKS_APART_S, FALLBACK_GRAPH, IMPLAUSIBLE_IMAGE_AGE_S, LidarFallback, needs_fallback
 from streamdet.runtime_ort.image_cache import (  # noqa: F401 (check_camera_timestamps: public here too)
     ALL_QUADRANTS, ImageCache, QuadrantState, check_camera_timestamps, quadrant_states, quadrant_timestamp, select_maps,
     update_quadrants,
@@ -125,6 +127,9 @@ class StreamingDetector:
         self._runs_at_top_k = 0
         self._warned_out_of_range = False  # a slice dropped points with a feature out of range (logged once)
         self._warned_nonfinite_outputs = False  # a slice graph run gave NaN / inf rows (logged once)
+        self._warned_clocks = False  # a slice's image age said its lanes' clocks differ (logged once)
+        self._warned_slice_index = False  # a slice's index column was not its slice's feature (logged once)
+        self._feature_indices: dict[tuple[int, int], int] = {}  # (k, n) -> feature_index in this scan layout
         # encode_images' maps by id (weakly): trusted as they are by update_images / prepare_terms (_check_encoded)
         self._own_maps: weakref.WeakValueDictionary[int, np.ndarray] = weakref.WeakValueDictionary()
         self._calibration_lock = threading.Lock()  # one calibration swap (and its re-lift) at a time
@@ -148,6 +153,8 @@ class StreamingDetector:
         self._views = opened.views
         # per-camera lifts of image updates (camera_terms.py); None: every update runs the lifter graph
         self._terms: CameraTerms | None = opened.terms
+        if self._terms is not None:  # its term and tail runs are recorded too, under their own names
+            self._terms.recordings = _recordings_of(weakref.ref(self))
         if self.uses_images and self._lut is not None:
             self._blank_bev = self._lift_blank()
         log.info("streamdet: %s (%s, %d slices) on %s", self.export_dir, self.precision_label, self.num_slices, list(self.providers))
@@ -781,6 +788,10 @@ class StreamingDetector:
         image_ts = min(stamps) if stamps else None
         # the newest slice's image age decides: the fallback is for images too old at the moment of the run
         image_age = None if image_ts is None else max(timestamps) - image_ts
+        if image_age is not None and not self._warned_clocks and not -CLOCKS_APART_S <= image_age <= IMPLAUSIBLE_IMAGE_AGE_S:
+            self._warn_clocks(max(timestamps), image_ts)
+        if not self._warned_slice_index:
+            self._check_slice_index_column(points, ks, n)
         fallback = self._fallback is not None and needs_fallback(None not in states, image_age, self.config.fallback_after_s)
         crop = self._fallback.slice_crop if fallback else self.slice_crop
         run_points = points[0] if len(points) == 1 else np.concatenate(points)  # (N, 6): each point keeps its own s
@@ -838,6 +849,38 @@ class StreamingDetector:
             )
             for i, (k, p, ts, part) in enumerate(zip(ks, points, timestamps, parts))
         )
+
+    def _warn_clocks(self, slice_ts: float, image_ts: float) -> None:
+        """Once per detector: a slice's image age that no image lane explains (the image stamped over CLOCKS_APART_S
+        after the slice, or over IMPLAUSIBLE_IMAGE_AGE_S before it) is two clocks read as one, and every
+        ``image_age_s`` (and a fallback's age rule) is meaningless until the caller fixes its stamps."""
+        self._warned_clocks = True
+        log.warning("%s: slice timestamp %.17g and image timestamp %.17g are %.6g s apart: are both lanes on the same "
+                    "clock (timestamp=None is time.monotonic(), a driver's header stamp is not) and in seconds (ROS "
+                    "stamps are nanoseconds)? SliceResult.image_age_s means nothing until they are (logged once)",
+                    self.export_dir, slice_ts, image_ts, slice_ts - image_ts)  # fmt: skip
+
+    def _check_slice_index_column(self, points: tuple[np.ndarray, ...], ks: tuple[int, ...], n: int) -> None:
+        """Once per detector: a slice whose slice-index column is not the feature of its slice in this scan layout
+        (``core.slicing.feature_index``, what split_sweep and the ROS adapter write; not k itself in a layout that
+        starts elsewhere or turns clockwise): the model then reads another sector's index, and nothing else says so.
+        Only its first and last points: a caller's numbering applies to all of a slice's points alike, and a pass over
+        every point would cost every slice."""
+        for p, k in zip(points, ks):
+            if p.shape[0] == 0:
+                continue
+            want = self._feature_indices.get((k, n))
+            if want is None:
+                want = self._feature_indices[(k, n)] = feature_index(k, n, self.config.start_deg, self.config.clockwise)
+            for got in (float(p[0, SLICE_INDEX]), float(p[-1, SLICE_INDEX])):
+                if got != want and math.isfinite(got):  # a NaN is dropped and counted as one
+                    self._warned_slice_index = True
+                    log.warning("%s: slice %d of %d has %g in its slice-index column (points[:, %d]), the feature of "
+                                "that slice's points being %d in this scan layout (start_deg %g, clockwise %s: "
+                                "core.slicing.feature_index, which split_sweep writes); numbered in scan order, the "
+                                "model reads another sector's index (logged once)", self.export_dir, k, n, got,
+                                SLICE_INDEX, want, self.config.start_deg, self.config.clockwise)  # fmt: skip
+                    return
 
     def _check_slice_outputs(self, graph: str, boxes: np.ndarray, scores: np.ndarray, labels: np.ndarray, k: int) -> int:
         """The number of output rows with a NaN or inf (dropped by the post-processing, counted in SliceResult and
@@ -922,7 +965,9 @@ class StreamingDetector:
         return self.detect_sweep_slices(sweep, timestamp, num_slices).detections
 
     def detect_sweep_slices(self, sweep: np.ndarray, timestamp: float | None = None, num_slices: int | None = None) -> SweepResult:
-        """``detect_sweep`` keeping what each slice saw and found (its points and ``SliceResult``)."""
+        """``detect_sweep`` keeping what each slice saw and found (its points and ``SliceResult``). A sweep point
+        whose x or y is NaN has no azimuth and so is in no slice's points: it is counted in the first slice's
+        ``num_nonfinite_dropped`` (beside that slice's own ``num_points``)."""
         n = self._slices(num_slices)
         if isinstance(sweep, np.ma.MaskedArray):
             raise ValueError("sweep must be a plain array, got a masked array (its mask would be ignored)")
@@ -935,6 +980,11 @@ class StreamingDetector:
         results = [self.detect_slice(pts, k, timestamp, n) for k, pts in enumerate(slices)]
         with self.stats.time("sweep_nms"):
             merged = aggregate_sweep([r.detections for r in results], self.config.nms)
+        # a point whose x or y is NaN has no azimuth, so split_sweep put it in no slice: counted with the first
+        # slice's non-finite points, so that every point the sweep lost is in some SliceResult's count
+        no_azimuth = sweep.shape[0] - sum(s.shape[0] for s in slices)
+        if no_azimuth:
+            results[0] = dataclasses.replace(results[0], num_nonfinite_dropped=results[0].num_nonfinite_dropped + no_azimuth)
         return SweepResult(merged, tuple(results), tuple(slices))
 
     def _slices(self, num_slices: int | None) -> int:
@@ -960,7 +1010,9 @@ class StreamingDetector:
     def recording(self, recording: GraphRecording | None = None) -> Iterator[GraphRecording]:
         """Record every graph run of this detector (any lane, any thread) while the block runs: its graph, the exact
         feeds it was given and its outputs (runtime_ort/recording.py), appended to ``recording`` (None: a new
-        one). Blocks may nest or overlap; each records what ran while it was open.
+        one). Blocks may nest or overlap; each records what ran while it was open. With per-camera lifts
+        (``camera_terms``) an image update runs no ``volumetric_lifter``: its term and tail runs are recorded as
+        ``lifter_term`` and ``lifter_tail`` (camera_terms.py).
 
             with detector.recording() as rec:
                 detect_sample(detector, sample)
@@ -1003,6 +1055,17 @@ class StreamingDetector:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def _recordings_of(ref: weakref.ref) -> Callable[[], tuple[GraphRecording, ...]]:
+    """The recording() blocks open on the detector ``ref`` names (none once it is gone), for its CameraTerms: a
+    reference back to the detector would be a cycle that keeps a closed one alive until a full collection (heap.py)."""
+
+    def recordings() -> tuple[GraphRecording, ...]:
+        det = ref()
+        return () if det is None else det._recordings
+
+    return recordings
 
 
 def _gave_up(seq: int) -> bool:

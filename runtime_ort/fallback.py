@@ -95,6 +95,11 @@ def open_fallback(export_dir: str | Path, main: Manifest, grid: GridSpec, sessio
 # disagree (a clock that jumped, two clocks never aligned), so the image's age is unknown. Frames newer than the scan
 # by up to a camera period are normal (the phase-locked lane lifts them); seconds are not.
 CLOCKS_APART_S = 1.0
+# An image BEV older than this at its slice's timestamp is far more likely two clocks read as one (an epoch stamp
+# against time.monotonic(), nanoseconds against seconds) than an image lane stopped for an hour. Past it, or stamped
+# over CLOCKS_APART_S after the slice, the detector logs both timestamps once (StreamingDetector._warn_clocks),
+# with a fallback or without.
+IMPLAUSIBLE_IMAGE_AGE_S = 3600.0
 
 
 def needs_fallback(has_every_quadrant: bool, image_age_s: float | None, after_s: float | None) -> bool:

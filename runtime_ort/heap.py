@@ -61,19 +61,34 @@ def release_free_memory() -> bool:
     return True
 
 
+# Open frozen_heap blocks, any thread: gc.unfreeze() thaws every frozen object, an enclosing block's too, so only the
+# last block to close may call it (a node wrapping its spin loop, and a helper that wraps its own work, nest)
+_frozen_lock = threading.Lock()
+_frozen_depth = 0
+
+
 @contextmanager
 def frozen_heap(enabled: bool = True) -> Iterator[None]:
     """Collect, freeze every object alive now out of later collections (``gc.freeze``), run the body, then
-    unfreeze. ``enabled`` False: the body runs with the heap as it is (to measure the difference)."""
+    unfreeze. ``enabled`` False: the body runs with the heap as it is (to measure the difference).
+
+    Blocks nest, and may overlap in several threads: each entry collects and freezes what is alive then, and the heap
+    is unfrozen when the last open block exits (a ``gc.freeze`` the process made itself is thawed with it)."""
+    global _frozen_depth
     if not enabled:
         yield
         return
-    gc.collect()
-    gc.freeze()
+    gc.collect()  # outside the lock: a finaliser it runs may enter a block itself
+    with _frozen_lock:
+        gc.freeze()
+        _frozen_depth += 1
     try:
         yield
     finally:
-        gc.unfreeze()
+        with _frozen_lock:
+            _frozen_depth -= 1
+            if _frozen_depth == 0:
+                gc.unfreeze()
 
 
 @dataclass

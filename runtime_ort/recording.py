@@ -3,6 +3,9 @@
 ``StreamingDetector.recording()`` yields a ``GraphRecording`` that collects each graph run the detector makes
 while the block runs, in call order, from any thread: the exact feed dicts it hands its sessions (images batch,
 feature maps with the LUT, pillar tensors with the cached image BEV or the quadrant ids) and what they returned.
+With per-camera lifts (``runtime_ort/camera_terms.py``, on by default for a flat-lifter export) an image update runs
+the two graphs cut from the lifter instead of ``volumetric_lifter``: ``lifter_term`` (a camera's feature map and its
+share of the LUT as the dense term graph's slots and weights, whichever form ran) and ``lifter_tail``.
 
 For tools that need the runtime's real graph inputs without building them a second time: the exporter calibrates
 its int8 graphs on the feeds the fp32 detector recorded over real samples, and runs its whole-pipeline parity
@@ -25,7 +28,9 @@ Feeds = dict[str, np.ndarray]
 class GraphRun:
     """One onnxruntime run of one of the detector's graphs."""
 
-    graph: str  # "image_encoder", "volumetric_lifter" or "slice_head"
+    # "image_encoder", "volumetric_lifter", "slice_head", "slice_head_fallback"; "lifter_term" and "lifter_tail" with
+    # per-camera lifts
+    graph: str
     feeds: Feeds  # input name -> the array the session was given
     outputs: tuple[np.ndarray, ...]  # in the graph's output order
 

@@ -50,6 +50,12 @@ def ort_message(e: BaseException) -> str:
     return text.rsplit(" : ", 1)[-1] if text.startswith("[ONNXRuntimeError]") else text
 
 
+def graph_run_error(graph: str, e: BaseException) -> GraphRunError:
+    """The GraphRunError of onnxruntime's exception ``e`` in a run of ``graph`` (its file name, or what names it):
+    the one message of every graph run that fails, whichever session ran it."""
+    return GraphRunError(f"{graph}: onnxruntime failed: {ort_message(e)}")
+
+
 # Preference order when neither the caller nor STREAMDET_PROVIDERS names providers: those this onnxruntime build has.
 # TensorRT only when asked for: it builds an engine per graph and input-shape range at start-up (minutes), a choice
 # for a deployment that caches its engines (runtime_ort/tensorrt.py), not a default.
@@ -239,7 +245,7 @@ class GraphSession:
         try:
             return self.session.run(list(self.output_names), feeds)
         except ORT_ERRORS as e:
-            raise GraphRunError(f"{self.path.name}: onnxruntime failed: {ort_message(e)}") from None
+            raise graph_run_error(self.path.name, e) from None
 
     def end_profiling(self) -> str:
         return self.session.end_profiling()
