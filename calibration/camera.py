@@ -12,7 +12,6 @@ Conventions (the same as data/nuscenes_sample/README.md):
 
 from __future__ import annotations
 
-import errno
 import hashlib
 import json
 import logging
@@ -26,7 +25,7 @@ import numpy as np
 
 from streamdet.calibration.projection import project_points, visible_mask
 from streamdet.core import rotations
-from streamdet.core.file_input import InputFileError, read_regular_file
+from streamdet.core.file_input import InputFileError, missing_reason, read_regular_file
 from streamdet.core.json_input import short_repr
 from streamdet.core.sectors import angle_diff_deg
 
@@ -186,18 +185,8 @@ def _parse_calibration(text: Callable[[], str], src: str) -> Any:
 
 
 def _unreadable_reason(src: str, reason: str) -> str:
-    """``reason`` from read_regular_file, told apart where it says "missing" of a path that is a symlink: the
-    link exists, so "missing" would send the user looking for a file they can see."""
-    if reason != "missing":
-        return reason
-    if not os.path.islink(src):
-        return "no such file"
-    try:
-        os.stat(src)
-    except OSError as e:
-        if e.errno == errno.ELOOP:
-            return "a symlink loop"
-    return f"a broken symlink (to {os.readlink(src)!r}, which does not exist)"
+    """``reason`` from read_regular_file, told apart where it says "missing" of a path that is a symlink."""
+    return missing_reason(src) if reason == "missing" else reason
 
 
 def _readonly(a: np.ndarray) -> np.ndarray:

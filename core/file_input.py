@@ -8,6 +8,7 @@ hashed or checked is what is parsed (a file swapped between a check and a load b
 
 from __future__ import annotations
 
+import errno
 import os
 import stat
 from pathlib import Path
@@ -30,6 +31,20 @@ def describe_bytes(n: int) -> str:
         if n >= 1 << shift:
             return f"{n / (1 << shift):.3g} {unit}"
     return f"{n} bytes"
+
+
+def missing_reason(path: str | os.PathLike) -> str:
+    """Why ``path``, which does not exist as far as ``Path.exists`` sees, is missing: "no such file", or, where it is
+    a symlink (the link is there, so "missing" would send the user looking for a file they can see), "a symlink
+    loop" or "a broken symlink (to '...', which does not exist)"."""
+    if not os.path.islink(path):
+        return "no such file"
+    try:
+        os.stat(path)
+    except OSError as e:
+        if e.errno == errno.ELOOP:
+            return "a symlink loop"
+    return f"a broken symlink (to {os.readlink(path)!r}, which does not exist)"
 
 
 def read_regular_file(path: str | os.PathLike, limit_bytes: int) -> bytes:

@@ -33,9 +33,10 @@ from pathlib import Path
 import numpy as np
 
 from streamdet.calibration.camera import (
-    QUATERNION_NORM_TOL, CalibrationError, Rig, _unreadable_reason, invert_transform, make_transform, quaternion_to_matrix)
+    QUATERNION_NORM_TOL, CalibrationError, Rig, invert_transform, make_transform, quaternion_to_matrix)
 from streamdet.core.boxes import BOX_DIM
 from streamdet.core.classes import CLASS_NAMES
+from streamdet.core.file_input import missing_reason
 from streamdet.core.json_input import read_json, short_repr
 from streamdet.core.rotations import matrix_to_yaw
 from streamdet.core.table_version import table_version_problem
@@ -333,10 +334,10 @@ class NuScenesReader:
                 raise ValueError(f"file of sample_data {sd['token']} is not a regular file (a FIFO, a device or a folder?): {path}")
             link = _dead_link(self.root, path)
             if link == path:  # "not found" would send the user looking for a file whose link they can see
-                raise FileNotFoundError(f"file of sample_data {sd['token']} is {_unreadable_reason(str(link), 'missing')}: {path}")
+                raise FileNotFoundError(f"file of sample_data {sd['token']} is {missing_reason(link)}: {path}")
             if link is not None:
                 raise FileNotFoundError(f"file of sample_data {sd['token']} cannot be reached: {link} is "
-                                        f"{_unreadable_reason(str(link), 'missing')}: {path}")  # fmt: skip
+                                        f"{missing_reason(link)}: {path}")  # fmt: skip
             raise FileNotFoundError(f"file of sample_data {sd['token']} not found: {path}")
         return path
 

@@ -23,7 +23,7 @@ from streamdet.calibration.camera import MAX_CALIBRATION_BYTES, Rig
 from streamdet.core.boxes import BOX_DIM
 from streamdet.core.classes import CLASS_NAMES
 from streamdet.core.constants import BUNDLED_SAMPLE_DIR
-from streamdet.core.file_input import InputFileError, read_regular_file
+from streamdet.core.file_input import InputFileError, missing_reason, read_regular_file
 from streamdet.core.image_header import MAX_IMAGE_FILE_BYTES, check_image_size, decoder_error_reason, read_image_header
 from streamdet.core.json_input import is_finite_number, read_json, short_repr  # noqa: F401 (public here too)
 from streamdet.core.points import MAX_SWEEP_POINTS, SWEEP_COLUMNS, check_sweep
@@ -382,7 +382,7 @@ def _check_sample_file(path: Path, what: str) -> None:
     if path.exists():
         raise ValueError(f"{what} file {path} is not a regular file (a FIFO, a device or a folder?)")
     if os.path.islink(path):
-        raise FileNotFoundError(f"{what} file {path} is a broken symlink or a symlink loop")
+        raise FileNotFoundError(f"{what} file {path} is {missing_reason(path)}")
     raise FileNotFoundError(f"{what} file not found: {path} (a sample folder holds calibration.json and boxes.json)")
 
 
