@@ -17,6 +17,7 @@ from streamdet.cli_utils import (
     PRECISION_CHOICES,
     camera_timeout_option,
     camera_timeout_s,
+    check_fallback_options,
     check_folder_creatable,
     check_output_parent,
     fallback_after_s,
@@ -37,6 +38,13 @@ from streamdet.progress import counted
 LIBRARY_ERRORS = (ValueError, KeyError, FileNotFoundError, OSError, MissingExtraError)
 
 
+# A bag is usually an irreplaceable drive recording (README's drive.mcap, car.mcap): `bag export --out` over one
+# replaced it with rc 0. As `ros2 bag record -o` refuses an existing bag, export and run replace a file only on
+# request. The write itself is atomic either way (a temporary file renamed when complete).
+OVERWRITE_HELP = ("Replace an existing --out. Default: an existing file is refused (a recording is not replaced by "
+                  "accident); the file is replaced only once the new one is complete.")
+
+
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
 def main() -> None:
     """ROS 2 bags in and out, viewable in Foxglove, without a ROS installation (needs the ros extra: `pip install 'streamdet[ros]'`, from a checkout `pip install '.[ros]'`)."""
@@ -48,8 +56,10 @@ def main() -> None:
                    "the bundled sample's layout (calibration.json). Default: the bundled real nuScenes sample.")
 @click.option("--scene", default=None, help="Scene name (e.g. synth-0-0000). Default: the only scene of the dataset.")
 @version_option()
-@click.option("--out", type=click.Path(path_type=Path, dir_okay=False), required=True, help="The .mcap bag to write.")
-def export_cmd(data_dir: Path | None, scene: str | None, version: str, out: Path) -> None:
+@click.option("--out", type=click.Path(path_type=Path, dir_okay=False), required=True,
+              help="The .mcap bag to write; an existing file is refused unless --overwrite is given.")
+@click.option("--overwrite", is_flag=True, help=OVERWRITE_HELP)
+def export_cmd(data_dir: Path | None, scene: str | None, version: str, out: Path, overwrite: bool) -> None:
     """Write one scene as the ROS 2 MCAP bag a car records: /LIDAR_TOP, /CAM_*/image_rect_compressed,
     /CAM_*/camera_info, /tf, /tf_static and the ground truth on /markers/annotations."""
     from streamdet.bag.export import export_recording
@@ -65,6 +75,7 @@ def export_cmd(data_dir: Path | None, scene: str | None, version: str, out: Path
     data = ("--data", data_dir) if data_dir is not None else ("--data (default: the bundled sample)", bundled_sample_dir())
     refuse_output_over_inputs(out, "--out", dataset_inputs(data[1], data[0]))
     _check_output(out, "--out")
+    _refuse_existing(out, "--out", overwrite)
     try:
         with counted(f"writing {out}") as progress:  # one step per sensor message
             summary = export_recording(recording, out, progress=progress)
@@ -83,9 +94,14 @@ def export_cmd(data_dir: Path | None, scene: str | None, version: str, out: Path
 @click.option("--export-dir", type=click.Path(path_type=Path, file_okay=False), required=True,
               help="Export directory written by streamdet-export (holds manifest.json).")
 @click.option("--out", type=click.Path(path_type=Path, dir_okay=False), required=True,
-              help="The .mcap bag to write: the input topics plus /streamdet/detections and /streamdet/markers.")
+              help="The .mcap bag to write: the input topics plus /streamdet/detections and /streamdet/markers. An "
+                   "existing file is refused unless --overwrite is given.")
 @click.option("--results", "results_json", type=click.Path(path_type=Path, dir_okay=False), default=None,
-              help="Where to write the nuScenes results JSON. Default: beside --out, named after it (det.mcap: det.results_nusc.json).")
+              help="Where to write the nuScenes results JSON (an existing file is refused unless --overwrite is given). "
+                   "Default: beside --out, named after it (det.mcap: det.results_nusc.json).")
+@click.option("--overwrite", is_flag=True,
+              help="Replace an existing --out and results JSON. Default: an existing one is refused (a recording is not "
+                   "replaced by accident); each is replaced only once its new file is complete.")
 @click.option("--topics", default=None,
               help="Topic names of a bag recorded elsewhere, KEY=/topic comma-separated: lidar, tf, tf_static, a camera "
                    "name (its image topic) or CAMERA.info (its CameraInfo topic; default: camera_info beside the image "
@@ -111,17 +127,20 @@ def export_cmd(data_dir: Path | None, scene: str | None, version: str, out: Path
 def run_cmd(bag_path: Path, export_dir: Path, out: Path, results_json: Path | None, topics: str | None,
             slice_per_message: bool, ego_frame: str, global_frame: str, num_slices: int | None, precision: str,
             image_precision: str | None, providers: tuple[str, ...] | None, fallback_export_dir: Path | None, fallback_after_ms: float | None,
-            camera_timeout_ms: float, scan_start_deg: float | None, clockwise: bool | None, verbose: bool) -> None:  # fmt: skip
+            camera_timeout_ms: float, scan_start_deg: float | None, clockwise: bool | None, verbose: bool,
+            overwrite: bool = False) -> None:  # fmt: skip
     """Detect every LiDAR message of a bag in recorded order (images first when new ones arrived) and write the
     detections per slice as ROS 2 topics, stamped with the slice's scan time, plus the nuScenes results JSON."""
     logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(message)s")
+    check_fallback_options(fallback_export_dir, fallback_after_ms)  # a usage error in the options' names, first
     require_export_dir(export_dir)
     from streamdet.bag.run import RunConfig, results_path_of, run_bag
     from streamdet.bag.topics import TopicMap
     from streamdet.runtime_ort.stats import format_latency
     from streamdet.runtime_ort.detector import DetectorConfig
 
-    _check_run_outputs(bag_path, export_dir, fallback_export_dir, out, results_json, results_path_of(out, results_json))
+    _check_run_outputs(bag_path, export_dir, fallback_export_dir, out, results_json, results_path_of(out, results_json),
+                       overwrite)
     try:
         _require_extra()
         config = RunConfig(
@@ -212,9 +231,10 @@ def _bag_inputs(bag_path: Path) -> list[tuple[str, Path]]:
 
 
 def _check_run_outputs(bag_path: Path, export_dir: Path, fallback_export_dir: Path | None, out: Path,
-                       results_json: Path | None, results_path: Path) -> None:  # fmt: skip
+                       results_json: Path | None, results_path: Path, overwrite: bool = False) -> None:  # fmt: skip
     """`run` writes the output bag and the results JSON: neither may replace or land inside an input (the bag, the
-    exports), nor be the other one. Checked before the export is loaded."""
+    exports), nor be the other one, nor replace an existing file without --overwrite. Checked before the export is
+    loaded."""
     results_option = "--results" if results_json is not None else "--results (default: beside --out)"
     if bag_path.is_file() and out.resolve() == bag_path.resolve():  # the commonest slip, in run_bag's own words
         raise click.BadParameter(f"{str(out)!r} is the input bag (--bag); write the detections to another file",
@@ -225,6 +245,16 @@ def _check_run_outputs(bag_path: Path, export_dir: Path, fallback_export_dir: Pa
     refuse_same_outputs([("--out", out), (results_option, results_path)])
     _check_output(out, "--out")
     _check_output(results_path, results_option)
+    _refuse_existing(out, "--out", overwrite)
+    _refuse_existing(results_path, results_option, overwrite)
+
+
+def _refuse_existing(path: Path, option: str, overwrite: bool) -> None:
+    """click.BadParameter (exit 2) when ``path`` (given as ``option``) exists and ``overwrite`` is not set."""
+    if overwrite or not (path.exists() or path.is_symlink()):
+        return
+    another = "another --out" if option == "--out" or option.endswith("(default: beside --out)") else f"another {option}"
+    raise click.BadParameter(f"{str(path)!r} exists: pass --overwrite to replace it, or choose {another}", param_hint=option)
 
 
 def _check_output(path: Path, option: str) -> None:

@@ -26,6 +26,7 @@ from streamdet.cli_utils import (
     check_output_parent,
     check_plot_format,
     image_precision_option,
+    json_output_option,
     refuse_output_over_inputs,
     refuse_same_outputs,
     resolution_callback,
@@ -59,7 +60,8 @@ def _refuse_timing_options(ctx: click.Context) -> None:
     given = [p for p in ctx.command.params if p.name in TIMING_ONLY and ctx.get_parameter_source(p.name) in _GIVEN]
     if given:
         names = ", ".join("/".join([*p.opts, *p.secondary_opts]) for p in given)
-        raise click.UsageError(f"--flops-only counts MACs and times nothing: {names} only apply to timing; drop them "
+        apply, them = ("apply", "them") if len(given) > 1 else ("applies", "it")  # one option: "--repeat only applies"
+        raise click.UsageError(f"--flops-only counts MACs and times nothing: {names} only {apply} to timing; drop {them} "
                                "or drop --flops-only")  # fmt: skip
 
 
@@ -169,10 +171,9 @@ def _flops_only(preset: str, resolution: tuple[int, int] | None, json_path: Path
     help=f"Fewer repeats, shorter streaming runs, no PyTorch timing of rows whose first, cold fp32 run (not the "
     f"median) exceeds {QUICK_TORCH_SKIP_MS:.0f} ms.",
 )
-@click.option(
-    "--json", "json_path", type=click.Path(dir_okay=False, path_type=Path),
-    help='Write the results here: {"meta": {"schema_version": ..., ...}, "units": ..., "peak": {...}, "rows": [...], '
-         '"streaming": {...}, "targets": [...]}; with --flops-only {"meta", "units", "rows"}. The keys: docs/cli.md.',
+@json_output_option(
+    'Write the results here: {"meta": {"schema_version": ..., ...}, "units": ..., "peak": {...}, "rows": [...], '
+    '"streaming": {...}, "targets": [...]}; with --flops-only {"meta", "units", "rows"}. The keys: docs/cli.md.'
 )
 @click.option(
     "--plot",

@@ -19,6 +19,7 @@ from streamdet.cli_utils import (
     check_folder_creatable,
     check_output_parent,
     check_plot_format,
+    json_output_option,
     refuse_output_over_inputs,
     refuse_same_outputs,
     resolution_callback,
@@ -143,7 +144,7 @@ def _occupied(out_dir: Path, version: str, survey: RootSurvey) -> str:
 @click.option("--scenes", default=2, show_default=True, type=click.IntRange(1, MAX_SCENES),
               help=f"Number of scenes (1..{MAX_SCENES}).")
 @click.option("--seed", default=0, show_default=True, type=click.IntRange(min=0), help="Random seed; the same seed writes the same dataset.")
-@click.option("--resolution", default="800x450", show_default=True, callback=_resolution,
+@click.option("--resolution", default="800x450", show_default=True, callback=_resolution, metavar="WxH",
               help=f"Camera image size WIDTHxHEIGHT, {RESOLUTION_RANGE_HELP}, of the real rig's aspect (16:9, as the "
                    "other tools require; intrinsics of the real rig scaled to it). Memory grows with it (about "
                    f"{PEAK_BYTES_PER_PIXEL * 1e6 / 1e9:.1f} GB per megapixel per --workers process): a run this machine "
@@ -265,8 +266,7 @@ def _abandoned(out_dir: Path, deleted: str, left: list[str]) -> str:
 @click.option("--reference", "reference_dir", type=click.Path(path_type=Path), default=None,
               help="Dataset to compare with (nuScenes tables or a bundled-sample folder); default: the bundled real nuScenes sample.")
 @click.option("--no-reference", is_flag=True, help="Measure DATA_DIR alone (not with --reference).")
-@click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="Also write both measurements as JSON to this file (its folder must exist).")
+@json_output_option("Also write both measurements as JSON to this file (its folder must exist).")
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Also draw them to this file, a PNG or another format matplotlib writes, by its suffix "
                    "(needs matplotlib; its folder must exist).")

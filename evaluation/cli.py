@@ -19,7 +19,9 @@ from streamdet.cli_utils import (
     PRECISION_CHOICES,
     check_folder_creatable,
     check_output_parent,
+    check_results_folder,
     image_precision_option,
+    json_output_option,
     providers_option,
     refuse_output_over_inputs,
     split_list,
@@ -27,6 +29,7 @@ from streamdet.cli_utils import (
     dataset_inputs,
     write_json_output,
 )
+from streamdet.evaluation.run_cli import OTHER_TOOLS_FOLDERS
 from streamdet.core.constants import DEFAULT_EXPORT_DIR
 from streamdet.core.errors import first_line
 from streamdet.evaluation.bootstrap import FEW_CLUSTERS
@@ -247,15 +250,13 @@ def _compare(run_a: str, run_b: str, gt_path: Path | None, classes: tuple[str, .
 @image_precision_option()
 @providers_option()
 @click.option("--max-samples", type=click.IntRange(min=1), default=None, help="Dataset mode: score only the first N samples of the split.")
-@click.option(
-    "--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
-    help="Also write the figures here as JSON: mAP, NDS, classes, tp_errors, per_class.",
-)  # fmt: skip
+@json_output_option("Also write the figures here as JSON: mAP, NDS, classes, tp_errors, per_class.")
 @click.option(
     "--save-results", "save_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
     help="Dataset mode: also write what was scored to this folder: results.json (the detections, nuScenes "
     "submission format), gt.json (the ground truth, with its bicycle racks), which the files mode scores again "
-    "with --gt / --results to the same figures, and samples.json (scenes and poses, for --compare).",
+    "with --gt / --results to the same figures, and samples.json (scenes and poses, for --compare). An earlier saved "
+    "run there is replaced (a note on stderr says so); an export or a dataset folder is refused. Default: none.",
 )  # fmt: skip
 @click.option(
     "--classes", default=None, metavar="NAME[,NAME...]",
@@ -321,6 +322,8 @@ def main(gt_path: Path | None, results_path: Path | None, data_dir: Path | None,
         if save_dir is not None and save_dir.is_dir():  # a folder or a FIFO where a file goes: found now, not after detecting
             for name in SAVED_FILES:
                 check_output_parent(save_dir / name, "--save-results")
+        # last: the note that an earlier saved run is replaced comes only once nothing else is refused
+        check_results_folder(save_dir, "--save-results", SAVED_FILES, "saved run", OTHER_TOOLS_FOLDERS)
         _data_inputs(data_dir, version, None if split == "all" else split, export_dir, slices, precision, max_samples,
                      class_list, json_path, save_dir, image_precision, providers)  # fmt: skip
         return

@@ -14,14 +14,33 @@ import click
 import numpy as np
 
 from streamdet.cli_utils import (
-    MAX_SLICES, PRECISION_CHOICES, check_folder_creatable, check_output_parent, image_precision_option, providers_option,
-    refuse_output_over_inputs, require_export_dir, slices_callback)
+    MAX_SLICES, PRECISION_CHOICES, check_folder_creatable, check_output_parent, check_results_folder, image_precision_option,
+    providers_option, refuse_output_over_inputs, require_export_dir, slices_callback)
 from streamdet.runtime_ort.stats import format_latency
 from streamdet.core import constants
 
 DEFAULT_EXPORT_DIR = Path(constants.DEFAULT_EXPORT_DIR)
 RESULTS_NAME = "results_nusc.json"
 BEV_NAME = "bev.png"
+
+
+def dataset_root(folder: Path) -> str | None:
+    """What ``folder`` is when it is a nuScenes-format dataset root, as streamdet-synth tells one (``survey_root``:
+    its splits.json, world.json, trajectories.npz or a table folder), else None. The results folders of run, eval
+    and replay (``check_results_folder``) refuse one: a file of theirs there made `streamdet-synth --overwrite`
+    refuse the dataset as holding other files, and sits among what the readers list."""
+    from streamdet.data.synth_writer import LAYOUT_DIRS, survey_root  # only for a folder that exists
+
+    try:
+        marks = [e.name + ("/" if e.is_dir() else "") for e in survey_root(folder).dataset if e.name not in LAYOUT_DIRS]
+    except OSError:  # unreadable: the write says why
+        return None
+    return f"a dataset ({', '.join(marks)})" if marks else None
+
+
+# The folders a results folder must not be (besides an export, which check_results_folder knows). A training run is
+# not among them: training/run_dir.py recognises one, and evaluation must not import the training side.
+OTHER_TOOLS_FOLDERS = (dataset_root,)
 
 
 def check_out_dir(out_dir: Path, inputs: list[tuple[str, Path | None]]) -> None:
@@ -45,6 +64,8 @@ def check_out_dir(out_dir: Path, inputs: list[tuple[str, Path | None]]) -> None:
         missing = next((p for p in reversed([absolute, *absolute.parents]) if not p.exists()), None)
         if missing is not None:
             check_output_parent(missing, "--out")
+    # last: the note that an earlier run's files are replaced comes only once nothing else is refused
+    check_results_folder(out_dir, "--out", (RESULTS_NAME, BEV_NAME), "streamdet-run output", OTHER_TOOLS_FOLDERS)
 
 
 def run_sample(
@@ -128,7 +149,7 @@ def run_sample(
 @click.option("--sample", "sample_dir", type=click.Path(path_type=Path, file_okay=False), default=None,
               help="A sample folder in the bundled layout (calibration.json, boxes.json, .pcd.bin, CAM_*.jpg). "
                    "Default: the bundled real nuScenes sample.")
-@click.option("--slices", "num_slices", type=int, default=None, callback=slices_callback,
+@click.option("--slices", "num_slices", type=click.IntRange(1, MAX_SLICES), default=None, callback=slices_callback,
               help=f"Slices per sweep (1, 2 or a multiple of 4, up to {MAX_SLICES}). Default: the number the export was "
                    "made for.")
 @click.option("--precision", type=click.Choice(PRECISION_CHOICES), default="fp32", show_default=True,
@@ -136,7 +157,8 @@ def run_sample(
 @image_precision_option()
 @providers_option()
 @click.option("--out", "out_dir", type=click.Path(path_type=Path, file_okay=False), default=Path("out") / "run",
-              show_default=True, help="Where to write results_nusc.json and bev.png.")
+              show_default=True, help="Where to write results_nusc.json and bev.png. An earlier run's files there are replaced (a "
+              "note on stderr says so); an export or a dataset folder is refused.")
 @click.option("-v", "--verbose", is_flag=True, help="Log providers and sessions.")
 def main(
     export_dir: Path, sample_dir: Path | None, num_slices: int | None, precision: str, image_precision: str | None,

@@ -19,12 +19,15 @@ from streamdet.cli_utils import (
     camera_terms_option,
     camera_timeout_option,
     camera_timeout_s,
+    check_fallback_options,
     check_folder_creatable,
     check_output_parent,
     check_plot_format,
+    check_results_folder,
     fallback_after_s,
     fallback_options,
     image_precision_option,
+    json_output_option,
     providers_option,
     refuse_output_over_inputs,
     refuse_same_outputs,
@@ -35,6 +38,7 @@ from streamdet.cli_utils import (
     require_export_dir,
 )
 from streamdet.core.file_output import write_text_atomic
+from streamdet.evaluation.run_cli import OTHER_TOOLS_FOLDERS
 from streamdet.replay.modes import MODES
 from streamdet.replay.schedule import MAX_DELIVERY_S, MAX_RATE_HZ, MAX_TIME_SCALE, MIN_RATE_HZ, MIN_TIME_SCALE
 from streamdet.replay.triggers import DEFAULT_TRIGGER, TRIGGER_MODELS
@@ -81,6 +85,25 @@ def _check_outputs(json_path: Path | None, plot_path: Path | None, out_dir: Path
     check_folder_creatable(out_dir, "--out")
     if plot_path is not None:
         check_plot_format(plot_path)
+    # last: the note that an earlier replay's report is replaced comes only once nothing else is refused
+    check_results_folder(out_dir, "--out", OUT_FILES, "replay report", OTHER_TOOLS_FOLDERS)
+
+
+def _check_option_conflicts(schedule: str, image_lane_yield: int, coalesce_slices: int | None,
+                            pair_hold_load: float | None, fallback_export_dir: Path | None,
+                            fallback_after_ms: float | None) -> None:  # fmt: skip
+    """Usage errors (exit 2) naming the options typed, before any work, for the pairs LaneConfig and DetectorConfig
+    refuse only in their own field names (``image_lane_yield_slices``, exit 1)."""
+    from streamdet.runtime_ort.lanes import LaneConfig
+
+    check_fallback_options(fallback_export_dir, fallback_after_ms)
+    coalesce = coalesce_slices or LaneConfig().coalesce_slices
+    if pair_hold_load is not None and coalesce < 2:
+        raise click.UsageError(f"--pair-hold-load {pair_hold_load:g} needs --coalesce-slices 2 or more (a held slice runs "
+                               f"with its partner), got --coalesce-slices {coalesce}")  # fmt: skip
+    if image_lane_yield and schedule != "phase-locked":
+        raise click.UsageError(f"--image-lane-yield {image_lane_yield} needs --schedule phase-locked (the full schedule's "
+                               f"update is one job that cannot hold back between quadrants), got --schedule {schedule}")  # fmt: skip
 
 
 def image_lane_options_given(ctx: click.Context) -> list[str]:
@@ -200,12 +223,13 @@ def _progress(message: str) -> None:
 @camera_terms_option()
 @scan_layout_options(from_data=True)
 @fallback_options(clock="drive")
-@click.option("--json", "json_path", type=click.Path(path_type=Path, dir_okay=False), default=None,
-              help="Write the per-mode summary (the issue's keys) to this JSON file.")
+@json_output_option("Write the per-mode summary (the issue's keys) to this JSON file.")
 @click.option("--plot", "plot_path", type=click.Path(path_type=Path, dir_okay=False), default=None,
               help="Write a PNG: a timeline of a few hundred ms of the first scene per mode, and latency CDFs.")
 @click.option("--out", "out_dir", type=click.Path(path_type=Path, file_okay=False), default=None,
-              help="Write replay.json (every slice's record, per-class scores, lane CPU, stage GMAC) and report.md here.")
+              help="Write replay.json (every slice's record, per-class scores, lane CPU, stage GMAC) and report.md here. "
+                   "An earlier replay's files there are replaced (a note on stderr says so); an export or a dataset folder is "
+                   "refused. Default: none.")
 def main(
     data: Path, table_version: str, split: str, scenes: int | None, export_dir: Path, precision: str,
     image_precision: str | None, providers: tuple[str, ...] | None, lidar_hz: float, num_slices: int | None, camera_hz: float, camera_trigger: str,
@@ -231,7 +255,8 @@ def main(
     require_export_dir(export_dir)
     if not (data / table_version).is_dir():
         raise click.ClickException(f"{data / table_version} does not exist: --data must be a nuScenes-format dataset root")
-    _refuse_image_lane_options(click.get_current_context(), export_dir)
+    _refuse_image_lane_options(click.get_current_context(), export_dir)  # first: with no image lane, drop them all
+    _check_option_conflicts(schedule, image_lane_yield, coalesce_slices, pair_hold_load, fallback_export_dir, fallback_after_ms)
     defaults = LaneConfig()
     try:
         lanes = LaneConfig(max_in_flight=slice_workers or defaults.max_in_flight, queue_size=queue_size or defaults.queue_size,

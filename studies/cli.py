@@ -24,6 +24,7 @@ from streamdet.cli_utils import (
     check_output_parent,
     check_plot_format,
     image_precision_option,
+    json_output_option,
     providers_option,
     refuse_output_over_inputs,
     refuse_same_outputs,
@@ -37,6 +38,7 @@ from streamdet.cli_utils import (
 )
 from streamdet.core import constants
 from streamdet.core.constants import PRECISIONS
+from streamdet.core.sectors import check_num_slices
 from streamdet.core.errors import first_line
 from streamdet.progress import counted
 from streamdet.studies.plots import plot_calib_noise, plot_drop_camera, plot_resolution, plot_slices
@@ -62,6 +64,10 @@ def _slice_count(text: str) -> int:
         raise click.BadParameter(f"expected comma-separated integers such as 1,4,8,16,32, got {shown!r}", param_hint="--counts")
     if len(text) > 12 or not 1 <= int(text) <= MAX_SLICES:
         raise click.BadParameter(f"slice count {shown} is not in 1..{MAX_SLICES}", param_hint="--counts")
+    try:  # 6 is a usage error here, as `--slices 6` is in every tool, not a study that fails (exit 1)
+        check_num_slices(int(text))
+    except ValueError as e:
+        raise click.BadParameter(f"slice count {shown}: {e}", param_hint="--counts") from None
     return int(text)
 
 
@@ -72,6 +78,15 @@ def _parse_ints(ctx, param, value: str) -> tuple[int, ...]:
 
 
 _RESOLUTIONS = resolution_callback(min_px=16, max_px=4096)
+
+
+def _parse_cameras(ctx, param, values: tuple[str, ...]) -> tuple[str, ...]:
+    # a camera named twice would be scored twice under one JSON key: a usage error naming the option, before any work
+    for k, name in enumerate(values):
+        if name in values[:k]:
+            raise click.BadParameter(f"camera {name!r} is given twice (each --camera is dropped once, on its own)",
+                                     param_hint="--camera")  # fmt: skip
+    return values
 
 
 def _parse_resolutions(ctx, param, values: tuple[str, ...]) -> tuple[tuple[int, int], ...]:
@@ -118,8 +133,7 @@ def _common(f: Callable) -> Callable:
         click.option("--threads", type=click.IntRange(1, MAX_INTRA_OP_THREADS), default=1, show_default=True,
                      help=f"Intra-op threads of each onnxruntime session, 1..{MAX_INTRA_OP_THREADS}: per session, not in "
                           "all (every session keeps its own pool; the studies run the lanes one after the other)."),
-        click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
-                     help="Write every figure of the study here as JSON."),
+        json_output_option("Write every figure of the study here as JSON."),
         click.option("--plot", "plot_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
                      help="Write a PNG plot of the study here."),
     ]  # fmt: skip
@@ -260,7 +274,8 @@ def slices(export_dir, checkpoint, data_dir, version, split, max_samples, precis
 @_common
 @_slices_option
 @click.option("--camera", "cameras", multiple=True, default=(st.DEFAULT_DROPPED_CAMERA,), show_default=True,
-              help="Camera to remove at inference (repeat to study several, each on its own).")  # fmt: skip
+              callback=_parse_cameras,
+              help="Camera to remove at inference (repeat to study several, each on its own, each once).")  # fmt: skip
 @click.option("--no-cameras", is_flag=True,
               help="Also score with every camera missing (the runtime's camera-less BEV): how much the model uses its cameras at all.")
 def drop_camera(export_dir, checkpoint, data_dir, version, split, max_samples, precision, image_precision, providers, threads,

@@ -224,7 +224,8 @@ def test_a_corrupt_lidar_file_mid_export_leaves_no_partial_mcap(tiny_synth_data:
     assert result.exit_code != 0 and "Traceback" not in result.output
     assert not out.exists() and list(tmp_path.glob(".*partial")) == []
     out.write_bytes(b"the previous bag")
-    assert invoke("export", "--data", data, "--out", out).exit_code != 0
+    # --overwrite: the existing bag is refused without it (CLI review 40, M2); with it the failed write must keep it
+    assert invoke("export", "--data", data, "--out", out, "--overwrite").exit_code == 1
     assert out.read_bytes() == b"the previous bag" and list(tmp_path.glob(".*partial")) == []
 
 

@@ -261,7 +261,8 @@ def test_bench_valid_outputs_reach_the_benchmark(bench, inputs):
 )
 def test_bench_flops_only_refuses_timing_options(bench, inputs, args, shown):
     args = [a.format(exp=inputs / "exp", tmp=inputs) for a in args]
-    error = _usage_error(bench("--flops-only", "--preset", "tiny", *args), "--flops-only", shown, "only apply to timing")
+    # one option: "applies ... drop it" (CLI review 40, L7)
+    error = _usage_error(bench("--flops-only", "--preset", "tiny", *args), "--flops-only", shown, "only applies to timing; drop it")
     assert "--preset" not in error and bench.calls == [] and not (inputs / "prof").exists()
 
 

@@ -300,7 +300,9 @@ def test_slices_zero_on_the_command_line_is_an_error(tiny_export, tmp_path):
     from streamdet.evaluation.run_cli import main as run_main
 
     result = CliRunner().invoke(run_main, ["--export-dir", str(tiny_export), "--slices", "0", "--out", str(tmp_path / "o")])
-    assert result.exit_code != 0 and "num_slices" in result.output and "Traceback" not in result.output
+    # a usage error naming the option and its range, as in eval, replay and bag (CLI review 40, L7)
+    assert result.exit_code == 2 and "--slices" in result.output and "1<=x<=4096" in result.output
+    assert "Traceback" not in result.output
 
 
 @pytest.mark.parametrize(

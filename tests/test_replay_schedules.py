@@ -189,7 +189,7 @@ def test_a_replay_whose_image_lane_yields_to_slices_says_so_and_records_it(drive
                                   bad=("--schedule", "full"))  # fmt: skip
     assert "image lane yields at 2 waiting slice(s)" in output
     assert config["image_lane_yield_slices"] == 2
-    assert "needs schedule='phase-locked'" in bad  # the full schedule cannot hold back between quadrants
+    assert "--image-lane-yield 2 needs --schedule phase-locked" in bad  # the full schedule cannot hold back between quadrants
 
 
 def test_a_replay_freezes_the_heap_by_default_and_reports_the_collectors_pauses(drive_data, tiny_export, tmp_path):

@@ -197,6 +197,57 @@ def require_export_dir(export_dir: Path, hint: str | None = None) -> None:
         raise click.ClickException(f"{export_dir} holds no {MANIFEST_NAME}: {hint}")
 
 
+# ---- --json: one option, one rule for every tool ----------------------------------------------------------------
+# `--json -` wrote a file named `-` (and `wrote -`), where a user meant stdout. Stdout is each tool's report (progress
+# and notes go to stderr), so a JSON there would mix with it: `-` is refused, in words, before any work. A file named
+# `-` is still written when spelled as a path (`./-`).
+STDOUT_DASH = "-"
+JSON_DASH_HELP = "Not '-': stdout carries the report; give a file path."
+
+
+def _refuse_stdout_dash(ctx: click.Context, param: click.Parameter, value: str | None) -> Path | None:
+    # the text as typed: a Path would read `./-` as `-` too
+    if value is not None and value == STDOUT_DASH:
+        raise click.BadParameter(f"{STDOUT_DASH!r} is not a path here: stdout carries the report (progress and notes "
+                                 "go to stderr); give a file path (./- for a file named '-')",
+                                 param_hint="/".join(param.opts))  # fmt: skip
+    return None if value is None else Path(value)
+
+
+def json_output_option(help: str, dest: str = "json_path"):
+    """``--json``: the file a tool writes its figures to (a Path, or None when not given; default none). Every tool
+    declares it here, so that every --json refuses ``-`` alike (``JSON_DASH_HELP`` ends its help)."""
+    return click.option("--json", dest, type=click.Path(dir_okay=False), default=None,
+                        callback=_refuse_stdout_dash, help=f"{help} Default: none. {JSON_DASH_HELP}")  # fmt: skip
+
+
+# ---- a results folder: another tool's refused, this tool's own earlier results replaced with a note -----------
+# `streamdet-run --out ds` wrote bev.png into a dataset root (after which `streamdet-synth --overwrite ds` refused the
+# folder as holding other files), and a second `streamdet-eval --save-results runA` replaced a saved run, the input of
+# a later --compare, without a word. A tool's results folder (eval --save-results, replay --out, run --out) must not
+# be another tool's folder, and replacing the tool's own earlier results there is said.
+EXPORT_FOLDER = f"a streamdet export ({MANIFEST_NAME})"
+
+
+def check_results_folder(folder: Path | None, option: str, own_files, own_what: str, others=()) -> None:
+    """Before any work, for ``folder`` (given as ``option``) where a tool writes ``own_files`` (its ``own_what``, e.g.
+    "saved run"): click.BadParameter when it is an export (manifest.json) or a folder one of ``others`` recognises
+    (callables folder -> what it is, e.g. "a dataset (world.json)", or None); else one note on stderr when it holds
+    some of ``own_files``, an earlier result this run replaces. A folder that does not exist yet passes."""
+    if folder is None or not Path(folder).is_dir():
+        return
+    folder = Path(folder)
+    found = [EXPORT_FOLDER] if os.path.lexists(folder / MANIFEST_NAME) else []
+    found += [what for what in (recognise(folder) for recognise in others) if what]
+    if found:
+        raise click.BadParameter(f"{str(folder)!r} is {found[0]}: the {own_what} must not be mixed into it (its readers "
+                                 "would find these files among theirs); choose another folder", param_hint=option)  # fmt: skip
+    held = [name for name in own_files if os.path.lexists(folder / name)]
+    if held:
+        click.echo(f"note: {option} {folder} holds an earlier {own_what} ({', '.join(held)}): this run replaces it",
+                   err=True)  # fmt: skip
+
+
 def write_json_output(path: Path, doc, option: str = "--json", *, indent: int | None = 1, allow_nan: bool = False) -> None:
     """``doc`` as JSON at ``path``, written atomically (a reader never sees half a report; a symlink there is replaced,
     not written through); a failure is one line naming the option. ``allow_nan=False`` refuses a non-finite figure,

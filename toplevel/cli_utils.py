@@ -8,7 +8,8 @@ from pathlib import Path
 import click
 
 from streamdet.cli_outputs import (  # noqa: F401 (re-exported: every CLI imports them from here)
-    refuse_output_over_inputs, dataset_inputs, not_a_file, refuse_same_outputs, check_output_parent, check_folder_creatable, check_plot_format, require_export_dir, write_json_output)
+    refuse_output_over_inputs, dataset_inputs, not_a_file, refuse_same_outputs, check_output_parent, check_folder_creatable, check_plot_format, require_export_dir, write_json_output,
+    json_output_option, check_results_folder)
 from streamdet.core.camera_timeout import DEFAULT_CAMERA_TIMEOUT_S, MAX_CAMERA_TIMEOUT_S
 from streamdet.core.providers import parse_providers
 from streamdet.core.constants import MAX_RESOLUTION_PX, MAX_SESSION_THREADS, MIN_RESOLUTION_PX, PRECISIONS
@@ -181,6 +182,14 @@ def camera_timeout_s(camera_timeout_ms: float) -> float | None:
 def fallback_after_s(fallback_after_ms: float | None) -> float | None:
     """``--fallback-after-ms`` as DetectorConfig.fallback_after_s."""
     return None if fallback_after_ms is None else fallback_after_ms / 1e3
+
+
+def check_fallback_options(fallback_export_dir: Path | None, fallback_after_ms: float | None) -> None:
+    """A usage error (exit 2) for --fallback-after-ms without --fallback-export, in the options' names: DetectorConfig
+    refuses the pair too, but as ``fallback_after_s`` and only once the command has started (exit 1)."""
+    if fallback_after_ms is not None and fallback_export_dir is None:
+        raise click.UsageError(f"--fallback-after-ms {fallback_after_ms:g} needs --fallback-export (a LiDAR-only export "
+                               "to fall back to)")  # fmt: skip
 
 
 CAMERA_TERMS = {"auto": None, "on": True, "off": False}  # --camera-terms -> DetectorConfig.camera_terms
