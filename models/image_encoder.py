@@ -30,6 +30,10 @@ class ImageEncoder(nn.Module):
         self.register_buffer("shift", (-torch.tensor(IMAGENET_MEAN) / std).view(1, 3, 1, 1), persistent=False)
 
     def forward(self, images: Tensor) -> Tensor:
-        x = images.permute(0, 3, 1, 2).float()  # (J, 3, H, W)
+        # NCHW-contiguous before the cast: .float() of the permuted view keeps its channels-last strides, so the
+        # whole ResNet ran torch's channels-last CPU kernels, whose backward corrupted the heap under torch 2.13 CPU
+        # (tiny preset, an odd batch of images: the process died in loss.backward()). The exported graph is the same
+        # Transpose either way.
+        x = images.permute(0, 3, 1, 2).contiguous().float()  # (J, 3, H, W)
         x = x * self.scale + self.shift
         return self.neck(self.backbone(x))  # (J, C, Hf, Wf)

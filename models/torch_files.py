@@ -12,12 +12,15 @@ finiteness check or the model would fail on them with a traceback).
 from __future__ import annotations
 
 import os
+import re
 import zipfile
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import torch
+
+from streamdet.core.errors import first_line
 
 # What the members of a checkpoint's zip may declare in all, inflated: a checkpoint is read into memory whole, and
 # torch.save stores every member uncompressed, so a real one declares no more than its own file size (the paper
@@ -60,8 +63,72 @@ def read_torch_file(path: str | os.PathLike, what: str = "checkpoint", map_locat
     try:
         return torch.load(path, map_location=map_location, weights_only=True)
     except Exception as e:  # UnpicklingError (code or classes in the pickle), RuntimeError, EOFError, ... for a damaged file
-        first = (str(e).strip().splitlines() or [type(e).__name__])[0]
-        raise ValueError(f"{what} {path} cannot be read with weights_only=True: {first}") from None
+        raise ValueError(f"{what} {path} cannot be read with weights_only=True: {_why_unreadable(path, e)}; streamdet "
+                         "reads a checkpoint as data only (tensors, containers, numbers), never otherwise") from None
+
+
+# The global a weights-only unpickler refused, as torch words it ("GLOBAL posix.system whose module ...", "GLOBAL
+# __main__.C was not an allowed global").
+_REFUSED_GLOBAL = re.compile(r"GLOBAL ([\w.]+)")
+_WEIGHTS_UNPICKLER = "WeightsUnpickler error:"
+
+
+def _why_unreadable(path: Path, e: Exception) -> str:
+    """Why ``torch.load(weights_only=True)`` failed on ``path``, in words that name what the file holds.
+
+    torch's own message leads with a banner that advises re-running with ``weights_only=False``: that is exactly the
+    unsafe load streamdet never does (docs/trust.md), and the banner was all the first line showed. The reason is
+    further down (the refused global, the pickle opcode); a file that is no pickle at all would fail that way too."""
+    text = str(e)
+    found = _REFUSED_GLOBAL.search(text)
+    if found:
+        return (f"it is a pickle that names the Python global {found.group(1)} (code or a class, not tensors and "
+                "numbers), which a weights-only load refuses: not a plain checkpoint")  # fmt: skip
+    kind = _file_kind(path)
+    if kind is not None:
+        return f"it is {kind}, not a file torch.save wrote"
+    if _WEIGHTS_UNPICKLER in text:  # a pickle whose contents the weights-only unpickler does not know
+        detail = " ".join(text.split(_WEIGHTS_UNPICKLER, 1)[1].split("Check the documentation", 1)[0].split())
+        return f"its pickle holds what a weights-only load refuses ({detail or type(e).__name__})"
+    # torch's zip reader appends advice on a corrupted file ("This is an internal miniz error. ..."): the first
+    # sentence says what failed
+    detail = first_line(e).split(". ", 1)[0].rstrip(".")
+    if "weights_only" in detail:  # never repeat torch's advice to load without it
+        detail = type(e).__name__
+    return f"a damaged or cut-short torch file ({detail})"
+
+
+def _file_kind(path: Path) -> str | None:
+    """What ``path`` holds when it is surely no torch.save file (an empty file, text, a zip of other members, other
+    bytes); None when it may be a damaged one (it starts as a zip or as a pickle, torch's legacy format)."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(64)
+        if zipfile.is_zipfile(path):
+            with zipfile.ZipFile(path) as z:
+                names = z.namelist()
+            if any(n.endswith("data.pkl") for n in names):
+                return None
+            return f"a zip archive without torch's data.pkl ({len(names)} member(s))"
+    except (OSError, zipfile.BadZipFile, ValueError, EOFError):
+        return None
+    if not head:
+        return "an empty file"
+    if head.startswith((b"PK\x03\x04", b"\x80")):  # a zip cut short, or a pickle's PROTO opcode
+        return None
+    try:
+        sample = head.decode("utf-8")
+    except UnicodeDecodeError:
+        return "neither a zip archive nor a pickle (binary data)"
+    if all(c.isprintable() or c in "\r\n\t" for c in sample):
+        return f"a text file (it starts {short_text(sample)})"
+    return "neither a zip archive nor a pickle"
+
+
+def short_text(text: str, limit: int = 24) -> str:
+    """The first ``limit`` characters of ``text``, quoted, on one line."""
+    line = " ".join(text.split())
+    return repr(line[:limit] + ("..." if len(line) > limit else ""))
 
 
 def check_state_dict(state: object, path: str | os.PathLike, what: str = "checkpoint", part: str = "model") -> dict[str, torch.Tensor]:

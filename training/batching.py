@@ -53,6 +53,9 @@ class Batch:
     # store indices of the samples left out of this batch for holding no pillar in any of their slices (a sweep that
     # is empty, all NaN or outside the grid); the trainer counts and names them
     skipped: tuple[int, ...] = ()
+    # objects beyond their head map's cap (TargetConfig.max_objects), summed over the batch's maps: no target, so
+    # the trainer counts them (the run would otherwise never say that a crowded scene lost boxes)
+    num_dropped: int = 0
 
     @property
     def num_maps(self) -> int:
@@ -132,6 +135,7 @@ class Collator:
         entries: list[tuple[int, int, tuple[str, ...] | None]] = []  # (sample b, quadrant, cameras or None = all)
         entry_of: dict[tuple[int, int], int] = {}
         num_maps = 0
+        num_dropped = 0
         for b, item in enumerate(items):
             for sl in item.slices:
                 pil = sl.pillars
@@ -147,6 +151,7 @@ class Collator:
                     obj_mask.append(t.mask)
                     obj_label.append(t.label)
                     obj_box.append(t.box)
+                    num_dropped += int(t.num_dropped)
                     if p.use_image:
                         map_sample.append(b)
                         if self.camera_mode == "all":
@@ -188,6 +193,7 @@ class Collator:
             num_samples=len(items),
             num_slices=sum(len(it.slices) for it in items),
             skipped=skipped,
+            num_dropped=num_dropped,
         )
 
     def empty_batch(self, skipped: tuple[int, ...]) -> Batch:

@@ -29,11 +29,11 @@ from typing import Any
 import torch
 
 from streamdet.core.errors import first_line
-from streamdet.core.file_output import atomic_write_file
 from streamdet.models.detector import StreamDetector, build_detector
 from streamdet.models.torch_files import (  # noqa: F401 (public here too)
     MAX_CHECKPOINT_BYTES, check_fits, check_state_dict, check_torch_zip, read_torch_file)
 from streamdet.models.presets import Preset
+from streamdet.training.run_dir import write_run_file
 
 TRAIN_FORMAT = "streamdet-train-v1"
 WEIGHTS_FORMAT = "streamdet-weights-v1"
@@ -42,10 +42,11 @@ WEIGHTS_FORMAT = "streamdet-weights-v1"
 def save_atomic(obj: Any, path: str | os.PathLike) -> None:
     """``torch.save(obj)`` to ``path`` the way every output file is written (core/file_output.py): a hidden temp
     file beside it, flushed, then renamed. A crash or a kill mid-save leaves the previous checkpoint whole, and a
-    symlink at ``path`` is replaced rather than written through."""
+    symlink at ``path`` is replaced rather than written through. The temp file's name holds this process's pid
+    (run_dir.write_run_file): one a SIGKILL left is removed when a run next starts in the folder."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_file(path, lambda f: torch.save(obj, f))
+    write_run_file(path, lambda f: torch.save(obj, f))
 
 
 def save_training_state(path: str | os.PathLike, *, preset: Preset, model: StreamDetector, optimizer, scheduler,
@@ -77,7 +78,19 @@ def save_training_state(path: str | os.PathLike, *, preset: Preset, model: Strea
 def load_checkpoint(path: str | os.PathLike, what: str = "checkpoint") -> dict[str, Any]:
     """The checkpoint dict; ValueError (one line) when it is missing, unreadable or lacks model / preset, or when
     its model is not a state dict (str keys, tensor values)."""
-    obj = read_torch_file(path, what)
+    return check_checkpoint(read_torch_file(path, what), path, what)
+
+
+def check_checkpoint(obj: Any, path: str | os.PathLike, what: str = "checkpoint") -> dict[str, Any]:
+    """``obj`` (what ``path`` holds, read) when it is a checkpoint dict with a model state dict and a preset; else
+    ``load_checkpoint``'s ValueError."""
+    if isinstance(obj, dict) and {"model", "optimizer", "step"} <= obj.keys() and "preset" not in obj:
+        # streamdet-train-image's last.pt (image_pretrain.py): a segmenter's training state, no detector in it
+        folder = Path(path).parent
+        raise ValueError(f"{what} {path} is a streamdet-train-image last.pt (an image segmenter's training state, no "
+                         f"detector): streamdet-train --init takes {folder / 'detector_init.pt'} (a whole detector) or "
+                         f"{folder / 'encoder.pt'} (its image encoder) from the same run; streamdet-train-image --resume "
+                         "continues it")  # fmt: skip
     if not isinstance(obj, dict) or not isinstance(obj.get("model"), dict) or not isinstance(obj.get("preset"), dict):
         raise ValueError(f"{what} {path} is not a streamdet checkpoint (expected a dict with 'model' and 'preset')")
     check_state_dict(obj["model"], path, what)
@@ -97,16 +110,24 @@ def is_encoder_weights(path: str | os.PathLike) -> bool:
         obj = read_torch_file(path)
     except ValueError:  # reported by load_checkpoint
         return False
+    return is_encoder_state(obj)
+
+
+def is_encoder_state(obj: Any) -> bool:
+    """Whether ``obj`` (a file's contents, read) is a bare state dict (an ``encoder.pt``), not a checkpoint dict."""
     return (isinstance(obj, dict) and bool(obj) and "model" not in obj
             and all(isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in obj.items()))  # fmt: skip
 
 
-def load_encoder_weights(detector: StreamDetector, path: str | os.PathLike) -> None:
+def load_encoder_weights(detector: StreamDetector, path: str | os.PathLike, obj: Any = None) -> None:
     """Copy an ``encoder.pt`` (the image encoder's state dict, ``streamdet-train-image``) into
-    ``detector.image_encoder``; ValueError naming the file if it does not fit."""
+    ``detector.image_encoder``; ValueError naming the file if it does not fit. ``obj``: the file's contents where
+    the caller read them already."""
     if detector.image_encoder is None:
         raise ValueError(f"{path}: holds image encoder weights, but the model has no image lane (use_image=False)")
-    state = check_state_dict(read_torch_file(path, "image encoder weights"), path, "image encoder weights", "file")
+    if obj is None:
+        obj = read_torch_file(path, "image encoder weights")
+    state = check_state_dict(obj, path, "image encoder weights", "file")
     own = detector.image_encoder.state_dict()
     check_fits(own, state, path, "image encoder weights", "the detector's image encoder")
     try:

@@ -5,20 +5,27 @@ Data parallel: ``torchrun --nproc_per_node 2 -m streamdet.training.cli --data DI
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import click
+from click.core import ParameterSource
 
 from streamdet.cli_utils import (
     FiniteFloatRange, check_folder_creatable, dataset_inputs, not_a_file, refuse_output_over_inputs, version_option)
 from streamdet.core.errors import first_line
+from streamdet.core.json_input import short_repr
 from streamdet.core.sectors import MAX_NUM_SLICES
 from streamdet.models.presets import preset_names
+from streamdet.training.checkpoint import load_checkpoint
 from streamdet.training.dataset import CAMERA_MODES, DataConfig
 from streamdet.training.distributed import shutdown_distributed
 from streamdet.training.image_pretrain import PRETRAIN_RUN_FILES
 from streamdet.training.run_dir import CONFIG_FILE, NOT_A_RUN, RUN_FILES
-from streamdet.training.train_config import AMP_MODES, MAX_LR, MAX_MINUTES, MAX_SEED, MAX_STEPS, TrainConfig, check_device
+from streamdet.training.train_config import (
+    AMP_MODES, MAX_LR, MAX_MINUTES, MAX_SEED, MAX_STEPS, RESUME_MAY_CHANGE, TrainConfig, check_device, saved_config_values,
+    show_option_value, values_differ)
 from streamdet.training.trainer import train
 
 MAX_WORKERS = 256  # DataLoader processes: a machine's cores at most, never thousands of forks
@@ -98,12 +105,120 @@ def _same_path(a: Path, b: Path) -> bool:
         return a.absolute() == b.absolute()
 
 
+def progress_echo(message: str) -> None:
+    """A training tool's progress, notes and warnings: on stderr, as every tool's progress (toplevel/progress.py);
+    stdout keeps the lines a script may read (what the run trains, how it ended)."""
+    click.echo(message, err=True)
+
+
+def given(ctx: click.Context, name: str) -> bool:
+    """Whether the option ``name`` was given (on the command line or by its environment variable), even at its
+    default value."""
+    return ctx.get_parameter_source(name) not in (None, ParameterSource.DEFAULT, ParameterSource.DEFAULT_MAP)
+
+
+# streamdet-train's options that a --resume takes from its checkpoint where they are not given: the click parameter
+# and its key in TrainConfig.to_dict (data.* nested). --no-image and --no-crop are the negations of theirs.
+TRAIN_RESUME_PARAMS = (
+    ("preset", "preset"), ("no_image", "use_image"), ("no_crop", "slice_crop"), ("steps", "steps"), ("epochs", "epochs"),
+    ("batch_size", "batch_size"), ("lr", "lr"), ("num_slices", "data.num_slices"),
+    ("max_slices_per_sample", "data.max_slices_per_sample"), ("camera_mode", "data.camera_mode"),
+    ("image_warmup", "image_warmup"), ("image_class_weight", "image_class_weight"), ("camera_dropout", "camera_dropout"),
+    ("teacher", "teacher"), ("distill_weight", "distill_weight"), ("freeze_camera_lane", "freeze_camera_lane"),
+    ("balanced", "balanced"), ("workers", "workers"), ("seed", "seed"), ("max_minutes", "max_minutes"), ("amp", "amp"),
+    ("log_every", "log_every"), ("checkpoint_every", "checkpoint_every"),
+)  # fmt: skip
+NEGATED_PARAMS = ("no_image", "no_crop")
+
+
+def _train_may_change(key: str, values: dict[str, Any]) -> bool:
+    """Whether a resumed streamdet-train run may be given another value of config ``key`` (train_config's
+    RESUME_MAY_CHANGE): --max-minutes only where --steps or --epochs plan the schedule (alone it is the schedule);
+    --teacher and --freeze-camera-lane never (the trainer's own check wants them as they were)."""
+    if key == "max_minutes":
+        return values.get("steps") is not None or values.get("epochs") is not None
+    return key.split(".")[0] in RESUME_MAY_CHANGE and key not in ("teacher", "freeze_camera_lane")
+
+
+def take_resume_options(ctx: click.Context, resume: Path, saved: dict[str, Any], params: tuple[tuple[str, str], ...],
+                        may_change: Callable[[str, dict[str, Any]], bool]) -> dict[str, Any]:  # fmt: skip
+    """The values of ``params`` (click parameter, config key) for a --resume of a checkpoint whose config holds
+    ``saved`` (flat keys): an option not given takes the run's value, checked as the option checks a typed one (a
+    checkpoint is input); a given one that the resume must keep (not ``may_change(key, values so far)``) and that
+    differs is a usage error naming both values. A key the config lacks leaves its option as it is (the trainer
+    reports what is missing)."""
+    by_name = {p.name: p for p in ctx.command.params}
+    values: dict[str, Any] = {}
+    for name, key in params:
+        param = by_name[name]
+        flag = max(param.opts, key=len)
+        if key not in saved:
+            values[name] = ctx.params[name]
+            continue
+        was = _saved_option_value(ctx, param, saved[key], resume, key, negate=name in NEGATED_PARAMS)
+        if not given(ctx, name):
+            values[name] = was
+            continue
+        values[name] = now = ctx.params[name]
+        if not may_change(key, values) and _option_values_differ(was, now):
+            raise click.BadParameter(
+                f"--resume {resume} was trained with {flag} {_show(was)}; given {flag} {_show(now)}: a resumed run "
+                f"continues with its own settings; leave {flag} out to take the run's, or start a new run from its "
+                f"weights with --init {resume}", param_hint=flag)  # fmt: skip
+    return values
+
+
+def _saved_option_value(ctx: click.Context, param: click.Parameter, value: Any, resume: Path, key: str, negate: bool) -> Any:
+    """A checkpoint config's ``value`` of ``key`` as its option ``param`` would give it, checked as the option
+    checks a typed value (its type, range and callback); ClickException naming the checkpoint and the key."""
+
+    def bad(why: str) -> click.ClickException:
+        return click.ClickException(f"--resume {resume}: its config's {key} is {short_repr(value, 40)}: {why}")
+
+    if param.is_flag:
+        if not isinstance(value, bool):
+            raise bad("not on or off")
+        return not value if negate else value
+    if value is None:
+        if param.default is None:
+            return None
+        raise bad(f"{max(param.opts, key=len)} needs a value")
+    if isinstance(value, list) and param.name == "num_slices":  # the option's own spelling, parsed by its callback
+        if not all(isinstance(v, int) and not isinstance(v, bool) for v in value):
+            raise bad("not slice counts")
+        value = ",".join(str(v) for v in value)
+    kind = param.type
+    if isinstance(kind, click.types.IntParamType) and (isinstance(value, bool) or not isinstance(value, int)):
+        raise bad("not an integer")  # click's int() would truncate 5.7 to 5
+    if isinstance(kind, click.types.FloatParamType) and (isinstance(value, bool) or not isinstance(value, (int, float))):
+        raise bad("not a number")
+    if isinstance(kind, (click.Choice, click.Path, click.types.StringParamType)) and not isinstance(value, str):
+        raise bad("not a string")
+    try:
+        out = kind.convert(value, param, ctx)
+        return param.callback(ctx, param, out) if param.callback is not None else out
+    except click.BadParameter as e:
+        raise bad(e.format_message()) from None
+
+
+def _option_values_differ(was: Any, now: Any) -> bool:
+    if isinstance(was, Path) and isinstance(now, Path):
+        return not _same_path(was, now)
+    return values_differ(was, now)
+
+
+def _show(value: Any) -> str:
+    """An option's value as the user types it (``show_option_value``; a path as given)."""
+    if isinstance(value, (Path, str)):
+        return str(value)
+    return show_option_value(list(value) if isinstance(value, tuple) else value)
+
+
 def _check_combinations(teacher: Path | None, distill_weight: float, num_slices: tuple[int, ...],
                         max_slices_per_sample: int | None, no_image: bool = False) -> None:  # fmt: skip
     """Options that would be silently ignored in this combination are refused: the user meant something else."""
     ctx = click.get_current_context()
-    source = ctx.get_parameter_source("distill_weight")
-    if teacher is None and source is not click.core.ParameterSource.DEFAULT:  # given, even at its default value
+    if teacher is None and given(ctx, "distill_weight"):  # given, even at its default value
         raise click.BadParameter(f"{distill_weight:g} weighs the distillation loss, which needs --teacher WEIGHTS",
                                  param_hint="--distill-weight")  # fmt: skip
     # the image lane's options with --no-image, at a value that would change a fused run (config.json recorded an
@@ -174,8 +289,9 @@ def _parse_slices(ctx, param, value: str) -> tuple[int, ...]:
                    "lifted from zero features as the runtime lifts a camera without a frame (training/camera_dropout.py). 0: off.")
 @click.option("--resume", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Continue from a last.pt written by this command, in its own folder (--out) or a new or empty one, "
-                   "on the same data with the options it was started with; only --max-minutes (with --steps/--epochs), "
-                   "--log-every, --checkpoint-every, --workers, --amp, --device and --camera-dropout may change.")
+                   "on the same data; options not given take the run's values, and only --max-minutes (with "
+                   "--steps/--epochs), --log-every, --checkpoint-every, --workers, --amp, --device and --camera-dropout "
+                   "may be given other ones. Not with --overwrite.")
 @click.option("--overwrite", is_flag=True, help="Train into an --out that already holds a run (model.pt, last.pt, metrics.jsonl), replacing it.")
 @click.option("--init", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Start from the weights of this checkpoint with a fresh optimizer and schedule: all of them for the same preset "
@@ -216,6 +332,15 @@ def main(data_dir: Path, version: str, out_dir: Path, preset: str, steps: int | 
         raise click.ClickException(f"--data {data_dir}: no table folder {data_dir / version} (is --version right?)")
     if resume is not None and not resume.is_file():
         raise click.ClickException(f"--resume {resume} {not_a_file(resume)}")
+    if resume is not None and overwrite:
+        raise click.UsageError("--resume continues a run in its folder and --overwrite replaces one: give only one of them")
+    if resume is not None:  # the options not given are the run's own: --resume alone continues it
+        ctx = click.get_current_context()
+        values = _resumed_options(ctx, resume)
+        ctx.params.update(values)  # what _check_combinations reads
+        (preset, no_image, no_crop, steps, epochs, batch_size, lr, num_slices, max_slices_per_sample, camera_mode,
+         image_warmup, image_class_weight, camera_dropout, teacher, distill_weight, freeze_camera_lane, balanced, workers,
+         seed, max_minutes, amp, log_every, checkpoint_every) = (values[name] for name, _ in TRAIN_RESUME_PARAMS)  # fmt: skip
     if init is not None and not init.is_file():
         raise click.ClickException(f"--init {init} {not_a_file(init)}")
     if teacher is not None and not teacher.is_file():
@@ -235,7 +360,7 @@ def main(data_dir: Path, version: str, out_dir: Path, preset: str, steps: int | 
     refuse_out_over_inputs(out_dir, [*dataset_inputs(data_dir), ("--init", init), ("--resume", resume), ("--teacher", teacher),
                                      ("--cache-dir", cache_dir)])  # fmt: skip
     refuse_overwrite_of_inputs(out_dir, overwrite, RUN_FILES, [("--init", init), ("--teacher", teacher)])
-    if steps is None and epochs is None and max_minutes is None:
+    if steps is None and epochs is None and max_minutes is None:  # a resume has taken its run's plan by now
         epochs = 10
     try:
         config = TrainConfig(
@@ -249,13 +374,27 @@ def main(data_dir: Path, version: str, out_dir: Path, preset: str, steps: int | 
         raise click.ClickException(str(e)) from None
     finished = False
     try:
+        # progress and notes on stderr; the lines that describe the run (what it trains, how it ended) on stdout
         train(config, data_dir, out_dir, version=version, resume=resume, init=init, cache_dir=cache_dir, device=device,
-              echo=click.echo, overwrite=overwrite)  # fmt: skip
+              echo=progress_echo, overwrite=overwrite, report=click.echo)  # fmt: skip
         finished = True
     except (ValueError, FileNotFoundError) as e:
         raise click.ClickException(first_line(e)) from None
     finally:
         shutdown_distributed(wait=finished)
+
+
+def _resumed_options(ctx: click.Context, resume: Path) -> dict[str, Any]:
+    """``take_resume_options`` of streamdet-train with the checkpoint's config; a file that cannot be read or holds
+    no config (model.pt) leaves the options as given: the trainer says what it is."""
+    try:
+        state = load_checkpoint(resume, "resume checkpoint")
+    except ValueError:  # the trainer says what is wrong with it, after its checks of --out (the order they always had)
+        state = {}
+    was = state.get("config")
+    if not isinstance(was, dict):
+        return {name: ctx.params[name] for name, _ in TRAIN_RESUME_PARAMS}
+    return take_resume_options(ctx, resume, saved_config_values(was), TRAIN_RESUME_PARAMS, _train_may_change)
 
 
 if __name__ == "__main__":

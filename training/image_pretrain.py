@@ -49,9 +49,11 @@ from streamdet.core.json_input import short_repr
 from streamdet.progress import counted
 from streamdet.training.checkpoint import (  # noqa: F401 (load_encoder_weights re-exported)
     TRAIN_FORMAT, WEIGHTS_FORMAT, check_fits, check_state_dict, load_encoder_weights, read_torch_file, save_atomic, save_weights)
-from streamdet.training.run_dir import check_out_dir, discard_unstarted_run, missing_folders, open_run_log
+from streamdet.training.run_dir import (
+    check_out_dir, discard_unstarted_run, missing_folders, open_run_log, remove_stale_temps, trim_run_log)
 from streamdet.training.train_config import check_device, check_lr, check_max_minutes, check_seed, show_option_value, values_differ
-from streamdet.training.trainer import check_optimizer_state, check_weights_finite, init_head_outputs
+from streamdet.training.trainer import (
+    InterruptedMidStep, _sigint_deferred, check_optimizer_state, check_weights_finite, init_head_outputs)
 
 NUM_LABELS = NUM_CLASSES + 1  # 0 = background
 IGNORE = 255
@@ -302,19 +304,25 @@ def _check_resume_fits(state: dict, resume: str | Path, config: PretrainConfig, 
 def pretrain(config: PretrainConfig, data_dir: str | Path, out_dir: str | Path, version: str = DEFAULT_TABLE_VERSION,
              resume: str | Path | None = None, device: str = "cpu", echo: Callable[[str], None] = print,
              max_samples: int | None = None, splits: tuple[str | None, str | None] = ("train", "val"),
-             overwrite: bool = False) -> dict:  # fmt: skip
+             overwrite: bool = False, report: Callable[[str], None] | None = None) -> dict:  # fmt: skip
     """Train the segmenter; returns the last evaluation. Resumable from ``out_dir/last.pt`` with ``resume``.
 
     ``splits``: the (train, val) splits of ``data_dir/splits.json``; None = every sample. An ``out_dir`` holding a
     run (``PRETRAIN_RUN_FILES``) is refused unless ``resume`` continues it or ``overwrite`` replaces it; one holding
     anything but such a run is refused (``trainer.check_out_contents``). A new run that fails before its first logged
-    record leaves nothing in ``out_dir``. A NaN or inf loss or weight stops with a ValueError.
+    record leaves nothing in ``out_dir``. A NaN or inf loss or weight stops with a ValueError. A Ctrl-C
+    (KeyboardInterrupt) writes the checkpoint of the last step done, then goes on as a KeyboardInterrupt. ``echo``
+    takes the progress lines and notes, ``report`` (default: ``echo``) the two lines that describe the run: its
+    images, and how it ended.
     """
     check_device(device)  # before --out is made: a bad device is refused, not found when the model moves there
     made = missing_folders(out_dir)
     replaced = check_out_dir(out_dir, PRETRAIN_RUN_FILES, resume, overwrite, config_key="pretrain")
+    for path in remove_stale_temps(out_dir, PRETRAIN_RUN_FILES):
+        echo(f"removed {path}: the temp file of a save that was killed mid-write")
     try:
-        return _pretrain_into(config, data_dir, Path(out_dir), version, resume, device, echo, max_samples, splits, replaced)
+        return _pretrain_into(config, data_dir, Path(out_dir), version, resume, device, echo, max_samples, splits, replaced,
+                              echo if report is None else report)  # fmt: skip
     except BaseException:
         if resume is None or made:  # a failed resume removes only a folder it made itself (its files are all its own)
             discard_unstarted_run(out_dir, PRETRAIN_RUN_FILES, made)
@@ -323,7 +331,7 @@ def pretrain(config: PretrainConfig, data_dir: str | Path, out_dir: str | Path, 
 
 def _pretrain_into(config: PretrainConfig, data_dir: str | Path, out: Path, version: str, resume: str | Path | None,
                    device: str, echo: Callable[[str], None], max_samples: int | None,
-                   splits: tuple[str | None, str | None], replaced: list[Path]) -> dict:  # fmt: skip
+                   splits: tuple[str | None, str | None], replaced: list[Path], report: Callable[[str], None]) -> dict:  # fmt: skip
     """``pretrain`` once ``out`` is checked (``replaced``: the files of an earlier run that --overwrite removes)."""
     t0 = time.monotonic()
     out.mkdir(parents=True, exist_ok=True)
@@ -336,9 +344,12 @@ def _pretrain_into(config: PretrainConfig, data_dir: str | Path, out: Path, vers
     echo(f"loading {data_dir} train / val images at {size[0]}x{size[1]} with their masks")
     with counted("  train images", echo) as progress:
         train_data = load_masked_images(data_dir, splits[0], size, config.range_m, version, max_samples, progress)
+    if config.batch_size > len(train_data):  # streamdet-train's rule: a batch is never silently made smaller
+        raise ValueError(f"batch_size {config.batch_size} (--batch-size) is more than the {len(train_data)} train images "
+                         f"of {data_dir}: give at most {len(train_data)}")  # fmt: skip
     with counted("  val images", echo) as progress:
         val_data = load_masked_images(data_dir, splits[1], size, config.range_m, version, max_samples, progress)
-    echo(f"{len(train_data)} train images, {len(val_data)} val images")
+    report(f"{len(train_data)} train images, {len(val_data)} val images")  # with the closing line, the run's report
     torch.manual_seed(config.seed)
     model = build_segmenter(preset).to(device)
     optimizer = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
@@ -356,6 +367,11 @@ def _pretrain_into(config: PretrainConfig, data_dir: str | Path, out: Path, vers
         echo(f"resumed {resume} at step {step}")
     for path in replaced:  # overwrite: none of the old run's files may outlive it beside the new run's
         path.unlink(missing_ok=True)
+    if state is not None:  # the records a killed run logged after its checkpoint: their steps are trained again
+        dropped = trim_run_log(out / "metrics.jsonl", step)
+        if dropped:
+            echo(f"metrics.jsonl: dropped {dropped} record(s) logged after step {step} (after the checkpoint resumed: "
+                 "those steps are trained again)")  # fmt: skip
     write_text_atomic(out / "config.json", json.dumps({"pretrain": dataclasses.asdict(config), "data": str(data_dir),
                                                        "preset": preset.to_dict()}, indent=1) + "\n")  # fmt: skip
     # a resumed run continues its log; never through a symlink nor into a FIFO (check_out_dir refused them before)
@@ -380,44 +396,70 @@ def _pretrain_into(config: PretrainConfig, data_dir: str | Path, out: Path, vers
 
     model.train()
     stopped_early = False
-    while step < config.steps:
-        if config.max_minutes is not None and time.monotonic() - t0 > 60 * config.max_minutes:
-            stopped_early = True
-            break
-        if config.stop_at_step is not None and step >= config.stop_at_step:
-            stopped_early = True
-            break
-        idx = np.sort(batch_indices(step, len(train_data), config))
-        images = torch.from_numpy(train_data.images[idx]).to(device)  # (B, H, W, 3)
-        labels = torch.from_numpy(train_data.labels[idx]).long().to(device)  # (B, H, W)
-        if np.random.default_rng([config.seed, step, 1]).random() < 0.5:  # horizontal flip: the world has no handedness
-            images, labels = images.flip(2), labels.flip(2)
-        for group in optimizer.param_groups:
-            group["lr"] = lr_at(step, config)
-        loss = F.cross_entropy(model(images), labels, weight=weights)
-        if not bool(torch.isfinite(loss.detach())):  # before the update: the weights stay the last finite step's
-            metrics.close()
-            raise ValueError(f"training diverged: the loss is {float(loss.detach())} at step {step + 1} (lr "
-                             f"{lr_at(step, config):.3g}); stopped there, nothing written for it (lower --lr)")  # fmt: skip
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
-        optimizer.step()
-        step += 1
-        if step % 10 == 0 or step == 1:
-            metrics.write(json.dumps({"step": step, "loss": float(loss.detach()), "lr": lr_at(step - 1, config)}) + "\n")
-            metrics.flush()
-            echo(f"step {step}/{config.steps} loss {float(loss.detach()):.4f} ({(time.monotonic() - t0) / 60:.1f} min)")
-        if step % config.checkpoint_every == 0:
-            checkpoint()
-        if step % config.eval_every == 0:
-            last_eval = evaluate()
+    start = step
+    last_loss, logged = math.nan, step  # the loss of the last step taken, and the last step metrics.jsonl holds
+    try:
+        while step < config.steps:
+            if config.max_minutes is not None and time.monotonic() - t0 > 60 * config.max_minutes:
+                stopped_early = True
+                break
+            if config.stop_at_step is not None and step >= config.stop_at_step:
+                stopped_early = True
+                break
+            # a step with its log and checkpoint is whole or not taken: a Ctrl-C waits for its end (the forward pass
+            # alone moves the BatchNorm statistics; trainer._sigint_deferred)
+            with _sigint_deferred():
+                idx = np.sort(batch_indices(step, len(train_data), config))
+                images = torch.from_numpy(train_data.images[idx]).to(device)  # (B, H, W, 3)
+                labels = torch.from_numpy(train_data.labels[idx]).long().to(device)  # (B, H, W)
+                if np.random.default_rng([config.seed, step, 1]).random() < 0.5:  # horizontal flip: the world has no handedness
+                    images, labels = images.flip(2), labels.flip(2)
+                for group in optimizer.param_groups:
+                    group["lr"] = lr_at(step, config)
+                loss = F.cross_entropy(model(images), labels, weight=weights)
+                if not bool(torch.isfinite(loss.detach())):  # before the update: the weights stay the last finite step's
+                    if step > logged:  # the last finite step's loss, which the log would not hold otherwise
+                        metrics.write(json.dumps({"step": step, "loss": last_loss, "lr": lr_at(step - 1, config)}) + "\n")
+                    metrics.close()
+                    raise ValueError(f"training diverged: the loss is {float(loss.detach())} at step {step + 1} (lr "
+                                     f"{lr_at(step, config):.3g}); stopped there, nothing written for it (lower --lr)")  # fmt: skip
+                optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
+                optimizer.step()
+                step += 1
+                last_loss = float(loss.detach())
+                if step % 10 == 0 or step == 1:
+                    metrics.write(json.dumps({"step": step, "loss": last_loss, "lr": lr_at(step - 1, config)}) + "\n")
+                    metrics.flush()
+                    logged = step
+                    echo(f"step {step}/{config.steps} loss {last_loss:.4f} ({(time.monotonic() - t0) / 60:.1f} min)")
+                if step % config.checkpoint_every == 0:
+                    checkpoint()
+            if step % config.eval_every == 0:  # outside: a Ctrl-C need not wait for an evaluation of the val images
+                last_eval = evaluate()
+    except InterruptedMidStep:
+        metrics.close()
+        echo(f"interrupted again in the middle of step {step + 1}: nothing written for it (the last checkpoint stays "
+             "as it was)")  # fmt: skip
+        raise
+    except KeyboardInterrupt:
+        # a Ctrl-C: the last step done is saved, so --resume loses nothing (before this invocation's first step there
+        # is nothing new: a new run then leaves nothing); a second one ends these saves, each atomic (the previous
+        # file stays whole)
+        metrics.close()
+        if step == start:
+            raise
+        checkpoint()
+        echo(f"interrupted after step {step}: wrote {out / 'last.pt'}, encoder.pt and detector_init.pt of that step; "
+             f"--resume {out / 'last.pt'} continues from there")  # fmt: skip
+        raise
     checkpoint()
     if not last_eval or last_eval.get("step") != step:
         last_eval = evaluate()
     last_eval = {**last_eval, "step": step, "finished": not stopped_early}
     write_text_atomic(out / "result.json", json.dumps(last_eval, indent=1) + "\n")
     metrics.close()
-    echo(f"{'stopped (--max-minutes / --stop-at-step)' if stopped_early else 'finished'} at step {step}: val mIoU {last_eval['mIoU']:.3f}; "
-         f"wrote {out / 'encoder.pt'} and {out / 'detector_init.pt'}")  # fmt: skip
+    report(f"{'stopped (--max-minutes / --stop-at-step)' if stopped_early else 'finished'} at step {step}: val mIoU "
+           f"{last_eval['mIoU']:.3f}; wrote {out / 'encoder.pt'} and {out / 'detector_init.pt'}")  # fmt: skip
     return last_eval

@@ -5,10 +5,12 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import stat
 from pathlib import Path
 
 from streamdet.core.constants import MANIFEST_NAME
+from streamdet.core.file_output import open_beside, writer_alive
 from streamdet.data.splits import SPLITS_FILE
 from streamdet.evaluation.saved_run import SAVED_FILES
 
@@ -202,3 +204,79 @@ def discard_unstarted_run(out_dir: str | Path, run_files: tuple[str, ...], made:
             folder.rmdir()  # only an empty folder: a cache or a user's file inside keeps it
         except OSError:
             break
+
+
+# The temp file a run's atomic writes (training/checkpoint.save_atomic, trim_run_log) stage beside their target:
+# ".<name>.<random>.<pid>.tmp". A SIGKILL mid-save leaves it (a Python exception removes it), for the paper preset
+# hundreds of MB each; the writer's pid in its name tells a dead save's file from a live one's.
+_RUN_TEMP = re.compile(r"^\.(?P<name>.+)\.[A-Za-z0-9_]+\.(?P<pid>[0-9]+)\.tmp$")
+
+
+def run_temp_suffix() -> str:
+    """The suffix of this process's temp files beside a run's outputs (``_RUN_TEMP``)."""
+    return f".{os.getpid()}.tmp"
+
+
+def write_run_file(path: str | Path, write) -> Path:
+    """Write ``path`` atomically with ``write(f)`` on an open binary file (core/file_output.atomic_write_file's way:
+    temp file beside it, flushed, renamed), the temp named with this process's pid so that ``remove_stale_temps``
+    can clear it after a kill. A Ctrl-C mid-write (a KeyboardInterrupt) removes it and leaves ``path`` as it was."""
+    path = Path(path)
+    tmp, f = open_beside(path, run_temp_suffix())
+    try:
+        with f:
+            write(f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return path
+
+
+def remove_stale_temps(out_dir: str | Path, run_files: tuple[str, ...]) -> list[Path]:
+    """Remove the temp files of ``run_files`` (``_RUN_TEMP``) in ``out_dir`` whose writer is dead (a save killed
+    mid-write); the ones removed. A live writer's (another process saving right now) and anything else stay."""
+    removed = []
+    try:
+        entries = list(Path(out_dir).iterdir())
+    except OSError:
+        return removed  # no folder yet, or unlistable: check_out_dir reports that
+    for entry in entries:
+        m = _RUN_TEMP.match(entry.name)
+        if m is None or m.group("name") not in run_files or writer_alive(int(m.group("pid"))):
+            continue
+        try:
+            if entry.is_file() and not entry.is_symlink():
+                entry.unlink()
+                removed.append(entry)
+        except OSError:
+            continue  # what cannot be removed stays; the run goes on
+    return removed
+
+
+def trim_run_log(path: str | Path, last_step: int) -> int:
+    """Keep the records of a run's metrics.jsonl up to and including ``last_step`` (the checkpoint a resume
+    continues), rewritten atomically; the count dropped. A run killed after its last checkpoint logged steps the
+    resume trains again: appended after them, the log repeated that stretch (a plot or a mean counted it twice, and
+    elapsed_s went backwards). A line cut short by the kill (no valid JSON, or no integer step) goes too."""
+    path = Path(path)
+    if not path.is_file():
+        return 0
+    try:
+        lines = path.read_bytes().decode("utf-8", errors="replace").splitlines(keepends=True)
+    except OSError as e:
+        raise ValueError(f"{path} cannot be read to continue the run's log: {e.strerror or e}") from None
+    keep = []
+    for line in lines:
+        try:
+            record = json.loads(line)
+        except ValueError:
+            continue
+        step = record.get("step") if isinstance(record, dict) else None
+        if isinstance(step, int) and not isinstance(step, bool) and step <= last_step:
+            keep.append(line if line.endswith("\n") else line + "\n")  # the next record must start a line
+    if keep != lines:
+        write_run_file(path, lambda f: f.write("".join(keep).encode("utf-8")))
+    return len(lines) - len(keep)

@@ -188,13 +188,19 @@ RESUME_MAY_CHANGE = ("max_minutes", "log_every", "checkpoint_every", "workers", 
                      "freeze_camera_lane")  # fmt: skip
 
 
+def saved_config_values(was: dict[str, Any]) -> dict[str, Any]:
+    """A checkpoint's ``config`` (TrainConfig.to_dict: fields at their default may be absent) as every field's value,
+    keyed flat ("data.num_slices"): what the run was started with."""
+    # the fields' own defaults (steps=1 only makes the instance valid: steps defaults to None)
+    defaults = {**_flat(_jsonable(dataclasses.asdict(TrainConfig(steps=1)))), "steps": None}
+    return {**defaults, **_flat(was)}
+
+
 def resume_config_changes(was: dict[str, Any], now: TrainConfig) -> list[tuple[str, Any, Any]]:
     """(option, the run's value, the given value) for every field of ``now`` that differs from ``was`` (a resumed
     checkpoint's ``config``, TrainConfig.to_dict: fields at their default may be absent) and that a resume must keep
     (``RESUME_OPTIONS``; a field no option sets is named TrainConfig.<field>)."""
-    # the fields' own defaults (steps=1 only makes the instance valid: steps defaults to None)
-    defaults = {**_flat(_jsonable(dataclasses.asdict(TrainConfig(preset=now.preset, steps=1)))), "steps": None}
-    old = {**defaults, **_flat(was)}
+    old = saved_config_values({"preset": now.preset, **was})  # a config without a preset: not compared on it
     new = _flat(_jsonable(dataclasses.asdict(now)))
     by_time = (old.get("steps"), old.get("epochs")) == (None, None) or (now.steps, now.epochs) == (None, None)
     changes = []

@@ -15,7 +15,9 @@ plus the weighted image class and distillation terms), ``heatmap`` (focal loss p
 L1 of the box codes per object, before ``reg_weight``), its parts before their code weights ``loc_xy``, ``z``,
 ``dim``, ``rot``, ``vel`` (the sum over those codes of the L1 per object), ``image_class`` / ``distill_heatmap`` /
 ``distill_box`` where those losses run (before their weights), ``lr``, ``samples_per_s`` and ``slices_per_s`` (over
-every process), ``elapsed_s`` (training seconds, a resumed run's included).
+every process), ``elapsed_s`` (training seconds, a resumed run's included), and ``dropped_targets`` in a record whose
+steps left target boxes out (more objects in a head map than ``TargetConfig.max_objects``). A resume first drops the
+records logged after the checkpoint it continues (their steps are trained again).
 """
 
 from __future__ import annotations
@@ -25,9 +27,11 @@ import hashlib
 import json
 import math
 import os
+import signal
+import threading
 import time
-from collections.abc import Callable
-from contextlib import nullcontext
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -42,14 +46,15 @@ from streamdet.core.file_output import write_text_atomic
 from streamdet.core.json_input import short_repr
 from streamdet.models.detector import build_detector
 from streamdet.models.presets import Preset
-from streamdet.models.torch_files import check_dense
+from streamdet.models.torch_files import check_dense, read_torch_file
 from streamdet.training.batching import Batch, Collator
 from streamdet.training.camera_dropout import draw_camera_keep, drops_cameras, step_generator
 from streamdet.training.checkpoint import (
     TRANSFERABLE_PARTS,
+    check_checkpoint,
     check_fits,
     check_state_dict,
-    is_encoder_weights,
+    is_encoder_state,
     load_checkpoint,
     load_encoder_weights,
     save_training_state,
@@ -65,8 +70,8 @@ from streamdet.training.model import TrainingModel
 from streamdet.training.schedule import OneCycle
 from streamdet.progress import counted
 from streamdet.training.run_dir import (  # noqa: F401 (re-exported: the run-folder rules, for tests and scripts)
-    CONFIG_FILE, NOT_A_RUN, RUN_FILES, check_out_contents, check_out_dir, discard_unstarted_run, missing_folders,
-    open_run_log)
+    CONFIG_FILE, NOT_A_RUN, RUN_FILES, _same_folder, check_out_contents, check_out_dir, discard_unstarted_run,
+    missing_folders, open_run_log, remove_stale_temps, trim_run_log)
 from streamdet.training.train_config import (  # noqa: F401 (re-exported)
     AMP_MODES, MAX_LR, MAX_MINUTES, MAX_SEED, MAX_STEPS, TrainConfig, check_device, check_max_minutes,
     resume_config_changes, show_option_value)
@@ -92,6 +97,7 @@ class TrainResult:
     checkpoint: Path | None  # last.pt (main process only)
     weights: Path | None  # model.pt
     skipped_samples: int = 0  # samples left out of their batch for holding no pillar (Collator: no usable LiDAR point)
+    dropped_targets: int = 0  # target boxes beyond TargetConfig.max_objects of their head map (every process's)
 
 
 def _amp_context(mode: str, device: torch.device):
@@ -182,6 +188,7 @@ class _TrainRun:
     data_dir: str = ""  # --data, as given (for messages)
     skipped_samples: int = 0  # this invocation's samples without a pillar, left out of their batches
     skipped_steps: int = 0  # batches left with no sample at all, no optimizer step taken
+    dropped_targets: int = 0  # this process's target boxes beyond the cap of their head map (Batch.num_dropped)
 
     def checkpoint(self) -> Path | None:
         if not self.ctx.is_main:
@@ -233,6 +240,7 @@ def train(
     store: SampleStore | None = None,
     echo: Callable[[str], None] = print,
     overwrite: bool = False,
+    report: Callable[[str], None] | None = None,
 ) -> TrainResult:
     """Train on the ``train`` split of ``data_dir``; see the module docstring for what lands in ``out_dir``.
 
@@ -248,7 +256,10 @@ def train(
     An ``out_dir`` that already holds a run (``RUN_FILES``) is refused unless ``resume`` continues it or ``overwrite``
     replaces it; one holding anything but a run is refused (``check_out_contents``). A new run that fails before its
     first checkpoint or logged record leaves nothing in ``out_dir`` (``discard_unstarted_run``). A loss or weight that
-    turns NaN or inf stops training with a ValueError (nothing written for it).
+    turns NaN or inf stops training with a ValueError (nothing written for it); a Ctrl-C (KeyboardInterrupt) between
+    or during steps writes last.pt and model.pt at the last step done, then goes on as a KeyboardInterrupt.
+    ``echo`` takes the progress lines and notes, ``report`` (default: ``echo``) the two lines that describe the run:
+    what it trains on what, and how it ended.
     """
     if resume is not None and init is not None:
         raise ValueError("give either resume (continue a run) or init (start a new run from weights), not both")
@@ -259,8 +270,12 @@ def train(
     made = missing_folders(out_dir)
     # before any process starts (every one sees the same folder): after set-up the main process writes into it
     replaced = check_out_dir(out_dir, RUN_FILES, resume, overwrite)
+    if os.environ.get("RANK", "0") == "0":
+        for path in remove_stale_temps(out_dir, RUN_FILES):
+            echo(f"removed {path}: the temp file of a save that was killed mid-write")
     try:
-        return _train_into(config, data_dir, out_dir, version, resume, init, cache_dir, device, store, echo, replaced)
+        return _train_into(config, data_dir, out_dir, version, resume, init, cache_dir, device, store, echo, replaced,
+                           echo if report is None else report)  # fmt: skip
     except BaseException:
         # a new run, or a resume into a folder this invocation made (everything in it is its own); a resume in an
         # existing folder leaves that run's files alone. The main process (torchrun's rank 0) owns --out.
@@ -271,16 +286,23 @@ def train(
 
 def _train_into(config: TrainConfig, data_dir: str | Path, out_dir: str | Path, version: str, resume: str | Path | None,
                 init: str | Path | None, cache_dir: str | Path | None, device: torch.device | None,
-                store: SampleStore | None, echo: Callable[[str], None], replaced: list[Path]) -> TrainResult:  # fmt: skip
+                store: SampleStore | None, echo: Callable[[str], None], replaced: list[Path],
+                report: Callable[[str], None]) -> TrainResult:  # fmt: skip
     """``train`` once ``out_dir`` is checked: set up, write the run's files, train, save (``replaced``: the files
     of an earlier run that --overwrite removes)."""
     state = None
     if resume is not None:  # before the dataset is read: a resume the run's own config refuses costs no minutes
         state = load_checkpoint(resume, "resume checkpoint")
         _check_resume_state(state, resume, config)
-    run = _set_up(config, data_dir, out_dir, version, init, cache_dir, device, store, echo)
+        plan = _finished_plan(state, config)
+        if plan is not None:  # a --steps or time plan's end is known without the data (an --epochs plan's is not)
+            return _finished_resume(state, resume, out_dir, config, plan, state["scheduler"]["step"], report)
+    loaded_init = _read_init(init) if init is not None else None  # as early: a bad --init costs no minutes either
+    run = _set_up(config, data_dir, out_dir, version, init, cache_dir, device, store, echo, loaded_init)
     if resume is not None:
         _restore(run, resume, state)
+        if run.schedule.done:
+            return _finished_resume(state, resume, out_dir, config, run.plan, run.schedule.step, report)
     if run.teacher is not None:
         # with camera dropout the teacher lifts every camera itself: its targets are the whole scene's
         run.shared_lane = config.freeze_camera_lane and not config.camera_dropout and run.teacher.shares_camera_lane(run.detector)
@@ -290,17 +312,24 @@ def _train_into(config: TrainConfig, data_dir: str | Path, out_dir: str | Path, 
         for path in replaced:  # --overwrite: none of the old run's files may outlive it beside the new run's
             path.unlink(missing_ok=True)
     _write_config(run, data_dir, init)
+    if resume is not None and run.ctx.is_main:
+        # the records a killed run logged after its checkpoint are trained again now: they must not stay twice
+        dropped = trim_run_log(run.out_dir / "metrics.jsonl", run.schedule.step)
+        if dropped:
+            run.say(f"metrics.jsonl: dropped {dropped} record(s) logged after step {run.schedule.step} (after the "
+                    "checkpoint resumed: those steps are trained again)")  # fmt: skip
     # never through a symlink nor into a FIFO that appeared while the data was read (check_out_dir refused them before)
     log_file = open_run_log(run.out_dir / "metrics.jsonl", append=resume is not None) if run.ctx.is_main else None
     n_params = sum(p.numel() for p in run.model.parameters())
-    run.say(
+    # what is trained, on what, how: with the closing line, the run's own report (``report``: stdout in the CLI)
+    (report if run.ctx.is_main else run.say)(
         f"training {run.preset.name} ({'camera + LiDAR' if run.preset.use_image else 'LiDAR only'}"
         f"{'' if run.preset.slice_crop else ', no quadrant crop'}, {n_params / 1e6:.2f} M parameters) "
         f"on {len(run.dataset.store)} samples, slices {list(config.data.num_slices)}, {run.ctx.world_size} process(es) x batch "
         f"{config.batch_size}, {len(run.loader)} steps/epoch, {run.plan}, device {run.device}"
     )
     try:
-        stopped_early, last_loss = _loop(run, log_file)
+        stopped_early, last_loss = _loop(run, log_file, init)
         # this process's share: the global batch's loss is the sum over processes (NaN where no step was taken: on all)
         last_loss = float(all_reduce_sum(torch.tensor([last_loss], dtype=torch.float64), run.ctx)[0])
         check_weights_finite(run.model, run.schedule.step)
@@ -309,23 +338,110 @@ def _train_into(config: TrainConfig, data_dir: str | Path, out_dir: str | Path, 
             log_file.close()  # also when training diverged: the log up to that step stays readable
     ckpt = run.checkpoint()
     step = run.schedule.step
-    weights = None
-    if run.ctx.is_main:
-        weights = run.out_dir / "model.pt"
-        save_weights(weights, run.preset, run.detector,
-                     meta={"steps": step, "config": config.to_dict(), "init": str(init) if init is not None else None})  # fmt: skip
+    weights = _save_model(run, init)
     seconds = time.perf_counter() - run.t_start
     if run.skipped_samples:
         run.say(f"skipped {run.skipped_samples} sample(s) without a usable LiDAR point in their slices "
                 f"({run.skipped_steps} batch(es) left empty, no step taken for them)")  # fmt: skip
-    run.say(f"{'stopped by --max-minutes' if stopped_early else 'done'} after {step} steps in {seconds / 60:.1f} min; wrote {run.out_dir}")
-    return TrainResult(step, seconds, stopped_early, last_loss, ckpt, weights, run.skipped_samples)
+    dropped_targets = int(all_reduce_sum(torch.tensor([float(run.dropped_targets)], dtype=torch.float64), run.ctx)[0])
+    _say_dropped_targets(run, dropped_targets)
+    if run.ctx.is_main:
+        report(f"{'stopped by --max-minutes' if stopped_early else 'done'} after {step} steps in {seconds / 60:.1f} min; "
+               f"wrote {run.out_dir}")  # fmt: skip
+    return TrainResult(step, seconds, stopped_early, last_loss, ckpt, weights, run.skipped_samples, dropped_targets)
+
+
+def _save_model(run: _TrainRun, init: str | Path | None) -> Path | None:
+    """model.pt of the run's weights now (main process only; None on the others)."""
+    if not run.ctx.is_main:
+        return None
+    weights = run.out_dir / "model.pt"
+    save_weights(weights, run.preset, run.detector, meta={"steps": run.schedule.step, "config": run.config.to_dict(),
+                                                          "init": str(init) if init is not None else None})  # fmt: skip
+    return weights
+
+
+def _say_dropped_targets(run: _TrainRun, count: int) -> None:
+    """The one warning of a run whose maps held more objects than the targets' cap: those beyond it are no target
+    (training/targets.py), which nothing else would tell."""
+    if count:
+        cap = run.config.data.targets.max_objects
+        run.say(f"warning: {count} target box(es) left out: a head map held more than the cap of {cap} objects "
+                "(TargetConfig.max_objects); metrics.jsonl counts them per record (dropped_targets)")  # fmt: skip
+
+
+def _read_init(init: str | Path) -> Any:
+    """What ``init`` holds, read and checked once, before the dataset is read: an image encoder's state dict
+    (streamdet-train-image's encoder.pt) or a checkpoint dict (``check_checkpoint``); ValueError naming it."""
+    obj = read_torch_file(init, "init checkpoint")
+    return obj if is_encoder_state(obj) else check_checkpoint(obj, init, "init checkpoint")
+
+
+def _finished_plan(state: dict[str, Any], config: TrainConfig) -> str | None:
+    """The plan in words when ``state`` (a checked last.pt) finished the schedule ``config`` asks for and that is
+    known before the data is read: a --steps plan, or a time plan; None otherwise (an --epochs plan's length needs
+    the steps per epoch; a schedule that does not match is reported by ``_restore``)."""
+    sched = state["scheduler"]
+    try:
+        if config.steps is not None:
+            total, step = sched.get("total_steps"), sched.get("step")
+            if isinstance(total, int) and isinstance(step, int) and total == config.steps and step >= total:
+                return f"{total} steps"
+        elif config.epochs is None:
+            budget, elapsed = sched.get("budget_s"), float(sched.get("elapsed_s"))
+            if budget is not None and budget == 60 * config.max_minutes and math.isfinite(elapsed) and elapsed >= budget:
+                return f"one-cycle over {config.max_minutes:g} min of wall time"
+    except (TypeError, ValueError, OverflowError):  # a crafted scheduler state: _restore says what is wrong with it
+        return None
+    return None
+
+
+def _finished_resume(state: dict[str, Any], resume: str | Path, out_dir: str | Path, config: TrainConfig, plan: str,
+                     step: int, report: Callable[[str], None]) -> TrainResult:  # fmt: skip
+    """A --resume of a checkpoint that finished its schedule: nothing is left to train. A run stopped between its
+    last two writes (last.pt, then model.pt) has a finished last.pt and no model.pt of it (none, or an earlier
+    one): in the checkpoint's own folder it is written now, from the checkpoint. Otherwise a ValueError that says
+    where the weights are or how to get them. ``step``: the schedule's, where it ended."""
+    own, weights = Path(resume).parent, Path(out_dir) / "model.pt"
+    if not _same_folder(own, Path(out_dir)):
+        if _weights_of_step(own / "model.pt", step):
+            where = f"its weights are {own / 'model.pt'}"
+        else:
+            where = (f"its folder has no model.pt of it: resume it there (--out {own}) to write one from it, or export "
+                     f"the checkpoint itself (streamdet-export --checkpoint {resume})")  # fmt: skip
+        raise ValueError(f"checkpoint {resume} finished its schedule ({plan}): nothing left to train; {where}")
+    if _weights_of_step(weights, step):
+        raise ValueError(f"checkpoint {resume} finished its schedule ({plan}): nothing left to train; its weights are "
+                         f"{weights}")  # fmt: skip
+    if os.environ.get("RANK", "0") == "0":
+        preset = config.build_preset()
+        detector = build_detector(preset)
+        check_fits(detector.state_dict(), state["model"], resume, "resume checkpoint", f"preset {preset.name!r}")
+        detector.load_state_dict(state["model"])
+        save_weights(weights, preset, detector, meta={"steps": step, "config": config.to_dict(), "init": None})
+        report(f"checkpoint {resume} finished its schedule ({plan}), but its folder held no model.pt of step {step} "
+               f"(the run was stopped between its last two writes): wrote {weights} from it; nothing left to train")  # fmt: skip
+    return TrainResult(step, 0.0, False, math.nan, Path(resume), weights)
+
+
+def _weights_of_step(path: Path, step: int) -> bool:
+    """Whether ``path`` is a model.pt the run wrote at ``step`` (its meta says so)."""
+    if not path.is_file():
+        return False
+    try:
+        obj = read_torch_file(path)
+    except ValueError:
+        return False  # unreadable: the checkpoint's weights replace it
+    meta = obj.get("meta") if isinstance(obj, dict) else None
+    return isinstance(meta, dict) and meta.get("steps") == step
 
 
 def _set_up(config: TrainConfig, data_dir: str | Path, out_dir: str | Path, version: str, init: str | Path | None,
             cache_dir: str | Path | None, device: str | torch.device | None, store: SampleStore | None,
-            echo: Callable[[str], None]) -> _TrainRun:  # fmt: skip
-    """Device and processes, data, model (from ``init``'s weights if given), optimizer, schedule, loss."""
+            echo: Callable[[str], None], loaded_init: Any = None) -> _TrainRun:  # fmt: skip
+    """Device and processes, model (from ``init``'s weights if given: ``loaded_init``, what ``_read_init`` read),
+    teacher, optimizer, data, schedule, loss. The model and teacher come before the data: a --init or --teacher
+    that does not fit is refused before minutes of reading the train split."""
     t_start = time.perf_counter()
     device = torch.device(device) if device is not None else torch.device("cuda" if torch.cuda.is_available() else "cpu")
     ctx = init_distributed(device)
@@ -333,21 +449,11 @@ def _set_up(config: TrainConfig, data_dir: str | Path, out_dir: str | Path, vers
     say = echo if ctx.is_main else (lambda _msg: None)
     preset = config.build_preset()
 
-    if store is None:
-        size = (preset.image.width_px, preset.image.height_px) if preset.use_image else None
-        say(f"reading the train split of {data_dir} ({'images ' + f'{size[0]}x{size[1]}' if size else 'no images'})")
-        with counted("  samples read", say) as progress:  # none on a cache hit
-            store = build_store(data_dir, "train", size, version=version, cache_dir=cache_dir, progress=progress, echo=say)
-    collate = Collator(preset, config.data.camera_mode)
-    collate.check_store(store, data_dir)  # the cameras must fit the preset's images: the export's and runtime's rule
-    dataset = SliceDataset(store, preset, config.data, seed=config.seed)
-    loader, sampler = make_loader(dataset, config, ctx, collate)
-
     torch.manual_seed(config.seed)
     detector = build_detector(preset)
     init_head_outputs(detector)  # a resumed run overwrites it with the checkpoint
     if init is not None:
-        _load_init_weights(detector, preset, init, say)
+        _load_init_weights(detector, preset, init, say, loaded_init)
     if ctx.initialised and ctx.world_size > 1:
         convert_batchnorm(detector)
     model = TrainingModel(detector, image_classifier=config.image_class_weight > 0,
@@ -358,6 +464,16 @@ def _set_up(config: TrainConfig, data_dir: str | Path, out_dir: str | Path, vers
     wrapped = DistributedDataParallel(model, find_unused_parameters=warmup) if ctx.initialised and ctx.world_size > 1 else model
     trained = [p for p in model.parameters() if p.requires_grad]  # not a frozen camera lane
     optimizer = torch.optim.AdamW(trained, lr=config.lr / config.div_factor, weight_decay=config.weight_decay)
+
+    if store is None:
+        size = (preset.image.width_px, preset.image.height_px) if preset.use_image else None
+        say(f"reading the train split of {data_dir} ({'images ' + f'{size[0]}x{size[1]}' if size else 'no images'})")
+        with counted("  samples read", say) as progress:  # none on a cache hit
+            store = build_store(data_dir, "train", size, version=version, cache_dir=cache_dir, progress=progress, echo=say)
+    collate = Collator(preset, config.data.camera_mode)
+    collate.check_store(store, data_dir)  # the cameras must fit the preset's images: the export's and runtime's rule
+    dataset = SliceDataset(store, preset, config.data, seed=config.seed)
+    loader, sampler = make_loader(dataset, config, ctx, collate)
     schedule, plan = _schedule(config, len(loader))
     amp, use_scaler = _amp_context(config.amp, device)
     return _TrainRun(
@@ -369,12 +485,15 @@ def _set_up(config: TrainConfig, data_dir: str | Path, out_dir: str | Path, vers
     )  # fmt: skip
 
 
-def _load_init_weights(detector, preset: Preset, init: str | Path, say: Callable[[str], None]) -> None:
-    if is_encoder_weights(init):  # streamdet-train-image's encoder.pt: the image encoder; the rest stays seeded
-        load_encoder_weights(detector, init)
+def _load_init_weights(detector, preset: Preset, init: str | Path, say: Callable[[str], None], loaded: Any = None) -> None:
+    """``init``'s weights into ``detector`` (``loaded``: what ``_read_init`` read from it, else it is read here)."""
+    if loaded is None:
+        loaded = _read_init(init)
+    if is_encoder_state(loaded):  # streamdet-train-image's encoder.pt: the image encoder; the rest stays seeded
+        load_encoder_weights(detector, init, loaded)
         say(f"initialised the image encoder from {init}; every other weight from the seed")
         return
-    state = load_checkpoint(init, "init checkpoint")  # its model a state dict of tensors, else a one-line ValueError
+    state = loaded  # its model a state dict of tensors (check_checkpoint)
     own = detector.state_dict()
 
     def own_dtypes(weights: dict) -> dict:  # shipped weights may be stored in float16: back to the model's own dtypes
@@ -430,8 +549,15 @@ def _check_resume_state(state: dict[str, Any], resume: str | Path, config: Train
             raise ValueError(f"checkpoint {resume} lacks {key!r}: it holds weights only, it cannot resume a run")
     preset = config.build_preset()
     if state["preset"] != preset.to_dict():
-        raise ValueError(f"checkpoint {resume} was trained with another preset than {preset.name!r} (use_image={preset.use_image}, "
-                         f"slice_crop={preset.slice_crop})")  # fmt: skip
+        saved = state["preset"]
+        name = saved.get("name")
+        flags = "".join(f" {flag}" for flag, key in (("--no-image", "use_image"), ("--no-crop", "slice_crop")) if saved.get(key) is False)
+        given = "".join(f" {flag}" for flag, on in (("--no-image", preset.use_image), ("--no-crop", preset.slice_crop)) if not on)
+        same_name = f"; its preset {name!r} has changed since (another streamdet version?)" if name == preset.name and flags == given else ""
+        shown = name if isinstance(name, str) and name.isidentifier() else short_repr(name, 40)
+        raise ValueError(f"checkpoint {resume} was trained with --preset {shown}{flags}, given --preset "
+                         f"{preset.name}{given}{same_name}: resume it with its own (leave --preset out to take it), or "
+                         f"start a new run from its weights with --init {resume}")  # fmt: skip
     was, now = state.get("config", {}), config.to_dict()
     if not isinstance(was, dict):
         raise ValueError(f"checkpoint {resume}: 'config' is a {type(was).__name__}, not the TrainConfig dict")
@@ -508,9 +634,8 @@ def _restore(run: _TrainRun, resume: str | Path, state: dict[str, Any]) -> None:
                          f"must be >= 0 and finite")  # fmt: skip
     _restore_scaler(run, resume, state.get("scaler"))
     run.epoch, run.epoch_step, run.elapsed_before = state["epoch"], state["epoch_step"], run.schedule.elapsed_s
-    run.say(f"resumed {resume} at step {run.schedule.step} (epoch {run.epoch}, batch {run.epoch_step})")
-    if run.schedule.done:
-        raise ValueError(f"checkpoint {resume} finished its schedule ({run.plan}): nothing left to train")
+    if not run.schedule.done:  # a finished one: _finished_resume says what there is to do
+        run.say(f"resumed {resume} at step {run.schedule.step} (epoch {run.epoch}, batch {run.epoch_step})")
 
 
 def _restore_scaler(run: _TrainRun, resume: str | Path, saved: object) -> None:
@@ -562,13 +687,84 @@ def _write_config(run: _TrainRun, data_dir: str | Path, init: str | Path | None)
                                                                    "init": str(init) if init is not None else None}, indent=1))  # fmt: skip
 
 
-def _loop(run: _TrainRun, log_file) -> tuple[bool, float]:
-    """Train until the schedule is done (or --max-minutes runs out); (stopped early, the last step's loss)."""
+def _loop(run: _TrainRun, log_file, init: str | Path | None = None) -> tuple[bool, float]:
+    """Train until the schedule is done (or --max-minutes runs out); (stopped early, the last step's loss).
+
+    A Ctrl-C (KeyboardInterrupt) ends the loop with last.pt and model.pt written at the last step done (its partial
+    log window logged), then goes on: ``--resume`` loses no step. A Ctrl-C during a step waits for its end
+    (``_sigint_deferred``); a second one ends it at once, and then nothing is written (the step's state is half
+    changed: its forward pass alone moves the BatchNorm statistics). Before the first step of this invocation there is
+    nothing new to write. Under torchrun the other processes may be inside a collective: nothing is written there,
+    the run resumes from its last checkpoint."""
+    window = {"t": time.perf_counter(), "samples": 0, "slices": 0, "loss": 0.0, "parts": {}, "n": 0, "dropped": 0}
+    last = {"lr": math.nan}
+    start = run.schedule.step
+    try:
+        return _steps(run, log_file, window, last)
+    except InterruptedMidStep:
+        run.say(f"interrupted again in the middle of step {run.schedule.step + 1}: nothing written for it (the last "
+                "checkpoint stays as it was)")  # fmt: skip
+        raise
+    except KeyboardInterrupt:
+        # before this invocation's first step there is nothing new to save (a new run then leaves nothing)
+        if run.ctx.world_size > 1 or not run.ctx.is_main or run.schedule.step == start:
+            raise
+        # a second Ctrl-C here ends the saves below: each is atomic (the previous file stays whole)
+        if window["n"]:
+            _log(window, run.schedule, last["lr"], run.epoch, run.ctx, run.say, log_file)
+        if log_file is not None:
+            log_file.close()
+        check_weights_finite(run.model, run.schedule.step)
+        run.checkpoint()
+        _save_model(run, init)
+        _say_dropped_targets(run, run.dropped_targets)
+        run.say(f"interrupted after step {run.schedule.step}: wrote {run.out_dir / 'last.pt'} and model.pt of that "
+                f"step; --resume {run.out_dir / 'last.pt'} continues from there")  # fmt: skip
+        raise
+
+
+class InterruptedMidStep(KeyboardInterrupt):
+    """A KeyboardInterrupt that ended a step half done (a second Ctrl-C while the first one waited for the step's
+    end): nothing may be saved of that state."""
+
+
+@contextmanager
+def _sigint_deferred() -> Iterator[None]:
+    """Hold a Ctrl-C (SIGINT) back until the block (one training step and its bookkeeping) ends, then deliver it.
+
+    A KeyboardInterrupt inside a step leaves its state half changed: the forward pass already moved the BatchNorm
+    running statistics, the update can be half applied, or the weights of step n sit under the schedule and data
+    position of step n - 1; a checkpoint of that, resumed, is not the uninterrupted run. A second Ctrl-C while the
+    first waits is not held: it ends the block at once, as ``InterruptedMidStep``. Only the main thread takes signals;
+    elsewhere the block runs as it is."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    caught: list[int] = []
+
+    def hold(signum: int, _frame) -> None:
+        caught.append(signum)
+        signal.signal(signal.SIGINT, previous)  # the next Ctrl-C goes through at once
+
+    previous = signal.getsignal(signal.SIGINT)  # set before hold can run
+    signal.signal(signal.SIGINT, hold)
+    try:
+        yield
+    except KeyboardInterrupt as e:
+        raise InterruptedMidStep(*e.args) from None
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if caught:
+        signal.raise_signal(signal.SIGINT)  # to the handler the process had: a KeyboardInterrupt, as a Ctrl-C gives
+
+
+def _steps(run: _TrainRun, log_file, window: dict, last: dict) -> tuple[bool, float]:
+    """``_loop``'s steps (``last["lr"]``: the lr of the last step taken, for a log written on an interrupt). Only the
+    wait for the next batch takes a Ctrl-C at once; each step with its log and checkpoint is whole or not taken."""
     config, schedule, preset, ctx = run.config, run.schedule, run.preset, run.ctx
     stopped_early = False
     last_loss = math.nan
     lr = math.nan
-    window = {"t": time.perf_counter(), "samples": 0, "slices": 0, "loss": 0.0, "parts": {}, "n": 0}
     timed = schedule.by_time or config.max_minutes is not None
     images_on = schedule.progress >= config.image_warmup
     while not schedule.done and not stopped_early:
@@ -578,48 +774,56 @@ def _loop(run: _TrainRun, log_file) -> tuple[bool, float]:
         batches = iter(run.loader)
         stepped = run.epoch_step > 0  # whether this epoch took an optimizer step (a resumed one: before the cut)
         for batch in batches:
-            batch = batch.to(run.device)
-            if _skip_batch(run, batch):  # no sample with a pillar: no step, the data position moves on
+            with _sigint_deferred():
+                batch = batch.to(run.device)
+                if _skip_batch(run, batch):  # no sample with a pillar: no step, the data position moves on
+                    run.epoch_step += 1
+                    continue
+                stepped = True
+                lr = schedule.apply(run.optimizer)
+                use_image = preset.use_image and schedule.progress >= config.image_warmup
+                if run.warmup and use_image and not images_on:
+                    run.say(f"step {schedule.step}: warm-up over ({config.image_warmup:.0%} of the schedule), the image lane joins")
+                    images_on = True
+                loss, parts = _step(run, batch, use_image)
+                _update(run)
+                schedule.advance(run.elapsed() if timed else run.elapsed_before + time.perf_counter() - run.t_start)
                 run.epoch_step += 1
-                continue
-            stepped = True
-            lr = schedule.apply(run.optimizer)
-            use_image = preset.use_image and schedule.progress >= config.image_warmup
-            if run.warmup and use_image and not images_on:
-                run.say(f"step {schedule.step}: warm-up over ({config.image_warmup:.0%} of the schedule), the image lane joins")
-                images_on = True
-            loss, parts = _step(run, batch, use_image)
-            schedule.advance(run.elapsed() if timed else run.elapsed_before + time.perf_counter() - run.t_start)
-            run.epoch_step += 1
-
-            last_loss = float(loss.detach()) / ctx.world_size  # this process's share of the global loss
-            _stop_if_diverged(run, last_loss, lr)
-            window["samples"] += batch.num_samples
-            window["slices"] += batch.num_slices
-            window["loss"] += last_loss
-            for k, v in parts.items():  # unscaled local shares (normalised by the global counts): they sum to the part
-                window["parts"][k] = window["parts"].get(k, 0.0) + float(v)
-            window["n"] += 1
-            if schedule.step % config.log_every == 0:
-                _log(window, schedule, lr, run.epoch, ctx, run.say, log_file)
-            if schedule.step % config.checkpoint_every == 0:
-                check_weights_finite(run.model, schedule.step)  # every process holds the same weights (DDP)
-                run.checkpoint()
-            # with a step/epoch plan the limit is this invocation's wall time (a resumed run gets it again), as a
-            # session-split run needs; a time plan (no steps) spends one budget over all of its resumes
-            if not schedule.by_time and config.max_minutes is not None and schedule.elapsed_s - run.elapsed_before > 60 * config.max_minutes:
-                stopped_early = not schedule.done  # every process sees the same (reduced) elapsed time
-                break
-            if schedule.done:
-                break
+                last_loss = float(loss.detach()) / ctx.world_size  # this process's share of the global loss
+                if _diverged(run, last_loss):
+                    if window["n"]:  # the steps before this one, not logged yet: the run's last finite stretch
+                        _log(window, schedule, last["lr"], run.epoch, ctx, run.say, log_file, step=schedule.step - 1)
+                    raise _divergence_error(run, last_loss, lr)
+                last["lr"] = lr
+                window["samples"] += batch.num_samples
+                window["slices"] += batch.num_slices
+                window["dropped"] += batch.num_dropped
+                run.dropped_targets += batch.num_dropped
+                window["loss"] += last_loss
+                for k, v in parts.items():  # unscaled local shares (normalised by the global counts): they sum to the part
+                    window["parts"][k] = window["parts"].get(k, 0.0) + float(v)
+                window["n"] += 1
+                if schedule.step % config.log_every == 0:
+                    _log(window, schedule, lr, run.epoch, ctx, run.say, log_file)
+                if schedule.step % config.checkpoint_every == 0:
+                    check_weights_finite(run.model, schedule.step)  # every process holds the same weights (DDP)
+                    run.checkpoint()
+                # with a step/epoch plan the limit is this invocation's wall time (a resumed run gets it again), as a
+                # session-split run needs; a time plan (no steps) spends one budget over all of its resumes
+                if not schedule.by_time and config.max_minutes is not None and schedule.elapsed_s - run.elapsed_before > 60 * config.max_minutes:
+                    stopped_early = not schedule.done  # every process sees the same (reduced) elapsed time
+                    break
+                if schedule.done:
+                    break
         else:
             if not stepped and run.skipped_steps:  # every batch was empty: another epoch would spin for ever
                 raise ValueError(f"no sample of the train split of {run.data_dir} holds a usable LiDAR point in its "
                                  f"slices (every batch of epoch {run.epoch} was empty): nothing to train on")  # fmt: skip
             run.epoch += 1
             run.epoch_step = 0
-    if window["n"]:
-        _log(window, schedule, lr, run.epoch, ctx, run.say, log_file)
+    with _sigint_deferred():  # the record and the window's reset together: a Ctrl-C between them logged it twice
+        if window["n"]:
+            _log(window, schedule, lr, run.epoch, ctx, run.say, log_file)
     return stopped_early, last_loss
 
 
@@ -648,9 +852,9 @@ def _skip_batch(run: _TrainRun, batch: Batch) -> bool:
     return empty
 
 
-def _stop_if_diverged(run: _TrainRun, loss: float, lr: float) -> None:
-    """ValueError naming the step and the loss when it is NaN or inf on any process: the update it drove left NaN
-    weights, so the run stops before anything more is logged or written (the last checkpoint predates it).
+def _diverged(run: _TrainRun, loss: float) -> bool:
+    """Whether the loss is NaN or inf on any process: the update it drove left NaN weights, so the run stops before
+    anything more is written (the last checkpoint predates it; the steps before it are logged first).
 
     Checked on the value the loop reads anyway (no extra device sync); summed over processes, so every process
     stops at the same step (one stopping alone would leave the others waiting in the next all-reduce)."""
@@ -658,15 +862,20 @@ def _stop_if_diverged(run: _TrainRun, loss: float, lr: float) -> None:
     if run.ctx.initialised and run.ctx.world_size > 1:
         flag = all_reduce_sum(torch.tensor([0.0 if finite else 1.0], device=run.device), run.ctx)
         finite = float(flag[0]) == 0.0
-    if not finite:
-        value = loss * run.ctx.world_size if not math.isfinite(loss) else "NaN or inf on another process"
-        raise ValueError(f"training diverged: the loss is {value} at step {run.schedule.step} (lr {lr:.3g}); stopped "
-                         f"there, no weights written for it (lower --lr or the loss weights, or resume from an earlier "
-                         f"last.pt)")  # fmt: skip
+    return not finite
+
+
+def _divergence_error(run: _TrainRun, loss: float, lr: float) -> ValueError:
+    """The ValueError of a diverged run, naming the step and the loss."""
+    value = loss * run.ctx.world_size if not math.isfinite(loss) else "NaN or inf on another process"
+    return ValueError(f"training diverged: the loss is {value} at step {run.schedule.step} (lr {lr:.3g}); stopped "
+                      f"there, no weights written for it (lower --lr or the loss weights, or resume from an earlier "
+                      f"last.pt)")  # fmt: skip
 
 
 def _step(run: _TrainRun, batch: Batch, use_image: bool) -> tuple[torch.Tensor, dict]:
-    """One optimizer step on one batch: forward, loss over the global batch, backward, clipped update."""
+    """One step on one batch up to its update (``_update``): forward, loss over the global batch, backward, clipped
+    gradients. Nothing the checkpoint holds changes here."""
     keep = _camera_keep(run, batch) if use_image else None
     with run.amp:
         lifted = run.model.image_bev(batch, use_image) if run.shared_lane else None  # frozen: no graph, read by both
@@ -691,9 +900,13 @@ def _step(run: _TrainRun, batch: Batch, use_image: bool) -> tuple[torch.Tensor, 
     run.scaler.scale(loss).backward()
     run.scaler.unscale_(run.optimizer)
     torch.nn.utils.clip_grad_norm_(run.model.parameters(), run.config.grad_clip)
+    return loss, parts
+
+
+def _update(run: _TrainRun) -> None:
+    """The optimizer update of the gradients ``_step`` left (and the fp16 loss scaler's)."""
     run.scaler.step(run.optimizer)
     run.scaler.update()
-    return loss, parts
 
 
 def _camera_keep(run: _TrainRun, batch: Batch) -> torch.Tensor | None:
@@ -709,7 +922,10 @@ def _camera_keep(run: _TrainRun, batch: Batch) -> torch.Tensor | None:
     return draw_camera_keep(batch.num_samples, num_cameras, gen, device=batch.images.device)
 
 
-def _log(window: dict, schedule: OneCycle, lr: float, epoch: int, ctx: DistContext, say, log_file) -> None:
+def _log(window: dict, schedule: OneCycle, lr: float, epoch: int, ctx: DistContext, say, log_file,
+         step: int | None = None) -> None:  # fmt: skip
+    """One record of the window's steps (``step``: the last of them, default the schedule's)."""
+    step = schedule.step if step is None else step
     now = time.perf_counter()
     dt = max(now - window["t"], 1e-9)
     n = window["n"]
@@ -717,21 +933,25 @@ def _log(window: dict, schedule: OneCycle, lr: float, epoch: int, ctx: DistConte
     stats = all_reduce_sum(torch.tensor([window["loss"]] + list(window["parts"].values()), dtype=torch.float64), ctx)
     loss = float(stats[0]) / n
     parts = {k: float(v) / n for k, v in zip(window["parts"], stats[1:].tolist())}
-    counts = all_reduce_sum(torch.tensor([window["samples"], window["slices"]], dtype=torch.float64), ctx)  # every process's
+    counts = all_reduce_sum(torch.tensor([window["samples"], window["slices"], window.get("dropped", 0)], dtype=torch.float64),
+                            ctx)  # every process's  # fmt: skip
     samples_s = float(counts[0]) / dt
     slices_s = float(counts[1]) / dt
+    dropped = int(counts[2])
     if schedule.by_time:
         total, eta = "time", schedule.budget_s - schedule.elapsed_s
     else:
-        total, eta = str(schedule.total_steps), (schedule.total_steps - schedule.step) * dt / n
+        total, eta = str(schedule.total_steps), (schedule.total_steps - step) * dt / n
     say(
-        f"step {schedule.step:>6}/{total} ep {epoch:>3} loss {loss:7.4f} (hm {parts.get('heatmap', math.nan):.4f} "
+        f"step {step:>6}/{total} ep {epoch:>3} loss {loss:7.4f} (hm {parts.get('heatmap', math.nan):.4f} "
         f"reg {parts.get('reg', math.nan):.4f}) lr {lr:.2e} {samples_s:5.2f} samples/s {slices_s:6.1f} slices/s "
         f"elapsed {schedule.elapsed_s / 60:5.1f} min eta {max(eta, 0.0) / 60:5.1f} min"
     )
     if log_file is not None:
-        record = {"step": schedule.step, "epoch": epoch, "loss": loss, **parts, "lr": lr, "samples_per_s": samples_s,
+        record = {"step": step, "epoch": epoch, "loss": loss, **parts, "lr": lr, "samples_per_s": samples_s,
                   "slices_per_s": slices_s, "elapsed_s": schedule.elapsed_s}  # fmt: skip
+        if dropped:  # only where it happened: a record of every run would carry a 0 that nothing reads
+            record["dropped_targets"] = dropped
         log_file.write(json.dumps(record) + "\n")
         log_file.flush()
-    window.update(t=now, samples=0, slices=0, loss=0.0, parts={}, n=0)
+    window.update(t=now, samples=0, slices=0, loss=0.0, parts={}, n=0, dropped=0)
