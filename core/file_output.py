@@ -31,10 +31,11 @@ def open_beside(path: str | os.PathLike, suffix: str = ".tmp") -> tuple[Path, Bi
         raise
 
 
-def atomic_write_file(path: str | os.PathLike, write: Callable[[BinaryIO], Any]) -> Path:
-    """Write ``path`` atomically with ``write(f)`` on an open binary file; returns ``path``."""
+def atomic_write_file(path: str | os.PathLike, write: Callable[[BinaryIO], Any], suffix: str = ".tmp") -> Path:
+    """Write ``path`` atomically with ``write(f)`` on an open binary file (the temp file beside it ends in
+    ``suffix``); returns ``path``."""
     path = Path(path)
-    tmp, f = open_beside(path)
+    tmp, f = open_beside(path, suffix)
     try:
         with f:
             write(f)

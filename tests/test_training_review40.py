@@ -17,7 +17,6 @@ import torch
 from click.testing import CliRunner
 
 import streamdet.training.image_pretrain as image_pretrain
-import streamdet.training.run_dir as run_dir
 import streamdet.training.trainer as trainer
 from streamdet.models.image_encoder import ImageEncoder
 from streamdet.models.presets import get_preset
@@ -338,14 +337,16 @@ def test_stale_temps_of_a_dead_save_are_removed_and_a_live_ones_kept(full_run, t
 
 def test_checkpoints_are_staged_under_a_name_holding_the_pid(tmp_path, monkeypatch):
     names = []
-    opened = run_dir.open_beside
+    from streamdet.core import file_output
+
+    opened = file_output.open_beside
 
     def recorded(path, suffix):
         tmp, f = opened(path, suffix)
         names.append(tmp.name)
         return tmp, f
 
-    monkeypatch.setattr(run_dir, "open_beside", recorded)
+    monkeypatch.setattr(file_output, "open_beside", recorded)
     save_atomic({"a": 1}, tmp_path / "last.pt")
     assert names[0].startswith(".last.pt.") and names[0].endswith(f".{os.getpid()}.tmp")
 

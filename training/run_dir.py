@@ -10,7 +10,7 @@ import stat
 from pathlib import Path
 
 from streamdet.core.constants import MANIFEST_NAME
-from streamdet.core.file_output import open_beside, writer_alive
+from streamdet.core.file_output import atomic_write_file, writer_alive
 from streamdet.data.splits import SPLITS_FILE
 from streamdet.evaluation.saved_run import SAVED_FILES
 
@@ -218,21 +218,10 @@ def run_temp_suffix() -> str:
 
 
 def write_run_file(path: str | Path, write) -> Path:
-    """Write ``path`` atomically with ``write(f)`` on an open binary file (core/file_output.atomic_write_file's way:
-    temp file beside it, flushed, renamed), the temp named with this process's pid so that ``remove_stale_temps``
-    can clear it after a kill. A Ctrl-C mid-write (a KeyboardInterrupt) removes it and leaves ``path`` as it was."""
-    path = Path(path)
-    tmp, f = open_beside(path, run_temp_suffix())
-    try:
-        with f:
-            write(f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return path
+    """Write ``path`` atomically with ``write(f)`` on an open binary file (core/file_output.atomic_write_file), the
+    temp named with this process's pid so that ``remove_stale_temps`` can clear it after a kill. A Ctrl-C mid-write
+    (a KeyboardInterrupt) removes it and leaves ``path`` as it was."""
+    return atomic_write_file(path, write, run_temp_suffix())
 
 
 def remove_stale_temps(out_dir: str | Path, run_files: tuple[str, ...]) -> list[Path]:
