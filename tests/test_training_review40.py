@@ -18,6 +18,7 @@ from click.testing import CliRunner
 
 import streamdet.training.image_pretrain as image_pretrain
 import streamdet.training.trainer as trainer
+from streamdet.training.interrupts import InterruptedMidStep
 from streamdet.models.image_encoder import ImageEncoder
 from streamdet.models.presets import get_preset
 from streamdet.models.torch_files import read_torch_file
@@ -228,7 +229,7 @@ def test_a_second_ctrl_c_mid_step_writes_nothing_of_that_step(store, tmp_path, m
     monkeypatch.setattr(trainer, "_step", twice)
     out = tmp_path / "run"
     said = []
-    with pytest.raises(trainer.InterruptedMidStep):
+    with pytest.raises(InterruptedMidStep):
         train(_config(checkpoint_every=1), "unused", out, store=store, echo=said.append)
     assert load_checkpoint(out / "last.pt")["step"] == 1 and not (out / "model.pt").exists()
     assert any("interrupted again in the middle of step 2" in m for m in said)

@@ -52,8 +52,8 @@ from streamdet.training.checkpoint import (  # noqa: F401 (load_encoder_weights 
 from streamdet.training.run_dir import (
     check_out_dir, discard_unstarted_run, missing_folders, open_run_log, remove_stale_temps, trim_run_log)
 from streamdet.training.train_config import check_device, check_lr, check_max_minutes, check_seed, show_option_value, values_differ
-from streamdet.training.trainer import (
-    InterruptedMidStep, _sigint_deferred, check_optimizer_state, check_weights_finite, init_head_outputs)
+from streamdet.training.interrupts import InterruptedMidStep, sigint_deferred
+from streamdet.training.trainer import check_optimizer_state, check_weights_finite, init_head_outputs
 
 NUM_LABELS = NUM_CLASSES + 1  # 0 = background
 IGNORE = 255
@@ -407,8 +407,8 @@ def _pretrain_into(config: PretrainConfig, data_dir: str | Path, out: Path, vers
                 stopped_early = True
                 break
             # a step with its log and checkpoint is whole or not taken: a Ctrl-C waits for its end (the forward pass
-            # alone moves the BatchNorm statistics; trainer._sigint_deferred)
-            with _sigint_deferred():
+            # alone moves the BatchNorm statistics; training/interrupts.py)
+            with sigint_deferred():
                 idx = np.sort(batch_indices(step, len(train_data), config))
                 images = torch.from_numpy(train_data.images[idx]).to(device)  # (B, H, W, 3)
                 labels = torch.from_numpy(train_data.labels[idx]).long().to(device)  # (B, H, W)

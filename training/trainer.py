@@ -27,11 +27,9 @@ import hashlib
 import json
 import math
 import os
-import signal
-import threading
 import time
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager, nullcontext
+from collections.abc import Callable
+from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -69,6 +67,7 @@ from streamdet.training.losses import CenterPointLoss, loss_terms
 from streamdet.training.model import TrainingModel
 from streamdet.training.schedule import OneCycle
 from streamdet.progress import counted
+from streamdet.training.interrupts import InterruptedMidStep, sigint_deferred
 from streamdet.training.run_dir import (  # noqa: F401 (re-exported: the run-folder rules, for tests and scripts)
     CONFIG_FILE, NOT_A_RUN, RUN_FILES, _same_folder, check_out_contents, check_out_dir, discard_unstarted_run,
     missing_folders, open_run_log, remove_stale_temps, trim_run_log)
@@ -692,7 +691,7 @@ def _loop(run: _TrainRun, log_file, init: str | Path | None = None) -> tuple[boo
 
     A Ctrl-C (KeyboardInterrupt) ends the loop with last.pt and model.pt written at the last step done (its partial
     log window logged), then goes on: ``--resume`` loses no step. A Ctrl-C during a step waits for its end
-    (``_sigint_deferred``); a second one ends it at once, and then nothing is written (the step's state is half
+    (``sigint_deferred``); a second one ends it at once, and then nothing is written (the step's state is half
     changed: its forward pass alone moves the BatchNorm statistics). Before the first step of this invocation there is
     nothing new to write. Under torchrun the other processes may be inside a collective: nothing is written there,
     the run resumes from its last checkpoint."""
@@ -723,41 +722,6 @@ def _loop(run: _TrainRun, log_file, init: str | Path | None = None) -> tuple[boo
         raise
 
 
-class InterruptedMidStep(KeyboardInterrupt):
-    """A KeyboardInterrupt that ended a step half done (a second Ctrl-C while the first one waited for the step's
-    end): nothing may be saved of that state."""
-
-
-@contextmanager
-def _sigint_deferred() -> Iterator[None]:
-    """Hold a Ctrl-C (SIGINT) back until the block (one training step and its bookkeeping) ends, then deliver it.
-
-    A KeyboardInterrupt inside a step leaves its state half changed: the forward pass already moved the BatchNorm
-    running statistics, the update can be half applied, or the weights of step n sit under the schedule and data
-    position of step n - 1; a checkpoint of that, resumed, is not the uninterrupted run. A second Ctrl-C while the
-    first waits is not held: it ends the block at once, as ``InterruptedMidStep``. Only the main thread takes signals;
-    elsewhere the block runs as it is."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    caught: list[int] = []
-
-    def hold(signum: int, _frame) -> None:
-        caught.append(signum)
-        signal.signal(signal.SIGINT, previous)  # the next Ctrl-C goes through at once
-
-    previous = signal.getsignal(signal.SIGINT)  # set before hold can run
-    signal.signal(signal.SIGINT, hold)
-    try:
-        yield
-    except KeyboardInterrupt as e:
-        raise InterruptedMidStep(*e.args) from None
-    finally:
-        signal.signal(signal.SIGINT, previous)
-    if caught:
-        signal.raise_signal(signal.SIGINT)  # to the handler the process had: a KeyboardInterrupt, as a Ctrl-C gives
-
-
 def _steps(run: _TrainRun, log_file, window: dict, last: dict) -> tuple[bool, float]:
     """``_loop``'s steps (``last["lr"]``: the lr of the last step taken, for a log written on an interrupt). Only the
     wait for the next batch takes a Ctrl-C at once; each step with its log and checkpoint is whole or not taken."""
@@ -774,7 +738,7 @@ def _steps(run: _TrainRun, log_file, window: dict, last: dict) -> tuple[bool, fl
         batches = iter(run.loader)
         stepped = run.epoch_step > 0  # whether this epoch took an optimizer step (a resumed one: before the cut)
         for batch in batches:
-            with _sigint_deferred():
+            with sigint_deferred():
                 batch = batch.to(run.device)
                 if _skip_batch(run, batch):  # no sample with a pillar: no step, the data position moves on
                     run.epoch_step += 1
@@ -821,7 +785,7 @@ def _steps(run: _TrainRun, log_file, window: dict, last: dict) -> tuple[bool, fl
                                  f"slices (every batch of epoch {run.epoch} was empty): nothing to train on")  # fmt: skip
             run.epoch += 1
             run.epoch_step = 0
-    with _sigint_deferred():  # the record and the window's reset together: a Ctrl-C between them logged it twice
+    with sigint_deferred():  # the record and the window's reset together: a Ctrl-C between them logged it twice
         if window["n"]:
             _log(window, schedule, lr, run.epoch, ctx, run.say, log_file)
     return stopped_early, last_loss
