@@ -96,11 +96,13 @@ def _intersection_area(
     # b's edges (P, 4) against a's sides x = -hl, +hl and y = -hw, +hw: (P, 4, 2) each.
     ex, ey = np.roll(bx, -1, axis=1) - bx, np.roll(by, -1, axis=1) - by
     side = np.array([-1.0, 1.0])
-    with np.errstate(divide="ignore", invalid="ignore"):  # edges parallel to a side: inf / nan, rejected below
+    # Edges parallel to a side: inf / nan, rejected below. The products too: a parallel edge's t is inf times its
+    # zero run (nan), and a positive but denormal side's edge divides into inf the same way.
+    with np.errstate(divide="ignore", invalid="ignore"):
         t_x = (side * half_l[:, :, None] - bx[..., None]) / ex[..., None]  # hits x = +-hl
         t_y = (side * half_w[:, :, None] - by[..., None]) / ey[..., None]  # hits y = +-hw
-    hit_x_y = by[..., None] + t_x * ey[..., None]
-    hit_y_x = bx[..., None] + t_y * ex[..., None]
+        hit_x_y = by[..., None] + t_x * ey[..., None]
+        hit_y_x = bx[..., None] + t_y * ex[..., None]
     ok_x = (t_x >= 0) & (t_x <= 1) & (np.abs(hit_x_y) <= half_w[:, :, None] + tol)
     ok_y = (t_y >= 0) & (t_y <= 1) & (np.abs(hit_y_x) <= half_l[:, :, None] + tol)
     hit_x_x = np.broadcast_to(side * half_l[:, :, None], t_x.shape)  # (P, 4, 2), the sides' own coordinate
@@ -144,7 +146,7 @@ def paired_bev_iou(boxes_a: np.ndarray, boxes_b: np.ndarray) -> np.ndarray:
     a, b = a[proper], b[proper]
     inter = _intersection_area(a, b)
     union = a[:, W] * a[:, L] + b[:, W] * b[:, L] - inter
-    iou[proper] = np.clip(inter / union, 0.0, 1.0)
+    iou[proper] = _iou(inter, union)
     return iou
 
 
@@ -154,7 +156,13 @@ def indexed_bev_iou(boxes: np.ndarray, corners: np.ndarray, i: np.ndarray, j: np
     a, b = boxes[i], boxes[j]
     inter = _intersection_area(a, b, corners[i], corners[j])
     union = a[:, W] * a[:, L] + b[:, W] * b[:, L] - inter
-    return np.clip(inter / union, 0.0, 1.0)
+    return _iou(inter, union)
+
+
+def _iou(inter: np.ndarray, union: np.ndarray) -> np.ndarray:
+    """inter / union clipped to [0, 1], and 0 where the union has no area: sides so small (denormal) that w * l
+    underflows to 0 give a box without area, which overlaps nothing (the division gave 1 or nan, with a warning)."""
+    return np.clip(np.divide(inter, union, out=np.zeros_like(inter), where=union > 0), 0.0, 1.0)
 
 
 def bev_iou(boxes_a: np.ndarray, boxes_b: np.ndarray) -> np.ndarray:

@@ -76,15 +76,19 @@ def quadrant_of_xy(x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 
 def azimuth_deg(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Azimuth atan2(y, x) in degrees, wrapped to [0, 360)."""
-    a = np.mod(np.degrees(np.arctan2(y, x)), 360.0)
+    """Azimuth atan2(y, x) in degrees, wrapped to [0, 360), in float64 whatever the input's dtype."""
+    # float64 (the cast of a float32 sweep is exact): a float32 atan2 rounds a point on a sector bound, (1, 1) at 45,
+    # off it into the sector that ends there, and layouts and the slice-index feature then disagreed about it
+    a = np.mod(np.degrees(np.arctan2(np.asarray(y, np.float64), np.asarray(x, np.float64))), 360.0)
     # a tiny negative angle wraps to 360 - tiny, which rounds to exactly 360 in float: that is azimuth 0
     return np.where(a >= 360.0, 0.0, a) if np.ndim(a) else (0.0 if a >= 360.0 else a)
 
 
 def angle_diff_deg(a, b):
     """``a - b`` in degrees wrapped to [-180, 180): the signed angular distance from ``b`` to ``a`` (arrays broadcast)."""
-    return np.mod(np.subtract(a, b) + 180.0, 360.0) - 180.0
+    d = np.mod(np.subtract(a, b) + 180.0, 360.0) - 180.0
+    # as in azimuth_deg: the mod of a tiny negative number rounds to exactly 360, which is -180 here, not +180
+    return np.where(d >= 180.0, d - 360.0, d) if np.ndim(d) else (d - 360.0 if d >= 180.0 else d)
 
 
 def scan_fraction(azimuth, start_deg: float = 0.0, clockwise: bool = False):
@@ -125,16 +129,31 @@ def slice_index_of(x: np.ndarray, y: np.ndarray, n: int, start_deg: float = 0.0,
     """Slice index (int64, 0..n-1) of each point by azimuth, in scan order; -1 where x or y is NaN (no azimuth: in
     no slice). Casting the NaN gave INT64_MIN on x86 and 0 elsewhere, with a warning."""
     check_num_slices(n, start_deg)
-    rel = np.mod(azimuth_deg(x, y) - start_deg, 360.0)
-    no_azimuth = np.isnan(rel)
-    # rel * n / 360 rounds as sector_bounds_deg's 360 * j / n: a point on a sector's bound is in the sector it starts
-    j = np.floor(np.where(no_azimuth, 0.0, rel) * n / 360.0).astype(np.int64)
-    j = np.minimum(j, n - 1)  # rel can round up to exactly 360 in float
-    # A point on an axis (0, 5), (-5, 0), or rounded onto one in float32, is in the quadrant quadrant_of_xy gives it
-    # (its grid cell's): its slice must be one that reads that quadrant, else pillarize drops it as outside. The
-    # slices of the quadrant r quarter turns after the start are (r n) // 4 .. ((r + 1) n - 1) // 4 (any n).
-    r = np.mod(quadrant_of_xy(x, y) - round(start_deg / 90.0), NUM_QUADRANTS)
-    j = np.clip(j, (r * n) // NUM_QUADRANTS, ((r + 1) * n - 1) // NUM_QUADRANTS)
+    az = azimuth_deg(x, y)  # float64
+    no_azimuth = np.isnan(az)
+    q = quadrant_of_xy(x, y)
+    quarter = round(start_deg % 360.0 / 90.0) % NUM_QUADRANTS  # quarter turns from +x to the start (any multiple of 90)
+    if n < NUM_QUADRANTS:  # n = 1 or 2: each quadrant lies whole in one slice, and the quadrant decides
+        j = np.mod(q - quarter, NUM_QUADRANTS) * n // NUM_QUADRANTS
+    else:
+        # The default layout's sector, counter-clockwise from +x. az * n / 360 rounds as sector_bounds_deg's
+        # 360 * j / n: a point on a sector's bound is in the sector it starts.
+        j = np.floor(np.where(no_azimuth, 0.0, az) * n / 360.0).astype(np.int64)
+        j = np.minimum(j, n - 1)  # az * n can round up to exactly 360 n in float
+        # A point on an axis (0, 5), (-5, 0), or rounded onto one ((10, -1e-15) has azimuth 0 but y < 0), is in the
+        # quadrant quadrant_of_xy gives it (its grid cell's): its slice must be one that reads that quadrant, else
+        # pillarize drops it as outside. Quadrant q's slices are lo = q n / 4 .. hi = (q + 1) n / 4 - 1. Such a
+        # point lies on the quadrant's edge, so it goes to the end of that range nearer its azimuth going round the
+        # circle: past the 0 / 360 wrap (azimuth 0, quadrant 3) that is hi, the slice next to it, not lo a quarter
+        # turn away.
+        lo, hi = q * (n // NUM_QUADRANTS), (q + 1) * (n // NUM_QUADRANTS) - 1
+        off = (j < lo) | (j > hi)
+        if off.any():  # points on an axis only: a sweep pays the compare
+            j = np.where(off, np.where((lo - j) % n <= (j - hi) % n, lo, hi), j)
+        # The layout's sectors are the default ones shifted by a whole number of them (n is a multiple of 4): an
+        # integer shift, not azimuth - start in float, which rounds a point near a bound across it in some layouts
+        # only. So every layout agrees point for point with the default one, which the slice-index feature counts.
+        j = np.mod(j - quarter * (n // NUM_QUADRANTS), n) if quarter else j
     k = n - 1 - j if clockwise else j
     return np.where(no_azimuth, -1, k) if no_azimuth.any() else k
 

@@ -57,7 +57,7 @@ from streamdet.core.points import (
     MAX_POINT_TIME_S, MAX_SLICE_INDEX, MAX_SLICE_POINTS, MAX_SWEEP_POINTS, REFLECTANCE_RANGE, SLICE_INDEX, check_sweep,
     slice_points_problem,
 )
-from streamdet.core.sectors import NUM_QUADRANTS, quadrants_of_sector, run_bounds_deg
+from streamdet.core.sectors import NUM_QUADRANTS, quadrants_of_sector
 from streamdet.core.slicing import feature_index, split_sweep
 from streamdet.runtime_ort.call_checks import call_timestamp, slice_count, slice_index_problem
 # the public names of the runtime's API are importable from here too, where StreamingDetector lives
@@ -74,7 +74,7 @@ from streamdet.runtime_ort.image_cache import (  # noqa: F401 (check_camera_time
 )
 from streamdet.runtime_ort.manifest import GraphEntry, ImageSpec, Manifest, ManifestError  # noqa: F401 (ManifestError: public here)
 from streamdet.runtime_ort.pillarize import pillarize
-from streamdet.runtime_ort.postprocess import Detections, PostprocessConfig, aggregate_sweep, postprocess_slice, top_k_reached
+from streamdet.runtime_ort.postprocess import Detections, PostprocessConfig, SliceRun, aggregate_sweep, postprocess_slice, top_k_reached
 from streamdet.runtime_ort.recording import Feeds, GraphRecording
 from streamdet.runtime_ort.sessions import CPU_PROVIDER, GraphRunError, GraphSession, ProviderError  # noqa: F401 (ProviderError: public here)
 from streamdet.runtime_ort.warm_up import warm_up
@@ -823,8 +823,8 @@ class StreamingDetector:
                 with self._cap_lock:
                     self._runs_at_top_k += 1
             with self.stats.time("post"):
-                lo, hi = run_bounds_deg(ks[0], ks[-1], n, self.config.start_deg, self.config.clockwise)
-                dets = postprocess_slice(boxes, scores, labels, quadrants, self.grid, self._post, (lo, hi), crop=crop)
+                run = SliceRun(ks, n, self.config.start_deg, self.config.clockwise)  # restrict_to_sector: by slice index
+                dets = postprocess_slice(boxes, scores, labels, quadrants, self.grid, self._post, crop=crop, slices=run)
         self.stats.record("slice_total", (time.perf_counter() - t0) * 1e3)
         parts = split_by_slice(dets, ks, n, self.config.start_deg, self.config.clockwise)
         last = len(ks) - 1

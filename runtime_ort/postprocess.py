@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
@@ -20,7 +21,7 @@ from streamdet.calibration.grid import GridSpec
 from streamdet.calibration.slice_maps import slice_maps
 from streamdet.core.boxes import BOX_DIM, H, W, X, Y
 from streamdet.core.classes import CLASS_NAMES
-from streamdet.core.sectors import azimuth_deg, check_quadrants
+from streamdet.core.sectors import azimuth_deg, check_quadrants, slice_index_of
 from streamdet.runtime_ort.nms import NmsConfig, nms
 
 
@@ -120,8 +121,28 @@ def plausible_boxes(boxes: np.ndarray, grid: GridSpec) -> np.ndarray:
     return inside & (sizes > 0).all(axis=1) & (sizes <= span_m).all(axis=1)
 
 
+class SliceRun(NamedTuple):
+    """The slices one graph run detects: ``slice_indices`` of ``num_slices`` (consecutive, in scan order) in the scan
+    layout ``start_deg`` / ``clockwise`` (``core/sectors.py``)."""
+
+    slice_indices: Sequence[int]
+    num_slices: int
+    start_deg: float = 0.0
+    clockwise: bool = False
+
+
+def in_slices(boxes: np.ndarray, run: SliceRun) -> np.ndarray:
+    """Boolean (N,): the BEV centre lies in one of the run's slices by ``slice_index_of``, the rule that slices the
+    points (``split_sweep``) and hands a coalesced run's boxes to its slices (``split_by_slice``). Being integer, it
+    partitions centres exactly between adjacent slices; comparing azimuths with bounds in float (``in_sector``) does
+    not: ``hi - lo`` and the azimuth both round, so a centre on a shared bound was kept by both slices or by neither."""
+    k = slice_index_of(boxes[:, X], boxes[:, Y], run.num_slices, run.start_deg, run.clockwise)  # (N,)
+    return (k[:, None] == np.asarray(run.slice_indices, np.int64)[None, :]).any(axis=1)  # a few boxes, a few slices
+
+
 def in_sector(boxes: np.ndarray, sector_deg: tuple[float, float]) -> np.ndarray:
-    """Boolean (N,): the BEV centre's azimuth lies in [lo, hi) of the sector (wrapping past 360 deg)."""
+    """Boolean (N,): the BEV centre's azimuth lies in [lo, hi) of the sector (wrapping past 360 deg). For a sector
+    given by its bounds only: two adjacent sectors' bounds round apart, so for a sweep's slices use ``in_slices``."""
     lo, hi = float(sector_deg[0]), float(sector_deg[1])
     if not (math.isfinite(lo) and math.isfinite(hi) and 0.0 < hi - lo <= 360.0):
         raise ValueError(f"sector_deg must be (lo, hi) with 0 < hi - lo <= 360, got {sector_deg!r}")
@@ -147,11 +168,14 @@ def postprocess_slice(
     config: PostprocessConfig = PostprocessConfig(),
     sector_deg: tuple[float, float] | None = None,
     crop: bool = True,
+    slices: SliceRun | None = None,
 ) -> Detections:
     """Decoded slice graph outputs (Q, K, 9), (Q, K), (Q, K) -> the slice's detections in the LiDAR frame.
 
     Steps: uncrop, drop rows with a non-finite value, score threshold, implausible boxes (`plausible_boxes`), sector restriction (when
-    `config.restrict_to_sector`; needs `sector_deg`, e.g. `grid.sector_bounds_deg(k, n)`), per-class NMS.
+    `config.restrict_to_sector`), per-class NMS. The restriction needs the run's `slices` (`in_slices`: the slices of a
+    sweep split the centres exactly), or else a `sector_deg` (lo, hi), e.g. `grid.sector_bounds_deg(k, n)`
+    (`in_sector`: a centre on a bound shared with the next slice may be kept by both or by neither).
     `crop` False: the outputs are one map of the whole grid (a LiDAR-only net without the quadrant crop).
     """
     det_scores = np.asarray(det_scores)
@@ -163,8 +187,10 @@ def postprocess_slice(
         raise ValueError(f"det_labels must be {boxes.shape[:2]} to match det_boxes, got shape {det_labels.shape}")
     if not np.issubdtype(det_labels.dtype, np.integer):
         raise ValueError(f"det_labels must be integers, got dtype {det_labels.dtype}")
-    if config.restrict_to_sector and sector_deg is None:
-        raise ValueError("PostprocessConfig.restrict_to_sector is set but no sector_deg was given")
+    if config.restrict_to_sector and sector_deg is None and slices is None:
+        raise ValueError("PostprocessConfig.restrict_to_sector is set but no slices or sector_deg was given")
+    if sector_deg is not None and slices is not None:
+        raise ValueError(f"give the slices or a sector_deg to restrict to, not both: got {slices!r} and {sector_deg!r}")
 
     boxes = boxes.reshape(-1, BOX_DIM)  # (Q * K, 9)
     scores = det_scores.reshape(-1).astype(np.float32)  # (Q * K,)
@@ -176,8 +202,10 @@ def postprocess_slice(
     keep = np.isfinite(boxes).all(axis=1) & np.isfinite(scores) & (scores >= config.score_threshold)
     passed = np.flatnonzero(keep)  # the few above the threshold: the plausibility test on those only
     keep[passed[~plausible_boxes(boxes[passed], grid)]] = False
-    if config.restrict_to_sector:
-        keep &= in_sector(boxes, sector_deg)
+    if config.restrict_to_sector:  # on the few boxes still kept
+        passed = np.flatnonzero(keep)
+        inside = in_slices(boxes[passed], slices) if slices is not None else in_sector(boxes[passed], sector_deg)
+        keep[passed[~inside]] = False
     dets = Detections(boxes[keep], scores[keep], labels[keep])
     return dets.select(nms(dets.boxes, dets.scores, dets.labels, config.nms))
 

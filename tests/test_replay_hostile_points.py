@@ -74,7 +74,9 @@ def naive_slices(sweep: LidarSweep, n: int, start_deg: float) -> tuple[list[list
         # azimuth -0.0, but it lies below the x axis
         q = (0 if x >= 0 else 1) if y >= 0 else (2 if x < 0 else 3)
         r = (q - round(start_deg / 90.0)) % 4
-        k = min(max(k, r * n // 4), ((r + 1) * n - 1) // 4)
+        lo, hi = r * n // 4, ((r + 1) * n - 1) // 4
+        if not lo <= k <= hi:  # on the quadrant's edge: the end of its slices next to the azimuth, round the circle
+            k = lo if (lo - k) % n <= (k - hi) % n else hi
         members[k].append(i)
         t = float(sweep.point_time_s[i]) if sweep.point_time_s is not None else rel / 360.0 * sweep.duration_s
         if all(math.isfinite(v) for v in p) and math.isfinite(t):
