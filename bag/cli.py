@@ -167,6 +167,13 @@ def run_cmd(bag_path: Path, export_dir: Path, out: Path, results_json: Path | No
         f"{summary.num_detections} detections"
     )
     click.echo(summary.scan_layout)
+    if summary.num_clouds_repeated or summary.num_clouds_behind:  # said: the sweep count is not the bag's LiDAR count
+        click.echo(f"LiDAR messages not detected for their header stamp (copied to --out as recorded): "
+                   f"{summary.num_clouds_repeated} stamped as one already read (republished, recorded twice), "
+                   f"{summary.num_clouds_behind} stamped before one already read (a clock step back?)")  # fmt: skip
+    if summary.num_duplicate_keys:
+        click.echo(f"{summary.num_duplicate_keys} sweeps had the results key of an earlier one (the bag's sample tokens "
+                   "give two stamps one token) and were left out of the results JSON, the first kept")  # fmt: skip
     if summary.input_dropped:  # the input is itself a run's output: its detections are not mixed with these
         click.echo("not copied from the input (this run writes these topics): "
                    + ", ".join(f"{n} messages on {topic}" for topic, n in summary.input_dropped.items()))

@@ -5,7 +5,9 @@ For every LiDAR message: the new image set (if any) goes through the image lane 
 the bag's CameraInfo and TF when it differs from the LUT in use (as the dataset evaluation does per sample);
 then each slice through the slice lane, published as ``/streamdet/detections`` (vision_msgs/Detection3DArray) and
 ``/streamdet/markers`` (visualization_msgs/MarkerArray) stamped with the slice's scan time; then the sweep's
-slices merged with per-class NMS (``aggregate_sweep``) make the sweep's results entry. Every input message is
+slices merged with per-class NMS (``aggregate_sweep``) make the sweep's results entry. A LiDAR message stamped at or
+before one already read is not detected (``BagSource.events()``; counted in the summary), and no sweep's entry ever
+replaces another's: a results key taken twice keeps the first, counted. Every input message is
 copied into the output bag unchanged, but for those on the topics this run writes (``OUTPUT_TOPICS``: a bag that
 ``streamdet-bag run`` wrote before): they are dropped, with a warning, so that the output holds this run's
 detections only, not two runs' mixed on one topic.
@@ -82,6 +84,11 @@ class RunSummary:
     cameras_lagging: tuple[str, ...] = ()  # of those, cameras left out although they were sending (another clock?)
     input_dropped: dict[str, int] = field(default_factory=dict)  # topic of OUTPUT_TOPICS -> input messages not copied
     scan_layout: str = ""  # the layout the clouds were sliced with, and what said so (ScanLayout.describe)
+    # LiDAR messages not detected for their header stamp (BagSource.events()), copied to the output as recorded:
+    num_clouds_repeated: int = 0  # stamped as one already read (republished, recorded twice)
+    num_clouds_behind: int = 0  # stamped before one already read (a clock step back, a reordered recording)
+    # sweeps whose results key (sample token, or frame@stamp) an earlier sweep had: left out of the results JSON
+    num_duplicate_keys: int = 0
 
 
 def run_bag(
@@ -121,7 +128,7 @@ def run_bag(
     keyed_by_tokens = bool(source.sample_tokens())
     results: dict[str, list[dict]] = {}
     shown: dict[int, int] = {}  # slice index -> boxes its markers showed last
-    counts = {"sweeps": 0, "slices": 0, "image_sets": 0, "detections": 0, "fallback": 0}
+    counts = {"sweeps": 0, "slices": 0, "image_sets": 0, "detections": 0, "fallback": 0, "duplicate_keys": 0}
     pending: list[Detections] = []  # slices of the sweep being assembled (slice-per-message drivers)
     last_event: list[SweepEvent] = []  # the event of the newest slice in ``pending``
 
@@ -133,7 +140,16 @@ def run_bag(
         counts["detections"] += len(merged)
         token = event.sample_token or f"{event.cloud.frame_id}@{event.cloud.stamp_ns}"
         # a bag written by `streamdet-bag export` keys its key frames by sample token; any other, every sweep
-        if event.sample_token is not None or not keyed_by_tokens:
+        keyed = event.sample_token is not None or not keyed_by_tokens
+        if keyed and token in results:
+            # BagSource takes no stamp twice, so this is two stamps the bag's metadata gives one sample token: the
+            # first sweep's results stay, never replaced without a word
+            counts["duplicate_keys"] += 1
+            if counts["duplicate_keys"] == 1:
+                log.warning("%s: the sweep at LiDAR stamp %d ns has the results key %s of an earlier sweep: left out of "
+                            "the results JSON (the first kept); later ones are counted, not reported", bag,
+                            event.cloud.stamp_ns, token)  # fmt: skip
+        elif keyed:
             results[token] = boxes_to_results(token, merged.boxes.astype(np.float64), merged.scores, merged.labels,
                                               event.lidar2ego, event.ego2global)  # fmt: skip
         if progress is not None:
@@ -175,7 +191,8 @@ def run_bag(
     return RunSummary(out, results_path, counts["sweeps"], counts["slices"], counts["image_sets"], counts["detections"],
                       det.camera_names, without, det.precision_label, det.stats.summary(), counts["fallback"],
                       tuple(det.providers), dict(source.cameras_timed_out),
-                      tuple(c for c in det.camera_names if c in source.cameras_lagging), dropped, layout.describe())  # fmt: skip
+                      tuple(c for c in det.camera_names if c in source.cameras_lagging), dropped, layout.describe(),
+                      source.num_clouds_repeated, source.num_clouds_behind, counts["duplicate_keys"])  # fmt: skip
 
 
 def scan_layout_of(bag: str | Path, config: RunConfig) -> ScanLayout:

@@ -10,6 +10,12 @@ Reading uses mcap + mcap-ros2-support (the ``ros`` extra), decoding each message
 bag, so bags recorded with any ROS 2 message package are read, and only the topics named in ``TopicMap`` are
 interpreted.
 
+Every topic the ``TopicMap`` gives a role (the LiDAR, each camera's images and CameraInfo, /tf, /tf_static) must
+carry that role's message type: another one (a topic mapped to the wrong role) is a ValueError naming the topic,
+the type found and the one expected, before anything is read. A LiDAR message stamped at or before one already read
+(republished, recorded twice, a clock step back) is skipped, counted and warned once: it is never detected as a new
+sweep (``events()``).
+
 A bag that cannot be read (truncated, or corrupted: a bad record length, a chunk that fails its CRC or does not
 decompress, a message that does not decode with its schema) raises ``BagReadError``, a ValueError naming the bag,
 whichever of the reading libraries noticed it. Chunk CRCs are checked, so flipped bytes are found rather than read.
@@ -146,6 +152,13 @@ class BagSource:
         # (CloudClockError; only where CloudFields.require_time is False), their slices stamped with the cloud's stamp
         self.num_clouds_untimed = 0
         self._warned_clock = False
+        # LiDAR messages skipped for their header stamp (events()): one equal to the newest read (the same cloud again:
+        # republished, recorded twice; with slice_per_message, a slice of the rotation read again), one earlier than it
+        # (a clock step back, a reordered recording). Detecting either would run the detector back in time and give a
+        # sweep the results key of one already detected.
+        self.num_clouds_repeated = 0
+        self.num_clouds_behind = 0
+        self._warned_stamps: set[str] = set()
 
     def metadata(self) -> dict[str, dict[str, str]]:
         """The bag's MCAP metadata records by name."""
@@ -168,16 +181,22 @@ class BagSource:
 
     def topics(self) -> dict[str, str]:
         """topic -> message type of every channel in the bag."""
+        return dict(self._channel_types())
+
+    def _channel_types(self) -> list[tuple[str, str]]:
+        """(topic, message type) of every channel the bag's summary lists ("" for a schemaless one), in its order: a
+        topic recorded on two channels is listed twice. Empty for a bag without a summary or whose summary lists no
+        channel (its messages still read, unindexed)."""
         with open(self.path, "rb") as f, self._reading():
             summary = self._reader(f).get_summary()
         if summary is None:
-            return {}
-        out = {}
+            return []
+        out = []
         for ch in summary.channels.values():
             if ch.schema_id == 0:  # MCAP's "no schema" (a schemaless JSON channel, say): no message type
-                out[ch.topic] = ""
+                out.append((ch.topic, ""))
             elif ch.schema_id in summary.schemas:
-                out[ch.topic] = summary.schemas[ch.schema_id].name
+                out.append((ch.topic, summary.schemas[ch.schema_id].name))
             else:  # a corrupted summary
                 raise BagReadError(f"{self.path}: {_CORRUPT}: channel {ch.topic!r} names schema {ch.schema_id}, "
                                    "which the bag does not hold")  # fmt: skip
@@ -222,10 +241,13 @@ class BagSource:
         clouds have no usable times."""
         points, times = [], []
         lidar = self.config.topics.lidar
+        roles = self._roles()
+        self._check_topic_types(roles)  # a camera topic named as the LiDAR's would be decoded as a cloud
         first_stamp = None
         for i, message in enumerate(self.messages((lidar,))):
             if i >= max_messages:
                 break
+            self._check_topic_type(message.topic, message.datatype, roles)  # a bag without a summary: checked here
             try:
                 cloud = decode_pointcloud2(message.message, replace(self.config.cloud_fields, require_time=False))
             except (ValueError, CloudClockError):  # read again, and refused with its name, by events()
@@ -242,21 +264,30 @@ class BagSource:
         return None
 
     def events(self) -> Iterator[tuple[BagMessage, SweepEvent | None]]:
-        """Every message with, for each LiDAR message, the sweep event it makes."""
+        """Every message with, for each LiDAR message, the sweep event it makes; None for one skipped for its stamp:
+        at or before the newest one taken (with ``slice_per_message``, before it, or at it and a slice the rotation
+        had already sent), counted in ``num_clouds_repeated`` / ``num_clouds_behind``. Its images wait for the next
+        cloud taken. Skipped rather than detected, as tf2 drops old data: a sweep back in time would be cut with the
+        wrong ego poses, run the detector's caches backwards, and replace the results of the sweep whose stamp (and
+        so sample token) it carries."""
         cfg = self.config
         topics = cfg.topics
         image_topics = {topics.image_topic(c): c for c in cfg.camera_names}
         info_topics = {topics.camera_info_topic(c): c for c in cfg.camera_names}
         tokens = self.sample_tokens()
-        self._check_lidar_type()
+        roles = self._roles()
+        self._check_topic_types(roles)
         tf = TfBuffer(max_extrapolation_ns=cfg.tf_tolerance_ns)
         infos: dict[str, Any] = {}
         latest: dict[str, Any] = {}  # camera -> newest image message, decoded only when a set is made
         timeout = CameraTimeout(cfg.camera_timeout_s, "SourceConfig.camera_timeout_s")
         fresh = False
         saw_lidar = False
+        newest: int | None = None  # header stamp of the newest LiDAR message taken (ns)
+        last_index = -1  # slice_per_message: the last slice index taken at that stamp
         for msg in self.messages():
             event = None
+            self._check_topic_type(msg.topic, msg.datatype, roles)  # a bag without a summary: its channels unlisted
             if msg.topic == topics.tf_static:
                 tf.add(msg.message, static=True)
             elif msg.topic == topics.tf:
@@ -270,7 +301,23 @@ class BagSource:
                 fresh = True
             elif msg.topic == topics.lidar:
                 saw_lidar = True
-                lidar_s = header_stamp_ns(msg.message) * 1e-9
+                stamp = header_stamp_ns(msg.message)
+                # a full sweep is one message per stamp; a driver's slices of one rotation may share its stamp
+                if newest is not None and (stamp < newest or (stamp == newest and not cfg.slice_per_message)):
+                    self._skip_cloud(stamp, newest, msg.log_time_ns)  # its images wait for the next cloud taken
+                    yield msg, None
+                    continue
+                event = self._sweep(msg.message, tf, tokens)
+                if stamp == newest and event.slices and event.slices[0].index <= last_index:
+                    # a slice of the rotation at this stamp again (republished): not a new rotation at the same stamp
+                    self._skip_cloud(stamp, newest, msg.log_time_ns, event.slices[0].index)
+                    yield msg, None
+                    continue
+                if stamp != newest:
+                    newest, last_index = stamp, -1
+                if event.slices:
+                    last_index = event.slices[-1].index
+                lidar_s = stamp * 1e-9
                 gone, lagging = timeout.check(list(latest), lidar_s)
                 for camera in lagging:  # it does send: its images are stamped far behind the LiDAR's
                     self._lagging(camera, lidar_s - header_stamp_ns(latest[camera]) * 1e-9)
@@ -282,7 +329,7 @@ class BagSource:
                 if fresh:
                     image_set = self._image_set(latest, infos, tf, msg.message) if latest else ImageSet({}, {}, None)
                 fresh = False
-                event = self._sweep(msg.message, tf, tokens, image_set)
+                event = replace(event, image_set=image_set)
             yield msg, event
         if not saw_lidar:
             raise ValueError(f"{self.path} has no message on the LiDAR topic {topics.lidar!r}; its topics: {self.topics()}")
@@ -316,21 +363,62 @@ class BagSource:
         detail = f"{kind}: {e}" if str(e) else kind
         return BagReadError(f"{self.path}: {_CORRUPT}{f' ({where})' if where else ''}: {' '.join(detail.split())}")
 
-    def _check_lidar_type(self) -> None:
-        """A LiDAR topic that carries another message type (a camera topic named by mistake) is refused up front,
-        naming the type found: otherwise its messages are taken for images, TF or nothing, and the bag would seem to
-        have no LiDAR message at all."""
-        topic = self.config.topics.lidar
-        types = self.topics()
-        found = types.get(topic)
-        if found is None or _is_pointcloud2(found):
-            return
-        kind = found or "schemaless (no message type)"
-        clouds = sorted(t for t, datatype in types.items() if _is_pointcloud2(datatype))
-        raise ValueError(f"{self.path}: the LiDAR topic {topic!r} carries {kind} messages, not {T.POINTCLOUD2}; name "
-                         f"the point cloud topic with --topics lidar=/topic (PointCloud2 topics in the bag: {clouds})")  # fmt: skip
+    def _roles(self) -> dict[str, tuple[str, str, tuple[str, ...]]]:
+        """topic -> (--topics key, role, the message types it may carry) of every topic this source interprets: the
+        LiDAR, TF, static TF, and the image and CameraInfo topics of the cameras it reads."""
+        topics = self.config.topics
+        roles = {topics.lidar: ("lidar", "LiDAR", (T.POINTCLOUD2,)), topics.tf: ("tf", "TF", (T.TF_MESSAGE,)),
+                 topics.tf_static: ("tf_static", "static TF", (T.TF_MESSAGE,))}  # fmt: skip
+        for camera in self.config.camera_names:
+            roles[topics.image_topic(camera)] = (camera, f"{camera} image", (T.COMPRESSED_IMAGE, T.IMAGE))
+            roles[topics.camera_info_topic(camera)] = (f"{camera}.info", f"{camera} CameraInfo", (T.CAMERA_INFO,))
+        return roles
 
-    def _sweep(self, message: Any, tf: TfBuffer, tokens: dict, image_set: ImageSet | None) -> SweepEvent:
+    def _check_topic_types(self, roles: dict[str, tuple[str, str, tuple[str, ...]]]) -> None:
+        """Every channel of a topic in ``roles`` (``_roles()``) must carry that role's message type, checked before
+        anything is read: a topic mapped to the wrong role (an image topic named as the CameraInfo one, a camera topic
+        as the LiDAR's) would have its messages taken for another type, and fail deep in an adapter without naming the
+        topic, or (the LiDAR's) make the bag seem to hold no cloud. ValueError naming the topic, the type found and the
+        one expected, and the bag's topics of that type."""
+        for topic, datatype in self._channel_types():
+            self._check_topic_type(topic, datatype, roles)
+
+    def _check_topic_type(self, topic: str, datatype: str, roles: dict[str, tuple[str, str, tuple[str, ...]]]) -> None:
+        """``_check_topic_types`` for one channel or message (``datatype``: its type, "" for schemaless)."""
+        role = roles.get(topic)
+        if role is None or _is_type(datatype, role[2]):
+            return
+        key, what, expected = role
+        kind = datatype or "schemaless (no message type)"
+        names = "/".join(e.rsplit("/", 1)[-1] for e in expected)
+        channels = self._channel_types()  # none listed (a bag without a summary): no list, rather than a wrong "[]"
+        candidates = sorted({t for t, found in channels if _is_type(found, expected)})
+        listed = f" ({names} topics in the bag: {candidates})" if channels else ""
+        raise ValueError(f"{self.path}: the {what} topic {topic!r} carries {kind} messages, not {' or '.join(expected)}; "
+                         f"name the {what} topic with --topics {key}=/topic{listed}")  # fmt: skip
+
+    def _skip_cloud(self, stamp: int, newest: int, log_time_ns: int, slice_index: int | None = None) -> None:
+        """Count a LiDAR message skipped for its stamp (``events()``); the first of each kind is warned."""
+        lidar = self.config.topics.lidar
+        if stamp == newest:
+            self.num_clouds_repeated += 1
+            kind = "repeated"
+            said = ("repeats the stamp of one already read" if slice_index is None else
+                    f"repeats slice {slice_index} of the rotation already read at that stamp")  # fmt: skip
+            why = "detected again, it would take the results key of the one already detected"
+        else:
+            self.num_clouds_behind += 1
+            kind = "behind"
+            said = f"is stamped {(newest - stamp) * 1e-9:.6g} s before one already read ({newest} ns; a clock step back?)"
+            why = "it would run the detector back in time, and take the results key of any sweep of its stamp"
+        if kind in self._warned_stamps:
+            return
+        self._warned_stamps.add(kind)  # once per bag and kind: a driver that does it once may do it every time
+        log.warning("%s: %s message at stamp %d ns (log time %d ns) %s: skipped, not detected (%s); later ones are "
+                    "counted, not reported", self.path, lidar, stamp, log_time_ns, said, why)  # fmt: skip
+
+    def _sweep(self, message: Any, tf: TfBuffer, tokens: dict) -> SweepEvent:
+        """The event of a LiDAR message, without its image set (events() adds it once the message is taken)."""
         cfg = self.config
         cloud = self._cloud(message)
         if cfg.slice_per_message:
@@ -341,7 +429,7 @@ class BagSource:
             slices = split_cloud(cloud, cfg.num_slices, cfg.start_deg, cfg.clockwise)
         lidar2ego = _matrix(self._lookup(tf, cfg.ego_frame, cloud.frame_id, cloud.stamp_ns))
         pose = self._lookup(tf, cfg.global_frame, cfg.ego_frame, cloud.stamp_ns) if cfg.global_frame else IDENTITY_RECORD
-        return SweepEvent(cloud, slices, lidar2ego, _matrix(pose), tokens.get(str(cloud.stamp_ns)), image_set)
+        return SweepEvent(cloud, slices, lidar2ego, _matrix(pose), tokens.get(str(cloud.stamp_ns)), None)
 
     def _cloud(self, message: Any) -> Cloud:
         """The LiDAR message decoded; a malformed one is named by topic and stamp, dropped points are reported."""
@@ -428,9 +516,9 @@ class BagSource:
 _CORRUPT = "not a readable MCAP bag (truncated or corrupted)"
 
 
-def _is_pointcloud2(datatype: str) -> bool:
+def _is_type(datatype: str, expected: tuple[str, ...]) -> bool:
     # rosbag2 writes pkg/msg/Type; a bag converted from ROS 1 may name it pkg/Type
-    return datatype in (T.POINTCLOUD2, T.POINTCLOUD2.replace("/msg/", "/"))
+    return any(datatype in (e, e.replace("/msg/", "/")) for e in expected)
 
 
 def min_slice_share(num_slices: int) -> float:
