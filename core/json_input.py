@@ -4,7 +4,8 @@ One place for what every reader of input JSON needs (dataset tables, boxes.json,
 
 - ``read_json``: the document of a file of at most ``max_bytes`` (checked before reading where the size is known, a
   bounded read for a pipe or a device), with the parser's failures named: not UTF-8, not JSON, an integer literal
-  past Python's 4300-digit limit, nesting past the parser's stack;
+  past Python's 4300-digit limit, nesting past the parser's stack; with ``unique_keys`` also a key given twice in
+  one object (``json`` keeps the last silently);
 - ``is_finite_number``: a JSON number (not a bool) that is a finite float64, by comparison (JSON integers are
   unbounded: ``math.isfinite(10**400)`` raises OverflowError);
 - ``short_repr``: a value cut for a one-line error (a 10**400 or a long list must not flood it).
@@ -43,9 +44,37 @@ def short_repr(value: object, limit: int = 80) -> str:
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
-def read_json(path: str | os.PathLike, what: str, max_bytes: int) -> object:
+class DuplicateKeyError(ValueError):
+    """A key given twice in one JSON object (``read_json(unique_keys=True)``)."""
+
+    def __init__(self, key: str):
+        super().__init__(f"key {short_repr(key)} appears twice in one object")
+        self.key = key
+
+
+def unique_keys_object(pairs: list[tuple[str, object]]) -> dict:
+    """``json``'s ``object_pairs_hook`` that refuses a key given twice (DuplicateKeyError naming it) where ``json``
+    keeps the last one silently: two entries for one sample in a results file merged by text, or a writer that
+    flushed a sample twice, would lose boxes without a word. ``dict(pairs)`` first, the search only on a
+    mismatch: the check then costs one length comparison per object."""
+    out = dict(pairs)
+    if len(out) != len(pairs):
+        seen = set()
+        for key, _ in pairs:
+            if key in seen:
+                raise DuplicateKeyError(key)
+            seen.add(key)
+    return out
+
+
+def read_json(path: str | os.PathLike, what: str, max_bytes: int, unique_keys: bool = False) -> object:
     """The JSON document of ``path``, a ``what`` (named in errors: "splits file", "results file", ...) of at most
-    ``max_bytes``; ValueError naming the file when it cannot be read or is not one."""
+    ``max_bytes``; ValueError naming the file when it cannot be read or is not one.
+
+    ``unique_keys``: a key given twice in one object is refused (ValueError naming the file and the key) instead of
+    the last one winning. Off by default: the hook runs in Python once per object, a cost that shows on a large
+    table of small objects (a nuScenes ``sample_data.json`` of hundreds of MB); the readers of results and
+    ground-truth files, where a duplicate loses boxes, turn it on."""
     path = Path(path)
     try:
         with _open_input(path) as f:
@@ -59,7 +88,9 @@ def read_json(path: str | os.PathLike, what: str, max_bytes: int) -> object:
         limit = f"{max_bytes >> 20} MiB" if max_bytes >= 1 << 20 else f"{max_bytes} bytes"
         raise ValueError(f"{what} {path} is larger than {limit}: not a {what}")
     try:
-        return json.loads(raw.decode("utf-8"))
+        return json.loads(raw.decode("utf-8"), object_pairs_hook=unique_keys_object if unique_keys else None)
+    except DuplicateKeyError as e:  # before ValueError: it is one, and not a syntax error
+        raise ValueError(f"{what} {path}: {e}; the file must hold each key once") from None
     except UnicodeDecodeError as e:  # before ValueError: it is one
         raise ValueError(f"{what} {path} is not UTF-8 text (a binary file?): {e.reason} at byte {e.start}") from None
     except RecursionError:  # the parser recurses once per level: a hostile file can nest past the stack

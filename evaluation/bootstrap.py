@@ -163,7 +163,9 @@ class Difference:
 
     ``interval_defined`` is False when the draws resampled fewer than ``MIN_CLUSTERS`` clusters: ``lo`` / ``hi`` are
     then still the draws' percentiles (kept so that the fields stay numbers) but do not bound anything, and
-    ``significant`` is False whatever they are."""
+    ``significant`` is False whatever they are. ``to_dict`` then writes ``p_not_positive`` as None (JSON null):
+    with one scene it is 0 or 1 by the sign of the point difference alone, which a script would read as
+    certainty."""
 
     a: float
     b: float
@@ -178,9 +180,12 @@ class Difference:
         """The interval is defined and excludes 0 (the '*' of the printed table)."""
         return self.interval_defined and (self.lo > 0 or self.hi < 0)
 
-    def to_dict(self) -> dict[str, float | bool]:
+    def to_dict(self) -> dict[str, float | bool | None]:
+        # ci_lo / ci_hi stay numbers even when undefined: readers of the JSON (benchmarks/camera_claim.py) take them
+        # as numbers and check interval_defined; p_not_positive, read on its own as a p-value, becomes null
+        p = self.p_not_positive if self.interval_defined else None
         return {"A": self.a, "B": self.b, "B_minus_A": self.diff, "ci_lo": self.lo, "ci_hi": self.hi,
-                "p_not_positive": self.p_not_positive, "interval_defined": self.interval_defined,
+                "p_not_positive": p, "interval_defined": self.interval_defined,
                 "significant": self.significant}  # fmt: skip
 
 

@@ -38,7 +38,7 @@ from streamdet.evaluation.detection_eval import evaluate
 from streamdet.evaluation.eval_boxes import EvalBoxes
 from streamdet.evaluation.metrics import DetectionMetrics
 from streamdet.evaluation.results import load_eval_inputs
-from streamdet.evaluation.saved_run import SAVED_FILES, save_run
+from streamdet.evaluation.saved_run import RESULTS_FILE, SAVED_FILES, save_run
 from streamdet.progress import counted
 
 _TP_SHORT = {"trans_err": "ATE", "scale_err": "ASE", "orient_err": "AOE", "vel_err": "AVE", "attr_err": "AAE"}
@@ -80,12 +80,16 @@ def _fmt(x: float) -> str:
 
 
 def _evaluate_and_report(gt: EvalBoxes, pred: EvalBoxes, classes: tuple[str, ...] | None, json_path: Path | None,
-                         bike_racks: dict | None = None, gt_path: Path | None = None) -> None:  # fmt: skip
+                         bike_racks: dict | None = None, gt_path: Path | None = None,
+                         results_path: Path | None = None, notes: tuple[str, ...] = ()) -> None:  # fmt: skip
     try:
         metrics = evaluate(gt, pred, classes=classes, bike_racks=bike_racks)
-    except ValueError as e:
-        raise click.ClickException(str(e)) from None
+    except ValueError as e:  # evaluate knows boxes, not files: say which files its complaint is about
+        where = f"{results_path} (against {gt_path}): " if results_path is not None else ""
+        raise click.ClickException(f"{where}{e}") from None
     click.echo(format_table(metrics))
+    for note in notes:
+        click.echo(f"note: {note}")
     _note_absent_classes(metrics, set(gt.detection_name.tolist()))
     if bike_racks is None and np.isin(gt.detection_name, ("bicycle", "motorcycle")).any():
         # only where the rule could matter: a cycle in a rack would count here and not in the devkit
@@ -152,8 +156,9 @@ def _data_inputs(data_dir: Path, version: str, split: str | None, export_dir: Pa
 
 def _run_group(arg: str) -> list[Path]:
     """One side of --compare: a run, or several runs separated by commas (seeds of one recipe). An empty entry or a
-    run named twice (one run counted as two seeds) is refused, naming it."""
-    paths = [Path(p) for p in split_list(arg, "--compare", "run", key=lambda p: Path(p).resolve())]
+    run named twice (one run counted as two seeds; a folder and its own results.json are one run) is refused,
+    naming it."""
+    paths = [Path(p) for p in split_list(arg, "--compare", "run", key=lambda p: _run_key(Path(p)))]
     for p in paths:
         if not p.exists():
             raise click.UsageError(f"--compare: {p} does not exist")
@@ -185,9 +190,10 @@ def _refuse_other_modes_options(ctx: click.Context, mode: str) -> None:
 
 
 
-def _run_folder(path: Path) -> Path:
-    """The resolved folder of a run named by its folder or by its results.json."""
-    return (path if path.is_dir() else path.parent).resolve()
+def _run_key(path: Path) -> Path:
+    """What makes two runs one: the results file each reads, resolved (a folder reads its results.json). Not the
+    folder: several results files in one folder are several runs, and a folder and its own results.json are one."""
+    return ((path / RESULTS_FILE) if path.is_dir() else path).resolve()
 
 
 def _compare(run_a: str, run_b: str, gt_path: Path | None, classes: tuple[str, ...] | None, draws: int, seed: int,
@@ -196,9 +202,12 @@ def _compare(run_a: str, run_b: str, gt_path: Path | None, classes: tuple[str, .
     from streamdet.evaluation.compare import compare_runs, format_comparison, load_run
 
     group_a, group_b = _run_group(run_a), _run_group(run_b)
-    both = sorted({_run_folder(p) for p in group_a} & {_run_folder(p) for p in group_b})
+    keys_b = {_run_key(p) for p in group_b}
+    both = [p for p in group_a if _run_key(p) in keys_b]
     if both:
-        raise click.UsageError(f"--compare: {both[0]} is on both sides; a run compared with itself differs by nothing")
+        shown, key = both[0].resolve(), _run_key(both[0])
+        reads = "" if shown == key else f" (both read {key})"
+        raise click.UsageError(f"--compare: {shown} is on both sides{reads}; a run compared with itself differs by nothing")
     refuse_output_over_inputs(json_path, "--json", [("--gt", gt_path), *(("--compare run", p) for p in group_a + group_b)])
     check_output_parent(json_path, "--json")  # now, not after the bootstrap
     try:
@@ -347,7 +356,8 @@ def main(gt_path: Path | None, results_path: Path | None, data_dir: Path | None,
         raise click.ClickException(str(e)) from None
     if len(inputs.gt) == 0:  # every AP would be 0 by definition: a score of nothing, not a result
         raise click.ClickException(f"{gt_path}: the ground truth holds no box, so there is nothing to evaluate")
-    _evaluate_and_report(inputs.gt, inputs.pred, class_list, json_path, inputs.bike_racks, gt_path)
+    _evaluate_and_report(inputs.gt, inputs.pred, class_list, json_path, inputs.bike_racks, gt_path, results_path,
+                         inputs.notes)  # fmt: skip
 
 
 if __name__ == "__main__":

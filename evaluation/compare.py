@@ -13,7 +13,8 @@ says the interval is then too narrow) and only the few-points subset is availabl
 ``bike_racks`` (gt.json) apply the devkit's bike-rack rule, as in the files mode.
 
 With a single cluster (one scene, or one sample without samples.json) the interval is undefined: it is printed as
-'undefined', nothing is starred, and the JSON says ``"interval_defined": false`` (top level and per figure). With
+'undefined', nothing is starred, and the JSON says ``"interval_defined": false`` (top level and per figure), with
+``"p_not_positive": null`` per figure (``ci_lo`` / ``ci_hi`` stay numbers that bound nothing). With
 fewer than ``bootstrap.FEW_CLUSTERS`` clusters a note says the interval is unreliable (``"few_clusters": true``).
 """
 
@@ -237,7 +238,7 @@ def compare_runs(
     first = runs_a[0]
     for other in runs_a[1:] + runs_b:
         _same_ground_truth(first, other)
-    notes: list[str] = []
+    notes: list[str] = [n for r in runs_a + runs_b for n in r.notes]
     racks = _bike_racks(runs_a + runs_b, notes)
     gt = filter_eval_boxes(first.gt, config.class_range_m, racks)
     preds_a = [filter_eval_boxes(r.pred, config.class_range_m, racks) for r in runs_a]

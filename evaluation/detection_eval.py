@@ -300,6 +300,26 @@ def calc_tp(md: DetectionMetricData, min_recall: float, metric_name: str) -> flo
 # ---- the whole evaluation (devkit DetectionEval.evaluate) ---------------------------------------
 
 
+def check_prediction_samples(gt: EvalBoxes, pred: EvalBoxes, config: DetectionConfig = DetectionConfig()) -> None:
+    """The devkit's two checks of a submission against its ground truth (ValueError): the predictions cover exactly
+    the ground-truth samples, with at most ``config.max_boxes_per_sample`` boxes each. ``evaluate`` makes them; a
+    reader of files makes them too, to name the files."""
+    if set(gt.sample_tokens) != set(pred.sample_tokens):
+        only_gt = sorted(set(gt.sample_tokens) - set(pred.sample_tokens))
+        only_pred = sorted(set(pred.sample_tokens) - set(gt.sample_tokens))
+        raise ValueError(
+            "predictions must cover exactly the ground-truth samples: "
+            f"{len(only_gt)} only in the ground truth (e.g. {only_gt[:1]}), {len(only_pred)} only in the predictions (e.g. {only_pred[:1]})"
+        )
+    counts = np.bincount(pred.sample_index, minlength=len(pred.sample_tokens))
+    if len(counts) and counts.max() > config.max_boxes_per_sample:
+        worst = int(np.argmax(counts))
+        raise ValueError(
+            f"sample {pred.sample_tokens[worst]!r} has {counts[worst]} predictions, more than "
+            f"max_boxes_per_sample={config.max_boxes_per_sample}"
+        )
+
+
 def evaluate(
     gt: EvalBoxes,
     pred: EvalBoxes,
@@ -316,20 +336,7 @@ def evaluate(
     rack boxes, global frame}, see ``filter_eval_boxes``) applies the devkit's bike-rack rule; without it the rule is
     skipped. ``filter_boxes=False`` skips ``filter_eval_boxes`` for inputs already filtered.
     """
-    if set(gt.sample_tokens) != set(pred.sample_tokens):
-        only_gt = sorted(set(gt.sample_tokens) - set(pred.sample_tokens))
-        only_pred = sorted(set(pred.sample_tokens) - set(gt.sample_tokens))
-        raise ValueError(
-            "predictions must cover exactly the ground-truth samples: "
-            f"{len(only_gt)} only in the ground truth (e.g. {only_gt[:1]}), {len(only_pred)} only in the predictions (e.g. {only_pred[:1]})"
-        )
-    counts = np.bincount(pred.sample_index, minlength=len(pred.sample_tokens))
-    if len(counts) and counts.max() > config.max_boxes_per_sample:
-        worst = int(np.argmax(counts))
-        raise ValueError(
-            f"sample {pred.sample_tokens[worst]!r} has {counts[worst]} predictions, more than "
-            f"max_boxes_per_sample={config.max_boxes_per_sample}"
-        )
+    check_prediction_samples(gt, pred, config)
     classes = config.class_names if classes is None else ordered_classes(classes, config)
     if filter_boxes:
         gt = filter_eval_boxes(gt, config.class_range_m, bike_racks)

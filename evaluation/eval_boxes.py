@@ -19,6 +19,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from itertools import chain
 
 import numpy as np
 
@@ -38,6 +39,11 @@ ATTRIBUTE_NAMES: tuple[str, ...] = (
     "vehicle.stopped",
 )
 _INT64 = (-(1 << 63), 1 << 63)  # num_pts is stored as int64: [min, max)
+# What a coordinate may be: a JSON number (numpy's too, from callers in Python). Not a bool, which is an int to Python
+# and 1.0 to numpy, nor a string, which numpy's float conversion parses ("5.1", "nan"): both are serializer bugs
+# that would score as plausible boxes.
+_NUMBER_TYPES = (int, float, np.integer, np.floating)
+_NOT_NUMBER_TYPES = (bool, np.bool_)
 
 
 @dataclass(frozen=True, eq=False)
@@ -155,7 +161,10 @@ def _columns(entries: list, tokens: tuple[str, ...], sample_index: np.ndarray) -
     n = len(entries)
 
     def vectors(key: str, dim: int, allow_nan: bool = False) -> np.ndarray:
-        a = np.array([e[key] for e in entries], dtype=np.float64)  # ragged or non-numeric: raises
+        rows = [e[key] for e in entries]
+        if not _all_numbers(rows, allow_none=allow_nan):
+            raise TypeError(key)
+        a = np.array(rows, dtype=np.float64)  # ragged: raises
         a = a.reshape(0, dim) if n == 0 else a
         if a.shape != (n, dim):
             raise ValueError(key)
@@ -187,6 +196,8 @@ def _columns(entries: list, tokens: tuple[str, ...], sample_index: np.ndarray) -
     if not np.isfinite(score_arr).all():
         raise ValueError("detection_score")
     ego = [e["ego_translation"] if "ego_translation" in e else (0.0, 0.0, 0.0) for e in entries]
+    if not _all_numbers(ego):
+        raise TypeError("ego_translation")
     return {
         "translation": vectors("translation", 3),
         "size": size,
@@ -200,6 +211,20 @@ def _columns(entries: list, tokens: tuple[str, ...], sample_index: np.ndarray) -
     }
 
 
+def _all_numbers(rows: list, allow_none: bool = False) -> bool:
+    """Whether every value of the vectors ``rows`` is a number (``_NUMBER_TYPES``; None too with ``allow_none``).
+    The distinct types of all values, then a check per type: one pass in C over the values, not a Python test each.
+    A row that is not iterable raises TypeError (the caller's fallback names the entry)."""
+    for t in set(map(type, chain.from_iterable(rows))):
+        if not ((issubclass(t, _NUMBER_TYPES) and not issubclass(t, _NOT_NUMBER_TYPES)) or (allow_none and t is type(None))):
+            return False
+    return True
+
+
+def _is_number(value: object) -> bool:
+    return isinstance(value, _NUMBER_TYPES) and not isinstance(value, _NOT_NUMBER_TYPES)
+
+
 def _finite(a: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     a = a.reshape(shape) if a.size == 0 else a
     if a.shape != shape or not np.isfinite(a).all():
@@ -210,6 +235,13 @@ def _finite(a: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
 def _numbers(entry: Mapping, key: str, n: int, where: str, allow_nan: bool = False) -> list[float]:
     value = entry[key]
     ok = isinstance(value, (list, tuple)) and len(value) == n
+    if ok:
+        # float() would take "5.1", "nan" and True: JSON numbers only, as detection_score and num_pts
+        wrong = [v for v in value if not (_is_number(v) or (allow_nan and v is None))]
+        if any(isinstance(v, (str, *_NOT_NUMBER_TYPES)) for v in wrong):
+            raise ValueError(f"{where}.{key} must be {n} finite numbers (JSON numbers, not strings or booleans), "
+                             f"got {short_repr(value)}")  # fmt: skip
+        ok = not wrong
     if ok:
         try:
             out = [math.nan if (v is None and allow_nan) else float(v) for v in value]

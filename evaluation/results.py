@@ -37,6 +37,7 @@ from streamdet.core.classes import CLASS_NAMES
 from streamdet.core.file_output import atomic_write_file
 from streamdet.core.json_input import is_finite_number, read_json, short_repr
 from streamdet.core.rotations import matrix_to_quaternion, quaternion_to_matrix
+from streamdet.evaluation.detection_eval import check_prediction_samples
 from streamdet.evaluation.eval_boxes import EvalBoxes
 
 META_KEYS = ("use_camera", "use_lidar", "use_radar", "use_map", "use_external")
@@ -246,6 +247,7 @@ class ResultsFile:
     meta: dict = field(default_factory=dict)
     ego_positions: dict[str, list[float]] = field(default_factory=dict)
     bike_racks: dict[str, np.ndarray] | None = None  # {sample_token: (R, 10)}; None: the file has no bike_racks
+    has_meta: bool = True  # the file has a 'meta' object (a submission must: ``check_submission``)
 
 
 def write_results_json(
@@ -283,9 +285,10 @@ def read_results_json(path: str | os.PathLike, what: str = "results file") -> Re
     """Read a results or ground-truth file (``what`` names it in errors); ValueError (naming the file) when it is
     not one.
 
-    A file over MAX_RESULTS_BYTES is refused unread, as is input nested too deeply for the JSON parser.
+    A file over MAX_RESULTS_BYTES is refused unread, as is input nested too deeply for the JSON parser, and a key
+    given twice in one object (a sample listed twice would otherwise keep only its last list of boxes).
     """
-    doc = read_json(path, what, MAX_RESULTS_BYTES)
+    doc = read_json(path, what, MAX_RESULTS_BYTES, unique_keys=True)
     if not isinstance(doc, dict) or not isinstance(doc.get("results"), dict):
         got = sorted(doc) if isinstance(doc, dict) else type(doc).__name__
         raise ValueError(f"{path} must be a JSON object with a 'results' object (sample_token -> boxes), got {got}")
@@ -298,8 +301,50 @@ def read_results_json(path: str | os.PathLike, what: str = "results file") -> Re
         if not (isinstance(xyz, list) and len(xyz) == 3 and all(is_finite_number(v) for v in xyz)):
             raise ValueError(f"{path}: ego_positions[{token!r}] must be 3 finite numbers, got {short_repr(xyz)}")
     racks = doc.get("bike_racks")  # absent (or null): a file written before racks were saved
-    return ResultsFile(results=doc["results"], meta=meta, ego_positions=ego,
+    return ResultsFile(results=doc["results"], meta=meta, ego_positions=ego, has_meta="meta" in doc,
                        bike_racks=None if racks is None else check_bike_racks(racks, f"{path}: bike_racks"))  # fmt: skip
+
+
+def check_submission(results_file: ResultsFile, pred: EvalBoxes, path: str | os.PathLike) -> list[str]:
+    """ValueError naming ``path`` (and the entry) where a results file read as ``results_file`` and parsed as
+    ``pred`` is not one the devkit scores: the devkit reads ``meta`` with ``[]`` (a KeyError without it), a missing
+    ``detection_score`` is -1 to it, and a negative score breaks its "confidences descending" assert once a precision
+    curve is padded with 0. An official ``meta`` key given must be true or false, as ``write_results_json`` writes
+    it (``"use_camera": "yes"`` is a serializer's slip); a key left out is not refused, as the devkit does not.
+    Not for ground truth: the devkit builds that from its tables (its ``detection_score`` is -1, its ``meta`` absent).
+
+    Returns notes: boxes without ``attribute_name``, which the devkit also reads with ``[]``, are scored as ''
+    (no attribute) and said, not refused: this reader has always taken them, and the files mode's tests score the
+    bundled devkit oracle (``oracle_detection_eval.json``), whose predictions carry no attribute."""
+    if not results_file.has_meta:
+        raise ValueError(f"{path} has no 'meta' object; a submission says which inputs it used: "
+                         f"{{{', '.join(f'{k!r}: true or false' for k in META_KEYS)}}}")  # fmt: skip
+    meta = results_file.meta
+    for k in META_KEYS:
+        if k in meta and not isinstance(meta[k], bool):
+            raise ValueError(f"{path}: meta[{k!r}] must be true or false, got {short_repr(meta[k])}")
+    no_attribute, first = 0, ""
+    for token, entries in results_file.results.items():
+        for i, e in enumerate(entries):  # parsed already: a list of objects
+            # from_results gives a missing score ground truth's -1, which the check below would call negative
+            if "detection_score" not in e:
+                raise ValueError(f"{path}: results[{token!r}][{i}] has no 'detection_score' field (keys: {sorted(e)})")
+            if "attribute_name" not in e:
+                no_attribute += 1
+                first = first or f"results[{token!r}][{i}]"
+    negative = np.flatnonzero(pred.detection_score < 0)
+    if len(negative):
+        row = int(negative[0])
+        token = pred.sample_tokens[pred.sample_index[row]]
+        index = row - int(np.searchsorted(pred.sample_index, pred.sample_index[row]))  # rows are grouped by sample
+        raise ValueError(f"{path}: results[{token!r}][{index}].detection_score must be >= 0, got "
+                         f"{float(pred.detection_score[row])!r} ({len(negative)} negative in the file: logits written "
+                         "where probabilities belong?)")  # fmt: skip
+    if no_attribute:
+        return [f"{path}: {no_attribute} of {len(pred)} boxes have no attribute_name (first {first}), scored as '' "
+                "(no attribute): the devkit refuses such a file (KeyError 'attribute_name'); give '' where a class "
+                "has none"]  # fmt: skip
+    return []
 
 
 def check_bike_racks(racks: object, where: str = "bike_racks") -> dict[str, np.ndarray]:
@@ -334,6 +379,7 @@ class EvalInputs:
     gt: EvalBoxes
     pred: EvalBoxes
     bike_racks: dict[str, np.ndarray] | None  # the ground-truth file's (for evaluate's bike_racks); None: it has none
+    notes: tuple[str, ...] = ()  # what is scored but would not be by the devkit (``check_submission``)
 
 
 def load_gt_and_predictions(gt_path: str | os.PathLike, results_path: str | os.PathLike) -> tuple[EvalBoxes, EvalBoxes]:
@@ -349,7 +395,9 @@ def load_eval_inputs(gt_path: str | os.PathLike, results_path: str | os.PathLike
     The ego position of a sample is the ground-truth file's ``ego_positions`` entry, else ``translation -
     ego_translation`` of its ground-truth boxes; a prediction in a sample with neither keeps its own
     ``ego_translation``, which it must then have. A rack of a sample the ground truth does not hold is refused:
-    the file belongs to other data.
+    the file belongs to other data. The results file must be one the devkit scores: its samples those of the
+    ground truth with at most 500 boxes each (``check_prediction_samples``), its ``meta`` and scores as
+    ``check_submission`` says (whose notes ``notes`` holds).
     """
     gt_file, pred_file = read_results_json(gt_path, "ground-truth file"), read_results_json(results_path)
     for token, entries in gt_file.results.items():
@@ -359,6 +407,11 @@ def load_eval_inputs(gt_path: str | os.PathLike, results_path: str | os.PathLike
     gt = EvalBoxes.from_results(gt_file.results, source=f"{gt_path}: results")
     gt = gt.with_ego_position(gt_file.ego_positions)
     pred = EvalBoxes.from_results(pred_file.results, source=f"{results_path}: results")
+    try:
+        check_prediction_samples(gt, pred)  # evaluate makes them too, but cannot name the files
+    except ValueError as e:
+        raise ValueError(f"{results_path} (against {gt_path}): {e}") from None
+    notes = check_submission(pred_file, pred, results_path)
     ego = _ego_positions_from_boxes(gt, gt_path) | dict(gt_file.ego_positions)
     for token, entries in pred_file.results.items():
         if token not in ego and any("ego_translation" not in e for e in entries):
@@ -370,7 +423,7 @@ def load_eval_inputs(gt_path: str | os.PathLike, results_path: str | os.PathLike
         stray = [t for t in gt_file.bike_racks if t not in gt_file.results]
         if stray:
             raise ValueError(f"{gt_path}: bike_racks names sample {stray[0]!r}, which its results do not hold")
-    return EvalInputs(gt=gt, pred=pred.with_ego_position(ego), bike_racks=gt_file.bike_racks)
+    return EvalInputs(gt=gt, pred=pred.with_ego_position(ego), bike_racks=gt_file.bike_racks, notes=tuple(notes))
 
 
 def _ego_positions_from_boxes(gt: EvalBoxes, where: str | os.PathLike) -> dict[str, list[float]]:

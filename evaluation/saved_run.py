@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from streamdet.core.json_input import DuplicateKeyError, unique_keys_object
 from streamdet.core.sectors import check_num_slices
 from streamdet.evaluation.eval_boxes import EvalBoxes
 from streamdet.evaluation.results import load_eval_inputs, write_results_json
@@ -58,6 +59,7 @@ class Run:
     info_where: str = ""  # the samples.json read, for messages
     # the ground-truth file's bike racks ({sample_token: (R, 10)}, see results); None: the file names none
     bike_racks: dict[str, np.ndarray] | None = None
+    notes: tuple[str, ...] = ()  # what reading the results file found the devkit would refuse (EvalInputs.notes)
 
 
 def save_run(
@@ -112,7 +114,8 @@ def write_sample_info(path: Path, scenes: Mapping[str, str], poses: Mapping[str,
 def read_sample_info(path: Path) -> SampleInfo:
     """``samples.json`` as written by ``write_sample_info``; ValueError naming the file when it is not one."""
     try:
-        doc = json.loads(Path(path).read_text())
+        # a sample listed twice would keep its last scene and pose silently; the file is small, the check cheap
+        doc = json.loads(Path(path).read_text(), object_pairs_hook=unique_keys_object)
         n = int(doc["num_slices"])
         start = float(doc.get("start_deg", 0.0))
         check_num_slices(n, start)
@@ -122,6 +125,8 @@ def read_sample_info(path: Path) -> SampleInfo:
         e2g = {t: _matrix(s["ego2global"]) for t, s in samples.items()}
     except (OSError, json.JSONDecodeError) as e:
         raise ValueError(f"cannot read {path}: {e}") from None
+    except DuplicateKeyError as e:  # a ValueError: before the catch-all below, which would call it a wrong field
+        raise ValueError(f"{path}: {e}; a samples file holds each key once") from None
     except RecursionError:
         raise ValueError(f"{path} nests too deeply to be a samples file") from None
     except (KeyError, TypeError, ValueError, AttributeError, OverflowError) as e:  # Overflow: a JSON int past float64
@@ -161,4 +166,4 @@ def load_run(run: str | os.PathLike, gt_path: str | os.PathLike | None = None) -
     inputs = load_eval_inputs(gt_file, results)
     info_where = str(run / SAMPLES_FILE) if info is not None else ""
     return Run(gt=inputs.gt, pred=inputs.pred, info=info, where=str(run), gt_where=str(gt_file), info_where=info_where,
-               bike_racks=inputs.bike_racks)  # fmt: skip
+               bike_racks=inputs.bike_racks, notes=inputs.notes)  # fmt: skip
