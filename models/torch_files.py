@@ -52,16 +52,18 @@ def check_torch_zip(path: str | os.PathLike, what: str = "checkpoint") -> None:
                          f"(or the cap {MAX_CHECKPOINT_BYTES}): not a checkpoint")  # fmt: skip
 
 
-def read_torch_file(path: str | os.PathLike, what: str = "checkpoint", map_location: str | torch.device = "cpu") -> Any:
+def read_torch_file(path: str | os.PathLike, what: str = "checkpoint", map_location: str | torch.device = "cpu",
+                    mmap: bool = False) -> Any:  # fmt: skip
     """What ``torch.save`` wrote to ``path``, read with ``weights_only=True`` (tensors, containers and numbers: a file
     is data, never code to unpickle); ValueError (one line, naming ``what`` and the file) when it is missing,
-    unreadable that way, or a zip that would inflate past its size (``check_torch_zip``)."""
+    unreadable that way, or a zip that would inflate past its size (``check_torch_zip``). ``mmap``: the tensors are
+    mapped, not read, for a caller that wants only the small entries (a checkpoint's config) of a large file."""
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"{what} {path} does not exist or is not a file")
     check_torch_zip(path, what)
     try:
-        return torch.load(path, map_location=map_location, weights_only=True)
+        return torch.load(path, map_location=map_location, weights_only=True, mmap=mmap)
     except Exception as e:  # UnpicklingError (code or classes in the pickle), RuntimeError, EOFError, ... for a damaged file
         raise ValueError(f"{what} {path} cannot be read with weights_only=True: {_why_unreadable(path, e)}; streamdet "
                          "reads a checkpoint as data only (tensors, containers, numbers), never otherwise") from None

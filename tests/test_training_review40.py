@@ -470,3 +470,15 @@ def test_cli_train_image_refuses_a_batch_larger_than_the_images(data_dir, tmp_pa
                                              "--steps", "1", "--batch-size", "1000", "--max-samples", "1"])  # fmt: skip
     assert res.exit_code == 1 and "batch_size 1000 (--batch-size) is more than the 6 train images" in res.output, res.output
     assert "train images, " not in res.output and not (tmp_path / "o").exists()  # refused before the val images
+
+
+def test_sigint_deferral_steps_aside_for_a_handler_installed_from_c(monkeypatch):
+    """signal.getsignal gives None for a handler set outside Python (an embedding host); it cannot be put back, so
+    the block runs undeferred rather than failing every step in its finally."""
+    from streamdet.training import interrupts
+
+    monkeypatch.setattr(interrupts.signal, "getsignal", lambda signum: None)
+    ran = []
+    with interrupts.sigint_deferred():
+        ran.append(True)
+    assert ran == [True]

@@ -18,7 +18,7 @@ from streamdet.core.errors import first_line
 from streamdet.core.json_input import short_repr
 from streamdet.core.sectors import MAX_NUM_SLICES
 from streamdet.models.presets import preset_names
-from streamdet.training.checkpoint import load_checkpoint
+from streamdet.training.checkpoint import check_checkpoint, read_torch_file
 from streamdet.training.dataset import CAMERA_MODES, DataConfig
 from streamdet.training.distributed import shutdown_distributed
 from streamdet.training.image_pretrain import PRETRAIN_RUN_FILES
@@ -388,10 +388,11 @@ def _resumed_options(ctx: click.Context, resume: Path) -> dict[str, Any]:
     """``take_resume_options`` of streamdet-train with the checkpoint's config; a file that cannot be read or holds
     no config (model.pt) leaves the options as given: the trainer says what it is."""
     try:
-        state = load_checkpoint(resume, "resume checkpoint")
+        # only its config is wanted here, and the trainer reads the whole file next: the tensors are mapped, not read
+        state = check_checkpoint(read_torch_file(resume, "resume checkpoint", mmap=True), resume, "resume checkpoint")
     except ValueError:  # the trainer says what is wrong with it, after its checks of --out (the order they always had)
         state = {}
-    was = state.get("config")
+    was = state.get("config") if isinstance(state, dict) else None
     if not isinstance(was, dict):
         return {name: ctx.params[name] for name, _ in TRAIN_RESUME_PARAMS}
     return take_resume_options(ctx, resume, saved_config_values(was), TRAIN_RESUME_PARAMS, _train_may_change)

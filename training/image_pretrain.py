@@ -398,6 +398,7 @@ def _pretrain_into(config: PretrainConfig, data_dir: str | Path, out: Path, vers
     stopped_early = False
     start = step
     last_loss, logged = math.nan, step  # the loss of the last step taken, and the last step metrics.jsonl holds
+    in_progress = step + 1  # the step under way, for a message when a second Ctrl-C cuts it
     try:
         while step < config.steps:
             if config.max_minutes is not None and time.monotonic() - t0 > 60 * config.max_minutes:
@@ -408,6 +409,7 @@ def _pretrain_into(config: PretrainConfig, data_dir: str | Path, out: Path, vers
                 break
             # a step with its log and checkpoint is whole or not taken: a Ctrl-C waits for its end (the forward pass
             # alone moves the BatchNorm statistics; training/interrupts.py)
+            in_progress = step + 1  # step counts the steps done, and moves on before the step's log and checkpoint
             with sigint_deferred():
                 idx = np.sort(batch_indices(step, len(train_data), config))
                 images = torch.from_numpy(train_data.images[idx]).to(device)  # (B, H, W, 3)
@@ -440,7 +442,7 @@ def _pretrain_into(config: PretrainConfig, data_dir: str | Path, out: Path, vers
                 last_eval = evaluate()
     except InterruptedMidStep:
         metrics.close()
-        echo(f"interrupted again in the middle of step {step + 1}: nothing written for it (the last checkpoint stays "
+        echo(f"interrupted again in the middle of step {in_progress}: nothing written for it (the last checkpoint stays "
              "as it was)")  # fmt: skip
         raise
     except KeyboardInterrupt:

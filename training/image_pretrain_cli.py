@@ -36,7 +36,7 @@ def _resumed_options(ctx: click.Context, resume: Path) -> dict[str, Any]:
     """The options of a --resume (``training.cli.take_resume_options``); a file that cannot be read or is no
     streamdet-train-image last.pt leaves the options as given: ``pretrain`` says what it is."""
     try:
-        state = read_torch_file(resume, "--resume checkpoint")
+        state = read_torch_file(resume, "--resume checkpoint", mmap=True)  # its config only: the tensors are mapped
     except ValueError:  # pretrain says what is wrong with it, after its checks of --out (the order they always had)
         state = None
     was = state.get("config") if isinstance(state, dict) and "preset" not in state else None

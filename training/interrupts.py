@@ -22,8 +22,13 @@ def sigint_deferred() -> Iterator[None]:
     running statistics, the update can be half applied, or the weights of step n sit under the schedule and data
     position of step n - 1; a checkpoint of that, resumed, is not the uninterrupted run. A second Ctrl-C while the
     first waits is not held: it ends the block at once, as ``InterruptedMidStep``. Only the main thread takes signals;
-    elsewhere the block runs as it is."""
+    elsewhere, and where the SIGINT handler was installed from C (``getsignal`` gives None, which cannot be put
+    back), the block runs as it is."""
     if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.getsignal(signal.SIGINT)  # read before hold can run
+    if previous is None:
         yield
         return
     caught: list[int] = []
@@ -32,7 +37,6 @@ def sigint_deferred() -> Iterator[None]:
         caught.append(signum)
         signal.signal(signal.SIGINT, previous)  # the next Ctrl-C goes through at once
 
-    previous = signal.getsignal(signal.SIGINT)  # set before hold can run
     signal.signal(signal.SIGINT, hold)
     try:
         yield

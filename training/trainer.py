@@ -696,12 +696,13 @@ def _loop(run: _TrainRun, log_file, init: str | Path | None = None) -> tuple[boo
     nothing new to write. Under torchrun the other processes may be inside a collective: nothing is written there,
     the run resumes from its last checkpoint."""
     window = {"t": time.perf_counter(), "samples": 0, "slices": 0, "loss": 0.0, "parts": {}, "n": 0, "dropped": 0}
-    last = {"lr": math.nan}
+    # the lr of the last step taken; the step under way (schedule.step moves on before its log and checkpoint)
+    last = {"lr": math.nan, "in_progress": run.schedule.step + 1}
     start = run.schedule.step
     try:
         return _steps(run, log_file, window, last)
     except InterruptedMidStep:
-        run.say(f"interrupted again in the middle of step {run.schedule.step + 1}: nothing written for it (the last "
+        run.say(f"interrupted again in the middle of step {last['in_progress']}: nothing written for it (the last "
                 "checkpoint stays as it was)")  # fmt: skip
         raise
     except KeyboardInterrupt:
@@ -738,6 +739,7 @@ def _steps(run: _TrainRun, log_file, window: dict, last: dict) -> tuple[bool, fl
         batches = iter(run.loader)
         stepped = run.epoch_step > 0  # whether this epoch took an optimizer step (a resumed one: before the cut)
         for batch in batches:
+            last["in_progress"] = schedule.step + 1
             with sigint_deferred():
                 batch = batch.to(run.device)
                 if _skip_batch(run, batch):  # no sample with a pillar: no step, the data position moves on
