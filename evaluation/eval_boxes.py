@@ -215,14 +215,11 @@ def _all_numbers(rows: list, allow_none: bool = False) -> bool:
     """Whether every value of the vectors ``rows`` is a number (``_NUMBER_TYPES``; None too with ``allow_none``).
     The distinct types of all values, then a check per type: one pass in C over the values, not a Python test each.
     A row that is not iterable raises TypeError (the caller's fallback names the entry)."""
-    for t in set(map(type, chain.from_iterable(rows))):
-        if not ((issubclass(t, _NUMBER_TYPES) and not issubclass(t, _NOT_NUMBER_TYPES)) or (allow_none and t is type(None))):
-            return False
-    return True
+    return all(_is_number_type(t) or (allow_none and t is type(None)) for t in set(map(type, chain.from_iterable(rows))))
 
 
-def _is_number(value: object) -> bool:
-    return isinstance(value, _NUMBER_TYPES) and not isinstance(value, _NOT_NUMBER_TYPES)
+def _is_number_type(t: type) -> bool:
+    return issubclass(t, _NUMBER_TYPES) and not issubclass(t, _NOT_NUMBER_TYPES)
 
 
 def _finite(a: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -237,7 +234,7 @@ def _numbers(entry: Mapping, key: str, n: int, where: str, allow_nan: bool = Fal
     ok = isinstance(value, (list, tuple)) and len(value) == n
     if ok:
         # float() would take "5.1", "nan" and True: JSON numbers only, as detection_score and num_pts
-        wrong = [v for v in value if not (_is_number(v) or (allow_nan and v is None))]
+        wrong = [v for v in value if not (_is_number_type(type(v)) or (allow_nan and v is None))]
         if any(isinstance(v, (str, *_NOT_NUMBER_TYPES)) for v in wrong):
             raise ValueError(f"{where}.{key} must be {n} finite numbers (JSON numbers, not strings or booleans), "
                              f"got {short_repr(value)}")  # fmt: skip
