@@ -5,7 +5,8 @@
 # models/weights/small_v3_swift.pt exported with int8 graphs, --image-layout image_half and --top-k 100; int8 image lane
 # and slices, LiDAR-synchronised cameras, 20 Hz x 8 slices, 12 Hz cameras (benchmarks/replay_ab.sh).
 #   benchmarks/issue22_line.sh [OUT_DIR [ROUNDS [SCALE]]]   (default out/issue22_line, 3 rounds, time scale 1)
-# Writes OUT_DIR/ab/ (replay_ab.sh's runs and table.md) and OUT_DIR/line.md: per round, staleness added p95 within the
+# Writes OUT_DIR/ab/ (replay_ab.sh's runs and table.md; refused where OUT_DIR/ab holds an earlier run's rounds: move it
+# away, the drives and the export in OUT_DIR are kept) and OUT_DIR/line.md: per round, staleness added p95 within the
 # CPU's target (25 ms with AVX-512, 100 ms on an AVX2-only part; the issue names none for other CPUs, e.g. ARM:
 # give replay_table.py --target-ms there), no slice dropped, slice p99 at most `full`'s of the
 # round, streaming mAP at least `full`'s (benchmarks/replay_table.py --baseline full). About 2 minutes a round once

@@ -37,6 +37,11 @@ NUM_SLICES=${NUM_SLICES:-8}
 SPLIT=${SPLIT:-val}
 : "${DATA:?set DATA to the drives dataset (benchmarks/replay_prep.sh makes the issue-22 one)}"
 mkdir -p "$OUT"
+# replay_table counts every r<round>_scale<S>_<label> run it finds: an earlier A/B's runs would be counted as rounds of this one
+if compgen -G "$OUT/r*_scale*_*" > /dev/null; then
+  echo "$OUT already holds runs of an earlier A/B (r*_scale*_*), which its table and line would count as rounds of this one: give a fresh OUT, or move them away" >&2
+  exit 2
+fi
 for V in "$@"; do
   IFS=, read -r EXP SCHEDULE TERMS CODE SLICES NICE ITHREADS YIELD HEAP WORKERS COALESCE QUEUE PAIRHOLD ISA <<< "${V#*=}"
   [ -f "$EXP/manifest.json" ] || { echo "$V: $EXP holds no manifest.json" >&2; exit 2; }

@@ -19,16 +19,19 @@ mean an image lane short of time for a burst, not on average.
     python -m streamdet.benchmarks.replay_table OUT_DIR --baseline LABEL [--target-ms MS]
 
 ``--baseline``: instead of the table, issue 22's line for every other variant, scale by scale, counted over rounds:
-staleness added p95 within the target (default: the CPU's, as above; ``--target-ms`` sets it, e.g. 100 where a
-faster part emulates an AVX2-only one by a time scale, and it must be given for a CPU without a target), no slice
-dropped, and slice p99 at most the baseline variant's **in the same round** (a round the baseline lacks is not
-counted for that term); beside the line, the issue's accuracy term: streaming mAP at least the baseline's in the same
-round.
+staleness added p95 within the target (default: the CPU's, as above; ``--target-ms`` sets it, a finite number above
+0, e.g. 100 where a faster part emulates an AVX2-only one by a time scale, and it must be given for a CPU without a
+target; the p95 is read at the capture clock's microsecond, ``replay.record.capture_gap_ms``), no slice dropped (of
+more than none), slice p99 at most the baseline variant's **in the same round**, and the issue's accuracy term,
+streaming mAP at least the baseline's in the same round; then the rounds meeting all four. The rounds counted are
+every round either variant ran at that scale: a round one of them lacks (an interrupted A/B, a replay that failed)
+meets no term it enters and is named, and so does a value the replay could not give (no fused slice, no score).
 """
 
 from __future__ import annotations
 
 import json
+import math
 import re
 import sys
 import textwrap
@@ -36,7 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
-from streamdet.replay.record import STALE_MS, Recording, full_collections, staleness_by_recent_images
+from streamdet.replay.record import STALE_MS, Recording, capture_gap_ms, full_collections, staleness_by_recent_images
 from streamdet.replay.report import cpu_line, stale_cells
 
 RUN = re.compile(r"r(\d+)_scale([0-9.]+)_(.+)")
@@ -126,17 +129,22 @@ def table(out: Path) -> str:
     for (scale, label), runs in sorted(rows.items()):
         lines.append("| " + " | ".join([
             f"{scale:g}", label,
-            cells(runs, lambda s, p: "%.0f / %.0f" % (s["staleness_ms"]["p50"], s["staleness_ms"]["p95"])),
-            cells(runs, lambda s, p: "%.0f" % s["image_age_ms"]["p95"]),
-            cells(runs, lambda s, p: "%.1f" % s["latency_ms"]["p99"]),
+            cells(runs, lambda s, p: _fmt(s["staleness_ms"]["p50"], "%.0f") + " / " + _fmt(s["staleness_ms"]["p95"], "%.0f")),
+            cells(runs, lambda s, p: _fmt(s["image_age_ms"]["p95"], "%.0f")),
+            cells(runs, lambda s, p: _fmt(s["latency_ms"]["p99"], "%.1f")),
             cells(runs, _dropped),
-            cells(runs, lambda s, p: "%.1f" % s["image_lane_cpu_ms_per_rotation"]),
+            cells(runs, lambda s, p: _fmt(s["image_lane_cpu_ms_per_rotation"], "%.1f")),
             cells(runs, _cores),
-            cells(runs, lambda s, p: "%.1f" % (100 * s["map_streaming"])),
-            cells(runs, lambda s, p: "%.0f" % p),
+            cells(runs, lambda s, p: _fmt(s["map_streaming"], "%.1f", 100)),
+            cells(runs, lambda s, p: _fmt(p, "%.0f")),
         ]) + " |")  # fmt: skip
     gc_line = _full_collections(rows)
     return "\n".join(lines + ([] if gc_line is None else ["", gc_line]) + _stale_by_burst(out))
+
+
+def _fmt(value: float | None, spec: str, scale: float = 1.0) -> str:
+    """A cell's number, or "-" where the replay wrote none (a percentile of no slice, an undefined mAP: JSON null)."""
+    return "-" if value is None else spec % (scale * value)
 
 
 def _dropped(s: dict, probe: float) -> str:
@@ -207,7 +215,7 @@ def staleness(out: Path) -> dict[tuple[float, str], np.ndarray]:
             for sl in rec["slices"]:
                 newest, used = sl.get("newest_capture_s"), sl.get("image_capture_s")
                 if sl.get("emit_s") is not None and newest is not None and used is not None:
-                    values.append((newest - used) * 1e3)
+                    values.append(capture_gap_ms(newest, used))
     return {k: np.asarray(v, np.float64) for k, v in pooled.items()}
 
 
@@ -231,7 +239,7 @@ def plot(out: Path, path: Path) -> None:
             values = np.sort(stale.get((s, label), np.zeros(0)))
             if s != scale or values.size == 0:
                 continue
-            cpu = ", ".join("%.1f" % r[1]["image_lane_cpu_ms_per_rotation"] for r in runs)
+            cpu = ", ".join(_fmt(r[1]["image_lane_cpu_ms_per_rotation"], "%.1f") for r in runs)
             ax.step(values, np.arange(1, values.size + 1) / values.size, where="post", label=f"{label} (lane CPU {cpu} ms/rot)")
         for target in targets:
             isa = TARGET_ISA[target == STALENESS_TARGET_MS[True]]
@@ -265,23 +273,53 @@ def line_against(out: Path, baseline: str, target_ms: float | None = None) -> st
         if len(targets) != 1:
             raise ValueError(f"{out}: the runs name {len(targets)} staleness targets by their CPUs: give --target-ms")
         (target_ms,) = targets
+    check_target_ms(target_ms)
     lines = [f"issue 22's line against `{baseline}`: staleness added p95 <= {target_ms:g} ms, no slice dropped, slice "
-             f"p99 <= `{baseline}`'s in the same round (rounds meeting each term, then all three)"]  # fmt: skip
+             f"p99 <= `{baseline}`'s and streaming mAP >= `{baseline}`'s in the same round (rounds meeting each term, "
+             f"then all four; counted over every round either variant ran at the scale, a round one of them lacks "
+             f"meeting none)"]  # fmt: skip
     for (scale, label), runs in sorted(rows.items()):
         if label == baseline:
             continue
         base = {rnd: s for rnd, s, _ in rows.get((scale, baseline), [])}
-        fresh = [s["staleness_ms"]["p95"] <= target_ms for _, s, _ in runs]
-        kept = [s["slices_dropped"] == 0 for _, s, _ in runs]
-        tail = {rnd: s["latency_ms"]["p99"] <= base[rnd]["latency_ms"]["p99"] for rnd, s, _ in runs if rnd in base}
-        whole = [f and k and tail.get(rnd, False) for (rnd, _, _), f, k in zip(runs, fresh, kept)]
-        # the issue's accuracy term beside the line: streaming mAP at least the baseline's (replays without a score: not counted)
-        scored = {rnd: s["map_streaming"] >= base[rnd]["map_streaming"] for rnd, s, _ in runs
-                  if rnd in base and s.get("map_streaming") is not None and base[rnd].get("map_streaming") is not None}  # fmt: skip
-        lines.append(f"- scale {scale:g}, {label}: staleness {sum(fresh)} of {len(runs)}, none dropped {sum(kept)} of "
-                     f"{len(runs)}, p99 {sum(tail.values())} of {len(tail)} paired; the whole line {sum(whole)} of {len(runs)}; "
-                     f"streaming mAP >= `{baseline}`'s {sum(scored.values())} of {len(scored)} paired")  # fmt: skip
+        mine = {rnd: s for rnd, s, _ in runs}
+        rounds = sorted(set(base) | set(mine))
+        terms = {rnd: _line_terms(mine.get(rnd), base.get(rnd), target_ms) for rnd in rounds}
+        n = len(rounds)
+        count = lambda i: sum(t[i] for t in terms.values())  # noqa: E731
+        whole = sum(all(t) for t in terms.values())
+        notes = [f"no {who} run in round(s) {', '.join(map(str, missing))}"
+                 for who, missing in ((f"`{label}`", [r for r in rounds if r not in mine]),
+                                      (f"`{baseline}`", [r for r in rounds if r not in base])) if missing]  # fmt: skip
+        lines.append(f"- scale {scale:g}, {label}: staleness {count(0)} of {n}, none dropped {count(1)} of {n}, "
+                     f"p99 {count(2)} of {n}, streaming mAP >= `{baseline}`'s {count(3)} of {n}; the whole line "
+                     f"{whole} of {n}" + (f" ({'; '.join(notes)})" if notes else ""))  # fmt: skip
     return "\n".join(lines)
+
+
+def _line_terms(s: dict | None, base: dict | None, target_ms: float) -> tuple[bool, bool, bool, bool]:
+    """One round's four terms: staleness added p95 within the target (at the capture clock, ``capture_gap_ms``:
+    replays before it stored 100 ms as 100.00000000000009), no slice dropped of more than none, slice p99 at most the
+    baseline's, streaming mAP at least the baseline's. A run missing, or a value the replay could not give (JSON
+    null: no fused slice, no emitted slice, no score), meets no term it enters."""
+    if s is None:
+        return (False, False, False, False)
+    p95 = s["staleness_ms"]["p95"]
+    fresh = p95 is not None and round(p95, 3) <= target_ms  # round to the microsecond, as capture_gap_ms
+    kept = s["slices_dropped"] == 0 and s.get("slices_total", 1) > 0  # replays before slices_total: not checked
+    if base is None:
+        return (fresh, kept, False, False)
+    p99, base_p99 = s["latency_ms"]["p99"], base["latency_ms"]["p99"]
+    tail = p99 is not None and base_p99 is not None and p99 <= base_p99
+    score, base_score = s.get("map_streaming"), base.get("map_streaming")
+    scored = score is not None and base_score is not None and score >= base_score
+    return (fresh, kept, tail, scored)
+
+
+def check_target_ms(target_ms: float) -> None:
+    """A staleness target must be a finite positive number of milliseconds (``inf`` would pass every round)."""
+    if not (math.isfinite(target_ms) and target_ms > 0):
+        raise ValueError(f"--target-ms must be a finite number of milliseconds above 0, got {target_ms!r}")
 
 
 USAGE = ("usage: python -m streamdet.benchmarks.replay_table OUT_DIR [--plot FILE.png] "
@@ -314,6 +352,12 @@ def main(argv: list[str] | None = None) -> int:
     if len(args) != 1 or ("--target-ms" in options and "--baseline" not in options):
         print(USAGE, file=sys.stderr)
         return 2
+    if "--target-ms" in options:
+        try:
+            check_target_ms(options["--target-ms"])
+        except ValueError as e:
+            print(f"replay_table: {e}", file=sys.stderr)
+            return 2
     try:
         if "--baseline" in options:
             print(line_against(Path(args[0]), options["--baseline"], options.get("--target-ms")))

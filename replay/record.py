@@ -56,11 +56,23 @@ class SliceRecord:
     def staleness_ms(self) -> float:
         """Staleness added by processing: how much older the images it was fused with were than the newest ones that
         had arrived by its scan start (the age of the image BEV at fusion minus the age of those newest images;
-        negative when images that came during the scan made it in)."""
-        return (self.newest_capture_s - self.image_capture_s) * 1e3
+        negative when images that came during the scan made it in), at the capture clock's resolution
+        (``capture_gap_ms``)."""
+        return capture_gap_ms(self.newest_capture_s, self.image_capture_s)
 
     def to_dict(self) -> dict:
         return _json_fields(self, exclude=("detections",))
+
+
+CAPTURE_CLOCK_US = 1.0  # resolution of capture stamps: nuScenes stamps whole microseconds, and float64 seconds of a Unix epoch resolve about 0.24 us
+
+
+def capture_gap_ms(later_s: float, earlier_s: float) -> float:
+    """``later_s - earlier_s`` in milliseconds, rounded to the capture clock (``CAPTURE_CLOCK_US``). The replay's
+    stamps are float seconds, so two frames one 100 ms camera interval apart differ by 100.00000000000009 ms: rounded,
+    a gap that is a whole number of clock ticks stays one, and a target such as issue 22's "p95 <= 100 ms" reads it as
+    the 100 ms it is. NaN stays NaN."""
+    return float(np.round((later_s - earlier_s) * 1e6 / CAPTURE_CLOCK_US) * CAPTURE_CLOCK_US / 1e3)
 
 
 @dataclass(slots=True)

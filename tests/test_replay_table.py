@@ -149,10 +149,11 @@ def test_the_line_against_a_baseline_counts_rounds_paired_with_it(tmp_path):
     _line_run(tmp_path, "r1_scale1_pl", 120, 2, 5.0)  # no baseline at this scale
     text = line_against(tmp_path, "full")
     assert "staleness added p95 <= 100 ms" in text  # the AVX2-only CPU's target
-    assert ("- scale 0.5, pl: staleness 3 of 3, none dropped 3 of 3, p99 1 of 2 paired; the whole line 1 of 3; "
-            "streaming mAP >= `full`'s 0 of 1 paired") in text  # r2 has no score, r3 no baseline round
-    assert ("- scale 1, pl: staleness 0 of 1, none dropped 0 of 1, p99 0 of 0 paired; the whole line 0 of 1; "
-            "streaming mAP >= `full`'s 0 of 0 paired") in text
+    # r1 meets all but mAP, r2 has no score and a p99 above full's, r3 has no baseline round: it meets no paired term
+    assert ("- scale 0.5, pl: staleness 3 of 3, none dropped 3 of 3, p99 1 of 3, streaming mAP >= `full`'s 0 of 3; "
+            "the whole line 0 of 3 (no `full` run in round(s) 3)") in text
+    assert ("- scale 1, pl: staleness 0 of 1, none dropped 0 of 1, p99 0 of 1, streaming mAP >= `full`'s 0 of 1; "
+            "the whole line 0 of 1 (no `full` run in round(s) 1)") in text
     assert "full:" not in text
     assert "<= 25 ms" in line_against(tmp_path, "full", target_ms=25.0)
 
@@ -166,10 +167,87 @@ def test_the_line_refuses_an_unknown_baseline_and_mixed_cpus_without_a_target(tm
         line_against(tmp_path, "nope")
     with pytest.raises(ValueError, match="give --target-ms"):
         line_against(tmp_path, "full")
-    assert "p99 1 of 1 paired" in line_against(tmp_path, "full", target_ms=25.0)
+    assert "p99 1 of 1," in line_against(tmp_path, "full", target_ms=25.0)
     assert main([str(tmp_path), "--baseline", "full", "--target-ms", "25"]) == 0
     assert "the whole line 1 of 1" in capsys.readouterr().out
     assert main([str(tmp_path), "--target-ms", "25"]) == 2  # a target without a baseline
     assert main([str(tmp_path), "--baseline"]) == 2
     assert main([str(tmp_path), "--baseline", "full", "--target-ms", "x"]) == 2
     assert main([str(tmp_path), "--baseline", "nope"]) == 1
+
+
+# ---- review 41: rounds a variant lacks, values a replay could not give, the capture clock, the target -------------
+
+
+def test_a_round_one_variant_lacks_is_a_miss_and_named(tmp_path):
+    from streamdet.benchmarks.replay_table import line_against
+
+    for rnd in (1, 2, 3):
+        _line_run(tmp_path, f"r{rnd}_scale1_full", 150, 0, 40.0)
+    for rnd in (1, 2):  # an interrupted A/B: round 3 of the variant never ran
+        _line_run(tmp_path, f"r{rnd}_scale1_pl", 50, 0, 20.0, map_streaming=0.5)
+    text = line_against(tmp_path, "full")
+    assert "the whole line 2 of 3 (no `pl` run in round(s) 3)" in text
+    assert "staleness 2 of 3, none dropped 2 of 3, p99 2 of 3, streaming mAP >= `full`'s 2 of 3" in text
+
+
+@pytest.mark.parametrize("field", ["p95", "p99", "map", "slices_total"])
+def test_a_value_the_replay_could_not_give_fails_its_term_without_a_traceback(tmp_path, field, capsys):
+    from streamdet.benchmarks.replay_table import line_against
+
+    _line_run(tmp_path, "r1_scale1_full", 150, 0, 40.0)
+    summary = _summary(50, 0) | {"latency_ms": {"p99": 20.0}, "map_streaming": 0.5, "slices_total": 1600}
+    if field == "p95":  # no fused slice: every percentile of no value is null in replay.json
+        summary["staleness_ms"] = {"p50": None, "p95": None}
+        summary["image_age_ms"] = {"p95": None}
+    elif field == "p99":  # no emitted slice
+        summary["latency_ms"] = {"p99": None}
+    elif field == "map":
+        summary["map_streaming"] = None
+    else:  # no slice at all: "none dropped" must not pass vacuously
+        summary["slices_total"] = 0
+    _run(tmp_path, "r1_scale1_pl", summary, AVX2)
+    text = line_against(tmp_path, "full")
+    assert "the whole line 0 of 1" in text
+    assert main([str(tmp_path)]) == 0  # the table shows "-" for what is missing
+    assert "Traceback" not in capsys.readouterr().err
+
+
+def test_the_staleness_target_reads_the_p95_at_the_capture_clock(tmp_path):
+    from streamdet.benchmarks.replay_table import line_against
+    from streamdet.replay.record import SliceRecord, capture_gap_ms
+
+    _line_run(tmp_path, "r1_scale1_full", 150, 0, 40.0)
+    _line_run(tmp_path, "r1_scale1_pl", 100.00000000000009, 0, 20.0, map_streaming=0.5)  # float seconds' 100 ms
+    _line_run(tmp_path, "r2_scale1_full", 150, 0, 40.0)
+    _line_run(tmp_path, "r2_scale1_pl", 100.002, 0, 20.0, map_streaming=0.5)  # 2 us over: over
+    assert "staleness 1 of 2" in line_against(tmp_path, "full")
+    # two stamps one 100 ms camera interval apart, as float seconds of a drive and of a Unix epoch
+    for base in (1.25, 1533151603.512404):
+        assert capture_gap_ms(base + 0.1, base) == 100.0
+        rec = SliceRecord(sweep=0, slice_index=0, num_slices=8, scan_end_s=0.0, num_points=1)
+        rec.newest_capture_s, rec.image_capture_s = base + 0.1, base
+        assert rec.staleness_ms == 100.0
+    assert np.isnan(capture_gap_ms(float("nan"), 1.0))
+    assert capture_gap_ms(1.0, 1.0000004) == 0.0 and capture_gap_ms(1.0, 1.0000006) == -0.001
+
+
+@pytest.mark.parametrize("bad", ["inf", "nan", "-5", "0"])
+def test_the_target_must_be_finite_and_positive(tmp_path, bad, capsys):
+    _line_run(tmp_path, "r1_scale1_full", 150, 0, 40.0)
+    _line_run(tmp_path, "r1_scale1_pl", 50, 0, 20.0)
+    assert main([str(tmp_path), "--baseline", "full", "--target-ms", bad]) == 2
+    assert f"got {float(bad)!r}" in capsys.readouterr().err
+
+
+def test_replay_ab_refuses_an_out_holding_an_earlier_ab(tmp_path):
+    import subprocess
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[1] / "benchmarks" / "replay_ab.sh"
+    (tmp_path / "r4_scale1_pl").mkdir()  # a round of an earlier, longer A/B
+    env = {"PATH": "/usr/bin:/bin", "DATA": str(tmp_path)}
+    done = subprocess.run(["bash", str(script), str(tmp_path), "3", "1", f"pl={tmp_path},full,on"], env=env,
+                          capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert done.returncode == 2
+    assert "already holds runs of an earlier A/B" in done.stderr
