@@ -98,6 +98,19 @@ def _check_outputs(json_path: Path | None, plot_path: Path | None, profile_dir: 
         check_plot_format(plot_path)
 
 
+def _export_preset(given: str | None, export_preset: str, export_dir: Path) -> str:
+    """The rows' preset with --export-dir (run.rows_preset): --preset, else the export's; a --preset that is not the
+    export's is refused, naming both."""
+    from streamdet.benchmarks.run import rows_preset
+
+    try:
+        return rows_preset(given, export_preset)
+    except ValueError as e:
+        if given is None:  # an export of a preset this version does not know: the rows need one named
+            raise click.UsageError(f"--export-dir {export_dir}: {e} with --preset") from None
+        raise click.BadParameter(f"{e} (--export-dir {export_dir})", param_hint="--preset") from None
+
+
 FLOPS_UNITS = "GMAC (1e9 multiply-accumulates; FLOPs = 2 x MACs)"
 
 
@@ -133,7 +146,9 @@ def _flops_only(preset: str, resolution: tuple[int, int] | None, json_path: Path
     "--preset",
     type=click.Choice(preset_names()),
     default=None,
-    help=f"Model preset to measure [default: {DEFAULT_PRESET}, the shipped model's; paper with --flops-only, to compare with the paper's column].",
+    help=f"Model preset of the Table 3 rows [default: the --export-dir export's preset, as --slices; else {DEFAULT_PRESET}, "
+    "the shipped model's; paper with --flops-only, to compare with the paper's column]. One that is not the --export-dir "
+    "export's is refused: the rows and the streaming section would time two models.",
 )
 @click.option(
     "--resolution",
@@ -143,7 +158,9 @@ def _flops_only(preset: str, resolution: tuple[int, int] | None, json_path: Path
     "(default: the preset's); the other image rows are the rest of 1600x900 / 1200x675 / 800x450. An --export-dir "
     "export keeps its own size: the streaming section runs at it and --resolution sets only the rows. With "
     "--flops-only: the only image row. "
-    f"Sizes: {RESOLUTION_RANGE_HELP}.",
+    f"Sizes: {RESOLUTION_RANGE_HELP}. Even sides of the bundled cameras' aspect only where the export is made here "
+    "(timing without --export-dir); --flops-only and the rows with --export-dir count any size, odd ones included "
+    "(as the paper's 1200x675 row), though streamdet-export refuses odd sides.",
 )
 @click.option("--slices", type=click.IntRange(1, MAX_SLICES), default=None,
               help=f"Slices per sweep of the streaming section (1, 2 or a multiple of 4 up to {MAX_SLICES}) [default: "
@@ -238,6 +255,7 @@ def main(
             manifest = read_manifest(export_dir)  # fail now, not after minutes of row timing
         except (ManifestError, OSError) as e:
             raise click.BadParameter(f"{export_dir} is not a usable export: {e}", param_hint="--export-dir") from None
+        preset = _export_preset(preset, manifest.preset_name, export_dir)  # the rows follow the export, as --slices
         for precision, flag in ((stream_precision, "--stream-precision"), (stream_image_precision, "--stream-image-precision")):
             if precision is not None and precision not in manifest.precisions:
                 raise click.BadParameter(
@@ -258,7 +276,7 @@ def main(
             raise click.BadParameter(str(e), param_hint="--export-dir") from None
         except MemoryError:
             raise click.ClickException(f"out of memory opening {export_dir}") from None
-    elif resolution is not None:
+    elif resolution is not None:  # the export made here for the streaming section takes it too: its rules
         if resolution[0] % 2 or resolution[1] % 2:
             raise click.BadParameter(
                 f"{resolution[0]}x{resolution[1]}: the export needs even sizes (ResNet stem stride 2)", param_hint="--resolution"
@@ -272,7 +290,7 @@ def main(
     from streamdet.benchmarks.run import BenchConfig, BenchmarkError, run_benchmark, write_plot
 
     cfg = BenchConfig(
-        preset=preset or DEFAULT_PRESET,
+        preset=preset or DEFAULT_PRESET,  # with --export-dir: settled above (_export_preset)
         resolution=resolution,
         slices=slices,
         fp16=fp16,

@@ -29,7 +29,7 @@ from streamdet.benchmarks.streaming import (
 from streamdet.benchmarks.table import ROUNDS, RowResult, TableConfig, measure_rows
 from streamdet.benchmarks.thread_counts import check_session_threads, default_session_threads
 from streamdet.benchmarks.timing import TimingConfig
-from streamdet.models.presets import Preset, get_preset
+from streamdet.models.presets import Preset, get_preset, preset_names
 
 Progress = Callable[[str], None]
 
@@ -43,7 +43,9 @@ DEFAULT_SLICES = 8  # slices per sweep of the export the benchmark makes itself 
 
 @dataclass(frozen=True)
 class BenchConfig:
-    preset: str = DEFAULT_PRESET  # the shipped model's preset
+    # the Table 3 rows' preset; None: export_dir's (its manifest's preset_name), or DEFAULT_PRESET (the shipped
+    # model's) without one. One given that differs from export_dir's is refused (resolve_stream_export).
+    preset: str | None = None
     resolution: tuple[int, int] | None = None  # (W, H) of the given image row and the streaming export; None: preset's
     slices: int | None = None  # slices per sweep of the streaming section; None: export_dir's, or DEFAULT_SLICES
     fp16: bool = True  # also export and time fp16 graphs
@@ -65,7 +67,7 @@ class BenchConfig:
     def given_resolution(self) -> tuple[int, int]:
         if self.resolution is not None:
             return self.resolution
-        image = get_preset(self.preset).image
+        image = get_preset(self.preset or DEFAULT_PRESET).image  # before resolve_stream_export: None is the default's
         return image.width_px, image.height_px
 
     def timing(self) -> TimingConfig:
@@ -168,13 +170,36 @@ def export_resolution_problem(resolution: tuple[int, int]) -> str | None:
     return None
 
 
+def rows_preset(given: str | None, export_preset: str | None) -> str:
+    """The preset of the Table 3 rows: ``given``, else the export's (``export_preset``, the streaming export's
+    manifest ``preset_name``; None: no export given, the benchmark makes one of the rows' preset), else
+    DEFAULT_PRESET. A ValueError, naming both, where ``given`` is not the export's preset: the rows and the
+    streaming section would time two models under one report and one set of targets. An export whose preset this
+    version does not know (a renamed preset) needs ``given``: then the rows are of ``given``, the streaming section
+    of the export, and the report names each."""
+    if export_preset is None:
+        return given or DEFAULT_PRESET
+    known = export_preset in preset_names()
+    if given is None:
+        if known:
+            return export_preset
+        raise ValueError(f"the export's preset {export_preset!r} is not one this version knows ({', '.join(preset_names())}): "
+                         "name the preset of the Table 3 rows")  # fmt: skip
+    if known and given != export_preset:
+        raise ValueError(f"{given!r} is not the export's preset {export_preset!r}: the Table 3 rows and the streaming "
+                         f"section would time two models in one report; leave the preset out (the rows follow the "
+                         f"export) or give an export of {given!r}")  # fmt: skip
+    return given
+
+
 def resolve_stream_export(cfg: BenchConfig) -> BenchConfig:
-    """``cfg`` with its slice count settled, after checking that the streaming section can time ``export_dir``
-    (``streaming.check_streaming_export``: camera + LiDAR, the streamed precisions' graphs, the bundled sample's
-    cameras) and that every thread count the run will use (``row_threads``, the streaming section's) is one a
+    """``cfg`` with its preset (``rows_preset``) and slice count settled, after checking that the streaming section
+    can time ``export_dir`` (``streaming.check_streaming_export``: camera + LiDAR, the streamed precisions' graphs,
+    the bundled sample's cameras) and that every thread count the run will use (``row_threads``, the streaming section's) is one a
     session takes. Without ``export_dir``, that the export the benchmark makes takes its image size
     (``export_resolution_problem``). ``slices`` None becomes the export's count, or DEFAULT_SLICES for the export
-    the benchmark makes. Raises BenchmarkError; reads files only, so it runs before any timing."""
+    the benchmark makes; ``preset`` None becomes the export's, or DEFAULT_PRESET, and one that differs from the
+    export's is refused. Raises BenchmarkError; reads files only, so it runs before any timing."""
     try:
         cfg.row_threads()
         stream = cfg.streaming()  # StreamingConfig checks its own thread and worker counts
@@ -184,12 +209,17 @@ def resolve_stream_export(cfg: BenchConfig) -> BenchConfig:
         problem = export_resolution_problem(cfg.given_resolution)
         if problem is not None:
             raise BenchmarkError(f"BenchConfig.resolution: {problem}")
-        return cfg if cfg.slices is not None else dataclasses.replace(cfg, slices=DEFAULT_SLICES)
+        slices = DEFAULT_SLICES if cfg.slices is None else cfg.slices
+        return dataclasses.replace(cfg, preset=rows_preset(cfg.preset, None), slices=slices)
     try:
         manifest = check_streaming_export(cfg.export_dir, stream)
     except ValueError as e:
         raise BenchmarkError(f"streaming section: {e}") from None
-    return cfg if cfg.slices is not None else dataclasses.replace(cfg, slices=manifest.num_slices)
+    try:
+        preset = rows_preset(cfg.preset, manifest.preset_name)
+    except ValueError as e:
+        raise BenchmarkError(f"BenchConfig.preset: {e} (BenchConfig.export_dir {cfg.export_dir})") from None
+    return dataclasses.replace(cfg, preset=preset, slices=manifest.num_slices if cfg.slices is None else cfg.slices)
 
 
 def run_benchmark(cfg: BenchConfig, progress: Progress = lambda msg: None) -> BenchResult:

@@ -17,6 +17,10 @@ import numpy as np
 
 
 DEFAULT_MIN_REPEAT = 3  # TimingConfig.min_repeat where not given (or repeat, where that is fewer)
+# Fewer samples than this give no p95 worth printing or judging (linear interpolation between the two largest, or the
+# maximum itself): "n/a" in the text and no verdict on a p95 target; the JSON keeps every figure with its count.
+# Here, not in report.py, so that report.py and prepost.py (which report.py imports) both read it.
+MIN_P95_SAMPLES = 20
 
 
 @dataclass(frozen=True)
