@@ -45,7 +45,9 @@ def split_scenes(root: str | Path, split: str) -> tuple[str, ...]:
 
 
 def has_split(root: str | Path, split: str) -> bool:
-    """Whether ``root/splits.json`` exists, parses and lists scenes for ``split``."""
+    """Whether ``root/splits.json`` exists, parses and lists scenes for ``split``. Every defect reads as False, a
+    broken file as a missing one: a caller that must tell them apart (and refuse a broken one) calls
+    ``split_scenes`` and catches ``SplitsFileMissing`` alone."""
     try:
         split_scenes(root, split)
     except (OSError, ValueError):  # json.JSONDecodeError is a ValueError

@@ -33,13 +33,20 @@ _GIVEN_ONLY = ("calibration_samples", "seed", "image_layout", "lut_layout")
 _GIVEN = (ParameterSource.COMMANDLINE, ParameterSource.ENVIRONMENT)
 
 
+def _not_empty(ctx: click.Context, param: click.Parameter, value: str | None) -> str | None:
+    """An empty path ('') is refused (exit 2): as a Path it is the current folder, which no path option means."""
+    if value == "":
+        raise click.BadParameter("'' is empty: give a path, or leave the option out for its default")
+    return value
+
+
 @click.command(context_settings={"help_option_names": ["-h", "--help"]})
 @click.option("--preset", default=None, type=click.Choice(preset_names()),
               help=f"Model preset to export. Default: the preset --checkpoint names, else {DEFAULT_PRESET} (the shipped model's).")
-@click.option("--checkpoint", type=click.Path(dir_okay=False), default=None,
+@click.option("--checkpoint", type=click.Path(dir_okay=False), default=None, callback=_not_empty,
               help="Checkpoint of that preset (torch.load weights_only). Default: the bundled fused checkpoint of the "
                    "preset (a file in models/weights/ whose saved preset has that name), else fixed-seed untrained weights.")
-@click.option("--calibration", type=click.Path(dir_okay=False), default=None,
+@click.option("--calibration", type=click.Path(dir_okay=False), default=None, callback=_not_empty,
               help="calibration.json for lut.npz. Default: the bundled nuScenes sample's, intrinsics scaled to --resolution. "
                    "Refused for a LiDAR-only checkpoint (no LUT).")
 @click.option("--resolution", callback=resolution_callback(multiple_of=STEM_STRIDE), default=None, metavar="WxH",
@@ -51,7 +58,7 @@ _GIVEN = (ParameterSource.COMMANDLINE, ParameterSource.ENVIRONMENT)
 @click.option("--int8", is_flag=True,
               help="Also write int8 siblings (*.int8.onnx: static QDQ, int8 weights, uint8 activations; inputs and "
                    "outputs stay fp32), calibrated on real samples, with their parity against fp32 in the manifest.")
-@click.option("--calibration-data", type=click.Path(), default=None, metavar="DIR",
+@click.option("--calibration-data", type=click.Path(), default=None, metavar="DIR", callback=_not_empty,
               help="nuScenes-format dataset (e.g. streamdet-synth output) whose train split calibrates the int8 graphs. "
                    "Default: the bundled nuScenes sample.")
 @click.option("--calibration-samples", type=click.IntRange(1, MAX_CALIBRATION_SAMPLES), default=DEFAULT_CALIBRATION_SAMPLES,
@@ -75,7 +82,8 @@ _GIVEN = (ParameterSource.COMMANDLINE, ParameterSource.ENVIRONMENT)
                    "one LUT height per voxel, slots for several (where compacting does not pay). Refused for a LiDAR-only "
                    "checkpoint (no lifter).")
 @click.option("--top-k", type=click.IntRange(1, MAX_TOP_K), default=None,
-              help=f"Detections per quadrant the slice graph decodes, 1..{MAX_TOP_K} (default: the preset's, the paper's 500). Fewer make "
+              help=f"Detections per quadrant the slice graph decodes, 1..{MAX_TOP_K} (default: the preset's, the paper's 500; "
+                   "at most a head map's classes x cells, which a larger value is cut to, with a note). Fewer make "
                    "each slice run cheaper; the runtime's score threshold keeps far fewer anyway, and the detector counts "
                    "the runs whose K-th score passed it (StreamingDetector.slice_runs_at_top_k: the cap cut boxes).")
 def main(preset, checkpoint, calibration, resolution, num_slices, fp16, int8, calibration_data, calibration_samples,

@@ -30,10 +30,11 @@ from streamdet.export import int8 as q8
 from streamdet.export import onnx_export as ox
 from streamdet.export.export_run import ExportRun, manifest_parity_passed
 from streamdet.export.graph_steps import TORCH_REF_IMAGES, load_rig  # noqa: F401 (public here)
+from streamdet.export.int8_data import calibration_split
 from streamdet.export.options import (  # noqa: F401 (public here)
     DEFAULT_PRESET, STEM_STRIDE, ExportError, ExportOptions, ExportUsageError, check_resolution, resolve_lut_layout)
 from streamdet.export.staging import (
-    check_out_dir_name, check_replaceable, discard_staging_dir, make_staging_dir, parity_failed_dir)
+    check_out_dir_name, check_parity_failed_dir, check_replaceable, discard_staging_dir, make_staging_dir)
 from streamdet.export.steps import Progress, Report, export_steps
 from streamdet.export.weights import (
     bundled_checkpoint,
@@ -67,7 +68,7 @@ def run_export(opts: ExportOptions, report: Report | None = None) -> ExportResul
     t_start = time.perf_counter()
     if opts.out_dir is not None:
         check_out_dir_name(opts.out_dir)  # '.', '/', '..': before the checkpoint is read
-    preset, width, height = _resolve_preset(opts)
+    preset, width, height = _resolve_preset(opts, report)
     _check_options(opts, preset)  # on the options as given: None is "not given"
     opts = opts.with_defaults(preset.lifter.lut_heights_per_voxel)
     out_dir = Path(opts.out_dir) if opts.out_dir is not None else Path(EXPORTS_ROOT) / preset.name
@@ -76,7 +77,9 @@ def run_export(opts: ExportOptions, report: Report | None = None) -> ExportResul
         check_out_dir_name(out_dir)  # a link to '/' or to the current folder
     steps = export_steps(preset, opts, (width, height))
     progress = Progress(report, total=len(steps))
-    check_replaceable(parity_failed_dir(out_dir))  # where a failed export goes if out_dir holds one (commit_target)
+    if _holds_entries(out_dir):  # a failed export would go beside it (commit_target): check that folder now
+        check_replaceable(out_dir)  # out_dir's own refusal first (make_staging_dir makes it again)
+        check_parity_failed_dir(out_dir)
     tmp = make_staging_dir(out_dir)
     run = ExportRun(tmp, out_dir, preset, (width, height), opts, progress.note)
     try:
@@ -91,6 +94,14 @@ def run_export(opts: ExportOptions, report: Report | None = None) -> ExportResul
     return ExportResult(run.committed_dir.resolve(), run.manifest, time.perf_counter() - t_start, kept)
 
 
+def _holds_entries(out_dir: Path) -> bool:
+    """Whether ``out_dir`` is a directory with something in it (an unlistable one counts: make_staging_dir says why)."""
+    try:
+        return out_dir.is_dir() and any(out_dir.iterdir())
+    except OSError:
+        return False
+
+
 def _check_options(opts: ExportOptions, preset: Preset) -> None:
     """Fail before any work on options that cannot be used, or that this export would ignore (``preset``: the one
     ``_resolve_preset`` settled, whose use_image says whether the export has an image lane). ``opts`` as given:
@@ -103,10 +114,14 @@ def _check_options(opts: ExportOptions, preset: Preset) -> None:
     if isinstance(opts.opset, bool) or not isinstance(opts.opset, int) or not lo <= opts.opset <= hi:
         raise ExportError(f"--opset must be an integer in [{lo}, {hi}], got {opts.opset!r}")
     if opts.calibration_data is not None and not opts.int8:
-        raise ExportUsageError("--calibration-data is the int8 calibration set: it needs --int8")
+        raise ExportUsageError(f"--calibration-data {opts.calibration_data} is the int8 calibration set: it needs --int8")
     if opts.calibration_samples is not None and not opts.int8:
         raise ExportUsageError(f"--calibration-samples {opts.calibration_samples!r} sizes the int8 calibration: it needs "
                                "--int8 (nothing is calibrated without it)")  # fmt: skip
+    if opts.calibration_samples is not None and opts.calibration_data is None:
+        raise ExportUsageError(f"--calibration-samples {opts.calibration_samples!r} draws from --calibration-data; without "
+                               "it the int8 graphs calibrate on the bundled sample, which is one sample: give "
+                               "--calibration-data DIR, or drop --calibration-samples")  # fmt: skip
     counts = {"--calibration-samples": opts.calibration_samples, "--top-k": opts.top_k}
     for flag, value in counts.items():
         if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):  # None: default
@@ -117,6 +132,7 @@ def _check_options(opts: ExportOptions, preset: Preset) -> None:
     if opts.int8 and opts.calibration_data is not None:
         try:
             q8.dataset_version(opts.calibration_data)
+            calibration_split(opts.calibration_data)  # a splits.json without a train split: before any work
         except q8.Int8CalibrationDataError as e:
             raise ExportError(f"--calibration-data: {e}") from None
 
@@ -157,7 +173,10 @@ def _check_seed(opts: ExportOptions, preset: Preset) -> None:
                            f"{what}) and the parity check's noise images ({images}); drop it")  # fmt: skip
 
 
-def _resolve_preset(opts: ExportOptions) -> tuple[Preset, int, int]:
+def _resolve_preset(opts: ExportOptions, report: Report | None = None) -> tuple[Preset, int, int]:
+    """The preset the export writes (``opts.preset``, else the checkpoint's) with the export's image size, top-K and
+    what the checkpoint says of its lanes and lifter; and the image width and height. ``report``: where a note goes
+    (a --top-k beyond a map's classes x cells, which the graph cannot decode)."""
     name = opts.preset
     if name is None:
         saved = checkpoint_preset(opts.checkpoint)
@@ -182,4 +201,7 @@ def _resolve_preset(opts: ExportOptions) -> tuple[Preset, int, int]:
         preset = dataclasses.replace(preset, image=image, use_image=use_image, slice_crop=slice_crop, lifter=lifter, post=post)
     except ValueError as e:
         raise ExportError(f"checkpoint {opts.checkpoint}: {e}") from None
+    if opts.top_k is not None and preset.top_k < opts.top_k and report is not None:  # Preset.top_k clamps it
+        report(f"note: --top-k {opts.top_k} exceeds the {preset.top_k} classes x cells of a quadrant's head map: the "
+               f"graph decodes {preset.top_k} per quadrant (the manifest's post.top_k)")  # fmt: skip
     return preset, width, height

@@ -21,7 +21,7 @@ import numpy as np
 from streamdet.calibration.camera import CalibrationError
 from streamdet.core.constants import BUNDLED_SAMPLE_SOURCE
 from streamdet.data.sample import Sample, load_bundled_sample
-from streamdet.data.splits import has_split, split_sample_tokens
+from streamdet.data.splits import SplitsFileMissing, split_sample_tokens, split_scenes
 from streamdet.runtime_ort.detector import StreamingDetector
 from streamdet.runtime_ort.pipeline import detect_sample, use_sample_calibration
 from streamdet.runtime_ort.recording import Feeds, GraphRecording  # noqa: F401 (Feeds: public here too)
@@ -60,7 +60,8 @@ def dataset_version(root: str | Path) -> str:
 
 def load_calibration_samples(data_dir: str | Path | None, num_samples: int, camera_names: Sequence[str]) -> CalibrationSamples:
     """Samples to calibrate on: ``num_samples`` spread evenly over the train split of a nuScenes-format dataset
-    (all of it without a ``splits.json``), or the bundled nuScenes sample when ``data_dir`` is None.
+    (all of it without a ``splits.json``; one that is there must name a train split, else
+    ``Int8CalibrationDataError``), or the bundled nuScenes sample when ``data_dir`` is None.
 
     Every sample must have an image of each of ``camera_names`` (the export's rig).
     """
@@ -73,10 +74,10 @@ def load_calibration_samples(data_dir: str | Path | None, num_samples: int, came
         from streamdet.data.nuscenes import NuScenesReader
 
         version = dataset_version(data_dir)
+        split = calibration_split(data_dir)
         try:
             reader = NuScenesReader(data_dir, version)
-            has_train = has_split(data_dir, "train")
-            tokens = split_sample_tokens(reader, data_dir, "train" if has_train else None)
+            tokens = split_sample_tokens(reader, data_dir, split)
         except (OSError, KeyError, ValueError) as e:
             raise Int8CalibrationDataError(f"calibration data {str(data_dir)!r}: {e}") from None
         if not tokens:
@@ -86,7 +87,7 @@ def load_calibration_samples(data_dir: str | Path | None, num_samples: int, came
             samples = tuple(reader.get(tokens[i]) for i in pick)
         except (OSError, KeyError, ValueError) as e:
             raise Int8CalibrationDataError(f"calibration data {str(data_dir)!r}: {e}") from None
-        source, split = str(data_dir), "train" if has_train else "all"
+        source, split = str(data_dir), split or "all"
     for s in samples:
         missing = [n for n in camera_names if n not in s.image_paths]
         if missing:
@@ -95,6 +96,20 @@ def load_calibration_samples(data_dir: str | Path | None, num_samples: int, came
                 f"{list(camera_names)}); calibrate on data from this rig with --calibration-data"
             )
     return CalibrationSamples(samples, source, version, split)
+
+
+def calibration_split(data_dir: str | Path) -> str | None:
+    """The split of ``data_dir`` the calibration draws from: "train", or None (every sample) where the dataset has
+    no splits.json. One that is there but unreadable, malformed or without a train split raises
+    ``Int8CalibrationDataError`` naming the file: falling back to every sample would calibrate on the held-out val
+    scenes too."""
+    try:
+        split_scenes(data_dir, "train")
+    except SplitsFileMissing:
+        return None
+    except (OSError, ValueError) as e:  # json.JSONDecodeError and the file readers' errors are ValueErrors
+        raise Int8CalibrationDataError(f"calibration data {str(data_dir)!r}: {e}") from None
+    return "train"
 
 
 def record_graph_inputs(detector: StreamingDetector, samples: Sequence[Sample]) -> GraphRecording:

@@ -6,17 +6,19 @@ graph feeds it records: a fused export calibrates the encoder on camera images, 
 features with each sample's LUT, the slice graph on pillarised slices with the fp32 lifter's image BEV; a
 LiDAR-only export on the pillarised slices alone (no images, so any rig's data will do). The parity compares each
 int8 graph with its fp32 graph on the fp32 detector's feeds, and the int8 detector's runs with the fp32 detector's
-on the same samples: the bundled sample, held out when it was not a calibration sample, unless the rig's cameras
-are not the sample's (then the calibration samples, the only images of that rig there are).
+on the same samples: the bundled sample, held out when it was not a calibration sample (by token: a nuScenes
+v1.0-mini copy given as --calibration-data holds it too, and the manifest's parity_held_out says so), unless the rig's
+cameras are not the sample's (then the calibration samples, the only images of that rig there are).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
-from streamdet.data.sample import load_bundled_sample
+from streamdet.data.sample import Sample, load_bundled_sample
 from streamdet.export import int8 as q8
 from streamdet.export.export_run import ExportRun
 from streamdet.export.fp16 import check_model
@@ -75,6 +77,23 @@ def quantize(run: ExportRun, name: str) -> None:
     run.note(f"int8 inputs: {graph.quantized_ops}; kept float: {sum(graph.float_nodes.values())} nodes")
 
 
+def parity_samples(cal: q8.CalibrationSamples, bundled: Sample, camera_names: Sequence[str]
+                   ) -> tuple[tuple[Sample, ...] | None, bool, str]:  # fmt: skip
+    """The samples the int8 parity runs on (None: the calibration samples, whose recorded inputs serve), whether
+    they were held out of the calibration, and the note that says which.
+
+    The bundled sample where it has the rig's cameras, held out only when the calibration did not draw it (by token:
+    a nuScenes v1.0-mini copy given as --calibration-data holds it too); else the calibration samples, the only
+    images of that rig there are."""
+    if not set(camera_names) <= set(bundled.image_paths):
+        return None, False, "on the calibration samples (the bundled sample lacks this rig's cameras)"
+    if bundled.token not in {s.token for s in cal.samples}:
+        return (bundled,), True, "on the bundled nuScenes sample, held out"
+    if cal.source == q8.BUNDLED_SOURCE:
+        return None, False, "on the bundled nuScenes sample, the calibration sample itself"
+    return (bundled,), False, f"on the bundled nuScenes sample, not held out: a calibration sample too (drawn from {cal.source})"
+
+
 def parity(run: ExportRun) -> None:
     work: Int8Work = run.int8_work
     cal, inputs = work.samples, work.inputs
@@ -91,17 +110,12 @@ def parity(run: ExportRun) -> None:
         parity_held_out=False,
         seconds=round(time.perf_counter() - work.started_s, 1),
     )
-    sample = load_bundled_sample()
+    chosen, held_out, note = parity_samples(cal, load_bundled_sample(), _camera_names(run))
     samples = cal.samples
-    if set(_camera_names(run)) <= set(sample.image_paths):
-        held_out = cal.source != q8.BUNDLED_SOURCE
-        if held_out:
-            samples = (sample,)
-            inputs = q8.record_graph_inputs(work.detector32, samples)
-        run.note("on the bundled nuScenes sample" + (", held out" if held_out else ", the calibration sample itself"))
-    else:
-        held_out = False  # a foreign rig: the bundled images do not fit, the calibration samples are all there is
-        run.note("on the calibration samples (the bundled sample lacks this rig's cameras)")
+    if chosen is not None:
+        samples = chosen
+        inputs = q8.record_graph_inputs(work.detector32, samples)
+    run.note(note)
     calibration = dataclasses.replace(calibration, parity_held_out=held_out)
     # the int8 detector's manifest lists its graphs with their record so far (no parity yet)
     detector8 = staged_detector(run, "int8", Int8Record(calibration, tuple(work.records), (), None))

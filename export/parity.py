@@ -15,10 +15,12 @@ range decides as before.
 Dense outputs (features, image BEV) are compared element-wise. Decoded detections (det_boxes, det_scores,
 det_labels) are compared as *sets*: top-K keeps the K best peaks of classes x cells, and two peaks whose scores
 differ by less than the rounding error may swap ranks, or one may fall out of the top K for the other. So each
-reference detection whose score clears the K-th score by more than the score tolerance is matched to the
+reference detection whose score clears the best score left out of the top K (the reference's (K+1)-th, decoded
+for the purpose: export/graph_steps.py ``reference_decode``) by more than the score tolerance is matched to the
 detection of the same label with the nearest centre in the other output; its score must agree within the
 tolerance, and a detection with no partner there is a failure. Detections at the top-K boundary are not
-compared, and how many were left out is recorded in the record's note.
+compared, and how many were left out is recorded in the record's note. Without the (K+1)-th score the K-th
+stands in, which leaves the K-th detection itself out: with K = 1 nothing at all would be compared.
 
 Box columns: the nine columns of det_boxes hold five quantities of unrelated size (core/boxes.py), so each group
 has its own record and scale (``BOX_COLUMN_GROUPS``): centre x, y; z; size w, l, h; yaw; velocity. One scale for
@@ -34,7 +36,9 @@ How many were compared: a check that left out nearly every detection (an untrain
 near-ties) says little. The note starts with the count, and below ``MIN_COMPARED`` it says so as a warning, which
 the exporter prints. It is not a failure: the fixed-seed untrained export (the default of a preset without a
 checkpoint) can legitimately leave only one or none clear of the near-ties, and its graphs are still the ones the
-dense checks and the decode check covered.
+dense checks and the decode check covered. A record that compared nothing at all (no detection, or no box above
+the threshold for a box group) holds NaN as its max |diff|, never a 0 that reads as exact agreement, and its note
+starts with ``NOT_COMPARED`` (after ``NON_FINITE`` where the output holds NaN or inf, a failure).
 
 Near-ties: peak picking keeps a cell that equals the max of its 3x3 neighbourhood (same class). Where a cell and
 a neighbour differ by less than the other precision's error, the peak may move to the neighbour or vanish (the
@@ -85,6 +89,8 @@ MIN_BOX_SCALE = 1.0
 # Below this many detections compared (as sets, or pipeline boxes above the threshold) the record warns (module doc).
 MIN_COMPARED = 5
 FEW_COMPARED = "WARNING: few compared"  # how such a note starts (the exporter prints it)
+NOT_COMPARED = "nothing compared"  # how the note of a record that compared nothing starts (max_abs_diff NaN)
+NON_FINITE = "non-finite values in the output"  # a failure's reason, first in its note
 
 
 def value_range(x: np.ndarray) -> float:
@@ -114,7 +120,7 @@ def compare_dense(
     diff = float(np.abs(got.astype(np.float64) - ref.astype(np.float64)).max()) if ref.size else 0.0
     finite = bool(np.isfinite(got).all())
     passed = finite and diff <= tol_rel * scale
-    note = "" if finite else "non-finite values in the output"
+    note = "" if finite else NON_FINITE
     return ParityRecord(graph, precision, reference, output, diff, rng, tol_rel, passed, note, scale)
 
 
@@ -126,7 +132,8 @@ def peak_margins(heatmap_logits: np.ndarray) -> np.ndarray:
 
     > 0 on the decode's peaks, <= 0 elsewhere; the border counts as -inf (the max-pool pads that way).
     """
-    heat = 1.0 / (1.0 + np.exp(-heatmap_logits.astype(np.float64)))
+    with np.errstate(over="ignore"):  # a logit under about -709 overflows exp: its score is 0, as it should be
+        heat = 1.0 / (1.0 + np.exp(-heatmap_logits.astype(np.float64)))
     q, c, h, w = heat.shape
     padded = np.full((q, c, h + 2, w + 2), -np.inf)
     padded[:, :, 1:-1, 1:-1] = heat
@@ -222,12 +229,16 @@ def match_detections(
     score_tol: float,
     centre_tol: float,
     near_tie: np.ndarray | None = None,
+    first_left_out: np.ndarray | None = None,
 ) -> DetectionMatch:
     """Pair the reference's safely-in-top-K detections with the other output's (see the module doc).
 
     got, ref: (det_boxes (Q, K, 9), det_scores (Q, K), det_labels (Q, K)); near_tie (Q, K) bool flags reference
-    detections left out as near-ties. A reference detection with no partner of the same label within ``centre_tol``
-    of its centre is counted as unmatched (a failure).
+    detections left out as near-ties. first_left_out (Q,): each quadrant's best reference score left out of its top
+    K (the (K+1)-th; -inf where the top K holds every cell); a detection is safely in the top K when its score
+    clears it by more than ``score_tol``. None: not known, the K-th score stands in (the K-th detection itself is
+    then never compared). A reference detection with no partner of the same label within ``centre_tol`` of its
+    centre is counted as unmatched (a failure).
     """
     gb, gs, gl = got
     rb, rs, rl = ref
@@ -237,13 +248,13 @@ def match_detections(
         near_tie = np.zeros(rs.shape, dtype=bool)
     if near_tie.shape != rs.shape:
         raise ValueError(f"near_tie has shape {near_tie.shape}, the detections {rs.shape}")
+    cut = _boundary_scores(rs, first_left_out)
     box_diffs, score_diffs, ref_scores = [], [], []
     boundary = unmatched = ties = 0
     for qi in range(rb.shape[0]):
         if rs.shape[1] == 0:
             continue
-        kth = float(rs[qi].min())
-        safe = rs[qi] > kth + score_tol  # (K,)
+        safe = rs[qi] > cut[qi] + score_tol  # (K,)
         boundary += int((~safe).sum())
         ties += int((safe & near_tie[qi]).sum())
         idx = np.flatnonzero(safe & ~near_tie[qi])
@@ -263,6 +274,20 @@ def match_detections(
                           cat(ref_scores), boundary, unmatched, ties)  # fmt: skip
 
 
+def _boundary_scores(scores: np.ndarray, first_left_out: np.ndarray | None) -> np.ndarray:
+    """(Q,) float64 score each quadrant's detections must clear (by the tolerance) to be compared: the best one left
+    out of the top K, or where that is not known (None) the K-th score."""
+    q, k = scores.shape
+    if first_left_out is None:
+        return scores.astype(np.float64).min(axis=1) if k else np.full(q, -np.inf)
+    cut = np.asarray(first_left_out)
+    if cut.shape != (q,) or not np.issubdtype(cut.dtype, np.number):
+        raise ValueError(f"first_left_out must hold one score per quadrant, shape ({q},), got {cut.dtype} {cut.shape}")
+    if np.isnan(cut).any() or (cut == np.inf).any():
+        raise ValueError(f"first_left_out must hold scores (or -inf where nothing was left out), got {cut.tolist()[:8]}")
+    return cut.astype(np.float64)
+
+
 def compare_detections(
     graph: str,
     precision: str,
@@ -273,6 +298,7 @@ def compare_detections(
     ref_margins: np.ndarray | None = None,
     scale_floor: float = 0.0,
     score_threshold: float = BOX_SCORE_THRESHOLD,
+    first_left_out: np.ndarray | None = None,
 ) -> list[ParityRecord]:
     """Set-wise comparison of decoded top-K detections: one record per box column group (``det_boxes.centre``,
     ``.z``, ``.size``, ``.yaw``, ``.velocity``), then det_scores and det_labels, each against tol_rel x its scale.
@@ -281,7 +307,10 @@ def compare_detections(
     all reference boxes when none clears it, for the centre tolerance that pairs them), and their columns are
     compared on the matched detections above the threshold; the scores' scale is ``value_scale(reference scores,
     scale_floor)``. ``ref_margins`` (Q, K): the reference detections' peak margins (``detection_margins``); those
-    within the score tolerance are near-ties, left out and counted.
+    within the score tolerance are near-ties, left out and counted. ``first_left_out`` (Q,): the reference's best
+    score left out of each quadrant's top K (``match_detections``). A record that compared nothing holds NaN as its
+    max |diff| and a note starting with ``NOT_COMPARED`` (module doc); non-finite values in the output fail every
+    record, the note starting with ``NON_FINITE``.
     """
     rb, rs, rl = ref
     matter = rb[rs >= score_threshold]  # (n, 9)
@@ -289,9 +318,11 @@ def compare_detections(
     score_rng, score_scale = value_range(rs), value_scale(rs, scale_floor)
     score_tol = tol_rel * score_scale
     near_tie = None if ref_margins is None else np.abs(ref_margins) <= score_tol
-    m = match_detections(got, ref, score_tol, tol_rel * scales["centre"], near_tie)
+    m = match_detections(got, ref, score_tol, tol_rel * scales["centre"], near_tie, first_left_out)
     total = int(rs.size)
     confident = m.ref_score >= score_threshold
+    finite = all(bool(np.isfinite(x).all()) for x in got[:2])
+    bad = "" if finite else f"{NON_FINITE}; "
     few = f"{FEW_COMPARED}: only {m.compared} of {total} detections; " if total and m.compared < MIN_COMPARED else ""
     note = (
         f"{few}{m.compared} of {total} detections compared as sets; {m.boundary} at the top-K boundary and {m.ties} "
@@ -301,19 +332,25 @@ def compare_detections(
         f"{note}; box columns compared on the {int(confident.sum())} of them with score >= {score_threshold:g}, scaled by "
         + (f"the {len(matter)} reference boxes there" if len(matter) else "all reference boxes (none above it)")
     )
-    finite = all(bool(np.isfinite(x).all()) for x in got[:2])
     ok = finite and m.unmatched == 0
     group_diff = box_group_max(m.box_diff[confident])
-    sd = float(m.score_diff.max()) if m.compared else 0.0
+
+    def record(output: str, diff: float, compared: int, rng: float, passed: bool, text: str, scale: float | None) -> ParityRecord:
+        if not compared:  # a 0 would read as exact agreement
+            diff, text = math.nan, f"{NOT_COMPARED}: {text}"
+        return ParityRecord(graph, precision, reference, output, diff, rng, tol_rel, passed, bad + text, scale)
+
     records = []
     for name, cols in BOX_COLUMN_GROUPS:
         rng = value_range(matter[:, list(cols)]) if len(matter) else 0.0
-        records.append(ParityRecord(graph, precision, reference, f"det_boxes.{name}", group_diff[name], rng, tol_rel,
-                                    ok and group_diff[name] <= tol_rel * scales[name], box_note, scales[name]))  # fmt: skip
+        records.append(record(f"det_boxes.{name}", group_diff[name], int(confident.sum()), rng,
+                              ok and group_diff[name] <= tol_rel * scales[name], box_note, scales[name]))  # fmt: skip
+    sd = float(m.score_diff.max()) if m.compared else 0.0
+    labels_rng = float(rl.max() - rl.min()) if rl.size else 0.0
     return records + [
-        ParityRecord(graph, precision, reference, "det_scores", sd, score_rng, tol_rel, ok and sd <= score_tol, note, score_scale),
-        ParityRecord(graph, precision, reference, "det_labels", float(m.unmatched), float(rl.max() - rl.min()) if rl.size else 0.0,
-                     tol_rel, ok, "labels must agree on every matched detection; max_abs_diff holds the unmatched count"),
+        record("det_scores", sd, m.compared, score_rng, ok and sd <= score_tol, note, score_scale),
+        record("det_labels", float(m.unmatched), m.compared + m.unmatched, labels_rng, ok,
+               "labels must agree on every matched detection; max_abs_diff holds the unmatched count", None),
     ]
 
 

@@ -3,6 +3,7 @@ one-line form of a parity record the progress shows."""
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any
 
@@ -13,6 +14,7 @@ import torch
 from streamdet.core.classes import CLASS_NAMES
 from streamdet.core.image_layout import IMAGE_BEV
 from streamdet.core.lut_layout import LUT_SLOTS
+from streamdet.export.parity import NON_FINITE, NOT_COMPARED
 from streamdet.export.weights import WeightsSource
 from streamdet.models.presets import Preset
 from streamdet.runtime_ort.manifest import (
@@ -67,7 +69,9 @@ def export_manifest(
         num_slices=num_slices,
         image=image,
         normalisation=normalisation,
-        post={**preset.to_dict()["post"], "top_k_per_quadrant": preset.top_k, "head_cell_m": preset.head_cell_m},
+        # top_k: what the graph decodes (PostConfig.top_k clamped to a map's classes x cells), as top_k_per_quadrant
+        post={**preset.to_dict()["post"], "top_k": preset.top_k, "top_k_per_quadrant": preset.top_k,
+              "head_cell_m": preset.head_cell_m},
         graphs=tuple(entries),
         lut=lut,
         image_layout=image_layout,
@@ -114,8 +118,13 @@ def tensor_specs(values) -> tuple[TensorSpec, ...]:
 
 
 def format_parity(p: ParityRecord) -> str:
-    status = "ok" if p.passed else "FAILED"
+    """The progress line of a parity record. A record that compared nothing (max |diff| NaN, export/parity.py) says
+    so instead of a difference; a failed one whose note starts with its reason (non-finite values) gives it."""
+    head = f"{p.graph} {p.precision} {p.output}"
+    reason = f" ({NON_FINITE})" if p.note.startswith(NON_FINITE) else ""
+    if math.isnan(p.max_abs_diff):
+        return f"{head}: {NOT_COMPARED}" + ("" if p.passed else f": FAILED{reason}")
+    status = "ok" if p.passed else f"FAILED{reason}"
     scale = p.output_range if p.output_scale is None else p.output_scale
     what = f"range {p.output_range:.3g}" if scale == p.output_range else f"scale {scale:.3g} (range {p.output_range:.3g})"
-    return f"{p.graph} {p.precision} {p.output}: max |diff| {p.max_abs_diff:.3g} vs {p.tolerance_rel:g} x {what} = " \
-           f"{p.tolerance_rel * scale:.3g}: {status}"  # fmt: skip
+    return f"{head}: max |diff| {p.max_abs_diff:.3g} vs {p.tolerance_rel:g} x {what} = {p.tolerance_rel * scale:.3g}: {status}"

@@ -84,27 +84,29 @@ _PROFILE_MARK = ".profile_"
 MAX_OLD_MANIFEST_BYTES = 64 << 20  # runtime_ort's own cap on a manifest is far below; a bigger file is no manifest
 
 
-def check_replaceable(out_dir: Path) -> None:
+def check_replaceable(out_dir: Path, what: str | None = None) -> None:
     """ExportError unless ``out_dir`` is absent, empty, or a streamdet export holding nothing but its own files.
 
     A re-export replaces the whole folder, so a ``manifest.json`` alone is not enough: a web app's has the same
     name. The manifest must be a streamdet one (its ``graphs`` and ``preset``), and every entry must be a file it
     names, the manifest, or an onnxruntime profile of one of its graphs; anything else (a note, a calibration copy, a
-    folder) would be deleted with it, so the folder is refused, naming those entries."""
+    folder) would be deleted with it, so the folder is refused, naming those entries. ``what``: how the error names
+    the folder (default ``--out <out_dir>``; ``check_parity_failed_dir`` names the folder beside it)."""
+    what = f"--out {out_dir}" if what is None else what
     try:
         entries = sorted(out_dir.iterdir()) if out_dir.is_dir() else []
     except OSError as e:
-        raise ExportError(f"--out {out_dir} cannot be listed: {e.strerror or e}") from None
+        raise ExportError(f"{what} cannot be listed: {e.strerror or e}") from None
     if not entries:
         return
     named = _export_files(out_dir)
     if named is None:
-        raise ExportError(f"--out {out_dir} is a non-empty directory that is not a streamdet export (no streamdet "
+        raise ExportError(f"{what} is a non-empty directory that is not a streamdet export (no streamdet "
                           "manifest.json); refusing to overwrite it")  # fmt: skip
     foreign = [e.name + ("/" if e.is_dir() else "") for e in entries if not _is_export_entry(e, named)]
     if foreign:
         shown = ", ".join(foreign[:6]) + (f" and {len(foreign) - 6} more" if len(foreign) > 6 else "")
-        raise ExportError(f"--out {out_dir} holds a streamdet export and other entries ({shown}), which a re-export "
+        raise ExportError(f"{what} holds a streamdet export and other entries ({shown}), which a re-export "
                           "would delete with it: move them out, or choose another --out")  # fmt: skip
 
 
@@ -189,13 +191,26 @@ def parity_failed_dir(out_dir: Path) -> Path:
     return out_dir.with_name(out_dir.name + PARITY_FAILED_SUFFIX)
 
 
+def check_parity_failed_dir(out_dir: Path) -> Path:
+    """``parity_failed_dir(out_dir)``, checked as ``check_replaceable`` checks --out (and refused where it is a file):
+    the ExportError names it as the folder beside --out, not as an --out the user typed."""
+    failed_dir = parity_failed_dir(out_dir)
+    what = (f"{failed_dir} (beside --out {out_dir}, where an export that fails its parity check goes while --out "
+            "holds an export)")  # fmt: skip
+    if failed_dir.exists() and not failed_dir.is_dir():
+        raise ExportError(f"{what} exists and is not a directory; move it away, or choose another --out")
+    check_replaceable(failed_dir, what=what)
+    return failed_dir
+
+
 def commit_target(out_dir: Path, parity_passed: bool) -> Path:
     """``out_dir``, unless the new export failed its parity check and ``out_dir`` holds an export: a working export
     is never replaced by one the runtime refuses; the failed one goes beside it (``parity_failed_dir``), replacing
-    an earlier failed one, for inspection."""
+    an earlier failed one (never a folder ``check_replaceable`` refuses: checked again here, since ``out_dir`` may
+    have filled while the export ran), for inspection."""
     if parity_passed or not out_dir.is_dir() or not any(out_dir.iterdir()):
         return out_dir
-    return parity_failed_dir(out_dir)
+    return check_parity_failed_dir(out_dir)
 
 
 def commit_staging_dir(tmp: Path, out_dir: Path) -> None:

@@ -713,7 +713,7 @@ class StreamingDetector:
     @property
     def slice_runs_at_top_k(self) -> int:
         """Slice-graph runs so far in which a quadrant's K-th box (the last the graph decodes: the export's
-        ``post.top_k``, ``streamdet-export --top-k``) passed the score threshold, so the cap may have cut boxes."""
+        ``post.top_k_per_quadrant``, ``streamdet-export --top-k``) passed the score threshold, so the cap may have cut boxes."""
         return self._runs_at_top_k
 
     @property

@@ -16,14 +16,17 @@ definition (types, ranges, sizes), validated by ``Manifest.from_dict`` before an
                        LiDAR-only export (preset use_image false)
     normalisation      {input: "uint8 RGB (J, H, W, 3)", scale, mean_rgb, std_rgb}: applied inside image_encoder;
                        null in a LiDAR-only export
-    post               dict, decode/NMS settings of the preset (top_k, score_threshold, ...), for the runtime
+    post               dict, decode/NMS settings of the preset (score_threshold, ...), for the runtime;
+                       top_k_per_quadrant (and top_k, the same number) is K, the boxes the slice graph decodes per map
     graphs             [GraphEntry]: name ("image_encoder" | "volumetric_lifter" | "slice_head"), precision
                        ("fp32" | "fp16" | "int8"), file, sha256, opset, inputs/outputs [{name, shape, dtype}], gmac
-    lut                {file, sha256, calibration_sha256, camera_names, image_width, image_height}; null in a
-                       LiDAR-only export
+    lut                {file, sha256, calibration_sha256, calibration_source (a path, or the bundled sample's)}; null
+                       in a LiDAR-only export (the cameras and image size are ``image``'s)
     parity             [ParityRecord] (one per graph and precision) and a "pipeline" PipelineParity, as measured
-                       by the export itself
-    source             {checkpoint: path or null, checkpoint_sha256, seed, torch, onnx, onnxruntime versions}
+                       by the export itself; a record whose check compared nothing holds max_abs_diff NaN
+    source             {checkpoint: path or null, checkpoint_sha256, seed (of fixed-seed weights; null with a
+                       checkpoint), parity_input (what the parity checks ran on), parity_seed (of the parity check's
+                       noise images; null where they are real or absent), torch, onnx, onnxruntime versions}
     int8               null, or Int8Record when the export wrote int8 graphs (optional; absent in older manifests):
                        {calibration: Int8Calibration (the data the ranges came from), graphs: [Int8GraphRecord]
                        (what was quantized and what was kept float, and why), parity: [Int8OutputParity] (relative L2

@@ -14,7 +14,8 @@ from streamdet.runtime_ort.manifest import read_manifest
 @pytest.mark.parametrize("opset", [20])
 def test_int8_export_at_the_newest_opset(tmp_path, opset):
     out = tmp_path / "e"
-    args = ["--preset", "tiny", "--slices", "8", "--opset", str(opset), "--int8", "--calibration-samples", "1", "--out", str(out)]
+    # the bundled sample calibrates (one sample: --calibration-samples without --calibration-data is refused, review 41 F4)
+    args = ["--preset", "tiny", "--slices", "8", "--opset", str(opset), "--int8", "--out", str(out)]
     result = CliRunner().invoke(export_main, args)
     assert result.exit_code == 0, result.output
     m = read_manifest(out)
