@@ -26,10 +26,12 @@ Azimuth, the quadrant numbering by azimuth and the streaming sectors are defined
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
 
 import numpy as np
 
+from streamdet.core.json_input import short_repr
 from streamdet.core.sectors import (  # noqa: F401 (public here too)
     NUM_QUADRANTS,
     azimuth_deg,
@@ -58,16 +60,16 @@ class GridSpec:
     voxel_z_m: float = 0.5  # image-volume voxel height
 
     def __post_init__(self) -> None:
-        for name in ("x_range_m", "y_range_m", "z_range_m"):
-            lo, hi = getattr(self, name)
-            if not (_is_finite(lo) and _is_finite(hi) and hi > lo):
-                raise ValueError(f"GridSpec.{name} must be a finite (min, max) with max > min, got {(lo, hi)}")
+        # normalised first: a list or numpy range would make two equal grids compare unequal, break hashing (the
+        # caches keyed by grid) and JSON (Lut.save); a bool voxel would read as 1 m
+        for name in _RANGE_FIELDS:
+            object.__setattr__(self, name, _as_range(name, getattr(self, name)))
         for name in ("x_range_m", "y_range_m"):
             lo, hi = getattr(self, name)
             if abs(lo + hi) > 1e-9:
                 raise ValueError(f"GridSpec.{name} must be symmetric about 0 (quadrants split at the sensor), got {(lo, hi)}")
-        if not (_is_finite(self.voxel_xy_m) and _is_finite(self.voxel_z_m) and self.voxel_xy_m > 0 and self.voxel_z_m > 0):
-            raise ValueError(f"voxel sizes must be finite and > 0, got xy={self.voxel_xy_m}, z={self.voxel_z_m}")
+        for name in _VOXEL_FIELDS:
+            object.__setattr__(self, name, _as_voxel_size(name, getattr(self, name)))
         for name, extent, voxel in (
             ("x_range_m", self.x_range_m[1] - self.x_range_m[0], self.voxel_xy_m),
             ("y_range_m", self.y_range_m[1] - self.y_range_m[0], self.voxel_xy_m),
@@ -156,27 +158,47 @@ class GridSpec:
 
     @classmethod
     def from_dict(cls, d: dict) -> "GridSpec":
-        """The grid of ``to_dict``; KeyError, TypeError or ValueError (naming the value) for a malformed one."""
-        voxels = {}
-        for key in ("voxel_xy_m", "voxel_z_m"):
-            try:
-                voxels[key] = float(d[key])
-            except OverflowError:  # a JSON integer past float range
-                raise ValueError(f"GridSpec.{key} must be a finite number, got an integer past float range") from None
-        return cls(
-            x_range_m=tuple(d["x_range_m"]),
-            y_range_m=tuple(d["y_range_m"]),
-            z_range_m=tuple(d["z_range_m"]),
-            **voxels,
-        )
+        """The grid of ``to_dict``; KeyError (a missing field), TypeError (``d`` not a mapping) or ValueError (naming
+        the field and the value: a range that is no (min, max) pair of numbers, a voxel size that is no number; a
+        string or a bool is never read as one)."""
+        return cls(**{name: d[name] for name in _RANGE_FIELDS + _VOXEL_FIELDS})
 
 
-def _is_finite(value: object) -> bool:
-    """A real, finite number; False (not OverflowError) for an integer past float range, TypeError for a non-number."""
+_RANGE_FIELDS = ("x_range_m", "y_range_m", "z_range_m")
+_VOXEL_FIELDS = ("voxel_xy_m", "voxel_z_m")
+
+
+def _is_real(value: object) -> bool:
+    """A real number (int, float, numpy's), not a bool, a string or anything else."""
+    return isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
+
+
+def _as_float(value: numbers.Real) -> float:
+    """``float(value)``; NaN (refused as not finite) for an integer past float range."""
     try:
-        return math.isfinite(value)  # type: ignore[arg-type]
+        return float(value)
     except OverflowError:
-        return False
+        return math.nan
+
+
+def _as_range(name: str, value: object) -> tuple[float, float]:
+    """``value`` (a list, tuple or 1-d array of two real numbers, finite, max > min) as a tuple of two floats."""
+    pair = list(value) if isinstance(value, (list, tuple)) or (isinstance(value, np.ndarray) and value.ndim == 1) else None
+    if pair is None or len(pair) != 2 or not all(_is_real(v) for v in pair):
+        raise ValueError(f"GridSpec.{name} must be a (min, max) pair of numbers, got {short_repr(value)}")
+    lo, hi = _as_float(pair[0]), _as_float(pair[1])
+    if not (math.isfinite(lo) and math.isfinite(hi) and hi > lo):
+        raise ValueError(f"GridSpec.{name} must be a finite (min, max) with max > min, got {short_repr(value)}")
+    return lo, hi
+
+
+def _as_voxel_size(name: str, value: object) -> float:
+    """``value`` (a real number, finite and > 0) as a float."""
+    size = _as_float(value) if _is_real(value) else math.nan  # type: ignore[arg-type]
+    if not (math.isfinite(size) and size > 0):
+        raise ValueError(f"GridSpec.{name} must be a finite number > 0 (voxel sizes must be finite and > 0, in metres), "
+                         f"got {short_repr(value)}")  # fmt: skip
+    return size
 
 
 def _check_cells(name: str, extent: float, voxel: float) -> None:

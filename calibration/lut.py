@@ -104,11 +104,14 @@ def moved_cameras(old: "Lut", new: "Lut", min_iou: float = MOVED_CAMERA_IOU) -> 
     A recalibration moves a camera by centimetres and a fraction of a degree; a camera that now sees another part
     of the grid (turned around, swapped with another, a sign error in the extrinsics) is almost always a wrong
     calibration. Empty when the two LUTs do not describe the same cameras on the same grid (nothing to compare).
+    A camera that now sees no voxel at all is left out: `blind_cameras` reports it, and it has not turned around.
     """
     if old.camera_names != new.camera_names or old.grid != new.grid:
         return []
     moved = []
     for name, was, now in zip(new.camera_names, old.camera_coverage(), new.camera_coverage()):
+        if not now.any():  # blind now (BlindCameraWarning): one cause, one warning
+            continue
         union = int(np.count_nonzero(was | now))
         iou = 1.0 if union == 0 else int(np.count_nonzero(was & now)) / union
         if iou < min_iou:
@@ -266,7 +269,8 @@ class Lut:
         missing = [k for k in _META_KEYS if k not in meta]
         if missing:
             raise CalibrationError(f"{src}: meta: missing field(s) {missing}")
-        if meta["format"] != LUT_FORMAT or meta["version"] != LUT_VERSION:
+        version = meta["version"]  # an int: True and 1.0 equal 1 but are no version this project wrote
+        if meta["format"] != LUT_FORMAT or type(version) is not int or version != LUT_VERSION:
             raise CalibrationError(
                 f"{src}: meta.format/version: expected {LUT_FORMAT!r} v{LUT_VERSION}, got {meta['format']!r} v{meta['version']!r}"
             )
@@ -277,6 +281,7 @@ class Lut:
         sha = meta["calibration_sha256"]
         if not (isinstance(sha, str) and _SHA256_HEX.fullmatch(sha)):
             raise CalibrationError(f"{src}: meta.calibration_sha256: expected 64 lowercase hex digits (Rig.sha256()), got {short_repr(sha)}")
+        _check_stored_geometry(src, meta)
         try:
             lut = cls(
                 index=index,  # np.load's own arrays: __post_init__ takes its read-only copy, the only one
@@ -299,6 +304,30 @@ class Lut:
             if meta[key] != getattr(lut, key):
                 raise CalibrationError(f"{src}: meta.{key}: stored {meta[key]!r}, but the tables imply {getattr(lut, key)!r}")
         return lut
+
+
+def _check_stored_geometry(src: str, meta: dict) -> None:
+    """CalibrationError when the meta's stored feature map or sentinel disagree with its camera_names, feature_stride
+    and image size. Checked before the tables are: they are validated against the sentinel those fields imply, so
+    a meta naming another camera count or stride would otherwise be reported as a symptom (old sentinel slots read
+    as valid slots of weight 0). Fields of the wrong type are left to Lut's own checks, which name them."""
+    names, stride = meta["camera_names"], meta["feature_stride"]
+    width, height = meta["image_width"], meta["image_height"]
+    if not isinstance(names, list) or not all(_is_pixel_count(v) for v in (stride, width, height)):
+        return
+    feat_w, feat_h = -(-width // stride), -(-height // stride)  # ceil, in integers
+    implied = {"feature_width": feat_w, "feature_height": feat_h, "sentinel": len(names) * feat_w * feat_h}
+    for key, value in implied.items():
+        stored = meta[key]
+        if isinstance(stored, bool) or not isinstance(stored, int) or stored != value:
+            raise CalibrationError(
+                f"{src}: meta.{key}: stored {short_repr(stored)}, but camera_names ({len(names)} cameras), "
+                f"feature_stride {stride} and image size {width}x{height} imply {value}"
+            )  # fmt: skip
+
+
+def _is_pixel_count(value: object) -> bool:
+    return not isinstance(value, bool) and isinstance(value, int) and 0 < value <= MAX_IMAGE_PX
 
 
 def _owned_readonly(arr: np.ndarray) -> np.ndarray:

@@ -41,15 +41,17 @@ def build_lut(
     ``image_size`` (W, H) is the size of the images fed to the encoder, in whole pixels; the rig's K are rescaled
     to it. Without it, every camera must share one size. Math is float32 and separable in x, y, z, camera by camera.
     ``heights_per_voxel`` > 1 samples each voxel at that many heights (module doc). Refused up front with a
-    ValueError: more than `MAX_LUT_CAMERAS` cameras, a feature table with rows past int32, and, with heights, votes
-    of one camera over `MAX_LUT_BUILD_BYTES` (`lut_build_nbytes`). A LUT whose tables would exceed `MAX_LUT_BYTES`
-    (what a lut.npz may declare, so no reader would load it) is refused before they are allocated, as soon as the
-    cameras projected so far need more slots than fit: ValueError.
+    ValueError: a ``rig`` that is no Rig, more than `MAX_LUT_CAMERAS` cameras, a feature table with rows past int32,
+    and, with heights, votes of one camera over `MAX_LUT_BUILD_BYTES` (`lut_build_nbytes`). A LUT whose tables would
+    exceed `MAX_LUT_BYTES` (what a lut.npz may declare, so no reader would load it) is refused before they are
+    allocated, as soon as the cameras projected so far need more slots than fit: ValueError.
     """
     try:
         check_heights_per_voxel(heights_per_voxel)
     except CalibrationError as e:
         raise ValueError(str(e)) from None
+    if not isinstance(rig, Rig):  # a parsed calibration.json dict is the likely mistake
+        raise ValueError(f"rig must be a Rig (Rig.from_calibration_json for a dict or file), got {type(rig).__name__}")
     if not isinstance(grid, GridSpec):
         raise ValueError(f"grid must be a GridSpec, got {type(grid).__name__}")
     check_lut_bytes(grid, 1)  # K >= 1: refuse a grid too big for any LUT before projecting anything

@@ -9,6 +9,11 @@ image size, as the images are resized).
 It writes exactly two files, both in that directory and both atomically (a hidden temp file, then a rename):
 ``lut.npz`` and ``manifest.json``. Whatever the manifest says, no other path is written: a ``lut.file`` naming a
 path, or a ``lut.npz`` / ``manifest.json`` symlinked out of the directory, is refused before anything is written.
+Two rebuilds of one export (an operator and a calibration service) take turns: each holds an exclusive lock on
+the hidden ``.streamdet-calib.lock`` in the directory from before its LUT write until after its manifest write, so
+the manifest always records the sha256 and calibration of the lut.npz beside it. That lock file is the only other
+path it creates, and its holder removes it again; a run that waits past ``LOCK_WAIT_S`` gives up with `ExportBusy`,
+writing nothing.
 
 It lives in runtime_ort/ (it was calibration/cli.py) because it edits an export's manifest, which the runtime owns:
 calibration/ stays below the runtime and imports none of it.
@@ -16,8 +21,18 @@ calibration/ stays below the runtime and imports none of it.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import errno
+import fcntl
+import hashlib
+import io
+import json
+import os
+import stat
+import time
 from pathlib import Path
+from typing import Iterator
 
 import click
 
@@ -28,7 +43,7 @@ from streamdet.calibration.lut import (  # noqa: F401 (ASPECT_TOLERANCE, BlindCa
 )
 from streamdet.calibration.lut_build import build_lut
 from streamdet.runtime_ort.manifest import (
-    LUT_NAME, MANIFEST_NAME, LutEntry, ManifestError, atomic_write, export_file, read_manifest, sha256_file,
+    LUT_NAME, MANIFEST_NAME, LutEntry, Manifest, ManifestError, atomic_write, export_file, read_manifest, sha256_file,
     write_manifest,
 )
 
@@ -37,10 +52,21 @@ class LutMismatch(ValueError):
     """A calibration that does not fit an export; the message says why in one line."""
 
 
-def rebuild_lut(calibration: str | Path, export_dir: str | Path) -> tuple[Lut, bool]:
+class ExportBusy(RuntimeError):
+    """Another rebuild of the same export held its lock for longer than the wait allowed; nothing was written."""
+
+
+LOCK_NAME = ".streamdet-calib.lock"  # hidden: no manifest names it, and its holder removes it again
+LOCK_WAIT_S = 300.0  # how long a rebuild waits for another one of the same export (a paper-grid build takes seconds)
+_LOCK_POLL_S = 0.05
+
+
+def rebuild_lut(calibration: str | Path, export_dir: str | Path, lock_wait_s: float | None = None) -> tuple[Lut, bool]:
     """Rebuild ``export_dir/lut.npz`` from ``calibration`` and point the manifest at it.
 
-    Returns the new LUT and whether the file changed. Raises ManifestError, CalibrationError or LutMismatch.
+    Returns the new LUT and whether the file changed. The LUT is built unlocked; writing it and the manifest holds
+    the export's lock (module doc), waiting up to ``lock_wait_s`` (None: `LOCK_WAIT_S`) for another rebuild. Raises
+    ManifestError, CalibrationError, LutMismatch or ExportBusy (and OSError from the file system).
     """
     export_dir = Path(export_dir)
     manifest = read_manifest(export_dir, verify_files=False)
@@ -75,12 +101,90 @@ def rebuild_lut(calibration: str | Path, export_dir: str | Path) -> tuple[Lut, b
             f"the LUT's feature map {lut.feature_width}x{lut.feature_height} differs from the manifest's "
             f"{image.feature_width}x{image.feature_height}; the manifest is inconsistent"
         )
-    old_sha = sha256_file(lut_path) if lut_path.is_file() else None
-    atomic_write(export_dir, LUT_NAME, lambda f: lut.write_npz(f))
-    new_sha = sha256_file(lut_path)
-    entry = LutEntry(LUT_NAME, new_sha, lut.calibration_sha256, str(Path(calibration)))
-    write_manifest(dataclasses.replace(manifest, lut=entry), export_dir)
+    buf = io.BytesIO()
+    lut.write_npz(buf)
+    data = buf.getbuffer()  # the bytes written are the bytes hashed: the file is never read back
+    new_sha = hashlib.sha256(data).hexdigest()
+    with export_lock(export_dir, lock_wait_s):
+        current = read_manifest(export_dir, verify_files=False)  # another rebuild may have replaced it meanwhile
+        if _without_lut(current) != _without_lut(manifest):  # only a rebuild's own field may have changed
+            raise ManifestError(f"{export_dir / MANIFEST_NAME} changed while the LUT was built (re-exported?): "
+                                "nothing was written; run streamdet-calib again")  # fmt: skip
+        old_sha = sha256_file(lut_path) if lut_path.is_file() else None
+        atomic_write(export_dir, LUT_NAME, lambda f: f.write(data))
+        entry = LutEntry(LUT_NAME, new_sha, lut.calibration_sha256, str(Path(calibration)))
+        write_manifest(dataclasses.replace(current, lut=entry), export_dir)
     return lut, new_sha != old_sha
+
+
+def _without_lut(manifest: Manifest) -> str:
+    """The manifest as JSON text without its LUT entry: equal for two reads of one export that differ only by a
+    rebuild (text, not the dataclasses: a NaN the manifest may hold never equals itself)."""
+    return json.dumps({**manifest.to_dict(), "lut": None}, sort_keys=True, allow_nan=True)
+
+
+@contextlib.contextmanager
+def export_lock(export_dir: str | Path, wait_s: float | None = None) -> Iterator[None]:
+    """Hold the rebuild lock of ``export_dir``: an exclusive ``flock`` on its ``LOCK_NAME``, created if need be
+    and removed again by the holder before it lets go (so an export keeps only its own files). A waiter that gets
+    the lock of a file the holder has just removed locks the path's new file instead. ExportBusy after ``wait_s``
+    (None: `LOCK_WAIT_S`); ManifestError when the lock path is a symlink or no regular file (it is neither followed
+    nor removed)."""
+    path = Path(export_dir).resolve() / LOCK_NAME
+    deadline = time.monotonic() + (LOCK_WAIT_S if wait_s is None else wait_s)
+    while True:
+        fd = _open_lock_file(path)
+        try:
+            _flock_by(fd, deadline, path)
+            held = _same_file(fd, path)
+        except BaseException:
+            os.close(fd)
+            raise
+        if held:
+            break
+        os.close(fd)  # removed (and maybe recreated) by the run that held it: lock what the path names now
+    try:
+        yield
+    finally:
+        try:
+            path.unlink(missing_ok=True)  # under the lock: a waiter on this file sees it gone and retries
+        finally:
+            os.close(fd)
+
+
+def _open_lock_file(path: Path) -> int:
+    try:  # O_NOFOLLOW: never through a symlink; O_NONBLOCK: a FIFO there must not block the open
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC, 0o666)
+    except OSError as e:
+        if e.errno in (errno.ELOOP, errno.EISDIR):
+            raise ManifestError(f"{path}: the rebuild lock is a symlink or a directory; remove it (nothing was written)") from None
+        raise
+    if not stat.S_ISREG(os.fstat(fd).st_mode):
+        os.close(fd)
+        raise ManifestError(f"{path}: the rebuild lock is no regular file; remove it (nothing was written)")
+    return fd
+
+
+def _flock_by(fd: int, deadline: float, path: Path) -> None:
+    """An exclusive flock on ``fd``, polled until ``deadline`` (time.monotonic()), then ExportBusy."""
+    while True:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return
+        except BlockingIOError:
+            if time.monotonic() >= deadline:
+                raise ExportBusy(f"another streamdet-calib run holds {path}: gave up waiting for it, nothing was written") from None
+            time.sleep(_LOCK_POLL_S)
+
+
+def _same_file(fd: int, path: Path) -> bool:
+    """Whether ``path`` still names the file open as ``fd`` (its holder removes it before unlocking)."""
+    try:
+        st = os.stat(path, follow_symlinks=False)
+    except FileNotFoundError:
+        return False
+    mine = os.fstat(fd)
+    return (st.st_dev, st.st_ino) == (mine.st_dev, mine.st_ino)
 
 
 def _previous_lut(export_dir: str) -> Lut | None:
@@ -118,7 +222,7 @@ def lut_command(calibration: str, export_dir: str) -> None:
     previous = _previous_lut(export_dir)
     try:
         lut, changed = rebuild_lut(calibration, export_dir)
-    except (ManifestError, CalibrationError, LutMismatch) as e:
+    except (ManifestError, CalibrationError, LutMismatch, ExportBusy) as e:
         raise click.ClickException(str(e)) from None
     except OSError as e:
         raise click.ClickException(f"cannot write into {export_dir}: {e.strerror or e}") from None
