@@ -41,7 +41,7 @@ def encode_center(x_rel: np.ndarray, y_rel: np.ndarray, cell_m: float) -> tuple[
 def decode_head_maps(maps: HeadMaps, cell_m: float, top_k: int) -> tuple[Tensor, Tensor, Tensor]:
     """Head maps (each (Q, ch, Hh, Wh)) -> det_boxes (Q, K, 9), det_scores (Q, K), det_labels (Q, K) int64.
 
-    Sigmoid, 3x3 max-pool peak picking (a cell survives if it equals its neighbourhood max), top-K over
+    3x3 max-pool peak picking on the logits (a cell survives if it equals its neighbourhood max), sigmoid, top-K over
     classes x cells per quadrant. ``top_k`` must not exceed classes x cells (``Preset.top_k`` clamps it).
     """
     heatmap, *regression = maps
@@ -66,9 +66,11 @@ def pick_peaks(heatmap: Tensor, top_k: int) -> tuple[Tensor, Tensor, Tensor, Ten
     classes, hh, wh = int(heatmap.shape[-3]), int(heatmap.shape[-2]), int(heatmap.shape[-1])
     if top_k > classes * hh * wh:  # torch.topk's own error ("selected index k out of range") names neither
         raise ValueError(f"top_k must be at most classes x cells of the head map ({classes * hh * wh}), got {top_k!r}")
-    heat = heatmap.sigmoid()
-    hmax = F.max_pool2d(heat, kernel_size=3, stride=1, padding=1)
-    heat = heat * (hmax == heat).to(heat.dtype)  # (Q, C_cls, Hh, Wh), non-peaks zeroed
+    # the peak test on the logits, the sigmoid after it: the sigmoid is monotone, so the peaks are the same, but in
+    # float32 it rounds every logit above about 16.6 to exactly 1.0, and a confident object's neighbour cell would
+    # then tie with its centre and pass as a second peak
+    hmax = F.max_pool2d(heatmap, kernel_size=3, stride=1, padding=1)
+    heat = heatmap.sigmoid() * (hmax == heatmap).to(heatmap.dtype)  # (Q, C_cls, Hh, Wh), non-peaks zeroed
     scores, flat = heat.flatten(1).topk(top_k, dim=1)  # (Q, K)
     cells_per_class = hh * wh
     # top-k indices are non-negative, so truncating division is floor division (and one ONNX Div, where floor

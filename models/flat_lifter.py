@@ -39,7 +39,9 @@ def gather_z_major_bag(features: Tensor, lut_index: Tensor, lut_weight: Tensor) 
     q, k, z, yq, xq = lut_index.shape
     c = table.shape[1]
     index = lut_index.permute(0, 3, 4, 2, 1).reshape(-1, k).long()  # (Q*Yq*Xq*Z, K): one bag per voxel, z-major
-    weight = lut_weight.permute(0, 3, 4, 2, 1).reshape(-1, k)
+    # in the table's dtype: under autocast the features (and so the table) are bfloat16 / float16 while the LUT's
+    # weights stay float32, and embedding_bag takes per_sample_weights only in the table's own dtype
+    weight = lut_weight.permute(0, 3, 4, 2, 1).reshape(-1, k).to(table.dtype)
     rows = F.embedding_bag(index, table, per_sample_weights=weight, mode="sum", padding_idx=table.shape[0] - 1)
     return rows.reshape(q, yq, xq, z * c).permute(0, 3, 1, 2)  # (Q, Z*C, Yq, Xq): channel z * C + c
 

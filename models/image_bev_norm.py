@@ -66,7 +66,8 @@ class ImageBevNorm(nn.Module):
             ms = torch.where(some, (x.square() * mask).sum(dim=(0, 2, 3)) / cells.clamp(min=1), self.running_ms)  # (C,)
             point_ms = (point_bev.detach().square() * mask).sum() / (cells.clamp(min=1) * point_bev.shape[1])  # ()
             with torch.no_grad():
+                point_ms = point_ms.to(self.point_ms.dtype)
                 self.point_ms.copy_(torch.where(some, self.point_ms.lerp(point_ms, self.momentum), self.point_ms))
-        with torch.no_grad():
-            self.running_ms.lerp_(ms.detach(), self.momentum)  # unchanged where ms is the running value
+        with torch.no_grad():  # the buffers stay float32 under autocast, where x (so ms) is bfloat16 / float16
+            self.running_ms.lerp_(ms.detach().to(self.running_ms.dtype), self.momentum)  # unchanged where ms is the running value
         return x * (self.gain() / torch.sqrt(ms + self.eps)).view(1, -1, 1, 1)

@@ -30,6 +30,8 @@ class PillarFeatureNet(nn.Module):
         mask = pillar_mask.unsqueeze(-1)  # (P, M, 1)
         if self.training:  # batch statistics need the unfused BN
             p, m, _ = pillar_features.shape
+            if p == 0:  # no pillars: all-zero maps, as in eval; BN has no rows to take statistics of (they stand)
+                return pillar_features.new_zeros(0, self.linear.out_features)  # (0, C)
             y = self.norm(self.linear(pillar_features).reshape(p * m, -1)).reshape(p, m, -1)  # (P, M, C)
             return (self.relu(y) * mask).amax(dim=1)  # (P, C)
         # Eval: BN folded into the linear layer, its bias carried by the mask as a 12th input, so a (zero)

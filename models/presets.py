@@ -31,7 +31,8 @@ The presets:
   slice net for 2-core AVX2-only parts at nuScenes rates (issue 22); camera lane and pillar net unchanged. Trained
   once and not bundled: it drops fewer slices there but scores lower (docs/replay.md, "A thinner slice net").
 - ``small_v3_swift``: ``small_v3_thin`` with a lighter camera lane: 224 x 126 images and a factorised residual conv
-  in the flat lifter (``LifterConfig.residual="separable"``), for the phase-locked image lane (issue 22). Not bundled.
+  in the flat lifter (``LifterConfig.residual="separable"``), for the phase-locked image lane (issue 22). Bundled:
+  ``models/weights/small_v3_swift.pt`` (``streamdet-export --preset small_v3_swift`` loads it by default).
 
 Any LiDAR-only variant (``use_image=False``) may drop the quadrant crop (``slice_crop=False``: one whole-grid map
 per slice, the paper's baseline set-up; ``streamdet-train --no-image --no-crop``).
@@ -40,6 +41,7 @@ per slice, the paper's baseline set-up; ``streamdet-train --no-image --no-crop``
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import reprlib
 import typing
@@ -91,6 +93,7 @@ class ImageConfig:
     norm: str = "batch"
 
     def __post_init__(self) -> None:
+        _check_types(self)
         _check_positive_int(self, "width_px", "height_px", "width_divisor")
         _check_at_most(self, MAX_IMAGE_PX, "width_px", "height_px")
         if self.backbone_depth not in (18, 50):
@@ -118,6 +121,7 @@ class PillarConfig:
     num_point_features: int = 11  # x, y, z, r, t, s, 3 offsets to the pillar mean, 2 to the cell centre
 
     def __post_init__(self) -> None:
+        _check_types(self)
         _check_positive_int(self, "max_points_per_pillar", "max_pillars")
         _check_at_most(self, MAX_POINTS_PER_PILLAR, "max_points_per_pillar")
         _check_at_most(self, MAX_PILLARS, "max_pillars")
@@ -148,6 +152,7 @@ class LifterConfig:
     residual: str = "conv"
 
     def __post_init__(self) -> None:
+        _check_types(self)
         _check_positive_int(self, "z_conv_stride", "z_pool", "lut_heights_per_voxel")
         _check_at_most(self, MAX_STRIDE, "z_conv_stride", "z_pool")
         _check_at_most(self, MAX_LUT_HEIGHTS, "lut_heights_per_voxel")
@@ -171,6 +176,7 @@ class BevEncoderConfig:
     num_upsample_filters: tuple[int, ...] = (128, 128, 128)  # concat = 384 channels into the head
 
     def __post_init__(self) -> None:
+        _check_types(self)
         n = len(self.layer_nums)
         for name in ("layer_strides", "num_filters", "upsample_strides", "num_upsample_filters"):
             if len(getattr(self, name)) != n:
@@ -214,6 +220,7 @@ class HeadConfig:
     heatmap_bias_init: float = -2.19  # CenterPoint: sigmoid(-2.19) ~ 0.1 prior
 
     def __post_init__(self) -> None:
+        _check_types(self)
         _check_positive_int(self, "head_channels", "out_stride", "final_kernel")
         _check_at_most(self, MAX_CHANNELS, "head_channels")
         _check_at_most(self, MAX_STRIDE, "out_stride")
@@ -233,6 +240,7 @@ class PostConfig:
     max_detections: int = 500  # per slice after NMS
 
     def __post_init__(self) -> None:
+        _check_types(self)
         _check_positive_int(self, "top_k", "max_detections")
         _check_at_most(self, MAX_DETECTIONS, "top_k", "max_detections")
         if not 0.0 <= self.score_threshold < 1.0:
@@ -264,10 +272,9 @@ class Preset:
     slice_crop: bool = True
 
     def __post_init__(self) -> None:
+        _check_types(self)
         _check_positive_int(self, "channels")
         _check_at_most(self, MAX_CHANNELS, "channels")
-        if not isinstance(self.slice_crop, bool):
-            raise ValueError(f"Preset.slice_crop must be True or False, got {self.slice_crop!r}")
         if self.image_bev_target not in IMAGE_BEV_TARGETS:
             raise ValueError(f"Preset.image_bev_target must be one of {IMAGE_BEV_TARGETS}, got {self.image_bev_target!r}")
         if self.use_image and not self.slice_crop:
@@ -405,36 +412,64 @@ def _finite(value: Any) -> bool:
 def _typed(value: Any, hint: Any, where: str) -> Any:
     """``value`` if it has the type ``hint`` (int, float, bool, str, tuple[X, ...] as a list or tuple: returned as a
     tuple), else ValueError naming ``where``."""
+    return _checked(value, hint, where, "preset dict is malformed: ", _FILE_WORDS)
+
+
+# how ``_checked`` names a bool and a sequence: in a preset dict (JSON: true / false, a list) and in Python, where a
+# config's sequence must be a tuple (the configs are frozen, so hashable: a list field would make them unhashable)
+_FILE_WORDS = ("true or false", "a list", (list, tuple))
+_PYTHON_WORDS = ("True or False", "a tuple", (tuple,))
+
+
+def _checked(value: Any, hint: Any, where: str, prefix: str, words: tuple[str, str, tuple[type, ...]]) -> Any:
+    """``_typed``'s check, its messages prefixed with ``prefix`` and naming bools and sequences with ``words``."""
+    boolean, sequence, sequence_types = words
     if hint is bool:
         if not isinstance(value, bool):
-            raise ValueError(f"preset dict is malformed: {where} must be true or false, got {_short(value)}")
+            raise ValueError(f"{prefix}{where} must be {boolean}, got {_short(value)}")
     elif hint is int:
         if isinstance(value, bool) or not isinstance(value, int):
-            raise ValueError(f"preset dict is malformed: {where} must be an integer, got {_short(value)}")
+            raise ValueError(f"{prefix}{where} must be an integer, got {_short(value)}")
         if value.bit_length() > 63:  # every field's own bound is far below; such a number is no preset's
-            raise ValueError(f"preset dict is malformed: {where} must be an integer below 2**63, got {_short(value)}")
+            raise ValueError(f"{prefix}{where} must be an integer below 2**63, got {_short(value)}")
     elif hint is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not _finite(value):
-            raise ValueError(f"preset dict is malformed: {where} must be a finite number, got {_short(value)}")
+            raise ValueError(f"{prefix}{where} must be a finite number, got {_short(value)}")
     elif hint is str:
         if not isinstance(value, str):
-            raise ValueError(f"preset dict is malformed: {where} must be a string, got {_short(value)}")
+            raise ValueError(f"{prefix}{where} must be a string, got {_short(value)}")
     elif typing.get_origin(hint) is tuple:
-        if not isinstance(value, (list, tuple)):
-            raise ValueError(f"preset dict is malformed: {where} must be a list, got {_short(value)}")
+        if not isinstance(value, sequence_types):
+            raise ValueError(f"{prefix}{where} must be {sequence}, got {_short(value)}")
         args = typing.get_args(hint)
         if len(args) == 2 and args[1] is Ellipsis:
-            return tuple(_typed(v, args[0], f"{where}[{i}]") for i, v in enumerate(value))
+            return tuple(_checked(v, args[0], f"{where}[{i}]", prefix, words) for i, v in enumerate(value))
         if len(value) != len(args):
-            raise ValueError(f"preset dict is malformed: {where} must hold {len(args)} entries, got {_short(value)}")
-        return tuple(_typed(v, a, f"{where}[{i}]") for i, (v, a) in enumerate(zip(value, args)))
+            raise ValueError(f"{prefix}{where} must hold {len(args)} entries, got {_short(value)}")
+        return tuple(_checked(v, a, f"{where}[{i}]", prefix, words) for i, (v, a) in enumerate(zip(value, args)))
     else:  # a field type this reader does not know: a programming error, named rather than let through
         raise TypeError(f"{where}: no reader for the field type {hint!r}")
     return value
 
 
+def _check_types(obj: Any) -> None:
+    """Each field of the config dataclass ``obj`` of its own type, as strictly as ``Preset.from_dict`` reads it
+    (``_typed``: no bool for an int, a finite number for a float, ...), a tuple for a sequence and a sub-config
+    (the grid included) of its class: else ValueError naming the field and quoting the value. Called first in each
+    ``__post_init__``, so that a config the constructor takes is one whose ``to_dict`` reads back."""
+    for name, hint in _fields(type(obj)).items():
+        value, where = getattr(obj, name), f"{type(obj).__name__}.{name}"
+        if typing.get_origin(hint) is None and isinstance(hint, type) and hint not in (bool, int, float, str):
+            if not isinstance(value, hint):
+                raise ValueError(f"{where} must be a {hint.__name__}, got {_short(value)}")
+        else:
+            _checked(value, hint, where, "", _PYTHON_WORDS)
+
+
+@functools.cache
 def _fields(config: type) -> dict[str, Any]:
-    """The fields of a config dataclass and their types (resolved: this module's annotations are strings)."""
+    """The fields of a config dataclass and their types (resolved: this module's annotations are strings); cached,
+    so not to be modified."""
     hints = typing.get_type_hints(config)
     return {f.name: hints[f.name] for f in dataclasses.fields(config)}
 

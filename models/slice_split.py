@@ -24,6 +24,8 @@ is rewritten alike.
 
 from __future__ import annotations
 
+import copy
+
 import torch
 from torch import Tensor, nn
 
@@ -277,5 +279,10 @@ def _out_channels(deblock: nn.Sequential) -> int:
 
 
 def export_slice_net(net: SliceNet, image_layout: str = IMAGE_BEV) -> ExportSliceNet:
-    """What the exporter traces for the slice net."""
-    return ExportSliceNet(net, image_layout).eval()
+    """``ExportSliceNet`` of a copy of ``net``, in eval mode; ``net`` itself is left as it was (its mode included).
+
+    The exporter goes through ``export_form.to_export_form``, which copies the whole detector the same way;
+    ``ExportSliceNet`` shares its modules with the net it is given, so without the copy ``.eval()`` would switch a
+    training net's pillar net, encoder and head to eval (their BatchNorm statistics would stop updating).
+    """
+    return ExportSliceNet(copy.deepcopy(net), image_layout).eval()
