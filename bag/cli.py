@@ -24,6 +24,7 @@ from streamdet.cli_utils import (
     fallback_options,
     image_precision_option,
     providers_option,
+    refuse_image_lane_options,
     refuse_output_over_inputs,
     refuse_same_outputs,
     scan_layout_options,
@@ -36,6 +37,9 @@ from streamdet.cli_utils import (
 from streamdet.progress import counted
 
 LIBRARY_ERRORS = (ValueError, KeyError, FileNotFoundError, OSError, MissingExtraError)
+# run's options that only an export with cameras can use (parameter names): given with a LiDAR-only export, they are
+# refused before any work, named (DetectorConfig refuses the first two too, but in its own field names, exit 1)
+RUN_IMAGE_LANE_OPTIONS = ("image_precision", "fallback_export_dir", "fallback_after_ms")
 
 
 # A bag is usually an irreplaceable drive recording (README's drive.mcap, car.mcap): `bag export --out` over one
@@ -134,6 +138,10 @@ def run_cmd(bag_path: Path, export_dir: Path, out: Path, results_json: Path | No
     logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(message)s")
     check_fallback_options(fallback_export_dir, fallback_after_ms)  # a usage error in the options' names, first
     require_export_dir(export_dir)
+    from streamdet.evaluation.run_cli import export_reads_images
+
+    # a LiDAR-only export has no image lane and is itself what a fallback runs: a usage error naming the options typed
+    refuse_image_lane_options(click.get_current_context(), export_dir, RUN_IMAGE_LANE_OPTIONS, export_reads_images)
     from streamdet.bag.run import RunConfig, results_path_of, run_bag
     from streamdet.bag.topics import TopicMap
     from streamdet.runtime_ort.stats import format_latency

@@ -191,7 +191,9 @@ def play_events(lane: PhaseLockedImageLane, clock, events: Iterable[tuple[float,
     Every event due by the time a step returns is delivered before the next step plans: slices and frames that came
     while the lane worked reach it together, as they reach the runner's lane (its worker plans after its update
     ends, with everything submitted meanwhile). Delivering one of them per step lagged the lane's view of the drive
-    behind its own work, more the busier it was (the thirty-ninth session's review: up to 90 ms at 2.5x costs)."""
+    behind its own work, more the busier it was; what that did to the stale shares, and the gap to a driver that
+    delivers every event at its own time, is measured in docs/replay.md ("Ready lifts, and each camera's budget",
+    its caveat)."""
     events = list(events)
     wake = None
     i = 0

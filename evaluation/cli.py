@@ -23,13 +23,14 @@ from streamdet.cli_utils import (
     image_precision_option,
     json_output_option,
     providers_option,
+    refuse_image_lane_options,
     refuse_output_over_inputs,
     split_list,
     version_option,
     dataset_inputs,
     write_json_output,
 )
-from streamdet.evaluation.run_cli import OTHER_TOOLS_FOLDERS
+from streamdet.evaluation.run_cli import OTHER_TOOLS_FOLDERS, export_reads_images
 from streamdet.core.constants import DEFAULT_EXPORT_DIR
 from streamdet.core.errors import first_line
 from streamdet.evaluation.bootstrap import FEW_CLUSTERS
@@ -190,6 +191,23 @@ def _refuse_other_modes_options(ctx: click.Context, mode: str) -> None:
 
 
 
+def _saved_run_folders(path: Path) -> list[Path]:
+    """The saved runs ``path`` (a --gt or --results file) lies in: its folder, spelled and resolved, where that folder
+    holds every file --save-results writes (``SAVED_FILES``, regular files), which --compare reads as a run. Not a
+    folder with only results.json and gt.json (a run saved before samples.json existed, or a user's own two files
+    under the usual names): such a folder may take the --json, beside the two files."""
+    folders = [path.parent]
+    try:
+        folders.append(path.resolve().parent)  # a link into a saved run: the files it reads are that run's
+    except (OSError, RuntimeError):  # a link loop: the reading names it
+        pass
+    runs: list[Path] = []
+    for folder in folders:
+        if all((folder / name).is_file() for name in SAVED_FILES) and folder not in runs:
+            runs.append(folder)
+    return runs
+
+
 def _run_key(path: Path) -> Path:
     """What makes two runs one: the results file each reads, resolved (a folder reads its results.json). Not the
     folder: several results files in one folder are several runs, and a folder and its own results.json are one."""
@@ -318,6 +336,7 @@ def main(gt_path: Path | None, results_path: Path | None, data_dir: Path | None,
             raise click.UsageError("--data runs the detector itself; do not combine it with --gt / --results")
         if slices is not None and slices not in (1, 2) and slices % 4:
             raise click.BadParameter(f"{slices} must be 1, 2 or a multiple of 4", param_hint="--slices")
+        refuse_image_lane_options(click.get_current_context(), export_dir, ("image_precision",), export_reads_images)
         inputs = [*dataset_inputs(data_dir), ("--export-dir", export_dir)]
         refuse_output_over_inputs(json_path, "--json", inputs)
         refuse_output_over_inputs(save_dir, "--save-results", inputs)
@@ -349,6 +368,10 @@ def main(gt_path: Path | None, results_path: Path | None, data_dir: Path | None,
         if json_path is not None and json_path.resolve() in siblings:
             raise click.BadParameter(f"{str(json_path)!r} is a file of the saved run beside {option} {path} "
                                      f"({', '.join(SAVED_FILES)}); choose another path", param_hint="--json")  # fmt: skip
+    # and the saved run itself is an input, as --compare reads it: no tool writes into a saved run's folder
+    refuse_output_over_inputs(json_path, "--json", [(f"{option}'s saved run", folder)
+                                                    for option, path in (("--gt", gt_path), ("--results", results_path))
+                                                    for folder in _saved_run_folders(path)])  # fmt: skip
     check_output_parent(json_path, "--json")  # a FIFO there blocked the write after the scoring
     try:
         inputs = load_eval_inputs(gt_path, results_path)

@@ -15,7 +15,7 @@ import numpy as np
 
 from streamdet.cli_utils import (
     MAX_SLICES, PRECISION_CHOICES, check_folder_creatable, check_output_parent, check_results_folder, image_precision_option,
-    providers_option, refuse_output_over_inputs, require_export_dir, slices_callback)
+    providers_option, refuse_image_lane_options, refuse_output_over_inputs, require_export_dir, slices_callback)
 from streamdet.runtime_ort.stats import format_latency
 from streamdet.core import constants
 
@@ -41,6 +41,18 @@ def dataset_root(folder: Path) -> str | None:
 # The folders a results folder must not be (besides an export, which check_results_folder knows). A training run is
 # not among them: training/run_dir.py recognises one, and evaluation must not import the training side.
 OTHER_TOOLS_FOLDERS = (dataset_root,)
+
+
+def export_reads_images(export_dir: Path) -> bool | None:
+    """The export's modality for ``cli_utils.refuse_image_lane_options`` (run, eval, bag run and replay): its manifest
+    preset's use_image, or None when ``export_dir`` holds no readable manifest (the tool's own opening of the export
+    then says what is wrong, as without the options). Only the manifest is read: the detector verifies the files."""
+    from streamdet.runtime_ort.manifest import ManifestError, read_manifest
+
+    try:
+        return read_manifest(export_dir, verify_files=False).use_image
+    except ManifestError:
+        return None
 
 
 def check_out_dir(out_dir: Path, inputs: list[tuple[str, Path | None]]) -> None:
@@ -167,6 +179,7 @@ def main(
     """Run the streaming detector (onnxruntime, no PyTorch) on one sample: every slice, then the sweep merged."""
     logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(message)s")
     require_export_dir(export_dir)
+    refuse_image_lane_options(click.get_current_context(), export_dir, ("image_precision",), export_reads_images)
     from streamdet.data.sample import bundled_sample_dir
 
     # --out inside the sample (the bundled one by default) or the export would add files to what others read; a

@@ -7,7 +7,6 @@ import sys
 from pathlib import Path
 
 import click
-from click.core import ParameterSource
 
 from streamdet.core.points import NUSCENES_CAMERA_HZ, NUSCENES_LIDAR_HZ
 from streamdet.cli_utils import (
@@ -29,6 +28,7 @@ from streamdet.cli_utils import (
     image_precision_option,
     json_output_option,
     providers_option,
+    refuse_image_lane_options,
     refuse_output_over_inputs,
     refuse_same_outputs,
     scan_layout_options,
@@ -38,7 +38,7 @@ from streamdet.cli_utils import (
     require_export_dir,
 )
 from streamdet.core.file_output import write_text_atomic
-from streamdet.evaluation.run_cli import OTHER_TOOLS_FOLDERS
+from streamdet.evaluation.run_cli import OTHER_TOOLS_FOLDERS, export_reads_images
 from streamdet.replay.modes import MODES
 from streamdet.replay.schedule import MAX_DELIVERY_S, MAX_RATE_HZ, MAX_TIME_SCALE, MIN_RATE_HZ, MIN_TIME_SCALE
 from streamdet.replay.triggers import DEFAULT_TRIGGER, TRIGGER_MODELS
@@ -54,14 +54,14 @@ MAX_QUEUE = 1024  # LaneConfig's bound
 OUT_FILES = ("replay.json", "report.md")  # the files --out receives
 # The options of the image lane and of the cameras that feed it, by parameter name. A LiDAR-only export has neither
 # (no images are even loaded), so one of them typed on the command line would be ignored, yet echoed in the report as
-# if in effect: they are refused together, before any work. Their defaults are not "given" and pass. (The runtime
+# if in effect: they are refused together, before any work (cli_utils.refuse_image_lane_options, as streamdet-run,
+# streamdet-eval --data and streamdet-bag run refuse theirs). Their defaults are not "given" and pass. (The runtime
 # refuses --image-precision and --fallback-export on its own, DetectorConfig, but only once the replay has started.)
 IMAGE_LANE_OPTIONS = (
     "image_precision", "camera_hz", "camera_trigger", "camera_delivery_ms", "image_lane_threads", "schedule",
     "image_lane_nice", "image_lane_yield", "camera_terms", "fallback_export_dir", "fallback_after_ms", "camera_outages",
     "camera_timeout_ms",
 )  # fmt: skip
-_GIVEN = (ParameterSource.COMMANDLINE, ParameterSource.ENVIRONMENT)  # typed by the user, not a default
 
 
 
@@ -104,30 +104,6 @@ def _check_option_conflicts(schedule: str, image_lane_yield: int, coalesce_slice
     if image_lane_yield and schedule != "phase-locked":
         raise click.UsageError(f"--image-lane-yield {image_lane_yield} needs --schedule phase-locked (the full schedule's "
                                f"update is one job that cannot hold back between quadrants), got --schedule {schedule}")  # fmt: skip
-
-
-def image_lane_options_given(ctx: click.Context) -> list[str]:
-    """The image-lane options (IMAGE_LANE_OPTIONS) given on the command line, as --help spells them."""
-    return ["/".join([*p.opts, *p.secondary_opts]) for p in ctx.command.params
-            if p.name in IMAGE_LANE_OPTIONS and ctx.get_parameter_source(p.name) in _GIVEN]  # fmt: skip
-
-
-def _refuse_image_lane_options(ctx: click.Context, export_dir: Path) -> None:
-    """With a LiDAR-only export: UsageError naming every image-lane option given (a default is not given)."""
-    given = image_lane_options_given(ctx)
-    if not given:
-        return
-    from streamdet.runtime_ort.manifest import ManifestError, read_manifest
-
-    try:
-        manifest = read_manifest(export_dir, verify_files=False)  # the modality only; the detector verifies the files
-    except ManifestError:
-        return  # not an export at all: the replay's own opening of it says what is wrong, as without these options
-    if not manifest.use_image:
-        apply, them = ("apply", "them") if len(given) > 1 else ("applies", "it")
-        raise click.UsageError(f"{export_dir} is a LiDAR-only export (manifest preset use_image=false) with no image "
-                               f"lane and no cameras: {', '.join(given)} only {apply} to an export with cameras; drop "
-                               f"{them}")  # fmt: skip
 
 
 def _write(path: Path, option: str, write) -> None:
@@ -255,7 +231,8 @@ def main(
     require_export_dir(export_dir)
     if not (data / table_version).is_dir():
         raise click.ClickException(f"{data / table_version} does not exist: --data must be a nuScenes-format dataset root")
-    _refuse_image_lane_options(click.get_current_context(), export_dir)  # first: with no image lane, drop them all
+    # first: with no image lane, drop them all
+    refuse_image_lane_options(click.get_current_context(), export_dir, IMAGE_LANE_OPTIONS, export_reads_images)
     _check_option_conflicts(schedule, image_lane_yield, coalesce_slices, pair_hold_load, fallback_export_dir, fallback_after_ms)
     defaults = LaneConfig()
     try:

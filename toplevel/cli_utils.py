@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Collection
 from pathlib import Path
 
 import click
+from click.core import ParameterSource
 
 from streamdet.cli_outputs import (  # noqa: F401 (re-exported: every CLI imports them from here)
     refuse_output_over_inputs, dataset_inputs, not_a_file, refuse_same_outputs, check_output_parent, check_folder_creatable, check_plot_format, require_export_dir, write_json_output,
@@ -139,6 +141,33 @@ def image_precision_option(flag: str = "--image-precision", dest: str = "image_p
         "them. On x86 CPUs int8 here with fp32 slices halves the image lane's time (fresher camera features) "
         "and keeps the slice graph exact. Default: the same precision as the slices.",
     )
+
+
+# ---- options a LiDAR-only export has no use for ---------------------------------------------------------------
+# A LiDAR-only export has no image lane and no cameras: an option that steers them, typed on the command line, would
+# be ignored (or refused by DetectorConfig in its own field names, once the command has started: exit 1). Every tool
+# refuses such options as a usage error naming them, before any work. A default is not "given" and passes.
+GIVEN_SOURCES = (ParameterSource.COMMANDLINE, ParameterSource.ENVIRONMENT)  # typed by the user, not a default
+
+
+def options_given(ctx: click.Context, names: Collection[str]) -> list[str]:
+    """The options of ``ctx``'s command among ``names`` (parameter names) given by the user, as --help spells them."""
+    return ["/".join([*p.opts, *p.secondary_opts]) for p in ctx.command.params
+            if p.name in names and ctx.get_parameter_source(p.name) in GIVEN_SOURCES]  # fmt: skip
+
+
+def refuse_image_lane_options(ctx: click.Context, export_dir: Path, names: Collection[str],
+                              reads_images: Callable[[Path], bool | None]) -> None:  # fmt: skip
+    """With a LiDAR-only export: click.UsageError (exit 2) naming every option of ``names`` (parameter names) that
+    was given. ``reads_images(export_dir)`` is the export's modality (manifest preset use_image), None when it is no
+    readable export: then nothing is refused here and the tool's own opening of the export says what is wrong. It is
+    asked only when one of the options was given (this module reads no manifest: it imports streamdet.core only)."""
+    given = options_given(ctx, names)
+    if not given or reads_images(export_dir) is not False:
+        return
+    apply, them = ("apply", "them") if len(given) > 1 else ("applies", "it")
+    raise click.UsageError(f"{export_dir} is a LiDAR-only export (manifest preset use_image=false) with no image lane "
+                           f"and no cameras: {', '.join(given)} only {apply} to an export with cameras; drop {them}")  # fmt: skip
 
 
 def fallback_options(clock: str = "sensor"):

@@ -215,7 +215,7 @@ def _show(value: Any) -> str:
 
 
 def _check_combinations(teacher: Path | None, distill_weight: float, num_slices: tuple[int, ...],
-                        max_slices_per_sample: int | None, no_image: bool = False) -> None:  # fmt: skip
+                        max_slices_per_sample: int | None, no_image: bool = False, no_crop: bool = False) -> None:  # fmt: skip
     """Options that would be silently ignored in this combination are refused: the user meant something else."""
     ctx = click.get_current_context()
     if teacher is None and given(ctx, "distill_weight"):  # given, even at its default value
@@ -229,6 +229,10 @@ def _check_combinations(teacher: Path | None, distill_weight: float, num_slices:
         if no_image and ctx.params[name] != default:
             raise click.BadParameter(f"{ctx.params[name]!r} sets the image lane, which --no-image leaves out: drop one of "
                                      "them", param_hint=option)  # fmt: skip
+    # the other way round: TrainConfig refuses --no-crop of a fused run too, but as a failed run (exit 1, no usage line)
+    if no_crop and not no_image:
+        raise click.BadParameter("training without the quadrant crop is supported for the LiDAR-only baseline only: add "
+                                 "--no-image", param_hint="--no-crop")  # fmt: skip
     if max_slices_per_sample is not None and max_slices_per_sample > max(num_slices):
         raise click.BadParameter(f"{max_slices_per_sample} is more than the {max(num_slices)} slices of the largest "
                                  f"--num-slices {','.join(map(str, num_slices))}: it would change nothing",
@@ -349,7 +353,7 @@ def main(data_dir: Path, version: str, out_dir: Path, preset: str, steps: int | 
         raise click.ClickException("--freeze-camera-lane keeps the camera lane --init gives: add --init WEIGHTS")
     if init is not None and resume is not None:
         raise click.ClickException("--init and --resume exclude each other: --resume continues a run, --init starts one from weights")
-    _check_combinations(teacher, distill_weight, num_slices, max_slices_per_sample, no_image)
+    _check_combinations(teacher, distill_weight, num_slices, max_slices_per_sample, no_image, no_crop)
     if cache_dir is not None:
         _check_cache_dir(cache_dir, data_dir, version)
         _check_cache_folder(cache_dir, "--cache-dir")
