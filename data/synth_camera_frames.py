@@ -7,7 +7,9 @@
   written LiDAR sweep. That is the rule of the replay's ``lidar-synced`` trigger model (``replay/triggers.py``) on the
   drive the replay reads from the dataset, so a replay at that camera rate finds a frame recorded at each trigger.
   Intervals are whole rotations (50 or 100 ms for 12 Hz cameras on the 20 Hz LiDAR). The key frames' exposures are
-  kept too, so a camera's mean rate is a little above ``camera_hz`` where the two rules pick different rotations.
+  added: each key frame whose rotation that grid does not pick adds a frame, so a camera's mean rate is at least
+  ``camera_hz`` (and the key frames' 2 Hz) and up to ``camera_hz + 2`` Hz, by camera and ``sweeps_per_sample`` (with
+  10 the key frames lie on odd rotations of the grid, and a rate whose grid picks even ones gets all of the 2 Hz).
   The LiDAR turns whether or not its sweep is written: with fewer sweeps per key-frame interval than rotations the
   cameras still expose at their own rate, and a replay, which sees only the written sweeps, triggers at fewer of them.
 

@@ -2,11 +2,19 @@
 and ``streamdet-synth stats DIR`` to measure a dataset against the real nuScenes sample.
 
 ``streamdet-synth --out DIR ...`` (no subcommand) is the generator, as it always was: the group runs the
-``generate`` command whenever the first argument is not a subcommand's name.
+``generate`` command whenever the first argument is an option (a generate invocation always starts with one; a word
+that names no subcommand, ``streamdet-synth stat DIR``, is click's "No such command" error).
 """
 
 from __future__ import annotations
 
+import gc
+import multiprocessing
+import os
+import signal
+import sys
+import threading
+import traceback
 from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
@@ -33,6 +41,7 @@ from streamdet.data.synth_stats import open_samples
 from streamdet.data.synth_world import WorldConfig
 from streamdet.data.synth_writer import (
     DEFAULT_VERSION,
+    GenerationSummary,
     RootSurvey,
     SynthConfig,
     remove_dataset_entries,
@@ -49,15 +58,78 @@ MAX_SCENES = 10_000
 MAX_SAMPLES_PER_SCENE = 1000  # 500 s of drive per scene at 2 Hz
 MAX_STATS_SAMPLES = 1_000_000  # key frames measured by `stats` (nuScenes has 40k)
 MAX_CAMERA_HZ = round(1.0 / SWEEP_DURATION_S, 6)  # once per rotation of the LiDAR (20 Hz)
+KEY_FRAME_HZ = round(1.0 / WorldConfig().sample_interval_s, 6)  # each key frame adds its exposure to --camera-hz's
+EXIT_TERMINATED = 128 + signal.SIGTERM  # 143, as a shell reports a process ended by SIGTERM
 
 
 class _DefaultGroup(click.Group):
-    """A group that runs ``generate`` when the first argument names no subcommand (the old invocation)."""
+    """A group that runs ``generate`` when the first argument is an option other than help (the old invocation,
+    ``streamdet-synth --out DIR ...``). Any other first word is a subcommand's name, or click's "No such command"
+    error with its "Did you mean" hint (``stat``): not a generate run told that --out is missing."""
 
     def parse_args(self, ctx: click.Context, args: list[str]) -> list[str]:
-        if args and args[0] not in self.commands and args[0] not in ("-h", "--help"):
+        if args and args[0].startswith("-") and args[0] not in self.get_help_option_names(ctx):
             args = ["generate"] + list(args)
         return super().parse_args(ctx, args)
+
+
+class _Terminated(SystemExit):
+    """What the run's SIGTERM handler raises in the main thread (`_SigtermStopsRun`): it unwinds the run as Ctrl-C
+    does (StagedDataset removes what the run wrote); left uncaught, it ends the process with EXIT_TERMINATED."""
+
+    def __init__(self) -> None:
+        super().__init__(EXIT_TERMINATED)
+
+
+class _SigtermStopsRun:
+    """While open, SIGTERM (``timeout``, ``kill``, ``docker stop``, a scheduler's time limit) stops the run as Ctrl-C
+    does, where its default action ended the process at once and left the staging folder behind: it raises
+    `_Terminated` in the main thread, and the first one ends the worker processes too (their scenes are the staging
+    folder's, and would otherwise run to their end first). Once the caller's cleanup has begun (`stopping`), more
+    are ignored (SIGKILL still ends the process). An exception raised in a signal handler is lost where C code
+    clears the errors of what it calls (numpy's probe of an operand's special attributes, at ``mat == Mat.STRIPES``),
+    and the run went on: `check` raises it again, called at each key frame and before the dataset is moved into
+    place. A worker forked while it is open ends at SIGTERM as by default. The previous handler is restored on
+    leaving. Outside the main thread, or where the previous handler was set from C (it could not be put back), it
+    installs nothing."""
+
+    def __init__(self) -> None:
+        self.received = False
+        self.stopping = False  # set by the caller as it cleans up: further SIGTERMs would cut the cleanup short
+        self._pid = os.getpid()
+        self._previous = None
+        self._installed = False
+
+    def __enter__(self) -> _SigtermStopsRun:
+        if threading.current_thread() is threading.main_thread():
+            self._previous = signal.getsignal(signal.SIGTERM)
+            if self._previous is not None:
+                signal.signal(signal.SIGTERM, self._handle)
+                self._installed = True
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        if self._installed:
+            signal.signal(signal.SIGTERM, self._previous)
+            self._installed = False
+
+    def check(self) -> None:
+        """Raise `_Terminated` where SIGTERM came and the run goes on (its first exception lost)."""
+        if self.received and not self.stopping:
+            raise _Terminated()
+
+    def _handle(self, signum: int, frame) -> None:
+        if os.getpid() != self._pid:  # a worker process, forked with this handler: the default action
+            signal.signal(signal.SIGTERM, signal.SIG_DFL)
+            os.kill(os.getpid(), signal.SIGTERM)
+            return
+        if self.stopping:
+            return
+        if not self.received:
+            self.received = True
+            for child in multiprocessing.active_children():  # the scene workers of generate_dataset
+                child.terminate()
+        raise _Terminated()
 
 
 @click.group(cls=_DefaultGroup, context_settings={"help_option_names": ["-h", "--help"]})
@@ -140,7 +212,8 @@ def _occupied(out_dir: Path, version: str, survey: RootSurvey) -> str:
 
 @main.command("generate", context_settings={"help_option_names": ["-h", "--help"]})
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path),
-              help="Dataset root to write: tables go to OUT/<version>/, files to OUT/samples/ and OUT/sweeps/.")
+              help="Dataset root to write: tables go to OUT/<version>/, key frames' files to OUT/samples/, and "
+                   "the sweeps between key frames (--sweeps-per-sample above 1, --camera-hz) to OUT/sweeps/.")
 @click.option("--scenes", default=2, show_default=True, type=click.IntRange(1, MAX_SCENES),
               help=f"Number of scenes (1..{MAX_SCENES}).")
 @click.option("--seed", default=0, show_default=True, type=click.IntRange(min=0), help="Random seed; the same seed writes the same dataset.")
@@ -156,10 +229,12 @@ def _occupied(out_dir: Path, version: str, survey: RootSurvey) -> str:
 @click.option("--camera-hz", default=0.0, show_default=True, type=FiniteFloatRange(0.0, MAX_CAMERA_HZ),
               help="Camera exposures a second, each as the LiDAR crosses the camera's axis (nuScenes: 12, with "
                    "--sweeps-per-sample 10, which a replay needs to find a frame at each of its triggers: "
-                   "docs/synth/timing.md); 0: at key frames only (2 Hz). The frames between key frames go to "
-                   "OUT/sweeps/CAM_*/ as nuScenes files its camera sweeps (no masks, no annotations; training reads key "
+                   "docs/synth/timing.md); 0: at key frames only (2 Hz). The key frames' own exposures are added to "
+                   f"this rate's: a camera gets at least this rate and up to {KEY_FRAME_HZ:g} Hz more, by camera and "
+                   "--sweeps-per-sample (with 10, a rate of 10 gives as many frames as 12). The frames between key "
+                   "frames go to OUT/sweeps/CAM_*/ as nuScenes files its camera sweeps (no masks, no annotations; training reads key "
                    "frames only, streamdet-replay and streamdet-bag read them all). Rendering time grows with the "
-                   f"rate: 12 Hz renders about 6 times the images. At most {MAX_CAMERA_HZ:g} (once per LiDAR rotation).")
+                   f"rate: 12 Hz renders 6 to 7 times the images. At most {MAX_CAMERA_HZ:g} (once per LiDAR rotation).")
 @click.option("--version", "version", default=DEFAULT_VERSION, show_default=True,
               callback=lambda ctx, param, value: _version(value),
               help="Name of the table folder (the nuScenes 'version'): one folder name, not one of the layout's own.")
@@ -184,26 +259,12 @@ def generate(out_dir: Path, scenes: int, seed: int, resolution: tuple[int, int],
         raise click.ClickException(problem)
     table_dir = out_dir / version
     replaced = _check_out_dir(out_dir, version, overwrite)
-    # Everything that needs no simulation is checked and made before any is run, and before --overwrite deletes
-    # anything: --out (and its parents) made, the staging folder beside it and its table folder. The dataset is
-    # written there and renamed into --out at the end: an error or Ctrl-C leaves --out as it was (StagedDataset).
-    try:
-        staged = StagedDataset(out_dir, config)
-    except OSError as e:
-        raise click.ClickException(f"cannot write the dataset under {out_dir}: {e}") from None
     deleted = _listing(replaced)  # listed while they exist (folders marked)
-    if replaced:
-        click.echo(f"replacing the streamdet-synth dataset in {out_dir}: deleting {deleted}")
-        try:
-            remove_dataset_entries(replaced)
-        except BaseException as e:  # Ctrl-C too: the staging folder goes
-            staged.abandon()
-            if isinstance(e, OSError):
-                raise click.ClickException(f"cannot delete the previous dataset in {out_dir}: {e}") from None
-            raise
     previews: list[Path] = []
+    sigterm = _SigtermStopsRun()
 
     def finish(root: Path) -> None:  # in the staging folder: the previews are part of what appears at once
+        sigterm.check()  # last before the dataset is moved into --out
         if preview:
             from streamdet.data.nuscenes import NuScenesReader
             from streamdet.data.preview import write_previews
@@ -211,10 +272,67 @@ def generate(out_dir: Path, scenes: int, seed: int, resolution: tuple[int, int],
             reader = NuScenesReader(root, version)
             previews.extend(out_dir / p.relative_to(root) for p in write_previews(reader.get(0), root / "preview", n_slices=8))
 
-    total = scenes * samples_per_scene
+    staged: StagedDataset | None = None
+    deleting = ""  # `deleted` once --overwrite has begun deleting it
+    with sigterm:  # SIGTERM unwinds the run as Ctrl-C does, for this run only
+        try:
+            # Everything that needs no simulation is checked and made before any is run, and before --overwrite
+            # deletes anything: --out (and its parents) made, the staging folder beside it and its table folder. The
+            # dataset is written there and renamed into --out at the end: an error, Ctrl-C or SIGTERM leaves --out as
+            # it was (StagedDataset).
+            try:
+                staged = StagedDataset(out_dir, config)
+            except OSError as e:
+                raise click.ClickException(f"cannot write the dataset under {out_dir}: {e}") from None
+            if replaced:
+                click.echo(f"replacing the streamdet-synth dataset in {out_dir}: deleting {deleted}")
+                deleting = deleted
+                _delete_previous(staged, replaced)
+            summary = _simulate(staged, scenes * samples_per_scene, scenes, workers, resolution, deleted, finish,
+                                sigterm.check)
+        except BaseException as e:
+            if not sigterm.received:
+                raise
+            sigterm.stopping = True
+            _release_quietly(e)
+            click.echo(f"streamdet-synth: stopped by SIGTERM: {_terminated(out_dir, deleting, staged)}", err=True)
+            raise SystemExit(EXIT_TERMINATED) from None
+    click.echo(
+        f"wrote {len(summary.scenes)} scenes, {summary.num_samples} key frames, {summary.num_sweeps} LiDAR sweeps "
+        f"(mean {summary.mean_points_per_sweep:.0f} points), {summary.num_images} images "
+        f"({resolution[0]}x{resolution[1]}{_sweep_images(summary)}), {summary.num_annotations} box annotations in "
+        f"{summary.seconds:.1f} s"
+    )
+    click.echo(f"  tables: {table_dir}/  files: {_files(out_dir, summary)}  splits: {out_dir / 'splits.json'}")
+    for path in previews:
+        click.echo(f"  preview: {path}")
+
+
+def _delete_previous(staged: StagedDataset, replaced: tuple[Path, ...]) -> None:
+    """--overwrite: delete the dataset --out held (``replaced``); on any error, Ctrl-C or SIGTERM the staging
+    folder goes too."""
+    try:
+        remove_dataset_entries(replaced)
+    except BaseException as e:
+        staged.abandon()
+        if isinstance(e, OSError):
+            raise click.ClickException(f"cannot delete the previous dataset in {staged.out}: {e}") from None
+        raise
+
+
+def _simulate(staged: StagedDataset, total: int, scenes: int, workers: int, resolution: tuple[int, int], deleted: str,
+              finish, check) -> GenerationSummary:
+    """``staged.generate`` behind a progress bar of ``total`` key frames, its errors as one-line ClickExceptions that
+    say what the abandoned run left (``deleted``: the previous dataset --overwrite deleted, listed); ``check()`` at
+    each progress report."""
+    out_dir = staged.out
     try:
         with progressbar(length=total, label=f"simulating {scenes} scene(s)") as bar:
-            summary = staged.generate(progress=bar.update, workers=workers, finish=finish)
+            def progress(n: int) -> None:
+                check()
+                bar.update(n)
+
+            return staged.generate(progress=progress, workers=workers, finish=finish)
     except (OSError, ValueError) as e:
         raise click.ClickException(f"cannot write the dataset under {out_dir}: {e}; {_abandoned(out_dir, deleted, staged.left)}") from None
     except (MemoryError, BrokenProcessPool) as e:
@@ -231,15 +349,43 @@ def generate(out_dir: Path, scenes: int, seed: int, resolution: tuple[int, int],
     except KeyboardInterrupt:
         click.echo(f"streamdet-synth: {_abandoned(out_dir, deleted, staged.left)}", err=True)
         raise
-    click.echo(
-        f"wrote {len(summary.scenes)} scenes, {summary.num_samples} key frames, {summary.num_sweeps} LiDAR sweeps "
-        f"(mean {summary.mean_points_per_sweep:.0f} points), {summary.num_images} images "
-        f"({resolution[0]}x{resolution[1]}{_sweep_images(summary)}), {summary.num_annotations} box annotations in "
-        f"{summary.seconds:.1f} s"
-    )
-    click.echo(f"  tables: {table_dir}/  files: {out_dir / 'samples'}/, {out_dir / 'sweeps'}/  splits: {out_dir / 'splits.json'}")
-    for path in previews:
-        click.echo(f"  preview: {path}")
+
+
+def _terminated(out_dir: Path, deleting: str, staged: StagedDataset | None) -> str:
+    """What a run stopped by SIGTERM left; the run is abandoned (again: the exception may have cut short a cleanup
+    under way) unless its dataset was complete in ``out_dir`` already."""
+    if staged is None:  # stopped while StagedDataset was made: it removed what it had made
+        return _abandoned(out_dir, "", [])
+    if staged.done:
+        return f"the run had ended: the dataset in {out_dir} is complete"
+    staged.abandon()
+    return _abandoned(out_dir, deleting, staged.left)
+
+
+def _release_quietly(exc: BaseException | None) -> None:
+    """Free the locals of the finished frames that ``exc`` and the exceptions it chains hold, with Python's
+    "Exception ignored in" reports muted meanwhile. SIGTERM may cut a file write anywhere (in numpy's zip writer of
+    a mask, between its entry and its close): the half-closed writer then complained of its closed file as it was
+    collected at exit, a traceback after the one-line note. Its file is removed with the staging folder anyway."""
+    hook = sys.unraisablehook
+    sys.unraisablehook = lambda unraisable: None
+    try:
+        todo, seen = [exc], set()
+        while todo:
+            e = todo.pop()
+            if e is not None and id(e) not in seen:
+                seen.add(id(e))
+                traceback.clear_frames(e.__traceback__)  # the frames still running (this one's callers) are skipped
+                todo += [e.__cause__, e.__context__]
+        gc.collect()
+    finally:
+        sys.unraisablehook = hook
+
+
+def _files(out_dir: Path, summary: GenerationSummary) -> str:
+    """The file folders the run wrote: OUT/samples/, and OUT/sweeps/ where there were sweeps between key frames."""
+    between = summary.num_sweeps > summary.num_samples or summary.num_images > summary.num_key_images
+    return f"{out_dir / 'samples'}/" + (f", {out_dir / 'sweeps'}/" if between else "")
 
 
 def _sweep_images(summary) -> str:

@@ -1,4 +1,5 @@
-"""Writing a synthetic dataset so that an error or Ctrl-C leaves its folder as it was (``streamdet-synth generate``).
+"""Writing a synthetic dataset so that an error, Ctrl-C or SIGTERM leaves its folder as it was (``streamdet-synth
+generate``).
 
 The dataset is written into a staging folder beside ``OUT`` and its entries are renamed into ``OUT`` at the end;
 ``generate_dataset`` (synth_writer.py) itself writes in place.
@@ -26,21 +27,25 @@ class StagedDataset:
     """One run of ``generate_dataset`` that leaves ``out_dir`` as it was unless it completes (streamdet-synth
     generate): the dataset is written into a staging folder beside ``out_dir`` (in its parent, so that the final
     moves are renames on one file system; inside ``out_dir`` where the parent is not writable), and its entries are
-    renamed into ``out_dir`` at the end. On any error or KeyboardInterrupt (`generate`) or a call of `abandon`,
-    everything this run created is removed: the staging folder, the entries it moved into ``out_dir`` and
-    ``out_dir`` itself (with the parents it made) where it did not exist before, if empty. Nothing that was there
-    before the run is touched, nor anything foreign: a file that appears in ``out_dir`` meanwhile stays.
+    renamed into ``out_dir`` at the end. On any exception (`generate`: errors, KeyboardInterrupt, and the SystemExit
+    that streamdet-synth generate's SIGTERM handler raises) or a call of `abandon`, everything this run created is
+    removed: the staging folder, the entries it moved into ``out_dir`` and ``out_dir`` itself (with the parents it
+    made) where it did not exist before, if empty. Nothing that was there before the run is touched, nor anything
+    foreign: a file that appears in ``out_dir`` meanwhile stays.
 
     Constructing it does the checks that need no simulation and makes the folders (an ``out_dir`` that cannot be
     made, a parent that cannot be written: before minutes of work). The final layout is ``generate_dataset``'s.
-    A run killed outright (SIGKILL, power loss) leaves at most a ``.streamdet-synth-staging-*`` folder beside
-    ``out_dir``, never a part of a dataset in it (bar the moment of the final renames)."""
+    A run killed outright leaves at most a ``.streamdet-synth-staging-*`` folder beside ``out_dir``, never a part of
+    a dataset in it (bar the moment of the final renames): SIGKILL, power loss, and SIGTERM in a program that leaves
+    it its default action (which runs no ``except`` or ``finally``; streamdet-synth generate turns it into an
+    exception for the run)."""
 
     def __init__(self, out_dir: str | Path, config: SynthConfig) -> None:
         self.out = Path(out_dir)
         self.config = config
         self._moved: list[Path] = []
         self.left: list[str] = []  # what `abandon` could not remove ("path (error)")
+        self.done = False  # True once `generate` has moved the whole dataset into out_dir (abandon removes none of it)
         self._created = _missing_folders(self.out)  # outermost first: made by this run
         self.staging: Path | None = None
         try:
@@ -62,8 +67,8 @@ class StagedDataset:
     ) -> GenerationSummary:
         """Write the dataset (``generate_dataset``), run ``finish(root)`` on its staging root (more files that
         belong to it: previews), then move it into ``out_dir``. ``out_dir`` must hold none of the dataset's names by
-        then (FileExistsError before any simulation). Any error or KeyboardInterrupt abandons the run, then
-        propagates."""
+        then (FileExistsError before any simulation). Any exception (KeyboardInterrupt and SystemExit too) abandons
+        the run, then propagates."""
         try:
             clash = self.clashes()
             if clash:
@@ -82,7 +87,7 @@ class StagedDataset:
                 _move(entry, target)
             shutil.rmtree(self.staging)  # empty, or the sources of copies (_move)
             self.staging = None
-            self._moved, self._created = [], []  # the dataset's now: abandon() removes nothing of it
+            self._moved, self._created, self.done = [], [], True  # the dataset's now: abandon() removes nothing of it
         except BaseException:
             self.abandon()
             raise
