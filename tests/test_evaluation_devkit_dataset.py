@@ -397,15 +397,16 @@ def test_saved_run_scores_the_same_in_files_mode(tables, dataset_run, tmp_path):
     """--save-results' gt.json carries the racks: the files mode scores the saved run to the dataset mode's figures,
     through the library and through the command."""
     _, info = tables
-    save_run(tmp_path, predictions=dataset_run.predictions, ground_truth=dataset_run.ground_truth,
+    run = tmp_path / "run"  # the saved run; --json goes beside it (no tool writes into a saved run)
+    save_run(run, predictions=dataset_run.predictions, ground_truth=dataset_run.ground_truth,
              ego_positions=dataset_run.ego_positions, scenes=dataset_run.scenes, poses=dataset_run.poses,
              num_slices=1, use_camera=False, bike_racks=dataset_run.bike_racks)  # fmt: skip
-    inputs = load_eval_inputs(tmp_path / GT_FILE, tmp_path / RESULTS_FILE)
+    inputs = load_eval_inputs(run / GT_FILE, run / RESULTS_FILE)
     np.testing.assert_array_equal(inputs.bike_racks[info["token"]], dataset_run.bike_racks[info["token"]])
     again = evaluate(inputs.gt, inputs.pred, classes=CLASSES, bike_racks=inputs.bike_racks)
     assert figures(again) == figures(dataset_run.metrics)
     out = tmp_path / "figures.json"
-    res = CliRunner().invoke(eval_main, ["--gt", str(tmp_path / GT_FILE), "--results", str(tmp_path / RESULTS_FILE),
+    res = CliRunner().invoke(eval_main, ["--gt", str(run / GT_FILE), "--results", str(run / RESULTS_FILE),
                                          "--classes", ",".join(CLASSES), "--json", str(out)])  # fmt: skip
     assert res.exit_code == 0, res.output
     assert "bike-rack" not in res.output
