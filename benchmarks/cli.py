@@ -14,9 +14,9 @@ import time
 from pathlib import Path
 
 import click
-from click.core import ParameterSource
 
 from streamdet.cli_utils import (
+    GIVEN_SOURCES,
     MAX_INTRA_OP_THREADS,
     MAX_SLICES,
     MAX_THREADS,
@@ -45,7 +45,6 @@ TIMING_ONLY = (
     "slices", "fp16", "int8", "stream_precision", "stream_image_precision", "stream_slice_workers", "repeat", "threads",
     "quick", "plot_path", "export_dir", "profile_dir",
 )  # fmt: skip
-_GIVEN = (ParameterSource.COMMANDLINE, ParameterSource.ENVIRONMENT)  # typed by the user, not a default
 
 
 def _write(path: Path, what: str, write) -> None:
@@ -57,7 +56,7 @@ def _write(path: Path, what: str, write) -> None:
 
 def _refuse_timing_options(ctx: click.Context) -> None:
     """With --flops-only: a timing option given on the command line is refused, naming every such option."""
-    given = [p for p in ctx.command.params if p.name in TIMING_ONLY and ctx.get_parameter_source(p.name) in _GIVEN]
+    given = [p for p in ctx.command.params if p.name in TIMING_ONLY and ctx.get_parameter_source(p.name) in GIVEN_SOURCES]
     if given:
         names = ", ".join("/".join([*p.opts, *p.secondary_opts]) for p in given)
         apply, them = ("apply", "them") if len(given) > 1 else ("applies", "it")  # one option: "--repeat only applies"

@@ -7,9 +7,9 @@ from pathlib import Path
 
 import click
 
-from click.core import ParameterSource
 
 from streamdet.cli_utils import (
+    GIVEN_SOURCES,
     MAX_SLICES, RESOLUTION_RANGE_HELP, dataset_inputs, refuse_output_over_inputs, resolution_callback, slices_callback)
 from streamdet.core.image_layout import IMAGE_LAYOUTS
 from streamdet.core.lut_layout import LUT_LAYOUTS
@@ -30,7 +30,6 @@ MAX_SEED = 2**63 - 1
 # (an image option of a LiDAR-only checkpoint, --calibration-samples without --int8, --seed with a checkpoint) is
 # refused only when given; their defaults are still shown in --help
 _GIVEN_ONLY = ("calibration_samples", "seed", "image_layout", "lut_layout")
-_GIVEN = (ParameterSource.COMMANDLINE, ParameterSource.ENVIRONMENT)
 
 
 def _not_empty(ctx: click.Context, param: click.Parameter, value: str | None) -> str | None:
@@ -99,7 +98,7 @@ def main(preset, checkpoint, calibration, resolution, num_slices, fp16, int8, ca
                               + dataset_inputs(None if calibration_data is None else Path(calibration_data),
                                                "--calibration-data"))  # fmt: skip
     ctx = click.get_current_context()
-    given = {name: ctx.get_parameter_source(name) in _GIVEN for name in _GIVEN_ONLY}
+    given = {name: ctx.get_parameter_source(name) in GIVEN_SOURCES for name in _GIVEN_ONLY}
     opts = ExportOptions(
         preset=preset, checkpoint=checkpoint, calibration=calibration, resolution=resolution, num_slices=num_slices,
         fp16=fp16, int8=int8, calibration_data=calibration_data,
